@@ -1,0 +1,80 @@
+"""Unit conversions at the edges of the package, in one place.
+
+Everything inside hbma_ctrl works in SI (m, Pa, N, kg, s, m^3). Users, scenario files, the CLI and
+plots speak mm, kPa, g, cm^3 and percent; they convert here and nowhere else.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "G_STD",
+    "mm",
+    "to_mm",
+    "kpa",
+    "to_kpa",
+    "grams",
+    "to_grams",
+    "cm3",
+    "to_cm3",
+    "pct",
+    "to_pct",
+    "lpm_to_kgs",
+]
+
+G_STD = 9.80665  # standard gravity, m/s^2
+RHO_AIR_NORMAL = 1.204  # air density at 20 degC, 101.325 kPa (ANR reference), kg/m^3
+
+
+def mm(x):
+    """Millimetres -> metres."""
+    return x * 1e-3
+
+
+def to_mm(x):
+    """Metres -> millimetres."""
+    return x * 1e3
+
+
+def kpa(x):
+    """Kilopascal -> pascal."""
+    return x * 1e3
+
+
+def to_kpa(x):
+    """Pascal -> kilopascal."""
+    return x * 1e-3
+
+
+def grams(x):
+    """Grams -> kilograms."""
+    return x * 1e-3
+
+
+def to_grams(x):
+    """Kilograms -> grams."""
+    return x * 1e3
+
+
+def cm3(x):
+    """Cubic centimetres -> cubic metres."""
+    return x * 1e-6
+
+
+def to_cm3(x):
+    """Cubic metres -> cubic centimetres."""
+    return x * 1e6
+
+
+def pct(x):
+    """Percent -> fraction (0-100 -> 0-1)."""
+    return x * 1e-2
+
+
+def to_pct(x):
+    """Fraction -> percent."""
+    return x * 1e2
+
+
+def lpm_to_kgs(x):
+    """Normal litres per minute (ANR) -> mass flow in kg/s."""
+    return x * 1e-3 / 60.0 * RHO_AIR_NORMAL
