@@ -163,7 +163,13 @@ def flat_h1_from_pressure(p, P):
     disc = (qy / 2) ** 2 + (py / 3) ** 3  # > 0 for k > 0: one real root
     sq = ca.sqrt(ca.fmax(disc, 0))
     cbrt = lambda x: ca.sign(x) * ca.fabs(x) ** (1.0 / 3.0)  # noqa: E731
-    return cbrt(-qy / 2 + sq) + cbrt(-qy / 2 - sq) + k / 3
+    h = cbrt(-qy / 2 + sq) + cbrt(-qy / 2 - sq) + k / 3
+    # Cardano cancels digits for small k (two nearly opposite cube roots): polish with Newton on the
+    # cubic, whose slope h (3h - 2k) is positive at the root (h > k)
+    for _ in range(2):
+        slope = h * (3 * h - 2 * k)
+        h = ca.if_else(slope > 0, h - (h**3 - k * h**2 - k * r1**2) / ca.fmax(slope, 1e-300), h)
+    return h
 
 
 # ---------------------------------------------------------------------------------------------
