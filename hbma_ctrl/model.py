@@ -44,7 +44,12 @@ __all__ = ["OUTPUTS", "Fidelity", "FreeInflation", "QuasiStatic", "DynamicPlatfo
            "FIDELITIES", "make_fidelity", "MODE_REST", "MODE_MOVING"]
 
 #: names of the output vector every fidelity's ``out`` Function returns, in order
-OUTPUTS = ("h1", "h2", "h", "p", "F", "q", "q_in", "q_out", "lam", "V", "m", "det")
+OUTPUTS = ("h1", "h2", "h", "p", "F", "q", "q_in", "q_out", "lam", "V", "m", "det", "det_p")
+# det: determinant of d(G, F)/d(h1, h2) (free: dG/dh1). It vanishes where the gas-plus-membrane
+#   stiffness along the constant-load path does: a snap-through under mass control.
+# det_p: determinant of d(p, F)/d(h1, h2) (free: dp/dh1). It vanishes at the limit point under
+#   pressure control (the pressure peak along the load path), where the paper's system (13)-(14),
+#   read with dp/dt given, is singular. Mass control passes it stably; the log marks it.
 MODE_REST = 0.0  # platform resting on the rig, membrane flat under it
 MODE_MOVING = 1.0  # membrane carries the platform (contact) or, for the platform model, airborne
 
@@ -65,6 +70,17 @@ def shape_jacobian(h1, h2, P):
     e = ca.vertcat(Gs, Fs)
     G, F, J = ca.substitute([Gs, Fs, ca.jacobian(e, s)], [s], [ca.vertcat(h1, h2)])
     return G, F, J
+
+
+def pressure_det(h1, h2, P, free: bool = False):
+    """det d(p, F)/d(h1, h2) at (h1, h2), or dp/dh1 along free inflation: the pressure-control fold."""
+    s1, s2 = ca.SX.sym("s1"), ca.SX.sym("s2")
+    s = ca.vertcat(s1, s2)
+    ps = ph.pressure(s1, s2, P)
+    Fs = ca.pi * ph.geometry(s1, s2, P)["a2"] * ps
+    J = ca.jacobian(ca.vertcat(ps, Fs), s)
+    d = J[0, 0] if free else J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+    return ca.substitute(d, s, ca.vertcat(h1, h2))
 
 
 class Fidelity:
@@ -97,12 +113,12 @@ class Fidelity:
         mode = ca.SX.sym("mode")
         return x, u, theta, P, mode
 
-    def _outputs(self, h1, h2, p, q_all, P, det):
+    def _outputs(self, h1, h2, p, q_all, P, det, det_p):
         g = ph.geometry(h1, h2, P)
         F = ca.pi * g["a2"] * p
         q, q_in, q_out = q_all
         m = (p + P["p_env"]) * g["V"] / (P["R"] * P["T"])
-        return ca.vertcat(h1, h2, g["h"], p, F, q, q_in, q_out, g["lam"], g["V"], m, det)
+        return ca.vertcat(h1, h2, g["h"], p, F, q, q_in, q_out, g["lam"], g["V"], m, det, det_p)
 
     @cached_property
     def f(self) -> ca.Function:
@@ -202,7 +218,8 @@ class FreeInflation(Fidelity):
         h1 = x[0]
         p = ph.pressure(h1, 0, P)
         _, _, J = shape_jacobian(h1, 0, P)
-        return self._outputs(h1, 0 * h1, p, ph.net_flow(u, p, P, self.table), P, J[0, 0])
+        return self._outputs(h1, 0 * h1, p, ph.net_flow(u, p, P, self.table), P, J[0, 0],
+                             pressure_det(h1, 0, P, free=True))
 
     def initial_state(self, theta):
         return np.array([0.0]), MODE_MOVING
@@ -249,7 +266,7 @@ class QuasiStatic(Fidelity):
         p = self._pressure(x, P, mode)
         _, _, J = self._jac(h1, h2, P)
         det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        y = self._outputs(h1, h2, p, ph.net_flow(u, p, P, self.table), P, det)
+        y = self._outputs(h1, h2, p, ph.net_flow(u, p, P, self.table), P, det, pressure_det(h1, h2, P))
         # resting: the membrane is flat under the plate, V = V0 and the plate carries pi r1^2 p
         rest = mode < 0.5
         y[2] = ca.if_else(rest, 0, y[2])
@@ -317,7 +334,8 @@ class DynamicPlatform(Fidelity):
         # quasi-static snap indicator: det of d(G, F)/d(h1, h2), as in QuasiStatic
         _, _, J = shape_jacobian(h1, h2, P)
         det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        y = self._outputs(h1, h2, p, ph.net_flow(u, p, P, self.table), P, det)
+        det_p = ca.if_else(contact, pressure_det(h1, h2, P), pressure_det(h1, h2, P, free=True))
+        y = self._outputs(h1, h2, p, ph.net_flow(u, p, P, self.table), P, det, det_p)
         y[2] = ca.if_else(rest, 0, z)  # platform height
         y[4] = ca.if_else(rest, ca.pi * P["r1"] ** 2 * p, ca.if_else(contact, y[4], 0))
         y[9] = ca.if_else(rest, P["V0"], y[9])

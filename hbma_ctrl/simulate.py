@@ -558,9 +558,23 @@ def _saturation_events(t: np.ndarray, p: np.ndarray, limit: float) -> list:
     return out
 
 
+def _limit_point_events(data: dict, fidelity: str) -> list:
+    """Crossings of the pressure-control limit point (det_p changes sign while the membrane moves).
+
+    Under mass control the membrane passes it stably; a pressure-controlled actuator would snap
+    there, and the paper's model (eqs. 13-15 with dp/dt given) is singular there.
+    """
+    d = data["det_p"]
+    moving = data["mode"] > 0.5 if fidelity != "free" else np.ones_like(d, dtype=bool)
+    sgn = np.sign(d)
+    idx = np.nonzero((sgn[1:] != sgn[:-1]) & moving[1:] & moving[:-1] & (sgn[1:] != 0) & (sgn[:-1] != 0))[0] + 1
+    return [(float(data["t"][i]), "limit_point") for i in idx]
+
+
 def _finish(fid, tr, data, events, ok, sensor_range: float = 35e3) -> Log:
     status = "ok" if ok else "diverged"
-    events = [(float(t), n) for t, n in events] + _saturation_events(data["t"], data["p"], sensor_range)
+    events = ([(float(t), n) for t, n in events] + _saturation_events(data["t"], data["p"], sensor_range)
+              + _limit_point_events(data, fid.name))
     if ok and fid.needs_platform and not any(n == "lift_off" for _, n in events):
         status = "resting"
         events.append((0.0, "never_lifted: the load exceeds what the pump can lift"))
