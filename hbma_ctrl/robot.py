@@ -1,0 +1,828 @@
+"""The hybrid soft-rigid continuum robot (SPEC 8, paper II-C / IV-C): statics and kinematics.
+
+Layers of three HBMA each are stacked along z; every chamber is inflated on its own and its
+membrane centre is glued to the layer above. This module holds the robot as data
+(:class:`RobotDesign`), its forward and inverse kinematics, the load sharing between the chambers
+of a layer, the per-chamber membrane state consistent with that load (through
+:mod:`hbma_ctrl.physics`; no physics is re-derived here), each chamber's reachable height and what
+limits it, the paper's Table II beside the model, the reachable workspace, and an open-loop scene
+(the paper's Fig. 10 sequential inflation).
+
+Bodies and frames
+-----------------
+Body 0 is the bottom layer (fixed to the ground), bodies 1..N sit on the chambers of the body
+below; chamber layer k (letters A, B, C, ... from the bottom, numbers 1..3, as in Fig. 10) lives
+in body k and pushes body k + 1. Body N is the top part (end plate, no chambers used). Frame k sits
+at the centre of body k's bottom face, z along the layer's axis. Body k's membranes lie in its top
+plane ``z = L`` (L = layer thickness, 9 mm with the flat 2 mm membrane). A chamber's *height* h is
+the membrane height of SPEC 1 (``h = h1 - h2``): the gap the chamber opens between body k's top
+plane and body k + 1's bottom face, at the chamber centre.
+
+Kinematic assumption (stated once, used everywhere)
+---------------------------------------------------
+Body k + 1's bottom face is the plane through the three contact points
+``P_i = (rc cos phi_i, rc sin phi_i, L + h_i)`` (frame k): chamber heights are measured along
+body k's axis, and the glued membrane apexes do not move sideways. Because three heights generally
+distort the triangle of contact points, the rigid upper layer cannot fit it exactly; the membranes
+absorb the small in-plane mismatch in shear. Frame k + 1 is placed at the centroid of the P_i
+(on body k's axis, at ``L + mean(h)``) and rotated from frame k without twist: about the in-plane
+axis ``(-sin psi, cos psi, 0)`` by the bend angle ``theta``, which maps z onto the plane normal
+``(sin theta cos psi, sin theta sin psi, cos theta)``. ``psi`` is the bend *direction* (where the
+layer's top leans to); a single inflated chamber at angle phi_i bends the layer toward
+``phi_i + 180 deg``. This is the piecewise-constant-curvature view of Webster and Jones (paper ref.
+[23]) with one rigid link per layer. Each chamber's membrane is modelled as in the single-actuator
+model: a spherical segment pressed by a plane parallel to its retaining disk (SPEC 1); the tilt of
+the plane over one membrane (a few mm wide) is neglected.
+
+Statics
+-------
+The chambers push body k + 1 along its normal (the contact normal). For the sub-assembly of bodies
+k + 1..N, its weight and an optional tip load (force and moment, world frame) give three equations
+in the three normal forces: force along the normal and the moments about the two in-plane axes
+through the contact centroid. The in-plane force and the twisting moment are carried by the glued
+membranes in shear (reported, not modelled). A negative force means the glue pulls (tension): the
+ballooning-membrane model does not cover it, and such chambers are flagged.
+
+Why the robot's chambers work past the balloon limit point
+----------------------------------------------------------
+With Table I and r1 = 4.5 mm, t0 = 2 mm, the free-inflation pressure peaks near 35.5 kPa at
+h ~ 5.7 mm (NH); below 35 kPa a chamber reaches about 5 mm and tilts a layer only ~12 degrees,
+while Table II reports 28.9. Beyond the peak the pressure *falls* as the membrane grows: under
+pressure control that branch is unstable (any excess pressure inflates further), but for a fixed
+gas mass it is stable because the gas is compressible and ``G = (p + p_env) V`` keeps increasing
+with h (the quasi-static model has no fold there). So the robot holds chambers on the far branch
+by gas mass. What limits a chamber then is not the pressure limit (the pressure on the far branch
+is below the peak) but (a) whether the pump and the pressure limit allow passing the peak at all
+(``min(pressure_limit, pump stall)`` above the load path's peak pressure), and (b) the membrane's
+maximum stretch (``RobotDesign.max_stretch``, an assumed safe equi-biaxial stretch: the paper
+inflated "without reaching the limit, which would mean breaking the membrane"). See
+:func:`chamber_reach`.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from functools import lru_cache
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from . import physics as ph
+from . import units as U
+from .materials import Material, make_material
+from .params import Actuator, Platform, Pneumatics, check_range
+
+__all__ = [
+    "RobotDesign", "RobotPneumatics", "RobotSettings", "RobotPose", "ChamberReach",
+    "chamber_names", "layer_plane", "layer_transform", "forward_kinematics", "inverse_kinematics",
+    "inverse_kinematics_tip", "load_sharing", "chamber_states", "chamber_reach", "pump_stall_pressure",
+    "robot_table2", "table2_markdown", "workspace", "parse_section", "run_scene", "TABLE2_PAPER",
+    "TOPOLOGIES",
+]
+
+LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ"
+TOPOLOGIES = ("per_chamber", "shared")
+OUTLETS = ("per_chamber",)
+
+#: the paper's Table II: (HBMA inflated, angle deg, length mm, extension %)
+TABLE2_PAPER = ((0, 2.3, 9.6, 0.0), (1, 28.9, 18.0, 88.0), (2, 28.5, 23.0, 140.0), (3, 1.3, 26.7, 179.0))
+
+
+def _robot_chamber() -> Actuator:
+    return Actuator(r1=4.5e-3, t0=2e-3, V0=3e-6, material=make_material("nh"))
+
+
+# ---------------------------------------------------------------------------------------------
+# the robot as data
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RobotDesign:
+    """A stack of HBMA layers (SI). Defaults: the paper's robot (SPEC 8, Fig. 1: 9 HBMA).
+
+    Fields
+    ------
+    n_layers : number of chamber layers N (bodies 0..N; body N is the top part), 1-26.
+    placement_radius : chamber centres' distance from the axis, m (15.4 mm: the 8.75-22 mm annulus
+        of a 17.5/44 mm layer holds an r1 = 4.5 mm disk with margin).
+    chamber_angles : the three chambers' angles about the axis, rad (0, 120, 240 deg); the same in
+        every layer (chambers of consecutive layers aligned).
+    layer_thickness : body thickness with the flat membrane, m (9 mm).
+    outer_diameter, inner_diameter : layer annulus, m (44, 17.5 mm; the tubing passes inside).
+    layer_mass : mass of one layer body, kg (17.6 g).
+    end_mass : mass of the top body N, kg; None = a layer's mass.
+    chamber : the HBMA of every chamber (r1 4.5 mm, t0 2 mm, V0 3 cm^3 assumed as Table I, NH).
+    max_stretch : largest equi-biaxial membrane stretch allowed (-), an assumed safe limit below
+        rupture (Ecoflex 00-30); it sets the far-branch reach (see :func:`chamber_reach`).
+    g : gravity, m/s^2 (acts along -z of the world; the base is level).
+    """
+
+    n_layers: int = 3
+    placement_radius: float = 15.4e-3
+    chamber_angles: tuple = (0.0, 2 * math.pi / 3, 4 * math.pi / 3)
+    layer_thickness: float = 9e-3
+    outer_diameter: float = 44e-3
+    inner_diameter: float = 17.5e-3
+    layer_mass: float = 17.6e-3
+    end_mass: float | None = None
+    chamber: Actuator = field(default_factory=_robot_chamber)
+    max_stretch: float = 4.0
+    g: float = U.G_STD
+
+    def validate(self) -> "RobotDesign":
+        """Check every field; ValueError names the field and its range."""
+        if not isinstance(self.n_layers, int) or isinstance(self.n_layers, bool) or not 1 <= self.n_layers <= 26:
+            raise ValueError(f"robot.n_layers = {self.n_layers!r} must be an integer in [1, 26]")
+        check_range("robot", "layer_thickness", self.layer_thickness, 1e-3, 0.1, "m")
+        check_range("robot", "inner_diameter", self.inner_diameter, 0.0, 0.5, "m")
+        check_range("robot", "outer_diameter", self.outer_diameter, self.inner_diameter, 0.5, "m",
+                    lo_open=True)
+        check_range("robot", "layer_mass", self.layer_mass, 0.0, 10.0, "kg")
+        if self.end_mass is not None:
+            check_range("robot", "end_mass", self.end_mass, 0.0, 10.0, "kg")
+        check_range("robot", "g", self.g, 0.0, 100.0, "m/s^2")
+        self.chamber.validate()
+        r1 = self.chamber.r1
+        lo, hi = self.inner_diameter / 2 + r1, self.outer_diameter / 2 - r1
+        check_range("robot", "placement_radius", self.placement_radius, lo, hi, "m "
+                    f"(the chamber disk r1 = {r1 * 1e3:g} mm must fit the layer annulus)")
+        if len(self.chamber_angles) != 3:
+            raise ValueError(f"robot.chamber_angles must hold 3 angles, got {len(self.chamber_angles)}")
+        for i, a in enumerate(self.chamber_angles):
+            check_range("robot", f"chamber_angles[{i}]", a, -2 * math.pi, 2 * math.pi, "rad")
+        # the support triangle must contain the axis well (else the 3x3 statics is ill posed) and
+        # the chambers must not overlap
+        xy = self.chamber_xy()
+        for i in range(3):
+            for j in range(i + 1, 3):
+                if np.linalg.norm(xy[i] - xy[j]) < 2 * r1:
+                    raise ValueError(f"robot.chamber_angles: chambers {i + 1} and {j + 1} overlap "
+                                     f"(centres {np.linalg.norm(xy[i] - xy[j]) * 1e3:.1f} mm apart, "
+                                     f"need >= 2 r1 = {2 * r1 * 1e3:g} mm)")
+        gaps = np.diff(np.sort(np.mod(np.asarray(self.chamber_angles), 2 * math.pi)))
+        gaps = np.append(gaps, 2 * math.pi - gaps.sum())
+        if gaps.max() >= math.pi - 1e-6:
+            raise ValueError("robot.chamber_angles: the three chambers must not lie in one half-plane "
+                             "(the layer would tip over; every gap between angles must be < 180 deg)")
+        check_range("robot", "max_stretch", self.max_stretch, 1.05, min(20.0, self.chamber.material.lam_max()))
+        return self
+
+    # derived data --------------------------------------------------------------------------
+    def chamber_xy(self) -> np.ndarray:
+        """Chamber centres in a layer frame, (3, 2) m."""
+        a = np.asarray(self.chamber_angles, dtype=float)
+        return self.placement_radius * np.column_stack([np.cos(a), np.sin(a)])
+
+    @property
+    def body_masses(self) -> np.ndarray:
+        """Masses of the moving bodies 1..N, kg."""
+        m = np.full(self.n_layers, self.layer_mass)
+        m[-1] = self.layer_mass if self.end_mass is None else self.end_mass
+        return m
+
+    @property
+    def names(self) -> list[str]:
+        return chamber_names(self.n_layers)
+
+    def with_(self, **kw) -> "RobotDesign":
+        """A validated copy with some fields replaced."""
+        return replace(self, **kw).validate()
+
+
+def chamber_names(n_layers: int) -> list[str]:
+    """Chamber names layer-major, as in Fig. 10: A1, A2, A3, B1, ..."""
+    return [f"{LETTERS[k]}{i + 1}" for k in range(n_layers) for i in range(3)]
+
+
+@dataclass(frozen=True)
+class RobotPneumatics:
+    """How the chambers are supplied (data now; the robot controller uses it later).
+
+    topology : 'per_chamber' (one compressor per chamber) or 'shared' (one compressor feeding every
+        chamber through its own inlet valve; the open-loop scene then runs the pump at the highest
+        speed any open inlet asks for and splits its flow equally among the open inlets).
+    outlets : 'per_chamber' (each chamber vents through its own outlet valve; the only layout built).
+    sensor_range : pressure at which each chamber's sensor saturates, Pa (50 kPa).
+    pressure_limit : largest chamber pressure allowed, Pa (45 kPa); must not exceed the sensor range.
+    """
+
+    topology: str = "per_chamber"
+    outlets: str = "per_chamber"
+    sensor_range: float = 50e3
+    pressure_limit: float = 45e3
+
+    def validate(self) -> "RobotPneumatics":
+        for name, allowed in (("topology", TOPOLOGIES), ("outlets", OUTLETS)):
+            v = getattr(self, name)
+            if v not in allowed:
+                close = difflib.get_close_matches(str(v), allowed, n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                raise ValueError(f"robot.{name} = '{v}'{hint}; allowed: {', '.join(allowed)}")
+        check_range("robot", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
+        check_range("robot", "pressure_limit", self.pressure_limit, 1e3, self.sensor_range, "Pa "
+                    "(at most the sensor range)")
+        return self
+
+    def n_compressors(self, n_chambers: int) -> int:
+        return n_chambers if self.topology == "per_chamber" else 1
+
+
+# ---------------------------------------------------------------------------------------------
+# kinematics
+# ---------------------------------------------------------------------------------------------
+def _rot(theta: float, psi: float) -> np.ndarray:
+    """Twist-free rotation mapping z onto (sin t cos psi, sin t sin psi, cos t)."""
+    u = np.array([-math.sin(psi), math.cos(psi), 0.0])
+    K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
+    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K
+
+
+def _plane_matrix(design: RobotDesign) -> np.ndarray:
+    xy = design.chamber_xy()
+    return np.column_stack([np.ones(3), xy])  # h_i = hc' + a x_i + b y_i
+
+
+def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
+    """(centre height m, bend angle rad in [0, pi/2), bend direction rad in (-pi, pi]) of the plane
+    through a layer's three contact points, for its chamber heights (3,) in m.
+
+    The centre height is the plane's height on the layer axis (= mean height for chambers at 120
+    degrees). Zero bend has direction 0 by convention.
+    """
+    h = np.asarray(heights, dtype=float).reshape(3)
+    c, a, b = np.linalg.solve(_plane_matrix(design), h)
+    theta = math.atan(math.hypot(a, b))
+    psi = math.atan2(-b, -a) if theta > 0 else 0.0
+    return float(c), float(theta), float(psi)
+
+
+def layer_transform(design: RobotDesign, heights) -> np.ndarray:
+    """4x4 transform from frame k to frame k + 1 for layer k's chamber heights (3,), m."""
+    c, theta, psi = layer_plane(design, heights)
+    T = np.eye(4)
+    T[:3, :3] = _rot(theta, psi)
+    T[:3, 3] = [0.0, 0.0, design.layer_thickness + c]
+    return T
+
+
+@dataclass
+class RobotPose:
+    """Result of :func:`forward_kinematics` (SI, world = frame 0).
+
+    frames : (N + 1, 4, 4) body frames (bottom-face centres); tip : 4x4 frame at the top face of
+    body N; heights : (N, 3) chamber heights; centre, bend, direction : (N,) per chamber layer, m and
+    rad (relative to the layer below); contacts : (N, 3, 3) contact points in the world, m.
+    """
+
+    frames: np.ndarray
+    tip: np.ndarray
+    heights: np.ndarray
+    centre: np.ndarray
+    bend: np.ndarray
+    direction: np.ndarray
+    contacts: np.ndarray
+
+    @property
+    def tip_position(self) -> np.ndarray:
+        return self.tip[:3, 3]
+
+    @property
+    def tip_bend(self) -> float:
+        """Angle between the tip axis and the world z axis, rad."""
+        return float(math.acos(np.clip(self.tip[2, 2], -1.0, 1.0)))
+
+    def layer_lengths(self, design: RobotDesign) -> np.ndarray:
+        """Distance between successive body frames along the layer axes, m (L + centre height)."""
+        return design.layer_thickness + self.centre
+
+
+def _heights_array(design: RobotDesign, heights) -> np.ndarray:
+    h = np.asarray(heights, dtype=float)
+    if h.size != 3 * design.n_layers:
+        raise ValueError(f"heights: need {3 * design.n_layers} chamber heights ({design.n_layers} layers x 3), "
+                         f"got {h.size}")
+    h = h.reshape(design.n_layers, 3)
+    if not np.all(np.isfinite(h)) or h.min() < 0:
+        raise ValueError("heights: chamber heights must be finite and >= 0 m")
+    return h
+
+
+def forward_kinematics(design: RobotDesign, heights) -> RobotPose:
+    """Chamber heights (N x 3 or 3N, m) -> every body's frame and the tip frame (see module doc)."""
+    h = _heights_array(design, heights)
+    N = design.n_layers
+    frames = np.zeros((N + 1, 4, 4))
+    frames[0] = np.eye(4)
+    cen, bend, dirn = np.zeros(N), np.zeros(N), np.zeros(N)
+    contacts = np.zeros((N, 3, 3))
+    xy = design.chamber_xy()
+    L = design.layer_thickness
+    for k in range(N):
+        cen[k], bend[k], dirn[k] = layer_plane(design, h[k])
+        frames[k + 1] = frames[k] @ layer_transform(design, h[k])
+        local = np.column_stack([xy, L + h[k], np.ones(3)])
+        contacts[k] = (frames[k] @ local.T).T[:, :3]
+    tip = frames[N].copy()
+    tip[:3, 3] = frames[N][:3, :3] @ np.array([0, 0, L]) + frames[N][:3, 3]
+    return RobotPose(frames, tip, h, cen, bend, dirn, contacts)
+
+
+def inverse_kinematics(design: RobotDesign, centre, bend, direction) -> np.ndarray:
+    """Per-layer targets -> chamber heights (N, 3), m.
+
+    centre : centre height(s) of each layer's upper plane above its membranes, m (scalar = all
+    layers); bend : bend angle(s) relative to the layer below, rad, in [0, pi/2); direction : bend
+    direction(s), rad. Exact inverse of :func:`layer_plane`. Heights may come out negative or beyond
+    a chamber's reach: check them with :func:`reach_report` (no clamping here).
+    """
+    N = design.n_layers
+    c = np.broadcast_to(np.asarray(centre, dtype=float), (N,))
+    th = np.broadcast_to(np.asarray(bend, dtype=float), (N,))
+    ps = np.broadcast_to(np.asarray(direction, dtype=float), (N,))
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(th)) and np.all(np.isfinite(ps))):
+        raise ValueError("inverse_kinematics: targets must be finite")
+    if th.min() < 0 or th.max() >= math.pi / 2:
+        raise ValueError(f"inverse_kinematics: bend must be in [0, 90) deg, got {np.degrees(th)}")
+    A = _plane_matrix(design)
+    out = np.zeros((N, 3))
+    for k in range(N):
+        t = math.tan(th[k])
+        out[k] = A @ np.array([c[k], -t * math.cos(ps[k]), -t * math.sin(ps[k])])
+    return out
+
+
+def inverse_kinematics_tip(design: RobotDesign, tip_position, h_max: float | None = None) -> np.ndarray:
+    """Tip position (3,) m -> chamber heights (N, 3) m, every layer identical (constant curvature).
+
+    The N identical layers give 3 unknowns (centre height, bend, direction) for 3 equations; solved
+    by least squares from a straight start. Raises ValueError when no such shape reaches the point
+    within 1e-6 m (or, with ``h_max``, within chamber heights 0..h_max).
+    """
+    from scipy.optimize import least_squares
+
+    target = np.asarray(tip_position, dtype=float).reshape(3)
+    if not np.all(np.isfinite(target)):
+        raise ValueError("tip_position must be finite")
+    N, L = design.n_layers, design.layer_thickness
+    psi0 = math.atan2(target[1], target[0]) if np.hypot(target[0], target[1]) > 1e-9 else 0.0
+
+    def tip_of(z):
+        hs = inverse_kinematics(design, z[0], abs(z[1]), z[2])
+        return forward_kinematics(design, np.maximum(hs, 0)).tip_position, hs
+
+    def res(z):
+        p, hs = tip_of(z)
+        pen = np.minimum(hs, 0).ravel()
+        return np.concatenate([p - target, 10 * pen])
+
+    c0 = max(target[2] / N - 2 * L, 0.0) if target[2] > 0 else 0.0
+    best = None
+    for th0 in (0.05, 0.3, 0.6):
+        sol = least_squares(res, [c0 + 1e-3, th0, psi0], bounds=([0, 0, -2 * math.pi], [1.0, 1.4, 2 * math.pi]),
+                            xtol=1e-12, ftol=1e-12)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    hs = inverse_kinematics(design, best.x[0], abs(best.x[1]), best.x[2])
+    err = np.linalg.norm(tip_of(best.x)[0] - target)
+    if err > 1e-6 or hs.min() < -1e-9 or (h_max is not None and hs.max() > h_max + 1e-9):
+        raise ValueError(f"tip_position {np.round(target * 1e3, 2).tolist()} mm is not reachable by "
+                         f"{N} identical layers (closest miss {err * 1e3:.2f} mm)")
+    return np.maximum(hs, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# statics: load sharing
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class LoadShare:
+    """Chamber normal forces and what the membranes carry in shear (SI).
+
+    forces : (N, 3) normal force each chamber pushes the layer above with, N (negative = tension,
+    the glue pulls); shear : (N, 2) in-plane force on the membranes of each layer, N; twist : (N,)
+    moment about the layer normal, N m; pose : the :class:`RobotPose` used.
+    """
+
+    forces: np.ndarray
+    shear: np.ndarray
+    twist: np.ndarray
+    pose: RobotPose
+
+    @property
+    def tension(self) -> np.ndarray:
+        return self.forces < 0
+
+
+def load_sharing(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0)
+                 ) -> LoadShare:
+    """Each chamber's contact force from the weight of the bodies above and an optional tip load.
+
+    heights : chamber heights (N x 3), m; tip_force (N) and tip_moment (N m) act on the top body at
+    the tip point, world frame. For chamber layer k the sub-assembly of bodies k + 1..N is in
+    equilibrium under its weight, the tip load and the three normal forces (plus membrane shear):
+    3 equations (force along the layer normal, moments about the two in-plane axes through the
+    contact centroid) for 3 forces.
+    """
+    pose = forward_kinematics(design, heights)
+    f_tip = np.asarray(tip_force, dtype=float).reshape(3)
+    m_tip = np.asarray(tip_moment, dtype=float).reshape(3)
+    if not (np.all(np.isfinite(f_tip)) and np.all(np.isfinite(m_tip))):
+        raise ValueError("tip_force and tip_moment must be finite")
+    N, L = design.n_layers, design.layer_thickness
+    gvec = np.array([0.0, 0.0, -design.g])
+    masses = design.body_masses
+    # centres of mass of bodies 1..N (mid-thickness on their axis)
+    com = np.array([pose.frames[j][:3, :3] @ [0, 0, L / 2] + pose.frames[j][:3, 3] for j in range(1, N + 1)])
+    tip = pose.tip_position
+    forces = np.zeros((N, 3))
+    shear = np.zeros((N, 2))
+    twist = np.zeros(N)
+    for k in range(N):
+        Fk = pose.frames[k + 1]
+        R, O = Fk[:3, :3], Fk[:3, 3]
+        above = slice(k, N)  # bodies k+1..N are rows k..N-1 of com
+        f = (masses[above, None] * gvec).sum(0) + f_tip
+        M = np.cross(com[above] - O, masses[above, None] * gvec).sum(0) + np.cross(tip - O, f_tip) + m_tip
+        fl, Ml = R.T @ f, R.T @ M
+        pts = (R.T @ (pose.contacts[k] - O).T).T  # contact points in frame k+1 (z ~ 0)
+        A = np.vstack([np.ones(3), pts[:, 1], pts[:, 0]])
+        forces[k] = np.linalg.solve(A, np.array([-fl[2], -Ml[0], Ml[1]]))
+        shear[k] = -fl[:2]
+        twist[k] = -Ml[2]
+    return LoadShare(forces, shear, twist, pose)
+
+
+# ---------------------------------------------------------------------------------------------
+# the chamber model (physics), batched
+# ---------------------------------------------------------------------------------------------
+@lru_cache(maxsize=8)
+def _chamber_fn(space: ph.ParamSpace) -> ca.Function:
+    """(h1, h2, theta) -> (p, F, lam, V, G) from hbma_ctrl.physics, for one material family."""
+    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
+    theta, P = space.symbols()
+    g = ph.geometry(h1, h2, P)
+    p = ph.pressure(h1, h2, P)
+    return ca.Function("chamber", [h1, h2, theta], [p, ca.pi * g["a2"] * p, g["lam"], g["V"], ph.gas_pv(h1, h2, P)],
+                       ["h1", "h2", "theta"], ["p", "F", "lam", "V", "G"])
+
+
+class _Chambers:
+    """Numeric, vectorised access to the single-chamber physics for one actuator."""
+
+    def __init__(self, act: Actuator, pn: Pneumatics | None = None):
+        self.act = act
+        self.space = ph.ParamSpace.for_material(act.material)
+        self.theta = self.space.values(act, pn or Pneumatics(), Platform())
+        self.fn = _chamber_fn(self.space)
+        self._maps: dict = {}
+
+    def eval(self, h1, h2) -> dict:
+        h1 = np.atleast_1d(np.asarray(h1, dtype=float))
+        h2 = np.broadcast_to(np.asarray(h2, dtype=float), h1.shape)
+        n = h1.size
+        if n not in self._maps:
+            self._maps[n] = self.fn.map(n)
+        th = np.repeat(self.theta[:, None], n, 1)
+        out = self._maps[n](h1.ravel()[None, :], h2.ravel()[None, :], th)
+        names = ("p", "F", "lam", "V", "G")
+        return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(names, out)}
+
+    def h2_for_force(self, h, F) -> np.ndarray:
+        """Cut height h2 with contact force F(h + h2, h2) = F at membrane height h (F > 0, h > 0)."""
+        h = np.atleast_1d(np.asarray(h, dtype=float))
+        F = np.broadcast_to(np.asarray(F, dtype=float), h.shape)
+        lo, hi = np.zeros(h.shape), np.full(h.shape, self.act.r1)
+        for _ in range(40):  # grow the bracket: F increases with h2 at fixed h
+            small = self.eval(h + hi, hi)["F"] < F
+            if not small.any():
+                break
+            hi = np.where(small, 2 * hi, hi)
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            big = self.eval(h + mid, mid)["F"] > F
+            hi, lo = np.where(big, mid, hi), np.where(big, lo, mid)
+        return 0.5 * (lo + hi)
+
+    def h_for_stretch(self, lam: float, F) -> np.ndarray:
+        """Membrane height at stretch lam under contact force F (fixed point on h2)."""
+        F = np.atleast_1d(np.asarray(F, dtype=float))
+        r1 = self.act.r1
+        h2 = np.zeros(F.shape)
+        for _ in range(30):
+            # lam^2 r1^2 = h1^2 + r1^2 - h2^2 with h1 = h + h2
+            h = -h2 + np.sqrt(h2**2 + r1**2 * (lam**2 - 1))
+            new = np.where(F > 0, self.h2_for_force(h, np.maximum(F, 1e-12)), 0.0)
+            if np.max(np.abs(new - h2)) < 1e-12:
+                h2 = new
+                break
+            h2 = new
+        return -h2 + np.sqrt(h2**2 + r1**2 * (lam**2 - 1))
+
+    def load_path(self, F: float, h_hi: float, n: int = 600) -> dict:
+        """Chamber state along the constant-load path h in (0, h_hi] at contact force F >= 0."""
+        h = np.linspace(h_hi / n, h_hi, n)
+        h2 = self.h2_for_force(h, F) if F > 0 else np.zeros(n)
+        out = self.eval(h + h2, h2)
+        out.update(h=h, h1=h + h2, h2=h2)
+        return out
+
+
+def chamber_states(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0),
+                   forces=None) -> dict:
+    """Each chamber's membrane state consistent with the layer equilibrium, for chamber heights (m).
+
+    Returns a dict of (N, 3) arrays: h1, h2 (m), p (Pa), F (N, the load share), lam (-), V (m^3),
+    m (gas mass, kg), and boolean flags ``resting`` (h = 0: the upper layer sits on the lower one,
+    the stop carries F, the chamber is vented: p = 0) and ``tension`` (F < 0: the glue pulls; the
+    membrane is treated as free, h2 = 0, its contact force 0). ``forces`` overrides the load
+    sharing (e.g. a controller's per-chamber load estimate, used as the load W of each model).
+    """
+    h = _heights_array(design, heights)
+    F = load_sharing(design, h, tip_force, tip_moment).forces if forces is None else \
+        np.asarray(forces, dtype=float).reshape(h.shape)
+    ch = _Chambers(design.chamber)
+    resting = h <= 0
+    tension = (F < 0) & ~resting
+    push = (F > 0) & ~resting
+    h2 = np.zeros(h.shape)
+    if push.any():
+        h2[push] = ch.h2_for_force(h[push], F[push])
+    h1 = h + h2
+    out = ch.eval(h1, h2)
+    act = design.chamber
+    p = np.where(resting, 0.0, out["p"])
+    V = np.where(resting, act.V0, out["V"])
+    m = (p + act.p_env) * V / (act.R * act.T)
+    return {"h1": h1, "h2": h2, "p": p, "F": F, "lam": np.where(resting, 1.0, out["lam"]), "V": V, "m": m,
+            "resting": resting, "tension": tension}
+
+
+# ---------------------------------------------------------------------------------------------
+# reach
+# ---------------------------------------------------------------------------------------------
+def pump_stall_pressure(pneumatics: Pneumatics | None = None) -> float:
+    """Highest gauge pressure (Pa) at which the pump still delivers flow at full speed."""
+    s, p, grid = ph.load_compressor_table((pneumatics or Pneumatics()).csv_path)
+    q = grid[-1]
+    pos = np.nonzero(q > 0)[0]
+    if pos.size == 0:
+        return 0.0
+    i = pos[-1]
+    if i + 1 >= p.size:
+        return float(p[-1])
+    return float(p[i] + (p[i + 1] - p[i]) * q[i] / (q[i] - q[i + 1]))
+
+
+@dataclass(frozen=True)
+class ChamberReach:
+    """Reach of one chamber under a contact force (SI).
+
+    h_max : largest height reachable holding the gas mass (far branch allowed), m
+    limit : what sets h_max: 'max_stretch', 'pressure_limit' or 'pump_stall'
+    h_peak, p_peak : height and pressure of the balloon limit point along the load path (m, Pa)
+    h_pressure_control : reach if the chamber were pressure-controlled (near branch only), m
+    h_stretch : height at the maximum stretch, m
+    p_at_max : pressure at h_max, Pa; m_at_max : gas mass at h_max, kg
+    """
+
+    force: float
+    h_max: float
+    limit: str
+    h_peak: float
+    p_peak: float
+    h_pressure_control: float
+    h_stretch: float
+    p_at_max: float
+    m_at_max: float
+
+
+def chamber_reach(design: RobotDesign, force: float, pressure_limit: float = 45e3,
+                  pneumatics: Pneumatics | None = None) -> ChamberReach:
+    """Reachable height of one robot chamber pushing with contact force ``force`` (N).
+
+    Along the constant-load path the pressure rises to the balloon limit point (p_peak at h_peak)
+    and then falls. The usable pressure is ``p_cap = min(pressure_limit, pump stall pressure)``. If
+    p_cap >= p_peak the chamber can be driven over the peak and held on the far branch by its gas
+    mass, up to the maximum stretch (limit 'max_stretch'; the pump keeps delivering there since the
+    far-branch pressure is below the peak). Otherwise the chamber stops on the near branch where
+    the pressure reaches p_cap ('pressure_limit' or 'pump_stall'). ``h_pressure_control`` is the
+    reach of a pressure-controlled chamber (never past the peak).
+    """
+    check_range("reach", "pressure_limit", pressure_limit, 0.0, 1e6, "Pa", lo_open=True)
+    ch = _Chambers(design.chamber, pneumatics)
+    F = max(float(force), 0.0)
+    h_str = float(ch.h_for_stretch(design.max_stretch, F)[0])
+    path = ch.load_path(F, h_str)
+    hs, ps = path["h"], path["p"]
+    stall = pump_stall_pressure(pneumatics)
+    p_cap = min(pressure_limit, stall)
+    ipk = int(np.argmax(ps))
+    h_peak, p_peak = float(hs[ipk]), float(ps[ipk])
+    over = np.nonzero(ps > p_cap)[0]
+    if over.size == 0:
+        i_max, limit = hs.size - 1, "max_stretch"
+        h_max = h_str
+    else:
+        i = int(over[0])
+        limit = "pressure_limit" if pressure_limit <= stall else "pump_stall"
+        if i == 0:
+            h_max, i_max = 0.0, 0
+        else:
+            w = (p_cap - ps[i - 1]) / (ps[i] - ps[i - 1])
+            h_max, i_max = float(hs[i - 1] + w * (hs[i] - hs[i - 1])), i
+    h_pc = min(h_peak if ipk < hs.size - 1 else h_str, h_max)
+    act = design.chamber
+    m_at = float((ps[i_max] + act.p_env) * path["V"][i_max] / (act.R * act.T))
+    return ChamberReach(F, float(h_max), limit, h_peak, p_peak, float(h_pc), h_str, float(ps[i_max]), m_at)
+
+
+def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
+                 pneumatics: Pneumatics | None = None, tip_force=(0.0, 0.0, 0.0)) -> dict:
+    """Check chamber heights (N x 3, m) against each chamber's reach at its load share.
+
+    Returns dict(ok, h_max (N, 3), limit (N, 3) names, violations: list of text). Negative heights
+    are violations too (a chamber cannot pull).
+    """
+    h = np.asarray(heights, dtype=float).reshape(design.n_layers, 3)
+    names = design.names
+    F = load_sharing(design, np.maximum(h, 0), tip_force).forces
+    hmax = np.zeros(h.shape)
+    lim = np.empty(h.shape, dtype=object)
+    viol = []
+    for k in range(design.n_layers):
+        for i in range(3):
+            r = chamber_reach(design, F[k, i], pressure_limit, pneumatics)
+            hmax[k, i], lim[k, i] = r.h_max, r.limit
+            if h[k, i] < -1e-12:
+                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm < 0")
+            elif h[k, i] > r.h_max + 1e-9:
+                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm > reach "
+                            f"{r.h_max * 1e3:.2f} mm (limited by {r.limit})")
+    return {"ok": not viol, "h_max": hmax, "limit": lim, "violations": viol}
+
+
+# ---------------------------------------------------------------------------------------------
+# Table II beside the model
+# ---------------------------------------------------------------------------------------------
+def _solve_inflated(design: RobotDesign, inflated: list[int], height_of, iters: int = 30) -> np.ndarray:
+    """Heights of layer A with chambers ``inflated`` driven by ``height_of(F) -> h``, the others flat,
+    all upper layers flat; fixed point between the heights and the load sharing."""
+    h = np.zeros((design.n_layers, 3))
+    for _ in range(iters):
+        F = load_sharing(design, h).forces[0]
+        new = h.copy()
+        for i in inflated:
+            new[0, i] = height_of(F[i])
+        if np.max(np.abs(new - h)) < 1e-10:
+            return new
+        h = new
+    return h
+
+
+def robot_table2(design: RobotDesign | None = None, stretch: float | None = None, hold_pressure: float = 35e3
+                 ) -> list[dict]:
+    """The paper's Table II (one layer of the Fig. 10 robot, 0-3 chambers inflated) beside the model.
+
+    How "inflated" is read. The paper inflated the chambers "without reaching the limit (which
+    would mean breaking the membrane)"; it states no pressure or gas mass. Two readings are given:
+
+    - ``far_branch`` (the main one): each inflated chamber is driven past the balloon limit point
+      and held by its gas mass at the stretch ``stretch`` (default: the design's ``max_stretch``,
+      4.0, an assumed safe limit). Its height then follows from its load share (fixed point with
+      the load sharing). With the default 4.0 the three-chamber length lands close to the paper's
+      26.7 mm, so that row is effectively the calibration of the one free number; the one- and
+      two-chamber rows are predictions.
+    - ``near_branch``: each inflated chamber held at ``hold_pressure`` (35 kPa, the rig's sensor
+      range) on the near branch, as pressure control would: what the robot reaches without passing
+      the limit point.
+
+    The layer evaluated is the bottom chamber layer A of the design (default: the paper's robot
+    with 2 chamber layers, A and B, as in Fig. 10); it carries the bodies above, with layer B flat.
+    Inflated chambers are A1, then A1-A2, then all three. Angle = bend of the layer above; length =
+    distance between the two layers' frames on the axis (layer thickness + centre height);
+    extension is relative to each source's own 0-chamber length (the paper's 9.6 mm includes a
+    0.6 mm rest gap the model does not have).
+
+    Returns one dict per (reading, chambers inflated) with model and paper values (deg, mm, %),
+    the chambers' height (mm), pressure (kPa), stretch and gas mass (mg), and the parameters used.
+    """
+    d = design or RobotDesign(n_layers=2)
+    d.validate()
+    lam = d.max_stretch if stretch is None else stretch
+    check_range("table2", "stretch", lam, 1.05, d.max_stretch if stretch is None else 20.0)
+    ch = _Chambers(d.chamber)
+
+    def at_stretch(F):
+        return float(ch.h_for_stretch(lam, max(F, 0.0))[0])
+
+    def at_pressure(F):
+        h_hi = float(ch.h_for_stretch(min(d.max_stretch, 3.0), max(F, 0.0))[0])
+        path = ch.load_path(max(F, 0.0), h_hi, 800)
+        over = np.nonzero(path["p"] >= hold_pressure)[0]
+        if over.size == 0:  # never reaches the hold pressure before the peak: stop at the peak
+            return float(path["h"][int(np.argmax(path["p"]))])
+        i = int(over[0])
+        if i == 0:
+            return float(path["h"][0])
+        p0, p1 = path["p"][i - 1], path["p"][i]
+        return float(path["h"][i - 1] + (hold_pressure - p0) / (p1 - p0) * (path["h"][i] - path["h"][i - 1]))
+
+    params = {"n_layers": d.n_layers, "r1_mm": U.to_mm(d.chamber.r1), "t0_mm": U.to_mm(d.chamber.t0),
+              "V0_cm3": U.to_cm3(d.chamber.V0), "material": d.chamber.material.name,
+              "material_params": d.chamber.material.as_dict(), "placement_radius_mm": U.to_mm(d.placement_radius),
+              "layer_thickness_mm": U.to_mm(d.layer_thickness), "layer_mass_g": U.to_grams(d.layer_mass),
+              "stretch": lam, "hold_pressure_kpa": U.to_kpa(hold_pressure)}
+    rows = []
+    for reading, fn in (("far_branch", at_stretch), ("near_branch", at_pressure)):
+        base_len = None
+        for n, pa, pl, pe in TABLE2_PAPER:
+            h = _solve_inflated(d, list(range(n)), fn)
+            pose = forward_kinematics(d, h)
+            st = chamber_states(d, h)
+            length = float(pose.layer_lengths(d)[0])
+            base_len = length if n == 0 else base_len
+            infl = list(range(n))
+            rows.append({
+                "reading": reading, "inflated": n,
+                "angle_deg": math.degrees(pose.bend[0]), "length_mm": U.to_mm(length),
+                "extension_pct": 100 * (length - base_len) / base_len,
+                "paper_angle_deg": pa, "paper_length_mm": pl, "paper_extension_pct": pe,
+                "chamber_height_mm": U.to_mm(float(h[0, 0])) if n else 0.0,
+                "pressure_kpa": U.to_kpa(float(st["p"][0, 0])) if n else 0.0,
+                "stretch": float(st["lam"][0, 0]) if n else 1.0,
+                "gas_mass_mg": float(np.mean(st["m"][0, infl])) * 1e6 if n else float(st["m"][0, 0]) * 1e6,
+                "params": params,
+            })
+    return rows
+
+
+def table2_markdown(rows: list[dict]) -> str:
+    """Markdown table of :func:`robot_table2` rows (model vs paper), with the parameters used."""
+    p = rows[0]["params"]
+    head = ("| reading | HBMA inflated | angle model / paper (deg) | length model / paper (mm) | "
+            "extension model / paper (%) | chamber h (mm) | p (kPa) | stretch |\n|---|---|---|---|---|---|---|---|\n")
+    body = "".join(
+        f"| {r['reading']} | {r['inflated']} | {r['angle_deg']:.1f} / {r['paper_angle_deg']:.1f} | "
+        f"{r['length_mm']:.1f} / {r['paper_length_mm']:.1f} | {r['extension_pct']:.0f} / "
+        f"{r['paper_extension_pct']:.0f} | {r['chamber_height_mm']:.2f} | {r['pressure_kpa']:.1f} | "
+        f"{r['stretch']:.2f} |\n" for r in rows)
+    mat = ", ".join(f"{k} = {v:g} Pa" if isinstance(v, float) else f"{k} = {v}" for k, v in p["material_params"].items())
+    foot = (f"\nParameters: {p['material'].upper()} ({mat}), r1 = {p['r1_mm']:g} mm, t0 = {p['t0_mm']:g} mm, "
+            f"V0 = {p['V0_cm3']:g} cm^3, chamber centres {p['placement_radius_mm']:g} mm from the axis, layer "
+            f"{p['layer_thickness_mm']:g} mm / {p['layer_mass_g']:g} g, {p['n_layers']} chamber layers "
+            f"(layer A evaluated, B flat). far_branch: inflated chambers held by gas mass at stretch "
+            f"{p['stretch']:g}; near_branch: held at {p['hold_pressure_kpa']:g} kPa below the limit point.\n")
+    return head + body + foot
+
+
+# ---------------------------------------------------------------------------------------------
+# workspace
+# ---------------------------------------------------------------------------------------------
+def _max_bend(design: RobotDesign, h_max: float, psi: np.ndarray) -> np.ndarray:
+    """Largest bend (rad) in directions psi with every chamber height in [0, h_max]."""
+    a = np.asarray(design.chamber_angles)
+    rc = design.placement_radius
+    c = np.cos(psi[:, None] - a[None, :])
+    spread = rc * (c.max(1) - c.min(1))
+    return np.arctan(h_max / spread)
+
+
+def workspace(design: RobotDesign | None = None, pressure_limit: float = 45e3,
+              pneumatics: Pneumatics | None = None, n_dir: int = 72) -> dict:
+    """Reachable workspace at the pressure limit, per layer and for the tip (SI, plain data).
+
+    Each chamber's reach is :func:`chamber_reach` at its load share in the straight pose (the
+    load changes little with the pose for this light robot); a layer's reach is the smallest of its
+    three. Per layer: the centre-height range at zero bend [0, h_max] and the largest bend angle
+    against direction (all three heights within [0, h_max]; at the largest bend the centre height
+    is fixed). The same numbers for pressure control (near branch only) show what passing the
+    limit point buys. Tip: every layer bent alike (constant curvature).
+    """
+    d = (design or RobotDesign()).validate()
+    F = load_sharing(d, np.zeros((d.n_layers, 3))).forces
+    psi = np.linspace(0, 2 * math.pi, n_dir, endpoint=False)
+    layers = []
+    for k in range(d.n_layers):
+        rs = [chamber_reach(d, F[k, i], pressure_limit, pneumatics) for i in range(3)]
+        hm = min(r.h_max for r in rs)
+        hpc = min(r.h_pressure_control for r in rs)
+        layers.append({
+            "layer": LETTERS[k], "load_n": F[k].tolist(), "h_max": hm,
+            "limit": [r.limit for r in rs], "p_peak": max(r.p_peak for r in rs),
+            "h_peak": min(r.h_peak for r in rs), "p_at_max": max(r.p_at_max for r in rs),
+            "h_pressure_control": hpc,
+            "bend_max": _max_bend(d, hm, psi).tolist(),
+            "bend_max_pressure_control": _max_bend(d, hpc, psi).tolist(),
+        })
+    bend_tip = np.sum([ly["bend_max"] for ly in layers], axis=0)
+    return {
+        "direction": psi.tolist(), "layers": layers,
+        "tip_bend_max": bend_tip.tolist(),
+        "tip_height_range": [d.n_layers * d.layer_thickness + d.layer_thickness,
+                             d.n_layers * d.layer_thickness + d.layer_thickness + sum(ly["h_max"] for ly in layers)],
+        "pressure_limit": pressure_limit, "pump_stall": pump_stall_pressure(pneumatics),
+        "max_stretch": d.max_stretch,
+    }
