@@ -180,11 +180,13 @@ class Fidelity:
 
     def mapped(self, fun: ca.Function, n: int) -> ca.Function:
         """A batched version of a Function over n columns (cached)."""
-        key = (fun.name(), n)
+        # keyed by the Function object itself (kept alive in the cache, so its id is never reused):
+        # two step Functions of different dt share a name
+        key = (id(fun), n)
         cache = self.__dict__.setdefault("_map_cache", {})
         if key not in cache:
-            cache[key] = fun.map(n)
-        return cache[key]
+            cache[key] = (fun, fun.map(n))
+        return cache[key][1]
 
     # --- to override -------------------------------------------------------------------------
     def _rhs(self, x, u, P, mode):
