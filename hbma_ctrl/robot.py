@@ -246,6 +246,18 @@ def _plane_matrix(design: RobotDesign) -> np.ndarray:
     return np.column_stack([np.ones(3), xy])  # h_i = hc' + a x_i + b y_i
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (numpy's is slow for tiny arrays)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def _plane_of(Ainv: np.ndarray, h: np.ndarray) -> tuple[float, float, float]:
+    c, a, b = Ainv @ h
+    t = math.hypot(a, b)
+    return float(c), math.atan(t), (math.atan2(-b, -a) if t > 0 else 0.0)
+
+
 def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
     """(centre height m, bend angle rad in [0, pi/2), bend direction rad in (-pi, pi]) of the plane
     through a layer's three contact points, for its chamber heights (3,) in m.
@@ -253,11 +265,7 @@ def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
     The centre height is the plane's height on the layer axis (= mean height for chambers at 120
     degrees). Zero bend has direction 0 by convention.
     """
-    h = np.asarray(heights, dtype=float).reshape(3)
-    c, a, b = np.linalg.solve(_plane_matrix(design), h)
-    theta = math.atan(math.hypot(a, b))
-    psi = math.atan2(-b, -a) if theta > 0 else 0.0
-    return float(c), float(theta), float(psi)
+    return _plane_of(np.linalg.inv(_plane_matrix(design)), np.asarray(heights, dtype=float).reshape(3))
 
 
 def layer_transform(design: RobotDesign, heights) -> np.ndarray:
@@ -321,9 +329,13 @@ def forward_kinematics(design: RobotDesign, heights) -> RobotPose:
     contacts = np.zeros((N, 3, 3))
     xy = design.chamber_xy()
     L = design.layer_thickness
+    Ainv = np.linalg.inv(_plane_matrix(design))
     for k in range(N):
-        cen[k], bend[k], dirn[k] = layer_plane(design, h[k])
-        frames[k + 1] = frames[k] @ layer_transform(design, h[k])
+        cen[k], bend[k], dirn[k] = _plane_of(Ainv, h[k])
+        T = np.eye(4)
+        T[:3, :3] = _rot(bend[k], dirn[k])
+        T[:3, 3] = [0.0, 0.0, L + cen[k]]
+        frames[k + 1] = frames[k] @ T
         local = np.column_stack([xy, L + h[k], np.ones(3)])
         contacts[k] = (frames[k] @ local.T).T[:, :3]
     tip = frames[N].copy()
@@ -445,7 +457,7 @@ def load_sharing(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_mo
         R, O = Fk[:3, :3], Fk[:3, 3]
         above = slice(k, N)  # bodies k+1..N are rows k..N-1 of com
         f = (masses[above, None] * gvec).sum(0) + f_tip
-        M = np.cross(com[above] - O, masses[above, None] * gvec).sum(0) + np.cross(tip - O, f_tip) + m_tip
+        M = _cross(com[above] - O, masses[above, None] * gvec).sum(0) + _cross(tip - O, f_tip) + m_tip
         fl, Ml = R.T @ f, R.T @ M
         pts = (R.T @ (pose.contacts[k] - O).T).T  # contact points in frame k+1 (z ~ 0)
         A = np.vstack([np.ones(3), pts[:, 1], pts[:, 0]])
@@ -997,3 +1009,344 @@ def parse_section(raw: dict) -> RobotSettings:
     return RobotSettings(design=design, pneumatics=pn, mode=str(raw.get("mode", "open_loop")), inputs=inputs,
                          tip_force=vec["tip_force_n"], tip_moment=vec["tip_moment_nm"], sync_period=sync,
                          snapshots=raw.get("snapshots", 8)).validate()
+
+
+W_FLOOR = 1e-3  # N: the smallest load a chamber model is given (a chamber in tension is flagged)
+
+
+@dataclass
+class RobotRun:
+    """Time series of an open-loop robot scene (SI). Arrays are indexed [time, layer, chamber]."""
+
+    t: np.ndarray
+    h: np.ndarray
+    p: np.ndarray
+    m: np.ndarray
+    lam: np.ndarray
+    F: np.ndarray
+    bend: np.ndarray
+    direction: np.ndarray
+    tip: np.ndarray
+    tip_bend: np.ndarray
+    inputs: np.ndarray
+    events: list
+    step_s: np.ndarray
+    status: str
+    wall_s: float
+    tension: np.ndarray
+
+
+def simulate_open_loop(settings: RobotSettings, pneumatics: Pneumatics | None = None, duration: float = 30.0,
+                       integrator: str = "rk4", dt: float | None = None) -> RobotRun:
+    """Open-loop robot scene: every chamber's gas mass by the single-chamber model, loads shared.
+
+    Each chamber is the lead's ``quasi_static`` fidelity (gas mass state, dead load W, resting /
+    lift-off / far-branch jumps handled by :class:`hbma_ctrl.simulate.Plant`), all chambers in one
+    batch. Every ``sync_period`` the robot's pose follows from the chamber heights
+    (:func:`forward_kinematics`), the load sharing gives each chamber's new load W (floored at
+    1 mN; chambers in tension are flagged), and the interlocks close an inlet while its chamber is
+    at the pressure limit or the maximum stretch. With topology 'shared' one pump runs at the
+    highest speed any open inlet asks for and its flow is split equally among the open inlets
+    (each chamber's ``flow_scale`` divided by their number): a simple, documented scheme, not a
+    manifold model. Loads lag the heights by at most one sync period (the layers are light, the
+    motion slow).
+    """
+    from .model import make_fidelity
+    from .simulate import InputSchedule, Plant
+
+    s = settings.validate()
+    pn = (pneumatics or Pneumatics()).validate()
+    check_range("robot scene", "duration", duration, 1e-3, 1e5, "s", lo_open=True)
+    if integrator not in ("euler", "rk4"):
+        raise ValueError(f"sim.integrator = '{integrator}': the robot scene steps a batch plant, allowed euler, rk4")
+    d = s.design
+    N = d.n_layers
+    n = 3 * N
+    names = d.names
+    fid = make_fidelity("quasi_static", d.chamber.material, str(pn.csv_path))
+    ix = {k: i for i, k in enumerate(fid.space.names)}
+    theta0 = fid.space.values(d.chamber, pn, Platform(load=1e-3))
+    thetas = np.repeat(theta0[:, None], n, 1)
+    F0 = load_sharing(d, np.zeros((N, 3)), s.tip_force, s.tip_moment).forces.ravel()
+    thetas[ix["W"]] = np.maximum(F0, W_FLOOR)
+    plant = Plant(fid, thetas, integrator, dt)
+    th = plant.thetas  # the plant's own parameter matrix: loads and flow shares are updated in place
+    scheds = [InputSchedule(s.inputs[nm]).validate(f"robot.inputs.{nm}") if nm in s.inputs else InputSchedule()
+              for nm in names]
+    k_sync = max(1, int(round(s.sync_period / plant.dt)))
+    sync = k_sync * plant.dt
+    nsync = int(math.ceil(duration / sync - 1e-9))
+    pl, lam_max = s.pneumatics.pressure_limit, d.max_stretch
+    rows_t, rows_h, rows_p, rows_m, rows_l, rows_F, rows_u, rows_pose = [], [], [], [], [], [], [], []
+    events: list = []
+    blocked = np.zeros(n, dtype=bool)
+    saturated = np.zeros(n, dtype=bool)
+    tension_any = np.zeros(n, dtype=bool)
+    steps = []
+    status = "ok"
+    wall0 = time.perf_counter()
+
+    def record(Uc, pose=None):
+        h = np.maximum(plant.output("h"), 0.0)
+        pose = pose or forward_kinematics(d, h.reshape(N, 3))
+        rows_t.append(plant.t)
+        rows_h.append(h)
+        rows_p.append(plant.output("p").copy())
+        rows_m.append(plant.output("m").copy())
+        rows_l.append(plant.output("lam").copy())
+        rows_F.append(th[ix["W"]].copy())
+        rows_u.append(Uc.copy())
+        rows_pose.append((pose.bend.copy(), pose.direction.copy(), pose.tip_position.copy(), pose.tip_bend))
+        return h
+
+    h = record(np.zeros((3, n)))
+    for _ in range(nsync):
+        t = plant.t
+        Uc = np.column_stack([sc.at(t + 1e-9) for sc in scheds])
+        p, lam = plant.output("p"), plant.output("lam")
+        block = (p >= pl) | (lam >= lam_max)
+        for i in np.nonzero(block & ~blocked)[0]:
+            why = "pressure_limit" if p[i] >= pl else "max_stretch"
+            events.append((t, names[i], f"inlet_interlock:{why}"))
+        blocked = block
+        Uc[1] = np.where(block, 0.0, Uc[1])
+        if s.pneumatics.topology == "shared":
+            open_ = (Uc[1] > 0) & (Uc[0] > 0)
+            speed = Uc[0][open_].max() if open_.any() else 0.0
+            Uc[0] = np.where(open_, speed, 0.0)
+            th[ix["flow_scale"]] = pn.flow_scale / max(int(open_.sum()), 1)
+        t0 = time.perf_counter()
+        plant.advance(Uc, sync)
+        h = np.maximum(plant.output("h"), 0.0)
+        ls = load_sharing(d, h.reshape(N, 3), s.tip_force, s.tip_moment)
+        F = ls.forces.ravel()
+        th[ix["W"]] = np.maximum(F, W_FLOOR)
+        steps.append(time.perf_counter() - t0)
+        for i in np.nonzero((F < 0) & ~tension_any)[0]:
+            events.append((plant.t, names[i], "tension"))
+        tension_any |= F < 0
+        sat = plant.output("p") >= s.pneumatics.sensor_range
+        for i in np.nonzero(sat & ~saturated)[0]:
+            events.append((plant.t, names[i], "sensor_saturated"))
+        saturated = sat
+        record(Uc, ls.pose)
+        if not plant.alive.all():
+            status = "diverged"
+            break
+    for i, evs in enumerate(plant.events):
+        events += [(float(tt), names[i], nm) for tt, nm in evs]
+    events.sort(key=lambda e: e[0])
+    T = len(rows_t)
+    return RobotRun(
+        t=np.array(rows_t), h=np.array(rows_h).reshape(T, N, 3), p=np.array(rows_p).reshape(T, N, 3),
+        m=np.array(rows_m).reshape(T, N, 3), lam=np.array(rows_l).reshape(T, N, 3),
+        F=np.array(rows_F).reshape(T, N, 3), bend=np.array([r[0] for r in rows_pose]),
+        direction=np.array([r[1] for r in rows_pose]), tip=np.array([r[2] for r in rows_pose]),
+        tip_bend=np.array([r[3] for r in rows_pose]),
+        inputs=np.array(rows_u), events=events, step_s=np.array(steps), status=status,
+        wall_s=time.perf_counter() - wall0, tension=tension_any.reshape(N, 3))
+
+
+def run_metrics(design: RobotDesign, run: RobotRun) -> dict:
+    """The "robot" metrics object of an open-loop run (edge units).
+
+    The tracking keys required of every robot scene (chamber_height_rmse_mm, bend_angle_rmse_deg,
+    tip_position_rmse_mm) are null here: an open-loop scene has no reference to track.
+    """
+    names = design.names
+    hmax = run.h.max(0).ravel()
+    counts: dict = {}
+    for _, _, nm in run.events:
+        counts[nm] = counts.get(nm, 0) + 1
+    tip0 = run.tip[0]
+    return {
+        "mode": "open_loop",
+        "chamber_height_rmse_mm": None, "bend_angle_rmse_deg": None, "tip_position_rmse_mm": None,
+        "step_ms_median": float(np.median(run.step_s) * 1e3) if run.step_s.size else None,
+        "step_ms_p99": float(np.percentile(run.step_s, 99) * 1e3) if run.step_s.size else None,
+        "max_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, hmax)},
+        "min_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, run.h.min(0).ravel())},
+        "final_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, run.h[-1].ravel())},
+        "max_pressure_kpa": {nm: U.to_kpa(float(v)) for nm, v in zip(names, run.p.max(0).ravel())},
+        "max_stretch": {nm: float(v) for nm, v in zip(names, run.lam.max(0).ravel())},
+        "max_bend_deg": {LETTERS[k]: math.degrees(float(run.bend[:, k].max())) for k in range(design.n_layers)},
+        "final_bend_deg": {LETTERS[k]: math.degrees(float(run.bend[-1, k])) for k in range(design.n_layers)},
+        "tip_bend_max_deg": math.degrees(float(run.tip_bend.max())),
+        "final_tip_mm": U.to_mm(run.tip[-1]).tolist(),
+        "max_tip_lateral_mm": U.to_mm(float(np.max(np.hypot(run.tip[:, 0] - tip0[0], run.tip[:, 1] - tip0[1])))),
+        "tip_height_range_mm": [U.to_mm(float(run.tip[:, 2].min())), U.to_mm(float(run.tip[:, 2].max()))],
+        "tension_chambers": [nm for nm, f in zip(names, run.tension.ravel()) if f],
+        "events": counts,
+        "status": run.status,
+        "sim_time_s": float(run.t[-1]),
+        "wall_s": run.wall_s,
+    }
+
+
+def write_run_csv(design: RobotDesign, run: RobotRun, path: Path | str) -> None:
+    """Write the run as CSV in edge units (mm, kPa, mg, deg), one row per sync period."""
+    import csv
+
+    names = design.names
+    N = design.n_layers
+    cols = ["t_s"] + [f"h_{nm}_mm" for nm in names] + [f"p_{nm}_kpa" for nm in names] + \
+        [f"m_{nm}_mg" for nm in names] + [f"load_{nm}_n" for nm in names] + \
+        [f"bend_{LETTERS[k]}_deg" for k in range(N)] + [f"dir_{LETTERS[k]}_deg" for k in range(N)] + \
+        ["tip_x_mm", "tip_y_mm", "tip_z_mm"]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for j in range(run.t.size):
+            row = [run.t[j]] + list(U.to_mm(run.h[j].ravel())) + list(U.to_kpa(run.p[j].ravel())) + \
+                list(run.m[j].ravel() * 1e6) + list(run.F[j].ravel()) + list(np.degrees(run.bend[j])) + \
+                list(np.degrees(run.direction[j])) + list(U.to_mm(run.tip[j]))
+            w.writerow([f"{v:.6g}" for v in row])
+
+
+def run_scene(scn, out_dir) -> dict:
+    """Run a scenario with a ``[robot]`` section into out_dir; returns {"robot": metrics}.
+
+    Uses the scenario's pneumatics (compressor map, flow scale), duration and sim integrator/step;
+    the robot itself (chambers included) comes from ``[robot]``, not from ``[actuator]``. Writes
+    robot_log.csv, robot_events.json, robot_shape.png (shapes over time) and robot_series.png.
+    """
+    s = None
+    if hasattr(scn, "role"):
+        s = scn.role("robot")
+    if s is None:
+        s = parse_section(dict(scn.sections["robot"]))
+    if s.mode == "closed_loop":
+        raise ValueError("robot.mode = 'closed_loop': closed-loop robot control (per-chamber EKF bank + NMPC) "
+                         "is not implemented yet; use mode = 'open_loop' with robot.inputs")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    integ = scn.sim.integrator if scn.sim.integrator in ("euler", "rk4") else "rk4"
+    dt = scn.sim.dt
+    run = simulate_open_loop(s, scn.pneumatics, scn.duration, integ, dt)
+    metrics = run_metrics(s.design, run)
+    if integ != scn.sim.integrator:
+        metrics["note"] = f"sim.integrator '{scn.sim.integrator}' is not available for the robot batch; used rk4"
+    write_run_csv(s.design, run, out / "robot_log.csv")
+    (out / "robot_events.json").write_text(json.dumps(
+        [{"t_s": float(t), "chamber": c, "event": e} for t, c, e in run.events], indent=1) + "\n")
+    idx = np.unique(np.linspace(0, run.t.size - 1, s.snapshots).round().astype(int))
+    plot_shapes(s.design, [run.h[i] for i in idx], out / "robot_shape.png",
+                labels=[f"t = {run.t[i]:.1f} s" for i in idx], title=f"{scn.name}: robot shape over time")
+    plot_run(s.design, run, out / "robot_series.png")
+    return {"robot": metrics}
+
+
+# ---------------------------------------------------------------------------------------------
+# plots (matplotlib, Agg)
+# ---------------------------------------------------------------------------------------------
+def _circle(frame: np.ndarray, z: float, r: float, n: int = 48) -> np.ndarray:
+    a = np.linspace(0, 2 * math.pi, n)
+    pts = np.column_stack([r * np.cos(a), r * np.sin(a), np.full(n, z), np.ones(n)])
+    return (frame @ pts.T).T[:, :3]
+
+
+def plot_shapes(design: RobotDesign, heights_list: list, path: Path | str, labels: list | None = None,
+                title: str = "") -> None:
+    """Draw robot shapes (3D view and x-z side view) for a list of chamber-height sets (m) -> PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(11, 5.5))
+    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
+    ax2 = fig.add_subplot(1, 2, 2)
+    cmap = plt.get_cmap("viridis")
+    L, R = design.layer_thickness, design.outer_diameter / 2
+    xy = design.chamber_xy()
+    extent = 0.0
+    for j, hs in enumerate(heights_list):
+        pose = forward_kinematics(design, hs)
+        col = cmap(j / max(len(heights_list) - 1, 1))
+        lab = labels[j] if labels else None
+        for k, Fk in enumerate(pose.frames):
+            for z in (0.0, L):
+                c = U.to_mm(_circle(Fk, z, R))
+                ax3.plot(c[:, 0], c[:, 1], c[:, 2], color=col, lw=0.8)
+            # side view: the body's outline in its x-z section
+            quad = np.array([[-R, 0, 0, 1], [R, 0, 0, 1], [R, 0, L, 1], [-R, 0, L, 1], [-R, 0, 0, 1]])
+            q = U.to_mm((Fk @ quad.T).T)
+            ax2.plot(q[:, 0], q[:, 2], color=col, lw=1.0, label=lab if k == 0 else None)
+            extent = max(extent, float(np.abs(q[:, [0, 2]]).max()))
+        for k in range(design.n_layers):
+            base = (pose.frames[k] @ np.column_stack([xy, np.full(3, L), np.ones(3)]).T).T[:, :3]
+            for i in range(3):
+                seg = U.to_mm(np.vstack([base[i], pose.contacts[k, i]]))
+                ax3.plot(seg[:, 0], seg[:, 1], seg[:, 2], color="tab:red", lw=2.0)
+                ax2.plot(seg[:, 0], seg[:, 2], color="tab:red", lw=1.5, alpha=0.7)
+        tp = U.to_mm(pose.tip_position)
+        ax3.scatter(*tp, color=col, s=12)
+    lim = extent * 1.05
+    ax3.set_xlim(-lim / 2, lim / 2)
+    ax3.set_ylim(-lim / 2, lim / 2)
+    ax3.set_zlim(0, lim)
+    ax3.set_xlabel("x (mm)")
+    ax3.set_ylabel("y (mm)")
+    ax3.set_zlabel("z (mm)")
+    ax2.set_aspect("equal")
+    ax2.set_xlabel("x (mm)")
+    ax2.set_ylabel("z (mm)")
+    ax2.set_title("side view (x-z section); red: chambers (membrane centre to contact)", fontsize=8)
+    if labels:
+        ax2.legend(fontsize=7, loc="upper left")
+    fig.suptitle(title or "robot shape")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_run(design: RobotDesign, run: RobotRun, path: Path | str) -> None:
+    """Chamber heights, pressures and layer bend angles over time -> PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = design.names
+    fig, axs = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    T = run.t.size
+    for i, nm in enumerate(names):
+        axs[0].plot(run.t, U.to_mm(run.h.reshape(T, -1)[:, i]), label=nm)
+        axs[1].plot(run.t, U.to_kpa(run.p.reshape(T, -1)[:, i]), label=nm)
+    for k in range(design.n_layers):
+        axs[2].plot(run.t, np.degrees(run.bend[:, k]), label=f"layer {LETTERS[k]} -> {LETTERS[k + 1] if k + 1 < design.n_layers else 'top'}")
+    axs[0].set_ylabel("chamber height (mm)")
+    axs[1].set_ylabel("pressure (kPa)")
+    axs[2].set_ylabel("bend (deg)")
+    axs[2].set_xlabel("t (s)")
+    for ax in axs:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_workspace(ws: dict, path: Path | str, title: str = "") -> None:
+    """Polar plot of the largest bend angle against bend direction, per layer -> PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    psi = np.asarray(ws["direction"] + ws["direction"][:1])
+    fig = plt.figure(figsize=(6.5, 6.5))
+    ax = fig.add_subplot(projection="polar")
+    for ly in ws["layers"]:
+        b = np.degrees(ly["bend_max"] + ly["bend_max"][:1])
+        bp = np.degrees(ly["bend_max_pressure_control"] + ly["bend_max_pressure_control"][:1])
+        ax.plot(psi, b, label=f"layer {ly['layer']}: gas-mass hold, h <= {U.to_mm(ly['h_max']):.1f} mm "
+                              f"({ly['limit'][0]})")
+        ax.plot(psi, bp, ls="--", label=f"layer {ly['layer']}: pressure control, h <= "
+                                        f"{U.to_mm(ly['h_pressure_control']):.1f} mm")
+    ax.set_title(title or f"largest bend (deg) vs direction, pressure limit {U.to_kpa(ws['pressure_limit']):g} kPa",
+                 fontsize=9)
+    ax.legend(fontsize=6, loc="lower center", bbox_to_anchor=(0.5, -0.25))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
