@@ -31,7 +31,6 @@ and the NMPC (discretised dynamics).
 from __future__ import annotations
 
 import difflib
-from dataclasses import dataclass
 from functools import cached_property
 
 import casadi as ca
@@ -251,7 +250,7 @@ class QuasiStatic(Fidelity):
         return shape_jacobian(h1, h2, P)
 
     def _rhs(self, x, u, P, mode):
-        m, h1, h2 = x[0], x[1], x[2]
+        h1, h2 = x[1], x[2]
         p = self._pressure(x, P, mode)
         q, _, _ = ph.net_flow(u, p, P, self.table)
         _, _, J = self._jac(h1, h2, P)

@@ -27,7 +27,6 @@ import casadi as ca
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from . import physics as ph
 from .model import MODE_MOVING, MODE_REST, OUTPUTS, Fidelity, make_fidelity
 from .params import Actuator, Platform, Pneumatics, check_range
 
@@ -180,7 +179,6 @@ class _Batch:
         self.fid = fid
         self.theta = thetas  # (ntheta, n)
         self.n = thetas.shape[1]
-        self.f = fid.mapped(fid.f, self.n)
         self.out = fid.mapped(fid.out, self.n)
         self.proj = fid.mapped(fid.project, self.n)
         self.idx = {k: i for i, k in enumerate(fid.space.names)}
@@ -188,15 +186,8 @@ class _Batch:
     def th(self, name: str) -> np.ndarray:
         return self.theta[self.idx[name]]
 
-    def rhs(self, X, U, mode):
-        return np.asarray(self.f(X, U, self.theta, mode[None, :]))
-
     def y(self, X, U, mode):
         return np.asarray(self.out(X, U, self.theta, mode[None, :]))
-
-
-def _q_of(batch: _Batch, X, U, mode):
-    return batch.y(X, U, mode)[OUTPUTS.index("q")]
 
 
 def _far_branch(fid: Fidelity, theta: np.ndarray, m: float, h_now: float, up: bool):
