@@ -1,0 +1,164 @@
+"""Numerics and settings shared by the EKF and the UKF (SI units).
+
+Guards that filterpy leaves open (STYLE: "Avoid ... plain P = (I - K H) P updates and unchecked
+Cholesky factorisations"): every covariance the filters keep goes through :func:`guard_cov`
+(symmetrised, eigenvalues floored), gains come from linear solves, never inverses, and the update
+is in Joseph form, which stays positive semi-definite for any gain.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from hbma_ctrl.params import check_range
+
+__all__ = ["FilterSettings", "guard_cov", "joseph_update", "classify_measurement", "MEAS_OK",
+           "MEAS_MISSING", "MEAS_SATURATED"]
+
+MEAS_OK, MEAS_MISSING, MEAS_SATURATED = "ok", "missing", "saturated"
+
+
+@dataclass
+class FilterSettings:
+    """Settings shared by :class:`~estimators.ekf.EKF` and :class:`~estimators.ukf.UKF` (SI).
+
+    Fields
+    ------
+    sample_period : time between steps, s, (0, 1]. A step whose ``t`` is k periods after the last
+        one predicts k times (k = 0: update only).
+    integrator : 'rk4' | 'euler': the simulator's fixed-step scheme for the model's ODE.
+    nsub : integrator sub-steps per sample period, [1, 50].
+    newton : Newton iterations of the shape projection per sub-step, [1, 10].
+    noise_std : pressure-sensor noise, one sigma, Pa, (0, 1e4] (the rig's: 200 Pa).
+    model_rel_std : relative error of the model's pressure law at a given shape (-), [0, 1]; the
+        measurement variance is noise_std^2 + (model_rel_std p)^2. Covers the modulus mismatch.
+    sensor_range : readings >= this are saturated (the true pressure is at least this), Pa.
+    saturation_std : one sigma of the one-sided pseudo-measurement "p >= sensor_range" applied
+        when the prediction is below the range, Pa, (0, 1e5].
+    flow_rel_std : relative one-sigma error of the model's mass flow (compressor map, valves,
+        dead volume), per sample: process noise on the gas mass is (flow_rel_std |q| dt)^2 plus
+        (mass_std_abs)^2 per second, [0, 1].
+    mass_std_abs : gas-mass random walk, kg/sqrt(s), [0, 1e-5].
+    load_std : load random walk, N/sqrt(s), [0, 100] (how fast the load may change).
+    load_init : initial load guess, N; load_init_std its one sigma, N.
+    load_rest_std : one sigma of the load while the membrane rests flat, N: only W >= pi r1^2 p is
+        known then; the filter holds W at that lift-off bound (see :mod:`estimators.ekf`).
+    change_threshold : a load change is declared when the CUSUM of (NIS - change_drift) exceeds this
+        (-), (0, 1e6]; the load's variance then grows by change_std^2 (N^2) so it re-converges.
+    change_drift : NIS level tolerated by the CUSUM (-), [1, 100].
+    change_std : one sigma added to the load on a detected change, N, [0, 1000].
+    load_min, load_max : the load estimate is kept in [load_min, load_max], N.
+    mass_init_std : one sigma of the initial gas mass, kg.
+    cov_floor : eigenvalue floor of the covariance, relative to the state scales (m: 1e-6 kg,
+        W: 1 N), [0, 1e-3].
+    compile : compile the model to C (cached) for speed; False = casadi's virtual machine.
+    """
+
+    sample_period: float = 0.01
+    integrator: str = "rk4"
+    nsub: int = 2
+    newton: int = 2
+    noise_std: float = 200.0
+    model_rel_std: float = 0.05
+    sensor_range: float = 35e3
+    saturation_std: float = 2e3
+    flow_rel_std: float = 0.15
+    mass_std_abs: float = 2e-8
+    load_std: float = 0.05
+    load_init: float = 0.0
+    load_init_std: float = 3.0
+    load_rest_std: float = 1.0
+    change_threshold: float = 40.0
+    change_drift: float = 4.0
+    change_std: float = 3.0
+    load_min: float = -0.5
+    load_max: float = 100.0
+    mass_init_std: float = 1e-8
+    cov_floor: float = 1e-12
+    compile: bool = True
+
+    def validate(self) -> "FilterSettings":
+        w = "estimator"
+        check_range(w, "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
+        if self.integrator not in ("rk4", "euler"):
+            raise ValueError(f"{w}.integrator = '{self.integrator}': allowed rk4, euler")
+        for name, lo, hi in (("nsub", 1, 50), ("newton", 1, 10)):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+                raise ValueError(f"{w}.{name} = {v!r} must be an integer in [{lo}, {hi}]")
+        check_range(w, "noise_std", self.noise_std, 0.0, 1e4, "Pa", lo_open=True)
+        check_range(w, "model_rel_std", self.model_rel_std, 0.0, 1.0)
+        check_range(w, "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
+        check_range(w, "saturation_std", self.saturation_std, 0.0, 1e5, "Pa", lo_open=True)
+        check_range(w, "flow_rel_std", self.flow_rel_std, 0.0, 1.0)
+        check_range(w, "mass_std_abs", self.mass_std_abs, 0.0, 1e-5, "kg/sqrt(s)")
+        check_range(w, "load_std", self.load_std, 0.0, 100.0, "N/sqrt(s)")
+        check_range(w, "load_init", self.load_init, -1.0, 1000.0, "N")
+        check_range(w, "load_init_std", self.load_init_std, 0.0, 1000.0, "N", lo_open=True)
+        check_range(w, "load_rest_std", self.load_rest_std, 0.0, 1000.0, "N", lo_open=True)
+        check_range(w, "change_threshold", self.change_threshold, 0.0, 1e6, lo_open=True)
+        check_range(w, "change_drift", self.change_drift, 1.0, 100.0)
+        check_range(w, "change_std", self.change_std, 0.0, 1000.0, "N")
+        check_range(w, "load_min", self.load_min, -10.0, 0.0, "N")
+        check_range(w, "load_max", self.load_max, 0.0, 1e4, "N", lo_open=True)
+        check_range(w, "mass_init_std", self.mass_init_std, 0.0, 1e-3, "kg", lo_open=True)
+        check_range(w, "cov_floor", self.cov_floor, 0.0, 1e-3)
+        if not isinstance(self.compile, bool):
+            raise ValueError(f"{w}.compile = {self.compile!r} must be true or false")
+        return self
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in fields(cls)]
+
+
+#: state scales used by the covariance floor: gas mass (kg), load (N)
+STATE_SCALE = np.array([1e-6, 1.0])
+
+
+def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> np.ndarray:
+    """Symmetrise P and floor its eigenvalues at ``floor`` in scaled coordinates (SPD out)."""
+    S = 0.5 * (P + P.T) / np.outer(scale, scale)
+    w, V = np.linalg.eigh(S)
+    if w.min() < floor or not np.all(np.isfinite(w)):
+        w = np.maximum(np.nan_to_num(w, nan=floor), floor)
+        S = (V * w) @ V.T
+        S = 0.5 * (S + S.T)
+    return S * np.outer(scale, scale)
+
+
+def joseph_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, innov: float, R: float,
+                  PHt: np.ndarray | None = None, S: float | None = None):
+    """Scalar-measurement Kalman update in Joseph form. Returns (x+, P+, S, K).
+
+    ``PHt`` (P H^T) and ``S`` may be given (the UKF passes its cross-covariance and innovation
+    variance); otherwise they are formed from H. The gain solves S K^T = (P H^T)^T; for a scalar
+    measurement that is a division by S > 0, checked.
+    """
+    H = np.asarray(H, dtype=float).reshape(1, -1)
+    if PHt is None:
+        PHt = P @ H.T
+    if S is None:
+        S = float((H @ PHt)[0, 0]) + R
+    if not (S > 0 and math.isfinite(S)):
+        raise FloatingPointError(f"innovation variance {S} is not positive")
+    K = np.linalg.solve(np.array([[S]]), np.reshape(PHt, (-1, 1)).T).T  # (n, 1)
+    IKH = np.eye(P.shape[0]) - K @ H
+    Pn = IKH @ P @ IKH.T + R * (K @ K.T)
+    return x + K[:, 0] * innov, Pn, S, K[:, 0]
+
+
+def classify_measurement(z, sensor_range: float) -> str:
+    """'missing' (None or non-finite), 'saturated' (>= sensor range) or 'ok'."""
+    try:
+        zf = float(z)
+    except (TypeError, ValueError):
+        return MEAS_MISSING
+    if not math.isfinite(zf):
+        return MEAS_MISSING
+    if zf >= sensor_range:
+        return MEAS_SATURATED
+    return MEAS_OK
