@@ -255,7 +255,9 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _plane_of(Ainv: np.ndarray, h: np.ndarray) -> tuple[float, float, float]:
     c, a, b = Ainv @ h
     t = math.hypot(a, b)
-    return float(c), math.atan(t), (math.atan2(-b, -a) if t > 0 else 0.0)
+    if t < 1e-12:  # level (to rounding): direction 0 by convention
+        return float(c), 0.0, 0.0
+    return float(c), math.atan(t), math.atan2(-b, -a)
 
 
 def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
@@ -481,6 +483,12 @@ def _chamber_fn(space: ph.ParamSpace) -> ca.Function:
                        ["h1", "h2", "theta"], ["p", "F", "lam", "V", "G"])
 
 
+@lru_cache(maxsize=16)
+def _chambers(act: Actuator, pn: Pneumatics | None = None) -> "_Chambers":
+    """A cached :class:`_Chambers` (its mapped casadi Functions are reused across calls)."""
+    return _Chambers(act, pn)
+
+
 class _Chambers:
     """Numeric, vectorised access to the single-chamber physics for one actuator."""
 
@@ -555,7 +563,7 @@ def chamber_states(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_
     h = _heights_array(design, heights)
     F = load_sharing(design, h, tip_force, tip_moment).forces if forces is None else \
         np.asarray(forces, dtype=float).reshape(h.shape)
-    ch = _Chambers(design.chamber)
+    ch = _chambers(design.chamber)
     resting = h <= 0
     tension = (F < 0) & ~resting
     push = (F > 0) & ~resting
@@ -624,7 +632,7 @@ def chamber_reach(design: RobotDesign, force: float, pressure_limit: float = 45e
     reach of a pressure-controlled chamber (never past the peak).
     """
     check_range("reach", "pressure_limit", pressure_limit, 0.0, 1e6, "Pa", lo_open=True)
-    ch = _Chambers(design.chamber, pneumatics)
+    ch = _chambers(design.chamber, pneumatics)
     F = max(float(force), 0.0)
     h_str = float(ch.h_for_stretch(design.max_stretch, F)[0])
     path = ch.load_path(F, h_str)
@@ -679,7 +687,7 @@ def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
 # ---------------------------------------------------------------------------------------------
 # Table II beside the model
 # ---------------------------------------------------------------------------------------------
-def _solve_inflated(design: RobotDesign, inflated: list[int], height_of, iters: int = 30) -> np.ndarray:
+def _solve_inflated(design: RobotDesign, inflated: list[int], height_of, iters: int = 20) -> np.ndarray:
     """Heights of layer A with chambers ``inflated`` driven by ``height_of(F) -> h``, the others flat,
     all upper layers flat; fixed point between the heights and the load sharing."""
     h = np.zeros((design.n_layers, 3))
@@ -688,7 +696,7 @@ def _solve_inflated(design: RobotDesign, inflated: list[int], height_of, iters: 
         new = h.copy()
         for i in inflated:
             new[0, i] = height_of(F[i])
-        if np.max(np.abs(new - h)) < 1e-10:
+        if np.max(np.abs(new - h)) < 1e-9:
             return new
         h = new
     return h
@@ -725,14 +733,14 @@ def robot_table2(design: RobotDesign | None = None, stretch: float | None = None
     d.validate()
     lam = d.max_stretch if stretch is None else stretch
     check_range("table2", "stretch", lam, 1.05, d.max_stretch if stretch is None else 20.0)
-    ch = _Chambers(d.chamber)
+    ch = _chambers(d.chamber)
 
     def at_stretch(F):
         return float(ch.h_for_stretch(lam, max(F, 0.0))[0])
 
     def at_pressure(F):
         h_hi = float(ch.h_for_stretch(min(d.max_stretch, 3.0), max(F, 0.0))[0])
-        path = ch.load_path(max(F, 0.0), h_hi, 800)
+        path = ch.load_path(max(F, 0.0), h_hi, 300)
         over = np.nonzero(path["p"] >= hold_pressure)[0]
         if over.size == 0:  # never reaches the hold pressure before the peak: stop at the peak
             return float(path["h"][int(np.argmax(path["p"]))])
