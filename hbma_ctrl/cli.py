@@ -71,8 +71,11 @@ bench_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchm
 app.add_typer(bench_app, name="bench")
 
 
-def _console() -> Console:
-    return Console(stderr=False, highlight=False)
+def _console(min_width: int = 0) -> Console:
+    con = Console(highlight=False)
+    if not con.is_terminal and con.width < min_width:  # piped to a log file: do not squeeze tables
+        con = Console(highlight=False, width=min_width)
+    return con
 
 
 def _choice(name: str, value: str, allowed) -> str:
@@ -287,7 +290,7 @@ def bench_sim(
     _choice("--material", material, MATERIALS)
     _range("--workers", workers, 1, 256)
     _range("--repeat", repeat, 1, 100)
-    con = _console()
+    con = _console(132)
 
     def show(row):
         con.print(f"  {row.fidelity:12s} {row.integrator:5s} dt {_dt_text(row):>14s}  wall {row.wall_s:7.2f} s  "
@@ -296,7 +299,7 @@ def bench_sim(
     rows = run_bench(out, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show)
     table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
                         f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
-    for c in ("fidelity (loaded)", "integrator", "dt (ms)", "wall (s)", "diverged", "h NRMSD mean", "h NRMSD max",
+    for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "diverged", "h NRMSD mean", "h NRMSD max",
               "p NRMSD mean", "p NRMSD max", "target"):
         table.add_column(c, justify="right")
     for r in rows:

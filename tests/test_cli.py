@@ -1,0 +1,130 @@
+"""CLI: equilibrium pinned to SPEC numbers, one-line errors with exit code 2, run writes metrics."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from hbma_ctrl.cli import app
+
+ROOT = Path(__file__).resolve().parents[1]
+runner = CliRunner()
+E = 130.6e3
+
+
+def _eq(*args: str) -> dict:
+    res = runner.invoke(app, ["equilibrium", "--json", *args])
+    assert res.exit_code == 0, res.output
+    return json.loads(res.stdout)
+
+
+def test_equilibrium_nh_free_peak_matches_table_one():
+    # SPEC 3: NH free inflation peaks at h1/r1 ~ 1.259 with 31.96 kPa for t0 = 3 mm, r1 = 7.5 mm
+    out = _eq("--material", "nh", "--r1-mm", "7.5", "--t0-mm", "3", "--h1-mm", str(1.259 * 7.5), "--h2-mm", "0")
+    assert out["pressure_kpa"] == pytest.approx(31.96, abs=0.01)
+    assert out["stretch"] == pytest.approx(1.61, abs=0.005)
+    assert out["force_n"] == 0.0 and out["load_g"] == 0.0
+    assert out["h_mm"] == pytest.approx(1.259 * 7.5)
+    # free cap volume: V0 + (pi/6) h (3 r1^2 + h^2)
+    h, r1 = 1.259 * 7.5e-3, 7.5e-3
+    assert out["volume_cm3"] == pytest.approx((3e-6 + 3.141592653589793 / 6 * h * (3 * r1**2 + h**2)) * 1e6, rel=1e-9)
+
+
+def test_equilibrium_nh_flat_limit_closed_form():
+    r1, t0, h1 = 7.5e-3, 3e-3, 4e-3
+    out = _eq("--r1-mm", "7.5", "--t0-mm", "3", "--h1-mm", "4", "--h2-mm", "4")
+    p_flat = 8 * E * t0 * h1**3 / (r1**2 * (h1**2 + r1**2))
+    assert out["pressure_kpa"] == pytest.approx(p_flat * 1e-3, rel=1e-9)
+    # the whole clamp area carries the pressure when the membrane is flat under the plate
+    assert out["force_n"] == pytest.approx(3.141592653589793 * r1**2 * p_flat, rel=1e-9)
+    assert out["load_g"] == pytest.approx(out["force_n"] / 9.80665 * 1e3, rel=1e-12)
+    assert out["h_mm"] == 0.0 and out["stretch"] == pytest.approx(1.0)
+
+
+def test_equilibrium_param_override_scales_nh_pressure():
+    base = _eq("--h1-mm", "6", "--h2-mm", "2")
+    double = _eq("--h1-mm", "6", "--h2-mm", "2", "--param", f"E={2 * E}")
+    assert double["pressure_kpa"] == pytest.approx(2 * base["pressure_kpa"], rel=1e-12)
+    assert double["params_si"] == {"E": 2 * E}
+
+
+def test_equilibrium_table_output():
+    res = runner.invoke(app, ["equilibrium", "--h1-mm", "9.4425"])
+    assert res.exit_code == 0
+    assert "pressure (kPa)" in res.stdout and "31.95" in res.stdout
+
+
+def _one_line_error(res, *needles: str) -> None:
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
+    assert "Traceback" not in res.output
+    for n in needles:
+        assert n in lines[0]
+
+
+@pytest.mark.parametrize(
+    "args,needles",
+    [
+        (["equilibrium", "--h1-mm", "3", "--h2-mm", "5"], ["--h2-mm", "[0, h1-mm = 3]"]),
+        (["equilibrium", "--h1-mm", "-1"], ["--h1-mm"]),
+        (["equilibrium", "--h1-mm", "3", "--r1-mm", "0"], ["--r1-mm", "(0.5, 100]"]),
+        (["equilibrium", "--h1-mm", "3", "--material", "nhh"], ["did you mean 'nh'"]),
+        (["equilibrium", "--h1-mm", "3", "--param", "EE=1"], ["'EE'", "did you mean 'E'"]),
+        (["equilibrium", "--h1-mm", "3", "--param", "E"], ["NAME=VALUE"]),
+        (["equilibrium"], ["--h1-mm"]),
+        (["protocol", "--bogus-flag"], ["--bogus-flag"]),
+        (["protocol", "--integrator", "rk5"], ["--integrator", "did you mean 'rk4'"]),
+        (["protocol", "--workers", "0"], ["--workers"]),
+        (["protocol", "--t-inflate-s", "7"], ["--t-inflate-s"]),
+        (["run", "does_not_exist.toml"], ["does_not_exist.toml"]),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(args, needles):
+    _one_line_error(runner.invoke(app, args), *needles)
+
+
+def test_bad_scenario_file_is_one_line(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("[actuator]\nr1_mm = 500.0\n")
+    _one_line_error(runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "o")]), "actuator.r1_mm", "bad.toml")
+
+
+def test_run_open_loop_writes_metrics_log_and_plot(tmp_path):
+    out = tmp_path / "run"
+    res = runner.invoke(app, ["run", str(ROOT / "scenarios" / "open_loop_fig7.toml"), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    plant = metrics["plant"]
+    assert isinstance(plant, dict)
+    assert plant["status"] == "ok" and plant["fidelity"] == "free"
+    # fig. 7 rig at full speed: about 20 mm after 3 s of pumping (common knowledge of the default map)
+    assert 15.0 < plant["max_height_mm"] < 25.0
+    assert plant["mass_balance_rel"] < 1e-6
+    assert metrics["scenario"]["name"] == "open_loop_fig7"
+    with open(out / "log.csv") as fh:
+        header = next(csv.reader(fh))
+    assert {"t_s", "h_mm", "p_kpa", "F_n", "speed_pct", "event"} <= set(header)
+    assert (out / "run.png").stat().st_size > 10_000
+
+
+def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
+    import hbma_ctrl.protocol as protocol
+
+    calls = []
+
+    def fake_run_protocol(material, out, integrator, dt, fidelity, workers, **kw):
+        calls.append((material, Path(out), integrator, dt, fidelity, workers, kw))
+        return [{"status": "ok", "max_height_mm": 1.0, "max_pressure_kpa": 2.0}]
+
+    monkeypatch.setattr(protocol, "run_protocol", fake_run_protocol)
+    res = runner.invoke(app, [])
+    assert res.exit_code == 0, res.output
+    assert len(calls) == 1
+    material, out, integrator, dt, fidelity, workers, kw = calls[0]
+    assert (material, out, integrator, dt, fidelity, workers) == ("nh", Path("runs/protocol"), "rk4", None, "auto", 1)
+    assert kw["t_inflate_s"] == 3.0 and kw["duration_s"] == 6.0 and kw["plots"] is True
