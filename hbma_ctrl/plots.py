@@ -108,7 +108,7 @@ def _time_panels(path, logs: list[Log], labels: list[str], panels, title: str) -
             ax.plot(log["t"], log[key] * factor, label=lab, lw=1.4)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, ncol=min(5, len(logs)), loc="upper right")
+    axes[0].legend(fontsize=8, loc="center right", title="speed", title_fontsize=8)
     axes[-1].set_xlabel("time (s)")
     fig.suptitle(title)
     fig.tight_layout()

@@ -232,5 +232,5 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
         from .plots import protocol_figures
 
         mat = make_material(material) if isinstance(material, str) else material
-        protocol_figures(out, mat, trials, logs, settings)
+        protocol_figures(out, mat, trials, logs, settings, fidelity)
     return rows

@@ -36,7 +36,7 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
     if scn.kind == "protocol":
         trials = scn.trials()
         rows = run_protocol(scn.actuator.material, out_dir, scn.sim.integrator, scn.sim.dt, scn.fidelity,
-                            trials=trials, plots=False, log_dt=scn.sim.log_dt)
+                            trials=trials, plots=True, log_dt=scn.sim.log_dt)
         statuses: dict = {}
         for r in rows:
             statuses[r["status"]] = statuses.get(r["status"], 0) + 1

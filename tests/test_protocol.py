@@ -91,3 +91,16 @@ def test_platform_fidelity_keeps_free_for_unloaded_trials():
     assert [log.fidelity for log in logs] == ["free", "free", "platform", "platform"]
     with pytest.raises(ValueError, match="'free' ignores the load"):
         simulate_trials(trials, SimSettings(), "free")
+
+
+def test_nrmsd_is_spec_eq16():
+    from hbma_ctrl.metrics import nrmsd
+
+    y = np.sin(np.linspace(0, 3, 301))  # reference
+    span = y.max() - y.min()
+    assert nrmsd(y + 0.01 * span, y) == pytest.approx(0.01, rel=1e-12)
+    noise = np.where(np.arange(301) % 2 == 0, 1.0, -1.0) * 0.02 * span
+    assert nrmsd(y + noise, y) == pytest.approx(0.02, rel=1e-12)
+    assert math.isnan(nrmsd(np.zeros(5), np.zeros(5)))  # constant reference: undefined
+    with pytest.raises(ValueError, match="same non-zero length"):
+        nrmsd(np.zeros(3), np.zeros(4))
