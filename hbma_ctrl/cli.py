@@ -294,17 +294,18 @@ def bench_sim(
 
     def show(row):
         con.print(f"  {row.fidelity:12s} {row.integrator:5s} dt {_dt_text(row):>14s}  wall {row.wall_s:7.2f} s  "
+                  f"cpu {row.cpu_s:7.2f} s  "
                   f"NRMSD h {row.height_nrmsd_max:.2e} p {row.pressure_nrmsd_max:.2e} (max)")
 
     rows = run_bench(out, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show)
     table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
                         f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
-    for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "diverged", "h NRMSD mean", "h NRMSD max",
+    for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean", "h NRMSD max",
               "p NRMSD mean", "p NRMSD max", "target"):
         table.add_column(c, justify="right")
     for r in rows:
         table.add_row(r.fidelity, r.integrator, _dt_text(r) + (" *default*" if r.default else ""), f"{r.wall_s:.2f}",
-                      str(r.n_diverged), f"{r.height_nrmsd_mean:.2e}", f"{r.height_nrmsd_max:.2e}",
+                      f"{r.cpu_s:.2f}", str(r.n_diverged), f"{r.height_nrmsd_mean:.2e}", f"{r.height_nrmsd_max:.2e}",
                       f"{r.pressure_nrmsd_mean:.2e}", f"{r.pressure_nrmsd_max:.2e}", "yes" if r.meets_target else "no")
     con.print(table)
     con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}")
