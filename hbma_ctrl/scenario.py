@@ -331,6 +331,9 @@ def parse_scenario(data: dict, path: Path | None = None,
         if pr["t_inflate_s"] >= duration:
             raise ValueError(f"protocol.t_inflate_s = {pr['t_inflate_s']:g} must be below "
                              f"scenario.duration_s = {duration:g}")
+        if "mass_g" in ld:
+            raise ValueError("load.mass_g is not used with scenario.kind = 'protocol'; set protocol.loads_g "
+                             "(load.own_mass_g and load.damping_ns_per_m apply to every loaded trial)")
         if fidelity == "free" and any(x > 0 for x in pr["loads_g"]):
             raise ValueError("sim.fidelity = 'free' ignores the loads in protocol.loads_g; "
                              "use auto, quasi_static or platform")

@@ -128,3 +128,49 @@ def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
     material, out, integrator, dt, fidelity, workers, kw = calls[0]
     assert (material, out, integrator, dt, fidelity, workers) == ("nh", Path("runs/protocol"), "rk4", None, "auto", 1)
     assert kw["t_inflate_s"] == 3.0 and kw["duration_s"] == 6.0 and kw["plots"] is True
+
+
+def test_run_dispatches_role_scene_and_merges_metrics(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    import hbma_ctrl.runner as runner_mod
+    import hbma_ctrl.scenario as scenario_mod
+
+    mod = types.ModuleType("fake_estimator_scene")
+    mod.parse_section = lambda raw: {"kind": raw.get("kind", "ekf")}
+
+    def run_scene(scn, out_dir):
+        assert scn.role("estimator") == {"kind": "ukf"}
+        (out_dir / "est.csv").write_text("t_s\n0\n")
+        return {"estimator": {"height_nrmsd": 0.01}, "plant": {"max_height_mm": 3.0}}
+
+    mod.run_scene = run_scene
+    monkeypatch.setitem(sys.modules, "fake_estimator_scene", mod)
+    monkeypatch.setitem(scenario_mod.ROLE_SECTIONS, "estimator", ("fake_estimator_scene", "parse_section"))
+    monkeypatch.setattr(runner_mod, "SCENE_DISPATCH", (("estimator", "fake_estimator_scene", "run_scene"),))
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text() + '\n[estimator]\nkind = "ukf"\n'
+    scn_path = tmp_path / "est.toml"
+    scn_path.write_text(text)
+    res = runner.invoke(app, ["run", str(scn_path), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert list(metrics) == ["scenario", "plant", "estimator"]
+    assert metrics["estimator"] == {"height_nrmsd": 0.01}
+    assert metrics["scenario"]["roles"] == ["estimator"]
+
+
+def test_merge_metrics_keeps_role_keys_stable():
+    from hbma_ctrl.metrics import merge_metrics
+
+    merged = merge_metrics({"controller": {"a": 1}}, {"scenario": {"n": "x"}}, {"controller": {"b": 2}})
+    assert list(merged) == ["scenario", "controller"] and merged["controller"] == {"a": 1, "b": 2}
+    with pytest.raises(ValueError, match="unknown role key 'estimater'"):
+        merge_metrics({"estimater": {}})
+
+
+def test_equilibrium_dead_volume_option():
+    a = _eq("--h1-mm", "5", "--V0-cm3", "3")
+    b = _eq("--h1-mm", "5", "--V0-cm3", "5")
+    assert b["volume_cm3"] - a["volume_cm3"] == pytest.approx(2.0, rel=1e-12)
+    assert b["pressure_kpa"] == pytest.approx(a["pressure_kpa"], rel=1e-12)
