@@ -80,7 +80,8 @@ from .params import Actuator, Platform, Pneumatics, check_range
 __all__ = [
     "RobotDesign", "RobotPneumatics", "RobotSettings", "RobotPose", "ChamberReach",
     "chamber_names", "layer_plane", "layer_transform", "forward_kinematics", "inverse_kinematics",
-    "inverse_kinematics_tip", "load_sharing", "chamber_states", "chamber_reach", "pump_stall_pressure",
+    "inverse_kinematics_tip", "load_sharing", "chamber_loads", "chamber_states", "chamber_states_from_masses",
+    "chamber_reach", "reach_report", "simulate_open_loop", "run_metrics", "pump_stall_pressure",
     "robot_table2", "table2_markdown", "workspace", "parse_section", "run_scene", "TABLE2_PAPER",
     "TOPOLOGIES",
 ]
@@ -489,6 +490,17 @@ def _chambers(act: Actuator, pn: Pneumatics | None = None) -> "_Chambers":
     return _Chambers(act, pn)
 
 
+@lru_cache(maxsize=8)
+def _gf_fn(space: ph.ParamSpace) -> ca.Function:
+    """(h1, h2, theta) -> (G, F, d(G, F)/d(h1, h2)) from the lead's model.shape_jacobian."""
+    from .model import shape_jacobian
+
+    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
+    theta, P = space.symbols()
+    G, F, J = shape_jacobian(h1, h2, P)
+    return ca.Function("gf", [h1, h2, theta], [G, F, J], ["h1", "h2", "theta"], ["G", "F", "J"])
+
+
 class _Chambers:
     """Numeric, vectorised access to the single-chamber physics for one actuator."""
 
@@ -509,6 +521,36 @@ class _Chambers:
         out = self._maps[n](h1.ravel()[None, :], h2.ravel()[None, :], th)
         names = ("p", "F", "lam", "V", "G")
         return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(names, out)}
+
+    def newton_gf(self, h1, h2, G, F, iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
+        """Newton on (h1, h2) for G(h1, h2) = G and F(h1, h2) = F from a nearby guess (vectorised).
+
+        Keeps 0 <= h2 <= h1 and halves a step that would leave the chart; the guess picks the branch.
+        """
+        h1, h2 = np.array(h1, dtype=float), np.array(h2, dtype=float)
+        n = h1.size
+        key = ("gf", n)
+        if key not in self._maps:
+            self._maps[key] = _gf_fn(self.space).map(n)
+        th = np.repeat(self.theta[:, None], n, 1)
+        for _ in range(iters):
+            Gv, Fv, J = (np.asarray(x) for x in self._maps[key](h1[None, :], h2[None, :], th))
+            J = J.reshape(2, n, 2).transpose(0, 2, 1)  # mapped 2x2 blocks side by side -> [row, col, chamber]
+            r0, r1 = Gv.ravel() - G, Fv.ravel() - F
+            det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+            d1 = (J[1, 1] * r0 - J[0, 1] * r1) / det
+            d2 = (-J[1, 0] * r0 + J[0, 0] * r1) / det
+            step = np.ones(n)
+            for _k in range(30):  # stay in the chart
+                n1, n2 = h1 - step * d1, h2 - step * d2
+                bad = (n2 < 0) | (n1 - n2 < 0)
+                if not bad.any():
+                    break
+                step = np.where(bad, step / 2, step)
+            h1, h2 = h1 - step * d1, np.maximum(h2 - step * d2, 0.0)
+            if np.all(np.abs(d1) < 1e-13) and np.all(np.abs(d2) < 1e-13):
+                break
+        return h1, h2
 
     def h2_for_force(self, h, F) -> np.ndarray:
         """Cut height h2 with contact force F(h + h2, h2) = F at membrane height h (F > 0, h > 0)."""
@@ -578,6 +620,78 @@ def chamber_states(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_
     m = (p + act.p_env) * V / (act.R * act.T)
     return {"h1": h1, "h2": h2, "p": p, "F": F, "lam": np.where(resting, 1.0, out["lam"]), "V": V, "m": m,
             "resting": resting, "tension": tension}
+
+
+def chamber_loads(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0),
+                  floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-chamber load W (N), flattened A1, A2, ..., for use as each chamber model's dead load.
+
+    Returns (W, tension): W = max(load share, floor) and the mask of chambers whose share is
+    negative (the glue pulls; the single-chamber model cannot represent it, so it gets ``floor``).
+    This is what a per-chamber estimator/controller bank feeds its models as ``P["W"]``.
+    """
+    F = load_sharing(design, heights, tip_force, tip_moment).forces.ravel()
+    return np.maximum(F, floor), F < 0
+
+
+def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0, 0.0),
+                               tip_moment=(0.0, 0.0, 0.0), iters: int = 40, tol: float = 1e-9) -> dict:
+    """Static equilibrium of the robot for given gas masses (N x 3 or 3N, kg).
+
+    For every chamber the constant-load path h -> (h1, h2) with F(h1, h2) = its load share is
+    searched for G(h1, h2) = m R T (G = (p + p_env) V, SPEC 4); the loads follow from the heights
+    by :func:`load_sharing`, iterated to a fixed point. A chamber whose gas cannot lift its share
+    rests (h = 0). Along the load path G grows with h for the robot's chambers (no fold: the gas
+    is compressible, which is why the far branch is stable at fixed mass), so the height is unique;
+    where G is not monotone the lowest crossing is taken and ``ambiguous`` is flagged. Returns
+    :func:`chamber_states` of the heights plus ``heights`` and ``ambiguous`` (N, 3).
+    """
+    N = design.n_layers
+    m = np.asarray(masses, dtype=float)
+    if m.size != 3 * N or not np.all(np.isfinite(m)) or m.min() <= 0:
+        raise ValueError(f"masses: need {3 * N} finite gas masses > 0 kg")
+    m = m.ravel()
+    act = design.chamber
+    ch = _chambers(act)
+    rt = act.R * act.T
+    lam_hi = min(1.5 * design.max_stretch, act.material.lam_max() * 0.999)
+    h_hi = float(ch.h_for_stretch(lam_hi, 0.0)[0])
+    n = 3 * N
+    h1, h2 = np.zeros(n), np.zeros(n)
+    active = np.zeros(n, dtype=bool)
+    amb = np.zeros(n, dtype=bool)
+    h = np.zeros(n)
+    for _ in range(iters):
+        F = np.maximum(load_sharing(design, h.reshape(N, 3), tip_force, tip_moment).forces.ravel(), 0.0)
+        G_rest = (F / (math.pi * act.r1**2) + act.p_env) * act.V0
+        act_now = m * rt > G_rest
+        for i in np.nonzero(act_now & ~active)[0]:  # a coarse walk along the load path: the initial guess
+            path = ch.load_path(F[i], h_hi, 120)
+            G = path["G"] - m[i] * rt
+            cross = np.nonzero((G[:-1] < 0) & (G[1:] >= 0))[0]
+            if G[0] >= 0:
+                cross = np.append([0], cross)
+            if cross.size == 0:
+                raise ValueError(f"masses: chamber {design.names[i]} holds more gas than the stretch "
+                                 f"{lam_hi:g} allows")
+            amb[i] = cross.size > 1 or bool(np.any(np.diff(path["G"]) <= 0))
+            j = int(cross[0])
+            h1[i], h2[i] = path["h1"][j + 1], path["h2"][j + 1]
+        active = act_now
+        if active.any():
+            h1[active], h2[active] = ch.newton_gf(h1[active], h2[active], m[active] * rt, F[active])
+        h1[~active], h2[~active] = 0.0, 0.0
+        new = h1 - h2
+        done = np.max(np.abs(new - h)) < tol
+        h = new
+        if done:
+            break
+    h = h.reshape(N, 3)
+    amb = amb.reshape(N, 3)
+    out = chamber_states(design, h, tip_force, tip_moment)
+    out["heights"] = h
+    out["ambiguous"] = amb
+    return out
 
 
 # ---------------------------------------------------------------------------------------------

@@ -275,3 +275,21 @@ def test_parse_section_defaults_and_inputs():
 def test_parse_section_rejects_bad_values_naming_the_field(raw, field):
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         R.parse_section(raw)
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.lists(st.one_of(st.just(0.0), st.floats(0.2e-3, 17e-3)), min_size=6, max_size=6))
+def test_gas_masses_give_back_the_heights(hs):
+    d = R.RobotDesign(n_layers=2)
+    h = np.array(hs).reshape(2, 3)
+    s = R.chamber_states(d, h)
+    back = R.chamber_states_from_masses(d, s["m"])
+    np.testing.assert_allclose(back["heights"], h, atol=1e-9)
+    assert not back["ambiguous"].any()  # G grows along the load path: one height per gas mass
+    np.testing.assert_allclose(back["p"], s["p"], atol=1e-3)
+
+
+def test_chamber_loads_floor_and_flag_tension():
+    # a tall stack bent hard by one chamber tips over its hinge: the inflated chamber is pulled
+    W, tension = R.chamber_loads(D3, [[17e-3, 0, 0], [0, 0, 0], [0, 0, 0]], floor=1e-3)
+    assert tension[0] and W[0] == 1e-3 and np.all(W[1:3] > 0.1)
