@@ -1,0 +1,220 @@
+"""Baselines with the controller step API, so the MPC's value is measured, not claimed (SI).
+
+- :class:`PIDController`: PID on the estimated height; a positive output runs the compressor into
+  the open inlet, a negative one opens the outlet. The pump is one-directional and the outlet only
+  vents: two actuators for the two signs of one PID output.
+- :class:`BangBangController`: what rigs use today: bang-bang pressure control with a hysteresis
+  band around a pressure setpoint; the setpoint is the nominal model's equilibrium pressure at the
+  target height and the estimated load (a static calibration map), so mismatch is not corrected.
+
+Both honour the pressure limit with the same guard as the MPC and report ``stats()`` with the same
+keys (their "solve" time is the step's wall time; they never fall back).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hbma_ctrl.interfaces import Command, Estimate, Reference
+from hbma_ctrl.params import Actuator, Pneumatics, check_range
+
+from .mpc import timing_stats
+from .prediction import PredictionModel
+
+__all__ = ["PIDSettings", "PIDController", "BangBangSettings", "BangBangController"]
+
+
+def _guard(cmd: np.ndarray, p: float, p_max: float, margin: float) -> tuple[np.ndarray, bool]:
+    """Cut the pump near the pressure limit; vent above it. Returns (command, whether it acted)."""
+    p = p if np.isfinite(p) else p_max
+    if p >= p_max - margin and (cmd[0] > 0 or cmd[2] < 1.0):
+        cmd = cmd.copy()
+        cmd[0] = cmd[1] = 0.0
+        if p >= p_max - 0.5 * margin:
+            cmd[2] = 1.0
+        return cmd, True
+    return cmd, False
+
+
+@dataclass
+class PIDSettings:
+    """PID on height (SI).
+
+    Fields
+    ------
+    sample_period : controller period, s, (0, 1].
+    kp : proportional gain, 1/m (command per metre of height error).
+    ki : integral gain, 1/(m s).
+    kd : derivative gain (on the estimate, not the error), s/m.
+    d_tau : low-pass time constant of the derivative, s.
+    outlet_gain : scales the negative output into the outlet duty (the vent is stronger than the pump).
+    p_max : gauge pressure limit, Pa.
+    guard_margin : the guard cuts the pump this close to p_max, Pa.
+    """
+
+    sample_period: float = 0.02
+    kp: float = 1000.0
+    ki: float = 200.0
+    kd: float = 20.0
+    d_tau: float = 0.05
+    outlet_gain: float = 0.5
+    p_max: float = 35e3
+    guard_margin: float = 1e3
+
+    def validate(self) -> "PIDSettings":
+        check_range("pid", "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
+        for name in ("kp", "ki", "kd"):
+            check_range("pid", name, getattr(self, name), 0.0, 1e7)
+        check_range("pid", "d_tau", self.d_tau, 0.0, 10.0, "s")
+        check_range("pid", "outlet_gain", self.outlet_gain, 0.0, 100.0)
+        check_range("pid", "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
+        check_range("pid", "guard_margin", self.guard_margin, 0.0, self.p_max, "Pa")
+        return self
+
+
+class PIDController:
+    """PID on the estimated height with anti-windup by conditional integration."""
+
+    def __init__(self, actuator: Actuator | None = None, pneumatics: Pneumatics | None = None,
+                 settings: PIDSettings | None = None):
+        self.settings = (settings or PIDSettings()).validate()
+        self.reset()
+
+    def reset(self) -> None:
+        self._i = 0.0
+        self._h_prev = None
+        self._d = 0.0
+        self._t_prev = None
+        self._hold = None
+        self.solve_ms: list = []
+        self.guard_count = 0
+        self.last: dict = {}
+
+    def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
+        """Command for the next period from the height error (estimate vs reference)."""
+        t0 = time.perf_counter()
+        s = self.settings
+        h = float(estimate.h) if np.isfinite(estimate.h) else (self._h_prev or 0.0)
+        if reference.height is None:
+            self._hold = h if self._hold is None else self._hold
+            r = self._hold
+        else:
+            self._hold = None
+            r = float(reference.height)
+        dt = s.sample_period if self._t_prev is None else max(t - self._t_prev, 1e-6)
+        e = r - h
+        if self._h_prev is not None:
+            raw = -(h - self._h_prev) / dt
+            a = 1.0 if s.d_tau <= 0 else min(1.0, dt / s.d_tau)
+            self._d += a * (raw - self._d)
+        v = s.kp * e + s.ki * self._i + s.kd * self._d
+        # integrate only while the output is not saturated in the direction of the error
+        if not ((v >= 1.0 and e > 0) or (v <= -1.0 / max(s.outlet_gain, 1e-9) and e < 0)):
+            self._i += e * dt
+        if v > 0:
+            cmd = np.array([min(v, 1.0), 1.0, 0.0])
+        else:
+            cmd = np.array([0.0, 0.0, min(-v * s.outlet_gain, 1.0)])
+        cmd, acted = _guard(cmd, estimate.p, s.p_max, s.guard_margin)
+        self.guard_count += int(acted)
+        self._h_prev, self._t_prev = h, t
+        self.solve_ms.append((time.perf_counter() - t0) * 1e3)
+        self.last = {"reference_used": r, "status": "ok"}
+        return Command(*(float(c) for c in cmd))
+
+    def stats(self) -> dict:
+        tt = timing_stats(self.solve_ms)
+        return {"variant": "pid", "horizon": None, "solve_ms_median": tt["median"], "solve_ms_p99": tt["p99"],
+                "solve_ms_max": tt["max"], "steps": tt["n"], "fallbacks": 0,
+                "guard_activations": int(self.guard_count), "target_clipped_steps": 0}
+
+
+@dataclass
+class BangBangSettings:
+    """Bang-bang pressure control with hysteresis (SI).
+
+    Fields
+    ------
+    sample_period : controller period, s, (0, 1].
+    band : hysteresis half-band around the pressure setpoint, Pa.
+    speed : compressor speed while pumping (0, 1].
+    p_max : gauge pressure limit (the setpoint is capped at p_max - guard_margin), Pa.
+    guard_margin : the guard cuts the pump this close to p_max, Pa.
+    load_max : largest load force of the static map, N.
+    """
+
+    sample_period: float = 0.02
+    band: float = 500.0
+    speed: float = 1.0
+    p_max: float = 35e3
+    guard_margin: float = 1e3
+    load_max: float = 10.0
+
+    def validate(self) -> "BangBangSettings":
+        check_range("bang_bang", "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
+        check_range("bang_bang", "band", self.band, 0.0, 1e5, "Pa")
+        check_range("bang_bang", "speed", self.speed, 0.0, 1.0, lo_open=True)
+        check_range("bang_bang", "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
+        check_range("bang_bang", "guard_margin", self.guard_margin, 0.0, self.p_max, "Pa")
+        check_range("bang_bang", "load_max", self.load_max, 0.0, 200.0, "N", lo_open=True)
+        return self
+
+
+class BangBangController:
+    """Pump when p < setpoint - band, vent when p > setpoint + band, hold (all closed) between."""
+
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: BangBangSettings | None = None,
+                 model: PredictionModel | None = None):
+        self.settings = (settings or BangBangSettings()).validate()
+        self.model = model or PredictionModel(actuator, pneumatics, load_max=self.settings.load_max)
+        self.reset()
+
+    def reset(self) -> None:
+        self._state = 0  # +1 pumping, -1 venting, 0 holding
+        self._hold = None
+        self.solve_ms: list = []
+        self.guard_count = 0
+        self.last: dict = {}
+
+    def setpoint(self, h: float, W: float) -> float:
+        """Static map: equilibrium gauge pressure (Pa) at height h (m) under load W (N)."""
+        pth = self.model.path(W)
+        if h <= 0:
+            return 0.0
+        return float(np.interp(h, pth["h"], pth["p"]))
+
+    def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
+        """Hysteresis on the estimated pressure around the mapped setpoint."""
+        t0 = time.perf_counter()
+        s = self.settings
+        if reference.height is None:
+            self._hold = estimate.h if self._hold is None else self._hold
+            r = self._hold
+        else:
+            self._hold = None
+            r = float(reference.height)
+        W = max(float(estimate.F), 0.0) if np.isfinite(estimate.F) else 0.0
+        p_set = min(self.setpoint(r, W), s.p_max - s.guard_margin - s.band)
+        p = float(estimate.p) if np.isfinite(estimate.p) else s.p_max
+        if p < p_set - s.band:
+            self._state = 1
+        elif p > p_set + s.band:
+            self._state = -1
+        elif (self._state == 1 and p >= p_set) or (self._state == -1 and p <= p_set):
+            self._state = 0
+        cmd = {1: np.array([s.speed, 1.0, 0.0]), -1: np.array([0.0, 0.0, 1.0]),
+               0: np.zeros(3)}[self._state]
+        cmd, acted = _guard(cmd, estimate.p, s.p_max, s.guard_margin)
+        self.guard_count += int(acted)
+        self.solve_ms.append((time.perf_counter() - t0) * 1e3)
+        self.last = {"reference_used": r, "pressure_setpoint": p_set, "status": "ok"}
+        return Command(*(float(c) for c in cmd))
+
+    def stats(self) -> dict:
+        tt = timing_stats(self.solve_ms)
+        return {"variant": "bang_bang", "horizon": None, "solve_ms_median": tt["median"],
+                "solve_ms_p99": tt["p99"], "solve_ms_max": tt["max"], "steps": tt["n"], "fallbacks": 0,
+                "guard_activations": int(self.guard_count), "target_clipped_steps": 0}

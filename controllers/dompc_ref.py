@@ -1,0 +1,152 @@
+"""do-mpc solving the same OCP as :class:`controllers.mpc.NMPC`: a benchmark-only reference.
+
+do-mpc is an optional extra (``pip install hbma-ctrl[bench]``); it is imported lazily here and
+nowhere else, so the package runs without it. The adapter uses the very same discrete model
+(:meth:`PredictionModel.discrete`), horizon, weights, input bounds, ``speed <= inlet`` and the soft
+pressure / stretch / height limits, and the same preprocessing of the estimate (load filter,
+initial state, output biases, target clipping) as the NMPC, so only the transcription and the
+solver differ. Differences that remain, stated: do-mpc's soft constraints carry a linear slack
+penalty only, and it has no input-rate bounds (the NMPC's defaults are not binding at 20 ms).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from hbma_ctrl.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.params import Actuator, Pneumatics
+
+from .mpc import MPCSettings, NMPC, timing_stats
+from .prediction import PredictionModel
+
+__all__ = ["dompc_available", "DoMPCController"]
+
+
+def dompc_available() -> tuple[bool, str]:
+    """(True, version) when do-mpc imports, else (False, why)."""
+    try:
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import do_mpc  # noqa: F401
+        return True, getattr(do_mpc, "__version__", "?")
+    except Exception as exc:  # noqa: BLE001 - any import problem means "not available"
+        return False, f"do-mpc is not installed ({exc}); install the extra: pip install 'hbma-ctrl[bench]'"
+
+
+class DoMPCController:
+    """The NMPC's OCP transcribed and solved by do-mpc (IPOPT), with the controller step API."""
+
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: MPCSettings | None = None,
+                 model: PredictionModel | None = None):
+        ok, why = dompc_available()
+        if not ok:
+            raise ImportError(why)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import do_mpc
+        self.settings = s = (settings or MPCSettings()).validate()
+        # the NMPC provides the identical preprocessing of the estimate (never its solver here)
+        self._pre = NMPC(actuator, pneumatics, s, model=model)
+        pm = self._pre.model
+        Fd = pm.discrete(s.sample_period, s.integrator, s.substeps)
+        mdl = do_mpc.model.Model("discrete", "SX")
+        x = mdl.set_variable("_x", "x")
+        sp = mdl.set_variable("_u", "speed")
+        inl = mdl.set_variable("_u", "inlet")
+        out = mdl.set_variable("_u", "outlet")
+        W = mdl.set_variable("_tvp", "W")
+        dh = mdl.set_variable("_tvp", "dh")
+        dp = mdl.set_variable("_tvp", "dp")
+        r = mdl.set_variable("_tvp", "r")
+        plim = mdl.set_variable("_tvp", "plim")
+        import casadi as ca
+
+        u = ca.vertcat(sp, inl, out)
+        mdl.set_rhs("x", Fd(x, u, W, dp))
+        h = pm.H(x, W) * 1e3 + dh * 1e3
+        p = pm.Pp(x, W) * 1e-3 + dp * 1e-3
+        lam = pm.L(x, W) * 1e2
+        mdl.setup()
+        # objective and constraints from the set-up model's own symbols
+        x, W, dh, dp, r, plim = (mdl.x["x"], mdl.tvp["W"], mdl.tvp["dh"], mdl.tvp["dp"], mdl.tvp["r"],
+                                 mdl.tvp["plim"])
+        sp, inl, out = mdl.u["speed"], mdl.u["inlet"], mdl.u["outlet"]
+        u = ca.vertcat(sp, inl, out)
+        h = pm.H(x, W) * 1e3 + dh * 1e3
+        p = pm.Pp(x, W) * 1e-3 + dp * 1e-3
+        lam = pm.L(x, W) * 1e2
+        mpc = do_mpc.controller.MPC(mdl)
+        mpc.settings.n_horizon = s.horizon
+        mpc.settings.t_step = s.sample_period
+        mpc.settings.store_full_solution = False
+        mpc.settings.nlpsol_opts = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": 0,
+                                    "ipopt.max_iter": s.ipopt_max_iter}
+        e = h - r * 1e3
+        wu, cu = np.array(s.w_input), np.array(s.c_input)
+        lterm = s.w_height * e ** 2 + sum(wu[i] * u[i] ** 2 + cu[i] * u[i] for i in range(3))
+        mpc.set_objective(lterm=lterm, mterm=(s.w_height + s.w_terminal) * e ** 2)
+        wr = np.array(s.w_rate)
+        mpc.set_rterm(speed=float(wr[0]), inlet=float(wr[1]), outlet=float(wr[2]))
+        for name, ub in zip(("speed", "inlet", "outlet"), s.u_max):
+            mpc.bounds["lower", "_u", name] = 0.0
+            mpc.bounds["upper", "_u", name] = float(ub)
+        mpc.bounds["lower", "_x", "x"] = -0.5
+        mpc.bounds["upper", "_x", "x"] = 50.0
+        pen = float(s.c_slack)
+        mpc.set_nl_cons("pump", sp - inl, ub=0.0)
+        mpc.set_nl_cons("p", p - plim * 1e-3, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
+        mpc.set_nl_cons("lam", lam - s.lam_max * 1e2, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
+        mpc.set_nl_cons("hmax", h - s.h_max * 1e3, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
+        mpc.set_nl_cons("hmin", s.h_min * 1e3 - h, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
+        tmpl = mpc.get_tvp_template()
+        self._tvp = {"W": 0.0, "dh": 0.0, "dp": 0.0, "r": 0.0, "plim": s.p_max}
+
+        def tvp_fun(t_now):
+            for k in range(s.horizon + 1):
+                for key, val in self._tvp.items():
+                    tmpl["_tvp", k, key] = val
+            return tmpl
+
+        mpc.set_tvp_fun(tvp_fun)
+        mpc.setup()
+        self.mpc = mpc
+        self._started = False
+        self.solve_ms: list = []
+        self.failures = 0
+        self.last: dict = {}
+
+    def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
+        """One do-mpc ``make_step`` on the NMPC's problem data (timed: the whole step)."""
+        t0 = time.perf_counter()
+        try:
+            pr = self._pre._problem(t, estimate, reference)
+            self._tvp.update({"W": pr.W, "dh": pr.dh, "dp": pr.dp, "r": pr.r, "plim": pr.p_lim})
+            x0 = np.array([[pr.x0]])
+            if not self._started:
+                self.mpc.x0 = x0
+                self.mpc.u0 = pr.u_prev.reshape(3, 1)
+                self.mpc.set_initial_guess()
+                self._started = True
+            u = np.asarray(self.mpc.make_step(x0)).ravel()
+            ok = bool(self.mpc.solver_stats.get("success", True)) and np.all(np.isfinite(u))
+        except Exception:  # noqa: BLE001 - a benchmark reference: count and go safe
+            ok, u = False, None
+        if not ok:
+            self.failures += 1
+            u = SAFE_COMMAND.as_array()
+        u = np.clip(u, 0.0, 1.0)
+        self._pre._u_prev = u.copy()
+        self.solve_ms.append((time.perf_counter() - t0) * 1e3)
+        return Command(*(float(v) for v in u))
+
+    def stats(self) -> dict:
+        tt = timing_stats(self.solve_ms)
+        return {"variant": "do-mpc", "horizon": self.settings.horizon, "solve_ms_median": tt["median"],
+                "solve_ms_p99": tt["p99"], "solve_ms_max": tt["max"], "steps": tt["n"],
+                "fallbacks": int(self.failures), "guard_activations": 0, "target_clipped_steps": 0}
