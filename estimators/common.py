@@ -43,9 +43,18 @@ class FilterSettings:
         (mass_std_abs)^2 per second, [0, 1].
     mass_std_abs : gas-mass random walk, kg/sqrt(s), [0, 1e-5].
     load_std : load random walk, N/sqrt(s), [0, 100] (how fast the load may change).
-    load_init : initial load guess, N; load_init_std its one sigma, N.
-    load_rest_std : one sigma of the load while the membrane rests flat, N: only W >= pi r1^2 p is
-        known then; the filter holds W at that lift-off bound (see :mod:`estimators.ekf`).
+    load_init : initial load guess, N; None = unknown: the membrane is taken as resting until the
+        pressure shows a lift-off (see :mod:`estimators.ekf`). load_init_std its one sigma, N.
+    load_rest_std : one sigma of the load while the membrane rests flat, N (W is unobservable
+        then, only W >= pi r1^2 p is known; the value only keeps the covariance regular).
+    lift_threshold, lift_drift : lift-off detector while resting: a CUSUM of the normalised
+        innovation shortfall (-nu/sqrt(S) - lift_drift) above lift_threshold declares a lift-off
+        (the pressure rises slower than a flat membrane allows), (0, 1e3] and [0, 10].
+    lift_load_rel_std : relative one sigma of the load right after a detected lift-off, [0, 10].
+    flow_factor_std : random walk of the pump-flow factor b, 1/sqrt(s), [0, 10];
+        flow_factor_init_std its initial one sigma (b starts at 1), [0, 10].
+    modulus_std : random walk of the modulus factor k, 1/sqrt(s), [0, 10]; modulus_init_std its
+        initial one sigma (k starts at 1), [0, 10].
     change_threshold : a load change is declared when the CUSUM of (NIS - change_drift) exceeds this
         (-), (0, 1e6]; the load's variance then grows by change_std^2 (N^2) so it re-converges.
     change_drift : NIS level tolerated by the CUSUM (-), [1, 100].
@@ -68,9 +77,16 @@ class FilterSettings:
     flow_rel_std: float = 0.15
     mass_std_abs: float = 2e-8
     load_std: float = 0.05
-    load_init: float = 0.0
+    load_init: float | None = None
     load_init_std: float = 3.0
     load_rest_std: float = 1.0
+    lift_threshold: float = 6.0
+    lift_drift: float = 0.3
+    lift_load_rel_std: float = 0.2
+    flow_factor_std: float = 0.02
+    flow_factor_init_std: float = 0.1
+    modulus_std: float = 0.01
+    modulus_init_std: float = 0.15
     change_threshold: float = 40.0
     change_drift: float = 4.0
     change_std: float = 3.0
@@ -96,7 +112,15 @@ class FilterSettings:
         check_range(w, "flow_rel_std", self.flow_rel_std, 0.0, 1.0)
         check_range(w, "mass_std_abs", self.mass_std_abs, 0.0, 1e-5, "kg/sqrt(s)")
         check_range(w, "load_std", self.load_std, 0.0, 100.0, "N/sqrt(s)")
-        check_range(w, "load_init", self.load_init, -1.0, 1000.0, "N")
+        if self.load_init is not None:
+            check_range(w, "load_init", self.load_init, -1.0, 1000.0, "N")
+        check_range(w, "lift_threshold", self.lift_threshold, 0.0, 1e3, lo_open=True)
+        check_range(w, "lift_drift", self.lift_drift, 0.0, 10.0)
+        check_range(w, "lift_load_rel_std", self.lift_load_rel_std, 0.0, 10.0)
+        check_range(w, "flow_factor_std", self.flow_factor_std, 0.0, 10.0, "1/sqrt(s)")
+        check_range(w, "flow_factor_init_std", self.flow_factor_init_std, 0.0, 10.0)
+        check_range(w, "modulus_std", self.modulus_std, 0.0, 10.0, "1/sqrt(s)")
+        check_range(w, "modulus_init_std", self.modulus_init_std, 0.0, 10.0)
         check_range(w, "load_init_std", self.load_init_std, 0.0, 1000.0, "N", lo_open=True)
         check_range(w, "load_rest_std", self.load_rest_std, 0.0, 1000.0, "N", lo_open=True)
         check_range(w, "change_threshold", self.change_threshold, 0.0, 1e6, lo_open=True)
@@ -115,8 +139,8 @@ class FilterSettings:
         return [f.name for f in fields(cls)]
 
 
-#: state scales used by the covariance floor: gas mass (kg), load (N)
-STATE_SCALE = np.array([1e-6, 1.0])
+#: state scales used by the covariance floor: gas mass (kg), load (N), flow and modulus factors (-)
+STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0])
 
 
 def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Extended Kalman filter: membrane shape and contact force from the chamber pressure alone.
 
-State ``x = [m, W]``: the gas mass (kg) and the load on the membrane (N), a random walk. Why:
+State ``x = [m, W, b]``: the gas mass (kg), the load on the membrane (N), a random walk, and the
+pump-flow factor b (-, multiplies the compressor map), a slow random walk. Why:
 
 - The gas mass is the plant's own drift-free differential state (SPEC 4); the flow model (pump
   map, valves) drives it directly, so the commands enter the filter where they act.
@@ -11,18 +12,25 @@ State ``x = [m, W]``: the gas mass (kg) and the load on the membrane (N), a rand
   their covariance mapped through the implicit-function Jacobian.
 - The load W is unknown to the user, piecewise constant (put on, taken off): a random walk.
   ``W = F`` in steady contact; ``W = 0`` is free inflation (h2 = 0).
-- No flow-bias or modulus state: a flow bias is not separable from the dead-volume error (both
-  change dp/dt per unit command) and a modulus state is not separable from the load (both change
-  the pressure of a given gas mass), so they would add unobservable directions; their effect is
-  covered by process noise on m (``flow_rel_std``) and by the measurement model error
-  (``model_rel_std``), see :mod:`estimators.observability`.
+- The flow factor b: the pump map is the least certain part of the model (the rig's is 10 %
+  weaker, its dead volume 20 % larger: in the flat phase both only change dp/dt per unit command,
+  which b absorbs). Learning it while the membrane rests is what lets the filter tell a lift-off
+  (the pressure rise slows by a factor of 2-10) from a weak pump (tens of percent).
+- No modulus state: in contact a stiffer membrane and a heavier load both raise the pressure of a
+  given gas mass, and over a trajectory they are only weakly separable, so the modulus error is
+  treated as measurement-model error (``model_rel_std``), see :mod:`estimators.observability`.
 
 What pressure alone tells (see :mod:`estimators.observability`): resting flat, only m is known
 (``W`` is unobservable, only ``W >= pi r1^2 p``); in contact or free inflation both m and W are
 observable while gas flows, and W is not when nothing flows (every (m, W) pair on a level set of
 p is then an equilibrium). The filter therefore holds W at the lift-off bound while resting (the
-least load consistent with the flat membrane, so lift-off is tracked without delay, and h = 0 is
-right either way) and lets the random walk carry W when the flow stops.
+Resting is a sticky mode of the filter: while the membrane is flat, the model is held at rest
+(W unobservable, kept >= pi r1^2 p). The filter leaves it when the load estimate is exceeded
+(pi r1^2 p > W, a known or previously learnt load) or when the lift-off detector fires: the
+pressure keeps rising slower than a flat membrane allows (a one-sided CUSUM of the normalised
+innovations); then W = pi r1^2 p, the lift-off condition, which needs no modulus. A touch-down
+(the contact model reaching h = 0) re-enters rest. With the flow stopped the load is carried by
+its random walk.
 
 Measurements: a missing or non-finite reading skips the update (flag ``missing``); a saturated
 reading (>= sensor range) is a one-sided observation ``p >= range``: if the prediction is below
@@ -44,13 +52,17 @@ from hbma_ctrl.params import Actuator, Pneumatics
 from .common import (MEAS_MISSING, MEAS_SATURATED, FilterSettings, classify_measurement, guard_cov,
                      joseph_update)
 from .fastcall import FastFunction
-from .model import OUT_NAMES, STATE_NAMES, ObserverModel
+from .model import NX, OUT_NAMES, STATE_NAMES, ObserverModel
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 
 #: outputs whose covariance the filters report (rows of ``output_cov``)
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
 _Y = {n: i for i, n in enumerate(OUT_NAMES)}
+#: the pump-flow and modulus factors are kept in this range (off by more is a broken rig, not a bias)
+FACTOR_RANGE = (0.5, 2.0)
+#: absolute one sigma of the load right after a detected lift-off, N (the detection delay)
+LIFT_LOAD_ABS_STD = 0.2
 
 
 class EKFSettings(FilterSettings):
@@ -71,7 +83,7 @@ def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSett
     # the parameters (theta) differ per actuator: the numeric model is cheap, Functions are shared
     om = om0 if np.array_equal(om0.theta, om0.fid.space.values(actuator, pneumatics)) else \
         _rebind(om0, actuator, pneumatics)
-    return om, FastFunction(fp, s.compile), FastFunction(fo, s.compile), FastFunction(fq, s.compile)
+    return om, FastFunction(fp, s.compile), FastFunction(fo, s.compile), fq
 
 
 def _rebind(om0: ObserverModel, actuator: Actuator, pneumatics: Pneumatics) -> ObserverModel:
@@ -86,14 +98,14 @@ def _rebind(om0: ObserverModel, actuator: Actuator, pneumatics: Pneumatics) -> O
 
 
 class EKF:
-    """Extended Kalman filter on ``x = [m, W]`` (see module docstring). SI throughout.
+    """Extended Kalman filter on ``x = [m, W, b]`` (see module docstring). SI throughout.
 
     ``step(t, measurement, applied_command) -> Estimate``: predicts over the periods since the
     last step with ``applied_command`` (the command held since then), then updates with the
     pressure reading (Pa). The first call initialises the state from the reading (membrane flat,
-    load ``load_init``). ``reset(t, mean, cov)`` sets the state explicitly.
+    load ``load_init``). ``reset(t, mean, cov, resting)`` sets the state explicitly.
     After each step: ``last_nis`` (None without a normal update), ``last_output_cov`` (covariance
-    of ``OUTPUT_KEYS``), ``last_step_s`` (wall time of the step).
+    of ``OUTPUT_KEYS``), ``last_step_s`` (wall time of the step), ``resting`` (the mode).
     """
 
     state_names = STATE_NAMES
@@ -108,29 +120,42 @@ class EKF:
         self.P: np.ndarray | None = None
         self.s = np.zeros(2)  # shape warm start (h1, h2)
         self.t: float | None = None
+        self.resting = True
         self.last_nis: float | None = None
         self.last_innovation: float | None = None
         self.last_output_cov = np.zeros((5, 5))
         self.last_step_s = 0.0
         self._p_pred = 0.0
-        self._H = np.zeros(2)
+        self._H = np.zeros(NX)
         self._cusum = 0.0
-        self._changed = False
+        self._lift = 0.0
+        self._p_lift = 0.0
+        self._events: set = set()
 
     # --- state handling -----------------------------------------------------------------------
-    def reset(self, t: float, mean, cov=None, shape=None) -> None:
-        """Set the state [m (kg), W (N)] and covariance at time t (s); shape = warm start (m)."""
+    def reset(self, t: float, mean, cov=None, shape=None, resting: bool | None = None) -> None:
+        """Set the state [m (kg), W (N), b (-)] and covariance at time t (s).
+
+        ``shape`` = warm start (h1, h2) in m; ``resting`` = the mode (None: from the state).
+        """
         s = self.settings
-        self.x = np.array(mean, dtype=float).reshape(2)
-        self.P = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2]) if cov is None else \
-            np.array(cov, dtype=float).reshape(2, 2)
+        x = np.array(mean, dtype=float).ravel()
+        x = np.append(x, np.ones(NX - x.size))  # b and k default to 1 (nominal)
+        self.x = x.reshape(NX)
+        self.P = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
+                          s.modulus_init_std ** 2]) if cov is None else np.array(cov, dtype=float).reshape(NX, NX)
         self.P = guard_cov(self.P, s.cov_floor)
         self.t = float(t)
         self.s = np.zeros(2) if shape is None else np.array(shape, dtype=float).reshape(2)
-        self._refresh_prediction()
+        if resting is None:
+            out = self._outf(self.x, self.s, self.theta, 0.0)
+            resting = bool(out[1][_Y["rest"]] > 0.5)
+        self.resting = resting
+        self._cusum = self._lift = 0.0
+        self._refresh()
 
-    def _refresh_prediction(self) -> None:
-        out = self._outf(self.x, self.s, self.theta)
+    def _refresh(self) -> None:
+        out = self._outf(self.x, self.s, self.theta, float(self.resting))
         self.s = out[0].copy()
         self._p_pred = float(out[1][_Y["p"]])
         self._H = out[2].copy()
@@ -138,48 +163,49 @@ class EKF:
     def _init_from(self, t: float, z: float, kind: str) -> None:
         s = self.settings
         p0 = float(z) if kind == "ok" else (s.sensor_range if kind == MEAS_SATURATED else 0.0)
-        m0 = (max(p0, 0.0) + self.model.actuator.p_env) * self.model.actuator.V0 / self.model.rt
-        self.reset(t, [m0, s.load_init])
+        act = self.model.actuator
+        m0 = (max(p0, 0.0) + act.p_env) * act.V0 / self.model.rt
+        W0 = s.load_max if s.load_init is None else s.load_init
+        self.reset(t, [m0, W0, 1.0, 1.0], resting=True if s.load_init is None else None)
 
     # --- the filter ---------------------------------------------------------------------------
     def _predict(self, u: np.ndarray) -> None:
         s = self.settings
-        out = self._pred(self.x, self.s, u, self.theta)
+        out = self._pred(self.x, self.s, u, self.theta, float(self.resting))
         A = self._pred.dense(1)
         xn = out[0].copy()
-        if not np.all(np.isfinite(xn)) or not np.all(np.isfinite(A)):
+        dt = s.sample_period
+        if not np.all(np.isfinite(xn)) or not np.all(np.isfinite(A)) or not np.all(np.isfinite(out[3])):
             # the projection failed (e.g. across a fold): hold the state, widen the covariance
-            xn, A = self.x.copy(), np.eye(2)
-            self.P = self.P + np.diag([(1e-7) ** 2, s.load_std ** 2])
+            xn, A = self.x.copy(), np.eye(NX)
+            self.P = self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0])
+            self._events.add("model_failure")
         else:
             self.s = out[2].copy()
-            y = out[3]
-            self._p_pred = float(y[_Y["p"]])
+            self._p_pred = float(out[3][_Y["p"]])
             self._H = out[4].copy()
-        dt = s.sample_period
+            if not self.resting and out[3][_Y["rest"]] > 0.5:
+                self.resting = True  # touch-down: the contact model reached the flat membrane
+                self._events.add("touch_down")
         q_abs = abs(xn[0] - self.x[0]) / dt  # net flow over the period, kg/s
-        Qm = (s.flow_rel_std * q_abs * dt) ** 2 + s.mass_std_abs ** 2 * dt
-        Q = np.diag([Qm, s.load_std ** 2 * dt])
+        # resting, the flow error is the factor b's job; moving, the membrane adds its own
+        rel = 0.0 if self.resting else s.flow_rel_std
+        Qm = (rel * q_abs * dt) ** 2 + s.mass_std_abs ** 2 * dt
+        Q = np.diag([Qm, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt, s.modulus_std ** 2 * dt])
         self.x = xn
         self.P = guard_cov(A @ self.P @ A.T + Q, s.cov_floor)
 
-    def _update(self, z: float, R: float) -> None:
+    def _update(self, z: float, R: float) -> float:
         innov = z - self._p_pred
         x, P, S, _ = joseph_update(self.x, self.P, self._H, innov, R)
         self.x, self.P = x, guard_cov(P, self.settings.cov_floor)
-        self.last_innovation = innov
-        self.last_nis = innov * innov / S
-        # load-change detector: CUSUM of the NIS excess
-        s = self.settings
-        self._cusum = max(0.0, self._cusum + self.last_nis - s.change_drift)
-        if self._cusum > s.change_threshold:
-            self._cusum = 0.0
-            self.P[1, 1] += s.change_std ** 2
-            self._changed = True
+        return innov / math.sqrt(S)
 
     def _meas_var(self, p: float) -> float:
+        # the flat membrane's pressure is the gas law in V0 (no modulus): sensor noise only
         s = self.settings
-        return s.noise_std ** 2 + (s.model_rel_std * max(p, 0.0)) ** 2
+        rel = 0.0 if self.resting else s.model_rel_std
+        return s.noise_std ** 2 + (rel * max(p, 0.0)) ** 2
 
     def step(self, t: float, measurement, applied_command: Command) -> Estimate:
         """Advance to time t (s) with the command held since the last step, then update."""
@@ -188,10 +214,9 @@ class EKF:
         t_wall = time.perf_counter()
         s = self.settings
         kind = classify_measurement(measurement, s.sensor_range)
-        flags = set()
-        self._changed = False
+        self._events = set()
         if kind != "ok":
-            flags.add(kind)
+            self._events.add(kind)
         if self.x is None:
             self._init_from(t, measurement, kind)
             k = 0
@@ -207,36 +232,78 @@ class EKF:
         self.last_nis = None
         self.last_innovation = None
         if kind == "ok":
-            self._update(float(measurement), self._meas_var(self._p_pred))
+            r = self._update(float(measurement), self._meas_var(self._p_pred))
+            self.last_innovation = r
+            self.last_nis = r * r
+            self._detect(r)
         elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range:
             # one-sided: the true pressure is at least the range; pull the prediction up to it
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
-            self.last_nis = None
-        if self._changed:
-            flags.add("load_change")
-        est = self._finish(flags)
+        est = self._finish()
         self.last_step_s = time.perf_counter() - t_wall
         return est
 
-    def _finish(self, flags: set) -> Estimate:
+    def _detect(self, r: float) -> None:
+        """Lift-off detector (resting) and load-change detector (contact) on the innovation r."""
         s = self.settings
-        # keep the load inside its bounds
+        if self.resting:
+            if self._lift == 0.0:
+                self._p_lift = self._p_pred  # the change, if any, started after this sample
+            self._lift = max(0.0, self._lift - r - s.lift_drift)
+            if self._lift > s.lift_threshold:
+                self._lift = 0.0
+                self._lift_off(detected=True)
+        else:
+            self._cusum = max(0.0, self._cusum + r * r - s.change_drift)
+            if self._cusum > s.change_threshold:
+                self._cusum = 0.0
+                self.P[1, 1] += s.change_std ** 2
+                self._events.add("load_change")
+
+    def _lift_off(self, detected: bool) -> None:
+        s = self.settings
+        out = self._outf(self.x, self.s, self.theta, 1.0)
+        p = float(out[1][_Y["p"]])
+        if detected:
+            # the membrane lifted when the detector's sum started to grow: W = pi r1^2 p then
+            W = self.model.area * max(min(p, self._p_lift), 0.0)
+            self.x[1] = W
+            P = self.P.copy()
+            P[1, :] = P[:, 1] = 0.0
+            P[1, 1] = (s.lift_load_rel_std * W) ** 2 + LIFT_LOAD_ABS_STD ** 2
+            self.P = guard_cov(P, s.cov_floor)
+        self.resting = False
+        self._cusum = 0.0
+        self._events.add("lift_off")
+
+    def _finish(self) -> Estimate:
+        s = self.settings
+        flags = self._events
+        if self.resting:
+            # only W >= pi r1^2 p is known while flat: keep the load above that bound
+            out = self._outf(self.x, self.s, self.theta, 1.0)
+            bound = self.model.area * float(out[1][_Y["p"]])
+            if bound > self.x[1]:
+                self._lift_off(detected=False)  # the (known) load is exceeded: it lifts
+            else:
+                P = self.P.copy()
+                P[1, :] = P[:, 1] = 0.0
+                P[1, 1] = s.load_rest_std ** 2
+                self.P = P
+        for i in (2, 3):
+            if not FACTOR_RANGE[0] <= self.x[i] <= FACTOR_RANGE[1]:
+                self.x[i] = min(max(self.x[i], FACTOR_RANGE[0]), FACTOR_RANGE[1])
+                flags.add("clamped")
         if not s.load_min <= self.x[1] <= s.load_max:
             self.x[1] = min(max(self.x[1], s.load_min), s.load_max)
             flags.add("clamped")
-        out = self._outf(self.x, self.s, self.theta)
+        out = self._outf(self.x, self.s, self.theta, float(self.resting))
         y = out[1]
-        if y[_Y["rest"]] > 0.5:
-            # resting flat: only W >= pi r1^2 p is known; hold W at that bound (see docstring)
+        if not self.resting and y[_Y["rest"]] > 0.5:
+            self.resting = True
+            flags.add("touch_down")
+        if self.resting:
             flags.add("resting")
-            bound = self.model.area * float(y[_Y["p"]])
-            self.x[1] = max(bound, s.load_min)
-            P = self.P.copy()
-            P[0, 1] = P[1, 0] = 0.0
-            P[1, 1] = s.load_rest_std ** 2
-            self.P = guard_cov(P, s.cov_floor)
-            self._cusum = 0.0
-            # the outputs of a flat membrane do not depend on W: no re-evaluation needed
         if y[_Y["resid"]] > 1e-3 or not np.all(np.isfinite(y)):
             flags.add("not_converged")
         self.s = out[0].copy()

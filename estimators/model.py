@@ -23,7 +23,7 @@ derivative at the projected shape (exact where Newton has converged):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import casadi as ca
 import numpy as np
@@ -34,7 +34,10 @@ from hbma_ctrl.params import Actuator, Platform, Pneumatics
 
 __all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
 
-STATE_NAMES = ("m", "W")
+STATE_NAMES = ("m", "W", "b", "k")
+NX = len(STATE_NAMES)
+#: material parameters that are not moduli (dimensionless): the modulus factor leaves them alone
+_DIMENSIONLESS = {"Jm", "alpha"}
 #: force, N, below which the membrane is taken as flat even without a load (about 200 Pa at r1 = 12.5 mm)
 REST_EPS = 0.1
 #: rows of the output vector of :meth:`ObserverModel.outputs`
@@ -67,6 +70,7 @@ class _Syms:
     u: ca.SX
     theta: ca.SX
     P: dict
+    Pbase: dict
 
 
 class ObserverModel:
@@ -93,64 +97,81 @@ class ObserverModel:
         self._build()
 
     # --- symbolic pieces ----------------------------------------------------------------------
+    def _with_state(self, P: dict, x) -> dict:
+        """Parameters as the state sees them: load W, pump-flow factor b, modulus factor k."""
+        P = dict(P)
+        P["W"] = x[1]
+        P["flow_scale"] = P["flow_scale"] * x[2]
+        mat = P["material"]
+        kw = {}
+        for f in fields(mat):
+            v = getattr(mat, f.name)
+            if f.name in _DIMENSIONLESS:
+                kw[f.name] = v
+            elif isinstance(v, tuple):
+                kw[f.name] = tuple(x[3] * e for e in v)
+            else:
+                kw[f.name] = x[3] * v
+        P["material"] = type(mat)(**kw)
+        return P
+
     def _syms(self) -> _Syms:
-        x = ca.SX.sym("x", 2)
+        x = ca.SX.sym("x", NX)
         s = ca.SX.sym("s", 2)
         u = ca.SX.sym("u", 3)
         theta, P = self.fid.space.symbols()
-        P = dict(P)
-        P["W"] = x[1]
-        return _Syms(x, s, u, theta, P)
+        return _Syms(x, s, u, theta, self._with_state(P, x), P)
 
-    def _project(self, m, W, h1, h2, P, iters):
-        """(h1, h2, rest) for state (m, W) from the guess (h1, h2)."""
+    def _project(self, m, W, h1, h2, P, iters, hold):
+        """(h1, h2, rest) for state (m, W) from the guess (h1, h2); hold > 0.5 forces rest."""
         rt = P["R"] * P["T"]
         p_rest = m * rt / P["V0"] - P["p_env"]
         # below REST_EPS the membrane counts as flat even without a load (the origin is singular)
-        rest = ca.pi * P["r1"] ** 2 * p_rest <= ca.fmax(W, REST_EPS)
+        rest = ca.logic_or(ca.pi * P["r1"] ** 2 * p_rest <= ca.fmax(W, REST_EPS), hold > 0.5)
         hf = ph.flat_h1_from_pressure(p_rest, P)
         # leaving rest (guess flat) starts from the flat membrane; Newton on the contact branch
         c1, c2 = _shape_newton(m, W, h1, h2, P, iters)
         return ca.if_else(rest, hf, c1), ca.if_else(rest, hf, c2), rest
 
-    def _meas(self, m, W, h1, h2, rest, P):
-        """Outputs and their Jacobian wrt (m, W) at a projected shape (implicit-function rule)."""
+    def _meas(self, x, h1, h2, rest, Pbase):
+        """Outputs and their Jacobian wrt x at a projected shape (implicit-function rule).
+
+        On the contact branch r(h, x) = [G(h; x) - m R T, F(h; x) - W] = 0 gives
+        dh/dx = -r_h^-1 r_x and d(out)/dx = out_x + out_h dh/dx.
+        """
+        xs = ca.SX.sym("xs", NX)
+        hs = ca.SX.sym("hs", 2)
+        P = self._with_state(Pbase, xs)
         rt = P["R"] * P["T"]
-        p_c = ph.pressure(h1, h2, P)
-        p_rest = m * rt / P["V0"] - P["p_env"]
-        p = ca.if_else(rest, p_rest, p_c)
-        _, F, J = shape_jacobian(h1, h2, P)
-        det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        G = ph.gas_pv(h1, h2, P)
-        resid = ca.if_else(rest, 0, ca.fabs(G - m * rt) / (m * rt) + ca.fabs(F - W) / (ca.fabs(W) + 0.1))
-        # d(h1, h2)/d(m, W) = J^-1 diag(RT, 1) on the contact branch
-        Jinv = ca.vertcat(ca.horzcat(J[1, 1], -J[0, 1]), ca.horzcat(-J[1, 0], J[0, 0])) / det
-        S = ca.mtimes(Jinv, ca.diag(ca.vertcat(rt, 1)))
-        s1, s2 = ca.SX.sym("s1"), ca.SX.sym("s2")
-        gp = ca.substitute(ca.gradient(ph.pressure(s1, s2, P), ca.vertcat(s1, s2)),
-                           ca.vertcat(s1, s2), ca.vertcat(h1, h2))
-        Hc = ca.mtimes(gp.T, S)  # dp/d(m, W)
-        # flat membrane: h1 = h2 = flat(p_rest(m)); dp/dm = RT/V0
-        ms = ca.SX.sym("ms")
-        hf_m = ca.substitute(ca.jacobian(ph.flat_h1_from_pressure(ms * rt / P["V0"] - P["p_env"], P), ms),
-                             ms, m)
-        z = ca.SX(1, 1)
-        H_p = ca.if_else(rest, ca.horzcat(rt / P["V0"], 0), Hc)
-        # rows: h1, h2, h, F, p -> Jacobian (5 x 2)
-        D_c = ca.vertcat(S[0, :], S[1, :], S[0, :] - S[1, :], ca.horzcat(0, 1), Hc)
         area = ca.pi * P["r1"] ** 2
-        D_r = ca.vertcat(ca.horzcat(hf_m, 0), ca.horzcat(hf_m, 0), ca.horzcat(z, 0),
-                         ca.horzcat(area * rt / P["V0"], 0), ca.horzcat(rt / P["V0"], 0))
-        D = ca.if_else(rest, D_r, D_c)
-        out = ca.vertcat(h1, h2, ca.if_else(rest, 0, h1 - h2), ca.if_else(rest, area * p_rest, F), p,
-                         rest, det, resid)
-        return out, H_p, D
+        G = ph.gas_pv(hs[0], hs[1], P)
+        geo = ph.geometry(hs[0], hs[1], P)
+        p_c = ph.pressure(hs[0], hs[1], P)
+        F = ca.pi * geo["a2"] * p_c
+        r = ca.vertcat(G - xs[0] * rt, F - xs[1])
+        o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
+        r_h = ca.jacobian(r, hs)
+        det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]
+        dh = -ca.solve(r_h, ca.jacobian(r, xs))
+        D_c = ca.jacobian(o_c, xs) + ca.mtimes(ca.jacobian(o_c, hs), dh)
+        p_rest = xs[0] * rt / P["V0"] - P["p_env"]
+        hf = ph.flat_h1_from_pressure(p_rest, P)
+        o_r = ca.vertcat(hf, hf, 0, area * p_rest, p_rest)
+        D_r = ca.jacobian(o_r, xs)
+        resid = ca.fabs(G - xs[0] * rt) / (xs[0] * rt) + ca.fabs(F - xs[1]) / (ca.fabs(xs[1]) + 0.1)
+        rs = ca.SX.sym("rest")
+        o = ca.if_else(rs > 0.5, o_r, o_c)
+        D = ca.if_else(rs > 0.5, D_r, D_c)
+        extra = ca.vertcat(rs, det, ca.if_else(rs > 0.5, 0, resid))
+        out = ca.vertcat(o, extra)
+        return ca.substitute([out, D[4, :], D], [xs, hs, rs], [x, ca.vertcat(h1, h2), rest])
 
     def _build(self) -> None:
         y = self._syms()
+        hold = ca.SX.sym("hold")
         m, W = y.x[0], y.x[1]
         P = y.P
-        h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1)
+        h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1, hold)
         mode = ca.if_else(rest, 0.0, 1.0)
         x3 = ca.vertcat(m, h1, h2)
         h = self.dt / self.nsub
@@ -164,27 +185,30 @@ class ObserverModel:
                 k3 = fid._rhs(x3 + h / 2 * k2, y.u, P, mode)
                 k4 = fid._rhs(x3 + h * k3, y.u, P, mode)
                 x3 = x3 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton)
+            a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
             x3 = ca.vertcat(x3[0], a, b)
-        xn = ca.vertcat(x3[0], W)
+        xn = ca.vertcat(x3[0], W, y.x[2], y.x[3])
         A = ca.jacobian(xn, y.x)
         # the predicted shape as the next warm start; re-projected at the predicted state
-        h1n, h2n, restn = self._project(xn[0], W, x3[1], x3[2], P, self.newton)
-        outn, Hn, _ = self._meas(xn[0], W, h1n, h2n, restn, P)
+        h1n, h2n, restn = self._project(xn[0], W, x3[1], x3[2], P, self.newton, hold)
+        outn, Hn, _ = self._meas(xn, h1n, h2n, restn, y.Pbase)
         self.predict = ca.Function(
-            "ekf_predict", [y.x, y.s, y.u, y.theta],
-            [xn, A, ca.vertcat(h1n, h2n), outn, Hn], ["x", "s", "u", "theta"],
+            "ekf_predict", [y.x, y.s, y.u, y.theta, hold],
+            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn)], ["x", "s", "u", "theta", "hold"],
             ["x_next", "A", "s_next", "y", "H"])
         # outputs at an arbitrary state (posterior), from a warm start
         y2 = self._syms()
-        a, b, r = self._project(y2.x[0], y2.x[1], y2.s[0], y2.s[1], y2.P, self.newton + 1)
-        out2, H2, D2 = self._meas(y2.x[0], y2.x[1], a, b, r, y2.P)
-        self.outputs = ca.Function("ekf_outputs", [y2.x, y2.s, y2.theta], [ca.vertcat(a, b), out2, H2, D2],
-                                   ["x", "s", "theta"], ["s_out", "y", "H", "D"])
-        # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, p+)
-        self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta],
-                                     [xn, ca.vertcat(h1n, h2n), outn[4]], ["x", "s", "u", "theta"],
-                                     ["x_next", "s_next", "p"])
+        hold2 = ca.SX.sym("hold")
+        a, b, r = self._project(y2.x[0], y2.x[1], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
+        out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
+        self.outputs = ca.Function("ekf_outputs", [y2.x, y2.s, y2.theta, hold2],
+                                   [ca.densify(e) for e in (ca.vertcat(a, b), out2, H2, D2)],
+                                   ["x", "s", "theta", "hold"], ["s_out", "y", "H", "D"])
+        # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
+        self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta, hold],
+                                     [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],
+                                     ["x", "s", "u", "theta", "hold"],
+                                     ["x_next", "s_next", "y"])
 
     # --- numeric helpers ----------------------------------------------------------------------
     def gas_mass(self, p: float, h1: float = 0.0, h2: float = 0.0) -> float:
