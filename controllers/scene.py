@@ -336,14 +336,20 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     return ClosedLoopLog(**cols, u=U, stats=ctrl.stats(), events=list(rig.events), wall_s=wall)
 
 
-def settle_results(log: ClosedLoopLog, reference: ReferenceProfile, band: float, min_hold: float = 0.2) -> list:
-    """Per constant-target segment: settle time (s after the step; None if never) and final error (mm)."""
+def settle_results(log: ClosedLoopLog, reference: ReferenceProfile, band: float, min_hold: float = 0.2,
+                   which: str = "truth") -> list:
+    """Per constant-target segment: settle time (s after the step; None if never) and final error (mm).
+
+    ``which`` = 'truth' (the rig's height, the real result) or 'estimate' (what the controller sees:
+    the controller's own share of the error, without the estimator's bias).
+    """
+    h_all = log.h_true if which == "truth" else log.h_est
     out = []
     for t0, t1, h in reference.step_segments(float(log.t[-1]) + (log.t[1] - log.t[0] if len(log.t) > 1 else 0)):
         m = (log.t >= t0) & (log.t < t1)
         if m.sum() < 2:
             continue
-        tt, err = log.t[m], np.abs(log.h_true[m] - h)
+        tt, err = log.t[m], np.abs(h_all[m] - h)
         outside = np.nonzero(err > band)[0]
         if outside.size == 0:
             ts = 0.0
@@ -353,7 +359,7 @@ def settle_results(log: ClosedLoopLog, reference: ReferenceProfile, band: float,
             ts = None
         settled = ts is not None and (t1 - t0 - ts) >= min_hold
         out.append({"t_step_s": t0, "target_mm": h * 1e3, "settle_time_s": ts, "settled": bool(settled),
-                    "final_error_mm": float((log.h_true[m][-1] - h) * 1e3)})
+                    "final_error_mm": float((h_all[m][-1] - h) * 1e3)})
     return out
 
 
@@ -362,6 +368,7 @@ def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
     st = log.stats
     err = log.h_true - log.target
     settle = settle_results(log, section.reference, section.settle_band)
+    settle_est = settle_results(log, section.reference, section.settle_band, which="estimate")
     return {
         "kind": section.kind,
         "variant": st.get("variant"),
@@ -381,7 +388,10 @@ def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
         "settle_band_mm": section.settle_band * 1e3,
         "steps_settled": sum(1 for s in settle if s["settled"]),
         "steps_total": len(settle),
+        "steps_settled_estimate": sum(1 for s in settle_est if s["settled"]),
+        "height_rmse_estimate_mm": float(np.sqrt(np.mean((log.h_est - log.target) ** 2)) * 1e3),
         "settle": settle,
+        "settle_estimate": settle_est,
         "wall_s": log.wall_s,
     }
 
