@@ -65,7 +65,7 @@ import difflib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -309,6 +309,14 @@ class RobotPose:
     def layer_lengths(self, design: RobotDesign) -> np.ndarray:
         """Distance between successive body frames along the layer axes, m (L + centre height)."""
         return design.layer_thickness + self.centre
+
+    def rim_gap(self, design: RobotDesign) -> np.ndarray:
+        """Smallest gap between each upper body's bottom rim and the body below's top face, m.
+
+        ``centre - R sin(bend)`` with R the outer radius; negative = the rigid layers would overlap,
+        i.e. the real robot rocks on its rim there (see :func:`rim_pivot_pose`).
+        """
+        return self.centre - design.outer_diameter / 2 * np.sin(self.bend)
 
 
 def _heights_array(design: RobotDesign, heights) -> np.ndarray:
@@ -699,7 +707,7 @@ def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0,
 # ---------------------------------------------------------------------------------------------
 def pump_stall_pressure(pneumatics: Pneumatics | None = None) -> float:
     """Highest gauge pressure (Pa) at which the pump still delivers flow at full speed."""
-    s, p, grid = ph.load_compressor_table((pneumatics or Pneumatics()).csv_path)
+    _, p, grid = ph.load_compressor_table((pneumatics or Pneumatics()).csv_path)
     q = grid[-1]
     pos = np.nonzero(q > 0)[0]
     if pos.size == 0:
@@ -777,8 +785,9 @@ def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
                  pneumatics: Pneumatics | None = None, tip_force=(0.0, 0.0, 0.0)) -> dict:
     """Check chamber heights (N x 3, m) against each chamber's reach at its load share.
 
-    Returns dict(ok, h_max (N, 3), limit (N, 3) names, violations: list of text). Negative heights
-    are violations too (a chamber cannot pull).
+    Returns dict(ok, h_max (N, 3), limit (N, 3) names, violations: list of text, rim_gap (N,) m).
+    Negative heights are violations too (a chamber cannot push down), and so is a pose whose
+    layer rims would overlap (:meth:`RobotPose.rim_gap` < 0).
     """
     h = np.asarray(heights, dtype=float).reshape(design.n_layers, 3)
     names = design.names
@@ -795,7 +804,36 @@ def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
             elif h[k, i] > r.h_max + 1e-9:
                 viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm > reach "
                             f"{r.h_max * 1e3:.2f} mm (limited by {r.limit})")
-    return {"ok": not viol, "h_max": hmax, "limit": lim, "violations": viol}
+    gap = forward_kinematics(design, np.maximum(h, 0)).rim_gap(design)
+    for k in np.nonzero(gap < -1e-9)[0]:
+        viol.append(f"layer {LETTERS[k]}: the layer rims overlap by {-gap[k] * 1e3:.2f} mm (rigid three-point "
+                    "pose; the real layers rock on the rim)")
+    return {"ok": not viol, "h_max": hmax, "limit": lim, "violations": viol, "rim_gap": gap}
+
+
+def rim_pivot_pose(design: RobotDesign, h_inflated: float, inflated: list[int]) -> tuple[float, float, float]:
+    """Layer pose when the inflated chambers stand at ``h_inflated`` (m) and the layer rocks on its rim.
+
+    With some chambers flat, the rigid three-point pose makes the layer rims overlap
+    (:meth:`RobotPose.rim_gap` < 0): a real layer pivots on the outer rim instead, and the flat
+    chambers' glued membranes are pulled up (tension, outside the membrane model). The pose then is
+    the plane that touches the lower rim (centre = R sin(bend)) and passes through the inflated
+    chambers, bending away from them (direction opposite their mean angle). Returns (centre m,
+    bend rad, direction rad); all three inflated -> level at h_inflated.
+    """
+    if not inflated:
+        return 0.0, 0.0, 0.0
+    if len(inflated) == 3:
+        return float(h_inflated), 0.0, 0.0
+    from scipy.optimize import brentq
+
+    a = np.asarray(design.chamber_angles)[inflated]
+    psi = math.atan2(-np.sin(a).sum(), -np.cos(a).sum())
+    c = float(np.cos(psi - a).max())  # the inflated chamber nearest the pivot side sets the height
+    R, rc = design.outer_diameter / 2, design.placement_radius
+    f = lambda t: R * math.sin(t) - rc * math.tan(t) * c - h_inflated  # noqa: E731
+    theta = brentq(f, 0.0, math.radians(89.0))
+    return R * math.sin(theta), theta, psi
 
 
 # ---------------------------------------------------------------------------------------------
@@ -832,6 +870,12 @@ def robot_table2(design: RobotDesign | None = None, stretch: float | None = None
     - ``near_branch``: each inflated chamber held at ``hold_pressure`` (35 kPa, the rig's sensor
       range) on the near branch, as pressure control would: what the robot reaches without passing
       the limit point.
+    - ``rim_pivot``: the far-branch chambers, but the layer rocks on its outer rim
+      (:func:`rim_pivot_pose`). In the three-point pose a bend with a flat chamber makes the 44 mm
+      rigid layers overlap at the rim (``rim_gap_mm`` < 0, geometrically impossible), so the real
+      layer must pivot on its rim and pull the flat chambers' glued membranes up (tension, which
+      the membrane model does not cover; their height is then set by the pose, not by their gas).
+      This reading is closest to the paper's one- and two-chamber rows.
 
     The layer evaluated is the bottom chamber layer A of the design (default: the paper's robot
     with 2 chamber layers, A and B, as in Fig. 10); it carries the bodies above, with layer B flat.
@@ -888,8 +932,17 @@ def robot_table2(design: RobotDesign | None = None, stretch: float | None = None
                 "pressure_kpa": U.to_kpa(float(st["p"][0, 0])) if n else 0.0,
                 "stretch": float(st["lam"][0, 0]) if n else 1.0,
                 "gas_mass_mg": float(np.mean(st["m"][0, infl])) * 1e6 if n else float(st["m"][0, 0]) * 1e6,
+                "rim_gap_mm": U.to_mm(float(pose.rim_gap(d)[0])),
                 "params": params,
             })
+    # the same inflated chambers, the layer rocking on its rim instead of overlapping it
+    for r in [r for r in rows if r["reading"] == "far_branch"]:
+        n = r["inflated"]
+        c, theta, _ = rim_pivot_pose(d, U.mm(r["chamber_height_mm"]), list(range(n)))
+        length = d.layer_thickness + c
+        base = d.layer_thickness
+        rows.append({**r, "reading": "rim_pivot", "angle_deg": math.degrees(theta), "length_mm": U.to_mm(length),
+                     "extension_pct": 100 * (length - base) / base, "rim_gap_mm": 0.0 if 0 < n < 3 else r["rim_gap_mm"]})
     return rows
 
 
@@ -897,18 +950,21 @@ def table2_markdown(rows: list[dict]) -> str:
     """Markdown table of :func:`robot_table2` rows (model vs paper), with the parameters used."""
     p = rows[0]["params"]
     head = ("| reading | HBMA inflated | angle model / paper (deg) | length model / paper (mm) | "
-            "extension model / paper (%) | chamber h (mm) | p (kPa) | stretch |\n|---|---|---|---|---|---|---|---|\n")
+            "extension model / paper (%) | chamber h (mm) | p (kPa) | stretch | rim gap (mm) |\n"
+            "|---|---|---|---|---|---|---|---|---|\n")
     body = "".join(
         f"| {r['reading']} | {r['inflated']} | {r['angle_deg']:.1f} / {r['paper_angle_deg']:.1f} | "
         f"{r['length_mm']:.1f} / {r['paper_length_mm']:.1f} | {r['extension_pct']:.0f} / "
         f"{r['paper_extension_pct']:.0f} | {r['chamber_height_mm']:.2f} | {r['pressure_kpa']:.1f} | "
-        f"{r['stretch']:.2f} |\n" for r in rows)
+        f"{r['stretch']:.2f} | {r['rim_gap_mm']:.2f} |\n" for r in rows)
     mat = ", ".join(f"{k} = {v:g} Pa" if isinstance(v, float) else f"{k} = {v}" for k, v in p["material_params"].items())
     foot = (f"\nParameters: {p['material'].upper()} ({mat}), r1 = {p['r1_mm']:g} mm, t0 = {p['t0_mm']:g} mm, "
             f"V0 = {p['V0_cm3']:g} cm^3, chamber centres {p['placement_radius_mm']:g} mm from the axis, layer "
             f"{p['layer_thickness_mm']:g} mm / {p['layer_mass_g']:g} g, {p['n_layers']} chamber layers "
             f"(layer A evaluated, B flat). far_branch: inflated chambers held by gas mass at stretch "
-            f"{p['stretch']:g}; near_branch: held at {p['hold_pressure_kpa']:g} kPa below the limit point.\n")
+            f"{p['stretch']:g}; near_branch: held at {p['hold_pressure_kpa']:g} kPa below the limit point; "
+            "rim_pivot: far-branch chambers, the layer rocking on its outer rim instead of the rigid "
+            "three-point pose (whose rims would overlap with a flat chamber).\n")
     return head + body + foot
 
 
@@ -924,6 +980,25 @@ def _max_bend(design: RobotDesign, h_max: float, psi: np.ndarray) -> np.ndarray:
     return np.arctan(h_max / spread)
 
 
+def _max_bend_clear(design: RobotDesign, h_max: float, psi: np.ndarray) -> np.ndarray:
+    """Largest bend (rad) in directions psi with heights in [0, h_max] and no rim overlap."""
+    a = np.asarray(design.chamber_angles)
+    rc, R = design.placement_radius, design.outer_diameter / 2
+    c = np.cos(psi[:, None] - a[None, :])
+    cmax, cmin = c.max(1), c.min(1)
+
+    def need(t):  # the highest chamber's height at the lowest feasible centre height
+        hc = np.maximum(rc * t * cmax, R * np.sin(np.arctan(t)))
+        return hc - rc * t * cmin
+
+    lo, hi = np.zeros(psi.size), np.full(psi.size, 50.0)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        ok = need(mid) <= h_max
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return np.arctan(lo)
+
+
 def workspace(design: RobotDesign | None = None, pressure_limit: float = 45e3,
               pneumatics: Pneumatics | None = None, n_dir: int = 72) -> dict:
     """Reachable workspace at the pressure limit, per layer and for the tip (SI, plain data).
@@ -933,7 +1008,9 @@ def workspace(design: RobotDesign | None = None, pressure_limit: float = 45e3,
     three. Per layer: the centre-height range at zero bend [0, h_max] and the largest bend angle
     against direction (all three heights within [0, h_max]; at the largest bend the centre height
     is fixed). The same numbers for pressure control (near branch only) show what passing the
-    limit point buys. Tip: every layer bent alike (constant curvature).
+    limit point buys. ``bend_max_no_rim_contact`` adds the condition that the rigid layers' rims do
+    not overlap (:meth:`RobotPose.rim_gap` >= 0): what the three-point kinematics can really reach
+    (larger bends make the layer rock on its rim). Tip: every layer bent alike (constant curvature).
     """
     d = (design or RobotDesign()).validate()
     F = load_sharing(d, np.zeros((d.n_layers, 3))).forces
@@ -950,6 +1027,7 @@ def workspace(design: RobotDesign | None = None, pressure_limit: float = 45e3,
             "h_pressure_control": hpc,
             "bend_max": _max_bend(d, hm, psi).tolist(),
             "bend_max_pressure_control": _max_bend(d, hpc, psi).tolist(),
+            "bend_max_no_rim_contact": _max_bend_clear(d, hm, psi).tolist(),
         })
     bend_tip = np.sum([ly["bend_max"] for ly in layers], axis=0)
     return {
@@ -1150,6 +1228,7 @@ class RobotRun:
     direction: np.ndarray
     tip: np.ndarray
     tip_bend: np.ndarray
+    rim_gap: np.ndarray
     inputs: np.ndarray
     events: list
     step_s: np.ndarray
@@ -1218,7 +1297,8 @@ def simulate_open_loop(settings: RobotSettings, pneumatics: Pneumatics | None = 
         rows_l.append(plant.output("lam").copy())
         rows_F.append(th[ix["W"]].copy())
         rows_u.append(Uc.copy())
-        rows_pose.append((pose.bend.copy(), pose.direction.copy(), pose.tip_position.copy(), pose.tip_bend))
+        rows_pose.append((pose.bend.copy(), pose.direction.copy(), pose.tip_position.copy(), pose.tip_bend,
+                          pose.rim_gap(d)))
         return h
 
     h = record(np.zeros((3, n)))
@@ -1264,7 +1344,7 @@ def simulate_open_loop(settings: RobotSettings, pneumatics: Pneumatics | None = 
         m=np.array(rows_m).reshape(T, N, 3), lam=np.array(rows_l).reshape(T, N, 3),
         F=np.array(rows_F).reshape(T, N, 3), bend=np.array([r[0] for r in rows_pose]),
         direction=np.array([r[1] for r in rows_pose]), tip=np.array([r[2] for r in rows_pose]),
-        tip_bend=np.array([r[3] for r in rows_pose]),
+        tip_bend=np.array([r[3] for r in rows_pose]), rim_gap=np.array([r[4] for r in rows_pose]),
         inputs=np.array(rows_u), events=events, step_s=np.array(steps), status=status,
         wall_s=time.perf_counter() - wall0, tension=tension_any.reshape(N, 3))
 
@@ -1272,6 +1352,8 @@ def simulate_open_loop(settings: RobotSettings, pneumatics: Pneumatics | None = 
 def run_metrics(design: RobotDesign, run: RobotRun) -> dict:
     """The "robot" metrics object of an open-loop run (edge units).
 
+    ``min_rim_gap_mm`` < 0 marks layers whose rigid three-point pose overlapped the layer below at
+    the rim (see :meth:`RobotPose.rim_gap`): there the real robot rocks on its rim.
     The tracking keys required of every robot scene (chamber_height_rmse_mm, bend_angle_rmse_deg,
     tip_position_rmse_mm) are null here: an open-loop scene has no reference to track.
     """
@@ -1298,6 +1380,7 @@ def run_metrics(design: RobotDesign, run: RobotRun) -> dict:
         "max_tip_lateral_mm": U.to_mm(float(np.max(np.hypot(run.tip[:, 0] - tip0[0], run.tip[:, 1] - tip0[1])))),
         "tip_height_range_mm": [U.to_mm(float(run.tip[:, 2].min())), U.to_mm(float(run.tip[:, 2].max()))],
         "tension_chambers": [nm for nm, f in zip(names, run.tension.ravel()) if f],
+        "min_rim_gap_mm": {LETTERS[k]: U.to_mm(float(run.rim_gap[:, k].min())) for k in range(design.n_layers)},
         "events": counts,
         "status": run.status,
         "sim_time_s": float(run.t[-1]),

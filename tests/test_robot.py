@@ -208,14 +208,29 @@ def test_reach_below_the_peak_is_pressure_limited():
 def test_reach_report_flags_unreachable_heights():
     rep = R.reach_report(D1, [[30e-3, 0, 0]])
     assert not rep["ok"] and "A1" in rep["violations"][0] and "max_stretch" in rep["violations"][0]
-    assert R.reach_report(D1, [[10e-3, 0, 0]])["ok"]
+    ok = R.reach_report(D1, [[12e-3, 8e-3, 8e-3]])
+    assert ok["ok"] and ok["rim_gap"][0] > 0
+    # one chamber up, two flat: the rigid three-point pose would push the rims into each other
+    rim = R.reach_report(D1, [[10e-3, 0, 0]])
+    assert not rim["ok"] and "rims overlap" in rim["violations"][0] and rim["rim_gap"][0] < 0
+
+
+@pytest.mark.parametrize("inflated", [[0], [1, 2], [0, 2]])
+def test_rim_pivot_pose_touches_the_rim_and_holds_the_inflated_heights(inflated):
+    c, bend, psi = R.rim_pivot_pose(D1, 15e-3, inflated)
+    h = R.inverse_kinematics(D1, c, bend, psi)
+    pose = R.forward_kinematics(D1, np.maximum(h, 0))
+    assert pose.rim_gap(D1)[0] == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(h[0, inflated], 15e-3, atol=1e-12)
+    others = [i for i in range(3) if i not in inflated]
+    assert np.all(h[0, others] > 0) and np.all(h[0, others] < 15e-3)  # the flat ones are pulled up
 
 
 # --------------------------------------------------------------------------------------------- Table II, workspace
 def test_table2_rows_are_finite_and_ordered():
     rows = R.robot_table2()
-    assert len(rows) == 8
-    for reading in ("far_branch", "near_branch"):
+    assert len(rows) == 12
+    for reading in ("far_branch", "near_branch", "rim_pivot"):
         rs = [r for r in rows if r["reading"] == reading]
         assert [r["inflated"] for r in rs] == [0, 1, 2, 3]
         for r in rs:
@@ -229,15 +244,20 @@ def test_table2_rows_are_finite_and_ordered():
     assert far[1]["stretch"] == pytest.approx(4.0, rel=1e-6)
     assert far[1]["pressure_kpa"] < near[1]["pressure_kpa"] == pytest.approx(35.0, rel=1e-3)
     assert far[1]["angle_deg"] > near[1]["angle_deg"]
+    rim = {r["inflated"]: r for r in rows if r["reading"] == "rim_pivot"}
+    assert far[1]["rim_gap_mm"] < 0 and far[2]["rim_gap_mm"] < 0 and far[3]["rim_gap_mm"] > 0
+    assert rim[1]["rim_gap_mm"] == 0.0 and rim[1]["angle_deg"] < far[1]["angle_deg"]
+    assert rim[1]["length_mm"] > far[1]["length_mm"]
     md = R.table2_markdown(rows)
-    assert md.count("\n| ") == 8 and "r1 = 4.5 mm" in md  # one line per row after the header
+    assert md.count("\n| ") == 12 and "r1 = 4.5 mm" in md  # one line per row after the header
 
 
 def test_workspace_far_branch_beats_pressure_control():
     ws = R.workspace(R.RobotDesign(n_layers=2), n_dir=36)
     for ly in ws["layers"]:
         b, bp = np.array(ly["bend_max"]), np.array(ly["bend_max_pressure_control"])
-        assert np.all(b > bp) and np.all(bp > 0)
+        bc = np.array(ly["bend_max_no_rim_contact"])
+        assert np.all(b > bp) and np.all(bp > 0) and np.all(bc < b) and np.all(bc > bp)
         assert set(ly["limit"]) == {"max_stretch"}
         # three chambers at 120 degrees: the reach repeats every 120 degrees
         np.testing.assert_allclose(b[:12], b[12:24], rtol=1e-9)
