@@ -84,13 +84,13 @@ class FilterSettings:
     lift_drift: float = 0.3
     lift_load_rel_std: float = 0.2
     flow_factor_std: float = 0.02
-    flow_factor_init_std: float = 0.1
+    flow_factor_init_std: float = 0.25
     modulus_std: float = 0.01
     modulus_init_std: float = 0.15
     change_threshold: float = 40.0
     change_drift: float = 4.0
     change_std: float = 3.0
-    load_min: float = -0.5
+    load_min: float = 0.0
     load_max: float = 100.0
     mass_init_std: float = 1e-8
     cov_floor: float = 1e-12

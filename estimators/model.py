@@ -38,6 +38,9 @@ STATE_NAMES = ("m", "W", "b", "k")
 NX = len(STATE_NAMES)
 #: material parameters that are not moduli (dimensionless): the modulus factor leaves them alone
 _DIMENSIONLESS = {"Jm", "alpha"}
+#: a tiny contact stiffness, N/m, regularising F(h1, h2) = W where the pressure vanishes (at W = 0
+#: and p -> 0 any h2 would do; with it h2 = 0): 1 N/m is below 1 % of dF/dh2 at working pressures
+EPS_K = 1.0
 #: force, N, below which the membrane is taken as flat even without a load (about 200 Pa at r1 = 12.5 mm)
 REST_EPS = 0.1
 #: rows of the output vector of :meth:`ObserverModel.outputs`
@@ -45,11 +48,13 @@ OUT_NAMES = ("h1", "h2", "h", "F", "p", "rest", "det", "resid")
 
 
 def _shape_newton(m, W, h1, h2, P, iters: int):
-    """Newton on G(h1, h2) = m R T, F(h1, h2) = W from (h1, h2); Cramer's rule on the 2x2."""
+    """Newton on G(h1, h2) = m R T, F(h1, h2) + EPS_K h2 = W from (h1, h2); Cramer on the 2x2."""
     rt = P["R"] * P["T"]
     for _ in range(iters):
         G, F, J = shape_jacobian(h1, h2, P)
-        r0, r1 = G - m * rt, F - W
+        J = ca.SX(J)
+        J[1, 1] = J[1, 1] + EPS_K
+        r0, r1 = G - m * rt, F + EPS_K * h2 - W
         det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
         sgn = ca.if_else(det >= 0, 1.0, -1.0)
         det = ca.if_else(ca.fabs(det) < 1e-12, sgn * 1e-12, det)
@@ -148,7 +153,7 @@ class ObserverModel:
         geo = ph.geometry(hs[0], hs[1], P)
         p_c = ph.pressure(hs[0], hs[1], P)
         F = ca.pi * geo["a2"] * p_c
-        r = ca.vertcat(G - xs[0] * rt, F - xs[1])
+        r = ca.vertcat(G - xs[0] * rt, F + EPS_K * hs[1] - xs[1])
         o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
         r_h = ca.jacobian(r, hs)
         det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]
