@@ -1547,6 +1547,8 @@ def plot_workspace(ws: dict, path: Path | str, title: str = "") -> None:
         bp = np.degrees(ly["bend_max_pressure_control"] + ly["bend_max_pressure_control"][:1])
         ax.plot(psi, b, label=f"layer {ly['layer']}: gas-mass hold, h <= {U.to_mm(ly['h_max']):.1f} mm "
                               f"({ly['limit'][0]})")
+        bc = np.degrees(ly["bend_max_no_rim_contact"] + ly["bend_max_no_rim_contact"][:1])
+        ax.plot(psi, bc, ls=":", label=f"layer {ly['layer']}: gas-mass hold, rims clear")
         ax.plot(psi, bp, ls="--", label=f"layer {ly['layer']}: pressure control, h <= "
                                         f"{U.to_mm(ly['h_pressure_control']):.1f} mm")
     ax.set_title(title or f"largest bend (deg) vs direction, pressure limit {U.to_kpa(ws['pressure_limit']):g} kPa",

@@ -87,14 +87,16 @@ def workspace(out: Path = typer.Option(Path("runs/robot"), "--out", help="direct
     ws = R.workspace(d, U.kpa(pressure_limit_kpa), n_dir=directions)
     tab = Table(title=f"reach per layer at {pressure_limit_kpa:g} kPa (gas-mass hold vs pressure control)")
     for c in ("layer", "load/chamber (N)", "h max (mm)", "limited by", "peak p (kPa) at h (mm)",
-              "bend max (deg) min-max over direction", "pressure control: h max (mm), bend (deg)"):
+              "bend max (deg) over direction", "same, rims clear (deg)", "pressure control: h max (mm), bend (deg)"):
         tab.add_column(c)
     for ly in ws["layers"]:
         b = np.degrees(ly["bend_max"])
+        bc = np.degrees(ly["bend_max_no_rim_contact"])
         bp = np.degrees(ly["bend_max_pressure_control"])
         tab.add_row(ly["layer"], f"{np.mean(ly['load_n']):.3f}", f"{U.to_mm(ly['h_max']):.2f}",
                     ",".join(sorted(set(ly["limit"]))), f"{U.to_kpa(ly['p_peak']):.1f} at {U.to_mm(ly['h_peak']):.2f}",
-                    f"{b.min():.1f}-{b.max():.1f}", f"{U.to_mm(ly['h_pressure_control']):.2f}, {bp.min():.1f}-{bp.max():.1f}")
+                    f"{b.min():.1f}-{b.max():.1f}", f"{bc.min():.1f}-{bc.max():.1f}",
+                    f"{U.to_mm(ly['h_pressure_control']):.2f}, {bp.min():.1f}-{bp.max():.1f}")
     con = Console(highlight=False, width=150)
     con.print(tab)
     tb = np.degrees(ws["tip_bend_max"])
@@ -111,7 +113,8 @@ def workspace(out: Path = typer.Option(Path("runs/robot"), "--out", help="direct
                         "p_at_max_kpa": U.to_kpa(ly["p_at_max"]),
                         "h_pressure_control_mm": U.to_mm(ly["h_pressure_control"]),
                         "bend_max_deg": np.degrees(ly["bend_max"]).tolist(),
-                        "bend_max_pressure_control_deg": np.degrees(ly["bend_max_pressure_control"]).tolist()}
+                        "bend_max_pressure_control_deg": np.degrees(ly["bend_max_pressure_control"]).tolist(),
+                        "bend_max_no_rim_contact_deg": np.degrees(ly["bend_max_no_rim_contact"]).tolist()}
                        for ly in ws["layers"]]}
     (out / "workspace.json").write_text(json.dumps(edge, indent=1) + "\n")
     typer.echo(f"wrote {out / 'workspace.png'} and {out / 'workspace.json'}")
