@@ -12,7 +12,8 @@ trials always use 'free' (fewest states). Trials of one fidelity run as one batc
 chunk of the trials (not one trial), so batching is kept.
 
 Outputs of :func:`run_protocol` in ``out_dir``: ``summary.csv`` (one row per trial, columns
-:data:`SUMMARY_COLUMNS`), ``trials/<name>.csv`` (time series in edge units, unit in each column
+:data:`SUMMARY_COLUMNS`; ``wall_s`` is the trial's share of its batch's wall time, i.e. batch wall
+time / batch size, or the trial's own time with the one-at-a-time 'radau'), ``trials/<name>.csv`` (time series in edge units, unit in each column
 name, see :func:`hbma_ctrl.metrics.write_log_csv`) and, unless disabled, fig6/fig7/fig9 PNGs.
 """
 
