@@ -34,6 +34,15 @@ layer's top leans to); a single inflated chamber at angle phi_i bends the layer 
 model: a spherical segment pressed by a plane parallel to its retaining disk (SPEC 1); the tilt of
 the plane over one membrane (a few mm wide) is neglected.
 
+Rim contact (a limit of the three-point assumption)
+---------------------------------------------------
+The layers are rigid 44 mm disks. A three-point pose with a flat chamber (h = 0) always makes the
+upper layer's rim dip below the lower layer's top face (``RobotPose.rim_gap`` = centre -
+R sin(bend) < 0): with one chamber at 17 mm the overlap is about 7 mm. A real layer then rocks on
+its rim and the glued, uninflated membranes are pulled up (tension). :func:`reach_report` flags
+such poses, :func:`workspace` reports the bend reachable with the rims clear, and
+:func:`robot_table2` gives a ``rim_pivot`` reading, which is the one closest to the paper's data.
+
 Statics
 -------
 The chambers push body k + 1 along its normal (the contact normal). For the sub-assembly of bodies

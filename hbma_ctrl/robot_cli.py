@@ -52,7 +52,9 @@ def table2(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory
     """The paper's Table II beside the model (one layer, 0-3 chambers inflated)."""
     if not 1.0 <= hold_kpa <= 1000.0:
         raise ValueError(f"--hold-kpa = {hold_kpa} is out of range [1, 1000] kPa")
-    d = _design(layers, max(stretch, 4.0) if stretch else None)
+    if stretch is not None and not 1.05 <= stretch <= 20.0:
+        raise ValueError(f"--stretch = {stretch} is out of range [1.05, 20]")
+    d = _design(layers)
     rows = R.robot_table2(d, stretch=stretch, hold_pressure=U.kpa(hold_kpa))
     tab = Table(title="Table II: model / paper (one layer of the robot)")
     for c in ("reading", "inflated", "angle (deg)", "length (mm)", "extension (%)", "chamber h (mm)", "p (kPa)",
