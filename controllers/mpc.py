@@ -228,6 +228,10 @@ class _SolverFailure(RuntimeError):
     pass
 
 
+class _BudgetExceeded(_SolverFailure):
+    """The solver stopped at its time limit (the step's budget): counted as an overrun."""
+
+
 @dataclass
 class _Problem:
     """Per-step parameters of the OCP (scaled units: h in mm, p in kPa)."""
@@ -405,12 +409,17 @@ class _RtiOsqp:
             Xb = np.full(N + 1, pr.x0)
             Ub = np.tile(pr.u_prev, (N, 1))
             iters = s.rti_init_iterations
+            self.solver.update_settings(time_limit=1e3)  # cold start: exempt from the budget
         else:
             Xb = np.r_[pr.x0, self.X[2:], self.X[-1]]
             Ub = np.vstack([self.U[1:], self.U[-1:]])
             iters = 1
-        for _ in range(iters):
-            Xb, Ub = self._qp(pr, Xb, Ub)
+        try:
+            for _ in range(iters):
+                Xb, Ub = self._qp(pr, Xb, Ub)
+        finally:
+            if iters > 1:
+                self.solver.update_settings(time_limit=s.budget)
         self.X, self.U = Xb, Ub
         return Xb, Ub
 
@@ -471,6 +480,8 @@ class _RtiOsqp:
         self.solver.warm_start(x=z0)
         r = self.solver.solve(raise_error=False)
         self.iterations = int(r.info.iter)
+        if "time limit" in r.info.status:
+            raise _BudgetExceeded("osqp: time limit (budget) reached")
         if r.info.status not in ("solved", "solved inaccurate") or r.x is None or not np.all(np.isfinite(r.x)):
             raise _SolverFailure(f"osqp: {r.info.status}")
         z = r.x
@@ -688,6 +699,10 @@ class NMPC:
                 cmd = U[0].copy()
                 self._plan = (U.copy(), 0)
                 self._streak = 0
+        except _BudgetExceeded as exc:
+            status = f"overrun: {exc}"
+            self.fallbacks["overrun"] += 1
+            cmd = self._fallback(None)
         except _SolverFailure as exc:
             status = f"failed: {exc}"
             self.fallbacks["solver_failed"] += 1

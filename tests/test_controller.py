@@ -1,0 +1,231 @@
+"""Unit tests of the controllers: prediction model, MPC OCP and fallbacks, baselines, [controller] parsing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controllers.baselines import BangBangController, BangBangSettings, PIDController, PIDSettings
+from controllers.mpc import NMPC, MPCSettings, _Problem, duty_to_on_time
+from controllers.prediction import PredictionModel
+from controllers.scene import parse_section
+from hbma_ctrl import physics as ph
+from hbma_ctrl.interfaces import SAFE_COMMAND, Estimate, Reference
+from hbma_ctrl.model import MODE_MOVING, make_fidelity
+from hbma_ctrl.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.simulate import Plant
+
+ACT, PN = Actuator(), Pneumatics()
+W400 = 0.4 * 9.80665
+
+
+@pytest.fixture(scope="module")
+def model():
+    return PredictionModel(ACT, PN)
+
+
+def est(h=0.0, p=0.0, F=0.0, t=0.0, flags=()):
+    return Estimate(t=t, h1=h, h2=0.0, h=h, F=F, p=p, flags=frozenset(flags))
+
+
+# --- prediction model ----------------------------------------------------------------------------
+def test_tables_agree_with_lead_physics(model):
+    """Free inflation (W = 0): the table's pressure at a height is physics.pressure(h, 0)."""
+    theta, P = model._fid.space.symbols()
+    import casadi as ca
+
+    h1 = ca.SX.sym("h1")
+    pf = ca.Function("p", [h1, theta], [ph.pressure(h1, 0, P)])
+    for h in (2e-3, 5e-3, 8e-3, 12e-3):
+        x = model.x_at_height(h, 0.0)
+        assert float(model.H(x, 0.0)) == pytest.approx(h, abs=2e-5)
+        assert float(model.Pp(x, 0.0)) == pytest.approx(float(pf(h, model.theta)), rel=0.01, abs=30)
+
+
+def test_rest_until_lift_off(model):
+    """Below the lift-off gas mass the platform rests (h = 0) and p = x p_env (V = V0)."""
+    x_lo = model.lift_off_x(W400)
+    assert x_lo == pytest.approx(W400 / (np.pi * ACT.r1 ** 2) / ACT.p_env)
+    for frac in (0.2, 0.5, 0.8):
+        x = frac * x_lo
+        assert abs(float(model.H(x, W400))) < 0.05e-3
+        assert float(model.Pp(x, W400)) == pytest.approx(x * ACT.p_env, rel=0.03, abs=150)
+    assert float(model.H(x_lo + 0.3, W400)) > 1e-3
+
+
+def test_prediction_matches_quasi_static_plant(model):
+    """One second of full pumping from rest under 400 g: the gas-mass model against the lead's
+    quasi-static plant (same nominal parameters)."""
+    fid = make_fidelity("quasi_static", ACT.material, str(PN.csv_path))
+    theta = fid.space.values(ACT, PN, Platform(load=0.4))
+    plant = Plant(fid, theta[:, None], "rk4", 1e-3)
+    F = model.discrete(0.02)
+    x = 0.0
+    for _ in range(50):
+        plant.advance(np.array([[1.0], [1.0], [0.0]]), 0.02)
+        x = float(F(x, [1, 1, 0], W400, 0.0))
+    h_plant = float(plant.output("h")[0])
+    assert h_plant > 3e-3
+    assert float(model.H(x, W400)) == pytest.approx(h_plant, rel=0.03)
+    assert float(model.Pp(x, W400)) == pytest.approx(float(plant.output("p")[0]), rel=0.03)
+
+
+def test_reachable_height_respects_pressure_limit(model):
+    h15 = model.reachable_height(W400, 15e3, 1.5, 0.02)
+    pth = model.path(W400)
+    assert float(np.interp(h15, pth["h"], pth["p"])) == pytest.approx(15e3, rel=0.01)
+    assert model.reachable_height(W400, 35e3, 1.5, 0.02) > h15
+    assert model.reachable_height(W400, 5e3, 1.5, 0.02) == 0.0  # cannot even lift off
+
+
+# --- settings and parsing ------------------------------------------------------------------------
+def test_settings_errors_name_field_and_range():
+    with pytest.raises(ValueError, match="did you mean 'ipopt'"):
+        MPCSettings(variant="ipop").validate()
+    with pytest.raises(ValueError, match=r"mpc.horizon .* \[2, 200\]"):
+        MPCSettings(horizon=1).validate()
+    with pytest.raises(ValueError, match="mpc.p_max"):
+        MPCSettings(p_max=-1.0).validate()
+
+
+def test_parse_section_edge_units_and_typos():
+    sec = parse_section({"variant": "ipopt", "horizon": 10, "sample_ms": 20, "p_max_kpa": 30,
+                         "targets_mm": [[0, 2], [1, 4]], "load_steps_g": [[1.5, 600]]})
+    assert sec.mpc.p_max == pytest.approx(30e3) and sec.pid.p_max == pytest.approx(30e3)
+    assert sec.mpc.horizon == 10 and sec.reference(1.2) == pytest.approx(4e-3)
+    assert sec.load_steps == ((1.5, 0.6),)
+    with pytest.raises(ValueError, match="did you mean 'horizon'"):
+        parse_section({"horizn": 10, "targets_mm": [[0, 2]]})
+    with pytest.raises(ValueError, match="targets_mm is required"):
+        parse_section({"kind": "mpc"})
+    with pytest.raises(ValueError, match="did you mean 'bang_bang'"):
+        parse_section({"kind": "bangbang", "targets_mm": [[0, 2]]})
+
+
+def test_reference_profiles():
+    sec = parse_section({"targets_mm": [[0, 2], [2, 6]], "interpolation": "linear",
+                         "sine_amplitude_mm": 1.0, "sine_period_s": 4.0, "sine_start_s": 2.0})
+    assert sec.reference(1.0) == pytest.approx(4e-3)
+    assert sec.reference(3.0) == pytest.approx(7e-3)  # 6 mm + 1 mm sin(pi/2)
+
+
+def test_duty_to_on_time():
+    assert duty_to_on_time(0.5, 0.02) == pytest.approx(0.01)
+    assert duty_to_on_time(0.05, 0.02, min_on=0.004) == 0.0
+    assert duty_to_on_time(0.15, 0.02, min_on=0.004) == pytest.approx(0.004)
+    assert duty_to_on_time(0.95, 0.02, min_on=0.004) == pytest.approx(0.02)
+    with pytest.raises(ValueError, match="duty"):
+        duty_to_on_time(1.5, 0.02)
+
+
+# --- the MPC -------------------------------------------------------------------------------------
+@pytest.mark.parametrize("variant", ["rti_osqp", "ipopt"])
+def test_mpc_pumps_below_and_vents_above_target(model, variant):
+    s = MPCSettings(variant=variant, budget=5.0)
+    c = NMPC(ACT, PN, s, model=model)
+    up = c.step(0.0, est(h=2e-3, p=11.7e3, F=W400), Reference(6e-3))
+    assert up.speed > 0.5 and up.inlet >= up.speed - 1e-6 and up.outlet < 0.05
+    c.reset()
+    down = c.step(0.0, est(h=8e-3, p=21.4e3, F=W400), Reference(4e-3))
+    assert down.outlet > 0.5 and down.speed < 0.05
+    c.reset()
+    hold = c.step(0.0, est(h=5e-3, p=17.5e3, F=W400), Reference(5e-3))
+    assert max(hold.speed, hold.outlet) < 0.1
+
+
+def test_rti_converges_to_ipopt_plan(model):
+    """Iterated, the RTI's QPs converge to the same optimum as IPOPT on the same OCP."""
+    s = MPCSettings(budget=5.0, rti_init_iterations=30)
+    pr = _Problem(x0=model.x_at_height(4e-3, W400), W=W400, dh=0.0, dp=0.0, r=5e-3, u_prev=np.zeros(3),
+                  p_lim=33e3)
+    rti = NMPC(ACT, PN, s, model=model).backend
+    ipo = NMPC(ACT, PN, MPCSettings(variant="ipopt", budget=5.0), model=model).backend
+    Xr, Ur = rti.solve(pr)
+    Xi, Ui = ipo.solve(pr)
+    h_r = [float(model.H(x, W400)) for x in Xr]
+    h_i = [float(model.H(x, W400)) for x in Xi]
+    assert np.max(np.abs(np.array(h_r) - h_i)) < 0.05e-3
+    assert np.max(np.abs(Ur[:, 0] - Ui[:, 0])) < 0.1
+
+
+def test_infeasible_target_is_clipped_and_reported(model):
+    s = MPCSettings(p_max=15e3, p_margin=1e3, budget=5.0)
+    c = NMPC(ACT, PN, s, model=model)
+    c.step(0.0, est(h=2e-3, p=11.7e3, F=W400), Reference(8e-3))
+    assert c.last["target_clipped"] and c.last["reference_used"] < 4e-3
+    assert c.stats()["target_clipped_steps"] == 1
+
+
+def test_fallback_chain_shifted_plan_then_safe(model):
+    s = MPCSettings(budget=5.0, fail_window=(0.1, 10.0), fallback_plan_steps=3)
+    c = NMPC(ACT, PN, s, model=model)
+    e = est(h=2e-3, p=11.7e3, F=W400)
+    c.step(0.0, e, Reference(6e-3))
+    plan = c._plan[0].copy()
+    cmds = [c.step(0.02 * (k + 5), e, Reference(6e-3)) for k in range(5)]
+    for k in range(3):
+        assert cmds[k].as_array() == pytest.approx(plan[k + 1])
+    assert cmds[3] == SAFE_COMMAND and cmds[4] == SAFE_COMMAND
+    st = c.stats()
+    assert st["fallbacks"] == 5 and st["fallback_detail"]["solver_failed"] == 5
+    assert st["fallback_detail"]["shifted_plan"] == 3 and st["fallback_detail"]["safe_command"] == 2
+
+
+def test_overrun_counts_and_uses_shifted_plan(model):
+    c = NMPC(ACT, PN, MPCSettings(budget=1e-9), model=model)
+    e = est(h=2e-3, p=11.7e3, F=W400)
+    c.step(0.0, e, Reference(6e-3))  # cold start: exempt
+    plan = c._plan[0].copy()
+    cmd = c.step(0.02, e, Reference(6e-3))
+    assert c.stats()["fallback_detail"]["overrun"] == 1
+    assert cmd.as_array() == pytest.approx(plan[1])
+
+
+def test_non_finite_estimate_is_a_fallback_not_a_crash(model):
+    c = NMPC(ACT, PN, MPCSettings(budget=5.0), model=model)
+    cmd = c.step(0.0, est(h=float("nan"), p=float("nan")), Reference(5e-3))
+    assert cmd == SAFE_COMMAND and c.stats()["fallbacks"] == 1
+
+
+def test_guard_cuts_pump_at_the_limit(model):
+    c = NMPC(ACT, PN, MPCSettings(budget=5.0, p_max=20e3), model=model)
+    cmd = c.step(0.0, est(h=5e-3, p=19.9e3, F=W400), Reference(12e-3))
+    assert cmd.speed == 0.0 and cmd.outlet == 1.0
+    # the guard itself, on a command that would pump at the limit (e.g. a stale fallback plan)
+    g = c._guard(np.array([1.0, 1.0, 0.0]), est(h=5e-3, p=19.9e3, F=W400))
+    assert list(g) == [0.0, 0.0, 1.0] and c.stats()["guard_activations"] >= 1
+    assert list(c._guard(np.array([1.0, 1.0, 0.0]), est(h=5e-3, p=15e3, F=W400))) == [1.0, 1.0, 0.0]
+
+
+def test_instances_share_no_state(model):
+    e1, e2 = est(h=2e-3, p=11.7e3, F=W400), est(h=6e-3, p=19e3, F=W400)
+    a, b = NMPC(ACT, PN, MPCSettings(budget=5.0), model=model), NMPC(ACT, PN, MPCSettings(budget=5.0), model=model)
+    ref = NMPC(ACT, PN, MPCSettings(budget=5.0), model=model)
+    out_a = []
+    for k in range(3):
+        out_a.append(a.step(0.02 * k, e1, Reference(5e-3)).as_array())
+        b.step(0.02 * k, e2, Reference(3e-3))
+    out_ref = [ref.step(0.02 * k, e1, Reference(5e-3)).as_array() for k in range(3)]
+    assert np.allclose(out_a, out_ref, atol=1e-6)
+
+
+# --- baselines -----------------------------------------------------------------------------------
+def test_pid_pumps_vents_and_guards():
+    c = PIDController(settings=PIDSettings())
+    assert c.step(0.0, est(h=2e-3, p=10e3), Reference(5e-3)).speed == 1.0
+    c.reset()
+    d = c.step(0.0, est(h=6e-3, p=10e3), Reference(5e-3))
+    assert d.speed == 0.0 and d.outlet > 0
+    c.reset()
+    g = c.step(0.0, est(h=2e-3, p=34.8e3), Reference(5e-3))
+    assert g.speed == 0.0 and g.outlet == 1.0
+
+
+def test_bang_bang_hysteresis(model):
+    c = BangBangController(ACT, PN, BangBangSettings(band=500.0), model=model)
+    p_set = c.setpoint(5e-3, W400)
+    assert p_set == pytest.approx(float(model.Pp(model.x_at_height(5e-3, W400), W400)), rel=0.02)
+    assert c.step(0, est(h=4e-3, p=p_set - 1000, F=W400), Reference(5e-3)).speed == 1.0
+    assert c.step(0, est(h=4e-3, p=p_set - 200, F=W400), Reference(5e-3)).speed == 1.0  # inside band: keep
+    assert c.step(0, est(h=5e-3, p=p_set + 10, F=W400), Reference(5e-3)).speed == 0.0  # reached: hold
+    assert c.step(0, est(h=5e-3, p=p_set + 1000, F=W400), Reference(5e-3)).outlet == 1.0
