@@ -111,6 +111,8 @@ def workspace(out: Path = typer.Option(Path("runs/robot"), "--out", help="direct
             "pump_stall_kpa": U.to_kpa(ws["pump_stall"]), "max_stretch": ws["max_stretch"],
             "tip_bend_max_deg": tb.tolist(), "tip_height_range_mm": [U.to_mm(x) for x in ws["tip_height_range"]],
             "layers": [{"layer": ly["layer"], "load_n": ly["load_n"], "h_max_mm": U.to_mm(ly["h_max"]),
+                        "height_range_mm": [0.0, U.to_mm(ly["h_max"])],
+                        "length_range_mm": [U.to_mm(d.layer_thickness), U.to_mm(d.layer_thickness + ly["h_max"])],
                         "limit": ly["limit"], "p_peak_kpa": U.to_kpa(ly["p_peak"]), "h_peak_mm": U.to_mm(ly["h_peak"]),
                         "p_at_max_kpa": U.to_kpa(ly["p_at_max"]),
                         "h_pressure_control_mm": U.to_mm(ly["h_pressure_control"]),
