@@ -304,6 +304,19 @@ class Plant:
             self.U = U.copy()
             self.y = self.batch.y(self.X, self.U, self.mode)
 
+    def set_param(self, name: str, values) -> None:
+        """Change one parameter (a theta entry, SI; e.g. 'W' the carried weight in N) for every
+        plant of the batch (scalar or one value per plant), from the next step on."""
+        names = self.fid.space.names
+        if name not in names:
+            raise ValueError(f"Plant.set_param: unknown parameter '{name}'; allowed: {', '.join(names)}")
+        vals = np.broadcast_to(np.asarray(values, dtype=float), (self.n,))
+        if not np.all(np.isfinite(vals)):
+            raise ValueError(f"Plant.set_param: {name} must be finite")
+        # in place: the mapped Functions read this very array
+        self.thetas[names.index(name)] = vals
+        self.y = self.batch.y(self.X, self.U, self.mode)
+
     def advance(self, U: np.ndarray | None = None, duration: float | None = None) -> np.ndarray:
         """Hold inputs U for ``duration`` s (default one internal step); return the outputs."""
         if U is not None:

@@ -157,6 +157,12 @@ def test_plant_steps_in_closed_loop_and_rejects_bad_inputs():
         plant.advance(np.array([[1.0], [1.0], [0.0]]), 0.01)
     assert plant.t == pytest.approx(1.0)
     assert plant.output("h")[0] > 0
+    h_before = plant.output("h")[0]
+    plant.set_param("W", 0.8 * 9.80665)  # double the load: the platform sinks
+    plant.advance(np.array([[0.0], [0.0], [0.0]]), 0.5)
+    assert plant.output("h")[0] < h_before
+    with pytest.raises(ValueError, match="unknown parameter 'Q'"):
+        plant.set_param("Q", 1.0)
     with pytest.raises(ValueError, match="in \\[0, 1\\]"):
         plant.advance(np.array([[1.5], [1.0], [0.0]]), 0.01)
 
