@@ -105,7 +105,8 @@ class EKF:
     pressure reading (Pa). The first call initialises the state from the reading (membrane flat,
     load ``load_init``). ``reset(t, mean, cov, resting)`` sets the state explicitly.
     After each step: ``last_nis`` (None without a normal update), ``last_output_cov`` (covariance
-    of ``OUTPUT_KEYS``), ``last_step_s`` (wall time of the step), ``resting`` (the mode).
+    of ``OUTPUT_KEYS``), ``last_step_s`` (wall time of the step), ``resting`` (the mode),
+    ``last_A`` and ``measurement_jacobian()`` (the linearisation, for observability).
     """
 
     state_names = STATE_NAMES
@@ -125,6 +126,7 @@ class EKF:
         self.last_innovation: float | None = None
         self.last_output_cov = np.zeros((5, 5))
         self.last_step_s = 0.0
+        self.last_A = np.eye(NX)
         self._p_pred = 0.0
         self._H = np.zeros(NX)
         self._cusum = 0.0
@@ -187,6 +189,7 @@ class EKF:
             if not self.resting and out[3][_Y["rest"]] > 0.5:
                 self.resting = True  # touch-down: the contact model reached the flat membrane
                 self._events.add("touch_down")
+        self.last_A = A
         q_abs = abs(xn[0] - self.x[0]) / dt  # net flow over the period, kg/s
         # resting, the flow error is the factor b's job; moving, the membrane adds its own
         rel = 0.0 if self.resting else s.flow_rel_std
@@ -200,6 +203,10 @@ class EKF:
         x, P, S, _ = joseph_update(self.x, self.P, self._H, innov, R)
         self.x, self.P = x, guard_cov(P, self.settings.cov_floor)
         return innov / math.sqrt(S)
+
+    def measurement_jacobian(self) -> np.ndarray:
+        """H = dp/dx (1 x n) at the current estimate and mode."""
+        return self._H.reshape(1, NX).copy()
 
     def _meas_var(self, p: float) -> float:
         # the flat membrane's pressure is the gas law in V0 (no modulus): sensor noise only

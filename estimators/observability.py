@@ -1,0 +1,187 @@
+"""What the chamber pressure alone can tell, per regime: observability along real trajectories.
+
+The estimators' state is ``x = [m, W, b, k]`` (gas mass kg, load N, pump-flow factor, modulus
+factor; :mod:`estimators.ekf`). Along rig trajectories (the mismatched rig of
+:mod:`hbma_ctrl.rig`, open loop) the EKF's linearisation (A = dx+/dx of the discrete model, H =
+dp/dx) gives, at every sample,
+
+- the rank and condition number of the frozen observability matrix ``control.obsv(A, H)``
+  (python-control; columns scaled by the state scales ``OBS_SCALE`` so the numbers compare),
+- the *window* rank over the next second: the time-varying matrix ``[H_k; H_k+1 A_k; ...]``
+  whitened by the sensor noise (rows / 200 Pa) and scaled by ``OBS_SCALE``; its singular values
+  >= 1 count the state directions that one second of readings pins down to better than
+  ``OBS_SCALE`` (0.1 mg of gas, 0.1 N, 5 % of flow, 5 % of modulus).
+
+Regimes (from the rig's truth and the command): ``resting`` (membrane flat under the load),
+``free`` (no contact), ``contact`` (dead load carried), each ``+flow`` (pump or vent active) or
+``+hold`` (valves closed, pump off).
+
+Conclusions (``hbma-ctrl observability``; numbers for the default actuator r1 12.5 mm, t0 3 mm):
+
+- resting: rank 2 of 4. The pressure is the gas law in the dead volume, so it shows the gas mass
+  and, while pumping, the flow factor; the load W and the modulus k do not enter at all: only
+  ``W >= pi r1^2 p`` is known, and h = 0 is known exactly. The lift-off itself (the pressure rise
+  slowing) is what reveals W, which is why the filter watches for it (:mod:`estimators.ekf`).
+- free inflation or contact, gas flowing: structurally rank 4 (frozen obsv), but badly conditioned:
+  W and k act on the pressure almost alike (a stiffer membrane and a heavier load both raise the
+  pressure of a given gas mass); one second of flow separates them only partly (window rank 3-4
+  depending on the speed). In practice W is fixed by the lift-off pressure (modulus-free) and k
+  is learnt over the inflation.
+- any regime with the valves closed: rank 1. With no flow the gas mass is constant and every
+  (m, W, k) on a level set of p is an equilibrium: the pressure shows one combination. The filter
+  keeps what it learnt and lets the covariance grow by the random walks.
+- a saturated sensor (>= 35 kPa) gives only ``p >= range``: no rank at all; the estimate rides on
+  the model (mass integration), and the covariance says so.
+
+So: h and F are available live from pressure alone while gas flows (after a lift-off for a loaded
+membrane); in a hold they are as good as the last flowing phase left them; at rest h = 0 exactly
+and F = pi r1^2 p, but the load on a resting membrane is unknown.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import control
+import numpy as np
+
+from hbma_ctrl.interfaces import Command
+from hbma_ctrl.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.rig import RigSettings, simulate_rig
+from hbma_ctrl.simulate import InputSchedule, Trial
+
+from .common import FilterSettings
+from .ekf import EKF
+from .model import NX
+
+__all__ = ["OBS_SCALE", "Trajectory", "default_trajectories", "analyse", "summarise", "run"]
+
+#: state resolutions used to scale the observability matrices: m kg, W N, b -, k -
+OBS_SCALE = np.array([1e-7, 0.1, 0.05, 0.05])
+WINDOW_S = 1.0
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A named open-loop run: load (kg) and input schedule rows (t s, speed, inlet, outlet)."""
+
+    name: str
+    load: float
+    rows: tuple
+    duration: float
+
+
+def default_trajectories() -> list[Trajectory]:
+    """Free inflation, a dead load (resting, lift-off, contact), a load too heavy to lift; each with
+    a pumping phase, a hold (valves closed) and a vent."""
+    pump_hold_vent = ((0.0, 0.6, 1.0, 0.0), (2.5, 0.0, 0.0, 0.0), (3.5, 0.0, 0.0, 1.0))
+    return [
+        Trajectory("free", 0.0, pump_hold_vent, 5.0),
+        Trajectory("dead_load_400g", 0.4, pump_hold_vent, 5.0),
+        Trajectory("resting_3kg", 3.0, pump_hold_vent, 5.0),
+    ]
+
+
+def _regime(truth_h: float, truth_F: float, u: np.ndarray) -> str:
+    flow = "flow" if (u[0] * u[1] > 0 or u[2] > 0) else "hold"
+    if truth_h <= 1e-5:
+        base = "resting"  # flat: under a load, or unpressurised
+    elif truth_F > 1e-3:
+        base = "contact"
+    else:
+        base = "free"
+    return f"{base}+{flow}"
+
+
+def _rank_cond(M: np.ndarray, tol: float = 1e-9) -> tuple[int, float, np.ndarray]:
+    sv = np.linalg.svd(M, compute_uv=False)
+    if sv.size == 0 or sv[0] == 0:
+        return 0, float("inf"), sv
+    rank = int(np.sum(sv > tol * sv[0]))
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    return rank, cond, sv
+
+
+def analyse(traj: Trajectory, actuator: Actuator | None = None, pneumatics: Pneumatics | None = None,
+            rig: RigSettings | None = None, settings: FilterSettings | None = None,
+            every: int = 5) -> list[dict]:
+    """Per-sample observability along one trajectory (every ``every``-th sample)."""
+    act = actuator or Actuator()
+    pn = pneumatics or Pneumatics()
+    rs = rig or RigSettings()
+    fs = settings or FilterSettings(sample_period=rs.sample_period, sensor_range=rs.sensor_range)
+    trial = Trial(act, pn, Platform(load=traj.load, own_mass=0.02 if traj.load > 0 else 0.0),
+                  InputSchedule(traj.rows), traj.duration, traj.name)
+    (rec,) = simulate_rig([trial], rs)
+    ekf = EKF(act, pn, fs)
+    As, Hs = [], []
+    for k in range(len(rec.t)):
+        u = Command(*rec.u[k - 1]) if k > 0 else Command()
+        ekf.step(float(rec.t[k]), rec.meas[k], u)
+        As.append(ekf.last_A.copy())
+        Hs.append(ekf.measurement_jacobian())
+    S = np.diag(OBS_SCALE)
+    w = 1.0 / fs.noise_std
+    nwin = int(round(WINDOW_S / fs.sample_period))
+    regimes = [_regime(rec.truth["h"][k], rec.truth["F"][k], rec.u[k]) for k in range(len(rec.t))]
+    rows = []
+    for k in range(1, len(rec.t) - nwin, every):
+        A, H = As[k], Hs[k]
+        O = control.obsv(A, H) @ S
+        rank, cond, _ = _rank_cond(O)
+        # time-varying window H_{k+j} Phi(k+j, k), up to 1 s, cut where the regime changes
+        n = 1
+        while n < nwin and regimes[k + n] == regimes[k]:
+            n += 1
+        if n < 10:
+            continue
+        Phi = np.eye(NX)
+        blocks = [Hs[k]]
+        for j in range(1, n):
+            Phi = As[k + j] @ Phi
+            blocks.append(Hs[k + j] @ Phi)
+        Ow = np.vstack(blocks) * w @ S
+        sv = np.linalg.svd(Ow, compute_uv=False)
+        rows.append({
+            "trajectory": traj.name, "t_s": float(rec.t[k]),
+            "regime": regimes[k], "window_s": n * fs.sample_period,
+            "rank": rank, "cond": cond,
+            "window_rank": int(np.sum(sv >= 1.0)),
+            "window_sv": [float(v) for v in sv],
+            "h_true_mm": float(rec.truth["h"][k] * 1e3), "p_kpa": float(rec.truth["p"][k] * 1e-3),
+        })
+    return rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """Per (trajectory, regime): samples, median/min/max rank, median condition, window rank."""
+    out = []
+    keys = sorted({(r["trajectory"], r["regime"]) for r in rows}, key=lambda k: (k[0], k[1]))
+    for tr, reg in keys:
+        sel = [r for r in rows if r["trajectory"] == tr and r["regime"] == reg]
+        ranks = np.array([r["rank"] for r in sel])
+        wr = np.array([r["window_rank"] for r in sel])
+        conds = np.array([r["cond"] for r in sel])
+        out.append({"trajectory": tr, "regime": reg, "samples": len(sel),
+                    "rank_median": float(np.median(ranks)), "rank_min": int(ranks.min()), "rank_max": int(ranks.max()),
+                    "cond_median": float(np.median(conds[np.isfinite(conds)])) if np.any(np.isfinite(conds)) else None,
+                    "window_rank_median": float(np.median(wr)), "window_rank_min": int(wr.min()),
+                    "window_rank_max": int(wr.max())})
+    return out
+
+
+def run(out_dir: Path | str, actuator: Actuator | None = None, rig: RigSettings | None = None,
+        trajectories: list[Trajectory] | None = None) -> list[dict]:
+    """Analyse the trajectories, write ``observability.json`` (summary + samples); return the summary."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for tr in trajectories or default_trajectories():
+        rows += analyse(tr, actuator, rig=rig)
+    summ = summarise(rows)
+    with open(out / "observability.json", "w") as fh:
+        json.dump({"state": ["m", "W", "b", "k"], "obs_scale": OBS_SCALE.tolist(), "window_s": WINDOW_S,
+                   "summary": summ, "samples": rows}, fh, indent=1)
+    return summ
