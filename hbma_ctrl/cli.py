@@ -132,12 +132,19 @@ def run(
     con.print(f"wrote {out_dir / 'metrics.json'} in {time.perf_counter() - t0:.1f} s")
 
 
-def _fmt(v) -> str:
+def _fmt(v, width: int = 60) -> str:
+    """Compact cell text; long or nested values point to metrics.json."""
     if isinstance(v, float):
-        return f"{v:.4g}"
-    if isinstance(v, dict):
-        return ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items())
-    return str(v)
+        text = f"{v:.4g}"
+    elif isinstance(v, dict):
+        text = ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items())
+    elif isinstance(v, (list, tuple)):
+        if any(isinstance(x, (dict, list, tuple)) for x in v):
+            return f"{len(v)} entries (see metrics.json)"
+        text = "[" + ", ".join(_fmt(x) for x in v) + "]"
+    else:
+        text = str(v)
+    return text if len(text) <= width else text[: width - 25] + "... (see metrics.json)"
 
 
 @app.command()
