@@ -145,13 +145,19 @@ STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0])
 
 def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> np.ndarray:
     """Symmetrise P and floor its eigenvalues at ``floor`` in scaled coordinates (SPD out)."""
-    S = 0.5 * (P + P.T) / np.outer(scale, scale)
+    ss = np.outer(scale, scale)
+    S = 0.5 * (P + P.T) / ss
+    try:  # all eigenvalues >= floor  <=>  S - floor I has a Cholesky factor (cheap test)
+        np.linalg.cholesky(S - floor * np.eye(S.shape[0]))
+        return S * ss
+    except np.linalg.LinAlgError:
+        pass
     w, V = np.linalg.eigh(S)
     if w.min() < floor or not np.all(np.isfinite(w)):
         w = np.maximum(np.nan_to_num(w, nan=floor), floor)
         S = (V * w) @ V.T
         S = 0.5 * (S + S.T)
-    return S * np.outer(scale, scale)
+    return S * ss
 
 
 def joseph_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, innov: float, R: float,

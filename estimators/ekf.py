@@ -49,8 +49,7 @@ import numpy as np
 from hbma_ctrl.interfaces import Command, Estimate
 from hbma_ctrl.params import Actuator, Pneumatics
 
-from .common import (MEAS_MISSING, MEAS_SATURATED, FilterSettings, classify_measurement, guard_cov,
-                     joseph_update)
+from .common import MEAS_MISSING, MEAS_SATURATED, FilterSettings, classify_measurement, guard_cov
 from .fastcall import FastFunction
 from .model import NX, OUT_NAMES, STATE_NAMES, ObserverModel
 
@@ -73,17 +72,18 @@ _MODEL_CACHE: dict = {}
 
 
 def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings):
-    """(ObserverModel, fast predict, fast outputs, fast propagate), shared per configuration."""
+    """(ObserverModel, fast predict, fast outputs, propagate Function, fast update); the casadi
+    Functions are shared per configuration, the fast (buffered) callers are per filter."""
     key = (type(actuator.material), str(pneumatics.csv_path), s.sample_period, s.integrator, s.nsub,
            s.newton, s.compile)
     if key not in _MODEL_CACHE:
         om = ObserverModel(actuator, pneumatics, s.sample_period, s.integrator, s.nsub, s.newton)
-        _MODEL_CACHE[key] = (om, om.predict, om.outputs, om.propagate)
-    om0, fp, fo, fq = _MODEL_CACHE[key]
+        _MODEL_CACHE[key] = (om, om.predict, om.outputs, om.propagate, om.update)
+    om0, fp, fo, fq, fu = _MODEL_CACHE[key]
     # the parameters (theta) differ per actuator: the numeric model is cheap, Functions are shared
     om = om0 if np.array_equal(om0.theta, om0.fid.space.values(actuator, pneumatics)) else \
         _rebind(om0, actuator, pneumatics)
-    return om, FastFunction(fp, s.compile), FastFunction(fo, s.compile), fq
+    return om, FastFunction(fp, s.compile), FastFunction(fo, s.compile), fq, FastFunction(fu, s.compile)
 
 
 def _rebind(om0: ObserverModel, actuator: Actuator, pneumatics: Pneumatics) -> ObserverModel:
@@ -115,7 +115,8 @@ class EKF:
         self.settings = (settings or EKFSettings()).validate()
         actuator.validate()
         pneumatics.validate()
-        self.model, self._pred, self._outf, _ = observer_functions(actuator, pneumatics, self.settings)
+        self.model, self._pred, self._outf, _, self._upd = observer_functions(actuator, pneumatics,
+                                                                              self.settings)
         self.theta = np.asarray(self.model.theta, dtype=float)
         self.x: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -127,6 +128,7 @@ class EKF:
         self.last_output_cov = np.zeros((5, 5))
         self.last_step_s = 0.0
         self.last_A = np.eye(NX)
+        self._theta_set: set = set()
         self._p_pred = 0.0
         self._H = np.zeros(NX)
         self._cusum = 0.0
@@ -150,14 +152,21 @@ class EKF:
         self.t = float(t)
         self.s = np.zeros(2) if shape is None else np.array(shape, dtype=float).reshape(2)
         if resting is None:
-            out = self._outf(self.x, self.s, self.theta, 0.0)
+            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 0.0, self.P)
             resting = bool(out[1][_Y["rest"]] > 0.5)
         self.resting = resting
         self._cusum = self._lift = 0.0
         self._refresh()
 
+    def _theta_arg(self, fun):
+        """theta for a compiled call: passed once per Function, then kept in its buffer."""
+        if fun in self._theta_set:
+            return None
+        self._theta_set.add(fun)
+        return self.theta
+
     def _refresh(self) -> None:
-        out = self._outf(self.x, self.s, self.theta, float(self.resting))
+        out = self._outf(self.x, self.s, self._theta_arg(self._outf), float(self.resting), self.P)
         self.s = out[0].copy()
         self._p_pred = float(out[1][_Y["p"]])
         self._H = out[2].copy()
@@ -173,35 +182,38 @@ class EKF:
     # --- the filter ---------------------------------------------------------------------------
     def _predict(self, u: np.ndarray) -> None:
         s = self.settings
-        out = self._pred(self.x, self.s, u, self.theta, float(self.resting))
-        A = self._pred.dense(1)
-        xn = out[0].copy()
         dt = s.sample_period
-        if not np.all(np.isfinite(xn)) or not np.all(np.isfinite(A)) or not np.all(np.isfinite(out[3])):
+        rel = 0.0 if self.resting else s.flow_rel_std  # resting, the flow error is b's job
+        qv = np.array([rel, s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
+                       s.modulus_std ** 2 * dt, s.cov_floor])
+        out = self._pred(self.x, self.s, u, self._theta_arg(self._pred), float(self.resting), self.P, qv)
+        xn = out[0].copy()
+        Pn = out[5].reshape(NX, NX, order="F").copy()
+        if not (np.all(np.isfinite(xn)) and np.all(np.isfinite(out[3])) and np.all(np.isfinite(Pn))):
             # the projection failed (e.g. across a fold): hold the state, widen the covariance
-            xn, A = self.x.copy(), np.eye(NX)
-            self.P = self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0])
+            self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0]), s.cov_floor)
+            self.last_A = np.eye(NX)
             self._events.add("model_failure")
-        else:
-            self.s = out[2].copy()
-            self._p_pred = float(out[3][_Y["p"]])
-            self._H = out[4].copy()
-            if not self.resting and out[3][_Y["rest"]] > 0.5:
-                self.resting = True  # touch-down: the contact model reached the flat membrane
-                self._events.add("touch_down")
-        self.last_A = A
-        q_abs = abs(xn[0] - self.x[0]) / dt  # net flow over the period, kg/s
-        # resting, the flow error is the factor b's job; moving, the membrane adds its own
-        rel = 0.0 if self.resting else s.flow_rel_std
-        Qm = (rel * q_abs * dt) ** 2 + s.mass_std_abs ** 2 * dt
-        Q = np.diag([Qm, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt, s.modulus_std ** 2 * dt])
+            return
+        self.last_A = out[1].reshape(NX, NX, order="F").copy()
+        self.s = out[2].copy()
+        self._p_pred = float(out[3][_Y["p"]])
+        self._H = out[4].copy()
+        if not self.resting and out[3][_Y["rest"]] > 0.5:
+            self.resting = True  # touch-down: the contact model reached the flat membrane
+            self._events.add("touch_down")
         self.x = xn
-        self.P = guard_cov(A @ self.P @ A.T + Q, s.cov_floor)
+        self.P = Pn if out[6][0] > 0 else guard_cov(Pn, s.cov_floor)
 
     def _update(self, z: float, R: float) -> float:
         innov = z - self._p_pred
-        x, P, S, _ = joseph_update(self.x, self.P, self._H, innov, R)
-        self.x, self.P = x, guard_cov(P, self.settings.cov_floor)
+        out = self._upd(self.x, self.P, self._H, innov, R, self.settings.cov_floor)
+        S = float(out[2][0])
+        if not (S > 0 and math.isfinite(S)):
+            raise FloatingPointError(f"estimator: innovation variance {S} is not positive")
+        self.x = out[0].copy()
+        P = out[1].reshape(NX, NX, order="F").copy()
+        self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
         return innov / math.sqrt(S)
 
     def measurement_jacobian(self) -> np.ndarray:
@@ -269,7 +281,7 @@ class EKF:
 
     def _lift_off(self, detected: bool) -> None:
         s = self.settings
-        out = self._outf(self.x, self.s, self.theta, 1.0)
+        out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
         p = float(out[1][_Y["p"]])
         if detected:
             # the membrane lifted when the detector's sum started to grow: W = pi r1^2 p then
@@ -288,7 +300,7 @@ class EKF:
         flags = self._events
         if self.resting:
             # only W >= pi r1^2 p is known while flat: keep the load above that bound
-            out = self._outf(self.x, self.s, self.theta, 1.0)
+            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
             bound = self.model.area * float(out[1][_Y["p"]])
             if bound > self.x[1]:
                 self._lift_off(detected=False)  # the (known) load is exceeded: it lifts
@@ -304,7 +316,7 @@ class EKF:
         if not s.load_min <= self.x[1] <= s.load_max:
             self.x[1] = min(max(self.x[1], s.load_min), s.load_max)
             flags.add("clamped")
-        out = self._outf(self.x, self.s, self.theta, float(self.resting))
+        out = self._outf(self.x, self.s, self._theta_arg(self._outf), float(self.resting), self.P)
         y = out[1]
         if not self.resting and y[_Y["rest"]] > 0.5:
             self.resting = True
@@ -316,9 +328,8 @@ class EKF:
         self.s = out[0].copy()
         self._p_pred = float(y[_Y["p"]])
         self._H = out[2].copy()
-        D = self._outf.dense(3)
-        C = D @ self.P @ D.T
-        self.last_output_cov = 0.5 * (C + C.T)
+        C = out[4].reshape(5, 5, order="F").copy()
+        self.last_output_cov = C
         std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
         h1, h2 = float(y[_Y["h1"]]), float(y[_Y["h2"]])
         return Estimate(t=self.t, h1=h1, h2=max(h2, 0.0), h=float(y[_Y["h"]]), F=max(float(y[_Y["F"]]), 0.0),

@@ -109,8 +109,16 @@ class FastFunction:
             self._dense_idx.append((np.asarray(r, dtype=int), np.asarray(c, dtype=int), sp.shape))
 
     def __call__(self, *args) -> list:
+        """Evaluate; an argument given as None keeps the value of the previous call (constants)."""
         for dst, a in zip(self.inp, args):
-            dst[:] = np.ravel(a, order="F")
+            if a is None:
+                continue
+            if isinstance(a, float):
+                dst[0] = a
+            elif isinstance(a, np.ndarray) and a.ndim == 1:
+                dst[:] = a
+            else:
+                dst[:] = np.ravel(a, order="F")
         self._eval()
         return self.out
 

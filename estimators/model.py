@@ -68,6 +68,26 @@ def _shape_newton(m, W, h1, h2, P, iters: int):
     return h1, h2
 
 
+def _min_pivot(P, floor):
+    """Smallest LDL^T pivot of P / (s s^T) - floor I (s = STATE_SCALE): > 0 iff every eigenvalue
+    of the scaled P exceeds the floor. Closed form for the small state, no branches."""
+    from .common import STATE_SCALE
+
+    n = P.shape[0]
+    M = P / ca.DM(np.outer(STATE_SCALE, STATE_SCALE)) - floor * ca.SX.eye(n)
+    L = [[None] * n for _ in range(n)]
+    d = []
+    for j in range(n):
+        dj = M[j, j] - sum(L[j][k] ** 2 * d[k] for k in range(j))
+        d.append(dj)
+        for i in range(j + 1, n):
+            L[i][j] = (M[i, j] - sum(L[i][k] * L[j][k] * d[k] for k in range(j))) / dj
+    out = d[0]
+    for v in d[1:]:
+        out = ca.fmin(out, v)
+    return out
+
+
 @dataclass
 class _Syms:
     x: ca.SX
@@ -197,18 +217,44 @@ class ObserverModel:
         # the predicted shape as the next warm start; re-projected at the predicted state
         h1n, h2n, restn = self._project(xn[0], W, x3[1], x3[2], P, self.newton, hold)
         outn, Hn, _ = self._meas(xn, h1n, h2n, restn, y.Pbase)
+        # covariance: P+ = sym(A P A^T + Q), Q = diag((rel |dm|)^2 + qm, qW, qb, qk); qv = [rel, qm,
+        # qW, qb, qk, floor]; piv = smallest LDL pivot of P+/scale^2 - floor I (> 0: floor holds)
+        Pc = ca.SX.sym("P", NX, NX)
+        qv = ca.SX.sym("qv", 6)
+        Q = ca.diag(ca.vertcat((qv[0] * (xn[0] - m)) ** 2 + qv[1], qv[2], qv[3], qv[4]))
+        Pn = ca.mtimes([A, Pc, A.T]) + Q
+        Pn = 0.5 * (Pn + Pn.T)
         self.predict = ca.Function(
-            "ekf_predict", [y.x, y.s, y.u, y.theta, hold],
-            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn)], ["x", "s", "u", "theta", "hold"],
-            ["x_next", "A", "s_next", "y", "H"])
+            "ekf_predict", [y.x, y.s, y.u, y.theta, hold, Pc, qv],
+            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, _min_pivot(Pn, qv[5]))],
+            ["x", "s", "u", "theta", "hold", "P", "qv"],
+            ["x_next", "A", "s_next", "y", "H", "P_next", "piv"])
+        # Joseph-form scalar update: K = P H^T / S, P+ = (I - K H) P (I - K H)^T + R K K^T
+        xu = ca.SX.sym("x", NX)
+        Pu = ca.SX.sym("P", NX, NX)
+        Hu = ca.SX.sym("H", 1, NX)
+        nu = ca.SX.sym("innov")
+        Ru = ca.SX.sym("R")
+        fl = ca.SX.sym("floor")
+        PHt = ca.mtimes(Pu, Hu.T)
+        Su = ca.mtimes(Hu, PHt) + Ru
+        K = PHt / Su  # a scalar S: the "solve" is this division (S > 0 checked by the caller)
+        IKH = ca.SX.eye(NX) - ca.mtimes(K, Hu)
+        Pp = ca.mtimes([IKH, Pu, IKH.T]) + Ru * ca.mtimes(K, K.T)
+        Pp = 0.5 * (Pp + Pp.T)
+        self.update = ca.Function("kf_update", [xu, Pu, Hu, nu, Ru, fl],
+                                  [ca.densify(e) for e in (xu + K * nu, Pp, Su, _min_pivot(Pp, fl))],
+                                  ["x", "P", "H", "innov", "R", "floor"], ["x_post", "P_post", "S", "piv"])
         # outputs at an arbitrary state (posterior), from a warm start
         y2 = self._syms()
         hold2 = ca.SX.sym("hold")
         a, b, r = self._project(y2.x[0], y2.x[1], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
         out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
-        self.outputs = ca.Function("ekf_outputs", [y2.x, y2.s, y2.theta, hold2],
-                                   [ca.densify(e) for e in (ca.vertcat(a, b), out2, H2, D2)],
-                                   ["x", "s", "theta", "hold"], ["s_out", "y", "H", "D"])
+        P2 = ca.SX.sym("P", NX, NX)
+        C2 = ca.mtimes([D2, P2, D2.T])
+        self.outputs = ca.Function("ekf_outputs", [y2.x, y2.s, y2.theta, hold2, P2],
+                                   [ca.densify(e) for e in (ca.vertcat(a, b), out2, H2, D2, 0.5 * (C2 + C2.T))],
+                                   ["x", "s", "theta", "hold", "P"], ["s_out", "y", "H", "D", "C"])
         # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
         self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta, hold],
                                      [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],

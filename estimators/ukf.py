@@ -51,7 +51,7 @@ class UKF(EKF):
         s = self.settings
         self._points = MerweScaledSigmaPoints(NX, UKF_ALPHA, UKF_BETA, UKF_KAPPA,
                                               sqrt_method=_guarded_sqrt(max(s.cov_floor, 1e-14)))
-        _, _, _, prop = observer_functions(actuator, pneumatics, s)
+        prop = observer_functions(actuator, pneumatics, s)[3]
         self._nsig = 2 * NX + 1
         self._prop = FastFunction(prop.map(self._nsig), s.compile)
         self._sig_p: np.ndarray | None = None
