@@ -103,7 +103,8 @@ class DoMPCController:
         mpc.set_nl_cons("p", p - plim * 1e-3, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
         mpc.set_nl_cons("lam", lam - s.lam_max * 1e2, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
         mpc.set_nl_cons("hmax", h - s.h_max * 1e3, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
-        mpc.set_nl_cons("hmin", s.h_min * 1e3 - h, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
+        if s.h_min > 0:
+            mpc.set_nl_cons("hmin", s.h_min * 1e3 - h, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
         tmpl = mpc.get_tvp_template()
         self._tvp = {"W": 0.0, "dh": 0.0, "dp": 0.0, "r": 0.0, "plim": s.p_max}
 

@@ -15,11 +15,13 @@ mismatch), the reference, the previous command.
     s.t. x_{k+1} = F(x_k, u_k; W, d_p)         (RK4 or Euler over one sample period)
          0 <= u_k <= u_max, |u_k - u_{k-1}| <= du_max dt, speed_k <= inlet_k
          p_k + d_p <= p_max - p_margin + s_k   (kPa)     lam_k <= lam_max + s_k (1/100)
-         h_min - s_k <= h_k <= h_max + s_k     (mm)      s_k >= 0
+         h_min - s_k <= h_k <= h_max + s_k     (mm)      s_k >= 0   (lower bound only if h_min > 0)
 
 "speed <= inlet" says the compressor never runs into a closed inlet (the pump flow is
 ``inlet * q(speed, p)``; pumping against a shut valve only stalls it). The state constraints are
-soft (exact-penalty slack), so the problem is feasible from any state, e.g. after a disturbance
+soft (exact-penalty slack), so the problem is feasible from any state. Below lift-off the
+model's height is a virtual negative height (:class:`PredictionModel`), which keeps a gradient
+towards pumping when the platform rests; the height bias is zero while resting, e.g. after a disturbance
 pushed the pressure above the limit. A target above what is reachable within p_max and lam_max is
 clipped to the reachable height (the load path of the current load) and reported in ``stats()``.
 
@@ -121,7 +123,7 @@ class MPCSettings:
     w_terminal: float = 5.0
     w_rate: tuple = (0.02, 0.002, 0.02)
     w_input: tuple = (0.002, 0.0, 0.002)
-    c_input: tuple = (0.002, 0.005, 0.002)
+    c_input: tuple = (0.02, 0.01, 0.02)
     w_slack: float = 1e3
     c_slack: float = 1e3
     p_max: float = 35e3
@@ -472,7 +474,8 @@ class _RtiOsqp:
         up[rs] = pr.p_lim * 1e-3 - pr.dp * 1e-3 - (p[k1] - cp[k1] * Xb[k1])
         up[rs + 1] = s.lam_max * 1e2 - (lam[k1] - cl[k1] * Xb[k1])
         up[rs + 2] = s.h_max * 1e3 - dh_mm - (h[k1] - ch[k1] * Xb[k1])
-        up[rs + 3] = -(s.h_min * 1e3 - dh_mm - (h[k1] - ch[k1] * Xb[k1]))
+        if s.h_min > 0:  # (below lift-off H is a virtual negative height: no bound at h_min = 0)
+            up[rs + 3] = -(s.h_min * 1e3 - dh_mm - (h[k1] - ch[k1] * Xb[k1]))
         self.solver.update(q=q, l=lo, u=up, Px=Pv[self.P_perm], Ax=Av[self.A_perm])
         z0 = np.zeros(self.nz)
         z0[self.ix] = Xb
@@ -482,7 +485,9 @@ class _RtiOsqp:
         self.iterations = int(r.info.iter)
         if "time limit" in r.info.status:
             raise _BudgetExceeded("osqp: time limit (budget) reached")
-        if r.info.status not in ("solved", "solved inaccurate") or r.x is None or not np.all(np.isfinite(r.x)):
+        usable = r.info.status in ("solved", "solved inaccurate") or (
+            r.info.status == "maximum iterations reached" and r.info.prim_res < 1e-3)
+        if not usable or r.x is None or not np.all(np.isfinite(r.x)):
             raise _SolverFailure(f"osqp: {r.info.status}")
         z = r.x
         return z[self.ix].copy(), np.clip(z[self.iu], 0.0, 1.0)
@@ -518,8 +523,9 @@ class _Ipopt:
             h, p, lam = self.stage.out(X[k + 1], W)
             w = s.w_height + (s.w_terminal if k == N - 1 else 0.0)
             J += w * (h + dh - r) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
+            lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else ca.inf)
             for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
-                             (h + dh - s.h_max * 1e3, 0.0), (s.h_min * 1e3 - h - dh, 0.0)):
+                             (h + dh - s.h_max * 1e3, 0.0), lo_h):
                 g.append(expr - S[k])
                 lbg.append(-ca.inf); ubg.append(ub)  # noqa: E702
         z = ca.vertcat(X, ca.vec(U), S)
@@ -642,7 +648,8 @@ class NMPC:
         else:
             x0 = m.x_at_height(est.h, W)
         h0 = float(m.H(x0, W))
-        dh = float(est.h - h0)
+        # resting: the model's (virtual, <= 0) height is the better state; no height bias
+        dh = 0.0 if est.h < s.rest_height else float(est.h - h0)
         dp = float(est.p - float(m.Pp(x0, W)))
         if ref.height is None:
             if self._hold is None:

@@ -61,7 +61,8 @@ class PredictionModel:
 
     Attributes
     ----------
-    H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-).
+    H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-). H is negative
+        (virtual) below lift-off, see :meth:`height` for the physical one.
     rhs : casadi Function (x, u, W, dp) -> xdot (1/s); ``dp`` is a pressure bias (Pa) added to the
         model pressure in the valve/pump flows (offset-free prediction).
     """
@@ -138,7 +139,12 @@ class PredictionModel:
         for j in range(n_W):
             xp, hp, pp, lp = x_path[:, j], hg, p_path[:, j], lam_path[:, j]
             rest = xg < xp[0]
-            H[:, j] = np.where(rest, 0.0, _interp_extrap(xg, xp, hp))
+            # below lift-off the platform rests (h = 0); the table continues the height linearly
+            # into negative "virtual" heights with the lift-off slope, so that an optimiser resting
+            # far below lift-off still sees that pumping raises the height (a flat h = 0 would give
+            # it no gradient). Callers clamp at 0 where a physical height is meant (:meth:`height`).
+            slope = (hp[1] - hp[0]) / (xp[1] - xp[0])
+            H[:, j] = np.where(rest, slope * (xg - xp[0]), _interp_extrap(xg, xp, hp))
             Pg[:, j] = np.where(rest, xg * a.p_env, _interp_extrap(xg, xp, pp))
             Lg[:, j] = np.where(rest, 1.0, _interp_extrap(xg, xp, lp))
         return _Grid(xg, Wg, H, Pg, Lg, hg, x_path, p_path, lam_path)
@@ -180,6 +186,10 @@ class PredictionModel:
                 k4 = self.rhs(xn + h * k3, u, W, dp)
                 xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         return ca.Function("F", [x, u, W, dp], [xn], ["x", "u", "W", "dp"], ["x_next"])
+
+    def height(self, x: float, W: float) -> float:
+        """Physical height (m) at state x and load W (N): H clamped at 0 (resting)."""
+        return max(float(self.H(x, W)), 0.0)
 
     def x_at_height(self, h: float, W: float) -> float:
         """The state that holds height h (m) under load W (N) on the contact branch."""

@@ -294,7 +294,8 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     The rig (:class:`hbma_ctrl.rig.Rig`, mismatched, noisy) is stepped at its sample period, the
     estimator at every rig sample, the controller every ``section.sample_period`` (a whole number
     of rig periods). ``estimator`` defaults to the EKF on the nominal model, ``controller`` to the
-    one the section names.
+    one the section names. An estimator with an ``attach(rig)`` method is handed the rig first
+    (test oracles that read the true state).
     """
     from hbma_ctrl.rig import Rig, RigSettings
 
@@ -302,6 +303,8 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     rs = rig_settings or RigSettings()
     rig = Rig(actuator, pneumatics, platform, rs)
     est = estimator or _default_estimator(actuator, pneumatics, None, rs)
+    if hasattr(est, "attach"):
+        est.attach(rig)  # e.g. a test oracle that reads the rig's true state
     ctrl = controller or make_controller(section, actuator, pneumatics, model)
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))

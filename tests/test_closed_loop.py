@@ -1,0 +1,133 @@
+"""Closed loop on the mismatched rig: rig -> EKF -> controller -> rig (and an oracle estimate to
+separate the controller's share of the error from the estimator's).
+
+Each CI test simulates a few seconds with the fast (RTI) variant; the full 2 -> 8 -> 5 mm runs are
+@pytest.mark.slow. No test asserts a timing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controllers.prediction import PredictionModel
+from controllers.scene import closed_loop, loop_metrics, parse_section, settle_results
+from hbma_ctrl.interfaces import Estimate
+from hbma_ctrl.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.rig import RigSettings
+
+ACT, PN = Actuator(), Pneumatics()
+
+
+@pytest.fixture(scope="module")
+def model():
+    return PredictionModel(ACT, PN)
+
+
+class OracleFromRig:
+    """Estimate = the rig's true state (tests only): isolates the controller from the estimator."""
+
+    def attach(self, rig):
+        self.rig = rig
+
+    def step(self, t, measurement, applied):
+        tr = self.rig.truth()
+        return Estimate(t=t, h1=tr["h1"], h2=tr["h2"], h=tr["h"], F=tr["F"], p=tr["p"])
+
+
+def run(section_raw, load_kg, duration, model, rig=None, oracle=False):
+    sec = parse_section(section_raw)
+    log = closed_loop(ACT, PN, Platform(load=load_kg), sec, duration, rig or RigSettings(seed=3),
+                      estimator=OracleFromRig() if oracle else None, model=model)
+    return sec, log, loop_metrics(log, sec)
+
+
+STEPS = [[0.0, 2.0], [2.0, 8.0], [4.5, 5.0]]
+
+
+@pytest.mark.parametrize("load", [0.0, 0.4])
+def test_rti_with_true_state_settles_steps_within_0p3mm(model, load):
+    """The controller's own share: with the true state it settles 2 -> 8 -> 5 mm on the mismatched
+    rig within 0.3 mm, never above p_max."""
+    sec, log, m = run({"targets_mm": STEPS, "budget_ms": 1000.0}, load, 7.0, model, oracle=True)
+    assert m["steps_settled"] == 3, m["settle"]
+    assert m["max_pressure_kpa"] <= 35.0 and m["fallbacks"] == 0
+
+
+def test_ekf_loop_400g_tracks_the_estimate_and_respects_p_max(model):
+    """Full chain rig -> EKF -> RTI -> rig, 400 g: the estimate settles within 0.3 mm of each
+    target; the truth is off by the EKF's height bias (reported, see test_..._truth below)."""
+    sec, log, m = run({"targets_mm": STEPS}, 0.4, 7.0, model)
+    assert m["steps_settled_estimate"] == 3, m["settle_estimate"]
+    assert m["max_pressure_kpa"] <= 35.0
+    assert m["height_est_rmse_mm"] < 2.0
+
+
+def test_load_added_mid_run_is_rejected(model):
+    """400 g holding 5 mm, +200 g at 2 s (true state fed back: the controller's share): the height
+    dips and comes back within 0.3 mm."""
+    sec, log, m = run({"targets_mm": [[0.0, 5.0]], "load_steps_g": [[2.0, 600.0]], "budget_ms": 1000.0}, 0.4,
+                      4.0, model, oracle=True)
+    before = log.h_true[np.searchsorted(log.t, 1.99)]
+    assert abs(before - 5e-3) < 0.3e-3
+    dip = np.min(log.h_true[log.t >= 2.0])
+    assert dip < before - 0.3e-3  # the load did push it down
+    tail = log.t >= 3.5
+    assert np.all(np.abs(log.h_true[tail] - 5e-3) < 0.3e-3)
+    assert m["max_pressure_kpa"] <= 35.0
+
+
+@pytest.mark.slow
+def test_load_added_mid_run_through_ekf(model):
+    """The same through the EKF (reported): the estimate must see the new load for the loop to act."""
+    sec, log, m = run({"targets_mm": [[0.0, 5.0]], "load_steps_g": [[2.0, 600.0]]}, 0.4, 6.0, model)
+    tail = log.t >= 5.0
+    assert np.all(np.abs(log.h_true[tail] - 5e-3) < 0.3e-3)
+    assert m["max_pressure_kpa"] <= 35.0
+
+
+def test_pressure_limit_with_dropouts_and_infeasible_target(model):
+    """p_max = 20 kPa is below what 8 mm under 400 g needs on the rig: the target is clipped and
+    reported, and with 20 % sensor dropouts the true pressure still never exceeds 20 kPa."""
+    rig = RigSettings(seed=5, dropout_prob=0.2)
+    sec, log, m = run({"targets_mm": [[0.0, 8.0]], "p_max_kpa": 20.0}, 0.4, 4.0, model, rig=rig)
+    assert np.isnan(log.p_meas).sum() > 20
+    assert m["max_pressure_kpa"] <= 20.0
+    assert m["target_clipped_steps"] > 0
+    assert np.max(log.h_true) < 8e-3
+
+
+def test_forced_solver_failure_stays_safe(model):
+    """Every solve fails from 0.5 s to 1.3 s during the inflation: the loop first runs on the
+    shifted plan, then the safe command (vents), never above p_max; it recovers afterwards."""
+    sec, log, m = run({"targets_mm": [[0.0, 8.0]], "fail_window_s": [0.5, 1.3], "p_max_kpa": 25.0,
+                       "budget_ms": 1000.0}, 0.4, 3.5,
+                      model)
+    d = m["fallback_detail"]
+    assert d["solver_failed"] >= 35 and d["shifted_plan"] >= 1 and d["safe_command"] >= 1
+    assert m["fallbacks"] == d["shifted_plan"] + d["safe_command"]
+    win = (log.t > 1.0) & (log.t < 1.3)
+    assert np.all(log.u[win, 0] == 0.0) and np.all(log.u[win, 2] == 1.0)  # safe: pump off, vent
+    assert m["max_pressure_kpa"] <= 25.0
+    assert log.h_est[-1] > 6e-3  # back to tracking after the window
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("load", [0.0, 0.4])
+def test_ekf_loop_truth_settles_within_0p3mm(model, load):
+    """The issue's criterion on the truth through the EKF (long run, reported in the final report)."""
+    sec, log, m = run({"targets_mm": [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]}, load, 9.0, model)
+    assert m["max_pressure_kpa"] <= 35.0
+    assert m["steps_settled"] == 3, m["settle"]
+
+
+def test_settle_results_detects_unsettled():
+    class L:
+        t = np.linspace(0, 2, 201)
+        h_true = np.where(t < 1, 2e-3, 2.5e-3)
+        h_est = h_true
+
+    sec = parse_section({"targets_mm": [[0.0, 2.0], [1.0, 3.0]]})
+    res = settle_results(L, sec.reference, 0.3e-3)
+    assert res[0]["settled"] and res[0]["settle_time_s"] == 0.0
+    assert not res[1]["settled"] and res[1]["final_error_mm"] == pytest.approx(-0.5)
