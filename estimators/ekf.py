@@ -291,6 +291,12 @@ class EKF:
             P[1, :] = P[:, 1] = 0.0
             P[1, 1] = (s.lift_load_rel_std * W) ** 2 + LIFT_LOAD_ABS_STD ** 2
             self.P = guard_cov(P, s.cov_floor)
+        # the flow factor learnt while flat also absorbed the dead-volume error (the flat slope is
+        # b / V0): once the membrane moves the two separate, so b gets its prior spread back
+        P = self.P.copy()
+        P[2, :] = P[:, 2] = 0.0
+        P[2, 2] = max(self.P[2, 2], s.flow_factor_init_std ** 2)
+        self.P = guard_cov(P, s.cov_floor)
         self.resting = False
         self._cusum = 0.0
         self._events.add("lift_off")
