@@ -52,19 +52,22 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         duration = 9.0 if duration is None else duration
         if not 0 < duration <= 600:
             raise ValueError(f"--duration = {duration:g} is out of range (0, 600] s")
-        con = Console(highlight=False, width=140)
+        con = Console(highlight=False, width=170)
         res = run_bench(duration=duration, variants=vs, horizons=hs, baselines=baselines, dompc=dompc,
                         budget_ms=budget_ms, rt_budget_ms=rt_budget_ms,
                         progress=lambda name: con.print(f"  running {name} ..."), **kw)
         t = Table(title=f"bench mpc: {res['settings']['load_g']:g} g, {duration:g} s, targets "
                         f"{res['settings']['targets_mm']} mm; solve = wall ms per step on this machine")
-        for c in ("controller", "RMSE h (mm)", "max p (kPa)", "solve med", "solve p99", "solve max", "fallbacks",
-                  f"over {rt_budget_ms:g} ms", "settled"):
+        for c in ("controller", "RMSE h (mm)", "RMSE est (mm)", "max p (kPa)", "solve med", "solve p99", "solve max",
+                  "cpu med", "cpu p99", "fallbacks", f"over {rt_budget_ms:g} ms", "settled (est)"):
             t.add_column(c, justify="right")
         for r in res["rows"]:
-            t.add_row(r["controller"], f"{r['height_rmse_mm']:.3f}", f"{r['max_pressure_kpa']:.2f}",
-                      f"{r['solve_ms_median']:.3f}", f"{r['solve_ms_p99']:.3f}", f"{r['solve_ms_max']:.3f}",
-                      str(r["fallbacks"]), str(r["over_rt"]), f"{r['steps_settled']}/{r['steps_total']}")
+            cpu = [r.get("solve_cpu_ms_median"), r.get("solve_cpu_ms_p99")]
+            cpu = [f"{v:.3f}" if isinstance(v, float) else "-" for v in cpu]
+            t.add_row(r["controller"], f"{r['height_rmse_mm']:.3f}", f"{r['height_rmse_estimate_mm']:.3f}",
+                      f"{r['max_pressure_kpa']:.2f}", f"{r['solve_ms_median']:.3f}", f"{r['solve_ms_p99']:.3f}",
+                      f"{r['solve_ms_max']:.3f}", cpu[0], cpu[1], str(r["fallbacks"]), str(r["over_rt"]),
+                      f"{r['steps_settled']}/{r['steps_total']} ({r['steps_settled_estimate']})")
         con.print(t)
         con.print(f"do-mpc: {res['dompc']}")
         for k, v in summarize(res).items():

@@ -61,7 +61,7 @@ class PredictionModel:
 
     Attributes
     ----------
-    H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-). H is negative
+    H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-); HP both. H is negative
         (virtual) below lift-off, see :meth:`height` for the physical one.
     rhs : casadi Function (x, u, W, dp) -> xdot (1/s); ``dp`` is a pressure bias (Pa) added to the
         model pressure in the valve/pump flows (offset-free prediction).
@@ -161,6 +161,7 @@ class PredictionModel:
         self.H = ca.Function("H", [x, W], [self._H(xw)])
         self.Pp = ca.Function("Pp", [x, W], [self._P(xw)])
         self.L = ca.Function("L", [x, W], [self._L(xw)])
+        self.HP = ca.Function("HP", [x, W], [ca.vertcat(self._H(xw), self._P(xw))])
         P = {n: float(v) for n, v in zip(self._fid.space.names, self.theta)}
         p = self._P(xw) + dp
         q, _, _ = ph.net_flow(u, p, P, self._fid.table)
@@ -193,10 +194,8 @@ class PredictionModel:
 
     def x_at_height(self, h: float, W: float) -> float:
         """The state that holds height h (m) under load W (N) on the contact branch."""
-        g = self.grid
-        W = float(np.clip(W, 0.0, self.load_max))
-        xs = np.array([np.interp(h, g.h_path, g.x_path[:, j]) for j in range(len(g.W))])
-        return float(np.interp(W, g.W, xs))
+        pth = self.path(W)
+        return float(np.interp(h, pth["h"], pth["x"]))
 
     def lift_off_x(self, W: float) -> float:
         """State at which a load W (N) lifts off (rest gauge pressure W / (pi r1^2) over p_env)."""

@@ -15,7 +15,7 @@ integrator, substeps        MPC discretisation ("rk4" / "euler")
 w_height, w_terminal        MPC weights on the height error (per mm^2)
 w_rate, w_input, c_input    MPC weights [speed, inlet, outlet]
 budget_ms                   wall-clock budget of one MPC step (default 15)
-codegen                     MPC: compile the RTI linearisation to C (default false)
+codegen                     MPC: compile the RTI linearisation to C (default true)
 fail_window_s               [t0, t1]: every MPC solve in this window is treated as failed (drill)
 kp, ki, kd                  PID gains in 1/mm, 1/(mm s), s/mm
 band_kpa                    bang-bang hysteresis half-band, kPa
@@ -384,6 +384,8 @@ def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
         "solve_ms_median": st["solve_ms_median"],
         "solve_ms_p99": st["solve_ms_p99"],
         "solve_ms_max": st["solve_ms_max"],
+        "solve_cpu_ms_median": st.get("solve_cpu_ms_median"),
+        "solve_cpu_ms_p99": st.get("solve_cpu_ms_p99"),
         "fallbacks": int(st["fallbacks"]),
         "fallback_detail": st.get("fallback_detail", {}),
         "guard_activations": st.get("guard_activations", 0),
