@@ -85,7 +85,7 @@ class FilterSettings:
     lift_load_rel_std: float = 0.2
     flow_factor_std: float = 0.02
     flow_factor_init_std: float = 0.25
-    modulus_std: float = 0.01
+    modulus_std: float = 0.002
     modulus_init_std: float = 0.15
     change_threshold: float = 40.0
     change_drift: float = 4.0

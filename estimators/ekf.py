@@ -134,6 +134,7 @@ class EKF:
         self._cusum = 0.0
         self._lift = 0.0
         self._p_lift = 0.0
+        self._p_post = 0.0
         self._events: set = set()
 
     # --- state handling -----------------------------------------------------------------------
@@ -255,8 +256,10 @@ class EKF:
             self.last_innovation = r
             self.last_nis = r * r
             self._detect(r)
-        elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range:
-            # one-sided: the true pressure is at least the range; pull the prediction up to it
+        elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range and self._H[0] > 0:
+            # one-sided: the true pressure is at least the range; pull the prediction up to it --
+            # only on a rising branch (dp/dm > 0): past the model's limit point more gas lowers p,
+            # and pulling p up would push the state the wrong way
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
         est = self._finish()
         self.last_step_s = time.perf_counter() - t_wall
@@ -267,7 +270,8 @@ class EKF:
         s = self.settings
         if self.resting:
             if self._lift == 0.0:
-                self._p_lift = self._p_pred  # the change, if any, started after this sample
+                # a lift-off seen from here on happened after the last posterior: mid-interval
+                self._p_lift = 0.5 * (self._p_post + self._p_pred)
             self._lift = max(0.0, self._lift - r - s.lift_drift)
             if self._lift > s.lift_threshold:
                 self._lift = 0.0
@@ -334,6 +338,7 @@ class EKF:
         self.s = out[0].copy()
         self._p_pred = float(y[_Y["p"]])
         self._H = out[2].copy()
+        self._p_post = self._p_pred
         C = out[4].reshape(5, 5, order="F").copy()
         self.last_output_cov = C
         std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}

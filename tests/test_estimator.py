@@ -1,0 +1,288 @@
+"""EKF/UKF against the mismatched rig: API, measurement handling, extremes, convergence, load steps."""
+
+import math
+
+import numpy as np
+import pytest
+
+from estimators.common import FilterSettings, guard_cov, joseph_update
+from estimators.ekf import EKF
+from estimators.evaluate import run_filter, score
+from estimators.scene import parse_section
+from estimators.ukf import UKF
+from hbma_ctrl.interfaces import Command, Estimate
+from hbma_ctrl.metrics import nrmsd
+from hbma_ctrl.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.rig import Rig, RigRecord, RigSettings, simulate_rig
+from hbma_ctrl.simulate import InputSchedule, Trial
+
+G = 9.80665
+
+
+def _trial(load=0.4, speed=1.0, r1=12.5e-3, t0=3e-3, t_inf=3.0, dur=4.0, rows=None):
+    sched = InputSchedule(rows) if rows else InputSchedule.inflate_deflate(speed, t_inf)
+    return Trial(Actuator(r1=r1, t0=t0), Pneumatics(), Platform(load=load, own_mass=0.02 if load > 0 else 0.0),
+                 sched, dur, "t")
+
+
+def _rec(trial, **rig):
+    (rec,) = simulate_rig([trial], RigSettings(**rig))
+    return rec
+
+
+def _assert_spd(cov):
+    assert np.allclose(cov, cov.T, rtol=0, atol=1e-12 * np.abs(cov).max())
+    scale = np.array([1e-6, 1.0, 1.0, 1.0])
+    w = np.linalg.eigvalsh(cov / np.outer(scale, scale))
+    assert w.min() > 0
+
+
+def _run(kind, trial, rec, settings=None, check_spd=True):
+    f = EKF(trial.actuator, trial.pneumatics, settings) if kind == "ekf" else \
+        UKF(trial.actuator, trial.pneumatics, settings)
+    ests = []
+    for k in range(len(rec.t)):
+        u = Command(*rec.u[k - 1]) if k > 0 else Command()
+        e = f.step(float(rec.t[k]), rec.meas[k], u)
+        if check_spd:
+            _assert_spd(e.cov)
+        ests.append(e)
+    return f, ests
+
+
+@pytest.fixture(scope="module")
+def loaded():
+    tr = _trial(0.4, 1.0)
+    return tr, _rec(tr)
+
+
+def test_step_api_and_flags(loaded):
+    tr, rec = loaded
+    f, ests = _run("ekf", tr, rec)
+    e = ests[150]
+    assert isinstance(e, Estimate)
+    assert e.state_names == ("m", "W", "b", "k") and e.mean.shape == (4,) and e.cov.shape == (4, 4)
+    assert set(e.std) == {"h1", "h2", "h", "F", "p"}
+    assert e.h == pytest.approx(e.h1 - e.h2)
+    assert "resting" in ests[0].flags
+    assert any("lift_off" in x.flags for x in ests[:50])
+    assert not any("not_converged" in x.flags for x in ests[50:250])
+    with pytest.raises(ValueError, match="before the last step"):
+        f.step(0.0, 0.0, Command())
+
+
+def test_tracks_height_force_and_beats_open_loop(loaded):
+    tr, rec = loaded
+    res = run_filter("ekf", tr, rec, FilterSettings())
+    from estimators.evaluate import _open_loop
+
+    res.open_loop_h = _open_loop([tr], 0.01)[0][: len(rec.t)]
+    s = score(res, tr)
+    assert s["height_nrmsd"] < 0.05
+    assert s["height_nrmsd"] < 0.5 * s["height_nrmsd_open_loop"]
+    assert s["force_steady_rel_err"] < 0.10
+
+
+def test_deterministic(loaded):
+    tr, rec = loaded
+    _, a = _run("ekf", tr, rec, check_spd=False)
+    _, b = _run("ekf", tr, rec, check_spd=False)
+    assert [x.h for x in a] == [x.h for x in b]
+    assert np.array_equal(a[-1].cov, b[-1].cov)
+
+
+def test_missing_reading_skips_the_update(loaded):
+    tr, rec = loaded
+    f = EKF(tr.actuator, tr.pneumatics)
+    for k in range(100):
+        f.step(float(rec.t[k]), rec.meas[k], Command(*rec.u[k - 1]) if k else Command())
+    P0 = f.P.copy()
+    e = f.step(float(rec.t[100]), float("nan"), Command(*rec.u[99]))
+    assert "missing" in e.flags and f.last_nis is None
+    assert np.trace(f.P / np.outer([1e-6, 1, 1, 1], [1e-6, 1, 1, 1])) >= \
+        np.trace(P0 / np.outer([1e-6, 1, 1, 1], [1e-6, 1, 1, 1]))  # predict only: no information
+    e = f.step(float(rec.t[101]), None, Command(*rec.u[100]))
+    assert "missing" in e.flags
+
+
+def test_dropouts():
+    tr = _trial(0.2, 0.8)
+    rec = _rec(tr, dropout_prob=0.3, seed=5)
+    f, ests = _run("ekf", tr, rec)
+    assert sum("missing" in e.flags for e in ests) > 50
+    h = np.array([e.h for e in ests])
+    assert nrmsd(h, rec.truth["h"]) < 0.08
+
+
+def test_saturation_for_seconds():
+    # 400 g on r1 12.5 mm: contact at about 24 kPa; the sensor tops out at 18 kPa for seconds
+    tr = _trial(0.4, 1.0, dur=4.0, t_inf=3.0)
+    rec = _rec(tr, sensor_range=18e3)
+    s = FilterSettings(sensor_range=18e3)
+    f, ests = _run("ekf", tr, rec, s)
+    sat = np.array(["saturated" in e.flags for e in ests])
+    assert sat.sum() * 0.01 > 2.0
+    p = np.array([e.p for e in ests])
+    assert np.all(p[sat] > 18e3 - 3 * 200.0)  # the estimate respects "p >= range"
+    h = np.array([e.h for e in ests])
+    err = np.abs(h - rec.truth["h"])
+    # the height rides on the model while saturated: a bounded error, not a collapse
+    assert np.max(err[sat]) < 0.2 * rec.truth["h"].max()
+    std_h = np.array([e.std["h"] for e in ests])
+    i = np.nonzero(sat)[0]
+    assert std_h[i[-1]] > std_h[i[0]]  # and the covariance says it knows less and less
+    assert np.max(err[~sat][-50:]) < 1e-3  # after the vent: tracking again
+
+
+def test_flat_membrane_never_lifts():
+    tr = _trial(3.0, 1.0, dur=3.0, t_inf=2.0)  # 3 kg: pi r1^2 * 35 kPa = 17 N < 29 N
+    rec = _rec(tr)
+    assert rec.truth["h"].max() == 0.0
+    f, ests = _run("ekf", tr, rec)
+    assert all("resting" in e.flags for e in ests)
+    assert max(e.h for e in ests) == 0.0
+    area = math.pi * tr.actuator.r1 ** 2
+    assert all(e.F == pytest.approx(max(area * e.p, 0.0), rel=1e-6, abs=1e-9) for e in ests[5:])
+
+
+def test_zero_flow_stays_flat_and_spd():
+    tr = _trial(0.0, rows=((0.0, 0.0, 0.0, 0.0),), dur=2.0)
+    rec = _rec(tr)
+    f, ests = _run("ekf", tr, rec)
+    assert max(abs(e.h) for e in ests) < 0.5e-3
+    assert max(e.std["h"] for e in ests) < 1e-3
+
+
+def test_snap_through_survives():
+    # SPEC 4: t0 = 2 mm, r1 = 7.5 mm, 400 g: the dead-load path folds near 33-34 kPa
+    tr = _trial(0.4, 1.0, r1=7.5e-3, t0=2e-3, dur=4.0, t_inf=3.0)
+    rec = _rec(tr, sensor_range=60e3)
+    f, ests = _run("ekf", tr, rec, FilterSettings(sensor_range=60e3))
+    h = np.array([e.h for e in ests])
+    assert np.all(np.isfinite(h))
+    assert nrmsd(h, rec.truth["h"]) < 0.15
+
+
+def test_converges_from_a_state_wrong_by_half(loaded):
+    tr, rec = loaded
+    ref, ests = _run("ekf", tr, rec, check_spd=False)
+    k0 = 100  # 1 s: in contact, pumping
+    # the reference filter's state at k0, every unknown off by 50 %
+    f0, e0 = EKF(tr.actuator, tr.pneumatics), None
+    for k in range(k0 + 1):
+        e0 = f0.step(float(rec.t[k]), rec.meas[k], Command(*rec.u[k - 1]) if k else Command())
+    m_env = f0.model.m_env
+    x = e0.mean.copy()
+    wrong = np.array([m_env + 1.5 * (x[0] - m_env), 1.5 * x[1], 1.5 * x[2], 1.5 * x[3]])
+    cov = np.diag([(0.5 * (x[0] - m_env)) ** 2, (0.5 * x[1]) ** 2, 0.5 ** 2, 0.5 ** 2])
+    f = EKF(tr.actuator, tr.pneumatics)
+    f.reset(rec.t[k0], wrong, cov, resting=False)
+    err = []
+    for k in range(k0 + 1, len(rec.t)):
+        e = f.step(float(rec.t[k]), rec.meas[k], Command(*rec.u[k - 1]))
+        err.append(abs(e.h - rec.truth["h"][k]))
+    err = np.array(err)
+    ref_err = np.abs(np.array([e.h for e in ests[k0 + 1:]]) - rec.truth["h"][k0 + 1:])
+    after = slice(100, 200)  # from 1 s after the start to the end of the inflation
+    assert err[0] > 3 * ref_err[0]  # it did start wrong
+    assert np.max(err[after]) < max(2 * np.max(ref_err[after]), 0.5e-3)
+
+
+def test_load_steps_are_tracked():
+    act, pn = Actuator(), Pneumatics()
+    rig = Rig(act, pn, Platform(load=0.2, own_mass=0.02), RigSettings(seed=2))
+    f = EKF(act, pn)
+    sched = InputSchedule(((0.0, 0.6, 1.0, 0.0), (1.0, 0.3, 1.0, 0.0)))
+    cmd = Command()
+    F_est, F_true = [], []
+    for k in range(501):
+        t = k * 0.01
+        if k == 200:
+            rig.set_load(0.6)
+        if k == 350:
+            rig.set_load(0.2)
+        e = f.step(t, rig.measure(), cmd)
+        F_est.append(e.F)
+        F_true.append(rig.truth()["F"])
+        cmd = Command(*sched.at(t))
+        rig.apply(cmd)
+    F_est = np.array(F_est)
+    assert np.mean(F_est[300:350]) == pytest.approx(0.62 * G, rel=0.15)  # 1-1.5 s after the step
+    assert np.mean(F_est[450:500]) == pytest.approx(0.22 * G, rel=0.15)
+
+
+def test_ukf_same_api_and_comparable(loaded):
+    tr, rec = loaded
+    _, ests = _run("ukf", tr, rec)
+    h = np.array([e.h for e in ests])
+    assert nrmsd(h, rec.truth["h"]) < 0.08
+    assert ests[-1].state_names == ("m", "W", "b", "k")
+
+
+def test_numerics_guards():
+    # Joseph update keeps a PSD covariance even with a gain far from optimal (huge R)
+    P = np.diag([1e-14, 1.0, 0.01, 0.01])
+    H = np.array([2e10, 300.0, 0.0, 1e4])
+    x, Pn, S, K = joseph_update(np.zeros(4), P, H, 100.0, 4e4)
+    assert S > 4e4 and np.allclose(Pn, Pn.T)
+    bad = np.array([[1.0, 2.0], [2.0, 1.0]])  # indefinite
+    G = guard_cov(bad, 1e-6, np.ones(2))
+    assert np.linalg.eigvalsh(G).min() >= 1e-6 * (1 - 1e-9)
+    # the compiled update agrees with the numpy reference
+    f = EKF(Actuator(), Pneumatics())
+    out = f._upd(np.zeros(4), P, H, 100.0, 4e4, 0.0)
+    assert np.allclose(out[1].reshape(4, 4, order="F"), Pn, rtol=1e-9, atol=1e-30)
+
+
+def test_settings_and_section_errors():
+    with pytest.raises(ValueError, match="estimator.noise_std"):
+        FilterSettings(noise_std=0.0).validate()
+    with pytest.raises(ValueError, match="estimator.nsub"):
+        FilterSettings(nsub=0).validate()
+    with pytest.raises(ValueError, match="did you mean 'filter'"):
+        parse_section({"filtr": "ekf"})
+    with pytest.raises(ValueError, match="estimator.filter"):
+        parse_section({"filter": "pf"})
+    sec = parse_section({"noise_std_kpa": 0.3, "load_steps_g": [[1.0, 200.0]], "compare_ukf": True})
+    assert sec.tuning["noise_std"] == pytest.approx(300.0)
+    assert sec.load_steps == ((1.0, 0.2),)
+    with pytest.raises(ValueError, match="load_steps_g"):
+        parse_section({"load_steps_g": [[2.0, 100.0], [1.0, 50.0]]})
+
+
+def test_scene_writes_estimate_and_metrics(tmp_path):
+    from estimators.scene import run_scene
+    from hbma_ctrl.scenario import load_scenario
+
+    p = tmp_path / "s.toml"
+    p.write_text("""
+[scenario]
+name = "t"
+kind = "single"
+duration_s = 1.5
+[load]
+mass_g = 200.0
+own_mass_g = 20.0
+[inputs]
+schedule = [[0.0, 80.0, 1.0, 0.0], [1.0, 0.0, 0.0, 1.0]]
+[rig]
+seed = 1
+[estimator]
+filter = "ekf"
+compare_ukf = true
+load_steps_g = [[0.8, 300.0]]
+""")
+    m = run_scene(load_scenario(p), tmp_path / "out")
+    est = m["estimator"]
+    for key in ("height_nrmsd", "height_nrmsd_open_loop", "pressure_nrmsd", "force_rmse_n", "nees_mean",
+                "nis_mean", "step_us_median"):
+        assert est[key] is not None and est[key] >= 0
+    assert "ukf" in est and est["ukf"]["height_nrmsd"] >= 0
+    head = (tmp_path / "out" / "estimate.csv").read_text().splitlines()[0]
+    assert "h_true_mm" in head and "h_est_mm" in head and "F_est_n" in head
+    assert len((tmp_path / "out" / "estimate.csv").read_text().splitlines()) == 152
+
+
+def test_record_type():
+    rec = _rec(_trial(0.0, 1.0, dur=0.2))
+    assert isinstance(rec, RigRecord) and rec.u.shape == (len(rec.t), 3)
