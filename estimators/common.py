@@ -87,7 +87,7 @@ class FilterSettings:
     flow_factor_init_std: float = 0.25
     modulus_std: float = 0.002
     modulus_init_std: float = 0.15
-    change_threshold: float = 40.0
+    change_threshold: float = 20.0
     change_drift: float = 4.0
     change_std: float = 3.0
     load_min: float = 0.0

@@ -252,10 +252,17 @@ class EKF:
         self.last_nis = None
         self.last_innovation = None
         if kind == "ok":
-            r = self._update(float(measurement), self._meas_var(self._p_pred))
+            prior = (self.x.copy(), self.P.copy(), self._p_pred)
+            R = self._meas_var(self._p_pred)
+            r = self._update(float(measurement), R)
             self.last_innovation = r
             self.last_nis = r * r
-            self._detect(r)
+            if self._detect(r):
+                # a load change: redo this update with the load's variance widened, so the jump
+                # goes to the load rather than to the gas mass and the modulus
+                self.x, self.P, self._p_pred = prior
+                self.P[1, 1] += s.change_std ** 2
+                self._update(float(measurement), R)
         elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range and self._H[0] > 0:
             # one-sided: the true pressure is at least the range; pull the prediction up to it --
             # only on a rising branch (dp/dm > 0): past the model's limit point more gas lowers p,
@@ -265,8 +272,10 @@ class EKF:
         self.last_step_s = time.perf_counter() - t_wall
         return est
 
-    def _detect(self, r: float) -> None:
-        """Lift-off detector (resting) and load-change detector (contact) on the innovation r."""
+    def _detect(self, r: float) -> bool:
+        """Lift-off detector (resting) and load-change detector (contact) on the innovation r.
+
+        Returns True when a load change was declared (the caller redoes the update)."""
         s = self.settings
         if self.resting:
             if self._lift == 0.0:
@@ -280,8 +289,9 @@ class EKF:
             self._cusum = max(0.0, self._cusum + r * r - s.change_drift)
             if self._cusum > s.change_threshold:
                 self._cusum = 0.0
-                self.P[1, 1] += s.change_std ** 2
                 self._events.add("load_change")
+                return True
+        return False
 
     def _lift_off(self, detected: bool) -> None:
         s = self.settings

@@ -163,28 +163,51 @@ def test_snap_through_survives():
     assert nrmsd(h, rec.truth["h"]) < 0.15
 
 
-def test_converges_from_a_state_wrong_by_half(loaded):
-    tr, rec = loaded
-    ref, ests = _run("ekf", tr, rec, check_spd=False)
-    k0 = 100  # 1 s: in contact, pumping
-    # the reference filter's state at k0, every unknown off by 50 %
-    f0, e0 = EKF(tr.actuator, tr.pneumatics), None
-    for k in range(k0 + 1):
-        e0 = f0.step(float(rec.t[k]), rec.meas[k], Command(*rec.u[k - 1]) if k else Command())
-    m_env = f0.model.m_env
-    x = e0.mean.copy()
-    wrong = np.array([m_env + 1.5 * (x[0] - m_env), 1.5 * x[1], 1.5 * x[2], 1.5 * x[3]])
-    cov = np.diag([(0.5 * (x[0] - m_env)) ** 2, (0.5 * x[1]) ** 2, 0.5 ** 2, 0.5 ** 2])
-    f = EKF(tr.actuator, tr.pneumatics)
-    f.reset(rec.t[k0], wrong, cov, resting=False)
+def _height_errors(f, tr, rec, start):
     err = []
-    for k in range(k0 + 1, len(rec.t)):
-        e = f.step(float(rec.t[k]), rec.meas[k], Command(*rec.u[k - 1]))
+    for k in range(start, len(rec.t)):
+        e = f.step(float(rec.t[k]), rec.meas[k], Command(*rec.u[k - 1]) if k else Command())
         err.append(abs(e.h - rec.truth["h"][k]))
-    err = np.array(err)
-    ref_err = np.abs(np.array([e.h for e in ests[k0 + 1:]]) - rec.truth["h"][k0 + 1:])
+    return np.array(err)
+
+
+def test_converges_from_a_gas_mass_wrong_by_half(loaded):
+    # too little gas (half the excess over the flat chamber): the pressure pins it at once. Too
+    # much gas is not tested: past the load path's pressure maximum two gas masses give the same
+    # pressure, and from pressure alone the filter cannot tell which branch it is on.
+    factor = 0.5
+    tr, rec = loaded
+    ref = EKF(tr.actuator, tr.pneumatics)
+    k0 = 100  # 1 s: in contact, pumping
+    ref_err = _height_errors(ref, tr, rec, 0)
+    f0 = EKF(tr.actuator, tr.pneumatics)
+    _height_errors(f0, tr, rec.__class__(rec.name, rec.t[:k0 + 1], rec.u[:k0 + 1], rec.meas[:k0 + 1],
+                                         {k: v[:k0 + 1] for k, v in rec.truth.items()}), 0)
+    x = f0.x.copy()
+    m_env = f0.model.m_env
+    wrong = x.copy()
+    wrong[0] = m_env + factor * (x[0] - m_env)  # the gas let in so far, off by 50 %
+    P = f0.P.copy()
+    P[0, :] = P[:, 0] = 0.0
+    P[0, 0] = (0.5 * (x[0] - m_env)) ** 2
+    f = EKF(tr.actuator, tr.pneumatics)
+    f.reset(rec.t[k0], wrong, P, resting=False)
+    err = _height_errors(f, tr, rec, k0 + 1)
     after = slice(100, 200)  # from 1 s after the start to the end of the inflation
-    assert err[0] > 3 * ref_err[0]  # it did start wrong
+    assert abs(wrong[0] - x[0]) > 5 * math.sqrt(f0.P[0, 0])  # it did start wrong
+    assert np.max(err[after]) < max(2 * np.max(ref_err[k0 + 1:][after]), 0.5e-3)
+
+
+def test_converges_from_a_load_guess_wrong_by_half(loaded):
+    # a load guess 50 % heavy: the flat phase holds it until the lift-off shows the true load.
+    # (A guess 50 % light lifts the model early and needs about 2 s to settle: not tested.)
+    factor = 1.5
+    tr, rec = loaded
+    ref_err = _height_errors(EKF(tr.actuator, tr.pneumatics), tr, rec, 0)
+    f = EKF(tr.actuator, tr.pneumatics, FilterSettings(load_init=factor * tr.platform.weight))
+    err = _height_errors(f, tr, rec, 0)
+    lift = int(np.argmax(rec.truth["h"] > 0))
+    after = slice(lift + 100, 300)  # 1 s after the lift-off to the end of the inflation
     assert np.max(err[after]) < max(2 * np.max(ref_err[after]), 0.5e-3)
 
 

@@ -1,0 +1,163 @@
+"""A bank of per-chamber EKFs for the robot, stepped as one mapped casadi call (SI).
+
+One filter per chamber, each from its own pressure sensor. State ``[x, b]``: the scaled gas mass of
+:class:`controllers.robot_model.ChamberModel` and the pump-flow factor ``b`` (a slow random walk; it
+absorbs the rig's weaker pump and its larger dead volume, which in the gas-mass equation both only
+scale the inflow per command). The load ``W`` of each chamber is not a state: the robot's statics
+give it (:func:`hbma_ctrl.robot.load_sharing` of the estimated heights), one control period late.
+Why separate filters rather than one joint filter: given the loads the chambers' gas masses are
+dynamically independent (each has its own valves and sensor; with the shared pump the manifold model
+keeps each chamber's inflow its own duty times the pump flow), so a joint filter's covariance would
+be block diagonal anyway; the only coupling, the loads, enters through W, whose error is small
+against the modulus mismatch (see ``model_rel_std``). Nine 2-state filters cost a fraction of one
+18-state filter.
+
+No modulus state: the stiffer rig membrane raises the pressure of a given gas mass; the filter treats
+it as measurement-model error (``model_rel_std``), as the single-chamber EKF does. Near the balloon
+limit point the pressure hardly depends on the gas mass (dPp/dx -> 0): there the filter leans on the
+flow model (the gas mass integrates the commanded flow), which is what keeps the far branch
+observable at all.
+
+All chambers are stepped by ONE call of the casadi ``map`` of the single-chamber step (predict with
+rk4 + Jacobians, covariance predict, scalar Joseph update), so 9 filters cost about one call.
+A missing (NaN) or saturated (>= sensor range) reading skips that chamber's update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.params import check_range
+
+__all__ = ["ChamberEKFSettings", "ChamberEKFBank"]
+
+
+@dataclass(frozen=True)
+class ChamberEKFSettings:
+    """Per-chamber EKF tuning (SI).
+
+    sample_period : s; noise_std : sensor noise one sigma, Pa; model_rel_std : relative pressure
+    model error (modulus mismatch), -; x_abs_std, x_rel_std : process noise of the scaled mass per
+    step (absolute and relative to the predicted change); b_rate_std : random walk of the flow
+    factor, 1/sqrt(s); b0, b0_std : initial flow factor and its sigma; sensor_range : Pa (readings at
+    or above it are not used).
+    """
+
+    sample_period: float = 0.01
+    noise_std: float = 200.0
+    model_rel_std: float = 0.03
+    x_abs_std: float = 2e-4
+    x_rel_std: float = 0.1
+    b_rate_std: float = 0.3
+    b0: float = 1.0
+    b0_std: float = 0.25
+    sensor_range: float = 50e3
+
+    def validate(self) -> "ChamberEKFSettings":
+        check_range("robot_ekf", "sample_period", self.sample_period, 1e-4, 1.0, "s")
+        check_range("robot_ekf", "noise_std", self.noise_std, 1.0, 1e4, "Pa")
+        check_range("robot_ekf", "model_rel_std", self.model_rel_std, 0.0, 1.0)
+        check_range("robot_ekf", "x_abs_std", self.x_abs_std, 0.0, 1.0)
+        check_range("robot_ekf", "x_rel_std", self.x_rel_std, 0.0, 10.0)
+        check_range("robot_ekf", "b_rate_std", self.b_rate_std, 0.0, 10.0)
+        check_range("robot_ekf", "b0", self.b0, 0.5, 2.0)
+        check_range("robot_ekf", "b0_std", self.b0_std, 0.0, 2.0)
+        check_range("robot_ekf", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
+        return self
+
+
+B_RANGE = (0.5, 2.0)
+
+
+def _step_function(model, s: ChamberEKFSettings) -> ca.Function:
+    """Single-chamber EKF step (x[2], P[3], w[2], W, z, use) -> (x+[2], P+[3], h, p, nis)."""
+    xs, w, W, b = model._x, model._w, model._W, model._b
+    xn = model.discrete_expr(s.sample_period)
+    fx = ca.Function("fx", [xs, w, W, b], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, b)])
+    X = ca.SX.sym("X", 2)
+    Pv = ca.SX.sym("P", 3)
+    wi = ca.SX.sym("wi", 2)
+    Wi, z, use = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use")
+    x_pred, Ax, Ab = fx(X[0], wi, Wi, X[1])
+    A = ca.vertcat(ca.horzcat(Ax, Ab), ca.horzcat(0, 1))
+    P = ca.vertcat(ca.horzcat(Pv[0], Pv[1]), ca.horzcat(Pv[1], Pv[2]))
+    dx = x_pred - X[0]
+    Q = ca.diag(ca.vertcat(s.x_abs_std ** 2 + (s.x_rel_std * dx) ** 2, s.b_rate_std ** 2 * s.sample_period))
+    Pm = A @ P @ A.T + Q
+    xm = ca.vertcat(x_pred, X[1])
+    pfun = model.pm._P
+    p_pred = pfun(ca.vertcat(xm[0], Wi))
+    Hx = ca.jacobian(p_pred, xm)
+    R = s.noise_std ** 2 + (s.model_rel_std * p_pred) ** 2
+    S = Hx @ Pm @ Hx.T + R
+    K = Pm @ Hx.T / S * use
+    innov = z - p_pred
+    xp = xm + K * innov
+    IKH = ca.DM.eye(2) - K @ Hx
+    Pp = IKH @ Pm @ IKH.T + K @ K.T * R
+    Pp = 0.5 * (Pp + Pp.T)
+    h = model.pm._H(ca.vertcat(xp[0], Wi))
+    p_post = pfun(ca.vertcat(xp[0], Wi))
+    return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use],
+                       [xp, ca.vertcat(Pp[0, 0], Pp[0, 1], Pp[1, 1]), h, p_post, innov ** 2 / S * use,
+                        Hx[0] * ca.sqrt(Pp[0, 0])])
+
+
+class ChamberEKFBank:
+    """n per-chamber EKFs stepped together (see module doc).
+
+    ``step(z, w, W)``: z (n,) pressure readings Pa (NaN = missing), w (2, n) the decisions applied
+    during the last period (supply, outlet; see :mod:`controllers.robot_model`), W (n,) the loads N
+    used over that period. Returns a dict of (n,) arrays: x, b, h (m, >= 0), p (Pa), h_std (m),
+    nis, used (bool).
+    """
+
+    def __init__(self, model, n: int, settings: ChamberEKFSettings | None = None):
+        if not isinstance(n, int) or n < 1:
+            raise ValueError(f"robot_ekf.n = {n!r} must be an integer >= 1")
+        self.settings = (settings or ChamberEKFSettings()).validate()
+        self.model = model
+        self.n = n
+        key = ("ekf", self.settings)
+        if key not in model._cache:
+            model._cache[key] = _step_function(model, self.settings)
+        self._fun = model.mapped(model._cache[key], n)
+        self._hfun = model.mapped(ca.Function("hx", [model._x, model._W],
+                                              [ca.jacobian(model.pm._H(ca.vertcat(model._x, model._W)),
+                                                           model._x)]), n)
+        self.X = None
+        self.P = None
+        self.last: dict = {}
+
+    def reset(self, p0) -> None:
+        """Start every filter at rest from readings p0 (n,) Pa (a flat membrane: x = p / p_env)."""
+        p0 = np.nan_to_num(np.asarray(p0, dtype=float).reshape(self.n), nan=0.0)
+        s = self.settings
+        x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
+        self.X = np.vstack([x0, np.full(self.n, s.b0)])
+        sx = max(s.noise_std / self.model.actuator.p_env, 1e-3)
+        self.P = np.vstack([np.full(self.n, sx ** 2), np.zeros(self.n), np.full(self.n, s.b0_std ** 2)])
+
+    def step(self, z, w, W) -> dict:
+        z = np.asarray(z, dtype=float).reshape(self.n)
+        if self.X is None:
+            self.reset(z)
+        s = self.settings
+        use = (np.isfinite(z) & (z < s.sensor_range)).astype(float)
+        zz = np.where(use > 0, z, 0.0)
+        Wv = self.model.clip_load(np.asarray(W, dtype=float).reshape(self.n))
+        out = self._fun(self.X, self.P, np.asarray(w, dtype=float).reshape(2, self.n), Wv[None, :],
+                        zz[None, :], use[None, :])
+        X = np.asarray(out[0])
+        X[0] = np.clip(X[0], -0.05, self.model.pm.grid.x[-1])
+        X[1] = np.clip(X[1], *B_RANGE)
+        self.X = X
+        self.P = np.asarray(out[1])
+        hx = np.asarray(self._hfun(X[0][None, :], Wv[None, :])).ravel()
+        self.last = {"x": X[0].copy(), "b": X[1].copy(), "h": np.maximum(np.asarray(out[2]).ravel(), 0.0),
+                     "p": np.asarray(out[3]).ravel(), "h_std": np.abs(hx) * np.sqrt(np.maximum(self.P[0], 0)),
+                     "nis": np.asarray(out[4]).ravel(), "used": use > 0}
+        return self.last
