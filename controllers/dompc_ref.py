@@ -106,12 +106,15 @@ class DoMPCController:
         if s.h_min > 0:
             mpc.set_nl_cons("hmin", s.h_min * 1e3 - h, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
         tmpl = mpc.get_tvp_template()
-        self._tvp = {"W": 0.0, "dh": 0.0, "dp": 0.0, "r": 0.0, "plim": s.p_max}
+        self._tvp = {"W": 0.0, "dh": 0.0, "dp": 0.0, "plim": s.p_max}
+        self._r = np.zeros(s.horizon)
 
         def tvp_fun(t_now):
+            # stage k's cost is on x_k, the NMPC's on x_{k+1} with r[k]: r at stage k is r[k - 1]
             for k in range(s.horizon + 1):
                 for key, val in self._tvp.items():
                     tmpl["_tvp", k, key] = val
+                tmpl["_tvp", k, "r"] = self._r[max(k - 1, 0)]
             return tmpl
 
         mpc.set_tvp_fun(tvp_fun)
@@ -122,12 +125,15 @@ class DoMPCController:
         self.failures = 0
         self.last: dict = {}
 
-    def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
+    accepts_preview = True
+
+    def step(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
         """One do-mpc ``make_step`` on the NMPC's problem data (timed: the whole step)."""
         t0 = time.perf_counter()
         try:
-            pr = self._pre._problem(t, estimate, reference)
-            self._tvp.update({"W": pr.W, "dh": pr.dh, "dp": pr.dp, "r": pr.r, "plim": pr.p_lim})
+            pr = self._pre._problem(t, estimate, reference, preview)
+            self._tvp.update({"W": pr.W, "dh": pr.dh, "dp": pr.dp, "plim": pr.p_lim})
+            self._r = pr.r
             x0 = np.array([[pr.x0]])
             if not self._started:
                 self.mpc.x0 = x0

@@ -244,7 +244,7 @@ class _Problem:
     W: float
     dh: float  # m
     dp: float  # Pa
-    r: float  # m (clipped)
+    r: np.ndarray  # m, target at stages 1..N (clipped)
     u_prev: np.ndarray
     p_lim: float  # Pa, on the model pressure + dp
 
@@ -447,7 +447,7 @@ class _RtiOsqp:
         wk = np.full(N + 1, s.w_height)
         wk[0] = 0.0
         wk[N] += s.w_terminal
-        r_mm, dh_mm = pr.r * 1e3, pr.dh * 1e3
+        r_mm, dh_mm = np.r_[pr.r[0], pr.r] * 1e3, pr.dh * 1e3
         e = h - ch * Xb + dh_mm - r_mm  # h_k(x) + dh - r = ch x + e
         Pv = self.P_vals.copy()
         Pv[self.P_x] = 2 * wk * ch ** 2 + 1e-8
@@ -509,9 +509,9 @@ class _Ipopt:
         X = ca.SX.sym("X", N + 1)
         U = ca.SX.sym("U", 3, N)
         S = ca.SX.sym("S", N)
-        par = ca.SX.sym("par", 9)  # x0, W, dh(mm), dp(Pa), r(mm), u_prev(3), p_lim(kPa)
-        x0, W, dh, dp, r = par[0], par[1], par[2], par[3], par[4]
-        u_prev, p_lim = par[5:8], par[8]
+        par = ca.SX.sym("par", 8 + N)  # x0, W, dh(mm), dp(Pa), u_prev(3), p_lim(kPa), r(mm, N stages)
+        x0, W, dh, dp = par[0], par[1], par[2], par[3]
+        u_prev, p_lim, rr = par[4:7], par[7], par[8:]
         J = 0
         g, lbg, ubg = [X[0] - x0], [0.0], [0.0]
         wr, wu, cu = (ca.DM(list(v)) for v in (s.w_rate, s.w_input, s.c_input))
@@ -527,7 +527,7 @@ class _Ipopt:
             lbg.append(0.0); ubg.append(ca.inf)  # noqa: E702
             h, p, lam = self.stage.out(X[k + 1], W)
             w = s.w_height + (s.w_terminal if k == N - 1 else 0.0)
-            J += w * (h + dh - r) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
+            J += w * (h + dh - rr[k]) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
             lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else ca.inf)
             for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
                              (h + dh - s.h_max * 1e3, 0.0), lo_h):
@@ -562,7 +562,7 @@ class _Ipopt:
             Ub = np.vstack([self.U[1:], self.U[-1:]])
             Sb = np.r_[self.S[1:], self.S[-1]]
         z0 = np.r_[Xb, Ub.ravel(), Sb]
-        par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.r * 1e3, pr.u_prev, pr.p_lim * 1e-3]
+        par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
         kw = {}
         if self.lam_g is not None:
             kw["lam_g0"] = self.lam_g
@@ -643,7 +643,7 @@ class NMPC:
             self._W += a * (F - self._W)
         return float(min(self._W, s.load_max))
 
-    def _problem(self, t: float, est: Estimate, ref: Reference) -> _Problem:
+    def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
         s, m = self.settings, self.model
         for name in ("h", "p"):
             if not np.isfinite(getattr(est, name)):
@@ -666,11 +666,21 @@ class NMPC:
             r = float(ref.height)
         p_lim = s.p_max - s.p_margin
         reach = m.reachable_height(W, p_lim - max(dp, 0.0), s.lam_max, s.h_max - max(dh, 0.0)) + dh
-        r_c = float(np.clip(r, s.h_min, max(min(reach, s.h_max), s.h_min)))
-        clipped = r_c < r - 1e-9 or r_c > r + 1e-9
+        N = s.horizon
+        rs = np.full(N, r)
+        if preview is not None and ref.height is not None:
+            pv = np.asarray(preview, dtype=float).ravel()[:N]
+            if pv.size == 0 or not np.all(np.isfinite(pv)):
+                raise ValueError("mpc.step: preview must be a non-empty sequence of finite heights (m)")
+            rs[:pv.size] = pv
+            rs[pv.size:] = pv[-1]
+        hi = max(min(reach, s.h_max), s.h_min)
+        r_c = np.clip(rs, s.h_min, hi)
+        clipped = bool(np.clip(r, s.h_min, hi) != r)
         if clipped:
             self.clipped_count += 1
-        self.last.update({"W": W, "x0": x0, "dh": dh, "dp": dp, "reference": r, "reference_used": r_c,
+        self.last.update({"W": W, "x0": x0, "dh": dh, "dp": dp, "reference": r,
+                          "reference_used": float(np.clip(r, s.h_min, hi)),
                           "reachable_height": reach, "target_clipped": clipped})
         return _Problem(x0, W, dh, dp, r_c, self._u_prev.copy(), p_lim)
 
@@ -691,9 +701,16 @@ class NMPC:
         return cmd
 
     # --- the step -------------------------------------------------------------------------------
-    def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
+    #: the scene passes the future targets (``preview``) to controllers that take them
+    accepts_preview = True
+
+    def step(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
         """One control step: the command to hold for the next sample period (never raises on a
-        numerical failure; see the module docstring for the fallback chain)."""
+        numerical failure; see the module docstring for the fallback chain).
+
+        ``preview``: optional targets (m) at t + k * sample_period, k = 1..N (fewer: the last one
+        holds); without it the current target holds over the horizon.
+        """
         s = self.settings
         t_start = time.perf_counter()
         c_start = time.thread_time()
@@ -701,7 +718,7 @@ class NMPC:
         try:
             if self._in_fail_window(t):
                 raise _SolverFailure("injected failure (fail_window)")
-            pr = self._problem(t, estimate, reference)
+            pr = self._problem(t, estimate, reference, preview)
             cold = self.backend.X is None
             X, U = self.backend.solve(pr)
             elapsed = time.perf_counter() - t_start

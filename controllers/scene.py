@@ -24,6 +24,8 @@ interpolation               "step" (default) or "linear" (ramps between the poin
 sine_amplitude_mm, sine_period_s, sine_start_s   a sinusoid added to the targets
 load_steps_g                [[t_s, mass_g], ...]: set the rig's load to mass_g at t_s
 settle_band_mm              settling band for the step metrics (default 0.3)
+preview                     give the MPC the future targets over its horizon (default: for
+                            ramps and sines; steps come unannounced, as an operator's would)
 ==========================  ====================================================================
 
 ``run_scene`` writes ``closed_loop.csv`` (edge units) and ``closed_loop.png`` (target, truth and
@@ -121,6 +123,7 @@ class ControllerSection:
     bang_bang: BangBangSettings = field(default_factory=BangBangSettings)
     reference: ReferenceProfile = field(default_factory=ReferenceProfile)
     load_steps: tuple = ()  # ((t_s, mass_kg), ...)
+    preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
     settle_band: float = 0.3e-3
 
     @property
@@ -164,6 +167,7 @@ _KEYS = {
     "sine_start_s": ("sec", "sine_start", 1.0),
     "load_steps_g": ("sec", "load_steps", None),
     "settle_band_mm": ("sec", "settle_band", 1e-3),
+    "preview": ("sec", "preview", "bool"),
 }
 
 
@@ -236,13 +240,13 @@ def parse_section(raw: dict) -> ControllerSection:
     for t, m in loads:
         check_range("controller", "load_steps_g time", t, 0.0, 1e5, "s")
         check_range("controller", "load_steps_g mass", m, 0.0, 50.0, "kg")
+    preview = sec.pop("preview", None)
     band = sec.pop("settle_band", 0.3e-3)
     check_range("controller", "settle_band_mm", band, 0.0, 0.05, "m", lo_open=True)
-    pid.pop("guard_margin", None) if False else None
     out = ControllerSection(kind=kind, mpc=MPCSettings(**mpc).validate(),
                             pid=PIDSettings(**{k: v for k, v in pid.items()}).validate(),
                             bang_bang=BangBangSettings(**bb).validate(), reference=ref,
-                            load_steps=tuple(sorted(loads)), settle_band=band)
+                            load_steps=tuple(sorted(loads)), settle_band=band, preview=preview)
     return out
 
 
@@ -312,6 +316,10 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
         raise ValueError(f"controller.sample_ms ({section.sample_period * 1e3:g} ms) must be a whole multiple "
                          f"of the rig's sample period ({rs.sample_period * 1e3:g} ms)")
     n = int(round(duration / rs.sample_period))
+    # controllers with a horizon get the future targets (a rig daemon knows its trajectory too)
+    use_preview = section.preview if section.preview is not None else (
+        section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
+    preview_n = section.mpc.horizon if getattr(ctrl, "accepts_preview", False) and use_preview else 0
     cols = {k: np.zeros(n) for k in ("t", "target", "h_true", "h_est", "p_true", "p_meas", "p_est",
                                      "F_true", "F_est", "load")}
     U = np.zeros((n, 3))
@@ -327,7 +335,11 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
         e = est.step(t, z, cmd)
         r = section.reference(t)
         if k % every == 0:
-            cmd = ctrl.step(t, e, Reference(r))
+            if preview_n:
+                pv = [section.reference(t + section.sample_period * (j + 1)) for j in range(preview_n)]
+                cmd = ctrl.step(t, e, Reference(r), preview=pv)
+            else:
+                cmd = ctrl.step(t, e, Reference(r))
         tr = rig.truth()
         for key, val in (("t", t), ("target", r), ("h_true", tr["h"]), ("h_est", e.h), ("p_true", tr["p"]),
                          ("p_meas", z), ("p_est", e.p), ("F_true", tr["F"]), ("F_est", e.F),

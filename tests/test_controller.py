@@ -137,7 +137,7 @@ def test_mpc_pumps_below_and_vents_above_target(model, variant):
 def test_rti_converges_to_ipopt_plan(model):
     """Iterated, the RTI's QPs converge to the same optimum as IPOPT on the same OCP."""
     s = MPCSettings(budget=5.0, rti_init_iterations=30)
-    pr = _Problem(x0=model.x_at_height(4e-3, W400), W=W400, dh=0.0, dp=0.0, r=5e-3, u_prev=np.zeros(3),
+    pr = _Problem(x0=model.x_at_height(4e-3, W400), W=W400, dh=0.0, dp=0.0, r=np.full(20, 5e-3), u_prev=np.zeros(3),
                   p_lim=33e3)
     rti = NMPC(ACT, PN, s, model=model).backend
     ipo = NMPC(ACT, PN, MPCSettings(variant="ipopt", budget=5.0), model=model).backend
@@ -230,3 +230,15 @@ def test_bang_bang_hysteresis(model):
     assert c.step(0, est(h=4e-3, p=p_set - 200, F=W400), Reference(5e-3)).speed == 1.0  # inside band: keep
     assert c.step(0, est(h=5e-3, p=p_set + 10, F=W400), Reference(5e-3)).speed == 0.0  # reached: hold
     assert c.step(0, est(h=5e-3, p=p_set + 1000, F=W400), Reference(5e-3)).outlet == 1.0
+
+
+def test_preview_anticipates_a_coming_step(model):
+    e = est(h=5e-3, p=17.5e3, F=W400)
+    c = NMPC(ACT, PN, MPCSettings(budget=5.0), model=model)
+    hold = c.step(0.0, e, Reference(5e-3))
+    c.reset()
+    pv = [5e-3] * 5 + [7e-3] * 15  # the target rises 0.1 s from now
+    ahead = c.step(0.0, e, Reference(5e-3), preview=pv)
+    assert hold.speed < 0.05 and ahead.speed > 0.5
+    with pytest.raises(ValueError, match="preview"):
+        c.step(0.02, e, Reference(5e-3), preview=[float("nan")])

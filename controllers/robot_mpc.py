@@ -1,0 +1,305 @@
+"""Structured NMPC for the whole robot: per-chamber RTI QPs in one block-sparse OSQP problem (SI).
+
+Model: every chamber is the gas-mass model of :class:`controllers.robot_model.ChamberModel` with
+its own load ``W`` (the robot's load sharing of the estimated heights, one control period old) and
+flow factor ``b`` (from the chamber's EKF). The targets are chamber heights: the layer targets
+(centre height, bend angle, bend direction) map onto them exactly by
+:func:`hbma_ctrl.robot.inverse_kinematics` (linear in the heights for a given bend), so tracking the
+nine heights tracks every layer's height and bend.
+
+Why the NMPC controls gas mass, and why it can hold the far branch: the state is the gas mass and
+the height follows from it single-valued (``H(x, W)`` grows monotonically, also past the balloon
+limit point). Holding a far-branch height means holding a gas mass, which is open-loop stable (the
+gas is compressible); the pressure there is *below* the peak, and the QP only needs to keep the
+predicted pressure under the limit while passing the peak.
+
+Structure (real-time iteration, one QP per control period):
+
+- linearisation: ONE call of the casadi ``map`` of the single-chamber stage function over
+  ``n_chambers x (horizon + 1)`` points (rk4 step, its Jacobians, height and pressure with their
+  slopes) along the shifted previous solution;
+- QP: variables per chamber block ``[x_1..x_N, a_0..a_{N-1}, o_0..o_{N-1}]`` (gas mass, supply,
+  outlet duty); per block: dynamics rows, pressure-limit rows (linearised ``Pp(x_k) <= p_max``),
+  input bounds. The cost is per chamber (height error in mm, small input and input-rate costs), so
+  the Hessian and the constraint matrix are block diagonal — except for the shared-compressor
+  topology's one coupling row per stage, ``sum_i a_i,k <= 1`` (the pump's flow budget, see
+  :mod:`controllers.robot_model`). The sparsity pattern is fixed; every period only the values are
+  updated (``osqp.update``) and the solver is warm started.
+
+If OSQP does not return a solution (status not solved / time limit), the fallback closes every inlet
+and keeps the outlets closed (hold the gas: the far branch is stable at fixed mass) and it is
+counted in ``fallbacks``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from hbma_ctrl.params import check_range
+
+__all__ = ["RobotMPCSettings", "RobotNMPC"]
+
+
+@dataclass(frozen=True)
+class RobotMPCSettings:
+    """Robot NMPC settings (SI).
+
+    sample_period : control period, s; dt : prediction step, s (inputs held over it); horizon :
+    stages; w_h : weight of the height error, 1/mm^2; w_terminal : factor on the last stage's
+    weight; w_in : quadratic input cost (supply and outlet, -); r_in : linear input cost (discourages
+    pumping and venting at once, -); w_du : input-rate cost, -; p_max : pressure limit, Pa;
+    p_margin : the QP keeps the model pressure this far under p_max, Pa (noise, model error);
+    max_iter, eps : OSQP settings; time_limit : OSQP time limit, s (0 = none).
+    """
+
+    sample_period: float = 0.01
+    dt: float = 0.02
+    horizon: int = 15
+    w_h: float = 1.0
+    w_terminal: float = 3.0
+    w_in: float = 1e-3
+    r_in: float = 1e-3
+    w_du: float = 2e-3
+    p_max: float = 45e3
+    p_margin: float = 3e3
+    max_iter: int = 200
+    eps: float = 1e-4
+    time_limit: float = 0.0
+
+    def validate(self) -> "RobotMPCSettings":
+        check_range("robot_mpc", "sample_period", self.sample_period, 1e-3, 1.0, "s")
+        check_range("robot_mpc", "dt", self.dt, 1e-3, 1.0, "s")
+        if not isinstance(self.horizon, int) or not 1 <= self.horizon <= 200:
+            raise ValueError(f"robot_mpc.horizon = {self.horizon!r} must be an integer in [1, 200]")
+        for nm in ("w_h", "w_terminal", "w_in", "r_in", "w_du"):
+            check_range("robot_mpc", nm, getattr(self, nm), 0.0, 1e6)
+        check_range("robot_mpc", "p_max", self.p_max, 1e3, 1e6, "Pa")
+        check_range("robot_mpc", "p_margin", self.p_margin, 0.0, self.p_max, "Pa")
+        if not isinstance(self.max_iter, int) or self.max_iter < 1:
+            raise ValueError(f"robot_mpc.max_iter = {self.max_iter!r} must be an integer >= 1")
+        check_range("robot_mpc", "eps", self.eps, 1e-8, 1e-1)
+        check_range("robot_mpc", "time_limit", self.time_limit, 0.0, 10.0, "s")
+        return self
+
+
+class _Pattern:
+    """A fixed sparsity pattern (rows, cols) and the permutation from entry order to CSC order."""
+
+    def __init__(self, rows, cols, shape):
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        M = sp.csc_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)), shape=shape)
+        M.sort_indices()
+        if M.nnz != rows.size:
+            raise RuntimeError("robot_mpc: duplicate entries in a sparsity pattern")
+        self.perm = M.data.astype(np.int64) - 1
+        self.M = M
+
+    def matrix(self, vals: np.ndarray) -> sp.csc_matrix:
+        M = self.M.copy()
+        M.data = np.asarray(vals, dtype=float)[self.perm]
+        return M
+
+    def data(self, vals: np.ndarray) -> np.ndarray:
+        return np.asarray(vals, dtype=float)[self.perm]
+
+
+class RobotNMPC:
+    """NMPC over n chambers (see module doc).
+
+    ``step(x0, b, W, h_ref, p_meas=None) -> (a, o)``: x0 (n,) estimated scaled gas masses, b (n,)
+    flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m; returns the supply
+    and outlet decisions (n,) each for this period. ``stats`` holds the solve times and fallbacks.
+    """
+
+    def __init__(self, model, n: int, settings: RobotMPCSettings | None = None):
+        if not isinstance(n, int) or n < 1:
+            raise ValueError(f"robot_mpc.n = {n!r} must be an integer >= 1")
+        self.s = (settings or RobotMPCSettings()).validate()
+        self.model = model
+        self.n = n
+        self.topology = model.topology
+        N = self.s.horizon
+        self._lin = model.mapped(model.linearisation(self.s.dt), n * (N + 1))
+        self._build_pattern()
+        self.xbar = None
+        self.abar = np.zeros((n, N))
+        self.obar = np.zeros((n, N))
+        self.prev = np.zeros((2, n))
+        self.fallbacks = 0
+        self.inaccurate = 0
+        self.solve_s: list = []
+        self.status = ""
+        self._solver = None
+
+    # --- pattern ---------------------------------------------------------------------------------
+    def _build_pattern(self) -> None:
+        n, N = self.n, self.s.horizon
+        nb = 3 * N
+        self.nv = n * nb
+        ix = lambda i, blk, k: i * nb + blk * N + k  # noqa: E731  blk 0: x_{k+1}, 1: a_k, 2: o_k
+        self._ix = ix
+        # --- P (upper triangle): diag of every variable, plus input-rate couplings (k-1, k)
+        pr, pc = [], []
+        for i in range(n):
+            for blk in range(3):
+                for k in range(N):
+                    pr.append(ix(i, blk, k))
+                    pc.append(ix(i, blk, k))
+            for blk in (1, 2):
+                for k in range(1, N):
+                    pr.append(ix(i, blk, k - 1))
+                    pc.append(ix(i, blk, k))
+        self._Ppat = _Pattern(pr, pc, (self.nv, self.nv))
+        # --- A: per chamber [dynamics N | pressure N | bounds 2N], then coupling rows
+        ar, ac = [], []
+        rows_per = 4 * N
+        for i in range(n):
+            r0 = i * rows_per
+            for k in range(N):  # x_{k+1} - A_k x_k - Ba a_k - Bo o_k = c_k
+                ar += [r0 + k]
+                ac += [ix(i, 0, k)]
+                if k > 0:
+                    ar += [r0 + k]
+                    ac += [ix(i, 0, k - 1)]
+                ar += [r0 + k, r0 + k]
+                ac += [ix(i, 1, k), ix(i, 2, k)]
+            for k in range(N):  # Px_{k+1} x_{k+1} <= ...
+                ar.append(r0 + N + k)
+                ac.append(ix(i, 0, k))
+            for k in range(N):
+                ar += [r0 + 2 * N + k, r0 + 3 * N + k]
+                ac += [ix(i, 1, k), ix(i, 2, k)]
+        self.m_rows = n * rows_per
+        if self.topology == "shared":
+            for k in range(N):
+                for i in range(n):
+                    ar.append(self.m_rows + k)
+                    ac.append(ix(i, 1, k))
+            self.m_rows += N
+        self._Apat = _Pattern(ar, ac, (self.m_rows, self.nv))
+
+    # --- one period --------------------------------------------------------------------------------
+    def step(self, x0, b, W, h_ref, p_meas=None):
+        import time
+
+        t0 = time.perf_counter()
+        s, n, N = self.s, self.n, self.s.horizon
+        x0 = np.asarray(x0, dtype=float).reshape(n)
+        b = np.asarray(b, dtype=float).reshape(n)
+        W = self.model.clip_load(np.asarray(W, dtype=float).reshape(n))
+        href = np.asarray(h_ref, dtype=float)
+        href = np.broadcast_to(href.reshape(n, -1), (n, N)) if href.size in (n, n * N) else None
+        if href is None:
+            raise ValueError(f"robot_mpc.h_ref: need {n} or {n}x{N} target heights")
+        href_mm = href * 1e3
+        # shifted warm start
+        if self.xbar is None:
+            self.xbar = np.repeat(x0[:, None], N + 1, 1)
+        else:
+            self.xbar = np.hstack([self.xbar[:, 1:], self.xbar[:, -1:]])
+            self.abar = np.hstack([self.abar[:, 1:], self.abar[:, -1:]])
+            self.obar = np.hstack([self.obar[:, 1:], self.obar[:, -1:]])
+        self.xbar[:, 0] = x0
+        xl = self.xbar.reshape(1, -1)
+        wl = np.vstack([np.hstack([self.abar, self.abar[:, -1:]]).reshape(-1),
+                        np.hstack([self.obar, self.obar[:, -1:]]).reshape(-1)])
+        Wl = np.repeat(W, N + 1)[None, :]
+        bl = np.repeat(b, N + 1)[None, :]
+        out = self._lin(xl, wl, Wl, bl)
+        xn, Ax, Bw, h, Hx, p, Px = (np.asarray(o) for o in out)
+        xn = xn.reshape(n, N + 1)
+        Ax = Ax.reshape(n, N + 1)
+        Bw = Bw.reshape(-1, 2)  # the map lays the 1x2 Jacobians side by side
+        Ba, Bo = Bw[:, 0].reshape(n, N + 1), Bw[:, 1].reshape(n, N + 1)
+        h = h.reshape(n, N + 1) * 1e3
+        Hx = Hx.reshape(n, N + 1) * 1e3
+        p = p.reshape(n, N + 1)
+        Px = Px.reshape(n, N + 1)
+        # --- cost
+        wk = np.full(N, s.w_h)
+        wk[-1] *= s.w_terminal
+        Hs = Hx[:, 1:]
+        r = h[:, 1:] - Hs * self.xbar[:, 1:] - href_mm  # h_lin = Hs x + r
+        Pdiag_x = 2 * wk * Hs ** 2 + 1e-6
+        q_x = 2 * wk * Hs * r
+        nb = 3 * N
+        q = np.zeros((n, nb))
+        q[:, :N] = q_x
+        du = np.full(N, 2 * s.w_du)
+        du_diag = np.zeros(N)
+        du_diag[:] = 2 * du[0]
+        du_diag[-1] = du[0]  # the last input has only one rate term after it
+        diag_in = 2 * s.w_in + du_diag
+        q[:, N:2 * N] = s.r_in
+        q[:, 2 * N:] = s.r_in
+        q[:, N] -= 2 * s.w_du * self.prev[0]
+        q[:, 2 * N] -= 2 * s.w_du * self.prev[1]
+        # order of _Ppat entries: per chamber diag (3N) then rate couplings (2(N-1))
+        Pv = np.concatenate([np.concatenate([np.concatenate([Pdiag_x[i], diag_in, diag_in]),
+                                             np.full(2 * (N - 1), -2 * s.w_du)]) for i in range(n)])
+        # --- constraints
+        Av, lo, up = [], [], []
+        pmax = s.p_max - s.p_margin
+        xb = self.xbar
+        Aab = Ax[:, :N]
+        c = xn[:, :N] - Aab * xb[:, :N] - Ba[:, :N] * self.abar - Bo[:, :N] * self.obar
+        rhs = c.copy()
+        rhs[:, 0] += Aab[:, 0] * x0
+        for i in range(n):
+            vals = []
+            for k in range(N):
+                vals.append(1.0)
+                if k > 0:
+                    vals.append(-Aab[i, k])
+                vals += [-Ba[i, k], -Bo[i, k]]
+            vals += list(Px[i, 1:])
+            vals += [1.0] * (2 * N)
+            Av.append(np.array(vals))
+            lo.append(np.concatenate([rhs[i], np.full(N, -np.inf), np.zeros(2 * N)]))
+            up.append(np.concatenate([rhs[i], pmax - p[i, 1:] + Px[i, 1:] * xb[i, 1:], np.ones(2 * N)]))
+        if self.topology == "shared":
+            Av.append(np.ones(N * n))
+            lo.append(np.full(N, -np.inf))
+            up.append(np.ones(N))
+        Av = np.concatenate(Av)
+        lo = np.concatenate(lo)
+        up = np.concatenate(up)
+        qv = q.reshape(-1)
+        if self._solver is None:
+            self._solver = osqp.OSQP()
+            kw = dict(verbose=False, eps_abs=s.eps, eps_rel=s.eps, max_iter=s.max_iter, polishing=False,
+                      warm_starting=True, adaptive_rho=True)
+            if s.time_limit > 0:
+                kw["time_limit"] = s.time_limit
+            self._solver.setup(P=self._Ppat.matrix(Pv), q=qv, A=self._Apat.matrix(Av), l=lo, u=up, **kw)
+        else:
+            self._solver.update(Px=self._Ppat.data(Pv), Ax=self._Apat.data(Av), q=qv, l=lo, u=up)
+        res = self._solver.solve()
+        status = str(res.info.status)
+        self.status = status
+        usable = res.x is not None and np.all(np.isfinite(res.x)) and \
+            status in ("solved", "solved inaccurate", "maximum iterations reached")
+        if status != "solved":
+            self.inaccurate += 1
+        if not usable:
+            self.fallbacks += 1
+            a = np.zeros(n)
+            o = np.zeros(n)
+            self.abar[:] = 0.0
+            self.obar[:] = 0.0
+        else:
+            z = res.x.reshape(n, nb)
+            self.xbar[:, 1:] = z[:, :N]
+            self.abar = np.clip(z[:, N:2 * N], 0.0, 1.0)
+            self.obar = np.clip(z[:, 2 * N:], 0.0, 1.0)
+            a = self.abar[:, 0].copy()
+            o = self.obar[:, 0].copy()
+            if self.topology == "shared" and a.sum() > 1.0:
+                a /= a.sum()
+        self.prev = np.vstack([a, o])
+        self.solve_s.append(time.perf_counter() - t0)
+        return a, o
