@@ -1,0 +1,13 @@
+"""Controllers of one HBMA chamber's height, all with ``step(t, estimate, reference) -> Command``.
+
+- :class:`controllers.mpc.NMPC` (settings :class:`controllers.mpc.MPCSettings`): nonlinear MPC,
+  variant 'rti_osqp' (real-time iteration, one OSQP QP per step: fast) or 'ipopt' (multiple
+  shooting to convergence: accurate), on the gas-mass model of :mod:`controllers.prediction`.
+- :class:`controllers.baselines.PIDController`, :class:`controllers.baselines.BangBangController`:
+  the baselines the MPC is measured against.
+- :mod:`controllers.scene`: the ``[controller]`` scenario section and the closed loop
+  rig -> EKF -> controller -> rig; :mod:`controllers.bench`: ``hbma-ctrl bench mpc``;
+  :mod:`controllers.dompc_ref`: do-mpc on the same OCP (benchmark-only extra).
+
+Submodules are imported on use (this package imports nothing heavy by itself).
+"""

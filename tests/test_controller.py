@@ -242,3 +242,12 @@ def test_preview_anticipates_a_coming_step(model):
     assert hold.speed < 0.05 and ahead.speed > 0.5
     with pytest.raises(ValueError, match="preview"):
         c.step(0.02, e, Reference(5e-3), preview=[float("nan")])
+
+
+def test_every_settings_field_is_documented():
+    from dataclasses import fields
+
+    for cls in (MPCSettings, PIDSettings, BangBangSettings):
+        doc = cls.__doc__
+        for f in fields(cls):
+            assert f"{f.name} :" in doc or f"{f.name}," in doc, f"{cls.__name__}.{f.name} is undocumented"
