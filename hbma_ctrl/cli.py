@@ -297,7 +297,7 @@ def bench_sim(
     _choice("--material", material, MATERIALS)
     _range("--workers", workers, 1, 256)
     _range("--repeat", repeat, 1, 100)
-    con = _console(132)
+    con = _console(160)
 
     def show(row):
         con.print(f"  {row.fidelity:12s} {row.integrator:5s} dt {_dt_text(row):>14s}  wall {row.wall_s:7.2f} s  "
@@ -309,12 +309,13 @@ def bench_sim(
                         f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
     for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean", "h NRMSD max",
               "p NRMSD mean", "p NRMSD max", "target"):
-        table.add_column(c, justify="right")
+        table.add_column(c, justify="right", no_wrap=True)
     for r in rows:
-        table.add_row(r.fidelity, r.integrator, _dt_text(r) + (" *default*" if r.default else ""), f"{r.wall_s:.2f}",
+        table.add_row(r.fidelity, r.integrator, _dt_text(r) + (" *" if r.default else ""), f"{r.wall_s:.2f}",
                       f"{r.cpu_s:.2f}", str(r.n_diverged), f"{r.height_nrmsd_mean:.2e}", f"{r.height_nrmsd_max:.2e}",
                       f"{r.pressure_nrmsd_mean:.2e}", f"{r.pressure_nrmsd_max:.2e}", "yes" if r.meets_target else "no")
     con.print(table)
+    con.print("* the setting `hbma-ctrl protocol` uses by default (fidelity auto: free for 0 g, quasi_static loaded)")
     con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}")
 
 
