@@ -89,8 +89,10 @@ def _step_function(model, s: ChamberEKFSettings) -> ca.Function:
     Pm = A @ P @ A.T + Q
     xm = ca.vertcat(x_pred, X[1])
     pfun = model.pm._P
-    p_pred = pfun(ca.vertcat(xm[0], Wi))
-    Hx = ca.jacobian(p_pred, xm)
+    pe = pfun(ca.vertcat(xs, W))
+    pjac = ca.Function("pjac", [xs, W], [pe, ca.jacobian(pe, xs)])
+    p_pred, dp_dx = pjac(xm[0], Wi)
+    Hx = ca.horzcat(dp_dx, 0)
     R = s.noise_std ** 2 + (s.model_rel_std * p_pred) ** 2
     S = Hx @ Pm @ Hx.T + R
     K = Pm @ Hx.T / S * use
