@@ -142,8 +142,9 @@ class DoMPCController:
                 self._started = True
             u = np.asarray(self.mpc.make_step(x0)).ravel()
             ok = bool(self.mpc.solver_stats.get("success", True)) and np.all(np.isfinite(u))
-        except Exception:  # noqa: BLE001 - a benchmark reference: count and go safe
+        except RuntimeError as exc:  # a casadi/IPOPT error inside make_step: count it, go safe
             ok, u = False, None
+            self.last["error"] = str(exc)
         if not ok:
             self.failures += 1
             u = SAFE_COMMAND.as_array()
