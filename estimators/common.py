@@ -61,6 +61,11 @@ class FilterSettings:
     change_std : one sigma added to the load on a detected change, N, [0, 1000].
     load_min, load_max : the load estimate is kept in [load_min, load_max], N.
     mass_init_std : one sigma of the initial gas mass, kg.
+    output_rel_std : relative model-form error added to the reported variances of h1, h2, h and F
+        (-), [0, 1]: what the state's covariance cannot know (the rig's platform dynamics and
+        cap-model mismatch); it changes the reported std and NEES, not the estimate.
+    force_std_floor : absolute model-form error added to the reported force std, N, [0, 100] (the
+        load is only weakly separable from the modulus: a resolution of about 0.1 N).
     cov_floor : eigenvalue floor of the covariance, relative to the state scales (m: 1e-6 kg,
         W: 1 N), [0, 1e-3].
     compile : compile the model to C (cached) for speed; False = casadi's virtual machine.
@@ -93,6 +98,8 @@ class FilterSettings:
     load_min: float = 0.0
     load_max: float = 100.0
     mass_init_std: float = 1e-8
+    output_rel_std: float = 0.04
+    force_std_floor: float = 0.1
     cov_floor: float = 1e-12
     compile: bool = True
 
@@ -129,6 +136,8 @@ class FilterSettings:
         check_range(w, "load_min", self.load_min, -10.0, 0.0, "N")
         check_range(w, "load_max", self.load_max, 0.0, 1e4, "N", lo_open=True)
         check_range(w, "mass_init_std", self.mass_init_std, 0.0, 1e-3, "kg", lo_open=True)
+        check_range(w, "output_rel_std", self.output_rel_std, 0.0, 1.0)
+        check_range(w, "force_std_floor", self.force_std_floor, 0.0, 100.0, "N")
         check_range(w, "cov_floor", self.cov_floor, 0.0, 1e-3)
         if not isinstance(self.compile, bool):
             raise ValueError(f"{w}.compile = {self.compile!r} must be true or false")

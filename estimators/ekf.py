@@ -60,6 +60,8 @@ OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
 _Y = {n: i for i, n in enumerate(OUT_NAMES)}
 #: the pump-flow and modulus factors are kept in this range (off by more is a broken rig, not a bias)
 FACTOR_RANGE = (0.5, 2.0)
+#: a resting load below this (N) may be no load at all: the flat height is then uncertain
+LIGHT_LOAD = 0.5
 #: absolute one sigma of the load right after a detected lift-off, N (the detection delay)
 LIFT_LOAD_ABS_STD = 0.2
 
@@ -350,6 +352,17 @@ class EKF:
         self._H = out[2].copy()
         self._p_post = self._p_pred
         C = out[4].reshape(5, 5, order="F").copy()
+        # model-form error of the shape map (the rig is not the model): relative floor on h1, h2,
+        # h and F; the state covariance alone only knows the parameters the state carries
+        rel = s.output_rel_std
+        if rel > 0:
+            for i in (0, 1, 2, 3):
+                C[i, i] += (rel * y[i]) ** 2
+        C[3, 3] += s.force_std_floor ** 2
+        if self.resting and self.x[1] < LIGHT_LOAD:
+            # flat under a light (or no) load: a membrane this close to zero pressure may still
+            # bulge by up to about the flat cap height h1; say so in the height's spread
+            C[2, 2] += (0.5 * y[0]) ** 2
         self.last_output_cov = C
         std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
         h1, h2 = float(y[_Y["h1"]]), float(y[_Y["h2"]])

@@ -1,6 +1,6 @@
 """A bank of per-chamber EKFs for the robot, stepped as one mapped casadi call (SI).
 
-One filter per chamber, each from its own pressure sensor. State ``[x, b]``: the scaled gas mass of
+One filter per chamber, each from its own pressure sensor. State ``[x, b, k]``: the scaled gas mass of
 :class:`controllers.robot_model.ChamberModel` and the pump-flow factor ``b`` (a slow random walk; it
 absorbs the rig's weaker pump and its larger dead volume, which in the gas-mass equation both only
 scale the inflow per command). The load ``W`` of each chamber is not a state: the robot's statics
@@ -12,11 +12,16 @@ be block diagonal anyway; the only coupling, the loads, enters through W, whose 
 against the modulus mismatch (see ``model_rel_std``). Nine 2-state filters cost a fraction of one
 18-state filter.
 
-No modulus state: the stiffer rig membrane raises the pressure of a given gas mass; the filter treats
-it as measurement-model error (``model_rel_std``), as the single-chamber EKF does. Near the balloon
-limit point the pressure hardly depends on the gas mass (dPp/dx -> 0): there the filter leans on the
-flow model (the gas mass integrates the commanded flow), which is what keeps the far branch
-observable at all.
+A modulus factor ``k`` (third state, a slow random walk; see
+:meth:`controllers.robot_model.ChamberModel.outputs_expr`): without it a softer rig membrane, whose
+pressure peaks lower, drags the filter back onto the near branch as soon as the pressure falls past
+the (earlier, lower) true limit point — the falling pressure is explained by less gas instead of by
+a far-branch membrane (seen in the first runs: a -15 % modulus chamber estimated at 2.5 mm while it
+stood at 15 mm). At rest k is unobservable (the flat membrane's pressure does not depend on it) and
+b is learnt; after lift-off the curvature of p(gas mass) and the peak value tell k. Near the limit
+point the pressure hardly depends on the gas mass (dp/dx -> 0): there the filter leans on the flow
+model (the gas mass integrates the commanded flow with the learnt b), which is what keeps the far
+branch observable at all.
 
 All chambers are stepped by ONE call of the casadi ``map`` of the single-chamber step (predict with
 rk4 + Jacobians, covariance predict, scalar Joseph update), so 9 filters cost about one call.
@@ -48,12 +53,14 @@ class ChamberEKFSettings:
 
     sample_period: float = 0.01
     noise_std: float = 200.0
-    model_rel_std: float = 0.03
+    model_rel_std: float = 0.01
     x_abs_std: float = 2e-4
     x_rel_std: float = 0.1
     b_rate_std: float = 0.3
     b0: float = 1.0
     b0_std: float = 0.25
+    k0_std: float = 0.12
+    k_rate_std: float = 0.01
     sensor_range: float = 50e3
 
     def validate(self) -> "ChamberEKFSettings":
@@ -65,47 +72,50 @@ class ChamberEKFSettings:
         check_range("robot_ekf", "b_rate_std", self.b_rate_std, 0.0, 10.0)
         check_range("robot_ekf", "b0", self.b0, 0.5, 2.0)
         check_range("robot_ekf", "b0_std", self.b0_std, 0.0, 2.0)
+        check_range("robot_ekf", "k0_std", self.k0_std, 0.0, 1.0)
+        check_range("robot_ekf", "k_rate_std", self.k_rate_std, 0.0, 10.0)
         check_range("robot_ekf", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
         return self
 
 
 B_RANGE = (0.5, 2.0)
+K_RANGE = (0.6, 1.6)
 
 
 def _step_function(model, s: ChamberEKFSettings) -> ca.Function:
-    """Single-chamber EKF step (x[2], P[3], w[2], W, z, use) -> (x+[2], P+[3], h, p, nis)."""
-    xs, w, W, b = model._x, model._w, model._W, model._b
+    """Single-chamber EKF step (X[3], P[9], w[2], W, z, use) -> (X+[3], P+[9], h, p, nis)."""
+    xs, w, W, b, k = model._x, model._w, model._W, model._b, model._k
     xn = model.discrete_expr(s.sample_period)
-    fx = ca.Function("fx", [xs, w, W, b], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, b)])
-    X = ca.SX.sym("X", 2)
-    Pv = ca.SX.sym("P", 3)
+    fx = ca.Function("fx", [xs, w, W, b, k], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, b), ca.jacobian(xn, k)])
+    he, pe, _ = model.outputs_expr(xs, W, k)
+    pj = ca.Function("pj", [xs, W, k], [pe, ca.jacobian(pe, xs), ca.jacobian(pe, k), he])
+    X = ca.SX.sym("X", 3)
+    Pv = ca.SX.sym("P", 9)
     wi = ca.SX.sym("wi", 2)
     Wi, z, use = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use")
-    x_pred, Ax, Ab = fx(X[0], wi, Wi, X[1])
-    A = ca.vertcat(ca.horzcat(Ax, Ab), ca.horzcat(0, 1))
-    P = ca.vertcat(ca.horzcat(Pv[0], Pv[1]), ca.horzcat(Pv[1], Pv[2]))
+    x_pred, Ax, Ab, Ak = fx(X[0], wi, Wi, X[1], X[2])
+    A = ca.vertcat(ca.horzcat(Ax, Ab, Ak), ca.horzcat(0, 1, 0), ca.horzcat(0, 0, 1))
+    P = ca.reshape(Pv, 3, 3)
     dx = x_pred - X[0]
-    Q = ca.diag(ca.vertcat(s.x_abs_std ** 2 + (s.x_rel_std * dx) ** 2, s.b_rate_std ** 2 * s.sample_period))
+    Q = ca.diag(ca.vertcat(s.x_abs_std ** 2 + (s.x_rel_std * dx) ** 2, s.b_rate_std ** 2 * s.sample_period,
+                           s.k_rate_std ** 2 * s.sample_period))
     Pm = A @ P @ A.T + Q
-    xm = ca.vertcat(x_pred, X[1])
-    pfun = model.pm._P
-    pe = pfun(ca.vertcat(xs, W))
-    pjac = ca.Function("pjac", [xs, W], [pe, ca.jacobian(pe, xs)])
-    p_pred, dp_dx = pjac(xm[0], Wi)
-    Hx = ca.horzcat(dp_dx, 0)
+    xm = ca.vertcat(x_pred, X[1], X[2])
+    p_pred, dpdx, dpdk, _ = pj(xm[0], Wi, xm[2])
+    Hx = ca.horzcat(dpdx, 0, dpdk)
     R = s.noise_std ** 2 + (s.model_rel_std * p_pred) ** 2
     S = Hx @ Pm @ Hx.T + R
     K = Pm @ Hx.T / S * use
     innov = z - p_pred
     xp = xm + K * innov
-    IKH = ca.DM.eye(2) - K @ Hx
+    IKH = ca.DM.eye(3) - K @ Hx
     Pp = IKH @ Pm @ IKH.T + K @ K.T * R
     Pp = 0.5 * (Pp + Pp.T)
-    h = model.pm._H(ca.vertcat(xp[0], Wi))
-    p_post = pfun(ca.vertcat(xp[0], Wi))
+    p_post, dhx, _, h = pj(xp[0], Wi, xp[2])
+    hj = ca.Function("hj", [xs, W, k], [ca.jacobian(he, xs)])
     return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use],
-                       [xp, ca.vertcat(Pp[0, 0], Pp[0, 1], Pp[1, 1]), h, p_post, innov ** 2 / S * use,
-                        Hx[0] * ca.sqrt(Pp[0, 0])])
+                       [xp, ca.reshape(Pp, 9, 1), h, p_post, innov ** 2 / S * use,
+                        ca.fabs(hj(xp[0], Wi, xp[2])) * ca.sqrt(Pp[0, 0])])
 
 
 class ChamberEKFBank:
@@ -127,9 +137,6 @@ class ChamberEKFBank:
         if key not in model._cache:
             model._cache[key] = _step_function(model, self.settings)
         self._fun = model.mapped(model._cache[key], n)
-        self._hfun = model.mapped(ca.Function("hx", [model._x, model._W],
-                                              [ca.jacobian(model.pm._H(ca.vertcat(model._x, model._W)),
-                                                           model._x)]), n)
         self.X = None
         self.P = None
         self.last: dict = {}
@@ -139,9 +146,10 @@ class ChamberEKFBank:
         p0 = np.nan_to_num(np.asarray(p0, dtype=float).reshape(self.n), nan=0.0)
         s = self.settings
         x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
-        self.X = np.vstack([x0, np.full(self.n, s.b0)])
+        self.X = np.vstack([x0, np.full(self.n, s.b0), np.ones(self.n)])
         sx = max(s.noise_std / self.model.actuator.p_env, 1e-3)
-        self.P = np.vstack([np.full(self.n, sx ** 2), np.zeros(self.n), np.full(self.n, s.b0_std ** 2)])
+        P0 = np.diag([sx ** 2, s.b0_std ** 2, s.k0_std ** 2]).reshape(9, 1)
+        self.P = np.repeat(P0, self.n, 1)
 
     def step(self, z, w, W) -> dict:
         z = np.asarray(z, dtype=float).reshape(self.n)
@@ -156,10 +164,10 @@ class ChamberEKFBank:
         X = np.asarray(out[0])
         X[0] = np.clip(X[0], -0.05, self.model.pm.grid.x[-1])
         X[1] = np.clip(X[1], *B_RANGE)
+        X[2] = np.clip(X[2], *K_RANGE)
         self.X = X
         self.P = np.asarray(out[1])
-        hx = np.asarray(self._hfun(X[0][None, :], Wv[None, :])).ravel()
-        self.last = {"x": X[0].copy(), "b": X[1].copy(), "h": np.maximum(np.asarray(out[2]).ravel(), 0.0),
-                     "p": np.asarray(out[3]).ravel(), "h_std": np.abs(hx) * np.sqrt(np.maximum(self.P[0], 0)),
-                     "nis": np.asarray(out[4]).ravel(), "used": use > 0}
+        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(),
+                     "h": np.maximum(np.asarray(out[2]).ravel(), 0.0), "p": np.asarray(out[3]).ravel(),
+                     "h_std": np.asarray(out[5]).ravel(), "nis": np.asarray(out[4]).ravel(), "used": use > 0}
         return self.last

@@ -104,3 +104,36 @@ def test_nrmsd_is_spec_eq16():
     assert math.isnan(nrmsd(np.zeros(5), np.zeros(5)))  # constant reference: undefined
     with pytest.raises(ValueError, match="same non-zero length"):
         nrmsd(np.zeros(3), np.zeros(4))
+
+
+def test_bench_sim_rows_reference_cache_and_outputs(tmp_path, monkeypatch):
+    import json
+
+    import hbma_ctrl.bench_sim as bench
+
+    short = protocol_trials("nh", loads_g=[0.0, 200.0], speeds_pct=[100.0], t0_mm=[3.0], r1_mm=[12.5],
+                            t_inflate_s=0.4, duration_s=0.8)
+    monkeypatch.setattr(bench, "bench_trials", lambda material, quick: short)
+    grid = {"quasi_static": {"euler": (2.0,), "rk4": (5.0, 10.0)}}
+    rows = bench.run_bench(tmp_path, grid=grid, progress=False)
+    # the explicit rk4 5 ms row equals the default (5 ms free and loaded) and is folded into it
+    assert [(r.integrator, r.dt_ms) for r in rows] == [("rk4", None), ("euler", 2.0), ("rk4", 10.0)]
+    assert [r.default for r in rows] == [True, False, False]
+    by = {(r.integrator, r.dt_ms): r for r in rows}
+    assert all(r.n_trials == 2 and r.n_diverged == 0 for r in rows)
+    # rk4 beats euler on accuracy; every error is small but not exactly zero (a real comparison)
+    assert 0 < by[("rk4", None)].pressure_nrmsd_max < by[("euler", 2.0)].pressure_nrmsd_max < 0.05
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert len(data["rows"]) == 3 and data["meta"]["reference"]["integrator"] == "radau"
+    assert (tmp_path / "bench.csv").read_text().splitlines()[0].startswith("integrator,fidelity,dt_ms")
+    # the cached reference is reused: no radau run the second time
+    calls = []
+    real = bench.simulate_trials
+
+    def spy(trials, settings=None, *a, **k):
+        calls.append(settings.integrator if settings else None)
+        return real(trials, settings, *a, **k)
+
+    monkeypatch.setattr(bench, "simulate_trials", spy)
+    again = bench.reference(short, "quasi_static", tmp_path)
+    assert calls == [] and set(again) == {t.name for t in short}
