@@ -217,9 +217,14 @@ def _layer_pose(rows, t: float) -> tuple:
     return cur
 
 
-def chamber_targets(design: RobotDesign, targets: dict, t: float) -> np.ndarray:
-    """Target chamber heights (3N,), m, at time t."""
+def chamber_targets(design: RobotDesign, targets: dict, t: float, cache: dict | None = None) -> np.ndarray:
+    """Target chamber heights (3N,), m, at time t (``cache``: a dict reused between calls)."""
     N = design.n_layers
+    if cache is not None:
+        key = tuple(sum(1 for r in targets[k] if t + 1e-9 >= r[0]) for k in range(N))
+        if key not in cache:
+            cache[key] = chamber_targets(design, targets, t)
+        return cache[key]
     c, th, ps = np.zeros(N), np.zeros(N), np.zeros(N)
     for k in range(N):
         _, c[k], th[k], ps[k] = _layer_pose(targets[k], t)
@@ -325,12 +330,13 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     status = "ok"
     wall0 = time.perf_counter()
     plim = rp.pressure_limit
+    tcache: dict = {}
 
     def rec(j, z, est):
         tr = plant.truth()
-        tt[j] = plant.t
+        tt[j] = round(plant.t, 9)
         H[j], P[j], LM[j] = np.maximum(tr["h"], 0.0), tr["p"], tr["lam"]
-        HR[j] = chamber_targets(d, targets, plant.t)
+        HR[j] = chamber_targets(d, targets, plant.t, tcache)
         PM[j] = z
         HE[j] = est["h"] if est else 0.0
         BE[j] = est["b"] if est else 1.0
@@ -345,10 +351,10 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
         t1 = time.perf_counter()
         W_used = np.maximum(load_sharing(d, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
         if controller == "mpc":
-            href = np.column_stack([chamber_targets(d, targets, t + (k + 1) * dtp) for k in range(N)])
-            a, o = ctrl.step(est["x"], est["b"], W_used, href)
+            href = np.column_stack([chamber_targets(d, targets, t + (k + 1) * dtp, tcache) for k in range(N)])
+            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"])
         else:
-            a, o = ctrl.step(z, W_used, chamber_targets(d, targets, t))
+            a, o = ctrl.step(z, W_used, chamber_targets(d, targets, t, tcache))
         guard = np.isfinite(z) & (z >= plim - interlock_margin) & (a > 0)
         if guard.any():
             interlocks += int(guard.sum())
@@ -356,7 +362,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
         Uc = commands_from_inputs(a, o, rp.topology)
         t2 = time.perf_counter()
         st[j], se[j], sc[j] = t2 - t0, t1 - t0, t2 - t1
-        w_prev = np.vstack([Uc[0] if rp.topology == "per_chamber" else Uc[1], Uc[2]])
+        w_prev = Uc[1:].copy()
         plant.apply(Uc)
         A[j + 1], O[j + 1] = a, o
         rec(j + 1, z, est)

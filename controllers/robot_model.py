@@ -19,10 +19,14 @@ Added here (wrapping, not editing, the prediction model):
   in the gas-mass equation both only scale the inflow per command), estimated by the EKF and passed
   to the NMPC (offset-free prediction of the inflow);
 - the command parametrisation of the pneumatic topology. Each chamber has two decision inputs
-  ``w = [a, o]``: its supply ``a`` and its outlet duty ``o`` (0-1).
-  'per_chamber' (one compressor per chamber): ``u = [speed a, inlet 1, outlet o]``;
-  'shared' (one compressor feeding every chamber through its inlet valve): the pump runs at full
-  speed while any chamber draws, and ``a`` is the chamber's inlet duty: ``u = [1, a, o]``. The
+  ``w = [a, o]``: its supply ``a`` and its outlet duty ``o`` (0-1). In both topologies ``a`` is
+  the inlet valve's duty with the pump at full speed, ``u = [1, a, o]``: the inflow is then linear
+  in ``a`` at every pressure. (Metering by pump speed instead has a dead zone: below the speed
+  whose stall pressure is the chamber pressure the pump delivers nothing, the linearisation at a
+  small speed has zero gain and the RTI never starts pumping on the far branch — seen in a first
+  version.) 'per_chamber' (one compressor per chamber): chamber i's pump runs while its inlet is
+  open; 'shared' (one compressor feeding every chamber through its inlet valve): the pump runs
+  at full speed while any chamber draws. The
   chambers share the pump's flow; as long as the inlet duties sum to at most 1 per instant, each
   chamber gets ``a`` times the pump's flow at its own pressure (the manifold model of the robot
   rig, :class:`controllers.robot_loop.RobotRig`), so the only coupling is the linear budget
@@ -48,15 +52,15 @@ TOPOLOGIES = ("per_chamber", "shared")
 def commands_from_inputs(a: np.ndarray, o: np.ndarray, topology: str) -> np.ndarray:
     """Per-chamber decisions (supply a, outlet o; each (n,), 0-1) -> plant inputs U (3 x n).
 
-    per_chamber: [speed a, inlet 1 while a > 0, outlet o]; shared: [pump speed 1 while any inlet is
-    open (else 0), inlet duty a, outlet o] (the same speed in every column: one pump).
+    per_chamber: [speed 1 while a > 0 (else 0), inlet duty a, outlet o]; shared: [pump speed 1 while
+    any inlet is open (else 0), inlet duty a, outlet o] (the same speed in every column: one pump).
     """
     a = np.clip(np.asarray(a, dtype=float), 0.0, 1.0)
     o = np.clip(np.asarray(o, dtype=float), 0.0, 1.0)
     a = np.where(a < 1e-4, 0.0, a)
     o = np.where(o < 1e-4, 0.0, o)
     if topology == "per_chamber":
-        return np.vstack([a, (a > 0).astype(float), o])
+        return np.vstack([(a > 0).astype(float), a, o])
     if topology == "shared":
         s = 1.0 if np.any(a > 0) else 0.0
         return np.vstack([np.full(a.shape, s), a, o])
@@ -86,54 +90,79 @@ class ChamberModel:
         P = {n: float(v) for n, v in zip(fid.space.names, self.pm.theta)}
         x, W, b = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("b")
         w = ca.SX.sym("w", 2)  # [supply a, outlet o]
-        if topology == "per_chamber":
-            u = ca.vertcat(w[0], 1.0, w[1])
-        else:
-            u = ca.vertcat(1.0, w[0], w[1])
-        xw = ca.vertcat(x, W)
-        p = self.pm._P(xw)
+        u = ca.vertcat(1.0, w[0], w[1])  # pump at full speed while the inlet is open, inlet duty a
+        k = ca.SX.sym("k")
+        self._k = k
+        hx, p, lam = self.outputs_expr(x, W, k)
         Pb = dict(P)
         Pb["flow_scale"] = P["flow_scale"] * b
         q, _, _ = ph.net_flow(u, p, Pb, fid.table)
-        self._xdot = ca.Function("xdot", [x, w, W, b], [q * a.R * a.T / (a.p_env * a.V0)])
+        self._xdot = ca.Function("xdot", [x, w, W, b, k], [q * a.R * a.T / (a.p_env * a.V0)])
         self._x, self._w, self._W, self._b = x, w, W, b
+        self.out = ca.Function("out", [x, W, k], [hx, p, lam], ["x", "W", "k"], ["h", "p", "lam"])
         self._cache: dict = {}
         self.x_rest_max = -0.05  # the tables start here (scaled mass below ambient)
 
     # --- building blocks -------------------------------------------------------------------------
-    def discrete_expr(self, dt: float, substeps: int = 1):
-        """x+ (SX expression in the model's symbols) after dt s, rk4 with inputs held."""
-        x, w, W, b = self._x, self._w, self._W, self._b
+    def outputs_expr(self, x, W, k, iters: int = 3):
+        """(h, p, lam) of a chamber whose membrane modulus is k times nominal (SX expressions).
+
+        For a neo-Hookean-type membrane the pressure of a given shape scales with the modulus, so a
+        chamber of modulus k under load W has the shape of a nominal chamber under W / k at k times
+        its pressure; its gas mass then is ``x + 1 = (x1 + 1)(k p1 + p_env) / (p1 + p_env)`` with
+        (x1, p1) the nominal state and pressure: solved for x1 by a fixed-point iteration (a
+        contraction with factor ~|k - 1|). Resting chambers come out exact (p = x p_env for any k).
+        """
+        pe = self.actuator.p_env
+        Wk = W / k
+        xe = x
+        for _ in range(iters):
+            p1 = self.pm._P(ca.vertcat(xe, Wk))
+            xe = (x + 1) * (p1 + pe) / (k * p1 + pe) - 1
+        xw = ca.vertcat(xe, Wk)
+        return self.pm._H(xw), k * self.pm._P(xw), self.pm._L(xw)
+
+    def discrete_expr(self, dt: float, substeps: int = 1, method: str = "rk4"):
+        """x+ (SX expression in the model's symbols) after dt s, rk4 or euler with inputs held."""
+        x, w, W, b, k = self._x, self._w, self._W, self._b, self._k
         h = dt / substeps
         xn = x
         f = self._xdot
         for _ in range(substeps):
-            k1 = f(xn, w, W, b)
-            k2 = f(xn + h / 2 * k1, w, W, b)
-            k3 = f(xn + h / 2 * k2, w, W, b)
-            k4 = f(xn + h * k3, w, W, b)
+            if method == "euler":
+                xn = xn + h * f(xn, w, W, b, k)
+                continue
+            k1 = f(xn, w, W, b, k)
+            k2 = f(xn + h / 2 * k1, w, W, b, k)
+            k3 = f(xn + h / 2 * k2, w, W, b, k)
+            k4 = f(xn + h * k3, w, W, b, k)
             xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         return xn
 
-    def linearisation(self, dt: float, substeps: int = 1) -> ca.Function:
-        """(x, w, W, b) -> (x+, dx+/dx, dx+/dw (1x2), h, dh/dx, p, dp/dx): one chamber, one stage."""
-        key = ("lin", dt, substeps)
+    def linearisation(self, dt: float, substeps: int = 1, method: str = "rk4") -> ca.Function:
+        """(x, w, W, b, k) -> (x+, dx+/dx, dx+/dw (1x2), h, dh/dx, p, dp/dx): one chamber, one stage."""
+        key = ("lin", dt, substeps, method)
         if key not in self._cache:
-            x, w, W, b = self._x, self._w, self._W, self._b
-            xn = self.discrete_expr(dt, substeps)
-            xw = ca.vertcat(x, W)
-            h = self.pm._H(xw)
-            p = self.pm._P(xw)
+            x, w, W, b, k = self._x, self._w, self._W, self._b, self._k
+            xn = self.discrete_expr(dt, substeps, method)
+            h, p, _ = self.outputs_expr(x, W, k)
             self._cache[key] = ca.Function(
-                "lin", [x, w, W, b],
+                "lin", [x, w, W, b, k],
                 [xn, ca.jacobian(xn, x), ca.jacobian(xn, w), h, ca.jacobian(h, x), p, ca.jacobian(p, x)])
         return self._cache[key]
 
-    def mapped(self, fun: ca.Function, n: int) -> ca.Function:
-        """fun mapped over n columns (cached per model)."""
-        key = ("map", id(fun), n)
+    def mapped(self, fun: ca.Function, n: int, compile: bool = True) -> ca.Function:
+        """fun mapped over n columns (cached per model); with ``compile`` the map is generated as C
+        and compiled by :func:`estimators.fastcall.compiled` (the "ekf" helper's public helper:
+        cached on disk by source hash; falls back to casadi's virtual machine without a compiler)."""
+        key = ("map", id(fun), n, compile)
         if key not in self._cache:
-            self._cache[key] = fun.map(n)
+            f = fun.map(n)
+            if compile:
+                from estimators.fastcall import compiled
+
+                f = compiled(f)
+            self._cache[key] = f
         return self._cache[key]
 
     # --- numeric helpers ---------------------------------------------------------------------------
