@@ -1,24 +1,27 @@
-"""The estimators' model: the quasi-static HBMA with the load as a state, as casadi Functions.
+"""The estimators' model: the quasi-static HBMA with the load and two factors as states (casadi).
 
-State ``x = [m, W]`` (SI: gas mass kg, load N), with the membrane shape ``s = (h1, h2)`` algebraic:
+State ``x = [m, W, b, k]`` (SI: gas mass kg, load N, pump-flow factor -, modulus factor -); the
+membrane shape ``s = (h1, h2)`` is algebraic:
 
-- contact (``pi r1^2 p_rest(m) > W``, ``p_rest = m R T / V0 - p_env``): ``G(h1, h2) = m R T`` and
-  ``F(h1, h2) = W`` (SPEC 1-4), solved by Newton from a warm start (the previous shape). Free
-  inflation is the contact branch with ``W = 0`` (then ``h2 = 0``); the formulas of SPEC 1-3 extend
-  smoothly to small negative ``W`` (``h2 < 0``), so a load estimate near zero never hits a kink;
-  reported ``h2`` and ``F`` are clipped at 0.
-- resting (otherwise): the membrane is flat under the plate, ``V = V0``, ``p = p_rest(m)``, ``h = 0``.
+- contact (``pi r1^2 p_rest(m) > max(W, REST_EPS)``, ``p_rest = m R T / V0 - p_env``):
+  ``G(h1, h2) = m R T`` and ``F(h1, h2) + EPS_K h2 = W`` (SPEC 1-4; EPS_K a tiny stiffness that
+  fixes h2 = 0 where the pressure vanishes), solved by Newton from a warm start (the previous
+  shape). Free inflation is the contact branch with ``W = 0`` (then ``h2 = 0``).
+- resting (otherwise, or forced by the filter's sticky rest mode, input ``hold``): the membrane is
+  flat under the plate, ``V = V0``, ``p = p_rest(m)``, ``h = 0``.
 
-The dynamics are the lead's quasi-static fidelity (:class:`hbma_ctrl.model.QuasiStatic`) with its
-platform weight ``P["W"]`` replaced by the state ``W`` (a random walk, ``W' = 0``): the same
-index-reduced ODE on ``[m, h1, h2]``, integrated by the simulator's fixed-step schemes ('euler' or
-'rk4', ``nsub`` sub-steps per sample) and projected back onto the constraints after every sub-step,
-exactly as :meth:`hbma_ctrl.model.Fidelity.step_function` does. The mode is fixed over a sample
-(taken from the state at its start). The discrete map and its Jacobian ``A = dx+/dx`` come from one
-casadi Function (algorithmic differentiation through the integrator and the Newton iterations), so
-a predict step is a single call. The measurement Jacobian ``H = dp/dx`` is the implicit-function
-derivative at the projected shape (exact where Newton has converged):
-``d(h1, h2)/d(m, W) = J^-1 diag(R T, 1)`` with ``J = d(G, F)/d(h1, h2)``.
+``b`` multiplies the compressor map (``P["flow_scale"]``), ``k`` every modulus of the material
+(moduli enter the pressure linearly, so ``p = k p_nominal`` at a given shape). The dynamics are the
+lead's quasi-static fidelity (:class:`hbma_ctrl.model.QuasiStatic`) with its platform weight
+replaced by the state ``W`` (random walks: ``W' = b' = k' = 0``): the same index-reduced ODE on
+``[m, h1, h2]``, integrated by the simulator's fixed-step schemes ('euler' or 'rk4', ``nsub``
+sub-steps per sample) and projected back onto the constraints after every sub-step, as
+:meth:`hbma_ctrl.model.Fidelity.step_function` does. The mode is fixed over a sample. One casadi
+Function gives the discrete map, its Jacobian ``A = dx+/dx`` (algorithmic differentiation through
+the integrator and the Newton iterations), ``H = dp/dx`` and the covariance prediction
+``sym(A P A^T + Q)``; another the Joseph-form update; a third the outputs (h1, h2, h, F, p) with
+their Jacobian by the implicit-function rule (``dh/dx = -r_h^-1 r_x`` for the constraint residual
+r) and covariance ``D P D^T``. All are compiled to C (:mod:`estimators.fastcall`).
 """
 
 from __future__ import annotations

@@ -16,26 +16,34 @@ Regimes (from the rig's truth and the command): ``resting`` (membrane flat under
 ``free`` (no contact), ``contact`` (dead load carried), each ``+flow`` (pump or vent active) or
 ``+hold`` (valves closed, pump off).
 
-Conclusions (``hbma-ctrl observability``; numbers for the default actuator r1 12.5 mm, t0 3 mm):
+Conclusions (``hbma-ctrl observability``, default actuator r1 12.5 mm, t0 3 mm, mismatched rig;
+frozen rank = ``control.obsv(A, H)``, window rank = directions resolved within 1 s):
 
-- resting: rank 2 of 4. The pressure is the gas law in the dead volume, so it shows the gas mass
-  and, while pumping, the flow factor; the load W and the modulus k do not enter at all: only
-  ``W >= pi r1^2 p`` is known, and h = 0 is known exactly. The lift-off itself (the pressure rise
-  slowing) is what reveals W, which is why the filter watches for it (:mod:`estimators.ekf`).
-- free inflation or contact, gas flowing: structurally rank 4 (frozen obsv), but badly conditioned:
-  W and k act on the pressure almost alike (a stiffer membrane and a heavier load both raise the
-  pressure of a given gas mass); one second of flow separates them only partly (window rank 3-4
-  depending on the speed). In practice W is fixed by the lift-off pressure (modulus-free) and k
-  is learnt over the inflation.
-- any regime with the valves closed: rank 1. With no flow the gas mass is constant and every
-  (m, W, k) on a level set of p is an equilibrium: the pressure shows one combination. The filter
-  keeps what it learnt and lets the covariance grow by the random walks.
-- a saturated sensor (>= 35 kPa) gives only ``p >= range``: no rank at all; the estimate rides on
-  the model (mass integration), and the covariance says so.
+=================  ===========  ===========  ====================================================
+regime             frozen rank  window rank  what the pressure tells
+=================  ===========  ===========  ====================================================
+resting + flow     1-2          1-2          m and (pumping) the flow factor b; W and k do not
+                                             enter: only ``W >= pi r1^2 p``; h = 0 exactly
+resting + hold     1            1            the gas mass (the pressure level) only
+free/contact+flow  2            1-3 (med 2)  m, and over a window part of (W, b, k); W and k act
+                                             alike on p (stiffer membrane ~ heavier load)
+free/contact+hold  1            1            one combination of (m, W, k): every pair on a level
+                                             set of p is an equilibrium
+saturated          0            0            only ``p >= range``: the model (mass integration)
+                                             carries the estimate, the covariance grows
+=================  ===========  ===========  ====================================================
 
-So: h and F are available live from pressure alone while gas flows (after a lift-off for a loaded
-membrane); in a hold they are as good as the last flowing phase left them; at rest h = 0 exactly
-and F = pi r1^2 p, but the load on a resting membrane is unknown.
+The frozen matrix never exceeds rank 2: with random-walk parameters ``A = I + e0 a^T``, so
+``H A^j = H + j (H e0) a^T`` spans at most {H, a}. Only the time variation along a trajectory
+(the changing shape as gas flows) reveals more, which is what the window rank measures.
+
+So: h and F are available live from pressure alone while gas flows and after a loaded membrane
+has lifted off (the lift-off pressure, a kink in p(t), gives W = pi r1^2 p without any modulus:
+the filter detects it); in a hold they are as good as the last flowing phase left them; resting,
+h = 0 and the plate force pi r1^2 p are known, the load is not; a lift-off that happens above the
+sensor range cannot be seen at all. Two gas masses can give the same pressure past the load
+path's pressure maximum (snap-through branch): pressure alone cannot tell the branch; the filter
+relies on having tracked the history.
 """
 
 from __future__ import annotations

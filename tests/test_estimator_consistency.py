@@ -34,3 +34,19 @@ def test_nees_and_nis_inside_chi_square_bounds(load):
     assert lo < np.mean(nees) < hi
     lo, hi = chi2.ppf([0.025, 0.975], M) / M
     assert lo < np.mean(nis) < hi
+
+
+@pytest.mark.slow
+def test_full_protocol_requirements(tmp_path):
+    """ISSUE 3 over the 150-trial protocol on the mismatched rig (a few minutes, 2 workers)."""
+    from pathlib import Path
+
+    from hbma_ctrl.runner import run_scenario
+    from hbma_ctrl.scenario import load_scenario
+
+    path = Path(__file__).resolve().parents[1] / "scenarios" / "ekf_protocol.toml"
+    est = run_scenario(load_scenario(path), tmp_path)["estimator"]
+    assert est["n_trials"] == 150
+    assert est["height_nrmsd"] <= 0.05
+    assert est["height_ratio_to_open_loop_max"] <= 0.5
+    assert est["force_steady_rel_err_mean"] <= 0.10
