@@ -18,7 +18,6 @@ non-finite state stops that trial with status ``diverged``.
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +36,7 @@ INTEGRATORS = ("euler", "rk4", "radau")
 DEFAULT_DT = {
     ("euler", "free"): 1e-3, ("rk4", "free"): 5e-3, ("radau", "free"): 5e-3,
     ("euler", "quasi_static"): 1e-3, ("rk4", "quasi_static"): 5e-3, ("radau", "quasi_static"): 5e-3,
-    ("euler", "platform"): 1e-4, ("rk4", "platform"): 5e-4, ("radau", "platform"): 5e-3,
+    ("euler", "platform"): 1e-4, ("rk4", "platform"): 1e-3, ("radau", "platform"): 5e-3,
 }
 
 
@@ -97,6 +96,9 @@ class Trial:
         self.platform.validate()
         self.schedule.validate()
         check_range("trial", "duration", self.duration, 1e-3, 1e5, "s", lo_open=True)
+        late = [t for t in self.schedule.times if t >= self.duration]
+        if late:
+            raise ValueError(f"trial.schedule: switch time {late[0]} s is not before trial.duration = {self.duration} s")
         return self
 
     def default_fidelity(self) -> str:
@@ -158,17 +160,10 @@ class Log:
         return self.data[key]
 
     def to_csv(self, path: Path | str) -> None:
-        """Write the series as CSV (SI units; column names carry no unit suffix)."""
-        keys = list(self.data)
-        with open(path, "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(keys + ["event"])
-            ev = {}
-            for t, name in self.events:
-                i = int(np.argmin(np.abs(self.data["t"] - t)))
-                ev[i] = (ev.get(i, "") + ";" + name).lstrip(";")
-            for i in range(len(self.data["t"])):
-                w.writerow([f"{self.data[k][i]:.9g}" for k in keys] + [ev.get(i, "")])
+        """Write the series as CSV in edge units (mm, kPa, g; the unit is in each column name)."""
+        from .metrics import write_log_csv  # the one place that converts a log to edge units
+
+        write_log_csv(self, path)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -581,7 +576,7 @@ def _finish(fid, tr, data, events, ok, sensor_range: float = 35e3) -> Log:
               + _limit_point_events(data, fid.name))
     if ok and fid.needs_platform and not any(n == "lift_off" for _, n in events):
         status = "resting"
-        events.append((0.0, "never_lifted: the load exceeds what the pump can lift"))
+        events.append((0.0, "never_lifted"))  # the load exceeds what the pump can lift
     return Log(tr.name, fid.name, data, sorted(events, key=lambda e: e[0]), status)
 
 

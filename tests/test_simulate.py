@@ -167,7 +167,17 @@ def test_plant_steps_in_closed_loop_and_rejects_bad_inputs():
         plant.advance(np.array([[1.5], [1.0], [0.0]]), 0.01)
 
 
+def test_log_csv_is_written_in_edge_units(tmp_path):
+    log = simulate([Trial(duration=1.0)])[0]
+    path = tmp_path / "log.csv"
+    log.to_csv(path)
+    header = path.read_text().splitlines()[0].split(",")
+    assert "h_mm" in header and "p_kpa" in header and header[-1] == "event"
+
+
 def test_bad_schedules_and_settings_name_the_field():
+    with pytest.raises(ValueError, match="not before trial.duration"):
+        Trial(schedule=InputSchedule.inflate_deflate(1.0, 3.0), duration=2.0).validate()
     with pytest.raises(ValueError, match=r"schedule\[1\].speed"):
         InputSchedule(((0.0, 0.5, 1, 0), (1.0, 2.0, 1, 0))).validate()
     with pytest.raises(ValueError, match="first row must start at t = 0"):
