@@ -168,7 +168,7 @@ def test_plant_steps_in_closed_loop_and_rejects_bad_inputs():
 
 
 def test_log_csv_is_written_in_edge_units(tmp_path):
-    log = simulate([Trial(duration=1.0)])[0]
+    log = simulate([Trial(duration=4.0)])[0]
     path = tmp_path / "log.csv"
     log.to_csv(path)
     header = path.read_text().splitlines()[0].split(",")
