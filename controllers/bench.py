@@ -126,6 +126,11 @@ def summarize(result: dict) -> dict:
     if rti and dm:
         out["dompc_over_rti_speed"] = dm["solve_ms_median"] / rti["solve_ms_median"]
         out["rti_10x_faster_than_dompc"] = out["dompc_over_rti_speed"] >= 10.0
+        if rti.get("solve_cpu_ms_median") and dm.get("solve_cpu_ms_median"):
+            out["dompc_over_rti_speed_cpu"] = dm["solve_cpu_ms_median"] / rti["solve_cpu_ms_median"]
+    if rti and rti.get("solve_cpu_ms_median") is not None:
+        out["rti_cpu_median_le_2ms"] = rti["solve_cpu_ms_median"] <= 2.0
+        out["rti_cpu_p99_le_5ms"] = rti["solve_cpu_ms_p99"] <= 5.0
     return out
 
 

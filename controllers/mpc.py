@@ -129,8 +129,8 @@ class MPCSettings:
     w_slack: float = 1e3
     c_slack: float = 1e3
     p_max: float = 35e3
-    p_margin: float = 2e3
-    guard_margin: float = 1e3
+    p_margin: float = 1e3
+    guard_margin: float = 0.5e3
     lam_max: float = 1.5
     h_min: float = 0.0
     h_max: float = 20e-3

@@ -8,7 +8,7 @@ variant                     MPC: "rti_osqp" (default) or "ipopt"
 horizon                     MPC horizon N (default 20)
 sample_ms                   controller period, ms (default 20; a multiple of the rig's period)
 p_max_kpa                   pressure limit, kPa (default 35)
-p_margin_kpa                MPC: keep the predicted pressure this far below p_max (default 2)
+p_margin_kpa                MPC: keep the predicted pressure this far below p_max (default 1)
 lam_max                     MPC: stretch limit (default 1.5)
 h_max_mm                    MPC: height bound (default 20)
 integrator, substeps        MPC discretisation ("rk4" / "euler")
