@@ -351,7 +351,9 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
         t1 = time.perf_counter()
         W_used = np.maximum(load_sharing(d, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
         if controller == "mpc":
-            href = np.column_stack([chamber_targets(d, targets, t + (k + 1) * dtp, tcache) for k in range(N)])
+            # no preview: the NMPC sees the current target only (as the PID does); a preview would
+            # start each move up to one horizon early
+            href = chamber_targets(d, targets, t, tcache)
             a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"])
         else:
             a, o = ctrl.step(z, W_used, chamber_targets(d, targets, t, tcache))
@@ -456,6 +458,8 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "pressure_limit_exceeded": bool(run.p.max() > pressure_limit),
         "max_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, run.h.max(0))},
         "far_branch_chambers": far,
+        "max_stretch": float(run.lam.max()),
+        "stretch_exceeded_chambers": [nm for i, nm in enumerate(names) if run.lam[:, i].max() > design.max_stretch],
         "segments": segs,
         "all_segments_settled": bool(all(s["settled"] for s in segs)),
         "interlocks": run.interlocks,
@@ -564,7 +568,7 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
         metrics["baseline"] = {k: mets[1][k] for k in (
             "controller", "chamber_height_rmse_mm", "bend_angle_rmse_deg", "tip_position_rmse_mm",
             "chamber_height_rmse_all_mm", "max_pressure_kpa", "pressure_limit_exceeded", "all_segments_settled",
-            "far_branch_chambers", "interlocks", "step_ms_median", "step_ms_p99", "segments", "status")}
+            "far_branch_chambers", "max_stretch", "stretch_exceeded_chambers", "interlocks", "step_ms_median", "step_ms_p99", "segments", "status")}
     plot_closed_loop(d, runs, out / "robot_series.png", s.pneumatics.pressure_limit, scn.name)
     r0 = runs[0]
     idx = np.unique(np.concatenate([np.searchsorted(r0.t, np.append(r0.changes[1:], r0.t[-1] + 1)) - 1]))

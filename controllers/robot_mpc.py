@@ -53,6 +53,9 @@ class RobotMPCSettings:
     weight; w_in : quadratic input cost (supply and outlet, -); r_in : linear input cost (discourages
     pumping and venting at once, -); w_du : input-rate cost, -; p_max : pressure limit, Pa;
     p_margin : the QP keeps the model pressure this far under p_max, Pa (noise, model error);
+    w_slack : linear cost per kPa of the (one per chamber) pressure slack: the limit rows are soft so
+    that the QP stays feasible when noise or model error puts a chamber at the bound (the hard
+    guard is the loop's interlock);
     max_iter, eps : OSQP settings; time_limit : OSQP time limit, s (0 = none); integrator :
     'euler' (default: one gas-mass step per stage; the flow is smooth over 20 ms and it costs a
     quarter of rk4, which decides the 20 ms budget) or 'rk4'.
@@ -68,6 +71,7 @@ class RobotMPCSettings:
     w_du: float = 2e-3
     p_max: float = 45e3
     p_margin: float = 3e3
+    w_slack: float = 100.0
     max_iter: int = 400
     eps: float = 1e-4
     time_limit: float = 0.0
@@ -78,7 +82,7 @@ class RobotMPCSettings:
         check_range("robot_mpc", "dt", self.dt, 1e-3, 1.0, "s")
         if not isinstance(self.horizon, int) or not 1 <= self.horizon <= 200:
             raise ValueError(f"robot_mpc.horizon = {self.horizon!r} must be an integer in [1, 200]")
-        for nm in ("w_h", "w_terminal", "w_in", "r_in", "w_du"):
+        for nm in ("w_h", "w_terminal", "w_in", "r_in", "w_du", "w_slack"):
             check_range("robot_mpc", nm, getattr(self, nm), 0.0, 1e6)
         check_range("robot_mpc", "p_max", self.p_max, 1e3, 1e6, "Pa")
         check_range("robot_mpc", "p_margin", self.p_margin, 0.0, self.p_max, "Pa")
@@ -143,9 +147,9 @@ class RobotNMPC:
     # --- pattern ---------------------------------------------------------------------------------
     def _build_pattern(self) -> None:
         n, N = self.n, self.s.horizon
-        nb = 3 * N
+        nb = 3 * N + 1  # + one pressure slack per chamber (last)
         self.nv = n * nb
-        ix = lambda i, blk, k: i * nb + blk * N + k  # noqa: E731  blk 0: x_{k+1}, 1: a_k, 2: o_k
+        ix = lambda i, blk, k: i * nb + blk * N + k  # noqa: E731  blk 0: x_{k+1}, 1: a_k, 2: o_k, 3: slack
         self._ix = ix
         # --- P (upper triangle): diag of every variable, plus input-rate couplings (k-1, k)
         pr, pc = [], []
@@ -158,10 +162,12 @@ class RobotNMPC:
                 for k in range(1, N):
                     pr.append(ix(i, blk, k - 1))
                     pc.append(ix(i, blk, k))
+            pr.append(ix(i, 3, 0))
+            pc.append(ix(i, 3, 0))
         self._Ppat = _Pattern(pr, pc, (self.nv, self.nv))
-        # --- A: per chamber [dynamics N | pressure N | bounds 2N], then coupling rows
+        # --- A: per chamber [dynamics N | pressure N | bounds 2N | slack >= 0], then coupling rows
         ar, ac = [], []
-        rows_per = 4 * N
+        rows_per = 4 * N + 1
         for i in range(n):
             r0 = i * rows_per
             for k in range(N):  # x_{k+1} - A_k x_k - Ba a_k - Bo o_k = c_k
@@ -172,12 +178,14 @@ class RobotNMPC:
                     ac += [ix(i, 0, k - 1)]
                 ar += [r0 + k, r0 + k]
                 ac += [ix(i, 1, k), ix(i, 2, k)]
-            for k in range(N):  # Px_{k+1} x_{k+1} <= ...
-                ar.append(r0 + N + k)
-                ac.append(ix(i, 0, k))
+            for k in range(N):  # Px_{k+1} x_{k+1} - slack <= ...
+                ar += [r0 + N + k, r0 + N + k]
+                ac += [ix(i, 0, k), ix(i, 3, 0)]
             for k in range(N):
                 ar += [r0 + 2 * N + k, r0 + 3 * N + k]
                 ac += [ix(i, 1, k), ix(i, 2, k)]
+            ar.append(r0 + 4 * N)
+            ac.append(ix(i, 3, 0))
         self.m_rows = n * rows_per
         if self.topology == "shared":
             for k in range(N):
@@ -232,8 +240,9 @@ class RobotNMPC:
         r = h[:, 1:] - Hs * self.xbar[:, 1:] - href_mm  # h_lin = Hs x + r
         Pdiag_x = 2 * wk * Hs ** 2 + 1e-6
         q_x = 2 * wk * Hs * r
-        nb = 3 * N
+        nb = 3 * N + 1
         q = np.zeros((n, nb))
+        q[:, -1] = s.w_slack
         q[:, :N] = q_x
         du = np.full(N, 2 * s.w_du)
         du_diag = np.zeros(N)
@@ -245,8 +254,8 @@ class RobotNMPC:
         q[:, N] -= 2 * s.w_du * self.prev[0]
         q[:, 2 * N] -= 2 * s.w_du * self.prev[1]
         # order of _Ppat entries: per chamber diag (3N) then rate couplings (2(N-1))
-        Pv = np.concatenate([np.concatenate([np.concatenate([Pdiag_x[i], diag_in, diag_in]),
-                                             np.full(2 * (N - 1), -2 * s.w_du)]) for i in range(n)])
+        Pv = np.concatenate([np.concatenate([Pdiag_x[i], diag_in, diag_in, np.full(2 * (N - 1), -2 * s.w_du),
+                                             [2.0]]) for i in range(n)])
         # --- constraints
         Av, lo, up = [], [], []
         pmax = s.p_max - s.p_margin
@@ -262,11 +271,13 @@ class RobotNMPC:
                 if k > 0:
                     vals.append(-Aab[i, k])
                 vals += [-Ba[i, k], -Bo[i, k]]
-            vals += list(Px[i, 1:] * 1e-3)  # pressure rows in kPa (conditioning)
-            vals += [1.0] * (2 * N)
+            for kk in range(N):  # pressure rows in kPa (conditioning), with the slack
+                vals += [Px[i, kk + 1] * 1e-3, -1.0]
+            vals += [1.0] * (2 * N) + [1.0]
             Av.append(np.array(vals))
-            lo.append(np.concatenate([rhs[i], np.full(N, -np.inf), np.zeros(2 * N)]))
-            up.append(np.concatenate([rhs[i], (pmax - p[i, 1:] + Px[i, 1:] * xb[i, 1:]) * 1e-3, np.ones(2 * N)]))
+            lo.append(np.concatenate([rhs[i], np.full(N, -np.inf), np.zeros(2 * N), [0.0]]))
+            up.append(np.concatenate([rhs[i], (pmax - p[i, 1:] + Px[i, 1:] * xb[i, 1:]) * 1e-3, np.ones(2 * N),
+                                      [np.inf]]))
         if self.topology == "shared":
             Av.append(np.ones(N * n))
             lo.append(np.full(N, -np.inf))
@@ -301,7 +312,7 @@ class RobotNMPC:
             z = res.x.reshape(n, nb)
             self.xbar[:, 1:] = z[:, :N]
             self.abar = np.clip(z[:, N:2 * N], 0.0, 1.0)
-            self.obar = np.clip(z[:, 2 * N:], 0.0, 1.0)
+            self.obar = np.clip(z[:, 2 * N:3 * N], 0.0, 1.0)
             a = self.abar[:, 0].copy()
             o = self.obar[:, 0].copy()
             if self.topology == "shared" and a.sum() > 1.0:

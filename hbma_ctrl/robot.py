@@ -1053,6 +1053,7 @@ def workspace(design: RobotDesign | None = None, pressure_limit: float = 45e3,
 # scenario section and the open-loop scene
 # ---------------------------------------------------------------------------------------------
 SCENE_MODES = ("open_loop", "closed_loop")
+CONTROLLERS = ("mpc", "pressure_pid")
 
 
 @dataclass(frozen=True)
@@ -1061,13 +1062,22 @@ class RobotSettings:
 
     design : the robot (:class:`RobotDesign`).
     pneumatics : supply topology, sensor range and pressure limit (:class:`RobotPneumatics`).
-    mode : 'open_loop' (inputs by schedule; the only mode built so far) or 'closed_loop'.
+    mode : 'open_loop' (inputs by schedule) or 'closed_loop' (targets per layer; see below).
     inputs : per-chamber schedules {name: ((t s, speed 0-1, inlet 0-1, outlet 0-1), ...)}; chambers
         not listed keep everything closed. Safety interlocks of the open-loop scene close a chamber's
         inlet while its pressure is at the pressure limit or its stretch at ``design.max_stretch``.
     tip_force : force on the tip, world frame, N; tip_moment : moment on the tip, N m.
     sync_period : how often the load sharing and the interlocks update every chamber's load, s.
     snapshots : number of robot shapes drawn in the shape-over-time plot.
+
+    Closed loop (mode 'closed_loop', see :mod:`controllers.robot_loop`):
+    controller : 'mpc' (per-chamber EKF bank + structured NMPC) or 'pressure_pid' (baseline).
+    targets : {layer index: ((t s, centre height m, bend rad >= 0, direction rad), ...)}.
+    tip_load : ((t s, fx N, fy N, fz N), ...) tip force from each row's time on (a disturbance the
+        controller does not know).
+    compare_baseline : also run the other controller on the same targets and report it beside.
+    settle_time : RMSEs count samples at least this long after a target change, s.
+    mpc_horizon, mpc_dt : NMPC stages and prediction step (s).
     """
 
     design: RobotDesign = field(default_factory=RobotDesign)
@@ -1078,6 +1088,13 @@ class RobotSettings:
     tip_moment: tuple = (0.0, 0.0, 0.0)
     sync_period: float = 0.01
     snapshots: int = 8
+    controller: str = "mpc"
+    targets: dict = field(default_factory=dict)
+    tip_load: tuple = ()
+    compare_baseline: bool = True
+    settle_time: float = 2.0
+    mpc_horizon: int = 15
+    mpc_dt: float = 0.02
 
     def validate(self) -> "RobotSettings":
         self.design.validate()
@@ -1102,6 +1119,20 @@ class RobotSettings:
         check_range("robot", "sync_period", self.sync_period, 1e-4, 1.0, "s")
         if not isinstance(self.snapshots, int) or not 1 <= self.snapshots <= 50:
             raise ValueError(f"robot.snapshots = {self.snapshots!r} must be an integer in [1, 50]")
+        if self.controller not in CONTROLLERS:
+            close = difflib.get_close_matches(str(self.controller), CONTROLLERS, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise ValueError(f"robot.controller = '{self.controller}'{hint}; allowed: {', '.join(CONTROLLERS)}")
+        if self.mode == "closed_loop" and not self.targets:
+            raise ValueError("robot.mode = 'closed_loop': closed-loop robot control needs robot.targets "
+                             "(a table {all = [[t_s, height_mm, bend_deg, direction_deg], ...]} or one per layer)")
+        for j, row in enumerate(self.tip_load):
+            if len(row) != 4 or not all(math.isfinite(float(v)) for v in row) or row[0] < 0:
+                raise ValueError(f"robot.tip_load_n[{j}] must be [t_s >= 0, fx, fy, fz] (finite)")
+        check_range("robot", "settle_time", self.settle_time, 0.0, 1e4, "s")
+        if not isinstance(self.mpc_horizon, int) or not 1 <= self.mpc_horizon <= 100:
+            raise ValueError(f"robot.mpc_horizon = {self.mpc_horizon!r} must be an integer in [1, 100]")
+        check_range("robot", "mpc_dt", self.mpc_dt, 1e-3, 1.0, "s")
         return self
 
 
@@ -1113,6 +1144,9 @@ _SECTION_KEYS = {
     "max_stretch": "", "topology": "", "outlets": "", "sensor_range_kpa": "", "pressure_limit_kpa": "",
     "tip_force_n": "[fx, fy, fz]", "tip_moment_nm": "[mx, my, mz]", "sync_ms": "", "snapshots": "",
     "inputs": "table {chamber: [[t_s, speed_pct, inlet_duty, outlet_duty], ...]}",
+    "controller": "mpc | pressure_pid", "targets": "table {all|A|B|..: [[t_s, height_mm, bend_deg, direction_deg]]}",
+    "tip_load_n": "[[t_s, fx, fy, fz], ...]", "compare_baseline": "bool", "settle_s": "", "mpc_horizon": "",
+    "mpc_dt_ms": "",
 }
 
 
@@ -1122,6 +1156,7 @@ _EDGE_RANGES = {
     "inner_diameter_mm": (0.0, 500.0), "layer_mass_g": (0.0, 10000.0), "end_mass_g": (0.0, 10000.0),
     "r1_mm": (0.5, 100.0), "t0_mm": (0.05, 20.0), "V0_cm3": (0.001, 1000.0), "max_stretch": (1.05, 20.0),
     "sensor_range_kpa": (1.0, 1000.0), "pressure_limit_kpa": (1.0, 1000.0), "sync_ms": (0.1, 1000.0),
+    "settle_s": (0.0, 1e4), "mpc_dt_ms": (1.0, 1000.0),
 }
 
 
@@ -1142,7 +1177,10 @@ def parse_section(raw: dict) -> RobotSettings:
     layer_thickness_mm, outer_diameter_mm, inner_diameter_mm, layer_mass_g, end_mass_g, r1_mm,
     t0_mm, V0_cm3, material, material_params, max_stretch, topology, outlets, sensor_range_kpa,
     pressure_limit_kpa, tip_force_n, tip_moment_nm, sync_ms, snapshots, inputs (a table of
-    per-chamber schedules, rows [t_s, speed_pct, inlet_duty, outlet_duty]). Omitted keys take the
+    per-chamber schedules, rows [t_s, speed_pct, inlet_duty, outlet_duty]); closed loop: controller,
+    targets (a table {all|A|B|...: [[t_s, height_mm, bend_deg, direction_deg], ...]}, a negative
+    bend is the opposite direction), tip_load_n ([[t_s, fx, fy, fz], ...]), compare_baseline,
+    settle_s, mpc_horizon, mpc_dt_ms. Omitted keys take the
     paper's robot (:class:`RobotDesign`) and :class:`RobotPneumatics` defaults.
     """
     if not isinstance(raw, dict):
@@ -1215,9 +1253,36 @@ def parse_section(raw: dict) -> RobotSettings:
             raise ValueError(f"robot.{key} must be a list of 3 finite numbers, got {v!r}")
         vec[key] = tuple(float(x) for x in v)
     sync = U.mm(_num(raw, "sync_ms")) if "sync_ms" in raw else 0.01  # ms -> s, same factor as mm -> m
+    closed: dict = {}
+    if "controller" in raw:
+        closed["controller"] = str(raw["controller"])
+    if "targets" in raw:
+        from controllers.robot_loop import parse_targets
+
+        closed["targets"] = parse_targets(raw["targets"], design)
+    if "tip_load_n" in raw:
+        rows = raw["tip_load_n"]
+        if not isinstance(rows, list) or not all(
+                isinstance(r, list) and len(r) == 4 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                            for v in r) for r in rows):
+            raise ValueError("robot.tip_load_n must be a list of [t_s, fx, fy, fz] (numbers, N)")
+        for j, r in enumerate(rows):
+            for v in r[1:]:
+                check_range(f"robot.tip_load_n[{j}]", "force", v, -20.0, 20.0, "N")
+        closed["tip_load"] = tuple(tuple(float(v) for v in r) for r in rows)
+    if "compare_baseline" in raw:
+        if not isinstance(raw["compare_baseline"], bool):
+            raise ValueError(f"robot.compare_baseline = {raw['compare_baseline']!r} must be true or false")
+        closed["compare_baseline"] = raw["compare_baseline"]
+    if "settle_s" in raw:
+        closed["settle_time"] = _num(raw, "settle_s")
+    if "mpc_horizon" in raw:
+        closed["mpc_horizon"] = raw["mpc_horizon"]
+    if "mpc_dt_ms" in raw:
+        closed["mpc_dt"] = _num(raw, "mpc_dt_ms") * 1e-3
     return RobotSettings(design=design, pneumatics=pn, mode=str(raw.get("mode", "open_loop")), inputs=inputs,
                          tip_force=vec["tip_force_n"], tip_moment=vec["tip_moment_nm"], sync_period=sync,
-                         snapshots=raw.get("snapshots", 8)).validate()
+                         snapshots=raw.get("snapshots", 8), **closed).validate()
 
 
 W_FLOOR = 1e-3  # N: the smallest load a chamber model is given (a chamber in tension is flagged)
@@ -1430,8 +1495,9 @@ def run_scene(scn, out_dir) -> dict:
     if s is None:
         s = parse_section(dict(scn.sections["robot"]))
     if s.mode == "closed_loop":
-        raise ValueError("robot.mode = 'closed_loop': closed-loop robot control (per-chamber EKF bank + NMPC) "
-                         "is not implemented yet; use mode = 'open_loop' with robot.inputs")
+        from controllers.robot_loop import run_closed_loop_scene
+
+        return run_closed_loop_scene(scn, s, out_dir)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     integ = scn.sim.integrator if scn.sim.integrator in ("euler", "rk4") else "rk4"

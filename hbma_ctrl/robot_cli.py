@@ -178,6 +178,39 @@ def pose(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory f
     typer.echo(f"wrote {out / 'pose.png'}")
 
 
+def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", help="directory for bench_robot.json"),
+                    layers: str = typer.Option("1,2,3,4,5,6", help="layer counts to time, comma-separated (1-6)"),
+                    duration: float = typer.Option(3.0, help="closed-loop run per layer count, s (0.5-60)"),
+                    topology: str = typer.Option("per_chamber", help="per_chamber | shared"),
+                    horizon: int = typer.Option(15, help="NMPC stages (1-100)")) -> None:
+    """Whole-robot step time (EKF bank + load sharing + NMPC) for 1..6 layers: median and p99, ms."""
+    from controllers.robot_loop import bench_robot
+
+    ns = [int(v) for v in _floats(layers, "--layers")]
+    if any(n < 1 or n > 6 for n in ns):
+        raise ValueError(f"--layers = {layers}: each layer count must be in [1, 6]")
+    if not 0.5 <= duration <= 60.0:
+        raise ValueError(f"--duration = {duration} is out of range [0.5, 60] s")
+    if topology not in R.TOPOLOGIES:
+        raise ValueError(f"--topology = '{topology}': allowed {', '.join(R.TOPOLOGIES)}")
+    if not 1 <= horizon <= 100:
+        raise ValueError(f"--horizon = {horizon} is out of range [1, 100]")
+    rows = bench_robot(ns, duration, topology, horizon)
+    tab = Table(title=f"robot step (EKF bank + NMPC), topology {topology}, horizon {horizon}")
+    for c in ("layers", "chambers", "QP vars", "median ms", "p99 ms", "max ms", "EKF ms", "NMPC ms", "fallbacks"):
+        tab.add_column(c, justify="right")
+    for r in rows:
+        tab.add_row(str(r["layers"]), str(r["chambers"]), str(r["qp_variables"]), f"{r['step_ms_median']:.2f}",
+                    f"{r['step_ms_p99']:.2f}", f"{r['step_ms_max']:.2f}", f"{r['ekf_ms_median']:.2f}",
+                    f"{r['mpc_ms_median']:.2f}", str(r["fallbacks"]))
+    Console().print(tab)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_robot.json").write_text(json.dumps({"topology": topology, "horizon": horizon, "duration_s": duration,
+                                                      "rows": rows}, indent=1) + "\n")
+    typer.echo(f"wrote {out / 'bench_robot.json'}")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add the ``robot`` sub-app (table2, workspace, pose) to the top-level CLI."""
+    """Add the ``robot`` sub-app (table2, workspace, pose) and ``bench robot`` to the top-level CLI."""
     app.add_typer(robot_app, name="robot")
+    bench_app.command("robot")(bench_robot_cmd)
