@@ -295,7 +295,7 @@ class RobotNMPC:
             self._solver.setup(P=self._Ppat.matrix(Pv), q=qv, A=self._Apat.matrix(Av), l=lo, u=up, **kw)
         else:
             self._solver.update(Px=self._Ppat.data(Pv), Ax=self._Apat.data(Av), q=qv, l=lo, u=up)
-        res = self._solver.solve()
+        res = self._solver.solve(raise_error=False)
         status = str(res.info.status)
         self.status = status
         usable = res.x is not None and np.all(np.isfinite(res.x)) and \
