@@ -61,6 +61,8 @@ class ChamberEKFSettings:
     b0_std: float = 0.25
     k0_std: float = 0.12
     k_rate_std: float = 0.01
+    v0_std: float = 0.25
+    v_rate_std: float = 0.01
     sensor_range: float = 50e3
 
     def validate(self) -> "ChamberEKFSettings":
@@ -74,48 +76,56 @@ class ChamberEKFSettings:
         check_range("robot_ekf", "b0_std", self.b0_std, 0.0, 2.0)
         check_range("robot_ekf", "k0_std", self.k0_std, 0.0, 1.0)
         check_range("robot_ekf", "k_rate_std", self.k_rate_std, 0.0, 10.0)
+        check_range("robot_ekf", "v0_std", self.v0_std, 0.0, 1.0)
+        check_range("robot_ekf", "v_rate_std", self.v_rate_std, 0.0, 10.0)
         check_range("robot_ekf", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
         return self
 
 
 B_RANGE = (0.5, 2.0)
 K_RANGE = (0.6, 1.6)
+V_RANGE = (0.6, 1.8)
+
+
+NS = 4  # [x, b, k, v]
 
 
 def _step_function(model, s: ChamberEKFSettings) -> ca.Function:
-    """Single-chamber EKF step (X[3], P[9], w[2], W, z, use) -> (X+[3], P+[9], h, p, nis)."""
-    xs, w, W, b, k = model._x, model._w, model._W, model._b, model._k
+    """Single-chamber EKF step (X[4], P[16], w[2], W, z, use) -> (X+[4], P+[16], h, p, nis, h_std)."""
+    xs, w, W, b, k, v = model._x, model._w, model._W, model._b, model._k, model._v
     xn = model.discrete_expr(s.sample_period)
-    fx = ca.Function("fx", [xs, w, W, b, k], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, b), ca.jacobian(xn, k)])
-    he, pe, _ = model.outputs_expr(xs, W, k)
-    pj = ca.Function("pj", [xs, W, k], [pe, ca.jacobian(pe, xs), ca.jacobian(pe, k), he])
-    X = ca.SX.sym("X", 3)
-    Pv = ca.SX.sym("P", 9)
+    th = ca.vertcat(b, k, v)
+    fx = ca.Function("fx", [xs, w, W, b, k, v], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, th)])
+    he, pe, _ = model.outputs_expr(xs, W, k, v)
+    zv = ca.vertcat(xs, k, v)
+    pj = ca.Function("pj", [xs, W, k, v], [pe, ca.jacobian(pe, zv), he, ca.jacobian(he, zv)])
+    X = ca.SX.sym("X", NS)
+    Pv = ca.SX.sym("P", NS * NS)
     wi = ca.SX.sym("wi", 2)
     Wi, z, use = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use")
-    x_pred, Ax, Ab, Ak = fx(X[0], wi, Wi, X[1], X[2])
-    A = ca.vertcat(ca.horzcat(Ax, Ab, Ak), ca.horzcat(0, 1, 0), ca.horzcat(0, 0, 1))
-    P = ca.reshape(Pv, 3, 3)
+    x_pred, Ax, Ath = fx(X[0], wi, Wi, X[1], X[2], X[3])
+    A = ca.vertcat(ca.horzcat(Ax, Ath), ca.horzcat(ca.DM.zeros(3, 1), ca.DM.eye(3)))
+    P = ca.reshape(Pv, NS, NS)
     dx = x_pred - X[0]
     Q = ca.diag(ca.vertcat(s.x_abs_std ** 2 + (s.x_rel_std * dx) ** 2, s.b_rate_std ** 2 * s.sample_period,
-                           s.k_rate_std ** 2 * s.sample_period))
+                           s.k_rate_std ** 2 * s.sample_period, s.v_rate_std ** 2 * s.sample_period))
     Pm = A @ P @ A.T + Q
-    xm = ca.vertcat(x_pred, X[1], X[2])
-    p_pred, dpdx, dpdk, _ = pj(xm[0], Wi, xm[2])
-    Hx = ca.horzcat(dpdx, 0, dpdk)
+    xm = ca.vertcat(x_pred, X[1], X[2], X[3])
+    p_pred, dp, _, _ = pj(xm[0], Wi, xm[2], xm[3])
+    Hx = ca.horzcat(dp[0], 0, dp[1], dp[2])
     R = s.noise_std ** 2 + (s.model_rel_std * p_pred) ** 2
     S = Hx @ Pm @ Hx.T + R
     K = Pm @ Hx.T / S * use
     innov = z - p_pred
     xp = xm + K * innov
-    IKH = ca.DM.eye(3) - K @ Hx
+    IKH = ca.DM.eye(NS) - K @ Hx
     Pp = IKH @ Pm @ IKH.T + K @ K.T * R
     Pp = 0.5 * (Pp + Pp.T)
-    p_post, dhx, _, h = pj(xp[0], Wi, xp[2])
-    hj = ca.Function("hj", [xs, W, k], [ca.jacobian(he, xs)])
+    p_post, _, h, dh = pj(xp[0], Wi, xp[2], xp[3])
+    G = ca.horzcat(dh[0], 0, dh[1], dh[2])
     return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use],
-                       [xp, ca.reshape(Pp, 9, 1), h, p_post, innov ** 2 / S * use,
-                        ca.fabs(hj(xp[0], Wi, xp[2])) * ca.sqrt(Pp[0, 0])])
+                       [xp, ca.reshape(Pp, NS * NS, 1), h, p_post, innov ** 2 / S * use,
+                        ca.sqrt(ca.fmax(G @ Pp @ G.T, 0))])
 
 
 class ChamberEKFBank:
@@ -146,9 +156,13 @@ class ChamberEKFBank:
         p0 = np.nan_to_num(np.asarray(p0, dtype=float).reshape(self.n), nan=0.0)
         s = self.settings
         x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
-        self.X = np.vstack([x0, np.full(self.n, s.b0), np.ones(self.n)])
+        self.X = np.vstack([x0, np.full(self.n, s.b0), np.ones(self.n), np.ones(self.n)])
         sx = max(s.noise_std / self.model.actuator.p_env, 1e-3)
-        P0 = np.diag([sx ** 2, s.b0_std ** 2, s.k0_std ** 2]).reshape(9, 1)
+        # x and v enter the rest pressure as (x + 1) / v: start them correlated so that the first
+        # reading pins (x + 1) / v, not x alone
+        P0 = np.diag([sx ** 2 + s.v0_std ** 2, s.b0_std ** 2, s.k0_std ** 2, s.v0_std ** 2])
+        P0[0, 3] = P0[3, 0] = s.v0_std ** 2
+        P0 = P0.reshape(16, 1)
         self.P = np.repeat(P0, self.n, 1)
 
     def step(self, z, w, W) -> dict:
@@ -165,9 +179,10 @@ class ChamberEKFBank:
         X[0] = np.clip(X[0], -0.05, self.model.pm.grid.x[-1])
         X[1] = np.clip(X[1], *B_RANGE)
         X[2] = np.clip(X[2], *K_RANGE)
+        X[3] = np.clip(X[3], *V_RANGE)
         self.X = X
         self.P = np.asarray(out[1])
-        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(),
+        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "v": X[3].copy(),
                      "h": np.maximum(np.asarray(out[2]).ravel(), 0.0), "p": np.asarray(out[3]).ravel(),
                      "h_std": np.asarray(out[5]).ravel(), "nis": np.asarray(out[4]).ravel(), "used": use > 0}
         return self.last

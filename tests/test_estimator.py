@@ -307,5 +307,5 @@ load_steps_g = [[0.8, 300.0]]
 
 
 def test_record_type():
-    rec = _rec(_trial(0.0, 1.0, dur=0.2))
+    rec = _rec(_trial(0.0, 1.0, dur=0.2, t_inf=0.1))
     assert isinstance(rec, RigRecord) and rec.u.shape == (len(rec.t), 3)
