@@ -354,7 +354,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
             # no preview: the NMPC sees the current target only (as the PID does); a preview would
             # start each move up to one horizon early
             href = chamber_targets(d, targets, t, tcache)
-            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"])
+            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"], est["v"])
         else:
             a, o = ctrl.step(z, W_used, chamber_targets(d, targets, t, tcache))
         guard = np.isfinite(z) & (z >= plim - interlock_margin) & (a > 0)

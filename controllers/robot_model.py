@@ -91,63 +91,66 @@ class ChamberModel:
         x, W, b = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("b")
         w = ca.SX.sym("w", 2)  # [supply a, outlet o]
         u = ca.vertcat(1.0, w[0], w[1])  # pump at full speed while the inlet is open, inlet duty a
-        k = ca.SX.sym("k")
-        self._k = k
-        hx, p, lam = self.outputs_expr(x, W, k)
+        k, v = ca.SX.sym("k"), ca.SX.sym("v")
+        self._k, self._v = k, v
+        hx, p, lam = self.outputs_expr(x, W, k, v)
         Pb = dict(P)
         Pb["flow_scale"] = P["flow_scale"] * b
         q, _, _ = ph.net_flow(u, p, Pb, fid.table)
-        self._xdot = ca.Function("xdot", [x, w, W, b, k], [q * a.R * a.T / (a.p_env * a.V0)])
+        self._xdot = ca.Function("xdot", [x, w, W, b, k, v], [q * a.R * a.T / (a.p_env * a.V0)])
         self._x, self._w, self._W, self._b = x, w, W, b
-        self.out = ca.Function("out", [x, W, k], [hx, p, lam], ["x", "W", "k"], ["h", "p", "lam"])
+        self.out = ca.Function("out", [x, W, k, v], [hx, p, lam], ["x", "W", "k", "v"], ["h", "p", "lam"])
         self._cache: dict = {}
         self.x_rest_max = -0.05  # the tables start here (scaled mass below ambient)
 
     # --- building blocks -------------------------------------------------------------------------
-    def outputs_expr(self, x, W, k, iters: int = 3):
-        """(h, p, lam) of a chamber whose membrane modulus is k times nominal (SX expressions).
+    def outputs_expr(self, x, W, k, v=1.0, iters: int = 3):
+        """(h, p, lam) of a chamber whose membrane modulus is k times nominal and whose dead volume
+        is v times nominal (SX expressions; x is the gas mass in units of the NOMINAL p_env V0 / RT).
 
         For a neo-Hookean-type membrane the pressure of a given shape scales with the modulus, so a
         chamber of modulus k under load W has the shape of a nominal chamber under W / k at k times
-        its pressure; its gas mass then is ``x + 1 = (x1 + 1)(k p1 + p_env) / (p1 + p_env)`` with
-        (x1, p1) the nominal state and pressure: solved for x1 by a fixed-point iteration (a
-        contraction with factor ~|k - 1|). Resting chambers come out exact (p = x p_env for any k).
+        its pressure. Its gas is ``(x + 1) p_env V0 = (p + p_env)(v V0 + Vcap)``; the nominal table's
+        (x1, p1) at the same shape give ``Vcap / V0 = (x1 + 1) p_env / (p1 + p_env) - 1``, so
+        ``x1 + 1 = [(x + 1) - (k p1 + p_env)(v - 1) / p_env] (p1 + p_env) / (k p1 + p_env)``, solved
+        by a fixed-point iteration (a contraction for the modest k, v of a mismatch). Resting
+        chambers come out exact (p = p_env ((x + 1) / v - 1) for any k).
         """
         pe = self.actuator.p_env
         Wk = W / k
-        xe = x
+        xe = (x + 1) / v - 1
         for _ in range(iters):
             p1 = self.pm._P(ca.vertcat(xe, Wk))
-            xe = (x + 1) * (p1 + pe) / (k * p1 + pe) - 1
+            xe = ((x + 1) - (k * p1 + pe) * (v - 1) / pe) * (p1 + pe) / (k * p1 + pe) - 1
         xw = ca.vertcat(xe, Wk)
         return self.pm._H(xw), k * self.pm._P(xw), self.pm._L(xw)
 
     def discrete_expr(self, dt: float, substeps: int = 1, method: str = "rk4"):
         """x+ (SX expression in the model's symbols) after dt s, rk4 or euler with inputs held."""
-        x, w, W, b, k = self._x, self._w, self._W, self._b, self._k
+        x, w, W, b, k, v = self._x, self._w, self._W, self._b, self._k, self._v
         h = dt / substeps
         xn = x
         f = self._xdot
         for _ in range(substeps):
             if method == "euler":
-                xn = xn + h * f(xn, w, W, b, k)
+                xn = xn + h * f(xn, w, W, b, k, v)
                 continue
-            k1 = f(xn, w, W, b, k)
-            k2 = f(xn + h / 2 * k1, w, W, b, k)
-            k3 = f(xn + h / 2 * k2, w, W, b, k)
-            k4 = f(xn + h * k3, w, W, b, k)
+            k1 = f(xn, w, W, b, k, v)
+            k2 = f(xn + h / 2 * k1, w, W, b, k, v)
+            k3 = f(xn + h / 2 * k2, w, W, b, k, v)
+            k4 = f(xn + h * k3, w, W, b, k, v)
             xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         return xn
 
     def linearisation(self, dt: float, substeps: int = 1, method: str = "rk4") -> ca.Function:
-        """(x, w, W, b, k) -> (x+, dx+/dx, dx+/dw (1x2), h, dh/dx, p, dp/dx): one chamber, one stage."""
+        """(x, w, W, b, k, v) -> (x+, dx+/dx, dx+/dw (1x2), h, dh/dx, p, dp/dx): one chamber, one stage."""
         key = ("lin", dt, substeps, method)
         if key not in self._cache:
-            x, w, W, b, k = self._x, self._w, self._W, self._b, self._k
+            x, w, W, b, k, v = self._x, self._w, self._W, self._b, self._k, self._v
             xn = self.discrete_expr(dt, substeps, method)
-            h, p, _ = self.outputs_expr(x, W, k)
+            h, p, _ = self.outputs_expr(x, W, k, v)
             self._cache[key] = ca.Function(
-                "lin", [x, w, W, b, k],
+                "lin", [x, w, W, b, k, v],
                 [xn, ca.jacobian(xn, x), ca.jacobian(xn, w), h, ca.jacobian(h, x), p, ca.jacobian(p, x)])
         return self._cache[key]
 

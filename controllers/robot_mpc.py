@@ -119,8 +119,9 @@ class _Pattern:
 class RobotNMPC:
     """NMPC over n chambers (see module doc).
 
-    ``step(x0, b, W, h_ref, p_meas=None) -> (a, o)``: x0 (n,) estimated scaled gas masses, b (n,)
-    flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m; returns the supply
+    ``step(x0, b, W, h_ref, k=None, v=None) -> (a, o)``: x0 (n,) estimated scaled gas masses, b (n,)
+    flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m, k and v (n,) the
+    estimated modulus and dead-volume factors (default 1); returns the supply
     and outlet decisions (n,) each for this period. ``stats`` holds the solve times and fallbacks.
     """
 
@@ -196,7 +197,7 @@ class RobotNMPC:
         self._Apat = _Pattern(ar, ac, (self.m_rows, self.nv))
 
     # --- one period --------------------------------------------------------------------------------
-    def step(self, x0, b, W, h_ref, k=None):
+    def step(self, x0, b, W, h_ref, k=None, v=None):
         import time
 
         t0 = time.perf_counter()
@@ -204,6 +205,7 @@ class RobotNMPC:
         x0 = np.asarray(x0, dtype=float).reshape(n)
         b = np.asarray(b, dtype=float).reshape(n)
         k = np.ones(n) if k is None else np.asarray(k, dtype=float).reshape(n)
+        v = np.ones(n) if v is None else np.asarray(v, dtype=float).reshape(n)
         W = self.model.clip_load(np.asarray(W, dtype=float).reshape(n))
         href = np.asarray(h_ref, dtype=float)
         href = np.broadcast_to(href.reshape(n, -1), (n, N)) if href.size in (n, n * N) else None
@@ -223,7 +225,7 @@ class RobotNMPC:
                         np.hstack([self.obar, self.obar[:, -1:]]).reshape(-1)])
         Wl = np.repeat(W, N + 1)[None, :]
         bl = np.repeat(b, N + 1)[None, :]
-        out = self._lin(xl, wl, Wl, bl, np.repeat(k, N + 1)[None, :])
+        out = self._lin(xl, wl, Wl, bl, np.repeat(k, N + 1)[None, :], np.repeat(v, N + 1)[None, :])
         xn, Ax, Bw, h, Hx, p, Px = (np.asarray(o) for o in out)
         xn = xn.reshape(n, N + 1)
         Ax = Ax.reshape(n, N + 1)

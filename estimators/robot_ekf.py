@@ -56,10 +56,10 @@ class ChamberEKFSettings:
     model_rel_std: float = 0.01
     x_abs_std: float = 2e-4
     x_rel_std: float = 0.1
-    b_rate_std: float = 0.3
+    b_rate_std: float = 0.05
     b0: float = 1.0
     b0_std: float = 0.25
-    k0_std: float = 0.12
+    k0_std: float = 0.15
     k_rate_std: float = 0.01
     v0_std: float = 0.25
     v_rate_std: float = 0.01
