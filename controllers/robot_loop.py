@@ -168,7 +168,8 @@ def parse_targets(raw: dict, design: RobotDesign) -> dict:
     -> {layer index: ((t s, centre m, bend rad >= 0, direction rad), ...)} (SI, sorted by time).
 
     A negative bend means the opposite direction. Every layer needs rows (from "all" or its
-    letter). Each pose's chamber heights (inverse kinematics) must lie in [0, 13] mm.
+    letter). Each pose's chamber heights (inverse kinematics) must lie in [0, 13] mm (heights down
+    to -0.05 mm count as 0: rounded table numbers for a flat chamber).
     """
     if not isinstance(raw, dict) or not raw:
         raise ValueError("robot.targets must be a table {A = [[t_s, height_mm, bend_deg, direction_deg], ...], ...} "
@@ -202,7 +203,7 @@ def parse_targets(raw: dict, design: RobotDesign) -> dict:
                              f"robot.targets.{letters[k]})")
         for j, (t, c, th, ps) in enumerate(out[k]):
             h = inverse_kinematics(design.with_(n_layers=1), c, th, ps)[0]
-            if h.min() < -1e-9 or h.max() > H_TARGET_MAX + 1e-9:
+            if h.min() < -5e-5 or h.max() > H_TARGET_MAX + 1e-9:  # 0.05 mm: rounding of the table's numbers
                 raise ValueError(f"robot.targets: layer {letters[k]} at t = {t:g} s needs chamber heights "
                                  f"{np.round(U.to_mm(h), 2).tolist()} mm; each must lie in [0, "
                                  f"{U.to_mm(H_TARGET_MAX):g}] mm (raise height_mm or lower bend_deg)")

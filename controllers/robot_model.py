@@ -15,9 +15,10 @@ are light and the motion slow, so the lag is far below the load's own uncertaint
 
 Added here (wrapping, not editing, the prediction model):
 
-- a flow factor ``b`` multiplying the pump flow (the rig's pump is weaker, its dead volume larger:
-  in the gas-mass equation both only scale the inflow per command), estimated by the EKF and passed
-  to the NMPC (offset-free prediction of the inflow);
+- three per-chamber factors estimated by the EKF bank and passed to the NMPC (offset-free
+  prediction): ``b`` multiplies the pump flow, ``k`` the membrane modulus and ``v`` the dead volume
+  (:meth:`ChamberModel.outputs_expr` maps the nominal tables onto a chamber with k and v exactly for
+  a neo-Hookean-type membrane, without new tables);
 - the command parametrisation of the pneumatic topology. Each chamber has two decision inputs
   ``w = [a, o]``: its supply ``a`` and its outlet duty ``o`` (0-1). In both topologies ``a`` is
   the inlet valve's duty with the pump at full speed, ``u = [1, a, o]``: the inflow is then linear

@@ -1,27 +1,31 @@
 """A bank of per-chamber EKFs for the robot, stepped as one mapped casadi call (SI).
 
-One filter per chamber, each from its own pressure sensor. State ``[x, b, k]``: the scaled gas mass of
-:class:`controllers.robot_model.ChamberModel` and the pump-flow factor ``b`` (a slow random walk; it
-absorbs the rig's weaker pump and its larger dead volume, which in the gas-mass equation both only
-scale the inflow per command). The load ``W`` of each chamber is not a state: the robot's statics
-give it (:func:`hbma_ctrl.robot.load_sharing` of the estimated heights), one control period late.
-Why separate filters rather than one joint filter: given the loads the chambers' gas masses are
-dynamically independent (each has its own valves and sensor; with the shared pump the manifold model
-keeps each chamber's inflow its own duty times the pump flow), so a joint filter's covariance would
-be block diagonal anyway; the only coupling, the loads, enters through W, whose error is small
-against the modulus mismatch (see ``model_rel_std``). Nine 2-state filters cost a fraction of one
-18-state filter.
+One filter per chamber, each from its own pressure sensor. State ``[x, b, k, v]``: the gas mass
+``x`` (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of :class:`controllers.robot_model.
+ChamberModel`, and three slow random walks: the pump-flow factor ``b``, the membrane-modulus factor
+``k`` and the dead-volume factor ``v`` (see :meth:`ChamberModel.outputs_expr`). The load ``W`` of
+each chamber is not a state: the robot's statics give it (:func:`hbma_ctrl.robot.load_sharing` of
+the estimated heights), one control period late.
 
-A modulus factor ``k`` (third state, a slow random walk; see
-:meth:`controllers.robot_model.ChamberModel.outputs_expr`): without it a softer rig membrane, whose
-pressure peaks lower, drags the filter back onto the near branch as soon as the pressure falls past
-the (earlier, lower) true limit point — the falling pressure is explained by less gas instead of by
-a far-branch membrane (seen in the first runs: a -15 % modulus chamber estimated at 2.5 mm while it
-stood at 15 mm). At rest k is unobservable (the flat membrane's pressure does not depend on it) and
-b is learnt; after lift-off the curvature of p(gas mass) and the peak value tell k. Near the limit
-point the pressure hardly depends on the gas mass (dp/dx -> 0): there the filter leans on the flow
-model (the gas mass integrates the commanded flow with the learnt b), which is what keeps the far
-branch observable at all.
+Why separate filters rather than one joint filter: given the loads, the chambers' gas masses are
+dynamically independent (each has its own valves and sensor; with the shared pump the manifold
+model keeps each chamber's inflow its own duty times the pump flow), so a joint filter's
+covariance would be block diagonal up to the load coupling, which enters through W and is small
+against the parameter mismatch. Nine 4-state filters (one mapped call) cost a fraction of one
+36-state filter's dense algebra.
+
+Why k and v. Without k a softer rig membrane, whose pressure peaks lower, drags the filter back
+onto the near branch as soon as the pressure falls past the (earlier, lower) true limit point:
+the falling pressure is explained by less gas instead of by a far-branch membrane (first runs: a
+-15 % modulus chamber estimated at 2.5 mm while it stood at 15 mm). Without v the larger dead volume
+biases the height by the cap volume's share (-0.2 to -0.7 mm near 6 mm in the first 3-layer run).
+What is observable when: at rest only ``(x + 1) / v`` (the pressure) and ``b / v`` (its rise per
+command) are; k is not (a flat membrane's pressure does not depend on it). After lift-off the shape
+of p(gas mass) and the peak value separate k and v. Near the limit point the pressure hardly
+depends on the gas mass (dp/dx -> 0): there the filter leans on the flow model (the gas mass
+integrates the commanded flow with the learnt b), which is what keeps the far branch observable at
+all. Targets held on the near branch, below the peak, leave k and v partly unlearnt (a residual
+height error of a few tenths of a mm is then possible).
 
 All chambers are stepped by ONE call of the casadi ``map`` of the single-chamber step (predict with
 rk4 + Jacobians, covariance predict, scalar Joseph update), so 9 filters cost about one call.
