@@ -460,22 +460,25 @@ def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: flo
 
 
 def _estimator_from_scenario(scn, rig_settings):
-    raw = scn.role("estimator") if hasattr(scn, "role") else None
-    if raw is None:
-        return None
-    from estimators.common import FilterSettings
-
-    s = raw if isinstance(raw, FilterSettings) else getattr(raw, "filter", None) or getattr(raw, "settings", None)
-    if not isinstance(s, FilterSettings):
-        return None
-    kind = getattr(raw, "kind", "ekf")
-    if kind == "ukf":
+    """The filter the scenario's [estimator] section names (EKF or UKF, its tuning), or the EKF
+    with the rig's sample period, sensor range and noise when there is no such section."""
+    sec = scn.role("estimator") if hasattr(scn, "role") else None
+    if sec is None:
+        return None  # closed_loop builds the default EKF
+    try:
+        from estimators.scene import filter_settings_for
+    except ImportError as exc:
+        raise ValueError(f"[estimator]: needs estimators.scene ({exc})") from None
+    if not hasattr(sec, "filter") or not hasattr(sec, "tuning"):
+        raise ValueError("[estimator]: the parsed section has no 'filter'/'tuning'; cannot build the filter")
+    fs = filter_settings_for(sec, rig_settings)
+    if sec.filter == "ukf":
         from estimators.ukf import UKF
 
-        return UKF(scn.actuator, scn.pneumatics, s)
+        return UKF(scn.actuator, scn.pneumatics, fs)
     from estimators.ekf import EKF
 
-    return EKF(scn.actuator, scn.pneumatics, s)
+    return EKF(scn.actuator, scn.pneumatics, fs)
 
 
 def run_scene(scn, out_dir: Path | str) -> dict:

@@ -131,3 +131,25 @@ def test_settle_results_detects_unsettled():
     res = settle_results(L, sec.reference, 0.3e-3)
     assert res[0]["settled"] and res[0]["settle_time_s"] == 0.0
     assert not res[1]["settled"] and res[1]["final_error_mm"] == pytest.approx(-0.5)
+
+
+def test_scenario_run_writes_controller_metrics(tmp_path):
+    """A scenario with [rig], [estimator] (UKF) and [controller] through the runner: metrics.json
+    has the contract's controller keys; the CSV and the plot are written."""
+    import json
+
+    from hbma_ctrl.runner import run_scenario
+    from hbma_ctrl.scenario import parse_scenario
+
+    data = {"scenario": {"name": "cl", "duration_s": 3.5}, "load": {"mass_g": 400.0},
+            "rig": {"seed": 7}, "estimator": {"filter": "ukf"},
+            "controller": {"targets_mm": [[0.0, 3.0]], "p_max_kpa": 30.0}}
+    scn = parse_scenario(data)
+    run_scenario(scn, tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())["controller"]
+    for key in ("height_rmse_mm", "max_pressure_kpa", "pressure_limit_kpa", "solve_ms_median", "solve_ms_p99",
+                "solve_ms_max", "fallbacks"):
+        assert key in m
+    assert m["pressure_limit_kpa"] == pytest.approx(30.0) and m["max_pressure_kpa"] <= 30.0
+    assert m["steps_settled_estimate"] == 1
+    assert (tmp_path / "closed_loop.csv").stat().st_size > 1000 and (tmp_path / "closed_loop.png").is_file()
