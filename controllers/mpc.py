@@ -277,12 +277,7 @@ def _compile(fun: ca.Function, tag: str) -> ca.Function:
     src = f"{tag}.c"
     cg = ca.CodeGenerator(src, {"with_header": False})
     cg.add(fun)
-    cwd = os.getcwd()
-    try:
-        os.chdir(d)
-        cg.generate()
-    finally:
-        os.chdir(cwd)
+    cg.generate(d + os.sep)  # a directory prefix: no chdir (process-wide state)
     lib = os.path.join(d, f"{tag}.so")
     try:
         subprocess.run(["cc", "-O2", "-fPIC", "-shared", os.path.join(d, src), "-o", lib, "-lm"],
