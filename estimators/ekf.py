@@ -87,6 +87,7 @@ __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 #: outputs whose covariance the filters report (rows of ``output_cov``)
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
 _Y = {n: i for i, n in enumerate(OUT_NAMES)}
+_DIAG5 = np.diag_indices(5)
 #: the pump-flow and modulus factors are kept in this range (off by more is a broken rig, not a bias)
 FACTOR_RANGE = (0.5, 2.0)
 #: a resting load below this (N) may be no load at all: the flat height is then uncertain
@@ -158,8 +159,14 @@ class EKF:
         self.last_innovation: float | None = None
         self.last_output_cov = np.zeros((5, 5))
         self.last_step_s = 0.0
-        self.last_A = np.eye(NX)
+        self._A_flat = np.eye(NX).ravel()
         self._theta_set: set = set()
+        s = self.settings
+        dt = s.sample_period
+        q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
+             s.modulus_std ** 2 * dt, s.cov_floor]
+        self._qv_rest = np.array([0.0] + q)
+        self._qv_move = np.array([s.flow_rel_std] + q)
         self._p_pred = 0.0
         self._H = np.zeros(NX)
         self._cusum = 0.0
@@ -214,20 +221,17 @@ class EKF:
     # --- the filter ---------------------------------------------------------------------------
     def _predict(self, u: np.ndarray) -> None:
         s = self.settings
-        dt = s.sample_period
-        rel = 0.0 if self.resting else s.flow_rel_std  # resting, the flow error is b's job
-        qv = np.array([rel, s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
-                       s.modulus_std ** 2 * dt, s.cov_floor])
+        qv = self._qv_rest if self.resting else self._qv_move  # resting, the flow error is b's job
         out = self._pred(self.x, self.s, u, self._theta_arg(self._pred), float(self.resting), self.P, qv)
         xn = out[0].copy()
         Pn = out[5].reshape(NX, NX, order="F").copy()
         if not math.isfinite(float(xn.sum() + out[3].sum() + Pn.sum())):  # any NaN/inf propagates
             # the projection failed (e.g. across a fold): hold the state, widen the covariance
             self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0]), s.cov_floor)
-            self.last_A = np.eye(NX)
+            self._A_flat = np.eye(NX).ravel()
             self._events.add("model_failure")
             return
-        self.last_A = out[1].reshape(NX, NX, order="F").copy()
+        self._A_flat = out[1].copy()
         self.s = out[2].copy()
         self._p_pred = float(out[3][_Y["p"]])
         self._H = out[4].copy()
@@ -247,6 +251,11 @@ class EKF:
         P = out[1].reshape(NX, NX, order="F").copy()
         self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
         return innov / math.sqrt(S)
+
+    @property
+    def last_A(self) -> np.ndarray:
+        """A = dx+/dx of the last predict (n x n)."""
+        return self._A_flat.reshape(NX, NX, order="F").copy()
 
     def measurement_jacobian(self) -> np.ndarray:
         """H = dp/dx (1 x n) at the current estimate and mode."""
@@ -381,11 +390,10 @@ class EKF:
         C = out[4].reshape(5, 5, order="F").copy()
         # model-form error of the shape map (the rig is not the model): relative floor on h1, h2,
         # h and F; the state covariance alone only knows the parameters the state carries
-        rel = s.output_rel_std
-        if rel > 0:
-            for i in (0, 1, 2, 3):
-                C[i, i] += (rel * y[i]) ** 2
-        C[3, 3] += s.force_std_floor ** 2
+        d = (s.output_rel_std * y[:5]) ** 2
+        d[4] = 0.0
+        d[3] += s.force_std_floor ** 2
+        C[_DIAG5] += d
         if self.resting and self.x[1] < LIGHT_LOAD:
             # flat under a light (or no) load: a membrane this close to zero pressure may still
             # bulge by up to about the flat cap height h1; say so in the height's spread
