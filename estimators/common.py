@@ -55,6 +55,8 @@ class FilterSettings:
     lift_load_rel_std : relative one sigma of the load right after a detected lift-off, [0, 10].
     flow_factor_std : random walk of the pump-flow factor b, 1/sqrt(s), [0, 10];
         flow_factor_init_std its initial one sigma (b starts at 1), [0, 10].
+    flow_share : at lift-off, the share (in log) of the flat phase's slope error put on the pump
+        rather than on the dead volume, [0, 1]: b <- b^flow_share (0.5: equal prior spreads).
     modulus_std : random walk of the modulus factor k, 1/sqrt(s), [0, 10]; modulus_init_std its
         initial one sigma (k starts at 1), [0, 10].
     change_threshold : a load change is declared when the CUSUM of (NIS - change_drift) exceeds this
@@ -92,6 +94,7 @@ class FilterSettings:
     lift_load_rel_std: float = 0.2
     flow_factor_std: float = 0.02
     flow_factor_init_std: float = 0.25
+    flow_share: float = 0.5
     modulus_std: float = 0.002
     modulus_init_std: float = 0.15
     change_threshold: float = 20.0
@@ -128,6 +131,7 @@ class FilterSettings:
         check_range(w, "lift_load_rel_std", self.lift_load_rel_std, 0.0, 10.0)
         check_range(w, "flow_factor_std", self.flow_factor_std, 0.0, 10.0, "1/sqrt(s)")
         check_range(w, "flow_factor_init_std", self.flow_factor_init_std, 0.0, 10.0)
+        check_range(w, "flow_share", self.flow_share, 0.0, 1.0)
         check_range(w, "modulus_std", self.modulus_std, 0.0, 10.0, "1/sqrt(s)")
         check_range(w, "modulus_init_std", self.modulus_init_std, 0.0, 10.0)
         check_range(w, "load_init_std", self.load_init_std, 0.0, 1000.0, "N", lo_open=True)

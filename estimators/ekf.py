@@ -47,6 +47,8 @@ change_std               3 N             spread given to the load on a detected 
 lift_threshold/drift     6 / 0.3         CUSUM of the innovation shortfall while flat
 lift_load_rel_std        0.2 (+0.2 N)    the lift-off pressure is known to a sample's rise
 flow_factor_init_std     0.25            pump map off by up to 25 % (rig: -10 %, V0 +20 %)
+flow_share               0.5             at lift-off b <- b^0.5: the flat slope error split
+                                         evenly (in log) between pump and dead volume
 flow_factor_std          0.02 /sqrt(s)   slow drift only
 modulus_init_std         0.15            the issue's +-15 % modulus mismatch
 modulus_std              0.002 /sqrt(s)  a material constant: learnt, hardly drifting
@@ -345,6 +347,9 @@ class EKF:
             self.P = guard_cov(P, s.cov_floor)
         # the flow factor learnt while flat also absorbed the dead-volume error (the flat slope is
         # b / V0): once the membrane moves the two separate, so b gets its prior spread back
+        # the flat slope b / c (c the dead-volume factor) was all put in b; split it evenly in log
+        # between flow and dead volume (equal prior spreads): b <- b^flow_share
+        self.x[2] = self.x[2] ** s.flow_share
         P = self.P.copy()
         P[2, :] = P[:, 2] = 0.0
         P[2, 2] = max(self.P[2, 2], s.flow_factor_init_std ** 2)
