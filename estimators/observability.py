@@ -25,7 +25,7 @@ regime             frozen rank  window rank  what the pressure tells
 resting + flow     1-2          1-2          m and (pumping) the flow factor b; W and k do not
                                              enter: only ``W >= pi r1^2 p``; h = 0 exactly
 resting + hold     1            1            the gas mass (the pressure level) only
-free/contact+flow  2            1-3 (med 2)  m, and over a window part of (W, b, k); W and k act
+free/contact+flow  2            1-4 (med 2)  m, and over a window part of (W, b, k); W and k act
                                              alike on p (stiffer membrane ~ heavier load)
 free/contact+hold  1            1            one combination of (m, W, k): every pair on a level
                                              set of p is an equilibrium
