@@ -80,7 +80,7 @@ import numpy as np
 from hbma_ctrl.interfaces import Command, Estimate
 from hbma_ctrl.params import Actuator, Pneumatics
 
-from .common import MEAS_MISSING, MEAS_SATURATED, FilterSettings, classify_measurement, guard_cov
+from .common import MEAS_SATURATED, FilterSettings, classify_measurement, guard_cov
 from .fastcall import FastFunction
 from .model import NX, OUT_NAMES, STATE_NAMES, ObserverModel
 

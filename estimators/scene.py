@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import csv
 import difflib
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -261,7 +260,6 @@ def _protocol(scn, sec: EstimatorSection, rig: RigSettings, out: Path) -> dict:
             res += evaluate_trials(trials, kind, replace(rig, seed=rig.seed + seed), fs, workers=sec.workers,
                                    with_series=False)
         per_kind[kind] = res
-    rows = per_kind[sec.filter]
     keys = ("height_nrmsd", "height_nrmsd_open_loop", "pressure_nrmsd", "force_rmse_n",
             "force_steady_rel_err", "nees_mean", "nis_mean", "step_us_median", "height_rmse_mm")
     with open(out / "estimator_trials.csv", "w", newline="") as fh:
@@ -270,7 +268,6 @@ def _protocol(scn, sec: EstimatorSection, rig: RigSettings, out: Path) -> dict:
         for kind, res in per_kind.items():
             for r in res:
                 w.writerow([r.name, kind] + [f"{r.scores[k]:.6g}" for k in keys] + [r.scores["rig_status"]])
-    del rows
     return _metrics(per_kind, sec, rig, {"trials_csv": "estimator_trials.csv"})
 
 
@@ -301,7 +298,3 @@ def run_scene(scn, out_dir) -> dict:
             raise ValueError("estimator.load_steps_g: only for kind 'single' scenarios")
         return _protocol(scn, sec, rig, out)
     return _single(scn, sec, rig, out)
-
-
-def _finite(v):
-    return v if isinstance(v, (int, float)) and math.isfinite(v) else None
