@@ -399,9 +399,9 @@ class EKF:
         d[4] = 0.0
         d[3] += s.force_std_floor ** 2
         C[_DIAG5] += d
-        if self.resting and self.x[1] < LIGHT_LOAD:
-            # flat under a light (or no) load: a membrane this close to zero pressure may still
-            # bulge by up to about the flat cap height h1; say so in the height's spread
+        if self.resting and (self.x[1] < LIGHT_LOAD or MEAS_SATURATED in flags):
+            # flat under a light (or no) load, or flat while saturated (a lift-off would be
+            # invisible): the membrane may bulge by up to about the flat cap height h1; say so
             C[2, 2] += (0.5 * y[0]) ** 2
         self.last_output_cov = C
         std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
