@@ -277,6 +277,7 @@ class ClosedLoopRun:
     wall_s: float
     changes: np.ndarray
     b_est: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cautious_steps: int = 0
 
 
 def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberModel:
@@ -288,11 +289,13 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberModel | None = None, tip_load=(), interlock_margin: float = 1e3,
-                    h0=None) -> ClosedLoopRun:
+                    h0=None, cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s (see module doc); targets from :func:`parse_targets`.
 
-    h0 : optional initial chamber heights (n,), m — the rig is first inflated open loop to about
-    these heights is NOT done; the run starts from rest (kept for API symmetry: must be None).
+    h0 : must be None (every run starts from rest; kept so a caller's intent fails loudly).
+    cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
+    fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
+    its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
     """
     from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 
@@ -332,6 +335,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     wall0 = time.perf_counter()
     plim = rp.pressure_limit
     tcache: dict = {}
+    cautious_steps = 0
+    peak_p = np.array([model.peak(w)[1] for w in model.clip_load(W_used)])
 
     def rec(j, z, est):
         tr = plant.truth()
@@ -351,13 +356,29 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
         est = bank.step(z, w_prev, W_used)
         t1 = time.perf_counter()
         W_used = np.maximum(load_sharing(d, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
+        if controller == "mpc" and cautious is not None and j % 10 == 0:
+            peak_p = np.array([model.peak(w)[1] for w in model.clip_load(W_used / est["k"])])
+        # a zero target height means "lower the layer onto its stop": vent, no dithering about
+        # ambient pressure (where the model has nothing to track); such chambers get no supply in
+        # the NMPC either (else they take a share of a shared pump's duty budget)
+        vent = chamber_targets(d, targets, t, tcache) <= 5e-5
         if controller == "mpc":
             # no preview: the NMPC sees the current target only (as the PID does); a preview would
             # start each move up to one horizon early
             href = chamber_targets(d, targets, t, tcache)
-            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"], est["v"])
+            a_max = np.where(vent, 0.0, 1.0)
+            if cautious is not None:
+                # cautious approach of the limit point: while a chamber's modulus factor is still
+                # uncertain, pass its peak slowly, so that its filter can tell the far branch
+                # (pressure falls, k lower) from the near branch (less gas) — see robot_ekf
+                near = (est["p"] > cautious[0] * est["k"] * peak_p) & (est["k_std"] > cautious[1])
+                a_max = np.where(near, np.minimum(a_max, cautious[2]), a_max)
+                cautious_steps += int(near.sum())
+            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"], est["v"], a_max)
         else:
             a, o = ctrl.step(z, W_used, chamber_targets(d, targets, t, tcache))
+        a = np.where(vent, 0.0, a)
+        o = np.where(vent, 1.0, o)
         guard = np.isfinite(z) & (z >= plim - interlock_margin) & (a > 0)
         if guard.any():
             interlocks += int(guard.sum())
@@ -377,7 +398,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     return ClosedLoopRun(controller, tt[sl], H[sl], HR[sl], HE[sl], P[sl], PM[sl], LM[sl], A[sl], O[sl], LD[sl],
                          st[:T - 1], se[:T - 1], sc[:T - 1], interlocks, int(getattr(ctrl, "fallbacks", 0)),
                          int(getattr(ctrl, "inaccurate", 0)), status, time.perf_counter() - wall0,
-                         change_times(targets), BE[sl])
+                         np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
+                         BE[sl], cautious_steps)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -402,7 +424,7 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
     """The "robot" metrics of a closed-loop run (edge units), on the TRUE shape.
 
     RMSEs are over the settled windows: samples at least ``settle_time`` after the last target
-    change (the transients of a step are not tracking errors). Per target segment: the errors at
+    change or tip-load change (the transients of a step are not tracking errors). Per target segment: the errors at
     its end (mean over its last 0.5 s), whether it settled within ``h_tol`` (every chamber) and
     ``bend_tol`` (every layer), and the settling time (first time from which both stay inside).
     """
@@ -464,6 +486,7 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "segments": segs,
         "all_segments_settled": bool(all(s["settled"] for s in segs)),
         "interlocks": run.interlocks,
+        "cautious_steps": run.cautious_steps,
         "fallbacks": run.fallbacks,
         "qp_not_solved": run.inaccurate,
         "status": run.status,

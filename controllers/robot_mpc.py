@@ -121,7 +121,8 @@ class RobotNMPC:
 
     ``step(x0, b, W, h_ref, k=None, v=None) -> (a, o)``: x0 (n,) estimated scaled gas masses, b (n,)
     flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m, k and v (n,) the
-    estimated modulus and dead-volume factors (default 1); returns the supply
+    estimated modulus and dead-volume factors (default 1), a_max (n,) an upper bound on each
+    chamber's supply duty (default 1); returns the supply
     and outlet decisions (n,) each for this period. ``stats`` holds the solve times and fallbacks.
     """
 
@@ -197,7 +198,7 @@ class RobotNMPC:
         self._Apat = _Pattern(ar, ac, (self.m_rows, self.nv))
 
     # --- one period --------------------------------------------------------------------------------
-    def step(self, x0, b, W, h_ref, k=None, v=None):
+    def step(self, x0, b, W, h_ref, k=None, v=None, a_max=None):
         import time
 
         t0 = time.perf_counter()
@@ -206,6 +207,7 @@ class RobotNMPC:
         b = np.asarray(b, dtype=float).reshape(n)
         k = np.ones(n) if k is None else np.asarray(k, dtype=float).reshape(n)
         v = np.ones(n) if v is None else np.asarray(v, dtype=float).reshape(n)
+        amax = np.ones(n) if a_max is None else np.clip(np.asarray(a_max, dtype=float).reshape(n), 0.0, 1.0)
         W = self.model.clip_load(np.asarray(W, dtype=float).reshape(n))
         href = np.asarray(h_ref, dtype=float)
         href = np.broadcast_to(href.reshape(n, -1), (n, N)) if href.size in (n, n * N) else None
@@ -278,8 +280,8 @@ class RobotNMPC:
             vals += [1.0] * (2 * N) + [1.0]
             Av.append(np.array(vals))
             lo.append(np.concatenate([rhs[i], np.full(N, -np.inf), np.zeros(2 * N), [0.0]]))
-            up.append(np.concatenate([rhs[i], (pmax - p[i, 1:] + Px[i, 1:] * xb[i, 1:]) * 1e-3, np.ones(2 * N),
-                                      [np.inf]]))
+            up.append(np.concatenate([rhs[i], (pmax - p[i, 1:] + Px[i, 1:] * xb[i, 1:]) * 1e-3,
+                                      np.full(N, amax[i]), np.ones(N), [np.inf]]))
         if self.topology == "shared":
             Av.append(np.ones(N * n))
             lo.append(np.full(N, -np.inf))

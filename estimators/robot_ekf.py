@@ -64,9 +64,9 @@ class ChamberEKFSettings:
     b0: float = 1.0
     b0_std: float = 0.25
     k0_std: float = 0.15
-    k_rate_std: float = 0.01
+    k_rate_std: float = 0.002
     v0_std: float = 0.25
-    v_rate_std: float = 0.01
+    v_rate_std: float = 0.002
     sensor_range: float = 50e3
 
     def validate(self) -> "ChamberEKFSettings":
@@ -154,9 +154,18 @@ class ChamberEKFBank:
         self.X = None
         self.P = None
         self.last: dict = {}
+        self.resets = 0
 
-    def reset(self, p0) -> None:
-        """Start every filter at rest from readings p0 (n,) Pa (a flat membrane: x = p / p_env)."""
+    def reset(self, p0, mask=None) -> None:
+        """Start the filters (all, or those in ``mask``) at rest from readings p0 (n,) Pa (a flat
+        membrane: x = p / p_env, factors at their priors)."""
+        if mask is not None and self.X is not None:
+            keep_X, keep_P = self.X.copy(), self.P.copy()
+            self.reset(p0)
+            m = np.asarray(mask, dtype=bool)
+            self.X = np.where(m[None, :], self.X, keep_X)
+            self.P = np.where(m[None, :], self.P, keep_P)
+            return
         p0 = np.nan_to_num(np.asarray(p0, dtype=float).reshape(self.n), nan=0.0)
         s = self.settings
         x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
@@ -180,13 +189,19 @@ class ChamberEKFBank:
         out = self._fun(self.X, self.P, np.asarray(w, dtype=float).reshape(2, self.n), Wv[None, :],
                         zz[None, :], use[None, :])
         X = np.asarray(out[0])
-        X[0] = np.clip(X[0], -0.05, self.model.pm.grid.x[-1])
+        Pn = np.asarray(out[1])
+        bad = ~(np.all(np.isfinite(X), 0) & np.all(np.isfinite(Pn), 0))
+        self.resets += int(bad.sum())
+        X[0] = np.clip(X[0], -0.04, self.model.pm.grid.x[-1])
         X[1] = np.clip(X[1], *B_RANGE)
         X[2] = np.clip(X[2], *K_RANGE)
         X[3] = np.clip(X[3], *V_RANGE)
         self.X = X
-        self.P = np.asarray(out[1])
+        self.P = Pn
+        if bad.any():  # a diverged filter restarts from its reading (counted in ``resets``)
+            self.reset(zz, bad)
         self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "v": X[3].copy(),
                      "h": np.maximum(np.asarray(out[2]).ravel(), 0.0), "p": np.asarray(out[3]).ravel(),
-                     "h_std": np.asarray(out[5]).ravel(), "nis": np.asarray(out[4]).ravel(), "used": use > 0}
+                     "h_std": np.asarray(out[5]).ravel(),
+                     "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": np.asarray(out[4]).ravel(), "used": use > 0}
         return self.last
