@@ -278,6 +278,9 @@ class ClosedLoopLog:
     stats: dict
     events: list
     wall_s: float
+    nees: np.ndarray | None = None  # estimator NEES of (h, F) per sample, where it exposes its covariance
+    nis: np.ndarray | None = None  # estimator NIS per sample (NaN where no update)
+    est_step_s: np.ndarray | None = None  # estimator wall time per step, s
 
 
 def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
@@ -323,6 +326,9 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     cols = {k: np.zeros(n) for k in ("t", "target", "h_true", "h_est", "p_true", "p_meas", "p_est",
                                      "F_true", "F_est", "load")}
     U = np.zeros((n, 3))
+    nees, nis, est_s = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    from estimators.evaluate import NEES_FLOOR
+
     loads = list(section.load_steps)
     cmd = Command(0.0, 0.0, 0.0)
     e = None
@@ -346,9 +352,51 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
                          ("load", rig.platform.load)):
             cols[key][k] = val
         U[k] = cmd.as_array()
+        # estimator consistency, where the filter exposes its output covariance (EKF, UKF)
+        C = getattr(est, "last_output_cov", None)
+        if C is not None:
+            err = np.array([e.h - tr["h"], e.F - tr["F"]])
+            nees[k] = float(err @ np.linalg.solve(np.asarray(C)[2:4, 2:4] + np.diag(NEES_FLOOR), err))
+        if getattr(est, "last_nis", None) is not None:
+            nis[k] = est.last_nis
+        if getattr(est, "last_step_s", None) is not None:
+            est_s[k] = est.last_step_s
         rig.apply(cmd)
     wall = time.perf_counter() - t_wall
-    return ClosedLoopLog(**cols, u=U, stats=ctrl.stats(), events=list(rig.events), wall_s=wall)
+    return ClosedLoopLog(**cols, u=U, stats=ctrl.stats(), events=list(rig.events), wall_s=wall,
+                         nees=nees, nis=nis, est_step_s=est_s)
+
+
+def estimator_metrics(log: ClosedLoopLog, actuator: Actuator, pneumatics: Pneumatics, platform: Platform,
+                      sample_period: float) -> dict:
+    """The "estimator" metrics object for a closed-loop run (same keys as the estimator scene).
+
+    height_nrmsd_open_loop drives the nominal model (the estimator's own parameters, the initial
+    load, load steps unknown to it) with the commands the controller actually sent.
+    """
+    from hbma_ctrl.metrics import nrmsd
+    from hbma_ctrl.model import make_fidelity
+    from hbma_ctrl.simulate import Plant
+
+    fname = "free" if platform.mass <= 0 else "quasi_static"
+    fid = make_fidelity(fname, actuator.material, pneumatics.csv_path)
+    plant = Plant(fid, fid.space.values(actuator, pneumatics, platform)[:, None], "rk4")
+    h_ol = np.zeros(len(log.t))
+    for k in range(len(log.t)):
+        h_ol[k] = plant.output("h")[0]
+        plant.advance(log.u[k][:, None], sample_period)
+    finite = lambda a: float(a) if a is not None and np.isfinite(a) else None  # noqa: E731
+    return {
+        "height_nrmsd": finite(nrmsd(log.h_est, log.h_true)),
+        "height_nrmsd_open_loop": finite(nrmsd(h_ol, log.h_true)),
+        "pressure_nrmsd": finite(nrmsd(log.p_est, log.p_true)),
+        "force_rmse_n": float(np.sqrt(np.mean((log.F_est - log.F_true) ** 2))),
+        "nees_mean": finite(np.nanmean(log.nees)) if log.nees is not None and np.isfinite(log.nees).any() else None,
+        "nis_mean": finite(np.nanmean(log.nis)) if log.nis is not None and np.isfinite(log.nis).any() else None,
+        "step_us_median": (finite(np.nanmedian(log.est_step_s) * 1e6)
+                           if log.est_step_s is not None and np.isfinite(log.est_step_s).any() else None),
+        "height_rmse_mm": float(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)) * 1e3),
+    }
 
 
 def settle_results(log: ClosedLoopLog, reference: ReferenceProfile, band: float, min_hold: float = 0.2,
@@ -482,7 +530,8 @@ def _estimator_from_scenario(scn, rig_settings):
 
 
 def run_scene(scn, out_dir: Path | str) -> dict:
-    """Run a scenario with a [controller] section; write CSV + plot; return {"controller": {...}}."""
+    """Run a scenario with a [controller] section; write CSV + plot; return the "controller" and
+    "estimator" metrics objects (the EKF runs in the loop, so its accuracy is reported too)."""
     from hbma_ctrl.rig import RigSettings
 
     out = Path(out_dir)
@@ -501,7 +550,9 @@ def run_scene(scn, out_dir: Path | str) -> dict:
     m = loop_metrics(log, section)
     m["log_csv"] = "closed_loop.csv"
     m["plot_png"] = "closed_loop.png"
-    return {"controller": m}
+    em = estimator_metrics(log, scn.actuator, scn.pneumatics, scn.platform, rs.sample_period)
+    em["filter"] = type(est).__name__ if est is not None else "EKF"
+    return {"controller": m, "estimator": em}
 
 
 def _with(section: ControllerSection, **kw) -> ControllerSection:

@@ -146,7 +146,14 @@ def test_scenario_run_writes_controller_metrics(tmp_path):
             "controller": {"targets_mm": [[0.0, 3.0]], "p_max_kpa": 30.0}}
     scn = parse_scenario(data)
     run_scenario(scn, tmp_path)
-    m = json.loads((tmp_path / "metrics.json").read_text())["controller"]
+    doc = json.loads((tmp_path / "metrics.json").read_text())
+    est = doc["estimator"]  # the UKF ran in the loop: its accuracy is reported beside the controller's
+    assert est["filter"] == "UKF"
+    for key in ("height_nrmsd", "height_nrmsd_open_loop", "pressure_nrmsd", "force_rmse_n", "nees_mean",
+                "nis_mean", "step_us_median"):
+        assert key in est
+    assert 0 <= est["height_nrmsd"] < est["height_nrmsd_open_loop"]
+    m = doc["controller"]
     for key in ("height_rmse_mm", "max_pressure_kpa", "pressure_limit_kpa", "solve_ms_median", "solve_ms_p99",
                 "solve_ms_max", "fallbacks"):
         assert key in m
