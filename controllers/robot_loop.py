@@ -454,6 +454,8 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
             t_set = float(run.t[first] - s0)
         segs.append({"t_start_s": float(s0), "t_end_s": float(min(s1, run.t[-1])),
                      "final_height_err_mm": float(h_err[end].mean(0).max()) if end.any() else None,
+                     "peak_height_err_mm": float(h_err[m].max()),
+                     "peak_bend_err_deg": float(bend_err[m].max()),
                      "final_bend_err_deg": float(bend_err[end].mean(0).max()) if end.any() else None,
                      "settled": bool(ok[-1]), "settle_time_s": t_set,
                      "target_heights_mm": np.round(run.h_ref[idx[-1]] * 1e3, 2).tolist()})
