@@ -622,7 +622,7 @@ def bench_robot(layers=(1, 2, 3, 4, 5, 6), duration: float = 3.0, topology: str 
         tg = parse_targets({"all": [[0.0, 6.0, 0.0, 0.0], [duration / 2, 7.0, 15.0, 0.0]]}, d)
         run = run_closed_loop(s, tg, duration, "mpc", pn, mpc=RobotMPCSettings(horizon=horizon), model=model)
         st = run.step_s[5:] * 1e3  # the first periods include casadi/OSQP setup
-        rows.append({"layers": int(N), "chambers": 3 * int(N), "qp_variables": 3 * horizon * 3 * int(N),
+        rows.append({"layers": int(N), "chambers": 3 * int(N), "qp_variables": (3 * horizon + 1) * 3 * int(N),
                      "step_ms_median": float(np.median(st)), "step_ms_p99": float(np.percentile(st, 99)),
                      "step_ms_max": float(st.max()), "ekf_ms_median": float(np.median(run.ekf_s[5:] * 1e3)),
                      "mpc_ms_median": float(np.median(run.ctrl_s[5:] * 1e3)), "steps": int(st.size),

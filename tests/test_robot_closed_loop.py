@@ -111,3 +111,40 @@ def test_closed_loop_section_validation():
         parse_section({"mode": "closed_loop", "layers": 1, "targets": {"D": [[0, 6, 0, 0]]}})
     with pytest.raises(ValueError, match="needs robot.targets"):
         parse_section({"mode": "closed_loop", "layers": 1})
+
+
+def test_bench_robot_cli(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from hbma_ctrl.cli import app
+
+    r = CliRunner().invoke(app, ["bench", "robot", "--layers", "1", "--duration", "0.6", "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    rows = json.loads((tmp_path / "bench_robot.json").read_text())["rows"]
+    assert [row["layers"] for row in rows] == [1] and rows[0]["chambers"] == 3
+    assert rows[0]["step_ms_p99"] >= rows[0]["step_ms_median"] > 0
+    bad = CliRunner().invoke(app, ["bench", "robot", "--layers", "7", "--out", str(tmp_path)])
+    assert bad.exit_code == 2 and "--layers" in bad.output
+
+
+def test_closed_loop_scene_writes_metrics_and_plots(tmp_path):
+    """A short 1-layer closed-loop scenario through the runner: robot metrics with the required keys,
+    the baseline beside, the shape plot and the signals."""
+    from hbma_ctrl.runner import run_scenario
+    from hbma_ctrl.scenario import load_scenario
+
+    p = tmp_path / "s.toml"
+    p.write_text('[scenario]\nname = "cl"\nduration_s = 2.5\n[inputs]\nschedule = [[0.0, 0.0, 0.0, 0.0]]\n[rig]\nseed = 4\n[robot]\nmode = "closed_loop"\n'
+                 'layers = 1\ncompare_baseline = true\nsettle_s = 1.0\n'
+                 '[robot.targets]\nall = [[0.0, 4.0, 0.0, 0.0], [0.8, 5.0, 10.0, 90.0]]\n')
+    out = run_scenario(load_scenario(p), tmp_path / "out")
+    rob = out["robot"]
+    for key in ("chamber_height_rmse_mm", "bend_angle_rmse_deg", "tip_position_rmse_mm", "step_ms_median",
+                "step_ms_p99"):
+        assert rob[key] is not None and rob[key] >= 0
+    assert rob["controller"] == "mpc" and rob["baseline"]["controller"] == "pressure_pid"
+    assert not rob["pressure_limit_exceeded"]
+    for f in ("robot_shape.png", "robot_series.png", "robot_mpc_log.csv", "metrics.json"):
+        assert (tmp_path / "out" / f).exists()
