@@ -19,7 +19,8 @@ Pieces
   period's NMPC: the one-period lag), the controller picks every chamber's supply and outlet,
   a pressure interlock (inlet closed while a reading is within ``interlock_margin`` of the limit,
   counted) guards both controllers, the rig advances one period. The controller does not know
-  the tip load (a disturbance).
+  the tip load (a disturbance). The EKF bank runs in the pressure-PID loop too (the PID ignores
+  it; its estimate is logged), so both loops' step times include it.
 - :func:`closed_loop_metrics`, plots, :func:`bench_robot` (1..6 layers).
 """
 
@@ -43,7 +44,7 @@ from .robot_mpc import RobotMPCSettings, RobotNMPC
 from .robot_pid import RobotPIDSettings, RobotPressurePID
 
 __all__ = ["RobotRigSettings", "RobotRig", "parse_targets", "chamber_targets", "run_closed_loop",
-           "closed_loop_metrics", "bench_robot", "run_closed_loop_scene", "CONTROLLERS", "default_targets"]
+           "closed_loop_metrics", "bench_robot", "run_closed_loop_scene", "CONTROLLERS"]
 
 CONTROLLERS = ("mpc", "pressure_pid")
 H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
@@ -240,15 +241,6 @@ def change_times(targets: dict) -> np.ndarray:
     return np.array(sorted(ts))
 
 
-def default_targets(n_layers: int, t_step: float = 4.0) -> dict:
-    """The ISSUE 5 sequence for every layer: straight at 6 mm, then height 8 mm, then bend 0 -> 20
-    -> -15 deg about direction 0 and then about 90 deg (raw table form, edge units)."""
-    rows = [[0.0, 6.0, 0.0, 0.0], [t_step, 8.0, 0.0, 0.0], [2 * t_step, 7.0, 20.0, 0.0],
-            [3 * t_step, 7.0, -15.0, 0.0], [4 * t_step, 7.5, 20.0, 90.0], [5 * t_step, 7.5, -15.0, 90.0],
-            [6 * t_step, 7.0, 0.0, 0.0]]
-    return {"all": rows}
-
-
 # ---------------------------------------------------------------------------------------------
 # the loop
 # ---------------------------------------------------------------------------------------------
@@ -319,10 +311,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     if controller == "mpc":
         ms = replace(mpc or RobotMPCSettings(), sample_period=Ts, p_max=rp.pressure_limit)
         ctrl = RobotNMPC(model, n, ms)
-        N, dtp = ms.horizon, ms.dt
     else:
         ctrl = RobotPressurePID(model, n, replace(pid or RobotPIDSettings(), sample_period=Ts))
-        N, dtp = 1, Ts
     steps = int(round(duration / Ts))
     T = steps + 1
     H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))

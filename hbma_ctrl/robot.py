@@ -6,7 +6,9 @@ membrane centre is glued to the layer above. This module holds the robot as data
 of a layer, the per-chamber membrane state consistent with that load (through
 :mod:`hbma_ctrl.physics`; no physics is re-derived here), each chamber's reachable height and what
 limits it, the paper's Table II beside the model, the reachable workspace, and an open-loop scene
-(the paper's Fig. 10 sequential inflation).
+(the paper's Fig. 10 sequential inflation). The closed-loop scene (``[robot] mode = "closed_loop"``:
+per-chamber EKF bank + structured NMPC, or a pressure-PID baseline, on a mismatched rig) lives in
+:mod:`controllers.robot_loop`; :func:`run_scene` dispatches to it.
 
 Bodies and frames
 -----------------
