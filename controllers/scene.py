@@ -115,7 +115,17 @@ class ReferenceProfile:
 
 @dataclass
 class ControllerSection:
-    """Parsed [controller] section: which controller, its settings, the targets and load steps."""
+    """Parsed [controller] section: which controller, its settings, the targets and load steps.
+
+    Fields
+    ------
+    kind : 'mpc' | 'pid' | 'bang_bang': which controller runs.
+    mpc, pid, bang_bang : the settings of each (only the chosen one is used).
+    reference : the height target profile (steps, ramps, sines), m.
+    load_steps : ((t s, load mass kg), ...) put on the rig during the run.
+    preview : pass the future targets to the MPC; None = only for ramps and sines.
+    settle_band : band for the settling report, m (0.3 mm).
+    """
 
     kind: str = "mpc"
     mpc: MPCSettings = field(default_factory=MPCSettings)
