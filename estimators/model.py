@@ -26,7 +26,7 @@ r) and covariance ``D P D^T``. All are compiled to C (:mod:`estimators.fastcall`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -39,8 +39,6 @@ __all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
 
 STATE_NAMES = ("m", "W", "b", "k")
 NX = len(STATE_NAMES)
-#: material parameters that are not moduli (dimensionless): the modulus factor leaves them alone
-_DIMENSIONLESS = {"Jm", "alpha"}
 #: a tiny contact stiffness, N/m, regularising F(h1, h2) = W where the pressure vanishes (at W = 0
 #: and p -> 0 any h2 would do; with it h2 = 0): 1 N/m is below 1 % of dF/dh2 at working pressures
 EPS_K = 1.0
@@ -130,17 +128,7 @@ class ObserverModel:
         P = dict(P)
         P["W"] = x[1]
         P["flow_scale"] = P["flow_scale"] * x[2]
-        mat = P["material"]
-        kw = {}
-        for f in fields(mat):
-            v = getattr(mat, f.name)
-            if f.name in _DIMENSIONLESS:
-                kw[f.name] = v
-            elif isinstance(v, tuple):
-                kw[f.name] = tuple(x[3] * e for e in v)
-            else:
-                kw[f.name] = x[3] * v
-        P["material"] = type(mat)(**kw)
+        P["material"] = P["material"].scaled(x[3])
         return P
 
     def _syms(self) -> _Syms:

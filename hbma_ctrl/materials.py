@@ -55,6 +55,25 @@ class Material:
     """Base class: a strain energy with named parameters (Pa unless stated)."""
 
     name: ClassVar[str] = ""
+    #: parameters that are not moduli (exponents, locking limits): scaling the stiffness keeps them
+    dimensionless: ClassVar[tuple] = ()
+
+    def scaled(self, factor) -> "Material":
+        """The same material with every modulus multiplied by ``factor`` (float or casadi symbol).
+
+        The strain energy, and so the pressure at a given shape, scales by ``factor``; exponents and
+        locking limits stay. Used for a rig's modulus mismatch and an estimator's modulus factor.
+        """
+        kw = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in self.dimensionless:
+                kw[f.name] = v
+            elif isinstance(v, tuple):
+                kw[f.name] = tuple(factor * e for e in v)
+            else:
+                kw[f.name] = factor * v
+        return type(self)(**kw)
 
     def W(self, lam):  # noqa: N802 - physics notation
         """Strain energy density W(lam) in J/m^3 (casadi or float)."""
@@ -165,6 +184,7 @@ class Gent(Material):
     """W = -(mu Jm / 2) ln(1 - (I1 - 3)/Jm). mu: shear modulus, Pa; Jm: locking limit (-)."""
 
     name: ClassVar[str] = "gent"
+    dimensionless: ClassVar[tuple] = ("Jm",)
     mu: float = MU0
     Jm: float = 60.0
 
@@ -198,6 +218,7 @@ class Ogden(Material):
     """
 
     name: ClassVar[str] = "ogden"
+    dimensionless: ClassVar[tuple] = ("alpha",)
     mu: tuple = (2 * 0.97 * MU0 / 1.3, 2 * 0.03 * MU0 / 5.0)
     alpha: tuple = (1.3, 5.0)
 

@@ -23,12 +23,11 @@ plant, which the estimator benchmarks and the protocol scenario use.
 from __future__ import annotations
 
 import difflib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .interfaces import Command
-from .materials import Material
 from .model import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
 from .params import Actuator, Platform, Pneumatics, check_range
 from .simulate import Plant, Trial
@@ -38,8 +37,6 @@ __all__ = ["RigSettings", "Rig", "RigRecord", "parse_rig_section", "mismatched",
 
 #: keys of :meth:`Rig.truth`
 TRUTH_KEYS = ("t", "h1", "h2", "h", "p", "F", "m")
-#: material parameters that are not moduli (dimensionless); every other one scales with the modulus
-_DIMENSIONLESS = {"Jm", "alpha"}
 _RIG_FIDELITIES = ("platform", "quasi_static")
 
 
@@ -133,23 +130,10 @@ def parse_rig_section(raw: dict) -> RigSettings:
     return RigSettings(**kw).validate()
 
 
-def _scaled_material(mat: Material, scale: float) -> Material:
-    kw = {}
-    for f in fields(mat):
-        v = getattr(mat, f.name)
-        if f.name in _DIMENSIONLESS:
-            kw[f.name] = v
-        elif isinstance(v, tuple):
-            kw[f.name] = tuple(scale * x for x in v)
-        else:
-            kw[f.name] = scale * v
-    return replace(mat, **kw)
-
-
 def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings
                ) -> tuple[Actuator, Pneumatics]:
     """The rig's (true) actuator and pneumatics: nominal ones with the settings' mismatch applied."""
-    act = replace(actuator, material=_scaled_material(actuator.material, settings.modulus_scale),
+    act = replace(actuator, material=actuator.material.scaled(settings.modulus_scale),
                   V0=actuator.V0 * settings.V0_scale)
     pn = replace(pneumatics, flow_scale=pneumatics.flow_scale * settings.flow_scale)
     return act, pn

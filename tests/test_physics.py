@@ -209,3 +209,13 @@ def test_material_errors_name_the_field():
         make_material("nh", E=-1.0)
     with pytest.raises(ValueError, match="actuator.r1"):
         Actuator(r1=-1.0).validate()
+
+
+@pytest.mark.parametrize("mat", MATS, ids=lambda m: m.name)
+def test_scaled_material_scales_the_pressure_and_keeps_exponents(mat):
+    r1, t0 = 7.5e-3, 3e-3
+    base = _eval(mat, r1, t0, 9e-3, 2e-3)[0]
+    stiff = _eval(mat.scaled(1.15), r1, t0, 9e-3, 2e-3)[0]
+    assert stiff == pytest.approx(1.15 * base, rel=1e-12)
+    for name in type(mat).dimensionless:
+        assert getattr(mat.scaled(1.15), name) == getattr(mat, name)
