@@ -40,7 +40,7 @@ def bench_ekf(grid: dict, filters=("ekf", "ukf"), seed: int = 0) -> dict:
     from hbma_ctrl.rig import RigSettings, simulate_rig
 
     from .common import FilterSettings
-    from .evaluate import _open_loop, aggregate, make_filter, run_filter, score
+    from .evaluate import _open_loop, aggregate, make_filter, run_and_score
 
     trials = protocol_trials("nh", platform=Platform(own_mass=0.02), **grid)
     rig = RigSettings(seed=seed)
@@ -54,12 +54,7 @@ def bench_ekf(grid: dict, filters=("ekf", "ukf"), seed: int = 0) -> dict:
         results, steps = [], []
         t0 = time.perf_counter()
         for tr, rec, h_ol in zip(trials, recs, ol):
-            r = run_filter(kind, tr, rec, fs)
-            n = min(len(h_ol), len(rec.t))
-            r.open_loop_h = np.full(len(rec.t), np.nan)
-            r.open_loop_h[:n] = h_ol[:n]
-            r.scores = score(r, tr)
-            r.scores["rig_status"] = rec.status
+            r = run_and_score(kind, tr, rec, fs, h_ol)
             results.append(r)
             steps.append(r.step_s[1:])
         wall = time.perf_counter() - t0

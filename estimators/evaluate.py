@@ -28,7 +28,7 @@ from hbma_ctrl.simulate import SimSettings, Trial, simulate
 
 from .common import FilterSettings
 
-__all__ = ["TrialResult", "run_filter", "evaluate_trials", "score", "aggregate", "make_filter",
+__all__ = ["TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
            "FILTERS", "NEES_FLOOR"]
 
 FILTERS = ("ekf", "ukf")
@@ -122,6 +122,18 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
     return out
 
 
+def run_and_score(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings,
+                  open_loop_h: np.ndarray) -> TrialResult:
+    """Run a filter over a rig record and score it against the truth and the open-loop height."""
+    r = run_filter(kind, trial, rec, settings)
+    n = min(len(open_loop_h), len(rec.t))
+    r.open_loop_h = np.full(len(rec.t), np.nan)
+    r.open_loop_h[:n] = open_loop_h[:n]
+    r.scores = score(r, trial)
+    r.scores["rig_status"] = rec.status
+    return r
+
+
 def _open_loop(trials: list[Trial], dt: float) -> list[np.ndarray]:
     logs = simulate(trials, SimSettings(integrator="rk4", log_dt=dt))
     return [lg["h"] for lg in logs]
@@ -133,12 +145,7 @@ def _chunk(args) -> list[TrialResult]:
     ol = _open_loop(trials, rig.sample_period)
     out = []
     for tr, rec, h_ol in zip(trials, recs, ol):
-        r = run_filter(kind, tr, rec, fs)
-        n = min(len(h_ol), len(rec.t))
-        r.open_loop_h = np.full(len(rec.t), np.nan)
-        r.open_loop_h[:n] = h_ol[:n]
-        r.scores = score(r, tr)
-        r.scores["rig_status"] = rec.status
+        r = run_and_score(kind, tr, rec, fs, h_ol)
         if not with_series:
             r.est, r.meas, r.nees, r.nis, r.step_s, r.flags = {}, np.zeros(0), r.nees[:0], r.nis[:0], \
                 r.step_s[:0], []
