@@ -395,8 +395,9 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
 # ---------------------------------------------------------------------------------------------
 # metrics
 # ---------------------------------------------------------------------------------------------
-def _normals(design: RobotDesign, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-sample layer normals relative to the layer below (T, N, 3) and tip positions (T, 3)."""
+def _normals(design: RobotDesign, H: np.ndarray, rim: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sample layer normals relative to the layer below (T, N, 3) and tip positions (T, 3);
+    appends each sample's rim gaps (N,) to ``rim`` if given."""
     T = H.shape[0]
     N = design.n_layers
     nrm = np.zeros((T, N, 3))
@@ -406,6 +407,8 @@ def _normals(design: RobotDesign, H: np.ndarray) -> tuple[np.ndarray, np.ndarray
         th, ps = pose.bend, pose.direction
         nrm[j] = np.column_stack([np.sin(th) * np.cos(ps), np.sin(th) * np.sin(ps), np.cos(th)])
         tip[j] = pose.tip_position
+        if rim is not None:
+            rim.append(pose.rim_gap(design))
     return nrm, tip
 
 
@@ -418,7 +421,8 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
     its end (mean over its last 0.5 s), whether it settled within ``h_tol`` (every chamber) and
     ``bend_tol`` (every layer), and the settling time (first time from which both stay inside).
     """
-    nt, tt = _normals(design, run.h)
+    rim: list = []
+    nt, tt = _normals(design, run.h, rim)
     nr, tr = _normals(design, run.h_ref)
     bend_err = np.degrees(np.arccos(np.clip((nt * nr).sum(-1), -1.0, 1.0)))  # (T, N)
     h_err = np.abs(run.h - run.h_ref) * 1e3  # mm
@@ -474,6 +478,9 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "max_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, run.h.max(0))},
         "far_branch_chambers": far,
         "max_stretch": float(run.lam.max()),
+        # < 0: the rigid three-point pose would overlap the layer below at the rim (a real layer
+        # rocks on its rim there; see hbma_ctrl.robot.RobotPose.rim_gap)
+        "min_rim_gap_mm": {LETTERS[k]: float(np.min(np.array(rim)[:, k]) * 1e3) for k in range(design.n_layers)},
         "stretch_exceeded_chambers": [nm for i, nm in enumerate(names) if run.lam[:, i].max() > design.max_stretch],
         "segments": segs,
         "all_segments_settled": bool(all(s["settled"] for s in segs)),
