@@ -51,8 +51,9 @@ class ChamberEKFSettings:
     sample_period : s; noise_std : sensor noise one sigma, Pa; model_rel_std : relative pressure
     model error (modulus mismatch), -; x_abs_std, x_rel_std : process noise of the scaled mass per
     step (absolute and relative to the predicted change); b_rate_std : random walk of the flow
-    factor, 1/sqrt(s); b0, b0_std : initial flow factor and its sigma; sensor_range : Pa (readings at
-    or above it are not used).
+    factor, 1/sqrt(s); b0, b0_std : initial flow factor and its sigma; k0_std, k_rate_std : initial
+    sigma and random walk (1/sqrt(s)) of the modulus factor (prior 1); v0_std, v_rate_std : the same
+    for the dead-volume factor (prior 1); sensor_range : Pa (readings at or above it are not used).
     """
 
     sample_period: float = 0.01
