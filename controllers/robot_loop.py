@@ -2,8 +2,9 @@
 
 Pieces
 ------
-- :class:`RobotRig` — the "truth": every chamber of the robot is the lead's ``quasi_static``
-  fidelity (gas mass, dead load, resting / lift-off / far branch handled by
+- :class:`RobotRig` — the "truth": every chamber of the robot is the lead's ``platform`` fidelity
+  (the chamber's share of the layers as a moving mass with damping; ``quasi_static``, a dead load,
+  as a setting) (gas mass, resting / lift-off / far branch handled by
   :class:`hbma_ctrl.simulate.Plant`), all chambers in ONE batch, with mismatched parameters
   (:func:`hbma_ctrl.rig.mismatched`: pump flow x0.9, dead volume x1.2; the modulus is +15 % and -15 %
   on alternate chambers, so both signs of the error are present). Every sample (10 ms) each
@@ -48,6 +49,7 @@ __all__ = ["RobotRigSettings", "RobotRig", "parse_targets", "chamber_targets", "
 
 CONTROLLERS = ("mpc", "pressure_pid")
 H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
+M_MIN = 5e-3  # kg: smallest moving mass a platform-fidelity rig chamber carries
 
 
 # ---------------------------------------------------------------------------------------------
@@ -55,25 +57,33 @@ H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class RobotRigSettings:
-    """Mismatch and sensors of the robot rig (SI). modulus_spread: chambers alternate modulus
+    """Mismatch, dynamics and sensors of the robot rig (SI). fidelity: 'platform' (default: each
+    chamber carries its share of the layers as a moving mass with damping ``damping`` N s/m, the
+    higher-fidelity truth) or 'quasi_static' (dead load, as the controller assumes). modulus_spread: chambers alternate modulus
     x(1 + spread), x(1 - spread); flow_scale, V0_scale: as :class:`hbma_ctrl.rig.RigSettings`;
     noise_std Pa; sample_period s; seed; dt: internal rk4 step (s)."""
 
+    fidelity: str = "platform"
+    damping: float = 0.5
     modulus_spread: float = 0.15
     flow_scale: float = 0.9
     V0_scale: float = 1.2
     noise_std: float = 200.0
     sample_period: float = 0.01
     seed: int = 0
-    dt: float = 0.005
+    dt: float | None = None
 
     def validate(self) -> "RobotRigSettings":
+        if self.fidelity not in ("platform", "quasi_static"):
+            raise ValueError(f"robot rig.fidelity = {self.fidelity!r}: allowed platform, quasi_static")
+        check_range("robot rig", "damping", self.damping, 0.0, 1e3, "N s/m")
         check_range("robot rig", "modulus_spread", self.modulus_spread, 0.0, 0.8)
         check_range("robot rig", "flow_scale", self.flow_scale, 0.1, 5.0)
         check_range("robot rig", "V0_scale", self.V0_scale, 0.2, 5.0)
         check_range("robot rig", "noise_std", self.noise_std, 0.0, 1e4, "Pa")
         check_range("robot rig", "sample_period", self.sample_period, 1e-3, 1.0, "s")
-        check_range("robot rig", "dt", self.dt, 1e-5, self.sample_period, "s")
+        if self.dt is not None:
+            check_range("robot rig", "dt", self.dt, 1e-5, self.sample_period, "s")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"robot rig.seed = {self.seed!r} must be an integer >= 0")
         return self
@@ -81,15 +91,16 @@ class RobotRigSettings:
     @classmethod
     def from_rig_section(cls, raw: dict | None) -> "RobotRigSettings":
         """Take a scenario's ``[rig]`` table (see :func:`hbma_ctrl.rig.parse_rig_section`): its
-        modulus_scale m becomes the spread |m - 1| (alternating signs), the rest is used as is; the
-        rig fidelity is always quasi_static here and its sensor range is the robot's."""
+        modulus_scale m becomes the spread |m - 1| (alternating signs), the rest is used as is (its
+        fidelity too); the sensor range is the robot's."""
         if not raw:
             return cls()
         from hbma_ctrl.rig import parse_rig_section
 
         r = parse_rig_section(dict(raw))
-        return cls(modulus_spread=abs(r.modulus_scale - 1.0), flow_scale=r.flow_scale, V0_scale=r.V0_scale,
-                   noise_std=r.noise_std, sample_period=r.sample_period, seed=r.seed).validate()
+        return cls(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0), flow_scale=r.flow_scale,
+                   V0_scale=r.V0_scale, noise_std=r.noise_std, sample_period=r.sample_period,
+                   seed=r.seed).validate()
 
 
 class RobotRig:
@@ -111,17 +122,19 @@ class RobotRig:
         fid = None
         for i in range(self.n):
             sign = 1.0 if i % 2 == 0 else -1.0
-            rs = RigSettings(fidelity="quasi_static", modulus_scale=1.0 + sign * self.s.modulus_spread,
+            rs = RigSettings(fidelity=self.s.fidelity, modulus_scale=1.0 + sign * self.s.modulus_spread,
                              flow_scale=self.s.flow_scale, V0_scale=self.s.V0_scale)
             act, pn = mismatched(design.chamber, pneumatics, rs)
             if fid is None:
-                fid = make_fidelity("quasi_static", act.material, str(pn.csv_path))
-            thetas.append(fid.space.values(act, pn, Platform(load=1e-3)))
+                fid = make_fidelity(self.s.fidelity, act.material, str(pn.csv_path))
+            thetas.append(fid.space.values(act, pn, Platform(load=1e-3, damping=self.s.damping)))
         self.modulus_scales = np.array([1.0 + (1 if i % 2 == 0 else -1) * self.s.modulus_spread
                                         for i in range(self.n)])
         self.flow_scale0 = float(thetas[0][fid.space.names.index("flow_scale")])
-        self.plant = Plant(fid, np.column_stack(thetas), "rk4", self.s.dt)
+        dt = self.s.dt if self.s.dt is not None else (1e-3 if self.s.fidelity == "platform" else 5e-3)
+        self.plant = Plant(fid, np.column_stack(thetas), "rk4", dt)
         self._rng = np.random.default_rng(self.s.seed)
+        self.design_g = 9.80665
         self._update_loads()
 
     @property
@@ -139,7 +152,12 @@ class RobotRig:
     def _update_loads(self) -> None:
         h = np.maximum(self.plant.output("h"), 0.0)
         F = load_sharing(self.design, h.reshape(-1, 3), self.tip_force(self.plant.t)).forces.ravel()
-        self.plant.set_param("W", np.maximum(F, W_FLOOR))
+        W = np.maximum(F, W_FLOOR)
+        self.plant.set_param("W", W)
+        if self.plant.fid.name == "platform":
+            # the moving mass each chamber carries: its share of the layers' weight (and tip load),
+            # at least M_MIN so a nearly unloaded chamber stays a slow enough oscillator for RK4
+            self.plant.set_param("M", np.maximum(W / self.design_g, M_MIN))
         self.loads = F
 
     def apply(self, Ucmd: np.ndarray) -> None:
