@@ -73,6 +73,11 @@ class FilterSettings:
     cov_floor : eigenvalue floor of the covariance, relative to the state scales (m: 1e-6 kg,
         W: 1 N), [0, 1e-3].
     compile : compile the model to C (cached) for speed; False = casadi's virtual machine.
+    load_prior : 'unknown' (default: the load is learnt from the lift-off) or 'nominal': a scene
+        that knows its calibrated load (the protocol's weights) starts the load at the trial's
+        nominal weight, with one sigma load_prior_rel_std x that weight (+0.01 N). Applied per trial
+        by :func:`estimators.evaluate.make_filter`; load changes are still detected and tracked.
+    load_prior_rel_std : relative one sigma of the nominal load prior, [0, 10].
     """
 
     sample_period: float = 0.01
@@ -107,6 +112,8 @@ class FilterSettings:
     force_std_floor: float = 0.1
     cov_floor: float = 1e-12
     compile: bool = True
+    load_prior: str = "unknown"
+    load_prior_rel_std: float = 0.1
 
     def validate(self) -> "FilterSettings":
         w = "estimator"
@@ -124,6 +131,9 @@ class FilterSettings:
         check_range(w, "flow_rel_std", self.flow_rel_std, 0.0, 1.0)
         check_range(w, "mass_std_abs", self.mass_std_abs, 0.0, 1e-5, "kg/sqrt(s)")
         check_range(w, "load_std", self.load_std, 0.0, 100.0, "N/sqrt(s)")
+        if self.load_prior not in ("unknown", "nominal"):
+            raise ValueError(f"{w}.load_prior = {self.load_prior!r}: allowed unknown, nominal")
+        check_range(w, "load_prior_rel_std", self.load_prior_rel_std, 0.0, 10.0)
         if self.load_init is not None:
             check_range(w, "load_init", self.load_init, -1.0, 1000.0, "N")
         check_range(w, "lift_threshold", self.lift_threshold, 0.0, 1e3, lo_open=True)

@@ -37,7 +37,11 @@ NEES_FLOOR = np.array([(0.05e-3) ** 2, 0.02 ** 2])
 
 
 def make_filter(kind: str, trial: Trial, settings: FilterSettings):
-    """An EKF or UKF for the trial's nominal actuator and pneumatics."""
+    """An EKF or UKF for the trial's nominal actuator and pneumatics (and, with
+    ``settings.load_prior == 'nominal'``, the trial's nominal load as the initial load guess)."""
+    if settings.load_prior == "nominal":
+        W = trial.platform.weight
+        settings = replace(settings, load_init=W, load_init_std=settings.load_prior_rel_std * W + 0.01)
     if kind == "ekf":
         from .ekf import EKF
         return EKF(trial.actuator, trial.pneumatics, settings)

@@ -61,6 +61,8 @@ _TUNING = {
     "nsub": ("nsub", None),
     "newton": ("newton", None),
     "compile": ("compile", None),
+    "load_prior": ("load_prior", None),
+    "load_prior_rel_std": ("load_prior_rel_std", 1.0),
 }
 _KEYS = ("filter", "compare_ukf", "load_steps_g", "workers", "seeds") + tuple(_TUNING)
 

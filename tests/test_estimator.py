@@ -309,3 +309,22 @@ load_steps_g = [[0.8, 300.0]]
 def test_record_type():
     rec = _rec(_trial(0.0, 1.0, dur=0.2, t_inf=0.1))
     assert isinstance(rec, RigRecord) and rec.u.shape == (len(rec.t), 3)
+
+
+def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
+    """r1 7.5 mm with 800 g lifts off at ~44 kPa, above the 35 kPa sensor range: a filter that must
+    detect the lift-off cannot; one that starts from the protocol's calibrated weight predicts it."""
+    from hbma_ctrl.params import Platform
+    from hbma_ctrl.protocol import protocol_trials
+
+    from estimators.common import FilterSettings
+    from estimators.evaluate import evaluate_trials
+
+    (tr,) = protocol_trials("nh", platform=Platform(own_mass=0.02), loads_g=(800,), speeds_pct=(100,),
+                            t0_mm=(3,), r1_mm=(7.5,))
+    (blind,) = evaluate_trials([tr], "ekf", settings=FilterSettings(), with_series=False)
+    (prior,) = evaluate_trials([tr], "ekf", settings=FilterSettings(load_prior="nominal"), with_series=False)
+    assert prior.scores["height_nrmsd"] < 0.5 * blind.scores["height_nrmsd"]
+    assert prior.scores["height_nrmsd"] < 0.6 * prior.scores["height_nrmsd_open_loop"]
+    with pytest.raises(ValueError, match="estimator.load_prior"):
+        FilterSettings(load_prior="guess").validate()
