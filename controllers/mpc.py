@@ -53,13 +53,12 @@ global state: everything lives on the instance.
 
 from __future__ import annotations
 
-import difflib
 import os
 import shutil
 import subprocess
 import tempfile
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 import casadi as ca
 import numpy as np
@@ -67,6 +66,7 @@ import scipy.sparse as sp
 
 from hbma_ctrl.interfaces import SAFE_COMMAND, Command, Estimate, Reference
 from hbma_ctrl.params import Actuator, Pneumatics, check_range
+from hbma_ctrl.validation import did_you_mean
 
 from .prediction import PredictionModel
 
@@ -152,8 +152,7 @@ class MPCSettings:
     def validate(self) -> "MPCSettings":
         """Check every field; raise ValueError naming the field and its allowed range."""
         if self.variant not in VARIANTS:
-            close = difflib.get_close_matches(str(self.variant), VARIANTS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(str(self.variant), VARIANTS)
             raise ValueError(f"mpc.variant = '{self.variant}'{hint}; allowed: {', '.join(VARIANTS)}")
         if not isinstance(self.horizon, int) or isinstance(self.horizon, bool) or not 2 <= self.horizon <= 200:
             raise ValueError(f"mpc.horizon = {self.horizon!r} must be an integer in [2, 200]")

@@ -37,18 +37,18 @@ solve_ms_median/p99/max, fallbacks and the settling results per target step.
 from __future__ import annotations
 
 import csv
-import difflib
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from hbma_ctrl.interfaces import Command, Estimate, Reference
+from hbma_ctrl.interfaces import Command, Reference
 from hbma_ctrl.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.validation import did_you_mean
 
 from .baselines import BangBangController, BangBangSettings, PIDController, PIDSettings
-from .mpc import MPCSettings, NMPC
+from .mpc import NMPC, MPCSettings
 from .prediction import PredictionModel
 
 __all__ = ["ReferenceProfile", "ControllerSection", "parse_section", "make_controller", "closed_loop",
@@ -204,8 +204,7 @@ def parse_section(raw: dict) -> ControllerSection:
     mpc, pid, bb, sec = {}, {}, {}, {}
     for key, val in raw.items():
         if key not in _KEYS:
-            close = difflib.get_close_matches(key, _KEYS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(key, _KEYS)
             raise ValueError(f"controller.{key}: unknown key{hint}; allowed: {', '.join(_KEYS)}")
         target, name, f = _KEYS[key]
         if f is None:
@@ -236,8 +235,7 @@ def parse_section(raw: dict) -> ControllerSection:
             {"mpc": mpc, "pid": pid, "bb": bb, "sec": sec}[target][name] = v
     kind = sec.pop("kind", "mpc")
     if kind not in KINDS:
-        close = difflib.get_close_matches(str(kind), KINDS, n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        hint = did_you_mean(str(kind), KINDS)
         raise ValueError(f"controller.kind = '{kind}'{hint}; allowed: {', '.join(KINDS)}")
     if "targets" not in sec:
         raise ValueError("controller.targets_mm is required: [[t_s, h_mm], ...]")

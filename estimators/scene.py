@@ -33,7 +33,6 @@ compile                     compile the model to C (bool, default true)
 from __future__ import annotations
 
 import csv
-import difflib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -42,6 +41,7 @@ import numpy as np
 from hbma_ctrl.interfaces import Command
 from hbma_ctrl.params import check_range
 from hbma_ctrl.rig import Rig, RigRecord, RigSettings
+from hbma_ctrl.validation import did_you_mean
 
 from .common import FilterSettings
 from .evaluate import FILTERS, TrialResult, aggregate, evaluate_trials, run_filter, score
@@ -96,8 +96,7 @@ def parse_section(raw: dict) -> EstimatorSection:
     tuning = {}
     for key, v in raw.items():
         if key not in _KEYS:
-            close = difflib.get_close_matches(key, _KEYS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(key, _KEYS)
             raise ValueError(f"estimator.{key}: unknown key{hint}; allowed: {', '.join(_KEYS)}")
         if key == "filter":
             if v not in FILTERS:

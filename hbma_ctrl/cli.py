@@ -30,6 +30,7 @@ except ImportError:  # pragma: no cover
     from click import exceptions as _cx
 
 from . import units as U
+from .validation import did_you_mean
 
 __all__ = ["app", "bench_app", "PLUGIN_MODULES"]
 
@@ -79,11 +80,9 @@ def _console(min_width: int = 0) -> Console:
 
 
 def _choice(name: str, value: str, allowed) -> str:
-    import difflib
-
+    
     if value not in allowed:
-        close = difflib.get_close_matches(value, list(allowed), n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        hint = did_you_mean(value, list(allowed))
         raise ValueError(f"{name} = '{value}'{hint}; allowed: {', '.join(allowed)}")
     return value
 

@@ -19,11 +19,12 @@ your data.
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass, fields
 from typing import ClassVar
 
 import casadi as ca
+
+from .validation import did_you_mean
 
 __all__ = [
     "Material",
@@ -259,15 +260,13 @@ def make_material(name: str, **overrides) -> Material:
     """
     key = name.lower()
     if key not in MATERIALS:
-        close = difflib.get_close_matches(key, MATERIALS, n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        hint = did_you_mean(key, MATERIALS)
         raise ValueError(f"material: unknown '{name}'{hint}; allowed: {', '.join(MATERIALS)}")
     cls = MATERIALS[key]
     allowed = {f.name for f in fields(cls)}
     for k in overrides:
         if k not in allowed:
-            close = difflib.get_close_matches(k, allowed, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(k, allowed)
             raise ValueError(f"material {key}: unknown parameter '{k}'{hint}; allowed: {sorted(allowed)}")
     clean = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
     mat = cls(**clean)

@@ -30,7 +30,6 @@ and the NMPC (discretised dynamics).
 
 from __future__ import annotations
 
-import difflib
 from functools import cached_property
 
 import casadi as ca
@@ -38,6 +37,7 @@ import numpy as np
 
 from . import physics as ph
 from .materials import Material
+from .validation import did_you_mean
 
 __all__ = ["OUTPUTS", "Fidelity", "FreeInflation", "QuasiStatic", "DynamicPlatform",
            "FIDELITIES", "make_fidelity", "MODE_REST", "MODE_MOVING"]
@@ -368,8 +368,7 @@ FIDELITIES: dict[str, type[Fidelity]] = {c.name: c for c in (FreeInflation, Quas
 def make_fidelity(name: str, material: Material, compressor_csv: str) -> Fidelity:
     """Build a fidelity by name ('free', 'quasi_static', 'platform'); typos get the closest name."""
     if name not in FIDELITIES:
-        close = difflib.get_close_matches(name, FIDELITIES, n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        hint = did_you_mean(name, FIDELITIES)
         raise ValueError(f"fidelity: unknown '{name}'{hint}; allowed: {', '.join(FIDELITIES)}")
     return _cached_fidelity(name, type(material), tuple(sorted(material.as_dict().keys())), str(compressor_csv), material)
 

@@ -22,7 +22,6 @@ plant, which the estimator benchmarks and the protocol scenario use.
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -31,6 +30,7 @@ from .interfaces import Command
 from .model import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
 from .params import Actuator, Platform, Pneumatics, check_range
 from .simulate import Plant, Trial
+from .validation import did_you_mean
 
 __all__ = ["RigSettings", "Rig", "RigRecord", "parse_rig_section", "mismatched", "simulate_rig",
            "TRUTH_KEYS"]
@@ -117,8 +117,7 @@ def parse_rig_section(raw: dict) -> RigSettings:
     kw = {}
     for key, val in raw.items():
         if key not in _SECTION_KEYS:
-            close = difflib.get_close_matches(key, _SECTION_KEYS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(key, _SECTION_KEYS)
             raise ValueError(f"rig.{key}: unknown key{hint}; allowed: {', '.join(_SECTION_KEYS)}")
         name, factor = _SECTION_KEYS[key]
         if factor is None:

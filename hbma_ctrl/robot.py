@@ -72,7 +72,6 @@ inflated "without reaching the limit, which would mean breaking the membrane"). 
 
 from __future__ import annotations
 
-import difflib
 import json
 import math
 import time
@@ -87,6 +86,7 @@ from . import physics as ph
 from . import units as U
 from .materials import Material, make_material
 from .params import Actuator, Platform, Pneumatics, check_range
+from .validation import did_you_mean
 
 __all__ = [
     "RobotDesign", "RobotPneumatics", "RobotSettings", "RobotPose", "ChamberReach",
@@ -231,8 +231,7 @@ class RobotPneumatics:
         for name, allowed in (("topology", TOPOLOGIES), ("outlets", OUTLETS)):
             v = getattr(self, name)
             if v not in allowed:
-                close = difflib.get_close_matches(str(v), allowed, n=1)
-                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                hint = did_you_mean(str(v), allowed)
                 raise ValueError(f"robot.{name} = '{v}'{hint}; allowed: {', '.join(allowed)}")
         check_range("robot", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
         check_range("robot", "pressure_limit", self.pressure_limit, 1e3, self.sensor_range, "Pa "
@@ -1102,14 +1101,12 @@ class RobotSettings:
         self.design.validate()
         self.pneumatics.validate()
         if self.mode not in SCENE_MODES:
-            close = difflib.get_close_matches(str(self.mode), SCENE_MODES, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(str(self.mode), SCENE_MODES)
             raise ValueError(f"robot.mode = '{self.mode}'{hint}; allowed: {', '.join(SCENE_MODES)}")
         names = self.design.names
         for name, rows in self.inputs.items():
             if name not in names:
-                close = difflib.get_close_matches(name, names, n=1)
-                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                hint = did_you_mean(name, names)
                 raise ValueError(f"robot.inputs.{name}: no such chamber{hint}; chambers: {', '.join(names)}")
             from .simulate import InputSchedule
 
@@ -1122,8 +1119,7 @@ class RobotSettings:
         if not isinstance(self.snapshots, int) or not 1 <= self.snapshots <= 50:
             raise ValueError(f"robot.snapshots = {self.snapshots!r} must be an integer in [1, 50]")
         if self.controller not in CONTROLLERS:
-            close = difflib.get_close_matches(str(self.controller), CONTROLLERS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(str(self.controller), CONTROLLERS)
             raise ValueError(f"robot.controller = '{self.controller}'{hint}; allowed: {', '.join(CONTROLLERS)}")
         if self.mode == "closed_loop" and not self.targets:
             raise ValueError("robot.mode = 'closed_loop': closed-loop robot control needs robot.targets "
@@ -1189,8 +1185,7 @@ def parse_section(raw: dict) -> RobotSettings:
         raise ValueError("[robot] must be a table")
     for k in raw:
         if k not in _SECTION_KEYS:
-            close = difflib.get_close_matches(k, _SECTION_KEYS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            hint = did_you_mean(k, _SECTION_KEYS)
             raise ValueError(f"robot.{k}: unknown key{hint}; allowed: {', '.join(_SECTION_KEYS)}")
     base = RobotDesign()
     act = base.chamber

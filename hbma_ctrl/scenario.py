@@ -24,7 +24,6 @@ controllers or the robot.
 
 from __future__ import annotations
 
-import difflib
 import importlib
 import math
 import tomllib
@@ -37,6 +36,7 @@ from .materials import MATERIALS, make_material
 from .model import FIDELITIES
 from .params import Actuator, Platform, Pneumatics
 from .simulate import INTEGRATORS, InputSchedule, SimSettings, Trial
+from .validation import did_you_mean
 
 __all__ = ["Scenario", "load_scenario", "parse_scenario", "ROLE_SECTIONS", "FIDELITY_CHOICES",
            "KINDS", "fidelity_for"]
@@ -110,8 +110,8 @@ SCHEMA: dict[str, dict[str, _Key]] = {
 
 
 def _suggest(word: str, options) -> str:
-    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.5)
-    return f" (did you mean '{close[0]}'?)" if close else ""
+    # a looser cutoff than the default: scenario keys are long, a typo moves them further
+    return did_you_mean(word, options, cutoff=0.5)
 
 
 def _range_text(k: _Key) -> str:
