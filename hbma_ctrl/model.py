@@ -370,15 +370,12 @@ def make_fidelity(name: str, material: Material, compressor_csv: str) -> Fidelit
     if name not in FIDELITIES:
         hint = did_you_mean(name, FIDELITIES)
         raise ValueError(f"fidelity: unknown '{name}'{hint}; allowed: {', '.join(FIDELITIES)}")
-    return _cached_fidelity(name, type(material), tuple(sorted(material.as_dict().keys())), str(compressor_csv), material)
+    # the Functions depend on the material family and the theta layout (ParamSpace), not on the
+    # parameter values, which are inputs: one build serves every actuator of that family
+    key = (name, ph.ParamSpace.for_material(material), str(compressor_csv))
+    if key not in _FID_CACHE:
+        _FID_CACHE[key] = FIDELITIES[name](material, str(compressor_csv))
+    return _FID_CACHE[key]
 
 
 _FID_CACHE: dict = {}
-
-
-def _cached_fidelity(name, cls, keys, csv, material):
-    # Functions depend on the material family (theta layout), not its values: share them
-    key = (name, cls, keys, csv, tuple((k, len(v) if isinstance(v, tuple) else 0) for k, v in sorted(material.as_dict().items())))
-    if key not in _FID_CACHE:
-        _FID_CACHE[key] = FIDELITIES[name](material, csv)
-    return _FID_CACHE[key]
