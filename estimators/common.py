@@ -63,7 +63,8 @@ class FilterSettings:
         (-), (0, 1e6]; the load's variance then grows by change_std^2 (N^2) so it re-converges.
     change_drift : NIS level tolerated by the CUSUM (-), [1, 100].
     change_std : one sigma added to the load on a detected change, N, [0, 1000].
-    load_min, load_max : the load estimate is kept in [load_min, load_max], N.
+    load_min, load_max : the load state is kept in [load_min, load_max], N; below zero the model
+        sees no load (a dead zone that keeps a zero load unbiased), the reported F is >= 0.
     mass_init_std : one sigma of the initial gas mass, kg.
     output_rel_std : relative model-form error added to the reported variances of h1, h2, h and F
         (-), [0, 1]: what the state's covariance cannot know (the rig's platform dynamics and
@@ -105,7 +106,7 @@ class FilterSettings:
     change_threshold: float = 20.0
     change_drift: float = 4.0
     change_std: float = 3.0
-    load_min: float = 0.0
+    load_min: float = -1.0
     load_max: float = 100.0
     mass_init_std: float = 1e-8
     output_rel_std: float = 0.04

@@ -1,7 +1,8 @@
 """Extended Kalman filter: membrane shape and contact force from the chamber pressure alone.
 
-State ``x = [m, W, b]``: the gas mass (kg), the load on the membrane (N), a random walk, and the
-pump-flow factor b (-, multiplies the compressor map), a slow random walk. Why:
+State ``x = [m, W, b, k]``: the gas mass (kg), the load on the membrane (N, a random walk), the
+pump-flow factor b and the modulus factor k (-, slow random walks; see
+:mod:`estimators.model`). Why:
 
 - The gas mass is the plant's own drift-free differential state (SPEC 4); the flow model (pump
   map, valves) drives it directly, so the commands enter the filter where they act.
@@ -11,26 +12,39 @@ pump-flow factor b (-, multiplies the compressor map), a slow random walk. Why:
   space (two exact constraints), which the update cannot keep consistent. They are outputs, with
   their covariance mapped through the implicit-function Jacobian.
 - The load W is unknown to the user, piecewise constant (put on, taken off): a random walk.
-  ``W = F`` in steady contact; ``W = 0`` is free inflation (h2 = 0).
+  ``W = F`` in steady contact; ``W = 0`` is free inflation (h2 = 0). The state may dip below zero
+  (the model sees ``max(W, 0)``): clipping it at zero would make the random walk drift up to a
+  phantom load, which bends a free cap into a contact shape (a 0.7 mm height bias at 8 mm).
 - The flow factor b: the pump map is the least certain part of the model (the rig's is 10 %
   weaker, its dead volume 20 % larger: in the flat phase both only change dp/dt per unit command,
   which b absorbs). Learning it while the membrane rests is what lets the filter tell a lift-off
   (the pressure rise slows by a factor of 2-10) from a weak pump (tens of percent).
-- No modulus state: in contact a stiffer membrane and a heavier load both raise the pressure of a
-  given gas mass, and over a trajectory they are only weakly separable, so the modulus error is
-  treated as measurement-model error (``model_rel_std``), see :mod:`estimators.observability`.
+- The modulus factor k: in free inflation the height is a function of p / k alone, so k is what
+  turns a measured pressure into a height; it is learnt while gas flows (the cap's compliance
+  changes dp/dt) and held when nothing flows. In contact a stiffer membrane and a heavier load
+  both raise the pressure of a given gas mass; over a trajectory they are only weakly separable,
+  so part of the modulus error stays as measurement-model error (``model_rel_std``), see
+  :mod:`estimators.observability`.
 
 What pressure alone tells (see :mod:`estimators.observability`): resting flat, only m is known
 (``W`` is unobservable, only ``W >= pi r1^2 p``); in contact or free inflation both m and W are
 observable while gas flows, and W is not when nothing flows (every (m, W) pair on a level set of
-p is then an equilibrium). The filter therefore holds W at the lift-off bound while resting (the
+p is then an equilibrium).
+
 Resting is a sticky mode of the filter: while the membrane is flat, the model is held at rest
 (W unobservable, kept >= pi r1^2 p). The filter leaves it when the load estimate is exceeded
 (pi r1^2 p > W, a known or previously learnt load) or when the lift-off detector fires: the
 pressure keeps rising slower than a flat membrane allows (a one-sided CUSUM of the normalised
-innovations); then W = pi r1^2 p, the lift-off condition, which needs no modulus. A touch-down
-(the contact model reaching h = 0) re-enters rest. With the flow stopped the load is carried by
-its random walk.
+innovations, run only while the pump fills the chamber: nothing lifts off while venting); then
+W = pi r1^2 p_lift, the lift-off condition, which needs no modulus, or no load at all when p_lift
+is within ``NO_LOAD_SIGMAS`` sensor sigmas of zero (a free membrane lifts at once). The detector
+needs several samples; filtered as flat, they would push the lifted membrane's extra volume into
+b and k, so on a detection the filter goes back to the posterior before the detector's sum
+started to grow and replays those samples with the membrane lifted (flag ``lift_off_replayed``),
+for a no-load lift-off only: a loaded one's sum can start on the flow factor's early learning,
+where a lift-off contradicts the data.
+A touch-down (the contact model reaching h = 0) re-enters rest. With the flow stopped the load is
+carried by its random walk.
 
 Tuning (defaults of :class:`~estimators.common.FilterSettings`, chosen against the mismatched rig
 on a 24-trial protocol subset, never against the filter's own model):
@@ -96,6 +110,10 @@ FACTOR_RANGE = (0.5, 2.0)
 LIGHT_LOAD = 0.5
 #: absolute one sigma of the load right after a detected lift-off, N (the detection delay)
 LIFT_LOAD_ABS_STD = 0.2
+#: a lift-off below this many sensor sigmas of pressure is taken as no load (free inflation)
+NO_LOAD_SIGMAS = 3.0
+#: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
+REPLAY_MAX = 200
 
 
 class EKFSettings(FilterSettings):
@@ -132,7 +150,7 @@ def _rebind(om0: ObserverModel, actuator: Actuator, pneumatics: Pneumatics) -> O
 
 
 class EKF:
-    """Extended Kalman filter on ``x = [m, W, b]`` (see module docstring). SI throughout.
+    """Extended Kalman filter on ``x = [m, W, b, k]`` (see module docstring). SI throughout.
 
     ``step(t, measurement, applied_command) -> Estimate``: predicts over the periods since the
     last step with ``applied_command`` (the command held since then), then updates with the
@@ -176,10 +194,14 @@ class EKF:
         self._p_lift = 0.0
         self._p_post = 0.0
         self._events: set = set()
+        self._snap: tuple | None = None  # lift-off replay: posterior before the detector's sum grew
+        self._replay: list = []
+        self._replay_now = False
+        self._pumping = False
 
     # --- state handling -----------------------------------------------------------------------
     def reset(self, t: float, mean, cov=None, shape=None, resting: bool | None = None) -> None:
-        """Set the state [m (kg), W (N), b (-)] and covariance at time t (s).
+        """Set the state [m (kg), W (N), b (-), k (-)] and covariance at time t (s).
 
         ``shape`` = warm start (h1, h2) in m; ``resting`` = the mode (None: from the state).
         """
@@ -197,6 +219,7 @@ class EKF:
             resting = bool(out[1][_Y["rest"]] > 0.5)
         self.resting = resting
         self._cusum = self._lift = 0.0
+        self._snap, self._replay, self._replay_now = None, [], False
         self._refresh()
 
     def _theta_arg(self, fun):
@@ -286,6 +309,28 @@ class EKF:
                 raise ValueError(f"estimator.step: t = {t} s is before the last step's {self.t} s")
         u = applied_command.as_array() if isinstance(applied_command, Command) else \
             np.asarray(applied_command, dtype=float).reshape(3)
+        if self.resting and k > 0:
+            # lift-off replay: while the detector's sum is at zero, remember the posterior; the
+            # samples after it are kept so a detected lift-off can be re-filtered from there
+            if self._lift == 0.0:
+                self._snap = self._snapshot()
+                self._replay = []
+            if self._snap is not None and len(self._replay) < REPLAY_MAX:
+                self._replay.append((float(t), measurement, kind, u, k))
+            else:
+                self._snap = None  # too long ago: no replay (the lift-off is applied now)
+        self._advance(t, measurement, kind, u, k, detect=True)
+        if self._replay_now:
+            self._replay_now = False
+            self._replay_from_snapshot()
+        est = self._finish()
+        self.last_step_s = time.perf_counter() - t_wall
+        return est
+
+    def _advance(self, t: float, measurement, kind: str, u: np.ndarray, k: int, detect: bool) -> None:
+        """Predict k periods with u, then update with the measurement (and run the detectors)."""
+        s = self.settings
+        self._pumping = bool(u[0] > 0.0 and u[1] > 0.0)
         for _ in range(k):
             self._predict(u)
         self.t = float(t)
@@ -297,7 +342,7 @@ class EKF:
             r = self._update(float(measurement), R)
             self.last_innovation = r
             self.last_nis = r * r
-            if self._detect(r):
+            if detect and self._detect(r):
                 # a load change: redo this update with the load's variance widened, so the jump
                 # goes to the load rather than to the gas mass and the modulus
                 self.x, self.P, self._p_pred = prior
@@ -308,9 +353,30 @@ class EKF:
             # only on a rising branch (dp/dm > 0): past the model's limit point more gas lowers p,
             # and pulling p up would push the state the wrong way
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
-        est = self._finish()
-        self.last_step_s = time.perf_counter() - t_wall
-        return est
+
+    def _snapshot(self) -> tuple:
+        return (self.x.copy(), self.P.copy(), self.s.copy(), self.t, self._p_pred, self._H.copy(),
+                self._p_post)
+
+    def _replay_from_snapshot(self) -> None:
+        """Re-filter the samples since the detector's sum left zero with the membrane lifted.
+
+        The detector needs several samples to be sure; filtered as flat, those samples push the
+        lifted membrane's extra volume into the flow factor and the modulus (which then bias the
+        height for as long as nothing excites them again). From the posterior before the lift-off,
+        the lift-off is applied there and the samples are replayed with the contact model."""
+        if self._snap is None or not self._replay:
+            return
+        W, PW = float(self.x[1]), float(self.P[1, 1])
+        self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post = self._snap
+        self.x, self.P, self.s = self.x.copy(), self.P.copy(), self.s.copy()
+        self._lift_off(detected=False, load=(W, PW))
+        events = self._events
+        for (t, z, kind, u, k) in self._replay:
+            self._advance(t, z, kind, u, k, detect=False)
+            self._finish()
+        self._events = events | {"lift_off_replayed"}
+        self._snap, self._replay = None, []
 
     def _detect(self, r: float) -> bool:
         """Lift-off detector (resting) and load-change detector (contact) on the innovation r.
@@ -318,6 +384,11 @@ class EKF:
         Returns True when a load change was declared (the caller redoes the update)."""
         s = self.settings
         if self.resting:
+            if not self._pumping or self._p_pred <= self._p_post:
+                # the pump is not filling the chamber (venting, holding): a membrane cannot lift
+                # off; a shortfall here is the vent model's error near zero pressure
+                self._lift = 0.0
+                return False
             if self._lift == 0.0:
                 # a lift-off seen from here on happened after the last posterior: mid-interval
                 self._p_lift = 0.5 * (self._p_post + self._p_pred)
@@ -325,6 +396,10 @@ class EKF:
             if self._lift > s.lift_threshold:
                 self._lift = 0.0
                 self._lift_off(detected=True)
+                # replay only a no-load lift-off (it starts at zero pressure, so the whole
+                # detection delay was filtered as flat); a loaded one's sum may have started on
+                # the flow factor's early learning, and a lift-off put there contradicts the data
+                self._replay_now = self._snap is not None and self.x[1] == 0.0
         else:
             self._cusum = max(0.0, self._cusum + r * r - s.change_drift)
             if self._cusum > s.change_threshold:
@@ -333,14 +408,26 @@ class EKF:
                 return True
         return False
 
-    def _lift_off(self, detected: bool) -> None:
+    def _lift_off(self, detected: bool, load: tuple | None = None) -> None:
+        """Leave rest. ``detected``: the load is set from the lift-off pressure; ``load`` = (W, var):
+        set it to that (a replay re-applies the detected load at the earlier lift-off point)."""
         s = self.settings
         out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
         p = float(out[1][_Y["p"]])
-        if detected:
+        if load is not None:
+            self.x[1] = load[0]
+            P = self.P.copy()
+            P[1, :] = P[:, 1] = 0.0
+            P[1, 1] = load[1]
+            self.P = guard_cov(P, s.cov_floor)
+        elif detected:
             # the membrane lifted when the detector's sum started to grow: W = pi r1^2 p then
             W = self.model.area * max(min(p, self._p_lift), 0.0)
-            self.x[1] = W
+            W_res = self.model.area * NO_LOAD_SIGMAS * s.noise_std
+            # a lift-off within a few sensor sigmas of zero pressure cannot be told from a free
+            # membrane (no load): start from none, with the resolution as the spread -- a load
+            # taken as p_lift there is a phantom that bends the cap into a contact shape
+            self.x[1] = 0.0 if W < W_res else W
             P = self.P.copy()
             P[1, :] = P[:, 1] = 0.0
             P[1, 1] = (s.lift_load_rel_std * W) ** 2 + LIFT_LOAD_ABS_STD ** 2

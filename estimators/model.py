@@ -37,6 +37,9 @@ from hbma_ctrl.params import Actuator, Platform, Pneumatics
 
 __all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
 
+#: the load W may go below zero: the physics sees max(W, 0) (a dead zone), so near no load the
+#: estimate is not pushed up by clipping (a clipped random walk drifts to a phantom load that
+#: bends a free cap into a contact shape)
 STATE_NAMES = ("m", "W", "b", "k")
 NX = len(STATE_NAMES)
 #: a tiny contact stiffness, N/m, regularising F(h1, h2) = W where the pressure vanishes (at W = 0
@@ -126,7 +129,7 @@ class ObserverModel:
     def _with_state(self, P: dict, x) -> dict:
         """Parameters as the state sees them: load W, pump-flow factor b, modulus factor k."""
         P = dict(P)
-        P["W"] = x[1]
+        P["W"] = ca.fmax(x[1], 0)  # dead zone: see STATE_NAMES
         P["flow_scale"] = P["flow_scale"] * x[2]
         P["material"] = P["material"].scaled(x[3])
         return P
@@ -164,7 +167,7 @@ class ObserverModel:
         geo = ph.geometry(hs[0], hs[1], P)
         p_c = ph.pressure(hs[0], hs[1], P)
         F = ca.pi * geo["a2"] * p_c
-        r = ca.vertcat(G - xs[0] * rt, F + EPS_K * hs[1] - xs[1])
+        r = ca.vertcat(G - xs[0] * rt, F + EPS_K * hs[1] - ca.fmax(xs[1], 0))
         o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
         r_h = ca.jacobian(r, hs)
         det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]
@@ -172,9 +175,14 @@ class ObserverModel:
         D_c = ca.jacobian(o_c, xs) + ca.mtimes(ca.jacobian(o_c, hs), dh)
         p_rest = xs[0] * rt / P["V0"] - P["p_env"]
         hf = ph.flat_h1_from_pressure(p_rest, P)
-        o_r = ca.vertcat(hf, hf, 0, area * p_rest, p_rest)
+        # flat under a plate: h = 0; with no plate to rest on (W -> 0, below REST_EPS) the membrane
+        # is a free cap of height hf -- blended linearly in W so the Jacobian stays finite
+        free = 1 - ca.fmin(ca.fmax(xs[1], 0) / REST_EPS, 1)
+        # (if_else, not a product: hf' is unbounded at zero pressure, and inf * 0 is NaN)
+        h_free = ca.if_else(free > 0, hf * free, 0)
+        o_r = ca.vertcat(hf, hf - h_free, h_free, area * p_rest, p_rest)
         D_r = ca.jacobian(o_r, xs)
-        resid = ca.fabs(G - xs[0] * rt) / (xs[0] * rt) + ca.fabs(F - xs[1]) / (ca.fabs(xs[1]) + 0.1)
+        resid = ca.fabs(G - xs[0] * rt) / (xs[0] * rt) + ca.fabs(F - ca.fmax(xs[1], 0)) / (ca.fabs(xs[1]) + 0.1)
         rs = ca.SX.sym("rest")
         o = ca.if_else(rs > 0.5, o_r, o_c)
         D = ca.if_else(rs > 0.5, D_r, D_c)
@@ -185,7 +193,7 @@ class ObserverModel:
     def _build(self) -> None:
         y = self._syms()
         hold = ca.SX.sym("hold")
-        m, W = y.x[0], y.x[1]
+        m, W = y.x[0], ca.fmax(y.x[1], 0)
         P = y.P
         h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1, hold)
         mode = ca.if_else(rest, 0.0, 1.0)
@@ -203,7 +211,7 @@ class ObserverModel:
                 x3 = x3 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
             x3 = ca.vertcat(x3[0], a, b)
-        xn = ca.vertcat(x3[0], W, y.x[2], y.x[3])
+        xn = ca.vertcat(x3[0], y.x[1], y.x[2], y.x[3])
         A = ca.jacobian(xn, y.x)
         # the predicted shape as the next warm start; re-projected at the predicted state
         h1n, h2n, restn = self._project(xn[0], W, x3[1], x3[2], P, self.newton, hold)
@@ -239,7 +247,7 @@ class ObserverModel:
         # outputs at an arbitrary state (posterior), from a warm start
         y2 = self._syms()
         hold2 = ca.SX.sym("hold")
-        a, b, r = self._project(y2.x[0], y2.x[1], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
+        a, b, r = self._project(y2.x[0], ca.fmax(y2.x[1], 0), y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
         out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
         P2 = ca.SX.sym("P", NX, NX)
         C2 = ca.mtimes([D2, P2, D2.T])
