@@ -1,8 +1,8 @@
 """Closed loop on the mismatched rig: rig -> EKF -> controller -> rig (and an oracle estimate to
 separate the controller's share of the error from the estimator's).
 
-Each CI test simulates a few seconds with the fast (RTI) variant; the full 2 -> 8 -> 5 mm runs are
-@pytest.mark.slow. No test asserts a timing.
+Each CI test simulates a few seconds with the fast (RTI) variant; the load step through the EKF,
+which still fails, is @pytest.mark.slow. No test asserts a timing.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def test_rti_with_true_state_settles_steps_within_0p3mm(model, load):
 
 def test_ekf_loop_400g_tracks_the_estimate_and_respects_p_max(model):
     """Full chain rig -> EKF -> RTI -> rig, 400 g: the estimate settles within 0.3 mm of each
-    target; the truth is off by the EKF's height bias (reported, see test_..._truth below)."""
+    target (the truth's own criterion: test_ekf_loop_truth_settles_within_0p3mm)."""
     sec, log, m = run({"targets_mm": STEPS}, 0.4, 7.0, model)
     assert m["steps_settled_estimate"] == 3, m["settle_estimate"]
     assert m["max_pressure_kpa"] <= 35.0
@@ -79,7 +79,9 @@ def test_load_added_mid_run_is_rejected(model):
 
 @pytest.mark.slow
 def test_load_added_mid_run_through_ekf(model):
-    """The same through the EKF (reported): the estimate must see the new load for the loop to act."""
+    """The same through the EKF. Fails on purpose (the measure of the gap): the truth ends about
+    0.5 mm low. The filter has no dead-volume state (the rig's is 20 % larger), so after the step
+    the load and modulus estimates absorb it (given the rig's true parameters, the loop settles)."""
     sec, log, m = run({"targets_mm": [[0.0, 5.0]], "load_steps_g": [[2.0, 600.0]]}, 0.4, 6.0, model)
     tail = log.t >= 5.0
     assert np.all(np.abs(log.h_true[tail] - 5e-3) < 0.3e-3)
@@ -112,10 +114,10 @@ def test_forced_solver_failure_stays_safe(model):
     assert log.h_est[-1] > 6e-3  # back to tracking after the window
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("load", [0.0, 0.4])
 def test_ekf_loop_truth_settles_within_0p3mm(model, load):
-    """The issue's criterion on the truth through the EKF (long run, reported in the final report)."""
+    """The issue's criterion on the truth through the EKF: 2 -> 8 -> 5 mm with 0 and 400 g on the
+    mismatched rig settle within 0.3 mm (0 g: the free cap with no phantom load)."""
     sec, log, m = run({"targets_mm": [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]}, load, 9.0, model)
     assert m["max_pressure_kpa"] <= 35.0
     assert m["steps_settled"] == 3, m["settle"]
