@@ -412,38 +412,33 @@ class EKF:
         """Leave rest. ``detected``: the load is set from the lift-off pressure; ``load`` = (W, var):
         set it to that (a replay re-applies the detected load at the earlier lift-off point)."""
         s = self.settings
-        out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
-        p = float(out[1][_Y["p"]])
-        if load is not None:
-            self.x[1] = load[0]
-            P = self.P.copy()
-            P[1, :] = P[:, 1] = 0.0
-            P[1, 1] = load[1]
-            self.P = guard_cov(P, s.cov_floor)
-        elif detected:
+        if load is None and detected:
             # the membrane lifted when the detector's sum started to grow: W = pi r1^2 p then
-            W = self.model.area * max(min(p, self._p_lift), 0.0)
+            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
+            W = self.model.area * max(min(float(out[1][_Y["p"]]), self._p_lift), 0.0)
             W_res = self.model.area * NO_LOAD_SIGMAS * s.noise_std
             # a lift-off within a few sensor sigmas of zero pressure cannot be told from a free
             # membrane (no load): start from none, with the resolution as the spread -- a load
             # taken as p_lift there is a phantom that bends the cap into a contact shape
-            self.x[1] = 0.0 if W < W_res else W
-            P = self.P.copy()
-            P[1, :] = P[:, 1] = 0.0
-            P[1, 1] = (s.lift_load_rel_std * W) ** 2 + LIFT_LOAD_ABS_STD ** 2
-            self.P = guard_cov(P, s.cov_floor)
-        # the flow factor learnt while flat also absorbed the dead-volume error (the flat slope is
-        # b / V0): once the membrane moves the two separate, so b gets its prior spread back
-        # the flat slope b / c (c the dead-volume factor) was all put in b; split it evenly in log
-        # between flow and dead volume (equal prior spreads): b <- b^flow_share
-        self.x[2] = self.x[2] ** s.flow_share
-        P = self.P.copy()
-        P[2, :] = P[:, 2] = 0.0
-        P[2, 2] = max(self.P[2, 2], s.flow_factor_init_std ** 2)
-        self.P = guard_cov(P, s.cov_floor)
+            load = (0.0 if W < W_res else W, (s.lift_load_rel_std * W) ** 2 + LIFT_LOAD_ABS_STD ** 2)
+        if load is not None:
+            self._decouple(1, load[0], load[1])
+        # while flat, b learnt the slope b / c (c the dead-volume factor, not a state); once the
+        # membrane moves the two act differently: split the learnt error evenly in log between
+        # flow and dead volume (equal prior spreads), b <- b^flow_share, and give b its spread back
+        self._decouple(2, self.x[2] ** s.flow_share, max(self.P[2, 2], s.flow_factor_init_std ** 2))
         self.resting = False
         self._cusum = 0.0
         self._events.add("lift_off")
+
+    def _decouple(self, i: int, mean: float, var: float) -> None:
+        """Set state i to ``mean`` with variance ``var``, uncorrelated with the others (a re-start
+        of that component: its old correlations no longer hold)."""
+        self.x[i] = mean
+        P = self.P.copy()
+        P[i, :] = P[:, i] = 0.0
+        P[i, i] = var
+        self.P = guard_cov(P, self.settings.cov_floor)
 
     def _finish(self) -> Estimate:
         s = self.settings

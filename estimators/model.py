@@ -167,7 +167,7 @@ class ObserverModel:
         geo = ph.geometry(hs[0], hs[1], P)
         p_c = ph.pressure(hs[0], hs[1], P)
         F = ca.pi * geo["a2"] * p_c
-        r = ca.vertcat(G - xs[0] * rt, F + EPS_K * hs[1] - ca.fmax(xs[1], 0))
+        r = ca.vertcat(G - xs[0] * rt, F + EPS_K * hs[1] - P["W"])
         o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
         r_h = ca.jacobian(r, hs)
         det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]
@@ -177,12 +177,12 @@ class ObserverModel:
         hf = ph.flat_h1_from_pressure(p_rest, P)
         # flat under a plate: h = 0; with no plate to rest on (W -> 0, below REST_EPS) the membrane
         # is a free cap of height hf -- blended linearly in W so the Jacobian stays finite
-        free = 1 - ca.fmin(ca.fmax(xs[1], 0) / REST_EPS, 1)
+        free = 1 - ca.fmin(P["W"] / REST_EPS, 1)
         # (if_else, not a product: hf' is unbounded at zero pressure, and inf * 0 is NaN)
         h_free = ca.if_else(free > 0, hf * free, 0)
         o_r = ca.vertcat(hf, hf - h_free, h_free, area * p_rest, p_rest)
         D_r = ca.jacobian(o_r, xs)
-        resid = ca.fabs(G - xs[0] * rt) / (xs[0] * rt) + ca.fabs(F - ca.fmax(xs[1], 0)) / (ca.fabs(xs[1]) + 0.1)
+        resid = ca.fabs(G - xs[0] * rt) / (xs[0] * rt) + ca.fabs(F - P["W"]) / (ca.fabs(xs[1]) + 0.1)
         rs = ca.SX.sym("rest")
         o = ca.if_else(rs > 0.5, o_r, o_c)
         D = ca.if_else(rs > 0.5, D_r, D_c)
@@ -193,8 +193,8 @@ class ObserverModel:
     def _build(self) -> None:
         y = self._syms()
         hold = ca.SX.sym("hold")
-        m, W = y.x[0], ca.fmax(y.x[1], 0)
         P = y.P
+        m, W = y.x[0], P["W"]
         h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1, hold)
         mode = ca.if_else(rest, 0.0, 1.0)
         x3 = ca.vertcat(m, h1, h2)
@@ -247,7 +247,7 @@ class ObserverModel:
         # outputs at an arbitrary state (posterior), from a warm start
         y2 = self._syms()
         hold2 = ca.SX.sym("hold")
-        a, b, r = self._project(y2.x[0], ca.fmax(y2.x[1], 0), y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
+        a, b, r = self._project(y2.x[0], y2.P["W"], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
         out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
         P2 = ca.SX.sym("P", NX, NX)
         C2 = ca.mtimes([D2, P2, D2.T])
