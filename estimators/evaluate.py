@@ -144,8 +144,8 @@ def _open_loop(trials: list[Trial], dt: float) -> list[np.ndarray]:
 
 
 def _chunk(args) -> list[TrialResult]:
-    kind, trials, rig, fs, with_series = args
-    recs = simulate_rig(trials, rig)
+    kind, trials, rig, fs, with_series, ids = args
+    recs = simulate_rig(trials, rig, ids)
     ol = _open_loop(trials, rig.sample_period)
     out = []
     for tr, rec, h_ol in zip(trials, recs, ol):
@@ -166,13 +166,14 @@ def evaluate_trials(trials: list[Trial], kind: str = "ekf", rig: RigSettings | N
     fs = (settings or FilterSettings()).validate()
     workers = max(1, min(int(workers), len(trials), os.cpu_count() or 1))
     if workers == 1:
-        return _chunk((kind, trials, rig, fs, with_series))
+        return _chunk((kind, trials, rig, fs, with_series, None))
     # interleave so each chunk has a mix of loaded and unloaded trials (balanced cost)
     chunks = [trials[i::workers] for i in range(workers)]
     order = [list(range(len(trials)))[i::workers] for i in range(workers)]
     res: list = [None] * len(trials)
     with ProcessPoolExecutor(max_workers=workers) as ex:
-        for idx, part in zip(order, ex.map(_chunk, [(kind, c, rig, fs, with_series) for c in chunks])):
+        for idx, part in zip(order, ex.map(_chunk, [(kind, c, rig, fs, with_series, o)
+                                                          for c, o in zip(chunks, order)])):
             for i, r in zip(idx, part):
                 res[i] = r
     return res

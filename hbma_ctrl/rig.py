@@ -283,15 +283,21 @@ class RigRecord:
     status: str = "ok"
 
 
-def simulate_rig(trials: list[Trial], settings: RigSettings | None = None) -> list[RigRecord]:
+def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
+                 stream_ids: list[int] | None = None) -> list[RigRecord]:
     """Run open-loop trials (each with its schedule) on the rig, all at once per fidelity.
 
     Trials with a load share one batched ``platform`` plant, unloaded ones one ``free`` plant.
-    Readings use an independent stream per trial (seed + trial index). Sample k is taken at
+    Readings use an independent stream per trial, seeded by (seed, its stream id); the ids default
+    to the trials' positions in the list (a caller that splits a list into batches passes the
+    positions in the whole list, so a trial's noise does not depend on the batching). Sample k is taken at
     t = k * sample_period, before the command for [t, t + period) is applied; the command is the
     schedule at the middle of the period.
     """
     s = (settings or RigSettings()).validate()
+    ids = list(range(len(trials))) if stream_ids is None else [int(i) for i in stream_ids]
+    if len(ids) != len(trials):
+        raise ValueError(f"simulate_rig: {len(ids)} stream_ids for {len(trials)} trials")
     recs: list = [None] * len(trials)
     groups: dict = {}
     for i, tr in enumerate(trials):
@@ -322,7 +328,7 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None) -> li
             if k < K - 1:
                 plant.advance(None, s.sample_period)
         for j, i in enumerate(idx):
-            rng = np.random.default_rng([s.seed, i])
+            rng = np.random.default_rng([s.seed, ids[i]])
             Kj = int(round(trials[i].duration / s.sample_period)) + 1
             y = Y[:Kj, :, j]
             p = y[:, OUTPUTS.index("p")]

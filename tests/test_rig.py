@@ -108,3 +108,17 @@ def test_batched_rig_matches_the_stepped_rig():
     assert np.allclose(rec.meas, np.minimum(rec.truth["p"], 35e3))
     assert any(name == "lift_off" for _, name in rec.events)
     assert math.isfinite(rec.truth["h"].max()) and rec.truth["h"].max() > 1e-3
+
+
+def test_batch_noise_follows_the_stream_id_not_the_batch():
+    """A trial's readings depend on its stream id, not on which batch it ran in (the protocol
+    splits its trials across worker processes)."""
+    a = Trial(Actuator(), Pneumatics(), Platform(), InputSchedule.inflate_deflate(0.2, 0.2), 0.5, "a")
+    b = Trial(Actuator(), Pneumatics(), Platform(load=0.2), InputSchedule.inflate_deflate(0.2, 0.2), 0.5, "b")
+    rs = RigSettings(seed=4)
+    both = simulate_rig([a, b], rs)
+    alone = simulate_rig([b], rs, stream_ids=[1])
+    np.testing.assert_array_equal(both[1].meas, alone[0].meas)
+    assert not np.array_equal(simulate_rig([b], rs)[0].meas, alone[0].meas)
+    with pytest.raises(ValueError, match="stream_ids"):
+        simulate_rig([a, b], rs, stream_ids=[0])
