@@ -127,7 +127,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             kw["t0"] = t0_mm * 1e-3
         act = act.with_(**kw) if kw else act
         summ = run(out, act)
-        t = Table(title=f"observability of x = \\[m, W, b, k] from pressure alone (r1 {act.r1 * 1e3:g} mm, "
+        t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {act.r1 * 1e3:g} mm, "
                         f"t0 {act.t0 * 1e3:g} mm); window = up to {WINDOW_S:g} s in one regime, "
                         f"resolution {OBS_SCALE.tolist()}")
         for c in ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",

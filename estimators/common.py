@@ -55,8 +55,10 @@ class FilterSettings:
     lift_load_rel_std : relative one sigma of the load right after a detected lift-off, [0, 10].
     flow_factor_std : random walk of the pump-flow factor b, 1/sqrt(s), [0, 10];
         flow_factor_init_std its initial one sigma (b starts at 1), [0, 10].
-    flow_share : at lift-off, the share (in log) of the flat phase's slope error put on the pump
-        rather than on the dead volume, [0, 1]: b <- b^flow_share (0.5: equal prior spreads).
+    dead_volume_std : random walk of the dead-volume factor c, 1/sqrt(s), [0, 10];
+        dead_volume_init_std its initial one sigma (c starts at 1), [0, 10]. While the membrane is
+        flat the pressure's rise gives only b / c; the two prior spreads set how that ratio is
+        shared until venting (c alone) or the moving membrane separates them.
     modulus_std : random walk of the modulus factor k, 1/sqrt(s), [0, 10]; modulus_init_std its
         initial one sigma (k starts at 1), [0, 10].
     change_threshold : a load change is declared when the CUSUM of (NIS - change_drift) exceeds this
@@ -72,7 +74,7 @@ class FilterSettings:
     force_std_floor : absolute model-form error added to the reported force std, N, [0, 100] (the
         load is only weakly separable from the modulus: a resolution of about 0.1 N).
     cov_floor : eigenvalue floor of the covariance, relative to the state scales (m: 1e-6 kg,
-        W: 1 N), [0, 1e-3].
+        W: 1 N, factors: 1), [0, 1e-3].
     compile : compile the model to C (cached) for speed; False = casadi's virtual machine.
     load_prior : 'unknown' (default: the load is learnt from the lift-off) or 'nominal': a scene
         that knows its calibrated load (the protocol's weights) starts the load at the trial's
@@ -100,9 +102,10 @@ class FilterSettings:
     lift_load_rel_std: float = 0.2
     flow_factor_std: float = 0.02
     flow_factor_init_std: float = 0.25
-    flow_share: float = 0.5
     modulus_std: float = 0.002
     modulus_init_std: float = 0.15
+    dead_volume_std: float = 0.0
+    dead_volume_init_std: float = 0.2
     change_threshold: float = 20.0
     change_drift: float = 4.0
     change_std: float = 3.0
@@ -142,9 +145,10 @@ class FilterSettings:
         check_range(w, "lift_load_rel_std", self.lift_load_rel_std, 0.0, 10.0)
         check_range(w, "flow_factor_std", self.flow_factor_std, 0.0, 10.0, "1/sqrt(s)")
         check_range(w, "flow_factor_init_std", self.flow_factor_init_std, 0.0, 10.0)
-        check_range(w, "flow_share", self.flow_share, 0.0, 1.0)
         check_range(w, "modulus_std", self.modulus_std, 0.0, 10.0, "1/sqrt(s)")
         check_range(w, "modulus_init_std", self.modulus_init_std, 0.0, 10.0)
+        check_range(w, "dead_volume_std", self.dead_volume_std, 0.0, 10.0, "1/sqrt(s)")
+        check_range(w, "dead_volume_init_std", self.dead_volume_init_std, 0.0, 10.0)
         check_range(w, "load_init_std", self.load_init_std, 0.0, 1000.0, "N", lo_open=True)
         check_range(w, "load_rest_std", self.load_rest_std, 0.0, 1000.0, "N", lo_open=True)
         check_range(w, "change_threshold", self.change_threshold, 0.0, 1e6, lo_open=True)
@@ -165,8 +169,9 @@ class FilterSettings:
         return [f.name for f in fields(cls)]
 
 
-#: state scales used by the covariance floor: gas mass (kg), load (N), flow and modulus factors (-)
-STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0])
+#: state scales used by the covariance floor: gas mass (kg), load (N), flow, modulus and
+#: dead-volume factors (-)
+STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0, 1.0])
 
 
 def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> np.ndarray:

@@ -1,11 +1,12 @@
 """Extended Kalman filter: membrane shape and contact force from the chamber pressure alone.
 
-State ``x = [m, W, b, k]``: the gas mass (kg), the load on the membrane (N, a random walk), the
-pump-flow factor b and the modulus factor k (-, slow random walks; see
-:mod:`estimators.model`). Why:
+State ``x = [m, W, b, k, c]``: the gas mass (kg, referred to the nominal dead volume: the true
+mass is c m), the load on the membrane (N, a random walk), the pump-flow factor b, the modulus
+factor k and the dead-volume factor c (-, slow random walks; see :mod:`estimators.model`). Why:
 
 - The gas mass is the plant's own drift-free differential state (SPEC 4); the flow model (pump
-  map, valves) drives it directly, so the commands enter the filter where they act.
+  map, valves) drives it directly, so the commands enter the filter where they act. Referred to
+  the nominal dead volume, the flat membrane's pressure depends on it alone.
 - The shape ``(h1, h2)`` is not a state: given (m, W) it is fixed by the gas law and the contact
   condition (``G(h1, h2) = m R T``, ``F(h1, h2) = W``) or, when ``pi r1^2 p_rest(m) <= W``, the
   membrane rests flat. Carrying h1, h2 as filter states would give a covariance of rank 2 in a 4-d
@@ -15,10 +16,14 @@ pump-flow factor b and the modulus factor k (-, slow random walks; see
   ``W = F`` in steady contact; ``W = 0`` is free inflation (h2 = 0). The state may dip below zero
   (the model sees ``max(W, 0)``): clipping it at zero would make the random walk drift up to a
   phantom load, which bends a free cap into a contact shape (a 0.7 mm height bias at 8 mm).
-- The flow factor b: the pump map is the least certain part of the model (the rig's is 10 %
-  weaker, its dead volume 20 % larger: in the flat phase both only change dp/dt per unit command,
-  which b absorbs). Learning it while the membrane rests is what lets the filter tell a lift-off
-  (the pressure rise slows by a factor of 2-10) from a weak pump (tens of percent).
+- The flow factor b and the dead-volume factor c: the pump map and the chamber's dead volume are
+  the least certain parts of the model (the rig's pump is 10 % weaker, its dead volume 20 %
+  larger). While the membrane rests both change only dp/dt per unit command, so the filter learns
+  the ratio b / c (the covariance keeps the ridge); that is what lets it tell a lift-off (the
+  pressure rise slows by a factor of 2-10) from a weak pump. They separate when the membrane
+  moves (the dead volume sets how much of the gas the pressure rise takes from the cap: 0.4 mm of
+  height over a 14 kPa rise at r1 = 7.5 mm) and when the chamber vents through the known outlet
+  (c alone). Without c, b carried both, and the cap's growth was off by the dead volume's share.
 - The modulus factor k: in free inflation the height is a function of p / k alone, so k is what
   turns a measured pressure into a height; it is learnt while gas flows (the cap's compliance
   changes dp/dt) and held when nothing flows. In contact a stiffer membrane and a heavier load
@@ -60,10 +65,10 @@ change_threshold/drift   20 / 4          CUSUM of the NIS: a load step fires in 
 change_std               3 N             spread given to the load on a detected step
 lift_threshold/drift     6 / 0.3         CUSUM of the innovation shortfall while flat
 lift_load_rel_std        0.2 (+0.2 N)    the lift-off pressure is known to a sample's rise
-flow_factor_init_std     0.25            pump map off by up to 25 % (rig: -10 %, V0 +20 %)
-flow_share               0.5             at lift-off b <- b^0.5: the flat slope error split
-                                         evenly (in log) between pump and dead volume
+flow_factor_init_std     0.25            pump map off by up to 25 % (rig: -10 %)
 flow_factor_std          0.02 /sqrt(s)   slow drift only
+dead_volume_init_std     0.2             dead volume off by up to 20 % (rig: +20 %)
+dead_volume_std          0               a geometric constant
 modulus_init_std         0.15            the issue's +-15 % modulus mismatch
 modulus_std              0.002 /sqrt(s)  a material constant: learnt, hardly drifting
 output_rel_std           0.04            model-form error of the reported h, F (rig is not model)
@@ -96,7 +101,7 @@ from hbma_ctrl.params import Actuator, Pneumatics
 
 from .common import MEAS_SATURATED, FilterSettings, classify_measurement, guard_cov
 from .fastcall import FastFunction
-from .model import NX, OUT_NAMES, STATE_NAMES, ObserverModel
+from .model import NX, OUT_NAMES, REST_EPS, STATE_NAMES, ObserverModel
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 
@@ -104,7 +109,8 @@ __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
 _Y = {n: i for i, n in enumerate(OUT_NAMES)}
 _DIAG5 = np.diag_indices(5)
-#: the pump-flow and modulus factors are kept in this range (off by more is a broken rig, not a bias)
+#: the pump-flow, modulus and dead-volume factors are kept in this range (off by more is a broken
+#: rig, not a bias)
 FACTOR_RANGE = (0.5, 2.0)
 #: a resting load below this (N) may be no load at all: the flat height is then uncertain
 LIGHT_LOAD = 0.5
@@ -114,6 +120,8 @@ LIFT_LOAD_ABS_STD = 0.2
 NO_LOAD_SIGMAS = 3.0
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
 REPLAY_MAX = 200
+_KEEP_ALL = np.ones(NX)
+_KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c
 
 
 class EKFSettings(FilterSettings):
@@ -150,7 +158,7 @@ def _rebind(om0: ObserverModel, actuator: Actuator, pneumatics: Pneumatics) -> O
 
 
 class EKF:
-    """Extended Kalman filter on ``x = [m, W, b, k]`` (see module docstring). SI throughout.
+    """Extended Kalman filter on ``x = [m, W, b, k, c]`` (see module docstring). SI throughout.
 
     ``step(t, measurement, applied_command) -> Estimate``: predicts over the periods since the
     last step with ``applied_command`` (the command held since then), then updates with the
@@ -184,7 +192,7 @@ class EKF:
         s = self.settings
         dt = s.sample_period
         q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
-             s.modulus_std ** 2 * dt, s.cov_floor]
+             s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
         self._qv_rest = np.array([0.0] + q)
         self._qv_move = np.array([s.flow_rel_std] + q)
         self._p_pred = 0.0
@@ -201,16 +209,17 @@ class EKF:
 
     # --- state handling -----------------------------------------------------------------------
     def reset(self, t: float, mean, cov=None, shape=None, resting: bool | None = None) -> None:
-        """Set the state [m (kg), W (N), b (-), k (-)] and covariance at time t (s).
+        """Set the state [m (kg), W (N), b (-), k (-), c (-)] and covariance at time t (s).
 
         ``shape`` = warm start (h1, h2) in m; ``resting`` = the mode (None: from the state).
         """
         s = self.settings
         x = np.array(mean, dtype=float).ravel()
-        x = np.append(x, np.ones(NX - x.size))  # b and k default to 1 (nominal)
+        x = np.append(x, np.ones(NX - x.size))  # b, k and c default to 1 (nominal)
         self.x = x.reshape(NX)
         self.P = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
-                          s.modulus_init_std ** 2]) if cov is None else np.array(cov, dtype=float).reshape(NX, NX)
+                          s.modulus_init_std ** 2, s.dead_volume_init_std ** 2]) if cov is None else \
+            np.array(cov, dtype=float).reshape(NX, NX)
         self.P = guard_cov(self.P, s.cov_floor)
         self.t = float(t)
         self.s = np.zeros(2) if shape is None else np.array(shape, dtype=float).reshape(2)
@@ -241,7 +250,7 @@ class EKF:
         act = self.model.actuator
         m0 = (max(p0, 0.0) + act.p_env) * act.V0 / self.model.rt
         W0 = s.load_max if s.load_init is None else s.load_init
-        self.reset(t, [m0, W0, 1.0, 1.0], resting=True if s.load_init is None else None)
+        self.reset(t, [m0, W0, 1.0, 1.0, 1.0], resting=True if s.load_init is None else None)
 
     # --- the filter ---------------------------------------------------------------------------
     def _predict(self, u: np.ndarray) -> None:
@@ -252,7 +261,7 @@ class EKF:
         Pn = out[5].reshape(NX, NX, order="F").copy()
         if not math.isfinite(float(xn.sum() + out[3].sum() + Pn.sum())):  # any NaN/inf propagates
             # the projection failed (e.g. across a fold): hold the state, widen the covariance
-            self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0]), s.cov_floor)
+            self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0, 0.0]), s.cov_floor)
             self._A_flat = np.eye(NX).ravel()
             self._events.add("model_failure")
             return
@@ -268,7 +277,7 @@ class EKF:
 
     def _update(self, z: float, R: float) -> float:
         innov = z - self._p_pred
-        out = self._upd(self.x, self.P, self._H, innov, R, self.settings.cov_floor)
+        out = self._upd(self.x, self.P, self._H, innov, R, self.settings.cov_floor, self._keep())
         S = float(out[2][0])
         if not (S > 0 and math.isfinite(S)):
             raise FloatingPointError(f"estimator: innovation variance {S} is not positive")
@@ -276,6 +285,15 @@ class EKF:
         P = out[1].reshape(NX, NX, order="F").copy()
         self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
         return innov / math.sqrt(S)
+
+    def _keep(self) -> np.ndarray:
+        """Which states an update may move (1) or must hold (0)."""
+        if self.resting and self.x[1] < REST_EPS:
+            # flat with no load is the model's stand-in for the singular origin (a free membrane
+            # is never flat at positive pressure): its flat dynamics lack the cap's compliance,
+            # so its innovations say nothing about the pump or the dead volume
+            return _KEEP_NO_FACTORS
+        return _KEEP_ALL
 
     @property
     def last_A(self) -> np.ndarray:
@@ -348,10 +366,11 @@ class EKF:
                 self.x, self.P, self._p_pred = prior
                 self.P[1, 1] += s.change_std ** 2
                 self._update(float(measurement), R)
-        elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range and self._H[0] > 0:
-            # one-sided: the true pressure is at least the range; pull the prediction up to it --
-            # only on a rising branch (dp/dm > 0): past the model's limit point more gas lowers p,
-            # and pulling p up would push the state the wrong way
+        elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range:
+            # one-sided: the true pressure is at least the range; pull the prediction up to it.
+            # On either branch: past the model's limit point (dp/dm < 0) the pull takes gas out
+            # and stiffens the membrane, which is what a rig still saturated there says (its
+            # peak is higher; left alone the model runs away along its far branch)
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
 
     def _snapshot(self) -> tuple:
@@ -423,10 +442,6 @@ class EKF:
             load = (0.0 if W < W_res else W, (s.lift_load_rel_std * W) ** 2 + LIFT_LOAD_ABS_STD ** 2)
         if load is not None:
             self._decouple(1, load[0], load[1])
-        # while flat, b learnt the slope b / c (c the dead-volume factor, not a state); once the
-        # membrane moves the two act differently: split the learnt error evenly in log between
-        # flow and dead volume (equal prior spreads), b <- b^flow_share, and give b its spread back
-        self._decouple(2, self.x[2] ** s.flow_share, max(self.P[2, 2], s.flow_factor_init_std ** 2))
         self.resting = False
         self._cusum = 0.0
         self._events.add("lift_off")
@@ -454,7 +469,7 @@ class EKF:
                 P[1, :] = P[:, 1] = 0.0
                 P[1, 1] = s.load_rest_std ** 2
                 self.P = P
-        for i in (2, 3):
+        for i in (2, 3, 4):
             if not FACTOR_RANGE[0] <= self.x[i] <= FACTOR_RANGE[1]:
                 self.x[i] = min(max(self.x[i], FACTOR_RANGE[0]), FACTOR_RANGE[1])
                 flags.add("clamped")

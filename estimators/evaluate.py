@@ -23,6 +23,7 @@ import numpy as np
 
 from hbma_ctrl.interfaces import Command
 from hbma_ctrl.metrics import nrmsd
+from hbma_ctrl.protocol import scenario_of
 from hbma_ctrl.rig import RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.simulate import SimSettings, Trial, simulate
 
@@ -73,7 +74,7 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
     """Run a filter over a rig record from sample ``start``; ``init`` = (mean, cov) at that sample."""
     f = make_filter(kind, trial, settings)
     K = len(rec.t)
-    keys = ("h1", "h2", "h", "F", "p", "W", "b", "k", "std_h", "std_F")
+    keys = ("h1", "h2", "h", "F", "p", "W", "b", "k", "c", "std_h", "std_F")
     est = {k: np.full(K, np.nan) for k in keys}
     nees = np.full(K, np.nan)
     nis = np.full(K, np.nan)
@@ -90,6 +91,7 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
         est["W"][k] = e.mean[1]
         est["b"][k] = e.mean[2]
         est["k"][k] = e.mean[3]
+        est["c"][k] = e.mean[4]
         est["std_h"][k] = e.std["h"]
         est["std_F"][k] = e.std["F"]
         flags[k] = e.flags
@@ -187,8 +189,20 @@ def aggregate(results: list[TrialResult]) -> dict:
     out = {k: float(np.nanmean(v)) for k, v in S.items()}
     ratio = S["height_nrmsd"] / S["height_nrmsd_open_loop"]
     fse = np.array([r.scores["force_steady_rel_err"] for r in results], dtype=float)
+    # per scenario (the protocol's t0 x r1 x load cell, mean over speeds and seeds; trials whose
+    # membrane never lifts have no NRMSD and are left out)
+    cells: dict = {}
+    for r, e, o in zip(results, S["height_nrmsd"], S["height_nrmsd_open_loop"]):
+        if math.isfinite(e) and math.isfinite(o):
+            cells.setdefault(scenario_of(r.name), []).append((e, o))
+    cell_ratio = {c: float(np.mean([e for e, _ in v]) / np.mean([o for _, o in v])) for c, v in cells.items()}
+    worst_cell = max(cell_ratio, key=cell_ratio.get) if cell_ratio else None
     out.update({
         "n_trials": len(results),
+        "n_scenarios": len(cell_ratio),
+        "scenarios_at_half_open_loop": int(sum(v <= 0.5 for v in cell_ratio.values())),
+        "scenario_ratio_to_open_loop_max": cell_ratio[worst_cell] if worst_cell else float("nan"),
+        "worst_ratio_scenario": worst_cell,
         "height_nrmsd_max": float(np.nanmax(S["height_nrmsd"])),
         "height_nrmsd_open_loop_max": float(np.nanmax(S["height_nrmsd_open_loop"])),
         "height_ratio_to_open_loop_max": float(np.nanmax(ratio)),

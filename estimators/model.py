@@ -1,7 +1,10 @@
-"""The estimators' model: the quasi-static HBMA with the load and two factors as states (casadi).
+"""The estimators' model: the quasi-static HBMA with the load and three factors as states (casadi).
 
-State ``x = [m, W, b, k]`` (SI: gas mass kg, load N, pump-flow factor -, modulus factor -); the
-membrane shape ``s = (h1, h2)`` is algebraic:
+State ``x = [m, W, b, k, c]`` (SI: reduced gas mass kg, load N, pump-flow factor -, modulus factor
+-, dead-volume factor -); the chamber's volume at rest is ``c V0`` and its gas mass ``c m`` (the
+state m is the gas mass referred to the nominal dead volume: the flat membrane's pressure
+``m R T / V0 - p_env`` does not depend on c, so c enters only where the membrane moves or gas
+flows). The membrane shape ``s = (h1, h2)`` is algebraic (below, m is the true gas mass c x[0]):
 
 - contact (``pi r1^2 p_rest(m) > max(W, REST_EPS)``, ``p_rest = m R T / V0 - p_env``):
   ``G(h1, h2) = m R T`` and ``F(h1, h2) + EPS_K h2 = W`` (SPEC 1-4; EPS_K a tiny stiffness that
@@ -11,9 +14,10 @@ membrane shape ``s = (h1, h2)`` is algebraic:
   flat under the plate, ``V = V0``, ``p = p_rest(m)``, ``h = 0``.
 
 ``b`` multiplies the compressor map (``P["flow_scale"]``), ``k`` every modulus of the material
-(moduli enter the pressure linearly, so ``p = k p_nominal`` at a given shape). The dynamics are the
+(moduli enter the pressure linearly, so ``p = k p_nominal`` at a given shape), ``c`` the dead volume
+(``P["V0"]``). The dynamics are the
 lead's quasi-static fidelity (:class:`hbma_ctrl.model.QuasiStatic`) with its platform weight
-replaced by the state ``W`` (random walks: ``W' = b' = k' = 0``): the same index-reduced ODE on
+replaced by the state ``W`` (random walks: ``W' = b' = k' = c' = 0``): the same index-reduced ODE on
 ``[m, h1, h2]``, integrated by the simulator's fixed-step schemes ('euler' or 'rk4', ``nsub``
 sub-steps per sample) and projected back onto the constraints after every sub-step, as
 :meth:`hbma_ctrl.model.Fidelity.step_function` does. The mode is fixed over a sample. One casadi
@@ -40,7 +44,7 @@ __all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
 #: the load W may go below zero: the physics sees max(W, 0) (a dead zone), so near no load the
 #: estimate is not pushed up by clipping (a clipped random walk drifts to a phantom load that
 #: bends a free cap into a contact shape)
-STATE_NAMES = ("m", "W", "b", "k")
+STATE_NAMES = ("m", "W", "b", "k", "c")
 NX = len(STATE_NAMES)
 #: a tiny contact stiffness, N/m, regularising F(h1, h2) = W where the pressure vanishes (at W = 0
 #: and p -> 0 any h2 would do; with it h2 = 0): 1 N/m is below 1 % of dF/dh2 at working pressures
@@ -127,11 +131,14 @@ class ObserverModel:
 
     # --- symbolic pieces ----------------------------------------------------------------------
     def _with_state(self, P: dict, x) -> dict:
-        """Parameters as the state sees them: load W, pump-flow factor b, modulus factor k."""
+        """Parameters as the state sees them: load W, pump-flow factor b, modulus factor k, dead
+        volume c V0; ``P["m"]`` is the true gas mass c x[0]."""
         P = dict(P)
         P["W"] = ca.fmax(x[1], 0)  # dead zone: see STATE_NAMES
         P["flow_scale"] = P["flow_scale"] * x[2]
         P["material"] = P["material"].scaled(x[3])
+        P["V0"] = P["V0"] * x[4]
+        P["m"] = x[0] * x[4]
         return P
 
     def _syms(self) -> _Syms:
@@ -167,13 +174,13 @@ class ObserverModel:
         geo = ph.geometry(hs[0], hs[1], P)
         p_c = ph.pressure(hs[0], hs[1], P)
         F = ca.pi * geo["a2"] * p_c
-        r = ca.vertcat(G - xs[0] * rt, F + EPS_K * hs[1] - P["W"])
+        r = ca.vertcat(G - P["m"] * rt, F + EPS_K * hs[1] - P["W"])
         o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
         r_h = ca.jacobian(r, hs)
         det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]
         dh = -ca.solve(r_h, ca.jacobian(r, xs))
         D_c = ca.jacobian(o_c, xs) + ca.mtimes(ca.jacobian(o_c, hs), dh)
-        p_rest = xs[0] * rt / P["V0"] - P["p_env"]
+        p_rest = P["m"] * rt / P["V0"] - P["p_env"]
         hf = ph.flat_h1_from_pressure(p_rest, P)
         # flat under a plate: h = 0; with no plate to rest on (W -> 0, below REST_EPS) the membrane
         # is a free cap of height hf -- blended linearly in W so the Jacobian stays finite
@@ -182,7 +189,7 @@ class ObserverModel:
         h_free = ca.if_else(free > 0, hf * free, 0)
         o_r = ca.vertcat(hf, hf - h_free, h_free, area * p_rest, p_rest)
         D_r = ca.jacobian(o_r, xs)
-        resid = ca.fabs(G - xs[0] * rt) / (xs[0] * rt) + ca.fabs(F - P["W"]) / (ca.fabs(xs[1]) + 0.1)
+        resid = ca.fabs(G - P["m"] * rt) / (P["m"] * rt) + ca.fabs(F - P["W"]) / (ca.fabs(xs[1]) + 0.1)
         rs = ca.SX.sym("rest")
         o = ca.if_else(rs > 0.5, o_r, o_c)
         D = ca.if_else(rs > 0.5, D_r, D_c)
@@ -194,7 +201,7 @@ class ObserverModel:
         y = self._syms()
         hold = ca.SX.sym("hold")
         P = y.P
-        m, W = y.x[0], P["W"]
+        m, W, c = P["m"], P["W"], y.x[4]
         h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1, hold)
         mode = ca.if_else(rest, 0.0, 1.0)
         x3 = ca.vertcat(m, h1, h2)
@@ -211,25 +218,28 @@ class ObserverModel:
                 x3 = x3 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
             x3 = ca.vertcat(x3[0], a, b)
-        xn = ca.vertcat(x3[0], y.x[1], y.x[2], y.x[3])
+        xn = ca.vertcat(x3[0] / c, y.x[1], y.x[2], y.x[3], y.x[4])
         A = ca.jacobian(xn, y.x)
         # the predicted shape as the next warm start; re-projected at the predicted state
-        h1n, h2n, restn = self._project(xn[0], W, x3[1], x3[2], P, self.newton, hold)
+        h1n, h2n, restn = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
         outn, Hn, _ = self._meas(xn, h1n, h2n, restn, y.Pbase)
-        # covariance: P+ = sym(A P A^T + Q), Q = diag((rel |dm|)^2 + qm, qW, qb, qk); qv = [rel, qm,
-        # qW, qb, qk, floor]; piv = smallest LDL pivot of P+/scale^2 - floor I (> 0: floor holds)
+        # covariance: P+ = sym(A P A^T + Q), Q = diag((rel |dm|)^2 + qm, qW, qb, qk, qc); qv = [rel,
+        # qm, qW, qb, qk, qc, floor]; piv = smallest LDL pivot of P+/scale^2 - floor I (> 0: floor holds)
         Pc = ca.SX.sym("P", NX, NX)
-        qv = ca.SX.sym("qv", 6)
-        Q = ca.diag(ca.vertcat((qv[0] * (xn[0] - m)) ** 2 + qv[1], qv[2], qv[3], qv[4]))
+        qv = ca.SX.sym("qv", NX + 2)
+        Q = ca.diag(ca.vertcat((qv[0] * (xn[0] - y.x[0])) ** 2 + qv[1], qv[2:NX + 1]))
         Pn = ca.mtimes([A, Pc, A.T]) + Q
         Pn = 0.5 * (Pn + Pn.T)
         self.predict = ca.Function(
             "ekf_predict", [y.x, y.s, y.u, y.theta, hold, Pc, qv],
-            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, _min_pivot(Pn, qv[5]))],
+            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, _min_pivot(Pn, qv[NX + 1]))],
             ["x", "s", "u", "theta", "hold", "P", "qv"],
             ["x_next", "A", "s_next", "y", "H", "P_next", "piv"])
-        # Joseph-form scalar update: K = P H^T / S, P+ = (I - K H) P (I - K H)^T + R K K^T
+        # Joseph-form scalar update: K = keep * P H^T / S, P+ = (I - K H) P (I - K H)^T + R K K^T;
+        # keep (0/1 per state) holds states out of an update (Schmidt's consider states: the
+        # Joseph form is the exact covariance for any gain)
         xu = ca.SX.sym("x", NX)
+        keep = ca.SX.sym("keep", NX)
         Pu = ca.SX.sym("P", NX, NX)
         Hu = ca.SX.sym("H", 1, NX)
         nu = ca.SX.sym("innov")
@@ -237,17 +247,18 @@ class ObserverModel:
         fl = ca.SX.sym("floor")
         PHt = ca.mtimes(Pu, Hu.T)
         Su = ca.mtimes(Hu, PHt) + Ru
-        K = PHt / Su  # a scalar S: the "solve" is this division (S > 0 checked by the caller)
+        K = keep * PHt / Su  # a scalar S: the "solve" is this division (S > 0 checked by the caller)
         IKH = ca.SX.eye(NX) - ca.mtimes(K, Hu)
         Pp = ca.mtimes([IKH, Pu, IKH.T]) + Ru * ca.mtimes(K, K.T)
         Pp = 0.5 * (Pp + Pp.T)
-        self.update = ca.Function("kf_update", [xu, Pu, Hu, nu, Ru, fl],
+        self.update = ca.Function("kf_update", [xu, Pu, Hu, nu, Ru, fl, keep],
                                   [ca.densify(e) for e in (xu + K * nu, Pp, Su, _min_pivot(Pp, fl))],
-                                  ["x", "P", "H", "innov", "R", "floor"], ["x_post", "P_post", "S", "piv"])
+                                  ["x", "P", "H", "innov", "R", "floor", "keep"],
+                                  ["x_post", "P_post", "S", "piv"])
         # outputs at an arbitrary state (posterior), from a warm start
         y2 = self._syms()
         hold2 = ca.SX.sym("hold")
-        a, b, r = self._project(y2.x[0], y2.P["W"], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
+        a, b, r = self._project(y2.P["m"], y2.P["W"], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
         out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
         P2 = ca.SX.sym("P", NX, NX)
         C2 = ca.mtimes([D2, P2, D2.T])

@@ -1,7 +1,7 @@
 """What the chamber pressure alone can tell, per regime: observability along real trajectories.
 
-The estimators' state is ``x = [m, W, b, k]`` (gas mass kg, load N, pump-flow factor, modulus
-factor; :mod:`estimators.ekf`). Along rig trajectories (the mismatched rig of
+The estimators' state is ``x = [m, W, b, k, c]`` (gas mass kg, load N, pump-flow factor, modulus
+factor, dead-volume factor; :mod:`estimators.ekf`). Along rig trajectories (the mismatched rig of
 :mod:`hbma_ctrl.rig`, open loop) the EKF's linearisation (A = dx+/dx of the discrete model, H =
 dp/dx) gives, at every sample,
 
@@ -10,7 +10,7 @@ dp/dx) gives, at every sample,
 - the *window* rank over the next second: the time-varying matrix ``[H_k; H_k+1 A_k; ...]``
   whitened by the sensor noise (rows / 200 Pa) and scaled by ``OBS_SCALE``; its singular values
   >= 1 count the state directions that one second of readings pins down to better than
-  ``OBS_SCALE`` (0.1 mg of gas, 0.1 N, 5 % of flow, 5 % of modulus).
+  ``OBS_SCALE`` (0.1 mg of gas, 0.1 N, 5 % of flow, 5 % of modulus, 5 % of dead volume).
 
 Regimes (from the rig's truth and the command): ``resting`` (membrane flat under the load),
 ``free`` (no contact), ``contact`` (dead load carried), each ``+flow`` (pump or vent active) or
@@ -22,11 +22,12 @@ frozen rank = ``control.obsv(A, H)``, window rank = directions resolved within 1
 =================  ===========  ===========  ====================================================
 regime             frozen rank  window rank  what the pressure tells
 =================  ===========  ===========  ====================================================
-resting + flow     1-2          1-2          m and (pumping) the flow factor b; W and k do not
-                                             enter: only ``W >= pi r1^2 p``; h = 0 exactly
+resting + flow     1-2          1-2          m and (pumping) the ratio b / c of flow to dead
+                                             volume (venting: c); W and k do not enter: only
+                                             ``W >= pi r1^2 p``; h = 0 exactly
 resting + hold     1            1            the gas mass (the pressure level) only
-free/contact+flow  2            1-4 (med 2)  m, and over a window part of (W, b, k); W and k act
-                                             alike on p (stiffer membrane ~ heavier load)
+free/contact+flow  2            1-3 (med 2)  m, and over a window part of (W, b, k, c); W and k
+                                             act alike on p (stiffer membrane ~ heavier load)
 free/contact+hold  1            1            one combination of (m, W, k): every pair on a level
                                              set of p is an equilibrium
 saturated          0            0            only ``p >= range``: the model (mass integration)
@@ -62,12 +63,12 @@ from hbma_ctrl.simulate import InputSchedule, Trial
 
 from .common import FilterSettings
 from .ekf import EKF
-from .model import NX
+from .model import NX, STATE_NAMES
 
 __all__ = ["OBS_SCALE", "Trajectory", "default_trajectories", "analyse", "summarise", "run"]
 
-#: state resolutions used to scale the observability matrices: m kg, W N, b -, k -
-OBS_SCALE = np.array([1e-7, 0.1, 0.05, 0.05])
+#: state resolutions used to scale the observability matrices: m kg, W N, b -, k -, c -
+OBS_SCALE = np.array([1e-7, 0.1, 0.05, 0.05, 0.05])
 WINDOW_S = 1.0
 
 
@@ -190,6 +191,6 @@ def run(out_dir: Path | str, actuator: Actuator | None = None, rig: RigSettings 
         rows += analyse(tr, actuator, rig=rig)
     summ = summarise(rows)
     with open(out / "observability.json", "w") as fh:
-        json.dump({"state": ["m", "W", "b", "k"], "obs_scale": OBS_SCALE.tolist(), "window_s": WINDOW_S,
+        json.dump({"state": list(STATE_NAMES), "obs_scale": OBS_SCALE.tolist(), "window_s": WINDOW_S,
                    "summary": summ, "samples": rows}, fh, indent=1)
     return summ

@@ -1,8 +1,8 @@
 """Unscented Kalman filter on the same model and state as the EKF, for the speed/accuracy trade.
 
-Same state ``[m, W, b, k]``, same modes (sticky rest, lift-off and load-change detectors), same
+Same state ``[m, W, b, k, c]``, same modes (sticky rest, lift-off and load-change detectors), same
 measurement handling and guards as :class:`estimators.ekf.EKF`; only the propagation of the mean
-and covariance differs: 2n + 1 = 9 scaled sigma points (filterpy's
+and covariance differs: 2n + 1 = 11 scaled sigma points (filterpy's
 :class:`~filterpy.kalman.MerweScaledSigmaPoints`, alpha 1e-3 ... see ``UKF_ALPHA``) are pushed
 through the discrete model in one batched casadi call (the model Function ``map``-ped over the
 points and compiled), and the update uses the propagated points' pressures (no Jacobians). The
@@ -74,7 +74,8 @@ class UKF(EKF):
         xm = X.T @ self._points.Wm
         rel = 0.0 if self.resting else s.flow_rel_std
         Qm = (rel * abs(xm[0] - self.x[0])) ** 2 + s.mass_std_abs ** 2 * dt
-        Q = np.diag([Qm, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt, s.modulus_std ** 2 * dt])
+        Q = np.diag([Qm, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt, s.modulus_std ** 2 * dt,
+                     s.dead_volume_std ** 2 * dt])
         x, P = unscented_transform(X, self._points.Wm, self._points.Wc, Q)
         self.x, self.P = x, guard_cov(P, s.cov_floor)
         self._sig_x, self._sig_p = X, Y[_P].copy()
@@ -94,9 +95,12 @@ class UKF(EKF):
         if not S > 0:
             raise FloatingPointError(f"innovation variance {S} is not positive")
         Pxz = (Wc * dz) @ dx  # (n,)
-        K = np.linalg.solve(np.array([[S]]), Pxz[None, :])[0]
+        K = np.linalg.solve(np.array([[S]]), Pxz[None, :])[0] * self._keep()
         innov = z - self._p_pred
         self.x = self.x + K * innov
-        self.P = guard_cov(self.P - S * np.outer(K, K), self.settings.cov_floor)
+        # P - K S K^T only for the optimal gain; with held states (keep), the general form
+        # P - K Pxz^T - Pxz K^T + K S K^T
+        self.P = guard_cov(self.P - np.outer(K, Pxz) - np.outer(Pxz, K) + S * np.outer(K, K),
+                           self.settings.cov_floor)
         self._sig_p = None
         return innov / np.sqrt(S)

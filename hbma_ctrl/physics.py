@@ -156,20 +156,27 @@ def flat_h1_from_pressure(p, P):
     """
     r1, t0 = P["r1"], P["t0"]
     q1 = P["material"].Q(1.0)
-    k = ca.fmax(p, 0) * r1**2 / (2 * t0 * q1)
+    k_raw = p * r1**2 / (2 * t0 * q1)
+    # k is floored above zero so that no square or cube root is taken of zero: their infinite
+    # slopes times a zero seed are NaN in a Jacobian (casadi colours columns together, so one NaN
+    # spoils its neighbours); below the floor (h1 < 1e-4 r1) the height is reported as 0
+    k_min = 1e-12 * r1
+    k = ca.fmax(k_raw, k_min)
     # depressed cubic y^3 + py y + qy = 0 with h1 = y + k/3
     py = -(k**2) / 3
     qy = -2 * k**3 / 27 - k * r1**2
     disc = (qy / 2) ** 2 + (py / 3) ** 3  # > 0 for k > 0: one real root
-    sq = ca.sqrt(ca.fmax(disc, 0))
-    cbrt = lambda x: ca.sign(x) * ca.fabs(x) ** (1.0 / 3.0)  # noqa: E731
-    h = cbrt(-qy / 2 + sq) + cbrt(-qy / 2 - sq) + k / 3
+    sq = ca.sqrt(disc)
+    # Cardano's two cube roots u v = -py / 3: the second from the first (the direct cube root of
+    # -qy/2 - sq cancels to zero for small k)
+    u = (-qy / 2 + sq) ** (1.0 / 3.0)
+    h = u - py / (3 * u) + k / 3
     # Cardano cancels digits for small k (two nearly opposite cube roots): polish with Newton on the
     # cubic, whose slope h (3h - 2k) is positive at the root (h > k)
     for _ in range(2):
         slope = h * (3 * h - 2 * k)
         h = ca.if_else(slope > 0, h - (h**3 - k * h**2 - k * r1**2) / ca.fmax(slope, 1e-300), h)
-    return h
+    return ca.if_else(k_raw > k_min, h, 0.0)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,6 +19,8 @@ name, see :func:`hbma_ctrl.metrics.write_log_csv`) and, unless disabled, fig6/fi
 
 from __future__ import annotations
 
+import re
+
 import csv
 import itertools
 from concurrent.futures import ProcessPoolExecutor
@@ -48,6 +50,13 @@ SUMMARY_COLUMNS = ("thickness_mm", "radius_mm", "load_g", "speed_pct", "status",
 def trial_name(t0_mm: float, r1_mm: float, load_g: float, speed_pct: float) -> str:
     """File-safe trial name, e.g. 't3_r7.5_m200_s60' (edge units)."""
     return f"t{t0_mm:g}_r{r1_mm:g}_m{load_g:g}_s{speed_pct:g}"
+
+
+def scenario_of(name: str) -> str:
+    """The protocol cell (t0, r1, load) of a trial name: 't3_r7.5_m200_s60' -> 't3_r7.5_m200'.
+    A name not of the protocol's form is its own scenario."""
+    m = re.fullmatch(r"(t[^_]+_r[^_]+_m[^_]+)_s[^_]+", name)
+    return m.group(1) if m else name
 
 
 def protocol_trials(material: str | Material = "nh", *, loads_g=None, speeds_pct=None, t0_mm=None,

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from estimators.common import FilterSettings, guard_cov, joseph_update
+from estimators.common import STATE_SCALE, FilterSettings, guard_cov, joseph_update
 from estimators.ekf import EKF
 from estimators.evaluate import run_filter, score
 from estimators.scene import parse_section
@@ -32,7 +32,7 @@ def _rec(trial, **rig):
 
 def _assert_spd(cov):
     assert np.allclose(cov, cov.T, rtol=0, atol=1e-12 * np.abs(cov).max())
-    scale = np.array([1e-6, 1.0, 1.0, 1.0])
+    scale = STATE_SCALE
     w = np.linalg.eigvalsh(cov / np.outer(scale, scale))
     assert w.min() > 0
 
@@ -61,7 +61,7 @@ def test_step_api_and_flags(loaded):
     f, ests = _run("ekf", tr, rec)
     e = ests[150]
     assert isinstance(e, Estimate)
-    assert e.state_names == ("m", "W", "b", "k") and e.mean.shape == (4,) and e.cov.shape == (4, 4)
+    assert e.state_names == ("m", "W", "b", "k", "c") and e.mean.shape == (5,) and e.cov.shape == (5, 5)
     assert set(e.std) == {"h1", "h2", "h", "F", "p"}
     assert e.h == pytest.approx(e.h1 - e.h2)
     assert "resting" in ests[0].flags
@@ -99,8 +99,8 @@ def test_missing_reading_skips_the_update(loaded):
     P0 = f.P.copy()
     e = f.step(float(rec.t[100]), float("nan"), Command(*rec.u[99]))
     assert "missing" in e.flags and f.last_nis is None
-    assert np.trace(f.P / np.outer([1e-6, 1, 1, 1], [1e-6, 1, 1, 1])) >= \
-        np.trace(P0 / np.outer([1e-6, 1, 1, 1], [1e-6, 1, 1, 1]))  # predict only: no information
+    assert np.trace(f.P / np.outer(STATE_SCALE, STATE_SCALE)) >= \
+        np.trace(P0 / np.outer(STATE_SCALE, STATE_SCALE))  # predict only: no information
     e = f.step(float(rec.t[101]), None, Command(*rec.u[100]))
     assert "missing" in e.flags
 
@@ -239,22 +239,34 @@ def test_ukf_same_api_and_comparable(loaded):
     _, ests = _run("ukf", tr, rec)
     h = np.array([e.h for e in ests])
     assert nrmsd(h, rec.truth["h"]) < 0.08
-    assert ests[-1].state_names == ("m", "W", "b", "k")
+    assert ests[-1].state_names == ("m", "W", "b", "k", "c")
 
 
 def test_numerics_guards():
     # Joseph update keeps a PSD covariance even with a gain far from optimal (huge R)
-    P = np.diag([1e-14, 1.0, 0.01, 0.01])
-    H = np.array([2e10, 300.0, 0.0, 1e4])
-    x, Pn, S, K = joseph_update(np.zeros(4), P, H, 100.0, 4e4)
+    P = np.diag([1e-14, 1.0, 0.01, 0.01, 0.01])
+    P[2, 4] = P[4, 2] = 0.009  # the flat phase's ridge: b and c strongly correlated
+    H = np.array([2e10, 300.0, 0.0, 1e4, 0.0])
+    x, Pn, S, K = joseph_update(np.zeros(5), P, H, 100.0, 4e4)
     assert S > 4e4 and np.allclose(Pn, Pn.T)
     bad = np.array([[1.0, 2.0], [2.0, 1.0]])  # indefinite
     G = guard_cov(bad, 1e-6, np.ones(2))
     assert np.linalg.eigvalsh(G).min() >= 1e-6 * (1 - 1e-9)
     # the compiled update agrees with the numpy reference
     f = EKF(Actuator(), Pneumatics())
-    out = f._upd(np.zeros(4), P, H, 100.0, 4e4, 0.0)
-    assert np.allclose(out[1].reshape(4, 4, order="F"), Pn, rtol=1e-9, atol=1e-30)
+    out = f._upd(np.zeros(5), P, H, 100.0, 4e4, 0.0, np.ones(5))
+    assert np.allclose(out[1].reshape(5, 5, order="F"), Pn, rtol=1e-9, atol=1e-30)
+    # held states (Schmidt): they do not move, and the covariance is the Joseph form of the
+    # masked gain -- the exact covariance of that suboptimal update, still SPD
+    keep = np.array([1.0, 1.0, 0.0, 0.0, 0.0])
+    out = f._upd(np.zeros(5), P, H, 100.0, 4e4, 0.0, keep)
+    Km = keep * (P @ H) / (H @ P @ H + 4e4)
+    IKH = np.eye(5) - np.outer(Km, H)
+    ref = IKH @ P @ IKH.T + 4e4 * np.outer(Km, Km)
+    assert np.all(out[0][2:] == 0.0) and out[0][0] != 0.0
+    assert np.allclose(out[1].reshape(5, 5, order="F"), ref, rtol=1e-9, atol=1e-30)
+    assert np.allclose(ref[2:, 2:], P[2:, 2:], rtol=1e-12)  # held states keep their spread
+    _assert_spd(ref)
 
 
 def test_settings_and_section_errors():
@@ -328,3 +340,27 @@ def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
     assert prior.scores["height_nrmsd"] < 0.6 * prior.scores["height_nrmsd_open_loop"]
     with pytest.raises(ValueError, match="estimator.load_prior"):
         FilterSettings(load_prior="guess").validate()
+
+
+def test_aggregate_scores_each_protocol_scenario():
+    """The issue's per-scenario criterion: trials grouped by protocol cell (t0 x r1 x load), the
+    EKF's mean NRMSD over the cell's speeds against the open loop's; never-lifting trials (NaN)
+    left out."""
+    from estimators.evaluate import TrialResult, aggregate
+
+    def res(name, e, o):
+        sc = {k: 1.0 for k in ("pressure_nrmsd", "force_rmse_n", "nees_mean", "nis_mean",
+                               "step_us_median", "height_rmse_mm")}
+        sc.update(height_nrmsd=e, height_nrmsd_open_loop=o, force_steady_rel_err=float("nan"),
+                  rig_status="ok")
+        z = np.zeros(1)
+        return TrialResult(name, z, {}, {}, z, None, z, z, z, [], sc)
+
+    agg = aggregate([res("t3_r10_m200_s20", 0.02, 0.10), res("t3_r10_m200_s60", 0.08, 0.10),
+                     res("t3_r10_m400_s20", 0.06, 0.10), res("t3_r10_m400_s60", float("nan"), float("nan")),
+                     res("t2_r10_m400_s60", 0.01, 0.10)])
+    assert agg["n_trials"] == 5 and agg["n_scenarios"] == 3
+    assert agg["scenarios_at_half_open_loop"] == 2  # (0.02 + 0.08) / 0.2 = 0.5 counts; 0.6 does not
+    assert agg["worst_ratio_scenario"] == "t3_r10_m400"
+    assert agg["scenario_ratio_to_open_loop_max"] == pytest.approx(0.6)
+    assert agg["height_ratio_to_open_loop_max"] == pytest.approx(0.8)  # the worst single trial

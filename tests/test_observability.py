@@ -27,6 +27,6 @@ def test_regimes_have_the_expected_ranks():
 def test_command_output_json(tmp_path):
     summ = run(tmp_path, trajectories=[Trajectory("free", 0.0, HOLD, 3.5)])
     data = json.loads((tmp_path / "observability.json").read_text())
-    assert data["state"] == ["m", "W", "b", "k"]
+    assert data["state"] == ["m", "W", "b", "k", "c"]
     assert {r["regime"] for r in summ} >= {"free+flow", "free+hold"}
     assert all(np.isfinite(s["window_rank_median"]) for s in summ)
