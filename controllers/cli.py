@@ -11,7 +11,43 @@ __all__ = ["register"]
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bench mpc`` to the bench sub-app (called by :mod:`hbma_ctrl.cli`)."""
+    """Add ``bench mpc`` and ``bench loop`` to the bench sub-app (called by :mod:`hbma_ctrl.cli`)."""
+
+    @bench_app.command("loop")
+    def bench_loop(
+        seeds: Annotated[int, typer.Option(help="rig noise seeds per case, 0..seeds-1 (1-100)")] = 10,
+        cases: Annotated[str, typer.Option(help="comma-separated cases: steps_0g, steps_400g, load_step_200g")]
+        = "steps_0g,steps_400g,load_step_200g",
+        workers: Annotated[int, typer.Option(help="parallel processes (1-64)")] = 2,
+        out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_loop.json")] = Path("runs/bench_loop"),
+    ) -> None:
+        """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
+        from rich.console import Console
+        from rich.table import Table
+
+        from .bench_loop import run_loop_bench, summarize_loop, write_loop_bench
+
+        if not 1 <= seeds <= 100:
+            raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
+        if not 1 <= workers <= 64:
+            raise ValueError(f"--workers = {workers} is out of range [1, 64]")
+        con = Console(highlight=False, width=140)
+        cs = [c.strip() for c in cases.split(",") if c.strip()]
+        rows = run_loop_bench(list(range(seeds)), cs, workers,
+                              progress=lambda r: con.print(f"  {r['case']} seed {r['seed']}: "
+                                                           f"{'ok' if r['passed'] else 'MISS'} "
+                                                           f"(final error {r['final_error_mm']:.3f} mm)"))
+        t = Table(title=f"bench loop: rig -> EKF -> RTI-OSQP -> rig, {seeds} noise seeds per case; "
+                        f"pass = true height within 0.3 mm")
+        for c in ("case", "passed", "final error median (mm)", "worst (mm)", "max p (kPa)", "limit (kPa)",
+                  "fallbacks"):
+            t.add_column(c, justify="right")
+        for case, v in summarize_loop(rows).items():
+            t.add_row(case, f"{v['passed']}/{v['runs']}", f"{v['final_error_mm_median']:.3f}",
+                      f"{v['final_error_mm_max']:.3f}", f"{v['max_pressure_kpa']:.2f}", f"{v['pressure_limit_kpa']:g}",
+                      str(v["fallbacks"]))
+        con.print(t)
+        con.print(f"wrote {write_loop_bench(rows, out)}")
 
     @bench_app.command("mpc")
     def bench_mpc(

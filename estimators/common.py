@@ -101,7 +101,7 @@ class FilterSettings:
     lift_drift: float = 0.3
     lift_load_rel_std: float = 0.2
     flow_factor_std: float = 0.02
-    flow_factor_init_std: float = 0.25
+    flow_factor_init_std: float = 0.15
     modulus_std: float = 0.002
     modulus_init_std: float = 0.15
     dead_volume_std: float = 0.0

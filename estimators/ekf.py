@@ -65,7 +65,7 @@ change_threshold/drift   20 / 4          CUSUM of the NIS: a load step fires in 
 change_std               3 N             spread given to the load on a detected step
 lift_threshold/drift     6 / 0.3         CUSUM of the innovation shortfall while flat
 lift_load_rel_std        0.2 (+0.2 N)    the lift-off pressure is known to a sample's rise
-flow_factor_init_std     0.25            pump map off by up to 25 % (rig: -10 %)
+flow_factor_init_std     0.15            the pump map alone (the dead volume is c's; rig: -10 %)
 flow_factor_std          0.02 /sqrt(s)   slow drift only
 dead_volume_init_std     0.2             dead volume off by up to 20 % (rig: +20 %)
 dead_volume_std          0               a geometric constant
@@ -75,11 +75,15 @@ output_rel_std           0.04            model-form error of the reported h, F (
 force_std_floor          0.1 N           force resolution (load and modulus are weakly separable)
 =======================  ==============  ======================================================
 
-Known limits (measured, see the final report of the scene): a lift-off above the sensor range is
-invisible (the filter stays flat while the rig rises by a fraction of a millimetre); a wrong
-start with too much gas can settle on the far side of the load path's pressure maximum; a load
-guess far too light lifts the model early and takes about 2 s to settle; free inflation and fast
-lift-offs of small chambers are over-confident (NEES about 5-7 for 2 dof).
+Known limits (measured: tests/test_estimator*.py, ``hbma-ctrl bench loop``): a lift-off above the
+sensor range is invisible (the filter stays flat while the rig rises by a fraction of a
+millimetre); a start far past the load path's pressure maximum can settle on the wrong branch
+(pressure alone cannot tell); with the load unknown, the slow start of a free inflation can be
+taken for a flat membrane under a weak pump or a large dead volume until the lift-off detector
+fires, which then sets a phantom load of a few tenths of a newton (seen at r1 10 mm on 2 of 6
+noise seeds); in free inflation the modulus and the dead volume trade off until the chamber
+vents (an 8 mm free cap at r1 12.5 mm reads 0.25-0.4 mm high); fast lift-offs of small loaded
+chambers are over-confident (NEES about 5 for 2 dof), large free caps under-confident (about 0.3).
 
 Measurements: a missing or non-finite reading skips the update (flag ``missing``); a saturated
 reading (>= sensor range) is a one-sided observation ``p >= range``: if the prediction is below

@@ -82,6 +82,8 @@ def _one_line_error(res, *needles: str) -> None:
         (["protocol", "--workers", "0"], ["--workers"]),
         (["protocol", "--t-inflate-s", "7"], ["--t-inflate-s"]),
         (["run", "does_not_exist.toml"], ["does_not_exist.toml"]),
+        (["bench", "loop", "--seeds", "0"], ["--seeds", "[1, 100]"]),
+        (["bench", "loop", "--cases", "steps_40g"], ["--cases", "did you mean 'steps_400g'"]),
     ],
 )
 def test_bad_input_is_one_line_exit_2(args, needles):
@@ -174,3 +176,16 @@ def test_equilibrium_dead_volume_option():
     b = _eq("--h1-mm", "5", "--V0-cm3", "5")
     assert b["volume_cm3"] - a["volume_cm3"] == pytest.approx(2.0, rel=1e-12)
     assert b["pressure_kpa"] == pytest.approx(a["pressure_kpa"], rel=1e-12)
+
+
+def test_bench_loop_writes_runs_and_summary(tmp_path):
+    """One seed of the load-step case through the EKF: the command runs and writes bench_loop.json."""
+    res = runner.invoke(app, ["bench", "loop", "--seeds", "1", "--cases", "load_step_200g", "--workers", "1",
+                              "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    data = json.loads((tmp_path / "bench_loop.json").read_text())
+    (row,) = data["rows"]
+    assert row["case"] == "load_step_200g" and row["seed"] == 0
+    summ = data["summary"]["load_step_200g"]
+    assert summ["runs"] == 1 and summ["passed"] == int(row["passed"])
+    assert summ["max_pressure_kpa"] <= summ["pressure_limit_kpa"]

@@ -1,8 +1,8 @@
 """Closed loop on the mismatched rig: rig -> EKF -> controller -> rig (and an oracle estimate to
 separate the controller's share of the error from the estimator's).
 
-Each CI test simulates a few seconds with the fast (RTI) variant; the load step through the EKF,
-which still fails, is @pytest.mark.slow. No test asserts a timing.
+Each CI test simulates a few seconds with the fast (RTI) variant, on one rig noise seed; how often
+the cases hold over seeds is ``hbma-ctrl bench loop``. No test asserts a timing.
 """
 
 from __future__ import annotations
@@ -77,11 +77,9 @@ def test_load_added_mid_run_is_rejected(model):
     assert m["max_pressure_kpa"] <= 35.0
 
 
-@pytest.mark.slow
 def test_load_added_mid_run_through_ekf(model):
-    """The same through the EKF. Fails on purpose (the measure of the gap): the truth ends about
-    0.5 mm low. The filter has no dead-volume state (the rig's is 20 % larger), so after the step
-    the load and modulus estimates absorb it (given the rig's true parameters, the loop settles)."""
+    """The same through the EKF: the true height is back within 0.3 mm of 5 mm over the last
+    second (it ended 0.5 mm low before the filter carried the dead volume)."""
     sec, log, m = run({"targets_mm": [[0.0, 5.0]], "load_steps_g": [[2.0, 600.0]]}, 0.4, 6.0, model)
     tail = log.t >= 5.0
     assert np.all(np.abs(log.h_true[tail] - 5e-3) < 0.3e-3)

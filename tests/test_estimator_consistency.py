@@ -2,9 +2,11 @@
 
 Each run (one noise seed) gives a time-averaged NEES of (h, F) and NIS of the pressure; the mean of
 the M run values must lie inside the two-sided 95 % chi-square bounds chi2(M n) / M (n = 2 for the
-NEES, 1 for the NIS). Scenes: the fig. 7 rig (r1 12.5 mm, t0 3 mm) carrying 400 g and 600 g at 60 %
-pump speed. (Free inflation and fast lift-offs of small chambers are not consistent yet: see the
-estimator scene's report and estimators/ekf.py.)
+NEES, 1 for the NIS). Scenes: the fig. 7 rig (r1 12.5 mm, t0 3 mm) carrying 400 g and 600 g, and a
+small free chamber (r1 7.5 mm, no load, which the filter must see lift at once although it does
+not know the load), at 60 % pump speed. (Not consistent yet: free inflation of the large chamber
+is under-confident, NEES about 0.3, and fast lift-offs of small loaded chambers over-confident,
+about 5: see estimators/ekf.py.)
 """
 
 import numpy as np
@@ -20,10 +22,10 @@ from hbma_ctrl.simulate import InputSchedule, Trial
 M = 6
 
 
-@pytest.mark.parametrize("load", [0.4, 0.6])
-def test_nees_and_nis_inside_chi_square_bounds(load):
-    tr = Trial(Actuator(), Pneumatics(), Platform(load=load, own_mass=0.02), InputSchedule.inflate_deflate(0.6, 3.0),
-               5.0, "mc")
+@pytest.mark.parametrize("load,r1", [(0.4, 12.5e-3), (0.6, 12.5e-3), (0.0, 7.5e-3)])
+def test_nees_and_nis_inside_chi_square_bounds(load, r1):
+    tr = Trial(Actuator(r1=r1), Pneumatics(), Platform(load=load, own_mass=0.02 if load else 0.0),
+               InputSchedule.inflate_deflate(0.6, 3.0), 5.0, "mc")
     nees, nis = [], []
     for seed in range(M):
         (rec,) = simulate_rig([tr], RigSettings(seed=100 + seed))
