@@ -122,6 +122,9 @@ LIGHT_LOAD = 0.5
 LIFT_LOAD_ABS_STD = 0.2
 #: a lift-off below this many sensor sigmas of pressure is taken as no load (free inflation)
 NO_LOAD_SIGMAS = 3.0
+#: drift of the sum that dates a lift-off (normalised innovation shortfall per sample): only
+#: shortfalls beyond one sigma count
+LIFT_START_DRIFT = 1.0
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
 REPLAY_MAX = 200
 _KEEP_ALL = np.ones(NX)
@@ -203,8 +206,10 @@ class EKF:
         self._H = np.zeros(NX)
         self._cusum = 0.0
         self._lift = 0.0
+        self._lift_start = 0.0
         self._p_lift = 0.0
         self._p_post = 0.0
+        self._innov = 0.0  # innovation of the last update, Pa
         self._events: set = set()
         self._snap: tuple | None = None  # lift-off replay: posterior before the detector's sum grew
         self._replay: list = []
@@ -231,7 +236,7 @@ class EKF:
             out = self._outf(self.x, self.s, self._theta_arg(self._outf), 0.0, self.P)
             resting = bool(out[1][_Y["rest"]] > 0.5)
         self.resting = resting
-        self._cusum = self._lift = 0.0
+        self._cusum = self._lift = self._lift_start = 0.0
         self._snap, self._replay, self._replay_now = None, [], False
         self._refresh()
 
@@ -288,6 +293,7 @@ class EKF:
         self.x = out[0].copy()
         P = out[1].reshape(NX, NX, order="F").copy()
         self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
+        self._innov = innov
         return innov / math.sqrt(S)
 
     def _keep(self) -> np.ndarray:
@@ -410,14 +416,21 @@ class EKF:
             if not self._pumping or self._p_pred <= self._p_post:
                 # the pump is not filling the chamber (venting, holding): a membrane cannot lift
                 # off; a shortfall here is the vent model's error near zero pressure
-                self._lift = 0.0
+                self._lift = self._lift_start = 0.0
                 return False
-            if self._lift == 0.0:
-                # a lift-off seen from here on happened after the last posterior: mid-interval
-                self._p_lift = 0.5 * (self._p_post + self._p_pred)
+            if self._lift_start == 0.0:
+                # a lift-off seen from here on happened after the last posterior: mid-interval,
+                # up to the reading (the flat prediction overshoots a lifted membrane: a free cap
+                # at the pump's first sample reads 0 kPa where a flat chamber would reach 1 kPa).
+                # The time comes from a second sum with a larger drift: the detector's own sum can
+                # linger above zero for a while on the flow factor's slow learning, and its start
+                # then dates the lift-off far too early (a 200 g load taken as 0.1 N)
+                z = self._p_pred + self._innov
+                self._p_lift = 0.5 * (self._p_post + min(self._p_pred, z))
+            self._lift_start = max(0.0, self._lift_start - r - LIFT_START_DRIFT)
             self._lift = max(0.0, self._lift - r - s.lift_drift)
             if self._lift > s.lift_threshold:
-                self._lift = 0.0
+                self._lift = self._lift_start = 0.0
                 self._lift_off(detected=True)
                 # replay only a no-load lift-off (it starts at zero pressure, so the whole
                 # detection delay was filtered as flat); a loaded one's sum may have started on

@@ -97,6 +97,7 @@ class UKF(EKF):
         Pxz = (Wc * dz) @ dx  # (n,)
         K = np.linalg.solve(np.array([[S]]), Pxz[None, :])[0] * self._keep()
         innov = z - self._p_pred
+        self._innov = innov
         self.x = self.x + K * innov
         # P - K S K^T only for the optimal gain; with held states (keep), the general form
         # P - K Pxz^T - Pxz K^T + K S K^T
