@@ -479,6 +479,12 @@ class EKF:
             # only W >= pi r1^2 p is known while flat: keep the load above that bound
             out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
             bound = self.model.area * float(out[1][_Y["p"]])
+            if "touch_down" in flags and self._pumping:
+                # a dead load cannot come down while the pump fills the chamber: the contact
+                # model's load went above the pressure's (sensor noise near the lift-off point).
+                # Flat, nothing would pull it back, and each such episode would ratchet it up
+                # (6.08 -> 6.21 N for a 6.08 N load, lifting 0.5 kPa late): back to the bound
+                self.x[1] = min(self.x[1], bound)
             if bound > self.x[1]:
                 self._lift_off(detected=False)  # the (known) load is exceeded: it lifts
             else:
@@ -498,6 +504,14 @@ class EKF:
         if not self.resting and y[_Y["rest"]] > 0.5:
             self.resting = True
             flags.add("touch_down")
+            if self._pumping:  # as above: no ratchet of the load near the lift-off point
+                self.x[1] = min(self.x[1], self.model.area * float(y[_Y["p"]]))
+            # flat from now on: the load's contact-phase correlations no longer hold (left in,
+            # the next flat update would move the load through them)
+            P = self.P.copy()
+            P[1, :] = P[:, 1] = 0.0
+            P[1, 1] = s.load_rest_std ** 2
+            self.P = P
         if self.resting:
             flags.add("resting")
         if y[_Y["resid"]] > 1e-3 or not np.all(np.isfinite(y)):
