@@ -38,9 +38,8 @@ def test_nees_and_nis_inside_chi_square_bounds(load, r1):
     assert lo < np.mean(nis) < hi
 
 
-@pytest.mark.slow
 def test_full_protocol_requirements(tmp_path):
-    """ISSUE 3 over the 150-trial protocol on the mismatched rig (a few minutes, 2 workers)."""
+    """ISSUE 3 over the 150-trial protocol on the mismatched rig (about 20 s on 2 workers)."""
     from pathlib import Path
 
     from hbma_ctrl.runner import run_scenario

@@ -165,3 +165,10 @@ def test_missing_file_and_bad_toml(tmp_path):
         load_scenario(tmp_path / "nope.toml")
     with pytest.raises(ValueError, match="not valid TOML"):
         load_scenario(_write(tmp_path, "[scenario\nname = 1"))
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "scenarios").glob("*.toml")), ids=lambda p: p.name)
+def test_every_shipped_scenario_loads(path):
+    """Every scenario file the README points to parses and validates (names, ranges, roles)."""
+    scn = load_scenario(path)
+    assert scn.name and scn.kind
