@@ -80,10 +80,11 @@ sensor range is invisible (the filter stays flat while the rig rises by a fracti
 millimetre); a start far past the load path's pressure maximum can settle on the wrong branch
 (pressure alone cannot tell); with the load unknown, the slow start of a free inflation can be
 taken for a flat membrane under a weak pump or a large dead volume until the lift-off detector
-fires, which then sets a phantom load of a few tenths of a newton (seen at r1 10 mm on 2 of 6
-noise seeds); in free inflation the modulus and the dead volume trade off until the chamber
-vents (an 8 mm free cap at r1 12.5 mm reads 0.25-0.4 mm high); fast lift-offs of small loaded
-chambers are over-confident (NEES about 5 for 2 dof), large free caps under-confident (about 0.3).
+fires, which then sets a phantom load of a few tenths of a newton (seen at r1 10 mm on some noise
+seeds); in free inflation the modulus, flow and dead-volume factors trade off until the chamber
+vents (an 8 mm free cap at r1 12.5 mm reads up to 0.4 mm high in ``bench loop``); fast lift-offs
+of small loaded chambers are over-confident and large free caps under-confident (Monte-Carlo NEES
+outside the chi-square bounds, on either side).
 
 Measurements: a missing or non-finite reading skips the update (flag ``missing``); a saturated
 reading (>= sensor range) is a one-sided observation ``p >= range``: if the prediction is below
@@ -472,6 +473,14 @@ class EKF:
         P[i, i] = var
         self.P = guard_cov(P, self.settings.cov_floor)
 
+    def _flat_load_cov(self) -> None:
+        """While flat the load is unobservable (only W >= pi r1^2 p is known): uncorrelated, with
+        the spread ``load_rest_std`` that only keeps the covariance regular."""
+        P = self.P.copy()
+        P[1, :] = P[:, 1] = 0.0
+        P[1, 1] = self.settings.load_rest_std ** 2
+        self.P = P
+
     def _finish(self) -> Estimate:
         s = self.settings
         flags = self._events
@@ -488,10 +497,7 @@ class EKF:
             if bound > self.x[1]:
                 self._lift_off(detected=False)  # the (known) load is exceeded: it lifts
             else:
-                P = self.P.copy()
-                P[1, :] = P[:, 1] = 0.0
-                P[1, 1] = s.load_rest_std ** 2
-                self.P = P
+                self._flat_load_cov()
         for i in (2, 3, 4):
             if not FACTOR_RANGE[0] <= self.x[i] <= FACTOR_RANGE[1]:
                 self.x[i] = min(max(self.x[i], FACTOR_RANGE[0]), FACTOR_RANGE[1])
@@ -508,10 +514,7 @@ class EKF:
                 self.x[1] = min(self.x[1], self.model.area * float(y[_Y["p"]]))
             # flat from now on: the load's contact-phase correlations no longer hold (left in,
             # the next flat update would move the load through them)
-            P = self.P.copy()
-            P[1, :] = P[:, 1] = 0.0
-            P[1, 1] = s.load_rest_std ** 2
-            self.P = P
+            self._flat_load_cov()
         if self.resting:
             flags.add("resting")
         if y[_Y["resid"]] > 1e-3 or not np.all(np.isfinite(y)):

@@ -9,7 +9,11 @@ Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-lo
 eq. 16 against the rig's true height), pressure NRMSD of the filter's pressure, RMSE of the contact
 force, the steady-contact force error relative to the true load (mean over the last second of
 inflation while in contact), NEES of (h, F) and NIS (means over the run), the median wall time of
-a step. :func:`aggregate` turns them into the ``"estimator"`` metrics object.
+a step. :func:`aggregate` turns them into the ``"estimator"`` metrics object: means over the
+trials, the worst trial (``height_ratio_to_open_loop_max``, ``worst_ratio_trial``) and, per
+protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`hbma_ctrl.protocol.
+scenario_of`), ``n_scenarios``, ``scenarios_at_half_open_loop`` and
+``scenario_ratio_to_open_loop_max`` / ``worst_ratio_scenario``.
 """
 
 from __future__ import annotations

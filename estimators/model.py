@@ -6,12 +6,12 @@ state m is the gas mass referred to the nominal dead volume: the flat membrane's
 ``m R T / V0 - p_env`` does not depend on c, so c enters only where the membrane moves or gas
 flows). The membrane shape ``s = (h1, h2)`` is algebraic (below, m is the true gas mass c x[0]):
 
-- contact (``pi r1^2 p_rest(m) > max(W, REST_EPS)``, ``p_rest = m R T / V0 - p_env``):
+- contact (``pi r1^2 p_rest(m) > max(W, REST_EPS)``, ``p_rest = m R T / (c V0) - p_env``):
   ``G(h1, h2) = m R T`` and ``F(h1, h2) + EPS_K h2 = W`` (SPEC 1-4; EPS_K a tiny stiffness that
   fixes h2 = 0 where the pressure vanishes), solved by Newton from a warm start (the previous
   shape). Free inflation is the contact branch with ``W = 0`` (then ``h2 = 0``).
 - resting (otherwise, or forced by the filter's sticky rest mode, input ``hold``): the membrane is
-  flat under the plate, ``V = V0``, ``p = p_rest(m)``, ``h = 0``.
+  flat under the plate, ``V = c V0``, ``p = p_rest(m)``, ``h = 0``.
 
 ``b`` multiplies the compressor map (``P["flow_scale"]``), ``k`` every modulus of the material
 (moduli enter the pressure linearly, so ``p = k p_nominal`` at a given shape), ``c`` the dead volume

@@ -3,7 +3,7 @@
 Same state ``[m, W, b, k, c]``, same modes (sticky rest, lift-off and load-change detectors), same
 measurement handling and guards as :class:`estimators.ekf.EKF`; only the propagation of the mean
 and covariance differs: 2n + 1 = 11 scaled sigma points (filterpy's
-:class:`~filterpy.kalman.MerweScaledSigmaPoints`, alpha 1e-3 ... see ``UKF_ALPHA``) are pushed
+:class:`~filterpy.kalman.MerweScaledSigmaPoints`, alpha 0.5, beta 2, kappa 0: ``UKF_ALPHA``) are pushed
 through the discrete model in one batched casadi call (the model Function ``map``-ped over the
 points and compiled), and the update uses the propagated points' pressures (no Jacobians). The
 square root is a guarded Cholesky factorisation (symmetrised, eigenvalue-floored, never

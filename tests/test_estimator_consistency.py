@@ -5,8 +5,8 @@ the M run values must lie inside the two-sided 95 % chi-square bounds chi2(M n) 
 NEES, 1 for the NIS). Scenes: the fig. 7 rig (r1 12.5 mm, t0 3 mm) carrying 400 g and 600 g, and a
 small free chamber (r1 7.5 mm, no load, which the filter must see lift at once although it does
 not know the load), at 60 % pump speed. (Not consistent yet: free inflation of the large chamber
-is under-confident, NEES about 0.3, and fast lift-offs of small loaded chambers over-confident,
-about 5: see estimators/ekf.py.)
+is under-confident and fast lift-offs of small loaded chambers over-confident: see
+estimators/ekf.py.)
 """
 
 import numpy as np
