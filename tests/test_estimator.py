@@ -202,7 +202,7 @@ def test_converges_from_a_gas_mass_wrong_by_half(loaded, factor):
 @pytest.mark.parametrize("factor", [0.5, 1.5])
 def test_converges_from_a_load_guess_wrong_by_half(loaded, factor):
     # a load guess 50 % heavy: the flat phase holds it until the lift-off shows the true load; 50 %
-    # light: the model lifts early, and the pressure's shortfall pulls the load up within 0.1 s
+    # light: the model lifts early, and the contact model's pressure shortfall pulls the load up
     tr, rec = loaded
     ref_err = _height_errors(EKF(tr.actuator, tr.pneumatics), tr, rec, 0)
     f = EKF(tr.actuator, tr.pneumatics, FilterSettings(load_init=factor * tr.platform.weight))
