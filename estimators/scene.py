@@ -188,7 +188,8 @@ def _write_series(res: TrialResult, path: Path) -> None:
             ("F_true_n", res.truth["F"], 1.0), ("F_est_n", res.est["F"], 1.0), ("F_std_n", res.est["std_F"], 1.0),
             ("p_true_kpa", res.truth["p"], 1e-3), ("p_meas_kpa", res.meas, 1e-3), ("p_est_kpa", res.est["p"], 1e-3),
             ("load_est_n", res.est["W"], 1.0), ("flow_factor", res.est["b"], 1.0), ("modulus_factor", res.est["k"], 1.0),
-            ("nees", res.nees, 1.0), ("nis", res.nis, 1.0)]
+            ("nees", res.nees, 1.0), ("nis", res.nis, 1.0),
+            ("dead_volume_factor", res.est["c"], 1.0)]  # appended: earlier columns keep their places
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow([c[0] for c in cols] + ["flags"])

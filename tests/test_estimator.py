@@ -315,7 +315,7 @@ load_steps_g = [[0.8, 300.0]]
         assert est[key] is not None and est[key] >= 0
     assert "ukf" in est and est["ukf"]["height_nrmsd"] >= 0
     head = (tmp_path / "out" / "estimate.csv").read_text().splitlines()[0]
-    assert "h_true_mm" in head and "h_est_mm" in head and "F_est_n" in head
+    assert "h_true_mm" in head and "h_est_mm" in head and "F_est_n" in head and "dead_volume_factor" in head
     assert len((tmp_path / "out" / "estimate.csv").read_text().splitlines()) == 152
 
 
