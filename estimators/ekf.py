@@ -80,8 +80,8 @@ sensor range is invisible (the filter stays flat while the rig rises by a fracti
 millimetre); a start far past the load path's pressure maximum can settle on the wrong branch
 (pressure alone cannot tell); with the load unknown, the slow start of a free inflation can be
 taken for a flat membrane under a weak pump or a large dead volume until the lift-off detector
-fires, which then sets a phantom load of a few tenths of a newton (seen at r1 10 mm on some noise
-seeds); in free inflation the modulus, flow and dead-volume factors trade off until the chamber
+fires, which then sets a small phantom load (seen at r1 10 mm on some noise seeds); in free
+inflation the modulus, flow and dead-volume factors trade off until the chamber
 vents (an 8 mm free cap at r1 12.5 mm reads up to 0.4 mm high in ``bench loop``); fast lift-offs
 of small loaded chambers are over-confident and large free caps under-confident (Monte-Carlo NEES
 outside the chi-square bounds, on either side).
