@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from estimators.common import STATE_SCALE, FilterSettings, guard_cov, joseph_update
 from estimators.ekf import EKF
@@ -365,3 +367,21 @@ def test_aggregate_scores_each_protocol_scenario():
     assert agg["worst_ratio_scenario"] == "t3_r10_m400"
     assert agg["scenario_ratio_to_open_loop_max"] == pytest.approx(0.6)
     assert agg["height_ratio_to_open_loop_max"] == pytest.approx(0.8)  # the worst single trial
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-0.5, 3.0), st.floats(-1.0, 20.0), st.floats(0.5, 2.0), st.floats(0.5, 2.0), st.floats(0.5, 2.0),
+       st.booleans(), st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+       st.one_of(st.floats(-2e3, 60e3), st.just(float("nan"))))
+def test_one_step_from_anywhere_keeps_the_covariance_spd(excess, W, b, k, c, resting, u, z):
+    """Over the whole state space (gas from below ambient to 3x the chamber's, loads from the dead
+    zone to 20 N, every factor over its allowed range, either mode, any command, any reading incl.
+    saturated and missing): a step returns finite outputs or flags the model, and the covariance
+    stays symmetric positive definite."""
+    f = EKF(Actuator(), Pneumatics())
+    m_env = f.model.m_env
+    f.reset(0.0, [m_env * (1.0 + excess), W, b, k, c], resting=resting)
+    e = f.step(0.01, z, Command(*u))
+    _assert_spd(e.cov)
+    assert np.all(np.isfinite(e.mean))
+    assert np.isfinite(e.h) or "not_converged" in e.flags or "model_failure" in e.flags

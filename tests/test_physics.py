@@ -167,6 +167,23 @@ def test_flat_inverse_round_trip():
     assert float(inv(-5.0, th)) == 0.0  # no negative flat pressure: the membrane is simply at rest
 
 
+@settings(max_examples=200, deadline=None)
+@given(st.one_of(st.just(0.0), st.floats(-1e4, 0.0), st.floats(1e-9, 1.0), st.floats(1.0, 2e5)))
+def test_flat_inverse_slope_is_finite_everywhere(p_pa):
+    """d h1 / d p of the flat inverse is finite at every pressure, zero and below included: an
+    infinite slope there (a root of zero) made the EKF's Jacobian columns NaN."""
+    mat = make_material("nh")
+    space = ph.ParamSpace.for_material(mat)
+    theta, P = space.symbols()
+    p = ca.SX.sym("p")
+    h = ph.flat_h1_from_pressure(p, P)
+    f = ca.Function("f", [p, theta], [h, ca.jacobian(h, p), ca.jacobian(h, theta)])
+    th = space.values(Actuator(r1=12.5e-3, t0=3e-3, material=mat))
+    out = [np.asarray(v, dtype=float) for v in f(p_pa, th)]
+    assert all(np.all(np.isfinite(v)) for v in out)
+    assert out[0].item() >= 0.0 and out[1].item() >= 0.0
+
+
 def _flow_fun():
     pu, pd = ca.SX.sym("pu"), ca.SX.sym("pd")
     return ca.Function("q", [pu, pd], [ph.orifice_flow(pu, pd, 2e-10, 0.3, 0.995, 293.15)])
