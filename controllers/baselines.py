@@ -18,11 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hbma_ctrl.interfaces import Command, Estimate, Reference
-from hbma_ctrl.params import Actuator, Pneumatics, check_range
-
-from .mpc import timing_stats
-from .prediction import PredictionModel
+from controllers.mpc_settings import timing_stats
+from hbma_ctrl.core.interfaces import Command, Estimate, Reference
+from hbma_ctrl.core.params import Actuator, Pneumatics, check_range
+from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["PIDSettings", "PIDController", "BangBangSettings", "BangBangController"]
 

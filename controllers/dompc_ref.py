@@ -12,14 +12,16 @@ penalty only, and it has no input-rate bounds (the NMPC's defaults are not bindi
 from __future__ import annotations
 
 import time
+import warnings
 
+import casadi as ca
 import numpy as np
 
-from hbma_ctrl.interfaces import SAFE_COMMAND, Command, Estimate, Reference
-from hbma_ctrl.params import Actuator, Pneumatics
-
-from .mpc import MPCSettings, NMPC, timing_stats
-from .prediction import PredictionModel
+from controllers.mpc import NMPC
+from controllers.mpc_settings import MPCSettings, timing_stats
+from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["dompc_available", "DoMPCController"]
 
@@ -45,7 +47,6 @@ class DoMPCController:
         ok, why = dompc_available()
         if not ok:
             raise ImportError(why)
-        import warnings
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -65,7 +66,6 @@ class DoMPCController:
         dp = mdl.set_variable("_tvp", "dp")
         r = mdl.set_variable("_tvp", "r")
         plim = mdl.set_variable("_tvp", "plim")
-        import casadi as ca
 
         u = ca.vertcat(sp, inl, out)
         mdl.set_rhs("x", Fd(x, u, W, dp))

@@ -33,13 +33,14 @@ counted in ``fallbacks``.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from hbma_ctrl.params import check_range
+from hbma_ctrl.core.params import check_range
 
 __all__ = ["RobotMPCSettings", "RobotNMPC"]
 
@@ -199,8 +200,6 @@ class RobotNMPC:
 
     # --- one period --------------------------------------------------------------------------------
     def step(self, x0, b, W, h_ref, k=None, v=None, a_max=None):
-        import time
-
         t0 = time.perf_counter()
         s, n, N = self.s, self.n, self.s.horizon
         x0 = np.asarray(x0, dtype=float).reshape(n)

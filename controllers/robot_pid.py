@@ -15,11 +15,12 @@ feedback: pressure control is unstable there). The closed-loop scenes show it be
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from hbma_ctrl.params import check_range
+from hbma_ctrl.core.params import check_range
 
 __all__ = ["RobotPIDSettings", "RobotPressurePID"]
 
@@ -60,8 +61,6 @@ class RobotPressurePID:
                                              self.model.clip_load(W))
 
     def step(self, p_meas, W, h_ref):
-        import time
-
         t0 = time.perf_counter()
         s = self.s
         p = np.nan_to_num(np.asarray(p_meas, dtype=float).reshape(self.n), nan=0.0)

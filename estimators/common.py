@@ -13,7 +13,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from hbma_ctrl.params import check_range
+from hbma_ctrl.core.params import check_range
+from hbma_ctrl.models.chamber import STATE_SCALE
 
 __all__ = ["FilterSettings", "guard_cov", "joseph_update", "classify_measurement", "MEAS_OK",
            "MEAS_MISSING", "MEAS_SATURATED"]
@@ -169,9 +170,6 @@ class FilterSettings:
         return [f.name for f in fields(cls)]
 
 
-#: state scales used by the covariance floor: gas mass (kg), load (N), flow, modulus and
-#: dead-volume factors (-)
-STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0, 1.0])
 
 
 def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> np.ndarray:

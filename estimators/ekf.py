@@ -101,12 +101,16 @@ import time
 
 import numpy as np
 
-from hbma_ctrl.interfaces import Command, Estimate
-from hbma_ctrl.params import Actuator, Pneumatics
-
-from .common import MEAS_SATURATED, FilterSettings, classify_measurement, guard_cov
-from .fastcall import FastFunction
-from .model import NX, OUT_NAMES, REST_EPS, STATE_NAMES, ObserverModel
+from estimators.common import (
+    MEAS_SATURATED,
+    FilterSettings,
+    classify_measurement,
+    guard_cov,
+)
+from hbma_ctrl.core.codegen import FastFunction
+from hbma_ctrl.core.interfaces import Command, Estimate
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES, ObserverModel
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 

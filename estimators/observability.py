@@ -56,14 +56,13 @@ from pathlib import Path
 import control
 import numpy as np
 
-from hbma_ctrl.interfaces import Command
-from hbma_ctrl.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.rig import RigSettings, simulate_rig
-from hbma_ctrl.simulate import InputSchedule, Trial
-
-from .common import FilterSettings
-from .ekf import EKF
-from .model import NX, STATE_NAMES
+from estimators.common import FilterSettings
+from estimators.ekf import EKF
+from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.chamber import NX, STATE_NAMES
+from hbma_ctrl.sim.rig import RigSettings, simulate_rig
+from hbma_ctrl.sim.trial import InputSchedule, Trial
 
 __all__ = ["OBS_SCALE", "Trajectory", "default_trajectories", "analyse", "summarise", "run"]
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.params import check_range
+from hbma_ctrl.core.params import check_range
 
 __all__ = ["ChamberEKFSettings", "ChamberEKFBank"]
 

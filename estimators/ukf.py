@@ -19,12 +19,11 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
-from hbma_ctrl.params import Actuator, Pneumatics
-
-from .common import STATE_SCALE, FilterSettings, guard_cov
-from .ekf import EKF, observer_functions
-from .fastcall import FastFunction
-from .model import NX, OUT_NAMES
+from estimators.common import STATE_SCALE, FilterSettings, guard_cov
+from estimators.ekf import EKF, observer_functions
+from hbma_ctrl.core.codegen import FastFunction
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.chamber import NX, OUT_NAMES
 
 __all__ = ["UKF", "UKFSettings", "UKF_ALPHA", "UKF_BETA", "UKF_KAPPA"]
 

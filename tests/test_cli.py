@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.cli import app
+from hbma_ctrl.app.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
@@ -115,7 +115,7 @@ def test_run_open_loop_writes_metrics_log_and_plot(tmp_path):
 
 
 def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
-    import hbma_ctrl.protocol as protocol
+    import hbma_ctrl.app.cli as cli_mod
 
     calls = []
 
@@ -123,7 +123,7 @@ def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
         calls.append((material, Path(out), integrator, dt, fidelity, workers, kw))
         return [{"status": "ok", "max_height_mm": 1.0, "max_pressure_kpa": 2.0}]
 
-    monkeypatch.setattr(protocol, "run_protocol", fake_run_protocol)
+    monkeypatch.setattr(cli_mod, "run_protocol", fake_run_protocol)
     res = runner.invoke(app, [])
     assert res.exit_code == 0, res.output
     assert len(calls) == 1
@@ -133,24 +133,16 @@ def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
 
 
 def test_run_dispatches_role_scene_and_merges_metrics(tmp_path, monkeypatch):
-    import sys
-    import types
-
-    import hbma_ctrl.runner as runner_mod
-    import hbma_ctrl.scenario as scenario_mod
-
-    mod = types.ModuleType("fake_estimator_scene")
-    mod.parse_section = lambda raw: {"kind": raw.get("kind", "ekf")}
+    import hbma_ctrl.app.runner as runner_mod
+    import hbma_ctrl.app.scenario as scenario_mod
 
     def run_scene(scn, out_dir):
         assert scn.role("estimator") == {"kind": "ukf"}
         (out_dir / "est.csv").write_text("t_s\n0\n")
         return {"estimator": {"height_nrmsd": 0.01}, "plant": {"max_height_mm": 3.0}}
 
-    mod.run_scene = run_scene
-    monkeypatch.setitem(sys.modules, "fake_estimator_scene", mod)
-    monkeypatch.setitem(scenario_mod.ROLE_SECTIONS, "estimator", ("fake_estimator_scene", "parse_section"))
-    monkeypatch.setattr(runner_mod, "SCENE_DISPATCH", (("estimator", "fake_estimator_scene", "run_scene"),))
+    monkeypatch.setitem(scenario_mod.ROLE_SECTIONS, "estimator", lambda raw: {"kind": raw.get("kind", "ekf")})
+    monkeypatch.setattr(runner_mod, "SCENE_DISPATCH", (("estimator", run_scene),))
     text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text() + '\n[estimator]\nkind = "ukf"\n'
     scn_path = tmp_path / "est.toml"
     scn_path.write_text(text)
@@ -163,7 +155,7 @@ def test_run_dispatches_role_scene_and_merges_metrics(tmp_path, monkeypatch):
 
 
 def test_merge_metrics_keeps_role_keys_stable():
-    from hbma_ctrl.metrics import merge_metrics
+    from hbma_ctrl.app.metrics import merge_metrics
 
     merged = merge_metrics({"controller": {"a": 1}}, {"scenario": {"n": "x"}}, {"controller": {"b": 2}})
     assert list(merged) == ["scenario", "controller"] and merged["controller"] == {"a": 1, "b": 2}

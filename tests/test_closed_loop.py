@@ -10,11 +10,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.prediction import PredictionModel
-from controllers.scene import closed_loop, loop_metrics, parse_section, settle_results
-from hbma_ctrl.interfaces import Estimate
-from hbma_ctrl.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.rig import RigSettings
+from hbma_ctrl.app.scene_controller import (
+    closed_loop,
+    loop_metrics,
+    parse_section,
+    settle_results,
+)
+from hbma_ctrl.core.interfaces import Estimate
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.sim.rig import RigSettings
 
 ACT, PN = Actuator(), Pneumatics()
 
@@ -138,8 +143,8 @@ def test_scenario_run_writes_controller_metrics(tmp_path):
     has the contract's controller keys; the CSV and the plot are written."""
     import json
 
-    from hbma_ctrl.runner import run_scenario
-    from hbma_ctrl.scenario import parse_scenario
+    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenario import parse_scenario
 
     data = {"scenario": {"name": "cl", "duration_s": 3.5}, "load": {"mass_g": 400.0},
             "rig": {"seed": 7}, "estimator": {"filter": "ukf"},

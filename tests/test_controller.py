@@ -5,15 +5,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.baselines import BangBangController, BangBangSettings, PIDController, PIDSettings
-from controllers.mpc import NMPC, MPCSettings, _Problem, duty_to_on_time
-from controllers.prediction import PredictionModel
-from controllers.scene import parse_section
-from hbma_ctrl import physics as ph
-from hbma_ctrl.interfaces import SAFE_COMMAND, Estimate, Reference
-from hbma_ctrl.model import MODE_MOVING, make_fidelity
-from hbma_ctrl.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.simulate import Plant
+from controllers.baselines import (
+    BangBangController,
+    BangBangSettings,
+    PIDController,
+    PIDSettings,
+)
+from controllers.mpc import NMPC
+from controllers.mpc_settings import MPCSettings, duty_to_on_time
+from controllers.mpc_solvers import _Problem
+from hbma_ctrl.app.scene_controller import parse_section
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core.interfaces import SAFE_COMMAND, Estimate, Reference
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.fidelity import make_fidelity
+from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.sim.simulate import Plant
 
 ACT, PN = Actuator(), Pneumatics()
 W400 = 0.4 * 9.80665

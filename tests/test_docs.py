@@ -16,7 +16,7 @@ def _modules() -> list[str]:
     out = []
     for pkg in PACKAGES:
         p = importlib.import_module(pkg)
-        out += [f"{pkg}.{m.name}" for m in pkgutil.iter_modules(p.__path__)]
+        out += [m.name for m in pkgutil.walk_packages(p.__path__, prefix=f"{pkg}.")]
     return out
 
 

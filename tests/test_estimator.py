@@ -9,14 +9,14 @@ from hypothesis import strategies as st
 
 from estimators.common import STATE_SCALE, FilterSettings, guard_cov, joseph_update
 from estimators.ekf import EKF
-from estimators.evaluate import run_filter, score
-from estimators.scene import parse_section
 from estimators.ukf import UKF
-from hbma_ctrl.interfaces import Command, Estimate
-from hbma_ctrl.metrics import nrmsd
-from hbma_ctrl.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.rig import Rig, RigRecord, RigSettings, simulate_rig
-from hbma_ctrl.simulate import InputSchedule, Trial
+from hbma_ctrl.app.evaluate import run_filter, score
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.app.scene_estimator import parse_section
+from hbma_ctrl.core.interfaces import Command, Estimate
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.sim.rig import Rig, RigRecord, RigSettings, simulate_rig
+from hbma_ctrl.sim.trial import InputSchedule, Trial
 
 G = 9.80665
 
@@ -76,7 +76,7 @@ def test_step_api_and_flags(loaded):
 def test_tracks_height_force_and_beats_open_loop(loaded):
     tr, rec = loaded
     res = run_filter("ekf", tr, rec, FilterSettings())
-    from estimators.evaluate import _open_loop
+    from hbma_ctrl.app.evaluate import _open_loop
 
     res.open_loop_h = _open_loop([tr], 0.01)[0][: len(rec.t)]
     s = score(res, tr)
@@ -289,8 +289,8 @@ def test_settings_and_section_errors():
 
 
 def test_scene_writes_estimate_and_metrics(tmp_path):
-    from estimators.scene import run_scene
-    from hbma_ctrl.scenario import load_scenario
+    from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.app.scene_estimator import run_scene
 
     p = tmp_path / "s.toml"
     p.write_text("""
@@ -329,11 +329,10 @@ def test_record_type():
 def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
     """r1 7.5 mm with 800 g lifts off at ~44 kPa, above the 35 kPa sensor range: a filter that must
     detect the lift-off cannot; one that starts from the protocol's calibrated weight predicts it."""
-    from hbma_ctrl.params import Platform
-    from hbma_ctrl.protocol import protocol_trials
-
     from estimators.common import FilterSettings
-    from estimators.evaluate import evaluate_trials
+    from hbma_ctrl.app.evaluate import evaluate_trials
+    from hbma_ctrl.core.params import Platform
+    from hbma_ctrl.sim.batch import protocol_trials
 
     (tr,) = protocol_trials("nh", platform=Platform(own_mass=0.02), loads_g=(800,), speeds_pct=(100,),
                             t0_mm=(3,), r1_mm=(7.5,))
@@ -349,7 +348,7 @@ def test_aggregate_scores_each_protocol_scenario():
     """The issue's per-scenario criterion: trials grouped by protocol cell (t0 x r1 x load), the
     EKF's mean NRMSD over the cell's speeds against the open loop's; never-lifting trials (NaN)
     left out."""
-    from estimators.evaluate import TrialResult, aggregate
+    from hbma_ctrl.app.evaluate import TrialResult, aggregate
 
     def res(name, e, o):
         sc = {k: 1.0 for k in ("pressure_nrmsd", "force_rmse_n", "nees_mean", "nis_mean",

@@ -14,10 +14,10 @@ import pytest
 from scipy.stats import chi2
 
 from estimators.common import FilterSettings
-from estimators.evaluate import run_filter
-from hbma_ctrl.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.rig import RigSettings, simulate_rig
-from hbma_ctrl.simulate import InputSchedule, Trial
+from hbma_ctrl.app.evaluate import run_filter
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.sim.rig import RigSettings, simulate_rig
+from hbma_ctrl.sim.trial import InputSchedule, Trial
 
 M = 6
 
@@ -42,8 +42,8 @@ def test_full_protocol_requirements(tmp_path):
     """ISSUE 3 over the 150-trial protocol on the mismatched rig (about 20 s on 2 workers)."""
     from pathlib import Path
 
-    from hbma_ctrl.runner import run_scenario
-    from hbma_ctrl.scenario import load_scenario
+    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenario import load_scenario
 
     path = Path(__file__).resolve().parents[1] / "scenarios" / "ekf_protocol.toml"
     est = run_scenario(load_scenario(path), tmp_path)["estimator"]

@@ -8,9 +8,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hbma_ctrl import physics as ph
-from hbma_ctrl.materials import MATERIALS, Gent, MooneyRivlin, NeoHookean, make_material
-from hbma_ctrl.params import Actuator, Pneumatics
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core.materials import (
+    MATERIALS,
+    Gent,
+    MooneyRivlin,
+    NeoHookean,
+    make_material,
+)
+from hbma_ctrl.core.params import Actuator, Pneumatics
 
 MATS = [cls() for cls in MATERIALS.values()]
 

@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from hbma_ctrl.protocol import SUMMARY_COLUMNS, protocol_trials, run_protocol, simulate_trials
-from hbma_ctrl.simulate import SimSettings
+from hbma_ctrl.app.protocol import SUMMARY_COLUMNS, run_protocol
+from hbma_ctrl.sim.batch import protocol_trials, simulate_trials
+from hbma_ctrl.sim.trial import SimSettings
 
 
 def test_protocol_trials_is_the_150_trial_grid():
@@ -94,7 +95,7 @@ def test_platform_fidelity_keeps_free_for_unloaded_trials():
 
 
 def test_nrmsd_is_spec_eq16():
-    from hbma_ctrl.metrics import nrmsd
+    from hbma_ctrl.app.metrics import nrmsd
 
     y = np.sin(np.linspace(0, 3, 301))  # reference
     span = y.max() - y.min()
@@ -109,7 +110,7 @@ def test_nrmsd_is_spec_eq16():
 def test_bench_sim_rows_reference_cache_and_outputs(tmp_path, monkeypatch):
     import json
 
-    import hbma_ctrl.bench_sim as bench
+    import hbma_ctrl.app.bench_sim as bench
 
     short = protocol_trials("nh", loads_g=[0.0, 200.0], speeds_pct=[100.0], t0_mm=[3.0], r1_mm=[12.5],
                             t_inflate_s=0.4, duration_s=0.8)

@@ -5,11 +5,17 @@ import math
 import numpy as np
 import pytest
 
-from hbma_ctrl.interfaces import Command
-from hbma_ctrl.materials import make_material
-from hbma_ctrl.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.rig import Rig, RigSettings, mismatched, parse_rig_section, simulate_rig
-from hbma_ctrl.simulate import InputSchedule, Trial
+from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.materials import make_material
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.sim.rig import (
+    Rig,
+    RigSettings,
+    mismatched,
+    parse_rig_section,
+    simulate_rig,
+)
+from hbma_ctrl.sim.trial import InputSchedule, Trial
 
 PUMP = Command(1.0, 1.0, 0.0)
 

@@ -10,17 +10,38 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hbma_ctrl import physics as ph
-from hbma_ctrl import robot as R
+from hbma_ctrl.app.robot_section import parse_section
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
+from hbma_ctrl.robot.kinematics import (
+    forward_kinematics,
+    inverse_kinematics,
+    inverse_kinematics_tip,
+    layer_plane,
+)
+from hbma_ctrl.robot.reach import (
+    chamber_reach,
+    reach_report,
+    rim_pivot_pose,
+    robot_table2,
+    table2_markdown,
+    workspace,
+)
+from hbma_ctrl.robot.statics import (
+    chamber_loads,
+    chamber_states,
+    chamber_states_from_masses,
+    load_sharing,
+)
 
-D3 = R.RobotDesign().validate()
-D1 = R.RobotDesign(n_layers=1).validate()
+D3 = RobotDesign().validate()
+D1 = RobotDesign(n_layers=1).validate()
 RC = D3.placement_radius
 
 
 # --------------------------------------------------------------------------------------------- design
 def test_default_design_is_the_papers_robot():
-    d = R.RobotDesign()
+    d = RobotDesign()
     assert d.chamber.r1 == pytest.approx(4.5e-3) and d.chamber.t0 == pytest.approx(2e-3)
     assert d.layer_thickness == pytest.approx(9e-3) and d.layer_mass == pytest.approx(17.6e-3)
     assert d.placement_radius == pytest.approx(15.4e-3)
@@ -40,16 +61,16 @@ def test_default_design_is_the_papers_robot():
 ])
 def test_design_validation_names_the_field(kw, field):
     with pytest.raises(ValueError, match=field):
-        R.RobotDesign(**kw).validate()
+        RobotDesign(**kw).validate()
 
 
 def test_pneumatics_topology_validation():
-    assert R.RobotPneumatics(topology="shared").validate().n_compressors(6) == 1
-    assert R.RobotPneumatics().validate().n_compressors(6) == 6
+    assert RobotPneumatics(topology="shared").validate().n_compressors(6) == 1
+    assert RobotPneumatics().validate().n_compressors(6) == 6
     with pytest.raises(ValueError, match="topology.*shared"):
-        R.RobotPneumatics(topology="shard").validate()
+        RobotPneumatics(topology="shard").validate()
     with pytest.raises(ValueError, match="pressure_limit"):
-        R.RobotPneumatics(sensor_range=40e3, pressure_limit=45e3).validate()
+        RobotPneumatics(sensor_range=40e3, pressure_limit=45e3).validate()
 
 
 # --------------------------------------------------------------------------------------------- kinematics
@@ -60,16 +81,16 @@ heights_st = st.lists(st.floats(0.0, 17e-3, allow_nan=False), min_size=9, max_si
 @given(heights_st)
 def test_fk_ik_round_trip(hs):
     h = np.array(hs).reshape(3, 3)
-    pose = R.forward_kinematics(D3, h)
-    back = R.inverse_kinematics(D3, pose.centre, pose.bend, pose.direction)
+    pose = forward_kinematics(D3, h)
+    back = inverse_kinematics(D3, pose.centre, pose.bend, pose.direction)
     np.testing.assert_allclose(back, h, atol=1e-12)
 
 
 @settings(max_examples=40, deadline=None)
 @given(st.floats(0.0, 10e-3), st.floats(0.0, 0.6), st.floats(-math.pi, math.pi))
 def test_ik_fk_round_trip_targets(centre, bend, direction):
-    h = R.inverse_kinematics(D1, centre, bend, direction)
-    c, b, p = R.layer_plane(D1, h[0])
+    h = inverse_kinematics(D1, centre, bend, direction)
+    c, b, p = layer_plane(D1, h[0])
     assert c == pytest.approx(centre, abs=1e-12)
     assert b == pytest.approx(bend, abs=1e-12)
     if bend > 1e-9:
@@ -78,7 +99,7 @@ def test_ik_fk_round_trip_targets(centre, bend, direction):
 
 def test_equal_heights_give_no_tilt_and_tip_on_axis():
     h = np.full((3, 3), 6e-3)
-    pose = R.forward_kinematics(D3, h)
+    pose = forward_kinematics(D3, h)
     assert np.all(pose.bend == 0.0)
     np.testing.assert_allclose(pose.tip_position, [0, 0, 4 * 9e-3 + 3 * 6e-3], atol=1e-15)
     assert pose.tip_bend == pytest.approx(0.0, abs=1e-12)
@@ -88,7 +109,7 @@ def test_equal_heights_give_no_tilt_and_tip_on_axis():
 def test_one_chamber_tilts_the_layer_away_from_it(i):
     h = np.zeros((1, 3))
     h[0, i] = 10e-3
-    pose = R.forward_kinematics(D1, h)
+    pose = forward_kinematics(D1, h)
     phi = D1.chamber_angles[i]
     # the plane through one raised and two level points: tan(bend) = h / (1.5 rc)
     assert pose.bend[0] == pytest.approx(math.atan(10e-3 / (1.5 * RC)), rel=1e-12)
@@ -102,25 +123,25 @@ def test_one_chamber_tilts_the_layer_away_from_it(i):
 
 def test_heights_input_is_validated():
     with pytest.raises(ValueError, match="heights"):
-        R.forward_kinematics(D3, np.zeros(6))
+        forward_kinematics(D3, np.zeros(6))
     with pytest.raises(ValueError, match=">= 0"):
-        R.forward_kinematics(D1, [-1e-3, 0, 0])
+        forward_kinematics(D1, [-1e-3, 0, 0])
     with pytest.raises(ValueError, match="bend"):
-        R.inverse_kinematics(D1, 0.0, math.radians(95), 0.0)
+        inverse_kinematics(D1, 0.0, math.radians(95), 0.0)
 
 
 def test_tip_ik_round_trip():
-    h = R.inverse_kinematics(D3, 6e-3, math.radians(15), math.radians(40))
-    target = R.forward_kinematics(D3, h).tip_position
-    back = R.inverse_kinematics_tip(D3, target)
-    np.testing.assert_allclose(R.forward_kinematics(D3, back).tip_position, target, atol=1e-7)
+    h = inverse_kinematics(D3, 6e-3, math.radians(15), math.radians(40))
+    target = forward_kinematics(D3, h).tip_position
+    back = inverse_kinematics_tip(D3, target)
+    np.testing.assert_allclose(forward_kinematics(D3, back).tip_position, target, atol=1e-7)
     with pytest.raises(ValueError, match="not reachable"):
-        R.inverse_kinematics_tip(D3, [0.5, 0.0, 0.01])
+        inverse_kinematics_tip(D3, [0.5, 0.0, 0.01])
 
 
 # --------------------------------------------------------------------------------------------- statics
 def test_straight_robot_shares_weight_equally():
-    ls = R.load_sharing(D3, np.zeros((3, 3)))
+    ls = load_sharing(D3, np.zeros((3, 3)))
     m, g = D3.body_masses, D3.g
     for k in range(3):
         np.testing.assert_allclose(ls.forces[k], m[k:].sum() * g / 3, rtol=1e-12)
@@ -131,8 +152,8 @@ def test_straight_robot_shares_weight_equally():
 def test_tip_load_adds_to_weight_and_moment_matches_closed_form():
     fz, my = -2.0, 0.05
     h = np.full((3, 3), 4e-3)
-    base = R.load_sharing(D3, h).forces
-    ls = R.load_sharing(D3, h, tip_force=(0, 0, fz), tip_moment=(0, my, 0))
+    base = load_sharing(D3, h).forces
+    ls = load_sharing(D3, h, tip_force=(0, 0, fz), tip_moment=(0, my, 0))
     xy = D3.chamber_xy()
     # F_i = W/3 + 2 (x_i M_y - y_i M_x) / (3 rc^2) for chambers at 120 degrees
     expect = base + (-fz) / 3 + 2 * xy[:, 0] * my / (3 * RC**2)
@@ -143,7 +164,7 @@ def test_tip_load_adds_to_weight_and_moment_matches_closed_form():
 @settings(max_examples=25, deadline=None)
 @given(heights_st, st.lists(st.floats(-2, 2), min_size=3, max_size=3))
 def test_normal_forces_balance_the_normal_load_in_any_pose(hs, f_tip):
-    ls = R.load_sharing(D3, np.array(hs).reshape(3, 3), tip_force=f_tip)
+    ls = load_sharing(D3, np.array(hs).reshape(3, 3), tip_force=f_tip)
     g = np.array([0, 0, -D3.g])
     m = D3.body_masses
     for k in range(3):
@@ -154,7 +175,7 @@ def test_normal_forces_balance_the_normal_load_in_any_pose(hs, f_tip):
 
 def test_lateral_tip_force_loads_the_far_side():
     # a +x force on the tip tips the stack toward +x: the chamber at +x is pressed more
-    ls = R.load_sharing(D1, np.full((1, 3), 5e-3), tip_force=(0.2, 0, 0))
+    ls = load_sharing(D1, np.full((1, 3), 5e-3), tip_force=(0.2, 0, 0))
     assert ls.forces[0, 0] > ls.forces[0, 1] == pytest.approx(ls.forces[0, 2])
 
 
@@ -170,8 +191,8 @@ def _physics(act, h1, h2):
 
 def test_chamber_states_are_consistent_with_physics_and_load_sharing():
     h = np.array([[17e-3, 0.0, 0.0], [5e-3, 6e-3, 7e-3], [2e-3, 2e-3, 2e-3]])
-    s = R.chamber_states(D3, h)
-    ls = R.load_sharing(D3, h)
+    s = chamber_states(D3, h)
+    ls = load_sharing(D3, h)
     np.testing.assert_allclose(s["F"], ls.forces)
     np.testing.assert_allclose(s["h1"] - s["h2"], h, atol=1e-15)
     act = D3.chamber
@@ -185,7 +206,7 @@ def test_chamber_states_are_consistent_with_physics_and_load_sharing():
 
 
 def test_reach_free_chamber_pins_the_limit_point():
-    r = R.chamber_reach(D3, 0.0)
+    r = chamber_reach(D3, 0.0)
     # SPEC 8: NH, r1 4.5 mm, t0 2 mm: free-inflation peak ~35.5 kPa near h = 5.7 mm
     assert r.p_peak == pytest.approx(35.5e3, abs=0.2e3)
     assert r.h_peak == pytest.approx(5.7e-3, abs=0.1e-3)
@@ -197,7 +218,7 @@ def test_reach_free_chamber_pins_the_limit_point():
 
 
 def test_reach_below_the_peak_is_pressure_limited():
-    r = R.chamber_reach(D3, 0.1, pressure_limit=35e3)
+    r = chamber_reach(D3, 0.1, pressure_limit=35e3)
     assert r.limit == "pressure_limit"
     assert r.h_max < r.h_peak
     assert r.p_at_max == pytest.approx(35e3, rel=0.02)
@@ -206,20 +227,20 @@ def test_reach_below_the_peak_is_pressure_limited():
 
 
 def test_reach_report_flags_unreachable_heights():
-    rep = R.reach_report(D1, [[30e-3, 0, 0]])
+    rep = reach_report(D1, [[30e-3, 0, 0]])
     assert not rep["ok"] and "A1" in rep["violations"][0] and "max_stretch" in rep["violations"][0]
-    ok = R.reach_report(D1, [[12e-3, 8e-3, 8e-3]])
+    ok = reach_report(D1, [[12e-3, 8e-3, 8e-3]])
     assert ok["ok"] and ok["rim_gap"][0] > 0
     # one chamber up, two flat: the rigid three-point pose would push the rims into each other
-    rim = R.reach_report(D1, [[10e-3, 0, 0]])
+    rim = reach_report(D1, [[10e-3, 0, 0]])
     assert not rim["ok"] and "rims overlap" in rim["violations"][0] and rim["rim_gap"][0] < 0
 
 
 @pytest.mark.parametrize("inflated", [[0], [1, 2], [0, 2]])
 def test_rim_pivot_pose_touches_the_rim_and_holds_the_inflated_heights(inflated):
-    c, bend, psi = R.rim_pivot_pose(D1, 15e-3, inflated)
-    h = R.inverse_kinematics(D1, c, bend, psi)
-    pose = R.forward_kinematics(D1, np.maximum(h, 0))
+    c, bend, psi = rim_pivot_pose(D1, 15e-3, inflated)
+    h = inverse_kinematics(D1, c, bend, psi)
+    pose = forward_kinematics(D1, np.maximum(h, 0))
     assert pose.rim_gap(D1)[0] == pytest.approx(0.0, abs=1e-12)
     np.testing.assert_allclose(h[0, inflated], 15e-3, atol=1e-12)
     others = [i for i in range(3) if i not in inflated]
@@ -228,7 +249,7 @@ def test_rim_pivot_pose_touches_the_rim_and_holds_the_inflated_heights(inflated)
 
 # --------------------------------------------------------------------------------------------- Table II, workspace
 def test_table2_rows_are_finite_and_ordered():
-    rows = R.robot_table2()
+    rows = robot_table2()
     assert len(rows) == 12
     for reading in ("far_branch", "near_branch", "rim_pivot"):
         rs = [r for r in rows if r["reading"] == reading]
@@ -248,12 +269,12 @@ def test_table2_rows_are_finite_and_ordered():
     assert far[1]["rim_gap_mm"] < 0 and far[2]["rim_gap_mm"] < 0 and far[3]["rim_gap_mm"] > 0
     assert rim[1]["rim_gap_mm"] == 0.0 and rim[1]["angle_deg"] < far[1]["angle_deg"]
     assert rim[1]["length_mm"] > far[1]["length_mm"]
-    md = R.table2_markdown(rows)
+    md = table2_markdown(rows)
     assert md.count("\n| ") == 12 and "r1 = 4.5 mm" in md  # one line per row after the header
 
 
 def test_workspace_far_branch_beats_pressure_control():
-    ws = R.workspace(R.RobotDesign(n_layers=2), n_dir=36)
+    ws = workspace(RobotDesign(n_layers=2), n_dir=36)
     for ly in ws["layers"]:
         b, bp = np.array(ly["bend_max"]), np.array(ly["bend_max_pressure_control"])
         bc = np.array(ly["bend_max_no_rim_contact"])
@@ -267,7 +288,7 @@ def test_workspace_far_branch_beats_pressure_control():
 
 # --------------------------------------------------------------------------------------------- settings
 def test_parse_section_defaults_and_inputs():
-    s = R.parse_section({"layers": 2, "topology": "shared", "inputs": {"B2": [[0, 50, 1, 0], [2, 0, 0, 1]]}})
+    s = parse_section({"layers": 2, "topology": "shared", "inputs": {"B2": [[0, 50, 1, 0], [2, 0, 0, 1]]}})
     assert s.design.n_layers == 2 and s.pneumatics.topology == "shared"
     assert s.pneumatics.sensor_range == 50e3 and s.pneumatics.pressure_limit == 45e3
     assert s.inputs["B2"][0] == (0.0, 0.5, 1.0, 0.0)
@@ -294,16 +315,16 @@ def test_parse_section_defaults_and_inputs():
 ])
 def test_parse_section_rejects_bad_values_naming_the_field(raw, field):
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
-        R.parse_section(raw)
+        parse_section(raw)
 
 
 @settings(max_examples=12, deadline=None)
 @given(st.lists(st.one_of(st.just(0.0), st.floats(0.2e-3, 17e-3)), min_size=6, max_size=6))
 def test_gas_masses_give_back_the_heights(hs):
-    d = R.RobotDesign(n_layers=2)
+    d = RobotDesign(n_layers=2)
     h = np.array(hs).reshape(2, 3)
-    s = R.chamber_states(d, h)
-    back = R.chamber_states_from_masses(d, s["m"])
+    s = chamber_states(d, h)
+    back = chamber_states_from_masses(d, s["m"])
     np.testing.assert_allclose(back["heights"], h, atol=1e-9)
     assert not back["ambiguous"].any()  # G grows along the load path: one height per gas mass
     np.testing.assert_allclose(back["p"], s["p"], atol=1e-3)
@@ -311,5 +332,5 @@ def test_gas_masses_give_back_the_heights(hs):
 
 def test_chamber_loads_floor_and_flag_tension():
     # a tall stack bent hard by one chamber tips over its hinge: the inflated chamber is pulled
-    W, tension = R.chamber_loads(D3, [[17e-3, 0, 0], [0, 0, 0], [0, 0, 0]], floor=1e-3)
+    W, tension = chamber_loads(D3, [[17e-3, 0, 0], [0, 0, 0], [0, 0, 0]], floor=1e-3)
     assert tension[0] and W[0] == 1e-3 and np.all(W[1:3] > 0.1)

@@ -5,12 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.robot_loop import (RobotRig, RobotRigSettings, closed_loop_metrics, make_model, parse_targets,
-                                    run_closed_loop)
-from controllers.robot_model import commands_from_inputs
 from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.params import Pneumatics
-from hbma_ctrl.robot import RobotDesign, RobotPneumatics, RobotSettings, load_sharing, parse_section
+from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
+from hbma_ctrl.app.robot_section import RobotSettings, parse_section
+from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics
+from hbma_ctrl.core.params import Pneumatics
+from hbma_ctrl.models.bank import commands_from_inputs
+from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
+from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
+from hbma_ctrl.robot.statics import load_sharing
+from hbma_ctrl.robot.targets import parse_targets
 
 D1 = RobotDesign(n_layers=1)
 
@@ -118,7 +122,7 @@ def test_bench_robot_cli(tmp_path):
 
     from typer.testing import CliRunner
 
-    from hbma_ctrl.cli import app
+    from hbma_ctrl.app.cli import app
 
     r = CliRunner().invoke(app, ["bench", "robot", "--layers", "1", "--duration", "0.6", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
@@ -132,8 +136,8 @@ def test_bench_robot_cli(tmp_path):
 def test_closed_loop_scene_writes_metrics_and_plots(tmp_path):
     """A short 1-layer closed-loop scenario through the runner: robot metrics with the required keys,
     the baseline beside, the shape plot and the signals."""
-    from hbma_ctrl.runner import run_scenario
-    from hbma_ctrl.scenario import load_scenario
+    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenario import load_scenario
 
     p = tmp_path / "s.toml"
     p.write_text('[scenario]\nname = "cl"\nduration_s = 2.5\n[inputs]\nschedule = [[0.0, 0.0, 0.0, 0.0]]\n[rig]\nseed = 4\n[robot]\nmode = "closed_loop"\n'

@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl import robot as R
+from hbma_ctrl.app.robot_section import parse_section
+from hbma_ctrl.app.scene_robot import run_metrics, run_scene
+from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.plant import W_FLOOR, simulate_open_loop
+from hbma_ctrl.robot.reach import chamber_reach
+from hbma_ctrl.robot.statics import load_sharing
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -18,12 +23,12 @@ ROOT = Path(__file__).resolve().parents[1]
 def _settings(**raw):
     base = {"layers": 1, "inputs": {"A1": [[0, 100, 1, 0], [2.5, 0, 0, 0]]}}
     base.update(raw)
-    return R.parse_section(base)
+    return parse_section(base)
 
 
 def test_one_chamber_inflates_past_the_limit_point_and_bends_the_layer_away():
     s = _settings()
-    run = R.simulate_open_loop(s, duration=3.0)
+    run = simulate_open_loop(s.plant, duration=3.0)
     assert run.status == "ok"
     h = run.h[:, 0, 0]
     # driven over the balloon limit point: the pressure peaked and fell while the chamber kept rising
@@ -38,8 +43,8 @@ def test_one_chamber_inflates_past_the_limit_point_and_bends_the_layer_away():
     assert math.cos(run.direction[-1, 0] - math.pi) == pytest.approx(1.0, abs=1e-9)
     assert run.tip[-1, 0] < -5e-3
     # the loads fed to the chamber models are the load sharing of the final pose
-    np.testing.assert_allclose(run.F[-1, 0], np.maximum(R.load_sharing(s.design, run.h[-1]).forces[0], R.W_FLOOR))
-    m = R.run_metrics(s.design, run)
+    np.testing.assert_allclose(run.F[-1, 0], np.maximum(load_sharing(s.design, run.h[-1]).forces[0], W_FLOOR))
+    m = run_metrics(s.design, run)
     for key in ("chamber_height_rmse_mm", "bend_angle_rmse_deg", "tip_position_rmse_mm", "step_ms_median",
                 "step_ms_p99"):
         assert key in m
@@ -47,20 +52,20 @@ def test_one_chamber_inflates_past_the_limit_point_and_bends_the_layer_away():
 
 
 def test_pressure_limit_interlock_keeps_the_chamber_on_the_near_branch():
-    run = R.simulate_open_loop(_settings(pressure_limit_kpa=30.0), duration=2.0)
+    run = simulate_open_loop(_settings(pressure_limit_kpa=30.0).plant, duration=2.0)
     assert run.p.max() < 31e3
-    assert run.h.max() < R.chamber_reach(R.RobotDesign(n_layers=1), 0.2).h_peak
+    assert run.h.max() < chamber_reach(RobotDesign(n_layers=1), 0.2).h_peak
     assert any(e[2] == "inlet_interlock:pressure_limit" for e in run.events)
 
 
 def test_shared_compressor_splits_the_flow():
-    from hbma_ctrl.params import Pneumatics
+    from hbma_ctrl.core.params import Pneumatics
 
     # two open inlets on one pump: each chamber gets half the map's flow at its own pressure,
     # the same as a per-chamber pump of half the size; a lone open inlet gets all of it
     inputs = {"A1": [[0, 100, 1, 0]], "A2": [[0, 60, 1, 0], [0.2, 0, 0, 0]]}
-    shared = R.simulate_open_loop(_settings(inputs=inputs, topology="shared"), duration=0.4)
-    half = R.simulate_open_loop(_settings(inputs={"A1": [[0, 100, 1, 0]], "A2": [[0, 100, 1, 0]]}),
+    shared = simulate_open_loop(_settings(inputs=inputs, topology="shared").plant, duration=0.4)
+    half = simulate_open_loop(_settings(inputs={"A1": [[0, 100, 1, 0]], "A2": [[0, 100, 1, 0]]}).plant,
                                 Pneumatics(flow_scale=0.5), duration=0.2)
     np.testing.assert_allclose(shared.m[: half.t.size, 0, :2], half.m[:, 0, :2], rtol=1e-9)
     # after A2 closes at 0.2 s, A1 has the whole pump again: it gains much faster than before
@@ -75,18 +80,18 @@ def test_closed_loop_mode_is_refused_clearly(tmp_path):
         sections = {"robot": {"mode": "closed_loop"}}
 
     with pytest.raises(ValueError, match="closed-loop robot control"):
-        R.run_scene(Scn(), tmp_path)
+        run_scene(Scn(), tmp_path)
 
 
 def test_shipped_scenario_loads_and_short_run_writes_outputs(tmp_path):
     from dataclasses import replace
 
-    from hbma_ctrl.scenario import load_scenario
+    from hbma_ctrl.app.scenario import load_scenario
 
     scn = load_scenario(ROOT / "scenarios" / "robot_sequential.toml")
     s = scn.role("robot")
     assert s.design.n_layers == 2 and set(s.inputs) == {"A1", "A2", "A3", "B1", "B2", "B3"}
-    out = R.run_scene(replace(scn, duration=1.0), tmp_path)
+    out = run_scene(replace(scn, duration=1.0), tmp_path)
     assert out["robot"]["status"] == "ok"
     for f in ("robot_log.csv", "robot_shape.png", "robot_series.png", "robot_events.json"):
         assert (tmp_path / f).stat().st_size > 0
@@ -94,7 +99,7 @@ def test_shipped_scenario_loads_and_short_run_writes_outputs(tmp_path):
 
 
 def test_cli_pose_and_errors(tmp_path):
-    from hbma_ctrl.cli import app
+    from hbma_ctrl.app.cli import app
 
     r = CliRunner().invoke(app, ["robot", "pose", "--heights-mm", "10,0,0", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output

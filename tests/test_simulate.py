@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from hbma_ctrl.app.metrics import write_log_csv
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hbma_ctrl.materials import MATERIALS, make_material
-from hbma_ctrl.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.simulate import InputSchedule, Plant, SimSettings, Trial, simulate
-from hbma_ctrl.model import make_fidelity
+from hbma_ctrl.core.materials import MATERIALS, make_material
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.fidelity import make_fidelity
+from hbma_ctrl.sim.simulate import Plant, simulate
+from hbma_ctrl.sim.trial import InputSchedule, SimSettings, Trial
 
 RT = 287.058 * 293.15
 
@@ -170,7 +173,7 @@ def test_plant_steps_in_closed_loop_and_rejects_bad_inputs():
 def test_log_csv_is_written_in_edge_units(tmp_path):
     log = simulate([Trial(duration=4.0)])[0]
     path = tmp_path / "log.csv"
-    log.to_csv(path)
+    write_log_csv(log, path)
     header = path.read_text().splitlines()[0].split(",")
     assert "h_mm" in header and "p_kpa" in header and header[-1] == "event"
 

@@ -1,0 +1,353 @@
+"""The two NMPC solver variants behind :class:`controllers.mpc.NMPC`: RTI + OSQP (fast) and IPOPT (accurate).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from controllers.mpc_settings import MPCSettings
+from hbma_ctrl.core.codegen import compiled
+from hbma_ctrl.models.tables import PredictionModel
+
+
+class _SolverFailure(RuntimeError):
+    pass
+
+
+class _BudgetExceeded(_SolverFailure):
+    """The solver stopped at its time limit (the step's budget): counted as an overrun."""
+
+
+@dataclass
+class _Problem:
+    """Per-step parameters of the OCP (scaled units: h in mm, p in kPa)."""
+
+    x0: float
+    W: float
+    dh: float  # m
+    dp: float  # Pa
+    r: np.ndarray  # m, target at stages 1..N (clipped)
+    u_prev: np.ndarray
+    p_lim: float  # Pa, on the model pressure + dp
+
+
+class _Stage:
+    """Discrete dynamics and outputs shared by both variants (casadi)."""
+
+    def __init__(self, model: PredictionModel, s: MPCSettings):
+        self.F = model.discrete(s.sample_period, s.integrator, s.substeps)
+        x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
+        u = ca.SX.sym("u", 3)
+        ulin = ca.SX.sym("ulin", 3)
+        xn = self.F(x, u, W, dp)
+        h = model.H(x, W) * 1e3  # mm
+        p = model.Pp(x, W) * 1e-3  # kPa (model, without bias)
+        lam = model.L(x, W) * 1e2  # 1/100
+        # dynamics value at the plan, Jacobians at the (floored) linearisation point
+        xl = self.F(x, ulin, W, dp)
+        self.lin = ca.Function(
+            "lin", [x, u, ulin, W, dp],
+            [xn, ca.jacobian(xl, x), ca.jacobian(xl, ulin), h, ca.jacobian(h, x), p, ca.jacobian(p, x),
+             lam, ca.jacobian(lam, x)],
+            ["x", "u", "ulin", "W", "dp"], ["f", "a", "b", "h", "ch", "p", "cp", "lam", "cl"])
+        self.out = ca.Function("out", [x, W], [h, p, lam])
+
+
+class _RtiOsqp:
+    """Real-time iteration: one sparse QP per step, fixed pattern, OSQP updated in place."""
+
+    def __init__(self, model: PredictionModel, s: MPCSettings):
+        self.s, self.model = s, model
+        N = self.N = s.horizon
+        self.stage = _Stage(model, s)
+        lin = self.stage.lin.map(N + 1)
+        self.lin = compiled(lin, "-O2") if s.codegen else lin
+        # variable layout
+        self.ix = np.arange(N + 1)
+        self.iu = (N + 1) + np.arange(3 * N).reshape(N, 3)
+        self.isl = (N + 1) + 3 * N + np.arange(N)  # slack of stage k+1
+        self.nz = (N + 1) + 4 * N
+        self._build_pattern()
+        self.solver = osqp.OSQP()
+        self.solver.setup(self.P, np.zeros(self.nz), self.A, self.l0, self.u0, verbose=False,
+                          eps_abs=s.qp_eps, eps_rel=s.qp_eps, max_iter=s.qp_max_iter, polishing=False,
+                          warm_starting=True, adaptive_rho=True, time_limit=s.budget)
+        self.X = None
+        self.U = None
+        self.iterations = 0
+
+    # --- QP pattern ----------------------------------------------------------------------------
+    def _build_pattern(self) -> None:
+        s, N = self.s, self.N
+        ix, iu, isl = self.ix, self.iu, self.isl
+        # P (upper triangle): x diag (varies), u block tridiagonal (constant), slack diag (constant)
+        Pr, Pc, Pv = [], [], []
+        for k in range(N + 1):
+            Pr.append(ix[k]); Pc.append(ix[k]); Pv.append(0.0)  # noqa: E702
+        self.P_x = np.arange(N + 1)
+        wr, wu = np.array(s.w_rate, float), np.array(s.w_input, float)
+        for k in range(N):
+            for i in range(3):
+                nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
+                Pr.append(iu[k, i]); Pc.append(iu[k, i]); Pv.append(2 * wr[i] * nd + 2 * wu[i] + 1e-8)  # noqa: E702
+                if k > 0:
+                    Pr.append(iu[k - 1, i]); Pc.append(iu[k, i]); Pv.append(-2 * wr[i])  # noqa: E702
+        for k in range(N):
+            Pr.append(isl[k]); Pc.append(isl[k]); Pv.append(2 * s.w_slack)  # noqa: E702
+        self.P, self.P_perm = _csc_with_perm(Pr, Pc, self.nz)
+        self.P_vals = np.array(Pv)
+        # A rows
+        Ar, Ac, Av = [], [], []
+        row = 0
+
+        def add(r, c, v):
+            Ar.append(r); Ac.append(c); Av.append(v)  # noqa: E702
+
+        self.r_init = row
+        add(row, ix[0], 1.0)
+        row += 1
+        self.r_dyn = row
+        self.A_dyn_a, self.A_dyn_b = [], []
+        for k in range(N):
+            add(row, ix[k + 1], 1.0)
+            self.A_dyn_a.append(len(Av)); add(row, ix[k], 0.0)  # noqa: E702
+            for i in range(3):
+                self.A_dyn_b.append(len(Av)); add(row, iu[k, i], 0.0)  # noqa: E702
+            row += 1
+        self.r_box = row
+        for k in range(N):
+            for i in range(3):
+                add(row, iu[k, i], 1.0)
+                row += 1
+        self.r_rate = row
+        for k in range(1, N):
+            for i in range(3):
+                add(row, iu[k, i], 1.0); add(row, iu[k - 1, i], -1.0)  # noqa: E702
+                row += 1
+        self.r_pump = row  # inlet - speed >= 0
+        for k in range(N):
+            add(row, iu[k, 1], 1.0); add(row, iu[k, 0], -1.0)  # noqa: E702
+            row += 1
+        self.r_soft = row  # per stage k = 1..N: p, lam, h_hi, h_lo
+        self.A_soft = []
+        for k in range(N):
+            idx = []
+            for _ in range(4):
+                idx.append(len(Av)); add(row, ix[k + 1], 0.0)  # noqa: E702
+                add(row, isl[k], -1.0)
+                row += 1
+            self.A_soft.append(idx)
+        self.r_slack = row
+        for k in range(N):
+            add(row, isl[k], 1.0)
+            row += 1
+        self.nc = row
+        self.A, self.A_perm = _csc_with_perm(Ar, Ac, self.nz, self.nc)
+        self.A_vals = np.array(Av)
+        self.A_dyn_a, self.A_dyn_b = np.array(self.A_dyn_a), np.array(self.A_dyn_b).reshape(N, 3)
+        self.A_soft = np.array(self.A_soft)
+        inf = np.inf
+        self.l0 = np.full(self.nc, -inf)
+        self.u0 = np.full(self.nc, inf)
+        self.l0[self.r_init] = self.u0[self.r_init] = 0.0
+        self.l0[self.r_dyn:self.r_dyn + N] = self.u0[self.r_dyn:self.r_dyn + N] = 0.0
+        umax = np.array(s.u_max, float)
+        self.l0[self.r_box:self.r_box + 3 * N] = 0.0
+        self.u0[self.r_box:self.r_box + 3 * N] = np.tile(umax, N)
+        du = np.array(s.du_max, float) * s.sample_period
+        self.du = du
+        self.l0[self.r_rate:self.r_rate + 3 * (N - 1)] = -np.tile(du, N - 1)
+        self.u0[self.r_rate:self.r_rate + 3 * (N - 1)] = np.tile(du, N - 1)
+        self.l0[self.r_pump:self.r_pump + N] = 0.0
+        self.l0[self.r_slack:self.r_slack + N] = 0.0
+
+    # --- one step -------------------------------------------------------------------------------
+    def reset(self) -> None:
+        self.X = None
+        self.U = None
+
+    def solve(self, pr: _Problem) -> tuple[np.ndarray, np.ndarray]:
+        N, s = self.N, self.s
+        if self.X is None:
+            Xb = np.full(N + 1, pr.x0)
+            Ub = np.tile(pr.u_prev, (N, 1))
+            iters = s.rti_init_iterations
+            self.solver.update_settings(time_limit=1e3)  # cold start: exempt from the budget
+        else:
+            Xb = np.r_[pr.x0, self.X[2:], self.X[-1]]
+            Ub = np.vstack([self.U[1:], self.U[-1:]])
+            iters = 1
+        try:
+            for _ in range(iters):
+                Xb, Ub = self._qp(pr, Xb, Ub)
+        finally:
+            if iters > 1:
+                self.solver.update_settings(time_limit=s.budget)
+        self.X, self.U = Xb, Ub
+        return Xb, Ub
+
+    def _qp(self, pr: _Problem, Xb: np.ndarray, Ub: np.ndarray):
+        N, s = self.N, self.s
+        Uext = np.vstack([Ub, Ub[-1:]])
+        Ulin = Uext.copy()
+        fl = s.rti_lin_floor
+        Ulin[:, 0] = np.maximum(Ulin[:, 0], fl)
+        Ulin[:, 1] = np.maximum(Ulin[:, 1], fl)
+        res = self.lin(Xb[None, :], Uext.T, Ulin.T, pr.W, pr.dp)
+        f, a, b, h, ch, p, cp, lam, cl = (np.asarray(v) for v in res)
+        f, a, h, ch, p, cp, lam, cl = (v.ravel() for v in (f, a, h, ch, p, cp, lam, cl))
+        b = b.reshape(3, N + 1, order="F") if b.shape[0] == 3 else b.reshape(N + 1, 3).T
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(b)) and np.all(np.isfinite(ch))):
+            raise _SolverFailure("non-finite linearisation")
+        # P: x diagonal from the Gauss-Newton height cost
+        wk = np.full(N + 1, s.w_height)
+        wk[0] = 0.0
+        wk[N] += s.w_terminal
+        r_mm, dh_mm = np.r_[pr.r[0], pr.r] * 1e3, pr.dh * 1e3
+        e = h - ch * Xb + dh_mm - r_mm  # h_k(x) + dh - r = ch x + e
+        Pv = self.P_vals.copy()
+        Pv[self.P_x] = 2 * wk * ch ** 2 + 1e-8
+        q = np.zeros(self.nz)
+        q[self.ix] = 2 * wk * ch * e
+        wr = np.array(s.w_rate, float)
+        q[self.iu[0]] += -2 * wr * pr.u_prev
+        q[self.iu] += np.array(s.c_input, float)[None, :]
+        q[self.isl] = s.c_slack
+        # A values
+        Av = self.A_vals.copy()
+        Av[self.A_dyn_a] = -a[:N]
+        Av[self.A_dyn_b] = -b[:, :N].T
+        k1 = np.arange(1, N + 1)
+        Av[self.A_soft[:, 0]] = cp[k1]
+        Av[self.A_soft[:, 1]] = cl[k1]
+        Av[self.A_soft[:, 2]] = ch[k1]
+        Av[self.A_soft[:, 3]] = -ch[k1]
+        lo, up = self.l0.copy(), self.u0.copy()
+        lo[self.r_init] = up[self.r_init] = pr.x0
+        # x_{k+1} - a x_k - b u_k = f - a xb - b ub
+        c = f[:N] - a[:N] * Xb[:N] - np.einsum("ik,ki->k", b[:, :N], Ub)
+        lo[self.r_dyn:self.r_dyn + N] = up[self.r_dyn:self.r_dyn + N] = c
+        # first input: box intersected with the rate limit from the applied command
+        umax = np.array(s.u_max, float)
+        lo[self.r_box:self.r_box + 3] = np.maximum(0.0, pr.u_prev - self.du)
+        up[self.r_box:self.r_box + 3] = np.minimum(umax, pr.u_prev + self.du)
+        rs = self.r_soft + 4 * np.arange(N)
+        up[rs] = pr.p_lim * 1e-3 - pr.dp * 1e-3 - (p[k1] - cp[k1] * Xb[k1])
+        up[rs + 1] = s.lam_max * 1e2 - (lam[k1] - cl[k1] * Xb[k1])
+        up[rs + 2] = s.h_max * 1e3 - dh_mm - (h[k1] - ch[k1] * Xb[k1])
+        if s.h_min > 0:  # (below lift-off H is a virtual negative height: no bound at h_min = 0)
+            up[rs + 3] = -(s.h_min * 1e3 - dh_mm - (h[k1] - ch[k1] * Xb[k1]))
+        self.solver.update(q=q, l=lo, u=up, Px=Pv[self.P_perm], Ax=Av[self.A_perm])
+        z0 = np.zeros(self.nz)
+        z0[self.ix] = Xb
+        z0[self.iu] = Ub
+        self.solver.warm_start(x=z0)
+        r = self.solver.solve(raise_error=False)
+        self.iterations = int(r.info.iter)
+        if "time limit" in r.info.status:
+            raise _BudgetExceeded("osqp: time limit (budget) reached")
+        usable = r.info.status in ("solved", "solved inaccurate") or (
+            r.info.status == "maximum iterations reached" and r.info.prim_res < 1e-3)
+        if not usable or r.x is None or not np.all(np.isfinite(r.x)):
+            raise _SolverFailure(f"osqp: {r.info.status}")
+        z = r.x
+        return z[self.ix].copy(), np.clip(z[self.iu], 0.0, 1.0)
+
+
+class _Ipopt:
+    """Multiple-shooting NLP, IPOPT to convergence, warm-started with the shifted solution."""
+
+    def __init__(self, model: PredictionModel, s: MPCSettings):
+        self.s, self.model = s, model
+        N = self.N = s.horizon
+        self.stage = _Stage(model, s)
+        F = self.stage.F
+        X = ca.SX.sym("X", N + 1)
+        U = ca.SX.sym("U", 3, N)
+        S = ca.SX.sym("S", N)
+        par = ca.SX.sym("par", 8 + N)  # x0, W, dh(mm), dp(Pa), u_prev(3), p_lim(kPa), r(mm, N stages)
+        x0, W, dh, dp = par[0], par[1], par[2], par[3]
+        u_prev, p_lim, rr = par[4:7], par[7], par[8:]
+        J = 0
+        g, lbg, ubg = [X[0] - x0], [0.0], [0.0]
+        wr, wu, cu = (ca.DM(list(v)) for v in (s.w_rate, s.w_input, s.c_input))
+        du = np.array(s.du_max, float) * s.sample_period
+        for k in range(N):
+            g.append(X[k + 1] - F(X[k], U[:, k], W, dp))
+            lbg.append(0.0); ubg.append(0.0)  # noqa: E702
+            d = U[:, k] - (u_prev if k == 0 else U[:, k - 1])
+            J += ca.dot(wr, d ** 2) + ca.dot(wu, U[:, k] ** 2) + ca.dot(cu, U[:, k])
+            g.append(d)
+            lbg += list(-du); ubg += list(du)  # noqa: E702
+            g.append(U[1, k] - U[0, k])
+            lbg.append(0.0); ubg.append(ca.inf)  # noqa: E702
+            h, p, lam = self.stage.out(X[k + 1], W)
+            w = s.w_height + (s.w_terminal if k == N - 1 else 0.0)
+            J += w * (h + dh - rr[k]) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
+            lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else ca.inf)
+            for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
+                             (h + dh - s.h_max * 1e3, 0.0), lo_h):
+                g.append(expr - S[k])
+                lbg.append(-ca.inf); ubg.append(ub)  # noqa: E702
+        z = ca.vertcat(X, ca.vec(U), S)
+        self.nz = z.shape[0]
+        nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
+        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+                "ipopt.max_iter": s.ipopt_max_iter, "ipopt.tol": 1e-6,
+                "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3,
+                "ipopt.max_wall_time": max(10 * s.budget, 0.5), "error_on_fail": False}
+        self.solver = ca.nlpsol("mpc_ipopt", "ipopt", nlp, opts)
+        self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
+        umax = np.array(s.u_max, float)
+        self.lbz = np.r_[np.full(N + 1, -0.5), np.zeros(3 * N), np.zeros(N)]
+        self.ubz = np.r_[np.full(N + 1, 50.0), np.tile(umax, N), np.full(N, np.inf)]
+        self.X = self.U = self.S = None
+        self.lam_g = None
+        self.iterations = 0
+
+    def reset(self) -> None:
+        self.X = self.U = self.S = None
+        self.lam_g = None
+
+    def solve(self, pr: _Problem):
+        N = self.N
+        if self.X is None:
+            Xb, Ub, Sb = np.full(N + 1, pr.x0), np.tile(pr.u_prev, (N, 1)), np.zeros(N)
+        else:
+            Xb = np.r_[pr.x0, self.X[2:], self.X[-1]]
+            Ub = np.vstack([self.U[1:], self.U[-1:]])
+            Sb = np.r_[self.S[1:], self.S[-1]]
+        z0 = np.r_[Xb, Ub.ravel(), Sb]
+        par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
+        kw = {}
+        if self.lam_g is not None:
+            kw["lam_g0"] = self.lam_g
+        sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg, **kw)
+        st = self.solver.stats()
+        self.iterations = int(st.get("iter_count", 0))
+        if not st.get("success", False):
+            raise _SolverFailure(f"ipopt: {st.get('return_status')}")
+        z = np.asarray(sol["x"]).ravel()
+        self.lam_g = np.asarray(sol["lam_g"]).ravel()
+        self.X = z[:N + 1]
+        self.U = np.clip(z[N + 1:N + 1 + 3 * N].reshape(N, 3), 0.0, 1.0)
+        self.S = z[N + 1 + 3 * N:]
+        return self.X, self.U
+
+
+def _csc_with_perm(rows, cols, n, m=None):
+    """CSC matrix with the given pattern and the permutation from entry order to CSC data order."""
+    m = n if m is None else m
+    nnz = len(rows)
+    M = sp.csc_matrix((np.arange(1, nnz + 1, dtype=float), (rows, cols)), shape=(m, n))
+    M.sort_indices()
+    if M.nnz != nnz:
+        raise RuntimeError("QP pattern has duplicate entries")
+    perm = M.data.astype(int) - 1
+    M.data = np.ones(nnz) * 1e-12
+    return M, perm

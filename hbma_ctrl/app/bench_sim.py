@@ -1,0 +1,249 @@
+"""Simulator speed/accuracy benchmark over the SPEC 7 protocol (``hbma-ctrl bench sim``).
+
+For each fixed-step integrator (euler, rk4) x step size x fidelity of the loaded trials
+('quasi_static', 'platform'; the 0 g trials always run 'free'), the wall time of the whole
+protocol and the NRMSD (SPEC 7 eq. 16, ``rms(y_hat - y) / (y_max - y_min)``, y the reference)
+of height and pressure per trial, against the adaptive implicit reference ('radau', same
+fidelity), interpolated on the reference's log times. Trials whose reference is constant (a load
+that never lifts: height stays 0) have no height NRMSD and are left out of its mean and max.
+
+The reference is cached in the output directory (``ref_<fidelity>.npz``), keyed by the trials,
+the reference settings and a hash of the model sources; it is reused when all of these match.
+Wall times exclude the one-off casadi Function construction (a short warm-up run per setting)
+and are medians over ``repeat`` runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core.materials import Material, make_material
+from hbma_ctrl.sim.batch import fidelity_for, protocol_trials, simulate_trials
+from hbma_ctrl.sim.trial import DEFAULT_DT, InputSchedule, SimSettings, Trial
+
+__all__ = ["BenchRow", "GRID", "QUICK_GRID", "TARGET_WALL_S", "TARGET_NRMSD", "run_bench", "reference",
+           "bench_trials"]
+
+#: fixed steps (ms) per loaded fidelity and integrator; the platform model is stiffer (a light
+#: platform on a stiff gas spring), so its steps are smaller
+GRID = {
+    "quasi_static": {"euler": (0.5, 1.0, 2.0), "rk4": (2.0, 5.0, 10.0)},
+    "platform": {"euler": (0.05, 0.1, 0.2), "rk4": (0.25, 0.5, 1.0)},
+}
+QUICK_GRID = {
+    "quasi_static": {"euler": (1.0,), "rk4": (5.0,)},
+    "platform": {"euler": (0.1,), "rk4": (0.5,)},
+}
+TARGET_WALL_S = 10.0
+TARGET_NRMSD = 0.005
+REF_RTOL = 1e-8
+LOG_DT = 0.01
+#: the sources whose change invalidates a cached reference (paths below the package root)
+_MODEL_SOURCES = ("core/physics.py", "models/fidelity.py", "sim/simulate.py", "sim/trial.py", "core/materials.py",
+                  "core/params.py")
+
+
+@dataclass
+class BenchRow:
+    """One setting's result. dt_ms None = the simulator's default steps per fidelity.
+
+    wall_s: median wall time of the whole protocol (s); cpu_s: median CPU time of this process and
+    its worker processes (s; unlike the wall time, not inflated by other load on the machine);
+    *_nrmsd_mean/max over trials (-);
+    default: the setting ``hbma-ctrl protocol`` uses; meets_target: wall <= TARGET_WALL_S, max
+    height and pressure NRMSD <= TARGET_NRMSD and no trial diverged.
+    """
+
+    integrator: str
+    fidelity: str
+    dt_ms: float | None
+    dt_free_ms: float
+    dt_loaded_ms: float
+    wall_s: float
+    cpu_s: float
+    wall_runs: list
+    n_trials: int
+    n_diverged: int
+    height_nrmsd_mean: float
+    height_nrmsd_max: float
+    pressure_nrmsd_mean: float
+    pressure_nrmsd_max: float
+    default: bool = False
+    meets_target: bool = False
+
+
+def bench_trials(material: Material, quick: bool) -> list[Trial]:
+    """All 150 protocol trials, or a representative subset of 8 for ``--quick``."""
+    if quick:
+        return protocol_trials(material, loads_g=[0.0, 400.0], speeds_pct=[40.0, 100.0], t0_mm=[3.0],
+                               r1_mm=[7.5, 12.5])
+    return protocol_trials(material)
+
+
+def _model_hash() -> str:
+    h = hashlib.sha256()
+    here = Path(__file__).parent.parent
+    for name in _MODEL_SOURCES:
+        h.update((here / name).read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _ref_key(trials: list[Trial], fidelity: str) -> str:
+    spec = [repr(t) for t in trials] + [fidelity, str(REF_RTOL), str(LOG_DT), _model_hash()]
+    for p in {str(t.pneumatics.csv_path) for t in trials}:
+        spec.append(hashlib.sha256(Path(p).read_bytes()).hexdigest())
+    return hashlib.sha256("\n".join(spec).encode()).hexdigest()[:20]
+
+
+def reference(trials: list[Trial], fidelity: str, out_dir: Path, workers: int = 1,
+              progress: bool = False) -> dict[str, dict[str, np.ndarray]]:
+    """Radau reference (t, h, p per trial name), cached in out_dir/ref_<fidelity>.npz."""
+    path = out_dir / f"ref_{fidelity}.npz"
+    key = _ref_key(trials, fidelity)
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) == key:
+                return {n: {"t": z[f"{n}/t"], "h": z[f"{n}/h"], "p": z[f"{n}/p"]} for n in z["names"]}
+    s = SimSettings(integrator="radau", log_dt=LOG_DT, rtol=REF_RTOL, atol=1e-8)
+    t0 = time.perf_counter()
+    logs = simulate_trials(trials, s, fidelity, workers, progress, label=f"reference radau ({fidelity})")
+    wall = time.perf_counter() - t0
+    bad = [log.name for log in logs if log.status == "diverged"]
+    if bad:
+        raise RuntimeError(f"reference ({fidelity}) diverged for {bad}: no benchmark against it")
+    ref = {log.name: {"t": log["t"], "h": log["h"], "p": log["p"]} for log in logs}
+    arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall)}
+    for n, d in ref.items():
+        for k, v in d.items():
+            arrays[f"{n}/{k}"] = v
+    out_dir.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
+    return ref
+
+
+def _cpu() -> float:
+    """CPU seconds of this process plus its finished children (the worker processes)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def _warm_up(trials: list[Trial], settings: SimSettings, fidelity: str) -> None:
+    """Build the casadi step Functions once (a short run of one trial per fidelity group)."""
+
+    seen = {}
+    for tr in trials:
+        seen.setdefault(fidelity_for(tr, fidelity), tr)
+    short = [Trial(tr.actuator, tr.pneumatics, tr.platform, InputSchedule(((0.0, 1.0, 1.0, 0.0),)), 0.05, tr.name)
+             for tr in seen.values()]
+    simulate_trials(short, settings, fidelity)
+
+
+def _score(logs, ref) -> dict:
+    hs, ps = [], []
+    for log in logs:
+        r = ref[log.name]
+        for key, acc in (("h", hs), ("p", ps)):
+            y_hat = np.interp(r["t"], log["t"], log[key])
+            acc.append(nrmsd(y_hat, r[key]))
+    hs, ps = np.array(hs), np.array(ps)
+
+    def agg(a, f):
+        a = a[np.isfinite(a)] if np.isfinite(a).any() else a
+        return float(f(a)) if a.size else float("nan")
+
+    return {"height_nrmsd_mean": agg(hs, np.mean), "height_nrmsd_max": agg(hs, np.max),
+            "pressure_nrmsd_mean": agg(ps, np.mean), "pressure_nrmsd_max": agg(ps, np.max)}
+
+
+def _settings_list(grid: dict) -> list[tuple[str, str, float | None]]:
+    """(fidelity, integrator, dt_ms or None) rows; the default (rk4, None) first per fidelity.
+
+    An explicit row identical to the default one (same steps for free and loaded trials) is
+    dropped, and the default row takes its place.
+    """
+    out = []
+    for fid, per in grid.items():
+        d_free, d_load = DEFAULT_DT[("rk4", "free")] * 1e3, DEFAULT_DT[("rk4", fid)] * 1e3
+        out.append((fid, "rk4", None))
+        for integ, dts in per.items():
+            for dt in dts:
+                if integ == "rk4" and np.isclose(dt, d_free) and np.isclose(dt, d_load):
+                    continue
+                out.append((fid, integ, dt))
+    return out
+
+
+def run_bench(out_dir: Path | str = "runs/bench_sim", quick: bool = False, workers: int = 1, repeat: int = 1,
+              material: str | Material = "nh", grid: dict | None = None, progress: bool = True,
+              on_row=None) -> list[BenchRow]:
+    """Run the benchmark; writes bench.json and bench.csv into out_dir and returns the rows.
+
+    ``on_row(row)`` is called after each setting (e.g. to print progress).
+    """
+    if repeat < 1:
+        raise ValueError(f"repeat = {repeat} is out of range [1, inf)")
+    if workers < 1:
+        raise ValueError(f"workers = {workers} is out of range [1, inf)")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mat = make_material(material) if isinstance(material, str) else material
+    trials = bench_trials(mat, quick)
+    grid = grid or (QUICK_GRID if quick else GRID)
+    refs = {}
+    t_ref = {}
+    for fid in grid:
+        t0 = time.perf_counter()
+        refs[fid] = reference(trials, fid, out, workers, progress)
+        t_ref[fid] = time.perf_counter() - t0
+    rows = []
+    for fid, integ, dt_ms in _settings_list(grid):
+        s = SimSettings(integrator=integ, dt=None if dt_ms is None else dt_ms * 1e-3, log_dt=LOG_DT)
+        _warm_up(trials, s, fid)
+        walls, cpus = [], []
+        for _ in range(repeat):
+            c0, t0 = _cpu(), time.perf_counter()
+            logs = simulate_trials(trials, s, fid, workers)
+            walls.append(time.perf_counter() - t0)
+            cpus.append(_cpu() - c0)
+        score = _score(logs, refs[fid])
+        row = BenchRow(integ, fid, dt_ms, s.step_for("free") * 1e3, s.step_for(fid) * 1e3, statistics.median(walls),
+                       statistics.median(cpus), walls, len(trials), sum(log.status == "diverged" for log in logs), **score,
+                       default=(integ == "rk4" and dt_ms is None and fid == "quasi_static"))
+        row.meets_target = bool(row.wall_s <= TARGET_WALL_S and row.n_diverged == 0
+                                and row.height_nrmsd_max <= TARGET_NRMSD and row.pressure_nrmsd_max <= TARGET_NRMSD)
+        rows.append(row)
+        if on_row:
+            on_row(row)
+    meta = {"quick": quick, "workers": workers, "repeat": repeat, "material": mat.name, "n_trials": len(trials),
+            "reference": {"integrator": "radau", "rtol": REF_RTOL, "log_dt_s": LOG_DT,
+                          "wall_s_incl_cache": t_ref},
+            "target": {"wall_s": TARGET_WALL_S, "nrmsd_max": TARGET_NRMSD},
+            "default_fidelity_auto": "free for 0 g, quasi_static for loaded trials"}
+    (out / "bench.json").write_text(json.dumps({"meta": meta, "rows": [_json_row(r) for r in rows]}, indent=2) + "\n")
+    with open(out / "bench.csv", "w", newline="") as fh:
+        keys = [k for k in asdict(rows[0]) if k != "wall_runs"] if rows else []
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        for r in rows:
+            d = asdict(r)
+            d.pop("wall_runs")
+            w.writerow(d)
+    return rows
+
+
+def _json_row(r: BenchRow) -> dict:
+    d = asdict(r)
+    for k, v in d.items():
+        if isinstance(v, float) and not np.isfinite(v):
+            d[k] = None
+    return d

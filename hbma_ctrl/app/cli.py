@@ -1,0 +1,322 @@
+"""Command line: ``hbma-ctrl`` (typer). Parses, runs and reports; the work happens in the library.
+
+Commands: ``run FILE``, ``protocol`` (also what a bare ``hbma-ctrl`` runs, with defaults),
+``equilibrium``, ``plots``, ``bench sim``; other parts register theirs through
+``register(app, bench_app)`` in ``estimators.cli``, ``controllers.cli`` and ``hbma_ctrl.robot_cli``.
+
+Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
+exits with code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+from typer.core import TyperGroup
+
+try:  # typer >= 0.24 vendors click as typer._click; older typer uses click itself
+    from typer._click import exceptions as _cx
+except ImportError:  # pragma: no cover
+    from click import exceptions as _cx
+
+from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
+from hbma_ctrl.app.cli_controllers import register as register_controllers
+from hbma_ctrl.app.cli_estimators import register as register_estimators
+from hbma_ctrl.app.cli_robot import register as register_robot
+from hbma_ctrl.app.plots import equilibrium_grid, paper_figures
+from hbma_ctrl.app.protocol import run_protocol
+from hbma_ctrl.app.runner import run_scenario
+from hbma_ctrl.app.scenario import load_scenario
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.materials import MATERIALS, make_material
+from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.sim.batch import FIDELITY_CHOICES
+from hbma_ctrl.sim.trial import INTEGRATORS
+
+__all__ = ["app", "bench_app"]
+
+
+
+class _OneLineErrors(TyperGroup):
+    """Top-level group: bad input and usage errors become one 'error: ...' line and exit code 2."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        try:
+            rv = super().main(args=args, prog_name=prog_name, complete_var=complete_var,
+                              standalone_mode=False, **extra)
+        except _cx.NoArgsIsHelpError:  # a group called bare: its help was printed, nothing failed
+            sys.exit(0)
+        except _cx.ClickException as exc:  # usage errors (exit code 2) and other CLI errors
+            _fail(exc.format_message(), exc.exit_code)
+        except typer.Abort:
+            _fail("aborted", 1)
+        except (ValueError, FileNotFoundError) as exc:
+            _fail(str(exc), 2)
+        code = rv if isinstance(rv, int) else 0
+        if standalone_mode:
+            sys.exit(code)
+        return rv
+
+
+def _fail(message: str, code: int = 2):
+    text = " ".join(str(message).split())  # one line
+    typer.echo(f"error: {text}", err=True)
+    sys.exit(code)
+
+
+app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=False, pretty_exceptions_enable=False,
+                  help="Model, observe and control Hyperelastic Ballooning Membrane Actuators (HBMA). "
+                       "Without a command: run the SPEC 7 protocol with defaults into ./runs/protocol.")
+bench_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchmarks (speed and accuracy).")
+app.add_typer(bench_app, name="bench")
+
+
+def _console(min_width: int = 0) -> Console:
+    con = Console(highlight=False)
+    if not con.is_terminal and con.width < min_width:  # piped to a log file: do not squeeze tables
+        con = Console(highlight=False, width=min_width)
+    return con
+
+
+def _choice(name: str, value: str, allowed) -> str:
+    if value not in allowed:
+        hint = did_you_mean(value, list(allowed))
+        raise ValueError(f"{name} = '{value}'{hint}; allowed: {', '.join(allowed)}")
+    return value
+
+
+def _range(name: str, value: float | None, lo: float, hi: float, lo_open: bool = False, unit: str = ""):
+    if value is None:
+        return None
+    ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
+    if not ok:
+        raise ValueError(f"{name} = {value:g} is out of range {'(' if lo_open else '['}{lo:g}, {hi:g}] {unit}".rstrip())
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+@app.callback(invoke_without_command=True)
+def _main(ctx: typer.Context) -> None:
+    """Without a command: the main job, the default protocol into ./runs/protocol."""
+    if ctx.invoked_subcommand is None:
+        protocol()
+
+
+@app.command()
+def run(
+    file: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="output directory (default runs/<name>)")] = None,
+) -> None:
+    """Run a scenario file: writes metrics.json, the log CSV(s) and plots into --out."""
+
+    scn = load_scenario(file)
+    out_dir = out or Path("runs") / scn.name
+    t0 = time.perf_counter()
+    metrics = run_scenario(scn, out_dir)
+    con = _console()
+    table = Table(title=f"{scn.name} ({scn.kind}) -> {out_dir}", show_header=True)
+    table.add_column("role")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for role, vals in metrics.items():
+        if role == "scenario" or not isinstance(vals, dict):
+            continue
+        for k, v in vals.items():
+            table.add_row(role, k, _fmt(v))
+    con.print(table)
+    con.print(f"wrote {out_dir / 'metrics.json'} in {time.perf_counter() - t0:.1f} s")
+
+
+def _fmt(v, width: int = 60) -> str:
+    """Compact cell text; long or nested values point to metrics.json."""
+    if isinstance(v, float):
+        text = f"{v:.4g}"
+    elif isinstance(v, dict):
+        text = ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items())
+    elif isinstance(v, (list, tuple)):
+        if any(isinstance(x, (dict, list, tuple)) for x in v):
+            return f"{len(v)} entries (see metrics.json)"
+        text = "[" + ", ".join(_fmt(x) for x in v) + "]"
+    else:
+        text = str(v)
+    return text if len(text) <= width else text[: width - 25] + "... (see metrics.json)"
+
+
+@app.command()
+def protocol(
+    material: Annotated[str, typer.Option(help="nh | mr | yeoh | gent | ogden")] = "nh",
+    out: Annotated[Path, typer.Option("--out", "-o", help="output directory")] = Path("runs/protocol"),
+    workers: Annotated[int, typer.Option(help="worker processes (each simulates a chunk of trials)")] = 1,
+    integrator: Annotated[str, typer.Option(help="euler | rk4 | radau (reference, slow)")] = "rk4",
+    dt_ms: Annotated[Optional[float], typer.Option("--dt-ms", help="fixed step, ms (default per fidelity)")] = None,
+    fidelity: Annotated[str, typer.Option(help="auto | quasi_static | platform (0 g trials: free)")] = "auto",
+    t_inflate_s: Annotated[float, typer.Option("--t-inflate-s", help="inflation time, s")] = 3.0,
+    duration_s: Annotated[float, typer.Option("--duration-s", help="trial duration, s")] = 6.0,
+    no_plots: Annotated[bool, typer.Option("--no-plots", help="skip fig6/fig7/fig9")] = False,
+) -> None:
+    """Simulate SPEC 7's 150-trial protocol: DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
+
+    _choice("--material", material, MATERIALS)
+    _choice("--integrator", integrator, INTEGRATORS)
+    _choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
+    _range("--workers", workers, 1, 256)
+    _range("--dt-ms", dt_ms, 0.0, 100.0, lo_open=True, unit="ms")
+    _range("--duration-s", duration_s, 0.0, 3600.0, lo_open=True, unit="s")
+    _range("--t-inflate-s", t_inflate_s, 0.0, duration_s, lo_open=True, unit="s")
+    if t_inflate_s >= duration_s:
+        raise ValueError(f"--t-inflate-s = {t_inflate_s:g} must be below --duration-s = {duration_s:g}")
+    con = _console()
+    t0 = time.perf_counter()
+    rows = run_protocol(material, out, integrator, None if dt_ms is None else dt_ms * 1e-3, fidelity, workers,
+                        t_inflate_s=t_inflate_s, duration_s=duration_s, plots=not no_plots, progress=True)
+    wall = time.perf_counter() - t0
+    counts: dict = {}
+    for r in rows:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    table = Table(title=f"protocol ({material}, {integrator}, fidelity {fidelity})")
+    for c in ("trials", "status", "max height (mm)", "max pressure (kPa)", "wall (s)"):
+        table.add_column(c, justify="right")
+    table.add_row(str(len(rows)), ", ".join(f"{k} {v}" for k, v in counts.items()),
+                  f"{max(r['max_height_mm'] for r in rows):.2f}", f"{max(r['max_pressure_kpa'] for r in rows):.2f}",
+                  f"{wall:.1f}")
+    con.print(table)
+    con.print(f"wrote {out / 'summary.csv'}, {out / 'trials'}/*.csv" + ("" if no_plots else ", fig6/fig7/fig9.png"))
+
+
+def _parse_params(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"--param '{item}': expected NAME=VALUE (SI), e.g. E=130.6e3 or C=2e4,-200,10")
+        name, val = item.split("=", 1)
+        try:
+            nums = [float(x) for x in val.split(",")]
+        except ValueError:
+            raise ValueError(f"--param {name}: '{val}' is not a number (or comma-separated numbers)") from None
+        out[name.strip()] = nums[0] if len(nums) == 1 else tuple(nums)
+    return out
+
+
+def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, h2_mm: float,
+                       params: dict | None = None, V0_cm3: float = 3.0) -> dict:
+    """Equilibrium of one shape (edge units in and out): pressure, force, load, stretch, volume."""
+
+    _range("--r1-mm", r1_mm, 0.5, 100.0, lo_open=True, unit="mm")
+    _range("--t0-mm", t0_mm, 0.05, 20.0, lo_open=True, unit="mm")
+    _range("--V0-cm3", V0_cm3, 0.001, 1000.0, unit="cm^3")
+    _range("--h1-mm", h1_mm, 0.0, 20 * r1_mm, unit="mm")
+    if not (math.isfinite(h2_mm) and 0.0 <= h2_mm <= h1_mm):
+        raise ValueError(f"--h2-mm = {h2_mm:g} is out of range [0, h1-mm = {h1_mm:g}] mm (need 0 <= h2 <= h1)")
+    mat = make_material(material, **(params or {}))
+    res = {k: float(v[0]) for k, v in equilibrium_grid(mat, U.mm(r1_mm), U.mm(t0_mm), np.array([U.mm(h1_mm)]),
+                                                         np.array([U.mm(h2_mm)]), U.cm3(V0_cm3)).items()}
+    if res["lam"] >= mat.lam_max():
+        raise ValueError(f"--h1-mm/--h2-mm: stretch {res['lam']:.3f} is beyond the {mat.name} locking stretch "
+                         f"{mat.lam_max():.3f}")
+    return {
+        "material": mat.name,
+        "params_si": {k: (list(v) if isinstance(v, tuple) else v) for k, v in mat.as_dict().items()},
+        "r1_mm": r1_mm, "t0_mm": t0_mm, "V0_cm3": V0_cm3, "h1_mm": h1_mm, "h2_mm": h2_mm,
+        "h_mm": h1_mm - h2_mm,
+        "pressure_kpa": U.to_kpa(res["p"]),
+        "force_n": res["F"],
+        "load_g": U.to_grams(res["F"] / U.G_STD),
+        "stretch": res["lam"],
+        "volume_cm3": U.to_cm3(res["V"]),
+        "contact_radius_mm": U.to_mm(math.sqrt(max(res["a2"], 0.0))),
+    }
+
+
+@app.command()
+def equilibrium(
+    h1_mm: Annotated[float, typer.Option("--h1-mm", help="virtual cap height h1, mm")],
+    h2_mm: Annotated[float, typer.Option("--h2-mm", help="cut height h2 (contact), mm; 0 = free")] = 0.0,
+    material: Annotated[str, typer.Option(help="nh | mr | yeoh | gent | ogden")] = "nh",
+    r1_mm: Annotated[float, typer.Option("--r1-mm", help="retaining radius r1, mm")] = 7.5,
+    t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = 3.0,
+    V0_cm3: Annotated[float, typer.Option("--V0-cm3", help="dead volume, cm^3")] = 3.0,
+    param: Annotated[Optional[list[str]], typer.Option("--param", help="material parameter NAME=VALUE (SI), repeatable")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+) -> None:
+    """Equilibrium pressure, contact force (and load F/g), stretch and volume of one shape (h1, h2)."""
+    res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, _parse_params(param or []), V0_cm3)
+    if as_json:
+        typer.echo(json.dumps(res))
+        return
+    table = Table(title=f"{res['material']}: r1 {r1_mm:g}, t0 {t0_mm:g}, h1 {h1_mm:g}, h2 {h2_mm:g} mm",
+                  show_header=False)
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    for key, label in (("h_mm", "height h (mm)"), ("pressure_kpa", "pressure (kPa)"), ("force_n", "force (N)"),
+                       ("load_g", "load F/g (g)"), ("stretch", "stretch lambda"), ("volume_cm3", "volume (cm^3)"),
+                       ("contact_radius_mm", "contact radius a (mm)")):
+        table.add_row(label, f"{res[key]:.4f}")
+    _console().print(table)
+
+
+@app.command()
+def plots(
+    out: Annotated[Path, typer.Option("--out", "-o", help="output directory")] = Path("runs/plots"),
+    material: Annotated[str, typer.Option(help="material of the fig 7 / fig 9 simulations")] = "nh",
+    fidelity: Annotated[str, typer.Option(help="auto | quasi_static | platform")] = "auto",
+) -> None:
+    """Paper figures fig6.png (equilibrium surfaces), fig7.png and fig9.png (simulated) into --out."""
+
+    _choice("--material", material, MATERIALS)
+    _choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
+    paths = paper_figures(out, material, fidelity=fidelity)
+    _console().print("wrote " + ", ".join(str(p) for p in paths))
+
+
+@bench_app.command("sim")
+def bench_sim(
+    quick: Annotated[bool, typer.Option("--quick", help="8 trials and one step per integrator: a fast check")] = False,
+    workers: Annotated[int, typer.Option(help="worker processes for the reference and each run")] = 1,
+    out: Annotated[Path, typer.Option("--out", "-o", help="output dir (reference cache, bench.json/csv)")] = Path("runs/bench_sim"),
+    repeat: Annotated[int, typer.Option(help="timed runs per setting (median reported)")] = 1,
+    material: Annotated[str, typer.Option(help="membrane material")] = "nh",
+) -> None:
+    """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference."""
+
+    _choice("--material", material, MATERIALS)
+    _range("--workers", workers, 1, 256)
+    _range("--repeat", repeat, 1, 100)
+    con = _console(160)
+
+    def show(row):
+        con.print(f"  {row.fidelity:12s} {row.integrator:5s} dt {_dt_text(row):>14s}  wall {row.wall_s:7.2f} s  "
+                  f"cpu {row.cpu_s:7.2f} s  "
+                  f"NRMSD h {row.height_nrmsd_max:.2e} p {row.pressure_nrmsd_max:.2e} (max)")
+
+    rows = run_bench(out, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show)
+    table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
+                        f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
+    for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean", "h NRMSD max",
+              "p NRMSD mean", "p NRMSD max", "target"):
+        table.add_column(c, justify="right", no_wrap=True)
+    for r in rows:
+        table.add_row(r.fidelity, r.integrator, _dt_text(r) + (" *" if r.default else ""), f"{r.wall_s:.2f}",
+                      f"{r.cpu_s:.2f}", str(r.n_diverged), f"{r.height_nrmsd_mean:.2e}", f"{r.height_nrmsd_max:.2e}",
+                      f"{r.pressure_nrmsd_mean:.2e}", f"{r.pressure_nrmsd_max:.2e}", "yes" if r.meets_target else "no")
+    con.print(table)
+    con.print("* the setting `hbma-ctrl protocol` uses by default (fidelity auto: free for 0 g, quasi_static loaded)")
+    con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}")
+
+
+def _dt_text(row) -> str:
+    if row.dt_ms is None:
+        return f"default {row.dt_free_ms:g}/{row.dt_loaded_ms:g}"
+    return f"{row.dt_ms:g}"
+
+
+for _register in (register_estimators, register_controllers, register_robot):
+    _register(app, bench_app)

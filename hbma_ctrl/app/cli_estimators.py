@@ -1,0 +1,141 @@
+"""CLI hook of the estimators: ``hbma-ctrl bench ekf`` and ``hbma-ctrl observability``.
+
+Registered by :mod:`hbma_ctrl.cli` through ``register(app, bench_app)``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from estimators.common import FilterSettings
+from estimators.observability import OBS_SCALE, WINDOW_S, run
+from hbma_ctrl.app.evaluate import _open_loop, aggregate, make_filter, run_and_score
+from hbma_ctrl.core.params import Actuator, Platform
+from hbma_ctrl.sim.batch import protocol_trials
+from hbma_ctrl.sim.rig import RigSettings, simulate_rig
+
+__all__ = ["register", "bench_ekf"]
+
+#: the bench's default protocol subset (edge units): both filters see the same rig runs
+BENCH_GRID = {"loads_g": [0.0, 400.0, 800.0], "speeds_pct": [40.0, 100.0], "t0_mm": [3.0], "r1_mm": [7.5, 12.5]}
+
+
+def _floats(name: str, text: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"--{name} = '{text}' must be comma-separated numbers") from None
+    if not vals:
+        raise ValueError(f"--{name} must not be empty")
+    return vals
+
+
+def bench_ekf(grid: dict, filters=("ekf", "ukf"), seed: int = 0) -> dict:
+    """Run the filters on the same rig runs (serially, so timings are not shared with workers).
+
+    Returns {"settings": ..., "filters": {kind: {accuracy and timing}}}; timings are wall time per
+    predict+update of one chamber on this machine (median, p90, max, microseconds).
+    """
+
+
+    trials = protocol_trials("nh", platform=Platform(own_mass=0.02), **grid)
+    rig = RigSettings(seed=seed)
+    fs = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range, noise_std=rig.noise_std)
+    recs = simulate_rig(trials, rig)
+    ol = _open_loop(trials, rig.sample_period)
+    out = {"settings": {"grid": grid, "n_trials": len(trials), "rig": "default RigSettings (modulus x1.15, "
+                        "flow x0.9, V0 x1.2, 0.2 kPa noise, 35 kPa range, 10 ms)"}, "filters": {}}
+    for kind in filters:
+        make_filter(kind, trials[0], fs)  # compile/load outside the timing
+        results, steps = [], []
+        t0 = time.perf_counter()
+        for tr, rec, h_ol in zip(trials, recs, ol):
+            r = run_and_score(kind, tr, rec, fs, h_ol)
+            results.append(r)
+            steps.append(r.step_s[1:])
+        wall = time.perf_counter() - t0
+        st = np.concatenate(steps) * 1e6
+        agg = aggregate(results)
+        agg.update({"step_us_median": float(np.median(st)), "step_us_p90": float(np.percentile(st, 90)),
+                    "step_us_max": float(st.max()), "steps": int(st.size), "wall_s": wall})
+        out["filters"][kind] = agg
+    return out
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``bench ekf`` and ``observability`` (called by :mod:`hbma_ctrl.cli`)."""
+
+    @bench_app.command("ekf")
+    def bench_ekf_cmd(
+        loads_g: Annotated[str, typer.Option(help="comma-separated loads, g")] = "0,400,800",
+        speeds_pct: Annotated[str, typer.Option(help="comma-separated compressor speeds, %")] = "40,100",
+        t0_mm: Annotated[str, typer.Option(help="comma-separated membrane thicknesses, mm")] = "3",
+        r1_mm: Annotated[str, typer.Option(help="comma-separated retaining radii, mm")] = "7.5,12.5",
+        seed: Annotated[int, typer.Option(help="rig noise seed")] = 0,
+        out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_ekf.json")] = Path("runs/bench_ekf"),
+    ) -> None:
+        """EKF vs UKF on the same rig runs: us per predict+update (median) and accuracy."""
+
+        grid = {"loads_g": _floats("loads-g", loads_g), "speeds_pct": _floats("speeds-pct", speeds_pct),
+                "t0_mm": _floats("t0-mm", t0_mm), "r1_mm": _floats("r1-mm", r1_mm)}
+        if not 0 <= seed <= 2**31:
+            raise ValueError(f"--seed = {seed} is out of range [0, 2^31]")
+        res = bench_ekf(grid, seed=seed)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "bench_ekf.json").write_text(json.dumps(res, indent=1))
+        t = Table(title=f"bench ekf: {res['settings']['n_trials']} rig trials (mismatched rig); "
+                        "us = wall time per chamber-step on this machine")
+        cols = [("us median", "step_us_median", "{:.0f}"), ("us p90", "step_us_p90", "{:.0f}"),
+                ("height NRMSD", "height_nrmsd", "{:.3f}"), ("worst", "height_nrmsd_max", "{:.3f}"),
+                ("open loop", "height_nrmsd_open_loop", "{:.3f}"), ("F rmse N", "force_rmse_n", "{:.3f}"),
+                ("F steady err", "force_steady_rel_err_mean", "{:.3f}"), ("NEES", "nees_mean", "{:.2f}"),
+                ("NIS", "nis_mean", "{:.2f}")]
+        t.add_column("filter")
+        for c in cols:
+            t.add_column(c[0], justify="right")
+        for kind, a in res["filters"].items():
+            t.add_row(kind, *[(c[2].format(a[c[1]]) if a.get(c[1]) is not None else "-") for c in cols])
+        con = Console(highlight=False, width=150)
+        con.print(t)
+        con.print(f"wrote {out / 'bench_ekf.json'}")
+
+    @app.command("observability")
+    def observability_cmd(
+        out: Annotated[Path, typer.Option("--out", "-o", help="output dir for observability.json")] = Path("runs/observability"),
+        r1_mm: Annotated[Optional[float], typer.Option(help="retaining radius, mm (default 12.5)")] = None,
+        t0_mm: Annotated[Optional[float], typer.Option(help="membrane thickness, mm (default 3)")] = None,
+    ) -> None:
+        """Rank/condition of the linearised observability matrix along free, contact and resting runs."""
+
+
+
+        act = Actuator()
+        kw = {}
+        if r1_mm is not None:
+            kw["r1"] = r1_mm * 1e-3
+        if t0_mm is not None:
+            kw["t0"] = t0_mm * 1e-3
+        act = act.with_(**kw) if kw else act
+        summ = run(out, act)
+        t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {act.r1 * 1e3:g} mm, "
+                        f"t0 {act.t0 * 1e3:g} mm); window = up to {WINDOW_S:g} s in one regime, "
+                        f"resolution {OBS_SCALE.tolist()}")
+        for c in ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",
+                  "window rank (med/min/max)"):
+            t.add_column(c, justify="right" if c != "trajectory" else "left")
+        for r in summ:
+            t.add_row(r["trajectory"], r["regime"], str(r["samples"]),
+                      f"{r['rank_median']:g}/{r['rank_min']}/{r['rank_max']}",
+                      f"{r['cond_median']:.2g}" if r["cond_median"] is not None else "inf",
+                      f"{r['window_rank_median']:g}/{r['window_rank_min']}/{r['window_rank_max']}")
+        con = Console(highlight=False, width=150)
+        con.print(t)
+        con.print(f"wrote {out / 'observability.json'}")

@@ -1,0 +1,224 @@
+"""Run estimators against the rig over open-loop trials and score them (SI inside).
+
+For each trial: the rig (:func:`hbma_ctrl.rig.simulate_rig`, mismatched, platform fidelity, noisy
+saturating sensor) gives the readings and the truth; the nominal model run open loop with the same
+commands and the true load (:func:`hbma_ctrl.simulate.simulate`, the paper's model) gives the
+open-loop baseline; the filter runs on the readings and the commands only.
+
+Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-loop model (SPEC 7
+eq. 16 against the rig's true height), pressure NRMSD of the filter's pressure, RMSE of the contact
+force, the steady-contact force error relative to the true load (mean over the last second of
+inflation while in contact), NEES of (h, F) and NIS (means over the run), the median wall time of
+a step. :func:`aggregate` turns them into the ``"estimator"`` metrics object: means over the
+trials, the worst trial (``height_ratio_to_open_loop_max``, ``worst_ratio_trial``) and, per
+protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`hbma_ctrl.protocol.
+scenario_of`), ``n_scenarios``, ``scenarios_at_half_open_loop`` and
+``scenario_ratio_to_open_loop_max`` / ``worst_ratio_scenario``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from estimators.common import FilterSettings
+from estimators.ekf import EKF
+from estimators.ukf import UKF
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.sim.batch import scenario_of
+from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
+from hbma_ctrl.sim.simulate import simulate
+from hbma_ctrl.sim.trial import SimSettings, Trial
+
+__all__ = ["TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
+           "FILTERS", "NEES_FLOOR"]
+
+FILTERS = ("ekf", "ukf")
+#: variance floors of (h, F) in the NEES, m^2 and N^2 (a flat membrane's h = 0 is exactly known)
+NEES_FLOOR = np.array([(0.05e-3) ** 2, 0.02 ** 2])
+
+
+def make_filter(kind: str, trial: Trial, settings: FilterSettings):
+    """An EKF or UKF for the trial's nominal actuator and pneumatics (and, with
+    ``settings.load_prior == 'nominal'``, the trial's nominal load as the initial load guess)."""
+    if settings.load_prior == "nominal":
+        W = trial.platform.weight
+        settings = replace(settings, load_init=W, load_init_std=settings.load_prior_rel_std * W + 0.01)
+    if kind == "ekf":
+        return EKF(trial.actuator, trial.pneumatics, settings)
+    if kind == "ukf":
+        return UKF(trial.actuator, trial.pneumatics, settings)
+    raise ValueError(f"estimator.filter = '{kind}': allowed {', '.join(FILTERS)}")
+
+
+@dataclass
+class TrialResult:
+    """Series (SI) and scores of one filter run on one rig trial."""
+
+    name: str
+    t: np.ndarray
+    est: dict
+    truth: dict
+    meas: np.ndarray
+    open_loop_h: np.ndarray | None
+    nees: np.ndarray
+    nis: np.ndarray
+    step_s: np.ndarray
+    flags: list
+    scores: dict = field(default_factory=dict)
+
+
+def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings,
+               init: tuple | None = None, start: int = 0) -> TrialResult:
+    """Run a filter over a rig record from sample ``start``; ``init`` = (mean, cov) at that sample."""
+    f = make_filter(kind, trial, settings)
+    K = len(rec.t)
+    keys = ("h1", "h2", "h", "F", "p", "W", "b", "k", "c", "std_h", "std_F")
+    est = {k: np.full(K, np.nan) for k in keys}
+    nees = np.full(K, np.nan)
+    nis = np.full(K, np.nan)
+    step_s = np.full(K, np.nan)
+    flags: list = [frozenset()] * K
+    if init is not None:
+        f.reset(rec.t[start], init[0], init[1])
+    for k in range(start, K):
+        u = Command(*rec.u[k - 1]) if k > 0 else Command(0.0, 0.0, 0.0)
+        e = f.step(float(rec.t[k]), rec.meas[k], u)
+        step_s[k] = f.last_step_s
+        for name in ("h1", "h2", "h", "F", "p"):
+            est[name][k] = getattr(e, name)
+        est["W"][k] = e.mean[1]
+        est["b"][k] = e.mean[2]
+        est["k"][k] = e.mean[3]
+        est["c"][k] = e.mean[4]
+        est["std_h"][k] = e.std["h"]
+        est["std_F"][k] = e.std["F"]
+        flags[k] = e.flags
+        C = f.last_output_cov[2:4, 2:4] + np.diag(NEES_FLOOR)
+        err = np.array([e.h - rec.truth["h"][k], e.F - rec.truth["F"][k]])
+        nees[k] = float(err @ np.linalg.solve(C, err))
+        if f.last_nis is not None:
+            nis[k] = f.last_nis
+    return TrialResult(trial.name, rec.t, est, rec.truth, rec.meas, None, nees, nis, step_s, flags)
+
+
+def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
+    """Scores of one run (see module docstring); series compared from sample ``start`` on."""
+    sl = slice(start, None)
+    h, ht = res.est["h"][sl], res.truth["h"][sl]
+    out = {
+        "height_nrmsd": nrmsd(h, ht),
+        "height_nrmsd_open_loop": nrmsd(res.open_loop_h[sl], ht) if res.open_loop_h is not None else float("nan"),
+        "pressure_nrmsd": nrmsd(res.est["p"][sl], res.truth["p"][sl]),
+        "force_rmse_n": float(np.sqrt(np.nanmean((res.est["F"][sl] - res.truth["F"][sl]) ** 2))),
+        "nees_mean": float(np.nanmean(res.nees[sl])),
+        "nis_mean": float(np.nanmean(res.nis[sl])) if np.any(np.isfinite(res.nis[sl])) else float("nan"),
+        "step_us_median": float(np.nanmedian(res.step_s[sl]) * 1e6),
+        "height_rmse_mm": float(np.sqrt(np.mean((h - ht) ** 2)) * 1e3),
+    }
+    W = trial.platform.weight
+    t_inf = trial.schedule.times[1] if len(trial.schedule.times) > 1 else trial.duration
+    win = (res.t >= t_inf - 1.0) & (res.t < t_inf) & (res.truth["h"] > 0.5e-3)
+    win[:start] = False
+    if W > 0 and win.sum() >= 10:
+        out["force_steady_rel_err"] = float(abs(np.mean(res.est["F"][win]) - W) / W)
+    else:
+        out["force_steady_rel_err"] = float("nan")
+    return out
+
+
+def run_and_score(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings,
+                  open_loop_h: np.ndarray) -> TrialResult:
+    """Run a filter over a rig record and score it against the truth and the open-loop height."""
+    r = run_filter(kind, trial, rec, settings)
+    n = min(len(open_loop_h), len(rec.t))
+    r.open_loop_h = np.full(len(rec.t), np.nan)
+    r.open_loop_h[:n] = open_loop_h[:n]
+    r.scores = score(r, trial)
+    r.scores["rig_status"] = rec.status
+    return r
+
+
+def _open_loop(trials: list[Trial], dt: float) -> list[np.ndarray]:
+    logs = simulate(trials, SimSettings(integrator="rk4", log_dt=dt))
+    return [lg["h"] for lg in logs]
+
+
+def _chunk(args) -> list[TrialResult]:
+    kind, trials, rig, fs, with_series, ids = args
+    recs = simulate_rig(trials, rig, ids)
+    ol = _open_loop(trials, rig.sample_period)
+    out = []
+    for tr, rec, h_ol in zip(trials, recs, ol):
+        r = run_and_score(kind, tr, rec, fs, h_ol)
+        if not with_series:
+            r.est, r.meas, r.nees, r.nis, r.step_s, r.flags = {}, np.zeros(0), r.nees[:0], r.nis[:0], \
+                r.step_s[:0], []
+            r.truth = {}
+        out.append(r)
+    return out
+
+
+def evaluate_trials(trials: list[Trial], kind: str = "ekf", rig: RigSettings | None = None,
+                    settings: FilterSettings | None = None, workers: int = 1,
+                    with_series: bool = True) -> list[TrialResult]:
+    """Rig + open-loop model + filter over trials (chunks of trials per worker process)."""
+    rig = (rig or RigSettings()).validate()
+    fs = (settings or FilterSettings()).validate()
+    workers = max(1, min(int(workers), len(trials), os.cpu_count() or 1))
+    if workers == 1:
+        return _chunk((kind, trials, rig, fs, with_series, None))
+    # interleave so each chunk has a mix of loaded and unloaded trials (balanced cost)
+    chunks = [trials[i::workers] for i in range(workers)]
+    order = [list(range(len(trials)))[i::workers] for i in range(workers)]
+    res: list = [None] * len(trials)
+    with ProcessPoolExecutor(max_workers=workers) as ex:
+        for idx, part in zip(order, ex.map(_chunk, [(kind, c, rig, fs, with_series, o)
+                                                          for c, o in zip(chunks, order)])):
+            for i, r in zip(idx, part):
+                res[i] = r
+    return res
+
+
+def aggregate(results: list[TrialResult]) -> dict:
+    """The metrics.json ``"estimator"`` object: means over trials, worst cases, counts."""
+    keys = ("height_nrmsd", "height_nrmsd_open_loop", "pressure_nrmsd", "force_rmse_n", "nees_mean",
+            "nis_mean", "step_us_median", "height_rmse_mm")
+    S = {k: np.array([r.scores[k] for r in results], dtype=float) for k in keys}
+    out = {k: float(np.nanmean(v)) for k, v in S.items()}
+    ratio = S["height_nrmsd"] / S["height_nrmsd_open_loop"]
+    fse = np.array([r.scores["force_steady_rel_err"] for r in results], dtype=float)
+    # per scenario (the protocol's t0 x r1 x load cell, mean over speeds and seeds; trials whose
+    # membrane never lifts have no NRMSD and are left out)
+    cells: dict = {}
+    for r, e, o in zip(results, S["height_nrmsd"], S["height_nrmsd_open_loop"]):
+        if math.isfinite(e) and math.isfinite(o):
+            cells.setdefault(scenario_of(r.name), []).append((e, o))
+    cell_ratio = {c: float(np.mean([e for e, _ in v]) / np.mean([o for _, o in v])) for c, v in cells.items()}
+    worst_cell = max(cell_ratio, key=cell_ratio.get) if cell_ratio else None
+    out.update({
+        "n_trials": len(results),
+        "n_scenarios": len(cell_ratio),
+        "scenarios_at_half_open_loop": int(sum(v <= 0.5 for v in cell_ratio.values())),
+        "scenario_ratio_to_open_loop_max": cell_ratio[worst_cell] if worst_cell else float("nan"),
+        "worst_ratio_scenario": worst_cell,
+        "height_nrmsd_max": float(np.nanmax(S["height_nrmsd"])),
+        "height_nrmsd_open_loop_max": float(np.nanmax(S["height_nrmsd_open_loop"])),
+        "height_ratio_to_open_loop_max": float(np.nanmax(ratio)),
+        "worst_ratio_trial": results[int(np.nanargmax(ratio))].name if np.any(np.isfinite(ratio)) else None,
+        "force_steady_rel_err_mean": float(np.nanmean(fse)) if np.any(np.isfinite(fse)) else float("nan"),
+        "force_steady_rel_err_max": float(np.nanmax(fse)) if np.any(np.isfinite(fse)) else float("nan"),
+        "rig_status": {s: sum(r.scores["rig_status"] == s for r in results)
+                       for s in sorted({r.scores["rig_status"] for r in results})},
+    })
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}
+
+
+def with_settings(fs: FilterSettings, **kw) -> FilterSettings:
+    """A copy of filter settings with some fields replaced (validated)."""
+    return replace(fs, **kw).validate()

@@ -1,0 +1,165 @@
+"""Metrics and edge-unit outputs of a run: NRMSD (SPEC 7 eq. 16), plant metrics, metrics.json.
+
+Output convention (every CSV this package writes for users): edge units, with the unit in the
+column name (``t_s``, ``h_mm``, ``p_kpa``, ``F_n``, ``V_cm3``, ``q_mg_per_s``, ...), see
+:data:`EDGE_COLUMNS`. Inside, everything stays SI.
+
+metrics.json holds one object per role under stable keys (:data:`ROLE_KEYS`): "scenario" (what
+ran), "plant" (open loop), "estimator", "controller", "robot" (filled by their owners' scenes).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from hbma_ctrl.sim.trial import Log
+
+__all__ = ["EDGE_COLUMNS", "ROLE_KEYS", "nrmsd", "plant_metrics", "merge_metrics", "write_metrics",
+           "write_log_csv", "edge_series"]
+
+#: SI log column -> (edge column name, factor)
+EDGE_COLUMNS = {
+    "t": ("t_s", 1.0),
+    "speed": ("speed_pct", 100.0),
+    "inlet": ("inlet_duty", 1.0),
+    "outlet": ("outlet_duty", 1.0),
+    "h1": ("h1_mm", 1e3),
+    "h2": ("h2_mm", 1e3),
+    "h": ("h_mm", 1e3),
+    "p": ("p_kpa", 1e-3),
+    "F": ("F_n", 1.0),
+    "q": ("q_mg_per_s", 1e6),
+    "q_in": ("q_in_mg_per_s", 1e6),
+    "q_out": ("q_out_mg_per_s", 1e6),
+    "lam": ("stretch", 1.0),
+    "V": ("V_cm3", 1e6),
+    "m": ("m_mg", 1e6),
+    "det": ("det_si", 1.0),
+    "mode": ("mode", 1.0),
+    "mass_in": ("mass_in_mg", 1e6),
+}
+
+ROLE_KEYS = ("scenario", "plant", "estimator", "controller", "robot")
+
+
+def nrmsd(y_hat: np.ndarray, y: np.ndarray) -> float:
+    """SPEC 7 eq. 16: sqrt(mean((y_hat - y)^2)) / (max(y) - min(y)), y the reference.
+
+    NaN when the reference is constant (the ratio is undefined) or the inputs are empty.
+    """
+    y_hat, y = np.asarray(y_hat, float), np.asarray(y, float)
+    if y.size == 0 or y_hat.shape != y.shape:
+        raise ValueError(f"nrmsd: need two series of the same non-zero length, got {y_hat.shape} and {y.shape}")
+    span = float(y.max() - y.min())
+    if not span > 0:
+        return float("nan")
+    return float(np.sqrt(np.mean((y_hat - y) ** 2)) / span)
+
+
+def edge_series(log: Log) -> dict[str, np.ndarray]:
+    """The log's columns in edge units, keyed by their edge names (unknown columns kept as is)."""
+    out = {}
+    for k, v in log.data.items():
+        name, f = EDGE_COLUMNS.get(k, (k, 1.0))
+        out[name] = np.asarray(v, float) * f
+    return out
+
+
+def write_log_csv(log: Log, path: Path | str) -> None:
+    """Write a log as CSV in edge units (unit in each column name) plus an 'event' column."""
+    cols = edge_series(log)
+    t = log.data["t"]
+    ev: dict[int, str] = {}
+    for te, name in log.events:
+        i = int(np.argmin(np.abs(t - te)))
+        ev[i] = f"{ev[i]};{name}" if i in ev else name
+    keys = list(cols)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(keys + ["event"])
+        for i in range(len(t)):
+            w.writerow([f"{cols[k][i]:.9g}" for k in keys] + [ev.get(i, "")])
+
+
+def plant_metrics(logs: list[Log]) -> dict:
+    """Open-loop metrics of one or more logs (edge units): peaks, status, event counts, wall time.
+
+    mass_balance_rel: max |m - m0 - mass_in| / max(m) over the run (the integrator's mass
+    conservation; ~1e-12 for a consistent scheme).
+    """
+    if not logs:
+        raise ValueError("plant_metrics: no logs")
+    events = Counter(name.split(":")[0] for log in logs for _, name in log.events)
+    status = Counter(log.status for log in logs)
+    bal = []
+    for log in logs:
+        m = log["m"]
+        if m.size:
+            bal.append(float(np.max(np.abs(m - m[0] - log["mass_in"])) / max(float(np.max(np.abs(m))), 1e-30)))
+    out = {
+        "n_trials": len(logs),
+        "fidelity": sorted({log.fidelity for log in logs}),
+        "status": logs[0].status if len(logs) == 1 else dict(status),
+        "max_height_mm": float(max(log["h"].max() for log in logs) * 1e3),
+        "max_pressure_kpa": float(max(log["p"].max() for log in logs) * 1e-3),
+        "max_force_n": float(max(log["F"].max() for log in logs)),
+        "final_height_mm": float(logs[0]["h"][-1] * 1e3) if len(logs) == 1 else None,
+        "events": dict(events),
+        "wall_s": float(sum(log.wall_s for log in logs)),
+        "mass_balance_rel": max(bal) if bal else None,
+    }
+    if len(logs) == 1:
+        out["fidelity"] = logs[0].fidelity
+    else:
+        out.pop("final_height_mm")
+    return out
+
+
+def _clean(obj):
+    """JSON-safe copy: numpy scalars to Python, non-finite floats to None."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def merge_metrics(*parts: dict) -> dict:
+    """Merge role dicts into one metrics object; a role key given twice is merged key by key.
+
+    Top-level keys must be role keys (:data:`ROLE_KEYS`) so that consumers can rely on them.
+    """
+    out: dict = {}
+    for part in parts:
+        if not part:
+            continue
+        if not isinstance(part, dict):
+            raise ValueError(f"metrics: a role must return a dict, got {type(part).__name__}")
+        for key, val in part.items():
+            if key not in ROLE_KEYS:
+                raise ValueError(f"metrics: unknown role key '{key}'; allowed: {', '.join(ROLE_KEYS)}")
+            if key in out and isinstance(out[key], dict) and isinstance(val, dict):
+                out[key] = {**out[key], **val}
+            else:
+                out[key] = val
+    return {k: out[k] for k in ROLE_KEYS if k in out}
+
+
+def write_metrics(metrics: dict, path: Path | str) -> None:
+    """Write metrics.json (sorted role order, NaN/inf as null)."""
+    Path(path).write_text(json.dumps(_clean(metrics), indent=2) + "\n")

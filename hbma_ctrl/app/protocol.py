@@ -1,0 +1,90 @@
+"""The characterisation protocol of SPEC 7: 150 inflate/vent trials, simulated in batches.
+
+Grid: loads 0, 200, 400, 600, 800 g x compressor speeds 20, 40, 60, 80, 100 % x membrane thickness
+t0 2, 3 mm x retaining radius r1 7.5, 10, 12.5 mm. Each trial pumps at its speed with the inlet open
+for ``t_inflate_s`` (default 3 s), then stops the pump, closes the inlet and opens the outlet until
+``duration_s`` (default 6 s).
+
+Fidelity: ``"auto"`` gives each trial its default (``Trial.default_fidelity``: 'free' for 0 g, the
+paper's 'quasi_static' otherwise); 'quasi_static' or 'platform' apply to the loaded trials, the 0 g
+trials always use 'free' (fewest states). Trials of one fidelity run as one batch
+(:func:`hbma_ctrl.simulate.simulate`); with ``workers > 1`` each worker process simulates one
+chunk of the trials (not one trial), so batching is kept.
+
+Outputs of :func:`run_protocol` in ``out_dir``: ``summary.csv`` (one row per trial, columns
+:data:`SUMMARY_COLUMNS`; ``wall_s`` is the trial's share of its batch's wall time, i.e. batch wall
+time / batch size, or the trial's own time with the one-at-a-time 'radau'), ``trials/<name>.csv`` (time series in edge units, unit in each column
+name, see :func:`hbma_ctrl.metrics.write_log_csv`) and, unless disabled, fig6/fig7/fig9 PNGs.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from hbma_ctrl.app.metrics import write_log_csv
+from hbma_ctrl.app.plots import protocol_figures
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.materials import Material, make_material
+from hbma_ctrl.sim.batch import progress_bar, protocol_trials, simulate_trials
+from hbma_ctrl.sim.trial import Log, SimSettings, Trial
+
+__all__ = ["SUMMARY_COLUMNS", "summary_row", "write_summary", "run_protocol"]
+
+SUMMARY_COLUMNS = ("thickness_mm", "radius_mm", "load_g", "speed_pct", "status", "max_height_mm",
+                   "max_pressure_kpa", "wall_s")
+
+
+def summary_row(trial: Trial, log: Log) -> dict:
+    """One summary.csv row (edge units) for a protocol trial and its log."""
+    return {
+        "thickness_mm": round(U.to_mm(trial.actuator.t0), 6),
+        "radius_mm": round(U.to_mm(trial.actuator.r1), 6),
+        "load_g": round(U.to_grams(trial.platform.load), 6),
+        "speed_pct": round(U.to_pct(float(trial.schedule.rows[0][1])), 6),
+        "status": log.status,
+        "max_height_mm": float(U.to_mm(log["h"].max())),
+        "max_pressure_kpa": float(U.to_kpa(log["p"].max())),
+        "wall_s": float(log.wall_s),
+    }
+
+
+def write_summary(rows: list[dict], path: Path | str) -> None:
+    """Write summary rows as CSV with exactly :data:`SUMMARY_COLUMNS`."""
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=SUMMARY_COLUMNS)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]) for k in SUMMARY_COLUMNS})
+
+
+def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/protocol", integrator: str = "rk4",
+                 dt: float | None = None, fidelity: str = "auto", workers: int = 1, *,
+                 t_inflate_s: float | None = None, duration_s: float | None = None,
+                 trials: list[Trial] | None = None, plots: bool = True, progress: bool = False,
+                 log_dt: float = 0.01) -> list[dict]:
+    """Simulate the protocol and write summary.csv, trials/*.csv and (``plots``) fig6/7/9 PNGs.
+
+    dt is the fixed step in s (None = the default per integrator and fidelity); ``trials``
+    replaces the SPEC 7 grid (e.g. a subset). Returns the summary rows (edge units).
+    """
+
+    settings = SimSettings(integrator=integrator, dt=dt, log_dt=log_dt).validate()
+    if trials is None:
+        trials = protocol_trials(material, t_inflate_s=t_inflate_s, duration_s=duration_s)
+    out = Path(out_dir)
+    (out / "trials").mkdir(parents=True, exist_ok=True)
+    logs = simulate_trials(trials, settings, fidelity, workers, progress)
+    rows = [summary_row(tr, log) for tr, log in zip(trials, logs)]
+    write_summary(rows, out / "summary.csv")
+    with progress_bar(progress) as bar:
+        task = bar.add_task("writing trials/*.csv", total=len(trials)) if bar else None
+        for log in logs:
+            write_log_csv(log, out / "trials" / f"{log.name}.csv")
+            if bar:
+                bar.advance(task)
+    if plots:
+
+        mat = make_material(material) if isinstance(material, str) else material
+        protocol_figures(out, mat, trials, logs, settings, fidelity)
+    return rows

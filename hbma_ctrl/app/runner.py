@@ -1,0 +1,96 @@
+"""Run a loaded scenario: open loop here, closed-loop roles dispatched to their owners' scenes.
+
+Dispatch (first match): a [robot] section -> ``hbma_ctrl.robot.run_scene``; [controller] ->
+``controllers.scene.run_scene``; [estimator] -> ``estimators.scene.run_scene``; otherwise the
+open-loop plant. Each scene returns a dict of role metrics; the runner merges them under stable
+role keys into ``out_dir/metrics.json`` (see :mod:`hbma_ctrl.metrics`). Open loop also writes
+``log.csv`` (edge units) and ``run.png`` for a single trial, or the protocol outputs
+(:func:`hbma_ctrl.protocol.run_protocol`) for kind "protocol".
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from hbma_ctrl.app.metrics import (
+    merge_metrics,
+    plant_metrics,
+    write_log_csv,
+    write_metrics,
+)
+from hbma_ctrl.app.plots import plot_run
+from hbma_ctrl.app.protocol import run_protocol
+from hbma_ctrl.app.scenario import Scenario
+from hbma_ctrl.app.scene_controller import run_scene as run_controller_scene
+from hbma_ctrl.app.scene_estimator import run_scene as run_estimator_scene
+from hbma_ctrl.app.scene_robot import run_scene as run_robot_scene
+from hbma_ctrl.sim.batch import fidelity_for, simulate_trials
+
+__all__ = ["run_scenario", "run_open_loop", "SCENE_DISPATCH"]
+
+#: role section -> the function running the whole scene; checked in this order
+SCENE_DISPATCH = (
+    ("robot", run_robot_scene),
+    ("controller", run_controller_scene),
+    ("estimator", run_estimator_scene),
+)
+
+
+def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
+    """Simulate the scenario's trial(s) open loop; write log CSV(s) and plots; return {"plant": ...}."""
+
+    t0 = time.perf_counter()
+    if scn.kind == "protocol":
+        trials = scn.trials()
+        rows = run_protocol(scn.actuator.material, out_dir, scn.sim.integrator, scn.sim.dt, scn.fidelity,
+                            trials=trials, plots=True, log_dt=scn.sim.log_dt)
+        statuses: dict = {}
+        for r in rows:
+            statuses[r["status"]] = statuses.get(r["status"], 0) + 1
+        plant = {
+            "n_trials": len(rows),
+            "status": statuses,
+            "max_height_mm": max(r["max_height_mm"] for r in rows),
+            "max_pressure_kpa": max(r["max_pressure_kpa"] for r in rows),
+            "summary_csv": "summary.csv",
+        }
+    else:
+        trial = scn.trials()[0]
+        fid = fidelity_for(trial, scn.fidelity)
+        (log,) = simulate_trials([trial], scn.sim, fid)
+        write_log_csv(log, out_dir / "log.csv")
+        plot_run(log, out_dir / "run.png", title=f"{scn.name}: {log.fidelity}, {scn.sim.integrator}, "
+                 f"status {log.status}", sensor_range=scn.sim.sensor_range)
+        plant = plant_metrics([log])
+        plant["log_csv"] = "log.csv"
+        plant["plot_png"] = "run.png"
+    plant["integrator"] = scn.sim.integrator
+    if scn.sim.integrator == "radau":
+        plant["dt_ms"] = None  # adaptive
+    elif scn.kind == "single":
+        plant["dt_ms"] = scn.sim.step_for(plant["fidelity"]) * 1e3
+    else:
+        plant["dt_ms"] = scn.sim.dt * 1e3 if scn.sim.dt is not None else "default per fidelity"
+    plant["wall_s"] = time.perf_counter() - t0
+    return {"plant": plant}
+
+
+def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:
+    """Run a scenario into out_dir (created); returns the merged metrics written to metrics.json."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    head = {"scenario": {"name": scn.name, "kind": scn.kind, "path": str(scn.path) if scn.path else None,
+                         "fidelity": scn.fidelity, "integrator": scn.sim.integrator,
+                         "roles": sorted(scn.sections)}}
+    for section, run in SCENE_DISPATCH:
+        if section in scn.sections:
+            t0 = time.perf_counter()
+            parts = run(scn, out)
+            head["scenario"]["wall_s"] = time.perf_counter() - t0
+            metrics = merge_metrics(head, parts)
+            break
+    else:
+        metrics = merge_metrics(head, run_open_loop(scn, out))
+    write_metrics(metrics, out / "metrics.json")
+    return metrics

@@ -1,0 +1,567 @@
+"""Closed-loop scenes: rig -> estimator (EKF) -> controller -> rig, the [controller] scenario section.
+
+``[controller]`` keys (edge units: mm, kPa, ms, g, s):
+
+==========================  ====================================================================
+kind                        "mpc" (default), "pid" or "bang_bang"
+variant                     MPC: "rti_osqp" (default) or "ipopt"
+horizon                     MPC horizon N (default 20)
+sample_ms                   controller period, ms (default 20; a multiple of the rig's period)
+p_max_kpa                   pressure limit, kPa (default 35)
+p_margin_kpa                MPC: keep the predicted pressure this far below p_max (default 1)
+lam_max                     MPC: stretch limit (default 1.5)
+h_max_mm                    MPC: height bound (default 20)
+integrator, substeps        MPC discretisation ("rk4" / "euler")
+w_height, w_terminal        MPC weights on the height error (per mm^2)
+w_rate, w_input, c_input    MPC weights [speed, inlet, outlet]
+budget_ms                   wall-clock budget of one MPC step (default 15)
+codegen                     MPC: compile the RTI linearisation to C (default true)
+fail_window_s               [t0, t1]: every MPC solve in this window is treated as failed (drill)
+kp, ki, kd                  PID gains in 1/mm, 1/(mm s), s/mm
+band_kpa                    bang-bang hysteresis half-band, kPa
+targets_mm                  [[t_s, h_mm], ...] target heights from t_s on (required)
+interpolation               "step" (default) or "linear" (ramps between the points)
+sine_amplitude_mm, sine_period_s, sine_start_s   a sinusoid added to the targets
+load_steps_g                [[t_s, mass_g], ...]: set the rig's load to mass_g at t_s
+settle_band_mm              settling band for the step metrics (default 0.3)
+preview                     give the MPC the future targets over its horizon (default: for
+                            ramps and sines; steps come unannounced, as an operator's would)
+==========================  ====================================================================
+
+``run_scene`` writes ``closed_loop.csv`` (edge units) and ``closed_loop.png`` (target, truth and
+estimate of the height; pressure with its limit; the three commands) and returns
+``{"controller": {...}}`` with height_rmse_mm, max_pressure_kpa, pressure_limit_kpa,
+solve_ms_median/p99/max, fallbacks and the settling results per target step.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from controllers.baselines import (
+    BangBangController,
+    BangBangSettings,
+    PIDController,
+    PIDSettings,
+)
+from controllers.mpc import NMPC
+from controllers.mpc_settings import MPCSettings
+from estimators.ekf import EKF, EKFSettings
+from estimators.ukf import UKF
+from hbma_ctrl.app.evaluate import NEES_FLOOR
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core.interfaces import Command, Reference
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.fidelity import make_fidelity
+from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.sim.rig import Rig, RigSettings
+from hbma_ctrl.sim.simulate import Plant
+
+__all__ = ["ReferenceProfile", "ControllerSection", "parse_section", "make_controller", "closed_loop",
+           "ClosedLoopLog", "loop_metrics", "run_scene", "plot_closed_loop", "KINDS"]
+
+KINDS = ("mpc", "pid", "bang_bang")
+
+
+@dataclass
+class ReferenceProfile:
+    """Target height over time (SI): piecewise points, optional sinusoid on top.
+
+    points : ((t_s, h_m), ...) sorted by time; before the first point the first height holds.
+    interpolation : 'step' (hold each target from its time on) or 'linear' (ramps).
+    sine_amplitude, sine_period, sine_start : a sinusoid (m, s, s) added from sine_start on.
+    """
+
+    points: tuple = ((0.0, 2e-3),)
+    interpolation: str = "step"
+    sine_amplitude: float = 0.0
+    sine_period: float = 1.0
+    sine_start: float = 0.0
+
+    def validate(self) -> "ReferenceProfile":
+        if not self.points:
+            raise ValueError("controller.targets_mm must have at least one [t_s, h_mm] pair")
+        ts = [p[0] for p in self.points]
+        if any(b < a for a, b in zip(ts, ts[1:])):
+            raise ValueError("controller.targets_mm: times must be non-decreasing")
+        for t, h in self.points:
+            check_range("controller", "targets_mm time", t, 0.0, 1e5, "s")
+            check_range("controller", "targets_mm height", h, 0.0, 0.2, "m")
+        if self.interpolation not in ("step", "linear"):
+            raise ValueError(f"controller.interpolation = '{self.interpolation}': allowed step, linear")
+        check_range("controller", "sine_amplitude", self.sine_amplitude, 0.0, 0.1, "m")
+        check_range("controller", "sine_period", self.sine_period, 0.0, 1e4, "s", lo_open=True)
+        check_range("controller", "sine_start", self.sine_start, 0.0, 1e5, "s")
+        return self
+
+    def __call__(self, t: float) -> float:
+        ts = np.array([p[0] for p in self.points])
+        hs = np.array([p[1] for p in self.points])
+        if self.interpolation == "step":
+            i = max(int(np.searchsorted(ts, t, side="right")) - 1, 0)
+            h = float(hs[i])
+        else:
+            h = float(np.interp(t, ts, hs))
+        if self.sine_amplitude > 0 and t >= self.sine_start:
+            h += self.sine_amplitude * np.sin(2 * np.pi * (t - self.sine_start) / self.sine_period)
+        return max(h, 0.0)
+
+    def step_segments(self, duration: float) -> list[tuple[float, float, float]]:
+        """(t_start, t_end, target) of each constant-target segment ('step' profiles, no sine)."""
+        if self.interpolation != "step" or self.sine_amplitude > 0:
+            return []
+        pts = list(self.points)
+        out = []
+        for i, (t, h) in enumerate(pts):
+            t_end = pts[i + 1][0] if i + 1 < len(pts) else duration
+            if t_end > t:
+                out.append((t, min(t_end, duration), h))
+        return out
+
+
+@dataclass
+class ControllerSection:
+    """Parsed [controller] section: which controller, its settings, the targets and load steps.
+
+    Fields
+    ------
+    kind : 'mpc' | 'pid' | 'bang_bang': which controller runs.
+    mpc, pid, bang_bang : the settings of each (only the chosen one is used).
+    reference : the height target profile (steps, ramps, sines), m.
+    load_steps : ((t s, load mass kg), ...) put on the rig during the run.
+    preview : pass the future targets to the MPC; None = only for ramps and sines.
+    settle_band : band for the settling report, m (0.3 mm).
+    """
+
+    kind: str = "mpc"
+    mpc: MPCSettings = field(default_factory=MPCSettings)
+    pid: PIDSettings = field(default_factory=PIDSettings)
+    bang_bang: BangBangSettings = field(default_factory=BangBangSettings)
+    reference: ReferenceProfile = field(default_factory=ReferenceProfile)
+    load_steps: tuple = ()  # ((t_s, mass_kg), ...)
+    preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
+    settle_band: float = 0.3e-3
+
+    @property
+    def sample_period(self) -> float:
+        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].sample_period
+
+    @property
+    def p_max(self) -> float:
+        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].p_max
+
+
+# key -> (target, field, factor); target in {"mpc", "pid", "bb", "all", "sec"}
+_KEYS = {
+    "kind": ("sec", "kind", None),
+    "variant": ("mpc", "variant", None),
+    "horizon": ("mpc", "horizon", "int"),
+    "sample_ms": ("all", "sample_period", 1e-3),
+    "p_max_kpa": ("all", "p_max", 1e3),
+    "p_margin_kpa": ("mpc", "p_margin", 1e3),
+    "guard_margin_kpa": ("all", "guard_margin", 1e3),
+    "lam_max": ("mpc", "lam_max", 1.0),
+    "h_max_mm": ("mpc", "h_max", 1e-3),
+    "integrator": ("mpc", "integrator", None),
+    "substeps": ("mpc", "substeps", "int"),
+    "w_height": ("mpc", "w_height", 1.0),
+    "w_terminal": ("mpc", "w_terminal", 1.0),
+    "w_rate": ("mpc", "w_rate", "vec3"),
+    "w_input": ("mpc", "w_input", "vec3"),
+    "c_input": ("mpc", "c_input", "vec3"),
+    "budget_ms": ("mpc", "budget", 1e-3),
+    "codegen": ("mpc", "codegen", "bool"),
+    "fail_window_s": ("mpc", "fail_window", "pair"),
+    "kp": ("pid", "kp", 1e3),
+    "ki": ("pid", "ki", 1e3),
+    "kd": ("pid", "kd", 1e3),
+    "band_kpa": ("bb", "band", 1e3),
+    "targets_mm": ("sec", "targets", None),
+    "interpolation": ("sec", "interpolation", None),
+    "sine_amplitude_mm": ("sec", "sine_amplitude", 1e-3),
+    "sine_period_s": ("sec", "sine_period", 1.0),
+    "sine_start_s": ("sec", "sine_start", 1.0),
+    "load_steps_g": ("sec", "load_steps", None),
+    "settle_band_mm": ("sec", "settle_band", 1e-3),
+    "preview": ("sec", "preview", "bool"),
+}
+
+
+def _num(key: str, v) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ValueError(f"controller.{key} = {v!r} must be a number")
+    return float(v)
+
+
+def _pairs(key: str, v, f0: float, f1: float) -> tuple:
+    if not isinstance(v, (list, tuple)) or not all(isinstance(r, (list, tuple)) and len(r) == 2 for r in v):
+        raise ValueError(f"controller.{key} must be a list of [t_s, value] pairs")
+    return tuple((_num(key, a) * f0, _num(key, b) * f1) for a, b in v)
+
+
+def parse_section(raw: dict) -> ControllerSection:
+    """Scenario ``[controller]`` table (edge units) -> validated :class:`ControllerSection`.
+
+    Unknown keys raise ValueError with the closest valid name; values out of range name the field
+    and the range.
+    """
+    if not isinstance(raw, dict):
+        raise ValueError("[controller] must be a table")
+    mpc, pid, bb, sec = {}, {}, {}, {}
+    for key, val in raw.items():
+        if key not in _KEYS:
+            hint = did_you_mean(key, _KEYS)
+            raise ValueError(f"controller.{key}: unknown key{hint}; allowed: {', '.join(_KEYS)}")
+        target, name, f = _KEYS[key]
+        if f is None:
+            v = val
+        elif f == "int":
+            if isinstance(val, bool) or not isinstance(val, int):
+                raise ValueError(f"controller.{key} = {val!r} must be an integer")
+            v = val
+        elif f == "bool":
+            if not isinstance(val, bool):
+                raise ValueError(f"controller.{key} = {val!r} must be true or false")
+            v = val
+        elif f == "vec3":
+            if not isinstance(val, (list, tuple)) or len(val) != 3:
+                raise ValueError(f"controller.{key} must be [speed, inlet, outlet] (3 numbers)")
+            v = tuple(_num(key, x) for x in val)
+        elif f == "pair":
+            if not isinstance(val, (list, tuple)) or len(val) != 2:
+                raise ValueError(f"controller.{key} must be [t_start_s, t_end_s]")
+            v = tuple(_num(key, x) for x in val)
+        else:
+            v = _num(key, val) * f
+        if target == "all":
+            mpc[name] = v
+            pid[name] = v
+            bb[name] = v
+        else:
+            {"mpc": mpc, "pid": pid, "bb": bb, "sec": sec}[target][name] = v
+    kind = sec.pop("kind", "mpc")
+    if kind not in KINDS:
+        hint = did_you_mean(str(kind), KINDS)
+        raise ValueError(f"controller.kind = '{kind}'{hint}; allowed: {', '.join(KINDS)}")
+    if "targets" not in sec:
+        raise ValueError("controller.targets_mm is required: [[t_s, h_mm], ...]")
+    pts = _pairs("targets_mm", sec.pop("targets"), 1.0, 1e-3)
+    ref = ReferenceProfile(points=pts, interpolation=sec.pop("interpolation", "step"),
+                           sine_amplitude=sec.pop("sine_amplitude", 0.0),
+                           sine_period=sec.pop("sine_period", 1.0),
+                           sine_start=sec.pop("sine_start", 0.0)).validate()
+    loads = _pairs("load_steps_g", sec.pop("load_steps", []), 1.0, 1e-3)
+    for t, m in loads:
+        check_range("controller", "load_steps_g time", t, 0.0, 1e5, "s")
+        check_range("controller", "load_steps_g mass", m, 0.0, 50.0, "kg")
+    preview = sec.pop("preview", None)
+    band = sec.pop("settle_band", 0.3e-3)
+    check_range("controller", "settle_band_mm", band, 0.0, 0.05, "m", lo_open=True)
+    out = ControllerSection(kind=kind, mpc=MPCSettings(**mpc).validate(),
+                            pid=PIDSettings(**{k: v for k, v in pid.items()}).validate(),
+                            bang_bang=BangBangSettings(**bb).validate(), reference=ref,
+                            load_steps=tuple(sorted(loads)), settle_band=band, preview=preview)
+    return out
+
+
+def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
+                    model: PredictionModel | None = None):
+    """The controller the section asks for (NMPC, PIDController or BangBangController)."""
+    if section.kind == "mpc":
+        return NMPC(actuator, pneumatics, section.mpc, model=model)
+    if section.kind == "pid":
+        return PIDController(actuator, pneumatics, section.pid)
+    return BangBangController(actuator, pneumatics, section.bang_bang, model=model)
+
+
+@dataclass
+class ClosedLoopLog:
+    """Closed-loop time series (SI), one row per rig sample."""
+
+    t: np.ndarray
+    target: np.ndarray
+    h_true: np.ndarray
+    h_est: np.ndarray
+    p_true: np.ndarray
+    p_meas: np.ndarray
+    p_est: np.ndarray
+    F_true: np.ndarray
+    F_est: np.ndarray
+    load: np.ndarray  # rig load mass, kg
+    u: np.ndarray  # (n, 3)
+    stats: dict
+    events: list
+    wall_s: float
+    nees: np.ndarray | None = None  # estimator NEES of (h, F) per sample, where it exposes its covariance
+    nis: np.ndarray | None = None  # estimator NIS per sample (NaN where no update)
+    est_step_s: np.ndarray | None = None  # estimator wall time per step, s
+
+
+def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
+    if est_settings is None:
+        est_settings = EKFSettings(sample_period=rig_settings.sample_period,
+                                   noise_std=max(rig_settings.noise_std, 1.0),
+                                   sensor_range=rig_settings.sensor_range)
+    return EKF(actuator, pneumatics, est_settings)
+
+
+def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
+                duration: float, rig_settings=None, estimator=None, controller=None,
+                model: PredictionModel | None = None) -> ClosedLoopLog:
+    """Run rig -> estimator -> controller -> rig for ``duration`` s and log it.
+
+    The rig (:class:`hbma_ctrl.rig.Rig`, mismatched, noisy) is stepped at its sample period, the
+    estimator at every rig sample, the controller every ``section.sample_period`` (a whole number
+    of rig periods). ``estimator`` defaults to the EKF on the nominal model, ``controller`` to the
+    one the section names. An estimator with an ``attach(rig)`` method is handed the rig first
+    (test oracles that read the true state).
+    """
+
+    check_range("closed_loop", "duration", duration, 0.0, 1e5, "s", lo_open=True)
+    rs = rig_settings or RigSettings()
+    rig = Rig(actuator, pneumatics, platform, rs)
+    est = estimator or _default_estimator(actuator, pneumatics, None, rs)
+    if hasattr(est, "attach"):
+        est.attach(rig)  # e.g. a test oracle that reads the rig's true state
+    ctrl = controller or make_controller(section, actuator, pneumatics, model)
+    ratio = section.sample_period / rs.sample_period
+    every = int(round(ratio))
+    if every < 1 or abs(ratio - every) > 1e-6:
+        raise ValueError(f"controller.sample_ms ({section.sample_period * 1e3:g} ms) must be a whole multiple "
+                         f"of the rig's sample period ({rs.sample_period * 1e3:g} ms)")
+    n = int(round(duration / rs.sample_period))
+    # controllers with a horizon get the future targets (a rig daemon knows its trajectory too)
+    use_preview = section.preview if section.preview is not None else (
+        section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
+    preview_n = section.mpc.horizon if getattr(ctrl, "accepts_preview", False) and use_preview else 0
+    cols = {k: np.zeros(n) for k in ("t", "target", "h_true", "h_est", "p_true", "p_meas", "p_est",
+                                     "F_true", "F_est", "load")}
+    U = np.zeros((n, 3))
+    nees, nis, est_s = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+
+    loads = list(section.load_steps)
+    cmd = Command(0.0, 0.0, 0.0)
+    e = None
+    t_wall = time.perf_counter()
+    for k in range(n):
+        t = k * rs.sample_period
+        while loads and loads[0][0] <= t + 1e-9:
+            rig.set_load(loads.pop(0)[1])
+        z = rig.measure()
+        e = est.step(t, z, cmd)
+        r = section.reference(t)
+        if k % every == 0:
+            if preview_n:
+                pv = [section.reference(t + section.sample_period * (j + 1)) for j in range(preview_n)]
+                cmd = ctrl.step(t, e, Reference(r), preview=pv)
+            else:
+                cmd = ctrl.step(t, e, Reference(r))
+        tr = rig.truth()
+        for key, val in (("t", t), ("target", r), ("h_true", tr["h"]), ("h_est", e.h), ("p_true", tr["p"]),
+                         ("p_meas", z), ("p_est", e.p), ("F_true", tr["F"]), ("F_est", e.F),
+                         ("load", rig.platform.load)):
+            cols[key][k] = val
+        U[k] = cmd.as_array()
+        # estimator consistency, where the filter exposes its output covariance (EKF, UKF)
+        C = getattr(est, "last_output_cov", None)
+        if C is not None:
+            err = np.array([e.h - tr["h"], e.F - tr["F"]])
+            nees[k] = float(err @ np.linalg.solve(np.asarray(C)[2:4, 2:4] + np.diag(NEES_FLOOR), err))
+        if getattr(est, "last_nis", None) is not None:
+            nis[k] = est.last_nis
+        if getattr(est, "last_step_s", None) is not None:
+            est_s[k] = est.last_step_s
+        rig.apply(cmd)
+    wall = time.perf_counter() - t_wall
+    return ClosedLoopLog(**cols, u=U, stats=ctrl.stats(), events=list(rig.events), wall_s=wall,
+                         nees=nees, nis=nis, est_step_s=est_s)
+
+
+def estimator_metrics(log: ClosedLoopLog, actuator: Actuator, pneumatics: Pneumatics, platform: Platform,
+                      sample_period: float) -> dict:
+    """The "estimator" metrics object for a closed-loop run (same keys as the estimator scene).
+
+    height_nrmsd_open_loop drives the nominal model (the estimator's own parameters, the initial
+    load, load steps unknown to it) with the commands the controller actually sent.
+    """
+
+    fname = "free" if platform.mass <= 0 else "quasi_static"
+    fid = make_fidelity(fname, actuator.material, pneumatics.csv_path)
+    plant = Plant(fid, fid.space.values(actuator, pneumatics, platform)[:, None], "rk4")
+    h_ol = np.zeros(len(log.t))
+    for k in range(len(log.t)):
+        h_ol[k] = plant.output("h")[0]
+        plant.advance(log.u[k][:, None], sample_period)
+    finite = lambda a: float(a) if a is not None and np.isfinite(a) else None  # noqa: E731
+    return {
+        "height_nrmsd": finite(nrmsd(log.h_est, log.h_true)),
+        "height_nrmsd_open_loop": finite(nrmsd(h_ol, log.h_true)),
+        "pressure_nrmsd": finite(nrmsd(log.p_est, log.p_true)),
+        "force_rmse_n": float(np.sqrt(np.mean((log.F_est - log.F_true) ** 2))),
+        "nees_mean": finite(np.nanmean(log.nees)) if log.nees is not None and np.isfinite(log.nees).any() else None,
+        "nis_mean": finite(np.nanmean(log.nis)) if log.nis is not None and np.isfinite(log.nis).any() else None,
+        "step_us_median": (finite(np.nanmedian(log.est_step_s) * 1e6)
+                           if log.est_step_s is not None and np.isfinite(log.est_step_s).any() else None),
+        "height_rmse_mm": float(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)) * 1e3),
+    }
+
+
+def settle_results(log: ClosedLoopLog, reference: ReferenceProfile, band: float, min_hold: float = 0.2,
+                   which: str = "truth") -> list:
+    """Per constant-target segment: settle time (s after the step; None if never) and final error (mm).
+
+    ``which`` = 'truth' (the rig's height, the real result) or 'estimate' (what the controller sees:
+    the controller's own share of the error, without the estimator's bias).
+    """
+    h_all = log.h_true if which == "truth" else log.h_est
+    out = []
+    for t0, t1, h in reference.step_segments(float(log.t[-1]) + (log.t[1] - log.t[0] if len(log.t) > 1 else 0)):
+        m = (log.t >= t0) & (log.t < t1)
+        if m.sum() < 2:
+            continue
+        tt, err = log.t[m], np.abs(h_all[m] - h)
+        outside = np.nonzero(err > band)[0]
+        if outside.size == 0:
+            ts = 0.0
+        elif outside[-1] + 1 < len(tt):
+            ts = float(tt[outside[-1] + 1] - t0)
+        else:
+            ts = None
+        settled = ts is not None and (t1 - t0 - ts) >= min_hold
+        out.append({"t_step_s": t0, "target_mm": h * 1e3, "settle_time_s": ts, "settled": bool(settled),
+                    "final_error_mm": float((h_all[m][-1] - h) * 1e3)})
+    return out
+
+
+def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
+    """The "controller" metrics object of metrics.json (edge units)."""
+    st = log.stats
+    err = log.h_true - log.target
+    settle = settle_results(log, section.reference, section.settle_band)
+    settle_est = settle_results(log, section.reference, section.settle_band, which="estimate")
+    return {
+        "kind": section.kind,
+        "variant": st.get("variant"),
+        "horizon": st.get("horizon"),
+        "height_rmse_mm": float(np.sqrt(np.mean(err ** 2)) * 1e3),
+        "height_est_rmse_mm": float(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)) * 1e3),
+        "max_pressure_kpa": float(np.max(log.p_true) * 1e-3),
+        "pressure_limit_kpa": section.p_max * 1e-3,
+        "pressure_limit_respected": bool(np.max(log.p_true) <= section.p_max),
+        "solve_ms_median": st["solve_ms_median"],
+        "solve_ms_p99": st["solve_ms_p99"],
+        "solve_ms_max": st["solve_ms_max"],
+        "solve_cpu_ms_median": st.get("solve_cpu_ms_median"),
+        "solve_cpu_ms_p99": st.get("solve_cpu_ms_p99"),
+        "fallbacks": int(st["fallbacks"]),
+        "fallback_detail": st.get("fallback_detail", {}),
+        "guard_activations": st.get("guard_activations", 0),
+        "target_clipped_steps": st.get("target_clipped_steps", 0),
+        "settle_band_mm": section.settle_band * 1e3,
+        "steps_settled": sum(1 for s in settle if s["settled"]),
+        "steps_total": len(settle),
+        "steps_settled_estimate": sum(1 for s in settle_est if s["settled"]),
+        "height_rmse_estimate_mm": float(np.sqrt(np.mean((log.h_est - log.target) ** 2)) * 1e3),
+        "settle": settle,
+        "settle_estimate": settle_est,
+        "wall_s": log.wall_s,
+    }
+
+
+def write_closed_loop_csv(log: ClosedLoopLog, path: Path) -> None:
+    """closed_loop.csv in edge units (s, mm, kPa, N, g, duty)."""
+    with Path(path).open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t_s", "target_mm", "h_true_mm", "h_est_mm", "p_true_kpa", "p_meas_kpa", "p_est_kpa",
+                    "F_true_n", "F_est_n", "load_g", "speed", "inlet", "outlet"])
+        for i in range(len(log.t)):
+            w.writerow([f"{log.t[i]:.4f}", f"{log.target[i] * 1e3:.4f}", f"{log.h_true[i] * 1e3:.4f}",
+                        f"{log.h_est[i] * 1e3:.4f}", f"{log.p_true[i] * 1e-3:.4f}", f"{log.p_meas[i] * 1e-3:.4f}",
+                        f"{log.p_est[i] * 1e-3:.4f}", f"{log.F_true[i]:.4f}", f"{log.F_est[i]:.4f}",
+                        f"{log.load[i] * 1e3:.1f}", f"{log.u[i, 0]:.4f}", f"{log.u[i, 1]:.4f}", f"{log.u[i, 2]:.4f}"])
+
+
+def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: float | None = None) -> None:
+    """Three panels: target/truth/estimate height; pressure (true, measured, estimate, limit); commands."""
+
+    fig = Figure(figsize=(9, 8))
+    ax = fig.subplots(3, 1, sharex=True)
+    ax[0].plot(log.t, log.target * 1e3, "k--", lw=1.2, label="target")
+    ax[0].plot(log.t, log.h_true * 1e3, "C0", lw=1.5, label="truth (rig)")
+    ax[0].plot(log.t, log.h_est * 1e3, "C1", lw=1.0, alpha=0.8, label="estimate (EKF)")
+    ax[0].set_ylabel("height (mm)")
+    ax[0].legend(loc="best", fontsize=8)
+    ax[1].plot(log.t, log.p_meas * 1e-3, ".", color="0.7", ms=2, label="measured")
+    ax[1].plot(log.t, log.p_true * 1e-3, "C0", lw=1.5, label="truth")
+    ax[1].plot(log.t, log.p_est * 1e-3, "C1", lw=1.0, label="estimate")
+    if p_max is not None:
+        ax[1].axhline(p_max * 1e-3, color="r", lw=1, ls=":", label="limit")
+    ax[1].set_ylabel("gauge pressure (kPa)")
+    ax[1].legend(loc="best", fontsize=8)
+    for i, (name, c) in enumerate((("speed", "C2"), ("inlet duty", "C3"), ("outlet duty", "C4"))):
+        ax[2].step(log.t, log.u[:, i], where="post", color=c, lw=1, label=name)
+    ax[2].set_ylabel("command (0-1)")
+    ax[2].set_xlabel("time (s)")
+    ax[2].set_ylim(-0.05, 1.05)
+    ax[2].legend(loc="best", fontsize=8)
+    if title:
+        ax[0].set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def _estimator_from_scenario(scn, rig_settings):
+    """The filter the scenario's [estimator] section names (EKF or UKF, its tuning), or the EKF
+    with the rig's sample period, sensor range and noise when there is no such section."""
+    sec = scn.role("estimator") if hasattr(scn, "role") else None
+    if sec is None:
+        return None  # closed_loop builds the default EKF
+    try:
+        from hbma_ctrl.app.scene_estimator import filter_settings_for
+    except ImportError as exc:
+        raise ValueError(f"[estimator]: needs estimators.scene ({exc})") from None
+    if not hasattr(sec, "filter") or not hasattr(sec, "tuning"):
+        raise ValueError("[estimator]: the parsed section has no 'filter'/'tuning'; cannot build the filter")
+    fs = filter_settings_for(sec, rig_settings)
+    if sec.filter == "ukf":
+
+        return UKF(scn.actuator, scn.pneumatics, fs)
+
+    return EKF(scn.actuator, scn.pneumatics, fs)
+
+
+def run_scene(scn, out_dir: Path | str) -> dict:
+    """Run a scenario with a [controller] section; write CSV + plot; return the "controller" and
+    "estimator" metrics objects (the EKF runs in the loop, so its accuracy is reported too)."""
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    section = scn.role("controller")
+    if section is None:
+        section = parse_section(scn.sections["controller"])
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    est = _estimator_from_scenario(scn, rs)
+    log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, section, scn.duration, rs, estimator=est)
+    write_closed_loop_csv(log, out / "closed_loop.csv")
+    st = log.stats
+    title = (f"{scn.name}: {section.kind} {st.get('variant') or ''} N={st.get('horizon')}, "
+             f"load {scn.platform.load * 1e3:g} g")
+    plot_closed_loop(log, out / "closed_loop.png", title=title, p_max=section.p_max)
+    m = loop_metrics(log, section)
+    m["log_csv"] = "closed_loop.csv"
+    m["plot_png"] = "closed_loop.png"
+    em = estimator_metrics(log, scn.actuator, scn.pneumatics, scn.platform, rs.sample_period)
+    em["filter"] = type(est).__name__ if est is not None else "EKF"
+    return {"controller": m, "estimator": em}
+
+
+def _with(section: ControllerSection, **kw) -> ControllerSection:
+    """A copy of a section with fields replaced (for sweeps)."""
+    return replace(section, **kw)

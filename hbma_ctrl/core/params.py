@@ -1,0 +1,155 @@
+"""Parameter sets (SI units): actuator geometry and gas, pneumatics, platform.
+
+Defaults are the paper's Table I (SPEC 6) and the fig. 7 rig where a value is needed. Every dataclass
+validates itself and names the field and its allowed range when a value is out of it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+from hbma_ctrl.core.materials import Material, NeoHookean
+
+__all__ = ["Actuator", "Valve", "Pneumatics", "Platform", "check_range", "DATA_DIR"]
+
+DATA_DIR = Path(__file__).parent / "data"
+
+
+def check_range(where: str, name: str, value: float, lo: float, hi: float, unit: str = "",
+                lo_open: bool = False) -> None:
+    """Raise ValueError naming ``where.name`` when ``value`` is outside [lo, hi] (or (lo, hi])."""
+    ok = isinstance(value, (int, float)) and math.isfinite(value)
+    if ok:
+        ok = (value > lo if lo_open else value >= lo) and value <= hi
+    if not ok:
+        left = "(" if lo_open else "["
+        raise ValueError(f"{where}.{name} = {value!r} is out of range {left}{lo}, {hi}] {unit}".rstrip())
+
+
+@dataclass(frozen=True)
+class Actuator:
+    """One HBMA: membrane, clamp and gas (SI).
+
+    Fields
+    ------
+    r1 : retaining-disk inner radius, m (fig. 7 rig: 12.5 mm).
+    t0 : initial membrane thickness, m (3 mm).
+    V0 : dead volume in pipe and chamber, m^3 (Table I: 3 cm^3).
+    material : strain-energy model with its parameters (Table I neo-Hookean by default).
+    R : specific gas constant, J/(kg K) (dry air).
+    T : gas temperature, K (isothermal).
+    p_env : ambient absolute pressure, Pa.
+    """
+
+    r1: float = 12.5e-3
+    t0: float = 3e-3
+    V0: float = 3e-6
+    material: Material = field(default_factory=NeoHookean)
+    R: float = 287.058
+    T: float = 293.15
+    p_env: float = 100.0e3
+
+    def validate(self) -> "Actuator":
+        check_range("actuator", "r1", self.r1, 0.5e-3, 0.1, "m", lo_open=True)
+        check_range("actuator", "t0", self.t0, 0.05e-3, 20e-3, "m", lo_open=True)
+        check_range("actuator", "V0", self.V0, 1e-9, 1e-3, "m^3")
+        check_range("actuator", "R", self.R, 1.0, 1e4, "J/(kg K)")
+        check_range("actuator", "T", self.T, 200.0, 400.0, "K")
+        check_range("actuator", "p_env", self.p_env, 10e3, 200e3, "Pa")
+        self.material.validate()
+        return self
+
+    def with_(self, **kw) -> "Actuator":
+        """A copy with some fields replaced (validated)."""
+        return replace(self, **kw).validate()
+
+
+@dataclass(frozen=True)
+class Valve:
+    """A solenoid valve as an ISO 6358 orifice.
+
+    C : sonic conductance, m^3/(s Pa) (1e-10 m^3/(s Pa) = 0.01 l/(s bar)).
+    b : critical pressure ratio (-).
+    laminar_ratio : pressure ratio above which the flow is blended to a laminar (linear) law, so the
+        flow is Lipschitz near zero pressure drop (ISO 6358-3 uses a similar low-drop region).
+    """
+
+    C: float = 2.0e-10
+    b: float = 0.3
+    laminar_ratio: float = 0.995
+
+    def validate(self, where: str = "valve") -> "Valve":
+        check_range(where, "C", self.C, 0.0, 1e-7, "m^3/(s Pa)")
+        check_range(where, "b", self.b, 0.0, 0.99)
+        check_range(where, "laminar_ratio", self.laminar_ratio, 0.9, 0.99999)
+        if self.laminar_ratio <= self.b:
+            raise ValueError(f"{where}.laminar_ratio must exceed b ({self.b})")
+        return self
+
+
+@dataclass(frozen=True)
+class Pneumatics:
+    """Compressor map and valves.
+
+    compressor_csv : table of (speed 0-1, gauge pressure Pa, mass flow kg/s); None = the shipped
+        default ``data/compressor_default.csv`` (an assumption, see that file's header).
+    flow_scale : multiplies the compressor map (1.0 nominal; a rig with a weaker pump: 0.9).
+    inlet, outlet : valves. The inlet duty scales the pump flow (its pressure drop is neglected at
+        these flows); the outlet vents the chamber to ambient.
+    """
+
+    compressor_csv: str | None = None
+    flow_scale: float = 1.0
+    inlet: Valve = field(default_factory=lambda: Valve(C=1.0e-9))
+    outlet: Valve = field(default_factory=Valve)
+
+    def validate(self) -> "Pneumatics":
+        check_range("pneumatics", "flow_scale", self.flow_scale, 0.0, 10.0)
+        self.inlet.validate("pneumatics.inlet")
+        self.outlet.validate("pneumatics.outlet")
+        if self.compressor_csv is not None and not Path(self.compressor_csv).is_file():
+            raise ValueError(f"pneumatics.compressor_csv: no such file '{self.compressor_csv}'")
+        return self
+
+    @property
+    def csv_path(self) -> Path:
+        return Path(self.compressor_csv) if self.compressor_csv else DATA_DIR / "compressor_default.csv"
+
+
+@dataclass(frozen=True)
+class Platform:
+    """The guided platform that carries a dead load (SPEC 7).
+
+    load : load mass, kg (0 = no platform: free inflation).
+    own_mass : platform's own moving mass, kg (added to the load in the dynamic model).
+    damping : viscous damping of the prismatic guide, N s/m (dynamic model only).
+    g : gravity, m/s^2.
+    """
+
+    load: float = 0.0
+    own_mass: float = 0.0
+    damping: float = 20.0
+    g: float = 9.80665
+
+    def validate(self) -> "Platform":
+        check_range("platform", "load", self.load, 0.0, 50.0, "kg")
+        check_range("platform", "own_mass", self.own_mass, 0.0, 50.0, "kg")
+        check_range("platform", "damping", self.damping, 0.0, 1e5, "N s/m")
+        check_range("platform", "g", self.g, 0.0, 100.0, "m/s^2")
+        return self
+
+    @property
+    def weight(self) -> float:
+        """Force the membrane must carry to hold the platform, N."""
+        return (self.load + self.own_mass) * self.g
+
+    @property
+    def mass(self) -> float:
+        return self.load + self.own_mass
+
+
+def dataclass_doc_fields(cls) -> list[str]:
+    """Names of the fields of a settings dataclass (for the doc meta-tests)."""
+    return [f.name for f in fields(cls)]

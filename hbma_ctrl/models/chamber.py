@@ -1,0 +1,282 @@
+"""The estimators' model: the quasi-static HBMA with the load and three factors as states (casadi).
+
+State ``x = [m, W, b, k, c]`` (SI: reduced gas mass kg, load N, pump-flow factor -, modulus factor
+-, dead-volume factor -); the chamber's volume at rest is ``c V0`` and its gas mass ``c m`` (the
+state m is the gas mass referred to the nominal dead volume: the flat membrane's pressure
+``m R T / V0 - p_env`` does not depend on c, so c enters only where the membrane moves or gas
+flows). The membrane shape ``s = (h1, h2)`` is algebraic (below, m is the true gas mass c x[0]):
+
+- contact (``pi r1^2 p_rest(m) > max(W, REST_EPS)``, ``p_rest = m R T / (c V0) - p_env``):
+  ``G(h1, h2) = m R T`` and ``F(h1, h2) + EPS_K h2 = W`` (SPEC 1-4; EPS_K a tiny stiffness that
+  fixes h2 = 0 where the pressure vanishes), solved by Newton from a warm start (the previous
+  shape). Free inflation is the contact branch with ``W = 0`` (then ``h2 = 0``).
+- resting (otherwise, or forced by the filter's sticky rest mode, input ``hold``): the membrane is
+  flat under the plate, ``V = c V0``, ``p = p_rest(m)``, ``h = 0``.
+
+``b`` multiplies the compressor map (``P["flow_scale"]``), ``k`` every modulus of the material
+(moduli enter the pressure linearly, so ``p = k p_nominal`` at a given shape), ``c`` the dead volume
+(``P["V0"]``). The dynamics are the
+lead's quasi-static fidelity (:class:`hbma_ctrl.model.QuasiStatic`) with its platform weight
+replaced by the state ``W`` (random walks: ``W' = b' = k' = c' = 0``): the same index-reduced ODE on
+``[m, h1, h2]``, integrated by the simulator's fixed-step schemes ('euler' or 'rk4', ``nsub``
+sub-steps per sample) and projected back onto the constraints after every sub-step, as
+:meth:`hbma_ctrl.model.Fidelity.step_function` does. The mode is fixed over a sample. One casadi
+Function gives the discrete map, its Jacobian ``A = dx+/dx`` (algorithmic differentiation through
+the integrator and the Newton iterations), ``H = dp/dx`` and the covariance prediction
+``sym(A P A^T + Q)``; another the Joseph-form update; a third the outputs (h1, h2, h, F, p) with
+their Jacobian by the implicit-function rule (``dh/dx = -r_h^-1 r_x`` for the constraint residual
+r) and covariance ``D P D^T``. All are compiled to C (:mod:`estimators.fastcall`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.fidelity import QuasiStatic, make_fidelity, shape_jacobian
+
+__all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
+
+#: the load W may go below zero: the physics sees max(W, 0) (a dead zone), so near no load the
+#: estimate is not pushed up by clipping (a clipped random walk drifts to a phantom load that
+#: bends a free cap into a contact shape)
+STATE_NAMES = ("m", "W", "b", "k", "c")
+NX = len(STATE_NAMES)
+#: a tiny contact stiffness, N/m, regularising F(h1, h2) = W where the pressure vanishes (at W = 0
+#: and p -> 0 any h2 would do; with it h2 = 0): 1 N/m is below 1 % of dF/dh2 at working pressures
+EPS_K = 1.0
+#: force, N, below which the membrane is taken as flat even without a load (about 200 Pa at r1 = 12.5 mm)
+REST_EPS = 0.1
+#: rows of the output vector of :meth:`ObserverModel.outputs`
+OUT_NAMES = ("h1", "h2", "h", "F", "p", "rest", "det", "resid")
+
+#: state scales used by the covariance floor: gas mass (kg), load (N), flow, modulus and
+#: dead-volume factors (-)
+STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0, 1.0])
+
+
+def _shape_newton(m, W, h1, h2, P, iters: int):
+    """Newton on G(h1, h2) = m R T, F(h1, h2) + EPS_K h2 = W from (h1, h2); Cramer on the 2x2."""
+    rt = P["R"] * P["T"]
+    for _ in range(iters):
+        G, F, J = shape_jacobian(h1, h2, P)
+        J = ca.SX(J)
+        J[1, 1] = J[1, 1] + EPS_K
+        r0, r1 = G - m * rt, F + EPS_K * h2 - W
+        det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+        sgn = ca.if_else(det >= 0, 1.0, -1.0)
+        det = ca.if_else(ca.fabs(det) < 1e-12, sgn * 1e-12, det)
+        d1 = (J[1, 1] * r0 - J[0, 1] * r1) / det
+        d2 = (-J[1, 0] * r0 + J[0, 0] * r1) / det
+        # keep the step inside the chart: at most half the cap height per iteration
+        lim = 0.5 * ca.fmax(h1, 1e-4)
+        sc = ca.fmin(1, lim / ca.fmax(ca.fmax(ca.fabs(d1), ca.fabs(d2)), 1e-30))
+        h1, h2 = h1 - sc * d1, h2 - sc * d2
+        h1 = ca.fmax(h1, 1e-7)
+    return h1, h2
+
+
+def _min_pivot(P, floor):
+    """Smallest LDL^T pivot of P / (s s^T) - floor I (s = STATE_SCALE): > 0 iff every eigenvalue
+    of the scaled P exceeds the floor. Closed form for the small state, no branches."""
+    n = P.shape[0]
+    M = P / ca.DM(np.outer(STATE_SCALE, STATE_SCALE)) - floor * ca.SX.eye(n)
+    L = [[None] * n for _ in range(n)]
+    d = []
+    for j in range(n):
+        dj = M[j, j] - sum(L[j][k] ** 2 * d[k] for k in range(j))
+        d.append(dj)
+        for i in range(j + 1, n):
+            L[i][j] = (M[i, j] - sum(L[i][k] * L[j][k] * d[k] for k in range(j))) / dj
+    out = d[0]
+    for v in d[1:]:
+        out = ca.fmin(out, v)
+    return out
+
+
+@dataclass
+class _Syms:
+    x: ca.SX
+    s: ca.SX
+    u: ca.SX
+    theta: ca.SX
+    P: dict
+    Pbase: dict
+
+
+class ObserverModel:
+    """Casadi Functions of the estimators' model for one actuator and pneumatics (nominal values).
+
+    Parameters
+    ----------
+    actuator, pneumatics : the nominal (believed) parameters, SI.
+    dt : sample period, s; integrator : 'euler' | 'rk4'; nsub : sub-steps per sample;
+    newton : Newton iterations of the shape projection per sub-step.
+    """
+
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, dt: float, integrator: str = "rk4",
+                 nsub: int = 2, newton: int = 2):
+        if integrator not in ("euler", "rk4"):
+            raise ValueError(f"estimator.integrator = '{integrator}': allowed euler, rk4")
+        self.fid: QuasiStatic = make_fidelity("quasi_static", actuator.material, str(pneumatics.csv_path))
+        self.theta = self.fid.space.values(actuator, pneumatics, Platform())
+        self.actuator = actuator
+        self.dt, self.integrator, self.nsub, self.newton = float(dt), integrator, int(nsub), int(newton)
+        self.area = float(np.pi * actuator.r1 ** 2)
+        self.rt = actuator.R * actuator.T
+        self.m_env = actuator.p_env * actuator.V0 / self.rt  # gas mass at rest, unpressurised
+        self._build()
+
+    # --- symbolic pieces ----------------------------------------------------------------------
+    def _with_state(self, P: dict, x) -> dict:
+        """Parameters as the state sees them: load W, pump-flow factor b, modulus factor k, dead
+        volume c V0; ``P["m"]`` is the true gas mass c x[0]."""
+        P = dict(P)
+        P["W"] = ca.fmax(x[1], 0)  # dead zone: see STATE_NAMES
+        P["flow_scale"] = P["flow_scale"] * x[2]
+        P["material"] = P["material"].scaled(x[3])
+        P["V0"] = P["V0"] * x[4]
+        P["m"] = x[0] * x[4]
+        return P
+
+    def _syms(self) -> _Syms:
+        x = ca.SX.sym("x", NX)
+        s = ca.SX.sym("s", 2)
+        u = ca.SX.sym("u", 3)
+        theta, P = self.fid.space.symbols()
+        return _Syms(x, s, u, theta, self._with_state(P, x), P)
+
+    def _project(self, m, W, h1, h2, P, iters, hold):
+        """(h1, h2, rest) for state (m, W) from the guess (h1, h2); hold > 0.5 forces rest."""
+        rt = P["R"] * P["T"]
+        p_rest = m * rt / P["V0"] - P["p_env"]
+        # below REST_EPS the membrane counts as flat even without a load (the origin is singular)
+        rest = ca.logic_or(ca.pi * P["r1"] ** 2 * p_rest <= ca.fmax(W, REST_EPS), hold > 0.5)
+        hf = ph.flat_h1_from_pressure(p_rest, P)
+        # leaving rest (guess flat) starts from the flat membrane; Newton on the contact branch
+        c1, c2 = _shape_newton(m, W, h1, h2, P, iters)
+        return ca.if_else(rest, hf, c1), ca.if_else(rest, hf, c2), rest
+
+    def _meas(self, x, h1, h2, rest, Pbase):
+        """Outputs and their Jacobian wrt x at a projected shape (implicit-function rule).
+
+        On the contact branch r(h, x) = [G(h; x) - m R T, F(h; x) - W] = 0 gives
+        dh/dx = -r_h^-1 r_x and d(out)/dx = out_x + out_h dh/dx.
+        """
+        xs = ca.SX.sym("xs", NX)
+        hs = ca.SX.sym("hs", 2)
+        P = self._with_state(Pbase, xs)
+        rt = P["R"] * P["T"]
+        area = ca.pi * P["r1"] ** 2
+        G = ph.gas_pv(hs[0], hs[1], P)
+        geo = ph.geometry(hs[0], hs[1], P)
+        p_c = ph.pressure(hs[0], hs[1], P)
+        F = ca.pi * geo["a2"] * p_c
+        r = ca.vertcat(G - P["m"] * rt, F + EPS_K * hs[1] - P["W"])
+        o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
+        r_h = ca.jacobian(r, hs)
+        det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]
+        dh = -ca.solve(r_h, ca.jacobian(r, xs))
+        D_c = ca.jacobian(o_c, xs) + ca.mtimes(ca.jacobian(o_c, hs), dh)
+        p_rest = P["m"] * rt / P["V0"] - P["p_env"]
+        hf = ph.flat_h1_from_pressure(p_rest, P)
+        # flat under a plate: h = 0; with no plate to rest on (W -> 0, below REST_EPS) the membrane
+        # is a free cap of height hf -- blended linearly in W so the Jacobian stays finite
+        free = 1 - ca.fmin(P["W"] / REST_EPS, 1)
+        # (if_else, not a product: hf' is unbounded at zero pressure, and inf * 0 is NaN)
+        h_free = ca.if_else(free > 0, hf * free, 0)
+        o_r = ca.vertcat(hf, hf - h_free, h_free, area * p_rest, p_rest)
+        D_r = ca.jacobian(o_r, xs)
+        resid = ca.fabs(G - P["m"] * rt) / (P["m"] * rt) + ca.fabs(F - P["W"]) / (ca.fabs(xs[1]) + 0.1)
+        rs = ca.SX.sym("rest")
+        o = ca.if_else(rs > 0.5, o_r, o_c)
+        D = ca.if_else(rs > 0.5, D_r, D_c)
+        extra = ca.vertcat(rs, det, ca.if_else(rs > 0.5, 0, resid))
+        out = ca.vertcat(o, extra)
+        return ca.substitute([out, D[4, :], D], [xs, hs, rs], [x, ca.vertcat(h1, h2), rest])
+
+    def _build(self) -> None:
+        y = self._syms()
+        hold = ca.SX.sym("hold")
+        P = y.P
+        m, W, c = P["m"], P["W"], y.x[4]
+        h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1, hold)
+        mode = ca.if_else(rest, 0.0, 1.0)
+        x3 = ca.vertcat(m, h1, h2)
+        h = self.dt / self.nsub
+        fid = self.fid
+        for _ in range(self.nsub):
+            if self.integrator == "euler":
+                x3 = x3 + h * fid._rhs(x3, y.u, P, mode)
+            else:
+                k1 = fid._rhs(x3, y.u, P, mode)
+                k2 = fid._rhs(x3 + h / 2 * k1, y.u, P, mode)
+                k3 = fid._rhs(x3 + h / 2 * k2, y.u, P, mode)
+                k4 = fid._rhs(x3 + h * k3, y.u, P, mode)
+                x3 = x3 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
+            x3 = ca.vertcat(x3[0], a, b)
+        xn = ca.vertcat(x3[0] / c, y.x[1], y.x[2], y.x[3], y.x[4])
+        A = ca.jacobian(xn, y.x)
+        # the predicted shape as the next warm start; re-projected at the predicted state
+        h1n, h2n, restn = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
+        outn, Hn, _ = self._meas(xn, h1n, h2n, restn, y.Pbase)
+        # covariance: P+ = sym(A P A^T + Q), Q = diag((rel |dm|)^2 + qm, qW, qb, qk, qc); qv = [rel,
+        # qm, qW, qb, qk, qc, floor]; piv = smallest LDL pivot of P+/scale^2 - floor I (> 0: floor holds)
+        Pc = ca.SX.sym("P", NX, NX)
+        qv = ca.SX.sym("qv", NX + 2)
+        Q = ca.diag(ca.vertcat((qv[0] * (xn[0] - y.x[0])) ** 2 + qv[1], qv[2:NX + 1]))
+        Pn = ca.mtimes([A, Pc, A.T]) + Q
+        Pn = 0.5 * (Pn + Pn.T)
+        self.predict = ca.Function(
+            "ekf_predict", [y.x, y.s, y.u, y.theta, hold, Pc, qv],
+            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, _min_pivot(Pn, qv[NX + 1]))],
+            ["x", "s", "u", "theta", "hold", "P", "qv"],
+            ["x_next", "A", "s_next", "y", "H", "P_next", "piv"])
+        # Joseph-form scalar update: K = keep * P H^T / S, P+ = (I - K H) P (I - K H)^T + R K K^T;
+        # keep (0/1 per state) holds states out of an update (Schmidt's consider states: the
+        # Joseph form is the exact covariance for any gain)
+        xu = ca.SX.sym("x", NX)
+        keep = ca.SX.sym("keep", NX)
+        Pu = ca.SX.sym("P", NX, NX)
+        Hu = ca.SX.sym("H", 1, NX)
+        nu = ca.SX.sym("innov")
+        Ru = ca.SX.sym("R")
+        fl = ca.SX.sym("floor")
+        PHt = ca.mtimes(Pu, Hu.T)
+        Su = ca.mtimes(Hu, PHt) + Ru
+        K = keep * PHt / Su  # a scalar S: the "solve" is this division (S > 0 checked by the caller)
+        IKH = ca.SX.eye(NX) - ca.mtimes(K, Hu)
+        Pp = ca.mtimes([IKH, Pu, IKH.T]) + Ru * ca.mtimes(K, K.T)
+        Pp = 0.5 * (Pp + Pp.T)
+        self.update = ca.Function("kf_update", [xu, Pu, Hu, nu, Ru, fl, keep],
+                                  [ca.densify(e) for e in (xu + K * nu, Pp, Su, _min_pivot(Pp, fl))],
+                                  ["x", "P", "H", "innov", "R", "floor", "keep"],
+                                  ["x_post", "P_post", "S", "piv"])
+        # outputs at an arbitrary state (posterior), from a warm start
+        y2 = self._syms()
+        hold2 = ca.SX.sym("hold")
+        a, b, r = self._project(y2.P["m"], y2.P["W"], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
+        out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
+        P2 = ca.SX.sym("P", NX, NX)
+        C2 = ca.mtimes([D2, P2, D2.T])
+        self.outputs = ca.Function("ekf_outputs", [y2.x, y2.s, y2.theta, hold2, P2],
+                                   [ca.densify(e) for e in (ca.vertcat(a, b), out2, H2, D2, 0.5 * (C2 + C2.T))],
+                                   ["x", "s", "theta", "hold", "P"], ["s_out", "y", "H", "D", "C"])
+        # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
+        self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta, hold],
+                                     [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],
+                                     ["x", "s", "u", "theta", "hold"],
+                                     ["x_next", "s_next", "y"])
+
+    # --- numeric helpers ----------------------------------------------------------------------
+    def gas_mass(self, p: float, h1: float = 0.0, h2: float = 0.0) -> float:
+        """Gas mass (kg) at gauge pressure p (Pa) in the nominal chamber with shape (h1, h2)."""
+        P = {n: float(v) for n, v in zip(self.fid.space.names, self.theta)}
+        P["material"] = self.actuator.material
+        V = float(ph.geometry(h1, h2, P)["V"])
+        return (p + self.actuator.p_env) * V / self.rt

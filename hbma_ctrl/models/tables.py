@@ -1,0 +1,241 @@
+"""The controller's prediction model: one chamber reduced to its gas mass (SI).
+
+Why one state. Under a dead load (or none) the membrane is quasi-static: for a given gas mass ``m``
+and load ``W`` the shape (h1, h2) follows from the gas law ``G(h1, h2) = m R T`` and the contact
+condition ``F(h1, h2) = W`` (the lead's :mod:`hbma_ctrl.physics`, SPEC 1-4). Resting (the platform
+sits on the rig until ``pi r1^2 p >= W``), lift-off, contact and free inflation (``W = 0``) are all
+the same single-valued map ``m -> (h, p, lam)`` for the loads and heights of this actuator (checked
+when the map is built: the gas mass grows monotonically along every load path, because the gas is
+compressible even where the pressure passes its maximum). So the controller's state is the scaled
+gas mass
+
+    x = m R T / (p_env V0) - 1            (= gauge pressure / p_env while resting; 0 at ambient)
+
+with ``x' = q(u, p) R T / (p_env V0)`` (``q`` from :func:`hbma_ctrl.physics.net_flow`, the same
+compressor map and valves as the plant) and the outputs ``h = H(x, W)``, ``p = Pp(x, W)``,
+``lam = L(x, W)`` from the equilibrium manifold, tabulated once per actuator from the lead's physics
+on an (x, W) grid and interpolated by cubic B-splines (smooth, cheap, code-generable). The
+singular points of the (h1, h2) chart (the flat origin for ``W = 0``, the lift-off kink) never
+reach the optimiser: it only sees x.
+
+Nothing here re-derives physics: the grid points are ``physics.geometry/pressure/gas_pv`` solved
+for the contact condition by bisection.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.fidelity import make_fidelity
+
+__all__ = ["PredictionModel"]
+
+
+@dataclass(frozen=True)
+class _Grid:
+    x: np.ndarray  # scaled gas mass grid (-)
+    W: np.ndarray  # load grid, N
+    h: np.ndarray  # (nx, nW) height, m
+    p: np.ndarray  # (nx, nW) gauge pressure, Pa
+    lam: np.ndarray  # (nx, nW) stretch (-)
+    h_path: np.ndarray  # heights along the load paths (contact branch), m
+    x_path: np.ndarray  # (nh, nW) x along each load path
+    p_path: np.ndarray  # (nh, nW)
+    lam_path: np.ndarray  # (nh, nW)
+
+
+class PredictionModel:
+    """Gas-mass prediction model of one chamber for the MPC and the baselines (SI).
+
+    Parameters
+    ----------
+    actuator, pneumatics : the nominal actuator (never the rig's mismatched one).
+    load_max : largest load force the tables cover, N (loads above are clipped and reported).
+    h_table_max : largest height the tables cover, m (default 1.4 r1).
+    n_x, n_W, n_h : grid sizes.
+
+    Attributes
+    ----------
+    H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-); HP both. H is negative
+        (virtual) below lift-off, see :meth:`height` for the physical one.
+    rhs : casadi Function (x, u, W, dp) -> xdot (1/s); ``dp`` is a pressure bias (Pa) added to the
+        model pressure in the valve/pump flows (offset-free prediction).
+    """
+
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, load_max: float = 10.0,
+                 h_table_max: float | None = None, n_x: int = 140, n_W: int = 26, n_h: int = 160):
+        self.actuator = actuator.validate()
+        self.pneumatics = pneumatics.validate()
+        if not (0.0 < load_max <= 200.0):
+            raise ValueError(f"prediction.load_max = {load_max!r} is out of range (0, 200] N")
+        self.load_max = float(load_max)
+        self.h_table_max = float(h_table_max if h_table_max is not None else 1.4 * actuator.r1)
+        a = actuator
+        self.RT = a.R * a.T
+        self.x_scale = a.p_env * a.V0 / self.RT  # kg of gas per unit of x
+        self._fid = make_fidelity("quasi_static", a.material, str(pneumatics.csv_path))
+        self.theta = self._fid.space.values(a, pneumatics, Platform())
+        self.grid = self._tabulate(n_x, n_W, n_h)
+        self._build_functions()
+
+    # --- conversions ---------------------------------------------------------------------------
+    def x_from_mass(self, m: float) -> float:
+        """Scaled state from a gas mass (kg)."""
+        return m / self.x_scale - 1.0
+
+    def mass_from_x(self, x: float) -> float:
+        """Gas mass (kg) from the scaled state."""
+        return (x + 1.0) * self.x_scale
+
+    # --- tables ----------------------------------------------------------------------------------
+    def _shape_fun(self) -> ca.Function:
+        theta, P = self._fid.space.symbols()
+        h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
+        g = ph.geometry(h1, h2, P)
+        p = ph.pressure(h1, h2, P)
+        return ca.Function("shape", [h1, h2, theta],
+                           [ca.pi * g["a2"] * p, p, (p + P["p_env"]) * g["V"], g["lam"]])
+
+    def _tabulate(self, n_x: int, n_W: int, n_h: int) -> _Grid:
+        a = self.actuator
+        shape = self._shape_fun()
+        Wg = np.linspace(0.0, self.load_max, n_W)
+        # denser near the lift-off point, where the map bends
+        hg = self.h_table_max * np.linspace(0.0, 1.0, n_h) ** 1.5
+        HH, WW = np.meshgrid(hg, Wg, indexing="ij")
+        hf, Wf = HH.ravel(), WW.ravel()
+        n = hf.size
+        fmap = shape.map(n)
+        th = np.repeat(self.theta[:, None], n, axis=1)
+        # contact: find h1 >= h with F(h1, h1 - h) = W (bisection; F grows with h1 at fixed h)
+        lo = hf.copy()
+        hi = hf + 4.0 * a.r1
+        F_hi = np.asarray(fmap(hi[None, :], (hi - hf)[None, :], th)[0]).ravel()
+        if np.any(F_hi < Wf):
+            raise ValueError("prediction: load_max is beyond what the membrane can carry; lower it")
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            F = np.asarray(fmap(mid[None, :], (mid - hf)[None, :], th)[0]).ravel()
+            big = F > Wf
+            hi = np.where(big, mid, hi)
+            lo = np.where(big, lo, mid)
+        h1 = np.where(Wf > 0, 0.5 * (lo + hi), hf)
+        _, p, G, lam = (np.asarray(v).ravel() for v in fmap(h1[None, :], (h1 - hf)[None, :], th))
+        x_path = (G / (a.p_env * a.V0) - 1.0).reshape(HH.shape)
+        p_path = p.reshape(HH.shape)
+        lam_path = lam.reshape(HH.shape)
+        if np.any(np.diff(x_path, axis=0) <= 0):
+            raise ValueError("prediction: the gas mass does not grow along a load path (a snap-through "
+                             "inside the table); lower load_max or h_table_max")
+        xg = np.linspace(-0.05, float(x_path[-1].max()), n_x)
+        H = np.zeros((n_x, n_W))
+        Pg = np.zeros((n_x, n_W))
+        Lg = np.zeros((n_x, n_W))
+        for j in range(n_W):
+            xp, hp, pp, lp = x_path[:, j], hg, p_path[:, j], lam_path[:, j]
+            rest = xg < xp[0]
+            # below lift-off the platform rests (h = 0); the table continues the height linearly
+            # into negative "virtual" heights with the lift-off slope, so that an optimiser resting
+            # far below lift-off still sees that pumping raises the height (a flat h = 0 would give
+            # it no gradient). Callers clamp at 0 where a physical height is meant (:meth:`height`).
+            slope = (hp[1] - hp[0]) / (xp[1] - xp[0])
+            H[:, j] = np.where(rest, slope * (xg - xp[0]), _interp_extrap(xg, xp, hp))
+            Pg[:, j] = np.where(rest, xg * a.p_env, _interp_extrap(xg, xp, pp))
+            Lg[:, j] = np.where(rest, 1.0, _interp_extrap(xg, xp, lp))
+        return _Grid(xg, Wg, H, Pg, Lg, hg, x_path, p_path, lam_path)
+
+    def _build_functions(self) -> None:
+        g = self.grid
+        opts = {"algorithm": "smooth_linear"} if False else {}
+        self._H = ca.interpolant("H", "bspline", [g.x, g.W], g.h.ravel(order="F"), opts)
+        self._P = ca.interpolant("Pp", "bspline", [g.x, g.W], g.p.ravel(order="F"), opts)
+        self._L = ca.interpolant("L", "bspline", [g.x, g.W], g.lam.ravel(order="F"), opts)
+        x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
+        u = ca.SX.sym("u", 3)
+        xw = ca.vertcat(x, W)
+        self.H = ca.Function("H", [x, W], [self._H(xw)])
+        self.Pp = ca.Function("Pp", [x, W], [self._P(xw)])
+        self.L = ca.Function("L", [x, W], [self._L(xw)])
+        self.HP = ca.Function("HP", [x, W], [ca.vertcat(self._H(xw), self._P(xw))])
+        P = {n: float(v) for n, v in zip(self._fid.space.names, self.theta)}
+        p = self._P(xw) + dp
+        q, _, _ = ph.net_flow(u, p, P, self._fid.table)
+        self.rhs = ca.Function("rhs", [x, u, W, dp], [q * self.RT / (self.actuator.p_env * self.actuator.V0)],
+                               ["x", "u", "W", "dp"], ["xdot"])
+
+    # --- numeric helpers ---------------------------------------------------------------------------
+    def discrete(self, dt: float, integrator: str = "rk4", substeps: int = 1) -> ca.Function:
+        """(x, u, W, dp) -> x+ after ``dt`` s with inputs held (fixed-step euler/rk4, SX graph)."""
+        if integrator not in ("rk4", "euler"):
+            raise ValueError(f"mpc.integrator = '{integrator}': allowed rk4, euler")
+        x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
+        u = ca.SX.sym("u", 3)
+        h = dt / substeps
+        xn = x
+        for _ in range(substeps):
+            if integrator == "euler":
+                xn = xn + h * self.rhs(xn, u, W, dp)
+            else:
+                k1 = self.rhs(xn, u, W, dp)
+                k2 = self.rhs(xn + h / 2 * k1, u, W, dp)
+                k3 = self.rhs(xn + h / 2 * k2, u, W, dp)
+                k4 = self.rhs(xn + h * k3, u, W, dp)
+                xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return ca.Function("F", [x, u, W, dp], [xn], ["x", "u", "W", "dp"], ["x_next"])
+
+    def height(self, x: float, W: float) -> float:
+        """Physical height (m) at state x and load W (N): H clamped at 0 (resting)."""
+        return max(float(self.H(x, W)), 0.0)
+
+    def x_at_height(self, h: float, W: float) -> float:
+        """The state that holds height h (m) under load W (N) on the contact branch."""
+        pth = self.path(W)
+        return float(np.interp(h, pth["h"], pth["x"]))
+
+    def lift_off_x(self, W: float) -> float:
+        """State at which a load W (N) lifts off (rest gauge pressure W / (pi r1^2) over p_env)."""
+        return float(np.clip(W, 0.0, self.load_max) / (np.pi * self.actuator.r1 ** 2) / self.actuator.p_env)
+
+    def path(self, W: float) -> dict:
+        """Load path at load W (N): arrays h (m), x, p (Pa), lam along the contact branch."""
+        g = self.grid
+        W = float(np.clip(W, 0.0, self.load_max))
+        j = np.searchsorted(g.W, W)
+        j = int(np.clip(j, 1, len(g.W) - 1))
+        s = (W - g.W[j - 1]) / (g.W[j] - g.W[j - 1])
+        mix = lambda A: (1 - s) * A[:, j - 1] + s * A[:, j]  # noqa: E731
+        return {"h": g.h_path, "x": mix(g.x_path), "p": mix(g.p_path), "lam": mix(g.lam_path)}
+
+    def reachable_height(self, W: float, p_limit: float, lam_max: float, h_max: float) -> float:
+        """Largest height (m) reachable from rest under load W without p > p_limit or lam > lam_max."""
+        pth = self.path(W)
+        ok = (pth["p"] <= p_limit) & (pth["lam"] <= lam_max) & (pth["h"] <= h_max)
+        if not ok[0]:
+            return 0.0
+        bad = np.nonzero(~ok)[0]
+        if bad.size == 0:
+            return float(min(pth["h"][-1], h_max))
+        k = bad[0]
+        # interpolate the first crossing of the limiting quantity
+        h0, h1 = pth["h"][k - 1], pth["h"][k]
+        fr = []
+        for key, lim in (("p", p_limit), ("lam", lam_max), ("h", h_max)):
+            v0, v1 = pth[key][k - 1], pth[key][k]
+            if v1 > lim and v1 != v0:
+                fr.append((lim - v0) / (v1 - v0))
+        return float(h0 + (h1 - h0) * min(fr)) if fr else float(h0)
+
+
+def _interp_extrap(xq: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """np.interp with linear extrapolation at the upper end."""
+    out = np.interp(xq, xp, fp)
+    hi = xq > xp[-1]
+    if hi.any():
+        slope = (fp[-1] - fp[-2]) / (xp[-1] - xp[-2])
+        out[hi] = fp[-1] + slope * (xq[hi] - xp[-1])
+    return out

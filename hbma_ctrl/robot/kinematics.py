@@ -1,0 +1,228 @@
+"""Forward and inverse kinematics of the robot (SI).
+
+Bodies and frames
+-----------------
+Body 0 is the bottom layer (fixed to the ground), bodies 1..N sit on the chambers of the body
+below; chamber layer k (letters A, B, C, ... from the bottom, numbers 1..3, as in Fig. 10) lives
+in body k and pushes body k + 1. Body N is the top part (end plate, no chambers used). Frame k sits
+at the centre of body k's bottom face, z along the layer's axis. Body k's membranes lie in its top
+plane ``z = L`` (L = layer thickness, 9 mm with the flat 2 mm membrane). A chamber's *height* h is
+the membrane height of SPEC 1 (``h = h1 - h2``): the gap the chamber opens between body k's top
+plane and body k + 1's bottom face, at the chamber centre.
+
+Kinematic assumption (stated once, used everywhere)
+---------------------------------------------------
+Body k + 1's bottom face is the plane through the three contact points
+``P_i = (rc cos phi_i, rc sin phi_i, L + h_i)`` (frame k): chamber heights are measured along
+body k's axis, and the glued membrane apexes do not move sideways. Because three heights generally
+distort the triangle of contact points, the rigid upper layer cannot fit it exactly; the membranes
+absorb the small in-plane mismatch in shear. Frame k + 1 is placed at the centroid of the P_i
+(on body k's axis, at ``L + mean(h)``) and rotated from frame k without twist: about the in-plane
+axis ``(-sin psi, cos psi, 0)`` by the bend angle ``theta``, which maps z onto the plane normal
+``(sin theta cos psi, sin theta sin psi, cos theta)``. ``psi`` is the bend *direction* (where the
+layer's top leans to); a single inflated chamber at angle phi_i bends the layer toward
+``phi_i + 180 deg``. This is the piecewise-constant-curvature view of Webster and Jones (paper ref.
+[23]) with one rigid link per layer. Each chamber's membrane is modelled as in the single-actuator
+model: a spherical segment pressed by a plane parallel to its retaining disk (SPEC 1); the tilt of
+the plane over one membrane (a few mm wide) is neglected.
+
+Rim contact (a limit of the three-point assumption)
+---------------------------------------------------
+The layers are rigid 44 mm disks. A three-point pose with a flat chamber (h = 0) always makes the
+upper layer's rim dip below the lower layer's top face (``RobotPose.rim_gap`` = centre -
+R sin(bend) < 0): with one chamber at 17 mm the overlap is about 7 mm. A real layer then rocks on
+its rim and the glued, uninflated membranes are pulled up (tension). :func:`reach_report` flags
+such poses, :func:`workspace` reports the bend reachable with the rims clear, and
+:func:`robot_table2` gives a ``rim_pivot`` reading, which is the one closest to the paper's data.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from hbma_ctrl.robot.design import RobotDesign
+
+
+def _rot(theta: float, psi: float) -> np.ndarray:
+    """Twist-free rotation mapping z onto (sin t cos psi, sin t sin psi, cos t)."""
+    u = np.array([-math.sin(psi), math.cos(psi), 0.0])
+    K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
+    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K
+
+
+def _plane_matrix(design: RobotDesign) -> np.ndarray:
+    xy = design.chamber_xy()
+    return np.column_stack([np.ones(3), xy])  # h_i = hc' + a x_i + b y_i
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (numpy's is slow for tiny arrays)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def _plane_of(Ainv: np.ndarray, h: np.ndarray) -> tuple[float, float, float]:
+    c, a, b = Ainv @ h
+    t = math.hypot(a, b)
+    if t < 1e-12:  # level (to rounding): direction 0 by convention
+        return float(c), 0.0, 0.0
+    return float(c), math.atan(t), math.atan2(-b, -a)
+
+
+def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
+    """(centre height m, bend angle rad in [0, pi/2), bend direction rad in (-pi, pi]) of the plane
+    through a layer's three contact points, for its chamber heights (3,) in m.
+
+    The centre height is the plane's height on the layer axis (= mean height for chambers at 120
+    degrees). Zero bend has direction 0 by convention.
+    """
+    return _plane_of(np.linalg.inv(_plane_matrix(design)), np.asarray(heights, dtype=float).reshape(3))
+
+
+def layer_transform(design: RobotDesign, heights) -> np.ndarray:
+    """4x4 transform from frame k to frame k + 1 for layer k's chamber heights (3,), m."""
+    c, theta, psi = layer_plane(design, heights)
+    T = np.eye(4)
+    T[:3, :3] = _rot(theta, psi)
+    T[:3, 3] = [0.0, 0.0, design.layer_thickness + c]
+    return T
+
+
+@dataclass
+class RobotPose:
+    """Result of :func:`forward_kinematics` (SI, world = frame 0).
+
+    frames : (N + 1, 4, 4) body frames (bottom-face centres); tip : 4x4 frame at the top face of
+    body N; heights : (N, 3) chamber heights; centre, bend, direction : (N,) per chamber layer, m and
+    rad (relative to the layer below); contacts : (N, 3, 3) contact points in the world, m.
+    """
+
+    frames: np.ndarray
+    tip: np.ndarray
+    heights: np.ndarray
+    centre: np.ndarray
+    bend: np.ndarray
+    direction: np.ndarray
+    contacts: np.ndarray
+
+    @property
+    def tip_position(self) -> np.ndarray:
+        return self.tip[:3, 3]
+
+    @property
+    def tip_bend(self) -> float:
+        """Angle between the tip axis and the world z axis, rad."""
+        return float(math.acos(np.clip(self.tip[2, 2], -1.0, 1.0)))
+
+    def layer_lengths(self, design: RobotDesign) -> np.ndarray:
+        """Distance between successive body frames along the layer axes, m (L + centre height)."""
+        return design.layer_thickness + self.centre
+
+    def rim_gap(self, design: RobotDesign) -> np.ndarray:
+        """Smallest gap between each upper body's bottom rim and the body below's top face, m.
+
+        ``centre - R sin(bend)`` with R the outer radius; negative = the rigid layers would overlap,
+        i.e. the real robot rocks on its rim there (see :func:`rim_pivot_pose`).
+        """
+        return self.centre - design.outer_diameter / 2 * np.sin(self.bend)
+
+
+def _heights_array(design: RobotDesign, heights) -> np.ndarray:
+    h = np.asarray(heights, dtype=float)
+    if h.size != 3 * design.n_layers:
+        raise ValueError(f"heights: need {3 * design.n_layers} chamber heights ({design.n_layers} layers x 3), "
+                         f"got {h.size}")
+    h = h.reshape(design.n_layers, 3)
+    if not np.all(np.isfinite(h)) or h.min() < 0:
+        raise ValueError("heights: chamber heights must be finite and >= 0 m")
+    return h
+
+
+def forward_kinematics(design: RobotDesign, heights) -> RobotPose:
+    """Chamber heights (N x 3 or 3N, m) -> every body's frame and the tip frame (see module doc)."""
+    h = _heights_array(design, heights)
+    N = design.n_layers
+    frames = np.zeros((N + 1, 4, 4))
+    frames[0] = np.eye(4)
+    cen, bend, dirn = np.zeros(N), np.zeros(N), np.zeros(N)
+    contacts = np.zeros((N, 3, 3))
+    xy = design.chamber_xy()
+    L = design.layer_thickness
+    Ainv = np.linalg.inv(_plane_matrix(design))
+    for k in range(N):
+        cen[k], bend[k], dirn[k] = _plane_of(Ainv, h[k])
+        T = np.eye(4)
+        T[:3, :3] = _rot(bend[k], dirn[k])
+        T[:3, 3] = [0.0, 0.0, L + cen[k]]
+        frames[k + 1] = frames[k] @ T
+        local = np.column_stack([xy, L + h[k], np.ones(3)])
+        contacts[k] = (frames[k] @ local.T).T[:, :3]
+    tip = frames[N].copy()
+    tip[:3, 3] = frames[N][:3, :3] @ np.array([0, 0, L]) + frames[N][:3, 3]
+    return RobotPose(frames, tip, h, cen, bend, dirn, contacts)
+
+
+def inverse_kinematics(design: RobotDesign, centre, bend, direction) -> np.ndarray:
+    """Per-layer targets -> chamber heights (N, 3), m.
+
+    centre : centre height(s) of each layer's upper plane above its membranes, m (scalar = all
+    layers); bend : bend angle(s) relative to the layer below, rad, in [0, pi/2); direction : bend
+    direction(s), rad. Exact inverse of :func:`layer_plane`. Heights may come out negative or beyond
+    a chamber's reach: check them with :func:`reach_report` (no clamping here).
+    """
+    N = design.n_layers
+    c = np.broadcast_to(np.asarray(centre, dtype=float), (N,))
+    th = np.broadcast_to(np.asarray(bend, dtype=float), (N,))
+    ps = np.broadcast_to(np.asarray(direction, dtype=float), (N,))
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(th)) and np.all(np.isfinite(ps))):
+        raise ValueError("inverse_kinematics: targets must be finite")
+    if th.min() < 0 or th.max() >= math.pi / 2:
+        raise ValueError(f"inverse_kinematics: bend must be in [0, 90) deg, got {np.degrees(th)}")
+    A = _plane_matrix(design)
+    out = np.zeros((N, 3))
+    for k in range(N):
+        t = math.tan(th[k])
+        out[k] = A @ np.array([c[k], -t * math.cos(ps[k]), -t * math.sin(ps[k])])
+    return out
+
+
+def inverse_kinematics_tip(design: RobotDesign, tip_position, h_max: float | None = None) -> np.ndarray:
+    """Tip position (3,) m -> chamber heights (N, 3) m, every layer identical (constant curvature).
+
+    The N identical layers give 3 unknowns (centre height, bend, direction) for 3 equations; solved
+    by least squares from a straight start. Raises ValueError when no such shape reaches the point
+    within 1e-6 m (or, with ``h_max``, within chamber heights 0..h_max).
+    """
+
+    target = np.asarray(tip_position, dtype=float).reshape(3)
+    if not np.all(np.isfinite(target)):
+        raise ValueError("tip_position must be finite")
+    N, L = design.n_layers, design.layer_thickness
+    psi0 = math.atan2(target[1], target[0]) if np.hypot(target[0], target[1]) > 1e-9 else 0.0
+
+    def tip_of(z):
+        hs = inverse_kinematics(design, z[0], abs(z[1]), z[2])
+        return forward_kinematics(design, np.maximum(hs, 0)).tip_position, hs
+
+    def res(z):
+        p, hs = tip_of(z)
+        pen = np.minimum(hs, 0).ravel()
+        return np.concatenate([p - target, 10 * pen])
+
+    c0 = max(target[2] / N - 2 * L, 0.0) if target[2] > 0 else 0.0
+    best = None
+    for th0 in (0.05, 0.3, 0.6):
+        sol = least_squares(res, [c0 + 1e-3, th0, psi0], bounds=([0, 0, -2 * math.pi], [1.0, 1.4, 2 * math.pi]),
+                            xtol=1e-12, ftol=1e-12)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    hs = inverse_kinematics(design, best.x[0], abs(best.x[1]), best.x[2])
+    err = np.linalg.norm(tip_of(best.x)[0] - target)
+    if err > 1e-6 or hs.min() < -1e-9 or (h_max is not None and hs.max() > h_max + 1e-9):
+        raise ValueError(f"tip_position {np.round(target * 1e3, 2).tolist()} mm is not reachable by "
+                         f"{N} identical layers (closest miss {err * 1e3:.2f} mm)")
+    return np.maximum(hs, 0.0)

@@ -1,0 +1,366 @@
+"""What each chamber can reach, Table II beside the model, and the workspace (SI).
+
+Why the robot's chambers work past the balloon limit point
+----------------------------------------------------------
+With Table I and r1 = 4.5 mm, t0 = 2 mm, the free-inflation pressure peaks near 35.5 kPa at
+h ~ 5.7 mm (NH); below 35 kPa a chamber reaches about 5 mm and tilts a layer only ~12 degrees,
+while Table II reports 28.9. Beyond the peak the pressure *falls* as the membrane grows: under
+pressure control that branch is unstable (any excess pressure inflates further), but for a fixed
+gas mass it is stable because the gas is compressible and ``G = (p + p_env) V`` keeps increasing
+with h (the quasi-static model has no fold there). So the robot holds chambers on the far branch
+by gas mass. What limits a chamber then is not the pressure limit (the pressure on the far branch
+is below the peak) but (a) whether the pump and the pressure limit allow passing the peak at all
+(``min(pressure_limit, pump stall)`` above the load path's peak pressure), and (b) the membrane's
+maximum stretch (``RobotDesign.max_stretch``, an assumed safe equi-biaxial stretch: the paper
+inflated "without reaching the limit, which would mean breaking the membrane"). See
+:func:`chamber_reach`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import brentq
+
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.params import Pneumatics, check_range
+from hbma_ctrl.robot.design import LETTERS, TABLE2_PAPER, RobotDesign
+from hbma_ctrl.robot.kinematics import forward_kinematics
+from hbma_ctrl.robot.statics import _chambers, chamber_states, load_sharing
+
+
+def pump_stall_pressure(pneumatics: Pneumatics | None = None) -> float:
+    """Highest gauge pressure (Pa) at which the pump still delivers flow at full speed."""
+    _, p, grid = ph.load_compressor_table((pneumatics or Pneumatics()).csv_path)
+    q = grid[-1]
+    pos = np.nonzero(q > 0)[0]
+    if pos.size == 0:
+        return 0.0
+    i = pos[-1]
+    if i + 1 >= p.size:
+        return float(p[-1])
+    return float(p[i] + (p[i + 1] - p[i]) * q[i] / (q[i] - q[i + 1]))
+
+
+@dataclass(frozen=True)
+class ChamberReach:
+    """Reach of one chamber under a contact force (SI).
+
+    h_max : largest height reachable holding the gas mass (far branch allowed), m
+    limit : what sets h_max: 'max_stretch', 'pressure_limit' or 'pump_stall'
+    h_peak, p_peak : height and pressure of the balloon limit point along the load path (m, Pa)
+    h_pressure_control : reach if the chamber were pressure-controlled (near branch only), m
+    h_stretch : height at the maximum stretch, m
+    p_at_max : pressure at h_max, Pa; m_at_max : gas mass at h_max, kg
+    """
+
+    force: float
+    h_max: float
+    limit: str
+    h_peak: float
+    p_peak: float
+    h_pressure_control: float
+    h_stretch: float
+    p_at_max: float
+    m_at_max: float
+
+
+def chamber_reach(design: RobotDesign, force: float, pressure_limit: float = 45e3,
+                  pneumatics: Pneumatics | None = None) -> ChamberReach:
+    """Reachable height of one robot chamber pushing with contact force ``force`` (N).
+
+    Along the constant-load path the pressure rises to the balloon limit point (p_peak at h_peak)
+    and then falls. The usable pressure is ``p_cap = min(pressure_limit, pump stall pressure)``. If
+    p_cap >= p_peak the chamber can be driven over the peak and held on the far branch by its gas
+    mass, up to the maximum stretch (limit 'max_stretch'; the pump keeps delivering there since the
+    far-branch pressure is below the peak). Otherwise the chamber stops on the near branch where
+    the pressure reaches p_cap ('pressure_limit' or 'pump_stall'). ``h_pressure_control`` is the
+    reach of a pressure-controlled chamber (never past the peak).
+    """
+    check_range("reach", "pressure_limit", pressure_limit, 0.0, 1e6, "Pa", lo_open=True)
+    ch = _chambers(design.chamber, pneumatics)
+    F = max(float(force), 0.0)
+    h_str = float(ch.h_for_stretch(design.max_stretch, F)[0])
+    path = ch.load_path(F, h_str)
+    hs, ps = path["h"], path["p"]
+    stall = pump_stall_pressure(pneumatics)
+    p_cap = min(pressure_limit, stall)
+    ipk = int(np.argmax(ps))
+    h_peak, p_peak = float(hs[ipk]), float(ps[ipk])
+    over = np.nonzero(ps > p_cap)[0]
+    if over.size == 0:
+        i_max, limit = hs.size - 1, "max_stretch"
+        h_max = h_str
+    else:
+        i = int(over[0])
+        limit = "pressure_limit" if pressure_limit <= stall else "pump_stall"
+        if i == 0:
+            h_max, i_max = 0.0, 0
+        else:
+            w = (p_cap - ps[i - 1]) / (ps[i] - ps[i - 1])
+            h_max, i_max = float(hs[i - 1] + w * (hs[i] - hs[i - 1])), i
+    h_pc = min(h_peak if ipk < hs.size - 1 else h_str, h_max)
+    act = design.chamber
+    m_at = float((ps[i_max] + act.p_env) * path["V"][i_max] / (act.R * act.T))
+    return ChamberReach(F, float(h_max), limit, h_peak, p_peak, float(h_pc), h_str, float(ps[i_max]), m_at)
+
+
+def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
+                 pneumatics: Pneumatics | None = None, tip_force=(0.0, 0.0, 0.0)) -> dict:
+    """Check chamber heights (N x 3, m) against each chamber's reach at its load share.
+
+    Returns dict(ok, h_max (N, 3), limit (N, 3) names, violations: list of text, rim_gap (N,) m).
+    Negative heights are violations too (a chamber cannot push down), and so is a pose whose
+    layer rims would overlap (:meth:`RobotPose.rim_gap` < 0).
+    """
+    h = np.asarray(heights, dtype=float).reshape(design.n_layers, 3)
+    names = design.names
+    F = load_sharing(design, np.maximum(h, 0), tip_force).forces
+    hmax = np.zeros(h.shape)
+    lim = np.empty(h.shape, dtype=object)
+    viol = []
+    for k in range(design.n_layers):
+        for i in range(3):
+            r = chamber_reach(design, F[k, i], pressure_limit, pneumatics)
+            hmax[k, i], lim[k, i] = r.h_max, r.limit
+            if h[k, i] < -1e-12:
+                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm < 0")
+            elif h[k, i] > r.h_max + 1e-9:
+                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm > reach "
+                            f"{r.h_max * 1e3:.2f} mm (limited by {r.limit})")
+    gap = forward_kinematics(design, np.maximum(h, 0)).rim_gap(design)
+    for k in np.nonzero(gap < -1e-9)[0]:
+        viol.append(f"layer {LETTERS[k]}: the layer rims overlap by {-gap[k] * 1e3:.2f} mm (rigid three-point "
+                    "pose; the real layers rock on the rim)")
+    return {"ok": not viol, "h_max": hmax, "limit": lim, "violations": viol, "rim_gap": gap}
+
+
+def rim_pivot_pose(design: RobotDesign, h_inflated: float, inflated: list[int]) -> tuple[float, float, float]:
+    """Layer pose when the inflated chambers stand at ``h_inflated`` (m) and the layer rocks on its rim.
+
+    With some chambers flat, the rigid three-point pose makes the layer rims overlap
+    (:meth:`RobotPose.rim_gap` < 0): a real layer pivots on the outer rim instead, and the flat
+    chambers' glued membranes are pulled up (tension, outside the membrane model). The pose then is
+    the plane that touches the lower rim (centre = R sin(bend)) and passes through the inflated
+    chambers, bending away from them (direction opposite their mean angle). Returns (centre m,
+    bend rad, direction rad); all three inflated -> level at h_inflated.
+    """
+    if not inflated:
+        return 0.0, 0.0, 0.0
+    if len(inflated) == 3:
+        return float(h_inflated), 0.0, 0.0
+
+    a = np.asarray(design.chamber_angles)[inflated]
+    psi = math.atan2(-np.sin(a).sum(), -np.cos(a).sum())
+    c = float(np.cos(psi - a).max())  # the inflated chamber nearest the pivot side sets the height
+    R, rc = design.outer_diameter / 2, design.placement_radius
+    f = lambda t: R * math.sin(t) - rc * math.tan(t) * c - h_inflated  # noqa: E731
+    theta = brentq(f, 0.0, math.radians(89.0))
+    return R * math.sin(theta), theta, psi
+
+
+# ---------------------------------------------------------------------------------------------
+# Table II beside the model
+# ---------------------------------------------------------------------------------------------
+def _solve_inflated(design: RobotDesign, inflated: list[int], height_of, iters: int = 20) -> np.ndarray:
+    """Heights of layer A with chambers ``inflated`` driven by ``height_of(F) -> h``, the others flat,
+    all upper layers flat; fixed point between the heights and the load sharing."""
+    h = np.zeros((design.n_layers, 3))
+    for _ in range(iters):
+        F = load_sharing(design, h).forces[0]
+        new = h.copy()
+        for i in inflated:
+            new[0, i] = height_of(F[i])
+        if np.max(np.abs(new - h)) < 1e-9:
+            return new
+        h = new
+    return h
+
+
+def robot_table2(design: RobotDesign | None = None, stretch: float | None = None, hold_pressure: float = 35e3
+                 ) -> list[dict]:
+    """The paper's Table II (one layer of the Fig. 10 robot, 0-3 chambers inflated) beside the model.
+
+    How "inflated" is read. The paper inflated the chambers "without reaching the limit (which
+    would mean breaking the membrane)"; it states no pressure or gas mass. Two readings are given:
+
+    - ``far_branch`` (the main one): each inflated chamber is driven past the balloon limit point
+      and held by its gas mass at the stretch ``stretch`` (default: the design's ``max_stretch``,
+      4.0, an assumed safe limit). Its height then follows from its load share (fixed point with
+      the load sharing). With the default 4.0 the three-chamber length lands close to the paper's
+      26.7 mm, so that row is effectively the calibration of the one free number; the one- and
+      two-chamber rows are predictions.
+    - ``near_branch``: each inflated chamber held at ``hold_pressure`` (35 kPa, the rig's sensor
+      range) on the near branch, as pressure control would: what the robot reaches without passing
+      the limit point.
+    - ``rim_pivot``: the far-branch chambers, but the layer rocks on its outer rim
+      (:func:`rim_pivot_pose`). In the three-point pose a bend with a flat chamber makes the 44 mm
+      rigid layers overlap at the rim (``rim_gap_mm`` < 0, geometrically impossible), so the real
+      layer must pivot on its rim and pull the flat chambers' glued membranes up (tension, which
+      the membrane model does not cover; their height is then set by the pose, not by their gas).
+      This reading is closest to the paper's one- and two-chamber rows.
+
+    The layer evaluated is the bottom chamber layer A of the design (default: the paper's robot
+    with 2 chamber layers, A and B, as in Fig. 10); it carries the bodies above, with layer B flat.
+    Inflated chambers are A1, then A1-A2, then all three. Angle = bend of the layer above; length =
+    distance between the two layers' frames on the axis (layer thickness + centre height);
+    extension is relative to each source's own 0-chamber length (the paper's 9.6 mm includes a
+    0.6 mm rest gap the model does not have).
+
+    Returns one dict per (reading, chambers inflated) with model and paper values (deg, mm, %),
+    the chambers' height (mm), pressure (kPa), stretch and gas mass (mg), and the parameters used.
+    """
+    d = design or RobotDesign(n_layers=2)
+    d.validate()
+    lam = d.max_stretch if stretch is None else stretch
+    check_range("table2", "stretch", lam, 1.05, d.max_stretch if stretch is None else 20.0)
+    ch = _chambers(d.chamber)
+
+    def at_stretch(F):
+        return float(ch.h_for_stretch(lam, max(F, 0.0))[0])
+
+    def at_pressure(F):
+        h_hi = float(ch.h_for_stretch(min(d.max_stretch, 3.0), max(F, 0.0))[0])
+        path = ch.load_path(max(F, 0.0), h_hi, 300)
+        over = np.nonzero(path["p"] >= hold_pressure)[0]
+        if over.size == 0:  # never reaches the hold pressure before the peak: stop at the peak
+            return float(path["h"][int(np.argmax(path["p"]))])
+        i = int(over[0])
+        if i == 0:
+            return float(path["h"][0])
+        p0, p1 = path["p"][i - 1], path["p"][i]
+        return float(path["h"][i - 1] + (hold_pressure - p0) / (p1 - p0) * (path["h"][i] - path["h"][i - 1]))
+
+    params = {"n_layers": d.n_layers, "r1_mm": U.to_mm(d.chamber.r1), "t0_mm": U.to_mm(d.chamber.t0),
+              "V0_cm3": U.to_cm3(d.chamber.V0), "material": d.chamber.material.name,
+              "material_params": d.chamber.material.as_dict(), "placement_radius_mm": U.to_mm(d.placement_radius),
+              "layer_thickness_mm": U.to_mm(d.layer_thickness), "layer_mass_g": U.to_grams(d.layer_mass),
+              "stretch": lam, "hold_pressure_kpa": U.to_kpa(hold_pressure)}
+    rows = []
+    for reading, fn in (("far_branch", at_stretch), ("near_branch", at_pressure)):
+        base_len = None
+        for n, pa, pl, pe in TABLE2_PAPER:
+            h = _solve_inflated(d, list(range(n)), fn)
+            pose = forward_kinematics(d, h)
+            st = chamber_states(d, h)
+            length = float(pose.layer_lengths(d)[0])
+            base_len = length if n == 0 else base_len
+            infl = list(range(n))
+            rows.append({
+                "reading": reading, "inflated": n,
+                "angle_deg": math.degrees(pose.bend[0]), "length_mm": U.to_mm(length),
+                "extension_pct": 100 * (length - base_len) / base_len,
+                "paper_angle_deg": pa, "paper_length_mm": pl, "paper_extension_pct": pe,
+                "chamber_height_mm": U.to_mm(float(h[0, 0])) if n else 0.0,
+                "pressure_kpa": U.to_kpa(float(st["p"][0, 0])) if n else 0.0,
+                "stretch": float(st["lam"][0, 0]) if n else 1.0,
+                "gas_mass_mg": float(np.mean(st["m"][0, infl])) * 1e6 if n else float(st["m"][0, 0]) * 1e6,
+                "rim_gap_mm": U.to_mm(float(pose.rim_gap(d)[0])),
+                "params": params,
+            })
+    # the same inflated chambers, the layer rocking on its rim instead of overlapping it
+    for r in [r for r in rows if r["reading"] == "far_branch"]:
+        n = r["inflated"]
+        c, theta, _ = rim_pivot_pose(d, U.mm(r["chamber_height_mm"]), list(range(n)))
+        length = d.layer_thickness + c
+        base = d.layer_thickness
+        rows.append({**r, "reading": "rim_pivot", "angle_deg": math.degrees(theta), "length_mm": U.to_mm(length),
+                     "extension_pct": 100 * (length - base) / base, "rim_gap_mm": 0.0 if 0 < n < 3 else r["rim_gap_mm"]})
+    return rows
+
+
+def table2_markdown(rows: list[dict]) -> str:
+    """Markdown table of :func:`robot_table2` rows (model vs paper), with the parameters used."""
+    p = rows[0]["params"]
+    head = ("| reading | HBMA inflated | angle model / paper (deg) | length model / paper (mm) | "
+            "extension model / paper (%) | chamber h (mm) | p (kPa) | stretch | rim gap (mm) |\n"
+            "|---|---|---|---|---|---|---|---|---|\n")
+    body = "".join(
+        f"| {r['reading']} | {r['inflated']} | {r['angle_deg']:.1f} / {r['paper_angle_deg']:.1f} | "
+        f"{r['length_mm']:.1f} / {r['paper_length_mm']:.1f} | {r['extension_pct']:.0f} / "
+        f"{r['paper_extension_pct']:.0f} | {r['chamber_height_mm']:.2f} | {r['pressure_kpa']:.1f} | "
+        f"{r['stretch']:.2f} | {r['rim_gap_mm']:.2f} |\n" for r in rows)
+    mat = ", ".join(f"{k} = {v:g} Pa" if isinstance(v, float) else f"{k} = {v}" for k, v in p["material_params"].items())
+    foot = (f"\nParameters: {p['material'].upper()} ({mat}), r1 = {p['r1_mm']:g} mm, t0 = {p['t0_mm']:g} mm, "
+            f"V0 = {p['V0_cm3']:g} cm^3, chamber centres {p['placement_radius_mm']:g} mm from the axis, layer "
+            f"{p['layer_thickness_mm']:g} mm / {p['layer_mass_g']:g} g, {p['n_layers']} chamber layers "
+            f"(layer A evaluated, B flat). far_branch: inflated chambers held by gas mass at stretch "
+            f"{p['stretch']:g}; near_branch: held at {p['hold_pressure_kpa']:g} kPa below the limit point; "
+            "rim_pivot: far-branch chambers, the layer rocking on its outer rim instead of the rigid "
+            "three-point pose (whose rims would overlap with a flat chamber).\n")
+    return head + body + foot
+
+
+# ---------------------------------------------------------------------------------------------
+# workspace
+# ---------------------------------------------------------------------------------------------
+def _max_bend(design: RobotDesign, h_max: float, psi: np.ndarray) -> np.ndarray:
+    """Largest bend (rad) in directions psi with every chamber height in [0, h_max]."""
+    a = np.asarray(design.chamber_angles)
+    rc = design.placement_radius
+    c = np.cos(psi[:, None] - a[None, :])
+    spread = rc * (c.max(1) - c.min(1))
+    return np.arctan(h_max / spread)
+
+
+def _max_bend_clear(design: RobotDesign, h_max: float, psi: np.ndarray) -> np.ndarray:
+    """Largest bend (rad) in directions psi with heights in [0, h_max] and no rim overlap."""
+    a = np.asarray(design.chamber_angles)
+    rc, R = design.placement_radius, design.outer_diameter / 2
+    c = np.cos(psi[:, None] - a[None, :])
+    cmax, cmin = c.max(1), c.min(1)
+
+    def need(t):  # the highest chamber's height at the lowest feasible centre height
+        hc = np.maximum(rc * t * cmax, R * np.sin(np.arctan(t)))
+        return hc - rc * t * cmin
+
+    lo, hi = np.zeros(psi.size), np.full(psi.size, 50.0)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        ok = need(mid) <= h_max
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return np.arctan(lo)
+
+
+def workspace(design: RobotDesign | None = None, pressure_limit: float = 45e3,
+              pneumatics: Pneumatics | None = None, n_dir: int = 72) -> dict:
+    """Reachable workspace at the pressure limit, per layer and for the tip (SI, plain data).
+
+    Each chamber's reach is :func:`chamber_reach` at its load share in the straight pose (the
+    load changes little with the pose for this light robot); a layer's reach is the smallest of its
+    three. Per layer: the centre-height range at zero bend [0, h_max] and the largest bend angle
+    against direction (all three heights within [0, h_max]; at the largest bend the centre height
+    is fixed). The same numbers for pressure control (near branch only) show what passing the
+    limit point buys. ``bend_max_no_rim_contact`` adds the condition that the rigid layers' rims do
+    not overlap (:meth:`RobotPose.rim_gap` >= 0): what the three-point kinematics can really reach
+    (larger bends make the layer rock on its rim). Tip: every layer bent alike (constant curvature).
+    """
+    d = (design or RobotDesign()).validate()
+    F = load_sharing(d, np.zeros((d.n_layers, 3))).forces
+    psi = np.linspace(0, 2 * math.pi, n_dir, endpoint=False)
+    layers = []
+    for k in range(d.n_layers):
+        rs = [chamber_reach(d, F[k, i], pressure_limit, pneumatics) for i in range(3)]
+        hm = min(r.h_max for r in rs)
+        hpc = min(r.h_pressure_control for r in rs)
+        layers.append({
+            "layer": LETTERS[k], "load_n": F[k].tolist(), "h_max": hm,
+            "limit": [r.limit for r in rs], "p_peak": max(r.p_peak for r in rs),
+            "h_peak": min(r.h_peak for r in rs), "p_at_max": max(r.p_at_max for r in rs),
+            "h_pressure_control": hpc,
+            "bend_max": _max_bend(d, hm, psi).tolist(),
+            "bend_max_pressure_control": _max_bend(d, hpc, psi).tolist(),
+            "bend_max_no_rim_contact": _max_bend_clear(d, hm, psi).tolist(),
+        })
+    bend_tip = np.sum([ly["bend_max"] for ly in layers], axis=0)
+    return {
+        "direction": psi.tolist(), "layers": layers,
+        "tip_bend_max": bend_tip.tolist(),
+        "tip_height_range": [d.n_layers * d.layer_thickness + d.layer_thickness,
+                             d.n_layers * d.layer_thickness + d.layer_thickness + sum(ly["h_max"] for ly in layers)],
+        "pressure_limit": pressure_limit, "pump_stall": pump_stall_pressure(pneumatics),
+        "max_stretch": d.max_stretch,
+    }

@@ -1,0 +1,150 @@
+"""The robot rig: the mismatched, higher-fidelity truth every robot estimator and controller is judged against (SI).
+
+the "truth": every chamber of the robot is the lead's ``platform`` fidelity
+  (the chamber's share of the layers as a moving mass with damping; ``quasi_static``, a dead load,
+  as a setting) (gas mass, resting / lift-off / far branch handled by
+  :class:`hbma_ctrl.simulate.Plant`), all chambers in ONE batch, with mismatched parameters
+  (:func:`hbma_ctrl.rig.mismatched`: pump flow x0.9, dead volume x1.2; the modulus is +15 % and -15 %
+  on alternate chambers, so both signs of the error are present). Every sample (10 ms) each
+  chamber's load W is its share of the weight and of the tip load from
+  :func:`hbma_ctrl.robot.load_sharing` of the TRUE heights. The sensors: 0.2 kPa noise, saturation
+  at the robot's sensor range (50 kPa). Shared compressor: the pump's flow is split among the open
+  inlets by their duties; if the duties sum to more than 1 each chamber gets its duty / sum (the
+  manifold model the NMPC's coupling row respects).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hbma_ctrl.core.params import Platform, Pneumatics, check_range
+from hbma_ctrl.models.fidelity import make_fidelity
+from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.plant import W_FLOOR
+from hbma_ctrl.robot.statics import load_sharing
+from hbma_ctrl.sim.rig import RigSettings, mismatched, parse_rig_section
+from hbma_ctrl.sim.simulate import Plant
+
+H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
+M_MIN = 5e-3  # kg: smallest moving mass a platform-fidelity rig chamber carries
+
+
+@dataclass(frozen=True)
+class RobotRigSettings:
+    """Mismatch, dynamics and sensors of the robot rig (SI). fidelity: 'platform' (default: each
+    chamber carries its share of the layers as a moving mass with damping ``damping`` N s/m, the
+    higher-fidelity truth) or 'quasi_static' (dead load, as the controller assumes). modulus_spread: chambers alternate modulus
+    x(1 + spread), x(1 - spread); flow_scale, V0_scale: as :class:`hbma_ctrl.rig.RigSettings`;
+    noise_std Pa; sample_period s; seed; dt: internal rk4 step (s)."""
+
+    fidelity: str = "platform"
+    damping: float = 0.5
+    modulus_spread: float = 0.15
+    flow_scale: float = 0.9
+    V0_scale: float = 1.2
+    noise_std: float = 200.0
+    sample_period: float = 0.01
+    seed: int = 0
+    dt: float | None = None
+
+    def validate(self) -> "RobotRigSettings":
+        if self.fidelity not in ("platform", "quasi_static"):
+            raise ValueError(f"robot rig.fidelity = {self.fidelity!r}: allowed platform, quasi_static")
+        check_range("robot rig", "damping", self.damping, 0.0, 1e3, "N s/m")
+        check_range("robot rig", "modulus_spread", self.modulus_spread, 0.0, 0.8)
+        check_range("robot rig", "flow_scale", self.flow_scale, 0.1, 5.0)
+        check_range("robot rig", "V0_scale", self.V0_scale, 0.2, 5.0)
+        check_range("robot rig", "noise_std", self.noise_std, 0.0, 1e4, "Pa")
+        check_range("robot rig", "sample_period", self.sample_period, 1e-3, 1.0, "s")
+        if self.dt is not None:
+            check_range("robot rig", "dt", self.dt, 1e-5, self.sample_period, "s")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"robot rig.seed = {self.seed!r} must be an integer >= 0")
+        return self
+
+    @classmethod
+    def from_rig_section(cls, raw: dict | None) -> "RobotRigSettings":
+        """Take a scenario's ``[rig]`` table (see :func:`hbma_ctrl.rig.parse_rig_section`): its
+        modulus_scale m becomes the spread |m - 1| (alternating signs), the rest is used as is (its
+        fidelity too); the sensor range is the robot's."""
+        if not raw:
+            return cls()
+
+        r = parse_rig_section(dict(raw))
+        return cls(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0), flow_scale=r.flow_scale,
+                   V0_scale=r.V0_scale, noise_std=r.noise_std, sample_period=r.sample_period,
+                   seed=r.seed).validate()
+
+
+class RobotRig:
+    """All chambers of the robot as one mismatched batch plant with pressure sensors (module doc)."""
+
+    def __init__(self, design: RobotDesign, pneumatics: Pneumatics, sensor_range: float, topology: str,
+                 settings: RobotRigSettings | None = None, tip_load=()):
+        self.s = (settings or RobotRigSettings()).validate()
+        self.design = design
+        self.n = 3 * design.n_layers
+        self.topology = topology
+        self.sensor_range = sensor_range
+        self.tip_load = tuple(tip_load)
+        thetas = []
+        fid = None
+        for i in range(self.n):
+            sign = 1.0 if i % 2 == 0 else -1.0
+            rs = RigSettings(fidelity=self.s.fidelity, modulus_scale=1.0 + sign * self.s.modulus_spread,
+                             flow_scale=self.s.flow_scale, V0_scale=self.s.V0_scale)
+            act, pn = mismatched(design.chamber, pneumatics, rs)
+            if fid is None:
+                fid = make_fidelity(self.s.fidelity, act.material, str(pn.csv_path))
+            thetas.append(fid.space.values(act, pn, Platform(load=1e-3, damping=self.s.damping)))
+        self.modulus_scales = np.array([1.0 + (1 if i % 2 == 0 else -1) * self.s.modulus_spread
+                                        for i in range(self.n)])
+        self.flow_scale0 = float(thetas[0][fid.space.names.index("flow_scale")])
+        dt = self.s.dt if self.s.dt is not None else (1e-3 if self.s.fidelity == "platform" else 5e-3)
+        self.plant = Plant(fid, np.column_stack(thetas), "rk4", dt)
+        self._rng = np.random.default_rng(self.s.seed)
+        self.design_g = 9.80665
+        self._update_loads()
+
+    @property
+    def t(self) -> float:
+        return self.plant.t
+
+    def tip_force(self, t: float) -> np.ndarray:
+        """Tip force (N, world) at time t from the (t, fx, fy, fz) rows (held from each row's time)."""
+        f = np.zeros(3)
+        for row in self.tip_load:
+            if t + 1e-9 >= row[0]:
+                f = np.asarray(row[1:4], dtype=float)
+        return f
+
+    def _update_loads(self) -> None:
+        h = np.maximum(self.plant.output("h"), 0.0)
+        F = load_sharing(self.design, h.reshape(-1, 3), self.tip_force(self.plant.t)).forces.ravel()
+        W = np.maximum(F, W_FLOOR)
+        self.plant.set_param("W", W)
+        if self.plant.fid.name == "platform":
+            # the moving mass each chamber carries: its share of the layers' weight (and tip load),
+            # at least M_MIN so a nearly unloaded chamber stays a slow enough oscillator for RK4
+            self.plant.set_param("M", np.maximum(W / self.design_g, M_MIN))
+        self.loads = F
+
+    def apply(self, Ucmd: np.ndarray) -> None:
+        """Hold the inputs (3 x n) for one sample period, then update the loads from the true heights."""
+        Ucmd = np.array(Ucmd, dtype=float).reshape(3, self.n)
+        if self.topology == "shared":
+            tot = Ucmd[1].sum()
+            if tot > 1.0:
+                Ucmd[1] = Ucmd[1] / tot
+        self.plant.advance(Ucmd, self.s.sample_period)
+        self._update_loads()
+
+    def measure(self) -> np.ndarray:
+        """Pressure readings (n,), Pa: truth + noise, saturated at the sensor range."""
+        p = self.plant.output("p") + self.s.noise_std * self._rng.standard_normal(self.n)
+        return np.minimum(p, self.sensor_range)
+
+    def truth(self) -> dict:
+        return {k: self.plant.output(k).copy() for k in ("h", "p", "lam", "m")}

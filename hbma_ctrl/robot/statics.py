@@ -1,0 +1,312 @@
+"""Statics: load sharing between a layer's chambers and each chamber's membrane state (SI).
+
+Statics
+-------
+The chambers push body k + 1 along its normal (the contact normal). For the sub-assembly of bodies
+k + 1..N, its weight and an optional tip load (force and moment, world frame) give three equations
+in the three normal forces: force along the normal and the moments about the two in-plane axes
+through the contact centroid. The in-plane force and the twisting moment are carried by the glued
+membranes in shear (reported, not modelled). A negative force means the glue pulls (tension): the
+ballooning-membrane model does not cover it, and such chambers are flagged.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.fidelity import shape_jacobian
+from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.kinematics import (
+    RobotPose,
+    _cross,
+    _heights_array,
+    forward_kinematics,
+)
+
+
+@dataclass
+class LoadShare:
+    """Chamber normal forces and what the membranes carry in shear (SI).
+
+    forces : (N, 3) normal force each chamber pushes the layer above with, N (negative = tension,
+    the glue pulls); shear : (N, 2) in-plane force on the membranes of each layer, N; twist : (N,)
+    moment about the layer normal, N m; pose : the :class:`RobotPose` used.
+    """
+
+    forces: np.ndarray
+    shear: np.ndarray
+    twist: np.ndarray
+    pose: RobotPose
+
+    @property
+    def tension(self) -> np.ndarray:
+        return self.forces < 0
+
+
+def load_sharing(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0)
+                 ) -> LoadShare:
+    """Each chamber's contact force from the weight of the bodies above and an optional tip load.
+
+    heights : chamber heights (N x 3), m; tip_force (N) and tip_moment (N m) act on the top body at
+    the tip point, world frame. For chamber layer k the sub-assembly of bodies k + 1..N is in
+    equilibrium under its weight, the tip load and the three normal forces (plus membrane shear):
+    3 equations (force along the layer normal, moments about the two in-plane axes through the
+    contact centroid) for 3 forces.
+    """
+    pose = forward_kinematics(design, heights)
+    f_tip = np.asarray(tip_force, dtype=float).reshape(3)
+    m_tip = np.asarray(tip_moment, dtype=float).reshape(3)
+    if not (np.all(np.isfinite(f_tip)) and np.all(np.isfinite(m_tip))):
+        raise ValueError("tip_force and tip_moment must be finite")
+    N, L = design.n_layers, design.layer_thickness
+    gvec = np.array([0.0, 0.0, -design.g])
+    masses = design.body_masses
+    # centres of mass of bodies 1..N (mid-thickness on their axis)
+    com = np.array([pose.frames[j][:3, :3] @ [0, 0, L / 2] + pose.frames[j][:3, 3] for j in range(1, N + 1)])
+    tip = pose.tip_position
+    forces = np.zeros((N, 3))
+    shear = np.zeros((N, 2))
+    twist = np.zeros(N)
+    for k in range(N):
+        Fk = pose.frames[k + 1]
+        R, O = Fk[:3, :3], Fk[:3, 3]
+        above = slice(k, N)  # bodies k+1..N are rows k..N-1 of com
+        f = (masses[above, None] * gvec).sum(0) + f_tip
+        M = _cross(com[above] - O, masses[above, None] * gvec).sum(0) + _cross(tip - O, f_tip) + m_tip
+        fl, Ml = R.T @ f, R.T @ M
+        pts = (R.T @ (pose.contacts[k] - O).T).T  # contact points in frame k+1 (z ~ 0)
+        A = np.vstack([np.ones(3), pts[:, 1], pts[:, 0]])
+        forces[k] = np.linalg.solve(A, np.array([-fl[2], -Ml[0], Ml[1]]))
+        shear[k] = -fl[:2]
+        twist[k] = -Ml[2]
+    return LoadShare(forces, shear, twist, pose)
+
+
+# ---------------------------------------------------------------------------------------------
+# the chamber model (physics), batched
+# ---------------------------------------------------------------------------------------------
+@lru_cache(maxsize=8)
+def _chamber_fn(space: ph.ParamSpace) -> ca.Function:
+    """(h1, h2, theta) -> (p, F, lam, V, G) from hbma_ctrl.physics, for one material family."""
+    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
+    theta, P = space.symbols()
+    g = ph.geometry(h1, h2, P)
+    p = ph.pressure(h1, h2, P)
+    return ca.Function("chamber", [h1, h2, theta], [p, ca.pi * g["a2"] * p, g["lam"], g["V"], ph.gas_pv(h1, h2, P)],
+                       ["h1", "h2", "theta"], ["p", "F", "lam", "V", "G"])
+
+
+@lru_cache(maxsize=16)
+def _chambers(act: Actuator, pn: Pneumatics | None = None) -> "_Chambers":
+    """A cached :class:`_Chambers` (its mapped casadi Functions are reused across calls)."""
+    return _Chambers(act, pn)
+
+
+@lru_cache(maxsize=8)
+def _gf_fn(space: ph.ParamSpace) -> ca.Function:
+    """(h1, h2, theta) -> (G, F, d(G, F)/d(h1, h2)) from the lead's model.shape_jacobian."""
+
+    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
+    theta, P = space.symbols()
+    G, F, J = shape_jacobian(h1, h2, P)
+    return ca.Function("gf", [h1, h2, theta], [G, F, J], ["h1", "h2", "theta"], ["G", "F", "J"])
+
+
+class _Chambers:
+    """Numeric, vectorised access to the single-chamber physics for one actuator."""
+
+    def __init__(self, act: Actuator, pn: Pneumatics | None = None):
+        self.act = act
+        self.space = ph.ParamSpace.for_material(act.material)
+        self.theta = self.space.values(act, pn or Pneumatics(), Platform())
+        self.fn = _chamber_fn(self.space)
+        self._maps: dict = {}
+
+    def eval(self, h1, h2) -> dict:
+        h1 = np.atleast_1d(np.asarray(h1, dtype=float))
+        h2 = np.broadcast_to(np.asarray(h2, dtype=float), h1.shape)
+        n = h1.size
+        if n not in self._maps:
+            self._maps[n] = self.fn.map(n)
+        th = np.repeat(self.theta[:, None], n, 1)
+        out = self._maps[n](h1.ravel()[None, :], h2.ravel()[None, :], th)
+        names = ("p", "F", "lam", "V", "G")
+        return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(names, out)}
+
+    def newton_gf(self, h1, h2, G, F, iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
+        """Newton on (h1, h2) for G(h1, h2) = G and F(h1, h2) = F from a nearby guess (vectorised).
+
+        Keeps 0 <= h2 <= h1 and halves a step that would leave the chart; the guess picks the branch.
+        """
+        h1, h2 = np.array(h1, dtype=float), np.array(h2, dtype=float)
+        n = h1.size
+        key = ("gf", n)
+        if key not in self._maps:
+            self._maps[key] = _gf_fn(self.space).map(n)
+        th = np.repeat(self.theta[:, None], n, 1)
+        for _ in range(iters):
+            Gv, Fv, J = (np.asarray(x) for x in self._maps[key](h1[None, :], h2[None, :], th))
+            J = J.reshape(2, n, 2).transpose(0, 2, 1)  # mapped 2x2 blocks side by side -> [row, col, chamber]
+            r0, r1 = Gv.ravel() - G, Fv.ravel() - F
+            det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+            d1 = (J[1, 1] * r0 - J[0, 1] * r1) / det
+            d2 = (-J[1, 0] * r0 + J[0, 0] * r1) / det
+            step = np.ones(n)
+            for _k in range(30):  # stay in the chart
+                n1, n2 = h1 - step * d1, h2 - step * d2
+                bad = (n2 < 0) | (n1 - n2 < 0)
+                if not bad.any():
+                    break
+                step = np.where(bad, step / 2, step)
+            h1, h2 = h1 - step * d1, np.maximum(h2 - step * d2, 0.0)
+            if np.all(np.abs(d1) < 1e-13) and np.all(np.abs(d2) < 1e-13):
+                break
+        return h1, h2
+
+    def h2_for_force(self, h, F) -> np.ndarray:
+        """Cut height h2 with contact force F(h + h2, h2) = F at membrane height h (F > 0, h > 0)."""
+        h = np.atleast_1d(np.asarray(h, dtype=float))
+        F = np.broadcast_to(np.asarray(F, dtype=float), h.shape)
+        lo, hi = np.zeros(h.shape), np.full(h.shape, self.act.r1)
+        for _ in range(40):  # grow the bracket: F increases with h2 at fixed h
+            small = self.eval(h + hi, hi)["F"] < F
+            if not small.any():
+                break
+            hi = np.where(small, 2 * hi, hi)
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            big = self.eval(h + mid, mid)["F"] > F
+            hi, lo = np.where(big, mid, hi), np.where(big, lo, mid)
+        return 0.5 * (lo + hi)
+
+    def h_for_stretch(self, lam: float, F) -> np.ndarray:
+        """Membrane height at stretch lam under contact force F (fixed point on h2)."""
+        F = np.atleast_1d(np.asarray(F, dtype=float))
+        r1 = self.act.r1
+        h2 = np.zeros(F.shape)
+        for _ in range(30):
+            # lam^2 r1^2 = h1^2 + r1^2 - h2^2 with h1 = h + h2
+            h = -h2 + np.sqrt(h2**2 + r1**2 * (lam**2 - 1))
+            new = np.where(F > 0, self.h2_for_force(h, np.maximum(F, 1e-12)), 0.0)
+            if np.max(np.abs(new - h2)) < 1e-12:
+                h2 = new
+                break
+            h2 = new
+        return -h2 + np.sqrt(h2**2 + r1**2 * (lam**2 - 1))
+
+    def load_path(self, F: float, h_hi: float, n: int = 600) -> dict:
+        """Chamber state along the constant-load path h in (0, h_hi] at contact force F >= 0."""
+        h = np.linspace(h_hi / n, h_hi, n)
+        h2 = self.h2_for_force(h, F) if F > 0 else np.zeros(n)
+        out = self.eval(h + h2, h2)
+        out.update(h=h, h1=h + h2, h2=h2)
+        return out
+
+
+def chamber_states(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0),
+                   forces=None) -> dict:
+    """Each chamber's membrane state consistent with the layer equilibrium, for chamber heights (m).
+
+    Returns a dict of (N, 3) arrays: h1, h2 (m), p (Pa), F (N, the load share), lam (-), V (m^3),
+    m (gas mass, kg), and boolean flags ``resting`` (h = 0: the upper layer sits on the lower one,
+    the stop carries F, the chamber is vented: p = 0) and ``tension`` (F < 0: the glue pulls; the
+    membrane is treated as free, h2 = 0, its contact force 0). ``forces`` overrides the load
+    sharing (e.g. a controller's per-chamber load estimate, used as the load W of each model).
+    """
+    h = _heights_array(design, heights)
+    F = load_sharing(design, h, tip_force, tip_moment).forces if forces is None else \
+        np.asarray(forces, dtype=float).reshape(h.shape)
+    ch = _chambers(design.chamber)
+    resting = h <= 0
+    tension = (F < 0) & ~resting
+    push = (F > 0) & ~resting
+    h2 = np.zeros(h.shape)
+    if push.any():
+        h2[push] = ch.h2_for_force(h[push], F[push])
+    h1 = h + h2
+    out = ch.eval(h1, h2)
+    act = design.chamber
+    p = np.where(resting, 0.0, out["p"])
+    V = np.where(resting, act.V0, out["V"])
+    m = (p + act.p_env) * V / (act.R * act.T)
+    return {"h1": h1, "h2": h2, "p": p, "F": F, "lam": np.where(resting, 1.0, out["lam"]), "V": V, "m": m,
+            "resting": resting, "tension": tension}
+
+
+def chamber_loads(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0),
+                  floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-chamber load W (N), flattened A1, A2, ..., for use as each chamber model's dead load.
+
+    Returns (W, tension): W = max(load share, floor) and the mask of chambers whose share is
+    negative (the glue pulls; the single-chamber model cannot represent it, so it gets ``floor``).
+    This is what a per-chamber estimator/controller bank feeds its models as ``P["W"]``.
+    """
+    F = load_sharing(design, heights, tip_force, tip_moment).forces.ravel()
+    return np.maximum(F, floor), F < 0
+
+
+def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0, 0.0),
+                               tip_moment=(0.0, 0.0, 0.0), iters: int = 40, tol: float = 1e-9) -> dict:
+    """Static equilibrium of the robot for given gas masses (N x 3 or 3N, kg).
+
+    For every chamber the constant-load path h -> (h1, h2) with F(h1, h2) = its load share is
+    searched for G(h1, h2) = m R T (G = (p + p_env) V, SPEC 4); the loads follow from the heights
+    by :func:`load_sharing`, iterated to a fixed point. A chamber whose gas cannot lift its share
+    rests (h = 0). Along the load path G grows with h for the robot's chambers (no fold: the gas
+    is compressible, which is why the far branch is stable at fixed mass), so the height is unique;
+    where G is not monotone the lowest crossing is taken and ``ambiguous`` is flagged. Returns
+    :func:`chamber_states` of the heights plus ``heights`` and ``ambiguous`` (N, 3).
+    """
+    N = design.n_layers
+    m = np.asarray(masses, dtype=float)
+    if m.size != 3 * N or not np.all(np.isfinite(m)) or m.min() <= 0:
+        raise ValueError(f"masses: need {3 * N} finite gas masses > 0 kg")
+    m = m.ravel()
+    act = design.chamber
+    ch = _chambers(act)
+    rt = act.R * act.T
+    lam_hi = min(1.5 * design.max_stretch, act.material.lam_max() * 0.999)
+    h_hi = float(ch.h_for_stretch(lam_hi, 0.0)[0])
+    n = 3 * N
+    h1, h2 = np.zeros(n), np.zeros(n)
+    active = np.zeros(n, dtype=bool)
+    amb = np.zeros(n, dtype=bool)
+    h = np.zeros(n)
+    for _ in range(iters):
+        F = np.maximum(load_sharing(design, h.reshape(N, 3), tip_force, tip_moment).forces.ravel(), 0.0)
+        G_rest = (F / (math.pi * act.r1**2) + act.p_env) * act.V0
+        act_now = m * rt > G_rest
+        for i in np.nonzero(act_now & ~active)[0]:  # a coarse walk along the load path: the initial guess
+            path = ch.load_path(F[i], h_hi, 120)
+            G = path["G"] - m[i] * rt
+            cross = np.nonzero((G[:-1] < 0) & (G[1:] >= 0))[0]
+            if G[0] >= 0:
+                cross = np.append([0], cross)
+            if cross.size == 0:
+                raise ValueError(f"masses: chamber {design.names[i]} holds more gas than the stretch "
+                                 f"{lam_hi:g} allows")
+            amb[i] = cross.size > 1 or bool(np.any(np.diff(path["G"]) <= 0))
+            j = int(cross[0])
+            h1[i], h2[i] = path["h1"][j + 1], path["h2"][j + 1]
+        active = act_now
+        if active.any():
+            h1[active], h2[active] = ch.newton_gf(h1[active], h2[active], m[active] * rt, F[active])
+        h1[~active], h2[~active] = 0.0, 0.0
+        new = h1 - h2
+        done = np.max(np.abs(new - h)) < tol
+        h = new
+        if done:
+            break
+    h = h.reshape(N, 3)
+    amb = amb.reshape(N, 3)
+    out = chamber_states(design, h, tip_force, tip_moment)
+    out["heights"] = h
+    out["ambiguous"] = amb
+    return out

@@ -1,0 +1,343 @@
+"""The simulated rig: the "truth" that estimators and controllers are tested against (SI).
+
+A :class:`Rig` is the plant simulator at a *higher fidelity* than the estimators' and controllers'
+model, with *mismatched* parameters and a realistic sensor, so that nothing is ever tested against
+its own model:
+
+- fidelity ``platform`` (platform with mass and damping, ``m_L z'' = F - m_L g - c z'``) while a
+  load is on; the estimators use the quasi-static (dead-load) model. With no load the membrane
+  inflates freely (fidelity ``free``); a load put on mid-run (:meth:`Rig.set_load`) lands on the
+  membrane at its current apex height, taking it off lets the membrane inflate freely again;
+- parameters off nominal: every modulus of the material times ``modulus_scale`` (default 1.15),
+  compressor flow times ``flow_scale`` (0.9), dead volume times ``V0_scale`` (1.2);
+- the pressure sensor: additive Gaussian noise (``noise_std``, 200 Pa), saturation at
+  ``sensor_range`` (35 kPa: a reading never exceeds it), dropouts (NaN) with probability
+  ``dropout_prob``, sampled every ``sample_period`` (10 ms); the command is held between samples
+  (zero-order hold).
+
+The random stream is a :class:`numpy.random.Generator` seeded by ``seed``: a rig is deterministic.
+:func:`simulate_rig` runs a batch of open-loop trials (each its own schedule) through one batched
+plant, which the estimator benchmarks and the protocol scenario use.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
+from hbma_ctrl.sim.simulate import Plant
+from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
+
+__all__ = ["RigSettings", "Rig", "RigRecord", "parse_rig_section", "mismatched", "simulate_rig",
+           "TRUTH_KEYS"]
+
+#: keys of :meth:`Rig.truth`
+TRUTH_KEYS = ("t", "h1", "h2", "h", "p", "F", "m")
+_RIG_FIDELITIES = ("platform", "quasi_static")
+
+
+@dataclass
+class RigSettings:
+    """How the simulated rig differs from the nominal model, and its sensor.
+
+    Fields
+    ------
+    fidelity : plant model while a load is on: 'platform' (mass + damping, default) or
+        'quasi_static' (dead load; only to check an estimator against its own model structure).
+    modulus_scale : every modulus of the material is multiplied by this (-), range [0.2, 5].
+    flow_scale : the compressor map is multiplied by this on top of the pneumatics' own (-), [0, 5].
+    V0_scale : the dead volume is multiplied by this (-), [0.2, 5].
+    noise_std : pressure-sensor noise, one sigma, Pa, [0, 1e4].
+    sensor_range : the sensor saturates at this gauge pressure, Pa, [1e3, 1e6].
+    sample_period : sensor sampling and command period, s, (0, 1].
+    dropout_prob : probability that a sample is missing (NaN), [0, 1].
+    seed : seed of the noise and dropout stream (int >= 0).
+    integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
+    dt : internal integration step, s; None = the simulator's default for the fidelity.
+    """
+
+    fidelity: str = "platform"
+    modulus_scale: float = 1.15
+    flow_scale: float = 0.9
+    V0_scale: float = 1.2
+    noise_std: float = 200.0
+    sensor_range: float = 35e3
+    sample_period: float = 0.01
+    dropout_prob: float = 0.0
+    seed: int = 0
+    integrator: str = "rk4"
+    dt: float | None = None
+
+    def validate(self) -> "RigSettings":
+        if self.fidelity not in _RIG_FIDELITIES:
+            raise ValueError(f"rig.fidelity = '{self.fidelity}': allowed {', '.join(_RIG_FIDELITIES)}")
+        check_range("rig", "modulus_scale", self.modulus_scale, 0.2, 5.0)
+        check_range("rig", "flow_scale", self.flow_scale, 0.0, 5.0)
+        check_range("rig", "V0_scale", self.V0_scale, 0.2, 5.0)
+        check_range("rig", "noise_std", self.noise_std, 0.0, 1e4, "Pa")
+        check_range("rig", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
+        check_range("rig", "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
+        check_range("rig", "dropout_prob", self.dropout_prob, 0.0, 1.0)
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ValueError(f"rig.seed = {self.seed!r} must be an integer >= 0")
+        if self.integrator not in ("rk4", "euler"):
+            raise ValueError(f"rig.integrator = '{self.integrator}': allowed rk4, euler")
+        if self.dt is not None:
+            check_range("rig", "dt", self.dt, 1e-7, self.sample_period, "s", lo_open=True)
+        return self
+
+
+# scenario-file keys (edge units) -> (field, factor to SI)
+_SECTION_KEYS = {
+    "fidelity": ("fidelity", None),
+    "modulus_scale": ("modulus_scale", 1.0),
+    "flow_scale": ("flow_scale", 1.0),
+    "V0_scale": ("V0_scale", 1.0),
+    "noise_std_kpa": ("noise_std", 1e3),
+    "sensor_range_kpa": ("sensor_range", 1e3),
+    "sample_period_ms": ("sample_period", 1e-3),
+    "dropout_prob": ("dropout_prob", 1.0),
+    "seed": ("seed", None),
+    "integrator": ("integrator", None),
+    "dt_ms": ("dt", 1e-3),
+}
+
+
+def parse_rig_section(raw: dict) -> RigSettings:
+    """Scenario ``[rig]`` table (edge units: kPa, ms) -> validated :class:`RigSettings`.
+
+    Keys: fidelity, modulus_scale, flow_scale, V0_scale, noise_std_kpa, sensor_range_kpa,
+    sample_period_ms, dropout_prob, seed, integrator, dt_ms. Unknown keys raise ValueError with the
+    closest valid name.
+    """
+    kw = {}
+    for key, val in raw.items():
+        if key not in _SECTION_KEYS:
+            hint = did_you_mean(key, _SECTION_KEYS)
+            raise ValueError(f"rig.{key}: unknown key{hint}; allowed: {', '.join(_SECTION_KEYS)}")
+        name, factor = _SECTION_KEYS[key]
+        if factor is None:
+            kw[name] = val
+        else:
+            if isinstance(val, bool) or not isinstance(val, (int, float)):
+                raise ValueError(f"rig.{key} = {val!r} must be a number")
+            kw[name] = float(val) * factor
+    return RigSettings(**kw).validate()
+
+
+def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings
+               ) -> tuple[Actuator, Pneumatics]:
+    """The rig's (true) actuator and pneumatics: nominal ones with the settings' mismatch applied."""
+    act = replace(actuator, material=actuator.material.scaled(settings.modulus_scale),
+                  V0=actuator.V0 * settings.V0_scale)
+    pn = replace(pneumatics, flow_scale=pneumatics.flow_scale * settings.flow_scale)
+    return act, pn
+
+
+class Rig:
+    """One simulated chamber with its pressure sensor (see module docstring). SI throughout.
+
+    ``apply(command)`` holds the command for one sample period and advances the plant;
+    ``measure()`` returns the sensor reading at the current time (Pa; never above the sensor range;
+    NaN on a dropout); ``truth()`` the true state; ``set_load(mass_kg)`` changes the load now.
+    """
+
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, platform: Platform,
+                 settings: RigSettings | None = None):
+        self.settings = (settings or RigSettings()).validate()
+        actuator.validate()
+        pneumatics.validate()
+        platform.validate()
+        self.actuator, self.pneumatics = mismatched(actuator, pneumatics, self.settings)
+        self.platform = platform
+        self._rng = np.random.default_rng(self.settings.seed)
+        self._csv = str(self.pneumatics.csv_path)
+        self._free = make_fidelity("free", self.actuator.material, self._csv)
+        self._loaded = make_fidelity(self.settings.fidelity, self.actuator.material, self._csv)
+        self._u = np.zeros(3)
+        self.t = 0.0
+        self.events: list = []
+        self._plant = self._new_plant(platform)
+        self._t_plant0 = 0.0  # rig time at which the current plant's clock started
+
+    # --- plant bookkeeping ------------------------------------------------------------------
+    def _theta(self, fid, platform: Platform) -> np.ndarray:
+        return fid.space.values(self.actuator, self.pneumatics, platform)
+
+    def _new_plant(self, platform: Platform) -> Plant:
+        fid = self._free if platform.mass <= 0 else self._loaded
+        s = self.settings
+        dt = s.dt
+        if dt is None:
+            dt = DEFAULT_DT[(s.integrator, fid.name)]
+        # a whole number of internal steps per sample period
+        n = max(1, int(np.ceil(s.sample_period / dt - 1e-9)))
+        return Plant(fid, self._theta(fid, platform)[:, None], s.integrator, s.sample_period / n)
+
+    @property
+    def fidelity(self) -> str:
+        """Name of the plant model in use now ('free' while no load is on)."""
+        return self._plant.fid.name
+
+    def apply(self, command: Command) -> None:
+        """Hold ``command`` for one sample period and advance the plant."""
+        u = command.as_array() if isinstance(command, Command) else np.asarray(command, dtype=float)
+        self._u = u
+        n0 = len(self._plant.events[0])
+        self._plant.advance(u[:, None], self.settings.sample_period)
+        self.events += [(self._t_plant0 + e[0], e[1]) for e in self._plant.events[0][n0:]]
+        self.t += self.settings.sample_period
+        if not self._plant.alive[0]:
+            raise RuntimeError(f"rig: the plant diverged at t = {self.t:.3f} s")
+
+    def measure(self) -> float:
+        """Sensor reading now, Pa: true pressure + noise, saturated at the range; NaN on dropout."""
+        s = self.settings
+        noise = self._rng.standard_normal() * s.noise_std
+        drop = self._rng.random() < s.dropout_prob if s.dropout_prob > 0 else False
+        if drop:
+            return float("nan")
+        return float(min(self._plant.output("p")[0] + noise, s.sensor_range))
+
+    def truth(self) -> dict:
+        """True h1, h2, h (m), p (Pa), F (N), m (gas mass, kg) and t (s) now."""
+        y = self._plant.y[:, 0]
+        out = {k: float(y[OUTPUTS.index(k)]) for k in ("h1", "h2", "h", "p", "F", "m")}
+        out["t"] = self.t
+        return out
+
+    def set_load(self, mass_kg: float) -> None:
+        """Put a load of ``mass_kg`` (plus the platform's own mass) on now; 0 takes it off."""
+        check_range("rig.set_load", "mass_kg", mass_kg, 0.0, 50.0, "kg")
+        new = replace(self.platform, load=float(mass_kg))
+        old_plant = self._plant
+        was_free = old_plant.fid.name == "free"
+        now_free = new.mass <= 0
+        tr = self.truth()
+        if was_free and now_free:
+            self.platform = new
+            return
+        if not was_free and not now_free:
+            th = self._theta(self._loaded, new)
+            old_plant.thetas[:, 0] = th  # the batch shares this array
+            self.platform = new
+            self.events.append((self.t, f"load_set_{mass_kg:.3f}kg"))
+            return
+        self.platform = new
+        plant = self._new_plant(new)
+        fid = plant.fid
+        if now_free:
+            # the load leaves: the membrane re-inflates freely at constant gas mass
+            x = np.array([self._free_h1(tr["m"])])
+            mode = MODE_MOVING
+        else:
+            # the load is placed on the apex: platform at the membrane's height, at rest
+            if fid.name == "platform":
+                x = np.array([tr["m"], tr["h1"], tr["h"], 0.0])
+            else:
+                x = np.array([tr["m"], tr["h1"], 0.0])
+            mode = MODE_MOVING if tr["h"] > 1e-6 else MODE_REST
+            x = np.asarray(fid.project(x, plant.thetas[:, 0], mode)).ravel()
+        plant.X = x[:, None].copy()
+        plant.mode = np.array([mode])
+        plant.set_inputs(self._u[:, None])
+        plant.y = plant.batch.y(plant.X, plant.U, plant.mode)
+        self._plant = plant
+        self._t_plant0 = self.t
+        self.events.append((self.t, f"load_set_{mass_kg:.3f}kg"))
+
+    def _free_h1(self, m: float) -> float:
+        """Free-inflation cap height holding gas mass m (Newton on G(h1, 0) = m R T)."""
+        fid = self._free
+        theta = fid.space.values(self.actuator, self.pneumatics, Platform())
+        rt = self.actuator.R * self.actuator.T
+        h = max(self.truth()["h1"], 1e-4)
+        pi_r1 = np.pi * self.actuator.r1 ** 2
+        for _ in range(60):
+            y = np.asarray(fid.out([h], np.zeros(3), theta, MODE_MOVING)).ravel()
+            G = (y[OUTPUTS.index("p")] + self.actuator.p_env) * y[OUTPUTS.index("V")]
+            # dG/dh1 >= p_env dV/dh1 = p_env pi (r1^2 + h^2) / 2 ... use a secant-safe Newton
+            dG = self.actuator.p_env * 0.5 * (pi_r1 + np.pi * h * h) + 1e-12
+            hn = max(h - (G - m * rt) / dG, 0.0)
+            if abs(hn - h) < 1e-12:
+                break
+            h = hn
+        return h
+
+
+@dataclass
+class RigRecord:
+    """Sampled rig run of one trial (SI): times, commands (n x 3), readings, truth series."""
+
+    name: str
+    t: np.ndarray
+    u: np.ndarray
+    meas: np.ndarray
+    truth: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+    status: str = "ok"
+
+
+def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
+                 stream_ids: list[int] | None = None) -> list[RigRecord]:
+    """Run open-loop trials (each with its schedule) on the rig, all at once per fidelity.
+
+    Trials with a load share one batched ``platform`` plant, unloaded ones one ``free`` plant.
+    Readings use an independent stream per trial, seeded by (seed, its stream id); the ids default
+    to the trials' positions in the list (a caller that splits a list into batches passes the
+    positions in the whole list, so a trial's noise does not depend on the batching). Sample k is taken at
+    t = k * sample_period, before the command for [t, t + period) is applied; the command is the
+    schedule at the middle of the period.
+    """
+    s = (settings or RigSettings()).validate()
+    ids = list(range(len(trials))) if stream_ids is None else [int(i) for i in stream_ids]
+    if len(ids) != len(trials):
+        raise ValueError(f"simulate_rig: {len(ids)} stream_ids for {len(trials)} trials")
+    recs: list = [None] * len(trials)
+    groups: dict = {}
+    for i, tr in enumerate(trials):
+        tr.validate()
+        loaded = tr.platform.mass > 0
+        key = (loaded, type(tr.actuator.material), str(tr.pneumatics.csv_path))
+        groups.setdefault(key, []).append(i)
+    for (loaded, _, csvp), idx in groups.items():
+        pairs = [mismatched(trials[i].actuator, trials[i].pneumatics, s) for i in idx]
+        fid = make_fidelity(s.fidelity if loaded else "free", pairs[0][0].material, csvp)
+        thetas = np.column_stack([fid.space.values(a, p, trials[i].platform)
+                                  for (a, p), i in zip(pairs, idx)])
+        dt = s.dt if s.dt is not None else DEFAULT_DT[(s.integrator, fid.name)]
+        nsub = max(1, int(np.ceil(s.sample_period / dt - 1e-9)))
+        plant = Plant(fid, thetas, s.integrator, s.sample_period / nsub)
+        T = max(trials[i].duration for i in idx)
+        K = int(round(T / s.sample_period)) + 1
+        n = len(idx)
+        Y = np.zeros((K, len(OUTPUTS), n))
+        Ucols = np.zeros((K, 3, n))
+        for k in range(K):
+            t = k * s.sample_period
+            U = np.column_stack([trials[i].schedule.at(t + 0.5 * s.sample_period) for i in idx])
+            plant.set_inputs(U)
+            Y[k] = plant.y
+            Ucols[k] = U
+            if k < K - 1:
+                plant.advance(None, s.sample_period)
+        for j, i in enumerate(idx):
+            rng = np.random.default_rng([s.seed, ids[i]])
+            Kj = int(round(trials[i].duration / s.sample_period)) + 1
+            y = Y[:Kj, :, j]
+            p = y[:, OUTPUTS.index("p")]
+            meas = np.minimum(p + s.noise_std * rng.standard_normal(Kj), s.sensor_range)
+            if s.dropout_prob > 0:
+                meas[rng.random(Kj) < s.dropout_prob] = np.nan
+            truth = {k: y[:, OUTPUTS.index(k)].copy() for k in ("h1", "h2", "h", "p", "F", "m")}
+            tt = np.arange(Kj) * s.sample_period
+            truth["t"] = tt
+            status = "ok" if plant.alive[j] else "diverged"
+            recs[i] = RigRecord(trials[i].name, tt, Ucols[:Kj, :, j].copy(), meas, truth,
+                                list(plant.events[j]), status)
+    return recs
