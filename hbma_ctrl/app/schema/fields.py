@@ -8,11 +8,14 @@ TOML arrays validate into tuples.
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, NamedTuple
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
-__all__ = ["Table", "RuleError", "num", "integer", "flag", "text", "elem", "subtable", "shaped", "choice"]
+from hbma_ctrl import units as U
+
+__all__ = ["Table", "RuleError", "num", "integer", "flag", "text", "elem", "subtable", "shaped", "choice", "LoadStepRow",
+           "LoadSteps", "LOAD_STEPS_SHAPE", "load_steps_si"]
 
 
 class Table(BaseModel):
@@ -93,3 +96,29 @@ def shaped(default: Any, what: str, shape: str, *, min_length: int | None = None
     if default_factory is not None:
         return Field(default_factory=default_factory, **kw)
     return Field(default, **kw)
+
+
+class LoadStepRow(NamedTuple):
+    """One load step: from t_s on, the rig carries mass_g."""
+
+    t_s: elem(0.0, 1e5, "s", "time of the step")
+    mass_g: elem(0.0, 50000.0, "g", "load mass from then on")
+
+
+def _increasing(rows: list) -> list:
+    last = -1.0
+    for i, r in enumerate(rows):
+        if r[0] <= last:
+            raise RuleError(f"load_steps_g[{i}].t_s = {r[0]:g} must be after the previous step's {last:g} s")
+        last = r[0]
+    return rows
+
+
+#: [[t_s, mass_g], ...] with strictly increasing times: the one rule for [controller] and [estimator]
+LoadSteps = Annotated[list[LoadStepRow], AfterValidator(_increasing)]
+LOAD_STEPS_SHAPE = "[[t_s, mass_g], ...]"
+
+
+def load_steps_si(rows: list) -> tuple:
+    """((t s, mass kg), ...) from the table's [[t_s, mass_g], ...]."""
+    return tuple((r.t_s, U.grams(r.mass_g)) for r in rows)
