@@ -46,7 +46,7 @@ def _g(x: float) -> str:
 
 
 def bounds_of(infos: list[FieldInfo]) -> tuple[float | None, float | None, bool, bool, str]:
-    """(lo, hi, lo_open, hi_open, unit) from fields' constraints; None = unbounded, unit "" = none."""
+    """(lo, hi, lo_open, hi_open, unit) from fields' constraints; None = unbounded, unit "-" = none."""
     lo = hi = None
     lo_open = hi_open = False
     unit = ""
@@ -62,7 +62,7 @@ def bounds_of(infos: list[FieldInfo]) -> tuple[float | None, float | None, bool,
                 hi, hi_open = m.lt, True
         extra = fi.json_schema_extra if isinstance(fi.json_schema_extra, dict) else {}
         unit = str(extra.get("unit", unit))
-    return lo, hi, lo_open, hi_open, ("" if unit == "-" else unit)
+    return lo, hi, lo_open, hi_open, unit
 
 
 def range_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool, unit: str) -> str:
@@ -216,6 +216,7 @@ def format_one(err: dict, root: type[BaseModel], table: str | None = None) -> st
         return f"{head} must be a table, got {type(value).__name__}"
     key = s.key
     lo, hi, lo_open, hi_open, unit = bounds_of(s.infos)
+    unit = "" if unit == "-" else unit
     rng = range_text(lo, hi, lo_open, hi_open, unit)
     bounded = lo is not None or hi is not None
     if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):

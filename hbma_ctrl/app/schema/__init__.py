@@ -1,0 +1,23 @@
+"""One declarative schema (pydantic v2) for every table of a scenario file.
+
+Each table is a model whose fields are named as the user writes them (``p_max_kpa``, ``r1_mm``),
+in the user's units, with their bounds; each converts once to the SI objects the package runs on.
+Errors are one line naming the table and key: see :mod:`.errors`.
+
+Entry points: :func:`parse_scenario_tables` (whole file -> Scenario), :func:`parse_role` (one role
+table -> its settings), :func:`search_space` (a table's numbers and bounds, for tuning).
+"""
+
+from .base import ActuatorTable, InputsTable, LoadTable, PneumaticsTable, ProtocolTable, ScenarioTable, SimTable
+from .controller import ControllerTable
+from .document import ROLE_TABLES, ScenarioFile, parse_role, parse_scenario_tables
+from .errors import format_error
+from .estimator import EstimatorTable
+from .fields import RuleError, Table
+from .rig import RigTable
+from .robot import RobotTable
+from .space import search_space
+
+__all__ = ["ScenarioFile", "parse_scenario_tables", "parse_role", "search_space", "format_error", "ROLE_TABLES",
+           "RuleError", "Table", "ScenarioTable", "ActuatorTable", "PneumaticsTable", "LoadTable", "InputsTable",
+           "ProtocolTable", "SimTable", "RigTable", "EstimatorTable", "ControllerTable", "RobotTable"]

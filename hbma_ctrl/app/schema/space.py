@@ -1,0 +1,52 @@
+"""The numeric fields of a table with their bounds and units: the tuning CLI's search space."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, get_args, get_origin
+
+from pydantic import BaseModel
+
+from .errors import _strip, bounds_of
+
+__all__ = ["search_space"]
+
+
+def _entry(infos: list, tp: Any, finite_only: bool) -> tuple | None:
+    if tp is bool or tp not in (float, int):
+        return None
+    lo, hi, lo_open, hi_open, unit = bounds_of(infos)
+    if finite_only and (lo is None or hi is None):
+        return None
+    lo = -math.inf if lo is None else lo
+    hi = math.inf if hi is None else hi
+    kind = "int" if tp is int else "float"
+    # an open end becomes the nearest value inside it, so every value of [lo, hi] is valid
+    if lo_open and math.isfinite(lo):
+        lo = lo + 1 if kind == "int" else math.nextafter(lo, math.inf)
+    if hi_open and math.isfinite(hi):
+        hi = hi - 1 if kind == "int" else math.nextafter(hi, -math.inf)
+    return (lo, hi, unit, kind)
+
+
+def search_space(model: type[BaseModel] | BaseModel, finite_only: bool = True) -> dict[str, tuple]:
+    """{key: (lo, hi, unit, kind)} for every number of a table, in the user's units.
+
+    kind is "float" or "int"; vectors give one entry per element (``w_rate[0]``). Open bounds are
+    moved to the nearest valid value. ``finite_only`` leaves out keys without two finite bounds
+    (seeds, forces), which an optimiser cannot sample.
+    """
+    cls = model if isinstance(model, type) else type(model)
+    out: dict[str, tuple] = {}
+    for name, fi in cls.model_fields.items():
+        tp, more = _strip(fi.annotation)
+        e = _entry([fi] + more, tp, finite_only)
+        if e is not None:
+            out[name] = e
+        elif get_origin(tp) is tuple and Ellipsis not in get_args(tp):
+            for i, arg in enumerate(get_args(tp)):
+                atp, infos = _strip(arg)
+                e = _entry(infos, atp, finite_only)
+                if e is not None:
+                    out[f"{name}[{i}]"] = e
+    return out
