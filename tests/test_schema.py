@@ -309,7 +309,7 @@ def test_search_space_covers_weights_and_noise_with_finite_bounds():
                 else:
                     model.model_validate({**base, key: v})
     assert ctrl["horizon"] == (2, 200, "steps", "int")
-    assert est["noise_std_kpa"][:3] == (math.nextafter(0.0, 1.0), 10.0, "kPa")
+    assert est["noise_std_kpa"][:3] == (10.0 * 1e-9, 10.0, "kPa")  # open end moved inside
     assert "seed" not in search_space(RigTable) and "seed" in search_space(RigTable, finite_only=False)
 
 
@@ -366,3 +366,31 @@ def test_mutated_shipped_files_end_in_a_scenario_or_a_table_error(data):
         assert "\n" not in msg
     else:
         assert isinstance(scn, Scenario)
+
+
+_SI_NAME = re.compile(r"\b(mpc|pid|bang_bang|rig|estimator|robot|actuator|platform|sim|pneumatics)\.\w+ = ")
+
+
+@pytest.mark.parametrize("name", ["rig", "estimator", "controller", "robot"])
+def test_bound_ends_in_user_units_pass_the_si_checks(name):
+    """Each key at either end of its stated range converts; a refusal can only be a cross-key rule in the
+    user's terms, never an SI settings check that the table's bounds failed to restate."""
+    from hbma_ctrl.app.schema import ROLE_TABLES
+
+    model = ROLE_TABLES[name][0]
+    base = TARGETS if name == "controller" else {}
+    for key, (lo, hi, _unit, _kind) in search_space(model).items():
+        field, _, idx = key.partition("[")
+        for v in (lo, hi):
+            raw = dict(base)
+            if idx:
+                vec = list(model.model_fields[field].default)
+                vec[int(idx[0])] = v
+                raw[field] = vec
+            else:
+                raw[key] = v
+            try:
+                parse_role(name, raw)
+            except ValueError as exc:
+                assert not _SI_NAME.search(str(exc)), str(exc)
+                assert str(exc).startswith(f"[{name}"), str(exc)

@@ -21,11 +21,13 @@ def _entry(infos: list, tp: Any, finite_only: bool) -> tuple | None:
     lo = -math.inf if lo is None else lo
     hi = math.inf if hi is None else hi
     kind = "int" if tp is int else "float"
-    # an open end becomes the nearest value inside it, so every value of [lo, hi] is valid
+    # an open end moves inside by 1e-9 of the span (not to the next float: 5e-324 ms would
+    # underflow to 0 s on conversion), so every value of [lo, hi] is valid
+    step = (hi - lo) * 1e-9 if math.isfinite(hi - lo) else 1e-9
     if lo_open and math.isfinite(lo):
-        lo = lo + 1 if kind == "int" else math.nextafter(lo, math.inf)
+        lo = lo + 1 if kind == "int" else lo + step
     if hi_open and math.isfinite(hi):
-        hi = hi - 1 if kind == "int" else math.nextafter(hi, -math.inf)
+        hi = hi - 1 if kind == "int" else hi - step
     return (lo, hi, unit, kind)
 
 
@@ -33,7 +35,7 @@ def search_space(model: type[BaseModel] | BaseModel, finite_only: bool = True) -
     """{key: (lo, hi, unit, kind)} for every number of a table, in the user's units.
 
     kind is "float" or "int"; vectors give one entry per element (``w_rate[0]``). Open bounds are
-    moved to the nearest valid value. ``finite_only`` leaves out keys without two finite bounds
+    moved inside by 1e-9 of the span. ``finite_only`` leaves out keys without two finite bounds
     (seeds, forces), which an optimiser cannot sample.
     """
     cls = model if isinstance(model, type) else type(model)
