@@ -6,11 +6,11 @@ import copy
 import dataclasses
 import math
 import re
-import tomllib
 from pathlib import Path
 from typing import get_args
 
 import pytest
+import tomllib
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -21,8 +21,17 @@ from controllers.scene import parse_section as parse_controller
 from estimators.evaluate import FILTERS
 from estimators.scene import parse_section as parse_estimator
 from hbma_ctrl import robot as R
-from hbma_ctrl.app.schema import (ActuatorTable, ControllerTable, EstimatorTable, RigTable, RobotTable, ScenarioFile,
-                                  SimTable, parse_role, parse_scenario_tables, search_space)
+from hbma_ctrl.app.schema import (
+    ActuatorTable,
+    ControllerTable,
+    EstimatorTable,
+    RigTable,
+    RobotTable,
+    SimTable,
+    parse_role,
+    parse_scenario_tables,
+    search_space,
+)
 from hbma_ctrl.materials import MATERIALS
 from hbma_ctrl.rig import parse_rig_section
 from hbma_ctrl.scenario import FIDELITY_CHOICES, Scenario, parse_scenario
@@ -154,7 +163,7 @@ def test_load_steps_are_one_type():
 
 
 def test_choices_match_the_code():
-    lit = lambda model, key: get_args(model.model_fields[key].annotation)  # noqa: E731
+    lit = lambda model, key: get_args(model.model_fields[key].annotation)
     assert lit(ActuatorTable, "material") == tuple(MATERIALS)
     assert lit(SimTable, "fidelity") == FIDELITY_CHOICES and lit(SimTable, "integrator") == INTEGRATORS
     assert lit(ControllerTable, "kind") == CONTROLLER_KINDS and lit(ControllerTable, "variant") == VARIANTS
@@ -164,7 +173,13 @@ def test_choices_match_the_code():
 
 
 def test_every_field_has_a_description_with_its_unit():
-    from hbma_ctrl.app.schema import InputsTable, LoadTable, PneumaticsTable, ProtocolTable, ScenarioTable
+    from hbma_ctrl.app.schema import (
+        InputsTable,
+        LoadTable,
+        PneumaticsTable,
+        ProtocolTable,
+        ScenarioTable,
+    )
 
     for model in (ScenarioTable, ActuatorTable, PneumaticsTable, LoadTable, InputsTable, ProtocolTable, SimTable,
                   RigTable, EstimatorTable, ControllerTable, RobotTable):

@@ -8,7 +8,15 @@ Entry points: :func:`parse_scenario_tables` (whole file -> Scenario), :func:`par
 table -> its settings), :func:`search_space` (a table's numbers and bounds, for tuning).
 """
 
-from .base import ActuatorTable, InputsTable, LoadTable, PneumaticsTable, ProtocolTable, ScenarioTable, SimTable
+from .base import (
+           ActuatorTable,
+           InputsTable,
+           LoadTable,
+           PneumaticsTable,
+           ProtocolTable,
+           ScenarioTable,
+           SimTable,
+)
 from .controller import ControllerTable
 from .document import ROLE_TABLES, ScenarioFile, parse_role, parse_scenario_tables
 from .errors import format_error
@@ -18,6 +26,24 @@ from .rig import RigTable
 from .robot import RobotTable
 from .space import search_space
 
-__all__ = ["ScenarioFile", "parse_scenario_tables", "parse_role", "search_space", "format_error", "ROLE_TABLES",
-           "RuleError", "Table", "ScenarioTable", "ActuatorTable", "PneumaticsTable", "LoadTable", "InputsTable",
-           "ProtocolTable", "SimTable", "RigTable", "EstimatorTable", "ControllerTable", "RobotTable"]
+__all__ = [
+           "ROLE_TABLES",
+           "ActuatorTable",
+           "ControllerTable",
+           "EstimatorTable",
+           "InputsTable",
+           "LoadTable",
+           "PneumaticsTable",
+           "ProtocolTable",
+           "RigTable",
+           "RobotTable",
+           "RuleError",
+           "ScenarioFile",
+           "ScenarioTable",
+           "SimTable",
+           "Table",
+           "format_error",
+           "parse_role",
+           "parse_scenario_tables",
+           "search_space",
+]

@@ -18,11 +18,22 @@ from hbma_ctrl.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.protocol import PROTOCOL_DEFAULTS
 from hbma_ctrl.simulate import InputSchedule, SimSettings
 
-from .fields import RuleError, Table, choice, elem, num, shaped, subtable, text
 from .errors import closest
+from .fields import RuleError, Table, choice, elem, num, shaped, subtable, text
 
-__all__ = ["ScenarioTable", "ActuatorTable", "PneumaticsTable", "LoadTable", "ScheduleRow", "InputsTable",
-           "ProtocolTable", "SimTable", "MaterialName", "ms_to_s", "build_material"]
+__all__ = [
+    "ActuatorTable",
+    "InputsTable",
+    "LoadTable",
+    "MaterialName",
+    "PneumaticsTable",
+    "ProtocolTable",
+    "ScenarioTable",
+    "ScheduleRow",
+    "SimTable",
+    "build_material",
+    "ms_to_s",
+]
 
 #: units.py has no ms(); ms -> s is the same factor as mm -> m (as hbma_ctrl.scenario does today)
 ms_to_s = U.mm
@@ -69,7 +80,7 @@ class ActuatorTable(Table):
     _material: Any = PrivateAttr(None)
 
     @model_validator(mode="after")
-    def _build_material(self) -> "ActuatorTable":
+    def _build_material(self) -> ActuatorTable:
         self._material = build_material(self.material, self.material_params, "actuator.material_params")
         return self
 
@@ -144,7 +155,7 @@ class InputsTable(Table):
                                                 min_length=1)
 
     @model_validator(mode="after")
-    def _times(self) -> "InputsTable":
+    def _times(self) -> InputsTable:
         if self.schedule is not None:
             check_rows(self.schedule, "schedule")
         return self
@@ -180,7 +191,7 @@ class ProtocolTable(Table):
         lambda cls, v: _listify(v))
 
     @model_validator(mode="after")
-    def _unique(self) -> "ProtocolTable":
+    def _unique(self) -> ProtocolTable:
         for key in ("loads_g", "speeds_pct", "t0_mm", "r1_mm"):
             vals = getattr(self, key)
             if len(set(vals)) != len(vals):

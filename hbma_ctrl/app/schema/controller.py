@@ -12,14 +12,25 @@ from typing import Literal, NamedTuple
 
 from pydantic import model_validator
 
-from hbma_ctrl import units as U
 from controllers.baselines import BangBangSettings, PIDSettings
 from controllers.mpc import MPCSettings
 from controllers.scene import ControllerSection, ReferenceProfile
+from hbma_ctrl import units as U
 
 from .base import ms_to_s
-from .fields import (LOAD_STEPS_SHAPE, LoadSteps, RuleError, Table, choice, elem, flag, integer, load_steps_si,
-                     num, shaped)
+from .fields import (
+    LOAD_STEPS_SHAPE,
+    LoadSteps,
+    RuleError,
+    Table,
+    choice,
+    elem,
+    flag,
+    integer,
+    load_steps_si,
+    num,
+    shaped,
+)
 
 __all__ = ["ControllerTable", "TargetRow"]
 
@@ -78,7 +89,7 @@ class ControllerTable(Table):
     preview: bool | None = flag(None, "give the MPC the future targets; default: for ramps and sines")
 
     @model_validator(mode="after")
-    def _cross(self) -> "ControllerTable":
+    def _cross(self) -> ControllerTable:
         given = self.model_fields_set
         pmax = self.p_max_kpa
         margins = [("p_margin_kpa", self.p_margin_kpa, "p_margin_kpa" not in given, "the MPC default")]

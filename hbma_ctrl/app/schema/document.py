@@ -8,8 +8,9 @@ error is a ``ValueError`` with one line that starts with ``[table]``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from pydantic import Field, ValidationError, ValidationInfo, model_validator
 
@@ -18,7 +19,15 @@ from hbma_ctrl.protocol import PROTOCOL_DEFAULTS
 from hbma_ctrl.scenario import Scenario
 from hbma_ctrl.simulate import InputSchedule
 
-from .base import ActuatorTable, InputsTable, LoadTable, PneumaticsTable, ProtocolTable, ScenarioTable, SimTable
+from .base import (
+    ActuatorTable,
+    InputsTable,
+    LoadTable,
+    PneumaticsTable,
+    ProtocolTable,
+    ScenarioTable,
+    SimTable,
+)
 from .controller import ControllerTable
 from .errors import format_error
 from .estimator import EstimatorTable
@@ -26,7 +35,7 @@ from .fields import RuleError, Table
 from .rig import RigTable
 from .robot import RobotTable
 
-__all__ = ["ScenarioFile", "parse_scenario_tables", "parse_role", "ROLE_TABLES", "DEFAULT_DURATION_S"]
+__all__ = ["DEFAULT_DURATION_S", "ROLE_TABLES", "ScenarioFile", "parse_role", "parse_scenario_tables"]
 
 #: run length of a kind "single" scenario without duration_s, s
 DEFAULT_DURATION_S = 6.0
@@ -53,7 +62,7 @@ class ScenarioFile(Table):
     robot: RobotTable | None = Field(None, description="the robot, its inputs or targets")
 
     @model_validator(mode="after")
-    def _across_tables(self, info: ValidationInfo) -> "ScenarioFile":
+    def _across_tables(self, info: ValidationInfo) -> ScenarioFile:
         path = (info.context or {}).get("path") if info is not None else None
         sc, ld, fid = self.scenario, self.load, self.sim.fidelity
         mass_g = U.to_grams(U.grams(ld.mass_g) + U.grams(ld.own_mass_g))

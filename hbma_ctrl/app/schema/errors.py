@@ -27,7 +27,7 @@ from hbma_ctrl.validation import did_you_mean
 
 from .fields import RuleError
 
-__all__ = ["format_error", "closest", "range_text", "bounds_of", "HINT_CUTOFF"]
+__all__ = ["HINT_CUTOFF", "bounds_of", "closest", "format_error", "format_one", "range_text", "unwrap_type"]
 
 #: scenario keys are long, a typo moves them further than difflib's default 0.6 allows
 HINT_CUTOFF = 0.5
@@ -74,7 +74,7 @@ def range_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool,
     return f"{left}{a}, {b}{right} {unit}".rstrip()
 
 
-def _strip(tp: Any) -> tuple[Any, list[FieldInfo]]:
+def unwrap_type(tp: Any) -> tuple[Any, list[FieldInfo]]:
     """Remove Annotated (keeping its FieldInfos) and Optional around a type."""
     infos: list[FieldInfo] = []
     while True:
@@ -126,7 +126,7 @@ class _Spot:
 def _locate(root: type[BaseModel], loc: tuple, table: str | None) -> _Spot:
     s = _Spot(tp=root, model=root, tables=table.split(".") if table else [])
     for el in loc:
-        tp, more = _strip(s.tp)
+        tp, more = unwrap_type(s.tp)
         s.infos += more
         if _is_model(tp):
             s.model = tp
@@ -135,7 +135,7 @@ def _locate(root: type[BaseModel], loc: tuple, table: str | None) -> _Spot:
                 s.keys.append(el)
                 s.unknown, s.tp, s.infos = True, None, []
                 return s
-            sub, _ = _strip(fi.annotation)
+            sub, _ = unwrap_type(fi.annotation)
             extra = fi.json_schema_extra if isinstance(fi.json_schema_extra, dict) else {}
             if not s.keys and (_is_model(sub) or extra.get("subtable")):
                 s.tables.append(el)
@@ -165,7 +165,7 @@ def _locate(root: type[BaseModel], loc: tuple, table: str | None) -> _Spot:
         else:
             s.keys.append(el)
             s.tp, s.infos = Any, []
-    tp, more = _strip(s.tp)
+    tp, more = unwrap_type(s.tp)
     s.tp, s.infos = tp, s.infos + more
     return s
 

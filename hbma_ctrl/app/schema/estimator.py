@@ -9,11 +9,21 @@ from __future__ import annotations
 
 from typing import Literal
 
+from estimators.scene import EstimatorSection, filter_settings_for
 from hbma_ctrl import units as U
 from hbma_ctrl.rig import RigSettings
-from estimators.scene import EstimatorSection, filter_settings_for
 
-from .fields import LOAD_STEPS_SHAPE, LoadSteps, Table, choice, flag, integer, load_steps_si, num, shaped
+from .fields import (
+    LOAD_STEPS_SHAPE,
+    LoadSteps,
+    Table,
+    choice,
+    flag,
+    integer,
+    load_steps_si,
+    num,
+    shaped,
+)
 
 __all__ = ["EstimatorTable"]
 

@@ -14,8 +14,22 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from hbma_ctrl import units as U
 
-__all__ = ["Table", "RuleError", "num", "integer", "flag", "text", "elem", "subtable", "shaped", "choice", "LoadStepRow",
-           "LoadSteps", "LOAD_STEPS_SHAPE", "load_steps_si"]
+__all__ = [
+    "LOAD_STEPS_SHAPE",
+    "LoadStepRow",
+    "LoadSteps",
+    "RuleError",
+    "Table",
+    "choice",
+    "elem",
+    "flag",
+    "integer",
+    "load_steps_si",
+    "num",
+    "shaped",
+    "subtable",
+    "text",
+]
 
 
 class Table(BaseModel):

@@ -10,9 +10,9 @@ from typing import Literal
 
 from pydantic import model_validator
 
+from controllers.robot_loop import RobotRigSettings
 from hbma_ctrl import units as U
 from hbma_ctrl.rig import RigSettings
-from controllers.robot_loop import RobotRigSettings
 
 from .base import ms_to_s
 from .fields import RuleError, Table, choice, integer, num
@@ -41,7 +41,7 @@ class RigTable(Table):
                               "default per fidelity", lo_open=True)
 
     @model_validator(mode="after")
-    def _dt(self) -> "RigTable":
+    def _dt(self) -> RigTable:
         if self.dt_ms is not None and self.dt_ms > self.sample_period_ms:
             raise RuleError(f"dt_ms = {self.dt_ms!r} is out of range (0.0001, {self.sample_period_ms:g}] ms "
                             "(at most sample_period_ms)")

@@ -16,15 +16,21 @@ from typing import Annotated, Any, Literal, NamedTuple
 import numpy as np
 from pydantic import Field, PrivateAttr, model_validator
 
-from hbma_ctrl import units as U
-from hbma_ctrl.robot import LETTERS, RobotDesign, RobotPneumatics, RobotSettings, inverse_kinematics
 from controllers.robot_loop import H_TARGET_MAX
+from hbma_ctrl import units as U
+from hbma_ctrl.robot import (
+    LETTERS,
+    RobotDesign,
+    RobotPneumatics,
+    RobotSettings,
+    inverse_kinematics,
+)
 
 from .base import MaterialName, build_material, check_rows, ms_to_s
 from .errors import closest
 from .fields import RuleError, Table, choice, elem, flag, integer, num, shaped, subtable
 
-__all__ = ["RobotTable", "RobotInputRow", "RobotTargetRow", "TipLoadRow"]
+__all__ = ["RobotInputRow", "RobotTable", "RobotTargetRow", "TipLoadRow"]
 
 _BASE = RobotDesign()
 _CH = _BASE.chamber
@@ -113,7 +119,7 @@ class RobotTable(Table):
         return key in self.model_fields_set and getattr(self, key) is not None
 
     @model_validator(mode="after")
-    def _build(self) -> "RobotTable":
+    def _build(self) -> RobotTable:
         self._settings = self._settings_si()
         return self
 

@@ -7,7 +7,7 @@ from typing import Any, get_args, get_origin
 
 from pydantic import BaseModel
 
-from .errors import _strip, bounds_of
+from .errors import bounds_of, unwrap_type
 
 __all__ = ["search_space"]
 
@@ -41,13 +41,13 @@ def search_space(model: type[BaseModel] | BaseModel, finite_only: bool = True) -
     cls = model if isinstance(model, type) else type(model)
     out: dict[str, tuple] = {}
     for name, fi in cls.model_fields.items():
-        tp, more = _strip(fi.annotation)
+        tp, more = unwrap_type(fi.annotation)
         e = _entry([fi] + more, tp, finite_only)
         if e is not None:
             out[name] = e
         elif get_origin(tp) is tuple and Ellipsis not in get_args(tp):
             for i, arg in enumerate(get_args(tp)):
-                atp, infos = _strip(arg)
+                atp, infos = unwrap_type(arg)
                 e = _entry(infos, atp, finite_only)
                 if e is not None:
                     out[f"{name}[{i}]"] = e
