@@ -1,0 +1,228 @@
+"""The base tables of a scenario file: [scenario] [actuator] [pneumatics] [load] [inputs]
+[protocol] [sim], in the user's units, and their conversion to the SI objects.
+
+Bounds are the ones ``hbma_ctrl.scenario.SCHEMA`` enforces today, stated in the key's own unit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from pathlib import Path
+from typing import Any, Literal, NamedTuple
+
+from pydantic import PrivateAttr, field_validator, model_validator
+
+from hbma_ctrl.app.schema.errors import closest
+from hbma_ctrl.app.schema.fields import (
+    RuleError,
+    Table,
+    choice,
+    elem,
+    num,
+    shaped,
+    subtable,
+    text,
+)
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.materials import MATERIALS, make_material
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.sim.batch import PROTOCOL_DEFAULTS
+from hbma_ctrl.sim.trial import InputSchedule, SimSettings
+
+__all__ = [
+    "ActuatorTable",
+    "InputsTable",
+    "LoadTable",
+    "MaterialName",
+    "PneumaticsTable",
+    "ProtocolTable",
+    "ScenarioTable",
+    "ScheduleRow",
+    "SimTable",
+    "build_material",
+    "ms_to_s",
+]
+
+#: units.py has no ms(); ms -> s is the same factor as mm -> m (as hbma_ctrl.scenario does today)
+ms_to_s = U.mm
+
+MaterialName = Literal["nh", "mr", "yeoh", "gent", "ogden"]
+_ACT = Actuator()
+_PLATFORM = Platform()
+
+
+def build_material(name: str, params: dict, table: str) -> Any:
+    """make_material with the table's one-line errors (parameter names, values as SI numbers)."""
+    allowed = sorted(f.name for f in fields(MATERIALS[name]))
+    for key, v in params.items():
+        if key not in allowed:
+            near = closest(key, allowed)
+            hint = f"; did you mean {near}? allowed: " if near else "; allowed: "
+            raise RuleError(f"{key}: unknown parameter of material '{name}'{hint}{', '.join(allowed)}", table)
+        vals = v if isinstance(v, list) else [v]
+        if not vals or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in vals):
+            raise RuleError(f"{key} = {v!r} must be a number (SI) or a list of numbers", table)
+    try:
+        return make_material(name, **params)
+    except (TypeError, ValueError, ArithmeticError) as exc:
+        raise RuleError(str(exc), table) from None
+
+
+class ScenarioTable(Table):
+    """[scenario]: what the run is called, how long, one trial or the protocol grid."""
+
+    name: str | None = text(None, "run name; default: the file's stem")
+    duration_s: float | None = num(None, 0.0, 3600.0, "s", "run length; default 6", lo_open=True)
+    kind: Literal["single", "protocol"] = choice("single", "one trial or the protocol grid")
+
+
+class ActuatorTable(Table):
+    """[actuator]: the membrane and its clamp (edge units), material by name with SI parameters."""
+
+    r1_mm: float = num(U.to_mm(_ACT.r1), 0.5, 100.0, "mm", "retaining-disk inner radius", lo_open=True)
+    t0_mm: float = num(U.to_mm(_ACT.t0), 0.05, 20.0, "mm", "initial membrane thickness", lo_open=True)
+    V0_cm3: float = num(U.to_cm3(_ACT.V0), 0.001, 1000.0, "cm^3", "dead volume")
+    material: MaterialName = choice("nh", "strain-energy model")
+    material_params: dict[str, Any] = subtable(dict, "material parameters (SI, names per material)",
+                                               "{name = value, ...}")
+    _material: Any = PrivateAttr(None)
+
+    @model_validator(mode="after")
+    def _build_material(self) -> ActuatorTable:
+        self._material = build_material(self.material, self.material_params, "actuator.material_params")
+        return self
+
+    def to_actuator(self) -> Actuator:
+        """The SI actuator (m, m^3) with the material built once."""
+        try:
+            return Actuator(r1=U.mm(self.r1_mm), t0=U.mm(self.t0_mm), V0=U.cm3(self.V0_cm3),
+                            material=self._material).validate()
+        except ValueError as exc:
+            raise ValueError(f"[actuator] {exc}") from None
+
+
+class PneumaticsTable(Table):
+    """[pneumatics]: the compressor map (CSV, relative to the scenario file) and its scale."""
+
+    compressor_csv: str | None = text(None, "compressor map CSV (speed, Pa, kg/s); default: the shipped one")
+    flow_scale: float = num(1.0, 0.0, 10.0, "-", "multiplies the compressor map")
+
+    def to_pneumatics(self, path: Path | None) -> Pneumatics:
+        """SI pneumatics; a relative CSV path is resolved against the scenario file's folder."""
+        csv = self.compressor_csv
+        if csv is not None:
+            csvp = Path(csv)
+            if not csvp.is_absolute() and path is not None:
+                csvp = (path.parent / csvp).resolve()
+            if not csvp.is_file():
+                raise ValueError(f"[pneumatics] compressor_csv: no such file '{csvp}'")
+            csv = str(csvp)
+        return Pneumatics(compressor_csv=csv, flow_scale=self.flow_scale).validate()
+
+
+class LoadTable(Table):
+    """[load]: the dead load on the membrane, the platform's own mass and its damping."""
+
+    mass_g: float = num(0.0, 0.0, 50000.0, "g", "load mass (kind 'single')")
+    own_mass_g: float = num(0.0, 0.0, 50000.0, "g", "platform's own moving mass")
+    damping_ns_per_m: float = num(_PLATFORM.damping, 0.0, 1e5, "N s/m", "platform damping")
+
+    def to_platform(self) -> Platform:
+        """SI platform (kg, N s/m)."""
+        return Platform(load=U.grams(self.mass_g), own_mass=U.grams(self.own_mass_g),
+                        damping=self.damping_ns_per_m).validate()
+
+
+class ScheduleRow(NamedTuple):
+    """One row of [inputs] schedule."""
+
+    t_s: elem(0.0, 3600.0, "s", "switch time")
+    speed_pct: elem(0.0, 100.0, "%", "compressor speed")
+    inlet_duty: elem(0.0, 1.0, "-", "inlet valve duty")
+    outlet_duty: elem(0.0, 1.0, "-", "outlet valve duty")
+
+
+_ROW_SHAPE = "[[t_s, speed_pct, inlet_duty, outlet_duty], ...]"
+
+
+def check_rows(rows: list, key: str, table: str | None = None) -> None:
+    """A schedule starts at t = 0 s and its times increase strictly (RuleError names the row)."""
+    last = -1.0
+    for i, r in enumerate(rows):
+        if i == 0 and r[0] != 0.0:
+            raise RuleError(f"{key}[0].t_s = {r[0]:g} must be 0 (the schedule starts at t = 0 s)", table)
+        if r[0] <= last:
+            raise RuleError(f"{key}[{i}].t_s = {r[0]:g} must be after the previous row's {last:g} s", table)
+        last = r[0]
+
+
+class InputsTable(Table):
+    """[inputs] (kind 'single'): the piecewise-constant commands."""
+
+    schedule: list[ScheduleRow] | None = shaped(None, "commands from each row's time on", _ROW_SHAPE,
+                                                min_length=1)
+
+    @model_validator(mode="after")
+    def _times(self) -> InputsTable:
+        if self.schedule is not None:
+            check_rows(self.schedule, "schedule")
+        return self
+
+    def to_schedule(self) -> InputSchedule | None:
+        """SI schedule (speed as a fraction), or None when not given."""
+        if self.schedule is None:
+            return None
+        return InputSchedule(tuple((r.t_s, U.pct(r.speed_pct), r.inlet_duty, r.outlet_duty)
+                                   for r in self.schedule))
+
+
+def _listify(v: Any) -> Any:
+    # a single number stands for a one-value grid axis, as the old parser allowed
+    return v if isinstance(v, (list, tuple)) else [v]
+
+
+class ProtocolTable(Table):
+    """[protocol] (kind 'protocol'): the grid of loads, speeds, thicknesses and radii."""
+
+    loads_g: list[elem(0.0, 50000.0, "g", "load")] = shaped(
+        PROTOCOL_DEFAULTS["loads_g"], "loads of the grid (g)", "[mass_g, ...]", min_length=1)
+    speeds_pct: list[elem(0.0, 100.0, "%", "compressor speed", lo_open=True)] = shaped(
+        PROTOCOL_DEFAULTS["speeds_pct"], "compressor speeds of the grid (%)", "[speed_pct, ...]", min_length=1)
+    t0_mm: list[elem(0.05, 20.0, "mm", "membrane thickness", lo_open=True)] = shaped(
+        PROTOCOL_DEFAULTS["t0_mm"], "membrane thicknesses of the grid (mm)", "[t0_mm, ...]", min_length=1)
+    r1_mm: list[elem(0.5, 100.0, "mm", "disk radius", lo_open=True)] = shaped(
+        PROTOCOL_DEFAULTS["r1_mm"], "disk radii of the grid (mm)", "[r1_mm, ...]", min_length=1)
+    t_inflate_s: float = num(PROTOCOL_DEFAULTS["t_inflate_s"], 0.0, 3600.0, "s",
+                             "inflation time before venting", lo_open=True)
+
+    _wrap = field_validator("loads_g", "speeds_pct", "t0_mm", "r1_mm", mode="before")(
+        lambda cls, v: _listify(v))
+
+    @model_validator(mode="after")
+    def _unique(self) -> ProtocolTable:
+        for key in ("loads_g", "speeds_pct", "t0_mm", "r1_mm"):
+            vals = getattr(self, key)
+            if len(set(vals)) != len(vals):
+                raise RuleError(f"{key} = {vals!r} has repeated values")
+        return self
+
+    def to_grid(self) -> dict:
+        """The grid dict ``Scenario.protocol`` holds (edge units, as written)."""
+        return {k: getattr(self, k) for k in ("loads_g", "speeds_pct", "t0_mm", "r1_mm", "t_inflate_s")}
+
+
+class SimTable(Table):
+    """[sim]: fidelity, integrator and steps of the open-loop simulation."""
+
+    fidelity: Literal["auto", "free", "quasi_static", "platform"] = choice("auto", "plant model; auto = "
+                                                                         "free without a load")
+    integrator: Literal["euler", "rk4", "radau"] = choice("rk4", "integration scheme")
+    dt_ms: float | None = num(None, 1e-4, 100.0, "ms", "fixed step; default per integrator and fidelity")
+    log_dt_ms: float = num(10.0, 0.01, 10000.0, "ms", "log sampling period")
+    sensor_range_kpa: float = num(35.0, 1.0, 1000.0, "kPa", "sensor saturation pressure")
+
+    def to_sim(self) -> SimSettings:
+        """SI simulation settings (s, Pa)."""
+        dt = ms_to_s(self.dt_ms) if self.dt_ms is not None else None
+        return SimSettings(integrator=self.integrator, dt=dt, log_dt=ms_to_s(self.log_dt_ms),
+                           sensor_range=U.kpa(self.sensor_range_kpa)).validate()

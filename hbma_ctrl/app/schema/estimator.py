@@ -1,0 +1,87 @@
+"""The [estimator] table: which filter, the Monte-Carlo setup, load steps and the filter tuning.
+
+Bounds are those of ``FilterSettings.validate`` and ``estimators.scene.parse_section``, in the
+user's units. Only the tuning keys the user writes override the filter's defaults (the sample
+period, sensor range and noise otherwise come from the rig, as before).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from hbma_ctrl.app.scene_estimator import EstimatorSection, filter_settings_for
+from hbma_ctrl.app.schema.fields import (
+    LOAD_STEPS_SHAPE,
+    LoadSteps,
+    Table,
+    choice,
+    flag,
+    integer,
+    load_steps_si,
+    num,
+    shaped,
+)
+from hbma_ctrl.core import units as U
+from hbma_ctrl.sim.rig import RigSettings
+
+__all__ = ["EstimatorTable"]
+
+
+def _same(v):
+    return v
+
+
+class EstimatorTable(Table):
+    """[estimator] in the user's units; :meth:`to_section` gives the SI EstimatorSection."""
+
+    filter: Literal["ekf", "ukf"] = choice("ekf", "the filter")
+    compare_ukf: bool = flag(False, "also run the UKF on the same rig runs")
+    load_steps_g: LoadSteps = shaped(None, "rig load from t_s on (kind 'single')", LOAD_STEPS_SHAPE,
+                                     default_factory=list)
+    workers: int = integer(2, 1, 64, "worker processes for a protocol", "processes")
+    seeds: int = integer(1, 1, 100, "Monte-Carlo repetitions with different noise seeds", "runs")
+    noise_std_kpa: float | None = num(None, 0.0, 10.0, "kPa", "filter's sensor sigma; default: the rig's",
+                                      lo_open=True)
+    model_rel_std: float = num(0.05, 0.0, 1.0, "-", "relative error of the model's pressure law")
+    flow_rel_std: float = num(0.15, 0.0, 1.0, "-", "relative error of the model's mass flow")
+    flow_factor_std: float = num(0.02, 0.0, 10.0, "1/sqrt(s)", "random walk of the pump-flow factor")
+    modulus_std: float = num(0.002, 0.0, 10.0, "1/sqrt(s)", "random walk of the modulus factor")
+    change_threshold: float = num(20.0, 0.0, 1e6, "-", "CUSUM threshold of a load change", lo_open=True)
+    load_std_n: float = num(0.05, 0.0, 100.0, "N/sqrt(s)", "load random walk")
+    integrator: Literal["rk4", "euler"] = choice("rk4", "the filter model's scheme")
+    nsub: int = integer(1, 1, 50, "integrator sub-steps per sample", "steps")
+    newton: int = integer(3, 1, 10, "Newton iterations of the shape projection", "iterations")
+    compile: bool = flag(True, "compile the filter model to C")
+    load_prior: Literal["unknown", "nominal"] = choice("unknown", "learn the load or start at the nominal")
+    load_prior_rel_std: float = num(0.1, 0.0, 10.0, "-", "relative sigma of the nominal load prior")
+
+    def to_section(self) -> EstimatorSection:
+        """The SI section; the tuning is checked against a default rig now, as before."""
+        tuning = {name: conv(getattr(self, key)) for key, (name, conv) in _TUNING.items()
+                  if key in self.model_fields_set and getattr(self, key) is not None}
+        sec = EstimatorSection(filter=self.filter, compare_ukf=self.compare_ukf,
+                               load_steps=load_steps_si(self.load_steps_g), workers=self.workers,
+                               seeds=self.seeds, tuning=tuning)
+        try:
+            filter_settings_for(sec, RigSettings())
+        except ValueError as exc:  # a bound the table could not state (kept as a last guard)
+            raise ValueError(f"[estimator] {exc}") from None
+        return sec
+
+
+#: table key -> (FilterSettings field, conversion from the user's unit)
+_TUNING = {
+    "noise_std_kpa": ("noise_std", U.kpa),
+    "model_rel_std": ("model_rel_std", float),
+    "flow_rel_std": ("flow_rel_std", float),
+    "flow_factor_std": ("flow_factor_std", float),
+    "modulus_std": ("modulus_std", float),
+    "change_threshold": ("change_threshold", float),
+    "load_std_n": ("load_std", float),
+    "integrator": ("integrator", _same),
+    "nsub": ("nsub", _same),
+    "newton": ("newton", _same),
+    "compile": ("compile", _same),
+    "load_prior": ("load_prior", _same),
+    "load_prior_rel_std": ("load_prior_rel_std", float),
+}

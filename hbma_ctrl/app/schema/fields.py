@@ -1,0 +1,138 @@
+"""Field builders shared by every table model: numbers with bounds and units, integers, flags.
+
+Every field carries its unit twice: in the description (for people) and in ``json_schema_extra``
+(``unit``, for the error formatter and :func:`hbma_ctrl.app.schema.search_space`). Scalars are
+strict (a string or a bool is never a number; an int field refuses 2.0); containers stay lax so
+TOML arrays validate into tuples.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, NamedTuple
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+
+from hbma_ctrl.core import units as U
+
+__all__ = [
+    "LOAD_STEPS_SHAPE",
+    "LoadStepRow",
+    "LoadSteps",
+    "RuleError",
+    "Table",
+    "choice",
+    "elem",
+    "flag",
+    "integer",
+    "load_steps_si",
+    "num",
+    "shaped",
+    "subtable",
+    "text",
+]
+
+
+class Table(BaseModel):
+    """Base of every scenario table: unknown keys and non-finite numbers are errors."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=False)
+
+
+class RuleError(ValueError):
+    """A broken cross-field rule, raised inside a model validator.
+
+    ``text`` follows ``[table] `` in the final message and names the keys as written; ``table``
+    (e.g. "inputs") overrides the table the error's location gives (the root validator has none).
+    """
+
+    def __init__(self, text: str, table: str | None = None):
+        super().__init__(text)
+        self.text = text
+        self.table = table
+
+
+def _bounds(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> dict:
+    kw: dict = {}
+    if lo is not None:
+        kw["gt" if lo_open else "ge"] = lo
+    if hi is not None:
+        kw["lt" if hi_open else "le"] = hi
+    return kw
+
+
+def num(default: Any, lo: float | None, hi: float | None, unit: str, what: str, *,
+        lo_open: bool = False, hi_open: bool = False) -> Any:
+    """A finite number field in the user's unit, bounded [lo, hi] (open ends on request)."""
+    return Field(default, strict=True, allow_inf_nan=False, description=f"{what} ({unit})",
+                 json_schema_extra={"unit": unit}, **_bounds(lo, hi, lo_open, hi_open))
+
+
+def integer(default: Any, lo: int | None, hi: int | None, what: str, unit: str = "-") -> Any:
+    """A strict integer field (2.0 and true are refused), bounded [lo, hi]."""
+    return Field(default, strict=True, description=f"{what} ({unit}, integer)",
+                 json_schema_extra={"unit": unit}, **_bounds(lo, hi, False, False))
+
+
+def flag(default: Any, what: str) -> Any:
+    """A strict true/false field."""
+    return Field(default, strict=True, description=f"{what} (true/false)")
+
+
+def text(default: Any, what: str) -> Any:
+    """A strict string field."""
+    return Field(default, strict=True, description=f"{what} (text)")
+
+
+def choice(default: Any, what: str) -> Any:
+    """A choice field (the annotation is a Literal: only the listed strings match)."""
+    return Field(default, description=f"{what} (choice)")
+
+
+def subtable(default_factory: Any, what: str, shape: str) -> Any:
+    """A TOML sub-table given as a dict (``[robot.targets]``): errors name ``[table.key]``."""
+    return Field(default_factory=default_factory, description=f"{what}: {shape}",
+                 json_schema_extra={"subtable": True, "shape": shape})
+
+
+def elem(lo: float | None, hi: float | None, unit: str, what: str, *, lo_open: bool = False,
+         hi_open: bool = False) -> Any:
+    """The type of one number inside a row or vector (a tuple element), with bounds and unit."""
+    return Annotated[float, Field(strict=True, allow_inf_nan=False, description=f"{what} ({unit})",
+                                  json_schema_extra={"unit": unit}, **_bounds(lo, hi, lo_open, hi_open))]
+
+
+def shaped(default: Any, what: str, shape: str, *, min_length: int | None = None,
+           default_factory: Any = None) -> Any:
+    """A list or vector field; ``shape`` (e.g. "[[t_s, h_mm], ...]") is quoted by the errors."""
+    kw: dict = {"description": f"{what}: {shape}", "json_schema_extra": {"shape": shape}}
+    if min_length is not None:
+        kw["min_length"] = min_length
+    if default_factory is not None:
+        return Field(default_factory=default_factory, **kw)
+    return Field(default, **kw)
+
+
+class LoadStepRow(NamedTuple):
+    """One load step: from t_s on, the rig carries mass_g."""
+
+    t_s: elem(0.0, 1e5, "s", "time of the step")
+    mass_g: elem(0.0, 50000.0, "g", "load mass from then on")
+
+
+def _increasing(rows: list) -> list:
+    last = -1.0
+    for i, r in enumerate(rows):
+        if r[0] <= last:
+            raise RuleError(f"load_steps_g[{i}].t_s = {r[0]:g} must be after the previous step's {last:g} s")
+        last = r[0]
+    return rows
+
+
+#: [[t_s, mass_g], ...] with strictly increasing times: the one rule for [controller] and [estimator]
+LoadSteps = Annotated[list[LoadStepRow], AfterValidator(_increasing)]
+LOAD_STEPS_SHAPE = "[[t_s, mass_g], ...]"
+
+
+def load_steps_si(rows: list) -> tuple:
+    """((t s, mass kg), ...) from the table's [[t_s, mass_g], ...]."""
+    return tuple((r.t_s, U.grams(r.mass_g)) for r in rows)

@@ -1,0 +1,86 @@
+"""The [rig] table: the simulated rig's mismatch and sensor, in the user's units (kPa, ms).
+
+Bounds are those of ``RigSettings.validate``. The same table also sets up the robot's rig
+(:meth:`RigTable.to_robot_rig`, as ``RobotRigSettings.from_rig_section`` does).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import model_validator
+
+from hbma_ctrl.app.schema.base import ms_to_s
+from hbma_ctrl.app.schema.fields import RuleError, Table, choice, integer, num
+from hbma_ctrl.core import units as U
+from hbma_ctrl.robot.rig import RobotRigSettings
+from hbma_ctrl.sim.rig import RigSettings
+
+__all__ = ["RigTable"]
+
+
+def _same(v):
+    return v
+
+
+class RigTable(Table):
+    """[rig] in the user's units; :meth:`to_settings` gives the SI RigSettings."""
+
+    fidelity: Literal["platform", "quasi_static"] = choice("platform", "plant model while a load is on")
+    modulus_scale: float = num(1.15, 0.2, 5.0, "-", "every modulus of the material times this")
+    flow_scale: float = num(0.9, 0.0, 5.0, "-", "compressor map times this")
+    V0_scale: float = num(1.2, 0.2, 5.0, "-", "dead volume times this")
+    noise_std_kpa: float = num(0.2, 0.0, 10.0, "kPa", "sensor noise, one sigma")
+    sensor_range_kpa: float = num(35.0, 1.0, 1000.0, "kPa", "sensor saturation pressure")
+    sample_period_ms: float = num(10.0, 0.0, 1000.0, "ms", "sensor and command period", lo_open=True)
+    dropout_prob: float = num(0.0, 0.0, 1.0, "-", "probability that a sample is missing")
+    seed: int = integer(0, 0, None, "seed of the noise and dropout stream")
+    integrator: Literal["rk4", "euler"] = choice("rk4", "fixed-step scheme")
+    dt_ms: float | None = num(None, 1e-4, 1000.0, "ms", "internal step, at most sample_period_ms; "
+                              "default per fidelity", lo_open=True)
+
+    @model_validator(mode="after")
+    def _dt(self) -> RigTable:
+        if self.dt_ms is not None and self.dt_ms > self.sample_period_ms:
+            raise RuleError(f"dt_ms = {self.dt_ms!r} is out of range (0.0001, {self.sample_period_ms:g}] ms "
+                            "(at most sample_period_ms)")
+        return self
+
+    def _si(self) -> dict:
+        return {name: conv(getattr(self, key)) for key, (name, conv) in _SI.items()
+                if key in self.model_fields_set and getattr(self, key) is not None}
+
+    def to_settings(self) -> RigSettings:
+        """SI rig settings (Pa, s); keys not written keep RigSettings' defaults."""
+        try:
+            return RigSettings(**self._si()).validate()
+        except ValueError as exc:  # a bound the table could not state (kept as a last guard)
+            raise ValueError(f"[rig] {exc}") from None
+
+    def to_robot_rig(self) -> RobotRigSettings:
+        """The robot's rig: modulus_scale m becomes the spread |m - 1|, the rest as written."""
+        if not self.model_fields_set:
+            return RobotRigSettings()
+        r = self.to_settings()
+        try:
+            return RobotRigSettings(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0),
+                                    flow_scale=r.flow_scale, V0_scale=r.V0_scale, noise_std=r.noise_std,
+                                    sample_period=r.sample_period, seed=r.seed).validate()
+        except ValueError as exc:
+            raise ValueError(f"[rig] {exc} (the robot's rig)") from None
+
+
+#: table key -> (RigSettings field, conversion from the user's unit)
+_SI = {
+    "fidelity": ("fidelity", _same),
+    "modulus_scale": ("modulus_scale", float),
+    "flow_scale": ("flow_scale", float),
+    "V0_scale": ("V0_scale", float),
+    "noise_std_kpa": ("noise_std", U.kpa),
+    "sensor_range_kpa": ("sensor_range", U.kpa),
+    "sample_period_ms": ("sample_period", ms_to_s),
+    "dropout_prob": ("dropout_prob", float),
+    "seed": ("seed", _same),
+    "integrator": ("integrator", _same),
+    "dt_ms": ("dt", ms_to_s),
+}
