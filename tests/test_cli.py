@@ -93,7 +93,7 @@ def test_bad_input_is_one_line_exit_2(args, needles):
 def test_bad_scenario_file_is_one_line(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text("[actuator]\nr1_mm = 500.0\n")
-    _one_line_error(runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "o")]), "actuator.r1_mm", "bad.toml")
+    _one_line_error(runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "o")]), "[actuator] r1_mm", "bad.toml")
 
 
 def test_run_open_loop_writes_metrics_log_and_plot(tmp_path):
@@ -134,16 +134,14 @@ def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
 
 def test_run_dispatches_role_scene_and_merges_metrics(tmp_path, monkeypatch):
     import hbma_ctrl.app.runner as runner_mod
-    import hbma_ctrl.app.scenario as scenario_mod
 
     def run_scene(scn, out_dir):
-        assert scn.role("estimator") == {"kind": "ukf"}
+        assert scn.role("estimator").filter == "ukf"
         (out_dir / "est.csv").write_text("t_s\n0\n")
         return {"estimator": {"height_nrmsd": 0.01}, "plant": {"max_height_mm": 3.0}}
 
-    monkeypatch.setitem(scenario_mod.ROLE_SECTIONS, "estimator", lambda raw: {"kind": raw.get("kind", "ekf")})
     monkeypatch.setattr(runner_mod, "SCENE_DISPATCH", (("estimator", run_scene),))
-    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text() + '\n[estimator]\nkind = "ukf"\n'
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text() + '\n[estimator]\nfilter = "ukf"\n'
     scn_path = tmp_path / "est.toml"
     scn_path.write_text(text)
     res = runner.invoke(app, ["run", str(scn_path), "--out", str(tmp_path / "o")])

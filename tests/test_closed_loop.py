@@ -13,9 +13,9 @@ import pytest
 from hbma_ctrl.app.scene_controller import (
     closed_loop,
     loop_metrics,
-    parse_section,
     settle_results,
 )
+from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.interfaces import Estimate
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
@@ -41,7 +41,7 @@ class OracleFromRig:
 
 
 def run(section_raw, load_kg, duration, model, rig=None, oracle=False):
-    sec = parse_section(section_raw)
+    sec = parse_role("controller", section_raw)
     log = closed_loop(ACT, PN, Platform(load=load_kg), sec, duration, rig or RigSettings(seed=3),
                       estimator=OracleFromRig() if oracle else None, model=model)
     return sec, log, loop_metrics(log, sec)
@@ -132,7 +132,7 @@ def test_settle_results_detects_unsettled():
         h_true = np.where(t < 1, 2e-3, 2.5e-3)
         h_est = h_true
 
-    sec = parse_section({"targets_mm": [[0.0, 2.0], [1.0, 3.0]]})
+    sec = parse_role("controller", {"targets_mm": [[0.0, 2.0], [1.0, 3.0]]})
     res = settle_results(L, sec.reference, 0.3e-3)
     assert res[0]["settled"] and res[0]["settle_time_s"] == 0.0
     assert not res[1]["settled"] and res[1]["final_error_mm"] == pytest.approx(-0.5)

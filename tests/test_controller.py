@@ -14,7 +14,7 @@ from controllers.baselines import (
 from controllers.mpc import NMPC
 from controllers.mpc_settings import MPCSettings, duty_to_on_time
 from controllers.mpc_solvers import _Problem
-from hbma_ctrl.app.scene_controller import parse_section
+from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
@@ -24,6 +24,11 @@ from hbma_ctrl.sim.simulate import Plant
 
 ACT, PN = Actuator(), Pneumatics()
 W400 = 0.4 * 9.80665
+
+def parse_section(raw: dict):
+    """The [controller] table (edge units) -> its SI settings, through the scenario schema."""
+    return parse_role("controller", raw)
+
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +107,7 @@ def test_parse_section_edge_units_and_typos():
     assert sec.mpc.p_max == pytest.approx(30e3) and sec.pid.p_max == pytest.approx(30e3)
     assert sec.mpc.horizon == 10 and sec.reference(1.2) == pytest.approx(4e-3)
     assert sec.load_steps == ((1.5, 0.6),)
-    with pytest.raises(ValueError, match="did you mean 'horizon'"):
+    with pytest.raises(ValueError, match="did you mean horizon"):
         parse_section({"horizn": 10, "targets_mm": [[0, 2]]})
     with pytest.raises(ValueError, match="targets_mm is required"):
         parse_section({"kind": "mpc"})

@@ -12,13 +12,18 @@ from estimators.ekf import EKF
 from estimators.ukf import UKF
 from hbma_ctrl.app.evaluate import run_filter, score
 from hbma_ctrl.app.metrics import nrmsd
-from hbma_ctrl.app.scene_estimator import parse_section
+from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.sim.rig import Rig, RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
 
 G = 9.80665
+
+def parse_section(raw: dict):
+    """The [estimator] table (edge units) -> its SI settings, through the scenario schema."""
+    return parse_role("estimator", raw)
+
 
 
 def _trial(load=0.4, speed=1.0, r1=12.5e-3, t0=3e-3, t_inf=3.0, dur=4.0, rows=None):
@@ -277,9 +282,9 @@ def test_settings_and_section_errors():
         FilterSettings(noise_std=0.0).validate()
     with pytest.raises(ValueError, match="estimator.nsub"):
         FilterSettings(nsub=0).validate()
-    with pytest.raises(ValueError, match="did you mean 'filter'"):
+    with pytest.raises(ValueError, match="did you mean filter"):
         parse_section({"filtr": "ekf"})
-    with pytest.raises(ValueError, match="estimator.filter"):
+    with pytest.raises(ValueError, match=r"\[estimator\] filter = 'pf' is not allowed"):
         parse_section({"filter": "pf"})
     sec = parse_section({"noise_std_kpa": 0.3, "load_steps_g": [[1.0, 200.0]], "compare_ukf": True})
     assert sec.tuning["noise_std"] == pytest.approx(300.0)

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
@@ -12,7 +13,6 @@ from hbma_ctrl.sim.rig import (
     Rig,
     RigSettings,
     mismatched,
-    parse_rig_section,
     simulate_rig,
 )
 from hbma_ctrl.sim.trial import InputSchedule, Trial
@@ -25,12 +25,12 @@ def test_settings_validation_names_field():
         RigSettings(noise_std=-1.0).validate()
     with pytest.raises(ValueError, match="rig.fidelity"):
         RigSettings(fidelity="free").validate()
-    with pytest.raises(ValueError, match="did you mean 'noise_std_kpa'"):
-        parse_rig_section({"noise_std_kp": 0.2})
+    with pytest.raises(ValueError, match="did you mean noise_std_kpa"):
+        parse_role("rig", {"noise_std_kp": 0.2})
 
 
 def test_section_converts_edge_units():
-    s = parse_rig_section({"noise_std_kpa": 0.5, "sensor_range_kpa": 30, "sample_period_ms": 5, "modulus_scale": 0.85})
+    s = parse_role("rig", {"noise_std_kpa": 0.5, "sensor_range_kpa": 30, "sample_period_ms": 5, "modulus_scale": 0.85})
     assert s.noise_std == pytest.approx(500.0)
     assert s.sensor_range == pytest.approx(30e3)
     assert s.sample_period == pytest.approx(5e-3)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import casadi as ca
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hbma_ctrl.app.robot_section import parse_section
+from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.kinematics import (
@@ -38,6 +39,11 @@ D3 = RobotDesign().validate()
 D1 = RobotDesign(n_layers=1).validate()
 RC = D3.placement_radius
 
+def parse_section(raw: dict):
+    """The [robot] table (edge units) -> its SI settings, through the scenario schema."""
+    return parse_role("robot", raw)
+
+
 
 # --------------------------------------------------------------------------------------------- design
 def test_default_design_is_the_papers_robot():
@@ -60,7 +66,7 @@ def test_default_design_is_the_papers_robot():
     ({"layer_mass": -1.0}, "layer_mass"),
 ])
 def test_design_validation_names_the_field(kw, field):
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=re.escape(field)):
         RobotDesign(**kw).validate()
 
 
@@ -296,25 +302,25 @@ def test_parse_section_defaults_and_inputs():
 
 @pytest.mark.parametrize("raw, field", [
     ({"layrs": 2}, "layers"),
-    ({"layers": 0}, "robot.layers"),
-    ({"layers": 2.5}, "robot.layers"),
-    ({"r1_mm": -1}, "robot.r1_mm"),
-    ({"placement_radius_mm": 30}, "robot.placement_radius_mm"),
-    ({"pressure_limit_kpa": 60}, "robot.pressure_limit_kpa"),
-    ({"sensor_range_kpa": "50"}, "robot.sensor_range_kpa"),
-    ({"topology": "shard"}, "robot.topology"),
-    ({"mode": "closed"}, "robot.mode"),
-    ({"max_stretch": 0.5}, "robot.max_stretch"),
-    ({"chamber_angles_deg": [0, 10, 20]}, "robot.chamber_angles_deg"),
-    ({"tip_force_n": [1, 2]}, "robot.tip_force_n"),
-    ({"sync_ms": 0}, "robot.sync_ms"),
-    ({"inputs": {"Z9": [[0, 50, 1, 0]]}}, "robot.inputs.Z9"),
-    ({"inputs": {"A1": [[0, 150, 1, 0]]}}, "robot.inputs.A1"),
-    ({"inputs": {"A1": [[1, 50, 1, 0]]}}, "robot.inputs.A1"),
+    ({"layers": 0}, "[robot] layers"),
+    ({"layers": 2.5}, "[robot] layers"),
+    ({"r1_mm": -1}, "[robot] r1_mm"),
+    ({"placement_radius_mm": 30}, "[robot] placement_radius_mm"),
+    ({"pressure_limit_kpa": 60}, "[robot] pressure_limit_kpa"),
+    ({"sensor_range_kpa": "50"}, "[robot] sensor_range_kpa"),
+    ({"topology": "shard"}, "[robot] topology"),
+    ({"mode": "closed"}, "[robot] mode"),
+    ({"max_stretch": 0.5}, "[robot] max_stretch"),
+    ({"chamber_angles_deg": [0, 10, 20]}, "[robot] chamber_angles_deg"),
+    ({"tip_force_n": [1, 2]}, "[robot] tip_force_n"),
+    ({"sync_ms": 0}, "[robot] sync_ms"),
+    ({"inputs": {"Z9": [[0, 50, 1, 0]]}}, "[robot.inputs] Z9"),
+    ({"inputs": {"A1": [[0, 150, 1, 0]]}}, "[robot.inputs] A1"),
+    ({"inputs": {"A1": [[1, 50, 1, 0]]}}, "[robot.inputs] A1"),
     ({"material": "nhh"}, "material"),
 ])
 def test_parse_section_rejects_bad_values_naming_the_field(raw, field):
-    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+    with pytest.raises(ValueError, match=re.escape(field).replace(".", r"\.")):
         parse_section(raw)
 
 

@@ -7,16 +7,22 @@ import pytest
 
 from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
-from hbma_ctrl.app.robot_section import RobotSettings, parse_section
 from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics
+from hbma_ctrl.app.schema import parse_role
+from hbma_ctrl.app.sections import RobotSettings
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.models.bank import commands_from_inputs
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
 from hbma_ctrl.robot.statics import load_sharing
-from hbma_ctrl.robot.targets import parse_targets
 
 D1 = RobotDesign(n_layers=1)
+
+def parse_section(raw: dict):
+    """The [robot] table (edge units) -> its SI settings, through the scenario schema."""
+    return parse_role("robot", raw)
+
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +69,7 @@ def test_ekf_bank_tracks_heights_open_loop(model):
 
 def test_mpc_holds_chambers_past_the_limit_point(model):
     """Every chamber held at 7 mm (beyond the 5.7 mm limit point) on the mismatched rig, p <= 45 kPa."""
-    tg = parse_targets({"all": [[0.0, 7.0, 0.0, 0.0]]}, D1)
+    tg = {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}
     run = run_closed_loop(_settings(), tg, 3.0, "mpc", model=model)
     h_end = run.h[-50:].mean(0)
     assert np.all(np.abs(h_end - 7e-3) < 0.5e-3)
@@ -79,14 +85,14 @@ def test_mpc_holds_chambers_past_the_limit_point(model):
 def test_pressure_limit_is_never_exceeded_with_a_tight_limit(model):
     """With a 38 kPa limit the stiff chambers (true peak ~42 kPa) cannot pass the limit point: the
     NMPC holds them below the limit instead of pushing through."""
-    tg = parse_targets({"all": [[0.0, 7.0, 0.0, 0.0]]}, D1)
+    tg = {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}
     run = run_closed_loop(_settings(limit_kpa=38.0), tg, 2.5, "mpc", model=model)
     assert run.p.max() <= 38e3
     assert run.h[-1].max() > 3e-3  # it did inflate
 
 
 def test_pressure_pid_runs_through_the_same_api_and_cannot_hold_the_far_branch(model):
-    tg = parse_targets({"all": [[0.0, 7.0, 0.0, 0.0]]}, D1)
+    tg = {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}
     run = run_closed_loop(_settings(), tg, 3.0, "pressure_pid", model=model)
     m = closed_loop_metrics(D1, run, 45e3, settle_time=2.0, model=model)
     assert m["controller"] == "pressure_pid" and m["step_ms_median"] > 0
@@ -96,7 +102,7 @@ def test_pressure_pid_runs_through_the_same_api_and_cannot_hold_the_far_branch(m
 
 
 def test_shared_compressor_respects_the_duty_budget(shared_model):
-    tg = parse_targets({"all": [[0.0, 7.0, 0.0, 0.0]]}, D1)
+    tg = {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}
     run = run_closed_loop(_settings(topology="shared"), tg, 3.5, "mpc", model=shared_model)
     assert np.all(run.a.sum(1) <= 1.0 + 1e-6)
     assert run.a.sum(1).max() > 0.9  # the budget was used

@@ -10,14 +10,19 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.app.robot_section import parse_section
 from hbma_ctrl.app.scene_robot import run_metrics, run_scene
+from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR, simulate_open_loop
 from hbma_ctrl.robot.reach import chamber_reach
 from hbma_ctrl.robot.statics import load_sharing
 
 ROOT = Path(__file__).resolve().parents[1]
+
+def parse_section(raw: dict):
+    """The [robot] table (edge units) -> its SI settings, through the scenario schema."""
+    return parse_role("robot", raw)
+
 
 
 def _settings(**raw):
@@ -74,13 +79,9 @@ def test_shared_compressor_splits_the_flow():
     assert m[i25] - m[i20] > 1.5 * (m[i20] - m[i15])
 
 
-def test_closed_loop_mode_is_refused_clearly(tmp_path):
-    class Scn:
-        name = "x"
-        sections = {"robot": {"mode": "closed_loop"}}
-
-    with pytest.raises(ValueError, match="closed-loop robot control"):
-        run_scene(Scn(), tmp_path)
+def test_closed_loop_mode_without_targets_is_refused_clearly():
+    with pytest.raises(ValueError, match="needs \\[robot.targets\\] for closed-loop robot control"):
+        parse_section({"mode": "closed_loop"})
 
 
 def test_shipped_scenario_loads_and_short_run_writes_outputs(tmp_path):

@@ -59,28 +59,28 @@ def test_sim_units_converted(tmp_path):
 
 
 def test_unknown_key_names_field_and_suggests_closest(tmp_path):
-    with pytest.raises(ValueError, match=r"actuator\.r1_mmm.*did you mean 'r1_mm'"):
+    with pytest.raises(ValueError, match=r"\[actuator\] r1_mmm.*did you mean r1_mm"):
         load_scenario(_write(tmp_path, BASE.replace("r1_mm = 7.5", "r1_mmm = 7.5")))
 
 
 def test_unknown_table_suggests_closest_role(tmp_path):
-    with pytest.raises(ValueError, match=r"\[estimater\].*did you mean 'estimator'"):
+    with pytest.raises(ValueError, match=r"\[estimater\].*did you mean \[estimator\]"):
         load_scenario(_write(tmp_path, BASE + "[estimater]\nkind = 'ekf'\n"))
 
 
 def test_bad_choice_suggests(tmp_path):
-    with pytest.raises(ValueError, match=r"sim\.fidelity = 'quasistatic'.*'quasi_static'"):
+    with pytest.raises(ValueError, match=r"\[sim\] fidelity = 'quasistatic'.*'quasi_static'"):
         load_scenario(_write(tmp_path, BASE + "[sim]\nfidelity = 'quasistatic'\n"))
 
 
 @pytest.mark.parametrize(
     "old,new,pattern",
     [
-        ("r1_mm = 7.5", "r1_mm = 0.0", r"actuator\.r1_mm = 0\.0 is out of range \(0\.5, 100\] mm"),
-        ("t0_mm = 3.0", "t0_mm = 50.0", r"actuator\.t0_mm = 50\.0 is out of range \(0\.05, 20\] mm"),
-        ("duration_s = 2.0", "duration_s = -1.0", r"scenario\.duration_s = -1\.0 is out of range \(0, 3600\] s"),
+        ("r1_mm = 7.5", "r1_mm = 0.0", r"\[actuator\] r1_mm = 0\.0 is out of range \(0\.5, 100\] mm"),
+        ("t0_mm = 3.0", "t0_mm = 50.0", r"\[actuator\] t0_mm = 50\.0 is out of range \(0\.05, 20\] mm"),
+        ("duration_s = 2.0", "duration_s = -1.0", r"\[scenario\] duration_s = -1\.0 is out of range \(0, 3600\] s"),
         ("[1.0, 0.0, 0.0, 1.0]", "[1.0, 150.0, 0.0, 1.0]",
-         r"inputs\.schedule\[1\]\.speed_pct = 150\.0 is out of range \[0, 100\] %"),
+         r"\[inputs\] schedule\[1\]\.speed_pct = 150\.0 is out of range \[0, 100\] %"),
     ],
 )
 def test_out_of_range_names_field_and_range(tmp_path, old, new, pattern):
@@ -90,20 +90,20 @@ def test_out_of_range_names_field_and_range(tmp_path, old, new, pattern):
 
 
 def test_load_range_and_type(tmp_path):
-    with pytest.raises(ValueError, match=r"load\.mass_g = -5\.0 is out of range \[0, 50000\] g"):
+    with pytest.raises(ValueError, match=r"\[load\] mass_g = -5\.0 is out of range \[0, 50000\] g"):
         load_scenario(_write(tmp_path, BASE + "[load]\nmass_g = -5.0\n"))
-    with pytest.raises(ValueError, match=r"load\.mass_g = 'heavy' must be a number"):
+    with pytest.raises(ValueError, match=r"\[load\] mass_g = 'heavy' must be a number"):
         load_scenario(_write(tmp_path, BASE + "[load]\nmass_g = 'heavy'\n"))
 
 
 def test_free_fidelity_with_a_load_is_refused(tmp_path):
-    with pytest.raises(ValueError, match="sim.fidelity = 'free' ignores the load"):
+    with pytest.raises(ValueError, match=r"\[sim\] fidelity = 'free' ignores the load"):
         load_scenario(_write(tmp_path, BASE + "[load]\nmass_g = 200.0\n[sim]\nfidelity = 'free'\n"))
 
 
 def test_unknown_material_parameter(tmp_path):
     text = BASE + "[actuator.material_params]\nEE = 1e5\n"
-    with pytest.raises(ValueError, match=r"actuator\.material_params.*'EE'.*did you mean 'E'"):
+    with pytest.raises(ValueError, match=r"\[actuator\.material_params\] EE.*did you mean E"):
         load_scenario(_write(tmp_path, text))
 
 
@@ -124,31 +124,6 @@ t_inflate_s = 1.0
     assert all(t.duration == 2.0 and t.schedule.rows[1][0] == 1.0 for t in trials)
     with pytest.raises(ValueError, match=r"\[inputs\] is only allowed"):
         load_scenario(_write(tmp_path, text + "[inputs]\nschedule = [[0.0, 1.0, 1.0, 0.0]]\n"))
-
-
-def test_role_section_goes_to_owner_parser(tmp_path):
-    seen = {}
-
-    def parse_section(raw):
-        seen.update(raw)
-        if raw.get("gain", 0) < 0:
-            raise ValueError("estimator.gain must be >= 0")
-        return ("parsed", raw["gain"])
-
-    roles = {"estimator": parse_section}
-    scn = load_scenario(_write(tmp_path, BASE + "[estimator]\ngain = 2.0\n"), roles=roles)
-    assert scn.sections == {"estimator": {"gain": 2.0}}
-    assert scn.role("estimator") == ("parsed", 2.0) and seen == {"gain": 2.0}
-    with pytest.raises(ValueError, match="estimator.gain must be >= 0"):
-        load_scenario(_write(tmp_path, BASE + "[estimator]\ngain = -1.0\n"), roles=roles)
-
-
-def test_open_loop_file_does_not_call_role_parsers(tmp_path):
-    def parse_section(raw):
-        raise AssertionError("a role parser ran for a file without that table")
-
-    scn = load_scenario(_write(tmp_path, BASE), roles={"controller": parse_section})
-    assert scn.sections == {} and scn.settings == {}
 
 
 def test_missing_file_and_bad_toml(tmp_path):

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from hbma_ctrl.app.metrics import write_log_csv
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hbma_ctrl.app.metrics import write_log_csv
 from hbma_ctrl.core.materials import MATERIALS, make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.fidelity import make_fidelity

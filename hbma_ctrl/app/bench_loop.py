@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics, parse_section
+from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
+from hbma_ctrl.app.schema.document import parse_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.tables import PredictionModel
@@ -48,7 +49,7 @@ def run_case(case: str, seed: int) -> dict:
 
     raw, load, duration = CASES[case]
     act, pn = Actuator(), Pneumatics()
-    sec = parse_section(raw)
+    sec = parse_role("controller", raw)
     log = closed_loop(act, pn, Platform(load=load), sec, duration, RigSettings(seed=seed),
                       model=PredictionModel(act, pn))
     m = loop_metrics(log, sec)

@@ -24,12 +24,12 @@ import numpy as np
 
 from controllers.dompc_ref import DoMPCController, dompc_available
 from hbma_ctrl.app.scene_controller import (
-    ControllerSection,
     closed_loop,
     loop_metrics,
     make_controller,
-    parse_section,
 )
+from hbma_ctrl.app.schema.document import parse_role
+from hbma_ctrl.app.sections import ControllerSection
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.rig import RigSettings
@@ -41,7 +41,7 @@ DEFAULT_TARGETS_MM = [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]
 
 def default_section() -> ControllerSection:
     """The track_height example: steps 2 -> 8 -> 5 mm, RTI-OSQP N = 20 at 20 ms."""
-    return parse_section({"kind": "mpc", "variant": "rti_osqp", "horizon": 20, "sample_ms": 20.0,
+    return parse_role("controller", {"kind": "mpc", "variant": "rti_osqp", "horizon": 20, "sample_ms": 20.0,
                           "targets_mm": DEFAULT_TARGETS_MM})
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.robot_section import CONTROLLERS, RobotSettings
+from hbma_ctrl.app.sections import CONTROLLERS, RobotSettings
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.models.bank import ChamberModel, commands_from_inputs
 from hbma_ctrl.robot.design import RobotDesign
@@ -67,7 +67,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberModel | None = None, tip_load=(), interlock_margin: float = 1e3,
                     h0=None, cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
-    """Run the robot closed loop for ``duration`` s (see module doc); targets from :func:`parse_targets`.
+    """Run the robot closed loop for ``duration`` s (see module doc); targets {layer: ((t s, centre m, bend rad, direction rad), ...)}.
 
     h0 : must be None (every run starts from rest; kept so a caller's intent fails loudly).
     cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import csv
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,230 +46,26 @@ from matplotlib.figure import Figure
 
 from controllers.baselines import (
     BangBangController,
-    BangBangSettings,
     PIDController,
-    PIDSettings,
 )
 from controllers.mpc import NMPC
-from controllers.mpc_settings import MPCSettings
 from estimators.ekf import EKF, EKFSettings
 from estimators.ukf import UKF
 from hbma_ctrl.app.evaluate import NEES_FLOOR
 from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.app.sections import (
+    ControllerSection,
+    ReferenceProfile,
+    filter_settings_for,
+)
 from hbma_ctrl.core.interfaces import Command, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
 
-__all__ = ["ReferenceProfile", "ControllerSection", "parse_section", "make_controller", "closed_loop",
-           "ClosedLoopLog", "loop_metrics", "run_scene", "plot_closed_loop", "KINDS"]
-
-KINDS = ("mpc", "pid", "bang_bang")
-
-
-@dataclass
-class ReferenceProfile:
-    """Target height over time (SI): piecewise points, optional sinusoid on top.
-
-    points : ((t_s, h_m), ...) sorted by time; before the first point the first height holds.
-    interpolation : 'step' (hold each target from its time on) or 'linear' (ramps).
-    sine_amplitude, sine_period, sine_start : a sinusoid (m, s, s) added from sine_start on.
-    """
-
-    points: tuple = ((0.0, 2e-3),)
-    interpolation: str = "step"
-    sine_amplitude: float = 0.0
-    sine_period: float = 1.0
-    sine_start: float = 0.0
-
-    def validate(self) -> "ReferenceProfile":
-        if not self.points:
-            raise ValueError("controller.targets_mm must have at least one [t_s, h_mm] pair")
-        ts = [p[0] for p in self.points]
-        if any(b < a for a, b in zip(ts, ts[1:])):
-            raise ValueError("controller.targets_mm: times must be non-decreasing")
-        for t, h in self.points:
-            check_range("controller", "targets_mm time", t, 0.0, 1e5, "s")
-            check_range("controller", "targets_mm height", h, 0.0, 0.2, "m")
-        if self.interpolation not in ("step", "linear"):
-            raise ValueError(f"controller.interpolation = '{self.interpolation}': allowed step, linear")
-        check_range("controller", "sine_amplitude", self.sine_amplitude, 0.0, 0.1, "m")
-        check_range("controller", "sine_period", self.sine_period, 0.0, 1e4, "s", lo_open=True)
-        check_range("controller", "sine_start", self.sine_start, 0.0, 1e5, "s")
-        return self
-
-    def __call__(self, t: float) -> float:
-        ts = np.array([p[0] for p in self.points])
-        hs = np.array([p[1] for p in self.points])
-        if self.interpolation == "step":
-            i = max(int(np.searchsorted(ts, t, side="right")) - 1, 0)
-            h = float(hs[i])
-        else:
-            h = float(np.interp(t, ts, hs))
-        if self.sine_amplitude > 0 and t >= self.sine_start:
-            h += self.sine_amplitude * np.sin(2 * np.pi * (t - self.sine_start) / self.sine_period)
-        return max(h, 0.0)
-
-    def step_segments(self, duration: float) -> list[tuple[float, float, float]]:
-        """(t_start, t_end, target) of each constant-target segment ('step' profiles, no sine)."""
-        if self.interpolation != "step" or self.sine_amplitude > 0:
-            return []
-        pts = list(self.points)
-        out = []
-        for i, (t, h) in enumerate(pts):
-            t_end = pts[i + 1][0] if i + 1 < len(pts) else duration
-            if t_end > t:
-                out.append((t, min(t_end, duration), h))
-        return out
-
-
-@dataclass
-class ControllerSection:
-    """Parsed [controller] section: which controller, its settings, the targets and load steps.
-
-    Fields
-    ------
-    kind : 'mpc' | 'pid' | 'bang_bang': which controller runs.
-    mpc, pid, bang_bang : the settings of each (only the chosen one is used).
-    reference : the height target profile (steps, ramps, sines), m.
-    load_steps : ((t s, load mass kg), ...) put on the rig during the run.
-    preview : pass the future targets to the MPC; None = only for ramps and sines.
-    settle_band : band for the settling report, m (0.3 mm).
-    """
-
-    kind: str = "mpc"
-    mpc: MPCSettings = field(default_factory=MPCSettings)
-    pid: PIDSettings = field(default_factory=PIDSettings)
-    bang_bang: BangBangSettings = field(default_factory=BangBangSettings)
-    reference: ReferenceProfile = field(default_factory=ReferenceProfile)
-    load_steps: tuple = ()  # ((t_s, mass_kg), ...)
-    preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
-    settle_band: float = 0.3e-3
-
-    @property
-    def sample_period(self) -> float:
-        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].sample_period
-
-    @property
-    def p_max(self) -> float:
-        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].p_max
-
-
-# key -> (target, field, factor); target in {"mpc", "pid", "bb", "all", "sec"}
-_KEYS = {
-    "kind": ("sec", "kind", None),
-    "variant": ("mpc", "variant", None),
-    "horizon": ("mpc", "horizon", "int"),
-    "sample_ms": ("all", "sample_period", 1e-3),
-    "p_max_kpa": ("all", "p_max", 1e3),
-    "p_margin_kpa": ("mpc", "p_margin", 1e3),
-    "guard_margin_kpa": ("all", "guard_margin", 1e3),
-    "lam_max": ("mpc", "lam_max", 1.0),
-    "h_max_mm": ("mpc", "h_max", 1e-3),
-    "integrator": ("mpc", "integrator", None),
-    "substeps": ("mpc", "substeps", "int"),
-    "w_height": ("mpc", "w_height", 1.0),
-    "w_terminal": ("mpc", "w_terminal", 1.0),
-    "w_rate": ("mpc", "w_rate", "vec3"),
-    "w_input": ("mpc", "w_input", "vec3"),
-    "c_input": ("mpc", "c_input", "vec3"),
-    "budget_ms": ("mpc", "budget", 1e-3),
-    "codegen": ("mpc", "codegen", "bool"),
-    "fail_window_s": ("mpc", "fail_window", "pair"),
-    "kp": ("pid", "kp", 1e3),
-    "ki": ("pid", "ki", 1e3),
-    "kd": ("pid", "kd", 1e3),
-    "band_kpa": ("bb", "band", 1e3),
-    "targets_mm": ("sec", "targets", None),
-    "interpolation": ("sec", "interpolation", None),
-    "sine_amplitude_mm": ("sec", "sine_amplitude", 1e-3),
-    "sine_period_s": ("sec", "sine_period", 1.0),
-    "sine_start_s": ("sec", "sine_start", 1.0),
-    "load_steps_g": ("sec", "load_steps", None),
-    "settle_band_mm": ("sec", "settle_band", 1e-3),
-    "preview": ("sec", "preview", "bool"),
-}
-
-
-def _num(key: str, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ValueError(f"controller.{key} = {v!r} must be a number")
-    return float(v)
-
-
-def _pairs(key: str, v, f0: float, f1: float) -> tuple:
-    if not isinstance(v, (list, tuple)) or not all(isinstance(r, (list, tuple)) and len(r) == 2 for r in v):
-        raise ValueError(f"controller.{key} must be a list of [t_s, value] pairs")
-    return tuple((_num(key, a) * f0, _num(key, b) * f1) for a, b in v)
-
-
-def parse_section(raw: dict) -> ControllerSection:
-    """Scenario ``[controller]`` table (edge units) -> validated :class:`ControllerSection`.
-
-    Unknown keys raise ValueError with the closest valid name; values out of range name the field
-    and the range.
-    """
-    if not isinstance(raw, dict):
-        raise ValueError("[controller] must be a table")
-    mpc, pid, bb, sec = {}, {}, {}, {}
-    for key, val in raw.items():
-        if key not in _KEYS:
-            hint = did_you_mean(key, _KEYS)
-            raise ValueError(f"controller.{key}: unknown key{hint}; allowed: {', '.join(_KEYS)}")
-        target, name, f = _KEYS[key]
-        if f is None:
-            v = val
-        elif f == "int":
-            if isinstance(val, bool) or not isinstance(val, int):
-                raise ValueError(f"controller.{key} = {val!r} must be an integer")
-            v = val
-        elif f == "bool":
-            if not isinstance(val, bool):
-                raise ValueError(f"controller.{key} = {val!r} must be true or false")
-            v = val
-        elif f == "vec3":
-            if not isinstance(val, (list, tuple)) or len(val) != 3:
-                raise ValueError(f"controller.{key} must be [speed, inlet, outlet] (3 numbers)")
-            v = tuple(_num(key, x) for x in val)
-        elif f == "pair":
-            if not isinstance(val, (list, tuple)) or len(val) != 2:
-                raise ValueError(f"controller.{key} must be [t_start_s, t_end_s]")
-            v = tuple(_num(key, x) for x in val)
-        else:
-            v = _num(key, val) * f
-        if target == "all":
-            mpc[name] = v
-            pid[name] = v
-            bb[name] = v
-        else:
-            {"mpc": mpc, "pid": pid, "bb": bb, "sec": sec}[target][name] = v
-    kind = sec.pop("kind", "mpc")
-    if kind not in KINDS:
-        hint = did_you_mean(str(kind), KINDS)
-        raise ValueError(f"controller.kind = '{kind}'{hint}; allowed: {', '.join(KINDS)}")
-    if "targets" not in sec:
-        raise ValueError("controller.targets_mm is required: [[t_s, h_mm], ...]")
-    pts = _pairs("targets_mm", sec.pop("targets"), 1.0, 1e-3)
-    ref = ReferenceProfile(points=pts, interpolation=sec.pop("interpolation", "step"),
-                           sine_amplitude=sec.pop("sine_amplitude", 0.0),
-                           sine_period=sec.pop("sine_period", 1.0),
-                           sine_start=sec.pop("sine_start", 0.0)).validate()
-    loads = _pairs("load_steps_g", sec.pop("load_steps", []), 1.0, 1e-3)
-    for t, m in loads:
-        check_range("controller", "load_steps_g time", t, 0.0, 1e5, "s")
-        check_range("controller", "load_steps_g mass", m, 0.0, 50.0, "kg")
-    preview = sec.pop("preview", None)
-    band = sec.pop("settle_band", 0.3e-3)
-    check_range("controller", "settle_band_mm", band, 0.0, 0.05, "m", lo_open=True)
-    out = ControllerSection(kind=kind, mpc=MPCSettings(**mpc).validate(),
-                            pid=PIDSettings(**{k: v for k, v in pid.items()}).validate(),
-                            bang_bang=BangBangSettings(**bb).validate(), reference=ref,
-                            load_steps=tuple(sorted(loads)), settle_band=band, preview=preview)
-    return out
-
+__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "run_scene", "plot_closed_loop"]
 
 def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
                     model: PredictionModel | None = None):
@@ -520,20 +316,12 @@ def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: flo
 def _estimator_from_scenario(scn, rig_settings):
     """The filter the scenario's [estimator] section names (EKF or UKF, its tuning), or the EKF
     with the rig's sample period, sensor range and noise when there is no such section."""
-    sec = scn.role("estimator") if hasattr(scn, "role") else None
+    sec = scn.role("estimator")
     if sec is None:
         return None  # closed_loop builds the default EKF
-    try:
-        from hbma_ctrl.app.scene_estimator import filter_settings_for
-    except ImportError as exc:
-        raise ValueError(f"[estimator]: needs estimators.scene ({exc})") from None
-    if not hasattr(sec, "filter") or not hasattr(sec, "tuning"):
-        raise ValueError("[estimator]: the parsed section has no 'filter'/'tuning'; cannot build the filter")
     fs = filter_settings_for(sec, rig_settings)
     if sec.filter == "ukf":
-
         return UKF(scn.actuator, scn.pneumatics, fs)
-
     return EKF(scn.actuator, scn.pneumatics, fs)
 
 
@@ -544,8 +332,6 @@ def run_scene(scn, out_dir: Path | str) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     section = scn.role("controller")
-    if section is None:
-        section = parse_section(scn.sections["controller"])
     rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
     est = _estimator_from_scenario(scn, rs)
     log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, section, scn.duration, rs, estimator=est)
@@ -560,8 +346,3 @@ def run_scene(scn, out_dir: Path | str) -> dict:
     em = estimator_metrics(log, scn.actuator, scn.pneumatics, scn.platform, rs.sample_period)
     em["filter"] = type(est).__name__ if est is not None else "EKF"
     return {"controller": m, "estimator": em}
-
-
-def _with(section: ControllerSection, **kw) -> ControllerSection:
-    """A copy of a section with fields replaced (for sweeps)."""
-    return replace(section, **kw)

@@ -33,125 +33,28 @@ compile                     compile the model to C (bool, default true)
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from estimators.common import FilterSettings
 from hbma_ctrl.app.evaluate import (
-    FILTERS,
     TrialResult,
     aggregate,
     evaluate_trials,
     run_filter,
     score,
 )
+from hbma_ctrl.app.schema.document import parse_role
+from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
 from hbma_ctrl.core.interfaces import Command
-from hbma_ctrl.core.params import check_range
-from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.sim.rig import Rig, RigRecord, RigSettings
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import SimSettings
 
-__all__ = ["EstimatorSection", "parse_section", "run_scene", "filter_settings_for"]
+__all__ = ["run_scene"]
 
-# key -> (FilterSettings field, factor to SI) for the tuning keys
-_TUNING = {
-    "noise_std_kpa": ("noise_std", 1e3),
-    "model_rel_std": ("model_rel_std", 1.0),
-    "flow_rel_std": ("flow_rel_std", 1.0),
-    "flow_factor_std": ("flow_factor_std", 1.0),
-    "modulus_std": ("modulus_std", 1.0),
-    "change_threshold": ("change_threshold", 1.0),
-    "load_std_n": ("load_std", 1.0),
-    "integrator": ("integrator", None),
-    "nsub": ("nsub", None),
-    "newton": ("newton", None),
-    "compile": ("compile", None),
-    "load_prior": ("load_prior", None),
-    "load_prior_rel_std": ("load_prior_rel_std", 1.0),
-}
-_KEYS = ("filter", "compare_ukf", "load_steps_g", "workers", "seeds") + tuple(_TUNING)
-
-
-@dataclass
-class EstimatorSection:
-    """Parsed ``[estimator]`` section (SI).
-
-    filter : 'ekf' | 'ukf'. compare_ukf : also run the UKF. load_steps : ((t s, mass kg), ...).
-    workers : processes for a protocol. seeds : Monte-Carlo repetitions. tuning : FilterSettings
-    field overrides (SI); the sample period and sensor range always come from the rig.
-    """
-
-    filter: str = "ekf"
-    compare_ukf: bool = False
-    load_steps: tuple = ()
-    workers: int = 2
-    seeds: int = 1
-    tuning: dict = field(default_factory=dict)
-
-
-def _int(key, v, lo, hi):
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-        raise ValueError(f"estimator.{key} = {v!r} must be an integer in [{lo}, {hi}]")
-    return v
-
-
-def parse_section(raw: dict) -> EstimatorSection:
-    """Validate a raw ``[estimator]`` table (see module docstring); ValueError names the key."""
-    out = EstimatorSection()
-    tuning = {}
-    for key, v in raw.items():
-        if key not in _KEYS:
-            hint = did_you_mean(key, _KEYS)
-            raise ValueError(f"estimator.{key}: unknown key{hint}; allowed: {', '.join(_KEYS)}")
-        if key == "filter":
-            if v not in FILTERS:
-                raise ValueError(f"estimator.filter = {v!r}: allowed {', '.join(FILTERS)}")
-            out.filter = v
-        elif key == "compare_ukf":
-            if not isinstance(v, bool):
-                raise ValueError(f"estimator.compare_ukf = {v!r} must be true or false")
-            out.compare_ukf = v
-        elif key == "workers":
-            out.workers = _int(key, v, 1, 64)
-        elif key == "seeds":
-            out.seeds = _int(key, v, 1, 100)
-        elif key == "load_steps_g":
-            steps = []
-            if not isinstance(v, list):
-                raise ValueError("estimator.load_steps_g must be a list of [t_s, mass_g] pairs")
-            last = -1.0
-            for i, row in enumerate(v):
-                if not (isinstance(row, list) and len(row) == 2):
-                    raise ValueError(f"estimator.load_steps_g[{i}] must be [t_s, mass_g], got {row!r}")
-                check_range(f"estimator.load_steps_g[{i}]", "t_s", row[0], 0.0, 1e5, "s")
-                check_range(f"estimator.load_steps_g[{i}]", "mass_g", row[1], 0.0, 50000.0, "g")
-                if row[0] <= last:
-                    raise ValueError(f"estimator.load_steps_g[{i}].t_s must increase")
-                last = float(row[0])
-                steps.append((float(row[0]), float(row[1]) * 1e-3))
-            out.load_steps = tuple(steps)
-        else:
-            name, factor = _TUNING[key]
-            if factor is not None:
-                if isinstance(v, bool) or not isinstance(v, (int, float)):
-                    raise ValueError(f"estimator.{key} = {v!r} must be a number")
-                v = float(v) * factor
-            tuning[name] = v
-    out.tuning = tuning
-    # validate the tuning now (with placeholder rig values), so errors surface at load time
-    filter_settings_for(out, RigSettings())
-    return out
-
-
-def filter_settings_for(section: EstimatorSection, rig: RigSettings) -> FilterSettings:
-    """Filter settings: defaults, the rig's sample period, sensor range and noise, then the tuning."""
-    base = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range,
-                          noise_std=max(rig.noise_std, 1.0))
-    return replace(base, **section.tuning).validate()
 
 
 # --- single runs ----------------------------------------------------------------------------
@@ -295,7 +198,7 @@ def run_scene(scn, out_dir) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     sec = scn.role("estimator") if hasattr(scn, "role") else None
     if sec is None:
-        sec = parse_section(scn.sections.get("estimator", {}))
+        sec = scn.role("estimator") or parse_role("estimator", {})
     rig = (scn.role("rig") if hasattr(scn, "role") else None) or RigSettings()
     if scn.kind == "protocol":
         if sec.load_steps:

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from hbma_ctrl.app.robot_plots import plot_run, plot_shapes
-from hbma_ctrl.app.robot_section import parse_section
 from hbma_ctrl.app.scene_robot_closed import run_closed_loop_scene
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.design import LETTERS, RobotDesign
@@ -83,13 +82,8 @@ def run_scene(scn, out_dir) -> dict:
     the robot itself (chambers included) comes from ``[robot]``, not from ``[actuator]``. Writes
     robot_log.csv, robot_events.json, robot_shape.png (shapes over time) and robot_series.png.
     """
-    s = None
-    if hasattr(scn, "role"):
-        s = scn.role("robot")
-    if s is None:
-        s = parse_section(dict(scn.sections["robot"]))
+    s = scn.role("robot")
     if s.mode == "closed_loop":
-
         return run_closed_loop_scene(scn, s, out_dir)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

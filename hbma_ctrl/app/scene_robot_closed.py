@@ -14,14 +14,14 @@ from matplotlib.figure import Figure
 from controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.robot_closed import ClosedLoopRun, make_model, run_closed_loop
 from hbma_ctrl.app.robot_plots import plot_shapes
-from hbma_ctrl.app.robot_section import RobotSettings
+from hbma_ctrl.app.schema.rig import RigTable
+from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.models.bank import ChamberModel
 from hbma_ctrl.robot.design import LETTERS, RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.kinematics import forward_kinematics
 from hbma_ctrl.robot.rig import RobotRigSettings
-from hbma_ctrl.robot.targets import parse_targets
 
 
 def _normals(design: RobotDesign, H: np.ndarray, rim: list | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -193,7 +193,8 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     s = settings
     d = s.design
-    rig = RobotRigSettings.from_rig_section(scn.sections.get("rig"))
+    raw_rig = scn.sections.get("rig")
+    rig = RigTable.model_validate(raw_rig).to_robot_rig() if raw_rig else RobotRigSettings()
     model = make_model(d, scn.pneumatics, s.pneumatics.topology)
     mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt)
     kinds = [s.controller]
@@ -237,7 +238,9 @@ def bench_robot(layers=(1, 2, 3, 4, 5, 6), duration: float = 3.0, topology: str 
         d = RobotDesign(n_layers=int(N)).validate()
         s = RobotSettings(design=d, pneumatics=RobotPneumatics(topology=topology)).validate()
         model = model or make_model(d, pn, topology)
-        tg = parse_targets({"all": [[0.0, 6.0, 0.0, 0.0], [duration / 2, 7.0, 15.0, 0.0]]}, d)
+        # straight at 6 mm, then a 15 deg bend about x at 7 mm: (t s, centre m, bend rad, direction rad)
+        pose = ((0.0, U.mm(6.0), 0.0, 0.0), (duration / 2, U.mm(7.0), math.radians(15.0), 0.0))
+        tg = {k: pose for k in range(d.n_layers)}
         run = run_closed_loop(s, tg, duration, "mpc", pn, mpc=RobotMPCSettings(horizon=horizon), model=model)
         st = run.step_s[5:] * 1e3  # the first periods include casadi/OSQP setup
         rows.append({"layers": int(N), "chambers": 3 * int(N), "qp_variables": (3 * horizon + 1) * 3 * int(N),

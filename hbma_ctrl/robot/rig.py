@@ -24,7 +24,7 @@ from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
-from hbma_ctrl.sim.rig import RigSettings, mismatched, parse_rig_section
+from hbma_ctrl.sim.rig import RigSettings, mismatched
 from hbma_ctrl.sim.simulate import Plant
 
 H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
@@ -63,19 +63,6 @@ class RobotRigSettings:
         if not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"robot rig.seed = {self.seed!r} must be an integer >= 0")
         return self
-
-    @classmethod
-    def from_rig_section(cls, raw: dict | None) -> "RobotRigSettings":
-        """Take a scenario's ``[rig]`` table (see :func:`hbma_ctrl.rig.parse_rig_section`): its
-        modulus_scale m becomes the spread |m - 1| (alternating signs), the rest is used as is (its
-        fidelity too); the sensor range is the robot's."""
-        if not raw:
-            return cls()
-
-        r = parse_rig_section(dict(raw))
-        return cls(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0), flow_scale=r.flow_scale,
-                   V0_scale=r.V0_scale, noise_std=r.noise_std, sample_period=r.sample_period,
-                   seed=r.seed).validate()
 
 
 class RobotRig:

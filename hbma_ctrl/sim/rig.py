@@ -28,12 +28,11 @@ import numpy as np
 
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
 
-__all__ = ["RigSettings", "Rig", "RigRecord", "parse_rig_section", "mismatched", "simulate_rig",
+__all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig",
            "TRUTH_KEYS"]
 
 #: keys of :meth:`Rig.truth`
@@ -106,28 +105,6 @@ _SECTION_KEYS = {
     "integrator": ("integrator", None),
     "dt_ms": ("dt", 1e-3),
 }
-
-
-def parse_rig_section(raw: dict) -> RigSettings:
-    """Scenario ``[rig]`` table (edge units: kPa, ms) -> validated :class:`RigSettings`.
-
-    Keys: fidelity, modulus_scale, flow_scale, V0_scale, noise_std_kpa, sensor_range_kpa,
-    sample_period_ms, dropout_prob, seed, integrator, dt_ms. Unknown keys raise ValueError with the
-    closest valid name.
-    """
-    kw = {}
-    for key, val in raw.items():
-        if key not in _SECTION_KEYS:
-            hint = did_you_mean(key, _SECTION_KEYS)
-            raise ValueError(f"rig.{key}: unknown key{hint}; allowed: {', '.join(_SECTION_KEYS)}")
-        name, factor = _SECTION_KEYS[key]
-        if factor is None:
-            kw[name] = val
-        else:
-            if isinstance(val, bool) or not isinstance(val, (int, float)):
-                raise ValueError(f"rig.{key} = {val!r} must be a number")
-            kw[name] = float(val) * factor
-    return RigSettings(**kw).validate()
 
 
 def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings

@@ -14,7 +14,6 @@ from pydantic import model_validator
 
 from controllers.baselines import BangBangSettings, PIDSettings
 from controllers.mpc_settings import MPCSettings
-from hbma_ctrl.app.scene_controller import ControllerSection, ReferenceProfile
 from hbma_ctrl.app.schema.base import ms_to_s
 from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
@@ -29,6 +28,7 @@ from hbma_ctrl.app.schema.fields import (
     num,
     shaped,
 )
+from hbma_ctrl.app.sections import ControllerSection, ReferenceProfile
 from hbma_ctrl.core import units as U
 
 __all__ = ["ControllerTable", "TargetRow"]

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from typing import Literal
 
-from hbma_ctrl.app.scene_estimator import EstimatorSection, filter_settings_for
 from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
     LoadSteps,
@@ -21,6 +20,7 @@ from hbma_ctrl.app.schema.fields import (
     num,
     shaped,
 )
+from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.rig import RigSettings
 

@@ -16,7 +16,6 @@ from typing import Annotated, Any, Literal, NamedTuple
 import numpy as np
 from pydantic import Field, PrivateAttr, model_validator
 
-from hbma_ctrl.app.robot_section import RobotSettings
 from hbma_ctrl.app.schema.base import MaterialName, build_material, check_rows, ms_to_s
 from hbma_ctrl.app.schema.errors import closest
 from hbma_ctrl.app.schema.fields import (
@@ -30,6 +29,7 @@ from hbma_ctrl.app.schema.fields import (
     shaped,
     subtable,
 )
+from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.design import LETTERS, RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.kinematics import inverse_kinematics

@@ -1,0 +1,251 @@
+"""The validated scenario and its role sections as SI objects (what the schema builds, what scenes read).
+
+:class:`Scenario` is one loaded file; :class:`ControllerSection`, :class:`EstimatorSection` and
+:class:`RobotSettings` are its role tables after validation (:mod:`hbma_ctrl.app.schema` builds them
+from the user's units).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from controllers.baselines import BangBangSettings, PIDSettings
+from controllers.mpc_settings import MPCSettings
+from estimators.common import FilterSettings
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
+from hbma_ctrl.robot.plant import RobotPlantSettings
+from hbma_ctrl.sim.batch import protocol_trials
+from hbma_ctrl.sim.rig import RigSettings
+from hbma_ctrl.sim.trial import InputSchedule, SimSettings, Trial
+
+
+@dataclass
+class Scenario:
+    """A loaded scenario (SI inside). ``sections`` holds the raw role tables, ``settings`` their
+    parsed settings objects (by the owners' parsers); ``protocol`` the protocol grid (edge units,
+    kind "protocol" only)."""
+
+    name: str
+    kind: str
+    actuator: Actuator
+    pneumatics: Pneumatics
+    platform: Platform
+    schedule: InputSchedule
+    duration: float
+    sim: SimSettings
+    fidelity: str
+    sections: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+    protocol: dict = field(default_factory=dict)
+    path: Path | None = None
+
+    def trials(self) -> list[Trial]:
+        """One trial (kind 'single') or the whole protocol grid (kind 'protocol')."""
+        if self.kind == "single":
+            return [Trial(self.actuator, self.pneumatics, self.platform, self.schedule, self.duration,
+                          self.name).validate()]
+
+        pr = self.protocol
+        return protocol_trials(self.actuator.material, loads_g=pr["loads_g"], speeds_pct=pr["speeds_pct"],
+                               t0_mm=pr["t0_mm"], r1_mm=pr["r1_mm"], t_inflate_s=pr["t_inflate_s"],
+                               duration_s=self.duration, base=self.actuator,
+                               pneumatics=self.pneumatics, platform=self.platform)
+
+    def role(self, name: str):
+        """Parsed settings of a role section, or None when the scenario has none."""
+        return self.settings.get(name)
+
+
+KINDS = ("mpc", "pid", "bang_bang")
+
+
+@dataclass
+class ReferenceProfile:
+    """Target height over time (SI): piecewise points, optional sinusoid on top.
+
+    points : ((t_s, h_m), ...) sorted by time; before the first point the first height holds.
+    interpolation : 'step' (hold each target from its time on) or 'linear' (ramps).
+    sine_amplitude, sine_period, sine_start : a sinusoid (m, s, s) added from sine_start on.
+    """
+
+    points: tuple = ((0.0, 2e-3),)
+    interpolation: str = "step"
+    sine_amplitude: float = 0.0
+    sine_period: float = 1.0
+    sine_start: float = 0.0
+
+    def validate(self) -> "ReferenceProfile":
+        if not self.points:
+            raise ValueError("controller.targets_mm must have at least one [t_s, h_mm] pair")
+        ts = [p[0] for p in self.points]
+        if any(b < a for a, b in zip(ts, ts[1:])):
+            raise ValueError("controller.targets_mm: times must be non-decreasing")
+        for t, h in self.points:
+            check_range("controller", "targets_mm time", t, 0.0, 1e5, "s")
+            check_range("controller", "targets_mm height", h, 0.0, 0.2, "m")
+        if self.interpolation not in ("step", "linear"):
+            raise ValueError(f"controller.interpolation = '{self.interpolation}': allowed step, linear")
+        check_range("controller", "sine_amplitude", self.sine_amplitude, 0.0, 0.1, "m")
+        check_range("controller", "sine_period", self.sine_period, 0.0, 1e4, "s", lo_open=True)
+        check_range("controller", "sine_start", self.sine_start, 0.0, 1e5, "s")
+        return self
+
+    def __call__(self, t: float) -> float:
+        ts = np.array([p[0] for p in self.points])
+        hs = np.array([p[1] for p in self.points])
+        if self.interpolation == "step":
+            i = max(int(np.searchsorted(ts, t, side="right")) - 1, 0)
+            h = float(hs[i])
+        else:
+            h = float(np.interp(t, ts, hs))
+        if self.sine_amplitude > 0 and t >= self.sine_start:
+            h += self.sine_amplitude * np.sin(2 * np.pi * (t - self.sine_start) / self.sine_period)
+        return max(h, 0.0)
+
+    def step_segments(self, duration: float) -> list[tuple[float, float, float]]:
+        """(t_start, t_end, target) of each constant-target segment ('step' profiles, no sine)."""
+        if self.interpolation != "step" or self.sine_amplitude > 0:
+            return []
+        pts = list(self.points)
+        out = []
+        for i, (t, h) in enumerate(pts):
+            t_end = pts[i + 1][0] if i + 1 < len(pts) else duration
+            if t_end > t:
+                out.append((t, min(t_end, duration), h))
+        return out
+
+
+@dataclass
+class ControllerSection:
+    """Parsed [controller] section: which controller, its settings, the targets and load steps.
+
+    Fields
+    ------
+    kind : 'mpc' | 'pid' | 'bang_bang': which controller runs.
+    mpc, pid, bang_bang : the settings of each (only the chosen one is used).
+    reference : the height target profile (steps, ramps, sines), m.
+    load_steps : ((t s, load mass kg), ...) put on the rig during the run.
+    preview : pass the future targets to the MPC; None = only for ramps and sines.
+    settle_band : band for the settling report, m (0.3 mm).
+    """
+
+    kind: str = "mpc"
+    mpc: MPCSettings = field(default_factory=MPCSettings)
+    pid: PIDSettings = field(default_factory=PIDSettings)
+    bang_bang: BangBangSettings = field(default_factory=BangBangSettings)
+    reference: ReferenceProfile = field(default_factory=ReferenceProfile)
+    load_steps: tuple = ()  # ((t_s, mass_kg), ...)
+    preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
+    settle_band: float = 0.3e-3
+
+    @property
+    def sample_period(self) -> float:
+        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].sample_period
+
+    @property
+    def p_max(self) -> float:
+        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].p_max
+
+
+@dataclass
+class EstimatorSection:
+    """Parsed ``[estimator]`` section (SI).
+
+    filter : 'ekf' | 'ukf'. compare_ukf : also run the UKF. load_steps : ((t s, mass kg), ...).
+    workers : processes for a protocol. seeds : Monte-Carlo repetitions. tuning : FilterSettings
+    field overrides (SI); the sample period and sensor range always come from the rig.
+    """
+
+    filter: str = "ekf"
+    compare_ukf: bool = False
+    load_steps: tuple = ()
+    workers: int = 2
+    seeds: int = 1
+    tuning: dict = field(default_factory=dict)
+
+
+def filter_settings_for(section: EstimatorSection, rig: RigSettings) -> FilterSettings:
+    """Filter settings: defaults, the rig's sample period, sensor range and noise, then the tuning."""
+    base = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range,
+                          noise_std=max(rig.noise_std, 1.0))
+    return replace(base, **section.tuning).validate()
+
+
+SCENE_MODES = ("open_loop", "closed_loop")
+CONTROLLERS = ("mpc", "pressure_pid")
+
+
+@dataclass(frozen=True)
+class RobotSettings:
+    """The ``[robot]`` scenario table, validated (SI inside; the table uses edge units).
+
+    design : the robot (:class:`RobotDesign`).
+    pneumatics : supply topology, sensor range and pressure limit (:class:`RobotPneumatics`).
+    mode : 'open_loop' (inputs by schedule) or 'closed_loop' (targets per layer; see below).
+    inputs : per-chamber schedules {name: ((t s, speed 0-1, inlet 0-1, outlet 0-1), ...)}; chambers
+        not listed keep everything closed. Safety interlocks of the open-loop scene close a chamber's
+        inlet while its pressure is at the pressure limit or its stretch at ``design.max_stretch``.
+    tip_force : force on the tip, world frame, N; tip_moment : moment on the tip, N m.
+    sync_period : how often the load sharing and the interlocks update every chamber's load, s.
+    snapshots : number of robot shapes drawn in the shape-over-time plot.
+
+    Closed loop (mode 'closed_loop', see :mod:`controllers.robot_loop`):
+    controller : 'mpc' (per-chamber EKF bank + structured NMPC) or 'pressure_pid' (baseline).
+    targets : {layer index: ((t s, centre height m, bend rad >= 0, direction rad), ...)}.
+    tip_load : ((t s, fx N, fy N, fz N), ...) tip force from each row's time on (a disturbance the
+        controller does not know).
+    compare_baseline : also run the other controller on the same targets and report it beside.
+    settle_time : RMSEs count samples at least this long after a target change, s.
+    mpc_horizon, mpc_dt : NMPC stages and prediction step (s).
+    """
+
+    design: RobotDesign = field(default_factory=RobotDesign)
+    pneumatics: RobotPneumatics = field(default_factory=RobotPneumatics)
+    mode: str = "open_loop"
+    inputs: dict = field(default_factory=dict)
+    tip_force: tuple = (0.0, 0.0, 0.0)
+    tip_moment: tuple = (0.0, 0.0, 0.0)
+    sync_period: float = 0.01
+    snapshots: int = 8
+    controller: str = "mpc"
+    targets: dict = field(default_factory=dict)
+    tip_load: tuple = ()
+    compare_baseline: bool = True
+    settle_time: float = 2.0
+    mpc_horizon: int = 15
+    mpc_dt: float = 0.02
+
+    @property
+    def plant(self) -> RobotPlantSettings:
+        """The part of these settings the robot's plant needs."""
+        return RobotPlantSettings(design=self.design, pneumatics=self.pneumatics, inputs=self.inputs,
+                                  tip_force=self.tip_force, tip_moment=self.tip_moment,
+                                  sync_period=self.sync_period)
+
+    def validate(self) -> "RobotSettings":
+        self.plant.validate()
+        if self.mode not in SCENE_MODES:
+            hint = did_you_mean(str(self.mode), SCENE_MODES)
+            raise ValueError(f"robot.mode = '{self.mode}'{hint}; allowed: {', '.join(SCENE_MODES)}")
+        if not isinstance(self.snapshots, int) or not 1 <= self.snapshots <= 50:
+            raise ValueError(f"robot.snapshots = {self.snapshots!r} must be an integer in [1, 50]")
+        if self.controller not in CONTROLLERS:
+            hint = did_you_mean(str(self.controller), CONTROLLERS)
+            raise ValueError(f"robot.controller = '{self.controller}'{hint}; allowed: {', '.join(CONTROLLERS)}")
+        if self.mode == "closed_loop" and not self.targets:
+            raise ValueError("robot.mode = 'closed_loop': closed-loop robot control needs robot.targets "
+                             "(a table {all = [[t_s, height_mm, bend_deg, direction_deg], ...]} or one per layer)")
+        for j, row in enumerate(self.tip_load):
+            if len(row) != 4 or not all(math.isfinite(float(v)) for v in row) or row[0] < 0:
+                raise ValueError(f"robot.tip_load_n[{j}] must be [t_s >= 0, fx, fy, fz] (finite)")
+        check_range("robot", "settle_time", self.settle_time, 0.0, 1e4, "s")
+        if not isinstance(self.mpc_horizon, int) or not 1 <= self.mpc_horizon <= 100:
+            raise ValueError(f"robot.mpc_horizon = {self.mpc_horizon!r} must be an integer in [1, 100]")
+        check_range("robot", "mpc_dt", self.mpc_dt, 1e-3, 1.0, "s")
+        return self
