@@ -16,7 +16,7 @@ import numpy as np
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.chamber import STATE_SCALE
 
-__all__ = ["FilterSettings", "guard_cov", "joseph_update", "classify_measurement", "MEAS_OK",
+__all__ = ["FilterSettings", "guard_cov", "classify_measurement", "MEAS_OK",
            "MEAS_MISSING", "MEAS_SATURATED"]
 
 MEAS_OK, MEAS_MISSING, MEAS_SATURATED = "ok", "missing", "saturated"
@@ -187,27 +187,6 @@ def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> n
         S = (V * w) @ V.T
         S = 0.5 * (S + S.T)
     return S * ss
-
-
-def joseph_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, innov: float, R: float,
-                  PHt: np.ndarray | None = None, S: float | None = None):
-    """Scalar-measurement Kalman update in Joseph form. Returns (x+, P+, S, K).
-
-    ``PHt`` (P H^T) and ``S`` may be given (the UKF passes its cross-covariance and innovation
-    variance); otherwise they are formed from H. The gain solves S K^T = (P H^T)^T; for a scalar
-    measurement that is a division by S > 0, checked.
-    """
-    H = np.asarray(H, dtype=float).reshape(1, -1)
-    if PHt is None:
-        PHt = P @ H.T
-    if S is None:
-        S = float((H @ PHt)[0, 0]) + R
-    if not (S > 0 and math.isfinite(S)):
-        raise FloatingPointError(f"innovation variance {S} is not positive")
-    K = np.linalg.solve(np.array([[S]]), np.reshape(PHt, (-1, 1)).T).T  # (n, 1)
-    IKH = np.eye(P.shape[0]) - K @ H
-    Pn = IKH @ P @ IKH.T + R * (K @ K.T)
-    return x + K[:, 0] * innov, Pn, S, K[:, 0]
 
 
 def classify_measurement(z, sensor_range: float) -> str:

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimators.common import STATE_SCALE, FilterSettings, guard_cov, joseph_update
+from estimators.common import FilterSettings, guard_cov
 from estimators.ekf import EKF
 from estimators.ukf import UKF
 from hbma_ctrl.app.evaluate import run_filter, score
@@ -15,6 +15,7 @@ from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.chamber import STATE_SCALE
 from hbma_ctrl.sim.rig import Rig, RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
 
@@ -248,6 +249,29 @@ def test_ukf_same_api_and_comparable(loaded):
     h = np.array([e.h for e in ests])
     assert nrmsd(h, rec.truth["h"]) < 0.08
     assert ests[-1].state_names == ("m", "W", "b", "k", "c")
+
+
+def joseph_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, innov: float, R: float,
+                  PHt: np.ndarray | None = None, S: float | None = None):
+    """Reference (numpy) scalar Kalman update in Joseph form, against which the compiled one is checked.
+
+    Returns (x+, P+, S, K).
+
+    ``PHt`` (P H^T) and ``S`` may be given (the UKF passes its cross-covariance and innovation
+    variance); otherwise they are formed from H. The gain solves S K^T = (P H^T)^T; for a scalar
+    measurement that is a division by S > 0, checked.
+    """
+    H = np.asarray(H, dtype=float).reshape(1, -1)
+    if PHt is None:
+        PHt = P @ H.T
+    if S is None:
+        S = float((H @ PHt)[0, 0]) + R
+    if not (S > 0 and math.isfinite(S)):
+        raise FloatingPointError(f"innovation variance {S} is not positive")
+    K = np.linalg.solve(np.array([[S]]), np.reshape(PHt, (-1, 1)).T).T  # (n, 1)
+    IKH = np.eye(P.shape[0]) - K @ H
+    Pn = IKH @ P @ IKH.T + R * (K @ K.T)
+    return x + K[:, 0] * innov, Pn, S, K[:, 0]
 
 
 def test_numerics_guards():

@@ -188,3 +188,12 @@ def test_bad_schedules_and_settings_name_the_field():
         SimSettings(integrator="rk5").validate()
     with pytest.raises(ValueError, match="needs a load"):
         simulate([Trial()], fidelity="platform")
+
+
+def test_adaptive_run_stopped_at_its_segment_cap_is_not_ok(monkeypatch):
+    import hbma_ctrl.sim.simulate as sim_mod
+
+    monkeypatch.setattr(sim_mod, "MAX_SEGMENTS", 1)  # the 3 s inflate/vent schedule needs two segments
+    (log,) = simulate([Trial(duration=4.0)], SimSettings(integrator="radau"))
+    assert log.status == "incomplete"
+    assert any(name == "segment_cap" for _, name in log.events)

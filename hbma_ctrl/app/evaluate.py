@@ -217,8 +217,3 @@ def aggregate(results: list[TrialResult]) -> dict:
                        for s in sorted({r.scores["rig_status"] for r in results})},
     })
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}
-
-
-def with_settings(fs: FilterSettings, **kw) -> FilterSettings:
-    """A copy of filter settings with some fields replaced (validated)."""
-    return replace(fs, **kw).validate()

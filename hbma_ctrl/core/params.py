@@ -7,7 +7,7 @@ validates itself and names the field and its allowed range when a value is out o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from hbma_ctrl.core.materials import Material, NeoHookean
@@ -148,8 +148,3 @@ class Platform:
     @property
     def mass(self) -> float:
         return self.load + self.own_mass
-
-
-def dataclass_doc_fields(cls) -> list[str]:
-    """Names of the fields of a settings dataclass (for the doc meta-tests)."""
-    return [f.name for f in fields(cls)]

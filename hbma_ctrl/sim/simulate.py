@@ -287,8 +287,16 @@ def _platform_flags(X, Xprev, mode, d0, d1, t, events):
         events[i].append((t, "snap_through"))
 
 
+#: most mode segments (integrations between events) one adaptive trial may take
+MAX_SEGMENTS = 10000
+
+
 def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
-    """Reference: scipy Radau per mode segment, events located to tolerance."""
+    """Reference: scipy Radau per mode segment, events located to tolerance.
+
+    Returns (rows, events, ok, theta); ok is True, False (diverged) or "incomplete" (more than
+    :data:`MAX_SEGMENTS` mode segments: the run stopped early and says so).
+    """
     theta = fid.space.values(trial.actuator, trial.pneumatics, trial.platform)
     batch = _Batch(fid, theta[:, None])
     f = fid.f
@@ -316,9 +324,11 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
     next_log = 0
     r1 = theta[fid.space.names.index("r1")]
     W = theta[fid.space.names.index("W")]
-    guard = 0
-    while t < T - 1e-12 and guard < 10000:
-        guard += 1
+    segments = 0
+    while t < T - 1e-12:
+        if segments >= MAX_SEGMENTS:  # chattering between modes: stop, and say the run is incomplete
+            events[0].append((t, "segment_cap"))
+            return rows, events, "incomplete", theta
         t_end = min(b for b in breaks if b > t + 1e-12)
         u = trial.schedule.at(t + 1e-9)
 
@@ -350,6 +360,10 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
         atol = s.atol * np.append(scale, 1e-5)
         sol = solve_ivp(rhs, (t, t_end), z0, method="Radau", jac=jacf, rtol=s.rtol, atol=atol,
                         events=evs or None, dense_output=True, max_step=0.05)
+        segments += 1
+        if sol.status == -1:  # the step size fell below what Radau can take
+            events[0].append((float(sol.t[-1]), "solver_failed"))
+            return rows, events, "diverged", theta
         t_stop = sol.t[-1]
         while next_log < len(log_t) and log_t[next_log] <= t_stop + 1e-12:
             zz = sol.sol(log_t[next_log])
@@ -450,7 +464,8 @@ def _limit_point_events(data: dict, fidelity: str) -> list:
 
 
 def _finish(fid, tr, data, events, ok, sensor_range: float = 35e3) -> Log:
-    status = "ok" if ok else "diverged"
+    status = ok if isinstance(ok, str) else ("ok" if ok else "diverged")
+    ok = status == "ok"
     events = ([(float(t), n) for t, n in events] + _saturation_events(data["t"], data["p"], sensor_range)
               + _limit_point_events(data, fid.name))
     if ok and fid.needs_platform and not any(n == "lift_off" for _, n in events):

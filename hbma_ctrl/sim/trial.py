@@ -124,7 +124,8 @@ class Log:
 
     ``mass_in`` is the integrated net mass flow since t = 0 (kg), integrated by the same scheme
     as the state, so ``m - m0 - mass_in`` measures mass conservation. ``events`` holds
-    (t, name) pairs; ``status`` is 'ok', 'resting' (a load that never lifted) or 'diverged'.
+    (t, name) pairs; ``status`` is 'ok', 'resting' (a load that never lifted), 'diverged' or
+    'incomplete' (the adaptive reference stopped at its segment cap).
     """
 
     name: str
