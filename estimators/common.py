@@ -80,7 +80,7 @@ class FilterSettings:
     load_prior : 'unknown' (default: the load is learnt from the lift-off) or 'nominal': a scene
         that knows its calibrated load (the protocol's weights) starts the load at the trial's
         nominal weight, with one sigma load_prior_rel_std x that weight (+0.01 N). Applied per trial
-        by :func:`estimators.evaluate.make_filter`; load changes are still detected and tracked.
+        by :func:`hbma_ctrl.app.evaluate.make_filter`; load changes are still detected and tracked.
     load_prior_rel_std : relative one sigma of the nominal load prior, [0, 10].
     """
 

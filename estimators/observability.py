@@ -2,7 +2,7 @@
 
 The estimators' state is ``x = [m, W, b, k, c]`` (gas mass kg, load N, pump-flow factor, modulus
 factor, dead-volume factor; :mod:`estimators.ekf`). Along rig trajectories (the mismatched rig of
-:mod:`hbma_ctrl.rig`, open loop) the EKF's linearisation (A = dx+/dx of the discrete model, H =
+:mod:`hbma_ctrl.sim.rig`, open loop) the EKF's linearisation (A = dx+/dx of the discrete model, H =
 dp/dx) gives, at every sample,
 
 - the rank and condition number of the frozen observability matrix ``control.obsv(A, H)``

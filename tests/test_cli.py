@@ -1,4 +1,4 @@
-"""CLI: equilibrium pinned to SPEC numbers, one-line errors with exit code 2, run writes metrics."""
+"""CLI: equilibrium pinned to published values (the paper, README Model), one-line errors with exit code 2, run writes metrics."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def _eq(*args: str) -> dict:
 
 
 def test_equilibrium_nh_free_peak_matches_table_one():
-    # SPEC 3: NH free inflation peaks at h1/r1 ~ 1.259 with 31.96 kPa for t0 = 3 mm, r1 = 7.5 mm
+    # README Model §3: NH free inflation peaks at h1/r1 ~ 1.259 with 31.96 kPa for t0 = 3 mm, r1 = 7.5 mm
     out = _eq("--material", "nh", "--r1-mm", "7.5", "--t0-mm", "3", "--h1-mm", str(1.259 * 7.5), "--h2-mm", "0")
     assert out["pressure_kpa"] == pytest.approx(31.96, abs=0.01)
     assert out["stretch"] == pytest.approx(1.61, abs=0.005)

@@ -162,7 +162,7 @@ def test_zero_flow_stays_flat_and_spd():
 
 
 def test_snap_through_survives():
-    # SPEC 4: t0 = 2 mm, r1 = 7.5 mm, 400 g: the dead-load path folds near 33-34 kPa
+    # README Model §4: t0 = 2 mm, r1 = 7.5 mm, 400 g: the dead-load path folds near 33-34 kPa
     tr = _trial(0.4, 1.0, r1=7.5e-3, t0=2e-3, dur=4.0, t_inf=3.0)
     rec = _rec(tr, sensor_range=60e3)
     f, ests = _run("ekf", tr, rec, FilterSettings(sensor_range=60e3))

@@ -1,4 +1,4 @@
-"""The physics pinned to SPEC numbers, to closed forms and to the energy principle it comes from."""
+"""The physics pinned to published values (the paper, README Model), to closed forms and to the energy principle it comes from."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def test_robot_chamber_peak_near_5p7_mm_and_mr_later_and_higher():
     assert h1_mr / 7.5e-3 == pytest.approx(1.33, abs=0.01)
     assert p_mr > p_nh
     p_mr_robot, _ = _free_peak(MooneyRivlin(), 4.5e-3, 2e-3)
-    assert p_mr_robot / 1e3 == pytest.approx(38.0, abs=0.5)  # SPEC 8: about 38 kPa
+    assert p_mr_robot / 1e3 == pytest.approx(38.0, abs=0.5)  # README Model §8: about 38 kPa
 
 
 @pytest.mark.parametrize("h1", [1e-4, 2e-3, 7.5e-3, 20e-3])

@@ -1,4 +1,4 @@
-"""SPEC 7 protocol: the 150-trial grid, and a small subset run end to end (serial and in workers)."""
+"""README Model §7 protocol: the 150-trial grid, and a small subset run end to end (serial and in workers)."""
 
 from __future__ import annotations
 

@@ -213,7 +213,7 @@ def test_chamber_states_are_consistent_with_physics_and_load_sharing():
 
 def test_reach_free_chamber_pins_the_limit_point():
     r = chamber_reach(D3, 0.0)
-    # SPEC 8: NH, r1 4.5 mm, t0 2 mm: free-inflation peak ~35.5 kPa near h = 5.7 mm
+    # README Model §8: NH, r1 4.5 mm, t0 2 mm: free-inflation peak ~35.5 kPa near h = 5.7 mm
     assert r.p_peak == pytest.approx(35.5e3, abs=0.2e3)
     assert r.h_peak == pytest.approx(5.7e-3, abs=0.1e-3)
     # 45 kPa passes the peak: the far branch is held to the maximum stretch
@@ -228,7 +228,7 @@ def test_reach_below_the_peak_is_pressure_limited():
     assert r.limit == "pressure_limit"
     assert r.h_max < r.h_peak
     assert r.p_at_max == pytest.approx(35e3, rel=0.02)
-    # one chamber at that reach tilts a layer only about 12 degrees (SPEC 8)
+    # one chamber at that reach tilts a layer only about 12 degrees (README Model §8)
     assert math.degrees(math.atan(r.h_max / (1.5 * RC))) == pytest.approx(12, abs=1.5)
 
 

@@ -18,7 +18,7 @@ RT = 287.058 * 293.15
 
 
 def _scenarios(material, speed=1.0, V0=3e-6):
-    """SPEC 7's 30 scenarios (thickness x radius x load) at one speed."""
+    """README Model §7's 30 scenarios (thickness x radius x load) at one speed."""
     out = []
     for t0 in (2e-3, 3e-3):
         for r1 in (7.5e-3, 10e-3, 12.5e-3):

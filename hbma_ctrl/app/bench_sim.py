@@ -1,8 +1,8 @@
-"""Simulator speed/accuracy benchmark over the SPEC 7 protocol (``hbma-ctrl bench sim``).
+"""Simulator speed/accuracy benchmark over the 150-trial protocol (README Model §7) (``hbma-ctrl bench sim``).
 
 For each fixed-step integrator (euler, rk4) x step size x fidelity of the loaded trials
 ('quasi_static', 'platform'; the 0 g trials always run 'free'), the wall time of the whole
-protocol and the NRMSD (SPEC 7 eq. 16, ``rms(y_hat - y) / (y_max - y_min)``, y the reference)
+protocol and the NRMSD (paper eq. 16, ``rms(y_hat - y) / (y_max - y_min)``, y the reference)
 of height and pressure per trial, against the adaptive implicit reference ('radau', same
 fidelity), interpolated on the reference's log times. Trials whose reference is constant (a load
 that never lifts: height stays 0) have no height NRMSD and are left out of its mean and max.

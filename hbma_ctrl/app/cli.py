@@ -1,8 +1,9 @@
 """Command line: ``hbma-ctrl`` (typer). Parses, runs and reports; the work happens in the library.
 
 Commands: ``run FILE``, ``protocol`` (also what a bare ``hbma-ctrl`` runs, with defaults),
-``equilibrium``, ``plots``, ``bench sim``; other parts register theirs through
-``register(app, bench_app)`` in ``estimators.cli``, ``controllers.cli`` and ``hbma_ctrl.robot_cli``.
+``equilibrium``, ``plots``, ``bench sim``; the estimator, controller and robot commands come from
+``register(app, bench_app)`` in :mod:`hbma_ctrl.app.cli_estimators`, :mod:`hbma_ctrl.app.cli_controllers`
+and :mod:`hbma_ctrl.app.cli_robot`.
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
 exits with code 2, never a traceback.
@@ -75,7 +76,7 @@ def _fail(message: str, code: int = 2):
 
 app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=False, pretty_exceptions_enable=False,
                   help="Model, observe and control Hyperelastic Ballooning Membrane Actuators (HBMA). "
-                       "Without a command: run the SPEC 7 protocol with defaults into ./runs/protocol.")
+                       "Without a command: run the 150-trial protocol (README Model §7) with defaults into ./runs/protocol.")
 bench_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchmarks (speed and accuracy).")
 app.add_typer(bench_app, name="bench")
 
@@ -163,7 +164,7 @@ def protocol(
     duration_s: Annotated[float, typer.Option("--duration-s", help="trial duration, s")] = 6.0,
     no_plots: Annotated[bool, typer.Option("--no-plots", help="skip fig6/fig7/fig9")] = False,
 ) -> None:
-    """Simulate SPEC 7's 150-trial protocol: DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
+    """Simulate the 150-trial characterisation protocol (README Model §7): DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
 
     _choice("--material", material, MATERIALS)
     _choice("--integrator", integrator, INTEGRATORS)

@@ -1,6 +1,6 @@
 """CLI hook of the estimators: ``hbma-ctrl bench ekf`` and ``hbma-ctrl observability``.
 
-Registered by :mod:`hbma_ctrl.cli` through ``register(app, bench_app)``.
+Registered by :mod:`hbma_ctrl.app.cli` through ``register(app, bench_app)``.
 """
 
 from __future__ import annotations

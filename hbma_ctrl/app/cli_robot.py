@@ -1,6 +1,6 @@
 """``hbma-ctrl robot ...``: the continuum robot's Table II, workspace and pose plots.
 
-Registered by :mod:`hbma_ctrl.cli` through :func:`register`. Edge units (mm, kPa, deg) here only;
+Registered by :mod:`hbma_ctrl.app.cli` through :func:`register`. Edge units (mm, kPa, deg) here only;
 :mod:`hbma_ctrl.robot` works in SI. Bad input raises ValueError, which the top-level CLI prints as
 one ``error: ...`` line with exit code 2.
 """
@@ -27,7 +27,7 @@ from hbma_ctrl.robot.reach import reach_report, robot_table2, table2_markdown
 __all__ = ["register", "robot_app"]
 
 robot_app = typer.Typer(add_completion=False, no_args_is_help=True,
-                        help="The hybrid soft-rigid continuum robot (SPEC 8): Table II, workspace, pose.")
+                        help="The hybrid soft-rigid continuum robot (README Model §8): Table II, workspace, pose.")
 
 
 def _design(layers: int | None, max_stretch: float | None = None) -> RobotDesign:

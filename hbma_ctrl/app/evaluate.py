@@ -1,17 +1,17 @@
 """Run estimators against the rig over open-loop trials and score them (SI inside).
 
-For each trial: the rig (:func:`hbma_ctrl.rig.simulate_rig`, mismatched, platform fidelity, noisy
+For each trial: the rig (:func:`hbma_ctrl.sim.rig.simulate_rig`, mismatched, platform fidelity, noisy
 saturating sensor) gives the readings and the truth; the nominal model run open loop with the same
-commands and the true load (:func:`hbma_ctrl.simulate.simulate`, the paper's model) gives the
+commands and the true load (:func:`hbma_ctrl.sim.simulate.simulate`, the paper's model) gives the
 open-loop baseline; the filter runs on the readings and the commands only.
 
-Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-loop model (SPEC 7
+Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-loop model (README Model §7
 eq. 16 against the rig's true height), pressure NRMSD of the filter's pressure, RMSE of the contact
 force, the steady-contact force error relative to the true load (mean over the last second of
 inflation while in contact), NEES of (h, F) and NIS (means over the run), the median wall time of
 a step. :func:`aggregate` turns them into the ``"estimator"`` metrics object: means over the
 trials, the worst trial (``height_ratio_to_open_loop_max``, ``worst_ratio_trial``) and, per
-protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`hbma_ctrl.protocol.
+protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`hbma_ctrl.app.protocol.
 scenario_of`), ``n_scenarios``, ``scenarios_at_half_open_loop`` and
 ``scenario_ratio_to_open_loop_max`` / ``worst_ratio_scenario``.
 """

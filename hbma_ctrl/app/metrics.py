@@ -1,4 +1,4 @@
-"""Metrics and edge-unit outputs of a run: NRMSD (SPEC 7 eq. 16), plant metrics, metrics.json.
+"""Metrics and edge-unit outputs of a run: NRMSD (paper eq. 16), plant metrics, metrics.json.
 
 Output convention (every CSV this package writes for users): edge units, with the unit in the
 column name (``t_s``, ``h_mm``, ``p_kpa``, ``F_n``, ``V_cm3``, ``q_mg_per_s``, ...), see
@@ -49,7 +49,7 @@ ROLE_KEYS = ("scenario", "plant", "estimator", "controller", "robot")
 
 
 def nrmsd(y_hat: np.ndarray, y: np.ndarray) -> float:
-    """SPEC 7 eq. 16: sqrt(mean((y_hat - y)^2)) / (max(y) - min(y)), y the reference.
+    """paper eq. 16: sqrt(mean((y_hat - y)^2)) / (max(y) - min(y)), y the reference.
 
     NaN when the reference is constant (the ratio is undefined) or the inputs are empty.
     """

@@ -1,4 +1,4 @@
-"""The characterisation protocol of SPEC 7: 150 inflate/vent trials, simulated in batches.
+"""The characterisation protocol (README Model §7): 150 inflate/vent trials, simulated in batches.
 
 Grid: loads 0, 200, 400, 600, 800 g x compressor speeds 20, 40, 60, 80, 100 % x membrane thickness
 t0 2, 3 mm x retaining radius r1 7.5, 10, 12.5 mm. Each trial pumps at its speed with the inlet open
@@ -8,13 +8,13 @@ for ``t_inflate_s`` (default 3 s), then stops the pump, closes the inlet and ope
 Fidelity: ``"auto"`` gives each trial its default (``Trial.default_fidelity``: 'free' for 0 g, the
 paper's 'quasi_static' otherwise); 'quasi_static' or 'platform' apply to the loaded trials, the 0 g
 trials always use 'free' (fewest states). Trials of one fidelity run as one batch
-(:func:`hbma_ctrl.simulate.simulate`); with ``workers > 1`` each worker process simulates one
+(:func:`hbma_ctrl.sim.simulate.simulate`); with ``workers > 1`` each worker process simulates one
 chunk of the trials (not one trial), so batching is kept.
 
 Outputs of :func:`run_protocol` in ``out_dir``: ``summary.csv`` (one row per trial, columns
 :data:`SUMMARY_COLUMNS`; ``wall_s`` is the trial's share of its batch's wall time, i.e. batch wall
 time / batch size, or the trial's own time with the one-at-a-time 'radau'), ``trials/<name>.csv`` (time series in edge units, unit in each column
-name, see :func:`hbma_ctrl.metrics.write_log_csv`) and, unless disabled, fig6/fig7/fig9 PNGs.
+name, see :func:`hbma_ctrl.app.metrics.write_log_csv`) and, unless disabled, fig6/fig7/fig9 PNGs.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
     """Simulate the protocol and write summary.csv, trials/*.csv and (``plots``) fig6/7/9 PNGs.
 
     dt is the fixed step in s (None = the default per integrator and fidelity); ``trials``
-    replaces the SPEC 7 grid (e.g. a subset). Returns the summary rows (edge units).
+    replaces the protocol grid (e.g. a subset). Returns the summary rows (edge units).
     """
 
     settings = SimSettings(integrator=integrator, dt=dt, log_dt=log_dt).validate()

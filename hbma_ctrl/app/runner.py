@@ -1,11 +1,11 @@
-"""Run a loaded scenario: open loop here, closed-loop roles dispatched to their owners' scenes.
+"""Run a loaded scenario: open loop here, the role tables' scenes dispatched by :data:`SCENE_DISPATCH`.
 
-Dispatch (first match): a [robot] section -> ``hbma_ctrl.robot.run_scene``; [controller] ->
-``controllers.scene.run_scene``; [estimator] -> ``estimators.scene.run_scene``; otherwise the
-open-loop plant. Each scene returns a dict of role metrics; the runner merges them under stable
-role keys into ``out_dir/metrics.json`` (see :mod:`hbma_ctrl.metrics`). Open loop also writes
+Dispatch (first match): a [robot] table -> :func:`hbma_ctrl.app.scene_robot.run_scene`; [controller]
+-> :func:`hbma_ctrl.app.scene_controller.run_scene`; [estimator] ->
+:func:`hbma_ctrl.app.scene_estimator.run_scene`; otherwise the open-loop plant. Each scene returns a dict of role metrics; the runner merges them under stable
+role keys into ``out_dir/metrics.json`` (see :mod:`hbma_ctrl.app.metrics`). Open loop also writes
 ``log.csv`` (edge units) and ``run.png`` for a single trial, or the protocol outputs
-(:func:`hbma_ctrl.protocol.run_protocol`) for kind "protocol".
+(:func:`hbma_ctrl.app.protocol.run_protocol`) for kind "protocol".
 """
 
 from __future__ import annotations

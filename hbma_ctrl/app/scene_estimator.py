@@ -1,15 +1,15 @@
 """The ``[estimator]`` scenario section and the estimator scene (``hbma-ctrl run``).
 
-A scene runs the rig (``[rig]`` section, :class:`hbma_ctrl.rig.RigSettings`: the mismatched,
+A scene runs the rig (``[rig]`` section, :class:`hbma_ctrl.sim.rig.RigSettings`: the mismatched,
 higher-fidelity truth with a noisy, saturating sensor) open loop with the scenario's inputs, feeds
 the readings and the commands to the filter, and writes the estimate next to the truth:
 
 - kind "single": ``estimate.csv`` (edge units: mm, kPa, N), ``estimate.png``; load steps
   (``load_steps_g``) are applied to the rig mid-run;
-- kind "protocol": every trial of the grid (SPEC 7, 150 by default), in worker processes,
+- kind "protocol": every trial of the grid (README Model §7, 150 by default), in worker processes,
   ``estimator_trials.csv`` (one row of scores per trial).
 
-``metrics.json`` gets an ``"estimator"`` object (:func:`estimators.evaluate.aggregate`):
+``metrics.json`` gets an ``"estimator"`` object (:func:`hbma_ctrl.app.evaluate.aggregate`):
 height_nrmsd (mean over trials), height_nrmsd_open_loop (the nominal model run open loop with the
 same commands and the true initial load), pressure_nrmsd, force_rmse_n, nees_mean, nis_mean,
 step_us_median and worst cases; with ``compare_ukf = true`` the UKF's under ``"estimator"."ukf"``.

@@ -1,6 +1,6 @@
 """Parameter sets (SI units): actuator geometry and gas, pneumatics, platform.
 
-Defaults are the paper's Table I (SPEC 6) and the fig. 7 rig where a value is needed. Every dataclass
+Defaults are the paper's Table I (README Model §6) and the fig. 7 rig where a value is needed. Every dataclass
 validates itself and names the field and its allowed range when a value is out of it.
 """
 
@@ -120,7 +120,7 @@ class Pneumatics:
 
 @dataclass(frozen=True)
 class Platform:
-    """The guided platform that carries a dead load (SPEC 7).
+    """The guided platform that carries a dead load (README Model §7).
 
     load : load mass, kg (0 = no platform: free inflation).
     own_mass : platform's own moving mass, kg (added to the load in the dynamic model).

@@ -33,7 +33,7 @@ def _robot_chamber() -> Actuator:
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class RobotDesign:
-    """A stack of HBMA layers (SI). Defaults: the paper's robot (SPEC 8, Fig. 1: 9 HBMA).
+    """A stack of HBMA layers (SI). Defaults: the paper's robot (README Model §8, Fig. 1: 9 HBMA).
 
     Fields
     ------

@@ -84,8 +84,8 @@ def simulate_open_loop(settings: RobotPlantSettings, pneumatics: Pneumatics | No
                        integrator: str = "rk4", dt: float | None = None) -> RobotRun:
     """Open-loop robot scene: every chamber's gas mass by the single-chamber model, loads shared.
 
-    Each chamber is the lead's ``quasi_static`` fidelity (gas mass state, dead load W, resting /
-    lift-off / far-branch jumps handled by :class:`hbma_ctrl.simulate.Plant`), all chambers in one
+    Each chamber is the ``quasi_static`` fidelity (gas mass state, dead load W, resting /
+    lift-off / far-branch jumps handled by :class:`hbma_ctrl.sim.simulate.Plant`), all chambers in one
     batch. Every ``sync_period`` the robot's pose follows from the chamber heights
     (:func:`forward_kinematics`), the load sharing gives each chamber's new load W (floored at
     1 mN; chambers in tension are flagged), and the interlocks close an inlet while its chamber is

@@ -1,10 +1,10 @@
 """The robot rig: the mismatched, higher-fidelity truth every robot estimator and controller is judged against (SI).
 
-the "truth": every chamber of the robot is the lead's ``platform`` fidelity
+the "truth": every chamber of the robot is the ``platform`` fidelity
   (the chamber's share of the layers as a moving mass with damping; ``quasi_static``, a dead load,
   as a setting) (gas mass, resting / lift-off / far branch handled by
-  :class:`hbma_ctrl.simulate.Plant`), all chambers in ONE batch, with mismatched parameters
-  (:func:`hbma_ctrl.rig.mismatched`: pump flow x0.9, dead volume x1.2; the modulus is +15 % and -15 %
+  :class:`hbma_ctrl.sim.simulate.Plant`), all chambers in ONE batch, with mismatched parameters
+  (:func:`hbma_ctrl.sim.rig.mismatched`: pump flow x0.9, dead volume x1.2; the modulus is +15 % and -15 %
   on alternate chambers, so both signs of the error are present). Every sample (10 ms) each
   chamber's load W is its share of the weight and of the tip load from
   :func:`hbma_ctrl.robot.load_sharing` of the TRUE heights. The sensors: 0.2 kPa noise, saturation
@@ -36,7 +36,7 @@ class RobotRigSettings:
     """Mismatch, dynamics and sensors of the robot rig (SI). fidelity: 'platform' (default: each
     chamber carries its share of the layers as a moving mass with damping ``damping`` N s/m, the
     higher-fidelity truth) or 'quasi_static' (dead load, as the controller assumes). modulus_spread: chambers alternate modulus
-    x(1 + spread), x(1 - spread); flow_scale, V0_scale: as :class:`hbma_ctrl.rig.RigSettings`;
+    x(1 + spread), x(1 - spread); flow_scale, V0_scale: as :class:`hbma_ctrl.sim.rig.RigSettings`;
     noise_std Pa; sample_period s; seed; dt: internal rk4 step (s)."""
 
     fidelity: str = "platform"

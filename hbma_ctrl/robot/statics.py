@@ -257,7 +257,7 @@ def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0,
     """Static equilibrium of the robot for given gas masses (N x 3 or 3N, kg).
 
     For every chamber the constant-load path h -> (h1, h2) with F(h1, h2) = its load share is
-    searched for G(h1, h2) = m R T (G = (p + p_env) V, SPEC 4); the loads follow from the heights
+    searched for G(h1, h2) = m R T (G = (p + p_env) V, README Model §4); the loads follow from the heights
     by :func:`load_sharing`, iterated to a fixed point. A chamber whose gas cannot lift its share
     rests (h = 0). Along the load path G grows with h for the robot's chambers (no fold: the gas
     is compressible, which is why the far branch is stable at fixed mass), so the height is unique;

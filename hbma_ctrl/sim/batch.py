@@ -84,7 +84,7 @@ def protocol_trials(material: str | Material = "nh", *, loads_g=None, speeds_pct
                     r1_mm=None, t_inflate_s: float | None = None, duration_s: float | None = None,
                     base: Actuator | None = None, pneumatics: Pneumatics | None = None,
                     platform: Platform | None = None) -> list[Trial]:
-    """The protocol's trials (SPEC 7 grid by default), ordered t0, r1, load, speed.
+    """The protocol's trials (README Model §7 grid by default), ordered t0, r1, load, speed.
 
     Grid values are in edge units (g, %, mm, s). ``base`` supplies V0 and the gas constants,
     ``platform`` the own mass and damping of the platform (its load is replaced per trial).

@@ -1,7 +1,7 @@
 """The base tables of a scenario file: [scenario] [actuator] [pneumatics] [load] [inputs]
 [protocol] [sim], in the user's units, and their conversion to the SI objects.
 
-Bounds are the ones ``hbma_ctrl.scenario.SCHEMA`` enforces today, stated in the key's own unit.
+Bounds are the ones ``hbma_ctrl.app.scenario.SCHEMA`` enforces today, stated in the key's own unit.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ __all__ = [
     "ms_to_s",
 ]
 
-#: units.py has no ms(); ms -> s is the same factor as mm -> m (as hbma_ctrl.scenario does today)
+#: units.py has no ms(); ms -> s is the same factor as mm -> m (as hbma_ctrl.app.scenario does today)
 ms_to_s = U.mm
 
 MaterialName = Literal["nh", "mr", "yeoh", "gent", "ogden"]

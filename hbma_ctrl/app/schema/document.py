@@ -1,7 +1,7 @@
 """The whole scenario file as one model: its tables, the rules across tables, the Scenario it builds.
 
 :func:`parse_scenario_tables` is the one entry point: TOML data (edge units) -> the same
-:class:`hbma_ctrl.scenario.Scenario` that ``hbma_ctrl.scenario.parse_scenario`` builds, with every
+:class:`hbma_ctrl.app.scenario.Scenario` that ``hbma_ctrl.app.scenario.parse_scenario`` builds, with every
 role section validated by its table model instead of a string-dispatched parser. Every input
 error is a ``ValueError`` with one line that starts with ``[table]``.
 """
