@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
 from hbma_ctrl.sim.batch import fidelity_for, protocol_trials, simulate_trials
 from hbma_ctrl.sim.trial import DEFAULT_DT, InputSchedule, SimSettings, Trial
@@ -173,7 +174,7 @@ def _settings_list(grid: dict) -> list[tuple[str, str, float | None]]:
     """
     out = []
     for fid, per in grid.items():
-        d_free, d_load = DEFAULT_DT[("rk4", "free")] * 1e3, DEFAULT_DT[("rk4", fid)] * 1e3
+        d_free, d_load = U.to_ms(DEFAULT_DT[("rk4", "free")]), U.to_ms(DEFAULT_DT[("rk4", fid)])
         out.append((fid, "rk4", None))
         for integ, dts in per.items():
             for dt in dts:
@@ -207,7 +208,7 @@ def run_bench(out_dir: Path | str = "runs/bench_sim", quick: bool = False, worke
         t_ref[fid] = time.perf_counter() - t0
     rows = []
     for fid, integ, dt_ms in _settings_list(grid):
-        s = SimSettings(integrator=integ, dt=None if dt_ms is None else dt_ms * 1e-3, log_dt=LOG_DT)
+        s = SimSettings(integrator=integ, dt=None if dt_ms is None else U.ms(dt_ms), log_dt=LOG_DT)
         _warm_up(trials, s, fid)
         walls, cpus = [], []
         for _ in range(repeat):
@@ -216,7 +217,7 @@ def run_bench(out_dir: Path | str = "runs/bench_sim", quick: bool = False, worke
             walls.append(time.perf_counter() - t0)
             cpus.append(_cpu() - c0)
         score = _score(logs, refs[fid])
-        row = BenchRow(integ, fid, dt_ms, s.step_for("free") * 1e3, s.step_for(fid) * 1e3, statistics.median(walls),
+        row = BenchRow(integ, fid, dt_ms, U.to_ms(s.step_for("free")), U.to_ms(s.step_for(fid)), statistics.median(walls),
                        statistics.median(cpus), walls, len(trials), sum(log.status == "diverged" for log in logs), **score,
                        default=(integ == "rk4" and dt_ms is None and fid == "quasi_static"))
         row.meets_target = bool(row.wall_s <= TARGET_WALL_S and row.n_diverged == 0

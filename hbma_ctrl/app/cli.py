@@ -177,7 +177,7 @@ def protocol(
         raise ValueError(f"--t-inflate-s = {t_inflate_s:g} must be below --duration-s = {duration_s:g}")
     con = _console()
     t0 = time.perf_counter()
-    rows = run_protocol(material, out, integrator, None if dt_ms is None else dt_ms * 1e-3, fidelity, workers,
+    rows = run_protocol(material, out, integrator, None if dt_ms is None else U.ms(dt_ms), fidelity, workers,
                         t_inflate_s=t_inflate_s, duration_s=duration_s, plots=not no_plots, progress=True)
     wall = time.perf_counter() - t0
     counts: dict = {}

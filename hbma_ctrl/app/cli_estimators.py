@@ -18,6 +18,7 @@ from rich.table import Table
 from estimators.common import FilterSettings
 from estimators.observability import OBS_SCALE, WINDOW_S, run
 from hbma_ctrl.app.evaluate import _open_loop, aggregate, make_filter, run_and_score
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform
 from hbma_ctrl.sim.batch import protocol_trials
 from hbma_ctrl.sim.rig import RigSettings, simulate_rig
@@ -62,7 +63,7 @@ def bench_ekf(grid: dict, filters=("ekf", "ukf"), seed: int = 0) -> dict:
             results.append(r)
             steps.append(r.step_s[1:])
         wall = time.perf_counter() - t0
-        st = np.concatenate(steps) * 1e6
+        st = U.to_us(np.concatenate(steps))
         agg = aggregate(results)
         agg.update({"step_us_median": float(np.median(st)), "step_us_p90": float(np.percentile(st, 90)),
                     "step_us_max": float(st.max()), "steps": int(st.size), "wall_s": wall})
@@ -120,13 +121,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         act = Actuator()
         kw = {}
         if r1_mm is not None:
-            kw["r1"] = r1_mm * 1e-3
+            kw["r1"] = U.mm(r1_mm)
         if t0_mm is not None:
-            kw["t0"] = t0_mm * 1e-3
+            kw["t0"] = U.mm(t0_mm)
         act = act.with_(**kw) if kw else act
         summ = run(out, act)
-        t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {act.r1 * 1e3:g} mm, "
-                        f"t0 {act.t0 * 1e3:g} mm); window = up to {WINDOW_S:g} s in one regime, "
+        t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "
+                        f"t0 {U.to_mm(act.t0):g} mm); window = up to {WINDOW_S:g} s in one regime, "
                         f"resolution {OBS_SCALE.tolist()}")
         for c in ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",
                   "window rank (med/min/max)"):

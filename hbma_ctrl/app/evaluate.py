@@ -29,6 +29,7 @@ from estimators.common import FilterSettings
 from estimators.ekf import EKF
 from estimators.ukf import UKF
 from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.sim.batch import scenario_of
 from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
@@ -118,8 +119,8 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
         "force_rmse_n": float(np.sqrt(np.nanmean((res.est["F"][sl] - res.truth["F"][sl]) ** 2))),
         "nees_mean": float(np.nanmean(res.nees[sl])),
         "nis_mean": float(np.nanmean(res.nis[sl])) if np.any(np.isfinite(res.nis[sl])) else float("nan"),
-        "step_us_median": float(np.nanmedian(res.step_s[sl]) * 1e6),
-        "height_rmse_mm": float(np.sqrt(np.mean((h - ht) ** 2)) * 1e3),
+        "step_us_median": float(U.to_us(np.nanmedian(res.step_s[sl]))),
+        "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((h - ht) ** 2)))),
     }
     W = trial.platform.weight
     t_inf = trial.schedule.times[1] if len(trial.schedule.times) > 1 else trial.duration

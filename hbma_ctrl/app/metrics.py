@@ -18,31 +18,38 @@ from pathlib import Path
 
 import numpy as np
 
+from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.trial import Log
 
 __all__ = ["EDGE_COLUMNS", "ROLE_KEYS", "nrmsd", "plant_metrics", "merge_metrics", "write_metrics",
            "write_log_csv", "edge_series"]
 
-#: SI log column -> (edge column name, factor)
+
+def _same(x):
+    """Columns already in their edge unit (s, N, duty, stretch)."""
+    return x
+
+
+#: SI log column -> (edge column name, conversion to that unit)
 EDGE_COLUMNS = {
-    "t": ("t_s", 1.0),
-    "speed": ("speed_pct", 100.0),
-    "inlet": ("inlet_duty", 1.0),
-    "outlet": ("outlet_duty", 1.0),
-    "h1": ("h1_mm", 1e3),
-    "h2": ("h2_mm", 1e3),
-    "h": ("h_mm", 1e3),
-    "p": ("p_kpa", 1e-3),
-    "F": ("F_n", 1.0),
-    "q": ("q_mg_per_s", 1e6),
-    "q_in": ("q_in_mg_per_s", 1e6),
-    "q_out": ("q_out_mg_per_s", 1e6),
-    "lam": ("stretch", 1.0),
-    "V": ("V_cm3", 1e6),
-    "m": ("m_mg", 1e6),
-    "det": ("det_si", 1.0),
-    "mode": ("mode", 1.0),
-    "mass_in": ("mass_in_mg", 1e6),
+    "t": ("t_s", _same),
+    "speed": ("speed_pct", U.to_pct),
+    "inlet": ("inlet_duty", _same),
+    "outlet": ("outlet_duty", _same),
+    "h1": ("h1_mm", U.to_mm),
+    "h2": ("h2_mm", U.to_mm),
+    "h": ("h_mm", U.to_mm),
+    "p": ("p_kpa", U.to_kpa),
+    "F": ("F_n", _same),
+    "q": ("q_mg_per_s", U.to_mg),
+    "q_in": ("q_in_mg_per_s", U.to_mg),
+    "q_out": ("q_out_mg_per_s", U.to_mg),
+    "lam": ("stretch", _same),
+    "V": ("V_cm3", U.to_cm3),
+    "m": ("m_mg", U.to_mg),
+    "det": ("det_si", _same),
+    "mode": ("mode", _same),
+    "mass_in": ("mass_in_mg", U.to_mg),
 }
 
 ROLE_KEYS = ("scenario", "plant", "estimator", "controller", "robot")
@@ -66,8 +73,8 @@ def edge_series(log: Log) -> dict[str, np.ndarray]:
     """The log's columns in edge units, keyed by their edge names (unknown columns kept as is)."""
     out = {}
     for k, v in log.data.items():
-        name, f = EDGE_COLUMNS.get(k, (k, 1.0))
-        out[name] = np.asarray(v, float) * f
+        name, conv = EDGE_COLUMNS.get(k, (k, _same))
+        out[name] = conv(np.asarray(v, float))
     return out
 
 
@@ -106,10 +113,10 @@ def plant_metrics(logs: list[Log]) -> dict:
         "n_trials": len(logs),
         "fidelity": sorted({log.fidelity for log in logs}),
         "status": logs[0].status if len(logs) == 1 else dict(status),
-        "max_height_mm": float(max(log["h"].max() for log in logs) * 1e3),
-        "max_pressure_kpa": float(max(log["p"].max() for log in logs) * 1e-3),
+        "max_height_mm": float(U.to_mm(max(log["h"].max() for log in logs))),
+        "max_pressure_kpa": float(U.to_kpa(max(log["p"].max() for log in logs))),
         "max_force_n": float(max(log["F"].max() for log in logs)),
-        "final_height_mm": float(logs[0]["h"][-1] * 1e3) if len(logs) == 1 else None,
+        "final_height_mm": float(U.to_mm(logs[0]["h"][-1])) if len(logs) == 1 else None,
         "events": dict(events),
         "wall_s": float(sum(log.wall_s for log in logs)),
         "mass_balance_rel": max(bal) if bal else None,

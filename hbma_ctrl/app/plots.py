@@ -102,9 +102,9 @@ def _time_panels(path, logs: list[Log], labels: list[str], panels, title: str) -
     fig = Figure(figsize=(8, 2.6 * len(panels)), dpi=110)
     axes = fig.subplots(len(panels), 1, sharex=True)
     axes = np.atleast_1d(axes)
-    for ax, (key, factor, ylabel) in zip(axes, panels):
+    for ax, (key, to_edge, ylabel) in zip(axes, panels):
         for log, lab in zip(logs, labels):
-            ax.plot(log["t"], log[key] * factor, label=lab, lw=1.4)
+            ax.plot(log["t"], to_edge(log[key]), label=lab, lw=1.4)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8, loc="center right", title="speed", title_fontsize=8)
@@ -118,14 +118,14 @@ def _time_panels(path, logs: list[Log], labels: list[str], panels, title: str) -
 def fig7(path: Path | str, logs: list[Log]) -> Path:
     """Fig. 7: height and pressure vs time of unloaded inflations, one line per speed."""
     return _time_panels(path, logs, [_speed_label(log) for log in logs],
-                        [("h", 1e3, "height h (mm)"), ("p", 1e-3, "pressure p (kPa)")],
+                        [("h", U.to_mm, "height h (mm)"), ("p", U.to_kpa, "pressure p (kPa)")],
                         f"Fig. 7: unloaded inflations, t0 = {FIG7_CASE[0]:g} mm, r1 = {FIG7_CASE[1]:g} mm")
 
 
 def fig9(path: Path | str, logs: list[Log]) -> Path:
     """Fig. 9: height, pressure and force vs time under a 200 g load, one line per speed."""
     return _time_panels(path, logs, [_speed_label(log) for log in logs],
-                        [("h", 1e3, "height h (mm)"), ("p", 1e-3, "pressure p (kPa)"), ("F", 1.0, "force F (N)")],
+                        [("h", U.to_mm, "height h (mm)"), ("p", U.to_kpa, "pressure p (kPa)"), ("F", np.asarray, "force F (N)")],
                         f"Fig. 9: t0 = {FIG9_CASE[0]:g} mm, r1 = {FIG9_CASE[1]:g} mm, {FIG9_CASE[2]:g} g load "
                         f"({logs[0].fidelity if logs else ''})")
 
@@ -139,13 +139,13 @@ def plot_run(log: Log, path: Path | str, title: str | None = None, sensor_range:
     fig = Figure(figsize=(8, 9), dpi=110)
     axes = fig.subplots(4, 1, sharex=True)
     t = log["t"]
-    axes[0].plot(t, log["h"] * 1e3, label="h (platform/membrane)")
+    axes[0].plot(t, U.to_mm(log["h"]), label="h (platform/membrane)")
     if np.any(log["h2"] > 0):
-        axes[0].plot(t, log["h1"] * 1e3, "--", lw=1, label="h1 (virtual cap)")
+        axes[0].plot(t, U.to_mm(log["h1"]), "--", lw=1, label="h1 (virtual cap)")
     axes[0].set_ylabel("height (mm)")
-    axes[1].plot(t, log["p"] * 1e-3, color="C1")
+    axes[1].plot(t, U.to_kpa(log["p"]), color="C1")
     if sensor_range:
-        axes[1].axhline(sensor_range * 1e-3, color="k", ls=":", lw=1, label="sensor range")
+        axes[1].axhline(U.to_kpa(sensor_range), color="k", ls=":", lw=1, label="sensor range")
     axes[1].set_ylabel("pressure (kPa)")
     axes[2].plot(t, log["F"], color="C2")
     axes[2].set_ylabel("force (N)")

@@ -25,6 +25,7 @@ from hbma_ctrl.app.scenario import Scenario
 from hbma_ctrl.app.scene_controller import run_scene as run_controller_scene
 from hbma_ctrl.app.scene_estimator import run_scene as run_estimator_scene
 from hbma_ctrl.app.scene_robot import run_scene as run_robot_scene
+from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import fidelity_for, simulate_trials
 
 __all__ = ["run_scenario", "run_open_loop", "SCENE_DISPATCH"]
@@ -69,9 +70,9 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
     if scn.sim.integrator == "radau":
         plant["dt_ms"] = None  # adaptive
     elif scn.kind == "single":
-        plant["dt_ms"] = scn.sim.step_for(plant["fidelity"]) * 1e3
+        plant["dt_ms"] = U.to_ms(scn.sim.step_for(plant["fidelity"]))
     else:
-        plant["dt_ms"] = scn.sim.dt * 1e3 if scn.sim.dt is not None else "default per fidelity"
+        plant["dt_ms"] = U.to_ms(scn.sim.dt) if scn.sim.dt is not None else "default per fidelity"
     plant["wall_s"] = time.perf_counter() - t0
     return {"plant": plant}
 

@@ -48,6 +48,7 @@ from hbma_ctrl.app.evaluate import (
 )
 from hbma_ctrl.app.schema.document import parse_role
 from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.sim.rig import Rig, RigRecord, RigSettings
 from hbma_ctrl.sim.simulate import simulate
@@ -91,40 +92,40 @@ def _open_loop_h(scn, dt: float, K: int) -> np.ndarray:
 
 
 def _write_series(res: TrialResult, path: Path) -> None:
-    cols = [("t_s", res.t, 1.0), ("h_true_mm", res.truth["h"], 1e3), ("h_est_mm", res.est["h"], 1e3),
-            ("h_std_mm", res.est["std_h"], 1e3), ("h_open_loop_mm", res.open_loop_h, 1e3),
-            ("h1_true_mm", res.truth["h1"], 1e3), ("h1_est_mm", res.est["h1"], 1e3),
-            ("h2_true_mm", res.truth["h2"], 1e3), ("h2_est_mm", res.est["h2"], 1e3),
-            ("F_true_n", res.truth["F"], 1.0), ("F_est_n", res.est["F"], 1.0), ("F_std_n", res.est["std_F"], 1.0),
-            ("p_true_kpa", res.truth["p"], 1e-3), ("p_meas_kpa", res.meas, 1e-3), ("p_est_kpa", res.est["p"], 1e-3),
-            ("load_est_n", res.est["W"], 1.0), ("flow_factor", res.est["b"], 1.0), ("modulus_factor", res.est["k"], 1.0),
-            ("nees", res.nees, 1.0), ("nis", res.nis, 1.0),
-            ("dead_volume_factor", res.est["c"], 1.0)]  # appended: earlier columns keep their places
+    cols = [("t_s", res.t, float), ("h_true_mm", res.truth["h"], U.to_mm), ("h_est_mm", res.est["h"], U.to_mm),
+            ("h_std_mm", res.est["std_h"], U.to_mm), ("h_open_loop_mm", res.open_loop_h, U.to_mm),
+            ("h1_true_mm", res.truth["h1"], U.to_mm), ("h1_est_mm", res.est["h1"], U.to_mm),
+            ("h2_true_mm", res.truth["h2"], U.to_mm), ("h2_est_mm", res.est["h2"], U.to_mm),
+            ("F_true_n", res.truth["F"], float), ("F_est_n", res.est["F"], float), ("F_std_n", res.est["std_F"], float),
+            ("p_true_kpa", res.truth["p"], U.to_kpa), ("p_meas_kpa", res.meas, U.to_kpa), ("p_est_kpa", res.est["p"], U.to_kpa),
+            ("load_est_n", res.est["W"], float), ("flow_factor", res.est["b"], float), ("modulus_factor", res.est["k"], float),
+            ("nees", res.nees, float), ("nis", res.nis, float),
+            ("dead_volume_factor", res.est["c"], float)]  # appended: earlier columns keep their places
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow([c[0] for c in cols] + ["flags"])
         for i in range(len(res.t)):
-            w.writerow([f"{c[1][i] * c[2]:.6g}" for c in cols] + [";".join(sorted(res.flags[i]))])
+            w.writerow([f"{c[2](c[1][i]):.6g}" for c in cols] + [";".join(sorted(res.flags[i]))])
 
 
 def _plot(res: TrialResult, path: Path, title: str) -> None:
     fig = Figure(figsize=(8, 8))
     ax = fig.subplots(3, 1, sharex=True)
     t = res.t
-    ax[0].plot(t, res.truth["h"] * 1e3, "k", label="rig (truth)")
-    ax[0].plot(t, res.est["h"] * 1e3, "C0", label="estimate")
-    ax[0].fill_between(t, (res.est["h"] - 2 * res.est["std_h"]) * 1e3, (res.est["h"] + 2 * res.est["std_h"]) * 1e3,
+    ax[0].plot(t, U.to_mm(res.truth["h"]), "k", label="rig (truth)")
+    ax[0].plot(t, U.to_mm(res.est["h"]), "C0", label="estimate")
+    ax[0].fill_between(t, U.to_mm(res.est["h"] - 2 * res.est["std_h"]), U.to_mm(res.est["h"] + 2 * res.est["std_h"]),
                        color="C0", alpha=0.2, label="estimate +- 2 sigma")
-    ax[0].plot(t, res.open_loop_h * 1e3, "C1--", label="open-loop model")
+    ax[0].plot(t, U.to_mm(res.open_loop_h), "C1--", label="open-loop model")
     ax[0].set_ylabel("height h, mm")
     ax[0].legend(fontsize=8)
     ax[1].plot(t, res.truth["F"], "k", label="rig (truth)")
     ax[1].plot(t, res.est["F"], "C0", label="estimate")
     ax[1].set_ylabel("contact force F, N")
     ax[1].legend(fontsize=8)
-    ax[2].plot(t, res.meas * 1e-3, ".", color="0.6", ms=2, label="sensor")
-    ax[2].plot(t, res.truth["p"] * 1e-3, "k", label="rig (truth)")
-    ax[2].plot(t, res.est["p"] * 1e-3, "C0", label="estimate")
+    ax[2].plot(t, U.to_kpa(res.meas), ".", color="0.6", ms=2, label="sensor")
+    ax[2].plot(t, U.to_kpa(res.truth["p"]), "k", label="rig (truth)")
+    ax[2].plot(t, U.to_kpa(res.est["p"]), "C0", label="estimate")
     ax[2].set_ylabel("pressure, kPa")
     ax[2].set_xlabel("t, s")
     ax[2].legend(fontsize=8)
@@ -183,8 +184,8 @@ def _metrics(per_kind: dict, sec: EstimatorSection, rig: RigSettings, files: dic
     main.update({"filter": sec.filter, "seeds": sec.seeds,
                  "rig": {"fidelity": rig.fidelity, "modulus_scale": rig.modulus_scale,
                          "flow_scale": rig.flow_scale, "V0_scale": rig.V0_scale,
-                         "noise_std_kpa": rig.noise_std * 1e-3, "sensor_range_kpa": rig.sensor_range * 1e-3,
-                         "sample_period_ms": rig.sample_period * 1e3, "dropout_prob": rig.dropout_prob}})
+                         "noise_std_kpa": U.to_kpa(rig.noise_std), "sensor_range_kpa": U.to_kpa(rig.sensor_range),
+                         "sample_period_ms": U.to_ms(rig.sample_period), "dropout_prob": rig.dropout_prob}})
     main.update(files)
     for kind, res in per_kind.items():
         if kind != sec.filter:

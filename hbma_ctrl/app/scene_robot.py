@@ -34,8 +34,8 @@ def run_metrics(design: RobotDesign, run: RobotRun) -> dict:
     return {
         "mode": "open_loop",
         "chamber_height_rmse_mm": None, "bend_angle_rmse_deg": None, "tip_position_rmse_mm": None,
-        "step_ms_median": float(np.median(run.step_s) * 1e3) if run.step_s.size else None,
-        "step_ms_p99": float(np.percentile(run.step_s, 99) * 1e3) if run.step_s.size else None,
+        "step_ms_median": float(U.to_ms(np.median(run.step_s))) if run.step_s.size else None,
+        "step_ms_p99": float(U.to_ms(np.percentile(run.step_s, 99))) if run.step_s.size else None,
         "max_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, hmax)},
         "min_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, run.h.min(0).ravel())},
         "final_height_mm": {nm: U.to_mm(float(v)) for nm, v in zip(names, run.h[-1].ravel())},
@@ -70,7 +70,7 @@ def write_run_csv(design: RobotDesign, run: RobotRun, path: Path | str) -> None:
         w.writerow(cols)
         for j in range(run.t.size):
             row = [run.t[j]] + list(U.to_mm(run.h[j].ravel())) + list(U.to_kpa(run.p[j].ravel())) + \
-                list(run.m[j].ravel() * 1e6) + list(run.F[j].ravel()) + list(np.degrees(run.bend[j])) + \
+                list(U.to_mg(run.m[j].ravel())) + list(run.F[j].ravel()) + list(np.degrees(run.bend[j])) + \
                 list(np.degrees(run.direction[j])) + list(U.to_mm(run.tip[j]))
             w.writerow([f"{v:.6g}" for v in row])
 

@@ -18,6 +18,10 @@ __all__ = [
     "to_cm3",
     "pct",
     "to_pct",
+    "ms",
+    "to_ms",
+    "to_us",
+    "to_mg",
     "lpm_to_kgs",
 ]
 
@@ -73,6 +77,26 @@ def pct(x):
 def to_pct(x):
     """Fraction -> percent."""
     return x * 1e2
+
+
+def ms(x):
+    """Milliseconds -> seconds."""
+    return x * 1e-3
+
+
+def to_ms(x):
+    """Seconds -> milliseconds."""
+    return x * 1e3
+
+
+def to_us(x):
+    """Seconds -> microseconds."""
+    return x * 1e6
+
+
+def to_mg(x):
+    """Kilograms (or kg/s) -> milligrams (or mg/s)."""
+    return x * 1e6
 
 
 def lpm_to_kgs(x):
