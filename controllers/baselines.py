@@ -7,35 +7,23 @@
   band around a pressure setpoint; the setpoint is the nominal model's equilibrium pressure at the
   target height and the estimated load (a static calibration map), so mismatch is not corrected.
 
-Both honour the pressure limit with the same guard as the MPC and report ``stats()`` with the same
-keys (their "solve" time is the step's wall time; they never fall back).
+Both propose commands only: the pressure guard and the step timing are applied by
+:mod:`hbma_ctrl.runtime` (``ChamberLoop``, ``Supervisor``), the same for them as for the MPC.
+``p_max`` and ``guard_margin`` stay in their settings: the bang-bang setpoint is capped by them and
+the runtime builds the supervisor from them. They never fail.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.mpc_settings import timing_stats
 from hbma_ctrl.core.interfaces import Command, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics, check_range
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["PIDSettings", "PIDController", "BangBangSettings", "BangBangController"]
-
-
-def _guard(cmd: np.ndarray, p: float, p_max: float, margin: float) -> tuple[np.ndarray, bool]:
-    """Cut the pump near the pressure limit; vent above it. Returns (command, whether it acted)."""
-    p = p if np.isfinite(p) else p_max
-    if p >= p_max - margin and (cmd[0] > 0 or cmd[2] < 1.0):
-        cmd = cmd.copy()
-        cmd[0] = cmd[1] = 0.0
-        if p >= p_max - 0.5 * margin:
-            cmd[2] = 1.0
-        return cmd, True
-    return cmd, False
 
 
 @dataclass
@@ -88,13 +76,10 @@ class PIDController:
         self._d = 0.0
         self._t_prev = None
         self._hold = None
-        self.solve_ms: list = []
-        self.guard_count = 0
         self.last: dict = {}
 
     def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
         """Command for the next period from the height error (estimate vs reference)."""
-        t0 = time.perf_counter()
         s = self.settings
         h = float(estimate.h) if np.isfinite(estimate.h) else (self._h_prev or 0.0)
         if reference.height is None:
@@ -117,18 +102,13 @@ class PIDController:
             cmd = np.array([min(v, 1.0), 1.0, 0.0])
         else:
             cmd = np.array([0.0, 0.0, min(-v * s.outlet_gain, 1.0)])
-        cmd, acted = _guard(cmd, estimate.p, s.p_max, s.guard_margin)
-        self.guard_count += int(acted)
         self._h_prev, self._t_prev = h, t
-        self.solve_ms.append((time.perf_counter() - t0) * 1e3)
         self.last = {"reference_used": r, "status": "ok"}
         return Command(*(float(c) for c in cmd))
 
     def stats(self) -> dict:
-        tt = timing_stats(self.solve_ms)
-        return {"variant": "pid", "horizon": None, "solve_ms_median": tt["median"], "solve_ms_p99": tt["p99"],
-                "solve_ms_max": tt["max"], "steps": tt["n"], "fallbacks": 0,
-                "guard_activations": int(self.guard_count), "target_clipped_steps": 0}
+        """What the controller reports itself (timing, fallbacks and guard counts come from the runtime)."""
+        return {"variant": "pid", "horizon": None, "fallbacks": 0, "target_clipped_steps": 0}
 
 
 @dataclass
@@ -174,8 +154,6 @@ class BangBangController:
     def reset(self) -> None:
         self._state = 0  # +1 pumping, -1 venting, 0 holding
         self._hold = None
-        self.solve_ms: list = []
-        self.guard_count = 0
         self.last: dict = {}
 
     def setpoint(self, h: float, W: float) -> float:
@@ -187,7 +165,6 @@ class BangBangController:
 
     def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
         """Hysteresis on the estimated pressure around the mapped setpoint."""
-        t0 = time.perf_counter()
         s = self.settings
         if reference.height is None:
             self._hold = estimate.h if self._hold is None else self._hold
@@ -206,14 +183,9 @@ class BangBangController:
             self._state = 0
         cmd = {1: np.array([s.speed, 1.0, 0.0]), -1: np.array([0.0, 0.0, 1.0]),
                0: np.zeros(3)}[self._state]
-        cmd, acted = _guard(cmd, estimate.p, s.p_max, s.guard_margin)
-        self.guard_count += int(acted)
-        self.solve_ms.append((time.perf_counter() - t0) * 1e3)
         self.last = {"reference_used": r, "pressure_setpoint": p_set, "status": "ok"}
         return Command(*(float(c) for c in cmd))
 
     def stats(self) -> dict:
-        tt = timing_stats(self.solve_ms)
-        return {"variant": "bang_bang", "horizon": None, "solve_ms_median": tt["median"],
-                "solve_ms_p99": tt["p99"], "solve_ms_max": tt["max"], "steps": tt["n"], "fallbacks": 0,
-                "guard_activations": int(self.guard_count), "target_clipped_steps": 0}
+        """What the controller reports itself (timing, fallbacks and guard counts come from the runtime)."""
+        return {"variant": "bang_bang", "horizon": None, "fallbacks": 0, "target_clipped_steps": 0}

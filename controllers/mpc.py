@@ -42,13 +42,15 @@ what the model uses. On-times shorter than the valve's minimum switching time ar
 T_pwm (whichever is nearer) by the valve driver, not by the MPC.
 
 Embedding. ``step(t, estimate, reference) -> Command`` never raises on a numerical failure: on a
-solver failure or a wall-clock overrun (``budget``) it returns the previous plan shifted by one step
-(for at most ``fallback_plan_steps`` steps), and after that :data:`SAFE_COMMAND` (compressor off,
-outlet open). A cold start (the first step, or the first after a failure: the RTI solves
-``rti_init_iterations`` QPs then) is exempt from the budget: a daemon calls ``step`` once before
-its loop starts to warm up. Every fallback is counted; ``stats()`` has per-step solve timing. A pressure guard
-overrides any command that would pump above ``p_max - guard_margin`` (counted separately). No
-global state: everything lives on the instance.
+solver failure or a wall-clock overrun (``budget``) it reports the failure in ``last["status"]``
+('failed: ...' / 'overrun...'; 'ok' otherwise) and returns :data:`SAFE_COMMAND`; ``plan`` holds the
+solved input sequence (N, 3) of an ok step, the late solution of an overrun, or None. The safety
+policy (replaying the last good plan, then the safe command; the pressure guard) and the step
+timing live in :mod:`hbma_ctrl.runtime` (``ChamberLoop``, ``Supervisor``), which hands the command
+it finally sent back through :meth:`NMPC.applied` (the rate terms of the next step start from it).
+A cold start (the first step, or the first after a failure: the RTI solves ``rti_init_iterations``
+QPs then) is exempt from the budget: a daemon calls ``step`` once before its loop starts to warm up.
+No global state: everything lives on the instance.
 """
 
 from __future__ import annotations
@@ -61,13 +63,12 @@ from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["MPCSettings", "NMPC", "VARIANTS", "duty_to_on_time", "timing_stats"]
+__all__ = ["MPCSettings", "NMPC", "VARIANTS", "duty_to_on_time"]
 
 from controllers.mpc_settings import (
     VARIANTS,
     MPCSettings,
     duty_to_on_time,
-    timing_stats,
 )
 from controllers.mpc_solvers import (
     _BudgetExceeded,
@@ -102,13 +103,8 @@ class NMPC:
         self._u_prev = np.zeros(3)
         self._W = None
         self._t_prev = None
-        self._plan = None  # (U, age)
-        self._streak = 0
+        self.plan = None  # (N, 3): this step's solved inputs, an overrun's late solution, or None
         self._hold = None
-        self.solve_ms: list = []
-        self.solve_cpu_ms: list = []  # thread CPU time: what other load on the machine does not inflate
-        self.fallbacks = {"solver_failed": 0, "overrun": 0, "shifted_plan": 0, "safe_command": 0}
-        self.guard_count = 0
         self.clipped_count = 0
         self.last = {}
 
@@ -174,33 +170,21 @@ class NMPC:
         fw = self.settings.fail_window
         return fw is not None and fw[0] <= t <= fw[1]
 
-    def _guard(self, cmd: np.ndarray, est: Estimate) -> np.ndarray:
-        s = self.settings
-        p = est.p if np.isfinite(est.p) else s.p_max
-        if p >= s.p_max - s.guard_margin and (cmd[0] > 0 or cmd[2] < 1.0):
-            self.guard_count += 1
-            cmd = cmd.copy()
-            cmd[0] = 0.0
-            cmd[1] = 0.0
-            if p >= s.p_max - 0.5 * s.guard_margin:
-                cmd[2] = 1.0
-        return cmd
-
     # --- the step -------------------------------------------------------------------------------
     #: the scene passes the future targets (``preview``) to controllers that take them
     accepts_preview = True
 
     def step(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
         """One control step: the command to hold for the next sample period (never raises on a
-        numerical failure; see the module docstring for the fallback chain).
+        numerical failure: it reports it in ``last["status"]``, see the module docstring).
 
         ``preview``: optional targets (m) at t + k * sample_period, k = 1..N (fewer: the last one
         holds); without it the current target holds over the horizon.
         """
         s = self.settings
         t_start = time.perf_counter()
-        c_start = time.thread_time()
         status = "ok"
+        cmd = SAFE_COMMAND.as_array()
         try:
             if self._in_fail_window(t):
                 raise _SolverFailure("injected failure (fail_window)")
@@ -210,56 +194,36 @@ class NMPC:
             elapsed = time.perf_counter() - t_start
             if elapsed > s.budget and not cold:
                 status = "overrun"
-                self.fallbacks["overrun"] += 1
-                cmd = self._fallback(U)
+                self.plan = U.copy()  # the late solution: the supervisor's plan for the next failure
             else:
                 cmd = U[0].copy()
-                self._plan = (U.copy(), 0)
-                self._streak = 0
+                self.plan = U.copy()
         except _BudgetExceeded as exc:
             status = f"overrun: {exc}"
-            self.fallbacks["overrun"] += 1
-            cmd = self._fallback(None)
+            self.plan = None
         except _SolverFailure as exc:
             status = f"failed: {exc}"
-            self.fallbacks["solver_failed"] += 1
+            self.plan = None
             self.backend.reset()
-            cmd = self._fallback(None)
         elapsed = time.perf_counter() - t_start
-        self.solve_ms.append(elapsed * 1e3)
-        self.solve_cpu_ms.append((time.thread_time() - c_start) * 1e3)
-        cmd = self._guard(np.clip(cmd, 0.0, 1.0), estimate)
+        cmd = np.clip(cmd, 0.0, 1.0)
+        # a caller that does not report the command it sent (applied) gets this one as the previous input
         self._u_prev = cmd.copy()
         self._t_prev = t
         self.last.update({"status": status, "iterations": self.backend.iterations, "solve_ms": elapsed * 1e3})
         return Command(float(cmd[0]), float(cmd[1]), float(cmd[2]))
 
-    def _fallback(self, late_plan: np.ndarray | None) -> np.ndarray:
-        s = self.settings
-        self._streak += 1
-        cmd = None
-        if self._plan is not None and self._streak <= s.fallback_plan_steps:
-            U, age = self._plan
-            if age + 1 < len(U):
-                self._plan = (U, age + 1)
-                cmd = U[age + 1].copy()
-        if late_plan is not None:
-            # the late solution is next step's plan (its first move is already missed)
-            self._plan = (late_plan.copy(), 0)
-        if cmd is None:
-            self.fallbacks["safe_command"] += 1
-            return SAFE_COMMAND.as_array()
-        self.fallbacks["shifted_plan"] += 1
-        return cmd
+    #: failures are reported in ``last["status"]`` (the runtime's supervisor counts them per cause)
+    reports_failures = True
+
+    def applied(self, command: Command | np.ndarray) -> None:
+        """The command actually sent (after the supervisor): the next step's input rates start from it."""
+        a = command.as_array() if isinstance(command, Command) else np.asarray(command, dtype=float)
+        self._u_prev = a.reshape(3).copy()
 
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:
-        """Timing (ms) and fallback counts since the last reset."""
-        t = timing_stats(self.solve_ms)
-        c = timing_stats(self.solve_cpu_ms)
-        n_fb = self.fallbacks["shifted_plan"] + self.fallbacks["safe_command"]
+        """Variant, horizon and clipped-target count since the last reset (timing and fallbacks are
+        counted by :mod:`hbma_ctrl.runtime`)."""
         return {"variant": self.settings.variant, "horizon": self.settings.horizon,
-                "solve_ms_median": t["median"], "solve_ms_p99": t["p99"], "solve_ms_max": t["max"],
-                "solve_cpu_ms_median": c["median"], "solve_cpu_ms_p99": c["p99"],
-                "steps": t["n"], "fallbacks": int(n_fb), "fallback_detail": dict(self.fallbacks),
-                "guard_activations": int(self.guard_count), "target_clipped_steps": int(self.clipped_count)}
+                "target_clipped_steps": int(self.clipped_count)}

@@ -26,14 +26,14 @@ Structure (real-time iteration, one QP per control period):
   :mod:`controllers.robot_model`). The sparsity pattern is fixed; every period only the values are
   updated (``osqp.update``) and the solver is warm started.
 
-If OSQP does not return a solution (status not solved / time limit), the fallback closes every inlet
-and keeps the outlets closed (hold the gas: the far branch is stable at fixed mass) and it is
-counted in ``fallbacks``.
+If OSQP does not return a usable solution (status not solved / time limit), ``failed`` is set and
+the step returns zeros (no decision); what is sent then (the last plan, then the safe command) is
+the runtime supervisor's policy (:mod:`hbma_ctrl.runtime`), as are the step timing and the counts.
+``plan`` (horizon, n, 2) holds the solved supply and outlet sequence of the last usable solve.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,7 +124,7 @@ class RobotNMPC:
     flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m, k and v (n,) the
     estimated modulus and dead-volume factors (default 1), a_max (n,) an upper bound on each
     chamber's supply duty (default 1); returns the supply
-    and outlet decisions (n,) each for this period. ``stats`` holds the solve times and fallbacks.
+    and outlet decisions (n,) each for this period. ``failed``: this step had no usable solution.
     """
 
     def __init__(self, model, n: int, settings: RobotMPCSettings | None = None):
@@ -141,9 +141,9 @@ class RobotNMPC:
         self.abar = np.zeros((n, N))
         self.obar = np.zeros((n, N))
         self.prev = np.zeros((2, n))
-        self.fallbacks = 0
+        self.failed = False
+        self.plan = None  # (horizon, n, 2): supply and outlet of the last usable solve
         self.inaccurate = 0
-        self.solve_s: list = []
         self.status = ""
         self._solver = None
 
@@ -200,7 +200,7 @@ class RobotNMPC:
 
     # --- one period --------------------------------------------------------------------------------
     def step(self, x0, b, W, h_ref, k=None, v=None, a_max=None):
-        t0 = time.perf_counter()
+        """One RTI step (see the class doc): (supply, outlet) decisions (n,) each, in [0, 1]."""
         s, n, N = self.s, self.n, self.s.horizon
         x0 = np.asarray(x0, dtype=float).reshape(n)
         b = np.asarray(b, dtype=float).reshape(n)
@@ -305,8 +305,8 @@ class RobotNMPC:
             status in ("solved", "solved inaccurate", "maximum iterations reached")
         if status != "solved":
             self.inaccurate += 1
+        self.failed = not usable
         if not usable:
-            self.fallbacks += 1
             a = np.zeros(n)
             o = np.zeros(n)
             self.abar[:] = 0.0
@@ -318,8 +318,8 @@ class RobotNMPC:
             self.obar = np.clip(z[:, 2 * N:3 * N], 0.0, 1.0)
             a = self.abar[:, 0].copy()
             o = self.obar[:, 0].copy()
+            self.plan = np.stack([self.abar.T, self.obar.T], axis=-1)
             if self.topology == "shared" and a.sum() > 1.0:
                 a /= a.sum()
         self.prev = np.vstack([a, o])
-        self.solve_s.append(time.perf_counter() - t0)
         return a, o

@@ -15,7 +15,6 @@ feedback: pressure control is unstable there). The closed-loop scenes show it be
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,8 +51,6 @@ class RobotPressurePID:
         self.n = n
         self.integ = np.zeros(n)
         self.prev_e = None
-        self.solve_s: list = []
-        self.fallbacks = 0
 
     def targets(self, W, h_ref) -> np.ndarray:
         """Target pressures (Pa) for target heights h_ref (m) under loads W (N)."""
@@ -61,7 +58,7 @@ class RobotPressurePID:
                                              self.model.clip_load(W))
 
     def step(self, p_meas, W, h_ref):
-        t0 = time.perf_counter()
+        """Supply and outlet decisions (n,) each from the measured pressures (Pa), loads (N), targets (m)."""
         s = self.s
         p = np.nan_to_num(np.asarray(p_meas, dtype=float).reshape(self.n), nan=0.0)
         pref = self.targets(W, h_ref)
@@ -79,5 +76,4 @@ class RobotPressurePID:
         o = np.maximum(-v, 0.0)
         if self.model.topology == "shared" and a.sum() > 1:
             a = a / a.sum()
-        self.solve_s.append(time.perf_counter() - t0)
         return a, o

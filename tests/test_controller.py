@@ -1,4 +1,7 @@
-"""Unit tests of the controllers: prediction model, MPC OCP and fallbacks, baselines, [controller] parsing."""
+"""Unit tests of the controllers: prediction model, MPC OCP and fallbacks, baselines, [controller] parsing.
+
+The fallback chain and the pressure guard live in the runtime's supervisor; the tests of them step
+the controllers through a :class:`ChamberLoop` (``control``: controller then supervisor)."""
 
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ from hbma_ctrl.core.interfaces import SAFE_COMMAND, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.runtime.chamber import ChamberLoop
 from hbma_ctrl.sim.simulate import Plant
 
 ACT, PN = Actuator(), Pneumatics()
@@ -38,6 +42,11 @@ def model():
 
 def est(h=0.0, p=0.0, F=0.0, t=0.0, flags=()):
     return Estimate(t=t, h1=h, h2=0.0, h=h, F=F, p=p, flags=frozenset(flags))
+
+
+def supervised(controller) -> ChamberLoop:
+    """The controller behind the runtime's supervisor (no estimator: ``control`` takes the estimate)."""
+    return ChamberLoop(None, controller)
 
 
 # --- prediction model ----------------------------------------------------------------------------
@@ -172,42 +181,47 @@ def test_infeasible_target_is_clipped_and_reported(model):
 def test_fallback_chain_shifted_plan_then_safe(model):
     s = MPCSettings(budget=5.0, fail_window=(0.1, 10.0), fallback_plan_steps=3)
     c = NMPC(ACT, PN, s, model=model)
+    loop = supervised(c)
     e = est(h=2e-3, p=11.7e3, F=W400)
-    c.step(0.0, e, Reference(6e-3))
-    plan = c._plan[0].copy()
-    cmds = [c.step(0.02 * (k + 5), e, Reference(6e-3)) for k in range(5)]
+    loop.control(0.0, e, Reference(6e-3))
+    plan = c.plan.copy()
+    cmds = [loop.control(0.02 * (k + 5), e, Reference(6e-3)) for k in range(5)]
     for k in range(3):
         assert cmds[k].as_array() == pytest.approx(plan[k + 1])
     assert cmds[3] == SAFE_COMMAND and cmds[4] == SAFE_COMMAND
-    st = c.stats()
+    st = loop.stats()
     assert st["fallbacks"] == 5 and st["fallback_detail"]["solver_failed"] == 5
     assert st["fallback_detail"]["shifted_plan"] == 3 and st["fallback_detail"]["safe_command"] == 2
 
 
 def test_overrun_counts_and_uses_shifted_plan(model):
     c = NMPC(ACT, PN, MPCSettings(budget=1e-9), model=model)
+    loop = supervised(c)
     e = est(h=2e-3, p=11.7e3, F=W400)
-    c.step(0.0, e, Reference(6e-3))  # cold start: exempt
-    plan = c._plan[0].copy()
-    cmd = c.step(0.02, e, Reference(6e-3))
-    assert c.stats()["fallback_detail"]["overrun"] == 1
+    loop.control(0.0, e, Reference(6e-3))  # cold start: exempt
+    plan = c.plan.copy()
+    cmd = loop.control(0.02, e, Reference(6e-3))
+    assert loop.stats()["fallback_detail"]["overrun"] == 1
     assert cmd.as_array() == pytest.approx(plan[1])
 
 
 def test_non_finite_estimate_is_a_fallback_not_a_crash(model):
     c = NMPC(ACT, PN, MPCSettings(budget=5.0), model=model)
-    cmd = c.step(0.0, est(h=float("nan"), p=float("nan")), Reference(5e-3))
-    assert cmd == SAFE_COMMAND and c.stats()["fallbacks"] == 1
+    loop = supervised(c)
+    cmd = loop.control(0.0, est(h=float("nan"), p=float("nan")), Reference(5e-3))
+    assert cmd == SAFE_COMMAND and loop.stats()["fallbacks"] == 1
 
 
 def test_guard_cuts_pump_at_the_limit(model):
     c = NMPC(ACT, PN, MPCSettings(budget=5.0, p_max=20e3), model=model)
-    cmd = c.step(0.0, est(h=5e-3, p=19.9e3, F=W400), Reference(12e-3))
+    loop = supervised(c)
+    cmd = loop.control(0.0, est(h=5e-3, p=19.9e3, F=W400), Reference(12e-3))
     assert cmd.speed == 0.0 and cmd.outlet == 1.0
     # the guard itself, on a command that would pump at the limit (e.g. a stale fallback plan)
-    g = c._guard(np.array([1.0, 1.0, 0.0]), est(h=5e-3, p=19.9e3, F=W400))
-    assert list(g) == [0.0, 0.0, 1.0] and c.stats()["guard_activations"] >= 1
-    assert list(c._guard(np.array([1.0, 1.0, 0.0]), est(h=5e-3, p=15e3, F=W400))) == [1.0, 1.0, 0.0]
+    sup = loop.supervisor
+    g = sup.apply(0.0, np.array([1.0, 1.0, 0.0]), 19.9e3)
+    assert list(g) == [0.0, 0.0, 1.0] and loop.stats()["guard_activations"] >= 1
+    assert list(sup.apply(0.0, np.array([1.0, 1.0, 0.0]), 15e3)) == [1.0, 1.0, 0.0]
 
 
 def test_instances_share_no_state(model):
@@ -230,7 +244,7 @@ def test_pid_pumps_vents_and_guards():
     d = c.step(0.0, est(h=6e-3, p=10e3), Reference(5e-3))
     assert d.speed == 0.0 and d.outlet > 0
     c.reset()
-    g = c.step(0.0, est(h=2e-3, p=34.8e3), Reference(5e-3))
+    g = supervised(c).control(0.0, est(h=2e-3, p=34.8e3), Reference(5e-3))
     assert g.speed == 0.0 and g.outlet == 1.0
 
 

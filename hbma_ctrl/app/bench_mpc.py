@@ -90,7 +90,7 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
         c = ctrl or make_controller(sec, actuator, pneumatics, model)
         log = closed_loop(actuator, pneumatics, platform, sec, duration, rs, controller=c)
         m = loop_metrics(log, sec)
-        rows.append(_row(name, m, rt_budget_ms, c.solve_ms))
+        rows.append(_row(name, m, rt_budget_ms, log.solve_ms))
         return m
 
     for v in variants:

@@ -1,12 +1,9 @@
-"""The robot's closed loop: EKF bank + NMPC (or pressure PID) on the robot rig (SI).
+"""The robot's closed loop on the robot rig: rig -> :class:`hbma_ctrl.runtime.robot.RobotLoop` -> rig (SI).
 
-per sample: read the 3N pressures, step the EKF bank (one mapped
-  call), recompute the loads from the estimated heights (used by the next predict and by this
-  period's NMPC: the one-period lag), the controller picks every chamber's supply and outlet,
-  a pressure interlock (inlet closed while a reading is within ``interlock_margin`` of the limit,
-  counted) guards both controllers, the rig advances one period. The controller does not know
-  the tip load (a disturbance). The EKF bank runs in the pressure-PID loop too (the PID ignores
-  it; its estimate is logged), so both loops' step times include it.
+Per sample: read the 3N pressures, ``RobotLoop.tick`` (EKF bank, load sharing, targets, NMPC or
+pressure PID, the supervisor's fallback, vent rule and pressure interlock), the rig advances one
+period, and the run is logged. The EKF bank runs in the pressure-PID loop too (the PID ignores it;
+its estimate is logged), so both loops' step times include it.
 """
 
 from __future__ import annotations
@@ -21,12 +18,11 @@ from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.sections import CONTROLLERS, RobotSettings
 from hbma_ctrl.core.params import Pneumatics, check_range
-from hbma_ctrl.models.bank import ChamberModel, commands_from_inputs
+from hbma_ctrl.models.bank import ChamberModel
 from hbma_ctrl.robot.design import RobotDesign
-from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
-from hbma_ctrl.robot.statics import load_sharing
-from hbma_ctrl.robot.targets import chamber_targets, change_times
+from hbma_ctrl.robot.targets import change_times
+from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 
 
 @dataclass
@@ -55,6 +51,7 @@ class ClosedLoopRun:
     changes: np.ndarray
     b_est: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cautious_steps: int = 0
+    events: list = field(default_factory=list)  # the supervisor's interventions (SupervisorEvent)
 
 
 def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberModel:
@@ -70,6 +67,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     """Run the robot closed loop for ``duration`` s (see module doc); targets {layer: ((t s, centre m, bend rad, direction rad), ...)}.
 
     h0 : must be None (every run starts from rest; kept so a caller's intent fails loudly).
+    interlock_margin : the supply is cut while a reading is within this of the pressure limit, Pa.
     cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
     fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
     its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
@@ -97,26 +95,22 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
         ctrl = RobotNMPC(model, n, ms)
     else:
         ctrl = RobotPressurePID(model, n, replace(pid or RobotPIDSettings(), sample_period=Ts))
+    sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
+                           plan_period=ctrl.s.dt if controller == "mpc" else None)
+    loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None)
     steps = int(round(duration / Ts))
     T = steps + 1
     H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))
     tt = np.zeros(T)
     st, se, sc = np.zeros(steps), np.zeros(steps), np.zeros(steps)
-    w_prev = np.zeros((2, n))
-    W_used = np.maximum(load_sharing(d, np.zeros((d.n_layers, 3))).forces.ravel(), W_FLOOR)
-    interlocks = 0
     status = "ok"
     wall0 = time.perf_counter()
-    plim = rp.pressure_limit
-    tcache: dict = {}
-    cautious_steps = 0
-    peak_p = np.array([model.peak(w)[1] for w in model.clip_load(W_used)])
 
     def rec(j, z, est):
         tr = plant.truth()
         tt[j] = round(plant.t, 9)
         H[j], P[j], LM[j] = np.maximum(tr["h"], 0.0), tr["p"], tr["lam"]
-        HR[j] = chamber_targets(d, targets, plant.t, tcache)
+        HR[j] = loop.chamber_targets(plant.t)
         PM[j] = z
         HE[j] = est["h"] if est else 0.0
         BE[j] = est["b"] if est else 1.0
@@ -124,53 +118,19 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
 
     rec(0, plant.measure(), None)
     for j in range(steps):
-        t = plant.t
         z = plant.measure()
-        t0 = time.perf_counter()
-        est = bank.step(z, w_prev, W_used)
-        t1 = time.perf_counter()
-        W_used = np.maximum(load_sharing(d, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
-        if controller == "mpc" and cautious is not None and j % 10 == 0:
-            peak_p = np.array([model.peak(w)[1] for w in model.clip_load(W_used / est["k"])])
-        # a zero target height means "lower the layer onto its stop": vent, no dithering about
-        # ambient pressure (where the model has nothing to track); such chambers get no supply in
-        # the NMPC either (else they take a share of a shared pump's duty budget)
-        vent = chamber_targets(d, targets, t, tcache) <= 5e-5
-        if controller == "mpc":
-            # no preview: the NMPC sees the current target only (as the PID does); a preview would
-            # start each move up to one horizon early
-            href = chamber_targets(d, targets, t, tcache)
-            a_max = np.where(vent, 0.0, 1.0)
-            if cautious is not None:
-                # cautious approach of the limit point: while a chamber's modulus factor is still
-                # uncertain, pass its peak slowly, so that its filter can tell the far branch
-                # (pressure falls, k lower) from the near branch (less gas) — see robot_ekf
-                near = (est["p"] > cautious[0] * est["k"] * peak_p) & (est["k_std"] > cautious[1])
-                a_max = np.where(near, np.minimum(a_max, cautious[2]), a_max)
-                cautious_steps += int(near.sum())
-            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"], est["v"], a_max)
-        else:
-            a, o = ctrl.step(z, W_used, chamber_targets(d, targets, t, tcache))
-        a = np.where(vent, 0.0, a)
-        o = np.where(vent, 1.0, o)
-        guard = np.isfinite(z) & (z >= plim - interlock_margin) & (a > 0)
-        if guard.any():
-            interlocks += int(guard.sum())
-            a = np.where(guard, 0.0, a)
-        Uc = commands_from_inputs(a, o, rp.topology)
-        t2 = time.perf_counter()
-        st[j], se[j], sc[j] = t2 - t0, t1 - t0, t2 - t1
-        w_prev = Uc[1:].copy()
-        plant.apply(Uc)
+        a, o = loop.tick(plant.t, z)
+        st[j], se[j], sc[j] = loop.last_timing
+        plant.apply(loop.valve_commands)
         A[j + 1], O[j + 1] = a, o
-        rec(j + 1, z, est)
+        rec(j + 1, z, loop.estimate)
         if not plant.plant.alive.all():
             status = "diverged"
             T = j + 2
             break
     sl = slice(0, T)
     return ClosedLoopRun(controller, tt[sl], H[sl], HR[sl], HE[sl], P[sl], PM[sl], LM[sl], A[sl], O[sl], LD[sl],
-                         st[:T - 1], se[:T - 1], sc[:T - 1], interlocks, int(getattr(ctrl, "fallbacks", 0)),
+                         st[:T - 1], se[:T - 1], sc[:T - 1], sup.counts["guard"], sup.failed_steps,
                          int(getattr(ctrl, "inaccurate", 0)), status, time.perf_counter() - wall0,
                          np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
-                         BE[sl], cautious_steps)
+                         BE[sl], loop.cautious_steps, list(sup.events))

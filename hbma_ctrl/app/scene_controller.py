@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import csv
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -58,10 +58,10 @@ from hbma_ctrl.app.sections import (
     ReferenceProfile,
     filter_settings_for,
 )
-from hbma_ctrl.core.interfaces import Command, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
 
@@ -98,6 +98,8 @@ class ClosedLoopLog:
     nees: np.ndarray | None = None  # estimator NEES of (h, F) per sample, where it exposes its covariance
     nis: np.ndarray | None = None  # estimator NIS per sample (NaN where no update)
     est_step_s: np.ndarray | None = None  # estimator wall time per step, s
+    solve_ms: np.ndarray | None = None  # controller step times the runtime kept (ms, oldest first)
+    supervisor_events: list = field(default_factory=list)  # the supervisor's interventions
 
 
 def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
@@ -111,7 +113,8 @@ def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
 def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                 duration: float, rig_settings=None, estimator=None, controller=None,
                 model: PredictionModel | None = None) -> ClosedLoopLog:
-    """Run rig -> estimator -> controller -> rig for ``duration`` s and log it.
+    """Run rig -> :class:`ChamberLoop` (estimator -> controller -> supervisor) -> rig for ``duration`` s
+    and log it.
 
     The rig (:class:`hbma_ctrl.rig.Rig`, mismatched, noisy) is stepped at its sample period, the
     estimator at every rig sample, the controller every ``section.sample_period`` (a whole number
@@ -143,22 +146,18 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     nees, nis, est_s = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
 
     loads = list(section.load_steps)
-    cmd = Command(0.0, 0.0, 0.0)
-    e = None
+    # the timing buffer holds every controller step of the run: the scene's medians are exact
+    loop = ChamberLoop(est, ctrl, chamber_supervisor(getattr(ctrl, "settings", None) or _settings_of(section)),
+                       reference=section.reference, every=every, preview_steps=preview_n,
+                       preview_period=section.sample_period, stats_capacity=n // every + 1)
     t_wall = time.perf_counter()
     for k in range(n):
         t = k * rs.sample_period
         while loads and loads[0][0] <= t + 1e-9:
             rig.set_load(loads.pop(0)[1])
         z = rig.measure()
-        e = est.step(t, z, cmd)
-        r = section.reference(t)
-        if k % every == 0:
-            if preview_n:
-                pv = [section.reference(t + section.sample_period * (j + 1)) for j in range(preview_n)]
-                cmd = ctrl.step(t, e, Reference(r), preview=pv)
-            else:
-                cmd = ctrl.step(t, e, Reference(r))
+        cmd = loop.tick(t, z)
+        e, r = loop.estimate, loop.target
         tr = rig.truth()
         for key, val in (("t", t), ("target", r), ("h_true", tr["h"]), ("h_est", e.h), ("p_true", tr["p"]),
                          ("p_meas", z), ("p_est", e.p), ("F_true", tr["F"]), ("F_est", e.F),
@@ -176,8 +175,14 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
             est_s[k] = est.last_step_s
         rig.apply(cmd)
     wall = time.perf_counter() - t_wall
-    return ClosedLoopLog(**cols, u=U, stats=ctrl.stats(), events=list(rig.events), wall_s=wall,
-                         nees=nees, nis=nis, est_step_s=est_s)
+    return ClosedLoopLog(**cols, u=U, stats=loop.stats(), events=list(rig.events), wall_s=wall,
+                         nees=nees, nis=nis, est_step_s=est_s, solve_ms=loop.solve_ms.values(),
+                         supervisor_events=loop.events())
+
+
+def _settings_of(section: ControllerSection):
+    """The chosen controller's settings (p_max, guard_margin) for a controller without ``settings``."""
+    return {"mpc": section.mpc, "pid": section.pid, "bang_bang": section.bang_bang}[section.kind]
 
 
 def estimator_metrics(log: ClosedLoopLog, actuator: Actuator, pneumatics: Pneumatics, platform: Platform,

@@ -1,6 +1,6 @@
 """The [estimator] table: which filter, the Monte-Carlo setup, load steps and the filter tuning.
 
-Bounds are those of ``FilterSettings.validate`` and ``hbma_ctrl.app.scene_estimator.parse_section``, in the
+Bounds are those of ``FilterSettings.validate``, in the
 user's units. Only the tuning keys the user writes override the filter's defaults (the sample
 period, sensor range and noise otherwise come from the rig, as before).
 """

@@ -1,7 +1,7 @@
 """The [rig] table: the simulated rig's mismatch and sensor, in the user's units (kPa, ms).
 
 Bounds are those of ``RigSettings.validate``. The same table also sets up the robot's rig
-(:meth:`RigTable.to_robot_rig`, as ``RobotRigSettings.from_rig_section`` does).
+(:meth:`RigTable.to_robot_rig`).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The [robot] table and its sub-tables [robot.inputs] [robot.targets] [robot.material_params].
 
-Bounds are those of ``hbma_ctrl.robot`` (``_EDGE_RANGES``, ``RobotDesign.validate``,
-``RobotPneumatics.validate``, ``RobotSettings.validate``) and ``hbma_ctrl.app.robot_closed``
-(``parse_targets``), in the table's units (mm, g, kPa, ms, deg, N). Rules that need the whole
+Bounds are those of ``RobotDesign.validate``,
+``RobotPneumatics.validate``, ``RobotSettings.validate`` and the robot closed loop,
+in the table's units (mm, g, kPa, ms, deg, N). Rules that need the whole
 design (the chamber disk in the layer annulus, chamber names, reachable targets) run after the
 fields, once, while the SI settings are built.
 """

@@ -1,0 +1,132 @@
+"""One chamber's loop a rig daemon embeds: reading -> estimator -> controller -> supervisor -> command (SI).
+
+``ChamberLoop.tick(t, reading_pa)`` is everything one sample does; no I/O. The estimator runs at
+every tick, the controller and the supervisor every ``every`` ticks (the command holds between).
+The controller's wall and thread-CPU time per step go into bounded :class:`StepStats`; its failures
+(``last["status"]`` not 'ok', or an exception) go to the :class:`Supervisor`, which replays the last
+good plan (``controller.plan``), then sends the safe command; the command finally sent is handed
+back to the controller (``controller.applied``) when it has that method.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
+from hbma_ctrl.runtime.stats import StepStats
+
+__all__ = ["ChamberLoop", "chamber_supervisor"]
+
+
+def chamber_supervisor(controller_settings, **overrides) -> Supervisor:
+    """The single-chamber supervisor for a controller's settings (its p_max, guard_margin and
+    fallback_plan_steps; the outlet opens within half the guard margin of p_max). ``overrides`` set
+    other :class:`SupervisorSettings` fields."""
+    s = controller_settings
+    kw = dict(p_max=float(s.p_max), guard_margin=float(s.guard_margin), vent_margin=0.5 * float(s.guard_margin),
+              fallback_plan_steps=int(getattr(s, "fallback_plan_steps", 10)))
+    kw.update(overrides)
+    return Supervisor(SupervisorSettings(**kw), n=1)
+
+
+def _failure_cause(status: str) -> str:
+    return "overrun" if status.startswith("overrun") else "solver_failed"
+
+
+class ChamberLoop:
+    """Estimator, controller and supervisor of one chamber (see module doc).
+
+    Parameters
+    ----------
+    estimator : ``step(t, reading_pa, command) -> Estimate``.
+    controller : ``step(t, estimate, reference[, preview]) -> Command`` and ``stats() -> dict``.
+    supervisor : a 1-chamber :class:`Supervisor`; None = :func:`chamber_supervisor` of the
+        controller's settings.
+    reference : target height (m) at time t (s); None = hold (no target).
+    every : the controller runs every ``every`` ticks (>= 1).
+    preview_steps : future targets handed to the controller (at ``preview_period`` s apart), 0 = none.
+    preview_period : spacing of the preview targets, s.
+    stats_capacity : samples kept for the median and p99 of the step times.
+    """
+
+    def __init__(self, estimator, controller, supervisor: Supervisor | None = None,
+                 reference: Callable[[float], float] | None = None, every: int = 1, preview_steps: int = 0,
+                 preview_period: float = 0.0, stats_capacity: int = 4096):
+        if not isinstance(every, int) or every < 1:
+            raise ValueError(f"ChamberLoop.every = {every!r} must be an integer >= 1")
+        self.estimator = estimator
+        self.controller = controller
+        self.supervisor = supervisor or chamber_supervisor(controller.settings)
+        if self.supervisor.n != 1:
+            raise ValueError("ChamberLoop: the supervisor must be for one chamber (n = 1)")
+        self.reference = reference
+        self.every = every
+        self.preview_steps = int(preview_steps)
+        self.preview_period = float(preview_period)
+        self.solve_ms = StepStats(stats_capacity)
+        self.solve_cpu_ms = StepStats(stats_capacity)
+        self.command = Command(0.0, 0.0, 0.0)
+        self.estimate: Estimate | None = None
+        self.target: float | None = None
+        self._k = 0
+
+    def tick(self, t: float, reading_pa: float) -> Command:
+        """One sample at time t (s) with the pressure reading (Pa, NaN = dropout): estimate, then
+        (every ``every`` ticks) controller and supervisor. Returns the command to hold until the next tick."""
+        self.estimate = self.estimator.step(t, reading_pa, self.command)
+        self.target = None if self.reference is None else float(self.reference(t))
+        if self._k % self.every == 0:
+            preview = None
+            if self.preview_steps and self.target is not None:
+                preview = [float(self.reference(t + self.preview_period * (j + 1))) for j in range(self.preview_steps)]
+            self.command = self.control(t, self.estimate, Reference(self.target), preview)
+        self._k += 1
+        return self.command
+
+    def control(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
+        """Controller then supervisor on a given estimate (what ``tick`` does after the estimator)."""
+        ctrl = self.controller
+        t0, c0 = time.perf_counter(), time.thread_time()
+        plan = None
+        try:
+            cmd = ctrl.step(t, estimate, reference, preview=preview) if preview is not None else \
+                ctrl.step(t, estimate, reference)
+            status = str(getattr(ctrl, "last", {}).get("status", "ok"))
+            ok = status == "ok"
+            plan = getattr(ctrl, "plan", None)
+            cause = "ok" if ok else _failure_cause(status)
+        except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
+            cmd, ok, cause = SAFE_COMMAND, False, f"exception: {type(exc).__name__}"
+        self.solve_ms.add((time.perf_counter() - t0) * 1e3)
+        self.solve_cpu_ms.add((time.thread_time() - c0) * 1e3)
+        arr = self.supervisor.apply(t, cmd.as_array(), estimate.p, ok=ok, plan=plan, cause=cause,
+                                    target=reference.height)
+        out = Command(float(arr[0]), float(arr[1]), float(arr[2]))
+        if hasattr(ctrl, "applied"):
+            ctrl.applied(out)
+        return out
+
+    def stats(self) -> dict:
+        """The controller's own stats with the runtime's timing (ms), fallbacks and guard counts (same keys
+        as the controllers reported before the runtime layer)."""
+        sup = self.supervisor
+        st = dict(self.controller.stats())
+        t, c = self.solve_ms.summary(), self.solve_cpu_ms.summary()
+        st.update({"solve_ms_median": t["median"], "solve_ms_p99": t["p99"], "solve_ms_max": t["max"],
+                   "steps": t["n"], "guard_activations": int(sup.counts["guard"]),
+                   "fallbacks": int(st.get("fallbacks", 0)) + int(sup.failed_steps)})
+        if getattr(self.controller, "reports_failures", False):
+            st.update({"solve_cpu_ms_median": c["median"], "solve_cpu_ms_p99": c["p99"]})
+            detail = {"solver_failed": 0, "overrun": 0}
+            for cause, k in sup.failure_causes.items():
+                detail[cause] = detail.get(cause, 0) + k
+            detail.update({"shifted_plan": int(sup.counts["shifted_plan"]),
+                           "safe_command": int(sup.counts["safe_command"])})
+            st["fallback_detail"] = detail
+        return st
+
+    def events(self) -> list:
+        """The supervisor's logged interventions (oldest first)."""
+        return list(self.supervisor.events)

@@ -1,0 +1,163 @@
+"""The robot's loop a rig daemon embeds: 3N readings -> EKF bank -> loads -> controller -> supervisor (SI).
+
+Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
+
+- the EKF bank steps on the readings with the previous period's valve commands and loads (one
+  mapped call);
+- the loads are recomputed from the estimated heights by the robot's load sharing (used by this
+  period's controller and the next predict: a one-period lag);
+- the layer targets give every chamber's target height (:func:`hbma_ctrl.robot.targets.chamber_targets`);
+- the robot NMPC (or the pressure PID, which works on the readings) picks every chamber's supply and
+  outlet; for the NMPC a chamber whose target is zero gets no supply budget (a shared pump's duty
+  would otherwise be shared with it), and the cautious cap limits the supply of a chamber near its
+  limit point while its modulus factor is uncertain;
+- the :class:`Supervisor` applies the fallback on a failed solve (replay the plan, then the safe
+  command), the vent rule (zero target) and the pressure interlock (supply cut while a reading is
+  within the margin of the limit).
+
+The controller does not know the tip load (a disturbance). Step, EKF and controller times go into
+bounded :class:`StepStats` (s); ``last_timing`` has this tick's.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from controllers.robot_mpc import RobotNMPC
+from estimators.robot_ekf import ChamberEKFBank
+from hbma_ctrl.models.bank import ChamberModel, commands_from_inputs
+from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.plant import W_FLOOR
+from hbma_ctrl.robot.statics import load_sharing
+from hbma_ctrl.robot.targets import chamber_targets
+from hbma_ctrl.runtime.safety import ZERO_TARGET, Supervisor, SupervisorSettings
+from hbma_ctrl.runtime.stats import StepStats
+
+__all__ = ["RobotLoop", "robot_supervisor"]
+
+
+def robot_supervisor(pressure_limit: float, n: int, interlock_margin: float = 1e3, plan_period: float | None = None,
+                     **overrides) -> Supervisor:
+    """The robot's supervisor: interlock on the readings (supply cut within ``interlock_margin`` Pa of
+    ``pressure_limit`` Pa; no forced vent; a dropout does not trigger it), vent on a zero target, the
+    NMPC plan replayed at ``plan_period`` s per row. ``overrides`` set other :class:`SupervisorSettings` fields."""
+    kw = dict(p_max=float(pressure_limit), guard_margin=float(interlock_margin), vent_margin=None,
+              missing_is_limit=False, vent_height=ZERO_TARGET, plan_period=plan_period)
+    kw.update(overrides)
+    return Supervisor(SupervisorSettings(**kw), n=n)
+
+
+class RobotLoop:
+    """EKF bank, load sharing, targets, controller and supervisor of a robot (see module doc).
+
+    Parameters
+    ----------
+    design : the robot.
+    model : the nominal per-chamber model (the controller's and the bank's).
+    bank : the chambers' EKF bank (:class:`ChamberEKFBank`).
+    controller : :class:`RobotNMPC` or :class:`controllers.robot_pid.RobotPressurePID` over all chambers.
+    supervisor : an n-chamber :class:`Supervisor` (:func:`robot_supervisor`).
+    targets : layer targets {layer index: ((t s, centre height m, bend rad, direction rad), ...)}.
+    cautious : (pressure fraction, k std, duty): while a chamber's estimated pressure is above the
+        fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
+        its supply duty is capped (the NMPC's input bound; pass the peak slowly so that its filter
+        can tell the far branch from the near one); None = off. NMPC only.
+    stats_capacity : samples kept for the median and p99 of the step times.
+    """
+
+    def __init__(self, design: RobotDesign, model: ChamberModel, bank: ChamberEKFBank, controller,
+                 supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
+                 stats_capacity: int = 4096):
+        self.design = design
+        self.model = model
+        self.bank = bank
+        self.controller = controller
+        self.supervisor = supervisor
+        self.targets = targets
+        self.cautious = cautious
+        self.n = 3 * design.n_layers
+        if supervisor.n != self.n:
+            raise ValueError(f"RobotLoop: the supervisor is for {supervisor.n} chambers, the robot has {self.n}")
+        self.is_mpc = isinstance(controller, RobotNMPC)
+        self.step_s, self.ekf_s, self.ctrl_s = (StepStats(stats_capacity) for _ in range(3))
+        self.last_timing = (float("nan"),) * 3
+        self.cautious_steps = 0
+        self.estimate: dict | None = None
+        self.valve_commands = np.zeros((3, self.n))
+        self._w_prev = np.zeros((2, self.n))
+        self.loads = np.maximum(load_sharing(design, np.zeros((design.n_layers, 3))).forces.ravel(), W_FLOOR)
+        self._peak_p = np.array([model.peak(w)[1] for w in model.clip_load(self.loads)])
+        self._tcache: dict = {}
+        self._k = 0
+
+    def chamber_targets(self, t: float) -> np.ndarray:
+        """Every chamber's target height at time t, m (n,)."""
+        return chamber_targets(self.design, self.targets, t, self._tcache)
+
+    def tick(self, t: float, readings_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One period at time t (s) with the 3N pressure readings (Pa, NaN = dropout) -> (supply, outlet),
+        each (n,) in [0, 1]; the plant's valve inputs (3 x n) are in ``valve_commands``."""
+        z = np.asarray(readings_pa, dtype=float).reshape(self.n)
+        ctrl, sup, model = self.controller, self.supervisor, self.model
+        t0 = time.perf_counter()
+        est = self.bank.step(z, self._w_prev, self.loads)
+        t1 = time.perf_counter()
+        self.estimate = est
+        W = np.maximum(load_sharing(self.design, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
+        self.loads = W
+        href = self.chamber_targets(t)
+        vent = sup.vent_mask(href)
+        plan, ok, cause = None, True, "ok"
+        try:
+            if self.is_mpc:
+                c = self.cautious
+                if c is not None and self._k % 10 == 0:
+                    self._peak_p = np.array([model.peak(w)[1] for w in model.clip_load(W / est["k"])])
+                # no preview: the NMPC sees the current target only (as the PID does); a preview would
+                # start each move up to one horizon early
+                a_max = np.where(vent, 0.0, 1.0)
+                if c is not None:
+                    near = (est["p"] > c[0] * est["k"] * self._peak_p) & (est["k_std"] > c[1])
+                    a_max = np.where(near, np.minimum(a_max, c[2]), a_max)
+                    self.cautious_steps += int(near.sum())
+                a, o = ctrl.step(est["x"], est["b"], W, href, est["k"], est["v"], a_max)
+                ok = not ctrl.failed
+                cause = "ok" if ok else f"qp: {ctrl.status}"
+                plan = self._plan(ctrl.plan) if ok else None
+            else:
+                a, o = ctrl.step(z, W, href)
+        except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
+            a, o, ok, cause = np.zeros(self.n), np.zeros(self.n), False, f"exception: {type(exc).__name__}"
+        cmd = sup.apply(t, np.column_stack([a, o]), z, ok=ok, plan=plan, target=href, cause=cause)
+        a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
+        Uc = commands_from_inputs(a, o, model.topology)
+        t2 = time.perf_counter()
+        self.last_timing = (t2 - t0, t1 - t0, t2 - t1)
+        for st, v in zip((self.step_s, self.ekf_s, self.ctrl_s), self.last_timing):
+            st.add(v)
+        self._w_prev = Uc[1:].copy()
+        self.valve_commands = Uc
+        self._k += 1
+        return a, o
+
+    def _plan(self, plan: np.ndarray | None) -> np.ndarray | None:
+        """The NMPC's plan (H, n, 2) with a shared pump's budget applied to every row (as to row 0)."""
+        if plan is None:
+            return None
+        p = np.array(plan, dtype=float)
+        if self.model.topology == "shared":
+            s = p[:, :, 0].sum(axis=1, keepdims=True)
+            p[:, :, 0] = np.where(s > 1.0, p[:, :, 0] / np.maximum(s, 1e-12), p[:, :, 0])
+        return p
+
+    def stats(self) -> dict:
+        """Step, EKF and controller times (ms: median, p99, max, n), fallbacks (failed controller
+        steps), interlocks (supply cuts, per chamber and step), cautious steps and QPs not solved."""
+        sup = self.supervisor
+        ms = lambda st: {k: (v * 1e3 if k != "n" else v) for k, v in st.summary().items()}  # noqa: E731
+        return {"step_ms": ms(self.step_s), "ekf_ms": ms(self.ekf_s), "controller_ms": ms(self.ctrl_s),
+                "fallbacks": int(sup.failed_steps), "interlocks": int(sup.counts["guard"]),
+                "vents": int(sup.counts["vent"]), "cautious_steps": int(self.cautious_steps),
+                "qp_not_solved": int(getattr(self.controller, "inaccurate", 0))}
