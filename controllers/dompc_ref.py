@@ -29,8 +29,6 @@ __all__ = ["dompc_available", "DoMPCController"]
 def dompc_available() -> tuple[bool, str]:
     """(True, version) when do-mpc imports, else (False, why)."""
     try:
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             import do_mpc  # noqa: F401
@@ -47,7 +45,6 @@ class DoMPCController:
         ok, why = dompc_available()
         if not ok:
             raise ImportError(why)
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             import do_mpc
