@@ -29,7 +29,7 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.robot.design import LETTERS, TABLE2_PAPER, RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics
-from hbma_ctrl.robot.statics import _chambers, chamber_states, load_sharing
+from hbma_ctrl.robot.statics import chamber_solver, chamber_states, load_sharing
 
 
 def pump_stall_pressure(pneumatics: Pneumatics | None = None) -> float:
@@ -81,7 +81,7 @@ def chamber_reach(design: RobotDesign, force: float, pressure_limit: float = 45e
     reach of a pressure-controlled chamber (never past the peak).
     """
     check_range("reach", "pressure_limit", pressure_limit, 0.0, 1e6, "Pa", lo_open=True)
-    ch = _chambers(design.chamber, pneumatics)
+    ch = chamber_solver(design.chamber, pneumatics)
     F = max(float(force), 0.0)
     h_str = float(ch.h_for_stretch(design.max_stretch, F)[0])
     path = ch.load_path(F, h_str)
@@ -217,7 +217,7 @@ def robot_table2(design: RobotDesign | None = None, stretch: float | None = None
     d.validate()
     lam = d.max_stretch if stretch is None else stretch
     check_range("table2", "stretch", lam, 1.05, d.max_stretch if stretch is None else 20.0)
-    ch = _chambers(d.chamber)
+    ch = chamber_solver(d.chamber)
 
     def at_stretch(F):
         return float(ch.h_for_stretch(lam, max(F, 0.0))[0])
