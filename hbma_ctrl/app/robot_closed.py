@@ -21,7 +21,8 @@ from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.robot_section import CONTROLLERS, RobotSettings
 from hbma_ctrl.core.params import Pneumatics, check_range
-from hbma_ctrl.models.bank import ChamberModel, commands_from_inputs
+from hbma_ctrl.core.units import mm
+from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
@@ -57,15 +58,15 @@ class ClosedLoopRun:
     cautious_steps: int = 0
 
 
-def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberModel:
+def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberBank:
     """The nominal per-chamber model (tables up to 14 mm and 2 N)."""
-    return ChamberModel(design.chamber, pneumatics, topology, load_max=2.0, h_table_max=14e-3)
+    return ChamberBank(design.chamber, pneumatics, topology, load_max=2.0, h_table_max=mm(14.0))
 
 
 def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, controller: str = "mpc",
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
-                    model: ChamberModel | None = None, tip_load=(), interlock_margin: float = 1e3,
+                    model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
                     h0=None, cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s (see module doc); targets from :func:`parse_targets`.
 
@@ -148,7 +149,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                 near = (est["p"] > cautious[0] * est["k"] * peak_p) & (est["k_std"] > cautious[1])
                 a_max = np.where(near, np.minimum(a_max, cautious[2]), a_max)
                 cautious_steps += int(near.sum())
-            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"], est["v"], a_max)
+            a, o = ctrl.step(est["x"], est["b"], W_used, href, est["k"], est["c"], a_max)
         else:
             a, o = ctrl.step(z, W_used, chamber_targets(d, targets, t, tcache))
         a = np.where(vent, 0.0, a)
