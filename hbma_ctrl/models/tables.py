@@ -57,9 +57,12 @@ class PredictionModel:
     load_max : largest load force the tables cover, N (loads above are clipped and reported).
     h_table_max : largest height the tables cover, m (default 1.4 r1).
     n_x, n_W, n_h : grid sizes.
+    chamber : the :class:`ReducedChamber` to tabulate (built from actuator and pneumatics if None).
 
     Attributes
     ----------
+    chamber : the reduced chamber model the tables are of (parameters, flow, shape solver).
+    H_table, P_table, L_table : the interpolants of ``vertcat(x, W)`` behind H, Pp, L.
     H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-); HP both. H is negative
         (virtual) below lift-off, see :meth:`height` for the physical one.
     rhs : casadi Function (x, u, W, dp) -> xdot (1/s); ``dp`` is a pressure bias (Pa) added to the

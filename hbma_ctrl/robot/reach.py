@@ -127,13 +127,13 @@ def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
             r = chamber_reach(design, F[k, i], pressure_limit, pneumatics)
             hmax[k, i], lim[k, i] = r.h_max, r.limit
             if h[k, i] < -1e-12:
-                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm < 0")
+                viol.append(f"{names[3 * k + i]}: height {U.to_mm(h[k, i]):.2f} mm < 0")
             elif h[k, i] > r.h_max + 1e-9:
-                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm > reach "
-                            f"{r.h_max * 1e3:.2f} mm (limited by {r.limit})")
+                viol.append(f"{names[3 * k + i]}: height {U.to_mm(h[k, i]):.2f} mm > reach "
+                            f"{U.to_mm(r.h_max):.2f} mm (limited by {r.limit})")
     gap = forward_kinematics(design, np.maximum(h, 0)).rim_gap(design)
     for k in np.nonzero(gap < -1e-9)[0]:
-        viol.append(f"layer {LETTERS[k]}: the layer rims overlap by {-gap[k] * 1e3:.2f} mm (rigid three-point "
+        viol.append(f"layer {LETTERS[k]}: the layer rims overlap by {U.to_mm(-gap[k]):.2f} mm (rigid three-point "
                     "pose; the real layers rock on the rim)")
     return {"ok": not viol, "h_max": hmax, "limit": lim, "violations": viol, "rim_gap": gap}
 
