@@ -1,6 +1,6 @@
 """Structured NMPC for the whole robot: per-chamber RTI QPs in one block-sparse OSQP problem (SI).
 
-Model: every chamber is the gas-mass model of :class:`controllers.robot_model.ChamberModel` with
+Model: every chamber is the gas-mass model of :class:`hbma_ctrl.models.bank.ChamberBank` with
 its own load ``W`` (the robot's load sharing of the estimated heights, one control period old) and
 flow factor ``b`` (from the chamber's EKF). The targets are chamber heights: the layer targets
 (centre height, bend angle, bend direction) map onto them exactly by
@@ -23,7 +23,7 @@ Structure (real-time iteration, one QP per control period):
   input bounds. The cost is per chamber (height error in mm, small input and input-rate costs), so
   the Hessian and the constraint matrix are block diagonal — except for the shared-compressor
   topology's one coupling row per stage, ``sum_i a_i,k <= 1`` (the pump's flow budget, see
-  :mod:`controllers.robot_model`). The sparsity pattern is fixed; every period only the values are
+  :mod:`hbma_ctrl.models.bank`). The sparsity pattern is fixed; every period only the values are
   updated (``osqp.update``) and the solver is warm started.
 
 If OSQP does not return a usable solution (status not solved / time limit), ``failed`` is set and
@@ -120,8 +120,8 @@ class _Pattern:
 class RobotNMPC:
     """NMPC over n chambers (see module doc).
 
-    ``step(x0, b, W, h_ref, k=None, v=None) -> (a, o)``: x0 (n,) estimated scaled gas masses, b (n,)
-    flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m, k and v (n,) the
+    ``step(x0, b, W, h_ref, k=None, c=None) -> (a, o)``: x0 (n,) estimated scaled gas masses, b (n,)
+    flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m, k and c (n,) the
     estimated modulus and dead-volume factors (default 1), a_max (n,) an upper bound on each
     chamber's supply duty (default 1); returns the supply
     and outlet decisions (n,) each for this period. ``failed``: this step had no usable solution.
@@ -199,13 +199,13 @@ class RobotNMPC:
         self._Apat = _Pattern(ar, ac, (self.m_rows, self.nv))
 
     # --- one period --------------------------------------------------------------------------------
-    def step(self, x0, b, W, h_ref, k=None, v=None, a_max=None):
+    def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
         """One RTI step (see the class doc): (supply, outlet) decisions (n,) each, in [0, 1]."""
         s, n, N = self.s, self.n, self.s.horizon
         x0 = np.asarray(x0, dtype=float).reshape(n)
         b = np.asarray(b, dtype=float).reshape(n)
         k = np.ones(n) if k is None else np.asarray(k, dtype=float).reshape(n)
-        v = np.ones(n) if v is None else np.asarray(v, dtype=float).reshape(n)
+        c = np.ones(n) if c is None else np.asarray(c, dtype=float).reshape(n)
         amax = np.ones(n) if a_max is None else np.clip(np.asarray(a_max, dtype=float).reshape(n), 0.0, 1.0)
         W = self.model.clip_load(np.asarray(W, dtype=float).reshape(n))
         href = np.asarray(h_ref, dtype=float)
@@ -226,7 +226,7 @@ class RobotNMPC:
                         np.hstack([self.obar, self.obar[:, -1:]]).reshape(-1)])
         Wl = np.repeat(W, N + 1)[None, :]
         bl = np.repeat(b, N + 1)[None, :]
-        out = self._lin(xl, wl, Wl, bl, np.repeat(k, N + 1)[None, :], np.repeat(v, N + 1)[None, :])
+        out = self._lin(xl, wl, Wl, bl, np.repeat(k, N + 1)[None, :], np.repeat(c, N + 1)[None, :])
         xn, Ax, Bw, h, Hx, p, Px = (np.asarray(o) for o in out)
         xn = xn.reshape(n, N + 1)
         Ax = Ax.reshape(n, N + 1)

@@ -1,7 +1,7 @@
 """Pressure-PID baseline for the robot: one PID per chamber on its measured pressure (SI).
 
 The target height of each chamber is turned into a target pressure by the nominal model (the
-pressure on the chamber's load path at that height, :meth:`ChamberModel.pressure_at_height`), and a
+pressure on the chamber's load path at that height, :meth:`hbma_ctrl.models.bank.ChamberBank.pressure_at_height`), and a
 PID drives the measured pressure there: a positive output is the supply ``a`` (pump / inlet duty),
 a negative one the outlet duty ``o``. Same decision interface as :class:`controllers.robot_mpc.
 RobotNMPC` and the same topologies.

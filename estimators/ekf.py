@@ -4,7 +4,7 @@ State ``x = [m, W, b, k, c]``: the gas mass (kg, referred to the nominal dead vo
 mass is c m), the load on the membrane (N, a random walk), the pump-flow factor b, the modulus
 factor k and the dead-volume factor c (-, slow random walks; see :mod:`estimators.model`). Why:
 
-- The gas mass is the plant's own drift-free differential state (SPEC 4); the flow model (pump
+- The gas mass is the plant's own drift-free differential state (the gas law G = m R T); the flow model (pump
   map, valves) drives it directly, so the commands enter the filter where they act. Referred to
   the nominal dead volume, the flat membrane's pressure depends on it alone.
 - The shape ``(h1, h2)`` is not a state: given (m, W) it is fixed by the gas law and the contact
@@ -153,20 +153,8 @@ def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSett
         _MODEL_CACHE[key] = (om, om.predict, om.outputs, om.propagate, om.update)
     om0, fp, fo, fq, fu = _MODEL_CACHE[key]
     # the parameters (theta) differ per actuator: the numeric model is cheap, Functions are shared
-    om = om0 if np.array_equal(om0.theta, om0.fid.space.values(actuator, pneumatics)) else \
-        _rebind(om0, actuator, pneumatics)
+    om = om0.rebind(actuator, pneumatics)
     return om, FastFunction(fp, s.compile), FastFunction(fo, s.compile), fq, FastFunction(fu, s.compile)
-
-
-def _rebind(om0: ObserverModel, actuator: Actuator, pneumatics: Pneumatics) -> ObserverModel:
-    om = object.__new__(ObserverModel)
-    om.__dict__.update(om0.__dict__)
-    om.theta = om0.fid.space.values(actuator, pneumatics)
-    om.actuator = actuator
-    om.area = float(np.pi * actuator.r1 ** 2)
-    om.rt = actuator.R * actuator.T
-    om.m_env = actuator.p_env * actuator.V0 / om.rt
-    return om
 
 
 class EKF:

@@ -1,9 +1,9 @@
 """A bank of per-chamber EKFs for the robot, stepped as one mapped casadi call (SI).
 
-One filter per chamber, each from its own pressure sensor. State ``[x, b, k, v]``: the gas mass
-``x`` (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of :class:`controllers.robot_model.
-ChamberModel`, and three slow random walks: the pump-flow factor ``b``, the membrane-modulus factor
-``k`` and the dead-volume factor ``v`` (see :meth:`ChamberModel.outputs_expr`). The load ``W`` of
+One filter per chamber, each from its own pressure sensor. State ``[x, b, k, c]``: the gas mass
+``x`` (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of :class:`hbma_ctrl.models.bank.
+ChamberBank`, and three slow random walks: the pump-flow factor ``b``, the membrane-modulus factor
+``k`` and the dead-volume factor ``c`` (see :meth:`ChamberBank.outputs_expr`). The load ``W`` of
 each chamber is not a state: the robot's statics give it (:func:`hbma_ctrl.robot.load_sharing` of
 the estimated heights), one control period late.
 
@@ -14,17 +14,17 @@ covariance would be block diagonal up to the load coupling, which enters through
 against the parameter mismatch. Nine 4-state filters (one mapped call) cost a fraction of one
 36-state filter's dense algebra.
 
-Why k and v. Without k a softer rig membrane, whose pressure peaks lower, drags the filter back
+Why k and c. Without k a softer rig membrane, whose pressure peaks lower, drags the filter back
 onto the near branch as soon as the pressure falls past the (earlier, lower) true limit point:
 the falling pressure is explained by less gas instead of by a far-branch membrane (first runs: a
--15 % modulus chamber estimated at 2.5 mm while it stood at 15 mm). Without v the larger dead volume
+-15 % modulus chamber estimated at 2.5 mm while it stood at 15 mm). Without c the larger dead volume
 biases the height by the cap volume's share (-0.2 to -0.7 mm near 6 mm in the first 3-layer run).
-What is observable when: at rest only ``(x + 1) / v`` (the pressure) and ``b / v`` (its rise per
+What is observable when: at rest only ``(x + 1) / c`` (the pressure) and ``b / c`` (its rise per
 command) are; k is not (a flat membrane's pressure does not depend on it). After lift-off the shape
-of p(gas mass) and the peak value separate k and v. Near the limit point the pressure hardly
+of p(gas mass) and the peak value separate k and c. Near the limit point the pressure hardly
 depends on the gas mass (dp/dx -> 0): there the filter leans on the flow model (the gas mass
 integrates the commanded flow with the learnt b), which is what keeps the far branch observable at
-all. Targets held on the near branch, below the peak, leave k and v partly unlearnt (a residual
+all. Targets held on the near branch, below the peak, leave k and c partly unlearnt (a residual
 height error of a few tenths of a mm is then possible).
 
 All chambers are stepped by ONE call of the casadi ``map`` of the single-chamber step (predict with
@@ -40,6 +40,7 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.params import check_range
+from hbma_ctrl.models.bank import ChamberBank
 
 __all__ = ["ChamberEKFSettings", "ChamberEKFBank"]
 
@@ -52,7 +53,7 @@ class ChamberEKFSettings:
     model error (modulus mismatch), -; x_abs_std, x_rel_std : process noise of the scaled mass per
     step (absolute and relative to the predicted change); b_rate_std : random walk of the flow
     factor, 1/sqrt(s); b0, b0_std : initial flow factor and its sigma; k0_std, k_rate_std : initial
-    sigma and random walk (1/sqrt(s)) of the modulus factor (prior 1); v0_std, v_rate_std : the same
+    sigma and random walk (1/sqrt(s)) of the modulus factor (prior 1); c0_std, c_rate_std : the same
     for the dead-volume factor (prior 1); sensor_range : Pa (readings at or above it are not used).
     """
 
@@ -66,8 +67,8 @@ class ChamberEKFSettings:
     b0_std: float = 0.25
     k0_std: float = 0.15
     k_rate_std: float = 0.002
-    v0_std: float = 0.25
-    v_rate_std: float = 0.002
+    c0_std: float = 0.25
+    c_rate_std: float = 0.002
     sensor_range: float = 50e3
 
     def validate(self) -> "ChamberEKFSettings":
@@ -81,29 +82,29 @@ class ChamberEKFSettings:
         check_range("robot_ekf", "b0_std", self.b0_std, 0.0, 2.0)
         check_range("robot_ekf", "k0_std", self.k0_std, 0.0, 1.0)
         check_range("robot_ekf", "k_rate_std", self.k_rate_std, 0.0, 10.0)
-        check_range("robot_ekf", "v0_std", self.v0_std, 0.0, 1.0)
-        check_range("robot_ekf", "v_rate_std", self.v_rate_std, 0.0, 10.0)
+        check_range("robot_ekf", "c0_std", self.c0_std, 0.0, 1.0)
+        check_range("robot_ekf", "c_rate_std", self.c_rate_std, 0.0, 10.0)
         check_range("robot_ekf", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
         return self
 
 
 B_RANGE = (0.5, 2.0)
 K_RANGE = (0.6, 1.6)
-V_RANGE = (0.6, 1.8)
+C_RANGE = (0.6, 1.8)
 
 
-NS = 4  # [x, b, k, v]
+NS = 4  # [x, b, k, c]
 
 
-def _step_function(model, s: ChamberEKFSettings) -> ca.Function:
+def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     """Single-chamber EKF step (X[4], P[16], w[2], W, z, use) -> (X+[4], P+[16], h, p, nis, h_std)."""
-    xs, w, W, b, k, v = model._x, model._w, model._W, model._b, model._k, model._v
+    xs, w, W, b, k, c = model.symbols
     xn = model.discrete_expr(s.sample_period)
-    th = ca.vertcat(b, k, v)
-    fx = ca.Function("fx", [xs, w, W, b, k, v], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, th)])
-    he, pe, _ = model.outputs_expr(xs, W, k, v)
-    zv = ca.vertcat(xs, k, v)
-    pj = ca.Function("pj", [xs, W, k, v], [pe, ca.jacobian(pe, zv), he, ca.jacobian(he, zv)])
+    th = ca.vertcat(b, k, c)
+    fx = ca.Function("fx", [xs, w, W, b, k, c], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, th)])
+    he, pe, _ = model.outputs_expr(xs, W, k, c)
+    zv = ca.vertcat(xs, k, c)
+    pj = ca.Function("pj", [xs, W, k, c], [pe, ca.jacobian(pe, zv), he, ca.jacobian(he, zv)])
     X = ca.SX.sym("X", NS)
     Pv = ca.SX.sym("P", NS * NS)
     wi = ca.SX.sym("wi", 2)
@@ -113,7 +114,7 @@ def _step_function(model, s: ChamberEKFSettings) -> ca.Function:
     P = ca.reshape(Pv, NS, NS)
     dx = x_pred - X[0]
     Q = ca.diag(ca.vertcat(s.x_abs_std ** 2 + (s.x_rel_std * dx) ** 2, s.b_rate_std ** 2 * s.sample_period,
-                           s.k_rate_std ** 2 * s.sample_period, s.v_rate_std ** 2 * s.sample_period))
+                           s.k_rate_std ** 2 * s.sample_period, s.c_rate_std ** 2 * s.sample_period))
     Pm = A @ P @ A.T + Q
     xm = ca.vertcat(x_pred, X[1], X[2], X[3])
     p_pred, dp, _, _ = pj(xm[0], Wi, xm[2], xm[3])
@@ -137,21 +138,19 @@ class ChamberEKFBank:
     """n per-chamber EKFs stepped together (see module doc).
 
     ``step(z, w, W)``: z (n,) pressure readings Pa (NaN = missing), w (2, n) the decisions applied
-    during the last period (supply, outlet; see :mod:`controllers.robot_model`), W (n,) the loads N
+    during the last period (supply, outlet; see :mod:`hbma_ctrl.models.bank`), W (n,) the loads N
     used over that period. Returns a dict of (n,) arrays: x, b, h (m, >= 0), p (Pa), h_std (m),
-    nis, used (bool).
+    nis, used (bool), and the factors b, k, c (-).
     """
 
-    def __init__(self, model, n: int, settings: ChamberEKFSettings | None = None):
+    def __init__(self, model: ChamberBank, n: int, settings: ChamberEKFSettings | None = None):
         if not isinstance(n, int) or n < 1:
             raise ValueError(f"robot_ekf.n = {n!r} must be an integer >= 1")
         self.settings = (settings or ChamberEKFSettings()).validate()
         self.model = model
         self.n = n
-        key = ("ekf", self.settings)
-        if key not in model._cache:
-            model._cache[key] = _step_function(model, self.settings)
-        self._fun = model.mapped(model._cache[key], n)
+        step = model.cached(("ekf", self.settings), lambda: _step_function(model, self.settings))
+        self._fun = model.mapped(step, n)
         self.X = None
         self.P = None
         self.last: dict = {}
@@ -172,10 +171,10 @@ class ChamberEKFBank:
         x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
         self.X = np.vstack([x0, np.full(self.n, s.b0), np.ones(self.n), np.ones(self.n)])
         sx = max(s.noise_std / self.model.actuator.p_env, 1e-3)
-        # x and v enter the rest pressure as (x + 1) / v: start them correlated so that the first
-        # reading pins (x + 1) / v, not x alone
-        P0 = np.diag([sx ** 2 + s.v0_std ** 2, s.b0_std ** 2, s.k0_std ** 2, s.v0_std ** 2])
-        P0[0, 3] = P0[3, 0] = s.v0_std ** 2
+        # x and c enter the rest pressure as (x + 1) / c: start them correlated so that the first
+        # reading pins (x + 1) / c, not x alone
+        P0 = np.diag([sx ** 2 + s.c0_std ** 2, s.b0_std ** 2, s.k0_std ** 2, s.c0_std ** 2])
+        P0[0, 3] = P0[3, 0] = s.c0_std ** 2
         P0 = P0.reshape(16, 1)
         self.P = np.repeat(P0, self.n, 1)
 
@@ -193,15 +192,15 @@ class ChamberEKFBank:
         Pn = np.asarray(out[1])
         bad = ~(np.all(np.isfinite(X), 0) & np.all(np.isfinite(Pn), 0))
         self.resets += int(bad.sum())
-        X[0] = np.clip(X[0], -0.04, self.model.pm.grid.x[-1])
+        X[0] = np.clip(X[0], -0.04, self.model.x_max)
         X[1] = np.clip(X[1], *B_RANGE)
         X[2] = np.clip(X[2], *K_RANGE)
-        X[3] = np.clip(X[3], *V_RANGE)
+        X[3] = np.clip(X[3], *C_RANGE)
         self.X = X
         self.P = Pn
         if bad.any():  # a diverged filter restarts from its reading (counted in ``resets``)
             self.reset(zz, bad)
-        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "v": X[3].copy(),
+        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
                      "h": np.maximum(np.asarray(out[2]).ravel(), 0.0), "p": np.asarray(out[3]).ravel(),
                      "h_std": np.asarray(out[5]).ravel(),
                      "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": np.asarray(out[4]).ravel(), "used": use > 0}

@@ -52,7 +52,7 @@ def supervised(controller) -> ChamberLoop:
 # --- prediction model ----------------------------------------------------------------------------
 def test_tables_agree_with_lead_physics(model):
     """Free inflation (W = 0): the table's pressure at a height is physics.pressure(h, 0)."""
-    theta, P = model._fid.space.symbols()
+    theta, P = model.chamber.symbols()
     import casadi as ca
 
     h1 = ca.SX.sym("h1")

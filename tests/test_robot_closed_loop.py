@@ -64,7 +64,7 @@ def test_ekf_bank_tracks_heights_open_loop(model):
     # tells its modulus and dead-volume (x1.2) factors apart
     assert h[1] > 6e-3
     assert abs(bank.last["k"][1] - rig.modulus_scales[1]) < 0.05
-    assert abs(bank.last["v"][1] - 1.2) < 0.1
+    assert abs(bank.last["c"][1] - 1.2) < 0.1
 
 
 def test_mpc_holds_chambers_past_the_limit_point(model):

@@ -17,8 +17,9 @@ from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.sections import CONTROLLERS, RobotSettings
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
-from hbma_ctrl.models.bank import ChamberModel
+from hbma_ctrl.models.bank import ChamberBank
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
 from hbma_ctrl.robot.targets import change_times
@@ -54,15 +55,15 @@ class ClosedLoopRun:
     events: list = field(default_factory=list)  # the supervisor's interventions (SupervisorEvent)
 
 
-def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberModel:
+def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberBank:
     """The nominal per-chamber model (tables up to 14 mm and 2 N)."""
-    return ChamberModel(design.chamber, pneumatics, topology, load_max=2.0, h_table_max=14e-3)
+    return ChamberBank(design.chamber, pneumatics, topology, load_max=2.0, h_table_max=U.mm(14.0))
 
 
 def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, controller: str = "mpc",
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
-                    model: ChamberModel | None = None, tip_load=(), interlock_margin: float = 1e3,
+                    model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
                     h0=None, cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s (see module doc); targets {layer: ((t s, centre m, bend rad, direction rad), ...)}.
 

@@ -18,7 +18,7 @@ from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics
-from hbma_ctrl.models.bank import ChamberModel
+from hbma_ctrl.models.bank import ChamberBank
 from hbma_ctrl.robot.design import LETTERS, RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.kinematics import forward_kinematics
 from hbma_ctrl.robot.rig import RobotRigSettings
@@ -227,7 +227,7 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
 
 
 def bench_robot(layers=(1, 2, 3, 4, 5, 6), duration: float = 3.0, topology: str = "per_chamber",
-                horizon: int = 15, pneumatics: Pneumatics | None = None, model: ChamberModel | None = None
+                horizon: int = 15, pneumatics: Pneumatics | None = None, model: ChamberBank | None = None
                 ) -> list[dict]:
     """Step time of the whole robot (EKF bank + load sharing + NMPC) per layer count, on a closed-loop
     run of ``duration`` s (straight 6 mm, then bend 15 deg at t = duration / 2). Returns table rows."""

@@ -1,43 +1,43 @@
-"""The estimators' model: the quasi-static HBMA with the load and three factors as states (casadi).
+"""The estimators' model: the reduced chamber with the load and three factors as states (casadi).
 
 State ``x = [m, W, b, k, c]`` (SI: reduced gas mass kg, load N, pump-flow factor -, modulus factor
--, dead-volume factor -); the chamber's volume at rest is ``c V0`` and its gas mass ``c m`` (the
-state m is the gas mass referred to the nominal dead volume: the flat membrane's pressure
-``m R T / V0 - p_env`` does not depend on c, so c enters only where the membrane moves or gas
-flows). The membrane shape ``s = (h1, h2)`` is algebraic (below, m is the true gas mass c x[0]):
+-, dead-volume factor -; the factors of :mod:`hbma_ctrl.models.reduced`); the chamber's volume at
+rest is ``c V0`` and its gas mass ``c m`` (the state m is the gas mass referred to the nominal dead
+volume: the flat membrane's pressure ``m R T / V0 - p_env`` does not depend on c, so c enters only
+where the membrane moves or gas flows). The membrane shape ``s = (h1, h2)`` is algebraic (below, m
+is the true gas mass c x[0]):
 
 - contact (``pi r1^2 p_rest(m) > max(W, REST_EPS)``, ``p_rest = m R T / (c V0) - p_env``):
-  ``G(h1, h2) = m R T`` and ``F(h1, h2) + EPS_K h2 = W`` (SPEC 1-4; EPS_K a tiny stiffness that
-  fixes h2 = 0 where the pressure vanishes), solved by Newton from a warm start (the previous
-  shape). Free inflation is the contact branch with ``W = 0`` (then ``h2 = 0``).
+  ``G(h1, h2) = m R T`` and ``F(h1, h2) + EPS_K h2 = W`` (the quasi-static membrane model; EPS_K a
+  tiny stiffness that fixes h2 = 0 where the pressure vanishes), solved by the casadi Newton
+  :func:`hbma_ctrl.models.reduced.shape_newton` from a warm start (the previous shape). Free
+  inflation is the contact branch with ``W = 0`` (then ``h2 = 0``).
 - resting (otherwise, or forced by the filter's sticky rest mode, input ``hold``): the membrane is
   flat under the plate, ``V = c V0``, ``p = p_rest(m)``, ``h = 0``.
 
-``b`` multiplies the compressor map (``P["flow_scale"]``), ``k`` every modulus of the material
-(moduli enter the pressure linearly, so ``p = k p_nominal`` at a given shape), ``c`` the dead volume
-(``P["V0"]``). The dynamics are the
-lead's quasi-static fidelity (:class:`hbma_ctrl.model.QuasiStatic`) with its platform weight
-replaced by the state ``W`` (random walks: ``W' = b' = k' = c' = 0``): the same index-reduced ODE on
-``[m, h1, h2]``, integrated by the simulator's fixed-step schemes ('euler' or 'rk4', ``nsub``
-sub-steps per sample) and projected back onto the constraints after every sub-step, as
-:meth:`hbma_ctrl.model.Fidelity.step_function` does. The mode is fixed over a sample. One casadi
-Function gives the discrete map, its Jacobian ``A = dx+/dx`` (algorithmic differentiation through
-the integrator and the Newton iterations), ``H = dp/dx`` and the covariance prediction
-``sym(A P A^T + Q)``; another the Joseph-form update; a third the outputs (h1, h2, h, F, p) with
-their Jacobian by the implicit-function rule (``dh/dx = -r_h^-1 r_x`` for the constraint residual
-r) and covariance ``D P D^T``. All are compiled to C (:mod:`estimators.fastcall`).
+The dynamics are the quasi-static fidelity (:class:`hbma_ctrl.models.fidelity.QuasiStatic`) with
+its platform weight replaced by the state ``W`` (random walks: ``W' = b' = k' = c' = 0``): the same
+index-reduced ODE on ``[m, h1, h2]``, integrated by the simulator's fixed-step schemes ('euler' or
+'rk4', ``nsub`` sub-steps per sample) and projected back onto the constraints after every
+sub-step, as :meth:`hbma_ctrl.models.fidelity.Fidelity.step_function` does. The mode is fixed over
+a sample. One casadi Function gives the discrete map, its Jacobian ``A = dx+/dx`` (algorithmic
+differentiation through the integrator and the Newton iterations), ``H = dp/dx`` and the covariance
+prediction ``sym(A P A^T + Q)``; another the Joseph-form update; a third the outputs (h1, h2, h, F,
+p) with their Jacobian by the implicit-function rule (``dh/dx = -r_h^-1 r_x`` for the constraint
+residual r) and covariance ``D P D^T``. All are compiled to C (:mod:`hbma_ctrl.core.codegen`).
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core import physics as ph
-from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.fidelity import QuasiStatic, make_fidelity, shape_jacobian
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.reduced import EPS_K, ReducedChamber, shape_newton
 
 __all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
 
@@ -46,9 +46,6 @@ __all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
 #: bends a free cap into a contact shape)
 STATE_NAMES = ("m", "W", "b", "k", "c")
 NX = len(STATE_NAMES)
-#: a tiny contact stiffness, N/m, regularising F(h1, h2) = W where the pressure vanishes (at W = 0
-#: and p -> 0 any h2 would do; with it h2 = 0): 1 N/m is below 1 % of dF/dh2 at working pressures
-EPS_K = 1.0
 #: force, N, below which the membrane is taken as flat even without a load (about 200 Pa at r1 = 12.5 mm)
 REST_EPS = 0.1
 #: rows of the output vector of :meth:`ObserverModel.outputs`
@@ -57,27 +54,6 @@ OUT_NAMES = ("h1", "h2", "h", "F", "p", "rest", "det", "resid")
 #: state scales used by the covariance floor: gas mass (kg), load (N), flow, modulus and
 #: dead-volume factors (-)
 STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0, 1.0])
-
-
-def _shape_newton(m, W, h1, h2, P, iters: int):
-    """Newton on G(h1, h2) = m R T, F(h1, h2) + EPS_K h2 = W from (h1, h2); Cramer on the 2x2."""
-    rt = P["R"] * P["T"]
-    for _ in range(iters):
-        G, F, J = shape_jacobian(h1, h2, P)
-        J = ca.SX(J)
-        J[1, 1] = J[1, 1] + EPS_K
-        r0, r1 = G - m * rt, F + EPS_K * h2 - W
-        det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        sgn = ca.if_else(det >= 0, 1.0, -1.0)
-        det = ca.if_else(ca.fabs(det) < 1e-12, sgn * 1e-12, det)
-        d1 = (J[1, 1] * r0 - J[0, 1] * r1) / det
-        d2 = (-J[1, 0] * r0 + J[0, 0] * r1) / det
-        # keep the step inside the chart: at most half the cap height per iteration
-        lim = 0.5 * ca.fmax(h1, 1e-4)
-        sc = ca.fmin(1, lim / ca.fmax(ca.fmax(ca.fabs(d1), ca.fabs(d2)), 1e-30))
-        h1, h2 = h1 - sc * d1, h2 - sc * d2
-        h1 = ca.fmax(h1, 1e-7)
-    return h1, h2
 
 
 def _min_pivot(P, floor):
@@ -119,27 +95,40 @@ class ObserverModel:
     """
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, dt: float, integrator: str = "rk4",
-                 nsub: int = 2, newton: int = 2):
+                 nsub: int = 2, newton: int = 2, chamber: ReducedChamber | None = None):
         if integrator not in ("euler", "rk4"):
             raise ValueError(f"estimator.integrator = '{integrator}': allowed euler, rk4")
-        self.fid: QuasiStatic = make_fidelity("quasi_static", actuator.material, str(pneumatics.csv_path))
-        self.theta = self.fid.space.values(actuator, pneumatics, Platform())
-        self.actuator = actuator
+        self.chamber = chamber or ReducedChamber(actuator, pneumatics)
         self.dt, self.integrator, self.nsub, self.newton = float(dt), integrator, int(nsub), int(newton)
-        self.area = float(np.pi * actuator.r1 ** 2)
-        self.rt = actuator.R * actuator.T
-        self.m_env = actuator.p_env * actuator.V0 / self.rt  # gas mass at rest, unpressurised
+        self._bind()
         self._build()
+
+    def _bind(self) -> None:
+        """Numeric parameters of the bound chamber (the casadi Functions take theta as an input)."""
+        ch = self.chamber
+        self.theta = ch.theta
+        self.actuator = ch.actuator
+        self.area = ch.area
+        self.rt = ch.rt
+        self.m_env = ch.x_scale  # gas mass at rest, unpressurised, kg
+
+    def rebind(self, actuator: Actuator, pneumatics: Pneumatics) -> "ObserverModel":
+        """This model for another actuator of the same material family and compressor map: the
+        casadi Functions are shared, the numeric parameters are the new ones (self if unchanged)."""
+        chamber = self.chamber.rebind(actuator, pneumatics)
+        if chamber is self.chamber:
+            return self
+        om = copy.copy(self)
+        om.chamber = chamber
+        om._bind()
+        return om
 
     # --- symbolic pieces ----------------------------------------------------------------------
     def _with_state(self, P: dict, x) -> dict:
         """Parameters as the state sees them: load W, pump-flow factor b, modulus factor k, dead
         volume c V0; ``P["m"]`` is the true gas mass c x[0]."""
-        P = dict(P)
+        P = self.chamber.with_factors(P, b=x[2], k=x[3], c=x[4])
         P["W"] = ca.fmax(x[1], 0)  # dead zone: see STATE_NAMES
-        P["flow_scale"] = P["flow_scale"] * x[2]
-        P["material"] = P["material"].scaled(x[3])
-        P["V0"] = P["V0"] * x[4]
         P["m"] = x[0] * x[4]
         return P
 
@@ -147,7 +136,7 @@ class ObserverModel:
         x = ca.SX.sym("x", NX)
         s = ca.SX.sym("s", 2)
         u = ca.SX.sym("u", 3)
-        theta, P = self.fid.space.symbols()
+        theta, P = self.chamber.symbols()
         return _Syms(x, s, u, theta, self._with_state(P, x), P)
 
     def _project(self, m, W, h1, h2, P, iters, hold):
@@ -158,7 +147,7 @@ class ObserverModel:
         rest = ca.logic_or(ca.pi * P["r1"] ** 2 * p_rest <= ca.fmax(W, REST_EPS), hold > 0.5)
         hf = ph.flat_h1_from_pressure(p_rest, P)
         # leaving rest (guess flat) starts from the flat membrane; Newton on the contact branch
-        c1, c2 = _shape_newton(m, W, h1, h2, P, iters)
+        c1, c2 = shape_newton(m, W, h1, h2, P, iters)
         return ca.if_else(rest, hf, c1), ca.if_else(rest, hf, c2), rest
 
     def _meas(self, x, h1, h2, rest, Pbase):
@@ -208,15 +197,15 @@ class ObserverModel:
         mode = ca.if_else(rest, 0.0, 1.0)
         x3 = ca.vertcat(m, h1, h2)
         h = self.dt / self.nsub
-        fid = self.fid
+        rhs = self.chamber.rhs
         for _ in range(self.nsub):
             if self.integrator == "euler":
-                x3 = x3 + h * fid._rhs(x3, y.u, P, mode)
+                x3 = x3 + h * rhs(x3, y.u, P, mode)
             else:
-                k1 = fid._rhs(x3, y.u, P, mode)
-                k2 = fid._rhs(x3 + h / 2 * k1, y.u, P, mode)
-                k3 = fid._rhs(x3 + h / 2 * k2, y.u, P, mode)
-                k4 = fid._rhs(x3 + h * k3, y.u, P, mode)
+                k1 = rhs(x3, y.u, P, mode)
+                k2 = rhs(x3 + h / 2 * k1, y.u, P, mode)
+                k3 = rhs(x3 + h / 2 * k2, y.u, P, mode)
+                k4 = rhs(x3 + h * k3, y.u, P, mode)
                 x3 = x3 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
             x3 = ca.vertcat(x3[0], a, b)
@@ -275,8 +264,5 @@ class ObserverModel:
 
     # --- numeric helpers ----------------------------------------------------------------------
     def gas_mass(self, p: float, h1: float = 0.0, h2: float = 0.0) -> float:
-        """Gas mass (kg) at gauge pressure p (Pa) in the nominal chamber with shape (h1, h2)."""
-        P = {n: float(v) for n, v in zip(self.fid.space.names, self.theta)}
-        P["material"] = self.actuator.material
-        V = float(ph.geometry(h1, h2, P)["V"])
-        return (p + self.actuator.p_env) * V / self.rt
+        """Gas mass (kg) at gauge pressure p (Pa) in the nominal chamber with shape (h1, h2) (m)."""
+        return self.chamber.gas_mass(p, h1, h2)

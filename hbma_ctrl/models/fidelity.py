@@ -12,7 +12,7 @@ fidelity           differential state  when
                                        leave the membrane (airborne) and land again
 =================  ==================  ===================================================================
 
-Why these states. The gas mass ``m`` is the natural, drift-free state (SPEC 4): the gas law fixes
+Why these states. The gas mass ``m`` is the natural, drift-free state (the gas law): the gas law fixes
 ``G(h1, h2) = (p + p_env) V = m R T``. The (h1, h2) chart is singular at the flat origin (p ~ h1^3
 along the flat membrane), so wherever the membrane can be flat (resting) the gas mass carries the
 state and (h1, h2) are algebraic, found from the gas law and the contact condition. In free
@@ -186,6 +186,11 @@ class Fidelity:
         if key not in cache:
             cache[key] = (fun, fun.map(n))
         return cache[key][1]
+
+    def rhs(self, x, u, P: dict, mode):
+        """The continuous dynamics as an expression of x, u, the parameters P (a dict of symbols or
+        floats, e.g. with estimated factors applied) and the mode."""
+        return self._rhs(x, u, P, mode)
 
     # --- to override -------------------------------------------------------------------------
     def _rhs(self, x, u, P, mode):

@@ -2,7 +2,7 @@
 
 Why one state. Under a dead load (or none) the membrane is quasi-static: for a given gas mass ``m``
 and load ``W`` the shape (h1, h2) follows from the gas law ``G(h1, h2) = m R T`` and the contact
-condition ``F(h1, h2) = W`` (the lead's :mod:`hbma_ctrl.physics`, SPEC 1-4). Resting (the platform
+condition ``F(h1, h2) = W`` (:mod:`hbma_ctrl.models.reduced`, the paper's quasi-static model). Resting (the platform
 sits on the rig until ``pi r1^2 p >= W``), lift-off, contact and free inflation (``W = 0``) are all
 the same single-valued map ``m -> (h, p, lam)`` for the loads and heights of this actuator (checked
 when the map is built: the gas mass grows monotonically along every load path, because the gas is
@@ -13,13 +13,13 @@ gas mass
 
 with ``x' = q(u, p) R T / (p_env V0)`` (``q`` from :func:`hbma_ctrl.physics.net_flow`, the same
 compressor map and valves as the plant) and the outputs ``h = H(x, W)``, ``p = Pp(x, W)``,
-``lam = L(x, W)`` from the equilibrium manifold, tabulated once per actuator from the lead's physics
+``lam = L(x, W)`` from the equilibrium manifold, tabulated once per actuator from the membrane physics
 on an (x, W) grid and interpolated by cubic B-splines (smooth, cheap, code-generable). The
 singular points of the (h1, h2) chart (the flat origin for ``W = 0``, the lift-off kink) never
 reach the optimiser: it only sees x.
 
-Nothing here re-derives physics: the grid points are ``physics.geometry/pressure/gas_pv`` solved
-for the contact condition by bisection.
+Nothing here re-derives physics: the grid points are the contact shapes of the one shape solver
+(:meth:`hbma_ctrl.models.shape.ShapeSolver.contact`).
 """
 
 from __future__ import annotations
@@ -29,9 +29,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core import physics as ph
-from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.fidelity import make_fidelity
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.reduced import ReducedChamber
 
 __all__ = ["PredictionModel"]
 
@@ -58,9 +57,12 @@ class PredictionModel:
     load_max : largest load force the tables cover, N (loads above are clipped and reported).
     h_table_max : largest height the tables cover, m (default 1.4 r1).
     n_x, n_W, n_h : grid sizes.
+    chamber : the :class:`ReducedChamber` to tabulate (built from actuator and pneumatics if None).
 
     Attributes
     ----------
+    chamber : the reduced chamber model the tables are of (parameters, flow, shape solver).
+    H_table, P_table, L_table : the interpolants of ``vertcat(x, W)`` behind H, Pp, L.
     H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-); HP both. H is negative
         (virtual) below lift-off, see :meth:`height` for the physical one.
     rhs : casadi Function (x, u, W, dp) -> xdot (1/s); ``dp`` is a pressure bias (Pa) added to the
@@ -68,64 +70,49 @@ class PredictionModel:
     """
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, load_max: float = 10.0,
-                 h_table_max: float | None = None, n_x: int = 140, n_W: int = 26, n_h: int = 160):
+                 h_table_max: float | None = None, n_x: int = 140, n_W: int = 26, n_h: int = 160,
+                 chamber: ReducedChamber | None = None):
         self.actuator = actuator.validate()
         self.pneumatics = pneumatics.validate()
         if not (0.0 < load_max <= 200.0):
             raise ValueError(f"prediction.load_max = {load_max!r} is out of range (0, 200] N")
         self.load_max = float(load_max)
         self.h_table_max = float(h_table_max if h_table_max is not None else 1.4 * actuator.r1)
-        a = actuator
-        self.RT = a.R * a.T
-        self.x_scale = a.p_env * a.V0 / self.RT  # kg of gas per unit of x
-        self._fid = make_fidelity("quasi_static", a.material, str(pneumatics.csv_path))
-        self.theta = self._fid.space.values(a, pneumatics, Platform())
+        self.chamber = chamber or ReducedChamber(actuator, pneumatics)
+        self.RT = self.chamber.rt
+        self.x_scale = self.chamber.x_scale  # kg of gas per unit of x
+        self.theta = self.chamber.theta
         self.grid = self._tabulate(n_x, n_W, n_h)
         self._build_functions()
 
     # --- conversions ---------------------------------------------------------------------------
     def x_from_mass(self, m: float) -> float:
         """Scaled state from a gas mass (kg)."""
-        return m / self.x_scale - 1.0
+        return self.chamber.x_from_mass(m)
 
     def mass_from_x(self, x: float) -> float:
         """Gas mass (kg) from the scaled state."""
-        return (x + 1.0) * self.x_scale
+        return self.chamber.mass_from_x(x)
 
     # --- tables ----------------------------------------------------------------------------------
-    def _shape_fun(self) -> ca.Function:
-        theta, P = self._fid.space.symbols()
-        h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
-        g = ph.geometry(h1, h2, P)
-        p = ph.pressure(h1, h2, P)
-        return ca.Function("shape", [h1, h2, theta],
-                           [ca.pi * g["a2"] * p, p, (p + P["p_env"]) * g["V"], g["lam"]])
-
     def _tabulate(self, n_x: int, n_W: int, n_h: int) -> _Grid:
         a = self.actuator
-        shape = self._shape_fun()
+        solver = self.chamber.shapes
         Wg = np.linspace(0.0, self.load_max, n_W)
         # denser near the lift-off point, where the map bends
         hg = self.h_table_max * np.linspace(0.0, 1.0, n_h) ** 1.5
         HH, WW = np.meshgrid(hg, Wg, indexing="ij")
         hf, Wf = HH.ravel(), WW.ravel()
-        n = hf.size
-        fmap = shape.map(n)
-        th = np.repeat(self.theta[:, None], n, axis=1)
-        # contact: find h1 >= h with F(h1, h1 - h) = W (bisection; F grows with h1 at fixed h)
-        lo = hf.copy()
-        hi = hf + 4.0 * a.r1
-        F_hi = np.asarray(fmap(hi[None, :], (hi - hf)[None, :], th)[0]).ravel()
-        if np.any(F_hi < Wf):
+        span = 4.0 * a.r1
+        hi = hf + span
+        if np.any(solver.eval(hi, hi - hf)["F"] < Wf):
             raise ValueError("prediction: load_max is beyond what the membrane can carry; lower it")
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            F = np.asarray(fmap(mid[None, :], (mid - hf)[None, :], th)[0]).ravel()
-            big = F > Wf
-            hi = np.where(big, mid, hi)
-            lo = np.where(big, lo, mid)
-        h1 = np.where(Wf > 0, 0.5 * (lo + hi), hf)
-        _, p, G, lam = (np.asarray(v).ravel() for v in fmap(h1[None, :], (h1 - hf)[None, :], th))
+        # contact: h1 >= h with F(h1, h1 - h) = W; unloaded, the free cap (h1 = h)
+        h1, _ = solver.contact(hf, Wf, span, unknown="h1")
+        h1 = np.where(Wf > 0, h1, hf)
+        y = solver.eval(h1, h1 - hf)
+        p, lam = y["p"], y["lam"]
+        G = (p + a.p_env) * y["V"]
         x_path = (G / (a.p_env * a.V0) - 1.0).reshape(HH.shape)
         p_path = p.reshape(HH.shape)
         lam_path = lam.reshape(HH.shape)
@@ -151,20 +138,19 @@ class PredictionModel:
 
     def _build_functions(self) -> None:
         g = self.grid
-        opts = {"algorithm": "smooth_linear"} if False else {}
-        self._H = ca.interpolant("H", "bspline", [g.x, g.W], g.h.ravel(order="F"), opts)
-        self._P = ca.interpolant("Pp", "bspline", [g.x, g.W], g.p.ravel(order="F"), opts)
-        self._L = ca.interpolant("L", "bspline", [g.x, g.W], g.lam.ravel(order="F"), opts)
+        #: the tables as casadi interpolants of vertcat(x, W): height m, gauge pressure Pa, stretch -
+        self.H_table = ca.interpolant("H", "bspline", [g.x, g.W], g.h.ravel(order="F"), {})
+        self.P_table = ca.interpolant("Pp", "bspline", [g.x, g.W], g.p.ravel(order="F"), {})
+        self.L_table = ca.interpolant("L", "bspline", [g.x, g.W], g.lam.ravel(order="F"), {})
         x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
         u = ca.SX.sym("u", 3)
         xw = ca.vertcat(x, W)
-        self.H = ca.Function("H", [x, W], [self._H(xw)])
-        self.Pp = ca.Function("Pp", [x, W], [self._P(xw)])
-        self.L = ca.Function("L", [x, W], [self._L(xw)])
-        self.HP = ca.Function("HP", [x, W], [ca.vertcat(self._H(xw), self._P(xw))])
-        P = {n: float(v) for n, v in zip(self._fid.space.names, self.theta)}
-        p = self._P(xw) + dp
-        q, _, _ = ph.net_flow(u, p, P, self._fid.table)
+        self.H = ca.Function("H", [x, W], [self.H_table(xw)])
+        self.Pp = ca.Function("Pp", [x, W], [self.P_table(xw)])
+        self.L = ca.Function("L", [x, W], [self.L_table(xw)])
+        self.HP = ca.Function("HP", [x, W], [ca.vertcat(self.H_table(xw), self.P_table(xw))])
+        p = self.P_table(xw) + dp
+        q = self.chamber.net_flow(u, p, self.chamber.params)
         self.rhs = ca.Function("rhs", [x, u, W, dp], [q * self.RT / (self.actuator.p_env * self.actuator.V0)],
                                ["x", "u", "W", "dp"], ["xdot"])
 

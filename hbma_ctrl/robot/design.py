@@ -15,9 +15,9 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, check_range
 from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.bank import TOPOLOGIES
 
 LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ"
-TOPOLOGIES = ("per_chamber", "shared")
 OUTLETS = ("per_chamber",)
 
 #: the paper's Table II: (HBMA inflated, angle deg, length mm, extension %)

@@ -29,7 +29,7 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.robot.design import LETTERS, TABLE2_PAPER, RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics
-from hbma_ctrl.robot.statics import _chambers, chamber_states, load_sharing
+from hbma_ctrl.robot.statics import chamber_solver, chamber_states, load_sharing
 
 
 def pump_stall_pressure(pneumatics: Pneumatics | None = None) -> float:
@@ -81,7 +81,7 @@ def chamber_reach(design: RobotDesign, force: float, pressure_limit: float = 45e
     reach of a pressure-controlled chamber (never past the peak).
     """
     check_range("reach", "pressure_limit", pressure_limit, 0.0, 1e6, "Pa", lo_open=True)
-    ch = _chambers(design.chamber, pneumatics)
+    ch = chamber_solver(design.chamber, pneumatics)
     F = max(float(force), 0.0)
     h_str = float(ch.h_for_stretch(design.max_stretch, F)[0])
     path = ch.load_path(F, h_str)
@@ -127,13 +127,13 @@ def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
             r = chamber_reach(design, F[k, i], pressure_limit, pneumatics)
             hmax[k, i], lim[k, i] = r.h_max, r.limit
             if h[k, i] < -1e-12:
-                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm < 0")
+                viol.append(f"{names[3 * k + i]}: height {U.to_mm(h[k, i]):.2f} mm < 0")
             elif h[k, i] > r.h_max + 1e-9:
-                viol.append(f"{names[3 * k + i]}: height {h[k, i] * 1e3:.2f} mm > reach "
-                            f"{r.h_max * 1e3:.2f} mm (limited by {r.limit})")
+                viol.append(f"{names[3 * k + i]}: height {U.to_mm(h[k, i]):.2f} mm > reach "
+                            f"{U.to_mm(r.h_max):.2f} mm (limited by {r.limit})")
     gap = forward_kinematics(design, np.maximum(h, 0)).rim_gap(design)
     for k in np.nonzero(gap < -1e-9)[0]:
-        viol.append(f"layer {LETTERS[k]}: the layer rims overlap by {-gap[k] * 1e3:.2f} mm (rigid three-point "
+        viol.append(f"layer {LETTERS[k]}: the layer rims overlap by {U.to_mm(-gap[k]):.2f} mm (rigid three-point "
                     "pose; the real layers rock on the rim)")
     return {"ok": not viol, "h_max": hmax, "limit": lim, "violations": viol, "rim_gap": gap}
 
@@ -217,7 +217,7 @@ def robot_table2(design: RobotDesign | None = None, stretch: float | None = None
     d.validate()
     lam = d.max_stretch if stretch is None else stretch
     check_range("table2", "stretch", lam, 1.05, d.max_stretch if stretch is None else 20.0)
-    ch = _chambers(d.chamber)
+    ch = chamber_solver(d.chamber)
 
     def at_stretch(F):
         return float(ch.h_for_stretch(lam, max(F, 0.0))[0])

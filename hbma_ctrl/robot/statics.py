@@ -16,12 +16,11 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
-import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.fidelity import shape_jacobian
+from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.kinematics import (
     RobotPose,
@@ -92,122 +91,11 @@ def load_sharing(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_mo
 # ---------------------------------------------------------------------------------------------
 # the chamber model (physics), batched
 # ---------------------------------------------------------------------------------------------
-@lru_cache(maxsize=8)
-def _chamber_fn(space: ph.ParamSpace) -> ca.Function:
-    """(h1, h2, theta) -> (p, F, lam, V, G) from hbma_ctrl.physics, for one material family."""
-    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
-    theta, P = space.symbols()
-    g = ph.geometry(h1, h2, P)
-    p = ph.pressure(h1, h2, P)
-    return ca.Function("chamber", [h1, h2, theta], [p, ca.pi * g["a2"] * p, g["lam"], g["V"], ph.gas_pv(h1, h2, P)],
-                       ["h1", "h2", "theta"], ["p", "F", "lam", "V", "G"])
-
-
 @lru_cache(maxsize=16)
-def _chambers(act: Actuator, pn: Pneumatics | None = None) -> "_Chambers":
-    """A cached :class:`_Chambers` (its mapped casadi Functions are reused across calls)."""
-    return _Chambers(act, pn)
-
-
-@lru_cache(maxsize=8)
-def _gf_fn(space: ph.ParamSpace) -> ca.Function:
-    """(h1, h2, theta) -> (G, F, d(G, F)/d(h1, h2)) from the lead's model.shape_jacobian."""
-
-    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
-    theta, P = space.symbols()
-    G, F, J = shape_jacobian(h1, h2, P)
-    return ca.Function("gf", [h1, h2, theta], [G, F, J], ["h1", "h2", "theta"], ["G", "F", "J"])
-
-
-class _Chambers:
-    """Numeric, vectorised access to the single-chamber physics for one actuator."""
-
-    def __init__(self, act: Actuator, pn: Pneumatics | None = None):
-        self.act = act
-        self.space = ph.ParamSpace.for_material(act.material)
-        self.theta = self.space.values(act, pn or Pneumatics(), Platform())
-        self.fn = _chamber_fn(self.space)
-        self._maps: dict = {}
-
-    def eval(self, h1, h2) -> dict:
-        h1 = np.atleast_1d(np.asarray(h1, dtype=float))
-        h2 = np.broadcast_to(np.asarray(h2, dtype=float), h1.shape)
-        n = h1.size
-        if n not in self._maps:
-            self._maps[n] = self.fn.map(n)
-        th = np.repeat(self.theta[:, None], n, 1)
-        out = self._maps[n](h1.ravel()[None, :], h2.ravel()[None, :], th)
-        names = ("p", "F", "lam", "V", "G")
-        return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(names, out)}
-
-    def newton_gf(self, h1, h2, G, F, iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
-        """Newton on (h1, h2) for G(h1, h2) = G and F(h1, h2) = F from a nearby guess (vectorised).
-
-        Keeps 0 <= h2 <= h1 and halves a step that would leave the chart; the guess picks the branch.
-        """
-        h1, h2 = np.array(h1, dtype=float), np.array(h2, dtype=float)
-        n = h1.size
-        key = ("gf", n)
-        if key not in self._maps:
-            self._maps[key] = _gf_fn(self.space).map(n)
-        th = np.repeat(self.theta[:, None], n, 1)
-        for _ in range(iters):
-            Gv, Fv, J = (np.asarray(x) for x in self._maps[key](h1[None, :], h2[None, :], th))
-            J = J.reshape(2, n, 2).transpose(0, 2, 1)  # mapped 2x2 blocks side by side -> [row, col, chamber]
-            r0, r1 = Gv.ravel() - G, Fv.ravel() - F
-            det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-            d1 = (J[1, 1] * r0 - J[0, 1] * r1) / det
-            d2 = (-J[1, 0] * r0 + J[0, 0] * r1) / det
-            step = np.ones(n)
-            for _k in range(30):  # stay in the chart
-                n1, n2 = h1 - step * d1, h2 - step * d2
-                bad = (n2 < 0) | (n1 - n2 < 0)
-                if not bad.any():
-                    break
-                step = np.where(bad, step / 2, step)
-            h1, h2 = h1 - step * d1, np.maximum(h2 - step * d2, 0.0)
-            if np.all(np.abs(d1) < 1e-13) and np.all(np.abs(d2) < 1e-13):
-                break
-        return h1, h2
-
-    def h2_for_force(self, h, F) -> np.ndarray:
-        """Cut height h2 with contact force F(h + h2, h2) = F at membrane height h (F > 0, h > 0)."""
-        h = np.atleast_1d(np.asarray(h, dtype=float))
-        F = np.broadcast_to(np.asarray(F, dtype=float), h.shape)
-        lo, hi = np.zeros(h.shape), np.full(h.shape, self.act.r1)
-        for _ in range(40):  # grow the bracket: F increases with h2 at fixed h
-            small = self.eval(h + hi, hi)["F"] < F
-            if not small.any():
-                break
-            hi = np.where(small, 2 * hi, hi)
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            big = self.eval(h + mid, mid)["F"] > F
-            hi, lo = np.where(big, mid, hi), np.where(big, lo, mid)
-        return 0.5 * (lo + hi)
-
-    def h_for_stretch(self, lam: float, F) -> np.ndarray:
-        """Membrane height at stretch lam under contact force F (fixed point on h2)."""
-        F = np.atleast_1d(np.asarray(F, dtype=float))
-        r1 = self.act.r1
-        h2 = np.zeros(F.shape)
-        for _ in range(30):
-            # lam^2 r1^2 = h1^2 + r1^2 - h2^2 with h1 = h + h2
-            h = -h2 + np.sqrt(h2**2 + r1**2 * (lam**2 - 1))
-            new = np.where(F > 0, self.h2_for_force(h, np.maximum(F, 1e-12)), 0.0)
-            if np.max(np.abs(new - h2)) < 1e-12:
-                h2 = new
-                break
-            h2 = new
-        return -h2 + np.sqrt(h2**2 + r1**2 * (lam**2 - 1))
-
-    def load_path(self, F: float, h_hi: float, n: int = 600) -> dict:
-        """Chamber state along the constant-load path h in (0, h_hi] at contact force F >= 0."""
-        h = np.linspace(h_hi / n, h_hi, n)
-        h2 = self.h2_for_force(h, F) if F > 0 else np.zeros(n)
-        out = self.eval(h + h2, h2)
-        out.update(h=h, h1=h + h2, h2=h2)
-        return out
+def chamber_solver(act: Actuator, pn: Pneumatics | None = None) -> ShapeSolver:
+    """The shape solver of one robot chamber (cached: its mapped casadi Functions are reused)."""
+    space = ph.ParamSpace.for_material(act.material)
+    return ShapeSolver(space, space.values(act, pn or Pneumatics(), Platform()))
 
 
 def chamber_states(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0),
@@ -223,7 +111,7 @@ def chamber_states(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_
     h = _heights_array(design, heights)
     F = load_sharing(design, h, tip_force, tip_moment).forces if forces is None else \
         np.asarray(forces, dtype=float).reshape(h.shape)
-    ch = _chambers(design.chamber)
+    ch = chamber_solver(design.chamber)
     resting = h <= 0
     tension = (F < 0) & ~resting
     push = (F > 0) & ~resting
@@ -257,7 +145,7 @@ def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0,
     """Static equilibrium of the robot for given gas masses (N x 3 or 3N, kg).
 
     For every chamber the constant-load path h -> (h1, h2) with F(h1, h2) = its load share is
-    searched for G(h1, h2) = m R T (G = (p + p_env) V, README Model §4); the loads follow from the heights
+    searched for G(h1, h2) = m R T (G = (p + p_env) V, the gas law, README Model §4); the loads follow from the heights
     by :func:`load_sharing`, iterated to a fixed point. A chamber whose gas cannot lift its share
     rests (h = 0). Along the load path G grows with h for the robot's chambers (no fold: the gas
     is compressible, which is why the far branch is stable at fixed mass), so the height is unique;
@@ -270,7 +158,7 @@ def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0,
         raise ValueError(f"masses: need {3 * N} finite gas masses > 0 kg")
     m = m.ravel()
     act = design.chamber
-    ch = _chambers(act)
+    ch = chamber_solver(act)
     rt = act.R * act.T
     lam_hi = min(1.5 * design.max_stretch, act.material.lam_max() * 0.999)
     h_hi = float(ch.h_for_stretch(lam_hi, 0.0)[0])
@@ -297,7 +185,7 @@ def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0,
             h1[i], h2[i] = path["h1"][j + 1], path["h2"][j + 1]
         active = act_now
         if active.any():
-            h1[active], h2[active] = ch.newton_gf(h1[active], h2[active], m[active] * rt, F[active])
+            h1[active], h2[active] = ch.newton(h1[active], h2[active], m[active] * rt, F[active])
         h1[~active], h2[~active] = 0.0, 0.0
         new = h1 - h2
         done = np.max(np.abs(new - h)) < tol

@@ -27,7 +27,7 @@ import numpy as np
 
 from controllers.robot_mpc import RobotNMPC
 from estimators.robot_ekf import ChamberEKFBank
-from hbma_ctrl.models.bank import ChamberModel, commands_from_inputs
+from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
@@ -67,7 +67,7 @@ class RobotLoop:
     stats_capacity : samples kept for the median and p99 of the step times.
     """
 
-    def __init__(self, design: RobotDesign, model: ChamberModel, bank: ChamberEKFBank, controller,
+    def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
                  stats_capacity: int = 4096):
         self.design = design
@@ -122,7 +122,7 @@ class RobotLoop:
                     near = (est["p"] > c[0] * est["k"] * self._peak_p) & (est["k_std"] > c[1])
                     a_max = np.where(near, np.minimum(a_max, c[2]), a_max)
                     self.cautious_steps += int(near.sum())
-                a, o = ctrl.step(est["x"], est["b"], W, href, est["k"], est["v"], a_max)
+                a, o = ctrl.step(est["x"], est["b"], W, href, est["k"], est["c"], a_max)
                 ok = not ctrl.failed
                 cause = "ok" if ok else f"qp: {ctrl.status}"
                 plan = self._plan(ctrl.plan) if ok else None

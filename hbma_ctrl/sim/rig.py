@@ -29,6 +29,7 @@ import numpy as np
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
+from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
 
@@ -229,22 +230,10 @@ class Rig:
         self.events.append((self.t, f"load_set_{mass_kg:.3f}kg"))
 
     def _free_h1(self, m: float) -> float:
-        """Free-inflation cap height holding gas mass m (Newton on G(h1, 0) = m R T)."""
+        """Free-inflation cap height (m) holding gas mass m (kg), from the current one."""
         fid = self._free
-        theta = fid.space.values(self.actuator, self.pneumatics, Platform())
-        rt = self.actuator.R * self.actuator.T
-        h = max(self.truth()["h1"], 1e-4)
-        pi_r1 = np.pi * self.actuator.r1 ** 2
-        for _ in range(60):
-            y = np.asarray(fid.out([h], np.zeros(3), theta, MODE_MOVING)).ravel()
-            G = (y[OUTPUTS.index("p")] + self.actuator.p_env) * y[OUTPUTS.index("V")]
-            # dG/dh1 >= p_env dV/dh1 = p_env pi (r1^2 + h^2) / 2 ... use a secant-safe Newton
-            dG = self.actuator.p_env * 0.5 * (pi_r1 + np.pi * h * h) + 1e-12
-            hn = max(h - (G - m * rt) / dG, 0.0)
-            if abs(hn - h) < 1e-12:
-                break
-            h = hn
-        return h
+        solver = ShapeSolver(fid.space, fid.space.values(self.actuator, self.pneumatics, Platform()))
+        return solver.free_h1(m * (self.actuator.R * self.actuator.T), self.truth()["h1"])
 
 
 @dataclass

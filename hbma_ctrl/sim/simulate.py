@@ -31,6 +31,7 @@ from hbma_ctrl.models.fidelity import (
     Fidelity,
     make_fidelity,
 )
+from hbma_ctrl.models.shape import ShapeSolver
 
 __all__ = ["InputSchedule", "Trial", "SimSettings", "Log", "Plant", "simulate", "INTEGRATORS", "DEFAULT_DT"]
 
@@ -76,22 +77,10 @@ def _far_branch(fid: Fidelity, theta: np.ndarray, m: float, h_now: float, up: bo
     r1, W = theta[ix["r1"]], theta[ix["W"]]
     rt = theta[ix["R"]] * theta[ix["T"]]
     hs = np.linspace(0.0, 6 * r1, 1200)
-    n = hs.size
-    out = fid.mapped(fid.out, n)
-    th = np.repeat(theta[:, None], n, 1)
-    u0 = np.zeros((3, n))
-    lo, hi = np.zeros(n), np.full(n, 20 * r1)
-    for _ in range(60):  # bisection on h2: F(h + h2, h2) = W, F increasing in h2 at fixed h
-        mid = 0.5 * (lo + hi)
-        X = np.vstack([np.zeros(n), hs + mid, mid])
-        F = np.asarray(out(X, u0, th, np.ones((1, n))))[OUTPUTS.index("F")]
-        big = F > W
-        hi = np.where(big, mid, hi)
-        lo = np.where(big, lo, mid)
-    h2 = 0.5 * (lo + hi)
-    X = np.vstack([np.zeros(n), hs + h2, h2])
-    y = np.asarray(out(X, u0, th, np.ones((1, n))))
-    G = (y[OUTPUTS.index("p")] + theta[ix["p_env"]]) * y[OUTPUTS.index("V")] - m * rt
+    solver = ShapeSolver(fid.space, theta)
+    h1, h2 = solver.contact(hs, W, 20 * r1)
+    y = solver.eval(h1, h2)
+    G = (y["p"] + theta[ix["p_env"]]) * y["V"] - m * rt
     cross = np.nonzero(np.sign(G[:-1]) != np.sign(G[1:]))[0]
     cand = [c for c in cross if (hs[c] > h_now if up else hs[c + 1] < h_now)]
     if not cand:
