@@ -76,7 +76,7 @@ def test_rest_until_lift_off(model):
 
 
 def test_prediction_matches_quasi_static_plant(model):
-    """One second of full pumping from rest under 400 g: the gas-mass model against the lead's
+    """One second of full pumping from rest under 400 g: the gas-mass model against the simulator's
     quasi-static plant (same nominal parameters)."""
     fid = make_fidelity("quasi_static", ACT.material, str(PN.csv_path))
     theta = fid.space.values(ACT, PN, Platform(load=0.4))
