@@ -27,6 +27,7 @@ import numpy as np
 
 from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
 from hbma_ctrl.app.schema.document import parse_role
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.tables import PredictionModel
@@ -59,7 +60,7 @@ def run_case(case: str, seed: int) -> dict:
         # the band and the held target are the section's (settle band, last target)
         tail = log.t >= duration - TAIL_S
         err = np.abs(log.h_true[tail] - log.target[tail])
-        row.update(passed=bool(np.all(err < sec.settle_band)), final_error_mm=float(np.max(err) * 1e3))
+        row.update(passed=bool(np.all(err < sec.settle_band)), final_error_mm=float(U.to_mm(np.max(err))))
     else:
         errs = [s["final_error_mm"] for s in m["settle"]]
         row.update(passed=m["steps_settled"] == len(m["settle"]), steps_settled=m["steps_settled"],

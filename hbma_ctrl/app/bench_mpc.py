@@ -30,6 +30,7 @@ from hbma_ctrl.app.scene_controller import (
 )
 from hbma_ctrl.app.schema.document import parse_role
 from hbma_ctrl.app.sections import ControllerSection
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.rig import RigSettings
@@ -95,7 +96,7 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
 
     for v in variants:
         for n in horizons:
-            mpc = replace(section.mpc, variant=v, horizon=n, budget=budget_ms * 1e-3).validate()
+            mpc = replace(section.mpc, variant=v, horizon=n, budget=U.ms(budget_ms)).validate()
             run(f"{v} N={n}", replace(section, kind="mpc", mpc=mpc))
     if baselines:
         run("pid", replace(section, kind="pid"))
@@ -105,15 +106,15 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
 
         ok, why = dompc_available()
         if ok:
-            mpc = replace(section.mpc, horizon=20, budget=budget_ms * 1e-3).validate()
+            mpc = replace(section.mpc, horizon=20, budget=U.ms(budget_ms)).validate()
             sec = replace(section, kind="mpc", mpc=mpc)
             run("do-mpc N=20", sec, DoMPCController(actuator, pneumatics, mpc, model=model))
             dompc_status = f"do-mpc {why}"
         else:
             dompc_status = why
     return {"rows": rows, "dompc": dompc_status,
-            "settings": {"duration_s": duration, "load_g": platform.load * 1e3, "budget_ms": budget_ms,
-                         "rt_budget_ms": rt_budget_ms, "targets_mm": [[t, h * 1e3] for t, h in section.reference.points],
+            "settings": {"duration_s": duration, "load_g": U.to_grams(platform.load), "budget_ms": budget_ms,
+                         "rt_budget_ms": rt_budget_ms, "targets_mm": [[t, U.to_mm(h)] for t, h in section.reference.points],
                          "rig_seed": rs.seed}}
 
 

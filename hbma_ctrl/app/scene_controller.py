@@ -58,6 +58,7 @@ from hbma_ctrl.app.sections import (
     ReferenceProfile,
     filter_settings_for,
 )
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
@@ -133,8 +134,8 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))
     if every < 1 or abs(ratio - every) > 1e-6:
-        raise ValueError(f"controller.sample_ms ({section.sample_period * 1e3:g} ms) must be a whole multiple "
-                         f"of the rig's sample period ({rs.sample_period * 1e3:g} ms)")
+        raise ValueError(f"controller.sample_ms ({U.to_ms(section.sample_period):g} ms) must be a whole multiple "
+                         f"of the rig's sample period ({U.to_ms(rs.sample_period):g} ms)")
     n = int(round(duration / rs.sample_period))
     # controllers with a horizon get the future targets (a rig daemon knows its trajectory too)
     use_preview = section.preview if section.preview is not None else (
@@ -142,7 +143,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     preview_n = section.mpc.horizon if getattr(ctrl, "accepts_preview", False) and use_preview else 0
     cols = {k: np.zeros(n) for k in ("t", "target", "h_true", "h_est", "p_true", "p_meas", "p_est",
                                      "F_true", "F_est", "load")}
-    U = np.zeros((n, 3))
+    u_log = np.zeros((n, 3))
     nees, nis, est_s = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
 
     loads = list(section.load_steps)
@@ -163,7 +164,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
                          ("p_meas", z), ("p_est", e.p), ("F_true", tr["F"]), ("F_est", e.F),
                          ("load", rig.platform.load)):
             cols[key][k] = val
-        U[k] = cmd.as_array()
+        u_log[k] = cmd.as_array()
         # estimator consistency, where the filter exposes its output covariance (EKF, UKF)
         C = getattr(est, "last_output_cov", None)
         if C is not None:
@@ -175,7 +176,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
             est_s[k] = est.last_step_s
         rig.apply(cmd)
     wall = time.perf_counter() - t_wall
-    return ClosedLoopLog(**cols, u=U, stats=loop.stats(), events=list(rig.events), wall_s=wall,
+    return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(), events=list(rig.events), wall_s=wall,
                          nees=nees, nis=nis, est_step_s=est_s, solve_ms=loop.solve_ms.values(),
                          supervisor_events=loop.events())
 
@@ -208,9 +209,9 @@ def estimator_metrics(log: ClosedLoopLog, actuator: Actuator, pneumatics: Pneuma
         "force_rmse_n": float(np.sqrt(np.mean((log.F_est - log.F_true) ** 2))),
         "nees_mean": finite(np.nanmean(log.nees)) if log.nees is not None and np.isfinite(log.nees).any() else None,
         "nis_mean": finite(np.nanmean(log.nis)) if log.nis is not None and np.isfinite(log.nis).any() else None,
-        "step_us_median": (finite(np.nanmedian(log.est_step_s) * 1e6)
+        "step_us_median": (finite(U.to_us(np.nanmedian(log.est_step_s)))
                            if log.est_step_s is not None and np.isfinite(log.est_step_s).any() else None),
-        "height_rmse_mm": float(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)) * 1e3),
+        "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)))),
     }
 
 
@@ -236,8 +237,8 @@ def settle_results(log: ClosedLoopLog, reference: ReferenceProfile, band: float,
         else:
             ts = None
         settled = ts is not None and (t1 - t0 - ts) >= min_hold
-        out.append({"t_step_s": t0, "target_mm": h * 1e3, "settle_time_s": ts, "settled": bool(settled),
-                    "final_error_mm": float((h_all[m][-1] - h) * 1e3)})
+        out.append({"t_step_s": t0, "target_mm": U.to_mm(h), "settle_time_s": ts, "settled": bool(settled),
+                    "final_error_mm": float(U.to_mm(h_all[m][-1] - h))})
     return out
 
 
@@ -251,10 +252,10 @@ def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
         "kind": section.kind,
         "variant": st.get("variant"),
         "horizon": st.get("horizon"),
-        "height_rmse_mm": float(np.sqrt(np.mean(err ** 2)) * 1e3),
-        "height_est_rmse_mm": float(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)) * 1e3),
-        "max_pressure_kpa": float(np.max(log.p_true) * 1e-3),
-        "pressure_limit_kpa": section.p_max * 1e-3,
+        "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean(err ** 2)))),
+        "height_est_rmse_mm": float(U.to_mm(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)))),
+        "max_pressure_kpa": float(U.to_kpa(np.max(log.p_true))),
+        "pressure_limit_kpa": U.to_kpa(section.p_max),
         "pressure_limit_respected": bool(np.max(log.p_true) <= section.p_max),
         "solve_ms_median": st["solve_ms_median"],
         "solve_ms_p99": st["solve_ms_p99"],
@@ -265,11 +266,11 @@ def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
         "fallback_detail": st.get("fallback_detail", {}),
         "guard_activations": st.get("guard_activations", 0),
         "target_clipped_steps": st.get("target_clipped_steps", 0),
-        "settle_band_mm": section.settle_band * 1e3,
+        "settle_band_mm": U.to_mm(section.settle_band),
         "steps_settled": sum(1 for s in settle if s["settled"]),
         "steps_total": len(settle),
         "steps_settled_estimate": sum(1 for s in settle_est if s["settled"]),
-        "height_rmse_estimate_mm": float(np.sqrt(np.mean((log.h_est - log.target) ** 2)) * 1e3),
+        "height_rmse_estimate_mm": float(U.to_mm(np.sqrt(np.mean((log.h_est - log.target) ** 2)))),
         "settle": settle,
         "settle_estimate": settle_est,
         "wall_s": log.wall_s,
@@ -283,10 +284,10 @@ def write_closed_loop_csv(log: ClosedLoopLog, path: Path) -> None:
         w.writerow(["t_s", "target_mm", "h_true_mm", "h_est_mm", "p_true_kpa", "p_meas_kpa", "p_est_kpa",
                     "F_true_n", "F_est_n", "load_g", "speed", "inlet", "outlet"])
         for i in range(len(log.t)):
-            w.writerow([f"{log.t[i]:.4f}", f"{log.target[i] * 1e3:.4f}", f"{log.h_true[i] * 1e3:.4f}",
-                        f"{log.h_est[i] * 1e3:.4f}", f"{log.p_true[i] * 1e-3:.4f}", f"{log.p_meas[i] * 1e-3:.4f}",
-                        f"{log.p_est[i] * 1e-3:.4f}", f"{log.F_true[i]:.4f}", f"{log.F_est[i]:.4f}",
-                        f"{log.load[i] * 1e3:.1f}", f"{log.u[i, 0]:.4f}", f"{log.u[i, 1]:.4f}", f"{log.u[i, 2]:.4f}"])
+            w.writerow([f"{log.t[i]:.4f}", f"{U.to_mm(log.target[i]):.4f}", f"{U.to_mm(log.h_true[i]):.4f}",
+                        f"{U.to_mm(log.h_est[i]):.4f}", f"{U.to_kpa(log.p_true[i]):.4f}", f"{U.to_kpa(log.p_meas[i]):.4f}",
+                        f"{U.to_kpa(log.p_est[i]):.4f}", f"{log.F_true[i]:.4f}", f"{log.F_est[i]:.4f}",
+                        f"{U.to_grams(log.load[i]):.1f}", f"{log.u[i, 0]:.4f}", f"{log.u[i, 1]:.4f}", f"{log.u[i, 2]:.4f}"])
 
 
 def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: float | None = None) -> None:
@@ -294,16 +295,16 @@ def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: flo
 
     fig = Figure(figsize=(9, 8))
     ax = fig.subplots(3, 1, sharex=True)
-    ax[0].plot(log.t, log.target * 1e3, "k--", lw=1.2, label="target")
-    ax[0].plot(log.t, log.h_true * 1e3, "C0", lw=1.5, label="truth (rig)")
-    ax[0].plot(log.t, log.h_est * 1e3, "C1", lw=1.0, alpha=0.8, label="estimate (EKF)")
+    ax[0].plot(log.t, U.to_mm(log.target), "k--", lw=1.2, label="target")
+    ax[0].plot(log.t, U.to_mm(log.h_true), "C0", lw=1.5, label="truth (rig)")
+    ax[0].plot(log.t, U.to_mm(log.h_est), "C1", lw=1.0, alpha=0.8, label="estimate (EKF)")
     ax[0].set_ylabel("height (mm)")
     ax[0].legend(loc="best", fontsize=8)
-    ax[1].plot(log.t, log.p_meas * 1e-3, ".", color="0.7", ms=2, label="measured")
-    ax[1].plot(log.t, log.p_true * 1e-3, "C0", lw=1.5, label="truth")
-    ax[1].plot(log.t, log.p_est * 1e-3, "C1", lw=1.0, label="estimate")
+    ax[1].plot(log.t, U.to_kpa(log.p_meas), ".", color="0.7", ms=2, label="measured")
+    ax[1].plot(log.t, U.to_kpa(log.p_true), "C0", lw=1.5, label="truth")
+    ax[1].plot(log.t, U.to_kpa(log.p_est), "C1", lw=1.0, label="estimate")
     if p_max is not None:
-        ax[1].axhline(p_max * 1e-3, color="r", lw=1, ls=":", label="limit")
+        ax[1].axhline(U.to_kpa(p_max), color="r", lw=1, ls=":", label="limit")
     ax[1].set_ylabel("gauge pressure (kPa)")
     ax[1].legend(loc="best", fontsize=8)
     for i, (name, c) in enumerate((("speed", "C2"), ("inlet duty", "C3"), ("outlet duty", "C4"))):
@@ -343,7 +344,7 @@ def run_scene(scn, out_dir: Path | str) -> dict:
     write_closed_loop_csv(log, out / "closed_loop.csv")
     st = log.stats
     title = (f"{scn.name}: {section.kind} {st.get('variant') or ''} N={st.get('horizon')}, "
-             f"load {scn.platform.load * 1e3:g} g")
+             f"load {U.to_grams(scn.platform.load):g} g")
     plot_closed_loop(log, out / "closed_loop.png", title=title, p_max=section.p_max)
     m = loop_metrics(log, section)
     m["log_csv"] = "closed_loop.csv"

@@ -54,8 +54,8 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
     nt, tt = _normals(design, run.h, rim)
     nr, tr = _normals(design, run.h_ref)
     bend_err = np.degrees(np.arccos(np.clip((nt * nr).sum(-1), -1.0, 1.0)))  # (T, N)
-    h_err = np.abs(run.h - run.h_ref) * 1e3  # mm
-    tip_err = np.linalg.norm(tt - tr, axis=1) * 1e3
+    h_err = U.to_mm(np.abs(run.h - run.h_ref))  # mm
+    tip_err = U.to_mm(np.linalg.norm(tt - tr, axis=1))
     ch = run.changes
     last_change = ch[np.searchsorted(ch, run.t + 1e-9, side="right") - 1]
     settled = run.t - last_change >= settle_time
@@ -67,7 +67,7 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         if m.sum() < 2:
             continue
         end = m & (run.t >= s1 - 0.5)
-        inside = (h_err.max(1) <= h_tol * 1e3) & (bend_err.max(1) <= math.degrees(bend_tol))
+        inside = (h_err.max(1) <= U.to_mm(h_tol)) & (bend_err.max(1) <= math.degrees(bend_tol))
         idx = np.nonzero(m)[0]
         ok = inside[idx]
         t_set = None
@@ -81,7 +81,7 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
                      "peak_bend_err_deg": float(bend_err[m].max()),
                      "final_bend_err_deg": float(bend_err[end].mean(0).max()) if end.any() else None,
                      "settled": bool(ok[-1]), "settle_time_s": t_set,
-                     "target_heights_mm": np.round(run.h_ref[idx[-1]] * 1e3, 2).tolist()})
+                     "target_heights_mm": np.round(U.to_mm(run.h_ref[idx[-1]]), 2).tolist()})
     names = design.names
     peak_h = None
     if model is not None:
@@ -93,13 +93,13 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "chamber_height_rmse_mm": rm(h_err),
         "bend_angle_rmse_deg": rm(bend_err),
         "tip_position_rmse_mm": rm(tip_err),
-        "step_ms_median": float(np.median(run.step_s) * 1e3),
-        "step_ms_p99": float(np.percentile(run.step_s, 99) * 1e3),
-        "step_ms_max": float(run.step_s.max() * 1e3),
-        "ekf_ms_median": float(np.median(run.ekf_s) * 1e3),
-        "controller_ms_median": float(np.median(run.ctrl_s) * 1e3),
+        "step_ms_median": float(U.to_ms(np.median(run.step_s))),
+        "step_ms_p99": float(U.to_ms(np.percentile(run.step_s, 99))),
+        "step_ms_max": float(U.to_ms(run.step_s.max())),
+        "ekf_ms_median": float(U.to_ms(np.median(run.ekf_s))),
+        "controller_ms_median": float(U.to_ms(np.median(run.ctrl_s))),
         "chamber_height_rmse_all_mm": float(np.sqrt(np.mean(h_err ** 2))),
-        "estimate_height_rmse_mm": float(np.sqrt(np.mean((run.h_est[1:] - run.h[1:]) ** 2)) * 1e3),
+        "estimate_height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((run.h_est[1:] - run.h[1:]) ** 2)))),
         "max_pressure_kpa": U.to_kpa(float(run.p.max())),
         "max_pressure_measured_kpa": U.to_kpa(float(np.nanmax(run.p_meas))),
         "pressure_limit_kpa": U.to_kpa(pressure_limit),
@@ -109,7 +109,7 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "max_stretch": float(run.lam.max()),
         # < 0: the rigid three-point pose would overlap the layer below at the rim (a real layer
         # rocks on its rim there; see hbma_ctrl.robot.RobotPose.rim_gap)
-        "min_rim_gap_mm": {LETTERS[k]: float(np.min(np.array(rim)[:, k]) * 1e3) for k in range(design.n_layers)},
+        "min_rim_gap_mm": {LETTERS[k]: float(U.to_mm(np.min(np.array(rim)[:, k]))) for k in range(design.n_layers)},
         "stretch_exceeded_chambers": [nm for i, nm in enumerate(names) if run.lam[:, i].max() > design.max_stretch],
         "segments": segs,
         "all_segments_settled": bool(all(s["settled"] for s in segs)),
@@ -121,7 +121,7 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "sim_time_s": float(run.t[-1]),
         "wall_s": run.wall_s,
         "settle_time_s": settle_time,
-        "tolerances": {"height_mm": h_tol * 1e3, "bend_deg": math.degrees(bend_tol)},
+        "tolerances": {"height_mm": U.to_mm(h_tol), "bend_deg": math.degrees(bend_tol)},
     }
     return out
 
@@ -139,7 +139,7 @@ def write_closed_csv(design: RobotDesign, run: ClosedLoopRun, path) -> None:
         w = csv.writer(fh)
         w.writerow(cols)
         for j in range(run.t.size):
-            row = [run.t[j]] + list(run.h[j] * 1e3) + list(run.h_ref[j] * 1e3) + list(run.h_est[j] * 1e3) + \
+            row = [run.t[j]] + list(U.to_mm(run.h[j])) + list(U.to_mm(run.h_ref[j])) + list(U.to_mm(run.h_est[j])) + \
                 list(run.p[j] / 1e3) + list(run.p_meas[j] / 1e3) + list(run.a[j]) + list(run.o[j])
             w.writerow([f"{v:.6g}" for v in row])
 
@@ -156,9 +156,9 @@ def plot_closed_loop(design: RobotDesign, runs: list, path, pressure_limit: floa
             ax = axs[k, c]
             for i in range(3):
                 j = 3 * k + i
-                ax.plot(run.t, run.h[:, j] * 1e3, cols[i], lw=1.2, label=f"{design.names[j]} true")
-                ax.plot(run.t, run.h_ref[:, j] * 1e3, cols[i], ls="--", lw=0.9)
-                ax.plot(run.t, run.h_est[:, j] * 1e3, cols[i], ls=":", lw=0.9)
+                ax.plot(run.t, U.to_mm(run.h[:, j]), cols[i], lw=1.2, label=f"{design.names[j]} true")
+                ax.plot(run.t, U.to_mm(run.h_ref[:, j]), cols[i], ls="--", lw=0.9)
+                ax.plot(run.t, U.to_mm(run.h_est[:, j]), cols[i], ls=":", lw=0.9)
             ax.set_ylabel(f"layer {LETTERS[k]} h / mm")
             ax.legend(fontsize=6, loc="upper left", ncol=3)
         ax = axs[N, c]
@@ -242,10 +242,10 @@ def bench_robot(layers=(1, 2, 3, 4, 5, 6), duration: float = 3.0, topology: str 
         pose = ((0.0, U.mm(6.0), 0.0, 0.0), (duration / 2, U.mm(7.0), math.radians(15.0), 0.0))
         tg = {k: pose for k in range(d.n_layers)}
         run = run_closed_loop(s, tg, duration, "mpc", pn, mpc=RobotMPCSettings(horizon=horizon), model=model)
-        st = run.step_s[5:] * 1e3  # the first periods include casadi/OSQP setup
+        st = U.to_ms(run.step_s[5:])  # the first periods include casadi/OSQP setup
         rows.append({"layers": int(N), "chambers": 3 * int(N), "qp_variables": (3 * horizon + 1) * 3 * int(N),
                      "step_ms_median": float(np.median(st)), "step_ms_p99": float(np.percentile(st, 99)),
-                     "step_ms_max": float(st.max()), "ekf_ms_median": float(np.median(run.ekf_s[5:] * 1e3)),
-                     "mpc_ms_median": float(np.median(run.ctrl_s[5:] * 1e3)), "steps": int(st.size),
+                     "step_ms_max": float(st.max()), "ekf_ms_median": float(np.median(U.to_ms(run.ekf_s[5:]))),
+                     "mpc_ms_median": float(np.median(U.to_ms(run.ctrl_s[5:]))), "steps": int(st.size),
                      "fallbacks": run.fallbacks, "max_pressure_kpa": float(run.p.max() / 1e3)})
     return rows

@@ -80,7 +80,7 @@ class RobotDesign:
         r1 = self.chamber.r1
         lo, hi = self.inner_diameter / 2 + r1, self.outer_diameter / 2 - r1
         check_range("robot", "placement_radius", self.placement_radius, lo, hi, "m "
-                    f"(the chamber disk r1 = {r1 * 1e3:g} mm must fit the layer annulus)")
+                    f"(the chamber disk r1 = {U.to_mm(r1):g} mm must fit the layer annulus)")
         if len(self.chamber_angles) != 3:
             raise ValueError(f"robot.chamber_angles must hold 3 angles, got {len(self.chamber_angles)}")
         for i, a in enumerate(self.chamber_angles):
@@ -92,8 +92,8 @@ class RobotDesign:
             for j in range(i + 1, 3):
                 if np.linalg.norm(xy[i] - xy[j]) < 2 * r1:
                     raise ValueError(f"robot.chamber_angles: chambers {i + 1} and {j + 1} overlap "
-                                     f"(centres {np.linalg.norm(xy[i] - xy[j]) * 1e3:.1f} mm apart, "
-                                     f"need >= 2 r1 = {2 * r1 * 1e3:g} mm)")
+                                     f"(centres {U.to_mm(np.linalg.norm(xy[i] - xy[j])):.1f} mm apart, "
+                                     f"need >= 2 r1 = {U.to_mm(2 * r1):g} mm)")
         gaps = np.diff(np.sort(np.mod(np.asarray(self.chamber_angles), 2 * math.pi)))
         gaps = np.append(gaps, 2 * math.pi - gaps.sum())
         if gaps.max() >= math.pi - 1e-6:

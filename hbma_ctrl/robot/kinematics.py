@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.design import RobotDesign
 
 
@@ -223,6 +224,6 @@ def inverse_kinematics_tip(design: RobotDesign, tip_position, h_max: float | Non
     hs = inverse_kinematics(design, best.x[0], abs(best.x[1]), best.x[2])
     err = np.linalg.norm(tip_of(best.x)[0] - target)
     if err > 1e-6 or hs.min() < -1e-9 or (h_max is not None and hs.max() > h_max + 1e-9):
-        raise ValueError(f"tip_position {np.round(target * 1e3, 2).tolist()} mm is not reachable by "
-                         f"{N} identical layers (closest miss {err * 1e3:.2f} mm)")
+        raise ValueError(f"tip_position {np.round(U.to_mm(target), 2).tolist()} mm is not reachable by "
+                         f"{N} identical layers (closest miss {U.to_mm(err):.2f} mm)")
     return np.maximum(hs, 0.0)

@@ -257,7 +257,7 @@ def robot_table2(design: RobotDesign | None = None, stretch: float | None = None
                 "chamber_height_mm": U.to_mm(float(h[0, 0])) if n else 0.0,
                 "pressure_kpa": U.to_kpa(float(st["p"][0, 0])) if n else 0.0,
                 "stretch": float(st["lam"][0, 0]) if n else 1.0,
-                "gas_mass_mg": float(np.mean(st["m"][0, infl])) * 1e6 if n else float(st["m"][0, 0]) * 1e6,
+                "gas_mass_mg": U.to_mg(float(np.mean(st["m"][0, infl]))) if n else U.to_mg(float(st["m"][0, 0])),
                 "rim_gap_mm": U.to_mm(float(pose.rim_gap(d)[0])),
                 "params": params,
             })
