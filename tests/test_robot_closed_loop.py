@@ -113,13 +113,13 @@ def test_closed_loop_section_validation():
     ok = parse_section({"mode": "closed_loop", "layers": 1, "controller": "pressure_pid",
                         "targets": {"all": [[0, 6, 0, 0], [2, 7, -15, 90]]}, "tip_load_n": [[1.0, 0, 0, -0.1]]})
     assert ok.controller == "pressure_pid" and ok.targets[0][1][3] == pytest.approx(-np.pi / 2)
-    with pytest.raises(ValueError, match="robot.controller"):
+    with pytest.raises(ValueError, match=r"\[robot\] controller = 'mcp' is not allowed; did you mean 'mpc'"):
         parse_section({"mode": "closed_loop", "layers": 1, "controller": "mcp", "targets": {"all": [[0, 6, 0, 0]]}})
     with pytest.raises(ValueError, match="chamber heights"):
         parse_section({"mode": "closed_loop", "layers": 1, "targets": {"all": [[0, 2, 20, 0]]}})
-    with pytest.raises(ValueError, match="robot.targets.D"):
+    with pytest.raises(ValueError, match=r"\[robot.targets\] D: no such layer"):
         parse_section({"mode": "closed_loop", "layers": 1, "targets": {"D": [[0, 6, 0, 0]]}})
-    with pytest.raises(ValueError, match="needs robot.targets"):
+    with pytest.raises(ValueError, match=r"needs \[robot.targets\]"):
         parse_section({"mode": "closed_loop", "layers": 1})
 
 
