@@ -1,20 +1,12 @@
-"""The characterisation protocol (README Model §7): 150 inflate/vent trials, simulated in batches.
+"""The characterisation protocol's outputs (README Model §7): 150 inflate/vent trials, summarised.
 
-Grid: loads 0, 200, 400, 600, 800 g x compressor speeds 20, 40, 60, 80, 100 % x membrane thickness
-t0 2, 3 mm x retaining radius r1 7.5, 10, 12.5 mm. Each trial pumps at its speed with the inlet open
-for ``t_inflate_s`` (default 3 s), then stops the pump, closes the inlet and opens the outlet until
-``duration_s`` (default 6 s).
-
-Fidelity: ``"auto"`` gives each trial its default (``Trial.default_fidelity``: 'free' for 0 g, the
-paper's 'quasi_static' otherwise); 'quasi_static' or 'platform' apply to the loaded trials, the 0 g
-trials always use 'free' (fewest states). Trials of one fidelity run as one batch
-(:func:`hbma_ctrl.sim.simulate.simulate`); with ``workers > 1`` each worker process simulates one
-chunk of the trials (not one trial), so batching is kept.
+The grid, the fidelity rule and the batching are :mod:`hbma_ctrl.sim.batch`'s; this module writes
+the run's outputs.
 
 Outputs of :func:`run_protocol` in ``out_dir``: ``summary.csv`` (one row per trial, columns
 :data:`SUMMARY_COLUMNS`; ``wall_s`` is the trial's share of its batch's wall time, i.e. batch wall
-time / batch size, or the trial's own time with the one-at-a-time 'radau'), ``trials/<name>.csv`` (time series in edge units, unit in each column
-name, see :func:`hbma_ctrl.app.metrics.write_log_csv`) and, unless disabled, fig6/fig7/fig9 PNGs.
+time / batch size, or the trial's own time with the one-at-a-time 'radau'), ``trials/<name>.csv``
+(time series in edge units, unit in each column name, see :func:`hbma_ctrl.app.metrics.write_log_csv`) and, unless disabled, fig6/fig7/fig9 PNGs.
 """
 
 from __future__ import annotations
