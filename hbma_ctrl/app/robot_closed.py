@@ -64,20 +64,17 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                    h0=None, cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
-    """Run the robot closed loop for ``duration`` s (see module doc); targets {layer: ((t s, centre m, bend rad, direction rad), ...)}.
+                    cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
+    """Run the robot closed loop for ``duration`` s from rest (see module doc).
 
-    h0 : must be None (every run starts from rest; kept so a caller's intent fails loudly).
+    targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
     interlock_margin : the supply is cut while a reading is within this of the pressure limit, Pa.
     cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
     fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
     its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
     """
-
     if controller not in CONTROLLERS:
         raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
-    if h0 is not None:
-        raise ValueError("run_closed_loop: h0 is not supported; every run starts from rest")
     check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
     d = settings.design
     rp = settings.pneumatics
