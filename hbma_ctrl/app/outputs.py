@@ -30,6 +30,7 @@ import stat
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
@@ -212,6 +213,11 @@ def _lock(out: Path, given: Path) -> Path:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             pid = _read_pid(lock)
+            for _ in range(10):  # a writer between its O_EXCL create and writing its pid: give it a moment
+                if pid is not None or not lock.exists():
+                    break
+                time.sleep(0.05)
+                pid = _read_pid(lock)
             if pid is not None and _pid_alive(pid):
                 raise _bad(given, f"is in use by another run (pid {pid}, lock {lock}); wait for it or choose "
                                   "another directory") from None
