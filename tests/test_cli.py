@@ -124,11 +124,15 @@ def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
         return [{"status": "ok", "max_height_mm": 1.0, "max_pressure_kpa": 2.0}]
 
     monkeypatch.setattr(cli_mod, "run_protocol", fake_run_protocol)
+    monkeypatch.chdir(tmp_path)  # the default --out is relative: runs/protocol
     res = runner.invoke(app, [])
     assert res.exit_code == 0, res.output
     assert len(calls) == 1
     material, out, integrator, dt, fidelity, workers, kw = calls[0]
-    assert (material, out, integrator, dt, fidelity, workers) == ("nh", Path("runs/protocol"), "rk4", None, "auto", 1)
+    assert (material, integrator, dt, fidelity, workers) == ("nh", "rk4", None, "auto", 1)
+    # the work goes to a temporary directory beside runs/protocol, moved into place when complete
+    assert out.parent == (tmp_path / "runs").resolve() and out.name.startswith(".protocol.tmp-")
+    assert json.loads((tmp_path / "runs" / "protocol" / "manifest.json").read_text())["status"] == "complete"
     assert kw["t_inflate_s"] == 3.0 and kw["duration_s"] == 6.0 and kw["plots"] is True
 
 

@@ -31,6 +31,7 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.sim.batch import quiet_worker
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["CASES", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench"]
@@ -82,7 +83,7 @@ def run_loop_bench(seeds: list[int], cases: list[str] | None = None, workers: in
     jobs = [(c, s) for c in cases for s in seeds]
     workers = max(1, min(int(workers), len(jobs), os.cpu_count() or 1))
     rows = []
-    with ProcessPoolExecutor(max_workers=workers) if workers > 1 else contextlib.nullcontext() as ex:
+    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_worker) if workers > 1 else contextlib.nullcontext() as ex:
         for r in (ex.map if ex else map)(_run, jobs):
             rows.append(r)
             if progress:

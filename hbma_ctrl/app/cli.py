@@ -6,7 +6,10 @@ Commands: ``run FILE``, ``protocol`` (also what a bare ``hbma-ctrl`` runs, with 
 and :mod:`hbma_ctrl.app.cli_robot`.
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
-exits with code 2, never a traceback.
+exits with code 2, never a traceback. Ctrl-C prints ``interrupted: partial results in <path>`` and
+exits with code 130. Every command writing a results directory goes through
+:func:`hbma_ctrl.app.outputs.run_dir` (``--out`` checked before any work, ``--overwrite`` to replace a
+run, manifest.json, nothing half-written left at ``--out``).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from hbma_ctrl.app.cli_controllers import register as register_controllers
 from hbma_ctrl.app.cli_estimators import register as register_estimators
 from hbma_ctrl.app.cli_robot import register as register_robot
 from hbma_ctrl.app.plots import equilibrium_grid, paper_figures
+from hbma_ctrl.app.outputs import ARGV_KEY, OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.app.protocol import run_protocol
 from hbma_ctrl.app.runner import run_scenario
 from hbma_ctrl.app.scenario import load_scenario
@@ -46,9 +50,28 @@ from hbma_ctrl.sim.trial import INTEGRATORS
 __all__ = ["app", "bench_app"]
 
 
+class _Interrupted(Exception):
+    """Ctrl-C seen inside a command; not a KeyboardInterrupt, so typer does not swallow it as exit 130."""
+
+    def __init__(self, partial):
+        super().__init__(str(partial))
+        self.partial = partial
+
 
 class _OneLineErrors(TyperGroup):
     """Top-level group: bad input and usage errors become one 'error: ...' line and exit code 2."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        argv = list(args)  # before parsing consumes them: manifest.json records the command line
+        ctx = super().make_context(info_name, args, parent=parent, **extra)
+        ctx.meta[ARGV_KEY] = argv
+        return ctx
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:
+            raise _Interrupted(getattr(exc, "partial", None)) from None
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         try:
@@ -60,8 +83,12 @@ class _OneLineErrors(TyperGroup):
             _fail(exc.format_message(), exc.exit_code)
         except typer.Abort:
             _fail("aborted", 1)
+        except _Interrupted as exc:
+            typer.echo(f"interrupted: partial results in {exc.partial}" if exc.partial else "interrupted", err=True)
+            sys.exit(130)
         except (ValueError, FileNotFoundError) as exc:
-            _fail(str(exc), 2)
+            partial = getattr(exc, "partial_results", None)
+            _fail(f"{exc}; partial results in {partial}" if partial else str(exc), 2)
         code = rv if isinstance(rv, int) else 0
         if standalone_mode:
             sys.exit(code)
@@ -116,13 +143,15 @@ def _main(ctx: typer.Context) -> None:
 def run(
     file: Annotated[Path, typer.Argument(help="scenario TOML file")],
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="output directory (default runs/<name>)")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
-    """Run a scenario file: writes metrics.json, the log CSV(s) and plots into --out."""
+    """Run a scenario file: writes metrics.json, the log CSV(s), plots and manifest.json into --out."""
 
     scn = load_scenario(file)
-    out_dir = out or Path("runs") / scn.name
+    out_dir = out or default_out(scn.name)
     t0 = time.perf_counter()
-    metrics = run_scenario(scn, out_dir)
+    with run_dir(out_dir, command="run", argv=cli_argv(), scenario_path=file, overwrite=overwrite) as tmp:
+        metrics = run_scenario(scn, tmp)
     con = _console()
     table = Table(title=f"{scn.name} ({scn.kind}) -> {out_dir}", show_header=True)
     table.add_column("role")
@@ -163,6 +192,7 @@ def protocol(
     t_inflate_s: Annotated[float, typer.Option("--t-inflate-s", help="inflation time, s")] = 3.0,
     duration_s: Annotated[float, typer.Option("--duration-s", help="trial duration, s")] = 6.0,
     no_plots: Annotated[bool, typer.Option("--no-plots", help="skip fig6/fig7/fig9")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Simulate the 150-trial characterisation protocol (README Model §7): DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
 
@@ -177,8 +207,9 @@ def protocol(
         raise ValueError(f"--t-inflate-s = {t_inflate_s:g} must be below --duration-s = {duration_s:g}")
     con = _console()
     t0 = time.perf_counter()
-    rows = run_protocol(material, out, integrator, None if dt_ms is None else U.ms(dt_ms), fidelity, workers,
-                        t_inflate_s=t_inflate_s, duration_s=duration_s, plots=not no_plots, progress=True)
+    with run_dir(out, command="protocol", argv=cli_argv(), overwrite=overwrite) as tmp:
+        rows = run_protocol(material, tmp, integrator, None if dt_ms is None else U.ms(dt_ms), fidelity, workers,
+                            t_inflate_s=t_inflate_s, duration_s=duration_s, plots=not no_plots, progress=True)
     wall = time.perf_counter() - t0
     counts: dict = {}
     for r in rows:
@@ -269,13 +300,15 @@ def plots(
     out: Annotated[Path, typer.Option("--out", "-o", help="output directory")] = Path("runs/plots"),
     material: Annotated[str, typer.Option(help="material of the fig 7 / fig 9 simulations")] = "nh",
     fidelity: Annotated[str, typer.Option(help="auto | quasi_static | platform")] = "auto",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Paper figures fig6.png (equilibrium surfaces), fig7.png and fig9.png (simulated) into --out."""
 
     _choice("--material", material, MATERIALS)
     _choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
-    paths = paper_figures(out, material, fidelity=fidelity)
-    _console().print("wrote " + ", ".join(str(p) for p in paths))
+    with run_dir(out, command="plots", argv=cli_argv(), overwrite=overwrite) as tmp:
+        paths = paper_figures(tmp, material, fidelity=fidelity)
+    _console().print("wrote " + ", ".join(str(out / Path(p).name) for p in paths))
 
 
 @bench_app.command("sim")
@@ -285,6 +318,8 @@ def bench_sim(
     out: Annotated[Path, typer.Option("--out", "-o", help="output dir (reference cache, bench.json/csv)")] = Path("runs/bench_sim"),
     repeat: Annotated[int, typer.Option(help="timed runs per setting (median reported)")] = 1,
     material: Annotated[str, typer.Option(help="membrane material")] = "nh",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP + "; its cached reference is kept")]
+    = False,
 ) -> None:
     """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference."""
 
@@ -298,7 +333,9 @@ def bench_sim(
                   f"cpu {row.cpu_s:7.2f} s  "
                   f"NRMSD h {row.height_nrmsd_max:.2e} p {row.pressure_nrmsd_max:.2e} (max)")
 
-    rows = run_bench(out, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show)
+    # the Radau reference cache (ref_*.npz) is keyed by trials and model sources: safe to carry over
+    with run_dir(out, command="bench sim", argv=cli_argv(), overwrite=overwrite, carry=("ref_*.npz",)) as tmp:
+        rows = run_bench(tmp, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show)
     table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
                         f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
     for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean", "h NRMSD max",

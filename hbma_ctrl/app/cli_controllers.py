@@ -11,6 +11,7 @@ from rich.table import Table
 
 from hbma_ctrl.app.bench_loop import run_loop_bench, summarize_loop, write_loop_bench
 from hbma_ctrl.app.bench_mpc import run_bench, summarize, write_bench
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.app.scenario import load_scenario
 
 __all__ = ["register"]
@@ -26,6 +27,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         = "steps_0g,steps_400g,load_step_200g",
         workers: Annotated[int, typer.Option(help="parallel processes (1-64)")] = 2,
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_loop.json")] = Path("runs/bench_loop"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
 
@@ -36,10 +38,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             raise ValueError(f"--workers = {workers} is out of range [1, 64]")
         con = Console(highlight=False, width=140)
         cs = [c.strip() for c in cases.split(",") if c.strip()]
-        rows = run_loop_bench(list(range(seeds)), cs, workers,
-                              progress=lambda r: con.print(f"  {r['case']} seed {r['seed']}: "
-                                                           f"{'ok' if r['passed'] else 'MISS'} "
-                                                           f"(final error {r['final_error_mm']:.3f} mm)"))
+        with run_dir(out, command="bench loop", argv=cli_argv(), overwrite=overwrite) as tmp:
+            rows = run_loop_bench(list(range(seeds)), cs, workers,
+                                  progress=lambda r: con.print(f"  {r['case']} seed {r['seed']}: "
+                                                               f"{'ok' if r['passed'] else 'MISS'} "
+                                                               f"(final error {r['final_error_mm']:.3f} mm)"))
+            written = write_loop_bench(rows, tmp)
         t = Table(title=f"bench loop: rig -> EKF -> RTI-OSQP -> rig, {seeds} noise seeds per case; "
                         f"pass = true height within 0.3 mm")
         for c in ("case", "passed", "final error median (mm)", "worst (mm)", "max p (kPa)", "limit (kPa)",
@@ -50,7 +54,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                       f"{v['final_error_mm_max']:.3f}", f"{v['max_pressure_kpa']:.2f}", f"{v['pressure_limit_kpa']:g}",
                       str(v["fallbacks"]))
         con.print(t)
-        con.print(f"wrote {write_loop_bench(rows, out)}")
+        con.print(f"wrote {out / written.name}")
 
     @bench_app.command("mpc")
     def bench_mpc(
@@ -66,6 +70,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         budget_ms: Annotated[float, typer.Option(help="MPC step budget in the sweep (generous: accuracy)")] = 1000.0,
         rt_budget_ms: Annotated[float, typer.Option(help="real-time budget for the over_rt column")] = 15.0,
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_mpc.json")] = Path("runs/bench_mpc"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """MPC speed/accuracy: IPOPT vs RTI-OSQP x horizon, baselines and do-mpc, on one closed loop."""
 
@@ -88,9 +93,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if not 0 < duration <= 600:
             raise ValueError(f"--duration = {duration:g} is out of range (0, 600] s")
         con = Console(highlight=False, width=170)
-        res = run_bench(duration=duration, variants=vs, horizons=hs, baselines=baselines, dompc=dompc,
-                        budget_ms=budget_ms, rt_budget_ms=rt_budget_ms,
-                        progress=lambda name: con.print(f"  running {name} ..."), **kw)
+        with run_dir(out, command="bench mpc", argv=cli_argv(), scenario_path=scenario, overwrite=overwrite) as tmp:
+            res = run_bench(duration=duration, variants=vs, horizons=hs, baselines=baselines, dompc=dompc,
+                            budget_ms=budget_ms, rt_budget_ms=rt_budget_ms,
+                            progress=lambda name: con.print(f"  running {name} ..."), **kw)
+            written = write_bench(res, tmp)
         t = Table(title=f"bench mpc: {res['settings']['load_g']:g} g, {duration:g} s, targets "
                         f"{res['settings']['targets_mm']} mm; solve = wall ms per step on this machine")
         for c in ("controller", "RMSE h (mm)", "RMSE est (mm)", "max p (kPa)", "solve med", "solve p99", "solve max",
@@ -107,4 +114,4 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         con.print(f"do-mpc: {res['dompc']}")
         for k, v in summarize(res).items():
             con.print(f"  {k}: {v if not isinstance(v, float) else f'{v:.3g}'}")
-        con.print(f"wrote {write_bench(res, out)}")
+        con.print(f"wrote {out / written.name}")

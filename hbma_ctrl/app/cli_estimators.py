@@ -18,6 +18,7 @@ from rich.table import Table
 from estimators.common import FilterSettings
 from estimators.observability import OBS_SCALE, WINDOW_S, run
 from hbma_ctrl.app.evaluate import _open_loop, aggregate, make_filter, run_and_score
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform
 from hbma_ctrl.sim.batch import protocol_trials
@@ -82,6 +83,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         r1_mm: Annotated[str, typer.Option(help="comma-separated retaining radii, mm")] = "7.5,12.5",
         seed: Annotated[int, typer.Option(help="rig noise seed")] = 0,
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_ekf.json")] = Path("runs/bench_ekf"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """EKF vs UKF on the same rig runs: us per predict+update (median) and accuracy."""
 
@@ -89,9 +91,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 "t0_mm": _floats("t0-mm", t0_mm), "r1_mm": _floats("r1-mm", r1_mm)}
         if not 0 <= seed <= 2**31:
             raise ValueError(f"--seed = {seed} is out of range [0, 2^31]")
-        res = bench_ekf(grid, seed=seed)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "bench_ekf.json").write_text(json.dumps(res, indent=1))
+        with run_dir(out, command="bench ekf", argv=cli_argv(), overwrite=overwrite) as tmp:
+            res = bench_ekf(grid, seed=seed)
+            (tmp / "bench_ekf.json").write_text(json.dumps(res, indent=1))
         t = Table(title=f"bench ekf: {res['settings']['n_trials']} rig trials (mismatched rig); "
                         "us = wall time per chamber-step on this machine")
         cols = [("us median", "step_us_median", "{:.0f}"), ("us p90", "step_us_p90", "{:.0f}"),
@@ -111,6 +113,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("observability")
     def observability_cmd(
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for observability.json")] = Path("runs/observability"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
         r1_mm: Annotated[Optional[float], typer.Option(help="retaining radius, mm (default 12.5)")] = None,
         t0_mm: Annotated[Optional[float], typer.Option(help="membrane thickness, mm (default 3)")] = None,
     ) -> None:
@@ -125,7 +128,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if t0_mm is not None:
             kw["t0"] = U.mm(t0_mm)
         act = act.with_(**kw) if kw else act
-        summ = run(out, act)
+        with run_dir(out, command="observability", argv=cli_argv(), overwrite=overwrite) as tmp:
+            summ = run(tmp, act)
         t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "
                         f"t0 {U.to_mm(act.t0):g} mm); window = up to {WINDOW_S:g} s in one regime, "
                         f"resolution {OBS_SCALE.tolist()}")

@@ -1,6 +1,8 @@
 """``hbma-ctrl robot ...``: the continuum robot's Table II, workspace and pose plots.
 
-Registered by :mod:`hbma_ctrl.app.cli` through :func:`register`. Edge units (mm, kPa, deg) here only;
+Registered by :mod:`hbma_ctrl.app.cli` through :func:`register`. Each command writes its own
+results directory (default ``runs/table2``, ``runs/workspace``, ``runs/pose``, ``runs/bench_robot``)
+through :func:`hbma_ctrl.app.outputs.run_dir`. Edge units (mm, kPa, deg) here only;
 :mod:`hbma_ctrl.robot` works in SI. Bad input raises ValueError, which the top-level CLI prints as
 one ``error: ...`` line with exit code 2.
 """
@@ -16,6 +18,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.app.robot_plots import plot_shapes, plot_workspace
 from hbma_ctrl.app.scene_robot_closed import bench_robot
 from hbma_ctrl.core import units as U
@@ -50,7 +53,8 @@ def _floats(text: str, what: str) -> list[float]:
 
 
 @robot_app.command("table2")
-def table2(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory for table2.md and table2.json"),
+def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="directory for table2.md and table2.json"),
+           overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
            layers: int = typer.Option(2, help="chamber layers of the robot (Fig. 10: 2, A and B)"),
            stretch: float = typer.Option(None, help="stretch of an inflated chamber (default: max stretch 4.0)"),
            hold_kpa: float = typer.Option(35.0, "--hold-kpa", help="near-branch reading: hold pressure, kPa")) -> None:
@@ -60,7 +64,11 @@ def table2(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory
     if stretch is not None and not 1.05 <= stretch <= 20.0:
         raise ValueError(f"--stretch = {stretch} is out of range [1.05, 20]")
     d = _design(layers)
-    rows = robot_table2(d, stretch=stretch, hold_pressure=U.kpa(hold_kpa))
+    with run_dir(out, command="robot table2", argv=cli_argv(), overwrite=overwrite) as tmp:
+        rows = robot_table2(d, stretch=stretch, hold_pressure=U.kpa(hold_kpa))
+        md = table2_markdown(rows)
+        (tmp / "table2.md").write_text(md)
+        (tmp / "table2.json").write_text(json.dumps(rows, indent=1) + "\n")
     tab = Table(title="Table II: model / paper (one layer of the robot)")
     for c in ("reading", "inflated", "angle (deg)", "length (mm)", "extension (%)", "chamber h (mm)", "p (kPa)",
               "stretch"):
@@ -71,16 +79,13 @@ def table2(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory
                     f"{r['extension_pct']:.0f} / {r['paper_extension_pct']:.0f}", f"{r['chamber_height_mm']:.2f}",
                     f"{r['pressure_kpa']:.1f}", f"{r['stretch']:.2f}")
     Console(highlight=False, width=150).print(tab)
-    out.mkdir(parents=True, exist_ok=True)
-    md = table2_markdown(rows)
-    (out / "table2.md").write_text(md)
-    (out / "table2.json").write_text(json.dumps(rows, indent=1) + "\n")
     typer.echo(md.splitlines()[-1])
     typer.echo(f"wrote {out / 'table2.md'} and {out / 'table2.json'}")
 
 
 @robot_app.command("workspace")
-def workspace(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory for workspace.png/.json"),
+def workspace(out: Path = typer.Option(Path("runs/workspace"), "--out", help="directory for workspace.png/.json"),
+              overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
               layers: int = typer.Option(3, help="chamber layers (Fig. 1: 3)"),
               pressure_limit_kpa: float = typer.Option(45.0, "--pressure-limit-kpa", help="chamber pressure limit"),
               max_stretch: float = typer.Option(None, "--max-stretch", help="membrane stretch limit (default 4.0)"),
@@ -91,7 +96,9 @@ def workspace(out: Path = typer.Option(Path("runs/robot"), "--out", help="direct
     if not 8 <= directions <= 3600:
         raise ValueError(f"--directions = {directions} is out of range [8, 3600]")
     d = _design(layers, max_stretch)
-    ws = reach.workspace(d, U.kpa(pressure_limit_kpa), n_dir=directions)
+    with run_dir(out, command="robot workspace", argv=cli_argv(), overwrite=overwrite) as tmp:
+        ws = reach.workspace(d, U.kpa(pressure_limit_kpa), n_dir=directions)
+        _write_workspace(ws, d, pressure_limit_kpa, tmp)
     tab = Table(title=f"reach per layer at {pressure_limit_kpa:g} kPa (gas-mass hold vs pressure control)")
     for c in ("layer", "load/chamber (N)", "h max (mm)", "limited by", "peak p (kPa) at h (mm)",
               "bend max (deg) over direction", "same, rims clear (deg)", "pressure control: h max (mm), bend (deg)"):
@@ -110,7 +117,12 @@ def workspace(out: Path = typer.Option(Path("runs/robot"), "--out", help="direct
     con.print(f"tip (all layers bent alike): bend up to {tb.min():.1f}-{tb.max():.1f} deg; tip height "
               f"{U.to_mm(ws['tip_height_range'][0]):.1f}-{U.to_mm(ws['tip_height_range'][1]):.1f} mm; pump stall "
               f"{U.to_kpa(ws['pump_stall']):g} kPa")
-    out.mkdir(parents=True, exist_ok=True)
+    typer.echo(f"wrote {out / 'workspace.png'} and {out / 'workspace.json'}")
+
+
+def _write_workspace(ws: dict, d: RobotDesign, pressure_limit_kpa: float, out: Path) -> None:
+    """workspace.png and workspace.json (edge units: deg, mm, kPa, N) into out."""
+    tb = np.degrees(ws["tip_bend_max"])
     plot_workspace(ws, out / "workspace.png")
     edge = {"direction_deg": np.degrees(ws["direction"]).tolist(), "pressure_limit_kpa": pressure_limit_kpa,
             "pump_stall_kpa": U.to_kpa(ws["pump_stall"]), "max_stretch": ws["max_stretch"],
@@ -126,11 +138,11 @@ def workspace(out: Path = typer.Option(Path("runs/robot"), "--out", help="direct
                         "bend_max_no_rim_contact_deg": np.degrees(ly["bend_max_no_rim_contact"]).tolist()}
                        for ly in ws["layers"]]}
     (out / "workspace.json").write_text(json.dumps(edge, indent=1) + "\n")
-    typer.echo(f"wrote {out / 'workspace.png'} and {out / 'workspace.json'}")
 
 
 @robot_app.command("pose")
-def pose(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory for pose.png"),
+def pose(out: Path = typer.Option(Path("runs/pose"), "--out", help="directory for pose.png"),
+         overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
          heights_mm: list[str] = typer.Option(None, "--heights-mm",
                                               help="chamber heights A1,A2,A3,B1,... in mm (3 per layer); "
                                                    "repeat the option to draw several shapes"),
@@ -161,6 +173,7 @@ def pose(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory f
             raise ValueError(f"--bend-deg = {bend_deg} is out of range [0, 90)")
         h = inverse_kinematics(d, U.mm(centre_mm), math.radians(bend_deg), math.radians(direction_deg))
         sets = [U.to_mm(h).ravel()]
+    check_out(out, overwrite)  # before the reach work below; run_dir checks again under its lock
     con = Console(highlight=False, width=150)
     shapes = []
     for s in sets:
@@ -177,9 +190,9 @@ def pose(out: Path = typer.Option(Path("runs/robot"), "--out", help="directory f
         tp = U.to_mm(p.tip_position)
         con.print(f"  tip at ({tp[0]:.1f}, {tp[1]:.1f}, {tp[2]:.1f}) mm, tilted {math.degrees(p.tip_bend):.1f} deg")
         con.print("  reach: ok" if rep["ok"] else "  reach: NOT reachable: " + "; ".join(rep["violations"]))
-    out.mkdir(parents=True, exist_ok=True)
-    plot_shapes(d, shapes, out / "pose.png", labels=[f"shape {i + 1}" for i in range(len(shapes))],
-                  title="robot pose")
+    with run_dir(out, command="robot pose", argv=cli_argv(), overwrite=overwrite) as tmp:
+        plot_shapes(d, shapes, tmp / "pose.png", labels=[f"shape {i + 1}" for i in range(len(shapes))],
+                    title="robot pose")
     typer.echo(f"wrote {out / 'pose.png'}")
 
 
@@ -187,7 +200,8 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
                     layers: str = typer.Option("1,2,3,4,5,6", help="layer counts to time, comma-separated (1-6)"),
                     duration: float = typer.Option(3.0, help="closed-loop run per layer count, s (0.5-60)"),
                     topology: str = typer.Option("per_chamber", help="per_chamber | shared"),
-                    horizon: int = typer.Option(15, help="NMPC stages (1-100)")) -> None:
+                    horizon: int = typer.Option(15, help="NMPC stages (1-100)"),
+                    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP)) -> None:
     """Whole-robot step time (EKF bank + load sharing + NMPC) for 1..6 layers: median and p99, ms."""
 
     ns = [int(v) for v in _floats(layers, "--layers")]
@@ -199,7 +213,10 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
         raise ValueError(f"--topology = '{topology}': allowed {', '.join(TOPOLOGIES)}")
     if not 1 <= horizon <= 100:
         raise ValueError(f"--horizon = {horizon} is out of range [1, 100]")
-    rows = bench_robot(ns, duration, topology, horizon)
+    with run_dir(out, command="bench robot", argv=cli_argv(), overwrite=overwrite) as tmp:
+        rows = bench_robot(ns, duration, topology, horizon)
+        (tmp / "bench_robot.json").write_text(json.dumps({"topology": topology, "horizon": horizon,
+                                                          "duration_s": duration, "rows": rows}, indent=1) + "\n")
     tab = Table(title=f"robot step (EKF bank + NMPC), topology {topology}, horizon {horizon}")
     for c in ("layers", "chambers", "QP vars", "median ms", "p99 ms", "max ms", "EKF ms", "NMPC ms", "fallbacks"):
         tab.add_column(c, justify="right")
@@ -208,9 +225,6 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
                     f"{r['step_ms_p99']:.2f}", f"{r['step_ms_max']:.2f}", f"{r['ekf_ms_median']:.2f}",
                     f"{r['mpc_ms_median']:.2f}", str(r["fallbacks"]))
     Console().print(tab)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_robot.json").write_text(json.dumps({"topology": topology, "horizon": horizon, "duration_s": duration,
-                                                      "rows": rows}, indent=1) + "\n")
     typer.echo(f"wrote {out / 'bench_robot.json'}")
 
 

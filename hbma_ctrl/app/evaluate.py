@@ -31,7 +31,7 @@ from estimators.ukf import UKF
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command
-from hbma_ctrl.sim.batch import scenario_of
+from hbma_ctrl.sim.batch import quiet_worker, scenario_of
 from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import SimSettings, Trial
@@ -178,7 +178,7 @@ def evaluate_trials(trials: list[Trial], kind: str = "ekf", rig: RigSettings | N
     chunks = [trials[i::workers] for i in range(workers)]
     order = [list(range(len(trials)))[i::workers] for i in range(workers)]
     res: list = [None] * len(trials)
-    with ProcessPoolExecutor(max_workers=workers) as ex:
+    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_worker) as ex:
         for idx, part in zip(order, ex.map(_chunk, [(kind, c, rig, fs, with_series, o)
                                                           for c, o in zip(chunks, order)])):
             for i, r in zip(idx, part):

@@ -68,13 +68,14 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
     (out / "trials").mkdir(parents=True, exist_ok=True)
     logs = simulate_trials(trials, settings, fidelity, workers, progress)
     rows = [summary_row(tr, log) for tr, log in zip(trials, logs)]
-    write_summary(rows, out / "summary.csv")
     with progress_bar(progress) as bar:
         task = bar.add_task("writing trials/*.csv", total=len(trials)) if bar else None
         for log in logs:
             write_log_csv(log, out / "trials" / f"{log.name}.csv")
             if bar:
                 bar.advance(task)
+    # after the trial files: a summary.csv is only there when every trial it lists was written
+    write_summary(rows, out / "summary.csv")
     if plots:
 
         mat = make_material(material) if isinstance(material, str) else material

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 import re
+import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 from rich.progress import (
@@ -34,7 +35,7 @@ from hbma_ctrl.models.fidelity import FIDELITIES
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import InputSchedule, Log, SimSettings, Trial
 
-__all__ = ["PROTOCOL_DEFAULTS", "FIDELITY_CHOICES", "fidelity_for", "protocol_trials", "simulate_trials",
+__all__ = ["PROTOCOL_DEFAULTS", "FIDELITY_CHOICES", "fidelity_for", "protocol_trials", "quiet_worker", "simulate_trials",
            "trial_name", "scenario_of"]
 
 FIDELITY_CHOICES = ("auto",) + tuple(FIDELITIES)
@@ -146,6 +147,15 @@ def _chunks(trials: list[Trial], n: int, fidelity: str) -> list[list[int]]:
     return [c for c in chunks if c]
 
 
+def quiet_worker() -> None:
+    """ProcessPoolExecutor initializer: Ctrl-C ends a worker without a traceback.
+
+    The terminal sends SIGINT to every process of the group; the default action ends the worker
+    silently, and the parent alone reports the interruption.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fidelity: str = "auto",
                     workers: int = 1, progress: bool = False, label: str = "simulating") -> list[Log]:
     """Simulate trials with the protocol's fidelity rule, serially or in ``workers`` processes.
@@ -175,7 +185,7 @@ def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fi
                     bar.advance(task, len(idx))
         return logs
     chunks = _chunks(trials, workers, fidelity)
-    with ProcessPoolExecutor(max_workers=len(chunks)) as ex:
+    with ProcessPoolExecutor(max_workers=len(chunks), initializer=quiet_worker) as ex:
         futs = {ex.submit(_simulate_chunk, [trials[i] for i in c], settings, fidelity): c for c in chunks}
 
         with progress_bar(progress) as bar:

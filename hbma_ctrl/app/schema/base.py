@@ -12,6 +12,7 @@ from typing import Any, Literal, NamedTuple
 
 from pydantic import PrivateAttr, field_validator, model_validator
 
+from hbma_ctrl.app.outputs import NAME_RULE, is_plain_name
 from hbma_ctrl.app.schema.errors import closest
 from hbma_ctrl.app.schema.fields import (
     RuleError,
@@ -71,9 +72,19 @@ def build_material(name: str, params: dict, table: str) -> Any:
 class ScenarioTable(Table):
     """[scenario]: what the run is called, how long, one trial or the protocol grid."""
 
-    name: str | None = text(None, "run name; default: the file's stem")
+    name: str | None = text(None, "run name, also the default output directory runs/<name>; default: the "
+                                  "file's stem")
     duration_s: float | None = num(None, 0.0, 3600.0, "s", "run length; default 6", lo_open=True)
     kind: Literal["single", "protocol"] = choice("single", "one trial or the protocol grid")
+
+    @field_validator("name")
+    @classmethod
+    def _plain_name(cls, v: str | None) -> str | None:
+        # the name becomes a directory when --out is omitted: never a path that escapes runs/
+        if v is not None and not is_plain_name(v):
+            raise RuleError(f"name = {v!r} must be a plain directory name: {NAME_RULE}, no path separators",
+                            "scenario")
+        return v
 
 
 class ActuatorTable(Table):

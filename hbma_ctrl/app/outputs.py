@@ -1,0 +1,338 @@
+"""Results directories that are never lost or mixed: checked, locked, written aside, moved in whole.
+
+Every command that writes a results directory does its work inside :func:`run_dir`::
+
+    with run_dir(out, command="run", argv=argv, scenario_path=file, overwrite=False) as tmp:
+        ...write into tmp...
+
+Before any work ``--out`` is checked (a non-directory, a device, an unwritable parent or a run
+already there without ``overwrite``: one ValueError naming ``--out``) and locked (``.<name>.lock``
+beside it, created with O_EXCL, holding the pid; a lock whose pid is gone is taken over). The work
+goes to a temporary directory beside ``--out`` (same filesystem, so the final move is one rename).
+On success ``manifest.json`` is written last and the directory renamed to ``--out`` (an old run
+under ``--overwrite`` is moved aside first and deleted once the new one is in place). On Ctrl-C or
+an exception the directory becomes ``<out>.interrupted-<UTC stamp>`` or ``<out>.failed-<UTC stamp>``
+with its manifest saying so: nothing that looks complete is left at ``--out``.
+
+``manifest.json`` keys: :data:`MANIFEST_KEYS`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import hashlib
+import json
+import os
+import re
+import shutil
+import stat
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from importlib import metadata
+from pathlib import Path
+
+try:  # typer >= 0.24 vendors click as typer._click; older typer uses click itself
+    from typer._click.globals import get_current_context
+except ImportError:  # pragma: no cover
+    from click import get_current_context
+
+__all__ = [
+    "MANIFEST_KEYS",
+    "NAME_RULE",
+    "OVERWRITE_HELP",
+    "RunInterrupted",
+    "ARGV_KEY",
+    "check_out",
+    "cli_argv",
+    "default_out",
+    "is_plain_name",
+    "manifest",
+    "run_dir",
+]
+
+#: the keys of every manifest.json (times ISO 8601 UTC; status complete | interrupted | failed)
+MANIFEST_KEYS = ("command", "argv", "version", "git_commit", "scenario_path", "scenario_sha256",
+                 "started_utc", "finished_utc", "status", "error")
+
+#: help text of every writing command's --overwrite flag
+OVERWRITE_HELP = "replace a run already in --out (otherwise refused)"
+
+#: the rule a name must follow to become a directory name (quoted by the errors)
+NAME_RULE = "letters, digits, '-', '_' and '.' only, not starting with '.'"
+
+#: where the top-level CLI group keeps the command line it was given (in the click context's meta)
+ARGV_KEY = "hbma_ctrl.argv"
+
+_PLAIN = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
+_PKG_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the hbma_ctrl package
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C inside :func:`run_dir`; ``partial`` is the ``.interrupted-*`` directory kept."""
+
+    def __init__(self, partial: Path):
+        super().__init__(str(partial))
+        self.partial = partial
+
+
+def is_plain_name(name: str) -> bool:
+    """True when ``name`` can be one directory name: see :data:`NAME_RULE`."""
+    return isinstance(name, str) and _PLAIN.fullmatch(name) is not None
+
+
+def default_out(name: str, root: Path | str = "runs") -> Path:
+    """``root/name`` for a scenario without ``--out``; ValueError naming ``[scenario] name`` otherwise."""
+    if not is_plain_name(name):
+        raise ValueError(f"[scenario] name = {name!r} cannot name the output directory: use {NAME_RULE} "
+                         f"(no path separators), or pass --out")
+    return Path(root) / name
+
+
+def cli_argv() -> list[str]:
+    """The arguments of the running ``hbma-ctrl`` command (as the CLI got them), else sys.argv[1:]."""
+    ctx = get_current_context(silent=True)
+    argv = ctx.meta.get(ARGV_KEY) if ctx is not None else None
+    return list(argv) if argv is not None else list(sys.argv[1:])
+
+
+def _utc() -> str:
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
+def _stamp() -> str:
+    return dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+
+
+def _version() -> str | None:
+    try:
+        return metadata.version("hbma-ctrl")
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _git_commit() -> str | None:
+    # only when the package itself runs from a checkout (a worktree has a .git file, not a folder)
+    if not (_PKG_ROOT / ".git").exists():
+        return None
+    try:
+        res = subprocess.run(["git", "-C", str(_PKG_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True,
+                             timeout=5, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    sha = res.stdout.strip()
+    return sha if res.returncode == 0 and re.fullmatch(r"[0-9a-f]{40}", sha) else None
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def manifest(command: str, argv: Sequence[str] | None = None, scenario_path: Path | str | None = None) -> dict:
+    """A fresh manifest (status "running", no end time) with every key of :data:`MANIFEST_KEYS`."""
+    scn = Path(scenario_path) if scenario_path is not None else None
+    return {
+        "command": command,
+        "argv": list(argv) if argv is not None else list(sys.argv[1:]),
+        "version": _version(),
+        "git_commit": _git_commit(),
+        "scenario_path": str(scn) if scn is not None else None,
+        "scenario_sha256": _sha256(scn) if scn is not None and scn.is_file() else None,
+        "started_utc": _utc(),
+        "finished_utc": None,
+        "status": "running",
+        "error": None,
+    }
+
+
+def _bad(out: Path, why: str) -> ValueError:
+    return ValueError(f"--out {out}: {why}")
+
+
+def check_out(out: Path | str, overwrite: bool = False) -> Path:
+    """Check ``--out`` before any work; returns it absolute. ValueError (naming --out) when unusable.
+
+    Refused: something that is not a directory (a file, a device, a pipe), a parent that is a file
+    or not writable, and a non-empty directory (a run) unless ``overwrite``.
+    """
+    given = Path(out)
+    path = Path(os.path.abspath(given.expanduser()))
+    if path.parent == path:
+        raise _bad(given, "is a filesystem root; choose a directory below it")
+    if path.exists() or path.is_symlink():
+        mode = os.stat(path).st_mode if path.exists() else 0
+        if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+            raise _bad(given, "is a device, not a directory")
+        if not stat.S_ISDIR(mode):
+            raise _bad(given, "exists and is not a directory")
+        path = path.resolve()  # a symlinked run dir: lock and replace the real one
+        if any(path.iterdir()) and not overwrite:
+            raise _bad(given, "already holds a run (a non-empty directory); pass --overwrite or choose another "
+                              "directory")
+    anc = path.parent
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise _bad(given, f"{anc} is not a directory")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise _bad(given, f"{anc} is not writable")
+    return path
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def _read_pid(path: Path) -> int | None:
+    try:
+        return int(path.read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _lock(out: Path, given: Path) -> Path:
+    """Create ``.<name>.lock`` beside out (O_EXCL, our pid); a lock of a dead pid is taken over."""
+    lock = out.parent / f".{out.name}.lock"
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            pid = _read_pid(lock)
+            for _ in range(10):  # a writer between its O_EXCL create and writing its pid: give it a moment
+                if pid is not None or not lock.exists():
+                    break
+                time.sleep(0.05)
+                pid = _read_pid(lock)
+            if pid is not None and _pid_alive(pid):
+                raise _bad(given, f"is in use by another run (pid {pid}, lock {lock}); wait for it or choose "
+                                  "another directory") from None
+            # stale: move it aside atomically, so two takers cannot both remove a fresh lock
+            aside = lock.with_name(f"{lock.name}.stale-{os.getpid()}")
+            try:
+                os.rename(lock, aside)
+            except FileNotFoundError:
+                continue
+            if _read_pid(aside) != pid:  # another taker's fresh lock was moved: put it back, then retry
+                with contextlib.suppress(OSError):
+                    os.link(aside, lock)
+            with contextlib.suppress(OSError):
+                os.unlink(aside)
+            continue
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{os.getpid()}\n")
+        return lock
+    raise _bad(given, f"could not take the lock {lock}; try again")
+
+
+def _beside(out: Path, tag: str) -> Path:
+    base = out.parent / f"{out.name}.{tag}-{_stamp()}"
+    path, k = base, 1
+    while path.exists():
+        path, k = Path(f"{base}-{k}"), k + 1
+    return path
+
+
+def _write_manifest(man: dict, folder: Path) -> None:
+    tmp = folder / ".manifest.json.tmp"
+    tmp.write_text(json.dumps(man, indent=1) + "\n")
+    os.replace(tmp, folder / "manifest.json")
+
+
+def _park(tmp: Path, out: Path, status: str, man: dict, error: str | None) -> Path:
+    """Mark the work ``status`` and rename it beside out; returns where it went (tmp if the rename fails)."""
+    man.update(status=status, finished_utc=_utc(), error=error)
+    with contextlib.suppress(OSError):
+        _write_manifest(man, tmp)
+    dest = _beside(out, status)
+    try:
+        os.rename(tmp, dest)
+    except OSError:
+        return tmp
+    return dest
+
+
+def _install(tmp: Path, out: Path) -> None:
+    """Move the finished run into place: one rename; an old run is moved aside, then deleted."""
+    old = None
+    if out.exists():
+        if any(out.iterdir()):
+            old = out.parent / f".{out.name}.old-{_stamp()}-{os.getpid()}"
+            os.rename(out, old)
+        else:
+            out.rmdir()
+    try:
+        os.rename(tmp, out)
+    except OSError:
+        if old is not None:
+            os.rename(old, out)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+@contextlib.contextmanager
+def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
+            scenario_path: Path | str | None = None, overwrite: bool = False,
+            carry: Sequence[str] = ()) -> Iterator[Path]:
+    """Check and lock ``out``, yield a temporary directory beside it, move it to ``out`` on success.
+
+    ``command``/``argv``/``scenario_path`` go to manifest.json. ``carry``: glob patterns of files
+    copied from the run being replaced (``overwrite``) into the new one before the work, e.g. a
+    self-validating cache. Ctrl-C raises :class:`RunInterrupted` (``partial`` = the
+    ``.interrupted-*`` directory); another exception propagates with ``partial_results`` set.
+    """
+    given = Path(out)
+    path = check_out(given, overwrite)
+    man = manifest(command, argv, scenario_path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _bad(given, f"cannot create its parent: {exc.strerror or exc}") from None
+    lock = _lock(path, given)
+    try:
+        path = check_out(given, overwrite)  # again under the lock: another writer may have finished meanwhile
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+        except OSError as exc:
+            raise _bad(given, f"cannot write beside it: {exc.strerror or exc}") from None
+        if overwrite and path.is_dir():
+            for pattern in carry:
+                for f in path.glob(pattern):
+                    if f.is_file():
+                        shutil.copy2(f, tmp / f.name)
+        try:
+            yield tmp
+        except KeyboardInterrupt:
+            raise RunInterrupted(_park(tmp, path, "interrupted", man, "KeyboardInterrupt")) from None
+        except BaseException as exc:
+            dest = _park(tmp, path, "failed", man, _one_line(exc))
+            with contextlib.suppress(AttributeError, TypeError):
+                exc.partial_results = dest  # the CLI's one-line error says where the partial work is
+            raise
+        man.update(status="complete", finished_utc=_utc())
+        _write_manifest(man, tmp)  # last: a manifest saying complete means every file is there
+        _install(tmp, path)
+    finally:
+        with contextlib.suppress(OSError):
+            if _read_pid(lock) == os.getpid():
+                lock.unlink()
