@@ -52,6 +52,7 @@ __all__ = [
     "parse_data",
     "param_names",
     "model_pressure",
+    "check_options",
     "fit_static",
     "params_toml",
     "write_fit",
@@ -303,6 +304,22 @@ def _jacobian(fun, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float = 1
     return np.stack(cols, axis=1)
 
 
+def check_options(material: str, contact: str | None, fidelity: str) -> None:
+    """ValueError naming the flag for an unknown material, contact or fidelity, or one not available yet."""
+    if fidelity == "exact":
+        raise ValueError("--fidelity exact: not available yet (the exact axisymmetric membrane comes with a "
+                         "later release); use --fidelity cap")
+    if fidelity not in FIDELITIES:
+        raise ValueError(f"--fidelity {fidelity}{did_you_mean(fidelity, FIDELITIES)}; allowed: {', '.join(FIDELITIES)}")
+    if contact == "bonded":
+        raise ValueError("--contact bonded: not available yet (a membrane glued to the plate comes with a later "
+                         "release); use --contact free or flat")
+    if contact is not None and contact not in CONTACTS:
+        raise ValueError(f"--contact {contact}{did_you_mean(contact, CONTACTS)}; allowed: {', '.join(CONTACTS)}")
+    if material not in MATERIALS:
+        raise ValueError(f"--material {material}{did_you_mean(material, MATERIALS)}; allowed: {', '.join(MATERIALS)}")
+
+
 def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: str | None = None,
                fix: dict | None = None, fidelity: str = "cap") -> FitResult:
     """Least-squares fit of a material's parameters (SI) to static data; r1, t0 in m.
@@ -310,17 +327,9 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     ``contact`` None picks 'flat' when the data have a force column, else 'free'. ``fix`` holds
     flattened parameters at SI values. ValueError for unavailable options or too few points.
     """
-    if fidelity != "cap":
-        raise ValueError(f"--fidelity {fidelity}: not available yet (only 'cap', the spherical-cap model of "
-                         "README Model §1-§3)")
-    if contact == "bonded":
-        raise ValueError("--contact bonded: not available yet (only 'free' and 'flat')")
+    check_options(material, contact, fidelity)
     if contact is None:
         contact = "flat" if data.F is not None else "free"
-    if contact not in CONTACTS:
-        raise ValueError(f"--contact {contact}{did_you_mean(contact, CONTACTS)}; allowed: {', '.join(CONTACTS)}")
-    if material not in MATERIALS:
-        raise ValueError(f"--material {material}{did_you_mean(material, MATERIALS)}; allowed: {', '.join(MATERIALS)}")
     if contact == "flat" and data.F is None:
         raise ValueError("data: missing column 'F_n' or 'load_g': --contact flat needs the load of each point")
     if contact == "free" and data.F is not None and np.any(data.F > 0):
