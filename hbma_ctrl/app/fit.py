@@ -26,10 +26,10 @@ import io
 import json
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
-from pathlib import Path
 from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
@@ -422,8 +422,9 @@ def _toml_value(v) -> str:
 def params_toml(result: FitResult) -> str:
     """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
     kw = _unflatten(result.material, result.params)
-    lines = [f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
-             f"NRMSD {result.nrmsd:.4f}",
+    head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
+            f"NRMSD {result.nrmsd:.4f}")
+    lines = [head,
              f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}",
              "[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in kw.items()]
