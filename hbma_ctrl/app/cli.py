@@ -35,6 +35,7 @@ except ImportError:  # pragma: no cover
 from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
 from hbma_ctrl.app.cli_controllers import register as register_controllers
 from hbma_ctrl.app.cli_estimators import register as register_estimators
+from hbma_ctrl.app.cli_fit import register as register_fit
 from hbma_ctrl.app.cli_robot import register as register_robot
 from hbma_ctrl.app.plots import equilibrium_grid, paper_figures
 from hbma_ctrl.app.outputs import ARGV_KEY, OVERWRITE_HELP, cli_argv, default_out, run_dir
@@ -356,5 +357,5 @@ def _dt_text(row) -> str:
     return f"{row.dt_ms:g}"
 
 
-for _register in (register_estimators, register_controllers, register_robot):
+for _register in (register_estimators, register_controllers, register_robot, register_fit):
     _register(app, bench_app)

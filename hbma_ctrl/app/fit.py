@@ -1,0 +1,461 @@
+"""Fit a membrane material to static equilibrium data: ``hbma-ctrl fit`` (SI inside).
+
+Static data are equilibrium points of one chamber (README Model §1-§3): CSV columns ``h_mm``,
+``p_kpa`` and, for a chamber lifting a load or pressed by a flat plate, ``F_n`` or ``load_g``.
+Each point's model pressure comes from the package's physics:
+
+- ``free``: a free cap of height h (h2 = 0), ``p = pressure(h, 0)``;
+- ``flat``: the contact shape (h1, h2) with ``h1 - h2 = h`` and ``F(h1, h2) = F``, solved by the one
+  shape solver (:meth:`hbma_ctrl.models.shape.ShapeSolver.h2_for_force`), then ``p = pressure(h1, h2)``.
+
+The material parameters (flattened as in :class:`hbma_ctrl.core.physics.ParamSpace`: ``E``; ``C1``,
+``C2``; ``C0..C2`` for Yeoh; ``mu``, ``Jm``; ``mu0, mu1, alpha0, alpha1``) are fitted by
+``scipy.optimize.least_squares`` on the pressure residuals divided by the data's pressure span, from
+several starts. Intervals (95 %) come from the Jacobian at the optimum with the residual variance and
+a t quantile; directions the data cannot separate are the eigenvectors of the column-scaled
+``J^T J`` with eigenvalue ratio below :data:`EIG_RATIO`, or parameter pairs with
+``|correlation| >`` :data:`CORR_LIMIT`.
+
+Only :func:`write_fit` touches files; :func:`parse_data` takes the file's bytes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+from scipy.optimize import least_squares
+from scipy.stats import t as t_dist
+
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.materials import MATERIALS, make_material
+from hbma_ctrl.core.params import Actuator
+from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.shape import ShapeSolver
+
+__all__ = [
+    "CONTACTS",
+    "FIDELITIES",
+    "FIT_KEYS",
+    "EIG_RATIO",
+    "CORR_LIMIT",
+    "StaticData",
+    "FitResult",
+    "parse_data",
+    "param_names",
+    "model_pressure",
+    "check_options",
+    "fit_static",
+    "params_toml",
+    "write_fit",
+]
+
+#: contact modes of this command; 'bonded' is refused until the later part of the tuning issue
+CONTACTS = ("free", "flat")
+#: fidelities of this command; 'exact' (axisymmetric membrane) is refused until the later part
+FIDELITIES = ("cap",)
+#: the keys of fit.json
+FIT_KEYS = ("material", "params", "ci95", "nrmsd", "n_points", "unidentifiable", "correlation")
+#: eigenvalue ratio (to the largest) of the scaled J^T J below which a direction is not identified
+EIG_RATIO = 1e-6
+#: |correlation| above which two parameters are reported as trading off
+CORR_LIMIT = 0.98
+#: p_kpa above this looks like Pa
+_P_KPA_MAX = 1000.0
+#: start factors on the default moduli (log-spaced)
+_START_FACTORS = (0.1, 0.3, 1.0, 3.0, 10.0)
+#: residual given to a non-physical point (Gent past locking), in units of the pressure span
+_BAD_RESIDUAL = 10.0
+
+
+@dataclass(frozen=True)
+class StaticData:
+    """Static equilibrium points, SI: heights h (m), pressures p (Pa), contact loads F (N; None = no column)."""
+
+    h: np.ndarray
+    p: np.ndarray
+    F: np.ndarray | None = None
+    force_column: str | None = None
+
+
+@dataclass
+class FitResult:
+    """A fit: material name, fitted parameters (SI, flattened names), 95 % intervals, correlation,
+    NRMSD of the pressure (paper eq. 16), the unidentified directions in words, and the data and
+    model pressures (Pa) at the data heights (m) for the plot."""
+
+    material: str
+    params: dict
+    ci95: dict
+    nrmsd: float
+    n_points: int
+    unidentifiable: list
+    correlation: dict
+    contact: str
+    r1: float
+    t0: float
+    fixed: dict = field(default_factory=dict)
+    h: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def as_json(self) -> dict:
+        """fit.json content: exactly :data:`FIT_KEYS`."""
+        return {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
+                "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation}
+
+
+# ---------------------------------------------------------------------------------------------
+# data
+# ---------------------------------------------------------------------------------------------
+def _number(text: str, col: str, row: int) -> float:
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a finite number")
+    return v
+
+
+def parse_data(raw: bytes) -> StaticData:
+    """Static data from a CSV file's bytes (h_mm, p_kpa, optional F_n or load_g) in SI.
+
+    One ValueError naming the column and the 1-based data row for a bad value; lines starting
+    with '#' and blank lines are skipped. A ``t_s`` column (dynamic data) is refused.
+    """
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ValueError(f"data: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); save the "
+                         "file as UTF-8") from None
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise ValueError("data: the file is empty; expected a header h_mm,p_kpa[,F_n|load_g] and data rows")
+    reader = csv.reader(io.StringIO("\n".join(lines)))
+    header = [c.strip() for c in next(reader)]
+    if "t_s" in header:
+        raise ValueError("data: column 't_s' means dynamic data; dynamic fits are not available yet "
+                         "(only static equilibrium points: h_mm, p_kpa[, F_n|load_g])")
+    for col in ("h_mm", "p_kpa"):
+        if col not in header:
+            hint = did_you_mean(col, header)
+            raise ValueError(f"data: missing column '{col}'{hint}; columns: {', '.join(header)}")
+    if "F_n" in header and "load_g" in header:
+        raise ValueError("data: columns 'F_n' and 'load_g' both given; keep one")
+    fcol = "F_n" if "F_n" in header else "load_g" if "load_g" in header else None
+    cols = ["h_mm", "p_kpa"] + ([fcol] if fcol else [])
+    idx = {c: header.index(c) for c in cols}
+    vals = {c: [] for c in cols}
+    for row, cells in enumerate(reader, start=1):
+        for c in cols:
+            cell = cells[idx[c]].strip() if idx[c] < len(cells) else ""
+            if cell == "":
+                raise ValueError(f"data: column '{c}', row {row}: empty value")
+            v = _number(cell, c, row)
+            if v < 0:
+                what = {"h_mm": "height", "p_kpa": "pressure"}.get(c, "load")
+                raise ValueError(f"data: column '{c}', row {row}: {what} {v:g} is negative")
+            if c == "p_kpa" and v > _P_KPA_MAX:
+                raise ValueError(f"data: column 'p_kpa', row {row}: {v:g} kPa is above {_P_KPA_MAX:g} kPa; the "
+                                 "values look like Pa: convert them to kPa")
+            vals[c].append(v)
+    if not vals["h_mm"]:
+        raise ValueError("data: no data rows below the header")
+    F = None
+    if fcol == "F_n":
+        F = np.array(vals["F_n"])
+    elif fcol == "load_g":
+        F = U.grams(np.array(vals["load_g"])) * U.G_STD
+    return StaticData(U.mm(np.array(vals["h_mm"])), U.kpa(np.array(vals["p_kpa"])), F, fcol)
+
+
+# ---------------------------------------------------------------------------------------------
+# model
+# ---------------------------------------------------------------------------------------------
+def param_names(material: str) -> list[str]:
+    """Flattened parameter names of a material ('C0', 'alpha1' for tuple entries)."""
+    space = ph.ParamSpace.for_material(make_material(material))
+    return space.names[len(ph.BASE_NAMES):]
+
+
+def _unflatten(material: str, values: dict) -> dict:
+    """Flattened {name: value} -> make_material keyword arguments (tuples for tuple fields)."""
+    space = ph.ParamSpace.for_material(make_material(material))
+    kw = {}
+    for name, n in space.material_sizes:
+        kw[name] = float(values[name]) if n == 0 else [float(values[f"{name}{i}"]) for i in range(n)]
+    return kw
+
+
+class _Model:
+    """Model pressures at the data points for flattened material parameter vectors (SI)."""
+
+    def __init__(self, material: str, r1: float, t0: float, data: StaticData, contact: str):
+        mat = make_material(material)
+        act = Actuator(r1=r1, t0=t0, material=mat).validate()
+        self.space = ph.ParamSpace.for_material(mat)
+        theta = self.space.values(act)
+        self.base = theta[:len(ph.BASE_NAMES)]
+        self.default = theta[len(ph.BASE_NAMES):]
+        self.data, self.contact, self.r1 = data, contact, r1
+
+    def pressure(self, values: np.ndarray) -> np.ndarray:
+        solver = ShapeSolver(self.space, np.concatenate([self.base, values]))
+        h = self.data.h
+        if self.contact == "free" or self.data.F is None:
+            h2 = np.zeros_like(h)
+        else:
+            F = self.data.F
+            h2 = np.zeros_like(h)
+            on = F > 0
+            if on.any():
+                h2[on] = solver.h2_for_force(h[on], F[on])
+        return solver.eval(h + h2, h2)["p"]
+
+
+def model_pressure(material: str, params: dict, r1: float, t0: float, data: StaticData, contact: str) -> np.ndarray:
+    """Model pressure (Pa) at the data points for flattened parameters (SI), r1, t0 (m)."""
+    model = _Model(material, r1, t0, data, contact)
+    names = param_names(material)
+    return model.pressure(np.array([params[n] for n in names], dtype=float))
+
+
+def _bounds(material: str, names: list[str], default: np.ndarray, data: StaticData, r1: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Physical bounds (SI): positive moduli, Gent Jm above the data's largest I1 - 3."""
+    lo = np.full(len(names), -np.inf)
+    hi = np.full(len(names), np.inf)
+    for i, n in enumerate(names):
+        if material == "mr" and n == "C2":
+            lo[i] = 0.0
+        elif material == "yeoh" and n in ("C1", "C2"):
+            pass  # higher Yeoh terms may be negative (softening then stiffening)
+        elif material == "gent" and n == "Jm":
+            # the free-cap stretch at h is the smallest stretch a point of height h can have (a
+            # contact h2 > 0 only stretches more): a lower bound of the data's I1 - 3
+            lam2 = (data.h.max() ** 2 + r1 ** 2) / r1 ** 2
+            lo[i] = 1.001 * (2 * lam2 + lam2 ** -2 - 3) + 1e-6
+            hi[i] = 1e6
+        elif material == "ogden" and n.startswith("alpha"):
+            lo[i], hi[i] = 0.05, 50.0
+        else:  # a modulus: positive (a tiny floor keeps the material valid)
+            lo[i] = 1e-9 * abs(default[i])
+    return lo, hi
+
+
+def _parse_fix(material: str, fix: dict, names: list[str]) -> dict:
+    out = {}
+    for k, v in fix.items():
+        if k not in names:
+            hint = did_you_mean(k, names)
+            raise ValueError(f"--fix {k}: not a parameter of material '{material}'{hint}; allowed: {', '.join(names)}")
+        if not math.isfinite(v):
+            raise ValueError(f"--fix {k}={v}: not a finite number")
+        out[k] = float(v)
+    return out
+
+
+def _sentences(names: list[str], corr: np.ndarray, JtJ_scaled: np.ndarray) -> list[str]:
+    """The unidentified directions in words: eigenvectors of small eigenvalue and correlated pairs."""
+    out: list[str] = []
+    seen: set = set()
+    w, V = np.linalg.eigh(JtJ_scaled)
+    wmax = max(float(w.max()), 1e-300)
+    for k in range(len(w)):
+        if w[k] / wmax >= EIG_RATIO:
+            continue
+        v = V[:, k] / np.max(np.abs(V[:, k]))
+        part = tuple(names[i] for i in range(len(names)) if abs(v[i]) > 0.1)
+        seen.add(frozenset(part))
+        if len(part) == 1:
+            out.append(f"{part[0]} is not determined by this data (eigenvalue ratio {w[k] / wmax:.1e})")
+        else:
+            joined = ", ".join(part[:-1]) + f" and {part[-1]}"
+            out.append(f"{joined} trade off in this data: only a combination is determined (eigenvalue ratio "
+                       f"{w[k] / wmax:.1e}); fix one with --fix or add points over a wider height range")
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            c = corr[i, j]
+            if abs(c) > CORR_LIMIT and not any({names[i], names[j]} <= s for s in seen):
+                out.append(f"{names[i]} and {names[j]} trade off in this data (correlation {c:+.3f}); fix one with "
+                           "--fix or add points over a wider height range")
+    return out
+
+
+def _jacobian(fun, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float = 1e-6) -> np.ndarray:
+    """Central differences of fun at z (one-sided at a bound): the intervals' Jacobian at the optimum."""
+    cols = []
+    for j in range(z.size):
+        step = rel * max(abs(z[j]), 1.0)
+        up, dn = z.copy(), z.copy()
+        up[j] = min(z[j] + step, hi[j])
+        dn[j] = max(z[j] - step, lo[j])
+        cols.append((fun(up) - fun(dn)) / (up[j] - dn[j]))
+    return np.stack(cols, axis=1)
+
+
+def check_options(material: str, contact: str | None, fidelity: str) -> None:
+    """ValueError naming the flag for an unknown material, contact or fidelity, or one not available yet."""
+    if fidelity == "exact":
+        raise ValueError("--fidelity exact: not available yet (the exact axisymmetric membrane comes with a "
+                         "later release); use --fidelity cap")
+    if fidelity not in FIDELITIES:
+        raise ValueError(f"--fidelity {fidelity}{did_you_mean(fidelity, FIDELITIES)}; allowed: {', '.join(FIDELITIES)}")
+    if contact == "bonded":
+        raise ValueError("--contact bonded: not available yet (a membrane glued to the plate comes with a later "
+                         "release); use --contact free or flat")
+    if contact is not None and contact not in CONTACTS:
+        raise ValueError(f"--contact {contact}{did_you_mean(contact, CONTACTS)}; allowed: {', '.join(CONTACTS)}")
+    if material not in MATERIALS:
+        raise ValueError(f"--material {material}{did_you_mean(material, MATERIALS)}; allowed: {', '.join(MATERIALS)}")
+
+
+def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: str | None = None,
+               fix: dict | None = None, fidelity: str = "cap") -> FitResult:
+    """Least-squares fit of a material's parameters (SI) to static data; r1, t0 in m.
+
+    ``contact`` None picks 'flat' when the data have a force column, else 'free'. ``fix`` holds
+    flattened parameters at SI values. ValueError for unavailable options or too few points.
+    """
+    check_options(material, contact, fidelity)
+    if contact is None:
+        contact = "flat" if data.F is not None else "free"
+    if contact == "flat" and data.F is None:
+        raise ValueError("data: missing column 'F_n' or 'load_g': --contact flat needs the load of each point")
+    if contact == "free" and data.F is not None and np.any(data.F > 0):
+        row = int(np.argmax(data.F > 0)) + 1
+        raise ValueError(f"data: column '{data.force_column}', row {row}: a load with --contact free (free "
+                         "inflation carries none); use --contact flat")
+    names = param_names(material)
+    fixed = _parse_fix(material, fix or {}, names)
+    free = [n for n in names if n not in fixed]
+    n = data.h.size
+    if n < len(free):
+        raise ValueError(f"data: {n} points for {len(free)} free parameters of '{material}' ({', '.join(free)}); "
+                         "add points or --fix some")
+    if not free:
+        raise ValueError("--fix: every parameter is fixed; nothing to fit")
+    span = float(data.p.max() - data.p.min())
+    if not span > 0:
+        raise ValueError("data: column 'p_kpa' has one value in every row; nothing to fit")
+    model = _Model(material, r1, t0, data, contact)
+    lo, hi = _bounds(material, names, model.default, data, r1)
+    for k, v in fixed.items():
+        i = names.index(k)
+        if not lo[i] <= v <= hi[i]:
+            raise ValueError(f"--fix {k}={v:g}: outside the physical range [{lo[i]:g}, {hi[i]:g}] for this data")
+    ifree = [names.index(k) for k in free]
+    scale = np.where(np.abs(model.default) > 0, np.abs(model.default), 1.0)[ifree]
+
+    def full(z: np.ndarray) -> np.ndarray:
+        v = model.default.copy()
+        for k, val in fixed.items():
+            v[names.index(k)] = val
+        v[ifree] = z * scale
+        return v
+
+    def resid(z: np.ndarray) -> np.ndarray:
+        r = (model.pressure(full(z)) - data.p) / span
+        return np.where(np.isfinite(r), r, _BAD_RESIDUAL)
+
+    zlo, zhi = lo[ifree] / scale, hi[ifree] / scale
+    dimless = set(MATERIALS[material].dimensionless)
+    is_modulus = np.array([names[i].rstrip("0123456789") not in dimless for i in ifree])
+    sign = np.where(model.default[ifree] < 0, -1.0, 1.0)
+    best = None
+    for f in _START_FACTORS:
+        # moduli scaled by f, exponents and locking limits at their defaults; then inside the
+        # bounds with a margin (Gent's Jm floor from the data may lie above its default)
+        z0 = sign * np.where(is_modulus, f, 1.0)
+        z0 = np.maximum(z0, np.where(np.isfinite(zlo), 1.5 * zlo + 1e-6, -np.inf))
+        z0 = np.minimum(z0, np.where(np.isfinite(zhi), 0.9 * zhi, np.inf))
+        sol = least_squares(resid, z0, bounds=(zlo, zhi), method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                            gtol=1e-12, max_nfev=200)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    z = best.x
+    J = _jacobian(resid, z, zlo, zhi)
+    r = resid(z)
+    values = full(z)
+    params = {k: float(values[i]) for i, k in enumerate(names)}
+    dof = n - len(free)
+    s2 = float(r @ r) / dof if dof > 0 else float("nan")
+    JtJ = J.T @ J
+    cov = np.linalg.pinv(JtJ) * s2
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
+    tq = float(t_dist.ppf(0.975, dof)) if dof > 0 else float("nan")
+    ci = {k: [params[k], params[k]] for k in fixed}
+    for j, k in enumerate(free):
+        half = tq * sd[j]
+        ci[k] = [float(params[k] - half), float(params[k] + half)] if math.isfinite(half) else [None, None]
+    d = np.sqrt(np.clip(np.diag(JtJ), 1e-300, None))
+    scaled = JtJ / np.outer(d, d)
+    cd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = np.clip(cov / np.outer(cd, cd), -1.0, 1.0) if np.all(np.isfinite(cov)) else scaled
+    correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(free)} for i, a in enumerate(free)}
+    pm = model.pressure(values)
+    return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
+                     nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=_sentences(free, corr, scaled),
+                     correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
+                     p_data=data.p.copy(), p_model=pm)
+
+
+# ---------------------------------------------------------------------------------------------
+# output
+# ---------------------------------------------------------------------------------------------
+def _toml_value(v) -> str:
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+    return repr(float(v))
+
+
+def params_toml(result: FitResult) -> str:
+    """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
+    kw = _unflatten(result.material, result.params)
+    head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
+            f"NRMSD {result.nrmsd:.4f}")
+    lines = [head,
+             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}",
+             "[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in kw.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(result: FitResult, path: Path) -> None:
+    fig = Figure(figsize=(9, 4.2))
+    ax1, ax2 = fig.subplots(1, 2)
+    h = U.to_mm(result.h)
+    order = np.argsort(h)
+    ax1.plot(h, U.to_kpa(result.p_data), "o", ms=4, label="data")
+    ax1.plot(h[order], U.to_kpa(result.p_model[order]), "x-" if result.contact == "free" else "x", ms=5,
+             label=f"fit ({result.material})")
+    ax1.set_xlabel("height h (mm)")
+    ax1.set_ylabel("pressure p (kPa)")
+    ax1.set_title(f"{result.contact} contact, NRMSD {result.nrmsd:.4f}")
+    ax1.legend()
+    ax2.axhline(0.0, color="0.6", lw=0.8)
+    ax2.plot(h, U.to_kpa(result.p_model - result.p_data), "o", ms=4)
+    ax2.set_xlabel("height h (mm)")
+    ax2.set_ylabel("residual p_fit - p (kPa)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def write_fit(result: FitResult, folder: Path | str) -> list[Path]:
+    """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths."""
+    folder = Path(folder)
+    paths = [folder / "fit.json", folder / "params.toml", folder / "residuals.png"]
+    paths[0].write_text(json.dumps(result.as_json(), indent=1) + "\n")
+    paths[1].write_text(params_toml(result))
+    _plot(result, paths[2])
+    return paths
