@@ -1,9 +1,9 @@
 """Command line: ``hbma-ctrl`` (typer). Parses, runs and reports; the work happens in the library.
 
 Commands: ``run FILE``, ``protocol`` (also what a bare ``hbma-ctrl`` runs, with defaults),
-``equilibrium``, ``plots``, ``bench sim``; the estimator, controller and robot commands come from
-``register(app, bench_app)`` in :mod:`hbma_ctrl.app.cli_estimators`, :mod:`hbma_ctrl.app.cli_controllers`
-and :mod:`hbma_ctrl.app.cli_robot`.
+``equilibrium``, ``plots``, ``bench sim``; the estimator, controller, robot and fit commands come
+from ``register(app, bench_app)`` in :mod:`hbma_ctrl.app.cli_estimators`,
+:mod:`hbma_ctrl.app.cli_controllers`, :mod:`hbma_ctrl.app.cli_robot` and :mod:`hbma_ctrl.app.cli_fit`.
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
 exits with code 2, never a traceback. Ctrl-C prints ``interrupted: partial results in <path>`` and
