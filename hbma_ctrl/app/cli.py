@@ -248,7 +248,11 @@ def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, 
     _range("--h1-mm", h1_mm, 0.0, 20 * r1_mm, unit="mm")
     if not (math.isfinite(h2_mm) and 0.0 <= h2_mm <= h1_mm):
         raise ValueError(f"--h2-mm = {h2_mm:g} is out of range [0, h1-mm = {h1_mm:g}] mm (need 0 <= h2 <= h1)")
-    mat = make_material(material, **(params or {}))
+    _choice("--material", material, MATERIALS)
+    try:
+        mat = make_material(material, **(params or {}))
+    except ValueError as exc:  # the parameters are the only thing left that can be wrong: say so
+        raise ValueError(f"--param {', '.join(params or {})}: {exc}") from None
     res = {k: float(v[0]) for k, v in equilibrium_grid(mat, U.mm(r1_mm), U.mm(t0_mm), np.array([U.mm(h1_mm)]),
                                                          np.array([U.mm(h2_mm)]), U.cm3(V0_cm3)).items()}
     if res["lam"] >= mat.lam_max():
