@@ -8,6 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
@@ -77,3 +78,31 @@ def test_scenario_negative_pressure_material_refused(tmp_path):
     body = "[actuator]\nmaterial = 'yeoh'\n[actuator.material_params]\nC = [2e4, -1e6, 10]\n"
     _one_line_error(_run_file(tmp_path, body), "s.toml", "[actuator.material_params]", "C = [20000, -1e+06, 10]")
 
+
+# 2. encodings and binary content --------------------------------------------------------------
+@pytest.mark.parametrize(
+    "body,needles",
+    [
+        ("[scenario]\nname = 'caf\u00e9'\n".encode("latin-1"), ["not UTF-8", "0xe9", "line 2"]),
+        (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR", ["binary content"]),
+        ("\ufeff\ufeff[scenario]\n".encode("utf-8"), ["not valid TOML"]),
+    ],
+)
+def test_scenario_bad_bytes_name_the_file(tmp_path, body, needles):
+    _one_line_error(_run_file(tmp_path, body, "bytes.toml"), "bytes.toml", *needles)
+
+
+def test_scenario_with_utf8_bom_is_accepted(tmp_path):
+    # a BOM is what Windows editors write in front of UTF-8: dropped, the rest parsed as usual
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text(encoding="utf-8")
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    got, ref = load_scenario(p), load_scenario(ROOT / "scenarios" / "open_loop_fig7.toml")
+    assert (got.name, got.kind, got.actuator, got.duration, got.sim) == (ref.name, ref.kind, ref.actuator,
+                                                                           ref.duration, ref.sim)
+
+
+# 3. empty scenario file -----------------------------------------------------------------------
+@pytest.mark.parametrize("body", ["", "\n\n", "# only a comment\n"])
+def test_empty_scenario_file_refused(tmp_path, body):
+    _one_line_error(_run_file(tmp_path, body, "empty.toml"), "empty.toml", "empty")
