@@ -106,3 +106,20 @@ def test_scenario_with_utf8_bom_is_accepted(tmp_path):
 @pytest.mark.parametrize("body", ["", "\n\n", "# only a comment\n"])
 def test_empty_scenario_file_refused(tmp_path, body):
     _one_line_error(_run_file(tmp_path, body, "empty.toml"), "empty.toml", "empty")
+
+
+# 5. a pressure limit above the sensor range ---------------------------------------------------
+_CTRL = "[controller]\ntargets_mm = [[0.0, 5.0]]\n"
+
+
+@pytest.mark.parametrize(
+    "body,needles",
+    [
+        (f"{_CTRL}p_max_kpa = 40.0\n", ["[controller] p_max_kpa = 40.0", "(0, 35] kPa", "[sim] sensor_range_kpa"]),
+        (f"[rig]\n{_CTRL}p_max_kpa = 36.0\n", ["[controller] p_max_kpa = 36.0", "[rig] sensor_range_kpa = 35"]),
+        (f"[rig]\nsensor_range_kpa = 20.0\n{_CTRL}", ["p_max_kpa = 35.0", "(0, 20] kPa", "[rig] sensor_range_kpa = 20"]),
+        (f"[sim]\nsensor_range_kpa = 30.0\n{_CTRL}p_max_kpa = 31.0\n", ["(0, 30] kPa", "[sim] sensor_range_kpa = 30"]),
+    ],
+)
+def test_controller_limit_above_sensor_range_refused(tmp_path, body, needles):
+    _one_line_error(_run_file(tmp_path, body), *needles)

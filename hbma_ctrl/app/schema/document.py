@@ -96,7 +96,20 @@ class ScenarioFile(Table):
             if fid == "free" and any(x > 0 for x in self.protocol.loads_g):
                 raise RuleError("fidelity = 'free' ignores the loads in [protocol] loads_g; use auto, "
                                 "quasi_static or platform", "sim")
+        self._limits_within_sensor()
         return self
+
+    def _limits_within_sensor(self) -> None:
+        """A pressure limit above the sensor's saturation can never be seen, so never enforced: refuse it."""
+        if self.controller is None or self.robot is not None:  # a [robot] scene runs its own limits
+            return
+        # the closed loop's rig: [rig] when written, else a default rig at [sim] sensor_range_kpa (run_scene)
+        key, sensor = (("[rig] sensor_range_kpa", self.rig.sensor_range_kpa) if self.rig is not None
+                       else ("[sim] sensor_range_kpa", self.sim.sensor_range_kpa))
+        if self.controller.p_max_kpa > sensor:
+            raise RuleError(f"p_max_kpa = {self.controller.p_max_kpa!r} is out of range (0, {sensor:g}] kPa "
+                            f"(at most {key} = {sensor:g}: above it the sensor saturates and the limit is "
+                            "never seen)", "controller")
 
     def to_scenario(self, data: dict, path: Path | None = None) -> Scenario:
         """The SI Scenario (objects built once); ``data`` is kept as the raw role sections."""
