@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -123,3 +124,20 @@ _CTRL = "[controller]\ntargets_mm = [[0.0, 5.0]]\n"
 )
 def test_controller_limit_above_sensor_range_refused(tmp_path, body, needles):
     _one_line_error(_run_file(tmp_path, body), *needles)
+
+
+# 10. a run whose every trial diverges ---------------------------------------------------------
+def test_run_with_every_trial_diverged_exits_1_and_keeps_failed_outputs(tmp_path):
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text(encoding="utf-8")
+    # so stiff that the fixed step blows the pressure up to ~1e289 kPa: it used to report status "ok"
+    p = tmp_path / "stiff.toml"
+    p.write_text(text.replace("E = 130.6e3", "E = 1e300"), encoding="utf-8")
+    res = runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "o")])
+    line = _one_line_error(res, "the trial diverged", "partial results in", code=1)
+    assert not (tmp_path / "o").exists()
+    (failed,) = tmp_path.glob("o.failed-*")
+    manifest = json.loads((failed / "manifest.json").read_text())
+    assert manifest["status"] == "failed" and "diverged" in manifest["error"]
+    assert json.loads((failed / "metrics.json").read_text())["plant"]["status"] == "diverged"
+    assert str(failed) in line
+

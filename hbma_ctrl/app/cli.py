@@ -6,7 +6,7 @@ Commands: ``run FILE``, ``protocol`` (also what a bare ``hbma-ctrl`` runs, with 
 and :mod:`hbma_ctrl.app.cli_robot`.
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
-exits with code 2, never a traceback. Ctrl-C prints ``interrupted: partial results in <path>`` and
+exits with code 2, never a traceback; a run whose trials all diverged does the same with code 1. Ctrl-C prints ``interrupted: partial results in <path>`` and
 exits with code 130. Every command writing a results directory goes through
 :func:`hbma_ctrl.app.outputs.run_dir` (``--out`` checked before any work, ``--overwrite`` to replace a
 run, manifest.json, nothing half-written left at ``--out``).
@@ -39,7 +39,7 @@ from hbma_ctrl.app.cli_robot import register as register_robot
 from hbma_ctrl.app.plots import equilibrium_grid, paper_figures
 from hbma_ctrl.app.outputs import ARGV_KEY, OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.app.protocol import run_protocol
-from hbma_ctrl.app.runner import run_scenario
+from hbma_ctrl.app.runner import RunFailed, run_scenario
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
@@ -86,9 +86,10 @@ class _OneLineErrors(TyperGroup):
         except _Interrupted as exc:
             typer.echo(f"interrupted: partial results in {exc.partial}" if exc.partial else "interrupted", err=True)
             sys.exit(130)
-        except (ValueError, FileNotFoundError) as exc:
+        except (ValueError, FileNotFoundError, RunFailed) as exc:
             partial = getattr(exc, "partial_results", None)
-            _fail(f"{exc}; partial results in {partial}" if partial else str(exc), 2)
+            code = 1 if isinstance(exc, RunFailed) else 2  # the input was fine; the run failed
+            _fail(f"{exc}; partial results in {partial}" if partial else str(exc), code)
         code = rv if isinstance(rv, int) else 0
         if standalone_mode:
             sys.exit(code)
