@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+import hbma_ctrl.app.cli as cli_mod
+from hbma_ctrl.app import cli_args
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.app.scenario import load_scenario
 
@@ -141,3 +143,32 @@ def test_run_with_every_trial_diverged_exits_1_and_keeps_failed_outputs(tmp_path
     assert json.loads((failed / "metrics.json").read_text())["plant"]["status"] == "diverged"
     assert str(failed) in line
 
+
+# 9. whole-number options and the worker count -------------------------------------------------
+@pytest.mark.parametrize(
+    "args,needles",
+    [
+        (["robot", "workspace", "--layers", "1.5"], ["--layers"]),
+        (["bench", "robot", "--layers", "1,2.5"], ["--layers", "'2.5' is not a whole number in [1, 6]"]),
+        (["bench", "robot", "--layers", "7"], ["--layers", "[1, 6]"]),
+    ],
+)
+def test_int_option_given_a_float_is_refused_not_truncated(tmp_path, args, needles):
+    _one_line_error(runner.invoke(app, [*args, "--out", str(tmp_path / "o")]), *needles)
+    assert not (tmp_path / "o").exists()
+
+
+def test_workers_above_core_count_capped_with_a_note(monkeypatch, tmp_path):
+    calls = []
+
+    def fake_run_protocol(material, out, integrator, dt, fidelity, workers, **kw):
+        calls.append(workers)
+        return [{"status": "ok", "max_height_mm": 1.0, "max_pressure_kpa": 2.0}]
+
+    monkeypatch.setattr(cli_mod, "run_protocol", fake_run_protocol)
+    monkeypatch.setattr(cli_args.os, "cpu_count", lambda: 2)
+    res = runner.invoke(app, ["protocol", "--workers", "200", "--no-plots", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    assert calls == [2]
+    notes = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert notes == ["note: --workers = 200 is above this machine's 2 cores; using 2"]

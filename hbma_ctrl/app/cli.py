@@ -33,6 +33,7 @@ except ImportError:  # pragma: no cover
     from click import exceptions as _cx
 
 from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
+from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.cli_controllers import register as register_controllers
 from hbma_ctrl.app.cli_estimators import register as register_estimators
 from hbma_ctrl.app.cli_robot import register as register_robot
@@ -201,6 +202,7 @@ def protocol(
     _choice("--integrator", integrator, INTEGRATORS)
     _choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
     _range("--workers", workers, 1, 256)
+    workers = cap_workers("--workers", workers)
     _range("--dt-ms", dt_ms, 0.0, 100.0, lo_open=True, unit="ms")
     _range("--duration-s", duration_s, 0.0, 3600.0, lo_open=True, unit="s")
     _range("--t-inflate-s", t_inflate_s, 0.0, duration_s, lo_open=True, unit="s")
@@ -330,6 +332,7 @@ def bench_sim(
 
     _choice("--material", material, MATERIALS)
     _range("--workers", workers, 1, 256)
+    workers = cap_workers("--workers", workers)
     _range("--repeat", repeat, 1, 100)
     con = _console(160)
 
