@@ -118,9 +118,11 @@ _CTRL = "[controller]\ntargets_mm = [[0.0, 5.0]]\n"
 @pytest.mark.parametrize(
     "body,needles",
     [
-        (f"{_CTRL}p_max_kpa = 40.0\n", ["[controller] p_max_kpa = 40.0", "(0, 35] kPa", "[sim] sensor_range_kpa"]),
+        (f"{_CTRL}p_max_kpa = 40.0\n", ["[controller] p_max_kpa = 40.0", "(0, 35] kPa",
+                                         "[sim] sensor_range_kpa"]),
         (f"[rig]\n{_CTRL}p_max_kpa = 36.0\n", ["[controller] p_max_kpa = 36.0", "[rig] sensor_range_kpa = 35"]),
-        (f"[rig]\nsensor_range_kpa = 20.0\n{_CTRL}", ["p_max_kpa = 35.0", "(0, 20] kPa", "[rig] sensor_range_kpa = 20"]),
+        (f"[rig]\nsensor_range_kpa = 20.0\n{_CTRL}", ["p_max_kpa = 35.0", "(0, 20] kPa",
+                                                     "[rig] sensor_range_kpa = 20"]),
         (f"[sim]\nsensor_range_kpa = 30.0\n{_CTRL}p_max_kpa = 31.0\n", ["(0, 30] kPa", "[sim] sensor_range_kpa = 30"]),
     ],
 )
@@ -172,3 +174,17 @@ def test_workers_above_core_count_capped_with_a_note(monkeypatch, tmp_path):
     assert calls == [2]
     notes = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert notes == ["note: --workers = 200 is above this machine's 2 cores; using 2"]
+
+
+# 4. a string where a number belongs in [robot.inputs] ------------------------------------------
+@pytest.mark.parametrize(
+    "row,needles",
+    [
+        ('[[0.0, "100", 1.0, 0.0]]', ["[robot.inputs] A1[0].speed_pct = '100' must be a number in [0, 100] %"]),
+        ('[[0.0, 100.0, "open", 0.0]]', ["[robot.inputs] A1[0].inlet_duty = 'open' must be a number in [0, 1]"]),
+        ('[["0", 100.0, 1.0, 0.0]]', ["[robot.inputs] A1[0].t_s = '0' must be a number in [0, 1e+06] s"]),
+    ],
+)
+def test_robot_inputs_string_for_number(tmp_path, row, needles):
+    body = "[robot]\nmode = 'open_loop'\nlayers = 1\n[robot.inputs]\nA1 = " + row + "\n"
+    _one_line_error(_run_file(tmp_path, body, "robot.toml"), "robot.toml", *needles)
