@@ -188,3 +188,23 @@ def test_workers_above_core_count_capped_with_a_note(monkeypatch, tmp_path):
 def test_robot_inputs_string_for_number(tmp_path, row, needles):
     body = "[robot]\nmode = 'open_loop'\nlayers = 1\n[robot.inputs]\nA1 = " + row + "\n"
     _one_line_error(_run_file(tmp_path, body, "robot.toml"), "robot.toml", *needles)
+
+
+# 6. a key the scene ignores -------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "body,used",
+    [
+        (f"[rig]\n{_CTRL}", "[rig] sensor_range_kpa"),
+        ("[estimator]\n", "[rig] sensor_range_kpa"),
+        ("[robot]\nlayers = 1\n[robot.inputs]\nA1 = [[0.0, 100.0, 1.0, 0.0]]\n", "[robot] sensor_range_kpa"),
+    ],
+)
+def test_sim_sensor_range_ignored_by_the_scene_is_refused(tmp_path, body, used):
+    res = _run_file(tmp_path, "[sim]\nsensor_range_kpa = 30.0\n" + body)
+    _one_line_error(res, "[sim] sensor_range_kpa is not used", used)
+
+
+def test_sim_sensor_range_used_by_a_closed_loop_without_rig_is_accepted(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text(f"[sim]\nsensor_range_kpa = 30.0\n{_CTRL}p_max_kpa = 30.0\n", encoding="utf-8")
+    assert load_scenario(p).sim.sensor_range == pytest.approx(30e3)

@@ -96,8 +96,27 @@ class ScenarioFile(Table):
             if fid == "free" and any(x > 0 for x in self.protocol.loads_g):
                 raise RuleError("fidelity = 'free' ignores the loads in [protocol] loads_g; use auto, "
                                 "quasi_static or platform", "sim")
+        self._sim_sensor_used()
         self._limits_within_sensor()
         return self
+
+    def _sim_sensor_used(self) -> None:
+        """[sim] sensor_range_kpa only reaches the open-loop plant and a closed loop without [rig]."""
+        if "sensor_range_kpa" not in self.sim.model_fields_set:
+            return
+        # the scene that runs (runner.SCENE_DISPATCH order) and the key its sensor really comes from
+        if self.robot is not None:
+            scene, used = "[robot]", "[robot] sensor_range_kpa"
+        elif self.controller is not None:
+            scene, used = "[controller] with [rig]", "[rig] sensor_range_kpa"
+            if self.rig is None:
+                return  # run_scene builds its rig at [sim] sensor_range_kpa
+        elif self.estimator is not None:
+            scene, used = "[estimator]", "[rig] sensor_range_kpa (default 35)"
+        else:
+            return
+        raise RuleError(f"sensor_range_kpa is not used by a {scene} scenario; its sensor range is {used}: "
+                        "move the value there", "sim")
 
     def _limits_within_sensor(self) -> None:
         """A pressure limit above the sensor's saturation can never be seen, so never enforced: refuse it."""
