@@ -208,3 +208,18 @@ def test_sim_sensor_range_used_by_a_closed_loop_without_rig_is_accepted(tmp_path
     p = tmp_path / "s.toml"
     p.write_text(f"[sim]\nsensor_range_kpa = 30.0\n{_CTRL}p_max_kpa = 30.0\n", encoding="utf-8")
     assert load_scenario(p).sim.sensor_range == pytest.approx(30e3)
+
+
+# 7. a log period longer than the run --------------------------------------------------------
+def test_log_dt_longer_than_the_run_refused(tmp_path):
+    # a 19 mm inflation used to report a 0 mm peak: the only logged row was t = 0
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text(encoding="utf-8")
+    res = _run_file(tmp_path, text.replace("log_dt_ms = 10.0", "log_dt_ms = 10000.0"))
+    _one_line_error(res, "[sim] log_dt_ms = 10000.0", "[0.01, 6000] ms", "[scenario] duration_s = 6 s")
+
+
+def test_log_dt_equal_to_the_run_accepted(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text("[scenario]\nduration_s = 2.0\n[inputs]\nschedule = [[0.0, 100.0, 1.0, 0.0]]\n"
+                 "[sim]\nlog_dt_ms = 2000.0\n", encoding="utf-8")
+    assert load_scenario(p).sim.log_dt == pytest.approx(2.0)

@@ -96,6 +96,10 @@ class ScenarioFile(Table):
             if fid == "free" and any(x > 0 for x in self.protocol.loads_g):
                 raise RuleError("fidelity = 'free' ignores the loads in [protocol] loads_g; use auto, "
                                 "quasi_static or platform", "sim")
+        if self.sim.log_dt_ms > U.to_ms(duration):  # no row after t = 0: every metric would read the start
+            raise RuleError(f"log_dt_ms = {self.sim.log_dt_ms!r} is out of range [0.01, {U.to_ms(duration):g}] ms (at "
+                            f"most [scenario] duration_s = {duration:g} s: the log, and the peaks read from it, "
+                            "would hold only t = 0)", "sim")
         self._sim_sensor_used()
         self._limits_within_sensor()
         return self
