@@ -119,7 +119,7 @@ class ScenarioFile(Table):
             scene, used = "[estimator]", "[rig] sensor_range_kpa (default 35)"
         else:
             return
-        raise RuleError(f"sensor_range_kpa is not used by a {scene} scenario; its sensor range is {used}: "
+        raise RuleError(f"sensor_range_kpa is not used in a scenario with {scene}; its sensor range is {used}: "
                         "move the value there", "sim")
 
     def _limits_within_sensor(self) -> None:
