@@ -145,7 +145,9 @@ def test_run_dispatches_role_scene_and_merges_metrics(tmp_path, monkeypatch):
         return {"estimator": {"height_nrmsd": 0.01}, "plant": {"max_height_mm": 3.0}}
 
     monkeypatch.setattr(runner_mod, "SCENE_DISPATCH", (("estimator", run_scene),))
-    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text() + '\n[estimator]\nfilter = "ukf"\n'
+    # an [estimator] scene reads the rig's sensor range: [sim] sensor_range_kpa would be refused as unused
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text().replace("sensor_range_kpa = 35.0", "")
+    text += '\n[estimator]\nfilter = "ukf"\n'
     scn_path = tmp_path / "est.toml"
     scn_path.write_text(text)
     res = runner.invoke(app, ["run", str(scn_path), "--out", str(tmp_path / "o")])

@@ -6,7 +6,7 @@ from ``register(app, bench_app)`` in :mod:`hbma_ctrl.app.cli_estimators`,
 :mod:`hbma_ctrl.app.cli_controllers`, :mod:`hbma_ctrl.app.cli_robot` and :mod:`hbma_ctrl.app.cli_fit`.
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
-exits with code 2, never a traceback. Ctrl-C prints ``interrupted: partial results in <path>`` and
+exits with code 2, never a traceback; a run whose trials all diverged does the same with code 1. Ctrl-C prints ``interrupted: partial results in <path>`` and
 exits with code 130. Every command writing a results directory goes through
 :func:`hbma_ctrl.app.outputs.run_dir` (``--out`` checked before any work, ``--overwrite`` to replace a
 run, manifest.json, nothing half-written left at ``--out``).
@@ -33,6 +33,7 @@ except ImportError:  # pragma: no cover
     from click import exceptions as _cx
 
 from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
+from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.cli_controllers import register as register_controllers
 from hbma_ctrl.app.cli_estimators import register as register_estimators
 from hbma_ctrl.app.cli_fit import register as register_fit
@@ -40,7 +41,7 @@ from hbma_ctrl.app.cli_robot import register as register_robot
 from hbma_ctrl.app.plots import equilibrium_grid, paper_figures
 from hbma_ctrl.app.outputs import ARGV_KEY, OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.app.protocol import run_protocol
-from hbma_ctrl.app.runner import run_scenario
+from hbma_ctrl.app.runner import RunFailed, run_scenario
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
@@ -87,9 +88,10 @@ class _OneLineErrors(TyperGroup):
         except _Interrupted as exc:
             typer.echo(f"interrupted: partial results in {exc.partial}" if exc.partial else "interrupted", err=True)
             sys.exit(130)
-        except (ValueError, FileNotFoundError) as exc:
+        except (ValueError, FileNotFoundError, RunFailed) as exc:
             partial = getattr(exc, "partial_results", None)
-            _fail(f"{exc}; partial results in {partial}" if partial else str(exc), 2)
+            code = 1 if isinstance(exc, RunFailed) else 2  # the input was fine; the run failed
+            _fail(f"{exc}; partial results in {partial}" if partial else str(exc), code)
         code = rv if isinstance(rv, int) else 0
         if standalone_mode:
             sys.exit(code)
@@ -201,6 +203,7 @@ def protocol(
     _choice("--integrator", integrator, INTEGRATORS)
     _choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
     _range("--workers", workers, 1, 256)
+    workers = cap_workers("--workers", workers)
     _range("--dt-ms", dt_ms, 0.0, 100.0, lo_open=True, unit="ms")
     _range("--duration-s", duration_s, 0.0, 3600.0, lo_open=True, unit="s")
     _range("--t-inflate-s", t_inflate_s, 0.0, duration_s, lo_open=True, unit="s")
@@ -249,7 +252,11 @@ def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, 
     _range("--h1-mm", h1_mm, 0.0, 20 * r1_mm, unit="mm")
     if not (math.isfinite(h2_mm) and 0.0 <= h2_mm <= h1_mm):
         raise ValueError(f"--h2-mm = {h2_mm:g} is out of range [0, h1-mm = {h1_mm:g}] mm (need 0 <= h2 <= h1)")
-    mat = make_material(material, **(params or {}))
+    _choice("--material", material, MATERIALS)
+    try:
+        mat = make_material(material, **(params or {}))
+    except ValueError as exc:  # the parameters are the only thing left that can be wrong: say so
+        raise ValueError(f"--param {', '.join(params or {})}: {exc}") from None
     res = {k: float(v[0]) for k, v in equilibrium_grid(mat, U.mm(r1_mm), U.mm(t0_mm), np.array([U.mm(h1_mm)]),
                                                          np.array([U.mm(h2_mm)]), U.cm3(V0_cm3)).items()}
     if res["lam"] >= mat.lam_max():
@@ -326,6 +333,7 @@ def bench_sim(
 
     _choice("--material", material, MATERIALS)
     _range("--workers", workers, 1, 256)
+    workers = cap_workers("--workers", workers)
     _range("--repeat", repeat, 1, 100)
     con = _console(160)
 

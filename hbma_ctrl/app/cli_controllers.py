@@ -11,6 +11,7 @@ from rich.table import Table
 
 from hbma_ctrl.app.bench_loop import run_loop_bench, summarize_loop, write_loop_bench
 from hbma_ctrl.app.bench_mpc import run_bench, summarize, write_bench
+from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.app.scenario import load_scenario
 
@@ -36,6 +37,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
         if not 1 <= workers <= 64:
             raise ValueError(f"--workers = {workers} is out of range [1, 64]")
+        workers = cap_workers("--workers", workers)
         con = Console(highlight=False, width=140)
         cs = [c.strip() for c in cases.split(",") if c.strip()]
         with run_dir(out, command="bench loop", argv=cli_argv(), overwrite=overwrite) as tmp:

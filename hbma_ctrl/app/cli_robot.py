@@ -18,6 +18,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from hbma_ctrl.app.cli_args import whole_numbers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.app.robot_plots import plot_shapes, plot_workspace
 from hbma_ctrl.app.scene_robot_closed import bench_robot
@@ -204,9 +205,7 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
                     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP)) -> None:
     """Whole-robot step time (EKF bank + load sharing + NMPC) for 1..6 layers: median and p99, ms."""
 
-    ns = [int(v) for v in _floats(layers, "--layers")]
-    if any(n < 1 or n > 6 for n in ns):
-        raise ValueError(f"--layers = {layers}: each layer count must be in [1, 6]")
+    ns = whole_numbers(layers, "--layers", 1, 6)
     if not 0.5 <= duration <= 60.0:
         raise ValueError(f"--duration = {duration} is out of range [0.5, 60] s")
     if topology not in TOPOLOGIES:

@@ -28,7 +28,11 @@ from hbma_ctrl.app.scene_robot import run_scene as run_robot_scene
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import fidelity_for, simulate_trials
 
-__all__ = ["run_scenario", "run_open_loop", "SCENE_DISPATCH"]
+__all__ = ["run_scenario", "run_open_loop", "RunFailed", "SCENE_DISPATCH"]
+
+
+class RunFailed(RuntimeError):
+    """The run finished but produced nothing usable (every trial diverged); its files are still written."""
 
 #: role section -> the function running the whole scene; checked in this order
 SCENE_DISPATCH = (
@@ -94,4 +98,10 @@ def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:
     else:
         metrics = merge_metrics(head, run_open_loop(scn, out))
     write_metrics(metrics, out / "metrics.json")
+    status = metrics.get("plant", {}).get("status")
+    counts = {status: 1} if isinstance(status, str) else (status or {})
+    if counts and set(counts) == {"diverged"}:  # metrics of a run that never ran are not results
+        n = counts["diverged"]
+        which = f"all {n} trials" if n > 1 else "the trial"
+        raise RunFailed(f"{which} diverged, status diverged (see the events in metrics.json)")
     return metrics

@@ -31,6 +31,9 @@ from hbma_ctrl.app.sections import Scenario
 
 __all__ = ["Scenario", "load_scenario", "parse_scenario"]
 
+#: UTF-8 byte order mark: stripped, the rest must be UTF-8 TOML
+BOM = b"\xef\xbb\xbf"
+
 #: TOML data (edge units) -> :class:`Scenario`; one '[table] key ...' ValueError line on bad input
 parse_scenario = parse_scenario_tables
 
@@ -39,17 +42,38 @@ def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file (see the module docstring).
 
     Raises FileNotFoundError for a missing file and ValueError (prefixed with the file name) for
-    bad content.
+    bad content: not UTF-8 (a leading BOM is accepted), binary, not TOML, empty, or invalid tables.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scenario file not found: {path}")
     try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
+        data = tomllib.loads(_text(path))
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path}: not valid TOML ({exc})") from None
+    if not data:  # an empty file would silently run every default: almost surely the wrong file
+        raise ValueError(f"{path}: the scenario file is empty (no tables or keys); a run needs at least "
+                         "[scenario] name = '...' or one other table")
     try:
         return parse_scenario_tables(data, path)
     except ValueError as exc:
         raise ValueError(f"{path.name}: {exc}") from None
+
+
+def _text(path: Path) -> str:
+    """The file as UTF-8 text; a leading UTF-8 BOM (Windows editors add one) is dropped, not refused."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read ({exc.strerror})") from None
+    if raw.startswith(BOM):
+        raw = raw[len(BOM):]
+    nul = raw.find(b"\x00")
+    if nul >= 0:
+        raise ValueError(f"{path}: binary content (NUL byte at offset {nul}), not a TOML text file")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ValueError(f"{path}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}, line {line}); "
+                         "save it as UTF-8") from None

@@ -40,6 +40,10 @@ __all__ = [
 ]
 
 E_TABLE_I = 130.6e3  # Pa, Table I
+#: stretches checked for a positive pressure: past any scene's reach (35 kPa sensors stop NH near 1.6)
+LAM_CHECK = 4.0
+#: how many entries a list-valued parameter may hold (Yeoh is the classic three-term form)
+_LENGTHS: dict[tuple[str, str], tuple[int, int]] = {("yeoh", "C"): (1, 3)}
 MU0 = E_TABLE_I / 3.0  # small-strain shear modulus shared by the defaults, Pa
 
 
@@ -109,6 +113,23 @@ class Material:
                     raise ValueError(f"material {self.name}: {f.name} must be finite, got {v}")
         if self.modulus_q1 <= 0:
             raise ValueError(f"material {self.name}: small-strain modulus must be > 0")
+        self._check_positive_pressure()
+
+    def _check_positive_pressure(self) -> None:
+        # p has the sign of W'(lam) = (lam - 1) Q(lam): a Q <= 0 (or inf/nan) anywhere a scene can reach
+        # makes the membrane pull the gas in, which no solver can make sense of
+        hi = min(LAM_CHECK, 1.0 + 0.999 * (self.lam_max() - 1.0))
+        lam = np.linspace(1.0, hi, 301)
+        q = np.asarray(ca.DM(self.Q(ca.DM(lam)))).ravel()
+        bad = ~np.isfinite(q) | (q <= 0)
+        if bad.any():
+            dws = (lam - 1.0) * q
+            # the first non-finite point, else where the pull is strongest
+            i = int(np.argmax(~np.isfinite(q))) if not np.isfinite(q).all() else int(np.argmin(dws))
+            dw = dws[i] if i > 0 else q[i]
+            params = ", ".join(f"{k} = {_fmt(v)}" for k, v in self.as_dict().items())
+            raise ValueError(f"material {self.name} ({params}): dW/dlam = {dw * 1e-3:.4g} kPa at stretch "
+                             f"{lam[i]:.3f}; the pressure must be finite and >= 0 for stretch in [1, {hi:g}]")
 
     def as_dict(self) -> dict:
         """Parameters as plain data."""
@@ -247,6 +268,32 @@ class Ogden(Material):
         super().validate()
 
 
+def _fmt(v) -> str:
+    return "[" + ", ".join(f"{x:g}" for x in v) + "]" if isinstance(v, tuple) else f"{v:g}"
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+
+
+def _checked(key: str, cls: type[Material], name: str, v) -> float | tuple:
+    """One number where the default is one, a list of numbers (of the allowed length) where it is a list."""
+    default = next(f.default for f in fields(cls) if f.name == name)
+    if isinstance(default, tuple):
+        vals = list(v) if isinstance(v, (list, tuple)) else [v]
+        lo, hi = _LENGTHS.get((key, name), (1, 64))
+        if not all(_is_number(x) for x in vals):
+            raise ValueError(f"material {key}: {name} = {v!r} must be a list of numbers (SI)")
+        if not lo <= len(vals) <= hi:
+            raise ValueError(f"material {key}: {name} has {len(vals)} entries; allowed {lo} to {hi} numbers (SI)")
+        return tuple(float(x) for x in vals)
+    if isinstance(v, (list, tuple)):
+        raise ValueError(f"material {key}: {name} must be one number (SI), got {len(v)} values {list(v)}")
+    if not _is_number(v):
+        raise ValueError(f"material {key}: {name} = {v!r} must be a number (SI)")
+    return float(v)
+
+
 MATERIALS: dict[str, type[Material]] = {
     cls.name: cls for cls in (NeoHookean, MooneyRivlin, Yeoh, Gent, Ogden)
 }
@@ -255,7 +302,9 @@ MATERIALS: dict[str, type[Material]] = {
 def make_material(name: str, **overrides) -> Material:
     """Build a material by name ('nh', 'mr', 'yeoh', 'gent', 'ogden') with parameter overrides (SI).
 
-    Unknown names or parameters raise ValueError with the closest valid spelling.
+    Unknown names or parameters raise ValueError with the closest valid spelling; so do a list where
+    one number belongs (or the reverse), a list of the wrong length, and a strain energy whose
+    pressure is negative or not finite for a stretch in [1, LAM_CHECK].
     """
     key = name.lower()
     if key not in MATERIALS:
@@ -267,7 +316,7 @@ def make_material(name: str, **overrides) -> Material:
         if k not in allowed:
             hint = did_you_mean(k, allowed)
             raise ValueError(f"material {key}: unknown parameter '{k}'{hint}; allowed: {sorted(allowed)}")
-    clean = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
+    clean = {k: _checked(key, cls, k, v) for k, v in overrides.items()}
     mat = cls(**clean)
     mat.validate()
     return mat

@@ -46,6 +46,10 @@ from hbma_ctrl.sim.trial import (
     Trial,
 )
 
+#: a gauge pressure no pneumatic HBMA reaches (10 MPa, 100 bar), Pa: a finite state past it means the
+#: fixed step went unstable (e.g. a stiff membrane, E = 1e300), so the trial is diverged, not "ok"
+P_DIVERGED = 1e7
+
 
 # ---------------------------------------------------------------------------------------------
 class _Batch:
@@ -206,7 +210,8 @@ class Plant:
             y = self.batch.y(X, self.U, new_mode)
         if fid.name == "platform":
             _platform_flags(X, Xprev, new_mode, yprev[det_i], y[det_i], t, self.events)
-        bad = ~np.all(np.isfinite(X), axis=0) & self.alive
+        p = y[OUTPUTS.index("p")]
+        bad = (~np.all(np.isfinite(X), axis=0) | ~(np.abs(p) < P_DIVERGED)) & self.alive  # nan p fails '<' too
         for i in np.nonzero(bad)[0]:
             self.events[i].append((t, "diverged"))
             self.alive[i] = False

@@ -96,7 +96,43 @@ class ScenarioFile(Table):
             if fid == "free" and any(x > 0 for x in self.protocol.loads_g):
                 raise RuleError("fidelity = 'free' ignores the loads in [protocol] loads_g; use auto, "
                                 "quasi_static or platform", "sim")
+        if self.sim.log_dt_ms > U.to_ms(duration):  # no row after t = 0: every metric would read the start
+            raise RuleError(f"log_dt_ms = {self.sim.log_dt_ms!r} is out of range [0.01, {U.to_ms(duration):g}] ms (at "
+                            f"most [scenario] duration_s = {duration:g} s: the log, and the peaks read from it, "
+                            "would hold only t = 0)", "sim")
+        self._sim_sensor_used()
+        self._limits_within_sensor()
         return self
+
+    def _sim_sensor_used(self) -> None:
+        """[sim] sensor_range_kpa only reaches the open-loop plant and a closed loop without [rig]."""
+        if "sensor_range_kpa" not in self.sim.model_fields_set:
+            return
+        # the scene that runs (runner.SCENE_DISPATCH order) and the key its sensor really comes from
+        if self.robot is not None:
+            scene, used = "[robot]", "[robot] sensor_range_kpa"
+        elif self.controller is not None:
+            scene, used = "[controller] with [rig]", "[rig] sensor_range_kpa"
+            if self.rig is None:
+                return  # run_scene builds its rig at [sim] sensor_range_kpa
+        elif self.estimator is not None:
+            scene, used = "[estimator]", "[rig] sensor_range_kpa (default 35)"
+        else:
+            return
+        raise RuleError(f"sensor_range_kpa is not used in a scenario with {scene}; its sensor range is {used}: "
+                        "move the value there", "sim")
+
+    def _limits_within_sensor(self) -> None:
+        """A pressure limit above the sensor's saturation can never be seen, so never enforced: refuse it."""
+        if self.controller is None or self.robot is not None:  # a [robot] scene runs its own limits
+            return
+        # the closed loop's rig: [rig] when written, else a default rig at [sim] sensor_range_kpa (run_scene)
+        key, sensor = (("[rig] sensor_range_kpa", self.rig.sensor_range_kpa) if self.rig is not None
+                       else ("[sim] sensor_range_kpa", self.sim.sensor_range_kpa))
+        if self.controller.p_max_kpa > sensor:
+            raise RuleError(f"p_max_kpa = {self.controller.p_max_kpa!r} is out of range (0, {sensor:g}] kPa "
+                            f"(at most {key} = {sensor:g}: above it the sensor saturates and the limit is "
+                            "never seen)", "controller")
 
     def to_scenario(self, data: dict, path: Path | None = None) -> Scenario:
         """The SI Scenario (objects built once); ``data`` is kept as the raw role sections."""

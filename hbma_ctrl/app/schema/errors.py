@@ -3,7 +3,7 @@
 Examples::
 
     [controller] p_max_kpa = 1000000 is out of range (0, 1000] kPa
-    [actuator] r1_mm = 'abc' must be a number
+    [actuator] r1_mm = 'abc' must be a number in (0.5, 100] mm
     [controler]: unknown table; did you mean [controller]? allowed: scenario, actuator, ...
     [controller] p_max_kpaa: unknown key; did you mean p_max_kpa? allowed: kind, variant, ...
 
@@ -223,8 +223,8 @@ def format_one(err: dict, root: type[BaseModel], table: str | None = None) -> st
     if kind == "finite_number":
         return f"{head} {key} = {_val(value)} is out of range {rng}" if bounded else \
             f"{head} {key} = {_val(value)} must be a finite number"
-    if kind in ("float_type", "float_parsing"):
-        return f"{head} {key} = {_val(value)} must be a number"
+    if kind in ("float_type", "float_parsing"):  # strings are not parsed: '1e2' in TOML is a typo
+        return f"{head} {key} = {_val(value)} must be a number" + (f" in {rng}" if bounded else "")
     if kind in ("int_type", "int_parsing", "int_from_float"):
         return f"{head} {key} = {_val(value)} must be an integer" + (f" in {rng}" if bounded else "")
     if kind in ("bool_type", "bool_parsing"):
