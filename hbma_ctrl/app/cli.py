@@ -38,8 +38,14 @@ from hbma_ctrl.app.cli_controllers import register as register_controllers
 from hbma_ctrl.app.cli_estimators import register as register_estimators
 from hbma_ctrl.app.cli_fit import register as register_fit
 from hbma_ctrl.app.cli_robot import register as register_robot
+from hbma_ctrl.app.outputs import (
+    ARGV_KEY,
+    OVERWRITE_HELP,
+    cli_argv,
+    default_out,
+    run_dir,
+)
 from hbma_ctrl.app.plots import equilibrium_grid, paper_figures
-from hbma_ctrl.app.outputs import ARGV_KEY, OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.app.protocol import run_protocol
 from hbma_ctrl.app.runner import RunFailed, run_scenario
 from hbma_ctrl.app.scenario import load_scenario

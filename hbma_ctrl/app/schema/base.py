@@ -41,11 +41,7 @@ __all__ = [
     "ScheduleRow",
     "SimTable",
     "build_material",
-    "ms_to_s",
 ]
-
-#: units.py has no ms(); ms -> s is the same factor as mm -> m (as hbma_ctrl.app.scenario does today)
-ms_to_s = U.mm
 
 MaterialName = Literal["nh", "mr", "yeoh", "gent", "ogden"]
 _ACT = Actuator()
@@ -234,6 +230,6 @@ class SimTable(Table):
 
     def to_sim(self) -> SimSettings:
         """SI simulation settings (s, Pa)."""
-        dt = ms_to_s(self.dt_ms) if self.dt_ms is not None else None
-        return SimSettings(integrator=self.integrator, dt=dt, log_dt=ms_to_s(self.log_dt_ms),
+        dt = U.ms(self.dt_ms) if self.dt_ms is not None else None
+        return SimSettings(integrator=self.integrator, dt=dt, log_dt=U.ms(self.log_dt_ms),
                            sensor_range=U.kpa(self.sensor_range_kpa)).validate()

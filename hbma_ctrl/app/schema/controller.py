@@ -14,12 +14,12 @@ from pydantic import model_validator
 
 from controllers.baselines import BangBangSettings, PIDSettings
 from controllers.mpc_settings import MPCSettings
-from hbma_ctrl.app.schema.base import ms_to_s
 from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
     LoadSteps,
     RuleError,
     Table,
+    as_is,
     choice,
     elem,
     flag,
@@ -145,29 +145,25 @@ class ControllerTable(Table):
             raise ValueError(f"[controller] {exc}") from None
 
 
-def _same(v):
-    return v
-
-
 #: table key -> (settings it goes to: mpc | pid | bb | all, SI field, conversion from the user's unit)
 _SI = {
-    "variant": ("mpc", "variant", _same),
-    "horizon": ("mpc", "horizon", _same),
-    "sample_ms": ("all", "sample_period", ms_to_s),
+    "variant": ("mpc", "variant", as_is),
+    "horizon": ("mpc", "horizon", as_is),
+    "sample_ms": ("all", "sample_period", U.ms),
     "p_max_kpa": ("all", "p_max", U.kpa),
     "p_margin_kpa": ("mpc", "p_margin", U.kpa),
     "guard_margin_kpa": ("all", "guard_margin", U.kpa),
     "lam_max": ("mpc", "lam_max", float),
     "h_max_mm": ("mpc", "h_max", U.mm),
-    "integrator": ("mpc", "integrator", _same),
-    "substeps": ("mpc", "substeps", _same),
+    "integrator": ("mpc", "integrator", as_is),
+    "substeps": ("mpc", "substeps", as_is),
     "w_height": ("mpc", "w_height", float),
     "w_terminal": ("mpc", "w_terminal", float),
     "w_rate": ("mpc", "w_rate", tuple),
     "w_input": ("mpc", "w_input", tuple),
     "c_input": ("mpc", "c_input", tuple),
-    "budget_ms": ("mpc", "budget", ms_to_s),
-    "codegen": ("mpc", "codegen", _same),
+    "budget_ms": ("mpc", "budget", U.ms),
+    "codegen": ("mpc", "codegen", as_is),
     "fail_window_s": ("mpc", "fail_window", tuple),
     "kp": ("pid", "kp", per_mm_to_per_m),
     "ki": ("pid", "ki", per_mm_to_per_m),

@@ -13,6 +13,7 @@ from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
     LoadSteps,
     Table,
+    as_is,
     choice,
     flag,
     integer,
@@ -25,10 +26,6 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["EstimatorTable"]
-
-
-def _same(v):
-    return v
 
 
 class EstimatorTable(Table):
@@ -78,10 +75,10 @@ _TUNING = {
     "modulus_std": ("modulus_std", float),
     "change_threshold": ("change_threshold", float),
     "load_std_n": ("load_std", float),
-    "integrator": ("integrator", _same),
-    "nsub": ("nsub", _same),
-    "newton": ("newton", _same),
-    "compile": ("compile", _same),
-    "load_prior": ("load_prior", _same),
+    "integrator": ("integrator", as_is),
+    "nsub": ("nsub", as_is),
+    "newton": ("newton", as_is),
+    "compile": ("compile", as_is),
+    "load_prior": ("load_prior", as_is),
     "load_prior_rel_std": ("load_prior_rel_std", float),
 }

@@ -15,6 +15,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 from hbma_ctrl.core import units as U
 
 __all__ = [
+    "as_is",
     "LOAD_STEPS_SHAPE",
     "LoadStepRow",
     "LoadSteps",
@@ -30,6 +31,11 @@ __all__ = [
     "subtable",
     "text",
 ]
+
+
+def as_is(v):
+    """The conversion of a value that is already in SI (counts, choices, flags, unitless factors)."""
+    return v
 
 
 class Table(BaseModel):

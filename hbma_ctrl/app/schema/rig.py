@@ -10,17 +10,12 @@ from typing import Literal
 
 from pydantic import model_validator
 
-from hbma_ctrl.app.schema.base import ms_to_s
-from hbma_ctrl.app.schema.fields import RuleError, Table, choice, integer, num
+from hbma_ctrl.app.schema.fields import RuleError, Table, as_is, choice, integer, num
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.rig import RobotRigSettings
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["RigTable"]
-
-
-def _same(v):
-    return v
 
 
 class RigTable(Table):
@@ -72,15 +67,15 @@ class RigTable(Table):
 
 #: table key -> (RigSettings field, conversion from the user's unit)
 _SI = {
-    "fidelity": ("fidelity", _same),
+    "fidelity": ("fidelity", as_is),
     "modulus_scale": ("modulus_scale", float),
     "flow_scale": ("flow_scale", float),
     "V0_scale": ("V0_scale", float),
     "noise_std_kpa": ("noise_std", U.kpa),
     "sensor_range_kpa": ("sensor_range", U.kpa),
-    "sample_period_ms": ("sample_period", ms_to_s),
+    "sample_period_ms": ("sample_period", U.ms),
     "dropout_prob": ("dropout_prob", float),
-    "seed": ("seed", _same),
-    "integrator": ("integrator", _same),
-    "dt_ms": ("dt", ms_to_s),
+    "seed": ("seed", as_is),
+    "integrator": ("integrator", as_is),
+    "dt_ms": ("dt", U.ms),
 }

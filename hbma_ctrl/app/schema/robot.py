@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal, NamedTuple
 import numpy as np
 from pydantic import Field, PrivateAttr, model_validator
 
-from hbma_ctrl.app.schema.base import MaterialName, build_material, check_rows, ms_to_s
+from hbma_ctrl.app.schema.base import MaterialName, build_material, check_rows
 from hbma_ctrl.app.schema.errors import closest
 from hbma_ctrl.app.schema.fields import (
     RuleError,
@@ -237,10 +237,10 @@ class RobotTable(Table):
         if self._given("tip_load_n"):
             closed["tip_load"] = tuple(tuple(r) for r in self.tip_load_n)
         for key, name, conv in (("compare_baseline", "compare_baseline", bool), ("settle_s", "settle_time", float),
-                                ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", ms_to_s)):
+                                ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms)):
             if self._given(key):
                 closed[name] = conv(getattr(self, key))
-        sync = ms_to_s(self.sync_ms) if self._given("sync_ms") else RobotSettings().sync_period
+        sync = U.ms(self.sync_ms) if self._given("sync_ms") else RobotSettings().sync_period
         try:
             return RobotSettings(design=design, pneumatics=pn, mode=self.mode, inputs=inputs,
                                  tip_force=tuple(self.tip_force_n), tip_moment=tuple(self.tip_moment_nm),
