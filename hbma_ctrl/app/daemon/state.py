@@ -1,0 +1,94 @@
+"""What the daemon's loop and its API share, behind one lock (SI inside; the API converts at its edge).
+
+The loop thread publishes a status snapshot every period (:meth:`DaemonState.publish`) and takes the
+setpoints queued since the last period (:meth:`DaemonState.take_setpoints`). The API thread reads the
+snapshot, submits setpoints and asks for the stop. A setpoint is checked and clipped to what the rig
+can reach by the handler the loop registered (:meth:`DaemonState.set_setpoint_handler`) in the API's
+thread, so the reply says at once what will be applied and what was clipped; the loop applies it at
+its next period.
+
+A setpoint request (SI) is a dict with either or both of
+``heights``: {chamber index: membrane height, m} and
+``layers``: {layer index: (centre height m, bend rad, bend direction rad)}.
+The handler returns ``{"applied": <request as it will be applied>, "clipped": [messages]}`` or raises
+ValueError (a request the rig cannot take at all, e.g. a chamber that does not exist).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import Callable
+
+__all__ = ["DaemonState", "MODES"]
+
+#: the loop's modes: starting, running (closed loop), safe (latched safe command after a fault or a
+#: stop), stopped (the loop has ended)
+MODES = ("starting", "running", "safe", "stopped")
+
+
+class DaemonState:
+    """Thread-safe status, setpoint queue and stop request (see module doc)."""
+
+    def __init__(self, max_pending: int = 64):
+        self._lock = threading.Lock()
+        self._status: dict = {"mode": "starting"}
+        self._pending: deque = deque(maxlen=max_pending)
+        self._handler: Callable[[dict], dict] | None = None
+        self._stop = threading.Event()
+        self._stop_reason = ""
+
+    # --- loop side ---------------------------------------------------------------------------------
+    def publish(self, status: dict) -> None:
+        """Replace the status snapshot (the loop builds a new dict each time; readers never see a half)."""
+        with self._lock:
+            self._status = status
+
+    def take_setpoints(self) -> list[dict]:
+        """The setpoints submitted since the last call (oldest first), as the handler returned them."""
+        with self._lock:
+            out = list(self._pending)
+            self._pending.clear()
+        return out
+
+    def set_setpoint_handler(self, handler: Callable[[dict], dict]) -> None:
+        """Register the function that checks and clips a request (called in the API's thread)."""
+        with self._lock:
+            self._handler = handler
+
+    # --- API side ----------------------------------------------------------------------------------
+    def status(self) -> dict:
+        """The newest status snapshot (do not mutate it)."""
+        with self._lock:
+            return self._status
+
+    def submit_setpoint(self, request: dict) -> dict:
+        """Check and clip ``request`` and queue it for the loop; returns the handler's reply.
+        Raises ValueError when the request cannot be taken, RuntimeError before the loop is ready."""
+        with self._lock:
+            handler = self._handler
+        if handler is None:
+            raise RuntimeError("the loop is not ready for setpoints yet")
+        reply = handler(request)
+        with self._lock:
+            self._pending.append(reply["applied"])
+        return reply
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Ask the loop to send the safe command and end (idempotent; the first reason is kept)."""
+        with self._lock:
+            if not self._stop.is_set():
+                self._stop_reason = reason
+                self._stop.set()
+
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop.is_set()
+
+    @property
+    def stop_reason(self) -> str:
+        return self._stop_reason
+
+    def wait_stop(self, timeout: float) -> bool:
+        """Sleep up to ``timeout`` s or until a stop is requested; True if it was."""
+        return self._stop.wait(timeout)
