@@ -72,6 +72,10 @@ class ChamberLoop:
         self.target: float | None = None
         self._k = 0
 
+    def set_reference(self, reference: Callable[[float], float] | None) -> None:
+        """Replace the target height function (m at time t s; None = hold) from the next tick on."""
+        self.reference = reference
+
     def tick(self, t: float, reading_pa: float) -> Command:
         """One sample at time t (s) with the pressure reading (Pa, NaN = dropout): estimate, then
         (every ``every`` ticks) controller and supervisor. Returns the command to hold until the next tick."""

@@ -92,6 +92,12 @@ class RobotLoop:
         self._tcache: dict = {}
         self._k = 0
 
+    def set_targets(self, targets: dict) -> None:
+        """Replace the layer targets ({layer: ((t s, centre m, bend rad, direction rad), ...)}) from the next
+        tick on (the cache of chamber targets is dropped with them)."""
+        self.targets = targets
+        self._tcache.clear()
+
     def chamber_targets(self, t: float) -> np.ndarray:
         """Every chamber's target height at time t, m (n,)."""
         return chamber_targets(self.design, self.targets, t, self._tcache)
