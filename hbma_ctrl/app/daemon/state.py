@@ -64,13 +64,17 @@ class DaemonState:
 
     def submit_setpoint(self, request: dict) -> dict:
         """Check and clip ``request`` and queue it for the loop; returns the handler's reply.
-        Raises ValueError when the request cannot be taken, RuntimeError before the loop is ready."""
+        Raises ValueError when the request cannot be taken, RuntimeError before the loop is ready or
+        while the queue is full (never drops a setpoint it accepted)."""
         with self._lock:
             handler = self._handler
         if handler is None:
             raise RuntimeError("the loop is not ready for setpoints yet")
         reply = handler(request)
         with self._lock:
+            # a full queue refuses instead of letting the deque drop the oldest setpoint unseen
+            if len(self._pending) == self._pending.maxlen:
+                raise RuntimeError(f"{len(self._pending)} setpoints are waiting for the loop; retry after a period")
             self._pending.append(reply["applied"])
         return reply
 
