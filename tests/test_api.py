@@ -233,6 +233,19 @@ def test_body_over_the_limit_is_413_with_or_without_a_length(state, client):
     assert state.take_setpoints() == []
 
 
+def test_requests_beyond_the_pace_wait_their_turn_and_are_answered(state):
+    c = TestClient(make_app(state, None, rate_hz=200.0, burst=1, max_wait_s=1.0))
+    assert [c.get("/health").status_code for _ in range(6)] == [200] * 6
+
+
+def test_requests_that_would_wait_too_long_are_429(state):
+    c = TestClient(make_app(state, None, rate_hz=0.001, burst=2, max_wait_s=0.0))
+    assert [c.get("/health").status_code for _ in range(2)] == [200, 200]
+    r = c.post("/setpoint", json={"heights_mm": {"0": 1.0}})
+    assert r.status_code == 429 and r.headers["retry-after"] == "1" and "too many" in r.json()["error"]
+    assert state.take_setpoints() == []
+
+
 # --- POST /stop -----------------------------------------------------------------------------------------
 
 def test_stop_reaches_the_state_and_keeps_the_first_reason(state, client):
@@ -348,7 +361,7 @@ def test_concurrent_clients_are_all_answered_and_each_setpoint_is_queued_once(st
 
     loop = threading.Thread(target=fake_loop, daemon=True)
     loop.start()
-    with serve(state, port=0) as srv:
+    with serve(state, port=0, rate_hz=400.0) as srv:
         threads = [threading.Thread(target=client_thread, args=(j, srv.url)) for j in range(n_threads)]
         for t in threads:
             t.start()

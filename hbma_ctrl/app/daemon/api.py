@@ -15,6 +15,8 @@ Every error is JSON ``{"error": "<one line>", "detail": ...}``; a message that f
 422 and its line names the key as written and the allowed range in the key's unit, e.g.
 ``[setpoint] heights_mm.0 = 500 is out of range [0, 200] mm``. A body over :data:`MAX_BODY_BYTES` is
 413. When a token is set every request needs ``Authorization: Bearer <token>`` (401 otherwise).
+Requests are paced to :data:`RATE_HZ` per second over all clients (a burst of :data:`BURST` at
+once); one that would wait more than :data:`MAX_WAIT_S` for its turn gets 429.
 :func:`serve` binds loopback only (127.0.0.0/8, ::1, localhost) unless ``allow_remote`` and a token.
 
 The status dict the loop publishes (:meth:`DaemonState.publish`), SI; every key but ``mode`` may be
@@ -43,6 +45,7 @@ moment: no work grows with the run's history, and a flood of requests cannot hol
 
 from __future__ import annotations
 
+import asyncio
 import hmac
 import ipaddress
 import json
@@ -82,6 +85,8 @@ __all__ = [
     "DEFAULT_PORT",
     "EVENTS_SHOWN",
     "MAX_BODY_BYTES",
+    "MAX_WAIT_S",
+    "RATE_HZ",
     "is_loopback",
     "make_app",
     "request_error",
@@ -96,6 +101,12 @@ MAX_BODY_BYTES = 16 * 1024
 EVENTS_SHOWN = 10
 #: connections served at once; more get 503 from uvicorn instead of queueing work behind the loop
 MAX_CONNECTIONS = 64
+#: requests served per second on average (all clients together) and the burst served at once: a
+#: request costs ~1 ms of the daemon's CPU (and its GIL), so a flood is paced instead of starving the loop
+RATE_HZ = 100.0
+BURST = 50
+#: a request that would wait longer than this for its turn is refused with 429 instead
+MAX_WAIT_S = 2.0
 
 
 def _fin(x: Any, scale: float = 1.0) -> float | None:
@@ -186,15 +197,38 @@ def _json(model: Any) -> Response:
 
 
 class _Guard:
-    """ASGI middleware before the app: the bearer token (401), then the body size (413).
+    """ASGI middleware before the app: the pace (429 when the wait is too long), the bearer token
+    (401), then the body size (413).
 
-    The body is read here, up to the limit, and handed on whole: a request never makes the app
-    buffer more than :data:`MAX_BODY_BYTES`."""
+    Pacing is a token bucket: each request takes a token, refilled at ``rate_hz`` up to ``burst``;
+    without one it sleeps (in the event loop, no CPU) until its turn. The body is read here, up to
+    the limit, and handed on whole: a request never makes the app buffer more than the limit."""
 
-    def __init__(self, app: Any, token: str | None, max_body: int):
+    def __init__(self, app: Any, token: str | None, max_body: int, rate_hz: float, burst: int, max_wait_s: float):
         self.app = app
         self.token = token.encode() if token is not None else None
         self.max_body = max_body
+        self.rate = rate_hz
+        self.burst = float(burst)
+        self.max_wait = max_wait_s
+        # only the server's event loop touches the bucket: no lock
+        self._tokens = float(burst)
+        self._last = time.monotonic()
+
+    async def _take_turn(self) -> bool:
+        """Wait for this request's token; False when the wait would exceed ``max_wait``."""
+        now = time.monotonic()
+        self._tokens = min(self.burst, self._tokens + (now - self._last) * self.rate)
+        self._last = now
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return True
+        wait = (1.0 - self._tokens) / self.rate
+        if wait > self.max_wait:
+            return False
+        self._tokens -= 1.0  # reserved: the next request waits behind this one
+        await asyncio.sleep(wait)
+        return True
 
     def _authorised(self, headers: list) -> bool:
         for name, value in headers:
@@ -206,6 +240,10 @@ class _Guard:
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        if not await self._take_turn():
+            await _error(429, f"too many requests: the API serves {self.rate:g} per second",
+                         headers={"Retry-After": "1"})(scope, receive, send)
             return
         headers = scope.get("headers") or []
         if self.token is not None and not self._authorised(headers):
@@ -248,13 +286,17 @@ class _Guard:
         await self.app(scope, replay, send)
 
 
-def make_app(state: DaemonState, token: str | None = None) -> FastAPI:
+def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = RATE_HZ, burst: int = BURST,
+             max_wait_s: float = MAX_WAIT_S) -> FastAPI:
     """The API in front of ``state`` (see the module doc); ``token``: the bearer token every request
-    must carry, None for none."""
+    must carry, None for none; ``rate_hz`` (requests/s), ``burst`` and ``max_wait_s`` (s): the pace."""
     if token is not None and not token.strip():
         raise ValueError("token must not be empty")
+    if not (rate_hz > 0 and burst >= 1 and max_wait_s >= 0):
+        raise ValueError("api pace: rate_hz > 0, burst >= 1 and max_wait_s >= 0 are required")
     app = FastAPI(title="hbma-ctrl rig daemon", docs_url=None, redoc_url=None)
-    app.add_middleware(_Guard, token=token, max_body=MAX_BODY_BYTES)
+    app.add_middleware(_Guard, token=token, max_body=MAX_BODY_BYTES, rate_hz=rate_hz, burst=burst,
+                       max_wait_s=max_wait_s)
     # the last converted snapshot: many requests per loop period convert it once
     cache: list = [None, None]
     cache_lock = threading.Lock()
@@ -382,8 +424,9 @@ class ApiServer:
 
 
 def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT, allow_remote: bool = False,
-          token: str | None = None, start_timeout: float = 10.0) -> ApiServer:
+          token: str | None = None, rate_hz: float = RATE_HZ, start_timeout: float = 10.0) -> ApiServer:
     """Start the API on (host, port) in a daemon thread and return once it accepts connections.
+    ``rate_hz``: requests served per second, all clients together (see :func:`make_app`).
 
     Loopback only unless ``allow_remote`` is True and a ``token`` is given (ValueError otherwise);
     port 0 binds any free port (read it from the result). OSError when the address cannot be bound."""
@@ -394,7 +437,7 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     if not is_loopback(host) and not (allow_remote and token is not None):
         raise ValueError(f"api host = {host!r} is not loopback (127.0.0.1, ::1, localhost); another address "
                          "needs --allow-remote and a token")
-    app = make_app(state, token)
+    app = make_app(state, token, rate_hz=rate_hz)
     sock = _bind(host, port)
     config = uvicorn.Config(app, log_config=None, access_log=False, log_level="warning", lifespan="off",
                             limit_concurrency=MAX_CONNECTIONS, timeout_graceful_shutdown=2)
