@@ -110,19 +110,20 @@ MAX_WAIT_S = 2.0
 
 
 def _fin(x: Any, scale: float = 1.0) -> float | None:
-    """``x * scale`` as a float, or None when x is missing or not finite (JSON has no NaN)."""
+    """``x * scale`` as a float rounded to 1e-9, or None when x is missing or not finite (JSON has no NaN)."""
     if x is None:
         return None
     try:
         v = float(x)
     except (TypeError, ValueError):
         return None
-    return v * scale if math.isfinite(v) else None
+    # 1e-9 of the edge unit is far below any sensor; it drops the float noise of the conversion
+    return round(v * scale, 9) if math.isfinite(v) else None
 
 
 def _deg(x: Any) -> float | None:
-    v = _fin(x)
-    return None if v is None else math.degrees(v)
+    """Radians -> degrees, as :func:`_fin`."""
+    return _fin(x, math.degrees(1.0))
 
 
 def status_message(snapshot: dict, now: float | None = None, stop_requested: bool = False) -> Status:
