@@ -8,7 +8,7 @@ import math
 import socket
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 
 import httpx
 import pytest
@@ -16,7 +16,13 @@ from fastapi.testclient import TestClient
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hbma_ctrl.app.daemon.api import EVENTS_SHOWN, MAX_BODY_BYTES, is_loopback, make_app, serve
+from hbma_ctrl.app.daemon.api import (
+    EVENTS_SHOWN,
+    MAX_BODY_BYTES,
+    is_loopback,
+    make_app,
+    serve,
+)
 from hbma_ctrl.app.daemon.state import DaemonState
 
 H_CLIP = 0.010  # m: the fake loop's reach
@@ -89,6 +95,13 @@ def test_status_converts_the_loop_snapshot_to_edge_units(state, client):
 
 def test_status_shows_only_the_latest_events_newest_last(state, client):
     state.publish(snapshot())
+    latest = client.get("/status").json()["faults"]["latest"]
+    assert [e["cause"] for e in latest] == [f"event {k}" for k in range(25 - EVENTS_SHOWN, 25)]
+
+
+def test_status_takes_the_latest_events_from_a_deque_too(state, client):
+    from_list = snapshot()
+    state.publish(snapshot(events=deque(from_list["events"], maxlen=100)))
     latest = client.get("/status").json()["faults"]["latest"]
     assert [e["cause"] for e in latest] == [f"event {k}" for k in range(25 - EVENTS_SHOWN, 25)]
 
@@ -198,8 +211,9 @@ BAD = [
     ("negative chamber index", '{"heights_mm": {"-1": 5}}', ["heights_mm", "'-1'", "[0, 255]"]),
     ("fractional layer index", '{"layers": [{"layer": 1.5, "centre_mm": 5, "bend_deg": 3, "direction_deg": 0}]}',
      ["layers[0].layer", "integer"]),
-    ("layer given twice", '{"layers": [{"layer": 0, "centre_mm": 5, "bend_deg": 3, "direction_deg": 0},'
-                          '{"layer": 0, "centre_mm": 6, "bend_deg": 3, "direction_deg": 0}]}', ["layers[1].layer", "twice"]),
+    ("layer given twice", ('{"layers": [{"layer": 0, "centre_mm": 5, "bend_deg": 3, "direction_deg": 0},'
+                           '{"layer": 0, "centre_mm": 6, "bend_deg": 3, "direction_deg": 0}]}'),
+     ["layers[1].layer", "twice"]),
     ("heights as a list", '{"heights_mm": [5, 6]}', ["heights_mm", "wrong shape"]),
     ("empty setpoint", "{}", ["heights_mm or layers"]),
     ("not an object", "[1, 2]", ["JSON object"]),
@@ -315,6 +329,22 @@ def test_real_server_binds_a_free_port_answers_and_stops_cleanly(state):
     assert not srv.running
     with pytest.raises(OSError):
         socket.create_connection((srv.host, srv.port), timeout=1).close()
+
+
+def _has_ipv6_loopback() -> bool:
+    try:
+        with socket.socket(socket.AF_INET6, socket.SOCK_STREAM) as s:
+            s.bind(("::1", 0))
+        return True
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _has_ipv6_loopback(), reason="no IPv6 loopback here")
+def test_real_server_binds_ipv6_loopback(state):
+    with serve(state, host="::1", port=0) as srv:
+        assert srv.url.startswith("http://[::1]:")
+        assert httpx.get(f"{srv.url}/health", timeout=5).status_code == 200
 
 
 def test_real_server_with_a_token_checks_it(state):

@@ -19,8 +19,10 @@ Requests are paced to :data:`RATE_HZ` per second over all clients (a burst of :d
 once); one that would wait more than :data:`MAX_WAIT_S` for its turn gets 429.
 :func:`serve` binds loopback only (127.0.0.0/8, ::1, localhost) unless ``allow_remote`` and a token.
 
-The status dict the loop publishes (:meth:`DaemonState.publish`), SI; every key but ``mode`` may be
-left out (e.g. while starting), a number may be None or NaN (shown as null)::
+The status dict the loop publishes (:meth:`DaemonState.publish`), SI, a new dict each period (the
+API caches its conversion by identity); every key but ``mode`` may be left out (e.g. while
+starting), a number may be None or NaN (shown as null); ``events`` may be any sequence that
+supports ``reversed`` (a list or a deque)::
 
     {
       "mode": "starting" | "running" | "safe" | "stopped",
@@ -48,18 +50,17 @@ from __future__ import annotations
 import asyncio
 import hmac
 import ipaddress
-import json
+import itertools
 import math
 import socket
 import threading
 import time
-from typing import Any
+from typing import Any, Self
 
 import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
-from pydantic import ValidationError
 from starlette.exceptions import HTTPException
 
 from hbma_ctrl.app.daemon.state import DaemonState
@@ -81,12 +82,12 @@ from hbma_ctrl.app.schema.errors import format_one
 from hbma_ctrl.core import units as U
 
 __all__ = [
-    "ApiServer",
     "DEFAULT_PORT",
     "EVENTS_SHOWN",
     "MAX_BODY_BYTES",
     "MAX_WAIT_S",
     "RATE_HZ",
+    "ApiServer",
     "is_loopback",
     "make_app",
     "request_error",
@@ -126,6 +127,15 @@ def _deg(x: Any) -> float | None:
     return _fin(x, math.degrees(1.0))
 
 
+def _age_ms(snapshot: dict, now: float | None = None) -> float | None:
+    """Milliseconds from the loop building ``snapshot`` to ``now`` (time.monotonic(), s; default: now);
+    None when the snapshot carries no stamp."""
+    stamp = _fin(snapshot.get("monotonic_s"))
+    if stamp is None:
+        return None
+    return _fin(max(0.0, (time.monotonic() if now is None else now) - stamp), U.to_ms(1.0))
+
+
 def status_message(snapshot: dict, now: float | None = None, stop_requested: bool = False) -> Status:
     """The loop's SI status dict (module doc) as the :class:`Status` message in edge units.
 
@@ -147,20 +157,14 @@ def status_message(snapshot: dict, now: float | None = None, stop_requested: boo
                       deadline_misses=int(lp.get("deadline_misses", 0)),
                       step_ms_median=_fin(lp.get("step_median_s"), U.to_ms(1.0)),
                       step_ms_p99=_fin(lp.get("step_p99_s"), U.to_ms(1.0)))
-    events = list(snapshot.get("events") or ())[-EVENTS_SHOWN:]
+    # the newest few only, walked from the end: the cost does not grow with what the loop keeps
+    events = list(itertools.islice(reversed(snapshot.get("events") or ()), EVENTS_SHOWN))[::-1]
     faults = Faults(counts={str(k): int(v) for k, v in (snapshot.get("faults") or {}).items()},
                     latest=[FaultEvent(t_s=_fin(e.get("t_s")), kind=str(e.get("kind", "")),
                                        cause=str(e.get("cause", ""))) for e in events])
-    stamp = _fin(snapshot.get("monotonic_s"))
-    age = None if now is None or stamp is None else U.to_ms(max(0.0, now - stamp))
+    age = None if now is None else _age_ms(snapshot, now)
     return Status(mode=str(snapshot.get("mode", "starting")), t_s=_fin(snapshot.get("t_s")), age_ms=age,
                   stop_requested=stop_requested, chambers=chambers, layers=layers, loop=loop, faults=faults)
-
-
-def _age_ms(snapshot: dict) -> float | None:
-    """Milliseconds since the loop built ``snapshot`` (None when it carries no stamp)."""
-    stamp = _fin(snapshot.get("monotonic_s"))
-    return None if stamp is None else U.to_ms(max(0.0, time.monotonic() - stamp))
 
 
 def _applied_message(applied: dict) -> SetpointApplied:
@@ -417,10 +421,10 @@ class ApiServer:
         except OSError:
             pass
 
-    def __enter__(self) -> ApiServer:
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
