@@ -105,7 +105,7 @@ GOOD = "h_mm,p_kpa\n1.0,5.0\n2.0,9.0\n3.0,12.0\n"
     ("", ["empty"]),
     ("h_mm,p_kpa\n", ["no data rows"]),
     (b"h_mm,p_kpa\n1,5\n2,\xff\n", ["not UTF-8", "line 3"]),
-    ("t_s,h_mm,p_kpa\n0,1,5\n", ["dynamic fits are not available yet"]),
+    ("t_s,h_mm,p_kpa\n0,1,5\n", ["missing column 'speed'"]),
     ("h_mm,p_kpa,F_n\n1,5,0.5\n2,6,1.0\n", ["'F_n'", "row 1", "--contact free"]),
 ])
 def test_bad_data_is_one_line(tmp_path, text, needles):

@@ -153,8 +153,8 @@ def parse_data(raw: bytes) -> StaticData:
     reader = csv.reader(io.StringIO("\n".join(lines)))
     header = [c.strip() for c in next(reader)]
     if "t_s" in header:
-        raise ValueError("data: column 't_s' means dynamic data; dynamic fits are not available yet "
-                         "(only static equilibrium points: h_mm, p_kpa[, F_n|load_g])")
+        raise ValueError("data: column 't_s' means a recorded run; read it with "
+                         "hbma_ctrl.app.fit_dynamic.parse_run (static points: h_mm, p_kpa[, F_n|load_g])")
     for col in ("h_mm", "p_kpa"):
         if col not in header:
             hint = did_you_mean(col, header)
