@@ -399,7 +399,9 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
     fixed = {}
     for k, v in (fix or {}).items():
         if k not in names:
-            raise ValueError(f"--fix {k}: not a parameter of this fit{did_you_mean(k, names)}; allowed: {', '.join(names)}")
+            why = (" (the material's parameters are fitted with --fit-material; without it, one modulus_scale)"
+                   if k in model.mat_names else did_you_mean(k, names))
+            raise ValueError(f"--fix {k}: not a parameter of this fit{why}; allowed: {', '.join(names)}")
         i = names.index(k)
         if model.log[i] and not (v > 0 and abs(math.log(v / model.nominal[i])) <= _LOG_BOUND):
             raise ValueError(f"--fix {k}={v:g}: outside [{model.nominal[i] / 20:g}, {model.nominal[i] * 20:g}] (SI)")
