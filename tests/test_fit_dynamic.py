@@ -172,8 +172,29 @@ def test_unavailable_options_refused_for_a_run(tmp_path, args, needles):
     _one_line_error(runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o"), *args]), *needles)
 
 
-def test_static_flags_refuse_run_only_options(tmp_path):
+@pytest.mark.parametrize("flag", [["--load-g", "100"], ["--v0-cm3", "4"], ["--sensor-range-kpa", "50"],
+                                  ["--fit-material"]])
+def test_static_flags_refuse_run_only_options(tmp_path, flag):
     path = tmp_path / "pts.csv"
     path.write_text("h_mm,p_kpa\n1,5\n2,9\n3,12\n")
-    _one_line_error(runner.invoke(app, ["fit", str(path), "--load-g", "100", "--out", str(tmp_path / "o")]),
-                    "--load-g", "only for a recorded run")
+    _one_line_error(runner.invoke(app, ["fit", str(path), *flag, "--out", str(tmp_path / "o")]),
+                    flag[0], "only for a recorded run")
+
+
+def test_replay_with_the_true_parameters_matches_the_rig(tmp_path):
+    # the replayed commands line up with the rig's samples: with the rig's own parameters the model
+    # pressure is the rig's true pressure (same model, same step), to well below the sensor noise
+    truth = _rig_run_csv(tmp_path / "r.csv", PUMP_HOLD_VENT, 4.0, seed=1)
+    run = D.parse_run((tmp_path / "r.csv").read_bytes())
+    p, h = D.simulate_run(run, "nh", dict(TRUTH), R1, T0)
+    assert np.max(np.abs(p - truth["p"])) < 20.0  # Pa; the CSV keeps 0.1 Pa
+    assert np.max(np.abs(h - truth["h"])) < 1e-5
+
+
+def test_fit_material_fits_the_modulus_itself(tmp_path):
+    _rig_run_csv(tmp_path / "r.csv", PUMP_HOLD_VENT, 4.0, seed=2)
+    run = D.parse_run((tmp_path / "r.csv").read_bytes())
+    res = D.fit_dynamic(run, "nh", R1, T0, V0=V0, use_height=False, fit_material=True, fix={"C_out": TRUTH["C_out"]})
+    assert "modulus_scale" not in res.params and res.ci95["C_out"] == [TRUTH["C_out"]] * 2
+    lo, hi = res.ci95["E"]
+    assert lo <= 1.15 * 130.6e3 <= hi

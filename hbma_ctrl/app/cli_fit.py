@@ -62,12 +62,13 @@ def fit_cmd(
     fidelity: Annotated[str, typer.Option(help="cap (the spherical cap of README Model §1-§3)")] = "cap",
     fix: Annotated[Optional[list[str]], typer.Option("--fix", help="hold a parameter NAME=VALUE (SI), repeatable")]
     = None,
-    v0_cm3: Annotated[float, typer.Option("--v0-cm3", help="recorded run: nominal dead volume (the start), cm^3")]
-    = 3.0,
+    v0_cm3: Annotated[Optional[float], typer.Option(
+        "--v0-cm3", help="recorded run: nominal dead volume (the start), cm^3 (default 3)")] = None,
     load_g: Annotated[Optional[float], typer.Option(
         "--load-g", help="recorded run without a load_g column: the load it carried, g (default 0)")] = None,
-    sensor_range_kpa: Annotated[float, typer.Option(
-        "--sensor-range-kpa", help="recorded run: readings at this pressure are saturated and left out, kPa")] = 35.0,
+    sensor_range_kpa: Annotated[Optional[float], typer.Option(
+        "--sensor-range-kpa", help="recorded run: readings at this pressure are saturated and left out, kPa "
+                                   "(default 35)")] = None,
     fit_material: Annotated[bool, typer.Option(
         "--fit-material", help="recorded run: fit the material's parameters instead of one modulus scale")] = False,
     no_height: Annotated[bool, typer.Option(
@@ -80,8 +81,10 @@ def fit_cmd(
     volume, pump and outlet)."""
     _range("--r1-mm", r1_mm, 0.5, 100.0, "mm")
     _range("--t0-mm", t0_mm, 0.05, 20.0, "mm")
-    _range("--v0-cm3", v0_cm3, 0.001, 1000.0, "cm^3")
-    _range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, "kPa")
+    if v0_cm3 is not None:
+        _range("--v0-cm3", v0_cm3, 0.001, 1000.0, "cm^3")
+    if sensor_range_kpa is not None:
+        _range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, "kPa")
     if load_g is not None and not (math.isfinite(load_g) and 0.0 <= load_g <= 50000.0):
         raise ValueError(f"--load-g = {load_g:g} is out of range [0, 50000] g")
     check_options(material.lower(), contact, fidelity)
@@ -93,8 +96,9 @@ def fit_cmd(
     if is_dynamic(raw):
         run = parse_run(raw, None if load_g is None else U.grams(load_g))
         source = f"{data.name}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
-        dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(v0_cm3), fix=fixed,
-                           fit_material=fit_material, sensor_range=U.kpa(sensor_range_kpa),
+        dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3),
+                           fix=fixed, fit_material=fit_material,
+                           sensor_range=U.kpa(35.0 if sensor_range_kpa is None else sensor_range_kpa),
                            use_height=not no_height, fidelity=fidelity, contact=contact, source=source)
         with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
             write_dynamic_fit(dres, tmp)
@@ -102,7 +106,8 @@ def fit_cmd(
         _print(f"fit {dres.material} to a run: {dres.n_points} points, {dres.fidelity} model, "
                f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed, dres.unidentifiable, out)
         return
-    for flag, given in (("--load-g", load_g is not None), ("--fit-material", fit_material), ("--no-height", no_height)):
+    for flag, given in (("--load-g", load_g is not None), ("--fit-material", fit_material), ("--no-height", no_height),
+                        ("--v0-cm3", v0_cm3 is not None), ("--sensor-range-kpa", sensor_range_kpa is not None)):
         if given:
             raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
     pts = parse_data(raw)

@@ -60,6 +60,7 @@ __all__ = [
     "check_options",
     "fit_static",
     "weak_directions",
+    "unflatten",
     "params_toml",
     "write_fit",
 ]
@@ -197,7 +198,7 @@ def param_names(material: str) -> list[str]:
     return space.names[len(ph.BASE_NAMES):]
 
 
-def _unflatten(material: str, values: dict) -> dict:
+def unflatten(material: str, values: dict) -> dict:
     """Flattened {name: value} -> make_material keyword arguments (tuples for tuple fields)."""
     space = ph.ParamSpace.for_material(make_material(material))
     kw = {}
@@ -457,7 +458,7 @@ def _toml_value(v) -> str:
 
 def params_toml(result: FitResult) -> str:
     """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
-    kw = _unflatten(result.material, result.params)
+    kw = unflatten(result.material, result.params)
     head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
             f"NRMSD {result.nrmsd:.4f}")
     lines = [head,

@@ -48,7 +48,7 @@ from matplotlib.figure import Figure
 from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
-from hbma_ctrl.app.fit import FIT_KEYS, _unflatten, check_options, param_names, weak_directions
+from hbma_ctrl.app.fit import FIT_KEYS, unflatten, check_options, param_names, weak_directions
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
@@ -528,7 +528,7 @@ def dynamic_params_toml(result: DynamicFitResult) -> str:
         lines.append(f"# data: {result.source}")
     lines += ["[actuator]", f'material = "{result.material}"', f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}", "",
               "[actuator.material_params]"]
-    for k, v in _unflatten(result.material, result.params).items():
+    for k, v in unflatten(result.material, result.params).items():
         lines.append(f"{k} = " + ("[" + ", ".join(repr(float(x)) for x in v) + "]" if isinstance(v, list) else repr(float(v))))
     lines += ["", "[pneumatics]", f"flow_scale = {result.params['flow_scale']:.6g}",
               f"# outlet sonic conductance C_out = {result.params['C_out']:.6g} m^3/(s Pa) (no scenario key yet)"]
