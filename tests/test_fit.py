@@ -105,7 +105,7 @@ GOOD = "h_mm,p_kpa\n1.0,5.0\n2.0,9.0\n3.0,12.0\n"
     ("", ["empty"]),
     ("h_mm,p_kpa\n", ["no data rows"]),
     (b"h_mm,p_kpa\n1,5\n2,\xff\n", ["not UTF-8", "line 3"]),
-    ("t_s,h_mm,p_kpa\n0,1,5\n", ["dynamic fits are not available yet"]),
+    ("t_s,h_mm,p_kpa\n0,1,5\n", ["missing column 'speed'"]),
     ("h_mm,p_kpa,F_n\n1,5,0.5\n2,6,1.0\n", ["'F_n'", "row 1", "--contact free"]),
 ])
 def test_bad_data_is_one_line(tmp_path, text, needles):
@@ -162,3 +162,16 @@ def test_load_g_is_converted_to_newtons():
     d = F.parse_data(b"h_mm,p_kpa,load_g\n2.0,10.5,100\n")
     assert d.force_column == "load_g" and abs(d.F[0] - 0.1 * U.G_STD) < 1e-12
     assert d.h[0] == pytest.approx(2e-3) and d.p[0] == pytest.approx(10.5e3)
+
+
+def test_mr_wide_range_correlated_but_determined_is_not_named():
+    # 1-14 mm of free inflation with 1 % noise: C1 and C2 correlate at about -0.985, yet both
+    # intervals are narrow and every combination moves the fit: nothing to report
+    clean = _free("mr", {"C1": 20e3, "C2": 2e3})
+    noisy = clean.p + 0.01 * (clean.p.max() - clean.p.min()) * np.random.default_rng(0).standard_normal(clean.p.size)
+    res = F.fit_static(F.StaticData(clean.h, noisy), "mr", R1, T0)
+    assert res.correlation["C1"]["C2"] < -F.CORR_LIMIT
+    assert res.unidentifiable == []
+    for k, true in (("C1", 20e3), ("C2", 2e3)):
+        lo, hi = res.ci95[k]
+        assert lo <= true <= hi and (hi - lo) / 2 < F.REL_CI_MAX * res.params[k]

@@ -1,4 +1,8 @@
-"""``hbma-ctrl fit DATA.csv``: fit a membrane material to static equilibrium data.
+"""``hbma-ctrl fit DATA.csv``: fit the model to static equilibrium data or to a recorded run.
+
+A file with a ``t_s`` column is a recorded run (:mod:`hbma_ctrl.app.fit_dynamic`: modulus, dead
+volume, compressor-map scale and outlet conductance); otherwise static equilibrium points
+(:mod:`hbma_ctrl.app.fit`: the material parameters).
 
 Registered by :mod:`hbma_ctrl.app.cli` through :func:`register`. Edge units (mm, kPa, g) here; the
 fit (:mod:`hbma_ctrl.app.fit`) works in SI. Writes ``fit.json``, ``params.toml`` and
@@ -8,6 +12,7 @@ ValueError, which the top-level CLI prints as one ``error: ...`` line with exit 
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 from typing import Annotated, Optional
@@ -17,6 +22,7 @@ from rich.console import Console
 from rich.table import Table
 
 from hbma_ctrl.app.fit import check_options, fit_static, parse_data, write_fit
+from hbma_ctrl.app.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 
@@ -46,7 +52,8 @@ def _range(name: str, value: float, lo: float, hi: float, unit: str) -> None:
 
 
 def fit_cmd(
-    data: Annotated[Path, typer.Argument(help="CSV: h_mm, p_kpa and, with a load, F_n or load_g")],
+    data: Annotated[Path, typer.Argument(help="CSV: static (h_mm, p_kpa[, F_n|load_g]) or a recorded run (t_s, "
+                                              "p_kpa, speed, inlet, outlet[, h_mm, load_g])")],
     material: Annotated[str, typer.Option(help="nh | mr | yeoh | gent | ogden")] = "nh",
     r1_mm: Annotated[float, typer.Option("--r1-mm", help="clamp radius r1, mm")] = 12.5,
     t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = 3.0,
@@ -55,34 +62,74 @@ def fit_cmd(
     fidelity: Annotated[str, typer.Option(help="cap (the spherical cap of README Model §1-§3)")] = "cap",
     fix: Annotated[Optional[list[str]], typer.Option("--fix", help="hold a parameter NAME=VALUE (SI), repeatable")]
     = None,
+    v0_cm3: Annotated[Optional[float], typer.Option(
+        "--v0-cm3", help="recorded run: nominal dead volume (the start), cm^3 (default 3)")] = None,
+    load_g: Annotated[Optional[float], typer.Option(
+        "--load-g", help="recorded run without a load_g column: the load it carried, g (default 0)")] = None,
+    sensor_range_kpa: Annotated[Optional[float], typer.Option(
+        "--sensor-range-kpa", help="recorded run: readings at this pressure are saturated and left out, kPa "
+                                   "(default 35)")] = None,
+    fit_material: Annotated[bool, typer.Option(
+        "--fit-material", help="recorded run: fit the material's parameters instead of one modulus scale")] = False,
+    no_height: Annotated[bool, typer.Option(
+        "--no-height", help="recorded run: fit the pressure only, even with a height column")] = False,
     out: Annotated[Path, typer.Option("--out", "-o", help="directory for fit.json, params.toml, residuals.png")]
     = Path("runs/fit"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
-    """Fit material parameters to static equilibrium data (pressure vs height, optional loads)."""
+    """Fit the model to static equilibrium points (material) or a recorded run (material scale, dead
+    volume, pump and outlet)."""
     _range("--r1-mm", r1_mm, 0.5, 100.0, "mm")
     _range("--t0-mm", t0_mm, 0.05, 20.0, "mm")
+    if v0_cm3 is not None:
+        _range("--v0-cm3", v0_cm3, 0.001, 1000.0, "cm^3")
+    if sensor_range_kpa is not None:
+        _range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, "kPa")
+    if load_g is not None and not (math.isfinite(load_g) and 0.0 <= load_g <= 50000.0):
+        raise ValueError(f"--load-g = {load_g:g} is out of range [0, 50000] g")
     check_options(material.lower(), contact, fidelity)
     fixed = parse_fix(fix or [])
     check_out(out, overwrite)  # before the fit: a bad --out costs nothing
     if not data.is_file():
         raise FileNotFoundError(f"data file {data} not found")
-    pts = parse_data(data.read_bytes())
+    raw = data.read_bytes()
+    if is_dynamic(raw):
+        run = parse_run(raw, None if load_g is None else U.grams(load_g))
+        source = f"{data.name}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
+        dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3),
+                           fix=fixed, fit_material=fit_material,
+                           sensor_range=U.kpa(35.0 if sensor_range_kpa is None else sensor_range_kpa),
+                           use_height=not no_height, fidelity=fidelity, contact=contact, source=source)
+        with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
+            write_dynamic_fit(dres, tmp)
+        hn = f", height NRMSD {dres.nrmsd_h:.4f}" if dres.nrmsd_h is not None else ""
+        _print(f"fit {dres.material} to a run: {dres.n_points} points, {dres.fidelity} model, "
+               f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed, dres.unidentifiable, out)
+        return
+    for flag, given in (("--load-g", load_g is not None), ("--fit-material", fit_material), ("--no-height", no_height),
+                        ("--v0-cm3", v0_cm3 is not None), ("--sensor-range-kpa", sensor_range_kpa is not None)):
+        if given:
+            raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
+    pts = parse_data(raw)
     res = fit_static(pts, material.lower(), U.mm(r1_mm), U.mm(t0_mm), contact=contact, fix=fixed,
                      fidelity=fidelity)
     with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         write_fit(res, tmp)
+    _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact, NRMSD {res.nrmsd:.4f}",
+           res.params, res.ci95, res.fixed, res.unidentifiable, out)
+
+
+def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: Path) -> None:
     con = Console(highlight=False)
-    tab = Table(title=f"fit {res.material}: {res.n_points} points, {res.contact} contact, "
-                      f"NRMSD {res.nrmsd:.4f}")
+    tab = Table(title=title)
     for c in ("parameter", "value (SI)", "95 % interval"):
         tab.add_column(c, justify="right")
-    for k, v in res.params.items():
-        lo, hi = res.ci95[k]
-        ci = "fixed" if k in res.fixed else (f"[{lo:.4g}, {hi:.4g}]" if lo is not None else "n/a (no dof)")
+    for k, v in params.items():
+        lo, hi = ci95[k]
+        ci = "fixed" if k in fixed else (f"[{lo:.4g}, {hi:.4g}]" if lo is not None else "n/a (no dof)")
         tab.add_row(k, f"{v:.5g}", ci)
     con.print(tab)
-    for s in res.unidentifiable:
+    for s in notes:
         con.print(f"note: {s}")
     con.print(f"wrote {out / 'fit.json'}, {out / 'params.toml'}, {out / 'residuals.png'}")
 

@@ -12,9 +12,13 @@ The material parameters (flattened as in :class:`hbma_ctrl.core.physics.ParamSpa
 ``C2``; ``C0..C2`` for Yeoh; ``mu``, ``Jm``; ``mu0, mu1, alpha0, alpha1``) are fitted by
 ``scipy.optimize.least_squares`` on the pressure residuals divided by the data's pressure span, from
 several starts. Intervals (95 %) come from the Jacobian at the optimum with the residual variance and
-a t quantile; directions the data cannot separate are the eigenvectors of the column-scaled
-``J^T J`` with eigenvalue ratio below :data:`EIG_RATIO`, or parameter pairs with
-``|correlation| >`` :data:`CORR_LIMIT`.
+a t quantile. What the data cannot separate (:func:`weak_directions`) is judged on two things
+that a correlation alone does not tell: the sensitivity of the fit along each right singular vector of
+the Jacobian in relative units (a combination whose 100 % change moves the model by less than
+:data:`SENS_MIN` of the data's span, RMS, is not determined whatever the noise), and the width of
+each 95 % interval relative to its value (above :data:`REL_CI_MAX`: not determined by these points;
+named as a trade-off with the parameter it is correlated with beyond :data:`CORR_LIMIT`). A
+correlation of -0.985 between two parameters whose intervals are both narrow is not reported.
 
 Only :func:`write_fit` touches files; :func:`parse_data` takes the file's bytes.
 """
@@ -45,7 +49,8 @@ __all__ = [
     "CONTACTS",
     "FIDELITIES",
     "FIT_KEYS",
-    "EIG_RATIO",
+    "SENS_MIN",
+    "REL_CI_MAX",
     "CORR_LIMIT",
     "StaticData",
     "FitResult",
@@ -54,6 +59,8 @@ __all__ = [
     "model_pressure",
     "check_options",
     "fit_static",
+    "weak_directions",
+    "unflatten",
     "params_toml",
     "write_fit",
 ]
@@ -64,9 +71,12 @@ CONTACTS = ("free", "flat")
 FIDELITIES = ("cap",)
 #: the keys of fit.json
 FIT_KEYS = ("material", "params", "ci95", "nrmsd", "n_points", "unidentifiable", "correlation")
-#: eigenvalue ratio (to the largest) of the scaled J^T J below which a direction is not identified
-EIG_RATIO = 1e-6
-#: |correlation| above which two parameters are reported as trading off
+#: RMS change of the model, as a fraction of the data's span, per 100 % change of a parameter
+#: combination, below which that combination is not determined by the data (noise-free criterion)
+SENS_MIN = 1e-3
+#: 95 % half-width relative to the value above which a parameter is reported as not determined
+REL_CI_MAX = 1.0
+#: |correlation| above which a poorly determined parameter is named with its partner
 CORR_LIMIT = 0.98
 #: p_kpa above this looks like Pa
 _P_KPA_MAX = 1000.0
@@ -144,8 +154,8 @@ def parse_data(raw: bytes) -> StaticData:
     reader = csv.reader(io.StringIO("\n".join(lines)))
     header = [c.strip() for c in next(reader)]
     if "t_s" in header:
-        raise ValueError("data: column 't_s' means dynamic data; dynamic fits are not available yet "
-                         "(only static equilibrium points: h_mm, p_kpa[, F_n|load_g])")
+        raise ValueError("data: column 't_s' means a recorded run; read it with "
+                         "hbma_ctrl.app.fit_dynamic.parse_run (static points: h_mm, p_kpa[, F_n|load_g])")
     for col in ("h_mm", "p_kpa"):
         if col not in header:
             hint = did_you_mean(col, header)
@@ -188,7 +198,7 @@ def param_names(material: str) -> list[str]:
     return space.names[len(ph.BASE_NAMES):]
 
 
-def _unflatten(material: str, values: dict) -> dict:
+def unflatten(material: str, values: dict) -> dict:
     """Flattened {name: value} -> make_material keyword arguments (tuples for tuple fields)."""
     space = ph.ParamSpace.for_material(make_material(material))
     kw = {}
@@ -265,30 +275,55 @@ def _parse_fix(material: str, fix: dict, names: list[str]) -> dict:
     return out
 
 
-def _sentences(names: list[str], corr: np.ndarray, JtJ_scaled: np.ndarray) -> list[str]:
-    """The unidentified directions in words: eigenvectors of small eigenvalue and correlated pairs."""
+def _join(names: list[str] | tuple[str, ...]) -> str:
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + f" and {names[-1]}"
+
+
+def weak_directions(names: list[str], J: np.ndarray, corr: np.ndarray, rel_half: np.ndarray,
+                    where: str = "this data", hint: str = "fix one with --fix or add points over a wider "
+                    "height range") -> list[str]:
+    """The parameter combinations the data cannot separate, in words.
+
+    ``J``: Jacobian of the residuals (each divided by its channel's span) with respect to the
+    parameters in relative units (a column = the change per 100 % change of that parameter's
+    reference value: its default for a static fit, its fitted value on a log scale);
+    ``corr``: their correlation matrix; ``rel_half``: each 95 % half-width divided by the value
+    (NaN when unknown). See the module docstring for the two criteria.
+    """
     out: list[str] = []
-    seen: set = set()
-    w, V = np.linalg.eigh(JtJ_scaled)
-    wmax = max(float(w.max()), 1e-300)
-    for k in range(len(w)):
-        if w[k] / wmax >= EIG_RATIO:
+    named: set = set()
+    n = max(J.shape[0], 1)
+    _, S, Vt = np.linalg.svd(J, full_matrices=False)
+    for k in range(len(S)):
+        sens = float(S[k]) / math.sqrt(n)
+        if sens >= SENS_MIN:
             continue
-        v = V[:, k] / np.max(np.abs(V[:, k]))
-        part = tuple(names[i] for i in range(len(names)) if abs(v[i]) > 0.1)
-        seen.add(frozenset(part))
+        v = Vt[k] / np.max(np.abs(Vt[k]))
+        # members: the direction's large components, and what they are strongly correlated with
+        # (a small component can carry a large relative change when the defaults differ in size)
+        big = [i for i in range(len(names)) if abs(v[i]) > 0.1]
+        part = tuple(names[i] for i in range(len(names))
+                     if i in big or any(abs(corr[i, j]) > CORR_LIMIT for j in big))
+        named |= set(part)
         if len(part) == 1:
-            out.append(f"{part[0]} is not determined by this data (eigenvalue ratio {w[k] / wmax:.1e})")
+            out.append(f"{part[0]} is not determined by {where} (a 100 % change moves the fit by {sens:.1e} "
+                       "of the data's span)")
         else:
-            joined = ", ".join(part[:-1]) + f" and {part[-1]}"
-            out.append(f"{joined} trade off in this data: only a combination is determined (eigenvalue ratio "
-                       f"{w[k] / wmax:.1e}); fix one with --fix or add points over a wider height range")
-    for i in range(len(names)):
-        for j in range(i + 1, len(names)):
-            c = corr[i, j]
-            if abs(c) > CORR_LIMIT and not any({names[i], names[j]} <= s for s in seen):
-                out.append(f"{names[i]} and {names[j]} trade off in this data (correlation {c:+.3f}); fix one with "
-                           "--fix or add points over a wider height range")
+            out.append(f"{_join(part)} trade off in {where}: only a combination is determined (changing it "
+                       f"by 100 % moves the fit by {sens:.1e} of the data's span); {hint}")
+    for i, a in enumerate(names):
+        if a in named or not (rel_half[i] > REL_CI_MAX):
+            continue
+        partners = [names[j] for j in range(len(names)) if j != i and names[j] not in named
+                    and abs(corr[i, j]) > CORR_LIMIT and rel_half[j] > REL_CI_MAX]
+        if partners:
+            j = names.index(partners[0])
+            named |= {a, partners[0]}
+            out.append(f"{a} and {partners[0]} trade off in {where} (correlation {corr[i, j]:+.3f}, 95 % intervals "
+                       f"+-{100 * rel_half[i]:.0f} % and +-{100 * rel_half[j]:.0f} %); {hint}")
+        else:
+            named.add(a)
+            out.append(f"{a} is not determined by {where} (95 % interval +-{100 * rel_half[i]:.0f} % of its value)")
     return out
 
 
@@ -402,10 +437,12 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     scaled = JtJ / np.outer(d, d)
     cd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = np.clip(cov / np.outer(cd, cd), -1.0, 1.0) if np.all(np.isfinite(cov)) else scaled
+    rel_half = np.array([tq * sd[j] / abs(params[k]) if params[k] != 0 else float("inf")
+                         for j, k in enumerate(free)])
     correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(free)} for i, a in enumerate(free)}
     pm = model.pressure(values)
     return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
-                     nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=_sentences(free, corr, scaled),
+                     nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak_directions(free, J, corr, rel_half),
                      correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
                      p_data=data.p.copy(), p_model=pm)
 
@@ -421,7 +458,7 @@ def _toml_value(v) -> str:
 
 def params_toml(result: FitResult) -> str:
     """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
-    kw = _unflatten(result.material, result.params)
+    kw = unflatten(result.material, result.params)
     head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
             f"NRMSD {result.nrmsd:.4f}")
     lines = [head,

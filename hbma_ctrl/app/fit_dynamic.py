@@ -1,0 +1,568 @@
+"""Fit the chamber model to a recorded run: the dynamic part of ``hbma-ctrl fit`` (SI inside).
+
+A recorded run is a CSV with a time column ``t_s``, the pressure reading, the commands (compressor
+speed, inlet and outlet duty) and optionally the height and the load. The files the package writes
+are accepted as they are (:data:`COLUMN_ALIASES`, first match wins):
+
+- ``hbma-ctrl run`` of a single-chamber closed-loop scene (``closed_loop.csv``): ``p_meas_kpa``,
+  ``h_true_mm``, ``load_g``, ``speed``, ``inlet``, ``outlet`` (duties 0-1);
+- ``hbma-ctrl protocol`` trials (``trials/<name>.csv``) and open-loop ``run`` logs (``log.csv``):
+  ``p_kpa``, ``h_mm``, ``speed_pct``, ``inlet_duty``, ``outlet_duty`` (no load column: the load is
+  given with ``load_kg`` / ``--load-g``);
+- a daemon run log: ``t_s``, ``p_kpa``, ``speed``, ``inlet``, ``outlet``, ``h_mm``.
+
+The recorded commands are replayed (held from one row to the next) through the package's one chamber
+model at the fastest adequate rung of the fidelity ladder (``free`` without a load, ``quasi_static``
+with one; rk4 at the simulator's default step), from a vented chamber, for a batch of parameter sets
+at once (one batched :class:`hbma_ctrl.sim.simulate.Plant`), and the parameters are fitted by
+``scipy.optimize.least_squares`` on the pressure (and the height when recorded), each channel divided
+by its span, on a log scale, from several starts (nominal and the corners of a factor 1.5 around
+it screened in one batched simulation, the best two refined); the Jacobian is central differences, all columns in
+one batched simulation. Parameters (:data:`DYN_PARAMS`), with the rig's meanings
+(:mod:`hbma_ctrl.sim.rig`):
+
+- ``modulus_scale``: every modulus of the material times this (or, with ``fit_material``, the
+  material parameters themselves);
+- ``V0``: the dead volume, m^3;
+- ``flow_scale``: the compressor map times this;
+- ``C_out``: the outlet valve's sonic conductance (ISO 6358), m^3/(s Pa).
+
+Readings at the sensor's range (saturated) are left out; isolated missing readings (dropouts) are
+skipped, longer runs of them refused. Intervals (95 %) come from the Jacobian at the optimum with
+the residual variance and a t quantile (they assume equal, independent noise on every point of a
+channel relative to its span); weak directions are named by :func:`hbma_ctrl.app.fit.weak_directions`.
+Only :func:`write_dynamic_fit` touches files.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+from scipy.optimize import least_squares
+from scipy.stats import t as t_dist
+
+from hbma_ctrl.app.fit import FIT_KEYS, unflatten, check_options, param_names, weak_directions
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.materials import MATERIALS, make_material
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.fidelity import OUTPUTS, make_fidelity
+from hbma_ctrl.sim.simulate import Plant
+from hbma_ctrl.sim.trial import DEFAULT_DT
+
+__all__ = [
+    "COLUMN_ALIASES",
+    "DYN_PARAMS",
+    "MAX_POINTS",
+    "RunData",
+    "DynamicFitResult",
+    "is_dynamic",
+    "parse_run",
+    "dynamic_param_names",
+    "simulate_run",
+    "fit_dynamic",
+    "dynamic_params_toml",
+    "write_dynamic_fit",
+]
+
+#: role -> accepted column names, first match wins (see the module docstring for which file has which)
+COLUMN_ALIASES = {
+    "t": ("t_s",),
+    "p": ("p_meas_kpa", "p_kpa"),
+    "speed": ("speed", "speed_pct"),
+    "inlet": ("inlet", "inlet_duty"),
+    "outlet": ("outlet", "outlet_duty"),
+    "h": ("h_mm", "h_true_mm"),
+    "load": ("load_g",),
+}
+_REQUIRED = ("t", "p", "speed", "inlet", "outlet")
+#: the fitted chamber parameters besides the material (SI)
+DYN_PARAMS = ("modulus_scale", "V0", "flow_scale", "C_out")
+#: at most this many points per channel enter the least squares (evenly thinned)
+MAX_POINTS = 1500
+#: longest run of missing readings (dropouts) that is skipped rather than refused
+MAX_MISSING_RUN = 5
+#: p_kpa above this looks like Pa
+_P_KPA_MAX = 1000.0
+#: a gauge reading below this (kPa) is not noise around zero
+_P_KPA_MIN = -10.0
+#: the run must start vented: first reading at most this (kPa)
+_P_START_MAX_KPA = 3.0
+#: log-scale bounds of each parameter around its nominal value
+_LOG_BOUND = math.log(20.0)
+#: candidate starts: nominal and every corner of +-this log offset (a factor 1.5 either way) are
+#: simulated in one batch; the best :data:`_N_REFINE` are refined by least squares
+_START_OFFSET = math.log(1.5)
+_N_REFINE = 2
+#: relative step of the central differences (log units)
+_FD_STEP = 1e-3
+#: residual given to a diverged simulation, in units of the span
+_BAD_RESIDUAL = 10.0
+
+
+@dataclass(frozen=True)
+class RunData:
+    """A recorded run in SI: times t (s, from 0), pressure readings p (Pa; NaN = skipped), commands
+    u (n x 3: speed, inlet, outlet, 0-1), heights h (m; None = not recorded), the load (kg) and the
+    column name used for each role."""
+
+    t: np.ndarray
+    p: np.ndarray
+    u: np.ndarray
+    h: np.ndarray | None
+    load: float
+    columns: dict
+
+
+@dataclass
+class DynamicFitResult:
+    """A dynamic fit (SI): parameters with 95 % intervals, correlation, NRMSD of the pressure, the
+    unidentified directions in words, and the data and model series for the plot."""
+
+    material: str
+    params: dict
+    ci95: dict
+    nrmsd: float
+    n_points: int
+    unidentifiable: list
+    correlation: dict
+    r1: float
+    t0: float
+    load: float
+    fidelity: str
+    fixed: dict = field(default_factory=dict)
+    nrmsd_h: float | None = None
+    source: str = ""
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    h_data: np.ndarray | None = None
+    h_model: np.ndarray | None = None
+
+    def as_json(self) -> dict:
+        """fit.json content: :data:`hbma_ctrl.app.fit.FIT_KEYS` (the pressure's NRMSD in ``nrmsd``)."""
+        out = {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
+               "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation}
+        return {k: out[k] for k in FIT_KEYS}
+
+
+# ---------------------------------------------------------------------------------------------
+# data
+# ---------------------------------------------------------------------------------------------
+def _lines(raw: bytes) -> list[str]:
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ValueError(f"data: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); save the "
+                         "file as UTF-8") from None
+    return [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+
+
+def is_dynamic(raw: bytes) -> bool:
+    """True when the CSV's header has a ``t_s`` column (a recorded run), False for static points."""
+    lines = _lines(raw)
+    if not lines:
+        return False
+    header = [c.strip() for c in next(csv.reader(io.StringIO(lines[0])))]
+    return "t_s" in header
+
+
+def _cell(cells: list[str], i: int) -> str:
+    return cells[i].strip() if i < len(cells) else ""
+
+
+def _value(text: str, col: str, row: int, missing_ok: bool) -> float:
+    if text == "" or text.lower() == "nan":
+        if missing_ok:
+            return float("nan")
+        raise ValueError(f"data: column '{col}', row {row}: missing value")
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a finite number")
+    return v
+
+
+def _missing_runs(v: np.ndarray, col: str) -> None:
+    """Refuse a run of more than MAX_MISSING_RUN missing values (rows are 1-based)."""
+    bad = np.isnan(v)
+    k = 0
+    for i, b in enumerate(bad):
+        k = k + 1 if b else 0
+        if k > MAX_MISSING_RUN:
+            start = i - k + 2
+            raise ValueError(f"data: column '{col}', rows {start}-{i + 1}: more than {MAX_MISSING_RUN} missing "
+                             "readings in a row (only isolated dropouts are skipped); cut the run or fill the gap")
+
+
+def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
+    """A recorded run from a CSV file's bytes, in SI (see the module docstring for the columns).
+
+    ``load_kg`` is the load for a file without a ``load_g`` column (None = 0, free inflation).
+    One ValueError naming the column (as written) and the 1-based data row for bad data.
+    """
+    lines = _lines(raw)
+    if not lines:
+        raise ValueError("data: the file is empty; expected a header with t_s, p_kpa, speed, inlet, outlet")
+    reader = csv.reader(io.StringIO("\n".join(lines)))
+    header = [c.strip() for c in next(reader)]
+    col: dict[str, str] = {}
+    for role, names in COLUMN_ALIASES.items():
+        hit = next((n for n in names if n in header), None)
+        if hit is not None:
+            col[role] = hit
+        elif role in _REQUIRED:
+            hint = did_you_mean(names[0], header)
+            alt = f" (or '{names[1]}')" if len(names) > 1 else ""
+            raise ValueError(f"data: missing column '{names[0]}'{alt}{hint}; a recorded run needs t_s, p_kpa, "
+                             f"speed, inlet, outlet; columns: {', '.join(header)}")
+    if "load" in col and load_kg is not None:
+        raise ValueError("--load-g: the file has a 'load_g' column; give the load once")
+    idx = {role: header.index(name) for role, name in col.items()}
+    vals: dict[str, list] = {role: [] for role in col}
+    for row, cells in enumerate(reader, start=1):
+        for role, name in col.items():
+            v = _value(_cell(cells, idx[role]), name, row, missing_ok=role in ("p", "h"))
+            if role == "p" and math.isfinite(v):
+                if v > _P_KPA_MAX:
+                    raise ValueError(f"data: column '{name}', row {row}: {v:g} kPa is above {_P_KPA_MAX:g} kPa; the "
+                                     "values look like Pa: convert them to kPa")
+                if v < _P_KPA_MIN:
+                    raise ValueError(f"data: column '{name}', row {row}: gauge pressure {v:g} kPa is below "
+                                     f"{_P_KPA_MIN:g} kPa")
+            elif role in ("speed", "inlet", "outlet"):
+                top = 100.0 if name.endswith("_pct") else 1.0
+                if not 0.0 <= v <= top:
+                    pct = (f"; '{name}' is a fraction 0-1 (a percentage belongs in a '{name}_pct' column)"
+                           if name == "speed" and v <= 100 else "")
+                    raise ValueError(f"data: column '{name}', row {row}: {v:g} is out of range [0, {top:g}]{pct}")
+            elif role == "h" and math.isfinite(v) and v < 0:
+                raise ValueError(f"data: column '{name}', row {row}: height {v:g} mm is negative")
+            elif role == "load":
+                if not 0.0 <= v <= 50000.0:
+                    raise ValueError(f"data: column '{name}', row {row}: {v:g} g is out of range [0, 50000] g")
+                if vals["load"] and v != vals["load"][0]:
+                    raise ValueError(f"data: column '{name}', row {row}: the load changes ({vals['load'][0]:g} -> "
+                                     f"{v:g} g); a dynamic fit takes one load per run: cut the run at the change")
+            vals[role].append(v)
+    if not vals["t"]:
+        raise ValueError("data: no data rows below the header")
+    t = np.array(vals["t"])
+    step = np.diff(t)
+    if np.any(step <= 0):
+        i = int(np.argmax(step <= 0)) + 2
+        what = "repeated" if step[i - 2] == 0 else "unsorted"
+        raise ValueError(f"data: column 't_s', row {i}: time {t[i - 1]:g} s is not after the previous row's "
+                         f"{t[i - 2]:g} s ({what} time); sort the rows and drop duplicates")
+    p_kpa = np.array(vals["p"])
+    _missing_runs(p_kpa, col["p"])
+    first = np.flatnonzero(np.isfinite(p_kpa))
+    if first.size == 0:
+        raise ValueError(f"data: column '{col['p']}': no readings")
+    if p_kpa[first[0]] > _P_START_MAX_KPA:
+        raise ValueError(f"data: column '{col['p']}', row {first[0] + 1}: the run starts at {p_kpa[first[0]]:g} kPa; "
+                         f"the fit replays it from a vented chamber (start the log at most {_P_START_MAX_KPA:g} kPa)")
+    h = None
+    if "h" in col:
+        h_mm = np.array(vals["h"])
+        _missing_runs(h_mm, col["h"])
+        h = U.mm(h_mm)
+    speed = np.array(vals["speed"]) / (100.0 if col["speed"].endswith("_pct") else 1.0)
+    u = np.column_stack([speed, vals["inlet"], vals["outlet"]])
+    if "outlet" in col and col["outlet"].endswith("_pct"):
+        u[:, 2] /= 100.0
+    if "inlet" in col and col["inlet"].endswith("_pct"):
+        u[:, 1] /= 100.0
+    load = U.grams(vals["load"][0]) if "load" in col else float(load_kg or 0.0)
+    return RunData(t - t[0], U.kpa(p_kpa), u, h, float(load), {r: col[r] for r in col})
+
+
+# ---------------------------------------------------------------------------------------------
+# model
+# ---------------------------------------------------------------------------------------------
+def dynamic_param_names(material: str, fit_material: bool = False) -> list[str]:
+    """Fitted parameter names: :data:`DYN_PARAMS`, with the material's own parameters in place of
+    ``modulus_scale`` when ``fit_material``."""
+    if not fit_material:
+        return list(DYN_PARAMS)
+    return _material_names(material) + list(DYN_PARAMS[1:])
+
+
+def _material_names(material: str) -> list[str]:
+    return param_names(material)
+
+
+class _RunModel:
+    """The recorded commands replayed through the chamber model for columns of parameters."""
+
+    def __init__(self, run: RunData, material: str, r1: float, t0: float, V0: float, fit_material: bool):
+        mat = make_material(material)
+        act = Actuator(r1=r1, t0=t0, V0=V0, material=mat).validate()
+        pn = Pneumatics().validate()
+        plat = Platform(load=run.load).validate()
+        self.fid = make_fidelity("free" if plat.mass <= 0 else "quasi_static", mat, str(pn.csv_path))
+        self.theta0 = self.fid.space.values(act, pn, plat)
+        names = self.fid.space.names
+        self.ix = {n: i for i, n in enumerate(names)}
+        dimless = set(MATERIALS[material].dimensionless)
+        mat_names = _material_names(material)
+        self.mat_names = mat_names
+        self.mod_idx = [self.ix[n] for n in mat_names if n.rstrip("0123456789") not in dimless]
+        self.names = dynamic_param_names(material, fit_material)
+        # log scale for positive parameters; signed material terms (higher Yeoh) on a linear one
+        self.nominal = np.array([1.0 if n in ("modulus_scale", "flow_scale") else self.theta0[self.ix[n]]
+                                 for n in self.names])
+        self.log = np.array([v > 0 for v in self.nominal])
+        self.lin_scale = np.where(self.nominal != 0, np.abs(self.nominal), 1.0)
+        dt_data = float(np.median(np.diff(run.t))) if run.t.size > 1 else 1.0
+        self.dt = min(DEFAULT_DT[("rk4", self.fid.name)], dt_data)
+        self.K = int(math.ceil(run.t[-1] / self.dt - 1e-9))
+        # the command held over each grid step: the row in force at the step's middle
+        rows = np.searchsorted(run.t, (np.arange(self.K) + 0.5) * self.dt, side="right") - 1
+        self.ugrid = run.u[np.clip(rows, 0, len(run.t) - 1)]
+        self.grid_of_row = np.clip(np.rint(run.t / self.dt).astype(int), 0, self.K)
+
+    def values(self, Z: np.ndarray) -> np.ndarray:
+        """Parameter values (SI) of columns Z (n_params x n) of log / scaled offsets from nominal."""
+        Z = np.asarray(Z, dtype=float).reshape(len(self.names), -1)
+        return np.where(self.log[:, None], self.nominal[:, None] * np.exp(Z),
+                        self.nominal[:, None] + self.lin_scale[:, None] * Z)
+
+    def thetas(self, Z: np.ndarray) -> np.ndarray:
+        V = self.values(Z)
+        th = np.repeat(self.theta0[:, None], V.shape[1], axis=1)
+        for k, n in enumerate(self.names):
+            if n == "modulus_scale":
+                th[self.mod_idx] = self.theta0[self.mod_idx, None] * V[k][None, :]
+            else:
+                th[self.ix[n]] = V[k]
+        return th
+
+    def simulate(self, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Model pressure (Pa) and height (m) at every data row, (rows x n), and which columns stayed finite."""
+        th = self.thetas(Z)
+        n = th.shape[1]
+        plant = Plant(self.fid, th, "rk4", self.dt)
+        ip, ih = OUTPUTS.index("p"), OUTPUTS.index("h")
+        P = np.empty((self.K + 1, n))
+        H = np.empty((self.K + 1, n))
+        for k in range(self.K + 1):
+            P[k], H[k] = plant.y[ip], plant.y[ih]
+            if k == self.K:
+                break
+            plant.set_inputs(np.repeat(self.ugrid[k][:, None], n, axis=1))
+            plant.advance()
+        return P[self.grid_of_row], H[self.grid_of_row], plant.alive.copy()
+
+
+def simulate_run(run: RunData, material: str, params: dict, r1: float, t0: float) -> tuple[np.ndarray, np.ndarray]:
+    """Model pressure (Pa) and height (m) at the run's rows for parameters named as in
+    :func:`dynamic_param_names` (SI; ``modulus_scale`` or the material parameters), r1, t0 in m."""
+    fit_material = "modulus_scale" not in params
+    model = _RunModel(run, material, r1, t0, float(params["V0"]), fit_material)
+    v = np.array([params[n] for n in model.names], dtype=float)
+    Z = np.where(model.log, np.log(np.where(model.log, v, 1.0) / model.nominal), (v - model.nominal) / model.lin_scale)
+    P, H, _ = model.simulate(Z[:, None])
+    return P[:, 0], H[:, 0]
+
+
+def _thin(mask: np.ndarray, cap: int) -> np.ndarray:
+    idx = np.flatnonzero(mask)
+    if idx.size > cap:
+        idx = idx[np.linspace(0, idx.size - 1, cap).round().astype(int)]
+    return idx
+
+
+def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3e-6, fix: dict | None = None,
+                fit_material: bool = False, sensor_range: float = 35e3, use_height: bool = True,
+                fidelity: str = "cap", contact: str | None = None, source: str = "") -> DynamicFitResult:
+    """Least-squares fit of the chamber parameters (SI) to a recorded run; r1, t0 (m), V0 the
+    nominal dead volume (m^3, the start), ``sensor_range`` (Pa) above which readings are saturated
+    and left out. ``fix`` holds parameters at SI values. ValueError for unavailable options, too few
+    points or a flat record."""
+    check_options(material, contact, fidelity)
+    if contact == "free" and run.load > 0:
+        raise ValueError("--contact free: the run carries a load; drop --contact (a load rests on a flat plate)")
+    model = _RunModel(run, material, r1, t0, V0, fit_material)
+    names = model.names
+    fixed = {}
+    for k, v in (fix or {}).items():
+        if k not in names:
+            why = (" (the material's parameters are fitted with --fit-material; without it, one modulus_scale)"
+                   if k in model.mat_names else did_you_mean(k, names))
+            raise ValueError(f"--fix {k}: not a parameter of this fit{why}; allowed: {', '.join(names)}")
+        i = names.index(k)
+        if model.log[i] and not (v > 0 and abs(math.log(v / model.nominal[i])) <= _LOG_BOUND):
+            raise ValueError(f"--fix {k}={v:g}: outside [{model.nominal[i] / 20:g}, {model.nominal[i] * 20:g}] (SI)")
+        fixed[k] = float(v)
+    free = [n for n in names if n not in fixed]
+    if not free:
+        raise ValueError("--fix: every parameter is fixed; nothing to fit")
+    ifree = [names.index(n) for n in free]
+    z_fixed = np.zeros(len(names))
+    for k, v in fixed.items():
+        i = names.index(k)
+        z_fixed[i] = math.log(v / model.nominal[i]) if model.log[i] else (v - model.nominal[i]) / model.lin_scale[i]
+    p_ok = np.isfinite(run.p) & (run.p < sensor_range - 50.0)
+    ip = _thin(p_ok, MAX_POINTS)
+    if ip.size == 0:
+        raise ValueError(f"data: column '{run.columns['p']}': every reading is missing or saturated")
+    span_p = float(run.p[ip].max() - run.p[ip].min())
+    if not span_p > 0:
+        raise ValueError(f"data: column '{run.columns['p']}' has one value in every row; nothing to fit")
+    ih = np.zeros(0, dtype=int)
+    span_h = 0.0
+    if use_height and run.h is not None:
+        ih = _thin(np.isfinite(run.h), MAX_POINTS)
+        span_h = float(run.h[ih].max() - run.h[ih].min()) if ih.size else 0.0
+        if not span_h > 0:
+            ih = np.zeros(0, dtype=int)  # a height that never moves (resting load) carries no information
+    n_pts = ip.size + ih.size
+    if n_pts <= len(free):
+        raise ValueError(f"data: {n_pts} usable points for {len(free)} free parameters ({', '.join(free)}); "
+                         "record a longer run or --fix some")
+
+    def full(zc: np.ndarray) -> np.ndarray:
+        Z = np.repeat(z_fixed[:, None], zc.shape[1], axis=1)
+        Z[ifree] = zc
+        return Z
+
+    def residuals(zc: np.ndarray) -> np.ndarray:
+        P, H, alive = model.simulate(full(zc))
+        r = (P[ip] - run.p[ip, None]) / span_p
+        if ih.size:
+            r = np.vstack([r, (H[ih] - run.h[ih, None]) / span_h])
+        r[:, ~alive] = _BAD_RESIDUAL
+        return np.where(np.isfinite(r), r, _BAD_RESIDUAL)
+
+    def fun(z: np.ndarray) -> np.ndarray:
+        return residuals(z[:, None])[:, 0]
+
+    def jac(z: np.ndarray) -> np.ndarray:
+        E = _FD_STEP * np.eye(z.size)
+        R = residuals(np.hstack([z[:, None] + E, z[:, None] - E]))
+        return (R[:, : z.size] - R[:, z.size:]) / (2 * _FD_STEP)
+
+    lo = np.where(model.log[ifree], -_LOG_BOUND, -10.0)
+    hi = np.where(model.log[ifree], _LOG_BOUND, 10.0)
+    corners = np.array(np.meshgrid(*[(-1.0, 1.0)] * len(free), indexing="ij")).reshape(len(free), -1)
+    cand = np.hstack([np.zeros((len(free), 1)), _START_OFFSET * corners])
+    cost = np.sum(residuals(cand) ** 2, axis=0)
+    best = None
+    for j in np.argsort(cost)[:_N_REFINE]:
+        sol = least_squares(fun, cand[:, j], jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0, xtol=1e-7,
+                            ftol=1e-9, max_nfev=30)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    z = best.x
+    J = jac(z)
+    r = fun(z)
+    dof = n_pts - len(free)
+    s2 = float(r @ r) / dof
+    cov = np.linalg.pinv(J.T @ J) * s2
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    tq = float(t_dist.ppf(0.975, dof))
+    vals = model.values(full(z[:, None]))[:, 0]
+    params = {n: float(vals[i]) for i, n in enumerate(names)}
+    ci: dict = {k: [v, v] for k, v in fixed.items()}
+    rel_half = np.zeros(len(free))
+    for j, n in enumerate(free):
+        i = names.index(n)
+        half = tq * sd[j]
+        if model.log[i]:
+            ci[n] = [float(vals[i] * math.exp(-half)), float(vals[i] * math.exp(half))]
+            rel_half[j] = math.expm1(half)
+        else:
+            ci[n] = [float(vals[i] - half * model.lin_scale[i]), float(vals[i] + half * model.lin_scale[i])]
+            rel_half[j] = half * model.lin_scale[i] / abs(vals[i]) if vals[i] != 0 else float("inf")
+    cd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = np.clip(cov / np.outer(cd, cd), -1.0, 1.0)
+    correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(free)} for i, a in enumerate(free)}
+    # the linear-scale columns of J are per nominal value; the log ones per fitted value
+    weak = weak_directions(free, J, corr, rel_half, where="this run",
+                           hint="fix one with --fix or record a run that moves them differently (vary the "
+                                "speed, hold with the valves shut, vent)")
+    if "modulus_scale" in params:
+        for n in model.mat_names:
+            i = model.ix[n]
+            scaled = i in model.mod_idx
+            base = float(model.theta0[i])
+            params[n] = base * params["modulus_scale"] if scaled else base
+            lo_s, hi_s = ci["modulus_scale"]
+            ci[n] = [base * lo_s, base * hi_s] if scaled else [base, base]
+    P, H, _ = model.simulate(full(z[:, None]))
+    pm, hm = P[:, 0], H[:, 0]
+    keep = p_ok
+    res = DynamicFitResult(
+        material=material, params=params, ci95={k: ci[k] for k in params}, nrmsd=nrmsd(pm[keep], run.p[keep]),
+        n_points=int(n_pts), unidentifiable=weak, correlation=correlation, r1=r1, t0=t0, load=run.load,
+        fidelity=model.fid.name, fixed=fixed, source=source, t=run.t.copy(), p_data=run.p.copy(), p_model=pm)
+    if run.h is not None:
+        hk = np.isfinite(run.h)
+        res.h_data, res.h_model = run.h.copy(), hm
+        res.nrmsd_h = nrmsd(hm[hk], run.h[hk]) if hk.any() else None
+    return res
+
+
+# ---------------------------------------------------------------------------------------------
+# output
+# ---------------------------------------------------------------------------------------------
+def dynamic_params_toml(result: DynamicFitResult) -> str:
+    """A parameter file for a scenario (edge units where the scenario's keys have them)."""
+    lines = [f"# hbma-ctrl fit (dynamic): {result.material}, {result.n_points} points, fidelity {result.fidelity}, "
+             f"pressure NRMSD {result.nrmsd:.4f}",
+             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}, "
+             f"load_g = {U.to_grams(result.load):g}"]
+    if result.source:
+        lines.append(f"# data: {result.source}")
+    lines += ["[actuator]", f'material = "{result.material}"', f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}", "",
+              "[actuator.material_params]"]
+    for k, v in unflatten(result.material, result.params).items():
+        lines.append(f"{k} = " + ("[" + ", ".join(repr(float(x)) for x in v) + "]" if isinstance(v, list) else repr(float(v))))
+    lines += ["", "[pneumatics]", f"flow_scale = {result.params['flow_scale']:.6g}",
+              f"# outlet sonic conductance C_out = {result.params['C_out']:.6g} m^3/(s Pa) (no scenario key yet)"]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(result: DynamicFitResult, path: Path) -> None:
+    rows = 3 if result.h_data is not None else 2
+    fig = Figure(figsize=(9, 2.6 * rows + 0.6))
+    ax = fig.subplots(rows, 1, sharex=True)
+    t = result.t
+    ax[0].plot(t, U.to_kpa(result.p_data), ".", color="0.6", ms=2, label="data")
+    ax[0].plot(t, U.to_kpa(result.p_model), "C0", lw=1.2, label=f"fit ({result.material}, {result.fidelity})")
+    ax[0].set_ylabel("pressure p (kPa)")
+    ax[0].set_title(f"pressure NRMSD {result.nrmsd:.4f}")
+    ax[0].legend(loc="best", fontsize=8)
+    ax[1].axhline(0.0, color="0.6", lw=0.8)
+    ax[1].plot(t, U.to_kpa(result.p_model - result.p_data), ".", ms=2)
+    ax[1].set_ylabel("residual p_fit - p (kPa)")
+    if result.h_data is not None:
+        ax[2].plot(t, U.to_mm(result.h_data), ".", color="0.6", ms=2, label="data")
+        ax[2].plot(t, U.to_mm(result.h_model), "C1", lw=1.2, label="fit")
+        ax[2].set_ylabel("height h (mm)")
+        ax[2].legend(loc="best", fontsize=8)
+    ax[-1].set_xlabel("time t (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def write_dynamic_fit(result: DynamicFitResult, folder: Path | str) -> list[Path]:
+    """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths."""
+    folder = Path(folder)
+    paths = [folder / "fit.json", folder / "params.toml", folder / "residuals.png"]
+    paths[0].write_text(json.dumps(result.as_json(), indent=1) + "\n")
+    paths[1].write_text(dynamic_params_toml(result))
+    _plot(result, paths[2])
+    return paths
