@@ -2,4 +2,6 @@
 
 from hbma_ctrl.app.cli import app
 
-app(prog_name="hbma-ctrl")
+# Guarded so that importing the module (the docs tests walk every module) does not run the CLI.
+if __name__ == "__main__":
+    app(prog_name="hbma-ctrl")
