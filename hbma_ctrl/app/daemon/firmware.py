@@ -120,7 +120,7 @@ class FakeFirmware:
     # ---- test knobs ----------------------------------------------------------------------------
 
     def corrupt_next(self, k: int = 1) -> None:
-        """Send the next ``k`` lines with a wrong checksum."""
+        """Flip one bit in the body of each of the next ``k`` lines (their checksum no longer matches)."""
         with self._lock:
             self._corrupt += k
 
@@ -195,8 +195,8 @@ class FakeFirmware:
             return
         if self._corrupt > 0:
             self._corrupt -= 1
-            body, _, crc = line.rstrip(b"\n").rpartition(b"*")
-            line = body + b"*%04X\n" % (int(crc, 16) ^ 0x0001)
+            body, _, crc = line.rpartition(b"*")
+            line = body[:-1] + bytes([body[-1] ^ 0x01]) + b"*" + crc  # one bit flipped, old checksum
         try:
             os.write(self._master, line)
         except (BlockingIOError, OSError):

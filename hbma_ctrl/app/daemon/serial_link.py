@@ -175,7 +175,8 @@ class SerialRig:
     heartbeat_period : host heartbeat period, s.
     link_timeout : the link is dropped after this long without a firmware heartbeat, s.
     handshake_timeout : how long to wait for ``VER`` after ``HELLO``, s.
-    backoff_max : the longest wait between two reconnection attempts, s (doubling from 0.05 s).
+    backoff_max : the longest wait before a reconnection attempt, s (doubling from 0.05 s; back to
+        0.05 s once a reconnected firmware's heartbeat arrives).
 
     Opening does the handshake at once (``RigLinkError`` if no firmware answers,
     ``ProtocolVersionError`` if it speaks another version). ``stats`` counts, since opening:
@@ -270,6 +271,7 @@ class SerialRig:
         self._rx_expect: int | None = None
         self._rxbuf = b""
         self._last_hb = time.monotonic()
+        self._hb_seen = False
         self._last_tx = 0.0
 
     def _send(self, kind: str, *fields: object) -> None:
@@ -353,19 +355,26 @@ class SerialRig:
 
     def _run(self) -> None:
         backoff = 0.05
+        cause: str | None = None  # why the link went down, kept through failed reconnects
         while not self._stop.is_set():
             if self._ser is None:
+                cause = cause if cause is not None else (self._link_error or "rig link down")
+                # wait before every attempt, and reset the wait only once the firmware's heartbeat is
+                # seen again: a firmware that answers HELLO but never beats must not flap the link
+                if self._stop.wait(backoff):
+                    break
+                backoff = min(2 * backoff, self.backoff_max)
                 try:
                     self._connect()
                 except RigLinkError as e:
                     with self._lock:
-                        self._link_error = f"rig link on {self.port} down, reconnecting: {e}"
-                    self._stop.wait(backoff)
-                    backoff = min(2 * backoff, self.backoff_max)
+                        self._link_error = f"{cause}; reconnecting: {e}"
                     continue
-                backoff = 0.05
                 self.stats["reconnects"] += 1
+                cause = None
             self._poll()
+            if self._hb_seen:
+                backoff = 0.05
 
     def _poll(self) -> None:
         """Read what has arrived, parse it, send a heartbeat when due, drop the link when the firmware's stops."""
@@ -417,6 +426,7 @@ class SerialRig:
                     raise ValueError("HB needs a mode RUN or SAFE")
                 self.firmware_mode = m.fields[0]
                 self._last_hb = time.monotonic()
+                self._hb_seen = True
             elif m.kind != "VER":  # a repeated VER is harmless
                 raise ValueError(f"unknown message type {m.kind!r}")
         except ValueError:
