@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import os
 import select
+import signal
 import sys
 import threading
 import time
@@ -319,6 +320,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --period-ms = {a.period_ms:g}: must be 1..1000 ms", file=sys.stderr)
         return 2
     fw = FakeFirmware(a.n, ms(a.period_ms), link=a.link)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill also removes the link
     print(fw.port, flush=True)
     try:
         while True:
