@@ -36,7 +36,7 @@ Firmware -> host:
 Rules. The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
 (default 0.1 s) only after a ``HELLO`` of its own version. Any valid host line restarts the
 firmware's watchdog; when none arrives for the host timeout (default 0.5 s) the firmware goes safe
-by itself. The host sends ``HB`` every heartbeat period; when no firmware ``HB`` arrives for
+by itself. The host sends ``HB`` when it has sent nothing else for a heartbeat period; when no firmware ``HB`` arrives for
 ``link_timeout`` (default 0.5 s) the host drops the link. A line whose checksum is wrong, or that
 does not parse, is counted and ignored (never acted on); a jump in ``SEQ`` is counted as lost lines
 (a corrupted line therefore also counts as one lost line) and never acted on.
@@ -217,6 +217,7 @@ class SerialRig:
         self._ser = None
         self._seq = 0
         self._link_error: str | None = None
+        self._link_exc: type[RigLinkError] = RigLinkError
         self._reset_readings()
         self._connect()  # raises on the first attempt: a wrong port or firmware is a start-up error
         self._thread = threading.Thread(target=self._run, name=f"serial-rig {port}", daemon=True)
@@ -230,7 +231,7 @@ class SerialRig:
         otherwise ``p[i]`` repeats the older value (NaN before the first one). Raises :class:`RigLinkError` while the link is down."""
         with self._lock:
             if self._ser is None:
-                raise RigLinkError(self._link_error or f"rig link on {self.port} is closed")
+                raise self._link_exc(self._link_error or f"rig link on {self.port} is closed")
             r = Readings(t=self._t, p=self._p.copy(), seq=self._pseq, fresh=self._fresh.copy())
             self._fresh[:] = False
             return r
@@ -336,6 +337,7 @@ class SerialRig:
             self.firmware_mode = "SAFE"
             self._ser = ser
             self._link_error = None
+            self._link_exc = RigLinkError
 
     def _await_ver(self, ser) -> tuple[tuple[int, int, int], bytes]:
         deadline = time.monotonic() + self.handshake_timeout
@@ -369,6 +371,7 @@ class SerialRig:
                 except RigLinkError as e:
                     with self._lock:
                         self._link_error = f"{cause}; reconnecting: {e}"
+                        self._link_exc = type(e)  # a re-flashed firmware of another version says so
                     continue
                 self.stats["reconnects"] += 1
                 cause = None
