@@ -36,7 +36,8 @@ Firmware -> host:
 Rules. The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
 (default 0.1 s) only after a ``HELLO`` of its own version. Any valid host line restarts the
 firmware's watchdog; when none arrives for the host timeout (default 0.5 s) the firmware goes safe
-by itself. The host sends ``HB`` when it has sent nothing else for a heartbeat period; when no firmware ``HB`` arrives for
+by itself. The host sends ``HB`` when it has sent nothing else for a heartbeat period; when no
+firmware ``HB`` arrives for
 ``link_timeout`` (default 0.5 s) the host drops the link. A line whose checksum is wrong, or that
 does not parse, is counted and ignored (never acted on); a jump in ``SEQ`` is counted as lost lines
 (a corrupted line therefore also counts as one lost line) and never acted on.
@@ -213,6 +214,7 @@ class SerialRig:
                       "reconnects": 0}
         self.firmware_mode = "SAFE"
         self._lock = threading.Lock()  # guards the port, the host seq counter and the readings
+        self._tx_lock = threading.Lock()  # one line written at a time
         self._stop = threading.Event()
         self._ser = None
         self._seq = 0
@@ -228,7 +230,8 @@ class SerialRig:
     def read(self) -> Readings:
         """The newest pressures, Pa (n,), with the firmware's time stamp (s) and SEQ; never blocks on the
         line. ``fresh[i]`` is True when a P line carrying chamber i arrived since the previous read;
-        otherwise ``p[i]`` repeats the older value (NaN before the first one). Raises :class:`RigLinkError` while the link is down."""
+        otherwise ``p[i]`` repeats the older value (NaN before the first one). Raises
+        :class:`RigLinkError` while the link is down."""
         with self._lock:
             if self._ser is None:
                 raise self._link_exc(self._link_error or f"rig link on {self.port} is closed")
@@ -276,16 +279,22 @@ class SerialRig:
         self._last_tx = 0.0
 
     def _send(self, kind: str, *fields: object) -> None:
-        with self._lock:
-            if self._ser is None:
-                raise RigLinkError(self._link_error or f"rig link on {self.port} is closed")
-            line = encode_line(kind, self._seq, *fields)
-            self._seq = (self._seq + 1) % SEQ_MOD
+        # writes have their own lock: a slow write (full buffer) must not hold up read()
+        with self._tx_lock:
+            with self._lock:
+                ser = self._ser
+                if ser is None:
+                    raise self._link_exc(self._link_error or f"rig link on {self.port} is closed")
+                line = encode_line(kind, self._seq, *fields)
+                self._seq = (self._seq + 1) % SEQ_MOD
             try:
-                self._ser.write(line)
-            except (serial.SerialException, OSError) as e:
-                self._close_port(f"rig link on {self.port} lost: write failed ({e})")
-                raise RigLinkError(self._link_error) from None
+                ser.write(line)
+            except (serial.SerialException, OSError, TypeError, AttributeError) as e:
+                with self._lock:
+                    if self._ser is ser:
+                        self._close_port(f"rig link on {self.port} lost: write failed ({e})")
+                    why = self._link_error or f"rig link on {self.port} lost: write failed ({e})"
+                    raise RigLinkError(why) from None
             self._last_tx = time.monotonic()
 
     def _close_port(self, reason: str) -> None:
