@@ -80,8 +80,9 @@ class FakeFirmware:
 
     ``pty_path`` is the current pty's device path. State for tests: ``mode`` (``RUN``/``SAFE``),
     ``u`` (the command applied, (3, n)), ``p`` (the last pressures, Pa), ``last_cmd`` (the last
-    CMD's per-mille integers), ``safe_reason``, and ``stats`` (``crc_errors``, ``bad_lines``, ``seq_gaps``, ``commands``, ``dropped_tx``). Knobs:
-    ``send_heartbeats``, :meth:`corrupt_next`, :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`.
+    CMD's per-mille integers), ``safe_reason``, and ``stats`` (``crc_errors``, ``bad_lines``,
+    ``seq_gaps``, ``commands``, ``dropped_tx``). Knobs: ``send_heartbeats``, :meth:`corrupt_next`,
+    :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`.
     """
 
     def __init__(self, n: int = 1, sample_period: float = 0.01, plant: Plant | None = None, *,
