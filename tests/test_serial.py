@@ -158,6 +158,13 @@ def test_silent_port_fails_the_handshake_with_one_clear_error():
         os.close(master)
 
 
+def test_a_second_host_cannot_open_the_same_rig(rig2):
+    fw, rig = rig2
+    with pytest.raises(RigLinkError, match="cannot open rig port"):
+        SerialRig(fw.port, 2)
+    assert rig.connected
+
+
 def test_bad_settings_name_the_key():
     with pytest.raises(ValueError, match="rig n = 0"):
         SerialRig("loop://", 0)

@@ -179,7 +179,8 @@ class SerialRig:
     backoff_max : the longest wait before a reconnection attempt, s (doubling from 0.05 s; back to
         0.05 s once a reconnected firmware's heartbeat arrives).
 
-    Opening does the handshake at once (``RigLinkError`` if no firmware answers,
+    The port is opened exclusively (a second process cannot drive the same rig). Opening does the
+    handshake at once (``RigLinkError`` if no firmware answers,
     ``ProtocolVersionError`` if it speaks another version). ``stats`` counts, since opening:
     ``lines`` (valid lines), ``crc_errors``, ``bad_lines`` (valid checksum, invalid content),
     ``seq_gaps`` (firmware lines lost, from jumps in SEQ), ``readings`` (P lines), ``reconnects``.
@@ -310,7 +311,9 @@ class SerialRig:
     def _connect(self) -> None:
         """Open the port and do the handshake; raises RigLinkError / ProtocolVersionError."""
         try:
-            ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.02, write_timeout=0.5)
+            # exclusive: two daemons must never drive one rig
+            ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.02, write_timeout=0.5,
+                                        exclusive=True)
         except (serial.SerialException, OSError, ValueError) as e:
             raise RigLinkError(f"cannot open rig port {self.port}: {e}") from None
         try:
@@ -365,6 +368,8 @@ class SerialRig:
                            f"{self.handshake_timeout:g} s (is the firmware running and the port right?)")
 
     def _run(self) -> None:
+        # One thread reads, beats and reconnects. pyserial's serial.threaded.ReaderThread ends at the
+        # first port error and would need a second thread for heartbeats and reconnection.
         backoff = 0.05
         cause: str | None = None  # why the link went down, kept through failed reconnects
         while not self._stop.is_set():
