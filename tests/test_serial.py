@@ -386,8 +386,9 @@ def test_proportional_loop_over_serial_settles_as_on_the_direct_plant():
 
 def test_firmware_module_runs_and_prints_a_port_a_rig_can_open(tmp_path):
     link = str(tmp_path / "rig")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}  # this checkout's package
     proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl.app.daemon.firmware", "--n", "2", "--link", link],
-                            stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+                            stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert proc.stdout.readline().strip() == link
         rig = SerialRig(link, 2)
