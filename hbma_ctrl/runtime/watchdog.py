@@ -177,7 +177,8 @@ class SafetyMonitor:
         self._w_leak = s.periods(s.leak_window)
         self._hist_len = max(self._w_leak + 1, s.smooth_periods)
         # the longest run the pump test looks back over: pump_effort at the least effort that counts
-        self._run_len = int(np.ceil(s.pump_effort / (s.pump_min * s.inlet_min * s.sample_period))) + s.smooth_periods + 2
+        least = s.pump_min * s.inlet_min * s.sample_period
+        self._run_len = int(np.ceil(s.pump_effort / least)) + s.smooth_periods + 2
         self.reset()
 
     def reset(self) -> None:
