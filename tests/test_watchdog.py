@@ -103,6 +103,20 @@ def test_over_pressure_at_once_and_reported_once_while_it_lasts():
     assert mon.counts["over_pressure"] == 2
 
 
+def test_gaps_in_the_readings_while_pumping_are_skipped_without_warnings():
+    """Every other reading missing from the first check on: the trend tests run on what is there (a
+    steady rise is no leak) and nothing warns."""
+    import warnings
+
+    mon = SafetyMonitor(MonitorSettings(nan_periods=3), 1)
+    pump = np.array([[1.0], [1.0], [0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        found = [f for k in range(100) for f in mon.check(k * TS, readings(np.nan if k % 2 else 100.0 * k), pump)]
+        found += [f for k in range(100, 110) for f in mon.check(k * TS, readings(np.nan), pump)]
+    assert [f.kind for f in found] == ["sensor_missing"]
+
+
 def test_identical_values_on_fresh_packets_make_a_frozen_sensor():
     mon = SafetyMonitor(MonitorSettings(same_value_periods=5), 1)
     out = [mon.check(k * TS, readings(1234.5), safe_u(1)) for k in range(5)]

@@ -311,9 +311,10 @@ class SafetyMonitor:
             L = min(run, self._w_leak)
             if run and L + 1 >= m:
                 means = _running_mean(H[-(L + 1):, i], m)
-                below = s.leak_p_max is None or np.nanmax(means) < s.leak_p_max
-                if means.size and np.isfinite(means[-1]) and below:
-                    drop = np.nanmax(means) - means[-1]
+                ok = means.size > 0 and np.isfinite(means[-1])
+                top = float(np.max(means[np.isfinite(means)])) if ok else np.nan
+                if np.isfinite(top) and (s.leak_p_max is None or top < s.leak_p_max):
+                    drop = top - means[-1]
                     self.closest["leak_drop"] = max(self.closest["leak_drop"], float(drop))
                     if drop > s.leak_drop:
                         leak, why = True, (f"pressure fell {_kpa(drop)} to {_kpa(means[-1])} while pumping "
