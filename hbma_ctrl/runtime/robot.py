@@ -11,9 +11,11 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   outlet; for the NMPC a chamber whose target is zero gets no supply budget (a shared pump's duty
   would otherwise be shared with it), and the cautious cap limits the supply of a chamber near its
   limit point while its modulus factor is uncertain;
-- the :class:`Supervisor` applies the fallback on a failed solve (replay the plan, then the safe
-  command), the vent rule (zero target) and the pressure interlock (supply cut while a reading is
-  within the margin of the limit).
+- the :class:`Supervisor` applies the fallback on a failed solve or an NMPC overrun (its step
+  exceeded ``budget`` x period: replay the plan, then the safe command; an overrun's late plan is
+  kept for the next failure), the vent rule (zero target) and the pressure interlock (supply cut
+  while a reading is within the margin of the limit); the command sent is handed back to the NMPC
+  (``applied``: its input-rate terms start from it).
 
 The controller does not know the tip load (a disturbance). Step, EKF and controller times go into
 bounded :class:`StepStats` (s); ``last_timing`` has this tick's.
@@ -205,14 +207,21 @@ class RobotLoop:
                     self.cautious_steps += int(near.sum())
                 a, o = ctrl.step(est["x"], est["b"], W, href, est["k"], est["c"], a_max)
                 ok = not ctrl.failed
-                cause = "ok" if ok else f"qp: {ctrl.status}"
-                plan = self._plan(ctrl.plan) if ok else None
+                if ok:
+                    cause, plan = "ok", self._plan(ctrl.plan)
+                elif ctrl.overran:
+                    # late: the supervisor replays the last plan now and keeps this one for the next failure
+                    cause, plan = "overrun", self._plan(ctrl.late_plan)
+                else:
+                    cause = f"qp: {ctrl.status}"
             else:
                 a, o = ctrl.step(z, W, href)
         except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
             a, o, ok, cause = np.zeros(self.n), np.zeros(self.n), False, f"exception: {type(exc).__name__}"
         cmd = sup.apply(t, np.column_stack([a, o]), z, ok=ok, plan=plan, target=href, cause=cause)
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
+        if self.is_mpc:
+            ctrl.applied(a, o)
         Uc = commands_from_inputs(a, o, model.topology)
         t2 = time.perf_counter()
         self.last_timing = (t2 - t0, t1 - t0, t2 - t1)
