@@ -96,6 +96,15 @@ def robot_supervisor(pressure_limit: float, n: int, interlock_margin: float = 1e
     return Supervisor(SupervisorSettings(**kw), n=n)
 
 
+def _flow_duty(a: np.ndarray, topology: str) -> np.ndarray:
+    """The supply as the full-speed inlet duty the plant's flow equals (what the bank predicts with):
+    tiny duties zeroed, a shared pump's budget applied."""
+    d = commands_from_inputs(a, np.zeros_like(a), topology)[1]
+    if topology == "shared" and d.sum() > 1.0:
+        d = d / d.sum()
+    return d
+
+
 def _as_float(z, n: int) -> np.ndarray:
     """(n,) float readings; entries that are not numbers become NaN."""
     try:
@@ -126,11 +135,14 @@ class RobotLoop:
         its supply duty is capped (the NMPC's input bound; pass the peak slowly so that its filter
         can tell the far branch from the near one); None = off. NMPC only.
     stats_capacity : samples kept for the median and p99 of the step times.
+    throttle : the compressor speed is a decision: throttled to the planned flow at each chamber's
+        estimated pressure (:meth:`ChamberBank.valve_inputs`); False = full speed while an inlet is
+        open (the inlet valve meters the flow).
     """
 
     def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
-                 stats_capacity: int = 4096):
+                 stats_capacity: int = 4096, throttle: bool = True):
         self.design = design
         self.model = model
         self.bank = bank
@@ -138,6 +150,7 @@ class RobotLoop:
         self.supervisor = supervisor
         self.targets = check_targets(targets, design.n_layers)
         self.cautious = cautious
+        self.throttle = bool(throttle)
         self.n = 3 * design.n_layers
         if supervisor.n != self.n:
             raise ValueError(f"RobotLoop: the supervisor is for {supervisor.n} chambers, the robot has {self.n}")
@@ -222,12 +235,14 @@ class RobotLoop:
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
         if self.is_mpc:
             ctrl.applied(a, o)
-        Uc = commands_from_inputs(a, o, model.topology)
+        # the compressor throttled to the planned flows at the estimated pressures (the bank and the
+        # NMPC keep working in a: a full-speed inlet duty)
+        Uc = model.valve_inputs(a, o, est["p"], throttle=self.throttle)
         t2 = time.perf_counter()
         self.last_timing = (t2 - t0, t1 - t0, t2 - t1)
         for st, v in zip((self.step_s, self.ekf_s, self.ctrl_s), self.last_timing):
             st.add(v)
-        self._w_prev = Uc[1:].copy()
+        self._w_prev = np.vstack([_flow_duty(a, model.topology), Uc[2]])
         self.valve_commands = Uc
         self._k += 1
         return a, o
