@@ -17,9 +17,13 @@ from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.chamber import STATE_SCALE
 
 __all__ = ["FilterSettings", "guard_cov", "classify_measurement", "physical_reading_bounds", "MEAS_OK",
-           "MEAS_MISSING", "MEAS_SATURATED", "MEAS_OUTLIER", "VACUUM_GAUGE", "nis_gate"]
+           "MEAS_MISSING", "MEAS_SATURATED", "MEAS_OUTLIER", "VACUUM_GAUGE", "nis_gate", "INFLATION_MAX"]
 
 MEAS_OK, MEAS_MISSING, MEAS_SATURATED, MEAS_OUTLIER = "ok", "missing", "saturated", "outlier"
+#: the most a re-opened gate inflates the prior covariance (a factor on P): where the pressure hardly
+#: depends on the state (near a limit point, H P H^T -> 0) no inflation explains the reading, and
+#: an unbounded one turns the update into a jump off the model's tables
+INFLATION_MAX = 100.0
 #: the lowest gauge pressure there is (absolute vacuum at the standard atmosphere), Pa
 VACUUM_GAUGE = -101325.0
 
@@ -93,8 +97,9 @@ class FilterSettings:
         transients reach about 120, at a touch-down while venting, and a load step's first samples
         feed the load-change detector at far less).
     gate_reopen : after this many gated readings in a row the gate re-opens, [1, 1000]: the
-        covariance is inflated until the reading's NIS equals ``gate_nis`` and the reading is used (a
-        real fast transient, e.g. a load slammed on, cannot lock the filter out).
+        covariance is inflated until the reading's NIS equals ``gate_nis`` (by at most
+        ``INFLATION_MAX``) and the reading is used, and so on until a reading passes unaided (a real
+        fast transient, e.g. a load slammed on, cannot lock the filter out).
     max_gap : longest time, s, a step predicts over, [sample_period, 3600]: after a longer gap (a
         paused stream, a wall-clock timestamp) the filter predicts ``max_gap`` only and widens the
         covariance by its initial spread (the commands during the gap are unknown).
@@ -249,9 +254,11 @@ def classify_measurement(z, sensor_range: float, reading_min: float = -math.inf,
 def nis_gate(innovation: float, hph: float, R: float, gate: float) -> tuple[float, float]:
     """(NIS, inflation) of a scalar innovation (Pa) with prior variance ``hph = H P H^T`` and
     measurement variance R (Pa^2): NIS = innovation^2 / (hph + R), and the factor on P that brings
-    the NIS down to ``gate`` (1 when it is already within)."""
+    the NIS down to ``gate`` (1 when it is already within; at most :data:`INFLATION_MAX`, above 1
+    whenever the NIS exceeds the gate)."""
     S = hph + R
     nis = innovation * innovation / S
-    if nis <= gate or hph <= 0.0:
+    if nis <= gate:
         return nis, 1.0
-    return nis, max(1.0, (innovation * innovation / gate - R) / hph)
+    need = (innovation * innovation / gate - R) / hph if hph > 0.0 else INFLATION_MAX
+    return nis, min(max(need, 1.0 + 1e-9), INFLATION_MAX)

@@ -90,8 +90,8 @@ Live-stream guards: a reading that cannot be physical (+-inf, not a number, belo
 ``reading_min``, above ``reading_max_rel`` times the sensor range) is an outlier (flag ``outlier``),
 and so is one whose NIS exceeds ``gate_nis`` (flag ``gated``): predict only, counted in
 :meth:`EKF.stats`. ``gate_reopen`` gated readings in a row re-open the gate (the covariance is
-inflated until the reading passes; flag ``gate_reopened``), so a real fast transient cannot lock
-the filter out. A gap longer than ``max_gap`` (a paused stream) predicts ``max_gap`` only and widens
+inflated until the reading passes, by at most ``INFLATION_MAX``; flag ``gate_reopened``; it stays
+open until a reading passes unaided), so a real fast transient cannot lock the filter out. A gap longer than ``max_gap`` (a paused stream) predicts ``max_gap`` only and widens
 the covariance (flag ``time_jump``); a non-finite or backwards ``t`` is a ValueError.
 
 Measurements: a missing (None or NaN) reading skips the update (flag ``missing``); a saturated
@@ -437,12 +437,14 @@ class EKF:
                         self.counts["gated"] += 1
                     return
                 # gate_reopen in a row: a real transient, not a glitch; use it with the prior widened
+                # (the gate stays open until a reading passes it unaided)
                 self.P = guard_cov(self.P * alpha, s.cov_floor)
                 self._events.add("gate_reopened")
                 if detect:
                     self.counts["gate_reopened"] += 1
                 reopen = True
-            self._gated = 0
+            else:
+                self._gated = 0
             prior = (self.x.copy(), self.P.copy(), self._p_pred)
             r = self._update(z, R)
             self.last_innovation = r

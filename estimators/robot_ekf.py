@@ -36,7 +36,8 @@ not a number, below vacuum or ``reading_min``, above ``reading_max_rel`` times t
 one whose NIS exceeds ``gate_nis`` are outliers: that chamber predicts only, counted in
 :meth:`ChamberEKFBank.stats`. ``gate_reopen`` gated readings in a row of one chamber re-open its
 gate: its prior covariance is inflated (inside the mapped step) until the reading's NIS equals
-``gate_nis``, and the reading is used. ``step(..., steps=k)`` predicts k periods (a late tick);
+``gate_nis`` (by at most ``INFLATION_MAX``), and the reading is used; it stays open until a
+reading passes it unaided. ``step(..., steps=k)`` predicts k periods (a late tick);
 more than ``max_gap`` of them are cut to ``max_gap`` and the covariance is widened by the initial
 spread (counted as ``time_jumps``).
 """
@@ -48,7 +49,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from estimators.common import VACUUM_GAUGE, physical_reading_bounds
+from estimators.common import INFLATION_MAX, VACUUM_GAUGE, physical_reading_bounds
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.bank import ChamberBank
 
@@ -125,9 +126,9 @@ NS = 4  # [x, b, k, c]
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     """Single-chamber EKF step (X[4], P[16], w[2], W, z, use, reopen) -> (X+[4], P+[16], h, p, nis,
-    h_std, gated). ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` is gated
-    (not used, ``gated`` 1) unless ``reopen`` is 1: then the prior covariance is inflated until the
-    NIS equals the gate and the reading is used."""
+    h_std, over). ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1)
+    is gated (not used) unless ``reopen`` is 1: then the prior covariance is inflated until the
+    NIS equals the gate (at most by INFLATION_MAX) and the reading is used."""
     xs, w, W, b, k, c = model.symbols
     xn = model.discrete_expr(s.sample_period)
     th = ca.vertcat(b, k, c)
@@ -154,7 +155,8 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     S0 = Hx @ Pm @ Hx.T
     gate = s.gate_nis
     over = innov ** 2 / (S0 + R) > gate
-    alpha = ca.if_else(reopen * over > 0, ca.fmax(1.0, (innov ** 2 / gate - R) / ca.fmax(S0, 1e-300)), 1.0)
+    need = ca.fmin(ca.fmax(1.0, (innov ** 2 / gate - R) / ca.fmax(S0, 1e-300)), INFLATION_MAX)
+    alpha = ca.if_else(reopen * over > 0, need, 1.0)
     Pm = alpha * Pm
     gated = use * over * (1 - reopen)
     use_eff = use * (1 - gated)
@@ -168,7 +170,7 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     G = ca.horzcat(dh[0], 0, dh[1], dh[2])
     return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use, reopen],
                        [xp, ca.reshape(Pp, NS * NS, 1), h, p_post, innov ** 2 / S * use_eff,
-                        ca.sqrt(ca.fmax(G @ Pp @ G.T, 0)), gated])
+                        ca.sqrt(ca.fmax(G @ Pp @ G.T, 0)), use * over])
 
 
 def _readings(z, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -282,18 +284,26 @@ class ChamberEKFBank:
             self.P = self.P + self._prior_cov().reshape(16, 1)
         reopen = (self._gated_run >= s.gate_reopen - 1).astype(float)
         out = self._fun(self.X, self.P, wv, Wv[None, :], zz[None, :], use[None, :], reopen[None, :])
-        gated = np.asarray(out[6]).ravel() > 0.5
+        over = np.asarray(out[6]).ravel() > 0.5
+        gated = over & (reopen == 0)
         used = (use > 0) & ~gated
         nis = np.asarray(out[4]).ravel()
-        reopened = used & (reopen > 0) & (nis >= s.gate_nis * (1 - 1e-9))
-        self._gated_run = np.where(gated, self._gated_run + 1, np.where(use > 0, 0, self._gated_run))
+        reopened = over & (reopen > 0)
+        # the gate stays open (the run goes on) until a reading passes it unaided
+        self._gated_run = np.where(over, self._gated_run + 1, np.where(use > 0, 0, self._gated_run))
         self.counts["gated"] += int(gated.sum())
         self.counts["gate_reopened"] += int(reopened.sum())
+        resets = self.resets
         self.X, self.P = self._guard(np.asarray(out[0]), np.asarray(out[1]), zz)
         X = self.X
+        h, p, h_std = np.asarray(out[2]).ravel(), np.asarray(out[3]).ravel(), np.asarray(out[5]).ravel()
+        if self.resets > resets:  # a restarted filter reports its restart, not the diverged step
+            bad = ~(np.isfinite(h) & np.isfinite(p) & np.isfinite(h_std))
+            for i in np.nonzero(bad)[0]:
+                hi, pi, _ = self.model.out(X[0, i], Wv[i], X[2, i], X[3, i])
+                h[i], p[i], h_std[i] = float(hi), float(pi), np.nan  # unknown right after a restart
         self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
-                     "h": np.maximum(np.asarray(out[2]).ravel(), 0.0), "p": np.asarray(out[3]).ravel(),
-                     "h_std": np.asarray(out[5]).ravel(),
+                     "h": np.maximum(h, 0.0), "p": p, "h_std": h_std,
                      "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis,
                      "used": used, "outlier": outlier | gated}
         return self.last
