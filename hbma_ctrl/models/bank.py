@@ -36,8 +36,9 @@ On top of the tables:
 - compressor speed as a decision (:meth:`ChamberBank.valve_inputs`): the NMPC plans the supply ``a``
   as a full-speed duty (the linear parametrisation above); what is sent throttles the pump so that
   the plant's inflow is the planned one, ``q(speed, p) inlet = a q(1, p)`` at the chamber's pressure
-  p, instead of running the pump at full speed whenever an inlet is open. per_chamber: the inlet is
-  fully open and the speed is the lowest that delivers ``a q(1, p)`` (the map inverted at p);
+  p, instead of running the pump at full speed whenever an inlet is open. per_chamber: the speed is
+  the lowest that delivers ``a q(1, p)`` (the map inverted at p) with the inlet fully open, but not
+  below the speed whose stall pressure is ``STALL_MARGIN`` above p (the inlet duty meters the rest);
   shared: one speed for the pump, the lowest at which every drawing chamber's inlet duty
   ``a_i q(1, p_i) / q(speed, p_i)`` is at most 1 and the duties sum to at most 1 (the manifold's
   budget). A slower pump draws less power and noise for the same flow; the flow the plant gets
@@ -58,7 +59,7 @@ from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.core.units import mm
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["ChamberBank", "BankSymbols", "TOPOLOGIES", "commands_from_inputs", "PumpMap", "throttled_inputs"]
+__all__ = ["ChamberBank", "BankSymbols", "TOPOLOGIES", "commands_from_inputs", "PumpMap", "throttled_inputs", "STALL_MARGIN"]
 
 TOPOLOGIES = ("per_chamber", "shared")
 
@@ -143,11 +144,19 @@ class PumpMap:
         return np.clip(out, 0.0, 1.0)
 
 
-def throttled_inputs(a: np.ndarray, o: np.ndarray, p: np.ndarray, topology: str, pump: PumpMap) -> np.ndarray:
+#: the throttled pump keeps its stall pressure at least this far above the chamber's, Pa: near stall
+#: the flow falls steeply with the back pressure (q ~ 1 - p / p_stall), so a pressure error of a
+#: few hundred Pa would be a large flow error; the inlet duty meters the rest
+STALL_MARGIN = 10e3
+
+
+def throttled_inputs(a: np.ndarray, o: np.ndarray, p: np.ndarray, topology: str, pump: PumpMap,
+                     stall_margin: float = STALL_MARGIN) -> np.ndarray:
     """Per-chamber decisions (supply a as a full-speed inlet duty, outlet o; (n,) each, 0-1) at gauge
     pressures p (n,) Pa -> plant inputs U (3 x n) with the compressor throttled so that each inflow
-    is ``a q(1, p)`` (see the module doc). Chambers the full-speed pump cannot feed at their pressure
-    keep ``[1, a]`` (no flow either way)."""
+    is ``a q(1, p)`` (see the module doc), the speed never below the one whose stall pressure is
+    ``stall_margin`` Pa above p. Chambers the full-speed pump cannot feed at their pressure keep
+    ``[1, a]`` (no flow either way)."""
     U = commands_from_inputs(a, o, topology)
     a = U[1]
     if topology == "shared" and a.sum() > 1.0:
@@ -159,10 +168,13 @@ def throttled_inputs(a: np.ndarray, o: np.ndarray, p: np.ndarray, topology: str,
         return U
     q1 = pump.flow(np.ones(a.size), p)
     feedable = draw & (q1 > 0)
+    # the lowest speed that still delivers at p + margin (1 where none does: full speed)
+    s_min = pump.speed_for(np.full(a.size, 1e-12), p + stall_margin) if stall_margin > 0 else np.zeros(a.size)
     if topology == "per_chamber":
-        sp = pump.speed_for(a * q1, p)
+        sp = np.maximum(pump.speed_for(a * q1, p), s_min)
+        q_s = pump.flow(sp, p)
         U[0] = np.where(feedable, sp, U[0])
-        U[1] = np.where(feedable, 1.0, a)
+        U[1] = np.where(feedable, np.minimum(a * q1 / np.maximum(q_s, 1e-300), 1.0), a)
         return U
     # shared: one speed; the lowest at which every duty a q1 / q(s) is <= 1 and they sum to <= 1
     if not feedable.any():
@@ -176,7 +188,7 @@ def throttled_inputs(a: np.ndarray, o: np.ndarray, p: np.ndarray, topology: str,
         q = pump.flow_on(Q, np.full(idx.size, s))
         return np.where(q > 0, target / np.maximum(q, 1e-300), np.inf)
 
-    lo = float(pump.speed_for(target, p[idx]).max())  # each inlet at most fully open
+    lo = float(max(pump.speed_for(target, p[idx]).max(), s_min[idx].max()))  # each inlet at most fully open
     if not np.isfinite(duties(lo)).all() or duties(lo).sum() > 1.0:
         hi = 1.0
         for _ in range(16):  # the duties' sum falls with the speed: bisection on [lo, 1]
