@@ -1,0 +1,525 @@
+"""The exact axisymmetric equilibrium of a clamped, thin, incompressible hyperelastic membrane (SI).
+
+No shape assumption (README Model §9, SPEC §9; Adkins and Rivlin 1952, Yang and Feng 1970). A
+material point at reference radius R in [0, r1] of the flat membrane (thickness t0) moves to
+(rho(R), z(R)). With ' = d/dR and phi the meridian's slope below the horizontal
+(``rho' = l1 cos phi``, ``z' = -l1 sin phi``; phi > 0 on a dome seen from its pole):
+
+- stretches: meridional ``l1 = sqrt(rho'^2 + z'^2)``, circumferential ``l2 = rho / R``,
+  thickness ``l3 = 1 / (l1 l2)``;
+- tensions per deformed length: ``T1 = (t0 / l2) W_1``, ``T2 = (t0 / l1) W_2`` with
+  ``W(l1, l2)`` the strain energy per reference volume and ``W_i = dW/dl_i``;
+- meridian equilibrium ``d(rho T1)/dR = l1 T2 cos phi``; since ``rho T1 = t0 R W_1`` and
+  ``l2' = (l1 cos phi - l2) / R`` it reads
+
+      l1' = (W_2 cos phi - W_1 - W_12 (l1 cos phi - l2)) / (R W_11);
+
+- normal equilibrium ``T1 k1 + T2 k2 = p`` with ``k1 = phi' / l1``, ``k2 = sin phi / rho``:
+
+      phi' = (p l1 l2 / t0 - W_2 sin phi / R) / W_1.
+
+(On a sphere of radius a, l1 = l2 = lam and T1 = T2 = T: p = 2 T / a.) The state
+``(l1, rho, phi, z, V, U)`` is integrated in the dimensionless radius x = R / r1 with the
+pressure P = p r1 / (mu t0) and w = W / mu (mu = W''(1) / 12, the small-strain shear modulus);
+``V' = pi rho^2 l1 sin phi`` accumulates the gas volume above the clamp plane and
+``U' = 2 pi w R`` the stored energy (``U t0 mu r1^2`` in J).
+
+Boundary conditions and the three problems:
+
+- clamp: ``rho(r1) = r1``, ``z(r1) = 0`` (height measured from the clamp plane);
+- free inflation: pole ``rho = 0, phi = 0, l1 = l2 = lam0``; near the pole the shape is a sphere of
+  curvature ``p lam0 / (2 t0 W_1)`` (the series start). For a pole stretch lam0, the pressure that
+  brings rho back to r1 at the clamp is found by bisection (a larger pressure curls the meridian
+  more, so ``rho(r1)`` falls with p), which follows the pressure through its limit point;
+- frictionless flat plate at height h: the part on the plate (R < Rc) is flat and, with no shear from
+  the plate, uniformly equi-biaxial (``l1 = l2 = lam0`` is the regular solution of the in-plane
+  equations); the free part leaves the plate tangentially (``phi(Rc) = 0``); ``F = p pi rho_c^2``
+  with ``rho_c = lam0 Rc`` the contact radius. Unknowns (lam0, Rc) for given (h, p);
+- rigid disk of radius c bonded at the centre: the material inside c moves with the disk unstretched
+  (``rho(c) = c``, ``l2(c) = 1``), the meridian leaves the disk's edge at height h with unknown
+  stretch l1c and slope phi_c; the disk's force balance is ``F = p pi c^2 - 2 pi c T1 sin phi_c``:
+  a membrane that rises from the edge (phi_c < 0, bulging around the disk) helps lift it, one that
+  falls from it pulls it down, so F < 0 is possible (a deflated glued chamber holds its layer).
+
+Integration: classical RK4 on a fixed mesh, graded geometrically near the start (where the 1/R terms
+are stiff) and uniform after; the whole march is one casadi Function (``mapaccum``), mapped over a
+batch of starts, so a bisection solves many points at once. The mesh study in the tests bounds the
+discretisation error. The pressure is the limit-point pressure's branch parameter: free inflation is
+parametrised by lam0 (monotone in the apex height through the limit point).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from functools import lru_cache
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+from scipy.optimize import brentq, least_squares
+
+from hbma_ctrl.core.codegen import cache_dir, compiled
+from hbma_ctrl.core.materials import Gent, Material, MooneyRivlin, NeoHookean, Ogden, Yeoh
+
+__all__ = ["ExactMembrane", "biaxial_energy", "tabulate", "CONTACTS", "table_cache_dir"]
+
+#: contact types at the membrane's centre: a loose flat plate or a disk glued at the centre
+CONTACTS = ("flat", "bonded")
+_X0 = 1e-7  # dimensionless start radius of a free pole (series error ~ x0^2)
+_N_UNIFORM = 320  # uniform steps over the membrane (the tests' mesh study bounds the error)
+_STATE = 6
+_L1_MIN = 0.2  # a meridional stretch below this means the march folded: treated as over-curled
+#: dimensionless pressures P = p r1 / (mu t0) scanned to bracket the clamp's crossing
+_P_SCAN = np.concatenate([[0.0], np.geomspace(1e-3, 200.0, 47)])
+
+
+def biaxial_energy(material: Material, l1, l2):
+    """Strain energy W(l1, l2) in J/m^3 of an incompressible material at principal in-plane stretches
+    (l1, l2) (-), l3 = 1/(l1 l2) (casadi or float). Equals ``material.W(lam)`` when l1 = l2 = lam."""
+    i1 = l1**2 + l2**2 + (l1 * l2) ** -2
+    i2 = l1**-2 + l2**-2 + (l1 * l2) ** 2
+    if isinstance(material, NeoHookean):
+        return material.E / 6 * (i1 - 3)
+    if isinstance(material, MooneyRivlin):
+        return material.C1 * (i1 - 3) + material.C2 * (i2 - 3)
+    if isinstance(material, Yeoh):
+        return sum(c * (i1 - 3) ** (i + 1) for i, c in enumerate(material.C))
+    if isinstance(material, Gent):
+        return -(material.mu * material.Jm / 2) * ca.log(1 - (i1 - 3) / material.Jm)
+    if isinstance(material, Ogden):
+        l3 = 1 / (l1 * l2)
+        return sum((m / a) * (l1**a + l2**a + l3**a - 3) for m, a in zip(material.mu, material.alpha))
+    raise ValueError(f"material: no biaxial strain energy for {type(material).__name__}")
+
+
+def _shear_modulus(material: Material) -> float:
+    # equi-biaxial W''(1) = 12 mu for every incompressible isotropic material
+    return material.modulus_q1 / 12.0
+
+
+def _u_nodes(n_uniform: int) -> np.ndarray:
+    """Nodes in [0, 1]: geometric (ratio 1.5) from ~x0 up to 1/n, then uniform: keeps du/u <= 0.5."""
+    du = 1.0 / n_uniform
+    geo = [0.0]
+    u = _X0
+    while u < du:
+        geo.append(u)
+        u *= 1.5
+    return np.concatenate([np.array(geo), np.linspace(du, 1.0, n_uniform)])
+
+
+@lru_cache(maxsize=32)
+def _derivs(material: Material) -> ca.Function:
+    """(l1, l2) -> (w, w1, w2, w11, w12) with w = W / mu."""
+    l1, l2 = ca.SX.sym("l1"), ca.SX.sym("l2")
+    w = biaxial_energy(material, l1, l2) / _shear_modulus(material)
+    w1, w2 = ca.gradient(w, l1), ca.gradient(w, l2)
+    return ca.Function("w", [l1, l2], [w, w1, w2, ca.gradient(w1, l1), ca.gradient(w1, l2)])
+
+
+@lru_cache(maxsize=32)
+def _march(material: Material, n_uniform: int) -> tuple[ca.Function, np.ndarray]:
+    """RK4 march of the membrane equations over the mesh: (s0, x0, P) -> states at every node."""
+    d = _derivs(material)
+    s = ca.SX.sym("s", _STATE)
+    x, P = ca.SX.sym("x"), ca.SX.sym("P")
+    l1, rho, phi = s[0], s[1], s[2]
+    l2 = rho / x
+    w, w1, w2, w11, w12 = d(l1, l2)
+    c, sn = ca.cos(phi), ca.sin(phi)
+    rhs = ca.vertcat(
+        (w2 * c - w1 - w12 * (l1 * c - l2)) / (x * w11),
+        l1 * c,
+        (P * l1 * l2 - w2 * sn / x) / w1,
+        -l1 * sn,
+        ca.pi * rho**2 * l1 * sn,
+        2 * ca.pi * w * x,
+    )
+    f = ca.Function("f", [s, x, P], [rhs])
+    h = ca.SX.sym("h")
+    k1 = f(s, x, P)
+    k2 = f(s + h / 2 * k1, x + h / 2, P)
+    k3 = f(s + h / 2 * k2, x + h / 2, P)
+    k4 = f(s + h * k3, x + h, P)
+    step = ca.Function("step", [s, x, h, P], [s + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    u = _u_nodes(n_uniform)
+    n = len(u) - 1
+    acc = step.mapaccum("march", n)
+    # inputs: s0 (6), start x0 (1), P (1): nodes x_j = x0 + (1 - x0) u_j
+    s0, xs, Ps = ca.MX.sym("s0", _STATE), ca.MX.sym("x0"), ca.MX.sym("P")
+    xk = xs + (1 - xs) * ca.DM(u[:-1]).T
+    hk = (1 - xs) * ca.DM(np.diff(u)).T
+    out = acc(s0, xk, hk, ca.repmat(Ps, 1, n))
+    return ca.Function("shoot", [s0, xs, Ps], [out]), u
+
+
+@lru_cache(maxsize=256)
+def _mapped(material: Material, n_uniform: int, batch: int) -> ca.Function:
+    # compiled to C once per machine (cached on disk by source): ~20x the virtual machine's speed
+    return _compiled_march(material, n_uniform).map(batch)
+
+
+@lru_cache(maxsize=32)
+def _compiled_march(material: Material, n_uniform: int) -> ca.Function:
+    return compiled(_march(material, n_uniform)[0])
+
+
+class ExactMembrane:
+    """Exact axisymmetric equilibria of one clamped membrane: free, on a flat plate, or bonded to a disk.
+
+    material : a :class:`hbma_ctrl.core.materials.Material`; r1 : clamp radius, m; t0 : thickness, m;
+    contact : 'flat' (loose frictionless plate) or 'bonded' (rigid disk glued at the centre);
+    c : the bonded disk's radius, m, in (0, r1) (ignored for 'flat'); n_steps : uniform RK4 steps
+    over the radius (accuracy; the default keeps pressures within ~1e-6 relative).
+    All inputs and outputs SI (m, Pa, N, m^3, J); volumes are above the clamp plane (no dead volume).
+    """
+
+    def __init__(self, material: Material, r1: float, t0: float, contact: str = "flat", c: float = 0.0,
+                 n_steps: int = _N_UNIFORM):
+        if not isinstance(material, Material):
+            raise ValueError(f"material: expected a Material, got {type(material).__name__}")
+        if not (np.isfinite(r1) and r1 > 0):
+            raise ValueError(f"r1 = {r1} m: must be > 0")
+        if not (np.isfinite(t0) and t0 > 0):
+            raise ValueError(f"t0 = {t0} m: must be > 0")
+        if contact not in CONTACTS:
+            raise ValueError(f"contact = '{contact}': allowed {', '.join(CONTACTS)}")
+        if contact == "bonded" and not (np.isfinite(c) and 0 < c < r1):
+            raise ValueError(f"c = {c * 1e3:g} mm: the disk radius must be in (0, {r1 * 1e3:g}) mm")
+        if not (isinstance(n_steps, int) and n_steps >= 20):
+            raise ValueError(f"n_steps = {n_steps}: must be an integer >= 20")
+        material.validate()
+        self.material, self.r1, self.t0, self.contact_type, self.c = material, float(r1), float(t0), contact, float(c)
+        self.n_steps = n_steps
+        self.mu = _shear_modulus(material)
+        self._pscale = self.mu * self.t0 / self.r1  # Pa per unit of P
+        self.lam_hi = min(4.0, 1.0 + 0.98 * (material.lam_max() - 1.0))
+        self._d = _derivs(material)
+
+    # ----------------------------------------------------------------------------------- helpers
+    def _w(self, l1, l2) -> tuple[np.ndarray, ...]:
+        out = self._d(np.atleast_1d(l1)[None, :], np.atleast_1d(l2)[None, :])
+        return tuple(np.asarray(o).ravel() for o in out)
+
+    def _shoot(self, s0: np.ndarray, x0: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """States (6, nodes, batch) along the mesh for starts s0 (6, B) at x0 (B,) and pressures P (B,)."""
+        B = s0.shape[1]
+        fun = _mapped(self.material, self.n_steps, B)
+        out = np.asarray(fun(s0, x0[None, :], P[None, :]))  # 6 x (n B)
+        n = out.shape[1] // B
+        traj = out.reshape(_STATE, B, n).transpose(0, 2, 1)
+        return np.concatenate([s0[:, None, :], traj], axis=1)
+
+    def _nodes(self, x0: np.ndarray) -> np.ndarray:
+        u = _march(self.material, self.n_steps)[1]
+        return x0[None, :] + (1 - x0[None, :]) * u[:, None]
+
+    def _clamp_miss(self, traj: np.ndarray) -> np.ndarray:
+        """rho(r1)/r1 - 1, or -1 where the meridian curled back to the axis or the march broke down."""
+        rho, l1 = traj[1], traj[0]
+        miss = rho[-1] - 1.0
+        bad = (~np.all(np.isfinite(traj[:4]), axis=(0, 1)) | np.any(rho[1:] <= 0, axis=0)
+               | np.any(l1 <= _L1_MIN, axis=0))
+        return np.where(bad, -1.0, miss)
+
+    def _bisect_P(self, make_start, B: int, iters: int = 56) -> tuple[np.ndarray, np.ndarray]:
+        """Pressures P (B,) that meet the clamp (rho(r1) = r1); also their trajectories.
+
+        ``make_start(P, k)`` gives the starts for pressures P, each of the B points repeated k times.
+        A larger pressure curls the meridian more, so rho(r1) falls with P until the march breaks down
+        (the meridian reaches the axis or folds): a scan brackets the first crossing, bisection refines it.
+        """
+        grid = _P_SCAN
+        k = grid.size
+        Pk = np.tile(grid, B)  # point-major: point i's scan is Pk[i k:(i + 1) k]
+        s0, x0 = make_start(Pk, k)
+        miss = self._clamp_miss(self._shoot(s0, x0, Pk)).reshape(B, k)
+        first = np.argmax(miss <= 0, axis=1)
+        none = ~np.any(miss <= 0, axis=1)
+        first = np.where(none, k - 1, np.maximum(first, 1))
+        lo, hi = grid[first - 1], grid[first]
+        for _ in range(iters):
+            mid = 0.5 * (lo + hi)
+            s0, x0 = make_start(mid, 1)
+            miss = self._clamp_miss(self._shoot(s0, x0, mid))
+            lo, hi = np.where(miss > 0, mid, lo), np.where(miss > 0, hi, mid)
+        P = np.where(none, np.nan, 0.5 * (lo + hi))
+        s0, x0 = make_start(P, 1)
+        return P, self._shoot(s0, x0, P)
+
+    def _pole_start(self, lam0: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w, w1, *_ = self._w(lam0, lam0)
+        kappa = P * lam0 / (2 * w1)  # curvature of the spherical pole, per r1
+        x0 = np.full(lam0.shape, _X0)
+        s0 = np.vstack([lam0, lam0 * x0, kappa * lam0 * x0, -0.5 * kappa * (lam0 * x0) ** 2,
+                        np.zeros_like(lam0), np.pi * w * x0**2])
+        return s0, x0
+
+    def _result(self, P, traj, extra_V=0.0) -> dict:
+        s = traj[:, -1]
+        return {"p": P * self._pscale, "h": -s[3] * self.r1, "V": (s[4] + extra_V) * self.r1**3,
+                "U": s[5] * self.mu * self.t0 * self.r1**2}
+
+    # ------------------------------------------------------------------------------ free inflation
+    def free_pole(self, lam0) -> dict:
+        """Free inflation at pole stretches lam0 (-, > 1; array): p (Pa), h apex height (m), V (m^3),
+        U stored strain energy (J), lam0; vectorised over lam0."""
+        lam0 = np.atleast_1d(np.asarray(lam0, dtype=float))
+        if not np.all((lam0 > 1.0) & (lam0 <= self.lam_hi)):
+            raise ValueError(f"lam0 = {lam0.min():g}..{lam0.max():g}: the pole stretch must be in (1, {self.lam_hi:g}]")
+        P, traj = self._bisect_P(lambda Pm, k: self._pole_start(np.repeat(lam0, k), Pm), lam0.size)
+        out = self._result(P, traj)
+        out["lam0"] = lam0
+        return out
+
+    def _lam0_for_h(self, h: float) -> float:
+        x = h / self.r1
+        # cap guess: lam^2 = 1 + (h/r1)^2; the pole stretches more than the average, so bracket widely
+        def f(lam):
+            return float(self.free_pole(lam)["h"][0]) - h
+
+        hi = min(self.lam_hi, 1.0 + 2.0 * x * x + 0.5 * x + 1e-3)
+        while f(hi) < 0:
+            if hi >= self.lam_hi:
+                h_max = float(self.free_pole(self.lam_hi)["h"][0])
+                raise ValueError(f"h = {h * 1e3:g} mm: beyond this membrane's reach in free inflation; allowed "
+                                 f"(0, {h_max * 1e3:.4g}] mm (pole stretch up to {self.lam_hi:g})")
+            hi = min(self.lam_hi, 1.0 + 2 * (hi - 1.0))
+        return brentq(f, 1.0 + 1e-12, hi, xtol=1e-13, rtol=1e-12)
+
+    def free(self, h: float, profile: bool = False) -> dict:
+        """Free inflation at apex height h (m, > 0): p (Pa), V (m^3), U (J), lam0 (pole stretch, -), and
+        with ``profile`` the meridian r, z (m, arrays from pole to clamp) and its stretches l1, l2."""
+        h = self._check_h(h, "h")
+        lam0 = self._lam0_for_h(h)
+        P, traj = self._bisect_P(lambda Pm, k: self._pole_start(np.full(k, lam0), Pm), 1)
+        out = {k: float(v[0]) for k, v in self._result(P, traj).items()}
+        out["lam0"] = lam0
+        if profile:
+            out.update(self._profile(traj[:, :, 0], np.array([_X0])))
+        return out
+
+    def _profile(self, traj: np.ndarray, x0: np.ndarray) -> dict:
+        x = self._nodes(x0)[:, 0]
+        z = traj[3] - traj[3, -1]
+        return {"r": traj[1] * self.r1, "z": z * self.r1, "l1": traj[0], "l2": traj[1] / x, "R": x * self.r1}
+
+    def limit_point(self) -> dict:
+        """The free-inflation pressure maximum: p (Pa), h (m), lam0 (-).
+
+        A pole-stretch sweep brackets it; two rounds of 9-point sweeps narrow the bracket and a parabola
+        through the top of the last sweep places the maximum (the pressure is smooth there).
+        """
+        lam = np.linspace(1.02, self.lam_hi, 41)
+        for _ in range(3):
+            p = self.free_pole(lam)["p"]
+            i = int(np.argmax(p))
+            if i == len(lam) - 1:
+                raise ValueError(f"material {self.material.name}: no pressure maximum up to pole stretch "
+                                 f"{self.lam_hi:g}")
+            i = min(max(i, 1), len(lam) - 2)
+            top = lam[i - 1:i + 2]
+            lam = np.linspace(top[0], top[-1], 9)
+        p = self.free_pole(lam)["p"]
+        i = min(max(int(np.argmax(p)), 1), len(lam) - 2)
+        c2, c1, _ = np.polyfit(lam[i - 1:i + 2] - lam[i], p[i - 1:i + 2], 2)
+        lam_star = lam[i] - c1 / (2 * c2)
+        top = self.free_pole(lam_star)
+        return {"p": float(top["p"][0]), "h": float(top["h"][0]), "lam0": float(lam_star)}
+
+    # ------------------------------------------------------------------------------ contact
+    def _check_h(self, h, name: str) -> float:
+        h = float(h)
+        if not (np.isfinite(h) and 0 < h < 5 * self.r1):
+            raise ValueError(f"{name} = {h * 1e3:g} mm: must be in (0, {5 * self.r1 * 1e3:g}) mm")
+        return h
+
+    def _plate_shoot(self, lam0, xc, P) -> np.ndarray:
+        lam0, xc, P = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (lam0, xc, P))
+        w = self._w(lam0, lam0)[0]
+        s0 = np.vstack([lam0, lam0 * xc, np.zeros_like(xc), np.zeros_like(xc), np.zeros_like(xc), np.pi * w * xc**2])
+        return self._shoot(s0, xc, P)
+
+    def _disk_shoot(self, l1c, phic, P) -> np.ndarray:
+        l1c, phic, P = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (l1c, phic, P))
+        xc = np.full(l1c.shape, self.c / self.r1)
+        z = np.zeros_like(xc)
+        s0 = np.vstack([l1c, xc, phic, z, z, z])
+        return self._shoot(s0, xc, P)
+
+    def contact(self, h: float, p: float) -> dict:
+        """Equilibrium with the centre at height h (m) and gauge pressure p (Pa).
+
+        'flat': F = p pi a^2 (N), a_contact (m, the contact radius), V (m^3), lam0 (the stretch on the
+        plate). 'bonded': F (N, the force the membrane and gas exert on the disk, up positive),
+        a_contact = c, V, l1c and phi_c (the meridian's stretch and slope, rad, at the disk's edge),
+        T1 (N/m, meridional tension there).
+        """
+        h = self._check_h(h, "h")
+        p = float(p)
+        if not (np.isfinite(p) and p >= 0):
+            raise ValueError(f"p = {p * 1e-3:g} kPa: must be >= 0 kPa")
+        P = p / self._pscale
+        if self.contact_type == "flat":
+            return self._flat(h, P)
+        return self._bonded(h, P)
+
+    def _flat(self, h: float, P: float) -> dict:
+        x = h / self.r1
+        if P <= 0:
+            raise ValueError("p = 0 kPa: a flat plate needs a positive pressure to be in contact")
+        hf = self._free_h_at_P(P)
+        if x >= hf:
+            raise ValueError(f"h = {h * 1e3:g} mm: at p = {P * self._pscale * 1e-3:g} kPa the free membrane reaches "
+                             f"only {hf * self.r1 * 1e3:.4g} mm, so the plate does not touch it; allowed (0, "
+                             f"{hf * self.r1 * 1e3:.4g}) mm")
+
+        def res(v):
+            lam0, xc = v
+            tr = self._plate_shoot(lam0, xc, P)
+            miss = self._clamp_miss(tr)[0]
+            return [miss, (-tr[3, -1, 0] - x) * 3.0]
+
+        # guess: the spherical segment through the clamp with the free cap's stretch, cut by the plate
+        guess = self._plate_guess(x, P, hf)
+        sol = least_squares(res, guess, bounds=([1.0, 0.0], [self.lam_hi, 1.0]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+        if np.max(np.abs(sol.fun)) > 1e-8:
+            raise ValueError(f"h = {h * 1e3:g} mm, p = {P * self._pscale * 1e-3:g} kPa: no plate-contact equilibrium "
+                             f"found (residual {np.max(np.abs(sol.fun)):.2g})")
+        lam0, xc = sol.x
+        tr = self._plate_shoot(lam0, xc, P)
+        out = {k: float(v[0]) for k, v in self._result(np.array([P]), tr).items()}
+        a = lam0 * xc * self.r1
+        out.update(F=out["p"] * np.pi * a * a, a_contact=a, lam0=float(lam0), h=h)
+        return out
+
+    def _free_h_at_P(self, P: float) -> float:
+        """Dimensionless free apex height at pressure P on the rising branch (inf above the limit point)."""
+        lam = np.linspace(1.0 + 1e-4, self.lam_hi, 48)
+        fp = self.free_pole(lam)
+        Pc = fp["p"] / self._pscale
+        top = int(np.argmax(Pc))
+        if P >= Pc[top]:
+            return np.inf
+        j = int(np.searchsorted(Pc[: top + 1], P))
+        if j == 0:
+            return float(fp["h"][0] / self.r1 * P / Pc[0])
+        lam_star = brentq(lambda l: float(self.free_pole(l)["p"][0]) / self._pscale - P, lam[j - 1], lam[j], xtol=1e-13)
+        return float(self.free_pole(lam_star)["h"][0]) / self.r1
+
+    def _plate_guess(self, x: float, P: float, hf: float) -> list:
+        # contact radius of a spherical cap of height hf pressed down to x (the cap model's a^2 = h2 (2 Rs - h2))
+        h2 = max(hf - x, 0.0) if np.isfinite(hf) else 0.5 * x
+        Rs = (hf**2 + 1) / (2 * hf) if np.isfinite(hf) else 1.0
+        a = np.sqrt(max(h2 * (2 * Rs - h2), 1e-6))
+        lam = np.sqrt(1 + (x + h2) ** 2 - h2**2)
+        return [min(lam, self.lam_hi - 1e-3), min(a / lam, 0.99)]
+
+    def _bonded(self, h: float, P: float) -> dict:
+        x = h / self.r1
+        xc = self.c / self.r1
+
+        def res(v):
+            l1c, phic = v
+            tr = self._disk_shoot(l1c, phic, P)
+            return [self._clamp_miss(tr)[0], (-tr[3, -1, 0] - x) * 3.0]
+
+        # guess: a straight cone from the disk's edge to the clamp
+        L = np.hypot(1 - xc, x)
+        guess = [L / (1 - xc), np.arctan2(x, 1 - xc)]
+        sol = least_squares(res, guess, bounds=([0.5, -np.pi], [self.lam_hi, np.pi]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+        if np.max(np.abs(sol.fun)) > 1e-8:
+            raise ValueError(f"h = {h * 1e3:g} mm, p = {P * self._pscale * 1e-3:g} kPa: no bonded equilibrium found "
+                             f"(residual {np.max(np.abs(sol.fun)):.2g})")
+        l1c, phic = sol.x
+        tr = self._disk_shoot(l1c, phic, P)
+        out = {k: float(v[0]) for k, v in self._result(np.array([P]), tr).items()}
+        w1 = self._w(l1c, 1.0)[1][0]
+        T1 = self.t0 * self.mu * w1  # l2 = 1 at the disk's edge
+        out.update(F=out["p"] * np.pi * self.c**2 - 2 * np.pi * self.c * T1 * np.sin(phic), a_contact=self.c,
+                   l1c=float(l1c), phi_c=float(phic), T1=float(T1), h=h)
+        return out
+
+
+# ---------------------------------------------------------------------------------------- tables
+def table_cache_dir() -> Path:
+    """Directory of cached exact-membrane tables: ``$HBMA_CTRL_CACHE/exact`` (default ~/.cache/hbma-ctrl/exact)."""
+    return cache_dir() / "exact"
+
+
+def _key(m: ExactMembrane, kind: str, grids: dict) -> str:
+    src = Path(__file__).read_bytes()
+    blob = json.dumps({"kind": kind, "material": type(m.material).__name__, "params": m.material.as_dict(),
+                       "r1": m.r1, "t0": m.t0, "contact": m.contact_type, "c": m.c, "n": m.n_steps,
+                       "grids": {k: np.asarray(v, dtype=float).tolist() for k, v in grids.items()}},
+                      sort_keys=True, default=list).encode()
+    return hashlib.sha256(blob + hashlib.sha256(src).digest()).hexdigest()[:20]
+
+
+def tabulate(m: ExactMembrane, h, p=None, cache: Path | str | None = None) -> dict:
+    """Tables of one membrane, cached on disk (npz keyed by a hash of every input and this module's source).
+
+    Free inflation (``p`` None): over apex heights h (m, increasing) -> p (Pa), V (m^3), lam0, U (J).
+    Contact (``p`` given, Pa): over the grid h x p -> F (N), a_contact (m), V (m^3) as (len(h), len(p))
+    arrays; for a flat plate, points the plate does not touch hold F = 0, a_contact = 0 and the free V.
+    Returns also ``build_s`` (s, the build's wall time, 0 when read from the cache) and ``path``.
+    ``cache``: a directory (default :func:`table_cache_dir`).
+    """
+    h = np.asarray(h, dtype=float)
+    grids = {"h": h} if p is None else {"h": h, "p": np.asarray(p, dtype=float)}
+    if h.ndim != 1 or h.size < 2 or not np.all(np.diff(h) > 0) or h[0] <= 0:
+        raise ValueError("h: the grid must be a 1-D increasing array of heights > 0 m")
+    folder = Path(cache) if cache is not None else table_cache_dir()
+    path = folder / f"{'free' if p is None else m.contact_type}_{_key(m, 'table', grids)}.npz"
+    if path.exists():
+        with np.load(path) as z:
+            out = {k: z[k] for k in z.files}
+        out.update(build_s=0.0, path=path)
+        return out
+    t = time.perf_counter()
+    if p is None:
+        out = _free_table(m, h)
+    else:
+        out = _contact_table(m, h, grids["p"])
+    out["h"] = h
+    build = time.perf_counter() - t
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **out)
+    tmp.replace(path)
+    out.update(build_s=build, path=path)
+    return out
+
+
+def _free_table(m: ExactMembrane, h: np.ndarray) -> dict:
+    # a dense pole-stretch sweep (vectorised), then monotone interpolation of lam0(h), then one exact
+    # solve per node at its interpolated stretch polished by a secant in lam0
+    lam = np.linspace(1.0 + 1e-4, m.lam_hi, 400)
+    sweep = m.free_pole(lam)
+    if h[-1] > sweep["h"][-1]:
+        raise ValueError(f"h: the grid reaches {h[-1] * 1e3:g} mm, beyond the membrane's reach "
+                         f"{sweep['h'][-1] * 1e3:.4g} mm")
+    lam_h = np.interp(h, sweep["h"], lam)
+    for _ in range(3):  # secant polish with the local slope dh/dlam from the sweep
+        got = m.free_pole(lam_h)
+        slope = np.interp(lam_h, lam, np.gradient(sweep["h"], lam))
+        lam_h = np.clip(lam_h - (got["h"] - h) / slope, 1.0 + 1e-9, m.lam_hi)
+    got = m.free_pole(lam_h)
+    return {"p": got["p"], "V": got["V"], "U": got["U"], "lam0": lam_h, "h_err": got["h"] - h}
+
+
+def _contact_table(m: ExactMembrane, h: np.ndarray, p: np.ndarray) -> dict:
+    shape = (h.size, p.size)
+    F, a, V = np.zeros(shape), np.zeros(shape), np.full(shape, np.nan)
+    for j, pj in enumerate(p):
+        for i, hi in enumerate(h):
+            try:
+                r = m.contact(hi, pj)
+            except ValueError:
+                if m.contact_type == "flat":
+                    continue  # the plate does not touch the membrane: no force
+                raise
+            F[i, j], a[i, j], V[i, j] = r["F"], r["a_contact"], r["V"]
+    return {"F": F, "a_contact": a, "V": V, "p": p}
