@@ -58,7 +58,7 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
-from scipy.optimize import brentq, least_squares
+from scipy.optimize import brentq
 
 from hbma_ctrl.core.codegen import cache_dir, compiled
 from hbma_ctrl.core.materials import Gent, Material, MooneyRivlin, NeoHookean, Ogden, Yeoh
@@ -366,80 +366,86 @@ class ExactMembrane:
             return self._flat(h, P)
         return self._bonded(h, P)
 
+    def _inner(self, make, outer: np.ndarray, lo: float, hi: float, P: float, iters: int = 50):
+        """For each outer value, the inner unknown in [lo, hi] that meets the clamp (rho(r1) = r1).
+
+        ``make(outer, inner, P)`` shoots from the contact edge; rho(r1) grows with the inner stretch, and a
+        march that breaks down counts as too short. Returns (inner, trajectories), inner NaN where even
+        ``hi`` falls short.
+        """
+        B = outer.size
+        a, b = np.full(B, lo), np.full(B, hi)
+        Pv = np.full(B, P)
+        ok = self._clamp_miss(make(outer, b, Pv)) > 0
+        for _ in range(iters):
+            mid = 0.5 * (a + b)
+            pos = self._clamp_miss(make(outer, mid, Pv)) > 0
+            a, b = np.where(pos, a, mid), np.where(pos, mid, b)
+        inner = np.where(ok, 0.5 * (a + b), np.nan)
+        return inner, make(outer, np.where(ok, inner, hi), Pv)
+
+    def _edge_solve(self, make, grid: np.ndarray, lo: float, hi: float, P: float, x: float, rising: bool):
+        """(outer, inner) with the clamp met and the centre at height x (dimensionless).
+
+        The apex-to-clamp drop is monotone in the outer unknown along ``grid`` (rising or falling): a scan
+        brackets the first crossing, Brent's method refines it (each step one vectorised inner bisection).
+        """
+        inner, tr = self._inner(make, grid, lo, hi, P)
+        drop = np.where(np.isfinite(inner), -tr[3, -1], np.nan)
+        sgn = 1.0 if rising else -1.0
+        g = sgn * (drop - x)
+        k = np.flatnonzero(np.isfinite(g[:-1]) & np.isfinite(g[1:]) & (g[:-1] < 0) & (g[1:] >= 0))
+        if k.size == 0:
+            return None
+        k = int(k[0])
+
+        def f(o):
+            i, t = self._inner(make, np.array([o]), lo, hi, P)
+            return sgn * (-t[3, -1, 0] - x) if np.isfinite(i[0]) else np.nan
+
+        o = brentq(f, grid[k], grid[k + 1], xtol=1e-13, rtol=1e-13)
+        i, t = self._inner(make, np.array([o]), lo, hi, P)
+        return o, float(i[0]), t
+
     def _flat(self, h: float, P: float) -> dict:
         x = h / self.r1
         if P <= 0:
             raise ValueError("p = 0 kPa: a flat plate needs a positive pressure to be in contact")
-        hf = self._free_h_at_P(P)
-        if x >= hf:
-            raise ValueError(f"h = {h * 1e3:g} mm: at p = {P * self._pscale * 1e-3:g} kPa the free membrane reaches "
-                             f"only {hf * self.r1 * 1e3:.4g} mm, so the plate does not touch it; allowed (0, "
-                             f"{hf * self.r1 * 1e3:.4g}) mm")
 
-        def res(v):
-            lam0, xc = v
-            tr = self._plate_shoot(lam0, xc, P)
-            miss = self._clamp_miss(tr)[0]
-            return [miss, (-tr[3, -1, 0] - x) * 3.0]
+        def make(xc, lam0, Pv):
+            return self._plate_shoot(lam0, xc, Pv)
 
-        # guess: the spherical segment through the clamp with the free cap's stretch, cut by the plate
-        guess = self._plate_guess(x, P, hf)
-        sol = least_squares(res, guess, bounds=([1.0, 0.0], [self.lam_hi, 1.0]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
-        if np.max(np.abs(sol.fun)) > 1e-8:
-            raise ValueError(f"h = {h * 1e3:g} mm, p = {P * self._pscale * 1e-3:g} kPa: no plate-contact equilibrium "
-                             f"found (residual {np.max(np.abs(sol.fun)):.2g})")
-        lam0, xc = sol.x
-        tr = self._plate_shoot(lam0, xc, P)
+        # the drop falls as the contact radius grows (the plate pushes the membrane down)
+        grid = np.concatenate([[1e-6], np.linspace(0.02, 0.98, 25)])
+        got = self._edge_solve(make, grid, 1.0 + 1e-9, self.lam_hi, P, x, rising=False)
+        if got is None:
+            raise ValueError(f"h = {h * 1e3:g} mm: at p = {P * self._pscale * 1e-3:g} kPa the plate does not touch "
+                             f"the membrane (or the contact lies beyond pole stretch {self.lam_hi:g}); the free apex "
+                             f"at this pressure is below the plate")
+        xc, lam0, tr = got
         out = {k: float(v[0]) for k, v in self._result(np.array([P]), tr).items()}
         a = lam0 * xc * self.r1
-        out.update(F=out["p"] * np.pi * a * a, a_contact=a, lam0=float(lam0), h=h)
+        out.update(F=out["p"] * np.pi * a * a, a_contact=a, lam0=lam0, h=h)
         return out
-
-    def _free_h_at_P(self, P: float) -> float:
-        """Dimensionless free apex height at pressure P on the rising branch (inf above the limit point)."""
-        lam = np.linspace(1.0 + 1e-4, self.lam_hi, 48)
-        fp = self.free_pole(lam)
-        Pc = fp["p"] / self._pscale
-        top = int(np.argmax(Pc))
-        if P >= Pc[top]:
-            return np.inf
-        j = int(np.searchsorted(Pc[: top + 1], P))
-        if j == 0:
-            return float(fp["h"][0] / self.r1 * P / Pc[0])
-        lam_star = brentq(lambda l: float(self.free_pole(l)["p"][0]) / self._pscale - P, lam[j - 1], lam[j], xtol=1e-13)
-        return float(self.free_pole(lam_star)["h"][0]) / self.r1
-
-    def _plate_guess(self, x: float, P: float, hf: float) -> list:
-        # contact radius of a spherical cap of height hf pressed down to x (the cap model's a^2 = h2 (2 Rs - h2))
-        h2 = max(hf - x, 0.0) if np.isfinite(hf) else 0.5 * x
-        Rs = (hf**2 + 1) / (2 * hf) if np.isfinite(hf) else 1.0
-        a = np.sqrt(max(h2 * (2 * Rs - h2), 1e-6))
-        lam = np.sqrt(1 + (x + h2) ** 2 - h2**2)
-        return [min(lam, self.lam_hi - 1e-3), min(a / lam, 0.99)]
 
     def _bonded(self, h: float, P: float) -> dict:
         x = h / self.r1
-        xc = self.c / self.r1
 
-        def res(v):
-            l1c, phic = v
-            tr = self._disk_shoot(l1c, phic, P)
-            return [self._clamp_miss(tr)[0], (-tr[3, -1, 0] - x) * 3.0]
+        def make(phic, l1c, Pv):
+            return self._disk_shoot(l1c, phic, Pv)
 
-        # guess: a straight cone from the disk's edge to the clamp
-        L = np.hypot(1 - xc, x)
-        guess = [L / (1 - xc), np.arctan2(x, 1 - xc)]
-        sol = least_squares(res, guess, bounds=([0.5, -np.pi], [self.lam_hi, np.pi]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
-        if np.max(np.abs(sol.fun)) > 1e-8:
-            raise ValueError(f"h = {h * 1e3:g} mm, p = {P * self._pscale * 1e-3:g} kPa: no bonded equilibrium found "
-                             f"(residual {np.max(np.abs(sol.fun)):.2g})")
-        l1c, phic = sol.x
-        tr = self._disk_shoot(l1c, phic, P)
+        # the drop grows with the meridian's slope at the disk's edge
+        grid = np.linspace(-2.0, 1.5, 36)
+        got = self._edge_solve(make, grid, 1.0 + 1e-6, self.lam_hi, P, x, rising=True)
+        if got is None:
+            raise ValueError(f"h = {h * 1e3:g} mm, p = {P * self._pscale * 1e-3:g} kPa: no bonded equilibrium with "
+                             f"the meridian's stretch in (1, {self.lam_hi:g}]")
+        phic, l1c, tr = got
         out = {k: float(v[0]) for k, v in self._result(np.array([P]), tr).items()}
         w1 = self._w(l1c, 1.0)[1][0]
         T1 = self.t0 * self.mu * w1  # l2 = 1 at the disk's edge
         out.update(F=out["p"] * np.pi * self.c**2 - 2 * np.pi * self.c * T1 * np.sin(phic), a_contact=self.c,
-                   l1c=float(l1c), phi_c=float(phic), T1=float(T1), h=h)
+                   l1c=l1c, phi_c=float(phic), T1=float(T1), h=h)
         return out
 
 
