@@ -68,7 +68,7 @@ __all__ = ["ExactMembrane", "biaxial_energy", "tabulate", "CONTACTS", "table_cac
 #: contact types at the membrane's centre: a loose flat plate or a disk glued at the centre
 CONTACTS = ("flat", "bonded")
 _X0 = 1e-7  # dimensionless start radius of a free pole (series error ~ x0^2)
-_N_UNIFORM = 320  # uniform steps over the membrane (the tests' mesh study bounds the error)
+_N_UNIFORM = 160  # uniform steps over the membrane (mesh study: pressures to ~1e-8 relative at 80)
 _STATE = 6
 _L1_MIN = 0.2  # a meridional stretch below this means the march folded: treated as over-curled
 #: dimensionless pressures P = p r1 / (mu t0) scanned to bracket the clamp's crossing
@@ -152,7 +152,11 @@ def _march(material: Material, n_uniform: int) -> tuple[ca.Function, np.ndarray]
     xk = xs + (1 - xs) * ca.DM(u[:-1]).T
     hk = (1 - xs) * ca.DM(np.diff(u)).T
     out = acc(s0, xk, hk, ca.repmat(Ps, 1, n))
-    return ca.Function("shoot", [s0, xs, Ps], [out]), u
+    traj = ca.Function("shoot", [s0, xs, Ps], [out])
+    # what a root search needs, without copying the whole march back: the end state, the smallest radius
+    # and meridional stretch met on the way, and a sum that is NaN where the march broke down
+    summary = ca.vertcat(out[:, -1], ca.mmin(out[1, :]), ca.mmin(out[0, :]), ca.sum2(ca.sum1(out[:4, :])))
+    return ca.Function("shoot_end", [s0, xs, Ps], [summary]), traj, u
 
 
 @lru_cache(maxsize=256)
@@ -204,32 +208,28 @@ class ExactMembrane:
         return tuple(np.asarray(o).ravel() for o in out)
 
     def _shoot(self, s0: np.ndarray, x0: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """States (6, nodes, batch) along the mesh for starts s0 (6, B) at x0 (B,) and pressures P (B,)."""
+        """Summaries (9, B) of the marches from starts s0 (6, B) at x0 (B,) with pressures P (B,): rows
+        0-5 the state at the clamp, 6 the smallest rho, 7 the smallest l1, 8 NaN where the march broke."""
         B = s0.shape[1]
         fun = _mapped(self.material, self.n_steps, B)
-        out = np.asarray(fun(s0, x0[None, :], P[None, :]))  # 6 x (n B)
-        n = out.shape[1] // B
-        traj = out.reshape(_STATE, B, n).transpose(0, 2, 1)
-        return np.concatenate([s0[:, None, :], traj], axis=1)
+        return np.asarray(fun(s0, x0[None, :], P[None, :]))
 
-    def _nodes(self, x0: np.ndarray) -> np.ndarray:
-        u = _march(self.material, self.n_steps)[1]
-        return x0[None, :] + (1 - x0[None, :]) * u[:, None]
+    def _trajectory(self, s0: np.ndarray, x0: float, P: float) -> np.ndarray:
+        """The whole march (6, nodes) of one start s0 (6,) at x0 with pressure P."""
+        traj = np.asarray(_march(self.material, self.n_steps)[1](s0, x0, P))
+        return np.concatenate([np.asarray(s0, dtype=float).reshape(_STATE, 1), traj], axis=1)
 
-    def _clamp_miss(self, traj: np.ndarray) -> np.ndarray:
+    def _clamp_miss(self, end: np.ndarray) -> np.ndarray:
         """rho(r1)/r1 - 1, or -1 where the meridian curled back to the axis or the march broke down."""
-        rho, l1 = traj[1], traj[0]
-        miss = rho[-1] - 1.0
-        bad = (~np.all(np.isfinite(traj[:4]), axis=(0, 1)) | np.any(rho[1:] <= 0, axis=0)
-               | np.any(l1 <= _L1_MIN, axis=0))
-        return np.where(bad, -1.0, miss)
+        bad = ~np.isfinite(end[8]) | (end[6] <= 0) | (end[7] <= _L1_MIN)
+        return np.where(bad, -1.0, end[1] - 1.0)
 
-    def _bisect_P(self, make_start, B: int, iters: int = 56) -> tuple[np.ndarray, np.ndarray]:
+    def _bisect_P(self, make_start, B: int, iters: int = 80) -> tuple[np.ndarray, np.ndarray]:
         """Pressures P (B,) that meet the clamp (rho(r1) = r1); also their trajectories.
 
         ``make_start(P, k)`` gives the starts for pressures P, each of the B points repeated k times.
         A larger pressure curls the meridian more, so rho(r1) falls with P until the march breaks down
-        (the meridian reaches the axis or folds): a scan brackets the first crossing, bisection refines it.
+        (the meridian reaches the axis or folds): a scan brackets the first crossing, Illinois refines it.
         """
         grid = _P_SCAN
         k = grid.size
@@ -240,11 +240,25 @@ class ExactMembrane:
         none = ~np.any(miss <= 0, axis=1)
         first = np.where(none, k - 1, np.maximum(first, 1))
         lo, hi = grid[first - 1], grid[first]
+        f_lo, f_hi = miss[np.arange(B), first - 1], miss[np.arange(B), first]
+        bad_hi = f_hi <= -1.0  # a broken march: its -1 is a flag, not a value to interpolate
+        side = np.zeros(B)
         for _ in range(iters):
-            mid = 0.5 * (lo + hi)
+            # Illinois regula falsi where both ends are genuine, bisection while the upper one is a flag
+            rf = hi - f_hi * (hi - lo) / np.where(f_hi != f_lo, f_hi - f_lo, 1.0)
+            mid = np.where(bad_hi, 0.5 * (lo + hi), np.clip(rf, lo, hi))
             s0, x0 = make_start(mid, 1)
-            miss = self._clamp_miss(self._shoot(s0, x0, mid))
-            lo, hi = np.where(miss > 0, mid, lo), np.where(miss > 0, hi, mid)
+            f = self._clamp_miss(self._shoot(s0, x0, mid))
+            pos = f > 0
+            # Illinois: halve the kept end's value when the same end is kept twice
+            f_hi = np.where(~pos, f, np.where(side > 0, 0.5 * f_hi, f_hi))
+            f_lo = np.where(pos, f, np.where(side < 0, 0.5 * f_lo, f_lo))
+            side = np.where(pos, 1.0, -1.0)
+            bad_hi = np.where(pos, bad_hi, f <= -1.0)
+            lo, hi = np.where(pos, mid, lo), np.where(pos, hi, mid)
+            if np.all((np.abs(f) < 1e-14) | (hi - lo < 1e-14 * np.maximum(hi, 1e-3))):
+                lo = hi = mid
+                break
         P = np.where(none, np.nan, 0.5 * (lo + hi))
         s0, x0 = make_start(P, 1)
         return P, self._shoot(s0, x0, P)
@@ -258,7 +272,7 @@ class ExactMembrane:
         return s0, x0
 
     def _result(self, P, traj, extra_V=0.0) -> dict:
-        s = traj[:, -1]
+        s = traj[:_STATE]
         return {"p": P * self._pscale, "h": -s[3] * self.r1, "V": (s[4] + extra_V) * self.r1**3,
                 "U": s[5] * self.mu * self.t0 * self.r1**2}
 
@@ -298,7 +312,8 @@ class ExactMembrane:
         out = {k: float(v[0]) for k, v in self._result(P, traj).items()}
         out["lam0"] = lam0
         if profile:
-            out.update(self._profile(traj[:, :, 0], np.array([_X0])))
+            s0, x0 = self._pole_start(np.array([lam0]), P)
+            out.update(self._profile(self._trajectory(s0[:, 0], x0[0], P[0]), x0))
         return out
 
     def _profile(self, traj: np.ndarray, x0: np.ndarray) -> dict:
@@ -391,7 +406,7 @@ class ExactMembrane:
         brackets the first crossing, Brent's method refines it (each step one vectorised inner bisection).
         """
         inner, tr = self._inner(make, grid, lo, hi, P)
-        drop = np.where(np.isfinite(inner), -tr[3, -1], np.nan)
+        drop = np.where(np.isfinite(inner), -tr[3], np.nan)
         sgn = 1.0 if rising else -1.0
         g = sgn * (drop - x)
         k = np.flatnonzero(np.isfinite(g[:-1]) & np.isfinite(g[1:]) & (g[:-1] < 0) & (g[1:] >= 0))
@@ -401,7 +416,7 @@ class ExactMembrane:
 
         def f(o):
             i, t = self._inner(make, np.array([o]), lo, hi, P)
-            return sgn * (-t[3, -1, 0] - x) if np.isfinite(i[0]) else np.nan
+            return sgn * (-t[3, 0] - x) if np.isfinite(i[0]) else np.nan
 
         o = brentq(f, grid[k], grid[k + 1], xtol=1e-13, rtol=1e-13)
         i, t = self._inner(make, np.array([o]), lo, hi, P)
@@ -502,16 +517,25 @@ def tabulate(m: ExactMembrane, h, p=None, cache: Path | str | None = None) -> di
 def _free_table(m: ExactMembrane, h: np.ndarray) -> dict:
     # a dense pole-stretch sweep (vectorised), then monotone interpolation of lam0(h), then one exact
     # solve per node at its interpolated stretch polished by a secant in lam0
-    lam = np.linspace(1.0 + 1e-4, m.lam_hi, 400)
+    lam = np.linspace(1.0 + 1e-4, m.lam_hi, 160)
     sweep = m.free_pole(lam)
     if h[-1] > sweep["h"][-1]:
         raise ValueError(f"h: the grid reaches {h[-1] * 1e3:g} mm, beyond the membrane's reach "
                          f"{sweep['h'][-1] * 1e3:.4g} mm")
     lam_h = np.interp(h, sweep["h"], lam)
-    for _ in range(3):  # secant polish with the local slope dh/dlam from the sweep
+    prev, h_prev = None, None
+    for _ in range(8):  # vectorised secant in lam0, started from the sweep's interpolation
         got = m.free_pole(lam_h)
-        slope = np.interp(lam_h, lam, np.gradient(sweep["h"], lam))
-        lam_h = np.clip(lam_h - (got["h"] - h) / slope, 1.0 + 1e-9, m.lam_hi)
+        if prev is None:
+            slope = np.interp(lam_h, lam, np.gradient(sweep["h"], lam))
+        else:
+            dl = lam_h - prev
+            slope = np.where(np.abs(dl) > 1e-15, (got["h"] - h_prev) / np.where(dl == 0, 1, dl), 1.0)
+        prev, h_prev = lam_h, got["h"]
+        step = np.where(np.abs(got["h"] - h) > 1e-13 * m.r1, (got["h"] - h) / slope, 0.0)
+        lam_h = np.clip(lam_h - step, 1.0 + 1e-12, m.lam_hi)
+        if np.max(np.abs(got["h"] - h)) < 1e-12 * m.r1:
+            break
     got = m.free_pole(lam_h)
     return {"p": got["p"], "V": got["V"], "U": got["U"], "lam0": lam_h, "h_err": got["h"] - h}
 
