@@ -16,7 +16,7 @@ from scipy.optimize import brentq
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.materials import MATERIALS, make_material
-from hbma_ctrl.models.exact import ExactMembrane, biaxial_energy, tabulate
+from hbma_ctrl.models.exact import ExactMembrane, biaxial_energy, equilibrium, tabulate
 
 R1, T0 = 7.5e-3, 3e-3
 
@@ -238,3 +238,15 @@ def test_bad_heights_and_pressures_raise_one_error_naming_the_argument(nh):
         nh.free(30e-3)
     with pytest.raises(ValueError, match="p = -1 kPa"):
         nh.contact(2e-3, -1e3)
+
+
+def test_equilibrium_helper_adds_the_dead_volume_and_reports_the_contact_radius():
+    mat = make_material("nh")
+    free = equilibrium(mat, R1, T0, 4e-3, V0=3e-6)
+    assert free["F"] == 0.0 and free["contact_radius"] == 0.0
+    assert free["V"] == pytest.approx(ExactMembrane(mat, R1, T0).free(4e-3)["V"] + 3e-6, rel=1e-12)
+    plate = equilibrium(mat, R1, T0, 3e-3, p=free["p"])
+    assert plate["F"] == pytest.approx(free["p"] * np.pi * plate["contact_radius"] ** 2, rel=1e-12)
+    assert 0 < plate["contact_radius"] < R1
+    with pytest.raises(ValueError, match="V0 = -1 cm"):
+        equilibrium(mat, R1, T0, 3e-3, V0=-1e-6)

@@ -63,7 +63,7 @@ from scipy.optimize import brentq
 from hbma_ctrl.core.codegen import cache_dir, compiled
 from hbma_ctrl.core.materials import Gent, Material, MooneyRivlin, NeoHookean, Ogden, Yeoh
 
-__all__ = ["ExactMembrane", "biaxial_energy", "tabulate", "CONTACTS", "table_cache_dir"]
+__all__ = ["ExactMembrane", "biaxial_energy", "equilibrium", "tabulate", "CONTACTS", "table_cache_dir"]
 
 #: contact types at the membrane's centre: a loose flat plate or a disk glued at the centre
 CONTACTS = ("flat", "bonded")
@@ -271,9 +271,9 @@ class ExactMembrane:
                         np.zeros_like(lam0), np.pi * w * x0**2])
         return s0, x0
 
-    def _result(self, P, traj, extra_V=0.0) -> dict:
+    def _result(self, P, traj) -> dict:
         s = traj[:_STATE]
-        return {"p": P * self._pscale, "h": -s[3] * self.r1, "V": (s[4] + extra_V) * self.r1**3,
+        return {"p": P * self._pscale, "h": -s[3] * self.r1, "V": s[4] * self.r1**3,
                 "U": s[5] * self.mu * self.t0 * self.r1**2}
 
     # ------------------------------------------------------------------------------ free inflation
@@ -462,6 +462,26 @@ class ExactMembrane:
         out.update(F=out["p"] * np.pi * self.c**2 - 2 * np.pi * self.c * T1 * np.sin(phic), a_contact=self.c,
                    l1c=l1c, phi_c=float(phic), T1=float(T1), h=h)
         return out
+
+
+def equilibrium(material: Material, r1: float, t0: float, h: float, p: float | None = None, contact: str = "flat",
+                c: float = 0.0, V0: float = 0.0) -> dict:
+    """One exact equilibrium, SI in and out (the CLI's ``equilibrium --fidelity exact``).
+
+    Free inflation when ``p`` is None (h: apex height, m); otherwise the centre held at height h (m)
+    at gauge pressure p (Pa) by a flat plate (contact 'flat') or a bonded disk of radius c (m).
+    Returns p (Pa), F (N), stretch (-: the pole's, the plate's, or the meridian's at the disk's edge),
+    V (m^3, gas volume including the dead volume V0), contact_radius (m).
+    """
+    if not (np.isfinite(V0) and V0 >= 0):
+        raise ValueError(f"V0 = {V0 * 1e6:g} cm^3: must be >= 0 cm^3")
+    m = ExactMembrane(material, r1, t0, contact, c)
+    if p is None:
+        r = m.free(h)
+        return {"p": r["p"], "F": 0.0, "stretch": r["lam0"], "V": r["V"] + V0, "contact_radius": 0.0}
+    r = m.contact(h, p)
+    return {"p": r["p"], "F": r["F"], "stretch": r.get("lam0", r.get("l1c")), "V": r["V"] + V0,
+            "contact_radius": r["a_contact"]}
 
 
 # ---------------------------------------------------------------------------------------- tables
