@@ -72,6 +72,7 @@ _N_UNIFORM = 160  # uniform steps (mesh study: the error falls 4x per doubling; 
 _STATE = 6
 _L1_MIN = 0.2  # a meridional stretch below this means the march folded: treated as over-curled
 #: dimensionless pressures P = p r1 / (mu t0) scanned to bracket the clamp's crossing
+_INNER_SCAN = 24  # stretches scanned to bracket the clamp's crossing at a contact edge
 _P_SCAN = np.concatenate([[0.0], np.geomspace(1e-3, 200.0, 47)])
 
 
@@ -155,7 +156,10 @@ def _march(material: Material, n_uniform: int) -> tuple[ca.Function, np.ndarray]
     traj = ca.Function("shoot", [s0, xs, Ps], [out])
     # what a root search needs, without copying the whole march back: the end state, the smallest radius
     # and meridional stretch met on the way, and a sum that is NaN where the march broke down
-    summary = ca.vertcat(out[:, -1], ca.mmin(out[1, :]), ca.mmin(out[0, :]), ca.sum2(ca.sum1(out[:4, :])))
+    # and the smallest meridional and hoop tensions (w1, w2): a negative one is a slack (wrinkled) membrane
+    _, w1n, w2n, _, _ = d.map(n)(out[0, :], out[1, :] / (xk + hk))
+    summary = ca.vertcat(out[:, -1], ca.mmin(out[1, :]), ca.mmin(out[0, :]), ca.sum2(ca.sum1(out[:4, :])),
+                         ca.mmin(w1n), ca.mmin(w2n))
     return ca.Function("shoot_end", [s0, xs, Ps], [summary]), traj, u
 
 
@@ -208,8 +212,9 @@ class ExactMembrane:
         return tuple(np.asarray(o).ravel() for o in out)
 
     def _shoot(self, s0: np.ndarray, x0: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """Summaries (9, B) of the marches from starts s0 (6, B) at x0 (B,) with pressures P (B,): rows
-        0-5 the state at the clamp, 6 the smallest rho, 7 the smallest l1, 8 NaN where the march broke."""
+        """Summaries (11, B) of the marches from starts s0 (6, B) at x0 (B,) with pressures P (B,): rows
+        0-5 the state at the clamp, 6 the smallest rho, 7 the smallest l1, 8 NaN where the march broke,
+        9 and 10 the smallest meridional and hoop tension (w1, w2)."""
         B = s0.shape[1]
         fun = _mapped(self.material, self.n_steps, B)
         return np.asarray(fun(s0, x0[None, :], P[None, :]))
@@ -381,45 +386,80 @@ class ExactMembrane:
             return self._flat(h, P)
         return self._bonded(h, P)
 
-    def _inner(self, make, outer: np.ndarray, lo: float, hi: float, P: float, iters: int = 50):
+    def _inner(self, make, outer: np.ndarray, lo: float, hi: float, P: float, branch: int = 0, iters: int = 50):
         """For each outer value, the inner unknown in [lo, hi] that meets the clamp (rho(r1) = r1).
 
-        ``make(outer, inner, P)`` shoots from the contact edge; rho(r1) grows with the inner stretch, and a
-        march that breaks down counts as too short. Returns (inner, trajectories), inner NaN where even
-        ``hi`` falls short.
+        ``make(outer, inner, P)`` shoots from the contact edge. rho(r1) first grows with the inner
+        stretch (a march that breaks down counts as too short), and above the free limit-point pressure
+        falls again: ``branch`` 0 takes the first root of a scan (the rising one), 1 the second.
+        Returns (inner, summaries), inner NaN where that root does not exist in [lo, hi].
         """
-        B = outer.size
+        B, K = outer.size, _INNER_SCAN
+        grid = lo + (hi - lo) * np.linspace(0.0, 1.0, K) ** 2  # denser near lo, where solutions crowd
+        miss = self._clamp_miss(make(np.repeat(outer, K), np.tile(grid, B), np.full(B * K, P))).reshape(B, K)
+        pos = miss > 0
         a, b = np.full(B, lo), np.full(B, hi)
+        ok = np.zeros(B, dtype=bool)
+        for n in range(B):
+            change = np.flatnonzero(pos[n, 1:] != pos[n, :-1])
+            if change.size > branch:
+                k = change[branch]
+                a[n], b[n], ok[n] = grid[k], grid[k + 1], True
+        sign_a = self._clamp_miss(make(outer, a, np.full(B, P))) > 0
         Pv = np.full(B, P)
-        ok = self._clamp_miss(make(outer, b, Pv)) > 0
         for _ in range(iters):
             mid = 0.5 * (a + b)
-            pos = self._clamp_miss(make(outer, mid, Pv)) > 0
-            a, b = np.where(pos, a, mid), np.where(pos, mid, b)
+            same = (self._clamp_miss(make(outer, mid, Pv)) > 0) == sign_a
+            a, b = np.where(same, mid, a), np.where(same, b, mid)
         inner = np.where(ok, 0.5 * (a + b), np.nan)
         return inner, make(outer, np.where(ok, inner, hi), Pv)
 
-    def _edge_solve(self, make, grid: np.ndarray, lo: float, hi: float, P: float, x: float, rising: bool):
-        """(outer, inner) with the clamp met and the centre at height x (dimensionless).
+    def _edge_solve(self, make, grid: np.ndarray, lo: float, hi: float, P: float, x: float):
+        """(outer, inner, summary) with the clamp met and the centre at height x (dimensionless), or None.
 
-        The apex-to-clamp drop is monotone in the outer unknown along ``grid`` (rising or falling): a scan
-        brackets the first crossing, Brent's method refines it (each step one vectorised inner bisection).
+        On each branch of the inner root the apex-to-clamp drop varies monotonically along ``grid``: a
+        scan brackets the first crossing of x (lower branch first), Brent's method refines it (each
+        step one vectorised inner solve).
         """
-        inner, tr = self._inner(make, grid, lo, hi, P)
-        drop = np.where(np.isfinite(inner), -tr[3], np.nan)
-        sgn = 1.0 if rising else -1.0
-        g = sgn * (drop - x)
-        k = np.flatnonzero(np.isfinite(g[:-1]) & np.isfinite(g[1:]) & (g[:-1] < 0) & (g[1:] >= 0))
-        if k.size == 0:
+        for branch in (0, 1):
+            inner, tr = self._inner(make, grid, lo, hi, P, branch)
+            for i, j in self._crossings(inner, tr, x):
+                got = self._refine(make, grid[i], grid[j], lo, hi, P, x, branch)
+                if got is not None:
+                    return got
+        return None
+
+    @staticmethod
+    def _crossings(inner: np.ndarray, tr: np.ndarray, x: float) -> list[tuple[int, int]]:
+        """Pairs (i, j) of successive valid outer values between which the drop minus x changes sign.
+
+        Valid: the inner root exists and the membrane is taut (a slack meridian or hoop, negative
+        tension, is outside membrane theory); invalid values in between are skipped.
+        """
+        taut = (tr[9] > 0) & (tr[10] >= 0)
+        g = np.where(np.isfinite(inner) & taut, -tr[3] - x, np.nan)
+        idx = np.flatnonzero(np.isfinite(g))
+        return [(int(i), int(j)) for i, j in zip(idx[:-1], idx[1:]) if np.sign(g[i]) != np.sign(g[j])]
+
+    def _refine(self, make, a: float, b: float, lo: float, hi: float, P: float, x: float, branch: int):
+        """Narrow a bracket [a, b] of the outer unknown by nested 9-point sweeps (one vectorised inner solve
+        each; they skip outer values whose inner root is missing, where Brent's method would stop)."""
+        o = 0.5 * (a + b)
+        for _ in range(40):
+            sub = np.linspace(a, b, 9)
+            inner, tr = self._inner(make, sub, lo, hi, P, branch)
+            pairs = self._crossings(inner, tr, x)
+            if not pairs:
+                return None
+            i, j = pairs[0]
+            g0, g1 = -tr[3, i] - x, -tr[3, j] - x
+            a, b = sub[i], sub[j]
+            o = a - g0 * (b - a) / (g1 - g0)  # linear interpolation inside the last bracket
+            if b - a < 1e-13:
+                break
+        i, t = self._inner(make, np.array([o]), lo, hi, P, branch)
+        if not (np.isfinite(i[0]) and abs(-t[3, 0] - x) < 1e-9 and t[9, 0] > 0 and t[10, 0] >= 0):
             return None
-        k = int(k[0])
-
-        def f(o):
-            i, t = self._inner(make, np.array([o]), lo, hi, P)
-            return sgn * (-t[3, 0] - x) if np.isfinite(i[0]) else np.nan
-
-        o = brentq(f, grid[k], grid[k + 1], xtol=1e-13, rtol=1e-13)
-        i, t = self._inner(make, np.array([o]), lo, hi, P)
         return o, float(i[0]), t
 
     def _flat(self, h: float, P: float) -> dict:
@@ -430,9 +470,9 @@ class ExactMembrane:
         def make(xc, lam0, Pv):
             return self._plate_shoot(lam0, xc, Pv)
 
-        # the drop falls as the contact radius grows (the plate pushes the membrane down)
-        grid = np.concatenate([[1e-6], np.linspace(0.02, 0.98, 25)])
-        got = self._edge_solve(make, grid, 1.0 + 1e-9, self.lam_hi, P, x, rising=False)
+        # dense at small contact radii, where the solution turns from one stretch branch to the other
+        grid = np.concatenate([[1e-6], 0.98 * np.linspace(0.1, 1.0, 30) ** 2])
+        got = self._edge_solve(make, grid, 1.0 + 1e-9, self.lam_hi, P, x)
         if got is None:
             raise ValueError(f"h = {h * 1e3:g} mm: at p = {P * self._pscale * 1e-3:g} kPa the plate does not touch "
                              f"the membrane (or the contact lies beyond pole stretch {self.lam_hi:g}); the free apex "
@@ -449,9 +489,9 @@ class ExactMembrane:
         def make(phic, l1c, Pv):
             return self._disk_shoot(l1c, phic, Pv)
 
-        # the drop grows with the meridian's slope at the disk's edge
-        grid = np.linspace(-2.0, 1.5, 36)
-        got = self._edge_solve(make, grid, 1.0 + 1e-6, self.lam_hi, P, x, rising=True)
+        # the meridian leaves the disk's edge between straight up and straight down
+        grid = np.linspace(-1.5, 1.5, 31)
+        got = self._edge_solve(make, grid, 1.0 + 1e-6, self.lam_hi, P, x)
         if got is None:
             raise ValueError(f"h = {h * 1e3:g} mm, p = {P * self._pscale * 1e-3:g} kPa: no bonded equilibrium with "
                              f"the meridian's stretch in (1, {self.lam_hi:g}]")
