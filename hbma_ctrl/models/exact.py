@@ -159,7 +159,7 @@ def _march(material: Material, n_uniform: int) -> tuple[ca.Function, np.ndarray]
     # and the smallest meridional and hoop tensions (w1, w2): a negative one is a slack (wrinkled) membrane
     _, w1n, w2n, _, _ = d.map(n)(out[0, :], out[1, :] / (xk + hk))
     summary = ca.vertcat(out[:, -1], ca.mmin(out[1, :]), ca.mmin(out[0, :]), ca.sum2(ca.sum1(out[:4, :])),
-                         ca.mmin(w1n), ca.mmin(w2n))
+                         ca.mmin(w1n), ca.mmin(w2n), ca.mmax(ca.fabs(out[2, :])))
     return ca.Function("shoot_end", [s0, xs, Ps], [summary]), traj, u
 
 
@@ -214,7 +214,7 @@ class ExactMembrane:
     def _shoot(self, s0: np.ndarray, x0: np.ndarray, P: np.ndarray) -> np.ndarray:
         """Summaries (11, B) of the marches from starts s0 (6, B) at x0 (B,) with pressures P (B,): rows
         0-5 the state at the clamp, 6 the smallest rho, 7 the smallest l1, 8 NaN where the march broke,
-        9 and 10 the smallest meridional and hoop tension (w1, w2)."""
+        9 and 10 the smallest meridional and hoop tension (w1, w2), 11 the largest |phi|."""
         B = s0.shape[1]
         fun = _mapped(self.material, self.n_steps, B)
         return np.asarray(fun(s0, x0[None, :], P[None, :]))
@@ -226,7 +226,9 @@ class ExactMembrane:
 
     def _clamp_miss(self, end: np.ndarray) -> np.ndarray:
         """rho(r1)/r1 - 1, or -1 where the meridian curled back to the axis or the march broke down."""
-        bad = ~np.isfinite(end[8]) | (end[6] <= 0) | (end[7] <= _L1_MIN)
+        # a meridian turning past the vertical the other way (|phi| > pi) has curled up on itself: near
+        # an edge with almost no tension the march does that before it can come back to the clamp
+        bad = ~np.isfinite(end[8]) | (end[6] <= 0) | (end[7] <= _L1_MIN) | (end[11] > np.pi)
         return np.where(bad, -1.0, end[1] - 1.0)
 
     def _bisect_P(self, make_start, B: int, iters: int = 80) -> tuple[np.ndarray, np.ndarray]:
