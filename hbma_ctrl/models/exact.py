@@ -388,7 +388,7 @@ class ExactMembrane:
             return self._flat(h, P)
         return self._bonded(h, P)
 
-    def _inner(self, make, outer: np.ndarray, lo: float, hi: float, P: float, branch: int = 0, iters: int = 50):
+    def _inner(self, make, outer: np.ndarray, lo: float, hi: float, P: float, branch: int = 0, iters: int = 60):
         """For each outer value, the inner unknown in [lo, hi] that meets the clamp (rho(r1) = r1).
 
         ``make(outer, inner, P)`` shoots from the contact edge. rho(r1) first grows with the inner
@@ -407,12 +407,23 @@ class ExactMembrane:
             if change.size > branch:
                 k = change[branch]
                 a[n], b[n], ok[n] = grid[k], grid[k + 1], True
-        sign_a = self._clamp_miss(make(outer, a, np.full(B, P))) > 0
         Pv = np.full(B, P)
+        fa, fb = self._clamp_miss(make(outer, a, Pv)), self._clamp_miss(make(outer, b, Pv))
+        side = np.zeros(B)
         for _ in range(iters):
-            mid = 0.5 * (a + b)
-            same = (self._clamp_miss(make(outer, mid, Pv)) > 0) == sign_a
+            # Illinois regula falsi while both ends are genuine values, bisection next to a broken march
+            flagged = (fa <= -1.0) | (fb <= -1.0)
+            rf = b - fb * (b - a) / np.where(fb != fa, fb - fa, 1.0)
+            mid = np.where(flagged, 0.5 * (a + b), np.clip(rf, np.minimum(a, b), np.maximum(a, b)))
+            f = self._clamp_miss(make(outer, mid, Pv))
+            same = (f > 0) == (fa > 0)  # the new point replaces the end of its sign
+            fb = np.where(~same, f, np.where(side > 0, 0.5 * fb, fb))
+            fa = np.where(same, f, np.where(side < 0, 0.5 * fa, fa))
+            side = np.where(same, 1.0, -1.0)
             a, b = np.where(same, mid, a), np.where(same, b, mid)
+            if np.all(~ok | (np.abs(f) < 1e-14) | (np.abs(b - a) < 1e-14)):
+                a = b = mid
+                break
         inner = np.where(ok, 0.5 * (a + b), np.nan)
         return inner, make(outer, np.where(ok, inner, hi), Pv)
 
@@ -443,6 +454,22 @@ class ExactMembrane:
         idx = np.flatnonzero(np.isfinite(g))
         return [(int(i), int(j)) for i, j in zip(idx[:-1], idx[1:]) if np.sign(g[i]) != np.sign(g[j])]
 
+    def _brent(self, make, a: float, b: float, lo: float, hi: float, P: float, x: float, branch: int):
+        """Brent's method on the outer unknown in [a, b]; None where an inner root is missing."""
+        class _Missing(Exception):
+            pass
+
+        def f(o):
+            i, t = self._inner(make, np.array([o]), lo, hi, P, branch)
+            if not (np.isfinite(i[0]) and t[9, 0] > 0 and t[10, 0] >= 0):
+                raise _Missing
+            return -t[3, 0] - x
+
+        try:
+            return brentq(f, a, b, xtol=1e-14, rtol=1e-13)
+        except (_Missing, ValueError):
+            return None
+
     def _refine(self, make, a: float, b: float, lo: float, hi: float, P: float, x: float, branch: int):
         """Narrow a bracket [a, b] of the outer unknown by nested 9-point sweeps (one vectorised inner solve
         each; they skip outer values whose inner root is missing, where Brent's method would stop)."""
@@ -459,6 +486,13 @@ class ExactMembrane:
             o = a - g0 * (b - a) / (g1 - g0)  # linear interpolation inside the last bracket
             if b - a < 1e-13:
                 break
+            if b - a < 1e-3 * (abs(a) + abs(b) + 1e-3):
+                # narrow and valid at both ends: Brent's method converges in a few steps (sweeps resume
+                # if it meets an outer value without an inner root)
+                o_b = self._brent(make, a, b, lo, hi, P, x, branch)
+                if o_b is not None:
+                    o = o_b
+                    break
         i, t = self._inner(make, np.array([o]), lo, hi, P, branch)
         if not (np.isfinite(i[0]) and abs(-t[3, 0] - x) < 1e-9 and t[9, 0] > 0 and t[10, 0] >= 0):
             return None
