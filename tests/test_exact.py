@@ -250,3 +250,11 @@ def test_equilibrium_helper_adds_the_dead_volume_and_reports_the_contact_radius(
     assert 0 < plate["contact_radius"] < R1
     with pytest.raises(ValueError, match="V0 = -1 cm"):
         equilibrium(mat, R1, T0, 3e-3, V0=-1e-6)
+
+
+def test_free_profile_runs_from_the_apex_to_the_clamp(nh):
+    r = nh.free(6e-3, profile=True)
+    assert r["r"][0] == pytest.approx(0.0, abs=1e-8) and r["r"][-1] == pytest.approx(R1, rel=1e-9)
+    assert r["z"][0] == pytest.approx(6e-3, rel=1e-9) and r["z"][-1] == 0.0
+    assert np.all(np.diff(r["z"]) < 0)  # a dome: the height falls from the apex to the clamp
+    assert r["l2"][-1] == pytest.approx(1.0, abs=1e-9) and r["l1"][0] == pytest.approx(r["lam0"], rel=1e-9)

@@ -43,9 +43,9 @@ Boundary conditions and the three problems:
 
 Integration: classical RK4 on a fixed mesh, graded geometrically near the start (where the 1/R terms
 are stiff) and uniform after; the whole march is one casadi Function (``mapaccum``), mapped over a
-batch of starts, so a bisection solves many points at once. The mesh study in the tests bounds the
-discretisation error. The pressure is the limit-point pressure's branch parameter: free inflation is
-parametrised by lam0 (monotone in the apex height through the limit point).
+batch of starts, so one root search solves many points at once. The mesh study in the tests bounds
+the discretisation error. Free inflation is parametrised by the pole stretch lam0, which (unlike the
+pressure) grows monotonically with the apex height through the limit point.
 """
 
 from __future__ import annotations
@@ -223,6 +223,11 @@ class ExactMembrane:
         """The whole march (6, nodes) of one start s0 (6,) at x0 with pressure P."""
         traj = np.asarray(_march(self.material, self.n_steps)[1](s0, x0, P))
         return np.concatenate([np.asarray(s0, dtype=float).reshape(_STATE, 1), traj], axis=1)
+
+    def _nodes(self, x0: np.ndarray) -> np.ndarray:
+        """Mesh nodes (nodes, B), dimensionless radius, of marches starting at x0 (B,)."""
+        u = _march(self.material, self.n_steps)[2]
+        return x0[None, :] + (1 - x0[None, :]) * u[:, None]
 
     def _clamp_miss(self, end: np.ndarray) -> np.ndarray:
         """rho(r1)/r1 - 1, or -1 where the meridian curled back to the axis or the march broke down."""
