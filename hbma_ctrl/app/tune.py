@@ -404,7 +404,8 @@ class _TrialFailed(RuntimeError):
 
 def run_worker(spec: TuneSpec, n_trials: int, callback: Callable[[], None] | None = None) -> None:
     """Run ``n_trials`` trials of the study in this process (a worker of ``--workers``)."""
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    # a failed trial is counted in the report and its reason kept in the trial's user attrs
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
     if not spec.data:
         spec.data = tomllib.loads(_text(spec.scenario))
@@ -468,6 +469,9 @@ def write_outputs(out: Path, study: optuna.Study, spec: TuneSpec, test_seeds: li
     (out / "tune.json").write_text(json.dumps(info, indent=1) + "\n")
     if best is not None:
         data = apply_params(spec.data, spec.role, best.params)
+        csv = data.get("pneumatics", {}).get("compressor_csv")
+        if isinstance(csv, str) and not Path(csv).is_absolute():  # tuned.toml lives elsewhere: keep the file
+            data["pneumatics"]["compressor_csv"] = str((spec.scenario.parent / csv).resolve())
         head = (f"# [{spec.role}] tuned by hbma-ctrl tune on {now}: study '{spec.study}' in {spec.storage},\n"
                 f"# trial {best.number} of {len(study.trials)}, objective {spec.objective}, train seeds "
                 f"{_ranges(spec.train_seeds)}"
