@@ -49,12 +49,14 @@ __all__ = [
     "ROLES",
     "TUNE_KEYS",
     "Dim",
+    "RunDiverged",
     "TuneSpec",
     "apply_params",
     "default_params",
     "fail_orphans",
     "make_space",
     "make_storage",
+    "mean_score",
     "objective_value",
     "open_study",
     "parse_seeds",
@@ -115,7 +117,8 @@ class Dim:
 class TuneSpec:
     """What one worker needs: ``scenario`` path, ``role``, ``objective`` ("role.key"), ``space``
     (list of :class:`Dim`), ``train_seeds`` (rig seeds), ``duration_s`` override (None: the file's),
-    ``storage`` URL, ``study`` name, ``seed`` of the sampler, ``n_startup`` random trials."""
+    ``storage`` URL, ``study`` name, ``seed`` of the sampler, ``n_startup`` random trials, ``data``
+    the scenario's TOML data (read from ``scenario`` when empty)."""
 
     scenario: Path
     role: str
