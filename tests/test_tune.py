@@ -177,6 +177,20 @@ def test_bad_flags_are_one_line_exit_2(scn, tmp_path, args, needles):
     assert not (tmp_path / "bad").exists() and not Path(f"{tmp_path / 'bad'}.study.db").exists()
 
 
+def test_journal_storage_url_holds_a_study(tmp_path):
+    storage = T.make_storage(f"journal:{tmp_path / 'j.log'}")
+    st = optuna.create_study(storage=storage, study_name="j")
+    st.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    again = optuna.load_study(study_name="j", storage=T.make_storage(f"journal:{tmp_path / 'j.log'}"))
+    assert len(again.trials) == 2
+
+
+def test_bad_storage_url_is_one_line_exit_2(scn, tmp_path):
+    _one_line_error(_tune(scn, *FAST, "--trials", "1", "--storage", "nosuchdb://x", "--out", tmp_path / "s"),
+                    "--storage nosuchdb://x")
+    assert not (tmp_path / "s").exists()
+
+
 def test_space_uses_declared_bounds_and_log_scale():
     data = {"controller": {"kind": "mpc", "targets_mm": [[0, 2]]}}
     dims = {d.name: d for d in T.make_space(data, "controller")}

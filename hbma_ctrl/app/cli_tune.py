@@ -39,6 +39,7 @@ from hbma_ctrl.app.tune import (
     default_params,
     fail_orphans,
     make_space,
+    make_storage,
     mean_score,
     open_study,
     parse_seeds,
@@ -122,6 +123,7 @@ def tune_cmd(
     url = storage or f"sqlite:///{out_abs.parent / (out_abs.name + '.study.db')}"
     resume = _same_study(out_dir, study_name, url)
     check_out(out_dir, overwrite or resume)
+    make_storage(url)  # a bad URL or a missing driver: an input error before any work
     n_start = max(3, min(10, trials // 3))
     spec = TuneSpec(scenario=scenario, role=role, objective=obj, space=space, train_seeds=train,
                     duration_s=duration_s, storage=url, study=study_name, seed=seed, n_startup=n_start, data=data)
