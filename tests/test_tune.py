@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import tomllib
@@ -175,6 +174,13 @@ def test_bad_flags_are_one_line_exit_2(scn, tmp_path, args, needles):
     base = ["--role", "estimator", "--trials", "2", "--out", str(tmp_path / "bad")]
     _one_line_error(_tune(scn, *base, *args), *needles)
     assert not (tmp_path / "bad").exists() and not Path(f"{tmp_path / 'bad'}.study.db").exists()
+
+
+def test_objective_missing_from_the_metrics_names_the_keys_there():
+    m = {"controller": {"height_rmse_mm": 1.0, "kind": "pid", "fallbacks": 0}}
+    with pytest.raises(ValueError, match=r"--objective controller.solve_ms_median: .*controller.height_rmse_mm, "
+                                         r"controller.fallbacks$"):
+        T.objective_value(m, "controller.solve_ms_median")
 
 
 def test_journal_storage_url_holds_a_study(tmp_path):
