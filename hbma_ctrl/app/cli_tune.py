@@ -66,8 +66,8 @@ def _shares(n: int, k: int) -> list[int]:
 
 
 def tune_cmd(
-    scenario: Annotated[Path, typer.Argument(help="scenario TOML file with a [rig] and the role's table")],
-    role: Annotated[str, typer.Option("--role", help="estimator | controller")] = "controller",
+    scenario: Annotated[Path, typer.Argument(help="scenario TOML file with a rig table and the role's table")],
+    role: Annotated[str, typer.Option("--role", help="estimator | controller (required)")],
     trials: Annotated[int, typer.Option("--trials", help="trials to add to the study in this run")] = 20,
     objective: Annotated[Optional[str], typer.Option(
         "--objective", help="metrics.json key of the role to minimise (default controller.height_rmse_mm "
