@@ -62,11 +62,12 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.runtime.calibrate import CalibrationSettings, StartupCalibration
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
 
-__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "run_scene", "plot_closed_loop"]
+__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "run_scene", "plot_closed_loop"]
 
 def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
                     model: PredictionModel | None = None):
@@ -101,6 +102,7 @@ class ClosedLoopLog:
     est_step_s: np.ndarray | None = None  # estimator wall time per step, s
     solve_ms: np.ndarray | None = None  # controller step times the runtime kept (ms, oldest first)
     supervisor_events: list = field(default_factory=list)  # the supervisor's interventions
+    calibration: dict | None = None  # the start-up calibration's outcome (see calibration_summary)
 
 
 def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
@@ -113,7 +115,7 @@ def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
 
 def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                 duration: float, rig_settings=None, estimator=None, controller=None,
-                model: PredictionModel | None = None) -> ClosedLoopLog:
+                model: PredictionModel | None = None, calibrate: bool = False) -> ClosedLoopLog:
     """Run rig -> :class:`ChamberLoop` (estimator -> controller -> supervisor) -> rig for ``duration`` s
     and log it.
 
@@ -122,6 +124,11 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     of rig periods). ``estimator`` defaults to the EKF on the nominal model, ``controller`` to the
     one the section names. An estimator with an ``attach(rig)`` method is handed the rig first
     (test oracles that read the true state).
+
+    ``calibrate``: before the loop closes, run the :class:`StartupCalibration` on the rig (pump
+    pulse, hold, vent; never above the controller's p_max) and hand its factors to the estimator
+    as its prior (when it has the factor states). The log starts when the loop closes (t = 0);
+    ``log.calibration`` holds the outcome.
     """
 
     check_range("closed_loop", "duration", duration, 0.0, 1e5, "s", lo_open=True)
@@ -152,6 +159,14 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
                        reference=section.reference, every=every, preview_steps=preview_n,
                        preview_period=section.sample_period, stats_capacity=n // every + 1)
     t_wall = time.perf_counter()
+    cal = None
+    if calibrate:
+        cal = _calibrate(actuator, pneumatics, platform, section, rs, rig, est)
+        # the estimator carries on from the calibration: its clock is the rig's, the loop's starts at 0
+        est = _Shifted(est, rig.t)
+        loop.estimator = est
+        loop.command = cal.command
+    t_cal = rig.t
     for k in range(n):
         t = k * rs.sample_period
         while loads and loads[0][0] <= t + 1e-9:
@@ -176,9 +191,57 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
             est_s[k] = est.last_step_s
         rig.apply(cmd)
     wall = time.perf_counter() - t_wall
-    return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(), events=list(rig.events), wall_s=wall,
-                         nees=nees, nis=nis, est_step_s=est_s, solve_ms=loop.solve_ms.values(),
-                         supervisor_events=loop.events())
+    return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(), events=[(te - t_cal, name) for te, name in rig.events],
+                         wall_s=wall, nees=nees, nis=nis, est_step_s=est_s, solve_ms=loop.solve_ms.values(),
+                         supervisor_events=loop.events(),
+                         calibration=None if cal is None else calibration_summary(cal, t_cal))
+
+
+class _Shifted:
+    """An estimator whose clock runs ``offset`` s ahead of the caller's (the loop's t = 0 is when it
+    closes, after the calibration); every other attribute is the estimator's own."""
+
+    def __init__(self, estimator, offset: float):
+        self._est, self._offset = estimator, float(offset)
+
+    def step(self, t: float, measurement, applied):
+        """The wrapped estimator's step at t + offset (s)."""
+        return self._est.step(t + self._offset, measurement, applied)
+
+    def __getattr__(self, name):
+        return getattr(self._est, name)
+
+
+def _calibrate(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
+               rs: RigSettings, rig: Rig, estimator) -> StartupCalibration:
+    """Run the start-up calibration on the rig until it is done (the rig's clock advances); the
+    estimator tracks it and gets the factors as its prior."""
+    cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
+                             sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
+                             sensor_range=rs.sensor_range)
+    cal = StartupCalibration(actuator, pneumatics, cs, platform,
+                             estimator=estimator if hasattr(estimator, "state_names") else None)
+    done, k = False, 0
+    while not done:
+        cmd, done = cal.tick(k * rs.sample_period, rig.measure())
+        rig.apply(cmd)
+        k += 1
+    return cal
+
+
+def calibration_summary(cal: StartupCalibration, duration: float) -> dict:
+    """The calibration's outcome in edge units: status, duration_s, peak_kpa, and when it fitted the
+    factors flow_factor, modulus_factor, dead_volume_factor with their one-sigma *_std and the
+    residual RMS (kPa)."""
+    out: dict = {"status": cal.status, "duration_s": float(duration)}
+    r = cal.result
+    if r is not None:
+        std = r.std
+        out.update({"flow_factor": r.b, "modulus_factor": r.k, "dead_volume_factor": r.c,
+                    "flow_factor_std": float(std[0]), "modulus_factor_std": float(std[1]),
+                    "dead_volume_factor_std": float(std[2]), "residual_rms_kpa": U.to_kpa(r.residual_rms),
+                    "peak_kpa": U.to_kpa(r.p_peak)})
+    return out
 
 
 def _settings_of(section: ControllerSection):
