@@ -31,11 +31,15 @@ bounded to [0.5, 2]; the Jacobian by forward differences, all columns in one bat
 :func:`hand_to_estimator` writes them into an estimator with the factor states ``b, k, c``
 (the EKF, the UKF) as its prior: means replaced, their correlations with the other states cut.
 
-Given an ``estimator``, the calibration steps it at every tick with the command held since the
-last one (so it tracks the gas and the membrane through the excitation: a free membrane is not
-flat again after the final vent, it keeps a ~1 mm cap at a few tens of Pa for seconds, and a
-filter started there as flat takes the cap's rise for a phantom load), and hands it the result
-when done. The loop then continues with that estimator and the calibration's last command.
+Given an ``estimator`` (one that has not stepped yet), the calibration runs it over the whole
+excitation when done: first reading, the fitted factors handed over, every later reading with the
+command held before it, the factors handed over again (the filter's own factor learning on the
+same data would count it twice). So the filter tracks the gas and the membrane through the
+excitation -- a free membrane is not flat again after the final vent, it keeps a ~1 mm cap at a few
+tens of Pa for seconds, and a filter started there as flat takes the cap's rise for a phantom
+load -- and it dates the lift-off with the calibrated factors (with the nominal ones a free
+membrane's lift-off can leave a phantom load of a few hundredths of a newton, 0.4 mm at a 2 mm
+cap). The loop then continues with that estimator and the calibration's last command.
 """
 
 from __future__ import annotations
@@ -167,8 +171,9 @@ class StartupCalibration:
     (Pa, NaN = dropout); the command is held until the next tick. When ``done``, ``result`` holds
     the :class:`CalibrationResult` (None if it failed; ``status`` says why) and the command is the
     vent. ``platform`` = the known load during the calibration (None: no load). ``estimator``
-    (optional, ``step(t, reading_pa, command) -> Estimate``) is stepped at every tick and handed the
-    result at the end (:func:`hand_to_estimator`); ``estimate`` is its latest output.
+    (optional, ``step(t, reading_pa, command) -> Estimate``, not yet stepped) is run over the
+    excitation when it is done, with the result handed over (module doc); ``estimate`` is its last
+    output.
     """
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: CalibrationSettings | None = None,
@@ -188,6 +193,7 @@ class StartupCalibration:
         self._t0: float | None = None  # start of the current phase, s
         self._recent: list = []
         self._peak = -np.inf
+        self._all: list = []  # every tick: (t, reading, command held before it), for the estimator
         self._t: list = []  # fitted samples: times, readings, the commands held before each
         self._z: list = []
         self._u: list = []
@@ -208,8 +214,7 @@ class StartupCalibration:
             self._t0 = float(t)
         if self.phase == "done":
             return _VENT, True
-        if self.estimator is not None:
-            self.estimate = self.estimator.step(t, reading_pa, self.command)
+        self._all.append((float(t), reading_pa, self.command))
         el = t - self._t0
         if self.phase != "vent":
             self._t.append(float(t))
@@ -255,10 +260,20 @@ class StartupCalibration:
             self.status = "ok"
         except (ValueError, FloatingPointError, RuntimeError, np.linalg.LinAlgError) as exc:
             self.status = f"failed: {exc}"
-        if self.result is not None and self.estimator is not None and \
-                all(n in getattr(self.estimator, "state_names", ()) for n in FACTOR_NAMES):
-            hand_to_estimator(self.result, self.estimator)
+        if self.estimator is not None:
+            self._run_estimator()
         return _VENT, True
+
+    def _run_estimator(self) -> None:
+        """The estimator over every tick of the excitation, with the fitted factors (module doc)."""
+        est = self.estimator
+        hand = self.result is not None and all(n in getattr(est, "state_names", ()) for n in FACTOR_NAMES)
+        for i, (t, z, cmd) in enumerate(self._all):
+            self.estimate = est.step(t, z, cmd)
+            if i == 0 and hand:
+                hand_to_estimator(self.result, est)
+        if hand:
+            hand_to_estimator(self.result, est)
 
     # --- the fit ------------------------------------------------------------------------------
     def _simulate(self, factors: np.ndarray) -> np.ndarray:
