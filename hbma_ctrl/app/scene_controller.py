@@ -26,12 +26,16 @@ load_steps_g                [[t_s, mass_g], ...]: set the rig's load to mass_g a
 settle_band_mm              settling band for the step metrics (default 0.3)
 preview                     give the MPC the future targets over its horizon (default: for
                             ramps and sines; steps come unannounced, as an operator's would)
+calibrate                   before the loop closes, a start-up calibration (vent, pump pulse to
+                            min(17 kPa, p_max / 2), hold, vent; about 1.7 s) learns the pump-flow,
+                            modulus and dead-volume factors for the estimator (default true)
 ==========================  ====================================================================
 
 ``run_scene`` writes ``closed_loop.csv`` (edge units) and ``closed_loop.png`` (target, truth and
 estimate of the height; pressure with its limit; the three commands) and returns
 ``{"controller": {...}}`` with height_rmse_mm, max_pressure_kpa, pressure_limit_kpa,
-solve_ms_median/p99/max, fallbacks and the settling results per target step.
+solve_ms_median/p99/max, fallbacks and the settling results per target step, and with the
+calibration on, ``calibration`` (see :func:`calibration_summary`).
 """
 
 from __future__ import annotations
@@ -115,7 +119,7 @@ def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
 
 def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                 duration: float, rig_settings=None, estimator=None, controller=None,
-                model: PredictionModel | None = None, calibrate: bool = False) -> ClosedLoopLog:
+                model: PredictionModel | None = None, calibrate: bool | None = None) -> ClosedLoopLog:
     """Run rig -> :class:`ChamberLoop` (estimator -> controller -> supervisor) -> rig for ``duration`` s
     and log it.
 
@@ -125,10 +129,10 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     one the section names. An estimator with an ``attach(rig)`` method is handed the rig first
     (test oracles that read the true state).
 
-    ``calibrate``: before the loop closes, run the :class:`StartupCalibration` on the rig (pump
-    pulse, hold, vent; never above the controller's p_max) and hand its factors to the estimator
-    as its prior (when it has the factor states). The log starts when the loop closes (t = 0);
-    ``log.calibration`` holds the outcome.
+    ``calibrate`` (None = the section's ``calibrate``, default on): before the loop closes, run the
+    :class:`StartupCalibration` on the rig (pump pulse, hold, vent; never above the controller's
+    p_max) and hand its factors to the estimator as its prior (when it has the factor states).
+    The log starts when the loop closes (t = 0); ``log.calibration`` holds the outcome.
     """
 
     check_range("closed_loop", "duration", duration, 0.0, 1e5, "s", lo_open=True)
@@ -160,7 +164,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
                        preview_period=section.sample_period, stats_capacity=n // every + 1)
     t_wall = time.perf_counter()
     cal = None
-    if calibrate:
+    if section.calibrate if calibrate is None else calibrate:
         cal = _calibrate(actuator, pneumatics, platform, section, rs, rig, est)
         # the estimator carries on from the calibration: its clock is the rig's, the loop's starts at 0
         est = _Shifted(est, rig.t)
@@ -337,6 +341,7 @@ def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
         "settle": settle,
         "settle_estimate": settle_est,
         "wall_s": log.wall_s,
+        "calibration": log.calibration,
     }
 
 
