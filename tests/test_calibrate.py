@@ -141,3 +141,22 @@ def test_estimator_handed_over_tracks_the_excitation_with_the_fitted_factors():
         k += 1
     assert np.allclose(ekf.x[2:5], cal.result.factors)
     assert abs(cal.estimate.h - rig.truth()["h"]) < 0.3e-3
+
+
+def test_loaded_membrane_stays_flat_and_the_modulus_keeps_its_prior():
+    """400 g on r1 12.5 mm lifts at 8.0 kPa: the pulse stops below (0.8 of it), the true height
+    stays 0, the flow and dead-volume factors are learnt (within 3 sigma of the rig's), the
+    modulus keeps its prior (1, sigma 0.15: the flat membrane says nothing about it)."""
+    rs = RigSettings(seed=0)
+    rig = Rig(ACT, PN, Platform(load=0.4), rs)
+    cal = StartupCalibration(ACT, PN, CalibrationSettings(), Platform(load=0.4))
+    assert cal.p_stop == pytest.approx(0.8 * 0.4 * 9.80665 / (np.pi * ACT.r1 ** 2))
+    done, h_max = False, 0.0
+    while not done:
+        cmd, done = cal.tick(rig.t, rig.measure())
+        rig.apply(cmd)
+        h_max = max(h_max, rig.truth()["h"])
+    r = cal.result
+    assert h_max == 0.0
+    assert abs(r.b - 0.9) < 3 * r.std[0] and abs(r.c - 1.2) < 3 * r.std[2]
+    assert r.k == pytest.approx(1.0, abs=1e-3) and r.std[1] == pytest.approx(0.15, rel=0.02)
