@@ -160,3 +160,12 @@ def test_loaded_membrane_stays_flat_and_the_modulus_keeps_its_prior():
     assert h_max == 0.0
     assert abs(r.b - 0.9) < 3 * r.std[0] and abs(r.c - 1.2) < 3 * r.std[2]
     assert r.k == pytest.approx(1.0, abs=1e-3) and r.std[1] == pytest.approx(0.15, rel=0.02)
+
+
+def test_tick_refuses_a_time_that_does_not_advance():
+    cal = StartupCalibration(ACT, PN)
+    cal.tick(0.0, 0.0)
+    with pytest.raises(ValueError, match="after the last tick"):
+        cal.tick(0.0, 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        cal.tick(float("nan"), 0.0)

@@ -219,9 +219,14 @@ class StartupCalibration:
         self.phase, self._t0 = phase, t
 
     def tick(self, t: float, reading_pa: float) -> tuple[Command, bool]:
-        """One sample: the command to hold from t (s) on and whether the calibration is over."""
+        """One sample: the command to hold from t (s) on and whether the calibration is over. The
+        tick that ends it runs the fit (and the estimator over the excitation): about a second of
+        wall time, while the chamber vents."""
         s = self.settings
         z = float(reading_pa)
+        if not np.isfinite(t) or (self._all and t <= self._all[-1][0]):
+            last = self._all[-1][0] if self._all else None
+            raise ValueError(f"calibration.tick: t = {t!r} s must be finite and after the last tick's {last} s")
         if self._t0 is None:
             self._t0 = float(t)
         if self.phase == "done":
