@@ -1,8 +1,10 @@
 """Closed loop on the mismatched rig: rig -> EKF -> controller -> rig (and an oracle estimate to
 separate the controller's share of the error from the estimator's).
 
-Each CI test simulates a few seconds with the fast (RTI) variant, on one rig noise seed; how often
-the cases hold over seeds is ``hbma-ctrl bench loop``. No test asserts a timing.
+Each CI test simulates a few seconds with the fast (RTI) variant, on one rig noise seed or a few
+(seeds 0..k, not chosen); the 0 g claim's pass rate over 20 seeds is a ``slow`` test, how often the
+other cases hold over seeds is ``hbma-ctrl bench loop``. Every loop starts with the start-up
+calibration (the [controller] default). No test asserts a timing.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.scene_controller import (
     closed_loop,
     loop_metrics,
@@ -40,10 +43,10 @@ class OracleFromRig:
         return Estimate(t=t, h1=tr["h1"], h2=tr["h2"], h=tr["h"], F=tr["F"], p=tr["p"])
 
 
-def run(section_raw, load_kg, duration, model, rig=None, oracle=False):
+def run(section_raw, load_kg, duration, model, rig=None, oracle=False, calibrate=None):
     sec = parse_role("controller", section_raw)
     log = closed_loop(ACT, PN, Platform(load=load_kg), sec, duration, rig or RigSettings(seed=3),
-                      estimator=OracleFromRig() if oracle else None, model=model)
+                      estimator=OracleFromRig() if oracle else None, model=model, calibrate=calibrate)
     return sec, log, loop_metrics(log, sec)
 
 
@@ -117,13 +120,52 @@ def test_forced_solver_failure_stays_safe(model):
     assert log.h_est[-1] > 6e-3  # back to tracking after the window
 
 
-@pytest.mark.parametrize("load", [0.0, 0.4])
-def test_ekf_loop_truth_settles_within_0p3mm(model, load):
-    """The issue's criterion on the truth through the EKF: 2 -> 8 -> 5 mm with 0 and 400 g on the
-    mismatched rig settle within 0.3 mm (0 g: the free cap with no phantom load)."""
-    sec, log, m = run({"targets_mm": [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]}, load, 9.0, model)
-    assert m["max_pressure_kpa"] <= 35.0
+CRITERION = {"targets_mm": [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]}
+
+
+def test_ekf_loop_400g_truth_settles_within_0p3mm(model):
+    """The issue's criterion on the truth through the EKF: 2 -> 8 -> 5 mm with 400 g on the
+    mismatched rig settle within 0.3 mm, never above p_max, the calibration included."""
+    sec, log, m = run(CRITERION, 0.4, 9.0, model)
+    assert m["max_pressure_kpa"] <= 35.0 and m["calibration"]["status"] == "ok"
     assert m["steps_settled"] == 3, m["settle"]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_ekf_loop_0g_truth_settles_within_0p3mm_on_seeds_0_to_3(model, seed):
+    """The same with 0 g (the free cap) on rig seeds 0..3 (seed 0 missed the 8 mm step by 0.32 mm
+    without the start-up calibration: the EKF's modulus factor settled at 1.10 for the rig's 1.15)."""
+    sec, log, m = run(CRITERION, 0.0, 9.0, model, rig=RigSettings(seed=seed))
+    assert m["max_pressure_kpa"] <= 35.0
+    assert m["steps_settled"] == 3, (m["settle"], m["calibration"])
+
+
+def test_calibration_learns_the_modulus_the_ekf_alone_misses(model):
+    """Seed 0, 0 g: without the calibration the EKF ends the run with a modulus factor more than
+    0.04 below the rig's 1.15 and the 8 mm step ends outside the band; with it, within 0.03 and
+    settled (the calibration is what makes the difference, not the seed)."""
+    rows = {}
+    for cal in (False, True):
+        sec = parse_role("controller", CRITERION)
+        est = EKF(ACT, PN, EKFSettings(sample_period=0.01, noise_std=200.0, sensor_range=35e3))
+        log = closed_loop(ACT, PN, Platform(load=0.0), sec, 9.0, RigSettings(seed=0), estimator=est, model=model,
+                          calibrate=cal)
+        rows[cal] = (float(est.x[3]), loop_metrics(log, sec)["steps_settled"])
+    assert rows[False][0] < 1.15 - 0.04 and rows[False][1] < 3
+    assert abs(rows[True][0] - 1.15) < 0.03 and rows[True][1] == 3
+
+
+@pytest.mark.slow
+def test_ekf_loop_0g_settles_on_19_of_20_seeds(model):
+    """The README's 0 g claim as a pass rate: 2 -> 8 -> 5 mm through the EKF with the start-up
+    calibration settles within 0.3 mm on at least 19 of rig seeds 0..19 (11 of 20 without it;
+    the one miss is seed 9's 2 mm step, 0.30 mm high on a 0.03 N phantom load)."""
+    passed = []
+    for seed in range(20):
+        sec, log, m = run(CRITERION, 0.0, 9.0, model, rig=RigSettings(seed=seed))
+        assert m["max_pressure_kpa"] <= 35.0
+        passed.append(m["steps_settled"] == 3)
+    assert sum(passed) >= 19, [i for i, ok in enumerate(passed) if not ok]
 
 
 def test_settle_results_detects_unsettled():

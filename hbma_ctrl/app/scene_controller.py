@@ -26,12 +26,16 @@ load_steps_g                [[t_s, mass_g], ...]: set the rig's load to mass_g a
 settle_band_mm              settling band for the step metrics (default 0.3)
 preview                     give the MPC the future targets over its horizon (default: for
                             ramps and sines; steps come unannounced, as an operator's would)
+calibrate                   before the loop closes, a start-up calibration (vent, pump pulse to
+                            min(17 kPa, p_max / 2), hold, vent; about 1.7 s) learns the pump-flow,
+                            modulus and dead-volume factors for the estimator (default true)
 ==========================  ====================================================================
 
 ``run_scene`` writes ``closed_loop.csv`` (edge units) and ``closed_loop.png`` (target, truth and
 estimate of the height; pressure with its limit; the three commands) and returns
 ``{"controller": {...}}`` with height_rmse_mm, max_pressure_kpa, pressure_limit_kpa,
-solve_ms_median/p99/max, fallbacks and the settling results per target step.
+solve_ms_median/p99/max, fallbacks and the settling results per target step, and with the
+calibration on, ``calibration`` (see :func:`calibration_summary`).
 """
 
 from __future__ import annotations
@@ -62,11 +66,12 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
+from hbma_ctrl.runtime.calibrate import CalibrationSettings, StartupCalibration
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
 
-__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "run_scene", "plot_closed_loop"]
+__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "run_scene", "plot_closed_loop"]
 
 def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
                     model: PredictionModel | None = None):
@@ -101,6 +106,7 @@ class ClosedLoopLog:
     est_step_s: np.ndarray | None = None  # estimator wall time per step, s
     solve_ms: np.ndarray | None = None  # controller step times the runtime kept (ms, oldest first)
     supervisor_events: list = field(default_factory=list)  # the supervisor's interventions
+    calibration: dict | None = None  # the start-up calibration's outcome (see calibration_summary)
 
 
 def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
@@ -113,7 +119,7 @@ def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
 
 def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                 duration: float, rig_settings=None, estimator=None, controller=None,
-                model: PredictionModel | None = None) -> ClosedLoopLog:
+                model: PredictionModel | None = None, calibrate: bool | None = None) -> ClosedLoopLog:
     """Run rig -> :class:`ChamberLoop` (estimator -> controller -> supervisor) -> rig for ``duration`` s
     and log it.
 
@@ -122,6 +128,11 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     of rig periods). ``estimator`` defaults to the EKF on the nominal model, ``controller`` to the
     one the section names. An estimator with an ``attach(rig)`` method is handed the rig first
     (test oracles that read the true state).
+
+    ``calibrate`` (None = the section's ``calibrate``, default on): before the loop closes, run the
+    :class:`StartupCalibration` on the rig (pump pulse, hold, vent; never above the controller's
+    p_max) and hand its factors to the estimator as its prior (when it has the factor states).
+    The log starts when the loop closes (t = 0); ``log.calibration`` holds the outcome.
     """
 
     check_range("closed_loop", "duration", duration, 0.0, 1e5, "s", lo_open=True)
@@ -152,6 +163,14 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
                        reference=section.reference, every=every, preview_steps=preview_n,
                        preview_period=section.sample_period, stats_capacity=n // every + 1)
     t_wall = time.perf_counter()
+    cal = None
+    if section.calibrate if calibrate is None else calibrate:
+        cal = _calibrate(actuator, pneumatics, platform, section, rs, rig, est)
+        # the estimator carries on from the calibration: its clock is the rig's, the loop's starts at 0
+        est = _Shifted(est, rig.t)
+        loop.estimator = est
+        loop.command = cal.command
+    t_cal = rig.t
     for k in range(n):
         t = k * rs.sample_period
         while loads and loads[0][0] <= t + 1e-9:
@@ -176,9 +195,57 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
             est_s[k] = est.last_step_s
         rig.apply(cmd)
     wall = time.perf_counter() - t_wall
-    return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(), events=list(rig.events), wall_s=wall,
-                         nees=nees, nis=nis, est_step_s=est_s, solve_ms=loop.solve_ms.values(),
-                         supervisor_events=loop.events())
+    return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(), events=[(te - t_cal, name) for te, name in rig.events],
+                         wall_s=wall, nees=nees, nis=nis, est_step_s=est_s, solve_ms=loop.solve_ms.values(),
+                         supervisor_events=loop.events(),
+                         calibration=None if cal is None else calibration_summary(cal, t_cal))
+
+
+class _Shifted:
+    """An estimator whose clock runs ``offset`` s ahead of the caller's (the loop's t = 0 is when it
+    closes, after the calibration); every other attribute is the estimator's own."""
+
+    def __init__(self, estimator, offset: float):
+        self._est, self._offset = estimator, float(offset)
+
+    def step(self, t: float, measurement, applied):
+        """The wrapped estimator's step at t + offset (s)."""
+        return self._est.step(t + self._offset, measurement, applied)
+
+    def __getattr__(self, name):
+        return getattr(self._est, name)
+
+
+def _calibrate(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
+               rs: RigSettings, rig: Rig, estimator) -> StartupCalibration:
+    """Run the start-up calibration on the rig until it is done (the rig's clock advances); the
+    estimator tracks it and gets the factors as its prior."""
+    cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
+                             sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
+                             sensor_range=rs.sensor_range)
+    cal = StartupCalibration(actuator, pneumatics, cs, platform,
+                             estimator=estimator if hasattr(estimator, "state_names") else None)
+    done, k = False, 0
+    while not done:
+        cmd, done = cal.tick(k * rs.sample_period, rig.measure())
+        rig.apply(cmd)
+        k += 1
+    return cal
+
+
+def calibration_summary(cal: StartupCalibration, duration: float) -> dict:
+    """The calibration's outcome in edge units: status, duration_s, peak_kpa, and when it fitted the
+    factors flow_factor, modulus_factor, dead_volume_factor with their one-sigma *_std and the
+    residual RMS (kPa)."""
+    out: dict = {"status": cal.status, "duration_s": float(duration)}
+    r = cal.result
+    if r is not None:
+        std = r.std
+        out.update({"flow_factor": r.b, "modulus_factor": r.k, "dead_volume_factor": r.c,
+                    "flow_factor_std": float(std[0]), "modulus_factor_std": float(std[1]),
+                    "dead_volume_factor_std": float(std[2]), "residual_rms_kpa": U.to_kpa(r.residual_rms),
+                    "peak_kpa": U.to_kpa(r.p_peak)})
+    return out
 
 
 def _settings_of(section: ControllerSection):
@@ -274,6 +341,7 @@ def loop_metrics(log: ClosedLoopLog, section: ControllerSection) -> dict:
         "settle": settle,
         "settle_estimate": settle_est,
         "wall_s": log.wall_s,
+        "calibration": log.calibration,
     }
 
 

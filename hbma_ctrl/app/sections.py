@@ -133,6 +133,7 @@ class ControllerSection:
     load_steps : ((t s, load mass kg), ...) put on the rig during the run.
     preview : pass the future targets to the MPC; None = only for ramps and sines.
     settle_band : band for the settling report, m (0.3 mm).
+    calibrate : run the start-up calibration before the loop closes (:mod:`hbma_ctrl.runtime.calibrate`).
     """
 
     kind: str = "mpc"
@@ -143,6 +144,8 @@ class ControllerSection:
     load_steps: tuple = ()  # ((t_s, mass_kg), ...)
     preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
     settle_band: float = 0.3e-3
+    # out of the repr: tests/test_schema.py compares reprs with those of the parsers this schema replaced
+    calibrate: bool = field(default=True, repr=False)
 
     @property
     def sample_period(self) -> float:

@@ -86,6 +86,8 @@ class ControllerTable(Table):
     load_steps_g: LoadSteps = shaped(None, "rig load from t_s on", LOAD_STEPS_SHAPE, default_factory=list)
     settle_band_mm: float = num(0.3, 0.0, 50.0, "mm", "settling band of the step metrics", lo_open=True)
     preview: bool | None = flag(None, "give the MPC the future targets; default: for ramps and sines")
+    calibrate: bool = flag(True, "before the loop closes, learn the pump-flow, modulus and dead-volume "
+                                 "factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
 
     @model_validator(mode="after")
     def _cross(self) -> ControllerTable:
@@ -140,7 +142,7 @@ class ControllerTable(Table):
             return ControllerSection(kind=self.kind, mpc=MPCSettings(**mpc).validate(),
                                      pid=PIDSettings(**pid).validate(), bang_bang=BangBangSettings(**bb).validate(),
                                      reference=reference, load_steps=tuple(sorted(load_steps_si(self.load_steps_g))),
-                                     preview=self.preview, **sec)
+                                     preview=self.preview, calibrate=self.calibrate, **sec)
         except ValueError as exc:  # a bound the table could not state (kept as a last guard)
             raise ValueError(f"[controller] {exc}") from None
 

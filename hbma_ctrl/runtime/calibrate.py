@@ -1,0 +1,367 @@
+"""Start-up calibration of one chamber before its loop closes: learn the pump-flow, modulus and
+dead-volume factors from a short known excitation (SI, no I/O).
+
+Why: the estimator starts from the nominal model and learns the factors from whatever the closed
+loop happens to excite. In free inflation the three trade off (a weaker pump, a larger dead volume
+and a softer membrane all slow the pressure rise), so on some noise seeds the filter settles on a
+modulus 5-10 % low and reports the cap 0.3-0.6 mm higher than it is (the 0 g step to 8 mm then
+ends outside its 0.3 mm band on 9 of 20 seeds). A known excitation separates them: the pump pulse
+into the closed chamber gives the flow over the chamber's compliance, the vent through the known
+outlet the compliance alone (dead volume plus, for a lifted membrane, the cap's, which the modulus
+sets) as a function of pressure.
+
+The excitation (:class:`StartupCalibration`, ``tick(t, reading_pa) -> (command, done)``):
+
+1. ``vent``: outlet open until the readings average within ``rest_tol`` of zero (at least
+   ``vent_min``, at most ``vent_max``: still pressurised then = the calibration fails, ``status``
+   says why);
+2. ``pump``: compressor at ``speed``, inlet open, outlet closed, until a reading exceeds
+   ``p_stop`` or ``pump_max`` elapsed; a missing reading stops it at once (no pumping blind);
+3. ``hold``: everything closed for ``hold`` s (the pressure settles on the chamber's compliance);
+4. ``vent``: outlet open for ``vent_end`` s; the loop then starts from (nearly) ambient.
+
+``p_stop`` is checked against every reading, so the pressure never goes more than one sample's rise
+above it whatever the membrane's modulus (``p_stop`` must be below ``p_max``). With a load on the
+membrane the pulse stops at ``LOADED_STOP`` of the load's lift-off pressure (``W / (pi r1^2)``): the
+membrane stays flat, where the model's pressure is the gas law alone and the rig's platform
+dynamics (its mass and damping, which the fit's quasi-static model lacks) play no part -- lifted,
+they biased the fit (modulus factor 1.10 +- 0.01 for the rig's 1.15 at 400 g). Flat, the modulus is
+not observable: its prior comes back unchanged and the estimator learns it in the loop.
+
+The fit: the readings from the pump's start on are compared with the model's pressure (the
+simulator's ``free`` fidelity, or ``quasi_static`` with the known load) for the commands sent, and
+``(b, k, c)`` minimise the normalised residuals plus the prior (``scipy.optimize.least_squares``,
+bounded to [0.5, 2]; the Jacobian by forward differences, all columns in one batched simulation).
+``result`` holds the factors, their covariance (the Gauss-Newton posterior) and the residual RMS.
+:func:`hand_to_estimator` writes them into an estimator with the factor states ``b, k, c``
+(the EKF, the UKF) as its prior: means replaced, their correlations with the other states cut.
+
+Given an ``estimator`` (one that has not stepped yet), the calibration runs it over the whole
+excitation when done: first reading, the fitted factors handed over, every later reading with the
+command held before it, the factors handed over again (the filter's own factor learning on the
+same data would count it twice). So the filter tracks the gas and the membrane through the
+excitation -- a free membrane is not flat again after the final vent, it keeps a ~1 mm cap at a few
+tens of Pa for seconds, and a filter started there as flat takes the cap's rise for a phantom
+load -- and it dates the lift-off with the calibrated factors (with the nominal ones a free
+membrane's lift-off can leave a phantom load of a few hundredths of a newton, 0.4 mm at a 2 mm
+cap). The loop then continues with that estimator and the calibration's last command.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.models.fidelity import make_fidelity
+from hbma_ctrl.sim.simulate import Plant
+from hbma_ctrl.sim.trial import DEFAULT_DT
+
+__all__ = ["CalibrationSettings", "CalibrationResult", "StartupCalibration", "hand_to_estimator",
+           "FACTOR_NAMES"]
+
+#: the learnt factors, in the estimator's state names: pump flow, modulus, dead volume
+FACTOR_NAMES = ("b", "k", "c")
+_BOUNDS = (0.5, 2.0)  # the estimator's own factor range: off by more is a broken rig
+_FD_STEP = 0.01
+#: with a load on, the pump stops at this fraction of the load's lift-off pressure (stays flat)
+LOADED_STOP = 0.8
+#: the pump stops when a reading falls this many sensor sigmas below the pulse's peak
+LIMIT_FALL_SIGMAS = 5.0
+_VENT = Command(0.0, 0.0, 1.0)
+_HOLD = Command(0.0, 0.0, 0.0)
+
+
+@dataclass
+class CalibrationSettings:
+    """The excitation and the fit (SI).
+
+    Fields
+    ------
+    p_max : the pressure limit the calibration must respect, Pa (the controller's).
+    p_stop : the pump stops at the first reading above this, Pa, (0, p_max).
+    speed : compressor speed during the pulse, (0, 1].
+    pump_max : longest pump pulse, s, (0, 5].
+    hold : all valves closed after the pulse, s, [0, 5].
+    vent_min, vent_max : the first vent lasts at least / at most this long, s.
+    vent_end : the final vent, s, [0, 5].
+    vent_duty : outlet duty of the final vent, (0, 1] (a slower vent samples the low pressures more).
+    rest_tol : the first vent ends when the mean of the last ``rest_samples`` readings is within
+        this of zero, Pa.
+    rest_samples : readings averaged for the rest check, >= 1.
+    sample_period : the reading and command period, s (the rig's).
+    noise_std : the sensor's one sigma, Pa (weights the residuals).
+    sensor_range : readings at or above this are saturated and not fitted, Pa.
+    prior_std : one sigma of the prior on (b, k, c) around 1 (the estimator's initial spreads).
+    """
+
+    p_max: float = 35e3
+    p_stop: float = 17e3
+    speed: float = 1.0
+    pump_max: float = 1.0
+    hold: float = 0.1
+    vent_min: float = 0.1
+    vent_max: float = 2.0
+    vent_end: float = 0.5
+    vent_duty: float = 1.0
+    rest_tol: float = 500.0
+    rest_samples: int = 5
+    sample_period: float = 0.01
+    noise_std: float = 200.0
+    sensor_range: float = 35e3
+    prior_std: tuple = (0.15, 0.15, 0.2)
+
+    def validate(self) -> "CalibrationSettings":
+        """Check the ranges; returns self."""
+        w = "calibration"
+        check_range(w, "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
+        check_range(w, "p_stop", self.p_stop, 0.0, self.p_max, "Pa", lo_open=True)
+        if self.p_stop >= self.p_max:
+            raise ValueError(f"calibration.p_stop = {self.p_stop!r} must be below p_max = {self.p_max!r} Pa")
+        check_range(w, "speed", self.speed, 0.0, 1.0, lo_open=True)
+        check_range(w, "pump_max", self.pump_max, 0.0, 5.0, "s", lo_open=True)
+        check_range(w, "hold", self.hold, 0.0, 5.0, "s")
+        check_range(w, "vent_min", self.vent_min, 0.0, 5.0, "s")
+        check_range(w, "vent_max", self.vent_max, self.vent_min, 30.0, "s")
+        check_range(w, "vent_end", self.vent_end, 0.0, 5.0, "s")
+        check_range(w, "vent_duty", self.vent_duty, 0.0, 1.0, lo_open=True)
+        check_range(w, "rest_tol", self.rest_tol, 0.0, 1e5, "Pa", lo_open=True)
+        if not isinstance(self.rest_samples, int) or self.rest_samples < 1:
+            raise ValueError(f"calibration.rest_samples = {self.rest_samples!r} must be an integer >= 1")
+        check_range(w, "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
+        check_range(w, "noise_std", self.noise_std, 0.0, 1e4, "Pa", lo_open=True)
+        check_range(w, "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
+        if len(self.prior_std) != 3:
+            raise ValueError("calibration.prior_std must hold three sigmas (b, k, c)")
+        for name, v in zip(FACTOR_NAMES, self.prior_std):
+            check_range(w, f"prior_std[{name}]", v, 0.0, 10.0, lo_open=True)
+        return self
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What the calibration learnt: factors (-), their covariance (3 x 3, order ``FACTOR_NAMES``),
+    the RMS of the fit's residuals (Pa), the number of readings fitted and the peak reading (Pa)."""
+
+    b: float
+    k: float
+    c: float
+    cov: np.ndarray
+    residual_rms: float
+    n_readings: int
+    p_peak: float
+
+    @property
+    def factors(self) -> np.ndarray:
+        """(b, k, c) as an array."""
+        return np.array([self.b, self.k, self.c])
+
+    @property
+    def std(self) -> np.ndarray:
+        """One sigma of (b, k, c)."""
+        return np.sqrt(np.diag(self.cov))
+
+
+def _scaled(actuator: Actuator, pneumatics: Pneumatics, b: float, k: float, c: float):
+    """The actuator and pneumatics with pump flow x b, every modulus x k and dead volume x c."""
+    return (replace(actuator, material=actuator.material.scaled(k), V0=actuator.V0 * c),
+            replace(pneumatics, flow_scale=pneumatics.flow_scale * b))
+
+
+class StartupCalibration:
+    """The start-up excitation and fit of one chamber (see module doc).
+
+    ``tick(t, reading_pa) -> (command, done)``: one sample at time t (s) with the pressure reading
+    (Pa, NaN = dropout); the command is held until the next tick. When ``done``, ``result`` holds
+    the :class:`CalibrationResult` (None if it failed; ``status`` says why) and the command is the
+    vent. ``platform`` = the known load during the calibration (None: no load; with a load the
+    pulse stops below its lift-off pressure, ``p_stop`` the pressure it stops at). ``estimator``
+    (optional, ``step(t, reading_pa, command) -> Estimate``, not yet stepped) is run over the
+    excitation when it is done, with the result handed over (module doc); ``estimate`` is its last
+    output.
+    """
+
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: CalibrationSettings | None = None,
+                 platform: Platform | None = None, estimator=None):
+        self.settings = (settings or CalibrationSettings()).validate()
+        actuator.validate()
+        pneumatics.validate()
+        self.actuator, self.pneumatics = actuator, pneumatics
+        self.platform = platform or Platform(load=0.0)
+        self.platform.validate()
+        self.p_stop = self.settings.p_stop
+        if self.platform.mass > 0:
+            p_lift = self.platform.mass * self.platform.g / (np.pi * actuator.r1 ** 2)
+            self.p_stop = min(self.p_stop, LOADED_STOP * p_lift)
+        self.phase = "vent"
+        self.status = "running"
+        self.result: CalibrationResult | None = None
+        self.command = _VENT
+        self.estimator = estimator
+        self.estimate = None
+        self._t0: float | None = None  # start of the current phase, s
+        self._recent: list = []
+        self._peak = -np.inf
+        self._all: list = []  # every tick: (t, reading, command held before it), for the estimator
+        self._t: list = []  # fitted samples: times, readings, the commands held before each
+        self._z: list = []
+        self._u: list = []
+
+    @property
+    def done(self) -> bool:
+        """True once the excitation has ended (fitted or failed)."""
+        return self.phase == "done"
+
+    def _enter(self, phase: str, t: float) -> None:
+        self.phase, self._t0 = phase, t
+
+    def tick(self, t: float, reading_pa: float) -> tuple[Command, bool]:
+        """One sample: the command to hold from t (s) on and whether the calibration is over. The
+        tick that ends it runs the fit (and the estimator over the excitation): about a second of
+        wall time, while the chamber vents."""
+        s = self.settings
+        z = float(reading_pa)
+        if not np.isfinite(t) or (self._all and t <= self._all[-1][0]):
+            last = self._all[-1][0] if self._all else None
+            raise ValueError(f"calibration.tick: t = {t!r} s must be finite and after the last tick's {last} s")
+        if self._t0 is None:
+            self._t0 = float(t)
+        if self.phase == "done":
+            return _VENT, True
+        self._all.append((float(t), reading_pa, self.command))
+        el = t - self._t0
+        if self.phase != "vent":
+            self._t.append(float(t))
+            self._z.append(z)
+            self._u.append(self.command.as_array())
+        if self.phase == "vent":
+            if np.isfinite(z):
+                self._recent = (self._recent + [z])[-s.rest_samples:]
+            rested = len(self._recent) == s.rest_samples and abs(np.mean(self._recent)) < s.rest_tol
+            if el + 1e-9 >= s.vent_min and rested:
+                self._enter("pump", t)
+                self._t, self._z, self._u = [float(t)], [z], [_VENT.as_array()]
+                self.command = Command(s.speed, 1.0, 0.0)
+            elif el + 1e-9 >= s.vent_max:
+                return self._finish("failed: the chamber did not vent to ambient")
+        elif self.phase == "pump":
+            # stop on the first reading above p_stop, a missing one (no pumping blind), a fall of
+            # LIMIT_FALL_SIGMAS sensor sigmas below the peak (past the membrane's pressure maximum
+            # the pressure drops while the cap runs away) or time
+            self._peak = max(self._peak, z) if np.isfinite(z) else self._peak
+            fell = np.isfinite(z) and z < self._peak - LIMIT_FALL_SIGMAS * s.noise_std
+            if not np.isfinite(z) or z > self.p_stop or fell or el + 1e-9 >= s.pump_max:
+                self._enter("hold", t)
+                self.command = _HOLD
+        elif self.phase == "hold":
+            if np.isfinite(z) and z > s.p_max:
+                return self._finish("failed: pressure above p_max while holding")
+            if el + 1e-9 >= s.hold:
+                self._enter("vent_end", t)
+                self.command = Command(0.0, 0.0, s.vent_duty)
+        elif self.phase == "vent_end" and el + 1e-9 >= s.vent_end:
+            return self._finish(None)
+        return self.command, False
+
+    def _finish(self, failure: str | None) -> tuple[Command, bool]:
+        self.phase = "done"
+        self.command = _VENT
+        if failure is not None:
+            self.status = failure
+            return _VENT, True
+        try:
+            self.result = self._fit()
+            self.status = "ok"
+        except (ValueError, FloatingPointError, RuntimeError, np.linalg.LinAlgError) as exc:
+            self.status = f"failed: {exc}"
+        if self.estimator is not None:
+            self._run_estimator()
+        return _VENT, True
+
+    def _run_estimator(self) -> None:
+        """The estimator over every tick of the excitation, with the fitted factors (module doc)."""
+        est = self.estimator
+        hand = self.result is not None and all(n in getattr(est, "state_names", ()) for n in FACTOR_NAMES)
+        for i, (t, z, cmd) in enumerate(self._all):
+            self.estimate = est.step(t, z, cmd)
+            if i == 0 and hand:
+                hand_to_estimator(self.result, est)
+        if hand:
+            hand_to_estimator(self.result, est)
+
+    # --- the fit ------------------------------------------------------------------------------
+    def _simulate(self, factors: np.ndarray) -> np.ndarray:
+        """Model pressure (Pa) at the fitted samples for each column of factors (3 x n)."""
+        fname = "free" if self.platform.mass <= 0 else "quasi_static"
+        fid = make_fidelity(fname, self.actuator.material, str(self.pneumatics.csv_path))
+        thetas = np.column_stack([fid.space.values(*_scaled(self.actuator, self.pneumatics, *f), self.platform)
+                                  for f in factors.T])
+        dt_int = DEFAULT_DT[("rk4", fid.name)]
+        period = self.settings.sample_period
+        nsub = max(1, int(np.ceil(period / dt_int - 1e-9)))
+        plant = Plant(fid, thetas, "rk4", period / nsub)
+        n = thetas.shape[1]
+        p = np.zeros((len(self._t), n))
+        p[0] = plant.output("p")
+        for i in range(1, len(self._t)):
+            plant.advance(np.repeat(self._u[i][:, None], n, axis=1), self._t[i] - self._t[i - 1])
+            if not np.all(plant.alive):
+                raise RuntimeError("the model diverged for a trial factor")
+            p[i] = plant.output("p")
+        return p
+
+    def _fit(self) -> CalibrationResult:
+        s = self.settings
+        z = np.array(self._z)
+        use = np.isfinite(z) & (z < s.sensor_range)
+        if use.sum() < 10:
+            raise ValueError(f"only {int(use.sum())} readings to fit")
+        prior = np.asarray(s.prior_std, dtype=float)
+        cache: dict = {}
+
+        def sim(x):
+            key = tuple(np.round(x, 12))
+            if key not in cache:
+                cols = np.column_stack([x] + [x + _FD_STEP * e for e in np.eye(3)])
+                p = self._simulate(cols)
+                r = (z[use] - p[use, 0]) / s.noise_std
+                J = -(p[use, 1:] - p[use, :1]) / (_FD_STEP * s.noise_std)
+                cache.clear()
+                cache[key] = (r, J)
+            return cache[key]
+
+        def fun(x):
+            return np.concatenate([sim(x)[0], (x - 1.0) / prior])
+
+        def jac(x):
+            return np.vstack([sim(x)[1], np.diag(1.0 / prior)])
+
+        sol = least_squares(fun, np.ones(3), jac=jac, bounds=_BOUNDS, x_scale=prior, max_nfev=20)
+        r, J = sim(sol.x)
+        info = J.T @ J + np.diag(1.0 / prior ** 2)
+        cov = np.linalg.inv(info)
+        cov = 0.5 * (cov + cov.T)
+        return CalibrationResult(b=float(sol.x[0]), k=float(sol.x[1]), c=float(sol.x[2]), cov=cov,
+                                 residual_rms=float(np.sqrt(np.mean(r ** 2)) * s.noise_std),
+                                 n_readings=int(use.sum()), p_peak=float(np.nanmax(z)))
+
+
+def hand_to_estimator(result: CalibrationResult, estimator, t: float | None = None) -> None:
+    """Make the calibration the estimator's prior on its factor states ``b, k, c``: means set,
+    variances from ``result.cov``, their correlations with the other states cut (the calibration
+    is independent of what the filter saw). The estimator must have stepped at least once and
+    expose ``state_names``, ``x``, ``P``, ``s``, ``resting`` and ``reset`` (the EKF, the UKF)."""
+    names = tuple(getattr(estimator, "state_names", ()))
+    if not all(n in names for n in FACTOR_NAMES) or getattr(estimator, "x", None) is None:
+        raise ValueError("hand_to_estimator: the estimator has no factor states b, k, c, or has not started")
+    idx = [names.index(n) for n in FACTOR_NAMES]
+    x = np.array(estimator.x, dtype=float)
+    P = np.array(estimator.P, dtype=float)
+    x[idx] = result.factors
+    P[idx, :] = 0.0
+    P[:, idx] = 0.0
+    P[np.ix_(idx, idx)] = result.cov
+    estimator.reset(estimator.t if t is None else t, x, P, shape=estimator.s, resting=estimator.resting)

@@ -1,0 +1,171 @@
+"""Start-up calibration (hbma_ctrl.runtime.calibrate): the excitation's safety stops, the fit against
+the rig's known mismatch, and the hand-over to the EKF. No timing asserted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators.ekf import EKF, EKFSettings
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.runtime.calibrate import (
+    CalibrationResult,
+    CalibrationSettings,
+    StartupCalibration,
+    hand_to_estimator,
+)
+from hbma_ctrl.sim.rig import Rig, RigSettings
+
+ACT, PN = Actuator(), Pneumatics()
+
+
+def run_on_rig(rs: RigSettings, load_kg: float = 0.0, settings: CalibrationSettings | None = None,
+               estimator=None):
+    """The calibration against a rig until done: (calibration, peak true pressure Pa, ticks)."""
+    rig = Rig(ACT, PN, Platform(load=load_kg), rs)
+    cal = StartupCalibration(ACT, PN, settings or CalibrationSettings(sample_period=rs.sample_period),
+                             Platform(load=load_kg), estimator=estimator)
+    done, k, p_peak = False, 0, 0.0
+    while not done:
+        cmd, done = cal.tick(k * rs.sample_period, rig.measure())
+        rig.apply(cmd)
+        p_peak = max(p_peak, rig.truth()["p"])
+        k += 1
+        assert k < 1000  # it ends by itself
+    return cal, p_peak, k
+
+
+@pytest.fixture(scope="module")
+def free_cal():
+    return run_on_rig(RigSettings(seed=0))
+
+
+def test_learns_the_rigs_flow_modulus_and_dead_volume_factors(free_cal):
+    """0 g rig (pump x0.9, modulus x1.15, dead volume x1.2): each factor within three of its
+    reported sigmas of the rig's, flow and modulus also within 0.02 and 0.03 (what a 0.3 mm band
+    at 8 mm needs), in under 2 s of rig time."""
+    cal, _, ticks = free_cal
+    r = cal.result
+    assert cal.status == "ok" and r is not None
+    truth = np.array([0.9, 1.15, 1.2])
+    assert np.all(np.abs(r.factors - truth) < 3 * r.std), (r.factors, r.std)
+    assert abs(r.b - 0.9) < 0.02 and abs(r.k - 1.15) < 0.03
+    assert ticks * 0.01 < 2.0
+    assert r.residual_rms < 1.5 * 200.0  # the fit explains the readings down to the sensor noise
+
+
+def test_pump_stops_at_p_stop_below_p_max_on_a_soft_strong_rig():
+    """A softer membrane on a stronger pump than the model (modulus x0.6, flow x1.5): the true
+    pressure stays within one sample's rise of p_stop, below p_max."""
+    s = CalibrationSettings(p_max=20e3, p_stop=10e3)
+    cal, p_peak, _ = run_on_rig(RigSettings(seed=1, modulus_scale=0.6, flow_scale=1.5), settings=s)
+    assert p_peak < 11e3 < s.p_max
+    assert cal.done
+
+
+def test_missing_reading_stops_the_pump():
+    """A dropout during the pulse: the next command has the pump off."""
+    cal = StartupCalibration(ACT, PN, CalibrationSettings(vent_min=0.0, rest_samples=1))
+    cmd, _ = cal.tick(0.0, 0.0)
+    assert cmd.speed > 0 and cmd.outlet == 0.0  # rested at once: pumping
+    cmd, _ = cal.tick(0.01, 500.0)
+    assert cmd.speed > 0
+    cmd, done = cal.tick(0.02, float("nan"))
+    assert cmd.speed == 0.0 and not done
+
+
+def test_pressure_falling_while_pumping_stops_the_pump():
+    """Past the membrane's pressure maximum the pressure falls while the cap runs away: a reading
+    1.5 kPa below the pulse's peak (over 5 sensor sigmas) stops the pump."""
+    cal = StartupCalibration(ACT, PN, CalibrationSettings(vent_min=0.0, rest_samples=1, noise_std=200.0))
+    cal.tick(0.0, 0.0)
+    for i, p in enumerate([2e3, 5e3, 8e3, 8.5e3]):
+        cmd, _ = cal.tick(0.01 * (i + 1), p)
+        assert cmd.speed > 0
+    cmd, _ = cal.tick(0.05, 7.0e3)
+    assert cmd.speed == 0.0
+
+
+def test_chamber_that_does_not_vent_fails_with_the_outlet_open():
+    """Readings stuck at 5 kPa: after vent_max the calibration ends, failed, no result, venting."""
+    s = CalibrationSettings(vent_max=0.3)
+    cal = StartupCalibration(ACT, PN, s)
+    for k in range(100):
+        cmd, done = cal.tick(0.01 * k, 5e3)
+        assert cmd.speed == 0.0 and cmd.outlet == 1.0
+        if done:
+            break
+    assert done and k == 30
+    assert cal.result is None and cal.status.startswith("failed") and "vent" in cal.status
+
+
+@pytest.mark.parametrize("kw, key", [({"p_stop": 40e3}, "p_stop"), ({"speed": 0.0}, "speed"),
+                                     ({"vent_max": 0.01, "vent_min": 0.1}, "vent_max"),
+                                     ({"prior_std": (0.1, 0.1)}, "prior_std")])
+def test_bad_settings_name_the_key(kw, key):
+    with pytest.raises(ValueError, match=key):
+        CalibrationSettings(**kw).validate()
+
+
+def test_hand_to_estimator_sets_the_factors_and_cuts_their_correlations():
+    """The EKF's b, k, c become the result's mean and covariance; the gas mass and load keep theirs
+    and are no longer correlated with the factors."""
+    ekf = EKF(ACT, PN, EKFSettings())
+    from hbma_ctrl.core.interfaces import Command
+
+    ekf.step(0.0, 0.0, Command())
+    ekf.step(0.01, 300.0, Command(1.0, 1.0, 0.0))
+    m_before, Pm_before = ekf.x[0], ekf.P[0, 0]
+    cov = np.diag([0.01, 0.02, 0.05]) ** 2
+    cov[1, 2] = cov[2, 1] = 0.5 * 0.02 * 0.05
+    hand_to_estimator(CalibrationResult(b=0.9, k=1.15, c=1.2, cov=cov, residual_rms=200.0, n_readings=100,
+                                        p_peak=17e3), ekf)
+    assert np.allclose(ekf.x[2:5], [0.9, 1.15, 1.2])
+    assert np.allclose(ekf.P[2:5, 2:5], cov, rtol=1e-6, atol=1e-12)
+    assert np.allclose(ekf.P[:2, 2:5], 0.0)
+    assert ekf.x[0] == pytest.approx(m_before) and ekf.P[0, 0] == pytest.approx(Pm_before, rel=1e-6)
+
+
+def test_estimator_handed_over_tracks_the_excitation_with_the_fitted_factors():
+    """Given an EKF, the calibration runs it over the excitation: at the end it holds the fitted
+    factors and its height matches the rig's residual cap within 0.3 mm."""
+    rs = RigSettings(seed=2)
+    ekf = EKF(ACT, PN, EKFSettings(sample_period=rs.sample_period, noise_std=rs.noise_std))
+    rig = Rig(ACT, PN, Platform(), rs)
+    cal = StartupCalibration(ACT, PN, CalibrationSettings(), Platform(), estimator=ekf)
+    done, k = False, 0
+    while not done:
+        cmd, done = cal.tick(k * rs.sample_period, rig.measure())
+        if not done:
+            rig.apply(cmd)
+        k += 1
+    assert np.allclose(ekf.x[2:5], cal.result.factors)
+    assert abs(cal.estimate.h - rig.truth()["h"]) < 0.3e-3
+
+
+def test_loaded_membrane_stays_flat_and_the_modulus_keeps_its_prior():
+    """400 g on r1 12.5 mm lifts at 8.0 kPa: the pulse stops below (0.8 of it), the true height
+    stays 0, the flow and dead-volume factors are learnt (within 3 sigma of the rig's), the
+    modulus keeps its prior (1, sigma 0.15: the flat membrane says nothing about it)."""
+    rs = RigSettings(seed=0)
+    rig = Rig(ACT, PN, Platform(load=0.4), rs)
+    cal = StartupCalibration(ACT, PN, CalibrationSettings(), Platform(load=0.4))
+    assert cal.p_stop == pytest.approx(0.8 * 0.4 * 9.80665 / (np.pi * ACT.r1 ** 2))
+    done, h_max = False, 0.0
+    while not done:
+        cmd, done = cal.tick(rig.t, rig.measure())
+        rig.apply(cmd)
+        h_max = max(h_max, rig.truth()["h"])
+    r = cal.result
+    assert h_max == 0.0
+    assert abs(r.b - 0.9) < 3 * r.std[0] and abs(r.c - 1.2) < 3 * r.std[2]
+    assert r.k == pytest.approx(1.0, abs=1e-3) and r.std[1] == pytest.approx(0.15, rel=0.02)
+
+
+def test_tick_refuses_a_time_that_does_not_advance():
+    cal = StartupCalibration(ACT, PN)
+    cal.tick(0.0, 0.0)
+    with pytest.raises(ValueError, match="after the last tick"):
+        cal.tick(0.0, 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        cal.tick(float("nan"), 0.0)
