@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tomli_w
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from hbma_ctrl.app.scenario import load_scenario
@@ -27,11 +27,13 @@ ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((ROOT / "scenarios").glob("*.toml"))
 DATA = {p.name: tomllib.loads(p.read_text(encoding="utf-8")) for p in SHIPPED}
 
-#: hang guard for one fuzzed example (a forked child); generous: a normal example takes well under 1 s
-HANG_S = 60.0
+#: hang guard for one fuzzed example (a forked child); a normal example takes well under 1 s
+HANG_S = 10.0
 
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                         HealthCheck.function_scoped_fixture])
+#: step-API fuzz: no shrinking (each hang found would cost a guard period per shrink step)
+STEP_FUZZ = settings(deadline=None, phases=[Phase.explicit, Phase.reuse, Phase.generate])
 
 
 # ------------------------------------------------------------------------------------------------ scenario files
@@ -246,12 +248,32 @@ def _t_next(t, dt):
         return dt  # a string time: handed as is
 
 
-def _ekf_sequence(steps):
-    from estimators.ekf import EKF
-    from hbma_ctrl.core.interfaces import Command
-    from hbma_ctrl.core.params import Actuator, Pneumatics
+_PROTO: dict = {}
 
-    f = EKF(Actuator(), Pneumatics())
+
+def _proto(kind: str):
+    """A freshly built step object, built once in this (parent) process: every forked child starts
+    from its own copy of this pristine state."""
+    if kind not in _PROTO:
+        from controllers.baselines import PIDController, PIDSettings
+        from controllers.mpc import NMPC
+        from estimators.ekf import EKF
+        from hbma_ctrl.core.params import Actuator, Pneumatics
+
+        if kind == "ekf":
+            _PROTO[kind] = EKF(Actuator(), Pneumatics())
+        elif kind == "pid":
+            _PROTO[kind] = PIDController(settings=PIDSettings())
+        elif kind == "nmpc":
+            _PROTO[kind] = NMPC(Actuator(), Pneumatics())
+        elif kind == "robot":
+            _PROTO[kind] = _robot_parts()
+    return _PROTO[kind]
+
+
+def _ekf_sequence(f, steps):
+    from hbma_ctrl.core.interfaces import Command
+
     f.step(0.0, 0.0, Command(0.0, 0.0, 0.0))
     t, out = 0.0, []
     for dt, z in steps:
@@ -268,31 +290,16 @@ def _ekf_sequence(steps):
 
 
 @pytest.mark.xfail(strict=False, reason="hardening branch: time-jump bound, outlier gate, argument checks")
-@settings(max_examples=25, deadline=None)
+@settings(STEP_FUZZ, max_examples=25)
 @given(st.lists(st.tuples(T_STEPS, READINGS), min_size=1, max_size=12))
 def test_ekf_step_with_fuzzed_times_and_readings_gives_a_valid_estimate_or_one_error(steps):
-    for dt, z, (kind, info) in _run_guarded(_ekf_sequence, steps):
+    for dt, z, (kind, info) in _run_guarded(_ekf_sequence, _proto("ekf"), steps):
         assert kind != "bad", (dt, z, info)
 
 
-def _pid_sequence(cases):
-    from controllers.baselines import PIDController, PIDSettings
+def _controller_calls(c, cases):
     from hbma_ctrl.core.interfaces import Estimate, Reference
 
-    c = PIDController(settings=PIDSettings())
-    return _controller_calls(c, Estimate, Reference, cases)
-
-
-def _nmpc_sequence(cases):
-    from controllers.mpc import NMPC
-    from hbma_ctrl.core.interfaces import Estimate, Reference
-    from hbma_ctrl.core.params import Actuator, Pneumatics
-
-    c = NMPC(Actuator(), Pneumatics())
-    return _controller_calls(c, Estimate, Reference, cases)
-
-
-def _controller_calls(c, Estimate, Reference, cases):
     t, out = 0.0, []
     for dt, h, p, ref in cases:
         tn = _t_next(t, dt)
@@ -314,28 +321,25 @@ CONTROLLER_CASES = st.lists(st.tuples(T_STEPS, HEIGHTS, READINGS, HEIGHTS), min_
 
 
 @pytest.mark.xfail(strict=False, reason="hardening branch: NaN-reference refusal and argument checks")
-@settings(max_examples=25, deadline=None)
+@settings(STEP_FUZZ, max_examples=25)
 @given(CONTROLLER_CASES)
 def test_pid_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):
-    for *args, (kind, info) in _run_guarded(_pid_sequence, cases):
+    for *args, (kind, info) in _run_guarded(_controller_calls, _proto("pid"), cases):
         assert kind != "bad", (args, info)
 
 
 @pytest.mark.xfail(strict=False, reason="hardening branch: NaN-reference refusal and argument checks")
-@settings(max_examples=15, deadline=None)
+@settings(STEP_FUZZ, max_examples=15)
 @given(CONTROLLER_CASES)
 def test_nmpc_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):
-    for *args, (kind, info) in _run_guarded(_nmpc_sequence, cases):
+    for *args, (kind, info) in _run_guarded(_controller_calls, _proto("nmpc"), cases):
         assert kind != "bad", (args, info)
 
 
-def _chamber_loop_sequence(steps, ref):
-    from controllers.mpc import NMPC
-    from estimators.ekf import EKF
-    from hbma_ctrl.core.params import Actuator, Pneumatics
+def _chamber_loop_sequence(ekf, nmpc, steps, ref):
     from hbma_ctrl.runtime.chamber import ChamberLoop
 
-    loop = ChamberLoop(EKF(Actuator(), Pneumatics()), NMPC(Actuator(), Pneumatics()), reference=lambda t: ref)
+    loop = ChamberLoop(ekf, nmpc, reference=lambda t: ref)
     loop.tick(0.0, 0.0)
     t, out = 0.0, []
     for dt, z in steps:
@@ -349,26 +353,33 @@ def _chamber_loop_sequence(steps, ref):
 
 
 @pytest.mark.xfail(strict=False, reason="hardening branch: time-jump bound, outlier gate, NaN-reference refusal")
-@settings(max_examples=15, deadline=None)
+@settings(STEP_FUZZ, max_examples=15)
 @given(st.lists(st.tuples(T_STEPS, READINGS), min_size=1, max_size=10), HEIGHTS)
 def test_chamber_loop_tick_with_fuzzed_inputs_gives_a_command_in_0_1_or_one_error(steps, ref):
-    for dt, z, (kind, info) in _run_guarded(_chamber_loop_sequence, steps, ref):
+    for dt, z, (kind, info) in _run_guarded(_chamber_loop_sequence, _proto("ekf"), _proto("nmpc"), steps, ref):
         assert kind != "bad", (dt, z, info)
 
 
-def _robot_loop_sequence(steps, ref_mm):
+def _robot_parts():
     from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.robot_closed import make_model
     from hbma_ctrl.core.params import Pneumatics
     from hbma_ctrl.robot.design import RobotDesign
-    from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+    from hbma_ctrl.runtime.robot import robot_supervisor
 
     d = RobotDesign(n_layers=1).validate()
     model = make_model(d, Pneumatics(), "per_chamber")
     bank = ChamberEKFBank(model, 3, ChamberEKFSettings(sample_period=0.01, sensor_range=50e3))
     ms = RobotMPCSettings(sample_period=0.01, p_max=45e3)
-    loop = RobotLoop(d, model, bank, RobotNMPC(model, 3, ms), robot_supervisor(45e3, 3, plan_period=ms.dt),
+    return d, model, bank, RobotNMPC(model, 3, ms), robot_supervisor(45e3, 3, plan_period=ms.dt)
+
+
+def _robot_loop_sequence(parts, steps, ref_mm):
+    from hbma_ctrl.runtime.robot import RobotLoop
+
+    d, model, bank, ctrl, sup = parts
+    loop = RobotLoop(d, model, bank, ctrl, sup,
                      {0: ((0.0, ref_mm * 1e-3 if isinstance(ref_mm, float) else ref_mm, 0.0, 0.0),)})
     t, out = 0.0, []
     for dt, zs in steps:
@@ -384,11 +395,11 @@ def _robot_loop_sequence(steps, ref_mm):
 
 
 @pytest.mark.xfail(strict=False, reason="hardening branch: outlier gate, argument checks")
-@settings(max_examples=8, deadline=None)
+@settings(STEP_FUZZ, max_examples=8)
 @given(st.lists(st.tuples(T_STEPS, st.one_of(st.lists(READINGS, min_size=3, max_size=3),
                                               st.lists(st.floats(0, 40e3), min_size=0, max_size=5))),
                 min_size=1, max_size=8),
        st.one_of(st.floats(0.0, 10.0), st.sampled_from([math.nan, math.inf, -5.0, 1e9])))
 def test_robot_loop_tick_with_fuzzed_inputs_gives_commands_in_0_1_or_one_error(steps, ref_mm):
-    for dt, zs, (kind, info) in _run_guarded(_robot_loop_sequence, steps, ref_mm):
+    for dt, zs, (kind, info) in _run_guarded(_robot_loop_sequence, _proto("robot"), steps, ref_mm):
         assert kind != "bad", (dt, zs, info)
