@@ -55,6 +55,7 @@ No global state: everything lives on the instance.
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -77,6 +78,27 @@ from controllers.mpc_solvers import (
     _RtiOsqp,
     _SolverFailure,
 )
+
+
+def _finite(value) -> bool:
+    try:
+        return not isinstance(value, (str, bytes, bool)) and math.isfinite(float(value))
+    except (TypeError, ValueError):
+        return False
+
+
+def _check_inputs(t, reference, preview) -> None:
+    """ValueError naming ``t``, ``reference.height`` or ``preview[j]`` when not a finite number (a bad
+    input from a live stream is refused, not solved with)."""
+    if not _finite(t):
+        raise ValueError(f"mpc.step: t = {t!r} must be a finite time (s)")
+    h = getattr(reference, "height", reference)
+    if h is not None and not _finite(h):
+        raise ValueError(f"mpc.step: reference.height = {h!r} must be a finite number (m) or None (hold)")
+    if preview is not None:
+        for j, v in enumerate(np.ravel(np.asarray(preview, dtype=object))):
+            if not _finite(v):
+                raise ValueError(f"mpc.step: preview[{j}] = {v!r} must be a finite height (m)")
 
 
 class NMPC:
@@ -176,13 +198,15 @@ class NMPC:
 
     def step(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
         """One control step: the command to hold for the next sample period (never raises on a
-        numerical failure: it reports it in ``last["status"]``, see the module docstring).
+        numerical failure: it reports it in ``last["status"]``, see the module docstring). A bad
+        input (non-finite t, reference height or preview) is a ValueError naming it.
 
         ``preview``: optional targets (m) at t + k * sample_period, k = 1..N (fewer: the last one
         holds); without it the current target holds over the horizon.
         """
         s = self.settings
         t_start = time.perf_counter()
+        _check_inputs(t, reference, preview)
         status = "ok"
         cmd = SAFE_COMMAND.as_array()
         try:

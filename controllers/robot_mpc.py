@@ -26,15 +26,32 @@ Structure (real-time iteration, one QP per control period):
   :mod:`hbma_ctrl.models.bank`). The sparsity pattern is fixed; every period only the values are
   updated (``osqp.update``) and the solver is warm started.
 
-If OSQP does not return a usable solution (status not solved / time limit), ``failed`` is set and
+If OSQP does not return a usable solution (status not solved), ``failed`` is set and
 the step returns zeros (no decision); what is sent then (the last plan, then the safe command) is
 the runtime supervisor's policy (:mod:`hbma_ctrl.runtime`), as are the step timing and the counts.
 ``plan`` (horizon, n, 2) holds the solved supply and outlet sequence of the last usable solve.
+
+Time budget: ``budget`` is a fraction of the control period for the whole step (linearisation and
+QP). OSQP gets what is left of it as its ``time_limit`` at every solve (a QP stopped there is not
+usable: ``failed``, ``overran``). A step that solved but took longer than the budget (the
+linearisation was slow, say) is an overrun too: ``failed`` and ``overran`` are set, the step returns
+zeros, and its solution is offered as ``late_plan``. Why not send a late solution: in the daemon the
+command of a period is due at its deadline, and a step that ate its budget leaves the rest of the
+period (I/O, logging) to chance; the supervisor's replay of the previous plan (one row on) is the
+same trajectory the late solve refines. The late plan becomes the supervisor's plan for the NEXT
+failure (its first row is already missed), and it warm-starts the next solve; the single chamber's
+NMPC (:mod:`controllers.mpc`) does the same. The first step (OSQP's setup) is exempt: a daemon
+steps the controller once before its loop starts.
+
+Inputs are checked: a non-finite state, factor, load, target or bound is a ValueError naming the
+argument and chamber (a bad input is not a solver failure).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import time
 
 import numpy as np
 import osqp
@@ -57,7 +74,10 @@ class RobotMPCSettings:
     w_slack : linear cost per kPa of the (one per chamber) pressure slack: the limit rows are soft so
     that the QP stays feasible when noise or model error puts a chamber at the bound (the hard
     guard is the loop's interlock);
-    max_iter, eps : OSQP settings; time_limit : OSQP time limit, s (0 = none); integrator :
+    max_iter, eps : OSQP settings; budget : wall time of a step (linearisation and QP) as a fraction
+    of sample_period, [0, 10]; 0 = none (see the module doc: an overrun is a failure). Default 0:
+    offline runs (scenes, tests, benchmarks) stay reproducible whatever the machine's load; a
+    real-time loop (the rig daemon) sets it, e.g. 0.7; integrator :
     'euler' (default: one gas-mass step per stage; the flow is smooth over 20 ms and it costs a
     quarter of rk4, which decides the 20 ms budget) or 'rk4'.
     """
@@ -75,7 +95,7 @@ class RobotMPCSettings:
     w_slack: float = 100.0
     max_iter: int = 400
     eps: float = 1e-4
-    time_limit: float = 0.0
+    budget: float = 0.0
     integrator: str = "euler"
 
     def validate(self) -> "RobotMPCSettings":
@@ -90,10 +110,28 @@ class RobotMPCSettings:
         if not isinstance(self.max_iter, int) or self.max_iter < 1:
             raise ValueError(f"robot_mpc.max_iter = {self.max_iter!r} must be an integer >= 1")
         check_range("robot_mpc", "eps", self.eps, 1e-8, 1e-1)
-        check_range("robot_mpc", "time_limit", self.time_limit, 0.0, 10.0, "s")
+        check_range("robot_mpc", "budget", self.budget, 0.0, 10.0)
         if self.integrator not in ("euler", "rk4"):
             raise ValueError(f"robot_mpc.integrator = '{self.integrator}': allowed euler, rk4")
         return self
+
+
+def _has_text(v) -> bool:
+    return any(isinstance(e, (str, bytes)) for e in np.ravel(np.asarray(v, dtype=object)))
+
+
+def _finite(name: str, v, n: int) -> np.ndarray:
+    """v as (n,) floats; ValueError naming the argument and the chamber when not a finite number."""
+    try:
+        if _has_text(v):
+            raise ValueError
+        a = np.asarray(v, dtype=float).reshape(n)
+    except (TypeError, ValueError):
+        raise ValueError(f"robot_mpc.{name}: need {n} finite numbers, got {v!r}") from None
+    if not np.all(np.isfinite(a)):
+        i = int(np.argwhere(~np.isfinite(a))[0][0])
+        raise ValueError(f"robot_mpc.{name}: chamber {i}'s value is {a[i]!r}; it must be a finite number")
+    return a
 
 
 class _Pattern:
@@ -144,8 +182,17 @@ class RobotNMPC:
         self.failed = False
         self.plan = None  # (horizon, n, 2): supply and outlet of the last usable solve
         self.inaccurate = 0
+        self.overruns = 0
+        self.overran = False
+        self.late_plan = None  # (horizon, n, 2): the solution of an overrun step
+        self.last_step_s = 0.0
         self.status = ""
         self._solver = None
+
+    def applied(self, a, o) -> None:
+        """The supply and outlet (n,) each actually sent (after the supervisor): the next step's input
+        rate terms start from them (not from a decision a fallback or an interlock replaced)."""
+        self.prev = np.vstack([np.asarray(a, dtype=float).reshape(self.n), np.asarray(o, dtype=float).reshape(self.n)])
 
     # --- pattern ---------------------------------------------------------------------------------
     def _build_pattern(self) -> None:
@@ -200,18 +247,24 @@ class RobotNMPC:
 
     # --- one period --------------------------------------------------------------------------------
     def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
-        """One RTI step (see the class doc): (supply, outlet) decisions (n,) each, in [0, 1]."""
+        """One RTI step (see the class doc): (supply, outlet) decisions (n,) each, in [0, 1].
+        ValueError naming the argument on a non-finite input."""
+        t_start = time.perf_counter()
         s, n, N = self.s, self.n, self.s.horizon
-        x0 = np.asarray(x0, dtype=float).reshape(n)
-        b = np.asarray(b, dtype=float).reshape(n)
-        k = np.ones(n) if k is None else np.asarray(k, dtype=float).reshape(n)
-        c = np.ones(n) if c is None else np.asarray(c, dtype=float).reshape(n)
-        amax = np.ones(n) if a_max is None else np.clip(np.asarray(a_max, dtype=float).reshape(n), 0.0, 1.0)
-        W = self.model.clip_load(np.asarray(W, dtype=float).reshape(n))
-        href = np.asarray(h_ref, dtype=float)
-        href = np.broadcast_to(href.reshape(n, -1), (n, N)) if href.size in (n, n * N) else None
+        x0 = _finite("x0", x0, n)
+        b = _finite("b", b, n)
+        k = np.ones(n) if k is None else _finite("k", k, n)
+        c = np.ones(n) if c is None else _finite("c", c, n)
+        amax = np.ones(n) if a_max is None else np.clip(_finite("a_max", a_max, n), 0.0, 1.0)
+        W = self.model.clip_load(_finite("W", W, n))
+        href = np.asarray(h_ref, dtype=float) if not _has_text(h_ref) else None
+        href = np.broadcast_to(href.reshape(n, -1), (n, N)) if href is not None and href.size in (n, n * N) else None
         if href is None:
-            raise ValueError(f"robot_mpc.h_ref: need {n} or {n}x{N} target heights")
+            raise ValueError(f"robot_mpc.h_ref: need {n} or {n}x{N} target heights (m)")
+        if not np.all(np.isfinite(href)):
+            i = int(np.argwhere(~np.isfinite(href))[0][0])
+            raise ValueError(f"robot_mpc.h_ref: chamber {i}'s target height is {href[i].ravel()[0]!r}; "
+                             "it must be a finite number (m)")
         href_mm = href * 1e3
         # shifted warm start
         if self.xbar is None:
@@ -289,15 +342,19 @@ class RobotNMPC:
         lo = np.concatenate(lo)
         up = np.concatenate(up)
         qv = q.reshape(-1)
-        if self._solver is None:
+        budget = s.budget * s.sample_period
+        cold = self._solver is None
+        if cold:
             self._solver = osqp.OSQP()
             kw = dict(verbose=False, eps_abs=s.eps, eps_rel=s.eps, max_iter=s.max_iter, polishing=False,
                       warm_starting=True, adaptive_rho=True)
-            if s.time_limit > 0:
-                kw["time_limit"] = s.time_limit
             self._solver.setup(P=self._Ppat.matrix(Pv), q=qv, A=self._Apat.matrix(Av), l=lo, u=up, **kw)
         else:
             self._solver.update(Px=self._Ppat.data(Pv), Ax=self._Apat.data(Av), q=qv, l=lo, u=up)
+            if budget > 0:
+                # what is left of the step's budget (at least 0.1 ms: OSQP checks it per iteration)
+                left = budget - (time.perf_counter() - t_start)
+                self._solver.update_settings(time_limit=max(left, 1e-4))
         res = self._solver.solve(raise_error=False)
         status = str(res.info.status)
         self.status = status
@@ -305,7 +362,15 @@ class RobotNMPC:
             status in ("solved", "solved inaccurate", "maximum iterations reached")
         if status != "solved":
             self.inaccurate += 1
-        self.failed = not usable
+        elapsed = time.perf_counter() - t_start
+        self.overran = budget > 0 and not cold and (elapsed > budget or "time limit" in status)
+        self.overruns += int(self.overran)
+        self.late_plan = None
+        self.failed = not usable or self.overran
+        if self.overran and usable:
+            self.status = f"overrun ({elapsed * 1e3:.1f} ms > {budget * 1e3:.1f} ms)"
+        elif self.overran:
+            self.status = f"overrun ({status})"
         if not usable:
             a = np.zeros(n)
             o = np.zeros(n)
@@ -318,8 +383,15 @@ class RobotNMPC:
             self.obar = np.clip(z[:, 2 * N:3 * N], 0.0, 1.0)
             a = self.abar[:, 0].copy()
             o = self.obar[:, 0].copy()
-            self.plan = np.stack([self.abar.T, self.obar.T], axis=-1)
+            plan = np.stack([self.abar.T, self.obar.T], axis=-1)
+            if self.overran:
+                # late: not sent (see the module doc); the warm start keeps the solution
+                self.late_plan = plan
+                a, o = np.zeros(n), np.zeros(n)
+            else:
+                self.plan = plan
             if self.topology == "shared" and a.sum() > 1.0:
                 a /= a.sum()
         self.prev = np.vstack([a, o])
+        self.last_step_s = time.perf_counter() - t_start
         return a, o

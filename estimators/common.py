@@ -16,10 +16,16 @@ import numpy as np
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.chamber import STATE_SCALE
 
-__all__ = ["FilterSettings", "guard_cov", "classify_measurement", "MEAS_OK",
-           "MEAS_MISSING", "MEAS_SATURATED"]
+__all__ = ["FilterSettings", "guard_cov", "classify_measurement", "physical_reading_bounds", "MEAS_OK",
+           "MEAS_MISSING", "MEAS_SATURATED", "MEAS_OUTLIER", "VACUUM_GAUGE", "nis_gate", "INFLATION_MAX"]
 
-MEAS_OK, MEAS_MISSING, MEAS_SATURATED = "ok", "missing", "saturated"
+MEAS_OK, MEAS_MISSING, MEAS_SATURATED, MEAS_OUTLIER = "ok", "missing", "saturated", "outlier"
+#: the most a re-opened gate inflates the prior covariance (a factor on P): where the pressure hardly
+#: depends on the state (near a limit point, H P H^T -> 0) no inflation explains the reading, and
+#: an unbounded one turns the update into a jump off the model's tables
+INFLATION_MAX = 100.0
+#: the lowest gauge pressure there is (absolute vacuum at the standard atmosphere), Pa
+VACUUM_GAUGE = -101325.0
 
 
 @dataclass
@@ -82,6 +88,21 @@ class FilterSettings:
         nominal weight, with one sigma load_prior_rel_std x that weight (+0.01 N). Applied per trial
         by :func:`hbma_ctrl.app.evaluate.make_filter`; load changes are still detected and tracked.
     load_prior_rel_std : relative one sigma of the nominal load prior, [0, 10].
+    reading_min : the lowest reading that can be physical, Pa gauge, [-101325, 0] (default: vacuum);
+        below it a reading is an outlier (predict only, counted), never an update.
+    reading_max_rel : a reading above this multiple of ``sensor_range`` cannot come from the sensor
+        (a saturated sensor reads its range), [1, 1000]: an outlier, not a saturation.
+    gate_nis : innovation gate: a reading whose normalised innovation squared (NIS, chi-square with
+        one degree of freedom) exceeds this is an outlier, (1, 1e6] (400: twenty sigma; the model's own
+        transients reach about 120, at a touch-down while venting, and a load step's first samples
+        feed the load-change detector at far less).
+    gate_reopen : after this many gated readings in a row the gate re-opens, [1, 1000]: the
+        covariance is inflated until the reading's NIS equals ``gate_nis`` (by at most
+        ``INFLATION_MAX``) and the reading is used, and so on until a reading passes unaided (a real
+        fast transient, e.g. a load slammed on, cannot lock the filter out).
+    max_gap : longest time, s, a step predicts over, [sample_period, 3600]: after a longer gap (a
+        paused stream, a wall-clock timestamp) the filter predicts ``max_gap`` only and widens the
+        covariance by its initial spread (the commands during the gap are unknown).
     """
 
     sample_period: float = 0.01
@@ -119,6 +140,11 @@ class FilterSettings:
     compile: bool = True
     load_prior: str = "unknown"
     load_prior_rel_std: float = 0.1
+    reading_min: float = VACUUM_GAUGE
+    reading_max_rel: float = 1.5
+    gate_nis: float = 400.0
+    gate_reopen: int = 5
+    max_gap: float = 1.0
 
     def validate(self) -> "FilterSettings":
         w = "estimator"
@@ -161,6 +187,13 @@ class FilterSettings:
         check_range(w, "output_rel_std", self.output_rel_std, 0.0, 1.0)
         check_range(w, "force_std_floor", self.force_std_floor, 0.0, 100.0, "N")
         check_range(w, "cov_floor", self.cov_floor, 0.0, 1e-3)
+        check_range(w, "reading_min", self.reading_min, VACUUM_GAUGE, 0.0, "Pa")
+        check_range(w, "reading_max_rel", self.reading_max_rel, 1.0, 1000.0)
+        check_range(w, "gate_nis", self.gate_nis, 1.0, 1e6, lo_open=True)
+        if not isinstance(self.gate_reopen, int) or isinstance(self.gate_reopen, bool) or \
+                not 1 <= self.gate_reopen <= 1000:
+            raise ValueError(f"{w}.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
+        check_range(w, "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
         if not isinstance(self.compile, bool):
             raise ValueError(f"{w}.compile = {self.compile!r} must be true or false")
         return self
@@ -189,14 +222,43 @@ def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> n
     return S * ss
 
 
-def classify_measurement(z, sensor_range: float) -> str:
-    """'missing' (None or non-finite), 'saturated' (>= sensor range) or 'ok'."""
+def physical_reading_bounds(sensor_range: float, reading_min: float = VACUUM_GAUGE,
+                            reading_max_rel: float = 1.5) -> tuple[float, float]:
+    """(lowest, highest) reading, Pa gauge, a pressure sensor of this range can give: vacuum (or a
+    higher floor) and ``reading_max_rel`` times the range. Outside is an outlier."""
+    return float(max(reading_min, VACUUM_GAUGE)), float(reading_max_rel * sensor_range)
+
+
+def classify_measurement(z, sensor_range: float, reading_min: float = -math.inf,
+                         reading_max: float = math.inf) -> str:
+    """One pressure reading (Pa): 'missing' (None or NaN: a dropout), 'outlier' (cannot be physical:
+    +-inf, not a number, below ``reading_min`` or above ``reading_max``), 'saturated' (>= sensor
+    range) or 'ok'."""
+    if z is None:
+        return MEAS_MISSING
+    if isinstance(z, (str, bytes, bool)):
+        return MEAS_OUTLIER  # "12.3" from a serial line is a parser's bug, not a reading
     try:
         zf = float(z)
     except (TypeError, ValueError):
+        return MEAS_OUTLIER
+    if math.isnan(zf):
         return MEAS_MISSING
-    if not math.isfinite(zf):
-        return MEAS_MISSING
+    if math.isinf(zf) or zf < reading_min or zf > reading_max:
+        return MEAS_OUTLIER
     if zf >= sensor_range:
         return MEAS_SATURATED
     return MEAS_OK
+
+
+def nis_gate(innovation: float, hph: float, R: float, gate: float) -> tuple[float, float]:
+    """(NIS, inflation) of a scalar innovation (Pa) with prior variance ``hph = H P H^T`` and
+    measurement variance R (Pa^2): NIS = innovation^2 / (hph + R), and the factor on P that brings
+    the NIS down to ``gate`` (1 when it is already within; at most :data:`INFLATION_MAX`, above 1
+    whenever the NIS exceeds the gate)."""
+    S = hph + R
+    nis = innovation * innovation / S
+    if nis <= gate:
+        return nis, 1.0
+    need = (innovation * innovation / gate - R) / hph if hph > 0.0 else INFLATION_MAX
+    return nis, min(max(need, 1.0 + 1e-9), INFLATION_MAX)

@@ -86,7 +86,15 @@ vents (an 8 mm free cap at r1 12.5 mm reads up to 0.4 mm high in ``bench loop``)
 of small loaded chambers are over-confident and large free caps under-confident (Monte-Carlo NEES
 outside the chi-square bounds, on either side).
 
-Measurements: a missing or non-finite reading skips the update (flag ``missing``); a saturated
+Live-stream guards: a reading that cannot be physical (+-inf, not a number, below vacuum or
+``reading_min``, above ``reading_max_rel`` times the sensor range) is an outlier (flag ``outlier``),
+and so is one whose NIS exceeds ``gate_nis`` (flag ``gated``): predict only, counted in
+:meth:`EKF.stats`. ``gate_reopen`` gated readings in a row re-open the gate (the covariance is
+inflated until the reading passes, by at most ``INFLATION_MAX``; flag ``gate_reopened``; it stays
+open until a reading passes unaided), so a real fast transient cannot lock the filter out. A gap longer than ``max_gap`` (a paused stream) predicts ``max_gap`` only and widens
+the covariance (flag ``time_jump``); a non-finite or backwards ``t`` is a ValueError.
+
+Measurements: a missing (None or NaN) reading skips the update (flag ``missing``); a saturated
 reading (>= sensor range) is a one-sided observation ``p >= range``: if the prediction is below
 the range, an update towards the range with ``saturation_std``; otherwise no update (flag
 ``saturated``). Numerics: Joseph-form update, gains by solves, covariance symmetrised with an
@@ -102,10 +110,14 @@ import time
 import numpy as np
 
 from estimators.common import (
+    MEAS_MISSING,
+    MEAS_OUTLIER,
     MEAS_SATURATED,
     FilterSettings,
     classify_measurement,
     guard_cov,
+    nis_gate,
+    physical_reading_bounds,
 )
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.interfaces import Command, Estimate
@@ -208,6 +220,9 @@ class EKF:
         self._replay: list = []
         self._replay_now = False
         self._pumping = False
+        self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
+        self._gated = 0  # gated readings in a row
+        self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0}
 
     # --- state handling -----------------------------------------------------------------------
     def reset(self, t: float, mean, cov=None, shape=None, resting: bool | None = None) -> None:
@@ -314,22 +329,39 @@ class EKF:
         return s.noise_std ** 2 + (rel * max(p, 0.0)) ** 2
 
     def step(self, t: float, measurement, applied_command: Command) -> Estimate:
-        """Advance to time t (s) with the command held since the last step, then update."""
+        """Advance to time t (s) with the command held since the last step, then update.
+
+        A reading that cannot be physical (see :func:`estimators.common.classify_measurement`) or
+        that fails the innovation gate is not used (predict only; flags ``outlier`` / ``gated``,
+        counted in :meth:`stats`). A gap longer than ``max_gap`` predicts ``max_gap`` only and
+        widens the covariance (flag ``time_jump``). Raises ValueError when t is not a finite time
+        or is before the last step's."""
         t_wall = time.perf_counter()
         s = self.settings
-        kind = classify_measurement(measurement, s.sensor_range)
+        t = self._check_time(t)
+        kind = classify_measurement(measurement, s.sensor_range, *self._bounds)
         self._events = set()
         if kind != "ok":
             self._events.add(kind)
+            key = {MEAS_OUTLIER: "outliers_bound", MEAS_MISSING: "missing"}.get(kind)
+            if key:
+                self.counts[key] += 1
+        jump = False
         if self.x is None:
             self._init_from(t, measurement, kind)
             k = 0
         else:
             k = int(round((t - self.t) / s.sample_period))
-            if k < 0:
-                raise ValueError(f"estimator.step: t = {t} s is before the last step's {self.t} s")
+            k_max = max(1, int(round(s.max_gap / s.sample_period)))
+            if k > k_max:
+                k, jump = k_max, True
+                self._events.add("time_jump")
+                self.counts["time_jumps"] += 1
         u = applied_command.as_array() if isinstance(applied_command, Command) else \
             np.asarray(applied_command, dtype=float).reshape(3)
+        if jump:
+            self._snap, self._replay = None, []  # a replay across a gap would predict the gap again
+            self._lift = self._lift_start = 0.0
         if self.resting and k > 0:
             # lift-off replay: while the detector's sum is at zero, remember the posterior; the
             # samples after it are kept so a detected lift-off can be re-filtered from there
@@ -340,7 +372,7 @@ class EKF:
                 self._replay.append((float(t), measurement, kind, u, k))
             else:
                 self._snap = None  # too long ago: no replay (the lift-off is applied now)
-        self._advance(t, measurement, kind, u, k, detect=True)
+        self._advance(t, measurement, kind, u, k, detect=True, jump=jump)
         if self._replay_now:
             self._replay_now = False
             self._replay_from_snapshot()
@@ -348,27 +380,81 @@ class EKF:
         self.last_step_s = time.perf_counter() - t_wall
         return est
 
-    def _advance(self, t: float, measurement, kind: str, u: np.ndarray, k: int, detect: bool) -> None:
+    def _check_time(self, t) -> float:
+        """t as a float; ValueError naming ``t`` when it is not a finite number or goes backwards."""
+        try:
+            tf = float(t)
+        except (TypeError, ValueError):
+            raise ValueError(f"estimator.step: t = {t!r} must be a finite time in s") from None
+        if not math.isfinite(tf) or isinstance(t, (str, bytes, bool)):
+            raise ValueError(f"estimator.step: t = {t!r} must be a finite time in s")
+        if self.t is not None and tf < self.t - 1e-9:
+            raise ValueError(f"estimator.step: t = {tf} s is before the last step's {self.t} s "
+                             "(time must not go backwards)")
+        return tf
+
+    def _widen_after_gap(self) -> None:
+        """After a bounded time jump: add the initial spread of every state (the commands and loads
+        during the gap are unknown; the next readings pin the gas mass again)."""
+        s = self.settings
+        P0 = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
+                      s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
+        self.P = guard_cov(self.P + P0, s.cov_floor)
+
+    def stats(self) -> dict:
+        """Counts since construction: ``outliers`` (readings not used as implausible: out of the
+        physical bounds or gated), ``outliers_bound``, ``gated``, ``gate_reopened``, ``missing``
+        (dropouts) and ``time_jumps`` (bounded gaps)."""
+        c = dict(self.counts)
+        c["outliers"] = c["outliers_bound"] + c["gated"]
+        return c
+
+    def _advance(self, t: float, measurement, kind: str, u: np.ndarray, k: int, detect: bool,
+                 jump: bool = False) -> None:
         """Predict k periods with u, then update with the measurement (and run the detectors)."""
         s = self.settings
         self._pumping = bool(u[0] > 0.0 and u[1] > 0.0)
         for _ in range(k):
             self._predict(u)
+        if jump:
+            self._widen_after_gap()
         self.t = float(t)
         self.last_nis = None
         self.last_innovation = None
         if kind == "ok":
-            prior = (self.x.copy(), self.P.copy(), self._p_pred)
+            z = float(measurement)
             R = self._meas_var(self._p_pred)
-            r = self._update(float(measurement), R)
+            nis, alpha = nis_gate(z - self._p_pred, float(self._H @ self.P @ self._H), R, s.gate_nis)
+            reopen = False
+            if alpha > 1.0:
+                self._gated += 1
+                if self._gated < s.gate_reopen:
+                    # an outlier: predict only (its innovation would drag the state off by the
+                    # reading's error, e.g. -1e9 Pa -> a 60 mm cap for seconds)
+                    self._events.add("gated")
+                    self.last_nis = nis
+                    if detect:
+                        self.counts["gated"] += 1
+                    return
+                # gate_reopen in a row: a real transient, not a glitch; use it with the prior widened
+                # (the gate stays open until a reading passes it unaided)
+                self.P = guard_cov(self.P * alpha, s.cov_floor)
+                self._events.add("gate_reopened")
+                if detect:
+                    self.counts["gate_reopened"] += 1
+                reopen = True
+            else:
+                self._gated = 0
+            prior = (self.x.copy(), self.P.copy(), self._p_pred)
+            r = self._update(z, R)
             self.last_innovation = r
             self.last_nis = r * r
-            if detect and self._detect(r):
+            if detect and not reopen and self._detect(r):
                 # a load change: redo this update with the load's variance widened, so the jump
                 # goes to the load rather than to the gas mass and the modulus
                 self.x, self.P, self._p_pred = prior
                 self.P[1, 1] += s.change_std ** 2
-                self._update(float(measurement), R)
+                self._update(z, R)
         elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range:
             # one-sided: the true pressure is at least the range; pull the prediction up to it.
             # On either branch: past the model's limit point (dp/dm < 0) the pull takes gas out

@@ -30,6 +30,16 @@ height error of a few tenths of a mm is then possible).
 All chambers are stepped by ONE call of the casadi ``map`` of the single-chamber step (predict with
 rk4 + Jacobians, covariance predict, scalar Joseph update), so 9 filters cost about one call.
 A missing (NaN) or saturated (>= sensor range) reading skips that chamber's update.
+
+Live-stream guards (as in :class:`estimators.ekf.EKF`): a reading that cannot be physical (+-inf,
+not a number, below vacuum or ``reading_min``, above ``reading_max_rel`` times the sensor range) and
+one whose NIS exceeds ``gate_nis`` are outliers: that chamber predicts only, counted in
+:meth:`ChamberEKFBank.stats`. ``gate_reopen`` gated readings in a row of one chamber re-open its
+gate: its prior covariance is inflated (inside the mapped step) until the reading's NIS equals
+``gate_nis`` (by at most ``INFLATION_MAX``), and the reading is used; it stays open until a
+reading passes it unaided. ``step(..., steps=k)`` predicts k periods (a late tick);
+more than ``max_gap`` of them are cut to ``max_gap`` and the covariance is widened by the initial
+spread (counted as ``time_jumps``).
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from estimators.common import INFLATION_MAX, VACUUM_GAUGE, physical_reading_bounds
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.bank import ChamberBank
 
@@ -54,7 +65,12 @@ class ChamberEKFSettings:
     step (absolute and relative to the predicted change); b_rate_std : random walk of the flow
     factor, 1/sqrt(s); b0, b0_std : initial flow factor and its sigma; k0_std, k_rate_std : initial
     sigma and random walk (1/sqrt(s)) of the modulus factor (prior 1); c0_std, c_rate_std : the same
-    for the dead-volume factor (prior 1); sensor_range : Pa (readings at or above it are not used).
+    for the dead-volume factor (prior 1); sensor_range : Pa (readings at or above it are not used);
+    reading_min : lowest physical reading, Pa gauge, [-101325, 0]; reading_max_rel : readings above
+    this multiple of sensor_range are outliers, [1, 1000]; gate_nis : NIS gate (chi-square, one
+    degree of freedom), (1, 1e6]; gate_reopen : gated readings in a row that re-open a chamber's
+    gate, [1, 1000]; max_gap : longest time one step predicts over, s, [sample_period, 3600] (see
+    the module doc).
     """
 
     sample_period: float = 0.01
@@ -70,6 +86,11 @@ class ChamberEKFSettings:
     c0_std: float = 0.25
     c_rate_std: float = 0.002
     sensor_range: float = 50e3
+    reading_min: float = VACUUM_GAUGE
+    reading_max_rel: float = 1.5
+    gate_nis: float = 400.0
+    gate_reopen: int = 5
+    max_gap: float = 1.0
 
     def validate(self) -> "ChamberEKFSettings":
         check_range("robot_ekf", "sample_period", self.sample_period, 1e-4, 1.0, "s")
@@ -85,6 +106,13 @@ class ChamberEKFSettings:
         check_range("robot_ekf", "c0_std", self.c0_std, 0.0, 1.0)
         check_range("robot_ekf", "c_rate_std", self.c_rate_std, 0.0, 10.0)
         check_range("robot_ekf", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
+        check_range("robot_ekf", "reading_min", self.reading_min, VACUUM_GAUGE, 0.0, "Pa")
+        check_range("robot_ekf", "reading_max_rel", self.reading_max_rel, 1.0, 1000.0)
+        check_range("robot_ekf", "gate_nis", self.gate_nis, 1.0, 1e6, lo_open=True)
+        if not isinstance(self.gate_reopen, int) or isinstance(self.gate_reopen, bool) or \
+                not 1 <= self.gate_reopen <= 1000:
+            raise ValueError(f"robot_ekf.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
+        check_range("robot_ekf", "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
         return self
 
 
@@ -97,7 +125,10 @@ NS = 4  # [x, b, k, c]
 
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
-    """Single-chamber EKF step (X[4], P[16], w[2], W, z, use) -> (X+[4], P+[16], h, p, nis, h_std)."""
+    """Single-chamber EKF step (X[4], P[16], w[2], W, z, use, reopen) -> (X+[4], P+[16], h, p, nis,
+    h_std, over). ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1)
+    is gated (not used) unless ``reopen`` is 1: then the prior covariance is inflated until the
+    NIS equals the gate (at most by INFLATION_MAX) and the reading is used."""
     xs, w, W, b, k, c = model.symbols
     xn = model.discrete_expr(s.sample_period)
     th = ca.vertcat(b, k, c)
@@ -108,7 +139,7 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     X = ca.SX.sym("X", NS)
     Pv = ca.SX.sym("P", NS * NS)
     wi = ca.SX.sym("wi", 2)
-    Wi, z, use = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use")
+    Wi, z, use, reopen = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use"), ca.SX.sym("reopen")
     x_pred, Ax, Ath = fx(X[0], wi, Wi, X[1], X[2], X[3])
     A = ca.vertcat(ca.horzcat(Ax, Ath), ca.horzcat(ca.DM.zeros(3, 1), ca.DM.eye(3)))
     P = ca.reshape(Pv, NS, NS)
@@ -120,27 +151,61 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     p_pred, dp, _, _ = pj(xm[0], Wi, xm[2], xm[3])
     Hx = ca.horzcat(dp[0], 0, dp[1], dp[2])
     R = s.noise_std ** 2 + (s.model_rel_std * p_pred) ** 2
-    S = Hx @ Pm @ Hx.T + R
-    K = Pm @ Hx.T / S * use
     innov = z - p_pred
+    S0 = Hx @ Pm @ Hx.T
+    gate = s.gate_nis
+    over = innov ** 2 / (S0 + R) > gate
+    need = ca.fmin(ca.fmax(1.0, (innov ** 2 / gate - R) / ca.fmax(S0, 1e-300)), INFLATION_MAX)
+    alpha = ca.if_else(reopen * over > 0, need, 1.0)
+    Pm = alpha * Pm
+    gated = use * over * (1 - reopen)
+    use_eff = use * (1 - gated)
+    S = alpha * S0 + R
+    K = Pm @ Hx.T / S * use_eff
     xp = xm + K * innov
     IKH = ca.DM.eye(NS) - K @ Hx
     Pp = IKH @ Pm @ IKH.T + K @ K.T * R
     Pp = 0.5 * (Pp + Pp.T)
     p_post, _, h, dh = pj(xp[0], Wi, xp[2], xp[3])
     G = ca.horzcat(dh[0], 0, dh[1], dh[2])
-    return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use],
-                       [xp, ca.reshape(Pp, NS * NS, 1), h, p_post, innov ** 2 / S * use,
-                        ca.sqrt(ca.fmax(G @ Pp @ G.T, 0))])
+    return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use, reopen],
+                       [xp, ca.reshape(Pp, NS * NS, 1), h, p_post, innov ** 2 / S * use_eff,
+                        ca.sqrt(ca.fmax(G @ Pp @ G.T, 0)), use * over])
+
+
+def _readings(z, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) float readings (Pa) and a mask of entries that are not numbers at all (strings, objects:
+    outliers; None is a dropout, NaN)."""
+    try:
+        if not any(isinstance(v, (str, bytes)) for v in np.ravel(np.asarray(z, dtype=object))):
+            return np.asarray(z, dtype=float).reshape(n), np.zeros(n, dtype=bool)
+    except (TypeError, ValueError):
+        pass
+    vals = np.ravel(np.asarray(z, dtype=object))
+    if vals.size != n:
+        raise ValueError(f"robot_ekf.step: {vals.size} readings for {n} chambers")
+    out, bad = np.full(n, np.nan), np.zeros(n, dtype=bool)
+    for i, v in enumerate(vals):
+        if v is None:
+            continue
+        if isinstance(v, (str, bytes, bool)):
+            bad[i] = True
+            continue
+        try:
+            out[i] = float(v)
+        except (TypeError, ValueError):
+            bad[i] = True
+    return out, bad
 
 
 class ChamberEKFBank:
     """n per-chamber EKFs stepped together (see module doc).
 
-    ``step(z, w, W)``: z (n,) pressure readings Pa (NaN = missing), w (2, n) the decisions applied
-    during the last period (supply, outlet; see :mod:`hbma_ctrl.models.bank`), W (n,) the loads N
-    used over that period. Returns a dict of (n,) arrays: x, b, h (m, >= 0), p (Pa), h_std (m),
-    nis, used (bool), and the factors b, k, c (-).
+    ``step(z, w, W, steps=1)``: z (n,) pressure readings Pa (NaN = missing), w (2, n) the decisions
+    applied during the last period (supply, outlet; see :mod:`hbma_ctrl.models.bank`), W (n,) the
+    loads N used over that period, ``steps`` the periods since the last step (bounded by
+    ``max_gap``). Returns a dict of (n,) arrays: x, b, h (m, >= 0), p (Pa), h_std (m), nis, used
+    (bool), outlier (bool: out of bounds or gated), and the factors b, k, c (-).
     """
 
     def __init__(self, model: ChamberBank, n: int, settings: ChamberEKFSettings | None = None):
@@ -155,6 +220,21 @@ class ChamberEKFBank:
         self.P = None
         self.last: dict = {}
         self.resets = 0
+        s = self.settings
+        self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
+        self.max_steps = max(1, int(round(s.max_gap / s.sample_period)))
+        self._gated_run = np.zeros(n, dtype=int)
+        self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0}
+
+    def _prior_cov(self) -> np.ndarray:
+        """The initial covariance of one chamber (4 x 4)."""
+        s = self.settings
+        sx = max(s.noise_std / self.model.actuator.p_env, 1e-3)
+        # x and c enter the rest pressure as (x + 1) / c: start them correlated so that the first
+        # reading pins (x + 1) / c, not x alone
+        P0 = np.diag([sx ** 2 + s.c0_std ** 2, s.b0_std ** 2, s.k0_std ** 2, s.c0_std ** 2])
+        P0[0, 3] = P0[3, 0] = s.c0_std ** 2
+        return P0
 
     def reset(self, p0, mask=None) -> None:
         """Start the filters (all, or those in ``mask``) at rest from readings p0 (n,) Pa (a flat
@@ -166,42 +246,86 @@ class ChamberEKFBank:
             self.X = np.where(m[None, :], self.X, keep_X)
             self.P = np.where(m[None, :], self.P, keep_P)
             return
-        p0 = np.nan_to_num(np.asarray(p0, dtype=float).reshape(self.n), nan=0.0)
+        p0 = np.asarray(p0, dtype=float).reshape(self.n)
+        lo, hi = self._bounds
+        p0 = np.where(np.isfinite(p0) & (p0 >= lo) & (p0 <= hi), p0, 0.0)
         s = self.settings
         x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
         self.X = np.vstack([x0, np.full(self.n, s.b0), np.ones(self.n), np.ones(self.n)])
-        sx = max(s.noise_std / self.model.actuator.p_env, 1e-3)
-        # x and c enter the rest pressure as (x + 1) / c: start them correlated so that the first
-        # reading pins (x + 1) / c, not x alone
-        P0 = np.diag([sx ** 2 + s.c0_std ** 2, s.b0_std ** 2, s.k0_std ** 2, s.c0_std ** 2])
-        P0[0, 3] = P0[3, 0] = s.c0_std ** 2
-        P0 = P0.reshape(16, 1)
-        self.P = np.repeat(P0, self.n, 1)
+        self.P = np.repeat(self._prior_cov().reshape(16, 1), self.n, 1)
 
-    def step(self, z, w, W) -> dict:
-        z = np.asarray(z, dtype=float).reshape(self.n)
-        if self.X is None:
-            self.reset(z)
+    def step(self, z, w, W, steps: int = 1) -> dict:
+        """One step after ``steps`` periods (see the class doc)."""
+        z, not_number = _readings(z, self.n)
         s = self.settings
-        use = (np.isfinite(z) & (z < s.sensor_range)).astype(float)
+        lo, hi = self._bounds
+        nan = np.isnan(z) & ~not_number
+        outlier = not_number | np.isinf(z) | (np.isfinite(z) & ((z < lo) | (z > hi)))
+        self.counts["missing"] += int(nan.sum())
+        self.counts["outliers_bound"] += int(outlier.sum())
+        if self.X is None:
+            self.reset(np.where(outlier, np.nan, z))
+        use = (np.isfinite(z) & ~outlier & (z < s.sensor_range)).astype(float)
         zz = np.where(use > 0, z, 0.0)
         Wv = self.model.clip_load(np.asarray(W, dtype=float).reshape(self.n))
-        out = self._fun(self.X, self.P, np.asarray(w, dtype=float).reshape(2, self.n), Wv[None, :],
-                        zz[None, :], use[None, :])
-        X = np.asarray(out[0])
-        Pn = np.asarray(out[1])
+        wv = np.asarray(w, dtype=float).reshape(2, self.n)
+        k = int(steps)
+        if k < 1:
+            raise ValueError(f"robot_ekf.step: steps = {steps!r} must be an integer >= 1")
+        jump = k > self.max_steps
+        if jump:
+            k = self.max_steps
+            self.counts["time_jumps"] += 1
+        zero = np.zeros((1, self.n))
+        for _ in range(k - 1):  # the periods without a reading: predict only
+            out = self._fun(self.X, self.P, wv, Wv[None, :], zero, zero, zero)
+            self.X, self.P = self._guard(np.asarray(out[0]), np.asarray(out[1]), zz)
+        if jump:
+            self.P = self.P + self._prior_cov().reshape(16, 1)
+        reopen = (self._gated_run >= s.gate_reopen - 1).astype(float)
+        out = self._fun(self.X, self.P, wv, Wv[None, :], zz[None, :], use[None, :], reopen[None, :])
+        over = np.asarray(out[6]).ravel() > 0.5
+        gated = over & (reopen == 0)
+        used = (use > 0) & ~gated
+        nis = np.asarray(out[4]).ravel()
+        reopened = over & (reopen > 0)
+        # the gate stays open (the run goes on) until a reading passes it unaided
+        self._gated_run = np.where(over, self._gated_run + 1, np.where(use > 0, 0, self._gated_run))
+        self.counts["gated"] += int(gated.sum())
+        self.counts["gate_reopened"] += int(reopened.sum())
+        resets = self.resets
+        self.X, self.P = self._guard(np.asarray(out[0]), np.asarray(out[1]), zz)
+        X = self.X
+        h, p, h_std = np.asarray(out[2]).ravel(), np.asarray(out[3]).ravel(), np.asarray(out[5]).ravel()
+        if self.resets > resets:  # a restarted filter reports its restart, not the diverged step
+            bad = ~(np.isfinite(h) & np.isfinite(p) & np.isfinite(h_std))
+            for i in np.nonzero(bad)[0]:
+                hi, pi, _ = self.model.out(X[0, i], Wv[i], X[2, i], X[3, i])
+                h[i], p[i], h_std[i] = float(hi), float(pi), np.nan  # unknown right after a restart
+        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
+                     "h": np.maximum(h, 0.0), "p": p, "h_std": h_std,
+                     "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis,
+                     "used": used, "outlier": outlier | gated}
+        return self.last
+
+    def _guard(self, X: np.ndarray, Pn: np.ndarray, zz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Clip the states to their ranges; a diverged filter restarts from its reading (``resets``)."""
         bad = ~(np.all(np.isfinite(X), 0) & np.all(np.isfinite(Pn), 0))
         self.resets += int(bad.sum())
         X[0] = np.clip(X[0], -0.04, self.model.x_max)
         X[1] = np.clip(X[1], *B_RANGE)
         X[2] = np.clip(X[2], *K_RANGE)
         X[3] = np.clip(X[3], *C_RANGE)
-        self.X = X
-        self.P = Pn
-        if bad.any():  # a diverged filter restarts from its reading (counted in ``resets``)
+        self.X, self.P = X, Pn
+        if bad.any():
             self.reset(zz, bad)
-        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
-                     "h": np.maximum(np.asarray(out[2]).ravel(), 0.0), "p": np.asarray(out[3]).ravel(),
-                     "h_std": np.asarray(out[5]).ravel(),
-                     "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": np.asarray(out[4]).ravel(), "used": use > 0}
-        return self.last
+        return self.X, self.P
+
+    def stats(self) -> dict:
+        """Counts since construction (over all chambers): ``outliers`` (readings not used as
+        implausible: out of bounds or gated), ``outliers_bound``, ``gated``, ``gate_reopened``,
+        ``missing`` (dropouts), ``time_jumps`` (gaps cut to max_gap) and ``resets``."""
+        c = dict(self.counts)
+        c["outliers"] = c["outliers_bound"] + c["gated"]
+        c["resets"] = int(self.resets)
+        return c

@@ -3,6 +3,7 @@ unidentifiable directions, refuses bad data and unavailable options in one line,
 
 from __future__ import annotations
 
+import hashlib
 import json
 import tomllib
 
@@ -145,6 +146,10 @@ def test_cli_writes_fit_json_and_params_toml(tmp_path):
     toml = tomllib.loads((out / "params.toml").read_text())
     mat = make_material(toml["actuator"]["material"], **toml["actuator"]["material_params"])
     assert abs(mat.C1 / 20e3 - 1) < 1e-3
+    # the parameter file records the data it came from (path and hash) and when it was written
+    text = (out / "params.toml").read_text()
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    assert f"# data: {path.resolve()}, sha256 {digest}" in text and "# written: 20" in text
     assert (out / "residuals.png").stat().st_size > 0 and (out / "manifest.json").exists()
     # the run is not replaced without --overwrite
     again = runner.invoke(app, ["fit", str(path), "--material", "mr", "--out", str(out)])

@@ -93,9 +93,9 @@ def fit_cmd(
     if not data.is_file():
         raise FileNotFoundError(f"data file {data} not found")
     raw = data.read_bytes()
+    source = f"{data.resolve()}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
     if is_dynamic(raw):
         run = parse_run(raw, None if load_g is None else U.grams(load_g))
-        source = f"{data.name}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
         dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3),
                            fix=fixed, fit_material=fit_material,
                            sensor_range=U.kpa(35.0 if sensor_range_kpa is None else sensor_range_kpa),
@@ -113,6 +113,7 @@ def fit_cmd(
     pts = parse_data(raw)
     res = fit_static(pts, material.lower(), U.mm(r1_mm), U.mm(t0_mm), contact=contact, fix=fixed,
                      fidelity=fidelity)
+    res.source = source
     with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         write_fit(res, tmp)
     _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact, NRMSD {res.nrmsd:.4f}",

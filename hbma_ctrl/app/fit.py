@@ -30,6 +30,7 @@ import io
 import json
 import math
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,7 @@ __all__ = [
     "weak_directions",
     "unflatten",
     "params_toml",
+    "provenance_lines",
     "write_fit",
 ]
 
@@ -116,6 +118,7 @@ class FitResult:
     h: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    source: str = ""
 
     def as_json(self) -> dict:
         """fit.json content: exactly :data:`FIT_KEYS`."""
@@ -456,14 +459,22 @@ def _toml_value(v) -> str:
     return repr(float(v))
 
 
+def provenance_lines(source: str) -> list[str]:
+    """Comment lines recording the data a parameter file came from and when (UTC) it was written."""
+    when = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return ([f"# data: {source}"] if source else []) + [f"# written: {when}"]
+
+
 def params_toml(result: FitResult) -> str:
     """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
     kw = unflatten(result.material, result.params)
     head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
             f"NRMSD {result.nrmsd:.4f}")
     lines = [head,
-             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}",
-             "[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
+             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}"]
+    # where the numbers came from travels with them into any scenario that copies this file
+    lines += provenance_lines(result.source)
+    lines += ["[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in kw.items()]
     return "\n".join(lines) + "\n"
 

@@ -48,7 +48,7 @@ from matplotlib.figure import Figure
 from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
-from hbma_ctrl.app.fit import FIT_KEYS, unflatten, check_options, param_names, weak_directions
+from hbma_ctrl.app.fit import FIT_KEYS, unflatten, check_options, param_names, provenance_lines, weak_directions
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
@@ -524,8 +524,7 @@ def dynamic_params_toml(result: DynamicFitResult) -> str:
              f"pressure NRMSD {result.nrmsd:.4f}",
              f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}, "
              f"load_g = {U.to_grams(result.load):g}"]
-    if result.source:
-        lines.append(f"# data: {result.source}")
+    lines += provenance_lines(result.source)
     lines += ["[actuator]", f'material = "{result.material}"', f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}", "",
               "[actuator.material_params]"]
     for k, v in unflatten(result.material, result.params).items():

@@ -6,10 +6,16 @@ The controller's wall and thread-CPU time per step go into bounded :class:`StepS
 (``last["status"]`` not 'ok', or an exception) go to the :class:`Supervisor`, which replays the last
 good plan (``controller.plan``), then sends the safe command; the command finally sent is handed
 back to the controller (``controller.applied``) when it has that method.
+
+References from a live stream are checked: a target that is not a finite number (NaN, inf, a string)
+is a ValueError naming ``reference`` -- at :meth:`ChamberLoop.set_reference` for a constant, at the
+tick for a function's value -- never a command computed from it. A non-finite or backwards ``t``
+is the estimator's ValueError.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Callable
 
@@ -17,7 +23,18 @@ from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
-__all__ = ["ChamberLoop", "chamber_supervisor"]
+__all__ = ["ChamberLoop", "chamber_supervisor", "check_height"]
+
+
+def check_height(value, key: str = "reference") -> float:
+    """A target height (m) as a float; ValueError naming ``key`` when it is not a finite number."""
+    try:
+        h = float(value)
+    except (TypeError, ValueError):
+        h = math.nan
+    if isinstance(value, (str, bytes, bool)) or not math.isfinite(h):
+        raise ValueError(f"{key} = {value!r}: a target height must be a finite number (m)")
+    return h
 
 
 def chamber_supervisor(controller_settings, **overrides) -> Supervisor:
@@ -44,7 +61,7 @@ class ChamberLoop:
     controller : ``step(t, estimate, reference[, preview]) -> Command`` and ``stats() -> dict``.
     supervisor : a 1-chamber :class:`Supervisor`; None = :func:`chamber_supervisor` of the
         controller's settings.
-    reference : target height (m) at time t (s); None = hold (no target).
+    reference : target height (m) at time t (s), or a constant height (m); None = hold (no target).
     every : the controller runs every ``every`` ticks (>= 1).
     preview_steps : future targets handed to the controller (at ``preview_period`` s apart), 0 = none.
     preview_period : spacing of the preview targets, s.
@@ -61,7 +78,8 @@ class ChamberLoop:
         self.supervisor = supervisor or chamber_supervisor(controller.settings)
         if self.supervisor.n != 1:
             raise ValueError("ChamberLoop: the supervisor must be for one chamber (n = 1)")
-        self.reference = reference
+        self.reference = None
+        self.set_reference(reference)
         self.every = every
         self.preview_steps = int(preview_steps)
         self.preview_period = float(preview_period)
@@ -72,19 +90,26 @@ class ChamberLoop:
         self.target: float | None = None
         self._k = 0
 
-    def set_reference(self, reference: Callable[[float], float] | None) -> None:
-        """Replace the target height function (m at time t s; None = hold) from the next tick on."""
-        self.reference = reference
+    def set_reference(self, reference: Callable[[float], float] | float | None) -> None:
+        """Replace the target height from the next tick on: a function (m at time t s), a constant
+        height (m) or None (hold). ValueError naming ``reference`` when a constant is not a finite
+        number (the old reference then stays)."""
+        if reference is None or callable(reference):
+            self.reference = reference
+            return
+        h = check_height(reference)
+        self.reference = lambda t: h
 
     def tick(self, t: float, reading_pa: float) -> Command:
         """One sample at time t (s) with the pressure reading (Pa, NaN = dropout): estimate, then
         (every ``every`` ticks) controller and supervisor. Returns the command to hold until the next tick."""
         self.estimate = self.estimator.step(t, reading_pa, self.command)
-        self.target = None if self.reference is None else float(self.reference(t))
+        self.target = None if self.reference is None else check_height(self.reference(t), f"reference(t={t})")
         if self._k % self.every == 0:
             preview = None
             if self.preview_steps and self.target is not None:
-                preview = [float(self.reference(t + self.preview_period * (j + 1))) for j in range(self.preview_steps)]
+                preview = [check_height(self.reference(tp), f"reference(t={tp})")
+                           for tp in (t + self.preview_period * (j + 1) for j in range(self.preview_steps))]
             self.command = self.control(t, self.estimate, Reference(self.target), preview)
         self._k += 1
         return self.command

@@ -11,16 +11,24 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   outlet; for the NMPC a chamber whose target is zero gets no supply budget (a shared pump's duty
   would otherwise be shared with it), and the cautious cap limits the supply of a chamber near its
   limit point while its modulus factor is uncertain;
-- the :class:`Supervisor` applies the fallback on a failed solve (replay the plan, then the safe
-  command), the vent rule (zero target) and the pressure interlock (supply cut while a reading is
-  within the margin of the limit).
+- the :class:`Supervisor` applies the fallback on a failed solve or an NMPC overrun (its step
+  exceeded ``budget`` x period: replay the plan, then the safe command; an overrun's late plan is
+  kept for the next failure), the vent rule (zero target) and the pressure interlock (supply cut
+  while a reading is within the margin of the limit); the command sent is handed back to the NMPC
+  (``applied``: its input-rate terms start from it).
 
 The controller does not know the tip load (a disturbance). Step, EKF and controller times go into
 bounded :class:`StepStats` (s); ``last_timing`` has this tick's.
+
+Live-stream inputs: ``t`` must be a finite time not before the last tick's (ValueError naming
+``t``); a tick k periods after the last one predicts the bank k periods (bounded by its
+``max_gap``); targets (:meth:`RobotLoop.set_targets`) must be finite numbers, refused with a
+ValueError naming the layer, row and key. Readings that cannot be physical are the bank's outliers.
 """
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -35,7 +43,46 @@ from hbma_ctrl.robot.targets import chamber_targets
 from hbma_ctrl.runtime.safety import ZERO_TARGET, Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
-__all__ = ["RobotLoop", "robot_supervisor"]
+__all__ = ["RobotLoop", "robot_supervisor", "check_targets"]
+
+#: the keys of a layer target row, in order (units: s, m, rad, rad)
+TARGET_KEYS = ("t", "centre", "bend", "direction")
+
+
+def check_targets(targets: dict, n_layers: int) -> dict:
+    """Layer targets {layer: ((t s, centre m, bend rad, direction rad), ...)} checked: every layer
+    0..n_layers-1 present, rows of four finite numbers, times ascending. Returns them as float tuples;
+    raises ValueError naming the layer, row and key."""
+    if not isinstance(targets, dict):
+        raise ValueError(f"targets must be a dict {{layer: rows}}, got {type(targets).__name__}")
+    out = {}
+    for k in range(n_layers):
+        if k not in targets:
+            raise ValueError(f"targets: layer {k} is missing (the robot has layers 0..{n_layers - 1})")
+        rows = targets[k]
+        if isinstance(rows, (str, bytes)) or not hasattr(rows, "__len__") or len(rows) == 0:
+            raise ValueError(f"targets[{k}] must be a non-empty sequence of (t, centre, bend, direction) rows")
+        clean = []
+        for j, row in enumerate(rows):
+            if isinstance(row, (str, bytes)) or not hasattr(row, "__len__") or len(row) != 4:
+                raise ValueError(f"targets[{k}][{j}] = {row!r} must be (t s, centre m, bend rad, direction rad)")
+            vals = []
+            for key, v in zip(TARGET_KEYS, row):
+                try:
+                    f = float(v)
+                except (TypeError, ValueError):
+                    f = math.nan
+                if isinstance(v, (str, bytes, bool)) or not math.isfinite(f):
+                    raise ValueError(f"targets[{k}][{j}].{key} = {v!r} must be a finite number")
+                vals.append(f)
+            if clean and vals[0] < clean[-1][0]:
+                raise ValueError(f"targets[{k}][{j}].t = {vals[0]} s is before the previous row's {clean[-1][0]} s")
+            clean.append(tuple(vals))
+        out[k] = tuple(clean)
+    extra = set(targets) - set(range(n_layers))
+    if extra:
+        raise ValueError(f"targets: layer {sorted(extra, key=str)[0]!r} does not exist (layers 0..{n_layers - 1})")
+    return out
 
 
 def robot_supervisor(pressure_limit: float, n: int, interlock_margin: float = 1e3, plan_period: float | None = None,
@@ -47,6 +94,29 @@ def robot_supervisor(pressure_limit: float, n: int, interlock_margin: float = 1e
               missing_is_limit=False, vent_height=ZERO_TARGET, plan_period=plan_period)
     kw.update(overrides)
     return Supervisor(SupervisorSettings(**kw), n=n)
+
+
+def _flow_duty(a: np.ndarray, topology: str) -> np.ndarray:
+    """The supply as the full-speed inlet duty the plant's flow equals (what the bank predicts with):
+    tiny duties zeroed, a shared pump's budget applied."""
+    d = commands_from_inputs(a, np.zeros_like(a), topology)[1]
+    if topology == "shared" and d.sum() > 1.0:
+        d = d / d.sum()
+    return d
+
+
+def _as_float(z, n: int) -> np.ndarray:
+    """(n,) float readings; entries that are not numbers become NaN."""
+    try:
+        return np.asarray(z, dtype=float).reshape(n)
+    except (TypeError, ValueError):
+        out = np.full(n, np.nan)
+        for i, v in enumerate(np.ravel(np.asarray(z, dtype=object))):
+            try:
+                out[i] = float(v)
+            except (TypeError, ValueError):
+                pass
+        return out
 
 
 class RobotLoop:
@@ -65,18 +135,22 @@ class RobotLoop:
         its supply duty is capped (the NMPC's input bound; pass the peak slowly so that its filter
         can tell the far branch from the near one); None = off. NMPC only.
     stats_capacity : samples kept for the median and p99 of the step times.
+    throttle : the compressor speed is a decision: throttled to the planned flow at each chamber's
+        estimated pressure (:meth:`ChamberBank.valve_inputs`); False = full speed while an inlet is
+        open (the inlet valve meters the flow).
     """
 
     def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
-                 stats_capacity: int = 4096):
+                 stats_capacity: int = 4096, throttle: bool = True):
         self.design = design
         self.model = model
         self.bank = bank
         self.controller = controller
         self.supervisor = supervisor
-        self.targets = targets
+        self.targets = check_targets(targets, design.n_layers)
         self.cautious = cautious
+        self.throttle = bool(throttle)
         self.n = 3 * design.n_layers
         if supervisor.n != self.n:
             raise ValueError(f"RobotLoop: the supervisor is for {supervisor.n} chambers, the robot has {self.n}")
@@ -91,11 +165,14 @@ class RobotLoop:
         self._peak_p = np.array([model.peak(w)[1] for w in model.clip_load(self.loads)])
         self._tcache: dict = {}
         self._k = 0
+        self._t: float | None = None
+        self._period = float(bank.settings.sample_period)
 
     def set_targets(self, targets: dict) -> None:
         """Replace the layer targets ({layer: ((t s, centre m, bend rad, direction rad), ...)}) from the next
-        tick on (the cache of chamber targets is dropped with them)."""
-        self.targets = targets
+        tick on (the cache of chamber targets is dropped with them). ValueError (naming the layer, row
+        and key) on a non-finite or non-numeric value; the old targets then stay."""
+        self.targets = check_targets(targets, self.design.n_layers)
         self._tcache.clear()
 
     def chamber_targets(self, t: float) -> np.ndarray:
@@ -105,10 +182,23 @@ class RobotLoop:
     def tick(self, t: float, readings_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One period at time t (s) with the 3N pressure readings (Pa, NaN = dropout) -> (supply, outlet),
         each (n,) in [0, 1]; the plant's valve inputs (3 x n) are in ``valve_commands``."""
-        z = np.asarray(readings_pa, dtype=float).reshape(self.n)
+        try:
+            tf = float(t)
+        except (TypeError, ValueError):
+            tf = math.nan
+        if isinstance(t, (str, bytes, bool)) or not math.isfinite(tf):
+            raise ValueError(f"RobotLoop.tick: t = {t!r} must be a finite time in s")
+        if self._t is not None and tf < self._t - 1e-9:
+            raise ValueError(f"RobotLoop.tick: t = {tf} s is before the last tick's {self._t} s "
+                             "(time must not go backwards)")
+        # periods since the last tick (a late tick predicts them all; the bank bounds a long gap)
+        steps = 1 if self._t is None else max(1, int(round((tf - self._t) / self._period)))
+        self._t = t = tf
         ctrl, sup, model = self.controller, self.supervisor, self.model
         t0 = time.perf_counter()
-        est = self.bank.step(z, self._w_prev, self.loads)
+        est = self.bank.step(readings_pa, self._w_prev, self.loads, steps=steps)
+        # the supervisor's interlock sees the readings the bank trusted (an outlier is no pressure)
+        z = np.where(est["outlier"], np.nan, _as_float(readings_pa, self.n))
         t1 = time.perf_counter()
         self.estimate = est
         W = np.maximum(load_sharing(self.design, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
@@ -130,20 +220,29 @@ class RobotLoop:
                     self.cautious_steps += int(near.sum())
                 a, o = ctrl.step(est["x"], est["b"], W, href, est["k"], est["c"], a_max)
                 ok = not ctrl.failed
-                cause = "ok" if ok else f"qp: {ctrl.status}"
-                plan = self._plan(ctrl.plan) if ok else None
+                if ok:
+                    cause, plan = "ok", self._plan(ctrl.plan)
+                elif ctrl.overran:
+                    # late: the supervisor replays the last plan now and keeps this one for the next failure
+                    cause, plan = "overrun", self._plan(ctrl.late_plan)
+                else:
+                    cause = f"qp: {ctrl.status}"
             else:
                 a, o = ctrl.step(z, W, href)
         except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
             a, o, ok, cause = np.zeros(self.n), np.zeros(self.n), False, f"exception: {type(exc).__name__}"
         cmd = sup.apply(t, np.column_stack([a, o]), z, ok=ok, plan=plan, target=href, cause=cause)
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
-        Uc = commands_from_inputs(a, o, model.topology)
+        if self.is_mpc:
+            ctrl.applied(a, o)
+        # the compressor throttled to the planned flows at the estimated pressures (the bank and the
+        # NMPC keep working in a: a full-speed inlet duty)
+        Uc = model.valve_inputs(a, o, est["p"], throttle=self.throttle)
         t2 = time.perf_counter()
         self.last_timing = (t2 - t0, t1 - t0, t2 - t1)
         for st, v in zip((self.step_s, self.ekf_s, self.ctrl_s), self.last_timing):
             st.add(v)
-        self._w_prev = Uc[1:].copy()
+        self._w_prev = np.vstack([_flow_duty(a, model.topology), Uc[2]])
         self.valve_commands = Uc
         self._k += 1
         return a, o
@@ -166,4 +265,6 @@ class RobotLoop:
         return {"step_ms": ms(self.step_s), "ekf_ms": ms(self.ekf_s), "controller_ms": ms(self.ctrl_s),
                 "fallbacks": int(sup.failed_steps), "interlocks": int(sup.counts["guard"]),
                 "vents": int(sup.counts["vent"]), "cautious_steps": int(self.cautious_steps),
-                "qp_not_solved": int(getattr(self.controller, "inaccurate", 0))}
+                "qp_not_solved": int(getattr(self.controller, "inaccurate", 0)),
+                "overruns": int(getattr(self.controller, "overruns", 0)),
+                "estimator": self.bank.stats()}
