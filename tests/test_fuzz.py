@@ -140,7 +140,7 @@ def _one_line(msg: str) -> bool:
     return "\n" not in msg.strip() and "Traceback" not in msg
 
 
-@settings(FUZZ, max_examples=150)
+@settings(FUZZ, max_examples=300)
 @given(mutated_scenarios())
 def test_mutated_scenario_files_load_or_fail_with_one_error_naming_the_file(tmp_path_factory, case):
     name, raw, kind, key = case
@@ -289,8 +289,7 @@ def _ekf_sequence(f, steps):
     return out
 
 
-@pytest.mark.xfail(strict=False, reason="hardening branch: time-jump bound, outlier gate, argument checks")
-@settings(STEP_FUZZ, max_examples=25)
+@settings(STEP_FUZZ, max_examples=60)
 @given(st.lists(st.tuples(T_STEPS, READINGS), min_size=1, max_size=12))
 def test_ekf_step_with_fuzzed_times_and_readings_gives_a_valid_estimate_or_one_error(steps):
     for dt, z, (kind, info) in _run_guarded(_ekf_sequence, _proto("ekf"), steps):
@@ -320,7 +319,8 @@ def _controller_calls(c, cases):
 CONTROLLER_CASES = st.lists(st.tuples(T_STEPS, HEIGHTS, READINGS, HEIGHTS), min_size=1, max_size=10)
 
 
-@pytest.mark.xfail(strict=False, reason="hardening branch: NaN-reference refusal and argument checks")
+@pytest.mark.xfail(strict=False, reason="open: a string time or pressure reaches numpy and fails with a TypeError "
+                   "that names no argument (Estimate and step accept str unchecked)")
 @settings(STEP_FUZZ, max_examples=25)
 @given(CONTROLLER_CASES)
 def test_pid_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):
@@ -328,7 +328,8 @@ def test_pid_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or
         assert kind != "bad", (args, info)
 
 
-@pytest.mark.xfail(strict=False, reason="hardening branch: NaN-reference refusal and argument checks")
+@pytest.mark.xfail(strict=False, reason="open: a string time or pressure reaches numpy and fails with a TypeError "
+                   "that names no argument (Estimate and step accept str unchecked)")
 @settings(STEP_FUZZ, max_examples=15)
 @given(CONTROLLER_CASES)
 def test_nmpc_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):
@@ -340,7 +341,9 @@ def _chamber_loop_sequence(ekf, nmpc, steps, ref):
     from hbma_ctrl.runtime.chamber import ChamberLoop
 
     loop = ChamberLoop(ekf, nmpc, reference=lambda t: ref)
-    loop.tick(0.0, 0.0)
+    first = _outcome(lambda: loop.tick(0.0, 0.0), (r"reference", r"target"))  # a bad target is refused here
+    if first[0] != "ok":
+        return [(0.0, 0.0, first)]
     t, out = 0.0, []
     for dt, z in steps:
         tn = _t_next(t, dt)
@@ -352,8 +355,7 @@ def _chamber_loop_sequence(ekf, nmpc, steps, ref):
     return out
 
 
-@pytest.mark.xfail(strict=False, reason="hardening branch: time-jump bound, outlier gate, NaN-reference refusal")
-@settings(STEP_FUZZ, max_examples=15)
+@settings(STEP_FUZZ, max_examples=30)
 @given(st.lists(st.tuples(T_STEPS, READINGS), min_size=1, max_size=10), HEIGHTS)
 def test_chamber_loop_tick_with_fuzzed_inputs_gives_a_command_in_0_1_or_one_error(steps, ref):
     for dt, z, (kind, info) in _run_guarded(_chamber_loop_sequence, _proto("ekf"), _proto("nmpc"), steps, ref):
@@ -379,8 +381,11 @@ def _robot_loop_sequence(parts, steps, ref_mm):
     from hbma_ctrl.runtime.robot import RobotLoop
 
     d, model, bank, ctrl, sup = parts
-    loop = RobotLoop(d, model, bank, ctrl, sup,
-                     {0: ((0.0, ref_mm * 1e-3 if isinstance(ref_mm, float) else ref_mm, 0.0, 0.0),)})
+    made = _outcome(lambda: RobotLoop(d, model, bank, ctrl, sup, {0: ((0.0, ref_mm * 1e-3, 0.0, 0.0),)}),
+                    (r"target", r"centre"))
+    if made[0] != "ok":
+        return [(0.0, None, made)]
+    loop = made[1]
     t, out = 0.0, []
     for dt, zs in steps:
         tn = _t_next(t, dt)
@@ -394,8 +399,7 @@ def _robot_loop_sequence(parts, steps, ref_mm):
     return out
 
 
-@pytest.mark.xfail(strict=False, reason="hardening branch: outlier gate, argument checks")
-@settings(STEP_FUZZ, max_examples=8)
+@settings(STEP_FUZZ, max_examples=20)
 @given(st.lists(st.tuples(T_STEPS, st.one_of(st.lists(READINGS, min_size=3, max_size=3),
                                               st.lists(st.floats(0, 40e3), min_size=0, max_size=5))),
                 min_size=1, max_size=8),
