@@ -201,3 +201,67 @@ def test_bench_loop_load_step_pass_rate_over_20_seeds():
     rows = run_loop_bench(list(range(20)), ["load_step_200g"], workers=2)
     assert all(r["max_pressure_kpa"] <= r["pressure_limit_kpa"] for r in rows)
     assert sum(r["passed"] for r in rows) >= 17, [(r["seed"], r["final_error_mm"]) for r in rows]
+
+
+# ------------------------------------------------------------------------------------- no silent nonsense
+def _fig7_with(tmp_path: Path, old: str, new: str, name: str = "s.toml") -> Path:
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text()
+    assert old in text
+    p = tmp_path / name
+    p.write_text(text.replace(old, new))
+    return p
+
+
+@pytest.mark.xfail(strict=False, reason="open: plant metrics are read from the decimated log (sim/simulate.py keeps "
+                   "every log_dt-th step only); needs peaks tracked at every step")
+def test_run_peak_height_comes_from_the_simulation_not_the_decimated_log(tmp_path):
+    """Fig. 7's 19 mm inflation logged every 5 s: the reported peak is still about 19 mm (the same run
+    at the normal 10 ms log), not the 0.6 mm the two logged samples show."""
+    fine = runner.invoke(app, ["run", str(ROOT / "scenarios" / "open_loop_fig7.toml"), "--out", str(tmp_path / "a")])
+    assert fine.exit_code == 0, fine.output
+    peak = json.loads((tmp_path / "a" / "metrics.json").read_text())["plant"]["max_height_mm"]
+    assert peak > 15.0
+    p = _fig7_with(tmp_path, "log_dt_ms = 10.0", "log_dt_ms = 5000.0")
+    res = runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "b")])
+    assert res.exit_code == 0, res.output
+    coarse = json.loads((tmp_path / "b" / "metrics.json").read_text())["plant"]["max_height_mm"]
+    assert coarse == pytest.approx(peak, rel=0.01)
+
+
+def test_run_whose_solver_diverges_ends_non_zero_with_status_failed(tmp_path):
+    """E = 1e300 Pa: the trial diverges; the run exits non-zero, keeps its files as <out>.failed-<time>
+    with manifest status 'failed', and leaves nothing at --out that looks complete."""
+    p = _fig7_with(tmp_path, "E = 130.6e3 ", "E = 1e300 ")
+    out = tmp_path / "o"
+    res = runner.invoke(app, ["run", str(p), "--out", str(out)])
+    assert res.exit_code not in (0, 2), res.output  # not success, and not a refused input either
+    assert "diverged" in res.output
+    assert not (out / "metrics.json").exists()
+    (failed,) = tmp_path.glob("o.failed-*")
+    assert json.loads((failed / "manifest.json").read_text())["status"] == "failed"
+
+
+def test_run_whose_step_count_would_take_hours_says_so_before_starting(tmp_path, monkeypatch, capsys):
+    """3600 s at a 1 us step (3.6e9 steps): a note with the step count and the hours comes out before
+    the first step (the simulation is stubbed here: the note must precede it)."""
+    import hbma_ctrl.app.runner as runner_mod
+    from hbma_ctrl.app.scenario import load_scenario
+
+    class Started(Exception):
+        pass
+
+    def stop(*a, **k):
+        assert "integration steps" in capsys.readouterr().err  # already said when the work starts
+        raise Started
+
+    monkeypatch.setattr(runner_mod, "simulate_trials", stop)
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text()
+    text = text.replace("duration_s = 6.0", "duration_s = 3600.0").replace('integrator = "rk4"',
+                                                                         'integrator = "rk4"\ndt_ms = 0.001')
+    p = tmp_path / "long.toml"
+    p.write_text(text)
+    with pytest.raises(Started):
+        runner_mod.run_scenario(load_scenario(p), tmp_path / "o")
+    note = runner_mod.step_count_note(load_scenario(p))
+    assert "3.6e+09 integration steps" in note and " h " in note
+    assert runner_mod.step_count_note(load_scenario(ROOT / "scenarios" / "open_loop_fig7.toml")) is None
