@@ -233,6 +233,9 @@ HEIGHTS = st.one_of(
 )
 
 _READ_NAMES = (r"reading", r"measurement", r"pressure")
+_CMD_NAMES = (r"command", r"speed", r"inlet", r"outlet")
+DUTIES = st.one_of(st.floats(0.0, 1.0), st.sampled_from([math.nan, math.inf, -0.5, 1.5, 1e9]))
+COMMANDS = st.one_of(st.just((1.0, 1.0, 0.0)), st.tuples(DUTIES, DUTIES, DUTIES))
 _T_NAMES = (r"\bt\b", r"time")
 
 
@@ -276,22 +279,22 @@ def _ekf_sequence(f, steps):
 
     f.step(0.0, 0.0, Command(0.0, 0.0, 0.0))
     t, out = 0.0, []
-    for dt, z in steps:
+    for dt, z, u in steps:
         tn = _t_next(t, dt)
-        r = _outcome(lambda: f.step(tn, z, Command(1.0, 1.0, 0.0)), _T_NAMES + _READ_NAMES)
+        r = _outcome(lambda: f.step(tn, z, Command(*u)), _T_NAMES + _READ_NAMES + _CMD_NAMES)
         if r[0] == "ok":
             e = r[1]
             vals = [e.h, e.h1, e.h2, e.p, e.F]
             r = ("ok", None) if all(math.isfinite(v) for v in vals) and e.h >= 0 and e.F >= 0 else \
                 ("bad", f"estimate not finite/valid: h {e.h} p {e.p} F {e.F} after t {tn!r} z {z!r}")
             t = tn
-        out.append((dt, z, r))
+        out.append((dt, (z, u), r))
     return out
 
 
 @settings(STEP_FUZZ, max_examples=60)
-@given(st.lists(st.tuples(T_STEPS, READINGS), min_size=1, max_size=12))
-def test_ekf_step_with_fuzzed_times_and_readings_gives_a_valid_estimate_or_one_error(steps):
+@given(st.lists(st.tuples(T_STEPS, READINGS, COMMANDS), min_size=1, max_size=12))
+def test_ekf_step_with_fuzzed_times_readings_and_commands_gives_a_valid_estimate_or_one_error(steps):
     for dt, z, (kind, info) in _run_guarded(_ekf_sequence, _proto("ekf"), steps):
         assert kind != "bad", (dt, z, info)
 
