@@ -174,14 +174,97 @@ def test_equilibrium_dead_volume_option():
     assert b["pressure_kpa"] == pytest.approx(a["pressure_kpa"], rel=1e-12)
 
 
-def test_bench_loop_writes_runs_and_summary(tmp_path):
-    """One seed of the load-step case through the EKF: the command runs and writes bench_loop.json."""
-    res = runner.invoke(app, ["bench", "loop", "--seeds", "1", "--cases", "load_step_200g", "--workers", "1",
+def test_bench_loop_load_step_holds_over_seeds_0_to_2(tmp_path):
+    """README Control: 400 g + 200 g at 2 s, hold 5 mm, passes on 9 of 10 rig seeds (the TRUE height
+    within 0.3 mm of the target over the last second). Over seeds 0, 1, 2 through the CLI: at least
+    2 of 3 pass (a 9/10 rate fails 2 of 3 with probability < 3 %), the pressure limit always holds,
+    and the summary agrees with the rows."""
+    res = runner.invoke(app, ["bench", "loop", "--seeds", "3", "--cases", "load_step_200g", "--workers", "1",
                               "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
     data = json.loads((tmp_path / "bench_loop.json").read_text())
-    (row,) = data["rows"]
-    assert row["case"] == "load_step_200g" and row["seed"] == 0
+    rows = data["rows"]
+    assert [r["seed"] for r in rows] == [0, 1, 2] and {r["case"] for r in rows} == {"load_step_200g"}
+    for r in rows:
+        assert r["passed"] == (r["final_error_mm"] < 0.3), r
+        # fallbacks are not asserted: an overrun (wall time) counts as one, so they depend on machine load
+        assert r["max_pressure_kpa"] <= r["pressure_limit_kpa"]
+    assert sum(r["passed"] for r in rows) >= 2, rows
     summ = data["summary"]["load_step_200g"]
-    assert summ["runs"] == 1 and summ["passed"] == int(row["passed"])
-    assert summ["max_pressure_kpa"] <= summ["pressure_limit_kpa"]
+    assert summ["runs"] == 3 and summ["passed"] == sum(r["passed"] for r in rows)
+
+
+@pytest.mark.slow
+def test_bench_loop_load_step_pass_rate_over_20_seeds():
+    """The README's 9/10 for the load step, as a rate over rig seeds 0-19: at least 17 of 20.
+    Measured 2026-12-02 (main with the hardening merged): 16 of 20, so this fails until the loop
+    improves or the README states the lower rate."""
+    from hbma_ctrl.app.bench_loop import run_loop_bench
+
+    rows = run_loop_bench(list(range(20)), ["load_step_200g"], workers=2)
+    assert all(r["max_pressure_kpa"] <= r["pressure_limit_kpa"] for r in rows)
+    assert sum(r["passed"] for r in rows) >= 17, [(r["seed"], r["final_error_mm"]) for r in rows]
+
+
+# ------------------------------------------------------------------------------------- no silent nonsense
+def _fig7_with(tmp_path: Path, old: str, new: str, name: str = "s.toml") -> Path:
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text()
+    assert old in text
+    p = tmp_path / name
+    p.write_text(text.replace(old, new))
+    return p
+
+
+@pytest.mark.xfail(strict=False, reason="open: plant metrics are read from the decimated log (sim/simulate.py keeps "
+                   "every log_dt-th step only); needs peaks tracked at every step")
+def test_run_peak_height_comes_from_the_simulation_not_the_decimated_log(tmp_path):
+    """Fig. 7's 19 mm inflation logged every 5 s: the reported peak is still about 19 mm (the same run
+    at the normal 10 ms log), not the 0.6 mm the two logged samples show."""
+    fine = runner.invoke(app, ["run", str(ROOT / "scenarios" / "open_loop_fig7.toml"), "--out", str(tmp_path / "a")])
+    assert fine.exit_code == 0, fine.output
+    peak = json.loads((tmp_path / "a" / "metrics.json").read_text())["plant"]["max_height_mm"]
+    assert peak > 15.0
+    p = _fig7_with(tmp_path, "log_dt_ms = 10.0", "log_dt_ms = 5000.0")
+    res = runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "b")])
+    assert res.exit_code == 0, res.output
+    coarse = json.loads((tmp_path / "b" / "metrics.json").read_text())["plant"]["max_height_mm"]
+    assert coarse == pytest.approx(peak, rel=0.01)
+
+
+def test_run_whose_solver_diverges_ends_non_zero_with_status_failed(tmp_path):
+    """E = 1e300 Pa: the trial diverges; the run exits non-zero, keeps its files as <out>.failed-<time>
+    with manifest status 'failed', and leaves nothing at --out that looks complete."""
+    p = _fig7_with(tmp_path, "E = 130.6e3 ", "E = 1e300 ")
+    out = tmp_path / "o"
+    res = runner.invoke(app, ["run", str(p), "--out", str(out)])
+    assert res.exit_code not in (0, 2), res.output  # not success, and not a refused input either
+    assert "diverged" in res.output
+    assert not (out / "metrics.json").exists()
+    (failed,) = tmp_path.glob("o.failed-*")
+    assert json.loads((failed / "manifest.json").read_text())["status"] == "failed"
+
+
+def test_run_whose_step_count_would_take_hours_says_so_before_starting(tmp_path, monkeypatch, capsys):
+    """3600 s at a 1 us step (3.6e9 steps): a note with the step count and the hours comes out before
+    the first step (the simulation is stubbed here: the note must precede it)."""
+    import hbma_ctrl.app.runner as runner_mod
+    from hbma_ctrl.app.scenario import load_scenario
+
+    class Started(Exception):
+        pass
+
+    def stop(*a, **k):
+        assert "integration steps" in capsys.readouterr().err  # already said when the work starts
+        raise Started
+
+    monkeypatch.setattr(runner_mod, "simulate_trials", stop)
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text()
+    text = text.replace("duration_s = 6.0", "duration_s = 3600.0").replace('integrator = "rk4"',
+                                                                         'integrator = "rk4"\ndt_ms = 0.001')
+    p = tmp_path / "long.toml"
+    p.write_text(text)
+    with pytest.raises(Started):
+        runner_mod.run_scenario(load_scenario(p), tmp_path / "o")
+    note = runner_mod.step_count_note(load_scenario(p))
+    assert "3.6e+09 integration steps" in note and " h " in note
+    assert runner_mod.step_count_note(load_scenario(ROOT / "scenarios" / "open_loop_fig7.toml")) is None

@@ -108,3 +108,49 @@ def test_cli_pose_and_errors(tmp_path):
     assert "bend 23.4 deg toward 180.0 deg" in r.output
     bad = CliRunner().invoke(app, ["robot", "pose", "--heights-mm", "1,2", "--out", str(tmp_path)])
     assert bad.exit_code == 2 and "error:" in bad.output and "--heights-mm" in bad.output
+
+
+# ------------------------------------------------------------------------------------------ claims over seeds
+#: README Robot, measured table: every segment settled (2 deg, 0.5 mm) and the 45 kPa limit held
+ROBOT_CLAIMS = ("robot_bending", "robot_sequential_closed", "robot_tip_load")
+
+
+def _robot_scene_over_seed(name: str, seed: int, tmp_path: Path) -> dict:
+    """The shipped closed-loop robot scene with another rig noise seed (NMPC only, no baseline run)."""
+    import tomllib
+
+    import tomli_w
+
+    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenario import load_scenario
+
+    doc = tomllib.loads((ROOT / "scenarios" / f"{name}.toml").read_text(encoding="utf-8"))
+    doc["rig"]["seed"] = seed
+    doc["robot"]["compare_baseline"] = False
+    path = tmp_path / f"{name}_s{seed}.toml"
+    path.write_text(tomli_w.dumps(doc), encoding="utf-8")
+    return run_scenario(load_scenario(path), tmp_path / f"out_{name}_s{seed}")["robot"]
+
+
+def _robot_claim_holds(rob: dict) -> bool:
+    segs = rob["segments"]
+    # fallbacks are left out: an overrun (wall time) counts as one, so they depend on machine load
+    return all(s["settled"] for s in segs) and not rob["pressure_limit_exceeded"] and rob["max_pressure_kpa"] <= 45.0
+
+
+def test_robot_tip_load_claim_holds_on_a_seed_it_was_not_shipped_with(tmp_path):
+    """README Robot: robot_tip_load settles 3/3 segments under 45 kPa; the scene ships with rig seed 2,
+    this runs seed 0 (the cheapest robot scene: the full 3 scenes x 3 seeds are the slow sweep)."""
+    rob = _robot_scene_over_seed("robot_tip_load", 0, tmp_path)
+    assert len(rob["segments"]) == 3
+    assert _robot_claim_holds(rob), rob["segments"]
+    assert rob["chamber_height_rmse_mm"] < 0.5 and rob["bend_angle_rmse_deg"] < 2.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ROBOT_CLAIMS)
+def test_robot_closed_loop_claims_hold_over_20_rig_seeds(name, tmp_path):
+    """Each README robot claim (every segment settled within 2 deg / 0.5 mm, the 45 kPa limit held) as
+    a pass rate over rig seeds 0-19: at least 18 of 20."""
+    results = {seed: _robot_claim_holds(_robot_scene_over_seed(name, seed, tmp_path)) for seed in range(20)}
+    assert sum(results.values()) >= 18, results

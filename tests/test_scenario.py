@@ -63,6 +63,14 @@ def test_unknown_key_names_field_and_suggests_closest(tmp_path):
         load_scenario(_write(tmp_path, BASE.replace("r1_mm = 7.5", "r1_mmm = 7.5")))
 
 
+def test_misspelt_required_key_is_named_as_written(tmp_path):
+    """A required key misspelt: the error names what the user wrote and suggests the key, instead of
+    saying the key they did not write is required."""
+    text = (ROOT / "scenarios" / "mpc_ramp_sine.toml").read_text().replace("targets_mm =", "ttargets_mm =")
+    with pytest.raises(ValueError, match=r"\[controller\] ttargets_mm: unknown key; did you mean targets_mm"):
+        load_scenario(_write(tmp_path, text))
+
+
 def test_unknown_table_suggests_closest_role(tmp_path):
     with pytest.raises(ValueError, match=r"\[estimater\].*did you mean \[estimator\]"):
         load_scenario(_write(tmp_path, BASE + "[estimater]\nkind = 'ekf'\n"))

@@ -175,6 +175,16 @@ def test_log_csv_is_written_in_edge_units(tmp_path):
     write_log_csv(log, path)
     header = path.read_text().splitlines()[0].split(",")
     assert "h_mm" in header and "p_kpa" in header and header[-1] == "event"
+    # the values are the log's, converted: m -> mm, Pa -> kPa, kg -> mg, m^3 -> cm^3, speed 0-1 -> %
+    import csv
+
+    with open(path) as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(log["t"])
+    for col, key, scale in [("t_s", "t", 1.0), ("h_mm", "h", 1e3), ("p_kpa", "p", 1e-3), ("m_mg", "m", 1e6),
+                            ("V_cm3", "V", 1e6), ("speed_pct", "speed", 100.0), ("F_n", "F", 1.0)]:
+        got = np.array([float(r[col]) for r in rows])
+        np.testing.assert_allclose(got, scale * np.asarray(log[key]), rtol=1e-8, atol=1e-12, err_msg=col)
 
 
 def test_bad_schedules_and_settings_name_the_field():

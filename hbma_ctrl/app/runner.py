@@ -10,6 +10,8 @@ role keys into ``out_dir/metrics.json`` (see :mod:`hbma_ctrl.app.metrics`). Open
 
 from __future__ import annotations
 
+import math
+import sys
 import time
 from pathlib import Path
 
@@ -28,7 +30,12 @@ from hbma_ctrl.app.scene_robot import run_scene as run_robot_scene
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import fidelity_for, simulate_trials
 
-__all__ = ["run_scenario", "run_open_loop", "RunFailed", "SCENE_DISPATCH"]
+__all__ = ["run_scenario", "run_open_loop", "RunFailed", "SCENE_DISPATCH", "LONG_RUN_STEPS", "step_count_note"]
+
+#: fixed steps (trials x steps) above which a run says before starting how long it may take
+LONG_RUN_STEPS = 2_000_000
+#: a conservative cost of one trial step on one core, s (rk4, one trial; a batch shares it)
+STEP_COST_S = 50e-6
 
 
 class RunFailed(RuntimeError):
@@ -46,6 +53,9 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
     """Simulate the scenario's trial(s) open loop; write log CSV(s) and plots; return {"plant": ...}."""
 
     t0 = time.perf_counter()
+    note = step_count_note(scn)
+    if note:
+        print(note, file=sys.stderr, flush=True)
     if scn.kind == "protocol":
         trials = scn.trials()
         rows = run_protocol(scn.actuator.material, out_dir, scn.sim.integrator, scn.sim.dt, scn.fidelity,
@@ -79,6 +89,26 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
         plant["dt_ms"] = U.to_ms(scn.sim.dt) if scn.sim.dt is not None else "default per fidelity"
     plant["wall_s"] = time.perf_counter() - t0
     return {"plant": plant}
+
+
+def step_count_note(scn: Scenario) -> str | None:
+    """One line saying how many fixed steps an open-loop run takes and roughly how long (at
+    :data:`STEP_COST_S` a trial step), when that is more than :data:`LONG_RUN_STEPS`; else None.
+    Adaptive runs (radau) choose their own steps and get no note."""
+    if scn.sim.integrator == "radau":
+        return None
+    trials = scn.trials()
+    steps = 0
+    for tr in trials:
+        fid = fidelity_for(tr, scn.fidelity)
+        steps += math.ceil(tr.duration / scn.sim.step_for(fid))
+    if steps <= LONG_RUN_STEPS:
+        return None
+    hours = steps * STEP_COST_S / 3600.0
+    dt_ms = U.to_ms(scn.sim.step_for(fidelity_for(trials[0], scn.fidelity)))
+    return (f"note: this run takes {steps:.3g} integration steps ({len(trials)} trial(s), dt {dt_ms:g} ms): "
+            f"about {hours:.2g} h at {STEP_COST_S * 1e6:g} us a step; a larger [sim] dt_ms or a shorter "
+            "[scenario] duration_s is faster (Ctrl-C stops it)")
 
 
 def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:

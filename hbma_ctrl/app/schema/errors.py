@@ -186,6 +186,12 @@ def format_error(exc: ValidationError, root: type[BaseModel], table: str | None 
     errs = exc.errors(include_url=False)
     if not errs:
         return f"[{table or 'scenario'}] invalid"
+    if errs[0]["type"] == "missing":
+        # a required key missing beside an unknown one is almost surely that key misspelt: name the
+        # key as the user wrote it (with the closest valid name), not the one they did not write
+        unknown = [e for e in errs if e["type"] == "extra_forbidden"]
+        if unknown:
+            return format_one(unknown[0], root, table)
     return format_one(errs[0], root, table)
 
 
