@@ -215,8 +215,6 @@ def _fig7_with(tmp_path: Path, old: str, new: str, name: str = "s.toml") -> Path
     return p
 
 
-@pytest.mark.xfail(strict=False, reason="open: plant metrics are read from the decimated log (sim/simulate.py keeps "
-                   "every log_dt-th step only); needs peaks tracked at every step")
 def test_run_peak_height_comes_from_the_simulation_not_the_decimated_log(tmp_path):
     """Fig. 7's 19 mm inflation logged every 5 s: the reported peak is still about 19 mm (the same run
     at the normal 10 ms log), not the 0.6 mm the two logged samples show."""

@@ -46,6 +46,9 @@ from hbma_ctrl.sim.trial import (
     Trial,
 )
 
+#: outputs whose peak over every integration step each log keeps (``Log.peaks``)
+PEAK_OUTPUTS = ("h", "p", "F")
+
 #: a gauge pressure no pneumatic HBMA reaches (10 MPa, 100 bar), Pa: a finite state past it means the
 #: fixed step went unstable (e.g. a stiff membrane, E = 1e300), so the trial is diverged, not "ok"
 P_DIVERGED = 1e7
@@ -232,15 +235,21 @@ def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings):
     every = max(1, int(round(s.log_dt / dt)))
     switch_steps = {int(round(ts / dt)) for tr in trials for ts in tr.schedule.times}
     rows = []
+    durations = np.array([tr.duration for tr in trials])
+    rows_peak = [OUTPUTS.index(n) for n in PEAK_OUTPUTS]
+    peaks = np.full((len(rows_peak), len(trials)), -np.inf)
     for k in range(nsteps + 1):
         if k in switch_steps:
             plant.set_inputs(np.column_stack([tr.schedule.at((k + 0.5) * dt) for tr in trials]))
+        # peaks from every step, each trial only up to its own end (a batch runs to the longest)
+        within = k * dt <= durations + 1e-9
+        peaks = np.where(within, np.fmax(peaks, np.asarray(plant.y)[rows_peak]), peaks)
         if k % every == 0:
             rows.append((k * dt, plant.U.copy(), plant.y, plant.mode.copy(), plant.mass_in.copy()))
         if k == nsteps:
             break
         plant._one()
-    return rows, plant.events, plant.alive
+    return rows, plant.events, plant.alive, peaks
 
 
 def _qs_snap_check(fid, batch, X, Xprev, mode, det0, det1, t, events):
@@ -288,7 +297,8 @@ MAX_SEGMENTS = 10000
 def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
     """Reference: scipy Radau per mode segment, events located to tolerance.
 
-    Returns (rows, events, ok, theta); ok is True, False (diverged) or "incomplete" (more than
+    Returns (rows, events, ok, theta, peaks); peaks: the largest of :data:`PEAK_OUTPUTS` over every
+    accepted solver step; ok is True, False (diverged) or "incomplete" (more than
     :data:`MAX_SEGMENTS` mode segments: the run stopped early and says so).
     """
     theta = fid.space.values(trial.actuator, trial.pneumatics, trial.platform)
@@ -319,10 +329,11 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
     r1 = theta[fid.space.names.index("r1")]
     W = theta[fid.space.names.index("W")]
     segments = 0
+    peaks = [-math.inf] * len(PEAK_OUTPUTS)
     while t < T - 1e-12:
         if segments >= MAX_SEGMENTS:  # chattering between modes: stop, and say the run is incomplete
             events[0].append((t, "segment_cap"))
-            return rows, events, "incomplete", theta
+            return rows, events, "incomplete", theta, peaks
         t_end = min(b for b in breaks if b > t + 1e-12)
         u = trial.schedule.at(t + 1e-9)
 
@@ -357,8 +368,12 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
         segments += 1
         if sol.status == -1:  # the step size fell below what Radau can take
             events[0].append((float(sol.t[-1]), "solver_failed"))
-            return rows, events, "diverged", theta
+            return rows, events, "diverged", theta, peaks
         t_stop = sol.t[-1]
+        for tt, zz in zip(sol.t, sol.y.T):  # peaks over every accepted solver step, not only the log rows
+            yy = np.asarray(fid.out(zz[:-1], u, th, mode)).ravel()
+            for q, n in enumerate(PEAK_OUTPUTS):
+                peaks[q] = max(peaks[q], float(yy[OUTPUTS.index(n)]))
         while next_log < len(log_t) and log_t[next_log] <= t_stop + 1e-12:
             zz = sol.sol(log_t[next_log])
             rows.append((log_t[next_log], zz[:-1], u, mode, zz[-1]))
@@ -367,7 +382,7 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
         x, mass_in = z[:-1].copy(), z[-1]
         if not np.all(np.isfinite(x)):
             events[0].append((t_stop, "diverged"))
-            return rows, events, False, theta
+            return rows, events, False, theta, peaks
         fired = sol.status == 1
         if fired and fid.name == "quasi_static" and mode == MODE_MOVING and len(sol.t_events) > 1 and sol.t_events[1].size:
             fb = _far_branch(fid, theta, x[0], x[1] - x[2], up=float(qf(x, u, mode)) > 0)
@@ -396,7 +411,7 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
             continue
         x = np.asarray(fid.project(x, th, mode)).ravel() if fid.name != "free" else x
         t = t_end
-    return rows, events, True, theta
+    return rows, events, True, theta, peaks
 
 
 def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity: str | None = None,
@@ -420,16 +435,18 @@ def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity:
         if s.integrator == "radau":
             for i, tr in zip(idx, sub):
                 t0 = time.perf_counter()
-                rows, events, ok, theta = _adaptive(fid, tr, s)
+                rows, events, ok, theta, peaks = _adaptive(fid, tr, s)
                 logs[i] = _rows_to_log_single(fid, tr, rows, events[0], ok, theta, s.sensor_range)
                 logs[i].wall_s = time.perf_counter() - t0
+                logs[i].peaks = dict(zip(PEAK_OUTPUTS, peaks))
         else:
             t0 = time.perf_counter()
-            rows, events, alive = _fixed_step(fid, sub, s)
+            rows, events, alive, peaks = _fixed_step(fid, sub, s)
             wall = (time.perf_counter() - t0) / len(sub)
             for j, (i, tr) in enumerate(zip(idx, sub)):
                 logs[i] = _rows_to_log_batch(fid, tr, rows, j, events[j], bool(alive[j]), s.sensor_range)
                 logs[i].wall_s = wall
+                logs[i].peaks = {n: float(peaks[q, j]) for q, n in enumerate(PEAK_OUTPUTS)}
     return logs
 
 

@@ -125,7 +125,9 @@ class Log:
     ``mass_in`` is the integrated net mass flow since t = 0 (kg), integrated by the same scheme
     as the state, so ``m - m0 - mass_in`` measures mass conservation. ``events`` holds
     (t, name) pairs; ``status`` is 'ok', 'resting' (a load that never lifted), 'diverged' or
-    'incomplete' (the adaptive reference stopped at its segment cap).
+    'incomplete' (the adaptive reference stopped at its segment cap). ``peaks`` holds the largest
+    h, p and F (m, Pa, N) over every integration step, not only the logged rows: a coarse log
+    interval must not hide a peak between two rows.
     """
 
     name: str
@@ -134,6 +136,7 @@ class Log:
     events: list = field(default_factory=list)
     status: str = "ok"
     wall_s: float = 0.0
+    peaks: dict = field(default_factory=dict)
 
     def __getitem__(self, key: str) -> np.ndarray:
         return self.data[key]
