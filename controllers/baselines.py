@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hbma_ctrl.core.interfaces import Command, Estimate, Reference
+from hbma_ctrl.core.interfaces import Command, Estimate, Reference, check_time
 from hbma_ctrl.core.params import Actuator, Pneumatics, check_range
 from hbma_ctrl.models.tables import PredictionModel
 
@@ -81,6 +81,7 @@ class PIDController:
     def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
         """Command for the next period from the height error (estimate vs reference)."""
         s = self.settings
+        t = check_time(t, "pid.step")
         h = float(estimate.h) if np.isfinite(estimate.h) else (self._h_prev or 0.0)
         if reference.height is None:
             self._hold = h if self._hold is None else self._hold
@@ -166,6 +167,7 @@ class BangBangController:
     def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
         """Hysteresis on the estimated pressure around the mapped setpoint."""
         s = self.settings
+        check_time(t, "bang_bang.step")
         if reference.height is None:
             self._hold = estimate.h if self._hold is None else self._hold
             r = self._hold

@@ -322,8 +322,6 @@ def _controller_calls(c, cases):
 CONTROLLER_CASES = st.lists(st.tuples(T_STEPS, HEIGHTS, READINGS, HEIGHTS), min_size=1, max_size=10)
 
 
-@pytest.mark.xfail(strict=False, reason="open: a string time or pressure reaches numpy and fails with a TypeError "
-                   "that names no argument (Estimate and step accept str unchecked)")
 @settings(STEP_FUZZ, max_examples=25)
 @given(CONTROLLER_CASES)
 def test_pid_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):
@@ -331,8 +329,6 @@ def test_pid_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or
         assert kind != "bad", (args, info)
 
 
-@pytest.mark.xfail(strict=False, reason="open: a string time or pressure reaches numpy and fails with a TypeError "
-                   "that names no argument (Estimate and step accept str unchecked)")
 @settings(STEP_FUZZ, max_examples=15)
 @given(CONTROLLER_CASES)
 def test_nmpc_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):

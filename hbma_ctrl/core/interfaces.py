@@ -11,12 +11,28 @@ so a daemon's loop is ``cmd = ctrl.step(t, est.step(t, p_meas, cmd), ref)``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from numbers import Real
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Command", "Estimate", "Reference", "Estimator", "Controller", "SAFE_COMMAND"]
+__all__ = ["Command", "Estimate", "Reference", "Estimator", "Controller", "SAFE_COMMAND", "check_time"]
+
+_UNITS = {"t": "s", "h1": "m", "h2": "m", "h": "m", "F": "N", "p": "Pa"}
+
+
+def _is_number(v) -> bool:
+    # bool is an int to Python, and a str would only fail later inside numpy with no name attached
+    return isinstance(v, (Real, np.floating, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def check_time(t, who: str) -> float:
+    """``t`` as a float; ValueError naming ``t`` (and ``who``: the caller) unless a finite number of s."""
+    if not _is_number(t) or not math.isfinite(float(t)):
+        raise ValueError(f"{who}: t = {t!r} must be a finite time (s)")
+    return float(t)
 
 
 @dataclass(frozen=True)
@@ -67,12 +83,24 @@ class Estimate:
     std: dict = field(default_factory=dict)
     flags: frozenset = frozenset()
 
+    def __post_init__(self) -> None:
+        # NaN is allowed (no estimate yet, a dropout); a string or None is refused here, by name
+        for name, unit in _UNITS.items():
+            v = getattr(self, name)
+            if not _is_number(v):
+                raise TypeError(f"estimate.{name} = {v!r} must be a number ({unit})")
+
 
 @dataclass(frozen=True)
 class Reference:
     """Targets for one chamber: membrane height h (m); None = no target (hold)."""
 
     height: float | None = None
+
+    def __post_init__(self) -> None:
+        h = self.height
+        if h is not None and (not _is_number(h) or not math.isfinite(float(h))):
+            raise ValueError(f"reference.height = {h!r} must be a finite height (m) or None (hold)")
 
 
 @runtime_checkable
