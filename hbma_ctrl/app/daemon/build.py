@@ -31,7 +31,8 @@ from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 from hbma_ctrl.sim.rig import RigSettings
 
-__all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "robot_rig_settings"]
+__all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
+           "robot_rig_settings"]
 
 
 def chamber_rig_settings(cfg: DaemonConfig) -> RigSettings:
@@ -276,3 +277,43 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
 def build_runner(cfg: DaemonConfig) -> ChamberRunner | RobotRunner:
     """The runner the configuration asks for (ValueError naming the key when the tables disagree)."""
     return _robot_runner(cfg) if cfg.kind == "robot" else _chamber_runner(cfg)
+
+
+def make_rig(cfg: DaemonConfig, runner):
+    """The rig link the configuration names: the lockstep simulated rig (with the [[daemon.fault]]
+    injections) or the serial link. ValueError when a backend is not available."""
+    if cfg.rig == "serial":
+        try:
+            from hbma_ctrl.app.daemon.serial_link import SerialRig
+        except ImportError as exc:
+            raise ValueError(f"--rig serial: the serial backend is not available ({exc})") from None
+        return SerialRig(cfg.port, runner.n, baud=cfg.baud, sample_period=cfg.period)
+    try:
+        from hbma_ctrl.app.daemon.rig_sim import SimRig
+    except ImportError as exc:
+        raise ValueError(f"--rig sim: the simulated rig backend is not available ({exc})") from None
+    scn = cfg.scenario
+    if cfg.kind == "robot":
+        s = scn.role("robot")
+        rig = SimRig.robot(s.design, scn.pneumatics, s.pneumatics.sensor_range, s.pneumatics.topology,
+                           robot_rig_settings(cfg), s.tip_load)
+    else:
+        rig = SimRig.chamber(scn.actuator, scn.pneumatics, scn.platform, chamber_rig_settings(cfg))
+    if cfg.faults:
+        from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
+        try:
+            rig = FaultyRig(rig, parse_faults(cfg.faults))
+        except ValueError as exc:
+            msg = str(exc)
+            raise ValueError(msg if msg.startswith("[") else f"[daemon.fault] {msg}") from None
+    return rig
+
+
+def make_monitor(cfg: DaemonConfig, runner):
+    """The safety monitor for the runner's chambers (pressure cap at the runner's limit), or None
+    when the watchdog is not available."""
+    try:
+        from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
+    except ImportError:
+        return None
+    return SafetyMonitor(MonitorSettings(p_max=runner.p_limit, sample_period=cfg.period), runner.n)

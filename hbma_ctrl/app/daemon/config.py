@@ -16,6 +16,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from hbma_ctrl.app.daemon.api import is_loopback
 from hbma_ctrl.app.scenario import Scenario, load_scenario
 from hbma_ctrl.app.schema.daemon import DaemonTable, parse_api_address
 from hbma_ctrl.app.schema.errors import format_error
@@ -139,6 +140,9 @@ def load_config(path: str | Path, flags: dict | None = None) -> DaemonConfig:
     if d.rig == "serial" and d.fault:
         raise ValueError(f"{path.name}: [[daemon.fault]] injects faults into the simulated rig only (rig = 'sim')")
     api = parse_api_address(d.api) if d.api is not None else None
+    if api is not None and not is_loopback(api[0]) and not (d.allow_remote and d.token):
+        raise ValueError(f"{path.name}: [daemon] api = {d.api!r} (or --api) is not a loopback address (127.0.0.1, ::1, "
+                         "localhost); another address needs allow_remote = true (--allow-remote) and a token (--token)")
     return DaemonConfig(scenario=scn, kind=kind, rate_hz=float(d.rate_hz), rig=d.rig, port=d.port, baud=d.baud,
                         speed=float(d.speed), duration=None if d.duration_s is None else float(d.duration_s),
                         api=api, allow_remote=d.allow_remote, token=d.token,
