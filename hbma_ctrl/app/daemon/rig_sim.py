@@ -1,0 +1,157 @@
+"""The ``sim`` rig backend: a :class:`~hbma_ctrl.app.daemon.rigio.RigIO` on the mismatched rig models (SI).
+
+:class:`SimRig` runs in lockstep: each :meth:`SimRig.write` holds the command for exactly one
+``sample_period`` and advances the simulated rig by that period, so rig time is ``k * sample_period``
+after k writes, exact and deterministic (same settings and seed -> same readings). :meth:`SimRig.read`
+returns the rig's measurement at the current rig time, stamped with that time and a sequence number
+(one new sample per period; a second read in the same period repeats the packet with ``fresh``
+False, as a real rig's last packet would).
+
+Real-time pacing is NOT done here: the daemon's loop paces the periods (and its ``--speed`` scales
+them); a SimRig runs as fast as it is called.
+
+Two constructors: :meth:`SimRig.chamber` (one chamber, :class:`hbma_ctrl.sim.rig.Rig`, with optional
+load steps as the closed-loop scene has them) and :meth:`SimRig.robot` (every chamber of a robot,
+:class:`hbma_ctrl.robot.rig.RobotRig`, with the robot scene's tip load).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hbma_ctrl.app.daemon.rigio import Readings, check_u, safe_u
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
+from hbma_ctrl.sim.rig import Rig, RigSettings
+
+__all__ = ["SimRig"]
+
+
+class _ChamberAdapter:
+    """One :class:`Rig` seen as a 1-chamber array plant."""
+
+    def __init__(self, rig: Rig, load_steps=()):
+        self.rig = rig
+        self.n = 1
+        self.sample_period = rig.settings.sample_period
+        self.loads = sorted((float(t), float(m)) for t, m in load_steps)
+        self._loads_due(0.0)
+
+    def _loads_due(self, t: float) -> None:
+        while self.loads and self.loads[0][0] <= t + 1e-9:
+            self.rig.set_load(self.loads.pop(0)[1])
+
+    def apply(self, u: np.ndarray) -> None:
+        self.rig.apply(u[:, 0])
+        self._loads_due(self.rig.t)
+
+    def measure(self) -> np.ndarray:
+        return np.array([self.rig.measure()])
+
+    def truth(self) -> dict:
+        return self.rig.truth()
+
+
+class _RobotAdapter:
+    """A :class:`RobotRig` (already an array plant)."""
+
+    def __init__(self, rig: RobotRig):
+        self.rig = rig
+        self.n = rig.n
+        self.sample_period = rig.s.sample_period
+
+    def apply(self, u: np.ndarray) -> None:
+        self.rig.apply(u)
+
+    def measure(self) -> np.ndarray:
+        return np.asarray(self.rig.measure(), dtype=float)
+
+    def truth(self) -> dict:
+        out = self.rig.truth()
+        out["t"] = self.rig.t
+        return out
+
+
+class SimRig:
+    """A simulated rig behind the RigIO interface, in lockstep (see module doc).
+
+    Attributes: ``n`` chambers, ``sample_period`` s, ``t`` rig time (s), ``seq`` the number of the
+    newest sample, ``held`` the command (3, n) in force, ``rig`` the wrapped rig model.
+    Use :meth:`chamber` or :meth:`robot` to build one.
+    """
+
+    def __init__(self, adapter):
+        self._a = adapter
+        self.rig = adapter.rig
+        self.n: int = adapter.n
+        self.sample_period: float = float(adapter.sample_period)
+        self.t = 0.0
+        self.seq = 0
+        self.held = safe_u(self.n)
+        self.closed = False
+        self._packet: Readings | None = None
+
+    # --- constructors ---------------------------------------------------------------------------
+    @classmethod
+    def chamber(cls, actuator: Actuator, pneumatics: Pneumatics, platform: Platform,
+                rig_settings: RigSettings | None = None, load_steps=()) -> "SimRig":
+        """One chamber on the mismatched single-chamber rig (nominal actuator, pneumatics and platform;
+        the rig applies its own mismatch). ``load_steps``: ((t s, load kg), ...) put on when rig time
+        reaches t (as the closed-loop scene's ``load_steps_g``)."""
+        return cls(_ChamberAdapter(Rig(actuator, pneumatics, platform, rig_settings or RigSettings()),
+                                   load_steps))
+
+    @classmethod
+    def robot(cls, settings, rig_settings: RobotRigSettings | None = None,
+              pneumatics: Pneumatics | None = None, tip_load=()) -> "SimRig":
+        """Every chamber (3 per layer) of the robot ``settings`` (a :class:`hbma_ctrl.app.sections.RobotSettings`:
+        design, topology and sensor range) on the mismatched robot rig; ``tip_load``: rows
+        (t s, fx, fy, fz N) as the robot scenes give them."""
+        pn = (pneumatics or Pneumatics()).validate()
+        rp = settings.pneumatics
+        rig = RobotRig(settings.design, pn, rp.sensor_range, rp.topology,
+                       (rig_settings or RobotRigSettings()).validate(), tip_load)
+        return cls(_RobotAdapter(rig))
+
+    # --- RigIO ------------------------------------------------------------------------------------
+    def read(self) -> Readings:
+        """The rig's measurement (Pa, (n,), NaN on a dropout) at rig time ``t``; one new sample per period."""
+        if self.closed:
+            raise RuntimeError("SimRig.read after close()")
+        if self._packet is None:
+            self._packet = Readings(t=self.t, p=self._a.measure(), seq=self.seq, fresh=np.ones(self.n, dtype=bool))
+            return self._packet
+        pk = self._packet
+        return Readings(t=pk.t, p=pk.p.copy(), seq=pk.seq, fresh=np.zeros(self.n, dtype=bool))
+
+    def write(self, u: np.ndarray) -> None:
+        """Hold ``u`` (3, n) for one sample period and advance the rig by it (ValueError on a bad command).
+        A diverged plant raises RuntimeError (a simulation failure, not a rig fault)."""
+        if self.closed:
+            raise RuntimeError("SimRig.write after close()")
+        u = check_u(u, self.n)
+        self.held = u.copy()
+        self._a.apply(u)
+        self.seq += 1
+        self.t = self.seq * self.sample_period  # exact: no accumulated rounding
+        self._packet = None
+
+    def safe(self) -> None:
+        """Hold the safe command from now (it acts on the rig from the next period; lockstep: no advance)."""
+        self.held = safe_u(self.n)
+
+    def close(self) -> None:
+        """End the simulation (reads and writes after it raise)."""
+        self.safe()
+        self.closed = True
+
+    # --- tests and logs -----------------------------------------------------------------------------
+    def truth(self) -> dict:
+        """The rig's true state now (the wrapped rig's ``truth()``, with ``t`` s)."""
+        return self._a.truth()
+
+    def set_load(self, mass_kg: float) -> None:
+        """Single chamber only: put a load of ``mass_kg`` kg on now (0 takes it off)."""
+        if not isinstance(self._a, _ChamberAdapter):
+            raise ValueError("SimRig.set_load: only a single-chamber rig carries a platform load")
+        self.rig.set_load(mass_kg)
