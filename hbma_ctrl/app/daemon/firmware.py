@@ -1,0 +1,336 @@
+"""A fake rig firmware speaking the line protocol (:mod:`hbma_ctrl.app.daemon.serial_link`) on a pty.
+
+:class:`FakeFirmware` opens a pseudo-terminal (``os.openpty``); the host opens its slave path with
+pyserial as it would a USB serial device. A thread plays the microcontroller: each sample period it
+steps a plant with the command it holds, streams a ``P`` line, sends ``HB`` every heartbeat period,
+obeys ``HELLO``/``CMD``/``SAFE``/``HB`` lines and goes safe by itself when the host falls silent.
+The plant is :class:`FirstOrderPlant` or any callable ``plant(u (3, n), dt s) -> p (n,) Pa`` (e.g. a
+mismatched rig model). For tests it can corrupt checksums, drop lines, stop its heartbeat, vanish
+(close the pty, as an unplugged cable) and reappear on a new pty; with ``link`` it keeps a symlink
+pointing at its current pty (as udev's ``/dev/serial/by-id`` names), so a host configured with the
+link finds it again.
+
+Manual try: ``python -m hbma_ctrl.app.daemon.firmware --n 1 --period-ms 10 [--link /tmp/hbma-rig]``
+prints the port to give the daemon's serial backend, then runs until Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import signal
+import sys
+import threading
+import time
+import tty
+from collections.abc import Callable
+
+import numpy as np
+
+from hbma_ctrl.app.daemon.rigio import safe_u
+from hbma_ctrl.app.daemon.serial_link import (
+    MAX_LINE,
+    PROTOCOL_VERSION,
+    SEQ_MOD,
+    LineError,
+    SerialRig,
+    decode_line,
+    encode_line,
+    from_permille,
+)
+from hbma_ctrl.core.units import ms
+
+__all__ = ["FirstOrderPlant", "FakeFirmware", "open_fake_rig", "main"]
+
+Plant = Callable[[np.ndarray, float], np.ndarray]
+
+
+class FirstOrderPlant:
+    """A chamber per column, first order in gauge pressure p (Pa):
+    ``dp/dt = fill_rate * pump * inlet - outlet * p / tau_vent - p / tau_leak``.
+
+    fill_rate : pressure rise at full pump and open inlet, Pa/s. tau_vent : venting time constant
+    through a fully open outlet, s. tau_leak : leak time constant, s. Call ``plant(u, dt)`` to step it.
+    """
+
+    def __init__(self, n: int, fill_rate: float = 100e3, tau_vent: float = 0.2, tau_leak: float = 2.0) -> None:
+        self.n = n
+        self.fill_rate = fill_rate
+        self.tau_vent = tau_vent
+        self.tau_leak = tau_leak
+        self.p = np.zeros(n)
+
+    def __call__(self, u: np.ndarray, dt: float) -> np.ndarray:
+        """Step by ``dt`` s (exactly, as the model is linear for a held command) under ``u`` (3, n);
+        the new pressures, Pa (n,)."""
+        u = np.asarray(u, dtype=float)
+        a = u[2] / self.tau_vent + 1.0 / self.tau_leak  # decay rate, 1/s
+        p_inf = self.fill_rate * u[0] * u[1] / a
+        self.p = p_inf + (self.p - p_inf) * np.exp(-a * dt)
+        return self.p.copy()
+
+
+class FakeFirmware:
+    """The microcontroller of an ``n``-chamber rig, speaking protocol ``version`` on a pty.
+
+    n : chambers. sample_period : s between P lines. plant : ``plant(u (3, n), dt s) -> p (n,) Pa``
+    (default :class:`FirstOrderPlant`). heartbeat_period : s between HB lines. host_timeout : s of
+    host silence after which it goes safe. link : optional symlink path kept pointing at its pty.
+
+    State for tests: ``mode`` (``RUN``/``SAFE``), ``u`` (the command applied, (3, n)), ``p`` (the
+    last pressures, Pa), ``last_cmd`` (the last CMD's per-mille integers), ``safe_reason``, and
+    ``stats`` (``crc_errors``, ``bad_lines``, ``seq_gaps``, ``commands``, ``dropped_tx``). Knobs:
+    ``send_heartbeats``, :meth:`corrupt_next`, :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`.
+    """
+
+    def __init__(self, n: int = 1, sample_period: float = 0.01, plant: Plant | None = None, *,
+                 version: int = PROTOCOL_VERSION, heartbeat_period: float = 0.1, host_timeout: float = 0.5,
+                 link: str | None = None) -> None:
+        self.n = n
+        self.sample_period = sample_period
+        self.plant = plant if plant is not None else FirstOrderPlant(n)
+        self.version = version
+        self.heartbeat_period = heartbeat_period
+        self.host_timeout = host_timeout
+        self.link = link
+        self.mode = "SAFE"
+        self.u = safe_u(n)
+        self.p = np.zeros(n)
+        self.last_cmd: tuple[int, ...] | None = None
+        self.safe_reason = "boot"
+        self.send_heartbeats = True
+        self.stats = {"crc_errors": 0, "bad_lines": 0, "seq_gaps": 0, "commands": 0, "dropped_tx": 0}
+        self._lock = threading.Lock()
+        self._corrupt = 0
+        self._drop = 0
+        self._t0 = time.monotonic()
+        self._stop = threading.Event()
+        self._vanish_req = threading.Event()
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._open_pty()
+        self._thread = threading.Thread(target=self._run, name="fake-firmware", daemon=True)
+        self._thread.start()
+
+    @property
+    def port(self) -> str:
+        """What the host should open: the symlink when one is kept, else the pty's slave path."""
+        return self.link if self.link is not None else self.pty_path
+
+    # ---- test knobs ----------------------------------------------------------------------------
+
+    def corrupt_next(self, k: int = 1) -> None:
+        """Flip one bit in the body of each of the next ``k`` lines (their checksum no longer matches)."""
+        with self._lock:
+            self._corrupt += k
+
+    def drop_next(self, k: int = 1) -> None:
+        """Lose the next ``k`` lines (their sequence numbers are used, so the host sees a gap)."""
+        with self._lock:
+            self._drop += k
+
+    def vanish(self) -> None:
+        """Close the pty, as an unplugged cable; the firmware keeps running (and goes safe on its own)."""
+        if self._thread.is_alive():
+            # the firmware thread closes the fds itself: closing them under its select() could let the
+            # number be reused by another open and read from a stranger's file
+            self._vanish_req.set()
+            deadline = time.monotonic() + 2.0
+            while self._vanish_req.is_set() and self._thread.is_alive() and time.monotonic() < deadline:
+                time.sleep(0.002)
+        if self._master is not None:
+            with self._lock:
+                self._close_fds()
+
+    def _close_fds(self) -> None:
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                os.close(fd)
+        self._master = self._slave = None
+        self._session = False
+
+    def reappear(self) -> None:
+        """Open a new pty (a re-plug: a new device path) and re-point ``link`` at it; needs a new HELLO."""
+        with self._lock:
+            if self._master is None:
+                self._open_pty()
+
+    def close(self) -> None:
+        """Stop the firmware and close its pty."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.vanish()
+        if self.link is not None and os.path.islink(self.link):
+            os.unlink(self.link)
+
+    # ---- the microcontroller -------------------------------------------------------------------
+
+    def _open_pty(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)  # no echo, no line editing: bytes pass as on a UART
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self.pty_path = os.ttyname(slave)
+        self._session = False
+        self._rxbuf = b""
+        self._txseq = 0
+        self._rx_expect: int | None = None
+        self._go_safe("new port")
+        if self.link is not None:
+            tmp = f"{self.link}.tmp{os.getpid()}"
+            os.symlink(self.pty_path, tmp)
+            os.replace(tmp, self.link)  # atomic: the host never sees the link missing
+
+    def _go_safe(self, reason: str) -> None:
+        self.mode = "SAFE"
+        self.u = safe_u(self.n)
+        self.safe_reason = reason
+
+    def _tx(self, kind: str, *fields: object) -> None:
+        """Send one line (caller holds the lock); a full pty buffer (host not reading) drops it."""
+        line = encode_line(kind, self._txseq, *fields)
+        self._txseq = (self._txseq + 1) % SEQ_MOD
+        if self._drop > 0:
+            self._drop -= 1
+            return
+        if self._corrupt > 0:
+            self._corrupt -= 1
+            body, _, crc = line.rpartition(b"*")
+            line = body[:-1] + bytes([body[-1] ^ 0x01]) + b"*" + crc  # one bit flipped, old checksum
+        try:
+            os.write(self._master, line)
+        except (BlockingIOError, OSError):
+            self.stats["dropped_tx"] += 1
+
+    def _run(self) -> None:
+        next_t = last = last_hb = time.monotonic()
+        while not self._stop.is_set():
+            if self._vanish_req.is_set():
+                with self._lock:
+                    self._close_fds()
+                self._vanish_req.clear()
+            master = self._master
+            wait = max(0.0, next_t - time.monotonic())
+            if master is None:
+                self._stop.wait(wait)
+            else:
+                try:
+                    ready, _, _ = select.select([master], [], [], wait)
+                    data = os.read(master, 4096) if ready else b""
+                except OSError:
+                    data = b""
+                if data:
+                    with self._lock:
+                        if self._master == master:
+                            self._receive(data)
+            now = time.monotonic()
+            if now < next_t:
+                continue
+            next_t = max(next_t + self.sample_period, now)
+            with self._lock:
+                self.p = np.asarray(self.plant(self.u.copy(), min(now - last, 10 * self.sample_period)), float)
+                last = now
+                if self.mode == "RUN" and now - self._last_rx > self.host_timeout:
+                    self._go_safe("host heartbeat lost")
+                if self._master is None or not self._session:
+                    continue
+                t_us = int((now - self._t0) * 1e6)
+                self._tx("P", t_us, *("NA" if not np.isfinite(x) else int(round(x)) for x in self.p))
+                if self.send_heartbeats and now - last_hb >= self.heartbeat_period:
+                    self._tx("HB", self.mode)
+                    last_hb = now
+
+    def _receive(self, data: bytes) -> None:
+        buf = self._rxbuf + data
+        lines = buf.split(b"\n")
+        self._rxbuf = lines.pop()
+        if len(self._rxbuf) > MAX_LINE:
+            self._rxbuf = b""
+            self.stats["bad_lines"] += 1
+        for line in lines:
+            try:
+                m = decode_line(line)
+            except LineError as e:
+                self.stats["crc_errors" if e.kind == "crc" else "bad_lines"] += 1
+                continue
+            if m.kind == "HELLO":
+                self._hello(m)
+                continue
+            if not self._session:
+                self.stats["bad_lines"] += 1  # no session: a line from before the handshake
+                continue
+            if self._rx_expect is not None:
+                self.stats["seq_gaps"] += (m.seq - self._rx_expect) % SEQ_MOD
+            self._rx_expect = (m.seq + 1) % SEQ_MOD
+            if m.kind == "CMD":
+                try:
+                    vals = tuple(int(f) for f in m.fields)
+                    u = from_permille(vals, self.n)
+                except ValueError:
+                    self.stats["bad_lines"] += 1
+                    continue
+                self.u, self.mode, self.last_cmd = u, "RUN", vals
+                self.stats["commands"] += 1
+            elif m.kind == "SAFE":
+                self._go_safe("SAFE command")
+            elif m.kind != "HB":
+                self.stats["bad_lines"] += 1
+                continue
+            self._last_rx = time.monotonic()
+
+    def _hello(self, m) -> None:
+        self._txseq = 0
+        self._go_safe("HELLO")
+        period_us = int(round(self.sample_period * 1e6))
+        self._tx("VER", self.version, self.n, period_us)
+        ok = len(m.fields) == 1 and m.fields[0] == str(self.version)
+        self._session = ok
+        self._rx_expect = (m.seq + 1) % SEQ_MOD
+        self._last_rx = time.monotonic()
+
+    _last_rx = 0.0
+
+
+def open_fake_rig(n: int = 1, sample_period: float = 0.01, plant: Plant | None = None, *,
+                  firmware_kw: dict | None = None, **rig_kw) -> tuple[FakeFirmware, SerialRig]:
+    """Start a :class:`FakeFirmware` and open a :class:`SerialRig` on it (``rig_kw`` go to the rig,
+    ``firmware_kw`` to the firmware); returns (firmware, rig). Close the rig, then the firmware."""
+    fw = FakeFirmware(n, sample_period, plant, **(firmware_kw or {}))
+    try:
+        rig = SerialRig(fw.port, n, sample_period=sample_period, **rig_kw)
+    except Exception:
+        fw.close()
+        raise
+    return fw, rig
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a fake firmware until Ctrl-C, printing the port to open; exit code 2 on bad flags."""
+    ap = argparse.ArgumentParser(prog="python -m hbma_ctrl.app.daemon.firmware",
+                                 description="A fake HBMA rig firmware on a pseudo-terminal.")
+    ap.add_argument("--n", type=int, default=1, help="chambers, 1..16")
+    ap.add_argument("--period-ms", type=float, default=10.0, help="sample period, ms, 1..1000")
+    ap.add_argument("--link", default=None, help="also keep this symlink pointing at the pty")
+    a = ap.parse_args(argv)
+    if not 1 <= a.n <= 16:
+        print(f"error: --n = {a.n}: must be 1..16 chambers", file=sys.stderr)
+        return 2
+    if not 1.0 <= a.period_ms <= 1000.0:
+        print(f"error: --period-ms = {a.period_ms:g}: must be 1..1000 ms", file=sys.stderr)
+        return 2
+    fw = FakeFirmware(a.n, ms(a.period_ms), link=a.link)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill also removes the link
+    print(fw.port, flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        fw.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,447 @@
+"""The serial rig backend: line protocol version 1 and :class:`SerialRig` (a :class:`RigIO` over pyserial).
+
+A rig is a microcontroller on a serial line that switches the pump and the valves of ``n`` chambers
+and streams their pressures. Host and firmware exchange ASCII lines::
+
+    BODY*CCCC\\n
+
+``BODY`` is space-separated tokens, ``TYPE SEQ ...``; ``CCCC`` is the CRC-16/CCITT-FALSE (poly
+0x1021, init 0xFFFF, no reflection, no final xor; ``123456789`` -> ``29B1``) of the ASCII bytes of
+``BODY``, four upper-case hex digits. A line is at most 512 bytes. ``SEQ`` is a decimal counter,
+0..65535 then back to 0, one counter per direction, each restarted at 0 by the handshake.
+
+Host -> firmware:
+
+=========================================  =======================================================
+``HELLO seq version``                      open a session; the firmware answers ``VER`` and is safe
+``CMD seq pump_1 in_1 out_1 ... out_n``    per chamber: pump speed, inlet duty, outlet duty, each an
+                                           integer per-mille 0..1000 (``round half up(1000 u)``);
+                                           3n integers, chambers in order; held until the next
+                                           ``CMD`` or ``SAFE``; a line with a wrong count or a value
+                                           out of range is ignored as a whole
+``SAFE seq``                               pump off, inlets closed, outlets open, until a ``CMD``
+``HB seq``                                 host heartbeat
+=========================================  =======================================================
+
+Firmware -> host:
+
+=========================================  =======================================================
+``VER seq version n period_us``            answer to ``HELLO``: protocol version, chambers, sample
+                                           period (integer microseconds)
+``P seq t_us p_1 ... p_n``                 one sample: firmware time since boot (integer us), gauge
+                                           pressure of every chamber (integer Pa, ``NA`` = none)
+``HB seq mode``                            firmware heartbeat, ``mode`` is ``RUN`` or ``SAFE``
+=========================================  =======================================================
+
+Rules. The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
+(default 0.1 s) only after a ``HELLO`` of its own version. Any valid host line restarts the
+firmware's watchdog; when none arrives for the host timeout (default 0.5 s) the firmware goes safe
+by itself. The host sends ``HB`` every heartbeat period; when no firmware ``HB`` arrives for
+``link_timeout`` (default 0.5 s) the host drops the link. A line whose checksum is wrong, or that
+does not parse, is counted and ignored (never acted on); a jump in ``SEQ`` is counted as lost lines
+(a corrupted line therefore also counts as one lost line) and never acted on.
+
+Host side: :class:`SerialRig` opens ``port`` with :func:`serial.serial_for_url` (a device path or
+any pyserial URL), does the handshake (a different version raises :class:`ProtocolVersionError`),
+and runs one reader thread that parses lines into the newest readings and sends heartbeats. When
+the port is lost or the firmware's heartbeat stops, it closes the port and retries opening the same
+``port`` with exponential backoff; meanwhile :meth:`SerialRig.read` and :meth:`SerialRig.write`
+raise :class:`RigLinkError` so the daemon goes safe. Give a stable name as ``port`` (e.g. a
+``/dev/serial/by-id/...`` link) so the retried open finds the rig again after a re-plug.
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import serial
+
+from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, check_u
+
+__all__ = [
+    "PROTOCOL_VERSION",
+    "SEQ_MOD",
+    "MAX_LINE",
+    "ProtocolVersionError",
+    "LineError",
+    "Message",
+    "crc16",
+    "encode_line",
+    "decode_line",
+    "to_permille",
+    "from_permille",
+    "SerialRig",
+]
+
+PROTOCOL_VERSION = 1
+SEQ_MOD = 65536  # sequence numbers are 0..65535 and wrap (a uint16 on the microcontroller)
+MAX_LINE = 512  # bytes per line including the checksum and newline
+
+
+class ProtocolVersionError(RigLinkError):
+    """The firmware speaks another protocol version than this host (raised by the handshake)."""
+
+
+class LineError(ValueError):
+    """A received line is not valid protocol (bad checksum, framing or fields); ``kind`` says which."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True)
+class Message:
+    """One decoded line: ``kind`` (HELLO, CMD, SAFE, HB, VER, P), ``seq`` (0..65535), ``fields`` (the rest)."""
+
+    kind: str
+    seq: int
+    fields: tuple[str, ...] = ()
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE of ``data`` (poly 0x1021, init 0xFFFF), as an int 0..0xFFFF."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def encode_line(kind: str, seq: int, *fields: object) -> bytes:
+    """One protocol line ``KIND SEQ FIELDS*CCCC\\n`` as bytes (fields formatted with ``str``)."""
+    body = " ".join([kind, str(int(seq) % SEQ_MOD), *(str(f) for f in fields)]).encode("ascii")
+    return body + b"*%04X\n" % crc16(body)
+
+
+def decode_line(line: bytes) -> Message:
+    """Parse one line (with or without its newline) into a :class:`Message`; :class:`LineError` if invalid.
+
+    ``LineError.kind`` is ``"crc"`` for a checksum mismatch and ``"format"`` for anything else.
+    """
+    line = line.rstrip(b"\r\n")
+    if len(line) + 1 > MAX_LINE:
+        raise LineError("format", f"line longer than {MAX_LINE} bytes")
+    body, star, crc = line.rpartition(b"*")
+    if not star or len(crc) != 4:
+        raise LineError("format", "no '*CCCC' checksum at the end of the line")
+    try:
+        want = int(crc.decode("ascii"), 16)
+    except (UnicodeDecodeError, ValueError):
+        raise LineError("format", "checksum is not four hex digits") from None
+    if crc16(body) != want:
+        raise LineError("crc", "checksum mismatch")
+    try:
+        tokens = body.decode("ascii").split(" ")
+    except UnicodeDecodeError:
+        raise LineError("format", "line is not ASCII") from None
+    if len(tokens) < 2 or not tokens[1].isdigit() or int(tokens[1]) >= SEQ_MOD:
+        raise LineError("format", "no message type and sequence number 0..65535")
+    return Message(tokens[0], int(tokens[1]), tuple(tokens[2:]))
+
+
+def to_permille(u: np.ndarray) -> list[int]:
+    """Command ``u`` (3, n) in [0, 1] -> 3n integers 0..1000, chamber by chamber (pump, inlet, outlet),
+    each ``floor(1000 u + 0.5)`` (rounded half up to the nearest per-mille)."""
+    a = np.asarray(u, dtype=float)
+    return [int(math.floor(1000.0 * x + 0.5)) for x in a.T.ravel()]
+
+
+def from_permille(values: list[int] | tuple[int, ...], n: int) -> np.ndarray:
+    """3n per-mille integers (chamber by chamber) -> command (3, n) in [0, 1]; ValueError if out of range."""
+    if len(values) != 3 * n:
+        raise ValueError(f"command has {len(values)} values, expected {3 * n} (3 per chamber)")
+    if any(v < 0 or v > 1000 for v in values):
+        raise ValueError("command values must be per-mille integers 0..1000")
+    return np.asarray(values, dtype=float).reshape(n, 3).T / 1000.0
+
+
+def _gap(expected: int | None, seq: int) -> int:
+    """Lines lost between the expected sequence number and the received one (0 if none)."""
+    if expected is None:
+        return 0
+    return (seq - expected) % SEQ_MOD
+
+
+class SerialRig:
+    """A :class:`~hbma_ctrl.app.daemon.rigio.RigIO` over a serial line speaking protocol version 1.
+
+    port : device path or pyserial URL (``/dev/ttyACM0``, ``/dev/serial/by-id/...``, ``socket://...``).
+    n : number of chambers the rig must report.
+    baud : line speed, baud.
+    sample_period : the rig's sample period, s; None = take the firmware's; a firmware period more
+        than 1 % away raises :class:`RigLinkError`.
+    heartbeat_period : host heartbeat period, s.
+    link_timeout : the link is dropped after this long without a firmware heartbeat, s.
+    handshake_timeout : how long to wait for ``VER`` after ``HELLO``, s.
+    backoff_max : the longest wait before a reconnection attempt, s (doubling from 0.05 s; back to
+        0.05 s once a reconnected firmware's heartbeat arrives).
+
+    Opening does the handshake at once (``RigLinkError`` if no firmware answers,
+    ``ProtocolVersionError`` if it speaks another version). ``stats`` counts, since opening:
+    ``lines`` (valid lines), ``crc_errors``, ``bad_lines`` (valid checksum, invalid content),
+    ``seq_gaps`` (firmware lines lost, from jumps in SEQ), ``readings`` (P lines), ``reconnects``.
+    ``firmware_mode`` is the mode of the firmware's last heartbeat (``RUN`` or ``SAFE``).
+    """
+
+    def __init__(self, port: str, n: int, baud: int = 115200, sample_period: float | None = None, *,
+                 heartbeat_period: float = 0.1, link_timeout: float = 0.5, handshake_timeout: float = 1.0,
+                 backoff_max: float = 2.0) -> None:
+        if int(n) != n or n < 1:
+            raise ValueError(f"rig n = {n}: must be an integer >= 1 (chambers)")
+        if int(baud) != baud or baud <= 0:
+            raise ValueError(f"rig baud = {baud}: must be a positive integer")
+        for key, v in (("sample_period", sample_period), ("heartbeat_period", heartbeat_period),
+                       ("link_timeout", link_timeout), ("handshake_timeout", handshake_timeout),
+                       ("backoff_max", backoff_max)):
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ValueError(f"rig {key} = {v}: must be a positive number of seconds")
+        if link_timeout <= heartbeat_period:
+            raise ValueError(f"rig link_timeout = {link_timeout} s must exceed heartbeat_period = "
+                             f"{heartbeat_period} s")
+        self.port = port
+        self.n = int(n)
+        self.baud = int(baud)
+        self.heartbeat_period = float(heartbeat_period)
+        self.link_timeout = float(link_timeout)
+        self.handshake_timeout = float(handshake_timeout)
+        self.backoff_max = float(backoff_max)
+        self._want_period = sample_period
+        self.sample_period = float(sample_period) if sample_period is not None else 0.0
+        self.stats = {"lines": 0, "crc_errors": 0, "bad_lines": 0, "seq_gaps": 0, "readings": 0,
+                      "reconnects": 0}
+        self.firmware_mode = "SAFE"
+        self._lock = threading.Lock()  # guards the port, the host seq counter and the readings
+        self._stop = threading.Event()
+        self._ser = None
+        self._seq = 0
+        self._link_error: str | None = None
+        self._reset_readings()
+        self._connect()  # raises on the first attempt: a wrong port or firmware is a start-up error
+        self._thread = threading.Thread(target=self._run, name=f"serial-rig {port}", daemon=True)
+        self._thread.start()
+
+    # ---- RigIO ---------------------------------------------------------------------------------
+
+    def read(self) -> Readings:
+        """The newest pressures, Pa (n,), with the firmware's time stamp (s) and SEQ; never blocks on the
+        line. ``fresh[i]`` is True when a P line carrying chamber i arrived since the previous read;
+        otherwise ``p[i]`` repeats the older value (NaN before the first one). Raises :class:`RigLinkError` while the link is down."""
+        with self._lock:
+            if self._ser is None:
+                raise RigLinkError(self._link_error or f"rig link on {self.port} is closed")
+            r = Readings(t=self._t, p=self._p.copy(), seq=self._pseq, fresh=self._fresh.copy())
+            self._fresh[:] = False
+            return r
+
+    def write(self, u: np.ndarray) -> None:
+        """Send ``CMD`` with ``u`` (3, n) in [0, 1] as per-mille integers; RigLinkError while the link is down."""
+        a = check_u(u, self.n)
+        self._send("CMD", *to_permille(a))
+
+    def safe(self) -> None:
+        """Send ``SAFE`` (pump off, inlets closed, outlets open) if the port is open; never raises."""
+        try:
+            self._send("SAFE")
+        except Exception:  # noqa: BLE001 - safe() is called on the way down and must not mask the cause
+            pass
+
+    def close(self) -> None:
+        """Send ``SAFE``, stop the reader thread and release the port (idempotent)."""
+        self.safe()
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        with self._lock:
+            self._close_port("rig link closed")
+
+    @property
+    def connected(self) -> bool:
+        """True while the port is open and the firmware's heartbeat is alive."""
+        return self._ser is not None
+
+    # ---- internals -----------------------------------------------------------------------------
+
+    def _reset_readings(self) -> None:
+        self._p = np.full(self.n, np.nan)
+        self._fresh = np.zeros(self.n, dtype=bool)
+        self._t: float | None = None
+        self._pseq = -1
+        self._rx_expect: int | None = None
+        self._rxbuf = b""
+        self._last_hb = time.monotonic()
+        self._hb_seen = False
+        self._last_tx = 0.0
+
+    def _send(self, kind: str, *fields: object) -> None:
+        with self._lock:
+            if self._ser is None:
+                raise RigLinkError(self._link_error or f"rig link on {self.port} is closed")
+            line = encode_line(kind, self._seq, *fields)
+            self._seq = (self._seq + 1) % SEQ_MOD
+            try:
+                self._ser.write(line)
+            except (serial.SerialException, OSError) as e:
+                self._close_port(f"rig link on {self.port} lost: write failed ({e})")
+                raise RigLinkError(self._link_error) from None
+            self._last_tx = time.monotonic()
+
+    def _close_port(self, reason: str) -> None:
+        """Close the port and record why (caller holds the lock)."""
+        ser, self._ser = self._ser, None
+        self._link_error = reason
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # noqa: BLE001 - the port is already gone; closing is best effort
+                pass
+
+    def _connect(self) -> None:
+        """Open the port and do the handshake; raises RigLinkError / ProtocolVersionError."""
+        try:
+            ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.02, write_timeout=0.5)
+        except (serial.SerialException, OSError, ValueError) as e:
+            raise RigLinkError(f"cannot open rig port {self.port}: {e}") from None
+        try:
+            ser.reset_input_buffer()
+            ser.write(encode_line("HELLO", 0, PROTOCOL_VERSION))
+            ver, rest = self._await_ver(ser)
+        except (serial.SerialException, OSError) as e:
+            ser.close()
+            raise RigLinkError(f"rig port {self.port} failed during the handshake: {e}") from None
+        except RigLinkError:
+            ser.close()
+            raise
+        version, n, period_us = ver
+        if version != PROTOCOL_VERSION:
+            ser.close()
+            raise ProtocolVersionError(
+                f"rig firmware on {self.port} speaks line protocol version {version}, this host speaks "
+                f"version {PROTOCOL_VERSION}: flash matching firmware or use a matching hbma-ctrl")
+        if n != self.n:
+            ser.close()
+            raise RigLinkError(f"rig on {self.port} reports {n} chambers, expected n = {self.n}")
+        period = period_us * 1e-6
+        if self._want_period is not None and abs(period - self._want_period) > 0.01 * self._want_period:
+            ser.close()
+            raise RigLinkError(f"rig on {self.port} samples every {period * 1e3:g} ms, expected "
+                               f"sample_period = {self._want_period * 1e3:g} ms")
+        with self._lock:
+            self.sample_period = period if self._want_period is None else float(self._want_period)
+            self._reset_readings()
+            self._rxbuf = rest  # lines that followed VER in the same read
+            self._seq = 1  # HELLO used 0
+            self._rx_expect = 1  # VER was 0
+            self.firmware_mode = "SAFE"
+            self._ser = ser
+            self._link_error = None
+
+    def _await_ver(self, ser) -> tuple[tuple[int, int, int], bytes]:
+        deadline = time.monotonic() + self.handshake_timeout
+        buf = b""
+        while time.monotonic() < deadline:
+            buf += ser.read(max(1, ser.in_waiting))
+            while b"\n" in buf:
+                line, buf = buf.split(b"\n", 1)
+                try:
+                    m = decode_line(line)
+                except LineError:
+                    continue  # the tail of an older session's stream
+                if m.kind == "VER" and len(m.fields) == 3 and all(f.isdigit() for f in m.fields):
+                    return (int(m.fields[0]), int(m.fields[1]), int(m.fields[2])), buf
+        raise RigLinkError(f"no answer to HELLO from a rig on {self.port} within "
+                           f"{self.handshake_timeout:g} s (is the firmware running and the port right?)")
+
+    def _run(self) -> None:
+        backoff = 0.05
+        cause: str | None = None  # why the link went down, kept through failed reconnects
+        while not self._stop.is_set():
+            if self._ser is None:
+                cause = cause if cause is not None else (self._link_error or "rig link down")
+                # wait before every attempt, and reset the wait only once the firmware's heartbeat is
+                # seen again: a firmware that answers HELLO but never beats must not flap the link
+                if self._stop.wait(backoff):
+                    break
+                backoff = min(2 * backoff, self.backoff_max)
+                try:
+                    self._connect()
+                except RigLinkError as e:
+                    with self._lock:
+                        self._link_error = f"{cause}; reconnecting: {e}"
+                    continue
+                self.stats["reconnects"] += 1
+                cause = None
+            self._poll()
+            if self._hb_seen:
+                backoff = 0.05
+
+    def _poll(self) -> None:
+        """Read what has arrived, parse it, send a heartbeat when due, drop the link when the firmware's stops."""
+        ser = self._ser
+        if ser is None:
+            return
+        try:
+            chunk = ser.read(max(1, ser.in_waiting))
+        except (serial.SerialException, OSError, TypeError, AttributeError) as e:
+            # TypeError/AttributeError: pyserial's read on a port closed under it by close()
+            with self._lock:
+                if self._ser is ser:
+                    self._close_port(f"rig link on {self.port} lost: {e}")
+            return
+        buf = self._rxbuf + chunk
+        lines = buf.split(b"\n")
+        self._rxbuf = lines.pop()
+        if len(self._rxbuf) > MAX_LINE:  # no newline in sight: noise, not a line
+            self.stats["bad_lines"] += 1
+            self._rxbuf = b""
+        for line in lines:
+            self._handle(line)
+        now = time.monotonic()
+        if now - self._last_hb > self.link_timeout:
+            with self._lock:
+                if self._ser is ser:
+                    self._close_port(f"rig link on {self.port} lost: no heartbeat from the firmware for "
+                                     f"{now - self._last_hb:.2f} s (limit {self.link_timeout:g} s)")
+            return
+        if now - self._last_tx >= self.heartbeat_period:
+            try:
+                self._send("HB")
+            except RigLinkError:
+                pass  # recorded by _send; the next loop reconnects
+
+    def _handle(self, line: bytes) -> None:
+        try:
+            m = decode_line(line)
+        except LineError as e:
+            self.stats["crc_errors" if e.kind == "crc" else "bad_lines"] += 1
+            return
+        self.stats["seq_gaps"] += _gap(self._rx_expect, m.seq)
+        self._rx_expect = (m.seq + 1) % SEQ_MOD
+        try:
+            if m.kind == "P":
+                self._on_pressure(m)
+            elif m.kind == "HB":
+                if len(m.fields) != 1 or m.fields[0] not in ("RUN", "SAFE"):
+                    raise ValueError("HB needs a mode RUN or SAFE")
+                self.firmware_mode = m.fields[0]
+                self._last_hb = time.monotonic()
+                self._hb_seen = True
+            elif m.kind != "VER":  # a repeated VER is harmless
+                raise ValueError(f"unknown message type {m.kind!r}")
+        except ValueError:
+            self.stats["bad_lines"] += 1
+            return
+        self.stats["lines"] += 1
+
+    def _on_pressure(self, m: Message) -> None:
+        if len(m.fields) != self.n + 1 or not m.fields[0].isdigit():
+            raise ValueError("P needs a time stamp and one pressure per chamber")
+        p = np.array([np.nan if f == "NA" else float(int(f)) for f in m.fields[1:]])
+        with self._lock:
+            have = ~np.isnan(p)
+            self._p[have] = p[have]  # an NA keeps the older value, reported as not fresh
+            self._fresh |= have
+            self._t = int(m.fields[0]) * 1e-6
+            self._pseq = m.seq
+        self.stats["readings"] += 1
