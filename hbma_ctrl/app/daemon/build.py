@@ -295,14 +295,14 @@ def make_rig(cfg: DaemonConfig, runner):
     scn = cfg.scenario
     if cfg.kind == "robot":
         s = scn.role("robot")
-        rig = SimRig.robot(s.design, scn.pneumatics, s.pneumatics.sensor_range, s.pneumatics.topology,
-                           robot_rig_settings(cfg), s.tip_load)
+        rig = SimRig.robot(s, robot_rig_settings(cfg), scn.pneumatics, s.tip_load)
     else:
-        rig = SimRig.chamber(scn.actuator, scn.pneumatics, scn.platform, chamber_rig_settings(cfg))
+        rig = SimRig.chamber(scn.actuator, scn.pneumatics, scn.platform, chamber_rig_settings(cfg),
+                             scn.role("controller").load_steps)
     if cfg.faults:
         from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
         try:
-            rig = FaultyRig(rig, parse_faults(cfg.faults))
+            rig = FaultyRig(rig, parse_faults(cfg.faults, runner.n))
         except ValueError as exc:
             msg = str(exc)
             raise ValueError(msg if msg.startswith("[") else f"[daemon.fault] {msg}") from None

@@ -205,10 +205,25 @@ class DaemonLoop:
                 self.event("safe", "fault latched: " + ", ".join(sorted({str(getattr(f, "kind", f))
                                                                          for f in self.monitor.latched})))
         if self.mode == "safe":
-            self._go_safe()
+            # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
+            self._write(safe_u(self.n))
             return
         u = self.runner.tick(self.t, p)
         self._write(u)
+
+    def _should_stop(self) -> bool:
+        """True (and the stop event logged) on a signal, a stop request or the end of the duration."""
+        if self.signal_stop:
+            self.state.request_stop(self.signal_stop)
+        if self.state.stop_requested:
+            self.end_reason = self.state.stop_reason
+            self.event("stop", self.end_reason)
+            return True
+        if self.duration is not None and self.steps * self.period >= self.duration - 1e-9:
+            self.end_reason = "duration"
+            self.event("stop", f"duration {self.duration:g} s reached")
+            return True
+        return False
 
     def run(self) -> dict:
         """Run until stopped (module doc); returns the stats (:data:`STATS_KEYS` and more)."""
@@ -221,21 +236,15 @@ class DaemonLoop:
         missed_last = False
         try:
             while True:
-                if self.signal_stop:
-                    self.state.request_stop(self.signal_stop)
-                if self.state.stop_requested:
-                    self.end_reason = self.state.stop_reason
-                    self.event("stop", self.end_reason)
-                    break
-                if self.duration is not None and self.steps * self.period >= self.duration - 1e-9:
-                    self.end_reason = "duration"
-                    self.event("stop", f"duration {self.duration:g} s reached")
+                if self._should_stop():
                     break
                 deadline = t0 + k * wp
                 now = self.clock()
                 if now < deadline:
                     self.sleep(deadline - now)
                     now = self.clock()
+                    if self._should_stop():  # a stop asked during the sleep ends before another command
+                        break
                 self.jitter_s.add(max(0.0, now - deadline))
                 start = now
                 self._step(k, missed_last)
