@@ -110,7 +110,7 @@ class FaultTable(Table):
                 takes = f"it takes {want}" if want else "it takes no value key"
                 raise RuleError(f"{key}: not a key of kind '{self.kind}' ({takes})")
         if want is not None and getattr(self, want) is None:
-            raise RuleError(f"kind '{self.kind}' needs {want} ({self.model_fields[want].description})")
+            raise RuleError(f"kind '{self.kind}' needs {want} ({type(self).model_fields[want].description})")
         return self
 
     def to_spec(self) -> FaultSpec:
