@@ -158,6 +158,13 @@ def test_silent_port_fails_the_handshake_with_one_clear_error():
         os.close(master)
 
 
+def test_a_second_host_cannot_open_the_same_rig(rig2):
+    fw, rig = rig2
+    with pytest.raises(RigLinkError, match="cannot open rig port"):
+        SerialRig(fw.port, 2)
+    assert rig.connected
+
+
 def test_bad_settings_name_the_key():
     with pytest.raises(ValueError, match="rig n = 0"):
         SerialRig("loop://", 0)
@@ -225,6 +232,25 @@ def test_corrupted_and_lost_lines_are_counted_never_used():
         fw.close()
 
 
+def test_fresh_flags_are_per_chamber_and_na_keeps_the_older_value():
+    chamber0 = [1000.0]
+    fw, rig = open_fake_rig(2, 0.01, plant=lambda u, dt: np.array([chamber0[0], 2000.0]))
+    try:
+        assert _wait(lambda: rig.stats["readings"] >= 2)
+        np.testing.assert_array_equal(rig.read().fresh, [True, True])
+        chamber0[0] = np.nan  # the firmware now sends NA for chamber 0
+        n0 = rig.stats["readings"]
+        assert _wait(lambda: rig.stats["readings"] >= n0 + 3)
+        rig.read()
+        assert _wait(lambda: rig.stats["readings"] >= n0 + 6)
+        r = rig.read()
+        np.testing.assert_array_equal(r.p, [1000.0, 2000.0])  # chamber 0 repeats its older value
+        np.testing.assert_array_equal(r.fresh, [False, True])
+    finally:
+        rig.close()
+        fw.close()
+
+
 def _raw_session(fw: FakeFirmware) -> serial.Serial:
     """A bare pyserial session with the firmware: HELLO sent, VER read."""
     s = serial.Serial(fw.pty_path, 115200, timeout=TIMEOUT)
@@ -254,11 +280,11 @@ def test_a_corrupted_command_is_not_applied():
 # ---- heartbeats, link loss, reconnect ------------------------------------------------------------
 
 def test_host_heartbeat_keeps_the_firmware_running_and_its_loss_makes_it_safe():
-    fw, rig = open_fake_rig(1, 0.01, firmware_kw={"host_timeout": 0.3})
+    fw, rig = open_fake_rig(1, 0.01)
     try:
         rig.write(np.array([[1.0], [1.0], [0.0]]))
         assert _wait(lambda: fw.mode == "RUN")
-        time.sleep(0.8)  # well past the firmware's 0.3 s watchdog: only heartbeats keep it running
+        time.sleep(1.2)  # well past the firmware's 0.5 s watchdog: only heartbeats keep it running
         assert fw.mode == "RUN"
     finally:
         rig.close()
@@ -290,10 +316,11 @@ def test_firmware_vanishing_raises_link_error_and_the_firmware_goes_safe(rig2):
 def test_firmware_heartbeat_stopping_raises_link_error():
     fw, rig = open_fake_rig(1, 0.01, link_timeout=0.3)
     try:
-        assert _wait(lambda: rig.stats["readings"] > 0)
+        rig.write(np.array([[1.0], [1.0], [0.0]]))
+        assert _wait(lambda: fw.mode == "RUN")
         fw.send_heartbeats = False  # pressures still stream: the heartbeat alone says the firmware is alive
         assert "no heartbeat from the firmware" in str(_await_link_error(rig))
-        assert fw.mode == "SAFE"
+        assert _wait(lambda: fw.mode == "SAFE")
     finally:
         rig.close()
         fw.close()

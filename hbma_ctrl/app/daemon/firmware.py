@@ -78,16 +78,23 @@ class FakeFirmware:
     (default :class:`FirstOrderPlant`). heartbeat_period : s between HB lines. host_timeout : s of
     host silence after which it goes safe. link : optional symlink path kept pointing at its pty.
 
-    State for tests: ``mode`` (``RUN``/``SAFE``), ``u`` (the command applied, (3, n)), ``p`` (the
-    last pressures, Pa), ``last_cmd`` (the last CMD's per-mille integers), ``safe_reason``, and
-    ``stats`` (``crc_errors``, ``bad_lines``, ``seq_gaps``, ``commands``, ``dropped_tx``). Knobs:
-    ``send_heartbeats``, :meth:`corrupt_next`, :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`.
+    ``pty_path`` is the current pty's device path. State for tests: ``mode`` (``RUN``/``SAFE``),
+    ``u`` (the command applied, (3, n)), ``p`` (the last pressures, Pa), ``last_cmd`` (the last
+    CMD's per-mille integers), ``safe_reason``, and ``stats`` (``crc_errors``, ``bad_lines``,
+    ``seq_gaps``, ``commands``, ``dropped_tx``). Knobs: ``send_heartbeats``, :meth:`corrupt_next`,
+    :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`.
     """
 
     def __init__(self, n: int = 1, sample_period: float = 0.01, plant: Plant | None = None, *,
                  version: int = PROTOCOL_VERSION, heartbeat_period: float = 0.1, host_timeout: float = 0.5,
                  link: str | None = None) -> None:
-        self.n = n
+        if int(n) != n or n < 1:
+            raise ValueError(f"firmware n = {n}: must be an integer >= 1 (chambers)")
+        for key, v in (("sample_period", sample_period), ("heartbeat_period", heartbeat_period),
+                       ("host_timeout", host_timeout)):
+            if not v > 0:
+                raise ValueError(f"firmware {key} = {v}: must be a positive number of seconds")
+        self.n = int(n)
         self.sample_period = sample_period
         self.plant = plant if plant is not None else FirstOrderPlant(n)
         self.version = version

@@ -36,7 +36,8 @@ Firmware -> host:
 Rules. The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
 (default 0.1 s) only after a ``HELLO`` of its own version. Any valid host line restarts the
 firmware's watchdog; when none arrives for the host timeout (default 0.5 s) the firmware goes safe
-by itself. The host sends ``HB`` every heartbeat period; when no firmware ``HB`` arrives for
+by itself. The host sends ``HB`` when it has sent nothing else for a heartbeat period; when no
+firmware ``HB`` arrives for
 ``link_timeout`` (default 0.5 s) the host drops the link. A line whose checksum is wrong, or that
 does not parse, is counted and ignored (never acted on); a jump in ``SEQ`` is counted as lost lines
 (a corrupted line therefore also counts as one lost line) and never acted on.
@@ -178,7 +179,8 @@ class SerialRig:
     backoff_max : the longest wait before a reconnection attempt, s (doubling from 0.05 s; back to
         0.05 s once a reconnected firmware's heartbeat arrives).
 
-    Opening does the handshake at once (``RigLinkError`` if no firmware answers,
+    The port is opened exclusively (a second process cannot drive the same rig). Opening does the
+    handshake at once (``RigLinkError`` if no firmware answers,
     ``ProtocolVersionError`` if it speaks another version). ``stats`` counts, since opening:
     ``lines`` (valid lines), ``crc_errors``, ``bad_lines`` (valid checksum, invalid content),
     ``seq_gaps`` (firmware lines lost, from jumps in SEQ), ``readings`` (P lines), ``reconnects``.
@@ -213,10 +215,12 @@ class SerialRig:
                       "reconnects": 0}
         self.firmware_mode = "SAFE"
         self._lock = threading.Lock()  # guards the port, the host seq counter and the readings
+        self._tx_lock = threading.Lock()  # one line written at a time
         self._stop = threading.Event()
         self._ser = None
         self._seq = 0
         self._link_error: str | None = None
+        self._link_exc: type[RigLinkError] = RigLinkError
         self._reset_readings()
         self._connect()  # raises on the first attempt: a wrong port or firmware is a start-up error
         self._thread = threading.Thread(target=self._run, name=f"serial-rig {port}", daemon=True)
@@ -227,10 +231,11 @@ class SerialRig:
     def read(self) -> Readings:
         """The newest pressures, Pa (n,), with the firmware's time stamp (s) and SEQ; never blocks on the
         line. ``fresh[i]`` is True when a P line carrying chamber i arrived since the previous read;
-        otherwise ``p[i]`` repeats the older value (NaN before the first one). Raises :class:`RigLinkError` while the link is down."""
+        otherwise ``p[i]`` repeats the older value (NaN before the first one). Raises
+        :class:`RigLinkError` while the link is down."""
         with self._lock:
             if self._ser is None:
-                raise RigLinkError(self._link_error or f"rig link on {self.port} is closed")
+                raise self._link_exc(self._link_error or f"rig link on {self.port} is closed")
             r = Readings(t=self._t, p=self._p.copy(), seq=self._pseq, fresh=self._fresh.copy())
             self._fresh[:] = False
             return r
@@ -275,16 +280,22 @@ class SerialRig:
         self._last_tx = 0.0
 
     def _send(self, kind: str, *fields: object) -> None:
-        with self._lock:
-            if self._ser is None:
-                raise RigLinkError(self._link_error or f"rig link on {self.port} is closed")
-            line = encode_line(kind, self._seq, *fields)
-            self._seq = (self._seq + 1) % SEQ_MOD
+        # writes have their own lock: a slow write (full buffer) must not hold up read()
+        with self._tx_lock:
+            with self._lock:
+                ser = self._ser
+                if ser is None:
+                    raise self._link_exc(self._link_error or f"rig link on {self.port} is closed")
+                line = encode_line(kind, self._seq, *fields)
+                self._seq = (self._seq + 1) % SEQ_MOD
             try:
-                self._ser.write(line)
-            except (serial.SerialException, OSError) as e:
-                self._close_port(f"rig link on {self.port} lost: write failed ({e})")
-                raise RigLinkError(self._link_error) from None
+                ser.write(line)
+            except (serial.SerialException, OSError, TypeError, AttributeError) as e:
+                with self._lock:
+                    if self._ser is ser:
+                        self._close_port(f"rig link on {self.port} lost: write failed ({e})")
+                    why = self._link_error or f"rig link on {self.port} lost: write failed ({e})"
+                    raise RigLinkError(why) from None
             self._last_tx = time.monotonic()
 
     def _close_port(self, reason: str) -> None:
@@ -300,7 +311,9 @@ class SerialRig:
     def _connect(self) -> None:
         """Open the port and do the handshake; raises RigLinkError / ProtocolVersionError."""
         try:
-            ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.02, write_timeout=0.5)
+            # exclusive: two daemons must never drive one rig
+            ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.02, write_timeout=0.5,
+                                        exclusive=True)
         except (serial.SerialException, OSError, ValueError) as e:
             raise RigLinkError(f"cannot open rig port {self.port}: {e}") from None
         try:
@@ -336,6 +349,7 @@ class SerialRig:
             self.firmware_mode = "SAFE"
             self._ser = ser
             self._link_error = None
+            self._link_exc = RigLinkError
 
     def _await_ver(self, ser) -> tuple[tuple[int, int, int], bytes]:
         deadline = time.monotonic() + self.handshake_timeout
@@ -354,6 +368,8 @@ class SerialRig:
                            f"{self.handshake_timeout:g} s (is the firmware running and the port right?)")
 
     def _run(self) -> None:
+        # One thread reads, beats and reconnects. pyserial's serial.threaded.ReaderThread ends at the
+        # first port error and would need a second thread for heartbeats and reconnection.
         backoff = 0.05
         cause: str | None = None  # why the link went down, kept through failed reconnects
         while not self._stop.is_set():
@@ -369,6 +385,7 @@ class SerialRig:
                 except RigLinkError as e:
                     with self._lock:
                         self._link_error = f"{cause}; reconnecting: {e}"
+                        self._link_exc = type(e)  # a re-flashed firmware of another version says so
                     continue
                 self.stats["reconnects"] += 1
                 cause = None
