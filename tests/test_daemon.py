@@ -54,13 +54,17 @@ class Recording:
     def __init__(self, rig):
         self.rig, self.n, self.sample_period = rig, rig.n, rig.sample_period
         self.written: list = []
+        self.times: list = []  # rig time of each write, s
+        self.p_true: list = []  # the rig's true pressures after each write, Pa
 
     def read(self):
         return self.rig.read()
 
     def write(self, u):
         self.written.append(("write", np.array(u, dtype=float)))
+        self.times.append(float(self.rig.t))
         self.rig.write(u)
+        self.p_true.append(np.max(np.atleast_1d(self.rig.truth()["p"])))
 
     def safe(self):
         self.written.append(("safe", safe_u(self.n)))
@@ -185,9 +189,9 @@ def test_lost_link_writes_the_safe_command_and_logs_the_cause(tmp_path):
     with pytest.raises(RigLinkError):
         loop.run()
     assert loop.rig.written[-1] == "safe" and loop.safe_exit
-    assert any(e["kind"] == "link_lost" and "heartbeat" in e["cause"] for e in loop.events)
+    assert any(e["kind"] == "link_loss" and "heartbeat" in e["cause"] for e in loop.events)
     events = (tmp_path / "events.csv").read_text()
-    assert "link_lost" in events and "safe_exit" in events
+    assert "link_loss" in events and "safe_exit" in events
 
 
 def test_exception_in_the_step_writes_the_safe_command(tmp_path):
@@ -223,22 +227,88 @@ def test_stop_request_ends_the_loop_in_the_safe_state():
     assert stats["steps"] == 50 and stats["end_reason"] == "api" and rig.written[-1][0] == "safe"
 
 
-def test_missed_deadlines_are_counted_skipped_not_burst_and_latch_the_watchdog():
-    cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
+def _slow(loop, runner, periods: float):
+    """Make every controller step take ``periods`` loop periods of (virtual) wall time."""
     vc = VirtualClock()
     tick = runner.tick
 
-    def slow_tick(t, p):  # every step takes 2.5 periods of wall time
-        vc.now += 0.025
+    def slow_tick(t, p):
+        vc.now += periods * loop.period
         return tick(t, p)
 
     runner.tick = slow_tick
-    loop.clock, loop.sleep, loop.warmup_periods, loop.miss_limit = vc.clock, vc.sleep, 0, 10**6
+    loop.clock, loop.sleep, loop.warmup_periods = vc.clock, vc.sleep, 0
+    return vc
+
+
+def test_missed_deadlines_are_counted_and_skipped_not_burst():
+    cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
+    _slow(loop, runner, 2.5)
+    loop.monitor, loop.miss_limit = None, 10**6
     stats = loop.run()
-    # each step ends 1.5 periods late: a miss, and the deadline two periods on is the next one kept
+    # each step ends 1.5 periods after its deadline: a miss; the one after is skipped, not run late
     assert stats["deadline_misses"] == stats["steps"] == 100
     assert stats["skipped_periods"] == 200
     assert loop.wall_s == pytest.approx(100 * 0.03, abs=0.011)
+    assert stats["faults"] == {}
+
+
+def test_missed_deadlines_in_a_row_latch_the_safe_state_within_a_period():
+    cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
+    _slow(loop, runner, 1.5)
+    stats = loop.run()
+    assert stats["faults"] == {"overrun": 1} and stats["deadline_misses"] == 10
+    kinds = [e["kind"] for e in loop.events]
+    assert kinds.index("overrun") + 1 == kinds.index("safe")
+    # 10 controller commands, then the safe command from the period the overrun was found in
+    writes = [u for what, u in rig.written if what == "write"]
+    assert all(np.array_equal(u, safe_u(1)) for u in writes[10:]) and len(writes) == 100
+    assert not np.array_equal(writes[9], safe_u(1))
+
+
+#: (injected fault, its keys, the kind the monitor must report): each drill starts while the loop runs
+DRILLS = [
+    ("dropout", "start_s = 0.5", "sensor_missing"),
+    ("frozen", "start_s = 0.5", "sensor_frozen"),
+    ("offset", "start_s = 0.5\noffset_kpa = 40.0", "over_pressure"),
+    ("out_of_range", "start_s = 0.5\nvalue_kpa = -50.0", "out_of_range"),
+    ("stuck_outlet", "start_s = 3.0\nduty = 1.0", "leak"),  # open while pumping toward 6 mm
+    ("leak", "start_s = 3.0\nduty = 0.5", "leak"),
+    ("pump_failure", "start_s = 0.0", "pump_failure"),
+    ("stuck_inlet", "start_s = 0.0\nduty = 0.0", "pump_failure"),  # closed: the pump cannot fill it
+]
+
+
+@pytest.mark.parametrize("fault, keys, detected", DRILLS, ids=[d[0] for d in DRILLS])
+def test_fault_drill_reaches_the_safe_state_within_one_period_and_is_logged(tmp_path, fault, keys, detected):
+    cfg_path = _write_config(tmp_path, CHAMBER, f'[[daemon.fault]]\nkind = "{fault}"\n{keys}\n')
+    start = float(re.search(r"start_s = ([0-9.]+)", keys).group(1))
+    cfg, runner, rig, loop = _loop(cfg_path, tmp_path / "log", duration_s=start + 1.5)
+    stats = loop.run()
+    assert detected in stats["faults"], stats["faults"]
+    first = next(e for e in loop.events if e["kind"] == detected)
+    t_found = first["t_s"]
+    assert t_found >= start - 1e-9
+    safe = next(e for e in loop.events if e["kind"] == "safe")
+    assert safe["t_s"] == t_found  # latched in the period the fault was found
+    # the command written in that period and every one after it is the safe command
+    after = [u for (what, u), t in zip(rig.written, rig.times) if t >= t_found - 1e-9]
+    assert after and all(np.array_equal(u, safe_u(1)) for u in after)
+    before = [u for (what, u), t in zip(rig.written, rig.times) if t < t_found - 1e-9]
+    assert before and not np.array_equal(before[-1], safe_u(1))
+    assert max(rig.p_true) <= 35e3  # the pressure cap held on the true rig
+    assert stats["safe_exit"] and stats["max_pressure_kpa"] is not None
+    assert detected in (tmp_path / "log" / "events.csv").read_text()
+
+
+def test_link_loss_drill_writes_the_safe_command_before_the_error(tmp_path):
+    cfg_path = _write_config(tmp_path, CHAMBER, '[[daemon.fault]]\nkind = "link_loss"\nstart_s = 0.5\n')
+    cfg, runner, rig, loop = _loop(cfg_path, tmp_path / "log", duration_s=2.0)
+    with pytest.raises(RigLinkError):
+        loop.run()
+    assert rig.written[-1][0] == "safe" and loop.safe_exit and loop.faults() == {"link_loss": 1}
+    assert loop.t == pytest.approx(0.5, abs=0.011)
+    assert "link_loss" in (tmp_path / "log" / "events.csv").read_text()
 
 
 # --- run log --------------------------------------------------------------------------------------

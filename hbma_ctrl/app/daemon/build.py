@@ -29,6 +29,7 @@ from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
 from hbma_ctrl.robot.rig import RobotRigSettings
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
@@ -310,10 +311,11 @@ def make_rig(cfg: DaemonConfig, runner):
 
 
 def make_monitor(cfg: DaemonConfig, runner):
-    """The safety monitor for the runner's chambers (pressure cap at the runner's limit), or None
-    when the watchdog is not available."""
-    try:
-        from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
-    except ImportError:
-        return None
-    return SafetyMonitor(MonitorSettings(p_max=runner.p_limit, sample_period=cfg.period), runner.n)
+    """The safety monitor of the runner's chambers: pressure cap at the runner's limit, the sensor's
+    range, the loop watchdog at ``miss_limit`` missed deadlines in a row."""
+    if cfg.kind == "robot":
+        sensor = cfg.scenario.role("robot").pneumatics.sensor_range
+    else:
+        sensor = chamber_rig_settings(cfg).sensor_range
+    return SafetyMonitor(MonitorSettings(p_max=runner.p_limit, sensor_range=sensor, sample_period=cfg.period,
+                                         missed_deadlines=cfg.miss_limit), runner.n)

@@ -75,8 +75,9 @@ class DaemonLoop:
     speed : rig seconds per wall second.
     duration : rig time to run, s; None = until stopped.
     log : the :class:`RunLog`, None = no log.
-    monitor : the safety monitor (``check(t, readings, u_sent, deadline_missed) -> faults``,
-        ``latched``, ``counts``, ``raise_fault(t, kind, cause)``), None = none.
+    monitor : the :class:`hbma_ctrl.runtime.watchdog.SafetyMonitor` (``check(t, readings, u_sent,
+        deadline_missed) -> faults``, ``latched``, ``faults``, ``counts``), None = none (the loop then
+        latches 'overrun' itself after ``miss_limit`` missed deadlines in a row).
     status_every : publish the status every this many periods.
     miss_limit : missed deadlines in a row that latch the 'deadline' fault.
     warmup_periods : the first periods (the controller's first solves set up its solver) are timed and
@@ -130,6 +131,12 @@ class DaemonLoop:
         self.fault_counts[kind] = self.fault_counts.get(kind, 0) + 1
         self.event(kind, cause)
 
+    def _latched_kinds(self) -> list[str]:
+        """The kinds the monitor reported since it latched (sorted), [] when it has not."""
+        if self.monitor is None or not getattr(self.monitor, "latched", False):
+            return []
+        return sorted({str(getattr(f, "kind", f)) for f in getattr(self.monitor, "faults", ())})
+
     def faults(self) -> dict:
         """Fault counts by kind: the monitor's and the loop's own (deadline, exception, link)."""
         out = dict(self.fault_counts)
@@ -181,8 +188,7 @@ class DaemonLoop:
             row += [_fmt(self.readings_p[i], U.to_kpa(1.0)), _fmt(pe[i], U.to_kpa(1.0)), _fmt(h[i], U.to_mm(1.0)),
                     _fmt(hs[i], U.to_mm(1.0)), _fmt(tg[i], U.to_mm(1.0)), f"{u[0, i]:.4f}", f"{u[1, i]:.4f}",
                     f"{u[2, i]:.4f}"]
-        lat = getattr(self.monitor, "latched", None)
-        latched = ";".join(sorted(str(getattr(f, "kind", f)) for f in lat)) if lat else ""
+        latched = ";".join(self._latched_kinds())
         row += [_fmt(step_s, 1e3, 3), latched]
         self.log.row(row)
 
@@ -198,12 +204,13 @@ class DaemonLoop:
         if np.isfinite(p).any():
             self.max_pressure = max(self.max_pressure, float(np.nanmax(p)))
         if self.monitor is not None:
-            for f in self.monitor.check(self.t, r, self.u_last, missed_last) or ():
+            # the controller's first solves set up its solver: those misses do not feed the watchdog
+            missed = missed_last and self.steps > self.warmup_periods
+            for f in self.monitor.check(self.t, r, self.u_last, missed) or ():
                 self.event(str(getattr(f, "kind", "fault")), str(getattr(f, "cause", f)))
             if self.monitor.latched and self.mode == "running":
                 self.mode = "safe"
-                self.event("safe", "fault latched: " + ", ".join(sorted({str(getattr(f, "kind", f))
-                                                                         for f in self.monitor.latched})))
+                self.event("safe", "fault latched: " + ", ".join(self._latched_kinds()))
         if self.mode == "safe":
             # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
             self._write(safe_u(self.n))
@@ -260,14 +267,11 @@ class DaemonLoop:
                     k_next = int(math.floor((end - t0) / wp)) + 1
                     self.skipped_periods += k_next - (k + 1)
                     k = k_next
-                    if self._miss_run == self.miss_limit and self.mode == "running":
-                        cause = f"{self.miss_limit} deadlines missed in a row (period {U.to_ms(wp):g} ms wall)"
-                        if self.monitor is not None and hasattr(self.monitor, "raise_fault"):
-                            self.monitor.raise_fault(self.t, "deadline", cause)
-                            self.event("deadline", cause)
-                        else:
-                            self._fault("deadline", cause)
-                            self.mode = "safe"
+                    # with a monitor, its overrun test (fed above) is the loop watchdog
+                    if self.monitor is None and self._miss_run == self.miss_limit and self.mode == "running":
+                        self._fault("overrun", f"{self.miss_limit} deadlines missed in a row (period "
+                                               f"{U.to_ms(wp):g} ms wall)")
+                        self.mode = "safe"
                 else:
                     self._miss_run = 0
                     k += 1
@@ -276,7 +280,7 @@ class DaemonLoop:
                     self.state.publish(self.status())
         except RigLinkError as exc:
             self.end_reason = "link lost"
-            self._fault("link_lost", str(exc))
+            self._fault("link_loss", str(exc))
             raise
         except BaseException as exc:
             self.end_reason = f"exception: {type(exc).__name__}"
