@@ -118,6 +118,7 @@ class DaemonLoop:
         self.rss_end = float("nan")
         self.wall_s = 0.0
         self._miss_run = 0
+        self._t_origin: float | None = None
 
     # --- events ------------------------------------------------------------------------------------
     def event(self, kind: str, cause: str) -> None:
@@ -200,7 +201,14 @@ class DaemonLoop:
         r = self.rig.read()
         p = np.asarray(r.p, dtype=float).reshape(self.n)
         self.readings_p = p
-        self.t = float(r.t) if r.t is not None else k * self.period
+        if r.t is None:
+            self.t = k * self.period
+        else:
+            # the rig's clock starts at its own boot: the scenario's schedule starts at the first reading
+            if self._t_origin is None:
+                self._t_origin = float(r.t)
+            # a repeated or reordered packet never moves the loop's clock back (the estimator refuses that)
+            self.t = max(float(r.t) - self._t_origin, self.t)
         if np.isfinite(p).any():
             self.max_pressure = max(self.max_pressure, float(np.nanmax(p)))
         if self.monitor is not None:
