@@ -3,7 +3,10 @@
 Period k starts at the wall deadline ``t0 + k * period / speed`` (time.monotonic): no drift, however
 long the steps take. The loop sleeps until the deadline; the lateness of the wake-up is the jitter.
 A step that ends after the next deadline is a *deadline miss*; the loop does not burst to catch
-up: it goes on at the next deadline still in the future and counts the deadlines it skipped. With
+up: it goes on at the next deadline still in the future and counts the deadlines it skipped. The
+loop watchdog (the monitor's overrun test) gets the misses in real time (speed 1); accelerated, it
+gets the steps that took longer than the rig period (what a real rig would have missed), so a run
+faster than real time is not stopped for being faster than real time. With
 the lockstep simulated rig, rig time advances one period per write, so it is exact whatever the
 wall clock does; ``speed`` runs that many rig seconds per wall second.
 
@@ -103,6 +106,7 @@ class DaemonLoop:
         self.steps = 0
         self.deadline_misses = 0
         self.skipped_periods = 0
+        self.over_budget = 0
         self.step_s = StepStats(8192)
         self.jitter_s = StepStats(8192)
         self.max_pressure = -math.inf
@@ -268,13 +272,20 @@ class DaemonLoop:
                 self.step_s.add(step)
                 self.steps += 1
                 next_deadline = t0 + (k + 1) * wp
-                missed_last = end > next_deadline
-                if missed_last:
+                late = end > next_deadline
+                # the watchdog judges real time: accelerated (speed > 1), a step is late when it
+                # overruns the rig period, the budget a real rig would give it
+                missed_last = late if self.speed <= 1.0 else step > self.period
+                self.over_budget += int(step > self.period)
+                if late:
                     self.deadline_misses += 1
-                    self._miss_run += 1 if self.steps > self.warmup_periods else 0
                     k_next = int(math.floor((end - t0) / wp)) + 1
                     self.skipped_periods += k_next - (k + 1)
                     k = k_next
+                else:
+                    k += 1
+                if missed_last:
+                    self._miss_run += 1 if self.steps > self.warmup_periods else 0
                     # with a monitor, its overrun test (fed above) is the loop watchdog
                     if self.monitor is None and self._miss_run == self.miss_limit and self.mode == "running":
                         self._fault("overrun", f"{self.miss_limit} deadlines missed in a row (period "
@@ -282,7 +293,6 @@ class DaemonLoop:
                         self.mode = "safe"
                 else:
                     self._miss_run = 0
-                    k += 1
                 self._log_row(step)
                 if self.steps % self.status_every == 0:
                     self.state.publish(self.status())
@@ -317,5 +327,6 @@ class DaemonLoop:
                 "pressure_limit_kpa": float(U.to_kpa(self.runner.p_limit)), "faults": self.faults(),
                 "safe_exit": bool(self.safe_exit), "rss_mb_start": self.rss_start, "rss_mb_end": self.rss_end,
                 "end_reason": self.end_reason, "skipped_periods": self.skipped_periods,
+                "steps_over_period": self.over_budget,
                 "step_ms_max": ms(st["max"]), "speed": self.speed, "rig_time_s": float(self.t),
                 "wall_s": float(self.wall_s)}
