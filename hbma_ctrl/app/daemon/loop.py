@@ -109,6 +109,9 @@ class DaemonLoop:
         self.over_budget = 0
         self.step_s = StepStats(8192)
         self.jitter_s = StepStats(8192)
+        #: the runtime tick alone (estimator, controller, supervisor): the step without the rig's I/O,
+        #: which on the simulated rig includes simulating the plant
+        self.tick_s = StepStats(8192)
         self.max_pressure = -math.inf
         self.events: deque = deque(maxlen=EVENTS_KEPT)
         self.fault_counts: dict = {}
@@ -227,7 +230,9 @@ class DaemonLoop:
             # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
             self._write(safe_u(self.n))
             return
+        c0 = self.clock()
         u = self.runner.tick(self.t, p)
+        self.tick_s.add(self.clock() - c0)
         self._write(u)
 
     def _should_stop(self) -> bool:
@@ -317,9 +322,10 @@ class DaemonLoop:
         return self.stats()
 
     def stats(self) -> dict:
-        """daemon_stats.json: :data:`STATS_KEYS` (ms, kPa, MB) and end_reason, skipped_periods, rig_time_s,
-        wall_s, step_ms_max."""
-        st, jt = self.step_s.summary(), self.jitter_s.summary()
+        """daemon_stats.json: :data:`STATS_KEYS` (ms, kPa, MB) and end_reason, skipped_periods,
+        steps_over_period, step_ms_max, tick_ms_median and tick_ms_p99 (the runtime tick without the
+        rig's I/O), speed, rig_time_s, wall_s."""
+        st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
         ms = lambda x: None if not math.isfinite(x) else float(U.to_ms(x))  # noqa: E731
         return {"rate_hz": 1.0 / self.period, "steps": self.steps, "deadline_misses": self.deadline_misses,
                 "step_ms_median": ms(st["median"]), "step_ms_p99": ms(st["p99"]), "jitter_ms_p99": ms(jt["p99"]),
@@ -328,5 +334,6 @@ class DaemonLoop:
                 "safe_exit": bool(self.safe_exit), "rss_mb_start": self.rss_start, "rss_mb_end": self.rss_end,
                 "end_reason": self.end_reason, "skipped_periods": self.skipped_periods,
                 "steps_over_period": self.over_budget,
-                "step_ms_max": ms(st["max"]), "speed": self.speed, "rig_time_s": float(self.t),
+                "step_ms_max": ms(st["max"]), "tick_ms_median": ms(tk["median"]), "tick_ms_p99": ms(tk["p99"]),
+                "speed": self.speed, "rig_time_s": float(self.t),
                 "wall_s": float(self.wall_s)}
