@@ -69,6 +69,14 @@ def test_dropout_is_nan_on_its_chamber_in_its_window_only():
         assert np.array_equal(r.p[[0, 2]], clean(k)[[0, 2]])
 
 
+def test_the_periods_each_fault_acted_are_counted():
+    rig = FaultyRig(ScriptRig(), [FaultSpec("dropout", 0, 0.02, 0.03), FaultSpec("pump_failure", 1, 0.05)])
+    for _ in range(8):
+        rig.read()
+        rig.write(CMD)
+    assert rig.injected["dropout"] == 3 and rig.injected["pump_failure"] == 3 and rig.injected["leak"] == 0
+
+
 def test_frozen_repeats_the_last_value_before_it_and_is_not_fresh():
     reads, _ = drive([FaultSpec("frozen", chamber=None, start=0.03)])
     for k, r in enumerate(reads):

@@ -33,7 +33,7 @@ def run(rig, steps, u):
 def test_chamber_is_a_rigio_with_one_chamber():
     rig = chamber()
     assert isinstance(rig, RigIO)
-    assert rig.n == 1 and rig.sample_period == pytest.approx(0.01)
+    assert rig.n == 1 and rig.sample_period == pytest.approx(0.01) and rig.sensor_range == pytest.approx(35e3)
 
 
 def test_same_seed_same_readings_other_seed_other_readings():

@@ -26,11 +26,11 @@ S = MonitorSettings()
 TS = S.sample_period
 
 
-def open_loop(spec, load=0.0, speed=1.0, T=3.0, seed=1):
+def open_loop(spec, load=0.0, speed=1.0, T=3.0, seed=1, settings=None):
     """Pump at ``speed`` (inlet open, outlet closed) on the faulty sim rig; the first faults found and
     their delay in periods from the fault's start (None when nothing is found in T s)."""
     rig = FaultyRig(SimRig.chamber(ACT, PN, Platform(load=load), RigSettings(seed=seed)), [spec])
-    mon = SafetyMonitor(MonitorSettings(), 1)
+    mon = SafetyMonitor(settings or MonitorSettings(), 1)
     u, sent = np.array([[speed], [1.0], [0.0]]), safe_u(1)
     for _ in range(int(round(T / TS))):
         r = rig.read()
@@ -76,6 +76,15 @@ def test_without_a_fault_the_open_loop_inflation_raises_nothing():
         assert open_loop(FaultSpec("dropout", None, 99.0), load, 1.0, T=3.0) == ([], None)
 
 
+def test_no_leak_test_above_leak_p_max():
+    """The burst the default monitor finds in under 10 periods (at about 20 kPa) is left alone while the
+    pressures compared are above leak_p_max, and found once they are all below it."""
+    burst = FaultSpec("leak", None, 1.5, value=1.0)
+    found, delay = open_loop(burst, settings=MonitorSettings(leak_p_max=15e3))
+    assert [f.kind for f in found] == ["leak"] and delay > 10
+    assert float(found[0].cause.split("to ")[1].split(" kPa")[0]) < 15.0
+
+
 def readings(p, fresh=True):
     p = np.atleast_1d(np.asarray(p, dtype=float))
     return Readings(t=0.0, p=p, fresh=np.full(p.shape, fresh))
@@ -92,6 +101,20 @@ def test_over_pressure_at_once_and_reported_once_while_it_lasts():
     mon.check(0.03, readings([20e3, 1e3]), u)
     assert len(mon.check(0.04, readings([30e3, 1e3]), u)) == 1  # a new episode is a new report
     assert mon.counts["over_pressure"] == 2
+
+
+def test_gaps_in_the_readings_while_pumping_are_skipped_without_warnings():
+    """Every other reading missing from the first check on: the trend tests run on what is there (a
+    steady rise is no leak) and nothing warns."""
+    import warnings
+
+    mon = SafetyMonitor(MonitorSettings(nan_periods=3), 1)
+    pump = np.array([[1.0], [1.0], [0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        found = [f for k in range(100) for f in mon.check(k * TS, readings(np.nan if k % 2 else 100.0 * k), pump)]
+        found += [f for k in range(100, 110) for f in mon.check(k * TS, readings(np.nan), pump)]
+    assert [f.kind for f in found] == ["sensor_missing"]
 
 
 def test_identical_values_on_fresh_packets_make_a_frozen_sensor():
@@ -194,3 +217,40 @@ def test_a_burst_during_a_closed_loop_step_is_found_as_a_leak(model):
     found, _ = closed_loop(model, 0.4, 1, 2.5, [FaultSpec("leak", None, 1.6, value=1.0)])
     assert [f.kind for f in found] == ["leak"]
     assert 0 <= round((found[0].t - 1.6) / TS) <= 10
+
+
+def test_no_fault_over_a_robot_closed_loop_past_the_limit_point():
+    """The robot's NMPC drives every chamber of a layer to 7 mm, past the limit point (where pumping
+    lowers the pressure): with leak_p_max at 0.8 x the model's limit-point pressure nothing is reported."""
+    from dataclasses import replace
+
+    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.app.robot_closed import make_model
+    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.core import units as U
+    from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
+    from hbma_ctrl.robot.rig import RobotRigSettings
+    from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+
+    d = RobotDesign(n_layers=1)
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics(pressure_limit=45e3)).validate()
+    bank_model = make_model(d, PN, "per_chamber")
+    rig = SimRig.robot(s, RobotRigSettings(seed=0))
+    n, ts = rig.n, rig.sample_period
+    bank = ChamberEKFBank(bank_model, n, ChamberEKFSettings(sample_period=ts, noise_std=200.0, sensor_range=50e3))
+    ctrl = RobotNMPC(bank_model, n, replace(RobotMPCSettings(), sample_period=ts, p_max=45e3))
+    loop = RobotLoop(d, bank_model, bank, ctrl, robot_supervisor(45e3, n, 1e3, plan_period=ctrl.s.dt),
+                     {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}, cautious=(0.75, 0.03, 0.3))
+    cap = 0.8 * bank_model.peak(1e-3)[1]
+    mon = SafetyMonitor(MonitorSettings(p_max=45e3, sensor_range=rig.sensor_range, sample_period=ts,
+                                        leak_p_max=cap), n)
+    sent, found = safe_u(n), []
+    for _ in range(250):
+        r = rig.read()
+        found += mon.check(r.t, r, sent)
+        loop.tick(r.t, r.p)
+        sent = np.asarray(loop.valve_commands).reshape(3, n)
+        rig.write(sent)
+    assert found == []
+    assert np.all(rig.truth()["h"] > bank_model.peak(1e-3)[0])  # the chambers did pass the limit point

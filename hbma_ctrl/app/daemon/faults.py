@@ -55,6 +55,7 @@ INJECTED_KINDS = ("dropout", "frozen", "offset", "out_of_range", "stuck_inlet", 
 VALUE_KEY = {"dropout": None, "frozen": None, "offset": "offset_kpa", "out_of_range": "value_kpa",
              "stuck_inlet": "duty", "stuck_outlet": "duty", "leak": "duty", "pump_failure": None,
              "link_loss": None}
+_READ_KINDS = ("dropout", "frozen", "offset", "out_of_range", "link_loss")
 _VALUE_TO_SI = {"offset_kpa": U.kpa, "value_kpa": U.kpa, "duty": float}
 
 
@@ -186,7 +187,7 @@ class FaultyRig:
         p = np.array(r.p, dtype=float)
         fresh = np.array(r.fresh, dtype=bool) if np.size(r.fresh) == self.n else np.ones(self.n, dtype=bool)
         for j, f in enumerate(self.faults):
-            if not f.active(self.t):
+            if f.kind not in _READ_KINDS or not f.active(self.t):
                 continue
             c = f.columns(self.n)
             self.injected[f.kind] += 1

@@ -34,6 +34,7 @@ class _ChamberAdapter:
         self.rig = rig
         self.n = 1
         self.sample_period = rig.settings.sample_period
+        self.sensor_range = rig.settings.sensor_range
         self.loads = sorted((float(t), float(m)) for t, m in load_steps)
         self._loads_due(0.0)
 
@@ -59,6 +60,7 @@ class _RobotAdapter:
         self.rig = rig
         self.n = rig.n
         self.sample_period = rig.s.sample_period
+        self.sensor_range = rig.sensor_range
 
     def apply(self, u: np.ndarray) -> None:
         self.rig.apply(u)
@@ -75,7 +77,8 @@ class _RobotAdapter:
 class SimRig:
     """A simulated rig behind the RigIO interface, in lockstep (see module doc).
 
-    Attributes: ``n`` chambers, ``sample_period`` s, ``t`` rig time (s), ``seq`` the number of the
+    Attributes: ``n`` chambers, ``sample_period`` s, ``sensor_range`` Pa (where readings saturate: the
+    monitor's ``sensor_range``), ``t`` rig time (s), ``seq`` the number of the
     newest sample, ``held`` the command (3, n) in force, ``rig`` the wrapped rig model.
     Use :meth:`chamber` or :meth:`robot` to build one.
     """
@@ -85,6 +88,7 @@ class SimRig:
         self.rig = adapter.rig
         self.n: int = adapter.n
         self.sample_period: float = float(adapter.sample_period)
+        self.sensor_range: float = float(adapter.sensor_range)
         self.t = 0.0
         self.seq = 0
         self.held = safe_u(self.n)
