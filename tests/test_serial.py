@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 import tty
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -379,6 +382,24 @@ def test_proportional_loop_over_serial_settles_as_on_the_direct_plant():
         rig.close()
         fw.close()
     assert np.mean(tail) == pytest.approx(p, rel=0.03)
+
+
+def test_firmware_module_runs_and_prints_a_port_a_rig_can_open(tmp_path):
+    link = str(tmp_path / "rig")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}  # this checkout's package
+    proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl.app.daemon.firmware", "--n", "2", "--link", link],
+                            stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout.readline().strip() == link
+        rig = SerialRig(link, 2)
+        try:
+            assert _wait(lambda: rig.read().fresh.all())
+        finally:
+            rig.close()
+    finally:
+        proc.terminate()
+        assert proc.wait(timeout=TIMEOUT) == 0
+    assert not os.path.lexists(link)  # removed on the way out
 
 
 def test_firmware_cli_rejects_bad_flags_with_one_line(capsys):
