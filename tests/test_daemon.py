@@ -492,3 +492,24 @@ def test_chamber_on_the_serial_link_settles_to_the_same_target_as_on_sim(tmp_pat
         pytest.xfail(f"serial: the chamber held {h_end * 1e3:.2f} mm against the 6 mm target (sim: within 0.3 mm); "
                      "the estimator does not yet follow a rig whose samples and commands are not in lockstep")
     assert np.array_equal(fw.u, safe_u(1))  # the firmware holds the safe command at the end
+
+
+def test_setpoints_are_refused_once_the_safe_state_is_latched():
+    state = DaemonState()
+    cfg, runner, rig, loop = _loop(CHAMBER, state=state, duration_s=0.3)
+    vc = _slow(loop, runner, 1.5)  # overrun latches after 10 periods
+    replies: list = []
+
+    def sleep(dt):
+        vc.sleep(dt)
+        try:
+            replies.append((loop.mode, state.submit_setpoint({"heights": {0: 0.004}})["clipped"]))
+        except RuntimeError as exc:
+            replies.append((loop.mode, str(exc)))
+
+    loop.sleep = sleep
+    loop.run()
+    modes = [m for m, _ in replies]
+    assert "running" in modes and "safe" in modes
+    assert all(r == [] for m, r in replies if m == "running")
+    assert all("mode 'safe'" in r and "overrun" in r for m, r in replies if m == "safe")

@@ -238,6 +238,14 @@ class DaemonLoop:
         self.tick_s.add(self._last_tick)
         self._write(u)
 
+    def _check_setpoint(self, request: dict) -> dict:
+        """The runner's check (the API's thread); refused (RuntimeError: 503) once the loop is not running:
+        in the safe state the loop writes only the safe command, so a setpoint would never be applied."""
+        if self.mode != "running":
+            raise RuntimeError(f"the daemon is in mode '{self.mode}' (safe command only, after "
+                               f"{', '.join(self._latched_kinds()) or 'a stop'}): setpoints are not applied")
+        return self.runner.check_setpoint(request)
+
     def _should_stop(self) -> bool:
         """True (and the stop event logged) on a signal, a stop request or the end of the duration."""
         if self.signal_stop:
@@ -254,7 +262,7 @@ class DaemonLoop:
 
     def run(self) -> dict:
         """Run until stopped (module doc); returns the stats (:data:`STATS_KEYS` and more)."""
-        self.state.set_setpoint_handler(self.runner.check_setpoint)
+        self.state.set_setpoint_handler(self._check_setpoint)
         self.mode = "running"
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
         wp = self.period / self.speed
