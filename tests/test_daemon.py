@@ -487,8 +487,8 @@ def test_chamber_on_the_serial_link_settles_to_the_same_target_as_on_sim(tmp_pat
     assert len(h_controlled) > 300  # the firmware ran the host's commands for most of the run
     h_end = h_controlled[-1]
     if abs(h_end - 6e-3) > 0.3e-3:
-        # measured: 6.58, 3.63 and 8.75 mm in three runs whose plant pacing differed (the lockstep
-        # rig on the firmware's own clock); on sim the same configuration ends at 6.05 mm
+        # seen on a heavily loaded machine (6.58, 3.63, 8.75, 6.67 mm); unloaded it settles within
+        # 0.3 mm as on sim: the estimator is sensitive to samples and commands out of lockstep
         pytest.xfail(f"serial: the chamber held {h_end * 1e3:.2f} mm against the 6 mm target (sim: within 0.3 mm); "
                      "the estimator does not yet follow a rig whose samples and commands are not in lockstep")
     assert np.array_equal(fw.u, safe_u(1))  # the firmware holds the safe command at the end
