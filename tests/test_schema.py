@@ -36,8 +36,9 @@ from hbma_ctrl.sim.batch import FIDELITY_CHOICES
 from hbma_ctrl.sim.trial import INTEGRATORS
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = sorted((ROOT / "scenarios").glob("*.toml"))
-TABLES = ("scenario, actuator, pneumatics, load, inputs, protocol, sim, rig, estimator, controller, robot")
+# the daemon's configurations (scenario tables + [daemon]) are checked by tests/test_daemon.py
+SHIPPED = sorted(p for p in (ROOT / "scenarios").glob("*.toml") if not p.name.startswith("daemon_"))
+TABLES = ("scenario, actuator, pneumatics, load, inputs, protocol, sim, rig, estimator, controller, robot, daemon")
 
 
 def _load(path: Path) -> dict:

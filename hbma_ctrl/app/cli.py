@@ -1,10 +1,10 @@
 """Command line: ``hbma-ctrl`` (typer). Parses, runs and reports; the work happens in the library.
 
 Commands: ``run FILE``, ``protocol`` (also what a bare ``hbma-ctrl`` runs, with defaults),
-``equilibrium``, ``plots``, ``bench sim``; the estimator, controller, robot, fit and tune commands
-come from ``register(app, bench_app)`` in :mod:`hbma_ctrl.app.cli_estimators`,
-:mod:`hbma_ctrl.app.cli_controllers`, :mod:`hbma_ctrl.app.cli_robot`, :mod:`hbma_ctrl.app.cli_fit` and
-:mod:`hbma_ctrl.app.cli_tune`.
+``equilibrium``, ``plots``, ``bench sim``; the estimator, controller, robot, fit, tune and daemon
+commands come from ``register(app, bench_app)`` in :mod:`hbma_ctrl.app.cli_estimators`,
+:mod:`hbma_ctrl.app.cli_controllers`, :mod:`hbma_ctrl.app.cli_robot`, :mod:`hbma_ctrl.app.cli_fit`,
+:mod:`hbma_ctrl.app.cli_tune` and :mod:`hbma_ctrl.app.cli_daemon`.
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
 exits with code 2, never a traceback; a run whose trials all diverged does the same with code 1. Ctrl-C prints ``interrupted: partial results in <path>`` and
@@ -36,6 +36,7 @@ except ImportError:  # pragma: no cover
 from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
 from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.cli_controllers import register as register_controllers
+from hbma_ctrl.app.cli_daemon import register as register_daemon
 from hbma_ctrl.app.cli_estimators import register as register_estimators
 from hbma_ctrl.app.cli_fit import register as register_fit
 from hbma_ctrl.app.cli_robot import register as register_robot
@@ -373,5 +374,6 @@ def _dt_text(row) -> str:
     return f"{row.dt_ms:g}"
 
 
-for _register in (register_estimators, register_controllers, register_robot, register_fit, register_tune):
+for _register in (register_estimators, register_controllers, register_robot, register_fit, register_tune,
+                  register_daemon):
     _register(app, bench_app)

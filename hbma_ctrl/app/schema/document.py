@@ -24,6 +24,7 @@ from hbma_ctrl.app.schema.base import (
     SimTable,
 )
 from hbma_ctrl.app.schema.controller import ControllerTable
+from hbma_ctrl.app.schema.daemon import DaemonTable
 from hbma_ctrl.app.schema.errors import format_error
 from hbma_ctrl.app.schema.estimator import EstimatorTable
 from hbma_ctrl.app.schema.fields import RuleError, Table
@@ -59,6 +60,7 @@ class ScenarioFile(Table):
     estimator: EstimatorTable | None = Field(None, description="the filter and its tuning")
     controller: ControllerTable | None = Field(None, description="the controller and its targets")
     robot: RobotTable | None = Field(None, description="the robot, its inputs or targets")
+    daemon: DaemonTable | None = Field(None, description="the rig daemon: rate, rig link, API, log (hbma-ctrl daemon)")
 
     @model_validator(mode="after")
     def _across_tables(self, info: ValidationInfo) -> ScenarioFile:

@@ -1,0 +1,157 @@
+"""``hbma-ctrl daemon CONFIG.toml``: the rig daemon (README "Run on a rig").
+
+Registered by :mod:`hbma_ctrl.app.cli` through :func:`register`. Reads the configuration (a scenario
+file with a [daemon] table; flags override its keys), builds the runtime loop, the rig link, the
+safety monitor, the run log and the API, and runs :class:`hbma_ctrl.app.daemon.loop.DaemonLoop`
+until the duration, ``POST /stop``, SIGINT or SIGTERM (each writes the safe command first). The
+results directory goes through :func:`hbma_ctrl.app.outputs.run_dir`: while running, the run log is
+in the temporary directory the command prints; at the end the directory becomes ``--out`` with
+``daemon_stats.json``, ``metrics.json`` and ``manifest.json``.
+
+Bad configuration or flags: one ``error: ...`` line, exit 2, before the rig is touched. A lost rig
+link or a protocol version mismatch: the safe command, then one line, exit 2. A run that ends in
+the safe state after a fault: exit 1.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import typer
+
+from hbma_ctrl.app.daemon.api import serve
+from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
+from hbma_ctrl.app.daemon.config import DaemonConfig, load_config
+from hbma_ctrl.app.daemon.loop import DaemonLoop
+from hbma_ctrl.app.daemon.rigio import RigLinkError
+from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns
+from hbma_ctrl.app.daemon.state import DaemonState
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, default_out, run_dir
+
+__all__ = ["register", "run_daemon"]
+
+
+def _jsonable(x):
+    """numpy scalars and arrays, NaN -> JSON values (NaN and inf become null)."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    return x
+
+
+def _link_errors() -> tuple:
+    """The exceptions that mean the rig link is gone or speaks another protocol version."""
+    errs: list = [RigLinkError]
+    try:
+        from hbma_ctrl.app.daemon.serial_link import ProtocolVersionError
+        errs.append(ProtocolVersionError)
+    except ImportError:
+        pass
+    return tuple(errs)
+
+
+def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list | None = None,
+               echo=None, state: DaemonState | None = None) -> dict:
+    """Run the daemon of ``cfg`` into ``out`` (see module doc); returns daemon_stats.json's content.
+    ``echo``: where to print one-line notices (default stderr). ``state``: the state shared with the API."""
+    echo = echo or (lambda s: print(s, file=sys.stderr, flush=True))
+    check_out(out, overwrite)
+    runner = build_runner(cfg)
+    state = state or DaemonState()
+    server = None
+    loop = None
+    rig = make_rig(cfg, runner)  # before the results directory: a rig that cannot be built leaves nothing behind
+    with run_dir(out, command="daemon", argv=argv, scenario_path=cfg.path, overwrite=overwrite) as tmp:
+        try:
+            monitor = make_monitor(cfg, runner)
+            log = RunLog(tmp, chamber_columns(runner.names), cfg.log_rotate_bytes, cfg.log_flush)
+            loop = DaemonLoop(runner, rig, state, cfg.period, speed=cfg.speed, duration=cfg.duration, log=log,
+                              monitor=monitor, status_every=cfg.status_every, miss_limit=cfg.miss_limit)
+            if cfg.api is not None:
+                server = serve(state, cfg.api[0], cfg.api[1], allow_remote=cfg.allow_remote, token=cfg.token)
+                echo(f"api: {server.url}")
+            echo(f"run log: {tmp}")
+
+            def on_signal(signum, frame):  # only sets a flag: the loop writes the safe command and ends
+                loop.signal_stop = signal.Signals(signum).name
+
+            old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+            try:
+                loop.run()
+            finally:
+                for s, h in old.items():
+                    signal.signal(s, h)
+        finally:
+            if server is not None:
+                server.stop()
+            try:
+                rig.close()
+            except Exception:  # noqa: BLE001 - the safe command is already out; closing must not mask why
+                pass
+        stats = loop.stats()
+        (tmp / "daemon_stats.json").write_text(json.dumps(_jsonable(stats), indent=1) + "\n")
+        role = "robot" if cfg.kind == "robot" else "controller"
+        metrics = {"daemon": stats, role: runner.stats()}
+        (tmp / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1) + "\n")
+    return stats
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``daemon`` to the top-level app (called by :mod:`hbma_ctrl.app.cli`)."""
+
+    @app.command("daemon")
+    def daemon(
+        config: Annotated[Path, typer.Argument(help="scenario file with a [daemon] table (CONFIG.toml)")],
+        rig: Annotated[Optional[str], typer.Option("--rig", help="sim | serial:PORT (overrides [daemon] rig)")] = None,
+        speed: Annotated[Optional[float], typer.Option("--speed", help="rig seconds per wall second (sim only)")]
+        = None,
+        duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="rig time to run, s (default: until "
+                                                                                 "stopped)")] = None,
+        api: Annotated[Optional[str], typer.Option("--api", help="API address HOST:PORT (port 0 = any free)")] = None,
+        allow_remote: Annotated[bool, typer.Option("--allow-remote", help="let the API bind a non-loopback address "
+                                                                          "(needs --token)")] = False,
+        token: Annotated[Optional[str], typer.Option("--token", help="bearer token every API request must carry")]
+        = None,
+        out: Annotated[Optional[Path], typer.Option("--out", "-o", help="results directory (default runs/<name>)")]
+        = None,
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    ) -> None:
+        """Run the observer and controller in a fixed-rate loop on a simulated or serial rig."""
+        flags = {"--rig": rig, "--speed": speed, "--duration-s": duration_s, "--api": api,
+                 "--allow-remote": allow_remote, "--token": token}
+        cfg = load_config(config, flags)
+        dest = out or default_out(cfg.scenario.name)
+        try:
+            stats = run_daemon(cfg, dest, overwrite=overwrite, argv=cli_argv())
+        except _link_errors() as exc:
+            partial = getattr(exc, "partial_results", None)
+            where = f"; partial results in {partial}" if partial else ""
+            raise ValueError(f"rig link: {exc} (the safe command was sent){where}") from None
+        except (ValueError, FileNotFoundError, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # noqa: BLE001 - one line, no traceback: the loop already sent the safe command
+            partial = getattr(exc, "partial_results", None)
+            where = f"; partial results in {partial}" if partial else ""
+            raise ValueError(f"the loop stopped on {type(exc).__name__}: {exc} (the safe command was sent)"
+                             f"{where}") from None
+        faults = stats.get("faults") or {}
+        typer.echo(f"daemon: {stats['steps']} steps, {stats['deadline_misses']} deadline misses, step p99 "
+                   f"{stats['step_ms_p99'] or float('nan'):.2f} ms, max pressure "
+                   f"{stats['max_pressure_kpa'] or float('nan'):.2f} / {stats['pressure_limit_kpa']:g} kPa, "
+                   f"faults {faults or 'none'}, safe exit {stats['safe_exit']}, ended by {stats['end_reason']}; "
+                   f"wrote {dest}")
+        if faults:
+            raise typer.Exit(1)

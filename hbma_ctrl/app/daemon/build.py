@@ -1,0 +1,326 @@
+"""What the daemon runs, built from its configuration: the runtime loop wrapped for the rig (SI).
+
+A *runner* adapts :class:`hbma_ctrl.runtime.chamber.ChamberLoop` or
+:class:`hbma_ctrl.runtime.robot.RobotLoop` to the rig's view: ``tick(t, p) -> U`` with the readings
+of every chamber (Pa, (n,)) and the plant input ``U`` (3, n) the rig takes; the status rows the API
+shows; and setpoints: :meth:`check_setpoint` (the API's thread: clip to what is reachable, say what
+was clipped) and :meth:`apply_setpoint` (the loop's thread, between periods).
+
+The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.app.scene_controller`,
+:mod:`hbma_ctrl.app.robot_closed`), so a daemon on the simulated rig runs the scene's closed loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
+from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.app.daemon.config import DaemonConfig
+from hbma_ctrl.app.robot_closed import make_model
+from hbma_ctrl.app.scene_controller import _estimator_from_scenario, _settings_of, make_controller
+from hbma_ctrl.app.schema.rig import RigTable
+from hbma_ctrl.core import units as U
+from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
+from hbma_ctrl.robot.rig import RobotRigSettings
+from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
+from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
+from hbma_ctrl.sim.rig import RigSettings
+
+__all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
+           "robot_rig_settings"]
+
+
+def chamber_rig_settings(cfg: DaemonConfig) -> RigSettings:
+    """The single-chamber rig's settings ([rig], or the default rig at [sim] sensor_range_kpa), with the
+    daemon's period as its sample period."""
+    scn = cfg.scenario
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    return _same_period(cfg, rs)
+
+
+def robot_rig_settings(cfg: DaemonConfig) -> RobotRigSettings:
+    """The robot rig's settings ([rig] as the robot scene reads it) with the daemon's period."""
+    raw = cfg.scenario.sections.get("rig")
+    rs = RigTable.model_validate(raw).to_robot_rig() if raw else RobotRigSettings()
+    return _same_period(cfg, rs)
+
+
+def _same_period(cfg: DaemonConfig, rs):
+    """The rig's settings with the loop's period: a [rig] sample_period_ms other than 1000 / rate_hz is refused."""
+    raw = cfg.scenario.sections.get("rig") or {}
+    if "sample_period_ms" in raw and not math.isclose(rs.sample_period, cfg.period, rel_tol=1e-9):
+        raise ValueError(f"[rig] sample_period_ms = {U.to_ms(rs.sample_period):g} must equal the daemon's period "
+                         f"1000 / [daemon] rate_hz = {U.to_ms(cfg.period):g} ms (the loop reads and writes once per "
+                         "rig sample)")
+    return replace(rs, sample_period=cfg.period).validate()
+
+
+class ChamberRunner:
+    """One chamber under :class:`ChamberLoop` (see module doc). ``h_range``: reachable targets (lo, hi), m."""
+
+    kind = "chamber"
+
+    def __init__(self, loop: ChamberLoop, p_limit: float, h_range: tuple[float, float], names=("C1",)):
+        self.loop = loop
+        self.n = 1
+        self.names = tuple(names)
+        self.p_limit = float(p_limit)
+        self.h_range = (float(h_range[0]), float(h_range[1]))
+
+    def tick(self, t: float, p: np.ndarray) -> np.ndarray:
+        """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1)."""
+        return self.loop.tick(t, float(p[0])).as_array().reshape(3, 1)
+
+    def targets(self) -> np.ndarray:
+        """This period's target height per chamber, m (NaN = none)."""
+        tg = self.loop.target
+        return np.array([np.nan if tg is None else tg])
+
+    def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(height m, its std m, pressure Pa) per chamber from the estimator, NaN before the first tick."""
+        e = self.loop.estimate
+        if e is None:
+            return (np.full(1, np.nan),) * 3
+        return np.array([e.h]), np.array([float(e.std.get("h", np.nan))]), np.array([e.p])
+
+    def layers(self) -> list:
+        """No layers: a single chamber."""
+        return []
+
+    def supervisor_events(self) -> list:
+        """The runtime supervisor's interventions (oldest first)."""
+        return list(self.loop.supervisor.events)
+
+    def check_setpoint(self, request: dict) -> dict:
+        """Heights {0: h m} -> {"applied", "clipped"} (clipped to ``h_range``); ValueError for layers or
+        another chamber."""
+        if request.get("layers"):
+            raise ValueError("layers: this daemon runs one chamber; send heights_mm instead")
+        heights = request.get("heights") or {}
+        if not heights:
+            raise ValueError("no setpoint given: send heights_mm for chamber 0")
+        clipped, applied = [], {}
+        lo, hi = self.h_range
+        for i, h in heights.items():
+            if int(i) != 0:
+                raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
+            h = float(h)
+            if not math.isfinite(h):
+                raise ValueError(f"heights_mm.{i}: must be a finite number")
+            hc = min(max(h, lo), hi)
+            if hc != h:
+                clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):g} mm (reachable "
+                               f"[{U.to_mm(lo):g}, {U.to_mm(hi):g}] mm)")
+            applied[0] = hc
+        return {"applied": {"heights": applied}, "clipped": clipped}
+
+    def apply_setpoint(self, applied: dict, t: float) -> None:
+        """Hold the applied height from now on (the file's target schedule ends)."""
+        h = applied.get("heights", {}).get(0)
+        if h is not None:
+            self.loop.set_reference(lambda _t, h=float(h): h)
+
+    def stats(self) -> dict:
+        """The controller's and the runtime's statistics (ms, counts)."""
+        return self.loop.stats()
+
+
+class RobotRunner:
+    """The robot under :class:`RobotLoop` (see module doc). ``h_max``: the highest chamber target, m."""
+
+    kind = "robot"
+
+    def __init__(self, loop: RobotLoop, p_limit: float, h_max: float):
+        self.loop = loop
+        self.design = loop.design
+        self.n = loop.n
+        self.names = tuple(self.design.names)
+        self.p_limit = float(p_limit)
+        self.h_max = float(h_max)
+        self._t = 0.0
+
+    def tick(self, t: float, p: np.ndarray) -> np.ndarray:
+        """One period at rig time t (s) with the readings p (Pa, (n,)) -> U (3, n)."""
+        self._t = t
+        self.loop.tick(t, p)
+        return self.loop.valve_commands.copy()
+
+    def targets(self) -> np.ndarray:
+        """This period's target height per chamber, m."""
+        return np.asarray(self.loop.chamber_targets(self._t), dtype=float)
+
+    def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(height m, its std m, pressure Pa) per chamber from the EKF bank, NaN before the first tick."""
+        e = self.loop.estimate
+        if e is None:
+            return (np.full(self.n, np.nan),) * 3
+        return (np.asarray(e["h"], float), np.asarray(e.get("h_std", np.full(self.n, np.nan)), float),
+                np.asarray(e["p"], float))
+
+    def layers(self) -> list:
+        """The estimated pose of every layer: {"centre" m, "bend" rad, "direction" rad}."""
+        h, _, _ = self.estimates()
+        if not np.all(np.isfinite(h)):
+            return []
+        hh = np.maximum(h, 0.0).reshape(-1, 3)
+        out = []
+        for k in range(self.design.n_layers):
+            c, b, d = layer_plane(self.design, hh[k])
+            out.append({"centre": c, "bend": b, "direction": d})
+        return out
+
+    def supervisor_events(self) -> list:
+        """The runtime supervisor's interventions (oldest first)."""
+        return list(self.loop.supervisor.events)
+
+    def _pose_now(self, k: int) -> tuple[float, float, float]:
+        rows = self.loop.targets[k]
+        cur = rows[0]
+        for r in rows:
+            if self._t + 1e-9 >= r[0]:
+                cur = r
+        return float(cur[1]), float(cur[2]), float(cur[3])
+
+    def check_setpoint(self, request: dict) -> dict:
+        """Layer poses {k: (centre m, bend rad, direction rad)} -> {"applied", "clipped"}: chamber heights
+        from the inverse kinematics clipped to [0, h_max], the pose those heights give reported back."""
+        if request.get("heights"):
+            raise ValueError("heights_mm: the robot takes layer poses (layers) as setpoints")
+        layers = request.get("layers") or {}
+        if not layers:
+            raise ValueError("no setpoint given: send layers")
+        N = self.design.n_layers
+        applied, clipped = {}, []
+        for k, pose in layers.items():
+            k = int(k)
+            if not 0 <= k < N:
+                raise ValueError(f"layers: layer {k} is out of range [0, {N - 1}]")
+            c, b, d = (float(x) for x in pose)
+            if not all(math.isfinite(x) for x in (c, b, d)):
+                raise ValueError(f"layers.{k}: centre, bend and direction must be finite")
+            if not 0.0 <= b < math.pi / 2:
+                raise ValueError(f"layers.{k}: bend_deg = {math.degrees(b):g} is out of range [0, 90) deg")
+            h = inverse_kinematics(self.design, np.full(N, c), np.full(N, b), np.full(N, d))[k]
+            hc = np.clip(h, 0.0, self.h_max)
+            if np.any(hc != h):
+                c2, b2, d2 = layer_plane(self.design, hc)
+                bad = ", ".join(f"{self.names[3 * k + i]} {U.to_mm(h[i]):.2f} mm" for i in range(3) if hc[i] != h[i])
+                clipped.append(f"layers.{k}: chamber heights {bad} outside the reachable [0, {U.to_mm(self.h_max):g}] "
+                               f"mm; applied centre {U.to_mm(c2):.2f} mm, bend {math.degrees(b2):.2f} deg, "
+                               f"direction {math.degrees(d2):.1f} deg")
+                c, b, d = float(c2), float(b2), float(d2)
+            applied[k] = (c, b, d)
+        return {"applied": {"layers": applied}, "clipped": clipped}
+
+    def apply_setpoint(self, applied: dict, t: float) -> None:
+        """Hold the applied layer poses from now on; the other layers hold their current targets."""
+        new = applied.get("layers") or {}
+        targets = {}
+        for k in range(self.design.n_layers):
+            pose = new.get(k, self._pose_now(k))
+            targets[k] = ((0.0, *(float(x) for x in pose)),)
+        self.loop.set_targets(targets)
+
+    def stats(self) -> dict:
+        """The loop's statistics (ms, counts)."""
+        return self.loop.stats()
+
+
+def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
+    scn = cfg.scenario
+    section = scn.role("controller")
+    rs = chamber_rig_settings(cfg)
+    est = _estimator_from_scenario(scn, rs)
+    if est is None:
+        from estimators.ekf import EKF, EKFSettings
+        est = EKF(scn.actuator, scn.pneumatics, EKFSettings(sample_period=rs.sample_period,
+                                                            noise_std=max(rs.noise_std, 1.0),
+                                                            sensor_range=rs.sensor_range))
+    ctrl = make_controller(section, scn.actuator, scn.pneumatics)
+    ratio = section.sample_period / rs.sample_period
+    every = int(round(ratio))
+    if every < 1 or abs(ratio - every) > 1e-6:
+        raise ValueError(f"[controller] sample_ms = {U.to_ms(section.sample_period):g} must be a whole multiple of the "
+                         f"daemon's period 1000 / [daemon] rate_hz = {U.to_ms(rs.sample_period):g} ms")
+    settings = getattr(ctrl, "settings", None) or _settings_of(section)
+    loop = ChamberLoop(est, ctrl, chamber_supervisor(settings), reference=section.reference, every=every)
+    h_min = float(getattr(settings, "h_min", 0.0) or 0.0)
+    h_max = float(getattr(settings, "h_max", U.mm(20.0)))
+    return ChamberRunner(loop, section.p_max, (h_min, h_max))
+
+
+def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
+    scn = cfg.scenario
+    s = scn.role("robot")
+    d, rp = s.design, s.pneumatics
+    rs = robot_rig_settings(cfg)
+    n = 3 * d.n_layers
+    model = make_model(d, scn.pneumatics, rp.topology)
+    Ts = rs.sample_period
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
+                                                        sensor_range=rp.sensor_range))
+    if s.controller == "mpc":
+        ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=rp.pressure_limit)
+        ctrl = RobotNMPC(model, n, ms)
+    else:
+        ctrl = RobotPressurePID(model, n, replace(RobotPIDSettings(), sample_period=Ts))
+    sup = robot_supervisor(rp.pressure_limit, n, plan_period=ctrl.s.dt if s.controller == "mpc" else None)
+    loop = RobotLoop(d, model, bank, ctrl, sup, s.targets, cautious=(0.75, 0.03, 0.3) if s.controller == "mpc" else None)
+    return RobotRunner(loop, rp.pressure_limit, model.h_table_max)
+
+
+def build_runner(cfg: DaemonConfig) -> ChamberRunner | RobotRunner:
+    """The runner the configuration asks for (ValueError naming the key when the tables disagree)."""
+    return _robot_runner(cfg) if cfg.kind == "robot" else _chamber_runner(cfg)
+
+
+def make_rig(cfg: DaemonConfig, runner):
+    """The rig link the configuration names: the lockstep simulated rig (with the [[daemon.fault]]
+    injections) or the serial link. ValueError when a backend is not available."""
+    if cfg.rig == "serial":
+        try:
+            from hbma_ctrl.app.daemon.serial_link import SerialRig
+        except ImportError as exc:
+            raise ValueError(f"--rig serial: the serial backend is not available ({exc})") from None
+        return SerialRig(cfg.port, runner.n, baud=cfg.baud, sample_period=cfg.period)
+    try:
+        from hbma_ctrl.app.daemon.rig_sim import SimRig
+    except ImportError as exc:
+        raise ValueError(f"--rig sim: the simulated rig backend is not available ({exc})") from None
+    scn = cfg.scenario
+    if cfg.kind == "robot":
+        s = scn.role("robot")
+        rig = SimRig.robot(s, robot_rig_settings(cfg), scn.pneumatics, s.tip_load)
+    else:
+        rig = SimRig.chamber(scn.actuator, scn.pneumatics, scn.platform, chamber_rig_settings(cfg),
+                             scn.role("controller").load_steps)
+    if cfg.faults:
+        from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
+        try:
+            rig = FaultyRig(rig, parse_faults(cfg.faults, runner.n))
+        except ValueError as exc:
+            msg = str(exc)
+            raise ValueError(msg if msg.startswith("[") else f"[daemon.fault] {msg}") from None
+    return rig
+
+
+def make_monitor(cfg: DaemonConfig, runner):
+    """The safety monitor of the runner's chambers: pressure cap at the runner's limit, the sensor's
+    range, the loop watchdog at ``miss_limit`` missed deadlines in a row; for the robot the leak test
+    only below 0.8 x the limit-point pressure (its NMPC works past the limit point)."""
+    leak_p_max = None
+    if cfg.kind == "robot":
+        sensor = cfg.scenario.role("robot").pneumatics.sensor_range
+        # the NMPC drives chambers past their limit point, where pumping lowers the pressure as a leak
+        # would: the leak test stays below 0.8 x the model's lowest limit-point pressure
+        leak_p_max = 0.8 * runner.loop.model.peak(1e-3)[1]
+    else:
+        sensor = chamber_rig_settings(cfg).sensor_range
+    return SafetyMonitor(MonitorSettings(p_max=runner.p_limit, sensor_range=sensor, sample_period=cfg.period,
+                                         missed_deadlines=cfg.miss_limit, leak_p_max=leak_p_max), runner.n)

@@ -1,0 +1,150 @@
+"""The daemon's configuration: a scenario file with a [daemon] table, and the flags that override it (SI).
+
+:func:`load_config` reads the file once: the scenario tables go through the scenario schema (the
+same objects the scenes build), the [daemon] table through :class:`DaemonTable`; flags given on the
+command line replace the keys of the same name before validation, so a bad flag and a bad key get
+the same one-line error (naming the flag when it came from one).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from hbma_ctrl.app.daemon.api import is_loopback
+from hbma_ctrl.app.scenario import Scenario, load_scenario
+from hbma_ctrl.app.schema.daemon import DaemonTable, parse_api_address
+from hbma_ctrl.app.schema.errors import format_error
+
+__all__ = ["DaemonConfig", "FLAG_KEYS", "load_config", "parse_rig_flag"]
+
+#: command-line flag -> [daemon] key it overrides
+FLAG_KEYS = {"--speed": "speed", "--duration-s": "duration_s", "--api": "api", "--allow-remote": "allow_remote",
+             "--token": "token"}
+
+
+@dataclass
+class DaemonConfig:
+    """Everything the daemon runs with (SI).
+
+    Fields
+    ------
+    scenario : the validated scenario (actuator or robot, rig, estimator, controller).
+    kind : 'chamber' (a [controller] table) or 'robot' (a [robot] table in closed loop).
+    rate_hz : loop rate, Hz; period = 1 / rate_hz s.
+    rig : 'sim' or 'serial'.
+    port : serial port path ('serial' only), else None.
+    baud : serial line rate, baud.
+    speed : rig seconds per wall second (1 on a serial rig).
+    duration : rig time to run, s; None = until stopped.
+    api : (host, port) of the API, None = no API.
+    allow_remote : the API may bind a non-loopback address (with a token).
+    token : bearer token of the API, None = none.
+    log_rotate_bytes : size at which a run log part is closed, bytes.
+    log_flush : the run log is flushed at least this often, s.
+    status_every : the status is published every this many periods.
+    miss_limit : missed deadlines in a row that stop the loop.
+    faults : the [[daemon.fault]] tables as written (edge units; parsed by the fault injector).
+    path : the configuration file.
+    """
+
+    scenario: Scenario
+    kind: str
+    rate_hz: float = 100.0
+    rig: str = "sim"
+    port: str | None = None
+    baud: int = 115200
+    speed: float = 1.0
+    duration: float | None = None
+    api: tuple[str, int] | None = None
+    allow_remote: bool = False
+    token: str | None = None
+    log_rotate_bytes: int = 50_000_000
+    log_flush: float = 0.5
+    status_every: int = 1
+    miss_limit: int = 10
+    faults: list = field(default_factory=list)
+    path: Path | None = None
+
+    @property
+    def period(self) -> float:
+        """Loop period, s."""
+        return 1.0 / self.rate_hz
+
+
+def parse_rig_flag(value: str) -> dict:
+    """``--rig sim`` or ``--rig serial:PORT`` -> the [daemon] keys it sets; ValueError naming --rig."""
+    v = str(value).strip()
+    if v == "sim":
+        return {"rig": "sim"}
+    if v.startswith("serial:") and len(v) > len("serial:"):
+        return {"rig": "serial", "port": v[len("serial:"):]}
+    raise ValueError(f"--rig = {value!r}: allowed 'sim' or 'serial:PORT' (e.g. serial:/dev/ttyACM0)")
+
+
+def _check_flag(flag: str, value: Any) -> None:
+    """A flag's own range, in the user's units, before it joins the table (so the error names the flag)."""
+    if flag == "--speed" and not (isinstance(value, (int, float)) and math.isfinite(value) and 0.01 <= value <= 1000):
+        raise ValueError(f"--speed = {value!r} is out of range [0.01, 1000] (rig seconds per wall second)")
+    if flag == "--duration-s" and not (isinstance(value, (int, float)) and math.isfinite(value) and 0 < value <= 1e7):
+        raise ValueError(f"--duration-s = {value!r} is out of range (0, 1e+07] s")
+    if flag == "--api":
+        parse_api_address(value, "--api")
+    if flag == "--token" and not str(value).strip():
+        raise ValueError("--token must not be empty")
+
+
+def load_config(path: str | Path, flags: dict | None = None) -> DaemonConfig:
+    """Read CONFIG.toml, apply ``flags`` ({'--speed': 20.0, '--rig': 'serial:/dev/x', ...}; None values
+    are not given) and validate. ValueError / FileNotFoundError: one line naming the key or flag."""
+    path = Path(path)
+    scn = load_scenario(path)  # also validates [daemon] as written (one '[daemon] key' line)
+    with path.open("rb") as fh:
+        raw = dict(tomllib.load(fh).get("daemon") or {})
+    for flag, value in (flags or {}).items():
+        if value is None or value is False:
+            continue
+        if flag == "--rig":
+            raw.update(parse_rig_flag(value))
+            if value == "sim":
+                raw.pop("port", None)
+            continue
+        if flag not in FLAG_KEYS:
+            raise ValueError(f"unknown flag {flag}")
+        _check_flag(flag, value)
+        raw[FLAG_KEYS[flag]] = value
+    try:
+        d = DaemonTable.model_validate(raw)
+    except ValidationError as exc:
+        raise ValueError(f"{path.name}: {format_error(exc, DaemonTable, 'daemon')}") from None
+    except ValueError as exc:
+        raise ValueError(f"{path.name}: [daemon] {exc}") from None
+    robot = scn.role("robot")
+    if robot is not None:
+        if getattr(robot, "mode", None) != "closed_loop":
+            raise ValueError(f"{path.name}: [robot] mode = {robot.mode!r}: the daemon runs mode = 'closed_loop'")
+        kind = "robot"
+    elif scn.role("controller") is not None:
+        kind = "chamber"
+    else:
+        raise ValueError(f"{path.name}: the daemon needs a [controller] table (one chamber) or a [robot] table "
+                         "with mode = 'closed_loop'")
+    if d.rig == "serial" and d.speed != 1.0:
+        raise ValueError(f"{path.name}: [daemon] speed = {d.speed:g} (or --speed) needs rig = 'sim'; a serial rig "
+                         "runs in real time (speed 1)")
+    if d.rig == "serial" and d.fault:
+        raise ValueError(f"{path.name}: [[daemon.fault]] injects faults into the simulated rig only (rig = 'sim')")
+    api = parse_api_address(d.api) if d.api is not None else None
+    if api is not None and not is_loopback(api[0]) and not (d.allow_remote and d.token):
+        raise ValueError(f"{path.name}: [daemon] api = {d.api!r} (or --api) is not a loopback address (127.0.0.1, ::1, "
+                         "localhost); another address needs allow_remote = true (--allow-remote) and a token (--token)")
+    return DaemonConfig(scenario=scn, kind=kind, rate_hz=float(d.rate_hz), rig=d.rig, port=d.port, baud=d.baud,
+                        speed=float(d.speed), duration=None if d.duration_s is None else float(d.duration_s),
+                        api=api, allow_remote=d.allow_remote, token=d.token,
+                        log_rotate_bytes=int(d.log_rotate_mb * 1e6), log_flush=float(d.log_flush_s),
+                        status_every=d.status_every, miss_limit=d.miss_limit, faults=list(d.fault), path=path)

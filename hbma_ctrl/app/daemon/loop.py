@@ -1,0 +1,352 @@
+"""The daemon's fixed-rate loop: read -> monitor -> tick -> write, on absolute deadlines (SI).
+
+Period k starts at the wall deadline ``t0 + k * period / speed`` (time.monotonic): no drift, however
+long the steps take. The loop sleeps until the deadline; the lateness of the wake-up is the jitter.
+A step that ends after the next deadline is a *deadline miss*; the loop does not burst to catch
+up: it goes on at the next deadline still in the future and counts the deadlines it skipped. The
+loop watchdog (the monitor's overrun test) gets the misses in real time (speed 1); accelerated, it
+gets the steps whose runtime tick took longer than the rig period (what a real rig would have
+missed; the sim rig's plant simulation is not counted), so a run faster than real time is not
+stopped for being faster than real time. With
+the lockstep simulated rig, rig time advances one period per write, so it is exact whatever the
+wall clock does; ``speed`` runs that many rig seconds per wall second.
+
+Each period:
+
+1. the setpoints the API queued (already checked and clipped) are applied;
+2. ``rig.read()``; the safety monitor checks the readings with the command sent last and whether the
+   last period missed its deadline; a latched fault puts the loop in mode "safe": from then on it
+   writes the safe command every period (and logs) until it is stopped;
+3. the runner ticks (estimator, controller, the runtime supervisor's fallback chain) and the command
+   is written;
+4. a run log row; the status is published for the API every ``status_every`` periods.
+
+The loop ends on a stop request (the API's /stop, a signal flag, the duration) or at once on an
+exception anywhere in the step or a lost rig link. Whatever ends it, the safe command is written
+before :meth:`DaemonLoop.run` returns, and the event is logged with its rig time and cause.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import resource
+import time
+from collections import deque
+from typing import Callable
+
+import numpy as np
+
+from hbma_ctrl.app.daemon.rigio import RigLinkError, safe_u
+from hbma_ctrl.app.daemon.runlog import RunLog
+from hbma_ctrl.app.daemon.state import DaemonState
+from hbma_ctrl.core import units as U
+from hbma_ctrl.runtime.stats import StepStats
+
+__all__ = ["DaemonLoop", "rss_mb", "STATS_KEYS"]
+
+#: keys of daemon_stats.json
+STATS_KEYS = ("rate_hz", "steps", "deadline_misses", "step_ms_median", "step_ms_p99", "jitter_ms_p99",
+              "max_pressure_kpa", "pressure_limit_kpa", "faults", "safe_exit", "rss_mb_start", "rss_mb_end")
+
+#: events kept for the status (the run log keeps all)
+EVENTS_KEPT = 100
+
+
+def rss_mb() -> float:
+    """Resident set size of this process, MB (/proc/self/statm; the peak from getrusage elsewhere)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            pages = int(fh.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except (OSError, ValueError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+
+
+def _fmt(x: float, scale: float = 1.0, digits: int = 4) -> str:
+    return "" if x is None or not math.isfinite(x) else f"{x * scale:.{digits}f}"
+
+
+class DaemonLoop:
+    """The loop of the module doc.
+
+    Parameters
+    ----------
+    runner : a :class:`hbma_ctrl.app.daemon.build.ChamberRunner` or ``RobotRunner``.
+    rig : a :class:`hbma_ctrl.app.daemon.rigio.RigIO` with ``runner.n`` chambers.
+    state : the :class:`DaemonState` shared with the API.
+    period : rig time per period, s.
+    speed : rig seconds per wall second.
+    duration : rig time to run, s; None = until stopped.
+    log : the :class:`RunLog`, None = no log.
+    monitor : the :class:`hbma_ctrl.runtime.watchdog.SafetyMonitor` (``check(t, readings, u_sent,
+        deadline_missed) -> faults``, ``latched``, ``faults``, ``counts``), None = none (the loop then
+        latches 'overrun' itself after ``miss_limit`` missed deadlines in a row).
+    status_every : publish the status every this many periods.
+    miss_limit : missed deadlines in a row that latch the 'deadline' fault.
+    warmup_periods : the first periods (the controller's first solves set up its solver) are timed and
+        counted but do not feed the loop watchdog.
+    clock, sleep : the monotonic clock (s) and the sleep; replaceable in tests.
+    """
+
+    def __init__(self, runner, rig, state: DaemonState, period: float, speed: float = 1.0,
+                 duration: float | None = None, log: RunLog | None = None, monitor=None, status_every: int = 1,
+                 miss_limit: int = 10, warmup_periods: int = 50, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep):
+        if rig.n != runner.n:
+            raise ValueError(f"the rig has {rig.n} chambers, the configuration {runner.n}")
+        self.runner, self.rig, self.state, self.log, self.monitor = runner, rig, state, log, monitor
+        self.period, self.speed, self.duration = float(period), float(speed), duration
+        self.status_every, self.miss_limit = int(status_every), int(miss_limit)
+        self.warmup_periods = int(warmup_periods)
+        self.clock, self.sleep = clock, sleep
+        self.n = runner.n
+        #: set by a signal handler (a plain attribute: a handler must not take the state's lock)
+        self.signal_stop: str | None = None
+        self.mode = "starting"
+        self.steps = 0
+        self.deadline_misses = 0
+        self.skipped_periods = 0
+        self.over_budget = 0
+        self._last_tick = 0.0
+        self.step_s = StepStats(8192)
+        self.jitter_s = StepStats(8192)
+        #: the runtime tick alone (estimator, controller, supervisor): the step without the rig's I/O,
+        #: which on the simulated rig includes simulating the plant
+        self.tick_s = StepStats(8192)
+        self.max_pressure = -math.inf
+        self.events: deque = deque(maxlen=EVENTS_KEPT)
+        self.fault_counts: dict = {}
+        self.safe_exit = False
+        self.end_reason = ""
+        self.t = 0.0
+        self.u_last = safe_u(self.n)
+        self.last_written: np.ndarray | None = None
+        self.readings_p = np.full(self.n, np.nan)
+        self.rss_start = rss_mb()
+        self.rss_end = float("nan")
+        self.wall_s = 0.0
+        self._miss_run = 0
+        self._t_origin: float | None = None
+
+    # --- events ------------------------------------------------------------------------------------
+    def event(self, kind: str, cause: str) -> None:
+        """Record an event at the current rig time (status, run log)."""
+        ev = {"t_s": float(self.t), "kind": kind, "cause": cause}
+        self.events.append(ev)
+        if self.log is not None:
+            self.log.event(self.t, kind, cause)
+
+    def _fault(self, kind: str, cause: str) -> None:
+        self.fault_counts[kind] = self.fault_counts.get(kind, 0) + 1
+        self.event(kind, cause)
+
+    def _latched_kinds(self) -> list[str]:
+        """The kinds the monitor reported since it latched (sorted), [] when it has not."""
+        if self.monitor is None or not getattr(self.monitor, "latched", False):
+            return []
+        return sorted({str(getattr(f, "kind", f)) for f in getattr(self.monitor, "faults", ())})
+
+    def faults(self) -> dict:
+        """Fault counts by kind: the monitor's and the loop's own (deadline, exception, link)."""
+        out = dict(self.fault_counts)
+        for k, v in (getattr(self.monitor, "counts", None) or {}).items():
+            if v:
+                out[str(k)] = out.get(str(k), 0) + int(v)
+        return out
+
+    # --- the rig -----------------------------------------------------------------------------------
+    def _write(self, u: np.ndarray) -> None:
+        self.rig.write(u)
+        self.u_last = u
+        self.last_written = u
+
+    def _go_safe(self) -> None:
+        """Write the safe command (never raises)."""
+        try:
+            self.rig.safe()
+            self.u_last = safe_u(self.n)
+            self.last_written = self.u_last
+            self.safe_exit = True
+        except Exception as exc:  # noqa: BLE001 - the loop is ending; record why the vent failed
+            self.safe_exit = False
+            self.event("safe_failed", f"{type(exc).__name__}: {exc}")
+
+    # --- status ------------------------------------------------------------------------------------
+    def status(self) -> dict:
+        """The status dict the API converts (see :mod:`hbma_ctrl.app.daemon.api`)."""
+        h, hs, pe = self.runner.estimates()
+        u = self.u_last
+        chambers = [{"name": nm, "h": float(h[i]), "h_std": float(hs[i]), "p": float(self.readings_p[i]),
+                     "p_est": float(pe[i]), "u": [float(u[0, i]), float(u[1, i]), float(u[2, i])]}
+                    for i, nm in enumerate(self.runner.names)]
+        st = self.step_s.summary()
+        return {"mode": self.mode, "t_s": float(self.t), "monotonic_s": time.monotonic(), "chambers": chambers,
+                "layers": self.runner.layers(),
+                "loop": {"rate_hz": 1.0 / self.period, "steps": self.steps, "deadline_misses": self.deadline_misses,
+                         "step_median_s": st["median"], "step_p99_s": st["p99"]},
+                "faults": self.faults(), "events": list(self.events)}
+
+    def _log_row(self, step_s: float) -> None:
+        if self.log is None:
+            return
+        h, hs, pe = self.runner.estimates()
+        tg = self.runner.targets() if self.mode == "running" else np.full(self.n, np.nan)
+        u = self.u_last
+        row: list = [f"{self.t:.4f}", self.mode]
+        for i in range(self.n):
+            row += [_fmt(self.readings_p[i], U.to_kpa(1.0)), _fmt(pe[i], U.to_kpa(1.0)), _fmt(h[i], U.to_mm(1.0)),
+                    _fmt(hs[i], U.to_mm(1.0)), _fmt(tg[i], U.to_mm(1.0)), f"{u[0, i]:.4f}", f"{u[1, i]:.4f}",
+                    f"{u[2, i]:.4f}"]
+        latched = ";".join(self._latched_kinds())
+        row += [_fmt(step_s, 1e3, 3), latched]
+        self.log.row(row)
+
+    # --- one period --------------------------------------------------------------------------------
+    def _step(self, k: int, missed_last: bool) -> None:
+        for sp in self.state.take_setpoints():
+            self.runner.apply_setpoint(sp, self.t)
+            self.event("setpoint", repr(sp))
+        r = self.rig.read()
+        p = np.asarray(r.p, dtype=float).reshape(self.n)
+        self.readings_p = p
+        if r.t is None:
+            self.t = k * self.period
+        else:
+            # the rig's clock starts at its own boot: the scenario's schedule starts at the first reading
+            if self._t_origin is None:
+                self._t_origin = float(r.t)
+            # a repeated or reordered packet never moves the loop's clock back (the estimator refuses that)
+            self.t = max(float(r.t) - self._t_origin, self.t)
+        if np.isfinite(p).any():
+            self.max_pressure = max(self.max_pressure, float(np.nanmax(p)))
+        if self.monitor is not None:
+            # the controller's first solves set up its solver: those misses do not feed the watchdog
+            missed = missed_last and self.steps > self.warmup_periods
+            for f in self.monitor.check(self.t, r, self.u_last, missed) or ():
+                self.event(str(getattr(f, "kind", "fault")), str(getattr(f, "cause", f)))
+            if self.monitor.latched and self.mode == "running":
+                self.mode = "safe"
+                self.event("safe", "fault latched: " + ", ".join(self._latched_kinds()))
+        if self.mode == "safe":
+            # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
+            self._write(safe_u(self.n))
+            return
+        c0 = self.clock()
+        u = self.runner.tick(self.t, p)
+        self._last_tick = self.clock() - c0
+        self.tick_s.add(self._last_tick)
+        self._write(u)
+
+    def _check_setpoint(self, request: dict) -> dict:
+        """The runner's check (the API's thread); refused (RuntimeError: 503) once the loop is not running:
+        in the safe state the loop writes only the safe command, so a setpoint would never be applied."""
+        if self.mode != "running":
+            raise RuntimeError(f"the daemon is in mode '{self.mode}' (safe command only, after "
+                               f"{', '.join(self._latched_kinds()) or 'a stop'}): setpoints are not applied")
+        return self.runner.check_setpoint(request)
+
+    def _should_stop(self) -> bool:
+        """True (and the stop event logged) on a signal, a stop request or the end of the duration."""
+        if self.signal_stop:
+            self.state.request_stop(self.signal_stop)
+        if self.state.stop_requested:
+            self.end_reason = self.state.stop_reason
+            self.event("stop", self.end_reason)
+            return True
+        if self.duration is not None and self.steps * self.period >= self.duration - 1e-9:
+            self.end_reason = "duration"
+            self.event("stop", f"duration {self.duration:g} s reached")
+            return True
+        return False
+
+    def run(self) -> dict:
+        """Run until stopped (module doc); returns the stats (:data:`STATS_KEYS` and more)."""
+        self.state.set_setpoint_handler(self._check_setpoint)
+        self.mode = "running"
+        self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
+        wp = self.period / self.speed
+        t0 = self.clock()
+        k = 0
+        missed_last = False
+        try:
+            while True:
+                if self._should_stop():
+                    break
+                deadline = t0 + k * wp
+                now = self.clock()
+                if now < deadline:
+                    self.sleep(deadline - now)
+                    now = self.clock()
+                    if self._should_stop():  # a stop asked during the sleep ends before another command
+                        break
+                self.jitter_s.add(max(0.0, now - deadline))
+                start = now
+                self._step(k, missed_last)
+                end = self.clock()
+                step = end - start
+                self.step_s.add(step)
+                self.steps += 1
+                next_deadline = t0 + (k + 1) * wp
+                late = end > next_deadline
+                # the watchdog judges real time: accelerated (speed > 1), a step is late when its
+                # runtime tick overruns the rig period, the budget a real rig would give it (the sim
+                # rig's write, which simulates the plant, is no work a real host would do)
+                missed_last = late if self.speed <= 1.0 else self._last_tick > self.period
+                self.over_budget += int(self._last_tick > self.period)
+                self._last_tick = 0.0
+                if late:
+                    self.deadline_misses += 1
+                    k_next = int(math.floor((end - t0) / wp)) + 1
+                    self.skipped_periods += k_next - (k + 1)
+                    k = k_next
+                else:
+                    k += 1
+                if missed_last:
+                    self._miss_run += 1 if self.steps > self.warmup_periods else 0
+                    # with a monitor, its overrun test (fed above) is the loop watchdog
+                    if self.monitor is None and self._miss_run == self.miss_limit and self.mode == "running":
+                        self._fault("overrun", f"{self.miss_limit} deadlines missed in a row (period "
+                                               f"{U.to_ms(wp):g} ms wall)")
+                        self.mode = "safe"
+                else:
+                    self._miss_run = 0
+                self._log_row(step)
+                if self.steps % self.status_every == 0:
+                    self.state.publish(self.status())
+        except RigLinkError as exc:
+            self.end_reason = "link lost"
+            self._fault("link_loss", str(exc))
+            raise
+        except BaseException as exc:
+            self.end_reason = f"exception: {type(exc).__name__}"
+            self._fault("exception", f"{type(exc).__name__}: {exc}")
+            raise
+        finally:
+            self._go_safe()
+            self.mode = "stopped"
+            self.event("safe_exit" if self.safe_exit else "unsafe_exit", self.end_reason or "ended")
+            self.wall_s = self.clock() - t0
+            self.rss_end = rss_mb()
+            self._log_row(float("nan"))
+            self.state.publish(self.status())
+            if self.log is not None:
+                self.log.close()
+        return self.stats()
+
+    def stats(self) -> dict:
+        """daemon_stats.json: :data:`STATS_KEYS` (ms, kPa, MB) and end_reason, skipped_periods,
+        steps_over_period (ticks longer than the rig period), step_ms_max, tick_ms_median and tick_ms_p99 (the runtime tick without the
+        rig's I/O), speed, rig_time_s, wall_s."""
+        st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
+        ms = lambda x: None if not math.isfinite(x) else float(U.to_ms(x))  # noqa: E731
+        return {"rate_hz": 1.0 / self.period, "steps": self.steps, "deadline_misses": self.deadline_misses,
+                "step_ms_median": ms(st["median"]), "step_ms_p99": ms(st["p99"]), "jitter_ms_p99": ms(jt["p99"]),
+                "max_pressure_kpa": float(U.to_kpa(self.max_pressure)) if math.isfinite(self.max_pressure) else None,
+                "pressure_limit_kpa": float(U.to_kpa(self.runner.p_limit)), "faults": self.faults(),
+                "safe_exit": bool(self.safe_exit), "rss_mb_start": self.rss_start, "rss_mb_end": self.rss_end,
+                "end_reason": self.end_reason, "skipped_periods": self.skipped_periods,
+                "steps_over_period": self.over_budget,
+                "step_ms_max": ms(st["max"]), "tick_ms_median": ms(tk["median"]), "tick_ms_p99": ms(tk["p99"]),
+                "speed": self.speed, "rig_time_s": float(self.t),
+                "wall_s": float(self.wall_s)}
