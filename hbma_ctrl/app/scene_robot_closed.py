@@ -196,7 +196,7 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     raw_rig = scn.sections.get("rig")
     rig = RigTable.model_validate(raw_rig).to_robot_rig() if raw_rig else RobotRigSettings()
     model = make_model(d, scn.pneumatics, s.pneumatics.topology)
-    mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt)
+    mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=s.mpc_budget)
     kinds = [s.controller]
     if s.compare_baseline:
         kinds.append("pressure_pid" if s.controller == "mpc" else "mpc")

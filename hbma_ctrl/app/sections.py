@@ -206,6 +206,7 @@ class RobotSettings:
     compare_baseline : also run the other controller on the same targets and report it beside.
     settle_time : RMSEs count samples at least this long after a target change, s.
     mpc_horizon, mpc_dt : NMPC stages and prediction step (s).
+    mpc_budget : NMPC wall-time budget per step, a fraction of the control period (0 = none).
     """
 
     design: RobotDesign = field(default_factory=RobotDesign)
@@ -223,6 +224,7 @@ class RobotSettings:
     settle_time: float = 2.0
     mpc_horizon: int = 15
     mpc_dt: float = 0.02
+    mpc_budget: float = field(default=0.0, repr=False)  # repr: the stored reprs of the scenario goldens
 
     @property
     def plant(self) -> RobotPlantSettings:
@@ -251,4 +253,5 @@ class RobotSettings:
         if not isinstance(self.mpc_horizon, int) or not 1 <= self.mpc_horizon <= 100:
             raise ValueError(f"robot.mpc_horizon = {self.mpc_horizon!r} must be an integer in [1, 100]")
         check_range("robot", "mpc_dt", self.mpc_dt, 1e-3, 1.0, "s")
+        check_range("robot", "mpc_budget", self.mpc_budget, 0.0, 1.0)
         return self

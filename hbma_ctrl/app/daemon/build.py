@@ -33,7 +33,11 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
-           "robot_rig_settings"]
+           "robot_rig_settings", "DAEMON_MPC_BUDGET"]
+
+#: the robot NMPC's wall-time budget in the daemon when the file gives none ([robot] mpc_budget = 0),
+#: a fraction of the period: the rest of the period is the estimator, the supervisor and the rig I/O
+DAEMON_MPC_BUDGET = 0.8
 
 
 def chamber_rig_settings(cfg: DaemonConfig) -> RigSettings:
@@ -266,7 +270,11 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
                                                         sensor_range=rp.sensor_range))
     if s.controller == "mpc":
-        ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=rp.pressure_limit)
+        # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
+        # the last plan, then the safe command), never a late command
+        budget = s.mpc_budget if s.mpc_budget > 0 else DAEMON_MPC_BUDGET
+        ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=rp.pressure_limit,
+                     budget=budget)
         ctrl = RobotNMPC(model, n, ms)
     else:
         ctrl = RobotPressurePID(model, n, replace(RobotPIDSettings(), sample_period=Ts))

@@ -117,6 +117,8 @@ class RobotTable(Table):
     settle_s: float = num(2.0, 0.0, 1e4, "s", "RMSEs skip this long after a target change")
     mpc_horizon: int = integer(15, 1, 100, "NMPC stages", "stages")
     mpc_dt_ms: float = num(20.0, 1.0, 1000.0, "ms", "NMPC prediction step")
+    mpc_budget: float = num(0.0, 0.0, 1.0, "-", "NMPC wall-time budget per step as a fraction of the control "
+                            "period; an overrun is a failed step (0 = none; the daemon uses 0.8 then)")
 
     _settings: Any = PrivateAttr(None)
 
@@ -237,7 +239,8 @@ class RobotTable(Table):
         if self._given("tip_load_n"):
             closed["tip_load"] = tuple(tuple(r) for r in self.tip_load_n)
         for key, name, conv in (("compare_baseline", "compare_baseline", bool), ("settle_s", "settle_time", float),
-                                ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms)):
+                                ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms),
+                                ("mpc_budget", "mpc_budget", float)):
             if self._given(key):
                 closed[name] = conv(getattr(self, key))
         sync = U.ms(self.sync_ms) if self._given("sync_ms") else RobotSettings().sync_period
