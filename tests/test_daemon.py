@@ -486,11 +486,12 @@ def test_chamber_on_the_serial_link_settles_to_the_same_target_as_on_sim(tmp_pat
     # the file's 6 mm from 3 s, which the same configuration reaches on sim within 0.3 mm
     assert len(h_controlled) > 300  # the firmware ran the host's commands for most of the run
     h_end = h_controlled[-1]
-    if abs(h_end - 6e-3) > 0.3e-3:
-        # seen on a heavily loaded machine (6.58, 3.63, 8.75, 6.67 mm); unloaded it settles within
-        # 0.3 mm as on sim: the estimator is sensitive to samples and commands out of lockstep
-        pytest.xfail(f"serial: the chamber held {h_end * 1e3:.2f} mm against the 6 mm target (sim: within 0.3 mm); "
-                     "the estimator does not yet follow a rig whose samples and commands are not in lockstep")
+    missed = stats["deadline_misses"] / max(stats["steps"], 1)
+    if missed > 0.05 and abs(h_end - 6e-3) > 0.3e-3:
+        # a real-time loop that cannot keep its period (another job on the CPUs) does not test the
+        # link: said as a skip with the numbers, never counted as a pass
+        pytest.skip(f"host missed {missed:.0%} of the 10 ms deadlines; the chamber held {h_end * 1e3:.2f} mm")
+    assert abs(h_end - 6e-3) <= 0.3e-3, f"serial: held {h_end * 1e3:.2f} mm against the 6 mm the sim reaches"
     assert np.array_equal(fw.u, safe_u(1))  # the firmware holds the safe command at the end
 
 
