@@ -16,13 +16,11 @@ the safe state after a fault: exit 1.
 from __future__ import annotations
 
 import json
-import math
 import signal
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
-import numpy as np
 import typer
 
 from hbma_ctrl.app.daemon.api import serve
@@ -32,24 +30,16 @@ from hbma_ctrl.app.daemon.loop import DaemonLoop
 from hbma_ctrl.app.daemon.rigio import RigLinkError
 from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns
 from hbma_ctrl.app.daemon.state import DaemonState
-from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, default_out, run_dir
+from hbma_ctrl.app.metrics import json_safe
+from hbma_ctrl.app.outputs import (
+    OVERWRITE_HELP,
+    check_out,
+    cli_argv,
+    default_out,
+    run_dir,
+)
 
 __all__ = ["register", "run_daemon"]
-
-
-def _jsonable(x):
-    """numpy scalars and arrays, NaN -> JSON values (NaN and inf become null)."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if math.isfinite(x) else None
-    return x
 
 
 def _link_errors() -> tuple:
@@ -102,10 +92,10 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
             except Exception:  # noqa: BLE001 - the safe command is already out; closing must not mask why
                 pass
         stats = loop.stats()
-        (tmp / "daemon_stats.json").write_text(json.dumps(_jsonable(stats), indent=1) + "\n")
+        (tmp / "daemon_stats.json").write_text(json.dumps(json_safe(stats), indent=1) + "\n")
         role = "robot" if cfg.kind == "robot" else "controller"
         metrics = {"daemon": stats, role: runner.stats()}
-        (tmp / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1) + "\n")
+        (tmp / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=1) + "\n")
     return stats
 
 

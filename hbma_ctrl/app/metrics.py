@@ -22,7 +22,7 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.trial import Log
 
 __all__ = ["EDGE_COLUMNS", "ROLE_KEYS", "nrmsd", "plant_metrics", "merge_metrics", "write_metrics",
-           "write_log_csv", "edge_series"]
+           "write_log_csv", "edge_series", "json_safe"]
 
 
 def _same(x):
@@ -136,14 +136,14 @@ def plant_metrics(logs: list[Log]) -> dict:
     return out
 
 
-def _clean(obj):
+def json_safe(obj):
     """JSON-safe copy: numpy scalars to Python, non-finite floats to None."""
     if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
+        return {str(k): json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
+        return [json_safe(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
+        return json_safe(obj.tolist())
     if isinstance(obj, (np.floating, float)):
         f = float(obj)
         return f if math.isfinite(f) else None
@@ -177,4 +177,4 @@ def merge_metrics(*parts: dict) -> dict:
 
 def write_metrics(metrics: dict, path: Path | str) -> None:
     """Write metrics.json (sorted role order, NaN/inf as null)."""
-    Path(path).write_text(json.dumps(_clean(metrics), indent=2) + "\n")
+    Path(path).write_text(json.dumps(json_safe(metrics), indent=2) + "\n")

@@ -52,6 +52,7 @@ __all__ = [
     "is_plain_name",
     "manifest",
     "run_dir",
+    "pid_alive",
 ]
 
 #: the keys of every manifest.json (times ISO 8601 UTC; status complete | interrupted | failed)
@@ -186,7 +187,8 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
     return path
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this host (another user's live process counts)."""
     if pid <= 0:
         return False
     try:
@@ -218,7 +220,7 @@ def _lock(out: Path, given: Path) -> Path:
                     break
                 time.sleep(0.05)
                 pid = _read_pid(lock)
-            if pid is not None and _pid_alive(pid):
+            if pid is not None and pid_alive(pid):
                 raise _bad(given, f"is in use by another run (pid {pid}, lock {lock}); wait for it or choose "
                                   "another directory") from None
             # stale: move it aside atomically, so two takers cannot both remove a fresh lock

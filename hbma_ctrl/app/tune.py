@@ -34,12 +34,13 @@ from typing import Any, Callable
 import optuna
 import tomli_w
 
+from hbma_ctrl.app.outputs import pid_alive
 from hbma_ctrl.app.runner import RunFailed, run_scenario
+from hbma_ctrl.app.scenario import _text
 from hbma_ctrl.app.schema.controller import ControllerTable
 from hbma_ctrl.app.schema.document import parse_scenario_tables
 from hbma_ctrl.app.schema.estimator import EstimatorTable
 from hbma_ctrl.app.schema.space import search_space
-from hbma_ctrl.app.scenario import _text
 
 __all__ = [
     "CONTROLLER_PENALTY",
@@ -358,20 +359,10 @@ def fail_orphans(study: optuna.Study) -> list[int]:
     failed = []
     for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
         pid = t.user_attrs.get("pid")
-        if t.user_attrs.get("host") == host and isinstance(pid, int) and not _pid_alive(pid):
+        if t.user_attrs.get("host") == host and isinstance(pid, int) and not pid_alive(pid):
             storage.set_trial_state_values(t._trial_id, optuna.trial.TrialState.FAIL)
             failed.append(t.number)
     return failed
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's live process
-        return True
-    return True
 
 
 def _objective(spec: TuneSpec) -> Callable[[optuna.Trial], float]:
