@@ -28,7 +28,7 @@ import numpy as np
 
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
+from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_exact_free, make_fidelity
 from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
@@ -39,6 +39,7 @@ __all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig",
 #: keys of :meth:`Rig.truth`
 TRUTH_KEYS = ("t", "h1", "h2", "h", "p", "F", "m")
 _RIG_FIDELITIES = ("platform", "quasi_static")
+_RIG_MEMBRANES = ("exact", "cap")
 
 
 @dataclass
@@ -49,6 +50,9 @@ class RigSettings:
     ------
     fidelity : plant model while a load is on: 'platform' (mass + damping, default) or
         'quasi_static' (dead load; only to check an estimator against its own model structure).
+    membrane : membrane law in free inflation: 'exact' (the exact axisymmetric membrane's tables,
+        :func:`hbma_ctrl.models.fidelity.make_exact_free`) or 'cap' (the spherical cap, the
+        estimators' own law). With a load on, the cap's contact law is used either way.
     modulus_scale : every modulus of the material is multiplied by this (-), range [0.2, 5].
     flow_scale : the compressor map is multiplied by this on top of the pneumatics' own (-), [0, 5].
     V0_scale : the dead volume is multiplied by this (-), [0.2, 5].
@@ -62,6 +66,7 @@ class RigSettings:
     """
 
     fidelity: str = "platform"
+    membrane: str = "cap"
     modulus_scale: float = 1.15
     flow_scale: float = 0.9
     V0_scale: float = 1.2
@@ -76,6 +81,8 @@ class RigSettings:
     def validate(self) -> "RigSettings":
         if self.fidelity not in _RIG_FIDELITIES:
             raise ValueError(f"rig.fidelity = '{self.fidelity}': allowed {', '.join(_RIG_FIDELITIES)}")
+        if self.membrane not in _RIG_MEMBRANES:
+            raise ValueError(f"rig.membrane = '{self.membrane}': allowed {', '.join(_RIG_MEMBRANES)}")
         check_range("rig", "modulus_scale", self.modulus_scale, 0.2, 5.0)
         check_range("rig", "flow_scale", self.flow_scale, 0.0, 5.0)
         check_range("rig", "V0_scale", self.V0_scale, 0.2, 5.0)
@@ -95,6 +102,7 @@ class RigSettings:
 # scenario-file keys (edge units) -> (field, factor to SI)
 _SECTION_KEYS = {
     "fidelity": ("fidelity", None),
+    "membrane": ("membrane", None),
     "modulus_scale": ("modulus_scale", 1.0),
     "flow_scale": ("flow_scale", 1.0),
     "V0_scale": ("V0_scale", 1.0),
@@ -135,7 +143,7 @@ class Rig:
         self.platform = platform
         self._rng = np.random.default_rng(self.settings.seed)
         self._csv = str(self.pneumatics.csv_path)
-        self._free = make_fidelity("free", self.actuator.material, self._csv)
+        self._free = _free_fidelity(self.settings, self.actuator.material, self._csv)
         self._loaded = make_fidelity(self.settings.fidelity, self.actuator.material, self._csv)
         self._u = np.zeros(3)
         self.t = 0.0
@@ -230,10 +238,39 @@ class Rig:
         self.events.append((self.t, f"load_set_{mass_kg:.3f}kg"))
 
     def _free_h1(self, m: float) -> float:
-        """Free-inflation cap height (m) holding gas mass m (kg), from the current one."""
+        """Free-inflation apex height (m) holding gas mass m (kg), from the current one."""
         fid = self._free
+        if getattr(fid, "membrane", "cap") == "exact":
+            return _exact_free_h(fid, fid.space.values(self.actuator, self.pneumatics, Platform()), m)
         solver = ShapeSolver(fid.space, fid.space.values(self.actuator, self.pneumatics, Platform()))
         return solver.free_h1(m * (self.actuator.R * self.actuator.T), self.truth()["h1"])
+
+
+def _free_fidelity(s: RigSettings, material, csv: str):
+    """The rig's free-inflation plant model: the exact membrane or the cap (``s.membrane``)."""
+    return make_exact_free(material, csv) if s.membrane == "exact" else make_fidelity("free", material, csv)
+
+
+def _exact_free_h(fid, theta: np.ndarray, m: float) -> float:
+    """Apex height (m) of the exact free membrane holding gas mass m (kg): bisection on the gas law.
+
+    The gas mass grows with the height (dG/dh >= p_env dV/dh > 0), so the root is unique.
+    """
+    mi = OUTPUTS.index("m")
+
+    def mass(h: float) -> float:
+        return float(fid.out([h], [0.0, 0.0, 0.0], theta, 1.0)[mi])
+
+    r1 = float(theta[fid.space.names.index("r1")])
+    lo, hi = 0.0, fid.x_max * r1
+    if m <= mass(lo):
+        return 0.0
+    while mass(hi) < m and hi < 10 * r1:  # past the table the interpolant extrapolates
+        hi *= 1.5
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mass(mid) < m else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 @dataclass
@@ -273,7 +310,8 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
         groups.setdefault(key, []).append(i)
     for (loaded, _, csvp), idx in groups.items():
         pairs = [mismatched(trials[i].actuator, trials[i].pneumatics, s) for i in idx]
-        fid = make_fidelity(s.fidelity if loaded else "free", pairs[0][0].material, csvp)
+        fid = (make_fidelity(s.fidelity, pairs[0][0].material, csvp) if loaded
+               else _free_fidelity(s, pairs[0][0].material, csvp))
         thetas = np.column_stack([fid.space.values(a, p, trials[i].platform)
                                   for (a, p), i in zip(pairs, idx)])
         dt = s.dt if s.dt is not None else DEFAULT_DT[(s.integrator, fid.name)]

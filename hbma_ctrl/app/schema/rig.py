@@ -22,6 +22,8 @@ class RigTable(Table):
     """[rig] in the user's units; :meth:`to_settings` gives the SI RigSettings."""
 
     fidelity: Literal["platform", "quasi_static"] = choice("platform", "plant model while a load is on")
+    membrane: Literal["exact", "cap"] = choice("cap", "membrane law in free inflation: exact "
+                                                "(exact membrane tables) or cap (spherical cap)")
     modulus_scale: float = num(1.15, 0.2, 5.0, "-", "every modulus of the material times this")
     flow_scale: float = num(0.9, 0.0, 5.0, "-", "compressor map times this")
     V0_scale: float = num(1.2, 0.2, 5.0, "-", "dead volume times this")
@@ -68,6 +70,7 @@ class RigTable(Table):
 #: table key -> (RigSettings field, conversion from the user's unit)
 _SI = {
     "fidelity": ("fidelity", as_is),
+    "membrane": ("membrane", as_is),
     "modulus_scale": ("modulus_scale", float),
     "flow_scale": ("flow_scale", float),
     "V0_scale": ("V0_scale", float),
