@@ -36,6 +36,11 @@ class RigTable(Table):
     dt_ms: float | None = num(None, 1e-4, 1000.0, "ms", "internal step, at most sample_period_ms; "
                               "default per fidelity", lo_open=True)
 
+    valve_delay_ms: float = num(5.0, 0.0, 100.0, "ms", "the valves act this long after their command")
+    valve_min_on_ms: float = num(2.0, 0.0, 1000.0, "ms", "shortest valve opening per PWM (sample) period")
+    compressor_tilt: float = num(0.2, -1.0, 1.0, "-", "pump flow times 1 - k (p / p_top - 1/2): another shape")
+    sensor_tau_ms: float = num(3.0, 0.0, 1000.0, "ms", "first-order lag of the pressure sensor")
+
     @model_validator(mode="after")
     def _dt(self) -> RigTable:
         if self.dt_ms is not None and self.dt_ms > self.sample_period_ms:
@@ -81,4 +86,8 @@ _SI = {
     "seed": ("seed", as_is),
     "integrator": ("integrator", as_is),
     "dt_ms": ("dt", U.ms),
+    "valve_delay_ms": ("valve_delay", U.ms),
+    "valve_min_on_ms": ("valve_min_on", U.ms),
+    "compressor_tilt": ("compressor_tilt", float),
+    "sensor_tau_ms": ("sensor_tau", U.ms),
 }
