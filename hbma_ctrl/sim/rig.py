@@ -137,9 +137,15 @@ class RigSettings:
             u[i] = np.where(d < 0.5 * frac, 0.0, np.maximum(d, frac))
         return u
 
-    def lag_factor(self) -> float:
-        """Per-sample factor a of the sensor lag, y_k = a y_(k-1) + (1 - a) p_k (0 = no lag)."""
-        return float(np.exp(-self.sample_period / self.sensor_tau)) if self.sensor_tau > 0 else 0.0
+    def sense(self, y_prev, p_prev, p_now):
+        """One sample of the sensor's first-order lag (Pa; arrays work): the exact response of
+        y' = (p - y) / sensor_tau over one sample period to a pressure moving linearly from p_prev to
+        p_now (a ramp is read sensor_tau late, as by the continuous sensor)."""
+        if self.sensor_tau <= 0:
+            return p_now
+        r = self.sample_period / self.sensor_tau
+        a = np.exp(-r)
+        return a * y_prev + (1 - a) * p_prev + (p_now - p_prev) * (1 - (1 - a) / r)
 
 
 # scenario-file keys (edge units) -> (field, factor to SI)
@@ -246,7 +252,7 @@ class Rig:
         self._plant = self._new_plant(platform)
         self._t_plant0 = 0.0  # rig time at which the current plant's clock started
         self._valves = _ValveLine(self.settings)
-        self._p_sensed = float(self._plant.output("p")[0])  # the lagged sensor's state, Pa
+        self._p_sensed = self._p_prev = float(self._plant.output("p")[0])  # lagged sensor state, true p, Pa
 
     # --- plant bookkeeping ------------------------------------------------------------------
     def _theta(self, fid, platform: Platform) -> np.ndarray:
@@ -279,8 +285,9 @@ class Rig:
             plant.advance(self._valves.at(self.t + j * plant.dt), plant.dt)
         self.events += [(self._t_plant0 + e[0], e[1]) for e in self._plant.events[0][n0:]]
         self.t += self.settings.sample_period
-        a = self.settings.lag_factor()
-        self._p_sensed = a * self._p_sensed + (1 - a) * float(plant.output("p")[0])
+        p_now = float(plant.output("p")[0])
+        self._p_sensed = self.settings.sense(self._p_sensed, self._p_prev, p_now)
+        self._p_prev = p_now
         if not self._plant.alive[0]:
             raise RuntimeError(f"rig: the plant diverged at t = {self.t:.3f} s")
 
@@ -438,14 +445,11 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
                 for sub in range(nsub):
                     plant.advance(valves.at(t + sub * plant.dt), plant.dt)
         # the sensor's first-order lag, sampled (the same recursion as Rig.measure)
-        a = s.lag_factor()
-        if a > 0:
-            pi_ = OUTPUTS.index("p")
-            sensed = Y[:, pi_, :].copy()
+        ptrue = Y[:, OUTPUTS.index("p"), :]
+        sensed = ptrue.copy()
+        if s.sensor_tau > 0:
             for k in range(1, K):
-                sensed[k] = a * sensed[k - 1] + (1 - a) * Y[k, pi_, :]
-        else:
-            sensed = Y[:, OUTPUTS.index("p"), :]
+                sensed[k] = s.sense(sensed[k - 1], ptrue[k - 1], ptrue[k])
         for j, i in enumerate(idx):
             rng = np.random.default_rng([s.seed, ids[i]])
             Kj = int(round(trials[i].duration / s.sample_period)) + 1
