@@ -61,9 +61,6 @@ class RigSettings:
     ------
     fidelity : plant model while a load is on: 'platform' (mass + damping, default) or
         'quasi_static' (dead load; only to check an estimator against its own model structure).
-    membrane : membrane law in free inflation: 'exact' (the exact axisymmetric membrane's tables,
-        :func:`hbma_ctrl.models.fidelity.make_exact_free`) or 'cap' (the spherical cap, the
-        estimators' own law). With a load on, the cap's contact law is used either way.
     modulus_scale : every modulus of the material is multiplied by this (-), range [0.2, 5].
     flow_scale : the compressor map is multiplied by this on top of the pneumatics' own (-), [0, 5].
     V0_scale : the dead volume is multiplied by this (-), [0.2, 5].
@@ -74,18 +71,20 @@ class RigSettings:
     seed : seed of the noise and dropout stream (int >= 0).
     integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
+    membrane : membrane law in free inflation: 'exact' (the exact axisymmetric membrane's tables,
+        :func:`hbma_ctrl.models.fidelity.make_exact_free`) or 'cap' (the spherical cap, the
+        estimators' own law). With a load on, the cap's contact law is used either way.
     valve_delay : the valves act this long after their command, s, [0, 0.1] (default 5 ms, a small
         solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
-    valve_min_on : shortest opening of a valve within one PWM period (the sample period), s,
-        [0, sample_period] (default 2 ms): a duty d with d T below half of it is dropped (valve shut),
-        below it is lengthened to it.
+    valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
+        [0, 0.1] (default 2 ms): a duty d with d T below half of it is dropped (valve shut), below it
+        is lengthened to it (to the whole period when it is longer than T).
     compressor_tilt : the pump's flow at back pressure p is the map's times (1 - k (p / p_top - 1/2)),
         p_top the map's top pressure: a map of another shape, same mean (-), [-1, 1] (default 0.2).
     sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 3 ms); 0 = none.
     """
 
     fidelity: str = "platform"
-    membrane: str = "cap"
     modulus_scale: float = 1.15
     flow_scale: float = 0.9
     V0_scale: float = 1.2
@@ -96,6 +95,7 @@ class RigSettings:
     seed: int = 0
     integrator: str = "rk4"
     dt: float | None = None
+    membrane: str = "cap"
     valve_delay: float = 0.005
     valve_min_on: float = 0.002
     compressor_tilt: float = 0.2
@@ -120,7 +120,7 @@ class RigSettings:
         if self.dt is not None:
             check_range("rig", "dt", self.dt, 1e-7, self.sample_period, "s", lo_open=True)
         check_range("rig", "valve_delay", self.valve_delay, 0.0, 0.1, "s")
-        check_range("rig", "valve_min_on", self.valve_min_on, 0.0, self.sample_period, "s")
+        check_range("rig", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
         check_range("rig", "compressor_tilt", self.compressor_tilt, -1.0, 1.0)
         check_range("rig", "sensor_tau", self.sensor_tau, 0.0, 1.0, "s")
         return self

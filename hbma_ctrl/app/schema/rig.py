@@ -37,7 +37,7 @@ class RigTable(Table):
                               "default per fidelity", lo_open=True)
 
     valve_delay_ms: float = num(5.0, 0.0, 100.0, "ms", "the valves act this long after their command")
-    valve_min_on_ms: float = num(2.0, 0.0, 1000.0, "ms", "shortest valve opening per PWM (sample) period")
+    valve_min_on_ms: float = num(2.0, 0.0, 100.0, "ms", "shortest valve opening per PWM (sample) period")
     compressor_tilt: float = num(0.2, -1.0, 1.0, "-", "pump flow times 1 - k (p / p_top - 1/2): another shape")
     sensor_tau_ms: float = num(3.0, 0.0, 1000.0, "ms", "first-order lag of the pressure sensor")
 
