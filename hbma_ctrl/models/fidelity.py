@@ -404,7 +404,7 @@ class ExactFreeInflation(FreeInflation):
     bspline interpolants of :func:`exact_free_table` (mu = Q(1)/12, symbolic in theta), replacing the
     cap's closed forms; the gas law G = (p + p_env) V = m R T and h1' = q R T / (dG/dh1) are unchanged.
     ``lam`` is the pole stretch. The name stays 'free' (the simulator's hybrid logic and steps are
-    those of free inflation); ``membrane`` tells the two apart. Tables beyond ``x_max`` r1 extrapolate.
+    those of free inflation); ``membrane`` tells the two apart. Beyond ``x_max`` r1 the cap's law, scaled to meet the table.
     """
 
     membrane = "exact"
@@ -418,11 +418,27 @@ class ExactFreeInflation(FreeInflation):
         self._lam = ca.interpolant("exact_lam0", "bspline", [x], np.asarray(table["lam0"], dtype=float))
 
     def law(self, h1, P) -> tuple:
-        """Exact p (Pa), membrane volume above the clamp (m^3) and pole stretch at apex height h1 (m)."""
+        """Exact p (Pa), membrane volume above the clamp (m^3) and pole stretch at apex height h1 (m).
+
+        Past the table's end (the exact solver stops at a pole stretch of 4: h ~ 1.77 r1 for NH) the
+        cap's law continues it, scaled to meet the table there: the cap's error shrinks as the
+        membrane rounds (-0.6 % in p at 1.5 r1), and a free inflation past the limit point must not
+        run off an interpolant's extrapolation.
+        """
         r1, t0 = P["r1"], P["t0"]
         mu = P["material"].Q(1.0) / 12.0
         x = h1 / r1
-        return mu * t0 / r1 * self._Pn(x), r1**3 * self._vn(x), self._lam(x)
+        xm = self.x_max
+        hm = xm * r1
+        scale = mu * t0 / r1
+        p_tab, v_tab, l_tab = scale * self._Pn(x), r1**3 * self._vn(x), self._lam(x)
+        gm, g = ph.geometry(hm, 0, P), ph.geometry(h1, 0, P)
+        p_cap = ph.pressure(h1, 0, P) * scale * self._Pn(xm) / ph.pressure(hm, 0, P)
+        v_cap = (g["V"] - P["V0"]) * r1**3 * self._vn(xm) / (gm["V"] - P["V0"])
+        l_cap = g["lam"] * self._lam(xm) / gm["lam"]
+        beyond = x > xm
+        return (ca.if_else(beyond, p_cap, p_tab), ca.if_else(beyond, v_cap, v_tab),
+                ca.if_else(beyond, l_cap, l_tab))
 
     def _derivs(self, h1, P):
         s = ca.SX.sym("s")
