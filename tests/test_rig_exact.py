@@ -168,3 +168,22 @@ def test_sensor_lag_reads_a_ramp_tau_late():
     # a first-order lag follows a ramp tau behind: p(t) - y(t) ~ tau p'(t)
     assert np.median((p[k] - z[k]) / rate[k]) == pytest.approx(0.01, rel=0.15)
     assert np.all(z[1:] < p[1:])
+
+
+def test_exact_rung_continues_past_its_table_without_a_jump():
+    from hbma_ctrl.models.fidelity import OUTPUTS, make_exact_free
+
+    act = Actuator(r1=7.5e-3, t0=2e-3)
+    fid = make_exact_free(act.material, str(Pneumatics().csv_path))
+    th = fid.space.values(act, Pneumatics(), Platform())
+    hm = fid.x_max * act.r1
+
+    def y(h):
+        return np.asarray(fid.out([h], [0, 0, 0], th, 1.0)).ravel()
+
+    below, above = y(hm * (1 - 1e-9)), y(hm * (1 + 1e-9))
+    for k in ("p", "V", "lam"):
+        assert above[OUTPUTS.index(k)] == pytest.approx(below[OUTPUTS.index(k)], rel=1e-6)
+    far = y(2.8 * act.r1)  # well past the limit point: finite, positive, and the gas still grows
+    assert np.all(np.isfinite(far)) and far[OUTPUTS.index("p")] > 0
+    assert far[OUTPUTS.index("m")] > above[OUTPUTS.index("m")]
