@@ -44,8 +44,12 @@ from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
 
-__all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig",
-           "TRUTH_KEYS"]
+__all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig", "tilted_map",
+           "TRUTH_KEYS", "IDEAL_STRUCTURE"]
+
+#: RigSettings keywords that switch the structural mismatches off (a rig with the model's structure:
+#: for tests of parameter identification, which need the fitted model's form to be the rig's)
+IDEAL_STRUCTURE = {"valve_delay": 0.0, "valve_min_on": 0.0, "compressor_tilt": 0.0, "sensor_tau": 0.0}
 
 #: keys of :meth:`Rig.truth`
 TRUTH_KEYS = ("t", "h1", "h2", "h", "p", "F", "m")
@@ -71,9 +75,10 @@ class RigSettings:
     seed : seed of the noise and dropout stream (int >= 0).
     integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
-    membrane : membrane law in free inflation: 'exact' (the exact axisymmetric membrane's tables,
-        :func:`hbma_ctrl.models.fidelity.make_exact_free`) or 'cap' (the spherical cap, the
-        estimators' own law). With a load on, the cap's contact law is used either way.
+    membrane : membrane law in free inflation: 'exact' (default: the exact axisymmetric membrane's
+        tables, :func:`hbma_ctrl.models.fidelity.make_exact_free`, a law the estimators were not
+        built on) or 'cap' (the spherical cap, their own law). With a load on, the cap's contact law
+        is used either way.
     valve_delay : the valves act this long after their command, s, [0, 0.1] (default 5 ms, a small
         solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
     valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
@@ -95,7 +100,7 @@ class RigSettings:
     seed: int = 0
     integrator: str = "rk4"
     dt: float | None = None
-    membrane: str = "cap"
+    membrane: str = "exact"
     valve_delay: float = 0.005
     valve_min_on: float = 0.002
     compressor_tilt: float = 0.2
