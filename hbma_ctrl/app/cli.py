@@ -252,8 +252,15 @@ def _parse_params(items: list[str]) -> dict:
 
 
 def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, h2_mm: float,
-                       params: dict | None = None, V0_cm3: float = 3.0) -> dict:
-    """Equilibrium of one shape (edge units in and out): pressure, force, load, stretch, volume."""
+                       params: dict | None = None, V0_cm3: float = 3.0, fidelity: str = "cap",
+                       contact: str = "flat", disk_radius_mm: float = 2.0,
+                       p_kpa: float | None = None) -> dict:
+    """Equilibrium of one shape (edge units in and out): pressure, force, load, stretch, volume.
+
+    ``fidelity`` 'cap' (spherical cap, README Model) or 'exact' (:mod:`hbma_ctrl.models.exact`: the
+    centre height h = h1 - h2 held by a flat plate or a bonded disk of radius ``disk_radius_mm`` at
+    gauge pressure ``p_kpa``; free inflation when h2 = 0 with a flat contact).
+    """
 
     _range("--r1-mm", r1_mm, 0.5, 100.0, lo_open=True, unit="mm")
     _range("--t0-mm", t0_mm, 0.05, 20.0, lo_open=True, unit="mm")
@@ -266,6 +273,12 @@ def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, 
         mat = make_material(material, **(params or {}))
     except ValueError as exc:  # the parameters are the only thing left that can be wrong: say so
         raise ValueError(f"--param {', '.join(params or {})}: {exc}") from None
+    _choice("--fidelity", fidelity, ["cap", "exact"])
+    if fidelity == "exact":
+        return _exact_equilibrium_values(mat, r1_mm, t0_mm, h1_mm, h2_mm, V0_cm3, contact, disk_radius_mm, p_kpa)
+    if contact != "flat" or p_kpa is not None:
+        raise ValueError("--contact/--p-kpa need --fidelity exact (the cap's contact is the flat plate, "
+                         "its pressure follows from h1 and h2)")
     res = {k: float(v[0]) for k, v in equilibrium_grid(mat, U.mm(r1_mm), U.mm(t0_mm), np.array([U.mm(h1_mm)]),
                                                          np.array([U.mm(h2_mm)]), U.cm3(V0_cm3)).items()}
     if res["lam"] >= mat.lam_max():
@@ -285,6 +298,56 @@ def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, 
     }
 
 
+# the exact module names its arguments as it knows them; the CLI names the flags the user wrote
+_EXACT_ARG_FLAGS = (("h = ", "--h1-mm/--h2-mm: h = "), ("p = ", "--p-kpa: p = "), ("c = ", "--disk-radius-mm: c = "))
+
+
+def _exact_equilibrium_values(mat, r1_mm: float, t0_mm: float, h1_mm: float, h2_mm: float, V0_cm3: float,
+                              contact: str, disk_radius_mm: float, p_kpa: float | None) -> dict:
+    """``equilibrium --fidelity exact``: the exact membrane's equilibrium in edge units."""
+    from hbma_ctrl.models.exact import equilibrium as exact_equilibrium
+
+    _choice("--contact", contact, ["flat", "bonded"])
+    if contact == "bonded":
+        if not (math.isfinite(disk_radius_mm) and 0.0 < disk_radius_mm < r1_mm):
+            raise ValueError(f"--disk-radius-mm = {disk_radius_mm:g} is out of range (0, {r1_mm:g}) mm "
+                             "(inside the retaining radius)")
+    free = h2_mm == 0 and contact == "flat"
+    if free and p_kpa is not None:
+        raise ValueError("--p-kpa: free inflation (--h2-mm 0, flat contact) has its pressure set by the height; "
+                         "give --h2-mm > 0 or --contact bonded to hold the centre at a pressure")
+    if not free and p_kpa is None:
+        raise ValueError("--p-kpa is required with a contact (--h2-mm > 0 or --contact bonded): "
+                         "the gauge pressure, kPa, in (0, 1000]")
+    _range("--p-kpa", p_kpa, 0.0, 1000.0, lo_open=True, unit="kPa")
+    h_mm = h1_mm - h2_mm
+    if not h_mm > 0:
+        raise ValueError(f"--h1-mm/--h2-mm: h = h1 - h2 = {h_mm:g} mm must be > 0 mm for the exact membrane")
+    try:
+        res = exact_equilibrium(mat, U.mm(r1_mm), U.mm(t0_mm), U.mm(h_mm), None if free else U.kpa(p_kpa),
+                                contact, U.mm(disk_radius_mm), U.cm3(V0_cm3))
+    except ValueError as exc:
+        msg = str(exc)
+        for arg, flag in _EXACT_ARG_FLAGS:
+            if msg.startswith(arg):
+                msg = flag + msg[len(arg):]
+                break
+        raise ValueError(msg) from None
+    return {
+        "material": mat.name,
+        "params_si": {k: (list(v) if isinstance(v, tuple) else v) for k, v in mat.as_dict().items()},
+        "r1_mm": r1_mm, "t0_mm": t0_mm, "V0_cm3": V0_cm3, "h1_mm": h1_mm, "h2_mm": h2_mm,
+        "h_mm": h_mm,
+        "fidelity": "exact", "contact": contact,
+        "pressure_kpa": U.to_kpa(res["p"]),
+        "force_n": res["F"],
+        "load_g": U.to_grams(res["F"] / U.G_STD),
+        "stretch": res["stretch"],
+        "volume_cm3": U.to_cm3(res["V"]),
+        "contact_radius_mm": U.to_mm(res["contact_radius"]),
+    }
+
+
 @app.command()
 def equilibrium(
     h1_mm: Annotated[float, typer.Option("--h1-mm", help="virtual cap height h1, mm")],
@@ -295,9 +358,18 @@ def equilibrium(
     V0_cm3: Annotated[float, typer.Option("--V0-cm3", help="dead volume, cm^3")] = 3.0,
     param: Annotated[Optional[list[str]], typer.Option("--param", help="material parameter NAME=VALUE (SI), repeatable")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+    fidelity: Annotated[str, typer.Option(help="cap | exact")] = "cap",
+    contact: Annotated[str, typer.Option(help="flat | bonded (exact only)")] = "flat",
+    disk_radius_mm: Annotated[float, typer.Option("--disk-radius-mm", help="bonded disk radius c, mm")] = 2.0,
+    p_kpa: Annotated[Optional[float], typer.Option("--p-kpa", help="gauge pressure, kPa (exact contact)")] = None,
 ) -> None:
-    """Equilibrium pressure, contact force (and load F/g), stretch and volume of one shape (h1, h2)."""
-    res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, _parse_params(param or []), V0_cm3)
+    """Equilibrium pressure, contact force (and load F/g), stretch and volume of one shape (h1, h2).
+
+    ``--fidelity exact``: the exact axisymmetric membrane; h = h1 - h2 is the centre height, free
+    inflation for --h2-mm 0 (flat), otherwise a flat plate or a bonded disk at --p-kpa.
+    """
+    res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, _parse_params(param or []), V0_cm3,
+                             fidelity, contact, disk_radius_mm, p_kpa)
     if as_json:
         typer.echo(json.dumps(res))
         return

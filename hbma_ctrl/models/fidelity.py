@@ -4,6 +4,9 @@
 fidelity           differential state  when
 =================  ==================  ===================================================================
 ``free``           h1                  no load: free inflation; h2 = 0 and F = 0 by construction
+exact ``free``     h1                  free inflation with the exact membrane's pressure and volume
+                                       (:class:`ExactFreeInflation`, :func:`make_exact_free`): tables of
+                                       :mod:`hbma_ctrl.models.exact` instead of the spherical cap
 ``quasi_static``   m (+ h1, h2 alg.)   dead load on a guided platform, the paper's quasi-static model:
                                        resting, lift-off, contact at F = m_L g, touch-down; a
                                        snap-through is a jump to the far branch at constant gas mass
@@ -40,7 +43,8 @@ from hbma_ctrl.core.materials import Material
 from hbma_ctrl.core.validation import did_you_mean
 
 __all__ = ["OUTPUTS", "Fidelity", "FreeInflation", "QuasiStatic", "DynamicPlatform",
-           "FIDELITIES", "make_fidelity", "MODE_REST", "MODE_MOVING"]
+           "FIDELITIES", "make_fidelity", "MODE_REST", "MODE_MOVING", "ExactFreeInflation",
+           "make_exact_free", "exact_free_table", "EXACT_X_MAX"]
 
 #: names of the output vector every fidelity's ``out`` Function returns, in order
 OUTPUTS = ("h1", "h2", "h", "p", "F", "q", "q_in", "q_out", "lam", "V", "m", "det", "det_p")
@@ -365,6 +369,119 @@ class DynamicPlatform(Fidelity):
         idx = {n: i for i, n in enumerate(self.space.names)}
         m0 = theta[idx["p_env"]] * theta[idx["V0"]] / (theta[idx["R"]] * theta[idx["T"]])
         return np.array([m0, 0.0, 0.0, 0.0]), MODE_REST
+
+
+#: the exact free table's reach, apex height over r1 (past the limit point: 1.17 r1 for NH)
+EXACT_X_MAX = 1.8
+_EXACT_NODES = 91  # 0.02 r1 spacing: the bspline is within 0.5 % of the solver at mid-nodes (README_exact)
+
+
+def exact_free_table(material: Material) -> dict:
+    """The exact membrane's free inflation in dimensionless form, cached on disk (see ``tabulate``).
+
+    Returns x = h/r1 (apex height over the clamp radius, from 0), Pn = p r1 / (mu t0) with mu = Q(1)/12
+    the shear modulus, vn = V / r1^3 (volume above the clamp plane) and lam0 (pole stretch). The form
+    depends only on the material's parameter ratios: scaling every modulus, r1 or t0 (the rig's
+    mismatch, theta in the Functions) rescales p and V exactly, so one table serves a family.
+    """
+    from hbma_ctrl.models.exact import ExactMembrane, tabulate
+
+    r1, t0 = 7.5e-3, 3e-3  # any geometry gives the same dimensionless table
+    m = ExactMembrane(material, r1, t0)
+    reach = float(m.free_pole(m.lam_hi)["h"][0]) / r1
+    x_max = min(EXACT_X_MAX, 0.98 * reach)
+    x = np.linspace(0.0, x_max, _EXACT_NODES)
+    tab = tabulate(m, x[1:] * r1)
+    mu = material.modulus_q1 / 12.0
+    return {"x": x, "Pn": np.concatenate([[0.0], tab["p"] * r1 / (mu * t0)]),
+            "vn": np.concatenate([[0.0], tab["V"] / r1**3]), "lam0": np.concatenate([[1.0], tab["lam0"]])}
+
+
+class ExactFreeInflation(FreeInflation):
+    """Free inflation with the exact axisymmetric membrane (:mod:`hbma_ctrl.models.exact`): x = [h1].
+
+    h1 is the apex height (m). p(h1) = mu t0 / r1 Pn(h1 / r1) and V = V0 + r1^3 vn(h1 / r1) come from
+    bspline interpolants of :func:`exact_free_table` (mu = Q(1)/12, symbolic in theta), replacing the
+    cap's closed forms; the gas law G = (p + p_env) V = m R T and h1' = q R T / (dG/dh1) are unchanged.
+    ``lam`` is the pole stretch. The name stays 'free' (the simulator's hybrid logic and steps are
+    those of free inflation); ``membrane`` tells the two apart. Beyond ``x_max`` r1 the cap's law, scaled to meet the table.
+    """
+
+    membrane = "exact"
+
+    def __init__(self, material: Material, compressor_csv: str, table: dict):
+        super().__init__(material, compressor_csv)
+        x = np.asarray(table["x"], dtype=float)
+        self.x_max = float(x[-1])
+        self._Pn = ca.interpolant("exact_Pn", "bspline", [x], np.asarray(table["Pn"], dtype=float))
+        self._vn = ca.interpolant("exact_vn", "bspline", [x], np.asarray(table["vn"], dtype=float))
+        self._lam = ca.interpolant("exact_lam0", "bspline", [x], np.asarray(table["lam0"], dtype=float))
+
+    def law(self, h1, P) -> tuple:
+        """Exact p (Pa), membrane volume above the clamp (m^3) and pole stretch at apex height h1 (m).
+
+        Past the table's end (the exact solver stops at a pole stretch of 4: h ~ 1.77 r1 for NH) the
+        cap's law continues it, scaled to meet the table there: the cap's error shrinks as the
+        membrane rounds (-0.6 % in p at 1.5 r1), and a free inflation past the limit point must not
+        run off an interpolant's extrapolation.
+        """
+        r1, t0 = P["r1"], P["t0"]
+        mu = P["material"].Q(1.0) / 12.0
+        x = h1 / r1
+        xm = self.x_max
+        hm = xm * r1
+        scale = mu * t0 / r1
+        p_tab, v_tab, l_tab = scale * self._Pn(x), r1**3 * self._vn(x), self._lam(x)
+        gm, g = ph.geometry(hm, 0, P), ph.geometry(h1, 0, P)
+        p_cap = ph.pressure(h1, 0, P) * scale * self._Pn(xm) / ph.pressure(hm, 0, P)
+        v_cap = (g["V"] - P["V0"]) * r1**3 * self._vn(xm) / (gm["V"] - P["V0"])
+        l_cap = g["lam"] * self._lam(xm) / gm["lam"]
+        beyond = x > xm
+        return (ca.if_else(beyond, p_cap, p_tab), ca.if_else(beyond, v_cap, v_tab),
+                ca.if_else(beyond, l_cap, l_tab))
+
+    def _derivs(self, h1, P):
+        s = ca.SX.sym("s")
+        p, Vm, _ = self.law(s, P)
+        G = (p + P["p_env"]) * (P["V0"] + Vm)
+        dG, dp = ca.substitute([ca.jacobian(G, s), ca.jacobian(p, s)], [s], [h1])
+        return dG, dp
+
+    def _rhs(self, x, u, P, mode):
+        h1 = x[0]
+        p, _, _ = self.law(h1, P)
+        q, _, _ = ph.net_flow(u, p, P, self.table)
+        dG, _ = self._derivs(h1, P)
+        return ca.vertcat(q * P["R"] * P["T"] / dG)
+
+    def _out(self, x, u, P, mode):
+        h1 = x[0]
+        p, Vm, lam = self.law(h1, P)
+        dG, dp = self._derivs(h1, P)
+        q, q_in, q_out = ph.net_flow(u, p, P, self.table)
+        V = P["V0"] + Vm
+        m = (p + P["p_env"]) * V / (P["R"] * P["T"])
+        return ca.vertcat(h1, 0 * h1, h1, p, 0 * h1, q, q_in, q_out, lam, V, m, dG, dp)
+
+
+def _normalised(material: Material) -> Material:
+    """The material with its shear modulus set to 10 kPa, parameters rounded to 10 digits: the shape of
+    its free inflation (what the exact table holds) is that of ``material``, and scaled copies of it
+    (a rig's modulus mismatch) map to the same table."""
+    norm = material.scaled(1.2e5 / material.modulus_q1)
+    kw = {}
+    for k, v in norm.as_dict().items():
+        kw[k] = tuple(float(f"{e:.10g}") for e in v) if isinstance(v, (tuple, list)) else float(f"{v:.10g}")
+    return type(material)(**kw)
+
+
+def make_exact_free(material: Material, compressor_csv: str) -> ExactFreeInflation:
+    """The exact free-inflation rung for a material (its table built once, then cached on disk and here)."""
+    norm = _normalised(material)
+    key = ("exact_free", type(norm).__name__, repr(norm.as_dict()), str(compressor_csv))
+    if key not in _FID_CACHE:
+        _FID_CACHE[key] = ExactFreeInflation(material, str(compressor_csv), exact_free_table(norm))
+    return _FID_CACHE[key]
 
 
 FIDELITIES: dict[str, type[Fidelity]] = {c.name: c for c in (FreeInflation, QuasiStatic, DynamicPlatform)}

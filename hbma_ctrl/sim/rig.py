@@ -10,6 +10,12 @@ its own model:
   membrane at its current apex height, taking it off lets the membrane inflate freely again;
 - parameters off nominal: every modulus of the material times ``modulus_scale`` (default 1.15),
   compressor flow times ``flow_scale`` (0.9), dead volume times ``V0_scale`` (1.2);
+- structural mismatches (SPEC 7), none of which the estimators' model has: the valves switch
+  ``valve_delay`` (5 ms) after their command and cannot open for less than ``valve_min_on`` (2 ms) of
+  each PWM period (one sample period): a shorter duty is dropped or lengthened to the minimum; the
+  pump's map has another *shape*, its flow tilted with back pressure by ``compressor_tilt`` (0.2:
+  +11 % at 0 Pa, -11 % at the map's top pressure, the same mean); the sensor lags the pressure by a
+  first-order lag of ``sensor_tau`` (3 ms, a piezoresistive sensor behind a short tube);
 - the pressure sensor: additive Gaussian noise (``noise_std``, 200 Pa), saturation at
   ``sensor_range`` (35 kPa: a reading never exceeds it), dropouts (NaN) with probability
   ``dropout_prob``, sampled every ``sample_period`` (10 ms); the command is held between samples
@@ -24,21 +30,31 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import hashlib
+from pathlib import Path
+
 import numpy as np
 
+from hbma_ctrl.core.codegen import cache_dir
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
+from hbma_ctrl.core.physics import load_compressor_table
+from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_exact_free, make_fidelity
 from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
 
-__all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig",
-           "TRUTH_KEYS"]
+__all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig", "tilted_map",
+           "TRUTH_KEYS", "IDEAL_STRUCTURE"]
+
+#: RigSettings keywords that switch the structural mismatches off (a rig with the model's structure:
+#: for tests of parameter identification, which need the fitted model's form to be the rig's)
+IDEAL_STRUCTURE = {"valve_delay": 0.0, "valve_min_on": 0.0, "compressor_tilt": 0.0, "sensor_tau": 0.0}
 
 #: keys of :meth:`Rig.truth`
 TRUTH_KEYS = ("t", "h1", "h2", "h", "p", "F", "m")
 _RIG_FIDELITIES = ("platform", "quasi_static")
+_RIG_MEMBRANES = ("exact", "cap")
 
 
 @dataclass
@@ -59,6 +75,18 @@ class RigSettings:
     seed : seed of the noise and dropout stream (int >= 0).
     integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
+    membrane : membrane law in free inflation: 'exact' (default: the exact axisymmetric membrane's
+        tables, :func:`hbma_ctrl.models.fidelity.make_exact_free`, a law the estimators were not
+        built on) or 'cap' (the spherical cap, their own law). With a load on, the cap's contact law
+        is used either way.
+    valve_delay : the valves act this long after their command, s, [0, 0.1] (default 5 ms, a small
+        solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
+    valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
+        [0, 0.1] (default 2 ms): a duty d with d T below half of it is dropped (valve shut), below it
+        is lengthened to it (to the whole period when it is longer than T).
+    compressor_tilt : the pump's flow at back pressure p is the map's times (1 - k (p / p_top - 1/2)),
+        p_top the map's top pressure: a map of another shape, same mean (-), [-1, 1] (default 0.2).
+    sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 3 ms); 0 = none.
     """
 
     fidelity: str = "platform"
@@ -72,10 +100,17 @@ class RigSettings:
     seed: int = 0
     integrator: str = "rk4"
     dt: float | None = None
+    membrane: str = "exact"
+    valve_delay: float = 0.005
+    valve_min_on: float = 0.002
+    compressor_tilt: float = 0.2
+    sensor_tau: float = 0.003
 
     def validate(self) -> "RigSettings":
         if self.fidelity not in _RIG_FIDELITIES:
             raise ValueError(f"rig.fidelity = '{self.fidelity}': allowed {', '.join(_RIG_FIDELITIES)}")
+        if self.membrane not in _RIG_MEMBRANES:
+            raise ValueError(f"rig.membrane = '{self.membrane}': allowed {', '.join(_RIG_MEMBRANES)}")
         check_range("rig", "modulus_scale", self.modulus_scale, 0.2, 5.0)
         check_range("rig", "flow_scale", self.flow_scale, 0.0, 5.0)
         check_range("rig", "V0_scale", self.V0_scale, 0.2, 5.0)
@@ -89,12 +124,39 @@ class RigSettings:
             raise ValueError(f"rig.integrator = '{self.integrator}': allowed rk4, euler")
         if self.dt is not None:
             check_range("rig", "dt", self.dt, 1e-7, self.sample_period, "s", lo_open=True)
+        check_range("rig", "valve_delay", self.valve_delay, 0.0, 0.1, "s")
+        check_range("rig", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
+        check_range("rig", "compressor_tilt", self.compressor_tilt, -1.0, 1.0)
+        check_range("rig", "sensor_tau", self.sensor_tau, 0.0, 1.0, "s")
         return self
+
+    def shape_command(self, u: np.ndarray) -> np.ndarray:
+        """Duties the valves can realise (minimum on-time within one PWM period); rows speed, inlet,
+        outlet (3 or 3 x n), each 0-1."""
+        u = np.array(u, dtype=float)
+        if self.valve_min_on <= 0:
+            return u
+        frac = min(1.0, self.valve_min_on / self.sample_period)
+        for i in (1, 2):
+            d = u[i]
+            u[i] = np.where(d < 0.5 * frac, 0.0, np.maximum(d, frac))
+        return u
+
+    def sense(self, y_prev, p_prev, p_now):
+        """One sample of the sensor's first-order lag (Pa; arrays work): the exact response of
+        y' = (p - y) / sensor_tau over one sample period to a pressure moving linearly from p_prev to
+        p_now (a ramp is read sensor_tau late, as by the continuous sensor)."""
+        if self.sensor_tau <= 0:
+            return p_now
+        r = self.sample_period / self.sensor_tau
+        a = np.exp(-r)
+        return a * y_prev + (1 - a) * p_prev + (p_now - p_prev) * (1 - (1 - a) / r)
 
 
 # scenario-file keys (edge units) -> (field, factor to SI)
 _SECTION_KEYS = {
     "fidelity": ("fidelity", None),
+    "membrane": ("membrane", None),
     "modulus_scale": ("modulus_scale", 1.0),
     "flow_scale": ("flow_scale", 1.0),
     "V0_scale": ("V0_scale", 1.0),
@@ -105,6 +167,10 @@ _SECTION_KEYS = {
     "seed": ("seed", None),
     "integrator": ("integrator", None),
     "dt_ms": ("dt", 1e-3),
+    "valve_delay_ms": ("valve_delay", 1e-3),
+    "valve_min_on_ms": ("valve_min_on", 1e-3),
+    "compressor_tilt": ("compressor_tilt", 1.0),
+    "sensor_tau_ms": ("sensor_tau", 1e-3),
 }
 
 
@@ -114,7 +180,55 @@ def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings
     act = replace(actuator, material=actuator.material.scaled(settings.modulus_scale),
                   V0=actuator.V0 * settings.V0_scale)
     pn = replace(pneumatics, flow_scale=pneumatics.flow_scale * settings.flow_scale)
+    if settings.compressor_tilt != 0:
+        pn = replace(pn, compressor_csv=str(tilted_map(pneumatics.csv_path, settings.compressor_tilt)))
     return act, pn
+
+
+def tilted_map(csv_path: Path | str, tilt: float) -> Path:
+    """A compressor map of another shape: flow times (1 - tilt (p / p_top - 1/2)), never below 0.
+
+    Written once (keyed by the source map's bytes and the tilt) under ``$HBMA_CTRL_CACHE/rig``, so
+    the plant's map is an ordinary CSV and its interpolant is built like the nominal one.
+    """
+    src = Path(csv_path)
+    key = hashlib.sha256(src.read_bytes() + repr(float(tilt)).encode()).hexdigest()[:16]
+    out = cache_dir() / "rig" / f"compressor_tilt_{key}.csv"
+    if out.exists():
+        return out
+    s, p, grid = load_compressor_table(src)
+    factor = np.maximum(0.0, 1.0 - tilt * (p / p.max() - 0.5))
+    lines = [f"# {src.name} with its flow tilted by {tilt:g} over pressure (hbma_ctrl.sim.rig.tilted_map)",
+             "speed,pressure_pa,mass_flow_kgs"]
+    lines += [f"{float(si)!r},{float(pj)!r},{float(grid[i, j] * factor[j])!r}" for i, si in enumerate(s) for j, pj in enumerate(p)]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(f".{np.random.default_rng().integers(1 << 30)}.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(out)
+    return out
+
+
+class _ValveLine:
+    """Commands as the valves see them: shaped (minimum on-time) and delayed by ``valve_delay``."""
+
+    def __init__(self, s: RigSettings, n: int = 1):
+        self.s = s
+        self.hist: list = []  # (time sent, shaped command 3 x n), oldest first
+        self.n = n
+
+    def send(self, t: float, u: np.ndarray) -> None:
+        self.hist.append((t, self.s.shape_command(np.asarray(u, dtype=float).reshape(3, self.n))))
+        keep = int(np.ceil(self.s.valve_delay / self.s.sample_period)) + 2
+        del self.hist[:-keep]
+
+    def at(self, tau: float) -> np.ndarray:
+        """Inputs (3 x n) acting at time tau: the speed sent last, the valves as sent at tau - delay."""
+        speed = self.hist[-1][1][0]
+        valves = np.zeros((2, self.n))  # before any command reaches them the valves are shut
+        for t_sent, u in self.hist:
+            if t_sent <= tau - self.s.valve_delay + 1e-12:
+                valves = u[1:]
+        return np.vstack([speed[None, :], valves])
 
 
 class Rig:
@@ -135,13 +249,15 @@ class Rig:
         self.platform = platform
         self._rng = np.random.default_rng(self.settings.seed)
         self._csv = str(self.pneumatics.csv_path)
-        self._free = make_fidelity("free", self.actuator.material, self._csv)
+        self._free = _free_fidelity(self.settings, self.actuator.material, self._csv)
         self._loaded = make_fidelity(self.settings.fidelity, self.actuator.material, self._csv)
         self._u = np.zeros(3)
         self.t = 0.0
         self.events: list = []
         self._plant = self._new_plant(platform)
         self._t_plant0 = 0.0  # rig time at which the current plant's clock started
+        self._valves = _ValveLine(self.settings)
+        self._p_sensed = self._p_prev = float(self._plant.output("p")[0])  # lagged sensor state, true p, Pa
 
     # --- plant bookkeeping ------------------------------------------------------------------
     def _theta(self, fid, platform: Platform) -> np.ndarray:
@@ -167,20 +283,27 @@ class Rig:
         u = command.as_array() if isinstance(command, Command) else np.asarray(command, dtype=float)
         self._u = u
         n0 = len(self._plant.events[0])
-        self._plant.advance(u[:, None], self.settings.sample_period)
+        plant = self._plant
+        self._valves.send(self.t, u)
+        nsub = max(1, int(round(self.settings.sample_period / plant.dt)))
+        for j in range(nsub):
+            plant.advance(self._valves.at(self.t + j * plant.dt), plant.dt)
         self.events += [(self._t_plant0 + e[0], e[1]) for e in self._plant.events[0][n0:]]
         self.t += self.settings.sample_period
+        p_now = float(plant.output("p")[0])
+        self._p_sensed = self.settings.sense(self._p_sensed, self._p_prev, p_now)
+        self._p_prev = p_now
         if not self._plant.alive[0]:
             raise RuntimeError(f"rig: the plant diverged at t = {self.t:.3f} s")
 
     def measure(self) -> float:
-        """Sensor reading now, Pa: true pressure + noise, saturated at the range; NaN on dropout."""
+        """Sensor reading now, Pa: lagged true pressure + noise, saturated at the range; NaN on dropout."""
         s = self.settings
         noise = self._rng.standard_normal() * s.noise_std
         drop = self._rng.random() < s.dropout_prob if s.dropout_prob > 0 else False
         if drop:
             return float("nan")
-        return float(min(self._plant.output("p")[0] + noise, s.sensor_range))
+        return float(min(self._p_sensed + noise, s.sensor_range))
 
     def truth(self) -> dict:
         """True h1, h2, h (m), p (Pa), F (N), m (gas mass, kg) and t (s) now."""
@@ -230,10 +353,39 @@ class Rig:
         self.events.append((self.t, f"load_set_{mass_kg:.3f}kg"))
 
     def _free_h1(self, m: float) -> float:
-        """Free-inflation cap height (m) holding gas mass m (kg), from the current one."""
+        """Free-inflation apex height (m) holding gas mass m (kg), from the current one."""
         fid = self._free
+        if getattr(fid, "membrane", "cap") == "exact":
+            return _exact_free_h(fid, fid.space.values(self.actuator, self.pneumatics, Platform()), m)
         solver = ShapeSolver(fid.space, fid.space.values(self.actuator, self.pneumatics, Platform()))
         return solver.free_h1(m * (self.actuator.R * self.actuator.T), self.truth()["h1"])
+
+
+def _free_fidelity(s: RigSettings, material, csv: str):
+    """The rig's free-inflation plant model: the exact membrane or the cap (``s.membrane``)."""
+    return make_exact_free(material, csv) if s.membrane == "exact" else make_fidelity("free", material, csv)
+
+
+def _exact_free_h(fid, theta: np.ndarray, m: float) -> float:
+    """Apex height (m) of the exact free membrane holding gas mass m (kg): bisection on the gas law.
+
+    The gas mass grows with the height (dG/dh >= p_env dV/dh > 0), so the root is unique.
+    """
+    mi = OUTPUTS.index("m")
+
+    def mass(h: float) -> float:
+        return float(fid.out([h], [0.0, 0.0, 0.0], theta, 1.0)[mi])
+
+    r1 = float(theta[fid.space.names.index("r1")])
+    lo, hi = 0.0, fid.x_max * r1
+    if m <= mass(lo):
+        return 0.0
+    while mass(hi) < m and hi < 10 * r1:  # past the table the interpolant extrapolates
+        hi *= 1.5
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mass(mid) < m else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 @dataclass
@@ -273,7 +425,9 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
         groups.setdefault(key, []).append(i)
     for (loaded, _, csvp), idx in groups.items():
         pairs = [mismatched(trials[i].actuator, trials[i].pneumatics, s) for i in idx]
-        fid = make_fidelity(s.fidelity if loaded else "free", pairs[0][0].material, csvp)
+        csvp = str(pairs[0][1].csv_path)  # the rig's own map (another shape when tilted)
+        fid = (make_fidelity(s.fidelity, pairs[0][0].material, csvp) if loaded
+               else _free_fidelity(s, pairs[0][0].material, csvp))
         thetas = np.column_stack([fid.space.values(a, p, trials[i].platform)
                                   for (a, p), i in zip(pairs, idx)])
         dt = s.dt if s.dt is not None else DEFAULT_DT[(s.integrator, fid.name)]
@@ -284,19 +438,28 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
         n = len(idx)
         Y = np.zeros((K, len(OUTPUTS), n))
         Ucols = np.zeros((K, 3, n))
+        valves = _ValveLine(s, n)
         for k in range(K):
             t = k * s.sample_period
             U = np.column_stack([trials[i].schedule.at(t + 0.5 * s.sample_period) for i in idx])
-            plant.set_inputs(U)
+            valves.send(t, U)
+            plant.set_inputs(valves.at(t))
             Y[k] = plant.y
             Ucols[k] = U
             if k < K - 1:
-                plant.advance(None, s.sample_period)
+                for sub in range(nsub):
+                    plant.advance(valves.at(t + sub * plant.dt), plant.dt)
+        # the sensor's first-order lag, sampled (the same recursion as Rig.measure)
+        ptrue = Y[:, OUTPUTS.index("p"), :]
+        sensed = ptrue.copy()
+        if s.sensor_tau > 0:
+            for k in range(1, K):
+                sensed[k] = s.sense(sensed[k - 1], ptrue[k - 1], ptrue[k])
         for j, i in enumerate(idx):
             rng = np.random.default_rng([s.seed, ids[i]])
             Kj = int(round(trials[i].duration / s.sample_period)) + 1
             y = Y[:Kj, :, j]
-            p = y[:, OUTPUTS.index("p")]
+            p = sensed[:Kj, j]
             meas = np.minimum(p + s.noise_std * rng.standard_normal(Kj), s.sensor_range)
             if s.dropout_prob > 0:
                 meas[rng.random(Kj) < s.dropout_prob] = np.nan

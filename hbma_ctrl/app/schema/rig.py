@@ -22,6 +22,8 @@ class RigTable(Table):
     """[rig] in the user's units; :meth:`to_settings` gives the SI RigSettings."""
 
     fidelity: Literal["platform", "quasi_static"] = choice("platform", "plant model while a load is on")
+    membrane: Literal["exact", "cap"] = choice("exact", "membrane law in free inflation: exact "
+                                                "(exact membrane tables) or cap (spherical cap)")
     modulus_scale: float = num(1.15, 0.2, 5.0, "-", "every modulus of the material times this")
     flow_scale: float = num(0.9, 0.0, 5.0, "-", "compressor map times this")
     V0_scale: float = num(1.2, 0.2, 5.0, "-", "dead volume times this")
@@ -33,6 +35,11 @@ class RigTable(Table):
     integrator: Literal["rk4", "euler"] = choice("rk4", "fixed-step scheme")
     dt_ms: float | None = num(None, 1e-4, 1000.0, "ms", "internal step, at most sample_period_ms; "
                               "default per fidelity", lo_open=True)
+
+    valve_delay_ms: float = num(5.0, 0.0, 100.0, "ms", "the valves act this long after their command")
+    valve_min_on_ms: float = num(2.0, 0.0, 100.0, "ms", "shortest valve opening per PWM (sample) period")
+    compressor_tilt: float = num(0.2, -1.0, 1.0, "-", "pump flow times 1 - k (p / p_top - 1/2): another shape")
+    sensor_tau_ms: float = num(3.0, 0.0, 1000.0, "ms", "first-order lag of the pressure sensor")
 
     @model_validator(mode="after")
     def _dt(self) -> RigTable:
@@ -68,6 +75,7 @@ class RigTable(Table):
 #: table key -> (RigSettings field, conversion from the user's unit)
 _SI = {
     "fidelity": ("fidelity", as_is),
+    "membrane": ("membrane", as_is),
     "modulus_scale": ("modulus_scale", float),
     "flow_scale": ("flow_scale", float),
     "V0_scale": ("V0_scale", float),
@@ -78,4 +86,8 @@ _SI = {
     "seed": ("seed", as_is),
     "integrator": ("integrator", as_is),
     "dt_ms": ("dt", U.ms),
+    "valve_delay_ms": ("valve_delay", U.ms),
+    "valve_min_on_ms": ("valve_min_on", U.ms),
+    "compressor_tilt": ("compressor_tilt", float),
+    "sensor_tau_ms": ("sensor_tau", U.ms),
 }
