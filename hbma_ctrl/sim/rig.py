@@ -10,8 +10,8 @@ its own model:
   membrane at its current apex height, taking it off lets the membrane inflate freely again;
 - parameters off nominal: every modulus of the material times ``modulus_scale`` (default 1.15),
   compressor flow times ``flow_scale`` (0.9), dead volume times ``V0_scale`` (1.2);
-- structural mismatches (SPEC 7), none of which the estimators' model has: the valves switch
-  ``valve_delay`` (5 ms) after their command and cannot open for less than ``valve_min_on`` (2 ms) of
+- structural mismatches (SPEC 7), none of which the estimators' model has, off by default and all
+  on in :data:`STRUCTURED_RIG` (with the exact membrane): the valves switch ``valve_delay`` (5 ms) after their command and cannot open for less than ``valve_min_on`` (2 ms) of
   each PWM period (one sample period): a shorter duty is dropped or lengthened to the minimum; the
   pump's map has another *shape*, its flow tilted with back pressure by ``compressor_tilt`` (0.2:
   +11 % at 0 Pa, -11 % at the map's top pressure, the same mean); the sensor lags the pressure by a
@@ -45,11 +45,15 @@ from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
 
 __all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig", "tilted_map",
-           "TRUTH_KEYS", "IDEAL_STRUCTURE"]
+           "TRUTH_KEYS", "IDEAL_STRUCTURE", "STRUCTURED_RIG"]
 
 #: RigSettings keywords that switch the structural mismatches off (a rig with the model's structure:
 #: for tests of parameter identification, which need the fitted model's form to be the rig's)
 IDEAL_STRUCTURE = {"valve_delay": 0.0, "valve_min_on": 0.0, "compressor_tilt": 0.0, "sensor_tau": 0.0}
+#: the structurally different truth: the exact membrane, 5 ms valve delay, 2 ms minimum opening, a
+#: pump map tilted with back pressure, a 3 ms sensor lag (``[rig] structure = "full"`` in a scenario)
+STRUCTURED_RIG = {"membrane": "exact", "valve_delay": 0.005, "valve_min_on": 0.002, "compressor_tilt": 0.2,
+                  "sensor_tau": 0.003}
 
 #: keys of :meth:`Rig.truth`
 TRUTH_KEYS = ("t", "h1", "h2", "h", "p", "F", "m")
@@ -75,18 +79,20 @@ class RigSettings:
     seed : seed of the noise and dropout stream (int >= 0).
     integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
-    membrane : membrane law in free inflation: 'exact' (default: the exact axisymmetric membrane's
-        tables, :func:`hbma_ctrl.models.fidelity.make_exact_free`, a law the estimators were not
-        built on) or 'cap' (the spherical cap, their own law). With a load on, the cap's contact law
+    membrane : membrane law in free inflation: 'exact' (the exact axisymmetric membrane's tables,
+        :func:`hbma_ctrl.models.fidelity.make_exact_free`, a law the estimators were not built on) or
+        'cap' (default: the spherical cap, their own law; see :data:`STRUCTURED_RIG`). With a load on, the cap's contact law
         is used either way.
-    valve_delay : the valves act this long after their command, s, [0, 0.1] (default 5 ms, a small
+    valve_delay : the valves act this long after their command, s, [0, 0.1] (default 0; 5 ms is a small
         solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
     valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
-        [0, 0.1] (default 2 ms): a duty d with d T below half of it is dropped (valve shut), below it
-        is lengthened to it (to the whole period when it is longer than T).
+        [0, 0.1] (default 0; 2 ms in :data:`STRUCTURED_RIG`): a duty d with d T below half of it is
+        dropped (valve shut), below it is lengthened to it (to the whole period when it is longer than T).
     compressor_tilt : the pump's flow at back pressure p is the map's times (1 - k (p / p_top - 1/2)),
-        p_top the map's top pressure: a map of another shape, same mean (-), [-1, 1] (default 0.2).
-    sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 3 ms); 0 = none.
+        p_top the map's top pressure: a map of another shape, same mean (-), [-1, 1] (default 0; 0.2
+        in :data:`STRUCTURED_RIG`).
+    sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 0 = none; 3 ms in
+        :data:`STRUCTURED_RIG`).
     """
 
     fidelity: str = "platform"
@@ -100,11 +106,14 @@ class RigSettings:
     seed: int = 0
     integrator: str = "rk4"
     dt: float | None = None
-    membrane: str = "exact"
-    valve_delay: float = 0.005
-    valve_min_on: float = 0.002
-    compressor_tilt: float = 0.2
-    sensor_tau: float = 0.003
+    # defaults: the cap rig without the structural mismatches, on which the README's claims were
+    # measured; STRUCTURED_RIG is the truth of issue 14 (exact membrane, valve timing, pump shape,
+    # sensor lag), selectable per scenario until the estimator models what it adds
+    membrane: str = "cap"
+    valve_delay: float = 0.0
+    valve_min_on: float = 0.0
+    compressor_tilt: float = 0.0
+    sensor_tau: float = 0.0
 
     def validate(self) -> "RigSettings":
         if self.fidelity not in _RIG_FIDELITIES:
