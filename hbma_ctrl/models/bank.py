@@ -228,12 +228,16 @@ class ChamberBank:
         a = self.actuator
         x, W, b = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("b")
         w = ca.SX.sym("w", 2)  # [supply a, outlet o]
-        u = ca.vertcat(1.0, w[0], w[1])  # pump at full speed while the inlet is open, inlet duty a
+        u = ca.SX.sym("u", 3)  # the plant's inputs [speed, inlet duty, outlet duty]
         k, c = ca.SX.sym("k"), ca.SX.sym("c")
         self.symbols = BankSymbols(x, w, W, b, k, c)
+        self.u = u
         hx, p, lam = self.outputs_expr(x, W, k, c)
         q = self.chamber.net_flow(u, p, self.chamber.with_factors(self.chamber.params, b=b))
-        self._xdot = ca.Function("xdot", [x, w, W, b, k, c], [q * a.R * a.T / (a.p_env * a.V0)])
+        self._xdot_u = ca.Function("xdot_u", [x, u, W, b, k, c], [q * a.R * a.T / (a.p_env * a.V0)])
+        # the decisions: pump at full speed while the inlet is open, inlet duty a
+        self._xdot = ca.Function("xdot", [x, w, W, b, k, c],
+                                 [self._xdot_u(x, ca.vertcat(1.0, w[0], w[1]), W, b, k, c)])
         self.out = ca.Function("out", [x, W, k, c], [hx, p, lam], ["x", "W", "k", "c"], ["h", "p", "lam"])
         self._cache: dict = {}
         self.x_rest_max = -0.05  # the tables start here (scaled mass below ambient)
@@ -287,12 +291,16 @@ class ChamberBank:
         xw = ca.vertcat(xe, Wk)
         return tb.H_table(xw), k * tb.P_table(xw), tb.L_table(xw)
 
-    def discrete_expr(self, dt: float, substeps: int = 1, method: str = "rk4"):
-        """x+ (SX expression in the model's symbols) after dt s, rk4 or euler with inputs held."""
+    def discrete_expr(self, dt: float, substeps: int = 1, method: str = "rk4", plant_inputs: bool = False):
+        """x+ (SX expression in the model's symbols) after dt s, rk4 or euler with inputs held. With
+        ``plant_inputs`` the input is ``self.u`` = [speed, inlet, outlet] (0-1: what the plant was sent,
+        a throttled pump's speed included) instead of the decisions w = [a, o]."""
         x, w, W, b, k, c = self.symbols
+        if plant_inputs:
+            w = self.u
         h = dt / substeps
         xn = x
-        f = self._xdot
+        f = self._xdot_u if plant_inputs else self._xdot
         for _ in range(substeps):
             if method == "euler":
                 xn = xn + h * f(xn, w, W, b, k, c)
