@@ -390,3 +390,43 @@ def test_a_throttled_pump_tracks_as_well_as_full_speed_over_five_seeds(topology,
     assert mean[True]["h_rmse_mm"] <= 1.03 * mean[False]["h_rmse_mm"]
     assert mean[True]["bend_rmse_deg"] <= 1.03 * mean[False]["bend_rmse_deg"]
     assert mean[True]["mean_speed"] < 0.9 * mean[False]["mean_speed"]  # and it pumps slower
+
+
+def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true_pressure(monkeypatch):
+    """What the throttling can cost: the flow the rig gets at its TRUE pressure against the NMPC's plan
+    a q(1, p) there (the speed is chosen at the estimated pressure)."""
+    from hbma_ctrl.app.robot_closed import run_closed_loop
+    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.robot.design import RobotPneumatics
+    from hbma_ctrl.robot.rig import RobotRig
+
+    d = RobotDesign(n_layers=1).validate()
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics(topology="per_chamber", sensor_range=50e3,
+                                                           pressure_limit=45e3)).validate()
+    model = make_model(d, Pneumatics(), "per_chamber")
+    sent, planned = [], []
+    tick, apply = RobotLoop.tick, RobotRig.apply
+
+    def rec_tick(self, t, z):
+        a, o = tick(self, t, z)
+        planned.append(a.copy())
+        return a, o
+
+    def rec_apply(self, U):
+        sent.append((np.array(U, dtype=float), self.plant.output("p").copy()))
+        apply(self, U)
+
+    monkeypatch.setattr(RobotLoop, "tick", rec_tick)
+    monkeypatch.setattr(RobotRig, "apply", rec_apply)
+    run_closed_loop(s, {0: ((0.0, U.mm(4.0), math.radians(10.0), 0.0),)}, 1.5, "mpc", model=model)
+    pump = model.pump
+    ratios, partial = [], 0
+    for a, (Uc, p) in zip(planned, sent):
+        for i in np.nonzero(a > 0.01)[0]:
+            want = a[i] * pump.flow(np.ones(1), p[i:i + 1])[0]
+            got = Uc[1, i] * pump.flow(Uc[0, i:i + 1], p[i:i + 1])[0]
+            ratios.append(got / want)
+            partial += int(Uc[0, i] < 0.99)
+    ratios = np.array(ratios)
+    assert partial > 20  # the pump was throttled
+    assert abs(ratios.mean() - 1.0) < 0.005 and ratios.std() < 0.02
