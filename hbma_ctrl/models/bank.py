@@ -45,16 +45,19 @@ On top of the tables:
   at another pressure it is not: the map's relative slope ``-dq/dp / q = 1 / (p_stall(s) - p)`` is
   steeper at a low speed than at full speed, so a pressure estimate off by dp makes the throttled
   inflow off by about ``dp (1 / (p_stall(s) - p) - 1 / (p_stall(1) - p))`` (10 %/kPa with the stall
-  6 kPa above p; the pressure's own rise within a period changes it < 1 %). The EKF bank therefore
-  predicts with what was sent, ``u = [speed, inlet, outlet]`` (:meth:`ChamberBank.discrete_expr`
-  with ``plant_inputs``), not as ``a q(1, p)``, which would read that error as a flow factor ``b``.
-  Measured in closed loop the estimate's pressure error is small (72 Pa std on the 2-layer
-  sequence) and the rig gets the planned flow at its true pressure within 0.5 % (std 0.5 %), so
-  throttling costs no tracking that the seeds can resolve: the sequence's settled height RMSE
-  (seeds 1-5) is set by when the cautious supply cap of the chamber climbing to 8 mm, past its
-  limit point, lets go (its modulus factor learnt): 0.14-0.36 mm from seed to seed, while the held
-  chambers stay within 0.01-0.015 mm (median). Full speed / throttled: 0.285 / 0.272 mm per_chamber (mean pump speed 0.27 / 0.20), 0.280 / 0.300 mm shared (0.99 / 0.84); the
-  slow test ``test_a_throttled_pump_tracks_as_well_as_full_speed_over_five_seeds`` measures it.
+  6 kPa above p; the pressure's own rise within a period changes it < 1 %). Measured in closed
+  loop (2-layer sequence) the estimate's pressure error is 72 Pa std and the rig gets the planned
+  flow at its true pressure within 0.5 % (std 0.5 %), so the EKF bank keeps predicting with ``a``.
+  It can predict with what was sent, ``u = [speed, inlet, outlet]`` (:meth:`ChamberBank.
+  discrete_expr` with ``plant_inputs``; :class:`estimators.robot_ekf.ChamberEKFBank` takes 3 x n
+  inputs), exact whatever the pressure error; on the shared pump that delayed the release of the
+  cautious supply cap (its modulus factor's std): 0.252 against 0.218 mm over seeds 1-8 (7 worse).
+  Throttling costs no tracking the seeds resolve: the sequence's settled height RMSE is set by
+  when the cautious cap of the chamber climbing to 8 mm, past its limit point, lets go (0.05-0.36 mm
+  from seed to seed; the held chambers stay within 0.01-0.015 mm, median). Seeds 1-5, full speed /
+  throttled: 0.285 / 0.293 mm per_chamber (mean pump speed 0.27 / 0.19), 0.280 / 0.274 mm shared
+  (0.99 / 0.84); the slow test ``test_a_throttled_pump_tracks_as_well_as_full_speed_over_five_seeds``
+  measures it.
 """
 
 from __future__ import annotations
