@@ -125,12 +125,13 @@ NS = 4  # [x, b, k, c]
 
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
-    """Single-chamber EKF step (X[4], P[16], w[2], W, z, use, reopen) -> (X+[4], P+[16], h, p, nis,
+    """Single-chamber EKF step (X[4], P[16], u[3], W, z, use, reopen) -> (X+[4], P+[16], h, p, nis,
     h_std, over). ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1)
     is gated (not used) unless ``reopen`` is 1: then the prior covariance is inflated until the
     NIS equals the gate (at most by INFLATION_MAX) and the reading is used."""
-    xs, w, W, b, k, c = model.symbols
-    xn = model.discrete_expr(s.sample_period)
+    xs, _, W, b, k, c = model.symbols
+    w = model.u  # predict with what the plant was sent: a throttled pump's flow is not a q(1, p)
+    xn = model.discrete_expr(s.sample_period, plant_inputs=True)
     th = ca.vertcat(b, k, c)
     fx = ca.Function("fx", [xs, w, W, b, k, c], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, th)])
     he, pe, _ = model.outputs_expr(xs, W, k, c)
@@ -138,7 +139,7 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     pj = ca.Function("pj", [xs, W, k, c], [pe, ca.jacobian(pe, zv), he, ca.jacobian(he, zv)])
     X = ca.SX.sym("X", NS)
     Pv = ca.SX.sym("P", NS * NS)
-    wi = ca.SX.sym("wi", 2)
+    wi = ca.SX.sym("wi", 3)
     Wi, z, use, reopen = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use"), ca.SX.sym("reopen")
     x_pred, Ax, Ath = fx(X[0], wi, Wi, X[1], X[2], X[3])
     A = ca.vertcat(ca.horzcat(Ax, Ath), ca.horzcat(ca.DM.zeros(3, 1), ca.DM.eye(3)))
@@ -201,8 +202,10 @@ def _readings(z, n: int) -> tuple[np.ndarray, np.ndarray]:
 class ChamberEKFBank:
     """n per-chamber EKFs stepped together (see module doc).
 
-    ``step(z, w, W, steps=1)``: z (n,) pressure readings Pa (NaN = missing), w (2, n) the decisions
-    applied during the last period (supply, outlet; see :mod:`hbma_ctrl.models.bank`), W (n,) the
+    ``step(z, w, W, steps=1)``: z (n,) pressure readings Pa (NaN = missing), w the inputs the plant
+    was sent during the last period: (3, n) [speed, inlet, outlet] (a throttled pump's speed
+    included: its flow is predicted as sent) or (2, n) decisions [supply, outlet] with the pump at
+    full speed (see :mod:`hbma_ctrl.models.bank`), W (n,) the
     loads N used over that period, ``steps`` the periods since the last step (bounded by
     ``max_gap``). Returns a dict of (n,) arrays: x, b, h (m, >= 0), p (Pa), h_std (m), nis, used
     (bool), outlier (bool: out of bounds or gated), and the factors b, k, c (-).
@@ -268,7 +271,11 @@ class ChamberEKFBank:
         use = (np.isfinite(z) & ~outlier & (z < s.sensor_range)).astype(float)
         zz = np.where(use > 0, z, 0.0)
         Wv = self.model.clip_load(np.asarray(W, dtype=float).reshape(self.n))
-        wv = np.asarray(w, dtype=float).reshape(2, self.n)
+        wv = np.asarray(w, dtype=float)
+        if wv.size == 2 * self.n:  # decisions [a, o]: the pump at full speed, inlet duty a
+            wv = wv.reshape(2, self.n)
+            wv = np.vstack([np.ones((1, self.n)), wv])
+        wv = wv.reshape(3, self.n)
         k = int(steps)
         if k < 1:
             raise ValueError(f"robot_ekf.step: steps = {steps!r} must be an integer >= 1")

@@ -311,3 +311,131 @@ def test_robot_loop_sends_the_throttled_speed_and_the_bank_keeps_the_planned_dut
         speeds.append(U[0].copy())
         assert np.array_equal(loop._w_prev[0], commands_from_inputs(a, o, "per_chamber")[1])
     assert np.any((np.array(speeds) > 0) & (np.array(speeds) < 0.99))
+
+
+def test_bank_predicts_a_throttled_pump_by_its_own_map_not_as_the_full_speed_duty(robot):
+    _, model, _ = robot
+    W = np.full(3, 0.3)
+    a, o = np.array([0.3, 0.3, 0.0]), np.array([0.0, 0.0, 0.2])
+    full, dec = _bank_pair(model)
+    thr = ChamberEKFBank(model, 3, ChamberEKFSettings())
+    for f in (full, dec, thr):
+        f.step(np.full(3, 20e3), np.zeros((2, 3)), W)
+    x0 = thr.X[0].copy()
+    p_est = np.array([float(model.out(x0[i], W[i], thr.X[2, i], thr.X[3, i])[1]) for i in range(3)])
+    # chamber 1's speed is chosen for a pressure 6 kPa above the bank's (an estimate 6 kPa low)
+    U_full = commands_from_inputs(a, o, "per_chamber")
+    U_thr = throttled_inputs(a, o, p_est + np.array([0.0, 6e3, 0.0]), "per_chamber", model.pump)
+    nan = np.full(3, np.nan)  # predict only
+    full.step(nan, U_full, W)
+    dec.step(nan, np.vstack([a, o]), W)
+    thr.step(nan, U_thr, W)
+    assert np.array_equal(full.X, dec.X)  # decisions [a, o] are [full speed, a, o]
+    q = _net_flow(model)
+    ratio = [float(q(U_thr[:, i], p_est[i])) / float(q(U_full[:, i], p_est[i])) for i in range(2)]
+    assert abs(ratio[0] - 1.0) < 1e-6 and ratio[1] > 1.05  # the map's slope: more flow at the lower pressure
+    # the bank's gas-mass increments follow the throttled flow (within the pressure's rise over a period)
+    grow = (thr.X[0] - x0)[:2] / (full.X[0] - x0)[:2]
+    assert np.allclose(grow, ratio, rtol=0.01)
+    assert thr.X[0, 2] == full.X[0, 2]  # venting: no pump
+
+
+# --- what throttling costs in tracking (slow: 20 closed-loop runs of 12 s) ---------------------------
+def _two_layer_sequence(topology: str, seed: int, throttle: bool, monkeypatch) -> dict:
+    """The 2-layer sequence (bend 19.1 deg towards 180 deg, then towards -120 deg, then straight at
+    8 mm; 12 s) on the mismatched rig with ``seed``; the pump throttled or at full speed."""
+    import functools
+
+    from hbma_ctrl.app.robot_closed import run_closed_loop
+    from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics
+    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.robot.design import RobotPneumatics
+    from hbma_ctrl.robot.rig import RobotRigSettings
+
+    d = RobotDesign(n_layers=2).validate()
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics(topology=topology, sensor_range=50e3,
+                                                           pressure_limit=45e3)).validate()
+    bend = math.radians(19.102)
+    tg = {0: ((0.0, U.mm(2.6667), bend, math.pi), (4.0, U.mm(5.3333), bend, math.radians(-120.0)),
+              (8.0, U.mm(8.0), 0.0, 0.0)), 1: ((0.0, 0.0, 0.0, 0.0),)}
+    if topology not in _two_layer_sequence.models:
+        _two_layer_sequence.models[topology] = make_model(d, Pneumatics(), topology)
+    model = _two_layer_sequence.models[topology]
+    speeds = []
+    init, tick = RobotLoop.__init__, RobotLoop.tick
+
+    def record(self, t, z):
+        out = tick(self, t, z)
+        speeds.append(self.valve_commands[0].copy())
+        return out
+
+    with monkeypatch.context() as m:
+        m.setattr(RobotLoop, "__init__", functools.partialmethod(init, throttle=throttle))
+        m.setattr(RobotLoop, "tick", record)
+        run = run_closed_loop(s, tg, 12.0, "mpc", model=model, rig=RobotRigSettings(seed=seed))
+    met = closed_loop_metrics(d, run, 45e3, 2.0, model=model)
+    last = run.changes[np.searchsorted(run.changes, run.t + 1e-9, side="right") - 1]
+    held = np.abs(run.h - run.h_ref)[run.t - last >= 2.0][:, :3]  # layer 0's chambers, settled windows
+    return {"h_rmse_mm": met["chamber_height_rmse_mm"], "bend_rmse_deg": met["bend_angle_rmse_deg"],
+            "hold_median_mm": float(np.median(held) * 1e3), "mean_speed": float(np.mean(speeds)),
+            "step_ms_median": met["step_ms_median"]}
+
+
+_two_layer_sequence.models = {}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("topology", ["per_chamber", "shared"])
+def test_a_throttled_pump_tracks_as_well_as_full_speed_over_five_seeds(topology, monkeypatch, capsys):
+    rows = {thr: [_two_layer_sequence(topology, seed, thr, monkeypatch) for seed in range(1, 6)]
+            for thr in (False, True)}
+    mean = {thr: {k: float(np.mean([r[k] for r in rows[thr]])) for k in rows[thr][0]} for thr in rows}
+    with capsys.disabled():
+        print(f"\n{topology} seeds 1-5 full speed: {mean[False]}\n{topology} seeds 1-5 throttled: {mean[True]}")
+    # the settled RMSE is set by when the cautious cap of the chamber climbing to 8 mm lets go: 0.14 to
+    # 0.36 mm from seed to seed, so a five-seed mean is uncertain by about 10 % (measured: per_chamber
+    # 0.285 full speed / 0.293 throttled, shared 0.280 / 0.274; the held chambers' median error
+    # 0.01-0.015 mm either way)
+    assert mean[True]["h_rmse_mm"] <= 1.10 * mean[False]["h_rmse_mm"]
+    assert mean[True]["bend_rmse_deg"] <= 1.10 * mean[False]["bend_rmse_deg"]
+    assert mean[True]["mean_speed"] < 0.9 * mean[False]["mean_speed"]  # and it pumps slower
+
+
+def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true_pressure(monkeypatch):
+    """What the throttling can cost: the flow the rig gets at its TRUE pressure against the NMPC's plan
+    a q(1, p) there (the speed is chosen at the estimated pressure)."""
+    from hbma_ctrl.app.robot_closed import run_closed_loop
+    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.robot.design import RobotPneumatics
+    from hbma_ctrl.robot.rig import RobotRig
+
+    d = RobotDesign(n_layers=1).validate()
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics(topology="per_chamber", sensor_range=50e3,
+                                                           pressure_limit=45e3)).validate()
+    model = make_model(d, Pneumatics(), "per_chamber")
+    sent, planned = [], []
+    tick, apply = RobotLoop.tick, RobotRig.apply
+
+    def rec_tick(self, t, z):
+        a, o = tick(self, t, z)
+        planned.append(a.copy())
+        return a, o
+
+    def rec_apply(self, U):
+        sent.append((np.array(U, dtype=float), self.plant.output("p").copy()))
+        apply(self, U)
+
+    monkeypatch.setattr(RobotLoop, "tick", rec_tick)
+    monkeypatch.setattr(RobotRig, "apply", rec_apply)
+    run_closed_loop(s, {0: ((0.0, U.mm(4.0), math.radians(10.0), 0.0),)}, 1.5, "mpc", model=model)
+    pump = model.pump
+    ratios, partial = [], 0
+    for a, (Uc, p) in zip(planned, sent):
+        for i in np.nonzero(a > 0.01)[0]:
+            want = a[i] * pump.flow(np.ones(1), p[i:i + 1])[0]
+            got = Uc[1, i] * pump.flow(Uc[0, i:i + 1], p[i:i + 1])[0]
+            ratios.append(got / want)
+            partial += int(Uc[0, i] < 0.99)
+    ratios = np.array(ratios)
+    assert partial > 20  # the pump was throttled
+    assert abs(ratios.mean() - 1.0) < 0.005 and ratios.std() < 0.02

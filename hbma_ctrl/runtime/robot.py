@@ -2,8 +2,8 @@
 
 Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
 
-- the EKF bank steps on the readings with the previous period's valve commands and loads (one
-  mapped call);
+- the EKF bank steps on the readings with the previous period's decisions (the supply as the
+  full-speed inlet duty its flow equals, the outlet) and loads (one mapped call);
 - the loads are recomputed from the estimated heights by the robot's load sharing (used by this
   period's controller and the next predict: a one-period lag);
 - the layer targets give every chamber's target height (:func:`hbma_ctrl.robot.targets.chamber_targets`);
@@ -242,6 +242,10 @@ class RobotLoop:
         self.last_timing = (t2 - t0, t1 - t0, t2 - t1)
         for st, v in zip((self.step_s, self.ekf_s, self.ctrl_s), self.last_timing):
             st.add(v)
+        # the bank predicts with the full-speed duty a, not with the throttled speed and inlet sent:
+        # they deliver a q(1, p) at the estimated pressure, and in closed loop at the true one within
+        # 0.5 %; predicting with the sent inputs (exact, ChamberEKFBank takes them) delayed the
+        # release of the cautious cap (the modulus factor's std) on the shared pump (models.bank)
         self._w_prev = np.vstack([_flow_duty(a, model.topology), Uc[2]])
         self.valve_commands = Uc
         self._k += 1
