@@ -207,3 +207,24 @@ def test_adaptive_run_stopped_at_its_segment_cap_is_not_ok(monkeypatch):
     (log,) = simulate([Trial(duration=4.0)], SimSettings(integrator="radau"))
     assert log.status == "incomplete"
     assert any(name == "segment_cap" for _, name in log.events)
+
+
+def test_progress_reports_simulated_time_increasing_up_to_the_duration():
+    """A long single trial shows progress: on_progress gets the batch's simulated time, increasing,
+    about 200 times, from 0 to the end of the run."""
+    seen: list = []
+    tr = Trial(actuator=Actuator(r1=12.5e-3, t0=3e-3), schedule=InputSchedule.inflate_deflate(1.0, 3.0))
+    simulate([tr], SimSettings(integrator="rk4"), on_progress=seen.append)
+    assert seen[0] == 0.0 and np.all(np.diff(seen) > 0)
+    assert 150 <= len(seen) <= 260 and seen[-1] == pytest.approx(tr.duration, abs=tr.duration / 150)
+
+
+def test_peaks_come_from_every_step_not_the_log_rows():
+    """With a log row every 2 s the rows miss the inflation's peak; Log.peaks holds it."""
+    tr = Trial(actuator=Actuator(r1=12.5e-3, t0=3e-3), schedule=InputSchedule.inflate_deflate(1.0, 3.0))
+    fine = simulate([tr], SimSettings(integrator="rk4"))[0]
+    coarse = simulate([tr], SimSettings(integrator="rk4", log_dt=2.0))[0]
+    assert coarse["h"].max() < 0.9 * fine["h"].max()
+    for k in ("h", "p", "F"):
+        assert coarse.peaks[k] == pytest.approx(fine.peaks[k], rel=1e-12)
+        assert fine.peaks[k] >= fine[k].max()

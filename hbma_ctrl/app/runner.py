@@ -73,7 +73,8 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
     else:
         trial = scn.trials()[0]
         fid = fidelity_for(trial, scn.fidelity)
-        (log,) = simulate_trials([trial], scn.sim, fid)
+        # a long run (the note above) shows a progress bar in model seconds with the time left
+        (log,) = simulate_trials([trial], scn.sim, fid, progress=note is not None)
         write_log_csv(log, out_dir / "log.csv")
         plot_run(log, out_dir / "run.png", title=f"{scn.name}: {log.fidelity}, {scn.sim.integrator}, "
                  f"status {log.status}", sensor_range=scn.sim.sensor_range)

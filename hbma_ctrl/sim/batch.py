@@ -19,12 +19,14 @@ import re
 import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
+from rich.console import Console
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
     TextColumn,
     TimeElapsedColumn,
+    TimeRemainingColumn,
 )
 
 from hbma_ctrl.core import units as U
@@ -174,15 +176,20 @@ def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fi
         groups: dict[str, list[int]] = {}
         for i, tr in enumerate(trials):
             groups.setdefault(fidelity_for(tr, fidelity), []).append(i)
+        # serial: the bar counts simulated seconds of each batch, so one long trial shows progress too
+        total = sum(max(trials[i].duration for i in idx) for idx in groups.values())
         with progress_bar(progress) as bar:
-            task = bar.add_task(label, total=len(trials)) if bar else None
+            task = bar.add_task(f"{label} (s of model time)", total=total) if bar else None
+            done = 0.0
             for fname, idx in groups.items():
                 if bar:
-                    bar.update(task, description=f"{label} ({fname}, {len(idx)} trials)")
-                for i, log in zip(idx, simulate([trials[i] for i in idx], settings, fname)):
+                    bar.update(task, description=f"{label} ({fname}, {len(idx)} trials; s of model time)")
+                tick = (lambda t, d=done: bar.update(task, completed=d + t)) if bar else None
+                for i, log in zip(idx, simulate([trials[i] for i in idx], settings, fname, on_progress=tick)):
                     logs[i] = log
+                done += max(trials[i].duration for i in idx)
                 if bar:
-                    bar.advance(task, len(idx))
+                    bar.update(task, completed=done)
         return logs
     chunks = _chunks(trials, workers, fidelity)
     with ProcessPoolExecutor(max_workers=len(chunks), initializer=quiet_worker) as ex:
@@ -211,5 +218,6 @@ def progress_bar(enabled: bool):
     if not enabled:
         return _NoBar()
 
+    # on stderr: stdout carries the command's results
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    transient=False)
+                    TimeRemainingColumn(), transient=False, console=Console(stderr=True))

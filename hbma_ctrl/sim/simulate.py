@@ -19,6 +19,7 @@ non-finite state stops that trial with status ``diverged``.
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import casadi as ca
 import numpy as np
@@ -225,8 +226,9 @@ class Plant:
         self.k += 1
 
 
-def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings):
-    """Euler/RK4 over the batch, driven by each trial's input schedule."""
+def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings, on_progress=None):
+    """Euler/RK4 over the batch, driven by each trial's input schedule; ``on_progress(t)`` (simulated
+    time, s) about 200 times over the run."""
     thetas = np.column_stack([fid.space.values(tr.actuator, tr.pneumatics, tr.platform) for tr in trials])
     plant = Plant(fid, thetas, s.integrator, s.step_for(fid.name))
     dt = plant.dt
@@ -238,7 +240,10 @@ def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings):
     durations = np.array([tr.duration for tr in trials])
     rows_peak = [OUTPUTS.index(n) for n in PEAK_OUTPUTS]
     peaks = np.full((len(rows_peak), len(trials)), -np.inf)
+    report = max(1, nsteps // 200)
     for k in range(nsteps + 1):
+        if on_progress is not None and k % report == 0:
+            on_progress(k * dt)
         if k in switch_steps:
             plant.set_inputs(np.column_stack([tr.schedule.at((k + 0.5) * dt) for tr in trials]))
         # peaks from every step, each trial only up to its own end (a batch runs to the longest)
@@ -415,8 +420,10 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
 
 
 def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity: str | None = None,
-             ) -> list[Log]:
-    """Simulate trials (one fidelity for all; None = each trial's default, grouped) -> logs."""
+             on_progress: Callable[[float], None] | None = None) -> list[Log]:
+    """Simulate trials (one fidelity for all; None = each trial's default, grouped) -> logs.
+    ``on_progress(t)``: called with the simulated time (s) of the current batch as it advances
+    (fixed-step integrators; adaptive runs report at the end of each trial)."""
 
     s = (settings or SimSettings()).validate()
     for tr in trials:
@@ -436,12 +443,14 @@ def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity:
             for i, tr in zip(idx, sub):
                 t0 = time.perf_counter()
                 rows, events, ok, theta, peaks = _adaptive(fid, tr, s)
+                if on_progress is not None:
+                    on_progress(tr.duration)
                 logs[i] = _rows_to_log_single(fid, tr, rows, events[0], ok, theta, s.sensor_range)
                 logs[i].wall_s = time.perf_counter() - t0
                 logs[i].peaks = dict(zip(PEAK_OUTPUTS, peaks))
         else:
             t0 = time.perf_counter()
-            rows, events, alive, peaks = _fixed_step(fid, sub, s)
+            rows, events, alive, peaks = _fixed_step(fid, sub, s, on_progress)
             wall = (time.perf_counter() - t0) / len(sub)
             for j, (i, tr) in enumerate(zip(idx, sub)):
                 logs[i] = _rows_to_log_batch(fid, tr, rows, j, events[j], bool(alive[j]), s.sensor_range)
