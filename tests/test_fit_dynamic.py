@@ -31,14 +31,14 @@ RUN_HEADER = ("t_s,target_mm,h_true_mm,h_est_mm,p_true_kpa,p_meas_kpa,p_est_kpa,
               "speed,inlet,outlet")
 
 
-def _rig_run_csv(path, rows, duration: float, seed: int) -> dict:
+def _rig_run_csv(path, rows, duration: float, seed: int, **rig) -> dict:
     """A run of the mismatched free-inflation rig (modulus x1.15, pump x0.9, dead volume x1.2, 0.2 kPa
     noise) written in the `run` closed-loop format; returns the truth series."""
     act = Actuator(r1=R1, t0=T0, V0=V0, material=make_material("nh"))
     trial = Trial(actuator=act, pneumatics=Pneumatics(), platform=Platform(), schedule=InputSchedule(rows),
                   duration=duration)
     (rec,) = simulate_rig([trial], RigSettings(modulus_scale=1.15, flow_scale=0.9, V0_scale=1.2, noise_std=200.0,
-                                               seed=seed))
+                                               seed=seed, **rig))
     lines = [RUN_HEADER]
     for k in range(rec.t.size):
         h, p = U.to_mm(rec.truth["h"][k]), U.to_kpa(rec.truth["p"][k])
@@ -72,7 +72,10 @@ def full_fit(tmp_path_factory):
 def test_recovery_truth_inside_every_interval(full_fit):
     out, _ = full_fit
     js = json.loads((out / "fit.json").read_text())
-    assert set(js) == set(F.FIT_KEYS)
+    # the model has the rig's form: what is left is sensor noise (0.2 kPa), not a structured residual
+    me = js["model_error"]
+    assert not me["structured"] and me["white_noise_kpa"] == pytest.approx(0.2, rel=0.15), me
+    assert set(js) == set(D.DYNAMIC_FIT_KEYS) and set(F.FIT_KEYS) < set(js)
     assert js["unidentifiable"] == [], js["unidentifiable"]
     for k, true in TRUTH.items():
         lo, hi = js["ci95"][k]
@@ -198,3 +201,20 @@ def test_fit_material_fits_the_modulus_itself(tmp_path):
     assert "modulus_scale" not in res.params and res.ci95["C_out"] == [TRUTH["C_out"]] * 2
     lo, hi = res.ci95["E"]
     assert lo <= 1.15 * 130.6e3 <= hi
+
+
+def test_cap_fit_to_the_exact_membrane_reports_its_model_error(tmp_path):
+    """The same run on the exact membrane (a law the cap model lacks): the cap fits it with a larger
+    NRMSD than the noise floor of its own law and says the residual is structured, instead of
+    absorbing the difference silently into the parameters."""
+    fits = {}
+    for name, rig in (("cap", {}), ("exact", {"membrane": "exact"})):
+        _rig_run_csv(tmp_path / f"{name}.csv", PUMP_HOLD_VENT, 4.0, seed=7, **rig)
+        res = runner.invoke(app, ["fit", str(tmp_path / f"{name}.csv"), "--material", "nh", "--r1-mm", "12.5",
+                                  "--t0-mm", "3", "--out", str(tmp_path / name)])
+        assert res.exit_code == 0, res.output
+        fits[name] = (json.loads((tmp_path / name / "fit.json").read_text()), res.output)
+    (cap, _), (exact, text) = fits["cap"], fits["exact"]
+    assert not cap["model_error"]["structured"] and exact["model_error"]["structured"], (cap, exact)
+    assert exact["nrmsd"] > 1.3 * cap["nrmsd"]
+    assert "residual is structured" in " ".join(text.split())

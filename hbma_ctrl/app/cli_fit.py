@@ -104,7 +104,7 @@ def fit_cmd(
             write_dynamic_fit(dres, tmp)
         hn = f", height NRMSD {dres.nrmsd_h:.4f}" if dres.nrmsd_h is not None else ""
         _print(f"fit {dres.material} to a run: {dres.n_points} points, {dres.fidelity} model, "
-               f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed, dres.unidentifiable, out)
+               f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed, dres.notes(), out)
         return
     for flag, given in (("--load-g", load_g is not None), ("--fit-material", fit_material), ("--no-height", no_height),
                         ("--v0-cm3", v0_cm3 is not None), ("--sensor-range-kpa", sensor_range_kpa is not None)):

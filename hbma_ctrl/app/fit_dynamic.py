@@ -71,7 +71,14 @@ __all__ = [
     "fit_dynamic",
     "dynamic_params_toml",
     "write_dynamic_fit",
+    "DYNAMIC_FIT_KEYS",
+    "STRUCTURED_RATIO",
 ]
+
+#: fit.json of a recorded run: the static keys plus ``model_error`` (see :meth:`DynamicFitResult.model_error`)
+DYNAMIC_FIT_KEYS = FIT_KEYS + ("model_error",)
+#: residual RMS above this many times the white sensor noise = a structured residual (model-form error)
+STRUCTURED_RATIO = 1.3
 
 #: role -> accepted column names, first match wins (see the module docstring for which file has which)
 COLUMN_ALIASES = {
@@ -147,11 +154,39 @@ class DynamicFitResult:
     h_data: np.ndarray | None = None
     h_model: np.ndarray | None = None
 
+    def model_error(self) -> dict:
+        """How much of the pressure residual is not sensor noise (kPa): ``residual_rms_kpa``, the
+        ``white_noise_kpa`` estimated from successive differences of the residual (white noise
+        survives differencing, a smooth model-form error does not), their ``ratio``, and
+        ``structured`` (ratio > :data:`STRUCTURED_RATIO`): the model's form differs from the rig's,
+        its error is in ``nrmsd`` and part of it is absorbed by the parameters."""
+        r = np.asarray(self.p_model, dtype=float) - np.asarray(self.p_data, dtype=float)
+        r = r[np.isfinite(r)]
+        if r.size < 3:
+            return {"residual_rms_kpa": None, "white_noise_kpa": None, "ratio": None, "structured": False}
+        rms = float(np.sqrt(np.mean(r**2)))
+        white = float(np.std(np.diff(r)) / math.sqrt(2.0))
+        ratio = rms / white if white > 0 else math.inf
+        return {"residual_rms_kpa": U.to_kpa(rms), "white_noise_kpa": U.to_kpa(white),
+                "ratio": ratio if math.isfinite(ratio) else None, "structured": bool(ratio > STRUCTURED_RATIO)}
+
+    def notes(self) -> list[str]:
+        """The unidentified directions and, when the residual is structured, a sentence saying so."""
+        me = self.model_error()
+        extra = []
+        if me["structured"]:
+            extra.append(f"the residual is structured: RMS {me['residual_rms_kpa']:.3g} kPa against "
+                         f"{me['white_noise_kpa']:.3g} kPa of white sensor noise; the {self.fidelity} model's "
+                         "form differs from the rig's, so its error is in nrmsd and the parameters absorb part "
+                         "of it (read them as effective values)")
+        return list(self.unidentifiable) + extra
+
     def as_json(self) -> dict:
-        """fit.json content: :data:`hbma_ctrl.app.fit.FIT_KEYS` (the pressure's NRMSD in ``nrmsd``)."""
+        """fit.json content: :data:`DYNAMIC_FIT_KEYS` (the pressure's NRMSD in ``nrmsd``)."""
         out = {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
-               "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation}
-        return {k: out[k] for k in FIT_KEYS}
+               "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation,
+               "model_error": self.model_error()}
+        return {k: out[k] for k in DYNAMIC_FIT_KEYS}
 
 
 # ---------------------------------------------------------------------------------------------
