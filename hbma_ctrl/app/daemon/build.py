@@ -22,7 +22,7 @@ from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
 from hbma_ctrl.app.robot_closed import make_model
-from hbma_ctrl.app.scene_controller import _estimator_from_scenario, _settings_of, make_controller
+from hbma_ctrl.app.scene_controller import estimator_from_scenario, controller_settings_of, make_controller
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
@@ -240,7 +240,7 @@ def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
     scn = cfg.scenario
     section = scn.role("controller")
     rs = chamber_rig_settings(cfg)
-    est = _estimator_from_scenario(scn, rs)
+    est = estimator_from_scenario(scn, rs)
     if est is None:
         from estimators.ekf import EKF, EKFSettings
         est = EKF(scn.actuator, scn.pneumatics, EKFSettings(sample_period=rs.sample_period,
@@ -252,7 +252,7 @@ def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
     if every < 1 or abs(ratio - every) > 1e-6:
         raise ValueError(f"[controller] sample_ms = {U.to_ms(section.sample_period):g} must be a whole multiple of the "
                          f"daemon's period 1000 / [daemon] rate_hz = {U.to_ms(rs.sample_period):g} ms")
-    settings = getattr(ctrl, "settings", None) or _settings_of(section)
+    settings = getattr(ctrl, "settings", None) or controller_settings_of(section)
     loop = ChamberLoop(est, ctrl, chamber_supervisor(settings), reference=section.reference, every=every)
     h_min = float(getattr(settings, "h_min", 0.0) or 0.0)
     h_max = float(getattr(settings, "h_max", U.mm(20.0)))

@@ -108,6 +108,7 @@ class DaemonLoop:
         self.deadline_misses = 0
         self.skipped_periods = 0
         self.over_budget = 0
+        self.repeated_samples = 0
         self._last_tick = 0.0
         self.step_s = StepStats(8192)
         self.jitter_s = StepStats(8192)
@@ -232,6 +233,13 @@ class DaemonLoop:
             # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
             self._write(safe_u(self.n))
             return
+        fresh = np.asarray(r.fresh, dtype=bool)
+        if self.steps > 0 and fresh.size == self.n and not fresh.any():
+            # no new sample since the last period (the rig's clock has not moved): the estimator would
+            # count one reading twice at one time; the command stands (rewritten: the link's heartbeat)
+            self.repeated_samples += 1
+            self._write(self.u_last)
+            return
         c0 = self.clock()
         u = self.runner.tick(self.t, p)
         self._last_tick = self.clock() - c0
@@ -346,7 +354,7 @@ class DaemonLoop:
                 "pressure_limit_kpa": float(U.to_kpa(self.runner.p_limit)), "faults": self.faults(),
                 "safe_exit": bool(self.safe_exit), "rss_mb_start": self.rss_start, "rss_mb_end": self.rss_end,
                 "end_reason": self.end_reason, "skipped_periods": self.skipped_periods,
-                "steps_over_period": self.over_budget,
+                "steps_over_period": self.over_budget, "repeated_samples": self.repeated_samples,
                 "step_ms_max": ms(st["max"]), "tick_ms_median": ms(tk["median"]), "tick_ms_p99": ms(tk["p99"]),
                 "speed": self.speed, "rig_time_s": float(self.t),
                 "wall_s": float(self.wall_s)}
