@@ -182,6 +182,17 @@ def _optimise(spec: TuneSpec, trials: int, workers: int, con: Console) -> None:
             return
         st = open_study(spec, new_ok=False)
         start = _finished(st)
+        total = trials
+        # optuna's SQLite storage can hand one enqueued trial (the defaults, trial 0) to two processes
+        # at once (no row lock; the second then fails to tell it): enqueued trials run here, alone,
+        # before the workers start
+        waiting = len(st.get_trials(deepcopy=False, states=(optuna.trial.TrialState.WAITING,)))
+        first = min(waiting, trials)
+        if first:
+            run_worker(spec, first, callback=lambda: bar.advance(task))
+            trials -= first
+        if trials == 0:
+            return
         # spawn: a forked child would share the parent's database connections
         with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
             futs = []
@@ -190,10 +201,10 @@ def _optimise(spec: TuneSpec, trials: int, workers: int, con: Console) -> None:
                 futs.append(pool.submit(run_worker, w, n))
             while not all(f.done() for f in futs):
                 time.sleep(0.5)
-                bar.update(task, completed=min(trials, _finished(st) - start))
+                bar.update(task, completed=min(total, _finished(st) - start))
             for f in futs:
                 f.result()  # a worker's error (bad objective key, storage) is this command's error
-            bar.update(task, completed=min(trials, _finished(st) - start))
+            bar.update(task, completed=min(total, _finished(st) - start))
 
 
 def _finished(study: optuna.Study) -> int:
