@@ -1,5 +1,5 @@
 """Live-stream hardening: outliers and the innovation gate, time jumps, bad references, the robot
-NMPC's time budget and the throttled compressor (issue 10)."""
+NMPC's time budget and the throttled compressor."""
 
 from __future__ import annotations
 

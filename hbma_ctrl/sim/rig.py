@@ -107,7 +107,7 @@ class RigSettings:
     integrator: str = "rk4"
     dt: float | None = None
     # defaults: the cap rig without the structural mismatches, on which the README's claims were
-    # measured; STRUCTURED_RIG is the truth of issue 14 (exact membrane, valve timing, pump shape,
+    # measured; STRUCTURED_RIG is the structurally different truth (exact membrane, valve timing, pump shape,
     # sensor lag), selectable per scenario until the estimator models what it adds
     membrane: str = "cap"
     valve_delay: float = 0.0
