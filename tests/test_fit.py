@@ -9,6 +9,7 @@ import tomllib
 
 import numpy as np
 import pytest
+from cli_checks import one_line_error
 from typer.testing import CliRunner
 
 from hbma_ctrl.app import fit as F
@@ -35,13 +36,6 @@ def _csv(tmp_path, text: str | bytes, name: str = "d.csv"):
     return path
 
 
-def _one_line_error(res, *needles: str) -> str:
-    assert res.exit_code == 2, res.output
-    lines = [ln for ln in res.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
-    for n in needles:
-        assert n in lines[0], lines[0]
-    return lines[0]
 
 
 def test_nh_noiseless_recovers_E():
@@ -113,7 +107,7 @@ def test_bad_data_is_one_line(tmp_path, text, needles):
     extra = ["--contact", "free"] if "F_n" in str(text) else []
     path = _csv(tmp_path, text)
     res = runner.invoke(app, ["fit", str(path), "--material", "mr", "--out", str(tmp_path / "o"), *extra])
-    _one_line_error(res, *needles)
+    one_line_error(res, *needles)
     assert not (tmp_path / "o").exists()
 
 
@@ -126,7 +120,7 @@ def test_bad_data_is_one_line(tmp_path, text, needles):
 ])
 def test_unavailable_options_refused(tmp_path, args, needles):
     path = _csv(tmp_path, GOOD)
-    _one_line_error(runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o"), *args]), *needles)
+    one_line_error(runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o"), *args]), *needles)
 
 
 def test_cli_writes_fit_json_and_params_toml(tmp_path):
@@ -153,7 +147,7 @@ def test_cli_writes_fit_json_and_params_toml(tmp_path):
     assert (out / "residuals.png").stat().st_size > 0 and (out / "manifest.json").exists()
     # the run is not replaced without --overwrite
     again = runner.invoke(app, ["fit", str(path), "--material", "mr", "--out", str(out)])
-    _one_line_error(again, "--out", "--overwrite")
+    one_line_error(again, "--out", "--overwrite")
 
 
 def test_params_toml_for_tuple_materials():

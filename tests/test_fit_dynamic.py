@@ -9,6 +9,7 @@ import tomllib
 
 import numpy as np
 import pytest
+from cli_checks import one_line_error
 from typer.testing import CliRunner
 
 from hbma_ctrl.app import fit as F
@@ -48,13 +49,6 @@ def _rig_run_csv(path, rows, duration: float, seed: int, **rig) -> dict:
     return rec.truth
 
 
-def _one_line_error(res, *needles: str) -> str:
-    assert res.exit_code == 2, res.output
-    lines = [ln for ln in res.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
-    for n in needles:
-        assert n in lines[0], lines[0]
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -159,7 +153,7 @@ def test_bad_run_data_is_one_line(tmp_path, text, needles):
     path = tmp_path / "run.csv"
     path.write_text(text)
     res = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
-    _one_line_error(res, *needles)
+    one_line_error(res, *needles)
     assert not (tmp_path / "o").exists()
 
 
@@ -172,7 +166,7 @@ def test_bad_run_data_is_one_line(tmp_path, text, needles):
 def test_unavailable_options_refused_for_a_run(tmp_path, args, needles):
     path = tmp_path / "run.csv"
     path.write_text(HEAD + _rows(30))
-    _one_line_error(runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o"), *args]), *needles)
+    one_line_error(runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o"), *args]), *needles)
 
 
 @pytest.mark.parametrize("flag", [["--load-g", "100"], ["--v0-cm3", "4"], ["--sensor-range-kpa", "50"],
@@ -180,7 +174,7 @@ def test_unavailable_options_refused_for_a_run(tmp_path, args, needles):
 def test_static_flags_refuse_run_only_options(tmp_path, flag):
     path = tmp_path / "pts.csv"
     path.write_text("h_mm,p_kpa\n1,5\n2,9\n3,12\n")
-    _one_line_error(runner.invoke(app, ["fit", str(path), *flag, "--out", str(tmp_path / "o")]),
+    one_line_error(runner.invoke(app, ["fit", str(path), *flag, "--out", str(tmp_path / "o")]),
                     flag[0], "only for a recorded run")
 
 

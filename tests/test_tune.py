@@ -15,6 +15,7 @@ from pathlib import Path
 
 import optuna
 import pytest
+from cli_checks import one_line_error
 from typer.testing import CliRunner
 
 from hbma_ctrl.app import tune as T
@@ -72,13 +73,6 @@ def _counts(db: Path, study: str = "tiny_est-estimator") -> tuple[list[int], dic
     return nums, states
 
 
-def _one_line_error(res, *needles: str) -> str:
-    assert res.exit_code == 2, res.output
-    lines = [ln for ln in res.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
-    for n in needles:
-        assert n in lines[0], lines[0]
-    return lines[0]
 
 
 def test_tiny_study_writes_outputs_and_resumes_after_a_killed_worker(scn, tmp_path):
@@ -134,7 +128,7 @@ def test_other_study_in_out_is_refused_without_overwrite(scn, tmp_path):
     out = tmp_path / "t"
     out.mkdir()
     (out / "something.txt").write_text("a run")
-    _one_line_error(_tune(scn, *FAST, "--trials", "1", "--out", out), "--out", "--overwrite")
+    one_line_error(_tune(scn, *FAST, "--trials", "1", "--out", out), "--out", "--overwrite")
 
 
 def test_two_processes_share_one_sqlite_study(scn, tmp_path):
@@ -175,7 +169,7 @@ def test_running_trial_of_a_live_process_is_left_alone(tmp_path):
 ])
 def test_bad_flags_are_one_line_exit_2(scn, tmp_path, args, needles):
     base = ["--role", "estimator", "--trials", "2", "--out", str(tmp_path / "bad")]
-    _one_line_error(_tune(scn, *base, *args), *needles)
+    one_line_error(_tune(scn, *base, *args), *needles)
     assert not (tmp_path / "bad").exists() and not Path(f"{tmp_path / 'bad'}.study.db").exists()
 
 
@@ -195,7 +189,7 @@ def test_journal_storage_url_holds_a_study(tmp_path):
 
 
 def test_bad_storage_url_is_one_line_exit_2(scn, tmp_path):
-    _one_line_error(_tune(scn, *FAST, "--trials", "1", "--storage", "nosuchdb://x", "--out", tmp_path / "s"),
+    one_line_error(_tune(scn, *FAST, "--trials", "1", "--storage", "nosuchdb://x", "--out", tmp_path / "s"),
                     "--storage nosuchdb://x")
     assert not (tmp_path / "s").exists()
 
