@@ -96,6 +96,8 @@ class MonitorSettings:
     smooth_periods : readings averaged before the leak and pump tests compare pressures (>= 1).
     leak_window : how far back the leak test looks for the highest pressure while pumping, s.
     leak_drop : pressure fall while pumping that makes a leak, Pa.
+    leak_test : run the leak test at all (False where pressures fall while pumping in normal work:
+        the robot, whose chambers pass their limit point and take over each other's load).
     leak_p_max : the leak test applies only while the pressures it compares are below this, Pa;
         None = at every pressure. Set it below the actuator's limit-point pressure (e.g. 0.8 times
         the model's lowest one) when the controller drives chambers past the limit point (the
@@ -122,6 +124,7 @@ class MonitorSettings:
     smooth_periods: int = 5
     leak_window: float = 0.5
     leak_drop: float = 1.2e3
+    leak_test: bool = True
     leak_p_max: float | None = None
     pump_effort: float = 0.25
     pump_low: float = 5e3
@@ -313,7 +316,7 @@ class SafetyMonitor:
                 means = _running_mean(H[-(L + 1):, i], m)
                 ok = means.size > 0 and np.isfinite(means[-1])
                 top = float(np.max(means[np.isfinite(means)])) if ok else np.nan
-                if np.isfinite(top) and (s.leak_p_max is None or top < s.leak_p_max):
+                if s.leak_test and np.isfinite(top) and (s.leak_p_max is None or top < s.leak_p_max):
                     drop = top - means[-1]
                     self.closest["leak_drop"] = max(self.closest["leak_drop"], float(drop))
                     if drop > s.leak_drop:
