@@ -520,3 +520,11 @@ def test_setpoints_are_refused_once_the_safe_state_is_latched():
     assert "running" in modes and "safe" in modes
     assert all(r == [] for m, r in replies if m == "running")
     assert all("mode 'safe'" in r and "overrun" in r for m, r in replies if m == "safe")
+
+
+def test_the_leak_test_watches_one_chamber_but_not_the_robot():
+    """A robot chamber's pressure falls while it pumps in normal work (past its limit point, when a
+    neighbour takes over its load): the robot's monitor has no leak test, the single chamber's has."""
+    chamber, robot = load_config(CHAMBER), load_config(ROBOT)
+    assert make_monitor(chamber, build_runner(chamber)).settings.leak_test
+    assert not make_monitor(robot, build_runner(robot)).settings.leak_test
