@@ -443,7 +443,7 @@ def test_kill_9_mid_run_leaves_a_readable_log(tmp_path):
     assert [float(r[0]) for r in rows[:3]] == [0.0, 0.01, 0.02]
 
 
-def test_chamber_on_the_serial_link_settles_to_the_same_target_as_on_sim(tmp_path):
+def test_chamber_on_the_serial_link_settles_within_0p8mm_of_the_sims_target(tmp_path):
     from hbma_ctrl.app.daemon.build import chamber_rig_settings
     from hbma_ctrl.app.daemon.firmware import FakeFirmware
     from hbma_ctrl.app.daemon.rig_sim import SimRig
