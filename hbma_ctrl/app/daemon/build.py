@@ -33,7 +33,11 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
-           "robot_rig_settings", "DAEMON_MPC_BUDGET"]
+           "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_PUMP_LOW"]
+
+#: the robot's pump test applies from below this pressure, Pa: a vented chamber (its layers are lifted
+#: at a few kPa, where pumping raises the chamber at a nearly constant pressure)
+ROBOT_PUMP_LOW = 1e3
 
 #: the robot NMPC's wall-time budget in the daemon when the file gives none ([robot] mpc_budget = 0),
 #: a fraction of the period: the rest of the period is the estimator, the supervisor and the rig I/O
@@ -329,7 +333,10 @@ def make_monitor(cfg: DaemonConfig, runner):
         # a robot chamber's pressure falls while it pumps in normal work: past its limit point (soaks:
         # falls of 4.3 and 8.1 kPa from 28-31 kPa) and when a neighbour of its layer takes over its load
         # (1.8 kPa at 21 kPa): a raw-pressure leak test cannot tell those from a leak, so it is off
-        leak = {"leak_test": False}
+        # and a light layer is lifted at a few kPa: pumping then raises the chamber, not its pressure,
+        # so the pump test starts from a vented chamber only (a soak latched a false pump failure at
+        # 4.95 kPa)
+        leak = {"leak_test": False, "pump_low": ROBOT_PUMP_LOW}
     else:
         sensor = chamber_rig_settings(cfg).sensor_range
     return SafetyMonitor(MonitorSettings(p_max=runner.p_limit, sensor_range=sensor, sample_period=cfg.period,
