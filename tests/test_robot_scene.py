@@ -113,7 +113,7 @@ def test_cli_pose_and_errors(tmp_path):
 # ------------------------------------------------------------------------------------------ claims over seeds
 #: README Robot, measured table: every segment settled (2 deg, 0.5 mm) and the 45 kPa limit held
 ROBOT_CLAIMS = ("robot_bending", "robot_sequential_closed", "robot_tip_load")
-#: the README's pass rates over rig seeds 0-19 (the robot's runs are deterministic per seed)
+#: the README's pass rates over rig seeds 0-19, measured in one sweep
 ROBOT_RATES = {"robot_bending": 20, "robot_sequential_closed": 19, "robot_tip_load": 17}
 
 
