@@ -533,3 +533,4 @@ def test_the_leak_test_watches_one_chamber_but_not_the_robot():
     assert make_monitor(chamber, build_runner(chamber)).settings.leak_test
     rs = make_monitor(robot, build_runner(robot)).settings
     assert not rs.leak_test and rs.pump_low == 1e3  # the pump test from a vented chamber only
+    assert rs.p_max == 47.5e3  # the hard cap halfway between the 45 kPa limit and the 50 kPa sensors
