@@ -62,6 +62,7 @@ import numpy as np
 
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["MPCSettings", "NMPC", "VARIANTS", "duty_to_on_time"]
@@ -81,10 +82,7 @@ from controllers.mpc_solvers import (
 
 
 def _finite(value) -> bool:
-    try:
-        return not isinstance(value, (str, bytes, bool)) and math.isfinite(float(value))
-    except (TypeError, ValueError):
-        return False
+    return not math.isnan(finite_or_nan(value))
 
 
 def _check_inputs(t, reference, preview) -> None:

@@ -18,6 +18,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from hbma_ctrl.core.validation import finite_or_nan
+
 __all__ = ["Command", "Estimate", "Reference", "Estimator", "Controller", "SAFE_COMMAND", "check_time"]
 
 _UNITS = {"t": "s", "h1": "m", "h2": "m", "h": "m", "F": "N", "p": "Pa"}
@@ -30,7 +32,7 @@ def _is_number(v) -> bool:
 
 def check_time(t, who: str) -> float:
     """``t`` as a float; ValueError naming ``t`` (and ``who``: the caller) unless a finite number of s."""
-    if not _is_number(t) or not math.isfinite(float(t)):
+    if math.isnan(finite_or_nan(t)):
         raise ValueError(f"{who}: t = {t!r} must be a finite time (s)")
     return float(t)
 
@@ -99,7 +101,7 @@ class Reference:
 
     def __post_init__(self) -> None:
         h = self.height
-        if h is not None and (not _is_number(h) or not math.isfinite(float(h))):
+        if h is not None and math.isnan(finite_or_nan(h)):
             raise ValueError(f"reference.height = {h!r} must be a finite height (m) or None (hold)")
 
 

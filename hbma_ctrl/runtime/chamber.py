@@ -20,6 +20,7 @@ import time
 from typing import Callable
 
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
@@ -28,11 +29,8 @@ __all__ = ["ChamberLoop", "chamber_supervisor", "check_height"]
 
 def check_height(value, key: str = "reference") -> float:
     """A target height (m) as a float; ValueError naming ``key`` when it is not a finite number."""
-    try:
-        h = float(value)
-    except (TypeError, ValueError):
-        h = math.nan
-    if isinstance(value, (str, bytes, bool)) or not math.isfinite(h):
+    h = finite_or_nan(value)
+    if math.isnan(h):
         raise ValueError(f"{key} = {value!r}: a target height must be a finite number (m)")
     return h
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from controllers.robot_mpc import RobotNMPC
 from estimators.robot_ekf import ChamberEKFBank
+from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
@@ -68,11 +69,8 @@ def check_targets(targets: dict, n_layers: int) -> dict:
                 raise ValueError(f"targets[{k}][{j}] = {row!r} must be (t s, centre m, bend rad, direction rad)")
             vals = []
             for key, v in zip(TARGET_KEYS, row):
-                try:
-                    f = float(v)
-                except (TypeError, ValueError):
-                    f = math.nan
-                if isinstance(v, (str, bytes, bool)) or not math.isfinite(f):
+                f = finite_or_nan(v)
+                if math.isnan(f):
                     raise ValueError(f"targets[{k}][{j}].{key} = {v!r} must be a finite number")
                 vals.append(f)
             if clean and vals[0] < clean[-1][0]:
@@ -182,11 +180,8 @@ class RobotLoop:
     def tick(self, t: float, readings_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One period at time t (s) with the 3N pressure readings (Pa, NaN = dropout) -> (supply, outlet),
         each (n,) in [0, 1]; the plant's valve inputs (3 x n) are in ``valve_commands``."""
-        try:
-            tf = float(t)
-        except (TypeError, ValueError):
-            tf = math.nan
-        if isinstance(t, (str, bytes, bool)) or not math.isfinite(tf):
+        tf = finite_or_nan(t)
+        if math.isnan(tf):
             raise ValueError(f"RobotLoop.tick: t = {t!r} must be a finite time in s")
         if self._t is not None and tf < self._t - 1e-9:
             raise ValueError(f"RobotLoop.tick: t = {tf} s is before the last tick's {self._t} s "
