@@ -526,11 +526,35 @@ def test_setpoints_are_refused_once_the_safe_state_is_latched():
     assert all("mode 'safe'" in r and "overrun" in r for m, r in replies if m == "safe")
 
 
-def test_the_leak_test_watches_one_chamber_but_not_the_robot():
-    """A robot chamber's pressure falls while it pumps in normal work (past its limit point, when a
-    neighbour takes over its load): the robot's monitor has no leak test, the single chamber's has."""
+def test_the_robots_leak_test_is_one_of_a_burst_and_its_pump_test_starts_vented():
+    """A robot chamber's pressure falls by a share while it pumps in normal work (past its limit
+    point, when a neighbour takes over its load): its leak test needs the fall to exceed 60 % of the
+    pressure as well as 5 kPa; the single chamber's needs the 1.2 kPa fall alone."""
     chamber, robot = load_config(CHAMBER), load_config(ROBOT)
-    assert make_monitor(chamber, build_runner(chamber)).settings.leak_test
+    cs = make_monitor(chamber, build_runner(chamber)).settings
+    assert cs.leak_test and cs.leak_fraction == 0.0 and cs.leak_drop == 1.2e3
     rs = make_monitor(robot, build_runner(robot)).settings
-    assert not rs.leak_test and rs.pump_low == 1e3  # the pump test from a vented chamber only
+    assert rs.leak_test and rs.leak_drop == 5e3 and rs.leak_fraction == 0.6
+    assert rs.pump_low == 1e3  # the pump test from a vented chamber only
     assert rs.p_max == 47.5e3  # the hard cap halfway between the 45 kPa limit and the 50 kPa sensors
+
+
+def test_robot_burst_drill_reaches_the_safe_state_within_one_period_and_is_logged(tmp_path):
+    """A chamber of the robot bursts (its outlet fully open) while the NMPC pumps it toward 6 mm:
+    the leak test finds it, the safe command goes out in that period, the cap holds."""
+    start = 1.5
+    cfg_path = _write_config(tmp_path, ROBOT, f'[[daemon.fault]]\nkind = "leak"\nchamber = 4\n'
+                                              f'start_s = {start}\nduty = 1.0\n')
+    cfg, runner, rig, loop = _loop(cfg_path, tmp_path / "log", duration_s=start + 1.0)
+    stats = loop.run()
+    assert stats["faults"] == {"leak": 1}, stats["faults"]
+    first = next(e for e in loop.events if e["kind"] == "leak")
+    assert first["t_s"] >= start - 1e-9 and first["t_s"] <= start + 0.5
+    assert first["cause"].startswith("B2: pressure fell"), first["cause"]  # chamber 4 by its name
+    safe = next(e for e in loop.events if e["kind"] == "safe")
+    assert safe["t_s"] == first["t_s"]
+    after = [u for (what, u), t in zip(rig.written, rig.times) if t >= first["t_s"] - 1e-9]
+    assert after and all(np.array_equal(u, safe_u(9)) for u in after)
+    assert max(rig.p_true) <= 47.5e3
+    assert stats["monitor_margins"]["leak_fraction"] > 0.6
+    assert "leak" in (tmp_path / "log" / "events.csv").read_text()

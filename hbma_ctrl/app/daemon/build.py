@@ -33,11 +33,17 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
-           "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_PUMP_LOW"]
+           "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_PUMP_LOW",
+           "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION"]
 
 #: the robot's pump test applies from below this pressure, Pa: a vented chamber (its layers are lifted
 #: at a few kPa, where pumping raises the chamber at a nearly constant pressure)
 ROBOT_PUMP_LOW = 1e3
+
+#: the robot's leak test: a fall while pumping of more than this, Pa, and of more than
+#: ROBOT_LEAK_FRACTION of the pressure it fell from (normal work, four soaks: at most 11 kPa and 35 %)
+ROBOT_LEAK_DROP = 5e3
+ROBOT_LEAK_FRACTION = 0.6
 
 #: the robot NMPC's wall-time budget in the daemon when the file gives none ([robot] mpc_budget = 0),
 #: a fraction of the period: the rest of the period is the estimator, the supervisor and the rig I/O
@@ -325,9 +331,9 @@ def make_rig(cfg: DaemonConfig, runner):
 def make_monitor(cfg: DaemonConfig, runner):
     """The safety monitor of the runner's chambers: pressure cap at the runner's limit (robot: halfway
     from it to the sensor's range), the sensor's
-    range, the loop watchdog at ``miss_limit`` missed deadlines in a row; the leak test for one
-    chamber only (a robot chamber's pressure falls while pumping past its limit point and when a
-    neighbour takes over its load)."""
+    range, the loop watchdog at ``miss_limit`` missed deadlines in a row; the robot's leak test
+    finds a burst or a leak that more than halves a pressure (its chambers' pressures fall by a share
+    while pumping in normal work: past their limit point, when a neighbour takes over the load)."""
     leak = {}
     cap = runner.p_limit
     if cfg.kind == "robot":
@@ -337,13 +343,13 @@ def make_monitor(cfg: DaemonConfig, runner):
         # against the 45 kPa limit 50 ms after a new pose): the hard cap, which vents everything, sits
         # halfway between the limit and the sensor's range
         cap = 0.5 * (runner.p_limit + sensor)
-        # a robot chamber's pressure falls while it pumps in normal work: past its limit point (soaks:
-        # falls of 4.3 and 8.1 kPa from 28-31 kPa) and when a neighbour of its layer takes over its load
-        # (1.8 kPa at 21 kPa): a raw-pressure leak test cannot tell those from a leak, so it is off
-        # and a light layer is lifted at a few kPa: pumping then raises the chamber, not its pressure,
-        # so the pump test starts from a vented chamber only (a soak latched a false pump failure at
-        # 4.95 kPa)
-        leak = {"leak_test": False, "pump_low": ROBOT_PUMP_LOW}
+        # a robot chamber's pressure falls while it pumps in normal work: past its limit point and when
+        # a neighbour of its layer takes over its load (four soaks: falls of up to 11 kPa, 35 % of the
+        # pressure, within the leak window): the leak test is one of a burst or a leak that more than
+        # halves a pressure of at least ROBOT_LEAK_DROP / ROBOT_LEAK_FRACTION. A light layer is lifted
+        # at a few kPa: pumping then raises the chamber, not its pressure, so the pump test starts from
+        # a vented chamber only (a soak latched a false pump failure at 4.95 kPa)
+        leak = {"leak_drop": ROBOT_LEAK_DROP, "leak_fraction": ROBOT_LEAK_FRACTION, "pump_low": ROBOT_PUMP_LOW}
     else:
         sensor = chamber_rig_settings(cfg).sensor_range
     return SafetyMonitor(MonitorSettings(p_max=cap, sensor_range=sensor, sample_period=cfg.period,

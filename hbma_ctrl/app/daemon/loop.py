@@ -225,7 +225,10 @@ class DaemonLoop:
             # the controller's first solves set up its solver: those misses do not feed the watchdog
             missed = missed_last and self.steps > self.warmup_periods
             for f in self.monitor.check(self.t, r, self.u_last, missed) or ():
-                self.event(str(getattr(f, "kind", "fault")), str(getattr(f, "cause", f)))
+                i = getattr(f, "chamber", None)
+                # the chamber by the name the API and the log use, so a person can find it on the rig
+                where = f"{self.runner.names[i]}: " if i is not None and 0 <= i < len(self.runner.names) else ""
+                self.event(str(getattr(f, "kind", "fault")), where + str(getattr(f, "cause", f)))
             if self.monitor.latched and self.mode == "running":
                 self.mode = "safe"
                 self.event("safe", "fault latched: " + ", ".join(self._latched_kinds()))
@@ -345,7 +348,9 @@ class DaemonLoop:
     def stats(self) -> dict:
         """daemon_stats.json: :data:`STATS_KEYS` (ms, kPa, MB) and end_reason, skipped_periods,
         steps_over_period (ticks longer than the rig period), step_ms_max, tick_ms_median and tick_ms_p99 (the runtime tick without the
-        rig's I/O), speed, rig_time_s, wall_s."""
+        rig's I/O), speed, rig_time_s, wall_s, and monitor_margins: how near the supervisor's trend
+        tests came to firing (leak_drop_kpa, leak_fraction, pump_rise_kpa; see
+        :attr:`hbma_ctrl.runtime.watchdog.SafetyMonitor.closest`)."""
         st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
         ms = lambda x: None if not math.isfinite(x) else float(U.to_ms(x))  # noqa: E731
         return {"rate_hz": 1.0 / self.period, "steps": self.steps, "deadline_misses": self.deadline_misses,
@@ -357,4 +362,10 @@ class DaemonLoop:
                 "steps_over_period": self.over_budget, "repeated_samples": self.repeated_samples,
                 "step_ms_max": ms(st["max"]), "tick_ms_median": ms(tk["median"]), "tick_ms_p99": ms(tk["p99"]),
                 "speed": self.speed, "rig_time_s": float(self.t),
-                "wall_s": float(self.wall_s)}
+                "wall_s": float(self.wall_s), "monitor_margins": self._margins()}
+
+    def _margins(self) -> dict:
+        c = getattr(self.monitor, "closest", {})
+        kpa = lambda x: float(U.to_kpa(x)) if math.isfinite(x) else None  # noqa: E731
+        return {"leak_drop_kpa": kpa(c.get("leak_drop", math.nan)), "leak_fraction": c.get("leak_fraction"),
+                "pump_rise_kpa": kpa(c.get("pump_rise", math.nan))}
