@@ -25,6 +25,7 @@ from hbma_ctrl.app.robot_closed import make_model
 from hbma_ctrl.app.scene_controller import estimator_from_scenario, controller_settings_of, make_controller
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
 from hbma_ctrl.robot.rig import RobotRigSettings
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
@@ -87,9 +88,11 @@ class ChamberRunner:
         self.p_limit = float(p_limit)
         self.h_range = (float(h_range[0]), float(h_range[1]))
 
-    def tick(self, t: float, p: np.ndarray) -> np.ndarray:
-        """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1)."""
-        return self.loop.tick(t, float(p[0])).as_array().reshape(3, 1)
+    def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
+        """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1); ``held`` (3, 1): the
+        command the rig reports it held over the period p ends (None: the last one returned)."""
+        h = None if held is None else Command(*(float(x) for x in np.asarray(held, dtype=float).reshape(3)))
+        return self.loop.tick(t, float(p[0]), h).as_array().reshape(3, 1)
 
     def targets(self) -> np.ndarray:
         """This period's target height per chamber, m (NaN = none)."""
@@ -159,10 +162,11 @@ class RobotRunner:
         self.h_max = float(h_max)
         self._t = 0.0
 
-    def tick(self, t: float, p: np.ndarray) -> np.ndarray:
-        """One period at rig time t (s) with the readings p (Pa, (n,)) -> U (3, n)."""
+    def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
+        """One period at rig time t (s) with the readings p (Pa, (n,)) -> U (3, n); ``held`` (3, n): the
+        valve inputs the rig reports it held over the period p ends (None: the last ones returned)."""
         self._t = t
-        self.loop.tick(t, p)
+        self.loop.tick(t, p, held)
         return self.loop.valve_commands.copy()
 
     def targets(self) -> np.ndarray:

@@ -17,7 +17,8 @@ Each period:
 2. ``rig.read()``; the safety monitor checks the readings with the command sent last and whether the
    last period missed its deadline; a latched fault puts the loop in mode "safe": from then on it
    writes the safe command every period (and logs) until it is stopped;
-3. the runner ticks (estimator, controller, the runtime supervisor's fallback chain) and the command
+3. the runner ticks (estimator, controller, the runtime supervisor's fallback chain; the estimator
+   predicts with the command the rig reports it held, when it reports one) and the command
    is written;
 4. a run log row; the status is published for the API every ``status_every`` periods.
 
@@ -46,6 +47,9 @@ from hbma_ctrl.runtime.stats import StepStats
 __all__ = ["DaemonLoop", "rss_mb", "STATS_KEYS"]
 
 #: keys of daemon_stats.json
+#: a loop ticking on a streaming rig's samples wakes this fraction of a period before one is due
+SAMPLE_LEAD = 0.2
+
 STATS_KEYS = ("rate_hz", "steps", "deadline_misses", "step_ms_median", "step_ms_p99", "jitter_ms_p99",
               "max_pressure_kpa", "pressure_limit_kpa", "faults", "safe_exit", "rss_mb_start", "rss_mb_end")
 
@@ -244,7 +248,9 @@ class DaemonLoop:
             self._write(self.u_last)
             return
         c0 = self.clock()
-        u = self.runner.tick(self.t, p)
+        held = getattr(r, "held", None)
+        # only a rig that reports what it held passes it: a runner may take (t, p) alone
+        u = self.runner.tick(self.t, p) if held is None else self.runner.tick(self.t, p, held)
         self._last_tick = self.clock() - c0
         self.tick_s.add(self._last_tick)
         self._write(u)
@@ -278,6 +284,8 @@ class DaemonLoop:
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
         wp = self.period / self.speed
         t0 = self.clock()
+        # a rig that streams on its own clock (serial) in real time: ticks follow its samples
+        wait = getattr(self.rig, "wait_sample", None) if self.speed <= 1.0 else None
         k = 0
         missed_last = False
         try:
@@ -286,11 +294,21 @@ class DaemonLoop:
                     break
                 deadline = t0 + k * wp
                 now = self.clock()
-                if now < deadline:
-                    self.sleep(deadline - now)
+                wake = deadline - (SAMPLE_LEAD * wp if wait is not None else 0.0)
+                if now < wake:
+                    self.sleep(wake - now)
                     now = self.clock()
                     if self._should_stop():  # a stop asked during the sleep ends before another command
                         break
+                if wait is not None:
+                    # tick on the rig's sample: wake SAMPLE_LEAD of a period before it is due, wait for
+                    # it, and take its arrival as this period's deadline, so the loop follows the rig's
+                    # clock instead of beating against it (which left periods with no new sample and
+                    # samples never read)
+                    arrived = wait(wp)
+                    now = self.clock()
+                    if arrived is not None:
+                        t0, deadline = arrived - k * wp, arrived
                 self.jitter_s.add(max(0.0, now - deadline))
                 start = now
                 self._step(k, missed_last)
