@@ -384,7 +384,8 @@ def exact_free_table(material: Material) -> dict:
     depends only on the material's parameter ratios: scaling every modulus, r1 or t0 (the rig's
     mismatch, theta in the Functions) rescales p and V exactly, so one table serves a family.
     """
-    from hbma_ctrl.models.exact import ExactMembrane, tabulate
+    from hbma_ctrl.models.exact import ExactMembrane
+    from hbma_ctrl.models.exact_tables import tabulate
 
     r1, t0 = 7.5e-3, 3e-3  # any geometry gives the same dimensionless table
     m = ExactMembrane(material, r1, t0)
