@@ -1,0 +1,110 @@
+"""The exact flat-plate contact in the loaded fidelities, the rig and the simulator's 'exact' rung
+(README Model §9): the table against the solver, the cap's chart at lift-off, and the rung's force balance
+checked by the exact solver itself."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from hbma_ctrl.core.materials import make_material
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.exact import ExactMembrane
+from hbma_ctrl.models.exact_tables import RATIO_S, RATIO_U, contact_ratio_table
+from hbma_ctrl.models.fidelity import OUTPUTS, make_exact_free, make_exact_loaded
+from hbma_ctrl.sim.rig import Rig, RigSettings, mismatched
+from hbma_ctrl.sim.simulate import simulate
+from hbma_ctrl.sim.trial import InputSchedule, SimSettings, Trial
+
+R1, T0 = 7.5e-3, 3e-3
+ACT = Actuator(r1=R1, t0=T0)
+CSV = str(Pneumatics().csv_path)
+PLAIN = dict(noise_std=0.0, valve_delay=0.0, valve_min_on=0.0, compressor_tilt=0.0, sensor_tau=0.0)
+
+
+def _law(fid, h1: float, h2: float, act: Actuator = ACT) -> dict:
+    """The fidelity's membrane law at chart (h1, h2), numeric: p (Pa), V (m^3), F (N)."""
+    theta, P = fid.space.symbols()
+    a, b = ca.SX.sym("a"), ca.SX.sym("b")
+    p, V, _, a2 = fid.contact_law(a, b, P)
+    f = ca.Function("law", [a, b, theta], [p, V, ca.pi * a2 * p])
+    out = f(h1, h2, fid.space.values(act))
+    return {"p": float(out[0]), "V": float(out[1]), "F": float(out[2])}
+
+
+@pytest.fixture(scope="module")
+def qs():
+    return make_exact_loaded("quasi_static", make_material("nh"), CSV)
+
+
+# mid-nodes (u = h1/r1 and sqrt(s) halfway between nodes) where the plate's pressure is below the free
+# limit point, where the solver's contact at (h, p) is unique
+@pytest.mark.parametrize("i, j", [(3, 20), (6, 16), (9, 10), (12, 4), (15, 1)])
+def test_contact_table_matches_the_solver_at_mid_nodes_within_1_percent(qs, i, j):
+    u = 0.5 * (RATIO_U[i] + RATIO_U[i + 1])
+    s = (0.5 * (np.sqrt(RATIO_S[j]) + np.sqrt(RATIO_S[j + 1]))) ** 2
+    h1, h2 = u * R1, s * u * R1
+    got = _law(qs, h1, h2)
+    ref = ExactMembrane(make_material("nh"), R1, T0).contact(h1 - h2, got["p"])
+    assert got["F"] == pytest.approx(ref["F"], rel=0.01)
+    assert got["V"] == pytest.approx(ref["V"] + ACT.V0, rel=0.01)
+
+
+def test_contact_law_meets_the_exact_free_inflation_as_the_plate_leaves(qs):
+    free = make_exact_free(make_material("nh"), CSV)
+    theta = free.space.values(ACT)
+    for h1 in (2e-3, 5e-3, 8e-3):
+        y = np.asarray(free.out([h1], [0, 0, 0], theta, 1.0)).ravel()
+        touching = _law(qs, h1, 1e-9 * h1)
+        assert touching["F"] == pytest.approx(0.0, abs=1e-6)  # a^2 ~ h2: 1e-9 h1 presses with micronewtons
+        assert touching["p"] == pytest.approx(y[OUTPUTS.index("p")], rel=2e-3)
+        assert touching["V"] == pytest.approx(y[OUTPUTS.index("V")], rel=2e-3)
+        # the force grows continuously from 0 as the plate presses
+        assert 0 < _law(qs, h1, 0.01 * h1)["F"] < _law(qs, h1, 0.05 * h1)["F"]
+
+
+def test_contact_table_is_the_same_for_any_geometry_and_modulus_scale(tmp_path):
+    # the ratios are dimensionless: one table serves every r1, t0 and modulus scale of a material
+    u, s = RATIO_U[:6], RATIO_S[:5]
+    a = contact_ratio_table(ExactMembrane(make_material("nh"), R1, T0), u, s, cache=tmp_path)
+    b = contact_ratio_table(ExactMembrane(make_material("nh").scaled(1.3), 12.5e-3, 2e-3), u, s, cache=tmp_path)
+    assert a["build_s"] > 0 and np.allclose(a["Rp"], b["Rp"], rtol=1e-6) and np.allclose(a["Rv"], b["Rv"], rtol=1e-6)
+    assert contact_ratio_table(ExactMembrane(make_material("nh"), R1, T0), u, s, cache=tmp_path)["build_s"] == 0.0
+
+
+def test_exact_quasi_static_rig_carries_the_load_by_the_solvers_contact_force():
+    s = RigSettings(**{**PLAIN, "membrane": "exact", "fidelity": "quasi_static"})
+    plat = Platform(load=0.2)
+    rig = Rig(ACT, Pneumatics(), plat, s)
+    for _ in range(60):
+        rig.apply([0.6, 1.0, 0.0])
+    tr = rig.truth()
+    act, _ = mismatched(ACT, Pneumatics(), s)
+    assert tr["h"] > 1e-3
+    # the solver itself, at the rig's height and pressure, with the rig's mismatched modulus
+    ref = ExactMembrane(act.material, act.r1, act.t0).contact(tr["h"], tr["p"])
+    assert ref["F"] == pytest.approx(plat.weight, rel=0.01)
+    cap = Rig(ACT, Pneumatics(), plat, RigSettings(**{**PLAIN, "fidelity": "quasi_static"}))
+    for _ in range(60):
+        cap.apply([0.6, 1.0, 0.0])
+    assert abs(cap.truth()["h"] - tr["h"]) > 0.1e-3  # the membrane law now reaches a loaded chamber
+
+
+def test_simulator_exact_rung_runs_loaded_and_free_trials_and_says_exact():
+    sched = InputSchedule(((0.0, 0.8, 1.0, 0.0), (0.8, 0.0, 0.0, 1.0)))
+    trials = [Trial(ACT, Pneumatics(), Platform(load=load), sched, 1.5, name=f"m{load}") for load in (0.0, 0.2)]
+    logs = simulate(trials, SimSettings(), fidelity="exact")
+    assert [log.fidelity for log in logs] == ["exact", "exact"] and all(log.status == "ok" for log in logs)
+    loaded = logs[1]
+    names = [n for _, n in loaded.events]
+    assert "lift_off" in names and "touch_down" in names
+    # while the platform moves the force on it is the exact law's at its height (platform: F = p pi a^2)
+    k = int(np.argmax(loaded["h"]))
+    ref = ExactMembrane(make_material("nh"), R1, T0).contact(loaded["h"][k], loaded["p"][k])
+    assert loaded["F"][k] == pytest.approx(ref["F"], rel=0.01)
+
+
+def test_exact_loaded_rung_refuses_a_free_name():
+    with pytest.raises(ValueError, match="allowed: quasi_static, platform"):
+        make_exact_loaded("free", make_material("nh"), CSV)
