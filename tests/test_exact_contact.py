@@ -108,3 +108,28 @@ def test_simulator_exact_rung_runs_loaded_and_free_trials_and_says_exact():
 def test_exact_loaded_rung_refuses_a_free_name():
     with pytest.raises(ValueError, match="allowed: quasi_static, platform"):
         make_exact_loaded("free", make_material("nh"), CSV)
+
+
+def test_bench_sim_fidelity_axis_scores_every_rung_against_the_exact_membrane(tmp_path, monkeypatch):
+    import json
+
+    import hbma_ctrl.app.bench_sim as bench
+    from hbma_ctrl.sim.batch import protocol_trials
+
+    short = protocol_trials("nh", loads_g=[0.0, 200.0], speeds_pct=[100.0], t0_mm=[3.0], r1_mm=[12.5],
+                            t_inflate_s=0.4, duration_s=0.8)
+    monkeypatch.setattr(bench, "bench_trials", lambda material, quick: short)
+    rows = bench.run_bench(tmp_path, grid={"quasi_static": {"rk4": (10.0,)}}, progress=False, fidelity_axis=True,
+                           fidelity_grid={"free": {"rk4": (10.0,)}, "exact": {"rk4": (2.0,)}})
+    by = {(r.fidelity, r.integrator, r.dt_ms): r for r in rows}
+    # the old rows first, unchanged in kind; then the free rung (its 0 g trial only) and the exact rung
+    assert list(by)[:2] == [("quasi_static", "rk4", None), ("quasi_static", "rk4", 10.0)]
+    assert by[("free", "rk4", None)].n_trials == 1 and by[("exact", "rk4", None)].n_trials == 2
+    qs, ex = by[("quasi_static", "rk4", None)], by[("exact", "rk4", 2.0)]
+    # the cap's membrane law is a model error far above the exact rung's own step error
+    assert ex.height_nrmsd_vs_exact_mean < 1e-3 < qs.height_nrmsd_vs_exact_mean
+    assert 0 < ex.pressure_nrmsd_vs_exact_mean < qs.pressure_nrmsd_vs_exact_mean
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert {"height_nrmsd_mean", "height_nrmsd_vs_exact_mean"} <= set(data["rows"][0])
+    assert data["meta"]["fidelity_axis"]["reference"] == "exact"
+    assert (tmp_path / "pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
