@@ -13,7 +13,14 @@ exact ``free``     h1                  free inflation with the exact membrane's 
 ``platform``       m, z, v (+ h1 alg.) the platform has mass and damping (m_L z'' = F - m_L g - c z'):
                                        snap-through is a real, fast transient; the platform may even
                                        leave the membrane (airborne) and land again
+exact loaded       as above            ``quasi_static`` / ``platform`` with the exact flat-plate contact
+                                       (:class:`ExactQuasiStatic`, :class:`ExactPlatform`,
+                                       :func:`make_exact_loaded`): the cap's chart, the exact law as
+                                       tabulated ratios (:mod:`hbma_ctrl.models.exact_tables`)
 =================  ==================  ===================================================================
+
+The simulator's ``exact`` rung (:func:`make_exact`) is the exact platform model with a load and the
+exact free inflation without one.
 
 Why these states. The gas mass ``m`` is the natural, drift-free state (the gas law): the gas law fixes
 ``G(h1, h2) = (p + p_env) V = m R T``. The (h1, h2) chart is singular at the flat origin (p ~ h1^3
