@@ -133,3 +133,32 @@ def test_bench_sim_fidelity_axis_scores_every_rung_against_the_exact_membrane(tm
     assert {"height_nrmsd_mean", "height_nrmsd_vs_exact_mean"} <= set(data["rows"][0])
     assert data["meta"]["fidelity_axis"]["reference"] == "exact"
     assert (tmp_path / "pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_role_pareto_plots_read_bench_json_and_mark_the_front(tmp_path):
+    import json
+
+    from hbma_ctrl.app.bench_plots import controller_pareto_png, controller_points, pareto_front
+
+    # (cost, error): the two cheapest-for-their-accuracy points are the front, the dominated one is not
+    assert pareto_front([1.0, 2.0, 3.0], [0.3, 0.1, 0.2]).tolist() == [0, 1]
+    rows = [{"controller": "rti_osqp N=10", "solve_ms_median": 0.8, "height_rmse_mm": 1.3},
+            {"controller": "ipopt N=20", "solve_ms_median": 30.0, "height_rmse_mm": 1.15}]
+    (tmp_path / "bench_mpc.json").write_text(json.dumps({"rows": rows}))
+    pts, _ = controller_points(tmp_path / "bench_mpc.json")
+    assert [(p[0], p[1][0], p[2], p[3]) for p in pts] == [("N=10", "rti_osqp", 0.8, 1.3), ("N=20", "ipopt", 30.0, 1.15)]
+    png = controller_pareto_png(tmp_path / "bench_mpc.json", tmp_path / "c.png")
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bench_sim_bad_role_json_is_one_error_line_exit_2(tmp_path):
+    from typer.testing import CliRunner
+
+    from hbma_ctrl.app.cli import app
+
+    (tmp_path / "x.json").write_text("{}")
+    for flag, path, needle in (("--ekf-json", tmp_path / "none.json", "--ekf-json: no file"),
+                               ("--mpc-json", tmp_path / "x.json", "--mpc-json: ")):
+        res = CliRunner().invoke(app, ["bench", "sim", "--quick", "--out", str(tmp_path / "o"), flag, str(path)])
+        lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
+        assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: " + needle), res.output

@@ -3,8 +3,10 @@ setting, the non-dominated ones joined.
 
 - :func:`sim_pareto_png` the simulator (``hbma-ctrl bench sim``): wall time of the protocol against the
   height and pressure NRMSD versus the exact membrane, one point per fidelity x integrator x step.
-- :func:`pareto_png` any list of (label, group, cost, error) points (e.g. the estimator's EKF/UKF x
-  substeps or the controller's RTI/IPOPT x horizon, read from their bench JSON).
+- :func:`pareto_png` any list of (label, group, cost, error) points;
+  :func:`estimator_pareto_png` (``bench ekf`` JSON: step time vs height NRMSD per filter) and
+  :func:`controller_pareto_png` (``bench mpc`` JSON: solve time vs height RMSE per controller x horizon)
+  read them from those benches' results.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-__all__ = ["pareto_front", "pareto_png", "sim_pareto_png"]
+__all__ = ["pareto_front", "pareto_png", "sim_pareto_png", "estimator_pareto_png", "controller_pareto_png",
+           "estimator_points", "controller_points"]
 
 _MARKERS = {"rk4": "o", "euler": "s", "radau": "^"}
 
@@ -90,3 +93,56 @@ def sim_pareto_png(rows, path: Path | str, title: str = "") -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     return Path(path)
+
+
+def _load_json(path: Path | str, what: str) -> dict:
+    import json
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"{what}: no file {p}")
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{what}: {p} is not JSON ({e.msg}, line {e.lineno})") from None
+
+
+def estimator_points(bench_ekf_json: Path | str) -> tuple[list[tuple], str]:
+    """``bench ekf`` JSON (its "filters": name -> metrics) -> ((label, group, step us, height NRMSD) points,
+    title); ValueError naming ``--ekf-json`` when the file is missing or not such a result."""
+    data = _load_json(bench_ekf_json, "--ekf-json")
+    filters = data.get("filters")
+    if not isinstance(filters, dict) or not filters:
+        raise ValueError(f"--ekf-json: {bench_ekf_json} has no 'filters' (is it a bench ekf result?)")
+    pts = []
+    for name, m in filters.items():
+        fam, _, sub = name.partition(" ")
+        pts.append((sub or name, (fam, ""), float(m.get("step_us_median", np.nan)), float(m.get("height_nrmsd", np.nan))))
+    n = data.get("settings", {}).get("n_trials", "?")
+    return pts, f"estimator: {Path(bench_ekf_json).name}, {n} trials"
+
+
+def controller_points(bench_mpc_json: Path | str) -> tuple[list[tuple], str]:
+    """``bench mpc`` JSON (its "rows", each a controller "name N=k") -> ((label, group, solve ms, height RMSE mm)
+    points, title); ValueError naming ``--mpc-json`` when the file is missing or not such a result."""
+    data = _load_json(bench_mpc_json, "--mpc-json")
+    rows = data.get("rows")
+    if not isinstance(rows, list) or not rows:
+        raise ValueError(f"--mpc-json: {bench_mpc_json} has no 'rows' (is it a bench mpc result?)")
+    pts = []
+    for r in rows:
+        fam, _, hor = str(r.get("controller", "?")).partition(" ")
+        pts.append((hor or fam, (fam, ""), float(r.get("solve_ms_median", np.nan)), float(r.get("height_rmse_mm", np.nan))))
+    return pts, f"controller: {Path(bench_mpc_json).name}"
+
+
+def estimator_pareto_png(bench_ekf_json: Path | str, path: Path | str) -> Path:
+    """Estimator Pareto PNG (median filter step in us vs height NRMSD, one point per filter) from ``bench ekf`` JSON."""
+    pts, title = estimator_points(bench_ekf_json)
+    return pareto_png(pts, path, "median filter step (us)", "height NRMSD (mean over trials)", title)
+
+
+def controller_pareto_png(bench_mpc_json: Path | str, path: Path | str) -> Path:
+    """Controller Pareto PNG (median solve in ms vs height RMSE in mm, per controller x horizon) from ``bench mpc`` JSON."""
+    pts, title = controller_points(bench_mpc_json)
+    return pareto_png(pts, path, "median solve time (ms)", "height RMSE (mm)", title)

@@ -412,6 +412,10 @@ def bench_sim(
     fidelity_axis: Annotated[bool, typer.Option("--fidelity-axis/--no-fidelity-axis",
                                                 help="also score every row against the exact membrane, run the "
                                                      "free and exact rungs, and write pareto.png")] = True,
+    ekf_json: Annotated[Optional[Path], typer.Option("--ekf-json", help="a bench ekf result: also write "
+                                                  "pareto_estimator.png (step time vs height NRMSD)")] = None,
+    mpc_json: Annotated[Optional[Path], typer.Option("--mpc-json", help="a bench mpc result: also write "
+                                                  "pareto_controller.png (solve time vs height RMSE)")] = None,
 ) -> None:
     """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference, and
     (fidelity axis) vs the exact membrane, with a Pareto plot (wall time vs NRMSD) beside bench.json."""
@@ -420,6 +424,19 @@ def bench_sim(
     _range("--workers", workers, 1, 256)
     workers = cap_workers("--workers", workers)
     _range("--repeat", repeat, 1, 100)
+    from hbma_ctrl.app import bench_plots
+
+    # read before the long run: a bad file is one error line now
+    role_plots = []
+    for path, read, name, axes in (
+            (ekf_json, bench_plots.estimator_points, "pareto_estimator.png", ("median filter step (us)", "height NRMSD")),
+            (mpc_json, bench_plots.controller_points, "pareto_controller.png", ("median solve time (ms)",
+                                                                                 "height RMSE (mm)"))):
+        if path is not None:
+            try:
+                role_plots.append((read(path), name, axes))
+            except ValueError as e:
+                _fail(str(e))
     con = _console(160)
 
     def show(row):
@@ -433,6 +450,7 @@ def bench_sim(
     with run_dir(out, command="bench sim", argv=cli_argv(), overwrite=overwrite, carry=("ref_*.npz",)) as tmp:
         rows = run_bench(tmp, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show,
                          fidelity_axis=fidelity_axis)
+        written = [bench_plots.pareto_png(pts, tmp / name, *axes, title).name for (pts, title), name, axes in role_plots]
     table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
                         f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
     for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean", "h NRMSD max",
@@ -451,7 +469,8 @@ def bench_sim(
     if fidelity_axis:
         con.print("vs exact: mean NRMSD against the exact membrane (rk4, fine step); free (0 g): the cap's free "
                   "inflation on the 0 g trials only; exact: its own step error")
-    con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}" + (f", {out / 'pareto.png'}" if fidelity_axis else ""))
+    con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}" + (f", {out / 'pareto.png'}" if fidelity_axis else "")
+              + "".join(f", {out / n}" for n in written))
 
 
 def _dt_text(row) -> str:
