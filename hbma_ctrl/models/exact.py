@@ -46,6 +46,9 @@ are stiff) and uniform after; the whole march is one casadi Function (``mapaccum
 batch of starts, so one root search solves many points at once. The mesh study in the tests bounds
 the discretisation error. Free inflation is parametrised by the pole stretch lam0, which (unlike the
 pressure) grows monotonically with the apex height through the limit point.
+
+Tables of these solutions for the simulator (free inflation, contact grids, and the flat contact in the
+cap's chart) are in :mod:`hbma_ctrl.models.exact_tables`.
 """
 
 from __future__ import annotations
