@@ -162,3 +162,21 @@ def test_bench_sim_bad_role_json_is_one_error_line_exit_2(tmp_path):
         res = CliRunner().invoke(app, ["bench", "sim", "--quick", "--out", str(tmp_path / "o"), flag, str(path)])
         lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
         assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: " + needle), res.output
+
+
+def test_run_open_loop_scene_with_fidelity_exact_logs_the_exact_rung(tmp_path):
+    from pathlib import Path
+
+    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenario import load_scenario
+
+    root = Path(__file__).resolve().parent.parent
+    text = (root / "scenarios" / "open_loop_loaded.toml").read_text()
+    text = text.replace('fidelity = "platform"', 'fidelity = "exact"').replace("duration_s = 6.0", "duration_s = 1.0")
+    text = text.replace("[3.0, 0.0,   0.0, 1.0]", "[0.6, 0.0,   0.0, 1.0]")
+    (tmp_path / "s.toml").write_text(text)
+    scn = load_scenario(tmp_path / "s.toml")
+    assert scn.fidelity == "exact"
+    metrics = run_scenario(scn, tmp_path / "out")
+    flat = {k: v for sec in metrics.values() if isinstance(sec, dict) for k, v in sec.items()}
+    assert flat["fidelity"] == "exact" and flat["status"] == "ok" and flat["max_force_n"] > 0
