@@ -74,6 +74,7 @@ from controllers.mpc_settings import (
 )
 from controllers.mpc_solvers import (
     _BudgetExceeded,
+    _Fatrop,
     _Ipopt,
     _Problem,
     _RtiOsqp,
@@ -119,6 +120,8 @@ class NMPC:
             self.backend = _RtiOsqp(self.model, s)
         elif s.variant.startswith("rti_fn_"):
             self.backend = _RtiFunction(self.model, s, s.variant[len("rti_fn_"):])
+        elif s.variant == "fatrop":
+            self.backend = _Fatrop(self.model, s)
         else:
             self.backend = _Ipopt(self.model, s)
         self.reset()

@@ -32,7 +32,7 @@ Inputs:
 ============  =========  ===========================================================================
 
 nz = 8 N + 4 QP variables (stage-wise: [x_k, u_{k-1}, u_k, slack_{k+1}] for k < N, [x_N, u_{N-1}]) and
-nc = 12 N (h_min > 0: 13 N) QP rows; ``function.size1_in("lam_x_guess")`` etc. give them.
+nc = 11 N (h_min > 0: 12 N) QP rows; ``function.size1_in("lam_x_guess")`` etc. give them.
 
 Outputs:
 
