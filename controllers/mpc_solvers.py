@@ -451,7 +451,6 @@ class _Fatrop:
         self.lam_g = None
 
     def solve(self, pr: _Problem):
-        N = self.N
         z0 = np.zeros(self.nz)
         if self.z is None:
             z0[self.ix] = pr.x0
