@@ -313,18 +313,41 @@ def compiled_step(fun: ca.Function, qp_solver: str, opt: str = "-O1") -> ca.Func
 class _RtiFunction:
     """NMPC backend calling :func:`rti_step_function`'s Function once per step (through buffers).
 
-    ``qp_solver`` as in :func:`rti_step_function`; ``settings.codegen`` is its ``compile_parts``. The
-    whole Function as C (:func:`compiled_step`) is not loaded here: casadi 3.8's generated HPIPM C
-    fails on this QP where its plugin solves it (measured; see the module docstring).
+    ``qp_solver`` as in :func:`rti_step_function`. With ``settings.codegen`` the whole Function runs
+    as generated C (:func:`compiled_step`; ``mode`` "c") when it builds and solves a probe step (the
+    results equal the plugin's: OSQP's C gave the same first inputs to the last bit over 30 steps,
+    at half the time); else its SX parts run as C around the solver plugin (``mode`` "parts": the
+    generated HPIPM C fails inside this Function, see the module docstring). Without ``codegen``
+    casadi's virtual machine runs it all (``mode`` "vm").
     """
 
-    def __init__(self, model: PredictionModel, s: MPCSettings, qp_solver: str = "osqp"):
+    def __init__(self, model: PredictionModel, s: MPCSettings, qp_solver: str = "hpipm"):
         self.s, self.model, self.N = s, model, s.horizon
-        self.function = rti_step_function(model, s, qp_solver, compile_parts=s.codegen)
-        self.call = FastFunction(self.function, compile=False)
+        self.function = rti_step_function(model, s, qp_solver)
         self.nz, self.nc = self.function.nnz_in("lam_x_guess"), self.function.nnz_in("lam_a_guess")
+        self.mode = "vm"
+        fun = self.function
+        if s.codegen:
+            c = compiled_step(self.function, qp_solver)
+            if c is not None and self._probe(c):
+                fun, self.mode = c, "c"
+            else:
+                fun, self.mode = rti_step_function(model, s, qp_solver, compile_parts=True), "parts"
+        self.call = FastFunction(fun, compile=False)
         self.reset()
         self.iterations = 0
+
+    def _probe(self, fun: ca.Function) -> bool:
+        """Does ``fun`` solve a nominal cold step (to mid-range height under a tenth of the largest load)?"""
+        N, s = self.N, self.s
+        W = 0.1 * self.model.load_max
+        try:
+            x0 = float(self.model.x_at_height(0.5 * s.h_max, W))
+            out = fun(x0, W, 0.0, 0.0, np.zeros(3), s.p_max - s.p_margin, np.full(N, 0.5 * s.h_max),
+                      np.full(N + 1, x0), np.zeros((3, N)), np.zeros(self.nz), np.zeros(self.nc), 0.0)
+        except RuntimeError:
+            return False
+        return float(out[5]) == 0.0
 
     def reset(self) -> None:
         """Forget the plan (the next step is a cold start)."""
