@@ -13,7 +13,8 @@ and the Python controller calls exactly this Function (see ``controllers.mpc_sol
 
 Solver choice (measured on the 2-core machine, N = 20, one QP of a step, casadi 3.8)
 -----------------------------------------------------------------------------------
-HPIPM (default): ~10-13 interior-point iterations in "balance" mode, 0.5-0.8 ms per QP through the
+OSQP (default: its generated C works and equals the plugin to the last bit, see below).
+HPIPM: ~10-13 interior-point iterations in "balance" mode, 0.5-0.8 ms per QP through the
 plugin (its "speed" mode stops at the iteration limit on this QP); first input within 1e-3 of the
 reference OSQP path. OSQP through casadi: 0.5 ms (casadi sets OSQP up at every call, so the
 factorisation is never reused). qrqp: 10-30 ms and "Failed to calculate search direction" on cold
@@ -84,7 +85,7 @@ from hbma_ctrl.models.tables import PredictionModel
 __all__ = ["QP_SOLVERS", "compiled_step", "rti_step_function"]
 
 #: conic plugins the step can be built with (the first is the default)
-QP_SOLVERS = ("qrqp", "hpipm", "osqp", "daqp")
+QP_SOLVERS = ("osqp", "hpipm", "qrqp", "daqp")
 
 _IN = ["x0", "W", "dh", "dp", "u_prev", "p_lim", "r", "X_guess", "U_guess", "lam_x_guess", "lam_a_guess", "shift"]
 _OUT = ["u0", "X_plan", "U_plan", "lam_x", "lam_a", "status", "residual", "cost"]
@@ -108,7 +109,7 @@ def _solver_opts(qp_solver: str, s: MPCSettings) -> dict:
     return {"error_on_fail": False}
 
 
-def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: str = "hpipm",
+def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: str = "osqp",
                       compile_parts: bool = False) -> ca.Function:
     """The RTI step of the chamber NMPC as one casadi Function (signature in the module docstring).
 
@@ -321,7 +322,7 @@ class _RtiFunction:
     casadi's virtual machine runs it all (``mode`` "vm").
     """
 
-    def __init__(self, model: PredictionModel, s: MPCSettings, qp_solver: str = "hpipm"):
+    def __init__(self, model: PredictionModel, s: MPCSettings, qp_solver: str = "osqp"):
         self.s, self.model, self.N = s, model, s.horizon
         self.function = rti_step_function(model, s, qp_solver)
         self.nz, self.nc = self.function.nnz_in("lam_x_guess"), self.function.nnz_in("lam_a_guess")
