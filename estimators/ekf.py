@@ -177,6 +177,16 @@ def fast(fun: ca.Function, compile: bool) -> FastFunction:
     return FastFunction(_FN_CACHE[key][1], False)
 
 
+def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean: np.ndarray, cov: np.ndarray,
+              state_names: tuple, std: dict, flags: frozenset) -> Estimate:
+    """An :class:`Estimate` from the compiled step's floats: its field type checks cannot fail
+    there (every value is a float the Function wrote), and cost a quarter of the step."""
+    e = object.__new__(Estimate)
+    e.__dict__.update(t=t, h1=h1, h2=h2, h=h, F=F, p=p, mean=mean, cov=cov, state_names=state_names, std=std,
+                      flags=flags)
+    return e
+
+
 def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings):
     """(ObserverModel, fast predict, fast outputs, propagate Function, fast update); the casadi
     Functions are shared per configuration, the fast (buffered) callers are per filter."""
@@ -247,8 +257,12 @@ class EKF:
         self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0}
         self._step_fn = fast(ekf_step_function(actuator, pneumatics, s), s.compile) if self.compiled_step \
             else None
-        self._det = np.zeros(6)
         self._theta_step = True  # theta not yet in the step's buffer
+        if self._step_fn is not None:
+            # column-major 5 x 5 views of the step's covariance buffers
+            self._P_in = self._step_fn.inp[1].reshape(NX, NX).T
+            self._P_out = self._step_fn.out[1].reshape(NX, NX).T
+            self._C_out = self._step_fn.out[6].reshape(5, 5).T
 
     # --- state handling -----------------------------------------------------------------------
     def reset(self, t: float, mean, cov=None, shape=None, resting: bool | None = None) -> None:
@@ -392,7 +406,9 @@ class EKF:
             # lift-off replay: while the detector's sum is at zero, remember the posterior; the
             # samples after it are kept so a detected lift-off can be re-filtered from there
             if self._lift == 0.0:
-                self._snap = self._snapshot()
+                # by reference: the compiled step replaces these arrays and never writes into them;
+                # the reference path below detaches them first
+                self._snap = (self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post)
                 self._replay = []
             if self._snap is not None and len(self._replay) < REPLAY_MAX:
                 self._replay.append((float(t), measurement, kind, u, k))
@@ -403,6 +419,8 @@ class EKF:
             if est is not None:
                 self.last_step_s = time.perf_counter() - t_wall
                 return est
+        # the reference path writes into the state arrays: never into a snapshot's
+        self.x, self.P, self.s, self._H = self.x.copy(), self.P.copy(), self.s.copy(), self._H.copy()
         self._advance(t, measurement, kind, u, k, detect=True, jump=jump)
         if self._replay_now:
             self._replay_now = False
@@ -423,15 +441,23 @@ class EKF:
     def _step_compiled(self, t: float, measurement, kind: str, u: np.ndarray) -> Estimate | None:
         """One period as one call of the compiled step; None (nothing changed) when the step met an
         event it leaves to the reference path (its output ``exact`` = 0, or a lift-off to replay)."""
-        d = self._det
+        fn = self._step_fn
+        inp, out = fn.inp, fn.out
+        inp[0][:] = self.x
+        self._P_in[:] = self.P
+        inp[2][:] = self.s
+        inp[3][:] = u
+        if self._theta_step:
+            inp[4][:] = self.theta
+            self._theta_step = False
+        code = _KIND_CODE.get(kind, KIND_NONE)
+        inp[5][0] = 1.0 if self.resting else 0.0
+        inp[6][0] = float(measurement) if code == KIND_OK else 0.0
+        inp[7][0] = code
+        d = inp[8]
         d[0], d[1], d[2], d[3], d[4], d[5] = (self._cusum, self._lift, self._lift_start, self._p_lift,
                                               self._p_post, self._gated)
-        code = _KIND_CODE.get(kind, KIND_NONE)
-        th = None
-        if self._theta_step:
-            th, self._theta_step = self.theta, False
-        out = self._step_fn(self.x, self.P, self.s, u, th, 1.0 if self.resting else 0.0,
-                            float(measurement) if code == KIND_OK else 0.0, float(code), d)
+        fn._eval()
         bits = int(out[13][0])
         if out[14][0] < 0.5 or (bits & 4 and out[0][1] == 0.0 and self._snap is not None):
             return None
@@ -439,32 +465,29 @@ class EKF:
         if self._events:
             flags = flags | self._events
         self._pumping = bool(u[0] > 0.0 and u[1] > 0.0)
-        self.x = out[0].copy()
-        self.P = out[1].reshape(NX, NX, order="F").copy()
+        self.x = x = out[0].copy()
+        self.P = P = self._P_out.copy()
         self.s = out[2].copy()
         self._A_flat = out[8].copy()
         self.resting = bool(out[9][0] > 0.5)
-        dn = out[10]
-        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post = (
-            float(dn[0]), float(dn[1]), float(dn[2]), float(dn[3]), float(dn[4]))
-        self._gated = int(dn[5])
-        y = out[3]
-        self._p_pred = float(y[4])
+        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g = out[10].tolist()
+        self._gated = int(g)
+        e0, e1, e2, e3, e4 = out[4].tolist()
+        self._p_pred = e4
         self._H = out[7].copy()
         self.t = t
         if code == KIND_OK:
             self.last_nis = float(out[11][0])
-            self.last_innovation = None if bits & 1 else float(out[12][0])
             if bits & 1:
+                self.last_innovation = None
                 self.counts["gated"] += 1
+            else:
+                self.last_innovation = float(out[12][0])
         else:
             self.last_nis = self.last_innovation = None
-        self.last_output_cov = out[6].reshape(5, 5, order="F").copy()
-        e, sd = out[4], out[5]
-        std = {"h1": float(sd[0]), "h2": float(sd[1]), "h": float(sd[2]), "F": float(sd[3]), "p": float(sd[4])}
-        return Estimate(t=t, h1=float(e[0]), h2=float(e[1]), h=float(e[2]), F=float(e[3]), p=float(e[4]),
-                        mean=self.x.copy(), cov=self.P.copy(), state_names=self.state_names, std=std,
-                        flags=flags)
+        self.last_output_cov = self._C_out.copy()
+        return _estimate(t, e0, e1, e2, e3, e4, x.copy(), P.copy(), self.state_names,
+                         dict(zip(OUTPUT_KEYS, out[5].tolist())), flags)
 
     def _check_time(self, t) -> float:
         """t as a float; ValueError naming ``t`` when it is not a finite number or goes backwards."""
@@ -547,10 +570,6 @@ class EKF:
             # and stiffens the membrane, which is what a rig still saturated there says (its
             # peak is higher; left alone the model runs away along its far branch)
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
-
-    def _snapshot(self) -> tuple:
-        return (self.x.copy(), self.P.copy(), self.s.copy(), self.t, self._p_pred, self._H.copy(),
-                self._p_post)
 
     def _replay_from_snapshot(self) -> None:
         """Re-filter the samples since the detector's sum left zero with the membrane lifted.

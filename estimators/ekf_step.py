@@ -122,6 +122,14 @@ def _pivot_function() -> ca.Function:
     return ca.Function("ekf_min_pivot", [P, fl], [out])
 
 
+def _resting_outputs(om: ObserverModel) -> ca.Function:
+    """``om.outputs`` when the first input is nonzero, zeros otherwise (not evaluated)."""
+    f = om.outputs
+    zero = ca.Function("ekf_no_outputs", [ca.SX.sym(n, f.sparsity_in(i)) for i, n in enumerate(f.name_in())],
+                       [ca.DM.zeros(f.sparsity_out(i)) for i in range(f.n_out())], f.name_in(), f.name_out())
+    return ca.Function.if_else("ekf_outputs_if_resting", f, zero)
+
+
 def _finite(e) -> ca.MX:
     """1 when every entry of e is a finite number (|sum| <= max double is false for NaN and inf)."""
     return ca.fabs(ca.sum1(ca.sum2(e))) <= 1.7976931348623157e308
@@ -206,7 +214,8 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     Pa = ca.if_else(upd, ca.if_else(fire_c, Pw, Pu), P1)
 
     # --- detected lift-off: W = pi r1^2 p at the dated lift-off, none within the sensor's resolution
-    o1 = om.outputs(xa, s1, th, 1.0, Pa)
+    # the flat outputs are needed only while resting: a switch evaluates them only then
+    o1 = _resting_outputs(om)(resting, xa, s1, th, 1.0, Pa)
     p_flat = o1[1][4]
     W_lift = area * ca.fmax(ca.fmin(p_flat, p_lift2), 0.0)
     W_new = ca.if_else(W_lift < area * NO_LOAD_SIGMAS * s.noise_std, 0.0, W_lift)
