@@ -122,9 +122,15 @@ def _pivot_function() -> ca.Function:
     return ca.Function("ekf_min_pivot", [P, fl], [out])
 
 
-def _resting_outputs(om: ObserverModel) -> ca.Function:
-    """``om.outputs`` when the first input is nonzero, zeros otherwise (not evaluated)."""
-    f = om.outputs
+def _cse(f: ca.Function) -> ca.Function:
+    """The SX Function ``f`` with common subexpressions merged (casadi's ``cse``): a quarter fewer
+    instructions in the predict, the same operations on the same values, so the same results."""
+    sx_in = f.sx_in()
+    return ca.Function(f.name() + "_cse", sx_in, f.call(sx_in), f.name_in(), f.name_out(), {"cse": True})
+
+
+def _resting_outputs(f: ca.Function) -> ca.Function:
+    """``f`` (the model's outputs) when the first input is nonzero, zeros otherwise (not evaluated)."""
     zero = ca.Function("ekf_no_outputs", [ca.SX.sym(n, f.sparsity_in(i)) for i, n in enumerate(f.name_in())],
                        [ca.DM.zeros(f.sparsity_out(i)) for i in range(f.n_out())], f.name_in(), f.name_out())
     return ca.Function.if_else("ekf_outputs_if_resting", f, zero)
@@ -158,7 +164,8 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
          s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
     qv = ca.vertcat(ca.if_else(resting, 0.0, s.flow_rel_std), *q)
-    xn, A, s1, y1, H1, P1, piv1 = om.predict(x, sh, u, th, rest, P, qv)
+    predict, update, outputs = _cse(om.predict), _cse(om.update), _cse(om.outputs)
+    xn, A, s1, y1, H1, P1, piv1 = predict(x, sh, u, th, rest, P, qv)
     exact = _finite(xn) * _finite(y1) * _finite(P1) * (piv1 > 0)
     exact = exact * ca.logic_not(ca.logic_and(ca.logic_not(resting), y1[5] > 0.5))  # touch-down
     p_pred = y1[4]
@@ -185,7 +192,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     z_eff = ca.if_else(is_sat, s.sensor_range, z)
     R_eff = ca.if_else(is_sat, s.saturation_std ** 2 + meas_var(s.sensor_range), R)
     nu = z_eff - p_pred
-    xu, Pu, Su, pivu = om.update(xn, P1, H1, nu, R_eff, s.cov_floor, keep)
+    xu, Pu, Su, pivu = update(xn, P1, H1, nu, R_eff, s.cov_floor, keep)
     exact = exact * ca.if_else(upd, (pivu > 0) * (Su > 0) * _finite(Su), 1)
     r = nu / ca.sqrt(Su)
     detect = ca.logic_and(is_ok, ca.logic_not(over))
@@ -208,14 +215,14 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     fire_c = ca.logic_and(armed_c, c_n > s.change_threshold)
     cusum2 = ca.if_else(armed_c, ca.if_else(fire_c, 0.0, c_n), cusum)
     P1w = P1 + ca.DM(np.diag([0.0, s.change_std ** 2, 0.0, 0.0, 0.0]))
-    xw, Pw, Sw, pivw = om.update(xn, P1w, H1, nu, R_eff, s.cov_floor, keep)
+    xw, Pw, Sw, pivw = update(xn, P1w, H1, nu, R_eff, s.cov_floor, keep)
     exact = exact * ca.if_else(fire_c, (pivw > 0) * (Sw > 0) * _finite(Sw), 1)
     xa = ca.if_else(upd, ca.if_else(fire_c, xw, xu), xn)
     Pa = ca.if_else(upd, ca.if_else(fire_c, Pw, Pu), P1)
 
     # --- detected lift-off: W = pi r1^2 p at the dated lift-off, none within the sensor's resolution
     # the flat outputs are needed only while resting: a switch evaluates them only then
-    o1 = _resting_outputs(om)(resting, xa, s1, th, 1.0, Pa)
+    o1 = _resting_outputs(outputs)(resting, xa, s1, th, 1.0, Pa)
     p_flat = o1[1][4]
     W_lift = area * ca.fmax(ca.fmin(p_flat, p_lift2), 0.0)
     W_new = ca.if_else(W_lift < area * NO_LOAD_SIGMAS * s.noise_std, 0.0, W_lift)
@@ -242,7 +249,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     hi = ca.DM([np.inf, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
     xc = ca.fmin(ca.fmax(xl, lo), hi)
     clamped = ca.sum1(ca.logic_or(xl < lo, xl > hi)) > 0
-    o2 = om.outputs(xc, s1, th, rest2, Pf)
+    o2 = outputs(xc, s1, th, rest2, Pf)
     s2, y, H, C0 = o2[0], o2[1], o2[2], o2[4]
     exact = exact * ca.logic_not(ca.logic_and(ca.logic_not(resting2), y[5] > 0.5))  # touch-down
     d = (s.output_rel_std * y[:5]) ** 2
