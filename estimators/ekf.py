@@ -139,7 +139,7 @@ from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES, ObserverModel
 
-__all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
+__all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
 
 #: outputs whose covariance the filters report (rows of ``output_cov``)
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
