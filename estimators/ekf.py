@@ -137,7 +137,7 @@ from estimators.ekf_step import (
 from hbma_ctrl.core.codegen import FastFunction, compiled
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES, ObserverModel
+from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
 
@@ -158,13 +158,15 @@ class EKFSettings(FilterSettings):
 _FN_CACHE: dict = {}
 _KIND_CODE = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
 _FLAG_SETS: dict = {}
+_LIFT_DETECTED = 1 << FLAG_BITS.index("lift_off_detected")
 
 
 def _flag_set(bits: int) -> frozenset:
     """The flags of :data:`estimators.ekf_step.FLAG_BITS` raised in ``bits`` (memoised)."""
     fs = _FLAG_SETS.get(bits)
     if fs is None:
-        fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS) if bits >> i & 1)
+        fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS)
+                                          if bits >> i & 1 and n != "lift_off_detected")
     return fs
 
 
@@ -460,7 +462,8 @@ class EKF:
                                               self._p_post, self._gated)
         fn._eval()
         bits = int(out[13][0])
-        if out[14][0] < 0.5 or (bits & 4 and out[0][1] == 0.0 and self._snap is not None):
+        # a detected lift-off with no load is re-filtered from the snapshot: the reference path
+        if out[14][0] < 0.5 or (bits & _LIFT_DETECTED and out[0][1] == 0.0 and self._snap is not None):
             return None
         flags = _flag_set(bits)
         if self._events:
