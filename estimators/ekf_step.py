@@ -48,7 +48,7 @@ from estimators.common import FilterSettings
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel
 
-__all__ = ["ekf_step_function", "observer_model", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
+__all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
            "NO_LOAD_SIGMAS", "LIFT_START_DRIFT"]
 
@@ -76,6 +76,14 @@ NO_LOAD_SIGMAS = 3.0
 #: shortfalls beyond one sigma count
 LIFT_START_DRIFT = 1.0
 
+#: the settings the step Function depends on (the model's are in the model's key): a trial's own
+#: load prior, say, must not build and compile another one
+STEP_SETTINGS = ("noise_std", "model_rel_std", "sensor_range", "saturation_std", "flow_rel_std", "mass_std_abs",
+                 "load_std", "load_rest_std", "lift_threshold", "lift_drift", "lift_load_rel_std",
+                 "flow_factor_std", "modulus_std", "dead_volume_std", "change_threshold", "change_drift",
+                 "change_std", "load_min", "load_max", "output_rel_std", "force_std_floor", "cov_floor",
+                 "gate_nis", "gate_reopen")
+
 _MODEL_CACHE: dict = {}
 _STEP_CACHE: dict = {}
 
@@ -99,7 +107,7 @@ def ekf_step_function(actuator: Actuator, pneumatics: Pneumatics, settings: Filt
     family, compressor map and settings (the actuator's numbers are the input ``theta``)."""
     s = settings.validate()
     om = observer_model(actuator, pneumatics, s)
-    key = (_model_key(actuator, pneumatics, s), tuple(sorted(vars(s).items(), key=lambda kv: kv[0])))
+    key = (_model_key(actuator, pneumatics, s), tuple(getattr(s, n) for n in STEP_SETTINGS))
     if key not in _STEP_CACHE:
         _STEP_CACHE[key] = _build(om, s)
     return _STEP_CACHE[key]

@@ -3,6 +3,8 @@ mapped call against per-chamber calls. No timing is asserted here (see ``hbma-ct
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -125,6 +127,9 @@ def test_step_function_is_one_numeric_generable_function():
     assert "ekf_step" in cg.dump()
     # the same Function for another actuator of the family: its numbers come in through theta
     assert ekf_step_function(Actuator(r1=10e-3), PN, FS) is f
+    # ... and a trial's own load prior does not build (and compile) another
+    assert ekf_step_function(ACT, PN, replace(FS, load_init=2.0, load_init_std=0.2)) is f
+    assert ekf_step_function(ACT, PN, replace(FS, noise_std=300.0)) is not f
 
 
 def test_kind_codes_select_the_update():
