@@ -106,6 +106,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import casadi as ca
 import numpy as np
@@ -175,7 +176,11 @@ def fast(fun: ca.Function, compile: bool) -> FastFunction:
     up the cached library costs milliseconds, paid per filter otherwise)."""
     key = (id(fun), compile)
     if key not in _FN_CACHE:
-        _FN_CACHE[key] = (fun, compiled(fun) if compile else fun)  # fun kept: its id stays unique
+        done = compiled(fun) if compile else fun
+        if compile and done is fun:
+            warnings.warn(f"{fun.name()}: no working C compiler (cc, gcc or clang): the estimator runs on "
+                          "casadi's virtual machine, several times slower per step", RuntimeWarning, stacklevel=2)
+        _FN_CACHE[key] = (fun, done)  # fun kept: its id stays unique
     return FastFunction(_FN_CACHE[key][1], False)
 
 
