@@ -134,6 +134,8 @@ def _events_and_modes(fid: Fidelity, batch: _Batch, X, Xprev, mode, t, U, events
 
 
 _COMPILED: dict = {}
+#: plant-steps (trials x steps) from which the fixed-step simulator compiles its step
+COMPILE_STEPS = 20_000
 
 
 def compiled_once(fun: ca.Function) -> ca.Function:
@@ -250,9 +252,11 @@ def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings, on_progress=
     """Euler/RK4 over the batch, driven by each trial's input schedule; ``on_progress(t)`` (simulated
     time, s) about 200 times over the run."""
     thetas = np.column_stack([fid.space.values(tr.actuator, tr.pneumatics, tr.platform) for tr in trials])
-    plant = Plant(fid, thetas, s.integrator, s.step_for(fid.name))
-    dt = plant.dt
+    dt = s.step_for(fid.name)
     T = max(tr.duration for tr in trials)
+    # a long batch pays the one-off compile of the step (seconds, then cached on disk) back many times
+    plant = Plant(fid, thetas, s.integrator, dt, compile=len(trials) * T / dt >= COMPILE_STEPS)
+    dt = plant.dt
     nsteps = int(math.ceil(T / dt - 1e-9))
     every = max(1, int(round(s.log_dt / dt)))
     switch_steps = {int(round(ts / dt)) for tr in trials for ts in tr.schedule.times}
