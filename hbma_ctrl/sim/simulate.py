@@ -25,7 +25,7 @@ import casadi as ca
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from hbma_ctrl.core.codegen import compiled
+from hbma_ctrl.core.codegen import FastFunction, compiled
 
 from hbma_ctrl.models.fidelity import (
     MODE_MOVING,
@@ -172,6 +172,8 @@ class Plant:
         # compile: the one-plant step as C (cached on disk, the same source for any batch size),
         # mapped over the batch: half the time of casadi's virtual machine, the same numbers
         self._step = compiled_once(step).map(self.n) if compile else fid.mapped(step, self.n)
+        # compiled: called through preallocated buffers (no numpy <-> DM conversion per step)
+        self._fast = FastFunction(self._step, compile=False) if compile else None
         X0 = [fid.initial_state(self.thetas[:, i]) for i in range(self.n)]
         self.X = np.column_stack([x for x, _ in X0])
         self.mode = np.array([m for _, m in X0], dtype=float)
@@ -224,8 +226,12 @@ class Plant:
         fid, det_i = self.fid, OUTPUTS.index("det")
         t = self.t + self.dt
         Xprev, yprev, mode = self.X, self.y, self.mode
-        Xn, dm, y = self._step(Xprev, self.U, self.thetas, mode[None, :])
-        X, y = np.asarray(Xn), np.asarray(y)
+        if self._fast is not None:
+            Xn, dm, y = self._fast(Xprev, self.U, self.thetas, mode)
+            X, y, dm = Xn.reshape(self.n, -1).T.copy(), y.reshape(self.n, -1).T.copy(), dm.copy()
+        else:
+            Xn, dm, y = self._step(Xprev, self.U, self.thetas, mode[None, :])
+            X, y = np.asarray(Xn), np.asarray(y)
         self.mass_in = self.mass_in + np.asarray(dm).ravel()
         changed = False
         if fid.name == "quasi_static":
