@@ -268,6 +268,34 @@ def _slow(loop, runner, periods: float):
     return vc
 
 
+def test_accelerated_the_watchdog_judges_the_ticks_work_not_its_wall_time():
+    """At --speed 20, a tick preempted for 1.5 periods of wall time (a busy shared machine) is
+    counted in steps_over_period_wall only; a tick whose own work takes 1.5 periods of CPU time is
+    over the period and, 10 in a row, latches the overrun."""
+    def run(busy: bool):
+        cfg, runner, rig, loop = _loop(CHAMBER, duration_s=0.3, speed=20.0)
+        tick = runner.tick
+
+        def slow_tick(t, p):
+            if busy:
+                end = time.thread_time() + 1.5 * loop.period
+                while time.thread_time() < end:  # work: this thread's CPU time
+                    pass
+            else:
+                time.sleep(1.5 * loop.period)  # preempted: wall time only
+            return tick(t, p)
+
+        runner.tick = slow_tick
+        loop.clock, loop.sleep, loop.warmup_periods = time.monotonic, time.sleep, 0
+        return loop.run()
+
+    idle = run(busy=False)
+    assert idle["faults"] == {} and idle["steps_over_period"] == 0 and idle["steps_over_period_wall"] == 30
+    assert idle["tick_ms_median"] > 15.0 and idle["tick_cpu_ms_median"] < 10.0
+    busy = run(busy=True)
+    assert busy["faults"] == {"overrun": 1} and busy["steps_over_period"] >= 10
+
+
 def test_missed_deadlines_are_counted_and_skipped_not_burst():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
     _slow(loop, runner, 2.5)

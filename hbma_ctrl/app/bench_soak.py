@@ -11,8 +11,10 @@ a rig / Measured"):
 
 - ``no_fault``: no fault of any kind, and the run ended by its duration;
 - ``no_tick_over_period``: no runtime tick (estimator, controller, supervisor) longer than the rig's
-  period (``steps_over_period``; ``deadline_misses`` counts whole steps, simulated plant included,
-  against the wall period, which an accelerated simulation may never meet);
+  period (``steps_over_period``: accelerated, by its thread's CPU time, the loop's module doc says
+  why; ``deadline_misses`` counts whole steps, simulated plant included, against the wall period,
+  which an accelerated simulation may never meet; ``steps_over_period_wall`` counts wall-clock
+  ticks over the period, which depend on what else the machine runs);
 - ``pressure_limit_held``: the highest reading at or under the controller's pressure limit;
 - ``rss_growth_under_10mb``: resident memory grew by less than 10 MB;
 - ``safe_exit``: the safe command was written at the end.
