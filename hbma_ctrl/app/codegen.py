@@ -1,0 +1,420 @@
+"""Code generation of a closed loop: casadi step Functions -> C sources, a header and a C main program.
+
+A closed loop is described once, as a :class:`LoopSpec`: named signals (flat float vectors, SI),
+per-tick data streams (sensor noise, targets), and the stages called every tick in order, each a
+casadi Function reading and writing signals (a stage with ``every`` = P runs when k % P == 0). The
+same spec runs
+
+- in Python (:func:`run_python`: each stage's Function called through preallocated buffers,
+  :class:`hbma_ctrl.core.codegen.FastFunction`): the *Python path*;
+- as C (:func:`write_c`): one ``casadi.CodeGenerator`` source and header with every Function
+  (``with_header``, ``main`` off), ``loop_data.h`` (the initial signals and the streams) and
+  ``closed_loop.c`` from the template ``codegen_c/closed_loop.c.in``: the loop with nothing but
+  the generated code and libc/libm, writing ``trajectory.csv`` and ``times.json``.
+
+Both log the same columns (:class:`LogColumn`: a signal's entry times a unit factor, edge units), so
+:func:`compare` measures the C loop against the Python path. :func:`scenario_loop` builds the spec of a
+scenario (:mod:`hbma_ctrl.app.codegen_roles`), :func:`generate` writes a directory for ``hbma-ctrl codegen``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.core.codegen import FastFunction
+
+__all__ = ["Stage", "LogColumn", "LoopSpec", "run_python", "write_c", "build_c", "run_c", "compare",
+           "find_compiler", "CFLAGS", "STEPS_NAME", "PythonRun", "CRun", "time_summary"]
+
+#: base name of the generated step sources (``hbma_steps.c`` and ``hbma_steps.h``)
+STEPS_NAME = "hbma_steps"
+#: compiler flags of the C loop: no fast-math, so it rounds as the Python path's Functions do
+CFLAGS = ("-O2", "-std=c99")
+#: the mark a stage list uses for "write the log row here"
+LOG = "log"
+
+
+@dataclass
+class Stage:
+    """One call per tick (or every ``every`` ticks) of a casadi Function.
+
+    Fields
+    ----------
+    fun : the Function (dense inputs and outputs; its name is its C symbol).
+    inputs : for each Function input, the signal it reads.
+    outputs : for each Function output, the signal it writes (None: not kept).
+    every : the stage runs at ticks k with k % every == 0 (>= 1).
+    """
+
+    fun: ca.Function
+    inputs: list
+    outputs: list
+    every: int = 1
+
+    @property
+    def name(self) -> str:
+        """The Function's name (its C symbol)."""
+        return self.fun.name()
+
+
+@dataclass
+class LogColumn:
+    """One column of the trajectory: ``signal[index] * scale`` under ``name`` (edge units in the name).
+
+    Fields
+    ------
+    name : column header, e.g. 'h_true_mm'.
+    signal : the signal it reads.
+    index : the entry of the signal.
+    scale : factor from SI to the column's unit (1e3 for m -> mm).
+    """
+
+    name: str
+    signal: str
+    index: int = 0
+    scale: float = 1.0
+
+
+@dataclass
+class LoopSpec:
+    """A closed loop as signals, streams and stages (see the module docstring).
+
+    Fields
+    ------
+    name : the loop's name (the scenario's).
+    dt : tick period, s.
+    n_ticks : ticks to run.
+    signals : initial value of every signal (flat float arrays, SI).
+    streams : per-tick data, signal name -> (n_ticks, size) array copied into that signal at the start
+        of tick k.
+    stages : the stages in call order, with the string :data:`LOG` where the log row is written
+        (default: after the last stage).
+    log : the trajectory's columns; column 't_s' (k * dt) comes first by itself.
+    """
+
+    name: str
+    dt: float
+    n_ticks: int
+    signals: dict
+    streams: dict
+    stages: list
+    log: list
+    meta: dict = field(default_factory=dict)
+
+    def functions(self) -> list:
+        """The distinct stage Functions, in call order."""
+        seen, out = set(), []
+        for st in self.stages:
+            if isinstance(st, Stage) and st.name not in seen:
+                seen.add(st.name)
+                out.append(st.fun)
+        return out
+
+    def validate(self) -> "LoopSpec":
+        """Check that every stage's signals exist with the Function's sizes; ValueError naming the stage."""
+        sig = {k: np.asarray(v, dtype=float).ravel() for k, v in self.signals.items()}
+        self.signals = sig
+        for k, v in self.streams.items():
+            a = np.asarray(v, dtype=float).reshape(self.n_ticks, -1)
+            if k not in sig or a.shape[1] != sig[k].size:
+                raise ValueError(f"stream '{k}': needs a signal of {a.shape[1]} entries")
+            self.streams[k] = a
+        names = set()
+        for st in self.stages:
+            if st == LOG:
+                continue
+            f = st.fun
+            if st.name in names and any(o is not None for o in st.outputs):
+                pass
+            names.add(st.name)
+            if len(st.inputs) != f.n_in() or len(st.outputs) != f.n_out():
+                raise ValueError(f"stage {st.name}: {f.n_in()} inputs / {f.n_out()} outputs, wired "
+                                 f"{len(st.inputs)} / {len(st.outputs)}")
+            for i, s in enumerate(st.inputs):
+                if s not in sig or sig[s].size != f.nnz_in(i) or not f.sparsity_in(i).is_dense():
+                    raise ValueError(f"stage {st.name}: input {f.name_in(i)} ({f.nnz_in(i)} dense entries) "
+                                     f"has no signal '{s}' of that size")
+            for i, s in enumerate(st.outputs):
+                if s is not None and (s not in sig or sig[s].size != f.numel_out(i)):
+                    raise ValueError(f"stage {st.name}: output {f.name_out(i)} ({f.numel_out(i)} entries) "
+                                     f"has no signal '{s}' of that size")
+            if not (isinstance(st.every, int) and st.every >= 1):
+                raise ValueError(f"stage {st.name}: every = {st.every!r} must be an integer >= 1")
+        for c in self.log:
+            if c.signal not in sig or not 0 <= c.index < sig[c.signal].size:
+                raise ValueError(f"log column {c.name}: no entry {c.index} of signal '{c.signal}'")
+        return self
+
+    def stage_list(self) -> list:
+        """The stages with the log mark placed (at the end when the list has none)."""
+        return list(self.stages) if LOG in self.stages else list(self.stages) + [LOG]
+
+    def header(self) -> list:
+        """The trajectory's column names."""
+        return ["t_s"] + [c.name for c in self.log]
+
+
+def _dense(fun: ca.Function) -> ca.Function:
+    """The Function with dense outputs (a sparse output is densified); itself when all are dense."""
+    if all(fun.sparsity_out(i).is_dense() for i in range(fun.n_out())):
+        return fun
+    args = [ca.MX.sym(fun.name_in(i), fun.sparsity_in(i)) for i in range(fun.n_in())]
+    outs = [ca.densify(o) for o in fun.call(args)]
+    return ca.Function(fun.name(), args, outs, fun.name_in(), fun.name_out())
+
+
+@dataclass
+class PythonRun:
+    """The Python path's trajectory (rows x columns, the spec's header) and call times per stage (s)."""
+
+    trajectory: np.ndarray
+    times: dict
+    status: str = "ok"
+
+
+def run_python(spec: LoopSpec, compile: bool = False) -> PythonRun:
+    """Run the loop with each stage's Function called from Python through buffers.
+
+    ``compile`` False: casadi's virtual machine evaluates each Function; True: the Function compiled
+    to a shared library (:func:`hbma_ctrl.core.codegen.compiled`, cached), as the C loop runs it.
+    """
+    spec.validate()
+    sig = {k: v.copy() for k, v in spec.signals.items()}
+    fast = {}
+    for f in spec.functions():
+        fast[f.name()] = FastFunction(_dense(f), compile=compile)
+    stages = spec.stage_list()
+    times = {name: [] for name in fast}
+    rows = np.full((spec.n_ticks, 1 + len(spec.log)), np.nan)
+    status = "ok"
+    for k in range(spec.n_ticks):
+        for name, a in spec.streams.items():
+            sig[name][:] = a[k]
+        for st in stages:
+            if st == LOG:
+                rows[k, 0] = k * spec.dt
+                for j, c in enumerate(spec.log):
+                    rows[k, 1 + j] = sig[c.signal][c.index] * c.scale
+                continue
+            if k % st.every:
+                continue
+            ff = fast[st.name]
+            args = [sig[s] for s in st.inputs]
+            t0 = time.perf_counter()
+            out = ff(*args)
+            times[st.name].append(time.perf_counter() - t0)
+            for s, o in zip(st.outputs, out):
+                if s is not None:
+                    sig[s][:] = o
+        if not all(np.all(np.isfinite(sig[s])) for st in stages if st != LOG for s in st.outputs if s is not None):
+            status = f"non-finite signal at tick {k}"
+            break
+    return PythonRun(rows, {k: np.asarray(v) for k, v in times.items()}, status)
+
+
+def _c_array(values) -> str:
+    vals = np.asarray(values, dtype=float).ravel()
+    if vals.size == 0:
+        return "{0.0}"
+    parts = []
+    for v in vals:
+        if np.isnan(v):
+            parts.append("NAN")
+        elif np.isinf(v):
+            parts.append("INFINITY" if v > 0 else "-INFINITY")
+        else:
+            parts.append(repr(float(v)))  # repr round-trips a double exactly
+    lines = [", ".join(parts[i:i + 6]) for i in range(0, len(parts), 6)]
+    return "{\n  " + ",\n  ".join(lines) + "\n}"
+
+
+def _cname(name: str) -> str:
+    out = "".join(ch if ch.isalnum() else "_" for ch in name)
+    return out if out and not out[0].isdigit() else "s_" + out
+
+
+def _template() -> str:
+    return resources.files("hbma_ctrl.app").joinpath("codegen_c/closed_loop.c.in").read_text()
+
+
+def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
+    """Write the generated step sources, ``loop_data.h``, ``closed_loop.c``, a ``Makefile`` and
+    ``README.txt`` into ``out_dir``; returns the written paths."""
+    spec.validate()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    funs = [_dense(f) for f in spec.functions()]
+    cg = ca.CodeGenerator(f"{STEPS_NAME}.c", {"with_header": True, "main": False})
+    for f in funs:
+        cg.add(f)
+    cg.generate(str(out) + os.sep)
+    stages = spec.stage_list()
+    sig_c = {k: "sig_" + _cname(k) for k in spec.signals}
+
+    data = [f"/* Data of the closed loop \"{spec.name}\" (SI): initial signals and per-tick streams. */",
+            "#ifndef LOOP_DATA_H", "#define LOOP_DATA_H", "#include <math.h>",
+            f"#define N_TICKS {int(spec.n_ticks)}L", f"#define DT {float(spec.dt)!r}",
+            f"#define LOG_HEADER \"{','.join(spec.header())}\""]
+    for k, v in spec.signals.items():
+        data.append(f"static double {sig_c[k]}[{max(v.size, 1)}] = {_c_array(v)};")
+    for k, a in spec.streams.items():
+        data.append(f"static const double stream_{_cname(k)}[{max(a.size, 1)}] = {_c_array(a)};")
+    data.append("#endif")
+    (out / "loop_data.h").write_text("\n".join(data) + "\n")
+
+    code, init, tick, times, free = [], [], [], [], []
+    for f in funs:
+        n = _cname(f.name())
+        code.append(f"static work_t wk_{n};")
+        code.append(f"static double* tm_{n};  /* call times, s */\nstatic long ntm_{n};")
+        for i in range(f.n_out()):
+            code.append(f"static double out_{n}_{i}[{max(f.nnz_out(i), 1)}];")
+        init.append(f"""  {{
+    casadi_int sz_arg, sz_res, sz_iw, sz_w;
+    {f.name()}_work(&sz_arg, &sz_res, &sz_iw, &sz_w);
+    wk_{n}.arg = (const casadi_real**)xmalloc(sizeof(casadi_real*) * (size_t)sz_arg);
+    wk_{n}.res = (casadi_real**)xmalloc(sizeof(casadi_real*) * (size_t)sz_res);
+    wk_{n}.iw = (casadi_int*)xmalloc(sizeof(casadi_int) * (size_t)sz_iw);
+    wk_{n}.w = (casadi_real*)xmalloc(sizeof(casadi_real) * (size_t)sz_w);
+    {f.name()}_incref();
+    wk_{n}.mem = {f.name()}_checkout();
+    tm_{n} = (double*)xmalloc(sizeof(double) * (size_t)N_TICKS);
+    ntm_{n} = 0;
+  }}""")
+        free.append(f"  {f.name()}_release(wk_{n}.mem);\n  {f.name()}_decref();\n"
+                    f"  free(wk_{n}.arg); free(wk_{n}.res); free(wk_{n}.iw); free(wk_{n}.w); free(tm_{n});")
+        sep = '""' if f is funs[0] else '","'
+        fmt = (r'"%s\n    \"' + f.name() + r'\": {\"calls\": %ld, \"median_us\": %.6g, \"p99_us\": %.6g, '
+               r'\"max_us\": %.6g}"')
+        times.append(f"""  qsort(tm_{n}, (size_t)ntm_{n}, sizeof(double), cmp_double);
+  fprintf(js, {fmt},
+          {sep}, ntm_{n}, 1e6 * percentile(tm_{n}, ntm_{n}, 0.5),
+          1e6 * percentile(tm_{n}, ntm_{n}, 0.99), ntm_{n} ? 1e6 * tm_{n}[ntm_{n} - 1] : NAN);""")
+    for k, a in spec.streams.items():
+        m = a.shape[1]
+        tick.append(f"    memcpy({sig_c[k]}, stream_{_cname(k)} + k * {m}, sizeof(double) * {m});")
+    for st in stages:
+        if st == LOG:
+            fields = ["t"] + [f"{sig_c[c.signal]}[{c.index}] * {float(c.scale)!r}" for c in spec.log]
+            tick.append(f"    fprintf(csv, \"{','.join(['%.17g'] * len(fields))}\\n\", {', '.join(fields)});")
+            continue
+        f = st.fun
+        n = _cname(st.name)
+        body = [f"wk_{n}.arg[{i}] = {sig_c[s]};" for i, s in enumerate(st.inputs)]
+        body += [f"wk_{n}.res[{i}] = out_{n}_{i};" for i in range(f.n_out())]
+        body += ["double t0 = now_s();",
+                 f"int rc = {f.name()}(wk_{n}.arg, wk_{n}.res, wk_{n}.iw, wk_{n}.w, wk_{n}.mem);",
+                 f"tm_{n}[ntm_{n}++] = now_s() - t0;",
+                 "if (rc) status = rc;"]
+        body += [f"memcpy({sig_c[s]}, out_{n}_{i}, sizeof(double) * {f.nnz_out(i)});"
+                 for i, s in enumerate(st.outputs) if s is not None]
+        cond = f"if (k % {st.every} == 0) " if st.every > 1 else ""
+        tick.append(f"    {cond}{{  /* {st.name} */\n      " + "\n      ".join(body) + "\n    }")
+    src = (_template().replace("@NAME@", spec.name).replace("@HEADER@", f"{STEPS_NAME}.h")
+           .replace("@STAGE_CODE@", "\n".join(code)).replace("@STAGE_INIT@", "\n".join(init))
+           .replace("@TICK@", "\n".join(tick)).replace("@TIMES@", "\n".join(times))
+           .replace("@STAGE_FREE@", "\n".join(free)))
+    (out / "closed_loop.c").write_text(src)
+    line = build_line()
+    (out / "Makefile").write_text(
+        "# Build the closed loop (no Python needed): make && ./closed_loop\n"
+        f"CC ?= cc\nCFLAGS ?= {' '.join(CFLAGS)}\n\n"
+        f"closed_loop: closed_loop.c {STEPS_NAME}.c {STEPS_NAME}.h loop_data.h\n"
+        f"\t$(CC) $(CFLAGS) -o $@ closed_loop.c {STEPS_NAME}.c -lm\n\n"
+        "run: closed_loop\n\t./closed_loop .\n\n.PHONY: run\n")
+    stage_text = "\n".join(
+        f"  {st.name:14s} every {st.every} tick(s): ({', '.join(st.inputs)}) -> "
+        f"({', '.join(s or '-' for s in st.outputs)})" for st in stages if st != LOG)
+    (out / "README.txt").write_text(
+        f"Closed loop \"{spec.name}\" generated by hbma-ctrl codegen: {spec.n_ticks} ticks of "
+        f"{spec.dt * 1e3:g} ms.\n\n"
+        f"Build and run (C99 compiler and libm only, no Python):\n  {line}\n  ./closed_loop [OUT_DIR]\n"
+        "or: make run\n\n"
+        f"Files: {STEPS_NAME}.c / {STEPS_NAME}.h (the casadi-generated step Functions), loop_data.h (initial "
+        "signals and per-tick data), closed_loop.c (the loop).\n"
+        "Outputs: trajectory.csv (one row per tick, edge units in the column names, %.17g), times.json (per "
+        "Function: calls, median/p99/max wall time of one call, us; clock_gettime MONOTONIC).\n\n"
+        f"Stages per tick, in order (signals SI):\n{stage_text}\n"
+        + "".join(f"\n{k}: {v}" for k, v in spec.meta.items()) + "\n")
+    return [out / f"{STEPS_NAME}.c", out / f"{STEPS_NAME}.h", out / "loop_data.h", out / "closed_loop.c",
+            out / "Makefile", out / "README.txt"]
+
+
+def build_line(cc: str = "cc") -> str:
+    """The command that builds the loop in its directory."""
+    return f"{cc} {' '.join(CFLAGS)} -o closed_loop closed_loop.c {STEPS_NAME}.c -lm"
+
+
+def find_compiler() -> str | None:
+    """The system C compiler (cc, gcc or clang on PATH), or None."""
+    for cc in ("cc", "gcc", "clang"):
+        path = shutil.which(cc)
+        if path:
+            return path
+    return None
+
+
+def build_c(out_dir: Path | str, cc: str | None = None) -> Path:
+    """Compile the loop in ``out_dir`` with the system compiler; RuntimeError with its message on failure."""
+    cc = cc or find_compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler (cc, gcc or clang) on PATH")
+    out = Path(out_dir)
+    res = subprocess.run(build_line(cc).split(), cwd=out, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"{cc} failed: {res.stderr.strip()[:2000]}")
+    return out / "closed_loop"
+
+
+@dataclass
+class CRun:
+    """The C loop's trajectory (rows x columns), header and times.json content."""
+
+    trajectory: np.ndarray
+    header: list
+    times: dict
+
+
+def run_c(out_dir: Path | str, timeout: float = 600.0) -> CRun:
+    """Run the built loop in ``out_dir``; read trajectory.csv and times.json."""
+    out = Path(out_dir)
+    res = subprocess.run([str(out / "closed_loop"), str(out)], capture_output=True, text=True, timeout=timeout)
+    if res.returncode != 0:
+        raise RuntimeError(f"closed_loop exited {res.returncode}: {res.stderr.strip()[:2000]}")
+    with (out / "trajectory.csv").open() as fh:
+        header = fh.readline().strip().split(",")
+    traj = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2)
+    return CRun(traj, header, json.loads((out / "times.json").read_text()))
+
+
+def compare(spec: LoopSpec, py: PythonRun, c: CRun) -> dict:
+    """Largest absolute difference per column between the two trajectories, in SI (column / scale)."""
+    if c.trajectory.shape != py.trajectory.shape:
+        raise ValueError(f"trajectories differ in shape: C {c.trajectory.shape}, Python {py.trajectory.shape}")
+    scales = [1.0] + [c_.scale for c_ in spec.log]
+    out = {}
+    for j, name in enumerate(spec.header()):
+        a, b = py.trajectory[:, j] / scales[j], c.trajectory[:, j] / scales[j]
+        same_nan = np.isnan(a) & np.isnan(b)
+        d = np.where(same_nan, 0.0, np.abs(a - b))
+        out[name] = float(np.max(d)) if d.size else 0.0
+    return out
+
+
+def time_summary(samples_s) -> dict:
+    """calls, median_us, p99_us, max_us of call times given in s (numpy's linear percentiles)."""
+    a = np.asarray(samples_s, dtype=float)
+    if a.size == 0:
+        return {"calls": 0, "median_us": None, "p99_us": None, "max_us": None}
+    return {"calls": int(a.size), "median_us": float(np.median(a) * 1e6),
+            "p99_us": float(np.percentile(a, 99) * 1e6), "max_us": float(a.max() * 1e6)}
