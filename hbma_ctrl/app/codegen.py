@@ -54,12 +54,27 @@ class Stage:
     inputs : for each Function input, the signal it reads.
     outputs : for each Function output, the signal it writes (None: not kept).
     every : the stage runs at ticks k with k % every == 0 (>= 1).
+    gate : a signal whose first entry switches the stage: it runs only while that entry is not 0
+        (None: always).
+    gate_off : run while the gate's entry IS 0 instead.
+    repeat : calls per run, each reading the signals the previous one wrote (iterations).
     """
 
     fun: ca.Function
     inputs: list
     outputs: list
     every: int = 1
+    gate: str | None = None
+    gate_off: bool = False
+    repeat: int = 1
+
+    def runs(self, k: int, sig: dict) -> bool:
+        """Whether the stage runs at tick k with these signal values."""
+        if k % self.every:
+            return False
+        if self.gate is None:
+            return True
+        return (sig[self.gate][0] == 0.0) if self.gate_off else (sig[self.gate][0] != 0.0)
 
     @property
     def name(self) -> str:
@@ -150,6 +165,10 @@ class LoopSpec:
                                      f"has no signal '{s}' of that size")
             if not (isinstance(st.every, int) and st.every >= 1):
                 raise ValueError(f"stage {st.name}: every = {st.every!r} must be an integer >= 1")
+            if not (isinstance(st.repeat, int) and st.repeat >= 1):
+                raise ValueError(f"stage {st.name}: repeat = {st.repeat!r} must be an integer >= 1")
+            if st.gate is not None and st.gate not in sig:
+                raise ValueError(f"stage {st.name}: gate signal '{st.gate}' does not exist")
         for c in self.log:
             if c.signal not in sig or not 0 <= c.index < sig[c.signal].size:
                 raise ValueError(f"log column {c.name}: no entry {c.index} of signal '{c.signal}'")
@@ -175,11 +194,10 @@ def _dense(fun: ca.Function) -> ca.Function:
 
 @dataclass
 class PythonRun:
-    """The Python path's trajectory (rows x columns, the spec's header) and call times per stage (s)."""
+    """The Python path's trajectory (rows x columns, the spec's header) and call times per Function (s)."""
 
     trajectory: np.ndarray
     times: dict
-    status: str = "ok"
 
 
 def run_python(spec: LoopSpec, compile: bool = False) -> PythonRun:
@@ -196,7 +214,6 @@ def run_python(spec: LoopSpec, compile: bool = False) -> PythonRun:
     stages = spec.stage_list()
     times = {name: [] for name in fast}
     rows = np.full((spec.n_ticks, 1 + len(spec.log)), np.nan)
-    status = "ok"
     for k in range(spec.n_ticks):
         for name, a in spec.streams.items():
             sig[name][:] = a[k]
@@ -206,20 +223,18 @@ def run_python(spec: LoopSpec, compile: bool = False) -> PythonRun:
                 for j, c in enumerate(spec.log):
                     rows[k, 1 + j] = sig[c.signal][c.index] * c.scale
                 continue
-            if k % st.every:
+            if not st.runs(k, sig):
                 continue
             ff = fast[st.name]
-            args = [sig[s] for s in st.inputs]
-            t0 = time.perf_counter()
-            out = ff(*args)
-            times[st.name].append(time.perf_counter() - t0)
-            for s, o in zip(st.outputs, out):
-                if s is not None:
-                    sig[s][:] = o
-        if not all(np.all(np.isfinite(sig[s])) for st in stages if st != LOG for s in st.outputs if s is not None):
-            status = f"non-finite signal at tick {k}"
-            break
-    return PythonRun(rows, {k: np.asarray(v) for k, v in times.items()}, status)
+            for _ in range(st.repeat):
+                args = [sig[s] for s in st.inputs]
+                t0 = time.perf_counter()
+                out = ff(*args)
+                times[st.name].append(time.perf_counter() - t0)
+                for s, o in zip(st.outputs, out):
+                    if s is not None:
+                        sig[s][:] = o
+    return PythonRun(rows, {k: np.asarray(v) for k, v in times.items()})
 
 
 def _c_array(values) -> str:
@@ -273,10 +288,15 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
     (out / "loop_data.h").write_text("\n".join(data) + "\n")
 
     code, init, tick, times, free = [], [], [], [], []
+    calls = {f.name(): 1 for f in funs}  # most calls each Function can get: sizes its time buffer
+    for st in stages:
+        if st != LOG:
+            calls[st.name] += -(-spec.n_ticks // st.every) * st.repeat
     for f in funs:
         n = _cname(f.name())
         code.append(f"static work_t wk_{n};")
-        code.append(f"static double* tm_{n};  /* call times, s */\nstatic long ntm_{n};")
+        code.append(f"static double* tm_{n};  /* call times, s */\nstatic long ntm_{n};\n"
+                    f"static long nrc_{n};  /* calls that returned non-zero (a solver's failure flag) */")
         for i in range(f.n_out()):
             code.append(f"static double out_{n}_{i}[{max(f.nnz_out(i), 1)}];")
         init.append(f"""  {{
@@ -288,18 +308,18 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
     wk_{n}.w = (casadi_real*)xmalloc(sizeof(casadi_real) * (size_t)sz_w);
     {f.name()}_incref();
     wk_{n}.mem = {f.name()}_checkout();
-    tm_{n} = (double*)xmalloc(sizeof(double) * (size_t)N_TICKS);
+    tm_{n} = (double*)xmalloc(sizeof(double) * (size_t){calls[f.name()]});
     ntm_{n} = 0;
   }}""")
         free.append(f"  {f.name()}_release(wk_{n}.mem);\n  {f.name()}_decref();\n"
                     f"  free(wk_{n}.arg); free(wk_{n}.res); free(wk_{n}.iw); free(wk_{n}.w); free(tm_{n});")
         sep = '""' if f is funs[0] else '","'
         fmt = (r'"%s\n    \"' + f.name() + r'\": {\"calls\": %ld, \"median_us\": %.6g, \"p99_us\": %.6g, '
-               r'\"max_us\": %.6g}"')
+               r'\"max_us\": %.6g, \"nonzero_returns\": %ld}"')
         times.append(f"""  qsort(tm_{n}, (size_t)ntm_{n}, sizeof(double), cmp_double);
   fprintf(js, {fmt},
           {sep}, ntm_{n}, 1e6 * percentile(tm_{n}, ntm_{n}, 0.5),
-          1e6 * percentile(tm_{n}, ntm_{n}, 0.99), ntm_{n} ? 1e6 * tm_{n}[ntm_{n} - 1] : NAN);""")
+          1e6 * percentile(tm_{n}, ntm_{n}, 0.99), ntm_{n} ? 1e6 * tm_{n}[ntm_{n} - 1] : NAN, nrc_{n});""")
     for k, a in spec.streams.items():
         m = a.shape[1]
         tick.append(f"    memcpy({sig_c[k]}, stream_{_cname(k)} + k * {m}, sizeof(double) * {m});")
@@ -315,11 +335,15 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
         body += ["double t0 = now_s();",
                  f"int rc = {f.name()}(wk_{n}.arg, wk_{n}.res, wk_{n}.iw, wk_{n}.w, wk_{n}.mem);",
                  f"tm_{n}[ntm_{n}++] = now_s() - t0;",
-                 "if (rc) status = rc;"]
+                 f"if (rc) ++nrc_{n};"]
         body += [f"memcpy({sig_c[s]}, out_{n}_{i}, sizeof(double) * {f.nnz_out(i)});"
                  for i, s in enumerate(st.outputs) if s is not None]
-        cond = f"if (k % {st.every} == 0) " if st.every > 1 else ""
-        tick.append(f"    {cond}{{  /* {st.name} */\n      " + "\n      ".join(body) + "\n    }")
+        conds = [f"k % {st.every} == 0"] if st.every > 1 else []
+        if st.gate is not None:
+            conds.append(f"{sig_c[st.gate]}[0] {'==' if st.gate_off else '!='} 0.0")
+        cond = f"if ({' && '.join(conds)}) " if conds else ""
+        loop = f"for (int rep = 0; rep < {st.repeat}; ++rep) " if st.repeat > 1 else ""
+        tick.append(f"    {cond}{loop}{{  /* {st.name} */\n      " + "\n      ".join(body) + "\n    }")
     src = (_template().replace("@NAME@", spec.name).replace("@HEADER@", f"{STEPS_NAME}.h")
            .replace("@STAGE_CODE@", "\n".join(code)).replace("@STAGE_INIT@", "\n".join(init))
            .replace("@TICK@", "\n".join(tick)).replace("@TIMES@", "\n".join(times))
@@ -333,8 +357,11 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
         f"\t$(CC) $(CFLAGS) -o $@ closed_loop.c {STEPS_NAME}.c -lm\n\n"
         "run: closed_loop\n\t./closed_loop .\n\n.PHONY: run\n")
     stage_text = "\n".join(
-        f"  {st.name:14s} every {st.every} tick(s): ({', '.join(st.inputs)}) -> "
-        f"({', '.join(s or '-' for s in st.outputs)})" for st in stages if st != LOG)
+        f"  {st.name:14s} every {st.every} tick(s)"
+        + (f" while {st.gate} {'== 0' if st.gate_off else '!= 0'}" if st.gate else "")
+        + (f", {st.repeat} calls" if st.repeat > 1 else "")
+        + f": ({', '.join(st.inputs)}) -> ({', '.join(s or '-' for s in st.outputs)})"
+        if st != LOG else "  (trajectory row)" for st in stages)
     (out / "README.txt").write_text(
         f"Closed loop \"{spec.name}\" generated by hbma-ctrl codegen: {spec.n_ticks} ticks of "
         f"{spec.dt * 1e3:g} ms.\n\n"

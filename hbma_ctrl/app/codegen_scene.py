@@ -1,0 +1,316 @@
+"""A scenario's closed loop (rig -> EKF -> RTI NMPC -> rig) as a :class:`~hbma_ctrl.app.codegen.LoopSpec`.
+
+The three step Functions are the ones the Python roles call: the plant over one rig period
+(:func:`hbma_ctrl.sim.plant_step.plant_step_function`), the EKF step
+(:func:`estimators.ekf_step.ekf_step_function`) and the RTI step
+(:func:`controllers.rti_step.rti_step_function`). What the Python classes do around them is written
+here as small casadi Functions too, so that the C loop needs no Python:
+
+- ``sensor``: the rig's reading, the true pressure plus the tick's noise, saturated at the range
+  (noise and dropouts drawn at generation time from the rig's seeded stream, as :class:`Rig` draws them);
+- ``ekf_kind``: the reading's kind (:func:`estimators.common.classify_measurement`);
+- ``mpc_prep``: the NMPC's problem data from the estimate (its load filter, initial state, output
+  biases, reachable height and clipped targets; :meth:`controllers.mpc.NMPC._problem`);
+- ``mpc_cold``: the cold-start guess (after the first step or a failure);
+- ``mpc_post``: the command after the NMPC and the runtime's supervisor (plan replay on a failure,
+  safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`).
+
+Not reproduced (the generated loop and its Python path leave them out, both alike): the start-up
+calibration, the EKF's rare reference-path events (``exact`` = 0; counted), the budget/overrun
+logic (wall-clock dependent), load steps during the run. The loop starts at t = 0 with the rig at
+rest, like ``closed_loop(..., calibrate=False)``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.app.codegen import LOG, LogColumn, LoopSpec, Stage
+from hbma_ctrl.core.interfaces import SAFE_COMMAND
+from hbma_ctrl.models.fidelity import OUTPUTS
+from hbma_ctrl.runtime.chamber import chamber_supervisor
+from hbma_ctrl.sim.plant_step import initial_plant_state, plant_step_function, plant_step_support
+from hbma_ctrl.sim.rig import Rig, RigSettings
+from hbma_ctrl.sim.trial import DEFAULT_DT
+
+__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "ESTIMATORS"]
+
+
+# --------------------------------------------------------------------------------------------- rig
+def plant_stage_parts(actuator, pneumatics, platform, rs: RigSettings):
+    """(plant_step Function, theta, x0, mode0, y0, fidelity name) of the rig a scene would build.
+
+    ValueError naming the scenario key when the rig's period step is not one casadi Function."""
+    rig = Rig(actuator, pneumatics, platform, rs)
+    fid = rig._plant.fid
+    why = plant_step_support(fid.name, rs)
+    if why:
+        raise ValueError(f"codegen: {why}")
+    dt = rs.dt if rs.dt is not None else DEFAULT_DT[(rs.integrator, fid.name)]
+    nsub = max(1, int(np.ceil(rs.sample_period / dt - 1e-9)))
+    fun = plant_step_function(fid, rs.integrator, rs.sample_period / nsub, nsub)
+    theta = rig._plant.thetas[:, 0].copy()
+    x0, m0, y0 = initial_plant_state(fid, theta)
+    return fun, theta, x0, m0, y0, fid.name
+
+
+def rig_noise(rs: RigSettings, n: int) -> np.ndarray:
+    """The rig's first n sensor perturbations (Pa; NaN = dropout), drawn as :meth:`Rig.measure` does."""
+    rng = np.random.default_rng(rs.seed)
+    out = np.zeros(n)
+    for k in range(n):
+        noise = rng.standard_normal() * rs.noise_std
+        drop = rng.random() < rs.dropout_prob if rs.dropout_prob > 0 else False
+        out[k] = math.nan if drop else noise
+    return out
+
+
+def _sensor(sensor_range: float) -> ca.Function:
+    y, noise = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("noise")
+    z = y[OUTPUTS.index("p")] + noise
+    # NaN noise (a dropout) stays NaN: the comparison is false for it
+    return ca.Function("sensor", [y, noise], [ca.if_else(z > sensor_range, sensor_range, z)], ["y", "noise"], ["z"])
+
+
+# --------------------------------------------------------------------------------------------- MPC
+def _hat(xq, grid: np.ndarray):
+    """Weights (len(grid)) of linear interpolation at xq (clamped to the grid), as ``np.interp``."""
+    g = np.asarray(grid, dtype=float)
+    xq = ca.fmin(ca.fmax(xq, g[0]), g[-1])
+    lo, hi = ca.DM(g[:-1]), ca.DM(g[1:])
+    inside = ca.logic_and(xq > lo, xq <= hi)
+    inside[0] = xq <= g[1]
+    s = (xq - lo) / (hi - lo)
+    w_lo = ca.if_else(inside, 1 - s, 0)
+    w_hi = ca.if_else(inside, s, 0)
+    return ca.vertcat(w_lo, 0) + ca.vertcat(0, w_hi)
+
+
+def mpc_glue(model, s, sup) -> tuple:
+    """(mpc_prep, mpc_cold, mpc_post) casadi Functions of the NMPC with settings ``s`` (MPCSettings)
+    on its PredictionModel and the supervisor settings ``sup`` (see the module docstring)."""
+    g = model.grid
+    N = s.horizon
+    act = model.actuator
+    MX = ca.MX
+    h_est, p_est, F_est, rest_flag = MX.sym("h"), MX.sym("p"), MX.sym("F"), MX.sym("resting")
+    r_in, Wf, has_W = MX.sym("r", N), MX.sym("Wf"), MX.sym("has_W")
+    # --- the load filter (NMPC._load): dt is the controller period
+    F = ca.if_else(ca.logic_and(F_est == F_est, ca.fabs(F_est) < ca.inf), F_est, 0)
+    F = ca.fmax(F, 0)
+    resting_h = h_est < s.rest_height
+    resting = ca.logic_or(resting_h, rest_flag != 0)
+    a = 1.0 if s.load_tau <= 0 else min(1.0, s.sample_period / s.load_tau)
+    Wf_new = ca.if_else(has_W == 0, F, ca.if_else(resting, ca.fmax(F, Wf), Wf + a * (F - Wf)))
+    W = ca.fmin(Wf_new, s.load_max)
+    # --- the load path at W (PredictionModel.path): linear in W between the grid's columns
+    wW = _hat(ca.fmin(ca.fmax(W, 0.0), model.load_max), g.W)
+    x_path = ca.mtimes(ca.DM(g.x_path), wW)
+    p_path = ca.mtimes(ca.DM(g.p_path), wW)
+    l_path = ca.mtimes(ca.DM(g.lam_path), wW)
+    hp = np.asarray(g.h_path, dtype=float)
+    lift_x = ca.fmin(ca.fmax(W, 0.0), model.load_max) / (math.pi * act.r1 ** 2) / act.p_env
+    x_at_h = ca.dot(_hat(h_est, hp), x_path)
+    x0 = ca.if_else(resting_h, ca.fmin(p_est / act.p_env, lift_x), x_at_h)
+    hp0 = model.HP(x0, W)
+    dh = ca.if_else(resting_h, 0, h_est - hp0[0])
+    dp = p_est - hp0[1]
+    p_lim = s.p_max - s.p_margin
+    # --- reachable height (PredictionModel.reachable_height) along the path
+    p_limit, h_lim = p_lim - ca.fmax(dp, 0), s.h_max - ca.fmax(dh, 0)
+    hpd = ca.DM(hp)
+    ok = ca.logic_and(ca.logic_and(p_path <= p_limit, l_path <= s.lam_max), hpd <= h_lim)
+    bad = 1 - ok
+    n = hp.size
+    before = ca.DM(np.tril(np.ones((n, n)), -1))  # bad nodes before each node
+    first = ca.logic_and(bad, ca.mtimes(before, bad) == 0)[1:]
+    fr = ca.DM.inf(n - 1)
+    fr = MX(fr)
+    for v, lim in ((p_path, p_limit), (l_path, s.lam_max), (hpd, h_lim)):
+        v0, v1 = v[:-1], v[1:]
+        cand = ca.if_else(ca.logic_and(v1 > lim, v1 != v0), (lim - v0) / (v1 - v0), ca.inf)
+        fr = ca.fmin(fr, cand)
+    h0n, h1n = hpd[:-1], hpd[1:]
+    at = ca.if_else(fr < ca.inf, h0n + (h1n - h0n) * fr, h0n)
+    reach_first = ca.sum1(ca.if_else(first, at, 0))
+    any_bad = ca.sum1(bad[1:]) > 0
+    reach = ca.if_else(ok[0] == 0, 0, ca.if_else(any_bad, reach_first, ca.fmin(hp[-1], s.h_max))) + dh
+    hi = ca.fmax(ca.fmin(reach, s.h_max), s.h_min)
+    r_c = ca.fmin(ca.fmax(r_in, s.h_min), hi)
+    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, Wf, has_W],
+                       [x0, W, dh, dp, MX(p_lim), r_c, Wf_new, MX(1.0)],
+                       ["h", "p", "F", "resting", "r", "Wf", "has_W"],
+                       ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next"])
+    # --- cold start (the backend without a plan): the estimate held, the last command repeated
+    x0s, up = ca.SX.sym("x0"), ca.SX.sym("u_prev", 3)
+    cold = ca.Function("mpc_cold", [x0s, up], [ca.repmat(x0s, N + 1, 1), ca.repmat(up, 1, N)],
+                       ["x0", "u_prev"], ["X_guess", "U_guess"])
+    # --- NMPC result -> supervisor (fallback, clip, guard) -> the command sent
+    SX = ca.SX
+    u0, Up, status, p_g_in = SX.sym("u0", 3), SX.sym("U_plan", 3, N), SX.sym("status"), SX.sym("p")
+    plan, has_plan, age, streak = SX.sym("plan", 3, N), SX.sym("has_plan"), SX.sym("age"), SX.sym("streak")
+    safe = ca.DM(SAFE_COMMAND.as_array())
+    safe[2] = sup.safe_outlet
+    okc = status == 0
+    streak_n = ca.if_else(okc, 0, streak + 1)
+    row = age + 1
+    can = ca.logic_and(ca.logic_and(has_plan != 0, streak_n <= sup.fallback_plan_steps),
+                       ca.logic_and(row >= 0, row < N))
+    pick = SX.zeros(3)
+    for j in range(N):
+        pick += ca.if_else(row == j, plan[:, j], SX.zeros(3))
+    fallback = ca.if_else(can, pick, safe)
+    cmd = ca.if_else(okc, ca.fmin(ca.fmax(u0, 0), 1), fallback)
+    cmd = ca.fmin(ca.fmax(cmd, 0), 1)
+    finite = ca.logic_and(p_g_in == p_g_in, ca.fabs(p_g_in) < ca.inf)
+    p_g = ca.if_else(finite, p_g_in, sup.p_max)
+    zone = p_g >= sup.p_max - sup.guard_margin
+    if not sup.missing_is_limit:
+        zone = ca.logic_and(zone, finite)
+    unsafe = cmd[0] > 0
+    if sup.vent_margin is not None:
+        unsafe = ca.logic_or(unsafe, cmd[2] < 1.0)
+    act_g = ca.logic_and(zone, unsafe)
+    out = ca.vertcat(ca.if_else(act_g, 0, cmd[0]), ca.if_else(act_g, 0, cmd[1]), cmd[2])
+    if sup.vent_margin is not None:
+        out[2] = ca.if_else(ca.logic_and(act_g, p_g >= sup.p_max - sup.vent_margin), 1.0, cmd[2])
+    plan_n = ca.if_else(okc, Up, plan)
+    has_n = ca.if_else(okc, 1, ca.if_else(can, has_plan, has_plan))
+    age_n = ca.if_else(okc, 0, ca.if_else(can, row, age))
+    post = ca.Function("mpc_post", [u0, Up, status, p_g_in, plan, has_plan, age, streak],
+                       [out, 1 - okc, plan_n, has_n, age_n, streak_n],
+                       ["u0", "U_plan", "status", "p", "plan", "has_plan", "age", "streak"],
+                       ["u", "cold", "plan_next", "has_plan_next", "age_next", "streak_next"])
+    return prep, cold, post
+
+
+def _mpc_stages(scn, section, every: int) -> tuple[list, dict, dict]:
+    """The NMPC's stages, its signals and meta data (RTI variant only)."""
+    from controllers.mpc import NMPC
+    from controllers.rti_step import rti_step_function
+
+    s = section.mpc
+    if s.variant not in ("rti_osqp",) and not s.variant.startswith("rti"):
+        raise ValueError(f"codegen: [controller] variant = '{s.variant}': only the RTI variants generate C")
+    nmpc = NMPC(scn.actuator, scn.pneumatics, s)
+    model = nmpc.model
+    sup = chamber_supervisor(s).settings
+    prep, cold, post = mpc_glue(model, s, sup)
+    rti = rti_step_function(model, s, "qrqp")
+    N = s.horizon
+    signals = {"Wf": [0.0], "has_W": [0.0], "x0": [0.0], "W": [0.0], "dh": [0.0], "dp": [0.0], "p_lim": [0.0],
+               "r_c": np.zeros(N), "X_guess": np.zeros(N + 1), "U_guess": np.zeros(3 * N), "u0": np.zeros(3),
+               "status": [0.0], "qp_residual": [0.0], "shift0": [0.0], "shift1": [1.0], "cold": [1.0],
+               "plan": np.zeros(3 * N), "has_plan": [0.0], "age": [0.0], "streak": [0.0]}
+    rti_in = ["x0", "W", "dh", "dp", "u", "p_lim", "r_c", "X_guess", "U_guess"]
+    rti_out = ["u0", "X_guess", "U_guess", "status", "qp_residual"]
+    stages = [
+        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W"],
+              ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W"], every=every),
+        Stage(cold, ["x0", "u"], ["X_guess", "U_guess"], every=every, gate="cold"),
+        Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="cold", repeat=s.rti_init_iterations),
+        Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="cold", gate_off=True),
+        Stage(post, ["u0", "U_guess", "status", "est_p", "plan", "has_plan", "age", "streak"],
+              ["u", "cold", "plan", "has_plan", "age", "streak"], every=every),
+    ]
+    return stages, signals, {"controller": f"RTI NMPC, N = {N}, QP qrqp, every {every} rig periods"}
+
+
+# --------------------------------------------------------------------------------------------- EKF
+def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
+    """The EKF's stages and signals, initialised from the first reading z0 (Pa) by the Python EKF."""
+    try:
+        from estimators import ekf_step as es
+    except ImportError:  # pragma: no cover - the EKF step Function lives on the ekfc branch until merged
+        raise ValueError("codegen: this build has no estimators.ekf_step (the EKF step Function)") from None
+    from hbma_ctrl.app.scene_controller import default_estimator, estimator_from_scenario
+
+    est = estimator_from_scenario(scn, rs)
+    if est is None:
+        est = default_estimator(scn.actuator, scn.pneumatics, None, rs)
+    if type(est).__name__ != "EKF":
+        raise ValueError(f"codegen: [estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
+    fun = es.ekf_step_function(scn.actuator, scn.pneumatics, est.settings)
+    raise NotImplementedError(fun)
+
+
+def _truth_stages() -> tuple[list, dict, dict]:
+    """A stand-in estimator that reads the rig's true height, pressure, force and mode (isolates the
+    controller and the plant from the filter)."""
+    y, mode = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("mode")
+    fun = ca.Function("truth_estimate", [y, mode],
+                      [y[OUTPUTS.index("h")], y[OUTPUTS.index("p")], y[OUTPUTS.index("F")], mode == 0],
+                      ["y", "mode"], ["h", "p", "F", "resting"])
+    signals = {"est_h": [0.0], "est_p": [0.0], "est_F": [0.0], "resting": [1.0]}
+    return [Stage(fun, ["y", "mode"], ["est_h", "est_p", "est_F", "resting"])], signals, {
+        "estimator": "the rig's true state (no filter)"}
+
+
+# --------------------------------------------------------------------------------------------- loop
+#: estimators a generated loop can run: the scenario's EKF, or the rig's truth (tests, controller alone)
+ESTIMATORS = ("ekf", "truth")
+
+
+def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf") -> LoopSpec:
+    """The scenario's closed loop (see the module docstring) over ``duration`` s (None: the
+    scenario's); ``estimator`` one of :data:`ESTIMATORS`. ValueError naming the section that cannot
+    be generated."""
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"codegen: estimator = '{estimator}'; allowed: {', '.join(ESTIMATORS)}")
+    if scn.role("robot") is not None:
+        raise ValueError("codegen: [robot] scenarios cannot be generated yet (the robot's plant and NMPC "
+                         "are not single Functions); use a single-chamber scenario with [controller]")
+    section = scn.role("controller")
+    if section is None:
+        raise ValueError("codegen: the scenario has no [controller] section (the generated loop is "
+                         "rig -> EKF -> NMPC -> rig)")
+    if section.kind != "mpc":
+        raise ValueError(f"codegen: [controller] kind = '{section.kind}': only 'mpc' generates C")
+    if section.load_steps:
+        raise ValueError("codegen: [controller] load_steps_g: load changes during the run switch the rig's "
+                         "plant model in Python; remove them to generate C")
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    ratio = section.sample_period / rs.sample_period
+    every = int(round(ratio))
+    if every < 1 or abs(ratio - every) > 1e-6:
+        raise ValueError(f"codegen: [controller] sample_ms must be a whole multiple of [rig] sample_period_ms")
+    T = scn.duration if duration is None else float(duration)
+    n = int(round(T / rs.sample_period))
+    plant, theta, x0, m0, y0, fid_name = plant_stage_parts(scn.actuator, scn.pneumatics, scn.platform, rs)
+    noise = rig_noise(rs, n)
+    sensor = _sensor(rs.sensor_range)
+    z0 = float(np.asarray(sensor(y0, noise[0])).ravel()[0])
+    ekf_stages, ekf_signals, ekf_meta = _ekf_stages(scn, rs, z0) if estimator == "ekf" else _truth_stages()
+    mpc_stages, mpc_signals, mpc_meta = _mpc_stages(scn, section, every)
+    N = section.mpc.horizon
+    use_preview = section.preview if section.preview is not None else (
+        section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
+    t = np.arange(n) * rs.sample_period
+    target = np.array([section.reference(tk) for tk in t])
+    if use_preview:
+        ref = np.array([[section.reference(tk + section.sample_period * (j + 1)) for j in range(N)] for tk in t])
+    else:
+        ref = np.repeat(target[:, None], N, axis=1)
+    signals = {"x": x0, "mode": [m0], "y": y0, "u": np.zeros(3), "theta": theta, "noise": [0.0], "z": [z0],
+               "target": [0.0], "ref": np.zeros(N)}
+    signals.update(ekf_signals)
+    signals.update(mpc_signals)
+    stages = [Stage(sensor, ["y", "noise"], ["z"])] + ekf_stages + mpc_stages + [LOG] + [
+        Stage(plant, ["x", "mode", "u", "theta"], ["x", "mode", "y"])]
+    hi = OUTPUTS.index("h")
+    pi = OUTPUTS.index("p")
+    Fi = OUTPUTS.index("F")
+    log = [LogColumn("target_mm", "target", 0, 1e3), LogColumn("h_true_mm", "y", hi, 1e3),
+           LogColumn("h_est_mm", "est_h", 0, 1e3), LogColumn("p_true_kpa", "y", pi, 1e-3),
+           LogColumn("p_meas_kpa", "z", 0, 1e-3), LogColumn("p_est_kpa", "est_p", 0, 1e-3),
+           LogColumn("F_true_n", "y", Fi, 1.0), LogColumn("F_est_n", "est_F", 0, 1.0),
+           LogColumn("speed", "u", 0), LogColumn("inlet", "u", 1), LogColumn("outlet", "u", 2),
+           LogColumn("mode", "mode", 0), LogColumn("mpc_status", "status", 0)]
+    meta = {"scenario": scn.name, "rig": f"{fid_name}, {rs.integrator}, {rs.sample_period * 1e3:g} ms, seed {rs.seed}"}
+    meta.update(ekf_meta)
+    meta.update(mpc_meta)
+    return LoopSpec(scn.name, rs.sample_period, n, signals, {"noise": noise, "target": target, "ref": ref},
+                    stages, log, meta).validate()
