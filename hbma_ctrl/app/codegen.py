@@ -34,10 +34,13 @@ import numpy as np
 from hbma_ctrl.core.codegen import FastFunction
 
 __all__ = ["Stage", "LogColumn", "LoopSpec", "run_python", "write_c", "build_c", "run_c", "compare",
-           "find_compiler", "CFLAGS", "STEPS_NAME", "PythonRun", "CRun", "time_summary"]
+           "find_compiler", "CFLAGS", "OPT_FLAGS", "STEPS_NAME", "PythonRun", "CRun", "time_summary", "build_line", "LIBRARY",
+           "bench"]
 
 #: base name of the generated step sources (``hbma_steps.c`` and ``hbma_steps.h``)
 STEPS_NAME = "hbma_steps"
+#: the generated steps as a shared library (built beside the program by :func:`build_c`)
+LIBRARY = f"lib{STEPS_NAME}.so"
 #: compiler flags of the C loop: no fast-math, so it rounds as the Python path's Functions do
 CFLAGS = ("-O2", "-std=c99")
 #: the mark a stage list uses for "write the log row here"
@@ -200,17 +203,19 @@ class PythonRun:
     times: dict
 
 
-def run_python(spec: LoopSpec, compile: bool = False) -> PythonRun:
+def run_python(spec: LoopSpec, library: Path | str | None = None) -> PythonRun:
     """Run the loop with each stage's Function called from Python through buffers.
 
-    ``compile`` False: casadi's virtual machine evaluates each Function; True: the Function compiled
-    to a shared library (:func:`hbma_ctrl.core.codegen.compiled`, cached), as the C loop runs it.
+    ``library`` None: casadi's virtual machine evaluates each Function as built; a path: the
+    Functions are loaded (``casadi.external``) from that shared library of the generated sources
+    (:func:`build_c` writes ``libhbma_steps.so`` beside the program), the very code the C loop runs.
     """
     spec.validate()
     sig = {k: v.copy() for k, v in spec.signals.items()}
     fast = {}
     for f in spec.functions():
-        fast[f.name()] = FastFunction(_dense(f), compile=compile)
+        fun = _dense(f) if library is None else ca.external(f.name(), str(library))
+        fast[f.name()] = FastFunction(fun, compile=False)
     stages = spec.stage_list()
     times = {name: [] for name in fast}
     rows = np.full((spec.n_ticks, 1 + len(spec.log)), np.nan)
@@ -319,7 +324,7 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
         times.append(f"""  qsort(tm_{n}, (size_t)ntm_{n}, sizeof(double), cmp_double);
   fprintf(js, {fmt},
           {sep}, ntm_{n}, 1e6 * percentile(tm_{n}, ntm_{n}, 0.5),
-          1e6 * percentile(tm_{n}, ntm_{n}, 0.99), ntm_{n} ? 1e6 * tm_{n}[ntm_{n} - 1] : NAN, nrc_{n});""")
+          1e6 * percentile(tm_{n}, ntm_{n}, 0.99), ntm_{n} ? 1e6 * tm_{n}[ntm_{n} - 1] : 0.0, nrc_{n});""")
     for k, a in spec.streams.items():
         m = a.shape[1]
         tick.append(f"    memcpy({sig_c[k]}, stream_{_cname(k)} + k * {m}, sizeof(double) * {m});")
@@ -377,9 +382,9 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
             out / "Makefile", out / "README.txt"]
 
 
-def build_line(cc: str = "cc") -> str:
-    """The command that builds the loop in its directory."""
-    return f"{cc} {' '.join(CFLAGS)} -o closed_loop closed_loop.c {STEPS_NAME}.c -lm"
+def build_line(cc: str = "cc", opt: str = CFLAGS[0]) -> str:
+    """The command that builds the loop in its directory (``opt``: the optimisation flag)."""
+    return f"{cc} {opt} {' '.join(CFLAGS[1:])} -o closed_loop closed_loop.c {STEPS_NAME}.c -lm"
 
 
 def find_compiler() -> str | None:
@@ -391,15 +396,28 @@ def find_compiler() -> str | None:
     return None
 
 
-def build_c(out_dir: Path | str, cc: str | None = None) -> Path:
-    """Compile the loop in ``out_dir`` with the system compiler; RuntimeError with its message on failure."""
+#: optimisation flags a build may use (none enables fast-math: the rounding stays the Python path's)
+OPT_FLAGS = ("-O0", "-O1", "-O2", "-O3")
+
+
+def build_c(out_dir: Path | str, cc: str | None = None, opt: str = CFLAGS[0]) -> Path:
+    """Compile the loop in ``out_dir`` with the system compiler and ``opt`` (one of :data:`OPT_FLAGS`):
+    the program ``closed_loop`` and the shared library :data:`LIBRARY` of the same object code.
+    RuntimeError with the compiler's message on failure."""
+    if opt not in OPT_FLAGS:
+        raise ValueError(f"--opt = '{opt}'; allowed: {', '.join(OPT_FLAGS)}")
     cc = cc or find_compiler()
     if cc is None:
         raise RuntimeError("no C compiler (cc, gcc or clang) on PATH")
     out = Path(out_dir)
-    res = subprocess.run(build_line(cc).split(), cwd=out, capture_output=True, text=True)
-    if res.returncode != 0:
-        raise RuntimeError(f"{cc} failed: {res.stderr.strip()[:2000]}")
+    flags = [opt, *CFLAGS[1:]]
+    # one object file serves the program and the shared library the Python path loads
+    for cmd in ([cc, *flags, "-fPIC", "-c", f"{STEPS_NAME}.c", "-o", f"{STEPS_NAME}.o"],
+                [cc, "-shared", f"{STEPS_NAME}.o", "-o", LIBRARY, "-lm"],
+                [cc, *flags, "-o", "closed_loop", "closed_loop.c", f"{STEPS_NAME}.o", "-lm"]):
+        res = subprocess.run(cmd, cwd=out, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed: {res.stderr.strip()[:2000]}")
     return out / "closed_loop"
 
 
@@ -445,3 +463,53 @@ def time_summary(samples_s) -> dict:
         return {"calls": 0, "median_us": None, "p99_us": None, "max_us": None}
     return {"calls": int(a.size), "median_us": float(np.median(a) * 1e6),
             "p99_us": float(np.percentile(a, 99) * 1e6), "max_us": float(a.max() * 1e6)}
+
+
+def bench(spec: LoopSpec, out_dir: Path | str, opt: str = CFLAGS[0], cc: str | None = None,
+          python_vm: bool = False) -> dict:
+    """Generate, build and run the C loop in ``out_dir``, run the Python path, and compare them in one run.
+
+    The Python path calls the same compiled Functions (the generated library, through buffers);
+    ``python_vm`` adds a run on casadi's virtual machine (the Functions as built, uncompiled).
+    Returns the JSON-ready result: per Function the C and Python call times (calls, median, p99, max,
+    us) and the ratios Python / C of the medians and p99s; the largest absolute difference of the
+    trajectories per column (SI) and overall; the wall times of each part (s).
+    """
+    out = Path(out_dir)
+    wall = {}
+    t0 = time.perf_counter()
+    write_c(spec, out)
+    wall["generate"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    build_c(out, cc, opt)
+    wall["build"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    c = run_c(out)
+    wall["c_run"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    py = run_python(spec, out / LIBRARY)
+    wall["python_run"] = time.perf_counter() - t0
+    diff = compare(spec, py, c)
+    vm = None
+    if python_vm:
+        t0 = time.perf_counter()
+        vm = run_python(spec)
+        wall["python_vm_run"] = time.perf_counter() - t0
+    funs = {}
+    for name, ct in c.times["functions"].items():
+        row = {"c": ct, "python": time_summary(py.times.get(name, []))}
+        if vm is not None:
+            row["python_vm"] = time_summary(vm.times.get(name, []))
+        for q in ("median_us", "p99_us"):
+            a, b = row["python"].get(q), ct.get(q)
+            row[f"ratio_{q[:-3]}"] = (a / b) if a and b else None
+        funs[name] = row
+    res = {"loop": spec.name, "ticks": spec.n_ticks, "tick_s": spec.dt, "opt": opt,
+           "python_path": "the generated library through casadi.external and buffers (FastFunction)",
+           "functions": funs, "max_abs_diff_si": diff, "max_abs_diff_si_all": max(diff.values()) if diff else 0.0,
+           "wall_s": wall, "meta": dict(spec.meta)}
+    if vm is not None:
+        dv = compare(spec, vm, c)
+        res["vm_max_abs_diff_si"] = dv
+        res["vm_max_abs_diff_si_all"] = max(dv.values()) if dv else 0.0
+    return res

@@ -125,10 +125,8 @@ def mpc_glue(model, s, sup) -> tuple:
     ok = ca.logic_and(ca.logic_and(p_path <= p_limit, l_path <= s.lam_max), hpd <= h_lim)
     bad = 1 - ok
     n = hp.size
-    before = ca.DM(np.tril(np.ones((n, n)), -1))  # bad nodes before each node
-    first = ca.logic_and(bad, ca.mtimes(before, bad) == 0)[1:]
-    fr = ca.DM.inf(n - 1)
-    fr = MX(fr)
+    first = ca.logic_and(bad, ca.cumsum(bad) - bad == 0)[1:]  # the first bad node (none before it)
+    fr = MX(ca.DM.inf(n - 1))
     for v, lim in ((p_path, p_limit), (l_path, s.lam_max), (hpd, h_lim)):
         v0, v1 = v[:-1], v[1:]
         cand = ca.if_else(ca.logic_and(v1 > lim, v1 != v0), (lim - v0) / (v1 - v0), ca.inf)
