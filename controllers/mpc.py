@@ -79,6 +79,7 @@ from controllers.mpc_solvers import (
     _RtiOsqp,
     _SolverFailure,
 )
+from controllers.rti_step import _RtiFunction
 
 
 def _finite(value) -> bool:
@@ -114,7 +115,12 @@ class NMPC:
                  model: PredictionModel | None = None):
         self.settings = s = (settings or MPCSettings()).validate()
         self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max)
-        self.backend = _RtiOsqp(self.model, s) if s.variant == "rti_osqp" else _Ipopt(self.model, s)
+        if s.variant == "rti_osqp":
+            self.backend = _RtiOsqp(self.model, s)
+        elif s.variant.startswith("rti_fn_"):
+            self.backend = _RtiFunction(self.model, s, s.variant[len("rti_fn_"):])
+        else:
+            self.backend = _Ipopt(self.model, s)
         self.reset()
 
     def reset(self) -> None:

@@ -25,9 +25,14 @@ Inputs:
 ``r``         N          target heights at stages 1..N (already clipped to the reachable range), m
 ``X_guess``   N + 1      previous state plan (primal guess)
 ``U_guess``   3 x N      previous input plan (primal guess), column k = u_k
+``lam_x_guess``  nz      previous multipliers of the QP's variable bounds (dual guess; zeros at a cold start)
+``lam_a_guess``  nc      previous multipliers of the QP's linear constraints (dual guess)
 ``shift``     1          1: a new step (the guess is shifted by one stage); 0: another iteration at
                          the same time (the guess is used as is; cold start)
 ============  =========  ===========================================================================
+
+nz = 8 N + 4 QP variables (stage-wise: [x_k, u_{k-1}, u_k, slack_{k+1}] for k < N, [x_N, u_{N-1}]) and
+nc = 12 N (h_min > 0: 13 N) QP rows; ``function.size1_in("lam_x_guess")`` etc. give them.
 
 Outputs:
 
@@ -35,9 +40,12 @@ Outputs:
 ``u0``        3          first input (speed, inlet, outlet) clipped to [0, 1]
 ``X_plan``    N + 1      new state plan (the next call's ``X_guess``)
 ``U_plan``    3 x N      new input plan, clipped to [0, 1] (the next call's ``U_guess``)
+``lam_x``     nz         the QP's bound multipliers (the next call's ``lam_x_guess``)
+``lam_a``     nc         the QP's constraint multipliers (the next call's ``lam_a_guess``)
 ``status``    1          0: ok; 1: non-finite linearisation or solution; 2: the QP solution violates
                          its constraints by more than ``_RES_TOL`` (solver failure)
 ``residual``  1          largest constraint violation of the QP solution (QP units: kPa, mm, ...)
+``cost``      1          the QP's optimal cost (diagnostic)
 ============  =========  ===========================================================================
 """
 
@@ -47,7 +55,8 @@ import casadi as ca
 import numpy as np
 
 from controllers.mpc_settings import MPCSettings
-from controllers.mpc_solvers import _Stage
+from controllers.mpc_solvers import _SolverFailure, _Stage
+from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["QP_SOLVERS", "rti_step_function"]
@@ -55,8 +64,8 @@ __all__ = ["QP_SOLVERS", "rti_step_function"]
 #: conic plugins the step can be built with (the first is the default)
 QP_SOLVERS = ("qrqp", "hpipm", "osqp", "daqp")
 
-_IN = ["x0", "W", "dh", "dp", "u_prev", "p_lim", "r", "X_guess", "U_guess", "shift"]
-_OUT = ["u0", "X_plan", "U_plan", "status", "residual"]
+_IN = ["x0", "W", "dh", "dp", "u_prev", "p_lim", "r", "X_guess", "U_guess", "lam_x_guess", "lam_a_guess", "shift"]
+_OUT = ["u0", "X_plan", "U_plan", "lam_x", "lam_a", "status", "residual", "cost"]
 #: largest constraint violation of a usable QP solution (QP units; as the OSQP path's acceptance)
 _RES_TOL = 1e-3
 
@@ -69,7 +78,9 @@ def _solver_opts(qp_solver: str, s: MPCSettings) -> dict:
         return {"osqp": {"verbose": False, "eps_abs": s.qp_eps, "eps_rel": s.qp_eps, "max_iter": s.qp_max_iter,
                          "polish": False}, "error_on_fail": False, "warm_start_primal": True}
     if qp_solver == "hpipm":
-        return {"error_on_fail": False}
+        # "balance" converges on this OCP (the default "speed" mode stops at its iteration limit)
+        return {"hpipm": {"mode": "balance", "iter_max": 50, "warm_start": 1, "res_g_max": 1e-6,
+                          "res_b_max": 1e-8, "res_d_max": 1e-8, "res_m_max": 1e-7}, "error_on_fail": False}
     return {"error_on_fail": False}
 
 
@@ -101,12 +112,17 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     lin = [stage.lin(Xb[k], Uext[:, k], ca.vertcat(ca.fmax(Uext[0, k], fl), ca.fmax(Uext[1, k], fl), Uext[2, k]),
                      W, dp) for k in range(N + 1)]
     f, a, b, h, ch, p, cp, lam, cl = ([ln[i] for ln in lin] for i in range(9))
-    # --- variables, as the reference path: z = [x_0..x_N, u_0..u_{N-1} (3 each), s_1..s_N]
-    nx, nu = N + 1, 3 * N
-    nz = nx + nu + N
-    ix = list(range(nx))
-    iu = [[nx + 3 * k + i for i in range(3)] for k in range(N)]
-    isl = [nx + nu + k for k in range(N)]
+    # --- variables, stage-wise (the OCP structure HPIPM detects): stage k < N holds
+    # [x_k, v_k (the previous input, 3), u_k (3), s_k], stage N [x_N, v_N]. v_{k+1} = u_k turns the
+    # input-rate terms into stage-local ones; s_k is the slack of the limits at stage k + 1, written
+    # through x_{k+1} = a x_k + b u_k + c on stage k's variables. The optimum is that of the reference
+    # path's QP (the same cost and feasible set once the dynamics hold).
+    ns = 8
+    nz = ns * N + 4
+    ix = [ns * k for k in range(N + 1)]
+    iv = [[ns * k + 1 + i for i in range(3)] for k in range(N + 1)]
+    iu = [[ns * k + 4 + i for i in range(3)] for k in range(N)]
+    isl = [ns * k + 7 for k in range(N)]
     # --- cost 1/2 z'Hz + g'z
     wk = [0.0] + [s.w_height] * N
     wk[N] += s.w_terminal
@@ -114,35 +130,38 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     r_mm = ca.vertcat(r[0], r) * 1e3
     H = SX(nz, nz)
     g = SX.zeros(nz)
-    for k in range(nx):
+    for k in range(N + 1):
         e = h[k] - ch[k] * Xb[k] + dh_mm - r_mm[k]
         H[ix[k], ix[k]] = 2 * wk[k] * ch[k] ** 2 + 1e-8
         g[ix[k]] = 2 * wk[k] * ch[k] * e
     wr, wu, cu = (np.array(v, float) for v in (s.w_rate, s.w_input, s.c_input))
     for k in range(N):
-        nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
-        for i in range(3):
-            H[iu[k][i], iu[k][i]] = 2 * wr[i] * nd + 2 * wu[i] + 1e-8
-            if k > 0:
-                H[iu[k - 1][i], iu[k][i]] = -2 * wr[i]
-                H[iu[k][i], iu[k - 1][i]] = -2 * wr[i]
-            g[iu[k][i]] = cu[i] - (2 * wr[i] * u_prev[i] if k == 0 else 0.0)
-    for k in range(N):
+        for i in range(3):  # w_rate |u_k - v_k|^2 + w_input |u_k|^2 + c_input . u_k
+            H[iu[k][i], iu[k][i]] = 2 * wr[i] + 2 * wu[i] + 1e-8
+            H[iv[k][i], iv[k][i]] = 2 * wr[i] + 1e-8
+            H[iu[k][i], iv[k][i]] = -2 * wr[i]
+            H[iv[k][i], iu[k][i]] = -2 * wr[i]
+            g[iu[k][i]] = cu[i]
         H[isl[k], isl[k]] = 2 * s.w_slack
         g[isl[k]] = s.c_slack
-    # --- simple bounds: x_0 fixed, u box (u_0 also within the rate limit of u_prev), s >= 0
+    for i in range(3):
+        H[iv[N][i], iv[N][i]] = 1e-8
+    # --- simple bounds: x_0 and v_0 fixed, u box (u_0 also within the rate limit of u_prev), s >= 0
     inf = ca.inf
     umax = np.array(s.u_max, float)
     du = np.array(s.du_max, float) * s.sample_period
-    lbx = [x0] + [-inf] * N
-    ubx = [x0] + [inf] * N
+    lbx = [-inf] * nz
+    ubx = [inf] * nz
+    lbx[ix[0]] = ubx[ix[0]] = x0
+    for i in range(3):
+        lbx[iv[0][i]] = ubx[iv[0][i]] = u_prev[i]
+        lbx[iu[0][i]] = ca.fmax(0.0, u_prev[i] - du[i])
+        ubx[iu[0][i]] = ca.fmin(umax[i], u_prev[i] + du[i])
+        for k in range(1, N):
+            lbx[iu[k][i]], ubx[iu[k][i]] = 0.0, umax[i]
     for k in range(N):
-        for i in range(3):
-            lbx.append(ca.fmax(0.0, u_prev[i] - du[i]) if k == 0 else 0.0)
-            ubx.append(ca.fmin(umax[i], u_prev[i] + du[i]) if k == 0 else umax[i])
-    lbx += [0.0] * N
-    ubx += [inf] * N
-    # --- linear constraints lba <= A z <= uba
+        lbx[isl[k]] = 0.0
+    # --- linear constraints lba <= A z <= uba, stage by stage: dynamics, then the stage's rows
     rows, lba, uba = [], [], []
 
     def row(entries, lo, up):
@@ -150,47 +169,116 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
         lba.append(lo)
         uba.append(up)
 
-    for k in range(N):  # x_{k+1} - a x_k - b u_k = f - a xb - b ub
-        c = f[k] - a[k] * Xb[k] - ca.mtimes(b[k], Ub[:, k])
-        row([(ix[k + 1], 1.0), (ix[k], -a[k])] + [(iu[k][i], -b[k][i]) for i in range(3)], c, c)
-    for k in range(1, N):
+    for k in range(N):
+        c = f[k] - a[k] * Xb[k] - ca.mtimes(b[k], Ub[:, k])  # x_{k+1} = a x_k + b u_k + c
+        row([(ix[k], a[k])] + [(iu[k][i], b[k][i]) for i in range(3)] + [(ix[k + 1], -1.0)], -c, -c)
         for i in range(3):
-            row([(iu[k][i], 1.0), (iu[k - 1][i], -1.0)], -du[i], du[i])
-    for k in range(N):  # inlet - speed >= 0
-        row([(iu[k][1], 1.0), (iu[k][0], -1.0)], 0.0, inf)
-    for k in range(N):  # soft limits at stage k + 1
-        j = k + 1
-        row([(ix[j], cp[j]), (isl[k], -1.0)], -inf, p_lim * 1e-3 - dp * 1e-3 - (p[j] - cp[j] * Xb[j]))
-        row([(ix[j], cl[j]), (isl[k], -1.0)], -inf, s.lam_max * 1e2 - (lam[j] - cl[j] * Xb[j]))
-        row([(ix[j], ch[j]), (isl[k], -1.0)], -inf, s.h_max * 1e3 - dh_mm - (h[j] - ch[j] * Xb[j]))
+            row([(iu[k][i], 1.0), (iv[k + 1][i], -1.0)], 0.0, 0.0)
+        for i in range(3):  # (at k = 0 a bound of u_0 does it: a free row keeps rows per stage equal)
+            row([(iu[k][i], 1.0), (iv[k][i], -1.0)], -du[i] if k > 0 else -inf, du[i] if k > 0 else inf)
+        row([(iu[k][1], 1.0), (iu[k][0], -1.0)], 0.0, inf)  # inlet - speed >= 0
+        j = k + 1  # soft limits at stage k + 1: y(x_{k+1}) ~ y_j + cy_j (x_{k+1} - xb_{k+1})
+
+        def soft(cy, bound):
+            row([(ix[k], cy * a[k])] + [(iu[k][i], cy * b[k][i]) for i in range(3)] + [(isl[k], -1.0)],
+                -inf, bound - cy * c)
+
+        soft(cp[j], p_lim * 1e-3 - dp * 1e-3 - (p[j] - cp[j] * Xb[j]))
+        soft(cl[j], s.lam_max * 1e2 - (lam[j] - cl[j] * Xb[j]))
+        soft(ch[j], s.h_max * 1e3 - dh_mm - (h[j] - ch[j] * Xb[j]))
         if s.h_min > 0:  # (below lift-off H is a virtual negative height: no bound at h_min = 0)
-            row([(ix[j], -ch[j]), (isl[k], -1.0)], -inf, -(s.h_min * 1e3 - dh_mm - (h[j] - ch[j] * Xb[j])))
+            soft(-ch[j], -(s.h_min * 1e3 - dh_mm - (h[j] - ch[j] * Xb[j])))
     nc = len(rows)
     A = SX(nc, nz)
     for rr, entries in enumerate(rows):
         for col, v in entries:
             A[rr, col] = v
     Hsp, Asp = H.sparsity(), A.sparsity()
-    z0 = ca.vertcat(Xb, ca.vec(Ub), SX.zeros(N))
+    z0 = SX.zeros(nz)
+    Vb = ca.horzcat(u_prev, Ub)
+    for k in range(N + 1):
+        z0[ix[k]] = Xb[k]
+        for i in range(3):
+            z0[iv[k][i]] = Vb[i, k]
+            if k < N:
+                z0[iu[k][i]] = Ub[i, k]
     lbx, ubx, lba, uba = (ca.vertcat(*v) for v in (lbx, ubx, lba, uba))
-    ins = [x0, W, dh, dp, u_prev, p_lim, r, Xg, Ug, shift]
-    data = ca.Function("rti_qp_data", ins, [H, g, A, lba, uba, lbx, ubx, z0, ca.vertcat(*f, *ch, *a, *cp)])
+    # dual guess, shifted as the primal one (N stages of ms rows / ns variables, stage N: 4 variables)
+    ms = nc // N
+    lxg, lag = SX.sym("lam_x_guess", nz), SX.sym("lam_a_guess", nc)
+    lx0 = shift * ca.vertcat(lxg[ns:ns * N], lxg[ns * (N - 1):ns * N], lxg[ns * N:]) + (1 - shift) * lxg
+    la0 = shift * ca.vertcat(lag[ms:], lag[nc - ms:]) + (1 - shift) * lag
+    ins = [x0, W, dh, dp, u_prev, p_lim, r, Xg, Ug, lxg, lag, shift]
+    data = ca.Function("rti_qp_data", ins, [H, g, A, lba, uba, lbx, ubx, z0, lx0, la0,
+                                            ca.vertcat(*f, *ch, *a, *cp)])
     post_z = SX.sym("z", nz)
-    Xn = post_z[:nx]
-    Un = ca.fmin(ca.fmax(ca.reshape(post_z[nx:nx + nu], 3, N), 0.0), 1.0)
-    viol = ca.vertcat(ca.fmax(lbx - post_z, 0), ca.fmax(post_z - ubx, 0),
-                      ca.fmax(lba - ca.mtimes(A, post_z), 0), ca.fmax(ca.mtimes(A, post_z) - uba, 0))
+    Xn = ca.vertcat(*[post_z[i] for i in ix])
+    Un = ca.fmin(ca.fmax(ca.horzcat(*[ca.vertcat(*[post_z[i] for i in iu[k]]) for k in range(N)]), 0.0), 1.0)
+    Az = ca.mtimes(A, post_z)
+    viol = ca.vertcat(ca.fmax(lbx - post_z, 0), ca.fmax(post_z - ubx, 0), ca.fmax(lba - Az, 0), ca.fmax(Az - uba, 0))
     # an infinite bound gives fmax(-inf, 0) = 0: only finite violations count
     res = ca.mmax(viol)
     chk = SX.sym("chk", 4 * (N + 1))
     finite = ca.logic_and(ca.sumsqr(post_z) < inf, ca.sumsqr(chk) < inf)
     status = ca.if_else(finite, ca.if_else(res <= _RES_TOL, 0.0, 2.0), 1.0)
-    post = ca.Function("rti_post", [post_z, chk] + ins, [Un[:, 0], Xn, Un, status, res])
+    # the solver's cost and multipliers are inputs of the post-processing so that every solver output
+    # has a buffer (casadi 3.8's HPIPM interface writes all of them, and crashes on a missing one)
+    cost, lam_a, lam_x = SX.sym("cost"), SX.sym("lam_a", nc), SX.sym("lam_x", nz)
+    post = ca.Function("rti_post", [post_z, cost, lam_a, lam_x, chk] + ins,
+                       [Un[:, 0], Xn, Un, lam_x, lam_a, status, res, cost])
     # --- the MX wrapper: data -> conic -> post
     qp = ca.conic("rti_qp", qp_solver, {"h": Hsp, "a": Asp}, _solver_opts(qp_solver, s))
     mx = [ca.MX.sym(n, *v.shape) for n, v in zip(_IN, ins)]
-    Hm, gm, Am, lbam, ubam, lbxm, ubxm, z0m, chkm = data(*mx)
-    sol = qp(h=Hm, g=gm, a=Am, lba=lbam, uba=ubam, lbx=lbxm, ubx=ubxm, x0=z0m)
-    outs = post(sol["x"], chkm, *mx)
+    Hm, gm, Am, lbam, ubam, lbxm, ubxm, z0m, lx0m, la0m, chkm = data(*mx)
+    sol = qp(h=Hm, g=gm, a=Am, lba=lbam, uba=ubam, lbx=lbxm, ubx=ubxm, x0=z0m, lam_x0=lx0m, lam_a0=la0m)
+    outs = post(sol["x"], sol["cost"], sol["lam_a"], sol["lam_x"], chkm, *mx)
     return ca.Function("rti_step", mx, list(outs), _IN, _OUT)
 
+
+
+class _RtiFunction:
+    """NMPC backend calling :func:`rti_step_function`'s Function once per step (through buffers).
+
+    ``qp_solver`` as in :func:`rti_step_function`. With ``settings.codegen`` the Function is compiled
+    to C with the system compiler (cached on disk by source hash, :func:`hbma_ctrl.core.codegen.compiled`);
+    where that fails (no compiler, missing solver headers) casadi's virtual machine runs it.
+    """
+
+    def __init__(self, model: PredictionModel, s: MPCSettings, qp_solver: str = "osqp"):
+        self.s, self.model, self.N = s, model, s.horizon
+        self.function = rti_step_function(model, s, qp_solver)
+        self.call = FastFunction(self.function, compile=s.codegen)
+        self.nz, self.nc = self.function.nnz_in("lam_x_guess"), self.function.nnz_in("lam_a_guess")
+        self.reset()
+        self.iterations = 0
+
+    def reset(self) -> None:
+        """Forget the plan (the next step is a cold start)."""
+        self.X = self.U = self.lam_x = self.lam_a = None
+
+    def solve(self, pr):
+        """One RTI step (rti_init_iterations unshifted ones at a cold start): (X (N+1,), U (N, 3))."""
+        N = self.N
+        if self.X is None:
+            Xg, Ug = np.full(N + 1, pr.x0), np.tile(pr.u_prev, N)
+            lx, la = np.zeros(self.nz), np.zeros(self.nc)
+            iters, shift = self.s.rti_init_iterations, 0.0
+        else:
+            Xg, Ug, lx, la, iters, shift = self.X, self.U, self.lam_x, self.lam_a, 1, 1.0
+        for _ in range(iters):
+            try:
+                out = self.call(float(pr.x0), float(pr.W), float(pr.dh), float(pr.dp), pr.u_prev,
+                                float(pr.p_lim), pr.r, Xg, Ug, lx, la, shift)
+            except RuntimeError as exc:  # a generated solver that reports failure by its return code
+                self.reset()
+                raise _SolverFailure(f"rti_step: {str(exc).splitlines()[-1]}") from None
+            status = out[5][0]
+            if status != 0.0:
+                self.reset()
+                why = "non-finite linearisation or solution" if status == 1.0 else \
+                    f"QP solution violates its constraints by {out[6][0]:.3g}"
+                raise _SolverFailure(f"rti_step: {why}")
+            Xg, Ug, lx, la, shift = out[1].copy(), out[2].copy(), out[3].copy(), out[4].copy(), 0.0
+        self.X, self.U, self.lam_x, self.lam_a = Xg, Ug, lx, la
+        self.iterations = iters
+        return Xg, Ug.reshape(N, 3)
