@@ -61,6 +61,8 @@ class Stage:
         (None: always).
     gate_off : run while the gate's entry IS 0 instead.
     repeat : calls per run, each reading the signals the previous one wrote (iterations).
+    stop_on : a signal that ends the repetitions early when its first entry is not 0 after a call
+        (a solver's failure status); None: all ``repeat`` calls.
     """
 
     fun: ca.Function
@@ -70,6 +72,7 @@ class Stage:
     gate: str | None = None
     gate_off: bool = False
     repeat: int = 1
+    stop_on: str | None = None
 
     def runs(self, k: int, sig: dict) -> bool:
         """Whether the stage runs at tick k with these signal values."""
@@ -170,8 +173,9 @@ class LoopSpec:
                 raise ValueError(f"stage {st.name}: every = {st.every!r} must be an integer >= 1")
             if not (isinstance(st.repeat, int) and st.repeat >= 1):
                 raise ValueError(f"stage {st.name}: repeat = {st.repeat!r} must be an integer >= 1")
-            if st.gate is not None and st.gate not in sig:
-                raise ValueError(f"stage {st.name}: gate signal '{st.gate}' does not exist")
+            for what, name in (("gate", st.gate), ("stop_on", st.stop_on)):
+                if name is not None and name not in sig:
+                    raise ValueError(f"stage {st.name}: {what} signal '{name}' does not exist")
         for c in self.log:
             if c.signal not in sig or not 0 <= c.index < sig[c.signal].size:
                 raise ValueError(f"log column {c.name}: no entry {c.index} of signal '{c.signal}'")
@@ -239,6 +243,8 @@ def run_python(spec: LoopSpec, library: Path | str | None = None) -> PythonRun:
                 for s, o in zip(st.outputs, out):
                     if s is not None:
                         sig[s][:] = o
+                if st.stop_on is not None and sig[st.stop_on][0] != 0.0:
+                    break
     return PythonRun(rows, {k: np.asarray(v) for k, v in times.items()})
 
 
@@ -343,11 +349,13 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
                  f"if (rc) ++nrc_{n};"]
         body += [f"memcpy({sig_c[s]}, out_{n}_{i}, sizeof(double) * {f.nnz_out(i)});"
                  for i, s in enumerate(st.outputs) if s is not None]
+        if st.stop_on is not None:
+            body.append(f"if ({sig_c[st.stop_on]}[0] != 0.0) break;")
         conds = [f"k % {st.every} == 0"] if st.every > 1 else []
         if st.gate is not None:
             conds.append(f"{sig_c[st.gate]}[0] {'==' if st.gate_off else '!='} 0.0")
         cond = f"if ({' && '.join(conds)}) " if conds else ""
-        loop = f"for (int rep = 0; rep < {st.repeat}; ++rep) " if st.repeat > 1 else ""
+        loop = f"for (int rep = 0; rep < {st.repeat}; ++rep) " if st.repeat > 1 or st.stop_on else ""
         tick.append(f"    {cond}{loop}{{  /* {st.name} */\n      " + "\n      ".join(body) + "\n    }")
     src = (_template().replace("@NAME@", spec.name).replace("@HEADER@", f"{STEPS_NAME}.h")
            .replace("@STAGE_CODE@", "\n".join(code)).replace("@STAGE_INIT@", "\n".join(init))

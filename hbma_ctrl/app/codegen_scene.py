@@ -36,7 +36,7 @@ from hbma_ctrl.sim.plant_step import initial_plant_state, plant_step_function, p
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.trial import DEFAULT_DT
 
-__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "ESTIMATORS"]
+__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "qp_solver_for", "ESTIMATORS"]
 
 
 # --------------------------------------------------------------------------------------------- rig
@@ -89,9 +89,10 @@ def _hat(xq, grid: np.ndarray):
     return ca.vertcat(w_lo, 0) + ca.vertcat(0, w_hi)
 
 
-def mpc_glue(model, s, sup) -> tuple:
+def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     """(mpc_prep, mpc_cold, mpc_post) casadi Functions of the NMPC with settings ``s`` (MPCSettings)
-    on its PredictionModel and the supervisor settings ``sup`` (see the module docstring)."""
+    on its PredictionModel and the supervisor settings ``sup`` (see the module docstring); ``nz``, ``nc``
+    the RTI step's numbers of QP variables and rows (the cold start's zero duals)."""
     g = model.grid
     N = s.horizon
     act = model.actuator
@@ -144,8 +145,9 @@ def mpc_glue(model, s, sup) -> tuple:
                        ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next"])
     # --- cold start (the backend without a plan): the estimate held, the last command repeated
     x0s, up = ca.SX.sym("x0"), ca.SX.sym("u_prev", 3)
-    cold = ca.Function("mpc_cold", [x0s, up], [ca.repmat(x0s, N + 1, 1), ca.repmat(up, 1, N)],
-                       ["x0", "u_prev"], ["X_guess", "U_guess"])
+    cold = ca.Function("mpc_cold", [x0s, up], [ca.repmat(x0s, N + 1, 1), ca.repmat(up, 1, N), ca.SX.zeros(nz),
+                                                ca.SX.zeros(nc)],
+                       ["x0", "u_prev"], ["X_guess", "U_guess", "lam_x_guess", "lam_a_guess"])
     # --- NMPC result -> supervisor (fallback, clip, guard) -> the command sent
     SX = ca.SX
     u0, Up, status, p_g_in = SX.sym("u0", 3), SX.sym("U_plan", 3, N), SX.sym("status"), SX.sym("p")
@@ -185,54 +187,130 @@ def mpc_glue(model, s, sup) -> tuple:
     return prep, cold, post
 
 
-def _mpc_stages(scn, section, every: int) -> tuple[list, dict, dict]:
-    """The NMPC's stages, its signals and meta data (RTI variant only)."""
+def qp_solver_for(variant: str, qp_solver: str | None = None) -> str:
+    """The conic plugin the generated RTI step uses: ``qp_solver`` if given, the variant's own for the
+    'rti_fn_*' variants, else qrqp (self-contained C)."""
+    from controllers.rti_step import QP_SOLVERS
+
+    if qp_solver is None:
+        qp_solver = variant[len("rti_fn_"):] if variant.startswith("rti_fn_") else "qrqp"
+    if qp_solver not in QP_SOLVERS:
+        raise ValueError(f"--qp-solver = '{qp_solver}'; allowed: {', '.join(QP_SOLVERS)}")
+    return qp_solver
+
+
+def _mpc_stages(scn, section, every: int, qp_solver: str | None) -> tuple[list, dict, dict]:
+    """The NMPC's stages (RTI variants), its signals and meta data."""
     from controllers.mpc import NMPC
     from controllers.rti_step import rti_step_function
 
     s = section.mpc
-    if s.variant not in ("rti_osqp",) and not s.variant.startswith("rti"):
-        raise ValueError(f"codegen: [controller] variant = '{s.variant}': only the RTI variants generate C")
+    if not s.variant.startswith("rti"):
+        raise ValueError(f"codegen: [controller] variant = '{s.variant}': only the RTI variants generate C "
+                         "(rti_osqp, rti_fn_*)")
+    solver = qp_solver_for(s.variant, qp_solver)
     nmpc = NMPC(scn.actuator, scn.pneumatics, s)
     model = nmpc.model
     sup = chamber_supervisor(s).settings
-    prep, cold, post = mpc_glue(model, s, sup)
-    rti = rti_step_function(model, s, "qrqp")
+    rti = rti_step_function(model, s, solver)
     N = s.horizon
+    nz, nc = rti.nnz_in("lam_x_guess"), rti.nnz_in("lam_a_guess")
+    prep, cold, post = mpc_glue(model, s, sup, nz, nc)
     signals = {"Wf": [0.0], "has_W": [0.0], "x0": [0.0], "W": [0.0], "dh": [0.0], "dp": [0.0], "p_lim": [0.0],
-               "r_c": np.zeros(N), "X_guess": np.zeros(N + 1), "U_guess": np.zeros(3 * N), "u0": np.zeros(3),
-               "status": [0.0], "qp_residual": [0.0], "shift0": [0.0], "shift1": [1.0], "cold": [1.0],
-               "plan": np.zeros(3 * N), "has_plan": [0.0], "age": [0.0], "streak": [0.0]}
-    rti_in = ["x0", "W", "dh", "dp", "u", "p_lim", "r_c", "X_guess", "U_guess"]
-    rti_out = ["u0", "X_guess", "U_guess", "status", "qp_residual"]
+               "r_c": np.zeros(N), "X_guess": np.zeros(N + 1), "U_guess": np.zeros(3 * N), "lam_x": np.zeros(nz),
+               "lam_a": np.zeros(nc), "u0": np.zeros(3), "status": [0.0], "qp_residual": [0.0], "qp_cost": [0.0],
+               "shift0": [0.0], "shift1": [1.0], "cold": [1.0], "plan": np.zeros(3 * N), "has_plan": [0.0],
+               "age": [0.0], "streak": [0.0]}
+    rti_in = ["x0", "W", "dh", "dp", "u", "p_lim", "r_c", "X_guess", "U_guess", "lam_x", "lam_a"]
+    rti_out = ["u0", "X_guess", "U_guess", "lam_x", "lam_a", "status", "qp_residual", "qp_cost"]
     stages = [
         Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W"],
               ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W"], every=every),
-        Stage(cold, ["x0", "u"], ["X_guess", "U_guess"], every=every, gate="cold"),
-        Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="cold", repeat=s.rti_init_iterations),
+        # cold start (first step, or after a failure): the guess from the estimate, zero duals, then
+        # rti_init_iterations unshifted iterations, stopping at a failure (as _RtiFunction.solve)
+        Stage(cold, ["x0", "u"], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="cold"),
+        Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="cold", repeat=s.rti_init_iterations,
+              stop_on="status"),
         Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="cold", gate_off=True),
         Stage(post, ["u0", "U_guess", "status", "est_p", "plan", "has_plan", "age", "streak"],
               ["u", "cold", "plan", "has_plan", "age", "streak"], every=every),
     ]
-    return stages, signals, {"controller": f"RTI NMPC, N = {N}, QP qrqp, every {every} rig periods"}
+    return stages, signals, {"controller": f"RTI NMPC (controllers.rti_step), N = {N}, QP {solver}, "
+                                           f"every {every} rig periods"}
 
 
 # --------------------------------------------------------------------------------------------- EKF
+def _ekf_glue(settings, bounds: tuple) -> tuple:
+    """(ekf_kind, ekf_out): the reading's kind code and the z the step takes (as EKF.step classifies it),
+    and the estimate's h, p, F, its 'resting' flag and the count of steps the Python EKF would have
+    finished on its reference path (``exact`` = 0, or a no-load lift-off it replays)."""
+    from estimators import ekf_step as es
+
+    z = ca.SX.sym("z")
+    lo, hi = bounds
+    finite = ca.logic_and(z == z, ca.fabs(z) < ca.inf)
+    outlier = ca.logic_or(ca.logic_not(finite), ca.logic_or(z < lo, z > hi))
+    sat = z >= settings.sensor_range
+    # NaN (a dropout) and outliers are "none"; the order is classify_measurement's
+    code = ca.if_else(z != z, es.KIND_NONE, ca.if_else(outlier, es.KIND_NONE,
+                                                        ca.if_else(sat, es.KIND_SATURATED, es.KIND_OK)))
+    z_in = ca.if_else(code == es.KIND_OK, z, 0)
+    kind = ca.Function("ekf_kind", [z], [z_in, code], ["z"], ["z_in", "kind"])
+    est, flags, exact, x, n_ref = (ca.SX.sym("est", 5), ca.SX.sym("flags"), ca.SX.sym("exact"), ca.SX.sym("x", 5),
+                                   ca.SX.sym("n_ref"))
+    bit = es.FLAG_BITS.index
+
+    def has(name):
+        return ca.fmod(ca.floor(flags / 2 ** bit(name)), 2) == 1
+
+    replay = ca.logic_and(has("lift_off"), x[1] == 0)
+    ref = ca.logic_or(exact < 0.5, replay)
+    out = ca.Function("ekf_out", [est, flags, exact, x, n_ref],
+                      [est[2], est[4], est[3], has("resting"), n_ref + ref],
+                      ["est", "flags", "exact", "x", "n_ref"], ["h", "p", "F", "resting", "n_ref_next"])
+    return kind, out
+
+
 def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
-    """The EKF's stages and signals, initialised from the first reading z0 (Pa) by the Python EKF."""
+    """The EKF's stages and signals, initialised from the first reading z0 (Pa) by the Python EKF
+    (its first step is the reference path's initialisation)."""
     try:
         from estimators import ekf_step as es
-    except ImportError:  # pragma: no cover - the EKF step Function lives on the ekfc branch until merged
+    except ImportError:  # pragma: no cover - a build without the EKF step Function
         raise ValueError("codegen: this build has no estimators.ekf_step (the EKF step Function)") from None
+    from estimators.common import physical_reading_bounds
     from hbma_ctrl.app.scene_controller import default_estimator, estimator_from_scenario
+    from hbma_ctrl.core.interfaces import Command
 
     est = estimator_from_scenario(scn, rs)
     if est is None:
         est = default_estimator(scn.actuator, scn.pneumatics, None, rs)
     if type(est).__name__ != "EKF":
         raise ValueError(f"codegen: [estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
-    fun = es.ekf_step_function(scn.actuator, scn.pneumatics, est.settings)
-    raise NotImplementedError(fun)
+    s = est.settings
+    fun = es.ekf_step_function(scn.actuator, scn.pneumatics, s)
+    kind, out = _ekf_glue(s, physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel))
+    e0 = est.step(0.0, z0, Command(0.0, 0.0, 0.0))
+    flags = sum(2 ** i for i, n in enumerate(es.FLAG_BITS) if n in e0.flags)
+    signals = {"ekf_x": est.x, "ekf_P": np.asarray(est.P).ravel(order="F"), "ekf_s": est.s,
+               "ekf_theta": est.theta, "ekf_resting": [float(est.resting)], "z_in": [0.0], "kind": [0.0],
+               "ekf_det": [est._cusum, est._lift, est._lift_start, est._p_lift, est._p_post, float(est._gated)],
+               "ekf_y": np.zeros(fun.nnz_out(3)), "ekf_est": [e0.h1, e0.h2, e0.h, e0.F, e0.p], "ekf_std": np.zeros(5),
+               "ekf_C": np.zeros(25), "ekf_H": np.zeros(5), "ekf_A": np.zeros(25), "ekf_nis": [0.0],
+               "ekf_innov": [0.0], "ekf_flags": [float(flags)], "ekf_exact": [1.0], "est_h": [e0.h], "est_p": [e0.p],
+               "est_F": [e0.F], "resting": [float("resting" in e0.flags)], "ekf_n_ref": [0.0], "not_first": [0.0],
+               "one": [1.0]}
+    step_in = ["ekf_x", "ekf_P", "ekf_s", "u", "ekf_theta", "ekf_resting", "z_in", "kind", "ekf_det"]
+    step_out = ["ekf_x", "ekf_P", "ekf_s", "ekf_y", "ekf_est", "ekf_std", "ekf_C", "ekf_H", "ekf_A", "ekf_resting",
+                "ekf_det", "ekf_nis", "ekf_innov", "ekf_flags", "ekf_exact"]
+    # tick 0 is the Python EKF's initialisation (its signals above); the Function runs from tick 1
+    first = ca.Function("mark_started", [ca.SX.sym("one")], [ca.SX(1.0)], ["one"], ["started"])
+    stages = [Stage(kind, ["z"], ["z_in", "kind"], gate="not_first"),
+              Stage(fun, step_in, step_out, gate="not_first"),
+              Stage(out, ["ekf_est", "ekf_flags", "ekf_exact", "ekf_x", "ekf_n_ref"],
+                    ["est_h", "est_p", "est_F", "resting", "ekf_n_ref"], gate="not_first"),
+              Stage(first, ["one"], ["not_first"])]
+    return stages, signals, {"estimator": f"EKF (estimators.ekf_step), {s.sample_period * 1e3:g} ms"}
 
 
 def _truth_stages() -> tuple[list, dict, dict]:
@@ -252,10 +330,11 @@ def _truth_stages() -> tuple[list, dict, dict]:
 ESTIMATORS = ("ekf", "truth")
 
 
-def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf") -> LoopSpec:
+def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
+                  qp_solver: str | None = None) -> LoopSpec:
     """The scenario's closed loop (see the module docstring) over ``duration`` s (None: the
-    scenario's); ``estimator`` one of :data:`ESTIMATORS`. ValueError naming the section that cannot
-    be generated."""
+    scenario's); ``estimator`` one of :data:`ESTIMATORS`; ``qp_solver`` the RTI step's conic plugin
+    (:func:`qp_solver_for`). ValueError naming the section that cannot be generated."""
     if estimator not in ESTIMATORS:
         raise ValueError(f"codegen: estimator = '{estimator}'; allowed: {', '.join(ESTIMATORS)}")
     if scn.role("robot") is not None:
@@ -282,7 +361,7 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf") ->
     sensor = _sensor(rs.sensor_range)
     z0 = float(np.asarray(sensor(y0, noise[0])).ravel()[0])
     ekf_stages, ekf_signals, ekf_meta = _ekf_stages(scn, rs, z0) if estimator == "ekf" else _truth_stages()
-    mpc_stages, mpc_signals, mpc_meta = _mpc_stages(scn, section, every)
+    mpc_stages, mpc_signals, mpc_meta = _mpc_stages(scn, section, every, qp_solver)
     N = section.mpc.horizon
     use_preview = section.preview if section.preview is not None else (
         section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
@@ -307,6 +386,8 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf") ->
            LogColumn("F_true_n", "y", Fi, 1.0), LogColumn("F_est_n", "est_F", 0, 1.0),
            LogColumn("speed", "u", 0), LogColumn("inlet", "u", 1), LogColumn("outlet", "u", 2),
            LogColumn("mode", "mode", 0), LogColumn("mpc_status", "status", 0)]
+    if "ekf_n_ref" in signals:
+        log.append(LogColumn("ekf_reference_events", "ekf_n_ref", 0))
     meta = {"scenario": scn.name, "rig": f"{fid_name}, {rs.integrator}, {rs.sample_period * 1e3:g} ms, seed {rs.seed}"}
     meta.update(ekf_meta)
     meta.update(mpc_meta)
