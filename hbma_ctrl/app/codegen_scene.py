@@ -39,6 +39,16 @@ from hbma_ctrl.sim.trial import DEFAULT_DT
 __all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "qp_solver_for", "ESTIMATORS"]
 
 
+def _finite(v):
+    """1 where v is a finite number (comparisons: casadi simplifies ``v == v`` to true)."""
+    return ca.logic_and(v > -ca.inf, v < ca.inf)
+
+
+def _isnan(v):
+    """1 where v is NaN (it compares false both ways)."""
+    return ca.logic_not(ca.logic_or(v <= 0, v > 0))
+
+
 # --------------------------------------------------------------------------------------------- rig
 def plant_stage_parts(actuator, pneumatics, platform, rs: RigSettings):
     """(plant_step Function, theta, x0, mode0, y0, fidelity name) of the rig a scene would build.
@@ -100,7 +110,7 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     h_est, p_est, F_est, rest_flag = MX.sym("h"), MX.sym("p"), MX.sym("F"), MX.sym("resting")
     r_in, Wf, has_W = MX.sym("r", N), MX.sym("Wf"), MX.sym("has_W")
     # --- the load filter (NMPC._load): dt is the controller period
-    F = ca.if_else(ca.logic_and(F_est == F_est, ca.fabs(F_est) < ca.inf), F_est, 0)
+    F = ca.if_else(_finite(F_est), F_est, 0)
     F = ca.fmax(F, 0)
     resting_h = h_est < s.rest_height
     resting = ca.logic_or(resting_h, rest_flag != 0)
@@ -165,7 +175,7 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     fallback = ca.if_else(can, pick, safe)
     cmd = ca.if_else(okc, ca.fmin(ca.fmax(u0, 0), 1), fallback)
     cmd = ca.fmin(ca.fmax(cmd, 0), 1)
-    finite = ca.logic_and(p_g_in == p_g_in, ca.fabs(p_g_in) < ca.inf)
+    finite = _finite(p_g_in)
     p_g = ca.if_else(finite, p_g_in, sup.p_max)
     zone = p_g >= sup.p_max - sup.guard_margin
     if not sup.missing_is_limit:
@@ -248,11 +258,10 @@ def _ekf_glue(settings, bounds: tuple) -> tuple:
 
     z = ca.SX.sym("z")
     lo, hi = bounds
-    finite = ca.logic_and(z == z, ca.fabs(z) < ca.inf)
-    outlier = ca.logic_or(ca.logic_not(finite), ca.logic_or(z < lo, z > hi))
+    outlier = ca.logic_or(ca.logic_not(_finite(z)), ca.logic_or(z < lo, z > hi))
     sat = z >= settings.sensor_range
     # NaN (a dropout) and outliers are "none"; the order is classify_measurement's
-    code = ca.if_else(z != z, es.KIND_NONE, ca.if_else(outlier, es.KIND_NONE,
+    code = ca.if_else(_isnan(z), es.KIND_NONE, ca.if_else(outlier, es.KIND_NONE,
                                                         ca.if_else(sat, es.KIND_SATURATED, es.KIND_OK)))
     z_in = ca.if_else(code == es.KIND_OK, z, 0)
     kind = ca.Function("ekf_kind", [z], [z_in, code], ["z"], ["z_in", "kind"])
