@@ -18,7 +18,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hbma_ctrl.app.codegen import CFLAGS, OPT_FLAGS, bench, build_line, find_compiler, write_c
+from hbma_ctrl.app.codegen import CFLAGS, OPT_FLAGS, bench, find_compiler, write_c
+from controllers.rti_step import QP_SOLVERS
 from hbma_ctrl.app.codegen_scene import ESTIMATORS, scenario_loop
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.app.scenario import load_scenario
@@ -45,12 +46,14 @@ def check_choice(flag: str, value: str, allowed) -> str:
     return value
 
 
-def _spec(config: Path, duration_s: float | None, estimator: str):
+def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None):
     check_duration(duration_s)
     check_choice("--estimator", estimator, ESTIMATORS)
+    if qp_solver is not None:
+        check_choice("--qp-solver", qp_solver, QP_SOLVERS)
     scn = load_scenario(config)
     try:
-        return scenario_loop(scn, duration_s, estimator)
+        return scenario_loop(scn, duration_s, estimator, qp_solver)
     except ValueError as exc:
         raise ValueError(f"{config.name}: {exc}") from None
 
@@ -71,13 +74,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", "-o", help="output directory for the C sources")],
         duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
         estimator: Annotated[str, typer.Option(help="ekf (the scenario's filter) | truth (the rig's state, no filter)")] = "ekf",
+        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: qrqp "
+                                                         "(self-contained C) | hpipm | osqp | daqp (linked from the "
+                                                         "casadi package); default: the variant's, else qrqp")] = None,
         check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
         opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = CFLAGS[0],
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario."""
         check_choice("--opt", opt, OPT_FLAGS)
-        spec = _spec(config, duration_s, estimator)
+        spec = _spec(config, duration_s, estimator, qp_solver)
         cc = _compiler() if check else None
         con = Console(highlight=False)
         with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
@@ -88,7 +94,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 write_c(spec, tmp)
         con.print(f"wrote {out}: hbma_steps.c/.h, loop_data.h, closed_loop.c, Makefile, README.txt "
                   f"({spec.n_ticks} ticks of {spec.dt * 1e3:g} ms)")
-        con.print(f"build: cd {out} && {build_line()}   then ./closed_loop")
+        con.print(f"build: cd {out} && make   then ./closed_loop   (or the line in README.txt)")
         if check:
             con.print(f"C vs Python path: largest absolute difference {res['max_abs_diff_si_all']:.3g} (SI); "
                       f"see {out / 'check.json'}")
@@ -101,6 +107,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             "runs/bench_codegen"),
         duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
         estimator: Annotated[str, typer.Option(help="ekf | truth")] = "ekf",
+        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: qrqp "
+                                                         "(self-contained C) | hpipm | osqp | daqp (linked from the "
+                                                         "casadi package); default: the variant's, else qrqp")] = None,
         opt: Annotated[str, typer.Option(help=f"optimisation flag of the C build: {', '.join(OPT_FLAGS)}")] = CFLAGS[0],
         python_vm: Annotated[bool, typer.Option("--python-vm", help="also run the Python path on casadi's virtual "
                                                 "machine (uncompiled Functions; slow)")] = False,
@@ -108,7 +117,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     ) -> None:
         """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
         check_choice("--opt", opt, OPT_FLAGS)
-        spec = _spec(config, duration_s, estimator)
+        spec = _spec(config, duration_s, estimator, qp_solver)
         cc = _compiler()
         con = Console(highlight=False, width=150)
         with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:

@@ -34,7 +34,7 @@ import numpy as np
 from hbma_ctrl.core.codegen import FastFunction
 
 __all__ = ["Stage", "LogColumn", "LoopSpec", "run_python", "write_c", "build_c", "run_c", "compare",
-           "find_compiler", "CFLAGS", "OPT_FLAGS", "STEPS_NAME", "PythonRun", "CRun", "time_summary", "build_line", "LIBRARY",
+           "find_compiler", "CFLAGS", "OPT_FLAGS", "STEPS_NAME", "PythonRun", "CRun", "time_summary", "build_line", "LIBRARY", "solver_flags",
            "bench"]
 
 #: base name of the generated step sources (``hbma_steps.c`` and ``hbma_steps.h``)
@@ -362,12 +362,13 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
            .replace("@TICK@", "\n".join(tick)).replace("@TIMES@", "\n".join(times))
            .replace("@STAGE_FREE@", "\n".join(free)))
     (out / "closed_loop.c").write_text(src)
-    line = build_line()
+    line = build_line(source=(out / f"{STEPS_NAME}.c").read_text())
+    cf, lf = solver_flags((out / f"{STEPS_NAME}.c").read_text())
     (out / "Makefile").write_text(
         "# Build the closed loop (no Python needed): make && ./closed_loop\n"
-        f"CC ?= cc\nCFLAGS ?= {' '.join(CFLAGS)}\n\n"
+        f"CC ?= cc\nCFLAGS ?= {' '.join(CFLAGS)}\nSOLVER_CFLAGS = {' '.join(cf)}\nSOLVER_LIBS = {' '.join(lf)}\n\n"
         f"closed_loop: closed_loop.c {STEPS_NAME}.c {STEPS_NAME}.h loop_data.h\n"
-        f"\t$(CC) $(CFLAGS) -o $@ closed_loop.c {STEPS_NAME}.c -lm\n\n"
+        f"\t$(CC) $(CFLAGS) $(SOLVER_CFLAGS) -o $@ closed_loop.c {STEPS_NAME}.c $(SOLVER_LIBS) -lm\n\n"
         "run: closed_loop\n\t./closed_loop .\n\n.PHONY: run\n")
     stage_text = "\n".join(
         f"  {st.name:14s} every {st.every} tick(s)"
@@ -390,9 +391,25 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
             out / "Makefile", out / "README.txt"]
 
 
-def build_line(cc: str = "cc", opt: str = CFLAGS[0]) -> str:
-    """The command that builds the loop in its directory (``opt``: the optimisation flag)."""
-    return f"{cc} {opt} {' '.join(CFLAGS[1:])} -o closed_loop closed_loop.c {STEPS_NAME}.c -lm"
+#: header of a QP solver the generated source includes -> the libraries it links (shipped with casadi)
+_SOLVER_LIBS = {"hpipm_d_ocp_qp.h": ("hpipm", "blasfeo"), "osqp/osqp.h": ("osqp",), "daqp/api.h": ("daqp",)}
+
+
+def solver_flags(source: str) -> tuple[list, list]:
+    """(compile flags, link flags) for the QP solvers the generated ``source`` includes: their headers
+    and shared libraries ship inside the casadi package (qrqp needs none: self-contained C)."""
+    libs = [lib for header, names in _SOLVER_LIBS.items() if f"#include <{header}>" in source for lib in names]
+    if not libs:
+        return [], []
+    root = Path(ca.__file__).parent
+    return [f"-I{root / 'include'}"], [f"-L{root}", *(f"-l{lib}" for lib in libs), f"-Wl,-rpath,{root}"]
+
+
+def build_line(cc: str = "cc", opt: str = CFLAGS[0], source: str = "") -> str:
+    """The command that builds the loop in its directory (``opt``: the optimisation flag; ``source``: the
+    generated steps, for the QP solvers' flags)."""
+    cf, lf = solver_flags(source)
+    return " ".join([cc, opt, *CFLAGS[1:], *cf, "-o closed_loop closed_loop.c", f"{STEPS_NAME}.c", *lf, "-lm"])
 
 
 def find_compiler() -> str | None:
@@ -418,11 +435,12 @@ def build_c(out_dir: Path | str, cc: str | None = None, opt: str = CFLAGS[0]) ->
     if cc is None:
         raise RuntimeError("no C compiler (cc, gcc or clang) on PATH")
     out = Path(out_dir)
+    cf, lf = solver_flags((out / f"{STEPS_NAME}.c").read_text())
     flags = [opt, *CFLAGS[1:]]
     # one object file serves the program and the shared library the Python path loads
-    for cmd in ([cc, *flags, "-fPIC", "-c", f"{STEPS_NAME}.c", "-o", f"{STEPS_NAME}.o"],
-                [cc, "-shared", f"{STEPS_NAME}.o", "-o", LIBRARY, "-lm"],
-                [cc, *flags, "-o", "closed_loop", "closed_loop.c", f"{STEPS_NAME}.o", "-lm"]):
+    for cmd in ([cc, *flags, *cf, "-fPIC", "-c", f"{STEPS_NAME}.c", "-o", f"{STEPS_NAME}.o"],
+                [cc, "-shared", f"{STEPS_NAME}.o", "-o", LIBRARY, *lf, "-lm"],
+                [cc, *flags, "-o", "closed_loop", "closed_loop.c", f"{STEPS_NAME}.o", *lf, "-lm"]):
         res = subprocess.run(cmd, cwd=out, capture_output=True, text=True)
         if res.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed: {res.stderr.strip()[:2000]}")

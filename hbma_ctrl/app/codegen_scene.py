@@ -362,7 +362,8 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))
     if every < 1 or abs(ratio - every) > 1e-6:
-        raise ValueError(f"codegen: [controller] sample_ms must be a whole multiple of [rig] sample_period_ms")
+        raise ValueError(f"codegen: [controller] sample_ms = {section.sample_period * 1e3:g} ms must be a whole "
+                         f"multiple of [rig] sample_period_ms = {rs.sample_period * 1e3:g} ms")
     T = scn.duration if duration is None else float(duration)
     n = int(round(T / rs.sample_period))
     plant, theta, x0, m0, y0, fid_name = plant_stage_parts(scn.actuator, scn.pneumatics, scn.platform, rs)
