@@ -136,10 +136,15 @@ def test_mpc_glue_matches_the_nmpc_problem():
 
 
 @needs_cc
-def test_generated_track_height_loop_equals_the_python_path(tmp_path):
-    from hbma_ctrl.app.codegen_scene import scenario_loop
+def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scene(tmp_path):
+    from dataclasses import replace
 
-    spec = scenario_loop(load_scenario(TRACK), duration=2.0)
+    from hbma_ctrl.app.codegen_scene import scenario_loop
+    from hbma_ctrl.app.scene_controller import closed_loop, estimator_from_scenario
+
+    T = 2.0
+    scn = load_scenario(TRACK)
+    spec = scenario_loop(scn, duration=T)
     write_c(spec, tmp_path)
     for name in ("hbma_steps.c", "hbma_steps.h", "closed_loop.c", "loop_data.h", "Makefile", "README.txt"):
         assert (tmp_path / name).is_file()
@@ -152,10 +157,24 @@ def test_generated_track_height_loop_equals_the_python_path(tmp_path):
     diff = compare(spec, py, c)
     assert max(diff.values()) <= 1e-9, diff
     col = {n: i for i, n in enumerate(spec.header())}
-    h = c.trajectory[:, col["h_true_mm"]]
-    assert h.max() > 1.0  # the loop lifted the 400 g load towards its 2 mm target: not a trivial run
+    assert c.trajectory[:, col["h_true_mm"]].max() > 1.0  # the loop lifted the 400 g load towards 2 mm
     times = json.loads((tmp_path / "times.json").read_text())["functions"]
     assert times["plant_step"]["calls"] == spec.n_ticks and times["rti_step"]["calls"] >= spec.n_ticks // 2
+
+    # the scene's own closed loop (Rig, EKF, NMPC calling the same RTI Function, ChamberLoop with its
+    # supervisor), without the start-up calibration and with a budget no solve reaches (an overrun is
+    # wall-clock dependent): the glue Functions reproduce what the Python classes do around the steps
+    sec = scn.role("controller")
+    sec = replace(sec, mpc=replace(sec.mpc, variant="rti_fn_qrqp", budget=10.0))
+    rs = scn.role("rig")
+    log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, sec, T, rs,
+                      estimator=estimator_from_scenario(scn, rs), calibrate=False)
+    assert py.trajectory[-1, col["ekf_reference_events"]] == 0  # no step left to the EKF's reference path
+    np.testing.assert_allclose(py.trajectory[:, col["h_true_mm"]] / 1e3, log.h_true, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(py.trajectory[:, col["h_est_mm"]] / 1e3, log.h_est, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(py.trajectory[:, col["p_est_kpa"]] * 1e3, log.p_est, rtol=0, atol=1e-3)
+    got_u = py.trajectory[:, [col["speed"], col["inlet"], col["outlet"]]]
+    np.testing.assert_allclose(got_u, log.u, rtol=0, atol=1e-6)
 
 
 def _cli(args):

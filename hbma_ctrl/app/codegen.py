@@ -6,15 +6,22 @@ casadi Function reading and writing signals (a stage with ``every`` = P runs whe
 same spec runs
 
 - in Python (:func:`run_python`: each stage's Function called through preallocated buffers,
-  :class:`hbma_ctrl.core.codegen.FastFunction`): the *Python path*;
+  :class:`hbma_ctrl.core.codegen.FastFunction`, either loaded from the shared library built from the
+  same object code as the C program, or on casadi's virtual machine): the *Python path*;
 - as C (:func:`write_c`): one ``casadi.CodeGenerator`` source and header with every Function
   (``with_header``, ``main`` off), ``loop_data.h`` (the initial signals and the streams) and
   ``closed_loop.c`` from the template ``codegen_c/closed_loop.c.in``: the loop with nothing but
   the generated code and libc/libm, writing ``trajectory.csv`` and ``times.json``.
 
 Both log the same columns (:class:`LogColumn`: a signal's entry times a unit factor, edge units), so
-:func:`compare` measures the C loop against the Python path. :func:`scenario_loop` builds the spec of a
-scenario (:mod:`hbma_ctrl.app.codegen_roles`), :func:`generate` writes a directory for ``hbma-ctrl codegen``.
+:func:`compare` measures the C loop against the Python path.
+:func:`hbma_ctrl.app.codegen_scene.scenario_loop` builds the spec of a scenario; :func:`bench` builds,
+runs and times both paths.
+
+Why the Python path loads the generated library rather than the virtual machine: casadi's VM and the
+generated C of the same Function round differently at the 1e-15 level (the QP solver's linear algebra),
+and a closed loop with active-set changes and failure fallbacks amplifies that; the same object code
+makes the comparison a test of the loop (stages, order, signals, data), which must agree exactly.
 """
 
 from __future__ import annotations
@@ -121,6 +128,7 @@ class LoopSpec:
     stages : the stages in call order, with the string :data:`LOG` where the log row is written
         (default: after the last stage).
     log : the trajectory's columns; column 't_s' (k * dt) comes first by itself.
+    meta : what the loop is made of (name -> text), written to README.txt and the bench's JSON.
     """
 
     name: str
