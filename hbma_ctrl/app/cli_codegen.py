@@ -125,14 +125,24 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             (tmp / "bench_codegen.json").write_text(json.dumps(res, indent=2) + "\n")
         t = Table(title=f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs "
                         f"Python path ({res['python_path']}); us per call")
-        for c in ("function", "calls", "C median", "C p99", "Python median", "Python p99", "ratio median", "ratio p99"):
+        cols = ["function", "calls", "C median", "C p99", "Python median", "Python p99", "ratio median", "ratio p99"]
+        if python_vm:
+            cols += ["VM median", "VM p99"]
+        for c in cols:
             t.add_column(c, justify="right")
         for name, r in res["functions"].items():
             c, p = r["c"], r["python"]
             ratio = [f"{v:.1f}x" if v else "-" for v in (r["ratio_median"], r["ratio_p99"])]
-            t.add_row(name, str(c["calls"]), f"{c['median_us']:.2f}", f"{c['p99_us']:.2f}",
-                      f"{p['median_us']:.2f}", f"{p['p99_us']:.2f}", *ratio)
+            row = [name, str(c["calls"]), f"{c['median_us']:.2f}", f"{c['p99_us']:.2f}",
+                   f"{p['median_us']:.2f}", f"{p['p99_us']:.2f}", *ratio]
+            if python_vm:
+                vm = r["python_vm"]
+                row += [f"{vm['median_us']:.2f}" if vm["calls"] else "-", f"{vm['p99_us']:.2f}" if vm["calls"] else "-"]
+            t.add_row(*row)
         con.print(t)
+        if python_vm:
+            con.print(f"largest |C - VM path|: {res['vm_max_abs_diff_si_all']:.3g} (SI; the VM rounds the QP "
+                      "solver differently and the loop amplifies it)")
         con.print(f"largest |C - Python| over the trajectory: {res['max_abs_diff_si_all']:.3g} (SI); "
                   f"build {res['wall_s']['build']:.1f} s, C run {res['wall_s']['c_run']:.2f} s, "
                   f"Python run {res['wall_s']['python_run']:.1f} s")
