@@ -1,4 +1,4 @@
-"""Nonlinear MPC of one chamber's membrane height: IPOPT (accurate) or RTI + OSQP (fast), one API.
+"""Nonlinear MPC of one chamber's membrane height: IPOPT / fatrop (accurate) or RTI (fast), one API.
 
 The optimal control problem (both variants solve the same one)
 --------------------------------------------------------------
@@ -35,6 +35,15 @@ shifted previous solution; one sparse QP with a fixed pattern is updated in plac
 u, Px, Ax; never re-setup) and solved by OSQP, warm-started. The pump flow is bilinear in speed and
 inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point of speed
 and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
+
+``rti_fn_hpipm``, ``rti_fn_osqp``, ``rti_fn_qrqp``: the same real-time iteration as ONE casadi
+Function (:func:`controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
+inside casadi by HPIPM / OSQP / qrqp, first input), called once per step through preallocated
+buffers; the ``codegen`` command generates C from exactly this Function. Its QP is written
+stage-wise (the previous input as a state, the limits of stage k+1 through the dynamics on stage
+k), which has the same optimum and lets HPIPM use the OCP structure.
+``fatrop``: the IPOPT variant's NLP in the same stage form, solved by fatrop (casadi ``nlpsol``,
+structure detected; the NLP's functions JIT-compiled when ``codegen`` is set).
 
 Valve duty -> on/off. A duty d in [0, 1] is a PWM command: the valve is held open for d * T_pwm of
 each PWM period T_pwm (``duty_to_on_time``); the averaged flow is d times the open flow, which is
@@ -74,6 +83,7 @@ from controllers.mpc_settings import (
 )
 from controllers.mpc_solvers import (
     _BudgetExceeded,
+    _Fatrop,
     _Ipopt,
     _Problem,
     _RtiOsqp,
@@ -119,6 +129,8 @@ class NMPC:
             self.backend = _RtiOsqp(self.model, s)
         elif s.variant.startswith("rti_fn_"):
             self.backend = _RtiFunction(self.model, s, s.variant[len("rti_fn_"):])
+        elif s.variant == "fatrop":
+            self.backend = _Fatrop(self.model, s)
         else:
             self.backend = _Ipopt(self.model, s)
         self.reset()

@@ -11,6 +11,21 @@ Function can be code-generated to C (``qrqp`` generates self-contained C; ``hpip
 hpipm/blasfeo headers and libraries shipped inside the casadi package; ``osqp`` those of OSQP)
 and the Python controller calls exactly this Function (see ``controllers.mpc_solvers._RtiCompiled``).
 
+Solver choice (measured on the 2-core machine, N = 20, one QP of a step, casadi 3.8)
+-----------------------------------------------------------------------------------
+HPIPM (default): ~10-13 interior-point iterations in "balance" mode, 0.5-0.8 ms per QP through the
+plugin (its "speed" mode stops at the iteration limit on this QP); first input within 1e-3 of the
+reference OSQP path. OSQP through casadi: 0.5 ms (casadi sets OSQP up at every call, so the
+factorisation is never reused). qrqp: 10-30 ms and "Failed to calculate search direction" on cold
+starts. daqp, proxqp: 2-18 ms. None reaches the 0.2 ms per step of issue 15 here; the persistent
+OSQP of ``rti_osqp`` (set up once, updated in place) stays the fastest path from Python.
+
+Generated C (``compiled_step`` or the ``codegen`` command): qrqp's C is self-contained; OSQP's and
+HPIPM's need the headers and libraries shipped in the casadi package (``_solver_flags``). The
+OSQP step compiles and runs (about 0.65 ms per call); the generated HPIPM solver compiles but
+reports failure inside this Function (it solves the QP alone once infinite bounds are made finite,
+which the data part already does), so the C closed loop should use ``qp_solver="osqp"``.
+
 Signature (N = ``settings.horizon``; every argument a dense column, SI unless said)
 ------------------------------------------------------------------------------------
 Inputs:
@@ -32,7 +47,7 @@ Inputs:
 ============  =========  ===========================================================================
 
 nz = 8 N + 4 QP variables (stage-wise: [x_k, u_{k-1}, u_k, slack_{k+1}] for k < N, [x_N, u_{N-1}]) and
-nc = 12 N (h_min > 0: 13 N) QP rows; ``function.size1_in("lam_x_guess")`` etc. give them.
+nc = 11 N (h_min > 0: 12 N) QP rows; ``function.size1_in("lam_x_guess")`` etc. give them.
 
 Outputs:
 
@@ -51,21 +66,30 @@ Outputs:
 
 from __future__ import annotations
 
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
 import casadi as ca
 import numpy as np
 
 from controllers.mpc_settings import MPCSettings
 from controllers.mpc_solvers import _SolverFailure, _Stage
-from hbma_ctrl.core.codegen import FastFunction
+from hbma_ctrl.core.codegen import FastFunction, cache_dir, compiled
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["QP_SOLVERS", "rti_step_function"]
+__all__ = ["QP_SOLVERS", "compiled_step", "rti_step_function"]
 
 #: conic plugins the step can be built with (the first is the default)
 QP_SOLVERS = ("qrqp", "hpipm", "osqp", "daqp")
 
 _IN = ["x0", "W", "dh", "dp", "u_prev", "p_lim", "r", "X_guess", "U_guess", "lam_x_guess", "lam_a_guess", "shift"]
 _OUT = ["u0", "X_plan", "U_plan", "lam_x", "lam_a", "status", "residual", "cost"]
+#: stands for an infinite bound where the solver needs finite ones (QP units: kPa, mm, 1/100, -)
+_BIG = 1e6
 #: largest constraint violation of a usable QP solution (QP units; as the OSQP path's acceptance)
 _RES_TOL = 1e-3
 
@@ -79,17 +103,21 @@ def _solver_opts(qp_solver: str, s: MPCSettings) -> dict:
                          "polish": False}, "error_on_fail": False, "warm_start_primal": True}
     if qp_solver == "hpipm":
         # "balance" converges on this OCP (the default "speed" mode stops at its iteration limit)
-        return {"hpipm": {"mode": "balance", "iter_max": 50, "warm_start": 1, "res_g_max": 1e-6,
-                          "res_b_max": 1e-8, "res_d_max": 1e-8, "res_m_max": 1e-7}, "error_on_fail": False}
+        return {"hpipm": {"mode": "balance", "iter_max": 50, "res_g_max": 1e-5,
+                          "res_b_max": 1e-8, "res_d_max": 1e-8, "res_m_max": 1e-6}, "error_on_fail": False}
     return {"error_on_fail": False}
 
 
-def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: str = "qrqp") -> ca.Function:
+def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: str = "hpipm",
+                      compile_parts: bool = False) -> ca.Function:
     """The RTI step of the chamber NMPC as one casadi Function (signature in the module docstring).
 
     ``model``: the controller's :class:`PredictionModel`; ``settings``: its :class:`MPCSettings`
-    (validated here); ``qp_solver``: one of :data:`QP_SOLVERS`. ValueError on an unknown solver or
-    one this casadi build lacks.
+    (validated here); ``qp_solver``: one of :data:`QP_SOLVERS`. ``compile_parts``: the two SX parts
+    (QP data from the inputs; checks and outputs from the solution) run as C compiled with the
+    system compiler (cached on disk by source hash; casadi's virtual machine without a compiler);
+    the QP solver runs in casadi's plugin either way. The Function's inputs, outputs and results
+    are the same (to rounding). ValueError on an unknown solver or one this casadi build lacks.
     """
     s = settings.validate()
     if qp_solver not in QP_SOLVERS:
@@ -203,6 +231,8 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
             if k < N:
                 z0[iu[k][i]] = Ub[i, k]
     lbx, ubx, lba, uba = (ca.vertcat(*v) for v in (lbx, ubx, lba, uba))
+    if qp_solver == "hpipm":  # casadi's generated HPIPM C mishandles infinite bounds: far finite ones
+        lbx, ubx, lba, uba = (ca.fmin(ca.fmax(v, -_BIG), _BIG) for v in (lbx, ubx, lba, uba))
     # dual guess, shifted as the primal one (N stages of ms rows / ns variables, stage N: 4 variables)
     ms = nc // N
     lxg, lag = SX.sym("lam_x_guess", nz), SX.sym("lam_a_guess", nc)
@@ -226,6 +256,8 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     cost, lam_a, lam_x = SX.sym("cost"), SX.sym("lam_a", nc), SX.sym("lam_x", nz)
     post = ca.Function("rti_post", [post_z, cost, lam_a, lam_x, chk] + ins,
                        [Un[:, 0], Xn, Un, lam_x, lam_a, status, res, cost])
+    if compile_parts:
+        data, post = compiled(data, "-O1"), compiled(post, "-O1")
     # --- the MX wrapper: data -> conic -> post
     qp = ca.conic("rti_qp", qp_solver, {"h": Hsp, "a": Asp}, _solver_opts(qp_solver, s))
     mx = [ca.MX.sym(n, *v.shape) for n, v in zip(_IN, ins)]
@@ -236,18 +268,60 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
 
 
 
+def _solver_flags(qp_solver: str) -> list[str]:
+    """Compiler flags for the generated C of a Function containing ``qp_solver`` (headers and libraries
+    shipped inside the casadi package; qrqp needs none)."""
+    root = Path(ca.__file__).parent
+    libs = {"hpipm": ["-lhpipm", "-lblasfeo"], "osqp": ["-losqp"]}.get(qp_solver, [])
+    if not libs:
+        return []
+    return [f"-I{root / 'include'}", f"-L{root}", *libs, f"-Wl,-rpath,{root}"]
+
+
+def compiled_step(fun: ca.Function, qp_solver: str, opt: str = "-O1") -> ca.Function | None:
+    """``fun`` (from :func:`rti_step_function`) as generated C compiled with the system compiler and
+    loaded by ``casadi.external``; the library is cached under :func:`hbma_ctrl.core.codegen.cache_dir`
+    keyed by the SHA-1 of the source and flags (compiled once per machine, about 20 s). None when
+    there is no compiler or the build fails (the caller falls back to casadi's virtual machine)."""
+    cc = next((c for c in ("cc", "gcc", "clang") if shutil.which(c)), None)
+    if cc is None:
+        return None
+    flags = _solver_flags(qp_solver)
+    name = fun.name()
+    with tempfile.TemporaryDirectory() as tmp:
+        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+        cg.add(fun)
+        cg.generate(tmp + os.sep)
+        src_path = Path(tmp) / f"{name}.c"
+        key = hashlib.sha1(src_path.read_bytes() + " ".join([opt, *flags]).encode()).hexdigest()[:16]
+        d = cache_dir()
+        d.mkdir(parents=True, exist_ok=True)
+        lib = d / f"{name}_{key}.so"
+        if not lib.exists():
+            out = Path(tmp) / "out.so"
+            res = subprocess.run([cc, opt, "-fPIC", "-shared", str(src_path), "-o", str(out), *flags, "-lm"],
+                                 capture_output=True, text=True)
+            if res.returncode != 0:
+                return None
+            fd, part = tempfile.mkstemp(dir=d, suffix=".so.part")
+            os.close(fd)
+            shutil.copyfile(out, part)
+            os.replace(part, lib)  # atomic: parallel processes never load half a library
+    return ca.external(name, str(lib))
+
+
 class _RtiFunction:
     """NMPC backend calling :func:`rti_step_function`'s Function once per step (through buffers).
 
-    ``qp_solver`` as in :func:`rti_step_function`. With ``settings.codegen`` the Function is compiled
-    to C with the system compiler (cached on disk by source hash, :func:`hbma_ctrl.core.codegen.compiled`);
-    where that fails (no compiler, missing solver headers) casadi's virtual machine runs it.
+    ``qp_solver`` as in :func:`rti_step_function`; ``settings.codegen`` is its ``compile_parts``. The
+    whole Function as C (:func:`compiled_step`) is not loaded here: casadi 3.8's generated HPIPM C
+    fails on this QP where its plugin solves it (measured; see the module docstring).
     """
 
     def __init__(self, model: PredictionModel, s: MPCSettings, qp_solver: str = "osqp"):
         self.s, self.model, self.N = s, model, s.horizon
-        self.function = rti_step_function(model, s, qp_solver)
-        self.call = FastFunction(self.function, compile=s.codegen)
+        self.function = rti_step_function(model, s, qp_solver, compile_parts=s.codegen)
+        self.call = FastFunction(self.function, compile=False)
         self.nz, self.nc = self.function.nnz_in("lam_x_guess"), self.function.nnz_in("lam_a_guess")
         self.reset()
         self.iterations = 0
@@ -266,6 +340,7 @@ class _RtiFunction:
         else:
             Xg, Ug, lx, la, iters, shift = self.X, self.U, self.lam_x, self.lam_a, 1, 1.0
         for _ in range(iters):
+            self.call.out[5][:] = np.nan  # a failed evaluation leaves it: counted as a failure
             try:
                 out = self.call(float(pr.x0), float(pr.W), float(pr.dh), float(pr.dp), pr.u_prev,
                                 float(pr.p_lim), pr.r, Xg, Ug, lx, la, shift)
@@ -275,8 +350,12 @@ class _RtiFunction:
             status = out[5][0]
             if status != 0.0:
                 self.reset()
-                why = "non-finite linearisation or solution" if status == 1.0 else \
-                    f"QP solution violates its constraints by {out[6][0]:.3g}"
+                if np.isnan(status):
+                    why = "evaluation failed"
+                elif status == 1.0:
+                    why = "non-finite linearisation or solution"
+                else:
+                    why = f"QP solution violates its constraints by {out[6][0]:.3g}"
                 raise _SolverFailure(f"rti_step: {why}")
             Xg, Ug, lx, la, shift = out[1].copy(), out[2].copy(), out[3].copy(), out[4].copy(), 0.0
         self.X, self.U, self.lam_x, self.lam_a = Xg, Ug, lx, la

@@ -106,6 +106,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import casadi as ca
 import numpy as np
@@ -137,7 +138,7 @@ from estimators.ekf_step import (
 from hbma_ctrl.core.codegen import FastFunction, compiled
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES, ObserverModel
+from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
 
@@ -158,13 +159,15 @@ class EKFSettings(FilterSettings):
 _FN_CACHE: dict = {}
 _KIND_CODE = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
 _FLAG_SETS: dict = {}
+_LIFT_DETECTED = 1 << FLAG_BITS.index("lift_off_detected")
 
 
 def _flag_set(bits: int) -> frozenset:
     """The flags of :data:`estimators.ekf_step.FLAG_BITS` raised in ``bits`` (memoised)."""
     fs = _FLAG_SETS.get(bits)
     if fs is None:
-        fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS) if bits >> i & 1)
+        fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS)
+                                          if bits >> i & 1 and n != "lift_off_detected")
     return fs
 
 
@@ -173,7 +176,11 @@ def fast(fun: ca.Function, compile: bool) -> FastFunction:
     up the cached library costs milliseconds, paid per filter otherwise)."""
     key = (id(fun), compile)
     if key not in _FN_CACHE:
-        _FN_CACHE[key] = (fun, compiled(fun) if compile else fun)  # fun kept: its id stays unique
+        done = compiled(fun) if compile else fun
+        if compile and done is fun:
+            warnings.warn(f"{fun.name()}: no working C compiler (cc, gcc or clang): the estimator runs on "
+                          "casadi's virtual machine, several times slower per step", RuntimeWarning, stacklevel=2)
+        _FN_CACHE[key] = (fun, done)  # fun kept: its id stays unique
     return FastFunction(_FN_CACHE[key][1], False)
 
 
@@ -460,7 +467,8 @@ class EKF:
                                               self._p_post, self._gated)
         fn._eval()
         bits = int(out[13][0])
-        if out[14][0] < 0.5 or (bits & 4 and out[0][1] == 0.0 and self._snap is not None):
+        # a detected lift-off with no load is re-filtered from the snapshot: the reference path
+        if out[14][0] < 0.5 or (bits & _LIFT_DETECTED and out[0][1] == 0.0 and self._snap is not None):
             return None
         flags = _flag_set(bits)
         if self._events:

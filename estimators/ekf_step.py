@@ -33,8 +33,9 @@ both 0 without an update); ``flags`` = sum of ``2**i`` over the :data:`FLAG_BITS
 Function does not finish, for which the caller re-runs the step on the reference path
 (:meth:`estimators.ekf.EKF.step_reference`) from the same inputs: the model's projection failed
 (non-finite), a covariance lost its eigenvalue floor (the reference floors it by an eigen
-decomposition), a touch-down, a re-opened gate, the flat-load bound exceeded by the pressure (a
-known load lifting) or a non-positive innovation variance. C callers take ``exact`` as the test
+decomposition), a re-opened gate or a non-positive innovation variance. A detected lift-off
+with no load (flag ``lift_off_detected`` with ``x_next[1] == 0``) is also re-filtered by the
+Python EKF from its snapshot of the flat phase (the replay needs the past samples). C callers take ``exact`` as the test
 that selects between this step and their own handling of those events.
 """
 
@@ -47,7 +48,7 @@ from estimators.common import FilterSettings
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel
 
-__all__ = ["ekf_step_function", "observer_model", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
+__all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
            "NO_LOAD_SIGMAS", "LIFT_START_DRIFT"]
 
@@ -56,7 +57,8 @@ KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
 #: the detector state carried between steps (input ``det``)
 DET_NAMES = ("cusum", "lift", "lift_start", "p_lift", "p_post", "gated_run")
 #: flags raised by the step, bit i of output ``flags``
-FLAG_BITS = ("gated", "load_change", "lift_off", "clamped", "resting", "not_converged")
+FLAG_BITS = ("gated", "load_change", "lift_off", "clamped", "resting", "not_converged", "touch_down",
+             "lift_off_detected")
 STEP_IN = ("x", "P", "s", "u", "theta", "resting", "z", "kind", "det")
 STEP_OUT = ("x_next", "P_next", "s_next", "y", "est", "std", "C", "H", "A", "resting_next", "det_next",
             "nis", "innov", "flags", "exact")
@@ -73,6 +75,14 @@ NO_LOAD_SIGMAS = 3.0
 #: drift of the sum that dates a lift-off (normalised innovation shortfall per sample): only
 #: shortfalls beyond one sigma count
 LIFT_START_DRIFT = 1.0
+
+#: the settings the step Function depends on (the model's are in the model's key): a trial's own
+#: load prior, say, must not build and compile another one
+STEP_SETTINGS = ("noise_std", "model_rel_std", "sensor_range", "saturation_std", "flow_rel_std", "mass_std_abs",
+                 "load_std", "load_rest_std", "lift_threshold", "lift_drift", "lift_load_rel_std",
+                 "flow_factor_std", "modulus_std", "dead_volume_std", "change_threshold", "change_drift",
+                 "change_std", "load_min", "load_max", "output_rel_std", "force_std_floor", "cov_floor",
+                 "gate_nis", "gate_reopen")
 
 _MODEL_CACHE: dict = {}
 _STEP_CACHE: dict = {}
@@ -97,7 +107,7 @@ def ekf_step_function(actuator: Actuator, pneumatics: Pneumatics, settings: Filt
     family, compressor map and settings (the actuator's numbers are the input ``theta``)."""
     s = settings.validate()
     om = observer_model(actuator, pneumatics, s)
-    key = (_model_key(actuator, pneumatics, s), tuple(sorted(vars(s).items(), key=lambda kv: kv[0])))
+    key = (_model_key(actuator, pneumatics, s), tuple(getattr(s, n) for n in STEP_SETTINGS))
     if key not in _STEP_CACHE:
         _STEP_CACHE[key] = _build(om, s)
     return _STEP_CACHE[key]
@@ -157,17 +167,19 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     area = ca.Function("ekf_area", [thp], [ca.pi * Pd["r1"] ** 2])(th)
     piv = _pivot_function()
     ss = ca.DM(np.outer(STATE_SCALE, STATE_SCALE))
-    resting = rest > 0.5
+    rest_in = rest > 0.5
     dt = s.sample_period
 
     # --- predict (the mode is held over the period: hold = resting) -------------------------------
     q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
          s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
-    qv = ca.vertcat(ca.if_else(resting, 0.0, s.flow_rel_std), *q)
+    qv = ca.vertcat(ca.if_else(rest_in, 0.0, s.flow_rel_std), *q)
     predict, update, outputs = _cse(om.predict), _cse(om.update), _cse(om.outputs)
     xn, A, s1, y1, H1, P1, piv1 = predict(x, sh, u, th, rest, P, qv)
     exact = _finite(xn) * _finite(y1) * _finite(P1) * (piv1 > 0)
-    exact = exact * ca.logic_not(ca.logic_and(ca.logic_not(resting), y1[5] > 0.5))  # touch-down
+    # touch-down: the contact model reached the flat membrane; resting from here on
+    td1 = ca.logic_and(ca.logic_not(rest_in), y1[5] > 0.5)
+    resting = ca.logic_or(rest_in, td1)
     p_pred = y1[4]
     pumping = ca.logic_and(u[0] > 0, u[1] > 0)
     keep = ca.if_else(ca.logic_and(resting, xn[1] < REST_EPS), ca.DM([1.0, 1.0, 0.0, 0.0, 0.0]), ca.DM.ones(NX))
@@ -237,30 +249,42 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     exact = exact * ca.if_else(fire_lift, piv(Pd_, s.cov_floor) > 0, 1)
     xl = ca.if_else(fire_lift, ca.vertcat(xa[0], W_new, xa[2:]), xa)
     Pl = ca.if_else(fire_lift, Pd_, Pa)
-    rest2 = ca.if_else(fire_lift, 0.0, rest)
     cusum2 = ca.if_else(fire_lift, 0.0, cusum2)
-    resting2 = rest2 > 0.5
+    resting2 = ca.logic_and(resting, ca.logic_not(fire_lift))
 
-    # --- finish: the flat-load bound, clamps, outputs -----------------------------------------
+    # --- finish: the flat-load bound, clamps, outputs, touch-down -------------------------------
     bound = area * p_flat
-    exact = exact * ca.if_else(resting2, bound <= xl[1], 1)  # a known load lifting: reference path
-    Pf = ca.if_else(resting2, Pl * mask + s.load_rest_std ** 2 * ca.mtimes(e1, e1.T), Pl)
+    # a dead load cannot come down while the pump fills the chamber: after a touch-down the load
+    # goes back to the pressure's bound (no ratchet near the lift-off point)
+    W2 = ca.if_else(ca.logic_and(ca.logic_and(resting2, td1), pumping), ca.fmin(xl[1], bound), xl[1])
+    xl = ca.vertcat(xl[0], W2, xl[2:])
+    lift_b = ca.logic_and(resting2, bound > W2)  # the (known) load is exceeded: it lifts
+    resting3 = ca.logic_and(resting2, ca.logic_not(lift_b))
+    cusum2 = ca.if_else(lift_b, 0.0, cusum2)
+    e11 = ca.mtimes(e1, e1.T)
+    Pf = ca.if_else(resting3, Pl * mask + s.load_rest_std ** 2 * e11, Pl)
     lo = ca.DM([-np.inf, s.load_min, FACTOR_RANGE[0], FACTOR_RANGE[0], FACTOR_RANGE[0]])
     hi = ca.DM([np.inf, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
     xc = ca.fmin(ca.fmax(xl, lo), hi)
     clamped = ca.sum1(ca.logic_or(xl < lo, xl > hi)) > 0
-    o2 = outputs(xc, s1, th, rest2, Pf)
+    o2 = outputs(xc, s1, th, resting3, Pf)
     s2, y, H, C0 = o2[0], o2[1], o2[2], o2[4]
-    exact = exact * ca.logic_not(ca.logic_and(ca.logic_not(resting2), y[5] > 0.5))  # touch-down
+    td2 = ca.logic_and(ca.logic_not(resting3), y[5] > 0.5)
+    resting4 = ca.logic_or(resting3, td2)
+    W4 = ca.if_else(ca.logic_and(td2, pumping), ca.fmin(xc[1], area * y[4]), xc[1])
+    xc = ca.vertcat(xc[0], W4, xc[2:])
+    Pf = ca.if_else(td2, Pf * mask + s.load_rest_std ** 2 * e11, Pf)
+    rest2 = ca.if_else(resting4, 1.0, 0.0)
     d = (s.output_rel_std * y[:5]) ** 2
     d = d * ca.DM([1.0, 1.0, 1.0, 1.0, 0.0]) + ca.DM([0.0, 0.0, 0.0, s.force_std_floor ** 2, 0.0])
-    bulge = ca.logic_and(resting2, ca.logic_or(xc[1] < LIGHT_LOAD, is_sat))
+    bulge = ca.logic_and(resting4, ca.logic_or(xc[1] < LIGHT_LOAD, is_sat))
     d = d + ca.if_else(bulge, (0.5 * y[0]) ** 2, 0.0) * ca.DM([0.0, 0.0, 1.0, 0.0, 0.0])
     C = C0 + ca.diag(d)
     std = ca.sqrt(ca.fmax(ca.diag(C), 0.0))
     est = ca.vertcat(y[0], ca.fmax(y[1], 0.0), y[2], ca.fmax(y[3], 0.0), y[4])
     not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
-    flags = (gated * 1 + fire_c * 2 + fire_lift * 4 + clamped * 8 + resting2 * 16 + not_conv * 32)
+    flags = (gated * 1 + fire_c * 2 + ca.logic_or(fire_lift, lift_b) * 4 + clamped * 8 + resting4 * 16
+             + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128)
     det2 = ca.vertcat(cusum2, lift2, lift_start2, p_lift2, y[4], run)
     nis = ca.if_else(upd * is_ok, r * r, ca.if_else(gated, nis_gate, 0.0))
     innov = ca.if_else(upd * is_ok, r, 0.0)
