@@ -165,7 +165,7 @@ def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scen
     # supervisor), without the start-up calibration and with a budget no solve reaches (an overrun is
     # wall-clock dependent): the glue Functions reproduce what the Python classes do around the steps
     sec = scn.role("controller")
-    sec = replace(sec, mpc=replace(sec.mpc, variant="rti_fn_qrqp", budget=10.0))
+    sec = replace(sec, mpc=replace(sec.mpc, variant="rti_fn_osqp", budget=10.0))
     rs = scn.role("rig")
     log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, sec, T, rs,
                       estimator=estimator_from_scenario(scn, rs), calibrate=False)
@@ -198,4 +198,6 @@ def test_codegen_cli_writes_the_sources(tmp_path):
     assert res.exit_code == 0, res.output
     names = {p.name for p in (tmp_path / "gen").iterdir()}
     assert {"hbma_steps.c", "hbma_steps.h", "loop_data.h", "closed_loop.c", "Makefile", "README.txt"} <= names
-    assert "cc -O2 -std=c99" in (tmp_path / "gen" / "README.txt").read_text()
+    readme = (tmp_path / "gen" / "README.txt").read_text()
+    assert "cc -O2 -std=c99" in readme and "-losqp" in readme  # the default QP solver's library is linked
+    assert "-losqp" in (tmp_path / "gen" / "Makefile").read_text()

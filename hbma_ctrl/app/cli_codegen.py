@@ -74,9 +74,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", "-o", help="output directory for the C sources")],
         duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
         estimator: Annotated[str, typer.Option(help="ekf (the scenario's filter) | truth (the rig's state, no filter)")] = "ekf",
-        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: qrqp "
-                                                         "(self-contained C) | hpipm | osqp | daqp (linked from the "
-                                                         "casadi package); default: the variant's, else qrqp")] = None,
+        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
+                                                         "hpipm | daqp (linked from the casadi package) | qrqp "
+                                                         "(self-contained C); default: the variant's, else osqp")] = None,
         check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
         opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = CFLAGS[0],
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
@@ -107,9 +107,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             "runs/bench_codegen"),
         duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
         estimator: Annotated[str, typer.Option(help="ekf | truth")] = "ekf",
-        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: qrqp "
-                                                         "(self-contained C) | hpipm | osqp | daqp (linked from the "
-                                                         "casadi package); default: the variant's, else qrqp")] = None,
+        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
+                                                         "hpipm | daqp (linked from the casadi package) | qrqp "
+                                                         "(self-contained C); default: the variant's, else osqp")] = None,
         opt: Annotated[str, typer.Option(help=f"optimisation flag of the C build: {', '.join(OPT_FLAGS)}")] = CFLAGS[0],
         python_vm: Annotated[bool, typer.Option("--python-vm", help="also run the Python path on casadi's virtual "
                                                 "machine (uncompiled Functions; slow)")] = False,

@@ -199,11 +199,12 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
 
 def qp_solver_for(variant: str, qp_solver: str | None = None) -> str:
     """The conic plugin the generated RTI step uses: ``qp_solver`` if given, the variant's own for the
-    'rti_fn_*' variants, else qrqp (self-contained C)."""
+    'rti_fn_*' variants, else OSQP (as 'rti_osqp'; linked from the casadi package). qrqp generates
+    self-contained C but fails on the cold starts of this QP (controllers.rti_step)."""
     from controllers.rti_step import QP_SOLVERS
 
     if qp_solver is None:
-        qp_solver = variant[len("rti_fn_"):] if variant.startswith("rti_fn_") else "qrqp"
+        qp_solver = variant[len("rti_fn_"):] if variant.startswith("rti_fn_") else "osqp"
     if qp_solver not in QP_SOLVERS:
         raise ValueError(f"--qp-solver = '{qp_solver}'; allowed: {', '.join(QP_SOLVERS)}")
     return qp_solver
