@@ -201,3 +201,15 @@ def test_codegen_cli_writes_the_sources(tmp_path):
     readme = (tmp_path / "gen" / "README.txt").read_text()
     assert "cc -O2 -std=c99" in readme and "-losqp" in readme  # the default QP solver's library is linked
     assert "-losqp" in (tmp_path / "gen" / "Makefile").read_text()
+
+
+@needs_cc
+def test_times_json_holds_every_function_and_the_tick(tmp_path):
+    spec = _toy_spec(30)
+    write_c(spec, tmp_path)
+    build_c(tmp_path, opt="-O0")
+    times = run_c(tmp_path).times
+    assert set(times["functions"]) == {"filt", "ctrl", "iterate", "seed"}
+    assert times["tick"]["calls"] == 30
+    for row in list(times["functions"].values()) + [times["tick"]]:
+        assert 0 <= row["median_us"] <= row["p99_us"] <= row["max_us"]

@@ -130,7 +130,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             cols += ["VM median", "VM p99"]
         for c in cols:
             t.add_column(c, justify="right")
-        for name, r in res["functions"].items():
+        for name, r in list(res["functions"].items()) + [("tick (sum)", res["tick"])]:
             c, p = r["c"], r["python"]
             ratio = [f"{v:.1f}x" if v else "-" for v in (r["ratio_median"], r["ratio_p99"])]
             row = [name, str(c["calls"]), f"{c['median_us']:.2f}", f"{c['p99_us']:.2f}",

@@ -209,10 +209,12 @@ def _dense(fun: ca.Function) -> ca.Function:
 
 @dataclass
 class PythonRun:
-    """The Python path's trajectory (rows x columns, the spec's header) and call times per Function (s)."""
+    """The Python path's trajectory (rows x columns, the spec's header), call times per Function (s)
+    and per tick (the sum of its calls, s)."""
 
     trajectory: np.ndarray
     times: dict
+    tick: np.ndarray
 
 
 def run_python(spec: LoopSpec, library: Path | str | None = None) -> PythonRun:
@@ -230,6 +232,7 @@ def run_python(spec: LoopSpec, library: Path | str | None = None) -> PythonRun:
         fast[f.name()] = FastFunction(fun, compile=False)
     stages = spec.stage_list()
     times = {name: [] for name in fast}
+    tick = np.zeros(spec.n_ticks)
     rows = np.full((spec.n_ticks, 1 + len(spec.log)), np.nan)
     for k in range(spec.n_ticks):
         for name, a in spec.streams.items():
@@ -247,13 +250,15 @@ def run_python(spec: LoopSpec, library: Path | str | None = None) -> PythonRun:
                 args = [sig[s] for s in st.inputs]
                 t0 = time.perf_counter()
                 out = ff(*args)
-                times[st.name].append(time.perf_counter() - t0)
+                dt = time.perf_counter() - t0
+                times[st.name].append(dt)
+                tick[k] += dt
                 for s, o in zip(st.outputs, out):
                     if s is not None:
                         sig[s][:] = o
                 if st.stop_on is not None and sig[st.stop_on][0] != 0.0:
                     break
-    return PythonRun(rows, {k: np.asarray(v) for k, v in times.items()})
+    return PythonRun(rows, {k: np.asarray(v) for k, v in times.items()}, tick)
 
 
 def _c_array(values) -> str:
@@ -353,7 +358,8 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
         body += [f"wk_{n}.res[{i}] = out_{n}_{i};" for i in range(f.n_out())]
         body += ["double t0 = now_s();",
                  f"int rc = {f.name()}(wk_{n}.arg, wk_{n}.res, wk_{n}.iw, wk_{n}.w, wk_{n}.mem);",
-                 f"tm_{n}[ntm_{n}++] = now_s() - t0;",
+                 f"tm_{n}[ntm_{n}] = now_s() - t0;",
+                 f"tick_s += tm_{n}[ntm_{n}++];",
                  f"if (rc) ++nrc_{n};"]
         body += [f"memcpy({sig_c[s]}, out_{n}_{i}, sizeof(double) * {f.nnz_out(i)});"
                  for i, s in enumerate(st.outputs) if s is not None]
@@ -505,9 +511,10 @@ def bench(spec: LoopSpec, out_dir: Path | str, opt: str = CFLAGS[0], cc: str | N
 
     The Python path calls the same compiled Functions (the generated library, through buffers);
     ``python_vm`` adds a run on casadi's virtual machine (the Functions as built, uncompiled).
-    Returns the JSON-ready result: per Function the C and Python call times (calls, median, p99, max,
-    us) and the ratios Python / C of the medians and p99s; the largest absolute difference of the
-    trajectories per column (SI) and overall; the wall times of each part (s).
+    Returns the JSON-ready result: per Function (and per tick, ``tick``: the sum of a tick's calls) the
+    C and Python call times (calls, median, p99, max, us) and the ratios Python / C of the medians and
+    p99s; the largest absolute difference of the trajectories per column (SI) and overall; the wall
+    times of each part (s).
     """
     out = Path(out_dir)
     wall = {}
@@ -538,7 +545,13 @@ def bench(spec: LoopSpec, out_dir: Path | str, opt: str = CFLAGS[0], cc: str | N
             a, b = row["python"].get(q), ct.get(q)
             row[f"ratio_{q[:-3]}"] = (a / b) if a and b else None
         funs[name] = row
-    res = {"loop": spec.name, "ticks": spec.n_ticks, "tick_s": spec.dt, "opt": opt,
+    tick = {"c": c.times["tick"], "python": time_summary(py.tick)}
+    if vm is not None:
+        tick["python_vm"] = time_summary(vm.tick)
+    for q in ("median_us", "p99_us"):
+        a, b = tick["python"].get(q), tick["c"].get(q)
+        tick[f"ratio_{q[:-3]}"] = (a / b) if a and b else None
+    res = {"loop": spec.name, "ticks": spec.n_ticks, "tick_s": spec.dt, "opt": opt, "tick": tick,
            "python_path": "the generated library through casadi.external and buffers (FastFunction)",
            "functions": funs, "max_abs_diff_si": diff, "max_abs_diff_si_all": max(diff.values()) if diff else 0.0,
            "wall_s": wall, "meta": dict(spec.meta)}
