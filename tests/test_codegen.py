@@ -128,7 +128,7 @@ def test_mpc_glue_matches_the_nmpc_problem():
         p, F, r = rng.uniform(0, 40e3), rng.uniform(0, 8), rng.uniform(0, 0.012)
         nmpc._W = None
         pr = nmpc._problem(0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
-        out = [np.asarray(v).ravel() for v in prep(h, p, F, 0.0, np.full(s.horizon, r), 0.0, 0.0)]
+        out = [np.asarray(v).ravel() for v in prep(h, p, F, 0.0, np.full(s.horizon, r), 0.0, 0.0, 0.0, 0.0, 0.5)]
         got = np.array([out[0][0], out[1][0], out[2][0], out[3][0]])
         want = np.array([pr.x0, pr.W, pr.dh, pr.dp])
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)

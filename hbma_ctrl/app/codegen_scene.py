@@ -99,22 +99,37 @@ def _hat(xq, grid: np.ndarray):
     return ca.vertcat(w_lo, 0) + ca.vertcat(0, w_hi)
 
 
+def _np_interp(xq, xp: np.ndarray, fp):
+    """``np.interp(xq, xp, fp)`` with numpy's own arithmetic (slope * (x - xp[j]) + fp[j], the node's
+    value at a node, the end values outside), so the result rounds as the Python NMPC's does."""
+    xp = np.asarray(xp, dtype=float)
+    lo, hi = ca.DM(xp[:-1]), ca.DM(xp[1:])
+    f0, f1 = fp[:-1], fp[1:]
+    slope = (f1 - f0) / (hi - lo)
+    inside = ca.logic_and(xq >= lo, xq < hi)
+    val = ca.if_else(xq == lo, f0, slope * (xq - lo) + f0)
+    mid = ca.sum1(ca.if_else(inside, val, 0))
+    return ca.if_else(xq >= xp[-1], fp[-1], ca.if_else(xq < xp[0], fp[0], mid))
+
+
 def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     """(mpc_prep, mpc_cold, mpc_post) casadi Functions of the NMPC with settings ``s`` (MPCSettings)
     on its PredictionModel and the supervisor settings ``sup`` (see the module docstring); ``nz``, ``nc``
-    the RTI step's numbers of QP variables and rows (the cold start's zero duals)."""
+    the RTI step's numbers of QP variables and rows (the cold start's zero duals). mpc_prep takes the
+    load filter's gain ``load_a`` = min(1, dt / load_tau) as an input: dt is the time since the last
+    step, which the scene computes from its clock (a data stream of the loop)."""
     g = model.grid
     N = s.horizon
     act = model.actuator
     MX = ca.MX
     h_est, p_est, F_est, rest_flag = MX.sym("h"), MX.sym("p"), MX.sym("F"), MX.sym("resting")
     r_in, Wf, has_W = MX.sym("r", N), MX.sym("Wf"), MX.sym("has_W")
+    fail, cold_in, a = MX.sym("fail"), MX.sym("cold"), MX.sym("load_a")
     # --- the load filter (NMPC._load): dt is the controller period
     F = ca.if_else(_finite(F_est), F_est, 0)
     F = ca.fmax(F, 0)
     resting_h = h_est < s.rest_height
     resting = ca.logic_or(resting_h, rest_flag != 0)
-    a = 1.0 if s.load_tau <= 0 else min(1.0, s.sample_period / s.load_tau)
     Wf_new = ca.if_else(has_W == 0, F, ca.if_else(resting, ca.fmax(F, Wf), Wf + a * (F - Wf)))
     W = ca.fmin(Wf_new, s.load_max)
     # --- the load path at W (PredictionModel.path): linear in W between the grid's columns
@@ -124,7 +139,7 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     l_path = ca.mtimes(ca.DM(g.lam_path), wW)
     hp = np.asarray(g.h_path, dtype=float)
     lift_x = ca.fmin(ca.fmax(W, 0.0), model.load_max) / (math.pi * act.r1 ** 2) / act.p_env
-    x_at_h = ca.dot(_hat(h_est, hp), x_path)
+    x_at_h = _np_interp(h_est, hp, x_path)
     x0 = ca.if_else(resting_h, ca.fmin(p_est / act.p_env, lift_x), x_at_h)
     hp0 = model.HP(x0, W)
     dh = ca.if_else(resting_h, 0, h_est - hp0[0])
@@ -146,13 +161,17 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     at = ca.if_else(fr < ca.inf, h0n + (h1n - h0n) * fr, h0n)
     reach_first = ca.sum1(ca.if_else(first, at, 0))
     any_bad = ca.sum1(bad[1:]) > 0
-    reach = ca.if_else(ok[0] == 0, 0, ca.if_else(any_bad, reach_first, ca.fmin(hp[-1], s.h_max))) + dh
+    reach = ca.if_else(ok[0] == 0, 0, ca.if_else(any_bad, reach_first, ca.fmin(hp[-1], h_lim))) + dh
     hi = ca.fmax(ca.fmin(reach, s.h_max), s.h_min)
     r_c = ca.fmin(ca.fmax(r_in, s.h_min), hi)
-    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, Wf, has_W],
-                       [x0, W, dh, dp, MX(p_lim), r_c, Wf_new, MX(1.0)],
-                       ["h", "p", "F", "resting", "r", "Wf", "has_W"],
-                       ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next"])
+    # a step in the fail window (the drill) solves nothing and leaves the load filter as it was
+    failing = fail != 0
+    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, Wf, has_W, fail, cold_in, a],
+                       [x0, W, dh, dp, MX(p_lim), r_c, ca.if_else(failing, Wf, Wf_new),
+                        ca.if_else(failing, has_W, 1.0), ca.logic_and(cold_in != 0, ca.logic_not(failing)),
+                        ca.logic_and(cold_in == 0, ca.logic_not(failing))],
+                       ["h", "p", "F", "resting", "r", "Wf", "has_W", "fail", "cold", "load_a"],
+                       ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next", "run_cold", "run_warm"])
     # --- cold start (the backend without a plan): the estimate held, the last command repeated
     x0s, up = ca.SX.sym("x0"), ca.SX.sym("u_prev", 3)
     cold = ca.Function("mpc_cold", [x0s, up], [ca.repmat(x0s, N + 1, 1), ca.repmat(up, 1, N), ca.SX.zeros(nz),
@@ -161,10 +180,11 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     # --- NMPC result -> supervisor (fallback, clip, guard) -> the command sent
     SX = ca.SX
     u0, Up, status, p_g_in = SX.sym("u0", 3), SX.sym("U_plan", 3, N), SX.sym("status"), SX.sym("p")
+    fail_s = SX.sym("fail")
     plan, has_plan, age, streak = SX.sym("plan", 3, N), SX.sym("has_plan"), SX.sym("age"), SX.sym("streak")
     safe = ca.DM(SAFE_COMMAND.as_array())
     safe[2] = sup.safe_outlet
-    okc = status == 0
+    okc = ca.logic_and(status == 0, fail_s == 0)
     streak_n = ca.if_else(okc, 0, streak + 1)
     row = age + 1
     can = ca.logic_and(ca.logic_and(has_plan != 0, streak_n <= sup.fallback_plan_steps),
@@ -190,9 +210,9 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     plan_n = ca.if_else(okc, Up, plan)
     has_n = ca.if_else(okc, 1, ca.if_else(can, has_plan, has_plan))
     age_n = ca.if_else(okc, 0, ca.if_else(can, row, age))
-    post = ca.Function("mpc_post", [u0, Up, status, p_g_in, plan, has_plan, age, streak],
+    post = ca.Function("mpc_post", [u0, Up, status, fail_s, p_g_in, plan, has_plan, age, streak],
                        [out, 1 - okc, plan_n, has_n, age_n, streak_n],
-                       ["u0", "U_plan", "status", "p", "plan", "has_plan", "age", "streak"],
+                       ["u0", "U_plan", "status", "fail", "p", "plan", "has_plan", "age", "streak"],
                        ["u", "cold", "plan_next", "has_plan_next", "age_next", "streak_next"])
     return prep, cold, post
 
@@ -230,20 +250,22 @@ def _mpc_stages(scn, section, every: int, qp_solver: str | None) -> tuple[list, 
     signals = {"Wf": [0.0], "has_W": [0.0], "x0": [0.0], "W": [0.0], "dh": [0.0], "dp": [0.0], "p_lim": [0.0],
                "r_c": np.zeros(N), "X_guess": np.zeros(N + 1), "U_guess": np.zeros(3 * N), "lam_x": np.zeros(nz),
                "lam_a": np.zeros(nc), "u0": np.zeros(3), "status": [0.0], "qp_residual": [0.0], "qp_cost": [0.0],
-               "shift0": [0.0], "shift1": [1.0], "cold": [1.0], "plan": np.zeros(3 * N), "has_plan": [0.0],
+               "shift0": [0.0], "shift1": [1.0], "cold": [1.0], "run_cold": [0.0], "run_warm": [0.0], "fail": [0.0],
+               "load_a": [0.0],
+               "plan": np.zeros(3 * N), "has_plan": [0.0],
                "age": [0.0], "streak": [0.0]}
     rti_in = ["x0", "W", "dh", "dp", "u", "p_lim", "r_c", "X_guess", "U_guess", "lam_x", "lam_a"]
     rti_out = ["u0", "X_guess", "U_guess", "lam_x", "lam_a", "status", "qp_residual", "qp_cost"]
     stages = [
-        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W"],
-              ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W"], every=every),
+        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W", "fail", "cold", "load_a"],
+              ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W", "run_cold", "run_warm"], every=every),
         # cold start (first step, or after a failure): the guess from the estimate, zero duals, then
         # rti_init_iterations unshifted iterations, stopping at a failure (as _RtiFunction.solve)
-        Stage(cold, ["x0", "u"], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="cold"),
-        Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="cold", repeat=s.rti_init_iterations,
+        Stage(cold, ["x0", "u"], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="run_cold"),
+        Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="run_cold", repeat=s.rti_init_iterations,
               stop_on="status"),
-        Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="cold", gate_off=True),
-        Stage(post, ["u0", "U_guess", "status", "est_p", "plan", "has_plan", "age", "streak"],
+        Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="run_warm"),
+        Stage(post, ["u0", "U_guess", "status", "fail", "est_p", "plan", "has_plan", "age", "streak"],
               ["u", "cold", "plan", "has_plan", "age", "streak"], every=every),
     ]
     return stages, signals, {"controller": f"RTI NMPC (controllers.rti_step), N = {N}, QP {solver}, "
@@ -382,6 +404,12 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
         ref = np.array([[section.reference(tk + section.sample_period * (j + 1)) for j in range(N)] for tk in t])
     else:
         ref = np.repeat(target[:, None], N, axis=1)
+    fw = section.mpc.fail_window  # the fallback drill: every solve in [t0, t1] is treated as failed
+    fail = np.zeros(n) if fw is None else ((t >= fw[0]) & (t <= fw[1])).astype(float)
+    # the load filter's gain from the time since the controller's last step, as NMPC._load rounds it
+    tau = section.mpc.load_tau
+    dts = [section.mpc.sample_period if k < every else max(t[k] - t[k - every], 0.0) for k in range(n)]
+    load_a = np.array([1.0 if tau <= 0 else min(1.0, d / tau) for d in dts])
     signals = {"x": x0, "mode": [m0], "y": y0, "u": np.zeros(3), "theta": theta, "noise": [0.0], "z": [z0],
                "target": [0.0], "ref": np.zeros(N)}
     signals.update(ekf_signals)
@@ -402,5 +430,6 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     meta = {"scenario": scn.name, "rig": f"{fid_name}, {rs.integrator}, {rs.sample_period * 1e3:g} ms, seed {rs.seed}"}
     meta.update(ekf_meta)
     meta.update(mpc_meta)
-    return LoopSpec(scn.name, rs.sample_period, n, signals, {"noise": noise, "target": target, "ref": ref},
+    return LoopSpec(scn.name, rs.sample_period, n, signals, {"noise": noise, "target": target, "ref": ref, "fail": fail,
+                                                             "load_a": load_a},
                     stages, log, meta).validate()
