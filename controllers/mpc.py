@@ -264,6 +264,9 @@ class NMPC:
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:
         """Variant, horizon and clipped-target count since the last reset (timing and fallbacks are
-        counted by :mod:`hbma_ctrl.runtime`)."""
-        return {"variant": self.settings.variant, "horizon": self.settings.horizon,
-                "target_clipped_steps": int(self.clipped_count)}
+        counted by :mod:`hbma_ctrl.runtime`); for the rti_fn_* variants how the step runs."""
+        out = {"variant": self.settings.variant, "horizon": self.settings.horizon,
+               "target_clipped_steps": int(self.clipped_count)}
+        if hasattr(self.backend, "mode"):  # the one-Function RTI: generated C, C parts, or casadi's VM
+            out["rti_step_mode"] = self.backend.mode
+        return out

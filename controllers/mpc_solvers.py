@@ -368,6 +368,11 @@ class _Fatrop:
     Stage k < N holds [x_k, v_k (the previous input), u_k, s_k], stage N [x_N, v_N]; v_{k+1} = u_k
     makes the input-rate terms stage-local and s_k is the slack of the limits at stage k + 1, written
     on F(x_k, u_k). The optimum is the IPOPT variant's (same cost, same feasible set).
+
+    Measured (N = 20, ``bench mpc`` on the shared 2-core machine): 17 ms CPU per step against
+    IPOPT's 54 ms, at the same RMSE; but IPOPT with the same JIT takes 29 ms: the gain is the JIT.
+    With one state per stage the NLP is bound by function evaluations, not by the linear algebra
+    fatrop's structure speeds up.
     """
 
     def __init__(self, model: PredictionModel, s: MPCSettings):

@@ -13,7 +13,8 @@ and the Python controller calls exactly this Function (see ``controllers.mpc_sol
 
 Solver choice (measured on the 2-core machine, N = 20, one QP of a step, casadi 3.8)
 -----------------------------------------------------------------------------------
-HPIPM (default): ~10-13 interior-point iterations in "balance" mode, 0.5-0.8 ms per QP through the
+OSQP (default: its generated C works and equals the plugin to the last bit, see below).
+HPIPM: ~10-13 interior-point iterations in "balance" mode, 0.5-0.8 ms per QP through the
 plugin (its "speed" mode stops at the iteration limit on this QP); first input within 1e-3 of the
 reference OSQP path. OSQP through casadi: 0.5 ms (casadi sets OSQP up at every call, so the
 factorisation is never reused). qrqp: 10-30 ms and "Failed to calculate search direction" on cold
@@ -84,7 +85,7 @@ from hbma_ctrl.models.tables import PredictionModel
 __all__ = ["QP_SOLVERS", "compiled_step", "rti_step_function"]
 
 #: conic plugins the step can be built with (the first is the default)
-QP_SOLVERS = ("qrqp", "hpipm", "osqp", "daqp")
+QP_SOLVERS = ("osqp", "hpipm", "qrqp", "daqp")
 
 _IN = ["x0", "W", "dh", "dp", "u_prev", "p_lim", "r", "X_guess", "U_guess", "lam_x_guess", "lam_a_guess", "shift"]
 _OUT = ["u0", "X_plan", "U_plan", "lam_x", "lam_a", "status", "residual", "cost"]
@@ -108,7 +109,7 @@ def _solver_opts(qp_solver: str, s: MPCSettings) -> dict:
     return {"error_on_fail": False}
 
 
-def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: str = "hpipm",
+def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: str = "osqp",
                       compile_parts: bool = False) -> ca.Function:
     """The RTI step of the chamber NMPC as one casadi Function (signature in the module docstring).
 
@@ -313,18 +314,41 @@ def compiled_step(fun: ca.Function, qp_solver: str, opt: str = "-O1") -> ca.Func
 class _RtiFunction:
     """NMPC backend calling :func:`rti_step_function`'s Function once per step (through buffers).
 
-    ``qp_solver`` as in :func:`rti_step_function`; ``settings.codegen`` is its ``compile_parts``. The
-    whole Function as C (:func:`compiled_step`) is not loaded here: casadi 3.8's generated HPIPM C
-    fails on this QP where its plugin solves it (measured; see the module docstring).
+    ``qp_solver`` as in :func:`rti_step_function`. With ``settings.codegen`` the whole Function runs
+    as generated C (:func:`compiled_step`; ``mode`` "c") when it builds and solves a probe step (the
+    results equal the plugin's: OSQP's C gave the same first inputs to the last bit over 30 steps,
+    at half the time); else its SX parts run as C around the solver plugin (``mode`` "parts": the
+    generated HPIPM C fails inside this Function, see the module docstring). Without ``codegen``
+    casadi's virtual machine runs it all (``mode`` "vm").
     """
 
     def __init__(self, model: PredictionModel, s: MPCSettings, qp_solver: str = "osqp"):
         self.s, self.model, self.N = s, model, s.horizon
-        self.function = rti_step_function(model, s, qp_solver, compile_parts=s.codegen)
-        self.call = FastFunction(self.function, compile=False)
+        self.function = rti_step_function(model, s, qp_solver)
         self.nz, self.nc = self.function.nnz_in("lam_x_guess"), self.function.nnz_in("lam_a_guess")
+        self.mode = "vm"
+        fun = self.function
+        if s.codegen:
+            c = compiled_step(self.function, qp_solver)
+            if c is not None and self._probe(c):
+                fun, self.mode = c, "c"
+            else:
+                fun, self.mode = rti_step_function(model, s, qp_solver, compile_parts=True), "parts"
+        self.call = FastFunction(fun, compile=False)
         self.reset()
         self.iterations = 0
+
+    def _probe(self, fun: ca.Function) -> bool:
+        """Does ``fun`` solve a nominal cold step (to mid-range height under a tenth of the largest load)?"""
+        N, s = self.N, self.s
+        W = 0.1 * self.model.load_max
+        try:
+            x0 = float(self.model.x_at_height(0.5 * s.h_max, W))
+            out = fun(x0, W, 0.0, 0.0, np.zeros(3), s.p_max - s.p_margin, np.full(N, 0.5 * s.h_max),
+                      np.full(N + 1, x0), np.zeros((3, N)), np.zeros(self.nz), np.zeros(self.nc), 0.0)
+        except RuntimeError:
+            return False
+        return float(out[5]) == 0.0
 
     def reset(self) -> None:
         """Forget the plan (the next step is a cold start)."""

@@ -100,6 +100,15 @@ the range, an update towards the range with ``saturation_std``; otherwise no upd
 ``saturated``). Numerics: Joseph-form update, gains by solves, covariance symmetrised with an
 eigenvalue floor after every predict and update (:mod:`estimators.common`). No global state; the
 filter is deterministic.
+
+Speed: a step one sample period after the last (the normal case) is ONE call of the compiled
+:func:`estimators.ekf_step.ekf_step_function` (predict, gate, update, both detectors, lift-off,
+touch-down, clamps and outputs; generated as C, compiled once per machine and called through
+preallocated buffers). The first step, a late or early tick, a re-opened gate, a covariance that
+needs its eigenvalue floor and a no-load lift-off (replayed from the flat phase) run the reference
+path (:meth:`EKF.step_reference`: separate predict, update and output calls, the same model); both
+give the same numbers (tests/test_ekf_compiled.py). ``hbma-ctrl bench ekf`` times both paths and
+filterpy's ExtendedKalmanFilter on the same model.
 """
 
 from __future__ import annotations

@@ -169,3 +169,20 @@ def test_robot_bank_mapped_call_equals_per_chamber_calls(bank_model):
         for j, r in enumerate(ref):
             got = out[j].reshape(n, -1)[i]
             assert _close(got, np.asarray(r).ravel(), scale=1e-6), (i, j)
+
+
+def test_bench_ekf_rows_share_the_rig_runs_and_report_ratios():
+    """``bench ekf`` on one trial: the EKF's compiled step and reference path score the same; the
+    filterpy row runs on the same model and its ratio is reported (its value is not asserted)."""
+    from hbma_ctrl.app.cli_estimators import bench_ekf
+    from hbma_ctrl.app.evaluate import BENCH_FILTERS
+
+    res = bench_ekf({"loads_g": [400.0], "speeds_pct": [100.0], "t0_mm": [3.0], "r1_mm": [7.5]},
+                    filters=("ekf", "ekf_reference", "filterpy"))
+    f = res["filters"]
+    assert set(f) == {"ekf", "ekf_reference", "filterpy"} and set(f) <= set(BENCH_FILTERS)
+    for k in ("height_nrmsd", "force_rmse_n", "nis_mean", "nees_mean"):
+        assert _close(f["ekf"][k], f["ekf_reference"][k]), k
+    assert np.isfinite(f["filterpy"]["height_nrmsd"]) and f["filterpy"]["height_nrmsd"] < 0.5
+    assert set(res["ratios"]) == {"ekf_reference_over_ekf_step_median", "filterpy_over_ekf_step_median"}
+    assert all(v > 0 for v in res["ratios"].values())

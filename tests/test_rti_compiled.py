@@ -113,3 +113,32 @@ def test_closed_loop_rmse_within_one_percent_of_ipopt(model):
         rmse[v] = m["height_rmse_mm"]
     assert rmse["rti_fn_hpipm"] == pytest.approx(rmse["ipopt"], rel=0.01)
     assert rmse["fatrop"] == pytest.approx(rmse["ipopt"], rel=0.01)
+
+
+def test_generated_c_of_the_step_equals_the_function(model):
+    """The step as generated C (OSQP, compiled once and cached) gives the Function's outputs to 1e-9
+    over a few chained steps (skipped without a C compiler or OSQP's shipped headers)."""
+    from controllers.rti_step import compiled_step
+    from hbma_ctrl.core.codegen import FastFunction
+
+    s = MPCSettings(horizon=8).validate()
+    f = rti_step_function(model, s, "osqp")
+    c = compiled_step(f, "osqp")
+    if c is None:
+        pytest.skip("no C compiler, or the OSQP headers shipped with casadi are missing")
+    N, nz, nc = s.horizon, f.nnz_in("lam_x_guess"), f.nnz_in("lam_a_guess")
+    x0 = model.x_at_height(5e-3, W400)
+    runs = []
+    for fun in (f, c):
+        F = FastFunction(fun, compile=False)
+        X, U, lx, la, sh, x, up = np.full(N + 1, x0), np.tile([0.3, 0.5, 0.1], N), np.zeros(nz), np.zeros(nc), 0.0, \
+            x0, np.array([0.3, 0.5, 0.1])
+        u0s = []
+        for k in range(4):
+            o = F(x, W400, 1e-4, 300.0, up, 34e3, np.full(N, 5.4e-3), X, U, lx, la, sh)
+            assert o[5][0] == 0.0
+            X, U, lx, la = (o[i].copy() for i in range(1, 5))
+            up, x, sh = o[0].copy(), X[1], 1.0
+            u0s.append(up)
+        runs.append(np.array(u0s))
+    np.testing.assert_allclose(runs[1], runs[0], atol=1e-9, rtol=0)
