@@ -19,9 +19,11 @@ Both log the same columns (:class:`LogColumn`: a signal's entry times a unit fac
 runs and times both paths.
 
 Why the Python path loads the generated library rather than the virtual machine: casadi's VM and the
-generated C of the same Function round differently at the 1e-15 level (the QP solver's linear algebra),
-and a closed loop with active-set changes and failure fallbacks amplifies that; the same object code
-makes the comparison a test of the loop (stages, order, signals, data), which must agree exactly.
+generated C of a Function need not agree (measured with the qrqp QP solver in the RTI step: its
+generated C reports a failed cold-start iteration where the VM's does not, and the loop parts from the
+first tick; with OSQP the two agree on track_height), so the comparison runs the same object code and
+tests the loop itself (stages, order, signals, data), which must agree exactly. ``bench --python-vm``
+measures the VM path beside it.
 """
 
 from __future__ import annotations
