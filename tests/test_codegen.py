@@ -7,6 +7,7 @@ path, which runs the same stages on the same compiled Functions from Python.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -23,7 +24,8 @@ from hbma_ctrl.sim.rig import Rig, RigSettings
 
 CC = find_compiler()
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH to build the generated loop")
-TRACK = "scenarios/track_height.toml"
+ROOT = Path(__file__).resolve().parents[1]
+TRACK = str(ROOT / "scenarios" / "track_height.toml")
 
 
 def _commands(k: int, rng) -> np.ndarray:
@@ -182,13 +184,13 @@ def _cli(args):
 
 
 def test_codegen_cli_bad_inputs_are_one_error_line(tmp_path):
-    one_line_error(_cli(["codegen", "scenarios/robot_bending.toml", "--out", str(tmp_path / "a")]), "[robot]")
+    one_line_error(_cli(["codegen", str(ROOT / "scenarios" / "robot_bending.toml"), "--out", str(tmp_path / "a")]), "[robot]")
     one_line_error(_cli(["codegen", TRACK, "--out", str(tmp_path / "b"), "--duration-s", "-1"]),
                    "--duration-s = -1", "(0, 3600] s")
     one_line_error(_cli(["codegen", TRACK, "--out", str(tmp_path / "c"), "--estimator", "ukf"]), "--estimator", "ekf")
-    one_line_error(_cli(["codegen", "scenarios/open_loop_fig7.toml", "--out", str(tmp_path / "d")]), "[controller]")
+    one_line_error(_cli(["codegen", str(ROOT / "scenarios" / "open_loop_fig7.toml"), "--out", str(tmp_path / "d")]), "[controller]")
     bad = tmp_path / "qs.toml"
-    bad.write_text(open(TRACK).read().replace("[rig]\n", "[rig]\nfidelity = \"quasi_static\"\n"))
+    bad.write_text(Path(TRACK).read_text().replace("[rig]\n", "[rig]\nfidelity = \"quasi_static\"\n"))
     one_line_error(_cli(["codegen", str(bad), "--out", str(tmp_path / "e")]), "qs.toml", "[rig] fidelity")
     assert not any((tmp_path / d).exists() for d in "abcde")
 
