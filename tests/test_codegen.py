@@ -79,18 +79,21 @@ def _toy_spec(n: int = 60) -> LoopSpec:
     ctrl = ca.Function("ctrl", [x, g], [ca.sin(g - x), (g - x) > 0.5])
     it = ca.Function("iterate", [x], [0.5 * (x + 2.0 / x), ca.fabs(x * x - 2.0) < 1e-9])  # Newton for sqrt(2)
     seed = ca.Function("seed", [x], [1.0 + 0 * x, 0 * x])
+    pair = ca.Function("pair", [x], [ca.vertcat(ca.SX(1, 1), 2 * x)])  # a structurally sparse output
+    assert not pair.sparsity_out(0).is_dense()
     rng = np.random.default_rng(0)
     z = rng.standard_normal(n)
     z[::7] = np.nan
     return LoopSpec("toy", 0.01, n, {"x": [0.0], "z": [0.0], "g": [0.0], "u": [0.0], "far": [0.0], "root": [0.0],
-                                     "done": [0.0]},
+                                     "done": [0.0], "pair": [0.0, 0.0]},
                     {"z": z, "g": np.linspace(0, 3, n)},
                     [Stage(filt, ["x", "z"], ["x"]), Stage(ctrl, ["x", "g"], ["u", "far"], every=3),
                      Stage(seed, ["x"], ["root", "done"], gate="far"),
                      Stage(it, ["root"], ["root", "done"], gate="far", repeat=50, stop_on="done"),
+                     Stage(pair, ["x"], ["pair"]),
                      LOG, Stage(filt, ["x", "u"], ["x"], gate="far", gate_off=True)],
                     [LogColumn("x_mm", "x", 0, 1e3), LogColumn("u", "u"), LogColumn("root", "root"),
-                     LogColumn("z", "z")])
+                     LogColumn("z", "z"), LogColumn("twice_x", "pair", 1)])
 
 
 def test_loop_description_runs_the_same_in_python_and_in_c(tmp_path):
@@ -100,6 +103,7 @@ def test_loop_description_runs_the_same_in_python_and_in_c(tmp_path):
     assert np.all(np.isfinite(x)) and np.isnan(py.trajectory[:, 4]).any()  # NaN readings pass through the log
     roots = py.trajectory[:, 3]
     assert np.any(np.abs(roots - np.sqrt(2)) < 1e-12)  # the repeated stage iterated to its stop condition
+    np.testing.assert_allclose(py.trajectory[:, 5], 2 * x, rtol=1e-14)  # the sparse output lands densified
     if CC is None:
         pytest.skip("no C compiler (cc, gcc or clang) on PATH to build the generated loop")
     write_c(spec, tmp_path)
@@ -211,7 +215,7 @@ def test_times_json_holds_every_function_and_the_tick(tmp_path):
     write_c(spec, tmp_path)
     build_c(tmp_path, opt="-O0")
     times = run_c(tmp_path).times
-    assert set(times["functions"]) == {"filt", "ctrl", "iterate", "seed"}
+    assert set(times["functions"]) == {"filt", "ctrl", "iterate", "seed", "pair"}
     assert times["tick"]["calls"] == 30
     for row in list(times["functions"].values()) + [times["tick"]]:
         assert 0 <= row["median_us"] <= row["p99_us"] <= row["max_us"]

@@ -363,7 +363,7 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
                  f"tm_{n}[ntm_{n}] = now_s() - t0;",
                  f"tick_s += tm_{n}[ntm_{n}++];",
                  f"if (rc) ++nrc_{n};"]
-        body += [f"memcpy({sig_c[s]}, out_{n}_{i}, sizeof(double) * {f.nnz_out(i)});"
+        body += [f"memcpy({sig_c[s]}, out_{n}_{i}, sizeof(double) * {f.numel_out(i)});"
                  for i, s in enumerate(st.outputs) if s is not None]
         if st.stop_on is not None:
             body.append(f"if ({sig_c[st.stop_on]}[0] != 0.0) break;")
