@@ -20,7 +20,7 @@ from rich.table import Table
 
 from hbma_ctrl.app.codegen import CFLAGS, OPT_FLAGS, bench, find_compiler, write_c
 from controllers.rti_step import QP_SOLVERS
-from hbma_ctrl.app.codegen_scene import ESTIMATORS, scenario_loop
+from hbma_ctrl.app.codegen_scene import ESTIMATORS, scenario_loop, scene_reference
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.app.scenario import load_scenario
 
@@ -46,16 +46,17 @@ def check_choice(flag: str, value: str, allowed) -> str:
     return value
 
 
-def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None):
+def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None, with_scenario: bool = False):
     check_duration(duration_s)
     check_choice("--estimator", estimator, ESTIMATORS)
     if qp_solver is not None:
         check_choice("--qp-solver", qp_solver, QP_SOLVERS)
     scn = load_scenario(config)
     try:
-        return scenario_loop(scn, duration_s, estimator, qp_solver)
+        spec = scenario_loop(scn, duration_s, estimator, qp_solver)
     except ValueError as exc:
         raise ValueError(f"{config.name}: {exc}") from None
+    return (spec, scn) if with_scenario else spec
 
 
 def _compiler() -> str:
@@ -113,15 +114,22 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         opt: Annotated[str, typer.Option(help=f"optimisation flag of the C build: {', '.join(OPT_FLAGS)}")] = CFLAGS[0],
         python_vm: Annotated[bool, typer.Option("--python-vm", help="also run the Python path on casadi's virtual "
                                                 "machine (uncompiled Functions; slow)")] = False,
+        scene: Annotated[bool, typer.Option("--scene/--no-scene", help="also run the scene's own closed loop (EKF and "
+                                            "NMPC classes, no calibration) and compare its step times and trajectory")]
+        = True,
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
         check_choice("--opt", opt, OPT_FLAGS)
-        spec = _spec(config, duration_s, estimator, qp_solver)
+        spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
         cc = _compiler()
         con = Console(highlight=False, width=150)
         with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
             res = bench(spec, tmp, opt=opt, cc=cc, python_vm=python_vm)
+            if scene and estimator == "ekf":
+                from hbma_ctrl.app.codegen import run_c
+
+                res["scene"] = scene_reference(scn, spec, run_c(tmp).trajectory, qp_solver)
             (tmp / "bench_codegen.json").write_text(json.dumps(res, indent=2) + "\n")
         t = Table(title=f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs "
                         f"Python path ({res['python_path']}); us per call")
@@ -145,4 +153,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         con.print(f"largest |C - Python| over the trajectory: {res['max_abs_diff_si_all']:.3g} (SI); "
                   f"build {res['wall_s']['build']:.1f} s, C run {res['wall_s']['c_run']:.2f} s, "
                   f"Python run {res['wall_s']['python_run']:.1f} s")
+        sc = res.get("scene")
+        if sc:
+            e, c = sc["ekf_step"], sc["controller_step"]
+            con.print(f"scene's own loop ({sc['variant']}): EKF step {e['median_us']:.1f} / {e['p99_us']:.1f} us, "
+                      f"controller step {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "
+                      f"|C - scene| {sc['max_abs_diff_si_all']:.3g} (SI)")
         con.print(f"wrote {out / 'bench_codegen.json'}")

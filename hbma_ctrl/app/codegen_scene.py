@@ -44,7 +44,8 @@ from hbma_ctrl.sim.plant_step import initial_plant_state, plant_step_function, p
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.trial import DEFAULT_DT
 
-__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "qp_solver_for", "ESTIMATORS"]
+__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "qp_solver_for", "scene_reference",
+           "ESTIMATORS"]
 
 
 def _finite(v):
@@ -441,3 +442,43 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     return LoopSpec(scn.name, rs.sample_period, n, signals, {"noise": noise, "target": target, "ref": ref, "fail": fail,
                                                              "load_a": load_a},
                     stages, log, meta).validate()
+
+
+# --------------------------------------------------------------------------------------------- scene
+#: trajectory columns compared with the scene's log: (column, log attribute, column index in log.u or None)
+_SCENE_COLUMNS = (("h_true_mm", "h_true", None), ("h_est_mm", "h_est", None), ("p_true_kpa", "p_true", None),
+                  ("p_est_kpa", "p_est", None), ("F_est_n", "F_est", None), ("speed", "u", 0), ("inlet", "u", 1),
+                  ("outlet", "u", 2))
+
+
+def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str | None = None) -> dict:
+    """Run the scene's own closed loop (Rig, EKF, NMPC, ChamberLoop with its supervisor) as the generated
+    loop models it, and compare: no start-up calibration, the NMPC variant calling the same RTI Function
+    (``rti_fn_<solver>``) with a budget no solve reaches (an overrun depends on the wall clock).
+
+    Returns the scene's step times (EKF step, controller step incl. the supervisor; calls, median,
+    p99, max in us) and the largest absolute difference of each compared column from ``trajectory``
+    (rows of ``spec``'s header; SI).
+    """
+    from dataclasses import replace
+
+    from hbma_ctrl.app.codegen import time_summary
+    from hbma_ctrl.app.scene_controller import closed_loop, estimator_from_scenario
+
+    section = scn.role("controller")
+    solver = qp_solver_for(section.mpc.variant, qp_solver)
+    section = replace(section, mpc=replace(section.mpc, variant=f"rti_fn_{solver}", budget=10.0))
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, section, spec.n_ticks * spec.dt, rs,
+                      estimator=estimator_from_scenario(scn, rs), calibrate=False)
+    col = {n: i for i, n in enumerate(spec.header())}
+    scale = {c.name: c.scale for c in spec.log}
+    diff = {}
+    for name, attr, j in _SCENE_COLUMNS:
+        ref = getattr(log, attr) if j is None else log.u[:, j]
+        got = trajectory[: len(ref), col[name]] / scale[name]
+        diff[name] = float(np.max(np.abs(got - ref)))
+    return {"variant": f"rti_fn_{solver}", "ekf_step": time_summary(log.est_step_s),
+            "controller_step": time_summary(np.asarray(log.solve_ms) * 1e-3),
+            "max_abs_diff_si": diff, "max_abs_diff_si_all": max(diff.values()),
+            "supervisor_events": len(log.supervisor_events)}
