@@ -16,11 +16,12 @@ here as small casadi Functions too, so that the C loop needs no Python:
   safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`).
 
 The glue rounds as the Python classes do (``np.interp``'s formula, the load filter's gain from the
-scene's clock), so on ``scenarios/track_height.toml`` the loop equals the scene's own closed loop
+scene's clock), so on ``scenarios/track_height.toml`` the loop follows the scene's own closed loop
 (``closed_loop(..., calibrate=False)`` with the NMPC variant ``rti_fn_osqp`` and a budget no solve
-reaches) bit for bit over the 9 s when built with -O1 (the flag of the roles' compiled parts); -O2
-rounds a few ulp differently (measured: 6e-9 Pa in the pressure, 4e-12 in the commands). Where a QP
-is marginal the two can part: the NMPC solves the QP
+reaches; :func:`scene_reference`) over the 9 s to 2e-15 m in the heights, 4e-12 in the commands and
+6e-9 Pa in the pressures (measured): rounding only, since the NMPC solves its QP through casadi's
+OSQP plugin with separately compiled data and post-processing, the generated step as one C source.
+Where a QP is marginal the two can part: the NMPC solves the QP
 with casadi's OSQP plugin, the generated step with OSQP's generated interface (measured on
 ``mpc_pressure_limit.toml``: the same inputs after its fallback drill give status 2 in one and 0 in
 the other at t = 2.64 s).
