@@ -98,19 +98,6 @@ def _sensor(sensor_range: float) -> ca.Function:
 
 
 # --------------------------------------------------------------------------------------------- MPC
-def _hat(xq, grid: np.ndarray):
-    """Weights (len(grid)) of linear interpolation at xq (clamped to the grid), as ``np.interp``."""
-    g = np.asarray(grid, dtype=float)
-    xq = ca.fmin(ca.fmax(xq, g[0]), g[-1])
-    lo, hi = ca.DM(g[:-1]), ca.DM(g[1:])
-    inside = ca.logic_and(xq > lo, xq <= hi)
-    inside[0] = xq <= g[1]
-    s = (xq - lo) / (hi - lo)
-    w_lo = ca.if_else(inside, 1 - s, 0)
-    w_hi = ca.if_else(inside, s, 0)
-    return ca.vertcat(w_lo, 0) + ca.vertcat(0, w_hi)
-
-
 def _np_interp(xq, xp: np.ndarray, fp):
     """``np.interp(xq, xp, fp)`` with numpy's own arithmetic (slope * (x - xp[j]) + fp[j], the node's
     value at a node, the end values outside), so the result rounds as the Python NMPC's does."""
@@ -145,10 +132,11 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     Wf_new = ca.if_else(has_W == 0, F, ca.if_else(resting, ca.fmax(F, Wf), Wf + a * (F - Wf)))
     W = ca.fmin(Wf_new, s.load_max)
     # --- the load path at W (PredictionModel.path): linear in W between the grid's columns
-    wW = _hat(ca.fmin(ca.fmax(W, 0.0), model.load_max), g.W)
-    x_path = ca.mtimes(ca.DM(g.x_path), wW)
-    p_path = ca.mtimes(ca.DM(g.p_path), wW)
-    l_path = ca.mtimes(ca.DM(g.lam_path), wW)
+    # one lookup and a two-column blend per table: (1 - s) A[:, j] + s A[:, j + 1], as path() rounds it
+    Wc = ca.fmin(ca.fmax(W, 0.0), model.load_max)
+    x_path, p_path, l_path = (ca.interpolant(f"mpc_{name}", "linear", [np.asarray(g.W, dtype=float)],
+                                             np.asarray(tab, dtype=float).ravel(order="F"))(Wc)
+                              for name, tab in (("x_path", g.x_path), ("p_path", g.p_path), ("lam_path", g.lam_path)))
     hp = np.asarray(g.h_path, dtype=float)
     lift_x = ca.fmin(ca.fmax(W, 0.0), model.load_max) / (math.pi * act.r1 ** 2) / act.p_env
     x_at_h = _np_interp(h_est, hp, x_path)
