@@ -21,10 +21,8 @@ scene's clock), so on ``scenarios/track_height.toml`` the loop follows the scene
 reaches; :func:`scene_reference`) over the 9 s to 2e-15 m in the heights, 4e-12 in the commands and
 6e-9 Pa in the pressures (measured): rounding only, since the NMPC solves its QP through casadi's
 OSQP plugin with separately compiled data and post-processing, the generated step as one C source.
-Where a QP is marginal the two can part: the NMPC solves the QP
-with casadi's OSQP plugin, the generated step with OSQP's generated interface (measured on
-``mpc_pressure_limit.toml``: the same inputs after its fallback drill give status 2 in one and 0 in
-the other at t = 2.64 s).
+Where a QP is marginal the two can part (measured on ``mpc_pressure_limit.toml``: the same RTI
+inputs after its fallback drill give status 2 in the NMPC and 0 in the generated step at t = 2.64 s).
 
 Not reproduced (the generated loop and its Python path leave them out, both alike): the start-up
 calibration, the EKF's rare reference-path events (``exact`` = 0; counted in the trajectory's
