@@ -5,9 +5,11 @@ sample period with its Jacobians, the innovation gate, the scalar Joseph-form up
 the one-sided saturation pseudo-reading, or none), the lift-off and load-change detectors, the
 detected lift-off, the flat-load bound, the state clamps and the reported outputs with their
 covariance. The mode logic is inside (casadi ``if_else``): resting or in contact (input
-``resting``), lift-off (a detector firing), a saturated reading and a missing one (input ``kind``).
-The Function holds no Python callbacks and depends only on the settings and the material family:
-the actuator's numbers come in through ``theta``, so one compiled library serves every actuator.
+``resting``), lift-off (a detector firing or the flat-load bound exceeded), touch-down, a
+saturated reading and a missing one (input ``kind``). The Function holds no Python callbacks and
+depends only on the settings it reads (:data:`STEP_SETTINGS`, plus the model's sample period,
+integrator, sub-steps and Newton iterations), the material family and the compressor map: the
+actuator's numbers come in through ``theta``, so one compiled library serves every actuator.
 
 Signature (SI; P, C column-major 5 x 5; all inputs and outputs dense)::
 
@@ -35,8 +37,8 @@ Function does not finish, for which the caller re-runs the step on the reference
 (non-finite), a covariance lost its eigenvalue floor (the reference floors it by an eigen
 decomposition), a re-opened gate or a non-positive innovation variance. A detected lift-off
 with no load (flag ``lift_off_detected`` with ``x_next[1] == 0``) is also re-filtered by the
-Python EKF from its snapshot of the flat phase (the replay needs the past samples). C callers take ``exact`` as the test
-that selects between this step and their own handling of those events.
+Python EKF from its snapshot of the flat phase (the replay needs the past samples). C callers
+take ``exact`` as the test that selects between this step and their own handling of those events.
 """
 
 from __future__ import annotations

@@ -13,8 +13,10 @@ import re
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +32,11 @@ from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, read_run_log
 from hbma_ctrl.app.daemon.state import DaemonState
 
 ROOT = Path(__file__).resolve().parents[1]
-CHAMBER = ROOT / "scenarios" / "daemon_chamber.toml"
+CHAMBER_FILE = ROOT / "scenarios" / "daemon_chamber.toml"
+# most tests time their faults and targets from the loop's start: they run the shipped file without
+# its start-up calibration (test_chamber_daemon_calibrates_first_then_runs_the_files_schedule has it)
+CHAMBER = Path(tempfile.mkdtemp(prefix="hbma-daemon-test-")) / "daemon_chamber.toml"
+CHAMBER.write_text(CHAMBER_FILE.read_text().replace("[controller]\n", "[controller]\ncalibrate = false\n", 1))
 ROBOT = ROOT / "scenarios" / "daemon_robot.toml"
 cli = CliRunner()
 
@@ -123,6 +129,29 @@ def test_chamber_daemon_on_sim_settles_to_a_setpoint_reports_clipping_and_stats(
     assert {r[cols.index("target_C1_mm")] for r in rows[:-1]} == {"4.0000"}
     assert rows[-1][cols.index("mode")] == "stopped"
     assert float(rows[-1][cols.index("outlet_C1_1")]) == 1.0 and float(rows[-1][cols.index("speed_C1_1")]) == 0.0
+
+
+def test_chamber_daemon_calibrates_first_then_runs_the_files_schedule(tmp_path):
+    """The shipped file keeps [controller] calibrate on: the start-up calibration drives the chamber
+    first (logged, its factors in the stats), then the file's schedule runs from its end."""
+    cfg, runner, rig, loop = _loop(CHAMBER_FILE, tmp_path, duration_s=9.0)
+    assert runner.calibration is not None
+    stats = loop.run()
+    cal = runner.stats()["calibration"]
+    assert cal["status"] == "ok" and 0.3 < cal["duration_s"] < 4.0, cal
+    assert 0.5 < cal["flow_factor"] < 2.0 and 0.5 < cal["modulus_factor"] < 2.0
+    causes = [e["cause"] for e in loop.events if e["kind"] == "calibration"]
+    assert len(causes) == 2 and causes[1].startswith("ok after") and "modulus x" in causes[1]
+    assert stats["faults"] == {} and stats["safe_exit"]
+    cols, rows = read_run_log(tmp_path)
+    t = np.array([float(r[0]) for r in rows[:-1]])
+    tg = [r[cols.index("target_C1_mm")] for r in rows[:-1]]
+    t_cal = cal["duration_s"]
+    assert all(x == "" for x, tt in zip(tg, t) if tt < t_cal - 0.011)  # no target while it calibrates
+    assert {x for x, tt in zip(tg, t) if t_cal + 0.02 < tt < t_cal + 2.9} == {"2.0000"}
+    assert {x for x, tt in zip(tg, t) if tt > t_cal + 3.02} == {"6.0000"}
+    # the file's 6 mm from 3 s after the calibration; 2.9 s later the mismatched rig is there
+    assert rig.rig.truth()["h"] == pytest.approx(6e-3, abs=0.3e-3)
 
 
 def test_chamber_daemon_follows_the_file_targets_without_setpoints():
@@ -443,7 +472,7 @@ def test_kill_9_mid_run_leaves_a_readable_log(tmp_path):
     assert [float(r[0]) for r in rows[:3]] == [0.0, 0.01, 0.02]
 
 
-def test_chamber_on_the_serial_link_settles_within_0p8mm_of_the_sims_target(tmp_path):
+def test_chamber_on_the_serial_link_settles_where_it_does_on_sim_within_0p3mm(tmp_path):
     from hbma_ctrl.app.daemon.build import chamber_rig_settings
     from hbma_ctrl.app.daemon.firmware import FakeFirmware
     from hbma_ctrl.app.daemon.rig_sim import SimRig
@@ -491,17 +520,24 @@ def test_chamber_on_the_serial_link_settles_within_0p8mm_of_the_sims_target(tmp_
     h_end = h_controlled[-1]
     missed = stats["deadline_misses"] / max(stats["steps"], 1)
     late_fw = float(np.mean(np.asarray(dts) > 1.5 * cfg0.period)) if dts else 0.0
-    if (missed > 0.01 or late_fw > 0.01) and abs(h_end - 6e-3) > 0.8e-3:
+    if missed > 0.01 or late_fw > 0.01:
         # a real-time loop that cannot keep its period, or a fake firmware (a thread of this process,
         # sharing its GIL, unlike a microcontroller) that cannot keep its own, does not test the link:
         # said as a skip with the numbers, never counted as a pass
         pytest.skip(f"host missed {missed:.0%} of the 10 ms deadlines, the firmware ran {late_fw:.0%} of its "
                     f"periods over 15 ms; the chamber held {h_end * 1e3:.2f} mm")
-    # the sim settles within 0.3 mm; over the link the command reaches the plant up to one sample
-    # later than the estimator assumes, by a phase of the host's and the firmware's clocks that is
-    # random per run (8 runs: 5.96 to 6.71 mm), so the link's band is 0.8 mm until the estimator
-    # knows the latency
-    assert abs(h_end - 6e-3) <= 0.8e-3, f"serial: held {h_end * 1e3:.2f} mm against the 6 mm the sim reaches"
+    # the same file on the lockstep sim rig
+    _, _, sim_rig, sim_loop = _loop(cfg_path, duration_s=8.0)
+    sim_loop.run()
+    h_sim = sim_rig.rig.truth()["h"]
+    # the loop ticks on the firmware's samples (few periods without a new one) and the estimator
+    # predicts with the command each sample says was held: what is left is the link's one period
+    # of command delay, which the sim rig does not have
+    assert stats["repeated_samples"] <= 0.05 * stats["steps"], stats["repeated_samples"]
+    assert rig.stats["held_unknown"] == 0
+    assert abs(h_sim - 6e-3) <= 0.3e-3, f"sim: held {h_sim * 1e3:.2f} mm"
+    assert abs(h_end - 6e-3) <= 0.3e-3 and abs(h_end - h_sim) <= 0.3e-3, \
+        f"serial: held {h_end * 1e3:.2f} mm, the sim {h_sim * 1e3:.2f} mm, target 6 mm"
     assert np.array_equal(fw.u, safe_u(1))  # the firmware holds the safe command at the end
 
 
@@ -526,11 +562,68 @@ def test_setpoints_are_refused_once_the_safe_state_is_latched():
     assert all("mode 'safe'" in r and "overrun" in r for m, r in replies if m == "safe")
 
 
-def test_the_leak_test_watches_one_chamber_but_not_the_robot():
-    """A robot chamber's pressure falls while it pumps in normal work (past its limit point, when a
-    neighbour takes over its load): the robot's monitor has no leak test, the single chamber's has."""
+def test_the_robots_leak_test_is_one_of_a_burst_and_its_pump_test_starts_vented():
+    """A robot chamber's pressure falls by a share while it pumps in normal work (past its limit
+    point, when a neighbour takes over its load): its leak test needs the fall to exceed 50 % of the
+    pressure as well as 5 kPa; the single chamber's needs the 1.2 kPa fall alone."""
     chamber, robot = load_config(CHAMBER), load_config(ROBOT)
-    assert make_monitor(chamber, build_runner(chamber)).settings.leak_test
+    cs = make_monitor(chamber, build_runner(chamber)).settings
+    assert cs.leak_test and cs.leak_fraction == 0.0 and cs.leak_drop == 1.2e3
     rs = make_monitor(robot, build_runner(robot)).settings
-    assert not rs.leak_test and rs.pump_low == 1e3  # the pump test from a vented chamber only
+    assert rs.leak_test and rs.leak_drop == 5e3 and rs.leak_fraction == 0.5
+    assert rs.pump_low == 1e3  # the pump test from a vented chamber only
     assert rs.p_max == 47.5e3  # the hard cap halfway between the 45 kPa limit and the 50 kPa sensors
+
+
+def test_robot_burst_drill_reaches_the_safe_state_within_one_period_and_is_logged(tmp_path):
+    """A chamber of the robot bursts (its outlet fully open) while the NMPC pumps it toward 6 mm:
+    the leak test finds it, the safe command goes out in that period, the cap holds."""
+    start = 1.5
+    cfg_path = _write_config(tmp_path, ROBOT, f'[[daemon.fault]]\nkind = "leak"\nchamber = 4\n'
+                                              f'start_s = {start}\nduty = 1.0\n')
+    cfg, runner, rig, loop = _loop(cfg_path, tmp_path / "log", duration_s=start + 1.0)
+    # no wall-time budget: the NMPC's commands (which decide whether it pumps through the fall) do
+    # not depend on this machine's load, so the drill is the same every run
+    ctrl = runner.loop.controller
+    ctrl.s = replace(ctrl.s, budget=0.0)
+    stats = loop.run()
+    assert stats["faults"] == {"leak": 1}, stats["faults"]
+    first = next(e for e in loop.events if e["kind"] == "leak")
+    assert first["t_s"] >= start - 1e-9 and first["t_s"] <= start + 0.5
+    assert first["cause"].startswith("B2: pressure fell"), first["cause"]  # chamber 4 by its name
+    safe = next(e for e in loop.events if e["kind"] == "safe")
+    assert safe["t_s"] == first["t_s"]
+    after = [u for (what, u), t in zip(rig.written, rig.times) if t >= first["t_s"] - 1e-9]
+    assert after and all(np.array_equal(u, safe_u(9)) for u in after)
+    assert max(rig.p_true) <= 47.5e3
+    assert stats["monitor_margins"]["leak_fraction"] > 0.5
+    assert "leak" in (tmp_path / "log" / "events.csv").read_text()
+
+#: (fault start s, chamber index) of the robot burst drills the README reports
+BURST_DRILLS = [(1.5, 4), (3.0, 0), (5.0, 2), (8.0, 7), (12.0, 4), (15.0, 1), (18.0, 8)]
+
+
+@pytest.mark.slow
+def test_robot_burst_drills_over_the_run_are_found_while_inflating(tmp_path, capsys):
+    """The README's robot burst drills (`pytest -m slow tests/test_daemon.py -k burst_drills -s`): an
+    outlet stuck fully open at 7 times; each one found goes safe within 0.5 s of its start; the
+    first, which hits a chamber while the NMPC inflates it, is always found. Prints found / not."""
+    found = {}
+    for start, ch in BURST_DRILLS:
+        cfg_path = _write_config(tmp_path, ROBOT, f'[[daemon.fault]]\nkind = "leak"\nchamber = {ch}\n'
+                                                  f'start_s = {start}\nduty = 1.0\n')
+        cfg, runner, rig, loop = _loop(cfg_path, duration_s=start + 1.0)
+        ctrl = runner.loop.controller
+        ctrl.s = replace(ctrl.s, budget=0.0)  # commands independent of the machine's load
+        stats = loop.run()
+        ev = [e for e in loop.events if e["kind"] == "leak"]
+        found[(start, ch)] = (ev[0]["t_s"] - start) if ev else None
+        if ev:
+            assert 0.0 <= ev[0]["t_s"] - start <= 0.5 and stats["safe_exit"]
+        with capsys.disabled():
+            print(f"burst drill at {start:g} s on {runner.names[ch]}: "
+                  f"{'found after %.2f s' % found[(start, ch)] if ev else 'not found'}, largest fall "
+                  f"{stats['monitor_margins']['leak_drop_kpa']:.1f} kPa / {stats['monitor_margins']['leak_fraction']:.0%}")
+    assert found[BURST_DRILLS[0]] is not None
+    with capsys.disabled():
+        print(f"found {sum(v is not None for v in found.values())} of {len(found)}")

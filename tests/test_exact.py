@@ -16,7 +16,8 @@ from scipy.optimize import brentq
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.materials import MATERIALS, make_material
-from hbma_ctrl.models.exact import ExactMembrane, biaxial_energy, equilibrium, tabulate
+from hbma_ctrl.models.exact import ExactMembrane, biaxial_energy, equilibrium
+from hbma_ctrl.models.exact_tables import tabulate
 
 R1, T0 = 7.5e-3, 3e-3
 

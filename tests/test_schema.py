@@ -226,7 +226,7 @@ CASES = [
     ("sim", {}, {"log_dt_ms": True}, "[sim] log_dt_ms = True must be a number in [0.01, 10000] ms"),
     ("sim", {}, {"fidelty": "auto"}, f"[sim] fidelty: unknown key; did you mean fidelity? allowed: {_keys(SimTable)}"),
     ("sim", {}, {"fidelity": "quasistatic"}, "[sim] fidelity = 'quasistatic' is not allowed; did you mean "
-     "'quasi_static'? allowed: auto, free, quasi_static, platform"),
+     "'quasi_static'? allowed: auto, free, quasi_static, platform, exact"),
     ("rig", {}, {"noise_std_kpa": 20}, "[rig] noise_std_kpa = 20 is out of range [0, 10] kPa"),
     ("rig", {}, {"seed": 1.5}, "[rig] seed = 1.5 must be an integer in [0, inf)"),
     ("rig", {}, {"noise_std_kp": 0.2},

@@ -14,7 +14,7 @@ import pytest
 import serial
 
 from hbma_ctrl.app.daemon.firmware import FakeFirmware, FirstOrderPlant, main, open_fake_rig
-from hbma_ctrl.app.daemon.rigio import Readings, RigIO, RigLinkError
+from hbma_ctrl.app.daemon.rigio import Readings, RigIO, RigLinkError, safe_u
 from hbma_ctrl.app.daemon.serial_link import (
     PROTOCOL_VERSION,
     LineError,
@@ -406,3 +406,30 @@ def test_firmware_cli_rejects_bad_flags_with_one_line(capsys):
     assert main(["--n", "0"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: --n = 0") and "\n" not in err
+
+
+def test_p_lines_name_the_command_held_over_their_period_from_the_next_sample_instant(rig2):
+    """Version 2: the firmware latches a CMD at its next sample instant; each P line names the host
+    line held over the period it ends, and read() gives that command (as sent, per-mille)."""
+    fw, rig = rig2
+    assert _wait(lambda: rig.stats["readings"] >= 2)
+    np.testing.assert_array_equal(rig.read().held, safe_u(2))  # the handshake left the rig safe
+    u = np.array([[1.0, 0.3], [0.0126, 1.0], [0.0, 0.9994]])
+    rig.write(u)
+    assert _wait(lambda: fw.held_seq != "-" and fw.held_seq != 0)  # latched at the next sample instant
+    assert _wait(lambda: rig.read().held is not None and rig.read().held[0, 1] == 0.3)
+    np.testing.assert_array_equal(rig.read().held, [[1.0, 0.3], [0.013, 1.0], [0.0, 0.999]])
+    rig.safe()
+    assert _wait(lambda: rig.read().held is not None and rig.read().held[2, 0] == 1.0)
+    np.testing.assert_array_equal(rig.read().held, safe_u(2))
+    assert rig.stats["held_unknown"] == 0
+
+
+def test_a_p_line_naming_a_command_the_host_never_sent_is_counted_and_gives_no_held(rig2):
+    fw, rig = rig2
+    assert _wait(lambda: rig.stats["readings"] >= 1)
+    with fw._lock:
+        fw.held_seq = 4242  # as a firmware bug or a stale session would report
+        fw.u_seq = 4242
+    assert _wait(lambda: rig.stats["held_unknown"] >= 1)
+    assert rig.read().held is None

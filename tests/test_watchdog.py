@@ -254,3 +254,18 @@ def test_no_fault_over_a_robot_closed_loop_past_the_limit_point():
         rig.write(sent)
     assert found == []
     assert np.all(rig.truth()["h"] > bank_model.peak(1e-3)[0])  # the chambers did pass the limit point
+
+
+@pytest.mark.parametrize("fall_to, found", [(20e3 * 0.65, False), (20e3 * 0.35, True)])
+def test_leak_fraction_passes_a_fall_by_a_share_and_finds_one_that_empties_the_chamber(fall_to, found):
+    """With leak_fraction 0.6 a 7 kPa fall from 20 kPa while pumping (35 %, what the robot's chambers
+    show past their limit point) is no leak; a 13 kPa fall (65 %) is; the margins record the share."""
+    s = MonitorSettings(leak_drop=5e3, leak_fraction=0.6, same_value_periods=None)
+    mon = SafetyMonitor(s, 1)
+    pump = np.array([[1.0], [1.0], [0.0]])
+    p = np.concatenate([np.linspace(15e3, 20e3, 20), np.linspace(20e3, fall_to, 20), np.full(10, fall_to)])
+    kinds = [f.kind for k, pk in enumerate(p) for f in mon.check(k * TS, readings(pk), pump)]
+    assert kinds == (["leak"] if found else [])
+    drop = 20e3 - fall_to
+    assert mon.closest["leak_drop"] == pytest.approx(drop, rel=0.05)
+    assert mon.closest["leak_fraction"] == pytest.approx(drop / 20e3, rel=0.05)

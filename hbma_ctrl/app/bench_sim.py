@@ -11,6 +11,15 @@ The reference is cached in the output directory (``ref_<fidelity>.npz``), keyed 
 the reference settings and a hash of the model sources; it is reused when all of these match.
 Wall times exclude the one-off casadi Function construction (a short warm-up run per setting)
 and are medians over ``repeat`` runs.
+
+The fidelity axis (README Model §9): every row is also scored against the exact membrane
+(``*_vs_exact_*``: the simulator's 'exact' rung, the platform model with the exact flat contact for
+loaded trials, exact free inflation for the 0 g ones) at a fine fixed step (rk4,
+:data:`EXACT_REF_DT` s; an adaptive reference through 2-D table lookups costs minutes and its
+discretisation error at this step is far below the gaps between rungs). Rows of the 'free' rung run
+only the 0 g trials (the cap's free inflation is all it models); rows of the 'exact' rung measure
+its own cost and step error. ``pareto.png`` beside bench.json plots wall time against NRMSD vs the
+exact membrane, one point per fidelity x integrator x step (:mod:`hbma_ctrl.app.bench_plots`).
 """
 
 from __future__ import annotations
@@ -32,8 +41,8 @@ from hbma_ctrl.core.materials import Material, make_material
 from hbma_ctrl.sim.batch import fidelity_for, protocol_trials, simulate_trials
 from hbma_ctrl.sim.trial import DEFAULT_DT, InputSchedule, SimSettings, Trial
 
-__all__ = ["BenchRow", "GRID", "QUICK_GRID", "TARGET_WALL_S", "TARGET_NRMSD", "run_bench", "reference",
-           "bench_trials"]
+__all__ = ["BenchRow", "GRID", "QUICK_GRID", "FIDELITY_GRID", "QUICK_FIDELITY_GRID", "EXACT_REF_DT", "TARGET_WALL_S",
+           "TARGET_NRMSD", "run_bench", "reference", "exact_reference", "bench_trials"]
 
 #: fixed steps (ms) per loaded fidelity and integrator; the platform model is stiffer (a light
 #: platform on a stiff gas spring), so its steps are smaller
@@ -45,13 +54,21 @@ QUICK_GRID = {
     "quasi_static": {"euler": (1.0,), "rk4": (5.0,)},
     "platform": {"euler": (0.1,), "rk4": (0.5,)},
 }
+#: the fidelity axis' extra rungs: the cap's free inflation (0 g trials only) and the exact membrane
+FIDELITY_GRID = {
+    "free": {"euler": (1.0,), "rk4": (10.0,)},
+    "exact": {"euler": (0.1,), "rk4": (0.5, 2.0)},
+}
+QUICK_FIDELITY_GRID = {"free": {"rk4": (10.0,)}, "exact": {"rk4": (2.0,)}}
+#: the exact reference's fixed rk4 step, s (loaded and free trials)
+EXACT_REF_DT = 2.5e-4
 TARGET_WALL_S = 10.0
 TARGET_NRMSD = 0.005
 REF_RTOL = 1e-8
 LOG_DT = 0.01
 #: the sources whose change invalidates a cached reference (paths below the package root)
 _MODEL_SOURCES = ("core/physics.py", "models/fidelity.py", "sim/simulate.py", "sim/trial.py", "core/materials.py",
-                  "core/params.py")
+                  "core/params.py", "models/exact.py", "models/exact_tables.py")
 
 
 @dataclass
@@ -63,6 +80,8 @@ class BenchRow:
     *_nrmsd_mean/max over trials (-);
     default: the setting ``hbma-ctrl protocol`` uses; meets_target: wall <= TARGET_WALL_S, max
     height and pressure NRMSD <= TARGET_NRMSD and no trial diverged.
+    *_vs_exact_mean/max: NRMSD (-) against the exact membrane's reference (module docstring; NaN when
+    the fidelity axis is off). For the 'free' rung n_trials counts the 0 g trials it runs.
     """
 
     integrator: str
@@ -81,6 +100,10 @@ class BenchRow:
     pressure_nrmsd_max: float
     default: bool = False
     meets_target: bool = False
+    height_nrmsd_vs_exact_mean: float = float("nan")
+    height_nrmsd_vs_exact_max: float = float("nan")
+    pressure_nrmsd_vs_exact_mean: float = float("nan")
+    pressure_nrmsd_vs_exact_max: float = float("nan")
 
 
 def bench_trials(material: Material, quick: bool) -> list[Trial]:
@@ -122,6 +145,33 @@ def reference(trials: list[Trial], fidelity: str, out_dir: Path, workers: int = 
     bad = [log.name for log in logs if log.status == "diverged"]
     if bad:
         raise RuntimeError(f"reference ({fidelity}) diverged for {bad}: no benchmark against it")
+    ref = {log.name: {"t": log["t"], "h": log["h"], "p": log["p"]} for log in logs}
+    arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall)}
+    for n, d in ref.items():
+        for k, v in d.items():
+            arrays[f"{n}/{k}"] = v
+    out_dir.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
+    return ref
+
+
+def exact_reference(trials: list[Trial], out_dir: Path, workers: int = 1,
+                    progress: bool = False) -> dict[str, dict[str, np.ndarray]]:
+    """The exact membrane's reference (t, h, p per trial name): rk4 at :data:`EXACT_REF_DT`, cached in
+    out_dir/ref_exact.npz like :func:`reference`."""
+    path = out_dir / "ref_exact.npz"
+    key = _ref_key(trials, f"exact rk4 {EXACT_REF_DT!r}")
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) == key:
+                return {n: {"t": z[f"{n}/t"], "h": z[f"{n}/h"], "p": z[f"{n}/p"]} for n in z["names"]}
+    s = SimSettings(integrator="rk4", dt=EXACT_REF_DT, log_dt=LOG_DT)
+    t0 = time.perf_counter()
+    logs = simulate_trials(trials, s, "exact", workers, progress, label="reference rk4 (exact)")
+    wall = time.perf_counter() - t0
+    bad = [log.name for log in logs if log.status == "diverged"]
+    if bad:
+        raise RuntimeError(f"reference (exact) diverged for {bad}: no benchmark against it")
     ref = {log.name: {"t": log["t"], "h": log["h"], "p": log["p"]} for log in logs}
     arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall)}
     for n, d in ref.items():
@@ -186,10 +236,14 @@ def _settings_list(grid: dict) -> list[tuple[str, str, float | None]]:
 
 def run_bench(out_dir: Path | str = "runs/bench_sim", quick: bool = False, workers: int = 1, repeat: int = 1,
               material: str | Material = "nh", grid: dict | None = None, progress: bool = True,
-              on_row=None) -> list[BenchRow]:
-    """Run the benchmark; writes bench.json and bench.csv into out_dir and returns the rows.
+              on_row=None, fidelity_axis: bool = False, fidelity_grid: dict | None = None) -> list[BenchRow]:
+    """Run the benchmark; writes bench.json, bench.csv and (with the fidelity axis) pareto.png into
+    out_dir and returns the rows.
 
-    ``on_row(row)`` is called after each setting (e.g. to print progress).
+    ``on_row(row)`` is called after each setting (e.g. to print progress). ``fidelity_axis`` (off here,
+    on in ``hbma-ctrl bench sim``): also
+    score every row against the exact membrane and run the 'free' and 'exact' rungs
+    (``fidelity_grid``, default :data:`FIDELITY_GRID` or :data:`QUICK_FIDELITY_GRID`).
     """
     if repeat < 1:
         raise ValueError(f"repeat = {repeat} is out of range [1, inf)")
@@ -200,26 +254,37 @@ def run_bench(out_dir: Path | str = "runs/bench_sim", quick: bool = False, worke
     mat = make_material(material) if isinstance(material, str) else material
     trials = bench_trials(mat, quick)
     grid = grid or (QUICK_GRID if quick else GRID)
+    fgrid = {}
+    if fidelity_axis:
+        fgrid = fidelity_grid if fidelity_grid is not None else (QUICK_FIDELITY_GRID if quick else FIDELITY_GRID)
+    free_trials = [tr for tr in trials if tr.platform.mass <= 0]
     refs = {}
     t_ref = {}
-    for fid in grid:
+    for fid in list(grid) + [f for f in fgrid if f != "exact"]:
         t0 = time.perf_counter()
-        refs[fid] = reference(trials, fid, out, workers, progress)
+        refs[fid] = reference(free_trials if fid == "free" else trials, fid, out, workers, progress)
         t_ref[fid] = time.perf_counter() - t0
+    if fgrid:
+        t0 = time.perf_counter()
+        refs["exact"] = exact_reference(trials, out, workers, progress)
+        t_ref["exact"] = time.perf_counter() - t0
     rows = []
-    for fid, integ, dt_ms in _settings_list(grid):
+    for fid, integ, dt_ms in _settings_list(grid) + _settings_list(fgrid):
         s = SimSettings(integrator=integ, dt=None if dt_ms is None else U.ms(dt_ms), log_dt=LOG_DT)
-        _warm_up(trials, s, fid)
+        run_trials = free_trials if fid == "free" else trials
+        _warm_up(run_trials, s, fid)
         walls, cpus = [], []
         for _ in range(repeat):
             c0, t0 = _cpu(), time.perf_counter()
-            logs = simulate_trials(trials, s, fid, workers)
+            logs = simulate_trials(run_trials, s, fid, workers)
             walls.append(time.perf_counter() - t0)
             cpus.append(_cpu() - c0)
         score = _score(logs, refs[fid])
+        if "exact" in refs:
+            score.update({k.replace("_nrmsd_", "_nrmsd_vs_exact_"): v for k, v in _score(logs, refs["exact"]).items()})
         row = BenchRow(integ, fid, dt_ms, U.to_ms(s.step_for("free")), U.to_ms(s.step_for(fid)), statistics.median(walls),
-                       statistics.median(cpus), walls, len(trials), sum(log.status == "diverged" for log in logs), **score,
-                       default=(integ == "rk4" and dt_ms is None and fid == "quasi_static"))
+                       statistics.median(cpus), walls, len(run_trials), sum(log.status == "diverged" for log in logs),
+                       **score, default=(integ == "rk4" and dt_ms is None and fid == "quasi_static"))
         row.meets_target = bool(row.wall_s <= TARGET_WALL_S and row.n_diverged == 0
                                 and row.height_nrmsd_max <= TARGET_NRMSD and row.pressure_nrmsd_max <= TARGET_NRMSD)
         rows.append(row)
@@ -229,8 +294,15 @@ def run_bench(out_dir: Path | str = "runs/bench_sim", quick: bool = False, worke
             "reference": {"integrator": "radau", "rtol": REF_RTOL, "log_dt_s": LOG_DT,
                           "wall_s_incl_cache": t_ref},
             "target": {"wall_s": TARGET_WALL_S, "nrmsd_max": TARGET_NRMSD},
-            "default_fidelity_auto": "free for 0 g, quasi_static for loaded trials"}
+            "default_fidelity_auto": "free for 0 g, quasi_static for loaded trials",
+            "fidelity_axis": ({"reference": "exact", "integrator": "rk4", "dt_s": EXACT_REF_DT,
+                               "rungs": ["free (0 g trials only)"] + list(grid) + ["exact"],
+                               "pareto_png": "pareto.png"} if fgrid else None)}
     (out / "bench.json").write_text(json.dumps({"meta": meta, "rows": [_json_row(r) for r in rows]}, indent=2) + "\n")
+    if fgrid and rows:
+        from hbma_ctrl.app.bench_plots import sim_pareto_png
+
+        sim_pareto_png(rows, out / "pareto.png", title=f"bench sim: {len(trials)} trials, {mat.name}")
     with open(out / "bench.csv", "w", newline="") as fh:
         keys = [k for k in asdict(rows[0]) if k != "wall_runs"] if rows else []
         w = csv.DictWriter(fh, fieldnames=keys)

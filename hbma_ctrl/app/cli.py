@@ -410,35 +410,68 @@ def bench_sim(
     material: Annotated[str, typer.Option(help="membrane material")] = "nh",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP + "; its cached reference is kept")]
     = False,
+    fidelity_axis: Annotated[bool, typer.Option("--fidelity-axis/--no-fidelity-axis",
+                                                help="also score every row against the exact membrane, run the "
+                                                     "free and exact rungs, and write pareto.png")] = True,
+    ekf_json: Annotated[Optional[Path], typer.Option("--ekf-json", help="a bench ekf result: also write "
+                                                  "pareto_estimator.png (step time vs height NRMSD)")] = None,
+    mpc_json: Annotated[Optional[Path], typer.Option("--mpc-json", help="a bench mpc result: also write "
+                                                  "pareto_controller.png (solve time vs height RMSE)")] = None,
 ) -> None:
-    """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference."""
+    """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference, and
+    (fidelity axis) vs the exact membrane, with a Pareto plot (wall time vs NRMSD) beside bench.json."""
 
     _choice("--material", material, MATERIALS)
     _range("--workers", workers, 1, 256)
     workers = cap_workers("--workers", workers)
     _range("--repeat", repeat, 1, 100)
+    from hbma_ctrl.app import bench_plots
+
+    # read before the long run: a bad file is one error line now
+    role_plots = []
+    for path, read, name, axes in (
+            (ekf_json, bench_plots.estimator_points, "pareto_estimator.png", ("median filter step (us)", "height NRMSD")),
+            (mpc_json, bench_plots.controller_points, "pareto_controller.png", ("median solve time (ms)",
+                                                                                 "height RMSE (mm)"))):
+        if path is not None:
+            try:
+                role_plots.append((read(path), name, axes))
+            except ValueError as e:
+                _fail(str(e))
     con = _console(160)
 
     def show(row):
+        vs = (f"  vs exact h {row.height_nrmsd_vs_exact_mean:.2e} p {row.pressure_nrmsd_vs_exact_mean:.2e} (mean)"
+              if fidelity_axis else "")
         con.print(f"  {row.fidelity:12s} {row.integrator:5s} dt {_dt_text(row):>14s}  wall {row.wall_s:7.2f} s  "
                   f"cpu {row.cpu_s:7.2f} s  "
-                  f"NRMSD h {row.height_nrmsd_max:.2e} p {row.pressure_nrmsd_max:.2e} (max)")
+                  f"NRMSD h {row.height_nrmsd_max:.2e} p {row.pressure_nrmsd_max:.2e} (max){vs}")
 
     # the Radau reference cache (ref_*.npz) is keyed by trials and model sources: safe to carry over
     with run_dir(out, command="bench sim", argv=cli_argv(), overwrite=overwrite, carry=("ref_*.npz",)) as tmp:
-        rows = run_bench(tmp, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show)
+        rows = run_bench(tmp, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show,
+                         fidelity_axis=fidelity_axis)
+        written = [bench_plots.pareto_png(pts, tmp / name, *axes, title).name for (pts, title), name, axes in role_plots]
     table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
                         f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
     for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean", "h NRMSD max",
-              "p NRMSD mean", "p NRMSD max", "target"):
+              "p NRMSD mean", "p NRMSD max", "target") + (("h vs exact", "p vs exact") if fidelity_axis else ()):
         table.add_column(c, justify="right", no_wrap=True)
     for r in rows:
-        table.add_row(r.fidelity, r.integrator, _dt_text(r) + (" *" if r.default else ""), f"{r.wall_s:.2f}",
+        extra = ((f"{r.height_nrmsd_vs_exact_mean:.2e}", f"{r.pressure_nrmsd_vs_exact_mean:.2e}")
+                 if fidelity_axis else ())
+        table.add_row(r.fidelity + (" (0 g)" if r.fidelity == "free" else ""), r.integrator,
+                      _dt_text(r) + (" *" if r.default else ""), f"{r.wall_s:.2f}",
                       f"{r.cpu_s:.2f}", str(r.n_diverged), f"{r.height_nrmsd_mean:.2e}", f"{r.height_nrmsd_max:.2e}",
-                      f"{r.pressure_nrmsd_mean:.2e}", f"{r.pressure_nrmsd_max:.2e}", "yes" if r.meets_target else "no")
+                      f"{r.pressure_nrmsd_mean:.2e}", f"{r.pressure_nrmsd_max:.2e}", "yes" if r.meets_target else "no",
+                      *extra)
     con.print(table)
     con.print("* the setting `hbma-ctrl protocol` uses by default (fidelity auto: free for 0 g, quasi_static loaded)")
-    con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}")
+    if fidelity_axis:
+        con.print("vs exact: mean NRMSD against the exact membrane (rk4, fine step); free (0 g): the cap's free "
+                  "inflation on the 0 g trials only; exact: its own step error")
+    con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}" + (f", {out / 'pareto.png'}" if fidelity_axis else "")
+              + "".join(f", {out / n}" for n in written))
 
 
 def _dt_text(row) -> str:

@@ -145,3 +145,37 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                    f"wrote {dest}")
         if faults:
             raise typer.Exit(1)
+
+    @bench_app.command("soak")
+    def bench_soak(
+        config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
+        = Path("scenarios/daemon_robot.toml"),
+        duration_s: Annotated[float, typer.Option("--duration-s", help="rig time to run, s (> 0)")] = 3600.0,
+        speed: Annotated[float, typer.Option("--speed", help="rig seconds per wall second (> 0)")] = 20.0,
+        every_s: Annotated[float, typer.Option("--setpoint-every-s", help="rig time between random setpoints, "
+                                                                        "s (> 0)")] = 60.0,
+        seed: Annotated[int, typer.Option("--seed", help="seed of the random setpoints")] = 1,
+        out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_soak"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    ) -> None:
+        """The daemon on the simulated rig for a long run, setpoints sent through its API: faults, tick
+        times, pressure limit, memory (soak.json)."""
+        from hbma_ctrl.app.bench_soak import run_soak
+
+        for name, v in (("--duration-s", duration_s), ("--speed", speed), ("--setpoint-every-s", every_s)):
+            if not (v > 0 and v < float("inf")):
+                raise ValueError(f"{name} = {v:g} must be > 0")
+        load_config(config, {"--rig": "sim"})  # a bad file fails here, in one line, before anything runs
+        res = run_soak(config, out, duration_s, speed, every_s, seed, overwrite=overwrite, argv=cli_argv(),
+                       echo=lambda s: print(s, file=sys.stderr, flush=True))
+        st = res["daemon_stats"]
+        failed = [k for k, ok in res["verdicts"].items() if not ok]
+        typer.echo(f"soak: {st.get('rig_time_s', 0):.0f} s of rig time in {st.get('wall_s', 0):.0f} s, "
+                   f"{res['setpoints_accepted']}/{res['setpoints_sent']} setpoints accepted, tick median "
+                   f"{st.get('tick_ms_median') or float('nan'):.2f} / p99 {st.get('tick_ms_p99') or float('nan'):.2f} ms, "
+                   f"{st.get('steps_over_period')} over the period, max pressure "
+                   f"{st.get('max_pressure_kpa') or float('nan'):.1f} / {st.get('pressure_limit_kpa')} kPa, RSS "
+                   f"{st.get('rss_mb_start') or float('nan'):.1f} -> {st.get('rss_mb_end') or float('nan'):.1f} MB, faults {st.get('faults') or 'none'}: "
+                   f"{'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'soak.json'}")
+        if failed:
+            raise typer.Exit(1)

@@ -46,24 +46,23 @@ are stiff) and uniform after; the whole march is one casadi Function (``mapaccum
 batch of starts, so one root search solves many points at once. The mesh study in the tests bounds
 the discretisation error. Free inflation is parametrised by the pole stretch lam0, which (unlike the
 pressure) grows monotonically with the apex height through the limit point.
+
+Tables of these solutions for the simulator (free inflation, contact grids, and the flat contact in the
+cap's chart) are in :mod:`hbma_ctrl.models.exact_tables`.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import time
 from functools import lru_cache
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
 from scipy.optimize import brentq
 
-from hbma_ctrl.core.codegen import cache_dir, compiled
+from hbma_ctrl.core.codegen import compiled
 from hbma_ctrl.core.materials import Gent, Material, MooneyRivlin, NeoHookean, Ogden, Yeoh
 
-__all__ = ["ExactMembrane", "biaxial_energy", "equilibrium", "tabulate", "CONTACTS", "table_cache_dir"]
+__all__ = ["ExactMembrane", "biaxial_energy", "equilibrium", "CONTACTS"]
 
 #: contact types at the membrane's centre: a loose flat plate or a disk glued at the centre
 CONTACTS = ("flat", "bonded")
@@ -563,94 +562,3 @@ def equilibrium(material: Material, r1: float, t0: float, h: float, p: float | N
     r = m.contact(h, p)
     return {"p": r["p"], "F": r["F"], "stretch": r.get("lam0", r.get("l1c")), "V": r["V"] + V0,
             "contact_radius": r["a_contact"]}
-
-
-# ---------------------------------------------------------------------------------------- tables
-def table_cache_dir() -> Path:
-    """Directory of cached exact-membrane tables: ``$HBMA_CTRL_CACHE/exact`` (default ~/.cache/hbma-ctrl/exact)."""
-    return cache_dir() / "exact"
-
-
-def _key(m: ExactMembrane, kind: str, grids: dict) -> str:
-    src = Path(__file__).read_bytes()
-    blob = json.dumps({"kind": kind, "material": type(m.material).__name__, "params": m.material.as_dict(),
-                       "r1": m.r1, "t0": m.t0, "contact": m.contact_type, "c": m.c, "n": m.n_steps,
-                       "grids": {k: np.asarray(v, dtype=float).tolist() for k, v in grids.items()}},
-                      sort_keys=True, default=list).encode()
-    return hashlib.sha256(blob + hashlib.sha256(src).digest()).hexdigest()[:20]
-
-
-def tabulate(m: ExactMembrane, h, p=None, cache: Path | str | None = None) -> dict:
-    """Tables of one membrane, cached on disk (npz keyed by a hash of every input and this module's source).
-
-    Free inflation (``p`` None): over apex heights h (m, increasing) -> p (Pa), V (m^3), lam0, U (J).
-    Contact (``p`` given, Pa): over the grid h x p -> F (N), a_contact (m), V (m^3) as (len(h), len(p))
-    arrays; for a flat plate, points the plate does not touch hold F = 0, a_contact = 0 and the free V.
-    Returns also ``build_s`` (s, the build's wall time, 0 when read from the cache) and ``path``.
-    ``cache``: a directory (default :func:`table_cache_dir`).
-    """
-    h = np.asarray(h, dtype=float)
-    grids = {"h": h} if p is None else {"h": h, "p": np.asarray(p, dtype=float)}
-    if h.ndim != 1 or h.size < 2 or not np.all(np.diff(h) > 0) or h[0] <= 0:
-        raise ValueError("h: the grid must be a 1-D increasing array of heights > 0 m")
-    folder = Path(cache) if cache is not None else table_cache_dir()
-    path = folder / f"{'free' if p is None else m.contact_type}_{_key(m, 'table', grids)}.npz"
-    if path.exists():
-        with np.load(path) as z:
-            out = {k: z[k] for k in z.files}
-        out.update(build_s=0.0, path=path)
-        return out
-    t = time.perf_counter()
-    if p is None:
-        out = _free_table(m, h)
-    else:
-        out = _contact_table(m, h, grids["p"])
-    out["h"] = h
-    build = time.perf_counter() - t
-    folder.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **out)
-    tmp.replace(path)
-    out.update(build_s=build, path=path)
-    return out
-
-
-def _free_table(m: ExactMembrane, h: np.ndarray) -> dict:
-    # a dense pole-stretch sweep (vectorised), then monotone interpolation of lam0(h), then one exact
-    # solve per node at its interpolated stretch polished by a secant in lam0
-    lam = np.linspace(1.0 + 1e-4, m.lam_hi, 160)
-    sweep = m.free_pole(lam)
-    if h[-1] > sweep["h"][-1]:
-        raise ValueError(f"h: the grid reaches {h[-1] * 1e3:g} mm, beyond the membrane's reach "
-                         f"{sweep['h'][-1] * 1e3:.4g} mm")
-    lam_h = np.interp(h, sweep["h"], lam)
-    prev, h_prev = None, None
-    for _ in range(8):  # vectorised secant in lam0, started from the sweep's interpolation
-        got = m.free_pole(lam_h)
-        if prev is None:
-            slope = np.interp(lam_h, lam, np.gradient(sweep["h"], lam))
-        else:
-            dl = lam_h - prev
-            slope = np.where(np.abs(dl) > 1e-15, (got["h"] - h_prev) / np.where(dl == 0, 1, dl), 1.0)
-        prev, h_prev = lam_h, got["h"]
-        step = np.where(np.abs(got["h"] - h) > 1e-13 * m.r1, (got["h"] - h) / slope, 0.0)
-        lam_h = np.clip(lam_h - step, 1.0 + 1e-12, m.lam_hi)
-        if np.max(np.abs(got["h"] - h)) < 1e-12 * m.r1:
-            break
-    got = m.free_pole(lam_h)
-    return {"p": got["p"], "V": got["V"], "U": got["U"], "lam0": lam_h, "h_err": got["h"] - h}
-
-
-def _contact_table(m: ExactMembrane, h: np.ndarray, p: np.ndarray) -> dict:
-    shape = (h.size, p.size)
-    F, a, V = np.zeros(shape), np.zeros(shape), np.full(shape, np.nan)
-    for j, pj in enumerate(p):
-        for i, hi in enumerate(h):
-            try:
-                r = m.contact(hi, pj)
-            except ValueError:
-                if m.contact_type == "flat":
-                    continue  # the plate does not touch the membrane: no force
-                raise
-            F[i, j], a[i, j], V[i, j] = r["F"], r["a_contact"], r["V"]
-    return {"F": F, "a_contact": a, "V": V, "p": p}

@@ -13,7 +13,14 @@ exact ``free``     h1                  free inflation with the exact membrane's 
 ``platform``       m, z, v (+ h1 alg.) the platform has mass and damping (m_L z'' = F - m_L g - c z'):
                                        snap-through is a real, fast transient; the platform may even
                                        leave the membrane (airborne) and land again
+exact loaded       as above            ``quasi_static`` / ``platform`` with the exact flat-plate contact
+                                       (:class:`ExactQuasiStatic`, :class:`ExactPlatform`,
+                                       :func:`make_exact_loaded`): the cap's chart, the exact law as
+                                       tabulated ratios (:mod:`hbma_ctrl.models.exact_tables`)
 =================  ==================  ===================================================================
+
+The simulator's ``exact`` rung (:func:`make_exact`) is the exact platform model with a load and the
+exact free inflation without one.
 
 Why these states. The gas mass ``m`` is the natural, drift-free state (the gas law): the gas law fixes
 ``G(h1, h2) = (p + p_env) V = m R T``. The (h1, h2) chart is singular at the flat origin (p ~ h1^3
@@ -44,7 +51,8 @@ from hbma_ctrl.core.validation import did_you_mean
 
 __all__ = ["OUTPUTS", "Fidelity", "FreeInflation", "QuasiStatic", "DynamicPlatform",
            "FIDELITIES", "make_fidelity", "MODE_REST", "MODE_MOVING", "ExactFreeInflation",
-           "make_exact_free", "exact_free_table", "EXACT_X_MAX"]
+           "make_exact_free", "exact_free_table", "EXACT_X_MAX", "cap_law", "exact_contact_table",
+           "ExactQuasiStatic", "ExactPlatform", "make_exact_loaded", "make_exact"]
 
 #: names of the output vector every fidelity's ``out`` Function returns, in order
 OUTPUTS = ("h1", "h2", "h", "p", "F", "q", "q_in", "q_out", "lam", "V", "m", "det", "det_p")
@@ -61,26 +69,35 @@ def _u():
     return ca.SX.sym("u", 3)
 
 
-def shape_jacobian(h1, h2, P):
+def cap_law(h1, h2, P) -> tuple:
+    """The spherical cap's law at chart (h1, h2) (m, README Model §1, §3): gauge pressure p (Pa), gas
+    volume V (m^3), mean stretch lam (-) and contact radius squared a2 (m^2)."""
+    g = ph.geometry(h1, h2, P)
+    return ph.pressure(h1, h2, P), g["V"], g["lam"], g["a2"]
+
+
+def shape_jacobian(h1, h2, P, law=cap_law):
     """G, F and the Jacobian d(G, F)/d(h1, h2) at (possibly composite) expressions h1, h2.
 
     Differentiates with fresh symbols and substitutes, so h1 and h2 may be expressions of the state.
+    ``law(h1, h2, P) -> (p, V, lam, a2)`` is the membrane law (the cap's by default).
     """
     s1, s2 = ca.SX.sym("s1"), ca.SX.sym("s2")
     s = ca.vertcat(s1, s2)
-    Gs = ph.gas_pv(s1, s2, P)
-    Fs = ca.pi * ph.geometry(s1, s2, P)["a2"] * ph.pressure(s1, s2, P)
+    ps, Vs, _, a2s = law(s1, s2, P)
+    Gs = (ps + P["p_env"]) * Vs
+    Fs = ca.pi * a2s * ps
     e = ca.vertcat(Gs, Fs)
     G, F, J = ca.substitute([Gs, Fs, ca.jacobian(e, s)], [s], [ca.vertcat(h1, h2)])
     return G, F, J
 
 
-def pressure_det(h1, h2, P, free: bool = False):
+def pressure_det(h1, h2, P, free: bool = False, law=cap_law):
     """det d(p, F)/d(h1, h2) at (h1, h2), or dp/dh1 along free inflation: the pressure-control fold."""
     s1, s2 = ca.SX.sym("s1"), ca.SX.sym("s2")
     s = ca.vertcat(s1, s2)
-    ps = ph.pressure(s1, s2, P)
-    Fs = ca.pi * ph.geometry(s1, s2, P)["a2"] * ps
+    ps, _, _, a2s = law(s1, s2, P)
+    Fs = ca.pi * a2s * ps
     J = ca.jacobian(ca.vertcat(ps, Fs), s)
     d = J[0, 0] if free else J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
     return ca.substitute(d, s, ca.vertcat(h1, h2))
@@ -116,12 +133,21 @@ class Fidelity:
         mode = ca.SX.sym("mode")
         return x, u, theta, P, mode
 
+    def contact_law(self, h1, h2, P) -> tuple:
+        """The membrane law at chart (h1, h2) (m): p (Pa), V (m^3), lam (-), a2 (m^2); the cap's here."""
+        return cap_law(h1, h2, P)
+
+    def flat_h1(self, p, P):
+        """Virtual cap height h1 (m) of the flat membrane (h2 = h1) at gauge pressure p (Pa): the chart
+        point a resting membrane leaves from."""
+        return ph.flat_h1_from_pressure(p, P)
+
     def _outputs(self, h1, h2, p, q_all, P, det, det_p):
-        g = ph.geometry(h1, h2, P)
-        F = ca.pi * g["a2"] * p
+        _, V, lam, a2 = self.contact_law(h1, h2, P)
+        F = ca.pi * a2 * p
         q, q_in, q_out = q_all
-        m = (p + P["p_env"]) * g["V"] / (P["R"] * P["T"])
-        return ca.vertcat(h1, h2, g["h"], p, F, q, q_in, q_out, g["lam"], g["V"], m, det, det_p)
+        m = (p + P["p_env"]) * V / (P["R"] * P["T"])
+        return ca.vertcat(h1, h2, h1 - h2, p, F, q, q_in, q_out, lam, V, m, det, det_p)
 
     @cached_property
     def f(self) -> ca.Function:
@@ -253,10 +279,10 @@ class QuasiStatic(Fidelity):
     def _pressure(self, x, P, mode):
         m, h1, h2 = x[0], x[1], x[2]
         p_rest = m * P["R"] * P["T"] / P["V0"] - P["p_env"]
-        return ca.if_else(mode < 0.5, p_rest, ph.pressure(h1, h2, P))
+        return ca.if_else(mode < 0.5, p_rest, self.contact_law(h1, h2, P)[0])
 
     def _jac(self, h1, h2, P):
-        return shape_jacobian(h1, h2, P)
+        return shape_jacobian(h1, h2, P, self.contact_law)
 
     def _rhs(self, x, u, P, mode):
         h1, h2 = x[1], x[2]
@@ -276,7 +302,8 @@ class QuasiStatic(Fidelity):
         p = self._pressure(x, P, mode)
         _, _, J = self._jac(h1, h2, P)
         det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        y = self._outputs(h1, h2, p, ph.net_flow(u, p, P, self.table), P, det, pressure_det(h1, h2, P))
+        y = self._outputs(h1, h2, p, ph.net_flow(u, p, P, self.table), P, det,
+                          pressure_det(h1, h2, P, law=self.contact_law))
         # resting: the membrane is flat under the plate, V = V0 and the plate carries pi r1^2 p
         rest = mode < 0.5
         y[2] = ca.if_else(rest, 0, y[2])
@@ -294,7 +321,7 @@ class QuasiStatic(Fidelity):
             d = ca.solve(J, r)
             h1, h2 = h1 - d[0], h2 - d[1]
         # resting: the flat membrane's virtual cap follows the gas mass directly
-        h_flat = ph.flat_h1_from_pressure(m * rt / P["V0"] - P["p_env"], P)
+        h_flat = self.flat_h1(m * rt / P["V0"] - P["p_env"], P)
         rest = mode < 0.5
         return ca.vertcat(m, ca.if_else(rest, h_flat, h1), ca.if_else(rest, h_flat, h2))
 
@@ -325,16 +352,16 @@ class DynamicPlatform(Fidelity):
         h2 = ca.if_else(contact, h1 - z, 0)
         p_rest = m * P["R"] * P["T"] / P["V0"] - P["p_env"]
         rest = mode < 0.5
-        p = ca.if_else(rest, p_rest, ph.pressure(h1, h2, P))
+        p = ca.if_else(rest, p_rest, self.contact_law(h1, h2, P)[0])
         return m, h1, z, v, h2, p, contact, rest
 
     def _rhs(self, x, u, P, mode):
         m, h1, z, v, h2, p, contact, rest = self._parts(x, P, mode)
         q, _, _ = ph.net_flow(u, p, P, self.table)
         rt = P["R"] * P["T"]
-        _, _, J = shape_jacobian(h1, h2, P)
+        _, _, J = shape_jacobian(h1, h2, P, self.contact_law)
         G_h1, G_h2 = J[0, 0], J[0, 1]
-        F = ca.if_else(contact, ca.pi * ph.geometry(h1, h2, P)["a2"] * p, 0)
+        F = ca.if_else(contact, ca.pi * self.contact_law(h1, h2, P)[3] * p, 0)
         dh1 = ca.if_else(contact, (q * rt + G_h2 * v) / (G_h1 + G_h2), q * rt / G_h1)
         dv = (F - P["W"] - P["c"] * v) / P["M"]
         return ca.vertcat(q, ca.if_else(rest, 0, dh1), ca.if_else(rest, 0, v), ca.if_else(rest, 0, dv))
@@ -342,9 +369,10 @@ class DynamicPlatform(Fidelity):
     def _out(self, x, u, P, mode):
         m, h1, z, v, h2, p, contact, rest = self._parts(x, P, mode)
         # quasi-static snap indicator: det of d(G, F)/d(h1, h2), as in QuasiStatic
-        _, _, J = shape_jacobian(h1, h2, P)
+        law = self.contact_law
+        _, _, J = shape_jacobian(h1, h2, P, law)
         det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        det_p = ca.if_else(contact, pressure_det(h1, h2, P), pressure_det(h1, h2, P, free=True))
+        det_p = ca.if_else(contact, pressure_det(h1, h2, P, law=law), pressure_det(h1, h2, P, free=True, law=law))
         y = self._outputs(h1, h2, p, ph.net_flow(u, p, P, self.table), P, det, det_p)
         y[2] = ca.if_else(rest, 0, z)  # platform height
         y[4] = ca.if_else(rest, ca.pi * P["r1"] ** 2 * p, ca.if_else(contact, y[4], 0))
@@ -358,10 +386,10 @@ class DynamicPlatform(Fidelity):
         for _ in range(iters):
             contact = h1 > z
             h2 = ca.if_else(contact, h1 - z, 0)
-            G, _, J = shape_jacobian(h1, h2, P)
+            G, _, J = shape_jacobian(h1, h2, P, self.contact_law)
             slope = ca.if_else(contact, J[0, 0] + J[0, 1], J[0, 0])
             h1 = h1 - (G - m * rt) / slope
-        h_flat = ph.flat_h1_from_pressure(m * rt / P["V0"] - P["p_env"], P)
+        h_flat = self.flat_h1(m * rt / P["V0"] - P["p_env"], P)
         rest = mode < 0.5
         return ca.vertcat(m, ca.if_else(rest, h_flat, h1), ca.if_else(rest, 0, z), ca.if_else(rest, 0, v))
 
@@ -384,7 +412,8 @@ def exact_free_table(material: Material) -> dict:
     depends only on the material's parameter ratios: scaling every modulus, r1 or t0 (the rig's
     mismatch, theta in the Functions) rescales p and V exactly, so one table serves a family.
     """
-    from hbma_ctrl.models.exact import ExactMembrane, tabulate
+    from hbma_ctrl.models.exact import ExactMembrane
+    from hbma_ctrl.models.exact_tables import tabulate
 
     r1, t0 = 7.5e-3, 3e-3  # any geometry gives the same dimensionless table
     m = ExactMembrane(material, r1, t0)
@@ -482,6 +511,100 @@ def make_exact_free(material: Material, compressor_csv: str) -> ExactFreeInflati
     if key not in _FID_CACHE:
         _FID_CACHE[key] = ExactFreeInflation(material, str(compressor_csv), exact_free_table(norm))
     return _FID_CACHE[key]
+
+
+def exact_contact_table(material: Material) -> dict:
+    """The exact flat-plate contact as ratios to the cap over its chart (u = h1/r1, s = h2/h1), cached on
+    disk (:func:`hbma_ctrl.models.exact_tables.contact_ratio_table`); like :func:`exact_free_table`, one
+    table serves every geometry and modulus scale of a material's shape."""
+    from hbma_ctrl.models.exact import ExactMembrane
+    from hbma_ctrl.models.exact_tables import contact_ratio_table
+
+    return contact_ratio_table(ExactMembrane(material, 7.5e-3, 3e-3))
+
+
+class _ExactContact:
+    """The exact membrane's law in the cap's chart (mixed into the loaded fidelities).
+
+    p = Rp(u, s) p_cap(h1, h2) and V = V0 + Rv(u, s) (V_cap - V0), with bspline interpolants of
+    :func:`exact_contact_table` over u = h1/r1 and sqrt(s), s = h2/h1 (the ratios are smooth in the
+    contact radius, which grows like sqrt(h2)); the contact radius is the cap's, so F = p pi a^2 and
+    F -> 0 as the plate leaves (s -> 0, the exact free inflation). Outside the table (u < 0.05 or
+    u > 1.6 r1, s > 0.97: nearly flat under the plate) the ratios at its edge continue it; ``lam`` is
+    the exact stretch on the plate (the pole's in free inflation).
+    """
+
+    membrane = "exact"
+
+    def _set_table(self, table: dict) -> None:
+        u = np.asarray(table["u"], dtype=float)
+        sig = np.sqrt(np.asarray(table["s"], dtype=float))
+        self._lims = (float(u[0]), float(u[-1]), float(sig[-1]))
+        grid = [u, sig]
+        self._Rp = ca.interpolant("exact_Rp", "bspline", grid, np.asarray(table["Rp"]).ravel(order="F"))
+        self._Rv = ca.interpolant("exact_Rv", "bspline", grid, np.asarray(table["Rv"]).ravel(order="F"))
+        self._L = ca.interpolant("exact_L", "bspline", grid, np.asarray(table["lam0"]).ravel(order="F"))
+
+    def _coords(self, h1, h2, P):
+        r1 = P["r1"]
+        u0, u1, sig1 = self._lims
+        u = ca.fmin(ca.fmax(h1 / r1, u0), u1)
+        s = ca.fmax(h2 / ca.fmax(h1, 1e-9 * r1), 0)
+        # the tiny shift keeps d sqrt(s)/ds finite at s = 0 (airborne, free inflation) for the Jacobians;
+        # the clamp after the root: a bspline is zero outside its grid
+        return ca.vertcat(u, ca.fmin(ca.sqrt(s + 1e-12), sig1))
+
+    def contact_law(self, h1, h2, P) -> tuple:
+        """Exact p (Pa), V (m^3), plate stretch (-) and the cap's a2 (m^2) at chart (h1, h2) (m)."""
+        p_cap, V_cap, _, a2 = cap_law(h1, h2, P)
+        c = self._coords(h1, h2, P)
+        return (self._Rp(c) * p_cap, P["V0"] + self._Rv(c) * (V_cap - P["V0"]), self._L(c), a2)
+
+    def flat_h1(self, p, P):
+        """The chart's flat point at pressure p: the cap's, corrected by the ratio at the flat edge."""
+        h = ph.flat_h1_from_pressure(p, P)
+        for _ in range(2):
+            h = ph.flat_h1_from_pressure(p / self._Rp(self._coords(h, h, P)), P)
+        return h
+
+
+class ExactQuasiStatic(_ExactContact, QuasiStatic):
+    """:class:`QuasiStatic` with the exact flat-plate contact (:class:`_ExactContact`): x = [m, h1, h2].
+    The name stays 'quasi_static' (the simulator's hybrid logic keys on it); ``membrane`` tells them apart.
+    A snap-through's far branch is still located on the cap's load path (then projected onto the exact law)."""
+
+    def __init__(self, material: Material, compressor_csv: str, table: dict):
+        QuasiStatic.__init__(self, material, compressor_csv)
+        self._set_table(table)
+
+
+class ExactPlatform(_ExactContact, DynamicPlatform):
+    """:class:`DynamicPlatform` with the exact flat-plate contact and, airborne, the exact free inflation
+    (:class:`_ExactContact`): x = [m, h1, z, v]. The name stays 'platform'."""
+
+    def __init__(self, material: Material, compressor_csv: str, table: dict):
+        DynamicPlatform.__init__(self, material, compressor_csv)
+        self._set_table(table)
+
+
+def make_exact_loaded(name: str, material: Material, compressor_csv: str) -> Fidelity:
+    """The exact membrane's loaded rung: 'quasi_static' or 'platform' (its table built once, then cached)."""
+    classes = {"quasi_static": ExactQuasiStatic, "platform": ExactPlatform}
+    if name not in classes:
+        raise ValueError(f"fidelity: exact contact needs a loaded rung, got '{name}'; allowed: {', '.join(classes)}")
+    norm = _normalised(material)
+    key = ("exact_loaded", name, type(norm).__name__, repr(norm.as_dict()), str(compressor_csv))
+    if key not in _FID_CACHE:
+        _FID_CACHE[key] = classes[name](material, str(compressor_csv), exact_contact_table(norm))
+    return _FID_CACHE[key]
+
+
+def make_exact(loaded: bool, material: Material, compressor_csv: str) -> Fidelity:
+    """The simulator's ``exact`` rung: the platform model with exact contact for a loaded scene, the
+    exact free inflation without a load."""
+    if loaded:
+        return make_exact_loaded("platform", material, compressor_csv)
+    return make_exact_free(material, compressor_csv)
 
 
 FIDELITIES: dict[str, type[Fidelity]] = {c.name: c for c in (FreeInflation, QuasiStatic, DynamicPlatform)}

@@ -98,10 +98,12 @@ class ChamberLoop:
         h = check_height(reference)
         self.reference = lambda t: h
 
-    def tick(self, t: float, reading_pa: float) -> Command:
+    def tick(self, t: float, reading_pa: float, held: Command | None = None) -> Command:
         """One sample at time t (s) with the pressure reading (Pa, NaN = dropout): estimate, then
-        (every ``every`` ticks) controller and supervisor. Returns the command to hold until the next tick."""
-        self.estimate = self.estimator.step(t, reading_pa, self.command)
+        (every ``every`` ticks) controller and supervisor. Returns the command to hold until the next tick.
+        ``held``: the command the rig reports it held over the period this reading ends (None = the
+        last one returned, as in a lockstep simulation); the estimator predicts with it."""
+        self.estimate = self.estimator.step(t, reading_pa, self.command if held is None else held)
         self.target = None if self.reference is None else check_height(self.reference(t), f"reference(t={t})")
         if self._k % self.every == 0:
             preview = None

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 
 import numpy as np
 
@@ -92,6 +93,12 @@ def robot_supervisor(pressure_limit: float, n: int, interlock_margin: float = 1e
               missing_is_limit=False, vent_height=ZERO_TARGET, plan_period=plan_period)
     kw.update(overrides)
     return Supervisor(SupervisorSettings(**kw), n=n)
+
+
+#: commands remembered for matching a rig's report of the one it held, and the match's tolerance
+#: (a per-mille link rounds to 0.0005)
+HELD_HISTORY = 16
+HELD_ATOL = 6e-4
 
 
 def _flow_duty(a: np.ndarray, topology: str) -> np.ndarray:
@@ -159,6 +166,10 @@ class RobotLoop:
         self.estimate: dict | None = None
         self.valve_commands = np.zeros((3, self.n))
         self._w_prev = np.zeros((2, self.n))
+        # the valve commands sent lately with what the bank predicts with for each (newest last): a rig
+        # that reports the command it held (tick's ``held``) names one of them
+        self._sent: deque = deque(maxlen=HELD_HISTORY)
+        self.held_unmatched = 0
         self.loads = np.maximum(load_sharing(design, np.zeros((design.n_layers, 3))).forces.ravel(), W_FLOOR)
         self._peak_p = np.array([model.peak(w)[1] for w in model.clip_load(self.loads)])
         self._tcache: dict = {}
@@ -177,9 +188,11 @@ class RobotLoop:
         """Every chamber's target height at time t, m (n,)."""
         return chamber_targets(self.design, self.targets, t, self._tcache)
 
-    def tick(self, t: float, readings_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def tick(self, t: float, readings_pa: np.ndarray, held: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """One period at time t (s) with the 3N pressure readings (Pa, NaN = dropout) -> (supply, outlet),
-        each (n,) in [0, 1]; the plant's valve inputs (3 x n) are in ``valve_commands``."""
+        each (n,) in [0, 1]; the plant's valve inputs (3 x n) are in ``valve_commands``. ``held``: the
+        valve inputs (3 x n) the rig reports it held over the period these readings end (None = the
+        last ones returned, as in a lockstep simulation); the bank predicts with them."""
         tf = finite_or_nan(t)
         if math.isnan(tf):
             raise ValueError(f"RobotLoop.tick: t = {t!r} must be a finite time in s")
@@ -191,7 +204,7 @@ class RobotLoop:
         self._t = t = tf
         ctrl, sup, model = self.controller, self.supervisor, self.model
         t0 = time.perf_counter()
-        est = self.bank.step(readings_pa, self._w_prev, self.loads, steps=steps)
+        est = self.bank.step(readings_pa, self._held_input(held), self.loads, steps=steps)
         # the supervisor's interlock sees the readings the bank trusted (an outlier is no pressure)
         z = np.where(est["outlier"], np.nan, _as_float(readings_pa, self.n))
         t1 = time.perf_counter()
@@ -243,8 +256,24 @@ class RobotLoop:
         # release of the cautious cap (the modulus factor's std) on the shared pump (models.bank)
         self._w_prev = np.vstack([_flow_duty(a, model.topology), Uc[2]])
         self.valve_commands = Uc
+        self._sent.append((Uc.copy(), self._w_prev))
         self._k += 1
         return a, o
+
+    def _held_input(self, held: np.ndarray | None) -> np.ndarray:
+        """What the bank predicts with for the valve inputs the rig held: those of the newest command
+        sent that matches them (to the link's per-mille resolution); the safe command's (no supply,
+        the rig's outlets); otherwise the last one, counted in ``held_unmatched``."""
+        if held is None:
+            return self._w_prev
+        h = np.asarray(held, dtype=float)
+        for Uc, w in reversed(self._sent):
+            if Uc.shape == h.shape and np.allclose(Uc, h, rtol=0.0, atol=HELD_ATOL):
+                return w
+        if h.shape == (3, self.n) and not np.any(h[0] * h[1] > 0.0):
+            return np.vstack([np.zeros(self.n), h[2]])
+        self.held_unmatched += 1
+        return self._w_prev
 
     def _plan(self, plan: np.ndarray | None) -> np.ndarray | None:
         """The NMPC's plan (H, n, 2) with a shared pump's budget applied to every row (as to row 0)."""
@@ -258,7 +287,8 @@ class RobotLoop:
 
     def stats(self) -> dict:
         """Step, EKF and controller times (ms: median, p99, max, n), fallbacks (failed controller
-        steps), interlocks (supply cuts, per chamber and step), cautious steps and QPs not solved."""
+        steps), interlocks (supply cuts, per chamber and step), cautious steps, QPs not solved and
+        held_unmatched (reports of a held command matching none sent lately)."""
         sup = self.supervisor
         ms = lambda st: {k: (v * 1e3 if k != "n" else v) for k, v in st.summary().items()}  # noqa: E731
         return {"step_ms": ms(self.step_s), "ekf_ms": ms(self.ekf_s), "controller_ms": ms(self.ctrl_s),
@@ -266,4 +296,5 @@ class RobotLoop:
                 "vents": int(sup.counts["vent"]), "cautious_steps": int(self.cautious_steps),
                 "qp_not_solved": int(getattr(self.controller, "inaccurate", 0)),
                 "overruns": int(getattr(self.controller, "overruns", 0)),
+                "held_unmatched": int(self.held_unmatched),
                 "estimator": self.bank.stats()}

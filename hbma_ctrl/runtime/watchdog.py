@@ -26,8 +26,9 @@ out_of_range       ``range_periods`` readings in a row below vacuum_floor or   r
 overrun            (whole rig) ``missed_deadlines`` deadlines missed in a row  missed_deadlines - 1
 leak               pumping (pump >= pump_min, inlet >= inlet_min, outlet <=    burst: < 10; a fall
                    outlet_closed) and the pressure (mean of smooth_periods     of leak_drop within
-                   readings) fell by more than leak_drop from its highest      leak_window: at most
-                   value since pumping began, at most leak_window s back       leak_window / Ts
+                   readings) fell by more than leak_drop, and by more than     leak_window: at most
+                   leak_fraction of it, from its highest value since pumping   leak_window / Ts
+                   began, at most leak_window s back
 pump_failure       pumping, and over the last pump_effort of it (speed x       pump_effort / (pump
                    inlet duty x time) the pressure rose by less than           x inlet) / Ts (25
                    pump_rise from below pump_low                               at full pump)
@@ -41,7 +42,10 @@ slowest case measured, r1 12.5 mm t0 2 mm at 20 % speed and half inlet duty, gai
 the test waits for pump_effort, 2.5 s at that rate, by when the pressure has risen several kPa).
 A stiffer membrane pushed past its limit point falls faster (the robot's chambers driven to their
 far branch at 7 mm: 1.3-1.4 kPa within leak_window, as much as a leak): there ``leak_p_max`` keeps
-the leak test below the limit-point pressure.
+the leak test below the limit-point pressure. The robot's chambers fall further in normal work
+(past their limit point and when a neighbour of their layer takes over its load: falls of up to
+11 kPa, 35 % of the pressure, within leak_window in four soaks): there ``leak_fraction`` makes the
+test one of a burst or a leak that more than halves the pressure while pumping.
 
 A large leak that starts at low pressure keeps the pressure from rising at all: it is reported as
 pump_failure (from pressure alone the two look the same); a sensor reading that jumps down by more
@@ -50,7 +54,8 @@ pressure): a small leak that the controller makes up for by pumping; a failed pu
 stuck inlet above pump_low.
 
 :attr:`SafetyMonitor.closest` keeps how near the trend tests came to firing (the largest pressure
-fall while pumping, the least rise where the pump test applied, Pa): the margins to check when
+fall while pumping, Pa, and as a fraction of the pressure it fell from where that exceeded
+leak_drop; the least rise where the pump test applied, Pa): the margins to check when
 tuning the thresholds on a rig.
 
 Each fault is reported once when its condition starts (a condition that clears and comes back is
@@ -96,8 +101,11 @@ class MonitorSettings:
     smooth_periods : readings averaged before the leak and pump tests compare pressures (>= 1).
     leak_window : how far back the leak test looks for the highest pressure while pumping, s.
     leak_drop : pressure fall while pumping that makes a leak, Pa.
-    leak_test : run the leak test at all (False where pressures fall while pumping in normal work:
-        the robot, whose chambers pass their limit point and take over each other's load).
+    leak_test : run the leak test at all.
+    leak_fraction : the fall must also exceed this fraction of the highest pressure it is measured
+        from (0-1; 0 = leak_drop alone): a burst empties the chamber, while normal work can lower a
+        pressure by a share of it (the robot's chambers pass their limit point and take over each
+        other's load).
     leak_p_max : the leak test applies only while the pressures it compares are below this, Pa;
         None = at every pressure. Set it below the actuator's limit-point pressure (e.g. 0.8 times
         the model's lowest one) when the controller drives chambers past the limit point (the
@@ -125,6 +133,7 @@ class MonitorSettings:
     leak_window: float = 0.5
     leak_drop: float = 1.2e3
     leak_test: bool = True
+    leak_fraction: float = 0.0
     leak_p_max: float | None = None
     pump_effort: float = 0.25
     pump_low: float = 5e3
@@ -149,6 +158,7 @@ class MonitorSettings:
         check_range("monitor", "outlet_closed", self.outlet_closed, 0.0, 1.0)
         check_range("monitor", "leak_window", self.leak_window, 0.0, 60.0, "s", lo_open=True)
         check_range("monitor", "leak_drop", self.leak_drop, 0.0, 1e6, "Pa", lo_open=True)
+        check_range("monitor", "leak_fraction", self.leak_fraction, 0.0, 1.0)
         if self.leak_p_max is not None:
             check_range("monitor", "leak_p_max", self.leak_p_max, 0.0, 1e6, "Pa", lo_open=True)
         check_range("monitor", "pump_effort", self.pump_effort, 0.0, 60.0, "s", lo_open=True)
@@ -211,7 +221,7 @@ class SafetyMonitor:
         self._prev: np.ndarray | None = None
         self._hist: deque = deque(maxlen=self._hist_len)  # raw readings, newest last
         self._on: dict = {}  # (kind, chamber) -> condition held at the last check
-        self.closest: dict = {"leak_drop": 0.0, "pump_rise": float("inf")}
+        self.closest: dict = {"leak_drop": 0.0, "leak_fraction": 0.0, "pump_rise": float("inf")}
 
     # --- reporting --------------------------------------------------------------------------------
     def _edge(self, out: list, t: float, kind: str, chamber: int | None, cond: bool, cause) -> None:
@@ -320,6 +330,8 @@ class SafetyMonitor:
                     drop = top - means[-1]
                     self.closest["leak_drop"] = max(self.closest["leak_drop"], float(drop))
                     if drop > s.leak_drop:
+                        self.closest["leak_fraction"] = max(self.closest["leak_fraction"], float(drop / top))
+                    if drop > s.leak_drop and drop > s.leak_fraction * top:
                         leak, why = True, (f"pressure fell {_kpa(drop)} to {_kpa(means[-1])} while pumping "
                                            "into a closed chamber")
             self._edge(out, t, "leak", i, leak, why)

@@ -40,7 +40,8 @@ from hbma_ctrl.sim.trial import InputSchedule, Log, SimSettings, Trial
 __all__ = ["PROTOCOL_DEFAULTS", "FIDELITY_CHOICES", "fidelity_for", "protocol_trials", "quiet_worker", "simulate_trials",
            "trial_name", "scenario_of"]
 
-FIDELITY_CHOICES = ("auto",) + tuple(FIDELITIES)
+#: 'exact': the exact membrane (README Model §9), platform model with a load, free inflation without
+FIDELITY_CHOICES = ("auto",) + tuple(FIDELITIES) + ("exact",)
 
 PROTOCOL_DEFAULTS = {
     "loads_g": [0.0, 200.0, 400.0, 600.0, 800.0],
@@ -63,6 +64,8 @@ def fidelity_for(trial: Trial, requested: str) -> str:
                          f"allowed: {', '.join(FIDELITY_CHOICES)}")
     if requested == "auto":
         return trial.default_fidelity()
+    if requested == "exact":
+        return "exact"  # loaded or not: the simulator picks the exact rung's model per trial
     if trial.platform.mass <= 0:
         return "free"
     if requested == "free":

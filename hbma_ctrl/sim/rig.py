@@ -39,7 +39,7 @@ from hbma_ctrl.core.codegen import cache_dir
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.core.physics import load_compressor_table
-from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_exact_free, make_fidelity
+from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_exact_free, make_exact_loaded, make_fidelity
 from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
@@ -79,10 +79,10 @@ class RigSettings:
     seed : seed of the noise and dropout stream (int >= 0).
     integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
-    membrane : membrane law in free inflation: 'exact' (the exact axisymmetric membrane's tables,
-        :func:`hbma_ctrl.models.fidelity.make_exact_free`, a law the estimators were not built on) or
-        'cap' (default: the spherical cap, their own law; see :data:`STRUCTURED_RIG`). With a load on, the cap's contact law
-        is used either way.
+    membrane : membrane law: 'exact' (the exact axisymmetric membrane's tables, a law the estimators were
+        not built on: free inflation :func:`hbma_ctrl.models.fidelity.make_exact_free`, and with a load on
+        the exact flat-plate contact, :func:`hbma_ctrl.models.fidelity.make_exact_loaded`) or 'cap'
+        (default: the spherical cap, their own law; see :data:`STRUCTURED_RIG`).
     valve_delay : the valves act this long after their command, s, [0, 0.1] (default 0; 5 ms is a small
         solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
     valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
@@ -259,7 +259,7 @@ class Rig:
         self._rng = np.random.default_rng(self.settings.seed)
         self._csv = str(self.pneumatics.csv_path)
         self._free = _free_fidelity(self.settings, self.actuator.material, self._csv)
-        self._loaded = make_fidelity(self.settings.fidelity, self.actuator.material, self._csv)
+        self._loaded = _loaded_fidelity(self.settings, self.actuator.material, self._csv)
         self._u = np.zeros(3)
         self.t = 0.0
         self.events: list = []
@@ -375,6 +375,13 @@ def _free_fidelity(s: RigSettings, material, csv: str):
     return make_exact_free(material, csv) if s.membrane == "exact" else make_fidelity("free", material, csv)
 
 
+def _loaded_fidelity(s: RigSettings, material, csv: str):
+    """The rig's plant model while a load is on (``s.fidelity``), with the exact contact or the cap's."""
+    if s.membrane == "exact":
+        return make_exact_loaded(s.fidelity, material, csv)
+    return make_fidelity(s.fidelity, material, csv)
+
+
 def _exact_free_h(fid, theta: np.ndarray, m: float) -> float:
     """Apex height (m) of the exact free membrane holding gas mass m (kg): bisection on the gas law.
 
@@ -435,7 +442,7 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
     for (loaded, _, csvp), idx in groups.items():
         pairs = [mismatched(trials[i].actuator, trials[i].pneumatics, s) for i in idx]
         csvp = str(pairs[0][1].csv_path)  # the rig's own map (another shape when tilted)
-        fid = (make_fidelity(s.fidelity, pairs[0][0].material, csvp) if loaded
+        fid = (_loaded_fidelity(s, pairs[0][0].material, csvp) if loaded
                else _free_fidelity(s, pairs[0][0].material, csvp))
         thetas = np.column_stack([fid.space.values(a, p, trials[i].platform)
                                   for (a, p), i in zip(pairs, idx)])

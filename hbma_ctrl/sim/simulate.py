@@ -32,6 +32,7 @@ from hbma_ctrl.models.fidelity import (
     MODE_REST,
     OUTPUTS,
     Fidelity,
+    make_exact,
     make_fidelity,
 )
 from hbma_ctrl.models.shape import ShapeSolver
@@ -452,6 +453,8 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
 def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity: str | None = None,
              on_progress: Callable[[float], None] | None = None) -> list[Log]:
     """Simulate trials (one fidelity for all; None = each trial's default, grouped) -> logs.
+    ``fidelity`` 'exact': the exact membrane (README Model §9), the platform model for loaded trials and
+    free inflation without a load (:func:`hbma_ctrl.models.fidelity.make_exact`); its logs say 'exact'.
     ``on_progress(t)``: called with the simulated time (s) of the current batch as it advances
     (fixed-step integrators; adaptive runs report at the end of each trial)."""
 
@@ -461,12 +464,17 @@ def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity:
     groups: dict = {}
     for i, tr in enumerate(trials):
         fname = fidelity or tr.default_fidelity()
-        key = (fname, type(tr.actuator.material), str(tr.pneumatics.csv_path))
+        # the exact rung's tables depend on the material's parameters (their shape), not only its family
+        mat_key = repr(tr.actuator.material.as_dict()) if fname == "exact" else ""
+        key = (fname, type(tr.actuator.material), mat_key, tr.platform.mass > 0, str(tr.pneumatics.csv_path))
         groups.setdefault(key, []).append(i)
     logs: list = [None] * len(trials)
-    for (fname, _, csvp), idx in groups.items():
+    for (fname, _, _, loaded, csvp), idx in groups.items():
         sub = [trials[i] for i in idx]
-        fid = make_fidelity(fname, sub[0].actuator.material, csvp)
+        if fname == "exact":
+            fid = make_exact(loaded, sub[0].actuator.material, csvp)
+        else:
+            fid = make_fidelity(fname, sub[0].actuator.material, csvp)
         if fid.needs_platform and any(tr.platform.mass <= 0 for tr in sub):
             raise ValueError(f"fidelity '{fname}' needs a load: platform.load must be > 0 kg")
         if s.integrator == "radau":
@@ -486,6 +494,9 @@ def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity:
                 logs[i] = _rows_to_log_batch(fid, tr, rows, j, events[j], bool(alive[j]), s.sensor_range)
                 logs[i].wall_s = wall
                 logs[i].peaks = {n: float(peaks[q, j]) for q, n in enumerate(PEAK_OUTPUTS)}
+        if fname == "exact":
+            for i in idx:
+                logs[i].fidelity = "exact"
     return logs
 
 

@@ -15,6 +15,8 @@ DEFAULT_DT = {
     ("euler", "free"): 1e-3, ("rk4", "free"): 5e-3, ("radau", "free"): 5e-3,
     ("euler", "quasi_static"): 1e-3, ("rk4", "quasi_static"): 5e-3, ("radau", "quasi_static"): 5e-3,
     ("euler", "platform"): 1e-4, ("rk4", "platform"): 1e-3, ("radau", "platform"): 5e-3,
+    # the exact rung of a loaded trial is the platform model (a free one steps at the free default)
+    ("euler", "exact"): 1e-4, ("rk4", "exact"): 1e-3, ("radau", "exact"): 5e-3,
 }
 
 

@@ -206,7 +206,7 @@ class FaultyRig:
             elif f.kind == "out_of_range":
                 p[c] = f.value
         self._last_p = p.copy()
-        return Readings(t=r.t, p=p, seq=r.seq, fresh=fresh)
+        return Readings(t=r.t, p=p, seq=r.seq, fresh=fresh, held=r.held)
 
     def write(self, u: np.ndarray) -> None:
         """Pass ``u`` (3, n) on with the actuator faults acting at the last read's time applied."""

@@ -1,8 +1,11 @@
 """A fake rig firmware speaking the line protocol (:mod:`hbma_ctrl.app.daemon.serial_link`) on a pty.
 
 :class:`FakeFirmware` opens a pseudo-terminal (``os.openpty``); the host opens its slave path with
-pyserial as it would a USB serial device. A thread plays the microcontroller: each sample period it
-steps a plant with the command it holds, streams a ``P`` line, sends ``HB`` every heartbeat period,
+pyserial as it would a USB serial device. A thread plays the microcontroller: at each sample instant
+it steps a plant over the period just ended with the command it held, streams a ``P`` line naming
+that command, then latches the newest command received for the next period (a command arriving
+mid-period waits for the next sample instant, as a timer interrupt would apply it; ``SAFE`` acts at
+once); it sends ``HB`` every heartbeat period,
 obeys ``HELLO``/``CMD``/``SAFE``/``HB`` lines and goes safe by itself when the host falls silent.
 The plant is :class:`FirstOrderPlant` or any callable ``plant(u (3, n), dt s) -> p (n,) Pa`` (e.g. a
 mismatched rig model). For tests it can corrupt checksums, drop lines, stop its heartbeat, vanish
@@ -79,7 +82,9 @@ class FakeFirmware:
     host silence after which it goes safe. link : optional symlink path kept pointing at its pty.
 
     ``pty_path`` is the current pty's device path. State for tests: ``mode`` (``RUN``/``SAFE``),
-    ``u`` (the command applied, (3, n)), ``p`` (the last pressures, Pa), ``last_cmd`` (the last
+    ``u`` (the newest command received, (3, n), latched at the next sample instant), ``held`` (the
+    command applied over the current period) and ``held_seq`` (the SEQ of the host line that set it,
+    ``"-"`` for the firmware's own safe state), ``p`` (the last pressures, Pa), ``last_cmd`` (the last
     CMD's per-mille integers), ``safe_reason``, and ``stats`` (``crc_errors``, ``bad_lines``,
     ``seq_gaps``, ``commands``, ``dropped_tx``). Knobs: ``send_heartbeats``, :meth:`corrupt_next`,
     :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`.
@@ -103,6 +108,9 @@ class FakeFirmware:
         self.link = link
         self.mode = "SAFE"
         self.u = safe_u(n)
+        self.u_seq: int | str = "-"
+        self.held = safe_u(n)
+        self.held_seq: int | str = "-"
         self.p = np.zeros(n)
         self.last_cmd: tuple[int, ...] | None = None
         self.safe_reason = "boot"
@@ -189,9 +197,11 @@ class FakeFirmware:
             os.symlink(self.pty_path, tmp)
             os.replace(tmp, self.link)  # atomic: the host never sees the link missing
 
-    def _go_safe(self, reason: str) -> None:
+    def _go_safe(self, reason: str, seq: int | str = "-") -> None:
+        """Safe from the next sample instant; ``seq`` the host line that asked for it ("-": none)."""
         self.mode = "SAFE"
         self.u = safe_u(self.n)
+        self.u_seq = seq
         self.safe_reason = reason
 
     def _tx(self, kind: str, *fields: object) -> None:
@@ -236,14 +246,17 @@ class FakeFirmware:
                 continue
             next_t = max(next_t + self.sample_period, now)
             with self._lock:
-                self.p = np.asarray(self.plant(self.u.copy(), min(now - last, 10 * self.sample_period)), float)
+                # the period just ended ran on the command latched at its start
+                self.p = np.asarray(self.plant(self.held.copy(), min(now - last, 10 * self.sample_period)), float)
+                ended_on = self.held_seq
                 last = now
                 if self.mode == "RUN" and now - self._last_rx > self.host_timeout:
                     self._go_safe("host heartbeat lost")
+                self.held, self.held_seq = self.u.copy(), self.u_seq  # for the period that starts now
                 if self._master is None or not self._session:
                     continue
                 t_us = int((now - self._t0) * 1e6)
-                self._tx("P", t_us, *("NA" if not np.isfinite(x) else int(round(x)) for x in self.p))
+                self._tx("P", t_us, ended_on, *("NA" if not np.isfinite(x) else int(round(x)) for x in self.p))
                 if self.send_heartbeats and now - last_hb >= self.heartbeat_period:
                     self._tx("HB", self.mode)
                     last_hb = now
@@ -277,10 +290,12 @@ class FakeFirmware:
                 except ValueError:
                     self.stats["bad_lines"] += 1
                     continue
-                self.u, self.mode, self.last_cmd = u, "RUN", vals
+                self.u, self.u_seq, self.mode, self.last_cmd = u, m.seq, "RUN", vals
                 self.stats["commands"] += 1
             elif m.kind == "SAFE":
-                self._go_safe("SAFE command")
+                # at once, not at the next sample instant: the safe state must not wait
+                self._go_safe("SAFE command", m.seq)
+                self.held, self.held_seq = self.u.copy(), self.u_seq
             elif m.kind != "HB":
                 self.stats["bad_lines"] += 1
                 continue
@@ -288,7 +303,7 @@ class FakeFirmware:
 
     def _hello(self, m) -> None:
         self._txseq = 0
-        self._go_safe("HELLO")
+        self._go_safe("HELLO", m.seq)
         period_us = int(round(self.sample_period * 1e6))
         self._tx("VER", self.version, self.n, period_us)
         ok = len(m.fields) == 1 and m.fields[0] == str(self.version)

@@ -17,7 +17,8 @@ Each period:
 2. ``rig.read()``; the safety monitor checks the readings with the command sent last and whether the
    last period missed its deadline; a latched fault puts the loop in mode "safe": from then on it
    writes the safe command every period (and logs) until it is stopped;
-3. the runner ticks (estimator, controller, the runtime supervisor's fallback chain) and the command
+3. the runner ticks (estimator, controller, the runtime supervisor's fallback chain; the estimator
+   predicts with the command the rig reports it held, when it reports one) and the command
    is written;
 4. a run log row; the status is published for the API every ``status_every`` periods.
 
@@ -46,6 +47,9 @@ from hbma_ctrl.runtime.stats import StepStats
 __all__ = ["DaemonLoop", "rss_mb", "STATS_KEYS"]
 
 #: keys of daemon_stats.json
+#: a loop ticking on a streaming rig's samples wakes this fraction of a period before one is due
+SAMPLE_LEAD = 0.2
+
 STATS_KEYS = ("rate_hz", "steps", "deadline_misses", "step_ms_median", "step_ms_p99", "jitter_ms_p99",
               "max_pressure_kpa", "pressure_limit_kpa", "faults", "safe_exit", "rss_mb_start", "rss_mb_end")
 
@@ -84,8 +88,9 @@ class DaemonLoop:
         latches 'overrun' itself after ``miss_limit`` missed deadlines in a row).
     status_every : publish the status every this many periods.
     miss_limit : missed deadlines in a row that latch the 'deadline' fault.
-    warmup_periods : the first periods (the controller's first solves set up its solver) are timed and
-        counted but do not feed the loop watchdog.
+    warmup_periods : the first periods of the controller (its first solves set up its solver; counted
+        after a runner's start-up work such as the chamber's calibration, whose periods do not feed
+        the watchdog either) are timed and counted but do not feed the loop watchdog.
     clock, sleep : the monotonic clock (s) and the sleep; replaceable in tests.
     """
 
@@ -121,6 +126,8 @@ class DaemonLoop:
         self.safe_exit = False
         self.end_reason = ""
         self.t = 0.0
+        self._warming = False
+        self._ctrl_steps = 0  # periods the runner ticked past its start-up work (calibration)
         self.u_last = safe_u(self.n)
         self.last_written: np.ndarray | None = None
         self.readings_p = np.full(self.n, np.nan)
@@ -223,9 +230,12 @@ class DaemonLoop:
             self.max_pressure = max(self.max_pressure, float(np.nanmax(p)))
         if self.monitor is not None:
             # the controller's first solves set up its solver: those misses do not feed the watchdog
-            missed = missed_last and self.steps > self.warmup_periods
+            missed = missed_last and self._ctrl_steps > self.warmup_periods
             for f in self.monitor.check(self.t, r, self.u_last, missed) or ():
-                self.event(str(getattr(f, "kind", "fault")), str(getattr(f, "cause", f)))
+                i = getattr(f, "chamber", None)
+                # the chamber by the name the API and the log use, so a person can find it on the rig
+                where = f"{self.runner.names[i]}: " if i is not None and 0 <= i < len(self.runner.names) else ""
+                self.event(str(getattr(f, "kind", "fault")), where + str(getattr(f, "cause", f)))
             if self.monitor.latched and self.mode == "running":
                 self.mode = "safe"
                 self.event("safe", "fault latched: " + ", ".join(self._latched_kinds()))
@@ -241,9 +251,16 @@ class DaemonLoop:
             self._write(self.u_last)
             return
         c0 = self.clock()
-        u = self.runner.tick(self.t, p)
+        held = getattr(r, "held", None)
+        # only a rig that reports what it held passes it: a runner may take (t, p) alone
+        # a runner's start-up work (the chamber's calibration and its fit) is not judged by the watchdog
+        self._warming = bool(getattr(self.runner, "warming", False))
+        u = self.runner.tick(self.t, p) if held is None else self.runner.tick(self.t, p, held)
         self._last_tick = self.clock() - c0
+        self._ctrl_steps += int(not self._warming)
         self.tick_s.add(self._last_tick)
+        for kind, cause in getattr(self.runner, "take_events", list)():
+            self.event(kind, cause)
         self._write(u)
 
     def _check_setpoint(self, request: dict) -> dict:
@@ -275,6 +292,8 @@ class DaemonLoop:
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
         wp = self.period / self.speed
         t0 = self.clock()
+        # a rig that streams on its own clock (serial) in real time: ticks follow its samples
+        wait = getattr(self.rig, "wait_sample", None) if self.speed <= 1.0 else None
         k = 0
         missed_last = False
         try:
@@ -283,11 +302,21 @@ class DaemonLoop:
                     break
                 deadline = t0 + k * wp
                 now = self.clock()
-                if now < deadline:
-                    self.sleep(deadline - now)
+                wake = deadline - (SAMPLE_LEAD * wp if wait is not None else 0.0)
+                if now < wake:
+                    self.sleep(wake - now)
                     now = self.clock()
                     if self._should_stop():  # a stop asked during the sleep ends before another command
                         break
+                if wait is not None:
+                    # tick on the rig's sample: wake SAMPLE_LEAD of a period before it is due, wait for
+                    # it, and take its arrival as this period's deadline, so the loop follows the rig's
+                    # clock instead of beating against it (which left periods with no new sample and
+                    # samples never read)
+                    arrived = wait(wp)
+                    now = self.clock()
+                    if arrived is not None:
+                        t0, deadline = arrived - k * wp, arrived
                 self.jitter_s.add(max(0.0, now - deadline))
                 start = now
                 self._step(k, missed_last)
@@ -301,7 +330,9 @@ class DaemonLoop:
                 # runtime tick overruns the rig period, the budget a real rig would give it (the sim
                 # rig's write, which simulates the plant, is no work a real host would do)
                 missed_last = late if self.speed <= 1.0 else self._last_tick > self.period
-                self.over_budget += int(self._last_tick > self.period)
+                missed_last = missed_last and not self._warming
+                self.over_budget += int(self._last_tick > self.period and not self._warming)
+                self._warming = False
                 self._last_tick = 0.0
                 if late:
                     self.deadline_misses += 1
@@ -311,7 +342,7 @@ class DaemonLoop:
                 else:
                     k += 1
                 if missed_last:
-                    self._miss_run += 1 if self.steps > self.warmup_periods else 0
+                    self._miss_run += 1 if self._ctrl_steps > self.warmup_periods else 0
                     # with a monitor, its overrun test (fed above) is the loop watchdog
                     if self.monitor is None and self._miss_run == self.miss_limit and self.mode == "running":
                         self._fault("overrun", f"{self.miss_limit} deadlines missed in a row (period "
@@ -345,7 +376,9 @@ class DaemonLoop:
     def stats(self) -> dict:
         """daemon_stats.json: :data:`STATS_KEYS` (ms, kPa, MB) and end_reason, skipped_periods,
         steps_over_period (ticks longer than the rig period), step_ms_max, tick_ms_median and tick_ms_p99 (the runtime tick without the
-        rig's I/O), speed, rig_time_s, wall_s."""
+        rig's I/O), speed, rig_time_s, wall_s, and monitor_margins: how near the supervisor's trend
+        tests came to firing (leak_drop_kpa, leak_fraction, pump_rise_kpa; see
+        :attr:`hbma_ctrl.runtime.watchdog.SafetyMonitor.closest`)."""
         st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
         ms = lambda x: None if not math.isfinite(x) else float(U.to_ms(x))  # noqa: E731
         return {"rate_hz": 1.0 / self.period, "steps": self.steps, "deadline_misses": self.deadline_misses,
@@ -357,4 +390,10 @@ class DaemonLoop:
                 "steps_over_period": self.over_budget, "repeated_samples": self.repeated_samples,
                 "step_ms_max": ms(st["max"]), "tick_ms_median": ms(tk["median"]), "tick_ms_p99": ms(tk["p99"]),
                 "speed": self.speed, "rig_time_s": float(self.t),
-                "wall_s": float(self.wall_s)}
+                "wall_s": float(self.wall_s), "monitor_margins": self._margins()}
+
+    def _margins(self) -> dict:
+        c = getattr(self.monitor, "closest", {})
+        kpa = lambda x: float(U.to_kpa(x)) if math.isfinite(x) else None  # noqa: E731
+        return {"leak_drop_kpa": kpa(c.get("leak_drop", math.nan)), "leak_fraction": c.get("leak_fraction"),
+                "pump_rise_kpa": kpa(c.get("pump_rise", math.nan))}

@@ -32,12 +32,16 @@ class Readings:
     p : gauge pressures, Pa, shape (n,); NaN = no reading for that chamber this period.
     seq : the rig's sequence number of this packet (-1 when the rig gives none).
     fresh : (n,) bool, False where the value is a repeat of an older packet (no new sample).
+    held : the command (3, n) the rig reports it held over the period these readings end (a rig
+        that reports it: the serial protocol's version 2); None = the last command written (a
+        lockstep simulation, where that is exact).
     """
 
     t: float | None
     p: np.ndarray
     seq: int = -1
     fresh: np.ndarray = field(default_factory=lambda: np.ones(0, dtype=bool))
+    held: np.ndarray | None = None
 
 
 def safe_u(n: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The serial rig backend: line protocol version 1 and :class:`SerialRig` (a :class:`RigIO` over pyserial).
+"""The serial rig backend: line protocol version 2 and :class:`SerialRig` (a :class:`RigIO` over pyserial).
 
 A rig is a microcontroller on a serial line that switches the pump and the valves of ``n`` chambers
 and streams their pressures. Host and firmware exchange ASCII lines::
@@ -28,12 +28,20 @@ Firmware -> host:
 =========================================  =======================================================
 ``VER seq version n period_us``            answer to ``HELLO``: protocol version, chambers, sample
                                            period (integer microseconds)
-``P seq t_us p_1 ... p_n``                 one sample: firmware time since boot (integer us), gauge
+``P seq t_us held p_1 ... p_n``            one sample: firmware time since boot (integer us), the
+                                           SEQ of the host line (CMD, SAFE or HELLO) whose outputs
+                                           were held over the period this sample ends (``-`` when
+                                           the firmware's own watchdog made it safe), gauge
                                            pressure of every chamber (integer Pa, ``NA`` = none)
 ``HB seq mode``                            firmware heartbeat, ``mode`` is ``RUN`` or ``SAFE``
 =========================================  =======================================================
 
-Rules. The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
+Rules. The firmware latches a received ``CMD`` or ``SAFE`` at its next sample instant and holds it
+for the whole period that follows (its own watchdog going safe is latched the same way), so every
+period has one command and the ``P`` line ending it names that command. The host passes the named
+command to the estimator (:attr:`Readings.held`): what the plant really got, whatever the link's
+and the host's delays (version 1 left the estimator to assume its last command, which was right or
+one period off by the phase of the two clocks). The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
 (default 0.1 s) only after a ``HELLO`` of its own version. Any valid host line restarts the
 firmware's watchdog; when none arrives for the host timeout (default 0.5 s) the firmware goes safe
 by itself. The host sends ``HB`` when it has sent nothing else for a heartbeat period; when no
@@ -62,12 +70,13 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, check_u
+from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, check_u, safe_u
 
 __all__ = [
     "PROTOCOL_VERSION",
     "SEQ_MOD",
     "MAX_LINE",
+    "HELD_MEMORY",
     "ProtocolVersionError",
     "LineError",
     "Message",
@@ -79,7 +88,10 @@ __all__ = [
     "SerialRig",
 ]
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+#: host lines whose command is remembered for the ``held`` field of P lines (a P line naming an
+#: older one leaves ``Readings.held`` None)
+HELD_MEMORY = 256
 SEQ_MOD = 65536  # sequence numbers are 0..65535 and wrap (a uint16 on the microcontroller)
 MAX_LINE = 512  # bytes per line including the checksum and newline
 
@@ -166,7 +178,7 @@ def _gap(expected: int | None, seq: int) -> int:
 
 
 class SerialRig:
-    """A :class:`~hbma_ctrl.app.daemon.rigio.RigIO` over a serial line speaking protocol version 1.
+    """A :class:`~hbma_ctrl.app.daemon.rigio.RigIO` over a serial line speaking protocol version 2.
 
     port : device path or pyserial URL (``/dev/ttyACM0``, ``/dev/serial/by-id/...``, ``socket://...``).
     n : number of chambers the rig must report.
@@ -183,7 +195,8 @@ class SerialRig:
     handshake at once (``RigLinkError`` if no firmware answers,
     ``ProtocolVersionError`` if it speaks another version). ``stats`` counts, since opening:
     ``lines`` (valid lines), ``crc_errors``, ``bad_lines`` (valid checksum, invalid content),
-    ``seq_gaps`` (firmware lines lost, from jumps in SEQ), ``readings`` (P lines), ``reconnects``.
+    ``seq_gaps`` (firmware lines lost, from jumps in SEQ), ``readings`` (P lines), ``reconnects``,
+    ``held_unknown`` (P lines naming a host line this host no longer remembers or never sent).
     ``firmware_mode`` is the mode of the firmware's last heartbeat (``RUN`` or ``SAFE``).
     """
 
@@ -212,9 +225,10 @@ class SerialRig:
         self._want_period = sample_period
         self.sample_period = float(sample_period) if sample_period is not None else 0.0
         self.stats = {"lines": 0, "crc_errors": 0, "bad_lines": 0, "seq_gaps": 0, "readings": 0,
-                      "reconnects": 0}
+                      "reconnects": 0, "held_unknown": 0}
         self.firmware_mode = "SAFE"
         self._lock = threading.Lock()  # guards the port, the host seq counter and the readings
+        self._sample_cv = threading.Condition(self._lock)  # a P line arrived
         self._tx_lock = threading.Lock()  # one line written at a time
         self._stop = threading.Event()
         self._ser = None
@@ -231,24 +245,37 @@ class SerialRig:
     def read(self) -> Readings:
         """The newest pressures, Pa (n,), with the firmware's time stamp (s) and SEQ; never blocks on the
         line. ``fresh[i]`` is True when a P line carrying chamber i arrived since the previous read;
-        otherwise ``p[i]`` repeats the older value (NaN before the first one). Raises
-        :class:`RigLinkError` while the link is down."""
+        otherwise ``p[i]`` repeats the older value (NaN before the first one). ``held`` is the command
+        (3, n) the newest P line says was held over its period (None when this host does not know it).
+        Raises :class:`RigLinkError` while the link is down."""
         with self._lock:
             if self._ser is None:
                 raise self._link_exc(self._link_error or f"rig link on {self.port} is closed")
-            r = Readings(t=self._t, p=self._p.copy(), seq=self._pseq, fresh=self._fresh.copy())
+            held = None if self._held is None else self._held.copy()
+            r = Readings(t=self._t, p=self._p.copy(), seq=self._pseq, fresh=self._fresh.copy(), held=held)
             self._fresh[:] = False
             return r
+
+    def wait_sample(self, timeout: float) -> float | None:
+        """Wait up to ``timeout`` s for a P line not yet read; the host's monotonic time (s) the newest
+        unread one arrived, or None when none came (or the link is down). Lets the daemon tick on
+        the rig's samples instead of beating against its clock."""
+        with self._sample_cv:
+            if self._ser is not None and not self._fresh.any():
+                self._sample_cv.wait(timeout)
+            return self._arrival if self._ser is not None and self._fresh.any() else None
 
     def write(self, u: np.ndarray) -> None:
         """Send ``CMD`` with ``u`` (3, n) in [0, 1] as per-mille integers; RigLinkError while the link is down."""
         a = check_u(u, self.n)
-        self._send("CMD", *to_permille(a))
+        vals = to_permille(a)
+        # remembered as the firmware will hold it: the per-mille values, not the floats asked for
+        self._send("CMD", *vals, held=from_permille(vals, self.n))
 
     def safe(self) -> None:
         """Send ``SAFE`` (pump off, inlets closed, outlets open) if the port is open; never raises."""
         try:
-            self._send("SAFE")
+            self._send("SAFE", held=safe_u(self.n))
         except Exception:  # noqa: BLE001 - safe() is called on the way down and must not mask the cause
             pass
 
@@ -273,13 +300,17 @@ class SerialRig:
         self._fresh = np.zeros(self.n, dtype=bool)
         self._t: float | None = None
         self._pseq = -1
+        self._held: np.ndarray | None = None
+        self._arrival = 0.0
+        self._sent_u: dict[int, np.ndarray] = {0: safe_u(self.n)}  # HELLO (seq 0) leaves the rig safe
         self._rx_expect: int | None = None
         self._rxbuf = b""
         self._last_hb = time.monotonic()
         self._hb_seen = False
         self._last_tx = 0.0
 
-    def _send(self, kind: str, *fields: object) -> None:
+    def _send(self, kind: str, *fields: object, held: np.ndarray | None = None) -> None:
+        """Send one line; ``held``: the outputs it sets on the rig (CMD, SAFE), remembered by its SEQ."""
         # writes have their own lock: a slow write (full buffer) must not hold up read()
         with self._tx_lock:
             with self._lock:
@@ -287,6 +318,9 @@ class SerialRig:
                 if ser is None:
                     raise self._link_exc(self._link_error or f"rig link on {self.port} is closed")
                 line = encode_line(kind, self._seq, *fields)
+                if held is not None:
+                    self._sent_u[self._seq] = held
+                    self._sent_u.pop((self._seq - HELD_MEMORY) % SEQ_MOD, None)
                 self._seq = (self._seq + 1) % SEQ_MOD
             try:
                 ser.write(line)
@@ -452,13 +486,21 @@ class SerialRig:
         self.stats["lines"] += 1
 
     def _on_pressure(self, m: Message) -> None:
-        if len(m.fields) != self.n + 1 or not m.fields[0].isdigit():
-            raise ValueError("P needs a time stamp and one pressure per chamber")
-        p = np.array([np.nan if f == "NA" else float(int(f)) for f in m.fields[1:]])
+        if len(m.fields) != self.n + 2 or not m.fields[0].isdigit() or not (
+                m.fields[1].isdigit() or m.fields[1] == "-"):
+            raise ValueError("P needs a time stamp, the held command's SEQ and one pressure per chamber")
+        p = np.array([np.nan if f == "NA" else float(int(f)) for f in m.fields[2:]])
         with self._lock:
+            # "-": the firmware's own watchdog made it safe (no host line set it)
+            held = safe_u(self.n) if m.fields[1] == "-" else self._sent_u.get(int(m.fields[1]))
+            if held is None:
+                self.stats["held_unknown"] += 1
+            self._held = held
             have = ~np.isnan(p)
             self._p[have] = p[have]  # an NA keeps the older value, reported as not fresh
             self._fresh |= have
             self._t = int(m.fields[0]) * 1e-6
             self._pseq = m.seq
+            self._arrival = time.monotonic()
+            self._sample_cv.notify_all()
         self.stats["readings"] += 1

@@ -221,8 +221,8 @@ class ProtocolTable(Table):
 class SimTable(Table):
     """[sim]: fidelity, integrator and steps of the open-loop simulation."""
 
-    fidelity: Literal["auto", "free", "quasi_static", "platform"] = choice("auto", "plant model; auto = "
-                                                                         "free without a load")
+    fidelity: Literal["auto", "free", "quasi_static", "platform", "exact"] = choice(
+        "auto", "plant model; auto = free without a load; exact = the exact membrane (platform with a load)")
     integrator: Literal["euler", "rk4", "radau"] = choice("rk4", "integration scheme")
     dt_ms: float | None = num(None, 1e-4, 100.0, "ms", "fixed step; default per integrator and fidelity")
     log_dt_ms: float = num(10.0, 0.01, 10000.0, "ms", "log sampling period")

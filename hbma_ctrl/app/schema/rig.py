@@ -22,7 +22,7 @@ class RigTable(Table):
     """[rig] in the user's units; :meth:`to_settings` gives the SI RigSettings."""
 
     fidelity: Literal["platform", "quasi_static"] = choice("platform", "plant model while a load is on")
-    membrane: Literal["exact", "cap"] = choice("cap", "membrane law in free inflation: exact "
+    membrane: Literal["exact", "cap"] = choice("cap", "membrane law, free and on the plate: exact "
                                                 "(exact membrane tables) or cap (spherical cap)")
     modulus_scale: float = num(1.15, 0.2, 5.0, "-", "every modulus of the material times this")
     flow_scale: float = num(0.9, 0.0, 5.0, "-", "compressor map times this")
