@@ -89,6 +89,7 @@ from controllers.mpc_solvers import (
     _RtiOsqp,
     _SolverFailure,
 )
+from controllers.rti_c import _RtiC
 from controllers.rti_step import _RtiFunction
 
 
@@ -127,6 +128,8 @@ class NMPC:
         self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max)
         if s.variant == "rti_osqp":
             self.backend = _RtiOsqp(self.model, s)
+        elif s.variant == "rti_c_osqp":
+            self.backend = _RtiC(self.model, s)
         elif s.variant.startswith("rti_fn_"):
             self.backend = _RtiFunction(self.model, s, s.variant[len("rti_fn_"):])
         elif s.variant == "fatrop":
