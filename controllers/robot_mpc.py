@@ -188,6 +188,8 @@ class RobotNMPC:
         self.last_step_s = 0.0
         self.status = ""
         self._solver = None
+        self._z = self._y = None  # the last usable QP solution (primal, dual)
+        self._shift_x, self._shift_y = self._shift_maps()
 
     def applied(self, a, o) -> None:
         """The supply and outlet (n,) each actually sent (after the supervisor): the next step's input
@@ -261,6 +263,20 @@ class RobotNMPC:
         self._A_template = np.array(tmpl)
         self._A_pos_a, self._A_pos_ba, self._A_pos_bo, self._A_pos_px = (
             np.array(v, dtype=np.int64) for v in (pos_a, pos_ba, pos_bo, pos_px))
+
+    def _shift_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """Index maps moving a QP solution one stage on (the last stage repeated): variables, rows."""
+        n, N = self.n, self.s.horizon
+        st = np.r_[np.arange(1, N), N - 1]  # stage k takes stage k + 1
+        nb = 3 * N + 1
+        blk = np.r_[st, N + st, 2 * N + st, 3 * N]
+        sx = (np.arange(n)[:, None] * nb + blk[None, :]).ravel()
+        rows_per = 4 * N + 1
+        rb = np.r_[st, N + st, 2 * N + st, 3 * N + st, 4 * N]
+        sy = (np.arange(n)[:, None] * rows_per + rb[None, :]).ravel()
+        if self.topology == "shared":
+            sy = np.r_[sy, n * rows_per + st]
+        return sx, sy
 
     # --- one period --------------------------------------------------------------------------------
     def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
@@ -355,10 +371,14 @@ class RobotNMPC:
         if cold:
             self._solver = osqp.OSQP()
             kw = dict(verbose=False, eps_abs=s.eps, eps_rel=s.eps, max_iter=s.max_iter, polishing=False,
-                      warm_starting=True, adaptive_rho=True)
+                      warm_starting=True, adaptive_rho=True, check_termination=5)
             self._solver.setup(P=self._Ppat.matrix(Pv), q=qv, A=self._Apat.matrix(Av), l=lo, u=up, **kw)
         else:
             self._solver.update(Px=self._Ppat.data(Pv), Ax=self._Apat.data(Av), q=qv, l=lo, u=up)
+            if self._z is not None:
+                # the previous solution shifted by one stage, primal and dual: OSQP's own warm start
+                # (the unshifted one) is a stage off everywhere
+                self._solver.warm_start(x=self._z[self._shift_x], y=self._y[self._shift_y])
             if budget > 0:
                 # what is left of the step's budget (at least 0.1 ms: OSQP checks it per iteration)
                 left = budget - (time.perf_counter() - t_start)
@@ -385,6 +405,7 @@ class RobotNMPC:
             self.abar[:] = 0.0
             self.obar[:] = 0.0
         else:
+            self._z, self._y = np.array(res.x), np.array(res.y)
             z = res.x.reshape(n, nb)
             self.xbar[:, 1:] = z[:, :N]
             self.abar = np.clip(z[:, N:2 * N], 0.0, 1.0)

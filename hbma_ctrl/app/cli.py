@@ -35,6 +35,7 @@ except ImportError:  # pragma: no cover
 
 from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
 from hbma_ctrl.app.cli_args import cap_workers
+from hbma_ctrl.app.cli_codegen import register as register_codegen
 from hbma_ctrl.app.cli_controllers import register as register_controllers
 from hbma_ctrl.app.cli_daemon import register as register_daemon
 from hbma_ctrl.app.cli_estimators import register as register_estimators
@@ -480,5 +481,5 @@ def _dt_text(row) -> str:
 
 
 for _register in (register_estimators, register_controllers, register_robot, register_fit, register_tune,
-                  register_daemon):
+                  register_daemon, register_codegen):
     _register(app, bench_app)

@@ -227,10 +227,13 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
 
 
 def bench_robot(layers=(1, 2, 3, 4, 5, 6), duration: float = 3.0, topology: str = "per_chamber",
-                horizon: int = 15, pneumatics: Pneumatics | None = None, model: ChamberBank | None = None
-                ) -> list[dict]:
+                horizon: int = 15, pneumatics: Pneumatics | None = None, model: ChamberBank | None = None,
+                mpc: RobotMPCSettings | None = None) -> list[dict]:
     """Step time of the whole robot (EKF bank + load sharing + NMPC) per layer count, on a closed-loop
-    run of ``duration`` s (straight 6 mm, then bend 15 deg at t = duration / 2). Returns table rows."""
+    run of ``duration`` s (straight 6 mm, then bend 15 deg at t = duration / 2). Returns table rows,
+    with the RMSE of the true chamber heights from their targets over the whole run (mm: what tells
+    NMPC settings apart on the same run). ``mpc``: the NMPC settings (default: the defaults at
+    ``horizon``)."""
 
     pn = (pneumatics or Pneumatics()).validate()
     rows = []
@@ -241,9 +244,11 @@ def bench_robot(layers=(1, 2, 3, 4, 5, 6), duration: float = 3.0, topology: str 
         # straight at 6 mm, then a 15 deg bend about x at 7 mm: (t s, centre m, bend rad, direction rad)
         pose = ((0.0, U.mm(6.0), 0.0, 0.0), (duration / 2, U.mm(7.0), math.radians(15.0), 0.0))
         tg = {k: pose for k in range(d.n_layers)}
-        run = run_closed_loop(s, tg, duration, "mpc", pn, mpc=RobotMPCSettings(horizon=horizon), model=model)
+        ms = mpc if mpc is not None else RobotMPCSettings(horizon=horizon)
+        run = run_closed_loop(s, tg, duration, "mpc", pn, mpc=ms, model=model)
         st = U.to_ms(run.step_s[5:])  # the first periods include casadi/OSQP setup
-        rows.append({"layers": int(N), "chambers": 3 * int(N), "qp_variables": (3 * horizon + 1) * 3 * int(N),
+        rows.append({"layers": int(N), "chambers": 3 * int(N), "qp_variables": (3 * ms.horizon + 1) * 3 * int(N),
+                     "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((run.h - run.h_ref) ** 2)))),
                      "step_ms_median": float(np.median(st)), "step_ms_p99": float(np.percentile(st, 99)),
                      "step_ms_max": float(st.max()), "ekf_ms_median": float(np.median(U.to_ms(run.ekf_s[5:]))),
                      "mpc_ms_median": float(np.median(U.to_ms(run.ctrl_s[5:]))), "steps": int(st.size),

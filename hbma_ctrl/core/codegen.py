@@ -26,7 +26,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastFunction", "compiled", "cache_dir"]
+__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler"]
 
 _MEMO: dict = {}
 
@@ -41,6 +41,11 @@ def _compiler() -> str | None:
         if shutil.which(cc):
             return cc
     return None
+
+
+def has_compiler() -> bool:
+    """Is there a system C compiler (cc, gcc or clang) for :func:`compiled`?"""
+    return _compiler() is not None
 
 
 def compiled(fun: ca.Function, opt: str = "-O1") -> ca.Function:

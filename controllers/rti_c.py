@@ -1,0 +1,188 @@
+"""The chamber RTI step with its QP data as ONE generated-C call and OSQP kept set up (``rti_c_osqp``).
+
+Why: in the reference RTI path (``rti_osqp``, :class:`controllers.mpc_solvers._RtiOsqp`) most of a
+step is not the QP solve but building the QP around it: a casadi call with numpy arguments (tens
+of microseconds) and some forty numpy operations on small arrays. Solving the QP inside casadi
+(the ``rti_fn_*`` variants) is no faster, because casadi sets OSQP up again at every call.
+
+This variant keeps what is fast in each: ONE SX Function maps (the parameters of the step, the
+previous QP solution, shift or not) to everything OSQP's ``update`` takes: the values of P and A
+in OSQP's CSC data order (the patterns of the reference path), q, l, u and the primal warm start,
+plus a finiteness flag. It is generated as C and compiled once (:func:`hbma_ctrl.core.codegen.compiled`,
+cached on disk by source hash; casadi's virtual machine, with a one-line warning, without a
+compiler) and called through preallocated buffers (:class:`hbma_ctrl.core.codegen.FastFunction`,
+under a microsecond per call). The persistent OSQP solver is then updated in place and solved
+warm-started, exactly as in the reference path, so the QP and its solution are the reference's (to
+rounding).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import casadi as ca
+import numpy as np
+
+from controllers.mpc_settings import MPCSettings
+from controllers.mpc_solvers import _BudgetExceeded, _Problem, _RtiOsqp, _SolverFailure
+from hbma_ctrl.core.codegen import FastFunction, has_compiler
+from hbma_ctrl.models.tables import PredictionModel
+
+__all__ = ["qp_data_function"]
+
+#: OSQP's infinity (its ``update`` clamps bounds to it; the generated data does the same)
+_OSQP_INF = 1e30
+
+
+def qp_data_function(rti: _RtiOsqp) -> ca.Function:
+    """The QP data of one RTI step of ``rti`` (an :class:`_RtiOsqp`: its settings, stage and patterns).
+
+    Inputs: ``par`` (8 + N: x0 (-), W (N), dh (m), dp (Pa), u_prev (3, -), p_lim (Pa), r (N stages, m)),
+    ``z_prev`` (the previous QP solution in the pattern's variable layout), ``shift`` (1: a new step,
+    the plan moves one stage; 0: another iteration at the same time). Outputs: ``Px``, ``Ax`` (values
+    in OSQP's CSC data order), ``q``, ``l``, ``u`` (QP units: mm, kPa, 1/100; bounds clamped to OSQP's
+    infinity), ``z0`` (the primal warm start), ``ok`` (1 when the linearisation is finite).
+    """
+    s, N = rti.s, rti.N
+    SX = ca.SX
+    par, zp, shift = SX.sym("par", 8 + N), SX.sym("z_prev", rti.nz), SX.sym("shift")
+    x0, W, dh, dp = par[0], par[1], par[2], par[3]
+    u_prev, p_lim, r = par[4:7], par[7], par[8:]
+    X = zp[rti.ix.tolist()]
+    Uc = ca.fmin(ca.fmax(ca.reshape(zp[rti.iu.ravel().tolist()], 3, N), 0.0), 1.0)  # 3 x N, as solve() keeps
+    # the plan shifted by one stage (the last repeated) on a new step; the first state is the estimate
+    Xb = ca.vertcat(shift * x0 + (1 - shift) * X[0], shift * ca.vertcat(X[2:], X[N]) + (1 - shift) * X[1:])
+    Ub = shift * ca.horzcat(Uc[:, 1:], Uc[:, N - 1]) + (1 - shift) * Uc
+    Uext = ca.horzcat(Ub, Ub[:, N - 1])
+    fl = s.rti_lin_floor
+    lin = [rti.stage.lin(Xb[k], Uext[:, k], ca.vertcat(ca.fmax(Uext[0, k], fl), ca.fmax(Uext[1, k], fl),
+                                                       Uext[2, k]), W, dp) for k in range(N + 1)]
+    f, a, b, h, ch, p, cp, lam, cl = (ca.vertcat(*[ln[i] for ln in lin]) for i in range(9))  # b: (N+1) x 3
+    ok = ca.logic_and(ca.logic_and(ca.sumsqr(f) < ca.inf, ca.sumsqr(b) < ca.inf), ca.sumsqr(ch) < ca.inf)
+    # --- P (entry order of the reference pattern), x diagonal from the Gauss-Newton height cost
+    wk = np.full(N + 1, s.w_height)
+    wk[0] = 0.0
+    wk[N] += s.w_terminal
+    wk = ca.DM(wk)
+    r_mm, dh_mm = ca.vertcat(r[0], r) * 1e3, dh * 1e3
+    e = h - ch * Xb + dh_mm - r_mm
+    Pv = SX(rti.P_vals)
+    Pv[rti.P_x.tolist()] = 2 * wk * ch ** 2 + 1e-8
+    q = SX.zeros(rti.nz)
+    q[rti.ix.tolist()] = 2 * wk * ch * e
+    wr, cu = np.array(s.w_rate, float), np.array(s.c_input, float)
+    for k in range(N):
+        for i in range(3):
+            q[int(rti.iu[k, i])] = cu[i] - (2 * wr[i] * u_prev[i] if k == 0 else 0.0)
+    q[rti.isl.tolist()] = s.c_slack
+    # --- A values
+    Av = SX(rti.A_vals)
+    Av[rti.A_dyn_a.tolist()] = -a[:N]
+    for i in range(3):
+        Av[rti.A_dyn_b[:, i].tolist()] = -b[:N, i]
+    k1 = list(range(1, N + 1))
+    Av[rti.A_soft[:, 0].tolist()] = cp[k1]
+    Av[rti.A_soft[:, 1].tolist()] = cl[k1]
+    Av[rti.A_soft[:, 2].tolist()] = ch[k1]
+    Av[rti.A_soft[:, 3].tolist()] = -ch[k1]
+    # --- bounds
+    lo, up = SX(np.clip(rti.l0, -_OSQP_INF, _OSQP_INF)), SX(np.clip(rti.u0, -_OSQP_INF, _OSQP_INF))
+    lo[rti.r_init] = x0
+    up[rti.r_init] = x0
+    c = f[:N] - a[:N] * Xb[:N] - ca.sum2(b[:N, :] * Ub.T)
+    dyn = list(range(rti.r_dyn, rti.r_dyn + N))
+    lo[dyn] = c
+    up[dyn] = c
+    umax = np.array(s.u_max, float)
+    for i in range(3):
+        lo[rti.r_box + i] = ca.fmax(0.0, u_prev[i] - rti.du[i])
+        up[rti.r_box + i] = ca.fmin(umax[i], u_prev[i] + rti.du[i])
+    rs = (rti.r_soft + 4 * np.arange(N)).tolist()
+    Xk1 = Xb[k1]
+    up[rs] = p_lim * 1e-3 - dp * 1e-3 - (p[k1] - cp[k1] * Xk1)
+    up[[j + 1 for j in rs]] = s.lam_max * 1e2 - (lam[k1] - cl[k1] * Xk1)
+    up[[j + 2 for j in rs]] = s.h_max * 1e3 - dh_mm - (h[k1] - ch[k1] * Xk1)
+    if s.h_min > 0:  # (below lift-off H is a virtual negative height: no bound at h_min = 0)
+        up[[j + 3 for j in rs]] = -(s.h_min * 1e3 - dh_mm - (h[k1] - ch[k1] * Xk1))
+    lo, up = ca.fmax(lo, -_OSQP_INF), ca.fmin(up, _OSQP_INF)
+    z0 = SX.zeros(rti.nz)
+    z0[rti.ix.tolist()] = Xb
+    z0[rti.iu.ravel().tolist()] = ca.vec(Ub)
+    return ca.Function("rti_c_qp_data", [par, zp, shift],
+                       [Pv[rti.P_perm.tolist()], Av[rti.A_perm.tolist()], q, lo, up, z0, ok],
+                       ["par", "z_prev", "shift"], ["Px", "Ax", "q", "l", "u", "z0", "ok"])
+
+
+class _RtiC(_RtiOsqp):
+    """RTI + OSQP with the QP data as one generated-C call (see the module docstring).
+
+    The pattern, OSQP's setup and the acceptance of a solution are the reference path's; only
+    how the data is computed differs. ``mode``: "c" (generated C) or "vm" (casadi's virtual machine:
+    no compiler, or ``settings.codegen`` off).
+    """
+
+    def __init__(self, model: PredictionModel, s: MPCSettings):
+        super().__init__(model, s)
+        fun = qp_data_function(self)
+        compile_c = bool(s.codegen) and has_compiler()
+        if s.codegen and not compile_c:
+            warnings.warn("rti_c_osqp: no C compiler (cc, gcc, clang) found; the QP data runs on casadi's "
+                          "virtual machine (slower, same results)", RuntimeWarning, stacklevel=2)
+        self.data = FastFunction(fun, compile=compile_c)
+        self.mode = "c" if self.data.fun is not fun else "vm"
+        if compile_c and self.mode == "vm":
+            warnings.warn("rti_c_osqp: the generated C did not compile; the QP data runs on casadi's "
+                          "virtual machine (slower, same results)", RuntimeWarning, stacklevel=2)
+        self._par = self.data.inp[0]  # written in place: passed as None (kept) to the call
+        self._z = np.zeros(self.nz)
+        self._osqp = self.solver._solver  # the bound solver: update/solve without the wrapper's copies
+
+    def solve(self, pr: _Problem) -> tuple[np.ndarray, np.ndarray]:
+        """One RTI step (``rti_init_iterations`` unshifted QPs at a cold start): (X (N+1,), U (N, 3))."""
+        N, s = self.N, self.s
+        par = self._par
+        par[0], par[1], par[2], par[3] = pr.x0, pr.W, pr.dh, pr.dp
+        par[4:7] = pr.u_prev
+        par[7] = pr.p_lim
+        par[8:] = pr.r
+        if self.X is None:
+            z = self._z
+            z[:] = 0.0
+            z[self.ix] = pr.x0
+            z[self.iu] = pr.u_prev
+            iters, shift = s.rti_init_iterations, 0.0
+            self.solver.update_settings(time_limit=1e3)  # cold start: exempt from the budget
+        else:
+            z, iters, shift = self._z, 1, 1.0
+        try:
+            for _ in range(iters):
+                z = self._qp(z, shift)
+                shift = 0.0
+        finally:
+            if iters > 1:
+                self.solver.update_settings(time_limit=s.budget)
+        self._z = z
+        self.X = z[self.ix]
+        self.U = np.clip(z[self.iu], 0.0, 1.0)
+        return self.X, self.U
+
+    def _qp(self, z: np.ndarray, shift: float) -> np.ndarray:
+        Px, Ax, q, lo, up, z0, ok = self.data(None, z, shift)
+        if ok[0] != 1.0:
+            raise _SolverFailure("non-finite linearisation")
+        osqp_ = self._osqp
+        osqp_.update_data_vec(q=q, l=lo, u=up)
+        osqp_.update_data_mat(P_x=Px, P_i=None, A_x=Ax, A_i=None)
+        osqp_.warm_start(z0, None)
+        osqp_.solve()
+        info = osqp_.info
+        self.iterations = int(info.iter)
+        status = info.status
+        if "time limit" in status:
+            raise _BudgetExceeded("osqp: time limit (budget) reached")
+        x = osqp_.solution.x
+        usable = status in ("solved", "solved inaccurate") or (
+            status == "maximum iterations reached" and info.prim_res < 1e-3)
+        if not usable or x is None or not np.all(np.isfinite(x)):
+            raise _SolverFailure(f"osqp: {status}")
+        return np.array(x)

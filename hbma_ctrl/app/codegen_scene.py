@@ -1,0 +1,473 @@
+"""A scenario's closed loop (rig -> EKF -> RTI NMPC -> rig) as a :class:`~hbma_ctrl.app.codegen.LoopSpec`.
+
+The three step Functions are the ones the Python roles call: the plant over one rig period
+(:func:`hbma_ctrl.sim.plant_step.plant_step_function`), the EKF step
+(:func:`estimators.ekf_step.ekf_step_function`) and the RTI step
+(:func:`controllers.rti_step.rti_step_function`). What the Python classes do around them is written
+here as small casadi Functions too, so that the C loop needs no Python:
+
+- ``sensor``: the rig's reading, the true pressure plus the tick's noise, saturated at the range
+  (noise and dropouts drawn at generation time from the rig's seeded stream, as :class:`Rig` draws them);
+- ``ekf_kind``: the reading's kind (:func:`estimators.common.classify_measurement`);
+- ``mpc_prep``: the NMPC's problem data from the estimate (its load filter, initial state, output
+  biases, reachable height and clipped targets; :meth:`controllers.mpc.NMPC._problem`);
+- ``mpc_cold``: the cold-start guess (after the first step or a failure);
+- ``mpc_post``: the command after the NMPC and the runtime's supervisor (plan replay on a failure,
+  safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`).
+
+The glue rounds as the Python classes do (``np.interp``'s formula, the load filter's gain from the
+scene's clock), so on ``scenarios/track_height.toml`` the loop follows the scene's own closed loop
+(``closed_loop(..., calibrate=False)`` with the NMPC variant ``rti_fn_osqp`` and a budget no solve
+reaches; :func:`scene_reference`) over the 9 s to 2e-15 m in the heights, 4e-12 in the commands and
+6e-9 Pa in the pressures (measured): rounding only, since the NMPC solves its QP through casadi's
+OSQP plugin with separately compiled data and post-processing, the generated step as one C source.
+Where a QP is marginal the two can part (measured on ``mpc_pressure_limit.toml``: the same RTI
+inputs after its fallback drill give status 2 in the NMPC and 0 in the generated step at t = 2.64 s).
+
+Not reproduced (the generated loop and its Python path leave them out, both alike): the start-up
+calibration, the EKF's rare reference-path events (``exact`` = 0; counted in the trajectory's
+``ekf_reference_events``), the budget/overrun logic (wall-clock dependent), load steps during the
+run. The loop starts at t = 0 with the rig at rest.
+"""
+
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.app.codegen import LOG, LogColumn, LoopSpec, Stage
+from hbma_ctrl.core.interfaces import SAFE_COMMAND
+from hbma_ctrl.models.fidelity import OUTPUTS
+from hbma_ctrl.runtime.chamber import chamber_supervisor
+from hbma_ctrl.sim.plant_step import initial_plant_state, plant_step_function, plant_step_support
+from hbma_ctrl.sim.rig import Rig, RigSettings
+from hbma_ctrl.sim.trial import DEFAULT_DT
+
+__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "qp_solver_for", "scene_reference",
+           "ESTIMATORS"]
+
+
+def _finite(v):
+    """1 where v is a finite number (comparisons: casadi simplifies ``v == v`` to true)."""
+    return ca.logic_and(v > -ca.inf, v < ca.inf)
+
+
+def _isnan(v):
+    """1 where v is NaN (it compares false both ways)."""
+    return ca.logic_not(ca.logic_or(v <= 0, v > 0))
+
+
+# --------------------------------------------------------------------------------------------- rig
+def plant_stage_parts(actuator, pneumatics, platform, rs: RigSettings):
+    """(plant_step Function, theta, x0, mode0, y0, fidelity name) of the rig a scene would build.
+
+    ValueError naming the scenario key when the rig's period step is not one casadi Function."""
+    rig = Rig(actuator, pneumatics, platform, rs)
+    fid = rig._plant.fid
+    why = plant_step_support(fid.name, rs)
+    if why:
+        raise ValueError(f"codegen: {why}")
+    dt = rs.dt if rs.dt is not None else DEFAULT_DT[(rs.integrator, fid.name)]
+    nsub = max(1, int(np.ceil(rs.sample_period / dt - 1e-9)))
+    fun = plant_step_function(fid, rs.integrator, rs.sample_period / nsub, nsub)
+    theta = rig._plant.thetas[:, 0].copy()
+    x0, m0, y0 = initial_plant_state(fid, theta)
+    return fun, theta, x0, m0, y0, fid.name
+
+
+def rig_noise(rs: RigSettings, n: int) -> np.ndarray:
+    """The rig's first n sensor perturbations (Pa; NaN = dropout), drawn as :meth:`Rig.measure` does."""
+    rng = np.random.default_rng(rs.seed)
+    out = np.zeros(n)
+    for k in range(n):
+        noise = rng.standard_normal() * rs.noise_std
+        drop = rng.random() < rs.dropout_prob if rs.dropout_prob > 0 else False
+        out[k] = math.nan if drop else noise
+    return out
+
+
+def _sensor(sensor_range: float) -> ca.Function:
+    y, noise = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("noise")
+    z = y[OUTPUTS.index("p")] + noise
+    # NaN noise (a dropout) stays NaN: the comparison is false for it
+    return ca.Function("sensor", [y, noise], [ca.if_else(z > sensor_range, sensor_range, z)], ["y", "noise"], ["z"])
+
+
+# --------------------------------------------------------------------------------------------- MPC
+def _np_interp(xq, xp: np.ndarray, fp):
+    """``np.interp(xq, xp, fp)`` with numpy's own arithmetic (slope * (x - xp[j]) + fp[j], the node's
+    value at a node, the end values outside), so the result rounds as the Python NMPC's does."""
+    xp = np.asarray(xp, dtype=float)
+    lo, hi = ca.DM(xp[:-1]), ca.DM(xp[1:])
+    f0, f1 = fp[:-1], fp[1:]
+    slope = (f1 - f0) / (hi - lo)
+    inside = ca.logic_and(xq >= lo, xq < hi)
+    val = ca.if_else(xq == lo, f0, slope * (xq - lo) + f0)
+    mid = ca.sum1(ca.if_else(inside, val, 0))
+    return ca.if_else(xq >= xp[-1], fp[-1], ca.if_else(xq < xp[0], fp[0], mid))
+
+
+def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
+    """(mpc_prep, mpc_cold, mpc_post) casadi Functions of the NMPC with settings ``s`` (MPCSettings)
+    on its PredictionModel and the supervisor settings ``sup`` (see the module docstring); ``nz``, ``nc``
+    the RTI step's numbers of QP variables and rows (the cold start's zero duals). mpc_prep takes the
+    load filter's gain ``load_a`` = min(1, dt / load_tau) as an input: dt is the time since the last
+    step, which the scene computes from its clock (a data stream of the loop)."""
+    g = model.grid
+    N = s.horizon
+    act = model.actuator
+    MX = ca.MX
+    h_est, p_est, F_est, rest_flag = MX.sym("h"), MX.sym("p"), MX.sym("F"), MX.sym("resting")
+    r_in, Wf, has_W = MX.sym("r", N), MX.sym("Wf"), MX.sym("has_W")
+    fail, cold_in, a = MX.sym("fail"), MX.sym("cold"), MX.sym("load_a")
+    # --- the load filter (NMPC._load): dt is the controller period
+    F = ca.if_else(_finite(F_est), F_est, 0)
+    F = ca.fmax(F, 0)
+    resting_h = h_est < s.rest_height
+    resting = ca.logic_or(resting_h, rest_flag != 0)
+    Wf_new = ca.if_else(has_W == 0, F, ca.if_else(resting, ca.fmax(F, Wf), Wf + a * (F - Wf)))
+    W = ca.fmin(Wf_new, s.load_max)
+    # --- the load path at W (PredictionModel.path): linear in W between the grid's columns
+    # one lookup and a two-column blend per table: (1 - s) A[:, j] + s A[:, j + 1], as path() rounds it
+    Wc = ca.fmin(ca.fmax(W, 0.0), model.load_max)
+    x_path, p_path, l_path = (ca.interpolant(f"mpc_{name}", "linear", [np.asarray(g.W, dtype=float)],
+                                             np.asarray(tab, dtype=float).ravel(order="F"))(Wc)
+                              for name, tab in (("x_path", g.x_path), ("p_path", g.p_path), ("lam_path", g.lam_path)))
+    hp = np.asarray(g.h_path, dtype=float)
+    lift_x = ca.fmin(ca.fmax(W, 0.0), model.load_max) / (math.pi * act.r1 ** 2) / act.p_env
+    x_at_h = _np_interp(h_est, hp, x_path)
+    x0 = ca.if_else(resting_h, ca.fmin(p_est / act.p_env, lift_x), x_at_h)
+    hp0 = model.HP(x0, W)
+    dh = ca.if_else(resting_h, 0, h_est - hp0[0])
+    dp = p_est - hp0[1]
+    p_lim = s.p_max - s.p_margin
+    # --- reachable height (PredictionModel.reachable_height) along the path
+    p_limit, h_lim = p_lim - ca.fmax(dp, 0), s.h_max - ca.fmax(dh, 0)
+    hpd = ca.DM(hp)
+    ok = ca.logic_and(ca.logic_and(p_path <= p_limit, l_path <= s.lam_max), hpd <= h_lim)
+    bad = 1 - ok
+    n = hp.size
+    first = ca.logic_and(bad, ca.cumsum(bad) - bad == 0)[1:]  # the first bad node (none before it)
+    fr = MX(ca.DM.inf(n - 1))
+    for v, lim in ((p_path, p_limit), (l_path, s.lam_max), (hpd, h_lim)):
+        v0, v1 = v[:-1], v[1:]
+        cand = ca.if_else(ca.logic_and(v1 > lim, v1 != v0), (lim - v0) / (v1 - v0), ca.inf)
+        fr = ca.fmin(fr, cand)
+    h0n, h1n = hpd[:-1], hpd[1:]
+    at = ca.if_else(fr < ca.inf, h0n + (h1n - h0n) * fr, h0n)
+    reach_first = ca.sum1(ca.if_else(first, at, 0))
+    any_bad = ca.sum1(bad[1:]) > 0
+    reach = ca.if_else(ok[0] == 0, 0, ca.if_else(any_bad, reach_first, ca.fmin(hp[-1], h_lim))) + dh
+    hi = ca.fmax(ca.fmin(reach, s.h_max), s.h_min)
+    r_c = ca.fmin(ca.fmax(r_in, s.h_min), hi)
+    # a step in the fail window (the drill) solves nothing and leaves the load filter as it was
+    failing = fail != 0
+    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, Wf, has_W, fail, cold_in, a],
+                       [x0, W, dh, dp, MX(p_lim), r_c, ca.if_else(failing, Wf, Wf_new),
+                        ca.if_else(failing, has_W, 1.0), ca.logic_and(cold_in != 0, ca.logic_not(failing)),
+                        ca.logic_and(cold_in == 0, ca.logic_not(failing))],
+                       ["h", "p", "F", "resting", "r", "Wf", "has_W", "fail", "cold", "load_a"],
+                       ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next", "run_cold", "run_warm"])
+    # --- cold start (the backend without a plan): the estimate held, the last command repeated
+    x0s, up = ca.SX.sym("x0"), ca.SX.sym("u_prev", 3)
+    cold = ca.Function("mpc_cold", [x0s, up], [ca.repmat(x0s, N + 1, 1), ca.repmat(up, 1, N), ca.SX.zeros(nz),
+                                                ca.SX.zeros(nc)],
+                       ["x0", "u_prev"], ["X_guess", "U_guess", "lam_x_guess", "lam_a_guess"])
+    # --- NMPC result -> supervisor (fallback, clip, guard) -> the command sent
+    SX = ca.SX
+    u0, Up, status, p_g_in = SX.sym("u0", 3), SX.sym("U_plan", 3, N), SX.sym("status"), SX.sym("p")
+    fail_s = SX.sym("fail")
+    plan, has_plan, age, streak = SX.sym("plan", 3, N), SX.sym("has_plan"), SX.sym("age"), SX.sym("streak")
+    safe = ca.DM(SAFE_COMMAND.as_array())
+    safe[2] = sup.safe_outlet
+    okc = ca.logic_and(status == 0, fail_s == 0)
+    streak_n = ca.if_else(okc, 0, streak + 1)
+    row = age + 1
+    can = ca.logic_and(ca.logic_and(has_plan != 0, streak_n <= sup.fallback_plan_steps),
+                       ca.logic_and(row >= 0, row < N))
+    pick = SX.zeros(3)
+    for j in range(N):
+        pick += ca.if_else(row == j, plan[:, j], SX.zeros(3))
+    fallback = ca.if_else(can, pick, safe)
+    cmd = ca.if_else(okc, ca.fmin(ca.fmax(u0, 0), 1), fallback)
+    cmd = ca.fmin(ca.fmax(cmd, 0), 1)
+    finite = _finite(p_g_in)
+    p_g = ca.if_else(finite, p_g_in, sup.p_max)
+    zone = p_g >= sup.p_max - sup.guard_margin
+    if not sup.missing_is_limit:
+        zone = ca.logic_and(zone, finite)
+    unsafe = cmd[0] > 0
+    if sup.vent_margin is not None:
+        unsafe = ca.logic_or(unsafe, cmd[2] < 1.0)
+    act_g = ca.logic_and(zone, unsafe)
+    out = ca.vertcat(ca.if_else(act_g, 0, cmd[0]), ca.if_else(act_g, 0, cmd[1]), cmd[2])
+    if sup.vent_margin is not None:
+        out[2] = ca.if_else(ca.logic_and(act_g, p_g >= sup.p_max - sup.vent_margin), 1.0, cmd[2])
+    plan_n = ca.if_else(okc, Up, plan)
+    has_n = ca.if_else(okc, 1, ca.if_else(can, has_plan, has_plan))
+    age_n = ca.if_else(okc, 0, ca.if_else(can, row, age))
+    post = ca.Function("mpc_post", [u0, Up, status, fail_s, p_g_in, plan, has_plan, age, streak],
+                       [out, 1 - okc, plan_n, has_n, age_n, streak_n],
+                       ["u0", "U_plan", "status", "fail", "p", "plan", "has_plan", "age", "streak"],
+                       ["u", "cold", "plan_next", "has_plan_next", "age_next", "streak_next"])
+    return prep, cold, post
+
+
+def qp_solver_for(variant: str, qp_solver: str | None = None) -> str:
+    """The conic plugin the generated RTI step uses: ``qp_solver`` if given, the variant's own for the
+    'rti_fn_*' variants, else OSQP (as 'rti_osqp'; linked from the casadi package). qrqp generates
+    self-contained C but fails on the cold starts of this QP (controllers.rti_step)."""
+    from controllers.rti_step import QP_SOLVERS
+
+    if qp_solver is None:
+        qp_solver = variant[len("rti_fn_"):] if variant.startswith("rti_fn_") else "osqp"
+    if qp_solver not in QP_SOLVERS:
+        raise ValueError(f"--qp-solver = '{qp_solver}'; allowed: {', '.join(QP_SOLVERS)}")
+    return qp_solver
+
+
+def _mpc_stages(scn, section, every: int, qp_solver: str | None) -> tuple[list, dict, dict]:
+    """The NMPC's stages (RTI variants), its signals and meta data."""
+    from controllers.mpc import NMPC
+    from controllers.rti_step import rti_step_function
+
+    s = section.mpc
+    if not s.variant.startswith("rti"):
+        raise ValueError(f"codegen: [controller] variant = '{s.variant}': only the RTI variants generate C "
+                         "(rti_osqp, rti_fn_*)")
+    solver = qp_solver_for(s.variant, qp_solver)
+    nmpc = NMPC(scn.actuator, scn.pneumatics, s)
+    model = nmpc.model
+    sup = chamber_supervisor(s).settings
+    rti = rti_step_function(model, s, solver)
+    N = s.horizon
+    nz, nc = rti.nnz_in("lam_x_guess"), rti.nnz_in("lam_a_guess")
+    prep, cold, post = mpc_glue(model, s, sup, nz, nc)
+    signals = {"Wf": [0.0], "has_W": [0.0], "x0": [0.0], "W": [0.0], "dh": [0.0], "dp": [0.0], "p_lim": [0.0],
+               "r_c": np.zeros(N), "X_guess": np.zeros(N + 1), "U_guess": np.zeros(3 * N), "lam_x": np.zeros(nz),
+               "lam_a": np.zeros(nc), "u0": np.zeros(3), "status": [0.0], "qp_residual": [0.0], "qp_cost": [0.0],
+               "shift0": [0.0], "shift1": [1.0], "cold": [1.0], "run_cold": [0.0], "run_warm": [0.0], "fail": [0.0],
+               "load_a": [0.0],
+               "plan": np.zeros(3 * N), "has_plan": [0.0],
+               "age": [0.0], "streak": [0.0]}
+    rti_in = ["x0", "W", "dh", "dp", "u", "p_lim", "r_c", "X_guess", "U_guess", "lam_x", "lam_a"]
+    rti_out = ["u0", "X_guess", "U_guess", "lam_x", "lam_a", "status", "qp_residual", "qp_cost"]
+    stages = [
+        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W", "fail", "cold", "load_a"],
+              ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W", "run_cold", "run_warm"], every=every),
+        # cold start (first step, or after a failure): the guess from the estimate, zero duals, then
+        # rti_init_iterations unshifted iterations, stopping at a failure (as _RtiFunction.solve)
+        Stage(cold, ["x0", "u"], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="run_cold"),
+        Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="run_cold", repeat=s.rti_init_iterations,
+              stop_on="status"),
+        Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="run_warm"),
+        Stage(post, ["u0", "U_guess", "status", "fail", "est_p", "plan", "has_plan", "age", "streak"],
+              ["u", "cold", "plan", "has_plan", "age", "streak"], every=every),
+    ]
+    return stages, signals, {"controller": f"RTI NMPC (controllers.rti_step), N = {N}, QP {solver}, "
+                                           f"every {every} rig periods"}
+
+
+# --------------------------------------------------------------------------------------------- EKF
+def _ekf_glue(settings, bounds: tuple) -> tuple:
+    """(ekf_kind, ekf_out): the reading's kind code and the z the step takes (as EKF.step classifies it),
+    and the estimate's h, p, F, its 'resting' flag and the count of steps the Python EKF would have
+    finished on its reference path (``exact`` = 0, or a no-load lift-off it replays)."""
+    from estimators import ekf_step as es
+
+    z = ca.SX.sym("z")
+    lo, hi = bounds
+    outlier = ca.logic_or(ca.logic_not(_finite(z)), ca.logic_or(z < lo, z > hi))
+    sat = z >= settings.sensor_range
+    # NaN (a dropout) and outliers are "none"; the order is classify_measurement's
+    code = ca.if_else(_isnan(z), es.KIND_NONE, ca.if_else(outlier, es.KIND_NONE,
+                                                        ca.if_else(sat, es.KIND_SATURATED, es.KIND_OK)))
+    z_in = ca.if_else(code == es.KIND_OK, z, 0)
+    kind = ca.Function("ekf_kind", [z], [z_in, code], ["z"], ["z_in", "kind"])
+    est, flags, exact, x, n_ref = (ca.SX.sym("est", 5), ca.SX.sym("flags"), ca.SX.sym("exact"), ca.SX.sym("x", 5),
+                                   ca.SX.sym("n_ref"))
+    bit = es.FLAG_BITS.index
+
+    def has(name):
+        return ca.fmod(ca.floor(flags / 2 ** bit(name)), 2) == 1
+
+    replay = ca.logic_and(has("lift_off"), x[1] == 0)
+    ref = ca.logic_or(exact < 0.5, replay)
+    out = ca.Function("ekf_out", [est, flags, exact, x, n_ref],
+                      [est[2], est[4], est[3], has("resting"), n_ref + ref],
+                      ["est", "flags", "exact", "x", "n_ref"], ["h", "p", "F", "resting", "n_ref_next"])
+    return kind, out
+
+
+def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
+    """The EKF's stages and signals, initialised from the first reading z0 (Pa) by the Python EKF
+    (its first step is the reference path's initialisation)."""
+    try:
+        from estimators import ekf_step as es
+    except ImportError:  # pragma: no cover - a build without the EKF step Function
+        raise ValueError("codegen: this build has no estimators.ekf_step (the EKF step Function)") from None
+    from estimators.common import physical_reading_bounds
+    from hbma_ctrl.app.scene_controller import default_estimator, estimator_from_scenario
+    from hbma_ctrl.core.interfaces import Command
+
+    est = estimator_from_scenario(scn, rs)
+    if est is None:
+        est = default_estimator(scn.actuator, scn.pneumatics, None, rs)
+    if type(est).__name__ != "EKF":
+        raise ValueError(f"codegen: [estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
+    s = est.settings
+    fun = es.ekf_step_function(scn.actuator, scn.pneumatics, s)
+    kind, out = _ekf_glue(s, physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel))
+    e0 = est.step(0.0, z0, Command(0.0, 0.0, 0.0))
+    flags = sum(2 ** i for i, n in enumerate(es.FLAG_BITS) if n in e0.flags)
+    signals = {"ekf_x": est.x, "ekf_P": np.asarray(est.P).ravel(order="F"), "ekf_s": est.s,
+               "ekf_theta": est.theta, "ekf_resting": [float(est.resting)], "z_in": [0.0], "kind": [0.0],
+               "ekf_det": [est._cusum, est._lift, est._lift_start, est._p_lift, est._p_post, float(est._gated)],
+               "ekf_y": np.zeros(fun.nnz_out(3)), "ekf_est": [e0.h1, e0.h2, e0.h, e0.F, e0.p], "ekf_std": np.zeros(5),
+               "ekf_C": np.zeros(25), "ekf_H": np.zeros(5), "ekf_A": np.zeros(25), "ekf_nis": [0.0],
+               "ekf_innov": [0.0], "ekf_flags": [float(flags)], "ekf_exact": [1.0], "est_h": [e0.h], "est_p": [e0.p],
+               "est_F": [e0.F], "resting": [float("resting" in e0.flags)], "ekf_n_ref": [0.0], "not_first": [0.0],
+               "one": [1.0]}
+    step_in = ["ekf_x", "ekf_P", "ekf_s", "u", "ekf_theta", "ekf_resting", "z_in", "kind", "ekf_det"]
+    step_out = ["ekf_x", "ekf_P", "ekf_s", "ekf_y", "ekf_est", "ekf_std", "ekf_C", "ekf_H", "ekf_A", "ekf_resting",
+                "ekf_det", "ekf_nis", "ekf_innov", "ekf_flags", "ekf_exact"]
+    # tick 0 is the Python EKF's initialisation (its signals above); the Function runs from tick 1
+    first = ca.Function("mark_started", [ca.SX.sym("one")], [ca.SX(1.0)], ["one"], ["started"])
+    stages = [Stage(kind, ["z"], ["z_in", "kind"], gate="not_first"),
+              Stage(fun, step_in, step_out, gate="not_first"),
+              Stage(out, ["ekf_est", "ekf_flags", "ekf_exact", "ekf_x", "ekf_n_ref"],
+                    ["est_h", "est_p", "est_F", "resting", "ekf_n_ref"], gate="not_first"),
+              Stage(first, ["one"], ["not_first"])]
+    return stages, signals, {"estimator": f"EKF (estimators.ekf_step), {s.sample_period * 1e3:g} ms"}
+
+
+def _truth_stages() -> tuple[list, dict, dict]:
+    """A stand-in estimator that reads the rig's true height, pressure, force and mode (isolates the
+    controller and the plant from the filter)."""
+    y, mode = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("mode")
+    fun = ca.Function("truth_estimate", [y, mode],
+                      [y[OUTPUTS.index("h")], y[OUTPUTS.index("p")], y[OUTPUTS.index("F")], mode == 0],
+                      ["y", "mode"], ["h", "p", "F", "resting"])
+    signals = {"est_h": [0.0], "est_p": [0.0], "est_F": [0.0], "resting": [1.0]}
+    return [Stage(fun, ["y", "mode"], ["est_h", "est_p", "est_F", "resting"])], signals, {
+        "estimator": "the rig's true state (no filter)"}
+
+
+# --------------------------------------------------------------------------------------------- loop
+#: estimators a generated loop can run: the scenario's EKF, or the rig's truth (tests, controller alone)
+ESTIMATORS = ("ekf", "truth")
+
+
+def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
+                  qp_solver: str | None = None) -> LoopSpec:
+    """The scenario's closed loop (see the module docstring) over ``duration`` s (None: the
+    scenario's); ``estimator`` one of :data:`ESTIMATORS`; ``qp_solver`` the RTI step's conic plugin
+    (:func:`qp_solver_for`). ValueError naming the section that cannot be generated."""
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"codegen: estimator = '{estimator}'; allowed: {', '.join(ESTIMATORS)}")
+    if scn.role("robot") is not None:
+        raise ValueError("codegen: [robot] scenarios cannot be generated yet (the robot's plant and NMPC "
+                         "are not single Functions); use a single-chamber scenario with [controller]")
+    section = scn.role("controller")
+    if section is None:
+        raise ValueError("codegen: the scenario has no [controller] section (the generated loop is "
+                         "rig -> EKF -> NMPC -> rig)")
+    if section.kind != "mpc":
+        raise ValueError(f"codegen: [controller] kind = '{section.kind}': only 'mpc' generates C")
+    if section.load_steps:
+        raise ValueError("codegen: [controller] load_steps_g: load changes during the run switch the rig's "
+                         "plant model in Python; remove them to generate C")
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    ratio = section.sample_period / rs.sample_period
+    every = int(round(ratio))
+    if every < 1 or abs(ratio - every) > 1e-6:
+        raise ValueError(f"codegen: [controller] sample_ms = {section.sample_period * 1e3:g} ms must be a whole "
+                         f"multiple of [rig] sample_period_ms = {rs.sample_period * 1e3:g} ms")
+    T = scn.duration if duration is None else float(duration)
+    n = int(round(T / rs.sample_period))
+    plant, theta, x0, m0, y0, fid_name = plant_stage_parts(scn.actuator, scn.pneumatics, scn.platform, rs)
+    noise = rig_noise(rs, n)
+    sensor = _sensor(rs.sensor_range)
+    z0 = float(np.asarray(sensor(y0, noise[0])).ravel()[0])
+    ekf_stages, ekf_signals, ekf_meta = _ekf_stages(scn, rs, z0) if estimator == "ekf" else _truth_stages()
+    mpc_stages, mpc_signals, mpc_meta = _mpc_stages(scn, section, every, qp_solver)
+    N = section.mpc.horizon
+    use_preview = section.preview if section.preview is not None else (
+        section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
+    t = np.arange(n) * rs.sample_period
+    target = np.array([section.reference(tk) for tk in t])
+    if use_preview:
+        ref = np.array([[section.reference(tk + section.sample_period * (j + 1)) for j in range(N)] for tk in t])
+    else:
+        ref = np.repeat(target[:, None], N, axis=1)
+    fw = section.mpc.fail_window  # the fallback drill: every solve in [t0, t1] is treated as failed
+    fail = np.zeros(n) if fw is None else ((t >= fw[0]) & (t <= fw[1])).astype(float)
+    # the load filter's gain from the time since the controller's last step, as NMPC._load rounds it
+    tau = section.mpc.load_tau
+    dts = [section.mpc.sample_period if k < every else max(t[k] - t[k - every], 0.0) for k in range(n)]
+    load_a = np.array([1.0 if tau <= 0 else min(1.0, d / tau) for d in dts])
+    signals = {"x": x0, "mode": [m0], "y": y0, "u": np.zeros(3), "theta": theta, "noise": [0.0], "z": [z0],
+               "target": [0.0], "ref": np.zeros(N)}
+    signals.update(ekf_signals)
+    signals.update(mpc_signals)
+    stages = [Stage(sensor, ["y", "noise"], ["z"])] + ekf_stages + mpc_stages + [LOG] + [
+        Stage(plant, ["x", "mode", "u", "theta"], ["x", "mode", "y"])]
+    hi = OUTPUTS.index("h")
+    pi = OUTPUTS.index("p")
+    Fi = OUTPUTS.index("F")
+    log = [LogColumn("target_mm", "target", 0, 1e3), LogColumn("h_true_mm", "y", hi, 1e3),
+           LogColumn("h_est_mm", "est_h", 0, 1e3), LogColumn("p_true_kpa", "y", pi, 1e-3),
+           LogColumn("p_meas_kpa", "z", 0, 1e-3), LogColumn("p_est_kpa", "est_p", 0, 1e-3),
+           LogColumn("F_true_n", "y", Fi, 1.0), LogColumn("F_est_n", "est_F", 0, 1.0),
+           LogColumn("speed", "u", 0), LogColumn("inlet", "u", 1), LogColumn("outlet", "u", 2),
+           LogColumn("mode", "mode", 0), LogColumn("mpc_status", "status", 0)]
+    if "ekf_n_ref" in signals:
+        log.append(LogColumn("ekf_reference_events", "ekf_n_ref", 0))
+    meta = {"scenario": scn.name, "rig": f"{fid_name}, {rs.integrator}, {rs.sample_period * 1e3:g} ms, seed {rs.seed}"}
+    meta.update(ekf_meta)
+    meta.update(mpc_meta)
+    return LoopSpec(scn.name, rs.sample_period, n, signals, {"noise": noise, "target": target, "ref": ref, "fail": fail,
+                                                             "load_a": load_a},
+                    stages, log, meta).validate()
+
+
+# --------------------------------------------------------------------------------------------- scene
+#: trajectory columns compared with the scene's log: (column, log attribute, column index in log.u or None)
+_SCENE_COLUMNS = (("h_true_mm", "h_true", None), ("h_est_mm", "h_est", None), ("p_true_kpa", "p_true", None),
+                  ("p_est_kpa", "p_est", None), ("F_est_n", "F_est", None), ("speed", "u", 0), ("inlet", "u", 1),
+                  ("outlet", "u", 2))
+
+
+def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str | None = None) -> dict:
+    """Run the scene's own closed loop (Rig, EKF, NMPC, ChamberLoop with its supervisor) as the generated
+    loop models it, and compare: no start-up calibration, the NMPC variant calling the same RTI Function
+    (``rti_fn_<solver>``) with a budget no solve reaches (an overrun depends on the wall clock).
+
+    Returns the scene's step times (EKF step, controller step incl. the supervisor; calls, median,
+    p99, max in us) and the largest absolute difference of each compared column from ``trajectory``
+    (rows of ``spec``'s header; SI).
+    """
+    from dataclasses import replace
+
+    from hbma_ctrl.app.codegen import time_summary
+    from hbma_ctrl.app.scene_controller import closed_loop, estimator_from_scenario
+
+    section = scn.role("controller")
+    solver = qp_solver_for(section.mpc.variant, qp_solver)
+    section = replace(section, mpc=replace(section.mpc, variant=f"rti_fn_{solver}", budget=10.0))
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, section, spec.n_ticks * spec.dt, rs,
+                      estimator=estimator_from_scenario(scn, rs), calibrate=False)
+    col = {n: i for i, n in enumerate(spec.header())}
+    scale = {c.name: c.scale for c in spec.log}
+    diff = {}
+    for name, attr, j in _SCENE_COLUMNS:
+        ref = getattr(log, attr) if j is None else log.u[:, j]
+        got = trajectory[: len(ref), col[name]] / scale[name]
+        diff[name] = float(np.max(np.abs(got - ref)))
+    return {"variant": f"rti_fn_{solver}", "ekf_step": time_summary(log.est_step_s),
+            "controller_step": time_summary(np.asarray(log.solve_ms) * 1e-3),
+            "max_abs_diff_si": diff, "max_abs_diff_si_all": max(diff.values()),
+            "supervisor_events": len(log.supervisor_events)}
