@@ -113,7 +113,7 @@ class NMPC:
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: MPCSettings | None = None,
                  model: PredictionModel | None = None):
         self.settings = s = (settings or MPCSettings()).validate()
-        self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max)
+        self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max, membrane=s.membrane)
         self.backend = _RtiOsqp(self.model, s) if s.variant == "rti_osqp" else _Ipopt(self.model, s)
         self.reset()
 
