@@ -95,7 +95,7 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
                     f"{r['extension_pct']:.0f} / {r['paper_extension_pct']:.0f}", f"{r['chamber_height_mm']:.2f}",
                     f"{r['pressure_kpa']:.1f}", f"{r['stretch']:.2f}")
     Console(highlight=False, width=150).print(tab)
-    typer.echo(md.splitlines()[-1])
+    typer.echo("\n".join(ln for ln in md.splitlines() if ln and not ln.startswith("|")))  # the notes
     typer.echo(f"wrote {out / 'table2.md'} and {out / 'table2.json'}")
 
 

@@ -412,6 +412,13 @@ def table2_markdown(rows: list[dict]) -> str:
             f"{p['stretch']:g}; near_branch: held at {p['hold_pressure_kpa']:g} kPa below the limit point; "
             "rim_pivot: far-branch chambers, the layer rocking on its outer rim instead of the rigid "
             "three-point pose (whose rims would overlap with a flat chamber).\n")
+    bonded = [r for r in rows if r["reading"] == "bonded"]
+    if bonded:
+        b = bonded[0]["params"]
+        foot += (f"bonded: chambers glued to the layer above (exact membrane, a rigid glue spot of radius "
+                 f"{b['bond_radius_mm']:g} mm at each centre), the inflated ones at {b['pressure_kpa']:g} kPa, the "
+                 "others vented; with one or two inflated the layer rests on its outer rim and the vented glued "
+                 "chambers, pulled up, pull it back (tension); stretch not tabulated (-).\n")
     return head + body + foot
 
 
