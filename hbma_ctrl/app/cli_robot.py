@@ -63,7 +63,7 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
            bond_radius_mm: float = typer.Option(U.to_mm(BOND_RADIUS), "--bond-radius-mm",
                                                 help="bonded reading: radius of the glue spot on each membrane, mm"),
            bond_kpa: float = typer.Option(40.0, "--bond-kpa", help="bonded reading: inflated chambers' pressure, kPa "
-                                                                "(40: every row within the exact solver's stretch 4 at 1 mm)"),
+                                                                "(40: every row has a taut exact equilibrium at 1 mm)"),
            bonded: bool = typer.Option(True, "--bonded/--no-bonded",
                                        help="add the glued-chamber reading (exact membrane; its table is built "
                                             "once, a few minutes)")) -> None:

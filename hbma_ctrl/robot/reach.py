@@ -366,7 +366,9 @@ def bonded_layer_pose(design: RobotDesign, inflated: list[int], pressure: float,
 
 def bonded_table2(design: RobotDesign | None = None, pressure: float = 40e3, c: float = BOND_RADIUS) -> list[dict]:
     """Table II rows ('bonded') with glued chambers (:func:`bonded_layer_pose`): the inflated chambers of
-    layer A at ``pressure`` (Pa; default 40 kPa, below the robot's 45 kPa limit: the highest 5 kPa step at which every row stays within the exact solver's stretch of 4 for c = 1 mm), the others vented, bond radius c (m).
+    layer A at ``pressure`` (Pa; default 40 kPa, below the robot's 45 kPa limit: the highest 5 kPa step at
+    which every row has a taut exact equilibrium, stretch <= 4, for c = 1 mm), the others vented, bond
+    radius c (m).
     Same keys as :func:`robot_table2` (stretch NaN: not tabulated), plus ``reaction_n`` (the rim's
     force), ``vented_height_mm``, ``vented_force_n`` and ``within_reach``."""
     d = design or RobotDesign(n_layers=2)
