@@ -1,4 +1,4 @@
-"""Nonlinear MPC of one chamber's membrane height: IPOPT (accurate) or RTI + OSQP (fast), one API.
+"""Nonlinear MPC of one chamber's membrane height: IPOPT / fatrop (accurate) or RTI (fast), one API.
 
 The optimal control problem (both variants solve the same one)
 --------------------------------------------------------------
@@ -35,6 +35,15 @@ shifted previous solution; one sparse QP with a fixed pattern is updated in plac
 u, Px, Ax; never re-setup) and solved by OSQP, warm-started. The pump flow is bilinear in speed and
 inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point of speed
 and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
+
+``rti_fn_hpipm``, ``rti_fn_osqp``, ``rti_fn_qrqp``: the same real-time iteration as ONE casadi
+Function (:func:`controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
+inside casadi by HPIPM / OSQP / qrqp, first input), called once per step through preallocated
+buffers; the ``codegen`` command generates C from exactly this Function. Its QP is written
+stage-wise (the previous input as a state, the limits of stage k+1 through the dynamics on stage
+k), which has the same optimum and lets HPIPM use the OCP structure.
+``fatrop``: the IPOPT variant's NLP in the same stage form, solved by fatrop (casadi ``nlpsol``,
+structure detected; the NLP's functions JIT-compiled when ``codegen`` is set).
 
 Valve duty -> on/off. A duty d in [0, 1] is a PWM command: the valve is held open for d * T_pwm of
 each PWM period T_pwm (``duty_to_on_time``); the averaged flow is d times the open flow, which is
@@ -74,11 +83,13 @@ from controllers.mpc_settings import (
 )
 from controllers.mpc_solvers import (
     _BudgetExceeded,
+    _Fatrop,
     _Ipopt,
     _Problem,
     _RtiOsqp,
     _SolverFailure,
 )
+from controllers.rti_step import _RtiFunction
 
 
 def _finite(value) -> bool:
@@ -114,7 +125,14 @@ class NMPC:
                  model: PredictionModel | None = None):
         self.settings = s = (settings or MPCSettings()).validate()
         self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max, membrane=s.membrane)
-        self.backend = _RtiOsqp(self.model, s) if s.variant == "rti_osqp" else _Ipopt(self.model, s)
+        if s.variant == "rti_osqp":
+            self.backend = _RtiOsqp(self.model, s)
+        elif s.variant.startswith("rti_fn_"):
+            self.backend = _RtiFunction(self.model, s, s.variant[len("rti_fn_"):])
+        elif s.variant == "fatrop":
+            self.backend = _Fatrop(self.model, s)
+        else:
+            self.backend = _Ipopt(self.model, s)
         self.reset()
 
     def reset(self) -> None:
@@ -246,6 +264,9 @@ class NMPC:
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:
         """Variant, horizon and clipped-target count since the last reset (timing and fallbacks are
-        counted by :mod:`hbma_ctrl.runtime`)."""
-        return {"variant": self.settings.variant, "horizon": self.settings.horizon,
-                "target_clipped_steps": int(self.clipped_count)}
+        counted by :mod:`hbma_ctrl.runtime`); for the rti_fn_* variants how the step runs."""
+        out = {"variant": self.settings.variant, "horizon": self.settings.horizon,
+               "target_clipped_steps": int(self.clipped_count)}
+        if hasattr(self.backend, "mode"):  # the one-Function RTI: generated C, C parts, or casadi's VM
+            out["rti_step_mode"] = self.backend.mode
+        return out

@@ -10,7 +10,7 @@ import numpy as np
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.core.validation import did_you_mean
 
-VARIANTS = ("rti_osqp", "ipopt")
+VARIANTS = ("rti_osqp", "rti_fn_osqp", "rti_fn_hpipm", "rti_fn_qrqp", "ipopt", "fatrop")
 
 
 @dataclass
@@ -19,7 +19,9 @@ class MPCSettings:
 
     Fields
     ------
-    variant : 'rti_osqp' (fast: one QP per step) or 'ipopt' (accurate: NLP to convergence).
+    variant : 'rti_osqp' (fast: one QP per step, OSQP from Python), 'rti_fn_osqp' / 'rti_fn_hpipm' /
+        'rti_fn_qrqp' (the same RTI step as one casadi Function, :mod:`controllers.rti_step`, its QP
+        solved inside casadi by OSQP / HPIPM / qrqp), 'ipopt' or 'fatrop' (accurate: NLP to convergence).
     horizon : number of shooting intervals N, [2, 200].
     sample_period : controller period and shooting interval, s, (0, 1].
     integrator : 'rk4' or 'euler' for the discrete dynamics.

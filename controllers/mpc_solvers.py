@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 
 import casadi as ca
@@ -340,6 +341,14 @@ class _Ipopt:
         return self.X, self.U
 
 
+def _jit_options(s: MPCSettings) -> dict:
+    """casadi's JIT for an nlpsol's derivative functions (``settings.codegen`` and a C compiler):
+    the NLP's function evaluations, not the solver's linear algebra, are most of a step here."""
+    if not s.codegen or not any(shutil.which(c) for c in ("cc", "gcc")):
+        return {}
+    return {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O1"], "verbose": False}}
+
+
 def _csc_with_perm(rows, cols, n, m=None):
     """CSC matrix with the given pattern and the permutation from entry order to CSC data order."""
     m = n if m is None else m
@@ -351,3 +360,122 @@ def _csc_with_perm(rows, cols, n, m=None):
     perm = M.data.astype(int) - 1
     M.data = np.ones(nnz) * 1e-12
     return M, perm
+
+
+class _Fatrop:
+    """The IPOPT variant's OCP in stage form for fatrop (casadi ``nlpsol``, structure detected).
+
+    Stage k < N holds [x_k, v_k (the previous input), u_k, s_k], stage N [x_N, v_N]; v_{k+1} = u_k
+    makes the input-rate terms stage-local and s_k is the slack of the limits at stage k + 1, written
+    on F(x_k, u_k). The optimum is the IPOPT variant's (same cost, same feasible set).
+
+    Measured (N = 20, ``bench mpc`` on the shared 2-core machine): 17 ms CPU per step against
+    IPOPT's 54 ms, at the same RMSE; but IPOPT with the same JIT takes 29 ms: the gain is the JIT.
+    With one state per stage the NLP is bound by function evaluations, not by the linear algebra
+    fatrop's structure speeds up.
+    """
+
+    def __init__(self, model: PredictionModel, s: MPCSettings):
+        self.s, self.model = s, model
+        N = self.N = s.horizon
+        self.stage = _Stage(model, s)
+        F = self.stage.F
+        par = ca.SX.sym("par", 8 + N)  # as _Ipopt: x0, W, dh(mm), dp(Pa), u_prev(3), p_lim(kPa), r(mm)
+        x0, W, dh, dp = par[0], par[1], par[2], par[3]
+        u_prev, p_lim, rr = par[4:7], par[7], par[8:]
+        wr, wu, cu = (ca.DM(list(v)) for v in (s.w_rate, s.w_input, s.c_input))
+        du = np.array(s.du_max, float) * s.sample_period
+        umax = np.array(s.u_max, float)
+        inf = ca.inf
+        xs = [ca.SX.sym(f"x{k}") for k in range(N + 1)]
+        vs = [ca.SX.sym(f"v{k}", 3) for k in range(N + 1)]
+        us = [ca.SX.sym(f"u{k}", 3) for k in range(N)]
+        ss = [ca.SX.sym(f"s{k}") for k in range(N)]
+        z, lbz, ubz, g, lbg, ubg = [], [], [], [], [], []
+        J = 0
+        for k in range(N + 1):
+            z += [xs[k], vs[k]]
+            lbz += [-0.5, -inf, -inf, -inf]
+            ubz += [50.0, inf, inf, inf]
+            if k == N:
+                break
+            z += [us[k], ss[k]]
+            lbz += [0.0, 0.0, 0.0, 0.0]
+            ubz += list(umax) + [inf]
+            xn = F(xs[k], us[k], W, dp)
+            g += [xs[k + 1] - xn, vs[k + 1] - us[k]]  # the dynamics first: what fatrop's detection reads
+            lbg += [0.0] * 4
+            ubg += [0.0] * 4
+            if k == 0:
+                g += [xs[0] - x0, vs[0] - u_prev]
+                lbg += [0.0] * 4
+                ubg += [0.0] * 4
+            g.append(us[k] - vs[k])
+            lbg += list(-du)
+            ubg += list(du)
+            g.append(us[k][1] - us[k][0])
+            lbg.append(0.0)
+            ubg.append(inf)
+            h, p, lam = self.stage.out(xn, W)
+            w = s.w_height + (s.w_terminal if k == N - 1 else 0.0)
+            d = us[k] - vs[k]
+            J += ca.dot(wr, d ** 2) + ca.dot(wu, us[k] ** 2) + ca.dot(cu, us[k])
+            J += w * (h + dh - rr[k]) ** 2 + s.w_slack * ss[k] ** 2 + s.c_slack * ss[k]
+            lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else inf)
+            for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
+                             (h + dh - s.h_max * 1e3, 0.0), lo_h):
+                g.append(expr - ss[k])
+                lbg.append(-inf)
+                ubg.append(ub)
+        zz = ca.vertcat(*z)
+        nlp = {"x": zz, "p": par, "f": J, "g": ca.vertcat(*g)}
+        eq = [bool(lo == up) for lo, up in zip(lbg, ubg)]
+        opts = {"structure_detection": "auto", "equality": eq, "print_time": False, "error_on_fail": False,
+                **_jit_options(s),
+                "fatrop": {"print_level": 0, "max_iter": s.ipopt_max_iter, "tol": 1e-6,
+                           "mu_init": 1e-3}}
+        self.solver = ca.nlpsol("mpc_fatrop", "fatrop", nlp, opts)
+        self.lbz, self.ubz = np.array(lbz, float), np.array(ubz, float)
+        self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
+        self.nz = zz.shape[0]
+        ns = 8
+        self.ix = ns * np.arange(N + 1)
+        self.iu = (ns * np.arange(N))[:, None] + 4 + np.arange(3)[None, :]
+        self.iv = (ns * np.arange(N + 1))[:, None] + 1 + np.arange(3)[None, :]
+        self.isl = ns * np.arange(N) + 7
+        self.z = None
+        self.lam_g = None
+        self.iterations = 0
+
+    @property
+    def X(self):
+        return None if self.z is None else self.z[self.ix]
+
+    def reset(self) -> None:
+        self.z = None
+        self.lam_g = None
+
+    def solve(self, pr: _Problem):
+        z0 = np.zeros(self.nz)
+        if self.z is None:
+            z0[self.ix] = pr.x0
+            z0[self.iu] = pr.u_prev
+            z0[self.iv] = pr.u_prev
+        else:  # the previous solution shifted by one stage (the last stage repeated)
+            z0[self.ix] = np.r_[pr.x0, self.z[self.ix][2:], self.z[self.ix][-1]]
+            Uo = self.z[self.iu]
+            Ub = np.vstack([Uo[1:], Uo[-1:]])
+            z0[self.iu] = Ub
+            z0[self.iv] = np.vstack([pr.u_prev, Ub])
+            z0[self.isl] = np.r_[self.z[self.isl][1:], self.z[self.isl][-1]]
+        par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
+        sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
+        st = self.solver.stats()
+        self.iterations = int(st.get("iter_count", 0) or 0)
+        if not st.get("success", False):
+            raise _SolverFailure(f"fatrop: {st.get('return_status')}")
+        z = np.asarray(sol["x"]).ravel()
+        if not np.all(np.isfinite(z)):
+            raise _SolverFailure("fatrop: non-finite solution")
+        self.z = z
+        return z[self.ix], np.clip(z[self.iu], 0.0, 1.0)

@@ -244,6 +244,23 @@ class RobotNMPC:
                     ac.append(ix(i, 1, k))
             self.m_rows += N
         self._Apat = _Pattern(ar, ac, (self.m_rows, self.nv))
+        # one chamber's A values in entry order: constants, and where the linearisation goes
+        tmpl, pos_a, pos_ba, pos_bo, pos_px = [], [], [], [], []
+        for k in range(N):
+            tmpl.append(1.0)
+            if k > 0:
+                pos_a.append(len(tmpl))
+                tmpl.append(0.0)
+            pos_ba.append(len(tmpl))
+            pos_bo.append(len(tmpl) + 1)
+            tmpl += [0.0, 0.0]
+        for k in range(N):
+            pos_px.append(len(tmpl))
+            tmpl += [0.0, -1.0]
+        tmpl += [1.0] * (2 * N) + [1.0]
+        self._A_template = np.array(tmpl)
+        self._A_pos_a, self._A_pos_ba, self._A_pos_bo, self._A_pos_px = (
+            np.array(v, dtype=np.int64) for v in (pos_a, pos_ba, pos_bo, pos_px))
 
     # --- one period --------------------------------------------------------------------------------
     def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
@@ -309,38 +326,29 @@ class RobotNMPC:
         q[:, 2 * N:] = s.r_in
         q[:, N] -= 2 * s.w_du * self.prev[0]
         q[:, 2 * N] -= 2 * s.w_du * self.prev[1]
-        # order of _Ppat entries: per chamber diag (3N) then rate couplings (2(N-1))
-        Pv = np.concatenate([np.concatenate([Pdiag_x[i], diag_in, diag_in, np.full(2 * (N - 1), -2 * s.w_du),
-                                             [2.0]]) for i in range(n)])
-        # --- constraints
-        Av, lo, up = [], [], []
+        # order of _Ppat entries: per chamber diag (3N) then rate couplings (2(N-1)), then the slack
+        Pv = np.hstack([Pdiag_x, np.broadcast_to(np.r_[diag_in, diag_in, np.full(2 * (N - 1), -2 * s.w_du), 2.0],
+                                                 (n, 4 * N - 1))]).reshape(-1)
+        # --- constraints: the per-chamber value rows of _Apat's entry order, filled by column blocks
         pmax = s.p_max - s.p_margin
         xb = self.xbar
         Aab = Ax[:, :N]
         c = xn[:, :N] - Aab * xb[:, :N] - Ba[:, :N] * self.abar - Bo[:, :N] * self.obar
         rhs = c.copy()
         rhs[:, 0] += Aab[:, 0] * x0
-        for i in range(n):
-            vals = []
-            for k in range(N):
-                vals.append(1.0)
-                if k > 0:
-                    vals.append(-Aab[i, k])
-                vals += [-Ba[i, k], -Bo[i, k]]
-            for kk in range(N):  # pressure rows in kPa (conditioning), with the slack
-                vals += [Px[i, kk + 1] * 1e-3, -1.0]
-            vals += [1.0] * (2 * N) + [1.0]
-            Av.append(np.array(vals))
-            lo.append(np.concatenate([rhs[i], np.full(N, -np.inf), np.zeros(2 * N), [0.0]]))
-            up.append(np.concatenate([rhs[i], (pmax - p[i, 1:] + Px[i, 1:] * xb[i, 1:]) * 1e-3,
-                                      np.full(N, amax[i]), np.ones(N), [np.inf]]))
+        vals = np.tile(self._A_template, (n, 1))
+        vals[:, self._A_pos_a] = -Aab[:, 1:N]
+        vals[:, self._A_pos_ba] = -Ba[:, :N]
+        vals[:, self._A_pos_bo] = -Bo[:, :N]
+        vals[:, self._A_pos_px] = Px[:, 1:] * 1e-3  # pressure rows in kPa (conditioning), with the slack
+        lo = np.hstack([rhs, np.full((n, N), -np.inf), np.zeros((n, 2 * N + 1))])
+        up = np.hstack([rhs, (pmax - p[:, 1:] + Px[:, 1:] * xb[:, 1:]) * 1e-3, np.repeat(amax[:, None], N, 1),
+                        np.ones((n, N)), np.full((n, 1), np.inf)])
+        Av, lo, up = vals.reshape(-1), lo.reshape(-1), up.reshape(-1)
         if self.topology == "shared":
-            Av.append(np.ones(N * n))
-            lo.append(np.full(N, -np.inf))
-            up.append(np.ones(N))
-        Av = np.concatenate(Av)
-        lo = np.concatenate(lo)
-        up = np.concatenate(up)
+            Av = np.r_[Av, np.ones(N * n)]
+            lo = np.r_[lo, np.full(N, -np.inf)]
+            up = np.r_[up, np.ones(N)]
         qv = q.reshape(-1)
         budget = s.budget * s.sample_period
         cold = self._solver is None

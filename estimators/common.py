@@ -234,6 +234,8 @@ def classify_measurement(z, sensor_range: float, reading_min: float = -math.inf,
     """One pressure reading (Pa): 'missing' (None or NaN: a dropout), 'outlier' (cannot be physical:
     +-inf, not a number, below ``reading_min`` or above ``reading_max``), 'saturated' (>= sensor
     range) or 'ok'."""
+    if isinstance(z, float) and reading_min <= z <= reading_max and z < sensor_range:
+        return MEAS_OK  # the common case, decided in one test (NaN fails every comparison)
     if z is None:
         return MEAS_MISSING
     if isinstance(z, (str, bytes, bool)):

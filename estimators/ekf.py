@@ -100,17 +100,29 @@ the range, an update towards the range with ``saturation_std``; otherwise no upd
 ``saturated``). Numerics: Joseph-form update, gains by solves, covariance symmetrised with an
 eigenvalue floor after every predict and update (:mod:`estimators.common`). No global state; the
 filter is deterministic.
+
+Speed: a step one sample period after the last (the normal case) is ONE call of the compiled
+:func:`estimators.ekf_step.ekf_step_function` (predict, gate, update, both detectors, lift-off,
+touch-down, clamps and outputs; generated as C, compiled once per machine and called through
+preallocated buffers). The first step, a late or early tick, a re-opened gate, a covariance that
+needs its eigenvalue floor and a no-load lift-off (replayed from the flat phase) run the reference
+path (:meth:`EKF.step_reference`: separate predict, update and output calls, the same model); both
+give the same numbers (tests/test_ekf_compiled.py). ``hbma-ctrl bench ekf`` times both paths and
+filterpy's ExtendedKalmanFilter on the same model.
 """
 
 from __future__ import annotations
 
 import math
 import time
+import warnings
 
+import casadi as ca
 import numpy as np
 
 from estimators.common import (
     MEAS_MISSING,
+    MEAS_OK,
     MEAS_OUTLIER,
     MEAS_SATURATED,
     FilterSettings,
@@ -119,29 +131,30 @@ from estimators.common import (
     nis_gate,
     physical_reading_bounds,
 )
-from hbma_ctrl.core.codegen import FastFunction
+from estimators.ekf_step import (
+    FACTOR_RANGE,
+    FLAG_BITS,
+    KIND_NONE,
+    KIND_OK,
+    KIND_SATURATED,
+    LIFT_LOAD_ABS_STD,
+    LIFT_START_DRIFT,
+    LIGHT_LOAD,
+    NO_LOAD_SIGMAS,
+    ekf_step_function,
+    observer_model,
+)
+from hbma_ctrl.core.codegen import FastFunction, compiled
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES, ObserverModel
+from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES
 
-__all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
+__all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
 
 #: outputs whose covariance the filters report (rows of ``output_cov``)
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
 _Y = {n: i for i, n in enumerate(OUT_NAMES)}
 _DIAG5 = np.diag_indices(5)
-#: the pump-flow, modulus and dead-volume factors are kept in this range (off by more is a broken
-#: rig, not a bias)
-FACTOR_RANGE = (0.5, 2.0)
-#: a resting load below this (N) may be no load at all: the flat height is then uncertain
-LIGHT_LOAD = 0.5
-#: absolute one sigma of the load right after a detected lift-off, N (the detection delay)
-LIFT_LOAD_ABS_STD = 0.2
-#: a lift-off below this many sensor sigmas of pressure is taken as no load (free inflation)
-NO_LOAD_SIGMAS = 3.0
-#: drift of the sum that dates a lift-off (normalised innovation shortfall per sample): only
-#: shortfalls beyond one sigma count
-LIFT_START_DRIFT = 1.0
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
 REPLAY_MAX = 200
 _KEEP_ALL = np.ones(NX)
@@ -152,21 +165,49 @@ class EKFSettings(FilterSettings):
     """EKF settings: the fields of :class:`estimators.common.FilterSettings` (documented there)."""
 
 
-_MODEL_CACHE: dict = {}
+_FN_CACHE: dict = {}
+_KIND_CODE = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
+_FLAG_SETS: dict = {}
+_LIFT_DETECTED = 1 << FLAG_BITS.index("lift_off_detected")
+
+
+def _flag_set(bits: int) -> frozenset:
+    """The flags of :data:`estimators.ekf_step.FLAG_BITS` raised in ``bits`` (memoised)."""
+    fs = _FLAG_SETS.get(bits)
+    if fs is None:
+        fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS)
+                                          if bits >> i & 1 and n != "lift_off_detected")
+    return fs
+
+
+def fast(fun: ca.Function, compile: bool) -> FastFunction:
+    """A buffered caller of ``fun``, compiled once per process (generating the C source only to look
+    up the cached library costs milliseconds, paid per filter otherwise)."""
+    key = (id(fun), compile)
+    if key not in _FN_CACHE:
+        done = compiled(fun) if compile else fun
+        if compile and done is fun:
+            warnings.warn(f"{fun.name()}: no working C compiler (cc, gcc or clang): the estimator runs on "
+                          "casadi's virtual machine, several times slower per step", RuntimeWarning, stacklevel=2)
+        _FN_CACHE[key] = (fun, done)  # fun kept: its id stays unique
+    return FastFunction(_FN_CACHE[key][1], False)
+
+
+def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean: np.ndarray, cov: np.ndarray,
+              state_names: tuple, std: dict, flags: frozenset) -> Estimate:
+    """An :class:`Estimate` from the compiled step's floats: its field type checks cannot fail
+    there (every value is a float the Function wrote), and cost a quarter of the step."""
+    e = object.__new__(Estimate)
+    e.__dict__.update(t=t, h1=h1, h2=h2, h=h, F=F, p=p, mean=mean, cov=cov, state_names=state_names, std=std,
+                      flags=flags)
+    return e
 
 
 def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings):
     """(ObserverModel, fast predict, fast outputs, propagate Function, fast update); the casadi
     Functions are shared per configuration, the fast (buffered) callers are per filter."""
-    key = (type(actuator.material), str(pneumatics.csv_path), s.sample_period, s.integrator, s.nsub,
-           s.newton, s.compile)
-    if key not in _MODEL_CACHE:
-        om = ObserverModel(actuator, pneumatics, s.sample_period, s.integrator, s.nsub, s.newton)
-        _MODEL_CACHE[key] = (om, om.predict, om.outputs, om.propagate, om.update)
-    om0, fp, fo, fq, fu = _MODEL_CACHE[key]
-    # the parameters (theta) differ per actuator: the numeric model is cheap, Functions are shared
-    om = om0.rebind(actuator, pneumatics)
-    return om, FastFunction(fp, s.compile), FastFunction(fo, s.compile), fq, FastFunction(fu, s.compile)
+    om = observer_model(actuator, pneumatics, s)
+    return om, fast(om.predict, s.compile), fast(om.outputs, s.compile), om.propagate, fast(om.update, s.compile)
 
 
 class EKF:
@@ -179,9 +220,16 @@ class EKF:
     After each step: ``last_nis`` (None without a normal update), ``last_output_cov`` (covariance
     of ``OUTPUT_KEYS``), ``last_step_s`` (wall time of the step), ``resting`` (the mode),
     ``last_A`` and ``measurement_jacobian()`` (the linearisation, for observability).
+
+    A step one sample period after the last runs as one call of the compiled
+    :func:`estimators.ekf_step.ekf_step_function` (``compiled_step``; the UKF, the first step, a
+    late or early tick and the rare events that Function leaves out run the reference path of
+    separate predict, update and output calls, :meth:`step_reference`). Both give the same numbers.
     """
 
     state_names = STATE_NAMES
+    #: class default: the normal step is the one compiled Function (False: the reference path)
+    compiled_step = True
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: FilterSettings | None = None):
         self.settings = (settings or EKFSettings()).validate()
@@ -223,6 +271,15 @@ class EKF:
         self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
         self._gated = 0  # gated readings in a row
         self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0}
+        self._step_fn = fast(ekf_step_function(actuator, pneumatics, s), s.compile) if self.compiled_step \
+            else None
+        self._theta_step = True  # theta not yet in the step's buffer
+        self._k_max = max(1, int(round(s.max_gap / s.sample_period)))  # most periods one step predicts
+        if self._step_fn is not None:
+            # column-major 5 x 5 views of the step's covariance buffers
+            self._P_in = self._step_fn.inp[1].reshape(NX, NX).T
+            self._P_out = self._step_fn.out[1].reshape(NX, NX).T
+            self._C_out = self._step_fn.out[6].reshape(5, 5).T
 
     # --- state handling -----------------------------------------------------------------------
     def reset(self, t: float, mean, cov=None, shape=None, resting: bool | None = None) -> None:
@@ -352,7 +409,7 @@ class EKF:
             k = 0
         else:
             k = int(round((t - self.t) / s.sample_period))
-            k_max = max(1, int(round(s.max_gap / s.sample_period)))
+            k_max = self._k_max
             if k > k_max:
                 k, jump = k_max, True
                 self._events.add("time_jump")
@@ -366,12 +423,21 @@ class EKF:
             # lift-off replay: while the detector's sum is at zero, remember the posterior; the
             # samples after it are kept so a detected lift-off can be re-filtered from there
             if self._lift == 0.0:
-                self._snap = self._snapshot()
+                # by reference: the compiled step replaces these arrays and never writes into them;
+                # the reference path below detaches them first
+                self._snap = (self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post)
                 self._replay = []
             if self._snap is not None and len(self._replay) < REPLAY_MAX:
                 self._replay.append((float(t), measurement, kind, u, k))
             else:
                 self._snap = None  # too long ago: no replay (the lift-off is applied now)
+        if self._step_fn is not None and k == 1 and not jump:
+            est = self._step_compiled(t, measurement, kind, u)
+            if est is not None:
+                self.last_step_s = time.perf_counter() - t_wall
+                return est
+        # the reference path writes into the state arrays: never into a snapshot's
+        self.x, self.P, self.s, self._H = self.x.copy(), self.P.copy(), self.s.copy(), self._H.copy()
         self._advance(t, measurement, kind, u, k, detect=True, jump=jump)
         if self._replay_now:
             self._replay_now = False
@@ -380,8 +446,71 @@ class EKF:
         self.last_step_s = time.perf_counter() - t_wall
         return est
 
+    def step_reference(self, t: float, measurement, applied_command: Command) -> Estimate:
+        """:meth:`step` on the reference path (separate predict, update and output calls, the
+        detectors in Python): what the compiled step is tested against."""
+        fn, self._step_fn = self._step_fn, None
+        try:
+            return self.step(t, measurement, applied_command)
+        finally:
+            self._step_fn = fn
+
+    def _step_compiled(self, t: float, measurement, kind: str, u: np.ndarray) -> Estimate | None:
+        """One period as one call of the compiled step; None (nothing changed) when the step met an
+        event it leaves to the reference path (its output ``exact`` = 0, or a lift-off to replay)."""
+        fn = self._step_fn
+        inp, out = fn.inp, fn.out
+        inp[0][:] = self.x
+        self._P_in[:] = self.P
+        inp[2][:] = self.s
+        inp[3][:] = u
+        if self._theta_step:
+            inp[4][:] = self.theta
+            self._theta_step = False
+        code = _KIND_CODE.get(kind, KIND_NONE)
+        inp[5][0] = 1.0 if self.resting else 0.0
+        inp[6][0] = float(measurement) if code == KIND_OK else 0.0
+        inp[7][0] = code
+        d = inp[8]
+        d[0], d[1], d[2], d[3], d[4], d[5] = (self._cusum, self._lift, self._lift_start, self._p_lift,
+                                              self._p_post, self._gated)
+        fn._eval()
+        bits = int(out[13][0])
+        # a detected lift-off with no load is re-filtered from the snapshot: the reference path
+        if out[14][0] < 0.5 or (bits & _LIFT_DETECTED and out[0][1] == 0.0 and self._snap is not None):
+            return None
+        flags = _flag_set(bits)
+        if self._events:
+            flags = flags | self._events
+        self._pumping = bool(u[0] > 0.0 and u[1] > 0.0)
+        self.x = x = out[0].copy()
+        self.P = P = self._P_out.copy()
+        self.s = out[2].copy()
+        self._A_flat = out[8].copy()
+        self.resting = bool(out[9][0] > 0.5)
+        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g = out[10].tolist()
+        self._gated = int(g)
+        e0, e1, e2, e3, e4 = out[4].tolist()
+        self._p_pred = e4
+        self._H = out[7].copy()
+        self.t = t
+        if code == KIND_OK:
+            self.last_nis = float(out[11][0])
+            if bits & 1:
+                self.last_innovation = None
+                self.counts["gated"] += 1
+            else:
+                self.last_innovation = float(out[12][0])
+        else:
+            self.last_nis = self.last_innovation = None
+        self.last_output_cov = self._C_out.copy()
+        return _estimate(t, e0, e1, e2, e3, e4, x.copy(), P.copy(), self.state_names,
+                         dict(zip(OUTPUT_KEYS, out[5].tolist())), flags)
+
     def _check_time(self, t) -> float:
         """t as a float; ValueError naming ``t`` when it is not a finite number or goes backwards."""
+        if type(t) is float and self.t is not None and self.t - 1e-9 <= t < math.inf:
+            return t  # the common case in one test
         try:
             tf = float(t)
         except (TypeError, ValueError):
@@ -461,10 +590,6 @@ class EKF:
             # and stiffens the membrane, which is what a rig still saturated there says (its
             # peak is higher; left alone the model runs away along its far branch)
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
-
-    def _snapshot(self) -> tuple:
-        return (self.x.copy(), self.P.copy(), self.s.copy(), self.t, self._p_pred, self._H.copy(),
-                self._p_post)
 
     def _replay_from_snapshot(self) -> None:
         """Re-filter the samples since the detector's sum left zero with the membrane lifted.

@@ -50,6 +50,7 @@ import casadi as ca
 import numpy as np
 
 from estimators.common import INFLATION_MAX, VACUUM_GAUGE, physical_reading_bounds
+from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.bank import ChamberBank
 
@@ -219,6 +220,9 @@ class ChamberEKFBank:
         self.n = n
         step = model.cached(("ekf", self.settings), lambda: _step_function(model, self.settings))
         self._fun = model.mapped(step, n)
+        # one call of the mapped step per period, through preallocated buffers (numpy -> DM
+        # conversion of seven arguments costs more than the compiled map itself)
+        self._call = FastFunction(self._fun, compile=False)
         self.X = None
         self.P = None
         self.last: dict = {}
@@ -283,27 +287,27 @@ class ChamberEKFBank:
         if jump:
             k = self.max_steps
             self.counts["time_jumps"] += 1
-        zero = np.zeros((1, self.n))
+        zero = np.zeros(self.n)
         for _ in range(k - 1):  # the periods without a reading: predict only
-            out = self._fun(self.X, self.P, wv, Wv[None, :], zero, zero, zero)
-            self.X, self.P = self._guard(np.asarray(out[0]), np.asarray(out[1]), zz)
+            out = self._call(self.X, self.P, wv, Wv, zero, zero, zero)
+            self.X, self.P = self._guard(self._cols(out[0], NS), self._cols(out[1], NS * NS), zz)
         if jump:
             self.P = self.P + self._prior_cov().reshape(16, 1)
         reopen = (self._gated_run >= s.gate_reopen - 1).astype(float)
-        out = self._fun(self.X, self.P, wv, Wv[None, :], zz[None, :], use[None, :], reopen[None, :])
-        over = np.asarray(out[6]).ravel() > 0.5
+        out = self._call(self.X, self.P, wv, Wv, zz, use, reopen)
+        over = out[6] > 0.5
         gated = over & (reopen == 0)
         used = (use > 0) & ~gated
-        nis = np.asarray(out[4]).ravel()
+        nis = out[4].copy()
         reopened = over & (reopen > 0)
         # the gate stays open (the run goes on) until a reading passes it unaided
         self._gated_run = np.where(over, self._gated_run + 1, np.where(use > 0, 0, self._gated_run))
         self.counts["gated"] += int(gated.sum())
         self.counts["gate_reopened"] += int(reopened.sum())
         resets = self.resets
-        self.X, self.P = self._guard(np.asarray(out[0]), np.asarray(out[1]), zz)
+        self.X, self.P = self._guard(self._cols(out[0], NS), self._cols(out[1], NS * NS), zz)
         X = self.X
-        h, p, h_std = np.asarray(out[2]).ravel(), np.asarray(out[3]).ravel(), np.asarray(out[5]).ravel()
+        h, p, h_std = out[2].copy(), out[3].copy(), out[5].copy()
         if self.resets > resets:  # a restarted filter reports its restart, not the diverged step
             bad = ~(np.isfinite(h) & np.isfinite(p) & np.isfinite(h_std))
             for i in np.nonzero(bad)[0]:
@@ -314,6 +318,10 @@ class ChamberEKFBank:
                      "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis,
                      "used": used, "outlier": outlier | gated}
         return self.last
+
+    def _cols(self, flat: np.ndarray, rows: int) -> np.ndarray:
+        """A mapped output (column-major, one column per chamber) as a (rows, n) array (a copy)."""
+        return flat.reshape(self.n, rows).T.copy()
 
     def _guard(self, X: np.ndarray, Pn: np.ndarray, zz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Clip the states to their ranges; a diverged filter restarts from its reading (``resets``)."""

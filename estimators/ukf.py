@@ -45,6 +45,8 @@ def _guarded_sqrt(floor: float):
 class UKF(EKF):
     """Unscented Kalman filter with the :class:`~estimators.ekf.EKF` step API (SI)."""
 
+    compiled_step = False  # its predict and update are the sigma points', not the EKF's Function
+
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: FilterSettings | None = None):
         super().__init__(actuator, pneumatics, settings or UKFSettings())
         s = self.settings

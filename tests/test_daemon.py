@@ -13,8 +13,10 @@ import re
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +32,11 @@ from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, read_run_log
 from hbma_ctrl.app.daemon.state import DaemonState
 
 ROOT = Path(__file__).resolve().parents[1]
-CHAMBER = ROOT / "scenarios" / "daemon_chamber.toml"
+CHAMBER_FILE = ROOT / "scenarios" / "daemon_chamber.toml"
+# most tests time their faults and targets from the loop's start: they run the shipped file without
+# its start-up calibration (test_chamber_daemon_calibrates_first_then_runs_the_files_schedule has it)
+CHAMBER = Path(tempfile.mkdtemp(prefix="hbma-daemon-test-")) / "daemon_chamber.toml"
+CHAMBER.write_text(CHAMBER_FILE.read_text().replace("[controller]\n", "[controller]\ncalibrate = false\n", 1))
 ROBOT = ROOT / "scenarios" / "daemon_robot.toml"
 cli = CliRunner()
 
@@ -123,6 +129,29 @@ def test_chamber_daemon_on_sim_settles_to_a_setpoint_reports_clipping_and_stats(
     assert {r[cols.index("target_C1_mm")] for r in rows[:-1]} == {"4.0000"}
     assert rows[-1][cols.index("mode")] == "stopped"
     assert float(rows[-1][cols.index("outlet_C1_1")]) == 1.0 and float(rows[-1][cols.index("speed_C1_1")]) == 0.0
+
+
+def test_chamber_daemon_calibrates_first_then_runs_the_files_schedule(tmp_path):
+    """The shipped file keeps [controller] calibrate on: the start-up calibration drives the chamber
+    first (logged, its factors in the stats), then the file's schedule runs from its end."""
+    cfg, runner, rig, loop = _loop(CHAMBER_FILE, tmp_path, duration_s=9.0)
+    assert runner.calibration is not None
+    stats = loop.run()
+    cal = runner.stats()["calibration"]
+    assert cal["status"] == "ok" and 0.3 < cal["duration_s"] < 4.0, cal
+    assert 0.5 < cal["flow_factor"] < 2.0 and 0.5 < cal["modulus_factor"] < 2.0
+    causes = [e["cause"] for e in loop.events if e["kind"] == "calibration"]
+    assert len(causes) == 2 and causes[1].startswith("ok after") and "modulus x" in causes[1]
+    assert stats["faults"] == {} and stats["safe_exit"]
+    cols, rows = read_run_log(tmp_path)
+    t = np.array([float(r[0]) for r in rows[:-1]])
+    tg = [r[cols.index("target_C1_mm")] for r in rows[:-1]]
+    t_cal = cal["duration_s"]
+    assert all(x == "" for x, tt in zip(tg, t) if tt < t_cal - 0.011)  # no target while it calibrates
+    assert {x for x, tt in zip(tg, t) if t_cal + 0.02 < tt < t_cal + 2.9} == {"2.0000"}
+    assert {x for x, tt in zip(tg, t) if tt > t_cal + 3.02} == {"6.0000"}
+    # the file's 6 mm from 3 s after the calibration; 2.9 s later the mismatched rig is there
+    assert rig.rig.truth()["h"] == pytest.approx(6e-3, abs=0.3e-3)
 
 
 def test_chamber_daemon_follows_the_file_targets_without_setpoints():
@@ -535,13 +564,13 @@ def test_setpoints_are_refused_once_the_safe_state_is_latched():
 
 def test_the_robots_leak_test_is_one_of_a_burst_and_its_pump_test_starts_vented():
     """A robot chamber's pressure falls by a share while it pumps in normal work (past its limit
-    point, when a neighbour takes over its load): its leak test needs the fall to exceed 60 % of the
+    point, when a neighbour takes over its load): its leak test needs the fall to exceed 50 % of the
     pressure as well as 5 kPa; the single chamber's needs the 1.2 kPa fall alone."""
     chamber, robot = load_config(CHAMBER), load_config(ROBOT)
     cs = make_monitor(chamber, build_runner(chamber)).settings
     assert cs.leak_test and cs.leak_fraction == 0.0 and cs.leak_drop == 1.2e3
     rs = make_monitor(robot, build_runner(robot)).settings
-    assert rs.leak_test and rs.leak_drop == 5e3 and rs.leak_fraction == 0.6
+    assert rs.leak_test and rs.leak_drop == 5e3 and rs.leak_fraction == 0.5
     assert rs.pump_low == 1e3  # the pump test from a vented chamber only
     assert rs.p_max == 47.5e3  # the hard cap halfway between the 45 kPa limit and the 50 kPa sensors
 
@@ -553,6 +582,10 @@ def test_robot_burst_drill_reaches_the_safe_state_within_one_period_and_is_logge
     cfg_path = _write_config(tmp_path, ROBOT, f'[[daemon.fault]]\nkind = "leak"\nchamber = 4\n'
                                               f'start_s = {start}\nduty = 1.0\n')
     cfg, runner, rig, loop = _loop(cfg_path, tmp_path / "log", duration_s=start + 1.0)
+    # no wall-time budget: the NMPC's commands (which decide whether it pumps through the fall) do
+    # not depend on this machine's load, so the drill is the same every run
+    ctrl = runner.loop.controller
+    ctrl.s = replace(ctrl.s, budget=0.0)
     stats = loop.run()
     assert stats["faults"] == {"leak": 1}, stats["faults"]
     first = next(e for e in loop.events if e["kind"] == "leak")
@@ -563,5 +596,5 @@ def test_robot_burst_drill_reaches_the_safe_state_within_one_period_and_is_logge
     after = [u for (what, u), t in zip(rig.written, rig.times) if t >= first["t_s"] - 1e-9]
     assert after and all(np.array_equal(u, safe_u(9)) for u in after)
     assert max(rig.p_true) <= 47.5e3
-    assert stats["monitor_margins"]["leak_fraction"] > 0.6
+    assert stats["monitor_margins"]["leak_fraction"] > 0.5
     assert "leak" in (tmp_path / "log" / "events.csv").read_text()

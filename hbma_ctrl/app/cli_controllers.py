@@ -64,7 +64,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             "--scenario", "-s", help="scenario TOML with a controller section (default: the track_height "
                                      "setup: 400 g, steps 2 -> 8 -> 5 mm)")] = None,
         horizons: Annotated[str, typer.Option(help="comma-separated horizons")] = "10,20,40",
-        variants: Annotated[str, typer.Option(help="comma-separated MPC variants")] = "ipopt,rti_osqp",
+        variants: Annotated[str, typer.Option(help="comma-separated MPC variants")] = "ipopt,rti_osqp,rti_fn_hpipm,fatrop",
         dompc: Annotated[bool, typer.Option("--dompc/--no-dompc",
                                             help="also time do-mpc on the same OCP (N=20; extra 'bench')")] = True,
         baselines: Annotated[bool, typer.Option("--baselines/--no-baselines", help="PID and bang-bang rows")] = True,
@@ -74,7 +74,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_mpc.json")] = Path("runs/bench_mpc"),
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
-        """MPC speed/accuracy: IPOPT vs RTI-OSQP x horizon, baselines and do-mpc, on one closed loop."""
+        """MPC speed/accuracy: IPOPT, fatrop, RTI-OSQP and the one-Function RTI x horizon, baselines and do-mpc, on one closed loop."""
 
 
         try:

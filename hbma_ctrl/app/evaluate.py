@@ -20,38 +20,142 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from estimators.common import FilterSettings
-from estimators.ekf import EKF
+from estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
+from estimators.ekf import EKF, OUTPUT_KEYS, fast
+from estimators.ekf_step import observer_model
 from estimators.ukf import UKF
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.interfaces import Command, Estimate
+from hbma_ctrl.models.chamber import NX, STATE_NAMES
 from hbma_ctrl.sim.batch import quiet_worker, scenario_of
 from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import SimSettings, Trial
 
-__all__ = ["TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
+__all__ = ["ReferenceEKF", "FilterpyEKF", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
            "FILTERS", "NEES_FLOOR"]
 
 FILTERS = ("ekf", "ukf")
+#: the filters ``bench ekf`` compares: the two above, the EKF's reference path and filterpy's EKF
+BENCH_FILTERS = ("ekf", "ekf_reference", "filterpy", "ukf")
 #: variance floors of (h, F) in the NEES, m^2 and N^2 (a flat membrane's h = 0 is exactly known)
 NEES_FLOOR = np.array([(0.05e-3) ** 2, 0.02 ** 2])
 
 
+class ReferenceEKF(EKF):
+    """The EKF on its reference path (separate predict, update and output calls, detectors in
+    Python) for every step: the bench's check that the compiled step changes time, not accuracy."""
+
+    compiled_step = False
+
+
+class FilterpyEKF:
+    """filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` driven by the EKF's casadi model
+    (the bench's library baseline, SI): the same compiled discrete map and its Jacobian A as F,
+    the same process noise and measurement variance, H = dp/dx and the predicted pressure from the
+    same model, the same output map; filterpy's own predict and update (inverse of S, Joseph form).
+    What it lacks is the EKF's own logic: no sticky rest or lift-off detector (the model decides
+    contact by the load state), no gate, no guards. So that it can follow a load at all the load
+    starts at the trial's nominal weight (known), one sigma 10 % + 0.01 N. Missing and out-of-range
+    readings skip the update."""
+
+    state_names = STATE_NAMES
+
+    def __init__(self, actuator, pneumatics, settings: FilterSettings, load: float = 0.0):
+        from filterpy.kalman import ExtendedKalmanFilter  # the bench's baseline only
+
+        s = self.settings = settings.validate()
+        self.model = observer_model(actuator, pneumatics, s)
+        self._pred = fast(self.model.predict, s.compile)
+        self._outf = fast(self.model.outputs, s.compile)
+        self.theta = np.asarray(self.model.theta, dtype=float)
+        self.kf = ExtendedKalmanFilter(dim_x=NX, dim_z=1)
+        self.kf.predict_x = self._predict_x
+        self._xn = np.zeros((NX, 1))
+        self.load = float(load)
+        self.s = np.zeros(2)
+        self.t: float | None = None
+        self.last_nis: float | None = None
+        self.last_output_cov = np.zeros((5, 5))
+        self.last_step_s = 0.0
+        dt = s.sample_period
+        self._q = np.array([s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
+                            s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt])
+        self._qv = np.array([s.flow_rel_std, *self._q, s.cov_floor])
+        self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
+
+    def _predict_x(self, u=0) -> None:
+        self.kf.x = self._xn  # filterpy's hook: the model's map, computed with F by step()
+
+    def step(self, t: float, measurement, applied_command: Command) -> Estimate:
+        """Predict one period with the command held since the last step, update with the reading (Pa)."""
+        t0 = time.perf_counter()
+        s, kf = self.settings, self.kf
+        kind = classify_measurement(measurement, s.sensor_range, *self._bounds)
+        if self.t is None:
+            act = self.model.actuator
+            p0 = float(measurement) if kind == "ok" else 0.0
+            kf.x = np.array([[(max(p0, 0.0) + act.p_env) * act.V0 / self.model.rt], [self.load], [1.0], [1.0],
+                             [1.0]])
+            kf.P = np.diag([s.mass_init_std ** 2, (0.1 * self.load + 0.01) ** 2, s.flow_factor_init_std ** 2,
+                            s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
+        else:
+            u = applied_command.as_array() if isinstance(applied_command, Command) else \
+                np.asarray(applied_command, dtype=float).reshape(3)
+            out = self._pred(kf.x.ravel(), self.s, u, self.theta, 0.0, kf.P, self._qv)
+            self._xn = out[0].reshape(NX, 1).copy()
+            kf.F = out[1].reshape(NX, NX, order="F").copy()
+            q = self._q.copy()
+            q[0] += (s.flow_rel_std * (self._xn[0, 0] - kf.x[0, 0])) ** 2
+            kf.Q = np.diag(q)
+            self.s = out[2].copy()
+            kf.predict()
+            self.last_nis = None
+            if kind == "ok":
+                H = out[4].reshape(1, NX).copy()
+                p = float(out[3][4])
+                R = s.noise_std ** 2 + (s.model_rel_std * max(p, 0.0)) ** 2
+                kf.update(float(measurement), lambda x: H, lambda x: np.array([[p]]), R=R)
+                self.last_nis = float(kf.y[0, 0] ** 2 / kf.S[0, 0])
+        self.t = float(t)
+        o = self._outf(kf.x.ravel(), self.s, self.theta, 0.0, kf.P)
+        self.s = o[0].copy()
+        y = o[1]
+        C = o[4].reshape(5, 5, order="F").copy()
+        d = (s.output_rel_std * y[:5]) ** 2
+        d[4] = 0.0
+        d[3] += s.force_std_floor ** 2
+        C[np.diag_indices(5)] += d
+        self.last_output_cov = C
+        std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
+        est = Estimate(t=self.t, h1=float(y[0]), h2=max(float(y[1]), 0.0), h=float(y[2]), F=max(float(y[3]), 0.0),
+                       p=float(y[4]), mean=kf.x.ravel().copy(), cov=kf.P.copy(), state_names=STATE_NAMES,
+                       std=std, flags=frozenset())
+        self.last_step_s = time.perf_counter() - t0
+        return est
+
+
 def make_filter(kind: str, trial: Trial, settings: FilterSettings):
     """An EKF or UKF for the trial's nominal actuator and pneumatics (and, with
-    ``settings.load_prior == 'nominal'``, the trial's nominal load as the initial load guess)."""
+    ``settings.load_prior == 'nominal'``, the trial's nominal load as the initial load guess).
+    The bench's baselines: ``ekf_reference`` (:class:`ReferenceEKF`) and ``filterpy``
+    (:class:`FilterpyEKF`, the trial's nominal load as its initial load)."""
+    if kind == "filterpy":
+        return FilterpyEKF(trial.actuator, trial.pneumatics, settings, load=trial.platform.weight)
     if settings.load_prior == "nominal":
         W = trial.platform.weight
         settings = replace(settings, load_init=W, load_init_std=settings.load_prior_rel_std * W + 0.01)
     if kind == "ekf":
         return EKF(trial.actuator, trial.pneumatics, settings)
+    if kind == "ekf_reference":
+        return ReferenceEKF(trial.actuator, trial.pneumatics, settings)
     if kind == "ukf":
         return UKF(trial.actuator, trial.pneumatics, settings)
     raise ValueError(f"estimator.filter = '{kind}': allowed {', '.join(FILTERS)}")
@@ -80,31 +184,35 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
     f = make_filter(kind, trial, settings)
     K = len(rec.t)
     keys = ("h1", "h2", "h", "F", "p", "W", "b", "k", "c", "std_h", "std_F")
-    est = {k: np.full(K, np.nan) for k in keys}
-    nees = np.full(K, np.nan)
+    rows = np.full((K, len(keys)), np.nan)
+    C = np.zeros((K, 2, 2))
+    C[:, 0, 0] = C[:, 1, 1] = 1.0
     nis = np.full(K, np.nan)
     step_s = np.full(K, np.nan)
     flags: list = [frozenset()] * K
     if init is not None:
         f.reset(rec.t[start], init[0], init[1])
+    t_s = rec.t.tolist()
+    meas = rec.meas.tolist()
+    u0 = np.zeros(3)
     for k in range(start, K):
-        u = Command(*rec.u[k - 1]) if k > 0 else Command(0.0, 0.0, 0.0)
-        e = f.step(float(rec.t[k]), rec.meas[k], u)
+        # the command array as recorded (the rig's, already checked): a Command per step would
+        # re-check the same numbers 150 x 600 times in the protocol
+        e = f.step(t_s[k], meas[k], rec.u[k - 1] if k > 0 else u0)
         step_s[k] = f.last_step_s
-        for name in ("h1", "h2", "h", "F", "p"):
-            est[name][k] = getattr(e, name)
-        est["W"][k] = e.mean[1]
-        est["b"][k] = e.mean[2]
-        est["k"][k] = e.mean[3]
-        est["c"][k] = e.mean[4]
-        est["std_h"][k] = e.std["h"]
-        est["std_F"][k] = e.std["F"]
+        m = e.mean
+        rows[k] = (e.h1, e.h2, e.h, e.F, e.p, m[1], m[2], m[3], m[4], e.std["h"], e.std["F"])
         flags[k] = e.flags
-        C = f.last_output_cov[2:4, 2:4] + np.diag(NEES_FLOOR)
-        err = np.array([e.h - rec.truth["h"][k], e.F - rec.truth["F"][k]])
-        nees[k] = float(err @ np.linalg.solve(C, err))
+        C[k] = f.last_output_cov[2:4, 2:4]
         if f.last_nis is not None:
             nis[k] = f.last_nis
+    est = {name: rows[:, i].copy() for i, name in enumerate(keys)}
+    # NEES of (h, F) per step, the 2 x 2 solve in closed form over the whole run
+    C = C + np.diag(NEES_FLOOR)
+    eh, eF = est["h"] - rec.truth["h"], est["F"] - rec.truth["F"]
+    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    nees = (eh * (C[:, 1, 1] * eh - C[:, 0, 1] * eF) + eF * (C[:, 0, 0] * eF - C[:, 1, 0] * eh)) / det
+    nees[:start] = np.nan
     return TrialResult(trial.name, rec.t, est, rec.truth, rec.meas, None, nees, nis, step_s, flags)
 
 

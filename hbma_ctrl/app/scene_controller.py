@@ -71,7 +71,8 @@ from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
 
-__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "run_scene",
+__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "make_calibration",
+           "run_scene",
            "plot_closed_loop", "default_estimator", "controller_settings_of", "estimator_from_scenario"]
 
 def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
@@ -219,15 +220,23 @@ class _Shifted:
         return getattr(self._est, name)
 
 
+def make_calibration(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
+                     rs: RigSettings, estimator) -> StartupCalibration:
+    """The start-up calibration of a controller section on a rig of settings ``rs`` (its pulse stops at
+    min(17 kPa, p_max / 2)); the estimator (when it has factor states) tracks it and gets the factors
+    as its prior. The scenes and the daemon both build it here."""
+    cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
+                             sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
+                             sensor_range=rs.sensor_range)
+    return StartupCalibration(actuator, pneumatics, cs, platform,
+                              estimator=estimator if hasattr(estimator, "state_names") else None)
+
+
 def _calibrate(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                rs: RigSettings, rig: Rig, estimator) -> StartupCalibration:
     """Run the start-up calibration on the rig until it is done (the rig's clock advances); the
     estimator tracks it and gets the factors as its prior."""
-    cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
-                             sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
-                             sensor_range=rs.sensor_range)
-    cal = StartupCalibration(actuator, pneumatics, cs, platform,
-                             estimator=estimator if hasattr(estimator, "state_names") else None)
+    cal = make_calibration(actuator, pneumatics, platform, section, rs, estimator)
     done, k = False, 0
     while not done:
         cmd, done = cal.tick(k * rs.sample_period, rig.measure())

@@ -448,7 +448,7 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
                                   for (a, p), i in zip(pairs, idx)])
         dt = s.dt if s.dt is not None else DEFAULT_DT[(s.integrator, fid.name)]
         nsub = max(1, int(np.ceil(s.sample_period / dt - 1e-9)))
-        plant = Plant(fid, thetas, s.integrator, s.sample_period / nsub)
+        plant = Plant(fid, thetas, s.integrator, s.sample_period / nsub, compile=True)
         T = max(trials[i].duration for i in idx)
         K = int(round(T / s.sample_period)) + 1
         n = len(idx)

@@ -25,6 +25,8 @@ import casadi as ca
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from hbma_ctrl.core.codegen import FastFunction, compiled
+
 from hbma_ctrl.models.fidelity import (
     MODE_MOVING,
     MODE_REST,
@@ -132,6 +134,20 @@ def _events_and_modes(fid: Fidelity, batch: _Batch, X, Xprev, mode, t, U, events
     return X, mode, sat
 
 
+_COMPILED: dict = {}
+#: plant-steps (trials x steps) from which the fixed-step simulator compiles its step
+COMPILE_STEPS = 20_000
+
+
+def compiled_once(fun: ca.Function) -> ca.Function:
+    """``fun`` compiled to C once per process (:func:`hbma_ctrl.core.codegen.compiled`; itself
+    without a compiler)."""
+    key = id(fun)
+    if key not in _COMPILED:
+        _COMPILED[key] = (fun, compiled(fun))  # fun kept alive: its id stays unique
+    return _COMPILED[key][1]
+
+
 class Plant:
     """A steppable batch of plants for closed-loop use (fixed-step euler/rk4), SI throughout.
 
@@ -139,10 +155,13 @@ class Plant:
     ``duration`` seconds (a whole number of internal steps) and handles the hybrid events after
     every internal step. ``y`` is the output matrix (:data:`OUTPUTS` x n) at the current time;
     ``output(name)`` one row. A rig daemon or a closed-loop scene calls ``advance`` once per control
-    period; the open-loop simulator drives it from the input schedules.
+    period; the open-loop simulator drives it from the input schedules. ``compile``: the step
+    generated as C and compiled once per machine (for long runs such as the rig's; a few seconds
+    the first time for each fidelity, integrator and step).
     """
 
-    def __init__(self, fid: Fidelity, thetas: np.ndarray, integrator: str = "rk4", dt: float | None = None):
+    def __init__(self, fid: Fidelity, thetas: np.ndarray, integrator: str = "rk4", dt: float | None = None,
+                 compile: bool = False):
         if integrator not in ("euler", "rk4"):
             raise ValueError(f"Plant.integrator = '{integrator}': allowed euler, rk4")
         self.fid = fid
@@ -150,7 +169,12 @@ class Plant:
         self.n = self.thetas.shape[1]
         self.batch = _Batch(fid, self.thetas)
         self.dt = dt if dt is not None else DEFAULT_DT[(integrator, fid.name)]
-        self._step = fid.mapped(fid.step_function(integrator, self.dt), self.n)
+        step = fid.step_function(integrator, self.dt)
+        # compile: the one-plant step as C (cached on disk, the same source for any batch size),
+        # mapped over the batch: half the time of casadi's virtual machine, the same numbers
+        self._step = compiled_once(step).map(self.n) if compile else fid.mapped(step, self.n)
+        # compiled: called through preallocated buffers (no numpy <-> DM conversion per step)
+        self._fast = FastFunction(self._step, compile=False) if compile else None
         X0 = [fid.initial_state(self.thetas[:, i]) for i in range(self.n)]
         self.X = np.column_stack([x for x, _ in X0])
         self.mode = np.array([m for _, m in X0], dtype=float)
@@ -203,8 +227,12 @@ class Plant:
         fid, det_i = self.fid, OUTPUTS.index("det")
         t = self.t + self.dt
         Xprev, yprev, mode = self.X, self.y, self.mode
-        Xn, dm, y = self._step(Xprev, self.U, self.thetas, mode[None, :])
-        X, y = np.asarray(Xn), np.asarray(y)
+        if self._fast is not None:
+            Xn, dm, y = self._fast(Xprev, self.U, self.thetas, mode)
+            X, y, dm = Xn.reshape(self.n, -1).T.copy(), y.reshape(self.n, -1).T.copy(), dm.copy()
+        else:
+            Xn, dm, y = self._step(Xprev, self.U, self.thetas, mode[None, :])
+            X, y = np.asarray(Xn), np.asarray(y)
         self.mass_in = self.mass_in + np.asarray(dm).ravel()
         changed = False
         if fid.name == "quasi_static":
@@ -231,9 +259,11 @@ def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings, on_progress=
     """Euler/RK4 over the batch, driven by each trial's input schedule; ``on_progress(t)`` (simulated
     time, s) about 200 times over the run."""
     thetas = np.column_stack([fid.space.values(tr.actuator, tr.pneumatics, tr.platform) for tr in trials])
-    plant = Plant(fid, thetas, s.integrator, s.step_for(fid.name))
-    dt = plant.dt
+    dt = s.step_for(fid.name)
     T = max(tr.duration for tr in trials)
+    # a long batch pays the one-off compile of the step (seconds, then cached on disk) back many times
+    plant = Plant(fid, thetas, s.integrator, dt, compile=len(trials) * T / dt >= COMPILE_STEPS)
+    dt = plant.dt
     nsteps = int(math.ceil(T / dt - 1e-9))
     every = max(1, int(round(s.log_dt / dt)))
     switch_steps = {int(round(ts / dt)) for tr in trials for ts in tr.schedule.times}

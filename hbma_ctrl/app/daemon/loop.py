@@ -88,8 +88,9 @@ class DaemonLoop:
         latches 'overrun' itself after ``miss_limit`` missed deadlines in a row).
     status_every : publish the status every this many periods.
     miss_limit : missed deadlines in a row that latch the 'deadline' fault.
-    warmup_periods : the first periods (the controller's first solves set up its solver) are timed and
-        counted but do not feed the loop watchdog.
+    warmup_periods : the first periods of the controller (its first solves set up its solver; counted
+        after a runner's start-up work such as the chamber's calibration, whose periods do not feed
+        the watchdog either) are timed and counted but do not feed the loop watchdog.
     clock, sleep : the monotonic clock (s) and the sleep; replaceable in tests.
     """
 
@@ -125,6 +126,8 @@ class DaemonLoop:
         self.safe_exit = False
         self.end_reason = ""
         self.t = 0.0
+        self._warming = False
+        self._ctrl_steps = 0  # periods the runner ticked past its start-up work (calibration)
         self.u_last = safe_u(self.n)
         self.last_written: np.ndarray | None = None
         self.readings_p = np.full(self.n, np.nan)
@@ -227,7 +230,7 @@ class DaemonLoop:
             self.max_pressure = max(self.max_pressure, float(np.nanmax(p)))
         if self.monitor is not None:
             # the controller's first solves set up its solver: those misses do not feed the watchdog
-            missed = missed_last and self.steps > self.warmup_periods
+            missed = missed_last and self._ctrl_steps > self.warmup_periods
             for f in self.monitor.check(self.t, r, self.u_last, missed) or ():
                 i = getattr(f, "chamber", None)
                 # the chamber by the name the API and the log use, so a person can find it on the rig
@@ -250,9 +253,14 @@ class DaemonLoop:
         c0 = self.clock()
         held = getattr(r, "held", None)
         # only a rig that reports what it held passes it: a runner may take (t, p) alone
+        # a runner's start-up work (the chamber's calibration and its fit) is not judged by the watchdog
+        self._warming = bool(getattr(self.runner, "warming", False))
         u = self.runner.tick(self.t, p) if held is None else self.runner.tick(self.t, p, held)
         self._last_tick = self.clock() - c0
+        self._ctrl_steps += int(not self._warming)
         self.tick_s.add(self._last_tick)
+        for kind, cause in getattr(self.runner, "take_events", list)():
+            self.event(kind, cause)
         self._write(u)
 
     def _check_setpoint(self, request: dict) -> dict:
@@ -322,7 +330,9 @@ class DaemonLoop:
                 # runtime tick overruns the rig period, the budget a real rig would give it (the sim
                 # rig's write, which simulates the plant, is no work a real host would do)
                 missed_last = late if self.speed <= 1.0 else self._last_tick > self.period
-                self.over_budget += int(self._last_tick > self.period)
+                missed_last = missed_last and not self._warming
+                self.over_budget += int(self._last_tick > self.period and not self._warming)
+                self._warming = False
                 self._last_tick = 0.0
                 if late:
                     self.deadline_misses += 1
@@ -332,7 +342,7 @@ class DaemonLoop:
                 else:
                     k += 1
                 if missed_last:
-                    self._miss_run += 1 if self.steps > self.warmup_periods else 0
+                    self._miss_run += 1 if self._ctrl_steps > self.warmup_periods else 0
                     # with a monitor, its overrun test (fed above) is the loop watchdog
                     if self.monitor is None and self._miss_run == self.miss_limit and self.mode == "running":
                         self._fault("overrun", f"{self.miss_limit} deadlines missed in a row (period "

@@ -52,7 +52,9 @@ class ControllerTable(Table):
     """[controller] in the user's units; :meth:`to_section` gives the SI ControllerSection."""
 
     kind: Literal["mpc", "pid", "bang_bang"] = choice("mpc", "which controller runs")
-    variant: Literal["rti_osqp", "ipopt"] = choice("rti_osqp", "MPC: RTI + OSQP (fast) or IPOPT")
+    variant: Literal["rti_osqp", "rti_fn_osqp", "rti_fn_hpipm", "rti_fn_qrqp", "ipopt", "fatrop"] = choice(
+        "rti_osqp", "MPC: RTI + OSQP (fast), the RTI step as one casadi Function with its QP solved by "
+        "OSQP / HPIPM / qrqp (rti_fn_*), or IPOPT / fatrop (accurate)")
     horizon: int = integer(20, 2, 200, "MPC horizon N", "steps")
     sample_ms: float = num(20.0, 0.0, 1000.0, "ms", "controller period (a multiple of the rig's)",
                            lo_open=True)

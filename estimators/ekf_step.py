@@ -1,0 +1,295 @@
+"""The EKF's normal step as ONE casadi Function (numeric inputs and outputs only, C-generable).
+
+:func:`ekf_step_function` builds ``ekf_step`` for the filter of :mod:`estimators.ekf`: predict one
+sample period with its Jacobians, the innovation gate, the scalar Joseph-form update (a reading,
+the one-sided saturation pseudo-reading, or none), the lift-off and load-change detectors, the
+detected lift-off, the flat-load bound, the state clamps and the reported outputs with their
+covariance. The mode logic is inside (casadi ``if_else``): resting or in contact (input
+``resting``), lift-off (a detector firing or the flat-load bound exceeded), touch-down, a
+saturated reading and a missing one (input ``kind``). The Function holds no Python callbacks and
+depends only on the settings it reads (:data:`STEP_SETTINGS`, plus the model's sample period,
+integrator, sub-steps and Newton iterations), the material family and the compressor map: the
+actuator's numbers come in through ``theta``, so one compiled library serves every actuator.
+
+Signature (SI; P, C column-major 5 x 5; all inputs and outputs dense)::
+
+    ekf_step(x[5], P[5x5], s[2], u[3], theta[nt], resting, z, kind, det[6])
+        -> (x_next[5], P_next[5x5], s_next[2], y[8], est[5], std[5], C[5x5], H[1x5], A[5x5],
+            resting_next, det_next[6], nis, innov, flags, exact)
+
+Inputs: the state ``x = [m, W, b, k, c]`` and covariance P at the last step; the shape warm start
+``s = (h1, h2)`` (m); the command held over the period ``u = [speed, inlet, outlet]``; the model
+parameters ``theta`` (:attr:`hbma_ctrl.models.chamber.ObserverModel.theta`); the mode (1 resting
+flat, 0 lifted); the reading z (Pa) and its ``kind`` (:data:`KIND_OK` 0 a reading, :data:`KIND_NONE`
+1 none: missing or an outlier, :data:`KIND_SATURATED` 2 at or above the sensor range); the
+detector state ``det`` (:data:`DET_NAMES`: the load-change CUSUM, the lift-off CUSUM and its dating
+sum, the dated lift-off pressure Pa, the last posterior pressure Pa, the gated readings in a row).
+
+Outputs: the posterior state, covariance and warm start; ``y`` the model outputs
+(:data:`hbma_ctrl.models.chamber.OUT_NAMES`) at the posterior; ``est`` = (h1, h2 >= 0, h, F >= 0, p)
+as reported (m, N, Pa) and ``std`` their one sigma; C their covariance (with the model-form
+terms); H = dp/dx at the posterior; A = dx+/dx of the predict; the mode and detector state after
+the step; ``nis`` (of the update, or of the gated reading) and ``innov`` (normalised innovation;
+both 0 without an update); ``flags`` = sum of ``2**i`` over the :data:`FLAG_BITS` raised; and
+``exact`` = 1 when the step stayed on the normal path. ``exact`` = 0 marks a rare event this
+Function does not finish, for which the caller re-runs the step on the reference path
+(:meth:`estimators.ekf.EKF.step_reference`) from the same inputs: the model's projection failed
+(non-finite), a covariance lost its eigenvalue floor (the reference floors it by an eigen
+decomposition), a re-opened gate or a non-positive innovation variance. A detected lift-off
+with no load (flag ``lift_off_detected`` with ``x_next[1] == 0``) is also re-filtered by the
+Python EKF from its snapshot of the flat phase (the replay needs the past samples). C callers
+take ``exact`` as the test that selects between this step and their own handling of those events.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from estimators.common import FilterSettings
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel
+
+__all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
+           "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
+           "NO_LOAD_SIGMAS", "LIFT_START_DRIFT"]
+
+#: reading kinds (input ``kind``)
+KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
+#: the detector state carried between steps (input ``det``)
+DET_NAMES = ("cusum", "lift", "lift_start", "p_lift", "p_post", "gated_run")
+#: flags raised by the step, bit i of output ``flags``
+FLAG_BITS = ("gated", "load_change", "lift_off", "clamped", "resting", "not_converged", "touch_down",
+             "lift_off_detected")
+STEP_IN = ("x", "P", "s", "u", "theta", "resting", "z", "kind", "det")
+STEP_OUT = ("x_next", "P_next", "s_next", "y", "est", "std", "C", "H", "A", "resting_next", "det_next",
+            "nis", "innov", "flags", "exact")
+
+#: the pump-flow, modulus and dead-volume factors are kept in this range (off by more is a broken
+#: rig, not a bias)
+FACTOR_RANGE = (0.5, 2.0)
+#: a resting load below this (N) may be no load at all: the flat height is then uncertain
+LIGHT_LOAD = 0.5
+#: absolute one sigma of the load right after a detected lift-off, N (the detection delay)
+LIFT_LOAD_ABS_STD = 0.2
+#: a lift-off below this many sensor sigmas of pressure is taken as no load (free inflation)
+NO_LOAD_SIGMAS = 3.0
+#: drift of the sum that dates a lift-off (normalised innovation shortfall per sample): only
+#: shortfalls beyond one sigma count
+LIFT_START_DRIFT = 1.0
+
+#: the settings the step Function depends on (the model's are in the model's key): a trial's own
+#: load prior, say, must not build and compile another one
+STEP_SETTINGS = ("noise_std", "model_rel_std", "sensor_range", "saturation_std", "flow_rel_std", "mass_std_abs",
+                 "load_std", "load_rest_std", "lift_threshold", "lift_drift", "lift_load_rel_std",
+                 "flow_factor_std", "modulus_std", "dead_volume_std", "change_threshold", "change_drift",
+                 "change_std", "load_min", "load_max", "output_rel_std", "force_std_floor", "cov_floor",
+                 "gate_nis", "gate_reopen")
+
+_MODEL_CACHE: dict = {}
+_STEP_CACHE: dict = {}
+
+
+def _model_key(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> tuple:
+    return (type(actuator.material), str(pneumatics.csv_path), s.sample_period, s.integrator, s.nsub,
+            s.newton)
+
+
+def observer_model(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> ObserverModel:
+    """The estimators' model for this actuator: casadi Functions shared per material family,
+    compressor map and integration settings, numeric parameters (``theta``) the actuator's."""
+    key = _model_key(actuator, pneumatics, s)
+    if key not in _MODEL_CACHE:
+        _MODEL_CACHE[key] = ObserverModel(actuator, pneumatics, s.sample_period, s.integrator, s.nsub, s.newton)
+    return _MODEL_CACHE[key].rebind(actuator, pneumatics)
+
+
+def ekf_step_function(actuator: Actuator, pneumatics: Pneumatics, settings: FilterSettings) -> ca.Function:
+    """The EKF step as one casadi Function (signature in the module docstring); cached per material
+    family, compressor map and settings (the actuator's numbers are the input ``theta``)."""
+    s = settings.validate()
+    om = observer_model(actuator, pneumatics, s)
+    key = (_model_key(actuator, pneumatics, s), tuple(getattr(s, n) for n in STEP_SETTINGS))
+    if key not in _STEP_CACHE:
+        _STEP_CACHE[key] = _build(om, s)
+    return _STEP_CACHE[key]
+
+
+def _pivot_function() -> ca.Function:
+    """Smallest LDL^T pivot of P / (s s^T) - floor I (s = STATE_SCALE): > 0 iff the covariance keeps
+    its eigenvalue floor (the test :func:`estimators.common.guard_cov` makes by a Cholesky factor)."""
+    P = ca.SX.sym("P", NX, NX)
+    fl = ca.SX.sym("floor")
+    M = P / ca.DM(np.outer(STATE_SCALE, STATE_SCALE)) - fl * ca.SX.eye(NX)
+    L = [[None] * NX for _ in range(NX)]
+    d = []
+    for j in range(NX):
+        dj = M[j, j] - sum(L[j][k] ** 2 * d[k] for k in range(j))
+        d.append(dj)
+        for i in range(j + 1, NX):
+            L[i][j] = (M[i, j] - sum(L[i][k] * L[j][k] * d[k] for k in range(j))) / dj
+    out = d[0]
+    for v in d[1:]:
+        out = ca.fmin(out, v)
+    return ca.Function("ekf_min_pivot", [P, fl], [out])
+
+
+def _cse(f: ca.Function) -> ca.Function:
+    """The SX Function ``f`` with common subexpressions merged (casadi's ``cse``): a quarter fewer
+    instructions in the predict, the same operations on the same values, so the same results."""
+    sx_in = f.sx_in()
+    return ca.Function(f.name() + "_cse", sx_in, f.call(sx_in), f.name_in(), f.name_out(), {"cse": True})
+
+
+def _resting_outputs(f: ca.Function) -> ca.Function:
+    """``f`` (the model's outputs) when the first input is nonzero, zeros otherwise (not evaluated)."""
+    zero = ca.Function("ekf_no_outputs", [ca.SX.sym(n, f.sparsity_in(i)) for i, n in enumerate(f.name_in())],
+                       [ca.DM.zeros(f.sparsity_out(i)) for i in range(f.n_out())], f.name_in(), f.name_out())
+    return ca.Function.if_else("ekf_outputs_if_resting", f, zero)
+
+
+def _finite(e) -> ca.MX:
+    """1 when every entry of e is a finite number (|sum| <= max double is false for NaN and inf)."""
+    return ca.fabs(ca.sum1(ca.sum2(e))) <= 1.7976931348623157e308
+
+
+def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
+    nt = int(np.asarray(om.theta).size)
+    x = ca.MX.sym("x", NX)
+    P = ca.MX.sym("P", NX, NX)
+    sh = ca.MX.sym("s", 2)
+    u = ca.MX.sym("u", 3)
+    th = ca.MX.sym("theta", nt)
+    rest = ca.MX.sym("resting")
+    z = ca.MX.sym("z")
+    kind = ca.MX.sym("kind")
+    det = ca.MX.sym("det", len(DET_NAMES))
+    cusum, lift, lift_start, p_lift, p_post, gated_run = (det[i] for i in range(len(DET_NAMES)))
+    thp, Pd = om.chamber.symbols()
+    area = ca.Function("ekf_area", [thp], [ca.pi * Pd["r1"] ** 2])(th)
+    piv = _pivot_function()
+    ss = ca.DM(np.outer(STATE_SCALE, STATE_SCALE))
+    rest_in = rest > 0.5
+    dt = s.sample_period
+
+    # --- predict (the mode is held over the period: hold = resting) -------------------------------
+    q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
+         s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
+    qv = ca.vertcat(ca.if_else(rest_in, 0.0, s.flow_rel_std), *q)
+    predict, update, outputs = _cse(om.predict), _cse(om.update), _cse(om.outputs)
+    xn, A, s1, y1, H1, P1, piv1 = predict(x, sh, u, th, rest, P, qv)
+    exact = _finite(xn) * _finite(y1) * _finite(P1) * (piv1 > 0)
+    # touch-down: the contact model reached the flat membrane; resting from here on
+    td1 = ca.logic_and(ca.logic_not(rest_in), y1[5] > 0.5)
+    resting = ca.logic_or(rest_in, td1)
+    p_pred = y1[4]
+    pumping = ca.logic_and(u[0] > 0, u[1] > 0)
+    keep = ca.if_else(ca.logic_and(resting, xn[1] < REST_EPS), ca.DM([1.0, 1.0, 0.0, 0.0, 0.0]), ca.DM.ones(NX))
+    rel = ca.if_else(resting, 0.0, s.model_rel_std)
+
+    def meas_var(p):
+        return s.noise_std ** 2 + (rel * ca.fmax(p, 0.0)) ** 2
+
+    # --- gate and update ----------------------------------------------------------------------
+    is_ok = kind == KIND_OK
+    is_sat = kind == KIND_SATURATED
+    R = meas_var(p_pred)
+    nu0 = z - p_pred
+    nis_gate = nu0 ** 2 / (ca.mtimes([H1, P1, H1.T]) + R)
+    over = ca.logic_and(is_ok, nis_gate > s.gate_nis)
+    run = ca.if_else(is_ok, ca.if_else(over, gated_run + 1, 0.0), gated_run)
+    reopen = ca.logic_and(over, run >= s.gate_reopen)
+    gated = ca.logic_and(over, ca.logic_not(reopen))
+    exact = exact * ca.logic_not(reopen)
+    sat_upd = ca.logic_and(is_sat, p_pred < s.sensor_range)
+    upd = ca.logic_or(ca.logic_and(is_ok, ca.logic_not(over)), sat_upd)
+    z_eff = ca.if_else(is_sat, s.sensor_range, z)
+    R_eff = ca.if_else(is_sat, s.saturation_std ** 2 + meas_var(s.sensor_range), R)
+    nu = z_eff - p_pred
+    xu, Pu, Su, pivu = update(xn, P1, H1, nu, R_eff, s.cov_floor, keep)
+    exact = exact * ca.if_else(upd, (pivu > 0) * (Su > 0) * _finite(Su), 1)
+    r = nu / ca.sqrt(Su)
+    detect = ca.logic_and(is_ok, ca.logic_not(over))
+
+    # lift-off detector (resting, the pump filling the chamber)
+    armed = ca.logic_and(detect, resting)
+    filling = ca.logic_and(pumping, p_pred > p_post)
+    p_lift_n = ca.if_else(lift_start == 0, 0.5 * (p_post + ca.fmin(p_pred, z)), p_lift)
+    ls_n = ca.fmax(0.0, lift_start - r - LIFT_START_DRIFT)
+    l_n = ca.fmax(0.0, lift - r - s.lift_drift)
+    fire_lift = ca.logic_and(ca.logic_and(armed, filling), l_n > s.lift_threshold)
+    lift2 = ca.if_else(armed, ca.if_else(ca.logic_and(filling, ca.logic_not(fire_lift)), l_n, 0.0), lift)
+    lift_start2 = ca.if_else(armed, ca.if_else(ca.logic_and(filling, ca.logic_not(fire_lift)), ls_n, 0.0),
+                             lift_start)
+    p_lift2 = ca.if_else(ca.logic_and(armed, filling), p_lift_n, p_lift)
+
+    # load-change detector (in contact): a change redoes the update with the load's variance widened
+    armed_c = ca.logic_and(detect, ca.logic_not(resting))
+    c_n = ca.fmax(0.0, cusum + r * r - s.change_drift)
+    fire_c = ca.logic_and(armed_c, c_n > s.change_threshold)
+    cusum2 = ca.if_else(armed_c, ca.if_else(fire_c, 0.0, c_n), cusum)
+    P1w = P1 + ca.DM(np.diag([0.0, s.change_std ** 2, 0.0, 0.0, 0.0]))
+    xw, Pw, Sw, pivw = update(xn, P1w, H1, nu, R_eff, s.cov_floor, keep)
+    exact = exact * ca.if_else(fire_c, (pivw > 0) * (Sw > 0) * _finite(Sw), 1)
+    xa = ca.if_else(upd, ca.if_else(fire_c, xw, xu), xn)
+    Pa = ca.if_else(upd, ca.if_else(fire_c, Pw, Pu), P1)
+
+    # --- detected lift-off: W = pi r1^2 p at the dated lift-off, none within the sensor's resolution
+    # the flat outputs are needed only while resting: a switch evaluates them only then
+    o1 = _resting_outputs(outputs)(resting, xa, s1, th, 1.0, Pa)
+    p_flat = o1[1][4]
+    W_lift = area * ca.fmax(ca.fmin(p_flat, p_lift2), 0.0)
+    W_new = ca.if_else(W_lift < area * NO_LOAD_SIGMAS * s.noise_std, 0.0, W_lift)
+    var_new = (s.lift_load_rel_std * W_lift) ** 2 + LIFT_LOAD_ABS_STD ** 2
+    e1 = ca.DM.zeros(NX)
+    e1[1] = 1.0
+    mask = ca.DM.ones(NX, NX)  # zeroes the load's row and column (a re-started load)
+    mask[1, :] = 0.0
+    mask[:, 1] = 0.0
+    Pd_ = Pa * mask + var_new * ca.mtimes(e1, e1.T)
+    Pd_ = (0.5 * (Pd_ + Pd_.T)) / ss * ss  # guard_cov's symmetrisation, same float operations
+    exact = exact * ca.if_else(fire_lift, piv(Pd_, s.cov_floor) > 0, 1)
+    xl = ca.if_else(fire_lift, ca.vertcat(xa[0], W_new, xa[2:]), xa)
+    Pl = ca.if_else(fire_lift, Pd_, Pa)
+    cusum2 = ca.if_else(fire_lift, 0.0, cusum2)
+    resting2 = ca.logic_and(resting, ca.logic_not(fire_lift))
+
+    # --- finish: the flat-load bound, clamps, outputs, touch-down -------------------------------
+    bound = area * p_flat
+    # a dead load cannot come down while the pump fills the chamber: after a touch-down the load
+    # goes back to the pressure's bound (no ratchet near the lift-off point)
+    W2 = ca.if_else(ca.logic_and(ca.logic_and(resting2, td1), pumping), ca.fmin(xl[1], bound), xl[1])
+    xl = ca.vertcat(xl[0], W2, xl[2:])
+    lift_b = ca.logic_and(resting2, bound > W2)  # the (known) load is exceeded: it lifts
+    resting3 = ca.logic_and(resting2, ca.logic_not(lift_b))
+    cusum2 = ca.if_else(lift_b, 0.0, cusum2)
+    e11 = ca.mtimes(e1, e1.T)
+    Pf = ca.if_else(resting3, Pl * mask + s.load_rest_std ** 2 * e11, Pl)
+    lo = ca.DM([-np.inf, s.load_min, FACTOR_RANGE[0], FACTOR_RANGE[0], FACTOR_RANGE[0]])
+    hi = ca.DM([np.inf, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
+    xc = ca.fmin(ca.fmax(xl, lo), hi)
+    clamped = ca.sum1(ca.logic_or(xl < lo, xl > hi)) > 0
+    o2 = outputs(xc, s1, th, resting3, Pf)
+    s2, y, H, C0 = o2[0], o2[1], o2[2], o2[4]
+    td2 = ca.logic_and(ca.logic_not(resting3), y[5] > 0.5)
+    resting4 = ca.logic_or(resting3, td2)
+    W4 = ca.if_else(ca.logic_and(td2, pumping), ca.fmin(xc[1], area * y[4]), xc[1])
+    xc = ca.vertcat(xc[0], W4, xc[2:])
+    Pf = ca.if_else(td2, Pf * mask + s.load_rest_std ** 2 * e11, Pf)
+    rest2 = ca.if_else(resting4, 1.0, 0.0)
+    d = (s.output_rel_std * y[:5]) ** 2
+    d = d * ca.DM([1.0, 1.0, 1.0, 1.0, 0.0]) + ca.DM([0.0, 0.0, 0.0, s.force_std_floor ** 2, 0.0])
+    bulge = ca.logic_and(resting4, ca.logic_or(xc[1] < LIGHT_LOAD, is_sat))
+    d = d + ca.if_else(bulge, (0.5 * y[0]) ** 2, 0.0) * ca.DM([0.0, 0.0, 1.0, 0.0, 0.0])
+    C = C0 + ca.diag(d)
+    std = ca.sqrt(ca.fmax(ca.diag(C), 0.0))
+    est = ca.vertcat(y[0], ca.fmax(y[1], 0.0), y[2], ca.fmax(y[3], 0.0), y[4])
+    not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
+    flags = (gated * 1 + fire_c * 2 + ca.logic_or(fire_lift, lift_b) * 4 + clamped * 8 + resting4 * 16
+             + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128)
+    det2 = ca.vertcat(cusum2, lift2, lift_start2, p_lift2, y[4], run)
+    nis = ca.if_else(upd * is_ok, r * r, ca.if_else(gated, nis_gate, 0.0))
+    innov = ca.if_else(upd * is_ok, r, 0.0)
+    outs = [xc, Pf, s2, y, est, std, C, H, A, rest2, det2, nis, innov, flags, exact]
+    return ca.Function("ekf_step", [x, P, sh, u, th, rest, z, kind, det], [ca.densify(e) for e in outs],
+                       list(STEP_IN), list(STEP_OUT))

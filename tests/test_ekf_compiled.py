@@ -1,0 +1,188 @@
+"""The EKF's compiled step (estimators.ekf_step) against the reference path, and the robot bank's
+mapped call against per-chamber calls. No timing is asserted here (see ``hbma-ctrl bench ekf``)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import casadi as ca
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from estimators.common import FilterSettings
+from estimators.ekf import EKF
+from estimators.ekf_step import DET_NAMES, KIND_OK, STEP_IN, STEP_OUT, ekf_step_function
+from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, _step_function
+from hbma_ctrl.app.robot_closed import make_model
+from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.chamber import STATE_SCALE
+from hbma_ctrl.robot.design import RobotDesign
+
+ACT = Actuator()
+PN = Pneumatics()
+FS = FilterSettings()
+#: relative agreement of the two paths (the same operations; only the order of a few sums differs)
+RTOL = 1e-9
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """A filter on the compiled step and one on the reference path, same actuator and settings."""
+    return EKF(ACT, PN, FS), EKF(ACT, PN, FS)
+
+
+def _close(a, b, scale=1.0) -> bool:
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return bool(np.all(np.abs(a - b) <= RTOL * (np.abs(a) + np.abs(b)) + 1e-12 * scale))
+
+
+def _set(f: EKF, x, P, resting: bool, det) -> None:
+    f.reset(0.0, x, P, resting=resting)
+    f._cusum, f._lift, f._lift_start, f._p_lift, f._p_post, f._gated = det
+    f._snap, f._replay = None, []
+
+
+states = st.tuples(
+    st.floats(0.0, 45e3),        # the flat pressure the gas mass m gives, Pa
+    st.floats(-1.0, 15.0),       # load W, N
+    st.floats(0.6, 1.6), st.floats(0.6, 1.6), st.floats(0.7, 1.5),  # b, k, c
+    st.floats(-3.0, 1.0),        # log10 of the covariance's spread (scaled)
+    st.floats(-0.9, 0.9),        # a correlation between m and the factors
+)
+detectors = st.tuples(st.floats(0.0, 25.0), st.floats(0.0, 8.0), st.floats(0.0, 5.0),
+                      st.floats(0.0, 30e3), st.floats(0.0, 40e3), st.integers(0, 3))
+commands = st.sampled_from([(1.0, 1.0, 0.0), (0.4, 1.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (1.0, 0.5, 0.2)])
+
+
+def _state(v):
+    p_flat, W, b, k, c, lg, rho = v
+    m = (p_flat + ACT.p_env) * ACT.V0 / (ACT.R * ACT.T)
+    sd = STATE_SCALE * 10 ** lg * np.array([0.01, 1.0, 0.1, 0.1, 0.1])
+    Cr = np.eye(5)
+    Cr[0, 2] = Cr[2, 0] = rho
+    Cr[0, 4] = Cr[4, 0] = -0.5 * rho
+    return np.array([m, W, b, k, c]), Cr * np.outer(sd, sd)
+
+
+@pytest.mark.parametrize("resting", [True, False], ids=["resting", "contact"])
+@pytest.mark.parametrize("reading", ["ok", "missing", "saturated", "outlier"])
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(v=states, det=detectors, u=commands, dz=st.one_of(st.floats(-3e3, 3e3), st.floats(-2e4, 2e4)))
+def test_compiled_step_equals_the_reference_path_on_random_states(pair, resting, reading, v, det, u, dz):
+    fc, fr = pair
+    x, P = _state(v)
+    _set(fc, x, P, resting, det)
+    _set(fr, x, P, resting, det)
+    z = {"ok": max(fr._p_pred + dz, 0.0), "missing": None, "saturated": FS.sensor_range + 1.0,
+         "outlier": -1e9}[reading]
+    cmd = Command(*u)
+    ec = fc.step(0.01, z, cmd)
+    er = fr.step_reference(0.01, z, cmd)
+    for name in ("h1", "h2", "h", "F", "p"):
+        assert _close(getattr(ec, name), getattr(er, name)), name
+    assert _close(ec.mean / STATE_SCALE, er.mean / STATE_SCALE)
+    assert _close(ec.cov / np.outer(STATE_SCALE, STATE_SCALE), er.cov / np.outer(STATE_SCALE, STATE_SCALE))
+    assert _close(fc.last_output_cov, fr.last_output_cov, scale=1e-9)
+    assert _close([ec.std[k] for k in ec.std], [er.std[k] for k in ec.std], scale=1e-6)
+    assert ec.flags == er.flags
+    assert fc.resting == fr.resting
+    assert (fc.last_nis is None) == (fr.last_nis is None)
+    if fc.last_nis is not None:
+        assert _close(fc.last_nis, fr.last_nis)
+    assert _close([fc._cusum, fc._lift, fc._lift_start, fc._p_lift, fc._p_post, fc._gated],
+                  [fr._cusum, fr._lift, fr._lift_start, fr._p_lift, fr._p_post, fr._gated])
+    assert _close(fc.s, fr.s) and _close(fc.last_A, fr.last_A)
+
+
+def test_compiled_step_is_the_normal_path_and_agrees_over_a_run():
+    """A lifting, loaded run: the Function decides nearly every step (``exact``), and the run's
+    estimates equal the reference path's step by step."""
+    fc, fr = EKF(ACT, PN, FS), EKF(ACT, PN, FS)
+    fc.reset(0.0, [ACT.p_env * ACT.V0 / (ACT.R * ACT.T), 3.0], resting=True)
+    fr.reset(0.0, [ACT.p_env * ACT.V0 / (ACT.R * ACT.T), 3.0], resting=True)
+    rng = np.random.default_rng(1)
+    exact = 0
+    p = 0.0
+    for i in range(1, 301):
+        cmd = Command(1.0, 1.0, 0.0) if i < 200 else Command(0.0, 0.0, 1.0)
+        p = p + (60.0 if i < 200 else -80.0)
+        z = max(p, 0.0) + 200.0 * rng.standard_normal()
+        ec = fc.step(0.01 * i, z, cmd)
+        exact += int(fc._step_fn.out[STEP_OUT.index("exact")][0] > 0.5)
+        er = fr.step_reference(0.01 * i, z, cmd)
+        assert _close([ec.h, ec.F, ec.p], [er.h, er.F, er.p], scale=1e-3) and ec.flags == er.flags
+    assert exact >= 290
+
+
+def test_step_function_is_one_numeric_generable_function():
+    f = ekf_step_function(ACT, PN, FS)
+    assert f.name_in() == list(STEP_IN) and f.name_out() == list(STEP_OUT)
+    assert not f.has_free()
+    assert f.size1_in(STEP_IN.index("det")) == len(DET_NAMES)
+    cg = ca.CodeGenerator("ekf_step_check.c")
+    cg.add(f)  # fails for a Function holding Python callbacks
+    assert "ekf_step" in cg.dump()
+    # the same Function for another actuator of the family: its numbers come in through theta
+    assert ekf_step_function(Actuator(r1=10e-3), PN, FS) is f
+    # ... and a trial's own load prior does not build (and compile) another
+    assert ekf_step_function(ACT, PN, replace(FS, load_init=2.0, load_init_std=0.2)) is f
+    assert ekf_step_function(ACT, PN, replace(FS, noise_std=300.0)) is not f
+
+
+def test_kind_codes_select_the_update():
+    """Input ``kind``: a reading updates (NIS reported), none does not (the predict alone)."""
+    f = ekf_step_function(ACT, PN, FS)
+    filt = EKF(ACT, PN, FS)
+    filt.reset(0.0, [1.05 * ACT.p_env * ACT.V0 / (ACT.R * ACT.T), 2.0], resting=False)
+    args = dict(x=filt.x, P=filt.P, s=filt.s, u=[1.0, 1.0, 0.0], theta=filt.theta, resting=0.0,
+                z=filt._p_pred + 500.0, det=np.zeros(len(DET_NAMES)))
+    upd = f.call({**args, "kind": KIND_OK})
+    none = f.call({**args, "kind": 1.0})
+    assert float(upd["nis"]) > 0 and float(none["nis"]) == 0.0
+    assert not np.allclose(np.asarray(upd["x_next"]), np.asarray(none["x_next"]))
+
+
+@pytest.fixture(scope="module")
+def bank_model():
+    d = RobotDesign(n_layers=1).validate()
+    return make_model(d, Pneumatics(), "per_chamber")
+
+
+def test_robot_bank_mapped_call_equals_per_chamber_calls(bank_model):
+    n = 3
+    s = ChamberEKFSettings()
+    bank = ChamberEKFBank(bank_model, n, s)
+    single = _step_function(bank_model, s)
+    rng = np.random.default_rng(0)
+    bank.reset(np.array([1e3, 5e3, 12e3]))
+    X = bank.X + np.vstack([rng.uniform(0, 0.05, n), rng.uniform(-0.1, 0.1, (3, n))])
+    P = bank.P
+    w = rng.uniform(0, 1, (3, n))
+    W = np.array([0.2, 1.0, 3.0])
+    z, use, reopen = np.array([2e3, 6e3, 30e3]), np.array([1.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    out = bank._call(X, P, w, W, z, use, reopen)
+    for i in range(n):
+        ref = single(X[:, i], P[:, i], w[:, i], W[i], z[i], use[i], reopen[i])
+        for j, r in enumerate(ref):
+            got = out[j].reshape(n, -1)[i]
+            assert _close(got, np.asarray(r).ravel(), scale=1e-6), (i, j)
+
+
+def test_bench_ekf_rows_share_the_rig_runs_and_report_ratios():
+    """``bench ekf`` on one trial: the EKF's compiled step and reference path score the same; the
+    filterpy row runs on the same model and its ratio is reported (its value is not asserted)."""
+    from hbma_ctrl.app.cli_estimators import bench_ekf
+    from hbma_ctrl.app.evaluate import BENCH_FILTERS
+
+    res = bench_ekf({"loads_g": [400.0], "speeds_pct": [100.0], "t0_mm": [3.0], "r1_mm": [7.5]},
+                    filters=("ekf", "ekf_reference", "filterpy"))
+    f = res["filters"]
+    assert set(f) == {"ekf", "ekf_reference", "filterpy"} and set(f) <= set(BENCH_FILTERS)
+    for k in ("height_nrmsd", "force_rmse_n", "nis_mean", "nees_mean"):
+        assert _close(f["ekf"][k], f["ekf_reference"][k]), k
+    assert np.isfinite(f["filterpy"]["height_nrmsd"]) and f["filterpy"]["height_nrmsd"] < 0.5
+    assert set(res["ratios"]) == {"ekf_reference_over_ekf_step_median", "filterpy_over_ekf_step_median"}
+    assert all(v > 0 for v in res["ratios"].values())
