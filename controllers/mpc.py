@@ -126,7 +126,7 @@ class NMPC:
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: MPCSettings | None = None,
                  model: PredictionModel | None = None):
         self.settings = s = (settings or MPCSettings()).validate()
-        self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max)
+        self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max, membrane=s.membrane)
         # the model's height and pressure at the estimate's state, through buffers (a plain casadi call
         # with Python floats costs ~20 us of the step; this ~1 us), as C when ``codegen`` is set
         self._HP = FastFunction(self.model.HP, compile=s.codegen)

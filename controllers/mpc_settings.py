@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -55,6 +55,8 @@ class MPCSettings:
         faster steps; +0.6 s at construction; falls back to casadi's virtual machine without a compiler).
     fail_window : (t_start, t_end) s in which every solve is treated as failed (a fallback drill);
         None = never.
+    membrane : membrane law of the prediction model's tables: 'cap' (spherical cap) or 'exact'
+        (the exact membrane's, :class:`hbma_ctrl.models.tables.PredictionModel`).
     """
 
     variant: str = "rti_osqp"
@@ -89,6 +91,7 @@ class MPCSettings:
     ipopt_max_iter: int = 100
     codegen: bool = True
     fail_window: tuple | None = None
+    membrane: str = field(default="cap", repr=False)  # repr: the stored reprs of the scenario goldens
 
     def validate(self) -> "MPCSettings":
         """Check every field; raise ValueError naming the field and its allowed range."""
@@ -136,6 +139,9 @@ class MPCSettings:
             raise ValueError(f"mpc.qp_max_iter = {self.qp_max_iter!r} must be an integer >= 1")
         if not isinstance(self.ipopt_max_iter, int) or self.ipopt_max_iter < 1:
             raise ValueError(f"mpc.ipopt_max_iter = {self.ipopt_max_iter!r} must be an integer >= 1")
+        if self.membrane not in ("cap", "exact"):
+            hint = did_you_mean(str(self.membrane), ("cap", "exact"))
+            raise ValueError(f"mpc.membrane = '{self.membrane}'{hint}; allowed: cap, exact")
         if self.fail_window is not None:
             fw = tuple(self.fail_window)
             if len(fw) != 2 or not (0 <= fw[0] <= fw[1]):

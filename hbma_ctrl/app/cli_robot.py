@@ -26,7 +26,8 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.robot import reach
 from hbma_ctrl.robot.design import LETTERS, TOPOLOGIES, RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics, inverse_kinematics
-from hbma_ctrl.robot.reach import reach_report, robot_table2, table2_markdown
+from hbma_ctrl.robot.reach import bonded_table2, reach_report, robot_table2, table2_markdown
+from hbma_ctrl.robot.statics import BOND_RADIUS
 
 __all__ = ["register", "robot_app"]
 
@@ -58,15 +59,29 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
            overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
            layers: int = typer.Option(2, help="chamber layers of the robot (Fig. 10: 2, A and B)"),
            stretch: float = typer.Option(None, help="stretch of an inflated chamber (default: max stretch 4.0)"),
-           hold_kpa: float = typer.Option(35.0, "--hold-kpa", help="near-branch reading: hold pressure, kPa")) -> None:
+           hold_kpa: float = typer.Option(35.0, "--hold-kpa", help="near-branch reading: hold pressure, kPa"),
+           bond_radius_mm: float = typer.Option(U.to_mm(BOND_RADIUS), "--bond-radius-mm",
+                                                help="bonded reading: radius of the glue spot on each membrane, mm"),
+           bond_kpa: float = typer.Option(40.0, "--bond-kpa", help="bonded reading: inflated chambers' pressure, kPa "
+                                                                "(40: every row has a taut exact equilibrium at 1 mm)"),
+           bonded: bool = typer.Option(True, "--bonded/--no-bonded",
+                                       help="add the glued-chamber reading (exact membrane; its table is built "
+                                            "once, a few minutes)")) -> None:
     """The paper's Table II beside the model (one layer, 0-3 chambers inflated)."""
     if not 1.0 <= hold_kpa <= 1000.0:
         raise ValueError(f"--hold-kpa = {hold_kpa} is out of range [1, 1000] kPa")
+    r1_mm = U.to_mm(RobotDesign().chamber.r1)
+    if not 0.0 < bond_radius_mm < r1_mm:
+        raise ValueError(f"--bond-radius-mm = {bond_radius_mm} is out of range (0, {r1_mm:g}) mm (the chamber's r1)")
+    if not 0.0 < bond_kpa <= 50.0:
+        raise ValueError(f"--bond-kpa = {bond_kpa} is out of range (0, 50] kPa (the bonded table's range)")
     if stretch is not None and not 1.05 <= stretch <= 20.0:
         raise ValueError(f"--stretch = {stretch} is out of range [1.05, 20]")
     d = _design(layers)
     with run_dir(out, command="robot table2", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = robot_table2(d, stretch=stretch, hold_pressure=U.kpa(hold_kpa))
+        if bonded:
+            rows += bonded_table2(d, U.kpa(bond_kpa), U.mm(bond_radius_mm))
         md = table2_markdown(rows)
         (tmp / "table2.md").write_text(md)
         (tmp / "table2.json").write_text(json.dumps(rows, indent=1) + "\n")
@@ -80,7 +95,7 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
                     f"{r['extension_pct']:.0f} / {r['paper_extension_pct']:.0f}", f"{r['chamber_height_mm']:.2f}",
                     f"{r['pressure_kpa']:.1f}", f"{r['stretch']:.2f}")
     Console(highlight=False, width=150).print(tab)
-    typer.echo(md.splitlines()[-1])
+    typer.echo("\n".join(ln for ln in md.splitlines() if ln and not ln.startswith("|")))  # the notes
     typer.echo(f"wrote {out / 'table2.md'} and {out / 'table2.json'}")
 
 

@@ -20,6 +20,15 @@ reach the optimiser: it only sees x.
 
 Nothing here re-derives physics: the grid points are the contact shapes of the one shape solver
 (:meth:`hbma_ctrl.models.shape.ShapeSolver.contact`).
+
+Two membrane laws (``membrane``): ``"cap"`` (the spherical cap, README Model §3, the law the
+estimators use) and ``"exact"`` (the exact axisymmetric membrane, Model §9: the same tabulated law
+the rig and the simulator's exact rung step with, :class:`hbma_ctrl.models.fidelity.ExactQuasiStatic`'s
+``contact_law``, imported, not re-derived). Both are evaluated in the cap's chart (h1, h2), so the
+contact bisection, the load paths and the tables are the same code. The stretch ``lam`` (what
+``lam_max`` limits) is the area-average stretch of the chart's shape (paper eq. 3) under both laws,
+so a setting means the same for either; the exact membrane's largest stretch (on the plate, or at
+the pole) is higher (1.51 against 1.29 at 8 mm under 400 g, r1 12.5 mm, t0 3 mm).
 """
 
 from __future__ import annotations
@@ -29,10 +38,51 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.fidelity import make_exact_loaded
 from hbma_ctrl.models.reduced import ReducedChamber
+from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
 
-__all__ = ["PredictionModel"]
+__all__ = ["PredictionModel", "MEMBRANES", "exact_shape_solver"]
+
+#: the membrane laws a prediction model can be tabulated from
+MEMBRANES = ("cap", "exact")
+
+
+class _ExactShapeSolver(ShapeSolver):
+    """:class:`ShapeSolver` whose law is the exact membrane's (tabulated ratios to the cap, same chart)."""
+
+    def __init__(self, space: ph.ParamSpace, theta: np.ndarray, fun: ca.Function):
+        super().__init__(space, theta)
+        self._fun = fun
+        self._maps: dict = {}
+
+    def eval(self, h1, h2) -> dict:
+        """p (Pa), F (N), lam (-, area average, paper eq. 3), V (m^3), G (J) at (h1, h2) (m), elementwise."""
+        h1 = np.atleast_1d(np.asarray(h1, dtype=float))
+        h2 = np.broadcast_to(np.asarray(h2, dtype=float), h1.shape)
+        n = h1.size
+        if n not in self._maps:
+            self._maps = {n: self._fun.map(n)}  # one size at a time: the bisection reuses it
+        th = np.repeat(self.theta[:, None], n, 1)
+        out = self._maps[n](h1.ravel()[None, :], h2.ravel()[None, :], th)
+        return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(SHAPE_OUTPUTS, out)}
+
+
+def exact_shape_solver(chamber: ReducedChamber) -> ShapeSolver:
+    """A shape solver of ``chamber``'s nominal parameters with the exact membrane's law (the rig's
+    exact quasi-static rung's ``contact_law``: p, V, F = pi a^2 p), outputs as
+    :data:`hbma_ctrl.models.shape.SHAPE_OUTPUTS`; ``lam`` the chart's area-average stretch."""
+    a = chamber.actuator
+    law = make_exact_loaded("quasi_static", a.material, str(chamber.pneumatics.csv_path)).contact_law
+    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
+    theta, P = chamber.space.symbols()
+    p, V, _, a2 = law(h1, h2, P)
+    lam = ph.geometry(h1, h2, P)["lam"]  # the area average, as the cap's (module docstring)
+    fun = ca.Function("exact_chamber", [h1, h2, theta], [p, ca.pi * a2 * p, lam, V, (p + P["p_env"]) * V],
+                      ["h1", "h2", "theta"], list(SHAPE_OUTPUTS))
+    return _ExactShapeSolver(chamber.space, chamber.theta, fun)
 
 
 @dataclass(frozen=True)
@@ -58,10 +108,13 @@ class PredictionModel:
     h_table_max : largest height the tables cover, m (default 1.4 r1).
     n_x, n_W, n_h : grid sizes.
     chamber : the :class:`ReducedChamber` to tabulate (built from actuator and pneumatics if None).
+    membrane : the membrane law tabulated, 'cap' (spherical cap) or 'exact' (the exact membrane's
+        tables, as the rig's ``membrane = "exact"``); see the module docstring.
 
     Attributes
     ----------
     chamber : the reduced chamber model the tables are of (parameters, flow, shape solver).
+    membrane : 'cap' or 'exact'; shapes : the shape solver of that law the tables come from.
     H_table, P_table, L_table : the interpolants of ``vertcat(x, W)`` behind H, Pp, L.
     H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-); HP both. H is negative
         (virtual) below lift-off, see :meth:`height` for the physical one.
@@ -71,7 +124,10 @@ class PredictionModel:
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, load_max: float = 10.0,
                  h_table_max: float | None = None, n_x: int = 140, n_W: int = 26, n_h: int = 160,
-                 chamber: ReducedChamber | None = None):
+                 chamber: ReducedChamber | None = None, membrane: str = "cap"):
+        if membrane not in MEMBRANES:
+            raise ValueError(f"prediction.membrane = {membrane!r}: allowed {', '.join(MEMBRANES)}")
+        self.membrane = membrane
         self.actuator = actuator.validate()
         self.pneumatics = pneumatics.validate()
         if not (0.0 < load_max <= 200.0):
@@ -82,6 +138,7 @@ class PredictionModel:
         self.RT = self.chamber.rt
         self.x_scale = self.chamber.x_scale  # kg of gas per unit of x
         self.theta = self.chamber.theta
+        self.shapes = self.chamber.shapes if membrane == "cap" else exact_shape_solver(self.chamber)
         self.grid = self._tabulate(n_x, n_W, n_h)
         self._build_functions()
 
@@ -97,7 +154,7 @@ class PredictionModel:
     # --- tables ----------------------------------------------------------------------------------
     def _tabulate(self, n_x: int, n_W: int, n_h: int) -> _Grid:
         a = self.actuator
-        solver = self.chamber.shapes
+        solver = self.shapes
         Wg = np.linspace(0.0, self.load_max, n_W)
         # denser near the lift-off point, where the map bends
         hg = self.h_table_max * np.linspace(0.0, 1.0, n_h) ** 1.5

@@ -29,7 +29,7 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.robot.design import LETTERS, TABLE2_PAPER, RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics
-from hbma_ctrl.robot.statics import chamber_solver, chamber_states, load_sharing
+from hbma_ctrl.robot.statics import BOND_RADIUS, bonded_chamber, chamber_solver, chamber_states, load_sharing
 
 
 def pump_stall_pressure(pneumatics: Pneumatics | None = None) -> float:
@@ -272,6 +272,129 @@ def robot_table2(design: RobotDesign | None = None, stretch: float | None = None
     return rows
 
 
+def _rim_heights(design: RobotDesign, theta: float, psi: float) -> np.ndarray:
+    """Chamber heights (3,) m of a layer tilted by theta (rad) towards psi (rad) resting on its lower rim
+    (the pose of :func:`rim_pivot_pose`: centre R sin(theta), rim gap 0)."""
+    a = np.asarray(design.chamber_angles, dtype=float)
+    R, rc = design.outer_diameter / 2, design.placement_radius
+    return R * math.sin(theta) - rc * math.tan(theta) * np.cos(psi - a)
+
+
+def _pivot_balance(design: RobotDesign, h0: np.ndarray, forces: np.ndarray, psi: float) -> tuple[float, float]:
+    """Moment (N m) about layer A's rim pivot line of the chamber forces and the weights above, and the
+    rim's reaction (N, >= 0 for a real contact) for layer-A heights h0 (3,) and chamber forces (3,) N."""
+    H = np.zeros((design.n_layers, 3))
+    H[0] = h0
+    pose = forward_kinematics(design, H)
+    Rm, O = pose.frames[1][:3, :3], pose.frames[1][:3, 3]
+    n = Rm[:, 2]
+    R = design.outer_diameter / 2
+    q = O + Rm @ np.array([R * math.cos(psi), R * math.sin(psi), 0.0])
+    axis = Rm @ np.array([-math.sin(psi), math.cos(psi), 0.0])
+    L = design.layer_thickness
+    masses = design.body_masses
+    g = np.array([0.0, 0.0, -design.g])
+    com = np.array([pose.frames[j][:3, :3] @ [0, 0, L / 2] + pose.frames[j][:3, 3]
+                    for j in range(1, design.n_layers + 1)])
+    M = sum(np.cross(pose.contacts[0][i] - q, forces[i] * n) for i in range(3))
+    M = M + sum(np.cross(com[j] - q, masses[j] * g) for j in range(design.n_layers))
+    reaction = float(masses.sum() * design.g - forces.sum() * n[2])
+    return float(M @ axis), reaction
+
+
+def bonded_layer_pose(design: RobotDesign, inflated: list[int], pressure: float, c: float = BOND_RADIUS) -> dict:
+    """Layer A's pose with glued chambers (SI): ``inflated`` held at gauge pressure ``pressure`` (Pa),
+    the others vented (p = 0), every upper layer flat.
+
+    Each chamber pushes (or, stretched while vented, pulls) with the exact bonded force F(h, p)
+    (:class:`hbma_ctrl.robot.statics.BondedChamber`). All three inflated: the level pose where each
+    carries its share. One or two: a vented glued chamber cannot push, so the layer tilts onto its
+    outer rim (the rigid three-point pose would overlap the rims) and the tilt is where the moments
+    about the rim pivot balance; the vented chambers are pulled up and pull back (tension). Returns
+    heights (3,) m, forces (3,) N, centre (m), bend (rad), rim reaction (N), ok (False: no balance
+    within the table, i.e. beyond the bonded chamber's reach; the pose is then the last one tried).
+    """
+    ch = bonded_chamber(design.chamber, c)
+    p = np.zeros(3)
+    p[list(inflated)] = pressure
+    if not inflated:
+        return {"heights": np.zeros(3), "forces": np.zeros(3), "centre": 0.0, "bend": 0.0, "reaction": 0.0,
+                "ok": True}
+    if len(inflated) == 3:
+        h = 0.0
+        for _ in range(30):  # fixed point with the load sharing (the shares barely move with h)
+            H = np.zeros((design.n_layers, 3))
+            H[0] = h
+            share = load_sharing(design, H).forces[0]
+            new = ch.height(float(share.mean()), pressure)
+            if not np.isfinite(new) or abs(new - h) < 1e-10:
+                break
+            h = new
+        ok = bool(np.isfinite(new))
+        F = share if ok else np.full(3, np.nan)
+        return {"heights": np.full(3, h if ok else np.nan), "forces": F, "centre": h if ok else np.nan,
+                "bend": 0.0, "reaction": 0.0, "ok": ok}
+    a = np.asarray(design.chamber_angles)[list(inflated)]
+    psi = math.atan2(-np.sin(a).sum(), -np.cos(a).sum())
+
+    def state(theta):
+        h0 = _rim_heights(design, theta, psi)
+        F = np.array([ch.force(h0[i], p[i]) for i in range(3)])
+        return h0, F
+
+    def residual(theta):
+        h0, F = state(theta)
+        return _pivot_balance(design, h0, F, psi)[0] if np.all(np.isfinite(F)) else np.nan
+
+    thetas = np.radians(np.linspace(0.05, 60.0, 600))
+    res = np.array([residual(t) for t in thetas])
+    root = None
+    for k in range(thetas.size - 1):
+        if np.isfinite(res[k]) and np.isfinite(res[k + 1]) and res[k] * res[k + 1] <= 0:
+            root = brentq(residual, thetas[k], thetas[k + 1], xtol=1e-10)
+            break
+    if root is None:
+        last = int(np.nonzero(np.isfinite(res))[0][-1]) if np.isfinite(res).any() else 0
+        h0, F = state(thetas[last])
+        return {"heights": h0, "forces": F, "centre": float(design.outer_diameter / 2 * math.sin(thetas[last])),
+                "bend": float(thetas[last]), "reaction": float("nan"), "ok": False}
+    h0, F = state(root)
+    reaction = _pivot_balance(design, h0, F, psi)[1]
+    return {"heights": h0, "forces": F, "centre": float(design.outer_diameter / 2 * math.sin(root)),
+            "bend": float(root), "reaction": reaction, "ok": bool(reaction >= 0)}
+
+
+def bonded_table2(design: RobotDesign | None = None, pressure: float = 40e3, c: float = BOND_RADIUS) -> list[dict]:
+    """Table II rows ('bonded') with glued chambers (:func:`bonded_layer_pose`): the inflated chambers of
+    layer A at ``pressure`` (Pa; default 40 kPa, below the robot's 45 kPa limit: the highest 5 kPa step at
+    which every row has a taut exact equilibrium, stretch <= 4, for c = 1 mm), the others vented, bond
+    radius c (m).
+    Same keys as :func:`robot_table2` (stretch NaN: not tabulated), plus ``reaction_n`` (the rim's
+    force), ``vented_height_mm``, ``vented_force_n`` and ``within_reach``."""
+    d = design or RobotDesign(n_layers=2)
+    d.validate()
+    check_range("table2", "pressure", pressure, 0.0, 50e3, "Pa", lo_open=True)
+    rows = []
+    L = d.layer_thickness
+    for n, pa, pl, pe in TABLE2_PAPER:
+        r = bonded_layer_pose(d, list(range(n)), pressure, c)
+        length = L + r["centre"]
+        vent = [i for i in range(3) if i >= n]
+        rows.append({
+            "reading": "bonded", "inflated": n, "angle_deg": math.degrees(r["bend"]), "length_mm": U.to_mm(length),
+            "extension_pct": 100 * (length - L) / L, "paper_angle_deg": pa, "paper_length_mm": pl,
+            "paper_extension_pct": pe, "chamber_height_mm": U.to_mm(float(r["heights"][0])) if n else 0.0,
+            "pressure_kpa": U.to_kpa(pressure) if n else 0.0, "stretch": float("nan"),
+            "gas_mass_mg": float("nan"), "rim_gap_mm": 0.0 if 0 < n < 3 else U.to_mm(r["centre"]),
+            "reaction_n": r["reaction"], "within_reach": r["ok"],
+            "vented_height_mm": U.to_mm(float(r["heights"][vent[0]])) if vent else float("nan"),
+            "vented_force_n": float(r["forces"][vent[0]]) if vent else float("nan"),
+            "params": {"bond_radius_mm": U.to_mm(c), "pressure_kpa": U.to_kpa(pressure),
+                       "r1_mm": U.to_mm(d.chamber.r1), "t0_mm": U.to_mm(d.chamber.t0)},
+        })
+    return rows
+
+
 def table2_markdown(rows: list[dict]) -> str:
     """Markdown table of :func:`robot_table2` rows (model vs paper), with the parameters used."""
     p = rows[0]["params"]
@@ -282,7 +405,7 @@ def table2_markdown(rows: list[dict]) -> str:
         f"| {r['reading']} | {r['inflated']} | {r['angle_deg']:.1f} / {r['paper_angle_deg']:.1f} | "
         f"{r['length_mm']:.1f} / {r['paper_length_mm']:.1f} | {r['extension_pct']:.0f} / "
         f"{r['paper_extension_pct']:.0f} | {r['chamber_height_mm']:.2f} | {r['pressure_kpa']:.1f} | "
-        f"{r['stretch']:.2f} | {r['rim_gap_mm']:.2f} |\n" for r in rows)
+        f"{r['stretch']:.2f} | {r['rim_gap_mm']:.2f} |\n".replace("| nan |", "| - |") for r in rows)
     mat = ", ".join(f"{k} = {v:g} Pa" if isinstance(v, float) else f"{k} = {v}" for k, v in p["material_params"].items())
     foot = (f"\nParameters: {p['material'].upper()} ({mat}), r1 = {p['r1_mm']:g} mm, t0 = {p['t0_mm']:g} mm, "
             f"V0 = {p['V0_cm3']:g} cm^3, chamber centres {p['placement_radius_mm']:g} mm from the axis, layer "
@@ -291,6 +414,13 @@ def table2_markdown(rows: list[dict]) -> str:
             f"{p['stretch']:g}; near_branch: held at {p['hold_pressure_kpa']:g} kPa below the limit point; "
             "rim_pivot: far-branch chambers, the layer rocking on its outer rim instead of the rigid "
             "three-point pose (whose rims would overlap with a flat chamber).\n")
+    bonded = [r for r in rows if r["reading"] == "bonded"]
+    if bonded:
+        b = bonded[0]["params"]
+        foot += (f"bonded: chambers glued to the layer above (exact membrane, a rigid glue spot of radius "
+                 f"{b['bond_radius_mm']:g} mm at each centre), the inflated ones at {b['pressure_kpa']:g} kPa, the "
+                 "others vented; with one or two inflated the layer rests on its outer rim and the vented glued "
+                 "chambers, pulled up, pull it back (tension); stretch not tabulated (-).\n")
     return head + body + foot
 
 

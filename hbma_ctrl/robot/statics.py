@@ -8,6 +8,18 @@ in the three normal forces: force along the normal and the moments about the two
 through the contact centroid. The in-plane force and the twisting moment are carried by the glued
 membranes in shear (reported, not modelled). A negative force means the glue pulls (tension): the
 ballooning-membrane model does not cover it, and such chambers are flagged.
+
+Bonded chambers
+---------------
+The paper glues each membrane's centre to the layer above (Sil-Poxy). :class:`BondedChamber` models
+that glue spot as a rigid disk of radius ``c`` (:data:`BOND_RADIUS`, an assumption: the paper gives no
+size) on the exact membrane (:class:`hbma_ctrl.models.exact.ExactMembrane`, contact 'bonded', README
+Model §9): the force on the layer ``F(h, p)`` can exceed ``p pi c^2`` (a membrane bulging around the
+disk lifts it) and is negative for a vented chamber pulled up (the glue pulls the layer down). The
+table of F over (h, p) is solved once per chamber, material and c and cached on disk like the exact
+membrane's other tables; :func:`bonded_chamber_states` gives every chamber's pressure for a pose with
+tension allowed. Its limits are the exact solver's: membrane stretches up to 4, no slack (wrinkled)
+membrane; outside them the table holds NaN and the chamber is reported as beyond its reach.
 """
 
 from __future__ import annotations
@@ -16,10 +28,14 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+from pathlib import Path
+
 import numpy as np
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.exact import ExactMembrane
+from hbma_ctrl.models.exact_tables import _cached, _key, table_cache_dir
 from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.kinematics import (
@@ -28,6 +44,10 @@ from hbma_ctrl.robot.kinematics import (
     _heights_array,
     forward_kinematics,
 )
+
+__all__ = ["LoadShare", "load_sharing", "chamber_solver", "chamber_states", "chamber_loads",
+           "chamber_states_from_masses", "BOND_RADIUS", "BOND_H", "BOND_P", "bonded_table", "BondedChamber",
+           "bonded_chamber", "bonded_chamber_states"]
 
 
 @dataclass
@@ -198,3 +218,131 @@ def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0,
     out["heights"] = h
     out["ambiguous"] = amb
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# chambers glued to the layer above (exact membrane, bonded disk)
+# ---------------------------------------------------------------------------------------------
+#: radius of the glue spot joining a membrane's centre to the layer above, m: an assumption (the paper
+#: says only that Sil-Poxy was glued to the membranes' centres); ``robot table2 --bond-radius-mm`` sets it
+BOND_RADIUS = 1.0e-3
+#: the bonded force table's grid: centre height (m) x gauge pressure (Pa); the robot's limit is 45 kPa
+BOND_H = np.concatenate([[0.1e-3], np.arange(0.25e-3, 8.01e-3, 0.25e-3)])
+BOND_P = np.arange(0.0, 50.01e3, 5e3)
+
+
+def bonded_table(act: Actuator, c: float = BOND_RADIUS, cache: Path | str | None = None) -> dict:
+    """Force F (N, up positive) and membrane volume V (m^3, above the clamp) of a chamber glued at its
+    centre to a rigid disk of radius c (m), over :data:`BOND_H` x :data:`BOND_P` (arrays (h, p)).
+
+    Each node is one exact bonded equilibrium (:meth:`ExactMembrane.contact`); NaN where there is none
+    (a stretch beyond 4 or a slack membrane: past the chamber's reach at that pressure). Cached on disk
+    (npz keyed by every input and the exact modules' source; ``cache`` a directory, default the exact
+    tables' one); a first build takes a few minutes. Returns h, p, F, V, build_s, path.
+    """
+    if not (np.isfinite(c) and 0 < c < act.r1):
+        raise ValueError(f"bond radius = {c * 1e3:g} mm is out of range (0, {act.r1 * 1e3:g}) mm (the chamber's r1)")
+    m = ExactMembrane(act.material, act.r1, act.t0, contact="bonded", c=c)
+    h, p = BOND_H, BOND_P
+    folder = Path(cache) if cache is not None else table_cache_dir()
+    path = folder / f"bonded_robot_{_key(m, 'bonded_robot_v1', {'h': h, 'p': p})}.npz"
+
+    def build():
+        F, V = np.full((h.size, p.size), np.nan), np.full((h.size, p.size), np.nan)
+        for j, pj in enumerate(p):
+            misses = 0
+            for i, hi in enumerate(h):
+                try:
+                    r = m.contact(hi, pj)
+                except ValueError:
+                    misses += 1
+                    if misses >= 2:  # past the reach at this pressure: higher centres are out of reach too
+                        break
+                    continue
+                misses = 0
+                F[i, j], V[i, j] = r["F"], r["V"]
+        return {"h": h, "p": p, "F": F, "V": V}
+
+    return _cached(path, build)
+
+
+class BondedChamber:
+    """One glued robot chamber: F(h, p) from :func:`bonded_table` and its inverses (SI).
+
+    F is interpolated bilinearly on the table (NaN outside its valid part); below the first height
+    node it is continued linearly to F(0, 0) = 0 for a vented chamber (flat membrane, no force).
+    Along a fixed pressure F falls as the centre rises (the stretched membrane pulls the disk down);
+    at a fixed height it grows with the pressure.
+    """
+
+    def __init__(self, act: Actuator, c: float = BOND_RADIUS):
+        tab = bonded_table(act, c)
+        self.act, self.c = act, float(c)
+        self.h, self.p, self.F, self.V = tab["h"], tab["p"], tab["F"], tab["V"]
+
+    def _column(self, p: float) -> np.ndarray:
+        """F over the height grid at pressure p (Pa), linear between pressure columns."""
+        j = int(np.clip(np.searchsorted(self.p, p) - 1, 0, self.p.size - 2))
+        w = (p - self.p[j]) / (self.p[j + 1] - self.p[j])
+        return (1 - w) * self.F[:, j] + w * self.F[:, j + 1]
+
+    def force(self, h: float, p: float) -> float:
+        """Force (N, up positive) on the layer above at centre height h (m) and gauge pressure p (Pa)."""
+        if not (0.0 <= p <= self.p[-1]):
+            return float("nan")
+        col = self._column(p)
+        if h <= self.h[0]:
+            f0 = 0.0 if p == 0.0 else col[0] - (col[1] - col[0]) / (self.h[1] - self.h[0]) * self.h[0]
+            return float(f0 + (col[0] - f0) * h / self.h[0])
+        if h > self.h[-1]:
+            return float("nan")
+        return float(np.interp(h, self.h, col))  # NaN next to a NaN node: beyond the reach
+
+    def reach(self, p: float) -> float:
+        """Largest tabulated centre height (m) with an equilibrium at pressure p (Pa)."""
+        ok = np.isfinite(self._column(p))
+        return float(self.h[np.nonzero(ok)[0][-1]]) if ok.any() else 0.0
+
+    def height(self, F: float, p: float) -> float:
+        """Centre height (m) at which the chamber at pressure p (Pa) pushes with F (N); 0 when it cannot
+        push that hard even flat (it rests), NaN when F lies below what it reaches (beyond the table)."""
+        col = self._column(p)
+        ok = np.isfinite(col)
+        hs, fs = np.concatenate([[0.0], self.h[ok]]), np.concatenate([[self.force(0.0, p)], col[ok]])
+        if F >= fs[0]:
+            return 0.0
+        if F < fs.min():
+            return float("nan")
+        k = int(np.nonzero(fs <= F)[0][0])  # first node at or below F: F falls along the column
+        return float(hs[k - 1] + (F - fs[k - 1]) / (fs[k] - fs[k - 1]) * (hs[k] - hs[k - 1]))
+
+    def pressure(self, h: float, F: float) -> float:
+        """Gauge pressure (Pa) that makes the chamber at centre height h (m) push with F (N; negative =
+        the glue pulls); NaN outside the table."""
+        fs = np.array([self.force(h, pj) for pj in self.p])
+        ok = np.isfinite(fs)
+        if ok.sum() < 2 or not (fs[ok].min() <= F <= fs[ok].max()):
+            return float("nan")
+        return float(np.interp(F, fs[ok], self.p[ok]))
+
+
+@lru_cache(maxsize=8)
+def bonded_chamber(act: Actuator, c: float = BOND_RADIUS) -> BondedChamber:
+    """The :class:`BondedChamber` of a robot chamber and bond radius (cached here and on disk)."""
+    return BondedChamber(act, c)
+
+
+def bonded_chamber_states(design: RobotDesign, heights, c: float = BOND_RADIUS, tip_force=(0.0, 0.0, 0.0),
+                          tip_moment=(0.0, 0.0, 0.0)) -> dict:
+    """Each glued chamber's pressure for chamber heights (N x 3, m), tension allowed.
+
+    The load sharing (:func:`load_sharing`) gives each chamber's force F (N, negative = the glue pulls
+    the layer down); the bonded table gives the pressure p (Pa) at which the glued membrane at its
+    height pushes (or pulls) with exactly F. Returns (N, 3) arrays F, p (NaN where the table has no
+    such state: ``beyond``) and ``tension`` (F < 0), ``beyond`` (bool).
+    """
+    h = _heights_array(design, heights)
+    F = load_sharing(design, h, tip_force, tip_moment).forces
+    ch = bonded_chamber(design.chamber, c)
+    p = np.array([[ch.pressure(h[k, i], F[k, i]) for i in range(3)] for k in range(h.shape[0])])
+    return {"F": F, "p": p, "tension": F < 0, "beyond": ~np.isfinite(p)}

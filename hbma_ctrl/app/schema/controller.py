@@ -74,6 +74,8 @@ class ControllerTable(Table):
     c_input: tuple[_W, _W, _W] = shaped((0.02, 0.01, 0.02), "MPC linear input costs (-)", _VEC)
     budget_ms: float = num(15.0, 0.0, 10000.0, "ms", "MPC wall-clock budget per step", lo_open=True)
     codegen: bool = flag(True, "MPC: compile the RTI linearisation to C")
+    membrane: Literal["cap", "exact"] = choice("cap", "MPC prediction model's membrane law: cap "
+                                               "(spherical cap) or exact (exact membrane tables)")
     fail_window_s: tuple[_T, _T] | None = shaped(None, "MPC solves in this window fail (drill), s",
                                                  "[t_start_s, t_end_s]")
     kp: float = num(1.0, 0.0, 1e4, "1/mm", "PID proportional gain")
@@ -168,6 +170,7 @@ _SI = {
     "c_input": ("mpc", "c_input", tuple),
     "budget_ms": ("mpc", "budget", U.ms),
     "codegen": ("mpc", "codegen", as_is),
+    "membrane": ("mpc", "membrane", as_is),
     "fail_window_s": ("mpc", "fail_window", tuple),
     "kp": ("pid", "kp", per_mm_to_per_m),
     "ki": ("pid", "ki", per_mm_to_per_m),
