@@ -48,6 +48,10 @@ __all__ = ["run_soak", "soak_verdicts", "RSS_GROWTH_MAX_MB"]
 RSS_GROWTH_MAX_MB = 10.0
 
 
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -89,6 +93,9 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
         sent: list[dict] = []
         with open(err_path, "w") as err:
             proc = subprocess.Popen(cmd, stdout=err, stderr=subprocess.STDOUT, env=dict(os.environ))
+            # a stop (Ctrl-C, or SIGTERM/SIGINT to a soak started in the background, where the shell
+            # ignores SIGINT) stops the daemon too, through its own safe exit
+            old = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
             try:
                 _drive(proc, url, rng, every_s, duration_s, sent, echo)
                 rc = proc.wait()
@@ -97,6 +104,9 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(timeout=30)
                 raise
+            finally:
+                for sig, h in old.items():
+                    signal.signal(sig, h)
         stats_path = tmp / "daemon" / "daemon_stats.json"
         if not stats_path.exists():
             tail = err_path.read_text().strip().splitlines()[-1:] or ["(no output)"]
