@@ -187,3 +187,26 @@ def test_exact_rung_continues_past_its_table_without_a_jump():
     far = y(2.8 * act.r1)  # well past the limit point: finite, positive, and the gas still grows
     assert np.all(np.isfinite(far)) and far[OUTPUTS.index("p")] > 0
     assert far[OUTPUTS.index("m")] > above[OUTPUTS.index("m")]
+
+
+def test_exact_free_rig_vents_from_flat_without_diverging_and_its_law_is_odd_in_height():
+    """A 0 g exact rig starts flat and is vented (the start-up calibration's first command): the plant
+    stays alive at h ~ 0 (dG/dh1 at the flat membrane is p_env dV/dh1 > 0), and below the clamp the
+    law mirrors the one above (p and the added volume odd in h1)."""
+    from hbma_ctrl.models.fidelity import OUTPUTS
+
+    act = Actuator(r1=12.5e-3, t0=3e-3, V0=3e-6)
+    rig = Rig(act, Pneumatics(), Platform(load=0.0), RigSettings(seed=1, membrane="exact"))
+    for _ in range(20):
+        rig.apply(Command(0.0, 0.0, 1.0))
+    assert abs(rig.truth()["h"]) < 1e-9
+    fid = rig._plant.fid
+    theta = rig._theta(fid, Platform(load=0.0))
+    out = fid.out
+    ip, iV, il = (OUTPUTS.index(k) for k in ("p", "V", "lam"))
+    V0 = rig.actuator.V0
+    for hh in (1e-4, 2e-3, 6e-3):
+        up = np.asarray(out([hh], np.zeros(3), theta, 1.0)).ravel()
+        dn = np.asarray(out([-hh], np.zeros(3), theta, 1.0)).ravel()
+        assert dn[ip] == pytest.approx(-up[ip]) and up[ip] > 0
+        assert dn[iV] - V0 == pytest.approx(-(up[iV] - V0)) and dn[il] == pytest.approx(up[il])

@@ -456,17 +456,22 @@ class ExactFreeInflation(FreeInflation):
         """
         r1, t0 = P["r1"], P["t0"]
         mu = P["material"].Q(1.0) / 12.0
-        x = h1 / r1
+        # a membrane pulled below its clamp (h1 < 0: venting past flat, a vacuum) is the mirror image
+        # of the one above: p and the volume it adds are odd in h1, the stretch even (the table holds
+        # h1 >= 0 only, and a bspline is 0 outside its grid: a vent from flat diverged there)
+        sgn = ca.if_else(h1 < 0, -1.0, 1.0)
+        h = ca.if_else(h1 < 0, -h1, h1)  # not fabs: its derivative at 0 is 0, and dG/dh1 there must not be
+        x = h / r1
         xm = self.x_max
         hm = xm * r1
         scale = mu * t0 / r1
         p_tab, v_tab, l_tab = scale * self._Pn(x), r1**3 * self._vn(x), self._lam(x)
-        gm, g = ph.geometry(hm, 0, P), ph.geometry(h1, 0, P)
-        p_cap = ph.pressure(h1, 0, P) * scale * self._Pn(xm) / ph.pressure(hm, 0, P)
+        gm, g = ph.geometry(hm, 0, P), ph.geometry(h, 0, P)
+        p_cap = ph.pressure(h, 0, P) * scale * self._Pn(xm) / ph.pressure(hm, 0, P)
         v_cap = (g["V"] - P["V0"]) * r1**3 * self._vn(xm) / (gm["V"] - P["V0"])
         l_cap = g["lam"] * self._lam(xm) / gm["lam"]
         beyond = x > xm
-        return (ca.if_else(beyond, p_cap, p_tab), ca.if_else(beyond, v_cap, v_tab),
+        return (sgn * ca.if_else(beyond, p_cap, p_tab), sgn * ca.if_else(beyond, v_cap, v_tab),
                 ca.if_else(beyond, l_cap, l_tab))
 
     def _derivs(self, h1, P):
