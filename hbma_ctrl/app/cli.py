@@ -7,7 +7,9 @@ commands come from ``register(app, bench_app)`` in :mod:`hbma_ctrl.app.cli_estim
 :mod:`hbma_ctrl.app.cli_tune` and :mod:`hbma_ctrl.app.cli_daemon`.
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
-exits with code 2, never a traceback; a run whose trials all diverged does the same with code 1. Ctrl-C prints ``interrupted: partial results in <path>`` and
+exits with code 2, never a traceback; a run whose trials all diverged does the same with code 1, and
+so does any other failure of a run (a RuntimeError: a diverged plant, a solver's error; set
+HBMA_CTRL_TRACEBACK=1 for its traceback). Ctrl-C prints ``interrupted: partial results in <path>`` and
 exits with code 130. Every command writing a results directory goes through
 :func:`hbma_ctrl.app.outputs.run_dir` (``--out`` checked before any work, ``--overwrite`` to replace a
 run, manifest.json, nothing half-written left at ``--out``).
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -102,6 +105,14 @@ class _OneLineErrors(TyperGroup):
             partial = getattr(exc, "partial_results", None)
             code = 1 if isinstance(exc, RunFailed) else 2  # the input was fine; the run failed
             _fail(f"{exc}; partial results in {partial}" if partial else str(exc), code)
+        except RuntimeError as exc:
+            # a simulation that failed (a diverged plant, a solver's error): one line, exit 1; the
+            # traceback only when asked for (HBMA_CTRL_TRACEBACK=1), for a bug report
+            if os.environ.get("HBMA_CTRL_TRACEBACK"):
+                raise
+            partial = getattr(exc, "partial_results", None)
+            msg = f"the run failed: {type(exc).__name__}: {exc}"
+            _fail(f"{msg}; partial results in {partial}" if partial else msg, 1)
         code = rv if isinstance(rv, int) else 0
         if standalone_mode:
             sys.exit(code)
