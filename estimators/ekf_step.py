@@ -92,7 +92,7 @@ _STEP_CACHE: dict = {}
 
 def _model_key(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> tuple:
     return (type(actuator.material), str(pneumatics.csv_path), s.sample_period, s.integrator, s.nsub,
-            s.newton)
+            s.newton, s.membrane)
 
 
 def observer_model(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> ObserverModel:
@@ -100,7 +100,8 @@ def observer_model(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings
     compressor map and integration settings, numeric parameters (``theta``) the actuator's."""
     key = _model_key(actuator, pneumatics, s)
     if key not in _MODEL_CACHE:
-        _MODEL_CACHE[key] = ObserverModel(actuator, pneumatics, s.sample_period, s.integrator, s.nsub, s.newton)
+        _MODEL_CACHE[key] = ObserverModel(actuator, pneumatics, s.sample_period, s.integrator, s.nsub, s.newton,
+                                          membrane=s.membrane)
     return _MODEL_CACHE[key].rebind(actuator, pneumatics)
 
 
