@@ -41,7 +41,6 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.reduced import EPS_K, ReducedChamber, shape_newton
 
