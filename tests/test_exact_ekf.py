@@ -4,6 +4,8 @@ and the EKF on the exact rig against the cap EKF."""
 
 from __future__ import annotations
 
+from typing import get_args
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,7 @@ from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.chamber import OUT_NAMES, ObserverModel
 from hbma_ctrl.models.exact import ExactMembrane
-from hbma_ctrl.models.reduced import EPS_K
+from hbma_ctrl.models.reduced import EPS_K, MEMBRANES
 from hbma_ctrl.sim.batch import protocol_trials
 from hbma_ctrl.sim.rig import RigSettings
 
@@ -92,6 +94,7 @@ def test_membrane_setting_is_validated_and_reaches_the_model():
     sec = EstimatorTable(membrane="exact").to_section()
     assert filter_settings_for(sec, RigSettings()).membrane == "exact"
     assert filter_settings_for(EstimatorTable().to_section(), RigSettings()).membrane == "cap"
+    assert get_args(EstimatorTable.model_fields["membrane"].annotation) == MEMBRANES
     with pytest.raises(ValueError, match=r"\[estimator\] membrane"):
         parse_scenario_tables({"estimator": {"membrane": "plate"}}, None)
 
