@@ -28,7 +28,7 @@ from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.fidelity import QuasiStatic, cap_law, make_exact_loaded, make_fidelity, shape_jacobian
 from hbma_ctrl.models.shape import ShapeSolver
 
-__all__ = ["ReducedChamber", "shape_newton", "EPS_K", "FACTOR_NAMES", "MEMBRANES"]
+__all__ = ["ReducedChamber", "shape_newton", "EPS_K", "FACTOR_NAMES", "MEMBRANES", "law_key"]
 
 #: membrane laws a reduced chamber can use: the spherical cap (README Model §1, §3) or the exact
 #: axisymmetric membrane's flat-plate contact in the cap's chart (README Model §9)
@@ -39,6 +39,16 @@ FACTOR_NAMES = ("b", "k", "c")
 #: a tiny contact stiffness, N/m, regularising F(h1, h2) = W where the pressure vanishes (at W = 0
 #: and p -> 0 any h2 would do; with it h2 = 0): 1 N/m is below 1 % of dF/dh2 at working pressures
 EPS_K = 1.0
+
+
+def law_key(actuator: Actuator, pneumatics: Pneumatics, membrane: str) -> tuple:
+    """What a model's casadi Functions depend on beyond the material family: the membrane law and, for
+    'exact', its table (one per material shape: two Mooney-Rivlin chambers with other C2/C1 ratios
+    need two), for caches of built Functions."""
+    if membrane == "cap":
+        return ("cap",)
+    fid = make_exact_loaded("quasi_static", actuator.material, str(pneumatics.csv_path))
+    return ("exact", id(fid))  # the fidelity is cached (kept alive) per material shape: its id is stable
 
 
 def shape_newton(m, W, h1, h2, P: dict, iters: int, law=cap_law):
