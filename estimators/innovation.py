@@ -82,9 +82,13 @@ class InnovationTestSettings:
 
 def _sums(r, window: int):
     r = np.asarray(r, dtype=float).ravel()
+    if r.size < window:  # no full window (np.convolve's 'valid' would swap the operands)
+        r = r[:0]
     ok = np.isfinite(r)
     rr = np.where(ok, r, 0.0)
     k = np.ones(window)
+    if rr.size == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
     return (np.convolve(rr, k, "valid"), np.convolve(rr * rr, k, "valid"), np.convolve(ok * 1.0, k, "valid"))
 
 

@@ -74,6 +74,10 @@ def test_statistic_is_scale_free_and_skips_missing_samples():
     r3 = r.copy()
     r3[:50] = np.nan  # half a window without updates: not scored
     assert np.isnan(window_mean_stat(r3, N_WIN, min_fill=0.8)[0])
+    # a run shorter than a window has no statistic and no verdict
+    assert window_mean_stat(r[:90], N_WIN).size == 0
+    short = innovation_test(r[:90])
+    assert np.isnan(short["stat"]) and not short["flag"]
 
 
 def test_correlated_sequence_is_flagged_and_its_statistic_matches_the_ar1_variance():

@@ -240,7 +240,9 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
     # self-normalised innovation mean, and whether it exceeds the test's threshold
     if "innov" in res.est:
         it = innovation_test(res.est["innov"][sl])
-        out["innovation_stat"], out["innovation_flag"] = it["stat"], float(it["flag"])
+        # no full window (a run shorter than the window): no verdict, left out of the flag rate
+        out["innovation_stat"] = it["stat"]
+        out["innovation_flag"] = float(it["flag"]) if math.isfinite(it["stat"]) else float("nan")
     W = trial.platform.weight
     t_inf = trial.schedule.times[1] if len(trial.schedule.times) > 1 else trial.duration
     win = (res.t >= t_inf - 1.0) & (res.t < t_inf) & (res.truth["h"] > 0.5e-3)
