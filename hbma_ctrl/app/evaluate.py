@@ -315,6 +315,8 @@ def aggregate(results: list[TrialResult]) -> dict:
     out = {k: float(np.nanmean(v)) for k, v in S.items()}
     ratio = S["height_nrmsd"] / S["height_nrmsd_open_loop"]
     fse = np.array([r.scores["force_steady_rel_err"] for r in results], dtype=float)
+    flagged = np.array([r.scores.get("innovation_flag", np.nan) for r in results], dtype=float)
+    flagged = flagged[np.isfinite(flagged)]  # runs with a verdict (estimators.innovation)
     # per scenario (the protocol's t0 x r1 x load cell, mean over speeds and seeds; trials whose
     # membrane never lifts have no NRMSD and are left out)
     cells: dict = {}
@@ -335,8 +337,7 @@ def aggregate(results: list[TrialResult]) -> dict:
         "worst_ratio_trial": results[int(np.nanargmax(ratio))].name if np.any(np.isfinite(ratio)) else None,
         "force_steady_rel_err_mean": float(np.nanmean(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         # share of the trials whose innovations the model-form test flags (estimators.innovation)
-        "innovation_flag_rate": float(np.nanmean([r.scores.get("innovation_flag", np.nan) for r in results]))
-        if any("innovation_flag" in r.scores for r in results) else float("nan"),
+        "innovation_flag_rate": float(np.mean(flagged)) if flagged.size else float("nan"),
         "force_steady_rel_err_max": float(np.nanmax(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         "rig_status": {s: sum(r.scores["rig_status"] == s for r in results)
                        for s in sorted({r.scores["rig_status"] for r in results})},
