@@ -100,6 +100,9 @@ class FilterSettings:
         covariance is inflated until the reading's NIS equals ``gate_nis`` (by at most
         ``INFLATION_MAX``) and the reading is used, and so on until a reading passes unaided (a real
         fast transient, e.g. a load slammed on, cannot lock the filter out).
+    membrane : the model's membrane law, 'cap' (the spherical cap, README Model §3) or 'exact' (the
+        exact axisymmetric membrane's tables in the cap's chart, README Model §9; the first use of a
+        material builds its table, then it loads from the disk cache).
     max_gap : longest time, s, a step predicts over, [sample_period, 3600]: after a longer gap (a
         paused stream, a wall-clock timestamp) the filter predicts ``max_gap`` only and widens the
         covariance by its initial spread (the commands during the gap are unknown).
@@ -145,6 +148,7 @@ class FilterSettings:
     gate_nis: float = 400.0
     gate_reopen: int = 5
     max_gap: float = 1.0
+    membrane: str = "cap"
 
     def validate(self) -> "FilterSettings":
         w = "estimator"
@@ -194,6 +198,8 @@ class FilterSettings:
                 not 1 <= self.gate_reopen <= 1000:
             raise ValueError(f"{w}.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
         check_range(w, "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
+        if self.membrane not in ("cap", "exact"):
+            raise ValueError(f"{w}.membrane = {self.membrane!r}: allowed cap, exact")
         if not isinstance(self.compile, bool):
             raise ValueError(f"{w}.compile = {self.compile!r} must be true or false")
         return self

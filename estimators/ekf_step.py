@@ -49,6 +49,7 @@ import numpy as np
 from estimators.common import FilterSettings
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel
+from hbma_ctrl.models.reduced import law_key
 
 __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
@@ -92,7 +93,7 @@ _STEP_CACHE: dict = {}
 
 def _model_key(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> tuple:
     return (type(actuator.material), str(pneumatics.csv_path), s.sample_period, s.integrator, s.nsub,
-            s.newton)
+            s.newton, law_key(actuator, pneumatics, s.membrane))
 
 
 def observer_model(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> ObserverModel:
@@ -100,7 +101,8 @@ def observer_model(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings
     compressor map and integration settings, numeric parameters (``theta``) the actuator's."""
     key = _model_key(actuator, pneumatics, s)
     if key not in _MODEL_CACHE:
-        _MODEL_CACHE[key] = ObserverModel(actuator, pneumatics, s.sample_period, s.integrator, s.nsub, s.newton)
+        _MODEL_CACHE[key] = ObserverModel(actuator, pneumatics, s.sample_period, s.integrator, s.nsub, s.newton,
+                                          membrane=s.membrane)
     return _MODEL_CACHE[key].rebind(actuator, pneumatics)
 
 

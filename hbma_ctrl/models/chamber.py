@@ -25,6 +25,12 @@ differentiation through the integrator and the Newton iterations), ``H = dp/dx``
 prediction ``sym(A P A^T + Q)``; another the Joseph-form update; a third the outputs (h1, h2, h, F,
 p) with their Jacobian by the implicit-function rule (``dh/dx = -r_h^-1 r_x`` for the constraint
 residual r) and covariance ``D P D^T``. All are compiled to C (:mod:`hbma_ctrl.core.codegen`).
+
+The membrane law (``membrane``): the spherical cap (README Model §1, §3) or the exact axisymmetric
+membrane (README Model §9) as the same tabulated ratios to the cap in the (h1, h2) chart as an exact
+rig (:class:`hbma_ctrl.models.fidelity.ExactQuasiStatic`): pressure, volume, contact force and the
+flat point all come from the chamber's ``law``, so the Newton projection, the dynamics and the
+Jacobians (by AD through the bspline interpolants) are those of the exact membrane, in one model.
 """
 
 from __future__ import annotations
@@ -35,7 +41,6 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.reduced import EPS_K, ReducedChamber, shape_newton
 
@@ -91,14 +96,16 @@ class ObserverModel:
     ----------
     actuator, pneumatics : the nominal (believed) parameters, SI.
     dt : sample period, s; integrator : 'euler' | 'rk4'; nsub : sub-steps per sample;
-    newton : Newton iterations of the shape projection per sub-step.
+    newton : Newton iterations of the shape projection per sub-step;
+    membrane : 'cap' | 'exact', the membrane law (module docstring; ignored when ``chamber`` is given).
     """
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, dt: float, integrator: str = "rk4",
-                 nsub: int = 2, newton: int = 2, chamber: ReducedChamber | None = None):
+                 nsub: int = 2, newton: int = 2, chamber: ReducedChamber | None = None, membrane: str = "cap"):
         if integrator not in ("euler", "rk4"):
             raise ValueError(f"estimator.integrator = '{integrator}': allowed euler, rk4")
-        self.chamber = chamber or ReducedChamber(actuator, pneumatics)
+        self.chamber = chamber or ReducedChamber(actuator, pneumatics, membrane)
+        self.membrane = self.chamber.membrane
         self.dt, self.integrator, self.nsub, self.newton = float(dt), integrator, int(nsub), int(newton)
         self._bind()
         self._build()
@@ -145,9 +152,9 @@ class ObserverModel:
         p_rest = m * rt / P["V0"] - P["p_env"]
         # below REST_EPS the membrane counts as flat even without a load (the origin is singular)
         rest = ca.logic_or(ca.pi * P["r1"] ** 2 * p_rest <= ca.fmax(W, REST_EPS), hold > 0.5)
-        hf = ph.flat_h1_from_pressure(p_rest, P)
+        hf = self.chamber.fidelity.flat_h1(p_rest, P)
         # leaving rest (guess flat) starts from the flat membrane; Newton on the contact branch
-        c1, c2 = shape_newton(m, W, h1, h2, P, iters)
+        c1, c2 = shape_newton(m, W, h1, h2, P, iters, self.chamber.law)
         return ca.if_else(rest, hf, c1), ca.if_else(rest, hf, c2), rest
 
     def _meas(self, x, h1, h2, rest, Pbase):
@@ -161,10 +168,9 @@ class ObserverModel:
         P = self._with_state(Pbase, xs)
         rt = P["R"] * P["T"]
         area = ca.pi * P["r1"] ** 2
-        G = ph.gas_pv(hs[0], hs[1], P)
-        geo = ph.geometry(hs[0], hs[1], P)
-        p_c = ph.pressure(hs[0], hs[1], P)
-        F = ca.pi * geo["a2"] * p_c
+        p_c, V_c, _, a2 = self.chamber.law(hs[0], hs[1], P)
+        G = (p_c + P["p_env"]) * V_c
+        F = ca.pi * a2 * p_c
         r = ca.vertcat(G - P["m"] * rt, F + EPS_K * hs[1] - P["W"])
         o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
         r_h = ca.jacobian(r, hs)
@@ -172,7 +178,7 @@ class ObserverModel:
         dh = -ca.solve(r_h, ca.jacobian(r, xs))
         D_c = ca.jacobian(o_c, xs) + ca.mtimes(ca.jacobian(o_c, hs), dh)
         p_rest = P["m"] * rt / P["V0"] - P["p_env"]
-        hf = ph.flat_h1_from_pressure(p_rest, P)
+        hf = self.chamber.fidelity.flat_h1(p_rest, P)
         # flat under a plate: h = 0; with no plate to rest on (W -> 0, below REST_EPS) the membrane
         # is a free cap of height hf -- blended linearly in W so the Jacobian stays finite
         free = 1 - ca.fmin(P["W"] / REST_EPS, 1)

@@ -25,10 +25,14 @@ import numpy as np
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.fidelity import QuasiStatic, make_fidelity, shape_jacobian
+from hbma_ctrl.models.fidelity import QuasiStatic, cap_law, make_exact_loaded, make_fidelity, shape_jacobian
 from hbma_ctrl.models.shape import ShapeSolver
 
-__all__ = ["ReducedChamber", "shape_newton", "EPS_K", "FACTOR_NAMES"]
+__all__ = ["ReducedChamber", "shape_newton", "EPS_K", "FACTOR_NAMES", "MEMBRANES", "law_key"]
+
+#: membrane laws a reduced chamber can use: the spherical cap (README Model §1, §3) or the exact
+#: axisymmetric membrane's flat-plate contact in the cap's chart (README Model §9)
+MEMBRANES = ("cap", "exact")
 
 #: the three chamber factors: pump flow, modulus, dead volume (-)
 FACTOR_NAMES = ("b", "k", "c")
@@ -37,16 +41,27 @@ FACTOR_NAMES = ("b", "k", "c")
 EPS_K = 1.0
 
 
-def shape_newton(m, W, h1, h2, P: dict, iters: int):
+def law_key(actuator: Actuator, pneumatics: Pneumatics, membrane: str) -> tuple:
+    """What a model's casadi Functions depend on beyond the material family: the membrane law and, for
+    'exact', its table (one per material shape: two Mooney-Rivlin chambers with other C2/C1 ratios
+    need two), for caches of built Functions."""
+    if membrane == "cap":
+        return ("cap",)
+    fid = make_exact_loaded("quasi_static", actuator.material, str(pneumatics.csv_path))
+    return ("exact", id(fid))  # the fidelity is cached (kept alive) per material shape: its id is stable
+
+
+def shape_newton(m, W, h1, h2, P: dict, iters: int, law=cap_law):
     """Casadi Newton on ``G(h1, h2) = m R T``, ``F(h1, h2) + EPS_K h2 = W`` from (h1, h2) (m).
 
     m gas mass (kg), W load (N), P the (symbolic) parameters; Cramer's rule on the 2x2, a step
     limited to half the cap height so the iterate stays in the chart. Symbolic throughout, so the
-    estimators differentiate through it.
+    estimators differentiate through it. ``law(h1, h2, P) -> (p, V, lam, a2)`` is the membrane law
+    (the cap's by default; a fidelity's ``contact_law``).
     """
     rt = P["R"] * P["T"]
     for _ in range(iters):
-        G, F, J = shape_jacobian(h1, h2, P)
+        G, F, J = shape_jacobian(h1, h2, P, law)
         J = ca.SX(J)
         J[1, 1] = J[1, 1] + EPS_K
         r0, r1 = G - m * rt, F + EPS_K * h2 - W
@@ -67,17 +82,27 @@ class ReducedChamber:
     """One chamber's reduced model with its nominal parameters bound (SI).
 
     actuator, pneumatics : the nominal (believed) chamber and supply, never a rig's mismatched ones.
+    membrane : the membrane law, one of :data:`MEMBRANES`: 'cap' (default) or 'exact' (the quasi-static
+        fidelity on the exact flat-plate contact tables, :func:`hbma_ctrl.models.fidelity.make_exact_loaded`:
+        the same law as an exact rig, built once per material and cached on disk).
 
-    Attributes: ``fidelity`` (the quasi-static plant model the dynamics come from), ``space`` (its
+    Attributes: ``membrane``, ``law`` (the fidelity's ``contact_law(h1, h2, P) -> (p, V, lam, a2)``), ``fidelity`` (the quasi-static plant model the dynamics come from), ``space`` (its
     parameter layout), ``theta`` (parameter vector), ``params`` (the same as a dict of floats),
     ``rt`` = R T (J/kg), ``area`` = pi r1^2 (m^2), ``x_scale`` = p_env V0 / (R T) (kg: the gas
-    mass of the unpressurised dead volume), ``shapes`` (the numeric :class:`ShapeSolver`).
+    mass of the unpressurised dead volume), ``shapes`` (the numeric :class:`ShapeSolver`, on the cap's law
+    whatever ``membrane``: the controllers' tables use it).
     """
 
-    def __init__(self, actuator: Actuator, pneumatics: Pneumatics):
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, membrane: str = "cap"):
+        if membrane not in MEMBRANES:
+            raise ValueError(f"membrane = '{membrane}': allowed {', '.join(MEMBRANES)}")
         self.actuator = actuator
         self.pneumatics = pneumatics
-        self.fidelity: QuasiStatic = make_fidelity("quasi_static", actuator.material, str(pneumatics.csv_path))
+        self.membrane = membrane
+        csv = str(pneumatics.csv_path)
+        self.fidelity: QuasiStatic = (make_exact_loaded("quasi_static", actuator.material, csv) if membrane == "exact"
+                                      else make_fidelity("quasi_static", actuator.material, csv))
+        self.law = self.fidelity.contact_law
         self.space = self.fidelity.space
         self.theta = self.space.values(actuator, pneumatics, Platform())
         self.params = {n: float(v) for n, v in zip(self.space.names, self.theta)}
@@ -91,7 +116,7 @@ class ReducedChamber:
         the parameters are the same)."""
         if np.array_equal(self.theta, self.space.values(actuator, pneumatics, Platform())):
             return self
-        return ReducedChamber(actuator, pneumatics)
+        return ReducedChamber(actuator, pneumatics, self.membrane)
 
     # --- symbolic pieces -----------------------------------------------------------------------
     def symbols(self) -> tuple[ca.SX, dict]:
@@ -134,5 +159,5 @@ class ReducedChamber:
         """Gas mass (kg) at gauge pressure p (Pa) in the nominal chamber with shape (h1, h2) (m)."""
         P = dict(self.params)
         P["material"] = self.actuator.material
-        V = float(ph.geometry(h1, h2, P)["V"])
+        V = float(self.law(h1, h2, P)[1])
         return (p + self.actuator.p_env) * V / self.rt

@@ -51,6 +51,7 @@ class EstimatorTable(Table):
     compile: bool = flag(True, "compile the filter model to C")
     load_prior: Literal["unknown", "nominal"] = choice("unknown", "learn the load or start at the nominal")
     load_prior_rel_std: float = num(0.1, 0.0, 10.0, "-", "relative sigma of the nominal load prior")
+    membrane: Literal["cap", "exact"] = choice("cap", "the filter model's membrane law (README Model §9)")
 
     def to_section(self) -> EstimatorSection:
         """The SI section; the tuning is checked against a default rig now, as before."""
@@ -81,4 +82,5 @@ _TUNING = {
     "compile": ("compile", as_is),
     "load_prior": ("load_prior", as_is),
     "load_prior_rel_std": ("load_prior_rel_std", float),
+    "membrane": ("membrane", as_is),
 }
