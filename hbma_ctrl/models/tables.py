@@ -41,13 +41,12 @@ import numpy as np
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.fidelity import make_exact_loaded
-from hbma_ctrl.models.reduced import ReducedChamber
+from hbma_ctrl.models.reduced import MEMBRANES, ReducedChamber
 from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
 
+#: MEMBRANES (from :mod:`hbma_ctrl.models.reduced`): the membrane laws a prediction model can be
+#: tabulated from, the same as the observer model's
 __all__ = ["PredictionModel", "MEMBRANES", "exact_shape_solver"]
-
-#: the membrane laws a prediction model can be tabulated from
-MEMBRANES = ("cap", "exact")
 
 
 class _ExactShapeSolver(ShapeSolver):
