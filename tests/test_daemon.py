@@ -540,6 +540,11 @@ def test_chamber_on_the_serial_link_settles_where_it_does_on_sim_within_0p3mm(tm
             stats = loop.run()
         finally:
             rig.close()
+        # the SAFE line close() sent is read by the firmware's thread, which a loaded machine may
+        # not have run yet: wait for it (at most 2 s) before stopping the firmware
+        deadline = time.monotonic() + 2.0
+        while fw.mode != "SAFE" and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         fw.close()
     assert stats["safe_exit"] and stats["faults"] == {}, stats
