@@ -57,6 +57,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.params import check_range
 
 __all__ = ["RobotMPCSettings", "RobotNMPC"]
@@ -79,7 +80,10 @@ class RobotMPCSettings:
     offline runs (scenes, tests, benchmarks) stay reproducible whatever the machine's load; a
     real-time loop (the rig daemon) sets it, e.g. 0.7; integrator :
     'euler' (default: one gas-mass step per stage; the flow is smooth over 20 ms and it costs a
-    quarter of rk4, which decides the 20 ms budget) or 'rk4'.
+    quarter of rk4, which decides the 20 ms budget) or 'rk4'; lin_every : the dynamics and outputs
+    are linearised at every lin_every-th stage of the plan, that linearisation standing for the
+    stages up to the next one, [1, 10] (1: at every stage; the linearisation is most of a step's
+    work after the QP).
     """
 
     sample_period: float = 0.01
@@ -97,6 +101,7 @@ class RobotMPCSettings:
     eps: float = 1e-4
     budget: float = 0.0
     integrator: str = "euler"
+    lin_every: int = 1
 
     def validate(self) -> "RobotMPCSettings":
         check_range("robot_mpc", "sample_period", self.sample_period, 1e-3, 1.0, "s")
@@ -111,6 +116,8 @@ class RobotMPCSettings:
             raise ValueError(f"robot_mpc.max_iter = {self.max_iter!r} must be an integer >= 1")
         check_range("robot_mpc", "eps", self.eps, 1e-8, 1e-1)
         check_range("robot_mpc", "budget", self.budget, 0.0, 10.0)
+        if not isinstance(self.lin_every, int) or isinstance(self.lin_every, bool) or not 1 <= self.lin_every <= 10:
+            raise ValueError(f"robot_mpc.lin_every = {self.lin_every!r} must be an integer in [1, 10]")
         if self.integrator not in ("euler", "rk4"):
             raise ValueError(f"robot_mpc.integrator = '{self.integrator}': allowed euler, rk4")
         return self
@@ -173,7 +180,14 @@ class RobotNMPC:
         self.n = n
         self.topology = model.topology
         N = self.s.horizon
-        self._lin = model.mapped(model.linearisation(self.s.dt, 1, self.s.integrator), n * (N + 1))
+        L = self.s.lin_every
+        self._anchor = (np.arange(N + 1) // L) * L  # each stage's linearisation point
+        self._anchor_pts = np.unique(self._anchor)
+        self._expand = np.searchsorted(self._anchor_pts, self._anchor)
+        self._lin = model.mapped(model.linearisation(self.s.dt, 1, self.s.integrator), n * self._anchor_pts.size)
+        # called through preallocated buffers: a casadi call with numpy arguments converts each of its
+        # 7 outputs (n (N + 1) values each) to DM and back, a tenth of the call
+        self._lin_call = FastFunction(self._lin, compile=False)
         self._build_pattern()
         self.xbar = None
         self.abar = np.zeros((n, N))
@@ -307,26 +321,31 @@ class RobotNMPC:
             self.abar = np.hstack([self.abar[:, 1:], self.abar[:, -1:]])
             self.obar = np.hstack([self.obar[:, 1:], self.obar[:, -1:]])
         self.xbar[:, 0] = x0
-        xl = self.xbar.reshape(1, -1)
-        wl = np.vstack([np.hstack([self.abar, self.abar[:, -1:]]).reshape(-1),
-                        np.hstack([self.obar, self.obar[:, -1:]]).reshape(-1)])
-        Wl = np.repeat(W, N + 1)[None, :]
-        bl = np.repeat(b, N + 1)[None, :]
-        out = self._lin(xl, wl, Wl, bl, np.repeat(k, N + 1)[None, :], np.repeat(c, N + 1)[None, :])
-        xn, Ax, Bw, h, Hx, p, Px = (np.asarray(o) for o in out)
-        xn = xn.reshape(n, N + 1)
-        Ax = Ax.reshape(n, N + 1)
+        # linearisation points: every stage, or (lin_every = L > 1) every L-th, whose linearisation
+        # stands for the next L - 1 stages too (``anc``: each stage's point)
+        anc, na = self._anchor, self._anchor_pts.size
+        aext = np.hstack([self.abar, self.abar[:, -1:]])[:, anc]
+        oext = np.hstack([self.obar, self.obar[:, -1:]])[:, anc]
+        xlin = self.xbar[:, anc]
+        pts = self._anchor_pts
+        xl = self.xbar[:, pts].reshape(-1)
+        wl = np.vstack([aext[:, pts].reshape(-1), oext[:, pts].reshape(-1)])
+        rep = lambda v: np.repeat(v, na)  # noqa: E731
+        xn, Ax, Bw, h, Hx, p, Px = self._lin_call(xl, wl, rep(W), rep(b), rep(k), rep(c))
+        ex = self._expand  # (n, na) -> (n, N + 1) by each stage's point
+        xn = xn.reshape(n, na)[:, ex]
+        Ax = Ax.reshape(n, na)[:, ex]
         Bw = Bw.reshape(-1, 2)  # the map lays the 1x2 Jacobians side by side
-        Ba, Bo = Bw[:, 0].reshape(n, N + 1), Bw[:, 1].reshape(n, N + 1)
-        h = h.reshape(n, N + 1) * 1e3
-        Hx = Hx.reshape(n, N + 1) * 1e3
-        p = p.reshape(n, N + 1)
-        Px = Px.reshape(n, N + 1)
+        Ba, Bo = Bw[:, 0].reshape(n, na)[:, ex], Bw[:, 1].reshape(n, na)[:, ex]
+        h = h.reshape(n, na)[:, ex] * 1e3
+        Hx = Hx.reshape(n, na)[:, ex] * 1e3
+        p = p.reshape(n, na)[:, ex]
+        Px = Px.reshape(n, na)[:, ex]
         # --- cost
         wk = np.full(N, s.w_h)
         wk[-1] *= s.w_terminal
         Hs = Hx[:, 1:]
-        r = h[:, 1:] - Hs * self.xbar[:, 1:] - href_mm  # h_lin = Hs x + r
+        r = h[:, 1:] - Hs * xlin[:, 1:] - href_mm  # h_lin = Hs x + r
         Pdiag_x = 2 * wk * Hs ** 2 + 1e-6
         q_x = 2 * wk * Hs * r
         nb = 3 * N + 1
@@ -347,9 +366,9 @@ class RobotNMPC:
                                                  (n, 4 * N - 1))]).reshape(-1)
         # --- constraints: the per-chamber value rows of _Apat's entry order, filled by column blocks
         pmax = s.p_max - s.p_margin
-        xb = self.xbar
+        xb = xlin
         Aab = Ax[:, :N]
-        c = xn[:, :N] - Aab * xb[:, :N] - Ba[:, :N] * self.abar - Bo[:, :N] * self.obar
+        c = xn[:, :N] - Aab * xb[:, :N] - Ba[:, :N] * aext[:, :N] - Bo[:, :N] * oext[:, :N]
         rhs = c.copy()
         rhs[:, 0] += Aab[:, 0] * x0
         vals = np.tile(self._A_template, (n, 1))
