@@ -139,7 +139,7 @@ class _RtiC(_RtiOsqp):
 
     def solve(self, pr: _Problem) -> tuple[np.ndarray, np.ndarray]:
         """One RTI step (``rti_init_iterations`` unshifted QPs at a cold start): (X (N+1,), U (N, 3))."""
-        N, s = self.N, self.s
+        s = self.s
         par = self._par
         par[0], par[1], par[2], par[3] = pr.x0, pr.W, pr.dh, pr.dp
         par[4:7] = pr.u_prev
