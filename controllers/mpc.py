@@ -161,7 +161,7 @@ class NMPC:
     # --- helpers ---------------------------------------------------------------------------------
     def _load(self, t: float, est: Estimate) -> float:
         s = self.settings
-        F = float(est.F) if np.isfinite(est.F) else 0.0
+        F = float(est.F) if math.isfinite(est.F) else 0.0
         F = max(F, 0.0)
         resting = est.h < s.rest_height or "resting" in est.flags
         if self._W is None:
@@ -178,7 +178,7 @@ class NMPC:
     def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
         s, m = self.settings, self.model
         for name in ("h", "p"):
-            if not np.isfinite(getattr(est, name)):
+            if not math.isfinite(getattr(est, name)):
                 raise _SolverFailure(f"estimate.{name} is not finite")
         W = self._load(t, est)
         if est.h < s.rest_height:
@@ -200,20 +200,23 @@ class NMPC:
         p_lim = s.p_max - s.p_margin
         reach = m.reachable_height(W, p_lim - max(dp, 0.0), s.lam_max, s.h_max - max(dh, 0.0)) + dh
         N = s.horizon
-        rs = np.full(N, r)
+        hi = max(min(reach, s.h_max), s.h_min)
+        r_used = min(max(r, s.h_min), hi)  # (scalar min/max: np.clip on a float costs microseconds)
         if preview is not None and ref.height is not None:
+            rs = np.full(N, r)
             pv = np.asarray(preview, dtype=float).ravel()[:N]
             if pv.size == 0 or not np.all(np.isfinite(pv)):
                 raise ValueError("mpc.step: preview must be a non-empty sequence of finite heights (m)")
             rs[:pv.size] = pv
             rs[pv.size:] = pv[-1]
-        hi = max(min(reach, s.h_max), s.h_min)
-        r_c = np.clip(rs, s.h_min, hi)
-        clipped = bool(np.clip(r, s.h_min, hi) != r)
+            r_c = np.clip(rs, s.h_min, hi)
+        else:
+            r_c = np.full(N, r_used)
+        clipped = r_used != r
         if clipped:
             self.clipped_count += 1
         self.last.update({"W": W, "x0": x0, "dh": dh, "dp": dp, "reference": r,
-                          "reference_used": float(np.clip(r, s.h_min, hi)),
+                          "reference_used": r_used,
                           "reachable_height": reach, "target_clipped": clipped})
         return _Problem(x0, W, dh, dp, r_c, self._u_prev.copy(), p_lim)
 

@@ -58,7 +58,9 @@ def qp_data_function(rti: _RtiOsqp) -> ca.Function:
     lin = [rti.stage.lin(Xb[k], Uext[:, k], ca.vertcat(ca.fmax(Uext[0, k], fl), ca.fmax(Uext[1, k], fl),
                                                        Uext[2, k]), W, dp) for k in range(N + 1)]
     f, a, b, h, ch, p, cp, lam, cl = (ca.vertcat(*[ln[i] for ln in lin]) for i in range(9))  # b: (N+1) x 3
-    ok = ca.logic_and(ca.logic_and(ca.sumsqr(f) < ca.inf, ca.sumsqr(b) < ca.inf), ca.sumsqr(ch) < ca.inf)
+    # only what the QP uses: the last node's dynamics and the first node's outputs are never built
+    ok = ca.logic_and(ca.logic_and(ca.sumsqr(f[:N]) < ca.inf, ca.sumsqr(b[:N, :]) < ca.inf),
+                      ca.sumsqr(ch[1:]) < ca.inf)
     # --- P (entry order of the reference pattern), x diagonal from the Gauss-Newton height cost
     wk = np.full(N + 1, s.w_height)
     wk[0] = 0.0
