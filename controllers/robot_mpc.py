@@ -53,6 +53,7 @@ from dataclasses import dataclass
 
 import time
 
+import casadi as ca
 import numpy as np
 import osqp
 import scipy.sparse as sp
@@ -186,7 +187,12 @@ class RobotNMPC:
         self._anchor = (np.arange(N + 1) // L) * L  # each stage's linearisation point
         self._anchor_pts = np.unique(self._anchor)
         self._expand = np.searchsorted(self._anchor_pts, self._anchor)
-        self._lin = model.mapped(model.linearisation(self.s.dt, 1, self.s.integrator), n * self._anchor_pts.size)
+        lin = model.linearisation(self.s.dt, 1, self.s.integrator)
+        # with casadi's common-subexpression elimination: the table look-ups the value, the Jacobians
+        # and the outputs share are made once (half the work per point, the same values)
+        ins = [ca.SX.sym(lin.name_in(i), lin.sparsity_in(i)) for i in range(lin.n_in())]
+        lin = ca.Function("robot_lin", ins, lin(*ins), {"cse": True})
+        self._lin = model.mapped(lin, n * self._anchor_pts.size)
         # called through preallocated buffers: a casadi call with numpy arguments converts each of its
         # 7 outputs (n (N + 1) values each) to DM and back, a tenth of the call
         self._lin_call = FastFunction(self._lin, compile=False)
