@@ -127,6 +127,8 @@ class RobotMPCSettings:
 
 
 def _has_text(v) -> bool:
+    if isinstance(v, np.ndarray) and v.dtype.kind in "biuf":  # numbers (the usual case): no per-element look
+        return False
     return any(isinstance(e, (str, bytes)) for e in np.ravel(np.asarray(v, dtype=object)))
 
 
