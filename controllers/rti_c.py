@@ -137,7 +137,7 @@ class _RtiC(_RtiOsqp):
             warnings.warn("rti_c_osqp: the generated C did not compile; the QP data runs on casadi's "
                           "virtual machine (slower, same results)", RuntimeWarning, stacklevel=2)
         self._par = self.data.inp[0]  # written in place: passed as None (kept) to the call
-        self._z = np.zeros(self.nz)
+        self._z, self._shift = self.data.inp[1], self.data.inp[2]
         self._osqp = self.solver._solver  # the bound solver: update/solve without the wrapper's copies
 
     def solve(self, pr: _Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -149,28 +149,30 @@ class _RtiC(_RtiOsqp):
         par[7] = pr.p_lim
         par[8:] = pr.r
         if self.X is None:
-            z = self._z
+            z = self._z  # the data's z_prev buffer: the previous solution, or the cold start's guess
             z[:] = 0.0
             z[self.ix] = pr.x0
             z[self.iu] = pr.u_prev
             iters, shift = s.rti_init_iterations, 0.0
             self.solver.update_settings(time_limit=1e3)  # cold start: exempt from the budget
         else:
-            z, iters, shift = self._z, 1, 1.0
+            iters, shift = 1, 1.0
         try:
             for _ in range(iters):
-                z = self._qp(z, shift)
+                z = self._qp(shift)
                 shift = 0.0
         finally:
             if iters > 1:
                 self.solver.update_settings(time_limit=s.budget)
-        self._z = z
         self.X = z[self.ix]
         self.U = np.clip(z[self.iu], 0.0, 1.0)
         return self.X, self.U
 
-    def _qp(self, z: np.ndarray, shift: float) -> np.ndarray:
-        Px, Ax, q, lo, up, z0, ok = self.data(None, z, shift)
+    def _qp(self, shift: float) -> np.ndarray:
+        """One QP from the data buffers (par and z_prev already written); its solution, also left in
+        z_prev for the next call."""
+        self._shift[0] = shift
+        Px, Ax, q, lo, up, z0, ok = self.data.eval()
         if ok[0] != 1.0:
             raise _SolverFailure("non-finite linearisation")
         osqp_ = self._osqp
@@ -188,4 +190,5 @@ class _RtiC(_RtiOsqp):
             status == "maximum iterations reached" and info.prim_res < 1e-3)
         if not usable or x is None or not np.all(np.isfinite(x)):
             raise _SolverFailure(f"osqp: {status}")
-        return np.array(x)
+        self._z[:] = x
+        return self._z
