@@ -150,3 +150,27 @@ def test_robot_rmse_within_1pct_of_linearising_every_stage():
     old = bench_robot(layers=(1,), duration=2.0, mpc=RobotMPCSettings(lin_every=1, eps=1e-4, max_iter=400))[0]
     assert new["fallbacks"] == 0 and old["fallbacks"] == 0
     assert new["height_rmse_mm"] <= 1.01 * old["height_rmse_mm"]
+
+
+def test_without_a_compiler_warns_once_and_gives_the_same_data(model, monkeypatch):
+    """No C compiler: one RuntimeWarning saying so, the data on casadi's virtual machine, equal to the C."""
+    import controllers.rti_c as rc
+
+    if not rc.has_compiler():
+        pytest.skip("no C compiler on this machine: no generated C to compare the virtual machine with")
+    s = _settings("rti_c_osqp")
+    c_path = _RtiC(model, s)
+    monkeypatch.setattr(rc, "has_compiler", lambda: False)
+    with pytest.warns(RuntimeWarning, match="no C compiler") as rec:
+        vm = _RtiC(model, s)
+    assert len(rec) == 1 and vm.mode == "vm" and c_path.mode == "c"
+    N = s.horizon
+    x0 = model.x_at_height(4e-3, 0.4)
+    for b in (c_path, vm):
+        b._par[:8] = [x0, 0.4, 0.0, 0.0, 0.2, 0.4, 0.0, s.p_max - s.p_margin]
+        b._par[8:] = np.full(N, 6e-3)
+        b._z[:] = 0.0
+        b._z[b.ix] = x0
+    outs = [[o.copy() for o in b.data.eval()] for b in (c_path, vm)]
+    for got, want in zip(outs[1], outs[0]):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
