@@ -411,8 +411,11 @@ class RobotNMPC:
         cold = self._solver is None
         if cold:
             self._solver = osqp.OSQP()
+            # one Ruiz equilibration pass, not OSQP's 10: measured on bench robot's 6-layer run, 8455
+            # iterations in all instead of 13860, the slowest steps 27 % shorter (each update of P and A
+            # re-scales them too), RMSE 2.289 vs 2.286 mm (0 passes: 36835 iterations, 2.577 mm)
             kw = dict(verbose=False, eps_abs=s.eps, eps_rel=s.eps, max_iter=s.max_iter, polishing=False,
-                      warm_starting=True, adaptive_rho=True, check_termination=5)
+                      warm_starting=True, adaptive_rho=True, check_termination=5, scaling=1)
             self._solver.setup(P=self._Ppat.with_data(Pv), q=qv, A=self._Apat.with_data(Av), l=lo, u=up, **kw)
         else:
             self._solver.update(Px=Pv, Ax=Av, q=qv, l=lo, u=up)
