@@ -36,10 +36,10 @@ u, Px, Ax; never re-setup) and solved by OSQP, warm-started. The pump flow is bi
 inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point of speed
 and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
 
-``rti_c_osqp`` (the default): the same QP and OSQP solver as ``rti_osqp``, its data (the
+``rti_c_osqp``: the same QP and OSQP solver as ``rti_osqp``, its data (the
 linearisation, P and A values in OSQP's CSC order, q, l, u and the warm start) computed by ONE
 generated-C Function called through preallocated buffers (:mod:`controllers.rti_c`): the same first
-inputs to rounding, in about half the time.
+inputs to rounding, in about 60 % of the time.
 
 ``rti_fn_hpipm``, ``rti_fn_osqp``, ``rti_fn_qrqp``: the same real-time iteration as ONE casadi
 Function (:func:`controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
