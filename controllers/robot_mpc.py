@@ -130,6 +130,10 @@ class RobotMPCSettings:
         return self
 
 
+#: compiled QP data Functions of this process, by stage function, size and cost (see RobotNMPC._data_call)
+_DATA_CACHE: dict = {}
+
+
 def _has_text(v) -> bool:
     if isinstance(v, np.ndarray) and v.dtype.kind in "biuf":  # numbers (the usual case): no per-element look
         return False
@@ -200,7 +204,7 @@ class RobotNMPC:
         self._anchor_pts = np.unique(self._anchor)
         self._expand = np.searchsorted(self._anchor_pts, self._anchor)
         self._build_pattern()
-        self._data = FastFunction(self._qp_data_function(model.linearisation(self.s.dt, 1, self.s.integrator)))
+        self._data = self._data_call(model.linearisation(self.s.dt, 1, self.s.integrator))
         self.xbar = None
         self.abar = np.zeros((n, N))
         self.obar = np.zeros((n, N))
@@ -289,6 +293,18 @@ class RobotNMPC:
         self._A_template = np.array(tmpl)
         self._A_pos_a, self._A_pos_ba, self._A_pos_bo, self._A_pos_px = (
             np.array(v, dtype=np.int64) for v in (pos_a, pos_ba, pos_bo, pos_px))
+
+    def _data_call(self, lin: ca.Function) -> FastFunction:
+        """The QP data Function (compiled) through this controller's own buffers; built once per process
+        for the same stage function, size and cost (building and hashing the graph takes seconds)."""
+        s = self.s
+        key = (id(lin), self.n, self.topology, s.horizon, s.lin_every, s.w_h, s.w_terminal, s.w_in, s.r_in,
+               s.w_du, s.p_max, s.p_margin)
+        hit = _DATA_CACHE.get(key)
+        if hit is None or hit[0] is not lin:  # (the identity check: an id can be reused after a model is freed)
+            hit = (lin, FastFunction(self._qp_data_function(lin)).fun)
+            _DATA_CACHE[key] = hit
+        return FastFunction(hit[1], compile=False)
 
     def _qp_data_function(self, lin: ca.Function) -> ca.Function:
         """The QP's values from the step's data, as ONE Function generated as C (cached on disk):
