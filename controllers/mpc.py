@@ -36,6 +36,11 @@ u, Px, Ax; never re-setup) and solved by OSQP, warm-started. The pump flow is bi
 inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point of speed
 and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
 
+``rti_c_osqp``: the same QP and OSQP solver as ``rti_osqp``, its data (the
+linearisation, P and A values in OSQP's CSC order, q, l, u and the warm start) computed by ONE
+generated-C Function called through preallocated buffers (:mod:`controllers.rti_c`): the same first
+inputs to rounding, in about 60 % of the time.
+
 ``rti_fn_hpipm``, ``rti_fn_osqp``, ``rti_fn_qrqp``: the same real-time iteration as ONE casadi
 Function (:func:`controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
 inside casadi by HPIPM / OSQP / qrqp, first input), called once per step through preallocated
@@ -156,7 +161,7 @@ class NMPC:
     # --- helpers ---------------------------------------------------------------------------------
     def _load(self, t: float, est: Estimate) -> float:
         s = self.settings
-        F = float(est.F) if np.isfinite(est.F) else 0.0
+        F = float(est.F) if math.isfinite(est.F) else 0.0
         F = max(F, 0.0)
         resting = est.h < s.rest_height or "resting" in est.flags
         if self._W is None:
@@ -173,7 +178,7 @@ class NMPC:
     def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
         s, m = self.settings, self.model
         for name in ("h", "p"):
-            if not np.isfinite(getattr(est, name)):
+            if not math.isfinite(getattr(est, name)):
                 raise _SolverFailure(f"estimate.{name} is not finite")
         W = self._load(t, est)
         if est.h < s.rest_height:
@@ -195,20 +200,23 @@ class NMPC:
         p_lim = s.p_max - s.p_margin
         reach = m.reachable_height(W, p_lim - max(dp, 0.0), s.lam_max, s.h_max - max(dh, 0.0)) + dh
         N = s.horizon
-        rs = np.full(N, r)
+        hi = max(min(reach, s.h_max), s.h_min)
+        r_used = min(max(r, s.h_min), hi)  # (scalar min/max: np.clip on a float costs microseconds)
         if preview is not None and ref.height is not None:
+            rs = np.full(N, r)
             pv = np.asarray(preview, dtype=float).ravel()[:N]
             if pv.size == 0 or not np.all(np.isfinite(pv)):
                 raise ValueError("mpc.step: preview must be a non-empty sequence of finite heights (m)")
             rs[:pv.size] = pv
             rs[pv.size:] = pv[-1]
-        hi = max(min(reach, s.h_max), s.h_min)
-        r_c = np.clip(rs, s.h_min, hi)
-        clipped = bool(np.clip(r, s.h_min, hi) != r)
+            r_c = np.clip(rs, s.h_min, hi)
+        else:
+            r_c = np.full(N, r_used)
+        clipped = r_used != r
         if clipped:
             self.clipped_count += 1
         self.last.update({"W": W, "x0": x0, "dh": dh, "dp": dp, "reference": r,
-                          "reference_used": float(np.clip(r, s.h_min, hi)),
+                          "reference_used": r_used,
                           "reachable_height": reach, "target_clipped": clipped})
         return _Problem(x0, W, dh, dp, r_c, self._u_prev.copy(), p_lim)
 

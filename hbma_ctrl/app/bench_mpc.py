@@ -1,7 +1,8 @@
 """``hbma-ctrl bench mpc``: the speed/accuracy trade of the controllers on one closed-loop scenario.
 
 Every row runs the same scenario (same rig, mismatch, noise seed, EKF, targets, load) with one
-controller: the MPC variants (IPOPT and RTI-OSQP by default; the RTI step as one casadi Function,
+controller: the MPC variants (IPOPT and RTI-OSQP by default; RTI-OSQP with its QP data as one
+generated-C call, ``rti_c_osqp``; the RTI step as one casadi Function,
 ``rti_fn_hpipm`` etc., and fatrop on request) at horizons 10/20/40, the PID and bang-bang baselines, and do-mpc
 (optional extra) solving the same OCP at N = 20. For each: tracking RMSE of the true height (and of
 the estimate, which separates the controller's error from the estimator's bias), the

@@ -125,6 +125,12 @@ class FastFunction:
         self._eval()
         return self.out
 
+    def eval(self) -> list:
+        """Evaluate on the input buffers ``inp`` as they are (written in place by the caller); returns
+        the output buffers ``out``."""
+        self._eval()
+        return self.out
+
     def dense(self, i: int) -> np.ndarray:
         """Output i of the last call as a dense matrix (a copy)."""
         r, c, shape = self._dense_idx[i]
