@@ -42,11 +42,16 @@ from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
            "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_PUMP_LOW",
-           "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION"]
+           "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION", "ROBOT_PUMP_EFFORT"]
 
 #: the robot's pump test applies from below this pressure, Pa: a vented chamber (its layers are lifted
 #: at a few kPa, where pumping raises the chamber at a nearly constant pressure)
 ROBOT_PUMP_LOW = 1e3
+
+#: the robot's pump test waits for this much pumping (speed x inlet duty x time, s) before it judges
+#: the rise: a robot chamber inflating from flat raises its pressure slowly at first (p ~ h^3; a soak
+#: latched a false pump failure on 0.23 kPa from 0.97 kPa over 0.25 s at full pump)
+ROBOT_PUMP_EFFORT = 1.0
 
 #: the robot's leak test: a fall while pumping of more than this, Pa, and of more than
 #: ROBOT_LEAK_FRACTION of the pressure it fell from (normal work, four soaks: at most 11 kPa and 35 %)
@@ -417,7 +422,7 @@ def make_monitor(cfg: DaemonConfig, runner):
         # readings averaged over 2 periods, not 5: a burst's fall is over in a few periods, and the
         # NMPC, reading it as a rising membrane, opens the outlet (which ends the pumping the test needs)
         leak = {"leak_drop": ROBOT_LEAK_DROP, "leak_fraction": ROBOT_LEAK_FRACTION, "pump_low": ROBOT_PUMP_LOW,
-                "smooth_periods": 2}
+                "pump_effort": ROBOT_PUMP_EFFORT, "smooth_periods": 2}
     else:
         sensor = chamber_rig_settings(cfg).sensor_range
     return SafetyMonitor(MonitorSettings(p_max=cap, sensor_range=sensor, sample_period=cfg.period,
