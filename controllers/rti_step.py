@@ -67,11 +67,6 @@ Outputs:
 
 from __future__ import annotations
 
-import hashlib
-import os
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 
 import casadi as ca
@@ -79,7 +74,7 @@ import numpy as np
 
 from controllers.mpc_settings import MPCSettings
 from controllers.mpc_solvers import _SolverFailure, _Stage
-from hbma_ctrl.core.codegen import FastFunction, cache_dir, compiled
+from hbma_ctrl.core.codegen import FastFunction, compiled
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["QP_SOLVERS", "compiled_step", "rti_step_function"]
@@ -284,31 +279,7 @@ def compiled_step(fun: ca.Function, qp_solver: str, opt: str = "-O1") -> ca.Func
     loaded by ``casadi.external``; the library is cached under :func:`hbma_ctrl.core.codegen.cache_dir`
     keyed by the SHA-1 of the source and flags (compiled once per machine, about 20 s). None when
     there is no compiler or the build fails (the caller falls back to casadi's virtual machine)."""
-    cc = next((c for c in ("cc", "gcc", "clang") if shutil.which(c)), None)
-    if cc is None:
-        return None
-    flags = _solver_flags(qp_solver)
-    name = fun.name()
-    with tempfile.TemporaryDirectory() as tmp:
-        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
-        cg.add(fun)
-        cg.generate(tmp + os.sep)
-        src_path = Path(tmp) / f"{name}.c"
-        key = hashlib.sha1(src_path.read_bytes() + " ".join([opt, *flags]).encode()).hexdigest()[:16]
-        d = cache_dir()
-        d.mkdir(parents=True, exist_ok=True)
-        lib = d / f"{name}_{key}.so"
-        if not lib.exists():
-            out = Path(tmp) / "out.so"
-            res = subprocess.run([cc, opt, "-fPIC", "-shared", str(src_path), "-o", str(out), *flags, "-lm"],
-                                 capture_output=True, text=True)
-            if res.returncode != 0:
-                return None
-            fd, part = tempfile.mkstemp(dir=d, suffix=".so.part")
-            os.close(fd)
-            shutil.copyfile(out, part)
-            os.replace(part, lib)  # atomic: parallel processes never load half a library
-    return ca.external(name, str(lib))
+    return compiled(fun, opt, flags=_solver_flags(qp_solver), on_failure="none")
 
 
 class _RtiFunction:

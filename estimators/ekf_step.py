@@ -48,7 +48,7 @@ import numpy as np
 
 from estimators.common import FilterSettings
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel
+from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel, min_pivot
 from hbma_ctrl.models.reduced import law_key
 
 __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
@@ -122,17 +122,7 @@ def _pivot_function() -> ca.Function:
     its eigenvalue floor (the test :func:`estimators.common.guard_cov` makes by a Cholesky factor)."""
     P = ca.SX.sym("P", NX, NX)
     fl = ca.SX.sym("floor")
-    M = P / ca.DM(np.outer(STATE_SCALE, STATE_SCALE)) - fl * ca.SX.eye(NX)
-    L = [[None] * NX for _ in range(NX)]
-    d = []
-    for j in range(NX):
-        dj = M[j, j] - sum(L[j][k] ** 2 * d[k] for k in range(j))
-        d.append(dj)
-        for i in range(j + 1, NX):
-            L[i][j] = (M[i, j] - sum(L[i][k] * L[j][k] * d[k] for k in range(j))) / dj
-    out = d[0]
-    for v in d[1:]:
-        out = ca.fmin(out, v)
+    out = min_pivot(P, fl)
     return ca.Function("ekf_min_pivot", [P, fl], [out])
 
 

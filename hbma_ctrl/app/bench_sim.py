@@ -129,57 +129,46 @@ def _ref_key(trials: list[Trial], fidelity: str) -> str:
     return hashlib.sha256("\n".join(spec).encode()).hexdigest()[:20]
 
 
-def reference(trials: list[Trial], fidelity: str, out_dir: Path, workers: int = 1,
-              progress: bool = False) -> dict[str, dict[str, np.ndarray]]:
-    """Radau reference (t, h, p per trial name), cached in out_dir/ref_<fidelity>.npz."""
-    path = out_dir / f"ref_{fidelity}.npz"
-    key = _ref_key(trials, fidelity)
+def _cached_reference(trials: list[Trial], path: Path, key_tag: str, s: SimSettings, fidelity: str,
+                      workers: int, progress: bool, label: str) -> dict[str, dict[str, np.ndarray]]:
+    """(t, h, p) per trial name from ``s`` at ``fidelity``, cached at ``path`` (npz keyed by the trials
+    and ``key_tag``: a changed trial set or setting recomputes it); RuntimeError when a trial diverges."""
+    key = _ref_key(trials, key_tag)
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
             if str(z["key"]) == key:
                 return {n: {"t": z[f"{n}/t"], "h": z[f"{n}/h"], "p": z[f"{n}/p"]} for n in z["names"]}
-    s = SimSettings(integrator="radau", log_dt=LOG_DT, rtol=REF_RTOL, atol=1e-8)
     t0 = time.perf_counter()
-    logs = simulate_trials(trials, s, fidelity, workers, progress, label=f"reference radau ({fidelity})")
+    logs = simulate_trials(trials, s, fidelity, workers, progress, label=label)
     wall = time.perf_counter() - t0
     bad = [log.name for log in logs if log.status == "diverged"]
     if bad:
-        raise RuntimeError(f"reference ({fidelity}) diverged for {bad}: no benchmark against it")
+        raise RuntimeError(f"{label} diverged for {bad}: no benchmark against it")
     ref = {log.name: {"t": log["t"], "h": log["h"], "p": log["p"]} for log in logs}
     arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall)}
     for n, d in ref.items():
         for k, v in d.items():
             arrays[f"{n}/{k}"] = v
-    out_dir.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
     return ref
+
+
+def reference(trials: list[Trial], fidelity: str, out_dir: Path, workers: int = 1,
+              progress: bool = False) -> dict[str, dict[str, np.ndarray]]:
+    """Radau reference (t, h, p per trial name), cached in out_dir/ref_<fidelity>.npz."""
+    s = SimSettings(integrator="radau", log_dt=LOG_DT, rtol=REF_RTOL, atol=1e-8)
+    return _cached_reference(trials, out_dir / f"ref_{fidelity}.npz", fidelity, s, fidelity, workers, progress,
+                             f"reference radau ({fidelity})")
 
 
 def exact_reference(trials: list[Trial], out_dir: Path, workers: int = 1,
                     progress: bool = False) -> dict[str, dict[str, np.ndarray]]:
     """The exact membrane's reference (t, h, p per trial name): rk4 at :data:`EXACT_REF_DT`, cached in
     out_dir/ref_exact.npz like :func:`reference`."""
-    path = out_dir / "ref_exact.npz"
-    key = _ref_key(trials, f"exact rk4 {EXACT_REF_DT!r}")
-    if path.is_file():
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["key"]) == key:
-                return {n: {"t": z[f"{n}/t"], "h": z[f"{n}/h"], "p": z[f"{n}/p"]} for n in z["names"]}
     s = SimSettings(integrator="rk4", dt=EXACT_REF_DT, log_dt=LOG_DT)
-    t0 = time.perf_counter()
-    logs = simulate_trials(trials, s, "exact", workers, progress, label="reference rk4 (exact)")
-    wall = time.perf_counter() - t0
-    bad = [log.name for log in logs if log.status == "diverged"]
-    if bad:
-        raise RuntimeError(f"reference (exact) diverged for {bad}: no benchmark against it")
-    ref = {log.name: {"t": log["t"], "h": log["h"], "p": log["p"]} for log in logs}
-    arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall)}
-    for n, d in ref.items():
-        for k, v in d.items():
-            arrays[f"{n}/{k}"] = v
-    out_dir.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **arrays)
-    return ref
+    return _cached_reference(trials, out_dir / "ref_exact.npz", f"exact rk4 {EXACT_REF_DT!r}", s, "exact", workers,
+                             progress, "reference rk4 (exact)")
 
 
 def _cpu() -> float:

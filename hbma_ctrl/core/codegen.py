@@ -21,6 +21,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import casadi as ca
@@ -48,22 +49,27 @@ def has_compiler() -> bool:
     return _compiler() is not None
 
 
-def compiled(fun: ca.Function, opt: str = "-O1") -> ca.Function:
+def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
+             on_failure: str = "fallback") -> ca.Function | None:
     """The Function compiled to a shared library (cached by source and flags), or itself without a compiler.
 
     ``opt`` is the optimisation flag; neither level enables fast-math, so results do not depend on it.
+    ``flags``: more compiler and linker flags (e.g. a QP solver's headers and library).
+    ``on_failure``: 'fallback' returns ``fun`` when there is no compiler or the build fails, 'none'
+    returns None then.
     """
     cc = _compiler()
     if cc is None:
-        return fun
+        return fun if on_failure == "fallback" else None
     name = fun.name()
+    flags = list(flags)
     with tempfile.TemporaryDirectory() as tmp:
         cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
         cg.add(fun)
         src_path = Path(tmp) / f"{name}.c"
         cg.generate(tmp + os.sep)  # a directory prefix: the process's working directory is never changed
         src = src_path.read_bytes()
-        key = hashlib.sha1(src + opt.encode()).hexdigest()[:16]
+        key = hashlib.sha1(src + " ".join([opt, *flags]).encode()).hexdigest()[:16]
         if key in _MEMO:
             return _MEMO[key]
         d = cache_dir()
@@ -71,10 +77,10 @@ def compiled(fun: ca.Function, opt: str = "-O1") -> ca.Function:
         lib = d / f"{name}_{key}.so"
         if not lib.exists():
             out = Path(tmp) / "out.so"
-            res = subprocess.run([cc, opt, "-fPIC", "-shared", str(src_path), "-o", str(out), "-lm"],
+            res = subprocess.run([cc, opt, "-fPIC", "-shared", str(src_path), "-o", str(out), *flags, "-lm"],
                                  capture_output=True, text=True)
             if res.returncode != 0:
-                return fun
+                return fun if on_failure == "fallback" else None
             fd, part = tempfile.mkstemp(dir=d, suffix=".so.part")
             os.close(fd)
             shutil.copyfile(out, part)

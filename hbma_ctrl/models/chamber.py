@@ -44,7 +44,7 @@ import numpy as np
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.reduced import EPS_K, ReducedChamber, shape_newton
 
-__all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES"]
+__all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES", "min_pivot"]
 
 #: the load W may go below zero: the physics sees max(W, 0) (a dead zone), so near no load the
 #: estimate is not pushed up by clipping (a clipped random walk drifts to a phantom load that
@@ -61,7 +61,7 @@ OUT_NAMES = ("h1", "h2", "h", "F", "p", "rest", "det", "resid")
 STATE_SCALE = np.array([1e-6, 1.0, 1.0, 1.0, 1.0])
 
 
-def _min_pivot(P, floor):
+def min_pivot(P, floor):
     """Smallest LDL^T pivot of P / (s s^T) - floor I (s = STATE_SCALE): > 0 iff every eigenvalue
     of the scaled P exceeds the floor. Closed form for the small state, no branches."""
     n = P.shape[0]
@@ -229,7 +229,7 @@ class ObserverModel:
         Pn = 0.5 * (Pn + Pn.T)
         self.predict = ca.Function(
             "ekf_predict", [y.x, y.s, y.u, y.theta, hold, Pc, qv],
-            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, _min_pivot(Pn, qv[NX + 1]))],
+            [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, min_pivot(Pn, qv[NX + 1]))],
             ["x", "s", "u", "theta", "hold", "P", "qv"],
             ["x_next", "A", "s_next", "y", "H", "P_next", "piv"])
         # Joseph-form scalar update: K = keep * P H^T / S, P+ = (I - K H) P (I - K H)^T + R K K^T;
@@ -249,7 +249,7 @@ class ObserverModel:
         Pp = ca.mtimes([IKH, Pu, IKH.T]) + Ru * ca.mtimes(K, K.T)
         Pp = 0.5 * (Pp + Pp.T)
         self.update = ca.Function("kf_update", [xu, Pu, Hu, nu, Ru, fl, keep],
-                                  [ca.densify(e) for e in (xu + K * nu, Pp, Su, _min_pivot(Pp, fl))],
+                                  [ca.densify(e) for e in (xu + K * nu, Pp, Su, min_pivot(Pp, fl))],
                                   ["x", "P", "H", "innov", "R", "floor", "keep"],
                                   ["x_post", "P_post", "S", "piv"])
         # outputs at an arbitrary state (posterior), from a warm start
