@@ -42,7 +42,7 @@ from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
            "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_PUMP_LOW",
-           "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION", "ROBOT_PUMP_EFFORT"]
+           "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION", "ROBOT_PUMP_EFFORT", "ROBOT_NOISE_MARGIN"]
 
 #: the robot's pump test applies from below this pressure, Pa: a vented chamber (its layers are lifted
 #: at a few kPa, where pumping raises the chamber at a nearly constant pressure)
@@ -52,6 +52,9 @@ ROBOT_PUMP_LOW = 1e3
 #: the rise: a robot chamber inflating from flat raises its pressure slowly at first (p ~ h^3; a soak
 #: latched a false pump failure on 0.23 kPa from 0.97 kPa over 0.25 s at full pump)
 ROBOT_PUMP_EFFORT = 1.0
+
+#: sensor noise sigmas ([rig] noise_std_kpa) between the robot NMPC's pressure bound and the limit
+ROBOT_NOISE_MARGIN = 5.0
 
 #: the robot's leak test: a fall while pumping of more than this, Pa, and of more than
 #: ROBOT_LEAK_FRACTION of the pressure it fell from (normal work, four soaks: at most 11 kPa and 35 %)
@@ -353,7 +356,10 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
         # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
         # the last plan, then the safe command), never a late command
         budget = s.mpc_budget if s.mpc_budget > 0 else DAEMON_MPC_BUDGET
-        ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=rp.pressure_limit,
+        # the NMPC works to the limit less ROBOT_NOISE_MARGIN sensor sigmas: held at the limit itself, a
+        # chamber's readings cross it on noise alone (a soak: 0.3 % of its readings, up to 45.6 of 45 kPa)
+        p_max = rp.pressure_limit - ROBOT_NOISE_MARGIN * rs.noise_std
+        ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=p_max,
                      budget=budget)
         ctrl = RobotNMPC(model, n, ms)
     else:
