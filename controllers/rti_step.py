@@ -44,7 +44,7 @@ Inputs:
 ``lam_x_guess``  nz      previous multipliers of the QP's variable bounds (dual guess; zeros at a cold start)
 ``lam_a_guess``  nc      previous multipliers of the QP's linear constraints (dual guess)
 ``shift``     1          1: a new step (the guess is shifted by one stage); 0: another iteration at
-                         the same time (the guess is used as is; cold start)
+                         the same time, the guess used unshifted (the extra iterations of a cold start)
 ============  =========  ===========================================================================
 
 nz = 8 N + 4 QP variables (stage-wise: [x_k, u_{k-1}, u_k, slack_{k+1}] for k < N, [x_N, u_{N-1}]) and

@@ -41,17 +41,8 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
-           "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_PUMP_LOW",
-           "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION", "ROBOT_PUMP_EFFORT", "ROBOT_NOISE_MARGIN"]
-
-#: the robot's pump test applies from below this pressure, Pa: a vented chamber (its layers are lifted
-#: at a few kPa, where pumping raises the chamber at a nearly constant pressure)
-ROBOT_PUMP_LOW = 1e3
-
-#: the robot's pump test waits for this much pumping (speed x inlet duty x time, s) before it judges
-#: the rise: a robot chamber inflating from flat raises its pressure slowly at first (p ~ h^3; a soak
-#: latched a false pump failure on 0.23 kPa from 0.97 kPa over 0.25 s at full pump)
-ROBOT_PUMP_EFFORT = 1.0
+           "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
+           "ROBOT_NOISE_MARGIN"]
 
 #: sensor noise sigmas ([rig] noise_std_kpa) between the robot NMPC's pressure bound and the limit
 ROBOT_NOISE_MARGIN = 5.0
@@ -422,16 +413,14 @@ def make_monitor(cfg: DaemonConfig, runner):
         # a robot chamber's pressure falls while it pumps in normal work: past its limit point and when
         # a neighbour of its layer takes over its load (four soaks: falls of up to 11 kPa, 35 % of the
         # pressure, within the leak window): the leak test is one of a burst or a leak that more than
-        # halves a pressure of at least ROBOT_LEAK_DROP / ROBOT_LEAK_FRACTION. A light layer is lifted
-        # at a few kPa: pumping then raises the chamber, not its pressure, so the pump test starts from
-        # a vented chamber only (a soak latched a false pump failure at 4.95 kPa)
-        # readings averaged over 2 periods, not 5: a burst's fall is over in a few periods, and the
-        # NMPC, reading it as a rising membrane, opens the outlet (which ends the pumping the test needs)
-        # and no pump test: a chamber inflating from flat under its layer stays near 1 kPa for seconds
-        # while it pumps (two soaks latched false pump failures: 0.23 kPa up from 0.97 kPa in 0.25 s of
-        # full pumping, then 0.28 kPa from 0.93 kPa in 1 s); a failed robot pump is not found
-        leak = {"leak_drop": ROBOT_LEAK_DROP, "leak_fraction": ROBOT_LEAK_FRACTION, "pump_low": ROBOT_PUMP_LOW,
-                "pump_effort": ROBOT_PUMP_EFFORT, "smooth_periods": 2, "pump_test": False}
+        # halves a pressure of at least ROBOT_LEAK_DROP / ROBOT_LEAK_FRACTION, on readings averaged over
+        # 2 periods, not 5 (a burst's fall is over in a few periods, and the NMPC, reading it as a rising
+        # membrane, opens the outlet, which ends the pumping the test needs). No pump test: a chamber
+        # inflating from flat under its layer stays near 1 kPa for seconds while it pumps (soaks latched
+        # false pump failures at 4.95 kPa, then 0.23 kPa up from 0.97 kPa in 0.25 s of full pumping and
+        # 0.28 kPa from 0.93 kPa in 1 s); a failed robot pump is not found
+        leak = {"leak_drop": ROBOT_LEAK_DROP, "leak_fraction": ROBOT_LEAK_FRACTION, "smooth_periods": 2,
+                "pump_test": False}
     else:
         sensor = chamber_rig_settings(cfg).sensor_range
     return SafetyMonitor(MonitorSettings(p_max=cap, sensor_range=sensor, sample_period=cfg.period,
