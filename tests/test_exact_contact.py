@@ -12,7 +12,8 @@ from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.exact import ExactMembrane
 from hbma_ctrl.models.exact_tables import RATIO_S, RATIO_U, contact_ratio_table
-from hbma_ctrl.models.fidelity import OUTPUTS, make_exact_free, make_exact_loaded
+from hbma_ctrl.models.fidelity import OUTPUTS
+from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
 from hbma_ctrl.sim.rig import Rig, RigSettings, mismatched
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import InputSchedule, SimSettings, Trial

@@ -171,7 +171,8 @@ def test_sensor_lag_reads_a_ramp_tau_late():
 
 
 def test_exact_rung_continues_past_its_table_without_a_jump():
-    from hbma_ctrl.models.fidelity import OUTPUTS, make_exact_free
+    from hbma_ctrl.models.fidelity import OUTPUTS
+    from hbma_ctrl.models.fidelity_exact import make_exact_free
 
     act = Actuator(r1=7.5e-3, t0=2e-3)
     fid = make_exact_free(act.material, str(Pneumatics().csv_path))

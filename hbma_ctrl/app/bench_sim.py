@@ -67,8 +67,8 @@ TARGET_NRMSD = 0.005
 REF_RTOL = 1e-8
 LOG_DT = 0.01
 #: the sources whose change invalidates a cached reference (paths below the package root)
-_MODEL_SOURCES = ("core/physics.py", "models/fidelity.py", "sim/simulate.py", "sim/trial.py", "core/materials.py",
-                  "core/params.py", "models/exact.py", "models/exact_tables.py")
+_MODEL_SOURCES = ("core/physics.py", "models/fidelity.py", "models/fidelity_exact.py", "sim/simulate.py",
+                  "sim/trial.py", "core/materials.py", "core/params.py", "models/exact.py", "models/exact_tables.py")
 
 
 @dataclass

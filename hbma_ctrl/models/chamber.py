@@ -28,7 +28,7 @@ residual r) and covariance ``D P D^T``. All are compiled to C (:mod:`hbma_ctrl.c
 
 The membrane law (``membrane``): the spherical cap (README Model §1, §3) or the exact axisymmetric
 membrane (README Model §9) as the same tabulated ratios to the cap in the (h1, h2) chart as an exact
-rig (:class:`hbma_ctrl.models.fidelity.ExactQuasiStatic`): pressure, volume, contact force and the
+rig (:class:`hbma_ctrl.models.fidelity_exact.ExactQuasiStatic`): pressure, volume, contact force and the
 flat point all come from the chamber's ``law``, so the Newton projection, the dynamics and the
 Jacobians (by AD through the bspline interpolants) are those of the exact membrane, in one model.
 """

@@ -25,7 +25,8 @@ import numpy as np
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.fidelity import QuasiStatic, cap_law, make_exact_loaded, make_fidelity, shape_jacobian
+from hbma_ctrl.models.fidelity import QuasiStatic, cap_law, make_fidelity, shape_jacobian
+from hbma_ctrl.models.fidelity_exact import make_exact_loaded
 from hbma_ctrl.models.shape import ShapeSolver
 
 __all__ = ["ReducedChamber", "shape_newton", "EPS_K", "FACTOR_NAMES", "MEMBRANES", "law_key"]
@@ -83,7 +84,7 @@ class ReducedChamber:
 
     actuator, pneumatics : the nominal (believed) chamber and supply, never a rig's mismatched ones.
     membrane : the membrane law, one of :data:`MEMBRANES`: 'cap' (default) or 'exact' (the quasi-static
-        fidelity on the exact flat-plate contact tables, :func:`hbma_ctrl.models.fidelity.make_exact_loaded`:
+        fidelity on the exact flat-plate contact tables, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`:
         the same law as an exact rig, built once per material and cached on disk).
 
     Attributes: ``membrane``, ``law`` (the fidelity's ``contact_law(h1, h2, P) -> (p, V, lam, a2)``), ``fidelity`` (the quasi-static plant model the dynamics come from), ``space`` (its

@@ -23,7 +23,7 @@ Nothing here re-derives physics: the grid points are the contact shapes of the o
 
 Two membrane laws (``membrane``): ``"cap"`` (the spherical cap, README Model §3, the law the
 estimators use) and ``"exact"`` (the exact axisymmetric membrane, Model §9: the same tabulated law
-the rig and the simulator's exact rung step with, :class:`hbma_ctrl.models.fidelity.ExactQuasiStatic`'s
+the rig and the simulator's exact rung step with, :class:`hbma_ctrl.models.fidelity_exact.ExactQuasiStatic`'s
 ``contact_law``, imported, not re-derived). Both are evaluated in the cap's chart (h1, h2), so the
 contact bisection, the load paths and the tables are the same code. The stretch ``lam`` (what
 ``lam_max`` limits) is the area-average stretch of the chart's shape (paper eq. 3) under both laws,
@@ -40,7 +40,7 @@ import numpy as np
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.fidelity import make_exact_loaded
+from hbma_ctrl.models.fidelity_exact import make_exact_loaded
 from hbma_ctrl.models.reduced import MEMBRANES, ReducedChamber
 from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
 

@@ -39,7 +39,8 @@ from hbma_ctrl.core.codegen import cache_dir
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.core.physics import load_compressor_table
-from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_exact_free, make_exact_loaded, make_fidelity
+from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
+from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
 from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
@@ -80,8 +81,8 @@ class RigSettings:
     integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
     membrane : membrane law: 'exact' (the exact axisymmetric membrane's tables, a law the estimators were
-        not built on: free inflation :func:`hbma_ctrl.models.fidelity.make_exact_free`, and with a load on
-        the exact flat-plate contact, :func:`hbma_ctrl.models.fidelity.make_exact_loaded`) or 'cap'
+        not built on: free inflation :func:`hbma_ctrl.models.fidelity_exact.make_exact_free`, and with a load on
+        the exact flat-plate contact, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`) or 'cap'
         (default: the spherical cap, their own law; see :data:`STRUCTURED_RIG`).
     valve_delay : the valves act this long after their command, s, [0, 0.1] (default 0; 5 ms is a small
         solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.

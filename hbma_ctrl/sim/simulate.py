@@ -27,14 +27,8 @@ from scipy.integrate import solve_ivp
 
 from hbma_ctrl.core.codegen import FastFunction, compiled
 
-from hbma_ctrl.models.fidelity import (
-    MODE_MOVING,
-    MODE_REST,
-    OUTPUTS,
-    Fidelity,
-    make_exact,
-    make_fidelity,
-)
+from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, Fidelity, make_fidelity
+from hbma_ctrl.models.fidelity_exact import make_exact
 from hbma_ctrl.models.shape import ShapeSolver
 
 __all__ = ["InputSchedule", "Trial", "SimSettings", "Log", "Plant", "simulate", "INTEGRATORS", "DEFAULT_DT"]
@@ -454,7 +448,7 @@ def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity:
              on_progress: Callable[[float], None] | None = None) -> list[Log]:
     """Simulate trials (one fidelity for all; None = each trial's default, grouped) -> logs.
     ``fidelity`` 'exact': the exact membrane (README Model §9), the platform model for loaded trials and
-    free inflation without a load (:func:`hbma_ctrl.models.fidelity.make_exact`); its logs say 'exact'.
+    free inflation without a load (:func:`hbma_ctrl.models.fidelity_exact.make_exact`); its logs say 'exact'.
     ``on_progress(t)``: called with the simulated time (s) of the current batch as it advances
     (fixed-step integrators; adaptive runs report at the end of each trial)."""
 
