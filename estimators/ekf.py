@@ -128,32 +128,29 @@ from estimators.common import (
     FilterSettings,
     classify_measurement,
     guard_cov,
-    nis_gate,
     physical_reading_bounds,
 )
+from estimators.ekf_reference import OUTPUT_INDEX as _Y
+from estimators.ekf_reference import ReferenceSteps
 from estimators.ekf_step import (
     FACTOR_RANGE,
     FLAG_BITS,
     KIND_NONE,
     KIND_OK,
     KIND_SATURATED,
-    LIFT_LOAD_ABS_STD,
-    LIFT_START_DRIFT,
     LIGHT_LOAD,
-    NO_LOAD_SIGMAS,
     ekf_step_function,
     observer_model,
 )
 from hbma_ctrl.core.codegen import FastFunction, compiled
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS, STATE_NAMES
+from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
 
 #: outputs whose covariance the filters report (rows of ``output_cov``)
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
-_Y = {n: i for i, n in enumerate(OUT_NAMES)}
 _DIAG5 = np.diag_indices(5)
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
 REPLAY_MAX = 200
@@ -210,7 +207,7 @@ def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSett
     return om, fast(om.predict, s.compile), fast(om.outputs, s.compile), om.propagate, fast(om.update, s.compile)
 
 
-class EKF:
+class EKF(ReferenceSteps):
     """Extended Kalman filter on ``x = [m, W, b, k, c]`` (see module docstring). SI throughout.
 
     ``step(t, measurement, applied_command) -> Estimate``: predicts over the periods since the
@@ -537,152 +534,6 @@ class EKF:
         c = dict(self.counts)
         c["outliers"] = c["outliers_bound"] + c["gated"]
         return c
-
-    def _advance(self, t: float, measurement, kind: str, u: np.ndarray, k: int, detect: bool,
-                 jump: bool = False) -> None:
-        """Predict k periods with u, then update with the measurement (and run the detectors)."""
-        s = self.settings
-        self._pumping = bool(u[0] > 0.0 and u[1] > 0.0)
-        for _ in range(k):
-            self._predict(u)
-        if jump:
-            self._widen_after_gap()
-        self.t = float(t)
-        self.last_nis = None
-        self.last_innovation = None
-        if kind == "ok":
-            z = float(measurement)
-            R = self._meas_var(self._p_pred)
-            nis, alpha = nis_gate(z - self._p_pred, float(self._H @ self.P @ self._H), R, s.gate_nis)
-            reopen = False
-            if alpha > 1.0:
-                self._gated += 1
-                if self._gated < s.gate_reopen:
-                    # an outlier: predict only (its innovation would drag the state off by the
-                    # reading's error, e.g. -1e9 Pa -> a 60 mm cap for seconds)
-                    self._events.add("gated")
-                    self.last_nis = nis
-                    if detect:
-                        self.counts["gated"] += 1
-                    return
-                # gate_reopen in a row: a real transient, not a glitch; use it with the prior widened
-                # (the gate stays open until a reading passes it unaided)
-                self.P = guard_cov(self.P * alpha, s.cov_floor)
-                self._events.add("gate_reopened")
-                if detect:
-                    self.counts["gate_reopened"] += 1
-                reopen = True
-            else:
-                self._gated = 0
-            prior = (self.x.copy(), self.P.copy(), self._p_pred)
-            r = self._update(z, R)
-            self.last_innovation = r
-            self.last_nis = r * r
-            if detect and not reopen and self._detect(r):
-                # a load change: redo this update with the load's variance widened, so the jump
-                # goes to the load rather than to the gas mass and the modulus
-                self.x, self.P, self._p_pred = prior
-                self.P[1, 1] += s.change_std ** 2
-                self._update(z, R)
-        elif kind == MEAS_SATURATED and self._p_pred < s.sensor_range:
-            # one-sided: the true pressure is at least the range; pull the prediction up to it.
-            # On either branch: past the model's limit point (dp/dm < 0) the pull takes gas out
-            # and stiffens the membrane, which is what a rig still saturated there says (its
-            # peak is higher; left alone the model runs away along its far branch)
-            self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
-
-    def _replay_from_snapshot(self) -> None:
-        """Re-filter the samples since the detector's sum left zero with the membrane lifted.
-
-        The detector needs several samples to be sure; filtered as flat, those samples push the
-        lifted membrane's extra volume into the flow factor and the modulus (which then bias the
-        height for as long as nothing excites them again). From the posterior before the lift-off,
-        the lift-off is applied there and the samples are replayed with the contact model."""
-        if self._snap is None or not self._replay:
-            return
-        W, PW = float(self.x[1]), float(self.P[1, 1])
-        self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post = self._snap
-        self.x, self.P, self.s = self.x.copy(), self.P.copy(), self.s.copy()
-        self._lift_off(detected=False, load=(W, PW))
-        events = self._events
-        for (t, z, kind, u, k) in self._replay:
-            self._advance(t, z, kind, u, k, detect=False)
-            self._finish()
-        self._events = events | {"lift_off_replayed"}
-        self._snap, self._replay = None, []
-
-    def _detect(self, r: float) -> bool:
-        """Lift-off detector (resting) and load-change detector (contact) on the innovation r.
-
-        Returns True when a load change was declared (the caller redoes the update)."""
-        s = self.settings
-        if self.resting:
-            if not self._pumping or self._p_pred <= self._p_post:
-                # the pump is not filling the chamber (venting, holding): a membrane cannot lift
-                # off; a shortfall here is the vent model's error near zero pressure
-                self._lift = self._lift_start = 0.0
-                return False
-            if self._lift_start == 0.0:
-                # a lift-off seen from here on happened after the last posterior: mid-interval,
-                # up to the reading (the flat prediction overshoots a lifted membrane: a free cap
-                # at the pump's first sample reads 0 kPa where a flat chamber would reach 1 kPa).
-                # The time comes from a second sum with a larger drift: the detector's own sum can
-                # linger above zero for a while on the flow factor's slow learning, and its start
-                # then dates the lift-off far too early (a 200 g load taken as 0.1 N)
-                z = self._p_pred + self._innov
-                self._p_lift = 0.5 * (self._p_post + min(self._p_pred, z))
-            self._lift_start = max(0.0, self._lift_start - r - LIFT_START_DRIFT)
-            self._lift = max(0.0, self._lift - r - s.lift_drift)
-            if self._lift > s.lift_threshold:
-                self._lift = self._lift_start = 0.0
-                self._lift_off(detected=True)
-                # replay only a no-load lift-off (it starts at zero pressure, so the whole
-                # detection delay was filtered as flat); a loaded one's sum may have started on
-                # the flow factor's early learning, and a lift-off put there contradicts the data
-                self._replay_now = self._snap is not None and self.x[1] == 0.0
-        else:
-            self._cusum = max(0.0, self._cusum + r * r - s.change_drift)
-            if self._cusum > s.change_threshold:
-                self._cusum = 0.0
-                self._events.add("load_change")
-                return True
-        return False
-
-    def _lift_off(self, detected: bool, load: tuple | None = None) -> None:
-        """Leave rest. ``detected``: the load is set from the lift-off pressure; ``load`` = (W, var):
-        set it to that (a replay re-applies the detected load at the earlier lift-off point)."""
-        s = self.settings
-        if load is None and detected:
-            # the membrane lifted when the detector's sum started to grow: W = pi r1^2 p then
-            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
-            W = self.model.area * max(min(float(out[1][_Y["p"]]), self._p_lift), 0.0)
-            W_res = self.model.area * NO_LOAD_SIGMAS * s.noise_std
-            # a lift-off within a few sensor sigmas of zero pressure cannot be told from a free
-            # membrane (no load): start from none, with the resolution as the spread -- a load
-            # taken as p_lift there is a phantom that bends the cap into a contact shape
-            load = (0.0 if W < W_res else W, (s.lift_load_rel_std * W) ** 2 + LIFT_LOAD_ABS_STD ** 2)
-        if load is not None:
-            self._decouple(1, load[0], load[1])
-        self.resting = False
-        self._cusum = 0.0
-        self._events.add("lift_off")
-
-    def _decouple(self, i: int, mean: float, var: float) -> None:
-        """Set state i to ``mean`` with variance ``var``, uncorrelated with the others (a re-start
-        of that component: its old correlations no longer hold)."""
-        self.x[i] = mean
-        P = self.P.copy()
-        P[i, :] = P[:, i] = 0.0
-        P[i, i] = var
-        self.P = guard_cov(P, self.settings.cov_floor)
-
-    def _flat_load_cov(self) -> None:
-        """While flat the load is unobservable (only W >= pi r1^2 p is known): uncorrelated, with
-        the spread ``load_rest_std`` that only keeps the covariance regular."""
-        P = self.P.copy()
-        P[1, :] = P[:, 1] = 0.0
-        P[1, 1] = self.settings.load_rest_std ** 2
-        self.P = P
 
     def _finish(self) -> Estimate:
         s = self.settings
