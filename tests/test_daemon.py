@@ -608,18 +608,23 @@ def test_the_robots_leak_test_is_one_of_a_burst_and_its_pump_test_starts_vented(
     assert rs.p_max == 47.5e3  # the hard cap halfway between the 45 kPa limit and the 50 kPa sensors
 
 
+def _burst_drill(tmp_path: Path, start: float, chamber: int, log: Path | None = None):
+    """The robot with chamber ``chamber``'s outlet stuck fully open from ``start`` s, run for 1 s more:
+    (runner, recording rig, loop, stats). No NMPC wall-time budget: its commands (which decide whether
+    it pumps through the fall) do not depend on this machine's load, so a drill is the same every run."""
+    cfg_path = _write_config(tmp_path, ROBOT, f'[[daemon.fault]]\nkind = "leak"\nchamber = {chamber}\n'
+                                              f'start_s = {start}\nduty = 1.0\n')
+    cfg, runner, rig, loop = _loop(cfg_path, log, duration_s=start + 1.0)
+    ctrl = runner.loop.controller
+    ctrl.s = replace(ctrl.s, budget=0.0)
+    return runner, rig, loop, loop.run()
+
+
 def test_robot_burst_drill_reaches_the_safe_state_within_one_period_and_is_logged(tmp_path):
     """A chamber of the robot bursts (its outlet fully open) while the NMPC pumps it toward 6 mm:
     the leak test finds it, the safe command goes out in that period, the cap holds."""
     start = 1.5
-    cfg_path = _write_config(tmp_path, ROBOT, f'[[daemon.fault]]\nkind = "leak"\nchamber = 4\n'
-                                              f'start_s = {start}\nduty = 1.0\n')
-    cfg, runner, rig, loop = _loop(cfg_path, tmp_path / "log", duration_s=start + 1.0)
-    # no wall-time budget: the NMPC's commands (which decide whether it pumps through the fall) do
-    # not depend on this machine's load, so the drill is the same every run
-    ctrl = runner.loop.controller
-    ctrl.s = replace(ctrl.s, budget=0.0)
-    stats = loop.run()
+    runner, rig, loop, stats = _burst_drill(tmp_path, start, 4, tmp_path / "log")
     assert stats["faults"] == {"leak": 1}, stats["faults"]
     first = next(e for e in loop.events if e["kind"] == "leak")
     assert first["t_s"] >= start - 1e-9 and first["t_s"] <= start + 0.5
@@ -632,6 +637,7 @@ def test_robot_burst_drill_reaches_the_safe_state_within_one_period_and_is_logge
     assert stats["monitor_margins"]["leak_fraction"] > 0.5
     assert "leak" in (tmp_path / "log" / "events.csv").read_text()
 
+
 #: (fault start s, chamber index) of the robot burst drills the README reports
 BURST_DRILLS = [(1.5, 4), (3.0, 0), (5.0, 2), (8.0, 7), (12.0, 4), (15.0, 1), (18.0, 8)]
 
@@ -643,12 +649,7 @@ def test_robot_burst_drills_over_the_run_are_found_while_inflating(tmp_path, cap
     first, which hits a chamber while the NMPC inflates it, is always found. Prints found / not."""
     found = {}
     for start, ch in BURST_DRILLS:
-        cfg_path = _write_config(tmp_path, ROBOT, f'[[daemon.fault]]\nkind = "leak"\nchamber = {ch}\n'
-                                                  f'start_s = {start}\nduty = 1.0\n')
-        cfg, runner, rig, loop = _loop(cfg_path, duration_s=start + 1.0)
-        ctrl = runner.loop.controller
-        ctrl.s = replace(ctrl.s, budget=0.0)  # commands independent of the machine's load
-        stats = loop.run()
+        runner, rig, loop, stats = _burst_drill(tmp_path, start, ch)
         ev = [e for e in loop.events if e["kind"] == "leak"]
         found[(start, ch)] = (ev[0]["t_s"] - start) if ev else None
         if ev:
