@@ -223,3 +223,10 @@ def test_log_dt_equal_to_the_run_accepted(tmp_path):
     p.write_text("[scenario]\nduration_s = 2.0\n[inputs]\nschedule = [[0.0, 100.0, 1.0, 0.0]]\n"
                  "[sim]\nlog_dt_ms = 2000.0\n", encoding="utf-8")
     assert load_scenario(p).sim.log_dt == pytest.approx(2.0)
+
+
+def test_robot_target_rate_out_of_range_names_the_key_and_range(tmp_path):
+    body = ("[robot]\nmode = 'closed_loop'\nlayers = 1\ntarget_rate_mm_s = -1.0\n"
+            "[robot.targets]\nall = [[0.0, 6.0, 0.0, 0.0]]\n")
+    _one_line_error(_run_file(tmp_path, body, "robot.toml"), "robot.toml", "[robot] target_rate_mm_s = -1",
+                    "[0, 1000] mm/s")

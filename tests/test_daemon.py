@@ -24,7 +24,7 @@ import pytest
 from typer.testing import CliRunner
 
 from hbma_ctrl.app.cli import app
-from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
+from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
 from hbma_ctrl.app.daemon.loop import STATS_KEYS, DaemonLoop
 from hbma_ctrl.app.daemon.rigio import RigLinkError, safe_u
@@ -606,6 +606,17 @@ def test_the_robots_leak_test_is_one_of_a_burst_and_its_pump_test_starts_vented(
     assert rs.leak_test and rs.leak_drop == 5e3 and rs.leak_fraction == 0.5
     assert not rs.pump_test  # a chamber inflating from flat stays near 1 kPa for seconds while it pumps
     assert rs.p_max == 47.5e3  # the hard cap halfway between the 45 kPa limit and the 50 kPa sensors
+
+
+def test_the_robots_targets_move_at_the_files_rate_or_the_daemons(tmp_path):
+    """A new pose moves the chambers' targets at [robot] target_rate_mm_s (3 mm/s in the shipped file),
+    at DAEMON_TARGET_RATE when the file gives none, and steps at 0."""
+    assert build_runner(load_config(ROBOT)).loop.target_rate == pytest.approx(3e-3)
+    line = "target_rate_mm_s = 3.0"
+    none = _write_config(tmp_path, ROBOT, replace={line: "#"})
+    assert build_runner(load_config(none)).loop.target_rate == pytest.approx(DAEMON_TARGET_RATE)
+    steps = _write_config(tmp_path, ROBOT, replace={line: "target_rate_mm_s = 0.0"})
+    assert build_runner(load_config(steps)).loop.target_rate == 0.0
 
 
 def _burst_drill(tmp_path: Path, start: float, chamber: int, log: Path | None = None):

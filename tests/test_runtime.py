@@ -227,3 +227,50 @@ def test_robot_loop_falls_back_when_the_qp_fails(robot):
     assert np.all(outs[-1][0] == 0.0) and np.all(outs[-1][1] == 1.0)  # safe: supply off, outlets open
     causes = [e.cause for e in sup.events if e.chamber == 0]
     assert causes == ["shifted_plan", "shifted_plan", "safe_command", "safe_command"]
+
+
+class _TargetRecorder:
+    """A pressure-PID-like controller (the loop's non-NMPC path) that records the targets it is given."""
+
+    def __init__(self, n):
+        self.n, self.hrefs = n, []
+
+    def step(self, z, W, href):
+        self.hrefs.append(np.array(href, dtype=float))
+        return np.zeros(self.n), np.zeros(self.n)
+
+
+def test_robot_targets_move_no_faster_than_target_rate_and_zero_targets_vent_at_once(robot):
+    d, s, model = robot
+    n, Ts, rate = 3, 0.01, 3e-3
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, sensor_range=s.pneumatics.sensor_range))
+    ctrl = _TargetRecorder(n)
+    pose = lambda c: {0: ((0.0, U.mm(c), 0.0, 0.0),)}  # noqa: E731
+    loop = RobotLoop(d, model, bank, ctrl, robot_supervisor(s.pneumatics.pressure_limit, n), pose(5.0),
+                     target_rate=rate)
+    for k in range(250):
+        loop.tick(k * Ts, np.zeros(n))
+    loop.set_targets(pose(2.0))
+    for k in range(250, 400):
+        loop.tick(k * Ts, np.zeros(n))
+    loop.set_targets(pose(0.0))
+    loop.tick(400 * Ts, np.zeros(n))
+    h = np.array(ctrl.hrefs)
+    # from the estimate at rest (flat), never more than rate x period a tick in either direction
+    assert np.all(np.abs(np.diff(h[:400], axis=0)) <= rate * Ts + 1e-12)
+    assert h[0].max() <= rate * Ts + 1e-12
+    # 5 mm reached after 5 / 3 s, then 2 mm 1 s after that change
+    np.testing.assert_allclose(h[200], U.mm(5.0), atol=1e-12)
+    assert h[260].min() > U.mm(4.0)  # 0.1 s after the change: still on the way down
+    np.testing.assert_allclose(h[399], U.mm(2.0), atol=1e-12)
+    assert np.all(h[400] == 0.0)  # a zero target (vent) applies at once
+    np.testing.assert_allclose(loop.href, h[400])
+
+
+def test_robot_target_rate_must_be_finite_and_non_negative(robot):
+    d, s, model = robot
+    bank = ChamberEKFBank(model, 3, ChamberEKFSettings(sample_period=0.01, sensor_range=s.pneumatics.sensor_range))
+    for bad in (-1e-3, float("nan"), "fast"):
+        with pytest.raises(ValueError, match="target_rate"):
+            RobotLoop(d, model, bank, _TargetRecorder(3), robot_supervisor(45e3, 3),
+                      {0: ((0.0, U.mm(5.0), 0.0, 0.0),)}, target_rate=bad)

@@ -7,6 +7,10 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
 - the loads are recomputed from the estimated heights by the robot's load sharing (used by this
   period's controller and the next predict: a one-period lag);
 - the layer targets give every chamber's target height (:func:`hbma_ctrl.robot.targets.chamber_targets`);
+  with ``target_rate`` each chamber's target moves towards it at most that fast (from the estimated
+  height at the first tick; a zero target, the vent rule, applies at once): a new pose then moves
+  the layers as fast as the rate, not as fast as the pumps and vents can, and a chamber's pressure
+  follows its equilibrium curve instead of overshooting it (the layers' mass on the membranes);
 - the robot NMPC (or the pressure PID, which works on the readings) picks every chamber's supply and
   outlet; for the NMPC a chamber whose target is zero gets no supply budget (a shared pump's duty
   would otherwise be shared with it), and the cautious cap limits the supply of a chamber near its
@@ -143,11 +147,12 @@ class RobotLoop:
     throttle : the compressor speed is a decision: throttled to the planned flow at each chamber's
         estimated pressure (:meth:`ChamberBank.valve_inputs`); False = full speed while an inlet is
         open (the inlet valve meters the flow).
+    target_rate : the fastest a chamber's target height moves, m/s (None or 0: targets step).
     """
 
     def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
-                 stats_capacity: int = 4096, throttle: bool = True):
+                 stats_capacity: int = 4096, throttle: bool = True, target_rate: float | None = None):
         self.design = design
         self.model = model
         self.bank = bank
@@ -156,6 +161,12 @@ class RobotLoop:
         self.targets = check_targets(targets, design.n_layers)
         self.cautious = cautious
         self.throttle = bool(throttle)
+        rate = 0.0 if target_rate is None else finite_or_nan(target_rate)
+        if not rate >= 0.0:
+            raise ValueError(f"RobotLoop: target_rate = {target_rate!r} must be a finite rate >= 0 m/s (0 = steps)")
+        self.target_rate = rate
+        #: the chamber targets the controller worked to at the last tick, m (the slewed ones)
+        self.href: np.ndarray | None = None
         self.n = 3 * design.n_layers
         if supervisor.n != self.n:
             raise ValueError(f"RobotLoop: the supervisor is for {supervisor.n} chambers, the robot has {self.n}")
@@ -211,7 +222,8 @@ class RobotLoop:
         self.estimate = est
         W = np.maximum(load_sharing(self.design, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
         self.loads = W
-        href = self.chamber_targets(t)
+        href = self._slew(self.chamber_targets(t), est["h"], steps * self._period)
+        self.href = href
         vent = sup.vent_mask(href)
         plan, ok, cause = None, True, "ok"
         try:
@@ -259,6 +271,18 @@ class RobotLoop:
         self._sent.append((Uc.copy(), self._w_prev))
         self._k += 1
         return a, o
+
+    def _slew(self, goal: np.ndarray, h_est: np.ndarray, dt: float) -> np.ndarray:
+        """The targets this tick (m): ``goal`` when there is no rate; otherwise the last ones (the
+        estimated heights at the first tick) moved towards it by at most target_rate x dt, a zero
+        target at once."""
+        goal = np.asarray(goal, dtype=float)
+        if self.target_rate <= 0.0:
+            return goal
+        prev = np.maximum(np.nan_to_num(np.asarray(h_est, dtype=float)), 0.0) if self.href is None else self.href
+        lim = self.target_rate * dt
+        out = prev + np.clip(goal - prev, -lim, lim)
+        return np.where(goal <= ZERO_TARGET, goal, out)
 
     def _held_input(self, held: np.ndarray | None) -> np.ndarray:
         """What the bank predicts with for the valve inputs the rig held: those of the newest command

@@ -41,7 +41,7 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
-           "robot_rig_settings", "DAEMON_MPC_BUDGET", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
+           "robot_rig_settings", "DAEMON_MPC_BUDGET", "DAEMON_TARGET_RATE", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
            "ROBOT_NOISE_MARGIN"]
 
 #: sensor noise sigmas ([rig] noise_std_kpa) between the robot NMPC's pressure bound and the limit
@@ -55,6 +55,11 @@ ROBOT_LEAK_FRACTION = 0.5
 #: the robot NMPC's wall-time budget in the daemon when the file gives none ([robot] mpc_budget = 0),
 #: a fraction of the period: the rest of the period is the estimator, the supervisor and the rig I/O
 DAEMON_MPC_BUDGET = 0.8
+#: the fastest a robot chamber's target height moves in the daemon when [robot] target_rate_mm_s is not
+#: given, m/s: a new pose sent as a step moved the layers as fast as the pumps and vents could, and the
+#: layers' mass overshot the membranes' equilibrium (a replica of the soak, 59 random poses: 11 moves read
+#: over the 45 kPa limit, 2 over the 47.5 kPa cap; at 3 mm/s none over 43.1 kPa)
+DAEMON_TARGET_RATE = 3e-3
 
 
 def chamber_rig_settings(cfg: DaemonConfig) -> RigSettings:
@@ -227,8 +232,10 @@ class RobotRunner:
         return self.loop.valve_commands.copy()
 
     def targets(self) -> np.ndarray:
-        """This period's target height per chamber, m."""
-        return np.asarray(self.loop.chamber_targets(self._t), dtype=float)
+        """This period's target height per chamber, m: what the controller worked to (moving towards
+        the setpoint at ``[robot] target_rate_mm_s``)."""
+        h = self.loop.href
+        return np.asarray(self.loop.chamber_targets(self._t) if h is None else h, dtype=float)
 
     def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(height m, its std m, pressure Pa) per chamber from the EKF bank, NaN before the first tick."""
@@ -356,7 +363,9 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     else:
         ctrl = RobotPressurePID(model, n, replace(RobotPIDSettings(), sample_period=Ts))
     sup = robot_supervisor(rp.pressure_limit, n, plan_period=ctrl.s.dt if s.controller == "mpc" else None)
-    loop = RobotLoop(d, model, bank, ctrl, sup, s.targets, cautious=(0.75, 0.03, 0.3) if s.controller == "mpc" else None)
+    rate = DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate
+    loop = RobotLoop(d, model, bank, ctrl, sup, s.targets, cautious=(0.75, 0.03, 0.3) if s.controller == "mpc" else None,
+                     target_rate=rate)
     return RobotRunner(loop, rp.pressure_limit, model.h_table_max)
 
 
