@@ -200,3 +200,56 @@ def test_run_dir_directly_keeps_partial_work_and_carries_a_cache(tmp_path):
     with run_dir(empty, command="t", argv=[]) as tmp:  # an empty directory is not a run: accepted
         (tmp / "a.txt").write_text("a")
     assert (empty / "a.txt").exists()
+
+
+def test_log_csv_is_what_csv_writer_writes_quoting_included(tmp_path):
+    """The bulk-formatted trial CSV is byte for byte what csv.writer wrote value by value (%.9g,
+    CRLF rows, an event naming a comma quoted), NaN and negative zero included."""
+    import csv
+
+    import numpy as np
+
+    from hbma_ctrl.app.metrics import edge_series, write_log_csv
+    from hbma_ctrl.sim.trial import Log
+
+    t = np.linspace(0.0, 0.05, 6)
+    data = {"t": t, "h": np.array([0.0, 1e-3, np.nan, -0.0, 2.123456789e-3, 5e-3]), "p": 1e3 * np.arange(6.0)}
+    log = Log("x", "free", data, events=[(0.01, "lift_off"), (0.01, "b,c"), (0.04, 'q"x')])
+    path = tmp_path / "x.csv"
+    write_log_csv(log, path)
+    cols = edge_series(log)
+    keys = list(cols)
+    ev = {1: 'lift_off;b,c', 4: 'q"x'}
+    ref = tmp_path / "ref.csv"
+    with open(ref, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(keys + ["event"])
+        for i in range(len(t)):
+            w.writerow([f"{cols[k][i]:.9g}" for k in keys] + [ev.get(i, "")])
+    assert path.read_bytes() == ref.read_bytes()
+
+
+def _write_marker(path):
+    Path(path).write_text(str(os.getpid()))
+
+
+def _fail_in_child(path, parent_pid):
+    if os.getpid() != parent_pid:
+        raise RuntimeError("child fails")
+    Path(path).write_text("parent")
+
+
+def test_forked_work_is_done_by_a_child_or_redone_here_when_the_child_fails(tmp_path):
+    from hbma_ctrl.app.forked import Forked
+
+    ok = tmp_path / "ok.txt"
+    job = Forked(_write_marker, ok)
+    job.join()
+    assert ok.exists()
+    import multiprocessing as mp
+
+    if "fork" in mp.get_all_start_methods() and (os.cpu_count() or 1) > 1:
+        assert ok.read_text() != str(os.getpid())  # written by the child
+    failed = tmp_path / "failed.txt"
+    Forked(_fail_in_child, failed, os.getpid()).join()
+    assert failed.read_text() == "parent"  # the child's failure is redone in this process, not lost

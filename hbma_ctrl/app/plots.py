@@ -183,8 +183,9 @@ def _figure_trials(material: Material) -> list[Trial]:
 
 
 def protocol_figures(out_dir: Path | str, material: Material, trials: list[Trial], logs: list[Log],
-                     settings: SimSettings | None = None, fidelity: str = "auto") -> list[Path]:
-    """Write fig6/fig7/fig9 PNGs into out_dir, reusing the protocol's logs (simulating what is missing)."""
+                     settings: SimSettings | None = None, fidelity: str = "auto", with_fig6: bool = True) -> list[Path]:
+    """Write fig6 (unless ``with_fig6`` is False: it needs no logs), fig7 and fig9 PNGs into out_dir,
+    reusing the protocol's logs (simulating what is missing)."""
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -193,7 +194,7 @@ def protocol_figures(out_dir: Path | str, material: Material, trials: list[Trial
     if need:
         for log in simulate_trials(need, settings, fidelity):
             by_name[log.name] = log
-    paths = [fig6(out / "fig6.png")]
+    paths = [fig6(out / "fig6.png")] if with_fig6 else []
     paths.append(fig7(out / "fig7.png", [by_name[n] for n in FIG7_TRIALS]))
     paths.append(fig9(out / "fig9.png", [by_name[n] for n in FIG9_TRIALS]))
     return paths

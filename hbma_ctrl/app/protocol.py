@@ -15,7 +15,8 @@ import csv
 from pathlib import Path
 
 from hbma_ctrl.app.metrics import write_log_csv
-from hbma_ctrl.app.plots import protocol_figures
+from hbma_ctrl.app.forked import Forked
+from hbma_ctrl.app.plots import fig6, protocol_figures
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
 from hbma_ctrl.sim.batch import progress_bar, protocol_trials, simulate_trials
@@ -66,7 +67,13 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
         trials = protocol_trials(material, t_inflate_s=t_inflate_s, duration_s=duration_s)
     out = Path(out_dir)
     (out / "trials").mkdir(parents=True, exist_ok=True)
+    mat = make_material(material) if isinstance(material, str) else material
+    # the figures are drawn by forked children beside this process's work (hbma_ctrl.app.forked):
+    # Fig. 6 needs no logs, Figs. 7 and 9 the logs in memory; joined before returning
+    jobs = [Forked(fig6, out / "fig6.png")] if plots else []
     logs = simulate_trials(trials, settings, fidelity, workers, progress)
+    if plots:
+        jobs.append(Forked(protocol_figures, out, mat, trials, logs, settings, fidelity, False))
     rows = [summary_row(tr, log) for tr, log in zip(trials, logs)]
     with progress_bar(progress) as bar:
         task = bar.add_task("writing trials/*.csv", total=len(trials)) if bar else None
@@ -76,8 +83,6 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
                 bar.advance(task)
     # after the trial files: a summary.csv is only there when every trial it lists was written
     write_summary(rows, out / "summary.csv")
-    if plots:
-
-        mat = make_material(material) if isinstance(material, str) else material
-        protocol_figures(out, mat, trials, logs, settings, fidelity)
+    for job in jobs:
+        job.join()
     return rows

@@ -484,8 +484,9 @@ def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity:
             t0 = time.perf_counter()
             rows, events, alive, peaks = _fixed_step(fid, sub, s, on_progress)
             wall = (time.perf_counter() - t0) / len(sub)
+            stack = _stack_rows(rows)
             for j, (i, tr) in enumerate(zip(idx, sub)):
-                logs[i] = _rows_to_log_batch(fid, tr, rows, j, events[j], bool(alive[j]), s.sensor_range)
+                logs[i] = _rows_to_log_batch(fid, tr, stack, j, events[j], bool(alive[j]), s.sensor_range)
                 logs[i].wall_s = wall
                 logs[i].peaks = {n: float(peaks[q, j]) for q, n in enumerate(PEAK_OUTPUTS)}
         if fname == "exact":
@@ -529,15 +530,26 @@ def _finish(fid, tr, data, events, ok, sensor_range: float = 35e3) -> Log:
     return Log(tr.name, fid.name, data, sorted(events, key=lambda e: e[0]), status)
 
 
-def _rows_to_log_batch(fid, tr, rows, j, events, ok, sensor_range) -> Log:
-    keep = [r for r in rows if r[0] <= tr.duration + 1e-9]
-    data = {"t": np.array([r[0] for r in keep])}
+def _stack_rows(rows) -> tuple:
+    """A batch's logged rows (t, inputs 3 x n, outputs k x n, mode n, mass_in n) as arrays with time
+    first: stacked once for the whole batch, each trial's log is then a column of them."""
+    return (np.array([r[0] for r in rows], dtype=float), np.stack([np.asarray(r[1], dtype=float) for r in rows]),
+            np.stack([np.asarray(r[2], dtype=float) for r in rows]),
+            np.stack([np.asarray(r[3], dtype=float) for r in rows]),
+            np.stack([np.asarray(r[4], dtype=float) for r in rows]))
+
+
+def _rows_to_log_batch(fid, tr, stack, j, events, ok, sensor_range) -> Log:
+    """Trial j's log from the batch's stacked rows (:func:`_stack_rows`), cut at its own duration."""
+    t, u, y, mode, mass_in = stack
+    keep = t <= tr.duration + 1e-9
+    data = {"t": t[keep]}
     for k, name in enumerate(("speed", "inlet", "outlet")):
-        data[name] = np.array([r[1][k, j] for r in keep])
+        data[name] = u[keep, k, j]
     for k, name in enumerate(OUTPUTS):
-        data[name] = np.array([r[2][k, j] for r in keep])
-    data["mode"] = np.array([r[3][j] for r in keep])
-    data["mass_in"] = np.array([r[4][j] for r in keep])
+        data[name] = y[keep, k, j]
+    data["mode"] = mode[keep, j]
+    data["mass_in"] = mass_in[keep, j]
     return _finish(fid, tr, data, events, ok, sensor_range)
 
 
