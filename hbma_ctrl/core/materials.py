@@ -24,7 +24,6 @@ from typing import ClassVar
 
 import casadi as ca
 import numpy as np
-from scipy.optimize import brentq
 
 from hbma_ctrl.core.validation import did_you_mean
 
@@ -222,6 +221,9 @@ class Gent(Material):
 
     def lam_max(self) -> float:
         # solve 2 lam^2 + lam^-4 - 3 = Jm for the locking stretch (lam > 1 root)
+        # scipy.optimize loads in 0.3 s: imported where the one Gent root is needed, not with every material
+        from scipy.optimize import brentq
+
         return float(brentq(lambda x: 2 * x**2 + x**-4 - 3 - self.Jm, 1.0 + 1e-9, np.sqrt(self.Jm) + 2))
 
     def validate(self) -> None:

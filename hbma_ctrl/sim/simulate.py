@@ -23,7 +23,6 @@ from typing import Callable
 
 import casadi as ca
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from hbma_ctrl.core.codegen import FastFunction, compiled
 
@@ -324,6 +323,14 @@ def _platform_flags(X, Xprev, mode, d0, d1, t, events):
 MAX_SEGMENTS = 10000
 
 
+def _solve_ivp():
+    """scipy's solve_ivp, imported when the Radau reference runs (scipy.integrate takes 0.3 s to load,
+    which every fixed-step run, the protocol's included, would pay)."""
+    from scipy.integrate import solve_ivp
+
+    return solve_ivp
+
+
 def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
     """Reference: scipy Radau per mode segment, events located to tolerance.
 
@@ -393,7 +400,7 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
                 evs.append(ev_fold)
         z0 = np.append(x, mass_in)
         atol = s.atol * np.append(scale, 1e-5)
-        sol = solve_ivp(rhs, (t, t_end), z0, method="Radau", jac=jacf, rtol=s.rtol, atol=atol,
+        sol = _solve_ivp()(rhs, (t, t_end), z0, method="Radau", jac=jacf, rtol=s.rtol, atol=atol,
                         events=evs or None, dense_output=True, max_step=0.05)
         segments += 1
         if sol.status == -1:  # the step size fell below what Radau can take
