@@ -13,6 +13,11 @@ HBMA_CTRL_TRACEBACK=1 for its traceback). Ctrl-C prints ``interrupted: partial r
 exits with code 130. Every command writing a results directory goes through
 :func:`hbma_ctrl.app.outputs.run_dir` (``--out`` checked before any work, ``--overwrite`` to replace a
 run, manifest.json, nothing half-written left at ``--out``).
+
+Start-up: importing this module (and the command modules it registers) loads only typer, rich and a
+few light modules; each command imports what it needs when it runs, so that ``protocol`` does not
+pay for the daemon, the tuner or the roles. An option default or choice list from a slow module is a
+copy in :mod:`hbma_ctrl.app.cli_constants` (tests/test_cli.py checks both).
 """
 
 from __future__ import annotations
