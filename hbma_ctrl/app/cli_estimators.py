@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -36,7 +37,7 @@ def _floats(name: str, text: str) -> list[float]:
     return vals
 
 
-def bench_ekf(grid: dict, filters=None, seed: int = 0) -> dict:
+def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0) -> dict:
     """Run the filters on the same rig runs (serially, so timings are not shared with workers).
 
     ``filters``: filter kinds to run, default every one of

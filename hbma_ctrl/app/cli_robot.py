@@ -236,7 +236,6 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
     from hbma_ctrl.app.scene_robot_closed import bench_robot
     from hbma_ctrl.robot.design import TOPOLOGIES
 
-
     ns = whole_numbers(layers, "--layers", 1, 6)
     if not 0.5 <= duration <= 60.0:
         raise ValueError(f"--duration = {duration} is out of range [0.5, 60] s")
