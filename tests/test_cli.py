@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import ast
 import csv
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -265,3 +269,50 @@ def test_run_whose_step_count_would_take_hours_says_so_before_starting(tmp_path,
     note = runner_mod.step_count_note(load_scenario(p))
     assert "3.6e+09 integration steps" in note and " h " in note
     assert runner_mod.step_count_note(load_scenario(ROOT / "scenarios" / "open_loop_fig7.toml")) is None
+
+
+# ------------------------------------------------------------------------------------- start-up cost
+#: modules only other commands need (the daemon's API, tuning, the filters, python-control); the CLI
+#: imports them when such a command runs, never at start-up
+_OTHER_COMMANDS_MODULES = ("fastapi", "uvicorn", "optuna", "filterpy", "control", "scipy.stats")
+
+
+def _modules_after(code: str, cwd: Path) -> set[str]:
+    """Names in sys.modules after running ``code`` in a fresh interpreter on this checkout."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)}
+    res = subprocess.run([sys.executable, "-c", code + "\nprint(repr(sorted(sys.modules)))"], cwd=cwd, env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    return set(ast.literal_eval(res.stdout.strip().splitlines()[-1]))
+
+
+def test_importing_the_cli_loads_no_other_commands_modules(tmp_path):
+    mods = _modules_after("import sys, hbma_ctrl.app.cli", tmp_path)
+    assert "hbma_ctrl.app.cli" in mods
+    assert not mods & set(_OTHER_COMMANDS_MODULES), sorted(mods & set(_OTHER_COMMANDS_MODULES))
+
+
+def test_protocol_command_loads_neither_the_roles_nor_other_commands_modules(tmp_path):
+    """A short protocol through the CLI in a fresh interpreter: the simulator and its outputs are
+    loaded, the estimators, controllers, runtime, robot and the modules of the other commands are not."""
+    out = tmp_path / "p"
+    mods = _modules_after(
+        "import sys\nfrom hbma_ctrl.app.cli import app\n"
+        f"app(['protocol', '--out', {str(out)!r}, '--duration-s', '0.5', '--t-inflate-s', '0.25', '--no-plots'], "
+        "standalone_mode=False)", tmp_path)
+    assert (out / "summary.csv").is_file() and "hbma_ctrl.app.protocol" in mods
+    roles = {m for m in mods if m.split(".")[0] in ("estimators", "controllers")
+             or m.startswith(("hbma_ctrl.runtime", "hbma_ctrl.robot", "hbma_ctrl.app.runner"))}
+    assert not roles, sorted(roles)
+    assert not mods & set(_OTHER_COMMANDS_MODULES), sorted(mods & set(_OTHER_COMMANDS_MODULES))
+
+
+def test_cli_constants_equal_the_constants_they_copy():
+    from hbma_ctrl.app import cli_constants as C
+    from hbma_ctrl.app import codegen
+    from hbma_ctrl.core import units as U
+    from hbma_ctrl.robot import statics
+
+    assert C.OPT_FLAGS == codegen.OPT_FLAGS
+    assert C.DEFAULT_OPT == codegen.CFLAGS[0]
+    assert C.BOND_RADIUS_MM == U.to_mm(statics.BOND_RADIUS)

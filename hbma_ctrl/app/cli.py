@@ -13,6 +13,11 @@ HBMA_CTRL_TRACEBACK=1 for its traceback). Ctrl-C prints ``interrupted: partial r
 exits with code 130. Every command writing a results directory goes through
 :func:`hbma_ctrl.app.outputs.run_dir` (``--out`` checked before any work, ``--overwrite`` to replace a
 run, manifest.json, nothing half-written left at ``--out``).
+
+Start-up: importing this module (and the command modules it registers) loads only typer, rich and a
+few light modules; each command imports what it needs when it runs, so that ``protocol`` does not
+pay for the daemon, the tuner or the roles. An option default or choice list from a slow module is a
+copy in :mod:`hbma_ctrl.app.cli_constants` (tests/test_cli.py checks both).
 """
 
 from __future__ import annotations
@@ -25,7 +30,6 @@ import time
 from pathlib import Path
 from typing import Annotated, Optional
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
@@ -36,7 +40,9 @@ try:  # typer >= 0.24 vendors click as typer._click; older typer uses click itse
 except ImportError:  # pragma: no cover
     from click import exceptions as _cx
 
-from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
+# Only what registering the commands needs is imported here: each command imports its own heavy
+# modules (casadi-built models, scipy, matplotlib, the roles, the daemon, optuna, ...) when it runs,
+# so that `hbma-ctrl protocol` (the main job) and `--help` do not pay for the others.
 from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.cli_codegen import register as register_codegen
 from hbma_ctrl.app.cli_controllers import register as register_controllers
@@ -52,15 +58,8 @@ from hbma_ctrl.app.outputs import (
     default_out,
     run_dir,
 )
-from hbma_ctrl.app.plots import equilibrium_grid, paper_figures
-from hbma_ctrl.app.protocol import run_protocol
-from hbma_ctrl.app.runner import RunFailed, run_scenario
-from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.materials import MATERIALS, make_material
 from hbma_ctrl.core.validation import did_you_mean
-from hbma_ctrl.sim.batch import FIDELITY_CHOICES
-from hbma_ctrl.sim.trial import INTEGRATORS
 
 __all__ = ["app", "bench_app"]
 
@@ -101,22 +100,31 @@ class _OneLineErrors(TyperGroup):
         except _Interrupted as exc:
             typer.echo(f"interrupted: partial results in {exc.partial}" if exc.partial else "interrupted", err=True)
             sys.exit(130)
-        except (ValueError, FileNotFoundError, RunFailed) as exc:
+        except (ValueError, FileNotFoundError) as exc:
             partial = getattr(exc, "partial_results", None)
-            code = 1 if isinstance(exc, RunFailed) else 2  # the input was fine; the run failed
-            _fail(f"{exc}; partial results in {partial}" if partial else str(exc), code)
+            _fail(f"{exc}; partial results in {partial}" if partial else str(exc), 2)
         except RuntimeError as exc:
-            # a simulation that failed (a diverged plant, a solver's error): one line, exit 1; the
-            # traceback only when asked for (HBMA_CTRL_TRACEBACK=1), for a bug report
-            if os.environ.get("HBMA_CTRL_TRACEBACK"):
-                raise
             partial = getattr(exc, "partial_results", None)
-            msg = f"the run failed: {type(exc).__name__}: {exc}"
+            if _is_run_failed(exc):  # the input was fine; the run failed (every trial diverged)
+                msg = str(exc)
+            elif os.environ.get("HBMA_CTRL_TRACEBACK"):
+                # any other failed simulation (a diverged plant, a solver's error): one line, exit 1;
+                # the traceback only when asked for (HBMA_CTRL_TRACEBACK=1), for a bug report
+                raise
+            else:
+                msg = f"the run failed: {type(exc).__name__}: {exc}"
             _fail(f"{msg}; partial results in {partial}" if partial else msg, 1)
         code = rv if isinstance(rv, int) else 0
         if standalone_mode:
             sys.exit(code)
         return rv
+
+
+def _is_run_failed(exc: BaseException) -> bool:
+    """True for the runner's RunFailed (all trials diverged). Looked up, not imported: the runner pulls
+    in every role, and a command that never imported it cannot have raised its error."""
+    runner = sys.modules.get("hbma_ctrl.app.runner")
+    return runner is not None and isinstance(exc, runner.RunFailed)
 
 
 def _fail(message: str, code: int = 2):
@@ -155,6 +163,26 @@ def _range(name: str, value: float | None, lo: float, hi: float, lo_open: bool =
     return value
 
 
+def run_scenario(scn, out: Path) -> dict:
+    """:func:`hbma_ctrl.app.runner.run_scenario`: runs a loaded scenario into ``out``, returns its metrics.
+
+    Imported on the call: the runner loads every role (estimators, controllers, robot scenes).
+    """
+    from hbma_ctrl.app.runner import run_scenario as impl
+
+    return impl(scn, out)
+
+
+def run_protocol(*args, **kwargs) -> list[dict]:
+    """:func:`hbma_ctrl.app.protocol.run_protocol` (same arguments): the protocol's summary rows.
+
+    Imported on the call, so that importing the CLI for another command skips the simulator and plots.
+    """
+    from hbma_ctrl.app.protocol import run_protocol as impl
+
+    return impl(*args, **kwargs)
+
+
 # ---------------------------------------------------------------------------------------------
 @app.callback(invoke_without_command=True)
 def _main(ctx: typer.Context) -> None:
@@ -170,6 +198,7 @@ def run(
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Run a scenario file: writes metrics.json, the log CSV(s), plots and manifest.json into --out."""
+    from hbma_ctrl.app.scenario import load_scenario
 
     scn = load_scenario(file)
     out_dir = out or default_out(scn.name)
@@ -219,6 +248,9 @@ def protocol(
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Simulate the 150-trial characterisation protocol (README Model §7): DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
+    from hbma_ctrl.core.materials import MATERIALS
+    from hbma_ctrl.sim.batch import FIDELITY_CHOICES
+    from hbma_ctrl.sim.trial import INTEGRATORS
 
     _choice("--material", material, MATERIALS)
     _choice("--integrator", integrator, INTEGRATORS)
@@ -273,6 +305,10 @@ def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, 
     centre height h = h1 - h2 held by a flat plate or a bonded disk of radius ``disk_radius_mm`` at
     gauge pressure ``p_kpa``; free inflation when h2 = 0 with a flat contact).
     """
+    import numpy as np
+
+    from hbma_ctrl.app.plots import equilibrium_grid
+    from hbma_ctrl.core.materials import MATERIALS, make_material
 
     _range("--r1-mm", r1_mm, 0.5, 100.0, lo_open=True, unit="mm")
     _range("--t0-mm", t0_mm, 0.05, 20.0, lo_open=True, unit="mm")
@@ -404,6 +440,9 @@ def plots(
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Paper figures fig6.png (equilibrium surfaces), fig7.png and fig9.png (simulated) into --out."""
+    from hbma_ctrl.app.plots import paper_figures
+    from hbma_ctrl.core.materials import MATERIALS
+    from hbma_ctrl.sim.batch import FIDELITY_CHOICES
 
     _choice("--material", material, MATERIALS)
     _choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
@@ -431,6 +470,8 @@ def bench_sim(
 ) -> None:
     """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference, and
     (fidelity axis) vs the exact membrane, with a Pareto plot (wall time vs NRMSD) beside bench.json."""
+    from hbma_ctrl.app.bench_sim import TARGET_NRMSD, TARGET_WALL_S, run_bench
+    from hbma_ctrl.core.materials import MATERIALS
 
     _choice("--material", material, MATERIALS)
     _range("--workers", workers, 1, 256)

@@ -18,11 +18,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hbma_ctrl.app.codegen import CFLAGS, OPT_FLAGS, bench, find_compiler, write_c
-from controllers.rti_step import QP_SOLVERS
-from hbma_ctrl.app.codegen_scene import ESTIMATORS, scenario_loop, scene_reference
+# the code generator, its scenes and the RTI step (casadi) are imported by the commands when they
+# run; the flags their options show come from the light cli_constants
+from hbma_ctrl.app.cli_constants import DEFAULT_OPT, OPT_FLAGS
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
-from hbma_ctrl.app.scenario import load_scenario
 
 __all__ = ["register", "check_duration", "check_choice"]
 
@@ -47,6 +46,10 @@ def check_choice(flag: str, value: str, allowed) -> str:
 
 
 def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None, with_scenario: bool = False):
+    from controllers.rti_step import QP_SOLVERS
+    from hbma_ctrl.app.codegen_scene import ESTIMATORS, scenario_loop
+    from hbma_ctrl.app.scenario import load_scenario
+
     check_duration(duration_s)
     check_choice("--estimator", estimator, ESTIMATORS)
     if qp_solver is not None:
@@ -60,6 +63,8 @@ def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str
 
 
 def _compiler() -> str:
+    from hbma_ctrl.app.codegen import find_compiler
+
     cc = find_compiler()
     if cc is None:
         raise ValueError("no C compiler (cc, gcc or clang) on PATH: needed to build the generated loop")
@@ -79,10 +84,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                                          "hpipm | daqp (linked from the casadi package) | qrqp "
                                                          "(self-contained C); default: the variant's, else osqp")] = None,
         check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
-        opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = CFLAGS[0],
+        opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario."""
+        from hbma_ctrl.app.codegen import bench, write_c
+
         check_choice("--opt", opt, OPT_FLAGS)
         spec = _spec(config, duration_s, estimator, qp_solver)
         cc = _compiler() if check else None
@@ -111,7 +118,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
                                                          "hpipm | daqp (linked from the casadi package) | qrqp "
                                                          "(self-contained C); default: the variant's, else osqp")] = None,
-        opt: Annotated[str, typer.Option(help=f"optimisation flag of the C build: {', '.join(OPT_FLAGS)}")] = CFLAGS[0],
+        opt: Annotated[str, typer.Option(help=f"optimisation flag of the C build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
         python_vm: Annotated[bool, typer.Option("--python-vm", help="also run the Python path on casadi's virtual "
                                                 "machine (uncompiled Functions; slow)")] = False,
         scene: Annotated[bool, typer.Option("--scene/--no-scene", help="also run the scene's own closed loop (EKF and "
@@ -120,6 +127,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
+        from hbma_ctrl.app.codegen import bench, run_c
+        from hbma_ctrl.app.codegen_scene import scene_reference
+
         check_choice("--opt", opt, OPT_FLAGS)
         spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
         cc = _compiler()
@@ -127,8 +137,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
             res = bench(spec, tmp, opt=opt, cc=cc, python_vm=python_vm)
             if scene and estimator == "ekf":
-                from hbma_ctrl.app.codegen import run_c
-
                 res["scene"] = scene_reference(scn, spec, run_c(tmp).trajectory, qp_solver)
             (tmp / "bench_codegen.json").write_text(json.dumps(res, indent=2) + "\n")
         t = Table(title=f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs "

@@ -9,11 +9,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hbma_ctrl.app.bench_loop import run_loop_bench, summarize_loop, write_loop_bench
-from hbma_ctrl.app.bench_mpc import run_bench, summarize, write_bench
+# the benches (the controllers, the EKF, the rig) are imported by their commands when they run
 from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
-from hbma_ctrl.app.scenario import load_scenario
 
 __all__ = ["register"]
 
@@ -31,7 +29,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
-
+        from hbma_ctrl.app.bench_loop import run_loop_bench, summarize_loop, write_loop_bench
 
         if not 1 <= seeds <= 100:
             raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
@@ -75,7 +73,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """MPC speed/accuracy: IPOPT, fatrop, RTI-OSQP and the one-Function RTI x horizon, baselines and do-mpc, on one closed loop."""
-
+        from hbma_ctrl.app.bench_mpc import run_bench, summarize, write_bench
+        from hbma_ctrl.app.scenario import load_scenario
 
         try:
             hs = tuple(int(x) for x in horizons.split(",") if x.strip())
@@ -84,7 +83,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         vs = tuple(v.strip() for v in variants.split(",") if v.strip())
         kw = {}
         if scenario is not None:
-
             scn = load_scenario(scenario)
             if scn.role("controller") is None:
                 raise ValueError(f"{scenario}: the bench needs a [controller] section")

@@ -19,18 +19,12 @@ import json
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from hbma_ctrl.app.daemon.api import serve
-from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
-from hbma_ctrl.app.daemon.config import DaemonConfig, load_config
-from hbma_ctrl.app.daemon.loop import DaemonLoop
-from hbma_ctrl.app.daemon.rigio import RigLinkError
-from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns
-from hbma_ctrl.app.daemon.state import DaemonState
-from hbma_ctrl.app.metrics import json_safe
+# the daemon (the runtime loop and its roles, fastapi and uvicorn, the rig link) is imported by the
+# commands when they run
 from hbma_ctrl.app.outputs import (
     OVERWRITE_HELP,
     check_out,
@@ -39,11 +33,17 @@ from hbma_ctrl.app.outputs import (
     run_dir,
 )
 
+if TYPE_CHECKING:
+    from hbma_ctrl.app.daemon.config import DaemonConfig
+    from hbma_ctrl.app.daemon.state import DaemonState
+
 __all__ = ["register", "run_daemon"]
 
 
 def _link_errors() -> tuple:
     """The exceptions that mean the rig link is gone or speaks another protocol version."""
+    from hbma_ctrl.app.daemon.rigio import RigLinkError
+
     errs: list = [RigLinkError]
     try:
         from hbma_ctrl.app.daemon.serial_link import ProtocolVersionError
@@ -57,6 +57,13 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
                echo=None, state: DaemonState | None = None) -> dict:
     """Run the daemon of ``cfg`` into ``out`` (see module doc); returns daemon_stats.json's content.
     ``echo``: where to print one-line notices (default stderr). ``state``: the state shared with the API."""
+    from hbma_ctrl.app.daemon.api import serve
+    from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
+    from hbma_ctrl.app.daemon.loop import DaemonLoop
+    from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns
+    from hbma_ctrl.app.daemon.state import DaemonState
+    from hbma_ctrl.app.metrics import json_safe
+
     echo = echo or (lambda s: print(s, file=sys.stderr, flush=True))
     check_out(out, overwrite)
     runner = build_runner(cfg)
@@ -120,6 +127,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Run the observer and controller in a fixed-rate loop on a simulated or serial rig."""
+        from hbma_ctrl.app.daemon.config import load_config
+
         flags = {"--rig": rig, "--speed": speed, "--duration-s": duration_s, "--api": api,
                  "--allow-remote": allow_remote, "--token": token}
         cfg = load_config(config, flags)
@@ -161,6 +170,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         """The daemon on the simulated rig for a long run, setpoints sent through its API: faults, tick
         times, pressure limit, memory (soak.json)."""
         from hbma_ctrl.app.bench_soak import run_soak
+        from hbma_ctrl.app.daemon.config import load_config
 
         for name, v in (("--duration-s", duration_s), ("--speed", speed), ("--setpoint-every-s", every_s)):
             if not (v > 0 and v < float("inf")):

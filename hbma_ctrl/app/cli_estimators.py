@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -15,14 +16,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from estimators.common import FilterSettings
-from estimators.observability import OBS_SCALE, WINDOW_S, run
-from hbma_ctrl.app.evaluate import BENCH_FILTERS, _open_loop, aggregate, make_filter, run_and_score
+# the filters (filterpy, scipy.stats), python-control and the rig are imported by the commands
+# when they run
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.params import Actuator, Platform
-from hbma_ctrl.sim.batch import protocol_trials
-from hbma_ctrl.sim.rig import RigSettings, simulate_rig
 
 __all__ = ["register", "bench_ekf"]
 
@@ -40,8 +37,11 @@ def _floats(name: str, text: str) -> list[float]:
     return vals
 
 
-def bench_ekf(grid: dict, filters=BENCH_FILTERS, seed: int = 0) -> dict:
+def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0) -> dict:
     """Run the filters on the same rig runs (serially, so timings are not shared with workers).
+
+    ``filters``: filter kinds to run, default every one of
+    :data:`hbma_ctrl.app.evaluate.BENCH_FILTERS`.
 
     Returns {"settings": ..., "filters": {kind: {accuracy and timing}}, "ratios": {...}}; timings
     are wall time per predict+update of one chamber on this machine (median, p90, max,
@@ -49,8 +49,13 @@ def bench_ekf(grid: dict, filters=BENCH_FILTERS, seed: int = 0) -> dict:
     this run (``filterpy``: filterpy's ExtendedKalmanFilter on the same casadi model;
     ``ekf_reference``: the EKF's reference path of separate calls).
     """
+    from estimators.common import FilterSettings
+    from hbma_ctrl.app.evaluate import BENCH_FILTERS, _open_loop, aggregate, make_filter, run_and_score
+    from hbma_ctrl.core.params import Platform
+    from hbma_ctrl.sim.batch import protocol_trials
+    from hbma_ctrl.sim.rig import RigSettings, simulate_rig
 
-
+    filters = BENCH_FILTERS if filters is None else filters
     trials = protocol_trials("nh", platform=Platform(own_mass=0.02), **grid)
     rig = RigSettings(seed=seed)
     fs = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range, noise_std=rig.noise_std)
@@ -128,8 +133,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         t0_mm: Annotated[Optional[float], typer.Option(help="membrane thickness, mm (default 3)")] = None,
     ) -> None:
         """Rank/condition of the linearised observability matrix along free, contact and resting runs."""
-
-
+        from estimators.observability import OBS_SCALE, WINDOW_S, run
+        from hbma_ctrl.core.params import Actuator
 
         act = Actuator()
         kw = {}

@@ -21,8 +21,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hbma_ctrl.app.fit import check_options, fit_static, parse_data, write_fit
-from hbma_ctrl.app.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
+# the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 
@@ -79,6 +78,9 @@ def fit_cmd(
 ) -> None:
     """Fit the model to static equilibrium points (material) or a recorded run (material scale, dead
     volume, pump and outlet)."""
+    from hbma_ctrl.app.fit import check_options, fit_static, parse_data, write_fit
+    from hbma_ctrl.app.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
+
     _range("--r1-mm", r1_mm, 0.5, 100.0, "mm")
     _range("--t0-mm", t0_mm, 0.05, 20.0, "mm")
     if v0_cm3 is not None:

@@ -12,22 +12,22 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
+# the robot's models (casadi, the exact membrane), its plots and its closed loop are imported by the
+# commands when they run; the default glue-spot radius comes from the light cli_constants
 from hbma_ctrl.app.cli_args import whole_numbers
+from hbma_ctrl.app.cli_constants import BOND_RADIUS_MM
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
-from hbma_ctrl.app.robot_plots import plot_shapes, plot_workspace
-from hbma_ctrl.app.scene_robot_closed import bench_robot
 from hbma_ctrl.core import units as U
-from hbma_ctrl.robot import reach
-from hbma_ctrl.robot.design import LETTERS, TOPOLOGIES, RobotDesign
-from hbma_ctrl.robot.kinematics import forward_kinematics, inverse_kinematics
-from hbma_ctrl.robot.reach import bonded_table2, reach_report, robot_table2, table2_markdown
-from hbma_ctrl.robot.statics import BOND_RADIUS
+
+if TYPE_CHECKING:
+    from hbma_ctrl.robot.design import RobotDesign
 
 __all__ = ["register", "robot_app"]
 
@@ -36,6 +36,8 @@ robot_app = typer.Typer(add_completion=False, no_args_is_help=True,
 
 
 def _design(layers: int | None, max_stretch: float | None = None) -> RobotDesign:
+    from hbma_ctrl.robot.design import RobotDesign
+
     kw = {}
     if layers is not None:
         kw["n_layers"] = layers
@@ -60,7 +62,7 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
            layers: int = typer.Option(2, help="chamber layers of the robot (Fig. 10: 2, A and B)"),
            stretch: float = typer.Option(None, help="stretch of an inflated chamber (default: max stretch 4.0)"),
            hold_kpa: float = typer.Option(35.0, "--hold-kpa", help="near-branch reading: hold pressure, kPa"),
-           bond_radius_mm: float = typer.Option(U.to_mm(BOND_RADIUS), "--bond-radius-mm",
+           bond_radius_mm: float = typer.Option(BOND_RADIUS_MM, "--bond-radius-mm",
                                                 help="bonded reading: radius of the glue spot on each membrane, mm"),
            bond_kpa: float = typer.Option(40.0, "--bond-kpa", help="bonded reading: inflated chambers' pressure, kPa "
                                                                 "(40: every row has a taut exact equilibrium at 1 mm)"),
@@ -68,6 +70,9 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
                                        help="add the glued-chamber reading (exact membrane; its table is built "
                                             "once, a few minutes)")) -> None:
     """The paper's Table II beside the model (one layer, 0-3 chambers inflated)."""
+    from hbma_ctrl.robot.design import RobotDesign
+    from hbma_ctrl.robot.reach import bonded_table2, robot_table2, table2_markdown
+
     if not 1.0 <= hold_kpa <= 1000.0:
         raise ValueError(f"--hold-kpa = {hold_kpa} is out of range [1, 1000] kPa")
     r1_mm = U.to_mm(RobotDesign().chamber.r1)
@@ -107,6 +112,8 @@ def workspace(out: Path = typer.Option(Path("runs/workspace"), "--out", help="di
               max_stretch: float = typer.Option(None, "--max-stretch", help="membrane stretch limit (default 4.0)"),
               directions: int = typer.Option(72, help="number of bend directions")) -> None:
     """Reachable workspace at the pressure limit: per-layer bend angle against direction, height range."""
+    from hbma_ctrl.robot import reach
+
     if not 1.0 <= pressure_limit_kpa <= 1000.0:
         raise ValueError(f"--pressure-limit-kpa = {pressure_limit_kpa} is out of range [1, 1000] kPa")
     if not 8 <= directions <= 3600:
@@ -138,6 +145,8 @@ def workspace(out: Path = typer.Option(Path("runs/workspace"), "--out", help="di
 
 def _write_workspace(ws: dict, d: RobotDesign, pressure_limit_kpa: float, out: Path) -> None:
     """workspace.png and workspace.json (edge units: deg, mm, kPa, N) into out."""
+    from hbma_ctrl.app.robot_plots import plot_workspace
+
     tb = np.degrees(ws["tip_bend_max"])
     plot_workspace(ws, out / "workspace.png")
     edge = {"direction_deg": np.degrees(ws["direction"]).tolist(), "pressure_limit_kpa": pressure_limit_kpa,
@@ -168,6 +177,11 @@ def pose(out: Path = typer.Option(Path("runs/pose"), "--out", help="directory fo
          layers: int = typer.Option(None, help="chamber layers (default: from --heights-mm, else 3)"),
          pressure_limit_kpa: float = typer.Option(45.0, "--pressure-limit-kpa", help="for the reach check")) -> None:
     """Draw the robot's shape for given chamber heights (or per-layer IK targets) -> pose.png."""
+    from hbma_ctrl.app.robot_plots import plot_shapes
+    from hbma_ctrl.robot.design import LETTERS
+    from hbma_ctrl.robot.kinematics import forward_kinematics, inverse_kinematics
+    from hbma_ctrl.robot.reach import reach_report
+
     sets = []
     if heights_mm:
         for text in heights_mm:
@@ -219,6 +233,8 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
                     horizon: int = typer.Option(15, help="NMPC stages (1-100)"),
                     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP)) -> None:
     """Whole-robot step time (EKF bank + load sharing + NMPC) for 1..6 layers: median and p99, ms."""
+    from hbma_ctrl.app.scene_robot_closed import bench_robot
+    from hbma_ctrl.robot.design import TOPOLOGIES
 
     ns = whole_numbers(layers, "--layers", 1, 6)
     if not 0.5 <= duration <= 60.0:

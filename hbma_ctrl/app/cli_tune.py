@@ -18,40 +18,29 @@ import time
 import tomllib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
-import optuna
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+# optuna and the tuning itself (it runs scenarios: every role) are imported by the command when it runs
 from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, default_out, run_dir
-from hbma_ctrl.app.scenario import _text, load_scenario
-from hbma_ctrl.app.schema.document import parse_scenario_tables
-from hbma_ctrl.app.tune import (
-    DEFAULT_OBJECTIVE,
-    OBJECTIVES,
-    ROLES,
-    TuneSpec,
-    apply_params,
-    default_params,
-    fail_orphans,
-    make_space,
-    make_storage,
-    mean_score,
-    open_study,
-    parse_seeds,
-    run_worker,
-    write_outputs,
-)
+
+if TYPE_CHECKING:
+    import optuna
+
+    from hbma_ctrl.app.tune import TuneSpec
 
 __all__ = ["register", "tune_cmd", "check_objective"]
 
 
 def check_objective(role: str, objective: str | None) -> str:
     """``role.key`` (a bare key gets the role prefix); ValueError listing the valid keys of the role."""
+    from hbma_ctrl.app.tune import DEFAULT_OBJECTIVE, OBJECTIVES
+
     if objective is None:
         return DEFAULT_OBJECTIVE[role]
     key = objective.split(".", 1)[1] if objective.startswith(f"{role}.") else objective
@@ -91,6 +80,23 @@ def tune_cmd(
 ) -> None:
     """Tune the role's settings with optuna (TPE, median pruning) on train seeds; score default and
     best on held-out seeds; write tuned.toml, tune.json, history.png, importance.png."""
+    import optuna
+
+    from hbma_ctrl.app.scenario import _text, load_scenario
+    from hbma_ctrl.app.tune import (
+        ROLES,
+        TuneSpec,
+        apply_params,
+        default_params,
+        fail_orphans,
+        make_space,
+        make_storage,
+        mean_score,
+        open_study,
+        parse_seeds,
+        write_outputs,
+    )
+
     if role not in ROLES:
         raise ValueError(f"--role = '{role}'; allowed: {', '.join(ROLES)}")
     if not 1 <= trials <= 100000:
@@ -155,6 +161,8 @@ def tune_cmd(
 def check_base(data: dict, scenario: Path, duration_s: float | None) -> None:
     """The scenario as a trial runs it (shortened by ``--duration-s``) must be valid: an input error
     now, not a failed trial for every sample later."""
+    from hbma_ctrl.app.schema.document import parse_scenario_tables
+
     if duration_s is None:
         return
     trial = {**data, "scenario": {**data.get("scenario", {}), "duration_s": float(duration_s)}}
@@ -174,6 +182,10 @@ def _same_study(out: Path, study: str, url: str) -> bool:
 
 
 def _optimise(spec: TuneSpec, trials: int, workers: int, con: Console) -> None:
+    import optuna
+
+    from hbma_ctrl.app.tune import TuneSpec, open_study, run_worker
+
     cols = (TextColumn("tune {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*cols, console=con, transient=False) as bar:
         task = bar.add_task(spec.study, total=trials)
