@@ -16,7 +16,6 @@ from pathlib import Path
 
 from hbma_ctrl.app.metrics import write_log_csv
 from hbma_ctrl.app.forked import Forked
-from hbma_ctrl.app.plots import fig6, protocol_figures
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
 from hbma_ctrl.sim.batch import progress_bar, protocol_trials, simulate_trials
@@ -70,10 +69,10 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
     mat = make_material(material) if isinstance(material, str) else material
     # the figures are drawn by forked children beside this process's work (hbma_ctrl.app.forked):
     # Fig. 6 needs no logs, Figs. 7 and 9 the logs in memory; joined before returning
-    jobs = [Forked(fig6, out / "fig6.png")] if plots else []
+    jobs = [Forked(_fig6, out / "fig6.png")] if plots else []
     logs = simulate_trials(trials, settings, fidelity, workers, progress)
     if plots:
-        jobs.append(Forked(protocol_figures, out, mat, trials, logs, settings, fidelity, False))
+        jobs.append(Forked(_figs_7_9, out, mat, trials, logs, settings, fidelity))
     rows = [summary_row(tr, log) for tr, log in zip(trials, logs)]
     with progress_bar(progress) as bar:
         task = bar.add_task("writing trials/*.csv", total=len(trials)) if bar else None
@@ -86,3 +85,18 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
     for job in jobs:
         job.join()
     return rows
+
+
+# matplotlib takes ~0.45 s to import: the figure children import it, beside the parent's simulation,
+# and the parent only when a child failed and it draws the figure itself
+def _fig6(path: Path) -> None:
+    from hbma_ctrl.app.plots import fig6
+
+    fig6(path)
+
+
+def _figs_7_9(out: Path, mat: Material, trials: list[Trial], logs: list[Log], settings: SimSettings,
+              fidelity: str) -> None:
+    from hbma_ctrl.app.plots import protocol_figures
+
+    protocol_figures(out, mat, trials, logs, settings, fidelity, with_fig6=False)
