@@ -316,3 +316,21 @@ def test_cli_constants_equal_the_constants_they_copy():
     assert C.OPT_FLAGS == codegen.OPT_FLAGS
     assert C.DEFAULT_OPT == codegen.CFLAGS[0]
     assert C.BOND_RADIUS_MM == U.to_mm(statics.BOND_RADIUS)
+
+
+def test_bench_protocol_times_the_main_job_in_fresh_interpreters(tmp_path):
+    """bench protocol writes every row's runs and median, the simulation alone being a part of the
+    whole command's time; --repeat 0 is one error line naming the flag."""
+    out = tmp_path / "bp"
+    res = runner.invoke(app, ["bench", "protocol", "--repeat", "1", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    data = json.loads((out / "bench.json").read_text())
+    rows = data["rows"]
+    assert set(rows) == {"protocol", "protocol --no-plots", "start-up (import hbma_ctrl.app.cli)",
+                         "simulation of the 150 trials (in process)"}
+    for r in rows.values():
+        assert len(r["runs_s"]) == 1 and r["median_s"] == r["runs_s"][0] > 0
+    assert rows["simulation of the 150 trials (in process)"]["median_s"] < rows["protocol --no-plots"]["median_s"]
+    assert data["meets_target"] == (rows["protocol"]["median_s"] <= data["target_wall_s"] == 2.0)
+    bad = runner.invoke(app, ["bench", "protocol", "--repeat", "0", "--out", str(tmp_path / "bad")])
+    assert bad.exit_code == 2 and "--repeat" in bad.output and not (tmp_path / "bad").exists()

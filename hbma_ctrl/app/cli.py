@@ -526,6 +526,28 @@ def bench_sim(
               + "".join(f", {out / n}" for n in written))
 
 
+@bench_app.command("protocol")
+def bench_protocol(
+    repeat: Annotated[int, typer.Option(help="timed runs per row (median reported)")] = 3,
+    out: Annotated[Path, typer.Option("--out", "-o", help="output dir (bench.json)")] = Path("runs/bench_protocol"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """The main job as a user waits for it: `hbma-ctrl protocol` on its defaults in fresh interpreters,
+    with and without its figures, the start-up alone and the simulation alone (bench.json)."""
+    from hbma_ctrl.app.bench_protocol import TARGET_WALL_S, run_bench_protocol
+
+    _range("--repeat", repeat, 1, 100)
+    con = _console(120)
+
+    def show(name, row):
+        con.print(f"  {name:45s} median {row['median_s']:6.2f} s  (min {row['min_s']:.2f}, max {row['max_s']:.2f})")
+
+    with run_dir(out, command="bench protocol", argv=cli_argv(), overwrite=overwrite) as tmp:
+        res = run_bench_protocol(tmp, repeat, on_row=show)
+    con.print(f"protocol median {res['rows']['protocol']['median_s']:.2f} s against the target {TARGET_WALL_S:g} s: "
+              f"{'met' if res['meets_target'] else 'not met'}; wrote {out / 'bench.json'}")
+
+
 def _dt_text(row) -> str:
     if row.dt_ms is None:
         return f"default {row.dt_free_ms:g}/{row.dt_loaded_ms:g}"
