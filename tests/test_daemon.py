@@ -673,3 +673,29 @@ def test_robot_burst_drills_over_the_run_are_found_while_inflating(tmp_path, cap
     assert found[BURST_DRILLS[0]] is not None
     with capsys.disabled():
         print(f"found {sum(v is not None for v in found.values())} of {len(found)}")
+
+
+def test_bench_poses_records_every_change_and_every_fault_rearming_the_monitor(tmp_path):
+    """bench poses: one change per setpoint period with its highest reading, the soak's draws for the
+    seed, and a fault recorded without ending the run (the monitor re-armed: a second dropout later is
+    recorded too)."""
+    import random
+
+    from hbma_ctrl.app.bench_poses import run_poses
+    from hbma_ctrl.app.bench_soak import random_target
+
+    cfg = _write_config(tmp_path, ROBOT, '[[daemon.fault]]\nkind = "dropout"\nchamber = 0\nstart_s = 1.0\n'
+                                         'duration_s = 0.2\n[[daemon.fault]]\nkind = "dropout"\nchamber = 4\n'
+                                         'start_s = 2.5\nduration_s = 0.2\n')
+    out = tmp_path / "o"
+    out.mkdir()
+    res = run_poses(cfg, out, duration_s=3.5, every_s=1.0, seed=3)
+    assert res["changes"] == 3 and [c["t_s"] for c in res["per_change"]] == [1.0, 2.0, 3.0]
+    rng = random.Random(3)
+    assert [c["body"] for c in res["per_change"]] == [random_target(rng, 3, 9) for _ in range(3)]
+    assert all(0.0 < c["peak_kpa"] < 50.0 and c["chamber"] in ("A1", "A2", "A3", "B1", "B2", "B3", "C1", "C2", "C3")
+               for c in res["per_change"])
+    kinds = [(f["kind"], f["chamber"]) for f in res["faults"]]
+    assert ("sensor_missing", "A1") in kinds and ("sensor_missing", "B2") in kinds
+    assert res["over_limit"] == sum(c["peak_kpa"] > 45.0 for c in res["per_change"])
+    assert json.loads((out / "poses.json").read_text())["changes"] == 3

@@ -42,7 +42,7 @@ import httpx
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.outputs import run_dir
 
-__all__ = ["run_soak", "soak_verdicts", "RSS_GROWTH_MAX_MB"]
+__all__ = ["run_soak", "soak_verdicts", "random_target", "RSS_GROWTH_MAX_MB"]
 
 #: the soak's memory criterion, MB
 RSS_GROWTH_MAX_MB = 10.0
@@ -58,7 +58,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _target(rng: random.Random, n_layers: int, n_chambers: int) -> dict:
+def random_target(rng: random.Random, n_layers: int, n_chambers: int) -> dict:
     """One random setpoint body (edge units) for the robot's layers or the rig's chambers."""
     if n_layers:
         return {"layers": [{"layer": i, "centre_mm": round(rng.uniform(5.0, 8.0), 2),
@@ -145,7 +145,7 @@ def _drive(proc: subprocess.Popen, url: str, rng: random.Random, every_s: float,
                 n_layers, n_chambers = len(st.get("layers") or []), len(st.get("chambers") or [])
             t = float(st["t_s"])
             if t >= next_t and t < duration_s - 1.0:
-                body = _target(rng, n_layers, n_chambers)
+                body = random_target(rng, n_layers, n_chambers)
                 try:
                     r = client.post("/setpoint", json=body)
                     sent.append({"rig_t_s": t, "status": r.status_code, "body": body, "reply": r.json()})

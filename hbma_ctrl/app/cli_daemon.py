@@ -189,3 +189,38 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                    f"{'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'soak.json'}")
         if failed:
             raise typer.Exit(1)
+
+    @bench_app.command("poses")
+    def bench_poses(
+        config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
+        = Path("scenarios/daemon_robot.toml"),
+        duration_s: Annotated[float, typer.Option("--duration-s", help="rig time to run, s (> 0)")] = 600.0,
+        every_s: Annotated[float, typer.Option("--setpoint-every-s", help="rig time between random setpoints, "
+                                                                        "s (> 0)")] = 10.0,
+        seed: Annotated[int, typer.Option("--seed", help="seed of the random setpoints (as bench soak's)")] = 1,
+        target_rate: Annotated[Optional[float], typer.Option(
+            "--target-rate-mm-s", help="robot targets' rate, mm/s (0 = steps; default: the file's, else the "
+                                       "daemon's 3)")] = None,
+        out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_poses"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    ) -> None:
+        """Many random setpoint changes through the daemon's runner, sim rig and safety monitor in lockstep:
+        the highest reading after each change, how many cross the pressure limit and the cap, and every
+        fault, the monitor re-armed after each (poses.json)."""
+        from hbma_ctrl.app.bench_poses import run_poses
+        from hbma_ctrl.app.daemon.config import load_config
+
+        for name, v in (("--duration-s", duration_s), ("--setpoint-every-s", every_s)):
+            if not (v > 0 and v < float("inf")):
+                raise ValueError(f"{name} = {v:g} must be > 0")
+        if target_rate is not None and not (0.0 <= target_rate <= 1000.0):
+            raise ValueError(f"--target-rate-mm-s = {target_rate:g} is out of range [0, 1000] mm/s")
+        load_config(config, {"--rig": "sim"})  # a bad file fails here, in one line, before anything runs
+        with run_dir(out, command="bench poses", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
+            res = run_poses(config, tmp, duration_s, every_s, seed, target_rate,
+                            on_change=lambda c: print(f"  {c['t_s']:8.2f} s: peak {c['peak_kpa']:.2f} kPa "
+                                                      f"({c['chamber']})", file=sys.stderr, flush=True))
+        typer.echo(f"poses: {res['changes']} changes in {res['wall_s']:.0f} s, target rate {res['target_rate_mm_s']} mm/s; "
+                   f"peak reading max {res['peak_kpa_max']:.2f} kPa, p90 {res['peak_kpa_p90']:.2f}; over the "
+                   f"{res['pressure_limit_kpa']:g} kPa limit {res['over_limit']}, over the {res['cap_kpa']:g} kPa cap "
+                   f"{res['over_cap']}; faults {len(res['faults'])}; wrote {out / 'poses.json'}")
