@@ -71,6 +71,16 @@ def rss_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
 
 
+def _steal_ms() -> float | None:
+    """The host's steal time summed over this machine's CPUs, ms (/proc/stat; None where there is none)."""
+    try:
+        with open("/proc/stat") as fh:
+            f = fh.readline().split()
+        return float(f[8]) * 1e3 / os.sysconf("SC_CLK_TCK") if f and f[0] == "cpu" and len(f) > 8 else None
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def _fmt(x: float, scale: float = 1.0, digits: int = 4) -> str:
     return "" if x is None or not math.isfinite(x) else f"{x * scale:.{digits}f}"
 
@@ -143,6 +153,7 @@ class DaemonLoop:
         self.wall_s = 0.0
         self._miss_run = 0
         self._t_origin: float | None = None
+        self._steal_before: float | None = None
 
     # --- events ------------------------------------------------------------------------------------
     def event(self, kind: str, cause: str) -> None:
@@ -257,6 +268,7 @@ class DaemonLoop:
             self.repeated_samples += 1
             self._write(self.u_last)
             return
+        self._steal_before = _steal_ms()
         c0, cpu0 = self.clock(), time.thread_time()
         held = getattr(r, "held", None)
         # a runner's start-up work (the chamber's calibration and its fit) is not judged by the watchdog
@@ -265,12 +277,28 @@ class DaemonLoop:
         u = self.runner.tick(self.t, p) if held is None else self.runner.tick(self.t, p, held)
         self._last_tick = self.clock() - c0
         self._last_tick_cpu = time.thread_time() - cpu0
+        if max(self._last_tick, self._last_tick_cpu) > self.period and not self._warming:
+            self._slow_tick()
         self._ctrl_steps += int(not self._warming)
         self.tick_s.add(self._last_tick)
         self.tick_cpu_s.add(self._last_tick_cpu)
         for kind, cause in getattr(self.runner, "take_events", list)():
             self.event(kind, cause)
         self._write(u)
+
+    def _slow_tick(self) -> None:
+        """Log a tick longer than the period (event ``slow_tick``) with where its time went: the
+        runtime loop's estimator and controller parts when it reports them (``last_timing``: step,
+        estimator, controller, s) and the host's steal time during it (ms, from /proc/stat, read before
+        every tick: on a virtual machine a thread's CPU time counts time the host took the core)."""
+        parts = getattr(getattr(self.runner, "loop", None), "last_timing", None)
+        text = f"cpu {self._last_tick_cpu * 1e3:.1f} ms, wall {self._last_tick * 1e3:.1f} ms"
+        if parts is not None and len(parts) == 3:
+            text += f" (estimator {parts[1] * 1e3:.1f} ms, controller {parts[2] * 1e3:.1f} ms)"
+        steal = _steal_ms()
+        if steal is not None and self._steal_before is not None:
+            text += f"; host steal during it {steal - self._steal_before:.0f} ms (10 ms steps)"
+        self.event("slow_tick", text)
 
     def _check_setpoint(self, request: dict) -> dict:
         """The runner's check (the API's thread); refused (RuntimeError: 503) once the loop is not running:
