@@ -230,3 +230,10 @@ def test_robot_target_rate_out_of_range_names_the_key_and_range(tmp_path):
             "[robot.targets]\nall = [[0.0, 6.0, 0.0, 0.0]]\n")
     _one_line_error(_run_file(tmp_path, body, "robot.toml"), "robot.toml", "[robot] target_rate_mm_s = -1",
                     "[0, 1000] mm/s")
+
+
+def test_robot_mpc_w_slack_out_of_range_names_the_key_and_range(tmp_path):
+    body = ("[robot]\nmode = 'closed_loop'\nlayers = 1\nmpc_w_slack = -1.0\n"
+            "[robot.targets]\nall = [[0.0, 6.0, 0.0, 0.0]]\n")
+    _one_line_error(_run_file(tmp_path, body, "robot.toml"), "robot.toml", "[robot] mpc_w_slack = -1",
+                    "[0, 1e+06] 1/kPa")

@@ -24,7 +24,8 @@ import pytest
 from typer.testing import CliRunner
 
 from hbma_ctrl.app.cli import app
-from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, build_runner, make_monitor, make_rig
+from controllers.robot_mpc import RobotMPCSettings
+from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
 from hbma_ctrl.app.daemon.loop import STATS_KEYS, DaemonLoop
 from hbma_ctrl.app.daemon.rigio import RigLinkError, safe_u
@@ -620,6 +621,18 @@ def test_the_robots_targets_move_at_the_files_rate_or_the_daemons(tmp_path):
     assert build_runner(load_config(none)).loop.target_rate == pytest.approx(DAEMON_TARGET_RATE)
     steps = _write_config(tmp_path, ROBOT, replace={line: "target_rate_mm_s = 0.0"})
     assert build_runner(load_config(steps)).loop.target_rate == 0.0
+
+
+def test_the_robots_nmpc_puts_its_pressure_limit_first_in_the_daemon(tmp_path):
+    """The daemon's robot NMPC costs a kPa over its limit [robot] mpc_w_slack (100 in the shipped file),
+    DAEMON_W_SLACK when the file gives none, while a scene keeps the controller's default (1e-3)."""
+    assert build_runner(load_config(ROBOT)).loop.controller.s.w_slack == 100.0
+    line = "mpc_w_slack = 100.0"
+    none = _write_config(tmp_path, ROBOT, replace={line: "#"})
+    assert build_runner(load_config(none)).loop.controller.s.w_slack == DAEMON_W_SLACK
+    cheap = _write_config(tmp_path, ROBOT, replace={line: "mpc_w_slack = 0.001"})
+    assert build_runner(load_config(cheap)).loop.controller.s.w_slack == 0.001
+    assert RobotMPCSettings().w_slack == 1e-3
 
 
 def _burst_drill(tmp_path: Path, start: float, chamber: int, log: Path | None = None):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -197,6 +198,8 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     rig = RigTable.model_validate(raw_rig).to_robot_rig() if raw_rig else RobotRigSettings()
     model = make_model(d, scn.pneumatics, s.pneumatics.topology)
     mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=s.mpc_budget)
+    if s.mpc_w_slack is not None:
+        mpc = replace(mpc, w_slack=s.mpc_w_slack)
     kinds = [s.controller]
     if s.compare_baseline:
         kinds.append("pressure_pid" if s.controller == "mpc" else "mpc")

@@ -207,6 +207,8 @@ class RobotSettings:
     settle_time : RMSEs count samples at least this long after a target change, s.
     mpc_horizon, mpc_dt : NMPC stages and prediction step (s).
     mpc_budget : NMPC wall-time budget per step, a fraction of the control period (0 = none).
+    mpc_w_slack : the NMPC's cost per kPa over its pressure limit (None = not given: the
+        controller's default in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` in the daemon).
     target_rate : the fastest a chamber's target height moves after a target change, m/s (0 = steps;
         None = not given: steps in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_TARGET_RATE` in the daemon).
     """
@@ -228,6 +230,7 @@ class RobotSettings:
     mpc_dt: float = 0.02
     mpc_budget: float = field(default=0.0, repr=False)  # repr: the stored reprs of the scenario goldens
     target_rate: float | None = field(default=None, repr=False)
+    mpc_w_slack: float | None = field(default=None, repr=False)
 
     @property
     def plant(self) -> RobotPlantSettings:
@@ -257,6 +260,8 @@ class RobotSettings:
             raise ValueError(f"robot.mpc_horizon = {self.mpc_horizon!r} must be an integer in [1, 100]")
         check_range("robot", "mpc_dt", self.mpc_dt, 1e-3, 1.0, "s")
         check_range("robot", "mpc_budget", self.mpc_budget, 0.0, 1.0)
+        if self.mpc_w_slack is not None:
+            check_range("robot", "mpc_w_slack", self.mpc_w_slack, 0.0, 1e6, "1/kPa")
         if self.target_rate is not None:
             check_range("robot", "target_rate", self.target_rate, 0.0, 1.0, "m/s")
         return self

@@ -41,7 +41,7 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
-           "robot_rig_settings", "DAEMON_MPC_BUDGET", "DAEMON_TARGET_RATE", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
+           "robot_rig_settings", "DAEMON_MPC_BUDGET", "DAEMON_TARGET_RATE", "DAEMON_W_SLACK", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
            "ROBOT_NOISE_MARGIN"]
 
 #: sensor noise sigmas ([rig] noise_std_kpa) between the robot NMPC's pressure bound and the limit
@@ -60,6 +60,10 @@ DAEMON_MPC_BUDGET = 0.8
 #: layers' mass overshot the membranes' equilibrium (a replica of the soak, 59 random poses: 11 moves read
 #: over the 45 kPa limit, 2 over the 47.5 kPa cap; at 3 mm/s none over 43.1 kPa)
 DAEMON_TARGET_RATE = 3e-3
+#: the robot NMPC's cost per kPa over its pressure limit in the daemon when the file gives none: the
+#: limit before the target (the controller's default, 1e-3, lets the limit give way by a few kPa for a
+#: millimetre of height: a soak held A1 at 45.0 kPa, the limit itself, for seconds)
+DAEMON_W_SLACK = 100.0
 
 
 def chamber_rig_settings(cfg: DaemonConfig) -> RigSettings:
@@ -357,8 +361,9 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
         # the NMPC works to the limit less ROBOT_NOISE_MARGIN sensor sigmas: held at the limit itself, a
         # chamber's readings cross it on noise alone (a soak: 0.3 % of its readings, up to 45.6 of 45 kPa)
         p_max = rp.pressure_limit - ROBOT_NOISE_MARGIN * rs.noise_std
+        w_slack = DAEMON_W_SLACK if s.mpc_w_slack is None else s.mpc_w_slack
         ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=p_max,
-                     budget=budget)
+                     budget=budget, w_slack=w_slack)
         ctrl = RobotNMPC(model, n, ms)
     else:
         ctrl = RobotPressurePID(model, n, replace(RobotPIDSettings(), sample_period=Ts))

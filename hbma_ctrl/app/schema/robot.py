@@ -119,6 +119,8 @@ class RobotTable(Table):
     mpc_dt_ms: float = num(20.0, 1.0, 1000.0, "ms", "NMPC prediction step")
     mpc_budget: float = num(0.0, 0.0, 1.0, "-", "NMPC wall-time budget per step as a fraction of the control "
                             "period; an overrun is a failed step (0 = none; the daemon uses 0.8 then)")
+    mpc_w_slack: float | None = num(None, 0.0, 1e6, "1/kPa", "NMPC cost per kPa over its pressure limit "
+                                    "(default: 0.001 in a scene, 100 in the daemon: the limit first)")
     target_rate_mm_s: float | None = num(None, 0.0, 1000.0, "mm/s", "fastest a chamber's target height moves "
                                          "after a new target (0 = steps; default: steps in a scene, 3 in the daemon)")
 
@@ -242,7 +244,8 @@ class RobotTable(Table):
             closed["tip_load"] = tuple(tuple(r) for r in self.tip_load_n)
         for key, name, conv in (("compare_baseline", "compare_baseline", bool), ("settle_s", "settle_time", float),
                                 ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms),
-                                ("mpc_budget", "mpc_budget", float), ("target_rate_mm_s", "target_rate", U.mm)):
+                                ("mpc_budget", "mpc_budget", float), ("target_rate_mm_s", "target_rate", U.mm),
+                                ("mpc_w_slack", "mpc_w_slack", float)):
             if self._given(key):
                 closed[name] = conv(getattr(self, key))
         sync = U.ms(self.sync_ms) if self._given("sync_ms") else RobotSettings().sync_period
