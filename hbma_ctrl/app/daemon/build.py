@@ -57,8 +57,8 @@ ROBOT_LEAK_FRACTION = 0.5
 DAEMON_MPC_BUDGET = 0.8
 #: the fastest a robot chamber's target height moves in the daemon when [robot] target_rate_mm_s is not
 #: given, m/s: a new pose sent as a step moved the layers as fast as the pumps and vents could, and the
-#: layers' mass overshot the membranes' equilibrium (a replica of the soak, 59 random poses: 11 moves read
-#: over the 45 kPa limit, 2 over the 47.5 kPa cap; at 3 mm/s none over 43.1 kPa)
+#: layers' mass overshot the membranes' equilibrium (a soak read 48.96 kPa 70 ms after a pose; `bench poses`,
+#: 2 seeds x 59 changes: the worst change 43.2-44.0 kPa with steps, 42.0-42.2 kPa at 3 mm/s)
 DAEMON_TARGET_RATE = 3e-3
 #: the robot NMPC's cost per kPa over its pressure limit in the daemon when the file gives none: the
 #: limit before the target (the controller's default, 1e-3, lets the limit give way by a few kPa for a
