@@ -39,6 +39,7 @@ from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
 from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.app.run_data import data_lines, data_number
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
@@ -129,29 +130,13 @@ class FitResult:
 # ---------------------------------------------------------------------------------------------
 # data
 # ---------------------------------------------------------------------------------------------
-def _number(text: str, col: str, row: int) -> float:
-    try:
-        v = float(text)
-    except (TypeError, ValueError):
-        raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a number") from None
-    if not math.isfinite(v):
-        raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a finite number")
-    return v
-
-
 def parse_data(raw: bytes) -> StaticData:
     """Static data from a CSV file's bytes (h_mm, p_kpa, optional F_n or load_g) in SI.
 
     One ValueError naming the column and the 1-based data row for a bad value; lines starting
     with '#' and blank lines are skipped. A ``t_s`` column (dynamic data) is refused.
     """
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = raw[: exc.start].count(b"\n") + 1
-        raise ValueError(f"data: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); save the "
-                         "file as UTF-8") from None
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    lines = data_lines(raw)
     if not lines:
         raise ValueError("data: the file is empty; expected a header h_mm,p_kpa[,F_n|load_g] and data rows")
     reader = csv.reader(io.StringIO("\n".join(lines)))
@@ -174,7 +159,7 @@ def parse_data(raw: bytes) -> StaticData:
             cell = cells[idx[c]].strip() if idx[c] < len(cells) else ""
             if cell == "":
                 raise ValueError(f"data: column '{c}', row {row}: empty value")
-            v = _number(cell, c, row)
+            v = data_number(cell, c, row)
             if v < 0:
                 what = {"h_mm": "height", "p_kpa": "pressure"}.get(c, "load")
                 raise ValueError(f"data: column '{c}', row {row}: {what} {v:g} is negative")

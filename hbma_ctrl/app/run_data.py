@@ -21,7 +21,7 @@ import numpy as np
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.validation import did_you_mean
 
-__all__ = ["COLUMN_ALIASES", "MAX_MISSING_RUN", "RunData", "is_dynamic", "parse_run"]
+__all__ = ["COLUMN_ALIASES", "MAX_MISSING_RUN", "RunData", "data_lines", "data_number", "is_dynamic", "parse_run"]
 
 #: role -> accepted column names, first match wins (see the module docstring for which file has which)
 COLUMN_ALIASES = {
@@ -57,7 +57,9 @@ class RunData:
     columns: dict
 
 
-def _lines(raw: bytes) -> list[str]:
+def data_lines(raw: bytes) -> list[str]:
+    """A data CSV's lines from its bytes (UTF-8, a BOM allowed), blank and '#' lines left out;
+    ValueError naming the first byte that is not UTF-8 and its line."""
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -69,7 +71,7 @@ def _lines(raw: bytes) -> list[str]:
 
 def is_dynamic(raw: bytes) -> bool:
     """True when the CSV's header has a ``t_s`` column (a recorded run), False for static points."""
-    lines = _lines(raw)
+    lines = data_lines(raw)
     if not lines:
         return False
     header = [c.strip() for c in next(csv.reader(io.StringIO(lines[0])))]
@@ -85,9 +87,14 @@ def _value(text: str, col: str, row: int, missing_ok: bool) -> float:
         if missing_ok:
             return float("nan")
         raise ValueError(f"data: column '{col}', row {row}: missing value")
+    return data_number(text, col, row)
+
+
+def data_number(text: str, col: str, row: int) -> float:
+    """A data cell's finite number; ValueError naming the column and the 1-based data row."""
     try:
         v = float(text)
-    except ValueError:
+    except (TypeError, ValueError):
         raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a number") from None
     if not math.isfinite(v):
         raise ValueError(f"data: column '{col}', row {row}: {text!r} is not a finite number")
@@ -112,7 +119,7 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
     ``load_kg`` is the load for a file without a ``load_g`` column (None = 0, free inflation).
     One ValueError naming the column (as written) and the 1-based data row for bad data.
     """
-    lines = _lines(raw)
+    lines = data_lines(raw)
     if not lines:
         raise ValueError("data: the file is empty; expected a header with t_s, p_kpa, speed, inlet, outlet")
     reader = csv.reader(io.StringIO("\n".join(lines)))
