@@ -346,12 +346,10 @@ class RobotNMPC:
         Wk = ca.repmat(ca.DM(wk).T, n, 1)
         Hs = Hx[:, 1:]
         r = h[:, 1:] - Hs * xb[:, 1:] - href  # h_lin = Hs x + r
-        nb = 3 * N + 1
-        q = ca.horzcat(2 * Wk * Hs * r, SX.zeros(n, 2 * N), SX.zeros(n, 1))
-        q[:, N:nb] = s.r_in
-        # the pressure slack costs w_slack per kPa (see the settings: cheap in scenes, an exact penalty
-        # in the daemon, where a chamber short of its target parked at the limit itself with a cheap one)
-        q[:, 3 * N] = s.w_slack
+        # the pressure slack (last) costs w_slack per kPa (see the settings: cheap in scenes, an exact
+        # penalty in the daemon, where a chamber short of its target parked at the limit itself with a
+        # cheap one)
+        q = ca.horzcat(2 * Wk * Hs * r, s.r_in * SX.ones(n, 2 * N), s.w_slack * SX.ones(n, 1))
         q[:, N] = s.r_in - 2 * s.w_du * prev[0, :].T
         q[:, 2 * N] = s.r_in - 2 * s.w_du * prev[1, :].T
         du_diag = np.full(N, 4 * s.w_du)

@@ -33,7 +33,6 @@ from hbma_ctrl.app.daemon.rigio import safe_u
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.schema.api import SetpointRequest
 from hbma_ctrl.core import units as U
-from hbma_ctrl.runtime.watchdog import SafetyMonitor
 
 __all__ = ["run_poses"]
 
@@ -87,7 +86,7 @@ def run_poses(config: Path, out: Path, duration_s: float, every_s: float, seed: 
                            "cause": f.cause})
         if monitor.latched:
             # a daemon stops here; the bench re-arms and goes on, so one run counts every fault
-            monitor = SafetyMonitor(monitor.settings, n)
+            monitor.reset()
         u = runner.tick(t, p)
         rig.write(u)
         u_last = u

@@ -106,6 +106,17 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     return stats
 
 
+def _check_bench(config: Path, positive: dict) -> None:
+    """A daemon bench's flags that must be finite and > 0 ({flag: value}) and its configuration on the
+    simulated rig: a bad one is one error line before anything runs."""
+    from hbma_ctrl.app.daemon.config import load_config
+
+    for name, v in positive.items():
+        if not (v > 0 and v < float("inf")):
+            raise ValueError(f"{name} = {v:g} must be > 0")
+    load_config(config, {"--rig": "sim"})
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``daemon`` to the top-level app (called by :mod:`hbma_ctrl.app.cli`)."""
 
@@ -170,12 +181,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         """The daemon on the simulated rig for a long run, setpoints sent through its API: faults, tick
         times, pressure limit, memory (soak.json)."""
         from hbma_ctrl.app.bench_soak import run_soak
-        from hbma_ctrl.app.daemon.config import load_config
 
-        for name, v in (("--duration-s", duration_s), ("--speed", speed), ("--setpoint-every-s", every_s)):
-            if not (v > 0 and v < float("inf")):
-                raise ValueError(f"{name} = {v:g} must be > 0")
-        load_config(config, {"--rig": "sim"})  # a bad file fails here, in one line, before anything runs
+        _check_bench(config, {"--duration-s": duration_s, "--speed": speed, "--setpoint-every-s": every_s})
         res = run_soak(config, out, duration_s, speed, every_s, seed, overwrite=overwrite, argv=cli_argv(),
                        echo=lambda s: print(s, file=sys.stderr, flush=True))
         st = res["daemon_stats"]
@@ -208,14 +215,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         the highest reading after each change, how many cross the pressure limit and the cap, and every
         fault, the monitor re-armed after each (poses.json)."""
         from hbma_ctrl.app.bench_poses import run_poses
-        from hbma_ctrl.app.daemon.config import load_config
 
-        for name, v in (("--duration-s", duration_s), ("--setpoint-every-s", every_s)):
-            if not (v > 0 and v < float("inf")):
-                raise ValueError(f"{name} = {v:g} must be > 0")
         if target_rate is not None and not (0.0 <= target_rate <= 1000.0):
             raise ValueError(f"--target-rate-mm-s = {target_rate:g} is out of range [0, 1000] mm/s")
-        load_config(config, {"--rig": "sim"})  # a bad file fails here, in one line, before anything runs
+        _check_bench(config, {"--duration-s": duration_s, "--setpoint-every-s": every_s})
         with run_dir(out, command="bench poses", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
             res = run_poses(config, tmp, duration_s, every_s, seed, target_rate,
                             on_change=lambda c: print(f"  {c['t_s']:8.2f} s: peak {c['peak_kpa']:.2f} kPa "
