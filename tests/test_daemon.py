@@ -300,6 +300,38 @@ def test_accelerated_the_watchdog_judges_the_ticks_work_not_its_wall_time():
     assert len(slow) == busy["steps_over_period"]
 
 
+def test_the_loop_freezes_start_up_objects_and_names_the_collectors_share_of_a_slow_tick():
+    """While the loop runs, the objects alive at its start are frozen (a full collection skips them)
+    and every collection is timed; a tick over the period says how much of it the collector took;
+    at the end the objects are unfrozen and the stats report the collections."""
+    import gc
+
+    cfg, runner, rig, loop = _loop(CHAMBER, duration_s=0.1, speed=20.0)
+    tick = runner.tick
+    seen = []
+
+    def slow_tick(t, p):
+        seen.append(gc.get_freeze_count())
+        if len(seen) == 5:
+            gc.collect(0)  # at least one collection inside this tick
+            end = time.thread_time() + 1.5 * loop.period
+            while time.thread_time() < end:
+                pass
+        return tick(t, p)
+
+    runner.tick = slow_tick
+    loop.clock, loop.sleep, loop.warmup_periods = time.monotonic, time.sleep, 0
+    stats = loop.run()
+    assert min(seen) > 1000  # frozen on every tick
+    assert gc.get_freeze_count() == 0 and stats["gc_frozen"] is True
+    slow = [e["cause"] for e in loop.events if e["kind"] == "slow_tick"]
+    # (the first solve may be slow too: it sets the solver up)
+    named = [c for c in slow if re.search(r"garbage collector \d+\.\d ms in [1-9]\d* collections?(;|$)", c)]
+    assert len(named) == 1 and re.search(r"thread user \d+\.\d ms, system \d+\.\d ms", named[0]), slow
+    assert sum(stats["gc_collections"]) >= 1 and stats["gc_pause_ms_max"] >= 0.0
+    assert stats["gc_pause_ms_total"] >= stats["gc_pause_ms_max"]
+
+
 def test_missed_deadlines_are_counted_and_skipped_not_burst():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
     _slow(loop, runner, 2.5)

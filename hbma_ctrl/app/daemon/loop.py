@@ -26,6 +26,10 @@ Each period:
    is written;
 4. a run log row; the status is published for the API every ``status_every`` periods.
 
+Before the first period the objects alive are frozen out of Python's garbage collector and every
+collection is timed (:mod:`hbma_ctrl.app.daemon.gcwatch`): a full collection of the start-up objects
+took 3-4 periods.
+
 The loop ends on a stop request (the API's /stop, a signal flag, the duration) or at once on an
 exception anywhere in the step or a lost rig link. Whatever ends it, the safe command is written
 before :meth:`DaemonLoop.run` returns, and the event is logged with its rig time and cause.
@@ -42,6 +46,7 @@ from typing import Callable
 
 import numpy as np
 
+from hbma_ctrl.app.daemon.gcwatch import GcWatch
 from hbma_ctrl.app.daemon.rigio import RigLinkError, safe_u
 from hbma_ctrl.app.daemon.runlog import RunLog
 from hbma_ctrl.app.daemon.state import DaemonState
@@ -78,6 +83,15 @@ def _steal_ms() -> float | None:
             f = fh.readline().split()
         return float(f[8]) * 1e3 / os.sysconf("SC_CLK_TCK") if f and f[0] == "cpu" and len(f) > 8 else None
     except (OSError, ValueError, IndexError):
+        return None
+
+
+def _thread_usage():
+    """This thread's resource usage (getrusage RUSAGE_THREAD: user and system time, page faults,
+    preemptions), None where the platform has none."""
+    try:
+        return resource.getrusage(resource.RUSAGE_THREAD)
+    except (AttributeError, OSError, ValueError):
         return None
 
 
@@ -154,6 +168,12 @@ class DaemonLoop:
         self._miss_run = 0
         self._t_origin: float | None = None
         self._steal_before: float | None = None
+        self._ru_before = None
+        #: the collector's pauses (frozen start-up objects, see :mod:`hbma_ctrl.app.daemon.gcwatch`),
+        #: set while :meth:`run` runs
+        self.gc: GcWatch | None = None
+        self._gc_before = (0, 0.0)
+        self._gc_stats: dict = {}
 
     # --- events ------------------------------------------------------------------------------------
     def event(self, kind: str, cause: str) -> None:
@@ -269,6 +289,8 @@ class DaemonLoop:
             self._write(self.u_last)
             return
         self._steal_before = _steal_ms()
+        self._ru_before = _thread_usage()
+        self._gc_before = self.gc.mark() if self.gc is not None else (0, 0.0)
         c0, cpu0 = self.clock(), time.thread_time()
         held = getattr(r, "held", None)
         # a runner's start-up work (the chamber's calibration and its fit) is not judged by the watchdog
@@ -289,8 +311,9 @@ class DaemonLoop:
     def _slow_tick(self) -> None:
         """Log a tick longer than the period (event ``slow_tick``) with where its time went: the
         runtime loop's estimator and controller parts when it reports them (``last_timing``: step,
-        estimator, controller, s) and the host's steal time during it (ms, from /proc/stat, read before
-        every tick: on a virtual machine a thread's CPU time counts time the host took the core)."""
+        estimator, controller, s), the host's steal time during it (ms, from /proc/stat, read before
+        every tick: on a virtual machine a thread's CPU time counts time the host took the core) and the
+        garbage collector's pauses during it (any thread's: a collection holds the interpreter)."""
         parts = getattr(getattr(self.runner, "loop", None), "last_timing", None)
         text = f"cpu {self._last_tick_cpu * 1e3:.1f} ms, wall {self._last_tick * 1e3:.1f} ms"
         if parts is not None and len(parts) == 3:
@@ -298,6 +321,22 @@ class DaemonLoop:
         steal = _steal_ms()
         if steal is not None and self._steal_before is not None:
             text += f"; host steal during it {steal - self._steal_before:.0f} ms (10 ms steps)"
+        if self.gc is not None:
+            n, d = self.gc.since(self._gc_before)
+            text += f"; garbage collector {d * 1e3:.1f} ms in {n} collection{'' if n == 1 else 's'}"
+        ru = _thread_usage()
+        if ru is not None and self._ru_before is not None:
+            b = self._ru_before
+            text += (f"; thread user {(ru.ru_utime - b.ru_utime) * 1e3:.1f} ms, system "
+                     f"{(ru.ru_stime - b.ru_stime) * 1e3:.1f} ms, {ru.ru_minflt - b.ru_minflt} page faults, "
+                     f"{ru.ru_nivcsw - b.ru_nivcsw} preemptions")
+        loop = getattr(self.runner, "loop", None)
+        more = dict(getattr(loop, "last_parts", None) or {})
+        more.update({f"nmpc {k}": v for k, v in
+                     (getattr(getattr(loop, "controller", None), "last_parts", None) or {}).items()})
+        if more:
+            text += "; " + ", ".join(f"{k} {v * 1e3:.2f} ms" if isinstance(v, float) else f"{k} {v}"
+                                     for k, v in more.items())
         self.event("slow_tick", text)
 
     def _check_setpoint(self, request: dict) -> dict:
@@ -325,6 +364,8 @@ class DaemonLoop:
     def run(self) -> dict:
         """Run until stopped (module doc); returns the stats (:data:`STATS_KEYS` and more)."""
         self.state.set_setpoint_handler(self._check_setpoint)
+        # before the first period: one collection, then the start-up objects frozen (gcwatch's doc)
+        self.gc = GcWatch()
         self.mode = "running"
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
         wp = self.period / self.speed
@@ -406,6 +447,8 @@ class DaemonLoop:
             self.event("safe_exit" if self.safe_exit else "unsafe_exit", self.end_reason or "ended")
             self.wall_s = self.clock() - t0
             self.rss_end = rss_mb()
+            self._gc_stats = self.gc.stats()
+            self.gc.close()
             self._log_row(float("nan"))
             self.state.publish(self.status())
             if self.log is not None:
@@ -417,9 +460,11 @@ class DaemonLoop:
         steps_over_period (ticks longer than the rig period: by wall time in real time, by the loop
         thread's CPU time when accelerated, module doc), steps_over_period_wall (by wall time), step_ms_max,
         tick_ms_median and tick_ms_p99 (the runtime tick without the rig's I/O, wall time),
-        tick_cpu_ms_median and tick_cpu_ms_p99 (its thread's CPU time), speed, rig_time_s, wall_s, and monitor_margins: how near the supervisor's trend
-        tests came to firing (leak_drop_kpa, leak_fraction, pump_rise_kpa; see
-        :attr:`hbma_ctrl.runtime.watchdog.SafetyMonitor.closest`)."""
+        tick_cpu_ms_median and tick_cpu_ms_p99 (its thread's CPU time), speed, rig_time_s, wall_s,
+        monitor_margins: how near the supervisor's trend tests came to firing (leak_drop_kpa,
+        leak_fraction, pump_rise_kpa; see :attr:`hbma_ctrl.runtime.watchdog.SafetyMonitor.closest`), and
+        the garbage collector's pauses in any thread (gc_collections by generation, gc_pause_ms_max,
+        gc_pause_ms_total, gc_frozen; :meth:`hbma_ctrl.app.daemon.gcwatch.GcWatch.stats`)."""
         st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
         tc = self.tick_cpu_s.summary()
         ms = lambda x: None if not math.isfinite(x) else float(U.to_ms(x))  # noqa: E731
@@ -434,7 +479,8 @@ class DaemonLoop:
                 "steps_over_period_wall": self.over_wall, "tick_cpu_ms_median": ms(tc["median"]),
                 "tick_cpu_ms_p99": ms(tc["p99"]),
                 "speed": self.speed, "rig_time_s": float(self.t),
-                "wall_s": float(self.wall_s), "monitor_margins": self._margins()}
+                "wall_s": float(self.wall_s), "monitor_margins": self._margins(),
+                **(self._gc_stats or (self.gc.stats() if self.gc is not None else {}))}
 
     def _margins(self) -> dict:
         c = getattr(self.monitor, "closest", {})
