@@ -219,6 +219,11 @@ class RobotNMPC:
         self.overran = False
         self.late_plan = None  # (horizon, n, 2): the solution of an overrun step
         self.last_step_s = 0.0
+        #: the last step's parts, s: QP data (the generated-C call), OSQP's update (values, warm start,
+        #: time limit; refactorises), OSQP's solve (and its own timer's ``osqp_solve``); the solve's
+        #: iterations and rho updates
+        self.last_parts = {"data": 0.0, "update": 0.0, "solve": 0.0, "iterations": 0, "rho_updates": 0,
+                           "osqp_solve": 0.0}
         self.status = ""
         self._solver = None
         self._z = self._y = None  # the last usable QP solution (primal, dual)
@@ -424,7 +429,9 @@ class RobotNMPC:
             self.obar = np.hstack([self.obar[:, 1:], self.obar[:, -1:]])
         self.xbar[:, 0] = x0
         nb = 3 * N + 1  # variables per chamber block
+        t_data = time.perf_counter()
         Pv, Av, qv, lo, up = self._data(x0, b, W, k, c, amax, href_mm, self.prev, self.xbar, self.abar, self.obar)
+        t_update = time.perf_counter()
         budget = s.budget * s.sample_period
         cold = self._solver is None
         if cold:
@@ -445,7 +452,12 @@ class RobotNMPC:
                 # what is left of the step's budget (at least 0.1 ms: OSQP checks it per iteration)
                 left = budget - (time.perf_counter() - t_start)
                 self._solver.update_settings(time_limit=max(left, 1e-4))
+        t_solve = time.perf_counter()
         res = self._solver.solve(raise_error=False)
+        t_end = time.perf_counter()
+        self.last_parts = {"data": t_update - t_data, "update": t_solve - t_update, "solve": t_end - t_solve,
+                           "iterations": int(res.info.iter), "rho_updates": int(getattr(res.info, "rho_updates", 0)),
+                           "osqp_solve": float(getattr(res.info, "solve_time", float("nan")))}
         status = str(res.info.status)
         self.status = status
         usable = res.x is not None and np.all(np.isfinite(res.x)) and \

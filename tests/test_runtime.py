@@ -211,6 +211,13 @@ def test_robot_loop_ticks_on_a_short_run(robot):
     st = loop.stats()
     assert st["step_ms"]["n"] == 40 and st["fallbacks"] == 0
     assert loop.estimate["h"].shape == (n,) and np.all(loop.estimate["h"] > 0.5e-3)
+    # the last tick's controller part, split up (what a slow tick's report names), within its total
+    parts = loop.last_parts
+    assert set(parts) == {"targets", "controller", "supervisor", "valves"} and min(parts.values()) >= 0.0
+    assert sum(parts.values()) <= loop.last_timing[2] + 1e-9
+    nm = ctrl.last_parts
+    assert nm["iterations"] >= 1 and nm["data"] > 0.0 and nm["solve"] > 0.0
+    assert nm["data"] + nm["update"] + nm["solve"] <= parts["controller"] + 1e-9
 
 
 def test_robot_loop_falls_back_when_the_qp_fails(robot):

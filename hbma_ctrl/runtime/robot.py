@@ -173,6 +173,9 @@ class RobotLoop:
         self.is_mpc = isinstance(controller, RobotNMPC)
         self.step_s, self.ekf_s, self.ctrl_s = (StepStats(stats_capacity) for _ in range(3))
         self.last_timing = (float("nan"),) * 3
+        #: the last tick's controller part split up, s: loads and targets, the controller's step, the
+        #: supervisor, the valve inputs (a slow tick's report says where its time went)
+        self.last_parts: dict = {}
         self.cautious_steps = 0
         self.estimate: dict | None = None
         self.valve_commands = np.zeros((3, self.n))
@@ -225,6 +228,7 @@ class RobotLoop:
         href = self._slew(self.chamber_targets(t), est["h"], steps * self._period)
         self.href = href
         vent = sup.vent_mask(href)
+        t_ctrl = time.perf_counter()
         plan, ok, cause = None, True, "ok"
         try:
             if self.is_mpc:
@@ -251,15 +255,19 @@ class RobotLoop:
                 a, o = ctrl.step(z, W, href)
         except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
             a, o, ok, cause = np.zeros(self.n), np.zeros(self.n), False, f"exception: {type(exc).__name__}"
+        t_sup = time.perf_counter()
         cmd = sup.apply(t, np.column_stack([a, o]), z, ok=ok, plan=plan, target=href, cause=cause)
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
         if self.is_mpc:
             ctrl.applied(a, o)
         # the compressor throttled to the planned flows at the estimated pressures (the bank and the
         # NMPC keep working in a: a full-speed inlet duty)
+        t_valves = time.perf_counter()
         Uc = model.valve_inputs(a, o, est["p"], throttle=self.throttle)
         t2 = time.perf_counter()
         self.last_timing = (t2 - t0, t1 - t0, t2 - t1)
+        self.last_parts = {"targets": t_ctrl - t1, "controller": t_sup - t_ctrl, "supervisor": t_valves - t_sup,
+                           "valves": t2 - t_valves}
         for st, v in zip((self.step_s, self.ekf_s, self.ctrl_s), self.last_timing):
             st.add(v)
         # the bank predicts with the full-speed duty a, not with the throttled speed and inlet sent:
