@@ -332,6 +332,49 @@ def test_the_loop_freezes_start_up_objects_and_names_the_collectors_share_of_a_s
     assert stats["gc_pause_ms_total"] >= stats["gc_pause_ms_max"]
 
 
+def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from_the_daemons(tmp_path):
+    """bench soak's replay: the run again in lockstep, its setpoints (from events.csv) at their rig times,
+    reaches the same readings and estimates as the run log at its slow tick; a tick that was slow only
+    in the run (here: a busy wait added to it) is the machine's; a replay that cannot reach the run's
+    state (a setpoint left out) never calls a tick the machine's."""
+    from hbma_ctrl.app.bench_soak import replay_ticks, soak_verdicts
+
+    state = DaemonState()
+    cfg, runner, rig, loop = _loop(CHAMBER, tmp_path, state=state, duration_s=0.4, speed=20.0)
+    loop.warmup_periods = 0
+    tick = runner.tick
+    n, busy_t = [0], []
+
+    def tick_with_extras(t, p):
+        n[0] += 1
+        if n[0] == 10:
+            assert state.submit_setpoint({"heights": {0: 0.004}})["applied"]
+        if n[0] == 25:
+            busy_t.append(t)
+            end = time.thread_time() + 1.5 * loop.period
+            while time.thread_time() < end:
+                pass
+        return tick(t, p)
+
+    runner.tick = tick_with_extras
+    stats = loop.run()
+    assert stats["steps_over_period"] >= 1
+    ticks = replay_ticks(CHAMBER, tmp_path, 20.0, echo=lambda s: None)
+    busy = [t for t in ticks if abs(t["t_s"] - busy_t[0]) < 1e-6]
+    assert len(busy) == 1 and busy[0]["same_state"] and busy[0]["machine"], ticks
+    assert busy[0]["cpu_ms"] > 10.0 and busy[0]["replay_cpu_ms"] < 10.0
+    # the verdict counts what the replay does not explain (the first solve, when slow, is the daemon's)
+    v = soak_verdicts(stats, ticks)["no_tick_over_period"]
+    assert v == all(t["machine"] for t in ticks)
+    assert soak_verdicts(stats, None)["no_tick_over_period"] is False
+    # without the setpoint the replay's state differs: nothing is put down to the machine
+    ev = (tmp_path / "events.csv").read_text().splitlines()
+    (tmp_path / "events.csv").write_text("\n".join(x for x in ev if ",setpoint," not in x) + "\n")
+    ticks = replay_ticks(CHAMBER, tmp_path, 20.0, echo=lambda s: None)
+    busy = [t for t in ticks if abs(t["t_s"] - busy_t[0]) < 1e-6]
+    assert len(busy) == 1 and not busy[0]["same_state"] and not busy[0]["machine"], ticks
+
+
 def test_missed_deadlines_are_counted_and_skipped_not_burst():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
     _slow(loop, runner, 2.5)

@@ -177,6 +177,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="seed of the random setpoints")] = 1,
         out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_soak"),
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+        replay: Annotated[bool, typer.Option("--replay/--no-replay",
+                                             help="re-time ticks over the period in a lockstep replay of the "
+                                                  "run (same setpoints, same state): one the replay does not "
+                                                  "repeat is the machine's")] = True,
     ) -> None:
         """The daemon on the simulated rig for a long run, setpoints sent through its API: faults, tick
         times, pressure limit, memory (soak.json)."""
@@ -184,13 +188,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
         _check_bench(config, {"--duration-s": duration_s, "--speed": speed, "--setpoint-every-s": every_s})
         res = run_soak(config, out, duration_s, speed, every_s, seed, overwrite=overwrite, argv=cli_argv(),
-                       echo=lambda s: print(s, file=sys.stderr, flush=True))
+                       echo=lambda s: print(s, file=sys.stderr, flush=True), replay=replay)
         st = res["daemon_stats"]
         failed = [k for k, ok in res["verdicts"].items() if not ok]
         typer.echo(f"soak: {st.get('rig_time_s', 0):.0f} s of rig time in {st.get('wall_s', 0):.0f} s, "
                    f"{res['setpoints_accepted']}/{res['setpoints_sent']} setpoints accepted, tick median "
                    f"{st.get('tick_ms_median') or float('nan'):.2f} / p99 {st.get('tick_ms_p99') or float('nan'):.2f} ms, "
-                   f"{st.get('steps_over_period')} over the period, max pressure "
+                   f"{st.get('steps_over_period')} over the period"
+                   + (f" ({res['ticks_over_period_machine']} not repeated by the replay: the machine's)"
+                      if res.get("ticks_over_period") else "") + ", max pressure "
                    f"{st.get('max_pressure_kpa') or float('nan'):.1f} / {st.get('pressure_limit_kpa')} kPa, RSS "
                    f"{st.get('rss_mb_start') or float('nan'):.1f} -> {st.get('rss_mb_end') or float('nan'):.1f} MB, faults {st.get('faults') or 'none'}: "
                    f"{'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'soak.json'}")
