@@ -40,6 +40,28 @@ def model():
     return PredictionModel(ACT, PN)
 
 
+def test_load_path_queries_read_the_grid_between_its_two_load_columns(model):
+    """path(W), x_at_height and reachable_height read one load path: the grid's two load columns around
+    W mixed linearly, W clipped to [0, load_max]; checked against the grid itself over the whole range
+    and beyond it at both ends."""
+    g = model.grid
+    for W in np.concatenate([[-1.0, 0.0], np.linspace(1e-3, model.load_max, 37), [model.load_max * 2]]):
+        Wc = min(max(W, 0.0), model.load_max)
+        j = min(max(int(np.searchsorted(g.W, Wc)), 1), len(g.W) - 1)
+        s = (Wc - g.W[j - 1]) / (g.W[j] - g.W[j - 1])
+        pth = model.path(W)
+        for key, A in (("x", g.x_path), ("p", g.p_path), ("lam", g.lam_path)):
+            np.testing.assert_array_equal(pth[key], (1 - s) * A[:, j - 1] + s * A[:, j])
+        for h in (0.5e-3, 3e-3, 8e-3):
+            assert model.x_at_height(h, W) == float(np.interp(h, g.h_path, pth["x"]))
+        # reachable from the same path: below the pressure limit up to it, at it only past it
+        r = model.reachable_height(W, 20e3, 4.0, 12e-3)
+        assert 0.0 <= r <= 12e-3
+        if r > 0.0:
+            assert np.interp(r, g.h_path, pth["p"]) <= 20e3 * (1 + 1e-9)
+    assert model.lift_off_x(-1.0) == 0.0 and np.isnan(model.path(float("nan"))["x"]).all()
+
+
 def est(h=0.0, p=0.0, F=0.0, t=0.0, flags=()):
     return Estimate(t=t, h1=h, h2=0.0, h=h, F=F, p=p, flags=frozenset(flags))
 

@@ -236,26 +236,37 @@ class PredictionModel:
 
     def x_at_height(self, h: float, W: float) -> float:
         """The state that holds height h (m) under load W (N) on the contact branch."""
-        pth = self.path(W)
-        return float(np.interp(h, pth["h"], pth["x"]))
+        return float(np.interp(h, self.grid.h_path, self._path_column(W, "x_path")))
 
     def lift_off_x(self, W: float) -> float:
         """State at which a load W (N) lifts off (rest gauge pressure W / (pi r1^2) over p_env)."""
-        return float(np.clip(W, 0.0, self.load_max) / (np.pi * self.actuator.r1 ** 2) / self.actuator.p_env)
+        # (scalar min/max, not np.clip: the NMPC calls this every step, and np.clip on a float costs
+        # microseconds; a NaN stays NaN either way)
+        Wc = min(max(float(W), 0.0), self.load_max)
+        return float(Wc / (np.pi * self.actuator.r1 ** 2) / self.actuator.p_env)
+
+    def _path_weights(self, W: float) -> tuple[int, float]:
+        """(j, s): the load path at W (N) is (1 - s) column j - 1 + s column j of the grid's tables."""
+        g = self.grid
+        W = min(max(float(W), 0.0), self.load_max)
+        j = min(max(int(np.searchsorted(g.W, W)), 1), len(g.W) - 1)
+        return j, (W - g.W[j - 1]) / (g.W[j] - g.W[j - 1])
+
+    def _path_column(self, W: float, name: str) -> np.ndarray:
+        """One table (``x_path``, ``p_path``, ``lam_path``) along the load path at W (N)."""
+        j, s = self._path_weights(W)
+        A = getattr(self.grid, name)
+        return (1 - s) * A[:, j - 1] + s * A[:, j]
 
     def path(self, W: float) -> dict:
         """Load path at load W (N): arrays h (m), x, p (Pa), lam along the contact branch."""
-        g = self.grid
-        W = float(np.clip(W, 0.0, self.load_max))
-        j = np.searchsorted(g.W, W)
-        j = int(np.clip(j, 1, len(g.W) - 1))
-        s = (W - g.W[j - 1]) / (g.W[j] - g.W[j - 1])
-        mix = lambda A: (1 - s) * A[:, j - 1] + s * A[:, j]  # noqa: E731
-        return {"h": g.h_path, "x": mix(g.x_path), "p": mix(g.p_path), "lam": mix(g.lam_path)}
+        return {"h": self.grid.h_path, "x": self._path_column(W, "x_path"), "p": self._path_column(W, "p_path"),
+                "lam": self._path_column(W, "lam_path")}
 
     def reachable_height(self, W: float, p_limit: float, lam_max: float, h_max: float) -> float:
         """Largest height (m) reachable from rest under load W without p > p_limit or lam > lam_max."""
-        pth = self.path(W)
+        # only the columns it reads (the NMPC calls this every step)
+        pth = {"h": self.grid.h_path, "p": self._path_column(W, "p_path"), "lam": self._path_column(W, "lam_path")}
         ok = (pth["p"] <= p_limit) & (pth["lam"] <= lam_max) & (pth["h"] <= h_max)
         if not ok[0]:
             return 0.0
