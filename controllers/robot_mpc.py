@@ -221,7 +221,7 @@ class RobotNMPC:
         self.last_step_s = 0.0
         #: the last step's parts, s: QP data (the generated-C call), OSQP's update (values, warm start,
         #: time limit; refactorises), OSQP's solve (and its own timer's ``osqp_solve``); the solve's
-        #: iterations and rho updates
+        #: iterations and rho updates; the step's status (``status``, set at its end)
         self.last_parts = {"data": 0.0, "update": 0.0, "solve": 0.0, "iterations": 0, "rho_updates": 0,
                            "osqp_solve": 0.0}
         self.status = ""
@@ -497,4 +497,6 @@ class RobotNMPC:
                 a /= a.sum()
         self.prev = np.vstack([a, o])
         self.last_step_s = time.perf_counter() - t_start
+        # last in the parts: a slow tick's event ends with it (whether the step overran and how)
+        self.last_parts["status"] = self.status
         return a, o

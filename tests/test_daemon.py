@@ -362,6 +362,7 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
     ticks = replay_ticks(CHAMBER, tmp_path, 20.0, echo=lambda s: None)
     busy = [t for t in ticks if abs(t["t_s"] - busy_t[0]) < 1e-6]
     assert len(busy) == 1 and busy[0]["same_state"] and busy[0]["machine"], ticks
+    assert busy[0]["first_difference"] == ""
     assert busy[0]["cpu_ms"] > 10.0 and busy[0]["replay_cpu_ms"] < 10.0
     # the verdict counts what the replay does not explain (the first solve, when slow, is the daemon's)
     v = soak_verdicts(stats, ticks)["no_tick_over_period"]
@@ -373,6 +374,7 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
     ticks = replay_ticks(CHAMBER, tmp_path, 20.0, echo=lambda s: None)
     busy = [t for t in ticks if abs(t["t_s"] - busy_t[0]) < 1e-6]
     assert len(busy) == 1 and not busy[0]["same_state"] and not busy[0]["machine"], ticks
+    assert re.match(r"(p|h_est)_\w+_(kpa|mm): run [-0-9.]+, replay [-0-9.]+$", busy[0]["first_difference"])
 
 
 def test_missed_deadlines_are_counted_and_skipped_not_burst():

@@ -216,7 +216,7 @@ def test_robot_loop_ticks_on_a_short_run(robot):
     assert set(parts) == {"targets", "controller", "supervisor", "valves"} and min(parts.values()) >= 0.0
     assert sum(parts.values()) <= loop.last_timing[2] + 1e-9
     nm = ctrl.last_parts
-    assert nm["iterations"] >= 1 and nm["data"] > 0.0 and nm["solve"] > 0.0
+    assert nm["iterations"] >= 1 and nm["data"] > 0.0 and nm["solve"] > 0.0 and nm["status"] == ctrl.status
     assert nm["data"] + nm["update"] + nm["solve"] <= parts["controller"] + 1e-9
 
 

@@ -130,7 +130,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
     clock (same configuration, the setpoints of its events.csv applied at their rig times), up to its
     last slow tick. Returns one dict per slow tick: ``t_s``, ``cpu_ms`` and ``wall_ms`` (the run's),
     ``replay_cpu_ms``, ``same_state`` (the replay's readings and height estimates at that tick equal the
-    run log's, as logged), ``machine`` (same state and the replay's tick within the period)."""
+    run log's, as logged; else ``first_difference`` names the column and both values), ``machine``
+    (same state and the replay's tick within the period)."""
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.config import load_config
     from hbma_ctrl.app.daemon.loop import DaemonLoop, _fmt
@@ -186,12 +187,15 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
     out = []
     for key, (t, cpu, wall) in sorted(wanted.items(), key=lambda kv: kv[1][0]):
         r, row = seen.get(key), logged.get(key)
-        same = r is not None and row is not None and all(
-            row.get(f"p_{nm}_kpa") == r["p"][i] and row.get(f"h_est_{nm}_mm") == r["h"][i]
-            for i, nm in enumerate(runner.names))
+        if r is None or row is None:
+            diff = "the replay did not reach this tick" if r is None else "no run log row at this tick"
+        else:
+            diff = next((f"{col}: run {row.get(col)}, replay {v}" for i, nm in enumerate(runner.names)
+                         for col, v in ((f"p_{nm}_kpa", r["p"][i]), (f"h_est_{nm}_mm", r["h"][i]))
+                         if row.get(col) != v), "")
         rc = None if r is None else r["cpu_ms"]
-        out.append({"t_s": t, "cpu_ms": cpu, "wall_ms": wall, "replay_cpu_ms": rc, "same_state": same,
-                    "machine": bool(same and rc is not None and rc <= period * 1e3)})
+        out.append({"t_s": t, "cpu_ms": cpu, "wall_ms": wall, "replay_cpu_ms": rc, "same_state": not diff,
+                    "first_difference": diff, "machine": bool(not diff and rc is not None and rc <= period * 1e3)})
     return out
 
 
