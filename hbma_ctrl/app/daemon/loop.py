@@ -328,7 +328,8 @@ class DaemonLoop:
         if ru is not None and self._ru_before is not None:
             b = self._ru_before
             text += (f"; thread user {(ru.ru_utime - b.ru_utime) * 1e3:.1f} ms, system "
-                     f"{(ru.ru_stime - b.ru_stime) * 1e3:.1f} ms, {ru.ru_minflt - b.ru_minflt} page faults, "
+                     f"{(ru.ru_stime - b.ru_stime) * 1e3:.1f} ms, {ru.ru_minflt - b.ru_minflt} minor and "
+                     f"{ru.ru_majflt - b.ru_majflt} major page faults, "
                      f"{ru.ru_nivcsw - b.ru_nivcsw} preemptions")
         loop = getattr(self.runner, "loop", None)
         more = dict(getattr(loop, "last_parts", None) or {})
