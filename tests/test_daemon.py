@@ -377,6 +377,48 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
     assert re.match(r"(p|h_est)_\w+_(kpa|mm): run [-0-9.]+, replay [-0-9.]+$", busy[0]["first_difference"])
 
 
+def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path):
+    """A robot run whose NMPC overran at two ticks (OSQP's time limit spent before its first iteration;
+    a solve finished after the budget), the supervisor replaying the plan each time, and that has a
+    slow tick later: the replay forces the same overruns where the events say they happened, with
+    its own budget lifted elsewhere, and reaches the run's state at all three ticks."""
+    from hbma_ctrl.app.bench_soak import _TimeLimited, replay_ticks
+
+    cfg, runner, rig, loop = _loop(ROBOT, tmp_path, duration_s=0.4, speed=20.0)
+    loop.warmup_periods = 0
+    ctrl = runner.loop.controller
+    assert ctrl.s.budget > 0.0
+    tick = runner.tick
+    n, marks = [0], {}
+
+    def tick_with_extras(t, p, *held):
+        n[0] += 1
+        if n[0] in (15, 22, 30):
+            marks[n[0]] = t
+            if n[0] == 15:
+                ctrl._solver.solve = lambda *a, **k: _TimeLimited()
+            if n[0] == 22:  # solved, but after the budget: a late plan, not sent
+                real = type(ctrl._solver).solve.__get__(ctrl._solver)
+                ctrl._solver.solve = lambda *a, **k: (real(*a, **k), time.sleep(ctrl.s.budget * ctrl.s.sample_period))[0]
+            end = time.thread_time() + 1.5 * loop.period
+            while time.thread_time() < end:
+                pass
+        try:
+            return tick(t, p, *held)
+        finally:
+            ctrl._solver.__dict__.pop("solve", None)
+
+    runner.tick = tick_with_extras
+    loop.run()
+    events = {e["t_s"]: e["cause"] for e in loop.events if e["kind"] == "slow_tick"}
+    assert events[marks[15]].endswith("nmpc status overrun (time limit reached)"), events
+    assert re.search(r"nmpc status overrun \([0-9.]+ ms > [0-9.]+ ms\)$", events[marks[22]]), events
+    ticks = {t["t_s"]: t for t in replay_ticks(ROBOT, tmp_path, 20.0, echo=lambda s: None)}
+    for k in (15, 22, 30):
+        r = ticks[marks[k]]
+        assert r["same_state"] and r["machine"], (k, r)
+
+
 def test_missed_deadlines_are_counted_and_skipped_not_burst():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
     _slow(loop, runner, 2.5)

@@ -94,6 +94,19 @@ def soak_verdicts(stats: dict, ticks: list | None = None) -> dict:
 
 
 _SLOW_CPU = re.compile(r"^cpu ([0-9.]+) ms, wall ([0-9.]+) ms")
+#: the robot NMPC's step status and iterations at the end of a slow tick's event
+_NMPC_STATUS = re.compile(r"nmpc status (.*)$")
+_NMPC_ITERS = re.compile(r"nmpc iterations (\d+)")
+_LATE = re.compile(r"^overrun \([0-9.]+ ms > [0-9.]+ ms\)$")
+
+
+class _TimeLimited:
+    """What OSQP returns when its time limit is spent before its first iteration."""
+
+    class info:  # noqa: N801 - OSQP's attribute names
+        status, iter, rho_updates, solve_time = "time limit reached", 0, 0, 0.0
+
+    x = y = None
 
 
 def _run_events(daemon_dir: Path) -> tuple[list, list]:
@@ -107,8 +120,50 @@ def _run_events(daemon_dir: Path) -> tuple[list, list]:
             elif row["kind"] == "slow_tick":
                 m = _SLOW_CPU.match(row["cause"])
                 if m:
-                    slow.append((float(row["t_s"]), float(m.group(1)), float(m.group(2))))
+                    st, it = _NMPC_STATUS.search(row["cause"]), _NMPC_ITERS.search(row["cause"])
+                    slow.append((float(row["t_s"]), float(m.group(1)), float(m.group(2)),
+                                 st.group(1) if st else None, int(it.group(1)) if it else None))
     return setpoints, slow
+
+
+def _forced_outcome(ctrl, status: str | None, iterations: int | None):
+    """A context for the replay's step at a tick where the run's robot NMPC overran: the same outcome
+    forced (the replay's wall-time budget is lifted everywhere else, so only the run's overruns
+    happen). "overrun (time limit reached)" with 0 iterations: OSQP returns at once with that status;
+    "overrun (X ms > Y ms)": the solve is made late. None for any other status (nothing to force) and
+    for one the replay cannot force (the run's time limit struck mid-solve): the replay then stays
+    on the run's path only if its own solve gives the same plan, which the state check tells."""
+    import contextlib
+
+    if ctrl is None or not status or not status.startswith("overrun"):
+        return contextlib.nullcontext(), True
+    run_settings = ctrl._run_settings
+    solver = ctrl._solver
+    if status == "overrun (time limit reached)" and iterations == 0:
+        def solve(*a, **k):
+            return _TimeLimited()
+    elif _LATE.match(status):
+        real = solver.solve
+
+        def solve(*a, **k):
+            res = real(*a, **k)
+            time.sleep(run_settings.budget * run_settings.sample_period)  # past the budget, solved
+            return res
+    else:
+        return contextlib.nullcontext(), False
+
+    @contextlib.contextmanager
+    def forced():
+        ctrl.s = run_settings
+        solver.solve = solve
+        try:
+            yield
+        finally:
+            del solver.solve
+            ctrl.s = ctrl._replay_settings
+            solver.update_settings(time_limit=1e10)  # the replay's solves are not cut (see above)
+
+    return forced(), True
 
 
 def _logged_rows(daemon_dir: Path, times: set) -> dict:
@@ -140,11 +195,12 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
 
     cfg = load_config(config, {"--rig": "sim", "--speed": float(speed)})
     period = cfg.period
-    setpoints, slow = _run_events(daemon_dir)
+    setpoints, events = _run_events(daemon_dir)
     # the ticks the run counted over the period: by CPU time when accelerated, by wall time otherwise
-    slow = [s for s in slow if (s[1] if speed > 1.0 else s[2]) > period * 1e3]
+    slow = [s[:3] for s in events if (s[1] if speed > 1.0 else s[2]) > period * 1e3]
     if not slow:
         return []
+    outcome = {f"{s[0]:.4f}": s[3:] for s in events}
     runner = build_runner(cfg)
     rig = make_rig(cfg, runner)
     state = DaemonState()
@@ -163,6 +219,17 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
         return out
 
     state.take_setpoints = take
+    # the robot NMPC's wall-time budget would let the replay's own load change its decisions: lifted,
+    # and the run's overruns forced where they happened (_forced_outcome)
+    ctrl = getattr(getattr(runner, "loop", None), "controller", None)
+    if ctrl is not None and hasattr(ctrl, "_solver") and getattr(ctrl.s, "budget", 0.0) > 0.0:
+        from dataclasses import replace
+
+        ctrl._run_settings, ctrl._replay_settings = ctrl.s, replace(ctrl.s, budget=0.0)
+        ctrl.s = ctrl._replay_settings
+    else:
+        ctrl = None
+    unforced: list = []
     wanted = {f"{t:.4f}": (t, cpu, wall) for t, cpu, wall in slow}
     seen: dict = {}
     step = loop._step
@@ -170,7 +237,16 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
 
     def timed_step(k: int, missed: bool) -> None:
         clock[0] += 1e-6  # the virtual wall clock moves, never to a deadline: no waiting
-        step(k, missed)
+        # this period's rig time (the lockstep rig's clock is the period count)
+        nxt = f"{k * period:.4f}"
+        if nxt in outcome:
+            ctx, ok = _forced_outcome(ctrl, *outcome[nxt])
+            if not ok:
+                unforced.append(nxt)
+            with ctx:
+                step(k, missed)
+        else:
+            step(k, missed)
         key = f"{loop.t:.4f}"
         if key in wanted:
             h = runner.estimates()[0]
