@@ -185,8 +185,9 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
     clock (same configuration, the setpoints of its events.csv applied at their rig times), up to its
     last slow tick. Returns one dict per slow tick: ``t_s``, ``cpu_ms`` and ``wall_ms`` (the run's),
     ``replay_cpu_ms``, ``same_state`` (the replay's readings and height estimates at that tick equal the
-    run log's, as logged; else ``first_difference`` names the column and both values), ``machine``
-    (same state and the replay's tick within the period)."""
+    run log's, as logged; else ``first_difference`` names the column and both values),
+    ``overrun_not_forced`` (the run's NMPC overran at this tick in a way the replay cannot force, see
+    :func:`_forced_outcome`), ``machine`` (same state and the replay's tick within the period)."""
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.config import load_config
     from hbma_ctrl.app.daemon.loop import DaemonLoop, _fmt
@@ -271,7 +272,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
                          if row.get(col) != v), "")
         rc = None if r is None else r["cpu_ms"]
         out.append({"t_s": t, "cpu_ms": cpu, "wall_ms": wall, "replay_cpu_ms": rc, "same_state": not diff,
-                    "first_difference": diff, "machine": bool(not diff and rc is not None and rc <= period * 1e3)})
+                    "first_difference": diff, "overrun_not_forced": key in unforced,
+                    "machine": bool(not diff and rc is not None and rc <= period * 1e3)})
     return out
 
 
