@@ -378,7 +378,7 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
 
 
 def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path):
-    """A robot run whose NMPC overran at two ticks (OSQP's time limit spent before its first iteration;
+    """A robot run whose NMPC overran at two ticks (OSQP's time limit, as OSQP reports it;
     a solve finished after the budget), the supervisor replaying the plan each time, and that has a
     slow tick later: the replay forces the same overruns where the events say they happened, with
     its own budget lifted elsewhere, and reaches the run's state at all three ticks."""
@@ -411,7 +411,7 @@ def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path)
     runner.tick = tick_with_extras
     loop.run()
     events = {e["t_s"]: e["cause"] for e in loop.events if e["kind"] == "slow_tick"}
-    assert events[marks[15]].endswith("nmpc status overrun (time limit reached)"), events
+    assert events[marks[15]].endswith("nmpc status overrun (run time limit reached)"), events
     assert re.search(r"nmpc status overrun \([0-9.]+ ms > [0-9.]+ ms\)$", events[marks[22]]), events
     ticks = {t["t_s"]: t for t in replay_ticks(ROBOT, tmp_path, 20.0, echo=lambda s: None)}
     for k in (15, 22, 30):

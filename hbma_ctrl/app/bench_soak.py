@@ -96,15 +96,15 @@ def soak_verdicts(stats: dict, ticks: list | None = None) -> dict:
 _SLOW_CPU = re.compile(r"^cpu ([0-9.]+) ms, wall ([0-9.]+) ms")
 #: the robot NMPC's step status and iterations at the end of a slow tick's event
 _NMPC_STATUS = re.compile(r"nmpc status (.*)$")
-_NMPC_ITERS = re.compile(r"nmpc iterations (\d+)")
+_NMPC_RHO = re.compile(r"nmpc rho_updates (\d+)")
 _LATE = re.compile(r"^overrun \([0-9.]+ ms > [0-9.]+ ms\)$")
 
 
 class _TimeLimited:
-    """What OSQP returns when its time limit is spent before its first iteration."""
+    """What OSQP returns when its time limit strikes (before its first iteration, here)."""
 
     class info:  # noqa: N801 - OSQP's attribute names
-        status, iter, rho_updates, solve_time = "time limit reached", 0, 0, 0.0
+        status, iter, rho_updates, solve_time = "run time limit reached", 0, 0, 0.0
 
     x = y = None
 
@@ -120,26 +120,28 @@ def _run_events(daemon_dir: Path) -> tuple[list, list]:
             elif row["kind"] == "slow_tick":
                 m = _SLOW_CPU.match(row["cause"])
                 if m:
-                    st, it = _NMPC_STATUS.search(row["cause"]), _NMPC_ITERS.search(row["cause"])
+                    st, rho = _NMPC_STATUS.search(row["cause"]), _NMPC_RHO.search(row["cause"])
                     slow.append((float(row["t_s"]), float(m.group(1)), float(m.group(2)),
-                                 st.group(1) if st else None, int(it.group(1)) if it else None))
+                                 st.group(1) if st else None, int(rho.group(1)) if rho else None))
     return setpoints, slow
 
 
-def _forced_outcome(ctrl, status: str | None, iterations: int | None):
-    """A context for the replay's step at a tick where the run's robot NMPC overran: the same outcome
-    forced (the replay's wall-time budget is lifted everywhere else, so only the run's overruns
-    happen). "overrun (time limit reached)" with 0 iterations: OSQP returns at once with that status;
-    "overrun (X ms > Y ms)": the solve is made late. None for any other status (nothing to force) and
-    for one the replay cannot force (the run's time limit struck mid-solve): the replay then stays
-    on the run's path only if its own solve gives the same plan, which the state check tells."""
+def _forced_outcome(ctrl, status: str | None, rho_updates: int | None):
+    """(context, forceable) for the replay's step at a tick where the run's robot NMPC overran: the same
+    outcome forced (the replay's wall-time budget is lifted everywhere else, so only the run's
+    overruns happen). OSQP's time limit ("overrun (run time limit reached)"): OSQP returns that
+    status at once. The run's solution was then unusable whatever iterations it had done, and the
+    next step warm-starts OSQP from the NMPC's last usable solution, so only a change of OSQP's rho
+    (``rho_updates`` > 0) would carry over; that one is not forced. "overrun (X ms > Y ms)": the solve
+    is made late. Not forced, the replay stays on the run's path only if its own step decides the
+    same, which the state check tells."""
     import contextlib
 
     if ctrl is None or not status or not status.startswith("overrun"):
         return contextlib.nullcontext(), True
     run_settings = ctrl._run_settings
     solver = ctrl._solver
-    if status == "overrun (time limit reached)" and iterations == 0:
+    if "time limit" in status and rho_updates == 0:
         def solve(*a, **k):
             return _TimeLimited()
     elif _LATE.match(status):
