@@ -37,9 +37,9 @@ from __future__ import annotations
 import ast
 import csv
 import json
-import re
 import os
 import random
+import re
 import signal
 import socket
 import subprocess
@@ -94,7 +94,7 @@ def soak_verdicts(stats: dict, ticks: list | None = None) -> dict:
 
 
 _SLOW_CPU = re.compile(r"^cpu ([0-9.]+) ms, wall ([0-9.]+) ms")
-#: the robot NMPC's step status and iterations at the end of a slow tick's event
+#: the robot NMPC's step status (the event's end) and its OSQP rho updates in a slow tick's event
 _NMPC_STATUS = re.compile(r"nmpc status (.*)$")
 _NMPC_RHO = re.compile(r"nmpc rho_updates (\d+)")
 _LATE = re.compile(r"^overrun \([0-9.]+ ms > [0-9.]+ ms\)$")
@@ -111,7 +111,7 @@ class _TimeLimited:
 
 def _run_events(daemon_dir: Path) -> tuple[list, list]:
     """From a daemon run's events.csv: the setpoints applied [(rig t s, the applied dict)] and its
-    slow ticks [(rig t s, cpu ms, wall ms)]."""
+    slow ticks [(rig t s, cpu ms, wall ms, NMPC status or None, OSQP rho updates or None)]."""
     setpoints, slow = [], []
     with open(daemon_dir / "events.csv", newline="") as fh:
         for row in csv.DictReader(fh):
@@ -126,7 +126,7 @@ def _run_events(daemon_dir: Path) -> tuple[list, list]:
     return setpoints, slow
 
 
-def _forced_outcome(ctrl, status: str | None, rho_updates: int | None):
+def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho_updates: int | None):
     """(context, forceable) for the replay's step at a tick where the run's robot NMPC overran: the same
     outcome forced (the replay's wall-time budget is lifted everywhere else, so only the run's
     overruns happen). OSQP's time limit ("overrun (run time limit reached)"): OSQP returns that
@@ -134,12 +134,12 @@ def _forced_outcome(ctrl, status: str | None, rho_updates: int | None):
     next step warm-starts OSQP from the NMPC's last usable solution, so only a change of OSQP's rho
     (``rho_updates`` > 0) would carry over; that one is not forced. "overrun (X ms > Y ms)": the solve
     is made late. Not forced, the replay stays on the run's path only if its own step decides the
-    same, which the state check tells."""
+    same, which the state check tells. ``run_settings``: the NMPC's settings as the run had them;
+    ``replay_settings``: the same without the budget."""
     import contextlib
 
     if ctrl is None or not status or not status.startswith("overrun"):
         return contextlib.nullcontext(), True
-    run_settings = ctrl._run_settings
     solver = ctrl._solver
     if "time limit" in status and rho_updates == 0:
         def solve(*a, **k):
@@ -162,7 +162,7 @@ def _forced_outcome(ctrl, status: str | None, rho_updates: int | None):
             yield
         finally:
             del solver.solve
-            ctrl.s = ctrl._replay_settings
+            ctrl.s = replay_settings
             solver.update_settings(time_limit=1e10)  # the replay's solves are not cut (see above)
 
     return forced(), True
@@ -225,14 +225,15 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
     # the robot NMPC's wall-time budget would let the replay's own load change its decisions: lifted,
     # and the run's overruns forced where they happened (_forced_outcome)
     ctrl = getattr(getattr(runner, "loop", None), "controller", None)
+    run_settings = replay_settings = None
     if ctrl is not None and hasattr(ctrl, "_solver") and getattr(ctrl.s, "budget", 0.0) > 0.0:
         from dataclasses import replace
 
-        ctrl._run_settings, ctrl._replay_settings = ctrl.s, replace(ctrl.s, budget=0.0)
-        ctrl.s = ctrl._replay_settings
+        run_settings, replay_settings = ctrl.s, replace(ctrl.s, budget=0.0)
+        ctrl.s = replay_settings
     else:
         ctrl = None
-    unforced: list = []
+    unforced: set = set()
     wanted = {f"{t:.4f}": (t, cpu, wall) for t, cpu, wall in slow}
     seen: dict = {}
     step = loop._step
@@ -243,9 +244,9 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
         # this period's rig time (the lockstep rig's clock is the period count)
         nxt = f"{k * period:.4f}"
         if nxt in outcome:
-            ctx, ok = _forced_outcome(ctrl, *outcome[nxt])
+            ctx, ok = _forced_outcome(ctrl, run_settings, replay_settings, *outcome[nxt])
             if not ok:
-                unforced.append(nxt)
+                unforced.add(nxt)
             with ctx:
                 step(k, missed)
         else:

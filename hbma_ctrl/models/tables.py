@@ -236,7 +236,8 @@ class PredictionModel:
 
     def x_at_height(self, h: float, W: float) -> float:
         """The state that holds height h (m) under load W (N) on the contact branch."""
-        return float(np.interp(h, self.grid.h_path, self._path_column(W, "x_path")))
+        (x,) = self._path_columns(W, "x_path")
+        return float(np.interp(h, self.grid.h_path, x))
 
     def lift_off_x(self, W: float) -> float:
         """State at which a load W (N) lifts off (rest gauge pressure W / (pi r1^2) over p_env)."""
@@ -245,28 +246,25 @@ class PredictionModel:
         Wc = min(max(float(W), 0.0), self.load_max)
         return float(Wc / (np.pi * self.actuator.r1 ** 2) / self.actuator.p_env)
 
-    def _path_weights(self, W: float) -> tuple[int, float]:
-        """(j, s): the load path at W (N) is (1 - s) column j - 1 + s column j of the grid's tables."""
+    def _path_columns(self, W: float, *names: str) -> tuple[np.ndarray, ...]:
+        """The named tables (``x_path``, ``p_path``, ``lam_path``) along the load path at W (N): each
+        (1 - s) column j - 1 + s column j of the grid's, W clipped to [0, load_max]."""
         g = self.grid
         W = min(max(float(W), 0.0), self.load_max)
         j = min(max(int(np.searchsorted(g.W, W)), 1), len(g.W) - 1)
-        return j, (W - g.W[j - 1]) / (g.W[j] - g.W[j - 1])
-
-    def _path_column(self, W: float, name: str) -> np.ndarray:
-        """One table (``x_path``, ``p_path``, ``lam_path``) along the load path at W (N)."""
-        j, s = self._path_weights(W)
-        A = getattr(self.grid, name)
-        return (1 - s) * A[:, j - 1] + s * A[:, j]
+        s = (W - g.W[j - 1]) / (g.W[j] - g.W[j - 1])
+        return tuple((1 - s) * A[:, j - 1] + s * A[:, j] for A in (getattr(g, nm) for nm in names))
 
     def path(self, W: float) -> dict:
         """Load path at load W (N): arrays h (m), x, p (Pa), lam along the contact branch."""
-        return {"h": self.grid.h_path, "x": self._path_column(W, "x_path"), "p": self._path_column(W, "p_path"),
-                "lam": self._path_column(W, "lam_path")}
+        x, p, lam = self._path_columns(W, "x_path", "p_path", "lam_path")
+        return {"h": self.grid.h_path, "x": x, "p": p, "lam": lam}
 
     def reachable_height(self, W: float, p_limit: float, lam_max: float, h_max: float) -> float:
         """Largest height (m) reachable from rest under load W without p > p_limit or lam > lam_max."""
         # only the columns it reads (the NMPC calls this every step)
-        pth = {"h": self.grid.h_path, "p": self._path_column(W, "p_path"), "lam": self._path_column(W, "lam_path")}
+        p, lam = self._path_columns(W, "p_path", "lam_path")
+        pth = {"h": self.grid.h_path, "p": p, "lam": lam}
         ok = (pth["p"] <= p_limit) & (pth["lam"] <= lam_max) & (pth["h"] <= h_max)
         if not ok[0]:
             return 0.0

@@ -173,7 +173,6 @@ class DaemonLoop:
         #: set while :meth:`run` runs
         self.gc: GcWatch | None = None
         self._gc_before = (0, 0.0)
-        self._gc_stats: dict = {}
 
     # --- events ------------------------------------------------------------------------------------
     def event(self, kind: str, cause: str) -> None:
@@ -314,7 +313,8 @@ class DaemonLoop:
         estimator, controller, s), the host's steal time during it (ms, from /proc/stat, read before
         every tick: on a virtual machine a thread's CPU time counts time the host took the core) and the
         garbage collector's pauses during it (any thread's: a collection holds the interpreter)."""
-        parts = getattr(getattr(self.runner, "loop", None), "last_timing", None)
+        loop = getattr(self.runner, "loop", None)
+        parts = getattr(loop, "last_timing", None)
         text = f"cpu {self._last_tick_cpu * 1e3:.1f} ms, wall {self._last_tick * 1e3:.1f} ms"
         if parts is not None and len(parts) == 3:
             text += f" (estimator {parts[1] * 1e3:.1f} ms, controller {parts[2] * 1e3:.1f} ms)"
@@ -331,7 +331,6 @@ class DaemonLoop:
                      f"{(ru.ru_stime - b.ru_stime) * 1e3:.1f} ms, {ru.ru_minflt - b.ru_minflt} minor and "
                      f"{ru.ru_majflt - b.ru_majflt} major page faults, "
                      f"{ru.ru_nivcsw - b.ru_nivcsw} preemptions")
-        loop = getattr(self.runner, "loop", None)
         more = dict(getattr(loop, "last_parts", None) or {})
         more.update({f"nmpc {k}": v for k, v in
                      (getattr(getattr(loop, "controller", None), "last_parts", None) or {}).items()})
@@ -448,8 +447,7 @@ class DaemonLoop:
             self.event("safe_exit" if self.safe_exit else "unsafe_exit", self.end_reason or "ended")
             self.wall_s = self.clock() - t0
             self.rss_end = rss_mb()
-            self._gc_stats = self.gc.stats()
-            self.gc.close()
+            self.gc.close()  # its counts stay for the stats
             self._log_row(float("nan"))
             self.state.publish(self.status())
             if self.log is not None:
@@ -481,7 +479,7 @@ class DaemonLoop:
                 "tick_cpu_ms_p99": ms(tc["p99"]),
                 "speed": self.speed, "rig_time_s": float(self.t),
                 "wall_s": float(self.wall_s), "monitor_margins": self._margins(),
-                **(self._gc_stats or (self.gc.stats() if self.gc is not None else {}))}
+                **(self.gc.stats() if self.gc is not None else {})}
 
     def _margins(self) -> dict:
         c = getattr(self.monitor, "closest", {})
