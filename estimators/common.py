@@ -14,6 +14,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from hbma_ctrl.core.params import check_range
+from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.chamber import STATE_SCALE
 
 __all__ = ["FilterSettings", "guard_cov", "classify_measurement", "physical_reading_bounds", "MEAS_OK",
@@ -106,6 +107,11 @@ class FilterSettings:
     max_gap : longest time, s, a step predicts over, [sample_period, 3600]: after a longer gap (a
         paused stream, a wall-clock timestamp) the filter predicts ``max_gap`` only and widens the
         covariance by its initial spread (the commands during the gap are unknown).
+    valve_delay : the valves open and shut this long after their command, s, [0, 0.1] (default 0;
+        a small solenoid valve's datasheet switching time is 3-10 ms). The pump's speed acts at once.
+    sensor_delay : the pressure sensor reads the chamber this long late, s, [0, 0.1] (default 0; a
+        sensor behind a short tube: a few ms). Both are modelled as dead times on the commands
+        (:class:`hbma_ctrl.models.actuation.CommandTiming`); the start-up calibration uses the same.
     """
 
     sample_period: float = 0.01
@@ -149,6 +155,8 @@ class FilterSettings:
     gate_reopen: int = 5
     max_gap: float = 1.0
     membrane: str = "cap"
+    valve_delay: float = 0.0
+    sensor_delay: float = 0.0
 
     def validate(self) -> "FilterSettings":
         w = "estimator"
@@ -198,6 +206,8 @@ class FilterSettings:
                 not 1 <= self.gate_reopen <= 1000:
             raise ValueError(f"{w}.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
         check_range(w, "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
+        check_range(w, "valve_delay", self.valve_delay, 0.0, DELAY_MAX, "s")
+        check_range(w, "sensor_delay", self.sensor_delay, 0.0, DELAY_MAX, "s")
         if self.membrane not in ("cap", "exact"):
             raise ValueError(f"{w}.membrane = {self.membrane!r}: allowed cap, exact")
         if not isinstance(self.compile, bool):

@@ -146,6 +146,7 @@ from hbma_ctrl.core.codegen import FastFunction, compiled
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
+from hbma_ctrl.models.actuation import CommandTiming
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
 
@@ -259,6 +260,9 @@ class EKF(ReferenceSteps):
         self._lift_start = 0.0
         self._p_lift = 0.0
         self._p_post = 0.0
+        # the command as the chamber feels it and the sensor sees it (valve and sensor delays)
+        self._timing = CommandTiming(self.settings.sample_period, self.settings.valve_delay,
+                                     self.settings.sensor_delay)
         self._innov = 0.0  # innovation of the last update, Pa
         self._events: set = set()
         self._snap: tuple | None = None  # lift-off replay: posterior before the detector's sum grew
@@ -413,6 +417,8 @@ class EKF(ReferenceSteps):
                 self.counts["time_jumps"] += 1
         u = applied_command.as_array() if isinstance(applied_command, Command) else \
             np.asarray(applied_command, dtype=float).reshape(3)
+        if self._timing.active:
+            u = self._timing.acting(u, k)
         if jump:
             self._snap, self._replay = None, []  # a replay across a gap would predict the gap again
             self._lift = self._lift_start = 0.0

@@ -224,10 +224,14 @@ def make_calibration(actuator: Actuator, pneumatics: Pneumatics, platform: Platf
                      rs: RigSettings, estimator) -> StartupCalibration:
     """The start-up calibration of a controller section on a rig of settings ``rs`` (its pulse stops at
     min(17 kPa, p_max / 2)); the estimator (when it has factor states) tracks it and gets the factors
-    as its prior. The scenes and the daemon both build it here."""
+    as its prior. Its fit takes the estimator's membrane law and valve and sensor delays. The scenes
+    and the daemon both build it here."""
+    # the fit models the chamber as the estimator does: its membrane law, valve and sensor delays
+    fs = getattr(estimator, "settings", None)
+    timing = {k: getattr(fs, k) for k in ("valve_delay", "sensor_delay", "membrane") if hasattr(fs, k)}
     cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
                              sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
-                             sensor_range=rs.sensor_range)
+                             sensor_range=rs.sensor_range, **timing)
     return StartupCalibration(actuator, pneumatics, cs, platform,
                               estimator=estimator if hasattr(estimator, "state_names") else None)
 

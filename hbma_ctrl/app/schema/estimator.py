@@ -52,6 +52,8 @@ class EstimatorTable(Table):
     load_prior: Literal["unknown", "nominal"] = choice("unknown", "learn the load or start at the nominal")
     load_prior_rel_std: float = num(0.1, 0.0, 10.0, "-", "relative sigma of the nominal load prior")
     membrane: Literal["cap", "exact"] = choice("cap", "the filter model's membrane law (README Model §9)")
+    valve_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves act this long after their command (datasheet)")
+    sensor_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the pressure sensor reads this long late")
 
     def to_section(self) -> EstimatorSection:
         """The SI section; the tuning is checked against a default rig now, as before."""
@@ -83,4 +85,6 @@ _TUNING = {
     "load_prior": ("load_prior", as_is),
     "load_prior_rel_std": ("load_prior_rel_std", float),
     "membrane": ("membrane", as_is),
+    "valve_delay_ms": ("valve_delay", U.ms),
+    "sensor_delay_ms": ("sensor_delay", U.ms),
 }
