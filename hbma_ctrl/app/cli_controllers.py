@@ -27,9 +27,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         workers: Annotated[int, typer.Option(help="parallel processes (1-64)")] = 2,
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_loop.json")] = Path("runs/bench_loop"),
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+        rig: Annotated[str, typer.Option(help="the truth: cap (scalar mismatches) | structured (exact membrane, "
+                                              "valve timing, pump shape, sensor lag)")] = "cap",
+        membrane: Annotated[Optional[str], typer.Option(help="the EKF's, calibration's and MPC's membrane law: "
+                                                             "cap | exact (default: the rig's)")] = None,
+        valve_delay_ms: Annotated[Optional[float], typer.Option(help="valve delay the EKF and calibration model, "
+                                                                    "ms, 0-100 (default 5 on structured, else 0)")] = None,
+        sensor_delay_ms: Annotated[Optional[float], typer.Option(help="sensor delay they model, ms, 0-100 "
+                                                                     "(default 3 on structured, else 0)")] = None,
     ) -> None:
         """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
-        from hbma_ctrl.app.bench_loop import run_loop_bench, summarize_loop, write_loop_bench
+        from hbma_ctrl.app.bench_loop import loop_setup, run_loop_bench, summarize_loop, write_loop_bench
 
         if not 1 <= seeds <= 100:
             raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
@@ -38,14 +46,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         workers = cap_workers("--workers", workers)
         con = Console(highlight=False, width=140)
         cs = [c.strip() for c in cases.split(",") if c.strip()]
+        setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms)
         with run_dir(out, command="bench loop", argv=cli_argv(), overwrite=overwrite) as tmp:
             rows = run_loop_bench(list(range(seeds)), cs, workers,
                                   progress=lambda r: con.print(f"  {r['case']} seed {r['seed']}: "
                                                                f"{'ok' if r['passed'] else 'MISS'} "
-                                                               f"(final error {r['final_error_mm']:.3f} mm)"))
-            written = write_loop_bench(rows, tmp)
-        t = Table(title=f"bench loop: rig -> EKF -> RTI-OSQP -> rig, {seeds} noise seeds per case; "
-                        f"pass = true height within 0.3 mm")
+                                                               f"(final error {r['final_error_mm']:.3f} mm)"),
+                                  setup=setup)
+            written = write_loop_bench(rows, tmp, setup)
+        t = Table(title=f"bench loop: {setup['rig']} rig -> EKF -> RTI-OSQP -> rig ({setup['membrane']} models, "
+                        f"delays {setup['valve_delay_ms']:g} + {setup['sensor_delay_ms']:g} ms), {seeds} noise "
+                        f"seeds per case; pass = true height within 0.3 mm")
         for c in ("case", "passed", "final error median (mm)", "worst (mm)", "max p (kPa)", "limit (kPa)",
                   "fallbacks"):
             t.add_column(c, justify="right")
