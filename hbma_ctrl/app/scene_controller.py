@@ -68,10 +68,11 @@ from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.calibrate import CalibrationSettings, StartupCalibration
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
+from hbma_ctrl.runtime.pwm import MinOnTime
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
 
-__all__ = ["make_controller", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "make_calibration",
+__all__ = ["make_controller", "make_pwm", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "make_calibration",
            "run_scene",
            "plot_closed_loop", "default_estimator", "controller_settings_of", "estimator_from_scenario"]
 
@@ -165,7 +166,8 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     # the timing buffer holds every controller step of the run: the scene's medians are exact
     loop = ChamberLoop(est, ctrl, chamber_supervisor(getattr(ctrl, "settings", None) or controller_settings_of(section)),
                        reference=section.reference, every=every, preview_steps=preview_n,
-                       preview_period=section.sample_period, stats_capacity=n // every + 1)
+                       preview_period=section.sample_period, stats_capacity=n // every + 1,
+                       pwm=make_pwm(section, rs.sample_period))
     t_wall = time.perf_counter()
     cal = None
     if section.calibrate if calibrate is None else calibrate:
@@ -218,6 +220,18 @@ class _Shifted:
 
     def __getattr__(self, name):
         return getattr(self._est, name)
+
+
+def make_pwm(section: ControllerSection, period: float) -> MinOnTime | None:
+    """The valves' minimum on-time shaping of a controller section for a PWM period (s), None when
+    ``valve_min_on`` is 0. ValueError naming ``[controller] valve_min_on_ms`` when it is longer than
+    the period."""
+    if section.valve_min_on <= 0.0:
+        return None
+    if section.valve_min_on > period + 1e-12:
+        raise ValueError(f"[controller] valve_min_on_ms = {U.to_ms(section.valve_min_on):g} is out of range "
+                         f"[0, {U.to_ms(period):g}] ms (at most the rig's sample period)")
+    return MinOnTime(period, section.valve_min_on)
 
 
 def make_calibration(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,

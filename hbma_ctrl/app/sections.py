@@ -134,6 +134,8 @@ class ControllerSection:
     preview : pass the future targets to the MPC; None = only for ramps and sines.
     settle_band : band for the settling report, m (0.3 mm).
     calibrate : run the start-up calibration before the loop closes (:mod:`hbma_ctrl.runtime.calibrate`).
+    valve_min_on : the valves' minimum opening, s (0 = none): small duties are realised on average
+        (:class:`hbma_ctrl.runtime.pwm.MinOnTime`); at most the rig's sample period.
     """
 
     kind: str = "mpc"
@@ -146,6 +148,7 @@ class ControllerSection:
     settle_band: float = 0.3e-3
     # out of the repr: tests/test_schema.py compares reprs with those of the parsers this schema replaced
     calibrate: bool = field(default=True, repr=False)
+    valve_min_on: float = field(default=0.0, repr=False)
 
     @property
     def sample_period(self) -> float:

@@ -21,6 +21,7 @@ from typing import Callable
 
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
 from hbma_ctrl.core.validation import finite_or_nan
+from hbma_ctrl.runtime.pwm import MinOnTime
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
@@ -64,11 +65,14 @@ class ChamberLoop:
     preview_steps : future targets handed to the controller (at ``preview_period`` s apart), 0 = none.
     preview_period : spacing of the preview targets, s.
     stats_capacity : samples kept for the median and p99 of the step times.
+    pwm : the valves' minimum on-time shaping (:class:`~hbma_ctrl.runtime.pwm.MinOnTime`), applied
+        every tick to the held command (the controller and supervisor see the duties they asked
+        for; the estimator the duties sent); None = the command as it is.
     """
 
     def __init__(self, estimator, controller, supervisor: Supervisor | None = None,
                  reference: Callable[[float], float] | None = None, every: int = 1, preview_steps: int = 0,
-                 preview_period: float = 0.0, stats_capacity: int = 4096):
+                 preview_period: float = 0.0, stats_capacity: int = 4096, pwm: MinOnTime | None = None):
         if not isinstance(every, int) or every < 1:
             raise ValueError(f"ChamberLoop.every = {every!r} must be an integer >= 1")
         self.estimator = estimator
@@ -83,7 +87,9 @@ class ChamberLoop:
         self.preview_period = float(preview_period)
         self.solve_ms = StepStats(stats_capacity)
         self.solve_cpu_ms = StepStats(stats_capacity)
-        self.command = Command(0.0, 0.0, 0.0)
+        self.command = Command(0.0, 0.0, 0.0)  # sent this tick (after the PWM shaping)
+        self.wanted = Command(0.0, 0.0, 0.0)  # the supervisor's, held between controller steps
+        self.pwm = pwm if pwm is not None and pwm.active else None
         self.estimate: Estimate | None = None
         self.target: float | None = None
         self._k = 0
@@ -110,7 +116,8 @@ class ChamberLoop:
             if self.preview_steps and self.target is not None:
                 preview = [check_height(self.reference(tp), f"reference(t={tp})")
                            for tp in (t + self.preview_period * (j + 1) for j in range(self.preview_steps))]
-            self.command = self.control(t, self.estimate, Reference(self.target), preview)
+            self.wanted = self.control(t, self.estimate, Reference(self.target), preview)
+        self.command = self.wanted if self.pwm is None else self.pwm.shape(self.wanted)
         self._k += 1
         return self.command
 

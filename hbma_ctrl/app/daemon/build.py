@@ -28,6 +28,7 @@ from hbma_ctrl.app.scene_controller import (
     estimator_from_scenario,
     make_calibration,
     make_controller,
+    make_pwm,
 )
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
@@ -335,7 +336,8 @@ def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
         raise ValueError(f"[controller] sample_ms = {U.to_ms(section.sample_period):g} must be a whole multiple of the "
                          f"daemon's period 1000 / [daemon] rate_hz = {U.to_ms(rs.sample_period):g} ms")
     settings = getattr(ctrl, "settings", None) or controller_settings_of(section)
-    loop = ChamberLoop(est, ctrl, chamber_supervisor(settings), reference=section.reference, every=every)
+    loop = ChamberLoop(est, ctrl, chamber_supervisor(settings), reference=section.reference, every=every,
+                       pwm=make_pwm(section, rs.sample_period))
     h_min = float(getattr(settings, "h_min", 0.0) or 0.0)
     h_max = float(getattr(settings, "h_max", U.mm(20.0)))
     cal = None

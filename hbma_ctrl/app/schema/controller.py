@@ -92,6 +92,8 @@ class ControllerTable(Table):
     preview: bool | None = flag(None, "give the MPC the future targets; default: for ramps and sines")
     calibrate: bool = flag(True, "before the loop closes, learn the pump-flow, modulus and dead-volume "
                                  "factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
+    valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves' minimum opening (datasheet): shorter duties "
+                                 "are sent as pulses of this length often enough to pass them on average")
 
     @model_validator(mode="after")
     def _cross(self) -> ControllerTable:
@@ -140,6 +142,8 @@ class ControllerTable(Table):
         sec: dict = {}
         if self._given("settle_band_mm"):
             sec["settle_band"] = U.mm(self.settle_band_mm)
+        if self._given("valve_min_on_ms"):
+            sec["valve_min_on"] = U.ms(self.valve_min_on_ms)
         try:
             reference = ReferenceProfile(points=tuple((r.t_s, U.mm(r.h_mm)) for r in self.targets_mm),
                                          **ref).validate()
