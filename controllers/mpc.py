@@ -83,6 +83,8 @@ from hbma_ctrl.models.tables import PredictionModel
 __all__ = ["MPCSettings", "NMPC", "VARIANTS", "duty_to_on_time"]
 
 from controllers.mpc_settings import (
+    INTEGRAL_BAND,
+    INTEGRAL_MAX,
     VARIANTS,
     MPCSettings,
     duty_to_on_time,
@@ -157,6 +159,7 @@ class NMPC:
         self._hold = None
         self.clipped_count = 0
         self.last = {}
+        self._int, self._int_target, self._int_t = 0.0, None, None  # integral action (settings doc)
 
     # --- helpers ---------------------------------------------------------------------------------
     def _load(self, t: float, est: Estimate) -> float:
@@ -174,6 +177,22 @@ class NMPC:
             a = 1.0 if s.load_tau <= 0 else min(1.0, dt / s.load_tau)
             self._W += a * (F - self._W)
         return float(min(self._W, s.load_max))
+
+    def _integrate(self, t: float, h_est: float, target: float, clipped: bool) -> float:
+        """The integral action's shift of the target, m (``integral_gain``, see MPCSettings): the
+        height error integrated within INTEGRAL_BAND of the target, at most INTEGRAL_MAX either way,
+        restarted when the target steps by more than the band, held while the target is clipped."""
+        gain = self.settings.integral_gain
+        if gain <= 0.0:
+            return 0.0
+        if self._int_target is None or abs(target - self._int_target) > INTEGRAL_BAND:
+            self._int, self._int_t = 0.0, t  # a new step: nothing owed yet
+        err = target - h_est
+        if abs(err) < INTEGRAL_BAND and not clipped:
+            dt = max(t - self._int_t, 0.0)
+            self._int = min(max(self._int + gain * err * dt, -INTEGRAL_MAX), INTEGRAL_MAX)
+        self._int_target, self._int_t = target, t
+        return self._int
 
     def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
         s, m = self.settings, self.model
@@ -215,8 +234,11 @@ class NMPC:
         clipped = r_used != r
         if clipped:
             self.clipped_count += 1
+        shift = self._integrate(t, float(est.h), r_used, clipped)
+        if shift != 0.0:
+            r_c = np.clip(r_c + shift, s.h_min, hi)
         self.last.update({"W": W, "x0": x0, "dh": dh, "dp": dp, "reference": r,
-                          "reference_used": r_used,
+                          "reference_used": r_used, "integral_shift": shift,
                           "reachable_height": reach, "target_clipped": clipped})
         return _Problem(x0, W, dh, dp, r_c, self._u_prev.copy(), p_lim)
 

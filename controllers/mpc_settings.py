@@ -10,6 +10,10 @@ import numpy as np
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.core.validation import did_you_mean
 
+#: the integral action works within this height error of the target, m, and shifts the target by at most INTEGRAL_MAX
+INTEGRAL_BAND = 1e-3
+INTEGRAL_MAX = 1e-3
+
 VARIANTS = ("rti_osqp", "rti_c_osqp", "rti_fn_osqp", "rti_fn_hpipm", "rti_fn_qrqp", "ipopt", "fatrop")
 
 
@@ -58,6 +62,12 @@ class MPCSettings:
         None = never.
     membrane : membrane law of the prediction model's tables: 'cap' (spherical cap) or 'exact'
         (the exact membrane's, :class:`hbma_ctrl.models.tables.PredictionModel`).
+    integral_gain : integral action on the estimated height error, 1/s, [0, 100] (0 = none): within
+        ``INTEGRAL_BAND`` of the target the error's integral times this shifts the target the QP
+        tracks (at most ``INTEGRAL_MAX``; reset when the target steps by more than the band). Why:
+        the MPC re-derives its state from the estimate every step, so a standing error the model
+        cannot see (a pump that gives no flow at a low speed against a high back pressure, a valve
+        that drops short openings) is never integrated: it plans the same useless trickle forever.
     """
 
     variant: str = "rti_osqp"
@@ -93,6 +103,7 @@ class MPCSettings:
     codegen: bool = True
     fail_window: tuple | None = None
     membrane: str = field(default="cap", repr=False)  # repr: the stored reprs of the scenario goldens
+    integral_gain: float = field(default=2.0, repr=False)
 
     def validate(self) -> "MPCSettings":
         """Check every field; raise ValueError naming the field and its allowed range."""
@@ -133,6 +144,7 @@ class MPCSettings:
         check_range("mpc", "load_tau", self.load_tau, 0.0, 100.0, "s")
         check_range("mpc", "rest_height", self.rest_height, 0.0, 0.01, "m")
         check_range("mpc", "rti_lin_floor", self.rti_lin_floor, 0.0, 1.0)
+        check_range("mpc", "integral_gain", self.integral_gain, 0.0, 100.0, "1/s")
         if not isinstance(self.rti_init_iterations, int) or not 1 <= self.rti_init_iterations <= 100:
             raise ValueError(f"mpc.rti_init_iterations = {self.rti_init_iterations!r} must be in [1, 100]")
         check_range("mpc", "qp_eps", self.qp_eps, 0.0, 1.0, lo_open=True)

@@ -134,11 +134,45 @@ def test_mpc_glue_matches_the_nmpc_problem():
         p, F, r = rng.uniform(0, 40e3), rng.uniform(0, 8), rng.uniform(0, 0.012)
         nmpc._W = None
         pr = nmpc._problem(0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
-        out = [np.asarray(v).ravel() for v in prep(h, p, F, 0.0, np.full(s.horizon, r), 0.0, 0.0, 0.0, 0.0, 0.5)]
+        nmpc._int_target = None  # each draw a new step for both (the glue's has_I = 0)
+        pr = nmpc._problem(0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
+        out = [np.asarray(v).ravel() for v in prep(h, p, F, 0.0, np.full(s.horizon, r), 0.0, 0.0, 0.0, 0.0, 0.5,
+                                                   0.0, 0.0, 0.0, s.sample_period)]
         got = np.array([out[0][0], out[1][0], out[2][0], out[3][0]])
         want = np.array([pr.x0, pr.W, pr.dh, pr.dp])
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(out[5], pr.r, rtol=0, atol=1e-12)
+
+
+def test_mpc_glue_integral_action_matches_the_nmpc_over_a_held_target():
+    """The integral action carried through the glue's state (I, its target, has_I) equals the
+    NMPC's over 60 controller periods at one target with the estimate wandering around it, then a
+    target step that restarts it."""
+    from controllers.mpc import NMPC
+    from hbma_ctrl.app.codegen_scene import mpc_glue
+    from hbma_ctrl.core.interfaces import Estimate, Reference
+    from hbma_ctrl.runtime.chamber import chamber_supervisor
+
+    scn = load_scenario(TRACK)
+    s = scn.role("controller").mpc
+    nmpc = NMPC(scn.actuator, scn.pneumatics, s)
+    prep, _, _ = mpc_glue(nmpc.model, s, chamber_supervisor(s).settings)
+    rng = np.random.default_rng(2)
+    I, I_t, has_I = 0.0, 0.0, 0.0
+    shifts = []
+    for k in range(80):
+        t = k * s.sample_period
+        r = 5e-3 if k < 60 else 7e-3
+        h = r - 0.6e-3 + rng.normal(0.0, 0.2e-3)
+        pr = nmpc._problem(t, Estimate(t=t, h1=h, h2=0.0, h=h, p=20e3, F=3.9), Reference(r))
+        out = [np.asarray(v).ravel() for v in prep(h, 20e3, 3.9, 0.0, np.full(s.horizon, r), 0.0, 0.0, 0.0, 0.0,
+                                                   0.5, I, I_t, has_I, s.sample_period)]
+        np.testing.assert_allclose(out[5], pr.r, rtol=0, atol=1e-12)
+        I, I_t, has_I = float(out[10][0]), float(out[11][0]), float(out[12][0])
+        assert I == pytest.approx(nmpc.last["integral_shift"], abs=1e-15)
+        shifts.append(I)
+    assert 0.5e-3 < shifts[59] <= 1e-3  # the standing 0.6 mm error was integrated (capped at 1 mm)
+    assert shifts[60] == 0.0  # the step restarted it
 
 
 @needs_cc

@@ -10,7 +10,7 @@ here as small casadi Functions too, so that the C loop needs no Python:
   (noise and dropouts drawn at generation time from the rig's seeded stream, as :class:`Rig` draws them);
 - ``ekf_kind``: the reading's kind (:func:`estimators.common.classify_measurement`);
 - ``mpc_prep``: the NMPC's problem data from the estimate (its load filter, initial state, output
-  biases, reachable height and clipped targets; :meth:`controllers.mpc.NMPC._problem`);
+  biases, reachable height, clipped targets and integral action; :meth:`controllers.mpc.NMPC._problem`);
 - ``mpc_cold``: the cold-start guess (after the first step or a failure);
 - ``mpc_post``: the command after the NMPC and the runtime's supervisor (plan replay on a failure,
   safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`).
@@ -37,11 +37,16 @@ import math
 import casadi as ca
 import numpy as np
 
+from controllers.mpc_settings import INTEGRAL_BAND, INTEGRAL_MAX
 from hbma_ctrl.app.codegen import LOG, LogColumn, LoopSpec, Stage
 from hbma_ctrl.core.interfaces import SAFE_COMMAND
 from hbma_ctrl.models.fidelity import OUTPUTS
 from hbma_ctrl.runtime.chamber import chamber_supervisor
-from hbma_ctrl.sim.plant_step import initial_plant_state, plant_step_function, plant_step_support
+from hbma_ctrl.sim.plant_step import (
+    initial_plant_state,
+    plant_step_function,
+    plant_step_support,
+)
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.trial import DEFAULT_DT
 
@@ -162,14 +167,32 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     reach = ca.if_else(ok[0] == 0, 0, ca.if_else(any_bad, reach_first, ca.fmin(hp[-1], h_lim))) + dh
     hi = ca.fmax(ca.fmin(reach, s.h_max), s.h_min)
     r_c = ca.fmin(ca.fmax(r_in, s.h_min), hi)
+    # --- the integral action (NMPC._integrate): restarted when the target steps by more than the
+    # band; integrated within the band unless clipped; dt the controller period (0 on a restart)
+    I_in, I_tgt, has_I, dt_c = MX.sym("I"), MX.sym("I_target"), MX.sym("has_I"), MX.sym("ctrl_dt")
+    target, clipped = r_c[0], r_c[0] != r_in[0]
+    restart = ca.logic_or(has_I == 0, ca.fabs(target - I_tgt) > INTEGRAL_BAND)
+    I0 = ca.if_else(restart, 0.0, I_in)
+    err = target - h_est
+    grow = ca.logic_and(ca.fabs(err) < INTEGRAL_BAND, ca.logic_not(clipped))
+    I1 = ca.if_else(grow, ca.fmin(ca.fmax(I0 + s.integral_gain * err * ca.if_else(restart, 0.0, dt_c),
+                                          -INTEGRAL_MAX), INTEGRAL_MAX), I0)
+    if s.integral_gain <= 0:
+        I1 = MX(0.0)
+    r_c = ca.if_else(I1 != 0, ca.fmin(ca.fmax(r_c + I1, s.h_min), hi), r_c)
     # a step in the fail window (the drill) solves nothing and leaves the load filter as it was
     failing = fail != 0
-    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, Wf, has_W, fail, cold_in, a],
+    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, Wf, has_W, fail, cold_in, a,
+                                    I_in, I_tgt, has_I, dt_c],
                        [x0, W, dh, dp, MX(p_lim), r_c, ca.if_else(failing, Wf, Wf_new),
                         ca.if_else(failing, has_W, 1.0), ca.logic_and(cold_in != 0, ca.logic_not(failing)),
-                        ca.logic_and(cold_in == 0, ca.logic_not(failing))],
-                       ["h", "p", "F", "resting", "r", "Wf", "has_W", "fail", "cold", "load_a"],
-                       ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next", "run_cold", "run_warm"])
+                        ca.logic_and(cold_in == 0, ca.logic_not(failing)),
+                        ca.if_else(failing, I_in, I1), ca.if_else(failing, I_tgt, target),
+                        ca.if_else(failing, has_I, 1.0)],
+                       ["h", "p", "F", "resting", "r", "Wf", "has_W", "fail", "cold", "load_a",
+                        "I", "I_target", "has_I", "ctrl_dt"],
+                       ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next", "run_cold", "run_warm",
+                        "I_next", "I_target_next", "has_I_next"])
     # --- cold start (the backend without a plan): the estimate held, the last command repeated
     x0s, up = ca.SX.sym("x0"), ca.SX.sym("u_prev", 3)
     cold = ca.Function("mpc_cold", [x0s, up], [ca.repmat(x0s, N + 1, 1), ca.repmat(up, 1, N), ca.SX.zeros(nz),
@@ -249,14 +272,17 @@ def _mpc_stages(scn, section, every: int, qp_solver: str | None) -> tuple[list, 
                "r_c": np.zeros(N), "X_guess": np.zeros(N + 1), "U_guess": np.zeros(3 * N), "lam_x": np.zeros(nz),
                "lam_a": np.zeros(nc), "u0": np.zeros(3), "status": [0.0], "qp_residual": [0.0], "qp_cost": [0.0],
                "shift0": [0.0], "shift1": [1.0], "cold": [1.0], "run_cold": [0.0], "run_warm": [0.0], "fail": [0.0],
-               "load_a": [0.0],
+               "load_a": [0.0], "I": [0.0], "I_target": [0.0], "has_I": [0.0],
+               "ctrl_dt": [section.sample_period],
                "plan": np.zeros(3 * N), "has_plan": [0.0],
                "age": [0.0], "streak": [0.0]}
     rti_in = ["x0", "W", "dh", "dp", "u", "p_lim", "r_c", "X_guess", "U_guess", "lam_x", "lam_a"]
     rti_out = ["u0", "X_guess", "U_guess", "lam_x", "lam_a", "status", "qp_residual", "qp_cost"]
     stages = [
-        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W", "fail", "cold", "load_a"],
-              ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W", "run_cold", "run_warm"], every=every),
+        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W", "fail", "cold", "load_a",
+                     "I", "I_target", "has_I", "ctrl_dt"],
+              ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W", "run_cold", "run_warm",
+               "I", "I_target", "has_I"], every=every),
         # cold start (first step, or after a failure): the guess from the estimate, zero duals, then
         # rti_init_iterations unshifted iterations, stopping at a failure (as _RtiFunction.solve)
         Stage(cold, ["x0", "u"], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="run_cold"),
@@ -309,7 +335,10 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
     except ImportError:  # pragma: no cover - a build without the EKF step Function
         raise ValueError("codegen: this build has no estimators.ekf_step (the EKF step Function)") from None
     from estimators.common import physical_reading_bounds
-    from hbma_ctrl.app.scene_controller import default_estimator, estimator_from_scenario
+    from hbma_ctrl.app.scene_controller import (
+        default_estimator,
+        estimator_from_scenario,
+    )
     from hbma_ctrl.core.interfaces import Command
 
     est = estimator_from_scenario(scn, rs)

@@ -76,6 +76,8 @@ class ControllerTable(Table):
     codegen: bool = flag(True, "MPC: compile the RTI linearisation to C")
     membrane: Literal["cap", "exact"] = choice("cap", "MPC prediction model's membrane law: cap "
                                                "(spherical cap) or exact (exact membrane tables)")
+    integral_gain_per_s: float = num(2.0, 0.0, 100.0, "1/s", "MPC integral action on the height error near "
+                                     "the target (0 = none)")
     fail_window_s: tuple[_T, _T] | None = shaped(None, "MPC solves in this window fail (drill), s",
                                                  "[t_start_s, t_end_s]")
     kp: float = num(1.0, 0.0, 1e4, "1/mm", "PID proportional gain")
@@ -175,6 +177,7 @@ _SI = {
     "budget_ms": ("mpc", "budget", U.ms),
     "codegen": ("mpc", "codegen", as_is),
     "membrane": ("mpc", "membrane", as_is),
+    "integral_gain_per_s": ("mpc", "integral_gain", float),
     "fail_window_s": ("mpc", "fail_window", tuple),
     "kp": ("pid", "kp", per_mm_to_per_m),
     "ki": ("pid", "ki", per_mm_to_per_m),
