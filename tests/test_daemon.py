@@ -419,6 +419,45 @@ def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path)
         assert r["same_state"] and r["machine"], (k, r)
 
 
+def test_nmpc_overrun_within_the_period_is_logged_and_the_replay_takes_it(tmp_path):
+    """The robot NMPC's budget is shorter than the period: its time limit can strike in a tick that
+    stays within the period. That tick is logged (``nmpc_overrun``, not ``slow_tick``), once, and the
+    replay forces it there, so it reaches the run's state at a slow tick later (without the event
+    the replay would send another command at the overrun and part from the run)."""
+    from hbma_ctrl.app.bench_soak import _TimeLimited, replay_ticks
+
+    cfg, runner, rig, loop = _loop(ROBOT, tmp_path, duration_s=0.4, speed=20.0)
+    loop.warmup_periods = 0
+    ctrl = runner.loop.controller
+    tick = runner.tick
+    n, marks = [0], {}
+
+    def tick_with_extras(t, p, *held):
+        n[0] += 1
+        if n[0] in (15, 30):
+            marks[n[0]] = t
+        if n[0] == 15:
+            ctrl._solver.solve = lambda *a, **k: _TimeLimited()
+        if n[0] == 30:
+            end = time.thread_time() + 1.5 * loop.period
+            while time.thread_time() < end:
+                pass
+        try:
+            return tick(t, p, *held)
+        finally:
+            ctrl._solver.__dict__.pop("solve", None)
+
+    runner.tick = tick_with_extras
+    loop.run()
+    over = [e for e in loop.events if e["kind"] == "nmpc_overrun"]
+    assert [e["t_s"] for e in over] == [marks[15]], over
+    assert over[0]["cause"].endswith("nmpc status overrun (run time limit reached)")
+    assert marks[15] not in {e["t_s"] for e in loop.events if e["kind"] == "slow_tick"}
+    ticks = {t["t_s"]: t for t in replay_ticks(ROBOT, tmp_path, 20.0, echo=lambda s: None)}
+    assert list(ticks) == [marks[30]]
+    assert ticks[marks[30]]["same_state"] and ticks[marks[30]]["machine"], ticks
+
+
 def test_missed_deadlines_are_counted_and_skipped_not_burst():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
     _slow(loop, runner, 2.5)

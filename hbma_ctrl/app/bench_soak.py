@@ -111,13 +111,14 @@ class _TimeLimited:
 
 def _run_events(daemon_dir: Path) -> tuple[list, list]:
     """From a daemon run's events.csv: the setpoints applied [(rig t s, the applied dict)] and its
-    slow ticks [(rig t s, cpu ms, wall ms, NMPC status or None, OSQP rho updates or None)]."""
+    slow ticks and its NMPC overruns within the period [(rig t s, cpu ms, wall ms, NMPC status or
+    None, OSQP rho updates or None)]."""
     setpoints, slow = [], []
     with open(daemon_dir / "events.csv", newline="") as fh:
         for row in csv.DictReader(fh):
             if row["kind"] == "setpoint":
                 setpoints.append((float(row["t_s"]), ast.literal_eval(row["cause"])))
-            elif row["kind"] == "slow_tick":
+            elif row["kind"] in ("slow_tick", "nmpc_overrun"):
                 m = _SLOW_CPU.match(row["cause"])
                 if m:
                     st, rho = _NMPC_STATUS.search(row["cause"]), _NMPC_RHO.search(row["cause"])

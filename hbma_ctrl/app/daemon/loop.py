@@ -168,6 +168,7 @@ class DaemonLoop:
         self._miss_run = 0
         self._t_origin: float | None = None
         self._steal_before: float | None = None
+        self._parts_seen = None  # the controller step whose overrun was last checked (_overrun_within_period)
         self._ru_before = None
         #: the collector's pauses (frozen start-up objects, see :mod:`hbma_ctrl.app.daemon.gcwatch`),
         #: set while :meth:`run` runs
@@ -300,6 +301,8 @@ class DaemonLoop:
         self._last_tick_cpu = time.thread_time() - cpu0
         if max(self._last_tick, self._last_tick_cpu) > self.period and not self._warming:
             self._slow_tick()
+        else:
+            self._overrun_within_period()
         self._ctrl_steps += int(not self._warming)
         self.tick_s.add(self._last_tick)
         self.tick_cpu_s.add(self._last_tick_cpu)
@@ -307,7 +310,18 @@ class DaemonLoop:
             self.event(kind, cause)
         self._write(u)
 
-    def _slow_tick(self) -> None:
+    def _overrun_within_period(self) -> None:
+        """Log a controller overrun in a tick that stayed within the period (event ``nmpc_overrun``,
+        the slow tick's report): the robot NMPC's budget is shorter than the period, so its fallback
+        can strike without a slow tick, and a replay of the run must take it where the run did."""
+        parts = getattr(getattr(getattr(self.runner, "loop", None), "controller", None), "last_parts", None)
+        if parts is None or parts is self._parts_seen:
+            return
+        self._parts_seen = parts  # each controller step makes a new dict: one event per step
+        if str(parts.get("status", "")).startswith("overrun"):
+            self._slow_tick("nmpc_overrun")
+
+    def _slow_tick(self, kind: str = "slow_tick") -> None:
         """Log a tick longer than the period (event ``slow_tick``) with where its time went: the
         runtime loop's estimator and controller parts when it reports them (``last_timing``: step,
         estimator, controller, s), the host's steal time during it (ms, from /proc/stat, read before
@@ -337,7 +351,7 @@ class DaemonLoop:
         if more:
             text += "; " + ", ".join(f"{k} {v * 1e3:.2f} ms" if isinstance(v, float) else f"{k} {v}"
                                      for k, v in more.items())
-        self.event("slow_tick", text)
+        self.event(kind, text)
 
     def _check_setpoint(self, request: dict) -> dict:
         """The runner's check (the API's thread); refused (RuntimeError: 503) once the loop is not running:
