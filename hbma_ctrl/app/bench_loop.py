@@ -60,11 +60,13 @@ TAIL_S = 1.0  # the load step's rejection window: the last second
 
 
 def loop_setup(rig: str = "cap", membrane: str | None = None, valve_delay_ms: float | None = None,
-               sensor_delay_ms: float | None = None, valve_min_on_ms: float | None = None) -> dict:
+               sensor_delay_ms: float | None = None, valve_min_on_ms: float | None = None,
+               calibration_std_floor: float | None = None) -> dict:
     """The bench's truth and models: the rig, the models' membrane law (default: the rig's), the
     delays the estimator and the calibration model and the valves' minimum opening the loop shapes
     its duties for (ms; default 5, 3 and 2 on the structured rig, 0 on the cap rig). Raises
-    ValueError naming the flag on a bad value."""
+    ValueError naming the flag on a bad value. ``calibration_std_floor``: the calibration prior's
+    sigma floor (default: the controller's, 0.08)."""
     if rig not in RIGS:
         raise ValueError(f"--rig: '{rig}' is unknown{did_you_mean(rig, RIGS)}; allowed {', '.join(RIGS)}")
     structured = rig == "structured"
@@ -75,6 +77,9 @@ def loop_setup(rig: str = "cap", membrane: str | None = None, valve_delay_ms: fl
            "valve_delay_ms": (5.0 if structured else 0.0) if valve_delay_ms is None else float(valve_delay_ms),
            "sensor_delay_ms": (3.0 if structured else 0.0) if sensor_delay_ms is None else float(sensor_delay_ms),
            "valve_min_on_ms": (2.0 if structured else 0.0) if valve_min_on_ms is None else float(valve_min_on_ms)}
+    out["calibration_std_floor"] = 0.08 if calibration_std_floor is None else float(calibration_std_floor)
+    if not 0.0 <= out["calibration_std_floor"] <= 1.0:
+        raise ValueError(f"--calibration-std-floor = {out['calibration_std_floor']:g} is out of range [0, 1]")
     for key in ("valve_delay_ms", "sensor_delay_ms", "valve_min_on_ms"):
         if not 0.0 <= out[key] <= 100.0:
             raise ValueError(f"--{key.replace('_', '-')} = {out[key]:g} is out of range [0, 100] ms")
@@ -88,7 +93,8 @@ def run_case(case: str, seed: int, setup: dict | None = None) -> dict:
     setup = setup or loop_setup()
     raw, load, duration = CASES[case]
     act, pn = Actuator(), Pneumatics()
-    sec = replace(parse_role("controller", raw), valve_min_on=U.ms(setup.get("valve_min_on_ms", 0.0)))
+    sec = replace(parse_role("controller", raw), valve_min_on=U.ms(setup.get("valve_min_on_ms", 0.0)),
+                  calibration_std_floor=setup.get("calibration_std_floor", 0.08))
     rs = RigSettings(seed=seed, **(STRUCTURED_RIG if setup["rig"] == "structured" else {}))
     est = EKF(act, pn, EKFSettings(sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
                                    sensor_range=rs.sensor_range, membrane=setup["membrane"],

@@ -38,6 +38,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         valve_min_on_ms: Annotated[Optional[float], typer.Option(help="valves' minimum opening the loop shapes its "
                                                                      "duties for, ms, 0-100 (default 2 on structured, "
                                                                      "else 0)")] = None,
+        calibration_std_floor: Annotated[Optional[float], typer.Option(help="smallest sigma of the calibration's "
+                                                                           "factors handed to the EKF, 0-1 "
+                                                                           "(default 0.08)")] = None,
     ) -> None:
         """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
         from hbma_ctrl.app.bench_loop import loop_setup, run_loop_bench, summarize_loop, write_loop_bench
@@ -49,7 +52,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         workers = cap_workers("--workers", workers)
         con = Console(highlight=False, width=140)
         cs = [c.strip() for c in cases.split(",") if c.strip()]
-        setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms)
+        setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms, calibration_std_floor)
         with run_dir(out, command="bench loop", argv=cli_argv(), overwrite=overwrite) as tmp:
             rows = run_loop_bench(list(range(seeds)), cs, workers,
                                   progress=lambda r: con.print(f"  {r['case']} seed {r['seed']}: "

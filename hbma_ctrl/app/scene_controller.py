@@ -245,7 +245,8 @@ def make_calibration(actuator: Actuator, pneumatics: Pneumatics, platform: Platf
     timing = {k: getattr(fs, k) for k in ("valve_delay", "sensor_delay", "membrane") if hasattr(fs, k)}
     cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
                              sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
-                             sensor_range=rs.sensor_range, **timing)
+                             sensor_range=rs.sensor_range, handover_std_floor=section.calibration_std_floor,
+                             **timing)
     return StartupCalibration(actuator, pneumatics, cs, platform,
                               estimator=estimator if hasattr(estimator, "state_names") else None)
 

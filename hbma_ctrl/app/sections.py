@@ -136,6 +136,8 @@ class ControllerSection:
     calibrate : run the start-up calibration before the loop closes (:mod:`hbma_ctrl.runtime.calibrate`).
     valve_min_on : the valves' minimum opening, s (0 = none): small duties are realised on average
         (:class:`hbma_ctrl.runtime.pwm.MinOnTime`); at most the rig's sample period.
+    calibration_std_floor : the calibration hands its factors to the estimator with sigmas at least
+        this (:class:`hbma_ctrl.runtime.calibrate.CalibrationSettings` ``handover_std_floor``).
     """
 
     kind: str = "mpc"
@@ -149,6 +151,7 @@ class ControllerSection:
     # out of the repr: tests/test_schema.py compares reprs with those of the parsers this schema replaced
     calibrate: bool = field(default=True, repr=False)
     valve_min_on: float = field(default=0.0, repr=False)
+    calibration_std_floor: float = field(default=0.08, repr=False)
 
     @property
     def sample_period(self) -> float:

@@ -96,6 +96,8 @@ class ControllerTable(Table):
                                  "factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
     valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves' minimum opening (datasheet): shorter duties "
                                  "are sent as pulses of this length often enough to pass them on average")
+    calibration_std_floor: float = num(0.08, 0.0, 1.0, "-", "smallest sigma of each factor the calibration hands "
+                                       "the estimator (its fit's own assumes the model is the chamber)")
 
     @model_validator(mode="after")
     def _cross(self) -> ControllerTable:
@@ -146,6 +148,8 @@ class ControllerTable(Table):
             sec["settle_band"] = U.mm(self.settle_band_mm)
         if self._given("valve_min_on_ms"):
             sec["valve_min_on"] = U.ms(self.valve_min_on_ms)
+        if self._given("calibration_std_floor"):
+            sec["calibration_std_floor"] = float(self.calibration_std_floor)
         try:
             reference = ReferenceProfile(points=tuple((r.t_s, U.mm(r.h_mm)) for r in self.targets_mm),
                                          **ref).validate()
