@@ -377,29 +377,23 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
     assert re.match(r"(p|h_est)_\w+_(kpa|mm): run [-0-9.]+, replay [-0-9.]+$", busy[0]["first_difference"])
 
 
-def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path):
-    """A robot run whose NMPC overran at two ticks (OSQP's time limit, as OSQP reports it;
-    a solve finished after the budget), the supervisor replaying the plan each time, and that has a
-    slow tick later: the replay forces the same overruns where the events say they happened, with
-    its own budget lifted elsewhere, and reaches the run's state at all three ticks."""
-    from hbma_ctrl.app.bench_soak import _TimeLimited, replay_ticks
-
+def _robot_run_with_extras(tmp_path, solves: dict, slow: set) -> tuple:
+    """A 0.4 s robot run at speed 20 whose NMPC solve is replaced at the ticks in ``solves`` (tick
+    number -> maker(ctrl) of the replacement) and whose ticks in ``slow`` first busy-wait 1.5
+    periods of thread CPU; returns (loop, controller, {tick number: rig time})."""
     cfg, runner, rig, loop = _loop(ROBOT, tmp_path, duration_s=0.4, speed=20.0)
     loop.warmup_periods = 0
     ctrl = runner.loop.controller
-    assert ctrl.s.budget > 0.0
     tick = runner.tick
     n, marks = [0], {}
 
     def tick_with_extras(t, p, *held):
         n[0] += 1
-        if n[0] in (15, 22, 30):
+        if n[0] in solves or n[0] in slow:
             marks[n[0]] = t
-            if n[0] == 15:
-                ctrl._solver.solve = lambda *a, **k: _TimeLimited()
-            if n[0] == 22:  # solved, but after the budget: a late plan, not sent
-                real = type(ctrl._solver).solve.__get__(ctrl._solver)
-                ctrl._solver.solve = lambda *a, **k: (real(*a, **k), time.sleep(ctrl.s.budget * ctrl.s.sample_period))[0]
+        if n[0] in solves:
+            ctrl._solver.solve = solves[n[0]](ctrl)
+        if n[0] in slow:
             end = time.thread_time() + 1.5 * loop.period
             while time.thread_time() < end:
                 pass
@@ -410,6 +404,25 @@ def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path)
 
     runner.tick = tick_with_extras
     loop.run()
+    return loop, ctrl, marks
+
+
+def _late(ctrl):
+    """A solve that finishes after the NMPC's budget (a late plan, not sent)."""
+    real = type(ctrl._solver).solve.__get__(ctrl._solver)
+    return lambda *a, **k: (real(*a, **k), time.sleep(ctrl.s.budget * ctrl.s.sample_period))[0]
+
+
+def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path):
+    """A robot run whose NMPC overran at two ticks (OSQP's time limit, as OSQP reports it;
+    a solve finished after the budget), the supervisor replaying the plan each time, and that has a
+    slow tick later: the replay forces the same overruns where the events say they happened, with
+    its own budget lifted elsewhere, and reaches the run's state at all three ticks."""
+    from hbma_ctrl.app.bench_soak import _TimeLimited, replay_ticks
+
+    loop, ctrl, marks = _robot_run_with_extras(
+        tmp_path, {15: lambda c: (lambda *a, **k: _TimeLimited()), 22: _late}, {15, 22, 30})
+    assert ctrl.s.budget > 0.0
     events = {e["t_s"]: e["cause"] for e in loop.events if e["kind"] == "slow_tick"}
     assert events[marks[15]].endswith("nmpc status overrun (run time limit reached)"), events
     assert re.search(r"nmpc status overrun \([0-9.]+ ms > [0-9.]+ ms\)$", events[marks[22]]), events
@@ -426,29 +439,7 @@ def test_nmpc_overrun_within_the_period_is_logged_and_the_replay_takes_it(tmp_pa
     the replay would send another command at the overrun and part from the run)."""
     from hbma_ctrl.app.bench_soak import _TimeLimited, replay_ticks
 
-    cfg, runner, rig, loop = _loop(ROBOT, tmp_path, duration_s=0.4, speed=20.0)
-    loop.warmup_periods = 0
-    ctrl = runner.loop.controller
-    tick = runner.tick
-    n, marks = [0], {}
-
-    def tick_with_extras(t, p, *held):
-        n[0] += 1
-        if n[0] in (15, 30):
-            marks[n[0]] = t
-        if n[0] == 15:
-            ctrl._solver.solve = lambda *a, **k: _TimeLimited()
-        if n[0] == 30:
-            end = time.thread_time() + 1.5 * loop.period
-            while time.thread_time() < end:
-                pass
-        try:
-            return tick(t, p, *held)
-        finally:
-            ctrl._solver.__dict__.pop("solve", None)
-
-    runner.tick = tick_with_extras
-    loop.run()
+    loop, ctrl, marks = _robot_run_with_extras(tmp_path, {15: lambda c: (lambda *a, **k: _TimeLimited())}, {30})
     over = [e for e in loop.events if e["kind"] == "nmpc_overrun"]
     assert [e["t_s"] for e in over] == [marks[15]], over
     assert over[0]["cause"].endswith("nmpc status overrun (run time limit reached)")
