@@ -253,3 +253,21 @@ def test_times_json_holds_every_function_and_the_tick(tmp_path):
     assert times["tick"]["calls"] == 30
     for row in list(times["functions"].values()) + [times["tick"]]:
         assert 0 <= row["median_us"] <= row["p99_us"] <= row["max_us"]
+
+
+@pytest.mark.parametrize("table, key, value", [("controller", "valve_min_on_ms", 2.0),
+                                               ("estimator", "valve_delay_ms", 5.0)])
+def test_codegen_refuses_what_the_generated_loop_does_not_do_naming_the_key(table, key, value, tmp_path):
+    """The minimum on-time shaping and the EKF's delays are not in the generated C loop: a scenario
+    that sets them is refused with the key named, not generated into a loop that differs."""
+    from hbma_ctrl.app.codegen_scene import scenario_loop
+
+    text = Path(TRACK).read_text()
+    if f"[{table}]\n" in text:
+        text = text.replace(f"[{table}]\n", f"[{table}]\n{key} = {value}\n", 1)
+    else:
+        text += f"\n[{table}]\n{key} = {value}\n"
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=key):
+        scenario_loop(load_scenario(path), duration=0.1)

@@ -25,7 +25,8 @@ Where a QP is marginal the two can part (measured on ``mpc_pressure_limit.toml``
 inputs after its fallback drill give status 2 in the NMPC and 0 in the generated step at t = 2.64 s).
 
 Not reproduced (the generated loop and its Python path leave them out, both alike): the start-up
-calibration, the EKF's rare reference-path events (``exact`` = 0; counted in the trajectory's
+calibration, the valve and sensor delays of the EKF and the minimum on-time shaping (refused with a
+clear error when set), the EKF's rare reference-path events (``exact`` = 0; counted in the trajectory's
 ``ekf_reference_events``), the budget/overrun logic (wall-clock dependent), load steps during the
 run. The loop starts at t = 0 with the rig at rest.
 """
@@ -347,6 +348,9 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
     if type(est).__name__ != "EKF":
         raise ValueError(f"codegen: [estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
     s = est.settings
+    if s.valve_delay > 0 or s.sensor_delay > 0:
+        raise ValueError("codegen: [estimator] valve_delay_ms / sensor_delay_ms: the generated EKF takes the "
+                         "commands as acting at once; set both to 0 to generate C")
     fun = es.ekf_step_function(scn.actuator, scn.pneumatics, s)
     kind, out = _ekf_glue(s, physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel))
     e0 = est.step(0.0, z0, Command(0.0, 0.0, 0.0))
@@ -408,6 +412,9 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     if section.load_steps:
         raise ValueError("codegen: [controller] load_steps_g: load changes during the run switch the rig's "
                          "plant model in Python; remove them to generate C")
+    if section.valve_min_on > 0:
+        raise ValueError("codegen: [controller] valve_min_on_ms: the generated loop sends the duties as the "
+                         "NMPC asks; set it to 0 to generate C")
     rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))
