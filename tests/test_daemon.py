@@ -863,3 +863,35 @@ def test_bench_poses_records_every_change_and_every_fault_rearming_the_monitor(t
     assert ("sensor_missing", "A1") in kinds and ("sensor_missing", "B2") in kinds
     assert res["over_limit"] == sum(c["peak_kpa"] > 45.0 for c in res["per_change"])
     assert json.loads((out / "poses.json").read_text())["changes"] == 3
+
+
+def test_pause_probe_sees_a_stall_and_places_it_on_the_slow_tick_it_overlaps(tmp_path):
+    """The soak's outside witness: its 1 ms sleeper records a 50 ms hold of the interpreter (the
+    way a stopped machine delays every process), and ``pauses_at_ticks`` puts a gap on the slow tick
+    whose wall window it overlaps, and none on one it does not."""
+    import sys
+    from datetime import datetime, timezone
+
+    from hbma_ctrl.app.bench_soak import PauseProbe, pauses_at_ticks
+
+    old = sys.getswitchinterval()
+    probe = PauseProbe().start()
+    try:
+        time.sleep(0.05)
+        sys.setswitchinterval(0.05)  # the busy loop below keeps the interpreter ~50 ms at a time
+        end = time.monotonic() + 0.2
+        while time.monotonic() < end:
+            pass
+    finally:
+        sys.setswitchinterval(old)
+        gaps = probe.stop()
+    assert gaps and max(g for _, g in gaps) > 0.03, gaps
+
+    w0 = 1_800_000_000.0
+    stamp = lambda w: datetime.fromtimestamp(w, timezone.utc).isoformat(timespec="milliseconds")  # noqa: E731
+    (tmp_path / "events.csv").write_text(
+        "t_s,wall_utc,kind,cause\n"
+        f'10.0000,{stamp(w0)},slow_tick,"cpu 20.0 ms, wall 20.0 ms (estimator 0.2 ms)"\n'
+        f'70.0000,{stamp(w0 + 60)},slow_tick,"cpu 12.0 ms, wall 12.0 ms (estimator 0.2 ms)"\n')
+    got = pauses_at_ticks(tmp_path, [(w0 - 0.005, 0.018), (w0 + 30.0, 0.040)])
+    assert got == {"10.0000": pytest.approx(18.0), "70.0000": 0.0}

@@ -52,7 +52,8 @@ import httpx
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.outputs import run_dir
 
-__all__ = ["run_soak", "soak_verdicts", "random_target", "replay_ticks", "RSS_GROWTH_MAX_MB"]
+__all__ = ["run_soak", "soak_verdicts", "random_target", "replay_ticks", "RSS_GROWTH_MAX_MB", "PauseProbe",
+           "pauses_at_ticks"]
 
 #: the soak's memory criterion, MB
 RSS_GROWTH_MAX_MB = 10.0
@@ -107,6 +108,68 @@ class _TimeLimited:
         status, iter, rho_updates, solve_time = "run time limit reached", 0, 0, 0.0
 
     x = y = None
+
+
+class PauseProbe:
+    """A thread of the bench's own process that sleeps 1 ms at a time and records every wake-up more
+    than ``min_gap`` s late: (wall clock at the wake-up, epoch s; the gap, s). A pause of the whole
+    machine (a virtual machine its host stops) delays every process alike, so a daemon tick over the
+    period that falls in such a gap was the machine's, seen from outside the daemon. Keeps at most
+    ``cap`` gaps (the longest)."""
+
+    def __init__(self, min_gap: float = 0.005, cap: int = 10000):
+        import threading
+
+        self.min_gap, self.cap = float(min_gap), int(cap)
+        self.gaps: list = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="pause-probe", daemon=True)
+
+    def _run(self) -> None:
+        last = time.monotonic()
+        while not self._stop.is_set():
+            time.sleep(0.001)
+            now = time.monotonic()
+            if now - last > self.min_gap:
+                self.gaps.append((time.time(), now - last))
+                if len(self.gaps) > 2 * self.cap:
+                    self.gaps = sorted(self.gaps, key=lambda g: -g[1])[:self.cap]
+            last = now
+
+    def start(self) -> "PauseProbe":
+        self._thread.start()
+        return self
+
+    def stop(self) -> list:
+        """Stop; the gaps recorded, in time order."""
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        return sorted(sorted(self.gaps, key=lambda g: -g[1])[:self.cap])
+
+
+def pauses_at_ticks(daemon_dir: Path, gaps: list, slack: float = 0.02) -> dict:
+    """For each slow tick of a run (``events.csv``: its wall clock when logged, just after the tick,
+    and its wall time): the longest probe gap overlapping [logged - wall time - slack, logged + slack],
+    ms (0: none). {rig t s string: ms}."""
+    from datetime import datetime
+
+    out: dict = {}
+    path = daemon_dir / "events.csv"
+    if not path.exists():
+        return out
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            if row["kind"] != "slow_tick":
+                continue
+            m = _SLOW_CPU.match(row["cause"])
+            try:
+                end = datetime.fromisoformat(row["wall_utc"]).timestamp()
+            except ValueError:
+                continue
+            start = end - (float(m.group(2)) * 1e-3 if m else 0.0) - slack
+            best = max((g for w, g in gaps if w - g < end + slack and w > start), default=0.0)
+            out[row["t_s"]] = best * 1e3
+    return out
 
 
 def _run_events(daemon_dir: Path) -> tuple[list, list]:
@@ -294,6 +357,7 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
                "--duration-s", repr(duration_s), "--api", f"127.0.0.1:{port}", "--out", str(tmp / "daemon")]
         err_path = tmp / "daemon_stderr.txt"
         sent: list[dict] = []
+        probe = PauseProbe().start()
         with open(err_path, "w") as err:
             proc = subprocess.Popen(cmd, stdout=err, stderr=subprocess.STDOUT, env=dict(os.environ))
             # a stop (Ctrl-C, or SIGTERM/SIGINT to a soak started in the background, where the shell
@@ -310,6 +374,7 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
             finally:
                 for sig, h in old.items():
                     signal.signal(sig, h)
+                gaps = probe.stop()
         stats_path = tmp / "daemon" / "daemon_stats.json"
         if not stats_path.exists():
             tail = err_path.read_text().strip().splitlines()[-1:] or ["(no output)"]
@@ -331,6 +396,12 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
                   "verdicts": verdicts, "passed": all(verdicts.values()),
                   "ticks_over_period": ticks, "ticks_over_period_machine":
                       None if ticks is None else sum(1 for t in ticks if t["machine"]),
+                  # an independent witness: the bench's own 1 ms sleeper woke late at the same moment
+                  "slow_tick_machine_pause_ms": pauses_at_ticks(tmp / "daemon", gaps),
+                  "machine_pauses": {"over_5ms": len(gaps), "over_10ms": sum(1 for _, g in gaps if g > 0.01),
+                                     "max_ms": max((g for _, g in gaps), default=0.0) * 1e3,
+                                     "longest": [[time.strftime("%H:%M:%S", time.gmtime(w)) + f"{w % 1:.3f}"[1:],
+                                                  g * 1e3] for w, g in sorted(gaps, key=lambda x: -x[1])[:50]]},
                   "daemon_stats": stats}
         (tmp / "soak.json").write_text(json.dumps(json_safe(result), indent=1) + "\n")
     return result
