@@ -37,6 +37,7 @@ import numpy as np
 from estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
 from hbma_ctrl.app.schema.document import parse_role
+from hbma_ctrl.app.sections import ControllerSection
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
@@ -77,7 +78,8 @@ def loop_setup(rig: str = "cap", membrane: str | None = None, valve_delay_ms: fl
            "valve_delay_ms": (5.0 if structured else 0.0) if valve_delay_ms is None else float(valve_delay_ms),
            "sensor_delay_ms": (3.0 if structured else 0.0) if sensor_delay_ms is None else float(sensor_delay_ms),
            "valve_min_on_ms": (2.0 if structured else 0.0) if valve_min_on_ms is None else float(valve_min_on_ms)}
-    out["calibration_std_floor"] = 0.08 if calibration_std_floor is None else float(calibration_std_floor)
+    out["calibration_std_floor"] = (ControllerSection.calibration_std_floor if calibration_std_floor is None
+                                    else float(calibration_std_floor))
     if not 0.0 <= out["calibration_std_floor"] <= 1.0:
         raise ValueError(f"--calibration-std-floor = {out['calibration_std_floor']:g} is out of range [0, 1]")
     for key in ("valve_delay_ms", "sensor_delay_ms", "valve_min_on_ms"):
@@ -94,7 +96,7 @@ def run_case(case: str, seed: int, setup: dict | None = None) -> dict:
     raw, load, duration = CASES[case]
     act, pn = Actuator(), Pneumatics()
     sec = replace(parse_role("controller", raw), valve_min_on=U.ms(setup.get("valve_min_on_ms", 0.0)),
-                  calibration_std_floor=setup.get("calibration_std_floor", 0.08))
+                  calibration_std_floor=setup.get("calibration_std_floor", ControllerSection.calibration_std_floor))
     rs = RigSettings(seed=seed, **(STRUCTURED_RIG if setup["rig"] == "structured" else {}))
     est = EKF(act, pn, EKFSettings(sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
                                    sensor_range=rs.sensor_range, membrane=setup["membrane"],

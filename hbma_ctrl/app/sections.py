@@ -20,6 +20,7 @@ from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.plant import RobotPlantSettings
+from hbma_ctrl.runtime.calibrate import CalibrationSettings
 from hbma_ctrl.sim.batch import protocol_trials
 from hbma_ctrl.sim.rig import RigSettings
 from hbma_ctrl.sim.trial import InputSchedule, SimSettings, Trial
@@ -151,7 +152,7 @@ class ControllerSection:
     # out of the repr: tests/test_schema.py compares reprs with those of the parsers this schema replaced
     calibrate: bool = field(default=True, repr=False)
     valve_min_on: float = field(default=0.0, repr=False)
-    calibration_std_floor: float = field(default=0.08, repr=False)
+    calibration_std_floor: float = field(default=CalibrationSettings.handover_std_floor, repr=False)
 
     @property
     def sample_period(self) -> float:

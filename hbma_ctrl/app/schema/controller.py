@@ -30,6 +30,7 @@ from hbma_ctrl.app.schema.fields import (
 )
 from hbma_ctrl.app.sections import ControllerSection, ReferenceProfile
 from hbma_ctrl.core import units as U
+from hbma_ctrl.runtime.calibrate import CalibrationSettings
 
 __all__ = ["ControllerTable", "TargetRow"]
 
@@ -96,7 +97,7 @@ class ControllerTable(Table):
                                  "factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
     valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves' minimum opening (datasheet): shorter duties "
                                  "are sent as pulses of this length often enough to pass them on average")
-    calibration_std_floor: float = num(0.08, 0.0, 1.0, "-", "smallest sigma of each factor the calibration hands "
+    calibration_std_floor: float = num(CalibrationSettings.handover_std_floor, 0.0, 1.0, "-", "smallest sigma of each factor the calibration hands "
                                        "the estimator (its fit's own assumes the model is the chamber)")
 
     @model_validator(mode="after")
