@@ -250,12 +250,15 @@ class StartupCalibration:
     def _enter(self, phase: str, t: float) -> None:
         self.phase, self._t0 = phase, t
 
-    def tick(self, t: float, reading_pa: float) -> tuple[Command, bool]:
+    def tick(self, t: float, reading_pa: float, held: Command | None = None) -> tuple[Command, bool]:
         """One sample: the command to hold from t (s) on and whether the calibration is over. The
         tick that ends it runs the fit (and the estimator over the excitation): about a second of
-        wall time, while the chamber vents."""
+        wall time, while the chamber vents. ``held``: the command the rig reports it held over the
+        period this reading ends (None = the last one returned, as in a lockstep simulation); the fit
+        and the estimator take it, so a link that applies commands a period late does not bias them."""
         s = self.settings
         z = float(reading_pa)
+        before = self.command if held is None else held
         if not np.isfinite(t) or (self._all and t <= self._all[-1][0]):
             last = self._all[-1][0] if self._all else None
             raise ValueError(f"calibration.tick: t = {t!r} s must be finite and after the last tick's {last} s")
@@ -263,19 +266,19 @@ class StartupCalibration:
             self._t0 = float(t)
         if self.phase == "done":
             return _VENT, True
-        self._all.append((float(t), reading_pa, self.command))
+        self._all.append((float(t), reading_pa, before))
         el = t - self._t0
         if self.phase != "vent":
             self._t.append(float(t))
             self._z.append(z)
-            self._u.append(self.command.as_array())
+            self._u.append(before.as_array())
         if self.phase == "vent":
             if np.isfinite(z):
                 self._recent = (self._recent + [z])[-s.rest_samples:]
             rested = len(self._recent) == s.rest_samples and abs(np.mean(self._recent)) < s.rest_tol
             if el + 1e-9 >= s.vent_min and rested:
                 self._enter("pump", t)
-                self._t, self._z, self._u = [float(t)], [z], [_VENT.as_array()]
+                self._t, self._z, self._u = [float(t)], [z], [before.as_array()]
                 self.command = Command(s.speed, 1.0, 0.0)
             elif el + 1e-9 >= s.vent_max:
                 return self._finish("failed: the chamber did not vent to ambient")

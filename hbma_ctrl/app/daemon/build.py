@@ -134,12 +134,12 @@ class ChamberRunner:
             self._t0 = float(t)
             if self.calibration is not None:
                 self._events.append(("calibration", "start-up calibration: vent, pump pulse, hold, vent"))
+        h = None if held is None else Command(*(float(x) for x in np.asarray(held, dtype=float).reshape(3)))
         if self.warming:
-            cmd, done = self.calibration.tick(t, float(p[0]))
+            cmd, done = self.calibration.tick(t, float(p[0]), h)
             if done:
                 self._calibrated(t, cmd)
             return cmd.as_array().reshape(3, 1)
-        h = None if held is None else Command(*(float(x) for x in np.asarray(held, dtype=float).reshape(3)))
         return self.loop.tick(t, float(p[0]), h).as_array().reshape(3, 1)
 
     def _calibrated(self, t: float, cmd: Command) -> None:
