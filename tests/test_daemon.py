@@ -653,38 +653,34 @@ def test_kill_9_mid_run_leaves_a_readable_log(tmp_path):
     assert [float(r[0]) for r in rows[:3]] == [0.0, 0.01, 0.02]
 
 
-def test_chamber_on_the_serial_link_settles_where_it_does_on_sim_within_0p3mm(tmp_path):
-    from hbma_ctrl.app.daemon.build import chamber_rig_settings
-    from hbma_ctrl.app.daemon.firmware import FakeFirmware
-    from hbma_ctrl.app.daemon.rig_sim import SimRig
+#: rig time for the serial test: 0.8 s of calibration, 6 mm from 3 s after it, 6 s to settle
+DURATION = 10.0
+BAND = 0.6e-3  # m: see the end of the test
 
-    cfg_path = _write_config(tmp_path, CHAMBER, replace=RELAXED)
-    cfg0 = load_config(cfg_path)
-    scn = cfg0.scenario
-    # the firmware's plant is the simulated rig
-    sim = SimRig.chamber(scn.actuator, scn.pneumatics, scn.platform, chamber_rig_settings(cfg0))
 
-    h_controlled: list = []  # the true height after every period the firmware ran the host's commands
-    owed = [0.0]  # firmware time not yet simulated, s
-    firmware: list = []  # the firmware once built (its thread calls the plant from its start)
+def _truth_rows(path: Path) -> list[dict]:
+    import csv
 
-    dts: list = []  # the firmware thread's periods as it ran them (s)
+    with path.open() as fh:
+        return list(csv.DictReader(fh))
 
-    def plant(u, dt):
-        # the plant's lockstep time follows the firmware's clock (which the loop reads) within a period
-        dts.append(dt)
-        owed[0] += dt
-        while owed[0] >= cfg0.period * 0.5:
-            sim.write(u)
-            owed[0] -= cfg0.period
-        if firmware and firmware[0].mode == "RUN":  # the host's commands, not the firmware's own safe state
-            h_controlled.append(sim.truth()["h"])
-        return sim.read().p
 
-    fw = FakeFirmware(1, cfg0.period, plant)
-    firmware.append(fw)
+def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_target_as_on_sim(tmp_path):
+    """The shipped file over the serial link to a fake firmware in its own process (as a microcontroller
+    is: it shares no interpreter with the host) whose plant is the file's mismatched rig; the truth comes
+    from the firmware's log, which the host never sees."""
+    # with its start-up calibration: without it the 400 g load (which the pressure alone cannot tell from
+    # a stiffer membrane) leaves the EKF a bias the truth lands anywhere in 5.5-6.4 mm with
+    cfg_path = _write_config(tmp_path, CHAMBER_FILE, replace=RELAXED)
+    truth = tmp_path / "truth.csv"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}  # this checkout's package
+    fw = subprocess.Popen([sys.executable, "-m", "hbma_ctrl.app.daemon.firmware", "--config", str(cfg_path),
+                           "--truth-log", str(truth)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True, env=env)
     try:
-        cfg = load_config(cfg_path, {"--rig": f"serial:{fw.port}", "--duration-s": 8.0})
+        port = fw.stdout.readline().strip()
+        assert port, fw.stderr.read()
+        cfg = load_config(cfg_path, {"--rig": f"serial:{port}", "--duration-s": DURATION})
         runner = build_runner(cfg)
         rig = make_rig(cfg, runner)
         loop = DaemonLoop(runner, rig, DaemonState(), cfg.period, duration=cfg.duration,
@@ -693,27 +689,32 @@ def test_chamber_on_the_serial_link_settles_where_it_does_on_sim_within_0p3mm(tm
             stats = loop.run()
         finally:
             rig.close()
-        # the SAFE line close() sent is read by the firmware's thread, which a loaded machine may
-        # not have run yet: wait for it (at most 2 s) before stopping the firmware
-        deadline = time.monotonic() + 2.0
-        while fw.mode != "SAFE" and time.monotonic() < deadline:
-            time.sleep(0.01)
+        # the SAFE line close() sent reaches the firmware's process a little later: wait for it (at
+        # most 5 s) before stopping the firmware
+        deadline = time.monotonic() + 5.0
+        while _truth_rows(truth)[-1]["mode"] != "SAFE" and time.monotonic() < deadline:
+            time.sleep(0.05)
     finally:
-        fw.close()
+        fw.terminate()
+        fw.wait(timeout=30)
+    rows = _truth_rows(truth)
+    assert rows[-1]["mode"] == "SAFE"  # the firmware holds the safe command at the end
     assert stats["safe_exit"] and stats["faults"] == {}, stats
-    # the file's 6 mm from 3 s, which the same configuration reaches on sim within 0.3 mm
-    assert len(h_controlled) > 300  # the firmware ran the host's commands for most of the run
-    h_end = h_controlled[-1]
+    cal = runner.stats()["calibration"]
+    assert cal["status"] == "ok", cal  # fitted from the commands the firmware said it held
+    run = [r for r in rows if r["mode"] == "RUN"]  # the periods the firmware ran the host's commands
+    assert len(run) > 0.8 * stats["steps"]
+    h_end = float(run[-1]["h_C1_mm"]) * 1e-3  # the true height when the host's last command ended
     missed = stats["deadline_misses"] / max(stats["steps"], 1)
-    late_fw = float(np.mean(np.asarray(dts) > 1.5 * cfg0.period)) if dts else 0.0
+    late_fw = float(np.mean([float(r["dt_ms"]) > 15.0 for r in rows]))
     if missed > 0.01 or late_fw > 0.01:
-        # a real-time loop that cannot keep its period, or a fake firmware (a thread of this process,
-        # sharing its GIL, unlike a microcontroller) that cannot keep its own, does not test the link:
+        # a real-time loop that cannot keep its period, or a firmware that cannot keep its own (a
+        # process on a shared, loaded machine, unlike a microcontroller), does not test the link:
         # said as a skip with the numbers, never counted as a pass
         pytest.skip(f"host missed {missed:.0%} of the 10 ms deadlines, the firmware ran {late_fw:.0%} of its "
                     f"periods over 15 ms; the chamber held {h_end * 1e3:.2f} mm")
-    # the same file on the lockstep sim rig
-    _, _, sim_rig, sim_loop = _loop(cfg_path, duration_s=8.0)
+    # the file's 6 mm from 3 s after the calibration; the same file on the lockstep sim rig
+    _, _, sim_rig, sim_loop = _loop(cfg_path, duration_s=DURATION)
     sim_loop.run()
     h_sim = sim_rig.rig.truth()["h"]
     # the loop ticks on the firmware's samples (few periods without a new one) and the estimator
@@ -721,10 +722,65 @@ def test_chamber_on_the_serial_link_settles_where_it_does_on_sim_within_0p3mm(tm
     # of command delay, which the sim rig does not have
     assert stats["repeated_samples"] <= 0.05 * stats["steps"], stats["repeated_samples"]
     assert rig.stats["held_unknown"] == 0
-    assert abs(h_sim - 6e-3) <= 0.3e-3, f"sim: held {h_sim * 1e3:.2f} mm"
-    assert abs(h_end - 6e-3) <= 0.3e-3 and abs(h_end - h_sim) <= 0.3e-3, \
-        f"serial: held {h_end * 1e3:.2f} mm, the sim {h_sim * 1e3:.2f} mm, target 6 mm"
-    assert np.array_equal(fw.u, safe_u(1))  # the firmware holds the safe command at the end
+    # the band: the modulus is not observable under the 400 g load (the calibration keeps its prior,
+    # the rig's is x1.15) and what the EKF learns of it in the loop depends on the noise it sees, so the
+    # file holds the chamber 0.1-0.55 mm high on the lockstep sim across rig seeds, and the serial runs
+    # (whose timing changes which noise the host sees) spread the same way; a link that loses or
+    # misplaces commands ends millimetres off
+    assert abs(h_sim - 6e-3) <= BAND, f"sim: held {h_sim * 1e3:.2f} mm"
+    assert abs(h_end - 6e-3) <= BAND, f"serial: held {h_end * 1e3:.2f} mm (the sim {h_sim * 1e3:.2f} mm), target 6 mm"
+
+
+class BootingRig:
+    """A one-chamber rig link that has no sample for its first reads (the firmware has not sent one
+    yet), then stamps each sample with its own clock, which started at its boot 5 s before."""
+
+    n, sample_period = 1, 0.01
+
+    def __init__(self, empty_reads: int):
+        self.reads, self.empty = 0, empty_reads
+
+    def read(self):
+        from hbma_ctrl.app.daemon.rigio import Readings
+
+        self.reads += 1
+        j = self.reads - self.empty
+        if j <= 0:
+            return Readings(None, np.array([np.nan]), -1, np.array([False]))
+        return Readings(5.0 + 0.01 * j, np.array([0.0]), j, np.array([True]))
+
+    def write(self, u):
+        pass
+
+    def safe(self):
+        pass
+
+    def close(self):
+        pass
+
+
+def test_loop_ticks_first_on_the_rigs_first_sample_at_t_0_and_never_twice_at_one_time():
+    """Periods before the rig's first sample write the standing command without ticking the runner;
+    the first sample is t = 0 and each later tick is later (the shipped file's start-up calibration
+    refuses a repeated time, so it runs here)."""
+    cfg = load_config(CHAMBER_FILE, {"--duration-s": 0.2})
+    runner = build_runner(cfg)
+    times: list = []
+    tick = runner.tick
+
+    def recorded(t, p, *held):
+        times.append(t)
+        return tick(t, p, *held)
+
+    runner.tick = recorded
+    vc = VirtualClock()
+    loop = DaemonLoop(runner, BootingRig(empty_reads=3), DaemonState(), cfg.period, duration=cfg.duration,
+                      clock=vc.clock, sleep=vc.sleep)
+    stats = loop.run()
+    assert stats["safe_exit"] and stats["faults"] == {}, stats
+    assert stats["steps"] == 20 and len(times) == 17 and times[0] == 0.0
+    assert np.all(np.diff(times) > 0)
+    assert stats["repeated_samples"] == 0  # waiting for the first sample repeats none
 
 
 def test_setpoints_are_refused_once_the_safe_state_is_latched():

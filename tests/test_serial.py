@@ -433,3 +433,38 @@ def test_a_p_line_naming_a_command_the_host_never_sent_is_counted_and_gives_no_h
         fw.u_seq = 4242
     assert _wait(lambda: rig.stats["held_unknown"] >= 1)
     assert rig.read().held is None
+
+
+def test_firmware_cli_with_a_config_refuses_what_does_not_fit_it_with_one_line(tmp_path, capsys):
+    chamber = Path(__file__).resolve().parents[1] / "scenarios" / "daemon_chamber.toml"
+    assert main(["--truth-log", str(tmp_path / "t.csv")]) == 2
+    assert "--truth-log: needs --config" in capsys.readouterr().err
+    assert main(["--config", str(tmp_path / "missing.toml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: --config {tmp_path / 'missing.toml'}") and "\n" not in err
+    assert main(["--config", str(chamber), "--n", "3"]) == 2
+    assert "--n = 3: the config's rig has 1" in capsys.readouterr().err
+    faulty = tmp_path / "faulty.toml"
+    faulty.write_text(chamber.read_text() + '\n[[daemon.fault]]\nkind = "link_loss"\nstart_s = 0.5\n')
+    assert main(["--config", str(faulty)]) == 2
+    assert "[[daemon.fault]]" in capsys.readouterr().err
+
+
+def test_rig_plant_runs_one_rig_period_per_firmware_period_and_stamps_the_rigs_time(tmp_path):
+    """However late the firmware's period ran (dt), the rig advances one of its periods: samples stamped
+    with the rig's time stay on the physics they measured; the truth log records dt as it was."""
+    from hbma_ctrl.app.daemon.build import make_sim_rig
+    from hbma_ctrl.app.daemon.config import load_config
+    from hbma_ctrl.app.daemon.firmware import RigPlant
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "scenarios" / "daemon_chamber.toml")
+    plant = RigPlant(make_sim_rig(cfg), tmp_path / "truth.csv")
+    u = np.array([[1.0], [1.0], [0.0]])  # pumping in
+    p = [plant(u, dt)[0] for dt in (0.01, 0.004, 0.027, 0.01)]
+    plant.close()
+    assert plant.t == pytest.approx(0.04)
+    assert p[0] < p[-1]  # the chamber filled over the four periods
+    rows = (tmp_path / "truth.csv").read_text().splitlines()
+    assert rows[0] == "dt_ms,mode,t_s,h_C1_mm,p_C1_kpa"
+    assert [r.split(",")[0] for r in rows[1:]] == ["10.000", "4.000", "27.000", "10.000"]
+    assert [float(r.split(",")[2]) for r in rows[1:]] == pytest.approx([0.01, 0.02, 0.03, 0.04])

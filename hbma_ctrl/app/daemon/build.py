@@ -390,6 +390,13 @@ def make_rig(cfg: DaemonConfig, runner):
         except ImportError as exc:
             raise ValueError(f"--rig serial: the serial backend is not available ({exc})") from None
         return SerialRig(cfg.port, runner.n, baud=cfg.baud, sample_period=cfg.period)
+    return make_sim_rig(cfg)
+
+
+def make_sim_rig(cfg: DaemonConfig):
+    """The configuration's simulated (mismatched) rig in lockstep, with its [[daemon.fault]] injections:
+    what ``--rig sim`` drives, and the plant a fake firmware runs behind the serial link. ValueError
+    when the backend is not available or a fault does not fit the rig."""
     try:
         from hbma_ctrl.app.daemon.rig_sim import SimRig
     except ImportError as exc:
@@ -404,7 +411,7 @@ def make_rig(cfg: DaemonConfig, runner):
     if cfg.faults:
         from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
         try:
-            rig = FaultyRig(rig, parse_faults(cfg.faults, runner.n))
+            rig = FaultyRig(rig, parse_faults(cfg.faults, rig.n))
         except ValueError as exc:
             msg = str(exc)
             raise ValueError(msg if msg.startswith("[") else f"[daemon.fault] {msg}") from None

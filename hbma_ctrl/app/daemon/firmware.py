@@ -8,13 +8,17 @@ mid-period waits for the next sample instant, as a timer interrupt would apply i
 once); it sends ``HB`` every heartbeat period,
 obeys ``HELLO``/``CMD``/``SAFE``/``HB`` lines and goes safe by itself when the host falls silent.
 The plant is :class:`FirstOrderPlant` or any callable ``plant(u (3, n), dt s) -> p (n,) Pa`` (e.g. a
-mismatched rig model). For tests it can corrupt checksums, drop lines, stop its heartbeat, vanish
-(close the pty, as an unplugged cable) and reappear on a new pty; with ``link`` it keeps a symlink
+mismatched rig model, :class:`RigPlant`); a plant with a ``t`` attribute (its own time, s) has its
+samples stamped with it, else they carry the firmware's clock. For tests it can corrupt checksums,
+drop lines, stop its heartbeat, vanish (close the pty, as an unplugged cable) and reappear on a new pty; with ``link`` it keeps a symlink
 pointing at its current pty (as udev's ``/dev/serial/by-id`` names), so a host configured with the
 link finds it again.
 
 Manual try: ``python -m hbma_ctrl.app.daemon.firmware --n 1 --period-ms 10 [--link /tmp/hbma-rig]``
-prints the port to give the daemon's serial backend, then runs until Ctrl-C.
+prints the port to give the daemon's serial backend, then runs until Ctrl-C. With ``--config
+CONFIG.toml [--truth-log FILE]`` its plant is the configuration's simulated (mismatched) rig
+(:class:`RigPlant`), in its own process as a microcontroller would be, and the log keeps the rig's
+truth, which the host never sees.
 """
 
 from __future__ import annotations
@@ -42,9 +46,9 @@ from hbma_ctrl.app.daemon.serial_link import (
     encode_line,
     from_permille,
 )
-from hbma_ctrl.core.units import ms
+from hbma_ctrl.core.units import ms, to_kpa, to_mm, to_ms
 
-__all__ = ["FirstOrderPlant", "FakeFirmware", "open_fake_rig", "main"]
+__all__ = ["FirstOrderPlant", "RigPlant", "FakeFirmware", "open_fake_rig", "main"]
 
 Plant = Callable[[np.ndarray, float], np.ndarray]
 
@@ -74,11 +78,65 @@ class FirstOrderPlant:
         return self.p.copy()
 
 
+class RigPlant:
+    """A lockstep rig (``write(u)`` holds ``u`` for one of its periods, ``read().p`` its newest
+    pressures, ``truth()``; e.g. the daemon's simulated rig) as a firmware plant: ``plant(u, dt)`` runs
+    one rig period under ``u`` and returns its pressures, Pa (n,), NaN where the sensor gave none;
+    ``t`` is the rig's time, s, which the firmware stamps its samples with.
+
+    Why one period per call whatever ``dt``: a microcontroller's timer keeps its period exactly, a
+    process on a shared machine does not. Running the rig for the time the process took (in whole
+    periods) would put the samples up to half a period off the physics they stamp, a timing error no
+    rig has, and one the start-up calibration's pump-flow fit is sensitive to. Here a late period
+    delays the rig as a whole; it never stretches or shortens its physics.
+
+    truth_log : optional CSV path, one row per call: the firmware period as the process ran it
+    (``dt_ms``), the firmware's mode then (``mode``: a callable set once the firmware exists; ``-``
+    before), rig time (``t_s``), each chamber's true height (``h_C<i>_mm``) and pressure
+    (``p_C<i>_kpa``). It judges a closed loop over the link against the rig's truth, which the host
+    never sees. Call :meth:`close` to flush it.
+    """
+
+    def __init__(self, rig, truth_log: str | os.PathLike | None = None) -> None:
+        self.rig = rig
+        self.n = int(rig.n)
+        self.period = float(rig.sample_period)
+        self.mode: Callable[[], str] = lambda: "-"
+        self._log = None
+        if truth_log is not None:
+            self._log = open(truth_log, "w", buffering=1)  # line-buffered: a killed firmware keeps its rows
+            cols = [f"h_C{i + 1}_mm" for i in range(self.n)] + [f"p_C{i + 1}_kpa" for i in range(self.n)]
+            self._log.write(",".join(["dt_ms", "mode", "t_s", *cols]) + "\n")
+
+    @property
+    def t(self) -> float:
+        """The rig's time, s: the time of its newest sample."""
+        return float(self.rig.t)
+
+    def __call__(self, u: np.ndarray, dt: float) -> np.ndarray:
+        """Run the rig one period under ``u`` (3, n) (``dt``, s, only logged); its pressures, Pa."""
+        self.rig.write(u)
+        p = np.asarray(self.rig.read().p, dtype=float)
+        if self._log is not None:
+            tr = self.rig.truth()
+            h, pt = np.atleast_1d(tr["h"]), np.atleast_1d(tr["p"])
+            vals = [f"{to_ms(dt):.3f}", self.mode(), f"{self.t:.4f}",
+                    *(f"{to_mm(x):.4f}" for x in h), *(f"{to_kpa(x):.4f}" for x in pt)]
+            self._log.write(",".join(vals) + "\n")
+        return p
+
+    def close(self) -> None:
+        """Close the truth log (idempotent)."""
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+
+
 class FakeFirmware:
     """The microcontroller of an ``n``-chamber rig, speaking protocol ``version`` on a pty.
 
     n : chambers. sample_period : s between P lines. plant : ``plant(u (3, n), dt s) -> p (n,) Pa``
-    (default :class:`FirstOrderPlant`). heartbeat_period : s between HB lines. host_timeout : s of
+    (default :class:`FirstOrderPlant`), its samples stamped with ``plant.t`` (s) when it has one. heartbeat_period : s between HB lines. host_timeout : s of
     host silence after which it goes safe. link : optional symlink path kept pointing at its pty.
 
     ``pty_path`` is the current pty's device path. State for tests: ``mode`` (``RUN``/``SAFE``),
@@ -255,7 +313,9 @@ class FakeFirmware:
                 self.held, self.held_seq = self.u.copy(), self.u_seq  # for the period that starts now
                 if self._master is None or not self._session:
                     continue
-                t_us = int((now - self._t0) * 1e6)
+                # a plant with its own clock (a simulated rig) is sampled at its time; else the firmware's
+                t_plant = getattr(self.plant, "t", None)
+                t_us = int(round(t_plant * 1e6)) if t_plant is not None else int((now - self._t0) * 1e6)
                 self._tx("P", t_us, ended_on, *("NA" if not np.isfinite(x) else int(round(x)) for x in self.p))
                 if self.send_heartbeats and now - last_hb >= self.heartbeat_period:
                     self._tx("HB", self.mode)
@@ -328,20 +388,47 @@ def open_fake_rig(n: int = 1, sample_period: float = 0.01, plant: Plant | None =
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run a fake firmware until Ctrl-C, printing the port to open; exit code 2 on bad flags."""
+    """Run a fake firmware until Ctrl-C or SIGTERM, printing the port to open; exit code 2 on bad
+    flags or a bad configuration (one line naming it)."""
     ap = argparse.ArgumentParser(prog="python -m hbma_ctrl.app.daemon.firmware",
                                  description="A fake HBMA rig firmware on a pseudo-terminal.")
-    ap.add_argument("--n", type=int, default=1, help="chambers, 1..16")
-    ap.add_argument("--period-ms", type=float, default=10.0, help="sample period, ms, 1..1000")
+    ap.add_argument("--n", type=int, default=None, help="chambers, 1..16 (default 1, or the config's)")
+    ap.add_argument("--period-ms", type=float, default=None,
+                    help="sample period, ms, 1..1000 (default 10, or the config's)")
+    ap.add_argument("--config", default=None,
+                    help="a daemon CONFIG.toml: the plant is its simulated (mismatched) rig, as --rig sim")
+    ap.add_argument("--truth-log", default=None, help="with --config: CSV of the rig's true state per period")
     ap.add_argument("--link", default=None, help="also keep this symlink pointing at the pty")
     a = ap.parse_args(argv)
-    if not 1 <= a.n <= 16:
-        print(f"error: --n = {a.n}: must be 1..16 chambers", file=sys.stderr)
+    plant: RigPlant | None = None
+    if a.config is not None:
+        try:
+            plant = _config_plant(a.config, a.truth_log)
+        except (ValueError, OSError) as exc:
+            print(f"error: --config {a.config}: {exc}", file=sys.stderr)
+            return 2
+        for flag, given, own in (("--n", a.n, plant.n), ("--period-ms", a.period_ms, to_ms(plant.period))):
+            if given is not None and abs(given - own) > 1e-9:
+                print(f"error: {flag} = {given:g}: the config's rig has {own:g}; leave {flag} out with --config",
+                      file=sys.stderr)
+                plant.close()
+                return 2
+        n, period = plant.n, plant.period
+    elif a.truth_log is not None:
+        print("error: --truth-log: needs --config (the first-order plant has no truth to log)", file=sys.stderr)
         return 2
-    if not 1.0 <= a.period_ms <= 1000.0:
-        print(f"error: --period-ms = {a.period_ms:g}: must be 1..1000 ms", file=sys.stderr)
+    else:
+        n = 1 if a.n is None else a.n
+        period = ms(10.0 if a.period_ms is None else a.period_ms)
+    if not 1 <= n <= 16:
+        print(f"error: --n = {n}: must be 1..16 chambers", file=sys.stderr)
         return 2
-    fw = FakeFirmware(a.n, ms(a.period_ms), link=a.link)
+    if not 1.0 <= to_ms(period) <= 1000.0:
+        print(f"error: --period-ms = {to_ms(period):g}: must be 1..1000 ms", file=sys.stderr)
+        return 2
+    fw = FakeFirmware(n, period, plant, link=a.link)
+    if plant is not None:
+        plant.mode = lambda: fw.mode
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill also removes the link
     print(fw.port, flush=True)
     try:
@@ -351,7 +438,23 @@ def main(argv: list[str] | None = None) -> int:
         pass
     finally:
         fw.close()
+        if plant is not None:
+            plant.close()
     return 0
+
+
+def _config_plant(path: str, truth_log: str | None) -> RigPlant:
+    """The simulated rig of a daemon configuration as a plant (ValueError on a bad file)."""
+    # imported here: the protocol alone (tests, a bare firmware) needs none of the model stack
+    from hbma_ctrl.app.daemon.build import make_sim_rig
+    from hbma_ctrl.app.daemon.config import load_config
+
+    cfg = load_config(path, {"--rig": "sim"})
+    if cfg.faults:
+        # link faults have no meaning inside the firmware; sensor and actuator faults are the sim's
+        raise ValueError("[[daemon.fault]]: faults are injected by --rig sim; the fake firmware runs the "
+                         "rig without them (remove the tables)")
+    return RigPlant(make_sim_rig(cfg), truth_log)
 
 
 if __name__ == "__main__":

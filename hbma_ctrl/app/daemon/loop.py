@@ -167,6 +167,7 @@ class DaemonLoop:
         self.wall_s = 0.0
         self._miss_run = 0
         self._t_origin: float | None = None
+        self._ticked = False  # the runner has ticked on a sample
         self._steal_before: float | None = None
         self._parts_seen = None  # the controller step whose overrun was last checked (_overrun_within_period)
         self._ru_before = None
@@ -256,8 +257,14 @@ class DaemonLoop:
         r = self.rig.read()
         p = np.asarray(r.p, dtype=float).reshape(self.n)
         self.readings_p = p
+        fresh = np.asarray(r.fresh, dtype=bool)
+        waiting = fresh.size == self.n and not fresh.any()  # no new sample since the last period
         if r.t is None:
-            self.t = k * self.period
+            # a rig without time stamps is timed by the loop's periods; a link that has not sent its
+            # first sample yet leaves the clock at 0, where its first sample starts the schedule (a
+            # clock moved on by the wait would hold the first samples' stamps back to one time)
+            if self._ticked or not waiting:
+                self.t = k * self.period
         else:
             # the rig's clock starts at its own boot: the scenario's schedule starts at the first reading
             if self._t_origin is None:
@@ -281,13 +288,16 @@ class DaemonLoop:
             # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
             self._write(safe_u(self.n))
             return
-        fresh = np.asarray(r.fresh, dtype=bool)
-        if self.steps > 0 and fresh.size == self.n and not fresh.any():
+        if waiting:
             # no new sample since the last period (the rig's clock has not moved): the estimator would
-            # count one reading twice at one time; the command stands (rewritten: the link's heartbeat)
-            self.repeated_samples += 1
+            # count one reading twice at one time; the command stands (rewritten: the link's heartbeat).
+            # Before the rig's first sample there is nothing to tick on either: a tick then (a dropout at
+            # t = 0) and another on the first sample (whose stamp is the clock's origin, t = 0 again)
+            # would give the runner two ticks at one time
+            self.repeated_samples += int(self._ticked)
             self._write(self.u_last)
             return
+        self._ticked = True
         self._steal_before = _steal_ms()
         self._ru_before = _thread_usage()
         self._gc_before = self.gc.mark() if self.gc is not None else (0, 0.0)
