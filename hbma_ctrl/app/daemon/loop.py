@@ -260,9 +260,8 @@ class DaemonLoop:
         fresh = np.asarray(r.fresh, dtype=bool)
         waiting = fresh.size == self.n and not fresh.any()  # no new sample since the last period
         if r.t is None:
-            # a rig without time stamps is timed by the loop's periods; a link that has not sent its
-            # first sample yet leaves the clock at 0, where its first sample starts the schedule (a
-            # clock moved on by the wait would hold the first samples' stamps back to one time)
+            # a rig without time stamps is timed by the loop's periods; before its first sample the
+            # clock stays at 0 (the periods spent waiting for it are no rig time anything happened in)
             if self._ticked or not waiting:
                 self.t = k * self.period
         else:
