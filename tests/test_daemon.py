@@ -933,7 +933,7 @@ def test_pause_probe_sees_a_stall_and_places_it_on_the_slow_tick_it_overlaps(tmp
     import sys
     from datetime import datetime, timezone
 
-    from hbma_ctrl.app.bench_soak import PauseProbe, pauses_at_ticks
+    from hbma_ctrl.app.bench_soak import PauseProbe, pauses_at_ticks, read_events
 
     old = sys.getswitchinterval()
     probe = PauseProbe().start()
@@ -954,5 +954,45 @@ def test_pause_probe_sees_a_stall_and_places_it_on_the_slow_tick_it_overlaps(tmp
         "t_s,wall_utc,kind,cause\n"
         f'10.0000,{stamp(w0)},slow_tick,"cpu 20.0 ms, wall 20.0 ms (estimator 0.2 ms)"\n'
         f'70.0000,{stamp(w0 + 60)},slow_tick,"cpu 12.0 ms, wall 12.0 ms (estimator 0.2 ms)"\n')
-    got = pauses_at_ticks(tmp_path, [(w0 - 0.005, 0.018), (w0 + 30.0, 0.040)])
+    got = pauses_at_ticks(read_events(tmp_path)[1], [(w0 - 0.005, 0.018), (w0 + 30.0, 0.040)])
     assert got == {"10.0000": pytest.approx(18.0), "70.0000": 0.0}
+
+
+def test_a_tick_is_the_machines_when_the_witness_pause_inside_it_covers_its_excess_or_the_replay_says_so(tmp_path):
+    """judge_ticks: a tick over the 10 ms period is put down to the machine only when a witness gap
+    overlaps the tick itself by at least the tick's time over the period (the witness's 1 ms sleep
+    and the log stamps' tolerance taken off), or when the replay ran it from the same state within
+    the period; a short pause, one beside the tick, or none leaves it the daemon's, and the verdict
+    fails on it."""
+    from datetime import datetime, timezone
+
+    from hbma_ctrl.app.bench_soak import judge_ticks, read_events, soak_verdicts
+
+    w0 = 1_800_000_000.0
+    stamp = lambda w: datetime.fromtimestamp(w, timezone.utc).isoformat(timespec="milliseconds")  # noqa: E731
+    rows = [(10.0, 0.0, 26.1), (20.0, 100.0, 30.0), (30.0, 200.0, 14.0), (40.0, 300.0, 20.0), (50.0, 400.0, 9.5)]
+    (tmp_path / "events.csv").write_text("t_s,wall_utc,kind,cause\n" + "".join(
+        f'{t:.4f},{stamp(w0 + dw)},slow_tick,"cpu {c:.1f} ms, wall {c:.1f} ms (estimator 0.2 ms)"\n'
+        for t, dw, c in rows))
+    gaps = [(w0 - 0.003, 0.0214),  # inside the 26.1 ms tick: 18.4 ms of pause counted >= 16.1 ms over
+            (w0 + 100.0, 0.015),  # inside the 30 ms tick, but 12 ms < 20 ms over
+            (w0 + 299.95, 0.040)]  # 50 ms before the 20 ms tick ended: beside it
+    ticks = judge_ticks(read_events(tmp_path)[1], gaps, 0.010, 20.0)
+    assert [t["t_s"] for t in ticks] == [10.0, 20.0, 30.0, 40.0]  # 9.5 ms is within the period
+    assert [t["machine_by"] for t in ticks] == [["witness"], [], [], []]
+    assert ticks[0]["machine_pause_ms"] == pytest.approx(18.4, abs=0.6)
+    assert ticks[0]["excess_ms"] == pytest.approx(16.1)
+    assert ticks[1]["machine_pause_ms"] == pytest.approx(12.0, abs=0.6)
+    assert ticks[2]["machine_pause_ms"] == ticks[3]["machine_pause_ms"] == 0.0
+    stats = {"steps_over_period": 4}
+    assert soak_verdicts(stats, ticks)["no_tick_over_period"] is False
+    # the replay explains the other three: same state, within the period
+    replayed = [{"t_s": t, "replay_cpu_ms": 1.5, "same_state": True, "first_difference": "",
+                 "overrun_not_forced": False, "machine": True} for t in (20.0, 30.0, 40.0)]
+    ticks = judge_ticks(read_events(tmp_path)[1], gaps, 0.010, 20.0, replayed)
+    assert [t["machine_by"] for t in ticks] == [["witness"], ["replay"], ["replay"], ["replay"]]
+    assert soak_verdicts(stats, ticks)["no_tick_over_period"] is True
+    # a replay that did not reach the run's state explains nothing
+    replayed[0].update(same_state=False, machine=False)
+    ticks = judge_ticks(read_events(tmp_path)[1], gaps, 0.010, 20.0, replayed)
+    assert not ticks[1]["machine"] and soak_verdicts(stats, ticks)["no_tick_over_period"] is False

@@ -20,9 +20,14 @@ a rig / Measured"):
   whose computation takes less than the period there was the machine's, not the daemon's work (on
   this virtual machine the tick thread's CPU clock ran 10-28 ms over ticks that take 1.5 ms, with
   no preemption, no host steal the guest could see, no page fault and no garbage collection, at
-  random places in the tick). Such ticks are listed in ``ticks_over_period`` (the run's and the
-  replay's CPU time) and counted in ``ticks_over_period_machine``; the verdict fails on any tick
-  the replay repeats or cannot replay;
+  random places in the tick). The second judge is a witness outside the daemon (:class:`PauseProbe`:
+  a thread of the bench's own process that sleeps 1 ms at a time): when the machine stops, every
+  process stops, and the witness wakes late. A tick is the machine's when the witness's pause
+  overlaps it by at least the tick's excess over the period (:func:`judge_ticks`: without that pause
+  the tick would have been within the period), or when the replay says so. Each tick over the period
+  is listed in ``ticks_over_period`` (the run's CPU and wall time, the overlapping pause, the
+  replay's CPU time and state, and ``machine_by``: which judges found it the machine's) and counted
+  in ``ticks_over_period_machine``; the verdict fails on any tick neither judge explains;
 - ``pressure_limit_held``: the highest reading at or under the controller's pressure limit;
 - ``rss_growth_under_10mb``: resident memory grew by less than 10 MB;
 - ``safe_exit``: the safe command was written at the end.
@@ -53,7 +58,7 @@ from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.outputs import run_dir
 
 __all__ = ["run_soak", "soak_verdicts", "random_target", "replay_ticks", "RSS_GROWTH_MAX_MB", "PauseProbe",
-           "pauses_at_ticks"]
+           "pauses_at_ticks", "read_events", "judge_ticks"]
 
 #: the soak's memory criterion, MB
 RSS_GROWTH_MAX_MB = 10.0
@@ -80,7 +85,8 @@ def random_target(rng: random.Random, n_layers: int, n_chambers: int) -> dict:
 
 def soak_verdicts(stats: dict, ticks: list | None = None) -> dict:
     """The soak's criteria (module doc) from a daemon_stats.json dict: {name: bool}. ``ticks``: the
-    ticks over the period re-timed by :func:`replay_ticks` (None: not replayed, every one counts)."""
+    ticks over the period as judged by :func:`judge_ticks` or :func:`replay_ticks`, each with its
+    ``machine`` (None: not judged, every one counts)."""
     rss0, rss1 = stats.get("rss_mb_start"), stats.get("rss_mb_end")
     pmax, plim = stats.get("max_pressure_kpa"), stats.get("pressure_limit_kpa")
     over = stats.get("steps_over_period")
@@ -147,47 +153,100 @@ class PauseProbe:
         return sorted(sorted(self.gaps, key=lambda g: -g[1])[:self.cap])
 
 
-def pauses_at_ticks(daemon_dir: Path, gaps: list, slack: float = 0.02) -> dict:
-    """For each slow tick of a run (``events.csv``: its wall clock when logged, just after the tick,
-    and its wall time): the longest probe gap overlapping [logged - wall time - slack, logged + slack],
-    ms (0: none). {rig t s string: ms}."""
+#: the witness's sleep between wake-ups, s: a gap is this sleep plus the pause
+PROBE_SLEEP_S = 0.001
+#: how far the logged end of a tick may be from its real end, s (the log's ms stamps and the time
+#: it takes to write the event)
+_STAMP_TOL_S = 0.002
+
+
+def read_events(daemon_dir: Path) -> tuple[list, list]:
+    """A daemon run's events.csv, read once: the setpoints applied [(rig t s, the applied dict)] and
+    its slow ticks and NMPC overruns within the period, a dict each: ``t_s`` (rig time), ``key``
+    (the rig time as logged), ``kind``, ``cpu_ms``, ``wall_ms``, ``end_utc`` (the wall clock, epoch
+    s, when it was logged just after the tick; None if unreadable), ``status`` (the NMPC's, or None)
+    and ``rho_updates`` (OSQP's, or None)."""
     from datetime import datetime
 
-    out: dict = {}
-    path = daemon_dir / "events.csv"
-    if not path.exists():
-        return out
-    with open(path, newline="") as fh:
-        for row in csv.DictReader(fh):
-            if row["kind"] != "slow_tick":
-                continue
-            m = _SLOW_CPU.match(row["cause"])
-            try:
-                end = datetime.fromisoformat(row["wall_utc"]).timestamp()
-            except ValueError:
-                continue
-            start = end - (float(m.group(2)) * 1e-3 if m else 0.0) - slack
-            best = max((g for w, g in gaps if w - g < end + slack and w > start), default=0.0)
-            out[row["t_s"]] = best * 1e3
-    return out
-
-
-def _run_events(daemon_dir: Path) -> tuple[list, list]:
-    """From a daemon run's events.csv: the setpoints applied [(rig t s, the applied dict)] and its
-    slow ticks and its NMPC overruns within the period [(rig t s, cpu ms, wall ms, NMPC status or
-    None, OSQP rho updates or None)]."""
-    setpoints, slow = [], []
+    setpoints, ticks = [], []
     with open(daemon_dir / "events.csv", newline="") as fh:
         for row in csv.DictReader(fh):
             if row["kind"] == "setpoint":
                 setpoints.append((float(row["t_s"]), ast.literal_eval(row["cause"])))
             elif row["kind"] in ("slow_tick", "nmpc_overrun"):
                 m = _SLOW_CPU.match(row["cause"])
-                if m:
-                    st, rho = _NMPC_STATUS.search(row["cause"]), _NMPC_RHO.search(row["cause"])
-                    slow.append((float(row["t_s"]), float(m.group(1)), float(m.group(2)),
-                                 st.group(1) if st else None, int(rho.group(1)) if rho else None))
-    return setpoints, slow
+                if not m:
+                    continue
+                try:
+                    end = datetime.fromisoformat(row["wall_utc"]).timestamp()
+                except ValueError:
+                    end = None
+                st, rho = _NMPC_STATUS.search(row["cause"]), _NMPC_RHO.search(row["cause"])
+                ticks.append({"t_s": float(row["t_s"]), "key": row["t_s"], "kind": row["kind"],
+                              "cpu_ms": float(m.group(1)), "wall_ms": float(m.group(2)), "end_utc": end,
+                              "status": st.group(1) if st else None,
+                              "rho_updates": int(rho.group(1)) if rho else None})
+    return setpoints, ticks
+
+
+def over_period(ticks: list, period: float, speed: float) -> list:
+    """The ticks of :func:`read_events` the run counted over the period ``period`` (s): by their
+    thread's CPU time when accelerated (``speed`` > 1), by wall time otherwise."""
+    return [t for t in ticks if (t["cpu_ms"] if speed > 1.0 else t["wall_ms"]) > period * 1e3]
+
+
+def _overlap(gaps: list, tick: dict, slack: float) -> float:
+    """The longest overlap, s, of a witness gap [wake-up - gap, wake-up] with the tick's wall window
+    [end - wall time - slack, end + slack] (0: none)."""
+    end = tick["end_utc"]
+    if end is None:
+        return 0.0
+    a, b = end - tick["wall_ms"] * 1e-3 - slack, end + slack
+    return max((min(w, b) - max(w - g, a) for w, g in gaps), default=0.0)
+
+
+def pauses_at_ticks(ticks: list, gaps: list, slack: float = 0.02) -> dict:
+    """For each tick of :func:`read_events` that was logged as slow: the longest witness gap
+    overlapping [logged - wall time - slack, logged + slack], ms (0: none). {rig t s as logged: ms}."""
+    out: dict = {}
+    for t in ticks:
+        if t["kind"] != "slow_tick":
+            continue
+        best = 0.0
+        if t["end_utc"] is not None:
+            a, b = t["end_utc"] - t["wall_ms"] * 1e-3 - slack, t["end_utc"] + slack
+            best = max((g for w, g in gaps if w - g < b and w > a), default=0.0)
+        out[t["key"]] = best * 1e3
+    return out
+
+
+def judge_ticks(ticks: list, gaps: list, period: float, speed: float, replayed: list | None = None) -> list:
+    """Each tick the run counted over the period (``ticks`` from :func:`read_events`), judged (module
+    doc): ``t_s``, ``cpu_ms``, ``wall_ms``, ``excess_ms`` (its time over the period, the time that
+    counted), ``machine_pause_ms`` (how long the witness's ``gaps`` [(wake-up, epoch s; gap, s)] show
+    the machine stopped within the tick: the overlap less the witness's own sleep and the stamps'
+    tolerance, so never more than the pause), ``replay_cpu_ms``, ``same_state``,
+    ``first_difference``, ``overrun_not_forced`` (from ``replayed``, :func:`replay_ticks`'s result,
+    None where not replayed), ``machine_by`` (["witness"] when the pause covers the excess,
+    ["replay"] when the replay ran the same state within the period) and ``machine``."""
+    by_t = {f"{r['t_s']:.4f}": r for r in (replayed or [])}
+    out = []
+    for t in over_period(ticks, period, speed):
+        spent = t["cpu_ms"] if speed > 1.0 else t["wall_ms"]
+        excess = spent - period * 1e3
+        # the tolerance widens the window on each side; a gap that sticks out on one side gains at most
+        # one tolerance from it (one that spans both is longer than the whole tick)
+        pause = max(0.0, _overlap(gaps, t, _STAMP_TOL_S) - PROBE_SLEEP_S - _STAMP_TOL_S) * 1e3
+        r = by_t.get(f"{t['t_s']:.4f}")
+        by = (["witness"] if pause >= excess else []) + (["replay"] if r is not None and r["machine"] else [])
+        out.append({"t_s": t["t_s"], "cpu_ms": t["cpu_ms"], "wall_ms": t["wall_ms"], "excess_ms": excess,
+                    "machine_pause_ms": pause,
+                    "replay_cpu_ms": None if r is None else r["replay_cpu_ms"],
+                    "same_state": None if r is None else r["same_state"],
+                    "first_difference": None if r is None else r["first_difference"],
+                    "overrun_not_forced": None if r is None else r["overrun_not_forced"],
+                    "machine_by": by, "machine": bool(by)})
+    return out
 
 
 def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho_updates: int | None):
@@ -262,12 +321,11 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
 
     cfg = load_config(config, {"--rig": "sim", "--speed": float(speed)})
     period = cfg.period
-    setpoints, events = _run_events(daemon_dir)
-    # the ticks the run counted over the period: by CPU time when accelerated, by wall time otherwise
-    slow = [s[:3] for s in events if (s[1] if speed > 1.0 else s[2]) > period * 1e3]
+    setpoints, events = read_events(daemon_dir)
+    slow = [(e["t_s"], e["cpu_ms"], e["wall_ms"]) for e in over_period(events, period, speed)]
     if not slow:
         return []
-    outcome = {f"{s[0]:.4f}": s[3:] for s in events}
+    outcome = {f"{e['t_s']:.4f}": (e["status"], e["rho_updates"]) for e in events}
     runner = build_runner(cfg)
     rig = make_rig(cfg, runner)
     state = DaemonState()
@@ -347,8 +405,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
 def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: float, seed: int,
              overwrite: bool = False, argv: list | None = None, echo=print, replay: bool = True) -> dict:
     """Run the soak (module doc) into ``out``; returns soak.json's content. Times in s of rig time.
-    ``replay``: re-time the ticks over the period (:func:`replay_ticks`; without it each one fails the
-    verdict)."""
+    ``replay``: re-time the ticks over the period in a lockstep replay (:func:`replay_ticks`) when the
+    witness leaves one unexplained; without it only the witness judges them."""
     rng = random.Random(seed)
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
@@ -380,10 +438,15 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
             tail = err_path.read_text().strip().splitlines()[-1:] or ["(no output)"]
             raise ValueError(f"the daemon ended (exit {rc}) without daemon_stats.json: {tail[0]}")
         stats = json.loads(stats_path.read_text())
-        ticks = None
-        if replay and stats.get("steps_over_period"):
-            echo(f"soak: {stats['steps_over_period']} ticks over the period; re-timing them in a lockstep replay")
-            ticks = replay_ticks(config, tmp / "daemon", speed, echo)
+        period = 1.0 / float(stats["rate_hz"])
+        events = read_events(tmp / "daemon")[1]
+        ticks = judge_ticks(events, gaps, period, speed)
+        unexplained = sum(1 for t in ticks if not t["machine"])
+        if replay and unexplained:
+            # the replay takes about as long as the run: only when the witness leaves a tick unexplained
+            echo(f"soak: {len(ticks)} ticks over the period, {unexplained} not inside a machine pause; "
+                 "re-timing them in a lockstep replay")
+            ticks = judge_ticks(events, gaps, period, speed, replay_ticks(config, tmp / "daemon", speed, echo))
         verdicts = soak_verdicts(stats, ticks)
         with open(tmp / "setpoints.csv", "w", newline="") as f:
             w = csv.writer(f)
@@ -394,10 +457,10 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
                   "seed": seed, "daemon_exit_code": rc, "setpoints_sent": len(sent),
                   "setpoints_accepted": sum(1 for s in sent if s["status"] == 200),
                   "verdicts": verdicts, "passed": all(verdicts.values()),
-                  "ticks_over_period": ticks, "ticks_over_period_machine":
-                      None if ticks is None else sum(1 for t in ticks if t["machine"]),
+                  "ticks_over_period": ticks,
+                  "ticks_over_period_machine": sum(1 for t in ticks if t["machine"]),
                   # an independent witness: the bench's own 1 ms sleeper woke late at the same moment
-                  "slow_tick_machine_pause_ms": pauses_at_ticks(tmp / "daemon", gaps),
+                  "slow_tick_machine_pause_ms": pauses_at_ticks(events, gaps),
                   "machine_pauses": {"over_5ms": len(gaps), "over_10ms": sum(1 for _, g in gaps if g > 0.01),
                                      "max_ms": max((g for _, g in gaps), default=0.0) * 1e3,
                                      "longest": [[time.strftime("%H:%M:%S", time.gmtime(w)) + f"{w % 1:.3f}"[1:],

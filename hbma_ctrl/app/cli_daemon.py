@@ -178,9 +178,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_soak"),
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
         replay: Annotated[bool, typer.Option("--replay/--no-replay",
-                                             help="re-time ticks over the period in a lockstep replay of the "
-                                                  "run (same setpoints, same state): one the replay does not "
-                                                  "repeat is the machine's")] = True,
+                                             help="when a tick over the period is not inside a machine pause "
+                                                  "the bench's witness saw, re-time it in a lockstep replay of "
+                                                  "the run (same setpoints, same state): one the replay does "
+                                                  "not repeat is the machine's")] = True,
     ) -> None:
         """The daemon on the simulated rig for a long run, setpoints sent through its API: faults, tick
         times, pressure limit, memory (soak.json)."""
@@ -195,8 +196,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                    f"{res['setpoints_accepted']}/{res['setpoints_sent']} setpoints accepted, tick median "
                    f"{st.get('tick_ms_median') or float('nan'):.2f} / p99 {st.get('tick_ms_p99') or float('nan'):.2f} ms, "
                    f"{st.get('steps_over_period')} over the period"
-                   + (f" ({res['ticks_over_period_machine']} not repeated by the replay: the machine's)"
-                      if res.get("ticks_over_period") else "") + ", max pressure "
+                   + (f" ({res['ticks_over_period_machine']} the machine's: inside a pause of the whole "
+                      "machine or not repeated by the replay)" if res.get("ticks_over_period") else "")
+                   + ", max pressure "
                    f"{st.get('max_pressure_kpa') or float('nan'):.1f} / {st.get('pressure_limit_kpa')} kPa, RSS "
                    f"{st.get('rss_mb_start') or float('nan'):.1f} -> {st.get('rss_mb_end') or float('nan'):.1f} MB, faults {st.get('faults') or 'none'}: "
                    f"{'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'soak.json'}")
