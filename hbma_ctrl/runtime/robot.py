@@ -280,6 +280,22 @@ class RobotLoop:
         self._k += 1
         return a, o
 
+    def prime(self, readings_pa: np.ndarray | None = None) -> None:
+        """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
+        set up and solved once at rest (the bank's starting estimate from ``readings_pa``, Pa, default
+        0; the targets of t = 0 moved as the first tick would move them) and the valve inputs' pump map
+        loaded. The first tick then fits its period (without it: 9-12 ms of a 10 ms period here)."""
+        p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
+        a = np.zeros(self.n)
+        if self.is_mpc:
+            s = self.bank.settings
+            x0 = np.clip(p / self.model.actuator.p_env, -0.04, None)
+            href = self._slew(self.chamber_targets(0.0), np.zeros(self.n), self._period)
+            a_max = np.where(self.supervisor.vent_mask(href), 0.0, 1.0)
+            self.controller.prime(x0, np.full(self.n, s.b0), self.loads, href, a_max=a_max)
+            a = np.full(self.n, 0.5 / self.n)  # a supply on every chamber: the throttle's whole path
+        self.model.valve_inputs(a, np.zeros(self.n), p, throttle=self.throttle)
+
     def _slew(self, goal: np.ndarray, h_est: np.ndarray, dt: float) -> np.ndarray:
         """The targets this tick (m): ``goal`` when there is no rate; otherwise the last ones (the
         estimated heights at the first tick) moved towards it by at most target_rate x dt, a zero

@@ -373,6 +373,9 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     rate = DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate
     loop = RobotLoop(d, model, bank, ctrl, sup, s.targets, cautious=(0.75, 0.03, 0.3) if s.controller == "mpc" else None,
                      target_rate=rate)
+    # the solver's set-up and first solve before the first deadline, not in it (a replay of a run
+    # builds its runner here too, so it starts as the run did)
+    loop.prime()
     return RobotRunner(loop, rp.pressure_limit, model.h_table_max)
 
 
