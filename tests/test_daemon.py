@@ -175,6 +175,37 @@ def test_robot_daemon_runs_at_100_hz_under_its_pressure_limit():
     assert all(ly["centre"] > 1e-3 for ly in st["layers"])
 
 
+def test_robot_runner_is_primed_its_solver_set_up_and_its_loop_as_if_it_had_not_run():
+    """The robot runner is built with its NMPC's OSQP set up and solved once at rest (start-up work a
+    first tick would otherwise do within its period); every state a step changes is as a fresh
+    controller's, the bank has not stepped, and over 30 ticks the primed loop commands what an
+    unprimed one commands to OSQP's tolerance (its first solve starts elsewhere) and estimates the
+    same heights to a micrometre."""
+    from controllers.robot_mpc import RobotNMPC
+
+    cfg = load_config(ROBOT, {"--rig": "sim", "--speed": 20.0})
+    primed, cold = build_runner(cfg), build_runner(cfg)
+    ctrl = primed.loop.controller
+    fresh = RobotNMPC(ctrl.model, ctrl.n, ctrl.s)
+    assert ctrl._solver is not None and fresh._solver is None
+    for name in RobotNMPC._STEP_STATE:
+        a, b = getattr(ctrl, name), getattr(fresh, name)
+        assert type(a) is type(b), name
+        if isinstance(a, np.ndarray):
+            assert np.array_equal(a, b), name
+        elif not isinstance(a, dict):
+            assert a == b, name
+    assert primed.loop.bank.X is None and primed.loop._k == 0 and primed.loop.href is None
+    cold.loop.controller._solver = None  # as built before priming
+    rig = make_rig(cfg, primed)
+    for k in range(30):
+        r = rig.read()
+        ua, ub = primed.tick(k * cfg.period, r.p), cold.tick(k * cfg.period, r.p)
+        rig.write(ua)
+        assert np.abs(ua - ub).max() < 0.05, k
+        assert np.abs(primed.loop.estimate["h"] - cold.loop.estimate["h"]).max() < 1e-6, k
+
+
 def test_robot_layer_setpoint_is_clipped_by_the_kinematics():
     cfg, runner, rig, loop = _loop(ROBOT, duration_s=0.05)
     ok = runner.check_setpoint({"layers": {1: (0.007, math.radians(10), 0.0)}})
