@@ -1028,3 +1028,26 @@ def test_a_tick_is_the_machines_when_the_witness_pause_inside_it_covers_its_exce
     replayed[0].update(same_state=False, machine=False)
     ticks = judge_ticks(read_events(tmp_path)[1], gaps, 0.010, 20.0, replayed)
     assert not ticks[1]["machine"] and soak_verdicts(stats, ticks)["no_tick_over_period"] is False
+
+
+def test_bench_soak_writes_its_verdict_the_witness_record_and_the_setpoints(tmp_path):
+    """`hbma-ctrl bench soak` end to end, short: the daemon as its own process, setpoints through its
+    API, and soak.json (verdicts, the judged ticks, whether a replay ran), setpoints.csv and the
+    witness's machine_pauses.csv in the results directory; the exit code says whether it passed."""
+    out = tmp_path / "soak"
+    res = cli.invoke(app, ["bench", "soak", str(CHAMBER), "--duration-s", "4", "--speed", "4",
+                           "--setpoint-every-s", "1", "--no-replay", "--out", str(out)])
+    assert res.exit_code in (0, 1), res.output
+    soak = json.loads((out / "soak.json").read_text())
+    assert set(soak["verdicts"]) == {"no_fault", "no_tick_over_period", "pressure_limit_held",
+                                     "rss_growth_under_10mb", "safe_exit"}
+    assert res.exit_code == (0 if soak["passed"] else 1)
+    assert soak["replay"] == "off" and soak["setpoints_sent"] >= 2
+    assert soak["setpoints_accepted"] == soak["setpoints_sent"]
+    assert soak["daemon_stats"]["end_reason"] == "duration" and soak["daemon_stats"]["safe_exit"]
+    for t in soak["ticks_over_period"]:
+        assert set(t) >= {"t_s", "cpu_ms", "excess_ms", "machine_pause_ms", "machine_by", "machine"}
+    rows = (out / "setpoints.csv").read_text().splitlines()
+    assert rows[0] == "rig_t_s,status,body,reply" and len(rows) == soak["setpoints_sent"] + 1
+    assert (out / "machine_pauses.csv").read_text().splitlines()[0] == "wake_utc_epoch_s,gap_ms"
+    assert (out / "daemon" / "daemon_stats.json").exists()

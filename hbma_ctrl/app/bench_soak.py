@@ -32,9 +32,11 @@ a rig / Measured"):
 - ``rss_growth_under_10mb``: resident memory grew by less than 10 MB;
 - ``safe_exit``: the safe command was written at the end.
 
-Writes ``soak.json`` (the verdicts, the daemon's stats, the setpoints sent and their replies) and
-``setpoints.csv`` beside the daemon's own results (``daemon/``), through
-:func:`hbma_ctrl.app.outputs.run_dir`.
+Writes ``soak.json`` (the verdicts, the daemon's stats, the setpoints sent and their replies; ``replay``:
+"not needed", "off", "unfinished" while it runs or when it was stopped, "done"), ``setpoints.csv`` and
+``machine_pauses.csv`` (every witness gap over 5 ms) beside the daemon's own results (``daemon/``),
+through :func:`hbma_ctrl.app.outputs.run_dir`; soak.json is written before a replay starts, so a
+stopped replay leaves the witness's verdict.
 """
 
 from __future__ import annotations
@@ -442,31 +444,45 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
         events = read_events(tmp / "daemon")[1]
         ticks = judge_ticks(events, gaps, period, speed)
         unexplained = sum(1 for t in ticks if not t["machine"])
-        if replay and unexplained:
-            # the replay takes about as long as the run: only when the witness leaves a tick unexplained
-            echo(f"soak: {len(ticks)} ticks over the period, {unexplained} not inside a machine pause; "
-                 "re-timing them in a lockstep replay")
-            ticks = judge_ticks(events, gaps, period, speed, replay_ticks(config, tmp / "daemon", speed, echo))
-        verdicts = soak_verdicts(stats, ticks)
         with open(tmp / "setpoints.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["rig_t_s", "status", "body", "reply"])
             for s in sent:
                 w.writerow([f"{s['rig_t_s']:.2f}", s["status"], json.dumps(s["body"]), json.dumps(s["reply"])])
-        result = {"config": str(config), "duration_s": duration_s, "speed": speed, "setpoint_every_s": every_s,
-                  "seed": seed, "daemon_exit_code": rc, "setpoints_sent": len(sent),
-                  "setpoints_accepted": sum(1 for s in sent if s["status"] == 200),
-                  "verdicts": verdicts, "passed": all(verdicts.values()),
-                  "ticks_over_period": ticks,
-                  "ticks_over_period_machine": sum(1 for t in ticks if t["machine"]),
-                  # an independent witness: the bench's own 1 ms sleeper woke late at the same moment
-                  "slow_tick_machine_pause_ms": pauses_at_ticks(events, gaps),
-                  "machine_pauses": {"over_5ms": len(gaps), "over_10ms": sum(1 for _, g in gaps if g > 0.01),
-                                     "max_ms": max((g for _, g in gaps), default=0.0) * 1e3,
-                                     "longest": [[time.strftime("%H:%M:%S", time.gmtime(w)) + f"{w % 1:.3f}"[1:],
-                                                  g * 1e3] for w, g in sorted(gaps, key=lambda x: -x[1])[:50]]},
-                  "daemon_stats": stats}
-        (tmp / "soak.json").write_text(json.dumps(json_safe(result), indent=1) + "\n")
+        # the witness's record, whole: it exists only in this process until written
+        with open(tmp / "machine_pauses.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["wake_utc_epoch_s", "gap_ms"])
+            w.writerows([f"{t:.4f}", f"{g * 1e3:.2f}"] for t, g in gaps)
+        head = {"config": str(config), "duration_s": duration_s, "speed": speed, "setpoint_every_s": every_s,
+                "seed": seed, "daemon_exit_code": rc, "setpoints_sent": len(sent),
+                "setpoints_accepted": sum(1 for s in sent if s["status"] == 200)}
+        tail = {  # an independent witness: the bench's own 1 ms sleeper woke late at the same moment
+                "slow_tick_machine_pause_ms": pauses_at_ticks(events, gaps),
+                "machine_pauses": {"over_5ms": len(gaps), "over_10ms": sum(1 for _, g in gaps if g > 0.01),
+                                   "max_ms": max((g for _, g in gaps), default=0.0) * 1e3,
+                                   "longest": [[time.strftime("%H:%M:%S", time.gmtime(w)) + f"{w % 1:.3f}"[1:],
+                                                g * 1e3] for w, g in sorted(gaps, key=lambda x: -x[1])[:50]]},
+                "daemon_stats": stats}
+
+        def write(ticks: list, replay_state: str) -> dict:
+            verdicts = soak_verdicts(stats, ticks)
+            res = {**head, "verdicts": verdicts, "passed": all(verdicts.values()), "replay": replay_state,
+                   "ticks_over_period": ticks, "ticks_over_period_machine": sum(1 for t in ticks if t["machine"]),
+                   **tail}
+            (tmp / "soak.json").write_text(json.dumps(json_safe(res), indent=1) + "\n")
+            return res
+
+        if replay and unexplained:
+            # written first: the replay takes about as long as the run, and a stopped replay must not
+            # lose the run's verdict (the witness's alone, "replay": "unfinished")
+            write(ticks, "unfinished")
+            echo(f"soak: {len(ticks)} ticks over the period, {unexplained} not inside a machine pause; "
+                 "re-timing them in a lockstep replay (soak.json has the witness's verdict meanwhile)")
+            ticks = judge_ticks(events, gaps, period, speed, replay_ticks(config, tmp / "daemon", speed, echo))
+            result = write(ticks, "done")
+        else:
+            result = write(ticks, "not needed" if replay else "off")
     return result
 
 
