@@ -147,23 +147,30 @@ def forward_kinematics(design: RobotDesign, heights) -> RobotPose:
     """Chamber heights (N x 3 or 3N, m) -> every body's frame and the tip frame (see module doc)."""
     h = _heights_array(design, heights)
     N = design.n_layers
-    frames = np.zeros((N + 1, 4, 4))
-    frames[0] = np.eye(4)
-    cen, bend, dirn = np.zeros(N), np.zeros(N), np.zeros(N)
-    contacts = np.zeros((N, 3, 3))
     xy = design.chamber_xy()
     L = design.layer_thickness
-    Ainv = np.linalg.inv(_plane_matrix(design))
+    # every layer's plane at once (the daemon's load sharing calls this each period)
+    cen, a, b = np.linalg.solve(_plane_matrix(design), h.T)
+    t = np.hypot(a, b)
+    level = t < 1e-12  # level (to rounding): direction 0 by convention
+    bend = np.where(level, 0.0, np.arctan(t))
+    dirn = np.where(level, 0.0, np.arctan2(-b, -a))
+    # twist-free rotations mapping z onto (sin t cos psi, sin t sin psi, cos t) (:func:`_rot`)
+    sp, cp, st, vt = np.sin(dirn), np.cos(dirn), np.sin(bend), 1.0 - np.cos(bend)
+    K = np.zeros((N, 3, 3))
+    K[:, 0, 2], K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = cp, sp, -cp, -sp
+    Rk = np.eye(3) + st[:, None, None] * K + vt[:, None, None] * (K @ K)
+    T = np.zeros((N, 4, 4))
+    T[:, :3, :3], T[:, 2, 3], T[:, 3, 3] = Rk, L + cen, 1.0
+    frames = np.zeros((N + 1, 4, 4))
+    frames[0] = np.eye(4)
     for k in range(N):
-        cen[k], bend[k], dirn[k] = _plane_of(Ainv, h[k])
-        T = np.eye(4)
-        T[:3, :3] = _rot(bend[k], dirn[k])
-        T[:3, 3] = [0.0, 0.0, L + cen[k]]
-        frames[k + 1] = frames[k] @ T
-        local = np.column_stack([xy, L + h[k], np.ones(3)])
-        contacts[k] = (frames[k] @ local.T).T[:, :3]
+        frames[k + 1] = frames[k] @ T[k]
+    # contact points: (x, y, L + h) of each layer's chambers in its lower body's frame k
+    local = np.concatenate([np.broadcast_to(xy, (N, 3, 2)), (L + h)[:, :, None]], axis=2)
+    contacts = np.einsum("kij,kmj->kmi", frames[:N, :3, :3], local) + frames[:N, None, :3, 3]
     tip = frames[N].copy()
-    tip[:3, 3] = frames[N][:3, :3] @ np.array([0, 0, L]) + frames[N][:3, 3]
+    tip[:3, 3] = frames[N][:3, 2] * L + frames[N][:3, 3]
     return RobotPose(frames, tip, h, cen, bend, dirn, contacts)
 
 

@@ -85,26 +85,24 @@ def load_sharing(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_mo
     if not (np.all(np.isfinite(f_tip)) and np.all(np.isfinite(m_tip))):
         raise ValueError("tip_force and tip_moment must be finite")
     N, L = design.n_layers, design.layer_thickness
-    gvec = np.array([0.0, 0.0, -design.g])
-    masses = design.body_masses
+    # every layer at once (the daemon computes this each period; a loop over the layers cost 0.45 ms)
+    frames = pose.frames[1:]
+    R, O = frames[:, :3, :3], frames[:, :3, 3]  # frame k + 1 of each chamber layer k, (N, 3, 3), (N, 3)
+    w = design.body_masses[:, None] * np.array([0.0, 0.0, -design.g])  # weights of bodies 1..N, (N, 3)
     # centres of mass of bodies 1..N (mid-thickness on their axis)
-    com = np.array([pose.frames[j][:3, :3] @ [0, 0, L / 2] + pose.frames[j][:3, 3] for j in range(1, N + 1)])
-    tip = pose.tip_position
-    forces = np.zeros((N, 3))
-    shear = np.zeros((N, 2))
-    twist = np.zeros(N)
-    for k in range(N):
-        Fk = pose.frames[k + 1]
-        R, O = Fk[:3, :3], Fk[:3, 3]
-        above = slice(k, N)  # bodies k+1..N are rows k..N-1 of com
-        f = (masses[above, None] * gvec).sum(0) + f_tip
-        M = _cross(com[above] - O, masses[above, None] * gvec).sum(0) + _cross(tip - O, f_tip) + m_tip
-        fl, Ml = R.T @ f, R.T @ M
-        pts = (R.T @ (pose.contacts[k] - O).T).T  # contact points in frame k+1 (z ~ 0)
-        A = np.vstack([np.ones(3), pts[:, 1], pts[:, 0]])
-        forces[k] = np.linalg.solve(A, np.array([-fl[2], -Ml[0], Ml[1]]))
-        shear[k] = -fl[:2]
-        twist[k] = -Ml[2]
+    com = R[:, :, 2] * (L / 2) + O
+    # bodies k+1..N are rows k..N-1: suffix sums of the weights and of their moments about the origin
+    f = np.cumsum(w[::-1], axis=0)[::-1] + f_tip
+    m0 = np.cumsum(_cross(com, w)[::-1], axis=0)[::-1]
+    # about O_k: sum (com_j - O_k) x w_j + (tip - O_k) x f_tip + m_tip
+    M = m0 - _cross(O, f) + _cross(pose.tip_position, f_tip) + m_tip
+    fl, Ml = np.einsum("kji,kj->ki", R, f), np.einsum("kji,kj->ki", R, M)
+    pts = np.einsum("kji,kmj->kmi", R, pose.contacts - O[:, None, :])  # contacts in frame k+1 (z ~ 0)
+    A = np.stack([np.ones((N, 3)), pts[:, :, 1], pts[:, :, 0]], axis=1)
+    rhs = np.stack([-fl[:, 2], -Ml[:, 0], Ml[:, 1]], axis=1)
+    forces = np.linalg.solve(A, rhs[:, :, None])[:, :, 0]
+    shear = -fl[:, :2]
+    twist = -Ml[:, 2]
     return LoadShare(forces, shear, twist, pose)
 
 
