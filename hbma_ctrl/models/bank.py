@@ -119,8 +119,9 @@ class PumpMap:
     def at_pressures(self, p: np.ndarray) -> np.ndarray:
         """(n, n_speeds): the flow at every grid speed at each pressure p (n,)."""
         pg = self.pressures
-        pc = np.clip(np.asarray(p, dtype=float), pg[0], pg[-1])
-        j = np.clip(np.searchsorted(pg, pc, side="right") - 1, 0, pg.size - 2)
+        # np.minimum/np.maximum: np.clip's wrapper costs more than the interpolation here
+        pc = np.minimum(np.maximum(np.asarray(p, dtype=float), pg[0]), pg[-1])
+        j = np.minimum(np.maximum(np.searchsorted(pg, pc, side="right") - 1, 0), pg.size - 2)
         f = (pc - pg[j]) / (pg[j + 1] - pg[j])
         return np.maximum(self.q[:, j].T * (1 - f)[:, None] + self.q[:, j + 1].T * f[:, None], 0.0)
 
@@ -131,8 +132,8 @@ class PumpMap:
     def flow_on(self, Q: np.ndarray, speed) -> np.ndarray:
         """Flow at speeds (n,) on rows Q (n, n_speeds) of the map already taken at the pressures."""
         sg = self.speeds
-        sp = np.broadcast_to(np.clip(np.asarray(speed, dtype=float), sg[0], sg[-1]), (Q.shape[0],))
-        k = np.clip(np.searchsorted(sg, sp, side="right") - 1, 0, sg.size - 2)
+        sp = np.broadcast_to(np.minimum(np.maximum(np.asarray(speed, dtype=float), sg[0]), sg[-1]), (Q.shape[0],))
+        k = np.minimum(np.maximum(np.searchsorted(sg, sp, side="right") - 1, 0), sg.size - 2)
         f = (sp - sg[k]) / (sg[k + 1] - sg[k])
         r = np.arange(Q.shape[0])
         return Q[r, k] * (1 - f) + Q[r, k + 1] * f
@@ -140,23 +141,22 @@ class PumpMap:
     def speed_for(self, q_target, p) -> np.ndarray:
         """The lowest speed (n,) 0-1 whose flow at p (n,) Pa reaches q_target (n,) kg/s (1 where even
         full speed does not; 0 for no flow)."""
-        Q = np.maximum.accumulate(self.at_pressures(np.atleast_1d(p)), axis=1)  # non-decreasing in speed
-        qt = np.broadcast_to(np.asarray(q_target, dtype=float), (Q.shape[0],))
-        out = np.ones(Q.shape[0])
-        sg = self.speeds
-        for i in range(Q.shape[0]):
-            if qt[i] <= 0.0:
-                out[i] = 0.0
-                continue
-            k = int(np.searchsorted(Q[i], qt[i], side="left"))
-            if k >= sg.size:
-                continue
-            if k == 0:
-                out[i] = sg[0]
-                continue
-            q0, q1 = Q[i, k - 1], Q[i, k]
-            out[i] = sg[k - 1] + (sg[k] - sg[k - 1]) * (qt[i] - q0) / max(q1 - q0, 1e-300)
-        return np.clip(out, 0.0, 1.0)
+        return self.speed_on(self.at_pressures(np.atleast_1d(p)), q_target)
+
+    def speed_on(self, Q: np.ndarray, q_target) -> np.ndarray:
+        """:meth:`speed_for` on rows Q (n, n_speeds) of the map already taken at the pressures."""
+        Q = np.maximum.accumulate(Q, axis=1)  # non-decreasing in speed
+        n, sg = Q.shape[0], self.speeds
+        qt = np.broadcast_to(np.asarray(q_target, dtype=float), (n,))
+        # every row at once (the daemon throttles every chamber each period): the first grid speed whose
+        # flow reaches the target (a row's searchsorted, left), a NaN target past the grid as there
+        k = np.where(np.isnan(qt), sg.size, (Q < qt[:, None]).sum(axis=1))
+        kk = np.minimum(np.maximum(k, 1), sg.size - 1)
+        r = np.arange(n)
+        q0, q1 = Q[r, kk - 1], Q[r, kk]
+        out = sg[kk - 1] + (sg[kk] - sg[kk - 1]) * (qt - q0) / np.maximum(q1 - q0, 1e-300)
+        out = np.where(k >= sg.size, 1.0, np.where(k == 0, sg[0], out))
+        return np.minimum(np.maximum(np.where(qt <= 0.0, 0.0, out), 0.0), 1.0)
 
 
 #: the throttled pump keeps its stall pressure at least this far above the chamber's, Pa: near stall
@@ -181,13 +181,14 @@ def throttled_inputs(a: np.ndarray, o: np.ndarray, p: np.ndarray, topology: str,
     draw = a > 0
     if not draw.any():
         return U
-    q1 = pump.flow(np.ones(a.size), p)
+    Qp = pump.at_pressures(p)  # the map at the chambers' pressures, once
+    q1 = pump.flow_on(Qp, np.ones(a.size))
     feedable = draw & (q1 > 0)
     # the lowest speed that still delivers at p + margin (1 where none does: full speed)
     s_min = pump.speed_for(np.full(a.size, 1e-12), p + stall_margin) if stall_margin > 0 else np.zeros(a.size)
     if topology == "per_chamber":
-        sp = np.maximum(pump.speed_for(a * q1, p), s_min)
-        q_s = pump.flow(sp, p)
+        sp = np.maximum(pump.speed_on(Qp, a * q1), s_min)
+        q_s = pump.flow_on(Qp, sp)
         U[0] = np.where(feedable, sp, U[0])
         U[1] = np.where(feedable, np.minimum(a * q1 / np.maximum(q_s, 1e-300), 1.0), a)
         return U
@@ -197,13 +198,13 @@ def throttled_inputs(a: np.ndarray, o: np.ndarray, p: np.ndarray, topology: str,
     idx = np.nonzero(feedable)[0]
     target = a[idx] * q1[idx]
 
-    Q = pump.at_pressures(p[idx])
+    Q = Qp[idx]
 
     def duties(s: float) -> np.ndarray:
         q = pump.flow_on(Q, np.full(idx.size, s))
         return np.where(q > 0, target / np.maximum(q, 1e-300), np.inf)
 
-    lo = float(max(pump.speed_for(target, p[idx]).max(), s_min[idx].max()))  # each inlet at most fully open
+    lo = float(max(pump.speed_on(Q, target).max(), s_min[idx].max()))  # each inlet at most fully open
     if not np.isfinite(duties(lo)).all() or duties(lo).sum() > 1.0:
         hi = 1.0
         for _ in range(16):  # the duties' sum falls with the speed: bisection on [lo, 1]
