@@ -332,9 +332,12 @@ def test_accelerated_the_watchdog_judges_the_ticks_work_not_its_wall_time():
     # every tick over the period is an event saying where its time went
     assert len(slow) == 30 and all(c.startswith("cpu ") and ", wall " in c for c in slow), slow[:2]
     assert all(float(c.split()[1]) < 10.0 for c in slow[1:]), slow
+    # over the period by wall time only: the events do not say they were counted
+    assert sum("counted over the period" in c for c in slow) == idle["steps_over_period"]
     busy, slow = run(busy=True)
     assert busy["faults"] == {"overrun": 1} and busy["steps_over_period"] >= 10
     assert len(slow) == busy["steps_over_period"]
+    assert all("counted over the period" in c for c in slow), slow[:2]
 
 
 def test_the_loop_freezes_start_up_objects_and_names_the_collectors_share_of_a_slow_tick():
@@ -1051,3 +1054,22 @@ def test_bench_soak_writes_its_verdict_the_witness_record_and_the_setpoints(tmp_
     assert rows[0] == "rig_t_s,status,body,reply" and len(rows) == soak["setpoints_sent"] + 1
     assert (out / "machine_pauses.csv").read_text().splitlines()[0] == "wake_utc_epoch_s,gap_ms"
     assert (out / "daemon" / "daemon_stats.json").exists()
+
+
+def test_the_soak_judges_the_ticks_the_daemon_says_it_counted_not_its_rounded_times(tmp_path):
+    """A slow_tick event says whether steps_over_period counted its tick: a tick printed at the period
+    itself is judged when counted and left out when not (the replay's and the witness's list then
+    holds exactly the ticks the verdict subtracts from); a log without the words is judged by its
+    printed times."""
+    from hbma_ctrl.app.bench_soak import judge_ticks, read_events
+    from hbma_ctrl.app.daemon.loop import COUNTED
+
+    rows = [(1.0, f"cpu 10.000 ms, wall 10.100 ms, {COUNTED} (estimator 0.2 ms)"),
+            (2.0, "cpu 10.000 ms, wall 10.400 ms (estimator 0.2 ms)"),
+            (3.0, f"cpu 12.500 ms, wall 12.600 ms, {COUNTED}; thread user 12.4 ms")]
+    (tmp_path / "events.csv").write_text("t_s,wall_utc,kind,cause\n" + "".join(
+        f'{t:.4f},2026-12-04T05:30:00.383+00:00,slow_tick,"{c}"\n' for t, c in rows))
+    assert [t["t_s"] for t in judge_ticks(read_events(tmp_path)[1], [], 0.010, 20.0)] == [1.0, 3.0]
+    (tmp_path / "events.csv").write_text("t_s,wall_utc,kind,cause\n" + "".join(
+        f'{t:.4f},2026-12-04T05:30:00.383+00:00,slow_tick,"{c.replace(", " + COUNTED, "")}"\n' for t, c in rows))
+    assert [t["t_s"] for t in judge_ticks(read_events(tmp_path)[1], [], 0.010, 20.0)] == [3.0]

@@ -56,6 +56,7 @@ from pathlib import Path
 
 import httpx
 
+from hbma_ctrl.app.daemon.loop import COUNTED
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.outputs import run_dir
 
@@ -166,8 +167,9 @@ def read_events(daemon_dir: Path) -> tuple[list, list]:
     """A daemon run's events.csv, read once: the setpoints applied [(rig t s, the applied dict)] and
     its slow ticks and NMPC overruns within the period, a dict each: ``t_s`` (rig time), ``key``
     (the rig time as logged), ``kind``, ``cpu_ms``, ``wall_ms``, ``end_utc`` (the wall clock, epoch
-    s, when it was logged just after the tick; None if unreadable), ``status`` (the NMPC's, or None)
-    and ``rho_updates`` (OSQP's, or None)."""
+    s, when it was logged just after the tick; None if unreadable), ``counted`` (the event says
+    steps_over_period counts it), ``status`` (the NMPC's, or None) and ``rho_updates`` (OSQP's, or
+    None)."""
     from datetime import datetime
 
     setpoints, ticks = [], []
@@ -186,14 +188,18 @@ def read_events(daemon_dir: Path) -> tuple[list, list]:
                 st, rho = _NMPC_STATUS.search(row["cause"]), _NMPC_RHO.search(row["cause"])
                 ticks.append({"t_s": float(row["t_s"]), "key": row["t_s"], "kind": row["kind"],
                               "cpu_ms": float(m.group(1)), "wall_ms": float(m.group(2)), "end_utc": end,
+                              "counted": COUNTED in row["cause"],
                               "status": st.group(1) if st else None,
                               "rho_updates": int(rho.group(1)) if rho else None})
     return setpoints, ticks
 
 
 def over_period(ticks: list, period: float, speed: float) -> list:
-    """The ticks of :func:`read_events` the run counted over the period ``period`` (s): by their
-    thread's CPU time when accelerated (``speed`` > 1), by wall time otherwise."""
+    """The ticks of :func:`read_events` the run counted over the period ``period`` (s): those its
+    events say it counted; in a log from before the events said so, by their thread's CPU time when
+    accelerated (``speed`` > 1), by wall time otherwise, as printed (to 0.1 ms then)."""
+    if any(t["counted"] for t in ticks):
+        return [t for t in ticks if t["counted"]]
     return [t for t in ticks if (t["cpu_ms"] if speed > 1.0 else t["wall_ms"]) > period * 1e3]
 
 

@@ -53,9 +53,11 @@ from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.core import units as U
 from hbma_ctrl.runtime.stats import StepStats
 
-__all__ = ["DaemonLoop", "rss_mb", "STATS_KEYS"]
+__all__ = ["DaemonLoop", "rss_mb", "STATS_KEYS", "COUNTED"]
 
 #: keys of daemon_stats.json
+#: the words a slow_tick event carries when steps_over_period counts its tick
+COUNTED = "counted over the period"
 #: a loop ticking on a streaming rig's samples wakes this fraction of a period before one is due
 SAMPLE_LEAD = 0.2
 
@@ -338,7 +340,12 @@ class DaemonLoop:
         garbage collector's pauses during it (any thread's: a collection holds the interpreter)."""
         loop = getattr(self.runner, "loop", None)
         parts = getattr(loop, "last_timing", None)
-        text = f"cpu {self._last_tick_cpu * 1e3:.1f} ms, wall {self._last_tick * 1e3:.1f} ms"
+        text = f"cpu {self._last_tick_cpu * 1e3:.3f} ms, wall {self._last_tick * 1e3:.3f} ms"
+        # whether steps_over_period counts it, said outright: a reader comparing the printed times with
+        # the period would misjudge a tick within the printing's rounding of it
+        over = self._last_tick_cpu > self.period if self.speed > 1.0 else self._last_tick > self.period
+        if kind == "slow_tick" and over:
+            text += f", {COUNTED}"
         if parts is not None and len(parts) == 3:
             text += f" (estimator {parts[1] * 1e3:.1f} ms, controller {parts[2] * 1e3:.1f} ms)"
         steal = _steal_ms()
