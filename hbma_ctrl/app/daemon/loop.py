@@ -55,12 +55,12 @@ from hbma_ctrl.runtime.stats import StepStats
 
 __all__ = ["DaemonLoop", "rss_mb", "STATS_KEYS", "COUNTED"]
 
-#: keys of daemon_stats.json
 #: the words a slow_tick event carries when steps_over_period counts its tick
 COUNTED = "counted over the period"
 #: a loop ticking on a streaming rig's samples wakes this fraction of a period before one is due
 SAMPLE_LEAD = 0.2
 
+#: keys of daemon_stats.json
 STATS_KEYS = ("rate_hz", "steps", "deadline_misses", "step_ms_median", "step_ms_p99", "jitter_ms_p99",
               "max_pressure_kpa", "pressure_limit_kpa", "faults", "safe_exit", "rss_mb_start", "rss_mb_end")
 
