@@ -442,3 +442,33 @@ def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true
     ratios = np.array(ratios)
     assert partial > 20  # the pump was throttled
     assert abs(ratios.mean() - 1.0) < 0.005 and ratios.std() < 0.02
+
+
+def test_pump_speed_for_is_the_lowest_speed_on_the_maps_envelope_reaching_each_target():
+    """PumpMap.speed_for, every row at once, against the definition row by row: on the map at each
+    pressure, made non-decreasing in speed, the first grid speed whose flow reaches the target,
+    interpolated from the one below; 0 for no flow, 1 where full speed falls short (NaN included),
+    the lowest grid speed where even it exceeds the target. Over random pressures (past both ends of
+    the map) and targets (negative to beyond full flow)."""
+    from hbma_ctrl.models.bank import PumpMap
+
+    pump = PumpMap(Pneumatics().csv_path)
+    sg = pump.speeds
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        p = rng.uniform(-20e3, 1.5 * pump.pressures[-1], 9)
+        qt = rng.uniform(-0.2, 1.3, 9) * pump.q.max()
+        qt[rng.integers(9)] = np.nan
+        qt[rng.integers(9)] = 0.0
+        Q = np.maximum.accumulate(pump.at_pressures(p), axis=1)
+        want = np.ones(9)
+        for i in range(9):
+            if qt[i] <= 0.0:
+                want[i] = 0.0
+                continue
+            k = int(np.searchsorted(Q[i], qt[i], side="left"))
+            if k >= sg.size:
+                continue
+            want[i] = sg[0] if k == 0 else \
+                sg[k - 1] + (sg[k] - sg[k - 1]) * (qt[i] - Q[i, k - 1]) / max(Q[i, k] - Q[i, k - 1], 1e-300)
+        assert np.array_equal(pump.speed_for(qt, p), np.clip(want, 0.0, 1.0))
