@@ -48,11 +48,13 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.design import RobotDesign
 
 
-def _rot(theta: float, psi: float) -> np.ndarray:
-    """Twist-free rotation mapping z onto (sin t cos psi, sin t sin psi, cos t)."""
-    u = np.array([-math.sin(psi), math.cos(psi), 0.0])
-    K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
-    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K
+def _rots(theta: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """Twist-free rotations (n, 3, 3) mapping z onto (sin t cos psi, sin t sin psi, cos t), for bend
+    angles and directions (n,) rad: Rodrigues' formula about u = (-sin psi, cos psi, 0)."""
+    sp, cp = np.sin(psi), np.cos(psi)
+    K = np.zeros((theta.size, 3, 3))
+    K[:, 0, 2], K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = cp, sp, -cp, -sp
+    return np.eye(3) + np.sin(theta)[:, None, None] * K + (1.0 - np.cos(theta))[:, None, None] * (K @ K)
 
 
 def _plane_matrix(design: RobotDesign) -> np.ndarray:
@@ -66,12 +68,13 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
-def _plane_of(Ainv: np.ndarray, h: np.ndarray) -> tuple[float, float, float]:
-    c, a, b = Ainv @ h
-    t = math.hypot(a, b)
-    if t < 1e-12:  # level (to rounding): direction 0 by convention
-        return float(c), 0.0, 0.0
-    return float(c), math.atan(t), math.atan2(-b, -a)
+def _planes(design: RobotDesign, h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centre m, bend rad, direction rad), each (n,), of the planes through the contact points of
+    layers with chamber heights h (n, 3) m; a level plane (to rounding) has direction 0."""
+    cen, a, b = np.linalg.solve(_plane_matrix(design), h.T)
+    t = np.hypot(a, b)
+    level = t < 1e-12
+    return cen, np.where(level, 0.0, np.arctan(t)), np.where(level, 0.0, np.arctan2(-b, -a))
 
 
 def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
@@ -81,15 +84,16 @@ def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
     The centre height is the plane's height on the layer axis (= mean height for chambers at 120
     degrees). Zero bend has direction 0 by convention.
     """
-    return _plane_of(np.linalg.inv(_plane_matrix(design)), np.asarray(heights, dtype=float).reshape(3))
+    c, t, psi = _planes(design, np.asarray(heights, dtype=float).reshape(1, 3))
+    return float(c[0]), float(t[0]), float(psi[0])
 
 
 def layer_transform(design: RobotDesign, heights) -> np.ndarray:
     """4x4 transform from frame k to frame k + 1 for layer k's chamber heights (3,), m."""
-    c, theta, psi = layer_plane(design, heights)
+    c, theta, psi = _planes(design, np.asarray(heights, dtype=float).reshape(1, 3))
     T = np.eye(4)
-    T[:3, :3] = _rot(theta, psi)
-    T[:3, 3] = [0.0, 0.0, design.layer_thickness + c]
+    T[:3, :3] = _rots(theta, psi)[0]
+    T[:3, 3] = [0.0, 0.0, design.layer_thickness + c[0]]
     return T
 
 
@@ -150,18 +154,9 @@ def forward_kinematics(design: RobotDesign, heights) -> RobotPose:
     xy = design.chamber_xy()
     L = design.layer_thickness
     # every layer's plane at once (the daemon's load sharing calls this each period)
-    cen, a, b = np.linalg.solve(_plane_matrix(design), h.T)
-    t = np.hypot(a, b)
-    level = t < 1e-12  # level (to rounding): direction 0 by convention
-    bend = np.where(level, 0.0, np.arctan(t))
-    dirn = np.where(level, 0.0, np.arctan2(-b, -a))
-    # twist-free rotations mapping z onto (sin t cos psi, sin t sin psi, cos t) (:func:`_rot`)
-    sp, cp, st, vt = np.sin(dirn), np.cos(dirn), np.sin(bend), 1.0 - np.cos(bend)
-    K = np.zeros((N, 3, 3))
-    K[:, 0, 2], K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = cp, sp, -cp, -sp
-    Rk = np.eye(3) + st[:, None, None] * K + vt[:, None, None] * (K @ K)
+    cen, bend, dirn = _planes(design, h)
     T = np.zeros((N, 4, 4))
-    T[:, :3, :3], T[:, 2, 3], T[:, 3, 3] = Rk, L + cen, 1.0
+    T[:, :3, :3], T[:, 2, 3], T[:, 3, 3] = _rots(bend, dirn), L + cen, 1.0
     frames = np.zeros((N + 1, 4, 4))
     frames[0] = np.eye(4)
     for k in range(N):
