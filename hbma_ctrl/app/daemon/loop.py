@@ -321,6 +321,11 @@ class DaemonLoop:
             self.event(kind, cause)
         self._write(u)
 
+    def _tick_over_period(self) -> bool:
+        """The last tick counts as over the period (``steps_over_period``): by its thread's CPU time when
+        accelerated, by wall time in real time (module doc)."""
+        return self._last_tick_cpu > self.period if self.speed > 1.0 else self._last_tick > self.period
+
     def _overrun_within_period(self) -> None:
         """Log a controller overrun in a tick that stayed within the period (event ``nmpc_overrun``,
         the slow tick's report): the robot NMPC's budget is shorter than the period, so its fallback
@@ -343,8 +348,7 @@ class DaemonLoop:
         text = f"cpu {self._last_tick_cpu * 1e3:.3f} ms, wall {self._last_tick * 1e3:.3f} ms"
         # whether steps_over_period counts it, said outright: a reader comparing the printed times with
         # the period would misjudge a tick within the printing's rounding of it
-        over = self._last_tick_cpu > self.period if self.speed > 1.0 else self._last_tick > self.period
-        if kind == "slow_tick" and over:
+        if kind == "slow_tick" and self._tick_over_period():
             text += f", {COUNTED}"
         if parts is not None and len(parts) == 3:
             text += f" (estimator {parts[1] * 1e3:.1f} ms, controller {parts[2] * 1e3:.1f} ms)"
@@ -438,7 +442,7 @@ class DaemonLoop:
                 # runtime tick's work (its thread's CPU time) overruns the rig period, the budget a
                 # real rig would give it (the sim rig's write, which simulates the plant, is no work a
                 # real host would do; module doc)
-                over = self._last_tick_cpu > self.period if self.speed > 1.0 else self._last_tick > self.period
+                over = self._tick_over_period()
                 missed_last = (late if self.speed <= 1.0 else over) and not self._warming
                 self.over_budget += int(over and not self._warming)
                 self.over_wall += int(self._last_tick > self.period and not self._warming)
