@@ -253,13 +253,17 @@ class ChamberEKFBank:
             self.X = np.where(m[None, :], self.X, keep_X)
             self.P = np.where(m[None, :], self.P, keep_P)
             return
+        self.X = self.rest_state(p0)
+        self.P = np.repeat(self._prior_cov().reshape(16, 1), self.n, 1)
+
+    def rest_state(self, p0) -> np.ndarray:
+        """The state (4, n) the filters start from at rest with readings p0 (n,) Pa: x = p / p_env of a
+        flat membrane (a reading out of the physical range read as 0), the factors at their priors."""
         p0 = np.asarray(p0, dtype=float).reshape(self.n)
         lo, hi = self._bounds
         p0 = np.where(np.isfinite(p0) & (p0 >= lo) & (p0 <= hi), p0, 0.0)
-        s = self.settings
         x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
-        self.X = np.vstack([x0, np.full(self.n, s.b0), np.ones(self.n), np.ones(self.n)])
-        self.P = np.repeat(self._prior_cov().reshape(16, 1), self.n, 1)
+        return np.vstack([x0, np.full(self.n, self.settings.b0), np.ones(self.n), np.ones(self.n)])
 
     def step(self, z, w, W, steps: int = 1) -> dict:
         """One step after ``steps`` periods (see the class doc)."""

@@ -288,11 +288,10 @@ class RobotLoop:
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
         a = np.zeros(self.n)
         if self.is_mpc:
-            s = self.bank.settings
-            x0 = np.clip(p / self.model.actuator.p_env, -0.04, None)
+            x0, b, k, c = self.bank.rest_state(p)
             href = self._slew(self.chamber_targets(0.0), np.zeros(self.n), self._period)
             a_max = np.where(self.supervisor.vent_mask(href), 0.0, 1.0)
-            self.controller.prime(x0, np.full(self.n, s.b0), self.loads, href, a_max=a_max)
+            self.controller.prime(x0, b, self.loads, href, k, c, a_max)
             a = np.full(self.n, 0.5 / self.n)  # a supply on every chamber: the throttle's whole path
         self.model.valve_inputs(a, np.zeros(self.n), p, throttle=self.throttle)
 
