@@ -203,13 +203,19 @@ def over_period(ticks: list, period: float, speed: float) -> list:
     return [t for t in ticks if (t["cpu_ms"] if speed > 1.0 else t["wall_ms"]) > period * 1e3]
 
 
+def _window(tick: dict, slack: float) -> tuple[float, float] | None:
+    """A tick's wall window, epoch s: [logged - wall time - slack, logged + slack] (None: no stamp)."""
+    end = tick["end_utc"]
+    return None if end is None else (end - tick["wall_ms"] * 1e-3 - slack, end + slack)
+
+
 def _overlap(gaps: list, tick: dict, slack: float) -> float:
     """The longest overlap, s, of a witness gap [wake-up - gap, wake-up] with the tick's wall window
-    [end - wall time - slack, end + slack] (0: none)."""
-    end = tick["end_utc"]
-    if end is None:
+    (:func:`_window`; 0: none)."""
+    win = _window(tick, slack)
+    if win is None:
         return 0.0
-    a, b = end - tick["wall_ms"] * 1e-3 - slack, end + slack
+    a, b = win
     return max((min(w, b) - max(w - g, a) for w, g in gaps), default=0.0)
 
 
@@ -220,11 +226,9 @@ def pauses_at_ticks(ticks: list, gaps: list, slack: float = 0.02) -> dict:
     for t in ticks:
         if t["kind"] != "slow_tick":
             continue
-        best = 0.0
-        if t["end_utc"] is not None:
-            a, b = t["end_utc"] - t["wall_ms"] * 1e-3 - slack, t["end_utc"] + slack
-            best = max((g for w, g in gaps if w - g < b and w > a), default=0.0)
-        out[t["key"]] = best * 1e3
+        win = _window(t, slack)
+        out[t["key"]] = 0.0 if win is None else \
+            max((g for w, g in gaps if w - g < win[1] and w > win[0]), default=0.0) * 1e3
     return out
 
 
@@ -313,10 +317,11 @@ def _logged_rows(daemon_dir: Path, times: set) -> dict:
     return out
 
 
-def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> list[dict]:
+def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, events: tuple | None = None) -> list[dict]:
     """Re-time a daemon run's ticks over the period (module doc): the run again in lockstep on a virtual
     clock (same configuration, the setpoints of its events.csv applied at their rig times), up to its
-    last slow tick. Returns one dict per slow tick: ``t_s``, ``cpu_ms`` and ``wall_ms`` (the run's),
+    last slow tick. ``events``: :func:`read_events`'s result for the run when already read. Returns
+    one dict per slow tick: ``t_s``, ``cpu_ms`` and ``wall_ms`` (the run's),
     ``replay_cpu_ms``, ``same_state`` (the replay's readings and height estimates at that tick equal the
     run log's, as logged; else ``first_difference`` names the column and both values),
     ``overrun_not_forced`` (the run's NMPC overran at this tick in a way the replay cannot force, see
@@ -329,7 +334,7 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print) -> li
 
     cfg = load_config(config, {"--rig": "sim", "--speed": float(speed)})
     period = cfg.period
-    setpoints, events = read_events(daemon_dir)
+    setpoints, events = read_events(daemon_dir) if events is None else events
     slow = [(e["t_s"], e["cpu_ms"], e["wall_ms"]) for e in over_period(events, period, speed)]
     if not slow:
         return []
@@ -447,7 +452,8 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
             raise ValueError(f"the daemon ended (exit {rc}) without daemon_stats.json: {tail[0]}")
         stats = json.loads(stats_path.read_text())
         period = 1.0 / float(stats["rate_hz"])
-        events = read_events(tmp / "daemon")[1]
+        run_events = read_events(tmp / "daemon")
+        events = run_events[1]
         ticks = judge_ticks(events, gaps, period, speed)
         unexplained = sum(1 for t in ticks if not t["machine"])
         with open(tmp / "setpoints.csv", "w", newline="") as f:
@@ -485,7 +491,8 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
             write(ticks, "unfinished")
             echo(f"soak: {len(ticks)} ticks over the period, {unexplained} not inside a machine pause; "
                  "re-timing them in a lockstep replay (soak.json has the witness's verdict meanwhile)")
-            ticks = judge_ticks(events, gaps, period, speed, replay_ticks(config, tmp / "daemon", speed, echo))
+            replayed = replay_ticks(config, tmp / "daemon", speed, echo, events=run_events)
+            ticks = judge_ticks(events, gaps, period, speed, replayed)
             result = write(ticks, "done")
         else:
             result = write(ticks, "not needed" if replay else "off")
