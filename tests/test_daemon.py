@@ -472,6 +472,97 @@ def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path)
         assert r["same_state"] and r["machine"], (k, r)
 
 
+def _cut(k: int):
+    """A solve that OSQP's time limit cut and that still ended usable, made late: it runs k + 1 ADMM
+    iterations and reports k, as OSQP 1.x reports a cut (pinned by
+    ``test_osqp_reports_a_time_limit_cut_one_iteration_short``)."""
+    def maker(ctrl):
+        solver = ctrl._solver
+        real = type(solver).solve.__get__(solver)
+
+        def solve(*a, **kw):
+            solver.update_settings(max_iter=k + 1)
+            try:
+                res = real(*a, **kw)
+            finally:
+                solver.update_settings(max_iter=ctrl.s.max_iter)
+            res.info.iter = k
+            time.sleep(ctrl.s.budget * ctrl.s.sample_period)
+            return res
+        return solve
+    return maker
+
+
+def _natural_iterations(loop, t: float) -> int:
+    """OSQP's iterations at rig time ``t`` in a run where nothing was cut (its slow_tick event)."""
+    ev = next(e["cause"] for e in loop.events if e["kind"] == "slow_tick" and e["t_s"] == t)
+    return int(re.search(r"nmpc iterations (\d+)", ev).group(1))
+
+
+def test_soak_replay_stops_a_late_solve_where_osqps_time_limit_cut_the_runs(tmp_path, monkeypatch):
+    """A late solve that OSQP's time limit cut short but that still ended usable is the next step's
+    warm start: the replay stops its solve after the iterations the run's event reports (plus the one
+    OSQP leaves out of its count) and reaches the run's state at a slow tick later. Solving on, as a
+    replay without the event's iteration count does, parts from the run there."""
+    import hbma_ctrl.app.bench_soak as soak
+
+    free, _, marks0 = _robot_run_with_extras(tmp_path / "free", {}, {22, 30})
+    natural = _natural_iterations(free, marks0[22])
+    k = natural // 3
+    assert natural > k + 5, natural  # the cut changes the solution
+    loop, ctrl, marks = _robot_run_with_extras(tmp_path / "cut", {22: _cut(k)}, {22, 30})
+    events = {e["t_s"]: e["cause"] for e in loop.events if e["kind"] == "slow_tick"}
+    assert f"nmpc iterations {k}," in events[marks[22]], events[marks[22]]
+    assert re.search(r"nmpc status overrun \([0-9.]+ ms > [0-9.]+ ms\)$", events[marks[22]]), events
+    ticks = {t["t_s"]: t for t in soak.replay_ticks(ROBOT, tmp_path / "cut", 20.0, echo=lambda s: None)}
+    assert ticks[marks[30]]["same_state"] and ticks[marks[30]]["machine"], ticks
+    assert not ticks[marks[30]]["overrun_not_forced"]
+    # without the iteration count the replay solves on at the late tick and parts from the run
+    monkeypatch.setattr(soak, "_NMPC_ITER", re.compile(r"(?!x)x"))
+    blind = {t["t_s"]: t for t in soak.replay_ticks(ROBOT, tmp_path / "cut", 20.0, echo=lambda s: None)}
+    assert not blind[marks[30]]["same_state"], blind
+
+
+def test_osqp_reports_a_time_limit_cut_one_iteration_short():
+    """The replay's forced late solve relies on it: OSQP 1.x stops on its time limit after an
+    iteration's ADMM step and reports the iteration before; the iterate it returns is the one a solve
+    limited to the reported count + 1 iterations returns, exactly."""
+    import osqp
+    import scipy.sparse as sp
+
+    n, m = 400, 600
+    M = sp.random(n, n, 0.03, random_state=1)
+    P = (M @ M.T + sp.eye(n)).tocsc()
+    A = sp.random(m, n, 0.03, random_state=2).tocsc()
+    q = np.random.default_rng(0).normal(size=n)
+    kw = dict(verbose=False, eps_abs=1e-7, eps_rel=1e-7, polishing=False, adaptive_rho=True,
+              check_termination=5, scaling=1)
+
+    def warm(**extra):
+        s = osqp.OSQP()
+        s.setup(P, q, A, -np.ones(m), np.ones(m), **kw)
+        s.solve(raise_error=False)
+        s.update(q=1.1 * q)
+        s.update_settings(**extra)
+        return s
+
+    full = warm().solve(raise_error=False)
+    assert full.info.iter > 20, full.info.iter
+    limit = full.info.solve_time / 2
+    for _ in range(40):  # a limit that strikes mid-solve (the machine's speed decides where)
+        cut = warm(time_limit=limit).solve(raise_error=False)
+        if cut.info.status == "run time limit reached" and 0 < cut.info.iter < full.info.iter - 1:
+            break
+        limit *= 0.7 if cut.info.iter >= full.info.iter - 1 else 1.3
+    else:
+        pytest.fail(f"no time limit struck mid-solve (last: {cut.info.status}, {cut.info.iter} iterations)")
+    k = cut.info.iter
+    same = warm(max_iter=k + 1).solve(raise_error=False)
+    short = warm(max_iter=k).solve(raise_error=False)
+    assert np.array_equal(same.x, cut.x) and np.array_equal(same.y, cut.y)
+    assert not np.array_equal(short.x, cut.x)
+
+
 def test_nmpc_overrun_within_the_period_is_logged_and_the_replay_takes_it(tmp_path):
     """The robot NMPC's budget is shorter than the period: its time limit can strike in a tick that
     stays within the period. That tick is logged (``nmpc_overrun``, not ``slow_tick``), once, and the

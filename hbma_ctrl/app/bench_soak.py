@@ -107,6 +107,7 @@ _SLOW_CPU = re.compile(r"^cpu ([0-9.]+) ms, wall ([0-9.]+) ms")
 #: the robot NMPC's step status (the event's end) and its OSQP rho updates in a slow tick's event
 _NMPC_STATUS = re.compile(r"nmpc status (.*)$")
 _NMPC_RHO = re.compile(r"nmpc rho_updates (\d+)")
+_NMPC_ITER = re.compile(r"nmpc iterations (\d+)")
 _LATE = re.compile(r"^overrun \([0-9.]+ ms > [0-9.]+ ms\)$")
 
 
@@ -168,8 +169,8 @@ def read_events(daemon_dir: Path) -> tuple[list, list]:
     its slow ticks and NMPC overruns within the period, a dict each: ``t_s`` (rig time), ``key``
     (the rig time as logged), ``kind``, ``cpu_ms``, ``wall_ms``, ``end_utc`` (the wall clock, epoch
     s, when it was logged just after the tick; None if unreadable), ``counted`` (the event says
-    steps_over_period counts it), ``status`` (the NMPC's, or None) and ``rho_updates`` (OSQP's, or
-    None)."""
+    steps_over_period counts it), ``status`` (the NMPC's, or None), ``rho_updates`` and
+    ``iterations`` (OSQP's, as it reported them, or None)."""
     from datetime import datetime
 
     setpoints, ticks = [], []
@@ -186,11 +187,13 @@ def read_events(daemon_dir: Path) -> tuple[list, list]:
                 except ValueError:
                     end = None
                 st, rho = _NMPC_STATUS.search(row["cause"]), _NMPC_RHO.search(row["cause"])
+                its = _NMPC_ITER.search(row["cause"])
                 ticks.append({"t_s": float(row["t_s"]), "key": row["t_s"], "kind": row["kind"],
                               "cpu_ms": float(m.group(1)), "wall_ms": float(m.group(2)), "end_utc": end,
                               "counted": COUNTED in row["cause"],
                               "status": st.group(1) if st else None,
-                              "rho_updates": int(rho.group(1)) if rho else None})
+                              "rho_updates": int(rho.group(1)) if rho else None,
+                              "iterations": int(its.group(1)) if its else None})
     return setpoints, ticks
 
 
@@ -261,16 +264,24 @@ def judge_ticks(ticks: list, gaps: list, period: float, speed: float, replayed: 
     return out
 
 
-def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho_updates: int | None):
+def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho_updates: int | None,
+                    iterations: int | None = None, parted=None):
     """(context, forceable) for the replay's step at a tick where the run's robot NMPC overran: the same
     outcome forced (the replay's wall-time budget is lifted everywhere else, so only the run's
     overruns happen). OSQP's time limit ("overrun (run time limit reached)"): OSQP returns that
     status at once. The run's solution was then unusable whatever iterations it had done, and the
     next step warm-starts OSQP from the NMPC's last usable solution, so only a change of OSQP's rho
     (``rho_updates`` > 0) would carry over; that one is not forced. "overrun (X ms > Y ms)": the solve
-    is made late. Not forced, the replay stays on the run's path only if its own step decides the
-    same, which the state check tells. ``run_settings``: the NMPC's settings as the run had them;
-    ``replay_settings``: the same without the budget."""
+    is made late, and stopped where the run's stopped: OSQP's time limit can strike in a solve that
+    still ends usable (its approximate test passes: "solved inaccurate"), and that late plan is
+    the next step's warm start, so a replay that solved on would part from the run there. OSQP
+    reports such a cut one iteration short (it stops after the iteration's ADMM step, before that
+    iteration's bookkeeping: the iterate after k + 1 steps is reported as k; OSQP 1.x's
+    ``osqp_solve``, pinned by a test), so the replay's solve may run ``iterations`` + 1 steps: it
+    stops there, or earlier where the run's solve converged by itself. When the replay's solve does
+    not end on the run's iterations or rho updates, ``parted()`` is called: that outcome was not
+    reproduced. ``run_settings``: the NMPC's settings as the run had them; ``replay_settings``: the
+    same without the budget."""
     import contextlib
 
     if ctrl is None or not status or not status.startswith("overrun"):
@@ -283,7 +294,16 @@ def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho
         real = solver.solve
 
         def solve(*a, **k):
-            res = real(*a, **k)
+            if iterations is not None:
+                solver.update_settings(max_iter=min(iterations + 1, run_settings.max_iter))
+            try:
+                res = real(*a, **k)
+            finally:
+                solver.update_settings(max_iter=run_settings.max_iter)
+            if iterations is not None and parted is not None and (
+                    int(res.info.iter) not in (iterations, iterations + 1)
+                    or int(getattr(res.info, "rho_updates", 0)) != (rho_updates or 0)):
+                parted()
             time.sleep(run_settings.budget * run_settings.sample_period)  # past the budget, solved
             return res
     else:
@@ -324,8 +344,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
     one dict per slow tick: ``t_s``, ``cpu_ms`` and ``wall_ms`` (the run's),
     ``replay_cpu_ms``, ``same_state`` (the replay's readings and height estimates at that tick equal the
     run log's, as logged; else ``first_difference`` names the column and both values),
-    ``overrun_not_forced`` (the run's NMPC overran at this tick in a way the replay cannot force, see
-    :func:`_forced_outcome`), ``machine`` (same state and the replay's tick within the period)."""
+    ``overrun_not_forced`` (the run's NMPC overran at this tick or before it in a way the replay could
+    not reproduce, see :func:`_forced_outcome`), ``machine`` (same state and the replay's tick within the period)."""
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.config import load_config
     from hbma_ctrl.app.daemon.loop import DaemonLoop, _fmt
@@ -338,7 +358,7 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
     slow = [(e["t_s"], e["cpu_ms"], e["wall_ms"]) for e in over_period(events, period, speed)]
     if not slow:
         return []
-    outcome = {f"{e['t_s']:.4f}": (e["status"], e["rho_updates"]) for e in events}
+    outcome = {f"{e['t_s']:.4f}": (e["status"], e["rho_updates"], e["iterations"]) for e in events}
     runner = build_runner(cfg)
     rig = make_rig(cfg, runner)
     state = DaemonState()
@@ -379,7 +399,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
         # this period's rig time (the lockstep rig's clock is the period count)
         nxt = f"{k * period:.4f}"
         if nxt in outcome:
-            ctx, ok = _forced_outcome(ctrl, run_settings, replay_settings, *outcome[nxt])
+            ctx, ok = _forced_outcome(ctrl, run_settings, replay_settings, *outcome[nxt],
+                                      parted=lambda: unforced.add(nxt))
             if not ok:
                 unforced.add(nxt)
             with ctx:
@@ -410,7 +431,7 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
                          if row.get(col) != v), "")
         rc = None if r is None else r["cpu_ms"]
         out.append({"t_s": t, "cpu_ms": cpu, "wall_ms": wall, "replay_cpu_ms": rc, "same_state": not diff,
-                    "first_difference": diff, "overrun_not_forced": key in unforced,
+                    "first_difference": diff, "overrun_not_forced": any(float(u) <= t + 1e-9 for u in unforced),
                     "machine": bool(not diff and rc is not None and rc <= period * 1e3)})
     return out
 
