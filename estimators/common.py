@@ -14,7 +14,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from hbma_ctrl.core.params import check_range
-from hbma_ctrl.models.actuation import DELAY_MAX
+from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.chamber import STATE_SCALE
 
 __all__ = ["FilterSettings", "guard_cov", "classify_measurement", "physical_reading_bounds", "MEAS_OK",
@@ -206,8 +206,7 @@ class FilterSettings:
                 not 1 <= self.gate_reopen <= 1000:
             raise ValueError(f"{w}.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
         check_range(w, "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
-        check_range(w, "valve_delay", self.valve_delay, 0.0, DELAY_MAX, "s")
-        check_range(w, "sensor_delay", self.sensor_delay, 0.0, DELAY_MAX, "s")
+        check_delays(w, self.valve_delay, self.sensor_delay)
         if self.membrane not in ("cap", "exact"):
             raise ValueError(f"{w}.membrane = {self.membrane!r}: allowed cap, exact")
         if not isinstance(self.compile, bool):

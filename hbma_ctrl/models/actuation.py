@@ -26,10 +26,16 @@ import numpy as np
 
 from hbma_ctrl.core.params import check_range
 
-__all__ = ["CommandTiming", "acting_average"]
+__all__ = ["CommandTiming", "acting_average", "check_delays"]
 
 #: delays allowed, s: up to ten 10 ms periods (a slower valve or sensor is another rig)
 DELAY_MAX = 0.1
+
+
+def check_delays(where: str, valve_delay: float, sensor_delay: float) -> None:
+    """Refuse a valve or sensor delay (s) outside [0, DELAY_MAX], naming ``where`` (the section)."""
+    check_range(where, "valve_delay", valve_delay, 0.0, DELAY_MAX, "s")
+    check_range(where, "sensor_delay", sensor_delay, 0.0, DELAY_MAX, "s")
 
 
 def acting_average(history: list, u_new: np.ndarray, k: int, period: float, delay: float) -> np.ndarray:
@@ -74,8 +80,7 @@ class CommandTiming:
     """
 
     def __init__(self, period: float, valve_delay: float = 0.0, sensor_delay: float = 0.0):
-        check_range("estimator", "valve_delay", valve_delay, 0.0, DELAY_MAX, "s")
-        check_range("estimator", "sensor_delay", sensor_delay, 0.0, DELAY_MAX, "s")
+        check_delays("estimator", valve_delay, sensor_delay)
         self.period = float(period)
         self.speed_delay = float(sensor_delay)
         self.valve_delay = float(valve_delay) + float(sensor_delay)

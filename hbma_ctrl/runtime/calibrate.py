@@ -56,7 +56,7 @@ from scipy.optimize import least_squares
 
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.models.actuation import DELAY_MAX, CommandTiming
+from hbma_ctrl.models.actuation import CommandTiming, check_delays
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free
 from hbma_ctrl.sim.simulate import Plant
@@ -156,8 +156,7 @@ class CalibrationSettings:
             raise ValueError("calibration.prior_std must hold three sigmas (b, k, c)")
         for name, v in zip(FACTOR_NAMES, self.prior_std):
             check_range(w, f"prior_std[{name}]", v, 0.0, 10.0, lo_open=True)
-        check_range(w, "valve_delay", self.valve_delay, 0.0, DELAY_MAX, "s")
-        check_range(w, "sensor_delay", self.sensor_delay, 0.0, DELAY_MAX, "s")
+        check_delays(w, self.valve_delay, self.sensor_delay)
         if self.membrane not in ("cap", "exact"):
             raise ValueError(f"{w}.membrane = {self.membrane!r}: allowed cap, exact")
         check_range(w, "handover_std_floor", self.handover_std_floor, 0.0, 1.0)

@@ -23,6 +23,7 @@ from hbma_ctrl.app.schema.fields import (
 )
 from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
 from hbma_ctrl.core import units as U
+from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["EstimatorTable"]
@@ -52,8 +53,9 @@ class EstimatorTable(Table):
     load_prior: Literal["unknown", "nominal"] = choice("unknown", "learn the load or start at the nominal")
     load_prior_rel_std: float = num(0.1, 0.0, 10.0, "-", "relative sigma of the nominal load prior")
     membrane: Literal["cap", "exact"] = choice("cap", "the filter model's membrane law (README Model §9)")
-    valve_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves act this long after their command (datasheet)")
-    sensor_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the pressure sensor reads this long late")
+    valve_delay_ms: float = num(0.0, 0.0, U.to_ms(DELAY_MAX), "ms",
+                                "the valves act this long after their command (datasheet)")
+    sensor_delay_ms: float = num(0.0, 0.0, U.to_ms(DELAY_MAX), "ms", "the pressure sensor reads this long late")
 
     def to_section(self) -> EstimatorSection:
         """The SI section; the tuning is checked against a default rig now, as before."""
