@@ -265,14 +265,14 @@ def judge_ticks(ticks: list, gaps: list, period: float, speed: float, replayed: 
 
 
 def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho_updates: int | None,
-                    iterations: int | None = None, parted=None):
-    """(context, forceable) for the replay's step at a tick where the run's robot NMPC overran: the same
+                    iterations: int | None, parted):
+    """The context for the replay's step at a tick where the run's robot NMPC overran: the same
     outcome forced (the replay's wall-time budget is lifted everywhere else, so only the run's
     overruns happen). OSQP's time limit ("overrun (run time limit reached)"): OSQP returns that
     status at once. The run's solution was then unusable whatever iterations it had done, and the
     next step warm-starts OSQP from the NMPC's last usable solution, so only a change of OSQP's rho
-    (``rho_updates`` > 0) would carry over; that one is not forced. "overrun (X ms > Y ms)": the solve
-    is made late, and stopped where the run's stopped: OSQP's time limit can strike in a solve that
+    (``rho_updates`` > 0) would carry over; that one is not forced (``parted()`` is called).
+    "overrun (X ms > Y ms)": the solve is made late, and stopped where the run's stopped: OSQP's time limit can strike in a solve that
     still ends usable (its approximate test passes: "solved inaccurate"), and that late plan is
     the next step's warm start, so a replay that solved on would part from the run there. OSQP
     reports such a cut one iteration short (it stops after the iteration's ADMM step, before that
@@ -285,7 +285,7 @@ def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho
     import contextlib
 
     if ctrl is None or not status or not status.startswith("overrun"):
-        return contextlib.nullcontext(), True
+        return contextlib.nullcontext()
     solver = ctrl._solver
     if "time limit" in status and rho_updates == 0:
         def solve(*a, **k):
@@ -300,14 +300,15 @@ def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho
                 res = real(*a, **k)
             finally:
                 solver.update_settings(max_iter=run_settings.max_iter)
-            if iterations is not None and parted is not None and (
+            if iterations is not None and (
                     int(res.info.iter) not in (iterations, iterations + 1)
                     or int(getattr(res.info, "rho_updates", 0)) != (rho_updates or 0)):
                 parted()
             time.sleep(run_settings.budget * run_settings.sample_period)  # past the budget, solved
             return res
     else:
-        return contextlib.nullcontext(), False
+        parted()
+        return contextlib.nullcontext()
 
     @contextlib.contextmanager
     def forced():
@@ -320,7 +321,7 @@ def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho
             ctrl.s = replay_settings
             solver.update_settings(time_limit=1e10)  # the replay's solves are not cut (see above)
 
-    return forced(), True
+    return forced()
 
 
 def _logged_rows(daemon_dir: Path, times: set) -> dict:
@@ -399,11 +400,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
         # this period's rig time (the lockstep rig's clock is the period count)
         nxt = f"{k * period:.4f}"
         if nxt in outcome:
-            ctx, ok = _forced_outcome(ctrl, run_settings, replay_settings, *outcome[nxt],
-                                      parted=lambda: unforced.add(nxt))
-            if not ok:
-                unforced.add(nxt)
-            with ctx:
+            with _forced_outcome(ctrl, run_settings, replay_settings, *outcome[nxt],
+                                 parted=lambda: unforced.add(nxt)):
                 step(k, missed)
         else:
             step(k, missed)
