@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimators.common import MEAS_SATURATED, guard_cov, nis_gate
-from estimators.ekf_step import LIFT_LOAD_ABS_STD, LIFT_START_DRIFT, NO_LOAD_SIGMAS
+from estimators.ekf_step import CENSOR_SIGMAS, LIFT_LOAD_ABS_STD, LIFT_START_DRIFT, NO_LOAD_SIGMAS
 from hbma_ctrl.models.chamber import OUT_NAMES
 
 __all__ = ["ReferenceSteps", "OUTPUT_INDEX"]
@@ -105,6 +105,8 @@ class ReferenceSteps:
         Returns True when a load change was declared (the caller redoes the update)."""
         s = self.settings
         if self.resting:
+            if self._p_pred + self._innov > s.sensor_range - CENSOR_SIGMAS * s.noise_std:
+                return False  # a reading near the range is a sample biased low (ekf_step.CENSOR_SIGMAS): hold
             if not self._pumping or self._p_pred <= self._p_post:
                 # the pump is not filling the chamber (venting, holding): a membrane cannot lift
                 # off; a shortfall here is the vent model's error near zero pressure

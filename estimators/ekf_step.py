@@ -53,7 +53,7 @@ from hbma_ctrl.models.reduced import law_key
 
 __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
-           "NO_LOAD_SIGMAS", "LIFT_START_DRIFT"]
+           "NO_LOAD_SIGMAS", "LIFT_START_DRIFT", "CENSOR_SIGMAS"]
 
 #: reading kinds (input ``kind``)
 KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
@@ -78,6 +78,12 @@ NO_LOAD_SIGMAS = 3.0
 #: drift of the sum that dates a lift-off (normalised innovation shortfall per sample): only
 #: shortfalls beyond one sigma count
 LIFT_START_DRIFT = 1.0
+#: the lift-off detector holds its sums on a reading within this many sensor sigmas of the sensor's
+#: range: near the range the readings that were clipped are taken out (the saturated kind), so the
+#: ones left are a sample biased low, which the detector would read as a membrane lifting (800 g on
+#: the 7.5 mm chamber, lifting at 45 kPa, was taken as lifting at 34 kPa by readings 0.4 kPa under
+#: the 35 kPa range)
+CENSOR_SIGMAS = 3.0
 
 #: the settings the step Function depends on (the model's are in the model's key): a trial's own
 #: load prior, say, must not build and compile another one
@@ -203,8 +209,9 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     r = nu / ca.sqrt(Su)
     detect = ca.logic_and(is_ok, ca.logic_not(over))
 
-    # lift-off detector (resting, the pump filling the chamber)
-    armed = ca.logic_and(detect, resting)
+    # lift-off detector (resting, the pump filling the chamber; held on a reading near the range)
+    censored = z > s.sensor_range - CENSOR_SIGMAS * s.noise_std
+    armed = ca.logic_and(ca.logic_and(detect, resting), ca.logic_not(censored))
     filling = ca.logic_and(pumping, p_pred > p_post)
     p_lift_n = ca.if_else(lift_start == 0, 0.5 * (p_post + ca.fmin(p_pred, z)), p_lift)
     ls_n = ca.fmax(0.0, lift_start - r - LIFT_START_DRIFT)
