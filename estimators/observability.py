@@ -60,6 +60,7 @@ from estimators.common import FilterSettings
 from estimators.ekf import EKF
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.actuation import CommandTiming
 from hbma_ctrl.models.chamber import NX, STATE_NAMES
 from hbma_ctrl.sim.rig import RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
@@ -133,7 +134,12 @@ def analyse(traj: Trajectory, actuator: Actuator | None = None, pneumatics: Pneu
     S = np.diag(OBS_SCALE)
     w = 1.0 / fs.noise_std
     nwin = int(round(WINDOW_S / fs.sample_period))
-    regimes = [_regime(rec.truth["h"][k], rec.truth["F"][k], rec.u[k]) for k in range(len(rec.t))]
+    # each sample's regime is that of the command its linearisation saw: the one acting on the filter's
+    # model over the period before it (step k is given the command sent at k - 1, delayed as the filter
+    # delays it: a hold's first samples still see the flow of the phase before)
+    tm = CommandTiming(fs.sample_period, fs.valve_delay, fs.sensor_delay)
+    acting = [tm.acting(rec.u[k - 1] if k else np.zeros(3), 1 if k else 0) for k in range(len(rec.t))]
+    regimes = [_regime(rec.truth["h"][k], rec.truth["F"][k], acting[k]) for k in range(len(rec.t))]
     rows = []
     for k in range(1, len(rec.t) - nwin, every):
         A, H = As[k], Hs[k]
