@@ -9,6 +9,7 @@ import numpy as np
 
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
 
 #: the integral action works within this height error of the target, m, and shifts the target by at most INTEGRAL_MAX
 INTEGRAL_BAND = 1e-3
@@ -61,7 +62,7 @@ class MPCSettings:
     fail_window : (t_start, t_end) s in which every solve is treated as failed (a fallback drill);
         None = never.
     membrane : membrane law of the prediction model's tables: 'cap' (spherical cap) or 'exact'
-        (the exact membrane's, :class:`hbma_ctrl.models.tables.PredictionModel`).
+        (the exact membrane's, :class:`hbma_ctrl.models.tables.PredictionModel`; the default).
     integral_gain : integral action on the estimated height error, 1/s, [0, 100] (0 = none): within
         ``INTEGRAL_BAND`` of the target the error's integral times this shifts the target the QP
         tracks (at most ``INTEGRAL_MAX``; reset when the target steps by more than the band). Why:
@@ -102,7 +103,7 @@ class MPCSettings:
     ipopt_max_iter: int = 100
     codegen: bool = True
     fail_window: tuple | None = None
-    membrane: str = field(default="cap", repr=False)  # repr: the stored reprs of the scenario goldens
+    membrane: str = field(default=DEFAULT_MEMBRANE, repr=False)  # repr: the stored reprs of the scenario goldens
     integral_gain: float = field(default=2.0, repr=False)
 
     def validate(self) -> "MPCSettings":

@@ -16,6 +16,7 @@ import numpy as np
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.chamber import STATE_SCALE
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 
 __all__ = ["FilterSettings", "guard_cov", "classify_measurement", "physical_reading_bounds", "MEAS_OK",
            "MEAS_MISSING", "MEAS_SATURATED", "MEAS_OUTLIER", "VACUUM_GAUGE", "nis_gate", "INFLATION_MAX"]
@@ -103,14 +104,15 @@ class FilterSettings:
         fast transient, e.g. a load slammed on, cannot lock the filter out).
     membrane : the model's membrane law, 'cap' (the spherical cap, README Model §3) or 'exact' (the
         exact axisymmetric membrane's tables in the cap's chart, README Model §9; the first use of a
-        material builds its table, then it loads from the disk cache).
+        material builds its table, then it loads from the disk cache). Default exact
+        (:mod:`hbma_ctrl.models.defaults`).
     max_gap : longest time, s, a step predicts over, [sample_period, 3600]: after a longer gap (a
         paused stream, a wall-clock timestamp) the filter predicts ``max_gap`` only and widens the
         covariance by its initial spread (the commands during the gap are unknown).
-    valve_delay : the valves open and shut this long after their command, s, [0, 0.1] (default 0;
-        a small solenoid valve's datasheet switching time is 3-10 ms). The pump's speed acts at once.
-    sensor_delay : the pressure sensor reads the chamber this long late, s, [0, 0.1] (default 0; a
-        sensor behind a short tube: a few ms). Both are modelled as dead times on the commands
+    valve_delay : the valves open and shut this long after their command, s, [0, 0.1] (default 5 ms,
+        a small solenoid valve's datasheet switching time; 3-10 ms is usual). The pump's speed acts at once.
+    sensor_delay : the pressure sensor reads the chamber this long late, s, [0, 0.1] (default 3 ms: a
+        sensor behind a short tube). Both are modelled as dead times on the commands
         (:class:`hbma_ctrl.models.actuation.CommandTiming`); the start-up calibration uses the same.
     """
 
@@ -154,9 +156,9 @@ class FilterSettings:
     gate_nis: float = 400.0
     gate_reopen: int = 5
     max_gap: float = 1.0
-    membrane: str = "cap"
-    valve_delay: float = 0.0
-    sensor_delay: float = 0.0
+    membrane: str = DEFAULT_MEMBRANE
+    valve_delay: float = DEFAULT_VALVE_DELAY
+    sensor_delay: float = DEFAULT_SENSOR_DELAY
 
     def validate(self) -> "FilterSettings":
         w = "estimator"

@@ -100,7 +100,7 @@ def test_ekf_with_delays_is_the_ekf_fed_the_acting_commands():
     act, pn = Actuator(), Pneumatics()
     rig = Rig(act, pn, Platform(), RigSettings(seed=4, valve_delay=0.005, sensor_tau=0.003))
     timed = EKF(act, pn, EKFSettings(valve_delay=0.005, sensor_delay=0.003))
-    plain = EKF(act, pn, EKFSettings())
+    plain = EKF(act, pn, EKFSettings(valve_delay=0.0, sensor_delay=0.0))
     tm = CommandTiming(T, 0.005, 0.003)
     cmd = Command(0.0, 0.0, 1.0)
     for k in range(50):

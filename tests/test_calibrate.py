@@ -14,16 +14,31 @@ from hbma_ctrl.runtime.calibrate import (
     StartupCalibration,
     hand_to_estimator,
 )
-from hbma_ctrl.sim.rig import Rig, RigSettings
+from hbma_ctrl.models.defaults import CAP_CHAMBER
+from hbma_ctrl.sim.rig import CAP_RIG, Rig, RigSettings
 
 ACT, PN = Actuator(), Pneumatics()
+
+
+# identification needs the fitted model's form to be the rig's: these tests run the cap rig with the
+# calibration and the filter on the cap chamber without delays (the structured rig has its own below)
+def cap_rig(**kw) -> RigSettings:
+    return RigSettings(**{**CAP_RIG, **kw})
+
+
+def cap_cal(**kw) -> CalibrationSettings:
+    return CalibrationSettings(**{**CAP_CHAMBER, **kw})
+
+
+def cap_ekf(**kw) -> EKFSettings:
+    return EKFSettings(**{**CAP_CHAMBER, **kw})
 
 
 def run_on_rig(rs: RigSettings, load_kg: float = 0.0, settings: CalibrationSettings | None = None,
                estimator=None):
     """The calibration against a rig until done: (calibration, peak true pressure Pa, ticks)."""
     rig = Rig(ACT, PN, Platform(load=load_kg), rs)
-    cal = StartupCalibration(ACT, PN, settings or CalibrationSettings(sample_period=rs.sample_period),
+    cal = StartupCalibration(ACT, PN, settings or cap_cal(sample_period=rs.sample_period),
                              Platform(load=load_kg), estimator=estimator)
     done, k, p_peak = False, 0, 0.0
     while not done:
@@ -37,7 +52,7 @@ def run_on_rig(rs: RigSettings, load_kg: float = 0.0, settings: CalibrationSetti
 
 @pytest.fixture(scope="module")
 def free_cal():
-    return run_on_rig(RigSettings(seed=0))
+    return run_on_rig(cap_rig(seed=0))
 
 
 def test_learns_the_rigs_flow_modulus_and_dead_volume_factors(free_cal):
@@ -57,8 +72,8 @@ def test_learns_the_rigs_flow_modulus_and_dead_volume_factors(free_cal):
 def test_pump_stops_at_p_stop_below_p_max_on_a_soft_strong_rig():
     """A softer membrane on a stronger pump than the model (modulus x0.6, flow x1.5): the true
     pressure stays within one sample's rise of p_stop, below p_max."""
-    s = CalibrationSettings(p_max=20e3, p_stop=10e3)
-    cal, p_peak, _ = run_on_rig(RigSettings(seed=1, modulus_scale=0.6, flow_scale=1.5), settings=s)
+    s = cap_cal(p_max=20e3, p_stop=10e3)
+    cal, p_peak, _ = run_on_rig(cap_rig(seed=1, modulus_scale=0.6, flow_scale=1.5), settings=s)
     assert p_peak < 11e3 < s.p_max
     assert cal.done
 
@@ -129,10 +144,10 @@ def test_hand_to_estimator_sets_the_factors_and_cuts_their_correlations():
 def test_estimator_handed_over_tracks_the_excitation_with_the_fitted_factors():
     """Given an EKF, the calibration runs it over the excitation: at the end it holds the fitted
     factors and its height matches the rig's residual cap within 0.3 mm."""
-    rs = RigSettings(seed=2)
-    ekf = EKF(ACT, PN, EKFSettings(sample_period=rs.sample_period, noise_std=rs.noise_std))
+    rs = cap_rig(seed=2)
+    ekf = EKF(ACT, PN, cap_ekf(sample_period=rs.sample_period, noise_std=rs.noise_std))
     rig = Rig(ACT, PN, Platform(), rs)
-    cal = StartupCalibration(ACT, PN, CalibrationSettings(), Platform(), estimator=ekf)
+    cal = StartupCalibration(ACT, PN, cap_cal(), Platform(), estimator=ekf)
     done, k = False, 0
     while not done:
         cmd, done = cal.tick(k * rs.sample_period, rig.measure())
@@ -147,9 +162,9 @@ def test_loaded_membrane_stays_flat_and_the_modulus_keeps_its_prior():
     """400 g on r1 12.5 mm lifts at 8.0 kPa: the pulse stops below (0.8 of it), the true height
     stays 0, the flow and dead-volume factors are learnt (within 3 sigma of the rig's), the
     modulus keeps its prior (1, sigma 0.15: the flat membrane says nothing about it)."""
-    rs = RigSettings(seed=0)
+    rs = cap_rig(seed=0)
     rig = Rig(ACT, PN, Platform(load=0.4), rs)
-    cal = StartupCalibration(ACT, PN, CalibrationSettings(), Platform(load=0.4))
+    cal = StartupCalibration(ACT, PN, cap_cal(), Platform(load=0.4))
     assert cal.p_stop == pytest.approx(0.8 * 0.4 * 9.80665 / (np.pi * ACT.r1 ** 2))
     done, h_max = False, 0.0
     while not done:
@@ -176,9 +191,9 @@ def _late_link(seed: int, use_held: bool) -> CalibrationResult:
     rig's firmware takes a command with the next sample), told the command held or not."""
     from hbma_ctrl.runtime.calibrate import _VENT
 
-    rs = RigSettings(seed=seed)
+    rs = cap_rig(seed=seed)
     rig = Rig(ACT, PN, Platform(), rs)
-    cal = StartupCalibration(ACT, PN, CalibrationSettings(sample_period=rs.sample_period), Platform())
+    cal = StartupCalibration(ACT, PN, cap_cal(sample_period=rs.sample_period), Platform())
     done, k, pending, held = False, 0, _VENT, _VENT
     while not done:
         cmd, done = cal.tick(k * rs.sample_period, rig.measure(), held if use_held else None)
@@ -207,7 +222,7 @@ def _loaded_structured(delays: bool, seed: int) -> CalibrationResult:
     from hbma_ctrl.sim.rig import STRUCTURED_RIG
 
     rs = RigSettings(seed=seed, **STRUCTURED_RIG)
-    timing = {"valve_delay": 0.005, "sensor_delay": 0.003} if delays else {}
+    timing = {"valve_delay": 0.005, "sensor_delay": 0.003} if delays else {"valve_delay": 0.0, "sensor_delay": 0.0}
     cal, _, _ = run_on_rig(rs, 0.4, CalibrationSettings(sample_period=rs.sample_period, membrane="exact", **timing))
     assert cal.status == "ok", cal.status
     return cal.result
@@ -240,9 +255,9 @@ def test_floored_result_raises_small_sigmas_and_keeps_the_correlations():
 def test_estimator_gets_the_floored_prior():
     """The filter's factor sigmas after the hand-over are at least ``handover_std_floor`` (the
     fit's own sigma of the flow factor is far smaller)."""
-    rs = RigSettings(seed=2)
-    ekf = EKF(ACT, PN, EKFSettings(sample_period=rs.sample_period, noise_std=rs.noise_std))
-    cal, _, _ = run_on_rig(rs, 0.0, CalibrationSettings(sample_period=rs.sample_period, handover_std_floor=0.08),
+    rs = cap_rig(seed=2)
+    ekf = EKF(ACT, PN, cap_ekf(sample_period=rs.sample_period, noise_std=rs.noise_std))
+    cal, _, _ = run_on_rig(rs, 0.0, cap_cal(sample_period=rs.sample_period, handover_std_floor=0.08),
                            estimator=ekf)
     assert cal.result.std[0] < 0.02
     assert np.all(np.sqrt(np.diag(ekf.P)[2:5]) >= 0.08 - 1e-9)

@@ -1,6 +1,11 @@
 """Closed loop on the mismatched rig: rig -> EKF -> controller -> rig (and an oracle estimate to
 separate the controller's share of the error from the estimator's).
 
+The rig is the default truth (the exact membrane, valve timing, a pump map of another shape, a
+sensor lag: :data:`hbma_ctrl.sim.rig.STRUCTURED_RIG`) and the roles their defaults (the exact law,
+the datasheet delays and minimum opening), as the scenes run them; where a test is about the cap rig
+it says so.
+
 Each CI test simulates a few seconds with the fast (RTI) variant, on one rig noise seed or a few
 (seeds 0..k, not chosen); the 0 g claim's pass rate over 20 seeds is a ``slow`` test, how often the
 other cases hold over seeds is ``hbma-ctrl bench loop``. Every loop starts with the start-up
@@ -8,6 +13,8 @@ calibration (the [controller] default). No test asserts a timing.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -22,14 +29,15 @@ from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.interfaces import Estimate
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
-from hbma_ctrl.sim.rig import RigSettings
+from hbma_ctrl.models.defaults import CAP_CHAMBER
+from hbma_ctrl.sim.rig import CAP_RIG, RigSettings
 
 ACT, PN = Actuator(), Pneumatics()
 
 
 @pytest.fixture(scope="module")
 def model():
-    return PredictionModel(ACT, PN)
+    return PredictionModel(ACT, PN)  # the default law, the exact membrane's
 
 
 class OracleFromRig:
@@ -107,7 +115,9 @@ def test_pressure_limit_with_dropouts_and_infeasible_target(model):
 
 def test_forced_solver_failure_stays_safe(model):
     """Every solve fails from 0.5 s to 1.3 s during the inflation: the loop first runs on the
-    shifted plan, then the safe command (vents), never above p_max; it recovers afterwards."""
+    shifted plan, then the safe command (vents), never above p_max; it recovers afterwards (from
+    the vented 0 mm back above 5 mm: on the exact membrane 400 g at 8 mm needs more than the 25 kPa
+    allowed, so it climbs to the pressure limit, 5.7 mm)."""
     sec, log, m = run({"targets_mm": [[0.0, 8.0]], "fail_window_s": [0.5, 1.3], "p_max_kpa": 25.0,
                        "budget_ms": 1000.0}, 0.4, 3.5,
                       model)
@@ -117,7 +127,7 @@ def test_forced_solver_failure_stays_safe(model):
     win = (log.t > 1.0) & (log.t < 1.3)
     assert np.all(log.u[win, 0] == 0.0) and np.all(log.u[win, 2] == 1.0)  # safe: pump off, vent
     assert m["max_pressure_kpa"] <= 25.0
-    assert log.h_est[-1] > 6e-3  # back to tracking after the window
+    assert log.h_est[np.searchsorted(log.t, 1.3)] < 1e-3 and log.h_est[-1] > 5e-3  # back to tracking
 
 
 CRITERION = {"targets_mm": [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]}
@@ -141,15 +151,17 @@ def test_ekf_loop_0g_truth_settles_within_0p3mm_on_seeds_0_to_3(model, seed):
 
 
 def test_calibration_learns_the_modulus_the_ekf_alone_misses(model):
-    """Seed 0, 0 g: without the calibration the EKF ends the run with a modulus factor more than
-    0.04 below the rig's 1.15 and the 8 mm step ends outside the band; with it, within 0.03 and
-    settled (the calibration is what makes the difference, not the seed)."""
+    """Seed 0, 0 g on the cap rig with the cap models (identification needs the model's form to be the
+    rig's): without the calibration the EKF ends the run with a modulus factor more than 0.04 below
+    the rig's 1.15 and the 8 mm step ends outside the band; with it, within 0.03 and settled (the
+    calibration is what makes the difference, not the seed)."""
     rows = {}
+    cap_model = PredictionModel(ACT, PN, membrane="cap")
     for cal in (False, True):
-        sec = parse_role("controller", CRITERION)
-        est = EKF(ACT, PN, EKFSettings(sample_period=0.01, noise_std=200.0, sensor_range=35e3))
-        log = closed_loop(ACT, PN, Platform(load=0.0), sec, 9.0, RigSettings(seed=0), estimator=est, model=model,
-                          calibrate=cal)
+        sec = replace(parse_role("controller", CRITERION), valve_min_on=0.0)
+        est = EKF(ACT, PN, EKFSettings(sample_period=0.01, noise_std=200.0, sensor_range=35e3, **CAP_CHAMBER))
+        log = closed_loop(ACT, PN, Platform(load=0.0), sec, 9.0, RigSettings(seed=0, **CAP_RIG), estimator=est,
+                          model=cap_model, calibrate=cal)
         rows[cal] = (float(est.x[3]), loop_metrics(log, sec)["steps_settled"])
     assert rows[False][0] < 1.15 - 0.04 and rows[False][1] < 3
     assert abs(rows[True][0] - 1.15) < 0.03 and rows[True][1] == 3

@@ -7,6 +7,7 @@ path, which runs the same stages on the same compiled Functions from Python.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import casadi as ca
@@ -20,12 +21,12 @@ from hbma_ctrl.app.codegen import LOG, LIBRARY, LogColumn, LoopSpec, Stage, buil
     run_c, run_python, write_c
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.sim.plant_step import initial_plant_state, plant_step_function, plant_step_support
-from hbma_ctrl.sim.rig import Rig, RigSettings
+from hbma_ctrl.sim.rig import CAP_RIG, Rig, RigSettings
 
 CC = find_compiler()
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH to build the generated loop")
 ROOT = Path(__file__).resolve().parents[1]
-TRACK = str(ROOT / "scenarios" / "track_height.toml")
+TRACK = str(ROOT / "scenarios" / "track_height_cap.toml")
 
 
 def _commands(k: int, rng) -> np.ndarray:
@@ -66,9 +67,20 @@ def test_plant_step_equals_the_rig_sample_by_sample():
     ({"membrane": "exact"}, "[rig] membrane = 'exact'"),
 ])
 def test_plant_step_support_names_the_key_it_cannot_generate(kw, needle):
-    rs = RigSettings(**kw)
-    assert needle in plant_step_support(rs.fidelity, rs)
-    assert plant_step_support("platform", RigSettings()) is None
+    rs = RigSettings(**{**CAP_RIG, **kw})  # the cap rig with one key changed: that key, alone
+    why = plant_step_support(rs.fidelity, rs)
+    assert why.startswith(needle) and "; " not in why
+    assert plant_step_support("platform", RigSettings(**CAP_RIG)) is None
+
+
+def test_plant_step_support_names_every_key_of_the_default_rig_at_once():
+    """The default rig differs from the cap in five keys; one message names them all (a user
+    should not fix them one run at a time)."""
+    why = plant_step_support("platform", RigSettings())
+    for needle in ("[rig] membrane = 'exact'", "[rig] valve_delay_ms = 5 ms", "[rig] valve_min_on_ms = 2 ms",
+                   "[rig] sensor_tau_ms = 3 ms", "[rig] compressor_tilt = 0.2"):
+        assert needle in why
+    assert why.count("; ") == 4
 
 
 def _toy_spec(n: int = 60) -> LoopSpec:
@@ -263,7 +275,9 @@ def test_codegen_refuses_what_the_generated_loop_does_not_do_naming_the_key(tabl
     from hbma_ctrl.app.codegen_scene import scenario_loop
 
     text = Path(TRACK).read_text()
-    if f"[{table}]\n" in text:
+    if f"\n{key} = " in text:
+        text = re.sub(rf"\n{key} = [^\n]*", f"\n{key} = {value}", text, count=1)
+    elif f"[{table}]\n" in text:
         text = text.replace(f"[{table}]\n", f"[{table}]\n{key} = {value}\n", 1)
     else:
         text += f"\n[{table}]\n{key} = {value}\n"

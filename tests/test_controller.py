@@ -37,7 +37,8 @@ def parse_section(raw: dict):
 
 @pytest.fixture(scope="module")
 def model():
-    return PredictionModel(ACT, PN)
+    # the cap's tables, checked here against the cap's closed forms (the exact law's: test_exact_mpc.py)
+    return PredictionModel(ACT, PN, membrane="cap")
 
 
 def test_load_path_queries_read_the_grid_between_its_two_load_columns(model):

@@ -91,9 +91,9 @@ def test_exact_model_measurement_jacobian_matches_finite_differences(models):
 def test_membrane_setting_is_validated_and_reaches_the_model():
     with pytest.raises(ValueError, match=r"estimator\.membrane = 'plate': allowed cap, exact"):
         FilterSettings(membrane="plate").validate()
-    sec = EstimatorTable(membrane="exact").to_section()
-    assert filter_settings_for(sec, RigSettings()).membrane == "exact"
-    assert filter_settings_for(EstimatorTable().to_section(), RigSettings()).membrane == "cap"
+    sec = EstimatorTable(membrane="cap").to_section()
+    assert filter_settings_for(sec, RigSettings()).membrane == "cap"
+    assert filter_settings_for(EstimatorTable().to_section(), RigSettings()).membrane == "exact"  # the default
     assert get_args(EstimatorTable.model_fields["membrane"].annotation) == MEMBRANES
     with pytest.raises(ValueError, match=r"\[estimator\] membrane"):
         parse_scenario_tables({"estimator": {"membrane": "plate"}}, None)

@@ -18,7 +18,7 @@ from hbma_ctrl.app.cli import app
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, Valve
-from hbma_ctrl.sim.rig import RigSettings, simulate_rig
+from hbma_ctrl.sim.rig import CAP_RIG, RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
 
 runner = CliRunner()
@@ -34,12 +34,13 @@ RUN_HEADER = ("t_s,target_mm,h_true_mm,h_est_mm,p_true_kpa,p_meas_kpa,p_est_kpa,
 
 def _rig_run_csv(path, rows, duration: float, seed: int, **rig) -> dict:
     """A run of the mismatched free-inflation rig (modulus x1.15, pump x0.9, dead volume x1.2, 0.2 kPa
-    noise) written in the `run` closed-loop format; returns the truth series."""
+    noise) written in the `run` closed-loop format; returns the truth series. The cap rig unless
+    ``rig`` says otherwise: recovering the truth needs the fitted model's form to be the rig's."""
     act = Actuator(r1=R1, t0=T0, V0=V0, material=make_material("nh"))
     trial = Trial(actuator=act, pneumatics=Pneumatics(), platform=Platform(), schedule=InputSchedule(rows),
                   duration=duration)
-    (rec,) = simulate_rig([trial], RigSettings(modulus_scale=1.15, flow_scale=0.9, V0_scale=1.2, noise_std=200.0,
-                                               seed=seed, **rig))
+    (rec,) = simulate_rig([trial], RigSettings(**{**CAP_RIG, "modulus_scale": 1.15, "flow_scale": 0.9, "V0_scale": 1.2,
+                                                  "noise_std": 200.0, "seed": seed, **rig}))
     lines = [RUN_HEADER]
     for k in range(rec.t.size):
         h, p = U.to_mm(rec.truth["h"][k]), U.to_kpa(rec.truth["p"][k])

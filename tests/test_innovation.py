@@ -19,8 +19,9 @@ from estimators.innovation import (
 )
 from hbma_ctrl.app.evaluate import evaluate_trials
 from hbma_ctrl.core.params import Platform
+from hbma_ctrl.models.defaults import CAP_CHAMBER
 from hbma_ctrl.sim.batch import protocol_trials
-from hbma_ctrl.sim.rig import RigSettings
+from hbma_ctrl.sim.rig import CAP_RIG, RigSettings
 
 N_WIN = 100
 
@@ -111,11 +112,11 @@ def test_bad_settings_are_one_clear_error(kw, msg):
 def test_flag_on_rig_runs_tells_a_wrong_membrane_law_from_a_right_one():
     """One loaded protocol trial (3 mm, r1 10 mm, 600 g, 40 %): the cap EKF on its own cap rig and the
     exact EKF on the exact rig are not flagged; the cap EKF on the exact rig is (while its mean NIS stays
-    below 1)."""
+    below 1). The membrane law is the only difference: no structural mismatches, no delays."""
     trials = protocol_trials("nh", loads_g=[600], speeds_pct=[40], t0_mm=[3], r1_mm=[10], t_inflate_s=3.0,
                              duration_s=6.0, platform=Platform(own_mass=0.02, damping=20.0))
-    cap_rig, exact_rig = RigSettings(), RigSettings(membrane="exact")
-    fs = {m: FilterSettings(membrane=m, load_prior="nominal") for m in ("cap", "exact")}
+    cap_rig, exact_rig = RigSettings(**CAP_RIG), RigSettings(**{**CAP_RIG, "membrane": "exact"})
+    fs = {m: FilterSettings(**{**CAP_CHAMBER, "membrane": m, "load_prior": "nominal"}) for m in ("cap", "exact")}
     cc = evaluate_trials(trials, "ekf", cap_rig, fs["cap"])[0].scores
     ec = evaluate_trials(trials, "ekf", exact_rig, fs["cap"])[0].scores
     ee = evaluate_trials(trials, "ekf", exact_rig, fs["exact"])[0].scores

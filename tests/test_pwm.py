@@ -57,7 +57,8 @@ def test_scene_refuses_a_minimum_longer_than_the_rig_period_naming_the_key_in_ms
     sec = parse_role("controller", {"targets_mm": [[0.0, 2.0]], "valve_min_on_ms": 15.0})
     with pytest.raises(ValueError, match=r"valve_min_on_ms = 15 is out of range \[0, 10\] ms"):
         make_pwm(sec, T)
-    assert make_pwm(parse_role("controller", {"targets_mm": [[0.0, 2.0]]}), T) is None
+    assert make_pwm(parse_role("controller", {"targets_mm": [[0.0, 2.0]], "valve_min_on_ms": 0.0}), T) is None
+    assert make_pwm(parse_role("controller", {"targets_mm": [[0.0, 2.0]]}), T).min_duty == pytest.approx(0.002 / T)  # the default, 2 ms
 
 
 def test_schema_refuses_a_negative_minimum_naming_the_key():

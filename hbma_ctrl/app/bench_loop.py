@@ -43,7 +43,8 @@ from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.batch import quiet_worker
-from hbma_ctrl.sim.rig import STRUCTURED_RIG, RigSettings
+from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON
+from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings
 
 __all__ = ["CASES", "RIGS", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench", "loop_setup"]
 
@@ -60,12 +61,13 @@ CASES = {
 TAIL_S = 1.0  # the load step's rejection window: the last second
 
 
-def loop_setup(rig: str = "cap", membrane: str | None = None, valve_delay_ms: float | None = None,
+def loop_setup(rig: str = "structured", membrane: str | None = None, valve_delay_ms: float | None = None,
                sensor_delay_ms: float | None = None, valve_min_on_ms: float | None = None,
                calibration_std_floor: float | None = None) -> dict:
     """The bench's truth and models: the rig, the models' membrane law (default: the rig's), the
     delays the estimator and the calibration model and the valves' minimum opening the loop shapes
-    its duties for (ms; default 5, 3 and 2 on the structured rig, 0 on the cap rig). Raises
+    its duties for (ms; default 5, 3 and 2 on the structured rig, the default, as in
+    :mod:`hbma_ctrl.models.defaults`; 0 on the cap rig). Raises
     ValueError naming the flag on a bad value. ``calibration_std_floor``: the calibration prior's
     sigma floor (default: the controller's, 0.08)."""
     if rig not in RIGS:
@@ -74,10 +76,12 @@ def loop_setup(rig: str = "cap", membrane: str | None = None, valve_delay_ms: fl
     membrane = membrane or ("exact" if structured else "cap")
     if membrane not in ("cap", "exact"):
         raise ValueError(f"--membrane: '{membrane}' is unknown; allowed cap, exact")
-    out = {"rig": rig, "membrane": membrane,
-           "valve_delay_ms": (5.0 if structured else 0.0) if valve_delay_ms is None else float(valve_delay_ms),
-           "sensor_delay_ms": (3.0 if structured else 0.0) if sensor_delay_ms is None else float(sensor_delay_ms),
-           "valve_min_on_ms": (2.0 if structured else 0.0) if valve_min_on_ms is None else float(valve_min_on_ms)}
+    models = ({"valve_delay_ms": DEFAULT_VALVE_DELAY, "sensor_delay_ms": DEFAULT_SENSOR_DELAY,
+               "valve_min_on_ms": DEFAULT_VALVE_MIN_ON} if structured else {})
+    given = {"valve_delay_ms": valve_delay_ms, "sensor_delay_ms": sensor_delay_ms, "valve_min_on_ms": valve_min_on_ms}
+    out = {"rig": rig, "membrane": membrane}
+    for key, v in given.items():
+        out[key] = U.to_ms(models.get(key, 0.0)) if v is None else float(v)
     out["calibration_std_floor"] = (ControllerSection.calibration_std_floor if calibration_std_floor is None
                                     else float(calibration_std_floor))
     if not 0.0 <= out["calibration_std_floor"] <= 1.0:
@@ -97,7 +101,7 @@ def run_case(case: str, seed: int, setup: dict | None = None) -> dict:
     act, pn = Actuator(), Pneumatics()
     sec = replace(parse_role("controller", raw), valve_min_on=U.ms(setup.get("valve_min_on_ms", 0.0)),
                   calibration_std_floor=setup.get("calibration_std_floor", ControllerSection.calibration_std_floor))
-    rs = RigSettings(seed=seed, **(STRUCTURED_RIG if setup["rig"] == "structured" else {}))
+    rs = RigSettings(seed=seed, **(STRUCTURED_RIG if setup["rig"] == "structured" else CAP_RIG))
     est = EKF(act, pn, EKFSettings(sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
                                    sensor_range=rs.sensor_range, membrane=setup["membrane"],
                                    valve_delay=U.ms(setup["valve_delay_ms"]),

@@ -85,7 +85,7 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
             raise ValueError(f"bench.horizons: {n!r} must be an integer in [2, 200]")
     if not 0 < budget_ms <= 1e5:
         raise ValueError(f"bench.budget_ms = {budget_ms!r} is out of range (0, 1e5] ms")
-    model = PredictionModel(actuator, pneumatics, load_max=section.mpc.load_max)
+    model = PredictionModel(actuator, pneumatics, load_max=section.mpc.load_max, membrane=section.mpc.membrane)
     rows = []
 
     def run(name, sec, ctrl=None):

@@ -28,7 +28,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_loop.json")] = Path("runs/bench_loop"),
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
         rig: Annotated[str, typer.Option(help="the truth: cap (scalar mismatches) | structured (exact membrane, "
-                                              "valve timing, pump shape, sensor lag)")] = "cap",
+                                              "valve timing, pump shape, sensor lag; the default)")] = "structured",
         membrane: Annotated[Optional[str], typer.Option(help="the EKF's, calibration's and MPC's membrane law: "
                                                              "cap | exact (default: the rig's)")] = None,
         valve_delay_ms: Annotated[Optional[float], typer.Option(help="valve delay the EKF and calibration model, "

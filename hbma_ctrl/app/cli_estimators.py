@@ -61,8 +61,11 @@ def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0) -
     fs = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range, noise_std=rig.noise_std)
     recs = simulate_rig(trials, rig)
     ol = _open_loop(trials, rig.sample_period)
-    out = {"settings": {"grid": grid, "n_trials": len(trials), "rig": "default RigSettings (modulus x1.15, "
-                        "flow x0.9, V0 x1.2, 0.2 kPa noise, 35 kPa range, 10 ms)"}, "filters": {}}
+    out = {"settings": {"grid": grid, "n_trials": len(trials), "rig": "default RigSettings (exact membrane, "
+                        "5 ms valve delay, 2 ms minimum opening, pump tilt 0.2, 3 ms sensor lag; modulus x1.15, "
+                        "flow x0.9, V0 x1.2, 0.2 kPa noise, 35 kPa range, 10 ms)",
+                        "filter": {"membrane": fs.membrane, "valve_delay_ms": U.to_ms(fs.valve_delay),
+                                   "sensor_delay_ms": U.to_ms(fs.sensor_delay)}}, "filters": {}}
     for kind in filters:
         make_filter(kind, trials[0], fs)  # compile/load outside the timing
         results, steps = [], []

@@ -16,7 +16,7 @@ here as small casadi Functions too, so that the C loop needs no Python:
   safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`).
 
 The glue rounds as the Python classes do (``np.interp``'s formula, the load filter's gain from the
-scene's clock), so on ``scenarios/track_height.toml`` the loop follows the scene's own closed loop
+scene's clock), so on ``scenarios/track_height_cap.toml`` the loop follows the scene's own closed loop
 (``closed_loop(..., calibrate=False)`` with the NMPC variant ``rti_fn_osqp`` and a budget no solve
 reaches; :func:`scene_reference`) over the 9 s to 2e-15 m in the heights, 4e-12 in the commands and
 6e-9 Pa in the pressures (measured): rounding only, since the NMPC solves its QP through casadi's
@@ -389,6 +389,33 @@ def _truth_stages() -> tuple[list, dict, dict]:
 
 
 # --------------------------------------------------------------------------------------------- loop
+#: the shipped scenario a generated loop can run (the cap rig, the models without delays)
+CAP_EXAMPLE = "scenarios/track_height_cap.toml"
+
+
+def _unsupported(scn, section, rs: RigSettings, estimator: str) -> list[str]:
+    """What the generated loop leaves out that the scenario sets, each naming its key and value in
+    the user's units (ms): the valves' minimum on-time, the rig's structure and membrane, the EKF's delays."""
+    from estimators.common import FilterSettings
+    from hbma_ctrl.app.sections import filter_settings_for
+
+    why = []
+    if section.valve_min_on > 0:
+        why.append(f"[controller] valve_min_on_ms = {section.valve_min_on * 1e3:g} ms (the generated loop sends "
+                   "the duties as the NMPC asks; codegen supports 0 ms only)")
+    rig_why = plant_step_support("free" if scn.platform.mass <= 0 else rs.fidelity, rs)
+    if rig_why:
+        why.append(rig_why)
+    if estimator == "ekf":
+        sec = scn.role("estimator")
+        fs = filter_settings_for(sec, rs) if sec is not None else FilterSettings()
+        for key, v in (("valve_delay_ms", fs.valve_delay), ("sensor_delay_ms", fs.sensor_delay)):
+            if v > 0:
+                why.append(f"[estimator] {key} = {v * 1e3:g} ms (the generated EKF takes the commands as "
+                           "acting at once; codegen supports 0 ms only)")
+    return why
+
+
 #: estimators a generated loop can run: the scenario's EKF, or the rig's truth (tests, controller alone)
 ESTIMATORS = ("ekf", "truth")
 
@@ -412,10 +439,13 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     if section.load_steps:
         raise ValueError("codegen: [controller] load_steps_g: load changes during the run switch the rig's "
                          "plant model in Python; remove them to generate C")
-    if section.valve_min_on > 0:
-        raise ValueError("codegen: [controller] valve_min_on_ms: the generated loop sends the duties as the "
-                         "NMPC asks; set it to 0 to generate C")
     rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    why = _unsupported(scn, section, rs, estimator)
+    if why:
+        # one message with every key: the defaults (the structured rig, the models' datasheet timing)
+        # set several of them, and a user should not fix them one run at a time
+        raise ValueError("codegen: the generated loop cannot run this scenario as written: " + "; ".join(why)
+                         + f". {CAP_EXAMPLE} is track_height with what it supports")
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))
     if every < 1 or abs(ratio - every) > 1e-6:

@@ -18,6 +18,7 @@ from controllers.mpc_settings import MPCSettings
 from estimators.common import FilterSettings
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.plant import RobotPlantSettings
 from hbma_ctrl.runtime.calibrate import CalibrationSettings
@@ -135,8 +136,9 @@ class ControllerSection:
     preview : pass the future targets to the MPC; None = only for ramps and sines.
     settle_band : band for the settling report, m (0.3 mm).
     calibrate : run the start-up calibration before the loop closes (:mod:`hbma_ctrl.runtime.calibrate`).
-    valve_min_on : the valves' minimum opening, s (0 = none): small duties are realised on average
-        (:class:`hbma_ctrl.runtime.pwm.MinOnTime`); at most the rig's sample period.
+    valve_min_on : the valves' minimum opening, s (0 = none; default 2 ms, a small solenoid valve's
+        datasheet value): small duties are realised on average (:class:`hbma_ctrl.runtime.pwm.MinOnTime`);
+        at most the rig's sample period.
     calibration_std_floor : the calibration hands its factors to the estimator with sigmas at least
         this (:class:`hbma_ctrl.runtime.calibrate.CalibrationSettings` ``handover_std_floor``).
     """
@@ -151,7 +153,7 @@ class ControllerSection:
     settle_band: float = 0.3e-3
     # out of the repr: tests/test_schema.py compares reprs with those of the parsers this schema replaced
     calibrate: bool = field(default=True, repr=False)
-    valve_min_on: float = field(default=0.0, repr=False)
+    valve_min_on: float = field(default=DEFAULT_VALVE_MIN_ON, repr=False)
     calibration_std_floor: float = field(default=CalibrationSettings.handover_std_floor, repr=False)
 
     @property

@@ -231,7 +231,9 @@ class ChamberBank:
         if topology not in TOPOLOGIES:
             raise ValueError(f"robot.topology = '{topology}': allowed {', '.join(TOPOLOGIES)}")
         self.topology = topology
-        self.tables = PredictionModel(actuator, pneumatics, load_max=load_max, h_table_max=h_table_max)
+        # the robot's chambers are the cap (its rig has no exact membrane yet, README Robot)
+        self.tables = PredictionModel(actuator, pneumatics, load_max=load_max, h_table_max=h_table_max,
+                                      membrane="cap")
         self.chamber = self.tables.chamber
         self.actuator = self.tables.actuator
         self.pneumatics = self.tables.pneumatics

@@ -22,7 +22,7 @@ Nothing here re-derives physics: the grid points are the contact shapes of the o
 (:meth:`hbma_ctrl.models.shape.ShapeSolver.contact`).
 
 Two membrane laws (``membrane``): ``"cap"`` (the spherical cap, README Model §3, the law the
-estimators use) and ``"exact"`` (the exact axisymmetric membrane, Model §9: the same tabulated law
+roles were first built on) and ``"exact"`` (the default; the exact axisymmetric membrane, Model §9: the same tabulated law
 the rig and the simulator's exact rung step with, :class:`hbma_ctrl.models.fidelity_exact.ExactQuasiStatic`'s
 ``contact_law``, imported, not re-derived). Both are evaluated in the cap's chart (h1, h2), so the
 contact bisection, the load paths and the tables are the same code. The stretch ``lam`` (what
@@ -40,6 +40,7 @@ import numpy as np
 
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
 from hbma_ctrl.models.fidelity_exact import make_exact_loaded
 from hbma_ctrl.models.reduced import MEMBRANES, ReducedChamber
 from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
@@ -108,7 +109,8 @@ class PredictionModel:
     n_x, n_W, n_h : grid sizes.
     chamber : the :class:`ReducedChamber` to tabulate (built from actuator and pneumatics if None).
     membrane : the membrane law tabulated, 'cap' (spherical cap) or 'exact' (the exact membrane's
-        tables, as the rig's ``membrane = "exact"``); see the module docstring.
+        tables, as the rig's ``membrane = "exact"``; the default, :mod:`hbma_ctrl.models.defaults`); see the
+        module docstring.
 
     Attributes
     ----------
@@ -123,7 +125,7 @@ class PredictionModel:
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, load_max: float = 10.0,
                  h_table_max: float | None = None, n_x: int = 140, n_W: int = 26, n_h: int = 160,
-                 chamber: ReducedChamber | None = None, membrane: str = "cap"):
+                 chamber: ReducedChamber | None = None, membrane: str = DEFAULT_MEMBRANE):
         if membrane not in MEMBRANES:
             raise ValueError(f"prediction.membrane = {membrane!r}: allowed {', '.join(MEMBRANES)}")
         self.membrane = membrane

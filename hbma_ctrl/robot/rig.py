@@ -24,7 +24,7 @@ from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
-from hbma_ctrl.sim.rig import RigSettings, mismatched
+from hbma_ctrl.sim.rig import CAP_RIG, RigSettings, mismatched
 from hbma_ctrl.sim.simulate import Plant
 
 H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
@@ -80,8 +80,10 @@ class RobotRig:
         fid = None
         for i in range(self.n):
             sign = 1.0 if i % 2 == 0 else -1.0
+            # the robot's chambers are the cap with scalar mismatches (its rig has no exact membrane,
+            # valve timing or pump shape yet, README Robot), whatever the single-chamber rig's defaults
             rs = RigSettings(fidelity=self.s.fidelity, modulus_scale=1.0 + sign * self.s.modulus_spread,
-                             flow_scale=self.s.flow_scale, V0_scale=self.s.V0_scale)
+                             flow_scale=self.s.flow_scale, V0_scale=self.s.V0_scale, **CAP_RIG)
             act, pn = mismatched(design.chamber, pneumatics, rs)
             if fid is None:
                 fid = make_fidelity(self.s.fidelity, act.material, str(pn.csv_path))

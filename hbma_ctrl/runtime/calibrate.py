@@ -57,6 +57,7 @@ from scipy.optimize import least_squares
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free
 from hbma_ctrl.sim.simulate import Plant
@@ -103,7 +104,7 @@ class CalibrationSettings:
         estimator's settings, so both see the same chamber). Unmodelled, 5 ms of valve delay and
         3 ms of sensor lag make the fit's dead volume 20-35 % too large.
     membrane : the fit's free-inflation law, 'cap' or 'exact' (the estimator's): on an exact
-        membrane the cap fits a modulus about 5 % high.
+        membrane the cap fits a modulus about 5 % high. Defaults: :mod:`hbma_ctrl.models.defaults`.
     handover_std_floor : the estimator's prior sigma of each factor is at least this, [0, 1] (-).
         The fit's Gauss-Newton sigma assumes the model is the chamber (0.004 for the flow factor);
         on a rig that differs in structure (a pump map of another shape, valves with a minimum
@@ -127,9 +128,9 @@ class CalibrationSettings:
     noise_std: float = 200.0
     sensor_range: float = 35e3
     prior_std: tuple = (0.15, 0.15, 0.2)
-    valve_delay: float = 0.0
-    sensor_delay: float = 0.0
-    membrane: str = "cap"
+    valve_delay: float = DEFAULT_VALVE_DELAY
+    sensor_delay: float = DEFAULT_SENSOR_DELAY
+    membrane: str = DEFAULT_MEMBRANE
     handover_std_floor: float = 0.08
 
     def validate(self) -> "CalibrationSettings":

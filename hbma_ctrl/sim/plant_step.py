@@ -36,18 +36,20 @@ PLANT_FIDELITIES = ("free", "platform")
 
 def plant_step_support(fidelity: str, settings) -> str | None:
     """Why a rig (its fidelity name and :class:`~hbma_ctrl.sim.rig.RigSettings`) has no plant_step
-    Function, as a message naming the scenario key; None when it has one."""
+    Function: every reason, each naming the scenario key (its value as the user writes it, since the
+    rig's defaults set several of them), joined by '; '; None when it has one."""
+    why = []
     if fidelity not in PLANT_FIDELITIES:
-        return (f"[rig] fidelity = '{fidelity}': its snap-through jump is a search, not a casadi expression; "
-                f"codegen supports {', '.join(PLANT_FIDELITIES)}")
+        why.append(f"[rig] fidelity = '{fidelity}': its snap-through jump is a search, not a casadi expression "
+                   f"(codegen supports {', '.join(PLANT_FIDELITIES)})")
     if getattr(settings, "membrane", "cap") != "cap":
-        return f"[rig] membrane = '{settings.membrane}': codegen supports 'cap'"
+        why.append(f"[rig] membrane = '{settings.membrane}': codegen supports 'cap'")
     for key, unit in (("valve_delay", "ms"), ("valve_min_on", "ms"), ("sensor_tau", "ms")):
         if getattr(settings, key, 0.0) != 0.0:
-            return f"[rig] {key}_{unit} = {getattr(settings, key) * 1e3:g} {unit}: codegen supports 0 {unit} only"
+            why.append(f"[rig] {key}_{unit} = {getattr(settings, key) * 1e3:g} {unit}: codegen supports 0 {unit} only")
     if getattr(settings, "compressor_tilt", 0.0) != 0.0:
-        return f"[rig] compressor_tilt = {settings.compressor_tilt:g}: codegen supports 0 only"
-    return None
+        why.append(f"[rig] compressor_tilt = {settings.compressor_tilt:g}: codegen supports 0 only")
+    return "; ".join(why) or None
 
 
 def _events(fid: Fidelity, x, u, theta, mode):

@@ -10,12 +10,15 @@ its own model:
   membrane at its current apex height, taking it off lets the membrane inflate freely again;
 - parameters off nominal: every modulus of the material times ``modulus_scale`` (default 1.15),
   compressor flow times ``flow_scale`` (0.9), dead volume times ``V0_scale`` (1.2);
-- structural mismatches (SPEC 7), none of which the estimators' model has, off by default and all
-  on in :data:`STRUCTURED_RIG` (with the exact membrane): the valves switch ``valve_delay`` (5 ms) after their command and cannot open for less than ``valve_min_on`` (2 ms) of
-  each PWM period (one sample period): a shorter duty is dropped or lengthened to the minimum; the
-  pump's map has another *shape*, its flow tilted with back pressure by ``compressor_tilt`` (0.2:
-  +11 % at 0 Pa, -11 % at the map's top pressure, the same mean); the sensor lags the pressure by a
-  first-order lag of ``sensor_tau`` (3 ms, a piezoresistive sensor behind a short tube);
+- the membrane's law: the exact axisymmetric membrane (``membrane = "exact"``, the default), a law
+  the estimators were not built on unless told to take it, or the cap (``"cap"``, their first law);
+- structural mismatches (SPEC 7), on by default (:data:`STRUCTURED_RIG`; :data:`CAP_RIG` turns
+  them off with the cap): the valves switch ``valve_delay`` (5 ms) after their command and cannot
+  open for less than ``valve_min_on`` (2 ms) of each PWM period (one sample period): a shorter duty
+  is dropped or lengthened to the minimum; the pump's map has another *shape*, its flow tilted with
+  back pressure by ``compressor_tilt`` (0.2: +10 % at 0 Pa, -10 % at the map's top pressure, the
+  same mean); the sensor lags the pressure by a first-order lag of ``sensor_tau`` (3 ms, a
+  piezoresistive sensor behind a short tube);
 - the pressure sensor: additive Gaussian noise (``noise_std``, 200 Pa), saturation at
   ``sensor_range`` (35 kPa: a reading never exceeds it), dropouts (NaN) with probability
   ``dropout_prob``, sampled every ``sample_period`` (10 ms); the command is held between samples
@@ -46,15 +49,18 @@ from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
 
 __all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig", "tilted_map",
-           "TRUTH_KEYS", "IDEAL_STRUCTURE", "STRUCTURED_RIG"]
+           "TRUTH_KEYS", "IDEAL_STRUCTURE", "STRUCTURED_RIG", "CAP_RIG"]
 
 #: RigSettings keywords that switch the structural mismatches off (a rig with the model's structure:
 #: for tests of parameter identification, which need the fitted model's form to be the rig's)
 IDEAL_STRUCTURE = {"valve_delay": 0.0, "valve_min_on": 0.0, "compressor_tilt": 0.0, "sensor_tau": 0.0}
-#: the structurally different truth: the exact membrane, 5 ms valve delay, 2 ms minimum opening, a
-#: pump map tilted with back pressure, a 3 ms sensor lag (``[rig] structure = "full"`` in a scenario)
+#: the structurally different truth, RigSettings' defaults: the exact membrane, 5 ms valve delay,
+#: 2 ms minimum opening, a pump map tilted with back pressure, a 3 ms sensor lag
 STRUCTURED_RIG = {"membrane": "exact", "valve_delay": 0.005, "valve_min_on": 0.002, "compressor_tilt": 0.2,
                   "sensor_tau": 0.003}
+#: the old rig, still selectable: the models' own cap law with scalar mismatches only (the claims
+#: measured before 2026-12-04; its models are ``hbma_ctrl.models.defaults.CAP_CHAMBER``)
+CAP_RIG = {"membrane": "cap", **IDEAL_STRUCTURE}
 
 #: keys of :meth:`Rig.truth`
 TRUTH_KEYS = ("t", "h1", "h2", "h", "p", "F", "m")
@@ -82,18 +88,19 @@ class RigSettings:
     dt : internal integration step, s; None = the simulator's default for the fidelity.
     membrane : membrane law: 'exact' (the exact axisymmetric membrane's tables, a law the estimators were
         not built on: free inflation :func:`hbma_ctrl.models.fidelity_exact.make_exact_free`, and with a load on
-        the exact flat-plate contact, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`) or 'cap'
-        (default: the spherical cap, their own law; see :data:`STRUCTURED_RIG`).
-    valve_delay : the valves act this long after their command, s, [0, 0.1] (default 0; 5 ms is a small
+        the exact flat-plate contact, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`; the
+        default) or 'cap' (the spherical cap, the models' own law; see :data:`CAP_RIG`).
+    valve_delay : the valves act this long after their command, s, [0, 0.1] (default 5 ms, a small
         solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
     valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
-        [0, 0.1] (default 0; 2 ms in :data:`STRUCTURED_RIG`): a duty d with d T below half of it is
-        dropped (valve shut), below it is lengthened to it (to the whole period when it is longer than T).
+        [0, 0.1] (default 2 ms): a duty d with d T below half of it is dropped (valve shut), below it
+        is lengthened to it (to the whole period when it is longer than T).
     compressor_tilt : the pump's flow at back pressure p is the map's times (1 - k (p / p_top - 1/2)),
-        p_top the map's top pressure: a map of another shape, same mean (-), [-1, 1] (default 0; 0.2
-        in :data:`STRUCTURED_RIG`).
-    sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 0 = none; 3 ms in
-        :data:`STRUCTURED_RIG`).
+        p_top the map's top pressure: a map of another shape, same mean (-), [-1, 1] (default 0.2).
+    sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 3 ms; 0 = none).
+
+    The defaults are :data:`STRUCTURED_RIG`: a truth that differs from the models in structure, not
+    only in constants. :data:`CAP_RIG` gives the old rig (the models' own cap law, scalar mismatches).
     """
 
     fidelity: str = "platform"
@@ -107,14 +114,13 @@ class RigSettings:
     seed: int = 0
     integrator: str = "rk4"
     dt: float | None = None
-    # defaults: the cap rig without the structural mismatches, on which the README's claims were
-    # measured; STRUCTURED_RIG is the structurally different truth (exact membrane, valve timing, pump shape,
-    # sensor lag), selectable per scenario until the estimator models what it adds
-    membrane: str = "cap"
-    valve_delay: float = 0.0
-    valve_min_on: float = 0.0
-    compressor_tilt: float = 0.0
-    sensor_tau: float = 0.0
+    # defaults: STRUCTURED_RIG, the truth the estimators and controllers were not built on (exact
+    # membrane, valve timing, pump shape, sensor lag); CAP_RIG is the rig they were first measured on
+    membrane: str = STRUCTURED_RIG["membrane"]
+    valve_delay: float = STRUCTURED_RIG["valve_delay"]
+    valve_min_on: float = STRUCTURED_RIG["valve_min_on"]
+    compressor_tilt: float = STRUCTURED_RIG["compressor_tilt"]
+    sensor_tau: float = STRUCTURED_RIG["sensor_tau"]
 
     def validate(self) -> "RigSettings":
         if self.fidelity not in _RIG_FIDELITIES:

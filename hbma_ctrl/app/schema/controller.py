@@ -30,6 +30,7 @@ from hbma_ctrl.app.schema.fields import (
 )
 from hbma_ctrl.app.sections import ControllerSection, ReferenceProfile
 from hbma_ctrl.core import units as U
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.runtime.calibrate import CalibrationSettings
 
 __all__ = ["ControllerTable", "TargetRow"]
@@ -75,7 +76,7 @@ class ControllerTable(Table):
     c_input: tuple[_W, _W, _W] = shaped((0.02, 0.01, 0.02), "MPC linear input costs (-)", _VEC)
     budget_ms: float = num(15.0, 0.0, 10000.0, "ms", "MPC wall-clock budget per step", lo_open=True)
     codegen: bool = flag(True, "MPC: compile the RTI linearisation to C")
-    membrane: Literal["cap", "exact"] = choice("cap", "MPC prediction model's membrane law: cap "
+    membrane: Literal["cap", "exact"] = choice(DEFAULT_MEMBRANE, "MPC prediction model's membrane law: cap "
                                                "(spherical cap) or exact (exact membrane tables)")
     integral_gain_per_s: float = num(2.0, 0.0, 100.0, "1/s", "MPC integral action on the height error near "
                                      "the target (0 = none)")
@@ -95,7 +96,7 @@ class ControllerTable(Table):
     preview: bool | None = flag(None, "give the MPC the future targets; default: for ramps and sines")
     calibrate: bool = flag(True, "before the loop closes, learn the pump-flow, modulus and dead-volume "
                                  "factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
-    valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves' minimum opening (datasheet): shorter duties "
+    valve_min_on_ms: float = num(U.to_ms(DEFAULT_VALVE_MIN_ON), 0.0, 100.0, "ms", "the valves' minimum opening (datasheet): shorter duties "
                                  "are sent as pulses of this length often enough to pass them on average")
     calibration_std_floor: float = num(CalibrationSettings.handover_std_floor, 0.0, 1.0, "-", "smallest sigma of each factor the calibration hands "
                                        "the estimator (its fit's own assumes the model is the chamber)")

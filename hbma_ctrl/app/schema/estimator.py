@@ -24,6 +24,7 @@ from hbma_ctrl.app.schema.fields import (
 from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["EstimatorTable"]
@@ -52,10 +53,11 @@ class EstimatorTable(Table):
     compile: bool = flag(True, "compile the filter model to C")
     load_prior: Literal["unknown", "nominal"] = choice("unknown", "learn the load or start at the nominal")
     load_prior_rel_std: float = num(0.1, 0.0, 10.0, "-", "relative sigma of the nominal load prior")
-    membrane: Literal["cap", "exact"] = choice("cap", "the filter model's membrane law (README Model §9)")
-    valve_delay_ms: float = num(0.0, 0.0, U.to_ms(DELAY_MAX), "ms",
+    membrane: Literal["cap", "exact"] = choice(DEFAULT_MEMBRANE, "the filter model's membrane law (README Model §9)")
+    valve_delay_ms: float = num(U.to_ms(DEFAULT_VALVE_DELAY), 0.0, U.to_ms(DELAY_MAX), "ms",
                                 "the valves act this long after their command (datasheet)")
-    sensor_delay_ms: float = num(0.0, 0.0, U.to_ms(DELAY_MAX), "ms", "the pressure sensor reads this long late")
+    sensor_delay_ms: float = num(U.to_ms(DEFAULT_SENSOR_DELAY), 0.0, U.to_ms(DELAY_MAX), "ms",
+                                 "the pressure sensor reads this long late")
 
     def to_section(self) -> EstimatorSection:
         """The SI section; the tuning is checked against a default rig now, as before."""

@@ -22,7 +22,7 @@ class RigTable(Table):
     """[rig] in the user's units; :meth:`to_settings` gives the SI RigSettings."""
 
     fidelity: Literal["platform", "quasi_static"] = choice("platform", "plant model while a load is on")
-    membrane: Literal["exact", "cap"] = choice("cap", "membrane law, free and on the plate: exact "
+    membrane: Literal["exact", "cap"] = choice(RigSettings.membrane, "membrane law, free and on the plate: exact "
                                                 "(exact membrane tables) or cap (spherical cap)")
     modulus_scale: float = num(1.15, 0.2, 5.0, "-", "every modulus of the material times this")
     flow_scale: float = num(0.9, 0.0, 5.0, "-", "compressor map times this")
@@ -36,13 +36,14 @@ class RigTable(Table):
     dt_ms: float | None = num(None, 1e-4, 1000.0, "ms", "internal step, at most sample_period_ms; "
                               "default per fidelity", lo_open=True)
 
-    valve_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves act this long after their command "
-                                "(a small solenoid: 5)")
-    valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "shortest valve opening per PWM (sample) "
-                                 "period (a small solenoid: 2)")
-    compressor_tilt: float = num(0.0, -1.0, 1.0, "-", "pump flow times 1 - k (p / p_top - 1/2): "
-                                  "another shape (e.g. 0.2)")
-    sensor_tau_ms: float = num(0.0, 0.0, 1000.0, "ms", "first-order lag of the pressure sensor (e.g. 3)")
+    valve_delay_ms: float = num(U.to_ms(RigSettings.valve_delay), 0.0, 100.0, "ms",
+                                "the valves act this long after their command (a small solenoid)")
+    valve_min_on_ms: float = num(U.to_ms(RigSettings.valve_min_on), 0.0, 100.0, "ms",
+                                 "shortest valve opening per PWM (sample) period (a small solenoid)")
+    compressor_tilt: float = num(RigSettings.compressor_tilt, -1.0, 1.0, "-", "pump flow times "
+                                 "1 - k (p / p_top - 1/2): another shape (0 = the map's own)")
+    sensor_tau_ms: float = num(U.to_ms(RigSettings.sensor_tau), 0.0, 1000.0, "ms",
+                               "first-order lag of the pressure sensor (0 = none)")
 
     @model_validator(mode="after")
     def _dt(self) -> RigTable:
