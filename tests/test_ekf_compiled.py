@@ -186,3 +186,31 @@ def test_bench_ekf_rows_share_the_rig_runs_and_report_ratios():
     assert np.isfinite(f["filterpy"]["height_nrmsd"]) and f["filterpy"]["height_nrmsd"] < 0.5
     assert set(res["ratios"]) == {"ekf_reference_over_ekf_step_median", "filterpy_over_ekf_step_median"}
     assert all(v > 0 for v in res["ratios"].values())
+
+
+def test_bench_ekf_axes_add_rows_with_their_settings_and_the_pareto_reads_them(tmp_path):
+    """``substeps`` and ``membranes`` add an EKF and a UKF row per value other than the default's,
+    each scored on the same rig runs with its own settings; the estimator Pareto plot takes every row
+    (grouped by filter); bad values name the flag."""
+    import json
+
+    import pytest
+
+    from hbma_ctrl.app.bench_plots import estimator_points
+    from hbma_ctrl.app.cli_estimators import bench_ekf, parse_axes
+
+    res = bench_ekf({"loads_g": [400.0], "speeds_pct": [100.0], "t0_mm": [3.0], "r1_mm": [12.5]},
+                    filters=("ekf", "ukf"), substeps=(1, 2), membranes=("exact", "cap"))
+    f = res["filters"]
+    assert set(f) == {"ekf", "ukf", "ekf nsub=2", "ukf nsub=2", "ekf cap", "ukf cap"}
+    assert (f["ekf nsub=2"]["nsub"], f["ekf nsub=2"]["membrane"]) == (2, "exact")
+    assert (f["ukf cap"]["nsub"], f["ukf cap"]["membrane"]) == (1, "cap")
+    # on the default rig (the exact membrane) the cap's law costs accuracy
+    assert f["ekf cap"]["height_nrmsd"] > 2 * f["ekf"]["height_nrmsd"]
+    (tmp_path / "b.json").write_text(json.dumps(res))
+    pts, _ = estimator_points(tmp_path / "b.json")
+    assert {(p[1][0], p[0]) for p in pts} >= {("ekf", "nsub=2"), ("ukf", "cap")}
+    with pytest.raises(ValueError, match="--substeps"):
+        parse_axes("0,2", "cap")
+    with pytest.raises(ValueError, match="--membranes: 'plate'"):
+        parse_axes("1", "plate")

@@ -451,6 +451,29 @@ def plots(
     _console().print("wrote " + ", ".join(str(out / Path(p).name) for p in paths))
 
 
+def _role_benches(out: Path, con) -> list:
+    """``bench ekf`` and ``bench mpc`` on their defaults into ``out`` (bench_ekf.json, bench_mpc.json, as
+    those commands write them); their Pareto points for :func:`bench_sim`."""
+    import json
+
+    from hbma_ctrl.app import bench_plots
+    from hbma_ctrl.app.bench_mpc import run_bench as run_mpc
+    from hbma_ctrl.app.bench_mpc import write_bench
+    from hbma_ctrl.app.cli_controllers import MPC_VARIANTS
+    from hbma_ctrl.app.cli_estimators import BENCH_GRID, BENCH_MEMBRANES, BENCH_SUBSTEPS, bench_ekf
+
+    con.print("  bench ekf (EKF/UKF x sub-steps x membrane law) ...")
+    (out / "bench_ekf.json").write_text(json.dumps(bench_ekf(BENCH_GRID, substeps=BENCH_SUBSTEPS,
+                                                             membranes=BENCH_MEMBRANES), indent=1))
+    con.print("  bench mpc (IPOPT, fatrop, RTI x horizon, baselines, do-mpc) ...")
+    write_bench(run_mpc(variants=MPC_VARIANTS,
+                        progress=lambda name: con.print(f"    {name} ...")), out)
+    return [(bench_plots.estimator_points(out / "bench_ekf.json"), "pareto_estimator.png",
+             ("median filter step (us)", "height NRMSD")),
+            (bench_plots.controller_points(out / "bench_mpc.json"), "pareto_controller.png",
+             ("median solve time (ms)", "height RMSE (mm)"))]
+
+
 @bench_app.command("sim")
 def bench_sim(
     quick: Annotated[bool, typer.Option("--quick", help="8 trials and one step per integrator: a fast check")] = False,
@@ -467,6 +490,11 @@ def bench_sim(
                                                   "pareto_estimator.png (step time vs height NRMSD)")] = None,
     mpc_json: Annotated[Optional[Path], typer.Option("--mpc-json", help="a bench mpc result: also write "
                                                   "pareto_controller.png (solve time vs height RMSE)")] = None,
+    roles: Annotated[bool, typer.Option("--roles", help="also run bench ekf (EKF/UKF x sub-steps x membrane "
+                                                        "law) and bench mpc (IPOPT/fatrop/RTI x horizon, "
+                                                        "baselines, do-mpc when installed) on their defaults into "
+                                                        "--out and draw their Pareto plots: every role from one "
+                                                        "command (about 15 min)")] = False,
 ) -> None:
     """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference, and
     (fidelity axis) vs the exact membrane, with a Pareto plot (wall time vs NRMSD) beside bench.json."""
@@ -479,6 +507,8 @@ def bench_sim(
     _range("--repeat", repeat, 1, 100)
     from hbma_ctrl.app import bench_plots
 
+    if roles and (ekf_json is not None or mpc_json is not None):
+        _fail("--roles runs the estimator and controller benches itself: leave out --ekf-json and --mpc-json")
     # read before the long run: a bad file is one error line now
     role_plots = []
     for path, read, name, axes in (
@@ -503,6 +533,8 @@ def bench_sim(
     with run_dir(out, command="bench sim", argv=cli_argv(), overwrite=overwrite, carry=("ref_*.npz",)) as tmp:
         rows = run_bench(tmp, quick=quick, workers=workers, repeat=repeat, material=material, on_row=show,
                          fidelity_axis=fidelity_axis)
+        if roles:
+            role_plots = _role_benches(tmp, con)
         written = [bench_plots.pareto_png(pts, tmp / name, *axes, title).name for (pts, title), name, axes in role_plots]
     table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
                         f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")

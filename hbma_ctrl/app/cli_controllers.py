@@ -13,6 +13,9 @@ from rich.table import Table
 from hbma_ctrl.app.cli_args import cap_workers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 
+#: the variants ``bench mpc`` sweeps by default (x its horizons)
+MPC_VARIANTS = ("ipopt", "rti_osqp", "rti_c_osqp", "rti_fn_hpipm", "fatrop")
+
 __all__ = ["register"]
 
 
@@ -79,7 +82,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             "--scenario", "-s", help="scenario TOML with a controller section (default: the track_height "
                                      "setup: 400 g, steps 2 -> 8 -> 5 mm)")] = None,
         horizons: Annotated[str, typer.Option(help="comma-separated horizons")] = "10,20,40",
-        variants: Annotated[str, typer.Option(help="comma-separated MPC variants")] = "ipopt,rti_osqp,rti_c_osqp,rti_fn_hpipm,fatrop",
+        variants: Annotated[str, typer.Option(help="comma-separated MPC variants")] = ",".join(MPC_VARIANTS),
         dompc: Annotated[bool, typer.Option("--dompc/--no-dompc",
                                             help="also time do-mpc on the same OCP (N=20; extra 'bench')")] = True,
         baselines: Annotated[bool, typer.Option("--baselines/--no-baselines", help="PID and bang-bang rows")] = True,
