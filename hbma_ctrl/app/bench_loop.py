@@ -41,9 +41,9 @@ from hbma_ctrl.app.sections import ControllerSection
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.batch import quiet_worker
-from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings
 
 __all__ = ["CASES", "RIGS", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench", "loop_setup"]
