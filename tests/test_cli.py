@@ -90,8 +90,11 @@ def _one_line_error(res, *needles: str) -> None:
         (["bench", "loop", "--cases", "steps_40g"], ["--cases", "did you mean 'steps_400g'"]),
     ],
 )
-def test_bad_input_is_one_line_exit_2(args, needles):
+def test_bad_input_is_one_line_exit_2(args, needles, tmp_path, monkeypatch):
+    """One error line, exit 2, and nothing written (the default --out is relative to where it runs)."""
+    monkeypatch.chdir(tmp_path)
     _one_line_error(runner.invoke(app, args), *needles)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_bad_scenario_file_is_one_line(tmp_path):

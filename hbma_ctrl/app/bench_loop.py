@@ -46,7 +46,7 @@ from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.batch import quiet_worker
 from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings
 
-__all__ = ["CASES", "RIGS", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench", "loop_setup"]
+__all__ = ["CASES", "RIGS", "check_cases", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench", "loop_setup"]
 
 #: the truths the loop is judged on: the scalar-mismatch cap rig, or the structurally different one
 RIGS = ("cap", "structured")
@@ -124,6 +124,14 @@ def run_case(case: str, seed: int, setup: dict | None = None) -> dict:
     return row
 
 
+def check_cases(cases: list[str]) -> list[str]:
+    """The case names as given; ValueError naming ``--cases`` and the allowed names on an unknown one."""
+    for c in cases:
+        if c not in CASES:
+            raise ValueError(f"--cases: '{c}' is unknown{did_you_mean(c, CASES)}; allowed {', '.join(CASES)}")
+    return list(cases)
+
+
 def _run(args) -> dict:
     return run_case(*args)
 
@@ -133,10 +141,7 @@ def run_loop_bench(seeds: list[int], cases: list[str] | None = None, workers: in
     """Every case x seed (processes in parallel) on ``setup`` (:func:`loop_setup`); rows in case,
     seed order."""
     setup = setup or loop_setup()
-    cases = list(cases or CASES)
-    for c in cases:
-        if c not in CASES:
-            raise ValueError(f"--cases: '{c}' is unknown{did_you_mean(c, CASES)}; allowed {', '.join(CASES)}")
+    cases = check_cases(cases or list(CASES))
     jobs = [(c, s, setup) for c in cases for s in seeds]
     workers = max(1, min(int(workers), len(jobs), os.cpu_count() or 1))
     rows = []

@@ -46,7 +46,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                                                            "(default 0.08)")] = None,
     ) -> None:
         """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
-        from hbma_ctrl.app.bench_loop import loop_setup, run_loop_bench, summarize_loop, write_loop_bench
+        from hbma_ctrl.app.bench_loop import (check_cases, loop_setup, run_loop_bench, summarize_loop,
+                                              write_loop_bench)
 
         if not 1 <= seeds <= 100:
             raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
@@ -54,7 +55,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             raise ValueError(f"--workers = {workers} is out of range [1, 64]")
         workers = cap_workers("--workers", workers)
         con = Console(highlight=False, width=140)
-        cs = [c.strip() for c in cases.split(",") if c.strip()]
+        cs = check_cases([c.strip() for c in cases.split(",") if c.strip()])  # before --out is touched
         setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms, calibration_std_floor)
         with run_dir(out, command="bench loop", argv=cli_argv(), overwrite=overwrite) as tmp:
             rows = run_loop_bench(list(range(seeds)), cs, workers,
