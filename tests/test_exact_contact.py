@@ -163,6 +163,12 @@ def test_bench_sim_bad_role_json_is_one_error_line_exit_2(tmp_path):
         res = CliRunner().invoke(app, ["bench", "sim", "--quick", "--out", str(tmp_path / "o"), flag, str(path)])
         lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
         assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: " + needle), res.output
+    # --roles runs the role benches itself: a JSON beside it is refused before any work
+    res = CliRunner().invoke(app, ["bench", "sim", "--quick", "--roles", "--out", str(tmp_path / "o"), "--ekf-json",
+                                   str(tmp_path / "x.json")])
+    lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
+    assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: --roles runs"), res.output
+    assert not (tmp_path / "o").exists()
 
 
 def test_run_open_loop_scene_with_fidelity_exact_logs_the_exact_rung(tmp_path):

@@ -117,7 +117,9 @@ def estimator_points(bench_ekf_json: Path | str) -> tuple[list[tuple], str]:
     pts = []
     for name, m in filters.items():
         fam, _, sub = name.partition(" ")
-        pts.append((sub or name, (fam, ""), float(m.get("step_us_median", np.nan)), float(m.get("height_nrmsd", np.nan))))
+        # filterpy's row starts from each trial's true load (it has no lift-off logic): say so on the plot
+        label = (sub or name) + (" (told the load)" if fam == "filterpy" else "")
+        pts.append((label, (fam, ""), float(m.get("step_us_median", np.nan)), float(m.get("height_nrmsd", np.nan))))
     n = data.get("settings", {}).get("n_trials", "?")
     return pts, f"estimator: {Path(bench_ekf_json).name}, {n} trials"
 
