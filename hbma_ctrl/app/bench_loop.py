@@ -46,7 +46,8 @@ from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.batch import quiet_worker
 from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings
 
-__all__ = ["CASES", "RIGS", "check_cases", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench", "loop_setup"]
+__all__ = ["CASES", "RIGS", "check_cases", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench",
+           "loop_setup"]
 
 #: the truths the loop is judged on: the scalar-mismatch cap rig, or the structurally different one
 RIGS = ("cap", "structured")

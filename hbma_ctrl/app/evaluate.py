@@ -63,7 +63,8 @@ class FilterpyEKF:
     the same process noise and measurement variance, H = dp/dx and the predicted pressure from the
     same model, the same output map; filterpy's own predict and update (inverse of S, Joseph form).
     What it lacks is the EKF's own logic: no sticky rest or lift-off detector (the model decides
-    contact by the load state), no gate, no guards, no valve or sensor delays (the commands act at once). So that it can follow a load at all the load
+    contact by the load state), no gate, no guards, no valve or sensor delays (the commands act at
+    once). So that it can follow a load at all the load
     starts at the trial's nominal weight (known), one sigma 10 % + 0.01 N. Missing and out-of-range
     readings skip the update."""
 

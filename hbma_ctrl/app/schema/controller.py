@@ -96,7 +96,8 @@ class ControllerTable(Table):
     preview: bool | None = flag(None, "give the MPC the future targets; default: for ramps and sines")
     calibrate: bool = flag(True, "before the loop closes, learn the pump-flow, modulus and dead-volume "
                                  "factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
-    valve_min_on_ms: float = num(U.to_ms(DEFAULT_VALVE_MIN_ON), 0.0, 100.0, "ms", "the valves' minimum opening (datasheet): shorter duties "
+    valve_min_on_ms: float = num(U.to_ms(DEFAULT_VALVE_MIN_ON), 0.0, 100.0, "ms",
+                                 "the valves' minimum opening (datasheet): shorter duties "
                                  "are sent as pulses of this length often enough to pass them on average")
     calibration_std_floor: float = num(CalibrationSettings.handover_std_floor, 0.0, 1.0, "-", "smallest sigma of each factor the calibration hands "
                                        "the estimator (its fit's own assumes the model is the chamber)")

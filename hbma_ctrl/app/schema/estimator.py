@@ -53,7 +53,8 @@ class EstimatorTable(Table):
     compile: bool = flag(True, "compile the filter model to C")
     load_prior: Literal["unknown", "nominal"] = choice("unknown", "learn the load or start at the nominal")
     load_prior_rel_std: float = num(0.1, 0.0, 10.0, "-", "relative sigma of the nominal load prior")
-    membrane: Literal["cap", "exact"] = choice(DEFAULT_MEMBRANE, "the filter model's membrane law (README Model §9)")
+    membrane: Literal["cap", "exact"] = choice(DEFAULT_MEMBRANE,
+                                               "the filter model's membrane law (README Model §9)")
     valve_delay_ms: float = num(U.to_ms(DEFAULT_VALVE_DELAY), 0.0, U.to_ms(DELAY_MAX), "ms",
                                 "the valves act this long after their command (datasheet)")
     sensor_delay_ms: float = num(U.to_ms(DEFAULT_SENSOR_DELAY), 0.0, U.to_ms(DELAY_MAX), "ms",

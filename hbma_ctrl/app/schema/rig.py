@@ -22,8 +22,8 @@ class RigTable(Table):
     """[rig] in the user's units; :meth:`to_settings` gives the SI RigSettings."""
 
     fidelity: Literal["platform", "quasi_static"] = choice("platform", "plant model while a load is on")
-    membrane: Literal["exact", "cap"] = choice(RigSettings.membrane, "membrane law, free and on the plate: exact "
-                                                "(exact membrane tables) or cap (spherical cap)")
+    membrane: Literal["exact", "cap"] = choice(RigSettings.membrane, "membrane law, free and on the plate: "
+                                                "exact (exact membrane tables) or cap (spherical cap)")
     modulus_scale: float = num(1.15, 0.2, 5.0, "-", "every modulus of the material times this")
     flow_scale: float = num(0.9, 0.0, 5.0, "-", "compressor map times this")
     V0_scale: float = num(1.2, 0.2, 5.0, "-", "dead volume times this")
