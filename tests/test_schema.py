@@ -401,3 +401,33 @@ def test_bound_ends_in_user_units_pass_the_si_checks(name):
             except ValueError as exc:
                 assert not _SI_NAME.search(str(exc)), str(exc)
                 assert str(exc).startswith(f"[{name}"), str(exc)
+
+
+def test_table_defaults_are_the_settings_defaults_in_the_users_units():
+    """What a scenario gets for a key it leaves out is what the table documents: the rig's structure
+    (the structured rig), the filter's and the controller's membrane law and timing (the models'
+    datasheet defaults), in ms where the table speaks ms."""
+    from controllers.mpc_settings import MPCSettings
+    from estimators.common import FilterSettings
+    from hbma_ctrl.app.sections import ControllerSection
+    from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
+    from hbma_ctrl.sim.rig import STRUCTURED_RIG, RigSettings
+
+    rig = RigTable.model_fields
+    for key, field, scale in (("membrane", "membrane", None), ("valve_delay_ms", "valve_delay", 1e3),
+                              ("valve_min_on_ms", "valve_min_on", 1e3), ("compressor_tilt", "compressor_tilt", 1.0),
+                              ("sensor_tau_ms", "sensor_tau", 1e3)):
+        want = getattr(RigSettings(), field)
+        got = rig[key].default
+        assert (got == want) if scale is None else math.isclose(got, want * scale), key
+        assert want == STRUCTURED_RIG[field]
+    assert parse_role("rig", {}) == RigSettings()  # an empty [rig] table is the structured rig
+    est, fs = EstimatorTable.model_fields, FilterSettings()
+    assert est["membrane"].default == fs.membrane == DEFAULT_MEMBRANE
+    assert math.isclose(est["valve_delay_ms"].default, fs.valve_delay * 1e3)
+    assert math.isclose(est["sensor_delay_ms"].default, fs.sensor_delay * 1e3)
+    ctl = ControllerTable.model_fields
+    assert ctl["membrane"].default == MPCSettings().membrane == DEFAULT_MEMBRANE
+    assert math.isclose(ctl["valve_min_on_ms"].default, ControllerSection().valve_min_on * 1e3)
+    sec = parse_role("controller", {"targets_mm": [[0.0, 2.0]]})
+    assert sec.mpc.membrane == DEFAULT_MEMBRANE and sec.valve_min_on == ControllerSection().valve_min_on
