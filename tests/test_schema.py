@@ -137,8 +137,16 @@ def test_role_tables_give_the_replaced_parsers_objects(role, sections):
 
 
 def test_rig_table_gives_the_replaced_robot_rig_settings():
+    """The robot's keys give what the replaced parser gave; a key it used to ignore is now refused."""
+    from hbma_ctrl.app.schema.rig import ROBOT_RIG_KEYS
+
     for raw, expected in zip(RIG_SECTIONS, GOLDEN["robot_rig"], strict=True):
-        _same_as_golden(RigTable.model_validate(raw).to_robot_rig(), expected)
+        robot = {k: v for k, v in raw.items() if k in ROBOT_RIG_KEYS}
+        _same_as_golden(RigTable.model_validate(robot).to_robot_rig(), expected)
+        extra = [k for k in raw if k not in ROBOT_RIG_KEYS]
+        assert extra
+        with pytest.raises(ValueError, match=rf"\[rig\] {extra[0]}: a robot's rig does not take it"):
+            RigTable.model_validate(raw).to_robot_rig()
 
 
 def test_load_steps_are_one_type():

@@ -104,7 +104,17 @@ class ScenarioFile(Table):
                             "would hold only t = 0)", "sim")
         self._sim_sensor_used()
         self._limits_within_sensor()
+        self._robot_rig_keys()
         return self
+
+    def _robot_rig_keys(self) -> None:
+        """A [robot] scene's rig is the robot's: a single-chamber [rig] key it has no use for is refused
+        at load, not ignored during the run."""
+        if self.robot is None or self.rig is None:
+            return
+        why = self.rig.not_for_a_robot()
+        if why:
+            raise RuleError(why, "rig")
 
     def _sim_sensor_used(self) -> None:
         """[sim] sensor_range_kpa only reaches the open-loop plant and a closed loop without [rig]."""

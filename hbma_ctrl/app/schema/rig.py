@@ -63,10 +63,24 @@ class RigTable(Table):
         except ValueError as exc:  # a bound the table could not state (kept as a last guard)
             raise ValueError(f"[rig] {exc}") from None
 
+    def not_for_a_robot(self) -> str | None:
+        """The first key written that a robot's rig does not take, as an error text naming it and the
+        keys it takes; None when there is none."""
+        extra = [k for k in type(self).model_fields if k in self.model_fields_set and k not in ROBOT_RIG_KEYS]
+        if not extra:
+            return None
+        return (f"{extra[0]}: a robot's rig does not take it (its chambers are the cap with scalar mismatches); "
+                f"a robot's [rig] takes {', '.join(ROBOT_RIG_KEYS)}")
+
     def to_robot_rig(self) -> RobotRigSettings:
-        """The robot's rig: modulus_scale m becomes the spread |m - 1|, the rest as written."""
+        """The robot's rig: modulus_scale m becomes the spread |m - 1|, the rest as written. A key the
+        robot's rig does not have (its chambers are the cap with scalar mismatches: no membrane law,
+        valve timing, pump shape, sensor lag, range or dropouts of its own) is refused, not ignored."""
         if not self.model_fields_set:
             return RobotRigSettings()
+        why = self.not_for_a_robot()
+        if why:  # a scenario file is refused at load (ScenarioFile); this guards a table built alone
+            raise ValueError(f"[rig] {why}")
         r = self.to_settings()
         try:
             return RobotRigSettings(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0),
@@ -75,6 +89,9 @@ class RigTable(Table):
         except ValueError as exc:
             raise ValueError(f"[rig] {exc} (the robot's rig)") from None
 
+
+#: the [rig] keys a robot's rig takes (:meth:`RigTable.to_robot_rig`)
+ROBOT_RIG_KEYS = ("fidelity", "modulus_scale", "flow_scale", "V0_scale", "noise_std_kpa", "sample_period_ms", "seed")
 
 #: table key -> (RigSettings field, conversion from the user's unit)
 _SI = {
