@@ -111,3 +111,22 @@ def test_ekf_with_delays_is_the_ekf_fed_the_acting_commands():
         cmd = Command(0.8, 1.0, 0.0) if 5 <= k < 30 else Command(0.0, 0.0, 0.3 if k > 40 else 0.0)
         rig.apply(cmd)
     assert a.h > 1e-3  # the membrane did inflate
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.0, 0.1), st.floats(0.0, 0.1), st.lists(st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3),
+                                                         min_size=1, max_size=30))
+def test_timing_with_a_full_history_gives_acting_averages_value(valve_delay, sensor_delay, commands):
+    """The one-period step on a full history (precomputed weights) gives what acting_average gives for
+    the same commands, over the whole delay range, within rounding; the result stays within [0, 1]."""
+    tm = CommandTiming(T, valve_delay, sensor_delay)
+    hist: list = []
+    for k, c in enumerate(commands):
+        u = np.array(c)
+        got = tm.acting(u, 1 if k else 0)
+        want = u.copy()
+        if k and tm.active:
+            want[0] = acting_average([h[:1] for h in hist], u[:1], 1, T, sensor_delay)[0]
+            want[1:] = acting_average([h[1:] for h in hist], u[1:], 1, T, valve_delay + sensor_delay)
+        hist = (hist + [u])[-tm._keep:]
+        assert np.allclose(got, want, rtol=0, atol=1e-12) and np.all((got >= 0) & (got <= 1))
