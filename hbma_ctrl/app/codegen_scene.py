@@ -347,10 +347,7 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
         est = default_estimator(scn.actuator, scn.pneumatics, None, rs)
     if type(est).__name__ != "EKF":
         raise ValueError(f"codegen: [estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
-    s = est.settings
-    if s.valve_delay > 0 or s.sensor_delay > 0:
-        raise ValueError("codegen: [estimator] valve_delay_ms / sensor_delay_ms: the generated EKF takes the "
-                         "commands as acting at once; set both to 0 to generate C")
+    s = est.settings  # its delays are 0: scenario_loop refused any (_unsupported) before this
     fun = es.ekf_step_function(scn.actuator, scn.pneumatics, s)
     kind, out = _ekf_glue(s, physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel))
     e0 = est.step(0.0, z0, Command(0.0, 0.0, 0.0))
