@@ -20,6 +20,7 @@ import numpy as np
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.materials import Material
 from hbma_ctrl.models.fidelity import DynamicPlatform, Fidelity, FreeInflation, QuasiStatic, cap_law
+from hbma_ctrl.models.piecewise import PiecewiseCubic
 
 __all__ = ["EXACT_X_MAX", "exact_free_table", "ExactFreeInflation", "make_exact_free", "exact_contact_table",
            "ExactQuasiStatic", "ExactPlatform", "make_exact_loaded", "make_exact"]
@@ -56,7 +57,7 @@ class ExactFreeInflation(FreeInflation):
     """Free inflation with the exact axisymmetric membrane (:mod:`hbma_ctrl.models.exact`): x = [h1].
 
     h1 is the apex height (m). p(h1) = mu t0 / r1 Pn(h1 / r1) and V = V0 + r1^3 vn(h1 / r1) come from
-    bspline interpolants of :func:`exact_free_table` (mu = Q(1)/12, symbolic in theta), replacing the
+    cubic-spline interpolants of :func:`exact_free_table` (mu = Q(1)/12, symbolic in theta), replacing the
     cap's closed forms; the gas law G = (p + p_env) V = m R T and h1' = q R T / (dG/dh1) are unchanged.
     ``lam`` is the pole stretch. The name stays 'free' (the simulator's hybrid logic and steps are
     those of free inflation); ``membrane`` tells the two apart. Beyond ``x_max`` r1 the cap's law, scaled to meet the table.
@@ -68,9 +69,9 @@ class ExactFreeInflation(FreeInflation):
         super().__init__(material, compressor_csv)
         x = np.asarray(table["x"], dtype=float)
         self.x_max = float(x[-1])
-        self._Pn = ca.interpolant("exact_Pn", "bspline", [x], np.asarray(table["Pn"], dtype=float))
-        self._vn = ca.interpolant("exact_vn", "bspline", [x], np.asarray(table["vn"], dtype=float))
-        self._lam = ca.interpolant("exact_lam0", "bspline", [x], np.asarray(table["lam0"], dtype=float))
+        # the bsplines as their piecewise polynomials (:mod:`hbma_ctrl.models.piecewise`): the same
+        # values, derivatives without interpolant calls
+        self._free = PiecewiseCubic("exact_free", [x], [table["Pn"], table["vn"], table["lam0"]])
 
     def law(self, h1, P) -> tuple:
         """Exact p (Pa), membrane volume above the clamp (m^3) and pole stretch at apex height h1 (m).
@@ -91,11 +92,14 @@ class ExactFreeInflation(FreeInflation):
         xm = self.x_max
         hm = xm * r1
         scale = mu * t0 / r1
-        p_tab, v_tab, l_tab = scale * self._Pn(x), r1**3 * self._vn(x), self._lam(x)
+        # (x clamped to the table for the lookup: past its end the cap's branch below is taken)
+        pn, vn, ln = self._free(ca.fmin(x, xm))
+        p_tab, v_tab, l_tab = scale * pn, r1**3 * vn, ln
+        pm, vm, lm = (float(v) for v in self._free(ca.DM(xm)))
         gm, g = ph.geometry(hm, 0, P), ph.geometry(h, 0, P)
-        p_cap = ph.pressure(h, 0, P) * scale * self._Pn(xm) / ph.pressure(hm, 0, P)
-        v_cap = (g["V"] - P["V0"]) * r1**3 * self._vn(xm) / (gm["V"] - P["V0"])
-        l_cap = g["lam"] * self._lam(xm) / gm["lam"]
+        p_cap = ph.pressure(h, 0, P) * scale * pm / ph.pressure(hm, 0, P)
+        v_cap = (g["V"] - P["V0"]) * r1**3 * vm / (gm["V"] - P["V0"])
+        l_cap = g["lam"] * lm / gm["lam"]
         beyond = x > xm
         return (sgn * ca.if_else(beyond, p_cap, p_tab), sgn * ca.if_else(beyond, v_cap, v_tab),
                 ca.if_else(beyond, l_cap, l_tab))
@@ -157,7 +161,7 @@ def exact_contact_table(material: Material) -> dict:
 class _ExactContact:
     """The exact membrane's law in the cap's chart (mixed into the loaded fidelities).
 
-    p = Rp(u, s) p_cap(h1, h2) and V = V0 + Rv(u, s) (V_cap - V0), with bspline interpolants of
+    p = Rp(u, s) p_cap(h1, h2) and V = V0 + Rv(u, s) (V_cap - V0), with cubic-spline interpolants of
     :func:`exact_contact_table` over u = h1/r1 and sqrt(s), s = h2/h1 (the ratios are smooth in the
     contact radius, which grows like sqrt(h2)); the contact radius is the cap's, so F = p pi a^2 and
     F -> 0 as the plate leaves (s -> 0, the exact free inflation). Outside the table (u < 0.05 or
@@ -171,10 +175,10 @@ class _ExactContact:
         u = np.asarray(table["u"], dtype=float)
         sig = np.sqrt(np.asarray(table["s"], dtype=float))
         self._lims = (float(u[0]), float(u[-1]), float(sig[-1]))
-        grid = [u, sig]
-        self._Rp = ca.interpolant("exact_Rp", "bspline", grid, np.asarray(table["Rp"]).ravel(order="F"))
-        self._Rv = ca.interpolant("exact_Rv", "bspline", grid, np.asarray(table["Rv"]).ravel(order="F"))
-        self._L = ca.interpolant("exact_L", "bspline", grid, np.asarray(table["lam0"]).ravel(order="F"))
+        # the bsplines as their piecewise polynomials: one inline evaluation gives all three ratios,
+        # and the roles' Jacobians differentiate arithmetic, not interpolant calls (a fifth of the
+        # exact EKF step's cost; :mod:`hbma_ctrl.models.piecewise`)
+        self._ratios = PiecewiseCubic("exact_ratios", [u, sig], [table["Rp"], table["Rv"], table["lam0"]])
 
     def _coords(self, h1, h2, P):
         r1 = P["r1"]
@@ -188,14 +192,14 @@ class _ExactContact:
     def contact_law(self, h1, h2, P) -> tuple:
         """Exact p (Pa), V (m^3), plate stretch (-) and the cap's a2 (m^2) at chart (h1, h2) (m)."""
         p_cap, V_cap, _, a2 = cap_law(h1, h2, P)
-        c = self._coords(h1, h2, P)
-        return (self._Rp(c) * p_cap, P["V0"] + self._Rv(c) * (V_cap - P["V0"]), self._L(c), a2)
+        rp, rv, lam = self._ratios(self._coords(h1, h2, P))
+        return (rp * p_cap, P["V0"] + rv * (V_cap - P["V0"]), lam, a2)
 
     def flat_h1(self, p, P):
         """The chart's flat point at pressure p: the cap's, corrected by the ratio at the flat edge."""
         h = ph.flat_h1_from_pressure(p, P)
         for _ in range(2):
-            h = ph.flat_h1_from_pressure(p / self._Rp(self._coords(h, h, P)), P)
+            h = ph.flat_h1_from_pressure(p / self._ratios(self._coords(h, h, P))[0], P)
         return h
 
 
