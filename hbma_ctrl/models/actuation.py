@@ -90,8 +90,10 @@ class CommandTiming:
         # one period (k = 1) with the history full, every step after the first few: the command acting is
         # a fixed weighted mean of the last keep + 1 commands sent, so its weights are computed once
         # (acting_average on unit commands); the Python loop cost a third of an EKF step
-        self._w = np.vstack([self._weights(self.speed_delay), *[self._weights(self.valve_delay)] * 2]).T
-        self._on = self._w > 0.0
+        # (plain floats: on three components and a few commands numpy's per-call cost is most of it)
+        w = np.vstack([self._weights(self.speed_delay), *[self._weights(self.valve_delay)] * 2]).T
+        self._w = [tuple(float(v) for v in col) for col in w.T]  # per component, oldest command first
+        self._on = [tuple(i for i in range(w.shape[0]) if w[i, j] > 0.0) for j in range(3)]
 
     def _weights(self, delay: float) -> np.ndarray:
         """acting_average's weight of each of the last keep + 1 commands (oldest first) for k = 1."""
@@ -106,22 +108,32 @@ class CommandTiming:
 
     def acting(self, u, k: int = 1) -> np.ndarray:
         """The command acting, averaged over the last k periods, for ``u`` held over them."""
-        u = np.asarray(u, dtype=float).reshape(3)
+        u = np.array(u, dtype=float).reshape(3)  # a copy: kept in the history
         if not self.active:
-            return u.copy()
+            return u
         if k == 1 and len(self._hist) == self._keep:
-            H = np.vstack(self._hist + [u])
-            # the weighted mean, clipped to the commands it weighs (rounding must not put one past 1)
-            out = np.clip(np.einsum("ij,ij->j", self._w, H), np.where(self._on, H, np.inf).min(axis=0),
-                          np.where(self._on, H, -np.inf).max(axis=0))
-            self._hist = self._hist[1:] + [u]
-            return out
+            H = self._hist + [u.tolist()]
+            for j in range(3):
+                v = 0.0
+                for wi, h in zip(self._w[j], H):
+                    v += wi * h[j]
+                # the weighted mean, clipped to the commands it weighs (rounding must not put one past 1)
+                lo = hi = H[self._on[j][0]][j]
+                for i in self._on[j]:
+                    x = H[i][j]
+                    if x < lo:
+                        lo = x
+                    elif x > hi:
+                        hi = x
+                u[j] = lo if v < lo else (hi if v > hi else v)
+            self._hist = self._hist[1:] + [H[-1]]
+            return u
         out = u.copy()
         if k > 0:
             out[0] = acting_average([h[:1] for h in self._hist], u[:1], k, self.period, self.speed_delay)[0]
             out[1:] = acting_average([h[1:] for h in self._hist], u[1:], k, self.period, self.valve_delay)
         n = min(int(k), self._keep) if k > 0 else 1
-        self._hist = (self._hist + [u] * n)[-self._keep:]
+        self._hist = (self._hist + [u.tolist()] * n)[-self._keep:]
         return out
 
     def reset(self) -> None:
