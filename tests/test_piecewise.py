@@ -73,3 +73,13 @@ def test_more_than_two_coordinates_is_refused():
     g = np.linspace(0, 1, 4)
     with pytest.raises(ValueError, match="1 or 2 coordinates"):
         PiecewiseCubic("t", [g, g, g], [np.zeros((4, 4, 4))])
+
+
+def test_zero_outside_the_grid_as_the_bspline():
+    g1, g2 = np.linspace(0, 1, 5), np.linspace(-1, 2, 4)
+    V = np.add.outer(g1**2, np.cos(g2)) + 3.0
+    pw = PiecewiseCubic("t", [g1, g2], [V])
+    outside = [(-0.01, 0.5), (1.01, 0.5), (0.5, -1.2), (0.5, 2.5)]
+    for c in outside:
+        assert float(pw(ca.DM(c))[0]) == 0.0 == float(pw.splines[0](c))
+    assert float(pw(ca.DM([1.0, 2.0]))[0]) == pytest.approx(float(pw.splines[0]([1.0, 2.0])), rel=1e-11)

@@ -11,7 +11,7 @@ with one linear-interpolant lookup at the cell's integer index (constant on the 
 algorithmic differentiation passes into it are zero). The polynomial itself is plain arithmetic in
 the caller's expression graph: derivatives of any order are inline.
 
-Inputs must lie on the grid (clamp them first, as for the spline, which is zero outside it).
+Outside the grid the value is zero, as the spline's (callers clamp where they need a value there).
 """
 
 from __future__ import annotations
@@ -49,20 +49,20 @@ class PiecewiseCubic:
         cells = [g.size - 1 for g in self.grid]
         n_cells = int(np.prod(cells))
         nc = 4 ** self.dim
+        # every cell's 4^d sample points at once (cell k = row-major multi-index, as itertools.product)
+        lo = np.array(np.meshgrid(*[g[:-1] for g in self.grid], indexing="ij")).reshape(self.dim, -1)
+        w = np.array(np.meshgrid(*[np.diff(g) for g in self.grid], indexing="ij")).reshape(self.dim, -1)
+        loc = np.array(list(itertools.product(_NODES, repeat=self.dim))).T  # (dim, nc)
+        pts = (lo[:, :, None] + w[:, :, None] * loc[:, None, :]).reshape(self.dim, -1)
+        vinv = np.linalg.inv(np.vander(_NODES, 4, increasing=True))
         # per cell: its origin and inverse width per coordinate, then each output's coefficients
         rows = np.zeros((n_cells, 2 * self.dim + nc * len(vals)))
-        vinv = np.linalg.inv(np.vander(_NODES, 4, increasing=True))
-        for k, idx in enumerate(itertools.product(*(range(c) for c in cells))):
-            lo = [g[i] for g, i in zip(self.grid, idx)]
-            w = [g[i + 1] - g[i] for g, i in zip(self.grid, idx)]
-            pts = np.array(list(itertools.product(*(lo_ + _NODES * w_ for lo_, w_ in zip(lo, w))))).T
-            for d in range(self.dim):
-                rows[k, 2 * d], rows[k, 2 * d + 1] = lo[d], 1.0 / w[d]
-            for j, sp in enumerate(self.splines):
-                f = np.asarray(sp.map(pts.shape[1])(pts)).reshape((4,) * self.dim)
-                # f[a, b] = sum_ij C[i, j] x_a^i y_b^j  ->  C = V^-1 f V^-T
-                coef = vinv @ f if self.dim == 1 else vinv @ f @ vinv.T
-                rows[k, 2 * self.dim + j * nc:2 * self.dim + (j + 1) * nc] = coef.ravel()
+        rows[:, 0:2 * self.dim:2], rows[:, 1:2 * self.dim:2] = lo.T, 1.0 / w.T
+        for j, sp in enumerate(self.splines):
+            f = np.asarray(sp.map(pts.shape[1])(pts)).reshape((n_cells,) + (4,) * self.dim)
+            # f[a, b] = sum_ij C[i, j] x_a^i y_b^j  ->  C = V^-1 f V^-T, per cell
+            coef = f @ vinv.T if self.dim == 1 else np.einsum("ia,kab,jb->kij", vinv, f, vinv)
+            rows[:, 2 * self.dim + j * nc:2 * self.dim + (j + 1) * nc] = coef.reshape(n_cells, nc)
         # cell k of the multi-index (i, j) is i * cells[1] + j: row-major, as itertools.product
         self._strides = [int(np.prod(cells[d + 1:])) for d in range(self.dim)]
         self._n_out = len(vals)
@@ -71,13 +71,19 @@ class PiecewiseCubic:
         self._check(name)
 
     def cell(self, c):
-        """The flat index of the cell holding c (expression; its derivative is zero)."""
+        """The flat index of the cell holding c (expression; its derivative is zero): on an evenly
+        spaced coordinate by one floor, otherwise by one comparison per interior node."""
         k = 0
         for d in range(self.dim):
             g = self.grid[d]
-            i = 0
-            for gi in g[1:-1]:
-                i = i + (c[d] >= gi)
+            step = np.diff(g)
+            if np.allclose(step, step[0], rtol=1e-12, atol=0):
+                # a node may land in the cell below by rounding: the two polynomials meet there (C2)
+                i = ca.fmin(ca.fmax(ca.floor((c[d] - g[0]) / step[0]), 0), g.size - 2)
+            else:
+                i = 0
+                for gi in g[1:-1]:
+                    i = i + (c[d] >= gi)
             k = k + self._strides[d] * i
         return k
 
@@ -85,17 +91,22 @@ class PiecewiseCubic:
         """The outputs at coordinates c (column of 1 or 2 entries, on the grid)."""
         row = self._lookup(self.cell(c))
         loc = [(c[d] - row[2 * d]) * row[2 * d + 1] for d in range(self.dim)]
+        # zero outside the grid, as the bspline it replaces (callers that need a value there clamp)
+        inside = 1
+        for d in range(self.dim):
+            inside = inside * (c[d] >= self.grid[d][0]) * (c[d] <= self.grid[d][-1])
         nc, off = 4 ** self.dim, 2 * self.dim
         out = []
         for j in range(self._n_out):
             C = [row[off + j * nc + i] for i in range(nc)]
             if self.dim == 1:
-                out.append(C[0] + loc[0] * (C[1] + loc[0] * (C[2] + loc[0] * C[3])))
+                v = C[0] + loc[0] * (C[1] + loc[0] * (C[2] + loc[0] * C[3]))
             else:
                 a, b = loc
                 # Horner in a of polynomials in b (C[4 i + j] multiplies a^i b^j)
                 rows_b = [C[4 * i] + b * (C[4 * i + 1] + b * (C[4 * i + 2] + b * C[4 * i + 3])) for i in range(4)]
-                out.append(rows_b[0] + a * (rows_b[1] + a * (rows_b[2] + a * rows_b[3])))
+                v = rows_b[0] + a * (rows_b[1] + a * (rows_b[2] + a * rows_b[3]))
+            out.append(ca.if_else(inside, v, 0))
         return out
 
     def _check(self, name: str) -> None:
