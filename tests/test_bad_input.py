@@ -239,10 +239,10 @@ def test_robot_mpc_w_slack_out_of_range_names_the_key_and_range(tmp_path):
                     "[0, 1e+06] 1/kPa")
 
 
-@pytest.mark.parametrize("key", ["membrane = 'exact'", "valve_delay_ms = 5.0", "sensor_tau_ms = 3.0"])
+@pytest.mark.parametrize("key", ["membrane = 'exact'", "sensor_range_kpa = 40.0", "dropout_prob = 0.1"])
 def test_robot_rig_key_the_robot_does_not_have_is_refused_not_ignored(tmp_path, key):
-    """The robot's rig is the cap with scalar mismatches: a single-chamber [rig] key it has no use for
-    is one error naming it and the keys it takes, before any work."""
+    """The robot's rig is the cap, its sensors' range set by [robot]: a single-chamber [rig] key it has
+    no use for is one error naming it and the keys it takes, before any work."""
     body = ("[robot]\nmode = 'closed_loop'\nlayers = 1\n[robot.targets]\nall = [[0.0, 6.0, 0.0, 0.0]]\n"
             f"[rig]\nseed = 1\n{key}\n")
     _one_line_error(_run_file(tmp_path, body, "robot.toml"), "robot.toml", f"[rig] {key.split(' ')[0]}",

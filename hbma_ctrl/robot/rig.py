@@ -11,6 +11,13 @@ the "truth": every chamber of the robot is the ``platform`` fidelity
   at the robot's sensor range (50 kPa). Shared compressor: the pump's flow is split among the open
   inlets by their duties; if the duties sum to more than 1 each chamber gets its duty / sum (the
   manifold model the NMPC's coupling row respects).
+
+The single chamber's structural mismatches (:class:`hbma_ctrl.sim.rig.RigSettings`), off by default
+(the claims in README Robot were measured without them): ``valve_delay`` and ``valve_min_on`` (every
+chamber's valves, :class:`hbma_ctrl.sim.rig.ValveLine`: the plant then advances in its internal steps
+with the valves as they act at each), ``compressor_tilt`` (every chamber's pump map, or the shared
+one's, tilted with back pressure) and ``sensor_tau`` (each sensor's first-order lag). The membrane stays
+the cap: the robot's chambers run to about 4 r1 on their far branch, past the exact tables' reach.
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
-from hbma_ctrl.sim.rig import CAP_RIG, RigSettings, mismatched
+from hbma_ctrl.sim.rig import CAP_RIG, RigSettings, ValveLine, mismatched
 from hbma_ctrl.sim.simulate import Plant
 
 H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
@@ -37,7 +44,9 @@ class RobotRigSettings:
     chamber carries its share of the layers as a moving mass with damping ``damping`` N s/m, the
     higher-fidelity truth) or 'quasi_static' (dead load, as the controller assumes). modulus_spread: chambers alternate modulus
     x(1 + spread), x(1 - spread); flow_scale, V0_scale: as :class:`hbma_ctrl.sim.rig.RigSettings`;
-    noise_std Pa; sample_period s; seed; dt: internal rk4 step (s)."""
+    noise_std Pa; sample_period s; seed; dt: internal rk4 step (s); valve_delay, valve_min_on (s),
+    compressor_tilt (-), sensor_tau (s): the structural mismatches of
+    :class:`hbma_ctrl.sim.rig.RigSettings`, with its bounds, default off (module docstring)."""
 
     fidelity: str = "platform"
     damping: float = 0.5
@@ -48,6 +57,10 @@ class RobotRigSettings:
     sample_period: float = 0.01
     seed: int = 0
     dt: float | None = None
+    valve_delay: float = 0.0
+    valve_min_on: float = 0.0
+    compressor_tilt: float = 0.0
+    sensor_tau: float = 0.0
 
     def validate(self) -> "RobotRigSettings":
         if self.fidelity not in ("platform", "quasi_static"):
@@ -62,7 +75,19 @@ class RobotRigSettings:
             check_range("robot rig", "dt", self.dt, 1e-5, self.sample_period, "s")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"robot rig.seed = {self.seed!r} must be an integer >= 0")
+        check_range("robot rig", "valve_delay", self.valve_delay, 0.0, 0.1, "s")
+        check_range("robot rig", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
+        check_range("robot rig", "compressor_tilt", self.compressor_tilt, -1.0, 1.0)
+        check_range("robot rig", "sensor_tau", self.sensor_tau, 0.0, 1.0, "s")
+        self.chamber_rig()  # the chamber rig's cross-checks (e.g. the minimum opening within a period)
         return self
+
+    def chamber_rig(self, modulus_scale: float = 1.0) -> RigSettings:
+        """One chamber's :class:`RigSettings` (the cap, these mismatches and structure)."""
+        return RigSettings(fidelity=self.fidelity, modulus_scale=modulus_scale, flow_scale=self.flow_scale,
+                           V0_scale=self.V0_scale, noise_std=self.noise_std, sample_period=self.sample_period,
+                           **{**CAP_RIG, "valve_delay": self.valve_delay, "valve_min_on": self.valve_min_on,
+                              "compressor_tilt": self.compressor_tilt, "sensor_tau": self.sensor_tau}).validate()
 
 
 class RobotRig:
@@ -80,10 +105,8 @@ class RobotRig:
         fid = None
         for i in range(self.n):
             sign = 1.0 if i % 2 == 0 else -1.0
-            # the robot's chambers are the cap with scalar mismatches (its rig has no exact membrane,
-            # valve timing or pump shape yet, README Robot), whatever the single-chamber rig's defaults
-            rs = RigSettings(fidelity=self.s.fidelity, modulus_scale=1.0 + sign * self.s.modulus_spread,
-                             flow_scale=self.s.flow_scale, V0_scale=self.s.V0_scale, **CAP_RIG)
+            # the robot's chambers are the cap (module docstring), whatever the single-chamber rig's defaults
+            rs = self.s.chamber_rig(1.0 + sign * self.s.modulus_spread)
             act, pn = mismatched(design.chamber, pneumatics, rs)
             if fid is None:
                 fid = make_fidelity(self.s.fidelity, act.material, str(pn.csv_path))
@@ -95,6 +118,9 @@ class RobotRig:
         self.plant = Plant(fid, np.column_stack(thetas), "rk4", dt)
         self._rng = np.random.default_rng(self.s.seed)
         self.design_g = 9.80665
+        self._timing = self.s.chamber_rig()  # the valve line and sensor lag (the same for every chamber)
+        self._valves = ValveLine(self._timing, self.n) if self.s.valve_delay > 0 or self.s.valve_min_on > 0 else None
+        self._p_sensed = self._p_prev = self.plant.output("p").copy()  # lagged sensor state, true p, Pa
         self._update_loads()
 
     @property
@@ -123,16 +149,31 @@ class RobotRig:
     def apply(self, Ucmd: np.ndarray) -> None:
         """Hold the inputs (3 x n) for one sample period, then update the loads from the true heights."""
         Ucmd = np.array(Ucmd, dtype=float).reshape(3, self.n)
-        if self.topology == "shared":
-            tot = Ucmd[1].sum()
-            if tot > 1.0:
-                Ucmd[1] = Ucmd[1] / tot
-        self.plant.advance(Ucmd, self.s.sample_period)
+        if self._valves is None:
+            self.plant.advance(self._manifold(Ucmd), self.s.sample_period)
+        else:
+            t0 = self.plant.t
+            self._valves.send(t0, Ucmd)
+            dt = self.plant.dt
+            for j in range(max(1, int(round(self.s.sample_period / dt)))):
+                self.plant.advance(self._manifold(self._valves.at(t0 + j * dt)), dt)
+        p_now = self.plant.output("p").copy()
+        self._p_sensed = self._timing.sense(self._p_sensed, self._p_prev, p_now)
+        self._p_prev = p_now
         self._update_loads()
 
+    def _manifold(self, U: np.ndarray) -> np.ndarray:
+        """The inlets' duties as the shared pump's flow splits among them (duty / sum when above 1)."""
+        if self.topology == "shared":
+            tot = U[1].sum()
+            if tot > 1.0:
+                U = U.copy()
+                U[1] = U[1] / tot
+        return U
+
     def measure(self) -> np.ndarray:
-        """Pressure readings (n,), Pa: truth + noise, saturated at the sensor range."""
-        p = self.plant.output("p") + self.s.noise_std * self._rng.standard_normal(self.n)
+        """Pressure readings (n,), Pa: truth (through the sensor's lag) + noise, saturated at the sensor range."""
+        p = self._p_sensed + self.s.noise_std * self._rng.standard_normal(self.n)
         return np.minimum(p, self.sensor_range)
 
     def truth(self) -> dict:

@@ -48,7 +48,7 @@ from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
 
-__all__ = ["RigSettings", "Rig", "RigRecord", "mismatched", "simulate_rig", "tilted_map",
+__all__ = ["RigSettings", "Rig", "RigRecord", "ValveLine", "mismatched", "simulate_rig", "tilted_map",
            "TRUTH_KEYS", "IDEAL_STRUCTURE", "STRUCTURED_RIG", "CAP_RIG"]
 
 #: RigSettings keywords that switch the structural mismatches off (a rig with the model's structure:
@@ -224,7 +224,7 @@ def tilted_map(csv_path: Path | str, tilt: float) -> Path:
     return out
 
 
-class _ValveLine:
+class ValveLine:
     """Commands as the valves see them: shaped (minimum on-time) and delayed by ``valve_delay``."""
 
     def __init__(self, s: RigSettings, n: int = 1):
@@ -272,7 +272,7 @@ class Rig:
         self.events: list = []
         self._plant = self._new_plant(platform)
         self._t_plant0 = 0.0  # rig time at which the current plant's clock started
-        self._valves = _ValveLine(self.settings)
+        self._valves = ValveLine(self.settings)
         self._p_sensed = self._p_prev = float(self._plant.output("p")[0])  # lagged sensor state, true p, Pa
 
     # --- plant bookkeeping ------------------------------------------------------------------
@@ -461,7 +461,7 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
         n = len(idx)
         Y = np.zeros((K, len(OUTPUTS), n))
         Ucols = np.zeros((K, 3, n))
-        valves = _ValveLine(s, n)
+        valves = ValveLine(s, n)
         for k in range(K):
             t = k * s.sample_period
             U = np.column_stack([trials[i].schedule.at(t + 0.5 * s.sample_period) for i in idx])

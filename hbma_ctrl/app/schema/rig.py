@@ -69,29 +69,34 @@ class RigTable(Table):
         extra = [k for k in type(self).model_fields if k in self.model_fields_set and k not in ROBOT_RIG_KEYS]
         if not extra:
             return None
-        return (f"{extra[0]}: a robot's rig does not take it (its chambers are the cap with scalar mismatches); "
-                f"a robot's [rig] takes {', '.join(ROBOT_RIG_KEYS)}")
+        return (f"{extra[0]}: a robot's rig does not take it (its chambers are the cap, with the sensors' range "
+                f"of [robot]); a robot's [rig] takes {', '.join(ROBOT_RIG_KEYS)}")
 
     def to_robot_rig(self) -> RobotRigSettings:
-        """The robot's rig: modulus_scale m becomes the spread |m - 1|, the rest as written. A key the
-        robot's rig does not have (its chambers are the cap with scalar mismatches: no membrane law,
-        valve timing, pump shape, sensor lag, range or dropouts of its own) is refused, not ignored."""
+        """The robot's rig: modulus_scale m becomes the spread |m - 1|, the rest as written; the
+        structural mismatches (valve timing, pump tilt, sensor lag) are off unless written, unlike a
+        chamber's rig. A key the robot's rig does not have (its chambers are the cap: no membrane law, range or
+        dropouts of its own) is refused, not ignored."""
         if not self.model_fields_set:
             return RobotRigSettings()
         why = self.not_for_a_robot()
         if why:  # a scenario file is refused at load (ScenarioFile); this guards a table built alone
             raise ValueError(f"[rig] {why}")
         r = self.to_settings()
+        # the structural mismatches only where written: a robot's default rig has none
+        si = self._si()
+        kw = {k: si[k] for k in ("valve_delay", "valve_min_on", "compressor_tilt", "sensor_tau") if k in si}
+        kw.update(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0), flow_scale=r.flow_scale,
+                  V0_scale=r.V0_scale, noise_std=r.noise_std, sample_period=r.sample_period, seed=r.seed)
         try:
-            return RobotRigSettings(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0),
-                                    flow_scale=r.flow_scale, V0_scale=r.V0_scale, noise_std=r.noise_std,
-                                    sample_period=r.sample_period, seed=r.seed).validate()
+            return RobotRigSettings(**kw).validate()
         except ValueError as exc:
             raise ValueError(f"[rig] {exc} (the robot's rig)") from None
 
 
 #: the [rig] keys a robot's rig takes (:meth:`RigTable.to_robot_rig`)
-ROBOT_RIG_KEYS = ("fidelity", "modulus_scale", "flow_scale", "V0_scale", "noise_std_kpa", "sample_period_ms", "seed")
+ROBOT_RIG_KEYS = ("fidelity", "modulus_scale", "flow_scale", "V0_scale", "noise_std_kpa", "sample_period_ms", "seed",
+                  "valve_delay_ms", "valve_min_on_ms", "compressor_tilt", "sensor_tau_ms")
 
 #: table key -> (RigSettings field, conversion from the user's unit)
 _SI = {

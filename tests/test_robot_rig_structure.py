@@ -1,0 +1,77 @@
+"""The robot rig's structural mismatches (valve delay, minimum opening, pump tilt, sensor lag):
+off by default, each acting on every chamber as the single chamber's rig does when set, and the
+scenario [rig] keys that set them for a robot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hbma_ctrl.app.schema.rig import RigTable
+from hbma_ctrl.core.params import Pneumatics
+from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
+
+D1 = RobotDesign(n_layers=1)
+
+
+def _rig(**kw) -> RobotRig:
+    kw.setdefault("noise_std", 0.0)
+    return RobotRig(D1, Pneumatics(), 50e3, "per_chamber", RobotRigSettings(fidelity="quasi_static", **kw))
+
+
+def _mass_gain(rig: RobotRig, inlet: float, periods: int = 1) -> np.ndarray:
+    m0 = rig.truth()["m"].copy()
+    U = np.vstack([np.ones(rig.n), np.full(rig.n, inlet), np.zeros(rig.n)])
+    for _ in range(periods):
+        rig.apply(U)
+    return rig.truth()["m"] - m0
+
+
+def test_structure_is_off_by_default():
+    s = RobotRigSettings()
+    assert (s.valve_delay, s.valve_min_on, s.compressor_tilt, s.sensor_tau) == (0.0, 0.0, 0.0, 0.0)
+    assert _rig()._valves is None
+
+
+def test_a_5ms_valve_delay_halves_the_first_periods_inflow_then_it_catches_up():
+    plain, late = _mass_gain(_rig(), 1.0), _mass_gain(_rig(valve_delay=0.005), 1.0)
+    ratio = late / plain
+    assert np.all((ratio > 0.4) & (ratio < 0.6))  # open for 5 of the 10 ms
+    # afterwards the valve is open all period in both: the same inflow per period (within the
+    # pressure the early one has built up)
+    r2 = _mass_gain(_rig(valve_delay=0.005), 1.0, 3) / _mass_gain(_rig(), 1.0, 3)
+    assert np.all(r2 > ratio + 0.2)
+
+
+def test_minimum_opening_shuts_a_short_pulse_and_lengthens_a_longer_one():
+    assert np.allclose(_mass_gain(_rig(valve_min_on=0.002), 0.05), 0.0)  # 0.5 ms < half of 2 ms
+    lengthened = _mass_gain(_rig(valve_min_on=0.002), 0.15)  # 1.5 ms -> 2 ms
+    assert np.allclose(lengthened, _mass_gain(_rig(), 0.2), rtol=1e-9)
+
+
+def test_pump_tilt_raises_the_flow_at_low_back_pressure():
+    ratio = _mass_gain(_rig(compressor_tilt=0.5), 1.0) / _mass_gain(_rig(), 1.0)
+    assert np.all((ratio > 1.1) & (ratio < 1.3))  # 1 + 0.5 / 2 at 0 Pa, a little less as p rises
+
+
+def test_sensor_lag_reads_a_rising_pressure_late():
+    lag, now = _rig(sensor_tau=0.003), _rig()
+    U = np.vstack([np.ones(3), np.ones(3), np.zeros(3)])
+    for _ in range(5):
+        lag.apply(U)
+        now.apply(U)
+    p_true = lag.truth()["p"]
+    assert np.allclose(now.measure(), now.truth()["p"])
+    assert np.all(lag.measure() < p_true) and np.all(lag.measure() > 0.9 * p_true)
+
+
+def test_robot_rig_table_sets_only_the_keys_written():
+    s = RigTable.model_validate({"seed": 4}).to_robot_rig()
+    assert s.seed == 4 and s.valve_delay == 0.0 and s.sensor_tau == 0.0  # not the chamber rig's 5 ms
+    s = RigTable.model_validate({"valve_delay_ms": 5, "valve_min_on_ms": 2, "compressor_tilt": 0.2,
+                                 "sensor_tau_ms": 3, "modulus_scale": 1.1}).to_robot_rig()
+    assert (s.valve_delay, s.valve_min_on, s.compressor_tilt, s.sensor_tau) == pytest.approx((5e-3, 2e-3, 0.2, 3e-3))
+    assert s.modulus_spread == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="membrane"):
+        RigTable.model_validate({"membrane": "cap"}).to_robot_rig()
