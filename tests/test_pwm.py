@@ -98,3 +98,17 @@ def test_chamber_loop_sends_and_estimates_with_the_shaped_duties_every_tick():
     assert abs(inlets.mean() - 0.05) <= 0.1 / 40 + 1e-12
     assert loop.wanted.inlet == pytest.approx(0.05)
     assert [c.inlet for c in est.held[1:]] == list(inlets[:-1])
+
+
+def test_n_chambers_at_once_shape_as_one_shaper_per_chamber():
+    rng = np.random.default_rng(7)
+    n = 5
+    many = MinOnTime(0.01, 0.002)
+    ones = [MinOnTime(0.01, 0.002) for _ in range(n)]
+    for _ in range(200):
+        U = rng.uniform(0, 1, (3, n)) * (rng.random((3, n)) < 0.7) * rng.choice([1.0, 0.15], (3, n))
+        got = many.shape_inputs(U)
+        for i, one in enumerate(ones):
+            c = one.shape(Command(*U[:, i]))
+            assert np.array_equal(got[:, i], [c.speed, c.inlet, c.outlet])
+        assert np.array_equal(got[0], U[0])  # the pump's speed is not a valve

@@ -220,6 +220,36 @@ def test_robot_loop_ticks_on_a_short_run(robot):
     assert nm["data"] + nm["update"] + nm["solve"] <= parts["controller"] + 1e-9
 
 
+def test_robot_loop_with_a_minimum_opening_sends_realisable_duties_and_predicts_with_them(robot):
+    """valve_min_on: every inlet and outlet duty sent is 0 or at least the minimum; the bank is told
+    the supply the sent inlet gives (the decided one scaled by sent / decided inlet)."""
+    d, s, model = robot
+    rs = RobotRigSettings(valve_min_on=0.002).validate()
+    n = 3
+    rig = RobotRig(d, Pneumatics(), s.pneumatics.sensor_range, s.pneumatics.topology, rs, ())
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=rs.sample_period,
+                                                       sensor_range=s.pneumatics.sensor_range))
+    ms = RobotMPCSettings(sample_period=rs.sample_period, p_max=s.pneumatics.pressure_limit)
+    loop = RobotLoop(d, model, bank, RobotNMPC(model, n, ms),
+                     robot_supervisor(s.pneumatics.pressure_limit, n, plan_period=ms.dt),
+                     {k: ((0.0, U.mm(5.0), 0.0, 0.0),) for k in range(d.n_layers)}, valve_min_on=0.002)
+    small = 0
+    for _ in range(120):
+        a, o = loop.tick(rig.t, rig.measure())
+        U_sent = loop.valve_commands
+        duties = U_sent[1:3]
+        assert np.all((duties == 0.0) | (duties >= 0.2 - 1e-12))
+        decided = model.valve_inputs(a, o, loop.estimate["p"])
+        small += int(np.sum((decided[1:3] > 0) & (decided[1:3] < 0.2)))
+        supply = loop._w_prev[0]
+        expect = np.where(decided[1] > 0, a * U_sent[1] / np.where(decided[1] > 0, decided[1], 1.0), 0.0)
+        assert np.allclose(supply, np.where(a > 1e-6, expect, supply), atol=1e-9)
+        assert np.array_equal(loop._w_prev[1], U_sent[2])
+        rig.apply(U_sent)
+    assert small > 0  # the loop did ask for duties the valves cannot open for (the test exercised them)
+    assert np.all(loop.estimate["h"] > 0.5e-3)
+
+
 def test_robot_loop_falls_back_when_the_qp_fails(robot):
     d, s, model = robot
     n = 3

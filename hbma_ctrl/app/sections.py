@@ -220,6 +220,8 @@ class RobotSettings:
         controller's default in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` in the daemon).
     target_rate : the fastest a chamber's target height moves after a target change, m/s (0 = steps;
         None = not given: steps in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_TARGET_RATE` in the daemon).
+    valve_min_on : the valves' shortest opening, s, [0, 0.1], at most the rig's sample period (0: duties sent as decided;
+        :class:`hbma_ctrl.runtime.robot.RobotLoop`).
     """
 
     design: RobotDesign = field(default_factory=RobotDesign)
@@ -240,6 +242,7 @@ class RobotSettings:
     mpc_budget: float = field(default=0.0, repr=False)  # repr: the stored reprs of the scenario goldens
     target_rate: float | None = field(default=None, repr=False)
     mpc_w_slack: float | None = field(default=None, repr=False)
+    valve_min_on: float = field(default=0.0, repr=False)
 
     @property
     def plant(self) -> RobotPlantSettings:
@@ -273,4 +276,5 @@ class RobotSettings:
             check_range("robot", "mpc_w_slack", self.mpc_w_slack, 0.0, 1e6, "1/kPa")
         if self.target_rate is not None:
             check_range("robot", "target_rate", self.target_rate, 0.0, 1.0, "m/s")
+        check_range("robot", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
         return self

@@ -25,18 +25,30 @@ class MinOnTime:
     """Error-diffusion shaping of the inlet and outlet duties for a minimum on-time (module doc).
 
     ``period``: the PWM period (the rig's sample period), s; ``min_on``: the valves' minimum
-    opening, s, [0, period] (0: every duty passes unchanged).
+    opening, s, [0, period] (0: every duty passes unchanged). One chamber (:meth:`shape`) or n at
+    once (:meth:`shape_inputs`, the robot's), each valve with its own carry.
     """
 
     def __init__(self, period: float, min_on: float):
         check_range("controller", "valve_min_on", min_on, 0.0, period, "s")
         self.min_duty = float(min_on) / float(period)
-        self.carry = np.zeros(2)  # duty owed (+) or given in advance (-) per valve
+        self.carry = np.zeros(2)  # duty owed (+) or given in advance (-) per valve (2 x n for n chambers)
 
     @property
     def active(self) -> bool:
         """True when a minimum on-time is set."""
         return self.min_duty > 0.0
+
+    def _duties(self, d: np.ndarray) -> np.ndarray:
+        """Inlet and outlet duties (2 x n) as sent; updates the carry."""
+        if self.carry.shape != d.shape:
+            self.carry = np.zeros(d.shape)
+        m = self.min_duty
+        keep = (d <= 0.0) | (d >= m)
+        want = d + self.carry
+        out = np.where(want >= 0.5 * m, m, 0.0)  # the nearest realisable duty
+        self.carry = np.where(keep, 0.0, want - out)
+        return np.where(keep, d, out)
 
     def shape(self, command: Command) -> Command:
         """The command to send for one PWM period: duties each 0 or >= the minimum, averaging those
@@ -44,18 +56,16 @@ class MinOnTime:
         if not self.active:
             return command
         u = command.as_array()
-        m = self.min_duty
-        for i in (1, 2):
-            d = float(u[i])
-            if d <= 0.0 or d >= m:
-                self.carry[i - 1] = 0.0
-                continue
-            want = d + self.carry[i - 1]
-            out = m if want >= 0.5 * m else 0.0  # the nearest realisable duty
-            self.carry[i - 1] = want - out
-            u[i] = out
-        return Command(float(u[0]), float(u[1]), float(u[2]))
+        d = self._duties(u[1:3].astype(float))
+        return Command(float(u[0]), float(d[0]), float(d[1]))
+
+    def shape_inputs(self, U: np.ndarray) -> np.ndarray:
+        """The same for n chambers' plant inputs U (3 x n: speed, inlet, outlet), a new array."""
+        U = np.array(U, dtype=float)
+        if self.active:
+            U[1:3] = self._duties(U[1:3])
+        return U
 
     def reset(self) -> None:
         """Forget the carried duty."""
-        self.carry[:] = 0.0
+        self.carry = np.zeros_like(self.carry)

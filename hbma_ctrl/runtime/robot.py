@@ -19,7 +19,10 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   exceeded ``budget`` x period: replay the plan, then the safe command; an overrun's late plan is
   kept for the next failure), the vent rule (zero target) and the pressure interlock (supply cut
   while a reading is within the margin of the limit); the command sent is handed back to the NMPC
-  (``applied``: its input-rate terms start from it).
+  (``applied``: its input-rate terms start from it);
+- with ``valve_min_on`` the inlet and outlet duties sent are each 0 or at least the valves' minimum
+  opening, a smaller one realised on average over the periods (:class:`hbma_ctrl.runtime.pwm.MinOnTime`,
+  as the single chamber's loop does), and the bank predicts with the duties sent.
 
 The controller does not know the tip load (a disturbance). Step, EKF and controller times go into
 bounded :class:`StepStats` (s); ``last_timing`` has this tick's.
@@ -46,6 +49,7 @@ from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
 from hbma_ctrl.robot.targets import chamber_targets
+from hbma_ctrl.runtime.pwm import MinOnTime
 from hbma_ctrl.runtime.safety import ZERO_TARGET, Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
@@ -148,11 +152,13 @@ class RobotLoop:
         estimated pressure (:meth:`ChamberBank.valve_inputs`); False = full speed while an inlet is
         open (the inlet valve meters the flow).
     target_rate : the fastest a chamber's target height moves, m/s (None or 0: targets step).
+    valve_min_on : the valves' shortest opening, s, [0, sample period] (0: duties sent as decided).
     """
 
     def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
-                 stats_capacity: int = 4096, throttle: bool = True, target_rate: float | None = None):
+                 stats_capacity: int = 4096, throttle: bool = True, target_rate: float | None = None,
+                 valve_min_on: float = 0.0):
         self.design = design
         self.model = model
         self.bank = bank
@@ -190,6 +196,7 @@ class RobotLoop:
         self._k = 0
         self._t: float | None = None
         self._period = float(bank.settings.sample_period)
+        self.pwm = MinOnTime(self._period, valve_min_on)
 
     def set_targets(self, targets: dict) -> None:
         """Replace the layer targets ({layer: ((t s, centre m, bend rad, direction rad), ...)}) from the next
@@ -264,6 +271,13 @@ class RobotLoop:
         # NMPC keep working in a: a full-speed inlet duty)
         t_valves = time.perf_counter()
         Uc = model.valve_inputs(a, o, est["p"], throttle=self.throttle)
+        supply = _flow_duty(a, model.topology)
+        if self.pwm.active:
+            Us = self.pwm.shape_inputs(Uc)
+            # the flow at the same speed scales with the inlet's duty: the bank predicts with what is sent
+            inlet = Uc[1]
+            supply = supply * np.where(inlet > 0.0, Us[1] / np.where(inlet > 0.0, inlet, 1.0), 0.0)
+            Uc = Us
         t2 = time.perf_counter()
         self.last_timing = (t2 - t0, t1 - t0, t2 - t1)
         self.last_parts = {"targets": t_ctrl - t1, "controller": t_sup - t_ctrl, "supervisor": t_valves - t_sup,
@@ -274,7 +288,7 @@ class RobotLoop:
         # they deliver a q(1, p) at the estimated pressure, and in closed loop at the true one within
         # 0.5 %; predicting with the sent inputs (exact, ChamberEKFBank takes them) delayed the
         # release of the cautious cap (the modulus factor's std) on the shared pump (models.bank)
-        self._w_prev = np.vstack([_flow_duty(a, model.topology), Uc[2]])
+        self._w_prev = np.vstack([supply, Uc[2]])
         self.valve_commands = Uc
         self._sent.append((Uc.copy(), self._w_prev))
         self._k += 1

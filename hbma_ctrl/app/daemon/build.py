@@ -372,7 +372,7 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     sup = robot_supervisor(rp.pressure_limit, n, plan_period=ctrl.s.dt if s.controller == "mpc" else None)
     rate = DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate
     loop = RobotLoop(d, model, bank, ctrl, sup, s.targets, cautious=(0.75, 0.03, 0.3) if s.controller == "mpc" else None,
-                     target_rate=rate)
+                     target_rate=rate, valve_min_on=s.valve_min_on)
     # the solver's set-up and first solve before the first deadline, not in it (a replay of a run
     # builds its runner here too, so it starts as the run did)
     loop.prime()

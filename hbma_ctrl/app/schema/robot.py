@@ -123,6 +123,8 @@ class RobotTable(Table):
                                     "(default: 0.001 in a scene, 100 in the daemon: the limit first)")
     target_rate_mm_s: float | None = num(None, 0.0, 1000.0, "mm/s", "fastest a chamber's target height moves "
                                          "after a new target (0 = steps; default: steps in a scene, 3 in the daemon)")
+    valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves' shortest opening: smaller duties are "
+                                 "realised on average over the periods (0 = duties sent as decided)")
 
     _settings: Any = PrivateAttr(None)
 
@@ -245,7 +247,7 @@ class RobotTable(Table):
         for key, name, conv in (("compare_baseline", "compare_baseline", bool), ("settle_s", "settle_time", float),
                                 ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms),
                                 ("mpc_budget", "mpc_budget", float), ("target_rate_mm_s", "target_rate", U.mm),
-                                ("mpc_w_slack", "mpc_w_slack", float)):
+                                ("mpc_w_slack", "mpc_w_slack", float), ("valve_min_on_ms", "valve_min_on", U.ms)):
             if self._given(key):
                 closed[name] = conv(getattr(self, key))
         sync = U.ms(self.sync_ms) if self._given("sync_ms") else RobotSettings().sync_period
