@@ -52,6 +52,7 @@ import numpy as np
 from estimators.common import INFLATION_MAX, VACUUM_GAUGE, physical_reading_bounds
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.params import check_range
+from hbma_ctrl.models.actuation import CommandTiming, check_delays
 from hbma_ctrl.models.bank import ChamberBank
 
 __all__ = ["ChamberEKFSettings", "ChamberEKFBank"]
@@ -71,7 +72,9 @@ class ChamberEKFSettings:
     this multiple of sensor_range are outliers, [1, 1000]; gate_nis : NIS gate (chi-square, one
     degree of freedom), (1, 1e6]; gate_reopen : gated readings in a row that re-open a chamber's
     gate, [1, 1000]; max_gap : longest time one step predicts over, s, [sample_period, 3600] (see
-    the module doc).
+    the module doc); valve_delay, sensor_delay : the valves' switching delay and the sensor's, s,
+    [0, 0.1] each (the commands are taken as acting that late, :class:`hbma_ctrl.models.actuation.
+    CommandTiming`, as by the single chamber's EKF; 0 = at once).
     """
 
     sample_period: float = 0.01
@@ -92,6 +95,8 @@ class ChamberEKFSettings:
     gate_nis: float = 400.0
     gate_reopen: int = 5
     max_gap: float = 1.0
+    valve_delay: float = 0.0
+    sensor_delay: float = 0.0
 
     def validate(self) -> "ChamberEKFSettings":
         check_range("robot_ekf", "sample_period", self.sample_period, 1e-4, 1.0, "s")
@@ -114,6 +119,7 @@ class ChamberEKFSettings:
                 not 1 <= self.gate_reopen <= 1000:
             raise ValueError(f"robot_ekf.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
         check_range("robot_ekf", "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
+        check_delays("robot_ekf", self.valve_delay, self.sensor_delay)
         return self
 
 
@@ -232,6 +238,7 @@ class ChamberEKFBank:
         self.max_steps = max(1, int(round(s.max_gap / s.sample_period)))
         self._gated_run = np.zeros(n, dtype=int)
         self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0}
+        self._timing = CommandTiming(s.sample_period, s.valve_delay, s.sensor_delay)
 
     def _prior_cov(self) -> np.ndarray:
         """The initial covariance of one chamber (4 x 4)."""
@@ -287,6 +294,9 @@ class ChamberEKFBank:
         k = int(steps)
         if k < 1:
             raise ValueError(f"robot_ekf.step: steps = {steps!r} must be an integer >= 1")
+        if self._timing.active:
+            # the command as the chambers feel it and the sensors see it, averaged over the k periods
+            wv = self._timing.acting(wv, k)
         jump = k > self.max_steps
         if jump:
             k = self.max_steps

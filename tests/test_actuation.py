@@ -130,3 +130,17 @@ def test_timing_with_a_full_history_gives_acting_averages_value(valve_delay, sen
             want[1:] = acting_average([h[1:] for h in hist], u[1:], 1, T, valve_delay + sensor_delay)
         hist = (hist + [u])[-tm._keep:]
         assert np.allclose(got, want, rtol=0, atol=1e-12) and np.all((got >= 0) & (got <= 1))
+
+
+def test_n_chambers_at_once_act_as_one_timing_per_chamber():
+    """A 3 x n command (the robot's bank) is timed column by column as n single-chamber timings."""
+    rng = np.random.default_rng(3)
+    n = 4
+    many = CommandTiming(0.01, 0.005, 0.003)
+    ones = [CommandTiming(0.01, 0.005, 0.003) for _ in range(n)]
+    for k in [0, 1, 1, 2, 1, 1, 3, 1, 1, 1, 5, 1]:
+        U = rng.uniform(0, 1, (3, n))
+        got = many.acting(U, k)
+        assert got.shape == (3, n)
+        for i, one in enumerate(ones):
+            assert np.allclose(got[:, i], one.acting(U[:, i], k), rtol=0, atol=1e-12)

@@ -75,3 +75,46 @@ def test_robot_rig_table_sets_only_the_keys_written():
     assert s.modulus_spread == pytest.approx(0.1)
     with pytest.raises(ValueError, match="membrane"):
         RigTable.model_validate({"membrane": "cap"}).to_robot_rig()
+
+
+def test_the_banks_valve_and_sensor_delays_predict_with_the_command_acting():
+    """ChamberEKFBank(valve_delay, sensor_delay) steps as a bank without delays that is given the
+    command acting (CommandTiming over the same commands)."""
+    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.app.robot_closed import make_model
+    from hbma_ctrl.models.actuation import CommandTiming
+
+    model = make_model(D1, Pneumatics(), "per_chamber")
+    late = ChamberEKFBank(model, 3, ChamberEKFSettings(valve_delay=0.005, sensor_delay=0.003))
+    plain = ChamberEKFBank(model, 3, ChamberEKFSettings())
+    timing = CommandTiming(0.01, 0.005, 0.003)
+    rng = np.random.default_rng(0)
+    z = np.zeros(3)
+    W = np.full(3, 0.2)
+    for j in range(30):
+        w = np.vstack([np.ones(3), rng.uniform(0, 0.6, 3) * (j % 7 < 4), rng.uniform(0, 0.2, 3) * (j % 7 >= 4)])
+        z = z + 400.0 * w[1] - 300.0 * w[2]
+        a = late.step(z, w, W)
+        b = plain.step(z, timing.acting(w, 1), W)
+        assert np.allclose(a["x"], b["x"], rtol=0, atol=1e-12) and np.allclose(a["h"], b["h"], rtol=0, atol=1e-12)
+    # and the delays matter: the same readings without them give another estimate
+    c = ChamberEKFBank(model, 3, ChamberEKFSettings())
+    rng = np.random.default_rng(0)
+    z = np.zeros(3)
+    for j in range(30):
+        w = np.vstack([np.ones(3), rng.uniform(0, 0.6, 3) * (j % 7 < 4), rng.uniform(0, 0.2, 3) * (j % 7 >= 4)])
+        z = z + 400.0 * w[1] - 300.0 * w[2]
+        e = c.step(z, w, W)
+    assert not np.allclose(e["x"], a["x"], rtol=0, atol=1e-9)
+
+
+def test_robot_table_takes_the_valve_timing_keys_in_ms():
+    from hbma_ctrl.app.schema import parse_role
+
+    body = {"mode": "closed_loop", "layers": 1, "targets": {"all": [[0, 6, 0, 0]]},
+            "valve_min_on_ms": 2, "valve_delay_ms": 5, "sensor_delay_ms": 3}
+    s = parse_role("robot", body)
+    assert (s.valve_min_on, s.valve_delay, s.sensor_delay) == pytest.approx((2e-3, 5e-3, 3e-3))
+    assert parse_role("robot", {k: v for k, v in body.items() if "ms" not in k}).valve_min_on == 0.0
+    with pytest.raises(ValueError, match=r"valve_delay_ms = 200.*\[0, 100\] ms"):
+        parse_role("robot", dict(body, valve_delay_ms=200))

@@ -65,7 +65,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
                     cautious=(0.75, 0.03, 0.3), target_rate: float | None = None,
-                    valve_min_on: float = 0.0) -> ClosedLoopRun:
+                    valve_min_on: float = 0.0, delays: tuple[float, float] = (0.0, 0.0)) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s from rest (see module doc).
 
     targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
@@ -75,6 +75,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
     target_rate : the fastest a chamber's target height moves, m/s (None or 0: targets step).
     valve_min_on : the valves' shortest opening, s (0: duties sent as decided; :class:`RobotLoop`).
+    delays : (valve, sensor) delays the chambers' filters take, s (:class:`ChamberEKFSettings`).
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
@@ -90,7 +91,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     Ts = rs.sample_period
     plant = RobotRig(d, pn, rp.sensor_range, rp.topology, rs, tip_load)
     bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
-                                                        sensor_range=rp.sensor_range))
+                                                        sensor_range=rp.sensor_range, valve_delay=delays[0],
+                                                        sensor_delay=delays[1]))
     if controller == "mpc":
         ms = replace(mpc or RobotMPCSettings(), sample_period=Ts, p_max=rp.pressure_limit)
         ctrl = RobotNMPC(model, n, ms)

@@ -222,6 +222,8 @@ class RobotSettings:
         None = not given: steps in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_TARGET_RATE` in the daemon).
     valve_min_on : the valves' shortest opening, s, [0, 0.1], at most the rig's sample period (0: duties sent as decided;
         :class:`hbma_ctrl.runtime.robot.RobotLoop`).
+    valve_delay, sensor_delay : the valve and sensor delays the chambers' filters take, s, [0, 0.1]
+        (:class:`estimators.robot_ekf.ChamberEKFSettings`; 0 = at once).
     """
 
     design: RobotDesign = field(default_factory=RobotDesign)
@@ -243,6 +245,8 @@ class RobotSettings:
     target_rate: float | None = field(default=None, repr=False)
     mpc_w_slack: float | None = field(default=None, repr=False)
     valve_min_on: float = field(default=0.0, repr=False)
+    valve_delay: float = field(default=0.0, repr=False)
+    sensor_delay: float = field(default=0.0, repr=False)
 
     @property
     def plant(self) -> RobotPlantSettings:
@@ -277,4 +281,6 @@ class RobotSettings:
         if self.target_rate is not None:
             check_range("robot", "target_rate", self.target_rate, 0.0, 1.0, "m/s")
         check_range("robot", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
+        check_range("robot", "valve_delay", self.valve_delay, 0.0, 0.1, "s")
+        check_range("robot", "sensor_delay", self.sensor_delay, 0.0, 0.1, "s")
         return self

@@ -76,7 +76,7 @@ class CommandTiming:
 
     ``acting(u, k)``: ``u`` held for the last ``k`` periods (k >= 1; 0 records it without a period
     passing, as at a filter's first reading); returns (speed, inlet, outlet) acting on average over
-    those periods. ``valve_delay`` and ``sensor_delay`` in s, [0, 0.1]; both 0: the command itself.
+    those periods. ``u`` may also be 3 x n (n chambers' commands, the robot's bank): the same per column. ``valve_delay`` and ``sensor_delay`` in s, [0, 0.1]; both 0: the command itself.
     """
 
     def __init__(self, period: float, valve_delay: float = 0.0, sensor_delay: float = 0.0):
@@ -108,10 +108,11 @@ class CommandTiming:
 
     def acting(self, u, k: int = 1) -> np.ndarray:
         """The command acting, averaged over the last k periods, for ``u`` held over them."""
-        u = np.array(u, dtype=float).reshape(3)  # a copy: kept in the history
+        u = np.array(u, dtype=float)  # a copy: kept in the history
+        u = u.reshape(3) if u.ndim < 2 else u.reshape(3, -1)
         if not self.active:
             return u
-        if k == 1 and len(self._hist) == self._keep:
+        if k == 1 and len(self._hist) == self._keep and u.ndim == 1:
             H = self._hist + [u.tolist()]
             for j in range(3):
                 v = 0.0

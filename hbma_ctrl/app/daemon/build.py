@@ -355,7 +355,8 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     model = make_model(d, scn.pneumatics, rp.topology)
     Ts = rs.sample_period
     bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
-                                                        sensor_range=rp.sensor_range))
+                                                        sensor_range=rp.sensor_range, valve_delay=s.valve_delay,
+                                                        sensor_delay=s.sensor_delay))
     if s.controller == "mpc":
         # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
         # the last plan, then the safe command), never a late command

@@ -125,6 +125,10 @@ class RobotTable(Table):
                                          "after a new target (0 = steps; default: steps in a scene, 3 in the daemon)")
     valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves' shortest opening: smaller duties are "
                                  "realised on average over the periods (0 = duties sent as decided)")
+    valve_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the chambers' filters take the valves as acting this "
+                                "long after their command (0 = at once)")
+    sensor_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the chambers' filters take the pressure sensors as "
+                                 "reading this late (0 = at once)")
 
     _settings: Any = PrivateAttr(None)
 
@@ -247,7 +251,8 @@ class RobotTable(Table):
         for key, name, conv in (("compare_baseline", "compare_baseline", bool), ("settle_s", "settle_time", float),
                                 ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms),
                                 ("mpc_budget", "mpc_budget", float), ("target_rate_mm_s", "target_rate", U.mm),
-                                ("mpc_w_slack", "mpc_w_slack", float), ("valve_min_on_ms", "valve_min_on", U.ms)):
+                                ("mpc_w_slack", "mpc_w_slack", float), ("valve_min_on_ms", "valve_min_on", U.ms),
+                                ("valve_delay_ms", "valve_delay", U.ms), ("sensor_delay_ms", "sensor_delay", U.ms)):
             if self._given(key):
                 closed[name] = conv(getattr(self, key))
         sync = U.ms(self.sync_ms) if self._given("sync_ms") else RobotSettings().sync_period
