@@ -76,7 +76,8 @@ class CommandTiming:
 
     ``acting(u, k)``: ``u`` held for the last ``k`` periods (k >= 1; 0 records it without a period
     passing, as at a filter's first reading); returns (speed, inlet, outlet) acting on average over
-    those periods. ``u`` may also be 3 x n (n chambers' commands, the robot's bank): the same per column. ``valve_delay`` and ``sensor_delay`` in s, [0, 0.1]; both 0: the command itself.
+    those periods; ``u`` may also be 3 x n (n chambers' commands, the robot's bank): the same per
+    column. ``valve_delay`` and ``sensor_delay`` in s, [0, 0.1]; both 0: the command itself.
     """
 
     def __init__(self, period: float, valve_delay: float = 0.0, sensor_delay: float = 0.0):

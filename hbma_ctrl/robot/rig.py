@@ -173,7 +173,9 @@ class RobotRig:
 
     def measure(self) -> np.ndarray:
         """Pressure readings (n,), Pa: truth (through the sensor's lag) + noise, saturated at the sensor range."""
-        p = self._p_sensed + self.s.noise_std * self._rng.standard_normal(self.n)
+        # without a lag the plant's pressure now (a state set between periods reads at once)
+        p_true = self._p_sensed if self.s.sensor_tau > 0 else self.plant.output("p")
+        p = p_true + self.s.noise_std * self._rng.standard_normal(self.n)
         return np.minimum(p, self.sensor_range)
 
     def truth(self) -> dict:
