@@ -3,10 +3,11 @@
 A casadi ``bspline`` interpolant is a call node: every evaluation, and every derivative the
 estimators' and controllers' algorithmic differentiation takes of it (forward, adjoint, their
 products), is another call. The exact membrane's law is evaluated dozens of times per EKF step (the
-Newton projections, the integrator's stages, the Jacobians): about 190 such calls, 56 of the step's
-70 us. Within one cell of its grid a tensor-product cubic spline is a polynomial of degree 3 in each
+Newton projections, the integrator's stages, the Jacobians): about 190 such calls in its generated
+predict, most of its time. Within one cell of its grid a tensor-product cubic spline is a polynomial of degree 3 in each
 coordinate, so :class:`PiecewiseCubic` stores each cell's 4^d coefficients (sampled from the spline
-itself, so the two agree to rounding), finds the cell by comparisons and fetches its coefficients
+itself, so the two agree to rounding), finds the cell by comparisons (one floor on an evenly spaced
+coordinate) and fetches its coefficients
 with one linear-interpolant lookup at the cell's integer index (constant on the cell: the seeds
 algorithmic differentiation passes into it are zero). The polynomial itself is plain arithmetic in
 the caller's expression graph: derivatives of any order are inline.
@@ -88,7 +89,7 @@ class PiecewiseCubic:
         return k
 
     def __call__(self, c) -> list:
-        """The outputs at coordinates c (column of 1 or 2 entries, on the grid)."""
+        """The outputs at coordinates c (column of 1 or 2 entries; zero off the grid)."""
         row = self._lookup(self.cell(c))
         loc = [(c[d] - row[2 * d]) * row[2 * d + 1] for d in range(self.dim)]
         # zero outside the grid, as the bspline it replaces (callers that need a value there clamp)
