@@ -188,6 +188,10 @@ def test_robot_runner_is_primed_its_solver_set_up_and_its_loop_as_if_it_had_not_
 
     cfg = load_config(ROBOT, {"--rig": "sim", "--speed": 20.0})
     primed, cold = build_runner(cfg), build_runner(cfg)
+    # the daemon's wall-time budget would make a step that a loaded machine slows an overrun (its
+    # command not sent) in one runner and not the other: priming is about state, so time is unbounded
+    for runner in (primed, cold):
+        runner.loop.controller.s = replace(runner.loop.controller.s, budget=0.0)
     ctrl = primed.loop.controller
     fresh = RobotNMPC(ctrl.model, ctrl.n, ctrl.s)
     assert ctrl._solver is not None and fresh._solver is None
