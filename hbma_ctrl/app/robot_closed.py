@@ -64,8 +64,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                    cautious=(0.75, 0.03, 0.3), target_rate: float | None = None,
-                    valve_min_on: float = 0.0, delays: tuple[float, float] = (0.0, 0.0)) -> ClosedLoopRun:
+                    cautious=(0.75, 0.03, 0.3), target_rate: float | None = None) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s from rest (see module doc).
 
     targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
@@ -74,8 +73,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
     its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
     target_rate : the fastest a chamber's target height moves, m/s (None or 0: targets step).
-    valve_min_on : the valves' shortest opening, s (0: duties sent as decided; :class:`RobotLoop`).
-    delays : (valve, sensor) delays the chambers' filters take, s (:class:`ChamberEKFSettings`).
+    The valves' shortest opening and the delays the chambers' filters take are ``settings``'
+    (``valve_min_on``, ``valve_delay``, ``sensor_delay``, s).
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
@@ -91,8 +90,9 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     Ts = rs.sample_period
     plant = RobotRig(d, pn, rp.sensor_range, rp.topology, rs, tip_load)
     bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
-                                                        sensor_range=rp.sensor_range, valve_delay=delays[0],
-                                                        sensor_delay=delays[1]))
+                                                        sensor_range=rp.sensor_range,
+                                                        valve_delay=settings.valve_delay,
+                                                        sensor_delay=settings.sensor_delay))
     if controller == "mpc":
         ms = replace(mpc or RobotMPCSettings(), sample_period=Ts, p_max=rp.pressure_limit)
         ctrl = RobotNMPC(model, n, ms)
@@ -101,7 +101,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
                            plan_period=ctrl.s.dt if controller == "mpc" else None)
     loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None,
-                     target_rate=target_rate, valve_min_on=valve_min_on)
+                     target_rate=target_rate, valve_min_on=settings.valve_min_on)
     steps = int(round(duration / Ts))
     T = steps + 1
     H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))

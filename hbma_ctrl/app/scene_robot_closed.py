@@ -206,8 +206,7 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     runs, mets = [], []
     for kind in kinds:
         run = run_closed_loop(s, s.targets, scn.duration, kind, scn.pneumatics, rig, mpc, model=model,
-                              tip_load=s.tip_load, target_rate=s.target_rate, valve_min_on=s.valve_min_on,
-                              delays=(s.valve_delay, s.sensor_delay))
+                              tip_load=s.tip_load, target_rate=s.target_rate)
         runs.append(run)
         mets.append(closed_loop_metrics(d, run, s.pneumatics.pressure_limit, s.settle_time, model=model))
         write_closed_csv(d, run, out / f"robot_{kind}_log.csv")

@@ -19,6 +19,7 @@ from estimators.common import FilterSettings
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
+from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.plant import RobotPlantSettings
 from hbma_ctrl.runtime.calibrate import CalibrationSettings
@@ -281,6 +282,5 @@ class RobotSettings:
         if self.target_rate is not None:
             check_range("robot", "target_rate", self.target_rate, 0.0, 1.0, "m/s")
         check_range("robot", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
-        check_range("robot", "valve_delay", self.valve_delay, 0.0, 0.1, "s")
-        check_range("robot", "sensor_delay", self.sensor_delay, 0.0, 0.1, "s")
+        check_delays("robot", self.valve_delay, self.sensor_delay)
         return self
