@@ -131,14 +131,12 @@ from estimators.common import (
     physical_reading_bounds,
 )
 from estimators.ekf_reference import OUTPUT_INDEX as _Y
-from estimators.ekf_reference import ReferenceSteps
+from estimators.ekf_reference import OUTPUT_KEYS, ReferenceSteps
 from estimators.ekf_step import (
-    FACTOR_RANGE,
     FLAG_BITS,
     KIND_NONE,
     KIND_OK,
     KIND_SATURATED,
-    LIGHT_LOAD,
     ekf_step_function,
     observer_model,
 )
@@ -150,9 +148,6 @@ from hbma_ctrl.models.actuation import CommandTiming
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
 
-#: outputs whose covariance the filters report (rows of ``output_cov``)
-OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
-_DIAG5 = np.diag_indices(5)
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
 REPLAY_MAX = 200
 _KEEP_ALL = np.ones(NX)
@@ -525,14 +520,6 @@ class EKF(ReferenceSteps):
                              "(time must not go backwards)")
         return tf
 
-    def _widen_after_gap(self) -> None:
-        """After a bounded time jump: add the initial spread of every state (the commands and loads
-        during the gap are unknown; the next readings pin the gas mass again)."""
-        s = self.settings
-        P0 = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
-                      s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
-        self.P = guard_cov(self.P + P0, s.cov_floor)
-
     def stats(self) -> dict:
         """Counts since construction: ``outliers`` (readings not used as implausible: out of the
         physical bounds or gated), ``outliers_bound``, ``gated``, ``gate_reopened``, ``missing``
@@ -540,63 +527,3 @@ class EKF(ReferenceSteps):
         c = dict(self.counts)
         c["outliers"] = c["outliers_bound"] + c["gated"]
         return c
-
-    def _finish(self) -> Estimate:
-        s = self.settings
-        flags = self._events
-        if self.resting:
-            # only W >= pi r1^2 p is known while flat: keep the load above that bound
-            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
-            bound = self.model.area * float(out[1][_Y["p"]])
-            if "touch_down" in flags and self._pumping:
-                # a dead load cannot come down while the pump fills the chamber: the contact
-                # model's load went above the pressure's (sensor noise near the lift-off point).
-                # Flat, nothing would pull it back, and each such episode would ratchet it up
-                # (6.08 -> 6.21 N for a 6.08 N load, lifting 0.5 kPa late): back to the bound
-                self.x[1] = min(self.x[1], bound)
-            if bound > self.x[1]:
-                self._lift_off(detected=False)  # the (known) load is exceeded: it lifts
-            else:
-                self._flat_load_cov()
-        for i in (2, 3, 4):
-            if not FACTOR_RANGE[0] <= self.x[i] <= FACTOR_RANGE[1]:
-                self.x[i] = min(max(self.x[i], FACTOR_RANGE[0]), FACTOR_RANGE[1])
-                flags.add("clamped")
-        if not s.load_min <= self.x[1] <= s.load_max:
-            self.x[1] = min(max(self.x[1], s.load_min), s.load_max)
-            flags.add("clamped")
-        out = self._outf(self.x, self.s, self._theta_arg(self._outf), float(self.resting), self.P)
-        y = out[1]
-        if not self.resting and y[_Y["rest"]] > 0.5:
-            self.resting = True
-            flags.add("touch_down")
-            if self._pumping:  # as above: no ratchet of the load near the lift-off point
-                self.x[1] = min(self.x[1], self.model.area * float(y[_Y["p"]]))
-            # flat from now on: the load's contact-phase correlations no longer hold (left in,
-            # the next flat update would move the load through them)
-            self._flat_load_cov()
-        if self.resting:
-            flags.add("resting")
-        if y[_Y["resid"]] > 1e-3 or not np.all(np.isfinite(y)):
-            flags.add("not_converged")
-        self.s = out[0].copy()
-        self._p_pred = float(y[_Y["p"]])
-        self._H = out[2].copy()
-        self._p_post = self._p_pred
-        C = out[4].reshape(5, 5, order="F").copy()
-        # model-form error of the shape map (the rig is not the model): relative floor on h1, h2,
-        # h and F; the state covariance alone only knows the parameters the state carries
-        d = (s.output_rel_std * y[:5]) ** 2
-        d[4] = 0.0
-        d[3] += s.force_std_floor ** 2
-        C[_DIAG5] += d
-        if self.resting and (self.x[1] < LIGHT_LOAD or MEAS_SATURATED in flags):
-            # flat under a light (or no) load, or flat while saturated (a lift-off would be
-            # invisible): the membrane may bulge by up to about the flat cap height h1; say so
-            C[2, 2] += (0.5 * y[0]) ** 2
-        self.last_output_cov = C
-        std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
-        h1, h2 = float(y[_Y["h1"]]), float(y[_Y["h2"]])
-        return Estimate(t=self.t, h1=h1, h2=max(h2, 0.0), h=float(y[_Y["h"]]), F=max(float(y[_Y["F"]]), 0.0),
-                        p=float(y[_Y["p"]]), mean=self.x.copy(), cov=self.P.copy(),
-                        state_names=self.state_names, std=std, flags=frozenset(flags))

@@ -4,23 +4,37 @@ The normal step is one compiled Function (:mod:`estimators.ekf_step`); these met
 falls back to for the rare steps the Function flags (a model failure, a covariance at its floor, a
 re-opened gate, a lift-off replayed from past samples) and what ``EKF.step_reference`` runs: the
 prediction over k periods and the gated update, the lift-off and touch-down detectors, the replay of
-the samples since a detected lift-off, and the covariance bookkeeping of the load state. The state,
+the samples since a detected lift-off, the covariance bookkeeping of the load state and of a time gap,
+and the step's finish (touch-down, clamps, the outputs and their covariance). The state,
 settings and Functions are the EKF's (see its module docstring for the model and the modes).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from estimators.common import MEAS_SATURATED, guard_cov, nis_gate
-from estimators.ekf_step import CENSOR_SIGMAS, LIFT_LOAD_ABS_STD, LIFT_START_DRIFT, NO_LOAD_SIGMAS
+from estimators.ekf_step import (
+    CENSOR_SIGMAS,
+    FACTOR_RANGE,
+    LIFT_LOAD_ABS_STD,
+    LIFT_START_DRIFT,
+    LIGHT_LOAD,
+    NO_LOAD_SIGMAS,
+)
+from hbma_ctrl.core.interfaces import Estimate
 from hbma_ctrl.models.chamber import OUT_NAMES
 
-__all__ = ["ReferenceSteps", "OUTPUT_INDEX"]
+__all__ = ["ReferenceSteps", "OUTPUT_INDEX", "OUTPUT_KEYS"]
 
 #: index of each observer output (``OUT_NAMES``) in the outputs Function's vector
 OUTPUT_INDEX = {n: i for i, n in enumerate(OUT_NAMES)}
 _Y = OUTPUT_INDEX
+#: outputs whose covariance the filters report (rows of ``output_cov``)
+OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
+_DIAG5 = np.diag_indices(5)
 
 
 class ReferenceSteps:
@@ -173,3 +187,71 @@ class ReferenceSteps:
         P[1, :] = P[:, 1] = 0.0
         P[1, 1] = self.settings.load_rest_std ** 2
         self.P = P
+
+    def _widen_after_gap(self) -> None:
+        """After a bounded time jump: add the initial spread of every state (the commands and loads
+        during the gap are unknown; the next readings pin the gas mass again)."""
+        s = self.settings
+        P0 = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
+                      s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
+        self.P = guard_cov(self.P + P0, s.cov_floor)
+
+    def _finish(self) -> Estimate:
+        s = self.settings
+        flags = self._events
+        if self.resting:
+            # only W >= pi r1^2 p is known while flat: keep the load above that bound
+            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
+            bound = self.model.area * float(out[1][_Y["p"]])
+            if "touch_down" in flags and self._pumping:
+                # a dead load cannot come down while the pump fills the chamber: the contact
+                # model's load went above the pressure's (sensor noise near the lift-off point).
+                # Flat, nothing would pull it back, and each such episode would ratchet it up
+                # (6.08 -> 6.21 N for a 6.08 N load, lifting 0.5 kPa late): back to the bound
+                self.x[1] = min(self.x[1], bound)
+            if bound > self.x[1]:
+                self._lift_off(detected=False)  # the (known) load is exceeded: it lifts
+            else:
+                self._flat_load_cov()
+        for i in (2, 3, 4):
+            if not FACTOR_RANGE[0] <= self.x[i] <= FACTOR_RANGE[1]:
+                self.x[i] = min(max(self.x[i], FACTOR_RANGE[0]), FACTOR_RANGE[1])
+                flags.add("clamped")
+        if not s.load_min <= self.x[1] <= s.load_max:
+            self.x[1] = min(max(self.x[1], s.load_min), s.load_max)
+            flags.add("clamped")
+        out = self._outf(self.x, self.s, self._theta_arg(self._outf), float(self.resting), self.P)
+        y = out[1]
+        if not self.resting and y[_Y["rest"]] > 0.5:
+            self.resting = True
+            flags.add("touch_down")
+            if self._pumping:  # as above: no ratchet of the load near the lift-off point
+                self.x[1] = min(self.x[1], self.model.area * float(y[_Y["p"]]))
+            # flat from now on: the load's contact-phase correlations no longer hold (left in,
+            # the next flat update would move the load through them)
+            self._flat_load_cov()
+        if self.resting:
+            flags.add("resting")
+        if y[_Y["resid"]] > 1e-3 or not np.all(np.isfinite(y)):
+            flags.add("not_converged")
+        self.s = out[0].copy()
+        self._p_pred = float(y[_Y["p"]])
+        self._H = out[2].copy()
+        self._p_post = self._p_pred
+        C = out[4].reshape(5, 5, order="F").copy()
+        # model-form error of the shape map (the rig is not the model): relative floor on h1, h2,
+        # h and F; the state covariance alone only knows the parameters the state carries
+        d = (s.output_rel_std * y[:5]) ** 2
+        d[4] = 0.0
+        d[3] += s.force_std_floor ** 2
+        C[_DIAG5] += d
+        if self.resting and (self.x[1] < LIGHT_LOAD or MEAS_SATURATED in flags):
+            # flat under a light (or no) load, or flat while saturated (a lift-off would be
+            # invisible): the membrane may bulge by up to about the flat cap height h1; say so
+            C[2, 2] += (0.5 * y[0]) ** 2
+        self.last_output_cov = C
+        std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
+        h1, h2 = float(y[_Y["h1"]]), float(y[_Y["h2"]])
+        return Estimate(t=self.t, h1=h1, h2=max(h2, 0.0), h=float(y[_Y["h"]]), F=max(float(y[_Y["F"]]), 0.0),
+                        p=float(y[_Y["p"]]), mean=self.x.copy(), cov=self.P.copy(),
+                        state_names=self.state_names, std=std, flags=frozenset(flags))
