@@ -454,7 +454,7 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
             # ignores SIGINT) stops the daemon too, through its own safe exit
             old = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
             try:
-                _drive(proc, url, rng, every_s, duration_s, sent, echo)
+                _drive(proc, url, rng, every_s, duration_s, sent, echo, speed)
                 rc = proc.wait()
             except BaseException:
                 # the daemon writes the safe command on SIGTERM; the soak's results stay readable
@@ -519,14 +519,18 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
 
 
 def _drive(proc: subprocess.Popen, url: str, rng: random.Random, every_s: float, duration_s: float,
-           sent: list, echo) -> None:
-    """Post a random setpoint each ``every_s`` of rig time until the daemon ends."""
+           sent: list, echo, speed: float = 1.0) -> None:
+    """Post a random setpoint each ``every_s`` of rig time until the daemon ends (the rig runs ``speed``
+    times faster than the wall clock)."""
     n_layers = n_chambers = None
     next_t = every_s
     last_note = time.monotonic()
+    # a few polls per setpoint interval of wall time (at most 2 per second): polled every 0.5 s, a fast
+    # rig (speed 4, a setpoint a second) passed two setpoint times between polls and sent one
+    poll = min(0.5, every_s / max(speed, 1e-9) / 4)
     with httpx.Client(base_url=url, timeout=5.0) as client:
         while proc.poll() is None:
-            time.sleep(0.5)
+            time.sleep(poll)
             try:
                 st = client.get("/status").json()
             except (httpx.HTTPError, ValueError):
