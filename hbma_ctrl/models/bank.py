@@ -297,13 +297,26 @@ class ChamberBank:
         """
         pe = self.actuator.p_env
         Wk = W / k
-        xe = (x + 1) / c - 1
         tb = self.tables
+        # the iterate is kept on the tables (zero outside their grid): from a start past the top (a dead
+        # volume below nominal) it would otherwise read p1 = 0 and never come back; a chamber whose gas
+        # is past the top reads the top's shape (the estimator flags it, ChamberEKFBank's ``beyond``)
+        top = self.x_max
+        xe = ca.fmin((x + 1) / c - 1, top)
         for _ in range(iters):
             p1 = tb.P_table(ca.vertcat(xe, Wk))
-            xe = ((x + 1) - (k * p1 + pe) * (c - 1) / pe) * (p1 + pe) / (k * p1 + pe) - 1
+            xe = ca.fmin(((x + 1) - (k * p1 + pe) * (c - 1) / pe) * (p1 + pe) / (k * p1 + pe) - 1, top)
         xw = ca.vertcat(xe, Wk)
         return tb.H_table(xw), k * tb.P_table(xw), tb.L_table(xw)
+
+    def x_top_expr(self, W, k, c=1.0):
+        """The gas mass (units of the NOMINAL p_env V0 / RT) at which a chamber of modulus factor k and
+        dead-volume factor c under load W reaches the top of the tables (their shape at ``x_max``):
+        :meth:`outputs_expr`'s relation solved for x at x1 = x_max (SX). A larger dead volume holds
+        more gas at the same shape, so the top in x moves with c."""
+        pe = self.actuator.p_env
+        p1 = self.tables.P_table(ca.vertcat(self.x_max, W / k))
+        return (self.x_max + 1) * (k * p1 + pe) / (p1 + pe) + (k * p1 + pe) * (c - 1) / pe - 1
 
     def discrete_expr(self, dt: float, substeps: int = 1, method: str = "rk4", plant_inputs: bool = False):
         """x+ (SX expression in the model's symbols) after dt s, rk4 or euler with inputs held. With
