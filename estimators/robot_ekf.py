@@ -133,7 +133,7 @@ NS = 4  # [x, b, k, c]
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     """Single-chamber EKF step (X[4], P[16], u[3], W, z, use, reopen) -> (X+[4], P+[16], h, p, nis,
-    h_std, over). ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1)
+    h_std, over, lam, x_top). ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1)
     is gated (not used) unless ``reopen`` is 1: then the prior covariance is inflated until the
     NIS equals the gate (at most by INFLATION_MAX) and the reading is used."""
     xs, _, W, b, k, c = model.symbols
@@ -141,9 +141,9 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     xn = model.discrete_expr(s.sample_period, plant_inputs=True)
     th = ca.vertcat(b, k, c)
     fx = ca.Function("fx", [xs, w, W, b, k, c], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, th)])
-    he, pe, _ = model.outputs_expr(xs, W, k, c)
+    he, pe, le = model.outputs_expr(xs, W, k, c)
     zv = ca.vertcat(xs, k, c)
-    pj = ca.Function("pj", [xs, W, k, c], [pe, ca.jacobian(pe, zv), he, ca.jacobian(he, zv)])
+    pj = ca.Function("pj", [xs, W, k, c], [pe, ca.jacobian(pe, zv), he, ca.jacobian(he, zv), le])
     X = ca.SX.sym("X", NS)
     Pv = ca.SX.sym("P", NS * NS)
     wi = ca.SX.sym("wi", 3)
@@ -156,7 +156,7 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
                            s.k_rate_std ** 2 * s.sample_period, s.c_rate_std ** 2 * s.sample_period))
     Pm = A @ P @ A.T + Q
     xm = ca.vertcat(x_pred, X[1], X[2], X[3])
-    p_pred, dp, _, _ = pj(xm[0], Wi, xm[2], xm[3])
+    p_pred, dp, _, _, _ = pj(xm[0], Wi, xm[2], xm[3])
     Hx = ca.horzcat(dp[0], 0, dp[1], dp[2])
     R = s.noise_std ** 2 + (s.model_rel_std * p_pred) ** 2
     innov = z - p_pred
@@ -174,11 +174,12 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     IKH = ca.DM.eye(NS) - K @ Hx
     Pp = IKH @ Pm @ IKH.T + K @ K.T * R
     Pp = 0.5 * (Pp + Pp.T)
-    p_post, _, h, dh = pj(xp[0], Wi, xp[2], xp[3])
+    p_post, _, h, dh, lam = pj(xp[0], Wi, xp[2], xp[3])
     G = ca.horzcat(dh[0], 0, dh[1], dh[2])
     return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use, reopen],
                        [xp, ca.reshape(Pp, NS * NS, 1), h, p_post, innov ** 2 / S * use_eff,
-                        ca.sqrt(ca.fmax(G @ Pp @ G.T, 0)), use * over])
+                        ca.sqrt(ca.fmax(G @ Pp @ G.T, 0)), use * over, lam,
+                        model.x_top_expr(Wi, xp[2], xp[3])])
 
 
 def _readings(z, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -214,8 +215,11 @@ class ChamberEKFBank:
     included: its flow is predicted as sent) or (2, n) decisions [supply, outlet] with the pump at
     full speed (see :mod:`hbma_ctrl.models.bank`), W (n,) the
     loads N used over that period, ``steps`` the periods since the last step (bounded by
-    ``max_gap``). Returns a dict of (n,) arrays: x, b, h (m, >= 0), p (Pa), h_std (m), nis, used
-    (bool), outlier (bool: out of bounds or gated), and the factors b, k, c (-).
+    ``max_gap``). Returns a dict of (n,) arrays: x, b, h (m, >= 0), p (Pa), h_std (m), lam (the
+    membrane's stretch, -), nis, used (bool), outlier (bool: out of bounds or gated), beyond (bool:
+    the gas mass at the top of the model's tables, where the height and stretch are the tables' last
+    and the membrane may be anywhere above), lost (bool: beyond, or a factor at the edge of its
+    range: the estimate says nothing reliable), k_std, and the factors b, k, c (-).
     """
 
     def __init__(self, model: ChamberBank, n: int, settings: ChamberEKFSettings | None = None):
@@ -237,7 +241,8 @@ class ChamberEKFBank:
         self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
         self.max_steps = max(1, int(round(s.max_gap / s.sample_period)))
         self._gated_run = np.zeros(n, dtype=int)
-        self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0}
+        self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0,
+                       "beyond_tables": 0, "factor_at_bound": 0}
         self._timing = CommandTiming(s.sample_period, s.valve_delay, s.sensor_delay)
 
     def _prior_cov(self) -> np.ndarray:
@@ -304,7 +309,7 @@ class ChamberEKFBank:
         zero = np.zeros(self.n)
         for _ in range(k - 1):  # the periods without a reading: predict only
             out = self._call(self.X, self.P, wv, Wv, zero, zero, zero)
-            self.X, self.P = self._guard(self._cols(out[0], NS), self._cols(out[1], NS * NS), zz)
+            self.X, self.P = self._guard(self._cols(out[0], NS), self._cols(out[1], NS * NS), zz, out[8])
         if jump:
             self.P = self.P + self._prior_cov().reshape(16, 1)
         reopen = (self._gated_run >= s.gate_reopen - 1).astype(float)
@@ -319,16 +324,30 @@ class ChamberEKFBank:
         self.counts["gated"] += int(gated.sum())
         self.counts["gate_reopened"] += int(reopened.sum())
         resets = self.resets
-        self.X, self.P = self._guard(self._cols(out[0], NS), self._cols(out[1], NS * NS), zz)
+        Xn = self._cols(out[0], NS)
+        # the gas mass at or past the top of the model's tables (for this chamber's factors): the model
+        # cannot say where such a membrane is (its height and stretch are the tables' last), only that
+        # it holds that much gas
+        beyond = Xn[0] >= out[8]
+        # a factor at the edge of its range: the filter explains the readings with a chamber far outside
+        # any plausible mismatch (a far-branch membrane read as a near-branch one drives the flow factor
+        # to its floor and the modulus to its ceiling while the truth grows on)
+        at_bound = np.zeros(self.n, dtype=bool)
+        for row, (lo, hi) in ((1, B_RANGE), (2, K_RANGE), (3, C_RANGE)):
+            at_bound |= (Xn[row] <= lo) | (Xn[row] >= hi)
+        self.counts["beyond_tables"] += int(beyond.sum())
+        self.counts["factor_at_bound"] += int(at_bound.sum())
+        self.X, self.P = self._guard(Xn, self._cols(out[1], NS * NS), zz, out[8])
         X = self.X
-        h, p, h_std = out[2].copy(), out[3].copy(), out[5].copy()
+        h, p, h_std, lam = out[2].copy(), out[3].copy(), out[5].copy(), out[7].copy()
         if self.resets > resets:  # a restarted filter reports its restart, not the diverged step
             bad = ~(np.isfinite(h) & np.isfinite(p) & np.isfinite(h_std))
             for i in np.nonzero(bad)[0]:
-                hi, pi, _ = self.model.out(X[0, i], Wv[i], X[2, i], X[3, i])
-                h[i], p[i], h_std[i] = float(hi), float(pi), np.nan  # unknown right after a restart
+                hi, pi, li = self.model.out(X[0, i], Wv[i], X[2, i], X[3, i])
+                h[i], p[i], lam[i], h_std[i] = float(hi), float(pi), float(li), np.nan  # unknown right after a restart
         self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
-                     "h": np.maximum(h, 0.0), "p": p, "h_std": h_std,
+                     "h": np.maximum(h, 0.0), "p": p, "h_std": h_std, "lam": lam, "beyond": beyond,
+                     "lost": beyond | at_bound,
                      "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis,
                      "used": used, "outlier": outlier | gated}
         return self.last
@@ -337,11 +356,16 @@ class ChamberEKFBank:
         """A mapped output (column-major, one column per chamber) as a (rows, n) array (a copy)."""
         return flat.reshape(self.n, rows).T.copy()
 
-    def _guard(self, X: np.ndarray, Pn: np.ndarray, zz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Clip the states to their ranges; a diverged filter restarts from its reading (``resets``)."""
+    def _guard(self, X: np.ndarray, Pn: np.ndarray, zz: np.ndarray,
+               x_top: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Clip the states to their ranges (the gas mass to ``x_top``, the tables' top for each chamber's
+        factors); a diverged filter restarts from its reading (``resets``)."""
         bad = ~(np.all(np.isfinite(X), 0) & np.all(np.isfinite(Pn), 0))
         self.resets += int(bad.sum())
-        X[0] = np.clip(X[0], -0.04, self.model.x_max)
+        # at the tables' top in x1, not in x: a chamber with a larger dead volume holds more gas at the
+        # same shape, and a clip at the nominal top pinned such an estimate at a mid height while the
+        # membrane grew on (a 3-layer run: estimate 2.8 mm, truth 20 mm and rising, pump on)
+        X[0] = np.clip(X[0], -0.04, np.where(np.isfinite(x_top), x_top, self.model.x_max))
         X[1] = np.clip(X[1], *B_RANGE)
         X[2] = np.clip(X[2], *K_RANGE)
         X[3] = np.clip(X[3], *C_RANGE)
@@ -353,7 +377,9 @@ class ChamberEKFBank:
     def stats(self) -> dict:
         """Counts since construction (over all chambers): ``outliers`` (readings not used as
         implausible: out of bounds or gated), ``outliers_bound``, ``gated``, ``gate_reopened``,
-        ``missing`` (dropouts), ``time_jumps`` (gaps cut to max_gap) and ``resets``."""
+        ``missing`` (dropouts), ``time_jumps`` (gaps cut to max_gap), ``beyond_tables`` (chamber
+        steps whose gas mass reached the top of the model's tables), ``factor_at_bound`` (chamber steps
+        with a factor at the edge of its range) and ``resets``."""
         c = dict(self.counts)
         c["outliers"] = c["outliers_bound"] + c["gated"]
         c["resets"] = int(self.resets)

@@ -262,7 +262,8 @@ def test_robot_loop_falls_back_when_the_qp_fails(robot):
     outs = [loop.tick(0.01 * (k + 1), np.zeros(n)) for k in range(4)]
     assert loop.stats()["fallbacks"] == 4
     assert np.all(outs[-1][0] == 0.0) and np.all(outs[-1][1] == 1.0)  # safe: supply off, outlets open
-    causes = [e.cause for e in sup.events if e.chamber == 0]
+    # (pumped while reading nothing, the filters also leave their range: lost-estimate events, not these)
+    causes = [e.cause for e in sup.events if e.chamber == 0 and not e.cause.startswith("lost_estimate")]
     assert causes == ["shifted_plan", "shifted_plan", "safe_command", "safe_command"]
 
 

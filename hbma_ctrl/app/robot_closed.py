@@ -53,6 +53,8 @@ class ClosedLoopRun:
     b_est: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cautious_steps: int = 0
     events: list = field(default_factory=list)  # the supervisor's interventions (SupervisorEvent)
+    stretch_interlocks: int = 0  # the stretch interlock's supply cuts (chamber steps)
+    lost_estimate_steps: int = 0  # chamber steps vented for a lost estimate
 
 
 def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberBank:
@@ -137,4 +139,5 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                          st[:T - 1], se[:T - 1], sc[:T - 1], sup.counts["guard"], sup.failed_steps,
                          int(getattr(ctrl, "inaccurate", 0)), status, time.perf_counter() - wall0,
                          np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
-                         BE[sl], loop.cautious_steps, list(sup.events))
+                         BE[sl], loop.cautious_steps, list(sup.events), sup.counts["stretch_guard"],
+                         sup.counts["lost_estimate"])

@@ -115,6 +115,8 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "segments": segs,
         "all_segments_settled": bool(all(s["settled"] for s in segs)),
         "interlocks": run.interlocks,
+        "stretch_interlocks": run.stretch_interlocks,
+        "lost_estimate_steps": run.lost_estimate_steps,
         "cautious_steps": run.cautious_steps,
         "fallbacks": run.fallbacks,
         "qp_not_solved": run.inaccurate,
@@ -217,7 +219,7 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
         metrics["baseline"] = {k: mets[1][k] for k in (
             "controller", "chamber_height_rmse_mm", "bend_angle_rmse_deg", "tip_position_rmse_mm",
             "chamber_height_rmse_all_mm", "max_pressure_kpa", "pressure_limit_exceeded", "all_segments_settled",
-            "far_branch_chambers", "max_stretch", "stretch_exceeded_chambers", "interlocks", "step_ms_median", "step_ms_p99", "segments", "status")}
+            "far_branch_chambers", "max_stretch", "stretch_exceeded_chambers", "interlocks", "stretch_interlocks", "lost_estimate_steps", "step_ms_median", "step_ms_p99", "segments", "status")}
     plot_closed_loop(d, runs, out / "robot_series.png", s.pneumatics.pressure_limit, scn.name)
     r0 = runs[0]
     idx = np.unique(np.concatenate([np.searchsorted(r0.t, np.append(r0.changes[1:], r0.t[-1] + 1)) - 1]))

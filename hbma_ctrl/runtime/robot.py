@@ -17,9 +17,15 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   limit point while its modulus factor is uncertain;
 - the :class:`Supervisor` applies the fallback on a failed solve or an NMPC overrun (its step
   exceeded ``budget`` x period: replay the plan, then the safe command; an overrun's late plan is
-  kept for the next failure), the vent rule (zero target) and the pressure interlock (supply cut
-  while a reading is within the margin of the limit); the command sent is handed back to the NMPC
-  (``applied``: its input-rate terms start from it);
+  kept for the next failure), the vent rule (zero target), the pressure interlock (supply cut
+  while a reading is within the margin of the limit), the stretch interlock (supply cut while a
+  chamber's estimated stretch is at the design's ``max_stretch``) and the lost-estimate vent: a
+  chamber whose filter's gas mass reached the top of the model's tables (the estimate no longer
+  says how far the membrane has grown; a far-branch membrane pumped on grows without bound at a
+  falling pressure, which the pressure interlock never sees) is vented until its reading is down,
+  then its filter restarts from that reading; the NMPC gets no supply budget for a chamber held by
+  either; the command sent is handed back to the NMPC (``applied``: its input-rate terms start
+  from it);
 - with ``valve_min_on`` the inlet and outlet duties sent are each 0 or at least the valves' minimum
   opening, a smaller one realised on average over the periods (:class:`hbma_ctrl.runtime.pwm.MinOnTime`,
   as the single chamber's loop does), and the bank predicts with the duties sent.
@@ -38,6 +44,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 
@@ -96,7 +103,8 @@ def robot_supervisor(pressure_limit: float, n: int, interlock_margin: float = 1e
                      **overrides) -> Supervisor:
     """The robot's supervisor: interlock on the readings (supply cut within ``interlock_margin`` Pa of
     ``pressure_limit`` Pa; no forced vent; a dropout does not trigger it), vent on a zero target, the
-    NMPC plan replayed at ``plan_period`` s per row. ``overrides`` set other :class:`SupervisorSettings` fields."""
+    NMPC plan replayed at ``plan_period`` s per row. ``overrides`` set other :class:`SupervisorSettings`
+    fields; its ``stretch_max`` left None, :class:`RobotLoop` guards the design's ``max_stretch``."""
     kw = dict(p_max=float(pressure_limit), guard_margin=float(interlock_margin), vent_margin=None,
               missing_is_limit=False, vent_height=ZERO_TARGET, plan_period=plan_period)
     kw.update(overrides)
@@ -177,6 +185,10 @@ class RobotLoop:
         if supervisor.n != self.n:
             raise ValueError(f"RobotLoop: the supervisor is for {supervisor.n} chambers, the robot has {self.n}")
         self.is_mpc = isinstance(controller, RobotNMPC)
+        if supervisor.settings.stretch_max is None:
+            # a robot's loop always guards the membranes' stretch: the design's limit, unless the
+            # supervisor was given its own
+            supervisor.settings = replace(supervisor.settings, stretch_max=design.max_stretch).validate()
         self.step_s, self.ekf_s, self.ctrl_s = (StepStats(stats_capacity) for _ in range(3))
         self.last_timing = (float("nan"),) * 3
         #: the last tick's controller part split up, s: loads and targets, the controller's step, the
@@ -235,6 +247,8 @@ class RobotLoop:
         href = self._slew(self.chamber_targets(t), est["h"], steps * self._period)
         self.href = href
         vent = sup.vent_mask(href)
+        stretch, lost = est["lam"], est["lost"]
+        held = (stretch >= sup.settings.stretch_max) | lost | sup.lost
         t_ctrl = time.perf_counter()
         plan, ok, cause = None, True, "ok"
         try:
@@ -244,7 +258,7 @@ class RobotLoop:
                     self._peak_p = np.array([model.peak(w)[1] for w in model.clip_load(W / est["k"])])
                 # no preview: the NMPC sees the current target only (as the PID does); a preview would
                 # start each move up to one horizon early
-                a_max = np.where(vent, 0.0, 1.0)
+                a_max = np.where(vent | held, 0.0, 1.0)
                 if c is not None:
                     near = (est["p"] > c[0] * est["k"] * self._peak_p) & (est["k_std"] > c[1])
                     a_max = np.where(near, np.minimum(a_max, c[2]), a_max)
@@ -263,7 +277,12 @@ class RobotLoop:
         except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
             a, o, ok, cause = np.zeros(self.n), np.zeros(self.n), False, f"exception: {type(exc).__name__}"
         t_sup = time.perf_counter()
-        cmd = sup.apply(t, np.column_stack([a, o]), z, ok=ok, plan=plan, target=href, cause=cause)
+        cmd = sup.apply(t, np.column_stack([a, o]), z, ok=ok, plan=plan, target=href, cause=cause,
+                        stretch=stretch, lost=lost)
+        if sup.released.any():
+            # vented down: the chamber is flat again, its filter restarts from the reading (the factors
+            # that took it off its model are not kept)
+            self.bank.reset(z, sup.released)
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
         if self.is_mpc:
             ctrl.applied(a, o)
@@ -348,12 +367,16 @@ class RobotLoop:
 
     def stats(self) -> dict:
         """Step, EKF and controller times (ms: median, p99, max, n), fallbacks (failed controller
-        steps), interlocks (supply cuts, per chamber and step), cautious steps, QPs not solved and
+        steps), interlocks (pressure interlock's supply cuts, per chamber and step), stretch_interlocks
+        (the stretch interlock's), lost_estimate_steps (chamber steps vented for a lost estimate),
+        cautious steps, QPs not solved and
         held_unmatched (reports of a held command matching none sent lately)."""
         sup = self.supervisor
         ms = lambda st: {k: (v * 1e3 if k != "n" else v) for k, v in st.summary().items()}  # noqa: E731
         return {"step_ms": ms(self.step_s), "ekf_ms": ms(self.ekf_s), "controller_ms": ms(self.ctrl_s),
                 "fallbacks": int(sup.failed_steps), "interlocks": int(sup.counts["guard"]),
+                "stretch_interlocks": int(sup.counts["stretch_guard"]),
+                "lost_estimate_steps": int(sup.counts["lost_estimate"]),
                 "vents": int(sup.counts["vent"]), "cautious_steps": int(self.cautious_steps),
                 "qp_not_solved": int(getattr(self.controller, "inaccurate", 0)),
                 "overruns": int(getattr(self.controller, "overruns", 0)),

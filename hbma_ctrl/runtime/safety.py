@@ -18,7 +18,14 @@ The policy, in this order, per chamber:
    target means "lower onto the stop": vent, no dithering about ambient pressure);
 4. pressure guard: while a chamber's pressure is within ``guard_margin`` of ``p_max`` and its command
    pumps (or, with a ``vent_margin``, does not fully open the outlet), the supply is cut; within
-   ``vent_margin`` the outlet is opened fully.
+   ``vent_margin`` the outlet is opened fully;
+5. stretch guard (with ``stretch_max``): while a chamber's estimated membrane stretch is at or above
+   ``stretch_max`` and its command pumps, the supply is cut. Past its limit point a membrane at a
+   held pressure keeps growing (a balloon), so the pressure guard alone does not bound it;
+6. lost estimate: a chamber whose estimate has left its model's range (``lost``: the membrane may be
+   anywhere above what the model covers) gets the safe command from then until its pressure is at
+   or below ``lost_release``; on that step it is in ``released`` (its owner restarts the estimate
+   from the flat chamber). A far-branch membrane pumped on by a lost estimate grows without bound.
 
 Every intervention is counted (by cause) and logged as an event (time, chamber, cause, detail) in a
 bounded log; vents are logged when they start (a held zero target would flood the log otherwise).
@@ -56,6 +63,8 @@ class SupervisorSettings:
         the safe command.
     plan_period : time between two rows of a controller's plan, s; None = one row per step.
     safe_outlet : outlet duty of the safe command (1 = vent to ambient; 0 = hold the gas).
+    stretch_max : the stretch guard's limit (equi-biaxial membrane stretch, -); None = no stretch guard.
+    lost_release : a chamber vented for a lost estimate is released at or below this pressure, Pa.
     event_log_size : how many events the log keeps (the oldest drop out; counts keep growing).
     """
 
@@ -67,6 +76,8 @@ class SupervisorSettings:
     fallback_plan_steps: int = 10
     plan_period: float | None = None
     safe_outlet: float = 1.0
+    stretch_max: float | None = None
+    lost_release: float = 1e3
     event_log_size: int = 10000
 
     def validate(self) -> "SupervisorSettings":
@@ -82,6 +93,9 @@ class SupervisorSettings:
         if self.plan_period is not None:
             check_range("supervisor", "plan_period", self.plan_period, 0.0, 10.0, "s", lo_open=True)
         check_range("supervisor", "safe_outlet", self.safe_outlet, 0.0, 1.0)
+        if self.stretch_max is not None:
+            check_range("supervisor", "stretch_max", self.stretch_max, 1.0, 20.0, lo_open=True)
+        check_range("supervisor", "lost_release", self.lost_release, 0.0, self.p_max, "Pa")
         if not isinstance(self.event_log_size, int) or self.event_log_size < 1:
             raise ValueError(f"supervisor.event_log_size = {self.event_log_size!r} must be an integer >= 1")
         return self
@@ -115,7 +129,11 @@ class Supervisor:
         self._streak = np.zeros(self.n, dtype=int)
         self._age = np.zeros(self.n, dtype=int)  # plan rows replayed since the plan was stored
         self._venting = np.zeros(self.n, dtype=bool)
-        self.counts: dict = {"shifted_plan": 0, "safe_command": 0, "vent": 0, "guard": 0}
+        #: chambers vented for a lost estimate (until their pressure is down), and those released this step
+        self.lost = np.zeros(self.n, dtype=bool)
+        self.released = np.zeros(self.n, dtype=bool)
+        self.counts: dict = {"shifted_plan": 0, "safe_command": 0, "vent": 0, "guard": 0, "stretch_guard": 0,
+                             "lost_estimate": 0}
         self.failure_causes: dict = {}
         self.failed_steps = 0
         self.events: deque = deque(maxlen=self.settings.event_log_size)
@@ -154,7 +172,7 @@ class Supervisor:
 
     # --- the policy ------------------------------------------------------------------------------
     def apply(self, t: float, command, pressure, ok=True, plan=None, target=None,
-              cause: str = "controller_failed") -> np.ndarray:
+              cause: str = "controller_failed", stretch=None, lost=None) -> np.ndarray:
         """The command to send at time t (s), same shape as ``command``.
 
         command : proposed command, (n, c) or (c,) for one chamber, values nominally in [0, 1].
@@ -164,6 +182,9 @@ class Supervisor:
             ok, a late plan for the next failure, or None.
         target : target heights per chamber, m, for the vent rule; None = no targets.
         cause : why the controller failed (logged and counted in ``failure_causes``).
+        stretch : estimated membrane stretch per chamber (-; NaN = unknown: not guarded) for the
+            stretch guard; None = not guarded this step.
+        lost : (n,) bool, chambers whose estimate has left its model's range this step (rule 6).
         """
         s = self.settings
         cmd = np.array(command, dtype=float)
@@ -232,4 +253,28 @@ class Supervisor:
             self.counts["guard"] += int(act.sum())
             for i in np.nonzero(act)[0]:
                 self._log(t, i, "guard", f"p={p[i]:.0f} Pa")
+        # 5. stretch guard
+        if s.stretch_max is not None and stretch is not None:
+            lam = np.broadcast_to(np.asarray(stretch, dtype=float), (self.n,))
+            over = (lam >= s.stretch_max) & (cmd[:, 0] > 0)  # NaN compares False: not guarded
+            if over.any():
+                cmd[over, :-1] = 0.0
+                self.counts["stretch_guard"] += int(over.sum())
+                for i in np.nonzero(over)[0]:
+                    self._log(t, i, "stretch_guard", f"stretch={lam[i]:.2f}")
+        # 6. lost estimate: vent until the pressure is down
+        new = np.zeros(self.n, dtype=bool) if lost is None else \
+            np.broadcast_to(np.asarray(lost, dtype=bool), (self.n,)) & ~self.lost
+        for i in np.nonzero(new)[0]:
+            self._log(t, i, "lost_estimate", "beyond the estimator's model: venting")
+        self.lost |= new
+        # a dropout (NaN) keeps the vent on: only a reading says the pressure is down
+        self.released = self.lost & finite & (p_g <= s.lost_release)
+        for i in np.nonzero(self.released)[0]:
+            self._log(t, i, "lost_estimate_released", f"p={p[i]:.0f} Pa")
+        if self.lost.any():
+            # the step of the release too: its command came from the lost estimate
+            cmd[self.lost] = self.safe_command(c)
+            self.counts["lost_estimate"] += int(self.lost.sum())
+        self.lost &= ~self.released
         return cmd[0] if single else cmd

@@ -1,0 +1,155 @@
+"""The robot's membranes are bounded when their estimates are not: the stretch interlock, the vent of
+a chamber whose filter has left its model (gas mass past the tables' top, a factor at the edge of its
+range) with its filter restarted once the chamber is down, and the bank's gas-mass clip at the
+tables' top for the chamber's own dead volume (a clip at the nominal top pinned a growing membrane's
+estimate at a mid height)."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from estimators.robot_ekf import B_RANGE, ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
+from hbma_ctrl.app.sections import RobotSettings
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.params import Pneumatics
+from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
+from hbma_ctrl.robot.rig import RobotRigSettings
+from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
+
+
+@pytest.fixture(scope="module")
+def robot():
+    d = RobotDesign(n_layers=1).validate()
+    return d, make_model(d, Pneumatics(), "per_chamber")
+
+
+# --- the supervisor ------------------------------------------------------------------------------
+def test_stretch_guard_cuts_the_supply_of_a_pumping_chamber_at_the_limit_only():
+    sup = Supervisor(SupervisorSettings(p_max=45e3, vent_margin=None, stretch_max=4.0), n=4)
+    cmd = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 0.5], [1.0, 0.0]])
+    out = sup.apply(0.5, cmd, np.full(4, 10e3), stretch=np.array([4.0, 3.99, 5.0, np.nan]))
+    # at the limit and pumping: supply cut; below it: as proposed; not pumping: nothing to cut;
+    # unknown (NaN) stretch: not guarded
+    assert out.tolist() == [[0.0, 0.0], [1.0, 0.0], [0.0, 0.5], [1.0, 0.0]]
+    assert sup.counts["stretch_guard"] == 1
+    assert [(e.chamber, e.cause, e.detail) for e in sup.events] == [(0, "stretch_guard", "stretch=4.00")]
+
+
+def test_stretch_guard_is_off_without_a_limit():
+    sup = Supervisor(SupervisorSettings(p_max=45e3, vent_margin=None), n=1)
+    assert sup.apply(0.0, np.array([[1.0, 0.0]]), [10e3], stretch=[50.0]).tolist() == [[1.0, 0.0]]
+
+
+def test_lost_estimate_vents_until_the_reading_is_down_and_a_dropout_keeps_it_venting():
+    sup = Supervisor(SupervisorSettings(p_max=45e3, vent_margin=None, missing_is_limit=False, lost_release=1e3), n=2)
+    pump = np.array([[1.0, 0.0], [1.0, 0.0]])
+    out = sup.apply(0.0, pump, [30e3, 30e3], lost=[True, False])
+    assert out.tolist() == [[0.0, 1.0], [1.0, 0.0]] and sup.lost.tolist() == [True, False]
+    # the flag need not persist: the vent holds until the reading is down, a dropout included
+    for t, p in ((0.01, 20e3), (0.02, np.nan), (0.03, 1.2e3)):
+        out = sup.apply(t, pump, [p, 30e3], lost=[False, False])
+        assert out[0].tolist() == [0.0, 1.0] and not sup.released.any()
+    out = sup.apply(0.04, pump, [0.9e3, 30e3], lost=[False, False])
+    # the release step still sends the safe command (its command came from the lost estimate)
+    assert out[0].tolist() == [0.0, 1.0] and sup.released.tolist() == [True, False]
+    assert not sup.lost.any()
+    assert sup.apply(0.05, pump, [0.9e3, 30e3]).tolist() == pump.tolist()
+    assert sup.counts["lost_estimate"] == 5
+    assert [(e.t, e.cause) for e in sup.events] == [(0.0, "lost_estimate"), (0.04, "lost_estimate_released")]
+
+
+def test_supervisor_refuses_a_stretch_limit_or_release_out_of_range():
+    with pytest.raises(ValueError, match=r"supervisor.stretch_max = 1.0 is out of range \(1.0, 20.0\]"):
+        SupervisorSettings(stretch_max=1.0).validate()
+    with pytest.raises(ValueError, match=r"supervisor.lost_release = -1.0 is out of range"):
+        SupervisorSettings(lost_release=-1.0).validate()
+
+
+# --- the bank ------------------------------------------------------------------------------------
+def test_x_top_is_the_nominal_tables_top_for_nominal_factors_and_moves_with_the_dead_volume(robot):
+    _, model = robot
+    W, k, c = ca.SX.sym("W"), ca.SX.sym("k"), ca.SX.sym("c")
+    top = ca.Function("top", [W, k, c], [model.x_top_expr(W, k, c)])
+    # just inside the top (the tables are zero outside their grid)
+    eps = 1e-6
+    out = ca.Function("out", [W, k, c], list(model.outputs_expr(model.x_top_expr(W, k, c) - eps, W, k, c, iters=30)))
+    for w in (0.05, 0.2, 0.5):
+        assert float(top(w, 1.0, 1.0)) == pytest.approx(model.x_max, abs=1e-12)
+        h_top = float(model.tables.H_table(ca.vertcat(model.x_max - eps, w)))
+        assert h_top > 0
+        # at x_top a chamber of factors (k, c) has the shape of the tables' top at W / k
+        for kk, cc in ((1.0, 1.5), (1.2, 0.8), (0.8, 1.3)):
+            h = float(out(w * kk, kk, cc)[0])
+            assert h == pytest.approx(h_top, rel=1e-4)
+        # a larger dead volume holds more gas at the same shape
+        assert float(top(w, 1.0, 1.5)) > float(top(w, 1.0, 1.0)) > float(top(w, 1.0, 0.8))
+
+
+def test_bank_reports_a_factor_at_its_bound_as_lost_and_does_not_pin_a_large_dead_volume(robot):
+    _, model = robot
+    bank = ChamberEKFBank(model, 3, ChamberEKFSettings(sample_period=0.01, sensor_range=50e3))
+    w = np.zeros((2, 3))
+    W = np.full(3, 0.2)
+    est = bank.step(np.zeros(3), w, W)
+    assert not est["lost"].any() and not est["beyond"].any()
+    bank.X[1, 0] = B_RANGE[0]  # the flow factor at its floor
+    # chamber 2: a large dead volume holding more gas than the nominal tables' top
+    bank.X[3, 2] = 1.5
+    x_big = model.x_max + 0.1
+    bank.X[0, 2] = x_big
+    est = bank.step(np.full(3, np.nan), w, W)  # predict only: nothing moves the states
+    assert est["lost"].tolist() == [True, False, False]
+    assert bank.X[0, 2] == pytest.approx(x_big, rel=1e-9)  # not clipped at the nominal top
+    assert bank.stats()["factor_at_bound"] == 1 and bank.stats()["beyond_tables"] == 0
+    assert est["lam"].shape == (3,) and np.all(est["lam"] >= 1.0 - 1e-9)
+
+
+# --- the loop ------------------------------------------------------------------------------------
+def test_robot_loop_vents_a_lost_chamber_then_restarts_its_filter_from_the_flat_reading(robot):
+    d, model = robot
+    n = 3
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=0.01, sensor_range=50e3))
+    ms = RobotMPCSettings(sample_period=0.01, p_max=45e3)
+    loop = RobotLoop(d, model, bank, RobotNMPC(model, n, ms), robot_supervisor(45e3, n, plan_period=ms.dt),
+                     {0: ((0.0, U.mm(5.0), 0.0, 0.0),)})
+    assert loop.supervisor.settings.stretch_max == d.max_stretch  # the design's limit by default
+    loop.tick(0.0, np.zeros(n))
+    bank.X[1, 1] = B_RANGE[0] - 0.1  # chamber 1's filter leaves its range
+    # chambers 0 and 2 are pumped but read nothing (a dead pump): their flow factors fall to the floor
+    # in a step, they are lost, and released at once (flat: nothing to vent), their filters restarted
+    a, o = loop.tick(0.01, np.array([0.0, 20e3, 0.0]))
+    assert a[1] == 0.0 and o[1] == 1.0 and loop.estimate["lost"][1]
+    a, o = loop.tick(0.02, np.array([0.0, 5e3, 0.0]))
+    assert a[1] == 0.0 and o[1] == 1.0  # still venting: the reading is not down yet
+    a, o = loop.tick(0.03, np.array([0.0, 0.5e3, 0.0]))
+    assert a[1] == 0.0 and o[1] == 1.0
+    # restarted at rest from the reading, factors at their priors
+    assert bank.X[:, 1] == pytest.approx(bank.rest_state(np.full(n, 0.5e3))[:, 1])
+    ev = [(e.t, e.chamber, e.cause) for e in loop.supervisor.events]
+    assert [e for e in ev if e[1] == 1] == [(0.01, 1, "lost_estimate"), (0.03, 1, "lost_estimate_released")]
+    assert [e for e in ev if e[1] != 1] == [(0.02, 0, "lost_estimate"), (0.02, 2, "lost_estimate"),
+                                            (0.02, 0, "lost_estimate_released"), (0.02, 2, "lost_estimate_released")]
+    assert loop.stats()["lost_estimate_steps"] == 3 + 2
+
+
+def test_structured_robot_with_the_sensor_delay_modelled_does_not_run_a_membrane_away():
+    """Seed 0 of robot_bending_structured with the filters' 3 ms sensor delay: one chamber's filter
+    read its membrane on the near branch while it grew past 20 mm at a falling pressure, pump on (max
+    stretch 13 over the run). Now its filter is found lost and the chamber vented and restarted."""
+    d = RobotDesign(n_layers=3).validate()
+    tg = {k: ((0.0, U.mm(6.0), 0.0, 0.0),) for k in range(3)}
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics(sensor_range=50e3, pressure_limit=45e3),
+                      mode="closed_loop", targets=tg, valve_min_on=0.002, valve_delay=0.005, sensor_delay=0.003).validate()
+    rig = RobotRigSettings(modulus_spread=0.15, flow_scale=0.9, V0_scale=1.2, noise_std=200.0, seed=0,
+                           valve_delay=0.005, valve_min_on=0.002, compressor_tilt=0.2, sensor_tau=0.003)
+    run = run_closed_loop(s, tg, 2.5, "mpc", rig=rig, mpc=RobotMPCSettings(horizon=15, dt=0.02))
+    assert run.status == "ok"
+    assert run.lost_estimate_steps > 0
+    assert run.lam.max() < d.max_stretch
+    late = run.t >= 2.0
+    assert np.abs(run.h[late] - run.h_ref[late]).max() < U.mm(1.5)
