@@ -153,3 +153,25 @@ def test_structured_robot_with_the_sensor_delay_modelled_does_not_run_a_membrane
     assert run.lam.max() < d.max_stretch
     late = run.t >= 2.0
     assert np.abs(run.h[late] - run.h_ref[late]).max() < U.mm(1.5)
+
+
+# --- the daemon's view ---------------------------------------------------------------------------
+def test_daemon_logs_each_supervisor_episode_once_with_the_chambers_name():
+    from hbma_ctrl.app.daemon.build import SupervisorEpisodes
+
+    sup = Supervisor(SupervisorSettings(p_max=45e3, guard_margin=1e3, vent_margin=None, missing_is_limit=False,
+                                        stretch_max=4.0), n=2)
+    ep = SupervisorEpisodes(sup, ("A1", "A2"))
+    pump = np.array([[1.0, 0.0], [1.0, 0.0]])
+    taken = []
+    for t, p0 in ((0.0, 30e3), (0.01, 44.5e3), (0.02, 44.6e3), (0.03, 44.7e3), (0.04, 30e3), (0.05, 44.5e3)):
+        sup.apply(t, pump, [p0, 10e3], stretch=[1.5, 4.2], lost=[False, t == 0.03])
+        taken.append(ep.take())
+    # A1's guard acts in three ticks in a row, then again after a tick without: two episodes;
+    # A2's stretch guard acts every tick until its lost estimate vents it: one episode, then the vent
+    assert taken[0] == [("supervisor", "A2: stretch_guard (stretch=4.20)")]
+    assert taken[1] == [("supervisor", "A1: guard (p=44500 Pa)")]
+    assert taken[2] == []
+    assert taken[3] == [("supervisor", "A2: lost_estimate (the estimate left its model: venting)")]
+    assert taken[4] == []
+    assert taken[5] == [("supervisor", "A1: guard (p=44500 Pa)")]

@@ -137,6 +137,8 @@ class Supervisor:
         self.failure_causes: dict = {}
         self.failed_steps = 0
         self.events: deque = deque(maxlen=self.settings.event_log_size)
+        #: events logged since the reset (the log keeps the newest event_log_size of them)
+        self.logged = 0
 
     # --- helpers ---------------------------------------------------------------------------------
     def safe_command(self, channels: int) -> np.ndarray:
@@ -155,6 +157,7 @@ class Supervisor:
 
     def _log(self, t: float, i: int, cause: str, detail: str = "") -> None:
         self.events.append(SupervisorEvent(float(t), int(i), cause, detail))
+        self.logged += 1
 
     def _store_plan(self, t: float, plan: np.ndarray, rows: np.ndarray) -> None:
         if self._plan is None or self._plan.shape != plan.shape:
@@ -266,7 +269,7 @@ class Supervisor:
         new = np.zeros(self.n, dtype=bool) if lost is None else \
             np.broadcast_to(np.asarray(lost, dtype=bool), (self.n,)) & ~self.lost
         for i in np.nonzero(new)[0]:
-            self._log(t, i, "lost_estimate", "beyond the estimator's model: venting")
+            self._log(t, i, "lost_estimate", "the estimate left its model: venting")
         self.lost |= new
         # a dropout (NaN) keeps the vent on: only a reading says the pressure is down
         self.released = self.lost & finite & (p_g <= s.lost_release)

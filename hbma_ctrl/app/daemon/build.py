@@ -12,6 +12,7 @@ The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.a
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -92,6 +93,35 @@ def _same_period(cfg: DaemonConfig, rs):
     return replace(rs, sample_period=cfg.period).validate()
 
 
+class SupervisorEpisodes:
+    """The runtime supervisor's interventions as daemon events ("supervisor", "<chamber>: <cause>
+    (<detail>)"), one per episode: a chamber's cause is passed on when it was not logged in the
+    previous tick (the pressure guard and the stretch guard log every step they act; the run log
+    would otherwise get one row per chamber and period)."""
+
+    def __init__(self, supervisor, names):
+        self.sup = supervisor
+        self.names = tuple(names)
+        self._seen = supervisor.logged
+        self._prev: set = set()
+
+    def take(self) -> list[tuple[str, str]]:
+        """The episodes started since the last call (oldest first)."""
+        sup = self.sup
+        new = min(sup.logged - self._seen, len(sup.events))
+        self._seen = sup.logged
+        events = list(itertools.islice(reversed(sup.events), new))[::-1] if new > 0 else []
+        out, cur = [], set()
+        for e in events:
+            key = (e.chamber, e.cause)
+            if key not in self._prev and key not in cur:
+                name = self.names[e.chamber] if 0 <= e.chamber < len(self.names) else str(e.chamber)
+                out.append(("supervisor", f"{name}: {e.cause}" + (f" ({e.detail})" if e.detail else "")))
+            cur.add(key)
+        self._prev = cur
+        return out
+
+
 class ChamberRunner:
     """One chamber under :class:`ChamberLoop` (see module doc). ``h_range``: reachable targets (lo, hi), m.
 
@@ -116,6 +146,7 @@ class ChamberRunner:
         self._setpoint_during_calibration = False
         self._events: list[tuple[str, str]] = []
         self._t0: float | None = None
+        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
 
     @property
     def warming(self) -> bool:
@@ -123,9 +154,10 @@ class ChamberRunner:
         return self.calibration is not None and not self.calibration.done
 
     def take_events(self) -> list[tuple[str, str]]:
-        """(kind, cause) events since the last call (the calibration's start and outcome)."""
+        """(kind, cause) events since the last call (the calibration's start and outcome, the
+        supervisor's interventions: :class:`SupervisorEpisodes`)."""
         ev, self._events = self._events, []
-        return ev
+        return ev + self._episodes.take()
 
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1); ``held`` (3, 1): the
@@ -228,6 +260,12 @@ class RobotRunner:
         self.p_limit = float(p_limit)
         self.h_max = float(h_max)
         self._t = 0.0
+        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
+
+    def take_events(self) -> list[tuple[str, str]]:
+        """(kind, cause) events since the last call: the supervisor's interventions
+        (:class:`SupervisorEpisodes`: interlocks, vents, a lost estimate, fallbacks)."""
+        return self._episodes.take()
 
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """One period at rig time t (s) with the readings p (Pa, (n,)) -> U (3, n); ``held`` (3, n): the
