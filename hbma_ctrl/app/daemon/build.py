@@ -204,10 +204,6 @@ class ChamberRunner:
         """No layers: a single chamber."""
         return []
 
-    def supervisor_events(self) -> list:
-        """The runtime supervisor's interventions (oldest first)."""
-        return list(self.loop.supervisor.events)
-
     def check_setpoint(self, request: dict) -> dict:
         """Heights {0: h m} -> {"applied", "clipped"} (clipped to ``h_range``); ValueError for layers or
         another chamber."""
@@ -299,10 +295,6 @@ class RobotRunner:
             c, b, d = layer_plane(self.design, hh[k])
             out.append({"centre": c, "bend": b, "direction": d})
         return out
-
-    def supervisor_events(self) -> list:
-        """The runtime supervisor's interventions (oldest first)."""
-        return list(self.loop.supervisor.events)
 
     def _pose_now(self, k: int) -> tuple[float, float, float]:
         rows = self.loop.targets[k]
