@@ -20,12 +20,12 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   kept for the next failure), the vent rule (zero target), the pressure interlock (supply cut
   while a reading is within the margin of the limit), the stretch interlock (supply cut while a
   chamber's estimated stretch is at the design's ``max_stretch``) and the lost-estimate vent: a
-  chamber whose filter's gas mass reached the top of the model's tables (the estimate no longer
-  says how far the membrane has grown; a far-branch membrane pumped on grows without bound at a
-  falling pressure, which the pressure interlock never sees) is vented until its reading is down,
-  then its filter restarts from that reading; the NMPC gets no supply budget for a chamber held by
-  either; the command sent is handed back to the NMPC (``applied``: its input-rate terms start
-  from it);
+  chamber whose filter is lost (its gas mass at the top of the model's tables, or a factor at the
+  edge of its range: the estimate no longer says how far the membrane has grown, and a far-branch
+  membrane pumped on grows without bound at a falling pressure, which the pressure interlock never
+  sees) is vented until its reading is down, then its filter restarts from that reading; the NMPC
+  gets no supply budget for a chamber held by either; the command sent is handed back to the NMPC
+  (``applied``: its input-rate terms start from it);
 - with ``valve_min_on`` the inlet and outlet duties sent are each 0 or at least the valves' minimum
   opening, a smaller one realised on average over the periods (:class:`hbma_ctrl.runtime.pwm.MinOnTime`,
   as the single chamber's loop does), and the bank predicts with the duties sent.
@@ -369,8 +369,8 @@ class RobotLoop:
         """Step, EKF and controller times (ms: median, p99, max, n), fallbacks (failed controller
         steps), interlocks (pressure interlock's supply cuts, per chamber and step), stretch_interlocks
         (the stretch interlock's), lost_estimate_steps (chamber steps vented for a lost estimate),
-        cautious steps, QPs not solved and
-        held_unmatched (reports of a held command matching none sent lately)."""
+        cautious steps, QPs not solved and held_unmatched (reports of a held command matching none
+        sent lately)."""
         sup = self.supervisor
         ms = lambda st: {k: (v * 1e3 if k != "n" else v) for k, v in st.summary().items()}  # noqa: E731
         return {"step_ms": ms(self.step_s), "ekf_ms": ms(self.ekf_s), "controller_ms": ms(self.ctrl_s),
