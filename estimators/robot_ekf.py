@@ -1,9 +1,13 @@
 """A bank of per-chamber EKFs for the robot, stepped as one mapped casadi call (SI).
 
-One filter per chamber, each from its own pressure sensor. State ``[x, b, k, c]``: the gas mass
-``x`` (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of :class:`hbma_ctrl.models.bank.
-ChamberBank`, and three slow random walks: the pump-flow factor ``b``, the membrane-modulus factor
-``k`` and the dead-volume factor ``c`` (see :meth:`ChamberBank.outputs_expr`). The load ``W`` of
+One filter per chamber, each from its own pressure sensor. State ``[y, b, k, c]``: ``y = (x + 1) / c``
+with ``x`` the gas mass (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of :class:`hbma_ctrl.models.
+bank.ChamberBank`, and three slow random walks: the pump-flow factor ``b``, the membrane-modulus factor
+``k`` and the dead-volume factor ``c`` (see :meth:`ChamberBank.outputs_expr`); ``step`` reports ``x``.
+Why y and not x: a resting chamber's pressure is ``p_env ((x + 1) / c - 1)``, so in (x, c) the first
+reading pins only their ratio and the filter starts with x and c correlated 0.9999; each update then
+moved both along that ridge by up to 0.1 (the onset of a structured rig's first pumping threw
+filters' dead-volume and flow factors to their bounds). In y the reading pins y alone. The load ``W`` of
 each chamber is not a state: the robot's statics give it (:func:`hbma_ctrl.robot.load_sharing` of
 the estimated heights), one control period late.
 
@@ -133,31 +137,35 @@ NS = 4  # [x, b, k, c]
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     """Single-chamber EKF step (X[4], P[16], u[3], W, z, use, reopen) -> (X+[4], P+[16], h, p, nis,
-    h_std, over, lam, x_top). ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1)
-    is gated (not used) unless ``reopen`` is 1: then the prior covariance is inflated until the
-    NIS equals the gate (at most by INFLATION_MAX) and the reading is used."""
+    h_std, over, lam, x_top). The state is ``[y, b, k, c]`` with ``y = (x + 1) / c`` (module doc).
+    ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1) is gated (not
+    used) unless ``reopen`` is 1: then the prior covariance is inflated until the NIS equals the gate
+    (at most by INFLATION_MAX) and the reading is used."""
     xs, _, W, b, k, c = model.symbols
     w = model.u  # predict with what the plant was sent: a throttled pump's flow is not a q(1, p)
     xn = model.discrete_expr(s.sample_period, plant_inputs=True)
-    th = ca.vertcat(b, k, c)
-    fx = ca.Function("fx", [xs, w, W, b, k, c], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, th)])
+    fx = ca.Function("fx", [xs, w, W, b, k, c], [xn])
     he, pe, le = model.outputs_expr(xs, W, k, c)
-    zv = ca.vertcat(xs, k, c)
-    pj = ca.Function("pj", [xs, W, k, c], [pe, ca.jacobian(pe, zv), he, ca.jacobian(he, zv), le])
+    Ys = ca.SX.sym("Y", NS)
+    yo = {xs: Ys[3] * Ys[0] - 1, k: Ys[2], c: Ys[3]}
+    po, ho, lo = (ca.substitute([v], list(yo), list(yo.values()))[0] for v in (pe, he, le))
+    meas = ca.Function("meas", [Ys, W], [po, ca.jacobian(po, Ys), ho, ca.jacobian(ho, Ys), lo])
     X = ca.SX.sym("X", NS)
     Pv = ca.SX.sym("P", NS * NS)
     wi = ca.SX.sym("wi", 3)
     Wi, z, use, reopen = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use"), ca.SX.sym("reopen")
-    x_pred, Ax, Ath = fx(X[0], wi, Wi, X[1], X[2], X[3])
-    A = ca.vertcat(ca.horzcat(Ax, Ath), ca.horzcat(ca.DM.zeros(3, 1), ca.DM.eye(3)))
+    x_now = X[3] * X[0] - 1
+    x_pred = fx(x_now, wi, Wi, X[1], X[2], X[3])
+    xm = ca.vertcat((x_pred + 1) / X[3], X[1], X[2], X[3])
+    A = ca.jacobian(xm, X)
     P = ca.reshape(Pv, NS, NS)
-    dx = x_pred - X[0]
-    Q = ca.diag(ca.vertcat(s.x_abs_std ** 2 + (s.x_rel_std * dx) ** 2, s.b_rate_std ** 2 * s.sample_period,
-                           s.k_rate_std ** 2 * s.sample_period, s.c_rate_std ** 2 * s.sample_period))
+    dx = x_pred - x_now
+    # the gas mass's process noise, in y = (x + 1) / c
+    Q = ca.diag(ca.vertcat((s.x_abs_std ** 2 + (s.x_rel_std * dx) ** 2) / X[3] ** 2,
+                           s.b_rate_std ** 2 * s.sample_period, s.k_rate_std ** 2 * s.sample_period,
+                           s.c_rate_std ** 2 * s.sample_period))
     Pm = A @ P @ A.T + Q
-    xm = ca.vertcat(x_pred, X[1], X[2], X[3])
-    p_pred, dp, _, _, _ = pj(xm[0], Wi, xm[2], xm[3])
-    Hx = ca.horzcat(dp[0], 0, dp[1], dp[2])
+    p_pred, Hx, _, _, _ = meas(xm, Wi)
     R = s.noise_std ** 2 + (s.model_rel_std * p_pred) ** 2
     innov = z - p_pred
     S0 = Hx @ Pm @ Hx.T
@@ -174,8 +182,7 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     IKH = ca.DM.eye(NS) - K @ Hx
     Pp = IKH @ Pm @ IKH.T + K @ K.T * R
     Pp = 0.5 * (Pp + Pp.T)
-    p_post, _, h, dh, lam = pj(xp[0], Wi, xp[2], xp[3])
-    G = ca.horzcat(dh[0], 0, dh[1], dh[2])
+    p_post, _, h, G, lam = meas(xp, Wi)
     return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use, reopen],
                        [xp, ca.reshape(Pp, NS * NS, 1), h, p_post, innov ** 2 / S * use_eff,
                         ca.sqrt(ca.fmax(G @ Pp @ G.T, 0)), use * over, lam,
@@ -248,12 +255,10 @@ class ChamberEKFBank:
     def _prior_cov(self) -> np.ndarray:
         """The initial covariance of one chamber (4 x 4)."""
         s = self.settings
-        sx = max(s.noise_std / self.model.actuator.p_env, 1e-3)
-        # x and c enter the rest pressure as (x + 1) / c: start them correlated so that the first
-        # reading pins (x + 1) / c, not x alone
-        P0 = np.diag([sx ** 2 + s.c0_std ** 2, s.b0_std ** 2, s.k0_std ** 2, s.c0_std ** 2])
-        P0[0, 3] = P0[3, 0] = s.c0_std ** 2
-        return P0
+        # y = (x + 1) / c is what a resting chamber's pressure gives (p = p_env (y - 1)): the first
+        # reading pins it, independently of the dead volume
+        sy = max(s.noise_std / self.model.actuator.p_env, 1e-3)
+        return np.diag([sy ** 2, s.b0_std ** 2, s.k0_std ** 2, s.c0_std ** 2])
 
     def reset(self, p0, mask=None) -> None:
         """Start the filters (all, or those in ``mask``) at rest from readings p0 (n,) Pa (a flat
@@ -269,13 +274,13 @@ class ChamberEKFBank:
         self.P = np.repeat(self._prior_cov().reshape(16, 1), self.n, 1)
 
     def rest_state(self, p0) -> np.ndarray:
-        """The state (4, n) the filters start from at rest with readings p0 (n,) Pa: x = p / p_env of a
-        flat membrane (a reading out of the physical range read as 0), the factors at their priors."""
+        """The state (4, n) the filters start from at rest with readings p0 (n,) Pa: y = 1 + p / p_env of
+        a flat membrane (a reading out of the physical range read as 0), the factors at their priors."""
         p0 = np.asarray(p0, dtype=float).reshape(self.n)
         lo, hi = self._bounds
         p0 = np.where(np.isfinite(p0) & (p0 >= lo) & (p0 <= hi), p0, 0.0)
-        x0 = np.clip(p0 / self.model.actuator.p_env, -0.04, None)
-        return np.vstack([x0, np.full(self.n, self.settings.b0), np.ones(self.n), np.ones(self.n)])
+        y0 = 1.0 + np.clip(p0 / self.model.actuator.p_env, -0.04, None)
+        return np.vstack([y0, np.full(self.n, self.settings.b0), np.ones(self.n), np.ones(self.n)])
 
     def step(self, z, w, W, steps: int = 1) -> dict:
         """One step after ``steps`` periods (see the class doc)."""
@@ -328,7 +333,7 @@ class ChamberEKFBank:
         # the gas mass at or past the top of the model's tables (for this chamber's factors): the model
         # cannot say where such a membrane is (its height and stretch are the tables' last), only that
         # it holds that much gas
-        beyond = Xn[0] >= out[8]
+        beyond = Xn[3] * Xn[0] - 1 >= out[8]
         # a factor at the edge of its range: the filter explains the readings with a chamber far outside
         # any plausible mismatch (a far-branch membrane read as a near-branch one drives the flow factor
         # to its floor and the modulus to its ceiling while the truth grows on)
@@ -343,9 +348,9 @@ class ChamberEKFBank:
         if self.resets > resets:  # a restarted filter reports its restart, not the diverged step
             bad = ~(np.isfinite(h) & np.isfinite(p) & np.isfinite(h_std))
             for i in np.nonzero(bad)[0]:
-                hi, pi, li = self.model.out(X[0, i], Wv[i], X[2, i], X[3, i])
+                hi, pi, li = self.model.out(X[3, i] * X[0, i] - 1, Wv[i], X[2, i], X[3, i])
                 h[i], p[i], lam[i], h_std[i] = float(hi), float(pi), float(li), np.nan  # unknown right after a restart
-        self.last = {"x": X[0].copy(), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
+        self.last = {"x": X[3] * X[0] - 1, "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
                      "h": np.maximum(h, 0.0), "p": p, "h_std": h_std, "lam": lam, "beyond": beyond,
                      "lost": beyond | at_bound,
                      "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis,
@@ -362,13 +367,15 @@ class ChamberEKFBank:
         factors); a diverged filter restarts from its reading (``resets``)."""
         bad = ~(np.all(np.isfinite(X), 0) & np.all(np.isfinite(Pn), 0))
         self.resets += int(bad.sum())
-        # at the tables' top in x1, not in x: a chamber with a larger dead volume holds more gas at the
-        # same shape, and a clip at the nominal top pinned such an estimate at a mid height while the
-        # membrane grew on (a 3-layer run: estimate 2.8 mm, truth 20 mm and rising, pump on)
-        X[0] = np.clip(X[0], -0.04, np.where(np.isfinite(x_top), x_top, self.model.x_max))
         X[1] = np.clip(X[1], *B_RANGE)
         X[2] = np.clip(X[2], *K_RANGE)
         X[3] = np.clip(X[3], *C_RANGE)
+        # the gas mass x = c y - 1 at the tables' top in x1, not in x: a chamber with a larger dead
+        # volume holds more gas at the same shape, and a clip at the nominal top pinned such an
+        # estimate at a mid height while the membrane grew on (a 3-layer run: estimate 2.8 mm, truth
+        # 20 mm and rising, pump on)
+        top = np.where(np.isfinite(x_top), x_top, self.model.x_max)
+        X[0] = np.clip(X[0], 0.96 / X[3], (top + 1) / X[3])
         self.X, self.P = X, Pn
         if bad.any():
             self.reset(zz, bad)

@@ -98,13 +98,14 @@ def test_bank_reports_a_factor_at_its_bound_as_lost_and_does_not_pin_a_large_dea
     est = bank.step(np.zeros(3), w, W)
     assert not est["lost"].any() and not est["beyond"].any()
     bank.X[1, 0] = B_RANGE[0]  # the flow factor at its floor
-    # chamber 2: a large dead volume holding more gas than the nominal tables' top
+    # chamber 2: a large dead volume holding more gas than the nominal tables' top (the state is
+    # y = (x + 1) / c)
     bank.X[3, 2] = 1.5
     x_big = model.x_max + 0.1
-    bank.X[0, 2] = x_big
+    bank.X[0, 2] = (x_big + 1) / 1.5
     est = bank.step(np.full(3, np.nan), w, W)  # predict only: nothing moves the states
     assert est["lost"].tolist() == [True, False, False]
-    assert bank.X[0, 2] == pytest.approx(x_big, rel=1e-9)  # not clipped at the nominal top
+    assert est["x"][2] == pytest.approx(x_big, rel=1e-9)  # not clipped at the nominal top
     assert bank.stats()["factor_at_bound"] == 1 and bank.stats()["beyond_tables"] == 0
     assert est["lam"].shape == (3,) and np.all(est["lam"] >= 1.0 - 1e-9)
 
