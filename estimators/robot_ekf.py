@@ -156,8 +156,10 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     Wi, z, use, reopen = ca.SX.sym("Wi"), ca.SX.sym("z"), ca.SX.sym("use"), ca.SX.sym("reopen")
     x_now = X[3] * X[0] - 1
     x_pred = fx(x_now, wi, Wi, X[1], X[2], X[3])
-    xm = ca.vertcat((x_pred + 1) / X[3], X[1], X[2], X[3])
-    A = ca.jacobian(xm, X)
+    y_pred = (x_pred + 1) / X[3]
+    xm = ca.vertcat(y_pred, X[1], X[2], X[3])
+    # one row is not the identity: its gradient alone (one reverse sweep, not a 4 x 4 Jacobian)
+    A = ca.vertcat(ca.jacobian(y_pred, X), ca.horzcat(ca.DM.zeros(3, 1), ca.DM.eye(3)))
     P = ca.reshape(Pv, NS, NS)
     dx = x_pred - x_now
     # the gas mass's process noise, in y = (x + 1) / c
