@@ -132,7 +132,7 @@ K_RANGE = (0.6, 1.6)
 C_RANGE = (0.6, 1.8)
 
 
-NS = 4  # [x, b, k, c]
+NS = 4  # [y, b, k, c], y = (x + 1) / c
 
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
@@ -264,7 +264,7 @@ class ChamberEKFBank:
 
     def reset(self, p0, mask=None) -> None:
         """Start the filters (all, or those in ``mask``) at rest from readings p0 (n,) Pa (a flat
-        membrane: x = p / p_env, factors at their priors)."""
+        membrane: y = 1 + p / p_env, factors at their priors)."""
         if mask is not None and self.X is not None:
             keep_X, keep_P = self.X.copy(), self.P.copy()
             self.reset(p0)
@@ -274,6 +274,11 @@ class ChamberEKFBank:
             return
         self.X = self.rest_state(p0)
         self.P = np.repeat(self._prior_cov().reshape(16, 1), self.n, 1)
+
+    @staticmethod
+    def gas_mass(X: np.ndarray) -> np.ndarray:
+        """The gas mass x (the model's, scaled: see the module doc) of filter states X (4, n)."""
+        return X[3] * X[0] - 1
 
     def rest_state(self, p0) -> np.ndarray:
         """The state (4, n) the filters start from at rest with readings p0 (n,) Pa: y = 1 + p / p_env of
@@ -335,7 +340,7 @@ class ChamberEKFBank:
         # the gas mass at or past the top of the model's tables (for this chamber's factors): the model
         # cannot say where such a membrane is (its height and stretch are the tables' last), only that
         # it holds that much gas
-        beyond = Xn[3] * Xn[0] - 1 >= out[8]
+        beyond = self.gas_mass(Xn) >= out[8]
         # a factor at the edge of its range: the filter explains the readings with a chamber far outside
         # any plausible mismatch (a far-branch membrane read as a near-branch one drives the flow factor
         # to its floor and the modulus to its ceiling while the truth grows on)
@@ -350,9 +355,9 @@ class ChamberEKFBank:
         if self.resets > resets:  # a restarted filter reports its restart, not the diverged step
             bad = ~(np.isfinite(h) & np.isfinite(p) & np.isfinite(h_std))
             for i in np.nonzero(bad)[0]:
-                hi, pi, li = self.model.out(X[3, i] * X[0, i] - 1, Wv[i], X[2, i], X[3, i])
+                hi, pi, li = self.model.out(self.gas_mass(X[:, i]), Wv[i], X[2, i], X[3, i])
                 h[i], p[i], lam[i], h_std[i] = float(hi), float(pi), float(li), np.nan  # unknown right after a restart
-        self.last = {"x": X[3] * X[0] - 1, "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
+        self.last = {"x": self.gas_mass(X), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
                      "h": np.maximum(h, 0.0), "p": p, "h_std": h_std, "lam": lam, "beyond": beyond,
                      "lost": beyond | at_bound,
                      "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis,

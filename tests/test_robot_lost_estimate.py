@@ -176,3 +176,17 @@ def test_daemon_logs_each_supervisor_episode_once_with_the_chambers_name():
     assert taken[3] == [("supervisor", "A2: lost_estimate (the estimate left its model: venting)")]
     assert taken[4] == []
     assert taken[5] == [("supervisor", "A1: guard (p=44500 Pa)")]
+
+
+def test_loop_primes_the_nmpc_at_the_rest_gas_mass_not_the_filters_state(robot):
+    """The bank's state is y = (x + 1) / c; the NMPC works in the gas mass x: priming hands it x."""
+    d, model = robot
+    n = 3
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=0.01, sensor_range=50e3))
+    ctrl = RobotNMPC(model, n, RobotMPCSettings(sample_period=0.01, p_max=45e3))
+    seen = {}
+    ctrl.prime = lambda x0, *a, **k: seen.setdefault("x0", np.array(x0, dtype=float))
+    loop = RobotLoop(d, model, bank, ctrl, robot_supervisor(45e3, n), {0: ((0.0, U.mm(5.0), 0.0, 0.0),)})
+    p = np.array([0.0, 1e3, 5e3])
+    loop.prime(p)
+    assert seen["x0"] == pytest.approx(p / model.actuator.p_env, abs=1e-12)

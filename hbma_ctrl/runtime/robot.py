@@ -321,7 +321,8 @@ class RobotLoop:
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
         a = np.zeros(self.n)
         if self.is_mpc:
-            x0, b, k, c = self.bank.rest_state(p)
+            X0 = self.bank.rest_state(p)
+            x0, (b, k, c) = self.bank.gas_mass(X0), X0[1:]
             href = self._slew(self.chamber_targets(0.0), np.zeros(self.n), self._period)
             a_max = np.where(self.supervisor.vent_mask(href), 0.0, 1.0)
             self.controller.prime(x0, b, self.loads, href, k, c, a_max)
