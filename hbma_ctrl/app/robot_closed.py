@@ -66,7 +66,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                    cautious=(0.75, 0.03, 0.3), target_rate: float | None = None) -> ClosedLoopRun:
+                    cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s from rest (see module doc).
 
     targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
@@ -74,9 +74,9 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
     fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
     its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
-    target_rate : the fastest a chamber's target height moves, m/s (None or 0: targets step).
-    The valves' shortest opening and the delays the chambers' filters take are ``settings``'
-    (``valve_min_on``, ``valve_delay``, ``sensor_delay``, s).
+    The fastest a chamber's target height moves, the valves' shortest opening and the delays the
+    chambers' filters take are ``settings``' (``target_rate`` m/s, None or 0: targets step;
+    ``valve_min_on``, ``valve_delay``, ``sensor_delay``, s).
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
@@ -103,7 +103,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
                            plan_period=ctrl.s.dt if controller == "mpc" else None)
     loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None,
-                     target_rate=target_rate, valve_min_on=settings.valve_min_on)
+                     target_rate=settings.target_rate, valve_min_on=settings.valve_min_on)
     steps = int(round(duration / Ts))
     T = steps + 1
     H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))

@@ -208,7 +208,7 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     runs, mets = [], []
     for kind in kinds:
         run = run_closed_loop(s, s.targets, scn.duration, kind, scn.pneumatics, rig, mpc, model=model,
-                              tip_load=s.tip_load, target_rate=s.target_rate)
+                              tip_load=s.tip_load)
         runs.append(run)
         mets.append(closed_loop_metrics(d, run, s.pneumatics.pressure_limit, s.settle_time, model=model))
         write_closed_csv(d, run, out / f"robot_{kind}_log.csv")
