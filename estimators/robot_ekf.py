@@ -133,6 +133,12 @@ C_RANGE = (0.6, 1.8)
 
 
 NS = 4  # [y, b, k, c], y = (x + 1) / c
+# the lowest y: a resting chamber at 4 % of an atmosphere below ambient (the tables start at 5 %). A
+# floor in y, not in the gas mass: the gas of a chamber at ambient is x + 1 = c, so a floor x >= -0.04
+# read as a pressure floor p_env (0.96 / c - 1) > 0 once the dead-volume factor fell below 0.96 (8 kPa
+# at c = 0.89): a venting chamber's estimate was held kilopascals above its readings, and the next
+# update threw it to the factors' bounds
+Y_MIN = 0.96
 
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
@@ -286,7 +292,7 @@ class ChamberEKFBank:
         p0 = np.asarray(p0, dtype=float).reshape(self.n)
         lo, hi = self._bounds
         p0 = np.where(np.isfinite(p0) & (p0 >= lo) & (p0 <= hi), p0, 0.0)
-        y0 = 1.0 + np.clip(p0 / self.model.actuator.p_env, -0.04, None)
+        y0 = np.maximum(1.0 + p0 / self.model.actuator.p_env, Y_MIN)
         return np.vstack([y0, np.full(self.n, self.settings.b0), np.ones(self.n), np.ones(self.n)])
 
     def step(self, z, w, W, steps: int = 1) -> dict:
@@ -382,7 +388,7 @@ class ChamberEKFBank:
         # estimate at a mid height while the membrane grew on (a 3-layer run: estimate 2.8 mm, truth
         # 20 mm and rising, pump on)
         top = np.where(np.isfinite(x_top), x_top, self.model.x_max)
-        X[0] = np.clip(X[0], 0.96 / X[3], (top + 1) / X[3])
+        X[0] = np.clip(X[0], Y_MIN, (top + 1) / X[3])
         self.X, self.P = X, Pn
         if bad.any():
             self.reset(zz, bad)
