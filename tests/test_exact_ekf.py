@@ -88,6 +88,36 @@ def test_exact_model_measurement_jacobian_matches_finite_differences(models):
         assert H[i] == pytest.approx(fd, rel=2e-3, abs=1e-3 * y[Y["p"]] * (1.0 if i else 1.0 / x[0])), i
 
 
+@pytest.mark.parametrize("membrane", ["cap", "exact"])
+def test_predict_jacobian_by_the_implicit_function_rule_is_the_one_through_the_newton_iterates(models, membrane):
+    om = models[membrane]
+    ad = ObserverModel(ACT, Pneumatics(), 0.01, "rk4", 1, 3, membrane=membrane, jacobian="ad")
+    P, qv = np.eye(5) * 1e-12, np.zeros(7)
+    checked = 0
+    for p, W, u in ((12e3, 0.0, [1.0, 1.0, 0.0]), (20e3, 4.0, [1.0, 1.0, 0.0]), (20e3, 4.0, [0.0, 0.0, 1.0])):
+        x = _state(om, p, 5e-3, W)
+        x[2:] = [0.95, 1.1, 1.05]
+        y, _ = _shape(om, x)
+        s = np.array([y[Y["h1"]], y[Y["h2"]]])  # a converged warm start, as after an update
+        a = om.predict(x, s, u, om.theta, 0.0, P, qv)
+        b = ad.predict(x, s, u, om.theta, 0.0, P, qv)
+        # the same step (the rule changes the Jacobian's graph only), and the same Jacobian
+        assert np.array(a[0]) == pytest.approx(np.array(b[0]), rel=1e-14, abs=0)
+        A, B = np.array(a[1]), np.array(b[1])
+        assert A[1:] == pytest.approx(B[1:], abs=1e-15)
+        # the gas mass's row, each entry in units of the gas mass per unit of its state (entries 1e-3 to 1)
+        scale = np.array([1.0] + [x[0]] * 4)
+        a0, b0 = A[0] / scale, B[0] / scale
+        assert np.all(np.abs(b0[[0, 3, 4]]) > 1e-3)  # not a trivial row
+        assert np.abs(a0 - b0).max() < 1e-5, (membrane, p, W)
+        checked += 1
+    assert checked == 3
+    # the rule's graph is the smaller one (no second derivatives of the law)
+    assert om.predict.n_instructions() < 0.8 * ad.predict.n_instructions()
+    with pytest.raises(ValueError, match="jacobian = 'fd': allowed ift, ad"):
+        ObserverModel(ACT, Pneumatics(), 0.01, jacobian="fd")
+
+
 def test_membrane_setting_is_validated_and_reaches_the_model():
     with pytest.raises(ValueError, match=r"estimator\.membrane = 'plate': allowed cap, exact"):
         FilterSettings(membrane="plate").validate()
