@@ -138,6 +138,7 @@ from estimators.ekf_step import (
     KIND_OK,
     KIND_SATURATED,
     ekf_step_function,
+    lift_floor,
     observer_model,
 )
 from hbma_ctrl.core.codegen import FastFunction, compiled
@@ -255,6 +256,7 @@ class EKF(ReferenceSteps):
         self._lift_start = 0.0
         self._p_lift = 0.0
         self._p_post = 0.0
+        self._lift_floor = lift_floor(s)  # the load prior's floor on a detected lift-off (ekf_step)
         # the command as the chamber feels it and the sensor sees it (valve and sensor delays)
         self._timing = CommandTiming(self.settings.sample_period, self.settings.valve_delay,
                                      self.settings.sensor_delay)
@@ -470,8 +472,8 @@ class EKF(ReferenceSteps):
         inp[6][0] = float(measurement) if code == KIND_OK else 0.0
         inp[7][0] = code
         d = inp[8]
-        d[0], d[1], d[2], d[3], d[4], d[5] = (self._cusum, self._lift, self._lift_start, self._p_lift,
-                                              self._p_post, self._gated)
+        d[0], d[1], d[2], d[3], d[4], d[5], d[6] = (self._cusum, self._lift, self._lift_start, self._p_lift,
+                                                    self._p_post, self._gated, self._lift_floor)
         fn._eval()
         bits = int(out[13][0])
         # a detected lift-off with no load is re-filtered from the snapshot: the reference path
@@ -486,7 +488,7 @@ class EKF(ReferenceSteps):
         self.s = out[2].copy()
         self._A_flat = out[8].copy()
         self.resting = bool(out[9][0] > 0.5)
-        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g = out[10].tolist()
+        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g, _ = out[10].tolist()
         self._gated = int(g)
         e0, e1, e2, e3, e4 = out[4].tolist()
         self._p_pred = e4

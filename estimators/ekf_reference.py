@@ -139,6 +139,10 @@ class ReferenceSteps:
             self._lift = max(0.0, self._lift - r - s.lift_drift)
             if self._lift > s.lift_threshold:
                 self._lift = self._lift_start = 0.0
+                if self._lift_load() < self._lift_floor:
+                    # the load's prior rules it out (ekf_step.LIFT_PRIOR_SIGMAS): stay flat
+                    self._events.add("lift_off_implausible")
+                    return False
                 self._lift_off(detected=True)
                 # replay only a no-load lift-off (it starts at zero pressure, so the whole
                 # detection delay was filtered as flat); a loaded one's sum may have started on
@@ -152,14 +156,18 @@ class ReferenceSteps:
                 return True
         return False
 
+    def _lift_load(self) -> float:
+        """The load (N) of a detected lift-off: the membrane lifted when the detector's sum started
+        to grow, W = pi r1^2 p then (at most the flat chamber's pressure now)."""
+        out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
+        return self.model.area * max(min(float(out[1][_Y["p"]]), self._p_lift), 0.0)
+
     def _lift_off(self, detected: bool, load: tuple | None = None) -> None:
         """Leave rest. ``detected``: the load is set from the lift-off pressure; ``load`` = (W, var):
         set it to that (a replay re-applies the detected load at the earlier lift-off point)."""
         s = self.settings
         if load is None and detected:
-            # the membrane lifted when the detector's sum started to grow: W = pi r1^2 p then
-            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
-            W = self.model.area * max(min(float(out[1][_Y["p"]]), self._p_lift), 0.0)
+            W = self._lift_load()
             W_res = self.model.area * NO_LOAD_SIGMAS * s.noise_std
             # a lift-off within a few sensor sigmas of zero pressure cannot be told from a free
             # membrane (no load): start from none, with the resolution as the spread -- a load

@@ -41,7 +41,7 @@ def _close(a, b, scale=1.0) -> bool:
 
 def _set(f: EKF, x, P, resting: bool, det) -> None:
     f.reset(0.0, x, P, resting=resting)
-    f._cusum, f._lift, f._lift_start, f._p_lift, f._p_post, f._gated = det
+    f._cusum, f._lift, f._lift_start, f._p_lift, f._p_post, f._gated, f._lift_floor = det
     f._snap, f._replay = None, []
 
 
@@ -53,7 +53,8 @@ states = st.tuples(
     st.floats(-0.9, 0.9),        # a correlation between m and the factors
 )
 detectors = st.tuples(st.floats(0.0, 25.0), st.floats(0.0, 8.0), st.floats(0.0, 5.0),
-                      st.floats(0.0, 30e3), st.floats(0.0, 40e3), st.integers(0, 3))
+                      st.floats(0.0, 30e3), st.floats(0.0, 40e3), st.integers(0, 3),
+                      st.sampled_from([0.0, 0.0, 1.0, 4.0, 15.0]))  # the load prior's floor on a lift-off, N
 commands = st.sampled_from([(1.0, 1.0, 0.0), (0.4, 1.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (1.0, 0.5, 0.2)])
 
 
@@ -92,8 +93,8 @@ def test_compiled_step_equals_the_reference_path_on_random_states(pair, resting,
     assert (fc.last_nis is None) == (fr.last_nis is None)
     if fc.last_nis is not None:
         assert _close(fc.last_nis, fr.last_nis)
-    assert _close([fc._cusum, fc._lift, fc._lift_start, fc._p_lift, fc._p_post, fc._gated],
-                  [fr._cusum, fr._lift, fr._lift_start, fr._p_lift, fr._p_post, fr._gated])
+    assert _close([fc._cusum, fc._lift, fc._lift_start, fc._p_lift, fc._p_post, fc._gated, fc._lift_floor],
+                  [fr._cusum, fr._lift, fr._lift_start, fr._p_lift, fr._p_post, fr._gated, fr._lift_floor])
     assert _close(fc.s, fr.s) and _close(fc.last_A, fr.last_A)
 
 

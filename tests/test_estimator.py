@@ -373,6 +373,37 @@ def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
         FilterSettings(load_prior="guess").validate()
 
 
+def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise():
+    """600 and 800 g on the 7.5 mm chamber lift at 34-46 kPa, at or above the 35 kPa range. Through
+    their long flat rise the rig's flow falls short of the model's and the lift-off detector fired
+    (800 g taken as lifting at 21 kPa, height NRMSD 4.1 in the protocol). A filter told the load
+    (10 %) rejects a lift-off more than LIFT_PRIOR_SIGMAS below it; the same prior at 100 % (no
+    floor) does not. Six rig noise seeds, four trials each: 2 false lift-offs of 24 against 9 when
+    measured (the two left are dated within the floor, 33-34 kPa for 800 g: README, Estimation)."""
+    from estimators.common import FilterSettings
+    from estimators.ekf_step import lift_floor
+    from hbma_ctrl.app.evaluate import evaluate_trials
+    from hbma_ctrl.core.params import Platform
+    from hbma_ctrl.sim.batch import protocol_trials
+
+    trials = protocol_trials("nh", platform=Platform(own_mass=0.02, damping=20.0), loads_g=(600, 800),
+                             speeds_pct=(100,), t0_mm=(2, 3), r1_mm=(7.5,))
+    W = trials[-1].platform.weight
+    assert lift_floor(FilterSettings(load_init=W, load_init_std=0.1 * W)) == pytest.approx(0.7 * W)
+    assert lift_floor(FilterSettings(load_init=W, load_init_std=W)) == 0.0
+    assert lift_floor(FilterSettings()) == 0.0  # no prior, no floor
+    false_lifts = {}
+    for rel in (0.1, 1.0):
+        n = 0
+        for seed in range(6):
+            rig = RigSettings(seed=seed, modulus_scale=1.15, flow_scale=0.9, V0_scale=1.2, sensor_range=35e3)
+            res = evaluate_trials(trials, "ekf", rig, FilterSettings(load_prior="nominal", load_prior_rel_std=rel),
+                                  with_series=False)
+            n += sum(r.scores["height_nrmsd"] > 0.5 for r in res)
+        false_lifts[rel] = n
+    assert false_lifts[0.1] <= 2 and false_lifts[1.0] >= 6, false_lifts
+
+
 def test_aggregate_scores_each_protocol_scenario():
     """The issue's per-scenario criterion: trials grouped by protocol cell (t0 x r1 x load), the
     EKF's mean NRMSD over the cell's speeds against the open loop's; never-lifting trials (NaN)
