@@ -382,7 +382,7 @@ def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise()
     measured (the two left are dated within the floor, 33-34 kPa for 800 g: README, Estimation)."""
     from estimators.common import FilterSettings
     from estimators.ekf_step import lift_floor
-    from hbma_ctrl.app.evaluate import evaluate_trials
+    from hbma_ctrl.app.evaluate import aggregate, evaluate_trials
     from hbma_ctrl.core.params import Platform
     from hbma_ctrl.sim.batch import protocol_trials
 
@@ -392,16 +392,19 @@ def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise()
     assert lift_floor(FilterSettings(load_init=W, load_init_std=0.1 * W)) == pytest.approx(0.7 * W)
     assert lift_floor(FilterSettings(load_init=W, load_init_std=W)) == 0.0
     assert lift_floor(FilterSettings()) == 0.0  # no prior, no floor
-    false_lifts = {}
+    false_lifts, rejected = {}, {}
     for rel in (0.1, 1.0):
-        n = 0
+        n = m = 0
         for seed in range(6):
             rig = RigSettings(seed=seed, modulus_scale=1.15, flow_scale=0.9, V0_scale=1.2, sensor_range=35e3)
             res = evaluate_trials(trials, "ekf", rig, FilterSettings(load_prior="nominal", load_prior_rel_std=rel),
                                   with_series=False)
             n += sum(r.scores["height_nrmsd"] > 0.5 for r in res)
-        false_lifts[rel] = n
+            m += aggregate(res)["trials_with_implausible_lift_off"]
+        false_lifts[rel], rejected[rel] = n, m
     assert false_lifts[0.1] <= 2 and false_lifts[1.0] >= 6, false_lifts
+    # the rejections are counted (metrics.json: lift_offs_implausible, trials_with_implausible_lift_off)
+    assert rejected[0.1] >= 4 and rejected[1.0] == 0, rejected
 
 
 def test_aggregate_scores_each_protocol_scenario():

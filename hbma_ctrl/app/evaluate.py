@@ -239,6 +239,8 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
     }
     # model-form check on the innovations alone (estimators.innovation): the run's largest windowed
     # self-normalised innovation mean, and whether it exceeds the test's threshold
+    # lift-offs the filter's load prior ruled out (estimators.ekf_step.LIFT_PRIOR_SIGMAS)
+    out["lift_offs_implausible"] = float(sum("lift_off_implausible" in f for f in res.flags[sl]))
     if "innov" in res.est:
         it = innovation_test(res.est["innov"][sl])
         # no full window (a run shorter than the window): no verdict, left out of the flag rate
@@ -339,6 +341,9 @@ def aggregate(results: list[TrialResult]) -> dict:
         "force_steady_rel_err_mean": float(np.nanmean(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         # share of the trials whose innovations the model-form test flags (estimators.innovation)
         "innovation_flag_rate": float(np.mean(flagged)) if flagged.size else float("nan"),
+        # detected lift-offs the load prior ruled out, summed over the trials, and the trials with one
+        "lift_offs_implausible": int(sum(r.scores.get("lift_offs_implausible", 0) for r in results)),
+        "trials_with_implausible_lift_off": int(sum(r.scores.get("lift_offs_implausible", 0) > 0 for r in results)),
         "force_steady_rel_err_max": float(np.nanmax(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         "rig_status": {s: sum(r.scores["rig_status"] == s for r in results)
                        for s in sorted({r.scores["rig_status"] for r in results})},

@@ -172,10 +172,12 @@ def _protocol(scn, sec: EstimatorSection, rig: RigSettings, out: Path) -> dict:
             "force_steady_rel_err", "nees_mean", "nis_mean", "step_us_median", "height_rmse_mm")
     with open(out / "estimator_trials.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["trial", "filter"] + list(keys) + ["rig_status"])
+        # lift_offs_implausible last: the columns before it keep their places
+        w.writerow(["trial", "filter"] + list(keys) + ["rig_status", "lift_offs_implausible"])
         for kind, res in per_kind.items():
             for r in res:
-                w.writerow([r.name, kind] + [f"{r.scores[k]:.6g}" for k in keys] + [r.scores["rig_status"]])
+                w.writerow([r.name, kind] + [f"{r.scores[k]:.6g}" for k in keys] + [r.scores["rig_status"],
+                           int(r.scores.get("lift_offs_implausible", 0))])
     return _metrics(per_kind, sec, rig, {"trials_csv": "estimator_trials.csv"})
 
 
