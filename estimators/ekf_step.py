@@ -181,7 +181,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     z = ca.MX.sym("z")
     kind = ca.MX.sym("kind")
     det = ca.MX.sym("det", len(DET_NAMES))
-    cusum, lift, lift_start, p_lift, p_post, gated_run, lift_floor = (det[i] for i in range(len(DET_NAMES)))
+    cusum, lift, lift_start, p_lift, p_post, gated_run, W_floor = (det[i] for i in range(len(DET_NAMES)))
     thp, Pd = om.chamber.symbols()
     area = ca.Function("ekf_area", [thp], [ca.pi * Pd["r1"] ** 2])(th)
     piv = _pivot_function()
@@ -259,8 +259,9 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     W_lift = area * ca.fmax(ca.fmin(p_flat, p_lift2), 0.0)
     W_new = ca.if_else(W_lift < area * NO_LOAD_SIGMAS * s.noise_std, 0.0, W_lift)
     var_new = (s.lift_load_rel_std * W_lift) ** 2 + LIFT_LOAD_ABS_STD ** 2
-    # a lift-off the load's prior rules out (lift_floor): the sums restart (as on a lift-off), flat
-    implausible = ca.logic_and(fire_lift, W_lift < lift_floor)
+    # a lift-off the load's prior rules out (below W_floor, :func:`lift_floor`): the sums restart (as
+    # on a lift-off), the membrane stays flat
+    implausible = ca.logic_and(fire_lift, W_lift < W_floor)
     fire_lift = ca.logic_and(fire_lift, ca.logic_not(implausible))
     e1 = ca.DM.zeros(NX)
     e1[1] = 1.0
@@ -308,7 +309,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
     flags = (gated * 1 + fire_c * 2 + ca.logic_or(fire_lift, lift_b) * 4 + clamped * 8 + resting4 * 16
              + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128 + implausible * 256)
-    det2 = ca.vertcat(cusum2, lift2, lift_start2, p_lift2, y[4], run, lift_floor)
+    det2 = ca.vertcat(cusum2, lift2, lift_start2, p_lift2, y[4], run, W_floor)
     nis = ca.if_else(upd * is_ok, r * r, ca.if_else(gated, nis_gate, 0.0))
     innov = ca.if_else(upd * is_ok, r, 0.0)
     outs = [xc, Pf, s2, y, est, std, C, H, A, rest2, det2, nis, innov, flags, exact]

@@ -237,10 +237,10 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
         "step_us_median": float(U.to_us(np.nanmedian(res.step_s[sl]))),
         "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((h - ht) ** 2)))),
     }
-    # model-form check on the innovations alone (estimators.innovation): the run's largest windowed
-    # self-normalised innovation mean, and whether it exceeds the test's threshold
     # lift-offs the filter's load prior ruled out (estimators.ekf_step.LIFT_PRIOR_SIGMAS)
     out["lift_offs_implausible"] = float(sum("lift_off_implausible" in f for f in res.flags[sl]))
+    # model-form check on the innovations alone (estimators.innovation): the run's largest windowed
+    # self-normalised innovation mean, and whether it exceeds the test's threshold
     if "innov" in res.est:
         it = innovation_test(res.est["innov"][sl])
         # no full window (a run shorter than the window): no verdict, left out of the flag rate
