@@ -6,6 +6,8 @@ estimate at a mid height), the floor a pressure, not a gas mass."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -181,6 +183,26 @@ def test_structured_robot_with_the_sensor_delay_modelled_does_not_run_a_membrane
     assert run.lam.max() < d.max_stretch
     late = run.t >= 2.0
     assert np.abs(run.h[late] - run.h_ref[late]).max() < U.mm(1.5)
+
+
+def test_default_robot_rig_start_up_vents_no_chamber_for_a_lost_estimate():
+    """scenarios/daemon_robot.toml (3 layers on the cap rig with scalar mismatches, 6 mm straight,
+    3 mm/s target ramps) vented chambers at the onset of pumping, C2 and C3 at 0.31 s on the daemon:
+    their filters' dead-volume factors fell below 0.96, where the bank's gas-mass floor was a pressure
+    floor kilopascals above the readings. Its first second, without the NMPC's wall-time budget (so
+    the run does not depend on the machine): no filter lost, no vent."""
+    from dataclasses import replace
+
+    from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.app.schema import RigTable
+
+    scn = load_scenario(Path(__file__).parents[1] / "scenarios" / "daemon_robot.toml")
+    s = scn.role("robot")
+    rig = RigTable.model_validate(scn.sections["rig"]).to_robot_rig()
+    mpc = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=0.0), w_slack=s.mpc_w_slack)
+    run = run_closed_loop(s, s.targets, 1.0, "mpc", scn.pneumatics, rig, mpc)
+    assert run.status == "ok"
+    assert run.lost_estimate_steps == 0, run.events
 
 
 # --- the daemon's view ---------------------------------------------------------------------------
