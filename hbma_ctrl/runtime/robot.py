@@ -248,7 +248,7 @@ class RobotLoop:
         self.href = href
         vent = sup.vent_mask(href)
         stretch, lost = est["lam"], est["lost"]
-        held = (stretch >= sup.settings.stretch_max) | lost | sup.lost
+        held = sup.stretch_over(stretch) | lost | sup.lost  # no supply budget where rules 5, 6 cut it
         t_ctrl = time.perf_counter()
         plan, ok, cause = None, True, "ok"
         try:

@@ -155,6 +155,14 @@ class Supervisor:
         tg = np.broadcast_to(np.asarray(target, dtype=float), (self.n,))
         return np.isfinite(tg) & (tg <= vh)
 
+    def stretch_over(self, stretch) -> np.ndarray:
+        """(n,) bool: chambers the stretch guard holds for these estimated stretches (-): at or above
+        ``stretch_max`` (rule 5); none without a limit or estimates (NaN compares False: not guarded)."""
+        lim = self.settings.stretch_max
+        if stretch is None or lim is None:
+            return np.zeros(self.n, dtype=bool)
+        return np.broadcast_to(np.asarray(stretch, dtype=float), (self.n,)) >= lim
+
     def _log(self, t: float, i: int, cause: str, detail: str = "") -> None:
         self.events.append(SupervisorEvent(float(t), int(i), cause, detail))
         self.logged += 1
@@ -257,14 +265,13 @@ class Supervisor:
             for i in np.nonzero(act)[0]:
                 self._log(t, i, "guard", f"p={p[i]:.0f} Pa")
         # 5. stretch guard
-        if s.stretch_max is not None and stretch is not None:
+        over = self.stretch_over(stretch) & (cmd[:, 0] > 0)
+        if over.any():
+            cmd[over, :-1] = 0.0
+            self.counts["stretch_guard"] += int(over.sum())
             lam = np.broadcast_to(np.asarray(stretch, dtype=float), (self.n,))
-            over = (lam >= s.stretch_max) & (cmd[:, 0] > 0)  # NaN compares False: not guarded
-            if over.any():
-                cmd[over, :-1] = 0.0
-                self.counts["stretch_guard"] += int(over.sum())
-                for i in np.nonzero(over)[0]:
-                    self._log(t, i, "stretch_guard", f"stretch={lam[i]:.2f}")
+            for i in np.nonzero(over)[0]:
+                self._log(t, i, "stretch_guard", f"stretch={lam[i]:.2f}")
         # 6. lost estimate: vent until the pressure is down
         new = np.zeros(self.n, dtype=bool) if lost is None else \
             np.broadcast_to(np.asarray(lost, dtype=bool), (self.n,)) & ~self.lost
