@@ -130,6 +130,8 @@ class ChamberEKFSettings:
 B_RANGE = (0.5, 2.0)
 K_RANGE = (0.6, 1.6)
 C_RANGE = (0.6, 1.8)
+#: the factors' rows in the state and their ranges (the clip and the lost-estimate test both use them)
+FACTOR_ROWS = ((1, B_RANGE), (2, K_RANGE), (3, C_RANGE))
 
 
 NS = 4  # [y, b, k, c], y = (x + 1) / c
@@ -351,7 +353,7 @@ class ChamberEKFBank:
         # any plausible mismatch (a far-branch membrane read as a near-branch one drives the flow factor
         # to its floor and the modulus to its ceiling while the truth grows on)
         at_bound = np.zeros(self.n, dtype=bool)
-        for row, (lo, hi) in ((1, B_RANGE), (2, K_RANGE), (3, C_RANGE)):
+        for row, (lo, hi) in FACTOR_ROWS:
             at_bound |= (Xn[row] <= lo) | (Xn[row] >= hi)
         self.counts["beyond_tables"] += int(beyond.sum())
         self.counts["factor_at_bound"] += int(at_bound.sum())
@@ -380,9 +382,8 @@ class ChamberEKFBank:
         factors); a diverged filter restarts from its reading (``resets``)."""
         bad = ~(np.all(np.isfinite(X), 0) & np.all(np.isfinite(Pn), 0))
         self.resets += int(bad.sum())
-        X[1] = np.clip(X[1], *B_RANGE)
-        X[2] = np.clip(X[2], *K_RANGE)
-        X[3] = np.clip(X[3], *C_RANGE)
+        for row, rng in FACTOR_ROWS:
+            X[row] = np.clip(X[row], *rng)
         # the gas mass x = c y - 1 at the tables' top in x1, not in x: a chamber with a larger dead
         # volume holds more gas at the same shape, and a clip at the nominal top pinned such an
         # estimate at a mid height while the membrane grew on (a 3-layer run: estimate 2.8 mm, truth
