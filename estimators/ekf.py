@@ -137,7 +137,9 @@ from estimators.ekf_step import (
     KIND_NONE,
     KIND_OK,
     KIND_SATURATED,
+    NO_LOAD_SIGMAS,
     ekf_step_function,
+    flat_ratio_min,
     lift_floor,
     observer_model,
 )
@@ -256,6 +258,7 @@ class EKF(ReferenceSteps):
         self._lift_start = 0.0
         self._p_lift = 0.0
         self._p_post = 0.0
+        self._excess = 0.0  # the contact phase's excess sum (ekf_step.EXCESS_THRESHOLD)
         self._lift_floor = lift_floor(s)  # the load prior's floor on a detected lift-off (ekf_step)
         # the command as the chamber feels it and the sensor sees it (valve and sensor delays)
         self._timing = CommandTiming(self.settings.sample_period, self.settings.valve_delay,
@@ -264,7 +267,13 @@ class EKF(ReferenceSteps):
         self._events: set = set()
         self._snap: tuple | None = None  # lift-off replay: posterior before the detector's sum grew
         self._replay: list = []
-        self._replay_now = False
+        # and the last resting posterior at ambient pressure, with the samples since (the replay of a
+        # lift-off the factors' ratio showed, ekf_step.FLAT_RATIO_SIGMAS)
+        self._rise: tuple | None = None
+        self._rise_replay: list = []
+        self._replay_now = self._replay_rise = False
+        self._ratio_min = flat_ratio_min(s)
+        self._ambient = NO_LOAD_SIGMAS * s.noise_std  # a posterior below this is at ambient pressure, Pa
         self._pumping = False
         self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
         self._gated = 0  # gated readings in a row
@@ -299,8 +308,9 @@ class EKF(ReferenceSteps):
             out = self._outf(self.x, self.s, self._theta_arg(self._outf), 0.0, self.P)
             resting = bool(out[1][_Y["rest"]] > 0.5)
         self.resting = resting
-        self._cusum = self._lift = self._lift_start = 0.0
+        self._cusum = self._lift = self._lift_start = self._excess = 0.0
         self._snap, self._replay, self._replay_now = None, [], False
+        self._rise, self._rise_replay, self._replay_rise = None, [], False
         self._refresh()
 
     def _theta_arg(self, fun):
@@ -418,8 +428,11 @@ class EKF(ReferenceSteps):
             u = self._timing.acting(u, k)
         if jump:
             self._snap, self._replay = None, []  # a replay across a gap would predict the gap again
+            self._rise, self._rise_replay = None, []
             self._lift = self._lift_start = 0.0
-        if self.resting and k > 0:
+        if not self.resting:
+            self._rise = None
+        elif k > 0:
             # lift-off replay: while the detector's sum is at zero, remember the posterior; the
             # samples after it are kept so a detected lift-off can be re-filtered from there
             if self._lift == 0.0:
@@ -431,6 +444,13 @@ class EKF(ReferenceSteps):
                 self._replay.append((float(t), measurement, kind, u, k))
             else:
                 self._snap = None  # too long ago: no replay (the lift-off is applied now)
+            if self._p_post < self._ambient:
+                self._rise, self._rise_replay = (self.x, self.P, self.s, self.t, self._p_pred, self._H,
+                                                 self._p_post), []
+            if self._rise is not None and len(self._rise_replay) < REPLAY_MAX:
+                self._rise_replay.append((float(t), measurement, kind, u, k))
+            else:
+                self._rise = None
         if self._step_fn is not None and k == 1 and not jump:
             est = self._step_compiled(t, measurement, kind, u)
             if est is not None:
@@ -472,12 +492,13 @@ class EKF(ReferenceSteps):
         inp[6][0] = float(measurement) if code == KIND_OK else 0.0
         inp[7][0] = code
         d = inp[8]
-        d[0], d[1], d[2], d[3], d[4], d[5], d[6] = (self._cusum, self._lift, self._lift_start, self._p_lift,
-                                                    self._p_post, self._gated, self._lift_floor)
+        d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7] = (self._cusum, self._lift, self._lift_start, self._p_lift,
+                                                          self._p_post, self._gated, self._lift_floor, self._excess)
         fn._eval()
         bits = int(out[13][0])
         # a detected lift-off with no load is re-filtered from the snapshot: the reference path
-        if out[14][0] < 0.5 or (bits & _LIFT_DETECTED and out[0][1] == 0.0 and self._snap is not None):
+        if out[14][0] < 0.5 or (bits & _LIFT_DETECTED and out[0][1] == 0.0
+                                and (self._snap is not None or self._rise is not None)):
             return None
         flags = _flag_set(bits)
         if self._events:
@@ -488,7 +509,7 @@ class EKF(ReferenceSteps):
         self.s = out[2].copy()
         self._A_flat = out[8].copy()
         self.resting = bool(out[9][0] > 0.5)
-        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g, _ = out[10].tolist()
+        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g, _, self._excess = out[10].tolist()
         self._gated = int(g)
         e0, e1, e2, e3, e4 = out[4].tolist()
         self._p_pred = e4

@@ -18,6 +18,8 @@ import numpy as np
 from estimators.common import MEAS_SATURATED, guard_cov, nis_gate
 from estimators.ekf_step import (
     CENSOR_SIGMAS,
+    EXCESS_DRIFT,
+    EXCESS_THRESHOLD,
     FACTOR_RANGE,
     LIFT_LOAD_ABS_STD,
     LIFT_START_DRIFT,
@@ -94,24 +96,27 @@ class ReferenceSteps:
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
 
     def _replay_from_snapshot(self) -> None:
-        """Re-filter the samples since the detector's sum left zero with the membrane lifted.
+        """Re-filter the samples since the detector's sum left zero with the membrane lifted (for a
+        lift-off the factors' ratio showed: since the last posterior at ambient pressure).
 
         The detector needs several samples to be sure; filtered as flat, those samples push the
         lifted membrane's extra volume into the flow factor and the modulus (which then bias the
         height for as long as nothing excites them again). From the posterior before the lift-off,
         the lift-off is applied there and the samples are replayed with the contact model."""
-        if self._snap is None or not self._replay:
+        snap, replay = (self._rise, self._rise_replay) if self._replay_rise else (self._snap, self._replay)
+        self._replay_rise = False
+        if snap is None or not replay:
             return
         W, PW = float(self.x[1]), float(self.P[1, 1])
-        self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post = self._snap
+        self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post = snap
         self.x, self.P, self.s = self.x.copy(), self.P.copy(), self.s.copy()
         self._lift_off(detected=False, load=(W, PW))
         events = self._events
-        for (t, z, kind, u, k) in self._replay:
+        for (t, z, kind, u, k) in replay:
             self._advance(t, z, kind, u, k, detect=False)
             self._finish()
         self._events = events | {"lift_off_replayed"}
-        self._snap, self._replay = None, []
+        self._snap, self._replay, self._rise, self._rise_replay = None, [], None, []
 
     def _detect(self, r: float) -> bool:
         """Lift-off detector (resting) and load-change detector (contact) on the innovation r.
@@ -119,6 +124,7 @@ class ReferenceSteps:
         Returns True when a load change was declared (the caller redoes the update)."""
         s = self.settings
         if self.resting:
+            self._excess = 0.0
             if self._p_pred + self._innov > s.sensor_range - CENSOR_SIGMAS * s.noise_std:
                 return False  # a reading near the range is a sample biased low (ekf_step.CENSOR_SIGMAS): hold
             if not self._pumping or self._p_pred <= self._p_post:
@@ -148,10 +154,22 @@ class ReferenceSteps:
                 # detection delay was filtered as flat); a loaded one's sum may have started on
                 # the flow factor's early learning, and a lift-off put there contradicts the data
                 self._replay_now = self._snap is not None and self.x[1] == 0.0
+            elif self._lift_floor == 0.0 and self.x[2] < self._ratio_min * self.x[4]:
+                # a flat chamber fits the readings only with b / c far below its prior: the membrane
+                # has lifted (ekf_step.FLAT_RATIO_SIGMAS), with no load to date; re-filtered from
+                # the last posterior at ambient pressure, before the factors took up the shortfall
+                self._lift = self._lift_start = 0.0
+                self._lift_off(detected=False, load=(0.0, LIFT_LOAD_ABS_STD ** 2))
+                self._replay_now = self._rise is not None
+                self._replay_rise = True
         else:
             self._cusum = max(0.0, self._cusum + r * r - s.change_drift)
-            if self._cusum > s.change_threshold:
-                self._cusum = 0.0
+            # the excess sum (ekf_step.EXCESS_THRESHOLD): a pressure rising persistently above the
+            # contact model's, as after a false lift-off
+            rising = self._p_pred > self._p_post
+            self._excess = max(0.0, self._excess + r - EXCESS_DRIFT) if rising else 0.0
+            if self._cusum > s.change_threshold or (rising and self._excess > EXCESS_THRESHOLD):
+                self._cusum = self._excess = 0.0
                 self._events.add("load_change")
                 return True
         return False

@@ -41,7 +41,7 @@ def _close(a, b, scale=1.0) -> bool:
 
 def _set(f: EKF, x, P, resting: bool, det) -> None:
     f.reset(0.0, x, P, resting=resting)
-    f._cusum, f._lift, f._lift_start, f._p_lift, f._p_post, f._gated, f._lift_floor = det
+    f._cusum, f._lift, f._lift_start, f._p_lift, f._p_post, f._gated, f._lift_floor, f._excess = det
     f._snap, f._replay = None, []
 
 
@@ -54,7 +54,8 @@ states = st.tuples(
 )
 detectors = st.tuples(st.floats(0.0, 25.0), st.floats(0.0, 8.0), st.floats(0.0, 5.0),
                       st.floats(0.0, 30e3), st.floats(0.0, 40e3), st.integers(0, 3),
-                      st.sampled_from([0.0, 0.0, 1.0, 4.0, 15.0]))  # the load prior's floor on a lift-off, N
+                      st.sampled_from([0.0, 0.0, 1.0, 4.0, 15.0]),  # the load prior's floor on a lift-off, N
+                      st.floats(0.0, 12.0))  # the contact phase's excess sum
 commands = st.sampled_from([(1.0, 1.0, 0.0), (0.4, 1.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (1.0, 0.5, 0.2)])
 
 
@@ -93,8 +94,8 @@ def test_compiled_step_equals_the_reference_path_on_random_states(pair, resting,
     assert (fc.last_nis is None) == (fr.last_nis is None)
     if fc.last_nis is not None:
         assert _close(fc.last_nis, fr.last_nis)
-    assert _close([fc._cusum, fc._lift, fc._lift_start, fc._p_lift, fc._p_post, fc._gated, fc._lift_floor],
-                  [fr._cusum, fr._lift, fr._lift_start, fr._p_lift, fr._p_post, fr._gated, fr._lift_floor])
+    assert _close([fc._cusum, fc._lift, fc._lift_start, fc._p_lift, fc._p_post, fc._gated, fc._lift_floor, fc._excess],
+                  [fr._cusum, fr._lift, fr._lift_start, fr._p_lift, fr._p_post, fr._gated, fr._lift_floor, fr._excess])
     assert _close(fc.s, fr.s) and _close(fc.last_A, fr.last_A)
 
 
@@ -144,6 +145,53 @@ def test_kind_codes_select_the_update():
     none = f.call({**args, "kind": 1.0})
     assert float(upd["nis"]) > 0 and float(none["nis"]) == 0.0
     assert not np.allclose(np.asarray(upd["x_next"]), np.asarray(none["x_next"]))
+
+
+def test_a_persistent_excess_in_contact_declares_a_load_change():
+    """In contact, with the pressure rising, readings one sigma above the prediction add
+    1 - EXCESS_DRIFT to the excess sum per step; above EXCESS_THRESHOLD a load change is declared
+    (flag ``load_change``, the load's variance widened) and the sum restarts. Readings at the
+    prediction leave it at zero, and a resting membrane does not sum."""
+    from estimators.ekf_step import EXCESS_DRIFT, EXCESS_THRESHOLD, FLAG_BITS
+
+    f = ekf_step_function(ACT, PN, FS)
+    filt = EKF(ACT, PN, FS)
+    filt.reset(0.0, [1.15 * ACT.p_env * ACT.V0 / (ACT.R * ACT.T), 1.0], resting=False)  # lifted
+    i_ex = DET_NAMES.index("excess")
+    base = dict(x=filt.x, P=filt.P, s=filt.s, u=[0.0, 0.0, 0.0], theta=filt.theta, resting=0.0, kind=1.0)
+    for _ in range(5):  # converge the shape's warm start (no reading, valves shut)
+        base["s"] = np.asarray(f.call({**base, "z": 0.0, "det": np.zeros(len(DET_NAMES))})["s_next"]).ravel()
+    base.update(u=[1.0, 1.0, 0.0], kind=KIND_OK)
+    # the innovation is (z - p_pred) / sqrt(S): two readings give the prediction and sqrt(S), Pa
+    r0, r1 = (float(f.call({**base, "z": z, "det": np.zeros(len(DET_NAMES))})["innov"]) for z in (0.0, 1e3))
+    sqrt_S = 1e3 / (r1 - r0)
+    p_pred = -r0 * sqrt_S
+
+    def step(z_sigmas, excess, p_post=0.0):
+        det = np.zeros(len(DET_NAMES))
+        det[DET_NAMES.index("p_post")] = p_post  # below the prediction: the pressure rises
+        det[i_ex] = excess
+        return f.call({**base, "z": p_pred + z_sigmas * sqrt_S, "det": det})
+
+    change = 1 << FLAG_BITS.index("load_change")
+    out = step(1.0, 0.0)
+    assert float(out["det_next"][i_ex]) == pytest.approx(1.0 - EXCESS_DRIFT, rel=1e-6)
+    assert not int(out["flags"]) & change
+    assert float(step(0.0, 0.0)["det_next"][i_ex]) == 0.0
+    out = step(1.0, EXCESS_THRESHOLD - 0.5)  # crosses the threshold
+    assert int(out["flags"]) & change and float(out["det_next"][i_ex]) == 0.0
+    P_next = np.asarray(out["P_next"]).reshape(5, 5, order="F")
+    P_quiet = np.asarray(step(1.0, 0.0)["P_next"]).reshape(5, 5, order="F")
+    assert P_next[1, 1] > P_quiet[1, 1]  # the load's variance was widened before the update
+    # the pressure falling (p_post above the prediction): no sum
+    assert float(step(1.0, 5.0, p_post=p_pred + 1e3)["det_next"][i_ex]) == 0.0
+    # resting: the sum is the contact phase's only (a reading at the flat prediction, so not gated)
+    det = np.r_[np.zeros(len(DET_NAMES) - 1), 5.0]
+    zs = (0.14 * ACT.p_env, 0.16 * ACT.p_env)  # about the flat chamber's 0.15 p_env
+    r0, r1 = (float(f.call({**base, "resting": 1.0, "z": z, "det": det})["innov"]) for z in zs)
+    rest = f.call({**base, "resting": 1.0, "z": zs[0] - r0 * (zs[1] - zs[0]) / (r1 - r0), "det": det})
+    assert not int(rest["flags"]) & 1  # not gated
+    assert float(rest["det_next"][i_ex]) == 0.0
 
 
 @pytest.fixture(scope="module")
