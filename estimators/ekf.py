@@ -272,7 +272,7 @@ class EKF(ReferenceSteps):
         self._rise: tuple | None = None
         self._rise_replay: list = []
         self._replay_now = self._replay_rise = False
-        self._ratio_min = flat_ratio_min(s)
+        self._ratio_min = 0.0  # set by reset() from the prior (ekf_step.flat_ratio_min)
         self._ambient = NO_LOAD_SIGMAS * s.noise_std  # a posterior below this is at ambient pressure, Pa
         self._pumping = False
         self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
@@ -292,7 +292,9 @@ class EKF(ReferenceSteps):
     def reset(self, t: float, mean, cov=None, shape=None, resting: bool | None = None) -> None:
         """Set the state [m (kg), W (N), b (-), k (-), c (-)] and covariance at time t (s).
 
-        ``shape`` = warm start (h1, h2) in m; ``resting`` = the mode (None: from the state).
+        ``shape`` = warm start (h1, h2) in m; ``resting`` = the mode (None: from the state). The
+        prior's b / c and its spread set the lowest ratio a resting membrane is taken as flat at
+        (:func:`estimators.ekf_step.flat_ratio_min`; a start-up calibration hands its prior over here).
         """
         s = self.settings
         x = np.array(mean, dtype=float).ravel()
@@ -302,6 +304,7 @@ class EKF(ReferenceSteps):
                           s.modulus_init_std ** 2, s.dead_volume_init_std ** 2]) if cov is None else \
             np.array(cov, dtype=float).reshape(NX, NX)
         self.P = guard_cov(self.P, s.cov_floor)
+        self._ratio_min = flat_ratio_min(self.x, self.P)
         self.t = float(t)
         self.s = np.zeros(2) if shape is None else np.array(shape, dtype=float).reshape(2)
         if resting is None:
@@ -492,8 +495,9 @@ class EKF(ReferenceSteps):
         inp[6][0] = float(measurement) if code == KIND_OK else 0.0
         inp[7][0] = code
         d = inp[8]
-        d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7] = (self._cusum, self._lift, self._lift_start, self._p_lift,
-                                                          self._p_post, self._gated, self._lift_floor, self._excess)
+        d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], d[8] = (
+            self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, self._gated, self._lift_floor,
+            self._excess, self._ratio_min)
         fn._eval()
         bits = int(out[13][0])
         # a detected lift-off with no load is re-filtered from the snapshot: the reference path
@@ -509,7 +513,7 @@ class EKF(ReferenceSteps):
         self.s = out[2].copy()
         self._A_flat = out[8].copy()
         self.resting = bool(out[9][0] > 0.5)
-        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g, _, self._excess = out[10].tolist()
+        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g, _, self._excess, _ = out[10].tolist()
         self._gated = int(g)
         e0, e1, e2, e3, e4 = out[4].tolist()
         self._p_pred = e4

@@ -14,9 +14,9 @@ actuator's numbers come in through ``theta``, so one compiled library serves eve
 
 Signature (SI; P, C column-major 5 x 5; all inputs and outputs dense)::
 
-    ekf_step(x[5], P[5x5], s[2], u[3], theta[nt], resting, z, kind, det[8])
+    ekf_step(x[5], P[5x5], s[2], u[3], theta[nt], resting, z, kind, det[9])
         -> (x_next[5], P_next[5x5], s_next[2], y[8], est[5], std[5], C[5x5], H[1x5], A[5x5],
-            resting_next, det_next[8], nis, innov, flags, exact)
+            resting_next, det_next[9], nis, innov, flags, exact)
 
 Inputs: the state ``x = [m, W, b, k, c]`` and covariance P at the last step; the shape warm start
 ``s = (h1, h2)`` (m); the command held over the period ``u = [speed, inlet, outlet]``; the model
@@ -27,7 +27,8 @@ detector state ``det`` (:data:`DET_NAMES`: the load-change CUSUM, the lift-off C
 sum, the dated lift-off pressure Pa, the last posterior pressure Pa, the gated readings in a row,
 the lowest load N a lift-off may carry: a detected lift-off whose load, pi r1^2 p at the dated
 lift-off, is below it is implausible (flag ``lift_off_implausible``): the sums restart and the
-membrane stays flat; 0 = no floor; and the contact phase's excess sum, :data:`EXCESS_THRESHOLD`).
+membrane stays flat; 0 = no floor; the contact phase's excess sum, :data:`EXCESS_THRESHOLD`; and the
+lowest b / c a resting membrane is taken as flat at, :func:`flat_ratio_min`, 0 = the test off).
 
 Outputs: the posterior state, covariance and warm start; ``y`` the model outputs
 (:data:`hbma_ctrl.models.chamber.OUT_NAMES`) at the posterior; ``est`` = (h1, h2 >= 0, h, F >= 0, p)
@@ -60,12 +61,12 @@ from hbma_ctrl.models.reduced import law_key
 __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "KIND_NONE", "KIND_SATURATED", "DET_NAMES",
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
            "NO_LOAD_SIGMAS", "LIFT_START_DRIFT", "CENSOR_SIGMAS", "LIFT_PRIOR_SIGMAS", "lift_floor",
-           "FLAT_RATIO_SIGMAS", "flat_ratio_min", "EXCESS_DRIFT", "EXCESS_THRESHOLD"]
+           "FLAT_RATIO_SIGMAS", "FLAT_RATIO_STD_MIN", "flat_ratio_min", "EXCESS_DRIFT", "EXCESS_THRESHOLD"]
 
 #: reading kinds (input ``kind``)
 KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
 #: the detector state carried between steps (input ``det``)
-DET_NAMES = ("cusum", "lift", "lift_start", "p_lift", "p_post", "gated_run", "lift_floor", "excess")
+DET_NAMES = ("cusum", "lift", "lift_start", "p_lift", "p_post", "gated_run", "lift_floor", "excess", "ratio_min")
 #: flags raised by the step, bit i of output ``flags``
 FLAG_BITS = ("gated", "load_change", "lift_off", "clamped", "resting", "not_converged", "touch_down",
              "lift_off_detected", "lift_off_implausible")
@@ -120,22 +121,31 @@ def lift_floor(s: FilterSettings) -> float:
 
 
 #: while the membrane rests flat its pressure's rise fixes only the ratio of the flow and dead-volume
-#: factors, b / c. A resting filter whose posterior ratio has fallen this many of its prior sigmas
-#: below 1 takes the membrane as lifted: a flat chamber cannot explain the readings, a growing volume
-#: can. A free membrane (no load, or a light one) lifts within the pump's first samples, while the
-#: factors' spread is still wide, so they absorb its shortfall and the innovation sum never grows
-#: (the free 7.5 mm chamber at 80 % speed, noise seed 1: b / c went to 0.38 in 50 ms and the membrane
-#: was taken as flat up to 5.4 mm). The rig's own factors (flow x0.9, dead volume x1.2, the pump's
-#: tilted map) keep b / c near 0.7-0.85, about 1.5 sigma below 1
+#: factors, b / c. A resting filter whose posterior ratio has fallen this many of its prior's
+#: sigmas below the prior's ratio takes the membrane as lifted: a flat chamber cannot explain the
+#: readings, a growing volume can. A free membrane (no load, or a light one) lifts within the pump's
+#: first samples, while the factors' spread is still wide, so they absorb its shortfall and the
+#: innovation sum never grows (the free 7.5 mm chamber at 80 % speed, noise seed 1: b / c went to 0.38
+#: in 50 ms and the membrane was taken as flat up to 5.4 mm). The rig's own factors (flow x0.9, dead
+#: volume x1.2, the pump's tilted map) keep b / c near 0.7-0.85, about 1.5 sigma below the default
+#: prior's 1
 FLAT_RATIO_SIGMAS = 3.0
+#: the ratio's relative sigma in that test is at least this: the flow model's error of shape (the
+#: pump's flow falling with back pressure faster than the model's moves b / c by about 10 % through a
+#: flat rise), which a tight prior (the start-up calibration's) does not cover
+FLAT_RATIO_STD_MIN = 0.1
 
 
-def flat_ratio_min(s: FilterSettings) -> float:
-    """The lowest b / c (-) a resting filter with settings s takes as flat: exp(-FLAT_RATIO_SIGMAS
-    sigma), sigma the prior's relative spread of the ratio; 0 (never lifted by it) when the factors
-    have no prior spread."""
-    sig = math.hypot(s.flow_factor_init_std, s.dead_volume_init_std)
-    return math.exp(-FLAT_RATIO_SIGMAS * sig) if sig > 0 else 0.0
+def flat_ratio_min(x: np.ndarray, P: np.ndarray) -> float:
+    """The lowest b / c (-) a resting filter whose prior is (x, P) (state :data:`NX`, b and c at 2
+    and 4) takes as flat: the prior's b / c times exp(-FLAT_RATIO_SIGMAS sigma), sigma the relative
+    spread of b / c under P (at least FLAT_RATIO_STD_MIN); 0 (the test off) when the prior holds b
+    and c fixed."""
+    b, c = float(x[2]), float(x[4])
+    if b <= 0 or c <= 0 or not (P[2, 2] > 0 or P[4, 4] > 0):
+        return 0.0
+    var = P[2, 2] / b ** 2 + P[4, 4] / c ** 2 - 2.0 * P[2, 4] / (b * c)
+    return b / c * math.exp(-FLAT_RATIO_SIGMAS * max(math.sqrt(max(var, 0.0)), FLAT_RATIO_STD_MIN))
 
 
 #: the settings the step Function depends on (the model's are in the model's key): a trial's own
@@ -144,15 +154,10 @@ STEP_SETTINGS = ("noise_std", "model_rel_std", "sensor_range", "saturation_std",
                  "load_std", "load_rest_std", "lift_threshold", "lift_drift", "lift_load_rel_std",
                  "flow_factor_std", "modulus_std", "dead_volume_std", "change_threshold", "change_drift",
                  "change_std", "load_min", "load_max", "output_rel_std", "force_std_floor", "cov_floor",
-                 "gate_nis", "gate_reopen", "flow_factor_init_std", "dead_volume_init_std")
+                 "gate_nis", "gate_reopen")
 
 _MODEL_CACHE: dict = {}
 _STEP_CACHE: dict = {}
-
-
-def _ratio_low(x, ratio_min: float):
-    """b / c < ratio_min for the state x (false when ratio_min is 0: the test is off)."""
-    return x[2] < ratio_min * x[4] if ratio_min > 0 else ca.DM(0)
 
 
 def _model_key(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> tuple:
@@ -220,7 +225,8 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     z = ca.MX.sym("z")
     kind = ca.MX.sym("kind")
     det = ca.MX.sym("det", len(DET_NAMES))
-    cusum, lift, lift_start, p_lift, p_post, gated_run, W_floor, excess = (det[i] for i in range(len(DET_NAMES)))
+    cusum, lift, lift_start, p_lift, p_post, gated_run, W_floor, excess, ratio_min = (det[i] for i in
+                                                                                      range(len(DET_NAMES)))
     thp, Pd = om.chamber.symbols()
     area = ca.Function("ekf_area", [thp], [ca.pi * Pd["r1"] ** 2])(th)
     piv = _pivot_function()
@@ -297,7 +303,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     # a flat chamber that fits its readings only with b / c far below its prior has lifted
     # (FLAT_RATIO_SIGMAS; not under a load prior's floor: a known load lifts at its bound)
     fire_ratio = ca.logic_and(ca.logic_and(ca.logic_and(armed, filling), ca.logic_not(fire_lift)),
-                              ca.logic_and(W_floor == 0, _ratio_low(xa, flat_ratio_min(s))))
+                              ca.logic_and(W_floor == 0, xa[2] < ratio_min * xa[4]))
     fire_any = ca.logic_or(fire_lift, fire_ratio)
     lift2 = ca.if_else(armed, ca.if_else(ca.logic_and(filling, ca.logic_not(fire_any)), l_n, 0.0), lift)
     lift_start2 = ca.if_else(armed, ca.if_else(ca.logic_and(filling, ca.logic_not(fire_any)), ls_n, 0.0),
@@ -362,7 +368,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
     flags = (gated * 1 + fire_c * 2 + ca.logic_or(fire_lift, lift_b) * 4 + clamped * 8 + resting4 * 16
              + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128 + implausible * 256)
-    det2 = ca.vertcat(cusum2, lift2, lift_start2, p_lift2, y[4], run, W_floor, excess2)
+    det2 = ca.vertcat(cusum2, lift2, lift_start2, p_lift2, y[4], run, W_floor, excess2, ratio_min)
     nis = ca.if_else(upd * is_ok, r * r, ca.if_else(gated, nis_gate, 0.0))
     innov = ca.if_else(upd * is_ok, r, 0.0)
     outs = [xc, Pf, s2, y, est, std, C, H, A, rest2, det2, nis, innov, flags, exact]

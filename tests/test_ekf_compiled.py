@@ -3,6 +3,7 @@ mapped call against per-chamber calls. No timing is asserted here (see ``hbma-ct
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import casadi as ca
@@ -41,7 +42,8 @@ def _close(a, b, scale=1.0) -> bool:
 
 def _set(f: EKF, x, P, resting: bool, det) -> None:
     f.reset(0.0, x, P, resting=resting)
-    f._cusum, f._lift, f._lift_start, f._p_lift, f._p_post, f._gated, f._lift_floor, f._excess = det
+    (f._cusum, f._lift, f._lift_start, f._p_lift, f._p_post, f._gated, f._lift_floor, f._excess,
+     f._ratio_min) = det
     f._snap, f._replay = None, []
 
 
@@ -55,7 +57,8 @@ states = st.tuples(
 detectors = st.tuples(st.floats(0.0, 25.0), st.floats(0.0, 8.0), st.floats(0.0, 5.0),
                       st.floats(0.0, 30e3), st.floats(0.0, 40e3), st.integers(0, 3),
                       st.sampled_from([0.0, 0.0, 1.0, 4.0, 15.0]),  # the load prior's floor on a lift-off, N
-                      st.floats(0.0, 12.0))  # the contact phase's excess sum
+                      st.floats(0.0, 12.0),  # the contact phase's excess sum
+                      st.sampled_from([0.0, 0.47, 0.8]))  # the lowest b / c taken as flat
 commands = st.sampled_from([(1.0, 1.0, 0.0), (0.4, 1.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (1.0, 0.5, 0.2)])
 
 
@@ -94,8 +97,8 @@ def test_compiled_step_equals_the_reference_path_on_random_states(pair, resting,
     assert (fc.last_nis is None) == (fr.last_nis is None)
     if fc.last_nis is not None:
         assert _close(fc.last_nis, fr.last_nis)
-    assert _close([fc._cusum, fc._lift, fc._lift_start, fc._p_lift, fc._p_post, fc._gated, fc._lift_floor, fc._excess],
-                  [fr._cusum, fr._lift, fr._lift_start, fr._p_lift, fr._p_post, fr._gated, fr._lift_floor, fr._excess])
+    names = ("_cusum", "_lift", "_lift_start", "_p_lift", "_p_post", "_gated", "_lift_floor", "_excess", "_ratio_min")
+    assert _close([getattr(fc, n) for n in names], [getattr(fr, n) for n in names])
     assert _close(fc.s, fr.s) and _close(fc.last_A, fr.last_A)
 
 
@@ -147,6 +150,29 @@ def test_kind_codes_select_the_update():
     assert not np.allclose(np.asarray(upd["x_next"]), np.asarray(none["x_next"]))
 
 
+def test_flat_ratio_floor_is_relative_to_the_prior_with_a_sigma_floor():
+    """flat_ratio_min: the prior's b / c times exp(-3 sigma), sigma the relative spread of b / c
+    (at least FLAT_RATIO_STD_MIN); 0 when b and c are held. A filter's reset sets it from its prior
+    (a calibration's hand-over included)."""
+    from estimators.ekf_step import FLAT_RATIO_SIGMAS, FLAT_RATIO_STD_MIN, flat_ratio_min
+
+    x = np.array([1e-5, 1.0, 1.0, 1.0, 1.0])
+    P = np.diag([1e-16, 1.0, 0.15 ** 2, 0.15 ** 2, 0.2 ** 2])  # the default prior
+    assert flat_ratio_min(x, P) == pytest.approx(math.exp(-FLAT_RATIO_SIGMAS * 0.25))
+    xc = x.copy()
+    xc[2], xc[4] = 0.9, 1.2
+    Pc = np.diag([1e-16, 1.0, (0.9 * 0.01) ** 2, 0.01, (1.2 * 0.01) ** 2])  # a tight calibration
+    assert flat_ratio_min(xc, Pc) == pytest.approx(0.75 * math.exp(-FLAT_RATIO_SIGMAS * FLAT_RATIO_STD_MIN))
+    Pcorr = Pc.copy()
+    Pcorr[2, 4] = Pcorr[4, 2] = 0.9 * 1.2 * 0.2 ** 2  # b and c moving together: the ratio is pinned
+    Pcorr[2, 2], Pcorr[4, 4] = (0.9 * 0.2) ** 2, (1.2 * 0.2) ** 2
+    assert flat_ratio_min(xc, Pcorr) == pytest.approx(0.75 * math.exp(-FLAT_RATIO_SIGMAS * FLAT_RATIO_STD_MIN))
+    assert flat_ratio_min(x, np.diag([1e-16, 1.0, 0.0, 0.0, 0.0])) == 0.0
+    f = EKF(ACT, PN, FS)
+    f.reset(0.0, xc, Pc, resting=True)
+    assert f._ratio_min == pytest.approx(flat_ratio_min(xc, Pc))
+
+
 def test_a_persistent_excess_in_contact_declares_a_load_change():
     """In contact, with the pressure rising, readings one sigma above the prediction add
     1 - EXCESS_DRIFT to the excess sum per step; above EXCESS_THRESHOLD a load change is declared
@@ -186,7 +212,8 @@ def test_a_persistent_excess_in_contact_declares_a_load_change():
     # the pressure falling (p_post above the prediction): no sum
     assert float(step(1.0, 5.0, p_post=p_pred + 1e3)["det_next"][i_ex]) == 0.0
     # resting: the sum is the contact phase's only (a reading at the flat prediction, so not gated)
-    det = np.r_[np.zeros(len(DET_NAMES) - 1), 5.0]
+    det = np.zeros(len(DET_NAMES))
+    det[i_ex] = 5.0
     zs = (0.14 * ACT.p_env, 0.16 * ACT.p_env)  # about the flat chamber's 0.15 p_env
     r0, r1 = (float(f.call({**base, "resting": 1.0, "z": z, "det": det})["innov"]) for z in zs)
     rest = f.call({**base, "resting": 1.0, "z": zs[0] - r0 * (zs[1] - zs[0]) / (r1 - r0), "det": det})
