@@ -264,6 +264,7 @@ class EKF(ReferenceSteps):
         self._timing = CommandTiming(self.settings.sample_period, self.settings.valve_delay,
                                      self.settings.sensor_delay)
         self._innov = 0.0  # innovation of the last update, Pa
+        self._sqrt_S = 1.0  # and its standard deviation, Pa
         self._events: set = set()
         self._snap: tuple | None = None  # lift-off replay: posterior before the detector's sum grew
         self._replay: list = []
@@ -370,7 +371,8 @@ class EKF(ReferenceSteps):
         P = out[1].reshape(NX, NX, order="F").copy()
         self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
         self._innov = innov
-        return innov / math.sqrt(S)
+        self._sqrt_S = math.sqrt(S)
+        return innov / self._sqrt_S
 
     def _keep(self) -> np.ndarray:
         """Which states an update may move (1) or must hold (0)."""

@@ -22,6 +22,7 @@ from estimators.ekf_step import (
     EXCESS_THRESHOLD,
     FACTOR_RANGE,
     LIFT_LOAD_ABS_STD,
+    LIFT_RISE_DRIFT,
     LIFT_START_DRIFT,
     LIGHT_LOAD,
     NO_LOAD_SIGMAS,
@@ -142,7 +143,9 @@ class ReferenceSteps:
                 z = self._p_pred + self._innov
                 self._p_lift = 0.5 * (self._p_post + min(self._p_pred, z))
             self._lift_start = max(0.0, self._lift_start - r - LIFT_START_DRIFT)
-            self._lift = max(0.0, self._lift - r - s.lift_drift)
+            # the drift grows with the flat prediction's rise (ekf_step.LIFT_RISE_DRIFT)
+            drift = s.lift_drift + LIFT_RISE_DRIFT * max(self._p_pred - self._p_post, 0.0) / self._sqrt_S
+            self._lift = max(0.0, self._lift - r - drift)
             if self._lift > s.lift_threshold:
                 self._lift = self._lift_start = 0.0
                 if self._lift_load() < self._lift_floor:

@@ -379,10 +379,12 @@ def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
 def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise():
     """600 and 800 g on the 7.5 mm chamber lift at 34-46 kPa, at or above the 35 kPa range. Through
     their long flat rise the rig's flow falls short of the model's and the lift-off detector fired
-    (800 g taken as lifting at 21 kPa, height NRMSD 4.1 in the protocol). A filter told the load
-    (10 %) rejects a lift-off more than LIFT_PRIOR_SIGMAS below it; the same prior at 100 % (no
-    floor) does not. Six rig noise seeds, four trials each: 2 false lift-offs of 24 against 9 when
-    measured (the two left are dated within the floor, 33-34 kPa for 800 g: README, Estimation)."""
+    (800 g taken as lifting at 21 kPa, height NRMSD 4.1 in the protocol). The lift-off sum's drift
+    now covers the default rig's tilted pump map (LIFT_RISE_DRIFT: 0 and 1 false lift-offs of 24 with
+    and without a prior); on a map tilted twice as much (compressor_tilt 0.4) the sum still fires.
+    There a filter told the load (10 %) rejects a lift-off more than LIFT_PRIOR_SIGMAS below it; the
+    same prior at 100 % (no floor) does not. Six rig noise seeds, four trials each: 3 false lift-offs
+    of 24 against 11 when measured (README, Estimation)."""
     from estimators.common import FilterSettings
     from estimators.ekf_step import lift_floor
     from hbma_ctrl.app.evaluate import aggregate, evaluate_trials
@@ -399,13 +401,14 @@ def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise()
     for rel in (0.1, 1.0):
         n = m = 0
         for seed in range(6):
-            rig = RigSettings(seed=seed, modulus_scale=1.15, flow_scale=0.9, V0_scale=1.2, sensor_range=35e3)
+            rig = RigSettings(seed=seed, modulus_scale=1.15, flow_scale=0.9, V0_scale=1.2, sensor_range=35e3,
+                              compressor_tilt=0.4)
             res = evaluate_trials(trials, "ekf", rig, FilterSettings(load_prior="nominal", load_prior_rel_std=rel),
                                   with_series=False)
             n += sum(r.scores["height_nrmsd"] > 0.5 for r in res)
             m += aggregate(res)["trials_with_implausible_lift_off"]
         false_lifts[rel], rejected[rel] = n, m
-    assert false_lifts[0.1] <= 2 and false_lifts[1.0] >= 6, false_lifts
+    assert false_lifts[0.1] <= 4 and false_lifts[1.0] >= 8, false_lifts
     # the rejections are counted (metrics.json: lift_offs_implausible, trials_with_implausible_lift_off)
     assert rejected[0.1] >= 4 and rejected[1.0] == 0, rejected
 
