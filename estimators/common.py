@@ -59,8 +59,11 @@ class FilterSettings:
     load_rest_std : one sigma of the load while the membrane rests flat, N (W is unobservable
         then, only W >= pi r1^2 p is known; the value only keeps the covariance regular).
     lift_threshold, lift_drift : lift-off detector while resting: a CUSUM of the normalised
-        innovation shortfall (-nu/sqrt(S) - lift_drift) above lift_threshold declares a lift-off
-        (the pressure rises slower than a flat membrane allows), (0, 1e3] and [0, 10].
+        innovation shortfall (-nu/sqrt(S) - lift_drift, less a fixed 5 % of the flat prediction's
+        rise over the sample in sigmas: :data:`estimators.ekf_step.LIFT_RISE_DRIFT`) above
+        lift_threshold declares a lift-off (the pressure rises slower than a flat membrane allows),
+        (0, 1e3] and [0, 10]. Without a load prior a resting filter also takes the membrane as lifted
+        when b / c falls far below its prior (:func:`estimators.ekf_step.flat_ratio_min`).
     lift_load_rel_std : relative one sigma of the load right after a detected lift-off, [0, 10].
     flow_factor_std : random walk of the pump-flow factor b, 1/sqrt(s), [0, 10];
         flow_factor_init_std its initial one sigma (b starts at 1), [0, 10].

