@@ -163,6 +163,7 @@ class ReferenceSteps:
                 # the last posterior at ambient pressure, before the factors took up the shortfall
                 self._lift = self._lift_start = 0.0
                 self._lift_off(detected=False, load=(0.0, LIFT_LOAD_ABS_STD ** 2))
+                self._events.add("lift_off_ratio")
                 self._replay_now = self._rise is not None
                 self._replay_rise = True
         else:
@@ -171,9 +172,12 @@ class ReferenceSteps:
             # contact model's, as after a false lift-off
             rising = self._p_pred > self._p_post
             self._excess = max(0.0, self._excess + r - EXCESS_DRIFT) if rising else 0.0
-            if self._cusum > s.change_threshold or (rising and self._excess > EXCESS_THRESHOLD):
+            excess = rising and self._excess > EXCESS_THRESHOLD
+            if self._cusum > s.change_threshold or excess:
                 self._cusum = self._excess = 0.0
                 self._events.add("load_change")
+                if excess:
+                    self._events.add("load_excess")
                 return True
         return False
 

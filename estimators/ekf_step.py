@@ -70,7 +70,7 @@ KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
 DET_NAMES = ("cusum", "lift", "lift_start", "p_lift", "p_post", "gated_run", "lift_floor", "excess", "ratio_min")
 #: flags raised by the step, bit i of output ``flags``
 FLAG_BITS = ("gated", "load_change", "lift_off", "clamped", "resting", "not_converged", "touch_down",
-             "lift_off_detected", "lift_off_implausible")
+             "lift_off_detected", "lift_off_implausible", "lift_off_ratio", "load_excess")
 STEP_IN = ("x", "P", "s", "u", "theta", "resting", "z", "kind", "det")
 STEP_OUT = ("x_next", "P_next", "s_next", "y", "est", "std", "C", "H", "A", "resting_next", "det_next",
             "nis", "innov", "flags", "exact")
@@ -299,8 +299,8 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     c_n = ca.fmax(0.0, cusum + r * r - s.change_drift)
     rising = p_pred > p_post
     e_n = ca.fmax(0.0, excess + r - EXCESS_DRIFT)
-    fire_c = ca.logic_and(armed_c, ca.logic_or(c_n > s.change_threshold,
-                                               ca.logic_and(rising, e_n > EXCESS_THRESHOLD)))
+    fire_e = ca.logic_and(armed_c, ca.logic_and(rising, e_n > EXCESS_THRESHOLD))
+    fire_c = ca.logic_or(ca.logic_and(armed_c, c_n > s.change_threshold), fire_e)
     cusum2 = ca.if_else(armed_c, ca.if_else(fire_c, 0.0, c_n), cusum)
     excess2 = ca.if_else(armed_c, ca.if_else(ca.logic_and(rising, ca.logic_not(fire_c)), e_n, 0.0),
                          ca.if_else(detect, 0.0, excess))  # detect and not armed_c: resting
@@ -377,7 +377,8 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     est = ca.vertcat(y[0], ca.fmax(y[1], 0.0), y[2], ca.fmax(y[3], 0.0), y[4])
     not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
     flags = (gated * 1 + fire_c * 2 + ca.logic_or(fire_lift, lift_b) * 4 + clamped * 8 + resting4 * 16
-             + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128 + implausible * 256)
+             + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128 + implausible * 256
+             + ca.logic_and(fire_ratio, fire_lift) * 512 + fire_e * 1024)
     det2 = ca.vertcat(cusum2, lift2, lift_start2, p_lift2, y[4], run, W_floor, excess2, ratio_min)
     nis = ca.if_else(upd * is_ok, r * r, ca.if_else(gated, nis_gate, 0.0))
     innov = ca.if_else(upd * is_ok, r, 0.0)

@@ -206,6 +206,7 @@ def test_a_persistent_excess_in_contact_declares_a_load_change():
     assert float(step(0.0, 0.0)["det_next"][i_ex]) == 0.0
     out = step(1.0, EXCESS_THRESHOLD - 0.5)  # crosses the threshold
     assert int(out["flags"]) & change and float(out["det_next"][i_ex]) == 0.0
+    assert int(out["flags"]) & 1 << FLAG_BITS.index("load_excess")  # told from the NIS sum's
     P_next = np.asarray(out["P_next"]).reshape(5, 5, order="F")
     P_quiet = np.asarray(step(1.0, 0.0)["P_next"]).reshape(5, 5, order="F")
     assert P_next[1, 1] > P_quiet[1, 1]  # the load's variance was widened before the update

@@ -433,13 +433,15 @@ def test_a_free_membrane_lifting_in_the_pumps_first_samples_is_not_taken_as_flat
     names = [f"t{t0}_r7.5_m0_s{v}" for t0 in (2, 3) for v in (60, 80, 100)]
     trials = [tr for tr in scn.trials() if tr.name in names]
     assert len(trials) == 6
-    worst = {}
+    worst, by_ratio = {}, 0
     for seed in range(6):
         for r in evaluate_trials(trials, "ekf", replace(rig, seed=seed), fs, with_series=True):
             worst[(seed, r.name)] = r.scores["height_nrmsd"]
+            by_ratio += r.scores["lift_offs_ratio"]  # counted (flag lift_off_ratio; metrics.json)
             first = next(k for k, f in enumerate(r.flags) if "resting" not in f)
             assert r.t[first] <= 0.1, (seed, r.name, r.t[first])  # lifted within 0.1 s
     assert max(worst.values()) <= 0.15, max(worst.items(), key=lambda kv: kv[1])
+    assert by_ratio >= 3, by_ratio  # the three runs held flat before, at least
 
 
 def test_aggregate_scores_each_protocol_scenario():

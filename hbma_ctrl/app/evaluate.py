@@ -40,10 +40,16 @@ from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import SimSettings, Trial
 
-__all__ = ["ReferenceEKF", "FilterpyEKF", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
+__all__ = ["EVENT_COUNTS", "ReferenceEKF", "FilterpyEKF", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
            "FILTERS", "NEES_FLOOR"]
 
 FILTERS = ("ekf", "ukf")
+#: per-run counts of the filter's rarer events, score key -> the Estimate flag counted (steps raising
+#: it): lift-offs a load prior ruled out (estimators.ekf_step.LIFT_PRIOR_SIGMAS), lift-offs the flow
+#: and dead-volume factors' ratio showed (flat_ratio_min), load changes the excess sum declared
+#: (EXCESS_THRESHOLD). estimator_trials.csv has them as its last columns, in this order
+EVENT_COUNTS = {"lift_offs_implausible": "lift_off_implausible", "lift_offs_ratio": "lift_off_ratio",
+                "load_changes_excess": "load_excess"}
 #: the filters ``bench ekf`` compares: the two above, the EKF's reference path and filterpy's EKF
 BENCH_FILTERS = ("ekf", "ekf_reference", "filterpy", "ukf")
 #: variance floors of (h, F) in the NEES, m^2 and N^2 (a flat membrane's h = 0 is exactly known)
@@ -237,8 +243,9 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
         "step_us_median": float(U.to_us(np.nanmedian(res.step_s[sl]))),
         "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((h - ht) ** 2)))),
     }
-    # lift-offs the filter's load prior ruled out (estimators.ekf_step.LIFT_PRIOR_SIGMAS)
-    out["lift_offs_implausible"] = float(sum("lift_off_implausible" in f for f in res.flags[sl]))
+    # the detectors' rarer events, counted per run (EVENT_COUNTS)
+    for key, flag in EVENT_COUNTS.items():
+        out[key] = float(sum(flag in f for f in res.flags[sl]))
     # model-form check on the innovations alone (estimators.innovation): the run's largest windowed
     # self-normalised innovation mean, and whether it exceeds the test's threshold
     if "innov" in res.est:
@@ -344,6 +351,9 @@ def aggregate(results: list[TrialResult]) -> dict:
         # detected lift-offs the load prior ruled out, summed over the trials, and the trials with one
         "lift_offs_implausible": int(sum(r.scores.get("lift_offs_implausible", 0) for r in results)),
         "trials_with_implausible_lift_off": int(sum(r.scores.get("lift_offs_implausible", 0) > 0 for r in results)),
+        # lift-offs the factors' ratio showed, load changes the excess sum declared (EVENT_COUNTS)
+        "lift_offs_ratio": int(sum(r.scores.get("lift_offs_ratio", 0) for r in results)),
+        "load_changes_excess": int(sum(r.scores.get("load_changes_excess", 0) for r in results)),
         "force_steady_rel_err_max": float(np.nanmax(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         "rig_status": {s: sum(r.scores["rig_status"] == s for r in results)
                        for s in sorted({r.scores["rig_status"] for r in results})},

@@ -40,6 +40,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from hbma_ctrl.app.evaluate import (
+    EVENT_COUNTS,
     TrialResult,
     aggregate,
     evaluate_trials,
@@ -172,12 +173,12 @@ def _protocol(scn, sec: EstimatorSection, rig: RigSettings, out: Path) -> dict:
             "force_steady_rel_err", "nees_mean", "nis_mean", "step_us_median", "height_rmse_mm")
     with open(out / "estimator_trials.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        # lift_offs_implausible last: the columns before it keep their places
-        w.writerow(["trial", "filter"] + list(keys) + ["rig_status", "lift_offs_implausible"])
+        # the event counts last, in EVENT_COUNTS' order: the columns before them keep their places
+        w.writerow(["trial", "filter"] + list(keys) + ["rig_status"] + list(EVENT_COUNTS))
         for kind, res in per_kind.items():
             for r in res:
-                w.writerow([r.name, kind] + [f"{r.scores[k]:.6g}" for k in keys] + [r.scores["rig_status"],
-                           int(r.scores.get("lift_offs_implausible", 0))])
+                w.writerow([r.name, kind] + [f"{r.scores[k]:.6g}" for k in keys] + [r.scores["rig_status"]]
+                           + [int(r.scores.get(e, 0)) for e in EVENT_COUNTS])
     return _metrics(per_kind, sec, rig, {"trials_csv": "estimator_trials.csv"})
 
 
