@@ -148,6 +148,7 @@ from estimators.ekf_step import (
     KIND_OK,
     KIND_SATURATED,
     NO_LOAD_SIGMAS,
+    cse,
     ekf_step_function,
     flat_ratio_min,
     lift_floor,
@@ -213,7 +214,10 @@ def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSett
     """(ObserverModel, fast predict, fast outputs, propagate Function, fast update); the casadi
     Functions are shared per configuration, the fast (buffered) callers are per filter."""
     om = observer_model(actuator, pneumatics, s)
-    return om, fast(om.predict, s.compile), fast(om.outputs, s.compile), om.propagate, fast(om.update, s.compile)
+    # the predict with its common subexpressions merged, as in the compiled step (the implicit-function
+    # Jacobian evaluates each stage's shape Jacobian again, which cse merges): the same results
+    return om, fast(cse(om.predict), s.compile), fast(om.outputs, s.compile), om.propagate, \
+        fast(om.update, s.compile)
 
 
 class EKF(ReferenceSteps):

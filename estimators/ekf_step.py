@@ -62,7 +62,7 @@ __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "K
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
            "NO_LOAD_SIGMAS", "LIFT_START_DRIFT", "CENSOR_SIGMAS", "LIFT_PRIOR_SIGMAS", "lift_floor",
            "FLAT_RATIO_SIGMAS", "FLAT_RATIO_STD_MIN", "flat_ratio_min", "EXCESS_DRIFT", "EXCESS_THRESHOLD",
-           "LIFT_RISE_DRIFT"]
+           "LIFT_RISE_DRIFT", "cse"]
 
 #: reading kinds (input ``kind``)
 KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
@@ -205,11 +205,19 @@ def _pivot_function() -> ca.Function:
     return ca.Function("ekf_min_pivot", [P, fl], [out])
 
 
-def _cse(f: ca.Function) -> ca.Function:
+_CSE_CACHE: dict = {}
+
+
+def cse(f: ca.Function) -> ca.Function:
     """The SX Function ``f`` with common subexpressions merged (casadi's ``cse``): a quarter fewer
-    instructions in the predict, the same operations on the same values, so the same results."""
-    sx_in = f.sx_in()
-    return ca.Function(f.name() + "_cse", sx_in, f.call(sx_in), f.name_in(), f.name_out(), {"cse": True})
+    instructions in the predict, the same operations on the same values, so the same results.
+    One per Function (cached: the reference path's callers compile it once per process)."""
+    hit = _CSE_CACHE.get(id(f))
+    if hit is None:
+        sx_in = f.sx_in()
+        hit = _CSE_CACHE[id(f)] = (f, ca.Function(f.name() + "_cse", sx_in, f.call(sx_in), f.name_in(),
+                                                  f.name_out(), {"cse": True}))  # f kept: its id stays unique
+    return hit[1]
 
 
 def _resting_outputs(f: ca.Function) -> ca.Function:
@@ -248,7 +256,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
          s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
     qv = ca.vertcat(ca.if_else(rest_in, 0.0, s.flow_rel_std), *q)
-    predict, update, outputs = _cse(om.predict), _cse(om.update), _cse(om.outputs)
+    predict, update, outputs = cse(om.predict), cse(om.update), cse(om.outputs)
     xn, A, s1, y1, H1, P1, piv1 = predict(x, sh, u, th, rest, P, qv)
     exact = _finite(xn) * _finite(y1) * _finite(P1) * (piv1 > 0)
     # touch-down: the contact model reached the flat membrane; resting from here on
