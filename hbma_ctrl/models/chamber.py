@@ -44,7 +44,13 @@ import numpy as np
 
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.fidelity import shape_jacobian
-from hbma_ctrl.models.reduced import EPS_K, ReducedChamber, shape_newton
+from hbma_ctrl.models.reduced import (
+    ReducedChamber,
+    constraint_jacobian,
+    constraint_residual,
+    shape_newton,
+    solve_2x2,
+)
 
 __all__ = ["ObserverModel", "STATE_NAMES", "OUT_NAMES", "min_pivot"]
 
@@ -182,11 +188,9 @@ class ObserverModel:
         substituted by the predict's own values. Resting, the pressure is the flat chamber's, as in
         the dynamics."""
         law = self.chamber.law
-        rt = P["R"] * P["T"]
 
-        def residual(hv, mv):
-            pc, Vc, _, a2 = law(hv[0], hv[1], P)
-            return ca.vertcat((pc + P["p_env"]) * Vc - mv * rt, ca.pi * a2 * pc + EPS_K * hv[1] - P["W"])
+        def residual(G, F, h2, mv):
+            return ca.vertcat(*constraint_residual(G, F, h2, mv, P["W"], P))
 
         n = len(stages)
         Hs, Js, R0 = ca.SX.sym("Hs", 2, n), ca.SX.sym("Js", 4, n), ca.SX.sym("R0", 2, n)
@@ -198,18 +202,14 @@ class ObserverModel:
             acc, k = 0, 0
             for ws, as_ in zip(w, a):
                 mi = m + as_ * dt * k
-                J = ca.reshape(Js[:, i], 2, 2)
-                det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-                det = ca.if_else(ca.fabs(det) < 1e-12, ca.if_else(det >= 0, 1e-12, -1e-12), det)
-                rr = R0[:, i] - residual(Hs[:, i], mi)
-                hi = Hs[:, i] + ca.vertcat(J[1, 1] * rr[0] - J[0, 1] * rr[1], J[0, 0] * rr[1] - J[1, 0] * rr[0]) / det
+                Gs, Fs, _ = shape_jacobian(Hs[0, i], Hs[1, i], P, law)  # (its Jacobian unused: not in the graph)
+                rr = R0[:, i] - residual(Gs, Fs, Hs[1, i], mi)
+                hi = Hs[:, i] + ca.vertcat(*solve_2x2(ca.reshape(Js[:, i], 2, 2), rr[0], rr[1]))
                 k = self.chamber.rhs(ca.vertcat(mi, hi), y.u, P, mode)[0]
                 acc = acc + ws * k
                 xs = stages[i]
-                _, _, Jv = shape_jacobian(xs[1], xs[2], P, law)
-                Jv = ca.SX(Jv)
-                Jv[1, 1] = Jv[1, 1] + EPS_K
-                vals.append((xs[1:], ca.vec(Jv), residual(xs[1:], xs[0])))
+                G, F, Jv = constraint_jacobian(xs[1], xs[2], P, law)
+                vals.append((xs[1:], ca.vec(Jv), residual(G, F, xs[2], xs[0])))
                 i += 1
             m = m + dt * acc
         mn = ca.vertcat(m / y.x[4], y.x[1:])
@@ -232,7 +232,7 @@ class ObserverModel:
         p_c, V_c, _, a2 = self.chamber.law(hs[0], hs[1], P)
         G = (p_c + P["p_env"]) * V_c
         F = ca.pi * a2 * p_c
-        r = ca.vertcat(G - P["m"] * rt, F + EPS_K * hs[1] - P["W"])
+        r = ca.vertcat(*constraint_residual(G, F, hs[1], P["m"], P["W"], P))
         o_c = ca.vertcat(hs[0], hs[1], hs[0] - hs[1], F, p_c)
         r_h = ca.jacobian(r, hs)
         det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]

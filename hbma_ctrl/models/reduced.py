@@ -29,7 +29,7 @@ from hbma_ctrl.models.fidelity import QuasiStatic, cap_law, make_fidelity, shape
 from hbma_ctrl.models.fidelity_exact import make_exact_loaded
 from hbma_ctrl.models.shape import ShapeSolver
 
-__all__ = ["ReducedChamber", "shape_newton", "EPS_K", "FACTOR_NAMES", "MEMBRANES", "law_key"]
+__all__ = ["ReducedChamber", "shape_newton", "constraint_jacobian", "constraint_residual", "solve_2x2", "EPS_K", "FACTOR_NAMES", "MEMBRANES", "law_key"]
 
 #: membrane laws a reduced chamber can use: the spherical cap (README Model §1, §3) or the exact
 #: axisymmetric membrane's flat-plate contact in the cap's chart (README Model §9)
@@ -52,6 +52,31 @@ def law_key(actuator: Actuator, pneumatics: Pneumatics, membrane: str) -> tuple:
     return ("exact", id(fid))  # the fidelity is cached (kept alive) per material shape: its id is stable
 
 
+def constraint_jacobian(h1, h2, P: dict, law=cap_law):
+    """G (J), F (N) and the Jacobian in (h1, h2) of the shape's constraint [G - m R T, F + EPS_K h2 - W]
+    at chart (h1, h2) (m): :func:`hbma_ctrl.models.fidelity.shape_jacobian` with the regularising
+    EPS_K on the force row."""
+    G, F, J = shape_jacobian(h1, h2, P, law)
+    J = ca.SX(J)
+    J[1, 1] = J[1, 1] + EPS_K
+    return G, F, J
+
+
+def constraint_residual(G, F, h2, m, W, P: dict) -> tuple:
+    """The shape's constraint [G - m R T, F + EPS_K h2 - W] (J, N) from G (J) and F (N) at h2 (m), gas
+    mass m (kg) and load W (N): the gas law and the force balance, zero on the shape."""
+    return G - m * (P["R"] * P["T"]), F + EPS_K * h2 - W
+
+
+def solve_2x2(J, r0, r1) -> tuple:
+    """J^-1 [r0, r1] by Cramer's rule for a 2 x 2 J, |det J| held at 1e-12 or more (its sign kept):
+    the shape Newton's step and the implicit-function rule's (SX)."""
+    det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+    sgn = ca.if_else(det >= 0, 1.0, -1.0)
+    det = ca.if_else(ca.fabs(det) < 1e-12, sgn * 1e-12, det)
+    return (J[1, 1] * r0 - J[0, 1] * r1) / det, (-J[1, 0] * r0 + J[0, 0] * r1) / det
+
+
 def shape_newton(m, W, h1, h2, P: dict, iters: int, law=cap_law):
     """Casadi Newton on ``G(h1, h2) = m R T``, ``F(h1, h2) + EPS_K h2 = W`` from (h1, h2) (m).
 
@@ -60,17 +85,9 @@ def shape_newton(m, W, h1, h2, P: dict, iters: int, law=cap_law):
     estimators differentiate through it. ``law(h1, h2, P) -> (p, V, lam, a2)`` is the membrane law
     (the cap's by default; a fidelity's ``contact_law``).
     """
-    rt = P["R"] * P["T"]
     for _ in range(iters):
-        G, F, J = shape_jacobian(h1, h2, P, law)
-        J = ca.SX(J)
-        J[1, 1] = J[1, 1] + EPS_K
-        r0, r1 = G - m * rt, F + EPS_K * h2 - W
-        det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        sgn = ca.if_else(det >= 0, 1.0, -1.0)
-        det = ca.if_else(ca.fabs(det) < 1e-12, sgn * 1e-12, det)
-        d1 = (J[1, 1] * r0 - J[0, 1] * r1) / det
-        d2 = (-J[1, 0] * r0 + J[0, 0] * r1) / det
+        G, F, J = constraint_jacobian(h1, h2, P, law)
+        d1, d2 = solve_2x2(J, *constraint_residual(G, F, h2, m, W, P))
         # keep the step inside the chart: at most half the cap height per iteration
         lim = 0.5 * ca.fmax(h1, 1e-4)
         sc = ca.fmin(1, lim / ca.fmax(ca.fmax(ca.fabs(d1), ca.fabs(d2)), 1e-30))
