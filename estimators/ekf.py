@@ -453,21 +453,22 @@ class EKF(ReferenceSteps):
             self._rise = None
         elif k > 0:
             # lift-off replay: while the detector's sum is at zero, remember the posterior; the
-            # samples after it are kept so a detected lift-off can be re-filtered from there
+            # samples after it are kept so a detected lift-off can be re-filtered from there; the
+            # same for the last posterior at ambient pressure (the ratio's lift-off)
+            # by reference: the compiled step replaces these arrays and never writes into them;
+            # the reference path below detaches them first
+            post = (self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post)
+            sample = (float(t), measurement, kind, u, k)
             if self._lift == 0.0:
-                # by reference: the compiled step replaces these arrays and never writes into them;
-                # the reference path below detaches them first
-                self._snap = (self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post)
-                self._replay = []
+                self._snap, self._replay = post, []
             if self._snap is not None and len(self._replay) < REPLAY_MAX:
-                self._replay.append((float(t), measurement, kind, u, k))
+                self._replay.append(sample)
             else:
                 self._snap = None  # too long ago: no replay (the lift-off is applied now)
             if self._p_post < self._ambient:
-                self._rise, self._rise_replay = (self.x, self.P, self.s, self.t, self._p_pred, self._H,
-                                                 self._p_post), []
+                self._rise, self._rise_replay = post, []
             if self._rise is not None and len(self._rise_replay) < REPLAY_MAX:
-                self._rise_replay.append((float(t), measurement, kind, u, k))
+                self._rise_replay.append(sample)
             else:
                 self._rise = None
         if self._step_fn is not None and k == 1 and not jump:
@@ -510,10 +511,7 @@ class EKF(ReferenceSteps):
         inp[5][0] = 1.0 if self.resting else 0.0
         inp[6][0] = float(measurement) if code == KIND_OK else 0.0
         inp[7][0] = code
-        d = inp[8]
-        d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], d[8] = (
-            self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, self._gated, self._lift_floor,
-            self._excess, self._ratio_min)
+        inp[8][:] = self.detector_state()
         fn._eval()
         bits = int(out[13][0])
         # a detected lift-off with no load is re-filtered from the snapshot: the reference path
@@ -547,6 +545,12 @@ class EKF(ReferenceSteps):
         self.last_output_cov = self._C_out.copy()
         return _estimate(t, e0, e1, e2, e3, e4, x.copy(), P.copy(), self.state_names,
                          dict(zip(OUTPUT_KEYS, out[5].tolist())), flags)
+
+    def detector_state(self) -> list:
+        """The detectors' state in :data:`estimators.ekf_step.DET_NAMES` order (the compiled step's
+        ``det`` input; sums -, pressures Pa, loads N, b / c -)."""
+        return [self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, float(self._gated),
+                self._lift_floor, self._excess, self._ratio_min]
 
     def _check_time(self, t) -> float:
         """t as a float; ValueError naming ``t`` when it is not a finite number or goes backwards."""

@@ -354,8 +354,7 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
     flags = sum(2 ** i for i, n in enumerate(es.FLAG_BITS) if n in e0.flags)
     signals = {"ekf_x": est.x, "ekf_P": np.asarray(est.P).ravel(order="F"), "ekf_s": est.s,
                "ekf_theta": est.theta, "ekf_resting": [float(est.resting)], "z_in": [0.0], "kind": [0.0],
-               "ekf_det": [est._cusum, est._lift, est._lift_start, est._p_lift, est._p_post, float(est._gated),
-                           est._lift_floor, est._excess, est._ratio_min],
+               "ekf_det": est.detector_state(),
                "ekf_y": np.zeros(fun.nnz_out(3)), "ekf_est": [e0.h1, e0.h2, e0.h, e0.F, e0.p], "ekf_std": np.zeros(5),
                "ekf_C": np.zeros(25), "ekf_H": np.zeros(5), "ekf_A": np.zeros(25), "ekf_nis": [0.0],
                "ekf_innov": [0.0], "ekf_flags": [float(flags)], "ekf_exact": [1.0], "est_h": [e0.h], "est_p": [e0.p],

@@ -348,12 +348,10 @@ def aggregate(results: list[TrialResult]) -> dict:
         "force_steady_rel_err_mean": float(np.nanmean(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         # share of the trials whose innovations the model-form test flags (estimators.innovation)
         "innovation_flag_rate": float(np.mean(flagged)) if flagged.size else float("nan"),
-        # detected lift-offs the load prior ruled out, summed over the trials, and the trials with one
-        "lift_offs_implausible": int(sum(r.scores.get("lift_offs_implausible", 0) for r in results)),
+        # the detectors' rarer events summed over the trials (EVENT_COUNTS), and the trials with a
+        # lift-off the load prior ruled out
+        **{key: int(sum(r.scores.get(key, 0) for r in results)) for key in EVENT_COUNTS},
         "trials_with_implausible_lift_off": int(sum(r.scores.get("lift_offs_implausible", 0) > 0 for r in results)),
-        # lift-offs the factors' ratio showed, load changes the excess sum declared (EVENT_COUNTS)
-        "lift_offs_ratio": int(sum(r.scores.get("lift_offs_ratio", 0) for r in results)),
-        "load_changes_excess": int(sum(r.scores.get("load_changes_excess", 0) for r in results)),
         "force_steady_rel_err_max": float(np.nanmax(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         "rig_status": {s: sum(r.scores["rig_status"] == s for r in results)
                        for s in sorted({r.scores["rig_status"] for r in results})},
