@@ -286,7 +286,7 @@ class EKF(ReferenceSteps):
         # lift-off the factors' ratio showed, ekf_step.FLAT_RATIO_SIGMAS)
         self._rise: tuple | None = None
         self._rise_replay: list = []
-        self._replay_now = self._replay_rise = False
+        self._replay_now: tuple | None = None  # (snapshot, samples) a detected lift-off re-filters
         self._ratio_min = 0.0  # set by reset() from the prior (ekf_step.flat_ratio_min)
         self._ambient = NO_LOAD_SIGMAS * s.noise_std  # a posterior below this is at ambient pressure, Pa
         self._pumping = False
@@ -327,8 +327,8 @@ class EKF(ReferenceSteps):
             resting = bool(out[1][_Y["rest"]] > 0.5)
         self.resting = resting
         self._cusum = self._lift = self._lift_start = self._excess = 0.0
-        self._snap, self._replay, self._replay_now = None, [], False
-        self._rise, self._rise_replay, self._replay_rise = None, [], False
+        self._snap, self._replay, self._replay_now = None, [], None
+        self._rise, self._rise_replay = None, []
         self._refresh()
 
     def _theta_arg(self, fun):
@@ -479,9 +479,10 @@ class EKF(ReferenceSteps):
         # the reference path writes into the state arrays: never into a snapshot's
         self.x, self.P, self.s, self._H = self.x.copy(), self.P.copy(), self.s.copy(), self._H.copy()
         self._advance(t, measurement, kind, u, k, detect=True, jump=jump)
-        if self._replay_now:
-            self._replay_now = False
-            self._replay_from_snapshot()
+        if self._replay_now is not None:
+            snap, replay = self._replay_now
+            self._replay_now = None
+            self._replay_from_snapshot(snap, replay)
         est = self._finish()
         self.last_step_s = time.perf_counter() - t_wall
         return est

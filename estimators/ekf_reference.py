@@ -96,17 +96,16 @@ class ReferenceSteps:
             # peak is higher; left alone the model runs away along its far branch)
             self._update(s.sensor_range, s.saturation_std ** 2 + self._meas_var(s.sensor_range))
 
-    def _replay_from_snapshot(self) -> None:
-        """Re-filter the samples since the detector's sum left zero with the membrane lifted (for a
-        lift-off the factors' ratio showed: since the last posterior at ambient pressure).
+    def _replay_from_snapshot(self, snap: tuple, replay: list) -> None:
+        """Re-filter the samples ``replay`` since the posterior ``snap`` with the membrane lifted:
+        since the detector's sum left zero, or (a lift-off the factors' ratio showed) since the last
+        posterior at ambient pressure.
 
         The detector needs several samples to be sure; filtered as flat, those samples push the
         lifted membrane's extra volume into the flow factor and the modulus (which then bias the
         height for as long as nothing excites them again). From the posterior before the lift-off,
         the lift-off is applied there and the samples are replayed with the contact model."""
-        snap, replay = (self._rise, self._rise_replay) if self._replay_rise else (self._snap, self._replay)
-        self._replay_rise = False
-        if snap is None or not replay:
+        if not replay:
             return
         W, PW = float(self.x[1]), float(self.P[1, 1])
         self.x, self.P, self.s, self.t, self._p_pred, self._H, self._p_post = snap
@@ -156,7 +155,8 @@ class ReferenceSteps:
                 # replay only a no-load lift-off (it starts at zero pressure, so the whole
                 # detection delay was filtered as flat); a loaded one's sum may have started on
                 # the flow factor's early learning, and a lift-off put there contradicts the data
-                self._replay_now = self._snap is not None and self.x[1] == 0.0
+                if self._snap is not None and self.x[1] == 0.0:
+                    self._replay_now = (self._snap, self._replay)
             elif self._lift_floor == 0.0 and self.x[2] < self._ratio_min * self.x[4]:
                 # a flat chamber fits the readings only with b / c far below its prior: the membrane
                 # has lifted (ekf_step.FLAT_RATIO_SIGMAS), with no load to date; re-filtered from
@@ -164,8 +164,8 @@ class ReferenceSteps:
                 self._lift = self._lift_start = 0.0
                 self._lift_off(detected=False, load=(0.0, LIFT_LOAD_ABS_STD ** 2))
                 self._events.add("lift_off_ratio")
-                self._replay_now = self._rise is not None
-                self._replay_rise = True
+                if self._rise is not None:
+                    self._replay_now = (self._rise, self._rise_replay)
         else:
             self._cusum = max(0.0, self._cusum + r * r - s.change_drift)
             # the excess sum (ekf_step.EXCESS_THRESHOLD): a pressure rising persistently above the

@@ -298,8 +298,9 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     p_lift_n = ca.if_else(lift_start == 0, 0.5 * (p_post + ca.fmin(p_pred, z)), p_lift)
     ls_n = ca.fmax(0.0, lift_start - r - LIFT_START_DRIFT)
     l_n = ca.fmax(0.0, lift - r - s.lift_drift - LIFT_RISE_DRIFT * ca.fmax(p_pred - p_post, 0.0) / ca.sqrt(Su))
-    fire_lift = ca.logic_and(ca.logic_and(armed, filling), l_n > s.lift_threshold)
-    p_lift2 = ca.if_else(ca.logic_and(armed, filling), p_lift_n, p_lift)
+    watching = ca.logic_and(armed, filling)  # the lift-off tests run only then
+    fire_lift = ca.logic_and(watching, l_n > s.lift_threshold)
+    p_lift2 = ca.if_else(watching, p_lift_n, p_lift)
 
     # load-change detector (in contact): a change redoes the update with the load's variance widened
     # and the excess sum (EXCESS_THRESHOLD), while the pressure rises
@@ -320,12 +321,12 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
 
     # a flat chamber that fits its readings only with b / c far below its prior has lifted
     # (FLAT_RATIO_SIGMAS; not under a load prior's floor: a known load lifts at its bound)
-    fire_ratio = ca.logic_and(ca.logic_and(ca.logic_and(armed, filling), ca.logic_not(fire_lift)),
+    fire_ratio = ca.logic_and(ca.logic_and(watching, ca.logic_not(fire_lift)),
                               ca.logic_and(W_floor == 0, xa[2] < ratio_min * xa[4]))
     fire_any = ca.logic_or(fire_lift, fire_ratio)
-    lift2 = ca.if_else(armed, ca.if_else(ca.logic_and(filling, ca.logic_not(fire_any)), l_n, 0.0), lift)
-    lift_start2 = ca.if_else(armed, ca.if_else(ca.logic_and(filling, ca.logic_not(fire_any)), ls_n, 0.0),
-                             lift_start)
+    summing = ca.logic_and(filling, ca.logic_not(fire_any))  # armed: the sums go on, else restart
+    lift2 = ca.if_else(armed, ca.if_else(summing, l_n, 0.0), lift)
+    lift_start2 = ca.if_else(armed, ca.if_else(summing, ls_n, 0.0), lift_start)
 
     # --- detected lift-off: W = pi r1^2 p at the dated lift-off, none within the sensor's resolution
     # the flat outputs are needed only while resting: a switch evaluates them only then
