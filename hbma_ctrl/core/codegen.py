@@ -5,7 +5,8 @@ virtual machine evaluates a large SX graph slowly. For the 100 us per step budge
 this module
 
 1. generates C code for the Function, compiles it with the system C compiler (``cc``/``gcc``,
-   ``-O1``) into a shared library cached under ``$HBMA_CTRL_CACHE`` (default
+   ``-O1`` by default, :data:`ESTIMATOR_OPT` for the estimators) into a shared library cached
+   under ``$HBMA_CTRL_CACHE`` (default
    ``~/.cache/hbma-ctrl``), keyed by the SHA-1 of the generated source, so each model is compiled
    once per machine (a few seconds) and reused by every process, and
 2. evaluates it through :meth:`casadi.Function.buffer` with preallocated numpy arrays.
@@ -27,7 +28,15 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler"]
+__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "ESTIMATOR_OPT"]
+
+#: the optimisation level of the estimators' compiled Functions (the EKF step, its reference path's
+#: predict / update / outputs). Their code is long straight-line arithmetic, which -O3 schedules
+#: better: the exact-law EKF step's call went from 20.8 to 16.3 us median (-O2: 19.9) with every
+#: output bit-identical, for about 5 s of compilation once per machine instead of 0.1 s. The
+#: controllers' QP data gained nothing from it (its time is in the bspline tables' look-ups), so
+#: they keep -O1 (``bench mpc``: rti_c_osqp 0.38-0.40 ms both)
+ESTIMATOR_OPT = "-O3"
 
 _MEMO: dict = {}
 
@@ -93,13 +102,14 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
 class FastFunction:
     """Call a casadi Function with numpy inputs through preallocated buffers.
 
-    ``f(*args)`` copies each argument into its input buffer (dense, column-major), evaluates, and
+    ``compile``: run it as C compiled at ``opt`` (:func:`compiled`). ``f(*args)`` copies each
+    argument into its input buffer (dense, column-major), evaluates, and
     returns the list of output arrays (reused between calls: copy what you keep). Outputs are
     returned flat (nonzeros); :meth:`dense` reshapes one to its matrix shape.
     """
 
-    def __init__(self, fun: ca.Function, compile: bool = True):
-        self.fun = compiled(fun) if compile else fun
+    def __init__(self, fun: ca.Function, compile: bool = True, opt: str = "-O1"):
+        self.fun = compiled(fun, opt) if compile else fun
         f = self.fun
         self._sp_out = [f.sparsity_out(i) for i in range(f.n_out())]
         for i in range(f.n_in()):
