@@ -25,7 +25,7 @@ import numpy as np
 
 from controllers.mpc_settings import MPCSettings
 from controllers.mpc_solvers import _BudgetExceeded, _Problem, _RtiOsqp, _SolverFailure
-from hbma_ctrl.core.codegen import FastFunction, has_compiler
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["qp_data_function"]
@@ -131,7 +131,7 @@ class _RtiC(_RtiOsqp):
         if s.codegen and not compile_c:
             warnings.warn("rti_c_osqp: no C compiler (cc, gcc, clang) found; the QP data runs on casadi's "
                           "virtual machine (slower, same results)", RuntimeWarning, stacklevel=2)
-        self.data = FastFunction(fun, compile=compile_c)
+        self.data = FastFunction(fun, compile=compile_c, opt=HOT_OPT, flags=HOT_FLAGS)
         self.mode = "c" if self.data.fun is not fun else "vm"
         if compile_c and self.mode == "vm":
             warnings.warn("rti_c_osqp: the generated C did not compile; the QP data runs on casadi's "

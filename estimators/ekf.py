@@ -154,7 +154,7 @@ from estimators.ekf_step import (
     lift_floor,
     observer_model,
 )
-from hbma_ctrl.core.codegen import ESTIMATOR_OPT, FastFunction, compiled
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
@@ -192,7 +192,7 @@ def fast(fun: ca.Function, compile: bool) -> FastFunction:
     up the cached library costs milliseconds, paid per filter otherwise)."""
     key = (id(fun), compile)
     if key not in _FN_CACHE:
-        done = compiled(fun, ESTIMATOR_OPT) if compile else fun
+        done = compiled(fun, HOT_OPT, HOT_FLAGS) if compile else fun
         if compile and done is fun:
             warnings.warn(f"{fun.name()}: no working C compiler (cc, gcc or clang): the estimator runs on "
                           "casadi's virtual machine, several times slower per step", RuntimeWarning, stacklevel=2)

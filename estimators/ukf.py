@@ -21,7 +21,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
 from estimators.common import STATE_SCALE, FilterSettings, guard_cov
 from estimators.ekf import EKF, observer_functions
-from hbma_ctrl.core.codegen import ESTIMATOR_OPT, FastFunction
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, OUT_NAMES
 
@@ -54,7 +54,7 @@ class UKF(EKF):
                                               sqrt_method=_guarded_sqrt(max(s.cov_floor, 1e-14)))
         prop = observer_functions(actuator, pneumatics, s)[3]
         self._nsig = 2 * NX + 1
-        self._prop = FastFunction(prop.map(self._nsig), s.compile, ESTIMATOR_OPT)
+        self._prop = FastFunction(prop.map(self._nsig), s.compile, HOT_OPT, HOT_FLAGS)
         self._sig_p: np.ndarray | None = None
         self._sig_x: np.ndarray | None = None
 

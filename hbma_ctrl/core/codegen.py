@@ -5,7 +5,7 @@ virtual machine evaluates a large SX graph slowly. For the 100 us per step budge
 this module
 
 1. generates C code for the Function, compiles it with the system C compiler (``cc``/``gcc``,
-   ``-O1`` by default, :data:`ESTIMATOR_OPT` for the estimators) into a shared library cached
+   ``-O1`` by default, :data:`HOT_OPT` for the per-step Functions) into a shared library cached
    under ``$HBMA_CTRL_CACHE`` (default
    ``~/.cache/hbma-ctrl``), keyed by the SHA-1 of the generated source, so each model is compiled
    once per machine (a few seconds) and reused by every process, and
@@ -28,15 +28,19 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "ESTIMATOR_OPT"]
+__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS"]
 
-#: the optimisation level of the estimators' compiled Functions (the EKF step, its reference path's
-#: predict / update / outputs). Their code is long straight-line arithmetic, which -O3 schedules
-#: better: the exact-law EKF step's call went from 20.8 to 16.3 us median (-O2: 19.9) with every
-#: output bit-identical, for about 5 s of compilation once per machine instead of 0.1 s. The
-#: controllers' QP data gained nothing from it (its time is in the bspline tables' look-ups), so
-#: they keep -O1 (``bench mpc``: rti_c_osqp 0.38-0.40 ms both)
-ESTIMATOR_OPT = "-O3"
+#: the optimisation level and flags of the Functions called every step whose compilation is short (the
+#: EKF step and its reference path's parts, the UKF's propagation, the chamber RTI's QP data). Their
+#: code is long straight-line arithmetic that -O3 schedules better, and -fno-semantic-interposition lets
+#: it inline the generated subfunctions (global symbols, which position-independent code otherwise
+#: calls through the symbol table). Measured on recorded inputs, every output bit-identical: the exact
+#: EKF step's call 21.6 -> 13.3 us median (-O3 alone 15.9), the RTI's QP data 80 -> 70 us (-O3 alone
+#: no faster), for 4-6 s of compilation once per machine instead of 0.1-3 s. Not the fast-math flags:
+#: results must not depend on the compiler's choices. The robot's QP data (229 -> 185 us for 9
+#: chambers) keeps -O1: its compilation grows with the chambers (12.6 s for 9)
+HOT_OPT = "-O3"
+HOT_FLAGS = ("-fno-semantic-interposition",)
 
 _MEMO: dict = {}
 
@@ -102,14 +106,14 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
 class FastFunction:
     """Call a casadi Function with numpy inputs through preallocated buffers.
 
-    ``compile``: run it as C compiled at ``opt`` (:func:`compiled`). ``f(*args)`` copies each
+    ``compile``: run it as C compiled at ``opt`` with ``flags`` (:func:`compiled`). ``f(*args)`` copies each
     argument into its input buffer (dense, column-major), evaluates, and
     returns the list of output arrays (reused between calls: copy what you keep). Outputs are
     returned flat (nonzeros); :meth:`dense` reshapes one to its matrix shape.
     """
 
-    def __init__(self, fun: ca.Function, compile: bool = True, opt: str = "-O1"):
-        self.fun = compiled(fun, opt) if compile else fun
+    def __init__(self, fun: ca.Function, compile: bool = True, opt: str = "-O1", flags: Sequence[str] = ()):
+        self.fun = compiled(fun, opt, flags) if compile else fun
         f = self.fun
         self._sp_out = [f.sparsity_out(i) for i in range(f.n_out())]
         for i in range(f.n_in()):
