@@ -31,7 +31,8 @@ import numpy as np
 __all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS"]
 
 #: the optimisation level and flags of the Functions called every step whose compilation is short (the
-#: EKF step and its reference path's parts, the UKF's propagation, the chamber RTI's QP data). Their
+#: EKF step and its reference path's parts, the UKF's propagation, the robot's EKF bank, the chamber
+#: RTI's QP data). Their
 #: code is long straight-line arithmetic that -O3 schedules better, and -fno-semantic-interposition lets
 #: it inline the generated subfunctions (global symbols, which position-independent code otherwise
 #: calls through the symbol table). Measured on recorded inputs, every output bit-identical: the exact

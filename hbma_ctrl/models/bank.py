@@ -68,7 +68,7 @@ from typing import NamedTuple
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core.codegen import compiled
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, compiled
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.core.units import mm
@@ -353,13 +353,15 @@ class ChamberBank:
 
     def mapped(self, fun: ca.Function, n: int, compile: bool = True) -> ca.Function:
         """fun mapped over n columns (cached per model); with ``compile`` the map is generated as C
-        and compiled by :func:`hbma_ctrl.core.codegen.compiled` (cached on disk by source hash; casadi's
-        virtual machine without a compiler)."""
+        and compiled by :func:`hbma_ctrl.core.codegen.compiled` at its per-step flags (a map is one
+        loop over the function: it compiles in a second; cached on disk by source hash; casadi's
+        virtual machine without a compiler). The robot's EKF bank step, 9 chambers: 104 -> 90 us a
+        call against -O1, bit-identical."""
         key = ("map", id(fun), n, compile)
         if key not in self._cache:
             f = fun.map(n)
             if compile:
-                f = compiled(f)
+                f = compiled(f, HOT_OPT, HOT_FLAGS)
             self._cache[key] = f
         return self._cache[key]
 
