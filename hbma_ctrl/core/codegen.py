@@ -68,7 +68,8 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
     """The Function compiled to a shared library (cached by source and flags), or itself without a compiler.
 
     ``opt`` is the optimisation flag; neither level enables fast-math, so results do not depend on it.
-    ``flags``: more compiler and linker flags (e.g. a QP solver's headers and library).
+    ``flags``: more compiler and linker flags (e.g. a QP solver's headers and library); a build that
+    fails with any of :data:`HOT_FLAGS` among them is tried again without them.
     ``on_failure``: 'fallback' returns ``fun`` when there is no compiler or the build fails, 'none'
     returns None then.
     """
@@ -94,6 +95,9 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
             res = subprocess.run([cc, opt, "-fPIC", "-shared", str(src_path), "-o", str(out), *flags, "-lm"],
                                  capture_output=True, text=True)
             if res.returncode != 0:
+                hot = [f for f in flags if f in HOT_FLAGS]
+                if hot:  # a compiler that does not know a per-step flag still builds the Function without it
+                    return compiled(fun, opt, [f for f in flags if f not in hot], on_failure)
                 return fun if on_failure == "fallback" else None
             fd, part = tempfile.mkstemp(dir=d, suffix=".so.part")
             os.close(fd)
