@@ -50,8 +50,9 @@ __all__ = ["Stage", "LogColumn", "LoopSpec", "run_python", "write_c", "build_c",
 STEPS_NAME = "hbma_steps"
 #: the generated steps as a shared library (built beside the program by :func:`build_c`)
 LIBRARY = f"lib{STEPS_NAME}.so"
-#: compiler flags of the C loop: no fast-math, so it rounds as the Python path's Functions do; -O1, the flag
-#: the roles compile their Functions with (hbma_ctrl.core.codegen), and half the build time of -O2
+#: compiler flags of the C loop: no fast-math, so it rounds as the Python path's Functions do (at any
+#: level: the per-step Functions' -O3 of hbma_ctrl.core.codegen.HOT_OPT gives the same bits); -O1 for
+#: half the build time of -O2 (``codegen --opt`` picks another)
 CFLAGS = ("-O1", "-std=c99")
 #: the mark a stage list uses for "write the log row here"
 LOG = "log"
