@@ -93,8 +93,9 @@ class CommandTiming:
         # (acting_average on unit commands); the Python loop cost a third of an EKF step
         # (plain floats: on three components and a few commands numpy's per-call cost is most of it)
         w = np.vstack([self._weights(self.speed_delay), *[self._weights(self.valve_delay)] * 2]).T
-        self._w = [tuple(float(v) for v in col) for col in w.T]  # per component, oldest command first
-        self._on = [tuple(i for i in range(w.shape[0]) if w[i, j] > 0.0) for j in range(3)]
+        # per component: the (index, weight) of each command that weighs (oldest first; a zero weight
+        # adds nothing to the sum and does not bound the mean)
+        self._terms = [tuple((i, float(w[i, j])) for i in range(w.shape[0]) if w[i, j] > 0.0) for j in range(3)]
 
     def _weights(self, delay: float) -> np.ndarray:
         """acting_average's weight of each of the last keep + 1 commands (oldest first) for k = 1."""
@@ -109,26 +110,33 @@ class CommandTiming:
 
     def acting(self, u, k: int = 1) -> np.ndarray:
         """The command acting, averaged over the last k periods, for ``u`` held over them."""
-        u = np.array(u, dtype=float)  # a copy: kept in the history
-        u = u.reshape(3) if u.ndim < 2 else u.reshape(3, -1)
-        if not self.active:
-            return u
-        if k == 1 and len(self._hist) == self._keep and u.ndim == 1:
-            H = self._hist + [u.tolist()]
-            for j in range(3):
+        if not isinstance(u, np.ndarray) or u.dtype != np.float64:
+            u = np.asarray(u, dtype=float)
+        if k == 1 and u.shape == (3,) and len(self._hist) == self._keep and self.active:
+            # one period on a full history (every step after the first few): a fixed weighted mean of
+            # the last keep + 1 commands, in plain floats (numpy's per-call cost on three components
+            # and a few commands was most of it)
+            cur = u.tolist()  # kept in the history
+            H = self._hist + [cur]
+            out = [0.0, 0.0, 0.0]
+            for j, terms in enumerate(self._terms):
                 v = 0.0
-                for wi, h in zip(self._w[j], H):
-                    v += wi * h[j]
-                # the weighted mean, clipped to the commands it weighs (rounding must not put one past 1)
-                lo = hi = H[self._on[j][0]][j]
-                for i in self._on[j]:
+                lo = hi = H[terms[0][0]][j]
+                for i, wi in terms:
                     x = H[i][j]
+                    v += wi * x
                     if x < lo:
                         lo = x
                     elif x > hi:
                         hi = x
-                u[j] = lo if v < lo else (hi if v > hi else v)
-            self._hist = self._hist[1:] + [H[-1]]
+                # the weighted mean, clipped to the commands it weighs (rounding must not put one past 1)
+                out[j] = lo if v < lo else (hi if v > hi else v)
+            del H[0]
+            self._hist = H
+            return np.array(out)
+        u = np.array(u, dtype=float)  # a copy: kept in the history
+        u = u.reshape(3) if u.ndim < 2 else u.reshape(3, -1)
+        if not self.active:
             return u
         out = u.copy()
         if k > 0:
