@@ -220,13 +220,6 @@ def cse(f: ca.Function) -> ca.Function:
     return hit[1]
 
 
-def _resting_outputs(f: ca.Function) -> ca.Function:
-    """``f`` (the model's outputs) when the first input is nonzero, zeros otherwise (not evaluated)."""
-    zero = ca.Function("ekf_no_outputs", [ca.SX.sym(n, f.sparsity_in(i)) for i, n in enumerate(f.name_in())],
-                       [ca.DM.zeros(f.sparsity_out(i)) for i in range(f.n_out())], f.name_in(), f.name_out())
-    return ca.Function.if_else("ekf_outputs_if_resting", f, zero)
-
-
 def _finite(e) -> ca.MX:
     """1 when every entry of e is a finite number (|sum| <= max double is false for NaN and inf)."""
     return ca.fabs(ca.sum1(ca.sum2(e))) <= 1.7976931348623157e308
@@ -329,9 +322,9 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     lift_start2 = ca.if_else(armed, ca.if_else(summing, ls_n, 0.0), lift_start)
 
     # --- detected lift-off: W = pi r1^2 p at the dated lift-off, none within the sensor's resolution
-    # the flat outputs are needed only while resting: a switch evaluates them only then
-    o1 = _resting_outputs(outputs)(resting, xa, s1, th, 1.0, Pa)
-    p_flat = o1[1][4]
+    # p_flat, the flat membrane's pressure at the posterior (the outputs' resting value), is read only
+    # while resting (every use below is gated by it)
+    p_flat = om.flat_pressure(xa, th)
     W_lift = area * ca.fmax(ca.fmin(p_flat, p_lift2), 0.0)
     # the ratio's lift-off starts from no load: it is not dated (the Python EKF re-filters it from
     # the last posterior at ambient pressure, where the membrane was still flat)

@@ -329,6 +329,14 @@ class ObserverModel:
         self.outputs = ca.Function("ekf_outputs", [y2.x, y2.s, y2.theta, hold2, P2],
                                    [ca.densify(e) for e in (ca.vertcat(a, b), out2, H2, D2, 0.5 * (C2 + C2.T))],
                                    ["x", "s", "theta", "hold", "P"], ["s_out", "y", "H", "D", "C"])
+        # the flat membrane's pressure at a state, as the outputs' resting branch computes it (the same
+        # operations on the same values: the same bits), without the shape projection the outputs
+        # evaluate whatever the mode
+        y3 = self._syms()
+        P3 = y3.P
+        self.flat_pressure = ca.Function("ekf_flat_pressure", [y3.x, y3.theta],
+                                         [P3["m"] * (P3["R"] * P3["T"]) / P3["V0"] - P3["p_env"]],
+                                         ["x", "theta"], ["p_rest"])
         # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
         self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta, hold],
                                      [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],
