@@ -210,14 +210,34 @@ def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean
     return e
 
 
+class _ByMode:
+    """Two buffered callers of one signature: ``rest`` for a resting step (argument ``i_hold`` > 0.5),
+    ``full`` otherwise, as the compiled step switches between the model's flat and full Functions (the
+    same values at hold = 1, so the same bits on both paths). theta (argument ``i_theta``; None = the
+    last one) goes into both buffers."""
+
+    def __init__(self, rest: FastFunction, full: FastFunction, i_hold: int, i_theta: int):
+        self.rest, self.full, self.i_hold, self.i_theta = rest, full, i_hold, i_theta
+
+    def __call__(self, *args) -> list:
+        th = args[self.i_theta]
+        if th is not None:
+            for f in (self.rest, self.full):
+                f.inp[self.i_theta][:] = th
+            args = args[:self.i_theta] + (None,) + args[self.i_theta + 1:]
+        return (self.rest if args[self.i_hold] > 0.5 else self.full)(*args)
+
+
 def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings):
-    """(ObserverModel, fast predict, fast outputs, propagate Function, fast update); the casadi
-    Functions are shared per configuration, the fast (buffered) callers are per filter."""
+    """(ObserverModel, predict, outputs, propagate Function, fast update): predict and outputs call the
+    model's flat Functions on a resting step and its full ones otherwise, as the compiled step does; the
+    casadi Functions are shared per configuration, the fast (buffered) callers are per filter."""
     om = observer_model(actuator, pneumatics, s)
     # the predict with its common subexpressions merged, as in the compiled step (the implicit-function
     # Jacobian evaluates each stage's shape Jacobian again, which cse merges): the same results
-    return om, fast(cse(om.predict), s.compile), fast(om.outputs, s.compile), om.propagate, \
-        fast(om.update, s.compile)
+    pred = _ByMode(fast(cse(om.predict_rest), s.compile), fast(cse(om.predict), s.compile), 4, 3)
+    outf = _ByMode(fast(cse(om.outputs_rest), s.compile), fast(cse(om.outputs), s.compile), 3, 2)
+    return om, pred, outf, om.propagate, fast(om.update, s.compile)
 
 
 class EKF(ReferenceSteps):

@@ -249,8 +249,12 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
          s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
     qv = ca.vertcat(ca.if_else(rest_in, 0.0, s.flow_rel_std), *q)
-    predict, update, outputs = cse(om.predict), cse(om.update), cse(om.outputs)
-    xn, A, s1, y1, H1, P1, piv1 = predict(x, sh, u, th, rest, P, qv)
+    update = cse(om.update)
+    # a resting step runs the flat membrane's predict and outputs (the same values at hold = 1,
+    # without the contact branch's shape projection): a switch evaluates one or the other
+    predict = ca.Function.if_else("ekf_predict_mode", cse(om.predict_rest), cse(om.predict))
+    outputs = ca.Function.if_else("ekf_outputs_mode", cse(om.outputs_rest), cse(om.outputs))
+    xn, A, s1, y1, H1, P1, piv1 = predict(rest_in, x, sh, u, th, rest, P, qv)
     exact = _finite(xn) * _finite(y1) * _finite(P1) * (piv1 > 0)
     # touch-down: the contact model reached the flat membrane; resting from here on
     td1 = ca.logic_and(ca.logic_not(rest_in), y1[5] > 0.5)
@@ -362,7 +366,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     hi = ca.DM([np.inf, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
     xc = ca.fmin(ca.fmax(xl, lo), hi)
     clamped = ca.sum1(ca.logic_or(xl < lo, xl > hi)) > 0
-    o2 = outputs(xc, s1, th, resting3, Pf)
+    o2 = outputs(resting3, xc, s1, th, resting3, Pf)
     s2, y, H, C0 = o2[0], o2[1], o2[2], o2[4]
     td2 = ca.logic_and(ca.logic_not(resting3), y[5] > 0.5)
     resting4 = ca.logic_or(resting3, td2)

@@ -163,12 +163,15 @@ class ObserverModel:
         return _Syms(x, s, u, theta, self._with_state(P, x), P)
 
     def _project(self, m, W, h1, h2, P, iters, hold):
-        """(h1, h2, rest) for state (m, W) from the guess (h1, h2); hold > 0.5 forces rest."""
+        """(h1, h2, rest) for state (m, W) from the guess (h1, h2); hold > 0.5 forces rest (hold
+        ``True``: the flat membrane itself, rest a constant 1, no projection in the graph)."""
         rt = P["R"] * P["T"]
         p_rest = m * rt / P["V0"] - P["p_env"]
+        hf = self.chamber.fidelity.flat_h1(p_rest, P)
+        if hold is True:
+            return hf, hf, ca.SX(1.0)
         # below REST_EPS the membrane counts as flat even without a load (the origin is singular)
         rest = ca.logic_or(ca.pi * P["r1"] ** 2 * p_rest <= ca.fmax(W, REST_EPS), hold > 0.5)
-        hf = self.chamber.fidelity.flat_h1(p_rest, P)
         # leaving rest (guess flat) starts from the flat membrane; Newton on the contact branch
         c1, c2 = shape_newton(m, W, h1, h2, P, iters, self.chamber.law)
         return ca.if_else(rest, hf, c1), ca.if_else(rest, hf, c2), rest
@@ -255,12 +258,16 @@ class ObserverModel:
         out = ca.vertcat(o, extra)
         return ca.substitute([out, D[4, :], D], [xs, hs, rs], [x, ca.vertcat(h1, h2), rest])
 
-    def _build(self) -> None:
+    def _predict(self, held: bool) -> ca.Function:
+        """The predict Function (signature below); ``held``: built for hold = 1 (a resting step), the
+        flat membrane's graph alone (the input ``hold`` then unused), the same values as the full
+        Function's at hold = 1."""
         y = self._syms()
         hold = ca.SX.sym("hold")
+        mode_in = True if held else hold
         P = y.P
         m, W, c = P["m"], P["W"], y.x[4]
-        h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1, hold)
+        h1, h2, rest = self._project(m, W, y.s[0], y.s[1], P, self.newton + 1, mode_in)
         mode = ca.if_else(rest, 0.0, 1.0)
         x3 = ca.vertcat(m, h1, h2)
         h = self.dt / self.nsub
@@ -280,12 +287,12 @@ class ObserverModel:
                 k3 = f(x3 + h / 2 * k2)
                 k4 = f(x3 + h * k3)
                 x3 = x3 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
+            a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, mode_in)
             x3 = ca.vertcat(x3[0], a, b)
         xn = ca.vertcat(x3[0] / c, y.x[1], y.x[2], y.x[3], y.x[4])
         A = self._ift_jacobian(y, P, mode, stages) if self.jacobian == "ift" else ca.jacobian(xn, y.x)
         # the predicted shape as the next warm start; re-projected at the predicted state
-        h1n, h2n, restn = self._project(x3[0], W, x3[1], x3[2], P, self.newton, hold)
+        h1n, h2n, restn = self._project(x3[0], W, x3[1], x3[2], P, self.newton, mode_in)
         outn, Hn, _ = self._meas(xn, h1n, h2n, restn, y.Pbase)
         # covariance: P+ = sym(A P A^T + Q), Q = diag((rel |dm|)^2 + qm, qW, qb, qk, qc); qv = [rel,
         # qm, qW, qb, qk, qc, floor]; piv = smallest LDL pivot of P+/scale^2 - floor I (> 0: floor holds)
@@ -294,11 +301,38 @@ class ObserverModel:
         Q = ca.diag(ca.vertcat((qv[0] * (xn[0] - y.x[0])) ** 2 + qv[1], qv[2:NX + 1]))
         Pn = ca.mtimes([A, Pc, A.T]) + Q
         Pn = 0.5 * (Pn + Pn.T)
-        self.predict = ca.Function(
-            "ekf_predict", [y.x, y.s, y.u, y.theta, hold, Pc, qv],
+        if not held:
+            # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
+            self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta, hold],
+                                         [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],
+                                         ["x", "s", "u", "theta", "hold"],
+                                         ["x_next", "s_next", "y"])
+        return ca.Function(
+            "ekf_predict_rest" if held else "ekf_predict", [y.x, y.s, y.u, y.theta, hold, Pc, qv],
             [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, min_pivot(Pn, qv[NX + 1]))],
             ["x", "s", "u", "theta", "hold", "P", "qv"],
             ["x_next", "A", "s_next", "y", "H", "P_next", "piv"])
+
+    def _outputs(self, held: bool) -> ca.Function:
+        """The outputs at an arbitrary state (posterior) from a warm start; ``held`` as in :meth:`_predict`."""
+        y2 = self._syms()
+        hold2 = ca.SX.sym("hold")
+        a, b, r = self._project(y2.P["m"], y2.P["W"], y2.s[0], y2.s[1], y2.P, self.newton + 1,
+                                True if held else hold2)
+        out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
+        P2 = ca.SX.sym("P", NX, NX)
+        C2 = ca.mtimes([D2, P2, D2.T])
+        return ca.Function("ekf_outputs_rest" if held else "ekf_outputs", [y2.x, y2.s, y2.theta, hold2, P2],
+                           [ca.densify(e) for e in (ca.vertcat(a, b), out2, H2, D2, 0.5 * (C2 + C2.T))],
+                           ["x", "s", "theta", "hold", "P"], ["s_out", "y", "H", "D", "C"])
+
+    def _build(self) -> None:
+        self.predict = self._predict(False)  # (and the UKF's propagate)
+        #: the predict and the outputs of a resting step (hold = 1): the same values, without the
+        #: contact branch's shape projection (most of the full Functions' work)
+        self.predict_rest = self._predict(True)
+        self.outputs = self._outputs(False)
+        self.outputs_rest = self._outputs(True)
         # Joseph-form scalar update: K = keep * P H^T / S, P+ = (I - K H) P (I - K H)^T + R K K^T;
         # keep (0/1 per state) holds states out of an update (Schmidt's consider states: the
         # Joseph form is the exact covariance for any gain)
@@ -319,16 +353,6 @@ class ObserverModel:
                                   [ca.densify(e) for e in (xu + K * nu, Pp, Su, min_pivot(Pp, fl))],
                                   ["x", "P", "H", "innov", "R", "floor", "keep"],
                                   ["x_post", "P_post", "S", "piv"])
-        # outputs at an arbitrary state (posterior), from a warm start
-        y2 = self._syms()
-        hold2 = ca.SX.sym("hold")
-        a, b, r = self._project(y2.P["m"], y2.P["W"], y2.s[0], y2.s[1], y2.P, self.newton + 1, hold2)
-        out2, H2, D2 = self._meas(y2.x, a, b, r, y2.Pbase)
-        P2 = ca.SX.sym("P", NX, NX)
-        C2 = ca.mtimes([D2, P2, D2.T])
-        self.outputs = ca.Function("ekf_outputs", [y2.x, y2.s, y2.theta, hold2, P2],
-                                   [ca.densify(e) for e in (ca.vertcat(a, b), out2, H2, D2, 0.5 * (C2 + C2.T))],
-                                   ["x", "s", "theta", "hold", "P"], ["s_out", "y", "H", "D", "C"])
         # the flat membrane's pressure at a state, as the outputs' resting branch computes it (the same
         # operations on the same values: the same bits), without the shape projection the outputs
         # evaluate whatever the mode
@@ -337,11 +361,6 @@ class ObserverModel:
         self.flat_pressure = ca.Function("ekf_flat_pressure", [y3.x, y3.theta],
                                          [P3["m"] * (P3["R"] * P3["T"]) / P3["V0"] - P3["p_env"]],
                                          ["x", "theta"], ["p_rest"])
-        # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
-        self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta, hold],
-                                     [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],
-                                     ["x", "s", "u", "theta", "hold"],
-                                     ["x_next", "s_next", "y"])
 
     # --- numeric helpers ----------------------------------------------------------------------
     def gas_mass(self, p: float, h1: float = 0.0, h2: float = 0.0) -> float:
