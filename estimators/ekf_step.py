@@ -7,7 +7,9 @@ detected lift-off, the flat-load bound, the state clamps and the reported output
 covariance. The mode logic is inside (casadi ``if_else``): resting or in contact (input
 ``resting``), lift-off (a detector firing, the flow and dead-volume factors' ratio out of its
 prior, or the flat-load bound exceeded), touch-down, a
-saturated reading and a missing one (input ``kind``). The Function holds no Python callbacks and
+saturated reading and a missing one (input ``kind``). A resting step evaluates the model's flat
+predict and outputs (``predict_rest``, ``outputs_rest``: no contact-branch shape projection), a
+lifted one the full ones (a casadi switch, so only one runs). The Function holds no Python callbacks and
 depends only on the settings it reads (:data:`STEP_SETTINGS`, plus the model's sample period,
 integrator, sub-steps and Newton iterations), the material family and the compressor map: the
 actuator's numbers come in through ``theta``, so one compiled library serves every actuator.
