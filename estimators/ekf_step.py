@@ -222,6 +222,14 @@ def cse(f: ca.Function) -> ca.Function:
     return hit[1]
 
 
+def _only_if(f: ca.Function) -> ca.Function:
+    """``f`` behind a switch on a first input: evaluated when it is nonzero, zeros otherwise (for a
+    result that is read only then)."""
+    zero = ca.Function(f.name() + "_skipped", [ca.SX.sym(n, f.sparsity_in(i)) for i, n in enumerate(f.name_in())],
+                       [ca.DM.zeros(f.sparsity_out(i)) for i in range(f.n_out())], f.name_in(), f.name_out())
+    return ca.Function.if_else(f.name() + "_if", f, zero)
+
+
 def _finite(e) -> ca.MX:
     """1 when every entry of e is a finite number (|sum| <= max double is false for NaN and inf)."""
     return ca.fabs(ca.sum1(ca.sum2(e))) <= 1.7976931348623157e308
@@ -313,7 +321,8 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     excess2 = ca.if_else(armed_c, ca.if_else(ca.logic_and(rising, ca.logic_not(fire_c)), e_n, 0.0),
                          ca.if_else(detect, 0.0, excess))  # detect and not armed_c: resting
     P1w = P1 + ca.DM(np.diag([0.0, s.change_std ** 2, 0.0, 0.0, 0.0]))
-    xw, Pw, Sw, pivw = update(xn, P1w, H1, nu, R_eff, s.cov_floor, keep)
+    # the update with the load's variance widened, evaluated only on a load change (a switch)
+    xw, Pw, Sw, pivw = _only_if(update)(fire_c, xn, P1w, H1, nu, R_eff, s.cov_floor, keep)
     exact = exact * ca.if_else(fire_c, (pivw > 0) * (Sw > 0) * _finite(Sw), 1)
     xa = ca.if_else(upd, ca.if_else(fire_c, xw, xu), xn)
     Pa = ca.if_else(upd, ca.if_else(fire_c, Pw, Pu), P1)
