@@ -212,9 +212,9 @@ def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean
 
 class _ByMode:
     """Two buffered callers of one signature: ``rest`` for a resting step (argument ``i_hold`` > 0.5),
-    ``full`` otherwise, as the compiled step switches between the model's flat and full Functions (the
-    same values at hold = 1, so the same bits on both paths). theta (argument ``i_theta``; None = the
-    last one) goes into both buffers."""
+    ``full`` otherwise, the choice the compiled step's switch makes between the model's flat and full
+    Functions (so both paths compute the same bits). theta (argument ``i_theta``; None = the last one)
+    goes into both buffers."""
 
     def __init__(self, rest: FastFunction, full: FastFunction, i_hold: int, i_theta: int):
         self.rest, self.full, self.i_hold, self.i_theta = rest, full, i_hold, i_theta

@@ -30,16 +30,16 @@ import numpy as np
 
 __all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS"]
 
-#: the optimisation level and flags of the Functions called every step whose compilation is short (the
-#: EKF step and its reference path's parts, the UKF's propagation, the robot's EKF bank, the chamber
-#: RTI's QP data). Their
-#: code is long straight-line arithmetic that -O3 schedules better, and -fno-semantic-interposition lets
-#: it inline the generated subfunctions (global symbols, which position-independent code otherwise
-#: calls through the symbol table). Measured on recorded inputs, every output bit-identical: the exact
-#: EKF step's call 21.6 -> 13.3 us median (-O3 alone 15.9), the RTI's QP data 80 -> 70 us (-O3 alone
-#: no faster), for 4-6 s of compilation once per machine instead of 0.1-3 s. Not the fast-math flags:
-#: results must not depend on the compiler's choices. The robot's QP data (229 -> 185 us for 9
-#: chambers) keeps -O1: its compilation grows with the chambers (12.6 s for 9)
+#: the optimisation level and flags of the Functions called every step whose compilation is short
+#: (the EKF step and its reference path's parts, the UKF's propagation, the robot's EKF bank, the
+#: chamber RTI's QP data). Their code is long straight-line arithmetic that -O3 schedules better, and
+#: -fno-semantic-interposition lets it inline the generated subfunctions (global symbols, which
+#: position-independent code otherwise calls through the symbol table). Measured on recorded inputs,
+#: every output bit-identical: the exact EKF step's call 21.6 -> 13.3 us median (-O3 alone 15.9), the
+#: RTI's QP data 80 -> 70 us (-O3 alone no faster), for 4-6 s of compilation once per machine instead
+#: of 0.1-3 s. Not the fast-math flags: results must not depend on the compiler's choices. The
+#: robot's QP data (229 -> 185 us for 9 chambers) keeps -O1: its compilation grows with the chambers
+#: (12.6 s for 9)
 HOT_OPT = "-O3"
 HOT_FLAGS = ("-fno-semantic-interposition",)
 

@@ -260,8 +260,8 @@ class ObserverModel:
 
     def _predict(self, held: bool) -> ca.Function:
         """The predict Function (signature below); ``held``: built for hold = 1 (a resting step), the
-        flat membrane's graph alone (the input ``hold`` then unused), the same values as the full
-        Function's at hold = 1."""
+        flat membrane's graph alone (the input ``hold`` then unused): the full Function's values at
+        hold = 1, A to rounding (casadi differentiates the smaller graph in another order)."""
         y = self._syms()
         hold = ca.SX.sym("hold")
         mode_in = True if held else hold
