@@ -118,3 +118,76 @@ def test_robot_table_takes_the_valve_timing_keys_in_ms():
     assert parse_role("robot", {k: v for k, v in body.items() if "ms" not in k}).valve_min_on == 0.0
     with pytest.raises(ValueError, match=r"valve_delay_ms = 200.*\[0, 100\] ms"):
         parse_role("robot", dict(body, valve_delay_ms=200))
+
+
+# --- short vents with a minimum valve opening (RobotLoop.net_vents) ---------------------------------
+def _min_on_loop():
+    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.app.robot_closed import make_model
+    from hbma_ctrl.core.params import Pneumatics
+    from hbma_ctrl.robot.design import RobotDesign
+    from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+
+    d = RobotDesign(n_layers=1).validate()
+    model = make_model(d, Pneumatics(), "per_chamber")
+    bank = ChamberEKFBank(model, 3, ChamberEKFSettings(sample_period=0.01, sensor_range=50e3))
+    ms = RobotMPCSettings(sample_period=0.01, p_max=45e3)
+    return RobotLoop(d, model, bank, RobotNMPC(model, 3, ms), robot_supervisor(45e3, 3, plan_period=ms.dt),
+                     {0: ((0.0, 5e-3, 0.0, 0.0),)}, valve_min_on=0.002)
+
+
+def test_a_vent_shorter_than_the_opening_beside_a_supply_is_netted_into_it_at_the_same_net_flow():
+    from hbma_ctrl.runtime.robot import VENT_DEADBAND
+
+    loop = _min_on_loop()
+    p, b = np.array([39e3, 39e3, 20e3]), np.array([1.0, 0.9, 1.1])
+    a, o = np.array([0.45, 0.01, 0.3]), np.array([0.018, 0.05, 0.0])
+    q_in, q_out = loop.model.open_flows(p, b)
+    a2, o2 = loop.net_vents(a, o, p, b, np.full(3, 10 * VENT_DEADBAND))
+    # chamber 0: the supply absorbs the vent; chamber 1: the vent exceeds the supply, what is left
+    # of it remains; chamber 2: no vent, untouched
+    assert o2[0] == 0.0 and a2[1] == 0.0 and (a2[2], o2[2]) == (0.3, 0.0)
+    np.testing.assert_allclose(a2 * q_in - o2 * q_out, a * q_in - o * q_out, rtol=1e-12)
+    assert 0.0 < o2[1] < o[1]
+
+
+def test_a_short_vent_alone_is_sent_only_above_the_deadband_and_its_carry_is_dropped_below():
+    from hbma_ctrl.runtime.robot import VENT_DEADBAND
+
+    loop = _min_on_loop()
+    p, b = np.full(3, 39e3), np.ones(3)
+    loop.pwm.carry = np.array([[0.0, 0.0, 0.0], [0.05, 0.05, 0.05]])
+    a, o = np.zeros(3), np.array([0.05, 0.05, 0.5])
+    a2, o2 = loop.net_vents(a, o, p, b, np.array([0.5, 2.0, 0.0]) * VENT_DEADBAND)
+    # within the band: dropped with its carry; above it: sent (MinOnTime realises it); a vent of at
+    # least the opening: always sent
+    assert o2.tolist() == [0.0, 0.05, 0.5] and a2.tolist() == [0.0, 0.0, 0.0]
+    assert loop.pwm.carry[1].tolist() == [0.0, 0.05, 0.05]
+
+
+def test_structured_robot_holds_a_far_branch_bend_without_vent_dips():
+    """robot_bending_structured's 7.5 mm / 20 deg bend about 90 deg (3 layers; the chambers at 39 kPa
+    on their far branch): without the netting and the band, trickle vents reached the 2 ms valves as
+    one opening every few periods, dips of 0.4-0.8 mm several times a second."""
+    import math
+    from dataclasses import replace
+
+    from controllers.robot_mpc import RobotMPCSettings
+    from hbma_ctrl.app.robot_closed import run_closed_loop
+    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
+    from hbma_ctrl.robot.rig import RobotRigSettings
+
+    d = RobotDesign(n_layers=3).validate()
+    tg = {k: ((0.0, 7.5e-3, math.radians(20.0), math.radians(90.0)),) for k in range(3)}
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics(sensor_range=50e3, pressure_limit=45e3),
+                      mode="closed_loop", targets=tg, valve_min_on=0.002, valve_delay=0.005).validate()
+    rig = RobotRigSettings(modulus_spread=0.15, flow_scale=0.9, V0_scale=1.2, noise_std=200.0, seed=2,
+                           valve_delay=0.005, valve_min_on=0.002, compressor_tilt=0.2, sensor_tau=0.003)
+    run = run_closed_loop(s, tg, 5.0, "mpc", rig=rig, mpc=replace(RobotMPCSettings(), horizon=15, dt=0.02))
+    late = run.h[run.t >= 3.5]
+    assert run.status == "ok"
+    # held still (without the netting and the band: 0.6-1.0 mm peak to peak on the 7.5 mm chambers)
+    assert (late.max(axis=0) - late.min(axis=0)).max() < 0.1e-3
+    assert np.abs(late - run.h_ref[run.t >= 3.5]).max() < 0.5e-3  # the settle tolerance

@@ -263,6 +263,21 @@ class ChamberBank:
             self._cache["pump"] = PumpMap(self.pneumatics.csv_path)
         return self._cache["pump"]
 
+    def open_flows(self, p: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The mass flows (kg/s, each (n,)) a supply a = 1 (the full-speed pump through an open inlet)
+        and an outlet o = 1 (the outlet fully open) pass, at gauge pressures p (n,) Pa with pump-flow
+        factors b (n,), as the bank's model has them: a decision (a, o) passes a and o times these."""
+        n = int(np.size(p))
+        key = ("open_flows", n)
+        if key not in self._cache:
+            pp, bb = ca.SX.sym("p"), ca.SX.sym("b")
+            P = self.chamber.with_factors(self.chamber.params, b=bb)
+            f = ca.Function("open_flows", [pp, bb], [self.chamber.net_flow(ca.DM([1.0, 1.0, 0.0]), pp, P),
+                                                       -self.chamber.net_flow(ca.DM([0.0, 0.0, 1.0]), pp, P)])
+            self._cache[key] = f.map(n)
+        q_in, q_out = self._cache[key](np.reshape(p, (1, n)), np.reshape(b, (1, n)))
+        return np.asarray(q_in).ravel(), np.asarray(q_out).ravel()
+
     def valve_inputs(self, a: np.ndarray, o: np.ndarray, p: np.ndarray, throttle: bool = True) -> np.ndarray:
         """Plant inputs U (3 x n) for decisions a, o (n,) at gauge pressures p (n,) Pa: the compressor
         throttled to the planned flow (:func:`throttled_inputs`), or with ``throttle`` False full

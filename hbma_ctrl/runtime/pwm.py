@@ -66,6 +66,14 @@ class MinOnTime:
             U[1:3] = self._duties(U[1:3])
         return U
 
+    def forget(self, valve: int, which: np.ndarray) -> None:
+        """Drop the duty carried for ``valve`` (0 inlet, 1 outlet) of the chambers where ``which``
+        (n,) is true: a trickle the caller decided not to send."""
+        if self.carry.ndim == 2:
+            self.carry[valve] = np.where(which, 0.0, self.carry[valve])
+        elif bool(np.any(which)):
+            self.carry[valve] = 0.0
+
     def reset(self) -> None:
         """Forget the carried duty."""
         self.carry = np.zeros_like(self.carry)
