@@ -112,9 +112,10 @@ def test_cli_pose_and_errors(tmp_path):
 
 # ------------------------------------------------------------------------------------------ claims over seeds
 #: README Robot, measured table: every segment settled (2 deg, 0.5 mm) and the 45 kPa limit held
-ROBOT_CLAIMS = ("robot_bending", "robot_sequential_closed", "robot_tip_load")
-#: the README's pass rates over rig seeds 0-19, measured in one sweep
-ROBOT_RATES = {"robot_bending": 20, "robot_sequential_closed": 18, "robot_tip_load": 17}
+ROBOT_CLAIMS = ("robot_bending", "robot_sequential_closed", "robot_tip_load", "robot_bending_structured")
+#: the README's pass rates over rig seeds 0-19, measured in one sweep (robot_bending_structured: since
+#: short vents are netted into the supply, RobotLoop.net_vents)
+ROBOT_RATES = {"robot_bending": 20, "robot_sequential_closed": 18, "robot_tip_load": 17, "robot_bending_structured": 20}
 
 
 def _robot_scene_over_seed(name: str, seed: int, tmp_path: Path, robot_keys: dict | None = None) -> dict:
@@ -165,11 +166,11 @@ def test_robot_closed_loop_claims_hold_over_20_rig_seeds(name, tmp_path):
 def test_structured_robot_never_runs_a_membrane_past_its_stretch_limit_over_6_seeds(sensor_delay_ms, tmp_path):
     """README Robot, "Why runs ran away": robot_bending_structured on rig seeds 0-5, as shipped and with
     the filters' 3 ms sensor delay (3 of 6 seeds ran away to stretch 12-13 before the lost-estimate
-    vent): no chamber past the design's stretch of 4, the 45 kPa limit held, at least 4 of 7 segments
-    settled on every seed (measured: 4-6)."""
+    vent): no chamber past the design's stretch of 4, the 45 kPa limit held, every segment settled on
+    every seed (measured: 7 of 7 since short vents are netted into the supply; 4-7 before)."""
     for seed in range(6):
         rob = _robot_scene_over_seed("robot_bending_structured", seed, tmp_path,
                                      {"sensor_delay_ms": sensor_delay_ms})
         assert rob["max_stretch"] < 4.0 and not rob["stretch_exceeded_chambers"], (seed, rob["max_stretch"])
         assert not rob["pressure_limit_exceeded"], seed
-        assert sum(s["settled"] for s in rob["segments"]) >= 4, (seed, rob["segments"])
+        assert all(s["settled"] for s in rob["segments"]), (seed, rob["segments"])
