@@ -354,8 +354,9 @@ class RobotLoop:
     def prime(self, readings_pa: np.ndarray | None = None) -> None:
         """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
         set up and solved once at rest (the bank's starting estimate from ``readings_pa``, Pa, default
-        0; the targets of t = 0 moved as the first tick would move them) and the valve inputs' pump map
-        loaded. The first tick then fits its period (without it: 9-12 ms of a 10 ms period here)."""
+        0; the targets of t = 0 moved as the first tick would move them), the valve inputs' pump map
+        loaded and, with a minimum opening, the short vents' flows built. The first tick then fits its
+        period (without it: 9-12 ms of a 10 ms period here)."""
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
         a = np.zeros(self.n)
         if self.is_mpc:
@@ -366,6 +367,8 @@ class RobotLoop:
             self.controller.prime(x0, b, self.loads, href, k, c, a_max)
             a = np.full(self.n, 0.5 / self.n)  # a supply on every chamber: the throttle's whole path
         self.model.valve_inputs(a, np.zeros(self.n), p, throttle=self.throttle)
+        if self.pwm.active:
+            self.model.open_flows(p, np.ones(self.n))  # the short vents' netting Function built
 
     def _slew(self, goal: np.ndarray, h_est: np.ndarray, dt: float) -> np.ndarray:
         """The targets this tick (m): ``goal`` when there is no rate; otherwise the last ones (the
