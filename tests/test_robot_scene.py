@@ -156,7 +156,7 @@ def test_robot_tip_load_claim_holds_on_a_seed_it_was_not_shipped_with(tmp_path):
 @pytest.mark.parametrize("name", ROBOT_CLAIMS)
 def test_robot_closed_loop_claims_hold_over_20_rig_seeds(name, tmp_path):
     """Each README robot claim (every segment settled within 2 deg / 0.5 mm, the 45 kPa limit held) as
-    a pass rate over rig seeds 0-19, at least the README's rate (measured 20, 18 and at least 17 of 20)."""
+    a pass rate over rig seeds 0-19, at least the README's rate (measured 20, 18, at least 17 and 20 of 20)."""
     results = {seed: _robot_claim_holds(_robot_scene_over_seed(name, seed, tmp_path)) for seed in range(20)}
     assert sum(results.values()) >= ROBOT_RATES[name], results
 
