@@ -162,11 +162,15 @@ class ObserverModel:
         theta, P = self.chamber.symbols()
         return _Syms(x, s, u, theta, self._with_state(P, x), P)
 
+    @staticmethod
+    def _p_rest(m, P: dict):
+        """The flat membrane's gauge pressure (Pa) for gas mass m (kg): the gas law in the dead volume."""
+        return m * (P["R"] * P["T"]) / P["V0"] - P["p_env"]
+
     def _project(self, m, W, h1, h2, P, iters, hold):
         """(h1, h2, rest) for state (m, W) from the guess (h1, h2); hold > 0.5 forces rest (hold
         ``True``: the flat membrane itself, rest a constant 1, no projection in the graph)."""
-        rt = P["R"] * P["T"]
-        p_rest = m * rt / P["V0"] - P["p_env"]
+        p_rest = self._p_rest(m, P)
         hf = self.chamber.fidelity.flat_h1(p_rest, P)
         if hold is True:
             return hf, hf, ca.SX(1.0)
@@ -241,7 +245,7 @@ class ObserverModel:
         det = r_h[0, 0] * r_h[1, 1] - r_h[0, 1] * r_h[1, 0]
         dh = -ca.solve(r_h, ca.jacobian(r, xs))
         D_c = ca.jacobian(o_c, xs) + ca.mtimes(ca.jacobian(o_c, hs), dh)
-        p_rest = P["m"] * rt / P["V0"] - P["p_env"]
+        p_rest = self._p_rest(P["m"], P)
         hf = self.chamber.fidelity.flat_h1(p_rest, P)
         # flat under a plate: h = 0; with no plate to rest on (W -> 0, below REST_EPS) the membrane
         # is a free cap of height hf -- blended linearly in W so the Jacobian stays finite
@@ -258,10 +262,11 @@ class ObserverModel:
         out = ca.vertcat(o, extra)
         return ca.substitute([out, D[4, :], D], [xs, hs, rs], [x, ca.vertcat(h1, h2), rest])
 
-    def _predict(self, held: bool) -> ca.Function:
-        """The predict Function (signature below); ``held``: built for hold = 1 (a resting step), the
-        flat membrane's graph alone (the input ``hold`` then unused): the full Function's values at
-        hold = 1, A to rounding (casadi differentiates the smaller graph in another order)."""
+    def _predict(self, held: bool) -> tuple[ca.Function, ca.Function]:
+        """The predict Function (signature below) and the UKF's propagate (the same step without
+        Jacobians); ``held``: built for hold = 1 (a resting step), the flat membrane's graph alone (the
+        input ``hold`` then unused): the full Functions' values at hold = 1, A to rounding (casadi
+        differentiates the smaller graph in another order)."""
         y = self._syms()
         hold = ca.SX.sym("hold")
         mode_in = True if held else hold
@@ -301,17 +306,17 @@ class ObserverModel:
         Q = ca.diag(ca.vertcat((qv[0] * (xn[0] - y.x[0])) ** 2 + qv[1], qv[2:NX + 1]))
         Pn = ca.mtimes([A, Pc, A.T]) + Q
         Pn = 0.5 * (Pn + Pn.T)
-        if not held:
-            # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
-            self.propagate = ca.Function("ukf_propagate", [y.x, y.s, y.u, y.theta, hold],
-                                         [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],
-                                         ["x", "s", "u", "theta", "hold"],
-                                         ["x_next", "s_next", "y"])
-        return ca.Function(
-            "ekf_predict_rest" if held else "ekf_predict", [y.x, y.s, y.u, y.theta, hold, Pc, qv],
+        tag = "_rest" if held else ""
+        predict = ca.Function(
+            "ekf_predict" + tag, [y.x, y.s, y.u, y.theta, hold, Pc, qv],
             [ca.densify(e) for e in (xn, A, ca.vertcat(h1n, h2n), outn, Hn, Pn, min_pivot(Pn, qv[NX + 1]))],
             ["x", "s", "u", "theta", "hold", "P", "qv"],
             ["x_next", "A", "s_next", "y", "H", "P_next", "piv"])
+        # a step without Jacobians for sigma points (UKF): (x, s, u) -> (x+, s+, y+)
+        propagate = ca.Function("ukf_propagate" + tag, [y.x, y.s, y.u, y.theta, hold],
+                                [ca.densify(e) for e in (xn, ca.vertcat(h1n, h2n), outn)],
+                                ["x", "s", "u", "theta", "hold"], ["x_next", "s_next", "y"])
+        return predict, propagate
 
     def _outputs(self, held: bool) -> ca.Function:
         """The outputs at an arbitrary state (posterior) from a warm start; ``held`` as in :meth:`_predict`."""
@@ -327,10 +332,10 @@ class ObserverModel:
                            ["x", "s", "theta", "hold", "P"], ["s_out", "y", "H", "D", "C"])
 
     def _build(self) -> None:
-        self.predict = self._predict(False)  # (and the UKF's propagate)
+        self.predict, self.propagate = self._predict(False)
         #: the predict and the outputs of a resting step (hold = 1): the same values, without the
         #: contact branch's shape projection (most of the full Functions' work)
-        self.predict_rest = self._predict(True)
+        self.predict_rest = self._predict(True)[0]
         self.outputs = self._outputs(False)
         self.outputs_rest = self._outputs(True)
         # Joseph-form scalar update: K = keep * P H^T / S, P+ = (I - K H) P (I - K H)^T + R K K^T;
@@ -354,12 +359,9 @@ class ObserverModel:
                                   ["x", "P", "H", "innov", "R", "floor", "keep"],
                                   ["x_post", "P_post", "S", "piv"])
         # the flat membrane's pressure at a state, as the outputs' resting branch computes it (the same
-        # operations on the same values: the same bits), without the shape projection the outputs
-        # evaluate whatever the mode
+        # expression: the same bits), without the shape projection the outputs evaluate
         y3 = self._syms()
-        P3 = y3.P
-        self.flat_pressure = ca.Function("ekf_flat_pressure", [y3.x, y3.theta],
-                                         [P3["m"] * (P3["R"] * P3["T"]) / P3["V0"] - P3["p_env"]],
+        self.flat_pressure = ca.Function("ekf_flat_pressure", [y3.x, y3.theta], [self._p_rest(y3.P["m"], y3.P)],
                                          ["x", "theta"], ["p_rest"])
 
     # --- numeric helpers ----------------------------------------------------------------------
