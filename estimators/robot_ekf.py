@@ -58,6 +58,7 @@ from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays
 from hbma_ctrl.models.bank import ChamberBank
+from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, ROBOT_SENSOR_DELAY
 
 __all__ = ["ChamberEKFSettings", "ChamberEKFBank"]
 
@@ -78,7 +79,8 @@ class ChamberEKFSettings:
     gate, [1, 1000]; max_gap : longest time one step predicts over, s, [sample_period, 3600] (see
     the module doc); valve_delay, sensor_delay : the valves' switching delay and the sensor's, s,
     [0, 0.1] each (the commands are taken as acting that late, :class:`hbma_ctrl.models.actuation.
-    CommandTiming`, as by the single chamber's EKF; 0 = at once).
+    CommandTiming`, as by the single chamber's EKF; 0 = at once; default 5 ms and 0,
+    :mod:`hbma_ctrl.models.defaults`).
     """
 
     sample_period: float = 0.01
@@ -99,8 +101,8 @@ class ChamberEKFSettings:
     gate_nis: float = 400.0
     gate_reopen: int = 5
     max_gap: float = 1.0
-    valve_delay: float = 0.0
-    sensor_delay: float = 0.0
+    valve_delay: float = DEFAULT_VALVE_DELAY
+    sensor_delay: float = ROBOT_SENSOR_DELAY
 
     def validate(self) -> "ChamberEKFSettings":
         check_range("robot_ekf", "sample_period", self.sample_period, 1e-4, 1.0, "s")

@@ -418,9 +418,12 @@ def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.robot.rig import RobotRig
 
+    from hbma_ctrl.models.defaults import ROBOT_INSTANT
+
     d = RobotDesign(n_layers=1).validate()
+    # duties sent as decided (no minimum opening): the inlet duty sent is the one planned
     s = RobotSettings(design=d, pneumatics=RobotPneumatics(topology="per_chamber", sensor_range=50e3,
-                                                           pressure_limit=45e3)).validate()
+                                                           pressure_limit=45e3), **ROBOT_INSTANT).validate()
     model = make_model(d, Pneumatics(), "per_chamber")
     sent, planned = [], []
     tick, apply = RobotLoop.tick, RobotRig.apply

@@ -141,10 +141,11 @@ def test_bank_floor_is_a_pressure_floor_so_a_small_dead_volume_vents_with_its_re
 def test_robot_loop_vents_a_lost_chamber_then_restarts_its_filter_from_the_flat_reading(robot):
     d, model = robot
     n = 3
-    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=0.01, sensor_range=50e3))
+    # instant valves: the pumped chambers' filters take the pump as acting in the period it is sent
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=0.01, sensor_range=50e3, valve_delay=0.0))
     ms = RobotMPCSettings(sample_period=0.01, p_max=45e3)
     loop = RobotLoop(d, model, bank, RobotNMPC(model, n, ms), robot_supervisor(45e3, n, plan_period=ms.dt),
-                     {0: ((0.0, U.mm(5.0), 0.0, 0.0),)})
+                     {0: ((0.0, U.mm(5.0), 0.0, 0.0),)}, valve_min_on=0.0)
     assert loop.supervisor.settings.stretch_max == d.max_stretch  # the design's limit by default
     loop.tick(0.0, np.zeros(n))
     bank.X[1, 1] = B_RANGE[0] - 0.1  # chamber 1's filter leaves its range
@@ -166,7 +167,7 @@ def test_robot_loop_vents_a_lost_chamber_then_restarts_its_filter_from_the_flat_
 
 
 def test_structured_robot_with_the_sensor_delay_modelled_does_not_run_a_membrane_away():
-    """Seed 0 of robot_bending_structured with the filters' 3 ms sensor delay: one chamber's filter
+    """Seed 0 of robot_bending on the structured rig with the filters' 3 ms sensor delay: one chamber's filter
     read its membrane on the near branch while it grew past 20 mm at a falling pressure, pump on (max
     stretch 13 over the run). The lost-estimate vent then caught it; with the gas-mass floor a pressure
     floor (a floor in the gas mass held a chamber of a small estimated dead volume kilopascals above its

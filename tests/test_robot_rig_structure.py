@@ -1,8 +1,10 @@
-"""The robot rig's structural mismatches (valve delay, minimum opening, pump tilt, sensor lag):
-off by default, each acting on every chamber as the single chamber's rig does when set, and the
-scenario [rig] keys that set them for a robot."""
+"""The robot rig's structural mismatches (valve delay, minimum opening, pump tilt, sensor lag): on by
+default with the single chamber rig's values, each acting on every chamber as that rig's does, and
+the scenario [rig] keys that set them for a robot."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,12 +13,14 @@ from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
+from hbma_ctrl.sim.rig import IDEAL_STRUCTURE, STRUCTURED_RIG
 
 D1 = RobotDesign(n_layers=1)
 
 
 def _rig(**kw) -> RobotRig:
-    kw.setdefault("noise_std", 0.0)
+    """A one-layer robot rig without noise, with only the structural mismatches in ``kw``."""
+    kw = {"noise_std": 0.0, **IDEAL_STRUCTURE, **kw}
     return RobotRig(D1, Pneumatics(), 50e3, "per_chamber", RobotRigSettings(fidelity="quasi_static", **kw))
 
 
@@ -28,9 +32,11 @@ def _mass_gain(rig: RobotRig, inlet: float, periods: int = 1) -> np.ndarray:
     return rig.truth()["m"] - m0
 
 
-def test_structure_is_off_by_default():
+def test_structure_is_on_by_default_with_the_chamber_rigs_values_and_off_when_zeroed():
     s = RobotRigSettings()
-    assert (s.valve_delay, s.valve_min_on, s.compressor_tilt, s.sensor_tau) == (0.0, 0.0, 0.0, 0.0)
+    assert (s.valve_delay, s.valve_min_on, s.compressor_tilt, s.sensor_tau) == tuple(
+        STRUCTURED_RIG[k] for k in ("valve_delay", "valve_min_on", "compressor_tilt", "sensor_tau"))
+    assert RobotRig(D1, Pneumatics(), 50e3, "per_chamber", s)._valves is not None
     assert _rig()._valves is None
 
 
@@ -68,7 +74,9 @@ def test_sensor_lag_reads_a_rising_pressure_late():
 
 def test_robot_rig_table_sets_only_the_keys_written():
     s = RigTable.model_validate({"seed": 4}).to_robot_rig()
-    assert s.seed == 4 and s.valve_delay == 0.0 and s.sensor_tau == 0.0  # not the chamber rig's 5 ms
+    assert s.seed == 4 and (s.valve_delay, s.sensor_tau) == (RobotRigSettings.valve_delay, RobotRigSettings.sensor_tau)
+    s = RigTable.model_validate({"valve_delay_ms": 0, "sensor_tau_ms": 1}).to_robot_rig()
+    assert (s.valve_delay, s.valve_min_on, s.sensor_tau) == pytest.approx((0.0, RobotRigSettings.valve_min_on, 1e-3))
     s = RigTable.model_validate({"valve_delay_ms": 5, "valve_min_on_ms": 2, "compressor_tilt": 0.2,
                                  "sensor_tau_ms": 3, "modulus_scale": 1.1}).to_robot_rig()
     assert (s.valve_delay, s.valve_min_on, s.compressor_tilt, s.sensor_tau) == pytest.approx((5e-3, 2e-3, 0.2, 3e-3))
@@ -86,7 +94,7 @@ def test_the_banks_valve_and_sensor_delays_predict_with_the_command_acting():
 
     model = make_model(D1, Pneumatics(), "per_chamber")
     late = ChamberEKFBank(model, 3, ChamberEKFSettings(valve_delay=0.005, sensor_delay=0.003))
-    plain = ChamberEKFBank(model, 3, ChamberEKFSettings())
+    plain = ChamberEKFBank(model, 3, ChamberEKFSettings(valve_delay=0.0, sensor_delay=0.0))
     timing = CommandTiming(0.01, 0.005, 0.003)
     rng = np.random.default_rng(0)
     z = np.zeros(3)
@@ -98,7 +106,7 @@ def test_the_banks_valve_and_sensor_delays_predict_with_the_command_acting():
         b = plain.step(z, timing.acting(w, 1), W)
         assert np.allclose(a["x"], b["x"], rtol=0, atol=1e-12) and np.allclose(a["h"], b["h"], rtol=0, atol=1e-12)
     # and the delays matter: the same readings without them give another estimate
-    c = ChamberEKFBank(model, 3, ChamberEKFSettings())
+    c = ChamberEKFBank(model, 3, ChamberEKFSettings(valve_delay=0.0, sensor_delay=0.0))
     rng = np.random.default_rng(0)
     z = np.zeros(3)
     for j in range(30):
@@ -115,9 +123,32 @@ def test_robot_table_takes_the_valve_timing_keys_in_ms():
             "valve_min_on_ms": 2, "valve_delay_ms": 5, "sensor_delay_ms": 3}
     s = parse_role("robot", body)
     assert (s.valve_min_on, s.valve_delay, s.sensor_delay) == pytest.approx((2e-3, 5e-3, 3e-3))
-    assert parse_role("robot", {k: v for k, v in body.items() if "ms" not in k}).valve_min_on == 0.0
+    # not written: the models' valves (hbma_ctrl.models.defaults), the sensor read at once
+    s = parse_role("robot", {k: v for k, v in body.items() if "ms" not in k})
+    assert (s.valve_min_on, s.valve_delay, s.sensor_delay) == pytest.approx((2e-3, 5e-3, 0.0))
     with pytest.raises(ValueError, match=r"valve_delay_ms = 200.*\[0, 100\] ms"):
         parse_role("robot", dict(body, valve_delay_ms=200))
+
+
+def test_a_default_minimum_opening_longer_than_the_loops_period_is_one_error_naming_the_key(tmp_path):
+    """The 2 ms default opening cannot be shaped in a 1 ms period: `hbma-ctrl run` of a robot scene at
+    1 ms exits 2 with one error naming [robot] valve_min_on_ms and its range in ms."""
+    from typer.testing import CliRunner
+
+    from hbma_ctrl.app.cli import app
+    from hbma_ctrl.app.sections import RobotSettings
+
+    RobotSettings().check_period(0.002)
+    with pytest.raises(ValueError, match=r"\[robot\] valve_min_on_ms = 2 is out of range \[0, 1\] ms"):
+        RobotSettings().check_period(0.001)
+    text = (Path(__file__).parents[1] / "scenarios" / "robot_tip_load.toml").read_text()
+    assert "sample_period_ms = 10.0" in text
+    path = tmp_path / "fast.toml"
+    path.write_text(text.replace("sample_period_ms = 10.0", "sample_period_ms = 1.0"))
+    r = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert r.exit_code == 2, r.output
+    assert "error: [robot] valve_min_on_ms = 2 is out of range [0, 1] ms" in r.output
+    assert "Traceback" not in r.output
 
 
 # --- short vents with a minimum valve opening (RobotLoop.net_vents) ---------------------------------
@@ -167,7 +198,7 @@ def test_a_short_vent_alone_is_sent_only_above_the_deadband_and_its_carry_is_dro
 
 
 def test_structured_robot_holds_a_far_branch_bend_without_vent_dips():
-    """robot_bending_structured's 7.5 mm / 20 deg bend about 90 deg (3 layers; the chambers at 39 kPa
+    """robot_bending's 7.5 mm / 20 deg bend about 90 deg on the structured rig (3 layers; the chambers at 39 kPa
     on their far branch): without the netting and the band, trickle vents reached the 2 ms valves as
     one opening every few periods, dips of 0.4-0.8 mm several times a second."""
     import math

@@ -142,8 +142,8 @@ def test_rig_table_gives_the_replaced_robot_rig_settings():
 
     for raw, expected in zip(RIG_SECTIONS, GOLDEN["robot_rig"], strict=True):
         robot = {k: v for k, v in raw.items() if k in ROBOT_RIG_KEYS}
-        # the robot rig's structural mismatches came after the replaced parser: off when not written
-        expected = expected[:-1] + ", valve_delay=0.0, valve_min_on=0.0, compressor_tilt=0.0, sensor_tau=0.0)"
+        # the robot rig's structural mismatches came after the replaced parser: its defaults when not written
+        expected = expected[:-1] + ", valve_delay=0.005, valve_min_on=0.002, compressor_tilt=0.2, sensor_tau=0.003)"
         _same_as_golden(RigTable.model_validate(robot).to_robot_rig(), expected)
         extra = [k for k in raw if k not in ROBOT_RIG_KEYS]
         assert extra

@@ -90,6 +90,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     if model.topology != rp.topology:
         raise ValueError("run_closed_loop: the model's topology differs from robot.topology")
     Ts = rs.sample_period
+    settings.check_period(Ts)
     plant = RobotRig(d, pn, rp.sensor_range, rp.topology, rs, tip_load)
     bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
                                                         sensor_range=rp.sensor_range,

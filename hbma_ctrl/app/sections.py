@@ -16,10 +16,11 @@ import numpy as np
 from controllers.baselines import BangBangSettings, PIDSettings
 from controllers.mpc_settings import MPCSettings
 from estimators.common import FilterSettings
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.core.validation import did_you_mean
-from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.models.actuation import check_delays
+from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.plant import RobotPlantSettings
 from hbma_ctrl.runtime.calibrate import CalibrationSettings
@@ -222,9 +223,10 @@ class RobotSettings:
     target_rate : the fastest a chamber's target height moves after a target change, m/s (0 = steps;
         None = not given: steps in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_TARGET_RATE` in the daemon).
     valve_min_on : the valves' shortest opening, s, [0, 0.1], at most the rig's sample period (0: duties sent as decided;
-        :class:`hbma_ctrl.runtime.robot.RobotLoop`).
+        :class:`hbma_ctrl.runtime.robot.RobotLoop`); default 2 ms.
     valve_delay, sensor_delay : the valve and sensor delays the chambers' filters take, s, [0, 0.1]
-        (:class:`estimators.robot_ekf.ChamberEKFSettings`; 0 = at once).
+        (:class:`estimators.robot_ekf.ChamberEKFSettings`; 0 = at once); default 5 ms and 0
+        (:mod:`hbma_ctrl.models.defaults`; ``ROBOT_INSTANT`` sets all three to 0).
     """
 
     design: RobotDesign = field(default_factory=RobotDesign)
@@ -245,9 +247,9 @@ class RobotSettings:
     mpc_budget: float = field(default=0.0, repr=False)  # repr: the stored reprs of the scenario goldens
     target_rate: float | None = field(default=None, repr=False)
     mpc_w_slack: float | None = field(default=None, repr=False)
-    valve_min_on: float = field(default=0.0, repr=False)
-    valve_delay: float = field(default=0.0, repr=False)
-    sensor_delay: float = field(default=0.0, repr=False)
+    valve_min_on: float = field(default=DEFAULT_VALVE_MIN_ON, repr=False)
+    valve_delay: float = field(default=DEFAULT_VALVE_DELAY, repr=False)
+    sensor_delay: float = field(default=ROBOT_SENSOR_DELAY, repr=False)
 
     @property
     def plant(self) -> RobotPlantSettings:
@@ -284,3 +286,10 @@ class RobotSettings:
         check_range("robot", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
         check_delays("robot", self.valve_delay, self.sensor_delay)
         return self
+
+    def check_period(self, period: float) -> None:
+        """ValueError naming ``[robot] valve_min_on_ms`` (as written, or its default) when the valves'
+        minimum opening is longer than the loop's period ``period`` (s), the PWM period it shapes."""
+        if self.valve_min_on > period + 1e-12:
+            raise ValueError(f"[robot] valve_min_on_ms = {U.to_ms(self.valve_min_on):g} is out of range "
+                             f"[0, {U.to_ms(period):g}] ms (at most the loop's period; the default is 2)")

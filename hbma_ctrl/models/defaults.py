@@ -9,18 +9,30 @@ nominal values but another structure (a first-order sensor lag, not a dead time;
 another shape; a minimum opening that drops or lengthens short pulses). A rig with other hardware
 sets its own values in the scenario's ``[estimator]`` and ``[controller]`` tables, and the old cap
 chamber is ``membrane = "cap"`` with the three times 0.
+
+The robot's loop assumes the same valves (``[robot] valve_min_on_ms``, ``valve_delay_ms``) and, by
+measurement, a sensor read at once (:data:`ROBOT_SENSOR_DELAY`); its chambers' law is the cap (the
+robot's chambers run past the exact tables' reach).
 """
 
 from __future__ import annotations
 
 __all__ = ["DEFAULT_MEMBRANE", "DEFAULT_VALVE_DELAY", "DEFAULT_SENSOR_DELAY", "DEFAULT_VALVE_MIN_ON",
-           "CAP_CHAMBER"]
+           "ROBOT_SENSOR_DELAY", "CAP_CHAMBER", "ROBOT_INSTANT"]
 
 DEFAULT_MEMBRANE = "exact"
 DEFAULT_VALVE_DELAY = 0.005
 DEFAULT_SENSOR_DELAY = 0.003
 DEFAULT_VALVE_MIN_ON = 0.002
+#: the robot's chamber filters take the sensor as read at once by default: on the robot's structured
+#: rig (3 ms first-order lag) a 3 ms dead time settled fewer tip-load runs over rig seeds 0-19 (16
+#: against 18 of 20; README Robot, "The structured rig as the default")
+ROBOT_SENSOR_DELAY = 0.0
 
 #: the models' keywords for the cap chamber with instant valves and sensor (how the claims before
 #: 2026-12-04 were measured, on the cap rig; pair with ``hbma_ctrl.sim.rig.CAP_RIG``)
 CAP_CHAMBER = {"membrane": "cap", "valve_delay": 0.0, "sensor_delay": 0.0}
+#: the robot loop's keywords (:class:`hbma_ctrl.app.sections.RobotSettings`) for instant valves: the
+#: loop the claims before 2026-12-05 were measured with, on the robot rig without structure
+#: (``hbma_ctrl.sim.rig.IDEAL_STRUCTURE``)
+ROBOT_INSTANT = {"valve_min_on": 0.0, "valve_delay": 0.0, "sensor_delay": 0.0}

@@ -12,12 +12,14 @@ the "truth": every chamber of the robot is the ``platform`` fidelity
   inlets by their duties; if the duties sum to more than 1 each chamber gets its duty / sum (the
   manifold model the NMPC's coupling row respects).
 
-The single chamber's structural mismatches (:class:`hbma_ctrl.sim.rig.RigSettings`), off by default
-(the claims in README Robot were measured without them): ``valve_delay`` and ``valve_min_on`` (every
-chamber's valves, :class:`hbma_ctrl.sim.rig.ValveLine`: the plant then advances in its internal steps
-with the valves as they act at each), ``compressor_tilt`` (every chamber's pump map, or the shared
-one's, tilted with back pressure) and ``sensor_tau`` (each sensor's first-order lag). The membrane stays
-the cap: the robot's chambers run to about 4 r1 on their far branch, past the exact tables' reach.
+The single chamber's structural mismatches (:class:`hbma_ctrl.sim.rig.RigSettings`), on by default
+with its values (``hbma_ctrl.sim.rig.STRUCTURED_RIG``: 5 ms, 2 ms, 0.2, 3 ms): ``valve_delay`` and
+``valve_min_on`` (every chamber's valves, :class:`hbma_ctrl.sim.rig.ValveLine`: the plant then advances
+in its internal steps with the valves as they act at each), ``compressor_tilt`` (every chamber's pump
+map, or the shared one's, tilted with back pressure) and ``sensor_tau`` (each sensor's first-order
+lag). ``RobotRigSettings(**IDEAL_STRUCTURE)`` is the rig without them, the one the robot's claims
+before 2026-12-05 were measured on. The membrane stays the cap: the robot's chambers run to about
+4 r1 on their far branch, past the exact tables' reach.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
-from hbma_ctrl.sim.rig import CAP_RIG, RigSettings, ValveLine, mismatched
+from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings, ValveLine, mismatched
 from hbma_ctrl.sim.simulate import Plant
 
 H_TARGET_MAX = 13e-3  # m: the per-chamber tables reach 14 mm
@@ -46,7 +48,7 @@ class RobotRigSettings:
     x(1 + spread), x(1 - spread); flow_scale, V0_scale: as :class:`hbma_ctrl.sim.rig.RigSettings`;
     noise_std Pa; sample_period s; seed; dt: internal rk4 step (s); valve_delay, valve_min_on (s),
     compressor_tilt (-), sensor_tau (s): the structural mismatches of
-    :class:`hbma_ctrl.sim.rig.RigSettings`, with its bounds, default off (module docstring)."""
+    :class:`hbma_ctrl.sim.rig.RigSettings`, with its bounds and defaults (module docstring)."""
 
     fidelity: str = "platform"
     damping: float = 0.5
@@ -57,10 +59,10 @@ class RobotRigSettings:
     sample_period: float = 0.01
     seed: int = 0
     dt: float | None = None
-    valve_delay: float = 0.0
-    valve_min_on: float = 0.0
-    compressor_tilt: float = 0.0
-    sensor_tau: float = 0.0
+    valve_delay: float = STRUCTURED_RIG["valve_delay"]
+    valve_min_on: float = STRUCTURED_RIG["valve_min_on"]
+    compressor_tilt: float = STRUCTURED_RIG["compressor_tilt"]
+    sensor_tau: float = STRUCTURED_RIG["sensor_tau"]
 
     def validate(self) -> "RobotRigSettings":
         if self.fidelity not in ("platform", "quasi_static"):

@@ -55,6 +55,7 @@ from controllers.robot_mpc import RobotNMPC
 from estimators.robot_ekf import ChamberEKFBank
 from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
+from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
@@ -172,13 +173,14 @@ class RobotLoop:
         estimated pressure (:meth:`ChamberBank.valve_inputs`); False = full speed while an inlet is
         open (the inlet valve meters the flow).
     target_rate : the fastest a chamber's target height moves, m/s (None or 0: targets step).
-    valve_min_on : the valves' shortest opening, s, [0, sample period] (0: duties sent as decided).
+    valve_min_on : the valves' shortest opening, s, [0, sample period] (0: duties sent as decided;
+        default the models' 2 ms, :mod:`hbma_ctrl.models.defaults`).
     """
 
     def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
                  stats_capacity: int = 4096, throttle: bool = True, target_rate: float | None = None,
-                 valve_min_on: float = 0.0):
+                 valve_min_on: float = DEFAULT_VALVE_MIN_ON):
         self.design = design
         self.model = model
         self.bank = bank

@@ -384,6 +384,7 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     n = 3 * d.n_layers
     model = make_model(d, scn.pneumatics, rp.topology)
     Ts = rs.sample_period
+    s.check_period(Ts)
     bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
                                                         sensor_range=rp.sensor_range, valve_delay=s.valve_delay,
                                                         sensor_delay=s.sensor_delay))

@@ -74,16 +74,16 @@ class RigTable(Table):
 
     def to_robot_rig(self) -> RobotRigSettings:
         """The robot's rig: modulus_scale m becomes the spread |m - 1|, the rest as written; the
-        structural mismatches (valve timing, pump tilt, sensor lag) are off unless written, unlike a
-        chamber's rig. A key the robot's rig does not have (its chambers are the cap: no membrane law, range or
-        dropouts of its own) is refused, not ignored."""
+        structural mismatches (valve timing, pump tilt, sensor lag) not written keep
+        :class:`RobotRigSettings`' defaults, a chamber rig's values. A key the robot's rig does not have
+        (its chambers are the cap: no membrane law, range or dropouts of its own) is refused, not ignored."""
         if not self.model_fields_set:
             return RobotRigSettings()
         why = self.not_for_a_robot()
         if why:  # a scenario file is refused at load (ScenarioFile); this guards a table built alone
             raise ValueError(f"[rig] {why}")
         r = self.to_settings()
-        # the structural mismatches only where written: a robot's default rig has none
+        # the structural mismatches where written; the others keep the robot rig's defaults
         si = self._si()
         kw = {k: si[k] for k in ("valve_delay", "valve_min_on", "compressor_tilt", "sensor_tau") if k in si}
         kw.update(fidelity=r.fidelity, modulus_spread=abs(r.modulus_scale - 1.0), flow_scale=r.flow_scale,

@@ -31,6 +31,7 @@ from hbma_ctrl.app.schema.fields import (
 )
 from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U
+from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import LETTERS, RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.kinematics import inverse_kinematics
 from hbma_ctrl.robot.rig import H_TARGET_MAX
@@ -123,12 +124,13 @@ class RobotTable(Table):
                                     "(default: 0.001 in a scene, 100 in the daemon: the limit first)")
     target_rate_mm_s: float | None = num(None, 0.0, 1000.0, "mm/s", "fastest a chamber's target height moves "
                                          "after a new target (0 = steps; default: steps in a scene, 3 in the daemon)")
-    valve_min_on_ms: float = num(0.0, 0.0, 100.0, "ms", "the valves' shortest opening: smaller duties are "
-                                 "realised on average over the periods (0 = duties sent as decided)")
-    valve_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the chambers' filters take the valves as acting this "
-                                "long after their command (0 = at once)")
-    sensor_delay_ms: float = num(0.0, 0.0, 100.0, "ms", "the chambers' filters take the pressure sensors as "
-                                 "reading this late (0 = at once)")
+    # the models' valve and sensor timing (hbma_ctrl.models.defaults), as the robot rig's default structure asks
+    valve_min_on_ms: float = num(U.to_ms(DEFAULT_VALVE_MIN_ON), 0.0, 100.0, "ms", "the valves' shortest opening: "
+                                 "smaller duties are realised on average over the periods (0 = duties sent as decided)")
+    valve_delay_ms: float = num(U.to_ms(DEFAULT_VALVE_DELAY), 0.0, 100.0, "ms", "the chambers' filters take the "
+                                "valves as acting this long after their command (0 = at once)")
+    sensor_delay_ms: float = num(U.to_ms(ROBOT_SENSOR_DELAY), 0.0, 100.0, "ms", "the chambers' filters take the "
+                                 "pressure sensors as reading this late (0 = at once)")
 
     _settings: Any = PrivateAttr(None)
 
