@@ -197,6 +197,31 @@ def test_a_short_vent_alone_is_sent_only_above_the_deadband_and_its_carry_is_dro
     assert loop.pwm.carry[1].tolist() == [0.0, 0.05, 0.05]
 
 
+def test_a_short_vent_that_would_overshoot_the_target_by_more_than_it_corrects_is_not_sent():
+    """On the far branch one minimum opening takes off more height than the band: above the band but
+    less than half that drop above the target, the vent is dropped; beyond it, sent."""
+    from hbma_ctrl.runtime.robot import VENT_DEADBAND
+
+    loop = _min_on_loop()
+    m = loop.model
+    x = 0.6  # past the limit point: 8.5 mm at 32 kPa under 0.3 N
+    h0, p0 = (float(v) for v in m.out(x, 0.3, 1.0, 1.0)[:2])
+    assert h0 > 6e-3 and p0 > 30e3
+    est = {"x": np.full(3, x), "k": np.ones(3), "c": np.ones(3)}
+    W = np.full(3, 0.3)
+    q_out = m.open_flows(np.full(3, p0), np.ones(3))[1]
+    drop = loop.vent_pulse_drop(est, W, q_out)
+    # the model's own height change for the mass a 2 ms opening lets out
+    ac = m.actuator
+    dx = q_out[0] * 0.002 * ac.R * ac.T / (ac.p_env * ac.V0)
+    assert drop[0] == pytest.approx(h0 - float(m.out(x - dx, 0.3, 1.0, 1.0)[0]), rel=1e-9)
+    assert drop[0] > 2 * VENT_DEADBAND
+    excess = np.array([0.5 * drop[0] - 1e-6, 0.5 * drop[0] + 1e-6, 0.5 * VENT_DEADBAND])
+    a, o = np.zeros(3), np.full(3, 0.05)
+    _, o2 = loop.net_vents(a, o, np.full(3, p0), np.ones(3), excess, lambda q: drop)
+    assert o2.tolist() == [0.0, 0.05, 0.0]
+
+
 def test_structured_robot_holds_a_far_branch_bend_without_vent_dips():
     """robot_bending's 7.5 mm / 20 deg bend about 90 deg on the structured rig (3 layers; the chambers at 39 kPa
     on their far branch): without the netting and the band, trickle vents reached the 2 ms valves as

@@ -30,8 +30,8 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   opening, a smaller one realised on average over the periods (:class:`hbma_ctrl.runtime.pwm.MinOnTime`,
   as the single chamber's loop does), and the bank predicts with the duties sent. A vent shorter than
   the minimum opening is first netted into the same chamber's supply, and one left over is sent
-  only when the chamber's estimate is more than :data:`VENT_DEADBAND` above its target
-  (:meth:`RobotLoop.net_vents`).
+  only when the chamber's estimate is more than :data:`VENT_DEADBAND` and half the height one
+  minimum opening takes off above its target (:meth:`RobotLoop.net_vents`).
 
 The controller does not know the tip load (a disturbance). Step, EKF and controller times go into
 bounded :class:`StepStats` (s); ``last_timing`` has this tick's.
@@ -126,7 +126,9 @@ HELD_ATOL = 6e-4
 #: vent takes 0.4-0.8 mm off a chamber on its far branch at 39 kPa: held at its target by trickle
 #: vents, it dipped that much several times a second (robot_bending on the structured rig, seeds
 #: 0-5: 35 of 42 segments settled, most at the end of their 4 s). With the netting into the supply
-#: and this band: 42 of 42 at 0.10, 0.15 and 0.25 mm, 37 of 42 with the netting and no band
+#: and this band: 42 of 42 at 0.10, 0.15 and 0.25 mm, 37 of 42 with the netting and no band. The band
+#: is also at least half the height one minimum opening takes off (RobotLoop.vent_pulse_drop): a
+#: vent is sent only when it brings the chamber nearer its target
 VENT_DEADBAND = 0.15e-3
 
 
@@ -304,7 +306,8 @@ class RobotLoop:
         # NMPC keep working in a: a full-speed inlet duty)
         t_valves = time.perf_counter()
         if self.pwm.active:
-            a, o = self.net_vents(a, o, est["p"], est["b"], est["h"] - href)
+            a, o = self.net_vents(a, o, est["p"], est["b"], est["h"] - href,
+                                  lambda q_out: self.vent_pulse_drop(est, W, q_out))
         Uc = model.valve_inputs(a, o, est["p"], throttle=self.throttle)
         supply = _flow_duty(a, model.topology)
         if self.pwm.active:
@@ -330,11 +333,14 @@ class RobotLoop:
         return a, o
 
     def net_vents(self, a: np.ndarray, o: np.ndarray, p: np.ndarray, b: np.ndarray,
-                  excess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  excess: np.ndarray, pulse_drop=None) -> tuple[np.ndarray, np.ndarray]:
         """(a, o) as sent with a minimum valve opening: a vent shorter than the opening is netted into
         the same chamber's supply (the same net flow at the estimated pressure p, Pa, pump-flow
         factor b), and one left over is dropped (its carried duty too) while the chamber's estimated
-        height is at most :data:`VENT_DEADBAND` above its target (``excess``: estimate - target, m).
+        height is at most :data:`VENT_DEADBAND` above its target (``excess``: estimate - target, m),
+        nor more than half of what one minimum opening takes off: ``pulse_drop(q_out)`` (m, (n,),
+        given the outlets' open flows, kg/s; None = the band alone). A vent that would overshoot
+        the target by more than it corrects is not sent.
 
         Why: holding a chamber the NMPC pumps and vents at once, and a vent trickle reaches the valve
         as one minimum opening every few periods (:class:`MinOnTime`), a height step of 0.4-0.8 mm on
@@ -349,9 +355,24 @@ class RobotLoop:
         ok = small & (a > 0.0) & (q_in > 0.0) & (q_out > 0.0)
         a = np.where(ok, np.maximum(net, 0.0) / np.where(ok, q_in, 1.0), a)
         o = np.where(ok, np.maximum(-net, 0.0) / np.where(ok, q_out, 1.0), o)
-        drop = (o > 0.0) & (o < md) & ~(excess > VENT_DEADBAND)
+        short = (o > 0.0) & (o < md)
+        drop = short & ~(excess > VENT_DEADBAND)
+        if pulse_drop is not None and (short & ~drop).any():
+            drop |= short & ~(excess > 0.5 * pulse_drop(q_out))
         self.pwm.forget(1, drop)
         return a, np.where(drop, 0.0, o)
+
+    def vent_pulse_drop(self, est: dict, W: np.ndarray, q_out: np.ndarray) -> np.ndarray:
+        """The height (m, (n,)) one minimum opening of each chamber's outlet takes off at the bank's
+        estimate ``est`` under loads W (N), outlet flows q_out (kg/s): the model's height at the
+        estimated gas mass less the mass that opening lets out."""
+        ac = self.model.actuator
+        dx = q_out * (self.pwm.min_duty * self._period) * ac.R * ac.T / (ac.p_env * ac.V0)
+        row = lambda v: np.reshape(np.asarray(v, dtype=float), (1, self.n))  # noqa: E731 - the implicit map's shape
+        x, k, c = row(est["x"]), row(est["k"]), row(est["c"])
+        h0 = np.asarray(self.model.out(x, row(W), k, c)[0]).ravel()
+        h1 = np.asarray(self.model.out(x - row(dx), row(W), k, c)[0]).ravel()
+        return np.maximum(h0 - h1, 0.0)
 
     def prime(self, readings_pa: np.ndarray | None = None) -> None:
         """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
