@@ -292,4 +292,5 @@ class RobotSettings:
         minimum opening is longer than the loop's period ``period`` (s), the PWM period it shapes."""
         if self.valve_min_on > period + 1e-12:
             raise ValueError(f"[robot] valve_min_on_ms = {U.to_ms(self.valve_min_on):g} is out of range "
-                             f"[0, {U.to_ms(period):g}] ms (at most the loop's period; the default is 2)")
+                             f"[0, {U.to_ms(period):g}] ms (at most the loop's period; the default is "
+                             f"{U.to_ms(DEFAULT_VALVE_MIN_ON):g})")

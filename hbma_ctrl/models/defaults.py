@@ -26,7 +26,7 @@ DEFAULT_SENSOR_DELAY = 0.003
 DEFAULT_VALVE_MIN_ON = 0.002
 #: the robot's chamber filters take the sensor as read at once by default: on the robot's structured
 #: rig (3 ms first-order lag) a 3 ms dead time settled fewer tip-load runs over rig seeds 0-19 (16
-#: against 18 of 20; README Robot, "The structured rig as the default")
+#: against 20 of 20; README Robot, "The structured rig as the default")
 ROBOT_SENSOR_DELAY = 0.0
 
 #: the models' keywords for the cap chamber with instant valves and sensor (how the claims before
