@@ -425,11 +425,11 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
     assert re.match(r"(p|h_est)_\w+_(kpa|mm): run [-0-9.]+, replay [-0-9.]+$", busy[0]["first_difference"])
 
 
-def _robot_run_with_extras(tmp_path, solves: dict, slow: set) -> tuple:
-    """A 0.4 s robot run at speed 20 whose NMPC solve is replaced at the ticks in ``solves`` (tick
-    number -> maker(ctrl) of the replacement) and whose ticks in ``slow`` first busy-wait 1.5
-    periods of thread CPU; returns (loop, controller, {tick number: rig time})."""
-    cfg, runner, rig, loop = _loop(ROBOT, tmp_path, duration_s=0.4, speed=20.0)
+def _robot_run_with_extras(tmp_path, solves: dict, slow: set, config: Path = ROBOT) -> tuple:
+    """A 0.4 s robot run at speed 20 (``config``) whose NMPC solve is replaced at the ticks in
+    ``solves`` (tick number -> maker(ctrl) of the replacement) and whose ticks in ``slow`` first
+    busy-wait 1.5 periods of thread CPU; returns (loop, controller, {tick number: rig time})."""
+    cfg, runner, rig, loop = _loop(config, tmp_path, duration_s=0.4, speed=20.0)
     loop.warmup_periods = 0
     ctrl = runner.loop.controller
     tick = runner.tick
@@ -511,23 +511,26 @@ def test_soak_replay_stops_a_late_solve_where_osqps_time_limit_cut_the_runs(tmp_
     """A late solve that OSQP's time limit cut short but that still ended usable is the next step's
     warm start: the replay stops its solve after the iterations the run's event reports (plus the one
     OSQP leaves out of its count) and reaches the run's state at a slow tick later. Solving on, as a
-    replay without the event's iteration count does, parts from the run there."""
+    replay without the event's iteration count does, parts from the run there. On the robot's old rig
+    and loop (_ROBOT_INSTANT): on the default (2 ms minimum valve opening) the blind replay met the
+    run again by tick 30, so the test could not tell the two replays apart there."""
     import hbma_ctrl.app.bench_soak as soak
 
-    free, _, marks0 = _robot_run_with_extras(tmp_path / "free", {}, {22, 30})
+    config = _write_config(tmp_path, ROBOT, replace=_ROBOT_INSTANT)
+    free, _, marks0 = _robot_run_with_extras(tmp_path / "free", {}, {22, 30}, config)
     natural = _natural_iterations(free, marks0[22])
     k = natural // 3
     assert natural > k + 5, natural  # the cut changes the solution
-    loop, ctrl, marks = _robot_run_with_extras(tmp_path / "cut", {22: _cut(k)}, {22, 30})
+    loop, ctrl, marks = _robot_run_with_extras(tmp_path / "cut", {22: _cut(k)}, {22, 30}, config)
     events = {e["t_s"]: e["cause"] for e in loop.events if e["kind"] == "slow_tick"}
     assert f"nmpc iterations {k}," in events[marks[22]], events[marks[22]]
     assert re.search(r"nmpc status overrun \([0-9.]+ ms > [0-9.]+ ms\)$", events[marks[22]]), events
-    ticks = {t["t_s"]: t for t in soak.replay_ticks(ROBOT, tmp_path / "cut", 20.0, echo=lambda s: None)}
+    ticks = {t["t_s"]: t for t in soak.replay_ticks(config, tmp_path / "cut", 20.0, echo=lambda s: None)}
     assert ticks[marks[30]]["same_state"] and ticks[marks[30]]["machine"], ticks
     assert not ticks[marks[30]]["overrun_not_forced"]
     # without the iteration count the replay solves on at the late tick and parts from the run
     monkeypatch.setattr(soak, "_NMPC_ITER", re.compile(r"(?!x)x"))
-    blind = {t["t_s"]: t for t in soak.replay_ticks(ROBOT, tmp_path / "cut", 20.0, echo=lambda s: None)}
+    blind = {t["t_s"]: t for t in soak.replay_ticks(config, tmp_path / "cut", 20.0, echo=lambda s: None)}
     assert not blind[marks[30]]["same_state"], blind
 
 
