@@ -68,7 +68,7 @@ from typing import NamedTuple
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, compiled
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.core.units import mm
@@ -263,6 +263,24 @@ class ChamberBank:
             self._cache["pump"] = PumpMap(self.pneumatics.csv_path)
         return self._cache["pump"]
 
+    def height_drops(self, x: np.ndarray, W: np.ndarray, k: np.ndarray, c: np.ndarray,
+                     dx: np.ndarray) -> np.ndarray:
+        """The height (m, (n,)) each chamber loses when gas mass dx (units of x) leaves it: the model's
+        height at (x, W, k, c) less the one at x - dx; one call of a compiled map (the loop's vent
+        rule asks for it on a tick with a short vent, where two calls of :attr:`out` cost 0.3 ms for
+        18 chambers)."""
+        n = int(np.size(x))
+
+        def build() -> ca.Function:
+            xs, ws, ks, cs, ds = (ca.SX.sym(s) for s in ("x", "W", "k", "c", "dx"))
+            drop = self.outputs_expr(xs, ws, ks, cs)[0] - self.outputs_expr(xs - ds, ws, ks, cs)[0]
+            return ca.Function("height_drop", [xs, ws, ks, cs, ds], [drop])
+
+        key = ("height_drop_fast", n)
+        if key not in self._cache:
+            self._cache[key] = FastFunction(self.mapped(self.cached("height_drop", build), n), False)
+        return self._cache[key](x, W, k, c, dx)[0].copy()
+
     def open_flows(self, p: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The mass flows (kg/s, each (n,)) a supply a = 1 (the full-speed pump through an open inlet)
         and an outlet o = 1 (the outlet fully open) pass, at gauge pressures p (n,) Pa with pump-flow
@@ -274,9 +292,11 @@ class ChamberBank:
             P = self.chamber.with_factors(self.chamber.params, b=bb)
             f = ca.Function("open_flows", [pp, bb], [self.chamber.net_flow(ca.DM([1.0, 1.0, 0.0]), pp, P),
                                                        -self.chamber.net_flow(ca.DM([0.0, 0.0, 1.0]), pp, P)])
-            self._cache[key] = f.map(n)
-        q_in, q_out = self._cache[key](np.reshape(p, (1, n)), np.reshape(b, (1, n)))
-        return np.asarray(q_in).ravel(), np.asarray(q_out).ravel()
+            # compiled and called on buffers: the loop calls it on most ticks with a minimum opening
+            # (50 us for 18 chambers on casadi's virtual machine with numpy arguments)
+            self._cache[key] = FastFunction(self.mapped(f, n), False)
+        q_in, q_out = self._cache[key](p, b)
+        return q_in.copy(), q_out.copy()
 
     def valve_inputs(self, a: np.ndarray, o: np.ndarray, p: np.ndarray, throttle: bool = True) -> np.ndarray:
         """Plant inputs U (3 x n) for decisions a, o (n,) at gauge pressures p (n,) Pa: the compressor

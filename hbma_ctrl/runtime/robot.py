@@ -368,17 +368,13 @@ class RobotLoop:
         estimated gas mass less the mass that opening lets out."""
         ac = self.model.actuator
         dx = q_out * (self.pwm.min_duty * self._period) * ac.R * ac.T / (ac.p_env * ac.V0)
-        row = lambda v: np.reshape(np.asarray(v, dtype=float), (1, self.n))  # noqa: E731 - the implicit map's shape
-        x, k, c = row(est["x"]), row(est["k"]), row(est["c"])
-        h0 = np.asarray(self.model.out(x, row(W), k, c)[0]).ravel()
-        h1 = np.asarray(self.model.out(x - row(dx), row(W), k, c)[0]).ravel()
-        return np.maximum(h0 - h1, 0.0)
+        return np.maximum(self.model.height_drops(est["x"], W, est["k"], est["c"], dx), 0.0)
 
     def prime(self, readings_pa: np.ndarray | None = None) -> None:
         """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
         set up and solved once at rest (the bank's starting estimate from ``readings_pa``, Pa, default
         0; the targets of t = 0 moved as the first tick would move them), the valve inputs' pump map
-        loaded and, with a minimum opening, the short vents' flows built. The first tick then fits its
+        loaded and, with a minimum opening, the short vents' flows and height drops built. The first tick then fits its
         period (without it: 9-12 ms of a 10 ms period here)."""
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
         a = np.zeros(self.n)
@@ -391,7 +387,10 @@ class RobotLoop:
             a = np.full(self.n, 0.5 / self.n)  # a supply on every chamber: the throttle's whole path
         self.model.valve_inputs(a, np.zeros(self.n), p, throttle=self.throttle)
         if self.pwm.active:
-            self.model.open_flows(p, np.ones(self.n))  # the short vents' netting Function built
+            # the short vents' netting and vent-rule Functions built (the second compiled)
+            self.model.open_flows(p, np.ones(self.n))
+            self.model.height_drops(np.zeros(self.n), np.full(self.n, W_FLOOR), np.ones(self.n), np.ones(self.n),
+                                    np.zeros(self.n))
 
     def _slew(self, goal: np.ndarray, h_est: np.ndarray, dt: float) -> np.ndarray:
         """The targets this tick (m): ``goal`` when there is no rate; otherwise the last ones (the
