@@ -239,7 +239,6 @@ class ChamberBank:
         self.pneumatics = self.tables.pneumatics
         self.load_max = load_max
         self.h_table_max = h_table_max
-        a = self.actuator
         x, W, b = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("b")
         w = ca.SX.sym("w", 2)  # [supply a, outlet o]
         u = ca.SX.sym("u", 3)  # the plant's inputs [speed, inlet duty, outlet duty]
@@ -248,7 +247,7 @@ class ChamberBank:
         self.u = u
         hx, p, lam = self.outputs_expr(x, W, k, c)
         q = self.chamber.net_flow(u, p, self.chamber.with_factors(self.chamber.params, b=b))
-        self._xdot_u = ca.Function("xdot_u", [x, u, W, b, k, c], [q * a.R * a.T / (a.p_env * a.V0)])
+        self._xdot_u = ca.Function("xdot_u", [x, u, W, b, k, c], [self.x_of_mass(q)])
         # the decisions: pump at full speed while the inlet is open, inlet duty a
         self._xdot = ca.Function("xdot", [x, w, W, b, k, c],
                                  [self._xdot_u(x, ca.vertcat(1.0, w[0], w[1]), W, b, k, c)])
@@ -263,23 +262,29 @@ class ChamberBank:
             self._cache["pump"] = PumpMap(self.pneumatics.csv_path)
         return self._cache["pump"]
 
+    def x_of_mass(self, m):
+        """A gas mass (or mass flow) m, kg (kg/s), in the scaled mass's units, p_env V0 / (R T) (the
+        state's ``x = m R T / (p_env V0) - 1`` without its offset); numbers or SX."""
+        a = self.actuator
+        return m * a.R * a.T / (a.p_env * a.V0)
+
     def height_drops(self, x: np.ndarray, W: np.ndarray, k: np.ndarray, c: np.ndarray,
-                     dx: np.ndarray) -> np.ndarray:
-        """The height (m, (n,)) each chamber loses when gas mass dx (units of x) leaves it: the model's
-        height at (x, W, k, c) less the one at x - dx; one call of a compiled map (the loop's vent
-        rule asks for it on a tick with a short vent, where two calls of :attr:`out` cost 0.3 ms for
-        18 chambers)."""
+                     dm: np.ndarray) -> np.ndarray:
+        """The height (m, (n,)) each chamber loses when gas mass dm (kg) leaves it: the model's height
+        at (x, W, k, c) less the one at x less dm; one call of a compiled map (the loop's vent rule
+        asks for it on a tick with a short vent, where two calls of :attr:`out` cost 0.3 ms for 18
+        chambers)."""
         n = int(np.size(x))
 
         def build() -> ca.Function:
-            xs, ws, ks, cs, ds = (ca.SX.sym(s) for s in ("x", "W", "k", "c", "dx"))
-            drop = self.outputs_expr(xs, ws, ks, cs)[0] - self.outputs_expr(xs - ds, ws, ks, cs)[0]
-            return ca.Function("height_drop", [xs, ws, ks, cs, ds], [drop])
+            xs, ws, ks, cs, ms = (ca.SX.sym(s) for s in ("x", "W", "k", "c", "dm"))
+            drop = self.outputs_expr(xs, ws, ks, cs)[0] - self.outputs_expr(xs - self.x_of_mass(ms), ws, ks, cs)[0]
+            return ca.Function("height_drop", [xs, ws, ks, cs, ms], [drop])
 
         key = ("height_drop_fast", n)
         if key not in self._cache:
             self._cache[key] = FastFunction(self.mapped(self.cached("height_drop", build), n), False)
-        return self._cache[key](x, W, k, c, dx)[0].copy()
+        return self._cache[key](x, W, k, c, dm)[0].copy()
 
     def open_flows(self, p: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The mass flows (kg/s, each (n,)) a supply a = 1 (the full-speed pump through an open inlet)

@@ -366,9 +366,8 @@ class RobotLoop:
         """The height (m, (n,)) one minimum opening of each chamber's outlet takes off at the bank's
         estimate ``est`` under loads W (N), outlet flows q_out (kg/s): the model's height at the
         estimated gas mass less the mass that opening lets out."""
-        ac = self.model.actuator
-        dx = q_out * (self.pwm.min_duty * self._period) * ac.R * ac.T / (ac.p_env * ac.V0)
-        return np.maximum(self.model.height_drops(est["x"], W, est["k"], est["c"], dx), 0.0)
+        dm = q_out * (self.pwm.min_duty * self._period)
+        return np.maximum(self.model.height_drops(est["x"], W, est["k"], est["c"], dm), 0.0)
 
     def prime(self, readings_pa: np.ndarray | None = None) -> None:
         """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
