@@ -60,6 +60,7 @@ from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.sections import (
     ControllerSection,
     ReferenceProfile,
+    check_min_on,
     filter_settings_for,
 )
 from hbma_ctrl.core import units as U
@@ -228,9 +229,7 @@ def make_pwm(section: ControllerSection, period: float) -> MinOnTime | None:
     the period."""
     if section.valve_min_on <= 0.0:
         return None
-    if section.valve_min_on > period + 1e-12:
-        raise ValueError(f"[controller] valve_min_on_ms = {U.to_ms(section.valve_min_on):g} is out of range "
-                         f"[0, {U.to_ms(period):g}] ms (at most the rig's sample period)")
+    check_min_on("controller", section.valve_min_on, period)
     return MinOnTime(period, section.valve_min_on)
 
 

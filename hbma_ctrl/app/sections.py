@@ -290,7 +290,14 @@ class RobotSettings:
     def check_period(self, period: float) -> None:
         """ValueError naming ``[robot] valve_min_on_ms`` (as written, or its default) when the valves'
         minimum opening is longer than the loop's period ``period`` (s), the PWM period it shapes."""
-        if self.valve_min_on > period + 1e-12:
-            raise ValueError(f"[robot] valve_min_on_ms = {U.to_ms(self.valve_min_on):g} is out of range "
-                             f"[0, {U.to_ms(period):g}] ms (at most the loop's period; the default is "
-                             f"{U.to_ms(DEFAULT_VALVE_MIN_ON):g})")
+        check_min_on("robot", self.valve_min_on, period)
+
+
+def check_min_on(table: str, min_on: float, period: float) -> None:
+    """ValueError naming ``[table] valve_min_on_ms`` and its range in ms when the valves' minimum
+    opening ``min_on`` (s; as written or its default) is longer than the loop's period ``period``
+    (s), the PWM period it shapes (the chamber's controller and the robot's loop)."""
+    if min_on > period + 1e-12:
+        raise ValueError(f"[{table}] valve_min_on_ms = {U.to_ms(min_on):g} is out of range [0, {U.to_ms(period):g}] "
+                         f"ms (at most the loop's period, the rig's sample period; the default is "
+                         f"{U.to_ms(DEFAULT_VALVE_MIN_ON):g})")
