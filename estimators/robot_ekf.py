@@ -147,7 +147,8 @@ Y_MIN = 0.96
 
 def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     """Single-chamber EKF step (X[4], P[16], u[3], W, z, use, reopen) -> (X+[4], P+[16], h, p, nis,
-    h_std, over, lam, x_top). The state is ``[y, b, k, c]`` with ``y = (x + 1) / c`` (module doc).
+    h_std, over, lam, x_top, r) with r the reading's signed innovation over its predicted std (before
+    any gate re-opening widens it; 0 when not used). The state is ``[y, b, k, c]`` with ``y = (x + 1) / c`` (module doc).
     ``use`` 0 skips the update; a reading whose NIS exceeds ``gate_nis`` (``over`` 1) is gated (not
     used) unless ``reopen`` is 1: then the prior covariance is inflated until the NIS equals the gate
     (at most by INFLATION_MAX) and the reading is used."""
@@ -198,7 +199,7 @@ def _step_function(model: ChamberBank, s: ChamberEKFSettings) -> ca.Function:
     return ca.Function("ekf_bank_step", [X, Pv, wi, Wi, z, use, reopen],
                        [xp, ca.reshape(Pp, NS * NS, 1), h, p_post, innov ** 2 / S * use_eff,
                         ca.sqrt(ca.fmax(G @ Pp @ G.T, 0)), use * over, lam,
-                        model.x_top_expr(Wi, xp[2], xp[3])])
+                        model.x_top_expr(Wi, xp[2], xp[3]), innov / ca.sqrt(S0 + R) * use])
 
 
 def _readings(z, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -370,7 +371,7 @@ class ChamberEKFBank:
         self.last = {"x": self.gas_mass(X), "b": X[1].copy(), "k": X[2].copy(), "c": X[3].copy(),
                      "h": np.maximum(h, 0.0), "p": p, "h_std": h_std, "lam": lam, "beyond": beyond,
                      "lost": beyond | at_bound,
-                     "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis,
+                     "k_std": np.sqrt(np.maximum(self.P[2 * NS + 2], 0.0)), "nis": nis, "r": out[9].copy(),
                      "used": used, "outlier": outlier | gated}
         return self.last
 
