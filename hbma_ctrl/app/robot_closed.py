@@ -55,6 +55,8 @@ class ClosedLoopRun:
     events: list = field(default_factory=list)  # the supervisor's interventions (SupervisorEvent)
     stretch_interlocks: int = 0  # the stretch interlock's supply cuts (chamber steps)
     lost_estimate_steps: int = 0  # chamber steps vented for a lost estimate
+    bursts: list = field(default_factory=list)  # chambers the burst test flagged (indices)
+    burst_peak_sigma: float = 0.0  # the burst test's largest sum, sigma (0 without the test)
 
 
 def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberBank:
@@ -104,7 +106,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
                            plan_period=ctrl.s.dt if controller == "mpc" else None)
     loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None,
-                     target_rate=settings.target_rate, valve_min_on=settings.valve_min_on)
+                     target_rate=settings.target_rate, valve_min_on=settings.valve_min_on, burst=settings.burst)
     steps = int(round(duration / Ts))
     T = steps + 1
     H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))
@@ -136,9 +138,10 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
             T = j + 2
             break
     sl = slice(0, T)
+    ls = loop.stats()
     return ClosedLoopRun(controller, tt[sl], H[sl], HR[sl], HE[sl], P[sl], PM[sl], LM[sl], A[sl], O[sl], LD[sl],
                          st[:T - 1], se[:T - 1], sc[:T - 1], sup.counts["guard"], sup.failed_steps,
                          int(getattr(ctrl, "inaccurate", 0)), status, time.perf_counter() - wall0,
                          np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
                          BE[sl], loop.cautious_steps, list(sup.events), sup.counts["stretch_guard"],
-                         sup.counts["lost_estimate"])
+                         sup.counts["lost_estimate"], ls["bursts"], ls["burst_peak_sigma"])

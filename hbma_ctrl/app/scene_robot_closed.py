@@ -117,6 +117,8 @@ def closed_loop_metrics(design: RobotDesign, run: ClosedLoopRun, pressure_limit:
         "interlocks": run.interlocks,
         "stretch_interlocks": run.stretch_interlocks,
         "lost_estimate_steps": run.lost_estimate_steps,
+        "burst_chambers": [names[i] for i in run.bursts],
+        "burst_peak_sigma": run.burst_peak_sigma,
         "cautious_steps": run.cautious_steps,
         "fallbacks": run.fallbacks,
         "qp_not_solved": run.inaccurate,

@@ -23,6 +23,7 @@ from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.plant import RobotPlantSettings
+from hbma_ctrl.runtime.burst import BurstTestSettings
 from hbma_ctrl.runtime.calibrate import CalibrationSettings
 from hbma_ctrl.sim.batch import protocol_trials
 from hbma_ctrl.sim.rig import RigSettings
@@ -227,6 +228,8 @@ class RobotSettings:
     valve_delay, sensor_delay : the valve and sensor delays the chambers' filters take, s, [0, 0.1]
         (:class:`estimators.robot_ekf.ChamberEKFSettings`; 0 = at once); default 5 ms and 0
         (:mod:`hbma_ctrl.models.defaults`; ``ROBOT_INSTANT`` sets all three to 0).
+    burst_sigma : the burst test's threshold, in the chambers' filters' standard deviations, [0, 1e4]
+        (0 = no burst test; :mod:`hbma_ctrl.runtime.burst`); default 50.
     """
 
     design: RobotDesign = field(default_factory=RobotDesign)
@@ -250,6 +253,7 @@ class RobotSettings:
     valve_min_on: float = field(default=DEFAULT_VALVE_MIN_ON, repr=False)
     valve_delay: float = field(default=DEFAULT_VALVE_DELAY, repr=False)
     sensor_delay: float = field(default=ROBOT_SENSOR_DELAY, repr=False)
+    burst_sigma: float = field(default=BurstTestSettings.threshold, repr=False)
 
     @property
     def plant(self) -> RobotPlantSettings:
@@ -285,7 +289,17 @@ class RobotSettings:
             check_range("robot", "target_rate", self.target_rate, 0.0, 1.0, "m/s")
         check_range("robot", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
         check_delays("robot", self.valve_delay, self.sensor_delay)
+        check_range("robot", "burst_sigma", self.burst_sigma, 0.0, 1e4, "sigma")
         return self
+
+    @property
+    def burst(self) -> BurstTestSettings | None:
+        """The loop's burst test (None when ``burst_sigma`` is 0). Its step cap is at most 0.4 x the
+        threshold (the default's ratio), so that one or two wild readings never flag a burst alone."""
+        if self.burst_sigma <= 0.0:
+            return None
+        d = BurstTestSettings()
+        return BurstTestSettings(threshold=self.burst_sigma, step_cap=min(d.step_cap, 0.4 * self.burst_sigma))
 
     def check_period(self, period: float) -> None:
         """ValueError naming ``[robot] valve_min_on_ms`` (as written, or its default) when the valves'

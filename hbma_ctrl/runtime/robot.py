@@ -23,8 +23,11 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   chamber whose filter is lost (its gas mass at the top of the model's tables, or a factor at the
   edge of its range: the estimate no longer says how far the membrane has grown, and a far-branch
   membrane pumped on grows without bound at a falling pressure, which the pressure interlock never
-  sees) is vented until its reading is down, then its filter restarts from that reading; the NMPC
-  gets no supply budget for a chamber held by either; the command sent is handed back to the NMPC
+  sees) is vented until its reading is down, then its filter restarts from that reading; and the
+  burst rule: a chamber whose readings fall far below its filter's prediction, period after period
+  (:class:`hbma_ctrl.runtime.burst.BurstTest` on the bank's signed innovations: a burst membrane or
+  an outlet stuck open), gets the safe command until the supervisor is reset; the NMPC gets no
+  supply budget for a chamber held by any of these; the command sent is handed back to the NMPC
   (``applied``: its input-rate terms start from it);
 - with ``valve_min_on`` the inlet and outlet duties sent are each 0 or at least the valves' minimum
   opening, a smaller one realised on average over the periods (:class:`hbma_ctrl.runtime.pwm.MinOnTime`,
@@ -60,6 +63,7 @@ from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
 from hbma_ctrl.robot.targets import chamber_targets
+from hbma_ctrl.runtime.burst import BurstTest, BurstTestSettings
 from hbma_ctrl.runtime.pwm import MinOnTime
 from hbma_ctrl.runtime.safety import ZERO_TARGET, Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
@@ -177,12 +181,14 @@ class RobotLoop:
     target_rate : the fastest a chamber's target height moves, m/s (None or 0: targets step).
     valve_min_on : the valves' shortest opening, s, [0, sample period] (0: duties sent as decided;
         default the models' 2 ms, :mod:`hbma_ctrl.models.defaults`).
+    burst : the burst test on the bank's innovations (:class:`BurstTestSettings`; None = off): a chamber
+        it flags gets the safe command until the supervisor is reset (its rule 7); ``bursts`` lists them.
     """
 
     def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
                  stats_capacity: int = 4096, throttle: bool = True, target_rate: float | None = None,
-                 valve_min_on: float = DEFAULT_VALVE_MIN_ON):
+                 valve_min_on: float = DEFAULT_VALVE_MIN_ON, burst: BurstTestSettings | None = BurstTestSettings()):
         self.design = design
         self.model = model
         self.bank = bank
@@ -225,6 +231,7 @@ class RobotLoop:
         self._t: float | None = None
         self._period = float(bank.settings.sample_period)
         self.pwm = MinOnTime(self._period, valve_min_on)
+        self.burst = None if burst is None else BurstTest(self.n, burst)
 
     def set_targets(self, targets: dict) -> None:
         """Replace the layer targets ({layer: ((t s, centre m, bend rad, direction rad), ...)}) from the next
@@ -258,13 +265,17 @@ class RobotLoop:
         z = np.where(est["outlier"], np.nan, _as_float(readings_pa, self.n))
         t1 = time.perf_counter()
         self.estimate = est
+        burst = None
+        if self.burst is not None:
+            self.burst.update(est["r"])
+            burst = self.burst.flagged
         W = np.maximum(load_sharing(self.design, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
         self.loads = W
         href = self._slew(self.chamber_targets(t), est["h"], steps * self._period)
         self.href = href
         vent = sup.vent_mask(href)
         stretch, lost = est["lam"], est["lost"]
-        held = sup.stretch_over(stretch) | lost | sup.lost  # no supply budget where rules 5, 6 cut it
+        held = sup.stretch_over(stretch) | lost | sup.lost | sup.burst  # no supply budget where rules 5-7 cut it
         t_ctrl = time.perf_counter()
         plan, ok, cause = None, True, "ok"
         try:
@@ -294,11 +305,13 @@ class RobotLoop:
             a, o, ok, cause = np.zeros(self.n), np.zeros(self.n), False, f"exception: {type(exc).__name__}"
         t_sup = time.perf_counter()
         cmd = sup.apply(t, np.column_stack([a, o]), z, ok=ok, plan=plan, target=href, cause=cause,
-                        stretch=stretch, lost=lost)
+                        stretch=stretch, lost=lost, burst=burst)
         if sup.released.any():
             # vented down: the chamber is flat again, its filter restarts from the reading (the factors
-            # that took it off its model are not kept)
+            # that took it off its model are not kept), and so does its burst test's sum
             self.bank.reset(z, sup.released)
+            if self.burst is not None:
+                self.burst.g[sup.released] = 0.0
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
         if self.is_mpc:
             ctrl.applied(a, o)
@@ -432,8 +445,9 @@ class RobotLoop:
         """Step, EKF and controller times (ms: median, p99, max, n), fallbacks (failed controller
         steps), interlocks (pressure interlock's supply cuts, per chamber and step), stretch_interlocks
         (the stretch interlock's), lost_estimate_steps (chamber steps vented for a lost estimate),
-        cautious steps, QPs not solved and held_unmatched (reports of a held command matching none
-        sent lately)."""
+        cautious steps, QPs not solved, held_unmatched (reports of a held command matching none
+        sent lately), bursts (chambers the burst test flagged, indices) and burst_peak_sigma (the
+        test's largest sum over the chambers, sigma: its margin to the threshold)."""
         sup = self.supervisor
         ms = lambda st: {k: (v * 1e3 if k != "n" else v) for k, v in st.summary().items()}  # noqa: E731
         return {"step_ms": ms(self.step_s), "ekf_ms": ms(self.ekf_s), "controller_ms": ms(self.ctrl_s),
@@ -444,4 +458,6 @@ class RobotLoop:
                 "qp_not_solved": int(getattr(self.controller, "inaccurate", 0)),
                 "overruns": int(getattr(self.controller, "overruns", 0)),
                 "held_unmatched": int(self.held_unmatched),
+                "bursts": [int(i) for i in np.nonzero(sup.burst)[0]],
+                "burst_peak_sigma": float(self.burst.peak.max()) if self.burst is not None else 0.0,
                 "estimator": self.bank.stats()}

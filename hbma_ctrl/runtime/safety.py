@@ -26,6 +26,9 @@ The policy, in this order, per chamber:
    anywhere above what the model covers) gets the safe command from then until its pressure is at
    or below ``lost_release``; on that step it is in ``released`` (its owner restarts the estimate
    from the flat chamber). A far-branch membrane pumped on by a lost estimate grows without bound.
+7. burst: a chamber its owner's burst test flagged (``burst``: it loses gas faster than its valves
+   let it, :mod:`hbma_ctrl.runtime.burst`) gets the safe command from then on, until :meth:`reset`:
+   a burst membrane or a stuck outlet is for a person to look at, and pumping it only feeds the leak.
 
 Every intervention is counted (by cause) and logged as an event (time, chamber, cause, detail) in a
 bounded log; vents are logged when they start (a held zero target would flood the log otherwise).
@@ -132,8 +135,10 @@ class Supervisor:
         #: chambers vented for a lost estimate (until their pressure is down), and those released this step
         self.lost = np.zeros(self.n, dtype=bool)
         self.released = np.zeros(self.n, dtype=bool)
+        #: chambers put on the safe command for a burst (rule 7), until the next reset
+        self.burst = np.zeros(self.n, dtype=bool)
         self.counts: dict = {"shifted_plan": 0, "safe_command": 0, "vent": 0, "guard": 0, "stretch_guard": 0,
-                             "lost_estimate": 0}
+                             "lost_estimate": 0, "burst": 0}
         self.failure_causes: dict = {}
         self.failed_steps = 0
         self.events: deque = deque(maxlen=self.settings.event_log_size)
@@ -183,7 +188,7 @@ class Supervisor:
 
     # --- the policy ------------------------------------------------------------------------------
     def apply(self, t: float, command, pressure, ok=True, plan=None, target=None,
-              cause: str = "controller_failed", stretch=None, lost=None) -> np.ndarray:
+              cause: str = "controller_failed", stretch=None, lost=None, burst=None) -> np.ndarray:
         """The command to send at time t (s), same shape as ``command``.
 
         command : proposed command, (n, c) or (c,) for one chamber, values nominally in [0, 1].
@@ -196,6 +201,7 @@ class Supervisor:
         stretch : estimated membrane stretch per chamber (-; NaN = unknown: not guarded) for the
             stretch guard; None = not guarded this step.
         lost : (n,) bool, chambers whose estimate has left its model's range this step (rule 6).
+        burst : (n,) bool, chambers the burst test has flagged (rule 7; latched here until reset).
         """
         s = self.settings
         cmd = np.array(command, dtype=float)
@@ -287,4 +293,13 @@ class Supervisor:
             cmd[self.lost] = self.safe_command(c)
             self.counts["lost_estimate"] += int(self.lost.sum())
         self.lost &= ~self.released
+        # 7. burst: the safe command until a reset
+        new = np.zeros(self.n, dtype=bool) if burst is None else \
+            np.broadcast_to(np.asarray(burst, dtype=bool), (self.n,)) & ~self.burst
+        for i in np.nonzero(new)[0]:
+            self._log(t, i, "burst", "losing gas faster than its valves let it: venting until a reset")
+        self.burst |= new
+        if self.burst.any():
+            cmd[self.burst] = self.safe_command(c)
+            self.counts["burst"] += int(self.burst.sum())
         return cmd[0] if single else cmd

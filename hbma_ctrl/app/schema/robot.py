@@ -34,6 +34,7 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import LETTERS, RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.kinematics import inverse_kinematics
+from hbma_ctrl.runtime.burst import BurstTestSettings
 from hbma_ctrl.robot.rig import H_TARGET_MAX
 
 __all__ = ["RobotInputRow", "RobotTable", "RobotTargetRow", "TipLoadRow"]
@@ -131,6 +132,9 @@ class RobotTable(Table):
                                 "valves as acting this long after their command (0 = at once)")
     sensor_delay_ms: float = num(U.to_ms(ROBOT_SENSOR_DELAY), 0.0, 100.0, "ms", "the chambers' filters take the "
                                  "pressure sensors as reading this late (0 = at once)")
+    burst_sigma: float = num(BurstTestSettings.threshold, 0.0, 1e4, "sigma", "a chamber whose readings fall "
+                             "this far below its filter's prediction, summed over periods, is a burst: vented "
+                             "until a reset (0 = no burst test)")
 
     _settings: Any = PrivateAttr(None)
 
@@ -254,7 +258,8 @@ class RobotTable(Table):
                                 ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms),
                                 ("mpc_budget", "mpc_budget", float), ("target_rate_mm_s", "target_rate", U.mm),
                                 ("mpc_w_slack", "mpc_w_slack", float), ("valve_min_on_ms", "valve_min_on", U.ms),
-                                ("valve_delay_ms", "valve_delay", U.ms), ("sensor_delay_ms", "sensor_delay", U.ms)):
+                                ("valve_delay_ms", "valve_delay", U.ms), ("sensor_delay_ms", "sensor_delay", U.ms),
+                                ("burst_sigma", "burst_sigma", float)):
             if self._given(key):
                 closed[name] = conv(getattr(self, key))
         sync = U.ms(self.sync_ms) if self._given("sync_ms") else RobotSettings().sync_period
