@@ -74,9 +74,10 @@ from hbma_ctrl.core.params import check_range
 __all__ = ["FAULT_KINDS", "Fault", "MonitorSettings", "SafetyMonitor"]
 
 #: every kind a monitor reports: the detections of the module doc, then the external causes
-#: :meth:`SafetyMonitor.raise_fault` takes
+#: :meth:`SafetyMonitor.raise_fault` takes ("burst": the robot loop's model-based burst test,
+#: :mod:`hbma_ctrl.runtime.burst`, which this monitor, independent of the estimator, does not run)
 FAULT_KINDS = ("over_pressure", "sensor_missing", "sensor_frozen", "out_of_range", "overrun", "leak",
-               "pump_failure", "link_loss", "exception", "signal", "external")
+               "pump_failure", "link_loss", "exception", "signal", "external", "burst")
 
 
 @dataclass
@@ -241,12 +242,12 @@ class SafetyMonitor:
         self.latched = True
         return f
 
-    def raise_fault(self, t: float, kind: str, cause: str) -> Fault:
-        """Report a fault found outside the monitor (link loss, an exception in the loop, a signal)
-        at time t (s); latches the safe state."""
+    def raise_fault(self, t: float, kind: str, cause: str, chamber: int | None = None) -> Fault:
+        """Report a fault found outside the monitor (link loss, an exception in the loop, a signal, a
+        burst the loop's filters found in ``chamber``) at time t (s); latches the safe state."""
         if kind not in FAULT_KINDS:
             raise ValueError(f"fault kind '{kind}': allowed {', '.join(FAULT_KINDS)}")
-        return self._report(t, kind, None, str(cause))
+        return self._report(t, kind, chamber, str(cause))
 
     # --- the checks --------------------------------------------------------------------------------
     def check(self, t: float, readings, u_sent, deadline_missed: bool = False) -> list[Fault]:

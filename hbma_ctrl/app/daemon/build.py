@@ -257,11 +257,22 @@ class RobotRunner:
         self.h_max = float(h_max)
         self._t = 0.0
         self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
+        self._bursts_reported = np.zeros(self.n, dtype=bool)
 
     def take_events(self) -> list[tuple[str, str]]:
         """(kind, cause) events since the last call: the supervisor's interventions
         (:class:`SupervisorEpisodes`: interlocks, vents, a lost estimate, fallbacks)."""
         return self._episodes.take()
+
+    def take_faults(self) -> list[tuple[str, int, str]]:
+        """(kind, chamber, cause) faults found since the last call, which the daemon latches: the
+        chambers the loop's burst test flagged (:mod:`hbma_ctrl.runtime.burst`)."""
+        new = self.loop.supervisor.burst & ~self._bursts_reported
+        self._bursts_reported |= new
+        g = self.loop.burst.g if self.loop.burst is not None else np.zeros(self.n)
+        return [("burst", int(i), f"{self.names[i]}: its readings fell {g[i]:.0f} sigma below its filter's "
+                 "prediction over the last periods (a burst membrane or an outlet stuck open)")
+                for i in np.nonzero(new)[0]]
 
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """One period at rig time t (s) with the readings p (Pa, (n,)) -> U (3, n); ``held`` (3, n): the
@@ -404,7 +415,7 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     sup = robot_supervisor(rp.pressure_limit, n, plan_period=ctrl.s.dt if s.controller == "mpc" else None)
     rate = DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate
     loop = RobotLoop(d, model, bank, ctrl, sup, s.targets, cautious=(0.75, 0.03, 0.3) if s.controller == "mpc" else None,
-                     target_rate=rate, valve_min_on=s.valve_min_on)
+                     target_rate=rate, valve_min_on=s.valve_min_on, burst=s.burst)
     # the solver's set-up and first solve before the first deadline, not in it (a replay of a run
     # builds its runner here too, so it starts as the run did)
     loop.prime()

@@ -319,6 +319,20 @@ class DaemonLoop:
         self.tick_cpu_s.add(self._last_tick_cpu)
         for kind, cause in getattr(self.runner, "take_events", list)():
             self.event(kind, cause)
+        # faults the runner's own tests found (the robot's burst test on its filters) latch the safe
+        # state as the monitor's do, from this period on
+        found = getattr(self.runner, "take_faults", list)()
+        for kind, i, cause in found:
+            if self.monitor is not None:
+                self.monitor.raise_fault(self.t, kind, cause, chamber=i)
+                self.event(kind, cause)
+            else:
+                self._fault(kind, cause)
+        if found and self.mode == "running":
+            self.mode = "safe"
+            self.event("safe", "fault latched: " + ", ".join(sorted({k for k, _, _ in found})))
+            self._write(safe_u(self.n))
+            return
         self._write(u)
 
     def _tick_over_period(self) -> bool:
