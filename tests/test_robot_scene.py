@@ -151,7 +151,7 @@ def test_robot_tip_load_claim_holds_on_a_seed_it_was_not_shipped_with_and_no_bur
     this runs seed 1 (the cheapest robot scene: the 20 seeds of every scene are the slow sweep). The
     tip load's steps are the sharpest falls a clean robot run reads below its filters' predictions: the
     burst test flags no chamber and its largest sum stays far under the 50 sigma threshold (measured
-    at most 1.3 over seeds 0-5)."""
+    at most 2.7 over seeds 0-19)."""
     rob = _robot_scene_over_seed("robot_tip_load", 1, tmp_path)
     assert len(rob["segments"]) == 3
     assert _robot_claim_holds(rob), rob["segments"]
