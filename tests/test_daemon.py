@@ -165,11 +165,14 @@ def test_chamber_daemon_follows_the_file_targets_without_setpoints():
     assert rig.rig.truth()["h"] == pytest.approx(2e-3, abs=0.3e-3)
 
 
-def test_robot_daemon_runs_at_100_hz_under_its_pressure_limit():
+def test_robot_daemon_runs_at_100_hz_under_its_pressure_limit_and_its_burst_test_stays_quiet():
     state = DaemonState()
     cfg, runner, rig, loop = _loop(ROBOT, state=state, duration_s=2.0)
     stats = loop.run()
     assert stats["steps"] == 200 and stats["rate_hz"] == 100.0 and stats["safe_exit"]
+    assert stats["faults"] == {}
+    # the burst test's margin is reported, far under its 50 sigma threshold in a clean run
+    assert stats["monitor_margins"]["burst_sigma"] is not None and stats["monitor_margins"]["burst_sigma"] < 10.0
     assert rig.rig.t == pytest.approx(2.0)  # lockstep: one period of rig time per write
     assert stats["max_pressure_kpa"] <= 45.0
     st = state.status()
@@ -1025,6 +1028,7 @@ def test_robot_burst_drill_is_found_by_the_burst_test_and_the_safe_state_follows
     assert _safe_from(rig, first["t_s"])
     assert max(rig.p_true) <= 47.5e3
     assert runner.loop.stats()["bursts"] == [chamber]
+    assert stats["monitor_margins"]["burst_sigma"] >= 50.0
     assert "burst" in (tmp_path / "log" / "events.csv").read_text()
 
 
@@ -1034,7 +1038,7 @@ def test_robot_leak_test_finds_a_burst_while_pumping_without_the_burst_test(tmp_
     the burst and the safe command goes out in that period."""
     start, chamber = BURST_DRILLS[0]
     runner, rig, loop, stats = _burst_drill(tmp_path, start, chamber, tmp_path / "log", _ROBOT_LEAK_ONLY)
-    assert runner.loop.burst is None
+    assert runner.loop.burst is None and stats["monitor_margins"]["burst_sigma"] is None
     assert stats["faults"] == {"leak": 1}, stats["faults"]
     first = next(e for e in loop.events if e["kind"] == "leak")
     assert start - 1e-9 <= first["t_s"] <= start + 0.5

@@ -264,6 +264,12 @@ class RobotRunner:
         (:class:`SupervisorEpisodes`: interlocks, vents, a lost estimate, fallbacks)."""
         return self._episodes.take()
 
+    def burst_peak(self) -> float | None:
+        """The burst test's largest sum over the chambers so far, sigma (its margin to the threshold;
+        None without the test)."""
+        b = self.loop.burst
+        return None if b is None else float(b.peak.max())
+
     def take_faults(self) -> list[tuple[str, int, str]]:
         """(kind, chamber, cause) faults found since the last call, which the daemon latches: the
         chambers the loop's burst test flagged (:mod:`hbma_ctrl.runtime.burst`)."""

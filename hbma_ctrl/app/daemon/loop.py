@@ -509,7 +509,8 @@ class DaemonLoop:
         tick_ms_median and tick_ms_p99 (the runtime tick without the rig's I/O, wall time),
         tick_cpu_ms_median and tick_cpu_ms_p99 (its thread's CPU time), speed, rig_time_s, wall_s,
         monitor_margins: how near the supervisor's trend tests came to firing (leak_drop_kpa,
-        leak_fraction, pump_rise_kpa; see :attr:`hbma_ctrl.runtime.watchdog.SafetyMonitor.closest`), and
+        leak_fraction, pump_rise_kpa; see :attr:`hbma_ctrl.runtime.watchdog.SafetyMonitor.closest`) and
+        the robot loop's burst test (burst_sigma: its largest sum, sigma; None without the test), and
         the garbage collector's pauses in any thread (gc_collections by generation, gc_pause_ms_max,
         gc_pause_ms_total, gc_frozen; :meth:`hbma_ctrl.app.daemon.gcwatch.GcWatch.stats`)."""
         st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
@@ -533,4 +534,5 @@ class DaemonLoop:
         c = getattr(self.monitor, "closest", {})
         kpa = lambda x: float(U.to_kpa(x)) if math.isfinite(x) else None  # noqa: E731
         return {"leak_drop_kpa": kpa(c.get("leak_drop", math.nan)), "leak_fraction": c.get("leak_fraction"),
-                "pump_rise_kpa": kpa(c.get("pump_rise", math.nan))}
+                "pump_rise_kpa": kpa(c.get("pump_rise", math.nan)),
+                "burst_sigma": getattr(self.runner, "burst_peak", lambda: None)()}
