@@ -991,7 +991,7 @@ _ROBOT_INSTANT = {"seed = 0\n": "seed = 0\nvalve_delay_ms = 0.0\nvalve_min_on_ms
                                  "sensor_tau_ms = 0.0\n",
                   "[robot]\n": "[robot]\nvalve_min_on_ms = 0.0\nvalve_delay_ms = 0.0\n"}
 #: ... and with no burst test, so that the leak test alone is what finds a burst
-_ROBOT_LEAK_ONLY = {**_ROBOT_INSTANT, "[robot]\n": _ROBOT_INSTANT["[robot]\n"] + "burst_sigma = 0.0\n"}
+_ROBOT_LEAK_ONLY = {**_ROBOT_INSTANT, "burst_sigma = 50.0": "burst_sigma = 0.0"}
 
 
 def _burst_drill(tmp_path: Path, start: float, chamber: int, log: Path | None = None, replace_text: dict | None = None):
