@@ -205,6 +205,49 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if failed:
             raise typer.Exit(1)
 
+    @bench_app.command("drills")
+    def bench_drills(
+        config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
+        = Path("scenarios/daemon_robot.toml"),
+        drills: Annotated[int, typer.Option("--drills", help="how many drills (>= 1)")] = 20,
+        seed: Annotated[int, typer.Option("--seed", help="seed of the drills' times, chambers and setpoints")] = 1,
+        kind: Annotated[str, typer.Option("--kind", help="the fault injected ([[daemon.fault]] kind)")] = "leak",
+        value: Annotated[Optional[float], typer.Option(
+            "--value", help="the fault's value in its key's units (leak / stuck valves: duty 0-1, default 1 "
+                            "for leak and stuck_outlet, 0 for stuck_inlet; offset, out_of_range: kPa, required)")] = None,
+        after_s: Annotated[float, typer.Option("--after-s", help="rig time run after the injection, s (> 0)")] = 1.0,
+        every_s: Annotated[float, typer.Option("--setpoint-every-s", help="rig time between random setpoints, s "
+                                                                        "(0 = the file's targets)")] = 5.0,
+        from_s: Annotated[float, typer.Option("--from-s", help="earliest injection, rig time s")] = 1.0,
+        to_s: Annotated[float, typer.Option("--to-s", help="latest injection, rig time s")] = 20.0,
+        out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_drills"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    ) -> None:
+        """Many fault drills (one fault on a random chamber at a random time) through the daemon's own loop,
+        monitor and runner on the simulated rig: how many are found, by which test, how fast, and the
+        false alarms before them (drills.json)."""
+        from hbma_ctrl.app.bench_drills import check_drills, run_drills
+
+        if not 1 <= drills <= 10000:
+            raise ValueError(f"--drills = {drills} is out of range [1, 10000]")
+        if not (every_s >= 0.0 and every_s < float("inf")):
+            raise ValueError(f"--setpoint-every-s = {every_s:g} must be >= 0 s (0 = the file's targets)")
+        _check_bench(config, {"--after-s": after_s})
+        check_drills(kind, value, from_s, to_s)
+        with run_dir(out, command="bench drills", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
+            res = run_drills(config, tmp, drills, seed, kind, value, after_s, every_s, from_s, to_s,
+                             on_drill=lambda r: print(
+                                 f"  drill {r['drill']}: {r['chamber']} at {r['start_s']:.2f} s: "
+                                 + ("FALSE ALARM before it, " + r["cause"] if r["false_alarm"] else
+                                    f"{r['found']} after {r['delay_s']:.2f} s" if r["found"] else
+                                    "not found" + (f" ({r['other_fault']})" if r["other_fault"] else "")),
+                                 file=sys.stderr, flush=True))
+        kinds = ", ".join(f"{k} {v}" for k, v in res["found_by_kind"].items()) or "none"
+        delay = ("" if res["delay_s_median"] is None else
+                 f", delay median {res['delay_s_median']:.2f} s, max {res['delay_s_max']:.2f} s")
+        typer.echo(f"drills ({kind}): found {res['found']} of {res['judged']} ({kinds}){delay}; "
+                   f"false alarms {res['false_alarms']}; wrote {out / 'drills.json'}")
+
     @bench_app.command("poses")
     def bench_poses(
         config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
