@@ -77,10 +77,35 @@ def test_the_sum_is_never_negative_never_grows_by_more_than_the_cap_and_flags_on
     assert t.flagged[0] == (t.peak[0] >= s.threshold)
 
 
+def test_a_chamber_lost_three_times_within_the_window_is_flagged_and_not_one_lost_slower():
+    t = BurstTest(2)
+    one = np.array([True, False])
+    assert not t.lost(1.0, one).any() and not t.lost(1.5, one).any()
+    assert not t.lost(3.2, one).any()  # 1.0 has left the 2 s window: two episodes in it
+    assert t.lost(3.4, one).tolist() == [True, False]  # 1.5, 3.2, 3.4
+    assert t.flagged.tolist() == [True, False]
+    assert t.why[0].startswith("its estimate was lost 3 times within 1.90 s")
+    assert not t.lost(3.5, one).any()  # reported once
+    # spaced wider than the window, never
+    t2 = BurstTest(1)
+    assert not any(t2.lost(2.5 * k, [True])[0] for k in range(20))
+    t.reset()
+    assert not t.flagged.any() and t.why == ["", ""] and not t.lost(3.6, one).any()
+
+
+def test_a_fall_flag_says_how_far_the_readings_fell():
+    t = BurstTest(1)
+    for _ in range(3):
+        t.update([-30.0])
+    assert t.why[0] == "its readings fell 60 sigma below its filter's prediction over the last periods"
+
+
 @pytest.mark.parametrize("field, value, text", [
     ("threshold", 0.0, r"burst.threshold = 0.0 is out of range \(0.0, 10000.0\] sigma"),
     ("allowance", -1.0, r"burst.allowance = -1.0 is out of range \[0.0, 100.0\] sigma"),
     ("step_cap", 60.0, r"burst.step_cap = 60.0 is out of range \(0.0, 50.0\] sigma"),
+    ("relapses", 1, r"burst.relapses = 1 must be an integer in \[2, 1000\]"),
+    ("relapse_window", 0.0, r"burst.relapse_window = 0.0 is out of range \(0.0, 3600.0\] s"),
 ])
 def test_settings_out_of_range_are_one_error_naming_the_field_and_range(field, value, text):
     with pytest.raises(ValueError, match=text):

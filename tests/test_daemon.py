@@ -1032,6 +1032,21 @@ def test_robot_burst_drill_is_found_by_the_burst_test_and_the_safe_state_follows
     assert "burst" in (tmp_path / "log" / "events.csv").read_text()
 
 
+def test_robot_burst_the_nmpc_vents_at_once_is_found_when_the_chamber_keeps_losing_its_estimate(tmp_path):
+    """B2's outlet sticks fully open at 1.5 s just as the NMPC vents it: its model predicts the fall and
+    the readings' sum stays under the threshold; pumped again, the chamber does not rise and its
+    estimate is lost, released and lost again: the third loss within 2 s flags the burst (within 0.3 s
+    of the injection), the daemon latches it and goes safe in that period."""
+    start, chamber = BURST_DRILLS[2]
+    runner, rig, loop, stats = _burst_drill(tmp_path, start, chamber)
+    assert stats["faults"] == {"burst": 1}, stats["faults"]
+    first = next(e for e in loop.events if e["kind"] == "burst")
+    assert start <= first["t_s"] <= start + 0.3
+    assert first["cause"].startswith("B2: its estimate was lost 3 times within"), first["cause"]
+    assert stats["monitor_margins"]["burst_sigma"] < 50.0  # not the readings' sum
+    assert _safe_from(rig, first["t_s"])
+
+
 def test_robot_leak_test_finds_a_burst_while_pumping_without_the_burst_test(tmp_path):
     """The last resort: with the burst test off (``[robot] burst_sigma = 0``), on the rig without valve
     timing (where the drill hits a chamber while the NMPC pumps it), the supervisor's leak test finds
@@ -1058,23 +1073,23 @@ BURST_DRILLS = [(5.0, 2), (3.0, 0), (1.5, 4), (8.0, 7), (12.0, 4), (15.0, 1), (1
 @pytest.mark.slow
 def test_robot_burst_drills_over_the_run_are_found_by_the_burst_test(tmp_path, capsys):
     """The README's robot burst drills (`pytest -m slow tests/test_daemon.py -k burst_drills -s`): an
-    outlet stuck fully open at 7 times on the default rig; at least 6 are found as bursts, each within
-    0.15 s of its start, with the safe command from then on (the one left, B2 at 1.5 s, hits a chamber
-    the NMPC then vents: its model predicts the fall). Prints found / not and the pressure at the find."""
+    outlet stuck fully open at 7 times on the default rig; all are found as bursts, each within 0.3 s of
+    its start (0.15 s by the readings' sum; B2 at 1.5 s, which the NMPC vents at once, by its lost
+    estimates), with the safe command from then on. Prints found / not and the test's largest sum."""
     found = {}
     for start, ch in BURST_DRILLS:
         runner, rig, loop, stats = _burst_drill(tmp_path, start, ch)
         ev = [e for e in loop.events if e["kind"] == "burst"]
         found[(start, ch)] = (ev[0]["t_s"] - start) if ev else None
         if ev:
-            assert 0.0 <= ev[0]["t_s"] - start <= 0.15 and stats["safe_exit"] and _safe_from(rig, ev[0]["t_s"])
+            assert 0.0 <= ev[0]["t_s"] - start <= 0.3 and stats["safe_exit"] and _safe_from(rig, ev[0]["t_s"])
         with capsys.disabled():
             peak = runner.loop.stats()["burst_peak_sigma"]
             print(f"burst drill at {start:g} s on {runner.names[ch]}: "
                   f"{'found after %.2f s' % found[(start, ch)] if ev else 'not found'} (largest sum {peak:.0f} "
                   f"sigma), faults {stats['faults']}")
     assert found[BURST_DRILLS[0]] is not None
-    assert sum(v is not None for v in found.values()) >= 6, found
+    assert all(v is not None for v in found.values()), found
     with capsys.disabled():
         print(f"found {sum(v is not None for v in found.values())} of {len(found)}")
 
@@ -1103,6 +1118,22 @@ def test_bench_poses_records_every_change_and_every_fault_rearming_the_monitor(t
     assert ("sensor_missing", "A1") in kinds and ("sensor_missing", "B2") in kinds
     assert res["over_limit"] == sum(c["peak_kpa"] > 45.0 for c in res["per_change"])
     assert json.loads((out / "poses.json").read_text())["changes"] == 3
+
+
+def test_bench_poses_records_a_burst_the_runner_finds_and_rearms_its_test(tmp_path):
+    """bench poses: a burst (A3's outlet stuck open for 0.5 s from 1.5 s) found by the robot loop's burst
+    test is recorded naming A3, and the runner's test is re-armed after each: found again while the
+    fault lasts (more than once), never after it has cleared."""
+    from hbma_ctrl.app.bench_poses import run_poses
+
+    cfg = _write_config(tmp_path, ROBOT, '[[daemon.fault]]\nkind = "leak"\nchamber = 2\nstart_s = 1.5\n'
+                                         'duration_s = 0.5\nduty = 1.0\n')
+    out = tmp_path / "o"
+    out.mkdir()
+    res = run_poses(cfg, out, duration_s=4.0, every_s=10.0, seed=3)
+    bursts = [f for f in res["faults"] if f["kind"] == "burst"]
+    assert len(bursts) >= 2 and all(f["chamber"] == "A3" and 1.5 <= f["t_s"] <= 2.0 for f in bursts), res["faults"]
+    assert bursts[0]["cause"].startswith("A3: ")
 
 
 def test_pause_probe_sees_a_stall_and_places_it_on_the_slow_tick_it_overlaps(tmp_path):

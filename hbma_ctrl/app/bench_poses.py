@@ -7,7 +7,8 @@ trips the monitor, over many changes: every ``every_s`` of rig time a random tar
 kind (:func:`hbma_ctrl.app.bench_soak.random_target`, the same draws for the same seed) goes through
 the runner's own check and clip (as ``POST /setpoint``), the loop ticks on the simulated rig
 (the configuration's ``[rig]``) and the monitor checks every reading with
-the command sent last. A fault is recorded and the monitor re-armed (a daemon would have stopped;
+the command sent last, and the runner's own tests (the robot's burst test) run. A fault is recorded
+and the monitor and those tests re-armed (a daemon would have stopped;
 here the run goes on, so one run gives a rate). ``target_rate_mm_s`` overrides ``[robot]
 target_rate_mm_s`` (None: the configuration's, else the daemon's default).
 
@@ -88,6 +89,12 @@ def run_poses(config: Path, out: Path, duration_s: float, every_s: float, seed: 
             # a daemon stops here; the bench re-arms and goes on, so one run counts every fault
             monitor.reset()
         u = runner.tick(t, p)
+        found = getattr(runner, "take_faults", list)()
+        for kind, i, cause in found:
+            faults.append({"t_s": round(t, 6), "kind": kind, "chamber": runner.names[i], "cause": cause})
+        if found:
+            # the runner's own tests (the robot's burst test) re-armed too, the chamber no longer vented
+            runner.clear_faults()
         rig.write(u)
         u_last = u
     close_change()

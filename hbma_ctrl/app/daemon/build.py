@@ -264,6 +264,14 @@ class RobotRunner:
         (:class:`SupervisorEpisodes`: interlocks, vents, a lost estimate, fallbacks)."""
         return self._episodes.take()
 
+    def clear_faults(self) -> None:
+        """Re-arm the runner's own fault tests (a bench that records a fault and goes on): the burst
+        latches of the supervisor and the burst test cleared."""
+        self.loop.supervisor.burst[:] = False
+        if self.loop.burst is not None:
+            self.loop.burst.reset()
+        self._bursts_reported[:] = False
+
     def burst_peak(self) -> float | None:
         """The burst test's largest sum over the chambers so far, sigma (its margin to the threshold;
         None without the test)."""
@@ -275,9 +283,8 @@ class RobotRunner:
         chambers the loop's burst test flagged (:mod:`hbma_ctrl.runtime.burst`)."""
         new = self.loop.supervisor.burst & ~self._bursts_reported
         self._bursts_reported |= new
-        g = self.loop.burst.g if self.loop.burst is not None else np.zeros(self.n)
-        return [("burst", int(i), f"{self.names[i]}: its readings fell {g[i]:.0f} sigma below its filter's "
-                 "prediction over the last periods (a burst membrane or an outlet stuck open)")
+        why = self.loop.burst.why if self.loop.burst is not None else [""] * self.n
+        return [("burst", int(i), f"{self.names[i]}: {why[i] or 'flagged'} (a burst membrane or an outlet stuck open)")
                 for i in np.nonzero(new)[0]]
 
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
