@@ -16,9 +16,9 @@ A drill is *found* when the first fault the daemon latches at or after the injec
 judged). The robot NMPC's wall-time budget is lifted (as the soak's replay does): its commands, and
 so what each drill meets, do not depend on this machine's load.
 
-Writes ``drills.json``: per drill the time, chamber, its reading at the injection (kPa), what was found (kind, delay s, the reading at the
-find in kPa, the fault's cause) and the margins of the tests (``monitor_margins``), and the totals:
-found by kind, delay median and max, false alarms.
+Writes ``drills.json``: per drill the time, chamber, its reading at the injection (kPa), what was
+found (kind, delay s, the reading at the find in kPa, the fault's cause) and the margins of the tests
+(``monitor_margins``), and the totals: found by kind, delay median and max, false alarms.
 """
 
 from __future__ import annotations

@@ -27,9 +27,10 @@ drills). ``relapses`` lost episodes of one chamber within ``relapse_window`` fla
 (:meth:`BurstTest.lost`); a clean run loses an estimate rarely (one episode in the 80 runs of the
 robot scenes' 20-seed sweep).
 
-Measured (the robot's structured default rig, README Run on a rig): in clean runs the largest g was
-2.7 (the 20-seed scene sweeps, ``bench poses``); an outlet stuck fully open is found within a few
-periods unless the controller was venting that chamber already.
+Measured (the robot's structured default rig, README Run on a rig, the burst row): in clean runs the
+largest g was 2.7 (the 20-seed scene sweeps, ``bench poses``); an outlet stuck fully open was found
+in 40 of 40 random drills (``hbma-ctrl bench drills``), 36 by the sum within 0.09 s and 4 by the lost
+estimates within 0.29 s.
 """
 
 from __future__ import annotations
@@ -75,8 +76,8 @@ class BurstTest:
     """Per-chamber CUSUM of the readings' falls below the filter's prediction (module doc).
 
     ``update(r)`` takes the n signed normalised innovations of one period (NaN counts as 0, -inf as a
-    fall at the cap) and returns
-    the chambers whose sum reached the threshold this period (bool (n,)); ``flagged`` keeps every
+    fall at the cap) and returns the chambers whose sum reached the threshold this period (bool (n,));
+    ``flagged`` keeps every
     chamber flagged since the last :meth:`reset` (``why``: what flagged each, for the fault's cause),
     ``g`` the running sums and ``peak`` each chamber's largest sum (the margin to the threshold, for
     tuning on a rig). ``lost(t, new)`` counts the chambers' lost-estimate episodes (module doc)."""

@@ -24,9 +24,10 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   edge of its range: the estimate no longer says how far the membrane has grown, and a far-branch
   membrane pumped on grows without bound at a falling pressure, which the pressure interlock never
   sees) is vented until its reading is down, then its filter restarts from that reading; and the
-  burst rule: a chamber whose readings fall far below its filter's prediction, period after period
-  (:class:`hbma_ctrl.runtime.burst.BurstTest` on the bank's signed innovations: a burst membrane or
-  an outlet stuck open), gets the safe command until the supervisor is reset; the NMPC gets no
+  burst rule: a chamber whose readings fall far below its filter's prediction, period after period,
+  or whose estimate is lost again and again (:class:`hbma_ctrl.runtime.burst.BurstTest` on the bank's
+  signed innovations and lost estimates: a burst membrane or an outlet stuck open), gets the safe
+  command until the supervisor is reset; the NMPC gets no
   supply budget for a chamber held by any of these; the command sent is handed back to the NMPC
   (``applied``: its input-rate terms start from it);
 - with ``valve_min_on`` the inlet and outlet duties sent are each 0 or at least the valves' minimum
