@@ -26,12 +26,11 @@ from __future__ import annotations
 import json
 import random
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from hbma_ctrl.app.bench_soak import random_target
+from hbma_ctrl.app.bench_soak import lift_budget, random_target
 from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
 from hbma_ctrl.app.daemon.faults import INJECTED_KINDS, VALUE_KEY, FaultyRig, parse_faults
@@ -42,7 +41,7 @@ from hbma_ctrl.app.schema.api import SetpointRequest
 from hbma_ctrl.core import units as U
 from hbma_ctrl.runtime.watchdog import FAULT_KINDS
 
-__all__ = ["DRILL_KINDS", "DEFAULT_VALUE", "run_drills", "drill_fault", "check_drills"]
+__all__ = ["DRILL_KINDS", "DEFAULT_VALUE", "run_drills", "drill_fault", "drill_value", "check_drills"]
 
 #: the kinds a drill can inject (a link loss ends the run: it is the daemon's own drill test's)
 DRILL_KINDS = tuple(k for k in INJECTED_KINDS if k != "link_loss")
@@ -51,19 +50,29 @@ DRILL_KINDS = tuple(k for k in INJECTED_KINDS if k != "link_loss")
 DEFAULT_VALUE = {"leak": 1.0, "stuck_outlet": 1.0, "stuck_inlet": 0.0}
 
 
+def drill_value(kind: str, value: float | None) -> float | None:
+    """The value a drill of ``kind`` injects (``value`` as given, else the kind's default; None for a
+    kind that takes none); ValueError naming ``--kind`` or ``--value``."""
+    if kind not in DRILL_KINDS:
+        raise ValueError(f"--kind = '{kind}': allowed {', '.join(DRILL_KINDS)}")
+    key = VALUE_KEY[kind]
+    if key is None:
+        if value is not None:
+            raise ValueError(f"--value = {value:g}: kind '{kind}' takes no value")
+        return None
+    value = DEFAULT_VALUE.get(kind) if value is None else value
+    if value is None:
+        raise ValueError(f"--value: kind '{kind}' needs a value ({key})")
+    return value
+
+
 def drill_fault(kind: str, value: float | None, chamber: int, start: float, n: int):
     """The drill's fault as a ``[[daemon.fault]]`` table (so a bad kind or value is the table's own
     error, naming ``--kind`` / ``--value`` in the user's units) -> FaultSpec."""
-    if kind not in DRILL_KINDS:
-        raise ValueError(f"--kind = '{kind}': allowed {', '.join(DRILL_KINDS)}")
-    raw: dict = {"kind": kind, "chamber": chamber, "start_s": start}
+    value = drill_value(kind, value)
     key = VALUE_KEY[kind]
-    if key is None and value is not None:
-        raise ValueError(f"--value = {value:g}: kind '{kind}' takes no value")
+    raw: dict = {"kind": kind, "chamber": chamber, "start_s": start}
     if key is not None:
-        value = DEFAULT_VALUE.get(kind) if value is None else value
-        if value is None:
-            raise ValueError(f"--value: kind '{kind}' needs a value ({key})")
         raw[key] = value
     try:
         return parse_faults([raw], n)[0]
@@ -86,9 +95,7 @@ def _one(cfg, kind: str, value: float | None, start: float, chamber: int | None,
     n = runner.n
     ch = rng.randrange(n) if chamber is None else chamber
     rig = FaultyRig(make_rig(cfg, runner), [drill_fault(kind, value, ch, start, n)])
-    ctrl = getattr(getattr(runner, "loop", None), "controller", None)
-    if ctrl is not None and hasattr(ctrl, "_solver") and getattr(ctrl.s, "budget", 0.0) > 0.0:
-        ctrl.s = replace(ctrl.s, budget=0.0)
+    lift_budget(runner)
     clock = [0.0]
     state = DaemonState()
     loop = DaemonLoop(runner, rig, state, cfg.period, speed=1.0, duration=start + after_s, log=None,
@@ -144,7 +151,7 @@ def run_drills(config: Path, out: Path, drills: int, seed: int, kind: str = "lea
     """Run the bench (module doc) into ``out`` (drills.json); returns its content. Times in s of rig time."""
     cfg = load_config(config, {"--rig": "sim"})
     check_drills(kind, value, from_s, to_s)
-    value = DEFAULT_VALUE.get(kind) if value is None and VALUE_KEY[kind] is not None else value
+    value = drill_value(kind, value)
     rng = random.Random(seed)
     rows = []
     wall0 = time.perf_counter()

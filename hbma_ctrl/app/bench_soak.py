@@ -86,6 +86,20 @@ def random_target(rng: random.Random, n_layers: int, n_chambers: int) -> dict:
     return {"heights_mm": {str(i): round(rng.uniform(2.0, 8.0), 2) for i in range(n_chambers)}}
 
 
+def lift_budget(runner):
+    """The runner's robot NMPC with its wall-time budget lifted, so that a lockstep run's decisions do
+    not depend on this machine's load: (controller, its settings as they were), or (None, None) when
+    the runner has no budgeted NMPC."""
+    from dataclasses import replace
+
+    ctrl = getattr(getattr(runner, "loop", None), "controller", None)
+    if ctrl is None or not hasattr(ctrl, "_solver") or not getattr(ctrl.s, "budget", 0.0) > 0.0:
+        return None, None
+    before = ctrl.s
+    ctrl.s = replace(before, budget=0.0)
+    return ctrl, before
+
+
 def soak_verdicts(stats: dict, ticks: list | None = None) -> dict:
     """The soak's criteria (module doc) from a daemon_stats.json dict: {name: bool}. ``ticks``: the
     ticks over the period as judged by :func:`judge_ticks` or :func:`replay_ticks`, each with its
@@ -380,15 +394,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
     state.take_setpoints = take
     # the robot NMPC's wall-time budget would let the replay's own load change its decisions: lifted,
     # and the run's overruns forced where they happened (_forced_outcome)
-    ctrl = getattr(getattr(runner, "loop", None), "controller", None)
-    run_settings = replay_settings = None
-    if ctrl is not None and hasattr(ctrl, "_solver") and getattr(ctrl.s, "budget", 0.0) > 0.0:
-        from dataclasses import replace
-
-        run_settings, replay_settings = ctrl.s, replace(ctrl.s, budget=0.0)
-        ctrl.s = replay_settings
-    else:
-        ctrl = None
+    ctrl, run_settings = lift_budget(runner)
+    replay_settings = None if ctrl is None else ctrl.s
     unforced: set = set()
     wanted = {f"{t:.4f}": (t, cpu, wall) for t, cpu, wall in slow}
     seen: dict = {}

@@ -294,12 +294,13 @@ class RobotSettings:
 
     @property
     def burst(self) -> BurstTestSettings | None:
-        """The loop's burst test (None when ``burst_sigma`` is 0). Its step cap is at most 0.4 x the
-        threshold (the default's ratio), so that one or two wild readings never flag a burst alone."""
+        """The loop's burst test (None when ``burst_sigma`` is 0). Its step cap keeps the default's
+        ratio to the threshold (0.4) at most, so that one or two wild readings never flag a burst alone."""
         if self.burst_sigma <= 0.0:
             return None
         d = BurstTestSettings()
-        return BurstTestSettings(threshold=self.burst_sigma, step_cap=min(d.step_cap, 0.4 * self.burst_sigma))
+        return BurstTestSettings(threshold=self.burst_sigma,
+                                 step_cap=min(d.step_cap, self.burst_sigma * d.step_cap / d.threshold))
 
     def check_period(self, period: float) -> None:
         """ValueError naming ``[robot] valve_min_on_ms`` (as written, or its default) when the valves'

@@ -120,6 +120,11 @@ class BurstTest:
                                "does not rise when pumped")
         return out
 
+    def restart(self, mask) -> None:
+        """The sums of the chambers in ``mask`` (bool (n,)) back to 0: their filters restarted. Flags and
+        lost-estimate episodes are kept (a restart is one of those episodes)."""
+        self.g[np.asarray(mask, dtype=bool).reshape(self.n)] = 0.0
+
     def reset(self, mask=None) -> None:
         """Clear the sums and flags of the chambers in ``mask`` (bool (n,); None = all)."""
         m = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(self.n)

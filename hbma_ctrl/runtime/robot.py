@@ -314,7 +314,7 @@ class RobotLoop:
             # that took it off its model are not kept), and so does its burst test's sum
             self.bank.reset(z, sup.released)
             if self.burst is not None:
-                self.burst.g[sup.released] = 0.0
+                self.burst.restart(sup.released)
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
         if self.is_mpc:
             ctrl.applied(a, o)

@@ -190,6 +190,11 @@ class DaemonLoop:
         self.fault_counts[kind] = self.fault_counts.get(kind, 0) + 1
         self.event(kind, cause)
 
+    def _enter_safe(self, kinds) -> None:
+        """Mode "safe" from now on, with the event naming the fault kinds that latched it."""
+        self.mode = "safe"
+        self.event("safe", "fault latched: " + ", ".join(kinds))
+
     def _latched_kinds(self) -> list[str]:
         """The kinds the monitor reported since it latched (sorted), [] when it has not."""
         if self.monitor is None or not getattr(self.monitor, "latched", False):
@@ -283,8 +288,7 @@ class DaemonLoop:
                 where = f"{self.runner.names[i]}: " if i is not None and 0 <= i < len(self.runner.names) else ""
                 self.event(str(getattr(f, "kind", "fault")), where + str(getattr(f, "cause", f)))
             if self.monitor.latched and self.mode == "running":
-                self.mode = "safe"
-                self.event("safe", "fault latched: " + ", ".join(self._latched_kinds()))
+                self._enter_safe(self._latched_kinds())
         if self.mode == "safe":
             # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
             self._write(safe_u(self.n))
@@ -329,8 +333,7 @@ class DaemonLoop:
             else:
                 self._fault(kind, cause)
         if found and self.mode == "running":
-            self.mode = "safe"
-            self.event("safe", "fault latched: " + ", ".join(sorted({k for k, _, _ in found})))
+            self._enter_safe(self._latched_kinds() or sorted({k for k, _, _ in found}))
             self._write(safe_u(self.n))
             return
         self._write(u)

@@ -34,8 +34,8 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import LETTERS, RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.kinematics import inverse_kinematics
-from hbma_ctrl.runtime.burst import BurstTestSettings
 from hbma_ctrl.robot.rig import H_TARGET_MAX
+from hbma_ctrl.runtime.burst import BurstTestSettings
 
 __all__ = ["RobotInputRow", "RobotTable", "RobotTargetRow", "TipLoadRow"]
 
