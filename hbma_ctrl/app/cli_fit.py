@@ -24,6 +24,8 @@ from rich.table import Table
 # the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
+from hbma_ctrl.models.actuation import DELAY_MAX
+from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 
 __all__ = ["register", "fit_cmd", "parse_fix"]
 
@@ -58,7 +60,10 @@ def fit_cmd(
     t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = 3.0,
     contact: Annotated[Optional[str], typer.Option(
         help="free (h2 = 0) | flat (load on a plate); default: flat with a force column, else free")] = None,
-    fidelity: Annotated[str, typer.Option(help="cap (the spherical cap of README Model §1-§3)")] = "cap",
+    fidelity: Annotated[Optional[str], typer.Option(
+        help="membrane law: exact (the axisymmetric membrane, README Model §9: the rig's and the roles' default; "
+             "nh for a static fit or --fit-material) | cap (the spherical cap, Model §1-§3); default: exact where "
+             "it can fit, else cap")] = None,
     fix: Annotated[Optional[list[str]], typer.Option("--fix", help="hold a parameter NAME=VALUE (SI), repeatable")]
     = None,
     v0_cm3: Annotated[Optional[float], typer.Option(
@@ -70,6 +75,12 @@ def fit_cmd(
                                    "(default 35)")] = None,
     fit_material: Annotated[bool, typer.Option(
         "--fit-material", help="recorded run: fit the material's parameters instead of one modulus scale")] = False,
+    valve_delay_ms: Annotated[Optional[float], typer.Option(
+        "--valve-delay-ms", help="recorded run: the valves act this long after their command, ms (default: the "
+                                 f"roles', {DEFAULT_VALVE_DELAY * 1e3:g}; 0 = at once)")] = None,
+    sensor_delay_ms: Annotated[Optional[float], typer.Option(
+        "--sensor-delay-ms", help="recorded run: the sensor reads the chamber this long late, ms (default: the "
+                                  f"roles', {DEFAULT_SENSOR_DELAY * 1e3:g})")] = None,
     no_height: Annotated[bool, typer.Option(
         "--no-height", help="recorded run: fit the pressure only, even with a height column")] = False,
     out: Annotated[Path, typer.Option("--out", "-o", help="directory for fit.json, params.toml, residuals.png")]
@@ -78,7 +89,7 @@ def fit_cmd(
 ) -> None:
     """Fit the model to static equilibrium points (material) or a recorded run (material scale, dead
     volume, pump and outlet)."""
-    from hbma_ctrl.app.fit import check_options, fit_static, parse_data, write_fit
+    from hbma_ctrl.app.fit import check_options, fit_static, parse_data, resolve_fidelity, write_fit
     from hbma_ctrl.app.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
 
     _range("--r1-mm", r1_mm, 0.5, 100.0, "mm")
@@ -89,7 +100,10 @@ def fit_cmd(
         _range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, "kPa")
     if load_g is not None and not (math.isfinite(load_g) and 0.0 <= load_g <= 50000.0):
         raise ValueError(f"--load-g = {load_g:g} is out of range [0, 50000] g")
-    check_options(material.lower(), contact, fidelity)
+    for flag, v in (("--valve-delay-ms", valve_delay_ms), ("--sensor-delay-ms", sensor_delay_ms)):
+        if v is not None and not (math.isfinite(v) and 0.0 <= v <= U.to_ms(DELAY_MAX)):
+            raise ValueError(f"{flag} = {v:g} is out of range [0, {U.to_ms(DELAY_MAX):g}] ms")
+    check_options(material.lower(), contact, fidelity or "cap")
     fixed = parse_fix(fix or [])
     check_out(out, overwrite)  # before the fit: a bad --out costs nothing
     if not data.is_file():
@@ -97,29 +111,37 @@ def fit_cmd(
     raw = data.read_bytes()
     source = f"{data.resolve()}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
     if is_dynamic(raw):
+        fidelity, law_note = resolve_fidelity(fidelity, material.lower(), fit_material)
         run = parse_run(raw, None if load_g is None else U.grams(load_g))
         dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3),
                            fix=fixed, fit_material=fit_material,
                            sensor_range=U.kpa(35.0 if sensor_range_kpa is None else sensor_range_kpa),
-                           use_height=not no_height, fidelity=fidelity, contact=contact, source=source)
+                           use_height=not no_height, fidelity=fidelity, contact=contact, source=source,
+                           valve_delay=DEFAULT_VALVE_DELAY if valve_delay_ms is None else U.ms(valve_delay_ms),
+                           sensor_delay=DEFAULT_SENSOR_DELAY if sensor_delay_ms is None else U.ms(sensor_delay_ms))
         with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
             write_dynamic_fit(dres, tmp)
         hn = f", height NRMSD {dres.nrmsd_h:.4f}" if dres.nrmsd_h is not None else ""
         _print(f"fit {dres.material} to a run: {dres.n_points} points, {dres.fidelity} model, "
-               f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed, dres.notes(), out)
+               f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed,
+               dres.notes() + ([law_note] if law_note else []), out)
         return
     for flag, given in (("--load-g", load_g is not None), ("--fit-material", fit_material), ("--no-height", no_height),
-                        ("--v0-cm3", v0_cm3 is not None), ("--sensor-range-kpa", sensor_range_kpa is not None)):
+                        ("--v0-cm3", v0_cm3 is not None), ("--sensor-range-kpa", sensor_range_kpa is not None),
+                        ("--valve-delay-ms", valve_delay_ms is not None),
+                        ("--sensor-delay-ms", sensor_delay_ms is not None)):
         if given:
             raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
     pts = parse_data(raw)
+    fidelity, law_note = resolve_fidelity(fidelity, material.lower())
     res = fit_static(pts, material.lower(), U.mm(r1_mm), U.mm(t0_mm), contact=contact, fix=fixed,
                      fidelity=fidelity)
     res.source = source
     with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         write_fit(res, tmp)
-    _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact, NRMSD {res.nrmsd:.4f}",
-           res.params, res.ci95, res.fixed, res.unidentifiable, out)
+    _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact, {res.fidelity} law, "
+           f"NRMSD {res.nrmsd:.4f}", res.params, res.ci95, res.fixed,
+           res.unidentifiable + ([law_note] if law_note else []), out)
 
 
 def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: Path) -> None:

@@ -8,6 +8,13 @@ Each point's model pressure comes from the package's physics:
 - ``flat``: the contact shape (h1, h2) with ``h1 - h2 = h`` and ``F(h1, h2) = F``, solved by the one
   shape solver (:meth:`hbma_ctrl.models.shape.ShapeSolver.h2_for_force`), then ``p = pressure(h1, h2)``.
 
+The law is the spherical cap's (``fidelity = "cap"``, README Model §3) or the exact axisymmetric
+membrane's (``"exact"``, Model §9): the same tabulated law, in the same chart, that the rig, the EKF
+and the MPC take with ``membrane = "exact"`` (:func:`hbma_ctrl.models.tables.exact_shape_function`).
+Its tables hold one material *shape* (the parameters' ratios) at any modulus scale, so the exact fit
+takes a material whose one modulus is its only parameter (``nh``); a fit that moves a shape parameter
+would need a new table at every trial value.
+
 The material parameters (flattened as in :class:`hbma_ctrl.core.physics.ParamSpace`: ``E``; ``C1``,
 ``C2``; ``C0..C2`` for Yeoh; ``mu``, ``Jm``; ``mu0, mu1, alpha0, alpha1``) are fitted by
 ``scipy.optimize.least_squares`` on the pressure residuals divided by the data's pressure span, from
@@ -43,9 +50,11 @@ from hbma_ctrl.app.run_data import data_lines, data_number
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
-from hbma_ctrl.core.params import Actuator
+from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
 from hbma_ctrl.models.shape import ShapeSolver
+from hbma_ctrl.models.tables import ExactShapeSolver, exact_shape_function
 
 __all__ = [
     "CONTACTS",
@@ -60,6 +69,10 @@ __all__ = [
     "param_names",
     "model_pressure",
     "check_options",
+    "check_exact_material",
+    "resolve_fidelity",
+    "LAW_NOTE",
+    "exact_shapes_fixed",
     "fit_static",
     "weak_directions",
     "unflatten",
@@ -68,10 +81,10 @@ __all__ = [
     "write_fit",
 ]
 
-#: contact modes of this command; 'bonded' is refused until the later part of the tuning issue
+#: contact modes of this command ('bonded', a disk glued at the centre, is refused: README Calibrate)
 CONTACTS = ("free", "flat")
-#: fidelities of this command; 'exact' (axisymmetric membrane) is refused until the later part
-FIDELITIES = ("cap",)
+#: membrane laws of this command: the spherical cap, or the exact axisymmetric membrane's tables
+FIDELITIES = ("cap", "exact")
 #: the keys of fit.json
 FIT_KEYS = ("material", "params", "ci95", "nrmsd", "n_points", "unidentifiable", "correlation")
 #: RMS change of the model, as a fraction of the data's span, per 100 % change of a parameter
@@ -120,6 +133,7 @@ class FitResult:
     p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
     source: str = ""
+    fidelity: str = "cap"
 
     def as_json(self) -> dict:
         """fit.json content: exactly :data:`FIT_KEYS`."""
@@ -198,7 +212,8 @@ def unflatten(material: str, values: dict) -> dict:
 class _Model:
     """Model pressures at the data points for flattened material parameter vectors (SI)."""
 
-    def __init__(self, material: str, r1: float, t0: float, data: StaticData, contact: str):
+    def __init__(self, material: str, r1: float, t0: float, data: StaticData, contact: str,
+                 fidelity: str = "cap"):
         mat = make_material(material)
         act = Actuator(r1=r1, t0=t0, material=mat).validate()
         self.space = ph.ParamSpace.for_material(mat)
@@ -206,9 +221,17 @@ class _Model:
         self.base = theta[:len(ph.BASE_NAMES)]
         self.default = theta[len(ph.BASE_NAMES):]
         self.data, self.contact, self.r1 = data, contact, r1
+        # the exact law's Function is built once (its table once per material shape, then from the
+        # disk cache); every trial value of the modulus enters through theta
+        self._exact = (exact_shape_function(self.space, mat, str(Pneumatics().csv_path))
+                       if fidelity == "exact" else None)
+
+    def solver(self, values: np.ndarray) -> ShapeSolver:
+        theta = np.concatenate([self.base, values])
+        return ShapeSolver(self.space, theta) if self._exact is None else ExactShapeSolver(self.space, theta, self._exact)
 
     def pressure(self, values: np.ndarray) -> np.ndarray:
-        solver = ShapeSolver(self.space, np.concatenate([self.base, values]))
+        solver = self.solver(values)
         h = self.data.h
         if self.contact == "free" or self.data.F is None:
             h2 = np.zeros_like(h)
@@ -221,9 +244,11 @@ class _Model:
         return solver.eval(h + h2, h2)["p"]
 
 
-def model_pressure(material: str, params: dict, r1: float, t0: float, data: StaticData, contact: str) -> np.ndarray:
-    """Model pressure (Pa) at the data points for flattened parameters (SI), r1, t0 (m)."""
-    model = _Model(material, r1, t0, data, contact)
+def model_pressure(material: str, params: dict, r1: float, t0: float, data: StaticData, contact: str,
+                   fidelity: str = "cap") -> np.ndarray:
+    """Model pressure (Pa) at the data points for flattened parameters (SI), r1, t0 (m), with the cap's
+    or the exact membrane's law (``fidelity``)."""
+    model = _Model(material, r1, t0, data, contact, fidelity)
     names = param_names(material)
     return model.pressure(np.array([params[n] for n in names], dtype=float))
 
@@ -328,19 +353,48 @@ def _jacobian(fun, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float = 1
 
 
 def check_options(material: str, contact: str | None, fidelity: str) -> None:
-    """ValueError naming the flag for an unknown material, contact or fidelity, or one not available yet."""
-    if fidelity == "exact":
-        raise ValueError("--fidelity exact: not available yet (the exact axisymmetric membrane comes with a "
-                         "later release); use --fidelity cap")
+    """ValueError naming the flag for an unknown material, contact or fidelity, or one not available."""
     if fidelity not in FIDELITIES:
         raise ValueError(f"--fidelity {fidelity}{did_you_mean(fidelity, FIDELITIES)}; allowed: {', '.join(FIDELITIES)}")
     if contact == "bonded":
-        raise ValueError("--contact bonded: not available yet (a membrane glued to the plate comes with a later "
-                         "release); use --contact free or flat")
+        raise ValueError("--contact bonded: not available to a fit (a disk glued at the centre: the exact solver's "
+                         "force needs a table per geometry and glue radius; hbma-ctrl equilibrium --fidelity exact "
+                         "--contact bonded evaluates points); use --contact free or flat")
     if contact is not None and contact not in CONTACTS:
         raise ValueError(f"--contact {contact}{did_you_mean(contact, CONTACTS)}; allowed: {', '.join(CONTACTS)}")
     if material not in MATERIALS:
         raise ValueError(f"--material {material}{did_you_mean(material, MATERIALS)}; allowed: {', '.join(MATERIALS)}")
+
+
+def exact_shapes_fixed(material: str) -> bool:
+    """Whether a material's law has one shape at every parameter value (its one parameter a modulus,
+    ``nh``): what the exact membrane's tables, one per material shape, can fit."""
+    return len(param_names(material)) == 1 and not MATERIALS[material].dimensionless
+
+
+def check_exact_material(material: str, flag: str) -> None:
+    """ValueError naming ``flag`` when the exact law cannot fit ``material``'s parameters (see
+    :func:`exact_shapes_fixed`)."""
+    if not exact_shapes_fixed(material):
+        names = ", ".join(param_names(material))
+        raise ValueError(f"{flag}: the exact membrane fits --material nh only (its one modulus scales the exact "
+                         f"law's tables, which hold one material shape); {material}'s {names} change the shape, a "
+                         "new table at every trial value. Use --fidelity cap, or fit a recorded run's "
+                         "modulus_scale with --fidelity exact (the shape held at the material's values)")
+
+
+def resolve_fidelity(fidelity: str | None, material: str, fit_material: bool = True) -> tuple[str, str | None]:
+    """The law a fit uses: ``fidelity`` as given, or for None the roles' default (the exact membrane,
+    :data:`hbma_ctrl.models.defaults.DEFAULT_MEMBRANE`) where it can fit the asked parameters, else the
+    cap; with a note saying why when the default could not be taken. ``fit_material``: the fit moves
+    the material's own parameters (a static fit always does; a recorded run's with --fit-material)."""
+    if fidelity is not None:
+        return fidelity, None
+    if DEFAULT_MEMBRANE == "exact" and fit_material and not exact_shapes_fixed(material):
+        return "cap", (f"fitted with the cap's law: the exact membrane (the roles' default law) fits --material nh "
+                       f"only; {material}'s parameters change its shape. Run the roles on these numbers with "
+                       "membrane = \"cap\"")
+    return DEFAULT_MEMBRANE, None
 
 
 def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: str | None = None,
@@ -348,9 +402,12 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     """Least-squares fit of a material's parameters (SI) to static data; r1, t0 in m.
 
     ``contact`` None picks 'flat' when the data have a force column, else 'free'. ``fix`` holds
-    flattened parameters at SI values. ValueError for unavailable options or too few points.
+    flattened parameters at SI values. ``fidelity``: the membrane law, 'cap' or 'exact' (``nh`` only,
+    :func:`check_exact_material`). ValueError for unavailable options or too few points.
     """
     check_options(material, contact, fidelity)
+    if fidelity == "exact":
+        check_exact_material(material, "--fidelity exact")
     if contact is None:
         contact = "flat" if data.F is not None else "free"
     if contact == "flat" and data.F is None:
@@ -371,7 +428,7 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     span = float(data.p.max() - data.p.min())
     if not span > 0:
         raise ValueError("data: column 'p_kpa' has one value in every row; nothing to fit")
-    model = _Model(material, r1, t0, data, contact)
+    model = _Model(material, r1, t0, data, contact, fidelity)
     lo, hi = _bounds(material, names, model.default, data, r1)
     for k, v in fixed.items():
         i = names.index(k)
@@ -432,7 +489,7 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
                      nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak_directions(free, J, corr, rel_half),
                      correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
-                     p_data=data.p.copy(), p_model=pm)
+                     p_data=data.p.copy(), p_model=pm, fidelity=fidelity)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -442,6 +499,12 @@ def _toml_value(v) -> str:
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(repr(float(x)) for x in v) + "]"
     return repr(float(v))
+
+
+#: the params.toml line that says which law the numbers belong to (a modulus fitted with one law is
+#: biased under the other: README Calibrate, "The exact law")
+LAW_NOTE = {"cap": "the spherical cap (use with [estimator] / [controller] / [rig] membrane = \"cap\")",
+             "exact": "the exact membrane (membrane = \"exact\", the roles' default)"}
 
 
 def provenance_lines(source: str) -> list[str]:
@@ -456,7 +519,8 @@ def params_toml(result: FitResult) -> str:
     head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
             f"NRMSD {result.nrmsd:.4f}")
     lines = [head,
-             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}"]
+             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}",
+             f"# membrane law: {LAW_NOTE[result.fidelity]}"]
     # where the numbers came from travels with them into any scenario that copies this file
     lines += provenance_lines(result.source)
     lines += ["[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
@@ -474,7 +538,7 @@ def _plot(result: FitResult, path: Path) -> None:
              label=f"fit ({result.material})")
     ax1.set_xlabel("height h (mm)")
     ax1.set_ylabel("pressure p (kPa)")
-    ax1.set_title(f"{result.contact} contact, NRMSD {result.nrmsd:.4f}")
+    ax1.set_title(f"{result.contact} contact, {result.fidelity} law, NRMSD {result.nrmsd:.4f}")
     ax1.legend()
     ax2.axhline(0.0, color="0.6", lw=0.8)
     ax2.plot(h, U.to_kpa(result.p_model - result.p_data), "o", ms=4)

@@ -14,7 +14,9 @@ read and checked by :func:`hbma_ctrl.app.run_data.parse_run`):
 
 The recorded commands are replayed (held from one row to the next) through the package's one chamber
 model at the fastest adequate rung of the fidelity ladder (``free`` without a load, ``quasi_static``
-with one; rk4 at the simulator's default step), from a vented chamber, for a batch of parameter sets
+with one; rk4 at the simulator's default step) with the cap's membrane law or, with ``fidelity =
+"exact"``, the exact membrane's tables (the rig's and the roles' default law,
+:func:`hbma_ctrl.models.fidelity_exact.make_exact`'s rungs), from a vented chamber, for a batch of parameter sets
 at once (one batched :class:`hbma_ctrl.sim.simulate.Plant`), and the parameters are fitted by
 ``scipy.optimize.least_squares`` on the pressure (and the height when recorded), each channel divided
 by its span, on a log scale, from several starts (nominal and the corners of a factor 1.5 around
@@ -23,7 +25,7 @@ one batched simulation. Parameters (:data:`DYN_PARAMS`), with the rig's meanings
 (:mod:`hbma_ctrl.sim.rig`):
 
 - ``modulus_scale``: every modulus of the material times this (or, with ``fit_material``, the
-  material parameters themselves);
+  material parameters themselves: with the exact law ``nh`` only, whose one modulus is a scale);
 - ``V0``: the dead volume, m^3;
 - ``flow_scale``: the compressor map times this;
 - ``C_out``: the outlet valve's sonic conductance (ISO 6358), m^3/(s Pa).
@@ -47,14 +49,17 @@ from matplotlib.figure import Figure
 from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
-from hbma_ctrl.app.fit import FIT_KEYS, unflatten, check_options, param_names, provenance_lines, weak_directions
+from hbma_ctrl.app.fit import (FIT_KEYS, LAW_NOTE, check_exact_material, check_options, param_names, provenance_lines,
+                               unflatten, weak_directions)
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.run_data import COLUMN_ALIASES, RunData, is_dynamic, parse_run
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.fidelity import OUTPUTS, make_fidelity
+from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT
 
@@ -68,6 +73,7 @@ __all__ = [
     "parse_run",
     "dynamic_param_names",
     "simulate_run",
+    "delayed_commands",
     "fit_dynamic",
     "dynamic_params_toml",
     "write_dynamic_fit",
@@ -114,6 +120,7 @@ class DynamicFitResult:
     fidelity: str
     fixed: dict = field(default_factory=dict)
     nrmsd_h: float | None = None
+    law: str = "cap"
     source: str = ""
     t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -174,12 +181,20 @@ def _material_names(material: str) -> list[str]:
 class _RunModel:
     """The recorded commands replayed through the chamber model for columns of parameters."""
 
-    def __init__(self, run: RunData, material: str, r1: float, t0: float, V0: float, fit_material: bool):
+    def __init__(self, run: RunData, material: str, r1: float, t0: float, V0: float, fit_material: bool,
+                 fidelity: str = "cap", valve_delay: float = 0.0, sensor_delay: float = 0.0):
         mat = make_material(material)
         act = Actuator(r1=r1, t0=t0, V0=V0, material=mat).validate()
         pn = Pneumatics().validate()
         plat = Platform(load=run.load).validate()
-        self.fid = make_fidelity("free" if plat.mass <= 0 else "quasi_static", mat, str(pn.csv_path))
+        loaded = plat.mass > 0
+        if fidelity == "exact":
+            # its tables hold the material's shape; the modulus scale (or nh's E) enters through theta
+            self.fid = make_exact_free(mat, str(pn.csv_path)) if not loaded else \
+                make_exact_loaded("quasi_static", mat, str(pn.csv_path))
+        else:
+            self.fid = make_fidelity("quasi_static" if loaded else "free", mat, str(pn.csv_path))
+        self.law = fidelity
         self.theta0 = self.fid.space.values(act, pn, plat)
         names = self.fid.space.names
         self.ix = {n: i for i, n in enumerate(names)}
@@ -197,8 +212,14 @@ class _RunModel:
         self.dt = min(DEFAULT_DT[("rk4", self.fid.name)], dt_data)
         self.K = int(math.ceil(run.t[-1] / self.dt - 1e-9))
         # the command held over each grid step: the row in force at the step's middle
-        rows = np.searchsorted(run.t, (np.arange(self.K) + 0.5) * self.dt, side="right") - 1
-        self.ugrid = run.u[np.clip(rows, 0, len(run.t) - 1)]
+        if valve_delay > 0.0 or sensor_delay > 0.0:
+            # the valves act valve + sensor delay late, the pump's speed the sensor's (the roles' dead
+            # times, hbma_ctrl.models.actuation): each step's command is the delayed one's average
+            self.ugrid = delayed_commands(run.t, run.u, self.K, self.dt,
+                                          (sensor_delay, valve_delay + sensor_delay, valve_delay + sensor_delay))
+        else:
+            rows = np.searchsorted(run.t, (np.arange(self.K) + 0.5) * self.dt, side="right") - 1
+            self.ugrid = run.u[np.clip(rows, 0, len(run.t) - 1)]
         self.grid_of_row = np.clip(np.rint(run.t / self.dt).astype(int), 0, self.K)
 
     def values(self, Z: np.ndarray) -> np.ndarray:
@@ -234,11 +255,33 @@ class _RunModel:
         return P[self.grid_of_row], H[self.grid_of_row], plant.alive.copy()
 
 
-def simulate_run(run: RunData, material: str, params: dict, r1: float, t0: float) -> tuple[np.ndarray, np.ndarray]:
+def delayed_commands(t: np.ndarray, u: np.ndarray, K: int, dt: float, delays) -> np.ndarray:
+    """The commands acting over each of K steps of dt (s) from t = 0, averaged over the step, when
+    command column j acts ``delays[j]`` s after it was sent; ``u[i]`` holds from ``t[i]`` to ``t[i + 1]``
+    (the last to the end, the first also before the record). (K, 3), each entry between the commands
+    it averages."""
+    t = np.asarray(t, dtype=float)
+    u = np.asarray(u, dtype=float)
+    edges = np.arange(K + 1) * dt
+    out = np.empty((K, u.shape[1]))
+    # the held commands' running integral is piecewise linear in time: exact averages by interpolation
+    tt = np.concatenate([t, [max(t[-1], edges[-1]) + 1.0]])
+    for j in range(u.shape[1]):
+        cum = np.concatenate([[0.0], np.cumsum(u[:, j] * np.diff(tt))])
+        a = edges - delays[j]
+        before = np.minimum(a - tt[0], 0.0) * u[0, j]  # before the record: the first command held
+        c = np.interp(np.maximum(a, tt[0]), tt, cum) + before
+        out[:, j] = np.clip(np.diff(c) / dt, u[:, j].min(), u[:, j].max())
+    return out
+
+
+def simulate_run(run: RunData, material: str, params: dict, r1: float, t0: float,
+                 fidelity: str = "cap") -> tuple[np.ndarray, np.ndarray]:
     """Model pressure (Pa) and height (m) at the run's rows for parameters named as in
-    :func:`dynamic_param_names` (SI; ``modulus_scale`` or the material parameters), r1, t0 in m."""
+    :func:`dynamic_param_names` (SI; ``modulus_scale`` or the material parameters), r1, t0 in m,
+    with the cap's or the exact membrane's law (``fidelity``)."""
     fit_material = "modulus_scale" not in params
-    model = _RunModel(run, material, r1, t0, float(params["V0"]), fit_material)
+    model = _RunModel(run, material, r1, t0, float(params["V0"]), fit_material, fidelity)
     v = np.array([params[n] for n in model.names], dtype=float)
     Z = np.where(model.log, np.log(np.where(model.log, v, 1.0) / model.nominal), (v - model.nominal) / model.lin_scale)
     P, H, _ = model.simulate(Z[:, None])
@@ -254,15 +297,21 @@ def _thin(mask: np.ndarray, cap: int) -> np.ndarray:
 
 def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3e-6, fix: dict | None = None,
                 fit_material: bool = False, sensor_range: float = 35e3, use_height: bool = True,
-                fidelity: str = "cap", contact: str | None = None, source: str = "") -> DynamicFitResult:
+                fidelity: str = "cap", contact: str | None = None, source: str = "", valve_delay: float = 0.0,
+                sensor_delay: float = 0.0) -> DynamicFitResult:
     """Least-squares fit of the chamber parameters (SI) to a recorded run; r1, t0 (m), V0 the
     nominal dead volume (m^3, the start), ``sensor_range`` (Pa) above which readings are saturated
-    and left out. ``fix`` holds parameters at SI values. ValueError for unavailable options, too few
-    points or a flat record."""
+    and left out. ``fix`` holds parameters at SI values. ``fidelity``: the membrane law, 'cap' or
+    'exact' (with ``fit_material``, ``nh`` only). ``valve_delay``, ``sensor_delay`` (s, [0, 0.1]):
+    the commands replayed as the roles' dead times (:mod:`hbma_ctrl.models.actuation`; 0: acting at
+    once). ValueError for unavailable options, too few points or a flat record."""
+    check_delays("fit", valve_delay, sensor_delay)
     check_options(material, contact, fidelity)
+    if fidelity == "exact" and fit_material:
+        check_exact_material(material, "--fit-material with --fidelity exact")
     if contact == "free" and run.load > 0:
         raise ValueError("--contact free: the run carries a load; drop --contact (a load rests on a flat plate)")
-    model = _RunModel(run, material, r1, t0, V0, fit_material)
+    model = _RunModel(run, material, r1, t0, V0, fit_material, fidelity, valve_delay, sensor_delay)
     names = model.names
     fixed = {}
     for k, v in (fix or {}).items():
@@ -375,7 +424,8 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
     res = DynamicFitResult(
         material=material, params=params, ci95={k: ci[k] for k in params}, nrmsd=nrmsd(pm[keep], run.p[keep]),
         n_points=int(n_pts), unidentifiable=weak, correlation=correlation, r1=r1, t0=t0, load=run.load,
-        fidelity=model.fid.name, fixed=fixed, source=source, t=run.t.copy(), p_data=run.p.copy(), p_model=pm)
+        fidelity=model.fid.name + (", exact membrane" if fidelity == "exact" else ""), fixed=fixed, source=source,
+        t=run.t.copy(), p_data=run.p.copy(), p_model=pm, law=fidelity)
     if run.h is not None:
         hk = np.isfinite(run.h)
         res.h_data, res.h_model = run.h.copy(), hm
@@ -391,7 +441,8 @@ def dynamic_params_toml(result: DynamicFitResult) -> str:
     lines = [f"# hbma-ctrl fit (dynamic): {result.material}, {result.n_points} points, fidelity {result.fidelity}, "
              f"pressure NRMSD {result.nrmsd:.4f}",
              f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}, "
-             f"load_g = {U.to_grams(result.load):g}"]
+             f"load_g = {U.to_grams(result.load):g}",
+             f"# membrane law: {LAW_NOTE[result.law]}"]
     lines += provenance_lines(result.source)
     lines += ["[actuator]", f'material = "{result.material}"', f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}", "",
               "[actuator.material_params]"]

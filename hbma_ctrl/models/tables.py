@@ -47,11 +47,12 @@ from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
 
 #: MEMBRANES (from :mod:`hbma_ctrl.models.reduced`): the membrane laws a prediction model can be
 #: tabulated from, the same as the observer model's
-__all__ = ["PredictionModel", "MEMBRANES", "exact_shape_solver"]
+__all__ = ["PredictionModel", "MEMBRANES", "ExactShapeSolver", "exact_shape_function", "exact_shape_solver"]
 
 
-class _ExactShapeSolver(ShapeSolver):
-    """:class:`ShapeSolver` whose law is the exact membrane's (tabulated ratios to the cap, same chart)."""
+class ExactShapeSolver(ShapeSolver):
+    """:class:`ShapeSolver` whose law is the exact membrane's (tabulated ratios to the cap, same chart);
+    ``fun`` is :func:`exact_shape_function`'s Function for the parameter layout ``space``."""
 
     def __init__(self, space: ph.ParamSpace, theta: np.ndarray, fun: ca.Function):
         super().__init__(space, theta)
@@ -70,19 +71,25 @@ class _ExactShapeSolver(ShapeSolver):
         return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(SHAPE_OUTPUTS, out)}
 
 
-def exact_shape_solver(chamber: ReducedChamber) -> ShapeSolver:
-    """A shape solver of ``chamber``'s nominal parameters with the exact membrane's law (the rig's
-    exact quasi-static rung's ``contact_law``: p, V, F = pi a^2 p), outputs as
-    :data:`hbma_ctrl.models.shape.SHAPE_OUTPUTS`; ``lam`` the chart's area-average stretch."""
-    a = chamber.actuator
-    law = make_exact_loaded("quasi_static", a.material, str(chamber.pneumatics.csv_path)).contact_law
+def exact_shape_function(space: ph.ParamSpace, material, compressor_csv: str) -> ca.Function:
+    """(h1, h2, theta) -> SHAPE_OUTPUTS with the exact membrane's law: the rig's exact quasi-static
+    rung's ``contact_law`` (p, V; F = pi a^2 p) for ``material``'s shape, any modulus scale, r1 and
+    t0 through theta (its table is built once per material shape, then cached on disk); ``lam`` the
+    chart's area-average stretch, as the cap's (module docstring)."""
+    law = make_exact_loaded("quasi_static", material, str(compressor_csv)).contact_law
     h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
-    theta, P = chamber.space.symbols()
+    theta, P = space.symbols()
     p, V, _, a2 = law(h1, h2, P)
-    lam = ph.geometry(h1, h2, P)["lam"]  # the area average, as the cap's (module docstring)
-    fun = ca.Function("exact_chamber", [h1, h2, theta], [p, ca.pi * a2 * p, lam, V, (p + P["p_env"]) * V],
-                      ["h1", "h2", "theta"], list(SHAPE_OUTPUTS))
-    return _ExactShapeSolver(chamber.space, chamber.theta, fun)
+    lam = ph.geometry(h1, h2, P)["lam"]
+    return ca.Function("exact_chamber", [h1, h2, theta], [p, ca.pi * a2 * p, lam, V, (p + P["p_env"]) * V],
+                       ["h1", "h2", "theta"], list(SHAPE_OUTPUTS))
+
+
+def exact_shape_solver(chamber: ReducedChamber) -> ShapeSolver:
+    """A shape solver of ``chamber``'s nominal parameters with the exact membrane's law
+    (:func:`exact_shape_function`)."""
+    fun = exact_shape_function(chamber.space, chamber.actuator.material, str(chamber.pneumatics.csv_path))
+    return ExactShapeSolver(chamber.space, chamber.theta, fun)
 
 
 @dataclass(frozen=True)
