@@ -28,6 +28,9 @@ MEAS_OK, MEAS_MISSING, MEAS_SATURATED, MEAS_OUTLIER = "ok", "missing", "saturate
 INFLATION_MAX = 100.0
 #: the lowest gauge pressure there is (absolute vacuum at the standard atmosphere), Pa
 VACUUM_GAUGE = -101325.0
+#: the pump-flow, modulus and dead-volume factors are kept in this range, their initial values too
+#: (off by more is a broken rig, not a bias)
+FACTOR_RANGE = (0.5, 2.0)
 
 
 @dataclass
@@ -66,13 +69,15 @@ class FilterSettings:
         when b / c falls far below its prior (:func:`estimators.ekf_step.flat_ratio_min`).
     lift_load_rel_std : relative one sigma of the load right after a detected lift-off, [0, 10].
     flow_factor_std : random walk of the pump-flow factor b, 1/sqrt(s), [0, 10];
-        flow_factor_init_std its initial one sigma (b starts at 1), [0, 10].
+        flow_factor_init its initial value (-, [0.5, 2]: 1 = the nominal pump map; a calibration's
+        ``flow_scale``), flow_factor_init_std its initial one sigma, [0, 10].
     dead_volume_std : random walk of the dead-volume factor c, 1/sqrt(s), [0, 10];
-        dead_volume_init_std its initial one sigma (c starts at 1), [0, 10]. While the membrane is
+        dead_volume_init its initial value ([0.5, 2]; a calibration's V0 over the nominal),
+        dead_volume_init_std its initial one sigma, [0, 10]. While the membrane is
         flat the pressure's rise gives only b / c; the two prior spreads set how that ratio is
         shared until venting (c alone) or the moving membrane separates them.
-    modulus_std : random walk of the modulus factor k, 1/sqrt(s), [0, 10]; modulus_init_std its
-        initial one sigma (k starts at 1), [0, 10].
+    modulus_std : random walk of the modulus factor k, 1/sqrt(s), [0, 10]; modulus_init its initial
+        value ([0.5, 2]; a calibration's ``modulus_scale``), modulus_init_std its initial one sigma, [0, 10].
     change_threshold : a load change is declared when the CUSUM of (NIS - change_drift) exceeds this
         (-), (0, 1e6]; the load's variance then grows by change_std^2 (N^2) so it re-converges.
     change_drift : NIS level tolerated by the CUSUM (-), [1, 100].
@@ -138,10 +143,13 @@ class FilterSettings:
     lift_drift: float = 0.3
     lift_load_rel_std: float = 0.2
     flow_factor_std: float = 0.02
+    flow_factor_init: float = 1.0
     flow_factor_init_std: float = 0.15
     modulus_std: float = 0.002
+    modulus_init: float = 1.0
     modulus_init_std: float = 0.15
     dead_volume_std: float = 0.0
+    dead_volume_init: float = 1.0
     dead_volume_init_std: float = 0.2
     change_threshold: float = 20.0
     change_drift: float = 4.0
@@ -190,6 +198,8 @@ class FilterSettings:
         check_range(w, "lift_load_rel_std", self.lift_load_rel_std, 0.0, 10.0)
         check_range(w, "flow_factor_std", self.flow_factor_std, 0.0, 10.0, "1/sqrt(s)")
         check_range(w, "flow_factor_init_std", self.flow_factor_init_std, 0.0, 10.0)
+        for name in ("flow_factor_init", "modulus_init", "dead_volume_init"):
+            check_range(w, name, getattr(self, name), FACTOR_RANGE[0], FACTOR_RANGE[1])
         check_range(w, "modulus_std", self.modulus_std, 0.0, 10.0, "1/sqrt(s)")
         check_range(w, "modulus_init_std", self.modulus_init_std, 0.0, 10.0)
         check_range(w, "dead_volume_std", self.dead_volume_std, 0.0, 10.0, "1/sqrt(s)")

@@ -368,9 +368,12 @@ class EKF(ReferenceSteps):
         s = self.settings
         p0 = float(z) if kind == "ok" else (s.sensor_range if kind == MEAS_SATURATED else 0.0)
         act = self.model.actuator
+        # the prior's factors (1: nominal; a calibration's values); m is referred to the nominal dead
+        # volume (hbma_ctrl.models.chamber), so the flat chamber's mass does not depend on c
+        b0, k0, c0 = s.flow_factor_init, s.modulus_init, s.dead_volume_init
         m0 = (max(p0, 0.0) + act.p_env) * act.V0 / self.model.rt
         W0 = s.load_max if s.load_init is None else s.load_init
-        self.reset(t, [m0, W0, 1.0, 1.0, 1.0], resting=True if s.load_init is None else None)
+        self.reset(t, [m0, W0, b0, k0, c0], resting=True if s.load_init is None else None)
 
     # --- the filter ---------------------------------------------------------------------------
     def _predict(self, u: np.ndarray) -> None:

@@ -55,7 +55,7 @@ import math
 import casadi as ca
 import numpy as np
 
-from estimators.common import FilterSettings
+from estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel, min_pivot
 from hbma_ctrl.models.reduced import law_key
@@ -77,9 +77,6 @@ STEP_IN = ("x", "P", "s", "u", "theta", "resting", "z", "kind", "det")
 STEP_OUT = ("x_next", "P_next", "s_next", "y", "est", "std", "C", "H", "A", "resting_next", "det_next",
             "nis", "innov", "flags", "exact")
 
-#: the pump-flow, modulus and dead-volume factors are kept in this range (off by more is a broken
-#: rig, not a bias)
-FACTOR_RANGE = (0.5, 2.0)
 #: a resting load below this (N) may be no load at all: the flat height is then uncertain
 LIGHT_LOAD = 0.5
 #: absolute one sigma of the load right after a detected lift-off, N (the detection delay)

@@ -242,6 +242,10 @@ def make_calibration(actuator: Actuator, pneumatics: Pneumatics, platform: Platf
     # the fit models the chamber as the estimator does: its membrane law, valve and sensor delays
     fs = getattr(estimator, "settings", None)
     timing = {k: getattr(fs, k) for k in ("valve_delay", "sensor_delay", "membrane") if hasattr(fs, k)}
+    # and starts from the estimator's prior on the factors (nominal, or a fit's values: [estimator] *_init)
+    if hasattr(fs, "modulus_init"):
+        timing["prior_mean"] = (fs.flow_factor_init, fs.modulus_init, fs.dead_volume_init)
+        timing["prior_std"] = (fs.flow_factor_init_std, fs.modulus_init_std, fs.dead_volume_init_std)
     cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
                              sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
                              sensor_range=rs.sensor_range, handover_std_floor=section.calibration_std_floor,

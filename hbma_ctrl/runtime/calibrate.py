@@ -98,7 +98,8 @@ class CalibrationSettings:
     sample_period : the reading and command period, s (the rig's).
     noise_std : the sensor's one sigma, Pa (weights the residuals).
     sensor_range : readings at or above this are saturated and not fitted, Pa.
-    prior_std : one sigma of the prior on (b, k, c) around 1 (the estimator's initial spreads).
+    prior_mean, prior_std : the prior on (b, k, c): its means (1: the nominal chamber; a fit's values)
+        and one sigmas (the estimator's initial values and spreads).
     valve_delay, sensor_delay : the valves' switching delay and the sensor's, s, [0, 0.1]: the fit's
         model takes the commands as acting that late (:mod:`hbma_ctrl.models.actuation`; the
         estimator's settings, so both see the same chamber). Unmodelled, 5 ms of valve delay and
@@ -127,6 +128,7 @@ class CalibrationSettings:
     sample_period: float = 0.01
     noise_std: float = 200.0
     sensor_range: float = 35e3
+    prior_mean: tuple = (1.0, 1.0, 1.0)
     prior_std: tuple = (0.15, 0.15, 0.2)
     valve_delay: float = DEFAULT_VALVE_DELAY
     sensor_delay: float = DEFAULT_SENSOR_DELAY
@@ -153,10 +155,12 @@ class CalibrationSettings:
         check_range(w, "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
         check_range(w, "noise_std", self.noise_std, 0.0, 1e4, "Pa", lo_open=True)
         check_range(w, "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
-        if len(self.prior_std) != 3:
-            raise ValueError("calibration.prior_std must hold three sigmas (b, k, c)")
+        if len(self.prior_std) != 3 or len(self.prior_mean) != 3:
+            raise ValueError("calibration.prior_mean and prior_std must hold three values each (b, k, c)")
         for name, v in zip(FACTOR_NAMES, self.prior_std):
             check_range(w, f"prior_std[{name}]", v, 0.0, 10.0, lo_open=True)
+        for name, v in zip(FACTOR_NAMES, self.prior_mean):
+            check_range(w, f"prior_mean[{name}]", v, _BOUNDS[0], _BOUNDS[1])
         check_delays(w, self.valve_delay, self.sensor_delay)
         if self.membrane not in ("cap", "exact"):
             raise ValueError(f"{w}.membrane = {self.membrane!r}: allowed cap, exact")
@@ -366,6 +370,7 @@ class StartupCalibration:
         if use.sum() < 10:
             raise ValueError(f"only {int(use.sum())} readings to fit")
         prior = np.asarray(s.prior_std, dtype=float)
+        mean = np.asarray(s.prior_mean, dtype=float)
         cache: dict = {}
 
         def sim(x):
@@ -380,12 +385,12 @@ class StartupCalibration:
             return cache[key]
 
         def fun(x):
-            return np.concatenate([sim(x)[0], (x - 1.0) / prior])
+            return np.concatenate([sim(x)[0], (x - mean) / prior])
 
         def jac(x):
             return np.vstack([sim(x)[1], np.diag(1.0 / prior)])
 
-        sol = least_squares(fun, np.ones(3), jac=jac, bounds=_BOUNDS, x_scale=prior, max_nfev=20)
+        sol = least_squares(fun, mean.copy(), jac=jac, bounds=_BOUNDS, x_scale=prior, max_nfev=20)
         r, J = sim(sol.x)
         info = J.T @ J + np.diag(1.0 / prior ** 2)
         cov = np.linalg.inv(info)

@@ -22,6 +22,7 @@ from hbma_ctrl.app.schema.fields import (
     shaped,
 )
 from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
+from estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
@@ -45,6 +46,13 @@ class EstimatorTable(Table):
     flow_rel_std: float = num(0.15, 0.0, 1.0, "-", "relative error of the model's mass flow")
     flow_factor_std: float = num(0.02, 0.0, 10.0, "1/sqrt(s)", "random walk of the pump-flow factor")
     modulus_std: float = num(0.002, 0.0, 10.0, "1/sqrt(s)", "random walk of the modulus factor")
+    flow_factor_init: float = num(1.0, *FACTOR_RANGE, "-", "the pump-flow factor's start (a fit's flow_scale)")
+    flow_factor_init_std: float = num(FilterSettings.flow_factor_init_std, 0.0, 10.0, "-", "its one sigma")
+    modulus_init: float = num(1.0, *FACTOR_RANGE, "-", "the modulus factor's start (a fit's modulus_scale)")
+    modulus_init_std: float = num(FilterSettings.modulus_init_std, 0.0, 10.0, "-", "its one sigma")
+    dead_volume_init: float = num(1.0, *FACTOR_RANGE, "-",
+                                  "the dead-volume factor's start (a fit's V0 over [actuator] V0_cm3)")
+    dead_volume_init_std: float = num(FilterSettings.dead_volume_init_std, 0.0, 10.0, "-", "its one sigma")
     change_threshold: float = num(20.0, 0.0, 1e6, "-", "CUSUM threshold of a load change", lo_open=True)
     load_std_n: float = num(0.05, 0.0, 100.0, "N/sqrt(s)", "load random walk")
     integrator: Literal["rk4", "euler"] = choice("rk4", "the filter model's scheme")
@@ -81,6 +89,12 @@ _TUNING = {
     "flow_rel_std": ("flow_rel_std", float),
     "flow_factor_std": ("flow_factor_std", float),
     "modulus_std": ("modulus_std", float),
+    "flow_factor_init": ("flow_factor_init", float),
+    "flow_factor_init_std": ("flow_factor_init_std", float),
+    "modulus_init": ("modulus_init", float),
+    "modulus_init_std": ("modulus_init_std", float),
+    "dead_volume_init": ("dead_volume_init", float),
+    "dead_volume_init_std": ("dead_volume_init_std", float),
     "change_threshold": ("change_threshold", float),
     "load_std_n": ("load_std", float),
     "integrator": ("integrator", as_is),
