@@ -63,18 +63,31 @@ def test_full_protocol_requirements(tmp_path):
     assert est["force_steady_rel_err_mean"] <= 0.10
 
 
-def test_calibrated_protocol_meets_the_exact_membrane_goal(tmp_path):
-    """Issue 14's EKF goal (height NRMSD <= 0.02, at most half the open loop in every scenario) on the
-    default rig, with the filter's factor prior from `hbma-ctrl fit` of another recording of that rig
-    (scenarios/ekf_protocol_calibrated.toml; 0.031 with the nominal prior, ekf_protocol.toml)."""
+def _calibrated(tmp_path, name: str) -> dict:
     from pathlib import Path
 
     from hbma_ctrl.app.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
-    path = Path(__file__).resolve().parents[1] / "scenarios" / "ekf_protocol_calibrated.toml"
+    path = Path(__file__).resolve().parents[1] / "scenarios" / name
     est = run_scenario(load_scenario(path), tmp_path)["estimator"]
     assert est["n_trials"] == 150 and est["n_scenarios"] == 30
+    return est
+
+
+def test_calibrated_protocol_meets_the_exact_membrane_goal(tmp_path):
+    """Issue 14's EKF goal (height NRMSD <= 0.02, at most half the open loop in every scenario) on the
+    default rig, with the filter's factor prior from `hbma-ctrl fit` of another recording of that rig
+    (scenarios/ekf_protocol_calibrated.toml; 0.031 with the nominal prior, ekf_protocol.toml)."""
+    est = _calibrated(tmp_path, "ekf_protocol_calibrated.toml")
     assert est["height_nrmsd"] <= 0.02
     assert est["scenarios_at_half_open_loop"] == 30 and est["scenario_ratio_to_open_loop_max"] <= 0.5
     assert est["force_steady_rel_err_mean"] <= 0.05
+
+
+def test_calibrated_soft_protocol_nrmsd_within_the_goal(tmp_path):
+    """The soft rig (modulus x0.85), calibrated the same way: NRMSD <= 0.02 (0.029 with the nominal
+    prior); its open loop's errors cancel, and one scenario of 30 stays above half of it (ratio 0.63)."""
+    est = _calibrated(tmp_path, "ekf_protocol_soft_calibrated.toml")
+    assert est["height_nrmsd"] <= 0.02
+    assert est["scenarios_at_half_open_loop"] >= 29
