@@ -229,3 +229,14 @@ def test_cli_default_law_is_the_roles_where_it_can_fit(tmp_path):
     text = " ".join(res.output.split())
     assert "cap law" in text and "fits --material nh only" in text
     assert 'membrane = "cap"' in (tmp_path / "mr" / "params.toml").read_text()
+
+
+def test_exact_law_refuses_a_height_beyond_its_table(tmp_path):
+    """A free point past the exact table's 1.6 r1 (20 mm here) is one error naming its row, not a fit on
+    the table's continuation."""
+    h = U.mm(np.array([2.0, 6.0, 10.0, 21.0]))
+    rows = "\n".join(f"{U.to_mm(x):g},{U.to_kpa(p):.6f}" for x, p in zip(h, [5e3, 15e3, 25e3, 31e3]))
+    path = _csv(tmp_path, "h_mm,p_kpa\n" + rows + "\n")
+    res = runner.invoke(app, ["fit", str(path), "--material", "nh", "--out", str(tmp_path / "o")])
+    one_line_error(res, "'h_mm'", "row 4", "21 mm", "1.6 r1 = 20 mm", "--fidelity cap")
+    assert not (tmp_path / "o").exists()

@@ -53,6 +53,7 @@ from hbma_ctrl.core.materials import MATERIALS, make_material
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
+from hbma_ctrl.models.exact_tables import RATIO_U
 from hbma_ctrl.models.shape import ShapeSolver
 from hbma_ctrl.models.tables import ExactShapeSolver, exact_shape_function
 
@@ -230,18 +231,37 @@ class _Model:
         theta = np.concatenate([self.base, values])
         return ShapeSolver(self.space, theta) if self._exact is None else ExactShapeSolver(self.space, theta, self._exact)
 
-    def pressure(self, values: np.ndarray) -> np.ndarray:
+    def shapes(self, values: np.ndarray) -> tuple[ShapeSolver, np.ndarray]:
+        """The solver for ``values`` and the cut height h2 (m) of each data point (0 for free points)."""
         solver = self.solver(values)
         h = self.data.h
-        if self.contact == "free" or self.data.F is None:
-            h2 = np.zeros_like(h)
-        else:
+        h2 = np.zeros_like(h)
+        if self.contact != "free" and self.data.F is not None:
             F = self.data.F
-            h2 = np.zeros_like(h)
             on = F > 0
             if on.any():
                 h2[on] = solver.h2_for_force(h[on], F[on])
-        return solver.eval(h + h2, h2)["p"]
+        return solver, h2
+
+    def pressure(self, values: np.ndarray) -> np.ndarray:
+        solver, h2 = self.shapes(values)
+        return solver.eval(self.data.h + h2, h2)["p"]
+
+    def check_reach(self, values: np.ndarray) -> None:
+        """ValueError naming the first data row whose shape lies beyond the exact law's table (its chart
+        height h1 = h + h2 over r1 past :data:`hbma_ctrl.models.exact_tables.RATIO_U`'s end: the table
+        would only be continued there)."""
+        if self._exact is None:
+            return
+        _, h2 = self.shapes(values)
+        h1 = self.data.h + h2
+        top = float(RATIO_U[-1]) * self.r1
+        beyond = np.flatnonzero(h1 > top * (1 + 1e-9))
+        if beyond.size:
+            i = int(beyond[0])
+            what = "" if h2[i] == 0 else f" under its load (the contact's chart height {U.to_mm(h1[i]):.3g} mm)"
+            raise ValueError(f"data: column 'h_mm', row {i + 1}: {U.to_mm(self.data.h[i]):g} mm{what} is beyond the "
+                             f"exact law's table, {RATIO_U[-1]:g} r1 = {U.to_mm(top):g} mm; use --fidelity cap")
 
 
 def model_pressure(material: str, params: dict, r1: float, t0: float, data: StaticData, contact: str,
@@ -464,6 +484,7 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
         if best is None or sol.cost < best.cost:
             best = sol
     z = best.x
+    model.check_reach(full(z))
     J = _jacobian(resid, z, zlo, zhi)
     r = resid(z)
     values = full(z)
