@@ -267,3 +267,24 @@ def test_delayed_commands_average_the_shifted_steps():
     np.testing.assert_allclose(g[5:8, 2], [0.0, 0.4, 1.0], atol=1e-12)
     # the total command (its integral) is kept up to the delay at the end
     np.testing.assert_allclose(g.sum(axis=0) * 0.005, [0.07, 0.062, 0.067], atol=1e-12)
+
+
+def test_bench_fit_bad_flags_are_one_error_before_any_work(tmp_path):
+    for args, needle in ((["--seeds", "0"], "--seeds = 0 is out of range [1, 100]"),
+                         (["--workers", "0"], "--workers = 0 is out of range [1, 64]")):
+        one_line_error(runner.invoke(app, ["bench", "fit", *args, "--out", str(tmp_path / "o")]), needle)
+        assert not (tmp_path / "o").exists()
+
+
+def test_bench_fit_summary_is_the_range_over_seeds():
+    from hbma_ctrl.app.bench_fit import summarize_runs
+
+    def row(rig, law, k, structured):
+        return {"rig": rig, "law": law, "params": {"modulus_scale": k, "V0": 3.5e-6, "flow_scale": 0.9,
+                                                    "C_out": 2e-10}, "nrmsd": 0.01, "structured": structured}
+
+    rows = [row("default", "exact", 1.149, False), row("default", "exact", 1.152, False), row("cap", "cap", 1.15, True)]
+    s = summarize_runs(rows)
+    assert list(s) == ["cap/cap", "default/exact"]  # the rigs' order, then the laws'
+    assert s["default/exact"]["modulus_scale"] == [1.149, 1.152] and s["default/exact"]["runs"] == 2
+    assert s["default/exact"]["V0_cm3"] == [pytest.approx(3.5)] * 2 and s["cap/cap"]["structured"] == 1

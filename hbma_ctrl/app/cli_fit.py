@@ -159,6 +159,50 @@ def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: 
     con.print(f"wrote {out / 'fit.json'}, {out / 'params.toml'}, {out / 'residuals.png'}")
 
 
+def bench_fit_cmd(
+    seeds: Annotated[int, typer.Option(help="rig noise seeds of the recorded runs, 0..seeds-1 (1-100)")] = 8,
+    workers: Annotated[int, typer.Option(help="parallel processes (1-64)")] = 2,
+    out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_fit.json")] = Path("runs/bench_fit"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """The fit's membrane law against truths it is not: the exact solver's static points and pump /
+    hold / vent runs of the cap, exact and default rigs, each fitted with the cap's and the exact law."""
+    from hbma_ctrl.app.bench_fit import run_rows, static_rows, summarize_runs, write_fit_bench
+    from hbma_ctrl.app.cli_args import cap_workers
+
+    if not 1 <= seeds <= 100:
+        raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
+    if not 1 <= workers <= 64:
+        raise ValueError(f"--workers = {workers} is out of range [1, 64]")
+    workers = cap_workers("--workers", workers)
+    check_out(out, overwrite)
+    con = Console(highlight=False, width=140)
+    with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:
+        static = static_rows()
+        runs = run_rows(list(range(seeds)), workers=workers,
+                        progress=lambda rows: con.print(f"  {rows[0]['rig']} rig, seed {rows[0]['seed']}: " + ", ".join(
+                            f"{r['law']} {r['params']['modulus_scale']:.4f}" for r in rows)))
+        written = write_fit_bench(static, runs, tmp, seeds)
+    t = Table(title="static points of the exact solver (nh, E 15 % above nominal): E found / truth, NRMSD")
+    for c in ("data", "cap law", "exact law"):
+        t.add_column(c, justify="right")
+    for case in ("free", "flat"):
+        cells = {r["law"]: f"{r['E_found_over_truth']:.4f}, {r['nrmsd']:.2g}" for r in static if r["case"] == case}
+        t.add_row(case, cells["cap"], cells["exact"])
+    con.print(t)
+    t = Table(title=f"pump / hold / vent runs, {seeds} rig noise seeds (truth: modulus x1.15, pump x0.9, "
+                    "dead volume x1.2): the range over the seeds")
+    for c in ("rig / law", "modulus_scale", "V0 (cm^3)", "flow_scale", "C_out (1e-10)", "NRMSD", "structured"):
+        t.add_column(c, justify="right")
+    for key, v in summarize_runs(runs).items():
+        t.add_row(key, *(f"{v[k][0]:.4f}-{v[k][1]:.4f}" for k in ("modulus_scale", "V0_cm3", "flow_scale",
+                                                                    "C_out_1e10", "nrmsd")),
+                  f"{v['structured']}/{v['runs']}")
+    con.print(t)
+    con.print(f"wrote {out / written.name}")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add the ``fit`` command to the top-level CLI (nothing under ``bench``)."""
+    """Add the ``fit`` command to the top-level CLI and ``bench fit`` under ``bench``."""
     app.command("fit")(fit_cmd)
+    bench_app.command("fit")(bench_fit_cmd)
