@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -34,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from estimators.common import FACTOR_RANGE
 from estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
 from hbma_ctrl.app.schema.document import parse_role
@@ -64,13 +66,16 @@ TAIL_S = 1.0  # the load step's rejection window: the last second
 
 def loop_setup(rig: str = "structured", membrane: str | None = None, valve_delay_ms: float | None = None,
                sensor_delay_ms: float | None = None, valve_min_on_ms: float | None = None,
-               calibration_std_floor: float | None = None) -> dict:
+               calibration_std_floor: float | None = None, prior: str | None = None,
+               prior_std: float | None = None) -> dict:
     """The bench's truth and models: the rig, the models' membrane law (default: the rig's), the
     delays the estimator and the calibration model and the valves' minimum opening the loop shapes
     its duties for (ms; default 5, 3 and 2 on the structured rig, the default, as in
     :mod:`hbma_ctrl.models.defaults`; 0 on the cap rig). Raises
     ValueError naming the flag on a bad value. ``calibration_std_floor``: the calibration prior's
-    sigma floor (default: the controller's, 0.08)."""
+    sigma floor (default: the controller's, 0.08). ``prior``: the EKF's (and so the start-up
+    calibration's) prior on its flow, modulus and dead-volume factors, "b,k,c" (a fit's; default the
+    nominal 1,1,1), with one sigma ``prior_std`` for each (default the filter's 0.15, 0.15, 0.2)."""
     if rig not in RIGS:
         raise ValueError(f"--rig: '{rig}' is unknown{did_you_mean(rig, RIGS)}; allowed {', '.join(RIGS)}")
     structured = rig == "structured"
@@ -90,7 +95,31 @@ def loop_setup(rig: str = "structured", membrane: str | None = None, valve_delay
     for key in ("valve_delay_ms", "sensor_delay_ms", "valve_min_on_ms"):
         if not 0.0 <= out[key] <= 100.0:
             raise ValueError(f"--{key.replace('_', '-')} = {out[key]:g} is out of range [0, 100] ms")
+    if prior is not None:
+        try:
+            vals = [float(v) for v in prior.split(",")]
+        except ValueError:
+            raise ValueError(f"--prior = '{prior}': three numbers b,k,c (the flow, modulus and dead-volume "
+                             "factors)") from None
+        if len(vals) != 3 or not all(FACTOR_RANGE[0] <= v <= FACTOR_RANGE[1] for v in vals):
+            raise ValueError(f"--prior = '{prior}': three factors b,k,c, each in [{FACTOR_RANGE[0]:g}, "
+                             f"{FACTOR_RANGE[1]:g}]")
+        out["prior"] = vals
+    if prior_std is not None:
+        if not (math.isfinite(prior_std) and 0.0 < prior_std <= 10.0):
+            raise ValueError(f"--prior-std = {prior_std:g} is out of range (0, 10]")
+        out["prior_std"] = float(prior_std)
     return out
+
+
+def _prior_settings(setup: dict) -> dict:
+    """EKFSettings fields of the setup's factor prior (none: the filter's defaults)."""
+    kw = {}
+    if "prior" in setup:
+        kw.update(zip(("flow_factor_init", "modulus_init", "dead_volume_init"), setup["prior"]))
+    if "prior_std" in setup:
+        kw.update({k: setup["prior_std"] for k in ("flow_factor_init_std", "modulus_init_std", "dead_volume_init_std")})
+    return kw
 
 
 def run_case(case: str, seed: int, setup: dict | None = None) -> dict:
@@ -106,7 +135,7 @@ def run_case(case: str, seed: int, setup: dict | None = None) -> dict:
     est = EKF(act, pn, EKFSettings(sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
                                    sensor_range=rs.sensor_range, membrane=setup["membrane"],
                                    valve_delay=U.ms(setup["valve_delay_ms"]),
-                                   sensor_delay=U.ms(setup["sensor_delay_ms"])))
+                                   sensor_delay=U.ms(setup["sensor_delay_ms"]), **_prior_settings(setup)))
     log = closed_loop(act, pn, Platform(load=load), sec, duration, rs, estimator=est,
                       model=PredictionModel(act, pn, membrane=setup["membrane"]))
     m = loop_metrics(log, sec)

@@ -44,6 +44,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         calibration_std_floor: Annotated[Optional[float], typer.Option(help="smallest sigma of the calibration's "
                                                                            "factors handed to the EKF, 0-1 "
                                                                            "(default 0.08)")] = None,
+        prior: Annotated[Optional[str], typer.Option(help="the EKF's and the calibration's prior on the flow, "
+                                                          "modulus and dead-volume factors, b,k,c (a fit's; "
+                                                          "default 1,1,1)")] = None,
+        prior_std: Annotated[Optional[float], typer.Option(help="its one sigma for each factor (default the "
+                                                               "filter's 0.15, 0.15, 0.2)")] = None,
     ) -> None:
         """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
         from hbma_ctrl.app.bench_loop import (check_cases, loop_setup, run_loop_bench, summarize_loop,
@@ -56,7 +61,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         workers = cap_workers("--workers", workers)
         con = Console(highlight=False, width=140)
         cs = check_cases([c.strip() for c in cases.split(",") if c.strip()])  # before --out is touched
-        setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms, calibration_std_floor)
+        setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms, calibration_std_floor,
+                           prior, prior_std)
         with run_dir(out, command="bench loop", argv=cli_argv(), overwrite=overwrite) as tmp:
             rows = run_loop_bench(list(range(seeds)), cs, workers,
                                   progress=lambda r: con.print(f"  {r['case']} seed {r['seed']}: "
