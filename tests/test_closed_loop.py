@@ -238,3 +238,27 @@ def test_structured_rig_400g_settles_with_the_timing_modelled_and_never_lifts_wi
     assert timed["passed"] and timed["calibration"]["status"] == "ok", timed
     assert not naive["passed"] and naive["final_error_mm"] > 4.0, naive
     assert max(timed["max_pressure_kpa"], naive["max_pressure_kpa"]) <= 35.0
+
+
+@pytest.mark.parametrize("prior,prior_std,needle", [
+    ("1,1", None, "--prior = '1,1': three factors b,k,c, each in [0.5, 2]"),
+    ("0.3,1,1", None, "--prior = '0.3,1,1': three factors"),
+    ("a,1,1", None, "--prior = 'a,1,1': three numbers b,k,c"),
+    (None, 0.0, "--prior-std = 0 is out of range (0, 10]"),
+])
+def test_bench_loop_prior_flags_are_one_error(prior, prior_std, needle):
+    from hbma_ctrl.app.bench_loop import loop_setup
+
+    with pytest.raises(ValueError) as exc:
+        loop_setup(prior=prior, prior_std=prior_std)
+    assert needle in str(exc.value)
+
+
+def test_bench_loop_prior_reaches_the_filter_settings():
+    from hbma_ctrl.app.bench_loop import _prior_settings, loop_setup
+
+    setup = loop_setup(prior="0.92,1.15,1.13", prior_std=0.05)
+    kw = _prior_settings(setup)
+    assert kw == {"flow_factor_init": 0.92, "modulus_init": 1.15, "dead_volume_init": 1.13,
+                  "flow_factor_init_std": 0.05, "modulus_init_std": 0.05, "dead_volume_init_std": 0.05}
+    assert _prior_settings(loop_setup()) == {}  # no prior: the filter's own defaults
