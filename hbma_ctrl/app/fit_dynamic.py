@@ -201,7 +201,6 @@ class _RunModel:
                 make_exact_loaded("quasi_static", mat, str(pn.csv_path))
         else:
             self.fid = make_fidelity("quasi_static" if loaded else "free", mat, str(pn.csv_path))
-        self.law = fidelity
         self.theta0 = self.fid.space.values(act, pn, plat)
         names = self.fid.space.names
         self.ix = {n: i for i, n in enumerate(names)}
@@ -282,13 +281,15 @@ def delayed_commands(t: np.ndarray, u: np.ndarray, K: int, dt: float, delays) ->
     return out
 
 
-def simulate_run(run: RunData, material: str, params: dict, r1: float, t0: float,
-                 fidelity: str = "cap") -> tuple[np.ndarray, np.ndarray]:
+def simulate_run(run: RunData, material: str, params: dict, r1: float, t0: float, fidelity: str = "cap",
+                 valve_delay: float = 0.0, sensor_delay: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Model pressure (Pa) and height (m) at the run's rows for parameters named as in
     :func:`dynamic_param_names` (SI; ``modulus_scale`` or the material parameters), r1, t0 in m,
-    with the cap's or the exact membrane's law (``fidelity``)."""
+    with the cap's or the exact membrane's law (``fidelity``) and the commands replayed with the
+    dead times a fit takes (s)."""
+    check_delays("fit", valve_delay, sensor_delay)
     fit_material = "modulus_scale" not in params
-    model = _RunModel(run, material, r1, t0, float(params["V0"]), fit_material, fidelity)
+    model = _RunModel(run, material, r1, t0, float(params["V0"]), fit_material, fidelity, valve_delay, sensor_delay)
     v = np.array([params[n] for n in model.names], dtype=float)
     Z = np.where(model.log, np.log(np.where(model.log, v, 1.0) / model.nominal), (v - model.nominal) / model.lin_scale)
     P, H, _ = model.simulate(Z[:, None])
@@ -481,7 +482,7 @@ def estimator_prior_lines(result: DynamicFitResult) -> list[str]:
     for key, fitted in names:
         if fitted in p and fitted in ci and ci[fitted][0] is not None and p[fitted] > 0:
             half = 0.5 * (math.log(ci[fitted][1]) - math.log(ci[fitted][0])) if ci[fitted][0] > 0 else math.inf
-            sd = max(half / 1.96, PRIOR_STD_MIN)
+            sd = min(max(half / 1.96, PRIOR_STD_MIN), 10.0)  # (10: the key's bound; an open interval)
         else:
             sd = PRIOR_STD_MIN
         lines.append(f"# {key}_init_std = {sd:.3g}")
