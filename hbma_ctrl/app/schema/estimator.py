@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+from estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
     LoadSteps,
@@ -22,7 +23,6 @@ from hbma_ctrl.app.schema.fields import (
     shaped,
 )
 from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
-from estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
