@@ -85,6 +85,7 @@ def test_fix_holds_a_parameter():
 
 
 GOOD = "h_mm,p_kpa\n1.0,5.0\n2.0,9.0\n3.0,12.0\n"
+GOOD_FLAT = "h_mm,p_kpa,load_g\n1.0,12.0,100\n2.0,15.0,200\n3.0,19.0,300\n"
 
 
 @pytest.mark.parametrize("text,needles", [
@@ -112,7 +113,8 @@ def test_bad_data_is_one_line(tmp_path, text, needles):
 
 
 @pytest.mark.parametrize("args,needles", [
-    (["--fidelity", "exact", "--material", "mr"], ["--fidelity exact", "--material nh only", "--fidelity cap"]),
+    (["--fidelity", "exact", "--material", "mr", "--contact", "flat"],
+     ["--fidelity exact with --contact flat", "--material nh only", "--fidelity cap"]),
     (["--fidelity", "exakt"], ["--fidelity exakt", "did you mean 'exact'"]),
     (["--contact", "bonded"], ["--contact bonded", "not available to a fit"]),
     (["--contact", "flat"], ["--contact flat needs"]),
@@ -120,7 +122,8 @@ def test_bad_data_is_one_line(tmp_path, text, needles):
     (["--fix", "E"], ["NAME=VALUE"]),
 ])
 def test_unavailable_options_refused(tmp_path, args, needles):
-    path = _csv(tmp_path, GOOD)
+    # plate data where the case is about a plate (a load on every point), free points otherwise
+    path = _csv(tmp_path, GOOD_FLAT if "flat" in args and "mr" in args else GOOD)
     one_line_error(runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o"), *args]), *needles)
 
 
@@ -130,8 +133,9 @@ def test_cli_writes_fit_json_and_params_toml(tmp_path):
     rows = "\n".join(f"{U.to_mm(h):.6f},{U.to_kpa(p):.8f},{g:g}" for h, p, g in zip(d.h, d.p, loads_g))
     path = _csv(tmp_path, "# free inflation, zero loads\nh_mm,p_kpa,load_g\n" + rows + "\n")
     out = tmp_path / "fit"
+    # the data are the cap's own pressures: fitted with the cap's law
     res = runner.invoke(app, ["fit", str(path), "--material", "mr", "--contact", "free", "--r1-mm", "12.5",
-                              "--t0-mm", "3", "--out", str(out)])
+                              "--t0-mm", "3", "--fidelity", "cap", "--out", str(out)])
     assert res.exit_code == 0, res.output
     js = json.loads((out / "fit.json").read_text())
     assert set(js) == set(F.FIT_KEYS)
@@ -213,8 +217,8 @@ def test_exact_law_recovers_the_solvers_plate_contact_where_the_cap_is_biased(ex
 
 
 def test_cli_default_law_is_the_roles_where_it_can_fit(tmp_path):
-    """nh: the exact membrane (the rig's and the roles' default), said in params.toml; mr: the cap, with
-    a note saying why (the exact tables hold one material shape)."""
+    """Free points: the exact membrane (the rig's and the roles' default), said in params.toml; mr on a
+    plate: the cap, with a note saying why (the exact tables hold one material shape)."""
     d = _free("nh", {"E": 95e3})
     rows = "\n".join(f"{U.to_mm(h):.6f},{U.to_kpa(p):.8f}" for h, p in zip(d.h, d.p))
     path = _csv(tmp_path, "h_mm,p_kpa\n" + rows + "\n")
@@ -224,11 +228,29 @@ def test_cli_default_law_is_the_roles_where_it_can_fit(tmp_path):
     assert 'membrane = "exact"' in (tmp_path / "nh" / "params.toml").read_text()
     # the cap's own pressures, fitted with the exact law: a lower modulus (the exact law is stiffer)
     assert json.loads((tmp_path / "nh" / "fit.json").read_text())["params"]["E"] < 0.97 * 95e3
-    res = runner.invoke(app, ["fit", str(path), "--material", "mr", "--out", str(tmp_path / "mr")])
+    flat = _csv(tmp_path, GOOD_FLAT, "flat.csv")
+    res = runner.invoke(app, ["fit", str(flat), "--material", "mr", "--out", str(tmp_path / "mr")])
     assert res.exit_code == 0, res.output
     text = " ".join(res.output.split())
     assert "cap law" in text and "fits --material nh only" in text
     assert 'membrane = "cap"' in (tmp_path / "mr" / "params.toml").read_text()
+
+
+def test_exact_law_fits_a_shape_changing_material_with_the_solver(tmp_path):
+    """mr's two moduli (their ratio is the membrane's shape) from the exact solver's free points: the
+    exact law's fit (through the solver, from the cap's optimum) recovers both; the cap is far off."""
+    from hbma_ctrl.models.exact import ExactMembrane
+
+    truth = {"C1": 23e3, "C2": 2.3e3}
+    m = ExactMembrane(make_material("mr", **truth), R1, T0)
+    h = U.mm(np.linspace(1.0, 14.0, 10))
+    data = F.StaticData(h, np.array([m.free(x)["p"] for x in h]))
+    exact = F.fit_static(data, "mr", R1, T0, fidelity="exact")
+    cap = F.fit_static(data, "mr", R1, T0, fidelity="cap")
+    for k, v in truth.items():
+        assert exact.params[k] == pytest.approx(v, rel=2e-3), k
+    assert exact.nrmsd < 1e-4 and exact.fidelity == "exact"
+    assert abs(cap.params["C2"] / truth["C2"] - 1) > 0.3 and cap.nrmsd > 100 * exact.nrmsd
 
 
 def test_exact_law_refuses_a_height_beyond_its_table(tmp_path):

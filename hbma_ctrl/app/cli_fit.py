@@ -111,7 +111,7 @@ def fit_cmd(
     raw = data.read_bytes()
     source = f"{data.resolve()}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
     if is_dynamic(raw):
-        fidelity, law_note = resolve_fidelity(fidelity, material.lower(), fit_material)
+        fidelity, law_note = resolve_fidelity(fidelity, material.lower(), needs_tables=fit_material)
         run = parse_run(raw, None if load_g is None else U.grams(load_g))
         dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3),
                            fix=fixed, fit_material=fit_material,
@@ -133,7 +133,8 @@ def fit_cmd(
         if given:
             raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
     pts = parse_data(raw)
-    fidelity, law_note = resolve_fidelity(fidelity, material.lower())
+    on_plate = contact == "flat" or (contact is None and pts.F is not None)
+    fidelity, law_note = resolve_fidelity(fidelity, material.lower(), needs_tables=on_plate)
     res = fit_static(pts, material.lower(), U.mm(r1_mm), U.mm(t0_mm), contact=contact, fix=fixed,
                      fidelity=fidelity)
     res.source = source
@@ -178,16 +179,19 @@ def bench_fit_cmd(
     check_out(out, overwrite)
     con = Console(highlight=False, width=140)
     with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:
-        static = static_rows()
+        static = static_rows(progress=lambda r: con.print(f"  static {r['case']}, {r['law']} law: worst miss "
+                                                          f"{100 * r['worst_rel_miss']:.2g} % ({r['wall_s']:.0f} s)"))
         runs = run_rows(list(range(seeds)), workers=workers,
                         progress=lambda rows: con.print(f"  {rows[0]['rig']} rig, seed {rows[0]['seed']}: " + ", ".join(
                             f"{r['law']} {r['params']['modulus_scale']:.4f}" for r in rows)))
         written = write_fit_bench(static, runs, tmp, seeds)
-    t = Table(title="static points of the exact solver (nh, E 15 % above nominal): E found / truth, NRMSD")
+    t = Table(title="static points of the exact solver: the largest miss of a parameter (found / truth - 1), "
+                    "NRMSD, undetermined")
     for c in ("data", "cap law", "exact law"):
         t.add_column(c, justify="right")
-    for case in ("free", "flat"):
-        cells = {r["law"]: f"{r['E_found_over_truth']:.4f}, {r['nrmsd']:.2g}" for r in static if r["case"] == case}
+    for case in dict.fromkeys(r["case"] for r in static):
+        cells = {r["law"]: f"{100 * r['worst_rel_miss']:.3g} %, {r['nrmsd']:.2g}" + (", undetermined" if r[
+            "unidentifiable"] else "") for r in static if r["case"] == case}
         t.add_row(case, cells["cap"], cells["exact"])
     con.print(t)
     t = Table(title=f"pump / hold / vent runs, {seeds} rig noise seeds (truth: modulus x1.15, pump x0.9, "

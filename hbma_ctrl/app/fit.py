@@ -11,9 +11,11 @@ Each point's model pressure comes from the package's physics:
 The law is the spherical cap's (``fidelity = "cap"``, README Model §3) or the exact axisymmetric
 membrane's (``"exact"``, Model §9): the same tabulated law, in the same chart, that the rig, the EKF
 and the MPC take with ``membrane = "exact"`` (:func:`hbma_ctrl.models.tables.exact_shape_function`).
-Its tables hold one material *shape* (the parameters' ratios) at any modulus scale, so the exact fit
-takes a material whose one modulus is its only parameter (``nh``); a fit that moves a shape parameter
-would need a new table at every trial value.
+Its tables hold one material *shape* (the parameters' ratios) at any modulus scale, so they serve a
+material whose one modulus is its only parameter (``nh``), free or on a plate. The other materials'
+free-inflation points are fitted with the exact solver itself (:class:`_ExactFree`: the free curve
+of each trial's parameters, :meth:`hbma_ctrl.models.exact.ExactMembrane.free_pole` over pole
+stretches, refined from the cap's fit); their plate contact would need a table at every trial value.
 
 The material parameters (flattened as in :class:`hbma_ctrl.core.physics.ParamSpace`: ``E``; ``C1``,
 ``C2``; ``C0..C2`` for Yeoh; ``mu``, ``Jm``; ``mu0, mu1, alpha0, alpha1``) are fitted by
@@ -101,6 +103,11 @@ _P_KPA_MAX = 1000.0
 _START_FACTORS = (0.1, 0.3, 1.0, 3.0, 10.0)
 #: residual given to a non-physical point (Gent past locking), in units of the pressure span
 _BAD_RESIDUAL = 10.0
+#: pole stretches of the exact solver's free curve for one trial of a shape-changing material
+EXACT_FREE_POLES = 48
+#: the exact solver's refinement of a shape-changing material's fit: at most this many steps (each its
+#: curve and one per free parameter for the Jacobian)
+_EXACT_NFEV = 20
 
 
 @dataclass(frozen=True)
@@ -264,6 +271,54 @@ class _Model:
                              f"exact law's table, {RATIO_U[-1]:g} r1 = {U.to_mm(top):g} mm; use --fidelity cap")
 
 
+class _ExactFree:
+    """Free-inflation pressures (Pa) at the data heights from the exact membrane's own solver, for a
+    material whose parameters change its shape (the tables cannot follow them): each call solves the
+    free curve of those parameters over :data:`EXACT_FREE_POLES` pole stretches and interpolates it
+    (a cubic in height, which the curve's 1e-5 to 4 stretch spacing keeps within the solver's 1e-6)."""
+
+    def __init__(self, material: str, r1: float, t0: float, data: StaticData):
+        self.material, self.r1, self.t0, self.data = material, r1, t0, data
+        self.names = param_names(material)
+
+    def curve(self, values: np.ndarray):
+        """(h m, p Pa) of the free inflation for flattened ``values`` (SI), h increasing; None for
+        parameters that are not a valid material."""
+        from hbma_ctrl.models.exact import ExactMembrane
+
+        try:
+            mat = make_material(self.material, **unflatten(self.material, dict(zip(self.names, values))))
+            m = ExactMembrane(mat, self.r1, self.t0)
+            lam = 1.0 + np.geomspace(1e-5, 0.999 * (m.lam_hi - 1.0), EXACT_FREE_POLES)
+            out = m.free_pole(lam)
+        except ValueError:
+            return None
+        h, p = np.asarray(out["h"], dtype=float), np.asarray(out["p"], dtype=float)
+        ok = np.isfinite(h) & np.isfinite(p)
+        h, p = h[ok], p[ok]
+        keep = np.concatenate([[True], np.diff(h) > 0]) if h.size else h.astype(bool)
+        return h[keep], p[keep]
+
+    def pressure(self, values: np.ndarray) -> np.ndarray:
+        from scipy.interpolate import CubicSpline
+
+        c = self.curve(values)
+        if c is None or c[0].size < 4:
+            return np.full(self.data.h.size, np.nan)
+        h, p = c
+        out = np.full(self.data.h.size, np.nan)
+        inside = (self.data.h >= 0) & (self.data.h <= h[-1])
+        # the membrane is flat at h = 0: the curve starts there
+        hh, pp = np.concatenate([[0.0], h]), np.concatenate([[0.0], p])
+        out[inside] = CubicSpline(hh, pp)(self.data.h[inside])
+        return out
+
+    def reach(self, values: np.ndarray) -> float:
+        """The highest free apex height (m) of the curve for ``values`` (0 when it has none)."""
+        c = self.curve(values)
+        return float(c[0][-1]) if c is not None and c[0].size else 0.0
+
+
 def model_pressure(material: str, params: dict, r1: float, t0: float, data: StaticData, contact: str,
                    fidelity: str = "cap") -> np.ndarray:
     """Model pressure (Pa) at the data points for flattened parameters (SI), r1, t0 (m), with the cap's
@@ -393,27 +448,28 @@ def exact_shapes_fixed(material: str) -> bool:
 
 
 def check_exact_material(material: str, flag: str) -> None:
-    """ValueError naming ``flag`` when the exact law cannot fit ``material``'s parameters (see
-    :func:`exact_shapes_fixed`)."""
+    """ValueError naming ``flag`` when the exact law's tables would have to fit ``material``'s
+    parameters (a plate contact or a recorded run: see :func:`exact_shapes_fixed`)."""
     if not exact_shapes_fixed(material):
         names = ", ".join(param_names(material))
-        raise ValueError(f"{flag}: the exact membrane fits --material nh only (its one modulus scales the exact "
-                         f"law's tables, which hold one material shape); {material}'s {names} change the shape, a "
-                         "new table at every trial value. Use --fidelity cap, or fit a recorded run's "
-                         "modulus_scale with --fidelity exact (the shape held at the material's values)")
+        raise ValueError(f"{flag}: the exact membrane fits this for --material nh only (its one modulus scales the "
+                         f"exact law's tables, which hold one material shape); {material}'s {names} change the shape, "
+                         "a new table at every trial value. Use --fidelity cap; the exact law fits free points of "
+                         f"{material} (no force column) and a recorded run's modulus_scale (without --fit-material)")
 
 
-def resolve_fidelity(fidelity: str | None, material: str, fit_material: bool = True) -> tuple[str, str | None]:
+def resolve_fidelity(fidelity: str | None, material: str, needs_tables: bool = False) -> tuple[str, str | None]:
     """The law a fit uses: ``fidelity`` as given, or for None the roles' default (the exact membrane,
     :data:`hbma_ctrl.models.defaults.DEFAULT_MEMBRANE`) where it can fit the asked parameters, else the
-    cap; with a note saying why when the default could not be taken. ``fit_material``: the fit moves
-    the material's own parameters (a static fit always does; a recorded run's with --fit-material)."""
+    cap; with a note saying why when the default could not be taken. ``needs_tables``: the fit would
+    move a material's shape through the exact law's tables (static points on a plate, a recorded run's
+    --fit-material), which only nh's one modulus can do."""
     if fidelity is not None:
         return fidelity, None
-    if DEFAULT_MEMBRANE == "exact" and fit_material and not exact_shapes_fixed(material):
-        return "cap", (f"fitted with the cap's law: the exact membrane (the roles' default law) fits --material nh "
-                       f"only; {material}'s parameters change its shape. Run the roles on these numbers with "
-                       "membrane = \"cap\"")
+    if DEFAULT_MEMBRANE == "exact" and needs_tables and not exact_shapes_fixed(material):
+        return "cap", (f"fitted with the cap's law: on a plate or over a recorded run the exact membrane (the roles' "
+                       f"default law) fits --material nh only; {material}'s parameters change its shape. Run the "
+                       "roles on these numbers with membrane = \"cap\"")
     return DEFAULT_MEMBRANE, None
 
 
@@ -422,14 +478,17 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     """Least-squares fit of a material's parameters (SI) to static data; r1, t0 in m.
 
     ``contact`` None picks 'flat' when the data have a force column, else 'free'. ``fix`` holds
-    flattened parameters at SI values. ``fidelity``: the membrane law, 'cap' or 'exact' (``nh`` only,
-    :func:`check_exact_material`). ValueError for unavailable options or too few points.
+    flattened parameters at SI values. ``fidelity``: the membrane law, 'cap' or 'exact' (the tables
+    for ``nh``; the exact solver's free curve, refined from the cap's fit, for free points of the
+    other materials; :func:`check_exact_material`). ValueError for unavailable options or too few points.
     """
     check_options(material, contact, fidelity)
-    if fidelity == "exact":
-        check_exact_material(material, "--fidelity exact")
     if contact is None:
         contact = "flat" if data.F is not None else "free"
+    # a shape-changing material's exact fit: free points only, through the solver itself
+    solver_free = fidelity == "exact" and not exact_shapes_fixed(material)
+    if solver_free and contact != "free":
+        check_exact_material(material, f"--fidelity exact with --contact {contact}")
     if contact == "flat" and data.F is None:
         raise ValueError("data: missing column 'F_n' or 'load_g': --contact flat needs the load of each point")
     if contact == "free" and data.F is not None and np.any(data.F > 0):
@@ -448,7 +507,8 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     span = float(data.p.max() - data.p.min())
     if not span > 0:
         raise ValueError("data: column 'p_kpa' has one value in every row; nothing to fit")
-    model = _Model(material, r1, t0, data, contact, fidelity)
+    model = _Model(material, r1, t0, data, contact, "cap" if solver_free else fidelity)
+    law = _ExactFree(material, r1, t0, data) if solver_free else model
     lo, hi = _bounds(material, names, model.default, data, r1)
     for k, v in fixed.items():
         i = names.index(k)
@@ -465,7 +525,7 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
         return v
 
     def resid(z: np.ndarray) -> np.ndarray:
-        r = (model.pressure(full(z)) - data.p) / span
+        r = (law.pressure(full(z)) - data.p) / span
         return np.where(np.isfinite(r), r, _BAD_RESIDUAL)
 
     zlo, zhi = lo[ifree] / scale, hi[ifree] / scale
@@ -473,18 +533,37 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     is_modulus = np.array([names[i].rstrip("0123456789") not in dimless for i in ifree])
     sign = np.where(model.default[ifree] < 0, -1.0, 1.0)
     best = None
-    for f in _START_FACTORS:
-        # moduli scaled by f, exponents and locking limits at their defaults; then inside the
-        # bounds with a margin (Gent's Jm floor from the data may lie above its default)
-        z0 = sign * np.where(is_modulus, f, 1.0)
-        z0 = np.maximum(z0, np.where(np.isfinite(zlo), 1.5 * zlo + 1e-6, -np.inf))
-        z0 = np.minimum(z0, np.where(np.isfinite(zhi), 0.9 * zhi, np.inf))
+    if solver_free:
+        # one solve of the free curve costs 0.1-0.3 s: one start, the cap's optimum (the two laws
+        # differ by 5-15 % in pressure, well inside the cap fit's basin)
+        cap = fit_static(data, material, r1, t0, contact, fix, "cap")
+        starts = [np.clip(np.array([cap.params[k] for k in free]) / scale, zlo, zhi)]
+        nfev = _EXACT_NFEV
+    else:
+        starts = []
+        for f in _START_FACTORS:
+            # moduli scaled by f, exponents and locking limits at their defaults; then inside the
+            # bounds with a margin (Gent's Jm floor from the data may lie above its default)
+            z0 = sign * np.where(is_modulus, f, 1.0)
+            z0 = np.maximum(z0, np.where(np.isfinite(zlo), 1.5 * zlo + 1e-6, -np.inf))
+            starts.append(np.minimum(z0, np.where(np.isfinite(zhi), 0.9 * zhi, np.inf)))
+        nfev = 200
+    for z0 in starts:
         sol = least_squares(resid, z0, bounds=(zlo, zhi), method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
-                            gtol=1e-12, max_nfev=200)
+                            gtol=1e-12, max_nfev=nfev)
         if best is None or sol.cost < best.cost:
             best = sol
     z = best.x
-    model.check_reach(full(z))
+    if solver_free:
+        top = law.reach(full(z))
+        beyond = np.flatnonzero(data.h > top)
+        if beyond.size:
+            i = int(beyond[0])
+            raise ValueError(f"data: column 'h_mm', row {i + 1}: {U.to_mm(data.h[i]):g} mm is beyond the fitted "
+                             f"membrane's reach in free inflation ({U.to_mm(top):.4g} mm, pole stretch "
+                             "4 or 98 % of the locking one); use --fidelity cap")
+    else:
+        model.check_reach(full(z))
     J = _jacobian(resid, z, zlo, zhi)
     r = resid(z)
     values = full(z)
@@ -506,7 +585,7 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     rel_half = np.array([tq * sd[j] / abs(params[k]) if params[k] != 0 else float("inf")
                          for j, k in enumerate(free)])
     correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(free)} for i, a in enumerate(free)}
-    pm = model.pressure(values)
+    pm = law.pressure(values)
     return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
                      nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak_directions(free, J, corr, rel_half),
                      correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
