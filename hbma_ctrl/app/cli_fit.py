@@ -62,8 +62,8 @@ def fit_cmd(
         help="free (h2 = 0) | flat (load on a plate); default: flat with a force column, else free")] = None,
     fidelity: Annotated[Optional[str], typer.Option(
         help="membrane law: exact (the axisymmetric membrane, README Model §9: the rig's and the roles' default; "
-             "nh for a static fit or --fit-material) | cap (the spherical cap, Model §1-§3); default: exact where "
-             "it can fit, else cap")] = None,
+             "on a plate or with --fit-material nh only, free points of any material) | cap (the spherical cap, "
+             "Model §1-§3); default: exact where it can fit, else cap")] = None,
     fix: Annotated[Optional[list[str]], typer.Option("--fix", help="hold a parameter NAME=VALUE (SI), repeatable")]
     = None,
     v0_cm3: Annotated[Optional[float], typer.Option(
