@@ -291,7 +291,9 @@ class _ExactFree:
             m = ExactMembrane(mat, self.r1, self.t0)
             lam = 1.0 + np.geomspace(1e-5, 0.999 * (m.lam_hi - 1.0), EXACT_FREE_POLES)
             out = m.free_pole(lam)
-        except ValueError:
+        except (ValueError, RuntimeError, FloatingPointError):
+            # parameters the material refuses, or a shooting the solver cannot finish: no curve (the
+            # fit's residual for it is the penalty, never a traceback)
             return None
         h, p = np.asarray(out["h"], dtype=float), np.asarray(out["p"], dtype=float)
         ok = np.isfinite(h) & np.isfinite(p)
