@@ -13,6 +13,7 @@ from cli_checks import one_line_error
 from typer.testing import CliRunner
 
 from hbma_ctrl.app import fit as F
+from hbma_ctrl.app.fit_output import params_toml
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import make_material
@@ -157,7 +158,7 @@ def test_cli_writes_fit_json_and_params_toml(tmp_path):
 
 def test_params_toml_for_tuple_materials():
     res = F.fit_static(_free("yeoh", {"C0": 24e3, "C1": -240.0, "C2": 12.0}), "yeoh", R1, T0)
-    toml = tomllib.loads(F.params_toml(res))
+    toml = tomllib.loads(params_toml(res))
     mat = make_material("yeoh", **toml["actuator"]["material_params"])
     assert len(mat.C) == 3 and abs(mat.C[0] / 24e3 - 1) < 0.01
 

@@ -89,7 +89,8 @@ def fit_cmd(
 ) -> None:
     """Fit the model to static equilibrium points (material) or a recorded run (material scale, dead
     volume, pump and outlet)."""
-    from hbma_ctrl.app.fit import check_options, fit_static, parse_data, resolve_fidelity, write_fit
+    from hbma_ctrl.app.fit import check_options, fit_static, parse_data, resolve_fidelity
+    from hbma_ctrl.app.fit_output import write_fit
     from hbma_ctrl.app.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
 
     _range("--r1-mm", r1_mm, 0.5, 100.0, "mm")

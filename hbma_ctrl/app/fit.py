@@ -29,21 +29,18 @@ each 95 % interval relative to its value (above :data:`REL_CI_MAX`: not determin
 named as a trade-off with the parameter it is correlated with beyond :data:`CORR_LIMIT`). A
 correlation of -0.985 between two parameters whose intervals are both narrow is not reported.
 
-Only :func:`write_fit` touches files; :func:`parse_data` takes the file's bytes.
+Nothing here touches files (:mod:`hbma_ctrl.app.fit_output` writes them); :func:`parse_data` takes the
+file's bytes.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
-from pathlib import Path
 
 import numpy as np
-from matplotlib.figure import Figure
 from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
@@ -74,14 +71,10 @@ __all__ = [
     "check_options",
     "check_exact_material",
     "resolve_fidelity",
-    "LAW_NOTE",
     "exact_shapes_fixed",
     "fit_static",
     "weak_directions",
     "unflatten",
-    "params_toml",
-    "provenance_lines",
-    "write_fit",
 ]
 
 #: contact modes of this command ('bonded', a disk glued at the centre, is refused: README Calibrate)
@@ -592,69 +585,3 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
                      nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak_directions(free, J, corr, rel_half),
                      correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
                      p_data=data.p.copy(), p_model=pm, fidelity=fidelity)
-
-
-# ---------------------------------------------------------------------------------------------
-# output
-# ---------------------------------------------------------------------------------------------
-def _toml_value(v) -> str:
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(repr(float(x)) for x in v) + "]"
-    return repr(float(v))
-
-
-#: the params.toml line that says which law the numbers belong to (a modulus fitted with one law is
-#: biased under the other: README Calibrate, "The exact law")
-LAW_NOTE = {"cap": "the spherical cap (use with [estimator] / [controller] / [rig] membrane = \"cap\")",
-             "exact": "the exact membrane (membrane = \"exact\", the roles' default)"}
-
-
-def provenance_lines(source: str) -> list[str]:
-    """Comment lines recording the data a parameter file came from and when (UTC) it was written."""
-    when = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    return ([f"# data: {source}"] if source else []) + [f"# written: {when}"]
-
-
-def params_toml(result: FitResult) -> str:
-    """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
-    kw = unflatten(result.material, result.params)
-    head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
-            f"NRMSD {result.nrmsd:.4f}")
-    lines = [head,
-             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}",
-             f"# membrane law: {LAW_NOTE[result.fidelity]}"]
-    # where the numbers came from travels with them into any scenario that copies this file
-    lines += provenance_lines(result.source)
-    lines += ["[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in kw.items()]
-    return "\n".join(lines) + "\n"
-
-
-def _plot(result: FitResult, path: Path) -> None:
-    fig = Figure(figsize=(9, 4.2))
-    ax1, ax2 = fig.subplots(1, 2)
-    h = U.to_mm(result.h)
-    order = np.argsort(h)
-    ax1.plot(h, U.to_kpa(result.p_data), "o", ms=4, label="data")
-    ax1.plot(h[order], U.to_kpa(result.p_model[order]), "x-" if result.contact == "free" else "x", ms=5,
-             label=f"fit ({result.material})")
-    ax1.set_xlabel("height h (mm)")
-    ax1.set_ylabel("pressure p (kPa)")
-    ax1.set_title(f"{result.contact} contact, {result.fidelity} law, NRMSD {result.nrmsd:.4f}")
-    ax1.legend()
-    ax2.axhline(0.0, color="0.6", lw=0.8)
-    ax2.plot(h, U.to_kpa(result.p_model - result.p_data), "o", ms=4)
-    ax2.set_xlabel("height h (mm)")
-    ax2.set_ylabel("residual p_fit - p (kPa)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-
-
-def write_fit(result: FitResult, folder: Path | str) -> list[Path]:
-    """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths."""
-    folder = Path(folder)
-    paths = [folder / "fit.json", folder / "params.toml", folder / "residuals.png"]
-    paths[0].write_text(json.dumps(result.as_json(), indent=1) + "\n")
-    paths[1].write_text(params_toml(result))
-    _plot(result, paths[2])
-    return paths

@@ -49,8 +49,8 @@ from matplotlib.figure import Figure
 from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
-from hbma_ctrl.app.fit import (FIT_KEYS, LAW_NOTE, check_exact_material, check_options, param_names, provenance_lines,
-                               unflatten, weak_directions)
+from hbma_ctrl.app.fit import FIT_KEYS, check_exact_material, check_options, param_names, unflatten, weak_directions
+from hbma_ctrl.app.fit_output import LAW_NOTE, provenance_lines, toml_value
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.run_data import COLUMN_ALIASES, RunData, is_dynamic, parse_run
 from hbma_ctrl.core import units as U
@@ -455,7 +455,7 @@ def dynamic_params_toml(result: DynamicFitResult) -> str:
     lines += ["[actuator]", f'material = "{result.material}"', f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}", "",
               "[actuator.material_params]"]
     for k, v in unflatten(result.material, result.params).items():
-        lines.append(f"{k} = " + ("[" + ", ".join(repr(float(x)) for x in v) + "]" if isinstance(v, list) else repr(float(v))))
+        lines.append(f"{k} = {toml_value(v)}")
     lines += ["", "[pneumatics]", f"flow_scale = {result.params['flow_scale']:.6g}",
               f"# outlet sonic conductance C_out = {result.params['C_out']:.6g} m^3/(s Pa) (no scenario key yet)"]
     lines += [""] + estimator_prior_lines(result)
