@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from hbma_ctrl.app import fit as F
 from hbma_ctrl.app import fit_dynamic as D
+from hbma_ctrl.app.bench_fit import PUMP_HOLD_VENT  # pump 60 %, hold, pump 100 %, half-open outlet, hold, vent
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import make_material
@@ -24,9 +25,6 @@ from hbma_ctrl.sim.trial import InputSchedule, Trial
 runner = CliRunner()
 R1, T0, V0 = U.mm(12.5), U.mm(3.0), 3e-6
 TRUTH = {"modulus_scale": 1.15, "flow_scale": 0.9, "V0": 1.2 * V0, "C_out": Valve().C}
-# pump at 60 %, hold shut, pump at 100 %, half-open outlet, hold, vent
-PUMP_HOLD_VENT = ((0.0, 0.6, 1.0, 0.0), (1.2, 0.0, 0.0, 0.0), (1.6, 1.0, 1.0, 0.0), (2.4, 0.0, 0.0, 0.5),
-                  (2.9, 0.0, 0.0, 0.0), (3.2, 0.0, 0.0, 1.0))
 # the cap rig's commands act at once: the CLI's default delays (the roles' datasheet values) off
 NO_DELAYS = ("--valve-delay-ms", "0", "--sensor-delay-ms", "0")
 # the closed-loop scene's CSV header (hbma_ctrl.app.scene_controller.write_closed_loop_csv)

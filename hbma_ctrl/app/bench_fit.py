@@ -32,7 +32,7 @@ import numpy as np
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.core import units as U
 
-__all__ = ["STATIC_CASES", "OTHER_TRUTHS", "RUN_RIGS", "LAWS", "TRUTH", "static_rows", "run_rows", "summarize_runs",
+__all__ = ["STATIC_CASES", "OTHER_TRUTHS", "RUN_RIGS", "PUMP_HOLD_VENT", "LAWS", "TRUTH", "static_rows", "run_rows", "summarize_runs",
            "write_fit_bench"]
 
 #: the laws a fit can take

@@ -177,7 +177,6 @@ def bench_fit_cmd(
     if not 1 <= workers <= 64:
         raise ValueError(f"--workers = {workers} is out of range [1, 64]")
     workers = cap_workers("--workers", workers)
-    check_out(out, overwrite)
     con = Console(highlight=False, width=140)
     with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         static = static_rows(progress=lambda r: con.print(f"  static {r['case']}, {r['law']} law: worst miss "

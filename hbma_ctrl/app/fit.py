@@ -273,10 +273,17 @@ class _ExactFree:
     def __init__(self, material: str, r1: float, t0: float, data: StaticData):
         self.material, self.r1, self.t0, self.data = material, r1, t0, data
         self.names = param_names(material)
+        self._last: tuple = (None, None)  # (values' bytes, curve): the optimum is asked for several times
 
     def curve(self, values: np.ndarray):
         """(h m, p Pa) of the free inflation for flattened ``values`` (SI), h increasing; None for
         parameters that are not a valid material."""
+        key = np.asarray(values, dtype=float).tobytes()
+        if self._last[0] != key:
+            self._last = (key, self._solve(values))
+        return self._last[1]
+
+    def _solve(self, values: np.ndarray):
         from hbma_ctrl.models.exact import ExactMembrane
 
         try:

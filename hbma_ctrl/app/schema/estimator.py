@@ -46,11 +46,11 @@ class EstimatorTable(Table):
     flow_rel_std: float = num(0.15, 0.0, 1.0, "-", "relative error of the model's mass flow")
     flow_factor_std: float = num(0.02, 0.0, 10.0, "1/sqrt(s)", "random walk of the pump-flow factor")
     modulus_std: float = num(0.002, 0.0, 10.0, "1/sqrt(s)", "random walk of the modulus factor")
-    flow_factor_init: float = num(1.0, *FACTOR_RANGE, "-", "the pump-flow factor's start (a fit's flow_scale)")
+    flow_factor_init: float = num(FilterSettings.flow_factor_init, *FACTOR_RANGE, "-", "the pump-flow factor's start (a fit's flow_scale)")
     flow_factor_init_std: float = num(FilterSettings.flow_factor_init_std, 0.0, 10.0, "-", "its one sigma")
-    modulus_init: float = num(1.0, *FACTOR_RANGE, "-", "the modulus factor's start (a fit's modulus_scale)")
+    modulus_init: float = num(FilterSettings.modulus_init, *FACTOR_RANGE, "-", "the modulus factor's start (a fit's modulus_scale)")
     modulus_init_std: float = num(FilterSettings.modulus_init_std, 0.0, 10.0, "-", "its one sigma")
-    dead_volume_init: float = num(1.0, *FACTOR_RANGE, "-",
+    dead_volume_init: float = num(FilterSettings.dead_volume_init, *FACTOR_RANGE, "-",
                                   "the dead-volume factor's start (a fit's V0 over [actuator] V0_cm3)")
     dead_volume_init_std: float = num(FilterSettings.dead_volume_init_std, 0.0, 10.0, "-", "its one sigma")
     change_threshold: float = num(20.0, 0.0, 1e6, "-", "CUSUM threshold of a load change", lo_open=True)
