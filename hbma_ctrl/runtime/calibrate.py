@@ -54,6 +54,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares
 
+from estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays
@@ -68,7 +69,7 @@ __all__ = ["CalibrationSettings", "CalibrationResult", "StartupCalibration", "ha
 
 #: the learnt factors, in the estimator's state names: pump flow, modulus, dead volume
 FACTOR_NAMES = ("b", "k", "c")
-_BOUNDS = (0.5, 2.0)  # the estimator's own factor range: off by more is a broken rig
+_BOUNDS = FACTOR_RANGE  # the estimator's own factor range: off by more is a broken rig
 _FD_STEP = 0.01
 #: with a load on, the pump stops at this fraction of the load's lift-off pressure (stays flat)
 LOADED_STOP = 0.8
@@ -128,8 +129,9 @@ class CalibrationSettings:
     sample_period: float = 0.01
     noise_std: float = 200.0
     sensor_range: float = 35e3
-    prior_mean: tuple = (1.0, 1.0, 1.0)
-    prior_std: tuple = (0.15, 0.15, 0.2)
+    prior_mean: tuple = (FilterSettings.flow_factor_init, FilterSettings.modulus_init, FilterSettings.dead_volume_init)
+    prior_std: tuple = (FilterSettings.flow_factor_init_std, FilterSettings.modulus_init_std,
+                        FilterSettings.dead_volume_init_std)
     valve_delay: float = DEFAULT_VALVE_DELAY
     sensor_delay: float = DEFAULT_SENSOR_DELAY
     membrane: str = DEFAULT_MEMBRANE
