@@ -109,8 +109,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     @bench_app.command("codegen")
     def bench_codegen(
-        config: Annotated[Path, typer.Argument(help="scenario TOML (default scenarios/track_height_cap.toml)")] = Path(
-            "scenarios/track_height_cap.toml"),
+        config: Annotated[Path, typer.Argument(help="scenario TOML (default scenarios/track_height.toml)")] = Path(
+            "scenarios/track_height.toml"),
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir (the C sources and bench_codegen.json)")] = Path(
             "runs/bench_codegen"),
         duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,

@@ -74,6 +74,9 @@ class Stage:
     repeat : calls per run, each reading the signals the previous one wrote (iterations).
     stop_on : a signal that ends the repetitions early when its first entry is not 0 after a call
         (a solver's failure status); None: all ``repeat`` calls.
+    fails_to : an output signal whose first entry is set to NaN before every call, so that a call that
+        fails (a solver inside returns non-zero before the Function writes that output) reads as failed,
+        as the Python roles read it (``controllers.rti_step._RtiFunction``); None: none.
     """
 
     fun: ca.Function
@@ -84,6 +87,7 @@ class Stage:
     gate_off: bool = False
     repeat: int = 1
     stop_on: str | None = None
+    fails_to: str | None = None
 
     def runs(self, k: int, sig: dict) -> bool:
         """Whether the stage runs at tick k with these signal values."""
@@ -188,6 +192,8 @@ class LoopSpec:
             for what, name in (("gate", st.gate), ("stop_on", st.stop_on)):
                 if name is not None and name not in sig:
                     raise ValueError(f"stage {st.name}: {what} signal '{name}' does not exist")
+            if st.fails_to is not None and st.fails_to not in st.outputs:
+                raise ValueError(f"stage {st.name}: fails_to signal '{st.fails_to}' is not one of its outputs")
         for c in self.log:
             if c.signal not in sig or not 0 <= c.index < sig[c.signal].size:
                 raise ValueError(f"log column {c.name}: no entry {c.index} of signal '{c.signal}'")
@@ -250,7 +256,10 @@ def run_python(spec: LoopSpec, library: Path | str | None = None) -> PythonRun:
             if not st.runs(k, sig):
                 continue
             ff = fast[st.name]
+            i_fail = None if st.fails_to is None else st.outputs.index(st.fails_to)
             for _ in range(st.repeat):
+                if i_fail is not None:
+                    ff.out[i_fail][0] = np.nan  # a failed call leaves it unwritten
                 args = [sig[s] for s in st.inputs]
                 t0 = time.perf_counter()
                 out = ff(*args)
@@ -360,6 +369,8 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
         n = _cname(st.name)
         body = [f"wk_{n}.arg[{i}] = {sig_c[s]};" for i, s in enumerate(st.inputs)]
         body += [f"wk_{n}.res[{i}] = out_{n}_{i};" for i in range(f.n_out())]
+        if st.fails_to is not None:
+            body.append(f"out_{n}_{st.outputs.index(st.fails_to)}[0] = NAN;  /* a failed call leaves it unwritten */")
         body += ["double t0 = now_s();",
                  f"int rc = {f.name()}(wk_{n}.arg, wk_{n}.res, wk_{n}.iw, wk_{n}.w, wk_{n}.mem);",
                  f"tm_{n}[ntm_{n}] = now_s() - t0;",

@@ -6,29 +6,36 @@ The three step Functions are the ones the Python roles call: the plant over one 
 (:func:`controllers.rti_step.rti_step_function`). What the Python classes do around them is written
 here as small casadi Functions too, so that the C loop needs no Python:
 
-- ``sensor``: the rig's reading, the true pressure plus the tick's noise, saturated at the range
-  (noise and dropouts drawn at generation time from the rig's seeded stream, as :class:`Rig` draws them);
-- ``ekf_kind``: the reading's kind (:func:`estimators.common.classify_measurement`);
+- ``sensor``: the rig's reading, the true (or lagged) pressure plus the tick's noise, saturated at the
+  range (noise and dropouts drawn at generation time from the rig's seeded stream, as :class:`Rig` draws
+  them); the rig's structure around its plant: ``valve_line`` (the valves' delay and minimum opening)
+  and ``sensor_lag`` (:mod:`hbma_ctrl.sim.plant_step`);
+- ``ekf_kind``: the reading's kind (:func:`estimators.common.classify_measurement`); ``ekf_acting``: the
+  command acting for the EKF's valve and sensor delays (:func:`hbma_ctrl.models.actuation.acting_function`);
 - ``mpc_prep``: the NMPC's problem data from the estimate (its load filter, initial state, output
   biases, reachable height, clipped targets and integral action; :meth:`controllers.mpc.NMPC._problem`);
 - ``mpc_cold``: the cold-start guess (after the first step or a failure);
 - ``mpc_post``: the command after the NMPC and the runtime's supervisor (plan replay on a failure,
-  safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`).
+  safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`);
+- ``pwm``: the command sent every tick, shaped for the valves' minimum on-time
+  (:meth:`hbma_ctrl.runtime.pwm.MinOnTime.function`).
 
 The glue rounds as the Python classes do (``np.interp``'s formula, the load filter's gain from the
-scene's clock), so on ``scenarios/track_height_cap.toml`` the loop follows the scene's own closed loop
-(``closed_loop(..., calibrate=False)`` with the NMPC variant ``rti_fn_osqp`` and a budget no solve
-reaches; :func:`scene_reference`) over the 9 s to 2e-15 m in the heights, 4e-12 in the commands and
-6e-9 Pa in the pressures (measured): rounding only, since the NMPC solves its QP through casadi's
-OSQP plugin with separately compiled data and post-processing, the generated step as one C source.
-Where a QP is marginal the two can part (measured on ``mpc_pressure_limit.toml``: the same RTI
-inputs after its fallback drill give status 2 in the NMPC and 0 in the generated step at t = 2.64 s).
+scene's clock), so the generated loop follows the scene's own closed loop (``closed_loop(...,
+calibrate=False)`` with the NMPC variant ``rti_fn_osqp`` and a budget no solve reaches;
+:func:`scene_reference`) to rounding: measured over the whole scenarios, on ``track_height.toml`` (the
+default rig and models) 1e-15 m in the heights, 1e-11 in the commands and 2.4e-9 Pa in the pressures;
+on ``mpc_ramp_sine.toml``, through its solver failures, 9e-14 m, 5e-10 and 3e-7 Pa. A solve that fails
+inside the generated step (its QP solver returns non-zero) reads as failed (``Stage.fails_to``), as in the
+NMPC. casadi's virtual machine and the generated C of the same step can disagree where a QP is marginal
+(on ``mpc_ramp_sine.toml`` at t = 5.2 s OSQP gives up in the generated C and not on the VM), which is
+why the Python path runs the generated library.
 
 Not reproduced (the generated loop and its Python path leave them out, both alike): the start-up
-calibration, the valve and sensor delays of the EKF and the minimum on-time shaping (refused with a
-clear error when set), the EKF's rare reference-path events (``exact`` = 0; counted in the trajectory's
+calibration, the EKF's rare reference-path events (``exact`` = 0; counted in the trajectory's
 ``ekf_reference_events``), the budget/overrun logic (wall-clock dependent), load steps during the
-run. The loop starts at t = 0 with the rig at rest.
+run. Refused with the key named: the quasi-static rig's snap-through search. The loop starts at t = 0
+with the rig at rest.
 """
 
 from __future__ import annotations
@@ -47,12 +54,14 @@ from hbma_ctrl.sim.plant_step import (
     initial_plant_state,
     plant_step_function,
     plant_step_support,
+    sensor_lag_function,
+    valve_line_function,
 )
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.trial import DEFAULT_DT
 
-__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "qp_solver_for", "scene_reference",
-           "ESTIMATORS"]
+__all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "rig_stages", "qp_solver_for",
+           "scene_reference", "ESTIMATORS"]
 
 
 def _finite(v):
@@ -67,7 +76,8 @@ def _isnan(v):
 
 # --------------------------------------------------------------------------------------------- rig
 def plant_stage_parts(actuator, pneumatics, platform, rs: RigSettings):
-    """(plant_step Function, theta, x0, mode0, y0, fidelity name) of the rig a scene would build.
+    """(plant_step Function, theta, x0, mode0, y0, fidelity name) of the rig a scene would build; the
+    Function takes the inputs of each internal step (``per_substep``) when the rig has valve timing.
 
     ValueError naming the scenario key when the rig's period step is not one casadi Function."""
     rig = Rig(actuator, pneumatics, platform, rs)
@@ -75,12 +85,56 @@ def plant_stage_parts(actuator, pneumatics, platform, rs: RigSettings):
     why = plant_step_support(fid.name, rs)
     if why:
         raise ValueError(f"codegen: {why}")
-    dt = rs.dt if rs.dt is not None else DEFAULT_DT[(rs.integrator, fid.name)]
-    nsub = max(1, int(np.ceil(rs.sample_period / dt - 1e-9)))
-    fun = plant_step_function(fid, rs.integrator, rs.sample_period / nsub, nsub)
+    nsub = _substeps(rs, fid.name)
+    fun = plant_step_function(fid, rs.integrator, rs.sample_period / nsub, nsub, per_substep=_valve_timing(rs))
     theta = rig._plant.thetas[:, 0].copy()
     x0, m0, y0 = initial_plant_state(fid, theta)
     return fun, theta, x0, m0, y0, fid.name
+
+
+def _substeps(rs: RigSettings, fidelity: str) -> int:
+    """Internal steps per rig period, as :class:`Rig` takes them."""
+    dt = rs.dt if rs.dt is not None else DEFAULT_DT[(rs.integrator, fidelity)]
+    return max(1, int(np.ceil(rs.sample_period / dt - 1e-9)))
+
+
+def _valve_timing(rs: RigSettings) -> bool:
+    """Whether the rig's valves are delayed or have a minimum on-time (the plant then takes the inputs
+    of each internal step from ``valve_line``)."""
+    return rs.valve_delay > 0 or rs.valve_min_on > 0
+
+
+def rig_stages(scn, rs: RigSettings, n: int) -> tuple[list, list, dict, np.ndarray, str]:
+    """The rig's stages around the controllers over ``n`` ticks: (stages before the estimator: the
+    reading; stages after the command: valve line, plant and sensor lag; their signals; the noise
+    stream; a description). The reading at tick k is taken before the command of tick k is applied, as
+    :meth:`Rig.measure` then :meth:`Rig.apply`."""
+    plant, theta, x0, m0, y0, fid_name = plant_stage_parts(scn.actuator, scn.pneumatics, scn.platform, rs)
+    noise = rig_noise(rs, n)
+    lagged = rs.sensor_tau > 0
+    p0 = float(y0[OUTPUTS.index("p")])
+    signals = {"x": x0, "mode": [m0], "y": y0, "u": np.zeros(3), "theta": theta, "noise": [0.0], "z": [0.0]}
+    sensor = _sensor(rs.sensor_range, lagged)
+    read = [Stage(sensor, ["p_sensed" if lagged else "y", "noise"], ["z"])]
+    after = []
+    if _valve_timing(rs):
+        nsub = _substeps(rs, fid_name)
+        line = valve_line_function(rs, nsub)
+        signals.update(u_sub=np.zeros(3 * nsub), valve_hist=np.zeros(line.nnz_in(1)))
+        after.append(Stage(line, ["u", "valve_hist"], ["u_sub", "valve_hist"]))
+        after.append(Stage(plant, ["x", "mode", "u_sub", "theta"], ["x", "mode", "y"]))
+    else:
+        after.append(Stage(plant, ["x", "mode", "u", "theta"], ["x", "mode", "y"]))
+    if lagged:
+        signals.update(p_sensed=[p0], p_prev=[p0])
+        after.append(Stage(sensor_lag_function(rs), ["p_sensed", "p_prev", "y"], ["p_sensed", "p_prev"]))
+    z0 = float(np.asarray(sensor(p0 if lagged else y0, noise[0])).ravel()[0])
+    signals["z"] = [z0]
+    membrane = getattr(rs, "membrane", "cap")
+    desc = (f"{fid_name}, {membrane} membrane, {rs.integrator}, {rs.sample_period * 1e3:g} ms, seed {rs.seed}; "
+            f"valve delay {rs.valve_delay * 1e3:g} ms, minimum opening {rs.valve_min_on * 1e3:g} ms, "
+            f"pump tilt {rs.compressor_tilt:g}, sensor lag {rs.sensor_tau * 1e3:g} ms")
+    return read, after, signals, noise, desc
 
 
 def rig_noise(rs: RigSettings, n: int) -> np.ndarray:
@@ -94,11 +148,20 @@ def rig_noise(rs: RigSettings, n: int) -> np.ndarray:
     return out
 
 
-def _sensor(sensor_range: float) -> ca.Function:
-    y, noise = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("noise")
-    z = y[OUTPUTS.index("p")] + noise
+def _sensor(sensor_range: float, lagged: bool = False) -> ca.Function:
+    """The reading: the pressure (the plant's outputs ``y``, or the lagged ``p_sensed``) plus the tick's
+    noise, saturated at the range."""
+    noise = ca.SX.sym("noise")
+    if lagged:
+        src = ca.SX.sym("p_sensed")
+        p = src
+    else:
+        src = ca.SX.sym("y", len(OUTPUTS))
+        p = src[OUTPUTS.index("p")]
+    z = p + noise
     # NaN noise (a dropout) stays NaN: the comparison is false for it
-    return ca.Function("sensor", [y, noise], [ca.if_else(z > sensor_range, sensor_range, z)], ["y", "noise"], ["z"])
+    return ca.Function("sensor", [src, noise], [ca.if_else(z > sensor_range, sensor_range, z)],
+                       ["p_sensed" if lagged else "y", "noise"], ["z"])
 
 
 # --------------------------------------------------------------------------------------------- MPC
@@ -127,6 +190,7 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     MX = ca.MX
     h_est, p_est, F_est, rest_flag = MX.sym("h"), MX.sym("p"), MX.sym("F"), MX.sym("resting")
     r_in, Wf, has_W = MX.sym("r", N), MX.sym("Wf"), MX.sym("has_W")
+    r_now = MX.sym("target")  # the target now; r_in the horizon's (the preview, or the target repeated)
     fail, cold_in, a = MX.sym("fail"), MX.sym("cold"), MX.sym("load_a")
     # --- the load filter (NMPC._load): dt is the controller period
     F = ca.if_else(_finite(F_est), F_est, 0)
@@ -168,10 +232,12 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     reach = ca.if_else(ok[0] == 0, 0, ca.if_else(any_bad, reach_first, ca.fmin(hp[-1], h_lim))) + dh
     hi = ca.fmax(ca.fmin(reach, s.h_max), s.h_min)
     r_c = ca.fmin(ca.fmax(r_in, s.h_min), hi)
-    # --- the integral action (NMPC._integrate): restarted when the target steps by more than the
-    # band; integrated within the band unless clipped; dt the controller period (0 on a restart)
+    r_used = ca.fmin(ca.fmax(r_now, s.h_min), hi)  # the target now as the NMPC clips it (_problem)
+    # --- the integral action (NMPC._integrate) on the target now (not the preview's first): restarted
+    # when it steps by more than the band; integrated within the band unless clipped; dt the controller
+    # period (0 on a restart)
     I_in, I_tgt, has_I, dt_c = MX.sym("I"), MX.sym("I_target"), MX.sym("has_I"), MX.sym("ctrl_dt")
-    target, clipped = r_c[0], r_c[0] != r_in[0]
+    target, clipped = r_used, r_used != r_now
     restart = ca.logic_or(has_I == 0, ca.fabs(target - I_tgt) > INTEGRAL_BAND)
     I0 = ca.if_else(restart, 0.0, I_in)
     err = target - h_est
@@ -183,14 +249,14 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     r_c = ca.if_else(I1 != 0, ca.fmin(ca.fmax(r_c + I1, s.h_min), hi), r_c)
     # a step in the fail window (the drill) solves nothing and leaves the load filter as it was
     failing = fail != 0
-    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, Wf, has_W, fail, cold_in, a,
+    prep = ca.Function("mpc_prep", [h_est, p_est, F_est, rest_flag, r_in, r_now, Wf, has_W, fail, cold_in, a,
                                     I_in, I_tgt, has_I, dt_c],
                        [x0, W, dh, dp, MX(p_lim), r_c, ca.if_else(failing, Wf, Wf_new),
                         ca.if_else(failing, has_W, 1.0), ca.logic_and(cold_in != 0, ca.logic_not(failing)),
                         ca.logic_and(cold_in == 0, ca.logic_not(failing)),
                         ca.if_else(failing, I_in, I1), ca.if_else(failing, I_tgt, target),
                         ca.if_else(failing, has_I, 1.0)],
-                       ["h", "p", "F", "resting", "r", "Wf", "has_W", "fail", "cold", "load_a",
+                       ["h", "p", "F", "resting", "r", "target", "Wf", "has_W", "fail", "cold", "load_a",
                         "I", "I_target", "has_I", "ctrl_dt"],
                        ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next", "run_cold", "run_warm",
                         "I_next", "I_target_next", "has_I_next"])
@@ -252,8 +318,11 @@ def qp_solver_for(variant: str, qp_solver: str | None = None) -> str:
     return qp_solver
 
 
-def _mpc_stages(scn, section, every: int, qp_solver: str | None) -> tuple[list, dict, dict]:
-    """The NMPC's stages (RTI variants), its signals and meta data."""
+def _mpc_stages(scn, section, every: int, qp_solver: str | None, pwm=None) -> tuple[list, dict, dict]:
+    """The NMPC's stages (RTI variants), its signals and meta data. ``pwm``: the valves' minimum on-time
+    shaping (:class:`hbma_ctrl.runtime.pwm.MinOnTime`, None = none); with it the NMPC and its supervisor
+    keep the command they asked for (``wanted``) and every tick sends it shaped (``u``), as
+    :class:`hbma_ctrl.runtime.chamber.ChamberLoop` does."""
     from controllers.mpc import NMPC
     from controllers.rti_step import rti_step_function
 
@@ -277,24 +346,30 @@ def _mpc_stages(scn, section, every: int, qp_solver: str | None) -> tuple[list, 
                "ctrl_dt": [section.sample_period],
                "plan": np.zeros(3 * N), "has_plan": [0.0],
                "age": [0.0], "streak": [0.0]}
-    rti_in = ["x0", "W", "dh", "dp", "u", "p_lim", "r_c", "X_guess", "U_guess", "lam_x", "lam_a"]
+    cmd = "u" if pwm is None else "wanted"  # the command the NMPC and its supervisor hold
+    rti_in = ["x0", "W", "dh", "dp", cmd, "p_lim", "r_c", "X_guess", "U_guess", "lam_x", "lam_a"]
     rti_out = ["u0", "X_guess", "U_guess", "lam_x", "lam_a", "status", "qp_residual", "qp_cost"]
     stages = [
-        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "Wf", "has_W", "fail", "cold", "load_a",
+        Stage(prep, ["est_h", "est_p", "est_F", "resting", "ref", "target", "Wf", "has_W", "fail", "cold", "load_a",
                      "I", "I_target", "has_I", "ctrl_dt"],
               ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W", "run_cold", "run_warm",
                "I", "I_target", "has_I"], every=every),
         # cold start (first step, or after a failure): the guess from the estimate, zero duals, then
         # rti_init_iterations unshifted iterations, stopping at a failure (as _RtiFunction.solve)
-        Stage(cold, ["x0", "u"], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="run_cold"),
+        Stage(cold, ["x0", cmd], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="run_cold"),
         Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="run_cold", repeat=s.rti_init_iterations,
-              stop_on="status"),
-        Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="run_warm"),
+              stop_on="status", fails_to="status"),
+        Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="run_warm", fails_to="status"),
         Stage(post, ["u0", "U_guess", "status", "fail", "est_p", "plan", "has_plan", "age", "streak"],
-              ["u", "cold", "plan", "has_plan", "age", "streak"], every=every),
+              [cmd, "cold", "plan", "has_plan", "age", "streak"], every=every),
     ]
+    if pwm is not None:
+        # every tick, the held command shaped for the valves' minimum opening (its carry per valve)
+        signals.update(wanted=np.zeros(3), pwm_carry=np.zeros(2))
+        stages.append(Stage(pwm.function(), ["wanted", "pwm_carry"], ["u", "pwm_carry"]))
+    shaping = "" if pwm is None else f", duties shaped for a {pwm.min_duty:g} minimum duty"
     return stages, signals, {"controller": f"RTI NMPC (controllers.rti_step), N = {N}, QP {solver}, "
-                                           f"every {every} rig periods"}
+                                           f"every {every} rig periods{shaping}"}
 
 
 # --------------------------------------------------------------------------------------------- EKF
@@ -341,13 +416,14 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
         estimator_from_scenario,
     )
     from hbma_ctrl.core.interfaces import Command
+    from hbma_ctrl.models.actuation import acting_function
 
     est = estimator_from_scenario(scn, rs)
     if est is None:
         est = default_estimator(scn.actuator, scn.pneumatics, None, rs)
     if type(est).__name__ != "EKF":
         raise ValueError(f"codegen: [estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
-    s = est.settings  # its delays are 0: scenario_loop refused any (_unsupported) before this
+    s = est.settings
     fun = es.ekf_step_function(scn.actuator, scn.pneumatics, s)
     kind, out = _ekf_glue(s, physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel))
     e0 = est.step(0.0, z0, Command(0.0, 0.0, 0.0))
@@ -360,17 +436,28 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
                "ekf_innov": [0.0], "ekf_flags": [float(flags)], "ekf_exact": [1.0], "est_h": [e0.h], "est_p": [e0.p],
                "est_F": [e0.F], "resting": [float("resting" in e0.flags)], "ekf_n_ref": [0.0], "not_first": [0.0],
                "one": [1.0]}
-    step_in = ["ekf_x", "ekf_P", "ekf_s", "u", "ekf_theta", "ekf_resting", "z_in", "kind", "ekf_det"]
+    timing = est._timing  # the command acting, for the valve and sensor delays the EKF models
+    step_in = ["ekf_x", "ekf_P", "ekf_s", "u_act" if timing.active else "u", "ekf_theta", "ekf_resting", "z_in",
+               "kind", "ekf_det"]
     step_out = ["ekf_x", "ekf_P", "ekf_s", "ekf_y", "ekf_est", "ekf_std", "ekf_C", "ekf_H", "ekf_A", "ekf_resting",
                 "ekf_det", "ekf_nis", "ekf_innov", "ekf_flags", "ekf_exact"]
     # tick 0 is the Python EKF's initialisation (its signals above); the Function runs from tick 1
     first = ca.Function("mark_started", [ca.SX.sym("one")], [ca.SX(1.0)], ["one"], ["started"])
-    stages = [Stage(kind, ["z"], ["z_in", "kind"], gate="not_first"),
-              Stage(fun, step_in, step_out, gate="not_first"),
-              Stage(out, ["ekf_est", "ekf_flags", "ekf_exact", "ekf_x", "ekf_n_ref"],
-                    ["est_h", "est_p", "est_F", "resting", "ekf_n_ref"], gate="not_first"),
-              Stage(first, ["one"], ["not_first"])]
-    return stages, signals, {"estimator": f"EKF (estimators.ekf_step), {s.sample_period * 1e3:g} ms"}
+    stages = [Stage(kind, ["z"], ["z_in", "kind"], gate="not_first")]
+    if timing.active:
+        # the commands sent so far as the initialisation left them (oldest first, zeros before them)
+        hist = np.zeros((3, timing._keep))
+        if timing._hist:
+            hist[:, timing._keep - len(timing._hist):] = np.asarray(timing._hist, dtype=float).T
+        signals.update(u_act=np.zeros(3), ekf_uhist=hist.ravel(order="F"), ekf_ufill=[float(len(timing._hist))])
+        stages.append(Stage(acting_function(timing, "ekf_acting"), ["u", "ekf_uhist", "ekf_ufill"],
+                            ["u_act", "ekf_uhist", "ekf_ufill"], gate="not_first"))
+    stages += [Stage(fun, step_in, step_out, gate="not_first"),
+               Stage(out, ["ekf_est", "ekf_flags", "ekf_exact", "ekf_x", "ekf_n_ref"],
+                     ["est_h", "est_p", "est_F", "resting", "ekf_n_ref"], gate="not_first"),
+               Stage(first, ["one"], ["not_first"])]
+    delays = f", commands acting {s.valve_delay * 1e3:g} + {s.sensor_delay * 1e3:g} ms late" if timing.active else ""
+    return stages, signals, {"estimator": f"EKF (estimators.ekf_step), {s.sample_period * 1e3:g} ms{delays}"}
 
 
 def _truth_stages() -> tuple[list, dict, dict]:
@@ -386,31 +473,12 @@ def _truth_stages() -> tuple[list, dict, dict]:
 
 
 # --------------------------------------------------------------------------------------------- loop
-#: the shipped scenario a generated loop can run (the cap rig, the models without delays)
-CAP_EXAMPLE = "scenarios/track_height_cap.toml"
-
-
-def _unsupported(scn, section, rs: RigSettings, estimator: str) -> list[str]:
-    """What the generated loop leaves out that the scenario sets, each naming its key and value in
-    the user's units (ms): the valves' minimum on-time, the rig's structure and membrane, the EKF's delays."""
-    from estimators.common import FilterSettings
-    from hbma_ctrl.app.sections import filter_settings_for
-
-    why = []
-    if section.valve_min_on > 0:
-        why.append(f"[controller] valve_min_on_ms = {section.valve_min_on * 1e3:g} ms (the generated loop sends "
-                   "the duties as the NMPC asks; codegen supports 0 ms only)")
-    rig_why = plant_step_support("free" if scn.platform.mass <= 0 else rs.fidelity, rs)
-    if rig_why:
-        why.append(rig_why)
-    if estimator == "ekf":
-        sec = scn.role("estimator")
-        fs = filter_settings_for(sec, rs) if sec is not None else FilterSettings()
-        for key, v in (("valve_delay_ms", fs.valve_delay), ("sensor_delay_ms", fs.sensor_delay)):
-            if v > 0:
-                why.append(f"[estimator] {key} = {v * 1e3:g} ms (the generated EKF takes the commands as "
-                           "acting at once; codegen supports 0 ms only)")
-    return why
+def _unsupported(scn, rs: RigSettings) -> list[str]:
+    """What the generated loop cannot run that the scenario sets, each naming its key: the rig's
+    quasi-static snap-through (a search). Every membrane law, valve timing, pump map, sensor lag and
+    the EKF's and controller's timing models generate."""
+    why = plant_step_support("free" if scn.platform.mass <= 0 else rs.fidelity, rs)
+    return [why] if why else []
 
 
 #: estimators a generated loop can run: the scenario's EKF, or the rig's truth (tests, controller alone)
@@ -422,6 +490,8 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     """The scenario's closed loop (see the module docstring) over ``duration`` s (None: the
     scenario's); ``estimator`` one of :data:`ESTIMATORS`; ``qp_solver`` the RTI step's conic plugin
     (:func:`qp_solver_for`). ValueError naming the section that cannot be generated."""
+    from hbma_ctrl.app.scene_controller import make_pwm
+
     if estimator not in ESTIMATORS:
         raise ValueError(f"codegen: estimator = '{estimator}'; allowed: {', '.join(ESTIMATORS)}")
     if scn.role("robot") is not None:
@@ -437,12 +507,9 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
         raise ValueError("codegen: [controller] load_steps_g: load changes during the run switch the rig's "
                          "plant model in Python; remove them to generate C")
     rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
-    why = _unsupported(scn, section, rs, estimator)
+    why = _unsupported(scn, rs)
     if why:
-        # one message with every key: the defaults (the structured rig, the models' datasheet timing)
-        # set several of them, and a user should not fix them one run at a time
-        raise ValueError("codegen: the generated loop cannot run this scenario as written: " + "; ".join(why)
-                         + f". {CAP_EXAMPLE} is track_height with what it supports")
+        raise ValueError("codegen: the generated loop cannot run this scenario as written: " + "; ".join(why))
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))
     if every < 1 or abs(ratio - every) > 1e-6:
@@ -450,12 +517,11 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
                          f"multiple of [rig] sample_period_ms = {rs.sample_period * 1e3:g} ms")
     T = scn.duration if duration is None else float(duration)
     n = int(round(T / rs.sample_period))
-    plant, theta, x0, m0, y0, fid_name = plant_stage_parts(scn.actuator, scn.pneumatics, scn.platform, rs)
-    noise = rig_noise(rs, n)
-    sensor = _sensor(rs.sensor_range)
-    z0 = float(np.asarray(sensor(y0, noise[0])).ravel()[0])
+    read, rig_after, rig_signals, noise, rig_desc = rig_stages(scn, rs, n)
+    z0 = float(rig_signals["z"][0])
     ekf_stages, ekf_signals, ekf_meta = _ekf_stages(scn, rs, z0) if estimator == "ekf" else _truth_stages()
-    mpc_stages, mpc_signals, mpc_meta = _mpc_stages(scn, section, every, qp_solver)
+    mpc_stages, mpc_signals, mpc_meta = _mpc_stages(scn, section, every, qp_solver,
+                                                     make_pwm(section, rs.sample_period))
     N = section.mpc.horizon
     use_preview = section.preview if section.preview is not None else (
         section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
@@ -471,12 +537,10 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     tau = section.mpc.load_tau
     dts = [section.mpc.sample_period if k < every else max(t[k] - t[k - every], 0.0) for k in range(n)]
     load_a = np.array([1.0 if tau <= 0 else min(1.0, d / tau) for d in dts])
-    signals = {"x": x0, "mode": [m0], "y": y0, "u": np.zeros(3), "theta": theta, "noise": [0.0], "z": [z0],
-               "target": [0.0], "ref": np.zeros(N)}
+    signals = dict(rig_signals, target=[0.0], ref=np.zeros(N))
     signals.update(ekf_signals)
     signals.update(mpc_signals)
-    stages = [Stage(sensor, ["y", "noise"], ["z"])] + ekf_stages + mpc_stages + [LOG] + [
-        Stage(plant, ["x", "mode", "u", "theta"], ["x", "mode", "y"])]
+    stages = read + ekf_stages + mpc_stages + [LOG] + rig_after
     hi = OUTPUTS.index("h")
     pi = OUTPUTS.index("p")
     Fi = OUTPUTS.index("F")
@@ -488,7 +552,7 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
            LogColumn("mode", "mode", 0), LogColumn("mpc_status", "status", 0)]
     if "ekf_n_ref" in signals:
         log.append(LogColumn("ekf_reference_events", "ekf_n_ref", 0))
-    meta = {"scenario": scn.name, "rig": f"{fid_name}, {rs.integrator}, {rs.sample_period * 1e3:g} ms, seed {rs.seed}"}
+    meta = {"scenario": scn.name, "rig": rig_desc}
     meta.update(ekf_meta)
     meta.update(mpc_meta)
     return LoopSpec(scn.name, rs.sample_period, n, signals, {"noise": noise, "target": target, "ref": ref, "fail": fail,

@@ -22,11 +22,12 @@ from __future__ import annotations
 
 import math
 
+import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.params import check_range
 
-__all__ = ["CommandTiming", "acting_average", "check_delays"]
+__all__ = ["CommandTiming", "acting_average", "check_delays", "acting_function"]
 
 #: delays allowed, s: up to ten 10 ms periods (a slower valve or sensor is another rig)
 DELAY_MAX = 0.1
@@ -38,6 +39,29 @@ def check_delays(where: str, valve_delay: float, sensor_delay: float) -> None:
     check_range(where, "sensor_delay", sensor_delay, 0.0, DELAY_MAX, "s")
 
 
+def _acting_terms(n_hist: int, k: int, period: float, delay: float) -> list:
+    """How :func:`acting_average` weighs its commands: (j, w) in the order it sums them, j = 0 for the
+    command held now and j >= 1 for ``history[-j]``, w the time (s) it acts within the window; the
+    first term is always the command held now (its weight may be 0)."""
+    span = k * period
+    # the window [-span - delay, -delay] of the held-command function (t = 0 now): u_new holds over
+    # (-span, 0], history[-j] over (-span - j T, -span - (j - 1) T], the oldest before that
+    lo, hi = -span - delay, -delay
+    terms = [(0, max(0.0, hi - max(lo, -span)))]
+    end = -span  # end of the current history segment
+    for j in range(1, n_hist + 1):
+        start = end - period if j < n_hist else -math.inf
+        w = max(0.0, min(hi, end) - max(lo, start))
+        if w > 0.0:
+            terms.append((j, w))
+        end = start
+        if end <= lo:
+            break
+    if not n_hist:
+        terms.append((0, max(0.0, min(hi, -span) - lo)))  # nothing before: the first command always held
+    return terms
+
+
 def acting_average(history: list, u_new: np.ndarray, k: int, period: float, delay: float) -> np.ndarray:
     """The command acting over the last ``k`` periods, averaged, when it acts ``delay`` s after sent.
 
@@ -47,28 +71,14 @@ def acting_average(history: list, u_new: np.ndarray, k: int, period: float, dela
     u_new = np.asarray(u_new, dtype=float)
     if delay <= 0.0 or k <= 0:
         return u_new.copy()
-    span = k * period
-    # the window [-span - delay, -delay] of the held-command function (t = 0 now): u_new holds over
-    # (-span, 0], history[-j] over (-span - j T, -span - (j - 1) T], the oldest before that
-    lo, hi = -span - delay, -delay
     acc = np.zeros_like(u_new)
-    acc += max(0.0, hi - max(lo, -span)) * u_new
     vmin, vmax = u_new.copy(), u_new.copy()
-    end = -span  # end of the current history segment
-    for j in range(1, len(history) + 1):
-        start = end - period if j < len(history) else -math.inf
-        w = max(0.0, min(hi, end) - max(lo, start))
-        if w > 0.0:
-            h = np.asarray(history[-j], dtype=float)
-            acc += w * h
-            vmin, vmax = np.minimum(vmin, h), np.maximum(vmax, h)
-        end = start
-        if end <= lo:
-            break
-    if not history:
-        acc += max(0.0, min(hi, -span) - lo) * u_new  # nothing before: the first command always held
+    for j, w in _acting_terms(len(history), k, period, delay):
+        h = u_new if j == 0 else np.asarray(history[-j], dtype=float)
+        acc += w * h
+        vmin, vmax = np.minimum(vmin, h), np.maximum(vmax, h)
     # a weighted mean lies between its values; rounding must not put a command past 1
-    return np.clip(acc / span, vmin, vmax)
+    return np.clip(acc / (k * period), vmin, vmax)
 
 
 class CommandTiming:
@@ -149,3 +159,47 @@ class CommandTiming:
     def reset(self) -> None:
         """Forget the commands sent (a new run)."""
         self._hist = []
+
+
+def acting_function(timing: CommandTiming, name: str = "acting") -> ca.Function:
+    """:meth:`CommandTiming.acting` for one period (k = 1) as a casadi Function, for loops without Python:
+
+        acting(u[3], hist[3 keep], fill[1]) -> (u_acting[3], hist_next[3 keep], fill_next[1])
+
+    ``hist`` the last ``keep`` commands sent (oldest first, column-major 3 x keep), of which the newest
+    ``fill`` count (the history's length in :class:`CommandTiming`, 0..keep). It sums as ``acting``
+    does on each path (its fixed weights on a full history, :func:`acting_average` on a shorter one), so
+    it gives the same bits."""
+    keep = timing._keep
+    u, hist, fill = ca.SX.sym("u", 3), ca.SX.sym("hist", 3, keep), ca.SX.sym("fill")
+    if not timing.active:
+        return ca.Function(name, [u, hist, fill], [u, hist, fill], ["u", "hist", "fill"],
+                           ["u_acting", "hist_next", "fill_next"])
+    H = [hist[:, i] for i in range(keep)] + [u]  # the fast path's list: oldest first, u last
+    full = []
+    for j, terms in enumerate(timing._terms):
+        v = 0.0
+        vals = [H[i][j] for i, _ in terms]
+        for (i, wi), x in zip(terms, vals):
+            v = v + wi * x
+        lo, hi = vals[0], vals[0]
+        for x in vals[1:]:
+            lo, hi = ca.fmin(lo, x), ca.fmax(hi, x)
+        full.append(ca.fmin(ca.fmax(v, lo), hi))
+    out = ca.vertcat(*full)
+    for n in range(keep - 1, -1, -1):  # a shorter history: acting_average on its newest n commands
+        short = []
+        for comp, delay in ((0, timing.speed_delay), (1, timing.valve_delay), (2, timing.valve_delay)):
+            if delay <= 0.0:
+                short.append(u[comp])
+                continue
+            acc, lo, hi = 0.0, u[comp], u[comp]
+            for j, w in _acting_terms(n, 1, timing.period, delay):
+                h = u[comp] if j == 0 else hist[comp, keep - j]
+                acc = acc + w * h
+                lo, hi = ca.fmin(lo, h), ca.fmax(hi, h)
+            short.append(ca.fmin(ca.fmax(acc / timing.period, lo), hi))
+        out = ca.if_else(fill == n, ca.vertcat(*short), out)
+    nxt = ca.horzcat(hist[:, 1:], u)
+    return ca.Function(name, [u, hist, fill], [out, nxt, ca.fmin(fill + 1, keep)], ["u", "hist", "fill"],
+                       ["u_acting", "hist_next", "fill_next"])

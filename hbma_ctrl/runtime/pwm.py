@@ -13,6 +13,7 @@ shut stays shut: no pulse after a vent or a safety cut). The pump's speed is not
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.interfaces import Command
@@ -77,3 +78,22 @@ class MinOnTime:
     def reset(self) -> None:
         """Forget the carried duty."""
         self.carry = np.zeros_like(self.carry)
+
+    def function(self, name: str = "pwm") -> ca.Function:
+        """:meth:`shape` of one chamber as a casadi Function, for loops without Python:
+        ``pwm(u[3], carry[2]) -> (u_sent[3], carry_next[2])``, the inlet and outlet duties' carry as
+        :attr:`carry` holds it (the same operations, so the same bits; inactive: the command itself)."""
+        u, carry = ca.SX.sym("u", 3), ca.SX.sym("carry", 2)
+        if not self.active:
+            return ca.Function(name, [u, carry], [u, carry], ["u", "carry"], ["u_sent", "carry_next"])
+        m = self.min_duty
+        sent, nxt = [u[0]], []
+        for i in range(2):
+            d = u[1 + i]
+            keep = ca.logic_or(d <= 0.0, d >= m)
+            want = d + carry[i]
+            out = ca.if_else(want >= 0.5 * m, m, 0.0)
+            nxt.append(ca.if_else(keep, 0.0, want - out))
+            sent.append(ca.if_else(keep, d, out))
+        return ca.Function(name, [u, carry], [ca.vertcat(*sent), ca.vertcat(*nxt)], ["u", "carry"],
+                           ["u_sent", "carry_next"])

@@ -14,9 +14,19 @@ the outputs :data:`hbma_ctrl.models.fidelity.OUTPUTS` at the end of the period. 
 lift-off (resting and pi r1^2 p > W: start from the flat membrane, project in contact), touch-down
 (platform: moving with z <= 0 and v <= 0: z = v = 0, resting), as ``_events_and_modes`` does.
 
-Refused (:func:`plant_step_support` says which key): the quasi-static snap-through (a search for the
-far branch), the exact membrane (its law is a table the rig builds at run time), valve delay and minimum
-on-time (a command history), the sensor lag and the tilted pump map.
+The rig's membrane law (the cap or the exact membrane's tables, piecewise cubics in casadi) and its
+pump map (tilted or not: another CSV) are inside the fidelity, so they generate as they are. The rig's
+structure around the plant is two more Functions, so that a loop without Python has it too:
+
+    valve_line(u[3], hist[3 keep]) -> (u_sub[3 x nsub], hist_next[3 keep])
+    sensor_lag(p_sensed[1], p_prev[1], y[13]) -> (p_sensed_next[1], p_prev_next[1])
+
+``valve_line`` is :class:`hbma_ctrl.sim.rig.ValveLine`: the command shaped for the valves' minimum
+on-time and kept with the last ones sent, and the inputs acting over each internal step (the valves as
+sent ``valve_delay`` before it, the speed as sent last); ``plant_step_function(..., per_substep=True)``
+takes those inputs, one column per internal step. ``sensor_lag`` is :meth:`RigSettings.sense` once per
+period. Refused (:func:`plant_step_support` says which key): the quasi-static snap-through (a search for
+the far branch).
 """
 
 from __future__ import annotations
@@ -28,7 +38,8 @@ import numpy as np
 
 from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, Fidelity
 
-__all__ = ["plant_step_function", "plant_step_support", "initial_plant_state", "PLANT_FIDELITIES"]
+__all__ = ["plant_step_function", "plant_step_support", "initial_plant_state", "PLANT_FIDELITIES",
+           "valve_line_function", "valve_history_size", "sensor_lag_function"]
 
 #: fidelities whose period step is one casadi Function
 PLANT_FIDELITIES = ("free", "platform")
@@ -36,20 +47,12 @@ PLANT_FIDELITIES = ("free", "platform")
 
 def plant_step_support(fidelity: str, settings) -> str | None:
     """Why a rig (its fidelity name and :class:`~hbma_ctrl.sim.rig.RigSettings`) has no plant_step
-    Function: every reason, each naming the scenario key (its value as the user writes it, since the
-    rig's defaults set several of them), joined by '; '; None when it has one."""
-    why = []
+    Function, naming the scenario key; None when it has one. Every membrane law, pump map, valve timing
+    and sensor lag generates (the module docstring); only the quasi-static snap-through does not."""
     if fidelity not in PLANT_FIDELITIES:
-        why.append(f"[rig] fidelity = '{fidelity}': its snap-through jump is a search, not a casadi expression "
-                   f"(codegen supports {', '.join(PLANT_FIDELITIES)})")
-    if getattr(settings, "membrane", "cap") != "cap":
-        why.append(f"[rig] membrane = '{settings.membrane}': codegen supports 'cap'")
-    for key, unit in (("valve_delay", "ms"), ("valve_min_on", "ms"), ("sensor_tau", "ms")):
-        if getattr(settings, key, 0.0) != 0.0:
-            why.append(f"[rig] {key}_{unit} = {getattr(settings, key) * 1e3:g} {unit}: codegen supports 0 {unit} only")
-    if getattr(settings, "compressor_tilt", 0.0) != 0.0:
-        why.append(f"[rig] compressor_tilt = {settings.compressor_tilt:g}: codegen supports 0 only")
-    return "; ".join(why) or None
+        return (f"[rig] fidelity = '{fidelity}': its snap-through jump is a search, not a casadi expression "
+                f"(codegen supports {', '.join(PLANT_FIDELITIES)})")
+    return None
 
 
 def _events(fid: Fidelity, x, u, theta, mode):
@@ -74,9 +77,11 @@ def _events(fid: Fidelity, x, u, theta, mode):
 
 
 def plant_step_function(fid: Fidelity, integrator: str, dt: float, nsub: int,
-                        name: str = "plant_step") -> ca.Function:
+                        name: str = "plant_step", per_substep: bool = False) -> ca.Function:
     """``nsub`` internal steps of ``dt`` s (``integrator`` 'rk4' or 'euler') of the fidelity, with its
-    events, as one Function (see the module docstring for the signature)."""
+    events, as one Function (see the module docstring for the signature). ``per_substep``: its input
+    ``u`` is 3 x nsub, the inputs acting over each internal step (the valves' delay, ``valve_line``);
+    else one command held over the period."""
     if fid.name not in PLANT_FIDELITIES:
         raise ValueError(f"plant_step: fidelity '{fid.name}' is not supported; allowed: {', '.join(PLANT_FIDELITIES)}")
     if not (isinstance(nsub, int) and nsub >= 1):
@@ -88,14 +93,64 @@ def plant_step_function(fid: Fidelity, integrator: str, dt: float, nsub: int,
     xe, me = _events(fid, xn, us, ths, ms)
     sub = ca.Function(f"{name}_sub", [xs, us, ths, ms], [xe, me], ["x", "u", "theta", "mode"], ["x_next", "mode_next"])
     # MX around the substep: the generated C calls it nsub times instead of inlining nsub copies
-    x, mode, u, theta = (ca.MX.sym("x", fid.nx), ca.MX.sym("mode"), ca.MX.sym("u", 3),
-                         ca.MX.sym("theta", fid.space.size))
+    x, mode, theta = ca.MX.sym("x", fid.nx), ca.MX.sym("mode"), ca.MX.sym("theta", fid.space.size)
+    u = ca.MX.sym("u", 3, nsub) if per_substep else ca.MX.sym("u", 3)
     xk, mk = x, mode
-    for _ in range(nsub):
-        xk, mk = sub(xk, u, theta, mk)
-    y = fid.out(xk, u, theta, mk)
+    for j in range(nsub):
+        xk, mk = sub(xk, u[:, j] if per_substep else u, theta, mk)
+    # the outputs with the inputs of the last internal step, as the rig's plant computes them
+    y = fid.out(xk, u[:, nsub - 1] if per_substep else u, theta, mk)
     return ca.Function(name, [x, mode, u, theta], [xk, mk, y], ["x", "mode", "u", "theta"],
                        ["x_next", "mode_next", "y"])
+
+
+def valve_history_size(settings) -> int:
+    """Commands :func:`valve_line_function` keeps (the ones sent within ``valve_delay`` of now, and the
+    one acting before them)."""
+    return int(math.ceil(settings.valve_delay / settings.sample_period)) + 1
+
+
+def valve_line_function(settings, nsub: int, name: str = "valve_line") -> ca.Function:
+    """:class:`hbma_ctrl.sim.rig.ValveLine` of rig settings ``settings`` over one period of ``nsub``
+    internal steps, as a Function (module docstring): the command sent now is shaped
+    (:meth:`RigSettings.shape_command`) and appended to ``hist`` (oldest first; zeros before any
+    command: shut valves); internal step j's valves are the newest command sent at least
+    ``valve_delay`` before it, its speed the one sent now."""
+    T, delay = float(settings.sample_period), float(settings.valve_delay)
+    dt = T / nsub
+    n = valve_history_size(settings)
+    u, hist = ca.SX.sym("u", 3), ca.SX.sym("hist", 3, n)
+    shaped = [u[0], u[1], u[2]]
+    if settings.valve_min_on > 0:
+        frac = min(1.0, settings.valve_min_on / T)
+        for i in (1, 2):
+            shaped[i] = ca.if_else(u[i] < 0.5 * frac, 0.0, ca.fmax(u[i], frac))
+    sent = ca.horzcat(hist[:, 1:], ca.vertcat(*shaped))  # column n - 1 is now, n - 1 - i was sent i periods ago
+    cols = []
+    for j in range(nsub):
+        # ValveLine.at(t + j dt): the last command with t - i T <= t + j dt - delay (+1e-12), i.e. the
+        # smallest such i; the rig's clock adds the same 1e-12 slack
+        i = next((i for i in range(n) if -i * T <= j * dt - delay + 1e-12), None)
+        valves = ca.SX.zeros(2) if i is None else sent[1:, n - 1 - i]
+        cols.append(ca.vertcat(shaped[0], valves))
+    return ca.Function(name, [u, hist], [ca.horzcat(*cols), sent], ["u", "hist"], ["u_sub", "hist_next"])
+
+
+def sensor_lag_function(settings, name: str = "sensor_lag") -> ca.Function:
+    """:meth:`hbma_ctrl.sim.rig.RigSettings.sense` over one period as a Function: the lagged reading
+    ``p_sensed`` and the last true pressure ``p_prev`` (Pa) after a period that ends at the outputs
+    ``y`` (:data:`hbma_ctrl.models.fidelity.OUTPUTS`). Its constants are computed as ``sense`` computes
+    them, so it rounds as the rig does."""
+    ys, prev, sensed = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("p_prev"), ca.SX.sym("p_sensed")
+    p_now = ys[OUTPUTS.index("p")]
+    if settings.sensor_tau <= 0:
+        nxt = p_now
+    else:
+        r = settings.sample_period / settings.sensor_tau
+        a = float(np.exp(-r))  # numpy's exp, as sense() takes it
+        nxt = a * sensed + (1 - a) * prev + (p_now - prev) * (1 - (1 - a) / r)
+    return ca.Function(name, [sensed, prev, ys], [nxt, p_now], ["p_sensed", "p_prev", "y"],
+                       ["p_sensed_next", "p_prev_next"])
 
 
 def initial_plant_state(fid: Fidelity, theta: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
