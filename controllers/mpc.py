@@ -74,7 +74,7 @@ import time
 
 import numpy as np
 
-from hbma_ctrl.core.codegen import FastFunction
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.validation import finite_or_nan
@@ -97,6 +97,7 @@ from controllers.mpc_solvers import (
     _RtiOsqp,
     _SolverFailure,
 )
+from controllers.mpc_prep import problem_function
 from controllers.rti_c import _RtiC
 from controllers.rti_step import _RtiFunction
 
@@ -137,6 +138,8 @@ class NMPC:
         # the model's height and pressure at the estimate's state, through buffers (a plain casadi call
         # with Python floats costs ~20 us of the step; this ~1 us), as C when ``codegen`` is set
         self._HP = FastFunction(self.model.HP, compile=s.codegen)
+        # the step's problem data, compiled at the per-step level (-O3: 10 -> 6 us a call, same bits)
+        self._prep = FastFunction(problem_function(self.model, s), compile=s.codegen, opt=HOT_OPT, flags=HOT_FLAGS)
         if s.variant == "rti_osqp":
             self.backend = _RtiOsqp(self.model, s)
         elif s.variant == "rti_c_osqp":
@@ -195,6 +198,63 @@ class NMPC:
         return self._int
 
     def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
+        """The step's problem from the estimate: one call of the compiled ``mpc_prep``
+        (:func:`controllers.mpc_prep.problem_function`) on the filter and integral states kept here; the
+        same numbers as :meth:`_problem_reference` (to rounding), which computed them in Python at
+        about 70 us a step."""
+        s = self.settings
+        for name in ("h", "p"):
+            if not math.isfinite(getattr(est, name)):
+                raise _SolverFailure(f"estimate.{name} is not finite")
+        if ref.height is None:
+            if self._hold is None:
+                self._hold = float(est.h)
+            r = self._hold
+        else:
+            self._hold = None
+            r = float(ref.height)
+        prep = self._prep
+        inp = prep.inp
+        if preview is not None and ref.height is not None:
+            N = s.horizon
+            pv = np.asarray(preview, dtype=float).ravel()[:N]
+            if pv.size == 0 or not np.all(np.isfinite(pv)):
+                raise ValueError("mpc.step: preview must be a non-empty sequence of finite heights (m)")
+            rin = inp[4]
+            rin[:pv.size] = pv
+            rin[pv.size:] = pv[-1]
+        else:
+            inp[4][:] = r
+        inp[0][0], inp[1][0], inp[2][0] = est.h, est.p, est.F
+        inp[3][0] = 1.0 if "resting" in est.flags else 0.0
+        inp[5][0] = r
+        if self._W is None:
+            inp[7][0] = 0.0
+        else:
+            inp[6][0], inp[7][0] = self._W, 1.0
+            dt = s.sample_period if self._t_prev is None else max(t - self._t_prev, 0.0)
+            inp[10][0] = 1.0 if s.load_tau <= 0 else min(1.0, dt / s.load_tau)
+        if self._int_target is None:
+            inp[13][0] = 0.0
+        else:
+            inp[11][0], inp[12][0], inp[13][0] = self._int, self._int_target, 1.0
+            inp[14][0] = max(t - self._int_t, 0.0)
+        (x0, W, dh, dp, p_lim, r_c, Wf, _, _, _, I1, I_t, _, reach, r_used, clipped) = prep.eval()
+        self._W = float(Wf[0])
+        if s.integral_gain > 0.0:
+            self._int, self._int_target, self._int_t = float(I1[0]), float(I_t[0]), t
+        clipped = bool(clipped[0])
+        if clipped:
+            self.clipped_count += 1
+        x0, W, dh, dp = float(x0[0]), float(W[0]), float(dh[0]), float(dp[0])
+        self.last.update({"W": W, "x0": x0, "dh": dh, "dp": dp, "reference": r,
+                          "reference_used": float(r_used[0]), "integral_shift": self._int if s.integral_gain > 0.0
+                          else 0.0, "reachable_height": float(reach[0]), "target_clipped": clipped})
+        return _Problem(x0, W, dh, dp, r_c.copy(), self._u_prev.copy(), float(p_lim[0]))
+
+    def _problem_reference(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
+        """:meth:`_problem` computed in Python (the load filter, ``PredictionModel``'s path and reach,
+        the integral action): what the compiled ``mpc_prep`` is tested against."""
         s, m = self.settings, self.model
         for name in ("h", "p"):
             if not math.isfinite(getattr(est, name)):

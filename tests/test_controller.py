@@ -300,3 +300,35 @@ def test_every_settings_field_is_documented():
         doc = cls.__doc__
         for f in fields(cls):
             assert f"{f.name} :" in doc or f"{f.name}," in doc, f"{cls.__name__}.{f.name} is undocumented"
+
+
+@pytest.mark.parametrize("membrane", ["cap", "exact"])
+def test_compiled_problem_equals_the_python_reference_over_a_wandering_estimate(membrane):
+    """The step's problem from one compiled mpc_prep call (NMPC._problem) equals the Python reference
+    (load filter, path, reach, clipped targets, integral action) tick by tick: resting and lifted
+    estimates, a non-finite force, a held reference (None), a preview, a target beyond reach and a
+    target step, with the two controllers' states carried separately."""
+    s = MPCSettings(membrane=membrane)
+    a = NMPC(ACT, PN, s)
+    b = NMPC(ACT, PN, s, model=a.model)
+    rng = np.random.default_rng(7)
+    clipped = held = 0
+    for k in range(200):
+        t = k * s.sample_period
+        target = 5e-3 if k < 80 else (30e-3 if k < 120 else 7e-3)  # 30 mm: beyond reach, clipped
+        h = float(rng.choice([0.0, max(target - 0.5e-3 + rng.normal(0, 0.3e-3), 0.0)]))
+        F = float("nan") if k % 37 == 5 else float(rng.uniform(3.0, 4.5))
+        flags = frozenset({"resting"}) if h == 0.0 else frozenset()
+        e = Estimate(t=t, h1=h, h2=0.0, h=h, p=float(rng.uniform(5e3, 30e3)), F=F, flags=flags)
+        ref = Reference(None) if 40 <= k < 50 else Reference(target)
+        held += ref.height is None
+        pv = [target + 1e-4 * j for j in range(s.horizon)] if k % 3 == 0 and ref.height is not None else None
+        pa, pb = a._problem(t, e, ref, pv), b._problem_reference(t, e, ref, pv)
+        for name in ("x0", "W", "dh", "dp", "p_lim"):
+            assert getattr(pa, name) == pytest.approx(getattr(pb, name), rel=1e-12, abs=1e-12), (k, name)
+        np.testing.assert_allclose(pa.r, pb.r, rtol=0, atol=1e-12)
+        for key in ("reference", "reference_used", "integral_shift", "reachable_height", "target_clipped"):
+            assert a.last[key] == pytest.approx(b.last[key], rel=1e-12, abs=1e-12), (k, key)
+        clipped += a.last["target_clipped"]
+        a._t_prev = b._t_prev = t
+    assert a.clipped_count == b.clipped_count == clipped > 0 and held == 10
