@@ -197,22 +197,26 @@ class NMPC:
         self._int_target, self._int_t = target, t
         return self._int
 
-    def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
-        """The step's problem from the estimate: one call of the compiled ``mpc_prep``
-        (:func:`controllers.mpc_prep.problem_function`) on the filter and integral states kept here; the
-        same numbers as :meth:`_problem_reference` (to rounding), which computed them in Python at
-        about 70 us a step."""
-        s = self.settings
+    def _target(self, est: Estimate, ref: Reference) -> float:
+        """The target now (m): the reference's, or without one the height held since it went (the
+        estimate's when it went). _SolverFailure when the estimate's h or p is not finite."""
         for name in ("h", "p"):
             if not math.isfinite(getattr(est, name)):
                 raise _SolverFailure(f"estimate.{name} is not finite")
         if ref.height is None:
             if self._hold is None:
                 self._hold = float(est.h)
-            r = self._hold
-        else:
-            self._hold = None
-            r = float(ref.height)
+            return self._hold
+        self._hold = None
+        return float(ref.height)
+
+    def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
+        """The step's problem from the estimate: one call of the compiled ``mpc_prep``
+        (:func:`controllers.mpc_prep.problem_function`) on the filter and integral states kept here; the
+        same numbers as :meth:`_problem_reference` (to rounding), which computed them in Python at
+        about 70 us a step."""
+        s = self.settings
+        r = self._target(est, ref)
         prep = self._prep
         inp = prep.inp
         if preview is not None and ref.height is not None:
@@ -256,9 +260,7 @@ class NMPC:
         """:meth:`_problem` computed in Python (the load filter, ``PredictionModel``'s path and reach,
         the integral action): what the compiled ``mpc_prep`` is tested against."""
         s, m = self.settings, self.model
-        for name in ("h", "p"):
-            if not math.isfinite(getattr(est, name)):
-                raise _SolverFailure(f"estimate.{name} is not finite")
+        r = self._target(est, ref)
         W = self._load(t, est)
         if est.h < s.rest_height:
             x0 = min(est.p / self.model.actuator.p_env, m.lift_off_x(W))
@@ -269,13 +271,6 @@ class NMPC:
         # resting: the model's (virtual, <= 0) height is the better state; no height bias
         dh = 0.0 if est.h < s.rest_height else float(est.h - h0)
         dp = float(est.p - p0)
-        if ref.height is None:
-            if self._hold is None:
-                self._hold = float(est.h)
-            r = self._hold
-        else:
-            self._hold = None
-            r = float(ref.height)
         p_lim = s.p_max - s.p_margin
         reach = m.reachable_height(W, p_lim - max(dp, 0.0), s.lam_max, s.h_max - max(dh, 0.0)) + dh
         N = s.horizon
