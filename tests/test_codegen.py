@@ -359,6 +359,16 @@ def test_a_call_that_fails_reads_as_failed_in_c_and_in_python(tmp_path):
                  [Stage(guarded, ["x"], ["status", "y"], fails_to="x")], []).validate()
 
 
+def test_codegen_cli_says_the_start_up_calibration_is_left_out(tmp_path):
+    """The default scenario calibrates before its loop closes; the generated loop does not, and says so
+    (on the console and in README.txt) rather than leave a user to find the EKF's prior differs."""
+    res = _cli(["codegen", DEFAULT_TRACK, "--out", str(tmp_path / "gen"), "--duration-s", "0.1"])
+    assert res.exit_code == 0, res.output
+    flat = " ".join(res.output.split())
+    assert "left out of the generated loop: the start-up calibration ([controller] calibrate = true)" in flat
+    assert "left out: the start-up calibration" in (tmp_path / "gen" / "README.txt").read_text()
+
+
 @needs_cc
 def test_times_json_holds_every_function_and_the_tick(tmp_path):
     spec = _toy_spec(30)

@@ -103,6 +103,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         con.print(f"wrote {out}: hbma_steps.c/.h, loop_data.h, closed_loop.c, Makefile, README.txt "
                   f"({spec.n_ticks} ticks of {spec.dt * 1e3:g} ms)")
         con.print(f"build: cd {out} && make   then ./closed_loop   (or the line in README.txt)")
+        if "left out" in spec.meta:
+            con.print(f"note: left out of the generated loop: {spec.meta['left out']}", markup=False)
         if check:
             con.print(f"C vs Python path: largest absolute difference {res['max_abs_diff_si_all']:.3g} (SI); "
                       f"see {out / 'check.json'}")

@@ -466,6 +466,10 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     meta = {"scenario": scn.name, "rig": rig_desc}
     meta.update(ekf_meta)
     meta.update(mpc_meta)
+    if section.calibrate and estimator == "ekf":
+        # the scene calibrates before it closes the loop; the C loop starts from the EKF's prior
+        meta["left out"] = ("the start-up calibration ([controller] calibrate = true): the EKF starts from "
+                            "its prior ([estimator] flow_factor_init, modulus_init, dead_volume_init)")
     return LoopSpec(scn.name, rs.sample_period, n, signals, {"noise": noise, "target": target, "ref": ref, "fail": fail,
                                                              "load_a": load_a},
                     stages, log, meta).validate()
