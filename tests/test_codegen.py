@@ -305,6 +305,19 @@ def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scen
     assert len(failed) == (2 if scenario == DEFAULT_TRACK else 0)
     assert len(log.supervisor_events) == len(failed) // 2  # the scene failed where the loop did
 
+    # the C run's metrics.json objects are the scene's metrics of its own trajectory
+    from hbma_ctrl.app.codegen_scene import loop_run_metrics
+    from hbma_ctrl.app.scene_controller import loop_metrics
+
+    m = loop_run_metrics(scn, spec, c.trajectory)
+    want = loop_metrics(log, sec)
+    assert m["controller"]["height_rmse_mm"] == pytest.approx(want["height_rmse_mm"], abs=1e-6)
+    assert m["controller"]["steps_settled"] == want["steps_settled"] and m["controller"]["steps_total"] == 2
+    assert m["controller"]["fallbacks"] == len(log.supervisor_events)
+    assert m["controller"]["variant"] == "rti_fn_osqp" and m["controller"]["solve_ms_median"] is None
+    assert m["estimator"]["height_rmse_mm"] == pytest.approx(want["height_est_rmse_mm"], abs=1e-6)
+    assert m["estimator"]["reference_path_events"] == 0
+
 
 def _cli(args):
     return CliRunner().invoke(app, args)
@@ -357,6 +370,17 @@ def test_a_call_that_fails_reads_as_failed_in_c_and_in_python(tmp_path):
     with pytest.raises(ValueError, match="fails_to"):
         LoopSpec("bad", 0.01, 1, {"x": [0.0], "status": [0.0], "y": [0.0]}, {},
                  [Stage(guarded, ["x"], ["status", "y"], fails_to="x")], []).validate()
+
+
+@needs_cc
+def test_codegen_check_writes_the_c_runs_metrics(tmp_path):
+    """``codegen --check`` runs the C loop: its metrics.json holds the controller and estimator objects."""
+    res = _cli(["codegen", TRACK, "--out", str(tmp_path / "gen"), "--duration-s", "0.5", "--check", "--opt", "-O0"])
+    assert res.exit_code == 0, res.output
+    m = json.loads((tmp_path / "gen" / "metrics.json").read_text())
+    assert set(m) == {"controller", "estimator"}
+    assert m["controller"]["pressure_limit_respected"] is True and m["controller"]["steps_total"] == 1
+    assert m["estimator"]["height_rmse_mm"] >= 0.0
 
 
 def test_codegen_cli_says_the_start_up_calibration_is_left_out(tmp_path):

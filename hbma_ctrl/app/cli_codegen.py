@@ -71,6 +71,18 @@ def _compiler() -> str:
     return cc
 
 
+def _write_run_metrics(scn, spec, out: Path, qp_solver: str | None) -> dict:
+    """metrics.json of the C loop's run in ``out`` (its trajectory.csv): the scene's controller object and
+    the estimate's errors (:func:`hbma_ctrl.app.codegen_scene.loop_run_metrics`); returned too."""
+    from hbma_ctrl.app.codegen import read_c
+    from hbma_ctrl.app.codegen_scene import loop_run_metrics
+    from hbma_ctrl.app.metrics import write_metrics
+
+    m = loop_run_metrics(scn, spec, read_c(out).trajectory, qp_solver)
+    write_metrics(m, out / "metrics.json")
+    return m
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``codegen`` to the app and ``codegen`` to the bench sub-app (called by :mod:`hbma_ctrl.app.cli`)."""
 
@@ -91,13 +103,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from hbma_ctrl.app.codegen import bench, write_c
 
         check_choice("--opt", opt, OPT_FLAGS)
-        spec = _spec(config, duration_s, estimator, qp_solver)
+        spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
         cc = _compiler() if check else None
         con = Console(highlight=False)
         with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
             if check:
                 res = bench(spec, tmp, opt=opt, cc=cc)
                 (tmp / "check.json").write_text(json.dumps(res, indent=2) + "\n")
+                _write_run_metrics(scn, spec, tmp, qp_solver)
             else:
                 write_c(spec, tmp)
         con.print(f"wrote {out}: hbma_steps.c/.h, loop_data.h, closed_loop.c, Makefile, README.txt "
@@ -129,7 +142,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ) -> None:
         """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
-        from hbma_ctrl.app.codegen import bench, run_c
+        from hbma_ctrl.app.codegen import bench, read_c
         from hbma_ctrl.app.codegen_scene import scene_reference
 
         check_choice("--opt", opt, OPT_FLAGS)
@@ -138,8 +151,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         con = Console(highlight=False, width=150)
         with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
             res = bench(spec, tmp, opt=opt, cc=cc, python_vm=python_vm)
+            c_metrics = _write_run_metrics(scn, spec, tmp, qp_solver)
             if scene and estimator == "ekf":
-                res["scene"] = scene_reference(scn, spec, run_c(tmp).trajectory, qp_solver)
+                res["scene"] = scene_reference(scn, spec, read_c(tmp).trajectory, qp_solver)
+                res["scene"]["c_height_rmse_mm"] = c_metrics["controller"]["height_rmse_mm"]
+                res["scene"]["c_steps_settled"] = c_metrics["controller"]["steps_settled"]
             (tmp / "bench_codegen.json").write_text(json.dumps(res, indent=2) + "\n")
         t = Table(title=f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs "
                         f"Python path ({res['python_path']}); us per call")

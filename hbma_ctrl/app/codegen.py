@@ -42,7 +42,7 @@ import numpy as np
 
 from hbma_ctrl.core.codegen import FastFunction
 
-__all__ = ["Stage", "LogColumn", "LoopSpec", "run_python", "write_c", "build_c", "run_c", "compare",
+__all__ = ["Stage", "LogColumn", "LoopSpec", "run_python", "write_c", "build_c", "run_c", "read_c", "compare",
            "find_compiler", "CFLAGS", "OPT_FLAGS", "STEPS_NAME", "PythonRun", "CRun", "time_summary", "build_line", "LIBRARY", "solver_flags",
            "bench"]
 
@@ -495,6 +495,12 @@ def run_c(out_dir: Path | str, timeout: float = 600.0) -> CRun:
     res = subprocess.run([str(out / "closed_loop"), str(out)], capture_output=True, text=True, timeout=timeout)
     if res.returncode != 0:
         raise RuntimeError(f"closed_loop exited {res.returncode}: {res.stderr.strip()[:2000]}")
+    return read_c(out)
+
+
+def read_c(out_dir: Path | str) -> CRun:
+    """The outputs of the loop run last in ``out_dir`` (trajectory.csv and times.json), without running it."""
+    out = Path(out_dir)
     with (out / "trajectory.csv").open() as fh:
         header = fh.readline().strip().split(",")
     traj = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2)

@@ -49,6 +49,7 @@ import numpy as np
 from controllers.mpc_prep import finite as _finite
 from controllers.mpc_prep import problem_function
 from hbma_ctrl.app.codegen import LOG, LogColumn, LoopSpec, Stage
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import SAFE_COMMAND
 from hbma_ctrl.models.fidelity import OUTPUTS
 from hbma_ctrl.runtime.chamber import chamber_supervisor
@@ -63,7 +64,7 @@ from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.trial import DEFAULT_DT
 
 __all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "rig_stages", "qp_solver_for",
-           "scene_reference", "ESTIMATORS"]
+           "scene_reference", "loop_run_metrics", "ESTIMATORS"]
 
 
 def _isnan(v):
@@ -482,6 +483,54 @@ _SCENE_COLUMNS = (("h_true_mm", "h_true", None), ("h_est_mm", "h_est", None), ("
                   ("outlet", "u", 2))
 
 
+def _trajectory_log(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str | None = None):
+    """A generated loop's trajectory as the scene's :class:`ClosedLoopLog` (SI; what the trajectory
+    does not hold, the controller's step times, estimator covariances and events, left empty). Its
+    variant is the scene's name for the same step, ``rti_fn_<solver>``."""
+    from hbma_ctrl.app.scene_controller import ClosedLoopLog
+
+    col = {n: i for i, n in enumerate(spec.header())}
+    scale = {c.name: c.scale for c in spec.log}
+
+    def si(name):
+        return trajectory[:, col[name]] / scale[name]
+
+    section = scn.role("controller")
+    every = max(1, int(round(section.sample_period / spec.dt)))
+    steps = trajectory[::every, col["mpc_status"]]  # held between controller steps: one row per step
+    n = trajectory.shape[0]
+    stats = {"variant": f"rti_fn_{qp_solver_for(section.mpc.variant, qp_solver)}", "horizon": section.mpc.horizon,
+             "solve_ms_median": None,
+             "solve_ms_p99": None, "solve_ms_max": None, "fallbacks": int(np.sum(steps != 0))}
+    return ClosedLoopLog(t=trajectory[:, col["t_s"]], target=si("target_mm"), h_true=si("h_true_mm"),
+                         h_est=si("h_est_mm"), p_true=si("p_true_kpa"), p_meas=si("p_meas_kpa"),
+                         p_est=si("p_est_kpa"), F_true=si("F_true_n"), F_est=si("F_est_n"),
+                         load=np.full(n, scn.platform.load), u=np.column_stack([si("speed"), si("inlet"), si("outlet")]),
+                         stats=stats, events=[], wall_s=float("nan"))
+
+
+def loop_run_metrics(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str | None = None) -> dict:
+    """metrics.json of a generated loop's run: the scene's ``controller`` object
+    (:func:`hbma_ctrl.app.scene_controller.loop_metrics`: tracking, pressure limit, settled steps; its
+    step times are in times.json, per Function, not here) and an ``estimator`` object (height and force
+    RMSE of the estimate, the EKF steps the C loop left to a reference path). Edge units."""
+    from hbma_ctrl.app.scene_controller import loop_metrics
+
+    log = _trajectory_log(scn, spec, trajectory, qp_solver)
+    col = {n: i for i, n in enumerate(spec.header())}
+    est = {"height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((log.h_est - log.h_true) ** 2)))),
+           "force_rmse_n": float(np.sqrt(np.mean((log.F_est - log.F_true) ** 2)))}
+    if "ekf_reference_events" in col:
+        est["reference_path_events"] = int(trajectory[-1, col["ekf_reference_events"]])
+    ctrl = loop_metrics(log, scn.role("controller"))
+    # the scene's keys, each one the trajectory cannot tell None (not measured here): the step times
+    # are per Function in times.json; the supervisor's counts and the calibration are not in the C loop
+    for key in ("solve_ms_median", "solve_ms_p99", "solve_ms_max", "solve_cpu_ms_median", "solve_cpu_ms_p99",
+                "fallback_detail", "guard_activations", "target_clipped_steps", "calibration", "wall_s"):
+        ctrl[key] = None
+    return {"controller": ctrl, "estimator": est}
+
+
 def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str | None = None) -> dict:
     """Run the scene's own closed loop (Rig, EKF, NMPC, ChamberLoop with its supervisor) as the generated
     loop models it, and compare: no start-up calibration, the NMPC variant calling the same RTI Function
@@ -494,7 +543,7 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str 
     from dataclasses import replace
 
     from hbma_ctrl.app.codegen import time_summary
-    from hbma_ctrl.app.scene_controller import closed_loop, estimator_from_scenario
+    from hbma_ctrl.app.scene_controller import closed_loop, estimator_from_scenario, loop_metrics
 
     section = scn.role("controller")
     solver = qp_solver_for(section.mpc.variant, qp_solver)
@@ -509,7 +558,10 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str 
         ref = getattr(log, attr) if j is None else log.u[:, j]
         got = trajectory[: len(ref), col[name]] / scale[name]
         diff[name] = float(np.max(np.abs(got - ref)))
+    m = loop_metrics(log, section)
     return {"variant": f"rti_fn_{solver}", "ekf_step": time_summary(log.est_step_s),
             "controller_step": time_summary(np.asarray(log.solve_ms) * 1e-3),
             "max_abs_diff_si": diff, "max_abs_diff_si_all": max(diff.values()),
-            "supervisor_events": len(log.supervisor_events)}
+            "supervisor_events": len(log.supervisor_events),
+            # the scene's tracking beside the generated loop's (loop_run_metrics): the same metrics
+            "height_rmse_mm": m["height_rmse_mm"], "steps_settled": m["steps_settled"]}
