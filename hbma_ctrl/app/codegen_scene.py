@@ -328,7 +328,7 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
         estimator_from_scenario,
     )
     from hbma_ctrl.core.interfaces import Command
-    from hbma_ctrl.models.actuation import acting_function
+    from hbma_ctrl.models.actuation import acting_function, acting_state
 
     est = estimator_from_scenario(scn, rs)
     if est is None:
@@ -357,11 +357,9 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
     first = ca.Function("mark_started", [ca.SX.sym("one")], [ca.SX(1.0)], ["one"], ["started"])
     stages = [Stage(kind, ["z"], ["z_in", "kind"], gate="not_first")]
     if timing.active:
-        # the commands sent so far as the initialisation left them (oldest first, zeros before them)
-        hist = np.zeros((3, timing._keep))
-        if timing._hist:
-            hist[:, timing._keep - len(timing._hist):] = np.asarray(timing._hist, dtype=float).T
-        signals.update(u_act=np.zeros(3), ekf_uhist=hist.ravel(order="F"), ekf_ufill=[float(len(timing._hist))])
+        # the commands sent so far as the initialisation left them
+        hist, fill = acting_state(timing)
+        signals.update(u_act=np.zeros(3), ekf_uhist=hist, ekf_ufill=[fill])
         stages.append(Stage(acting_function(timing, "ekf_acting"), ["u", "ekf_uhist", "ekf_ufill"],
                             ["u_act", "ekf_uhist", "ekf_ufill"], gate="not_first"))
     stages += [Stage(fun, step_in, step_out, gate="not_first"),

@@ -27,7 +27,7 @@ import numpy as np
 
 from hbma_ctrl.core.params import check_range
 
-__all__ = ["CommandTiming", "acting_average", "check_delays", "acting_function"]
+__all__ = ["CommandTiming", "acting_average", "check_delays", "acting_function", "acting_state"]
 
 #: delays allowed, s: up to ten 10 ms periods (a slower valve or sensor is another rig)
 DELAY_MAX = 0.1
@@ -159,6 +159,15 @@ class CommandTiming:
     def reset(self) -> None:
         """Forget the commands sent (a new run)."""
         self._hist = []
+
+
+def acting_state(timing: CommandTiming) -> tuple[np.ndarray, float]:
+    """The (hist, fill) inputs of :func:`acting_function` that stand for ``timing``'s commands sent so
+    far: hist column-major 3 x keep, oldest first, zeros before the first command."""
+    hist = np.zeros((3, timing._keep))
+    if timing._hist:
+        hist[:, timing._keep - len(timing._hist):] = np.asarray(timing._hist, dtype=float).T
+    return hist.ravel(order="F"), float(len(timing._hist))
 
 
 def acting_function(timing: CommandTiming, name: str = "acting") -> ca.Function:

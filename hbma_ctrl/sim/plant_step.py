@@ -129,10 +129,10 @@ def valve_line_function(settings, nsub: int, name: str = "valve_line") -> ca.Fun
     cols = []
     for j in range(nsub):
         # ValveLine.at(t + j dt): the last command with t - i T <= t + j dt - delay (+1e-12), i.e. the
-        # smallest such i; the rig's clock adds the same 1e-12 slack
-        i = next((i for i in range(n) if -i * T <= j * dt - delay + 1e-12), None)
-        valves = ca.SX.zeros(2) if i is None else sent[1:, n - 1 - i]
-        cols.append(ca.vertcat(shaped[0], valves))
+        # smallest such i (at most n - 1: the history reaches back past the delay); the rig's clock adds
+        # the same 1e-12 slack
+        i = next(i for i in range(n) if -i * T <= j * dt - delay + 1e-12)
+        cols.append(ca.vertcat(shaped[0], sent[1:, n - 1 - i]))
     return ca.Function(name, [u, hist], [ca.horzcat(*cols), sent], ["u", "hist"], ["u_sub", "hist_next"])
 
 
