@@ -52,7 +52,8 @@ pump map's error of shape is a few per cent of it, ``LIFT_RISE_DRIFT``). Without
 filter also leaves rest when a flat chamber would need b / c far below its prior
 (:func:`estimators.ekf_step.flat_ratio_min`: a free membrane lifting in the pump's first samples,
 whose shortfall the wide factors took up): no load, replayed from the last posterior at ambient
-pressure. In contact a one-sided sum of the innovation's excess (``EXCESS_THRESHOLD``, readings
+pressure; this test holds only until the membrane first leaves rest (the factors are then learnt,
+no longer the prior). In contact a one-sided sum of the innovation's excess (``EXCESS_THRESHOLD``, readings
 persistently above the contact model while the pressure rises, as after a false lift-off)
 declares a load change, as the NIS sum does.
 A touch-down (the contact model reaching h = 0) re-enters rest. With the flow stopped the load is
@@ -551,7 +552,8 @@ class EKF(ReferenceSteps):
         self.s = out[2].copy()
         self._A_flat = out[8].copy()
         self.resting = bool(out[9][0] > 0.5)
-        self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g, _, self._excess, _ = out[10].tolist()
+        (self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, g, _, self._excess,
+         self._ratio_min) = out[10].tolist()
         self._gated = int(g)
         e0, e1, e2, e3, e4 = out[4].tolist()
         self._p_pred = e4

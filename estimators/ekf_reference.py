@@ -265,6 +265,10 @@ class ReferenceSteps:
             self._flat_load_cov()
         if self.resting:
             flags.add("resting")
+        else:
+            # the ratio test holds only until the membrane first leaves rest: the factors' posterior
+            # is no longer the prior its threshold was set from (ekf_step.FLAT_RATIO_SIGMAS)
+            self._ratio_min = 0.0
         if y[_Y["resid"]] > 1e-3 or not np.all(np.isfinite(y)):
             flags.add("not_converged")
         self.s = out[0].copy()

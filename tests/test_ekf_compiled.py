@@ -172,6 +172,38 @@ def test_flat_ratio_floor_is_relative_to_the_prior_with_a_sigma_floor():
     assert f._ratio_min == pytest.approx(flat_ratio_min(xc, Pc))
 
 
+@pytest.mark.parametrize("path", ["compiled", "reference"])
+def test_the_flat_ratio_test_is_off_once_the_membrane_has_left_rest(path):
+    """The ratio test's threshold comes from the prior (a calibration's flat b / c of 1.4 gives 1.04);
+    once the membrane has left rest the factors are learnt (b / c = 0.92 in contact) and the test is
+    off: a loaded chamber that touches down and is pumped again is not taken as free. Armed with the
+    prior's threshold, the same pump from rest fires it at once (the control)."""
+    m0 = ACT.p_env * ACT.V0 / (ACT.R * ACT.T)
+    x_contact = np.array([1.3 * m0, 3.0, 0.97, 1.0, 1.055])  # b / c = 0.92, in contact under 3 N
+    P = np.diag(np.array([0.01 * m0, 0.1, 0.01, 0.01, 0.01]) ** 2)
+    det = [0.0] * len(DET_NAMES)
+    det[DET_NAMES.index("ratio_min")] = 1.04
+    step = (lambda f, *a: f.step(*a)) if path == "compiled" else (lambda f, *a: f.step_reference(*a))
+    f = EKF(ACT, PN, FS)
+    _set(f, x_contact, P, False, det)
+    step(f, 0.01, f._p_pred, Command(0.0, 0.0, 0.0))
+    assert not f.resting and f.detector_state()[DET_NAMES.index("ratio_min")] == 0.0
+    # back at rest (vented) with the learnt factors, then pumped: no ratio lift-off
+    x_rest = np.array([m0, 3.0, 0.97, 1.0, 1.055])
+    fired = {}
+    for armed in (False, True):
+        g = EKF(ACT, PN, FS)
+        d = list(det)
+        d[DET_NAMES.index("ratio_min")] = 1.04 if armed else 0.0
+        _set(g, x_rest, P, True, d)
+        flags = set()
+        for i in range(1, 6):
+            est = step(g, 0.01 * i, g._p_pred, Command(1.0, 1.0, 0.0))  # readings as a flat chamber's
+            flags |= set(est.flags)
+        fired[armed] = "lift_off_ratio" in flags
+    assert fired == {False: False, True: True}
+
+
 def test_a_persistent_excess_in_contact_declares_a_load_change():
     """In contact, with the pressure rising, readings one sigma above the prediction add
     1 - EXCESS_DRIFT to the excess sum per step; above EXCESS_THRESHOLD a load change is declared
