@@ -37,18 +37,35 @@ class _Problem:
     p_lim: float  # Pa, on the model pressure + dp
 
 
-class _Stage:
-    """Discrete dynamics and outputs shared by both variants (casadi)."""
+#: OSQP's step size rho, fixed, and how often it checks for termination (iterations), for the RTI QPs.
+#: Its defaults (rho 0.1 adapted every 4 x 25 iterations, termination checked every 25) ran most
+#: warm-started QPs to 25 iterations where 10 meet the same tolerances, and an adapted rho stays with
+#: the solver into later QPs: the iteration counts then depended on the history (adapting every 20, 32
+#: or 50 iterations gave a median of 25, every 40 or 48 one of 10-12). A fixed rho is the same every
+#: step and needs no refactorisation inside a solve. Scanned in ``bench mpc``'s loop (N = 20, rho
+#: fixed, checked every 5): median / mean iterations 10 / 42 at 0.01, 10 / 26 at 0.02, 10 / 23 at 0.03,
+#: 15 / 26 at 0.05, 30 / 38 at 0.1, 75 / 93 at 0.3; at 0.03 checked every 2, 5, 10, 25: median 10, 10,
+#: 10, 25 iterations (the checks themselves cost: every 2 was slower than every 5)
+QP_RHO = 0.03
+QP_CHECK_EVERY = 5
 
-    def __init__(self, model: PredictionModel, s: MPCSettings):
-        self.F = model.discrete(s.sample_period, s.integrator, s.substeps)
+
+class _Stage:
+    """Discrete dynamics and outputs shared by every variant (casadi), the tables evaluated as ``form``
+    (:meth:`PredictionModel.functions`: 'poly' where the stage runs on casadi's virtual machine or in C
+    compiled once per machine; 'bspline' where it is compiled at every construction or into every
+    generated program, whose build time the polynomials double)."""
+
+    def __init__(self, model: PredictionModel, s: MPCSettings, form: str = "bspline"):
+        self.F = model.discrete(s.sample_period, s.integrator, s.substeps, form)
+        fns = model.functions(form)
         x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
         u = ca.SX.sym("u", 3)
         ulin = ca.SX.sym("ulin", 3)
         xn = self.F(x, u, W, dp)
-        h = model.H(x, W) * 1e3  # mm
-        p = model.Pp(x, W) * 1e-3  # kPa (model, without bias)
-        lam = model.L(x, W) * 1e2  # 1/100
+        h = fns.H(x, W) * 1e3  # mm
+        p = fns.Pp(x, W) * 1e-3  # kPa (model, without bias)
+        lam = fns.L(x, W) * 1e2  # 1/100
         # dynamics value at the plan, Jacobians at the (floored) linearisation point: one Jacobian in
         # (x, ulin), one reverse sweep for the scalar dynamics; two separate ones cost a forward and a
         # reverse sweep through every table call (the generated QP data: 83 -> 67 us, equal to 2e-16)
@@ -68,7 +85,7 @@ class _RtiOsqp:
     def __init__(self, model: PredictionModel, s: MPCSettings):
         self.s, self.model = s, model
         N = self.N = s.horizon
-        self.stage = _Stage(model, s)
+        self.stage = _Stage(model, s, "poly")
         lin = self.stage.lin.map(N + 1)
         self.lin = compiled(lin, "-O2") if s.codegen else lin
         # variable layout
@@ -80,7 +97,8 @@ class _RtiOsqp:
         self.solver = osqp.OSQP()
         self.solver.setup(self.P, np.zeros(self.nz), self.A, self.l0, self.u0, verbose=False,
                           eps_abs=s.qp_eps, eps_rel=s.qp_eps, max_iter=s.qp_max_iter, polishing=False,
-                          warm_starting=True, adaptive_rho=True, time_limit=s.budget)
+                          warm_starting=True, adaptive_rho=False, rho=QP_RHO, time_limit=s.budget,
+                          check_termination=QP_CHECK_EVERY)
         self.X = None
         self.U = None
         self.iterations = 0
@@ -269,7 +287,7 @@ class _Ipopt:
     def __init__(self, model: PredictionModel, s: MPCSettings):
         self.s, self.model = s, model
         N = self.N = s.horizon
-        self.stage = _Stage(model, s)
+        self.stage = _Stage(model, s, "poly")  # no JIT: the polynomials are evaluated faster
         F = self.stage.F
         X = ca.SX.sym("X", N + 1)
         U = ca.SX.sym("U", 3, N)
@@ -381,7 +399,7 @@ class _Fatrop:
     def __init__(self, model: PredictionModel, s: MPCSettings):
         self.s, self.model = s, model
         N = self.N = s.horizon
-        self.stage = _Stage(model, s)
+        self.stage = _Stage(model, s, "bspline")  # its JIT compiles at every construction
         F = self.stage.F
         par = ca.SX.sym("par", 8 + N)  # as _Ipopt: x0, W, dh(mm), dp(Pa), u_prev(3), p_lim(kPa), r(mm)
         x0, W, dh, dp = par[0], par[1], par[2], par[3]

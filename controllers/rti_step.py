@@ -121,7 +121,8 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     if not ca.has_conic(qp_solver):
         raise ValueError(f"rti_step.qp_solver = '{qp_solver}': this casadi build has no such conic plugin")
     N = s.horizon
-    stage = _Stage(model, s)
+    # the tables as bspline calls: this step is compiled into every generated C program
+    stage = _Stage(model, s, "bspline")
     SX = ca.SX
     x0, W, dh, dp, p_lim, shift = (SX.sym(n) for n in ("x0", "W", "dh", "dp", "p_lim", "shift"))
     u_prev, r = SX.sym("u_prev", 3), SX.sym("r", N)

@@ -41,6 +41,38 @@ def model():
     return PredictionModel(ACT, PN, membrane="cap")
 
 
+def test_poly_tables_equal_the_bspline_functions_with_their_jacobians(model):
+    """functions('poly') (the tables as per-cell polynomials, what the RTI and IPOPT controllers use)
+    equals the bspline Functions over the whole grid, its nodes, the flat rest below lift-off and off
+    the grid (zero there, as the bspline): values and the Jacobians in x and W, and the RK4 step."""
+    import casadi as ca
+
+    g = model.grid
+    rng = np.random.default_rng(3)
+    xs = np.concatenate([rng.uniform(g.x[0], g.x[-1], 400), g.x, [g.x[0] - 0.1, g.x[-1] + 0.5]])
+    Ws = np.concatenate([rng.uniform(0.0, model.load_max, 400), rng.choice(g.W, g.x.size), [0.0, 0.0]])
+    x, W, dp, u = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp"), ca.SX.sym("u", 3)
+    outs = []
+    for form in ("bspline", "poly"):
+        fn = model.functions(form)
+        hp = ca.vertcat(fn.HP(x, W), fn.L(x, W))
+        F = model.discrete(0.01, "rk4", 1, form)
+        f = ca.Function("f", [x, W, u, dp], [hp, ca.jacobian(hp, ca.vertcat(x, W)), F(x, u, W, dp),
+                                             ca.jacobian(F(x, u, W, dp), ca.vertcat(x, u))])
+        outs.append([np.asarray(o) for o in f.map(xs.size)(xs, Ws, np.tile([[0.6], [1.0], [0.0]], xs.size),
+                                                             np.full(xs.size, 500.0))])
+    scale = [1e-12, 1e-9, 1e-12, 1e-9]
+    for (a, b, tol) in zip(*outs, scale):
+        assert np.all(np.isfinite(a))
+        # row by row (h in m, p in Pa and their derivatives differ by orders of magnitude)
+        for ra, rb in zip(a, b):
+            assert np.max(np.abs(ra - rb)) <= tol * max(np.abs(rb).max(), 1e-300)
+    # off the grid the tables read zero in both forms (callers clamp)
+    assert np.all(outs[1][0][:, -2:] == 0.0) and np.all(outs[0][0][:, -2:] == 0.0)
+    with pytest.raises(ValueError, match="form = 'spline'"):
+        model.functions("spline")
+
+
 def test_load_path_queries_read_the_grid_between_its_two_load_columns(model):
     """path(W), x_at_height and reachable_height read one load path: the grid's two load columns around
     W mixed linearly, W clipped to [0, load_max]; checked against the grid itself over the whole range

@@ -42,6 +42,7 @@ from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
 from hbma_ctrl.models.fidelity_exact import make_exact_loaded
+from hbma_ctrl.models.piecewise import PiecewiseCubic
 from hbma_ctrl.models.reduced import MEMBRANES, ReducedChamber
 from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
 
@@ -105,6 +106,22 @@ class _Grid:
     lam_path: np.ndarray  # (nh, nW)
 
 
+#: how the tables are evaluated in the model's Functions (:meth:`PredictionModel.functions`)
+TABLE_FORMS = ("bspline", "poly")
+
+
+@dataclass(frozen=True)
+class TableFunctions:
+    """The prediction model's Functions in one table form (:meth:`PredictionModel.functions`): H, Pp,
+    L, HP (x, W) -> height m, gauge pressure Pa, stretch -, (h, p); rhs (x, u, W, dp) -> xdot 1/s."""
+
+    H: ca.Function
+    Pp: ca.Function
+    L: ca.Function
+    HP: ca.Function
+    rhs: ca.Function
+
+
 class PredictionModel:
     """Gas-mass prediction model of one chamber for the MPC and the baselines (SI).
 
@@ -128,6 +145,8 @@ class PredictionModel:
         (virtual) below lift-off, see :meth:`height` for the physical one.
     rhs : casadi Function (x, u, W, dp) -> xdot (1/s); ``dp`` is a pressure bias (Pa) added to the
         model pressure in the valve/pump flows (offset-free prediction).
+        These five evaluate the tables as bspline calls; :meth:`functions` gives them with the tables as
+        inline polynomials (the same values to 1e-13), which the RTI and IPOPT controllers use.
     """
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, load_max: float = 10.0,
@@ -207,35 +226,58 @@ class PredictionModel:
         self.H_table = ca.interpolant("H", "bspline", [g.x, g.W], g.h.ravel(order="F"), {})
         self.P_table = ca.interpolant("Pp", "bspline", [g.x, g.W], g.p.ravel(order="F"), {})
         self.L_table = ca.interpolant("L", "bspline", [g.x, g.W], g.lam.ravel(order="F"), {})
-        x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
-        u = ca.SX.sym("u", 3)
-        xw = ca.vertcat(x, W)
-        self.H = ca.Function("H", [x, W], [self.H_table(xw)])
-        self.Pp = ca.Function("Pp", [x, W], [self.P_table(xw)])
-        self.L = ca.Function("L", [x, W], [self.L_table(xw)])
-        self.HP = ca.Function("HP", [x, W], [ca.vertcat(self.H_table(xw), self.P_table(xw))])
-        p = self.P_table(xw) + dp
-        q = self.chamber.net_flow(u, p, self.chamber.params)
-        self.rhs = ca.Function("rhs", [x, u, W, dp], [q * self.RT / (self.actuator.p_env * self.actuator.V0)],
-                               ["x", "u", "W", "dp"], ["xdot"])
+        self._forms: dict = {}
+        self._poly = None
+        fns = self.functions("bspline")
+        self.H, self.Pp, self.L, self.HP, self.rhs = fns.H, fns.Pp, fns.L, fns.HP, fns.rhs
+
+    def functions(self, form: str = "bspline") -> "TableFunctions":
+        """The model's Functions (H, Pp, L, HP, rhs: see the class doc) with the tables evaluated as
+        ``form``: 'bspline' (casadi's interpolant calls: compact, what a JIT at every construction
+        wants) or 'poly' (the same splines as their per-cell polynomials, inline arithmetic,
+        :class:`hbma_ctrl.models.piecewise.PiecewiseCubic`: equal to 1e-13, and the Jacobians are
+        arithmetic instead of interpolant calls, about half the cost in generated C and faster on
+        casadi's virtual machine; built on first use, 0.2 s)."""
+        if form not in TABLE_FORMS:
+            raise ValueError(f"prediction.functions: form = {form!r}; allowed {', '.join(TABLE_FORMS)}")
+        if form not in self._forms:
+            x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
+            u = ca.SX.sym("u", 3)
+            xw = ca.vertcat(x, W)
+            if form == "bspline":
+                h, p, lam = self.H_table(xw), self.P_table(xw), self.L_table(xw)
+            else:
+                if self._poly is None:
+                    g = self.grid
+                    self._poly = PiecewiseCubic("prediction_tables", [g.x, g.W], [g.h, g.p, g.lam])
+                h, p, lam = self._poly(xw)
+            q = self.chamber.net_flow(u, p + dp, self.chamber.params)
+            self._forms[form] = TableFunctions(
+                H=ca.Function("H", [x, W], [h]), Pp=ca.Function("Pp", [x, W], [p]),
+                L=ca.Function("L", [x, W], [lam]), HP=ca.Function("HP", [x, W], [ca.vertcat(h, p)]),
+                rhs=ca.Function("rhs", [x, u, W, dp], [q * self.RT / (self.actuator.p_env * self.actuator.V0)],
+                                ["x", "u", "W", "dp"], ["xdot"]))
+        return self._forms[form]
 
     # --- numeric helpers ---------------------------------------------------------------------------
-    def discrete(self, dt: float, integrator: str = "rk4", substeps: int = 1) -> ca.Function:
-        """(x, u, W, dp) -> x+ after ``dt`` s with inputs held (fixed-step euler/rk4, SX graph)."""
+    def discrete(self, dt: float, integrator: str = "rk4", substeps: int = 1, form: str = "bspline") -> ca.Function:
+        """(x, u, W, dp) -> x+ after ``dt`` s with inputs held (fixed-step euler/rk4, SX graph); the tables
+        evaluated as ``form`` (:meth:`functions`)."""
         if integrator not in ("rk4", "euler"):
             raise ValueError(f"mpc.integrator = '{integrator}': allowed rk4, euler")
+        rhs = self.functions(form).rhs
         x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
         u = ca.SX.sym("u", 3)
         h = dt / substeps
         xn = x
         for _ in range(substeps):
             if integrator == "euler":
-                xn = xn + h * self.rhs(xn, u, W, dp)
+                xn = xn + h * rhs(xn, u, W, dp)
             else:
-                k1 = self.rhs(xn, u, W, dp)
-                k2 = self.rhs(xn + h / 2 * k1, u, W, dp)
-                k3 = self.rhs(xn + h / 2 * k2, u, W, dp)
-                k4 = self.rhs(xn + h * k3, u, W, dp)
+                k1 = rhs(xn, u, W, dp)
+                k2 = rhs(xn + h / 2 * k1, u, W, dp)
+                k3 = rhs(xn + h / 2 * k2, u, W, dp)
+                k4 = rhs(xn + h * k3, u, W, dp)
                 xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         return ca.Function("F", [x, u, W, dp], [xn], ["x", "u", "W", "dp"], ["x_next"])
 
