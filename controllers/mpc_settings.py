@@ -26,7 +26,7 @@ class MPCSettings:
     ------
     variant : 'rti_osqp' (fast: one QP per step, OSQP from Python), 'rti_c_osqp' (the same QP, its data
         from one generated-C call, :mod:`controllers.rti_c`: the same inputs as 'rti_osqp' to rounding,
-        in about 60 % of the time), 'rti_fn_osqp' / 'rti_fn_hpipm' /
+        in under half the time, `bench mpc`), 'rti_fn_osqp' / 'rti_fn_hpipm' /
         'rti_fn_qrqp' (the same RTI step as one casadi Function, :mod:`controllers.rti_step`, its QP
         solved inside casadi by OSQP / HPIPM / qrqp), 'ipopt' or 'fatrop' (accurate: NLP to convergence).
     horizon : number of shooting intervals N, [2, 200].
