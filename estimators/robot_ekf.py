@@ -60,7 +60,7 @@ from hbma_ctrl.models.actuation import CommandTiming, check_delays
 from hbma_ctrl.models.bank import ChamberBank
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, ROBOT_SENSOR_DELAY
 
-__all__ = ["ChamberEKFSettings", "ChamberEKFBank"]
+__all__ = ["ChamberEKFSettings", "ChamberEKFBank", "bank_step_function"]
 
 
 @dataclass(frozen=True)
@@ -408,3 +408,90 @@ class ChamberEKFBank:
         c["outliers"] = c["outliers_bound"] + c["gated"]
         c["resets"] = int(self.resets)
         return c
+
+
+def _isnan(v):
+    """1 where v is NaN (it compares false both ways)."""
+    return ca.logic_not(ca.logic_or(v <= 0, v > 0))
+
+
+def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Function:
+    """One normal step of ``bank`` (one period after the last, the bank started) as ONE casadi Function,
+    what :meth:`ChamberEKFBank.step` does around its mapped call included, so a generated loop needs no
+    Python (issue 15; its bits are the bank's to rounding, ``tests/test_robot_plant_step.py``):
+
+        ekf_bank(X[4 x n], P[16 x n], w[3 x n], W[1 x n], z[1 x n], gated_run[1 x n])
+            -> (X_next, P_next, gated_run_next, h, p, h_std, lam, beyond, lost, nis, r, used,
+                outlier, reset, k_std)   (every output 1 x n but the first two)
+
+    ``w`` is the command acting over the period (after the valves' and sensors' delays:
+    :func:`hbma_ctrl.models.actuation.acting_function` per chamber), ``W`` the loads (N; clipped to the
+    tables' range here), ``z`` the readings (Pa; NaN = missing, +-inf or out of the physical bounds =
+    outlier, at or above the sensor range = not used), ``gated_run`` the gated readings in a row per
+    chamber. The flags (beyond, lost, used, outlier, reset: a diverged filter restarted from its
+    reading) are 0 / 1; a restarted filter's ``h_std`` is NaN, as the bank's. The counts of
+    :meth:`ChamberEKFBank.stats` follow from the flags. Not here: the first step (the bank starts from
+    the readings) and a step after a gap of several periods."""
+    s, n, model = bank.settings, bank.n, bank.model
+    step = model.cached(("ekf", s), lambda: _step_function(model, s)).map(n)
+    lo, hi = bank._bounds
+    X, P = ca.SX.sym("X", NS, n), ca.SX.sym("P", NS * NS, n)
+    w, W, z, run = ca.SX.sym("w", 3, n), ca.SX.sym("W", 1, n), ca.SX.sym("z", 1, n), ca.SX.sym("gated_run", 1, n)
+    nan = _isnan(z)
+    inf = ca.logic_or(z == ca.inf, z == -ca.inf)
+    finite = ca.logic_and(ca.logic_not(nan), ca.logic_not(inf))
+    outlier = ca.logic_or(inf, ca.logic_and(finite, ca.logic_or(z < lo, z > hi)))
+    use = ca.logic_and(ca.logic_and(finite, ca.logic_not(outlier)), z < s.sensor_range)
+    zz = ca.if_else(use, z, 0.0)
+    Wc = ca.fmin(ca.fmax(W, 1e-3), model.load_max)  # ChamberBank.clip_load
+    reopen = run >= s.gate_reopen - 1
+    out = step(X, P, w, Wc, zz, use, reopen)
+    over = out[6] > 0.5
+    gated = ca.logic_and(over, ca.logic_not(reopen))
+    used = ca.logic_and(use, ca.logic_not(gated))
+    run_next = ca.if_else(over, run + 1, ca.if_else(use, 0.0, run))
+    Xn, Pn, x_top = out[0], out[1], out[8]
+    beyond = Xn[3, :] * Xn[0, :] - 1 >= x_top
+    at_bound = 0
+    for row, (a, b) in FACTOR_ROWS:
+        at_bound = ca.logic_or(at_bound, ca.logic_or(Xn[row, :] <= a, Xn[row, :] >= b))
+    # the guard: factors clipped, the gas mass to the tables' top; a diverged filter restarts at rest
+    # from its reading (prior covariance)
+    fin = 1
+    for i in range(NS):
+        fin = ca.logic_and(fin, ca.logic_not(ca.logic_or(_isnan(Xn[i, :]), ca.fabs(Xn[i, :]) == ca.inf)))
+    for i in range(NS * NS):
+        fin = ca.logic_and(fin, ca.logic_not(ca.logic_or(_isnan(Pn[i, :]), ca.fabs(Pn[i, :]) == ca.inf)))
+    bad = ca.logic_not(fin)
+    rows = [Xn[i, :] for i in range(NS)]
+    for row, (a, b) in FACTOR_ROWS:
+        rows[row] = ca.fmin(ca.fmax(rows[row], a), b)
+    top = ca.if_else(ca.logic_or(_isnan(x_top), ca.fabs(x_top) == ca.inf), model.x_max, x_top)
+    rows[0] = ca.fmin(ca.fmax(rows[0], Y_MIN), (top + 1) / rows[3])
+    y0 = ca.fmax(1.0 + zz / model.actuator.p_env, Y_MIN)
+    rest = [y0, s.b0 * ca.DM.ones(1, n), ca.DM.ones(1, n), ca.DM.ones(1, n)]
+    X2 = ca.vertcat(*[ca.if_else(bad, r0, r1) for r0, r1 in zip(rest, rows)])
+    P0 = ca.DM(bank._prior_cov().reshape(NS * NS, 1, order="F"))
+    P2 = ca.vertcat(*[ca.if_else(bad, float(P0[i]) * ca.DM.ones(1, n), Pn[i, :]) for i in range(NS * NS)])
+    h, p, h_std, lam = out[2], out[3], out[5], out[7]
+    # a restarted filter reports its restart (the model's outputs at its new state, h_std unknown)
+    # where the diverged step's outputs are not finite
+    def _nonfinite(v):
+        return ca.logic_or(_isnan(v), ca.fabs(v) == ca.inf)
+    redo = ca.logic_and(bad, ca.logic_or(ca.logic_or(_nonfinite(h), _nonfinite(p)), _nonfinite(h_std)))
+    hr, pr, lr = [], [], []
+    for i in range(n):
+        o = model.outputs_expr(X2[3, i] * X2[0, i] - 1, Wc[i], X2[2, i], X2[3, i])
+        hr.append(o[0]), pr.append(o[1]), lr.append(o[2])
+    h = ca.if_else(redo, ca.horzcat(*hr), h)
+    p = ca.if_else(redo, ca.horzcat(*pr), p)
+    lam = ca.if_else(redo, ca.horzcat(*lr), lam)
+    h_std = ca.if_else(redo, ca.DM.nan(1, n), h_std)
+    k_std = ca.sqrt(ca.fmax(P2[2 * NS + 2, :], 0.0))
+    h = ca.if_else(h < 0, 0.0, h)  # np.maximum(h, 0): a NaN passes (fmax would make it 0)
+    return ca.Function(name, [X, P, w, W, z, run],
+                       [X2, P2, run_next, h, p, h_std, lam, beyond, ca.logic_or(beyond, at_bound),
+                        out[4], out[9], used, ca.logic_or(outlier, gated), bad, k_std],
+                       ["X", "P", "w", "W", "z", "gated_run"],
+                       ["X_next", "P_next", "gated_run_next", "h", "p", "h_std", "lam", "beyond", "lost", "nis",
+                        "r", "used", "outlier", "reset", "k_std"])

@@ -83,3 +83,54 @@ def test_robot_rig_step_without_valve_timing_and_refused_for_the_quasi_static_ri
     qs = RobotRig(DESIGN, Pneumatics(), 50e3, "per_chamber", RobotRigSettings(fidelity="quasi_static"))
     with pytest.raises(ValueError, match=r"\[rig\] fidelity = 'quasi_static'"):
         robot_rig_step_function(qs)
+
+
+def test_the_ekf_banks_step_as_one_function_follows_the_bank():
+    """bank_step_function against ChamberEKFBank.step over a run with every kind of reading (dropouts,
+    +-inf, out of the physical bounds, saturated, a jump the gate holds off until it re-opens) and a
+    diverged filter restarted from its reading: the same states, covariances, outputs and flags."""
+    from estimators.robot_ekf import NS, ChamberEKFBank, ChamberEKFSettings, bank_step_function
+    from hbma_ctrl.app.robot_closed import make_model
+
+    d = RobotDesign(n_layers=1).validate()
+    model = make_model(d, Pneumatics(), "per_chamber")
+    s = ChamberEKFSettings(valve_delay=0.0, sensor_delay=0.0)  # the command passed is the one acting
+    n = 3
+    bank = ChamberEKFBank(model, n, s)
+    fn = bank_step_function(bank)
+    rng = np.random.default_rng(4)
+    bank.reset(np.zeros(n))
+    X, P, run = bank.X.copy(), bank.P.copy(), np.zeros((1, n))
+    p_true = np.zeros(n)
+    seen = set()
+    for k in range(160):
+        pump = k < 100
+        w = np.vstack([np.ones(n), np.full(n, 0.8 if pump else 0.0), np.full(n, 0.0 if pump else 0.6)])
+        p_true = np.maximum(p_true + (350.0 if pump else -500.0) * np.array([1.0, 0.8, 1.2]), 0.0)
+        z = p_true + 200.0 * rng.standard_normal(n)
+        if k % 17 == 3:
+            z[0] = np.nan
+        if k % 23 == 5:
+            z[1] = np.inf
+        if k % 29 == 7:
+            z[2] = 1e6  # above the physical bound
+        if k == 40:
+            z[2] = 60e3  # at the sensor range: not used
+        if 60 <= k < 66:
+            z[1] += 15e3  # a jump: gated, then the gate re-opens
+        if k == 120:
+            bank.X[0, 1] = X[0, 1] = np.nan  # a diverged filter: both restart it
+        W = np.array([0.17, 0.2, 0.23])
+        got = dict(zip(fn.name_out(), (np.asarray(v) for v in fn(X, P, w, W, z, run))))
+        want = bank.step(z, w, W)
+        X, P, run = got["X_next"], got["P_next"], got["gated_run_next"]
+        np.testing.assert_allclose(X, bank.X, rtol=1e-10, atol=1e-14, err_msg=f"X at {k}")
+        np.testing.assert_allclose(P, bank.P, rtol=1e-9, atol=1e-18, err_msg=f"P at {k}")
+        np.testing.assert_array_equal(run.ravel(), bank._gated_run)
+        for key in ("h", "p", "h_std", "lam", "nis", "r", "k_std"):
+            np.testing.assert_allclose(got[key].ravel(), want[key], rtol=1e-9, atol=1e-12, err_msg=f"{key} at {k}")
+        for key in ("beyond", "lost", "used", "outlier"):
+            np.testing.assert_array_equal(got[key].ravel() > 0.5, want[key], err_msg=f"{key} at {k}")
+        seen |= {key for key in ("used", "outlier", "reset") if np.any(got[key] > 0.5)}
+        seen |= {"gated"} if np.any(want["outlier"] & ~np.isinf(z) & (np.abs(z) < 1e5) & ~np.isnan(z)) else set()
+    assert seen == {"used", "outlier", "reset", "gated"} and bank.resets == 1 and NS == 4
