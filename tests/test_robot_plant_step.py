@@ -134,3 +134,53 @@ def test_the_ekf_banks_step_as_one_function_follows_the_bank():
         seen |= {key for key in ("used", "outlier", "reset") if np.any(got[key] > 0.5)}
         seen |= {"gated"} if np.any(want["outlier"] & ~np.isinf(z) & (np.abs(z) < 1e5) & ~np.isnan(z)) else set()
     assert seen == {"used", "outlier", "reset", "gated"} and bank.resets == 1 and NS == 4
+
+
+@pytest.mark.parametrize("topology", ["per_chamber", "shared"])
+def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
+    """robot_rti_step_function against RobotNMPC.step over a closed run on the model itself (both at
+    OSQP eps 1e-7: their OSQPs differ in version and set-up, so they agree to the tolerance, not to the
+    bit): the same decisions within 5e-3 of a duty (the later stages of a plan are weakly determined:
+    two solutions within the tolerance differ there by up to 1e-2, and a step that takes OSQP 800
+    iterations moves the first decision by up to 3e-3), the same planned states within 1e-4; a
+    non-finite state is status 1 with zero decisions."""
+    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from controllers.robot_rti_step import robot_rti_step_function
+    from hbma_ctrl.app.robot_closed import make_model
+
+    d = RobotDesign(n_layers=1).validate()
+    model = make_model(d, Pneumatics(), topology)
+    s = RobotMPCSettings(eps=1e-7, max_iter=20000)
+    nmpc = RobotNMPC(model, 3, s)
+    fn = robot_rti_step_function(nmpc)
+    n, N = 3, s.horizon
+    x = np.array([0.05, 0.08, 0.02])
+    b, W = np.ones(n), np.array([0.17, 0.2, 0.23])
+    href = np.array([6e-3, 3e-3, 9e-3])
+    st = dict(xbar=np.zeros((n, N + 1)), abar=np.zeros((n, N)), obar=np.zeros((n, N)), first=1.0,
+              z_prev=np.zeros(nmpc.nv), y_prev=np.zeros(nmpc.m_rows), warm=0.0)
+    prev = np.zeros((2, n))
+    worst = 0.0
+    for step in range(25):
+        a_ref, o_ref = nmpc.step(x, b, W, href)
+        out = dict(zip(fn.name_out(), fn(x, b, W, np.ones(n), np.ones(n), np.ones(n),
+                                          np.repeat(href[:, None], N, 1), prev, st["xbar"], st["abar"],
+                                          st["obar"], st["first"], st["z_prev"], st["y_prev"], st["warm"])))
+        a, o = np.asarray(out["a"]).ravel(), np.asarray(out["o"]).ravel()
+        assert float(out["status"]) == 0.0 and not nmpc.failed
+        worst = max(worst, np.abs(a - a_ref).max(), np.abs(o - o_ref).max())
+        np.testing.assert_allclose(np.asarray(out["xbar_next"]), nmpc.xbar, atol=1e-4)
+        st = dict(xbar=np.asarray(out["xbar_next"]), abar=np.asarray(out["abar_next"]),
+                  obar=np.asarray(out["obar_next"]), first=0.0, z_prev=np.asarray(out["z"]).ravel(),
+                  y_prev=np.asarray(out["y"]).ravel(), warm=1.0)
+        prev = np.vstack([a_ref, o_ref])
+        nmpc.applied(a_ref, o_ref)
+        # the chambers move as the model says (the plan's next state)
+        x = nmpc.xbar[:, 1].copy()
+    assert worst < 5e-3
+    cg = ca.CodeGenerator("robot_rti_step_check.c")
+    cg.add(fn)  # one generable Function, the QP solver's C included
+    assert "robot_rti_step" in cg.dump()
+    bad = fn(np.array([np.nan, 0.0, 0.0]), b, W, np.ones(n), np.ones(n), np.ones(n), np.repeat(href[:, None], N, 1),
+             prev, st["xbar"], st["abar"], st["obar"], 0.0, st["z_prev"], st["y_prev"], 1.0)
+    assert float(bad[7]) == 1.0 and np.all(np.asarray(bad[0]) == 0.0) and np.all(np.asarray(bad[1]) == 0.0)

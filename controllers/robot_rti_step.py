@@ -1,0 +1,101 @@
+"""The robot NMPC's RTI step as ONE casadi Function, its QP solved inside casadi (OSQP's conic plugin).
+
+:class:`controllers.robot_mpc.RobotNMPC` computes its QP's values in one generated call, then updates
+and solves a persistent OSQP from Python. For a loop without Python the whole step is one Function
+(the third block of a generated robot loop, after :mod:`hbma_ctrl.robot.plant_step` and
+:func:`estimators.robot_ekf.bank_step_function`):
+
+    robot_rti_step(x0[n], b[n], W[n], k[n], c[n], a_max[n], h_ref[n x N] (m), prev[2 x n],
+                   xbar[n x (N + 1)], abar[n x N], obar[n x N], first, z_prev[nv], y_prev[m], warm)
+        -> (a[n], o[n], xbar_next, abar_next, obar_next, z[nv], y[m], status, residual)
+
+The inputs are :meth:`RobotNMPC.step`'s (loads clipped to the tables and ``a_max`` to [0, 1] here),
+its plan as it holds it (``first`` = 1: no plan yet, the states start at x0), and the last usable QP
+solution (``warm`` = 1: warm-started from it shifted by one stage, primal and dual, as the class does).
+``status`` is 0 for a usable solution, 1 for a non-finite one, 2 when a finite one violates its
+constraints by more than :data:`RES_TOL` (QP units: mm, kPa, duty); on 1 and 2 the decisions and the
+plan's inputs are zero, as the class's on an unusable solve.
+
+Differences from the class, both of the solver: casadi's OSQP is set up at every call (no state
+between calls besides the warm start given), and its version is casadi's own, so its iterates differ
+from the Python package's within the tolerance (``eps``); the class accepts a solve OSQP stopped at its
+iteration limit whatever its residual, this Function judges every solve by its residual. The wall-time
+budget (overruns) is not here: a generated loop times its own steps.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+
+from controllers.robot_mpc import RobotNMPC
+
+__all__ = ["robot_rti_step_function", "RES_TOL"]
+
+#: the largest constraint violation (QP units) a usable solution may have
+RES_TOL = 1e-3
+
+_IN = ["x0", "b", "W", "k", "c", "a_max", "h_ref", "prev", "xbar", "abar", "obar", "first", "z_prev", "y_prev",
+       "warm"]
+_OUT = ["a", "o", "xbar_next", "abar_next", "obar_next", "z", "y", "status", "residual"]
+
+
+def _sparsity(M) -> ca.Sparsity:
+    """casadi's sparsity of a scipy CSC matrix (the same nonzero order)."""
+    return ca.Sparsity(M.shape[0], M.shape[1], M.indptr.tolist(), M.indices.tolist())
+
+
+def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca.Function:
+    """One RTI step of ``nmpc`` (its model, size, topology and settings) as a Function (module docstring)."""
+    s, n, N = nmpc.s, nmpc.n, nmpc.s.horizon
+    nv, m = nmpc.nv, nmpc.m_rows
+    nb = 3 * N + 1
+    data = nmpc._qp_data_function(nmpc.model.linearisation(s.dt, 1, s.integrator))
+    Psp, Asp = _sparsity(nmpc._Ppat.M), _sparsity(nmpc._Apat.M)
+    MX = ca.MX
+    x0, b, W, k, c, amax = (MX.sym(nm, n) for nm in ("x0", "b", "W", "k", "c", "a_max"))
+    href = MX.sym("h_ref", n, N)
+    prev = MX.sym("prev", 2, n)
+    xbar, abar, obar = MX.sym("xbar", n, N + 1), MX.sym("abar", n, N), MX.sym("obar", n, N)
+    first, warm = MX.sym("first"), MX.sym("warm")
+    z_prev, y_prev = MX.sym("z_prev", nv), MX.sym("y_prev", m)
+    Wc = ca.fmin(ca.fmax(W, 1e-3), nmpc.model.load_max)  # ChamberBank.clip_load
+    amc = ca.fmin(ca.fmax(amax, 0.0), 1.0)
+    # the plan shifted one stage on (the last repeated), the first state the estimate
+    xs = ca.if_else(first, ca.repmat(x0, 1, N + 1), ca.horzcat(xbar[:, 1:], xbar[:, N]))
+    xs = ca.horzcat(x0, xs[:, 1:])
+    as_ = ca.if_else(first, abar, ca.horzcat(abar[:, 1:], abar[:, N - 1]))
+    os_ = ca.if_else(first, obar, ca.horzcat(obar[:, 1:], obar[:, N - 1]))
+    Pv, Av, q, lo, up = data(x0, b, Wc, k, c, amc, href * 1e3, prev, xs, as_, os_)
+    # a non-finite input makes non-finite data, which casadi's conic refuses with an exception: solve a
+    # zero QP instead and report status 1 (bounds at OSQP's infinity, 1e30, square to 1e60: finite)
+    d_ok = ca.sumsqr(Pv) + ca.sumsqr(Av) + ca.sumsqr(q) + ca.sumsqr(lo) + ca.sumsqr(up) < ca.inf
+    Pv, Av, q, lo, up = (ca.if_else(d_ok, v, MX.zeros(v.sparsity())) for v in (Pv, Av, q, lo, up))
+    # OSQP's P is the upper triangle; casadi's conic takes the whole symmetric Hessian
+    Pu = MX(Psp, Pv)
+    H = Pu + Pu.T - ca.diag(ca.diag(Pu))
+    A = MX(Asp, Av)
+    sx, sy = nmpc._shift_x, nmpc._shift_y
+    zw = ca.if_else(warm, z_prev[sx.tolist()], MX.zeros(nv))
+    yw = ca.if_else(warm, y_prev[sy.tolist()], MX.zeros(m))
+    opts = {"osqp": {"verbose": False, "eps_abs": s.eps, "eps_rel": s.eps, "max_iter": s.max_iter,
+                     "polish": False, "check_termination": 5, "scaling": 1},
+            "error_on_fail": False, "warm_start_primal": True, "warm_start_dual": True}
+    qp = ca.conic(f"{name}_qp", "osqp", {"h": H.sparsity(), "a": Asp}, opts)
+    sol = qp(h=H, g=q, a=A, lba=lo, uba=up, x0=zw, lam_a0=yw)
+    z, y = sol["x"], sol["lam_a"]
+    Az = ca.mtimes(A, z)
+    # bounds at OSQP's infinity (1e30) never bind: only finite violations count
+    res = ca.mmax(ca.vertcat(ca.fmax(lo - Az, 0), ca.fmax(Az - up, 0)))
+    finite = ca.sumsqr(z) < ca.inf  # a NaN or an inf anywhere makes the sum so
+    status = ca.if_else(ca.logic_and(d_ok, finite), ca.if_else(res <= RES_TOL, 0.0, 2.0), 1.0)
+    ok = status == 0
+    Z = ca.reshape(z, nb, n).T  # chamber i's block is row i: x_1..x_N | a_0..a_{N-1} | o_0.. | slack
+    a_plan = ca.if_else(ok, ca.fmin(ca.fmax(Z[:, N:2 * N], 0.0), 1.0), MX.zeros(n, N))
+    o_plan = ca.if_else(ok, ca.fmin(ca.fmax(Z[:, 2 * N:3 * N], 0.0), 1.0), MX.zeros(n, N))
+    x_next = ca.if_else(ok, ca.horzcat(x0, Z[:, :N]), xs)
+    a0, o0 = a_plan[:, 0], o_plan[:, 0]
+    if nmpc.topology == "shared":
+        tot = ca.sum1(a0)
+        a0 = ca.if_else(tot > 1.0, a0 / tot, a0)
+    return ca.Function(name, [x0, b, W, k, c, amax, href, prev, xbar, abar, obar, first, z_prev, y_prev, warm],
+                       [a0, o0, x_next, a_plan, o_plan, z, y, status, res], _IN, _OUT)
