@@ -415,6 +415,11 @@ def _isnan(v):
     return ca.logic_not(ca.logic_or(v <= 0, v > 0))
 
 
+def _nonfinite(v):
+    """1 where v is NaN or +-inf."""
+    return ca.logic_or(_isnan(v), ca.fabs(v) == ca.inf)
+
+
 def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Function:
     """One normal step of ``bank`` (one period after the last, the bank started) as ONE casadi Function,
     what :meth:`ChamberEKFBank.step` does around its mapped call included, so a generated loop needs no
@@ -457,16 +462,13 @@ def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Funct
         at_bound = ca.logic_or(at_bound, ca.logic_or(Xn[row, :] <= a, Xn[row, :] >= b))
     # the guard: factors clipped, the gas mass to the tables' top; a diverged filter restarts at rest
     # from its reading (prior covariance)
-    fin = 1
-    for i in range(NS):
-        fin = ca.logic_and(fin, ca.logic_not(ca.logic_or(_isnan(Xn[i, :]), ca.fabs(Xn[i, :]) == ca.inf)))
-    for i in range(NS * NS):
-        fin = ca.logic_and(fin, ca.logic_not(ca.logic_or(_isnan(Pn[i, :]), ca.fabs(Pn[i, :]) == ca.inf)))
-    bad = ca.logic_not(fin)
+    bad = 0
+    for v in [Xn[i, :] for i in range(NS)] + [Pn[i, :] for i in range(NS * NS)]:
+        bad = ca.logic_or(bad, _nonfinite(v))
     rows = [Xn[i, :] for i in range(NS)]
     for row, (a, b) in FACTOR_ROWS:
         rows[row] = ca.fmin(ca.fmax(rows[row], a), b)
-    top = ca.if_else(ca.logic_or(_isnan(x_top), ca.fabs(x_top) == ca.inf), model.x_max, x_top)
+    top = ca.if_else(_nonfinite(x_top), model.x_max, x_top)
     rows[0] = ca.fmin(ca.fmax(rows[0], Y_MIN), (top + 1) / rows[3])
     y0 = ca.fmax(1.0 + zz / model.actuator.p_env, Y_MIN)
     rest = [y0, s.b0 * ca.DM.ones(1, n), ca.DM.ones(1, n), ca.DM.ones(1, n)]
@@ -476,16 +478,9 @@ def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Funct
     h, p, h_std, lam = out[2], out[3], out[5], out[7]
     # a restarted filter reports its restart (the model's outputs at its new state, h_std unknown)
     # where the diverged step's outputs are not finite
-    def _nonfinite(v):
-        return ca.logic_or(_isnan(v), ca.fabs(v) == ca.inf)
     redo = ca.logic_and(bad, ca.logic_or(ca.logic_or(_nonfinite(h), _nonfinite(p)), _nonfinite(h_std)))
-    hr, pr, lr = [], [], []
-    for i in range(n):
-        o = model.outputs_expr(X2[3, i] * X2[0, i] - 1, Wc[i], X2[2, i], X2[3, i])
-        hr.append(o[0]), pr.append(o[1]), lr.append(o[2])
-    h = ca.if_else(redo, ca.horzcat(*hr), h)
-    p = ca.if_else(redo, ca.horzcat(*pr), p)
-    lam = ca.if_else(redo, ca.horzcat(*lr), lam)
+    restart = [model.outputs_expr(X2[3, i] * X2[0, i] - 1, Wc[i], X2[2, i], X2[3, i]) for i in range(n)]
+    h, p, lam = (ca.if_else(redo, ca.horzcat(*[o[j] for o in restart]), v) for j, v in enumerate((h, p, lam)))
     h_std = ca.if_else(redo, ca.DM.nan(1, n), h_std)
     k_std = ca.sqrt(ca.fmax(P2[2 * NS + 2, :], 0.0))
     h = ca.if_else(h < 0, 0.0, h)  # np.maximum(h, 0): a NaN passes (fmax would make it 0)

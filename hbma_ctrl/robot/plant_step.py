@@ -132,7 +132,6 @@ def robot_rig_step_function(rig, name: str = "robot_rig_step") -> ca.Function:
         hist_next = hist
         cols = [U] * nsub
     Xk, mk = X, mode
-    y = None
     for j in range(nsub):
         Uj = cols[j]
         if rig.topology == "shared":
