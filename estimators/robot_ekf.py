@@ -423,7 +423,7 @@ def _nonfinite(v):
 def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Function:
     """One normal step of ``bank`` (one period after the last, the bank started) as ONE casadi Function,
     what :meth:`ChamberEKFBank.step` does around its mapped call included, so a generated loop needs no
-    Python (issue 15; its bits are the bank's to rounding, ``tests/test_robot_plant_step.py``):
+    Python (issue 15; its bits are the bank's to rounding, ``tests/test_robot_loop_blocks.py``):
 
         ekf_bank(X[4 x n], P[16 x n], w[3 x n], W[1 x n], z[1 x n], gated_run[1 x n])
             -> (X_next, P_next, gated_run_next, h, p, h_std, lam, beyond, lost, nis, r, used,

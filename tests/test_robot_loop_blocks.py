@@ -1,5 +1,6 @@
-"""The robot rig's period as one casadi Function (hbma_ctrl.robot.plant_step) against RobotRig itself,
-and the load sharing Function against hbma_ctrl.robot.statics.load_sharing."""
+"""The blocks of a generated robot loop against the Python classes they replace: the rig's period
+(hbma_ctrl.robot.plant_step) against RobotRig, its load sharing against hbma_ctrl.robot.statics, the EKF
+bank's step against ChamberEKFBank, and the NMPC's RTI step against RobotNMPC."""
 
 from __future__ import annotations
 
