@@ -29,18 +29,14 @@ import casadi as ca
 import numpy as np
 
 from controllers.mpc_settings import INTEGRAL_BAND, INTEGRAL_MAX, MPCSettings
+from hbma_ctrl.core.codegen import is_finite
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["problem_function", "finite", "np_interp", "PREP_OUT"]
+__all__ = ["problem_function", "np_interp", "PREP_OUT"]
 
 #: the outputs of :func:`problem_function`, in order
 PREP_OUT = ("x0", "W", "dh", "dp", "p_lim", "r_c", "Wf_next", "has_W_next", "run_cold", "run_warm", "I_next",
             "I_target_next", "has_I_next", "reach", "r_used", "clipped")
-
-
-def finite(v):
-    """1 where v is a finite number (comparisons: casadi simplifies ``v == v`` to true)."""
-    return ca.logic_and(v > -ca.inf, v < ca.inf)
 
 
 def np_interp(xq, xp: np.ndarray, fp):
@@ -67,7 +63,7 @@ def problem_function(model: PredictionModel, s: MPCSettings) -> ca.Function:
     r_now = MX.sym("target")  # the target now; r_in the horizon's (the preview, or the target repeated)
     fail, cold_in, a = MX.sym("fail"), MX.sym("cold"), MX.sym("load_a")
     # --- the load filter (NMPC._load): dt is the controller period
-    F = ca.if_else(finite(F_est), F_est, 0)
+    F = ca.if_else(is_finite(F_est), F_est, 0)
     F = ca.fmax(F, 0)
     resting_h = h_est < s.rest_height
     resting = ca.logic_or(resting_h, rest_flag != 0)

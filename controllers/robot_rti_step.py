@@ -58,7 +58,7 @@ def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca
     xbar, abar, obar = MX.sym("xbar", n, N + 1), MX.sym("abar", n, N), MX.sym("obar", n, N)
     first, warm = MX.sym("first"), MX.sym("warm")
     z_prev, y_prev = MX.sym("z_prev", nv), MX.sym("y_prev", m)
-    Wc = ca.fmin(ca.fmax(W, 1e-3), nmpc.model.load_max)  # ChamberBank.clip_load
+    Wc = nmpc.model.clip_load(W)
     amc = ca.fmin(ca.fmax(amax, 0.0), 1.0)
     # the plan shifted one stage on (the last repeated), the first state the estimate
     xs = ca.if_else(first, ca.repmat(x0, 1, N + 1), ca.horzcat(xbar[:, 1:], xbar[:, N]))

@@ -11,8 +11,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+import casadi as ca
 import numpy as np
 
+from hbma_ctrl.core.codegen import is_finite, is_nan
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.chamber import STATE_SCALE
@@ -282,6 +284,16 @@ def classify_measurement(z, sensor_range: float, reading_min: float = -math.inf,
     if zf >= sensor_range:
         return MEAS_SATURATED
     return MEAS_OK
+
+
+def classify_expr(z, sensor_range: float, reading_min: float, reading_max: float) -> tuple:
+    """:func:`classify_measurement` on casadi expressions, elementwise, for loops without Python:
+    (missing, outlier, saturated, ok), each 1 where the reading z (Pa; NaN a dropout) is of that kind."""
+    missing = is_nan(z)
+    outlier = ca.logic_and(ca.logic_not(missing),
+                           ca.logic_or(ca.logic_not(is_finite(z)), ca.logic_or(z < reading_min, z > reading_max)))
+    valid = ca.logic_not(ca.logic_or(missing, outlier))
+    return missing, outlier, ca.logic_and(valid, z >= sensor_range), ca.logic_and(valid, z < sensor_range)
 
 
 def nis_gate(innovation: float, hph: float, R: float, gate: float) -> tuple[float, float]:

@@ -53,8 +53,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from estimators.common import INFLATION_MAX, VACUUM_GAUGE, physical_reading_bounds
-from hbma_ctrl.core.codegen import FastFunction
+from estimators.common import INFLATION_MAX, VACUUM_GAUGE, classify_expr, physical_reading_bounds
+from hbma_ctrl.core.codegen import FastFunction, is_finite
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays
 from hbma_ctrl.models.bank import ChamberBank
@@ -410,16 +410,6 @@ class ChamberEKFBank:
         return c
 
 
-def _isnan(v):
-    """1 where v is NaN (it compares false both ways)."""
-    return ca.logic_not(ca.logic_or(v <= 0, v > 0))
-
-
-def _nonfinite(v):
-    """1 where v is NaN or +-inf."""
-    return ca.logic_or(_isnan(v), ca.fabs(v) == ca.inf)
-
-
 def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Function:
     """One normal step of ``bank`` (one period after the last, the bank started) as ONE casadi Function,
     what :meth:`ChamberEKFBank.step` does around its mapped call included, so a generated loop needs no
@@ -442,13 +432,9 @@ def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Funct
     lo, hi = bank._bounds
     X, P = ca.SX.sym("X", NS, n), ca.SX.sym("P", NS * NS, n)
     w, W, z, run = ca.SX.sym("w", 3, n), ca.SX.sym("W", 1, n), ca.SX.sym("z", 1, n), ca.SX.sym("gated_run", 1, n)
-    nan = _isnan(z)
-    inf = ca.logic_or(z == ca.inf, z == -ca.inf)
-    finite = ca.logic_and(ca.logic_not(nan), ca.logic_not(inf))
-    outlier = ca.logic_or(inf, ca.logic_and(finite, ca.logic_or(z < lo, z > hi)))
-    use = ca.logic_and(ca.logic_and(finite, ca.logic_not(outlier)), z < s.sensor_range)
+    _, outlier, _, use = classify_expr(z, s.sensor_range, lo, hi)
     zz = ca.if_else(use, z, 0.0)
-    Wc = ca.fmin(ca.fmax(W, 1e-3), model.load_max)  # ChamberBank.clip_load
+    Wc = model.clip_load(W)
     reopen = run >= s.gate_reopen - 1
     out = step(X, P, w, Wc, zz, use, reopen)
     over = out[6] > 0.5
@@ -464,11 +450,11 @@ def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Funct
     # from its reading (prior covariance)
     bad = 0
     for v in [Xn[i, :] for i in range(NS)] + [Pn[i, :] for i in range(NS * NS)]:
-        bad = ca.logic_or(bad, _nonfinite(v))
+        bad = ca.logic_or(bad, ca.logic_not(is_finite(v)))
     rows = [Xn[i, :] for i in range(NS)]
     for row, (a, b) in FACTOR_ROWS:
         rows[row] = ca.fmin(ca.fmax(rows[row], a), b)
-    top = ca.if_else(_nonfinite(x_top), model.x_max, x_top)
+    top = ca.if_else(is_finite(x_top), x_top, model.x_max)
     rows[0] = ca.fmin(ca.fmax(rows[0], Y_MIN), (top + 1) / rows[3])
     y0 = ca.fmax(1.0 + zz / model.actuator.p_env, Y_MIN)
     rest = [y0, s.b0 * ca.DM.ones(1, n), ca.DM.ones(1, n), ca.DM.ones(1, n)]
@@ -478,7 +464,8 @@ def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Funct
     h, p, h_std, lam = out[2], out[3], out[5], out[7]
     # a restarted filter reports its restart (the model's outputs at its new state, h_std unknown)
     # where the diverged step's outputs are not finite
-    redo = ca.logic_and(bad, ca.logic_or(ca.logic_or(_nonfinite(h), _nonfinite(p)), _nonfinite(h_std)))
+    outputs_finite = ca.logic_and(ca.logic_and(is_finite(h), is_finite(p)), is_finite(h_std))
+    redo = ca.logic_and(bad, ca.logic_not(outputs_finite))
     restart = [model.outputs_expr(X2[3, i] * X2[0, i] - 1, Wc[i], X2[2, i], X2[3, i]) for i in range(n)]
     h, p, lam = (ca.if_else(redo, ca.horzcat(*[o[j] for o in restart]), v) for j, v in enumerate((h, p, lam)))
     h_std = ca.if_else(redo, ca.DM.nan(1, n), h_std)

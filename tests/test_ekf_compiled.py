@@ -322,3 +322,22 @@ def test_bench_ekf_axes_add_rows_with_their_settings_and_the_pareto_reads_them(t
         parse_axes("0,2", "cap")
     with pytest.raises(ValueError, match="--membranes: 'plate'"):
         parse_axes("1", "plate")
+
+
+def test_classify_expr_gives_classify_measurements_kind_for_every_reading():
+    """The casadi twin of classify_measurement (the generated steps' reading test) gives the same kind
+    for dropouts, +-inf, both physical bounds and the sensor range, at and beside each edge."""
+    from estimators.common import (MEAS_MISSING, MEAS_OK, MEAS_OUTLIER, MEAS_SATURATED, classify_expr,
+                                   classify_measurement)
+
+    rng, lo, hi = 50e3, -101e3, 75e3
+    z = ca.SX.sym("z")
+    f = ca.Function("kind", [z], [ca.vertcat(*classify_expr(z, rng, lo, hi))])
+    names = (MEAS_MISSING, MEAS_OUTLIER, MEAS_SATURATED, MEAS_OK)
+    edges = [lo, hi, rng, 0.0]
+    values = [math.nan, math.inf, -math.inf] + [e + d for e in edges for d in (-1e-9 * abs(e) - 1e-12, 0.0,
+                                                                               1e-9 * abs(e) + 1e-12)]
+    for v in values:
+        flags = np.asarray(f(v)).ravel()
+        assert flags.sum() == 1.0, v
+        assert names[int(np.argmax(flags))] == classify_measurement(v, rng, lo, hi), v

@@ -46,10 +46,11 @@ import math
 import casadi as ca
 import numpy as np
 
-from controllers.mpc_prep import finite as _finite
 from controllers.mpc_prep import problem_function
 from hbma_ctrl.app.codegen import LOG, LogColumn, LoopSpec, Stage
+from estimators.common import classify_expr
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.codegen import is_finite
 from hbma_ctrl.core.interfaces import SAFE_COMMAND
 from hbma_ctrl.models.fidelity import OUTPUTS
 from hbma_ctrl.runtime.chamber import chamber_supervisor
@@ -65,11 +66,6 @@ from hbma_ctrl.sim.trial import DEFAULT_DT
 
 __all__ = ["scenario_loop", "mpc_glue", "rig_noise", "plant_stage_parts", "rig_stages", "qp_solver_for",
            "scene_reference", "loop_run_metrics", "ESTIMATORS"]
-
-
-def _isnan(v):
-    """1 where v is NaN (it compares false both ways)."""
-    return ca.logic_not(ca.logic_or(v <= 0, v > 0))
 
 
 # --------------------------------------------------------------------------------------------- rig
@@ -195,7 +191,7 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     fallback = ca.if_else(can, pick, safe)
     cmd = ca.if_else(okc, ca.fmin(ca.fmax(u0, 0), 1), fallback)
     cmd = ca.fmin(ca.fmax(cmd, 0), 1)
-    finite = _finite(p_g_in)
+    finite = is_finite(p_g_in)
     p_g = ca.if_else(finite, p_g_in, sup.p_max)
     zone = p_g >= sup.p_max - sup.guard_margin
     if not sup.missing_is_limit:
@@ -293,11 +289,9 @@ def _ekf_glue(settings, bounds: tuple) -> tuple:
 
     z = ca.SX.sym("z")
     lo, hi = bounds
-    outlier = ca.logic_or(ca.logic_not(_finite(z)), ca.logic_or(z < lo, z > hi))
-    sat = z >= settings.sensor_range
-    # NaN (a dropout) and outliers are "none"; the order is classify_measurement's
-    code = ca.if_else(_isnan(z), es.KIND_NONE, ca.if_else(outlier, es.KIND_NONE,
-                                                        ca.if_else(sat, es.KIND_SATURATED, es.KIND_OK)))
+    _, _, sat, ok = classify_expr(z, settings.sensor_range, lo, hi)
+    # NaN (a dropout) and outliers are "none"
+    code = ca.if_else(ok, es.KIND_OK, ca.if_else(sat, es.KIND_SATURATED, es.KIND_NONE))
     z_in = ca.if_else(code == es.KIND_OK, z, 0)
     kind = ca.Function("ekf_kind", [z], [z_in, code], ["z"], ["z_in", "kind"])
     est, flags, exact, x, n_ref = (ca.SX.sym("est", 5), ca.SX.sym("flags"), ca.SX.sym("exact"), ca.SX.sym("x", 5),

@@ -28,7 +28,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS"]
+__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS", "is_nan", "is_finite"]
 
 #: the optimisation level and flags of the Functions called every step whose compilation is short
 #: (the EKF step and its reference path's parts, the UKF's propagation, the robot's EKF bank, the
@@ -44,6 +44,17 @@ HOT_OPT = "-O3"
 HOT_FLAGS = ("-fno-semantic-interposition",)
 
 _MEMO: dict = {}
+
+
+def is_nan(v):
+    """1 where the casadi expression v is NaN (it compares false both ways; casadi simplifies
+    ``v != v`` to false, so the test is written with two comparisons)."""
+    return ca.logic_not(ca.logic_or(v <= 0, v > 0))
+
+
+def is_finite(v):
+    """1 where the casadi expression v is a finite number (neither NaN nor +-inf)."""
+    return ca.logic_and(v > -ca.inf, v < ca.inf)
 
 
 def cache_dir() -> Path:

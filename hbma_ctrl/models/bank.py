@@ -428,6 +428,9 @@ class ChamberBank:
         i = int(np.argmax(pth["p"]))
         return float(pth["h"][i]), float(pth["p"][i])
 
-    def clip_load(self, W: np.ndarray) -> np.ndarray:
-        """Loads clipped to the tables' range [1 mN, load_max] N."""
+    def clip_load(self, W):
+        """Loads clipped to the tables' range [1 mN, load_max] N (numpy, or a casadi expression for the
+        generated steps)."""
+        if isinstance(W, (ca.SX, ca.MX)):
+            return ca.fmin(ca.fmax(W, 1e-3), self.load_max)
         return np.clip(np.asarray(W, dtype=float), 1e-3, self.load_max)
