@@ -126,9 +126,7 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 
-import casadi as ca
 import numpy as np
 
 from estimators.common import (
@@ -149,19 +147,17 @@ from estimators.ekf_step import (
     KIND_OK,
     KIND_SATURATED,
     NO_LOAD_SIGMAS,
-    cse,
     ekf_step_function,
     flat_ratio_min,
     lift_floor,
-    observer_model,
 )
-from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled
+from estimators.observer_calls import fast, observer_functions
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
 from hbma_ctrl.models.actuation import CommandTiming
 
-__all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS", "fast", "observer_functions"]
+__all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
 REPLAY_MAX = 200
@@ -173,7 +169,6 @@ class EKFSettings(FilterSettings):
     """EKF settings: the fields of :class:`estimators.common.FilterSettings` (documented there)."""
 
 
-_FN_CACHE: dict = {}
 _KIND_CODE = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
 _FLAG_SETS: dict = {}
 _LIFT_DETECTED = 1 << FLAG_BITS.index("lift_off_detected")
@@ -188,19 +183,6 @@ def _flag_set(bits: int) -> frozenset:
     return fs
 
 
-def fast(fun: ca.Function, compile: bool) -> FastFunction:
-    """A buffered caller of ``fun``, compiled once per process (generating the C source only to look
-    up the cached library costs milliseconds, paid per filter otherwise)."""
-    key = (id(fun), compile)
-    if key not in _FN_CACHE:
-        done = compiled(fun, HOT_OPT, HOT_FLAGS) if compile else fun
-        if compile and done is fun:
-            warnings.warn(f"{fun.name()}: no working C compiler (cc, gcc or clang): the estimator runs on "
-                          "casadi's virtual machine, several times slower per step", RuntimeWarning, stacklevel=2)
-        _FN_CACHE[key] = (fun, done)  # fun kept: its id stays unique
-    return FastFunction(_FN_CACHE[key][1], False)
-
-
 def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean: np.ndarray, cov: np.ndarray,
               state_names: tuple, std: dict, flags: frozenset) -> Estimate:
     """An :class:`Estimate` from the compiled step's floats: its field type checks cannot fail
@@ -209,36 +191,6 @@ def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean
     e.__dict__.update(t=t, h1=h1, h2=h2, h=h, F=F, p=p, mean=mean, cov=cov, state_names=state_names, std=std,
                       flags=flags)
     return e
-
-
-class _ByMode:
-    """Two buffered callers of one signature: ``rest`` for a resting step (argument ``i_hold`` > 0.5),
-    ``full`` otherwise, the choice the compiled step's switch makes between the model's flat and full
-    Functions (so both paths compute the same bits). theta (argument ``i_theta``; None = the last one)
-    goes into both buffers."""
-
-    def __init__(self, rest: FastFunction, full: FastFunction, i_hold: int, i_theta: int):
-        self.rest, self.full, self.i_hold, self.i_theta = rest, full, i_hold, i_theta
-
-    def __call__(self, *args) -> list:
-        th = args[self.i_theta]
-        if th is not None:
-            for f in (self.rest, self.full):
-                f.inp[self.i_theta][:] = th
-            args = args[:self.i_theta] + (None,) + args[self.i_theta + 1:]
-        return (self.rest if args[self.i_hold] > 0.5 else self.full)(*args)
-
-
-def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings):
-    """(ObserverModel, predict, outputs, propagate Function, fast update): predict and outputs call the
-    model's flat Functions on a resting step and its full ones otherwise, as the compiled step does; the
-    casadi Functions are shared per configuration, the fast (buffered) callers are per filter."""
-    om = observer_model(actuator, pneumatics, s)
-    # the predict with its common subexpressions merged, as in the compiled step (the implicit-function
-    # Jacobian evaluates each stage's shape Jacobian again, which cse merges): the same results
-    pred = _ByMode(fast(cse(om.predict_rest), s.compile), fast(cse(om.predict), s.compile), 4, 3)
-    outf = _ByMode(fast(cse(om.outputs_rest), s.compile), fast(cse(om.outputs), s.compile), 3, 2)
-    return om, pred, outf, om.propagate, fast(om.update, s.compile)
 
 
 class EKF(ReferenceSteps):

@@ -20,7 +20,8 @@ import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
 from estimators.common import STATE_SCALE, FilterSettings, guard_cov
-from estimators.ekf import EKF, observer_functions
+from estimators.ekf import EKF
+from estimators.observer_calls import observer_functions
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, OUT_NAMES

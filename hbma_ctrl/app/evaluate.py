@@ -27,7 +27,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
-from estimators.ekf import EKF, OUTPUT_KEYS, fast
+from estimators.ekf import EKF, OUTPUT_KEYS
+from estimators.observer_calls import fast
 from estimators.ekf_step import observer_model
 from estimators.innovation import innovation_test
 from estimators.ukf import UKF
