@@ -18,6 +18,7 @@ rounding).
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import casadi as ca
@@ -34,7 +35,7 @@ __all__ = ["qp_data_function"]
 _OSQP_INF = 1e30
 
 
-def qp_data_function(rti: _RtiOsqp) -> ca.Function:
+def qp_data_function(rti: _RtiOsqp, looped: bool = True) -> ca.Function:
     """The QP data of one RTI step of ``rti`` (an :class:`_RtiOsqp`: its settings, stage and patterns).
 
     Inputs: ``par`` (8 + N: x0 (-), W (N), dh (m), dp (Pa), u_prev (3, -), p_lim (Pa), r (N stages, m)),
@@ -43,21 +44,60 @@ def qp_data_function(rti: _RtiOsqp) -> ca.Function:
     in OSQP's CSC data order), ``q``, ``l``, ``u`` (QP units: mm, kPa, 1/100; bounds clamped to OSQP's
     infinity), ``z0`` (the primal warm start), ``ok`` (1 when the linearisation is finite).
     """
-    s, N = rti.s, rti.N
+    N = rti.N
     SX = ca.SX
     par, zp, shift = SX.sym("par", 8 + N), SX.sym("z_prev", rti.nz), SX.sym("shift")
-    x0, W, dh, dp = par[0], par[1], par[2], par[3]
-    u_prev, p_lim, r = par[4:7], par[7], par[8:]
+    Xb, Ub, Uext, Ulin = _plan(rti, par, zp, shift)
+    W, dp = par[1], par[3]
+    names = ["Px", "Ax", "q", "l", "u", "z0", "ok"]
+    if not looped:
+        lin = [rti.stage.lin(Xb[k], Uext[:, k], Ulin[:, k], W, dp) for k in range(N + 1)]
+        rows = [ca.horzcat(*[ln[i] for ln in lin]) for i in range(9)]  # b: 3 x (N+1) as one row
+        return ca.Function("rti_c_qp_data", [par, zp, shift], _assemble(rti, par, Xb, Ub, *rows),
+                           ["par", "z_prev", "shift"], names,
+                           {"cse": True})  # shared table look-ups (the nodes' first RK4 stage, p): 14 % less work
+    # looped: the plan and the assembly as two SX Functions around ONE mapped call of the node's
+    # linearisation, which C runs as a loop over the nodes (a twenty-first of the code)
+    pre = ca.Function("rti_c_plan", [par, zp, shift], [Xb.T, Ub, Uext, Ulin])
+    lin = rti.stage.lin
+    ins = [SX.sym(lin.name_in(i), lin.sparsity_in(i)) for i in range(lin.n_in())]
+    node = ca.Function("rti_c_node", ins, lin(*ins), lin.name_in(), lin.name_out(), {"cse": True})
+    rows = [SX.sym(node.name_out(i), 1, node.nnz_out(i) * (N + 1)) for i in range(node.n_out())]
+    Xr, Ubs = SX.sym("Xb", 1, N + 1), SX.sym("Ub", 3, N)
+    post = ca.Function("rti_c_assemble", [par, Xr, Ubs] + rows, _assemble(rti, par, Xr.T, Ubs, *rows),
+                       {"cse": True})
+    MX = ca.MX
+    par_m, zp_m, shift_m = MX.sym("par", 8 + N), MX.sym("z_prev", rti.nz), MX.sym("shift")
+    Xm, Um, Uem, Ulm = pre(par_m, zp_m, shift_m)
+    outs = node.map(N + 1)(Xm, Uem, Ulm, par_m[1], par_m[3])
+    return ca.Function("rti_c_qp_data", [par_m, zp_m, shift_m], post(par_m, Xm, Um, *outs),
+                       ["par", "z_prev", "shift"], names)
+
+
+def _plan(rti: _RtiOsqp, par, zp, shift) -> tuple:
+    """The step's linearisation points from the previous solution (SX): states Xb (N+1), inputs Ub
+    (3 x N), Uext (3 x (N+1), the last repeated) and Ulin (Uext with speed and inlet floored)."""
+    N, fl = rti.N, rti.s.rti_lin_floor
+    x0 = par[0]
     X = zp[rti.ix.tolist()]
     Uc = ca.fmin(ca.fmax(ca.reshape(zp[rti.iu.ravel().tolist()], 3, N), 0.0), 1.0)  # 3 x N, as solve() keeps
     # the plan shifted by one stage (the last repeated) on a new step; the first state is the estimate
     Xb = ca.vertcat(shift * x0 + (1 - shift) * X[0], shift * ca.vertcat(X[2:], X[N]) + (1 - shift) * X[1:])
     Ub = shift * ca.horzcat(Uc[:, 1:], Uc[:, N - 1]) + (1 - shift) * Uc
     Uext = ca.horzcat(Ub, Ub[:, N - 1])
-    fl = s.rti_lin_floor
-    lin = [rti.stage.lin(Xb[k], Uext[:, k], ca.vertcat(ca.fmax(Uext[0, k], fl), ca.fmax(Uext[1, k], fl),
-                                                       Uext[2, k]), W, dp) for k in range(N + 1)]
-    f, a, b, h, ch, p, cp, lam, cl = (ca.vertcat(*[ln[i] for ln in lin]) for i in range(9))  # b: (N+1) x 3
+    Ulin = ca.vertcat(ca.fmax(Uext[0, :], fl), ca.fmax(Uext[1, :], fl), Uext[2, :])
+    return Xb, Ub, Uext, Ulin
+
+
+def _assemble(rti: _RtiOsqp, par, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -> list:
+    """OSQP's data from the nodes' linearisation (each output of ``_Stage.lin`` over the N+1 nodes as
+    one row; b's three entries per node in a row): [Px, Ax, q, l, u, z0, ok]."""
+    s, N = rti.s, rti.N
+    SX = ca.SX
+    f, a, h, ch, p, cp, lam, cl = (ca.vec(v) for v in (f, a, h, ch, p, cp, lam, cl))
+    b = ca.reshape(b, 3, N + 1).T  # (N+1) x 3
+    x0, dh, dp = par[0], par[2], par[3]
+    u_prev, p_lim, r = par[4:7], par[7], par[8:]
     # only what the QP uses: the last node's dynamics and the first node's outputs are never built
     ok = ca.logic_and(ca.logic_and(ca.sumsqr(f[:N]) < ca.inf, ca.sumsqr(b[:N, :]) < ca.inf),
                       ca.sumsqr(ch[1:]) < ca.inf)
@@ -86,7 +126,8 @@ def qp_data_function(rti: _RtiOsqp) -> ca.Function:
     Av[rti.A_soft[:, 0].tolist()] = cp[k1]
     Av[rti.A_soft[:, 1].tolist()] = cl[k1]
     Av[rti.A_soft[:, 2].tolist()] = ch[k1]
-    Av[rti.A_soft[:, 3].tolist()] = -ch[k1]
+    if s.h_min > 0:
+        Av[rti.A_soft[:, 3].tolist()] = -ch[k1]
     # --- bounds
     lo, up = SX(np.clip(rti.l0, -_OSQP_INF, _OSQP_INF)), SX(np.clip(rti.u0, -_OSQP_INF, _OSQP_INF))
     lo[rti.r_init] = x0
@@ -99,21 +140,18 @@ def qp_data_function(rti: _RtiOsqp) -> ca.Function:
     for i in range(3):
         lo[rti.r_box + i] = ca.fmax(0.0, u_prev[i] - float(rti.du[i]))
         up[rti.r_box + i] = ca.fmin(float(umax[i]), u_prev[i] + float(rti.du[i]))
-    rs = (rti.r_soft + 4 * np.arange(N)).tolist()
+    rs = (rti.r_soft + rti.n_soft * np.arange(N)).tolist()
     Xk1 = Xb[k1]
     up[rs] = p_lim * 1e-3 - dp * 1e-3 - (p[k1] - cp[k1] * Xk1)
     up[[j + 1 for j in rs]] = s.lam_max * 1e2 - (lam[k1] - cl[k1] * Xk1)
     up[[j + 2 for j in rs]] = s.h_max * 1e3 - dh_mm - (h[k1] - ch[k1] * Xk1)
-    if s.h_min > 0:  # (below lift-off H is a virtual negative height: no bound at h_min = 0)
+    if s.h_min > 0:
         up[[j + 3 for j in rs]] = -(s.h_min * 1e3 - dh_mm - (h[k1] - ch[k1] * Xk1))
     lo, up = ca.fmax(lo, -_OSQP_INF), ca.fmin(up, _OSQP_INF)
     z0 = SX.zeros(rti.nz)
     z0[rti.ix.tolist()] = Xb
     z0[rti.iu.ravel().tolist()] = ca.vec(Ub)
-    return ca.Function("rti_c_qp_data", [par, zp, shift],
-                       [Pv[rti.P_perm.tolist()], Av[rti.A_perm.tolist()], q, lo, up, z0, ok],
-                       ["par", "z_prev", "shift"], ["Px", "Ax", "q", "l", "u", "z0", "ok"],
-                       {"cse": True})  # shared table look-ups (the nodes' first RK4 stage, p): 14 % less work
+    return [Pv[rti.P_perm.tolist()], Av[rti.A_perm.tolist()], q, lo, up, z0, ok]
 
 
 class _RtiC(_RtiOsqp):
@@ -165,7 +203,7 @@ class _RtiC(_RtiOsqp):
             if iters > 1:
                 self.solver.update_settings(time_limit=s.budget)
         self.X = z[self.ix]
-        self.U = np.clip(z[self.iu], 0.0, 1.0)
+        self.U = np.minimum(np.maximum(z[self.iu], 0.0), 1.0)  # (np.clip's wrapper costs 1-3 us more)
         return self.X, self.U
 
     def _qp(self, shift: float) -> np.ndarray:
@@ -188,7 +226,9 @@ class _RtiC(_RtiOsqp):
         x = osqp_.solution.x
         usable = status in ("solved", "solved inaccurate") or (
             status == "maximum iterations reached" and info.prim_res < 1e-3)
-        if not usable or x is None or not np.all(np.isfinite(x)):
+        # x @ x is finite exactly when every entry is (short of an overflow at |x| ~ 1e154, itself a
+        # failure): one BLAS call where np.all(np.isfinite(x)) costs two numpy calls and a wrapper
+        if not usable or x is None or not math.isfinite(x @ x):
             raise _SolverFailure(f"osqp: {status}")
         self._z[:] = x
         return self._z

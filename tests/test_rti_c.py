@@ -10,7 +10,7 @@ from controllers.mpc import NMPC
 from controllers.mpc_settings import MPCSettings
 from controllers.mpc_solvers import _Problem, _RtiOsqp
 from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from controllers.rti_c import _RtiC
+from controllers.rti_c import _RtiC, qp_data_function
 from hbma_ctrl.core.interfaces import Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
@@ -26,10 +26,12 @@ def _settings(variant: str) -> MPCSettings:
     return MPCSettings(variant=variant, budget=10.0).validate()
 
 
-def test_qp_data_equals_reference_path(model):
+@pytest.mark.parametrize("h_min", [0.0, 2e-3])
+def test_qp_data_equals_reference_path(model, h_min):
     """The generated data (P, A values in CSC order, q, l, u) equals what _RtiOsqp hands OSQP, on a
-    plan that varies along the horizon (no shift)."""
-    s = _settings("rti_osqp")
+    plan that varies along the horizon (no shift), without a lower height bound (its rows left out of
+    the pattern) and with one."""
+    s = replace(_settings("rti_osqp"), h_min=h_min).validate()
     ref, new = _RtiOsqp(model, s), _RtiC(model, s)
     seen = {}
     update = ref.solver.update
@@ -52,9 +54,28 @@ def test_qp_data_equals_reference_path(model):
     p[8:] = pr.r
     Px, Ax, q, lo, up, z0, ok = new.data(None, z, 0.0)
     assert ok[0] == 1.0
+    assert new.n_soft == (4 if h_min > 0 else 3) and Ax.size == new.A.nnz
     for key, got in (("Px", Px), ("Ax", Ax), ("q", q), ("l", lo), ("u", up)):
         want = np.clip(seen[key], -1e30, 1e30)
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12, err_msg=key)
+
+
+def test_looped_qp_data_equals_the_unrolled_one(model):
+    """The QP data with the nodes' linearisation as one looped (mapped) call equals the fully unrolled
+    SX Function to rounding, on shifted and unshifted steps over random plans."""
+    s = _settings("rti_c_osqp")
+    rti = _RtiOsqp(model, s)
+    looped, unrolled = qp_data_function(rti, looped=True), qp_data_function(rti, looped=False)
+    rng = np.random.default_rng(3)
+    N = s.horizon
+    for shift in (0.0, 1.0, 1.0, 0.0):
+        par = np.r_[rng.uniform(0.9, 1.6), rng.uniform(0.0, 4.0), rng.uniform(-1e-3, 1e-3), rng.uniform(-500, 500),
+                    rng.uniform(0.0, 1.0, 3), 30e3, rng.uniform(1e-3, 9e-3, N)]
+        z = rng.uniform(-0.1, 1.1, rti.nz)  # inputs outside [0, 1] too: the plan clips them
+        z[rti.ix] = rng.uniform(0.9, 1.6, N + 1)
+        for name, a, b in zip(looped.name_out(), looped(par, z, shift), unrolled(par, z, shift)):
+            a, b = np.asarray(a).ravel(), np.asarray(b).ravel()
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, np.max(np.abs(b))), err_msg=name)
 
 
 def test_first_inputs_equal_rti_osqp_over_states_and_steps(model):
