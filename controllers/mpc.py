@@ -115,6 +115,10 @@ def _check_inputs(t, reference, preview) -> None:
     if h is not None and not _finite(h):
         raise ValueError(f"mpc.step: reference.height = {h!r} must be a finite number (m) or None (hold)")
     if preview is not None:
+        # the runtime's preview is a list of floats: checked in C-level passes (about 1 us, the loop
+        # below 7 us at N = 20); anything else is checked element by element
+        if type(preview) is list and set(map(type, preview)) == {float} and all(map(math.isfinite, preview)):
+            return
         for j, v in enumerate(np.ravel(np.asarray(preview, dtype=object))):
             if not _finite(v):
                 raise ValueError(f"mpc.step: preview[{j}] = {v!r} must be a finite height (m)")
@@ -339,9 +343,9 @@ class NMPC:
             self.plan = None
             self.backend.reset()
         elapsed = time.perf_counter() - t_start
-        cmd = np.clip(cmd, 0.0, 1.0)
+        cmd = np.minimum(np.maximum(cmd, 0.0), 1.0)  # a new array (np.clip's wrapper costs 1-3 us more)
         # a caller that does not report the command it sent (applied) gets this one as the previous input
-        self._u_prev = cmd.copy()
+        self._u_prev = cmd
         self._t_prev = t
         self.last.update({"status": status, "iterations": self.backend.iterations, "solve_ms": elapsed * 1e3})
         return Command(float(cmd[0]), float(cmd[1]), float(cmd[2]))

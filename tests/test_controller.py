@@ -325,6 +325,18 @@ def test_preview_anticipates_a_coming_step(model):
         c.step(0.02, e, Reference(5e-3), preview=[float("nan")])
 
 
+@pytest.mark.parametrize("bad, index", [([5e-3, float("inf")], 1), ([5e-3, 5e-3, "6e-3"], 2), ([True], 0),
+                                        ([5e-3, None], 1), ((5e-3, float("nan")), 1),
+                                        (np.array([5e-3, np.nan]), 1)])
+def test_bad_preview_entry_is_named(model, bad, index):
+    """A preview entry that is not a finite number (inf, a string, a bool, None, NaN), in a list, a
+    tuple or an array, is refused with its index named."""
+    c = NMPC(Actuator(), Pneumatics(), MPCSettings(horizon=10), model=model)
+    e = Estimate(t=0.0, h1=1e-3, h2=0.0, h=1e-3, F=0.0, p=2e3)
+    with pytest.raises(ValueError, match=rf"preview\[{index}\]"):
+        c.step(0.0, e, Reference(5e-3), preview=bad)
+
+
 def test_every_settings_field_is_documented():
     from dataclasses import fields
 
