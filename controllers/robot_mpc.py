@@ -315,35 +315,65 @@ class RobotNMPC:
             _DATA_CACHE[key] = hit
         return FastFunction(hit[1], compile=False)
 
-    def _qp_data_function(self, lin: ca.Function) -> ca.Function:
+    def _qp_data_function(self, lin: ca.Function, looped: bool = True) -> ca.Function:
         """The QP's values from the step's data, as ONE Function generated as C (cached on disk):
         (x0, b, W, k, c, a_max (n each), targets (n, N) mm, previous inputs (2, n), the shifted plan
         x (n, N + 1), a, o (n, N)) -> P and A values in OSQP's CSC data order, q, l, u.
 
-        The stage linearisation ``lin`` (one chamber, one point) is inlined at every linearisation point
-        (every ``lin_every``-th stage, standing for the stages up to the next one) and the whole graph
-        built with casadi's common-subexpression elimination (the table look-ups the value, the
-        Jacobians and the outputs share are made once). Infinite bounds are OSQP's infinity (1e30).
+        The stage linearisation ``lin`` (one chamber, one point) runs at every linearisation point
+        (every ``lin_every``-th stage, standing for the stages up to the next one) of every chamber:
+        ``looped``, as one mapped call (C runs one node's code in a loop; built with casadi's
+        common-subexpression elimination, so the table look-ups the value, the Jacobians and the
+        outputs share are made once); otherwise inlined at every point (the code grows with the
+        chambers and the stages). Infinite bounds are OSQP's infinity (1e30).
         """
-        s, n, N = self.s, self.n, self.s.horizon
-        SX, inf = ca.SX, 1e30
+        n, N = self.n, self.s.horizon
+        SX = ca.SX
         x0, b, W, k, c, amax = (SX.sym(nm, n) for nm in ("x0", "b", "W", "k", "c", "a_max"))
         href, prev = SX.sym("h_ref_mm", n, N), SX.sym("prev", 2, n)
         xbar, abar, obar = SX.sym("xbar", n, N + 1), SX.sym("abar", n, N), SX.sym("obar", n, N)
-        anc, pts, ex = self._anchor.tolist(), self._anchor_pts.tolist(), self._expand.tolist()
+        ins = [x0, b, W, k, c, amax, href, prev, xbar, abar, obar]
+        names = ["x0", "b", "W", "k", "c", "a_max", "h_ref_mm", "prev", "xbar", "abar", "obar"]
+        pts = self._anchor_pts.tolist()
+        m = n * len(pts)
+        # the linearisation points, point-major (entry jj * n + i: chamber i at the jj-th point)
+        xp = ca.vec(xbar[:, pts])
+        ap = ca.vec(ca.horzcat(abar, abar[:, N - 1])[:, pts])
+        op = ca.vec(ca.horzcat(obar, obar[:, N - 1])[:, pts])
+        keys = ("xn", "Ax", "B", "h", "Hx", "p", "Px")
+        if not looped:
+            outs = [lin(xp[j], ca.vertcat(ap[j], op[j]), W[j % n], b[j % n], k[j % n], c[j % n]) for j in range(m)]
+            L = {key: ca.horzcat(*[ca.vec(o[i]) for o in outs]) for i, key in enumerate(keys)}
+            return ca.Function("robot_qp_data", ins, self._assemble(ins, L), names, ["Px", "Ax", "q", "l", "u"],
+                               {"cse": True})
+        sx_in = [SX.sym(lin.name_in(i), lin.sparsity_in(i)) for i in range(lin.n_in())]
+        node = ca.Function("robot_qp_node", sx_in, lin(*sx_in), {"cse": True})
+        pre = ca.Function("robot_qp_points", ins, [xp.T, ca.horzcat(ap, op).T] +
+                          [ca.repmat(v, len(pts), 1).T for v in (W, b, k, c)])
+        L_sym = {key: SX.sym(key, node.nnz_out(i), m) for i, key in enumerate(keys)}
+        post = ca.Function("robot_qp_assemble", ins + list(L_sym.values()), self._assemble(ins, L_sym),
+                           {"cse": True})
+        mx_in = [ca.MX.sym(nm, v.sparsity()) for nm, v in zip(names, ins)]
+        outs = node.map(m)(*pre(*mx_in))
+        L_mx = [ca.reshape(o, node.nnz_out(i), m) for i, o in enumerate(outs)]
+        return ca.Function("robot_qp_data", mx_in, post(*mx_in, *L_mx), names, ["Px", "Ax", "q", "l", "u"])
+
+    def _assemble(self, ins: list, L: dict) -> list:
+        """[Px, Ax, q, l, u] from the step's data ``ins`` (the data Function's inputs, SX) and the
+        linearisation at every point ``L`` (key -> (rows, n x points) SX, point-major columns)."""
+        s, n, N = self.s, self.n, self.s.horizon
+        SX, inf = ca.SX, 1e30
+        x0, b, W, k, c, amax, href, prev, xbar, abar, obar = ins
+        anc, ex = self._anchor.tolist(), self._expand.tolist()
         aext = ca.horzcat(abar, abar[:, N - 1])[:, anc]
         oext = ca.horzcat(obar, obar[:, N - 1])[:, anc]
         xb = xbar[:, anc]
-        cols = {key: [] for key in ("xn", "Ax", "Ba", "Bo", "h", "Hx", "p", "Px")}
-        for j in pts:
-            rows = {key: [] for key in cols}
-            for i in range(n):
-                xn_, A_, B_, h_, H_, p_, P_ = lin(xbar[i, j], ca.vertcat(aext[i, j], oext[i, j]), W[i], b[i], k[i], c[i])
-                for key, v in zip(("xn", "Ax", "Ba", "Bo", "h", "Hx", "p", "Px"), (xn_, A_, B_[0], B_[1], h_, H_, p_, P_)):
-                    rows[key].append(v)
-            for key in cols:
-                cols[key].append(ca.vertcat(*rows[key]))
-        L = {key: ca.horzcat(*v)[:, ex] for key, v in cols.items()}  # (n, N + 1), each stage's point
+        npts = len(self._anchor_pts)
+        B = L["B"]
+        M = {key: L[key] for key in ("xn", "Ax", "h", "Hx", "p", "Px")}
+        M["Ba"], M["Bo"] = B[0, :], B[1, :]
+        # (n, points) per quantity, then each stage's point
+        L = {key: ca.reshape(v, n, npts)[:, ex] for key, v in M.items()}
         xn, Ax, Ba, Bo, p, Px = L["xn"], L["Ax"], L["Ba"], L["Bo"], L["p"], L["Px"]
         h, Hx = L["h"] * 1e3, L["Hx"] * 1e3
         # --- cost
@@ -382,9 +412,7 @@ class RobotNMPC:
             Av = ca.vertcat(Av, SX.ones(N * n))
             lo = ca.vertcat(lo, -inf * SX.ones(N))
             up = ca.vertcat(up, SX.ones(N))
-        return ca.Function("robot_qp_data", [x0, b, W, k, c, amax, href, prev, xbar, abar, obar],
-                           [Pv[self._Ppat.perm.tolist()], Av[self._Apat.perm.tolist()], ca.vec(q.T), lo, up],
-                           {"cse": True})
+        return [Pv[self._Ppat.perm.tolist()], Av[self._Apat.perm.tolist()], ca.vec(q.T), lo, up]
 
     def _shift_maps(self) -> tuple[np.ndarray, np.ndarray]:
         """Index maps moving a QP solution one stage on (the last stage repeated): variables, rows."""

@@ -161,6 +161,32 @@ def test_robot_held_linearisation_differs_on_a_varying_plan(bank, monkeypatch):
     assert np.abs(q2["A"].toarray() - q1["A"].toarray()).max() > 1e-9
 
 
+@pytest.mark.parametrize("topology, L", [("per_chamber", 2), ("shared", 1)])
+def test_robot_looped_qp_data_equals_the_unrolled_one(topology, L):
+    """The robot QP data with the chambers' linearisations as one looped (mapped) call equals the one
+    with every point inlined, to rounding, on random plans and states (both pump topologies, the
+    linearisation held over stage pairs and at every stage)."""
+    from hbma_ctrl.app.scene_robot_closed import make_model
+    from hbma_ctrl.robot.design import RobotDesign
+
+    bank = make_model(RobotDesign(n_layers=1).validate(), Pneumatics().validate(), topology)
+    ctrl = RobotNMPC(bank, 3, RobotMPCSettings(lin_every=L))
+    lin = bank.linearisation(ctrl.s.dt, 1, ctrl.s.integrator)
+    looped, unrolled = ctrl._qp_data_function(lin, looped=True), ctrl._qp_data_function(lin, looped=False)
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        args = []
+        for i in range(looped.n_in()):
+            r, c = looped.size_in(i)
+            lo, hi = {"x0": (1.0, 1.6), "xbar": (1.0, 1.6), "b": (0.8, 1.2), "k": (0.8, 1.2), "c": (0.8, 1.2),
+                      "W": (0.1, 2.0), "h_ref_mm": (2.0, 9.0)}.get(looped.name_in(i), (0.0, 1.0))
+            args.append(rng.uniform(lo, hi, (r, c)))
+        for name, a, b in zip(looped.name_out(), looped(*args), unrolled(*args)):
+            a, b = np.asarray(a).ravel(), np.asarray(b).ravel()
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, np.max(np.abs(b[b < 1e29]))),
+                                       err_msg=name)
+
+
 def test_robot_rmse_within_1pct_of_linearising_every_stage():
     """One layer, bench robot's run (straight 6 mm, then a 15 deg bend): the default settings track the
     chamber heights within 1 % of the RMSE with the linearisation at every stage and OSQP at 1e-4 /
