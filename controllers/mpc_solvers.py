@@ -90,12 +90,16 @@ class _Stage:
 class _RtiOsqp:
     """Real-time iteration: one sparse QP per step, fixed pattern, OSQP updated in place."""
 
+    #: the nodes' linearisation map (``lin``) compiled as C when ``codegen`` is set (a subclass that
+    #: computes its QP data otherwise leaves it on casadi's virtual machine, built but never called)
+    COMPILE_LIN = True
+
     def __init__(self, model: PredictionModel, s: MPCSettings):
         self.s, self.model = s, model
         N = self.N = s.horizon
         self.stage = _Stage(model, s, "poly")
         lin = self.stage.lin.map(N + 1)
-        self.lin = compiled(lin, "-O2") if s.codegen else lin
+        self.lin = compiled(lin, "-O2") if s.codegen and self.COMPILE_LIN else lin
         # variable layout
         self.ix = np.arange(N + 1)
         self.iu = (N + 1) + np.arange(3 * N).reshape(N, 3)

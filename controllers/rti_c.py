@@ -162,6 +162,8 @@ class _RtiC(_RtiOsqp):
     no compiler, or ``settings.codegen`` off).
     """
 
+    COMPILE_LIN = False  # the QP data has the linearisation inside
+
     def __init__(self, model: PredictionModel, s: MPCSettings):
         super().__init__(model, s)
         fun = qp_data_function(self)
