@@ -48,7 +48,7 @@ buffers; the ``codegen`` command generates C from exactly this Function. Its QP 
 stage-wise (the previous input as a state, the limits of stage k+1 through the dynamics on stage
 k), which has the same optimum and lets HPIPM use the OCP structure.
 ``fatrop``: the IPOPT variant's NLP in the same stage form, solved by fatrop (casadi ``nlpsol``,
-structure detected; the NLP's functions JIT-compiled when ``codegen`` is set).
+structure detected; with ``codegen`` the whole solver generated as C and built once per machine).
 
 Valve duty -> on/off. A duty d in [0, 1] is a PWM command: the valve is held open for d * T_pwm of
 each PWM period T_pwm (``duty_to_on_time``); the averaged flow is d times the open flow, which is

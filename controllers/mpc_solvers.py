@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import shutil
+import warnings
 from dataclasses import dataclass
 
 import casadi as ca
@@ -12,7 +12,7 @@ import osqp
 import scipy.sparse as sp
 
 from controllers.mpc_settings import MPCSettings
-from hbma_ctrl.core.codegen import compiled
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, casadi_lib_flags, compiled, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
 
@@ -378,14 +378,6 @@ class _Ipopt:
         return self.X, self.U
 
 
-def _jit_options(s: MPCSettings) -> dict:
-    """casadi's JIT for an nlpsol's derivative functions (``settings.codegen`` and a C compiler):
-    the NLP's function evaluations, not the solver's linear algebra, are most of a step here."""
-    if not s.codegen or not any(shutil.which(c) for c in ("cc", "gcc")):
-        return {}
-    return {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O1"], "verbose": False}}
-
-
 def _csc_with_perm(rows, cols, n, m=None):
     """CSC matrix with the given pattern and the permutation from entry order to CSC data order."""
     m = n if m is None else m
@@ -406,16 +398,23 @@ class _Fatrop:
     makes the input-rate terms stage-local and s_k is the slack of the limits at stage k + 1, written
     on F(x_k, u_k). The optimum is the IPOPT variant's (same cost, same feasible set).
 
-    Measured (N = 20, ``bench mpc`` on the shared 2-core machine): 17 ms CPU per step against
-    IPOPT's 54 ms, at the same RMSE; but IPOPT with the same JIT takes 29 ms: the gain is the JIT.
-    With one state per stage the NLP is bound by function evaluations, not by the linear algebra
-    fatrop's structure speeds up.
+    With ``settings.codegen`` and a C compiler the whole solver (fatrop and the NLP's functions, the
+    tables as inline polynomials) is generated as C, built at :data:`HOT_OPT` against the fatrop
+    library shipped in the casadi package and cached on disk (:func:`compiled`: about 80 s the first
+    time on a machine at N = 20, then a load); ``mode`` is then "c". Otherwise (or if that build
+    fails, with a warning) the solver runs on casadi's virtual machine (``mode`` "vm"). With one state per stage the NLP is bound by function evaluations, not by the
+    linear algebra fatrop's structure speeds up, so how they are compiled sets the step's time.
+    The generated solver reports no statistics: a solve that does not converge raises inside it
+    (``error_on_fail``), and ``iterations`` is None.
     """
 
     def __init__(self, model: PredictionModel, s: MPCSettings):
         self.s, self.model = s, model
         N = self.N = s.horizon
-        self.stage = _Stage(model, s, "bspline")  # its JIT compiles at every construction
+        generate = bool(s.codegen) and has_compiler()
+        # the polynomials: a cold solve (N = 20, 41 iterations) 96 -> 86 ms on the virtual machine, and
+        # as C at -O3 36 -> 31 ms, for twice the build (once per machine)
+        self.stage = _Stage(model, s, "poly")
         F = self.stage.F
         par = ca.SX.sym("par", 8 + N)  # as _Ipopt: x0, W, dh(mm), dp(Pa), u_prev(3), p_lim(kPa), r(mm)
         x0, W, dh, dp = par[0], par[1], par[2], par[3]
@@ -467,11 +466,19 @@ class _Fatrop:
         zz = ca.vertcat(*z)
         nlp = {"x": zz, "p": par, "f": J, "g": ca.vertcat(*g)}
         eq = [bool(lo == up) for lo, up in zip(lbg, ubg)]
-        opts = {"structure_detection": "auto", "equality": eq, "print_time": False, "error_on_fail": False,
-                **_jit_options(s),
+        opts = {"structure_detection": "auto", "equality": eq, "print_time": False, "error_on_fail": generate,
                 "fatrop": {"print_level": 0, "max_iter": s.ipopt_max_iter, "tol": 1e-6,
                            "mu_init": 1e-3}}
         self.solver = ca.nlpsol("mpc_fatrop", "fatrop", nlp, opts)
+        self.mode = "vm"
+        if generate:
+            ext = compiled(self.solver, HOT_OPT, [*casadi_lib_flags(["-lfatrop", "-lblasfeo"]), *HOT_FLAGS],
+                           on_failure="none")
+            if ext is None:
+                warnings.warn("fatrop: its generated C did not build; the solver runs on casadi's virtual "
+                              "machine (slower, same results)", RuntimeWarning, stacklevel=3)
+            else:
+                self.solver, self.mode = ext, "c"
         self.lbz, self.ubz = np.array(lbz, float), np.array(ubz, float)
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
         self.nz = zz.shape[0]
@@ -506,11 +513,18 @@ class _Fatrop:
             z0[self.iv] = np.vstack([pr.u_prev, Ub])
             z0[self.isl] = np.r_[self.z[self.isl][1:], self.z[self.isl][-1]]
         par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
-        sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
-        st = self.solver.stats()
-        self.iterations = int(st.get("iter_count", 0) or 0)
-        if not st.get("success", False):
-            raise _SolverFailure(f"fatrop: {st.get('return_status')}")
+        try:
+            sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
+        except RuntimeError:  # error_on_fail: the generated solver's only report of a failed solve
+            self.iterations = None
+            raise _SolverFailure("fatrop: the solve failed (not converged)") from None
+        if self.mode == "c":
+            self.iterations = None
+        else:
+            st = self.solver.stats()
+            self.iterations = int(st.get("iter_count", 0) or 0)
+            if not st.get("success", False):
+                raise _SolverFailure(f"fatrop: {st.get('return_status')}")
         z = np.asarray(sol["x"]).ravel()
         if not np.all(np.isfinite(z)):
             raise _SolverFailure("fatrop: non-finite solution")

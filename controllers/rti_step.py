@@ -67,14 +67,12 @@ Outputs:
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import casadi as ca
 import numpy as np
 
 from controllers.mpc_settings import MPCSettings
 from controllers.mpc_solvers import _SolverFailure, _Stage
-from hbma_ctrl.core.codegen import FastFunction, compiled
+from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags, compiled
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["QP_SOLVERS", "compiled_step", "rti_step_function"]
@@ -268,11 +266,7 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
 def _solver_flags(qp_solver: str) -> list[str]:
     """Compiler flags for the generated C of a Function containing ``qp_solver`` (headers and libraries
     shipped inside the casadi package; qrqp needs none)."""
-    root = Path(ca.__file__).parent
-    libs = {"hpipm": ["-lhpipm", "-lblasfeo"], "osqp": ["-losqp"]}.get(qp_solver, [])
-    if not libs:
-        return []
-    return [f"-I{root / 'include'}", f"-L{root}", *libs, f"-Wl,-rpath,{root}"]
+    return casadi_lib_flags({"hpipm": ["-lhpipm", "-lblasfeo"], "osqp": ["-losqp"]}.get(qp_solver, []))
 
 
 def compiled_step(fun: ca.Function, qp_solver: str, opt: str = "-O1") -> ca.Function | None:

@@ -28,7 +28,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastFunction", "compiled", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS", "is_nan", "is_finite"]
+__all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS", "is_nan", "is_finite"]
 
 #: the optimisation level and flags of the Functions called every step whose compilation is short
 #: (the EKF step and its reference path's parts, the UKF's propagation, the robot's EKF bank, the
@@ -72,6 +72,16 @@ def _compiler() -> str | None:
 def has_compiler() -> bool:
     """Is there a system C compiler (cc, gcc or clang) for :func:`compiled`?"""
     return _compiler() is not None
+
+
+def casadi_lib_flags(libs: Sequence[str]) -> list[str]:
+    """Compiler and linker flags for generated C that calls solver libraries shipped inside the casadi
+    package (``libs``: e.g. ``["-losqp"]``): its headers, the libraries and their run-time path. No
+    libraries: no flags."""
+    if not libs:
+        return []
+    root = Path(ca.__file__).parent
+    return [f"-I{root / 'include'}", f"-L{root}", *libs, f"-Wl,-rpath,{root}"]
 
 
 def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
