@@ -24,9 +24,9 @@ class MPCSettings:
 
     Fields
     ------
-    variant : 'rti_osqp' (fast: one QP per step, OSQP from Python), 'rti_c_osqp' (the same QP, its data
-        from one generated-C call, :mod:`controllers.rti_c`: the same inputs as 'rti_osqp' to rounding,
-        in under half the time, `bench mpc`), 'rti_fn_osqp' / 'rti_fn_hpipm' /
+    variant : 'rti_c_osqp' (the default: real-time iteration, one OSQP QP per step, its data from one
+        generated-C call, :mod:`controllers.rti_c`), 'rti_osqp' (the same QP built in numpy: the
+        reference path, equal to rounding, two to three times slower, `bench mpc`), 'rti_fn_osqp' / 'rti_fn_hpipm' /
         'rti_fn_qrqp' (the same RTI step as one casadi Function, :mod:`controllers.rti_step`, its QP
         solved inside casadi by OSQP / HPIPM / qrqp), 'ipopt' or 'fatrop' (accurate: NLP to convergence).
     horizon : number of shooting intervals N, [2, 200].
@@ -71,7 +71,7 @@ class MPCSettings:
         that drops short openings) is never integrated: it plans the same useless trickle forever.
     """
 
-    variant: str = "rti_osqp"
+    variant: str = "rti_c_osqp"
     horizon: int = 20
     sample_period: float = 0.02
     integrator: str = "rk4"

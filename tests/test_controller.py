@@ -196,7 +196,7 @@ def test_duty_to_on_time():
 
 
 # --- the MPC -------------------------------------------------------------------------------------
-@pytest.mark.parametrize("variant", ["rti_osqp", "ipopt"])
+@pytest.mark.parametrize("variant", ["rti_c_osqp", "rti_osqp", "ipopt"])
 def test_mpc_pumps_below_and_vents_above_target(model, variant):
     s = MPCSettings(variant=variant, budget=5.0)
     c = NMPC(ACT, PN, s, model=model)

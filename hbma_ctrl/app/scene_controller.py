@@ -4,7 +4,7 @@
 
 ==========================  ====================================================================
 kind                        "mpc" (default), "pid" or "bang_bang"
-variant                     MPC: "rti_osqp" (default) or "ipopt"
+variant                     MPC: "rti_c_osqp" (default), "rti_osqp", "ipopt", "fatrop", ...
 horizon                     MPC horizon N (default 20)
 sample_ms                   controller period, ms (default 20; a multiple of the rig's period)
 p_max_kpa                   pressure limit, kPa (default 35)

@@ -55,7 +55,7 @@ class ControllerTable(Table):
 
     kind: Literal["mpc", "pid", "bang_bang"] = choice("mpc", "which controller runs")
     variant: Literal["rti_osqp", "rti_c_osqp", "rti_fn_osqp", "rti_fn_hpipm", "rti_fn_qrqp", "ipopt", "fatrop"] = choice(
-        "rti_osqp", "MPC: RTI + OSQP (fast; rti_c_osqp: the same, its QP data as generated C), the RTI step as one casadi Function with its QP solved by "
+        "rti_c_osqp", "MPC: RTI + OSQP, its QP data as generated C (fast; rti_osqp: the same QP built in numpy, slower), the RTI step as one casadi Function with its QP solved by "
         "OSQP / HPIPM / qrqp (rti_fn_*), or IPOPT / fatrop (accurate)")
     horizon: int = integer(20, 2, 200, "MPC horizon N", "steps")
     sample_ms: float = num(20.0, 0.0, 1000.0, "ms", "controller period (a multiple of the rig's)",
