@@ -394,16 +394,21 @@ def _csc_with_perm(rows, cols, n, m=None):
 class _Fatrop:
     """The IPOPT variant's OCP in stage form for fatrop (casadi ``nlpsol``, structure detected).
 
-    Stage k < N holds [x_k, v_k (the previous input), u_k, s_k], stage N [x_N, v_N]; v_{k+1} = u_k
-    makes the input-rate terms stage-local and s_k is the slack of the limits at stage k + 1, written
-    on F(x_k, u_k). The optimum is the IPOPT variant's (same cost, same feasible set).
+    Stage k < N holds the states [x_k, v_k (the previous input), sigma_k (the previous slack)] and
+    the controls [u_k, s_k], stage N the states [x_N, v_N, sigma_N]. v_{k+1} = u_k makes the
+    input-rate terms stage-local; sigma_{k+1} = s_k carries the slack of the limits at stage k + 1
+    to that stage, so the height cost and the limits are written on the stage's own state x_k, as
+    IPOPT's are on X[k] (sigma_0 = 0). The optimum is the IPOPT variant's (same cost, same feasible
+    set). Written on the prediction F(x_k, u_k) instead (before 2026-12-05), every stage's Hessian
+    held the outputs' second derivatives through the integrator: the same iterations, dearer ones.
 
     With ``settings.codegen`` and a C compiler the whole solver (fatrop and the NLP's functions, the
     tables as inline polynomials) is generated as C, built at :data:`HOT_OPT` against the fatrop
     library shipped in the casadi package and cached on disk (:func:`compiled`: about 80 s the first
     time on a machine at N = 20, then a load); ``mode`` is then "c". Otherwise (or if that build
-    fails, with a warning) the solver runs on casadi's virtual machine (``mode`` "vm"). With one state per stage the NLP is bound by function evaluations, not by the
-    linear algebra fatrop's structure speeds up, so how they are compiled sets the step's time.
+    fails, with a warning) the solver runs on casadi's virtual machine (``mode`` "vm"). With one
+    state per stage the NLP is bound by function evaluations, not by the linear algebra fatrop's
+    structure speeds up, so how they are compiled sets the step's time.
     The generated solver reports no statistics: a solve that does not converge raises inside it
     (``error_on_fail``), and ``iterations`` is None.
     """
@@ -425,42 +430,48 @@ class _Fatrop:
         inf = ca.inf
         xs = [ca.SX.sym(f"x{k}") for k in range(N + 1)]
         vs = [ca.SX.sym(f"v{k}", 3) for k in range(N + 1)]
+        sg = [ca.SX.sym(f"sigma{k}") for k in range(N + 1)]
         us = [ca.SX.sym(f"u{k}", 3) for k in range(N)]
         ss = [ca.SX.sym(f"s{k}") for k in range(N)]
         z, lbz, ubz, g, lbg, ubg = [], [], [], [], [], []
         J = 0
         for k in range(N + 1):
-            z += [xs[k], vs[k]]
-            lbz += [-0.5, -inf, -inf, -inf]
-            ubz += [50.0, inf, inf, inf]
-            if k == N:
-                break
-            z += [us[k], ss[k]]
-            lbz += [0.0, 0.0, 0.0, 0.0]
-            ubz += list(umax) + [inf]
-            xn = F(xs[k], us[k], W, dp)
-            g += [xs[k + 1] - xn, vs[k + 1] - us[k]]  # the dynamics first: what fatrop's detection reads
-            lbg += [0.0] * 4
-            ubg += [0.0] * 4
+            z += [xs[k], vs[k], sg[k]]
+            lbz += [-0.5, -inf, -inf, -inf, -inf]
+            ubz += [50.0, inf, inf, inf, inf]
+            if k < N:
+                z += [us[k], ss[k]]
+                lbz += [0.0, 0.0, 0.0, 0.0]
+                ubz += list(umax) + [inf]
+                # the dynamics first (what fatrop's detection reads); v and sigma carry the input
+                # and the slack into the next stage
+                g += [xs[k + 1] - F(xs[k], us[k], W, dp), vs[k + 1] - us[k], sg[k + 1] - ss[k]]
+                lbg += [0.0] * 5
+                ubg += [0.0] * 5
             if k == 0:
-                g += [xs[0] - x0, vs[0] - u_prev]
-                lbg += [0.0] * 4
-                ubg += [0.0] * 4
-            g.append(us[k] - vs[k])
-            lbg += list(-du)
-            ubg += list(du)
-            g.append(us[k][1] - us[k][0])
-            lbg.append(0.0)
-            ubg.append(inf)
-            h, p, lam = self.stage.out(xn, W)
-            w = s.w_height + (s.w_terminal if k == N - 1 else 0.0)
-            d = us[k] - vs[k]
-            J += ca.dot(wr, d ** 2) + ca.dot(wu, us[k] ** 2) + ca.dot(cu, us[k])
-            J += w * (h + dh - rr[k]) ** 2 + s.w_slack * ss[k] ** 2 + s.c_slack * ss[k]
+                g += [xs[0] - x0, vs[0] - u_prev, sg[0]]
+                lbg += [0.0] * 5
+                ubg += [0.0] * 5
+            if k < N:
+                g.append(us[k] - vs[k])
+                lbg += list(-du)
+                ubg += list(du)
+                g.append(us[k][1] - us[k][0])
+                lbg.append(0.0)
+                ubg.append(inf)
+                d = us[k] - vs[k]
+                J += ca.dot(wr, d ** 2) + ca.dot(wu, us[k] ** 2) + ca.dot(cu, us[k])
+                J += s.w_slack * ss[k] ** 2 + s.c_slack * ss[k]
+            if k == 0:
+                continue
+            # stage k's outputs on its own state: the limits with the slack sigma_k = s_{k-1}
+            h, p, lam = self.stage.out(xs[k], W)
+            w = s.w_height + (s.w_terminal if k == N else 0.0)
+            J += w * (h + dh - rr[k - 1]) ** 2
             lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else inf)
             for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
                              (h + dh - s.h_max * 1e3, 0.0), lo_h):
-                g.append(expr - ss[k])
+                g.append(expr - sg[k])
                 lbg.append(-inf)
                 ubg.append(ub)
         zz = ca.vertcat(*z)
@@ -482,11 +493,12 @@ class _Fatrop:
         self.lbz, self.ubz = np.array(lbz, float), np.array(ubz, float)
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
         self.nz = zz.shape[0]
-        ns = 8
+        ns = 9  # per stage [x, v (3), sigma, u (3), s]; the last stage [x, v, sigma]
         self.ix = ns * np.arange(N + 1)
-        self.iu = (ns * np.arange(N))[:, None] + 4 + np.arange(3)[None, :]
         self.iv = (ns * np.arange(N + 1))[:, None] + 1 + np.arange(3)[None, :]
-        self.isl = ns * np.arange(N) + 7
+        self.isg = ns * np.arange(N + 1) + 4
+        self.iu = (ns * np.arange(N))[:, None] + 5 + np.arange(3)[None, :]
+        self.isl = ns * np.arange(N) + 8
         self.z = None
         self.lam_g = None
         self.iterations = 0
@@ -512,6 +524,7 @@ class _Fatrop:
             z0[self.iu] = Ub
             z0[self.iv] = np.vstack([pr.u_prev, Ub])
             z0[self.isl] = np.r_[self.z[self.isl][1:], self.z[self.isl][-1]]
+            z0[self.isg[1:]] = z0[self.isl]
         par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
         try:
             sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
