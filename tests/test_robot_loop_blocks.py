@@ -1,6 +1,7 @@
 """The blocks of a generated robot loop against the Python classes they replace: the rig's period
 (hbma_ctrl.robot.plant_step) against RobotRig, its load sharing against hbma_ctrl.robot.statics, the EKF
-bank's step against ChamberEKFBank, and the NMPC's RTI step against RobotNMPC."""
+bank's step against ChamberEKFBank, the acting command mapped over the chambers against the bank's
+CommandTiming, and the NMPC's RTI step against RobotNMPC."""
 
 from __future__ import annotations
 
@@ -84,6 +85,31 @@ def test_robot_rig_step_without_valve_timing_and_refused_for_the_quasi_static_ri
     qs = RobotRig(DESIGN, Pneumatics(), 50e3, "per_chamber", RobotRigSettings(fidelity="quasi_static"))
     with pytest.raises(ValueError, match=r"\[rig\] fidelity = 'quasi_static'"):
         robot_rig_step_function(qs)
+
+
+@pytest.mark.parametrize("valve_delay, sensor_delay", [(5e-3, 3e-3), (12e-3, 0.0), (0.0, 0.0)])
+def test_the_acting_command_mapped_over_the_chambers_follows_the_banks_timing(valve_delay, sensor_delay):
+    """acting_function mapped over n chambers, fed acting_state(timing, n) at the start and its own
+    history after, gives the command CommandTiming.acting gives for 3 x n commands (the bank's call),
+    period after period from an empty history: the short histories and the full one."""
+    from hbma_ctrl.models.actuation import CommandTiming, acting_function, acting_state
+
+    n, period = 9, 0.01
+    timing = CommandTiming(period, valve_delay, sensor_delay)
+    f = acting_function(timing).map(n)
+    hist, fill = acting_state(timing, n)  # flat, as a generated loop's buffers hold them
+    hist = hist.reshape(3, -1, order="F")
+    rng = np.random.default_rng(4)
+    for k in range(12):
+        u = rng.uniform(0.0, 1.0, (3, n))
+        u[:, rng.uniform(size=n) < 0.3] = 0.0  # closed valves and stopped pumps too
+        if k == 5:  # the state read back mid-run is the Function's own
+            h2, f2 = acting_state(timing, n)
+            np.testing.assert_array_equal(h2, np.asarray(hist).ravel(order="F"))
+            np.testing.assert_array_equal(f2, np.asarray(fill).ravel())
+        want = timing.acting(u, 1)
+        got, hist, fill = f(u, hist, fill)
+        np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-15)
 
 
 def test_the_ekf_banks_step_as_one_function_follows_the_bank():

@@ -161,13 +161,22 @@ class CommandTiming:
         self._hist = []
 
 
-def acting_state(timing: CommandTiming) -> tuple[np.ndarray, float]:
+def acting_state(timing: CommandTiming, n: int | None = None):
     """The (hist, fill) inputs of :func:`acting_function` that stand for ``timing``'s commands sent so
-    far: hist column-major 3 x keep, oldest first, zeros before the first command."""
-    hist = np.zeros((3, timing._keep))
-    if timing._hist:
-        hist[:, timing._keep - len(timing._hist):] = np.asarray(timing._hist, dtype=float).T
-    return hist.ravel(order="F"), float(len(timing._hist))
+    far: hist column-major 3 x keep, oldest first, zeros before the first command, and fill the
+    history's length. With ``n`` (a timing fed 3 x n commands, the robot's bank): the inputs of the
+    Function mapped over the n chambers, hist 3 x (keep n) with chamber i's block in columns
+    i keep .. (i + 1) keep - 1 (column-major, flat) and fill (n,)."""
+    keep, past = timing._keep, timing._hist
+    if n is None:
+        hist = np.zeros((3, keep))
+        if past:
+            hist[:, keep - len(past):] = np.asarray(past, dtype=float).T
+        return hist.ravel(order="F"), float(len(past))
+    hist = np.zeros((3, n, keep))  # component, chamber, age (oldest first)
+    if past:
+        hist[:, :, keep - len(past):] = np.moveaxis(np.asarray(past, dtype=float).reshape(len(past), 3, n), 0, -1)
+    return hist.reshape(3, n * keep).ravel(order="F"), np.full(n, float(len(past)))
 
 
 def acting_function(timing: CommandTiming, name: str = "acting") -> ca.Function:
