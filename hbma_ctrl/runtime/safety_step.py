@@ -1,0 +1,178 @@
+"""The supervisor's policy (:meth:`hbma_ctrl.runtime.safety.Supervisor.apply`) as ONE casadi Function (SI).
+
+A generated loop (issue 15: C without Python) needs the runtime's safety rules in the same form as
+its other blocks. :func:`supervisor_function` writes rules 1-7 of :mod:`hbma_ctrl.runtime.safety` for
+``n`` chambers with ``c`` command columns and plans of ``H`` rows, its state (the stored plan, the
+streaks, the lost and burst latches) passed in and out::
+
+    supervisor(t, command[n c], pressure[n], ok[n], plan[H n c], plan_given, target[n], stretch[n],
+               lost[n], burst[n], state[S])
+        -> (command_out[n c], state_next[S], released[n], events[7 n], failed)
+
+Arrays are flat: a command row-major by chamber (chamber i's columns at i c .. i c + c - 1), a plan
+row-major [row][chamber][column]. ``plan_given`` is 1 when a plan (or a late plan) comes with this
+command, as ``plan`` is not None in ``apply``; ``target`` NaN where there is none (no vent),
+``stretch`` NaN where unknown (not guarded); ``lost`` and ``burst`` 0 / 1. ``events`` flags per
+chamber this step's interventions, row by row in :data:`EVENTS` order (their sums are what the
+Supervisor adds to its ``counts``); ``failed`` is 1 on a step with any chamber not ok (its
+``failed_steps``). :func:`supervisor_state` reads a
+:class:`Supervisor`'s state in the Function's layout, :func:`state_size` gives S. The event log and
+its texts stay in Python.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.core.codegen import is_finite
+from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
+
+__all__ = ["EVENTS", "supervisor_function", "supervisor_state", "state_size"]
+
+#: the per-chamber event rows of the Function's ``events`` output (the Supervisor's counts' keys)
+EVENTS = ("shifted_plan", "safe_command", "vent", "guard", "stretch_guard", "lost_estimate", "burst")
+
+
+def state_size(n: int, c: int, H: int) -> int:
+    """The length of the Function's state: the plan (H n c) and whether there is one (1), then per
+    chamber the plan's time, the streak, the rows replayed, the lost and the burst latches (5 n)."""
+    return H * n * c + 1 + 5 * n
+
+
+def supervisor_state(sup: Supervisor, c: int, H: int) -> np.ndarray:
+    """``sup``'s state in :func:`supervisor_function`'s layout (a stored plan of another shape than
+    (H, n, c) is refused with a ValueError)."""
+    n = sup.n
+    plan = np.zeros((H, n, c))
+    has = 0.0
+    if sup._plan is not None:
+        if sup._plan.shape != (H, n, c):
+            raise ValueError(f"supervisor_state: the stored plan is {sup._plan.shape}, the Function's ({H}, {n}, {c})")
+        plan, has = sup._plan, 1.0
+    return np.concatenate([plan.ravel(), [has], sup._plan_t, sup._streak, sup._age, sup.lost, sup.burst]).astype(float)
+
+
+def supervisor_function(settings: SupervisorSettings, n: int, c: int, H: int, name: str = "supervisor") -> ca.Function:
+    """The policy of :class:`Supervisor` with ``settings`` for n chambers, c columns, H-row plans
+    (module docstring). Its outputs equal ``apply``'s and its state the Supervisor's after it, for a
+    stored plan of H rows."""
+    s = settings.validate()
+    SX = ca.SX
+    t = SX.sym("t")
+    cmd_in, p_in, ok_in = SX.sym("command", n * c), SX.sym("pressure", n), SX.sym("ok", n)
+    plan_in, given = SX.sym("plan", H * n * c), SX.sym("plan_given")
+    target, stretch, lost_in, burst_in = SX.sym("target", n), SX.sym("stretch", n), SX.sym("lost", n), SX.sym("burst", n)
+    S = state_size(n, c, H)
+    st = SX.sym("state", S)
+    m = H * n * c
+    plan0, has0 = st[:m], st[m]
+    plan_t0, streak0, age0, lost0, burst0 = (st[m + 1 + j * n:m + 1 + (j + 1) * n] for j in range(5))
+
+    def at(r, i, j):  # the flat index of plan row r, chamber i, column j
+        return (r * n + i) * c + j
+
+    ok = [ok_in[i] != 0 for i in range(n)]
+    all_ok, any_good = ok[0], ok[0]
+    for i in range(1, n):
+        all_ok, any_good = ca.logic_and(all_ok, ok[i]), ca.logic_or(any_good, ok[i])
+    giv = given != 0
+    # --- 1. fallback. The good chambers' plan is stored first (the whole plan when none is stored)
+    store_good = ca.logic_and(giv, any_good)
+    had = has0 != 0
+    plan1 = SX(plan0)
+    for i in range(n):
+        take = ca.logic_and(store_good, ca.logic_or(ca.logic_not(had), ok[i]))
+        for r in range(H):
+            for j in range(c):
+                k = at(r, i, j)
+                plan1[k] = ca.if_else(take, plan_in[k], plan0[k])
+    has1 = ca.logic_or(had, store_good)
+    safe = [0.0] * (c - 1) + [s.safe_outlet]
+    cmd, streak, age, plan_t = [], [], [], []
+    shifted, safe_ev = [], []
+    for i in range(n):
+        st_i = ca.if_else(ok[i], 0, streak0[i] + 1)
+        row = age0[i] + 1 if s.plan_period is None else ca.floor((t - plan_t0[i]) / s.plan_period + 1e-6)
+        can = ca.logic_and(ca.logic_and(has1, st_i <= s.fallback_plan_steps), ca.logic_and(row >= 0, row < H))
+        failed = ca.logic_not(ok[i])
+        use_plan = ca.logic_and(failed, can)
+        use_safe = ca.logic_and(failed, ca.logic_not(can))
+        row_i = []
+        for j in range(c):
+            pick = 0
+            for r in range(H):
+                pick = pick + ca.if_else(row == r, plan1[at(r, i, j)], 0)
+            v = ca.if_else(use_plan, pick, ca.if_else(use_safe, safe[j], cmd_in[i * c + j]))
+            row_i.append(v)
+        cmd.append(row_i)
+        streak.append(st_i)
+        # rows replayed since the plan was stored; a good chamber's plan stored now starts again at 0
+        age_i = ca.if_else(use_plan, row, age0[i])
+        good_stored = ca.logic_and(store_good, ok[i])
+        age.append(ca.if_else(good_stored, 0, age_i))
+        plan_t.append(ca.if_else(good_stored, t, plan_t0[i]))
+        shifted.append(use_plan)
+        safe_ev.append(use_safe)
+    # a late plan given with the failure is stored for the failed chambers after their replay (with
+    # none stored and no chamber good, that is the whole plan: every chamber failed)
+    plan2 = SX(plan1)
+    for i in range(n):
+        late = ca.logic_and(giv, ca.logic_not(ok[i]))
+        for r in range(H):
+            for j in range(c):
+                k = at(r, i, j)
+                plan2[k] = ca.if_else(late, plan_in[k], plan1[k])
+        age[i] = ca.if_else(late, 0, age[i])
+        plan_t[i] = ca.if_else(late, t, plan_t[i])
+    # every chamber ok: the plan given is kept whole (stored above), or without one none is kept
+    plan_out = ca.if_else(ca.logic_and(all_ok, ca.logic_not(giv)), ca.DM.zeros(m), plan2)
+    has_out = ca.if_else(all_ok, giv, ca.logic_or(has1, giv))
+    # --- 2. clip
+    cmd = [[ca.fmin(ca.fmax(v, 0.0), 1.0) for v in row] for row in cmd]
+    # --- 3. vent on a zero target
+    vent = []
+    for i in range(n):
+        v_i = SX(0) if s.vent_height is None else ca.logic_and(is_finite(target[i]), target[i] <= s.vent_height)
+        vent.append(v_i)
+        cmd[i] = [ca.if_else(v_i, safe[j], cmd[i][j]) for j in range(c)]
+    # --- 4. pressure guard, 5. stretch guard, 6. lost estimate, 7. burst
+    guard, sguard, lost_ev, released, lost_next, burst_next, burst_ev = [], [], [], [], [], [], []
+    for i in range(n):
+        fin = is_finite(p_in[i])
+        p_g = ca.if_else(fin, p_in[i], s.p_max)
+        zone = p_g >= s.p_max - s.guard_margin
+        if not s.missing_is_limit:
+            zone = ca.logic_and(zone, fin)
+        unsafe = cmd[i][0] > 0
+        if s.vent_margin is not None:
+            unsafe = ca.logic_or(unsafe, cmd[i][c - 1] < 1.0)
+        act = ca.logic_and(zone, unsafe)
+        row = [ca.if_else(act, 0.0, cmd[i][j]) for j in range(c - 1)] + [cmd[i][c - 1]]
+        if s.vent_margin is not None:
+            row[c - 1] = ca.if_else(ca.logic_and(act, p_g >= s.p_max - s.vent_margin), 1.0, row[c - 1])
+        guard.append(act)
+        over = SX(0)
+        if s.stretch_max is not None:
+            over = ca.logic_and(stretch[i] >= s.stretch_max, row[0] > 0)  # (NaN compares false: not guarded)
+            row = [ca.if_else(over, 0.0, row[j]) for j in range(c - 1)] + [row[c - 1]]
+        sguard.append(over)
+        lost_i = ca.logic_or(lost0[i] != 0, lost_in[i] != 0)
+        rel = ca.logic_and(ca.logic_and(lost_i, fin), p_g <= s.lost_release)
+        row = [ca.if_else(lost_i, safe[j], row[j]) for j in range(c)]
+        lost_ev.append(lost_i)
+        released.append(rel)
+        lost_next.append(ca.logic_and(lost_i, ca.logic_not(rel)))
+        b_i = ca.logic_or(burst0[i] != 0, burst_in[i] != 0)
+        row = [ca.if_else(b_i, safe[j], row[j]) for j in range(c)]
+        burst_next.append(b_i)
+        burst_ev.append(b_i)
+        cmd[i] = row
+    events = [shifted, safe_ev, vent, guard, sguard, lost_ev, burst_ev]
+    state_next = ca.vertcat(plan_out, has_out, *plan_t, *streak, *age, *lost_next, *burst_next)
+    return ca.Function(name, [t, cmd_in, p_in, ok_in, plan_in, given, target, stretch, lost_in, burst_in, st],
+                       [ca.vertcat(*[v for row in cmd for v in row]), state_next, ca.vertcat(*released),
+                        ca.vertcat(*[e for ev in events for e in ev]), ca.logic_not(all_ok)],
+                       ["t", "command", "pressure", "ok", "plan", "plan_given", "target", "stretch", "lost",
+                        "burst", "state"], ["command_out", "state_next", "released", "events", "failed"],
+                       {"cse": True})
