@@ -50,10 +50,9 @@ from controllers.mpc_prep import problem_function
 from hbma_ctrl.app.codegen import LOG, LogColumn, LoopSpec, Stage
 from estimators.common import classify_expr
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.codegen import is_finite
-from hbma_ctrl.core.interfaces import SAFE_COMMAND
 from hbma_ctrl.models.fidelity import OUTPUTS
 from hbma_ctrl.runtime.chamber import chamber_supervisor
+from hbma_ctrl.runtime.safety_step import supervisor_function
 from hbma_ctrl.sim.plant_step import (
     initial_plant_state,
     plant_step_function,
@@ -173,39 +172,19 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     cold = ca.Function("mpc_cold", [x0s, up], [ca.repmat(x0s, N + 1, 1), ca.repmat(up, 1, N), ca.SX.zeros(nz),
                                                 ca.SX.zeros(nc)],
                        ["x0", "u_prev"], ["X_guess", "U_guess", "lam_x_guess", "lam_a_guess"])
-    # --- NMPC result -> supervisor (fallback, clip, guard) -> the command sent
+    # --- NMPC result -> the runtime's supervisor (its Function: fallback, clip, guard) -> the command sent
     SX = ca.SX
     u0, Up, status, p_g_in = SX.sym("u0", 3), SX.sym("U_plan", 3, N), SX.sym("status"), SX.sym("p")
     fail_s = SX.sym("fail")
     plan, has_plan, age, streak = SX.sym("plan", 3, N), SX.sym("has_plan"), SX.sym("age"), SX.sym("streak")
-    safe = ca.DM(SAFE_COMMAND.as_array())
-    safe[2] = sup.safe_outlet
     okc = ca.logic_and(status == 0, fail_s == 0)
-    streak_n = ca.if_else(okc, 0, streak + 1)
-    row = age + 1
-    can = ca.logic_and(ca.logic_and(has_plan != 0, streak_n <= sup.fallback_plan_steps),
-                       ca.logic_and(row >= 0, row < N))
-    pick = SX.zeros(3)
-    for j in range(N):
-        pick += ca.if_else(row == j, plan[:, j], SX.zeros(3))
-    fallback = ca.if_else(can, pick, safe)
-    cmd = ca.if_else(okc, ca.fmin(ca.fmax(u0, 0), 1), fallback)
-    cmd = ca.fmin(ca.fmax(cmd, 0), 1)
-    finite = is_finite(p_g_in)
-    p_g = ca.if_else(finite, p_g_in, sup.p_max)
-    zone = p_g >= sup.p_max - sup.guard_margin
-    if not sup.missing_is_limit:
-        zone = ca.logic_and(zone, finite)
-    unsafe = cmd[0] > 0
-    if sup.vent_margin is not None:
-        unsafe = ca.logic_or(unsafe, cmd[2] < 1.0)
-    act_g = ca.logic_and(zone, unsafe)
-    out = ca.vertcat(ca.if_else(act_g, 0, cmd[0]), ca.if_else(act_g, 0, cmd[1]), cmd[2])
-    if sup.vent_margin is not None:
-        out[2] = ca.if_else(ca.logic_and(act_g, p_g >= sup.p_max - sup.vent_margin), 1.0, cmd[2])
-    plan_n = ca.if_else(okc, Up, plan)
-    has_n = ca.if_else(okc, 1, ca.if_else(can, has_plan, has_plan))
-    age_n = ca.if_else(okc, 0, ca.if_else(can, row, age))
+    supervise = supervisor_function(sup, 1, 3, N, "mpc_supervisor")
+    # one chamber, plans by row (no plan times), no vent rule, stretch guard, lost or burst input
+    state = ca.vertcat(ca.vec(plan), has_plan, 0.0, streak, age, 0.0, 0.0)
+    nan = ca.DM.nan()
+    out, nxt = supervise(0.0, u0, p_g_in, okc, ca.vec(Up), okc, nan, nan, 0.0, 0.0, state)[:2]
+    plan_n = ca.reshape(nxt[:3 * N], 3, N)
+    has_n, streak_n, age_n = nxt[3 * N], nxt[3 * N + 2], nxt[3 * N + 3]
     post = ca.Function("mpc_post", [u0, Up, status, fail_s, p_g_in, plan, has_plan, age, streak],
                        [out, 1 - okc, plan_n, has_n, age_n, streak_n],
                        ["u0", "U_plan", "status", "fail", "p", "plan", "has_plan", "age", "streak"],
