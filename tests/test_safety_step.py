@@ -1,7 +1,8 @@
-"""The supervisor's policy as one casadi Function (hbma_ctrl.runtime.safety_step) against
-Supervisor.apply, step by step over long random runs: the robot's supervisor (two columns, plans by
-time, the stretch interlock, lost estimates, bursts) and a chamber-style one (three columns, the
-outlet opened at the limit, plans by rows, missing pressures at the limit)."""
+"""The runtime's safety blocks as casadi Functions against their classes, step by step over long random
+runs: the supervisor's policy (hbma_ctrl.runtime.safety_step) against Supervisor.apply, for the robot's
+supervisor (two columns, plans by time, the stretch interlock, lost estimates, bursts) and a
+chamber-style one (three columns, the outlet opened at the limit, plans by rows, missing pressures at
+the limit); the burst test's period (hbma_ctrl.runtime.burst.burst_function) against BurstTest."""
 
 from __future__ import annotations
 
@@ -89,3 +90,45 @@ def test_a_chamber_style_supervisor_as_one_function_follows_apply():
     plan replayed row by row, no vent rule: the same at every step of 400, every other rule reached."""
     seen = _run(_chamber_style(3), 3, 10, 400, 2)
     assert seen.pop("vent") == 0 and all(v > 0 for v in seen.values()), seen
+
+
+@pytest.mark.parametrize("relapses", [2, 3, 5])
+def test_the_burst_test_as_one_function_follows_the_class(relapses):
+    """500 periods of 5 chambers: innovations with NaN (unused readings), -inf and +inf, runs of
+    falls that flag by the sum, lost estimates in bursts that flag by relapses within the window and
+    spread out ones that do not, and restarts (the supervisor's releases): the same flags, sums, peaks
+    and kept lost times at every period, both ways of flagging reached."""
+    from hbma_ctrl.runtime.burst import BurstTest, BurstTestSettings, burst_function, burst_state
+
+    n = 5
+    settings = BurstTestSettings(relapses=relapses, relapse_window=0.3)
+    bt = BurstTest(n, settings)
+    f = burst_function(settings, n)
+    state = burst_state(bt)
+    rng = np.random.default_rng(relapses)
+    restarted = np.zeros(n, dtype=bool)
+    by_sum = by_lost = 0
+    for k in range(500):
+        t = 0.01 * k
+        r = rng.normal(0.0, 2.0, n)
+        if k % 97 < 6:
+            r[(k // 97) % 3] = -rng.uniform(10.0, 60.0)  # a run of falls on one of chambers 0-2
+        r[rng.uniform(size=n) < 0.05] = np.nan
+        r[rng.uniform(size=n) < 0.01] = -np.inf
+        r[rng.uniform(size=n) < 0.01] = np.inf
+        lost = rng.uniform(size=n) < (0.3 if k % 150 < 10 else 0.01)
+        lost[:3] &= rng.uniform(size=3) < 0.1  # chambers 0-2 lose their estimates seldom
+        if k % 200 == 199:
+            bt.reset()  # a person cleared the flags: the class and the Function start again
+            state = burst_state(bt)
+        bt.restart(restarted)
+        new_u = bt.update(r)
+        new_l = bt.lost(t, lost)
+        now, flagged, state = (np.asarray(v).ravel() for v in f(t, r, lost.astype(float), restarted.astype(float), state))
+        np.testing.assert_array_equal(now > 0.5, new_u | new_l, err_msg=f"period {k}")
+        np.testing.assert_array_equal(flagged > 0.5, bt.flagged, err_msg=f"period {k}")
+        np.testing.assert_array_equal(state, burst_state(bt), err_msg=f"period {k}")
+        by_sum += int(new_u.sum())
+        by_lost += int(new_l.sum())
+        restarted = rng.uniform(size=n) < 0.05
+    assert by_sum > 0 and by_lost > 0, (by_sum, by_lost)

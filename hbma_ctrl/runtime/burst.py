@@ -37,11 +37,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import casadi as ca
 import numpy as np
 
+from hbma_ctrl.core.codegen import is_nan
 from hbma_ctrl.core.params import check_range
 
-__all__ = ["BurstTestSettings", "BurstTest"]
+__all__ = ["BurstTestSettings", "BurstTest", "burst_function", "burst_state"]
 
 
 @dataclass(frozen=True)
@@ -133,3 +135,65 @@ class BurstTest:
         for i in np.nonzero(m)[0]:
             self.why[i] = ""
             self._lost_t[i] = []
+
+
+def _state_parts(n: int, settings: BurstTestSettings) -> tuple[int, int]:
+    """(times kept per chamber, state length): a chamber's flag needs only its newest relapses - 1
+    lost times (older ones are older than the window whenever a newer one is)."""
+    keep = settings.relapses - 1
+    return keep, n * (3 + keep)
+
+
+def burst_state(test: BurstTest) -> np.ndarray:
+    """``test``'s state in :func:`burst_function`'s layout: the sums g, their peaks, the flags (n
+    each), then per chamber its newest relapses - 1 lost times, oldest first (NaN: none)."""
+    keep, _ = _state_parts(test.n, test.settings)
+    times = np.full((test.n, keep), np.nan)
+    for i, ts in enumerate(test._lost_t):
+        ts = ts[-keep:]
+        if ts:
+            times[i, keep - len(ts):] = ts
+    return np.concatenate([test.g, test.peak, test.flagged.astype(float), times.ravel()])
+
+
+def burst_function(settings: BurstTestSettings, n: int, name: str = "burst") -> ca.Function:
+    """One period of :class:`BurstTest` for n chambers as ONE casadi Function (a generated loop's block)::
+
+        burst(t, r[n], lost_new[n], restarted[n], state[S]) -> (flagged_now[n], flagged[n], state_next[S])
+
+    ``restarted``: the chambers whose filters were restarted since the last period (the supervisor's
+    release; :meth:`BurstTest.restart`, applied first); then ``update(r)`` and ``lost(t, lost_new)``
+    as the class calls them. ``flagged_now`` are those flagged this period by either; ``flagged`` all
+    flagged so far. State layout: :func:`burst_state`."""
+    s = settings.validate()
+    keep, S = _state_parts(n, s)
+    SX = ca.SX
+    t, r, lost_new, restarted, st = SX.sym("t"), SX.sym("r", n), SX.sym("lost_new", n), SX.sym("restarted", n), SX.sym("state", S)
+    g0, peak0, flag0 = st[:n], st[n:2 * n], st[2 * n:3 * n]
+    times0 = st[3 * n:]
+    g, peak, flag, now, times = [], [], [], [], []
+    for i in range(n):
+        gi = ca.if_else(restarted[i] != 0, 0.0, g0[i])
+        ri = ca.if_else(is_nan(r[i]), 0.0, r[i])  # a reading not used; +-inf go through, as in update()
+        gi = ca.fmax(gi + ca.fmin(-ri - s.allowance, s.step_cap), 0.0)
+        new_u = ca.logic_and(gi >= s.threshold, flag0[i] == 0)
+        fl = ca.logic_or(flag0[i] != 0, new_u)
+        # lost anew: the times within the window, this one appended
+        ts = [times0[i * keep + j] for j in range(keep)]
+        lost_i = lost_new[i] != 0
+        count = 1
+        for u in ts:
+            count = count + ca.logic_and(ca.logic_not(is_nan(u)), u > t - s.relapse_window)
+        new_l = ca.logic_and(ca.logic_and(lost_i, count >= s.relapses), ca.logic_not(fl))
+        # the newest keep times: shifted by one with t appended when lost anew
+        shifted = ts[1:] + [t]
+        ts_next = [ca.if_else(lost_i, ca.if_else(sv > t - s.relapse_window, sv, np.nan) if j < keep - 1 else sv,
+                              ts[j]) for j, sv in enumerate(shifted)]
+        g.append(gi)
+        peak.append(ca.fmax(peak0[i], gi))
+        flag.append(ca.logic_or(fl, new_l))
+        now.append(ca.logic_or(new_u, new_l))
+        times += ts_next
+    return ca.Function(name, [t, r, lost_new, restarted, st],
+                       [ca.vertcat(*now), ca.vertcat(*flag), ca.vertcat(*g, *peak, *flag, *times)],
+                       ["t", "r", "lost_new", "restarted", "state"], ["flagged_now", "flagged", "state_next"])
