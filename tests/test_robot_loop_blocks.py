@@ -211,3 +211,67 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
     bad = fn(np.array([np.nan, 0.0, 0.0]), b, W, np.ones(n), np.ones(n), np.ones(n), np.repeat(href[:, None], N, 1),
              prev, st["xbar"], st["abar"], st["obar"], 0.0, st["z_prev"], st["y_prev"], 1.0)
     assert float(bad[7]) == 1.0 and np.all(np.asarray(bad[0]) == 0.0) and np.all(np.asarray(bad[1]) == 0.0)
+
+
+def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
+    """A one-layer RobotLoop on the rig (NMPC, EKF bank, cautious cap, a 10 mm/s target rate): a
+    rise to 5 mm, a bend, then a zero target on one chamber. At every tick slew_function gives the
+    targets the loop worked to and caps_function the supply bounds the loop handed its NMPC, with the
+    limit-point pressures it keeps (refreshed every tenth tick); the cap and the vent both act."""
+    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.app.robot_closed import make_model
+    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.robot.design import RobotPneumatics
+    from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+    from hbma_ctrl.runtime.robot_step import caps_function, slew_function
+
+    d = RobotDesign(n_layers=1).validate()
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics()).validate()
+    model = make_model(d, Pneumatics(), s.pneumatics.topology)
+    rs = RobotRigSettings().validate()
+    n, rate = 3, 10e-3
+    rig = RobotRig(d, Pneumatics(), s.pneumatics.sensor_range, s.pneumatics.topology, rs, ())
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
+                                                       sensor_range=s.pneumatics.sensor_range))
+    ms = RobotMPCSettings(sample_period=rs.sample_period, p_max=s.pneumatics.pressure_limit)
+    ctrl = RobotNMPC(model, n, ms)
+    targets = {0: ((0.0, 5e-3, 0.0, 0.0), (0.6, 5e-3, 0.15, 0.0), (1.0, 0.0, 0.0, 0.0))}
+    loop = RobotLoop(d, model, bank, ctrl, robot_supervisor(s.pneumatics.pressure_limit, n, plan_period=ms.dt),
+                     targets, target_rate=rate)
+    slew, caps = slew_function(n, rate), caps_function(model, n, loop.cautious)
+    seen = {"near": 0, "vent": 0, "moving": 0}
+    slew_calls, step_calls = [], []
+    _slew, _step = loop._slew, ctrl.step
+
+    def spy_slew(goal, h_est, dt):
+        prev = None if loop.href is None else loop.href.copy()
+        out = _slew(goal, h_est, dt)
+        slew_calls.append((np.array(goal, dtype=float), np.array(h_est, dtype=float), dt, prev, out.copy()))
+        return out
+
+    def spy_step(x0, b, W, h_ref, k, c, a_max):
+        est, sup = loop.estimate, loop.supervisor
+        vent = sup.vent_mask(h_ref)
+        held = sup.stretch_over(est["lam"]) | est["lost"] | sup.lost | sup.burst
+        step_calls.append((np.array(W), np.array(k), est["p"].copy(), est["k_std"].copy(), vent, held,
+                           peak_before.copy(), float(loop._k % 10 == 0), np.array(a_max), loop._peak_p.copy()))
+        return _step(x0, b, W, h_ref, k, c, a_max)
+
+    loop._slew, ctrl.step = spy_slew, spy_step
+    for _ in range(130):
+        peak_before = loop._peak_p.copy()
+        loop.tick(rig.t, rig.measure())
+        rig.apply(loop.valve_commands)
+    assert len(slew_calls) == len(step_calls) == 130
+    for goal, h_est, dt, prev, want in slew_calls:
+        got = np.asarray(slew(goal, np.zeros(n) if prev is None else prev, h_est, float(prev is None), dt)).ravel()
+        np.testing.assert_array_equal(got, want)
+        seen["moving"] += int(np.any((want != goal) & (goal > 0)))
+    for W, k, p, ks, vent, held, peak, refresh, a_max, peak_next in step_calls:
+        got_a, near, got_peak = (np.asarray(v).ravel() for v in caps(W, k, p, ks, vent, held, peak, refresh))
+        np.testing.assert_allclose(got_peak, peak_next, rtol=1e-12)
+        np.testing.assert_array_equal(got_a, a_max)
+        seen["near"] += int(near.sum())
+        seen["vent"] += int(vent.sum())
+    assert all(v > 0 for v in seen.values()), seen

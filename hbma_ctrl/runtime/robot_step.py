@@ -1,0 +1,78 @@
+"""Parts of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` as casadi Functions, for a generated robot loop (SI).
+
+- :func:`slew_function`: the targets this tick (``RobotLoop._slew``): each chamber's target moves
+  towards its goal at most ``target_rate`` x dt, from the estimated height at the first tick; a zero
+  target (the vent rule) applies at once.
+- :func:`caps_function`: the supply bound the NMPC gets per chamber (``a_max``): 0 where the vent rule
+  or an interlock holds the chamber, and the cautious cap (``RobotLoop.cautious``) while a chamber's
+  estimated pressure is above a fraction of its estimated limit-point pressure and its modulus
+  factor is still uncertain. The limit-point pressures are refreshed every tenth tick, as the loop
+  does, at the loads over the modulus factors (the tables' load path's peak, :meth:`ChamberBank.peak`).
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.core.codegen import is_nan
+from hbma_ctrl.models.bank import ChamberBank
+from hbma_ctrl.runtime.safety import ZERO_TARGET
+
+__all__ = ["slew_function", "caps_function", "peak_function"]
+
+
+def slew_function(n: int, target_rate: float, name: str = "slew") -> ca.Function:
+    """slew(goal[n], prev[n], h_est[n], first, dt) -> href[n] (m, m/s, s): ``prev`` the last tick's
+    targets, ignored at the ``first`` tick (then the estimated heights, NaN as 0, below 0 as 0)."""
+    goal, prev, h = (ca.SX.sym(s, n) for s in ("goal", "prev", "h_est"))
+    first, dt = ca.SX.sym("first"), ca.SX.sym("dt")
+    if target_rate <= 0.0:
+        return ca.Function(name, [goal, prev, h, first, dt], [goal], ["goal", "prev", "h_est", "first", "dt"], ["href"])
+    h0 = ca.fmax(_nan_to_zero(h), 0.0)
+    start = ca.if_else(first != 0, h0, prev)
+    lim = target_rate * dt
+    out = start + ca.fmin(ca.fmax(goal - start, -lim), lim)
+    return ca.Function(name, [goal, prev, h, first, dt], [ca.if_else(goal <= ZERO_TARGET, goal, out)],
+                       ["goal", "prev", "h_est", "first", "dt"], ["href"])
+
+
+def _nan_to_zero(v):
+    """np.nan_to_num on heights: NaN -> 0, +-inf -> the largest finite double (as numpy)."""
+    big = np.finfo(float).max
+    return ca.if_else(is_nan(v), 0.0, ca.fmin(ca.fmax(v, -big), big))
+
+
+def peak_function(model: ChamberBank, name: str = "peak_pressure") -> ca.Function:
+    """peak(W) -> the pressure of the limit point along the load path at W (N; clipped to the tables'
+    loads), Pa: the largest of the path's pressures, its columns blended at W as the tables' path()."""
+    g = model.tables.grid
+    W = ca.SX.sym("W")
+    Wc = ca.fmin(ca.fmax(W, 0.0), model.tables.load_max)
+    col = ca.interpolant(f"{name}_path", "linear", [np.asarray(g.W, dtype=float)],
+                         np.asarray(g.p_path, dtype=float).ravel(order="F"))
+    return ca.Function(name, [W], [ca.mmax(col(Wc))], ["W"], ["p_peak"])
+
+
+def caps_function(model: ChamberBank, n: int, cautious: tuple | None, name: str = "caps") -> ca.Function:
+    """caps(W[n], k[n], p[n], k_std[n], vent[n], held[n], peak[n], refresh)
+        -> (a_max[n], near[n], peak_next[n])
+
+    W the loads (N), k and k_std the modulus factors and their std, p the estimated pressures (Pa),
+    vent / held 0-1 (no supply budget), ``peak`` the limit-point pressures kept (Pa), recomputed at
+    the loads over the factors (clipped to the tables) where ``refresh`` is 1. ``cautious`` =
+    (pressure fraction, k std, duty) as :class:`RobotLoop`'s, None = no cap (near 0)."""
+    SX = ca.SX
+    W, k, p, ks, vent, held, peak = (SX.sym(s, n) for s in ("W", "k", "p", "k_std", "vent", "held", "peak"))
+    refresh = SX.sym("refresh")
+    pk = peak_function(model).map(n)
+    fresh = ca.vec(pk(ca.vec(model.clip_load(W / k)).T))
+    peak_next = ca.if_else(refresh != 0, fresh, peak) if cautious is not None else peak
+    a_max = ca.if_else(ca.logic_or(vent != 0, held != 0), 0.0, 1.0)
+    near = SX.zeros(n)
+    if cautious is not None:
+        c0, c1, c2 = (float(v) for v in cautious)
+        near = ca.logic_and(p > c0 * k * peak_next, ks > c1)
+        a_max = ca.if_else(near, ca.fmin(a_max, c2), a_max)
+    return ca.Function(name, [W, k, p, ks, vent, held, peak, refresh], [a_max, near, peak_next],
+                       ["W", "k", "p", "k_std", "vent", "held", "peak", "refresh"], ["a_max", "near", "peak_next"])
