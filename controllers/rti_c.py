@@ -5,8 +5,9 @@ step is not the QP solve but building the QP around it: a casadi call with numpy
 of microseconds) and some forty numpy operations on small arrays. Solving the QP inside casadi
 (the ``rti_fn_*`` variants) is no faster, because casadi sets OSQP up again at every call.
 
-This variant keeps what is fast in each: ONE SX Function maps (the parameters of the step, the
-previous QP solution, shift or not) to everything OSQP's ``update`` takes: the values of P and A
+This variant keeps what is fast in each: ONE Function maps (the parameters of the step, the
+previous QP solution, shift or not) to everything OSQP's ``update`` takes (an SX plan and an SX
+assembly around one mapped call of the node's linearisation, which C runs as a loop): the values of P and A
 in OSQP's CSC data order (the patterns of the reference path), q, l, u and the primal warm start,
 plus a finiteness flag. It is generated as C and compiled once (:func:`hbma_ctrl.core.codegen.compiled`,
 cached on disk by source hash; casadi's virtual machine, with a one-line warning, without a
