@@ -120,21 +120,20 @@ class _RtiOsqp:
         s, N = self.s, self.N
         ix, iu, isl = self.ix, self.iu, self.isl
         # P (upper triangle): x diag (varies), u block tridiagonal (constant), slack diag (constant)
-        Pr, Pc, Pv = [], [], []
+        Pr, Pc = [], []
         for k in range(N + 1):
-            Pr.append(ix[k]); Pc.append(ix[k]); Pv.append(0.0)  # noqa: E702
+            Pr.append(ix[k]); Pc.append(ix[k])  # noqa: E702
         self.P_x = np.arange(N + 1)
-        wr, wu = np.array(s.w_rate, float), np.array(s.w_input, float)
         for k in range(N):
             for i in range(3):
-                nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
-                Pr.append(iu[k, i]); Pc.append(iu[k, i]); Pv.append(2 * wr[i] * nd + 2 * wu[i] + 1e-8)  # noqa: E702
+                Pr.append(iu[k, i]); Pc.append(iu[k, i])  # noqa: E702
                 if k > 0:
-                    Pr.append(iu[k - 1, i]); Pc.append(iu[k, i]); Pv.append(-2 * wr[i])  # noqa: E702
+                    Pr.append(iu[k - 1, i]); Pc.append(iu[k, i])  # noqa: E702
         for k in range(N):
-            Pr.append(isl[k]); Pc.append(isl[k]); Pv.append(2 * s.w_slack)  # noqa: E702
+            Pr.append(isl[k]); Pc.append(isl[k])  # noqa: E702
         self.P, self.P_perm = _csc_with_perm(Pr, Pc, self.nz)
-        self.P_vals = np.array(Pv)
+        self.P_vals = np.array(self.p_values(np.array(s.w_rate, float), np.array(s.w_input, float), s.w_slack),
+                               dtype=float)
         # A rows
         Ar, Ac, Av = [], [], []
         row = 0
@@ -202,6 +201,21 @@ class _RtiOsqp:
         self.u0[self.r_rate:self.r_rate + 3 * (N - 1)] = np.tile(du, N - 1)
         self.l0[self.r_pump:self.r_pump + N] = 0.0
         self.l0[self.r_slack:self.r_slack + N] = 0.0
+
+    def p_values(self, wr, wu, w_slack) -> list:
+        """P's values in the pattern's entry order for the input-rate, input and slack weights (numbers
+        or casadi expressions): the x diagonal 0 (set per step), each input's diagonal and its rate
+        coupling to the previous stage, the slacks' diagonal."""
+        N = self.N
+        vals = [0.0] * (N + 1)
+        for k in range(N):
+            for i in range(3):
+                nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
+                vals.append(2 * wr[i] * nd + 2 * wu[i] + 1e-8)
+                if k > 0:
+                    vals.append(-2 * wr[i])
+        vals += [2 * w_slack] * N
+        return vals
 
     # --- one step -------------------------------------------------------------------------------
     def reset(self) -> None:

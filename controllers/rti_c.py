@@ -30,10 +30,14 @@ from controllers.mpc_solvers import _BudgetExceeded, _Problem, _RtiOsqp, _Solver
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["qp_data_function"]
+__all__ = ["qp_data_function", "weights_of", "WEIGHTS"]
 
 #: OSQP's infinity (its ``update`` clamps bounds to it; the generated data does the same)
 _OSQP_INF = 1e30
+#: the cost's weights, an input of the QP data rather than constants in it: settings that differ only
+#: in them (a tuning study's trials) share one generated library
+WEIGHTS = ("w_height", "w_terminal", "w_rate[0]", "w_rate[1]", "w_rate[2]", "w_input[0]", "w_input[1]",
+           "w_input[2]", "c_input[0]", "c_input[1]", "c_input[2]", "w_slack", "c_slack")
 
 
 def qp_data_function(rti: _RtiOsqp, looped: bool = True) -> ca.Function:
@@ -41,21 +45,23 @@ def qp_data_function(rti: _RtiOsqp, looped: bool = True) -> ca.Function:
 
     Inputs: ``par`` (8 + N: x0 (-), W (N), dh (m), dp (Pa), u_prev (3, -), p_lim (Pa), r (N stages, m)),
     ``z_prev`` (the previous QP solution in the pattern's variable layout), ``shift`` (1: a new step,
-    the plan moves one stage; 0: another iteration at the same time). Outputs: ``Px``, ``Ax`` (values
+    the plan moves one stage; 0: another iteration at the same time), ``weights`` (:func:`weights_of`).
+    Outputs: ``Px``, ``Ax`` (values
     in OSQP's CSC data order), ``q``, ``l``, ``u`` (QP units: mm, kPa, 1/100; bounds clamped to OSQP's
     infinity), ``z0`` (the primal warm start), ``ok`` (1 when the linearisation is finite).
     """
     N = rti.N
     SX = ca.SX
     par, zp, shift = SX.sym("par", 8 + N), SX.sym("z_prev", rti.nz), SX.sym("shift")
+    wts = SX.sym("weights", len(WEIGHTS))
     Xb, Ub, Uext, Ulin = _plan(rti, par, zp, shift)
     W, dp = par[1], par[3]
     names = ["Px", "Ax", "q", "l", "u", "z0", "ok"]
     if not looped:
         lin = [rti.stage.lin(Xb[k], Uext[:, k], Ulin[:, k], W, dp) for k in range(N + 1)]
         rows = [ca.horzcat(*[ln[i] for ln in lin]) for i in range(9)]  # b: 3 x (N+1) as one row
-        return ca.Function("rti_c_qp_data", [par, zp, shift], _assemble(rti, par, Xb, Ub, *rows),
-                           ["par", "z_prev", "shift"], names,
+        return ca.Function("rti_c_qp_data", [par, zp, shift, wts], _assemble(rti, par, wts, Xb, Ub, *rows),
+                           ["par", "z_prev", "shift", "weights"], names,
                            {"cse": True})  # shared table look-ups (the nodes' first RK4 stage, p): 14 % less work
     # looped: the plan and the assembly as two SX Functions around ONE mapped call of the node's
     # linearisation, which C runs as a loop over the nodes (a twenty-first of the code)
@@ -65,14 +71,20 @@ def qp_data_function(rti: _RtiOsqp, looped: bool = True) -> ca.Function:
     node = ca.Function("rti_c_node", ins, lin(*ins), lin.name_in(), lin.name_out(), {"cse": True})
     rows = [SX.sym(node.name_out(i), 1, node.nnz_out(i) * (N + 1)) for i in range(node.n_out())]
     Xr, Ubs = SX.sym("Xb", 1, N + 1), SX.sym("Ub", 3, N)
-    post = ca.Function("rti_c_assemble", [par, Xr, Ubs] + rows, _assemble(rti, par, Xr.T, Ubs, *rows),
+    post = ca.Function("rti_c_assemble", [par, wts, Xr, Ubs] + rows, _assemble(rti, par, wts, Xr.T, Ubs, *rows),
                        {"cse": True})
     MX = ca.MX
     par_m, zp_m, shift_m = MX.sym("par", 8 + N), MX.sym("z_prev", rti.nz), MX.sym("shift")
+    wts_m = MX.sym("weights", len(WEIGHTS))
     Xm, Um, Uem, Ulm = pre(par_m, zp_m, shift_m)
     outs = node.map(N + 1)(Xm, Uem, Ulm, par_m[1], par_m[3])
-    return ca.Function("rti_c_qp_data", [par_m, zp_m, shift_m], post(par_m, Xm, Um, *outs),
-                       ["par", "z_prev", "shift"], names)
+    return ca.Function("rti_c_qp_data", [par_m, zp_m, shift_m, wts_m], post(par_m, wts_m, Xm, Um, *outs),
+                       ["par", "z_prev", "shift", "weights"], names)
+
+
+def weights_of(s: MPCSettings) -> np.ndarray:
+    """The ``weights`` input of :func:`qp_data_function` for settings ``s`` (:data:`WEIGHTS` order)."""
+    return np.array([s.w_height, s.w_terminal, *s.w_rate, *s.w_input, *s.c_input, s.w_slack, s.c_slack], dtype=float)
 
 
 def _plan(rti: _RtiOsqp, par, zp, shift) -> tuple:
@@ -90,11 +102,14 @@ def _plan(rti: _RtiOsqp, par, zp, shift) -> tuple:
     return Xb, Ub, Uext, Ulin
 
 
-def _assemble(rti: _RtiOsqp, par, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -> list:
+def _assemble(rti: _RtiOsqp, par, wts, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -> list:
     """OSQP's data from the nodes' linearisation (each output of ``_Stage.lin`` over the N+1 nodes as
-    one row; b's three entries per node in a row): [Px, Ax, q, l, u, z0, ok]."""
+    one row; b's three entries per node in a row) and the cost's weights ``wts`` (:data:`WEIGHTS`):
+    [Px, Ax, q, l, u, z0, ok]."""
     s, N = rti.s, rti.N
     SX = ca.SX
+    w_height, w_terminal, wr, wu, cu, w_slack, c_slack = (wts[0], wts[1], wts[2:5], wts[5:8], wts[8:11], wts[11],
+                                                          wts[12])
     f, a, h, ch, p, cp, lam, cl = (ca.vec(v) for v in (f, a, h, ch, p, cp, lam, cl))
     b = ca.reshape(b, 3, N + 1).T  # (N+1) x 3
     x0, dh, dp = par[0], par[2], par[3]
@@ -103,21 +118,17 @@ def _assemble(rti: _RtiOsqp, par, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -> lis
     ok = ca.logic_and(ca.logic_and(ca.sumsqr(f[:N]) < ca.inf, ca.sumsqr(b[:N, :]) < ca.inf),
                       ca.sumsqr(ch[1:]) < ca.inf)
     # --- P (entry order of the reference pattern), x diagonal from the Gauss-Newton height cost
-    wk = np.full(N + 1, s.w_height)
-    wk[0] = 0.0
-    wk[N] += s.w_terminal
-    wk = ca.DM(wk)
+    wk = ca.vertcat(0.0, ca.repmat(w_height, N - 1, 1), w_height + w_terminal)
     r_mm, dh_mm = ca.vertcat(r[0], r) * 1e3, dh * 1e3
     e = h - ch * Xb + dh_mm - r_mm
-    Pv = SX(rti.P_vals)
+    Pv = ca.vertcat(*rti.p_values(wr, wu, w_slack))
     Pv[rti.P_x.tolist()] = 2 * wk * ch ** 2 + 1e-8
     q = SX.zeros(rti.nz)
     q[rti.ix.tolist()] = 2 * wk * ch * e
-    wr, cu = np.array(s.w_rate, float), np.array(s.c_input, float)
     for k in range(N):
         for i in range(3):
-            q[int(rti.iu[k, i])] = float(cu[i]) - (2 * float(wr[i]) * u_prev[i] if k == 0 else 0.0)
-    q[rti.isl.tolist()] = s.c_slack
+            q[int(rti.iu[k, i])] = cu[i] - 2 * wr[i] * u_prev[i] if k == 0 else cu[i]
+    q[rti.isl.tolist()] = c_slack
     # --- A values
     Av = SX(rti.A_vals)
     Av[rti.A_dyn_a.tolist()] = -a[:N]
@@ -179,6 +190,7 @@ class _RtiC(_RtiOsqp):
                           "virtual machine (slower, same results)", RuntimeWarning, stacklevel=2)
         self._par = self.data.inp[0]  # written in place: passed as None (kept) to the call
         self._z, self._shift = self.data.inp[1], self.data.inp[2]
+        self.data.inp[3][:] = weights_of(s)  # the settings' weights, for every call
         self._osqp = self.solver._solver  # the bound solver: update/solve without the wrapper's copies
 
     def solve(self, pr: _Problem) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ from controllers.mpc import NMPC
 from controllers.mpc_settings import MPCSettings
 from controllers.mpc_solvers import _Problem, _RtiOsqp
 from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from controllers.rti_c import _RtiC, qp_data_function
+from controllers.rti_c import WEIGHTS, _RtiC, qp_data_function, weights_of
 from hbma_ctrl.core.interfaces import Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
@@ -26,12 +26,16 @@ def _settings(variant: str) -> MPCSettings:
     return MPCSettings(variant=variant, budget=10.0).validate()
 
 
-@pytest.mark.parametrize("h_min", [0.0, 2e-3])
-def test_qp_data_equals_reference_path(model, h_min):
+TUNED = dict(w_terminal=2.0, w_rate=(0.05, 0.004, 0.01), w_input=(0.001, 0.003, 0.0), c_input=(0.03, 0.0, 0.01),
+             w_slack=500.0, c_slack=2000.0, w_height=1.5)
+
+
+@pytest.mark.parametrize("h_min, weights", [(0.0, {}), (2e-3, {}), (0.0, TUNED)])
+def test_qp_data_equals_reference_path(model, h_min, weights):
     """The generated data (P, A values in CSC order, q, l, u) equals what _RtiOsqp hands OSQP, on a
     plan that varies along the horizon (no shift), without a lower height bound (its rows left out of
-    the pattern) and with one."""
-    s = replace(_settings("rti_osqp"), h_min=h_min).validate()
+    the pattern), with one, and with other cost weights (an input of the data, not constants in it)."""
+    s = replace(_settings("rti_osqp"), h_min=h_min, **weights).validate()
     ref, new = _RtiOsqp(model, s), _RtiC(model, s)
     seen = {}
     update = ref.solver.update
@@ -60,6 +64,20 @@ def test_qp_data_equals_reference_path(model, h_min):
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12, err_msg=key)
 
 
+def test_settings_differing_only_in_weights_share_one_library(model):
+    """A tuning study's trials change weights: their QP data is one generated library (one build),
+    while another horizon is another."""
+    import controllers.rti_c as rc
+
+    if not rc.has_compiler():
+        pytest.skip("no C compiler on this machine: no generated library to share")
+    a = _RtiC(model, _settings("rti_c_osqp"))
+    b = _RtiC(model, replace(_settings("rti_c_osqp"), **TUNED).validate())
+    c = _RtiC(model, replace(_settings("rti_c_osqp"), horizon=10).validate())
+    assert a.data.fun is b.data.fun and a.data.fun is not c.data.fun
+    assert not np.array_equal(a.data.inp[3], b.data.inp[3])
+
+
 def test_looped_qp_data_equals_the_unrolled_one(model):
     """The QP data with the nodes' linearisation as one looped (mapped) call equals the fully unrolled
     SX Function to rounding, on shifted and unshifted steps over random plans."""
@@ -73,7 +91,8 @@ def test_looped_qp_data_equals_the_unrolled_one(model):
                     rng.uniform(0.0, 1.0, 3), 30e3, rng.uniform(1e-3, 9e-3, N)]
         z = rng.uniform(-0.1, 1.1, rti.nz)  # inputs outside [0, 1] too: the plan clips them
         z[rti.ix] = rng.uniform(0.9, 1.6, N + 1)
-        for name, a, b in zip(looped.name_out(), looped(par, z, shift), unrolled(par, z, shift)):
+        w = weights_of(s) * rng.uniform(0.5, 2.0, len(WEIGHTS))  # weights are an input: any will do
+        for name, a, b in zip(looped.name_out(), looped(par, z, shift, w), unrolled(par, z, shift, w)):
             a, b = np.asarray(a).ravel(), np.asarray(b).ravel()
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, np.max(np.abs(b))), err_msg=name)
 
