@@ -275,3 +275,34 @@ def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
         seen["near"] += int(near.sum())
         seen["vent"] += int(vent.sum())
     assert all(v > 0 for v in seen.values()), seen
+
+
+@pytest.mark.parametrize("topology, n, margin", [("per_chamber", 3, None), ("shared", 3, None), ("shared", 9, None),
+                                                 ("per_chamber", 9, 0.0), ("shared", 4, 0.0)])
+def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, margin):
+    """throttled_inputs_function against throttled_inputs over 300 random decisions: duties in and out
+    of [0, 1] and under the 1e-4 floor, a shared pump's budget exceeded, pressures across the map,
+    above its stall and NaN, all chambers idle: the same plant inputs (a shared pump's bisection and
+    budget to a few ulps), the throttle and the stall floor both acting."""
+    from hbma_ctrl.app.robot_closed import make_model
+    from hbma_ctrl.models.bank import STALL_MARGIN, throttled_inputs, throttled_inputs_function
+
+    model = make_model(RobotDesign(n_layers=1).validate(), Pneumatics(), topology)
+    pump = model.pump
+    m = STALL_MARGIN if margin is None else margin
+    f = throttled_inputs_function(pump, n, topology, m)
+    rng = np.random.default_rng(n)
+    throttled = 0
+    for k in range(300):
+        a = rng.uniform(-0.1, 1.1, n) * (rng.uniform(size=n) < 0.7)
+        a[rng.uniform(size=n) < 0.1] = 5e-5
+        if k % 50 == 0:
+            a[:] = 0.0
+        o = rng.uniform(-0.1, 1.1, n) * (rng.uniform(size=n) < 0.5)
+        p = rng.uniform(-2e3, 80e3, n)
+        p[rng.uniform(size=n) < 0.1] = np.nan
+        want = throttled_inputs(a, o, p, topology, pump, m)
+        got = np.asarray(f(a, o, p))
+        np.testing.assert_allclose(got, want, rtol=0, atol=4e-16, err_msg=f"draw {k}")
+        throttled += int(np.sum((want[0] > 0) & (want[0] < 1)))
+    assert throttled > 0

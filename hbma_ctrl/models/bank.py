@@ -68,7 +68,7 @@ from typing import NamedTuple
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled, is_finite, is_nan
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.core.units import mm
@@ -216,6 +216,136 @@ def throttled_inputs(a: np.ndarray, o: np.ndarray, p: np.ndarray, topology: str,
     U[0] = np.full(a.shape, lo)
     U[1][idx] = np.minimum(d, 1.0)
     return U
+
+
+def _map_row(pump: PumpMap, p):
+    """:meth:`PumpMap.at_pressures` for one pressure (casadi expression): the map's flows at every
+    grid speed (a list), bilinear in the pressure as numpy's (the interval by comparisons)."""
+    pg, q = pump.pressures, pump.q
+    pc = ca.fmin(ca.fmax(p, pg[0]), pg[-1])
+    j = 0
+    for g in pg[1:]:
+        j = j + (pc >= g)
+    j = ca.fmin(ca.fmax(j, 0), pg.size - 2)
+    row = []
+    for si in range(q.shape[0]):
+        v = 0
+        for i in range(pg.size - 1):
+            f = (pc - pg[i]) / (pg[i + 1] - pg[i])
+            v = v + ca.if_else(j == i, q[si, i] * (1 - f) + q[si, i + 1] * f, 0)
+        row.append(ca.fmax(v, 0.0))
+    return row
+
+
+def _flow_on(pump: PumpMap, Q: list, speed):
+    """:meth:`PumpMap.flow_on` on one row Q (list over the grid speeds) at a speed (expression)."""
+    sg = pump.speeds
+    sp = ca.fmin(ca.fmax(speed, sg[0]), sg[-1])
+    k = 0
+    for g in sg[1:]:
+        k = k + (sp >= g)
+    k = ca.fmin(ca.fmax(k, 0), sg.size - 2)
+    v = 0
+    for i in range(sg.size - 1):
+        f = (sp - sg[i]) / (sg[i + 1] - sg[i])
+        v = v + ca.if_else(k == i, Q[i] * (1 - f) + Q[i + 1] * f, 0)
+    return v
+
+
+def _speed_on(pump: PumpMap, Q: list, qt):
+    """:meth:`PumpMap.speed_on` on one row Q at a target flow qt (expression)."""
+    sg = pump.speeds
+    Qm, m = [], None
+    for v in Q:  # non-decreasing in speed
+        m = v if m is None else ca.fmax(m, v)
+        Qm.append(m)
+    k = 0
+    for v in Qm:
+        k = k + (v < qt)
+    k = ca.if_else(is_nan(qt), sg.size, k)
+    kk = ca.fmin(ca.fmax(k, 1), sg.size - 1)
+    out = 0
+    for i in range(1, sg.size):
+        q0, q1 = Qm[i - 1], Qm[i]
+        out = out + ca.if_else(kk == i, sg[i - 1] + (sg[i] - sg[i - 1]) * (qt - q0) / ca.fmax(q1 - q0, 1e-300), 0)
+    out = ca.if_else(k >= sg.size, 1.0, ca.if_else(k == 0, sg[0], out))
+    return ca.fmin(ca.fmax(ca.if_else(qt <= 0.0, 0.0, out), 0.0), 1.0)
+
+
+def throttled_inputs_function(pump: PumpMap, n: int, topology: str, stall_margin: float = STALL_MARGIN,
+                              name: str = "valve_inputs") -> ca.Function:
+    """:func:`throttled_inputs` for n chambers as ONE casadi Function (a generated loop's block):
+    ``valve_inputs(a[n], o[n], p[n]) -> U[3 x n]``, the same operations as the numpy one (the map's
+    intervals found by comparisons, a shared pump's speed by the same 16 bisections)."""
+    if topology not in TOPOLOGIES:
+        raise ValueError(f"robot.topology = '{topology}': allowed {', '.join(TOPOLOGIES)}")
+    SX = ca.SX
+    a_in, o_in, p_in = SX.sym("a", n), SX.sym("o", n), SX.sym("p", n)
+    a = [ca.fmin(ca.fmax(a_in[i], 0.0), 1.0) for i in range(n)]
+    o = [ca.fmin(ca.fmax(o_in[i], 0.0), 1.0) for i in range(n)]
+    a = [ca.if_else(v < 1e-4, 0.0, v) for v in a]
+    o = [ca.if_else(v < 1e-4, 0.0, v) for v in o]
+    any_a = 0
+    for v in a:
+        any_a = ca.logic_or(any_a, v > 0)
+    if topology == "shared":
+        tot = 0
+        for v in a:
+            tot = tot + v
+        a = [ca.if_else(tot > 1.0, v / tot, v) for v in a]  # the manifold's budget
+        speed0 = [ca.if_else(any_a, 1.0, 0.0)] * n
+    else:
+        speed0 = [ca.if_else(v > 0, 1.0, 0.0) for v in a]
+    p = [ca.if_else(is_finite(p_in[i]), p_in[i], 0.0) for i in range(n)]
+    Q = [_map_row(pump, pi) for pi in p]
+    q1 = [_flow_on(pump, Qi, 1.0) for Qi in Q]
+    feed = [ca.logic_and(a[i] > 0, q1[i] > 0) for i in range(n)]
+    if stall_margin > 0:
+        s_min = [_speed_on(pump, _map_row(pump, p[i] + stall_margin), 1e-12) for i in range(n)]
+    else:
+        s_min = [SX(0.0)] * n
+    if topology == "per_chamber":
+        speed, inlet = [], []
+        for i in range(n):
+            sp = ca.fmax(_speed_on(pump, Q[i], a[i] * q1[i]), s_min[i])
+            q_s = _flow_on(pump, Q[i], sp)
+            speed.append(ca.if_else(feed[i], sp, speed0[i]))
+            inlet.append(ca.if_else(feed[i], ca.fmin(a[i] * q1[i] / ca.fmax(q_s, 1e-300), 1.0), a[i]))
+    else:
+        any_feed = 0
+        for f in feed:
+            any_feed = ca.logic_or(any_feed, f)
+        target = [a[i] * q1[i] for i in range(n)]
+
+        def duties(sv):
+            out = []
+            for i in range(n):
+                q = _flow_on(pump, Q[i], sv)
+                out.append(ca.if_else(q > 0, target[i] / ca.fmax(q, 1e-300), ca.inf))
+            return out
+
+        def fits(d):  # every fed chamber's duty finite and their sum at most 1
+            ok, tot = 1, 0
+            for i in range(n):
+                ok = ca.logic_and(ok, ca.logic_or(ca.logic_not(feed[i]), is_finite(d[i])))
+                tot = tot + ca.if_else(feed[i], d[i], 0.0)
+            return ca.logic_and(ok, tot <= 1.0)
+
+        lo = -ca.inf
+        for i in range(n):
+            lo = ca.fmax(lo, ca.if_else(feed[i], ca.fmax(_speed_on(pump, Q[i], target[i]), s_min[i]), -ca.inf))
+        hi = SX(1.0)
+        lo_b = lo
+        for _ in range(16):  # the duties' sum falls with the speed: bisection on [lo, 1]
+            mid = 0.5 * (lo_b + hi)
+            good = fits(duties(mid))
+            lo_b, hi = ca.if_else(good, lo_b, mid), ca.if_else(good, mid, hi)
+        s = ca.if_else(fits(duties(lo)), lo, hi)
+        d = duties(s)
+        speed = [ca.if_else(any_feed, s, speed0[i]) for i in range(n)]
+        inlet = [ca.if_else(ca.logic_and(any_feed, feed[i]), ca.fmin(d[i], 1.0), a[i]) for i in range(n)]
+    U = ca.vertcat(ca.horzcat(*speed), ca.horzcat(*inlet), ca.horzcat(*o))
+    return ca.Function(name, [a_in, o_in, p_in], [U], ["a", "o", "p"], ["U"], {"cse": True})
 
 
 class ChamberBank:
