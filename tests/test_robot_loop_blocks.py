@@ -306,3 +306,92 @@ def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, ma
         np.testing.assert_allclose(got, want, rtol=0, atol=4e-16, err_msg=f"draw {k}")
         throttled += int(np.sum((want[0] > 0) & (want[0] < 1)))
     assert throttled > 0
+
+
+def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
+    """A one-layer RobotLoop on the rig with the valves' 2 ms minimum opening, holding heights and
+    stepping down (short vents): at every tick net_vents_function gives the supply and outlet duties
+    RobotLoop.net_vents sent and the minimum on-time's carry it left, short vents netted, dropped and
+    sent all seen."""
+    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.app.robot_closed import make_model
+    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.robot.design import RobotPneumatics
+    from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+    from hbma_ctrl.runtime.robot_step import net_vents_function
+
+    d = RobotDesign(n_layers=1).validate()
+    s = RobotSettings(design=d, pneumatics=RobotPneumatics()).validate()
+    model = make_model(d, Pneumatics(), s.pneumatics.topology)
+    rs = RobotRigSettings().validate()
+    n = 3
+    rig = RobotRig(d, Pneumatics(), s.pneumatics.sensor_range, s.pneumatics.topology, rs, ())
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
+                                                       sensor_range=s.pneumatics.sensor_range))
+    ms = RobotMPCSettings(sample_period=rs.sample_period, p_max=s.pneumatics.pressure_limit)
+    targets = {0: ((0.0, 6e-3, 0.0, 0.0), (0.8, 5.5e-3, 0.1, 0.0), (1.4, 4e-3, 0.0, 0.0))}
+    loop = RobotLoop(d, model, bank, RobotNMPC(model, n, ms),
+                     robot_supervisor(s.pneumatics.pressure_limit, n, plan_period=ms.dt), targets, valve_min_on=0.002)
+    f = net_vents_function(model, n, loop.pwm.min_duty, loop._period)
+    calls, _net = [], loop.net_vents
+
+    def spy(a, o, p, b, excess, pulse_drop=None):
+        carry = loop.pwm.carry.copy() if loop.pwm.carry.ndim == 2 else None
+        est = loop.estimate
+        args = (a.copy(), o.copy(), p.copy(), b.copy(), excess.copy(), est["x"].copy(), loop.loads.copy(),
+                est["k"].copy(), est["c"].copy())
+        out = _net(a, o, p, b, excess, pulse_drop)
+        calls.append((args, carry, out[0].copy(), out[1].copy(), loop.pwm.carry.copy()))
+        return out
+
+    loop.net_vents = spy
+    for _ in range(200):
+        loop.tick(rig.t, rig.measure())
+        rig.apply(loop.valve_commands)
+    seen = {"netted": 0, "dropped": 0, "sent": 0}
+    md = loop.pwm.min_duty
+    for args, carry, a_want, o_want, carry_want in calls:
+        if carry is None:
+            continue
+        a_got, o_got, c_got = (np.asarray(v) for v in f(*args, carry))
+        np.testing.assert_allclose(a_got.ravel(), a_want, rtol=1e-13, atol=0)
+        np.testing.assert_allclose(o_got.ravel(), o_want, rtol=1e-13, atol=0)
+        np.testing.assert_allclose(c_got, carry_want, rtol=1e-13, atol=0)
+        short = (args[1] > 0) & (args[1] < md)
+        seen["netted"] += int(np.sum(short & (args[0] > 0) & (a_want != args[0])))
+        seen["dropped"] += int(np.sum(short & (o_want == 0)))
+        seen["sent"] += int(np.sum(short & (o_want > 0)))
+    assert all(v > 0 for v in seen.values()), seen
+
+
+def test_the_minimum_on_time_mapped_over_the_chambers_follows_shape_inputs():
+    """MinOnTime.function() mapped over 6 chambers, its carry threaded, gives the plant inputs
+    shape_inputs sends for 3 x n inputs (the robot's call) over 300 periods, with the forgetting
+    RobotLoop applies to dropped vents in between: the same bits, duties raised to the minimum and
+    dropped both seen."""
+    from hbma_ctrl.runtime.pwm import MinOnTime
+
+    n, period = 6, 0.01
+    pwm = MinOnTime(period, 0.002)
+    f = pwm.function().map(n)
+    carry = np.zeros((2, n))
+    rng = np.random.default_rng(6)
+    raised = dropped = 0
+    for k in range(300):
+        U = rng.uniform(0.0, 1.0, (3, n))
+        U[1:3] *= np.where(rng.uniform(size=(2, n)) < 0.6, rng.uniform(0.0, 0.3, (2, n)), 1.0)
+        U[1:3] *= rng.uniform(size=(2, n)) < 0.8
+        want = pwm.shape_inputs(U)
+        got, carry = f(U, carry)
+        np.testing.assert_array_equal(np.asarray(got), want, err_msg=f"period {k}")
+        np.testing.assert_array_equal(np.asarray(carry), pwm.carry, err_msg=f"period {k}")
+        small = (U[1:3] > 0) & (U[1:3] < pwm.min_duty)
+        raised += int(np.sum(small & (want[1:3] == pwm.min_duty)))
+        dropped += int(np.sum(small & (want[1:3] == 0)))
+        if k % 7 == 0:  # the loop's netting forgets a dropped vent's carry
+            which = rng.uniform(size=n) < 0.5
+            pwm.forget(1, which)
+            carry = np.asarray(carry).copy()
+            carry[1] = np.where(which, 0.0, carry[1])
+    assert raised > 0 and dropped > 0

@@ -405,16 +405,29 @@ class ChamberBank:
         asks for it on a tick with a short vent, where two calls of :attr:`out` cost 0.3 ms for 18
         chambers)."""
         n = int(np.size(x))
+        key = ("height_drop_fast", n)
+        if key not in self._cache:
+            self._cache[key] = FastFunction(self.mapped(self.height_drop_function(), n), False)
+        return self._cache[key](x, W, k, c, dm)[0].copy()
 
+    def height_drop_function(self) -> ca.Function:
+        """height_drop(x, W, k, c, dm) -> m: one chamber's :meth:`height_drops` (casadi, cached)."""
         def build() -> ca.Function:
             xs, ws, ks, cs, ms = (ca.SX.sym(s) for s in ("x", "W", "k", "c", "dm"))
             drop = self.outputs_expr(xs, ws, ks, cs)[0] - self.outputs_expr(xs - self.x_of_mass(ms), ws, ks, cs)[0]
             return ca.Function("height_drop", [xs, ws, ks, cs, ms], [drop])
 
-        key = ("height_drop_fast", n)
-        if key not in self._cache:
-            self._cache[key] = FastFunction(self.mapped(self.cached("height_drop", build), n), False)
-        return self._cache[key](x, W, k, c, dm)[0].copy()
+        return self.cached("height_drop", build)
+
+    def open_flows_function(self) -> ca.Function:
+        """open_flows(p, b) -> (q_in, q_out) kg/s: one chamber's :meth:`open_flows` (casadi, cached)."""
+        def build() -> ca.Function:
+            pp, bb = ca.SX.sym("p"), ca.SX.sym("b")
+            P = self.chamber.with_factors(self.chamber.params, b=bb)
+            return ca.Function("open_flows", [pp, bb], [self.chamber.net_flow(ca.DM([1.0, 1.0, 0.0]), pp, P),
+                                                      -self.chamber.net_flow(ca.DM([0.0, 0.0, 1.0]), pp, P)])
+
+        return self.cached("open_flows", build)
 
     def open_flows(self, p: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The mass flows (kg/s, each (n,)) a supply a = 1 (the full-speed pump through an open inlet)
@@ -423,13 +436,9 @@ class ChamberBank:
         n = int(np.size(p))
         key = ("open_flows", n)
         if key not in self._cache:
-            pp, bb = ca.SX.sym("p"), ca.SX.sym("b")
-            P = self.chamber.with_factors(self.chamber.params, b=bb)
-            f = ca.Function("open_flows", [pp, bb], [self.chamber.net_flow(ca.DM([1.0, 1.0, 0.0]), pp, P),
-                                                       -self.chamber.net_flow(ca.DM([0.0, 0.0, 1.0]), pp, P)])
             # compiled and called on buffers: the loop calls it on most ticks with a minimum opening
             # (50 us for 18 chambers on casadi's virtual machine with numpy arguments)
-            self._cache[key] = FastFunction(self.mapped(f, n), False)
+            self._cache[key] = FastFunction(self.mapped(self.open_flows_function(), n), False)
         q_in, q_out = self._cache[key](p, b)
         return q_in.copy(), q_out.copy()
 

@@ -3,6 +3,10 @@
 - :func:`slew_function`: the targets this tick (``RobotLoop._slew``): each chamber's target moves
   towards its goal at most ``target_rate`` x dt, from the estimated height at the first tick; a zero
   target (the vent rule) applies at once.
+- :func:`net_vents_function`: with a minimum valve opening, a vent shorter than it netted into the same
+  chamber's supply, and one left over dropped unless the chamber is high enough above its target
+  (:meth:`RobotLoop.net_vents` with :meth:`RobotLoop.vent_pulse_drop`), the outlets' carried duty
+  forgotten where one is dropped.
 - :func:`caps_function`: the supply bound the NMPC gets per chamber (``a_max``): 0 where the vent rule
   or an interlock holds the chamber, and the cautious cap (``RobotLoop.cautious``) while a chamber's
   estimated pressure is above a fraction of its estimated limit-point pressure and its modulus
@@ -17,9 +21,10 @@ import numpy as np
 
 from hbma_ctrl.core.codegen import is_nan
 from hbma_ctrl.models.bank import ChamberBank
+from hbma_ctrl.runtime.robot import VENT_DEADBAND
 from hbma_ctrl.runtime.safety import ZERO_TARGET
 
-__all__ = ["slew_function", "caps_function", "peak_function"]
+__all__ = ["slew_function", "caps_function", "peak_function", "net_vents_function"]
 
 
 def slew_function(n: int, target_rate: float, name: str = "slew") -> ca.Function:
@@ -76,3 +81,42 @@ def caps_function(model: ChamberBank, n: int, cautious: tuple | None, name: str 
         a_max = ca.if_else(near, ca.fmin(a_max, c2), a_max)
     return ca.Function(name, [W, k, p, ks, vent, held, peak, refresh], [a_max, near, peak_next],
                        ["W", "k", "p", "k_std", "vent", "held", "peak", "refresh"], ["a_max", "near", "peak_next"])
+
+
+def net_vents_function(model: ChamberBank, n: int, min_duty: float, period: float,
+                       name: str = "net_vents") -> ca.Function:
+    """net_vents(a[n], o[n], p[n], b[n], excess[n], x[n], W[n], k[n], c[n], carry[2 x n])
+        -> (a_sent[n], o_sent[n], carry_next[2 x n])
+
+    ``RobotLoop.net_vents`` for a minimum opening of ``min_duty`` (of the period, s): the decisions
+    (a, o), the estimated pressures p (Pa), pump-flow factors b, heights above the targets ``excess``
+    (m), gas masses x, loads W (N) and factors k, c (for the height one minimum opening takes off),
+    and the minimum on-time's carry (inlet row 0, outlet row 1: the outlet's is forgotten where a
+    short vent is dropped)."""
+    SX = ca.SX
+    a, o, p, b, ex, x, W, k, c = (SX.sym(s, n) for s in ("a", "o", "p", "b", "excess", "x", "W", "k", "c"))
+    carry = SX.sym("carry", 2, n)
+    flows, drop_fn = model.open_flows_function(), model.height_drop_function()
+    md = float(min_duty)
+    a_out, o_out, c_out = [], [], []
+    any_small = 0
+    for i in range(n):
+        any_small = ca.logic_or(any_small, ca.logic_and(o[i] > 0.0, o[i] < md))
+    for i in range(n):
+        q_in, q_out = flows(p[i], b[i])
+        small = ca.logic_and(o[i] > 0.0, o[i] < md)
+        net = a[i] * q_in - o[i] * q_out
+        ok = ca.logic_and(ca.logic_and(small, a[i] > 0.0), ca.logic_and(q_in > 0.0, q_out > 0.0))
+        ai = ca.if_else(ok, ca.fmax(net, 0.0) / ca.if_else(ok, q_in, 1.0), a[i])
+        oi = ca.if_else(ok, ca.fmax(-net, 0.0) / ca.if_else(ok, q_out, 1.0), o[i])
+        short = ca.logic_and(oi > 0.0, oi < md)
+        drop = ca.logic_and(short, ca.logic_not(ex[i] > VENT_DEADBAND))
+        pulse = ca.fmax(drop_fn(x[i], W[i], k[i], c[i], q_out * (md * period)), 0.0)
+        drop = ca.logic_or(drop, ca.logic_and(short, ca.logic_not(ex[i] > 0.5 * pulse)))
+        # nothing changes on a tick without a short vent (the loop returns before its flows)
+        a_out.append(ca.if_else(any_small, ai, a[i]))
+        o_out.append(ca.if_else(any_small, ca.if_else(drop, 0.0, oi), o[i]))
+        c_out.append(ca.vertcat(carry[0, i], ca.if_else(ca.logic_and(any_small, drop), 0.0, carry[1, i])))
+    return ca.Function(name, [a, o, p, b, ex, x, W, k, c, carry],
+                       [ca.vertcat(*a_out), ca.vertcat(*o_out), ca.horzcat(*c_out)],
+                       ["a", "o", "p", "b", "excess", "x", "W", "k", "c", "carry"], ["a_sent", "o_sent", "carry_next"])
