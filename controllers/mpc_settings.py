@@ -17,6 +17,12 @@ INTEGRAL_MAX = 1e-3
 
 VARIANTS = ("rti_osqp", "rti_c_osqp", "rti_fn_osqp", "rti_fn_hpipm", "rti_fn_qrqp", "ipopt", "fatrop")
 
+#: the cost's weights in the order the compiled solvers take them as an input (``rti_c_osqp``'s QP
+#: data, fatrop's NLP parameters) rather than as constants: settings that differ only in them (a
+#: tuning study's trials) share one generated library
+WEIGHTS = ("w_height", "w_terminal", "w_rate[0]", "w_rate[1]", "w_rate[2]", "w_input[0]", "w_input[1]",
+           "w_input[2]", "c_input[0]", "c_input[1]", "c_input[2]", "w_slack", "c_slack")
+
 
 @dataclass
 class MPCSettings:
@@ -187,3 +193,8 @@ def timing_stats(ms: list | np.ndarray) -> dict:
         return {"median": float("nan"), "p99": float("nan"), "max": float("nan"), "n": 0}
     return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)), "max": float(a.max()),
             "n": int(a.size)}
+
+
+def weights_of(s: MPCSettings) -> np.ndarray:
+    """Settings ``s``'s cost weights as the compiled solvers take them (:data:`WEIGHTS` order)."""
+    return np.array([s.w_height, s.w_terminal, *s.w_rate, *s.w_input, *s.c_input, s.w_slack, s.c_slack], dtype=float)

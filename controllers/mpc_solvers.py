@@ -11,7 +11,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from controllers.mpc_settings import MPCSettings
+from controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, casadi_lib_flags, compiled, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
@@ -435,10 +435,15 @@ class _Fatrop:
         # as C at -O3 36 -> 31 ms, for twice the build (once per machine)
         self.stage = _Stage(model, s, "poly")
         F = self.stage.F
-        par = ca.SX.sym("par", 8 + N)  # as _Ipopt: x0, W, dh(mm), dp(Pa), u_prev(3), p_lim(kPa), r(mm)
+        # as _Ipopt: x0, W, dh(mm), dp(Pa), u_prev(3), p_lim(kPa), r(mm), then the cost's weights (WEIGHTS):
+        # parameters, so that the generated solver serves every weighting (a tuning study's trials)
+        par = ca.SX.sym("par", 8 + N + len(WEIGHTS))
         x0, W, dh, dp = par[0], par[1], par[2], par[3]
-        u_prev, p_lim, rr = par[4:7], par[7], par[8:]
-        wr, wu, cu = (ca.DM(list(v)) for v in (s.w_rate, s.w_input, s.c_input))
+        u_prev, p_lim, rr = par[4:7], par[7], par[8:8 + N]
+        wts = par[8 + N:]
+        w_height, w_terminal, wr, wu, cu, w_slack, c_slack = (wts[0], wts[1], wts[2:5], wts[5:8], wts[8:11], wts[11],
+                                                              wts[12])
+        self._weights = weights_of(s)
         du = np.array(s.du_max, float) * s.sample_period
         umax = np.array(s.u_max, float)
         inf = ca.inf
@@ -475,12 +480,12 @@ class _Fatrop:
                 ubg.append(inf)
                 d = us[k] - vs[k]
                 J += ca.dot(wr, d ** 2) + ca.dot(wu, us[k] ** 2) + ca.dot(cu, us[k])
-                J += s.w_slack * ss[k] ** 2 + s.c_slack * ss[k]
+                J += w_slack * ss[k] ** 2 + c_slack * ss[k]
             if k == 0:
                 continue
             # stage k's outputs on its own state: the limits with the slack sigma_k = s_{k-1}
             h, p, lam = self.stage.out(xs[k], W)
-            w = s.w_height + (s.w_terminal if k == N else 0.0)
+            w = w_height + w_terminal if k == N else w_height
             J += w * (h + dh - rr[k - 1]) ** 2
             lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else inf)
             for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
@@ -539,7 +544,7 @@ class _Fatrop:
             z0[self.iv] = np.vstack([pr.u_prev, Ub])
             z0[self.isl] = np.r_[self.z[self.isl][1:], self.z[self.isl][-1]]
             z0[self.isg[1:]] = z0[self.isl]
-        par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
+        par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3, self._weights]
         try:
             sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
         except RuntimeError:  # error_on_fail: the generated solver's only report of a failed solve

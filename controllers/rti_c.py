@@ -25,19 +25,15 @@ import warnings
 import casadi as ca
 import numpy as np
 
-from controllers.mpc_settings import MPCSettings
+from controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
 from controllers.mpc_solvers import _BudgetExceeded, _Problem, _RtiOsqp, _SolverFailure
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["qp_data_function", "weights_of", "WEIGHTS"]
+__all__ = ["qp_data_function"]
 
 #: OSQP's infinity (its ``update`` clamps bounds to it; the generated data does the same)
 _OSQP_INF = 1e30
-#: the cost's weights, an input of the QP data rather than constants in it: settings that differ only
-#: in them (a tuning study's trials) share one generated library
-WEIGHTS = ("w_height", "w_terminal", "w_rate[0]", "w_rate[1]", "w_rate[2]", "w_input[0]", "w_input[1]",
-           "w_input[2]", "c_input[0]", "c_input[1]", "c_input[2]", "w_slack", "c_slack")
 
 
 def qp_data_function(rti: _RtiOsqp, looped: bool = True) -> ca.Function:
@@ -81,10 +77,6 @@ def qp_data_function(rti: _RtiOsqp, looped: bool = True) -> ca.Function:
     return ca.Function("rti_c_qp_data", [par_m, zp_m, shift_m, wts_m], post(par_m, wts_m, Xm, Um, *outs),
                        ["par", "z_prev", "shift", "weights"], names)
 
-
-def weights_of(s: MPCSettings) -> np.ndarray:
-    """The ``weights`` input of :func:`qp_data_function` for settings ``s`` (:data:`WEIGHTS` order)."""
-    return np.array([s.w_height, s.w_terminal, *s.w_rate, *s.w_input, *s.c_input, s.w_slack, s.c_slack], dtype=float)
 
 
 def _plan(rti: _RtiOsqp, par, zp, shift) -> tuple:

@@ -10,7 +10,8 @@ from controllers.mpc import NMPC
 from controllers.mpc_settings import MPCSettings
 from controllers.mpc_solvers import _Problem, _RtiOsqp
 from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from controllers.rti_c import WEIGHTS, _RtiC, qp_data_function, weights_of
+from controllers.mpc_settings import WEIGHTS, weights_of
+from controllers.rti_c import _RtiC, qp_data_function
 from hbma_ctrl.core.interfaces import Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel

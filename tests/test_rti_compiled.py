@@ -90,8 +90,9 @@ def test_fatrop_and_ipopt_give_the_same_first_input(model, h, r):
 
 def test_generated_fatrop_equals_the_virtual_machines(model):
     """fatrop generated as C (``codegen``, built once and cached) gives the first input and plan of the
-    same solver on casadi's virtual machine, warm-started over three steps; a solve that does not
-    converge (an iteration cap of 2) is a _SolverFailure in both modes. N = 6 keeps the build short."""
+    same solver on casadi's virtual machine, warm-started over three steps, also with other weights
+    (which the same library serves); a solve that does not converge (an iteration cap of 2) is a
+    _SolverFailure in both modes. N = 6 keeps the build short."""
     from controllers.mpc_solvers import _SolverFailure
     from hbma_ctrl.core.codegen import has_compiler
 
@@ -106,6 +107,14 @@ def test_generated_fatrop_equals_the_virtual_machines(model):
         np.testing.assert_allclose(U1, U2, atol=1e-8)
         np.testing.assert_allclose(X1, X2, rtol=1e-9)
     assert gen.iterations is None and vm.iterations > 0
+    # other weights (a tuning study's trial): the same library, their own optimum
+    w = dict(w_terminal=2.0, w_rate=(0.05, 0.004, 0.01), c_input=(0.03, 0.0, 0.01))
+    gen2, vm2 = _Fatrop(model, replace(s, **w)), _Fatrop(model, replace(s, codegen=False, **w))
+    assert gen2.solver is gen.solver
+    X1, U1 = gen2.solve(_problem(model, s, *CASES[0]))
+    X2, U2 = vm2.solve(_problem(model, s, *CASES[0]))
+    np.testing.assert_allclose(U1, U2, atol=1e-8)
+    assert np.abs(U1 - gen.solve(_problem(model, s, *CASES[0]))[1]).max() > 1e-6  # the weights count
     capped = replace(s, ipopt_max_iter=2)
     for b in (_Fatrop(model, capped), _Fatrop(model, replace(capped, codegen=False))):
         with pytest.raises(_SolverFailure, match="fatrop"):
