@@ -161,7 +161,7 @@ class CommandTiming:
         self._hist = []
 
 
-def acting_state(timing: CommandTiming, n: int | None = None):
+def acting_state(timing: CommandTiming, n: int | None = None) -> tuple[np.ndarray, float | np.ndarray]:
     """The (hist, fill) inputs of :func:`acting_function` that stand for ``timing``'s commands sent so
     far: hist column-major 3 x keep, oldest first, zeros before the first command, and fill the
     history's length. With ``n`` (a timing fed 3 x n commands, the robot's bank): the inputs of the
