@@ -71,10 +71,7 @@ def problem_function(model: PredictionModel, s: MPCSettings) -> ca.Function:
     W = ca.fmin(Wf_new, s.load_max)
     # --- the load path at W (PredictionModel.path): linear in W between the grid's columns
     # one lookup and a two-column blend per table: (1 - s) A[:, j] + s A[:, j + 1], as path() rounds it
-    Wc = ca.fmin(ca.fmax(W, 0.0), model.load_max)
-    x_path, p_path, l_path = (ca.interpolant(f"mpc_{name}", "linear", [np.asarray(g.W, dtype=float)],
-                                             np.asarray(tab, dtype=float).ravel(order="F"))(Wc)
-                              for name, tab in (("x_path", g.x_path), ("p_path", g.p_path), ("lam_path", g.lam_path)))
+    x_path, p_path, l_path = model.path_columns_expr(W, "x_path", "p_path", "lam_path")
     hp = np.asarray(g.h_path, dtype=float)
     lift_x = ca.fmin(ca.fmax(W, 0.0), model.load_max) / (math.pi * act.r1 ** 2) / act.p_env
     x_at_h = np_interp(h_est, hp, x_path)

@@ -306,6 +306,14 @@ class PredictionModel:
         s = (W - g.W[j - 1]) / (g.W[j] - g.W[j - 1])
         return tuple((1 - s) * A[:, j - 1] + s * A[:, j] for A in (getattr(g, nm) for nm in names))
 
+    def path_columns_expr(self, W, *names: str) -> tuple:
+        """:meth:`_path_columns` for a casadi expression W (N): each named table along the load path
+        as one linear-interpolant lookup at W clipped to [0, load_max], the generated steps' form."""
+        g = self.grid
+        Wc = ca.fmin(ca.fmax(W, 0.0), self.load_max)
+        return tuple(ca.interpolant(f"path_{nm}", "linear", [np.asarray(g.W, dtype=float)],
+                                    np.asarray(getattr(g, nm), dtype=float).ravel(order="F"))(Wc) for nm in names)
+
     def path(self, W: float) -> dict:
         """Load path at load W (N): arrays h (m), x, p (Pa), lam along the contact branch."""
         x, p, lam = self._path_columns(W, "x_path", "p_path", "lam_path")

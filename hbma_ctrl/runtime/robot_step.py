@@ -51,12 +51,9 @@ def _nan_to_zero(v):
 def peak_function(model: ChamberBank, name: str = "peak_pressure") -> ca.Function:
     """peak(W) -> the pressure of the limit point along the load path at W (N; clipped to the tables'
     loads), Pa: the largest of the path's pressures, its columns blended at W as the tables' path()."""
-    g = model.tables.grid
     W = ca.SX.sym("W")
-    Wc = ca.fmin(ca.fmax(W, 0.0), model.tables.load_max)
-    col = ca.interpolant(f"{name}_path", "linear", [np.asarray(g.W, dtype=float)],
-                         np.asarray(g.p_path, dtype=float).ravel(order="F"))
-    return ca.Function(name, [W], [ca.mmax(col(Wc))], ["W"], ["p_peak"])
+    (p,) = model.tables.path_columns_expr(W, "p_path")
+    return ca.Function(name, [W], [ca.mmax(p)], ["W"], ["p_peak"])
 
 
 def caps_function(model: ChamberBank, n: int, cautious: tuple | None, name: str = "caps") -> ca.Function:
