@@ -227,11 +227,11 @@ def _map_row(pump: PumpMap, p):
     for g in pg[1:]:
         j = j + (pc >= g)
     j = ca.fmin(ca.fmax(j, 0), pg.size - 2)
+    fs = [(pc - pg[i]) / (pg[i + 1] - pg[i]) for i in range(pg.size - 1)]  # the fraction in each interval
     row = []
     for si in range(q.shape[0]):
         v = 0
-        for i in range(pg.size - 1):
-            f = (pc - pg[i]) / (pg[i + 1] - pg[i])
+        for i, f in enumerate(fs):
             v = v + ca.if_else(j == i, q[si, i] * (1 - f) + q[si, i + 1] * f, 0)
         row.append(ca.fmax(v, 0.0))
     return row
