@@ -446,11 +446,10 @@ class RobotNMPC:
             for name, v in saved.items():
                 setattr(self, name, v)
 
-    def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
-        """One RTI step (see the class doc): (supply, outlet) decisions (n,) each, in [0, 1].
-        ValueError naming the argument on a non-finite input."""
-        t_start = time.perf_counter()
-        s, n, N = self.s, self.n, self.s.horizon
+    def _inputs(self, x0, b, W, h_ref, k, c, a_max) -> tuple:
+        """The step's arguments checked and shaped (SI): (x0, b, W clipped to the tables, h_ref (n, N),
+        k, c, a_max clipped to [0, 1]). ValueError naming the argument on a non-finite input."""
+        n, N = self.n, self.s.horizon
         x0 = _finite("x0", x0, n)
         b = _finite("b", b, n)
         k = np.ones(n) if k is None else _finite("k", k, n)
@@ -465,6 +464,14 @@ class RobotNMPC:
             i = int(np.argwhere(~np.isfinite(href))[0][0])
             raise ValueError(f"robot_mpc.h_ref: chamber {i}'s target height is {href[i].ravel()[0]!r}; "
                              "it must be a finite number (m)")
+        return x0, b, W, href, k, c, amax
+
+    def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
+        """One RTI step (see the class doc): (supply, outlet) decisions (n,) each, in [0, 1].
+        ValueError naming the argument on a non-finite input."""
+        t_start = time.perf_counter()
+        s, n, N = self.s, self.n, self.s.horizon
+        x0, b, W, href, k, c, amax = self._inputs(x0, b, W, h_ref, k, c, a_max)
         href_mm = href * 1e3
         # shifted warm start
         if self.xbar is None:

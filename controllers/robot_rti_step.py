@@ -25,14 +25,29 @@ budget (overruns) is not here: a generated loop times its own steps.
 
 from __future__ import annotations
 
+import time
+
 import casadi as ca
+import numpy as np
 
-from controllers.robot_mpc import RobotNMPC
+from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags
 
-__all__ = ["robot_rti_step_function", "RES_TOL"]
+__all__ = ["robot_rti_step_function", "RES_TOL", "FN_MAX_ITER", "RobotNMPCFunction"]
 
-#: the largest constraint violation (QP units) a usable solution may have
-RES_TOL = 1e-3
+#: the largest constraint violation (QP units: mm, kPa, duty) a usable solution may have. OSQP stops at
+#: eps_abs + eps_rel x the size of the rows' values, so a good solve's residual scales with the
+#: pressures' kPa: over ``robot_bending`` (2800 steps, eps 3e-4) it peaked at 0.014 (median 0.004),
+#: which 1e-3 refused at every step
+RES_TOL = 0.05
+
+#: the fewest OSQP iterations the Function allows a solve. casadi's OSQP is set up at every call, so
+#: its step size rho starts from OSQP's default each time instead of the one the class's persistent
+#: solver adapted to: capped at the class's 125 iterations (``RobotMPCSettings.max_iter``) the steps
+#: never converge and the chambers barely move (``robot_bending``, 28 s: final heights 3.9-6.6 mm
+#: for 7.0 mm targets, a median step of 2.0 ms); at 2000 the solves converge, the loop tracks as the
+#: class's does (6.8-7.1 mm) and the median step is 0.56 ms
+FN_MAX_ITER = 2000
 
 _IN = ["x0", "b", "W", "k", "c", "a_max", "h_ref", "prev", "xbar", "abar", "obar", "first", "z_prev", "y_prev",
        "warm"]
@@ -77,7 +92,7 @@ def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca
     sx, sy = nmpc._shift_x, nmpc._shift_y
     zw = ca.if_else(warm, z_prev[sx.tolist()], MX.zeros(nv))
     yw = ca.if_else(warm, y_prev[sy.tolist()], MX.zeros(m))
-    opts = {"osqp": {"verbose": False, "eps_abs": s.eps, "eps_rel": s.eps, "max_iter": s.max_iter,
+    opts = {"osqp": {"verbose": False, "eps_abs": s.eps, "eps_rel": s.eps, "max_iter": max(s.max_iter, FN_MAX_ITER),
                      "polish": False, "check_termination": 5, "scaling": 1},
             "error_on_fail": False, "warm_start_primal": True, "warm_start_dual": True}
     qp = ca.conic(f"{name}_qp", "osqp", {"h": H.sparsity(), "a": Asp}, opts)
@@ -99,3 +114,52 @@ def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca
         a0 = ca.if_else(tot > 1.0, a0 / tot, a0)
     return ca.Function(name, [x0, b, W, k, c, amax, href, prev, xbar, abar, obar, first, z_prev, y_prev, warm],
                        [a0, o0, x_next, a_plan, o_plan, z, y, status, res], _IN, _OUT)
+
+
+class RobotNMPCFunction(RobotNMPC):
+    """:class:`RobotNMPC` whose step is :func:`robot_rti_step_function`'s Function, compiled (OSQP linked
+    from the casadi package), called through buffers: the controller of a generated robot loop, run
+    from Python, so that a scene and its generated loop take the same decisions from the same inputs.
+
+    The state it keeps is the Function's: the plan (``xbar``, ``abar``, ``obar``), the command sent
+    (``prev``, from :meth:`applied`) and the last usable QP solution with whether there is one.
+    ``failed`` on a status other than 0 (``status`` then says which), counted in ``inaccurate``;
+    ``plan`` is the last usable solve's (H, n, 2). No wall-time budget (``overran`` stays False).
+    """
+
+    def __init__(self, model, n: int, settings: RobotMPCSettings | None = None, compile: bool = True):
+        super().__init__(model, n, settings)
+        self._fn = FastFunction(robot_rti_step_function(self), compile=compile, flags=casadi_lib_flags(["-losqp"]))
+        self._zk, self._yk = np.zeros(self.nv), np.zeros(self.m_rows)
+        self._warm = 0.0
+
+    def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
+        """One RTI step through the Function: (supply, outlet) decisions (n,) each, in [0, 1].
+        ValueError naming the argument on a non-finite input."""
+        t_start = time.perf_counter()
+        n, N = self.n, self.s.horizon
+        x0, b, W, href, k, c, amax = self._inputs(x0, b, W, h_ref, k, c, a_max)
+        first = self.xbar is None
+        xbar = np.zeros((n, N + 1)) if first else self.xbar
+        out = self._fn(x0, b, W, k, c, amax, href, self.prev, xbar, self.abar, self.obar, float(first),
+                       self._zk, self._yk, self._warm)
+        a, o = out[0].copy(), out[1].copy()
+        self.xbar = out[2].reshape(N + 1, n).T.copy()
+        self.abar = out[3].reshape(N, n).T.copy()
+        self.obar = out[4].reshape(N, n).T.copy()
+        code = int(out[7][0])
+        self.failed = code != 0
+        self.overran = False
+        self.late_plan = None
+        if self.failed:
+            self.inaccurate += 1
+            self.status = {1: "non-finite solution", 2: f"residual {out[8][0]:.3g} > {RES_TOL:g}"}.get(code, str(code))
+        else:
+            self.status = "solved"
+            self._zk, self._yk = out[5].copy(), out[6].copy()
+            self._warm = 1.0
+            self.plan = np.stack([self.abar.T, self.obar.T], axis=-1)
+        self.prev = np.vstack([a, o])
+        self.last_step_s = time.perf_counter() - t_start
+        self.last_parts = {"status": self.status}
+        return a, o

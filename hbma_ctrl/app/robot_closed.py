@@ -64,25 +64,16 @@ def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> Ch
     return ChamberBank(design.chamber, pneumatics, topology, load_max=2.0, h_table_max=U.mm(14.0))
 
 
-def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, controller: str = "mpc",
-                    pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
-                    mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
-                    model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                    cautious=(0.75, 0.03, 0.3)) -> ClosedLoopRun:
-    """Run the robot closed loop for ``duration`` s from rest (see module doc).
-
-    targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
-    interlock_margin : the supply is cut while a reading is within this of the pressure limit, Pa.
-    cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
-    fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
-    its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
-    The fastest a chamber's target height moves, the valves' shortest opening and the delays the
-    chambers' filters take are ``settings``' (``target_rate`` m/s, None or 0: targets step;
-    ``valve_min_on``, ``valve_delay``, ``sensor_delay``, s).
-    """
+def build_closed_loop(settings: RobotSettings, targets: dict, controller: str = "mpc",
+                      pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
+                      mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
+                      model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
+                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> tuple[RobotRig, RobotLoop]:
+    """The robot rig and the loop that drives it (:func:`run_closed_loop`'s arguments; ``nmpc_class``
+    the NMPC's class, :class:`RobotNMPC` or one with its interface). A generated loop is built from
+    the same objects (:mod:`hbma_ctrl.app.codegen_robot`)."""
     if controller not in CONTROLLERS:
         raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
-    check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
     d = settings.design
     rp = settings.pneumatics
     pn = (pneumatics or Pneumatics()).validate()
@@ -100,13 +91,38 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                                                         sensor_delay=settings.sensor_delay))
     if controller == "mpc":
         ms = replace(mpc or RobotMPCSettings(), sample_period=Ts, p_max=rp.pressure_limit)
-        ctrl = RobotNMPC(model, n, ms)
+        ctrl = nmpc_class(model, n, ms)
     else:
         ctrl = RobotPressurePID(model, n, replace(pid or RobotPIDSettings(), sample_period=Ts))
     sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
                            plan_period=ctrl.s.dt if controller == "mpc" else None)
     loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None,
                      target_rate=settings.target_rate, valve_min_on=settings.valve_min_on, burst=settings.burst)
+    return plant, loop
+
+
+def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, controller: str = "mpc",
+                    pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
+                    mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
+                    model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
+                    cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> ClosedLoopRun:
+    """Run the robot closed loop for ``duration`` s from rest (see module doc).
+
+    targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
+    interlock_margin : the supply is cut while a reading is within this of the pressure limit, Pa.
+    cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
+    fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
+    its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
+    The fastest a chamber's target height moves, the valves' shortest opening and the delays the
+    chambers' filters take are ``settings``' (``target_rate`` m/s, None or 0: targets step;
+    ``valve_min_on``, ``valve_delay``, ``sensor_delay``, s). ``nmpc_class``: the NMPC's class
+    (:class:`controllers.robot_rti_step.RobotNMPCFunction` runs the generated loop's step).
+    """
+    check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
+    plant, loop = build_closed_loop(settings, targets, controller, pneumatics, rig, mpc, pid, model, tip_load,
+                                    interlock_margin, cautious, nmpc_class)
+    n, Ts = loop.n, plant.s.sample_period
+    ctrl, sup = loop.controller, loop.supervisor
     steps = int(round(duration / Ts))
     T = steps + 1
     H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))

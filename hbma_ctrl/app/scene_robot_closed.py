@@ -191,6 +191,19 @@ def plot_closed_loop(design: RobotDesign, runs: list, path, pressure_limit: floa
 # ---------------------------------------------------------------------------------------------
 # scene and bench
 # ---------------------------------------------------------------------------------------------
+def scene_parts(scn, settings: RobotSettings) -> tuple:
+    """(RobotRigSettings, ChamberBank model, RobotMPCSettings) of the closed-loop scene: the scenario's
+    ``[rig]`` as the robot rig, the nominal model and the NMPC's settings from ``[robot]``."""
+    s = settings
+    raw_rig = scn.sections.get("rig")
+    rig = RigTable.model_validate(raw_rig).to_robot_rig() if raw_rig else RobotRigSettings()
+    model = make_model(s.design, scn.pneumatics, s.pneumatics.topology)
+    mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=s.mpc_budget)
+    if s.mpc_w_slack is not None:
+        mpc = replace(mpc, w_slack=s.mpc_w_slack)
+    return rig, model, mpc
+
+
 def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     """The closed-loop ``[robot]`` scene: metrics {"robot": {...}} (+ the baseline's beside it)."""
 
@@ -198,12 +211,7 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     s = settings
     d = s.design
-    raw_rig = scn.sections.get("rig")
-    rig = RigTable.model_validate(raw_rig).to_robot_rig() if raw_rig else RobotRigSettings()
-    model = make_model(d, scn.pneumatics, s.pneumatics.topology)
-    mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=s.mpc_budget)
-    if s.mpc_w_slack is not None:
-        mpc = replace(mpc, w_slack=s.mpc_w_slack)
+    rig, model, mpc = scene_parts(scn, s)
     kinds = [s.controller]
     if s.compare_baseline:
         kinds.append("pressure_pid" if s.controller == "mpc" else "mpc")
