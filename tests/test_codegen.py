@@ -324,7 +324,17 @@ def _cli(args):
 
 
 def test_codegen_cli_bad_inputs_are_one_error_line(tmp_path):
-    one_line_error(_cli(["codegen", str(ROOT / "scenarios" / "robot_bending.toml"), "--out", str(tmp_path / "a")]), "[robot]")
+    robot = str(ROOT / "scenarios" / "robot_bending.toml")
+    one_line_error(_cli(["codegen", robot, "--out", str(tmp_path / "a"), "--estimator", "truth"]), "--estimator", "ekf")
+    one_line_error(_cli(["codegen", robot, "--out", str(tmp_path / "a"), "--qp-solver", "qrqp"]), "--qp-solver", "osqp")
+    one_line_error(_cli(["codegen", str(ROOT / "scenarios" / "robot_sequential.toml"), "--out", str(tmp_path / "a")]),
+                   "mode = 'closed_loop'")
+    pid = tmp_path / "pid.toml"
+    pid.write_text(Path(robot).read_text().replace('controller = "mpc"', 'controller = "pressure_pid"'))
+    one_line_error(_cli(["codegen", str(pid), "--out", str(tmp_path / "a")]), "[robot] controller = 'pressure_pid'")
+    budget = tmp_path / "budget.toml"
+    budget.write_text(Path(robot).read_text().replace('mpc_horizon = 15', 'mpc_horizon = 15\nmpc_budget = 0.7'))
+    one_line_error(_cli(["codegen", str(budget), "--out", str(tmp_path / "a")]), "mpc_budget = 0.7")
     one_line_error(_cli(["codegen", TRACK, "--out", str(tmp_path / "b"), "--duration-s", "-1"]),
                    "--duration-s = -1", "(0, 3600] s")
     one_line_error(_cli(["codegen", TRACK, "--out", str(tmp_path / "c"), "--estimator", "ukf"]), "--estimator", "ekf")

@@ -56,10 +56,27 @@ def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str
         check_choice("--qp-solver", qp_solver, QP_SOLVERS)
     scn = load_scenario(config)
     try:
-        spec = scenario_loop(scn, duration_s, estimator, qp_solver)
+        if scn.role("robot") is not None:
+            spec = _robot_spec(scn, duration_s, estimator, qp_solver)
+        else:
+            spec = scenario_loop(scn, duration_s, estimator, qp_solver)
     except ValueError as exc:
         raise ValueError(f"{config.name}: {exc}") from None
     return (spec, scn) if with_scenario else spec
+
+
+def _robot_spec(scn, duration_s: float | None, estimator: str, qp_solver: str | None):
+    """The robot scenario's loop (:func:`hbma_ctrl.app.codegen_robot.robot_loop`): its EKF bank and
+    OSQP only; ValueError naming the flag otherwise."""
+    from hbma_ctrl.app.codegen_robot import robot_loop
+
+    if estimator != "ekf":
+        raise ValueError(f"--estimator = '{estimator}': a robot scenario's generated loop runs its EKF bank "
+                         "(allowed: ekf)")
+    if qp_solver not in (None, "osqp"):
+        raise ValueError(f"--qp-solver = '{qp_solver}': the robot NMPC's generated step solves with OSQP "
+                         "(allowed: osqp)")
+    return robot_loop(scn, duration_s)
 
 
 def _compiler() -> str:
@@ -78,7 +95,12 @@ def _write_run_metrics(scn, spec, out: Path, qp_solver: str | None) -> dict:
     from hbma_ctrl.app.codegen_scene import loop_run_metrics
     from hbma_ctrl.app.metrics import write_metrics
 
-    m = loop_run_metrics(scn, spec, read_c(out).trajectory, qp_solver)
+    if scn.role("robot") is not None:
+        from hbma_ctrl.app.codegen_robot import loop_run_metrics as robot_metrics
+
+        m = robot_metrics(scn, spec, read_c(out).trajectory)
+    else:
+        m = loop_run_metrics(scn, spec, read_c(out).trajectory, qp_solver)
     write_metrics(m, out / "metrics.json")
     return m
 
@@ -88,7 +110,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     @app.command("codegen")
     def codegen(
-        config: Annotated[Path, typer.Argument(help="scenario TOML with [controller] kind = 'mpc' (RTI)")],
+        config: Annotated[Path, typer.Argument(help="scenario TOML with [controller] kind = 'mpc' (RTI), or a "
+                                                  "closed-loop [robot] with controller = 'mpc'")],
         out: Annotated[Path, typer.Option("--out", "-o", help="output directory for the C sources")],
         duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
         estimator: Annotated[str, typer.Option(help="ekf (the scenario's filter) | truth (the rig's state, no filter)")] = "ekf",
@@ -152,7 +175,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
             res = bench(spec, tmp, opt=opt, cc=cc, python_vm=python_vm)
             c_metrics = _write_run_metrics(scn, spec, tmp, qp_solver)
-            if scene and estimator == "ekf":
+            if scene and scn.role("robot") is not None:
+                from hbma_ctrl.app.codegen_robot import scene_reference as robot_scene
+
+                res["scene"] = robot_scene(scn, spec, read_c(tmp).trajectory)
+            elif scene and estimator == "ekf":
                 res["scene"] = scene_reference(scn, spec, read_c(tmp).trajectory, qp_solver)
                 res["scene"]["c_height_rmse_mm"] = c_metrics["controller"]["height_rmse_mm"]
                 res["scene"]["c_steps_settled"] = c_metrics["controller"]["steps_settled"]
@@ -180,7 +207,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                   f"build {res['wall_s']['build']:.1f} s, C run {res['wall_s']['c_run']:.2f} s, "
                   f"Python run {res['wall_s']['python_run']:.1f} s")
         sc = res.get("scene")
-        if sc:
+        if sc and "nmpc" in sc:
+            e, c = sc["ekf_step"], sc["controller_step"]
+            con.print(f"scene's own loop (NMPC {sc['nmpc']}): EKF bank {e['median_us']:.1f} / {e['p99_us']:.1f} us, "
+                      f"the rest of the tick {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "
+                      f"|C - scene| {sc['max_abs_diff_si_all']:.3g} (SI); chamber height RMSE "
+                      f"{sc['c_chamber_height_rmse_mm']:.3f} mm (C) vs {sc['chamber_height_rmse_mm']:.3f} mm (scene)")
+        elif sc:
             e, c = sc["ekf_step"], sc["controller_step"]
             con.print(f"scene's own loop ({sc['variant']}): EKF step {e['median_us']:.1f} / {e['p99_us']:.1f} us, "
                       f"controller step {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "

@@ -378,8 +378,8 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     if estimator not in ESTIMATORS:
         raise ValueError(f"codegen: estimator = '{estimator}'; allowed: {', '.join(ESTIMATORS)}")
     if scn.role("robot") is not None:
-        raise ValueError("codegen: [robot] scenarios cannot be generated yet (the robot's plant and NMPC "
-                         "are not single Functions); use a single-chamber scenario with [controller]")
+        raise ValueError("codegen: a [robot] scenario's loop is hbma_ctrl.app.codegen_robot.robot_loop's, "
+                         "not this single-chamber one")
     section = scn.role("controller")
     if section is None:
         raise ValueError("codegen: the scenario has no [controller] section (the generated loop is "

@@ -1,0 +1,70 @@
+"""The robot's generated closed loop (hbma_ctrl.app.codegen_robot): the C program against its Python
+path (the same stages called from Python on the same library) and against the scene's own loop."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hbma_ctrl.app.codegen import bench, find_compiler, read_c
+from hbma_ctrl.app.scenario import load_scenario
+from hbma_ctrl.runtime.safety import ZERO_TARGET
+
+ROOT = Path(__file__).resolve().parents[1]
+needs_cc = pytest.mark.skipif(find_compiler() is None, reason="no C compiler (cc, gcc or clang) on PATH")
+
+
+@needs_cc
+def test_the_robot_loop_in_c_equals_its_python_path_and_the_scenes_loop(tmp_path):
+    """robot_bending (3 layers, one pump per chamber, the structured rig with valve timing, pump tilt and
+    sensor lag) for 1.5 s: the C trajectory equals the Python path's exactly; the scene's own loop
+    (RobotNMPCFunction, its numpy bank, loads, supervisor and valve classes) follows it within 1e-9 in
+    heights (m), estimates and commands, 1e-6 Pa in pressures; the chambers rise and every step solves;
+    the C run's robot metrics are the scene's metrics of its own trajectory."""
+    from hbma_ctrl.app.codegen_robot import loop_run_metrics, robot_loop, scene_reference
+
+    scn = load_scenario(ROOT / "scenarios" / "robot_bending.toml")
+    spec = robot_loop(scn, 1.5)
+    assert spec.n_ticks == 150 and "robot_rti_step" in [f.name() for f in spec.functions()]
+    res = bench(spec, tmp_path)
+    assert res["max_abs_diff_si_all"] == 0.0
+    traj = read_c(tmp_path).trajectory
+    col = {c: i for i, c in enumerate(spec.header())}
+    h = traj[:, [col[f"h_{nm}_mm"] for nm in ("A1", "A2", "A3")]]
+    assert h[-1].min() > 2.0  # mm: every chamber of layer A on its way to the 6 mm target
+    assert np.all(traj[:, col["rti_status"]] == 0) and np.all(traj[:, col["failed"]] == 0)
+    sc = scene_reference(scn, spec, traj)
+    d = sc["max_abs_diff_si"]
+    assert max(d["h"], d["h_est"], d["a"], d["o"]) < 1e-9, d
+    assert max(d["p"], d["p_meas"]) < 1e-6, d
+    assert sc["fallbacks"] == 0
+    assert sc["c_chamber_height_rmse_mm"] == pytest.approx(sc["chamber_height_rmse_mm"], abs=1e-9)
+    m = loop_run_metrics(scn, spec, traj)["robot"]
+    assert m["controller"] == "mpc" and m["step_ms_median"] is None and m["n_layers"] == 3
+    assert m["max_pressure_kpa"] == pytest.approx(float(traj[:, [col[f"p_{nm}_kpa"] for nm in scn.role("robot").design.names]].max()))
+
+
+@needs_cc
+def test_the_shared_pump_robot_loop_in_c_equals_its_python_path(tmp_path):
+    """robot_sequential_closed (2 layers, one shared pump, layer B's zero target vented) for 0.3 s: the C
+    trajectory equals the Python path's exactly, the vent rule holds layer B's outlets open, the pump's
+    one speed is the same in every column, and the scene's loop follows it to rounding until the shared
+    pump's speed search (16 bisections) turns a rounding difference into one of its steps (at 0.34 s)."""
+    from hbma_ctrl.app.codegen_robot import robot_loop, scene_reference
+
+    scn = load_scenario(ROOT / "scenarios" / "robot_sequential_closed.toml")
+    spec = robot_loop(scn, 0.3)
+    res = bench(spec, tmp_path)
+    assert res["max_abs_diff_si_all"] == 0.0
+    traj = read_c(tmp_path).trajectory
+    col = {c: i for i, c in enumerate(spec.header())}
+    names = scn.role("robot").design.names
+    speeds = traj[:, [col[f"speed_{nm}"] for nm in names]]
+    assert np.all(speeds == speeds[:, :1])
+    assert np.all(traj[:, [col[f"outlet_{nm}"] for nm in names[3:]]] == 1.0)  # layer B vented
+    zero = traj[:, [col[f"h_ref_{nm}_mm"] for nm in names]] <= ZERO_TARGET * 1e3
+    assert zero[:, 3:].all() and np.array_equal(traj[:, col["ev_vent"]], zero.sum(axis=1))  # the vent rule's count
+    sc = scene_reference(scn, spec, traj)
+    assert sc["max_abs_diff_si"]["h"] < 1e-9, sc["max_abs_diff_si"]
