@@ -373,6 +373,8 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
             "controller": f"robot RTI NMPC, N = {N}, dt {nmpc.s.dt * 1e3:g} ms, OSQP (casadi's) inside; "
                           f"{s.pneumatics.topology} pump; minimum valve opening {loop.pwm.min_duty * loop._period * 1e3:g} ms",
             "timing": "each trajectory row is logged after the rig's period (the scene's log row k + 1)"}
+    if s.compare_baseline:
+        meta["left out"] = "the pressure-PID baseline ([robot] compare_baseline = true): only the NMPC's loop is generated"
     return LoopSpec(scn.name, rs.sample_period, n_ticks, signals, streams, stages, log, meta).validate()
 
 
