@@ -68,3 +68,23 @@ def test_the_shared_pump_robot_loop_in_c_equals_its_python_path(tmp_path):
     assert zero[:, 3:].all() and np.array_equal(traj[:, col["ev_vent"]], zero.sum(axis=1))  # the vent rule's count
     sc = scene_reference(scn, spec, traj)
     assert sc["max_abs_diff_si"]["h"] < 1e-9, sc["max_abs_diff_si"]
+
+
+def test_codegen_cli_writes_a_robot_loop_and_says_what_it_leaves_out(tmp_path):
+    """``hbma-ctrl codegen`` on a robot scenario (no build): the sources, and a README.txt listing the
+    robot's stages in the tick's order; the pressure-PID baseline the scenario compares is named as
+    left out."""
+    from typer.testing import CliRunner
+
+    from hbma_ctrl.app.cli import app
+
+    res = CliRunner().invoke(app, ["codegen", str(ROOT / "scenarios" / "robot_bending.toml"), "--out",
+                                   str(tmp_path / "gen"), "--duration-s", "0.05"])
+    assert res.exit_code == 0, res.output
+    assert "left out" in res.output and "pressure-PID baseline" in res.output
+    readme = (tmp_path / "gen" / "README.txt").read_text()
+    order = [readme.index(f"  {name} ") for name in ("robot_sensor", "robot_ekf", "robot_pre", "robot_rti_step",
+                                                     "robot_post", "robot_rig_step")]
+    assert order == sorted(order) and "5 ticks of 10 ms" in readme and "-losqp" in readme
+    data = (tmp_path / "gen" / "loop_data.h").read_text()
+    assert "#define N_TICKS 5L" in data and "stream_goal" in data and "stream_f_tip" in data
