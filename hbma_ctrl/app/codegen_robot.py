@@ -27,7 +27,9 @@ called in the tick's order:
 - ``robot_rig_step``: the rig's period (:func:`hbma_ctrl.robot.plant_step.robot_rig_step_function`).
 
 Time and targets are data: the rig's clock (its internal steps summed as :class:`Plant` sums them),
-the chamber targets at each tick, the tip load at each period's end.
+the chamber targets at each tick, the tip load at each period's end. The loop runs in lockstep, one
+tick per period, as the scene does: a late tick's predict over several periods and a rig's report of
+the command it held (``RobotLoop.tick``'s ``held``) are not generated.
 
 Its scene counterpart is :func:`hbma_ctrl.app.robot_closed.run_closed_loop` with the NMPC
 :class:`controllers.robot_rti_step.RobotNMPCFunction` (the same step Function, compiled), no
