@@ -274,7 +274,10 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     from hbma_ctrl.robot.plant_step import robot_rig_step_function
     from hbma_ctrl.runtime.safety_step import EVENTS, supervisor_state
 
-    s, rs, plant, loop = _build(scn)
+    from controllers.robot_mpc import RobotNMPC
+
+    # the class's NMPC: its settings and QP pattern are all the generated step needs (not its compiled step)
+    s, rs, plant, loop = _build(scn, RobotNMPC)
     nmpc, bank = loop.controller, loop.bank
     n, N = loop.n, nmpc.s.horizon
     T = scn.duration if duration is None else float(duration)
