@@ -16,9 +16,11 @@ solution (``warm`` = 1: warm-started from it shifted by one stage, primal and du
 constraints by more than :data:`RES_TOL` (QP units: mm, kPa, duty); on 1 and 2 the decisions and the
 plan's inputs are zero, as the class's on an unusable solve.
 
-Differences from the class, both of the solver: casadi's OSQP is set up at every call (no state
-between calls besides the warm start given), and its version is casadi's own, so its iterates differ
-from the Python package's within the tolerance (``eps``); the class accepts a solve OSQP stopped at its
+Differences from the class, both of the solver: casadi's OSQP keeps its workspace between calls but
+cold-starts it at every call (then the warm start given), resets its step size rho to the option's
+value (OSQP's default, 0.1; a second factorisation after the matrices' update) and carries the
+variables' (here infinite) bounds as rows of its own; its iterates differ from the Python package's
+within the tolerance (``eps``); the class accepts a solve OSQP stopped at its
 iteration limit whatever its residual, this Function judges every solve by its residual. The wall-time
 budget (overruns) is not here: a generated loop times its own steps.
 """
@@ -41,9 +43,9 @@ __all__ = ["robot_rti_step_function", "RES_TOL", "FN_MAX_ITER", "RobotNMPCFuncti
 #: which 1e-3 refused at every step
 RES_TOL = 0.05
 
-#: the fewest OSQP iterations the Function allows a solve. casadi's OSQP is set up at every call, so
-#: its step size rho starts from OSQP's default each time instead of the one the class's persistent
-#: solver adapted to: capped at the class's 125 iterations (``RobotMPCSettings.max_iter``) the steps
+#: the fewest OSQP iterations the Function allows a solve. casadi's OSQP resets its step size rho to
+#: OSQP's default at every call instead of keeping the one the class's persistent solver adapted to:
+#: capped at the class's 125 iterations (``RobotMPCSettings.max_iter``) the steps
 #: never converge and the chambers barely move (``robot_bending``, 28 s: final heights 3.9-6.6 mm
 #: for 7.0 mm targets, a median step of 2.0 ms); at 2000 the solves converge, the loop tracks as the
 #: class's does (6.8-7.1 mm) and the median step is 0.56 ms
