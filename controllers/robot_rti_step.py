@@ -18,7 +18,7 @@ plan's inputs are zero, as the class's on an unusable solve.
 
 Differences from the class, both of the solver: casadi's OSQP keeps its workspace between calls but
 cold-starts it at every call (then the warm start given), resets its step size rho to the option's
-value (OSQP's default, 0.1; a second factorisation after the matrices' update) and carries the
+value (:data:`FN_RHO`; a second factorisation after the matrices' update) and carries the
 variables' (here infinite) bounds as rows of its own; its iterates differ from the Python package's
 within the tolerance (``eps``); the class accepts a solve OSQP stopped at its
 iteration limit whatever its residual, this Function judges every solve by its residual. The wall-time
@@ -35,7 +35,7 @@ import numpy as np
 from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags
 
-__all__ = ["robot_rti_step_function", "RES_TOL", "FN_MAX_ITER", "RobotNMPCFunction"]
+__all__ = ["robot_rti_step_function", "RES_TOL", "FN_MAX_ITER", "FN_RHO", "RobotNMPCFunction"]
 
 #: the largest constraint violation (QP units: mm, kPa, duty) a usable solution may have. OSQP stops at
 #: eps_abs + eps_rel x the size of the rows' values, so a good solve's residual scales with the
@@ -43,13 +43,23 @@ __all__ = ["robot_rti_step_function", "RES_TOL", "FN_MAX_ITER", "RobotNMPCFuncti
 #: which 1e-3 refused at every step
 RES_TOL = 0.05
 
-#: the fewest OSQP iterations the Function allows a solve. casadi's OSQP resets its step size rho to
-#: OSQP's default at every call instead of keeping the one the class's persistent solver adapted to:
-#: capped at the class's 125 iterations (``RobotMPCSettings.max_iter``) the steps
-#: never converge and the chambers barely move (``robot_bending``, 28 s: final heights 3.9-6.6 mm
-#: for 7.0 mm targets, a median step of 2.0 ms); at 2000 the solves converge, the loop tracks as the
-#: class's does (6.8-7.1 mm) and the median step is 0.56 ms
+#: the fewest OSQP iterations the Function allows a solve. casadi's OSQP resets its step size rho at
+#: every call instead of keeping the one the class's persistent solver adapted to. Measured with rho
+#: at OSQP's default (0.1, before :data:`FN_RHO`): capped at the class's 125 iterations
+#: (``RobotMPCSettings.max_iter``) the steps never converge and the chambers barely move
+#: (``robot_bending``, 28 s: final heights 3.9-6.6 mm for 7.0 mm targets, a median step of 2.0 ms); at
+#: 2000 the solves converge, the loop tracks as the class's does (6.8-7.1 mm) and the median step is
+#: 0.56 ms
 FN_MAX_ITER = 2000
+
+#: the step size rho casadi's OSQP starts every call from (it resets it at every call; the class's
+#: persistent solver keeps the one it adapted to). Against OSQP's default 0.1, over seeds 1-5 of
+#: robot_bending, robot_sequential_closed and robot_tip_load (RobotNMPCFunction in the scene): a lower
+#: chamber height RMSE in all 15 runs (the shared pump's 0.134-0.215 -> 0.111-0.160 mm) and the
+#: controller's p99 7.9-9.7 -> 2.7-9.2 ms with the shared pump, 3.9-4.4 -> 2.5-3.5 ms with a pump per
+#: chamber; all segments settled either way. 1.0 was faster still but let a 6-layer stress run's rig
+#: diverge
+FN_RHO = 0.5
 
 _IN = ["x0", "b", "W", "k", "c", "a_max", "h_ref", "prev", "xbar", "abar", "obar", "first", "z_prev", "y_prev",
        "warm"]
@@ -95,7 +105,7 @@ def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca
     zw = ca.if_else(warm, z_prev[sx.tolist()], MX.zeros(nv))
     yw = ca.if_else(warm, y_prev[sy.tolist()], MX.zeros(m))
     opts = {"osqp": {"verbose": False, "eps_abs": s.eps, "eps_rel": s.eps, "max_iter": max(s.max_iter, FN_MAX_ITER),
-                     "polish": False, "check_termination": 5, "scaling": 1},
+                     "polish": False, "check_termination": 5, "scaling": 1, "rho": FN_RHO},
             "error_on_fail": False, "warm_start_primal": True, "warm_start_dual": True}
     qp = ca.conic(f"{name}_qp", "osqp", {"h": H.sparsity(), "a": Asp}, opts)
     sol = qp(h=H, g=q, a=A, lba=lo, uba=up, x0=zw, lam_a0=yw)

@@ -169,7 +169,10 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
     OSQP eps 1e-7: their OSQPs differ in version and set-up, so they agree to the tolerance, not to the
     bit): the same decisions within 5e-3 of a duty (the later stages of a plan are weakly determined:
     two solutions within the tolerance differ there by up to 1e-2, and a step that takes OSQP 800
-    iterations moves the first decision by up to 3e-3), the same planned states within 1e-4; a
+    iterations moves the first decision by up to 3e-3), the same planned states within 1e-4; with a
+    shared pump within 1e-2 and 5e-4 (how the one budget is split among the chambers is weakly
+    determined too: from the Function's rho of 0.5, FN_RHO, one step's first decisions differ by
+    8.2e-3 and its first planned states by 2.5e-4, both solves converged to a residual of 1e-7); a
     non-finite state is status 1 with zero decisions."""
     from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from controllers.robot_rti_step import robot_rti_step_function
@@ -188,6 +191,7 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
               z_prev=np.zeros(nmpc.nv), y_prev=np.zeros(nmpc.m_rows), warm=0.0)
     prev = np.zeros((2, n))
     worst = 0.0
+    u_tol, x_tol = (5e-3, 1e-4) if topology == "per_chamber" else (1e-2, 5e-4)
     for step in range(25):
         a_ref, o_ref = nmpc.step(x, b, W, href)
         out = dict(zip(fn.name_out(), fn(x, b, W, np.ones(n), np.ones(n), np.ones(n),
@@ -196,7 +200,7 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
         a, o = np.asarray(out["a"]).ravel(), np.asarray(out["o"]).ravel()
         assert float(out["status"]) == 0.0 and not nmpc.failed
         worst = max(worst, np.abs(a - a_ref).max(), np.abs(o - o_ref).max())
-        np.testing.assert_allclose(np.asarray(out["xbar_next"]), nmpc.xbar, atol=1e-4)
+        np.testing.assert_allclose(np.asarray(out["xbar_next"]), nmpc.xbar, atol=x_tol)
         st = dict(xbar=np.asarray(out["xbar_next"]), abar=np.asarray(out["abar_next"]),
                   obar=np.asarray(out["obar_next"]), first=0.0, z_prev=np.asarray(out["z"]).ravel(),
                   y_prev=np.asarray(out["y"]).ravel(), warm=1.0)
@@ -204,7 +208,7 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
         nmpc.applied(a_ref, o_ref)
         # the chambers move as the model says (the plan's next state)
         x = nmpc.xbar[:, 1].copy()
-    assert worst < 5e-3
+    assert worst < u_tol
     cg = ca.CodeGenerator("robot_rti_step_check.c")
     cg.add(fn)  # one generable Function, the QP solver's C included
     assert "robot_rti_step" in cg.dump()
