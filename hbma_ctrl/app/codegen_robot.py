@@ -213,7 +213,8 @@ def _post_function(loop) -> ca.Function:
     a, o = cmd[0, :].T, cmd[1, :].T
     # a released chamber's filter restarts at rest from its reading (ChamberEKFBank.reset)
     lo, hi = bank._bounds
-    p0 = ca.if_else(ca.logic_and(ca.logic_and(zs == zs, zs >= lo), zs <= hi), zs, 0.0)
+    # a reading out of the physical range (NaN, +-inf too: every comparison is false for NaN) reads as 0
+    p0 = ca.if_else(ca.logic_and(zs >= lo, zs <= hi), zs, 0.0)
     y0 = ca.fmax(1.0 + p0 / model.actuator.p_env, Y_MIN)
     rest = ca.horzcat(y0, ca.DM.ones(n, 1) * bank.settings.b0, ca.DM.ones(n, 1), ca.DM.ones(n, 1)).T
     P0 = ca.repmat(ca.DM(bank._prior_cov().reshape(16, 1, order="F")), 1, n)
@@ -270,11 +271,10 @@ def _sensor_function(n: int, sensor_range: float) -> ca.Function:
 def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     """The closed-loop ``[robot]`` scenario's loop (module docstring) over ``duration`` s (None: the
     scenario's). ValueError naming the key the generated loop cannot follow."""
+    from controllers.robot_mpc import RobotNMPC
     from hbma_ctrl.models.actuation import acting_state
     from hbma_ctrl.robot.plant_step import robot_rig_step_function
     from hbma_ctrl.runtime.safety_step import EVENTS, supervisor_state
-
-    from controllers.robot_mpc import RobotNMPC
 
     # the class's NMPC: its settings and QP pattern are all the generated step needs (not its compiled step)
     s, rs, plant, loop = _build(scn, RobotNMPC)
@@ -413,7 +413,7 @@ def _trajectory_run(scn, spec: LoopSpec, trajectory: np.ndarray):
     after tick k, at the rig's time (k + 1) dt; the step times, which are per Function in times.json,
     left empty)."""
     from hbma_ctrl.app.robot_closed import ClosedLoopRun
-    from hbma_ctrl.robot.targets import change_times, chamber_targets
+    from hbma_ctrl.robot.targets import chamber_targets, change_times
     from hbma_ctrl.runtime.safety_step import EVENTS
 
     s = scn.role("robot")
