@@ -141,9 +141,16 @@ class RobotNMPCFunction(RobotNMPC):
 
     def __init__(self, model, n: int, settings: RobotMPCSettings | None = None, compile: bool = True):
         super().__init__(model, n, settings)
+        #: the step (compiled unless ``compile`` is False: then casadi's Function itself, which a generated
+        #: loop takes as its stage)
         self._fn = FastFunction(robot_rti_step_function(self), compile=compile, flags=casadi_lib_flags(["-losqp"]))
         self._zk, self._yk = np.zeros(self.nv), np.zeros(self.m_rows)
         self._warm = 0.0
+
+    def _data_call(self, lin):
+        """None: the class's own QP-data call is never made here (the Function holds the data's graph),
+        so its library is not built (12.6 s the first time on a machine for 9 chambers)."""
+        return None
 
     def step(self, x0, b, W, h_ref, k=None, c=None, a_max=None):
         """One RTI step through the Function: (supply, outlet) decisions (n,) each, in [0, 1].

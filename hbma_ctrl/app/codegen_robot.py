@@ -271,13 +271,15 @@ def _sensor_function(n: int, sensor_range: float) -> ca.Function:
 def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     """The closed-loop ``[robot]`` scenario's loop (module docstring) over ``duration`` s (None: the
     scenario's). ValueError naming the key the generated loop cannot follow."""
-    from controllers.robot_mpc import RobotNMPC
+    from functools import partial
+
+    from controllers.robot_rti_step import RobotNMPCFunction
     from hbma_ctrl.models.actuation import acting_state
     from hbma_ctrl.robot.plant_step import robot_rig_step_function
     from hbma_ctrl.runtime.safety_step import EVENTS, supervisor_state
 
-    # the class's NMPC: its settings and QP pattern are all the generated step needs (not its compiled step)
-    s, rs, plant, loop = _build(scn, RobotNMPC)
+    # the NMPC's step uncompiled: the sources are generated from its Function, nothing is built here
+    s, rs, plant, loop = _build(scn, partial(RobotNMPCFunction, compile=False))
     nmpc, bank = loop.controller, loop.bank
     n, N = loop.n, nmpc.s.horizon
     T = scn.duration if duration is None else float(duration)
@@ -328,8 +330,6 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
         "carry": np.zeros(2 * n), "event_sums": np.zeros(7), "failed": [0.0], "a_sent": np.zeros(n),
         "o_sent": np.zeros(n),
     }
-    from controllers.robot_rti_step import robot_rti_step_function
-
     stages = [
         Stage(_sensor_function(n, plant.sensor_range), ["p_sensed" if lagged else "p_true", "noise"], ["z"]),
         Stage(_ekf_function(loop), ["z", "w_prev", "act_hist", "act_fill", "ekf_X", "ekf_P", "W", "gated_run"],
@@ -339,7 +339,7 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
                                     "k_std", "ekf_X", "goal", "href", "peak", "released", "sup_state", "burst_state"],
               ["zs", "burst_flagged", "burst_state", "W", "href", "href_N", "a_max", "near_count", "peak", "x_est", "b_est",
                "k_est", "c_est"]),
-        Stage(robot_rti_step_function(nmpc), ["x_est", "b_est", "W", "k_est", "c_est", "a_max", "href_N", "prev",
+        Stage(nmpc._fn.fun, ["x_est", "b_est", "W", "k_est", "c_est", "a_max", "href_N", "prev",
                                               "xbar", "abar", "obar", "nmpc_first", "qp_z", "qp_y", "warm"],
               ["a_dec", "o_dec", "xbar", "abar", "obar", "qp_z_new", "qp_y_new", "rti_status", "rti_residual"]),
         Stage(_post_function(loop), ["t", "rti_status", "a_dec", "o_dec", "abar", "obar", "zs", "href", "lam", "lost",
