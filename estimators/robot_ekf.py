@@ -286,6 +286,15 @@ class ChamberEKFBank:
         self.X = self.rest_state(p0)
         self.P = np.repeat(self._prior_cov().reshape(16, 1), self.n, 1)
 
+    def rest_expr(self, p0) -> tuple:
+        """:meth:`rest_state` and the prior covariance as casadi expressions for readings p0 (1 x n, Pa,
+        already read as 0 where out of the physical range): (X 4 x n, P 16 x n), what a generated loop's
+        restart of a filter writes."""
+        one = ca.DM.ones(1, self.n)
+        y0 = ca.fmax(1.0 + p0 / self.model.actuator.p_env, Y_MIN)
+        P0 = ca.DM(self._prior_cov().reshape(NS * NS, 1, order="F"))
+        return ca.vertcat(y0, self.settings.b0 * one, one, one), ca.repmat(P0, 1, self.n)
+
     @staticmethod
     def gas_mass(X: np.ndarray) -> np.ndarray:
         """The gas mass x (the model's, scaled: see the module doc) of filter states X (4, n)."""
@@ -456,11 +465,9 @@ def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Funct
         rows[row] = ca.fmin(ca.fmax(rows[row], a), b)
     top = ca.if_else(is_finite(x_top), x_top, model.x_max)
     rows[0] = ca.fmin(ca.fmax(rows[0], Y_MIN), (top + 1) / rows[3])
-    y0 = ca.fmax(1.0 + zz / model.actuator.p_env, Y_MIN)
-    rest = [y0, s.b0 * ca.DM.ones(1, n), ca.DM.ones(1, n), ca.DM.ones(1, n)]
-    X2 = ca.vertcat(*[ca.if_else(bad, r0, r1) for r0, r1 in zip(rest, rows)])
-    P0 = ca.DM(bank._prior_cov().reshape(NS * NS, 1, order="F"))
-    P2 = ca.vertcat(*[ca.if_else(bad, float(P0[i]) * ca.DM.ones(1, n), Pn[i, :]) for i in range(NS * NS)])
+    X_rest, P_rest = bank.rest_expr(zz)
+    X2 = ca.vertcat(*[ca.if_else(bad, X_rest[i, :], r1) for i, r1 in enumerate(rows)])
+    P2 = ca.vertcat(*[ca.if_else(bad, P_rest[i, :], Pn[i, :]) for i in range(NS * NS)])
     h, p, h_std, lam = out[2], out[3], out[5], out[7]
     # a restarted filter reports its restart (the model's outputs at its new state, h_std unknown)
     # where the diverged step's outputs are not finite

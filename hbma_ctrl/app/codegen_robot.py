@@ -176,7 +176,6 @@ def _pre_function(loop) -> ca.Function:
 
 def _post_function(loop) -> ca.Function:
     """robot_post: the tick's part after the NMPC (module docstring)."""
-    from estimators.robot_ekf import Y_MIN
     from hbma_ctrl.models.bank import throttled_inputs_function
     from hbma_ctrl.runtime.robot_step import net_vents_function
     from hbma_ctrl.runtime.safety_step import state_size, supervisor_function
@@ -215,12 +214,9 @@ def _post_function(loop) -> ca.Function:
     lo, hi = bank._bounds
     # a reading out of the physical range (NaN, +-inf too: every comparison is false for NaN) reads as 0
     p0 = ca.if_else(ca.logic_and(zs >= lo, zs <= hi), zs, 0.0)
-    y0 = ca.fmax(1.0 + p0 / model.actuator.p_env, Y_MIN)
-    rest = ca.horzcat(y0, ca.DM.ones(n, 1) * bank.settings.b0, ca.DM.ones(n, 1), ca.DM.ones(n, 1)).T
-    P0 = ca.repmat(ca.DM(bank._prior_cov().reshape(16, 1, order="F")), 1, n)
-    rel = ca.repmat((released != 0).T, 4, 1)
-    X_next = ca.if_else(rel, rest, X)
-    P_next = ca.if_else(ca.repmat((released != 0).T, 16, 1), P0, P)
+    X_rest, P_rest = bank.rest_expr(p0.T)
+    X_next = ca.if_else(ca.repmat((released != 0).T, 4, 1), X_rest, X)
+    P_next = ca.if_else(ca.repmat((released != 0).T, 16, 1), P_rest, P)
     prev = ca.horzcat(a, o).T  # what the NMPC's input-rate terms start from (RobotNMPC.applied)
     if loop.pwm.active:
         nv = net_vents_function(model, n, loop.pwm.min_duty, loop._period, "robot_net_vents")
