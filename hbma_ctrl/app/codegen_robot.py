@@ -117,13 +117,6 @@ def _ekf_function(loop) -> ca.Function:
                        ["act_hist_next", "act_fill_next"] + keys)
 
 
-def _sup_slices(n: int, N: int):
-    """Where the supervisor's state keeps its lost and burst latches (state layout of
-    :func:`hbma_ctrl.runtime.safety_step.state_size`)."""
-    base = N * n * 2 + 1 + 3 * n
-    return slice(base, base + n), slice(base + n, base + 2 * n)
-
-
 def _pre_function(loop) -> ca.Function:
     """robot_pre: the tick's part between the bank and the NMPC (module docstring)."""
     from hbma_ctrl.core.codegen import is_finite
@@ -131,7 +124,7 @@ def _pre_function(loop) -> ca.Function:
     from hbma_ctrl.robot.plant_step import load_sharing_function
     from hbma_ctrl.runtime.burst import burst_function
     from hbma_ctrl.runtime.robot_step import caps_function, slew_function
-    from hbma_ctrl.runtime.safety_step import state_size
+    from hbma_ctrl.runtime.safety_step import state_parts, state_size
 
     n, N, sup, model = loop.n, loop.controller.s.horizon, loop.supervisor, loop.model
     MX = ca.MX
@@ -144,8 +137,8 @@ def _pre_function(loop) -> ca.Function:
     bst = MX.sym("burst_state", 1 if loop.burst is None else _burst_state(loop).size)
     # the interlock sees the readings the bank trusted (an outlier is no pressure)
     zs = ca.if_else(outlier != 0, ca.DM.nan(n, 1), z)
-    sl_lost, sl_burst = _sup_slices(n, N)
-    sup_lost, sup_burst = sst[sl_lost], sst[sl_burst]
+    parts = state_parts(n, 2, N)
+    sup_lost, sup_burst = sst[parts["lost"]], sst[parts["burst"]]
     if loop.burst is not None:
         bf = burst_function(loop.burst.settings, n, "robot_burst")
         lost_new = ca.logic_and(lost != 0, ca.logic_not(sup_lost != 0))

@@ -52,7 +52,7 @@ from estimators.common import classify_expr
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.fidelity import OUTPUTS
 from hbma_ctrl.runtime.chamber import chamber_supervisor
-from hbma_ctrl.runtime.safety_step import supervisor_function
+from hbma_ctrl.runtime.safety_step import state_parts, supervisor_function
 from hbma_ctrl.sim.plant_step import (
     initial_plant_state,
     plant_step_function,
@@ -179,12 +179,14 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     plan, has_plan, age, streak = SX.sym("plan", 3, N), SX.sym("has_plan"), SX.sym("age"), SX.sym("streak")
     okc = ca.logic_and(status == 0, fail_s == 0)
     supervise = supervisor_function(sup, 1, 3, N, "mpc_supervisor")
-    # one chamber, plans by row (no plan times), no vent rule, stretch guard, lost or burst input
+    # one chamber, plans by row (no plan times), no vent rule, stretch guard, lost or burst input: the
+    # state in state_parts' order, its plan time and latches 0
+    parts = state_parts(1, 3, N)
     state = ca.vertcat(ca.vec(plan), has_plan, 0.0, streak, age, 0.0, 0.0)
     nan = ca.DM.nan()
     out, nxt = supervise(0.0, u0, p_g_in, okc, ca.vec(Up), okc, nan, nan, 0.0, 0.0, state)[:2]
-    plan_n = ca.reshape(nxt[:3 * N], 3, N)
-    has_n, streak_n, age_n = nxt[3 * N], nxt[3 * N + 2], nxt[3 * N + 3]
+    plan_n = ca.reshape(nxt[parts["plan"]], 3, N)
+    has_n, streak_n, age_n = (nxt[parts[key].start] for key in ("has_plan", "streak", "age"))
     post = ca.Function("mpc_post", [u0, Up, status, fail_s, p_g_in, plan, has_plan, age, streak],
                        [out, 1 - okc, plan_n, has_n, age_n, streak_n],
                        ["u0", "U_plan", "status", "fail", "p", "plan", "has_plan", "age", "streak"],

@@ -28,16 +28,30 @@ import numpy as np
 from hbma_ctrl.core.codegen import is_finite
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 
-__all__ = ["EVENTS", "supervisor_function", "supervisor_state", "state_size"]
+__all__ = ["EVENTS", "supervisor_function", "supervisor_state", "state_size", "state_parts"]
 
 #: the per-chamber event rows of the Function's ``events`` output (the Supervisor's counts' keys)
 EVENTS = ("shifted_plan", "safe_command", "vent", "guard", "stretch_guard", "lost_estimate", "burst")
 
 
+#: the per-chamber parts of the Function's state, in its order after the plan and whether there is one
+_CHAMBER_PARTS = ("plan_t", "streak", "age", "lost", "burst")
+
+
+def state_parts(n: int, c: int, H: int) -> dict:
+    """Where each part of the Function's state sits (name -> slice): the plan (H n c) and whether there
+    is one ("has_plan", 1), then per chamber the plan's time, the streak, the rows replayed, the lost
+    and the burst latches (n each)."""
+    m = H * n * c
+    parts = {"plan": slice(0, m), "has_plan": slice(m, m + 1)}
+    for j, key in enumerate(_CHAMBER_PARTS):
+        parts[key] = slice(m + 1 + j * n, m + 1 + (j + 1) * n)
+    return parts
+
+
 def state_size(n: int, c: int, H: int) -> int:
-    """The length of the Function's state: the plan (H n c) and whether there is one (1), then per
-    chamber the plan's time, the streak, the rows replayed, the lost and the burst latches (5 n)."""
-    return H * n * c + 1 + 5 * n
+    """The length of the Function's state (:func:`state_parts`)."""
+    return state_parts(n, c, H)["burst"].stop
 
 
 def supervisor_state(sup: Supervisor, c: int, H: int) -> np.ndarray:
@@ -63,11 +77,11 @@ def supervisor_function(settings: SupervisorSettings, n: int, c: int, H: int, na
     cmd_in, p_in, ok_in = SX.sym("command", n * c), SX.sym("pressure", n), SX.sym("ok", n)
     plan_in, given = SX.sym("plan", H * n * c), SX.sym("plan_given")
     target, stretch, lost_in, burst_in = SX.sym("target", n), SX.sym("stretch", n), SX.sym("lost", n), SX.sym("burst", n)
-    S = state_size(n, c, H)
-    st = SX.sym("state", S)
+    parts = state_parts(n, c, H)
+    st = SX.sym("state", state_size(n, c, H))
     m = H * n * c
-    plan0, has0 = st[:m], st[m]
-    plan_t0, streak0, age0, lost0, burst0 = (st[m + 1 + j * n:m + 1 + (j + 1) * n] for j in range(5))
+    plan0, has0 = st[parts["plan"]], st[parts["has_plan"].start]
+    plan_t0, streak0, age0, lost0, burst0 = (st[parts[key]] for key in _CHAMBER_PARTS)
 
     def at(r, i, j):  # the flat index of plan row r, chamber i, column j
         return (r * n + i) * c + j
