@@ -16,7 +16,7 @@ from hbma_ctrl.app.cli import app
 from hbma_ctrl.models.exact import ExactMembrane
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics
-from hbma_ctrl.robot.reach import _pivot_balance, bonded_layer_pose
+from hbma_ctrl.robot.reach import _pivot_balance, bonded_layer_pose, paper_pose_check
 from hbma_ctrl.robot.statics import BOND_RADIUS, bonded_chamber, bonded_chamber_states, bonded_table
 
 D = RobotDesign(n_layers=2)
@@ -98,7 +98,39 @@ def test_robot_table2_prints_the_bonded_reading_beside_the_paper(tmp_path):
     assert all(r["within_reach"] for r in rows)
     # the glued chambers reach ~4 mm: no taut exact equilibrium beyond ~6 mm (slack hoop), far from the paper's poses
     assert rows[3]["length_mm"] < rows[3]["paper_length_mm"] - 10
-    assert "| bonded | 1 |" in (tmp_path / "t2" / "table2.md").read_text()
+    md = (tmp_path / "t2" / "table2.md").read_text()
+    assert "| bonded | 1 |" in md and "No rigid-layer statics" in md
+    poses = json.loads((tmp_path / "t2" / "paper_poses.json").read_text())
+    assert [r["inflated"] for r in poses] == [1, 1, 2, 2] and not any(r["equilibrium"] for r in poses)
+
+
+def test_the_papers_one_and_two_chamber_poses_are_no_rigid_layer_equilibrium():
+    """Table II's rows 1-2 as a three-point pose: the pose has the paper's bend and centre; the load sharing
+    needs every vented chamber to push, where a lifted vented glued chamber pulls (or has no taut state);
+    row 1's rims overlap, and a rim pivot would need another layer radius than the robot's 22 mm."""
+    from hbma_ctrl.robot.design import TABLE2_PAPER
+
+    rows = paper_pose_check(D)
+    assert [(r["inflated"], r["reading"]) for r in rows] == [
+        (1, "length - L"), (1, "length - paper rest length"), (2, "length - L"), (2, "length - paper rest length")]
+    paper = {n: (a, ln) for n, a, ln, _ in TABLE2_PAPER}
+    for r in rows:
+        n = r["inflated"]
+        H = np.zeros((2, 3))
+        H[0] = np.array(r["heights_mm"]) * 1e-3
+        pose = forward_kinematics(D, H)
+        assert math.degrees(pose.bend[0]) == pytest.approx(paper[n][0], abs=1e-9)
+        assert pose.centre[0] * 1e3 == pytest.approx(r["centre_mm"], abs=1e-9)
+        vented = list(range(n, 3))
+        assert min(r["heights_mm"][i] for i in vented) > 4.0  # lifted, not resting on the layer below
+        assert all(r["needed_forces_n"][i] > 0.1 for i in vented)  # they would have to push
+        assert all(not math.isfinite(f) or f < -1.0 for f in r["vented_force_n"])  # they pull (or no taut state)
+        assert not r["equilibrium"] and r["vented_must_push"]
+        assert abs(r["rim_radius_mm"] - r["layer_radius_mm"]) > 3.0
+        # vertical balance of the needed forces: the weight above along the layer normal
+        assert sum(r["needed_forces_n"]) == pytest.approx(W_ABOVE * math.cos(pose.bend[0]), rel=1e-9)
+    assert all(r["rim_gap_mm"] < 0 for r in rows if r["inflated"] == 1)  # the rigid rims would overlap
+    assert all(math.isfinite(f) for r in rows if r["inflated"] == 1 for f in r["vented_force_n"])
 
 
 @pytest.mark.parametrize("args, key", [(["--bond-radius-mm", "4.5"], "--bond-radius-mm"),

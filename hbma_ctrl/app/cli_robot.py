@@ -71,7 +71,7 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
                                             "once, a few minutes)")) -> None:
     """The paper's Table II beside the model (one layer, 0-3 chambers inflated)."""
     from hbma_ctrl.robot.design import RobotDesign
-    from hbma_ctrl.robot.reach import bonded_table2, robot_table2, table2_markdown
+    from hbma_ctrl.robot.reach import bonded_table2, paper_pose_check, paper_pose_markdown, robot_table2, table2_markdown
 
     if not 1.0 <= hold_kpa <= 1000.0:
         raise ValueError(f"--hold-kpa = {hold_kpa} is out of range [1, 1000] kPa")
@@ -88,8 +88,12 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
         if bonded:
             rows += bonded_table2(d, U.kpa(bond_kpa), U.mm(bond_radius_mm))
         md = table2_markdown(rows)
-        (tmp / "table2.md").write_text(md)
+        # can the paper's one- and two-chamber poses stand at all? (beside the table: its JSON keeps its rows)
+        poses = paper_pose_check(d, U.mm(bond_radius_mm) if bonded else None)
+        pmd = paper_pose_markdown(poses)
+        (tmp / "table2.md").write_text(md + "\nThe paper's poses as rigid-layer statics:\n\n" + pmd)
         (tmp / "table2.json").write_text(json.dumps(rows, indent=1) + "\n")
+        (tmp / "paper_poses.json").write_text(json.dumps(poses, indent=1) + "\n")
     tab = Table(title="Table II: model / paper (one layer of the robot)")
     for c in ("reading", "inflated", "angle (deg)", "length (mm)", "extension (%)", "chamber h (mm)", "p (kPa)",
               "stretch"):
@@ -101,7 +105,8 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
                     f"{r['pressure_kpa']:.1f}", f"{r['stretch']:.2f}")
     Console(highlight=False, width=150).print(tab)
     typer.echo("\n".join(ln for ln in md.splitlines() if ln and not ln.startswith("|")))  # the notes
-    typer.echo(f"wrote {out / 'table2.md'} and {out / 'table2.json'}")
+    typer.echo("\n".join(ln for ln in pmd.splitlines() if ln and not ln.startswith("|")))
+    typer.echo(f"wrote {out / 'table2.md'}, {out / 'table2.json'} and {out / 'paper_poses.json'}")
 
 
 @robot_app.command("workspace")

@@ -395,6 +395,82 @@ def bonded_table2(design: RobotDesign | None = None, pressure: float = 40e3, c: 
     return rows
 
 
+def paper_pose_check(design: RobotDesign | None = None, c: float | None = BOND_RADIUS) -> list[dict]:
+    """Whether Table II's one- and two-chamber poses can be a static equilibrium of the rigid-layer robot.
+
+    For each of those rows and two readings of the paper's length (``centre = length - L``, and
+    ``length -`` the paper's own 0-chamber length, 9.6 mm, which includes a rest gap), the three-point
+    pose through the paper's bend and length (bending away from the inflated chambers) gives the chamber
+    heights (:func:`~hbma_ctrl.robot.kinematics.inverse_kinematics`), the forces the load sharing needs
+    from each chamber under the bodies' weights (:func:`load_sharing`), the rim gap, and what a vented
+    glued chamber gives at its height (:class:`~hbma_ctrl.robot.statics.BondedChamber` at p = 0; NaN
+    past its taut reach; ``c`` None: not computed, an empty list). Why it is decisive: at zero gauge pressure a chamber's force is ``-dU/dh``
+    (virtual work, ``F = p dV/dh - dU/dh``) and a membrane lifted from its flat rest state stores
+    energy, so a lifted vented chamber pulls, whatever its law. A pose whose vented chambers must push
+    is no equilibrium. The layer resting on its rim instead ties the centre to the bend
+    (``R sin(bend)``): ``rim_radius_mm`` is the R the paper's row would need, beside the layer's.
+
+    Returns one dict per (row, reading), edge units (deg, mm, N): inflated, reading, paper_angle_deg,
+    paper_length_mm, centre_mm, heights_mm (3), needed_forces_n (3), vented_force_n (list, the vented
+    chambers'), vented_must_push, rim_gap_mm, rim_radius_mm, layer_radius_mm, equilibrium (False when
+    the vented chambers must push).
+    """
+    from hbma_ctrl.robot.kinematics import inverse_kinematics
+
+    d = design or RobotDesign(n_layers=2)
+    d.validate()
+    ch = None if c is None else bonded_chamber(d.chamber, c)
+    rest_len = U.mm(TABLE2_PAPER[0][2])
+    L, R = d.layer_thickness, d.outer_diameter / 2
+    flat = [0.0] * (d.n_layers - 1)  # the layers above A stay flat, as in robot_table2
+    rows = []
+    for n, pa, pl, _ in TABLE2_PAPER:
+        if n not in (1, 2):
+            continue
+        inflated = list(range(n))
+        vent = [i for i in range(3) if i not in inflated]
+        a = np.asarray(d.chamber_angles)[inflated]
+        psi = math.atan2(-np.sin(a).sum(), -np.cos(a).sum())  # away from the inflated chambers
+        bend = math.radians(pa)
+        for reading, centre in (("length - L", U.mm(pl) - L), ("length - paper rest length", U.mm(pl) - rest_len)):
+            H = inverse_kinematics(d, [centre] + flat, [bend] + flat, [psi] + flat)
+            H[1:] = 0.0
+            share = load_sharing(d, H)
+            need = share.forces[0]
+            must_push = bool(np.all(need[vent] > 0))
+            rows.append({
+                "inflated": n, "reading": reading, "paper_angle_deg": pa, "paper_length_mm": pl,
+                "centre_mm": U.to_mm(centre), "heights_mm": [U.to_mm(float(h)) for h in H[0]],
+                "needed_forces_n": [float(f) for f in need],
+                "vented_force_n": [] if ch is None else [ch.force(float(H[0, i]), 0.0) for i in vent],
+                "vented_must_push": must_push, "rim_gap_mm": U.to_mm(float(share.pose.rim_gap(d)[0])),
+                "rim_radius_mm": U.to_mm(centre / math.sin(bend)), "layer_radius_mm": U.to_mm(R),
+                "equilibrium": not must_push,
+            })
+    return rows
+
+
+def paper_pose_markdown(rows: list[dict]) -> str:
+    """Markdown of :func:`paper_pose_check` rows, with the conclusion in a closing line."""
+    head = ("| HBMA inflated | paper length read as | centre (mm) | chamber h (mm) | forces needed (N) | "
+            "vented glued chamber gives (N) | rim gap (mm) | rim radius needed / layer's (mm) |\n"
+            "|---|---|---|---|---|---|---|---|\n")
+    body = "".join(
+        f"| {r['inflated']} | {r['reading']} | {r['centre_mm']:.2f} | "
+        f"{', '.join(f'{h:.2f}' for h in r['heights_mm'])} | "
+        f"{', '.join(f'{f:+.3f}' for f in r['needed_forces_n'])} | "
+        f"{', '.join(f'{f:+.2f}' if math.isfinite(f) else 'beyond reach' for f in r['vented_force_n']) or '-'} | "
+        f"{r['rim_gap_mm']:.2f} | {r['rim_radius_mm']:.1f} / {r['layer_radius_mm']:.0f} |\n" for r in rows)
+    foot = ""
+    if rows and not any(r["equilibrium"] for r in rows):
+        foot = ("\nIn the paper's poses (its bend and length, the layer's three-point plane) the vented chambers, "
+                "lifted several mm, would have to push; a lifted vented chamber pulls (F = -dU/dh at zero "
+                "pressure). Resting on its rim instead, the layer's centre is R sin(bend): the rows would need "
+                "the rim radius of the last column, not the layer's. No rigid-layer statics with the chambers "
+                "at their places reproduces these rows.\n")
+    return head + body + foot
+
+
 def table2_markdown(rows: list[dict]) -> str:
     """Markdown table of :func:`robot_table2` rows (model vs paper), with the parameters used."""
     p = rows[0]["params"]
