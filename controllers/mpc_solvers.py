@@ -12,7 +12,7 @@ import osqp
 import scipy.sparse as sp
 
 from controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
-from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, casadi_lib_flags, compiled, has_compiler
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, NATIVE_FLAGS, casadi_lib_flags, compiled, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
 
@@ -417,7 +417,8 @@ class _Fatrop:
     second derivatives through the integrator: the same iterations, dearer ones (README, Control).
 
     With ``settings.codegen`` and a C compiler the whole solver (fatrop and the NLP's functions, the
-    tables as inline polynomials) is generated as C, built at :data:`HOT_OPT` against the fatrop
+    tables as inline polynomials) is generated as C, built at :data:`HOT_OPT` for this machine's processor
+    (:data:`~hbma_ctrl.core.codegen.NATIVE_FLAGS`) against the fatrop
     library shipped in the casadi package and cached on disk (:func:`compiled`: about 80 s the first
     time on a machine at N = 20, then a load); ``mode`` is then "c". Otherwise (or if that build
     fails, with a warning) the solver runs on casadi's virtual machine (``mode`` "vm"). With one
@@ -502,7 +503,7 @@ class _Fatrop:
         self.solver = ca.nlpsol("mpc_fatrop", "fatrop", nlp, opts)
         self.mode = "vm"
         if generate:
-            ext = compiled(self.solver, HOT_OPT, [*casadi_lib_flags(["-lfatrop", "-lblasfeo"]), *HOT_FLAGS],
+            ext = compiled(self.solver, HOT_OPT, [*casadi_lib_flags(["-lfatrop", "-lblasfeo"]), *HOT_FLAGS, *NATIVE_FLAGS],
                            on_failure="none")
             if ext is None:
                 warnings.warn("fatrop: its generated C did not build; the solver runs on casadi's virtual "

@@ -52,3 +52,27 @@ def test_a_per_step_flag_the_compiler_rejects_is_dropped_not_the_compilation(tmp
     np.testing.assert_array_equal(_outputs(built, X, Y), _outputs(fun, X, Y))
     # an unknown flag that is not a per-step one is still a failed build
     assert codegen.compiled(fun, "-O1", ["-fno-other-unknown-option"], on_failure="none") is None
+
+
+def test_a_native_library_is_keyed_by_the_processor(tmp_path, monkeypatch):
+    """A build with NATIVE_FLAGS is cached per processor (two signatures, two libraries); without them the
+    processor is not part of the key (one library)."""
+    monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
+    fun = _function()
+    for sig in ("cpu A", "cpu B"):
+        monkeypatch.setattr(codegen, "cpu_signature", lambda sig=sig: sig)
+        codegen._MEMO.clear()
+        codegen.compiled(fun, codegen.HOT_OPT, [*codegen.HOT_FLAGS, *codegen.NATIVE_FLAGS])
+        codegen.compiled(fun, codegen.HOT_OPT, codegen.HOT_FLAGS)
+    libs = {p.name for p in tmp_path.glob("flags_probe_*.so")}
+    assert len(libs) == 3  # the native library once per processor, the portable one once
+    X = np.array([[0.5, -2.0], [1.5, 0.3], [-0.2, 4.0]])
+    Y = np.array([[1.0, -1.0]])
+    np.testing.assert_allclose(_outputs(codegen.compiled(fun, codegen.HOT_OPT, codegen.NATIVE_FLAGS), X, Y),
+                               _outputs(fun, X, Y), rtol=1e-14)
+
+
+def test_cpu_signature_names_the_processor():
+    sig = codegen.cpu_signature()
+    assert isinstance(sig, str) and len(sig) > 3
+    assert sig == codegen.cpu_signature()  # the same machine, the same key

@@ -28,7 +28,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS", "is_nan", "is_finite"]
+__all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS", "NATIVE_FLAGS", "cpu_signature", "is_nan", "is_finite"]
 
 #: the optimisation level and flags of the Functions called every step whose compilation is short
 #: (the EKF step and its reference path's parts, the UKF's propagation, the robot's EKF bank, the
@@ -42,6 +42,14 @@ __all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_com
 #: (12.6 s for 9)
 HOT_OPT = "-O3"
 HOT_FLAGS = ("-fno-semantic-interposition",)
+#: code for this machine's processor (its vector units and fused multiply-adds), for the fatrop solver
+#: only: its generated NLP functions are most of a solve, 6.6 -> 5.1 ms per step at N = 20 (``bench
+#: mpc``, one session). Not for the per-step Functions above: their outputs are compared bit for bit
+#: with other builds, and this changes the last bit (the exact EKF step's outputs differ on recorded
+#: inputs, enough to take another branch in 483 of 7200 steps, even without the fused operations).
+#: A library built with it is keyed by the processor too (:func:`cpu_signature`): a cache shared by
+#: machines never hands one an instruction it lacks
+NATIVE_FLAGS = ("-march=native",)
 
 _MEMO: dict = {}
 
@@ -60,6 +68,26 @@ def is_finite(v):
 def cache_dir() -> Path:
     """Directory of compiled model libraries."""
     return Path(os.environ.get("HBMA_CTRL_CACHE", Path.home() / ".cache" / "hbma-ctrl"))
+
+
+def cpu_signature() -> str:
+    """The processor's model and instruction-set extensions (``/proc/cpuinfo``; elsewhere the platform's
+    machine and processor strings): what a ``-march=native`` library is valid for."""
+    import platform
+
+    try:
+        fields = {}
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                key, _, val = line.partition(":")
+                key = key.strip()
+                if key in ("model name", "flags", "Features", "CPU implementer", "CPU part") and key not in fields:
+                    fields[key] = val.strip()
+        if fields:
+            return "|".join(f"{k}={fields[k]}" for k in sorted(fields))
+    except OSError:
+        pass
+    return f"{platform.machine()}|{platform.processor()}"
 
 
 def _compiler() -> str | None:
@@ -90,7 +118,7 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
 
     ``opt`` is the optimisation flag; neither level enables fast-math, so results do not depend on it.
     ``flags``: more compiler and linker flags (e.g. a QP solver's headers and library); a build that
-    fails with any of :data:`HOT_FLAGS` among them is tried again without them.
+    fails with any of :data:`HOT_FLAGS` or :data:`NATIVE_FLAGS` among them is tried again without them.
     ``on_failure``: 'fallback' returns ``fun`` when there is no compiler or the build fails, 'none'
     returns None then.
     """
@@ -105,7 +133,10 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
         src_path = Path(tmp) / f"{name}.c"
         cg.generate(tmp + os.sep)  # a directory prefix: the process's working directory is never changed
         src = src_path.read_bytes()
-        key = hashlib.sha1(src + " ".join([opt, *flags]).encode()).hexdigest()[:16]
+        tag = " ".join([opt, *flags])
+        if any(f in NATIVE_FLAGS for f in flags):
+            tag += " " + cpu_signature()
+        key = hashlib.sha1(src + tag.encode()).hexdigest()[:16]
         if key in _MEMO:
             return _MEMO[key]
         d = cache_dir()
@@ -116,7 +147,7 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
             res = subprocess.run([cc, opt, "-fPIC", "-shared", str(src_path), "-o", str(out), *flags, "-lm"],
                                  capture_output=True, text=True)
             if res.returncode != 0:
-                hot = [f for f in flags if f in HOT_FLAGS]
+                hot = [f for f in flags if f in HOT_FLAGS or f in NATIVE_FLAGS]
                 if hot:  # a compiler that does not know a per-step flag still builds the Function without it
                     return compiled(fun, opt, [f for f in flags if f not in hot], on_failure)
                 return fun if on_failure == "fallback" else None
