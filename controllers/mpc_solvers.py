@@ -312,9 +312,17 @@ class _RtiOsqp:
 
 
 class _Ipopt:
-    """Multiple-shooting NLP, IPOPT to convergence, warm-started with the shifted solution."""
+    """Multiple-shooting NLP, IPOPT to convergence, warm-started with the shifted solution.
 
-    def __init__(self, model: PredictionModel, s: MPCSettings):
+    Its functions run on casadi's virtual machine (``mode`` "vm"). ``generate``: the whole solver generated
+    as C instead, IPOPT's calls into the ``libipopt`` shipped in the casadi wheel, built as the fatrop
+    variant's is (:data:`HOT_OPT`, the processor's :data:`NATIVE_FLAGS`, cached on disk: about 80 s the
+    first time at N = 20; ``mode`` "c"), for ``bench mpc --ipopt-c``: fatrop against IPOPT on the same
+    footing. The generated solver keeps no statistics: a failed solve is the error it raises, and
+    ``iterations`` is None.
+    """
+
+    def __init__(self, model: PredictionModel, s: MPCSettings, generate: bool = False):
         self.s, self.model = s, model
         N = self.N = s.horizon
         self.stage = _Stage(model, s, "poly")  # no JIT: the polynomials are evaluated faster
@@ -353,7 +361,16 @@ class _Ipopt:
                 "ipopt.max_iter": s.ipopt_max_iter, "ipopt.tol": 1e-6,
                 "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3,
                 "ipopt.max_wall_time": max(10 * s.budget, 0.5), "error_on_fail": False}
-        self.solver = ca.nlpsol("mpc_ipopt", "ipopt", nlp, opts)
+        self.solver = ca.nlpsol("mpc_ipopt", "ipopt", nlp, dict(opts, error_on_fail=generate))
+        self.mode = "vm"
+        if generate:
+            if not has_compiler():
+                raise ValueError("ipopt generated as C needs a C compiler (cc, gcc or clang); none was found")
+            ext = compiled(self.solver, HOT_OPT, [*casadi_lib_flags(["-lipopt"]), *HOT_FLAGS, *NATIVE_FLAGS],
+                           on_failure="none")
+            if ext is None:
+                raise ValueError("ipopt generated as C: the build failed")
+            self.solver, self.mode = ext, "c"
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
         umax = np.array(s.u_max, float)
         self.lbz = np.r_[np.full(N + 1, -0.5), np.zeros(3 * N), np.zeros(N)]
@@ -379,11 +396,20 @@ class _Ipopt:
         kw = {}
         if self.lam_g is not None:
             kw["lam_g0"] = self.lam_g
-        sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg, **kw)
-        st = self.solver.stats()
-        self.iterations = int(st.get("iter_count", 0))
-        if not st.get("success", False):
-            raise _SolverFailure(f"ipopt: {st.get('return_status')}")
+        try:
+            sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg, **kw)
+        except RuntimeError:  # error_on_fail: the generated solver's only report of a failed solve
+            if self.mode != "c":
+                raise
+            self.iterations = None
+            raise _SolverFailure("ipopt: the solve failed (not converged)") from None
+        if self.mode == "c":
+            self.iterations = None
+        else:
+            st = self.solver.stats()
+            self.iterations = int(st.get("iter_count", 0))
+            if not st.get("success", False):
+                raise _SolverFailure(f"ipopt: {st.get('return_status')}")
         z = np.asarray(sol["x"]).ravel()
         self.lam_g = np.asarray(sol["lam_g"]).ravel()
         self.X = z[:N + 1]

@@ -121,6 +121,43 @@ def test_generated_fatrop_equals_the_virtual_machines(model):
             b.solve(_problem(model, s, *CASES[0]))
 
 
+def test_generated_ipopt_equals_the_virtual_machines(model):
+    """IPOPT generated as C (``bench mpc --ipopt-c``) gives the virtual machine's plan, warm-started over
+    the cases, and refuses a solve capped at 2 iterations as a _SolverFailure. N = 4 keeps the build short."""
+    from controllers.mpc_solvers import _SolverFailure
+    from hbma_ctrl.core.codegen import has_compiler
+
+    if not has_compiler():
+        pytest.skip("no C compiler on this machine: IPOPT runs on casadi's virtual machine only")
+    s = MPCSettings(variant="ipopt", horizon=4, budget=10.0).validate()
+    gen, vm = _Ipopt(model, s, generate=True), _Ipopt(model, s)
+    assert (gen.mode, vm.mode) == ("c", "vm")
+    for h, r in CASES:
+        X1, U1 = gen.solve(_problem(model, s, h, r))
+        X2, U2 = vm.solve(_problem(model, s, h, r))
+        np.testing.assert_allclose(U1, U2, atol=1e-7)
+        np.testing.assert_allclose(X1, X2, rtol=1e-8)
+    assert gen.iterations is None and vm.iterations > 0
+    with pytest.raises(_SolverFailure, match="ipopt"):
+        _Ipopt(model, replace(s, ipopt_max_iter=2), generate=True).solve(_problem(model, s, *CASES[0]))
+
+
+def test_bench_summary_compares_fatrop_with_both_ipopts():
+    """bench mpc's summary: fatrop's speed-up over the shipped IPOPT and, with --ipopt-c, over IPOPT
+    generated as C as fatrop is."""
+    from hbma_ctrl.app.bench_mpc import summarize
+
+    def row(name, ms, rmse):
+        return {"controller": name, "solve_ms_median": ms, "solve_ms_p99": 2 * ms, "height_rmse_mm": rmse}
+
+    rows = [row("ipopt N=20", 32.0, 1.359), row("fatrop N=20", 5.0, 1.348), row("ipopt_c N=20", 16.0, 1.359)]
+    out = summarize({"rows": rows})
+    assert out["ipopt_over_fatrop_speed"] == pytest.approx(6.4) and out["fatrop_5x_faster_than_ipopt"]
+    assert out["ipopt_c_over_fatrop_speed"] == pytest.approx(3.2) and not out["fatrop_5x_faster_than_ipopt_c"]
+    assert out["fatrop_rmse_within_1pct"]
+    assert "ipopt_c_over_fatrop_speed" not in summarize({"rows": rows[:2]})
+
+
 def test_unknown_qp_solver_is_refused(model):
     """A solver name outside QP_SOLVERS is a ValueError naming it."""
     with pytest.raises(ValueError, match="qp_solver = 'gurobi'"):

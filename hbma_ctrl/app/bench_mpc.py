@@ -65,11 +65,13 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
               platform: Platform | None = None, section: ControllerSection | None = None,
               duration: float = 9.0, variants=("ipopt", "rti_osqp"), horizons=(10, 20, 40),
               baselines: bool = True, dompc: bool = True, budget_ms: float = 1000.0,
-              rt_budget_ms: float = 15.0, rig_settings=None, progress=None) -> dict:
+              rt_budget_ms: float = 15.0, rig_settings=None, progress=None, ipopt_c: bool = False) -> dict:
     """Run the sweep; returns {"rows": [...], "dompc": status text, "settings": {...}}.
 
-    ``progress(name)`` is called before each row (for a CLI spinner). Raises ValueError on bad
-    arguments (names the argument and its range).
+    ``progress(name)`` is called before each row (for a CLI spinner). ``ipopt_c``: one more row,
+    "ipopt_c N=20", IPOPT generated as C and built as the fatrop variant is (the shipped IPOPT runs its
+    functions on casadi's virtual machine); it needs a C compiler. Raises ValueError on bad arguments
+    (names the argument and its range).
     """
 
     actuator = actuator or Actuator()
@@ -101,6 +103,16 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
         for n in horizons:
             mpc = replace(section.mpc, variant=v, horizon=n, budget=U.ms(budget_ms)).validate()
             run(f"{v} N={n}", replace(section, kind="mpc", mpc=mpc))
+    if ipopt_c:
+        from controllers.mpc import NMPC
+        from controllers.mpc_solvers import _Ipopt
+
+        mpc = replace(section.mpc, variant="ipopt", horizon=20, budget=U.ms(budget_ms)).validate()
+        if progress:
+            progress("building ipopt_c N=20 (about 80 s the first time on a machine)")
+        ctrl = NMPC(actuator, pneumatics, mpc, model=model)
+        ctrl.backend = _Ipopt(model, mpc, generate=True)
+        run("ipopt_c N=20", replace(section, kind="mpc", mpc=mpc), ctrl)
     if baselines:
         run("pid", replace(section, kind="pid"))
         run("bang_bang", replace(section, kind="bang_bang"))
@@ -165,6 +177,10 @@ def _summarize_new(by: dict) -> dict:
             if ip:
                 out["ipopt_over_fatrop_speed"] = ip["solve_ms_median"] / row["solve_ms_median"]
                 out["fatrop_5x_faster_than_ipopt"] = out["ipopt_over_fatrop_speed"] >= 5.0
+            gen = by.get("ipopt_c N=20")
+            if gen:  # the same comparison with IPOPT generated as C too
+                out["ipopt_c_over_fatrop_speed"] = gen["solve_ms_median"] / row["solve_ms_median"]
+                out["fatrop_5x_faster_than_ipopt_c"] = out["ipopt_c_over_fatrop_speed"] >= 5.0
             continue
         out[f"{v}_median_le_0.2ms"] = row["solve_ms_median"] <= 0.2
         out[f"{v}_p99_le_0.5ms"] = row["solve_ms_p99"] <= 0.5

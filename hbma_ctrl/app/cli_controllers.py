@@ -98,6 +98,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         rt_budget_ms: Annotated[float, typer.Option(help="real-time budget for the over_rt column")] = 15.0,
         out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_mpc.json")] = Path("runs/bench_mpc"),
         overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+        ipopt_c: Annotated[bool, typer.Option("--ipopt-c", help="one more row: IPOPT N=20 generated as C as "
+                                              "fatrop is (about 80 s to build the first time; needs a C compiler)")] = False,
     ) -> None:
         """MPC speed/accuracy: IPOPT, fatrop, RTI-OSQP and the one-Function RTI x horizon, baselines and do-mpc, on one closed loop."""
         from hbma_ctrl.app.bench_mpc import run_bench, summarize, write_bench
@@ -122,7 +124,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         con = Console(highlight=False, width=170)
         with run_dir(out, command="bench mpc", argv=cli_argv(), scenario_path=scenario, overwrite=overwrite) as tmp:
             res = run_bench(duration=duration, variants=vs, horizons=hs, baselines=baselines, dompc=dompc,
-                            budget_ms=budget_ms, rt_budget_ms=rt_budget_ms,
+                            budget_ms=budget_ms, rt_budget_ms=rt_budget_ms, ipopt_c=ipopt_c,
                             progress=lambda name: con.print(f"  running {name} ..."), **kw)
             written = write_bench(res, tmp)
         t = Table(title=f"bench mpc: {res['settings']['load_g']:g} g, {duration:g} s, targets "
