@@ -396,26 +396,34 @@ class _Ipopt:
         kw = {}
         if self.lam_g is not None:
             kw["lam_g0"] = self.lam_g
-        try:
-            sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg, **kw)
-        except RuntimeError:  # error_on_fail: the generated solver's only report of a failed solve
-            if self.mode != "c":
-                raise
-            self.iterations = None
-            raise _SolverFailure("ipopt: the solve failed (not converged)") from None
-        if self.mode == "c":
-            self.iterations = None
-        else:
-            st = self.solver.stats()
-            self.iterations = int(st.get("iter_count", 0))
-            if not st.get("success", False):
-                raise _SolverFailure(f"ipopt: {st.get('return_status')}")
+        sol = _nlp_solve(self, "ipopt", x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg, **kw)
         z = np.asarray(sol["x"]).ravel()
         self.lam_g = np.asarray(sol["lam_g"]).ravel()
         self.X = z[:N + 1]
         self.U = np.clip(z[N + 1:N + 1 + 3 * N].reshape(N, 3), 0.0, 1.0)
         self.S = z[N + 1 + 3 * N:]
         return self.X, self.U
+
+
+def _nlp_solve(backend, name: str, **args) -> dict:
+    """One solve of ``backend.solver`` (an nlpsol, or its generated C when ``backend.mode`` is "c"); sets
+    ``backend.iterations`` (None from generated C, which keeps no statistics) and returns the solution.
+    A failed solve is a _SolverFailure naming the solver: generated C raises it (``error_on_fail``, its
+    only report), the virtual machine reports it in its statistics (and raises too where the solver was
+    built to be generated and its build failed)."""
+    backend.iterations = None
+    try:
+        sol = backend.solver(**args)
+    except RuntimeError:
+        why = "the solve failed (not converged)" if backend.mode == "c" else \
+            str(backend.solver.stats().get("return_status", "the solve failed"))
+        raise _SolverFailure(f"{name}: {why}") from None
+    if backend.mode != "c":
+        st = backend.solver.stats()
+        backend.iterations = int(st.get("iter_count", 0) or 0)
+        if not st.get("success", False):
+            raise _SolverFailure(f"{name}: {st.get('return_status')}")
+    return sol
 
 
 def _csc_with_perm(rows, cols, n, m=None):
@@ -572,18 +580,7 @@ class _Fatrop:
             z0[self.isl] = np.r_[self.z[self.isl][1:], self.z[self.isl][-1]]
             z0[self.isg[1:]] = z0[self.isl]
         par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3, self._weights]
-        try:
-            sol = self.solver(x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
-        except RuntimeError:  # error_on_fail: the generated solver's only report of a failed solve
-            self.iterations = None
-            raise _SolverFailure("fatrop: the solve failed (not converged)") from None
-        if self.mode == "c":
-            self.iterations = None
-        else:
-            st = self.solver.stats()
-            self.iterations = int(st.get("iter_count", 0) or 0)
-            if not st.get("success", False):
-                raise _SolverFailure(f"fatrop: {st.get('return_status')}")
+        sol = _nlp_solve(self, "fatrop", x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
         z = np.asarray(sol["x"]).ravel()
         if not np.all(np.isfinite(z)):
             raise _SolverFailure("fatrop: non-finite solution")

@@ -88,6 +88,18 @@ def test_fatrop_and_ipopt_give_the_same_first_input(model, h, r):
     assert np.abs(U_fa[0] - U_ip[0]).max() < 1e-2
 
 
+def _same_plans(model, s, gen, vm, atol: float, rtol: float) -> None:
+    """A generated solver (mode "c", no statistics) and the same on the virtual machine give the same
+    first inputs (atol) and state plans (rtol), warm-started over CASES."""
+    assert (gen.mode, vm.mode) == ("c", "vm")
+    for h, r in CASES:
+        X1, U1 = gen.solve(_problem(model, s, h, r))
+        X2, U2 = vm.solve(_problem(model, s, h, r))
+        np.testing.assert_allclose(U1, U2, atol=atol)
+        np.testing.assert_allclose(X1, X2, rtol=rtol)
+    assert gen.iterations is None and vm.iterations > 0
+
+
 def test_generated_fatrop_equals_the_virtual_machines(model):
     """fatrop generated as C (``codegen``, built once and cached) gives the first input and plan of the
     same solver on casadi's virtual machine, warm-started over three steps, also with other weights
@@ -100,13 +112,7 @@ def test_generated_fatrop_equals_the_virtual_machines(model):
         pytest.skip("no C compiler on this machine: fatrop runs on casadi's virtual machine only")
     s = MPCSettings(variant="fatrop", horizon=6, budget=10.0).validate()
     gen, vm = _Fatrop(model, s), _Fatrop(model, replace(s, codegen=False))
-    assert (gen.mode, vm.mode) == ("c", "vm")
-    for h, r in CASES:
-        X1, U1 = gen.solve(_problem(model, s, h, r))
-        X2, U2 = vm.solve(_problem(model, s, h, r))
-        np.testing.assert_allclose(U1, U2, atol=1e-8)
-        np.testing.assert_allclose(X1, X2, rtol=1e-9)
-    assert gen.iterations is None and vm.iterations > 0
+    _same_plans(model, s, gen, vm, atol=1e-8, rtol=1e-9)
     # other weights (a tuning study's trial): the same library, their own optimum
     w = dict(w_terminal=2.0, w_rate=(0.05, 0.004, 0.01), c_input=(0.03, 0.0, 0.01))
     gen2, vm2 = _Fatrop(model, replace(s, **w)), _Fatrop(model, replace(s, codegen=False, **w))
@@ -131,13 +137,7 @@ def test_generated_ipopt_equals_the_virtual_machines(model):
         pytest.skip("no C compiler on this machine: IPOPT runs on casadi's virtual machine only")
     s = MPCSettings(variant="ipopt", horizon=4, budget=10.0).validate()
     gen, vm = _Ipopt(model, s, generate=True), _Ipopt(model, s)
-    assert (gen.mode, vm.mode) == ("c", "vm")
-    for h, r in CASES:
-        X1, U1 = gen.solve(_problem(model, s, h, r))
-        X2, U2 = vm.solve(_problem(model, s, h, r))
-        np.testing.assert_allclose(U1, U2, atol=1e-7)
-        np.testing.assert_allclose(X1, X2, rtol=1e-8)
-    assert gen.iterations is None and vm.iterations > 0
+    _same_plans(model, s, gen, vm, atol=1e-7, rtol=1e-8)
     with pytest.raises(_SolverFailure, match="ipopt"):
         _Ipopt(model, replace(s, ipopt_max_iter=2), generate=True).solve(_problem(model, s, *CASES[0]))
 
