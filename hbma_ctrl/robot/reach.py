@@ -28,7 +28,7 @@ from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.robot.design import LETTERS, TABLE2_PAPER, RobotDesign
-from hbma_ctrl.robot.kinematics import forward_kinematics
+from hbma_ctrl.robot.kinematics import forward_kinematics, inverse_kinematics
 from hbma_ctrl.robot.statics import BOND_RADIUS, bonded_chamber, chamber_solver, chamber_states, load_sharing
 
 
@@ -395,6 +395,11 @@ def bonded_table2(design: RobotDesign | None = None, pressure: float = 40e3, c: 
     return rows
 
 
+def _finite_or_none(v: float) -> float | None:
+    """v, or None where it is not a finite number (JSON has no NaN)."""
+    return float(v) if math.isfinite(v) else None
+
+
 def paper_pose_check(design: RobotDesign | None = None, c: float | None = BOND_RADIUS) -> list[dict]:
     """Whether Table II's one- and two-chamber poses can be a static equilibrium of the rigid-layer robot.
 
@@ -403,20 +408,20 @@ def paper_pose_check(design: RobotDesign | None = None, c: float | None = BOND_R
     pose through the paper's bend and length (bending away from the inflated chambers) gives the chamber
     heights (:func:`~hbma_ctrl.robot.kinematics.inverse_kinematics`), the forces the load sharing needs
     from each chamber under the bodies' weights (:func:`load_sharing`), the rim gap, and what a vented
-    glued chamber gives at its height (:class:`~hbma_ctrl.robot.statics.BondedChamber` at p = 0; NaN
-    past its taut reach; ``c`` None: not computed, an empty list). Why it is decisive: at zero gauge pressure a chamber's force is ``-dU/dh``
-    (virtual work, ``F = p dV/dh - dU/dh``) and a membrane lifted from its flat rest state stores
-    energy, so a lifted vented chamber pulls, whatever its law. A pose whose vented chambers must push
-    is no equilibrium. The layer resting on its rim instead ties the centre to the bend
-    (``R sin(bend)``): ``rim_radius_mm`` is the R the paper's row would need, beside the layer's.
+    glued chamber gives at its height (:class:`~hbma_ctrl.robot.statics.BondedChamber` at p = 0, glue
+    radius ``c``; None past its taut reach; ``c`` None: not computed, an empty list).
+
+    Why it is decisive: at zero gauge pressure a chamber's force is ``-dU/dh`` (virtual work,
+    ``F = p dV/dh - dU/dh``) and a membrane lifted from its flat rest state stores energy, so a lifted
+    vented chamber pulls, whatever its law. A pose whose vented chambers must push is no equilibrium.
+    The layer resting on its rim instead ties the centre to the bend (``R sin(bend)``):
+    ``rim_radius_mm`` is the R the paper's row would need, beside the layer's.
 
     Returns one dict per (row, reading), edge units (deg, mm, N): inflated, reading, paper_angle_deg,
     paper_length_mm, centre_mm, heights_mm (3), needed_forces_n (3), vented_force_n (list, the vented
     chambers'), vented_must_push, rim_gap_mm, rim_radius_mm, layer_radius_mm, equilibrium (False when
     the vented chambers must push).
     """
-    from hbma_ctrl.robot.kinematics import inverse_kinematics
-
     d = design or RobotDesign(n_layers=2)
     d.validate()
     ch = None if c is None else bonded_chamber(d.chamber, c)
@@ -442,7 +447,7 @@ def paper_pose_check(design: RobotDesign | None = None, c: float | None = BOND_R
                 "inflated": n, "reading": reading, "paper_angle_deg": pa, "paper_length_mm": pl,
                 "centre_mm": U.to_mm(centre), "heights_mm": [U.to_mm(float(h)) for h in H[0]],
                 "needed_forces_n": [float(f) for f in need],
-                "vented_force_n": [] if ch is None else [ch.force(float(H[0, i]), 0.0) for i in vent],
+                "vented_force_n": [] if ch is None else [_finite_or_none(ch.force(float(H[0, i]), 0.0)) for i in vent],
                 "vented_must_push": must_push, "rim_gap_mm": U.to_mm(float(share.pose.rim_gap(d)[0])),
                 "rim_radius_mm": U.to_mm(centre / math.sin(bend)), "layer_radius_mm": U.to_mm(R),
                 "equilibrium": not must_push,
@@ -459,7 +464,7 @@ def paper_pose_markdown(rows: list[dict]) -> str:
         f"| {r['inflated']} | {r['reading']} | {r['centre_mm']:.2f} | "
         f"{', '.join(f'{h:.2f}' for h in r['heights_mm'])} | "
         f"{', '.join(f'{f:+.3f}' for f in r['needed_forces_n'])} | "
-        f"{', '.join(f'{f:+.2f}' if math.isfinite(f) else 'beyond reach' for f in r['vented_force_n']) or '-'} | "
+        f"{', '.join('beyond reach' if f is None else f'{f:+.2f}' for f in r['vented_force_n']) or '-'} | "
         f"{r['rim_gap_mm']:.2f} | {r['rim_radius_mm']:.1f} / {r['layer_radius_mm']:.0f} |\n" for r in rows)
     foot = ""
     if rows and not any(r["equilibrium"] for r in rows):
