@@ -12,7 +12,8 @@ import osqp
 import scipy.sparse as sp
 
 from controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
-from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, NATIVE_FLAGS, casadi_lib_flags, compiled, has_compiler
+from hbma_ctrl.core.codegen import (HOT_FLAGS, HOT_OPT, NATIVE_FLAGS, cache_dir, casadi_lib_flags, compiled,
+                                    has_compiler)
 from hbma_ctrl.models.tables import PredictionModel
 
 
@@ -367,7 +368,7 @@ class _Ipopt:
             if not has_compiler():
                 raise ValueError("ipopt generated as C needs a C compiler (cc, gcc or clang); none was found")
             ext = compiled(self.solver, HOT_OPT, [*casadi_lib_flags(["-lipopt"]), *HOT_FLAGS, *NATIVE_FLAGS],
-                           on_failure="none")
+                           on_failure="none", notice=_build_notice("ipopt", N))
             if ext is None:
                 raise ValueError("ipopt generated as C: the build failed")
             self.solver, self.mode = ext, "c"
@@ -403,6 +404,12 @@ class _Ipopt:
         self.U = np.clip(z[N + 1:N + 1 + 3 * N].reshape(N, 3), 0.0, 1.0)
         self.S = z[N + 1 + 3 * N:]
         return self.X, self.U
+
+
+def _build_notice(name: str, N: int) -> str:
+    """The line a generated NLP solver's first build on a machine writes to stderr."""
+    return (f"{name}: building the generated solver for N = {N} on this machine, once (about 80 s at N = 20, "
+            f"6 s at N = 6); cached in {cache_dir()}")
 
 
 def _nlp_solve(backend, name: str, **args) -> dict:
@@ -538,7 +545,7 @@ class _Fatrop:
         self.mode = "vm"
         if generate:
             ext = compiled(self.solver, HOT_OPT, [*casadi_lib_flags(["-lfatrop", "-lblasfeo"]), *HOT_FLAGS, *NATIVE_FLAGS],
-                           on_failure="none")
+                           on_failure="none", notice=_build_notice("fatrop", N))
             if ext is None:
                 warnings.warn("fatrop: its generated C did not build; the solver runs on casadi's virtual "
                               "machine (slower, same results)", RuntimeWarning, stacklevel=3)

@@ -76,3 +76,14 @@ def test_cpu_signature_names_the_processor():
     sig = codegen.cpu_signature()
     assert isinstance(sig, str) and len(sig) > 3
     assert sig == codegen.cpu_signature()  # the same machine, the same key
+
+
+def test_a_build_notice_is_written_only_when_the_library_is_built(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
+    fun = _function()
+    codegen._MEMO.clear()
+    codegen.compiled(fun, "-O1", notice="building the probe")
+    assert "building the probe" in capsys.readouterr().err
+    codegen._MEMO.clear()  # a new process: the library is on disk, nothing to build
+    codegen.compiled(fun, "-O1", notice="building the probe")
+    assert capsys.readouterr().err == ""

@@ -21,6 +21,7 @@ import hashlib
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -113,14 +114,15 @@ def casadi_lib_flags(libs: Sequence[str]) -> list[str]:
 
 
 def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
-             on_failure: str = "fallback") -> ca.Function | None:
+             on_failure: str = "fallback", notice: str | None = None) -> ca.Function | None:
     """The Function compiled to a shared library (cached by source and flags), or itself without a compiler.
 
     ``opt`` is the optimisation flag; neither level enables fast-math, so results do not depend on it.
     ``flags``: more compiler and linker flags (e.g. a QP solver's headers and library); a build that
     fails with any of :data:`HOT_FLAGS` or :data:`NATIVE_FLAGS` among them is tried again without them.
     ``on_failure``: 'fallback' returns ``fun`` when there is no compiler or the build fails, 'none'
-    returns None then.
+    returns None then. ``notice``: a line written to stderr when the library is not cached and the
+    build starts (for builds that take a minute: the user sees why nothing happens).
     """
     cc = _compiler()
     if cc is None:
@@ -143,13 +145,15 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
         d.mkdir(parents=True, exist_ok=True)
         lib = d / f"{name}_{key}.so"
         if not lib.exists():
+            if notice:
+                print(notice, file=sys.stderr, flush=True)
             out = Path(tmp) / "out.so"
             res = subprocess.run([cc, opt, "-fPIC", "-shared", str(src_path), "-o", str(out), *flags, "-lm"],
                                  capture_output=True, text=True)
             if res.returncode != 0:
                 hot = [f for f in flags if f in HOT_FLAGS or f in NATIVE_FLAGS]
                 if hot:  # a compiler that does not know a per-step flag still builds the Function without it
-                    return compiled(fun, opt, [f for f in flags if f not in hot], on_failure)
+                    return compiled(fun, opt, [f for f in flags if f not in hot], on_failure, notice)
                 return fun if on_failure == "fallback" else None
             fd, part = tempfile.mkstemp(dir=d, suffix=".so.part")
             os.close(fd)
