@@ -158,6 +158,24 @@ def test_bench_summary_compares_fatrop_with_both_ipopts():
     assert "ipopt_c_over_fatrop_speed" not in summarize({"rows": rows[:2]})
 
 
+def test_bench_ipopt_c_without_a_compiler_is_one_error_line_before_any_row(tmp_path, monkeypatch):
+    """``bench mpc --ipopt-c`` on a machine without a C compiler: exit 2, one error line naming the flag,
+    and no run directory (nothing measured, nothing lost)."""
+    from typer.testing import CliRunner
+
+    from hbma_ctrl.app.cli import app
+    from hbma_ctrl.core import codegen
+
+    monkeypatch.setattr(codegen, "has_compiler", lambda: False)
+    out = tmp_path / "b"
+    res = CliRunner().invoke(app, ["bench", "mpc", "--horizons", "20", "--variants", "rti_c_osqp", "--no-baselines",
+                                   "--no-dompc", "--ipopt-c", "--out", str(out)])
+    assert res.exit_code == 2
+    lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: --ipopt-c") and "C compiler" in lines[0]
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
 def test_unknown_qp_solver_is_refused(model):
     """A solver name outside QP_SOLVERS is a ValueError naming it."""
     with pytest.raises(ValueError, match="qp_solver = 'gurobi'"):

@@ -99,20 +99,21 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
         rows.append(_row(name, m, rt_budget_ms, log.solve_ms))
         return m
 
-    for v in variants:
-        for n in horizons:
-            mpc = replace(section.mpc, variant=v, horizon=n, budget=U.ms(budget_ms)).validate()
-            run(f"{v} N={n}", replace(section, kind="mpc", mpc=mpc))
-    if ipopt_c:
+    ipopt_c_row = None
+    if ipopt_c:  # built before any row runs: a machine that cannot build it loses no measured row
         from controllers.mpc import NMPC
         from controllers.mpc_solvers import _Ipopt
 
         mpc = replace(section.mpc, variant="ipopt", horizon=20, budget=U.ms(budget_ms)).validate()
-        if progress:
-            progress("building ipopt_c N=20 (about 80 s the first time on a machine)")
         ctrl = NMPC(actuator, pneumatics, mpc, model=model)
         ctrl.backend = _Ipopt(model, mpc, generate=True)
-        run("ipopt_c N=20", replace(section, kind="mpc", mpc=mpc), ctrl)
+        ipopt_c_row = (replace(section, kind="mpc", mpc=mpc), ctrl)
+    for v in variants:
+        for n in horizons:
+            mpc = replace(section.mpc, variant=v, horizon=n, budget=U.ms(budget_ms)).validate()
+            run(f"{v} N={n}", replace(section, kind="mpc", mpc=mpc))
+    if ipopt_c_row is not None:
+        run("ipopt_c N=20", *ipopt_c_row)
     if baselines:
         run("pid", replace(section, kind="pid"))
         run("bang_bang", replace(section, kind="bang_bang"))

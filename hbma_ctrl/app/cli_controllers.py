@@ -121,6 +121,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         duration = 9.0 if duration is None else duration
         if not 0 < duration <= 600:
             raise ValueError(f"--duration = {duration:g} is out of range (0, 600] s")
+        if ipopt_c:
+            from hbma_ctrl.core.codegen import has_compiler
+
+            if not has_compiler():
+                raise ValueError("--ipopt-c: IPOPT generated as C needs a C compiler (cc, gcc or clang); none was found")
         con = Console(highlight=False, width=170)
         with run_dir(out, command="bench mpc", argv=cli_argv(), scenario_path=scenario, overwrite=overwrite) as tmp:
             res = run_bench(duration=duration, variants=vs, horizons=hs, baselines=baselines, dompc=dompc,
