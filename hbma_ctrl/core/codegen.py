@@ -80,6 +80,8 @@ def cpu_signature() -> str:
         fields = {}
         with open("/proc/cpuinfo") as fh:
             for line in fh:
+                if not line.strip() and fields:
+                    break  # the first processor's block is enough (the file repeats it per core)
                 key, _, val = line.partition(":")
                 key = key.strip()
                 if key in ("model name", "flags", "Features", "CPU implementer", "CPU part") and key not in fields:
