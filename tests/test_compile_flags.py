@@ -73,8 +73,16 @@ def test_a_native_library_is_keyed_by_the_processor(tmp_path, monkeypatch):
 
 
 def test_cpu_signature_names_the_processor():
+    """The signature carries the instruction-set extensions where Linux lists them, and is stable."""
+    from pathlib import Path
+
     sig = codegen.cpu_signature()
     assert isinstance(sig, str) and len(sig) > 3
+    if Path("/proc/cpuinfo").exists():
+        text = Path("/proc/cpuinfo").read_text()
+        key = "flags" if "\nflags" in text or text.startswith("flags") else "Features"
+        if key in text:
+            assert f"{key}=" in sig
     assert sig == codegen.cpu_signature()  # the same machine, the same key
 
 
