@@ -439,7 +439,6 @@ def paper_pose_check(design: RobotDesign | None = None, c: float | None = BOND_R
         bend = math.radians(pa)
         for reading, centre in (("length - L", U.mm(pl) - L), ("length - paper rest length", U.mm(pl) - rest_len)):
             H = inverse_kinematics(d, [centre] + flat, [bend] + flat, [psi] + flat)
-            H[1:] = 0.0
             share = load_sharing(d, H)
             need = share.forces[0]
             must_push = bool(np.all(need[vent] > 0))
