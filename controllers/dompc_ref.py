@@ -1,4 +1,4 @@
-"""do-mpc solving the same OCP as :class:`controllers.mpc.NMPC`: a benchmark-only reference.
+"""do-mpc solving the same OCP as :class:`hbma_ctrl.controllers.mpc.NMPC`: a benchmark-only reference.
 
 do-mpc is an optional extra (``pip install hbma-ctrl[bench]``); it is imported lazily here and
 nowhere else, so the package runs without it. The adapter uses the very same discrete model
@@ -17,8 +17,8 @@ import warnings
 import casadi as ca
 import numpy as np
 
-from controllers.mpc import NMPC
-from controllers.mpc_settings import MPCSettings, timing_stats
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.controllers.mpc_settings import MPCSettings, timing_stats
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel

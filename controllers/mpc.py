@@ -2,7 +2,7 @@
 
 The optimal control problem (both variants solve the same one)
 --------------------------------------------------------------
-State: the scaled gas mass x of :class:`controllers.prediction.PredictionModel` (one state; the
+State: the scaled gas mass x of :class:`hbma_ctrl.controllers.prediction.PredictionModel` (one state; the
 shape follows from the equilibrium manifold, so resting, lift-off, contact and free inflation are
 one smooth model). Inputs u = [compressor speed, inlet duty, outlet duty], each in [0, 1].
 Parameters per step: the initial state, the load W (N, from the estimate's contact force), output
@@ -38,11 +38,11 @@ and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the pl
 
 ``rti_c_osqp``: the same QP and OSQP solver as ``rti_osqp``, its data (the
 linearisation, P and A values in OSQP's CSC order, q, l, u and the warm start) computed by ONE
-generated-C Function called through preallocated buffers (:mod:`controllers.rti_c`): the same first
+generated-C Function called through preallocated buffers (:mod:`hbma_ctrl.controllers.rti_c`): the same first
 inputs to rounding, in about 60 % of the time.
 
 ``rti_fn_hpipm``, ``rti_fn_osqp``, ``rti_fn_qrqp``: the same real-time iteration as ONE casadi
-Function (:func:`controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
+Function (:func:`hbma_ctrl.controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
 inside casadi by HPIPM / OSQP / qrqp, first input), called once per step through preallocated
 buffers; the ``codegen`` command generates C from exactly this Function. Its QP is written
 stage-wise (the previous input as a state, the limits of stage k+1 through the dynamics on stage
@@ -82,14 +82,14 @@ from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["MPCSettings", "NMPC", "VARIANTS", "duty_to_on_time"]
 
-from controllers.mpc_settings import (
+from hbma_ctrl.controllers.mpc_settings import (
     INTEGRAL_BAND,
     INTEGRAL_MAX,
     VARIANTS,
     MPCSettings,
     duty_to_on_time,
 )
-from controllers.mpc_solvers import (
+from hbma_ctrl.controllers.mpc_solvers import (
     _BudgetExceeded,
     _Fatrop,
     _Ipopt,
@@ -97,9 +97,9 @@ from controllers.mpc_solvers import (
     _RtiOsqp,
     _SolverFailure,
 )
-from controllers.mpc_prep import problem_function
-from controllers.rti_c import _RtiC
-from controllers.rti_step import _RtiFunction
+from hbma_ctrl.controllers.mpc_prep import problem_function
+from hbma_ctrl.controllers.rti_c import _RtiC
+from hbma_ctrl.controllers.rti_step import _RtiFunction
 
 
 def _finite(value) -> bool:
@@ -216,7 +216,7 @@ class NMPC:
 
     def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
         """The step's problem from the estimate: one call of the compiled ``mpc_prep``
-        (:func:`controllers.mpc_prep.problem_function`) on the filter and integral states kept here; the
+        (:func:`hbma_ctrl.controllers.mpc_prep.problem_function`) on the filter and integral states kept here; the
         same numbers as :meth:`_problem_reference` (to rounding), which computed them in Python at
         about 70 us a step."""
         s = self.settings

@@ -1,6 +1,6 @@
 """The NMPC's problem data from an estimate, as ONE casadi Function (``mpc_prep``).
 
-What :meth:`controllers.mpc.NMPC._problem_reference` computes in Python every step (the load filter,
+What :meth:`hbma_ctrl.controllers.mpc.NMPC._problem_reference` computes in Python every step (the load filter,
 the state and output biases at the estimate, the reachable height along the load path, the clipped
 targets and the integral action) written once in casadi, so that the NMPC calls it compiled (tens of
 microseconds of Python per step otherwise) and the generated C loop (:mod:`hbma_ctrl.app.codegen_scene`)
@@ -28,7 +28,7 @@ import math
 import casadi as ca
 import numpy as np
 
-from controllers.mpc_settings import INTEGRAL_BAND, INTEGRAL_MAX, MPCSettings
+from hbma_ctrl.controllers.mpc_settings import INTEGRAL_BAND, INTEGRAL_MAX, MPCSettings
 from hbma_ctrl.core.codegen import is_finite
 from hbma_ctrl.models.tables import PredictionModel
 

@@ -31,10 +31,10 @@ class MPCSettings:
     Fields
     ------
     variant : 'rti_c_osqp' (the default: real-time iteration, one OSQP QP per step, its data from one
-        generated-C call, :mod:`controllers.rti_c`), 'rti_osqp' (the same QP built in numpy: the
+        generated-C call, :mod:`hbma_ctrl.controllers.rti_c`), 'rti_osqp' (the same QP built in numpy: the
         reference path, equal to rounding, two to three times slower, `bench mpc`), 'rti_fn_osqp' /
         'rti_fn_hpipm' / 'rti_fn_qrqp' (the same RTI step as one casadi Function,
-        :mod:`controllers.rti_step`, its QP solved inside casadi by OSQP / HPIPM / qrqp), 'ipopt' or
+        :mod:`hbma_ctrl.controllers.rti_step`, its QP solved inside casadi by OSQP / HPIPM / qrqp), 'ipopt' or
         'fatrop' (accurate: NLP to convergence).
     horizon : number of shooting intervals N, [2, 200].
     sample_period : controller period and shooting interval, s, (0, 1].

@@ -1,4 +1,4 @@
-"""The two NMPC solver variants behind :class:`controllers.mpc.NMPC`: RTI + OSQP (fast) and IPOPT (accurate).
+"""The two NMPC solver variants behind :class:`hbma_ctrl.controllers.mpc.NMPC`: RTI + OSQP (fast) and IPOPT (accurate).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
+from hbma_ctrl.controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
 from hbma_ctrl.core.codegen import (HOT_FLAGS, HOT_OPT, NATIVE_FLAGS, cache_dir, casadi_lib_flags, compiled,
                                     has_compiler)
 from hbma_ctrl.models.tables import PredictionModel

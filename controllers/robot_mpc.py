@@ -43,7 +43,7 @@ command of a period is due at its deadline, and a step that ate its budget leave
 period (I/O, logging) to chance; the supervisor's replay of the previous plan (one row on) is the
 same trajectory the late solve refines. The late plan becomes the supervisor's plan for the NEXT
 failure (its first row is already missed), and it warm-starts the next solve; the single chamber's
-NMPC (:mod:`controllers.mpc`) does the same. The first step (OSQP's setup) is exempt: a daemon
+NMPC (:mod:`hbma_ctrl.controllers.mpc`) does the same. The first step (OSQP's setup) is exempt: a daemon
 steps the controller once before its loop starts.
 
 Inputs are checked: a non-finite state, factor, load, target or bound is a ValueError naming the

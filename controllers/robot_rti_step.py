@@ -1,9 +1,9 @@
 """The robot NMPC's RTI step as ONE casadi Function, its QP solved inside casadi (OSQP's conic plugin).
 
-:class:`controllers.robot_mpc.RobotNMPC` computes its QP's values in one generated call, then updates
+:class:`hbma_ctrl.controllers.robot_mpc.RobotNMPC` computes its QP's values in one generated call, then updates
 and solves a persistent OSQP from Python. For a loop without Python the whole step is one Function
 (the third block of a generated robot loop, after :mod:`hbma_ctrl.robot.plant_step` and
-:func:`estimators.robot_ekf.bank_step_function`):
+:func:`hbma_ctrl.estimators.robot_ekf.bank_step_function`):
 
     robot_rti_step(x0[n], b[n], W[n], k[n], c[n], a_max[n], h_ref[n x N] (m), prev[2 x n],
                    xbar[n x (N + 1)], abar[n x N], obar[n x N], first, z_prev[nv], y_prev[m], warm)
@@ -32,7 +32,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags
 
 __all__ = ["robot_rti_step_function", "RES_TOL", "FN_MAX_ITER", "FN_RHO", "RobotNMPCFunction"]

@@ -1,6 +1,6 @@
 """The chamber RTI step with its QP data as ONE generated-C call and OSQP kept set up (``rti_c_osqp``).
 
-Why: in the reference RTI path (``rti_osqp``, :class:`controllers.mpc_solvers._RtiOsqp`) most of a
+Why: in the reference RTI path (``rti_osqp``, :class:`hbma_ctrl.controllers.mpc_solvers._RtiOsqp`) most of a
 step is not the QP solve but building the QP around it: a casadi call with numpy arguments (tens
 of microseconds) and some forty numpy operations on small arrays. Solving the QP inside casadi
 (the ``rti_fn_*`` variants) is no faster, because casadi sets OSQP up again at every call.
@@ -25,8 +25,8 @@ import warnings
 import casadi as ca
 import numpy as np
 
-from controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
-from controllers.mpc_solvers import _BudgetExceeded, _Problem, _RtiOsqp, _SolverFailure
+from hbma_ctrl.controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
+from hbma_ctrl.controllers.mpc_solvers import _BudgetExceeded, _Problem, _RtiOsqp, _SolverFailure
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 

@@ -1,15 +1,15 @@
 """The chamber NMPC's real-time-iteration step as ONE casadi Function (shift, linearisation, QP, solve).
 
 :func:`rti_step_function` builds a Function that does everything one RTI step of
-:class:`controllers.mpc.NMPC` does: it shifts the previous plan by one stage, linearises the
+:class:`hbma_ctrl.controllers.mpc.NMPC` does: it shifts the previous plan by one stage, linearises the
 gas-mass dynamics and the outputs along it (the same ``_Stage.lin`` as the reference
 ``rti_osqp`` path), assembles the same sparse QP (cost, dynamics, input box and rates,
-"speed <= inlet", soft pressure / stretch / height limits; see :mod:`controllers.mpc`), solves it
+"speed <= inlet", soft pressure / stretch / height limits; see :mod:`hbma_ctrl.controllers.mpc`), solves it
 inside casadi through its conic interface (``qrqp``, ``hpipm``, ``osqp``, ``daqp``: the
 ``qp_solver`` argument) and returns the first input and the new plan. Everything is numeric, so the
 Function can be code-generated to C (``qrqp`` generates self-contained C; ``hpipm`` needs the
 hpipm/blasfeo headers and libraries shipped inside the casadi package; ``osqp`` those of OSQP)
-and the Python controller calls exactly this Function (see ``controllers.mpc_solvers._RtiCompiled``).
+and the Python controller calls exactly this Function (see ``hbma_ctrl.controllers.mpc_solvers._RtiCompiled``).
 
 Solver choice (measured on the 2-core machine, N = 20, one QP of a step, casadi 3.8)
 -----------------------------------------------------------------------------------
@@ -70,8 +70,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from controllers.mpc_settings import MPCSettings
-from controllers.mpc_solvers import _SolverFailure, _Stage
+from hbma_ctrl.controllers.mpc_settings import MPCSettings
+from hbma_ctrl.controllers.mpc_solvers import _SolverFailure, _Stage
 from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags, compiled
 from hbma_ctrl.models.tables import PredictionModel
 

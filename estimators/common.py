@@ -37,7 +37,7 @@ FACTOR_RANGE = (0.5, 2.0)
 
 @dataclass
 class FilterSettings:
-    """Settings shared by :class:`~estimators.ekf.EKF` and :class:`~estimators.ukf.UKF` (SI).
+    """Settings shared by :class:`~hbma_ctrl.estimators.ekf.EKF` and :class:`~hbma_ctrl.estimators.ukf.UKF` (SI).
 
     Fields
     ------
@@ -60,15 +60,15 @@ class FilterSettings:
     mass_std_abs : gas-mass random walk, kg/sqrt(s), [0, 1e-5].
     load_std : load random walk, N/sqrt(s), [0, 100] (how fast the load may change).
     load_init : initial load guess, N; None = unknown: the membrane is taken as resting until the
-        pressure shows a lift-off (see :mod:`estimators.ekf`). load_init_std its one sigma, N.
+        pressure shows a lift-off (see :mod:`hbma_ctrl.estimators.ekf`). load_init_std its one sigma, N.
     load_rest_std : one sigma of the load while the membrane rests flat, N (W is unobservable
         then, only W >= pi r1^2 p is known; the value only keeps the covariance regular).
     lift_threshold, lift_drift : lift-off detector while resting: a CUSUM of the normalised
         innovation shortfall (-nu/sqrt(S) - lift_drift, less a fixed 5 % of the flat prediction's
-        rise over the sample in sigmas: :data:`estimators.ekf_step.LIFT_RISE_DRIFT`) above
+        rise over the sample in sigmas: :data:`hbma_ctrl.estimators.ekf_step.LIFT_RISE_DRIFT`) above
         lift_threshold declares a lift-off (the pressure rises slower than a flat membrane allows),
         (0, 1e3] and [0, 10]. Without a load prior a resting filter also takes the membrane as lifted
-        when b / c falls far below its prior (:func:`estimators.ekf_step.flat_ratio_min`).
+        when b / c falls far below its prior (:func:`hbma_ctrl.estimators.ekf_step.flat_ratio_min`).
     lift_load_rel_std : relative one sigma of the load right after a detected lift-off, [0, 10].
     flow_factor_std : random walk of the pump-flow factor b, 1/sqrt(s), [0, 10];
         flow_factor_init its initial value (-, [0.5, 2]: 1 = the nominal pump map; a calibration's

@@ -2,7 +2,7 @@
 
 State ``x = [m, W, b, k, c]``: the gas mass (kg, referred to the nominal dead volume: the true
 mass is c m), the load on the membrane (N, a random walk), the pump-flow factor b, the modulus
-factor k and the dead-volume factor c (-, slow random walks; see :mod:`estimators.model`). Why:
+factor k and the dead-volume factor c (-, slow random walks; see :mod:`hbma_ctrl.estimators.model`). Why:
 
 - The gas mass is the plant's own drift-free differential state (the gas law G = m R T); the flow model (pump
   map, valves) drives it directly, so the commands enter the filter where they act. Referred to
@@ -29,9 +29,9 @@ factor k and the dead-volume factor c (-, slow random walks; see :mod:`estimator
   changes dp/dt) and held when nothing flows. In contact a stiffer membrane and a heavier load
   both raise the pressure of a given gas mass; over a trajectory they are only weakly separable,
   so part of the modulus error stays as measurement-model error (``model_rel_std``), see
-  :mod:`estimators.observability`.
+  :mod:`hbma_ctrl.estimators.observability`.
 
-What pressure alone tells (see :mod:`estimators.observability`): resting flat, only m is known
+What pressure alone tells (see :mod:`hbma_ctrl.estimators.observability`): resting flat, only m is known
 (``W`` is unobservable, only ``W >= pi r1^2 p``); in contact or free inflation both m and W are
 observable while gas flows, and W is not when nothing flows (every (m, W) pair on a level set of
 p is then an equilibrium).
@@ -50,7 +50,7 @@ for a no-load lift-off only: a loaded one's sum can start on the flow factor's e
 where a lift-off contradicts the data. The sum's drift grows with the flat prediction's rise (the
 pump map's error of shape is a few per cent of it, ``LIFT_RISE_DRIFT``). Without a load prior the
 filter also leaves rest when a flat chamber would need b / c far below its prior
-(:func:`estimators.ekf_step.flat_ratio_min`: a free membrane lifting in the pump's first samples,
+(:func:`hbma_ctrl.estimators.ekf_step.flat_ratio_min`: a free membrane lifting in the pump's first samples,
 whose shortfall the wide factors took up): no load, replayed from the last posterior at ambient
 pressure; this test holds only until the membrane first leaves rest (the factors are then learnt,
 no longer the prior). In contact a one-sided sum of the innovation's excess (``EXCESS_THRESHOLD``, readings
@@ -59,7 +59,7 @@ declares a load change, as the NIS sum does.
 A touch-down (the contact model reaching h = 0) re-enters rest. With the flow stopped the load is
 carried by its random walk.
 
-Tuning (defaults of :class:`~estimators.common.FilterSettings`, chosen against the mismatched rig
+Tuning (defaults of :class:`~hbma_ctrl.estimators.common.FilterSettings`, chosen against the mismatched rig
 on a 24-trial protocol subset, never against the filter's own model):
 
 =======================  ==============  ======================================================
@@ -109,11 +109,11 @@ Measurements: a missing (None or NaN) reading skips the update (flag ``missing``
 reading (>= sensor range) is a one-sided observation ``p >= range``: if the prediction is below
 the range, an update towards the range with ``saturation_std``; otherwise no update (flag
 ``saturated``). Numerics: Joseph-form update, gains by solves, covariance symmetrised with an
-eigenvalue floor after every predict and update (:mod:`estimators.common`). No global state; the
+eigenvalue floor after every predict and update (:mod:`hbma_ctrl.estimators.common`). No global state; the
 filter is deterministic.
 
 Speed: a step one sample period after the last (the normal case) is ONE call of the compiled
-:func:`estimators.ekf_step.ekf_step_function` (predict, gate, update, both detectors, lift-off,
+:func:`hbma_ctrl.estimators.ekf_step.ekf_step_function` (predict, gate, update, both detectors, lift-off,
 touch-down, clamps and outputs; generated as C, compiled once per machine and called through
 preallocated buffers). The first step, a late or early tick, a re-opened gate, a covariance that
 needs its eigenvalue floor and a no-load lift-off (replayed from the flat phase) run the reference
@@ -129,7 +129,7 @@ import time
 
 import numpy as np
 
-from estimators.common import (
+from hbma_ctrl.estimators.common import (
     MEAS_MISSING,
     MEAS_OK,
     MEAS_OUTLIER,
@@ -139,9 +139,9 @@ from estimators.common import (
     guard_cov,
     physical_reading_bounds,
 )
-from estimators.ekf_reference import OUTPUT_INDEX as _Y
-from estimators.ekf_reference import OUTPUT_KEYS, ReferenceSteps
-from estimators.ekf_step import (
+from hbma_ctrl.estimators.ekf_reference import OUTPUT_INDEX as _Y
+from hbma_ctrl.estimators.ekf_reference import OUTPUT_KEYS, ReferenceSteps
+from hbma_ctrl.estimators.ekf_step import (
     FLAG_BITS,
     KIND_NONE,
     KIND_OK,
@@ -151,7 +151,7 @@ from estimators.ekf_step import (
     flat_ratio_min,
     lift_floor,
 )
-from estimators.observer_calls import fast, observer_functions
+from hbma_ctrl.estimators.observer_calls import fast, observer_functions
 from hbma_ctrl.core.interfaces import Command, Estimate
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
@@ -166,7 +166,7 @@ _KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c
 
 
 class EKFSettings(FilterSettings):
-    """EKF settings: the fields of :class:`estimators.common.FilterSettings` (documented there)."""
+    """EKF settings: the fields of :class:`hbma_ctrl.estimators.common.FilterSettings` (documented there)."""
 
 
 _KIND_CODE = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
@@ -175,7 +175,7 @@ _LIFT_DETECTED = 1 << FLAG_BITS.index("lift_off_detected")
 
 
 def _flag_set(bits: int) -> frozenset:
-    """The flags of :data:`estimators.ekf_step.FLAG_BITS` raised in ``bits`` (memoised)."""
+    """The flags of :data:`hbma_ctrl.estimators.ekf_step.FLAG_BITS` raised in ``bits`` (memoised)."""
     fs = _FLAG_SETS.get(bits)
     if fs is None:
         fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS)
@@ -205,7 +205,7 @@ class EKF(ReferenceSteps):
     ``last_A`` and ``measurement_jacobian()`` (the linearisation, for observability).
 
     A step one sample period after the last runs as one call of the compiled
-    :func:`estimators.ekf_step.ekf_step_function` (``compiled_step``; the UKF, the first step, a
+    :func:`hbma_ctrl.estimators.ekf_step.ekf_step_function` (``compiled_step``; the UKF, the first step, a
     late or early tick and the rare events that Function leaves out run the reference path of
     separate predict, update and output calls, :meth:`step_reference`). Both give the same numbers.
     """
@@ -282,7 +282,7 @@ class EKF(ReferenceSteps):
 
         ``shape`` = warm start (h1, h2) in m; ``resting`` = the mode (None: from the state). The
         prior's b / c and its spread set the lowest ratio a resting membrane is taken as flat at
-        (:func:`estimators.ekf_step.flat_ratio_min`; a start-up calibration hands its prior over here).
+        (:func:`hbma_ctrl.estimators.ekf_step.flat_ratio_min`; a start-up calibration hands its prior over here).
         """
         s = self.settings
         x = np.array(mean, dtype=float).ravel()
@@ -391,7 +391,7 @@ class EKF(ReferenceSteps):
     def step(self, t: float, measurement, applied_command: Command) -> Estimate:
         """Advance to time t (s) with the command held since the last step, then update.
 
-        A reading that cannot be physical (see :func:`estimators.common.classify_measurement`) or
+        A reading that cannot be physical (see :func:`hbma_ctrl.estimators.common.classify_measurement`) or
         that fails the innovation gate is not used (predict only; flags ``outlier`` / ``gated``,
         counted in :meth:`stats`). A gap longer than ``max_gap`` predicts ``max_gap`` only and
         widens the covariance (flag ``time_jump``). Raises ValueError when t is not a finite time
@@ -525,7 +525,7 @@ class EKF(ReferenceSteps):
                          dict(zip(OUTPUT_KEYS, out[5].tolist())), flags)
 
     def detector_state(self) -> list:
-        """The detectors' state in :data:`estimators.ekf_step.DET_NAMES` order (the compiled step's
+        """The detectors' state in :data:`hbma_ctrl.estimators.ekf_step.DET_NAMES` order (the compiled step's
         ``det`` input; sums -, pressures Pa, loads N, b / c -)."""
         return [self._cusum, self._lift, self._lift_start, self._p_lift, self._p_post, float(self._gated),
                 self._lift_floor, self._excess, self._ratio_min]

@@ -1,6 +1,6 @@
-"""The EKF's step on its separate-call path (:class:`ReferenceSteps`, a base of :class:`estimators.ekf.EKF`).
+"""The EKF's step on its separate-call path (:class:`ReferenceSteps`, a base of :class:`hbma_ctrl.estimators.ekf.EKF`).
 
-The normal step is one compiled Function (:mod:`estimators.ekf_step`); these methods are the path it
+The normal step is one compiled Function (:mod:`hbma_ctrl.estimators.ekf_step`); these methods are the path it
 falls back to for the rare steps the Function flags (a model failure, a covariance at its floor, a
 re-opened gate, a lift-off replayed from past samples) and what ``EKF.step_reference`` runs: the
 prediction over k periods and the gated update, the lift-off and touch-down detectors, the replay of
@@ -15,8 +15,8 @@ import math
 
 import numpy as np
 
-from estimators.common import MEAS_SATURATED, guard_cov, nis_gate
-from estimators.ekf_step import (
+from hbma_ctrl.estimators.common import MEAS_SATURATED, guard_cov, nis_gate
+from hbma_ctrl.estimators.ekf_step import (
     CENSOR_SIGMAS,
     EXCESS_DRIFT,
     EXCESS_THRESHOLD,
@@ -41,7 +41,7 @@ _DIAG5 = np.diag_indices(5)
 
 
 class ReferenceSteps:
-    """The EKF's separate-call step methods (module doc); mixed into :class:`estimators.ekf.EKF`."""
+    """The EKF's separate-call step methods (module doc); mixed into :class:`hbma_ctrl.estimators.ekf.EKF`."""
 
     def _advance(self, t: float, measurement, kind: str, u: np.ndarray, k: int, detect: bool,
                  jump: bool = False) -> None:

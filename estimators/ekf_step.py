@@ -1,6 +1,6 @@
 """The EKF's normal step as ONE casadi Function (numeric inputs and outputs only, C-generable).
 
-:func:`ekf_step_function` builds ``ekf_step`` for the filter of :mod:`estimators.ekf`: predict one
+:func:`ekf_step_function` builds ``ekf_step`` for the filter of :mod:`hbma_ctrl.estimators.ekf`: predict one
 sample period with its Jacobians, the innovation gate, the scalar Joseph-form update (a reading,
 the one-sided saturation pseudo-reading, or none), the lift-off and load-change detectors, the
 detected lift-off, the flat-load bound, the state clamps and the reported outputs with their
@@ -40,7 +40,7 @@ the step; ``nis`` (of the update, or of the gated reading) and ``innov`` (normal
 both 0 without an update); ``flags`` = sum of ``2**i`` over the :data:`FLAG_BITS` raised; and
 ``exact`` = 1 when the step stayed on the normal path. ``exact`` = 0 marks a rare event this
 Function does not finish, for which the caller re-runs the step on the reference path
-(:meth:`estimators.ekf.EKF.step_reference`) from the same inputs: the model's projection failed
+(:meth:`hbma_ctrl.estimators.ekf.EKF.step_reference`) from the same inputs: the model's projection failed
 (non-finite), a covariance lost its eigenvalue floor (the reference floors it by an eigen
 decomposition), a re-opened gate or a non-positive innovation variance. A detected lift-off
 with no load (flag ``lift_off_detected`` with ``x_next[1] == 0``) is also re-filtered by the
@@ -55,7 +55,7 @@ import math
 import casadi as ca
 import numpy as np
 
-from estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel, min_pivot
 from hbma_ctrl.models.reduced import law_key
@@ -202,7 +202,7 @@ def ekf_step_function(actuator: Actuator, pneumatics: Pneumatics, settings: Filt
 
 def _pivot_function() -> ca.Function:
     """Smallest LDL^T pivot of P / (s s^T) - floor I (s = STATE_SCALE): > 0 iff the covariance keeps
-    its eigenvalue floor (the test :func:`estimators.common.guard_cov` makes by a Cholesky factor)."""
+    its eigenvalue floor (the test :func:`hbma_ctrl.estimators.common.guard_cov` makes by a Cholesky factor)."""
     P = ca.SX.sym("P", NX, NX)
     fl = ca.SX.sym("floor")
     out = min_pivot(P, fl)

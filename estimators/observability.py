@@ -1,7 +1,7 @@
 """What the chamber pressure alone can tell, per regime: observability along real trajectories.
 
 The estimators' state is ``x = [m, W, b, k, c]`` (gas mass kg, load N, pump-flow factor, modulus
-factor, dead-volume factor; :mod:`estimators.ekf`). Along rig trajectories (the mismatched rig of
+factor, dead-volume factor; :mod:`hbma_ctrl.estimators.ekf`). Along rig trajectories (the mismatched rig of
 :mod:`hbma_ctrl.sim.rig`, open loop) the EKF's linearisation (A = dx+/dx of the discrete model, H =
 dp/dx) gives, at every sample,
 
@@ -56,8 +56,8 @@ from pathlib import Path
 import control
 import numpy as np
 
-from estimators.common import FilterSettings
-from estimators.ekf import EKF
+from hbma_ctrl.estimators.common import FilterSettings
+from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.actuation import CommandTiming

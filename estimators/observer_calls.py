@@ -1,7 +1,7 @@
 """How the observer model's casadi Functions are called by the filters: through preallocated buffers,
 compiled once per process, and the flat or full variant by the step's mode (SI).
 
-Used by :class:`estimators.ekf.EKF` (its reference path) and :class:`estimators.ukf.UKF`, and by
+Used by :class:`hbma_ctrl.estimators.ekf.EKF` (its reference path) and :class:`hbma_ctrl.estimators.ukf.UKF`, and by
 :mod:`hbma_ctrl.app.evaluate`.
 """
 
@@ -11,8 +11,8 @@ import warnings
 
 import casadi as ca
 
-from estimators.common import FilterSettings
-from estimators.ekf_step import cse, observer_model
+from hbma_ctrl.estimators.common import FilterSettings
+from hbma_ctrl.estimators.ekf_step import cse, observer_model
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled
 from hbma_ctrl.core.params import Actuator, Pneumatics
 

@@ -35,7 +35,7 @@ All chambers are stepped by ONE call of the casadi ``map`` of the single-chamber
 rk4 + Jacobians, covariance predict, scalar Joseph update), so 9 filters cost about one call.
 A missing (NaN) or saturated (>= sensor range) reading skips that chamber's update.
 
-Live-stream guards (as in :class:`estimators.ekf.EKF`): a reading that cannot be physical (+-inf,
+Live-stream guards (as in :class:`hbma_ctrl.estimators.ekf.EKF`): a reading that cannot be physical (+-inf,
 not a number, below vacuum or ``reading_min``, above ``reading_max_rel`` times the sensor range) and
 one whose NIS exceeds ``gate_nis`` are outliers: that chamber predicts only, counted in
 :meth:`ChamberEKFBank.stats`. ``gate_reopen`` gated readings in a row of one chamber re-open its
@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from estimators.common import INFLATION_MAX, VACUUM_GAUGE, classify_expr, physical_reading_bounds
+from hbma_ctrl.estimators.common import INFLATION_MAX, VACUUM_GAUGE, classify_expr, physical_reading_bounds
 from hbma_ctrl.core.codegen import FastFunction, is_finite
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays

@@ -1,7 +1,7 @@
 """Unscented Kalman filter on the same model and state as the EKF, for the speed/accuracy trade.
 
 Same state ``[m, W, b, k, c]``, same modes (sticky rest, lift-off and load-change detectors), same
-measurement handling and guards as :class:`estimators.ekf.EKF`; only the propagation of the mean
+measurement handling and guards as :class:`hbma_ctrl.estimators.ekf.EKF`; only the propagation of the mean
 and covariance differs: 2n + 1 = 11 scaled sigma points (filterpy's
 :class:`~filterpy.kalman.MerweScaledSigmaPoints`, alpha 0.5, beta 2, kappa 0: ``UKF_ALPHA``) are pushed
 through the discrete model in one batched casadi call (the model Function ``map``-ped over the
@@ -19,9 +19,9 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
-from estimators.common import STATE_SCALE, FilterSettings, guard_cov
-from estimators.ekf import EKF
-from estimators.observer_calls import observer_functions
+from hbma_ctrl.estimators.common import STATE_SCALE, FilterSettings, guard_cov
+from hbma_ctrl.estimators.ekf import EKF
+from hbma_ctrl.estimators.observer_calls import observer_functions
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, OUT_NAMES
@@ -33,7 +33,7 @@ _P = OUT_NAMES.index("p")
 
 
 class UKFSettings(FilterSettings):
-    """UKF settings: the fields of :class:`estimators.common.FilterSettings` (documented there)."""
+    """UKF settings: the fields of :class:`hbma_ctrl.estimators.common.FilterSettings` (documented there)."""
 
 
 def _guarded_sqrt(floor: float):
@@ -44,7 +44,7 @@ def _guarded_sqrt(floor: float):
 
 
 class UKF(EKF):
-    """Unscented Kalman filter with the :class:`~estimators.ekf.EKF` step API (SI)."""
+    """Unscented Kalman filter with the :class:`~hbma_ctrl.estimators.ekf.EKF` step API (SI)."""
 
     compiled_step = False  # its predict and update are the sigma points', not the EKF's Function
 

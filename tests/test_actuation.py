@@ -92,7 +92,7 @@ def test_bad_delays_name_the_key(kw, key):
 def test_ekf_with_delays_is_the_ekf_fed_the_acting_commands():
     """The filter's delays enter through its commands only: an EKF with 5 + 3 ms gives, step for
     step, what an EKF without them gives when fed the acting commands."""
-    from estimators.ekf import EKF, EKFSettings
+    from hbma_ctrl.estimators.ekf import EKF, EKFSettings
     from hbma_ctrl.core.interfaces import Command
     from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
     from hbma_ctrl.sim.rig import Rig, RigSettings

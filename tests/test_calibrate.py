@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.ekf import EKF, EKFSettings
+from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.runtime.calibrate import (
     CalibrationResult,

@@ -304,8 +304,7 @@ def test_protocol_command_loads_neither_the_roles_nor_other_commands_modules(tmp
         f"app(['protocol', '--out', {str(out)!r}, '--duration-s', '0.5', '--t-inflate-s', '0.25', '--no-plots'], "
         "standalone_mode=False)", tmp_path)
     assert (out / "summary.csv").is_file() and "hbma_ctrl.app.protocol" in mods
-    roles = {m for m in mods if m.split(".")[0] in ("estimators", "controllers")
-             or m.startswith(("hbma_ctrl.runtime", "hbma_ctrl.robot", "hbma_ctrl.app.runner"))}
+    roles = {m for m in mods if m.startswith(("hbma_ctrl.estimators", "hbma_ctrl.controllers", "hbma_ctrl.runtime", "hbma_ctrl.robot", "hbma_ctrl.app.runner"))}
     assert not roles, sorted(roles)
     assert not mods & set(_OTHER_COMMANDS_MODULES), sorted(mods & set(_OTHER_COMMANDS_MODULES))
 

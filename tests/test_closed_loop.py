@@ -19,7 +19,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from estimators.ekf import EKF, EKFSettings
+from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.scene_controller import (
     closed_loop,
     loop_metrics,

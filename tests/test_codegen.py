@@ -185,7 +185,7 @@ def test_loop_description_runs_the_same_in_python_and_in_c(tmp_path):
 
 
 def test_mpc_glue_matches_the_nmpc_problem():
-    from controllers.mpc import NMPC
+    from hbma_ctrl.controllers.mpc import NMPC
     from hbma_ctrl.app.codegen_scene import mpc_glue
     from hbma_ctrl.core.interfaces import Estimate, Reference
     from hbma_ctrl.runtime.chamber import chamber_supervisor
@@ -230,7 +230,7 @@ def test_mpc_glue_integral_action_takes_the_target_now_not_the_preview():
 def _glue_against_nmpc(target, preview: bool) -> list:
     """mpc_prep's horizon targets and integral shift against NMPC._problem over 80 controller periods of
     ``target(t, k)`` (m), the estimate 0.6 mm under it with noise; returns the glue's shifts."""
-    from controllers.mpc import NMPC
+    from hbma_ctrl.controllers.mpc import NMPC
     from hbma_ctrl.app.codegen_scene import mpc_glue
     from hbma_ctrl.core.interfaces import Estimate, Reference
     from hbma_ctrl.runtime.chamber import chamber_supervisor

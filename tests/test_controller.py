@@ -8,15 +8,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.baselines import (
+from hbma_ctrl.controllers.baselines import (
     BangBangController,
     BangBangSettings,
     PIDController,
     PIDSettings,
 )
-from controllers.mpc import NMPC
-from controllers.mpc_settings import MPCSettings, duty_to_on_time
-from controllers.mpc_solvers import _Problem
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.controllers.mpc_settings import MPCSettings, duty_to_on_time
+from hbma_ctrl.controllers.mpc_solvers import _Problem
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Estimate, Reference

@@ -24,7 +24,7 @@ import pytest
 from typer.testing import CliRunner
 
 from hbma_ctrl.app.cli import app
-from controllers.robot_mpc import RobotMPCSettings
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
 from hbma_ctrl.app.daemon.loop import STATS_KEYS, DaemonLoop
@@ -187,7 +187,7 @@ def test_robot_runner_is_primed_its_solver_set_up_and_its_loop_as_if_it_had_not_
     controller's, the bank has not stepped, and over 30 ticks the primed loop commands what an
     unprimed one commands (both QPs solved to convergence: within 1e-3) and estimates the same
     heights (within 0.1 um)."""
-    from controllers.robot_mpc import RobotNMPC
+    from hbma_ctrl.controllers.robot_mpc import RobotNMPC
 
     cfg = load_config(ROBOT, {"--rig": "sim", "--speed": 20.0})
     primed, cold = build_runner(cfg), build_runner(cfg)

@@ -9,7 +9,7 @@ import pkgutil
 
 import pytest
 
-PACKAGES = ("hbma_ctrl", "estimators", "controllers")
+PACKAGES = ("hbma_ctrl",)
 
 
 def _modules() -> list[str]:

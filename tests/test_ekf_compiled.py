@@ -1,4 +1,4 @@
-"""The EKF's compiled step (estimators.ekf_step) against the reference path, and the robot bank's
+"""The EKF's compiled step (hbma_ctrl.estimators.ekf_step) against the reference path, and the robot bank's
 mapped call against per-chamber calls. No timing is asserted here (see ``hbma-ctrl bench ekf``)."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from estimators.common import FilterSettings
-from estimators.ekf import EKF
-from estimators.ekf_step import DET_NAMES, KIND_OK, STEP_IN, STEP_OUT, ekf_step_function
-from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, _step_function
+from hbma_ctrl.estimators.common import FilterSettings
+from hbma_ctrl.estimators.ekf import EKF
+from hbma_ctrl.estimators.ekf_step import DET_NAMES, KIND_OK, STEP_IN, STEP_OUT, ekf_step_function
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, _step_function
 from hbma_ctrl.app.robot_closed import make_model
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Pneumatics
@@ -153,7 +153,7 @@ def test_flat_ratio_floor_is_relative_to_the_prior_with_a_sigma_floor():
     """flat_ratio_min: the prior's b / c times exp(-3 sigma), sigma the relative spread of b / c
     (at least FLAT_RATIO_STD_MIN); 0 when b and c are held. A filter's reset sets it from its prior
     (a calibration's hand-over included)."""
-    from estimators.ekf_step import FLAT_RATIO_SIGMAS, FLAT_RATIO_STD_MIN, flat_ratio_min
+    from hbma_ctrl.estimators.ekf_step import FLAT_RATIO_SIGMAS, FLAT_RATIO_STD_MIN, flat_ratio_min
 
     x = np.array([1e-5, 1.0, 1.0, 1.0, 1.0])
     P = np.diag([1e-16, 1.0, 0.15 ** 2, 0.15 ** 2, 0.2 ** 2])  # the default prior
@@ -209,7 +209,7 @@ def test_a_persistent_excess_in_contact_declares_a_load_change():
     1 - EXCESS_DRIFT to the excess sum per step; above EXCESS_THRESHOLD a load change is declared
     (flag ``load_change``, the load's variance widened) and the sum restarts. Readings at the
     prediction leave it at zero, and a resting membrane does not sum."""
-    from estimators.ekf_step import EXCESS_DRIFT, EXCESS_THRESHOLD, FLAG_BITS
+    from hbma_ctrl.estimators.ekf_step import EXCESS_DRIFT, EXCESS_THRESHOLD, FLAG_BITS
 
     f = ekf_step_function(ACT, PN, FS)
     filt = EKF(ACT, PN, FS)
@@ -327,7 +327,7 @@ def test_bench_ekf_axes_add_rows_with_their_settings_and_the_pareto_reads_them(t
 def test_classify_expr_gives_classify_measurements_kind_for_every_reading():
     """The casadi twin of classify_measurement (the generated steps' reading test) gives the same kind
     for dropouts, +-inf, both physical bounds and the sensor range, at and beside each edge."""
-    from estimators.common import (MEAS_MISSING, MEAS_OK, MEAS_OUTLIER, MEAS_SATURATED, classify_expr,
+    from hbma_ctrl.estimators.common import (MEAS_MISSING, MEAS_OK, MEAS_OUTLIER, MEAS_SATURATED, classify_expr,
                                    classify_measurement)
 
     rng, lo, hi = 50e3, -101e3, 75e3

@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimators.common import FilterSettings, guard_cov
-from estimators.ekf import EKF
-from estimators.ukf import UKF
+from hbma_ctrl.estimators.common import FilterSettings, guard_cov
+from hbma_ctrl.estimators.ekf import EKF
+from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.evaluate import run_filter, score
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.schema import parse_role
@@ -361,7 +361,7 @@ def test_record_type():
 def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
     """r1 7.5 mm with 800 g lifts off at ~44 kPa, above the 35 kPa sensor range: a filter that must
     detect the lift-off cannot; one that starts from the protocol's calibrated weight predicts it."""
-    from estimators.common import FilterSettings
+    from hbma_ctrl.estimators.common import FilterSettings
     from hbma_ctrl.app.evaluate import evaluate_trials
     from hbma_ctrl.core.params import Platform
     from hbma_ctrl.sim.batch import protocol_trials
@@ -385,8 +385,8 @@ def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise()
     There a filter told the load (10 %) rejects a lift-off more than LIFT_PRIOR_SIGMAS below it; the
     same prior at 100 % (no floor) does not. Six rig noise seeds, four trials each: 3 false lift-offs
     of 24 against 11 when measured (README, Estimation)."""
-    from estimators.common import FilterSettings
-    from estimators.ekf_step import lift_floor
+    from hbma_ctrl.estimators.common import FilterSettings
+    from hbma_ctrl.estimators.ekf_step import lift_floor
     from hbma_ctrl.app.evaluate import aggregate, evaluate_trials
     from hbma_ctrl.core.params import Platform
     from hbma_ctrl.sim.batch import protocol_trials

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimators.common import FilterSettings
+from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.app.evaluate import run_filter
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.sim.rig import RigSettings, simulate_rig

@@ -9,7 +9,7 @@ from typing import get_args
 import numpy as np
 import pytest
 
-from estimators.common import FilterSettings
+from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.app.evaluate import evaluate_trials
 from hbma_ctrl.app.schema import EstimatorTable, parse_scenario_tables
 from hbma_ctrl.app.sections import filter_settings_for

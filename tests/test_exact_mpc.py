@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.mpc import NMPC
-from controllers.mpc_settings import MPCSettings
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.exact import ExactMembrane
@@ -83,7 +83,7 @@ def test_rti_converges_to_ipopt_plan_on_the_exact_law(models):
     model): the planned heights within 0.05 mm and the first command (the one sent) within 0.01.
     Later stages may differ where the pump switches off (speed 0.13 against 0.00 at one stage with
     the heights within 0.001 mm: a direction the cost barely sees, within the QP's tolerance)."""
-    from controllers.mpc_solvers import _Problem
+    from hbma_ctrl.controllers.mpc_solvers import _Problem
 
     model = models["exact"]
     pr = _Problem(x0=model.x_at_height(4e-3, W400), W=W400, dh=0.0, dp=0.0, r=np.full(20, 5e-3), u_prev=np.zeros(3),

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.common import FACTOR_RANGE, FilterSettings
-from estimators.ekf import EKF
+from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.app.schema.document import parse_role
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics

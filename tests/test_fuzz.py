@@ -258,9 +258,9 @@ def _proto(kind: str):
     """A freshly built step object, built once in this (parent) process: every forked child starts
     from its own copy of this pristine state."""
     if kind not in _PROTO:
-        from controllers.baselines import PIDController, PIDSettings
-        from controllers.mpc import NMPC
-        from estimators.ekf import EKF
+        from hbma_ctrl.controllers.baselines import PIDController, PIDSettings
+        from hbma_ctrl.controllers.mpc import NMPC
+        from hbma_ctrl.estimators.ekf import EKF
         from hbma_ctrl.core.params import Actuator, Pneumatics
 
         if kind == "ekf":
@@ -362,8 +362,8 @@ def test_chamber_loop_tick_with_fuzzed_inputs_gives_a_command_in_0_1_or_one_erro
 
 
 def _robot_parts():
-    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.robot_closed import make_model
     from hbma_ctrl.core.params import Pneumatics
     from hbma_ctrl.robot.design import RobotDesign

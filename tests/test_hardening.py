@@ -10,13 +10,13 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from controllers.baselines import PIDController, PIDSettings
-from controllers.mpc import NMPC
-from controllers.mpc_settings import MPCSettings
-from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from estimators.common import FilterSettings
-from estimators.ekf import EKF
-from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.controllers.baselines import PIDController, PIDSettings
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.controllers.mpc_settings import MPCSettings
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.estimators.common import FilterSettings
+from hbma_ctrl.estimators.ekf import EKF
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.robot_closed import make_model
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command, Estimate, Reference

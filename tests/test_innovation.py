@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from estimators.common import FilterSettings
-from estimators.innovation import (
+from hbma_ctrl.estimators.common import FilterSettings
+from hbma_ctrl.estimators.innovation import (
     InnovationTestSettings,
     innovation_test,
     window_mean_bound,

@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from estimators.observability import Trajectory, analyse, run, summarise
+from hbma_ctrl.estimators.observability import Trajectory, analyse, run, summarise
 
 HOLD = ((0.0, 0.6, 1.0, 0.0), (1.5, 0.0, 0.0, 0.0))
 

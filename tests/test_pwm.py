@@ -88,7 +88,7 @@ def test_chamber_loop_sends_and_estimates_with_the_shaped_duties_every_tick():
             self.held.append(cmd)
             return Estimate(t=t, h1=0.0, h2=0.0, h=0.0, F=0.0, p=z)
 
-    from controllers.mpc_settings import MPCSettings
+    from hbma_ctrl.controllers.mpc_settings import MPCSettings
 
     est = Est()
     loop = ChamberLoop(est, Ctrl(), chamber_supervisor(MPCSettings()), every=2, pwm=MinOnTime(T, MIN_ON))

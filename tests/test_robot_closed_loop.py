@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
 from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics
 from hbma_ctrl.app.schema import parse_role

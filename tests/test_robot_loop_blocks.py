@@ -116,7 +116,7 @@ def test_the_ekf_banks_step_as_one_function_follows_the_bank():
     """bank_step_function against ChamberEKFBank.step over a run with every kind of reading (dropouts,
     +-inf, out of the physical bounds, saturated, a jump the gate holds off until it re-opens) and a
     diverged filter restarted from its reading: the same states, covariances, outputs and flags."""
-    from estimators.robot_ekf import NS, ChamberEKFBank, ChamberEKFSettings, bank_step_function
+    from hbma_ctrl.estimators.robot_ekf import NS, ChamberEKFBank, ChamberEKFSettings, bank_step_function
     from hbma_ctrl.app.robot_closed import make_model
 
     d = RobotDesign(n_layers=1).validate()
@@ -174,8 +174,8 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
     determined too: from the Function's rho of 0.5, FN_RHO, one step's first decisions differ by
     8.2e-3 and its first planned states by 2.5e-4, both solves converged to a residual of 1e-7); a
     non-finite state is status 1 with zero decisions."""
-    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-    from controllers.robot_rti_step import robot_rti_step_function
+    from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from hbma_ctrl.controllers.robot_rti_step import robot_rti_step_function
     from hbma_ctrl.app.robot_closed import make_model
 
     d = RobotDesign(n_layers=1).validate()
@@ -222,8 +222,8 @@ def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
     rise to 5 mm, a bend, then a zero target on one chamber. At every tick slew_function gives the
     targets the loop worked to and caps_function the supply bounds the loop handed its NMPC, with the
     limit-point pressures it keeps (refreshed every tenth tick); the cap and the vent both act."""
-    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.robot_closed import make_model
     from hbma_ctrl.app.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
@@ -317,8 +317,8 @@ def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
     stepping down (short vents): at every tick net_vents_function gives the supply and outlet duties
     RobotLoop.net_vents sent and the minimum on-time's carry it left, short vents netted, dropped and
     sent all seen."""
-    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.robot_closed import make_model
     from hbma_ctrl.app.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics

@@ -12,8 +12,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from estimators.robot_ekf import B_RANGE, ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.estimators.robot_ekf import B_RANGE, ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
 from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U

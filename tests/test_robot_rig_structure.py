@@ -88,7 +88,7 @@ def test_robot_rig_table_sets_only_the_keys_written():
 def test_the_banks_valve_and_sensor_delays_predict_with_the_command_acting():
     """ChamberEKFBank(valve_delay, sensor_delay) steps as a bank without delays that is given the
     command acting (CommandTiming over the same commands)."""
-    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.robot_closed import make_model
     from hbma_ctrl.models.actuation import CommandTiming
 
@@ -153,8 +153,8 @@ def test_a_default_minimum_opening_longer_than_the_loops_period_is_one_error_nam
 
 # --- short vents with a minimum valve opening (RobotLoop.net_vents) ---------------------------------
 def _min_on_loop():
-    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.robot_closed import make_model
     from hbma_ctrl.core.params import Pneumatics
     from hbma_ctrl.robot.design import RobotDesign
@@ -229,7 +229,7 @@ def test_structured_robot_holds_a_far_branch_bend_without_vent_dips():
     import math
     from dataclasses import replace
 
-    from controllers.robot_mpc import RobotMPCSettings
+    from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
     from hbma_ctrl.app.robot_closed import run_closed_loop
     from hbma_ctrl.app.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics

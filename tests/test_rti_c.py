@@ -6,12 +6,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from controllers.mpc import NMPC
-from controllers.mpc_settings import MPCSettings
-from controllers.mpc_solvers import _Problem, _RtiOsqp
-from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from controllers.mpc_settings import WEIGHTS, weights_of
-from controllers.rti_c import _RtiC, qp_data_function
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.controllers.mpc_settings import MPCSettings
+from hbma_ctrl.controllers.mpc_solvers import _Problem, _RtiOsqp
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.controllers.mpc_settings import WEIGHTS, weights_of
+from hbma_ctrl.controllers.rti_c import _RtiC, qp_data_function
 from hbma_ctrl.core.interfaces import Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
@@ -68,7 +68,7 @@ def test_qp_data_equals_reference_path(model, h_min, weights):
 def test_settings_differing_only_in_weights_share_one_library(model):
     """A tuning study's trials change weights: their QP data is one generated library (one build),
     while another horizon is another."""
-    import controllers.rti_c as rc
+    import hbma_ctrl.controllers.rti_c as rc
 
     if not rc.has_compiler():
         pytest.skip("no C compiler on this machine: no generated library to share")
@@ -142,7 +142,7 @@ def bank():
 
 def _first_qp(bank, monkeypatch, L: int, x0, abar=None):
     """The QP (P, A, q, l, u) the robot NMPC hands OSQP's setup at its first step (not solved)."""
-    import controllers.robot_mpc as rm
+    import hbma_ctrl.controllers.robot_mpc as rm
 
     ctrl = RobotNMPC(bank, 3, RobotMPCSettings(lin_every=L))
     if abar is not None:
@@ -221,7 +221,7 @@ def test_robot_rmse_within_1pct_of_linearising_every_stage():
 
 def test_without_a_compiler_warns_once_and_gives_the_same_data(model, monkeypatch):
     """No C compiler: one RuntimeWarning saying so, the data on casadi's virtual machine, equal to the C."""
-    import controllers.rti_c as rc
+    import hbma_ctrl.controllers.rti_c as rc
 
     if not rc.has_compiler():
         pytest.skip("no C compiler on this machine: no generated C to compare the virtual machine with")

@@ -1,4 +1,4 @@
-"""The RTI step as one casadi Function (controllers.rti_step) and the fatrop variant, against their references.
+"""The RTI step as one casadi Function (hbma_ctrl.controllers.rti_step) and the fatrop variant, against their references.
 
 - the Function's first input equals the reference OSQP path's (solved tightly) on a few states;
 - fatrop and IPOPT (same OCP) give the same first input;
@@ -14,10 +14,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from controllers.mpc import NMPC
-from controllers.mpc_settings import MPCSettings
-from controllers.mpc_solvers import _Fatrop, _Ipopt, _Problem, _RtiOsqp
-from controllers.rti_step import _RtiFunction, rti_step_function
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.controllers.mpc_settings import MPCSettings
+from hbma_ctrl.controllers.mpc_solvers import _Fatrop, _Ipopt, _Problem, _RtiOsqp
+from hbma_ctrl.controllers.rti_step import _RtiFunction, rti_step_function
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
@@ -105,7 +105,7 @@ def test_generated_fatrop_equals_the_virtual_machines(model):
     same solver on casadi's virtual machine, warm-started over three steps, also with other weights
     (which the same library serves); a solve that does not converge (an iteration cap of 2) is a
     _SolverFailure in both modes. N = 6 keeps the build short."""
-    from controllers.mpc_solvers import _SolverFailure
+    from hbma_ctrl.controllers.mpc_solvers import _SolverFailure
     from hbma_ctrl.core.codegen import has_compiler
 
     if not has_compiler():
@@ -130,7 +130,7 @@ def test_generated_fatrop_equals_the_virtual_machines(model):
 def test_generated_ipopt_equals_the_virtual_machines(model):
     """IPOPT generated as C (``bench mpc --ipopt-c``) gives the virtual machine's plan, warm-started over
     the cases, and refuses a solve capped at 2 iterations as a _SolverFailure. N = 4 keeps the build short."""
-    from controllers.mpc_solvers import _SolverFailure
+    from hbma_ctrl.controllers.mpc_solvers import _SolverFailure
     from hbma_ctrl.core.codegen import has_compiler
 
     if not has_compiler():
@@ -187,7 +187,7 @@ def test_closed_loop_rmse_within_one_percent_of_ipopt(model):
     RTI (HPIPM) and fatrop track within 1 % of IPOPT's height RMSE. On the cap rig with the cap
     models, where the solvers' equivalence was measured (bench mpc): on the default rig the same
     three runs spread by 1.3 %, the loop's noise and shaping, not the OCP."""
-    from estimators.ekf import EKF, EKFSettings
+    from hbma_ctrl.estimators.ekf import EKF, EKFSettings
     from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
     from hbma_ctrl.models.defaults import CAP_CHAMBER
     from hbma_ctrl.sim.rig import CAP_RIG, RigSettings
@@ -212,7 +212,7 @@ def test_closed_loop_rmse_within_one_percent_of_ipopt(model):
 def test_generated_c_of_the_step_equals_the_function(model):
     """The step as generated C (OSQP, compiled once and cached) gives the Function's outputs to 1e-9
     over a few chained steps (skipped without a C compiler or OSQP's shipped headers)."""
-    from controllers.rti_step import compiled_step
+    from hbma_ctrl.controllers.rti_step import compiled_step
     from hbma_ctrl.core.codegen import FastFunction
 
     s = MPCSettings(horizon=8).validate()

@@ -7,10 +7,10 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from controllers.baselines import PIDController, PIDSettings
-from controllers.mpc_settings import timing_stats
-from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.controllers.baselines import PIDController, PIDSettings
+from hbma_ctrl.controllers.mpc_settings import timing_stats
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.robot_closed import make_model
 from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from controllers.mpc_settings import VARIANTS
+from hbma_ctrl.controllers.mpc_settings import VARIANTS
 from hbma_ctrl.app.evaluate import FILTERS
 from hbma_ctrl.app.schema import (
     ActuatorTable,
@@ -417,8 +417,8 @@ def test_table_defaults_are_the_settings_defaults_in_the_users_units():
     """What a scenario gets for a key it leaves out is what the table documents: the rig's structure
     (the structured rig), the filter's and the controller's membrane law and timing (the models'
     datasheet defaults), in ms where the table speaks ms."""
-    from controllers.mpc_settings import MPCSettings
-    from estimators.common import FilterSettings
+    from hbma_ctrl.controllers.mpc_settings import MPCSettings
+    from hbma_ctrl.estimators.common import FilterSettings
     from hbma_ctrl.app.sections import ControllerSection
     from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
     from hbma_ctrl.sim.rig import STRUCTURED_RIG, RigSettings

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from controllers.mpc import NMPC
-from estimators.ekf import EKF, EKFSettings
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.daemon.faults import FaultSpec, FaultyRig
 from hbma_ctrl.app.daemon.rig_sim import SimRig
 from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, safe_u
@@ -224,8 +224,8 @@ def test_no_fault_over_a_robot_closed_loop_past_the_limit_point():
     lowers the pressure): with leak_p_max at 0.8 x the model's limit-point pressure nothing is reported."""
     from dataclasses import replace
 
-    from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-    from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+    from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+    from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.robot_closed import make_model
     from hbma_ctrl.app.sections import RobotSettings
     from hbma_ctrl.core import units as U

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.common import FACTOR_RANGE
-from estimators.ekf import EKF, EKFSettings
+from hbma_ctrl.estimators.common import FACTOR_RANGE
+from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
 from hbma_ctrl.app.schema.document import parse_role
 from hbma_ctrl.app.sections import ControllerSection

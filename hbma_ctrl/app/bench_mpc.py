@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.dompc_ref import DoMPCController, dompc_available
-from controllers.mpc_settings import VARIANTS
+from hbma_ctrl.controllers.dompc_ref import DoMPCController, dompc_available
+from hbma_ctrl.controllers.mpc_settings import VARIANTS
 from hbma_ctrl.app.scene_controller import (
     closed_loop,
     loop_metrics,
@@ -101,8 +101,8 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
 
     ipopt_c_row = None
     if ipopt_c:  # built before any row runs: a machine that cannot build it loses no measured row
-        from controllers.mpc import NMPC
-        from controllers.mpc_solvers import _Ipopt
+        from hbma_ctrl.controllers.mpc import NMPC
+        from hbma_ctrl.controllers.mpc_solvers import _Ipopt
 
         mpc = replace(section.mpc, variant="ipopt", horizon=20, budget=U.ms(budget_ms)).validate()
         ctrl = NMPC(actuator, pneumatics, mpc, model=model)

@@ -46,7 +46,7 @@ def check_choice(flag: str, value: str, allowed) -> str:
 
 
 def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None, with_scenario: bool = False):
-    from controllers.rti_step import QP_SOLVERS
+    from hbma_ctrl.controllers.rti_step import QP_SOLVERS
     from hbma_ctrl.app.codegen_scene import ESTIMATORS, scenario_loop
     from hbma_ctrl.app.scenario import load_scenario
 

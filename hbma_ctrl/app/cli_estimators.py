@@ -75,7 +75,7 @@ def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0,
     this run (``filterpy``: filterpy's ExtendedKalmanFilter on the same casadi model;
     ``ekf_reference``: the EKF's reference path of separate calls).
     """
-    from estimators.common import FilterSettings
+    from hbma_ctrl.estimators.common import FilterSettings
     from hbma_ctrl.app.evaluate import BENCH_FILTERS, _open_loop, aggregate, make_filter, run_and_score
     from hbma_ctrl.core.params import Platform
     from hbma_ctrl.sim.batch import protocol_trials
@@ -177,7 +177,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         t0_mm: Annotated[Optional[float], typer.Option(help="membrane thickness, mm (default 3)")] = None,
     ) -> None:
         """Rank/condition of the linearised observability matrix along free, contact and resting runs."""
-        from estimators.observability import OBS_SCALE, WINDOW_S, run
+        from hbma_ctrl.estimators.observability import OBS_SCALE, WINDOW_S, run
         from hbma_ctrl.core.params import Actuator
 
         act = Actuator()

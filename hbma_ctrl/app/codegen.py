@@ -76,7 +76,7 @@ class Stage:
         (a solver's failure status); None: all ``repeat`` calls.
     fails_to : an output signal whose first entry is set to NaN before every call, so that a call that
         fails (a solver inside returns non-zero before the Function writes that output) reads as failed,
-        as the Python roles read it (``controllers.rti_step._RtiFunction``); None: none.
+        as the Python roles read it (``hbma_ctrl.controllers.rti_step._RtiFunction``); None: none.
     """
 
     fun: ca.Function

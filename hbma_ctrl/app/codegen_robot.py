@@ -10,13 +10,13 @@ called in the tick's order:
   :meth:`RobotRig.measure` draws it);
 - ``robot_ekf``: the command acting through the valves' and sensors' delays
   (:func:`hbma_ctrl.models.actuation.acting_function` mapped) and the bank's period
-  (:func:`estimators.robot_ekf.bank_step_function`); the bank starts from the first readings (its
+  (:func:`hbma_ctrl.estimators.robot_ekf.bank_step_function`); the bank starts from the first readings (its
   state at generation time, as :meth:`ChamberEKFBank.step` starts it);
 - ``robot_pre``: the readings the bank trusted, the burst test (:func:`hbma_ctrl.runtime.burst.burst_function`),
   the loads from the estimated heights (:func:`hbma_ctrl.robot.plant_step.load_sharing_function`),
   the targets' slew, the vent and hold masks and the NMPC's supply caps
   (:mod:`hbma_ctrl.runtime.robot_step`);
-- ``robot_rti_step``: the robot NMPC (:func:`controllers.robot_rti_step.robot_rti_step_function`, OSQP
+- ``robot_rti_step``: the robot NMPC (:func:`hbma_ctrl.controllers.robot_rti_step.robot_rti_step_function`, OSQP
   inside);
 - ``robot_post``: the plan with a shared pump's budget, the supervisor
   (:func:`hbma_ctrl.runtime.safety_step.supervisor_function`), a released chamber's filter restarted
@@ -32,7 +32,7 @@ tick per period, as the scene does: a late tick's predict over several periods a
 the command it held (``RobotLoop.tick``'s ``held``) are not generated.
 
 Its scene counterpart is :func:`hbma_ctrl.app.robot_closed.run_closed_loop` with the NMPC
-:class:`controllers.robot_rti_step.RobotNMPCFunction` (the same step Function, compiled), no
+:class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` (the same step Function, compiled), no
 wall-time budget: :func:`scene_reference` runs it and compares. The other parts of the scene are its
 numpy classes, which the Functions equal to rounding (``tests/test_robot_loop_blocks.py``), not
 to the bit.
@@ -64,7 +64,7 @@ def robot_scene_parts(scn):
 
 def _build(scn, nmpc_class=None):
     """The scene's rig and loop (and its settings), refused where the generated loop cannot follow."""
-    from controllers.robot_rti_step import RobotNMPCFunction
+    from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
     from hbma_ctrl.app.robot_closed import build_closed_loop
 
     s, rig, model, mpc = robot_scene_parts(scn)
@@ -96,7 +96,7 @@ def _clock(plant, n_ticks: int) -> tuple[np.ndarray, np.ndarray]:
 def _ekf_function(loop) -> ca.Function:
     """robot_ekf(z[n], w_prev[2 x n], act_hist, act_fill[n], X[4 x n], P[16 x n], W[n], gated_run[n])
     -> the acting history, the bank's state and its outputs (the bank's step with the command acting)."""
-    from estimators.robot_ekf import bank_step_function
+    from hbma_ctrl.estimators.robot_ekf import bank_step_function
     from hbma_ctrl.models.actuation import acting_function
 
     bank, n = loop.bank, loop.n
@@ -262,7 +262,7 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     scenario's). ValueError naming the key the generated loop cannot follow."""
     from functools import partial
 
-    from controllers.robot_rti_step import RobotNMPCFunction
+    from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
     from hbma_ctrl.models.actuation import acting_state
     from hbma_ctrl.robot.plant_step import robot_rig_step_function
     from hbma_ctrl.runtime.safety_step import EVENTS, supervisor_state
@@ -461,11 +461,11 @@ _SCENE_COLUMNS = (("h_", "_mm", "h"), ("h_est_", "_mm", "h_est"), ("p_", "_kpa",
 
 def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray) -> dict:
     """Run the scene's own closed loop (:func:`hbma_ctrl.app.robot_closed.run_closed_loop`: its rig, EKF
-    bank, loop and supervisor classes, the NMPC :class:`controllers.robot_rti_step.RobotNMPCFunction`)
+    bank, loop and supervisor classes, the NMPC :class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction`)
     over the generated loop's ticks and compare: the largest absolute difference of each compared
     quantity over all chambers (SI), the scene's step times (us: calls, median, p99, max) and its
     tracking beside the generated run's."""
-    from controllers.robot_rti_step import RobotNMPCFunction
+    from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
     from hbma_ctrl.app.codegen import time_summary
     from hbma_ctrl.app.robot_closed import run_closed_loop
     from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics

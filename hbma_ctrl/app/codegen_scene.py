@@ -2,19 +2,19 @@
 
 The three step Functions are the ones the Python roles call: the plant over one rig period
 (:func:`hbma_ctrl.sim.plant_step.plant_step_function`), the EKF step
-(:func:`estimators.ekf_step.ekf_step_function`) and the RTI step
-(:func:`controllers.rti_step.rti_step_function`). What the Python classes do around them is written
+(:func:`hbma_ctrl.estimators.ekf_step.ekf_step_function`) and the RTI step
+(:func:`hbma_ctrl.controllers.rti_step.rti_step_function`). What the Python classes do around them is written
 here as small casadi Functions too, so that the C loop needs no Python:
 
 - ``sensor``: the rig's reading, the true (or lagged) pressure plus the tick's noise, saturated at the
   range (noise and dropouts drawn at generation time from the rig's seeded stream, as :class:`Rig` draws
   them); the rig's structure around its plant: ``valve_line`` (the valves' delay and minimum opening)
   and ``sensor_lag`` (:mod:`hbma_ctrl.sim.plant_step`);
-- ``ekf_kind``: the reading's kind (:func:`estimators.common.classify_measurement`); ``ekf_acting``: the
+- ``ekf_kind``: the reading's kind (:func:`hbma_ctrl.estimators.common.classify_measurement`); ``ekf_acting``: the
   command acting for the EKF's valve and sensor delays (:func:`hbma_ctrl.models.actuation.acting_function`);
 - ``mpc_prep``: the NMPC's problem data from the estimate (its load filter, initial state, output
   biases, reachable height, clipped targets and integral action): the Function the NMPC itself calls
-  (:mod:`controllers.mpc_prep`);
+  (:mod:`hbma_ctrl.controllers.mpc_prep`);
 - ``mpc_cold``: the cold-start guess (after the first step or a failure);
 - ``mpc_post``: the command after the NMPC and the runtime's supervisor (plan replay on a failure,
   safe command, pressure guard; :class:`hbma_ctrl.runtime.safety.Supervisor`);
@@ -46,9 +46,9 @@ import math
 import casadi as ca
 import numpy as np
 
-from controllers.mpc_prep import problem_function
+from hbma_ctrl.controllers.mpc_prep import problem_function
 from hbma_ctrl.app.codegen import LOG, LogColumn, LoopSpec, Stage
-from estimators.common import classify_expr
+from hbma_ctrl.estimators.common import classify_expr
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.fidelity import OUTPUTS
 from hbma_ctrl.runtime.chamber import chamber_supervisor
@@ -162,7 +162,7 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
     """(mpc_prep, mpc_cold, mpc_post) casadi Functions of the NMPC with settings ``s`` (MPCSettings)
     on its PredictionModel and the supervisor settings ``sup`` (see the module docstring); ``nz``, ``nc``
     the RTI step's numbers of QP variables and rows (the cold start's zero duals). mpc_prep is the
-    NMPC's own (:func:`controllers.mpc_prep.problem_function`, which ``NMPC._problem`` calls); it takes
+    NMPC's own (:func:`hbma_ctrl.controllers.mpc_prep.problem_function`, which ``NMPC._problem`` calls); it takes
     the load filter's gain ``load_a`` = min(1, dt / load_tau) as an input: dt is the time since the last
     step, which the scene computes from its clock (a data stream of the loop)."""
     N = s.horizon
@@ -197,8 +197,8 @@ def mpc_glue(model, s, sup, nz: int = 0, nc: int = 0) -> tuple:
 def qp_solver_for(variant: str, qp_solver: str | None = None) -> str:
     """The conic plugin the generated RTI step uses: ``qp_solver`` if given, the variant's own for the
     'rti_fn_*' variants, else OSQP (as 'rti_osqp'; linked from the casadi package). qrqp generates
-    self-contained C but fails on the cold starts of this QP (controllers.rti_step)."""
-    from controllers.rti_step import QP_SOLVERS
+    self-contained C but fails on the cold starts of this QP (hbma_ctrl.controllers.rti_step)."""
+    from hbma_ctrl.controllers.rti_step import QP_SOLVERS
 
     if qp_solver is None:
         qp_solver = variant[len("rti_fn_"):] if variant.startswith("rti_fn_") else "osqp"
@@ -212,8 +212,8 @@ def _mpc_stages(scn, section, every: int, qp_solver: str | None, pwm=None) -> tu
     shaping (:class:`hbma_ctrl.runtime.pwm.MinOnTime`, None = none); with it the NMPC and its supervisor
     keep the command they asked for (``wanted``) and every tick sends it shaped (``u``), as
     :class:`hbma_ctrl.runtime.chamber.ChamberLoop` does."""
-    from controllers.mpc import NMPC
-    from controllers.rti_step import rti_step_function
+    from hbma_ctrl.controllers.mpc import NMPC
+    from hbma_ctrl.controllers.rti_step import rti_step_function
 
     s = section.mpc
     if not s.variant.startswith("rti"):
@@ -257,7 +257,7 @@ def _mpc_stages(scn, section, every: int, qp_solver: str | None, pwm=None) -> tu
         signals.update(wanted=np.zeros(3), pwm_carry=np.zeros(2))
         stages.append(Stage(pwm.function(), ["wanted", "pwm_carry"], ["u", "pwm_carry"]))
     shaping = "" if pwm is None else f", duties shaped for a {pwm.min_duty:g} minimum duty"
-    return stages, signals, {"controller": f"RTI NMPC (controllers.rti_step), N = {N}, QP {solver}, "
+    return stages, signals, {"controller": f"RTI NMPC (hbma_ctrl.controllers.rti_step), N = {N}, QP {solver}, "
                                            f"every {every} rig periods{shaping}"}
 
 
@@ -266,7 +266,7 @@ def _ekf_glue(settings, bounds: tuple) -> tuple:
     """(ekf_kind, ekf_out): the reading's kind code and the z the step takes (as EKF.step classifies it),
     and the estimate's h, p, F, its 'resting' flag and the count of steps the Python EKF would have
     finished on its reference path (``exact`` = 0, or a no-load lift-off it replays)."""
-    from estimators import ekf_step as es
+    from hbma_ctrl.estimators import ekf_step as es
 
     z = ca.SX.sym("z")
     lo, hi = bounds
@@ -294,10 +294,10 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
     """The EKF's stages and signals, initialised from the first reading z0 (Pa) by the Python EKF
     (its first step is the reference path's initialisation)."""
     try:
-        from estimators import ekf_step as es
+        from hbma_ctrl.estimators import ekf_step as es
     except ImportError:  # pragma: no cover - a build without the EKF step Function
-        raise ValueError("codegen: this build has no estimators.ekf_step (the EKF step Function)") from None
-    from estimators.common import physical_reading_bounds
+        raise ValueError("codegen: this build has no hbma_ctrl.estimators.ekf_step (the EKF step Function)") from None
+    from hbma_ctrl.estimators.common import physical_reading_bounds
     from hbma_ctrl.app.scene_controller import (
         default_estimator,
         estimator_from_scenario,
@@ -342,7 +342,7 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
                      ["est_h", "est_p", "est_F", "resting", "ekf_n_ref"], gate="not_first"),
                Stage(first, ["one"], ["not_first"])]
     delays = f", commands acting {s.valve_delay * 1e3:g} + {s.sensor_delay * 1e3:g} ms late" if timing.active else ""
-    return stages, signals, {"estimator": f"EKF (estimators.ekf_step), {s.sample_period * 1e3:g} ms{delays}"}
+    return stages, signals, {"estimator": f"EKF (hbma_ctrl.estimators.ekf_step), {s.sample_period * 1e3:g} ms{delays}"}
 
 
 def _truth_stages() -> tuple[list, dict, dict]:

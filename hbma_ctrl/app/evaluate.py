@@ -26,12 +26,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
-from estimators.ekf import EKF, OUTPUT_KEYS
-from estimators.observer_calls import fast
-from estimators.ekf_step import observer_model
-from estimators.innovation import innovation_test
-from estimators.ukf import UKF
+from hbma_ctrl.estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
+from hbma_ctrl.estimators.ekf import EKF, OUTPUT_KEYS
+from hbma_ctrl.estimators.observer_calls import fast
+from hbma_ctrl.estimators.ekf_step import observer_model
+from hbma_ctrl.estimators.innovation import innovation_test
+from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command, Estimate
@@ -46,7 +46,7 @@ __all__ = ["EVENT_COUNTS", "ReferenceEKF", "FilterpyEKF", "BENCH_FILTERS", "Tria
 
 FILTERS = ("ekf", "ukf")
 #: per-run counts of the filter's rarer events, score key -> the Estimate flag counted (steps raising
-#: it): lift-offs a load prior ruled out (estimators.ekf_step.LIFT_PRIOR_SIGMAS), lift-offs the flow
+#: it): lift-offs a load prior ruled out (hbma_ctrl.estimators.ekf_step.LIFT_PRIOR_SIGMAS), lift-offs the flow
 #: and dead-volume factors' ratio showed (flat_ratio_min), load changes the excess sum declared
 #: (EXCESS_THRESHOLD). estimator_trials.csv has them as its last columns, in this order
 EVENT_COUNTS = {"lift_offs_implausible": "lift_off_implausible", "lift_offs_ratio": "lift_off_ratio",
@@ -247,7 +247,7 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
     # the detectors' rarer events, counted per run (EVENT_COUNTS)
     for key, flag in EVENT_COUNTS.items():
         out[key] = float(sum(flag in f for f in res.flags[sl]))
-    # model-form check on the innovations alone (estimators.innovation): the run's largest windowed
+    # model-form check on the innovations alone (hbma_ctrl.estimators.innovation): the run's largest windowed
     # self-normalised innovation mean, and whether it exceeds the test's threshold
     if "innov" in res.est:
         it = innovation_test(res.est["innov"][sl])
@@ -327,7 +327,7 @@ def aggregate(results: list[TrialResult]) -> dict:
     ratio = S["height_nrmsd"] / S["height_nrmsd_open_loop"]
     fse = np.array([r.scores["force_steady_rel_err"] for r in results], dtype=float)
     flagged = np.array([r.scores.get("innovation_flag", np.nan) for r in results], dtype=float)
-    flagged = flagged[np.isfinite(flagged)]  # runs with a verdict (estimators.innovation)
+    flagged = flagged[np.isfinite(flagged)]  # runs with a verdict (hbma_ctrl.estimators.innovation)
     # per scenario (the protocol's t0 x r1 x load cell, mean over speeds and seeds; trials whose
     # membrane never lifts have no NRMSD and are left out)
     cells: dict = {}
@@ -347,7 +347,7 @@ def aggregate(results: list[TrialResult]) -> dict:
         "height_ratio_to_open_loop_max": float(np.nanmax(ratio)),
         "worst_ratio_trial": results[int(np.nanargmax(ratio))].name if np.any(np.isfinite(ratio)) else None,
         "force_steady_rel_err_mean": float(np.nanmean(fse)) if np.any(np.isfinite(fse)) else float("nan"),
-        # share of the trials whose innovations the model-form test flags (estimators.innovation)
+        # share of the trials whose innovations the model-form test flags (hbma_ctrl.estimators.innovation)
         "innovation_flag_rate": float(np.mean(flagged)) if flagged.size else float("nan"),
         # the detectors' rarer events summed over the trials (EVENT_COUNTS), and the trials with a
         # lift-off the load prior ruled out

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
-from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.sections import CONTROLLERS, RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
@@ -116,7 +116,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     The fastest a chamber's target height moves, the valves' shortest opening and the delays the
     chambers' filters take are ``settings``' (``target_rate`` m/s, None or 0: targets step;
     ``valve_min_on``, ``valve_delay``, ``sensor_delay``, s). ``nmpc_class``: the NMPC's class
-    (:class:`controllers.robot_rti_step.RobotNMPCFunction` runs the generated loop's step).
+    (:class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` runs the generated loop's step).
     """
     check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
     plant, loop = build_closed_loop(settings, targets, controller, pneumatics, rig, mpc, pid, model, tip_load,

@@ -48,13 +48,13 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from controllers.baselines import (
+from hbma_ctrl.controllers.baselines import (
     BangBangController,
     PIDController,
 )
-from controllers.mpc import NMPC
-from estimators.ekf import EKF, EKFSettings
-from estimators.ukf import UKF
+from hbma_ctrl.controllers.mpc import NMPC
+from hbma_ctrl.estimators.ekf import EKF, EKFSettings
+from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.evaluate import NEES_FLOOR
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.sections import (

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from controllers.robot_mpc import RobotMPCSettings
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.robot_closed import ClosedLoopRun, make_model, run_closed_loop
 from hbma_ctrl.app.robot_plots import plot_shapes
 from hbma_ctrl.app.schema.rig import RigTable

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.baselines import BangBangSettings, PIDSettings
-from controllers.mpc_settings import MPCSettings
-from estimators.common import FilterSettings
+from hbma_ctrl.controllers.baselines import BangBangSettings, PIDSettings
+from hbma_ctrl.controllers.mpc_settings import MPCSettings
+from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.core.validation import did_you_mean
@@ -226,7 +226,7 @@ class RobotSettings:
     valve_min_on : the valves' shortest opening, s, [0, 0.1], at most the rig's sample period (0: duties sent as decided;
         :class:`hbma_ctrl.runtime.robot.RobotLoop`); default 2 ms.
     valve_delay, sensor_delay : the valve and sensor delays the chambers' filters take, s, [0, 0.1]
-        (:class:`estimators.robot_ekf.ChamberEKFSettings`; 0 = at once); default 5 ms and 0
+        (:class:`hbma_ctrl.estimators.robot_ekf.ChamberEKFSettings`; 0 = at once); default 5 ms and 0
         (:mod:`hbma_ctrl.models.defaults`; ``ROBOT_INSTANT`` sets all three to 0).
     burst_sigma : the burst test's threshold, in the chambers' filters' standard deviations, [0, 1e4]
         (0 = no burst test; :mod:`hbma_ctrl.runtime.burst`); default 50.

@@ -9,7 +9,7 @@ prediction, period after period. Normal mismatch (the pump's map, the valves' ti
 law) stays within a few of the filter's own standard deviations.
 
 :class:`BurstTest` is Page's one-sided CUSUM over each chamber's signed normalised innovation
-``r = (z - p_pred) / sqrt(S)`` (:class:`estimators.robot_ekf.ChamberEKFBank`'s ``r``):
+``r = (z - p_pred) / sqrt(S)`` (:class:`hbma_ctrl.estimators.robot_ekf.ChamberEKFBank`'s ``r``):
 
     g <- max(0, g + min(-r - allowance, step_cap)),   flag when g >= threshold
 

@@ -54,7 +54,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays

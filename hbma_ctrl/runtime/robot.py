@@ -55,8 +55,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from controllers.robot_mpc import RobotNMPC
-from estimators.robot_ekf import ChamberEKFBank
+from hbma_ctrl.controllers.robot_mpc import RobotNMPC
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank
 from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
@@ -168,7 +168,7 @@ class RobotLoop:
     design : the robot.
     model : the nominal per-chamber model (the controller's and the bank's).
     bank : the chambers' EKF bank (:class:`ChamberEKFBank`).
-    controller : :class:`RobotNMPC` or :class:`controllers.robot_pid.RobotPressurePID` over all chambers.
+    controller : :class:`RobotNMPC` or :class:`hbma_ctrl.controllers.robot_pid.RobotPressurePID` over all chambers.
     supervisor : an n-chamber :class:`Supervisor` (:func:`robot_supervisor`).
     targets : layer targets {layer index: ((t s, centre height m, bend rad, direction rad), ...)}.
     cautious : (pressure fraction, k std, duty): while a chamber's estimated pressure is above the

@@ -3,7 +3,7 @@
 A daemon runs for days; a list of every step time grows without bound. :class:`StepStats` keeps the
 last ``capacity`` samples (median and p99 are over those) and a streaming count and maximum over
 all samples. With ``capacity`` >= the number of samples the numbers equal
-:func:`controllers.mpc_settings.timing_stats` of the full list (same numpy calls on the same values).
+:func:`hbma_ctrl.controllers.mpc_settings.timing_stats` of the full list (same numpy calls on the same values).
 """
 
 from __future__ import annotations

@@ -18,9 +18,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from controllers.robot_pid import RobotPIDSettings, RobotPressurePID
-from estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
 from hbma_ctrl.app.robot_closed import make_model
 from hbma_ctrl.app.scene_controller import (
@@ -379,7 +379,7 @@ def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
     rs = chamber_rig_settings(cfg)
     est = estimator_from_scenario(scn, rs)
     if est is None:
-        from estimators.ekf import EKF, EKFSettings
+        from hbma_ctrl.estimators.ekf import EKF, EKFSettings
         est = EKF(scn.actuator, scn.pneumatics, EKFSettings(sample_period=rs.sample_period,
                                                             noise_std=max(rs.noise_std, 1.0),
                                                             sensor_range=rs.sensor_range))

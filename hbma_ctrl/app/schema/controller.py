@@ -12,8 +12,8 @@ from typing import Literal, NamedTuple
 
 from pydantic import model_validator
 
-from controllers.baselines import BangBangSettings, PIDSettings
-from controllers.mpc_settings import MPCSettings
+from hbma_ctrl.controllers.baselines import BangBangSettings, PIDSettings
+from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
     LoadSteps,

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
     LoadSteps,
