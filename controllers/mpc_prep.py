@@ -3,7 +3,7 @@
 What :meth:`hbma_ctrl.controllers.mpc.NMPC._problem_reference` computes in Python every step (the load filter,
 the state and output biases at the estimate, the reachable height along the load path, the clipped
 targets and the integral action) written once in casadi, so that the NMPC calls it compiled (tens of
-microseconds of Python per step otherwise) and the generated C loop (:mod:`hbma_ctrl.app.codegen_scene`)
+microseconds of Python per step otherwise) and the generated C loop (:mod:`hbma_ctrl.app.codegen.chamber`)
 runs the same Function. It rounds as the Python path does (``np.interp``'s formula, the path's column
 blend), to 1e-12 of it (``tests/test_codegen.py``)::
 

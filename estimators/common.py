@@ -99,7 +99,7 @@ class FilterSettings:
     load_prior : 'unknown' (default: the load is learnt from the lift-off) or 'nominal': a scene
         that knows its calibrated load (the protocol's weights) starts the load at the trial's
         nominal weight, with one sigma load_prior_rel_std x that weight (+0.01 N). Applied per trial
-        by :func:`hbma_ctrl.app.evaluate.make_filter`; load changes are still detected and tracked.
+        by :func:`hbma_ctrl.app.scenes.evaluate.make_filter`; load changes are still detected and tracked.
     load_prior_rel_std : relative one sigma of the nominal load prior, [0, 10].
     reading_min : the lowest reading that can be physical, Pa gauge, [-101325, 0] (default: vacuum);
         below it a reading is an outlier (predict only, counted), never an update.

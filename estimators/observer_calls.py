@@ -2,7 +2,7 @@
 compiled once per process, and the flat or full variant by the step's mode (SI).
 
 Used by :class:`hbma_ctrl.estimators.ekf.EKF` (its reference path) and :class:`hbma_ctrl.estimators.ukf.UKF`, and by
-:mod:`hbma_ctrl.app.evaluate`.
+:mod:`hbma_ctrl.app.scenes.evaluate`.
 """
 
 from __future__ import annotations

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import hbma_ctrl.app.cli as cli_mod
-from hbma_ctrl.app import cli_args
-from hbma_ctrl.app.cli import app
+import hbma_ctrl.app.cli.main as cli_mod
+from hbma_ctrl.app.cli import args as cli_args
+from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.app.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

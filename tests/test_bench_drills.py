@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.app.bench_drills import DEFAULT_VALUE, check_drills, drill_fault
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.bench.drills import DEFAULT_VALUE, check_drills, drill_fault
+from hbma_ctrl.app.cli.main import app
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT = ROOT / "scenarios" / "daemon_robot.toml"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.models.exact import ExactMembrane
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.cli.main import app
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
@@ -122,7 +122,7 @@ def test_run_open_loop_writes_metrics_log_and_plot(tmp_path):
 
 
 def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
-    import hbma_ctrl.app.cli as cli_mod
+    import hbma_ctrl.app.cli.main as cli_mod
 
     calls = []
 
@@ -144,7 +144,7 @@ def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
 
 
 def test_run_dispatches_role_scene_and_merges_metrics(tmp_path, monkeypatch):
-    import hbma_ctrl.app.runner as runner_mod
+    import hbma_ctrl.app.scenes.runner as runner_mod
 
     def run_scene(scn, out_dir):
         assert scn.role("estimator").filter == "ukf"
@@ -205,7 +205,7 @@ def test_bench_loop_load_step_holds_over_seeds_0_to_2(tmp_path):
 def test_bench_loop_load_step_pass_rate_over_20_seeds():
     """The README's load-step rate over rig seeds 0-19: at least 17 of 20 (measured 19 of 20 with the
     start-up calibration; 16 of 20 without it)."""
-    from hbma_ctrl.app.bench_loop import run_loop_bench
+    from hbma_ctrl.app.bench.loop import run_loop_bench
 
     rows = run_loop_bench(list(range(20)), ["load_step_200g"], workers=2)
     assert all(r["max_pressure_kpa"] <= r["pressure_limit_kpa"] for r in rows)
@@ -251,7 +251,7 @@ def test_run_whose_solver_diverges_ends_non_zero_with_status_failed(tmp_path):
 def test_run_whose_step_count_would_take_hours_says_so_before_starting(tmp_path, monkeypatch, capsys):
     """3600 s at a 1 us step (3.6e9 steps): a note with the step count and the hours comes out before
     the first step (the simulation is stubbed here: the note must precede it)."""
-    import hbma_ctrl.app.runner as runner_mod
+    import hbma_ctrl.app.scenes.runner as runner_mod
     from hbma_ctrl.app.scenario import load_scenario
 
     class Started(Exception):
@@ -290,8 +290,8 @@ def _modules_after(code: str, cwd: Path) -> set[str]:
 
 
 def test_importing_the_cli_loads_no_other_commands_modules(tmp_path):
-    mods = _modules_after("import sys, hbma_ctrl.app.cli", tmp_path)
-    assert "hbma_ctrl.app.cli" in mods
+    mods = _modules_after("import sys, hbma_ctrl.app.cli.main", tmp_path)
+    assert "hbma_ctrl.app.cli.main" in mods
     assert not mods & set(_OTHER_COMMANDS_MODULES), sorted(mods & set(_OTHER_COMMANDS_MODULES))
 
 
@@ -300,18 +300,18 @@ def test_protocol_command_loads_neither_the_roles_nor_other_commands_modules(tmp
     loaded, the estimators, controllers, runtime, robot and the modules of the other commands are not."""
     out = tmp_path / "p"
     mods = _modules_after(
-        "import sys\nfrom hbma_ctrl.app.cli import app\n"
+        "import sys\nfrom hbma_ctrl.app.cli.main import app\n"
         f"app(['protocol', '--out', {str(out)!r}, '--duration-s', '0.5', '--t-inflate-s', '0.25', '--no-plots'], "
         "standalone_mode=False)", tmp_path)
-    assert (out / "summary.csv").is_file() and "hbma_ctrl.app.protocol" in mods
-    roles = {m for m in mods if m.startswith(("hbma_ctrl.estimators", "hbma_ctrl.controllers", "hbma_ctrl.runtime", "hbma_ctrl.robot", "hbma_ctrl.app.runner"))}
+    assert (out / "summary.csv").is_file() and "hbma_ctrl.app.scenes.protocol" in mods
+    roles = {m for m in mods if m.startswith(("hbma_ctrl.estimators", "hbma_ctrl.controllers", "hbma_ctrl.runtime", "hbma_ctrl.robot", "hbma_ctrl.app.scenes.runner"))}
     assert not roles, sorted(roles)
     assert not mods & set(_OTHER_COMMANDS_MODULES), sorted(mods & set(_OTHER_COMMANDS_MODULES))
 
 
 def test_cli_constants_equal_the_constants_they_copy():
-    from hbma_ctrl.app import cli_constants as C
-    from hbma_ctrl.app import codegen
+    from hbma_ctrl.app.cli import constants as C
+    from hbma_ctrl.app.codegen import loop as codegen
     from hbma_ctrl.core import units as U
     from hbma_ctrl.robot import statics
 
@@ -328,7 +328,7 @@ def test_bench_protocol_times_the_main_job_in_fresh_interpreters(tmp_path):
     assert res.exit_code == 0, res.output
     data = json.loads((out / "bench.json").read_text())
     rows = data["rows"]
-    assert set(rows) == {"protocol", "protocol --no-plots", "start-up (import hbma_ctrl.app.cli)",
+    assert set(rows) == {"protocol", "protocol --no-plots", "start-up (import hbma_ctrl.app.cli.main)",
                          "simulation of the 150 trials (in process)"}
     for r in rows.values():
         assert len(r["runs_s"]) == 1 and r["median_s"] == r["runs_s"][0] > 0

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from hbma_ctrl.estimators.ekf import EKF, EKFSettings
-from hbma_ctrl.app.scene_controller import (
+from hbma_ctrl.app.scenes.controller import (
     closed_loop,
     loop_metrics,
     settle_results,
@@ -200,7 +200,7 @@ def test_scenario_run_writes_controller_metrics(tmp_path):
     has the contract's controller keys; the CSV and the plot are written."""
     import json
 
-    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import parse_scenario
 
     data = {"scenario": {"name": "cl", "duration_s": 3.5}, "load": {"mass_g": 400.0},
@@ -231,7 +231,7 @@ def test_structured_rig_400g_settles_with_the_timing_modelled_and_never_lifts_wi
     rise as a lift-off at zero load and the true platform never leaves the plate while the estimate
     sits on the targets; with the valve and sensor delays modelled (5 and 3 ms) every step settles
     within 0.3 mm (rig seed 0; ``bench loop --rig structured`` gives the rate over seeds)."""
-    from hbma_ctrl.app.bench_loop import loop_setup, run_case
+    from hbma_ctrl.app.bench.loop import loop_setup, run_case
 
     timed = run_case("steps_400g", 0, loop_setup("structured"))
     naive = run_case("steps_400g", 0, loop_setup("structured", valve_delay_ms=0.0, sensor_delay_ms=0.0))
@@ -247,7 +247,7 @@ def test_structured_rig_400g_settles_with_the_timing_modelled_and_never_lifts_wi
     (None, 0.0, "--prior-std = 0 is out of range (0, 10]"),
 ])
 def test_bench_loop_prior_flags_are_one_error(prior, prior_std, needle):
-    from hbma_ctrl.app.bench_loop import loop_setup
+    from hbma_ctrl.app.bench.loop import loop_setup
 
     with pytest.raises(ValueError) as exc:
         loop_setup(prior=prior, prior_std=prior_std)
@@ -255,7 +255,7 @@ def test_bench_loop_prior_flags_are_one_error(prior, prior_std, needle):
 
 
 def test_bench_loop_prior_reaches_the_filter_settings():
-    from hbma_ctrl.app.bench_loop import _prior_settings, loop_setup
+    from hbma_ctrl.app.bench.loop import _prior_settings, loop_setup
 
     setup = loop_setup(prior="0.92,1.15,1.13", prior_std=0.05)
     kw = _prior_settings(setup)

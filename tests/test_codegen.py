@@ -15,8 +15,8 @@ import pytest
 from typer.testing import CliRunner
 
 from cli_checks import one_line_error
-from hbma_ctrl.app.cli import app
-from hbma_ctrl.app.codegen import LOG, LIBRARY, LogColumn, LoopSpec, Stage, build_c, compare, find_compiler, \
+from hbma_ctrl.app.cli.main import app
+from hbma_ctrl.app.codegen.loop import LOG, LIBRARY, LogColumn, LoopSpec, Stage, build_c, compare, find_compiler, \
     run_c, run_python, write_c
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.models.fidelity import OUTPUTS
@@ -186,7 +186,7 @@ def test_loop_description_runs_the_same_in_python_and_in_c(tmp_path):
 
 def test_mpc_glue_matches_the_nmpc_problem():
     from hbma_ctrl.controllers.mpc import NMPC
-    from hbma_ctrl.app.codegen_scene import mpc_glue
+    from hbma_ctrl.app.codegen.chamber import mpc_glue
     from hbma_ctrl.core.interfaces import Estimate, Reference
     from hbma_ctrl.runtime.chamber import chamber_supervisor
 
@@ -231,7 +231,7 @@ def _glue_against_nmpc(target, preview: bool) -> list:
     """mpc_prep's horizon targets and integral shift against NMPC._problem over 80 controller periods of
     ``target(t, k)`` (m), the estimate 0.6 mm under it with noise; returns the glue's shifts."""
     from hbma_ctrl.controllers.mpc import NMPC
-    from hbma_ctrl.app.codegen_scene import mpc_glue
+    from hbma_ctrl.app.codegen.chamber import mpc_glue
     from hbma_ctrl.core.interfaces import Estimate, Reference
     from hbma_ctrl.runtime.chamber import chamber_supervisor
 
@@ -266,8 +266,8 @@ def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scen
     first target step (2 -> 8 mm at 3 s); the default's 4.2 s include its two failed solves at 4.1 s."""
     from dataclasses import replace
 
-    from hbma_ctrl.app.codegen_scene import scenario_loop
-    from hbma_ctrl.app.scene_controller import closed_loop, estimator_from_scenario
+    from hbma_ctrl.app.codegen.chamber import scenario_loop
+    from hbma_ctrl.app.scenes.controller import closed_loop, estimator_from_scenario
 
     scn = load_scenario(scenario)
     spec = scenario_loop(scn, duration=T)
@@ -306,8 +306,8 @@ def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scen
     assert len(log.supervisor_events) == len(failed) // 2  # the scene failed where the loop did
 
     # the C run's metrics.json objects are the scene's metrics of its own trajectory
-    from hbma_ctrl.app.codegen_scene import loop_run_metrics
-    from hbma_ctrl.app.scene_controller import loop_metrics
+    from hbma_ctrl.app.codegen.chamber import loop_run_metrics
+    from hbma_ctrl.app.scenes.controller import loop_metrics
 
     m = loop_run_metrics(scn, spec, c.trajectory)
     want = loop_metrics(log, sec)

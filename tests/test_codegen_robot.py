@@ -1,4 +1,4 @@
-"""The robot's generated closed loop (hbma_ctrl.app.codegen_robot): the C program against its Python
+"""The robot's generated closed loop (hbma_ctrl.app.codegen.robot): the C program against its Python
 path (the same stages called from Python on the same library) and against the scene's own loop."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hbma_ctrl.app.codegen import bench, find_compiler, read_c
+from hbma_ctrl.app.codegen.loop import bench, find_compiler, read_c
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.runtime.safety import ZERO_TARGET
 
@@ -23,7 +23,7 @@ def test_the_robot_loop_in_c_equals_its_python_path_and_the_scenes_loop(tmp_path
     (RobotNMPCFunction, its numpy bank, loads, supervisor and valve classes) follows it within 1e-9 in
     heights (m), estimates and commands, 1e-6 Pa in pressures; the chambers rise and every step solves;
     the C run's robot metrics are the scene's metrics of its own trajectory."""
-    from hbma_ctrl.app.codegen_robot import loop_run_metrics, robot_loop, scene_reference
+    from hbma_ctrl.app.codegen.robot import loop_run_metrics, robot_loop, scene_reference
 
     scn = load_scenario(ROOT / "scenarios" / "robot_bending.toml")
     spec = robot_loop(scn, 1.5)
@@ -52,7 +52,7 @@ def test_the_shared_pump_robot_loop_in_c_equals_its_python_path(tmp_path):
     trajectory equals the Python path's exactly, the vent rule holds layer B's outlets open, the pump's
     one speed is the same in every column, and the scene's loop follows it to rounding until the shared
     pump's speed search (16 bisections) turns a rounding difference into one of its steps (at 0.34 s)."""
-    from hbma_ctrl.app.codegen_robot import robot_loop, scene_reference
+    from hbma_ctrl.app.codegen.robot import robot_loop, scene_reference
 
     scn = load_scenario(ROOT / "scenarios" / "robot_sequential_closed.toml")
     spec = robot_loop(scn, 0.3)
@@ -76,7 +76,7 @@ def test_codegen_cli_writes_a_robot_loop_and_says_what_it_leaves_out(tmp_path):
     left out."""
     from typer.testing import CliRunner
 
-    from hbma_ctrl.app.cli import app
+    from hbma_ctrl.app.cli.main import app
 
     res = CliRunner().invoke(app, ["codegen", str(ROOT / "scenarios" / "robot_bending.toml"), "--out",
                                    str(tmp_path / "gen"), "--duration-s", "0.05"])
@@ -95,8 +95,8 @@ def test_the_daemons_robot_loop_with_slewed_targets_follows_the_scene(tmp_path):
     """daemon_robot.toml's loop (targets slewed at 3 mm/s, the daemon's NMPC weights) with its wall-time
     budget set to 0, on the Python path (casadi's virtual machine, no C build): the scene's loop follows
     it within 1e-9 m for 0.5 s, and the slewed targets move at most 3 mm/s x 10 ms per tick."""
-    from hbma_ctrl.app.codegen import run_python
-    from hbma_ctrl.app.codegen_robot import robot_loop, scene_reference
+    from hbma_ctrl.app.codegen.loop import run_python
+    from hbma_ctrl.app.codegen.robot import robot_loop, scene_reference
 
     src = (ROOT / "scenarios" / "daemon_robot.toml").read_text()
     assert "mpc_budget = 0.8" in src and "target_rate_mm_s = 3.0" in src

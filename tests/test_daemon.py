@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
@@ -388,7 +388,7 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
     reaches the same readings and estimates as the run log at its slow tick; a tick that was slow only
     in the run (here: a busy wait added to it) is the machine's; a replay that cannot reach the run's
     state (a setpoint left out) never calls a tick the machine's."""
-    from hbma_ctrl.app.bench_soak import replay_ticks, soak_verdicts
+    from hbma_ctrl.app.bench.soak import replay_ticks, soak_verdicts
 
     state = DaemonState()
     cfg, runner, rig, loop = _loop(CHAMBER, tmp_path, state=state, duration_s=0.4, speed=20.0)
@@ -469,7 +469,7 @@ def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path)
     a solve finished after the budget), the supervisor replaying the plan each time, and that has a
     slow tick later: the replay forces the same overruns where the events say they happened, with
     its own budget lifted elsewhere, and reaches the run's state at all three ticks."""
-    from hbma_ctrl.app.bench_soak import _TimeLimited, replay_ticks
+    from hbma_ctrl.app.bench.soak import _TimeLimited, replay_ticks
 
     loop, ctrl, marks = _robot_run_with_extras(
         tmp_path, {15: lambda c: (lambda *a, **k: _TimeLimited()), 22: _late}, {15, 22, 30})
@@ -517,7 +517,7 @@ def test_soak_replay_stops_a_late_solve_where_osqps_time_limit_cut_the_runs(tmp_
     replay without the event's iteration count does, parts from the run there. On the robot's old rig
     and loop (_ROBOT_INSTANT): on the default (2 ms minimum valve opening) the blind replay met the
     run again by tick 30, so the test could not tell the two replays apart there."""
-    import hbma_ctrl.app.bench_soak as soak
+    import hbma_ctrl.app.bench.soak as soak
 
     config = _write_config(tmp_path, ROBOT, replace=_ROBOT_INSTANT)
     free, _, marks0 = _robot_run_with_extras(tmp_path / "free", {}, {22, 30}, config)
@@ -582,7 +582,7 @@ def test_nmpc_overrun_within_the_period_is_logged_and_the_replay_takes_it(tmp_pa
     stays within the period. That tick is logged (``nmpc_overrun``, not ``slow_tick``), once, and the
     replay forces it there, so it reaches the run's state at a slow tick later (without the event
     the replay would send another command at the overrun and part from the run)."""
-    from hbma_ctrl.app.bench_soak import _TimeLimited, replay_ticks
+    from hbma_ctrl.app.bench.soak import _TimeLimited, replay_ticks
 
     loop, ctrl, marks = _robot_run_with_extras(tmp_path, {15: lambda c: (lambda *a, **k: _TimeLimited())}, {30})
     over = [e for e in loop.events if e["kind"] == "nmpc_overrun"]
@@ -1100,8 +1100,8 @@ def test_bench_poses_records_every_change_and_every_fault_rearming_the_monitor(t
     recorded too)."""
     import random
 
-    from hbma_ctrl.app.bench_poses import run_poses
-    from hbma_ctrl.app.bench_soak import random_target
+    from hbma_ctrl.app.bench.poses import run_poses
+    from hbma_ctrl.app.bench.soak import random_target
 
     cfg = _write_config(tmp_path, ROBOT, '[[daemon.fault]]\nkind = "dropout"\nchamber = 0\nstart_s = 1.0\n'
                                          'duration_s = 0.2\n[[daemon.fault]]\nkind = "dropout"\nchamber = 4\n'
@@ -1124,7 +1124,7 @@ def test_bench_poses_records_a_burst_the_runner_finds_and_rearms_its_test(tmp_pa
     """bench poses: a burst (A3's outlet stuck open for 0.5 s from 1.5 s) found by the robot loop's burst
     test is recorded naming A3, and the runner's test is re-armed after each: found again while the
     fault lasts (more than once), never after it has cleared."""
-    from hbma_ctrl.app.bench_poses import run_poses
+    from hbma_ctrl.app.bench.poses import run_poses
 
     cfg = _write_config(tmp_path, ROBOT, '[[daemon.fault]]\nkind = "leak"\nchamber = 2\nstart_s = 1.5\n'
                                          'duration_s = 0.5\nduty = 1.0\n')
@@ -1143,7 +1143,7 @@ def test_pause_probe_sees_a_stall_and_places_it_on_the_slow_tick_it_overlaps(tmp
     import sys
     from datetime import datetime, timezone
 
-    from hbma_ctrl.app.bench_soak import PauseProbe, pauses_at_ticks, read_events
+    from hbma_ctrl.app.bench.soak import PauseProbe, pauses_at_ticks, read_events
 
     old = sys.getswitchinterval()
     probe = PauseProbe().start()
@@ -1176,7 +1176,7 @@ def test_a_tick_is_the_machines_when_the_witness_pause_inside_it_covers_its_exce
     fails on it."""
     from datetime import datetime, timezone
 
-    from hbma_ctrl.app.bench_soak import judge_ticks, read_events, soak_verdicts
+    from hbma_ctrl.app.bench.soak import judge_ticks, read_events, soak_verdicts
 
     w0 = 1_800_000_000.0
     stamp = lambda w: datetime.fromtimestamp(w, timezone.utc).isoformat(timespec="milliseconds")  # noqa: E731
@@ -1236,7 +1236,7 @@ def test_the_soak_judges_the_ticks_the_daemon_says_it_counted_not_its_rounded_ti
     itself is judged when counted and left out when not (the replay's and the witness's list then
     holds exactly the ticks the verdict subtracts from); a log without the words is judged by its
     printed times."""
-    from hbma_ctrl.app.bench_soak import judge_ticks, read_events
+    from hbma_ctrl.app.bench.soak import judge_ticks, read_events
     from hbma_ctrl.app.daemon.loop import COUNTED
 
     rows = [(1.0, f"cpu 10.000 ms, wall 10.100 ms, {COUNTED} (estimator 0.2 ms)"),

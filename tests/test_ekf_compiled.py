@@ -16,7 +16,7 @@ from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.ekf_step import DET_NAMES, KIND_OK, STEP_IN, STEP_OUT, ekf_step_function
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, _step_function
-from hbma_ctrl.app.robot_closed import make_model
+from hbma_ctrl.app.scenes.robot_loop import make_model
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import STATE_SCALE
@@ -282,8 +282,8 @@ def test_robot_bank_mapped_call_equals_per_chamber_calls(bank_model):
 def test_bench_ekf_rows_share_the_rig_runs_and_report_ratios():
     """``bench ekf`` on one trial: the EKF's compiled step and reference path score the same; the
     filterpy row runs on the same model and its ratio is reported (its value is not asserted)."""
-    from hbma_ctrl.app.cli_estimators import bench_ekf
-    from hbma_ctrl.app.evaluate import BENCH_FILTERS
+    from hbma_ctrl.app.cli.estimators import bench_ekf
+    from hbma_ctrl.app.scenes.evaluate import BENCH_FILTERS
 
     res = bench_ekf({"loads_g": [400.0], "speeds_pct": [100.0], "t0_mm": [3.0], "r1_mm": [7.5]},
                     filters=("ekf", "ekf_reference", "filterpy"))
@@ -304,8 +304,8 @@ def test_bench_ekf_axes_add_rows_with_their_settings_and_the_pareto_reads_them(t
 
     import pytest
 
-    from hbma_ctrl.app.bench_plots import estimator_points
-    from hbma_ctrl.app.cli_estimators import bench_ekf, parse_axes
+    from hbma_ctrl.app.bench.plots import estimator_points
+    from hbma_ctrl.app.cli.estimators import bench_ekf, parse_axes
 
     res = bench_ekf({"loads_g": [400.0], "speeds_pct": [100.0], "t0_mm": [3.0], "r1_mm": [12.5]},
                     filters=("ekf", "ukf"), substeps=(1, 2), membranes=("exact", "cap"))

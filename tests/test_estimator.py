@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hbma_ctrl.estimators.common import FilterSettings, guard_cov
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.ukf import UKF
-from hbma_ctrl.app.evaluate import run_filter, score
+from hbma_ctrl.app.scenes.evaluate import run_filter, score
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.interfaces import Command, Estimate
@@ -85,7 +85,7 @@ def test_step_api_and_flags(loaded):
 def test_tracks_height_force_and_beats_open_loop(loaded):
     tr, rec = loaded
     res = run_filter("ekf", tr, rec, FilterSettings())
-    from hbma_ctrl.app.evaluate import _open_loop
+    from hbma_ctrl.app.scenes.evaluate import _open_loop
 
     res.open_loop_h = _open_loop([tr], 0.01)[0][: len(rec.t)]
     s = score(res, tr)
@@ -322,7 +322,7 @@ def test_settings_and_section_errors():
 
 def test_scene_writes_estimate_and_metrics(tmp_path):
     from hbma_ctrl.app.scenario import load_scenario
-    from hbma_ctrl.app.scene_estimator import run_scene
+    from hbma_ctrl.app.scenes.estimator import run_scene
 
     p = tmp_path / "s.toml"
     p.write_text("""
@@ -362,7 +362,7 @@ def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
     """r1 7.5 mm with 800 g lifts off at ~44 kPa, above the 35 kPa sensor range: a filter that must
     detect the lift-off cannot; one that starts from the protocol's calibrated weight predicts it."""
     from hbma_ctrl.estimators.common import FilterSettings
-    from hbma_ctrl.app.evaluate import evaluate_trials
+    from hbma_ctrl.app.scenes.evaluate import evaluate_trials
     from hbma_ctrl.core.params import Platform
     from hbma_ctrl.sim.batch import protocol_trials
 
@@ -387,7 +387,7 @@ def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise()
     of 24 against 11 when measured (README, Estimation)."""
     from hbma_ctrl.estimators.common import FilterSettings
     from hbma_ctrl.estimators.ekf_step import lift_floor
-    from hbma_ctrl.app.evaluate import aggregate, evaluate_trials
+    from hbma_ctrl.app.scenes.evaluate import aggregate, evaluate_trials
     from hbma_ctrl.core.params import Platform
     from hbma_ctrl.sim.batch import protocol_trials
 
@@ -422,7 +422,7 @@ def test_a_free_membrane_lifting_in_the_pumps_first_samples_is_not_taken_as_flat
     pressure: every run within 0.15 (0.09 at most when measured)."""
     from dataclasses import replace
 
-    from hbma_ctrl.app.evaluate import evaluate_trials
+    from hbma_ctrl.app.scenes.evaluate import evaluate_trials
     from hbma_ctrl.app.scenario import load_scenario
     from hbma_ctrl.app.sections import filter_settings_for
 
@@ -448,7 +448,7 @@ def test_aggregate_scores_each_protocol_scenario():
     """The issue's per-scenario criterion: trials grouped by protocol cell (t0 x r1 x load), the
     EKF's mean NRMSD over the cell's speeds against the open loop's; never-lifting trials (NaN)
     left out."""
-    from hbma_ctrl.app.evaluate import TrialResult, aggregate
+    from hbma_ctrl.app.scenes.evaluate import TrialResult, aggregate
 
     def res(name, e, o):
         sc = {k: 1.0 for k in ("pressure_nrmsd", "force_rmse_n", "nees_mean", "nis_mean",

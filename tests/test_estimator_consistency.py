@@ -18,7 +18,7 @@ import pytest
 from scipy.stats import chi2
 
 from hbma_ctrl.estimators.common import FilterSettings
-from hbma_ctrl.app.evaluate import run_filter
+from hbma_ctrl.app.scenes.evaluate import run_filter
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.sim.rig import RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
@@ -49,7 +49,7 @@ def test_full_protocol_requirements(tmp_path):
     """ISSUE 3 over the 150-trial protocol on the mismatched rig (about 20 s on 2 workers)."""
     from pathlib import Path
 
-    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
     path = Path(__file__).resolve().parents[1] / "scenarios" / "ekf_protocol.toml"
@@ -66,7 +66,7 @@ def test_full_protocol_requirements(tmp_path):
 def _calibrated(tmp_path, name: str) -> dict:
     from pathlib import Path
 
-    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
     path = Path(__file__).resolve().parents[1] / "scenarios" / name

@@ -114,7 +114,7 @@ def test_exact_loaded_rung_refuses_a_free_name():
 def test_bench_sim_fidelity_axis_scores_every_rung_against_the_exact_membrane(tmp_path, monkeypatch):
     import json
 
-    import hbma_ctrl.app.bench_sim as bench
+    import hbma_ctrl.app.bench.sim as bench
     from hbma_ctrl.sim.batch import protocol_trials
 
     short = protocol_trials("nh", loads_g=[0.0, 200.0], speeds_pct=[100.0], t0_mm=[3.0], r1_mm=[12.5],
@@ -139,7 +139,7 @@ def test_bench_sim_fidelity_axis_scores_every_rung_against_the_exact_membrane(tm
 def test_role_pareto_plots_read_bench_json_and_mark_the_front(tmp_path):
     import json
 
-    from hbma_ctrl.app.bench_plots import controller_pareto_png, controller_points, pareto_front
+    from hbma_ctrl.app.bench.plots import controller_pareto_png, controller_points, pareto_front
 
     # (cost, error): the two cheapest-for-their-accuracy points are the front, the dominated one is not
     assert pareto_front([1.0, 2.0, 3.0], [0.3, 0.1, 0.2]).tolist() == [0, 1]
@@ -155,7 +155,7 @@ def test_role_pareto_plots_read_bench_json_and_mark_the_front(tmp_path):
 def test_bench_sim_bad_role_json_is_one_error_line_exit_2(tmp_path):
     from typer.testing import CliRunner
 
-    from hbma_ctrl.app.cli import app
+    from hbma_ctrl.app.cli.main import app
 
     (tmp_path / "x.json").write_text("{}")
     for flag, path, needle in (("--ekf-json", tmp_path / "none.json", "--ekf-json: no file"),
@@ -174,7 +174,7 @@ def test_bench_sim_bad_role_json_is_one_error_line_exit_2(tmp_path):
 def test_run_open_loop_scene_with_fidelity_exact_logs_the_exact_rung(tmp_path):
     from pathlib import Path
 
-    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
     root = Path(__file__).resolve().parent.parent

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hbma_ctrl.estimators.common import FilterSettings
-from hbma_ctrl.app.evaluate import evaluate_trials
+from hbma_ctrl.app.scenes.evaluate import evaluate_trials
 from hbma_ctrl.app.schema import EstimatorTable, parse_scenario_tables
 from hbma_ctrl.app.sections import filter_settings_for
 from hbma_ctrl.core.materials import make_material

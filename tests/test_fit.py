@@ -12,9 +12,9 @@ import pytest
 from cli_checks import one_line_error
 from typer.testing import CliRunner
 
-from hbma_ctrl.app import fit as F
-from hbma_ctrl.app.fit_output import params_toml
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.tuning import fit as F
+from hbma_ctrl.app.tuning.fit_output import params_toml
+from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import make_material
 

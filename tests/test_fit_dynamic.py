@@ -12,10 +12,10 @@ import pytest
 from cli_checks import one_line_error
 from typer.testing import CliRunner
 
-from hbma_ctrl.app import fit as F
-from hbma_ctrl.app import fit_dynamic as D
-from hbma_ctrl.app.bench_fit import PUMP_HOLD_VENT  # pump 60 %, hold, pump 100 %, half-open outlet, hold, vent
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.tuning import fit as F
+from hbma_ctrl.app.tuning import fit_dynamic as D
+from hbma_ctrl.app.bench.fit import PUMP_HOLD_VENT  # pump 60 %, hold, pump 100 %, half-open outlet, hold, vent
+from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, Valve
@@ -27,7 +27,7 @@ R1, T0, V0 = U.mm(12.5), U.mm(3.0), 3e-6
 TRUTH = {"modulus_scale": 1.15, "flow_scale": 0.9, "V0": 1.2 * V0, "C_out": Valve().C}
 # the cap rig's commands act at once: the CLI's default delays (the roles' datasheet values) off
 NO_DELAYS = ("--valve-delay-ms", "0", "--sensor-delay-ms", "0")
-# the closed-loop scene's CSV header (hbma_ctrl.app.scene_controller.write_closed_loop_csv)
+# the closed-loop scene's CSV header (hbma_ctrl.app.scenes.controller.write_closed_loop_csv)
 RUN_HEADER = ("t_s,target_mm,h_true_mm,h_est_mm,p_true_kpa,p_meas_kpa,p_est_kpa,F_true_n,F_est_n,load_g,"
               "speed,inlet,outlet")
 
@@ -281,7 +281,7 @@ def test_bench_fit_bad_flags_are_one_error_before_any_work(tmp_path):
 
 
 def test_bench_fit_summary_is_the_range_over_seeds():
-    from hbma_ctrl.app.bench_fit import summarize_runs
+    from hbma_ctrl.app.bench.fit import summarize_runs
 
     def row(rig, law, k, structured):
         return {"rig": rig, "law": law, "params": {"modulus_scale": k, "V0": 3.5e-6, "flow_scale": 0.9,

@@ -17,7 +17,7 @@ from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.robot_closed import make_model
+from hbma_ctrl.app.scenes.robot_loop import make_model
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
@@ -355,8 +355,8 @@ def _two_layer_sequence(topology: str, seed: int, throttle: bool, monkeypatch) -
     8 mm; 12 s) on the mismatched rig with ``seed``; the pump throttled or at full speed."""
     import functools
 
-    from hbma_ctrl.app.robot_closed import run_closed_loop
-    from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics
+    from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
+    from hbma_ctrl.app.scenes.robot_closed import closed_loop_metrics
     from hbma_ctrl.app.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.robot.rig import RobotRigSettings
@@ -413,7 +413,7 @@ def test_a_throttled_pump_tracks_as_well_as_full_speed_over_five_seeds(topology,
 def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true_pressure(monkeypatch):
     """What the throttling can cost: the flow the rig gets at its TRUE pressure against the NMPC's plan
     a q(1, p) there (the speed is chosen at the estimated pressure)."""
-    from hbma_ctrl.app.robot_closed import run_closed_loop
+    from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
     from hbma_ctrl.app.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.robot.rig import RobotRig

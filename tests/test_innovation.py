@@ -17,7 +17,7 @@ from hbma_ctrl.estimators.innovation import (
     windowed_nis,
     windowed_nis_bounds,
 )
-from hbma_ctrl.app.evaluate import evaluate_trials
+from hbma_ctrl.app.scenes.evaluate import evaluate_trials
 from hbma_ctrl.core.params import Platform
 from hbma_ctrl.models.defaults import CAP_CHAMBER
 from hbma_ctrl.sim.batch import protocol_trials

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import hbma_ctrl.app.cli as cli_mod
+import hbma_ctrl.app.cli.main as cli_mod
 import hbma_ctrl.app.outputs as outputs
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.app.outputs import MANIFEST_KEYS, RunInterrupted, check_out, default_out, run_dir
 from hbma_ctrl.app.scenario import load_scenario
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from hbma_ctrl.app.protocol import SUMMARY_COLUMNS, run_protocol
+from hbma_ctrl.app.scenes.protocol import SUMMARY_COLUMNS, run_protocol
 from hbma_ctrl.sim.batch import protocol_trials, simulate_trials
 from hbma_ctrl.sim.trial import SimSettings
 
@@ -110,7 +110,7 @@ def test_nrmsd_is_spec_eq16():
 def test_bench_sim_rows_reference_cache_and_outputs(tmp_path, monkeypatch):
     import json
 
-    import hbma_ctrl.app.bench_sim as bench
+    import hbma_ctrl.app.bench.sim as bench
 
     short = protocol_trials("nh", loads_g=[0.0, 200.0], speeds_pct=[100.0], t0_mm=[3.0], r1_mm=[12.5],
                             t_inflate_s=0.4, duration_s=0.8)

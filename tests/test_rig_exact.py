@@ -9,7 +9,7 @@ import math
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.cli.main import app
 
 runner = CliRunner()
 E, R1, T0 = 130.6e3, 7.5e-3, 3e-3

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
-from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics
+from hbma_ctrl.app.scenes.robot_loop import make_model, run_closed_loop
+from hbma_ctrl.app.scenes.robot_closed import closed_loop_metrics
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U
@@ -128,7 +128,7 @@ def test_bench_robot_cli(tmp_path):
 
     from typer.testing import CliRunner
 
-    from hbma_ctrl.app.cli import app
+    from hbma_ctrl.app.cli.main import app
 
     r = CliRunner().invoke(app, ["bench", "robot", "--layers", "1", "--duration", "0.6", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
@@ -144,7 +144,7 @@ def test_closed_loop_scene_tracks_the_bend_and_writes_metrics_and_plots(tmp_path
     the logged rig heights, through the forward kinematics) holds the 10 deg bend about 90 deg within
     the 2 deg tolerance and every chamber within 0.5 mm; robot metrics, the baseline beside, the
     shape plot and the signals are written."""
-    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
     p = tmp_path / "s.toml"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from hbma_ctrl.app.scene_robot import run_metrics, run_scene
+from hbma_ctrl.app.scenes.robot import run_metrics, run_scene
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR, simulate_open_loop
@@ -100,7 +100,7 @@ def test_shipped_scenario_loads_and_short_run_writes_outputs(tmp_path):
 
 
 def test_cli_pose_and_errors(tmp_path):
-    from hbma_ctrl.app.cli import app
+    from hbma_ctrl.app.cli.main import app
 
     r = CliRunner().invoke(app, ["robot", "pose", "--heights-mm", "10,0,0", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
@@ -126,7 +126,7 @@ def _robot_scene_over_seed(name: str, seed: int, tmp_path: Path, robot_keys: dic
 
     import tomli_w
 
-    from hbma_ctrl.app.runner import run_scenario
+    from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
     doc = tomllib.loads((ROOT / "scenarios" / f"{name}.toml").read_text(encoding="utf-8"))

@@ -116,8 +116,8 @@ def test_first_inputs_equal_rti_osqp_over_states_and_steps(model):
 def test_closed_loop_rmse_within_1pct_of_ipopt():
     """On the bench's scenario (2 s: the first step to 2 mm, 400 g) the tracking RMSE of rti_c_osqp is
     within 1 % of IPOPT's."""
-    from hbma_ctrl.app.bench_mpc import default_section
-    from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
+    from hbma_ctrl.app.bench.mpc import default_section
+    from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
     from hbma_ctrl.core.params import Platform
     from hbma_ctrl.sim.rig import RigSettings
 
@@ -134,7 +134,7 @@ def test_closed_loop_rmse_within_1pct_of_ipopt():
 
 @pytest.fixture(scope="module")
 def bank():
-    from hbma_ctrl.app.scene_robot_closed import make_model
+    from hbma_ctrl.app.scenes.robot_closed import make_model
     from hbma_ctrl.robot.design import RobotDesign
 
     return make_model(RobotDesign(n_layers=1).validate(), Pneumatics().validate(), "per_chamber")
@@ -186,7 +186,7 @@ def test_robot_looped_qp_data_equals_the_unrolled_one(topology, L):
     """The robot QP data with the chambers' linearisations as one looped (mapped) call equals the one
     with every point inlined, to rounding, on random plans and states (both pump topologies, the
     linearisation held over stage pairs and at every stage)."""
-    from hbma_ctrl.app.scene_robot_closed import make_model
+    from hbma_ctrl.app.scenes.robot_closed import make_model
     from hbma_ctrl.robot.design import RobotDesign
 
     bank = make_model(RobotDesign(n_layers=1).validate(), Pneumatics().validate(), topology)
@@ -211,7 +211,7 @@ def test_robot_rmse_within_1pct_of_linearising_every_stage():
     """One layer, bench robot's run (straight 6 mm, then a 15 deg bend): the default settings track the
     chamber heights within 1 % of the RMSE with the linearisation at every stage and OSQP at 1e-4 /
     400 iterations."""
-    from hbma_ctrl.app.scene_robot_closed import bench_robot
+    from hbma_ctrl.app.scenes.robot_closed import bench_robot
 
     new = bench_robot(layers=(1,), duration=2.0)[0]
     old = bench_robot(layers=(1,), duration=2.0, mpc=RobotMPCSettings(lin_every=1, eps=1e-4, max_iter=400))[0]

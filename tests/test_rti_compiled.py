@@ -145,7 +145,7 @@ def test_generated_ipopt_equals_the_virtual_machines(model):
 def test_bench_summary_compares_fatrop_with_both_ipopts():
     """bench mpc's summary: fatrop's speed-up over the shipped IPOPT and, with --ipopt-c, over IPOPT
     generated as C as fatrop is."""
-    from hbma_ctrl.app.bench_mpc import summarize
+    from hbma_ctrl.app.bench.mpc import summarize
 
     def row(name, ms, rmse):
         return {"controller": name, "solve_ms_median": ms, "solve_ms_p99": 2 * ms, "height_rmse_mm": rmse}
@@ -163,7 +163,7 @@ def test_bench_ipopt_c_without_a_compiler_is_one_error_line_before_any_row(tmp_p
     and no run directory (nothing measured, nothing lost)."""
     from typer.testing import CliRunner
 
-    from hbma_ctrl.app.cli import app
+    from hbma_ctrl.app.cli.main import app
     from hbma_ctrl.core import codegen
 
     monkeypatch.setattr(codegen, "has_compiler", lambda: False)
@@ -188,7 +188,7 @@ def test_closed_loop_rmse_within_one_percent_of_ipopt(model):
     models, where the solvers' equivalence was measured (bench mpc): on the default rig the same
     three runs spread by 1.3 %, the loop's noise and shaping, not the OCP."""
     from hbma_ctrl.estimators.ekf import EKF, EKFSettings
-    from hbma_ctrl.app.scene_controller import closed_loop, loop_metrics
+    from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
     from hbma_ctrl.models.defaults import CAP_CHAMBER
     from hbma_ctrl.sim.rig import CAP_RIG, RigSettings
 

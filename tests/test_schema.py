@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hbma_ctrl.controllers.mpc_settings import VARIANTS
-from hbma_ctrl.app.evaluate import FILTERS
+from hbma_ctrl.app.scenes.evaluate import FILTERS
 from hbma_ctrl.app.schema import (
     ActuatorTable,
     ControllerTable,

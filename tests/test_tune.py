@@ -18,8 +18,8 @@ import pytest
 from cli_checks import one_line_error
 from typer.testing import CliRunner
 
-from hbma_ctrl.app import tune as T
-from hbma_ctrl.app.cli import app
+from hbma_ctrl.app.tuning import tune as T
+from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.app.scenario import load_scenario
 
 runner = CliRunner()

@@ -210,7 +210,7 @@ class RobotSettings:
     sync_period : how often the load sharing and the interlocks update every chamber's load, s.
     snapshots : number of robot shapes drawn in the shape-over-time plot.
 
-    Closed loop (mode 'closed_loop', see :mod:`hbma_ctrl.app.robot_closed`):
+    Closed loop (mode 'closed_loop', see :mod:`hbma_ctrl.app.scenes.robot_loop`):
     controller : 'mpc' (per-chamber EKF bank + structured NMPC) or 'pressure_pid' (baseline).
     targets : {layer index: ((t s, centre height m, bend rad >= 0, direction rad), ...)}.
     tip_load : ((t s, fx N, fy N, fz N), ...) tip force from each row's time on (a disturbance the

@@ -6,8 +6,8 @@ of every chamber (Pa, (n,)) and the plant input ``U`` (3, n) the rig takes; the 
 shows; and setpoints: :meth:`check_setpoint` (the API's thread: clip to what is reachable, say what
 was clipped) and :meth:`apply_setpoint` (the loop's thread, between periods).
 
-The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.app.scene_controller`,
-:mod:`hbma_ctrl.app.robot_closed`), so a daemon on the simulated rig runs the scene's closed loop.
+The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.app.scenes.controller`,
+:mod:`hbma_ctrl.app.scenes.robot_loop`), so a daemon on the simulated rig runs the scene's closed loop.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
-from hbma_ctrl.app.robot_closed import make_model
-from hbma_ctrl.app.scene_controller import (
+from hbma_ctrl.app.scenes.robot_loop import make_model
+from hbma_ctrl.app.scenes.controller import (
     calibration_summary,
     controller_settings_of,
     estimator_from_scenario,

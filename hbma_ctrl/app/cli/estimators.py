@@ -1,0 +1,205 @@
+"""CLI hook of the estimators: ``hbma-ctrl bench ekf`` and ``hbma-ctrl observability``.
+
+Registered by :mod:`hbma_ctrl.app.cli.main` through ``register(app, bench_app)``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import replace
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+# the filters (filterpy, scipy.stats), python-control and the rig are imported by the commands
+# when they run
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
+from hbma_ctrl.core import units as U
+
+__all__ = ["register", "bench_ekf", "parse_axes", "BENCH_SUBSTEPS", "BENCH_MEMBRANES"]
+
+#: the bench's default protocol subset (edge units): both filters see the same rig runs
+BENCH_GRID = {"loads_g": [0.0, 400.0, 800.0], "speeds_pct": [40.0, 100.0], "t0_mm": [3.0], "r1_mm": [7.5, 12.5]}
+
+
+def _floats(name: str, text: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"--{name} = '{text}' must be comma-separated numbers") from None
+    if not vals:
+        raise ValueError(f"--{name} must not be empty")
+    return vals
+
+
+#: the estimator's cost/accuracy axes a bench runs by default: integrator sub-steps and membrane laws
+BENCH_SUBSTEPS = (1, 2, 4)
+BENCH_MEMBRANES = ("exact", "cap")
+
+
+def parse_axes(substeps: str, membranes: str) -> tuple[tuple[int, ...], tuple[str, ...]]:
+    """``--substeps`` (comma-separated integers 1-50) and ``--membranes`` (cap, exact) of ``bench ekf``;
+    ValueError naming the flag and the allowed values."""
+    try:
+        ns = tuple(int(x) for x in substeps.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"--substeps = '{substeps}' must be comma-separated integers in [1, 50]") from None
+    if not ns or any(not 1 <= n <= 50 for n in ns):
+        raise ValueError(f"--substeps = '{substeps}' must be comma-separated integers in [1, 50]")
+    ms = tuple(m.strip() for m in membranes.split(",") if m.strip())
+    bad = [m for m in ms if m not in BENCH_MEMBRANES]
+    if bad:
+        raise ValueError(f"--membranes: '{bad[0]}' is unknown; allowed {', '.join(BENCH_MEMBRANES)}")
+    return ns, ms
+
+
+def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0,
+              substeps: Sequence[int] = (1,), membranes: Sequence[str] = ()) -> dict:
+    """Run the filters on the same rig runs (serially, so timings are not shared with workers).
+
+    ``filters``: filter kinds to run, default every one of
+    :data:`hbma_ctrl.app.scenes.evaluate.BENCH_FILTERS`, at the default settings (their keys are the kinds).
+    ``substeps`` and ``membranes`` add the cost/accuracy axes for the EKF and the UKF: a row
+    ``"ekf nsub=2"`` per sub-step count other than the default's, a row ``"ekf cap"`` per membrane law
+    other than the default's (the truth is the default rig either way).
+
+    Returns {"settings": ..., "filters": {kind: {accuracy and timing}}, "ratios": {...}}; timings
+    are wall time per predict+update of one chamber on this machine (median, p90, max,
+    microseconds). ``ratios``: each other filter's median step time over the EKF's, measured in
+    this run (``filterpy``: filterpy's ExtendedKalmanFilter on the same casadi model;
+    ``ekf_reference``: the EKF's reference path of separate calls).
+    """
+    from hbma_ctrl.estimators.common import FilterSettings
+    from hbma_ctrl.app.scenes.evaluate import BENCH_FILTERS, _open_loop, aggregate, make_filter, run_and_score
+    from hbma_ctrl.core.params import Platform
+    from hbma_ctrl.sim.batch import protocol_trials
+    from hbma_ctrl.sim.rig import RigSettings, simulate_rig
+
+    filters = BENCH_FILTERS if filters is None else filters
+    trials = protocol_trials("nh", platform=Platform(own_mass=0.02), **grid)
+    rig = RigSettings(seed=seed)
+    fs = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range, noise_std=rig.noise_std)
+    recs = simulate_rig(trials, rig)
+    ol = _open_loop(trials, rig.sample_period)
+    rows = {kind: fs for kind in filters}
+    for kind in [k for k in ("ekf", "ukf") if k in filters]:
+        for n in substeps:
+            if n != fs.nsub:
+                rows[f"{kind} nsub={n}"] = replace(fs, nsub=int(n)).validate()
+        for m in membranes:
+            if m != fs.membrane:
+                rows[f"{kind} {m}"] = replace(fs, membrane=m).validate()
+    out = {"settings": {"grid": grid, "n_trials": len(trials), "rig": "default RigSettings (exact membrane, "
+                        "5 ms valve delay, 2 ms minimum opening, pump tilt 0.2, 3 ms sensor lag; modulus x1.15, "
+                        "flow x0.9, V0 x1.2, 0.2 kPa noise, 35 kPa range, 10 ms)",
+                        "filter": {"membrane": fs.membrane, "valve_delay_ms": U.to_ms(fs.valve_delay),
+                                   "sensor_delay_ms": U.to_ms(fs.sensor_delay)}}, "filters": {}}
+    for name, rfs in rows.items():
+        kind = name.split(" ")[0]
+        make_filter(kind, trials[0], rfs)  # compile/load outside the timing
+        results, steps = [], []
+        t0 = time.perf_counter()
+        for tr, rec, h_ol in zip(trials, recs, ol):
+            r = run_and_score(kind, tr, rec, rfs, h_ol)
+            results.append(r)
+            steps.append(r.step_s[1:])
+        wall = time.perf_counter() - t0
+        st = U.to_us(np.concatenate(steps))
+        agg = aggregate(results)
+        agg.update({"step_us_median": float(np.median(st)), "step_us_p90": float(np.percentile(st, 90)),
+                    "step_us_max": float(st.max()), "steps": int(st.size), "wall_s": wall})
+        agg.update({"nsub": rfs.nsub, "membrane": rfs.membrane})
+        out["filters"][name] = agg
+    f = out["filters"]
+    if "ekf" in f:
+        out["ratios"] = {f"{k}_over_ekf_step_median": f[k]["step_us_median"] / f["ekf"]["step_us_median"]
+                         for k in f if k != "ekf"}
+    return out
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``bench ekf`` and ``observability`` (called by :mod:`hbma_ctrl.cli`)."""
+
+    @bench_app.command("ekf")
+    def bench_ekf_cmd(
+        loads_g: Annotated[str, typer.Option(help="comma-separated loads, g")] = "0,400,800",
+        speeds_pct: Annotated[str, typer.Option(help="comma-separated compressor speeds, %")] = "40,100",
+        t0_mm: Annotated[str, typer.Option(help="comma-separated membrane thicknesses, mm")] = "3",
+        r1_mm: Annotated[str, typer.Option(help="comma-separated retaining radii, mm")] = "7.5,12.5",
+        seed: Annotated[int, typer.Option(help="rig noise seed")] = 0,
+        substeps: Annotated[str, typer.Option(help="comma-separated integrator sub-steps per sample (1-50): "
+                                                   "EKF and UKF rows for each")] = ",".join(map(str, BENCH_SUBSTEPS)),
+        membranes: Annotated[str, typer.Option(help="comma-separated membrane laws of the filters' model (cap, "
+                                                    "exact): EKF and UKF rows for each")] = ",".join(BENCH_MEMBRANES),
+        out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_ekf.json")] = Path("runs/bench_ekf"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    ) -> None:
+        """EKF (compiled step and reference path), filterpy's EKF on the same model, and the UKF on
+        the same rig runs: us per predict+update (median), ratios to the EKF, accuracy."""
+
+        grid = {"loads_g": _floats("loads-g", loads_g), "speeds_pct": _floats("speeds-pct", speeds_pct),
+                "t0_mm": _floats("t0-mm", t0_mm), "r1_mm": _floats("r1-mm", r1_mm)}
+        if not 0 <= seed <= 2**31:
+            raise ValueError(f"--seed = {seed} is out of range [0, 2^31]")
+        ns, ms = parse_axes(substeps, membranes)
+        with run_dir(out, command="bench ekf", argv=cli_argv(), overwrite=overwrite) as tmp:
+            res = bench_ekf(grid, seed=seed, substeps=ns, membranes=ms)
+            (tmp / "bench_ekf.json").write_text(json.dumps(res, indent=1))
+        t = Table(title=f"bench ekf: {res['settings']['n_trials']} rig trials (the default rig); "
+                        "us = wall time per chamber-step on this machine")
+        cols = [("us median", "step_us_median", "{:.0f}"), ("us p90", "step_us_p90", "{:.0f}"),
+                ("height NRMSD", "height_nrmsd", "{:.3f}"), ("worst", "height_nrmsd_max", "{:.3f}"),
+                ("open loop", "height_nrmsd_open_loop", "{:.3f}"), ("F rmse N", "force_rmse_n", "{:.3f}"),
+                ("F steady err", "force_steady_rel_err_mean", "{:.3f}"), ("NEES", "nees_mean", "{:.2f}"),
+                ("NIS", "nis_mean", "{:.2f}")]
+        t.add_column("filter")
+        for c in cols:
+            t.add_column(c[0], justify="right")
+        for kind, a in res["filters"].items():
+            t.add_row(kind, *[(c[2].format(a[c[1]]) if a.get(c[1]) is not None else "-") for c in cols])
+        con = Console(highlight=False, width=150)
+        con.print(t)
+        for k, v in res.get("ratios", {}).items():
+            con.print(f"{k.replace('_over_ekf_step_median', '')} / ekf median step time: {v:.1f}x")
+        con.print(f"wrote {out / 'bench_ekf.json'}")
+
+    @app.command("observability")
+    def observability_cmd(
+        out: Annotated[Path, typer.Option("--out", "-o", help="output dir for observability.json")] = Path("runs/observability"),
+        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+        r1_mm: Annotated[Optional[float], typer.Option(help="retaining radius, mm (default 12.5)")] = None,
+        t0_mm: Annotated[Optional[float], typer.Option(help="membrane thickness, mm (default 3)")] = None,
+    ) -> None:
+        """Rank/condition of the linearised observability matrix along free, contact and resting runs."""
+        from hbma_ctrl.estimators.observability import OBS_SCALE, WINDOW_S, run
+        from hbma_ctrl.core.params import Actuator
+
+        act = Actuator()
+        kw = {}
+        if r1_mm is not None:
+            kw["r1"] = U.mm(r1_mm)
+        if t0_mm is not None:
+            kw["t0"] = U.mm(t0_mm)
+        act = act.with_(**kw) if kw else act
+        with run_dir(out, command="observability", argv=cli_argv(), overwrite=overwrite) as tmp:
+            summ = run(tmp, act)
+        t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "
+                        f"t0 {U.to_mm(act.t0):g} mm); window = up to {WINDOW_S:g} s in one regime, "
+                        f"resolution {OBS_SCALE.tolist()}")
+        for c in ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",
+                  "window rank (med/min/max)"):
+            t.add_column(c, justify="right" if c != "trajectory" else "left")
+        for r in summ:
+            t.add_row(r["trajectory"], r["regime"], str(r["samples"]),
+                      f"{r['rank_median']:g}/{r['rank_min']}/{r['rank_max']}",
+                      f"{r['cond_median']:.2g}" if r["cond_median"] is not None else "inf",
+                      f"{r['window_rank_median']:g}/{r['window_rank_min']}/{r['window_rank_max']}")
+        con = Console(highlight=False, width=150)
+        con.print(t)
+        con.print(f"wrote {out / 'observability.json'}")

@@ -1,0 +1,212 @@
+"""``hbma-ctrl fit DATA.csv``: fit the model to static equilibrium data or to a recorded run.
+
+A file with a ``t_s`` column is a recorded run (:mod:`hbma_ctrl.app.tuning.fit_dynamic`: modulus, dead
+volume, compressor-map scale and outlet conductance); otherwise static equilibrium points
+(:mod:`hbma_ctrl.app.tuning.fit`: the material parameters).
+
+Registered by :mod:`hbma_ctrl.app.cli.main` through :func:`register`. Edge units (mm, kPa, g) here; the
+fit (:mod:`hbma_ctrl.app.tuning.fit`) works in SI. Writes ``fit.json``, ``params.toml`` and
+``residuals.png`` into ``--out`` through :func:`hbma_ctrl.app.outputs.run_dir`. Bad input raises
+ValueError, which the top-level CLI prints as one ``error: ...`` line with exit code 2.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+# the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
+from hbma_ctrl.core import units as U
+from hbma_ctrl.models.actuation import DELAY_MAX
+from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
+
+__all__ = ["register", "fit_cmd", "parse_fix"]
+
+
+def parse_fix(items: list[str]) -> dict[str, float]:
+    """``--fix NAME=VALUE`` items -> {name: value (SI)}; ValueError naming the bad item."""
+    out: dict[str, float] = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"--fix '{item}': expected NAME=VALUE (SI), e.g. C2=0 or Jm=60")
+        name, val = (x.strip() for x in item.split("=", 1))
+        try:
+            v = float(val)
+        except ValueError:
+            raise ValueError(f"--fix {name}: '{val}' is not a number") from None
+        if not math.isfinite(v):
+            raise ValueError(f"--fix {name}: '{val}' is not a finite number")
+        out[name] = v
+    return out
+
+
+def _range(name: str, value: float, lo: float, hi: float, unit: str) -> None:
+    if not (math.isfinite(value) and lo < value <= hi):
+        raise ValueError(f"{name} = {value:g} is out of range ({lo:g}, {hi:g}] {unit}")
+
+
+def fit_cmd(
+    data: Annotated[Path, typer.Argument(help="CSV: static (h_mm, p_kpa[, F_n|load_g]) or a recorded run (t_s, "
+                                              "p_kpa, speed, inlet, outlet[, h_mm, load_g])")],
+    material: Annotated[str, typer.Option(help="nh | mr | yeoh | gent | ogden")] = "nh",
+    r1_mm: Annotated[float, typer.Option("--r1-mm", help="clamp radius r1, mm")] = 12.5,
+    t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = 3.0,
+    contact: Annotated[Optional[str], typer.Option(
+        help="free (h2 = 0) | flat (load on a plate); default: flat with a force column, else free")] = None,
+    fidelity: Annotated[Optional[str], typer.Option(
+        help="membrane law: exact (the axisymmetric membrane, README Model §9: the rig's and the roles' default; "
+             "on a plate or with --fit-material nh only, free points of any material) | cap (the spherical cap, "
+             "Model §1-§3); default: exact where it can fit, else cap")] = None,
+    fix: Annotated[Optional[list[str]], typer.Option("--fix", help="hold a parameter NAME=VALUE (SI), repeatable")]
+    = None,
+    v0_cm3: Annotated[Optional[float], typer.Option(
+        "--v0-cm3", help="recorded run: nominal dead volume (the start), cm^3 (default 3)")] = None,
+    load_g: Annotated[Optional[float], typer.Option(
+        "--load-g", help="recorded run without a load_g column: the load it carried, g (default 0)")] = None,
+    sensor_range_kpa: Annotated[Optional[float], typer.Option(
+        "--sensor-range-kpa", help="recorded run: readings at this pressure are saturated and left out, kPa "
+                                   "(default 35)")] = None,
+    fit_material: Annotated[bool, typer.Option(
+        "--fit-material", help="recorded run: fit the material's parameters instead of one modulus scale")] = False,
+    valve_delay_ms: Annotated[Optional[float], typer.Option(
+        "--valve-delay-ms", help="recorded run: the valves act this long after their command, ms (default: the "
+                                 f"roles', {DEFAULT_VALVE_DELAY * 1e3:g}; 0 = at once)")] = None,
+    sensor_delay_ms: Annotated[Optional[float], typer.Option(
+        "--sensor-delay-ms", help="recorded run: the sensor reads the chamber this long late, ms (default: the "
+                                  f"roles', {DEFAULT_SENSOR_DELAY * 1e3:g})")] = None,
+    no_height: Annotated[bool, typer.Option(
+        "--no-height", help="recorded run: fit the pressure only, even with a height column")] = False,
+    out: Annotated[Path, typer.Option("--out", "-o", help="directory for fit.json, params.toml, residuals.png")]
+    = Path("runs/fit"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """Fit the model to static equilibrium points (material) or a recorded run (material scale, dead
+    volume, pump and outlet)."""
+    from hbma_ctrl.app.tuning.fit import check_options, fit_static, parse_data, resolve_fidelity
+    from hbma_ctrl.app.tuning.fit_output import write_fit
+    from hbma_ctrl.app.tuning.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
+
+    _range("--r1-mm", r1_mm, 0.5, 100.0, "mm")
+    _range("--t0-mm", t0_mm, 0.05, 20.0, "mm")
+    if v0_cm3 is not None:
+        _range("--v0-cm3", v0_cm3, 0.001, 1000.0, "cm^3")
+    if sensor_range_kpa is not None:
+        _range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, "kPa")
+    if load_g is not None and not (math.isfinite(load_g) and 0.0 <= load_g <= 50000.0):
+        raise ValueError(f"--load-g = {load_g:g} is out of range [0, 50000] g")
+    for flag, v in (("--valve-delay-ms", valve_delay_ms), ("--sensor-delay-ms", sensor_delay_ms)):
+        if v is not None and not (math.isfinite(v) and 0.0 <= v <= U.to_ms(DELAY_MAX)):
+            raise ValueError(f"{flag} = {v:g} is out of range [0, {U.to_ms(DELAY_MAX):g}] ms")
+    check_options(material.lower(), contact, fidelity or "cap")
+    fixed = parse_fix(fix or [])
+    check_out(out, overwrite)  # before the fit: a bad --out costs nothing
+    if not data.is_file():
+        raise FileNotFoundError(f"data file {data} not found")
+    raw = data.read_bytes()
+    source = f"{data.resolve()}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
+    if is_dynamic(raw):
+        fidelity, law_note = resolve_fidelity(fidelity, material.lower(), needs_tables=fit_material)
+        run = parse_run(raw, None if load_g is None else U.grams(load_g))
+        dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3),
+                           fix=fixed, fit_material=fit_material,
+                           sensor_range=U.kpa(35.0 if sensor_range_kpa is None else sensor_range_kpa),
+                           use_height=not no_height, fidelity=fidelity, contact=contact, source=source,
+                           valve_delay=DEFAULT_VALVE_DELAY if valve_delay_ms is None else U.ms(valve_delay_ms),
+                           sensor_delay=DEFAULT_SENSOR_DELAY if sensor_delay_ms is None else U.ms(sensor_delay_ms))
+        with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
+            write_dynamic_fit(dres, tmp)
+        hn = f", height NRMSD {dres.nrmsd_h:.4f}" if dres.nrmsd_h is not None else ""
+        _print(f"fit {dres.material} to a run: {dres.n_points} points, {dres.fidelity} model, "
+               f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed,
+               dres.notes() + ([law_note] if law_note else []), out)
+        return
+    for flag, given in (("--load-g", load_g is not None), ("--fit-material", fit_material), ("--no-height", no_height),
+                        ("--v0-cm3", v0_cm3 is not None), ("--sensor-range-kpa", sensor_range_kpa is not None),
+                        ("--valve-delay-ms", valve_delay_ms is not None),
+                        ("--sensor-delay-ms", sensor_delay_ms is not None)):
+        if given:
+            raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
+    pts = parse_data(raw)
+    on_plate = contact == "flat" or (contact is None and pts.F is not None)
+    fidelity, law_note = resolve_fidelity(fidelity, material.lower(), needs_tables=on_plate)
+    res = fit_static(pts, material.lower(), U.mm(r1_mm), U.mm(t0_mm), contact=contact, fix=fixed,
+                     fidelity=fidelity)
+    res.source = source
+    with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
+        write_fit(res, tmp)
+    _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact, {res.fidelity} law, "
+           f"NRMSD {res.nrmsd:.4f}", res.params, res.ci95, res.fixed,
+           res.unidentifiable + ([law_note] if law_note else []), out)
+
+
+def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: Path) -> None:
+    con = Console(highlight=False)
+    tab = Table(title=title)
+    for c in ("parameter", "value (SI)", "95 % interval"):
+        tab.add_column(c, justify="right")
+    for k, v in params.items():
+        lo, hi = ci95[k]
+        ci = "fixed" if k in fixed else (f"[{lo:.4g}, {hi:.4g}]" if lo is not None else "n/a (no dof)")
+        tab.add_row(k, f"{v:.5g}", ci)
+    con.print(tab)
+    for s in notes:
+        con.print(f"note: {s}")
+    con.print(f"wrote {out / 'fit.json'}, {out / 'params.toml'}, {out / 'residuals.png'}")
+
+
+def bench_fit_cmd(
+    seeds: Annotated[int, typer.Option(help="rig noise seeds of the recorded runs, 0..seeds-1 (1-100)")] = 8,
+    workers: Annotated[int, typer.Option(help="parallel processes (1-64)")] = 2,
+    out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_fit.json")] = Path("runs/bench_fit"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """The fit's membrane law against truths it is not: the exact solver's static points and pump /
+    hold / vent runs of the cap, exact and default rigs, each fitted with the cap's and the exact law."""
+    from hbma_ctrl.app.bench.fit import run_rows, static_rows, summarize_runs, write_fit_bench
+    from hbma_ctrl.app.cli.args import cap_workers
+
+    if not 1 <= seeds <= 100:
+        raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
+    if not 1 <= workers <= 64:
+        raise ValueError(f"--workers = {workers} is out of range [1, 64]")
+    workers = cap_workers("--workers", workers)
+    con = Console(highlight=False, width=140)
+    with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:
+        static = static_rows(progress=lambda r: con.print(f"  static {r['case']}, {r['law']} law: worst miss "
+                                                          f"{100 * r['worst_rel_miss']:.2g} % ({r['wall_s']:.0f} s)"))
+        runs = run_rows(list(range(seeds)), workers=workers,
+                        progress=lambda rows: con.print(f"  {rows[0]['rig']} rig, seed {rows[0]['seed']}: " + ", ".join(
+                            f"{r['law']} {r['params']['modulus_scale']:.4f}" for r in rows)))
+        written = write_fit_bench(static, runs, tmp, seeds)
+    t = Table(title="static points of the exact solver: the largest miss of a parameter (found / truth - 1), "
+                    "NRMSD, undetermined")
+    for c in ("data", "cap law", "exact law"):
+        t.add_column(c, justify="right")
+    for case in dict.fromkeys(r["case"] for r in static):
+        cells = {r["law"]: f"{100 * r['worst_rel_miss']:.3g} %, {r['nrmsd']:.2g}" + (", undetermined" if r[
+            "unidentifiable"] else "") for r in static if r["case"] == case}
+        t.add_row(case, cells["cap"], cells["exact"])
+    con.print(t)
+    t = Table(title=f"pump / hold / vent runs, {seeds} rig noise seeds (truth: modulus x1.15, pump x0.9, "
+                    "dead volume x1.2): the range over the seeds")
+    for c in ("rig / law", "modulus_scale", "V0 (cm^3)", "flow_scale", "C_out (1e-10)", "NRMSD", "structured"):
+        t.add_column(c, justify="right")
+    for key, v in summarize_runs(runs).items():
+        t.add_row(key, *(f"{v[k][0]:.4f}-{v[k][1]:.4f}" for k in ("modulus_scale", "V0_cm3", "flow_scale",
+                                                                    "C_out_1e10", "nrmsd")),
+                  f"{v['structured']}/{v['runs']}")
+    con.print(t)
+    con.print(f"wrote {out / written.name}")
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add the ``fit`` command to the top-level CLI and ``bench fit`` under ``bench``."""
+    app.command("fit")(fit_cmd)
+    bench_app.command("fit")(bench_fit_cmd)

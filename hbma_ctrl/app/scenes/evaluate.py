@@ -1,0 +1,360 @@
+"""Run estimators against the rig over open-loop trials and score them (SI inside).
+
+For each trial: the rig (:func:`hbma_ctrl.sim.rig.simulate_rig`, mismatched, platform fidelity, noisy
+saturating sensor) gives the readings and the truth; the nominal model run open loop with the same
+commands and the true load (:func:`hbma_ctrl.sim.simulate.simulate`, the paper's model) gives the
+open-loop baseline; the filter runs on the readings and the commands only.
+
+Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-loop model (README Model §7
+eq. 16 against the rig's true height), pressure NRMSD of the filter's pressure, RMSE of the contact
+force, the steady-contact force error relative to the true load (mean over the last second of
+inflation while in contact), NEES of (h, F) and NIS (means over the run), the median wall time of
+a step. :func:`aggregate` turns them into the ``"estimator"`` metrics object: means over the
+trials, the worst trial (``height_ratio_to_open_loop_max``, ``worst_ratio_trial``) and, per
+protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`hbma_ctrl.app.scenes.protocol.
+scenario_of`), ``n_scenarios``, ``scenarios_at_half_open_loop`` and
+``scenario_ratio_to_open_loop_max`` / ``worst_ratio_scenario``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from hbma_ctrl.estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
+from hbma_ctrl.estimators.ekf import EKF, OUTPUT_KEYS
+from hbma_ctrl.estimators.observer_calls import fast
+from hbma_ctrl.estimators.ekf_step import observer_model
+from hbma_ctrl.estimators.innovation import innovation_test
+from hbma_ctrl.estimators.ukf import UKF
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.interfaces import Command, Estimate
+from hbma_ctrl.models.chamber import NX, STATE_NAMES
+from hbma_ctrl.sim.batch import quiet_worker, scenario_of
+from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
+from hbma_ctrl.sim.simulate import simulate
+from hbma_ctrl.sim.trial import SimSettings, Trial
+
+__all__ = ["EVENT_COUNTS", "ReferenceEKF", "FilterpyEKF", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
+           "FILTERS", "NEES_FLOOR"]
+
+FILTERS = ("ekf", "ukf")
+#: per-run counts of the filter's rarer events, score key -> the Estimate flag counted (steps raising
+#: it): lift-offs a load prior ruled out (hbma_ctrl.estimators.ekf_step.LIFT_PRIOR_SIGMAS), lift-offs the flow
+#: and dead-volume factors' ratio showed (flat_ratio_min), load changes the excess sum declared
+#: (EXCESS_THRESHOLD). estimator_trials.csv has them as its last columns, in this order
+EVENT_COUNTS = {"lift_offs_implausible": "lift_off_implausible", "lift_offs_ratio": "lift_off_ratio",
+                "load_changes_excess": "load_excess"}
+#: the filters ``bench ekf`` compares: the two above, the EKF's reference path and filterpy's EKF
+BENCH_FILTERS = ("ekf", "ekf_reference", "filterpy", "ukf")
+#: variance floors of (h, F) in the NEES, m^2 and N^2 (a flat membrane's h = 0 is exactly known)
+NEES_FLOOR = np.array([(0.05e-3) ** 2, 0.02 ** 2])
+
+
+class ReferenceEKF(EKF):
+    """The EKF on its reference path (separate predict, update and output calls, detectors in
+    Python) for every step: the bench's check that the compiled step changes time, not accuracy."""
+
+    compiled_step = False
+
+
+class FilterpyEKF:
+    """filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` driven by the EKF's casadi model
+    (the bench's library baseline, SI): the same compiled discrete map and its Jacobian A as F,
+    the same process noise and measurement variance, H = dp/dx and the predicted pressure from the
+    same model, the same output map; filterpy's own predict and update (inverse of S, Joseph form).
+    What it lacks is the EKF's own logic: no sticky rest or lift-off detector (the model decides
+    contact by the load state), no gate, no guards, no valve or sensor delays (the commands act at
+    once). So that it can follow a load at all the load
+    starts at the trial's nominal weight (known), one sigma 10 % + 0.01 N. Missing and out-of-range
+    readings skip the update."""
+
+    state_names = STATE_NAMES
+
+    def __init__(self, actuator, pneumatics, settings: FilterSettings, load: float = 0.0):
+        from filterpy.kalman import ExtendedKalmanFilter  # the bench's baseline only
+
+        s = self.settings = settings.validate()
+        self.model = observer_model(actuator, pneumatics, s)
+        self._pred = fast(self.model.predict, s.compile)
+        self._outf = fast(self.model.outputs, s.compile)
+        self.theta = np.asarray(self.model.theta, dtype=float)
+        self.kf = ExtendedKalmanFilter(dim_x=NX, dim_z=1)
+        self.kf.predict_x = self._predict_x
+        self._xn = np.zeros((NX, 1))
+        self.load = float(load)
+        self.s = np.zeros(2)
+        self.t: float | None = None
+        self.last_nis: float | None = None
+        self.last_output_cov = np.zeros((5, 5))
+        self.last_step_s = 0.0
+        dt = s.sample_period
+        self._q = np.array([s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
+                            s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt])
+        self._qv = np.array([s.flow_rel_std, *self._q, s.cov_floor])
+        self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
+
+    def _predict_x(self, u=0) -> None:
+        self.kf.x = self._xn  # filterpy's hook: the model's map, computed with F by step()
+
+    def step(self, t: float, measurement, applied_command: Command) -> Estimate:
+        """Predict one period with the command held since the last step, update with the reading (Pa)."""
+        t0 = time.perf_counter()
+        s, kf = self.settings, self.kf
+        kind = classify_measurement(measurement, s.sensor_range, *self._bounds)
+        if self.t is None:
+            act = self.model.actuator
+            p0 = float(measurement) if kind == "ok" else 0.0
+            kf.x = np.array([[(max(p0, 0.0) + act.p_env) * act.V0 / self.model.rt], [self.load], [1.0], [1.0],
+                             [1.0]])
+            kf.P = np.diag([s.mass_init_std ** 2, (0.1 * self.load + 0.01) ** 2, s.flow_factor_init_std ** 2,
+                            s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
+        else:
+            u = applied_command.as_array() if isinstance(applied_command, Command) else \
+                np.asarray(applied_command, dtype=float).reshape(3)
+            out = self._pred(kf.x.ravel(), self.s, u, self.theta, 0.0, kf.P, self._qv)
+            self._xn = out[0].reshape(NX, 1).copy()
+            kf.F = out[1].reshape(NX, NX, order="F").copy()
+            q = self._q.copy()
+            q[0] += (s.flow_rel_std * (self._xn[0, 0] - kf.x[0, 0])) ** 2
+            kf.Q = np.diag(q)
+            self.s = out[2].copy()
+            kf.predict()
+            self.last_nis = None
+            if kind == "ok":
+                H = out[4].reshape(1, NX).copy()
+                p = float(out[3][4])
+                R = s.noise_std ** 2 + (s.model_rel_std * max(p, 0.0)) ** 2
+                kf.update(float(measurement), lambda x: H, lambda x: np.array([[p]]), R=R)
+                self.last_nis = float(kf.y[0, 0] ** 2 / kf.S[0, 0])
+        self.t = float(t)
+        o = self._outf(kf.x.ravel(), self.s, self.theta, 0.0, kf.P)
+        self.s = o[0].copy()
+        y = o[1]
+        C = o[4].reshape(5, 5, order="F").copy()
+        d = (s.output_rel_std * y[:5]) ** 2
+        d[4] = 0.0
+        d[3] += s.force_std_floor ** 2
+        C[np.diag_indices(5)] += d
+        self.last_output_cov = C
+        std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
+        est = Estimate(t=self.t, h1=float(y[0]), h2=max(float(y[1]), 0.0), h=float(y[2]), F=max(float(y[3]), 0.0),
+                       p=float(y[4]), mean=kf.x.ravel().copy(), cov=kf.P.copy(), state_names=STATE_NAMES,
+                       std=std, flags=frozenset())
+        self.last_step_s = time.perf_counter() - t0
+        return est
+
+
+def make_filter(kind: str, trial: Trial, settings: FilterSettings):
+    """An EKF or UKF for the trial's nominal actuator and pneumatics (and, with
+    ``settings.load_prior == 'nominal'``, the trial's nominal load as the initial load guess).
+    The bench's baselines: ``ekf_reference`` (:class:`ReferenceEKF`) and ``filterpy``
+    (:class:`FilterpyEKF`, the trial's nominal load as its initial load)."""
+    if kind == "filterpy":
+        return FilterpyEKF(trial.actuator, trial.pneumatics, settings, load=trial.platform.weight)
+    if settings.load_prior == "nominal":
+        W = trial.platform.weight
+        settings = replace(settings, load_init=W, load_init_std=settings.load_prior_rel_std * W + 0.01)
+    if kind == "ekf":
+        return EKF(trial.actuator, trial.pneumatics, settings)
+    if kind == "ekf_reference":
+        return ReferenceEKF(trial.actuator, trial.pneumatics, settings)
+    if kind == "ukf":
+        return UKF(trial.actuator, trial.pneumatics, settings)
+    raise ValueError(f"estimator.filter = '{kind}': allowed {', '.join(FILTERS)}")
+
+
+@dataclass
+class TrialResult:
+    """Series (SI) and scores of one filter run on one rig trial."""
+
+    name: str
+    t: np.ndarray
+    est: dict
+    truth: dict
+    meas: np.ndarray
+    open_loop_h: np.ndarray | None
+    nees: np.ndarray
+    nis: np.ndarray
+    step_s: np.ndarray
+    flags: list
+    scores: dict = field(default_factory=dict)
+
+
+def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings,
+               init: tuple | None = None, start: int = 0) -> TrialResult:
+    """Run a filter over a rig record from sample ``start``; ``init`` = (mean, cov) at that sample."""
+    f = make_filter(kind, trial, settings)
+    K = len(rec.t)
+    keys = ("h1", "h2", "h", "F", "p", "W", "b", "k", "c", "std_h", "std_F")
+    rows = np.full((K, len(keys)), np.nan)
+    C = np.zeros((K, 2, 2))
+    C[:, 0, 0] = C[:, 1, 1] = 1.0
+    innov = np.full(K, np.nan)
+    nis = np.full(K, np.nan)
+    step_s = np.full(K, np.nan)
+    flags: list = [frozenset()] * K
+    if init is not None:
+        f.reset(rec.t[start], init[0], init[1])
+    t_s = rec.t.tolist()
+    meas = rec.meas.tolist()
+    u0 = np.zeros(3)
+    for k in range(start, K):
+        # the command array as recorded (the rig's, already checked): a Command per step would
+        # re-check the same numbers 150 x 600 times in the protocol
+        e = f.step(t_s[k], meas[k], rec.u[k - 1] if k > 0 else u0)
+        step_s[k] = f.last_step_s
+        m = e.mean
+        rows[k] = (e.h1, e.h2, e.h, e.F, e.p, m[1], m[2], m[3], m[4], e.std["h"], e.std["F"])
+        flags[k] = e.flags
+        C[k] = f.last_output_cov[2:4, 2:4]
+        if f.last_nis is not None:
+            nis[k] = f.last_nis
+        r = getattr(f, "last_innovation", None)  # (the bench's filterpy baseline has none)
+        if r is not None:
+            innov[k] = r  # normalised innovation nu / sqrt(S), for the innovation test
+    est = {name: rows[:, i].copy() for i, name in enumerate(keys)}
+    # NEES of (h, F) per step, the 2 x 2 solve in closed form over the whole run
+    C = C + np.diag(NEES_FLOOR)
+    eh, eF = est["h"] - rec.truth["h"], est["F"] - rec.truth["F"]
+    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    nees = (eh * (C[:, 1, 1] * eh - C[:, 0, 1] * eF) + eF * (C[:, 0, 0] * eF - C[:, 1, 0] * eh)) / det
+    nees[:start] = np.nan
+    est["innov"] = innov
+    return TrialResult(trial.name, rec.t, est, rec.truth, rec.meas, None, nees, nis, step_s, flags)
+
+
+def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
+    """Scores of one run (see module docstring); series compared from sample ``start`` on."""
+    sl = slice(start, None)
+    h, ht = res.est["h"][sl], res.truth["h"][sl]
+    out = {
+        "height_nrmsd": nrmsd(h, ht),
+        "height_nrmsd_open_loop": nrmsd(res.open_loop_h[sl], ht) if res.open_loop_h is not None else float("nan"),
+        "pressure_nrmsd": nrmsd(res.est["p"][sl], res.truth["p"][sl]),
+        "force_rmse_n": float(np.sqrt(np.nanmean((res.est["F"][sl] - res.truth["F"][sl]) ** 2))),
+        "nees_mean": float(np.nanmean(res.nees[sl])),
+        "nis_mean": float(np.nanmean(res.nis[sl])) if np.any(np.isfinite(res.nis[sl])) else float("nan"),
+        "step_us_median": float(U.to_us(np.nanmedian(res.step_s[sl]))),
+        "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((h - ht) ** 2)))),
+    }
+    # the detectors' rarer events, counted per run (EVENT_COUNTS)
+    for key, flag in EVENT_COUNTS.items():
+        out[key] = float(sum(flag in f for f in res.flags[sl]))
+    # model-form check on the innovations alone (hbma_ctrl.estimators.innovation): the run's largest windowed
+    # self-normalised innovation mean, and whether it exceeds the test's threshold
+    if "innov" in res.est:
+        it = innovation_test(res.est["innov"][sl])
+        # no full window (a run shorter than the window): no verdict, left out of the flag rate
+        out["innovation_stat"] = it["stat"]
+        out["innovation_flag"] = float(it["flag"]) if math.isfinite(it["stat"]) else float("nan")
+    W = trial.platform.weight
+    t_inf = trial.schedule.times[1] if len(trial.schedule.times) > 1 else trial.duration
+    win = (res.t >= t_inf - 1.0) & (res.t < t_inf) & (res.truth["h"] > 0.5e-3)
+    win[:start] = False
+    if W > 0 and win.sum() >= 10:
+        out["force_steady_rel_err"] = float(abs(np.mean(res.est["F"][win]) - W) / W)
+    else:
+        out["force_steady_rel_err"] = float("nan")
+    return out
+
+
+def run_and_score(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings,
+                  open_loop_h: np.ndarray) -> TrialResult:
+    """Run a filter over a rig record and score it against the truth and the open-loop height."""
+    r = run_filter(kind, trial, rec, settings)
+    n = min(len(open_loop_h), len(rec.t))
+    r.open_loop_h = np.full(len(rec.t), np.nan)
+    r.open_loop_h[:n] = open_loop_h[:n]
+    r.scores = score(r, trial)
+    r.scores["rig_status"] = rec.status
+    return r
+
+
+def _open_loop(trials: list[Trial], dt: float) -> list[np.ndarray]:
+    logs = simulate(trials, SimSettings(integrator="rk4", log_dt=dt))
+    return [lg["h"] for lg in logs]
+
+
+def _chunk(args) -> list[TrialResult]:
+    kind, trials, rig, fs, with_series, ids = args
+    recs = simulate_rig(trials, rig, ids)
+    ol = _open_loop(trials, rig.sample_period)
+    out = []
+    for tr, rec, h_ol in zip(trials, recs, ol):
+        r = run_and_score(kind, tr, rec, fs, h_ol)
+        if not with_series:
+            r.est, r.meas, r.nees, r.nis, r.step_s, r.flags = {}, np.zeros(0), r.nees[:0], r.nis[:0], \
+                r.step_s[:0], []
+            r.truth = {}
+        out.append(r)
+    return out
+
+
+def evaluate_trials(trials: list[Trial], kind: str = "ekf", rig: RigSettings | None = None,
+                    settings: FilterSettings | None = None, workers: int = 1,
+                    with_series: bool = True) -> list[TrialResult]:
+    """Rig + open-loop model + filter over trials (chunks of trials per worker process)."""
+    rig = (rig or RigSettings()).validate()
+    fs = (settings or FilterSettings()).validate()
+    workers = max(1, min(int(workers), len(trials), os.cpu_count() or 1))
+    if workers == 1:
+        return _chunk((kind, trials, rig, fs, with_series, None))
+    # interleave so each chunk has a mix of loaded and unloaded trials (balanced cost)
+    chunks = [trials[i::workers] for i in range(workers)]
+    order = [list(range(len(trials)))[i::workers] for i in range(workers)]
+    res: list = [None] * len(trials)
+    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_worker) as ex:
+        for idx, part in zip(order, ex.map(_chunk, [(kind, c, rig, fs, with_series, o)
+                                                          for c, o in zip(chunks, order)])):
+            for i, r in zip(idx, part):
+                res[i] = r
+    return res
+
+
+def aggregate(results: list[TrialResult]) -> dict:
+    """The metrics.json ``"estimator"`` object: means over trials, worst cases, counts."""
+    keys = ("height_nrmsd", "height_nrmsd_open_loop", "pressure_nrmsd", "force_rmse_n", "nees_mean",
+            "nis_mean", "step_us_median", "height_rmse_mm")
+    S = {k: np.array([r.scores[k] for r in results], dtype=float) for k in keys}
+    out = {k: float(np.nanmean(v)) for k, v in S.items()}
+    ratio = S["height_nrmsd"] / S["height_nrmsd_open_loop"]
+    fse = np.array([r.scores["force_steady_rel_err"] for r in results], dtype=float)
+    flagged = np.array([r.scores.get("innovation_flag", np.nan) for r in results], dtype=float)
+    flagged = flagged[np.isfinite(flagged)]  # runs with a verdict (hbma_ctrl.estimators.innovation)
+    # per scenario (the protocol's t0 x r1 x load cell, mean over speeds and seeds; trials whose
+    # membrane never lifts have no NRMSD and are left out)
+    cells: dict = {}
+    for r, e, o in zip(results, S["height_nrmsd"], S["height_nrmsd_open_loop"]):
+        if math.isfinite(e) and math.isfinite(o):
+            cells.setdefault(scenario_of(r.name), []).append((e, o))
+    cell_ratio = {c: float(np.mean([e for e, _ in v]) / np.mean([o for _, o in v])) for c, v in cells.items()}
+    worst_cell = max(cell_ratio, key=cell_ratio.get) if cell_ratio else None
+    out.update({
+        "n_trials": len(results),
+        "n_scenarios": len(cell_ratio),
+        "scenarios_at_half_open_loop": int(sum(v <= 0.5 for v in cell_ratio.values())),
+        "scenario_ratio_to_open_loop_max": cell_ratio[worst_cell] if worst_cell else float("nan"),
+        "worst_ratio_scenario": worst_cell,
+        "height_nrmsd_max": float(np.nanmax(S["height_nrmsd"])),
+        "height_nrmsd_open_loop_max": float(np.nanmax(S["height_nrmsd_open_loop"])),
+        "height_ratio_to_open_loop_max": float(np.nanmax(ratio)),
+        "worst_ratio_trial": results[int(np.nanargmax(ratio))].name if np.any(np.isfinite(ratio)) else None,
+        "force_steady_rel_err_mean": float(np.nanmean(fse)) if np.any(np.isfinite(fse)) else float("nan"),
+        # share of the trials whose innovations the model-form test flags (hbma_ctrl.estimators.innovation)
+        "innovation_flag_rate": float(np.mean(flagged)) if flagged.size else float("nan"),
+        # the detectors' rarer events summed over the trials (EVENT_COUNTS), and the trials with a
+        # lift-off the load prior ruled out
+        **{key: int(sum(r.scores.get(key, 0) for r in results)) for key in EVENT_COUNTS},
+        "trials_with_implausible_lift_off": int(sum(r.scores.get("lift_offs_implausible", 0) > 0 for r in results)),
+        "force_steady_rel_err_max": float(np.nanmax(fse)) if np.any(np.isfinite(fse)) else float("nan"),
+        "rig_status": {s: sum(r.scores["rig_status"] == s for r in results)
+                       for s in sorted({r.scores["rig_status"] for r in results})},
+    })
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}

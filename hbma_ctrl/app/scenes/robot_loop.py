@@ -1,0 +1,163 @@
+"""The robot's closed loop on the robot rig: rig -> :class:`hbma_ctrl.runtime.robot.RobotLoop` -> rig (SI).
+
+Per sample: read the 3N pressures, ``RobotLoop.tick`` (EKF bank, load sharing, targets, NMPC or
+pressure PID, the supervisor's fallback, vent rule and pressure interlock), the rig advances one
+period, and the run is logged. The EKF bank runs in the pressure-PID loop too (the PID ignores it;
+its estimate is logged), so both loops' step times include it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.app.sections import CONTROLLERS, RobotSettings
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.params import Pneumatics, check_range
+from hbma_ctrl.models.bank import ChamberBank
+from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
+from hbma_ctrl.robot.targets import change_times
+from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+
+
+@dataclass
+class ClosedLoopRun:
+    """Time series of a closed-loop robot run (SI); chamber arrays are (T, n)."""
+
+    controller: str
+    t: np.ndarray
+    h: np.ndarray
+    h_ref: np.ndarray
+    h_est: np.ndarray
+    p: np.ndarray
+    p_meas: np.ndarray
+    lam: np.ndarray
+    a: np.ndarray
+    o: np.ndarray
+    loads: np.ndarray
+    step_s: np.ndarray
+    ekf_s: np.ndarray
+    ctrl_s: np.ndarray
+    interlocks: int
+    fallbacks: int
+    inaccurate: int
+    status: str
+    wall_s: float
+    changes: np.ndarray
+    b_est: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cautious_steps: int = 0
+    events: list = field(default_factory=list)  # the supervisor's interventions (SupervisorEvent)
+    stretch_interlocks: int = 0  # the stretch interlock's supply cuts (chamber steps)
+    lost_estimate_steps: int = 0  # chamber steps vented for a lost estimate
+    bursts: list = field(default_factory=list)  # chambers the burst test flagged (indices)
+    burst_peak_sigma: float = 0.0  # the burst test's largest sum, sigma (0 without the test)
+
+
+def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberBank:
+    """The nominal per-chamber model (tables up to 14 mm and 2 N)."""
+    return ChamberBank(design.chamber, pneumatics, topology, load_max=2.0, h_table_max=U.mm(14.0))
+
+
+def build_closed_loop(settings: RobotSettings, targets: dict, controller: str = "mpc",
+                      pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
+                      mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
+                      model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
+                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> tuple[RobotRig, RobotLoop]:
+    """The robot rig and the loop that drives it (:func:`run_closed_loop`'s arguments; ``nmpc_class``
+    the NMPC's class, :class:`RobotNMPC` or one with its interface). A generated loop is built from
+    the same objects (:mod:`hbma_ctrl.app.codegen.robot`)."""
+    if controller not in CONTROLLERS:
+        raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
+    d = settings.design
+    rp = settings.pneumatics
+    pn = (pneumatics or Pneumatics()).validate()
+    rs = (rig or RobotRigSettings()).validate()
+    n = 3 * d.n_layers
+    model = model or make_model(d, pn, rp.topology)
+    if model.topology != rp.topology:
+        raise ValueError("run_closed_loop: the model's topology differs from robot.topology")
+    Ts = rs.sample_period
+    settings.check_period(Ts)
+    plant = RobotRig(d, pn, rp.sensor_range, rp.topology, rs, tip_load)
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
+                                                        sensor_range=rp.sensor_range,
+                                                        valve_delay=settings.valve_delay,
+                                                        sensor_delay=settings.sensor_delay))
+    if controller == "mpc":
+        ms = replace(mpc or RobotMPCSettings(), sample_period=Ts, p_max=rp.pressure_limit)
+        ctrl = nmpc_class(model, n, ms)
+    else:
+        ctrl = RobotPressurePID(model, n, replace(pid or RobotPIDSettings(), sample_period=Ts))
+    sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
+                           plan_period=ctrl.s.dt if controller == "mpc" else None)
+    loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None,
+                     target_rate=settings.target_rate, valve_min_on=settings.valve_min_on, burst=settings.burst)
+    return plant, loop
+
+
+def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, controller: str = "mpc",
+                    pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
+                    mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
+                    model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
+                    cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> ClosedLoopRun:
+    """Run the robot closed loop for ``duration`` s from rest (see module doc).
+
+    targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
+    interlock_margin : the supply is cut while a reading is within this of the pressure limit, Pa.
+    cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
+    fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
+    its supply duty is capped (the NMPC's input bound); None = off. Counted in ``cautious_steps``.
+    The fastest a chamber's target height moves, the valves' shortest opening and the delays the
+    chambers' filters take are ``settings``' (``target_rate`` m/s, None or 0: targets step;
+    ``valve_min_on``, ``valve_delay``, ``sensor_delay``, s). ``nmpc_class``: the NMPC's class
+    (:class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` runs the generated loop's step).
+    """
+    check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
+    plant, loop = build_closed_loop(settings, targets, controller, pneumatics, rig, mpc, pid, model, tip_load,
+                                    interlock_margin, cautious, nmpc_class)
+    n, Ts = loop.n, plant.s.sample_period
+    ctrl, sup = loop.controller, loop.supervisor
+    steps = int(round(duration / Ts))
+    T = steps + 1
+    H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))
+    tt = np.zeros(T)
+    st, se, sc = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+    status = "ok"
+    wall0 = time.perf_counter()
+
+    def rec(j, z, est):
+        tr = plant.truth()
+        tt[j] = round(plant.t, 9)
+        H[j], P[j], LM[j] = np.maximum(tr["h"], 0.0), tr["p"], tr["lam"]
+        HR[j] = loop.chamber_targets(plant.t)
+        PM[j] = z
+        HE[j] = est["h"] if est else 0.0
+        BE[j] = est["b"] if est else 1.0
+        LD[j] = plant.loads
+
+    rec(0, plant.measure(), None)
+    for j in range(steps):
+        z = plant.measure()
+        a, o = loop.tick(plant.t, z)
+        st[j], se[j], sc[j] = loop.last_timing
+        plant.apply(loop.valve_commands)
+        A[j + 1], O[j + 1] = a, o
+        rec(j + 1, z, loop.estimate)
+        if not plant.plant.alive.all():
+            status = "diverged"
+            T = j + 2
+            break
+    sl = slice(0, T)
+    ls = loop.stats()
+    return ClosedLoopRun(controller, tt[sl], H[sl], HR[sl], HE[sl], P[sl], PM[sl], LM[sl], A[sl], O[sl], LD[sl],
+                         st[:T - 1], se[:T - 1], sc[:T - 1], sup.counts["guard"], sup.failed_steps,
+                         int(getattr(ctrl, "inaccurate", 0)), status, time.perf_counter() - wall0,
+                         np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
+                         BE[sl], loop.cautious_steps, list(sup.events), sup.counts["stretch_guard"],
+                         sup.counts["lost_estimate"], ls["bursts"], ls["burst_peak_sigma"])

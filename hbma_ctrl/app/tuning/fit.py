@@ -1,0 +1,594 @@
+"""Fit a membrane material to static equilibrium data: ``hbma-ctrl fit`` (SI inside).
+
+Static data are equilibrium points of one chamber (README Model §1-§3): CSV columns ``h_mm``,
+``p_kpa`` and, for a chamber lifting a load or pressed by a flat plate, ``F_n`` or ``load_g``.
+Each point's model pressure comes from the package's physics:
+
+- ``free``: a free cap of height h (h2 = 0), ``p = pressure(h, 0)``;
+- ``flat``: the contact shape (h1, h2) with ``h1 - h2 = h`` and ``F(h1, h2) = F``, solved by the one
+  shape solver (:meth:`hbma_ctrl.models.shape.ShapeSolver.h2_for_force`), then ``p = pressure(h1, h2)``.
+
+The law is the spherical cap's (``fidelity = "cap"``, README Model §3) or the exact axisymmetric
+membrane's (``"exact"``, Model §9): the same tabulated law, in the same chart, that the rig, the EKF
+and the MPC take with ``membrane = "exact"`` (:func:`hbma_ctrl.models.tables.exact_shape_function`).
+Its tables hold one material *shape* (the parameters' ratios) at any modulus scale, so they serve a
+material whose one modulus is its only parameter (``nh``), free or on a plate. The other materials'
+free-inflation points are fitted with the exact solver itself (:class:`_ExactFree`: the free curve
+of each trial's parameters, :meth:`hbma_ctrl.models.exact.ExactMembrane.free_pole` over pole
+stretches, refined from the cap's fit); their plate contact would need a table at every trial value.
+
+The material parameters (flattened as in :class:`hbma_ctrl.core.physics.ParamSpace`: ``E``; ``C1``,
+``C2``; ``C0..C2`` for Yeoh; ``mu``, ``Jm``; ``mu0, mu1, alpha0, alpha1``) are fitted by
+``scipy.optimize.least_squares`` on the pressure residuals divided by the data's pressure span, from
+several starts. Intervals (95 %) come from the Jacobian at the optimum with the residual variance and
+a t quantile. What the data cannot separate (:func:`weak_directions`) is judged on two things
+that a correlation alone does not tell: the sensitivity of the fit along each right singular vector of
+the Jacobian in relative units (a combination whose 100 % change moves the model by less than
+:data:`SENS_MIN` of the data's span, RMS, is not determined whatever the noise), and the width of
+each 95 % interval relative to its value (above :data:`REL_CI_MAX`: not determined by these points;
+named as a trade-off with the parameter it is correlated with beyond :data:`CORR_LIMIT`). A
+correlation of -0.985 between two parameters whose intervals are both narrow is not reported.
+
+Nothing here touches files (:mod:`hbma_ctrl.app.tuning.fit_output` writes them); :func:`parse_data` takes the
+file's bytes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.stats import t as t_dist
+
+from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.app.tuning.run_data import data_lines, data_number
+from hbma_ctrl.core import physics as ph
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.materials import MATERIALS, make_material
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.core.validation import did_you_mean
+from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
+from hbma_ctrl.models.exact_tables import RATIO_U
+from hbma_ctrl.models.shape import ShapeSolver
+from hbma_ctrl.models.tables import ExactShapeSolver, exact_shape_function
+
+__all__ = [
+    "CONTACTS",
+    "FIDELITIES",
+    "FIT_KEYS",
+    "SENS_MIN",
+    "REL_CI_MAX",
+    "CORR_LIMIT",
+    "StaticData",
+    "FitResult",
+    "parse_data",
+    "param_names",
+    "model_pressure",
+    "check_options",
+    "check_exact_material",
+    "resolve_fidelity",
+    "exact_shapes_fixed",
+    "fit_static",
+    "weak_directions",
+    "unflatten",
+]
+
+#: contact modes of this command ('bonded', a disk glued at the centre, is refused: README Calibrate)
+CONTACTS = ("free", "flat")
+#: membrane laws of this command: the spherical cap, or the exact axisymmetric membrane's tables
+FIDELITIES = ("cap", "exact")
+#: the keys of fit.json
+FIT_KEYS = ("material", "params", "ci95", "nrmsd", "n_points", "unidentifiable", "correlation")
+#: RMS change of the model, as a fraction of the data's span, per 100 % change of a parameter
+#: combination, below which that combination is not determined by the data (noise-free criterion)
+SENS_MIN = 1e-3
+#: 95 % half-width relative to the value above which a parameter is reported as not determined
+REL_CI_MAX = 1.0
+#: |correlation| above which a poorly determined parameter is named with its partner
+CORR_LIMIT = 0.98
+#: p_kpa above this looks like Pa
+_P_KPA_MAX = 1000.0
+#: start factors on the default moduli (log-spaced)
+_START_FACTORS = (0.1, 0.3, 1.0, 3.0, 10.0)
+#: residual given to a non-physical point (Gent past locking), in units of the pressure span
+_BAD_RESIDUAL = 10.0
+#: pole stretches of the exact solver's free curve for one trial of a shape-changing material
+EXACT_FREE_POLES = 48
+#: the exact solver's refinement of a shape-changing material's fit: at most this many steps (each its
+#: curve and one per free parameter for the Jacobian)
+_EXACT_NFEV = 20
+
+
+@dataclass(frozen=True)
+class StaticData:
+    """Static equilibrium points, SI: heights h (m), pressures p (Pa), contact loads F (N; None = no column)."""
+
+    h: np.ndarray
+    p: np.ndarray
+    F: np.ndarray | None = None
+    force_column: str | None = None
+
+
+@dataclass
+class FitResult:
+    """A fit: material name, fitted parameters (SI, flattened names), 95 % intervals, correlation,
+    NRMSD of the pressure (paper eq. 16), the unidentified directions in words, and the data and
+    model pressures (Pa) at the data heights (m) for the plot."""
+
+    material: str
+    params: dict
+    ci95: dict
+    nrmsd: float
+    n_points: int
+    unidentifiable: list
+    correlation: dict
+    contact: str
+    r1: float
+    t0: float
+    fixed: dict = field(default_factory=dict)
+    h: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    source: str = ""
+    fidelity: str = "cap"
+
+    def as_json(self) -> dict:
+        """fit.json content: exactly :data:`FIT_KEYS`."""
+        return {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
+                "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation}
+
+
+# ---------------------------------------------------------------------------------------------
+# data
+# ---------------------------------------------------------------------------------------------
+def parse_data(raw: bytes) -> StaticData:
+    """Static data from a CSV file's bytes (h_mm, p_kpa, optional F_n or load_g) in SI.
+
+    One ValueError naming the column and the 1-based data row for a bad value; lines starting
+    with '#' and blank lines are skipped. A ``t_s`` column (dynamic data) is refused.
+    """
+    lines = data_lines(raw)
+    if not lines:
+        raise ValueError("data: the file is empty; expected a header h_mm,p_kpa[,F_n|load_g] and data rows")
+    reader = csv.reader(io.StringIO("\n".join(lines)))
+    header = [c.strip() for c in next(reader)]
+    if "t_s" in header:
+        raise ValueError("data: column 't_s' means a recorded run; read it with "
+                         "hbma_ctrl.app.tuning.fit_dynamic.parse_run (static points: h_mm, p_kpa[, F_n|load_g])")
+    for col in ("h_mm", "p_kpa"):
+        if col not in header:
+            hint = did_you_mean(col, header)
+            raise ValueError(f"data: missing column '{col}'{hint}; columns: {', '.join(header)}")
+    if "F_n" in header and "load_g" in header:
+        raise ValueError("data: columns 'F_n' and 'load_g' both given; keep one")
+    fcol = "F_n" if "F_n" in header else "load_g" if "load_g" in header else None
+    cols = ["h_mm", "p_kpa"] + ([fcol] if fcol else [])
+    idx = {c: header.index(c) for c in cols}
+    vals = {c: [] for c in cols}
+    for row, cells in enumerate(reader, start=1):
+        for c in cols:
+            cell = cells[idx[c]].strip() if idx[c] < len(cells) else ""
+            if cell == "":
+                raise ValueError(f"data: column '{c}', row {row}: empty value")
+            v = data_number(cell, c, row)
+            if v < 0:
+                what = {"h_mm": "height", "p_kpa": "pressure"}.get(c, "load")
+                raise ValueError(f"data: column '{c}', row {row}: {what} {v:g} is negative")
+            if c == "p_kpa" and v > _P_KPA_MAX:
+                raise ValueError(f"data: column 'p_kpa', row {row}: {v:g} kPa is above {_P_KPA_MAX:g} kPa; the "
+                                 "values look like Pa: convert them to kPa")
+            vals[c].append(v)
+    if not vals["h_mm"]:
+        raise ValueError("data: no data rows below the header")
+    F = None
+    if fcol == "F_n":
+        F = np.array(vals["F_n"])
+    elif fcol == "load_g":
+        F = U.grams(np.array(vals["load_g"])) * U.G_STD
+    return StaticData(U.mm(np.array(vals["h_mm"])), U.kpa(np.array(vals["p_kpa"])), F, fcol)
+
+
+# ---------------------------------------------------------------------------------------------
+# model
+# ---------------------------------------------------------------------------------------------
+def param_names(material: str) -> list[str]:
+    """Flattened parameter names of a material ('C0', 'alpha1' for tuple entries)."""
+    space = ph.ParamSpace.for_material(make_material(material))
+    return space.names[len(ph.BASE_NAMES):]
+
+
+def unflatten(material: str, values: dict) -> dict:
+    """Flattened {name: value} -> make_material keyword arguments (tuples for tuple fields)."""
+    space = ph.ParamSpace.for_material(make_material(material))
+    kw = {}
+    for name, n in space.material_sizes:
+        kw[name] = float(values[name]) if n == 0 else [float(values[f"{name}{i}"]) for i in range(n)]
+    return kw
+
+
+class _Model:
+    """Model pressures at the data points for flattened material parameter vectors (SI)."""
+
+    def __init__(self, material: str, r1: float, t0: float, data: StaticData, contact: str,
+                 fidelity: str = "cap"):
+        mat = make_material(material)
+        act = Actuator(r1=r1, t0=t0, material=mat).validate()
+        self.space = ph.ParamSpace.for_material(mat)
+        theta = self.space.values(act)
+        self.base = theta[:len(ph.BASE_NAMES)]
+        self.default = theta[len(ph.BASE_NAMES):]
+        self.data, self.contact, self.r1 = data, contact, r1
+        # the exact law's Function is built once (its table once per material shape, then from the
+        # disk cache); every trial value of the modulus enters through theta
+        self._exact = (exact_shape_function(self.space, mat, str(Pneumatics().csv_path))
+                       if fidelity == "exact" else None)
+
+    def solver(self, values: np.ndarray) -> ShapeSolver:
+        theta = np.concatenate([self.base, values])
+        return ShapeSolver(self.space, theta) if self._exact is None else ExactShapeSolver(self.space, theta, self._exact)
+
+    def shapes(self, values: np.ndarray) -> tuple[ShapeSolver, np.ndarray]:
+        """The solver for ``values`` and the cut height h2 (m) of each data point (0 for free points)."""
+        solver = self.solver(values)
+        h = self.data.h
+        h2 = np.zeros_like(h)
+        if self.contact != "free" and self.data.F is not None:
+            F = self.data.F
+            on = F > 0
+            if on.any():
+                h2[on] = solver.h2_for_force(h[on], F[on])
+        return solver, h2
+
+    def pressure(self, values: np.ndarray) -> np.ndarray:
+        solver, h2 = self.shapes(values)
+        return solver.eval(self.data.h + h2, h2)["p"]
+
+    def check_reach(self, values: np.ndarray) -> None:
+        """ValueError naming the first data row whose shape lies beyond the exact law's table (its chart
+        height h1 = h + h2 over r1 past :data:`hbma_ctrl.models.exact_tables.RATIO_U`'s end: the table
+        would only be continued there)."""
+        if self._exact is None:
+            return
+        _, h2 = self.shapes(values)
+        h1 = self.data.h + h2
+        top = float(RATIO_U[-1]) * self.r1
+        beyond = np.flatnonzero(h1 > top * (1 + 1e-9))
+        if beyond.size:
+            i = int(beyond[0])
+            what = "" if h2[i] == 0 else f" under its load (the contact's chart height {U.to_mm(h1[i]):.3g} mm)"
+            raise ValueError(f"data: column 'h_mm', row {i + 1}: {U.to_mm(self.data.h[i]):g} mm{what} is beyond the "
+                             f"exact law's table, {RATIO_U[-1]:g} r1 = {U.to_mm(top):g} mm; use --fidelity cap")
+
+
+class _ExactFree:
+    """Free-inflation pressures (Pa) at the data heights from the exact membrane's own solver, for a
+    material whose parameters change its shape (the tables cannot follow them): each call solves the
+    free curve of those parameters over :data:`EXACT_FREE_POLES` pole stretches and interpolates it
+    (a cubic in height, which the curve's 1e-5 to 4 stretch spacing keeps within the solver's 1e-6)."""
+
+    def __init__(self, material: str, r1: float, t0: float, data: StaticData):
+        self.material, self.r1, self.t0, self.data = material, r1, t0, data
+        self.names = param_names(material)
+        self._last: tuple = (None, None)  # (values' bytes, curve): the optimum is asked for several times
+
+    def curve(self, values: np.ndarray):
+        """(h m, p Pa) of the free inflation for flattened ``values`` (SI), h increasing; None for
+        parameters that are not a valid material."""
+        key = np.asarray(values, dtype=float).tobytes()
+        if self._last[0] != key:
+            self._last = (key, self._solve(values))
+        return self._last[1]
+
+    def _solve(self, values: np.ndarray):
+        from hbma_ctrl.models.exact import ExactMembrane
+
+        try:
+            mat = make_material(self.material, **unflatten(self.material, dict(zip(self.names, values))))
+            m = ExactMembrane(mat, self.r1, self.t0)
+            lam = 1.0 + np.geomspace(1e-5, 0.999 * (m.lam_hi - 1.0), EXACT_FREE_POLES)
+            out = m.free_pole(lam)
+        except (ValueError, RuntimeError, FloatingPointError):
+            # parameters the material refuses, or a shooting the solver cannot finish: no curve (the
+            # fit's residual for it is the penalty, never a traceback)
+            return None
+        h, p = np.asarray(out["h"], dtype=float), np.asarray(out["p"], dtype=float)
+        ok = np.isfinite(h) & np.isfinite(p)
+        h, p = h[ok], p[ok]
+        keep = np.concatenate([[True], np.diff(h) > 0]) if h.size else h.astype(bool)
+        return h[keep], p[keep]
+
+    def pressure(self, values: np.ndarray) -> np.ndarray:
+        from scipy.interpolate import CubicSpline
+
+        c = self.curve(values)
+        if c is None or c[0].size < 4:
+            return np.full(self.data.h.size, np.nan)
+        h, p = c
+        out = np.full(self.data.h.size, np.nan)
+        inside = (self.data.h >= 0) & (self.data.h <= h[-1])
+        # the membrane is flat at h = 0: the curve starts there
+        hh, pp = np.concatenate([[0.0], h]), np.concatenate([[0.0], p])
+        out[inside] = CubicSpline(hh, pp)(self.data.h[inside])
+        return out
+
+    def reach(self, values: np.ndarray) -> float:
+        """The highest free apex height (m) of the curve for ``values`` (0 when it has none)."""
+        c = self.curve(values)
+        return float(c[0][-1]) if c is not None and c[0].size else 0.0
+
+
+def model_pressure(material: str, params: dict, r1: float, t0: float, data: StaticData, contact: str,
+                   fidelity: str = "cap") -> np.ndarray:
+    """Model pressure (Pa) at the data points for flattened parameters (SI), r1, t0 (m), with the cap's
+    or the exact membrane's law (``fidelity``)."""
+    model = _Model(material, r1, t0, data, contact, fidelity)
+    names = param_names(material)
+    return model.pressure(np.array([params[n] for n in names], dtype=float))
+
+
+def _bounds(material: str, names: list[str], default: np.ndarray, data: StaticData, r1: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Physical bounds (SI): positive moduli, Gent Jm above the data's largest I1 - 3."""
+    lo = np.full(len(names), -np.inf)
+    hi = np.full(len(names), np.inf)
+    for i, n in enumerate(names):
+        if material == "mr" and n == "C2":
+            lo[i] = 0.0
+        elif material == "yeoh" and n in ("C1", "C2"):
+            pass  # higher Yeoh terms may be negative (softening then stiffening)
+        elif material == "gent" and n == "Jm":
+            # the free-cap stretch at h is the smallest stretch a point of height h can have (a
+            # contact h2 > 0 only stretches more): a lower bound of the data's I1 - 3
+            lam2 = (data.h.max() ** 2 + r1 ** 2) / r1 ** 2
+            lo[i] = 1.001 * (2 * lam2 + lam2 ** -2 - 3) + 1e-6
+            hi[i] = 1e6
+        elif material == "ogden" and n.startswith("alpha"):
+            lo[i], hi[i] = 0.05, 50.0
+        else:  # a modulus: positive (a tiny floor keeps the material valid)
+            lo[i] = 1e-9 * abs(default[i])
+    return lo, hi
+
+
+def _parse_fix(material: str, fix: dict, names: list[str]) -> dict:
+    out = {}
+    for k, v in fix.items():
+        if k not in names:
+            hint = did_you_mean(k, names)
+            raise ValueError(f"--fix {k}: not a parameter of material '{material}'{hint}; allowed: {', '.join(names)}")
+        if not math.isfinite(v):
+            raise ValueError(f"--fix {k}={v}: not a finite number")
+        out[k] = float(v)
+    return out
+
+
+def _join(names: list[str] | tuple[str, ...]) -> str:
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + f" and {names[-1]}"
+
+
+def weak_directions(names: list[str], J: np.ndarray, corr: np.ndarray, rel_half: np.ndarray,
+                    where: str = "this data", hint: str = "fix one with --fix or add points over a wider "
+                    "height range") -> list[str]:
+    """The parameter combinations the data cannot separate, in words.
+
+    ``J``: Jacobian of the residuals (each divided by its channel's span) with respect to the
+    parameters in relative units (a column = the change per 100 % change of that parameter's
+    reference value: its default for a static fit, its fitted value on a log scale);
+    ``corr``: their correlation matrix; ``rel_half``: each 95 % half-width divided by the value
+    (NaN when unknown). See the module docstring for the two criteria.
+    """
+    out: list[str] = []
+    named: set = set()
+    n = max(J.shape[0], 1)
+    _, S, Vt = np.linalg.svd(J, full_matrices=False)
+    for k in range(len(S)):
+        sens = float(S[k]) / math.sqrt(n)
+        if sens >= SENS_MIN:
+            continue
+        v = Vt[k] / np.max(np.abs(Vt[k]))
+        # members: the direction's large components, and what they are strongly correlated with
+        # (a small component can carry a large relative change when the defaults differ in size)
+        big = [i for i in range(len(names)) if abs(v[i]) > 0.1]
+        part = tuple(names[i] for i in range(len(names))
+                     if i in big or any(abs(corr[i, j]) > CORR_LIMIT for j in big))
+        named |= set(part)
+        if len(part) == 1:
+            out.append(f"{part[0]} is not determined by {where} (a 100 % change moves the fit by {sens:.1e} "
+                       "of the data's span)")
+        else:
+            out.append(f"{_join(part)} trade off in {where}: only a combination is determined (changing it "
+                       f"by 100 % moves the fit by {sens:.1e} of the data's span); {hint}")
+    for i, a in enumerate(names):
+        if a in named or not (rel_half[i] > REL_CI_MAX):
+            continue
+        partners = [names[j] for j in range(len(names)) if j != i and names[j] not in named
+                    and abs(corr[i, j]) > CORR_LIMIT and rel_half[j] > REL_CI_MAX]
+        if partners:
+            j = names.index(partners[0])
+            named |= {a, partners[0]}
+            out.append(f"{a} and {partners[0]} trade off in {where} (correlation {corr[i, j]:+.3f}, 95 % intervals "
+                       f"+-{100 * rel_half[i]:.0f} % and +-{100 * rel_half[j]:.0f} %); {hint}")
+        else:
+            named.add(a)
+            out.append(f"{a} is not determined by {where} (95 % interval +-{100 * rel_half[i]:.0f} % of its value)")
+    return out
+
+
+def _jacobian(fun, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float = 1e-6) -> np.ndarray:
+    """Central differences of fun at z (one-sided at a bound): the intervals' Jacobian at the optimum."""
+    cols = []
+    for j in range(z.size):
+        step = rel * max(abs(z[j]), 1.0)
+        up, dn = z.copy(), z.copy()
+        up[j] = min(z[j] + step, hi[j])
+        dn[j] = max(z[j] - step, lo[j])
+        cols.append((fun(up) - fun(dn)) / (up[j] - dn[j]))
+    return np.stack(cols, axis=1)
+
+
+def check_options(material: str, contact: str | None, fidelity: str) -> None:
+    """ValueError naming the flag for an unknown material, contact or fidelity, or one not available."""
+    if fidelity not in FIDELITIES:
+        raise ValueError(f"--fidelity {fidelity}{did_you_mean(fidelity, FIDELITIES)}; allowed: {', '.join(FIDELITIES)}")
+    if contact == "bonded":
+        raise ValueError("--contact bonded: not available to a fit (a disk glued at the centre: the exact solver's "
+                         "force needs a table per geometry and glue radius; hbma-ctrl equilibrium --fidelity exact "
+                         "--contact bonded evaluates points); use --contact free or flat")
+    if contact is not None and contact not in CONTACTS:
+        raise ValueError(f"--contact {contact}{did_you_mean(contact, CONTACTS)}; allowed: {', '.join(CONTACTS)}")
+    if material not in MATERIALS:
+        raise ValueError(f"--material {material}{did_you_mean(material, MATERIALS)}; allowed: {', '.join(MATERIALS)}")
+
+
+def exact_shapes_fixed(material: str) -> bool:
+    """Whether a material's law has one shape at every parameter value (its one parameter a modulus,
+    ``nh``): what the exact membrane's tables, one per material shape, can fit."""
+    return len(param_names(material)) == 1 and not MATERIALS[material].dimensionless
+
+
+def check_exact_material(material: str, flag: str) -> None:
+    """ValueError naming ``flag`` when the exact law's tables would have to fit ``material``'s
+    parameters (a plate contact or a recorded run: see :func:`exact_shapes_fixed`)."""
+    if not exact_shapes_fixed(material):
+        names = ", ".join(param_names(material))
+        raise ValueError(f"{flag}: the exact membrane fits this for --material nh only (its one modulus scales the "
+                         f"exact law's tables, which hold one material shape); {material}'s {names} change the shape, "
+                         "a new table at every trial value. Use --fidelity cap; the exact law fits free points of "
+                         f"{material} (no force column) and a recorded run's modulus_scale (without --fit-material)")
+
+
+def resolve_fidelity(fidelity: str | None, material: str, needs_tables: bool = False) -> tuple[str, str | None]:
+    """The law a fit uses: ``fidelity`` as given, or for None the roles' default (the exact membrane,
+    :data:`hbma_ctrl.models.defaults.DEFAULT_MEMBRANE`) where it can fit the asked parameters, else the
+    cap; with a note saying why when the default could not be taken. ``needs_tables``: the fit would
+    move a material's shape through the exact law's tables (static points on a plate, a recorded run's
+    --fit-material), which only nh's one modulus can do."""
+    if fidelity is not None:
+        return fidelity, None
+    if DEFAULT_MEMBRANE == "exact" and needs_tables and not exact_shapes_fixed(material):
+        return "cap", (f"fitted with the cap's law: on a plate or over a recorded run the exact membrane (the roles' "
+                       f"default law) fits --material nh only; {material}'s parameters change its shape. Run the "
+                       "roles on these numbers with membrane = \"cap\"")
+    return DEFAULT_MEMBRANE, None
+
+
+def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: str | None = None,
+               fix: dict | None = None, fidelity: str = "cap") -> FitResult:
+    """Least-squares fit of a material's parameters (SI) to static data; r1, t0 in m.
+
+    ``contact`` None picks 'flat' when the data have a force column, else 'free'. ``fix`` holds
+    flattened parameters at SI values. ``fidelity``: the membrane law, 'cap' or 'exact' (the tables
+    for ``nh``; the exact solver's free curve, refined from the cap's fit, for free points of the
+    other materials; :func:`check_exact_material`). ValueError for unavailable options or too few points.
+    """
+    check_options(material, contact, fidelity)
+    if contact is None:
+        contact = "flat" if data.F is not None else "free"
+    # a shape-changing material's exact fit: free points only, through the solver itself
+    solver_free = fidelity == "exact" and not exact_shapes_fixed(material)
+    if solver_free and contact != "free":
+        check_exact_material(material, f"--fidelity exact with --contact {contact}")
+    if contact == "flat" and data.F is None:
+        raise ValueError("data: missing column 'F_n' or 'load_g': --contact flat needs the load of each point")
+    if contact == "free" and data.F is not None and np.any(data.F > 0):
+        row = int(np.argmax(data.F > 0)) + 1
+        raise ValueError(f"data: column '{data.force_column}', row {row}: a load with --contact free (free "
+                         "inflation carries none); use --contact flat")
+    names = param_names(material)
+    fixed = _parse_fix(material, fix or {}, names)
+    free = [n for n in names if n not in fixed]
+    n = data.h.size
+    if n < len(free):
+        raise ValueError(f"data: {n} points for {len(free)} free parameters of '{material}' ({', '.join(free)}); "
+                         "add points or --fix some")
+    if not free:
+        raise ValueError("--fix: every parameter is fixed; nothing to fit")
+    span = float(data.p.max() - data.p.min())
+    if not span > 0:
+        raise ValueError("data: column 'p_kpa' has one value in every row; nothing to fit")
+    model = _Model(material, r1, t0, data, contact, "cap" if solver_free else fidelity)
+    law = _ExactFree(material, r1, t0, data) if solver_free else model
+    lo, hi = _bounds(material, names, model.default, data, r1)
+    for k, v in fixed.items():
+        i = names.index(k)
+        if not lo[i] <= v <= hi[i]:
+            raise ValueError(f"--fix {k}={v:g}: outside the physical range [{lo[i]:g}, {hi[i]:g}] for this data")
+    ifree = [names.index(k) for k in free]
+    scale = np.where(np.abs(model.default) > 0, np.abs(model.default), 1.0)[ifree]
+
+    def full(z: np.ndarray) -> np.ndarray:
+        v = model.default.copy()
+        for k, val in fixed.items():
+            v[names.index(k)] = val
+        v[ifree] = z * scale
+        return v
+
+    def resid(z: np.ndarray) -> np.ndarray:
+        r = (law.pressure(full(z)) - data.p) / span
+        return np.where(np.isfinite(r), r, _BAD_RESIDUAL)
+
+    zlo, zhi = lo[ifree] / scale, hi[ifree] / scale
+    dimless = set(MATERIALS[material].dimensionless)
+    is_modulus = np.array([names[i].rstrip("0123456789") not in dimless for i in ifree])
+    sign = np.where(model.default[ifree] < 0, -1.0, 1.0)
+    best = None
+    if solver_free:
+        # one solve of the free curve costs 0.1-0.3 s: one start, the cap's optimum (the two laws
+        # differ by 5-15 % in pressure, well inside the cap fit's basin)
+        cap = fit_static(data, material, r1, t0, contact, fix, "cap")
+        starts = [np.clip(np.array([cap.params[k] for k in free]) / scale, zlo, zhi)]
+        nfev = _EXACT_NFEV
+    else:
+        starts = []
+        for f in _START_FACTORS:
+            # moduli scaled by f, exponents and locking limits at their defaults; then inside the
+            # bounds with a margin (Gent's Jm floor from the data may lie above its default)
+            z0 = sign * np.where(is_modulus, f, 1.0)
+            z0 = np.maximum(z0, np.where(np.isfinite(zlo), 1.5 * zlo + 1e-6, -np.inf))
+            starts.append(np.minimum(z0, np.where(np.isfinite(zhi), 0.9 * zhi, np.inf)))
+        nfev = 200
+    for z0 in starts:
+        sol = least_squares(resid, z0, bounds=(zlo, zhi), method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                            gtol=1e-12, max_nfev=nfev)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    z = best.x
+    if solver_free:
+        top = law.reach(full(z))
+        beyond = np.flatnonzero(data.h > top)
+        if beyond.size:
+            i = int(beyond[0])
+            raise ValueError(f"data: column 'h_mm', row {i + 1}: {U.to_mm(data.h[i]):g} mm is beyond the fitted "
+                             f"membrane's reach in free inflation ({U.to_mm(top):.4g} mm, pole stretch "
+                             "4 or 98 % of the locking one); use --fidelity cap")
+    else:
+        model.check_reach(full(z))
+    J = _jacobian(resid, z, zlo, zhi)
+    r = resid(z)
+    values = full(z)
+    params = {k: float(values[i]) for i, k in enumerate(names)}
+    dof = n - len(free)
+    s2 = float(r @ r) / dof if dof > 0 else float("nan")
+    JtJ = J.T @ J
+    cov = np.linalg.pinv(JtJ) * s2
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
+    tq = float(t_dist.ppf(0.975, dof)) if dof > 0 else float("nan")
+    ci = {k: [params[k], params[k]] for k in fixed}
+    for j, k in enumerate(free):
+        half = tq * sd[j]
+        ci[k] = [float(params[k] - half), float(params[k] + half)] if math.isfinite(half) else [None, None]
+    d = np.sqrt(np.clip(np.diag(JtJ), 1e-300, None))
+    scaled = JtJ / np.outer(d, d)
+    cd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = np.clip(cov / np.outer(cd, cd), -1.0, 1.0) if np.all(np.isfinite(cov)) else scaled
+    rel_half = np.array([tq * sd[j] / abs(params[k]) if params[k] != 0 else float("inf")
+                         for j, k in enumerate(free)])
+    correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(free)} for i, a in enumerate(free)}
+    pm = law.pressure(values)
+    return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
+                     nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak_directions(free, J, corr, rel_half),
+                     correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
+                     p_data=data.p.copy(), p_model=pm, fidelity=fidelity)

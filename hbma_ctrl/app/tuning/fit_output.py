@@ -1,0 +1,84 @@
+"""What ``hbma-ctrl fit`` writes: fit.json, params.toml (a scenario's tables, with where the numbers came
+from and which membrane law they belong to) and residuals.png (SI in, edge units in the files).
+
+:func:`write_fit` is the static fit's; :mod:`hbma_ctrl.app.tuning.fit_dynamic` writes a recorded run's with
+the same provenance lines, law note and TOML values.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from hbma_ctrl.app.tuning.fit import FitResult, unflatten
+from hbma_ctrl.core import units as U
+
+__all__ = ["LAW_NOTE", "toml_value", "provenance_lines", "params_toml", "write_fit"]
+
+
+def toml_value(v) -> str:
+    """A TOML value of a parameter: a float, or a list of floats (a tuple field)."""
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+    return repr(float(v))
+
+
+#: the params.toml line that says which law the numbers belong to (a modulus fitted with one law is
+#: biased under the other: README Calibrate, "The exact law")
+LAW_NOTE = {"cap": "the spherical cap (use with [estimator] / [controller] / [rig] membrane = \"cap\")",
+             "exact": "the exact membrane (membrane = \"exact\", the roles' default)"}
+
+
+def provenance_lines(source: str) -> list[str]:
+    """Comment lines recording the data a parameter file came from and when (UTC) it was written."""
+    when = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return ([f"# data: {source}"] if source else []) + [f"# written: {when}"]
+
+
+def params_toml(result: FitResult) -> str:
+    """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
+    kw = unflatten(result.material, result.params)
+    head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
+            f"NRMSD {result.nrmsd:.4f}")
+    lines = [head,
+             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}",
+             f"# membrane law: {LAW_NOTE[result.fidelity]}"]
+    # where the numbers came from travels with them into any scenario that copies this file
+    lines += provenance_lines(result.source)
+    lines += ["[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
+    lines += [f"{k} = {toml_value(v)}" for k, v in kw.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(result: FitResult, path: Path) -> None:
+    fig = Figure(figsize=(9, 4.2))
+    ax1, ax2 = fig.subplots(1, 2)
+    h = U.to_mm(result.h)
+    order = np.argsort(h)
+    ax1.plot(h, U.to_kpa(result.p_data), "o", ms=4, label="data")
+    ax1.plot(h[order], U.to_kpa(result.p_model[order]), "x-" if result.contact == "free" else "x", ms=5,
+             label=f"fit ({result.material})")
+    ax1.set_xlabel("height h (mm)")
+    ax1.set_ylabel("pressure p (kPa)")
+    ax1.set_title(f"{result.contact} contact, {result.fidelity} law, NRMSD {result.nrmsd:.4f}")
+    ax1.legend()
+    ax2.axhline(0.0, color="0.6", lw=0.8)
+    ax2.plot(h, U.to_kpa(result.p_model - result.p_data), "o", ms=4)
+    ax2.set_xlabel("height h (mm)")
+    ax2.set_ylabel("residual p_fit - p (kPa)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def write_fit(result: FitResult, folder: Path | str) -> list[Path]:
+    """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths."""
+    folder = Path(folder)
+    paths = [folder / "fit.json", folder / "params.toml", folder / "residuals.png"]
+    paths[0].write_text(json.dumps(result.as_json(), indent=1) + "\n")
+    paths[1].write_text(params_toml(result))
+    _plot(result, paths[2])
+    return paths
