@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import hbma_ctrl.app.cli.main as cli_mod
+import hbma_ctrl.app.cli.sim as cli_mod
 from hbma_ctrl.app.cli import args as cli_args
 from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.app.scenario import load_scenario

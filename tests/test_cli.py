@@ -122,7 +122,7 @@ def test_run_open_loop_writes_metrics_log_and_plot(tmp_path):
 
 
 def test_no_arguments_runs_default_protocol(monkeypatch, tmp_path):
-    import hbma_ctrl.app.cli.main as cli_mod
+    import hbma_ctrl.app.cli.sim as cli_mod
 
     calls = []
 

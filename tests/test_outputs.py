@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import hbma_ctrl.app.cli.main as cli_mod
+import hbma_ctrl.app.cli.sim as cli_mod
 import hbma_ctrl.app.outputs as outputs
 from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.app.outputs import MANIFEST_KEYS, RunInterrupted, check_out, default_out, run_dir

@@ -20,10 +20,11 @@ from rich.table import Table
 
 # the code generator, its scenes and the RTI step (casadi) are imported by the commands when they
 # run; the flags their options show come from the light cli_constants
+from hbma_ctrl.app.cli.args import check_choice
 from hbma_ctrl.app.cli.constants import DEFAULT_OPT, OPT_FLAGS
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 
-__all__ = ["register", "check_duration", "check_choice"]
+__all__ = ["register", "check_duration"]
 
 #: longest loop a generated program runs, s
 DURATION_MAX_S = 3600.0
@@ -35,13 +36,6 @@ def check_duration(value: float | None) -> float | None:
         return None
     if not (math.isfinite(value) and 0 < value <= DURATION_MAX_S):
         raise ValueError(f"--duration-s = {value:g} is out of range (0, {DURATION_MAX_S:g}] s")
-    return value
-
-
-def check_choice(flag: str, value: str, allowed) -> str:
-    """A flag's value among ``allowed``; ValueError naming the flag and the choices otherwise."""
-    if value not in allowed:
-        raise ValueError(f"{flag} = '{value}'; allowed: {', '.join(allowed)}")
     return value
 
 
@@ -105,117 +99,118 @@ def _write_run_metrics(scn, spec, out: Path, qp_solver: str | None) -> dict:
     return m
 
 
+def codegen(
+    config: Annotated[Path, typer.Argument(help="scenario TOML with [controller] kind = 'mpc' (RTI), or a "
+                                              "closed-loop [robot] with controller = 'mpc'")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="output directory for the C sources")],
+    duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
+    estimator: Annotated[str, typer.Option(help="ekf (the scenario's filter) | truth (the rig's state, no filter)")] = "ekf",
+    qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
+                                                     "hpipm | daqp (linked from the casadi package) | qrqp "
+                                                     "(self-contained C); default: the variant's, else osqp")] = None,
+    check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
+    opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario."""
+    from hbma_ctrl.app.codegen.loop import bench, write_c
+
+    check_choice("--opt", opt, OPT_FLAGS)
+    spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
+    cc = _compiler() if check else None
+    con = Console(highlight=False)
+    with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
+        if check:
+            res = bench(spec, tmp, opt=opt, cc=cc)
+            (tmp / "check.json").write_text(json.dumps(res, indent=2) + "\n")
+            _write_run_metrics(scn, spec, tmp, qp_solver)
+        else:
+            write_c(spec, tmp)
+    con.print(f"wrote {out}: hbma_steps.c/.h, loop_data.h, closed_loop.c, Makefile, README.txt "
+              f"({spec.n_ticks} ticks of {spec.dt * 1e3:g} ms)")
+    con.print(f"build: cd {out} && make   then ./closed_loop   (or the line in README.txt)")
+    if "left out" in spec.meta:
+        con.print(f"note: left out of the generated loop: {spec.meta['left out']}", markup=False)
+    if check:
+        con.print(f"C vs Python path: largest absolute difference {res['max_abs_diff_si_all']:.3g} (SI); "
+                  f"see {out / 'check.json'}")
+
+def bench_codegen(
+    config: Annotated[Path, typer.Argument(help="scenario TOML (default scenarios/track_height.toml)")] = Path(
+        "scenarios/track_height.toml"),
+    out: Annotated[Path, typer.Option("--out", "-o", help="output dir (the C sources and bench_codegen.json)")] = Path(
+        "runs/bench_codegen"),
+    duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
+    estimator: Annotated[str, typer.Option(help="ekf | truth")] = "ekf",
+    qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
+                                                     "hpipm | daqp (linked from the casadi package) | qrqp "
+                                                     "(self-contained C); default: the variant's, else osqp")] = None,
+    opt: Annotated[str, typer.Option(help=f"optimisation flag of the C build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
+    python_vm: Annotated[bool, typer.Option("--python-vm", help="also run the Python path on casadi's virtual "
+                                            "machine (uncompiled Functions; slow)")] = False,
+    scene: Annotated[bool, typer.Option("--scene/--no-scene", help="also run the scene's own closed loop (EKF and "
+                                        "NMPC classes, no calibration) and compare its step times and trajectory")]
+    = True,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
+    from hbma_ctrl.app.codegen.loop import bench, read_c
+    from hbma_ctrl.app.codegen.chamber import scene_reference
+
+    check_choice("--opt", opt, OPT_FLAGS)
+    spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
+    cc = _compiler()
+    con = Console(highlight=False, width=150)
+    with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
+        res = bench(spec, tmp, opt=opt, cc=cc, python_vm=python_vm)
+        c_metrics = _write_run_metrics(scn, spec, tmp, qp_solver)
+        if scene and scn.role("robot") is not None:
+            from hbma_ctrl.app.codegen.robot import scene_reference as robot_scene
+
+            res["scene"] = robot_scene(scn, spec, read_c(tmp).trajectory)
+        elif scene and estimator == "ekf":
+            res["scene"] = scene_reference(scn, spec, read_c(tmp).trajectory, qp_solver)
+            res["scene"]["c_height_rmse_mm"] = c_metrics["controller"]["height_rmse_mm"]
+            res["scene"]["c_steps_settled"] = c_metrics["controller"]["steps_settled"]
+        (tmp / "bench_codegen.json").write_text(json.dumps(res, indent=2) + "\n")
+    t = Table(title=f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs "
+                    f"Python path ({res['python_path']}); us per call")
+    cols = ["function", "calls", "C median", "C p99", "Python median", "Python p99", "ratio median", "ratio p99"]
+    if python_vm:
+        cols += ["VM median", "VM p99"]
+    for c in cols:
+        t.add_column(c, justify="right")
+    for name, r in list(res["functions"].items()) + [("tick (sum)", res["tick"])]:
+        c, p = r["c"], r["python"]
+        ratio = [f"{v:.1f}x" if v else "-" for v in (r["ratio_median"], r["ratio_p99"])]
+        row = [name, str(c["calls"]), f"{c['median_us']:.2f}", f"{c['p99_us']:.2f}",
+               f"{p['median_us']:.2f}", f"{p['p99_us']:.2f}", *ratio]
+        if python_vm:
+            vm = r["python_vm"]
+            row += [f"{vm['median_us']:.2f}" if vm["calls"] else "-", f"{vm['p99_us']:.2f}" if vm["calls"] else "-"]
+        t.add_row(*row)
+    con.print(t)
+    if python_vm:
+        con.print(f"largest |C - VM path| over the trajectory: {res['vm_max_abs_diff_si_all']:.3g} (SI)")
+    con.print(f"largest |C - Python| over the trajectory: {res['max_abs_diff_si_all']:.3g} (SI); "
+              f"build {res['wall_s']['build']:.1f} s, C run {res['wall_s']['c_run']:.2f} s, "
+              f"Python run {res['wall_s']['python_run']:.1f} s")
+    sc = res.get("scene")
+    if sc and "nmpc" in sc:
+        e, c = sc["ekf_step"], sc["controller_step"]
+        con.print(f"scene's own loop (NMPC {sc['nmpc']}): EKF bank {e['median_us']:.1f} / {e['p99_us']:.1f} us, "
+                  f"the rest of the tick {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "
+                  f"|C - scene| {sc['max_abs_diff_si_all']:.3g} (SI); chamber height RMSE "
+                  f"{sc['c_chamber_height_rmse_mm']:.3f} mm (C) vs {sc['chamber_height_rmse_mm']:.3f} mm (scene)")
+    elif sc:
+        e, c = sc["ekf_step"], sc["controller_step"]
+        con.print(f"scene's own loop ({sc['variant']}): EKF step {e['median_us']:.1f} / {e['p99_us']:.1f} us, "
+                  f"controller step {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "
+                  f"|C - scene| {sc['max_abs_diff_si_all']:.3g} (SI)")
+    con.print(f"wrote {out / 'bench_codegen.json'}")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``codegen`` to the app and ``codegen`` to the bench sub-app (called by :mod:`hbma_ctrl.app.cli.main`)."""
-
-    @app.command("codegen")
-    def codegen(
-        config: Annotated[Path, typer.Argument(help="scenario TOML with [controller] kind = 'mpc' (RTI), or a "
-                                                  "closed-loop [robot] with controller = 'mpc'")],
-        out: Annotated[Path, typer.Option("--out", "-o", help="output directory for the C sources")],
-        duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
-        estimator: Annotated[str, typer.Option(help="ekf (the scenario's filter) | truth (the rig's state, no filter)")] = "ekf",
-        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
-                                                         "hpipm | daqp (linked from the casadi package) | qrqp "
-                                                         "(self-contained C); default: the variant's, else osqp")] = None,
-        check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
-        opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
-        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
-    ) -> None:
-        """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario."""
-        from hbma_ctrl.app.codegen.loop import bench, write_c
-
-        check_choice("--opt", opt, OPT_FLAGS)
-        spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
-        cc = _compiler() if check else None
-        con = Console(highlight=False)
-        with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
-            if check:
-                res = bench(spec, tmp, opt=opt, cc=cc)
-                (tmp / "check.json").write_text(json.dumps(res, indent=2) + "\n")
-                _write_run_metrics(scn, spec, tmp, qp_solver)
-            else:
-                write_c(spec, tmp)
-        con.print(f"wrote {out}: hbma_steps.c/.h, loop_data.h, closed_loop.c, Makefile, README.txt "
-                  f"({spec.n_ticks} ticks of {spec.dt * 1e3:g} ms)")
-        con.print(f"build: cd {out} && make   then ./closed_loop   (or the line in README.txt)")
-        if "left out" in spec.meta:
-            con.print(f"note: left out of the generated loop: {spec.meta['left out']}", markup=False)
-        if check:
-            con.print(f"C vs Python path: largest absolute difference {res['max_abs_diff_si_all']:.3g} (SI); "
-                      f"see {out / 'check.json'}")
-
-    @bench_app.command("codegen")
-    def bench_codegen(
-        config: Annotated[Path, typer.Argument(help="scenario TOML (default scenarios/track_height.toml)")] = Path(
-            "scenarios/track_height.toml"),
-        out: Annotated[Path, typer.Option("--out", "-o", help="output dir (the C sources and bench_codegen.json)")] = Path(
-            "runs/bench_codegen"),
-        duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="loop duration, s (default: the scenario's)")] = None,
-        estimator: Annotated[str, typer.Option(help="ekf | truth")] = "ekf",
-        qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
-                                                         "hpipm | daqp (linked from the casadi package) | qrqp "
-                                                         "(self-contained C); default: the variant's, else osqp")] = None,
-        opt: Annotated[str, typer.Option(help=f"optimisation flag of the C build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
-        python_vm: Annotated[bool, typer.Option("--python-vm", help="also run the Python path on casadi's virtual "
-                                                "machine (uncompiled Functions; slow)")] = False,
-        scene: Annotated[bool, typer.Option("--scene/--no-scene", help="also run the scene's own closed loop (EKF and "
-                                            "NMPC classes, no calibration) and compare its step times and trajectory")]
-        = True,
-        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
-    ) -> None:
-        """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
-        from hbma_ctrl.app.codegen.loop import bench, read_c
-        from hbma_ctrl.app.codegen.chamber import scene_reference
-
-        check_choice("--opt", opt, OPT_FLAGS)
-        spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
-        cc = _compiler()
-        con = Console(highlight=False, width=150)
-        with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
-            res = bench(spec, tmp, opt=opt, cc=cc, python_vm=python_vm)
-            c_metrics = _write_run_metrics(scn, spec, tmp, qp_solver)
-            if scene and scn.role("robot") is not None:
-                from hbma_ctrl.app.codegen.robot import scene_reference as robot_scene
-
-                res["scene"] = robot_scene(scn, spec, read_c(tmp).trajectory)
-            elif scene and estimator == "ekf":
-                res["scene"] = scene_reference(scn, spec, read_c(tmp).trajectory, qp_solver)
-                res["scene"]["c_height_rmse_mm"] = c_metrics["controller"]["height_rmse_mm"]
-                res["scene"]["c_steps_settled"] = c_metrics["controller"]["steps_settled"]
-            (tmp / "bench_codegen.json").write_text(json.dumps(res, indent=2) + "\n")
-        t = Table(title=f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs "
-                        f"Python path ({res['python_path']}); us per call")
-        cols = ["function", "calls", "C median", "C p99", "Python median", "Python p99", "ratio median", "ratio p99"]
-        if python_vm:
-            cols += ["VM median", "VM p99"]
-        for c in cols:
-            t.add_column(c, justify="right")
-        for name, r in list(res["functions"].items()) + [("tick (sum)", res["tick"])]:
-            c, p = r["c"], r["python"]
-            ratio = [f"{v:.1f}x" if v else "-" for v in (r["ratio_median"], r["ratio_p99"])]
-            row = [name, str(c["calls"]), f"{c['median_us']:.2f}", f"{c['p99_us']:.2f}",
-                   f"{p['median_us']:.2f}", f"{p['p99_us']:.2f}", *ratio]
-            if python_vm:
-                vm = r["python_vm"]
-                row += [f"{vm['median_us']:.2f}" if vm["calls"] else "-", f"{vm['p99_us']:.2f}" if vm["calls"] else "-"]
-            t.add_row(*row)
-        con.print(t)
-        if python_vm:
-            con.print(f"largest |C - VM path| over the trajectory: {res['vm_max_abs_diff_si_all']:.3g} (SI)")
-        con.print(f"largest |C - Python| over the trajectory: {res['max_abs_diff_si_all']:.3g} (SI); "
-                  f"build {res['wall_s']['build']:.1f} s, C run {res['wall_s']['c_run']:.2f} s, "
-                  f"Python run {res['wall_s']['python_run']:.1f} s")
-        sc = res.get("scene")
-        if sc and "nmpc" in sc:
-            e, c = sc["ekf_step"], sc["controller_step"]
-            con.print(f"scene's own loop (NMPC {sc['nmpc']}): EKF bank {e['median_us']:.1f} / {e['p99_us']:.1f} us, "
-                      f"the rest of the tick {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "
-                      f"|C - scene| {sc['max_abs_diff_si_all']:.3g} (SI); chamber height RMSE "
-                      f"{sc['c_chamber_height_rmse_mm']:.3f} mm (C) vs {sc['chamber_height_rmse_mm']:.3f} mm (scene)")
-        elif sc:
-            e, c = sc["ekf_step"], sc["controller_step"]
-            con.print(f"scene's own loop ({sc['variant']}): EKF step {e['median_us']:.1f} / {e['p99_us']:.1f} us, "
-                      f"controller step {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "
-                      f"|C - scene| {sc['max_abs_diff_si_all']:.3g} (SI)")
-        con.print(f"wrote {out / 'bench_codegen.json'}")
+    app.command("codegen")(codegen)
+    bench_app.command("codegen")(bench_codegen)

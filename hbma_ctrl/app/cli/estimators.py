@@ -123,83 +123,84 @@ def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0,
     return out
 
 
+def bench_ekf_cmd(
+    loads_g: Annotated[str, typer.Option(help="comma-separated loads, g")] = "0,400,800",
+    speeds_pct: Annotated[str, typer.Option(help="comma-separated compressor speeds, %")] = "40,100",
+    t0_mm: Annotated[str, typer.Option(help="comma-separated membrane thicknesses, mm")] = "3",
+    r1_mm: Annotated[str, typer.Option(help="comma-separated retaining radii, mm")] = "7.5,12.5",
+    seed: Annotated[int, typer.Option(help="rig noise seed")] = 0,
+    substeps: Annotated[str, typer.Option(help="comma-separated integrator sub-steps per sample (1-50): "
+                                               "EKF and UKF rows for each")] = ",".join(map(str, BENCH_SUBSTEPS)),
+    membranes: Annotated[str, typer.Option(help="comma-separated membrane laws of the filters' model (cap, "
+                                                "exact): EKF and UKF rows for each")] = ",".join(BENCH_MEMBRANES),
+    out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_ekf.json")] = Path("runs/bench_ekf"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """EKF (compiled step and reference path), filterpy's EKF on the same model, and the UKF on
+    the same rig runs: us per predict+update (median), ratios to the EKF, accuracy."""
+
+    grid = {"loads_g": _floats("loads-g", loads_g), "speeds_pct": _floats("speeds-pct", speeds_pct),
+            "t0_mm": _floats("t0-mm", t0_mm), "r1_mm": _floats("r1-mm", r1_mm)}
+    if not 0 <= seed <= 2**31:
+        raise ValueError(f"--seed = {seed} is out of range [0, 2^31]")
+    ns, ms = parse_axes(substeps, membranes)
+    with run_dir(out, command="bench ekf", argv=cli_argv(), overwrite=overwrite) as tmp:
+        res = bench_ekf(grid, seed=seed, substeps=ns, membranes=ms)
+        (tmp / "bench_ekf.json").write_text(json.dumps(res, indent=1))
+    t = Table(title=f"bench ekf: {res['settings']['n_trials']} rig trials (the default rig); "
+                    "us = wall time per chamber-step on this machine")
+    cols = [("us median", "step_us_median", "{:.0f}"), ("us p90", "step_us_p90", "{:.0f}"),
+            ("height NRMSD", "height_nrmsd", "{:.3f}"), ("worst", "height_nrmsd_max", "{:.3f}"),
+            ("open loop", "height_nrmsd_open_loop", "{:.3f}"), ("F rmse N", "force_rmse_n", "{:.3f}"),
+            ("F steady err", "force_steady_rel_err_mean", "{:.3f}"), ("NEES", "nees_mean", "{:.2f}"),
+            ("NIS", "nis_mean", "{:.2f}")]
+    t.add_column("filter")
+    for c in cols:
+        t.add_column(c[0], justify="right")
+    for kind, a in res["filters"].items():
+        t.add_row(kind, *[(c[2].format(a[c[1]]) if a.get(c[1]) is not None else "-") for c in cols])
+    con = Console(highlight=False, width=150)
+    con.print(t)
+    for k, v in res.get("ratios", {}).items():
+        con.print(f"{k.replace('_over_ekf_step_median', '')} / ekf median step time: {v:.1f}x")
+    con.print(f"wrote {out / 'bench_ekf.json'}")
+
+def observability_cmd(
+    out: Annotated[Path, typer.Option("--out", "-o", help="output dir for observability.json")] = Path("runs/observability"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    r1_mm: Annotated[Optional[float], typer.Option(help="retaining radius, mm (default 12.5)")] = None,
+    t0_mm: Annotated[Optional[float], typer.Option(help="membrane thickness, mm (default 3)")] = None,
+) -> None:
+    """Rank/condition of the linearised observability matrix along free, contact and resting runs."""
+    from hbma_ctrl.estimators.observability import OBS_SCALE, WINDOW_S, run
+    from hbma_ctrl.core.params import Actuator
+
+    act = Actuator()
+    kw = {}
+    if r1_mm is not None:
+        kw["r1"] = U.mm(r1_mm)
+    if t0_mm is not None:
+        kw["t0"] = U.mm(t0_mm)
+    act = act.with_(**kw) if kw else act
+    with run_dir(out, command="observability", argv=cli_argv(), overwrite=overwrite) as tmp:
+        summ = run(tmp, act)
+    t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "
+                    f"t0 {U.to_mm(act.t0):g} mm); window = up to {WINDOW_S:g} s in one regime, "
+                    f"resolution {OBS_SCALE.tolist()}")
+    for c in ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",
+              "window rank (med/min/max)"):
+        t.add_column(c, justify="right" if c != "trajectory" else "left")
+    for r in summ:
+        t.add_row(r["trajectory"], r["regime"], str(r["samples"]),
+                  f"{r['rank_median']:g}/{r['rank_min']}/{r['rank_max']}",
+                  f"{r['cond_median']:.2g}" if r["cond_median"] is not None else "inf",
+                  f"{r['window_rank_median']:g}/{r['window_rank_min']}/{r['window_rank_max']}")
+    con = Console(highlight=False, width=150)
+    con.print(t)
+    con.print(f"wrote {out / 'observability.json'}")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``bench ekf`` and ``observability`` (called by :mod:`hbma_ctrl.cli`)."""
-
-    @bench_app.command("ekf")
-    def bench_ekf_cmd(
-        loads_g: Annotated[str, typer.Option(help="comma-separated loads, g")] = "0,400,800",
-        speeds_pct: Annotated[str, typer.Option(help="comma-separated compressor speeds, %")] = "40,100",
-        t0_mm: Annotated[str, typer.Option(help="comma-separated membrane thicknesses, mm")] = "3",
-        r1_mm: Annotated[str, typer.Option(help="comma-separated retaining radii, mm")] = "7.5,12.5",
-        seed: Annotated[int, typer.Option(help="rig noise seed")] = 0,
-        substeps: Annotated[str, typer.Option(help="comma-separated integrator sub-steps per sample (1-50): "
-                                                   "EKF and UKF rows for each")] = ",".join(map(str, BENCH_SUBSTEPS)),
-        membranes: Annotated[str, typer.Option(help="comma-separated membrane laws of the filters' model (cap, "
-                                                    "exact): EKF and UKF rows for each")] = ",".join(BENCH_MEMBRANES),
-        out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_ekf.json")] = Path("runs/bench_ekf"),
-        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
-    ) -> None:
-        """EKF (compiled step and reference path), filterpy's EKF on the same model, and the UKF on
-        the same rig runs: us per predict+update (median), ratios to the EKF, accuracy."""
-
-        grid = {"loads_g": _floats("loads-g", loads_g), "speeds_pct": _floats("speeds-pct", speeds_pct),
-                "t0_mm": _floats("t0-mm", t0_mm), "r1_mm": _floats("r1-mm", r1_mm)}
-        if not 0 <= seed <= 2**31:
-            raise ValueError(f"--seed = {seed} is out of range [0, 2^31]")
-        ns, ms = parse_axes(substeps, membranes)
-        with run_dir(out, command="bench ekf", argv=cli_argv(), overwrite=overwrite) as tmp:
-            res = bench_ekf(grid, seed=seed, substeps=ns, membranes=ms)
-            (tmp / "bench_ekf.json").write_text(json.dumps(res, indent=1))
-        t = Table(title=f"bench ekf: {res['settings']['n_trials']} rig trials (the default rig); "
-                        "us = wall time per chamber-step on this machine")
-        cols = [("us median", "step_us_median", "{:.0f}"), ("us p90", "step_us_p90", "{:.0f}"),
-                ("height NRMSD", "height_nrmsd", "{:.3f}"), ("worst", "height_nrmsd_max", "{:.3f}"),
-                ("open loop", "height_nrmsd_open_loop", "{:.3f}"), ("F rmse N", "force_rmse_n", "{:.3f}"),
-                ("F steady err", "force_steady_rel_err_mean", "{:.3f}"), ("NEES", "nees_mean", "{:.2f}"),
-                ("NIS", "nis_mean", "{:.2f}")]
-        t.add_column("filter")
-        for c in cols:
-            t.add_column(c[0], justify="right")
-        for kind, a in res["filters"].items():
-            t.add_row(kind, *[(c[2].format(a[c[1]]) if a.get(c[1]) is not None else "-") for c in cols])
-        con = Console(highlight=False, width=150)
-        con.print(t)
-        for k, v in res.get("ratios", {}).items():
-            con.print(f"{k.replace('_over_ekf_step_median', '')} / ekf median step time: {v:.1f}x")
-        con.print(f"wrote {out / 'bench_ekf.json'}")
-
-    @app.command("observability")
-    def observability_cmd(
-        out: Annotated[Path, typer.Option("--out", "-o", help="output dir for observability.json")] = Path("runs/observability"),
-        overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
-        r1_mm: Annotated[Optional[float], typer.Option(help="retaining radius, mm (default 12.5)")] = None,
-        t0_mm: Annotated[Optional[float], typer.Option(help="membrane thickness, mm (default 3)")] = None,
-    ) -> None:
-        """Rank/condition of the linearised observability matrix along free, contact and resting runs."""
-        from hbma_ctrl.estimators.observability import OBS_SCALE, WINDOW_S, run
-        from hbma_ctrl.core.params import Actuator
-
-        act = Actuator()
-        kw = {}
-        if r1_mm is not None:
-            kw["r1"] = U.mm(r1_mm)
-        if t0_mm is not None:
-            kw["t0"] = U.mm(t0_mm)
-        act = act.with_(**kw) if kw else act
-        with run_dir(out, command="observability", argv=cli_argv(), overwrite=overwrite) as tmp:
-            summ = run(tmp, act)
-        t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "
-                        f"t0 {U.to_mm(act.t0):g} mm); window = up to {WINDOW_S:g} s in one regime, "
-                        f"resolution {OBS_SCALE.tolist()}")
-        for c in ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",
-                  "window rank (med/min/max)"):
-            t.add_column(c, justify="right" if c != "trajectory" else "left")
-        for r in summ:
-            t.add_row(r["trajectory"], r["regime"], str(r["samples"]),
-                      f"{r['rank_median']:g}/{r['rank_min']}/{r['rank_max']}",
-                      f"{r['cond_median']:.2g}" if r["cond_median"] is not None else "inf",
-                      f"{r['window_rank_median']:g}/{r['window_rank_min']}/{r['window_rank_max']}")
-        con = Console(highlight=False, width=150)
-        con.print(t)
-        con.print(f"wrote {out / 'observability.json'}")
+    bench_app.command("ekf")(bench_ekf_cmd)
+    app.command("observability")(observability_cmd)

@@ -22,6 +22,7 @@ from rich.console import Console
 from rich.table import Table
 
 # the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
+from hbma_ctrl.app.cli.args import check_range
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
@@ -45,11 +46,6 @@ def parse_fix(items: list[str]) -> dict[str, float]:
             raise ValueError(f"--fix {name}: '{val}' is not a finite number")
         out[name] = v
     return out
-
-
-def _range(name: str, value: float, lo: float, hi: float, unit: str) -> None:
-    if not (math.isfinite(value) and lo < value <= hi):
-        raise ValueError(f"{name} = {value:g} is out of range ({lo:g}, {hi:g}] {unit}")
 
 
 def fit_cmd(
@@ -93,12 +89,12 @@ def fit_cmd(
     from hbma_ctrl.app.tuning.fit_output import write_fit
     from hbma_ctrl.app.tuning.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
 
-    _range("--r1-mm", r1_mm, 0.5, 100.0, "mm")
-    _range("--t0-mm", t0_mm, 0.05, 20.0, "mm")
+    check_range("--r1-mm", r1_mm, 0.5, 100.0, lo_open=True, unit="mm")
+    check_range("--t0-mm", t0_mm, 0.05, 20.0, lo_open=True, unit="mm")
     if v0_cm3 is not None:
-        _range("--v0-cm3", v0_cm3, 0.001, 1000.0, "cm^3")
+        check_range("--v0-cm3", v0_cm3, 0.001, 1000.0, lo_open=True, unit="cm^3")
     if sensor_range_kpa is not None:
-        _range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, "kPa")
+        check_range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, lo_open=True, unit="kPa")
     if load_g is not None and not (math.isfinite(load_g) and 0.0 <= load_g <= 50000.0):
         raise ValueError(f"--load-g = {load_g:g} is out of range [0, 50000] g")
     for flag, v in (("--valve-delay-ms", valve_delay_ms), ("--sensor-delay-ms", sensor_delay_ms)):
