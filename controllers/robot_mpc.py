@@ -4,7 +4,7 @@ Model: every chamber is the gas-mass model of :class:`hbma_ctrl.models.bank.Cham
 its own load ``W`` (the robot's load sharing of the estimated heights, one control period old) and
 flow factor ``b`` (from the chamber's EKF). The targets are chamber heights: the layer targets
 (centre height, bend angle, bend direction) map onto them exactly by
-:func:`hbma_ctrl.robot.inverse_kinematics` (linear in the heights for a given bend), so tracking the
+:func:`hbma_ctrl.robot.kinematics.inverse_kinematics` (linear in the heights for a given bend), so tracking the
 nine heights tracks every layer's height and bend.
 
 Why the NMPC controls gas mass, and why it can hold the far branch: the state is the gas mass and

@@ -9,7 +9,7 @@ inside casadi through its conic interface (``qrqp``, ``hpipm``, ``osqp``, ``daqp
 ``qp_solver`` argument) and returns the first input and the new plan. Everything is numeric, so the
 Function can be code-generated to C (``qrqp`` generates self-contained C; ``hpipm`` needs the
 hpipm/blasfeo headers and libraries shipped inside the casadi package; ``osqp`` those of OSQP)
-and the Python controller calls exactly this Function (see ``hbma_ctrl.controllers.mpc_solvers._RtiCompiled``).
+and the Python controller calls exactly this Function (see :class:`_RtiFunction`).
 
 Solver choice (measured on the 2-core machine, N = 20, one QP of a step, casadi 3.8)
 -----------------------------------------------------------------------------------

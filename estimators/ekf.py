@@ -2,7 +2,7 @@
 
 State ``x = [m, W, b, k, c]``: the gas mass (kg, referred to the nominal dead volume: the true
 mass is c m), the load on the membrane (N, a random walk), the pump-flow factor b, the modulus
-factor k and the dead-volume factor c (-, slow random walks; see :mod:`hbma_ctrl.estimators.model`). Why:
+factor k and the dead-volume factor c (-, slow random walks; see :mod:`hbma_ctrl.models.chamber`). Why:
 
 - The gas mass is the plant's own drift-free differential state (the gas law G = m R T); the flow model (pump
   map, valves) drives it directly, so the commands enter the filter where they act. Referred to

@@ -1,15 +1,16 @@
 """A bank of per-chamber EKFs for the robot, stepped as one mapped casadi call (SI).
 
 One filter per chamber, each from its own pressure sensor. State ``[y, b, k, c]``: ``y = (x + 1) / c``
-with ``x`` the gas mass (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of :class:`hbma_ctrl.models.
-bank.ChamberBank`, and three slow random walks: the pump-flow factor ``b``, the membrane-modulus factor
-``k`` and the dead-volume factor ``c`` (see :meth:`ChamberBank.outputs_expr`); ``step`` reports ``x``.
+with ``x`` the gas mass (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of
+:class:`hbma_ctrl.models.bank.ChamberBank`, and three slow random walks: the pump-flow factor ``b``, the
+membrane-modulus factor ``k`` and the dead-volume factor ``c`` (see :meth:`ChamberBank.outputs_expr`);
+``step`` reports ``x``.
 Why y and not x: a resting chamber's pressure is ``p_env ((x + 1) / c - 1)``, so in (x, c) the first
 reading pins only their ratio and the filter starts with x and c correlated 0.9999; each update then
 moved both along that ridge by up to 0.1 (the onset of a structured rig's first pumping threw
 filters' dead-volume and flow factors to their bounds). In y the reading pins y alone. The load ``W`` of
-each chamber is not a state: the robot's statics give it (:func:`hbma_ctrl.robot.load_sharing` of
-the estimated heights), one control period late.
+each chamber is not a state: the robot's statics give it (:func:`hbma_ctrl.robot.statics.load_sharing`
+of the estimated heights), one control period late.
 
 Why separate filters rather than one joint filter: given the loads, the chambers' gas masses are
 dynamically independent (each has its own valves and sensor; with the shared pump the manifold
@@ -78,9 +79,9 @@ class ChamberEKFSettings:
     degree of freedom), (1, 1e6]; gate_reopen : gated readings in a row that re-open a chamber's
     gate, [1, 1000]; max_gap : longest time one step predicts over, s, [sample_period, 3600] (see
     the module doc); valve_delay, sensor_delay : the valves' switching delay and the sensor's, s,
-    [0, 0.1] each (the commands are taken as acting that late, :class:`hbma_ctrl.models.actuation.
-    CommandTiming`, as by the single chamber's EKF; 0 = at once; default 5 ms and 0,
-    :mod:`hbma_ctrl.models.defaults`).
+    [0, 0.1] each (the commands are taken as acting that late,
+    :class:`hbma_ctrl.models.actuation.CommandTiming`, as by the single chamber's EKF; 0 = at once;
+    default 5 ms and 0, :mod:`hbma_ctrl.models.defaults`).
     """
 
     sample_period: float = 0.01

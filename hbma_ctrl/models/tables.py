@@ -11,7 +11,7 @@ gas mass
 
     x = m R T / (p_env V0) - 1            (= gauge pressure / p_env while resting; 0 at ambient)
 
-with ``x' = q(u, p) R T / (p_env V0)`` (``q`` from :func:`hbma_ctrl.physics.net_flow`, the same
+with ``x' = q(u, p) R T / (p_env V0)`` (``q`` from :func:`hbma_ctrl.core.physics.net_flow`, the same
 compressor map and valves as the plant) and the outputs ``h = H(x, W)``, ``p = Pp(x, W)``,
 ``lam = L(x, W)`` from the equilibrium manifold, tabulated once per actuator from the membrane physics
 on an (x, W) grid and interpolated by cubic B-splines (smooth, cheap, code-generable). The

@@ -7,7 +7,7 @@ the "truth": every chamber of the robot is the ``platform`` fidelity
   (:func:`hbma_ctrl.sim.rig.mismatched`: pump flow x0.9, dead volume x1.2; the modulus is +15 % and -15 %
   on alternate chambers, so both signs of the error are present). Every sample (10 ms) each
   chamber's load W is its share of the weight and of the tip load from
-  :func:`hbma_ctrl.robot.load_sharing` of the TRUE heights. The sensors: 0.2 kPa noise, saturation
+  :func:`hbma_ctrl.robot.statics.load_sharing` of the TRUE heights. The sensors: 0.2 kPa noise, saturation
   at the robot's sensor range (50 kPa). Shared compressor: the pump's flow is split among the open
   inlets by their duties; if the duties sum to more than 1 each chamber gets its duty / sum (the
   manifold model the NMPC's coupling row respects).

@@ -84,7 +84,7 @@ class RigSettings:
     sample_period : sensor sampling and command period, s, (0, 1].
     dropout_prob : probability that a sample is missing (NaN), [0, 1].
     seed : seed of the noise and dropout stream (int >= 0).
-    integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
+    integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.sim.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
     membrane : membrane law: 'exact' (the exact axisymmetric membrane's tables, a law the estimators were
         not built on: free inflation :func:`hbma_ctrl.models.fidelity_exact.make_exact_free`, and with a load on

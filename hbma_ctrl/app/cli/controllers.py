@@ -20,7 +20,7 @@ __all__ = ["register"]
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bench mpc`` and ``bench loop`` to the bench sub-app (called by :mod:`hbma_ctrl.cli`)."""
+    """Add ``bench mpc`` and ``bench loop`` to the bench sub-app (called by :mod:`hbma_ctrl.app.cli.main`)."""
 
     @bench_app.command("loop")
     def bench_loop(

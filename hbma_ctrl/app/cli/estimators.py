@@ -124,7 +124,7 @@ def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0,
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bench ekf`` and ``observability`` (called by :mod:`hbma_ctrl.cli`)."""
+    """Add ``bench ekf`` and ``observability`` (called by :mod:`hbma_ctrl.app.cli.main`)."""
 
     @bench_app.command("ekf")
     def bench_ekf_cmd(

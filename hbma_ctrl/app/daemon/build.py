@@ -3,8 +3,9 @@
 A *runner* adapts :class:`hbma_ctrl.runtime.chamber.ChamberLoop` or
 :class:`hbma_ctrl.runtime.robot.RobotLoop` to the rig's view: ``tick(t, p) -> U`` with the readings
 of every chamber (Pa, (n,)) and the plant input ``U`` (3, n) the rig takes; the status rows the API
-shows; and setpoints: :meth:`check_setpoint` (the API's thread: clip to what is reachable, say what
-was clipped) and :meth:`apply_setpoint` (the loop's thread, between periods).
+shows; and setpoints: ``check_setpoint`` (the API's thread: clip to what is reachable, say what
+was clipped) and ``apply_setpoint`` (the loop's thread, between periods). The runners are
+:class:`ChamberRunner` and :class:`RobotRunner`.
 
 The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.app.scenes.controller`,
 :mod:`hbma_ctrl.app.scenes.robot_loop`), so a daemon on the simulated rig runs the scene's closed loop.

@@ -1,4 +1,5 @@
-"""The serial rig backend: line protocol version 2 and :class:`SerialRig` (a :class:`RigIO` over pyserial).
+"""The serial rig backend: line protocol version 2 and :class:`SerialRig` (a
+:class:`~hbma_ctrl.app.daemon.rigio.RigIO` over pyserial).
 
 A rig is a microcontroller on a serial line that switches the pump and the valves of ``n`` chambers
 and streams their pressures. Host and firmware exchange ASCII lines::
