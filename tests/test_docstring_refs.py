@@ -22,6 +22,9 @@ The docstrings are those of each module and of the classes, functions, methods, 
 or not), static and class methods it defines (collected with :mod:`inspect`); the comments are read
 with :mod:`tokenize` and resolved in the class that encloses their line. One test per module, so a
 failure names the module, where the reference is, and the reference.
+
+The package's Python files also carry no issue numbers and no commit hashes: comments say what the
+code does and why, and the version history lives in git.
 """
 
 from __future__ import annotations
@@ -334,3 +337,29 @@ def test_resolver_finds_what_exists_and_flags_what_does_not():
     # a folder on sys.path that is not an installed package does not count as absolute
     assert unresolved(":mod:`controllers`", [fake]) == [":mod:`controllers`"]
 
+
+# ---------------------------------------------------------------- no history in the code
+
+ISSUE_RE = re.compile(r"(?i)\bissues?[\s_-]*#?[0-9]+")
+# 7 to 40 hex digits with at least one letter and one digit, not part of a word, a number, a 0x literal or
+# a #colour
+HASH_RE = re.compile(r"(?<![#\w.])(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+
+
+def _package_files() -> list[pathlib.Path]:
+    files = []
+    for root in hbma_ctrl.__path__:
+        files += pathlib.Path(root).rglob("*.py")
+    for sub in ("controllers", "estimators"):  # linked into the package; rglob does not follow links
+        files += (pathlib.Path(hbma_ctrl.__path__[0]) / sub).resolve().rglob("*.py")
+    return sorted(set(f.resolve() for f in files))
+
+
+def test_package_files_name_no_issues_and_no_commits():
+    bad = []
+    for path in _package_files():
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            for rx in (ISSUE_RE, HASH_RE):
+                for m in rx.finditer(line):
+                    bad.append(f"{path.relative_to(REPO)}:{n}: {m.group(0)!r}")
+    assert not bad, "history belongs in git, not in the code:\n  " + "\n  ".join(bad)

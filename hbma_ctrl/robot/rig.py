@@ -17,9 +17,9 @@ with its values (``hbma_ctrl.sim.rig.STRUCTURED_RIG``: 5 ms, 2 ms, 0.2, 3 ms): `
 ``valve_min_on`` (every chamber's valves, :class:`hbma_ctrl.sim.rig.ValveLine`: the plant then advances
 in its internal steps with the valves as they act at each), ``compressor_tilt`` (every chamber's pump
 map, or the shared one's, tilted with back pressure) and ``sensor_tau`` (each sensor's first-order
-lag). ``RobotRigSettings(**IDEAL_STRUCTURE)`` is the rig without them, the one the robot's claims
-before 2026-12-05 were measured on. The membrane stays the cap: the robot's chambers run to about
-4 r1 on their far branch, past the exact tables' reach.
+lag). ``RobotRigSettings(**IDEAL_STRUCTURE)`` is the rig without them, for the loop with instant
+valves and sensor (``hbma_ctrl.models.defaults.ROBOT_INSTANT``). The membrane stays the cap: the
+robot's chambers run to about 4 r1 on their far branch, past the exact tables' reach.
 """
 
 from __future__ import annotations

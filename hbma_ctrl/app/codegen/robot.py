@@ -1,5 +1,5 @@
 """A robot scenario's closed loop (robot rig -> EKF bank -> NMPC -> supervisor -> valves -> rig) as a
-:class:`~hbma_ctrl.app.codegen.loop.LoopSpec`: the robot's generated C loop (issue 15).
+:class:`~hbma_ctrl.app.codegen.loop.LoopSpec`: the robot's generated C loop.
 
 The loop is built from the very objects the scene builds (:func:`hbma_ctrl.app.scenes.robot_loop.build_closed_loop`),
 and every part of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` is the casadi Function that mirrors it,
