@@ -84,7 +84,7 @@ class RobotMPCSettings:
     settles 20/20 with it, 0/20 with 100); the rig daemon uses
     :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` (100: the limit first, such poses not reached);
     max_iter, eps : OSQP settings (measured on ``bench robot``'s 6-layer run against 400 and 1e-4,
-    with lin_every = 2 and the shifted warm start: 13860 OSQP iterations against 38625 before, the
+    with lin_every = 2 and the shifted warm start: 13860 OSQP iterations against 38625 with those, the
     worst step capped at 125 of them, the height RMSE 2.286 against 2.295 mm; a cap of 110 gave
     2.286 mm too, 100 gave 2.364 mm); budget : wall time of a step (linearisation and QP) as a fraction
     of sample_period, [0, 10]; 0 = none (see the module doc: an overrun is a failure). Default 0:

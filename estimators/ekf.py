@@ -23,7 +23,7 @@ factor k and the dead-volume factor c (-, slow random walks; see :mod:`hbma_ctrl
   pressure rise slows by a factor of 2-10) from a weak pump. They separate when the membrane
   moves (the dead volume sets how much of the gas the pressure rise takes from the cap: 0.4 mm of
   height over a 14 kPa rise at r1 = 7.5 mm) and when the chamber vents through the known outlet
-  (c alone). Without c, b carried both, and the cap's growth was off by the dead volume's share.
+  (c alone). Without c, b would carry both, and the cap's growth would be off by the dead volume's share.
 - The modulus factor k: in free inflation the height is a function of p / k alone, so k is what
   turns a measured pressure into a height; it is learnt while gas flows (the cap's compliance
   changes dp/dt) and held when nothing flows. In contact a stiffer membrane and a heavier load
@@ -159,7 +159,8 @@ from hbma_ctrl.models.actuation import CommandTiming
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 
-#: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
+#: at most this many samples are kept for the lift-off replay (beyond, no replay: the lift-off applies
+#: from the step that detects it)
 REPLAY_MAX = 200
 _KEEP_ALL = np.ones(NX)
 _KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c

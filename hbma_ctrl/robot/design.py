@@ -131,7 +131,7 @@ def chamber_names(n_layers: int) -> list[str]:
 
 @dataclass(frozen=True)
 class RobotPneumatics:
-    """How the chambers are supplied (data now; the robot controller uses it later).
+    """How the chambers are supplied (the robot's rig and its controllers' model take the topology).
 
     topology : 'per_chamber' (one compressor per chamber) or 'shared' (one compressor feeding every
         chamber through its own inlet valve; the open-loop scene then runs the pump at the highest

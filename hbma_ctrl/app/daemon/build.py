@@ -59,8 +59,8 @@ ROBOT_LEAK_FRACTION = 0.5
 #: a fraction of the period: the rest of the period is the estimator, the supervisor and the rig I/O
 DAEMON_MPC_BUDGET = 0.8
 #: the fastest a robot chamber's target height moves in the daemon when [robot] target_rate_mm_s is not
-#: given, m/s: a new pose sent as a step moved the layers as fast as the pumps and vents could, and the
-#: layers' mass overshot the membranes' equilibrium (a soak read 48.96 kPa 70 ms after a pose; `bench poses`,
+#: given, m/s: a new pose sent as a step moves the layers as fast as the pumps and vents can, and the
+#: layers' mass overshoots the membranes' equilibrium (a soak read 48.96 kPa 70 ms after a pose; `bench poses`,
 #: 2 seeds x 59 changes: the worst change 43.2-44.0 kPa with steps, 42.0-42.2 kPa at 3 mm/s)
 DAEMON_TARGET_RATE = 3e-3
 #: the robot NMPC's cost per kPa over its pressure limit in the daemon when the file gives none: the

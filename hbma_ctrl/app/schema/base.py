@@ -185,7 +185,7 @@ class InputsTable(Table):
 
 
 def _listify(v: Any) -> Any:
-    # a single number stands for a one-value grid axis, as the old parser allowed
+    # a single number stands for a one-value grid axis (``loads_g = 200`` is ``[200]``)
     return v if isinstance(v, (list, tuple)) else [v]
 
 
