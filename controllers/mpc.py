@@ -2,7 +2,7 @@
 
 The optimal control problem (both variants solve the same one)
 --------------------------------------------------------------
-State: the scaled gas mass x of :class:`hbma_ctrl.controllers.prediction.PredictionModel` (one state; the
+State: the scaled gas mass x of :class:`hbma_ctrl.models.tables.PredictionModel` (one state; the
 shape follows from the equilibrium manifold, so resting, lift-off, contact and free inflation are
 one smooth model). Inputs u = [compressor speed, inlet duty, outlet duty], each in [0, 1].
 Parameters per step: the initial state, the load W (N, from the estimate's contact force), output

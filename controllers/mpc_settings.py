@@ -26,7 +26,7 @@ WEIGHTS = ("w_height", "w_terminal", "w_rate[0]", "w_rate[1]", "w_rate[2]", "w_i
 
 @dataclass
 class MPCSettings:
-    """Settings of :class:`NMPC` (SI; one docstring line per field).
+    """Settings of :class:`~hbma_ctrl.controllers.mpc.NMPC` (SI; one docstring line per field).
 
     Fields
     ------

@@ -47,7 +47,7 @@ class _Problem:
 #: fixed, checked every 5): median / mean iterations 10 / 42 at 0.01, 10 / 26 at 0.02, 10 / 23 at 0.03,
 #: 15 / 26 at 0.05, 30 / 38 at 0.1, 75 / 93 at 0.3; at 0.03 checked every 2, 5, 10, 25: median 10, 10,
 #: 10, 25 iterations, the step 0.27, 0.25, 0.25, 0.28 ms (the checks cost). ``bench loop --seeds 20``
-#: passed 20/20, 17/20, 20/20 checked every 5 and 20/20, 19/20, 20/20 every 10 (the defaults before:
+#: passed 20/20, 17/20, 20/20 checked every 5 and 20/20, 19/20, 20/20 every 10 (OSQP's defaults:
 #: 20/20, 19/20, 19/20); a QP stopped at 5 iterations is the least accurate within the tolerance
 QP_RHO = 0.03
 QP_CHECK_EVERY = 10

@@ -4,7 +4,7 @@ Model: every chamber is the gas-mass model of :class:`hbma_ctrl.models.bank.Cham
 its own load ``W`` (the robot's load sharing of the estimated heights, one control period old) and
 flow factor ``b`` (from the chamber's EKF). The targets are chamber heights: the layer targets
 (centre height, bend angle, bend direction) map onto them exactly by
-:func:`hbma_ctrl.robot.inverse_kinematics` (linear in the heights for a given bend), so tracking the
+:func:`hbma_ctrl.robot.kinematics.inverse_kinematics` (linear in the heights for a given bend), so tracking the
 nine heights tracks every layer's height and bend.
 
 Why the NMPC controls gas mass, and why it can hold the far branch: the state is the gas mass and
@@ -84,7 +84,7 @@ class RobotMPCSettings:
     settles 20/20 with it, 0/20 with 100); the rig daemon uses
     :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` (100: the limit first, such poses not reached);
     max_iter, eps : OSQP settings (measured on ``bench robot``'s 6-layer run against 400 and 1e-4,
-    with lin_every = 2 and the shifted warm start: 13860 OSQP iterations against 38625 before, the
+    with lin_every = 2 and the shifted warm start: 13860 OSQP iterations against 38625 with those, the
     worst step capped at 125 of them, the height RMSE 2.286 against 2.295 mm; a cap of 110 gave
     2.286 mm too, 100 gave 2.364 mm); budget : wall time of a step (linearisation and QP) as a fraction
     of sample_period, [0, 10]; 0 = none (see the module doc: an overrun is a failure). Default 0:

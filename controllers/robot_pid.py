@@ -3,8 +3,8 @@
 The target height of each chamber is turned into a target pressure by the nominal model (the
 pressure on the chamber's load path at that height, :meth:`hbma_ctrl.models.bank.ChamberBank.pressure_at_height`), and a
 PID drives the measured pressure there: a positive output is the supply ``a`` (pump / inlet duty),
-a negative one the outlet duty ``o``. Same decision interface as :class:`hbma_ctrl.controllers.robot_mpc.
-RobotNMPC` and the same topologies.
+a negative one the outlet duty ``o``. Same decision interface as
+:class:`hbma_ctrl.controllers.robot_mpc.RobotNMPC` and the same topologies.
 
 What it cannot do, by construction: past the balloon limit point the pressure *falls* as the
 membrane grows, so a target height on the far branch has a target pressure that is also met on the

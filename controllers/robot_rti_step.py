@@ -57,7 +57,7 @@ FN_MAX_ITER = 2000
 #: robot_bending, robot_sequential_closed and robot_tip_load (RobotNMPCFunction in the scene): a lower
 #: chamber height RMSE in all 15 runs (the shared pump's 0.134-0.215 -> 0.111-0.160 mm) and the
 #: controller's p99 7.9-9.7 -> 2.7-9.2 ms with the shared pump, 3.9-4.4 -> 2.5-3.5 ms with a pump per
-#: chamber; all segments settled either way. 1.0 was faster still but let a 6-layer stress run's rig
+#: chamber; all segments settled either way. 1.0 is faster still but lets a 6-layer stress run's rig
 #: diverge
 FN_RHO = 0.5
 

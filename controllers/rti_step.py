@@ -9,16 +9,16 @@ inside casadi through its conic interface (``qrqp``, ``hpipm``, ``osqp``, ``daqp
 ``qp_solver`` argument) and returns the first input and the new plan. Everything is numeric, so the
 Function can be code-generated to C (``qrqp`` generates self-contained C; ``hpipm`` needs the
 hpipm/blasfeo headers and libraries shipped inside the casadi package; ``osqp`` those of OSQP)
-and the Python controller calls exactly this Function (see ``hbma_ctrl.controllers.mpc_solvers._RtiCompiled``).
+and the Python controller calls exactly this Function (see :class:`_RtiFunction`).
 
-Solver choice (measured on the 2-core machine, N = 20, one QP of a step, casadi 3.8)
+Solver choice (measured on a 2-core machine, N = 20, one QP of a step, casadi 3.8)
 -----------------------------------------------------------------------------------
 OSQP (default: its generated C works and equals the plugin to the last bit, see below).
 HPIPM: ~10-13 interior-point iterations in "balance" mode, 0.5-0.8 ms per QP through the
 plugin (its "speed" mode stops at the iteration limit on this QP); first input within 1e-3 of the
 reference OSQP path. OSQP through casadi: 0.5 ms (casadi sets OSQP up at every call, so the
 factorisation is never reused). qrqp: 10-30 ms and "Failed to calculate search direction" on cold
-starts. daqp, proxqp: 2-18 ms. None reaches the 0.2 ms per step of issue 15 here; the persistent
+starts. daqp, proxqp: 2-18 ms. None reaches the 0.2 ms per step the RTI variants aim at; the persistent
 OSQP of ``rti_osqp`` (set up once, updated in place) stays the fastest path from Python.
 
 Generated C (``compiled_step`` or the ``codegen`` command): qrqp's C is self-contained; OSQP's and

@@ -2,7 +2,7 @@
 
 State ``x = [m, W, b, k, c]``: the gas mass (kg, referred to the nominal dead volume: the true
 mass is c m), the load on the membrane (N, a random walk), the pump-flow factor b, the modulus
-factor k and the dead-volume factor c (-, slow random walks; see :mod:`hbma_ctrl.estimators.model`). Why:
+factor k and the dead-volume factor c (-, slow random walks; see :mod:`hbma_ctrl.models.chamber`). Why:
 
 - The gas mass is the plant's own drift-free differential state (the gas law G = m R T); the flow model (pump
   map, valves) drives it directly, so the commands enter the filter where they act. Referred to
@@ -23,7 +23,7 @@ factor k and the dead-volume factor c (-, slow random walks; see :mod:`hbma_ctrl
   pressure rise slows by a factor of 2-10) from a weak pump. They separate when the membrane
   moves (the dead volume sets how much of the gas the pressure rise takes from the cap: 0.4 mm of
   height over a 14 kPa rise at r1 = 7.5 mm) and when the chamber vents through the known outlet
-  (c alone). Without c, b carried both, and the cap's growth was off by the dead volume's share.
+  (c alone). Without c, b would carry both, and the cap's growth would be off by the dead volume's share.
 - The modulus factor k: in free inflation the height is a function of p / k alone, so k is what
   turns a measured pressure into a height; it is learnt while gas flows (the cap's compliance
   changes dp/dt) and held when nothing flows. In contact a stiffer membrane and a heavier load
@@ -159,7 +159,8 @@ from hbma_ctrl.models.actuation import CommandTiming
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 
-#: at most this many samples are kept for the lift-off replay (beyond, no replay: as before)
+#: at most this many samples are kept for the lift-off replay (beyond, no replay: the lift-off applies
+#: from the step that detects it)
 REPLAY_MAX = 200
 _KEEP_ALL = np.ones(NX)
 _KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c

@@ -1,15 +1,16 @@
 """A bank of per-chamber EKFs for the robot, stepped as one mapped casadi call (SI).
 
 One filter per chamber, each from its own pressure sensor. State ``[y, b, k, c]``: ``y = (x + 1) / c``
-with ``x`` the gas mass (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of :class:`hbma_ctrl.models.
-bank.ChamberBank`, and three slow random walks: the pump-flow factor ``b``, the membrane-modulus factor
-``k`` and the dead-volume factor ``c`` (see :meth:`ChamberBank.outputs_expr`); ``step`` reports ``x``.
+with ``x`` the gas mass (scaled by the NOMINAL ``p_env V0 / RT``, minus 1) of
+:class:`hbma_ctrl.models.bank.ChamberBank`, and three slow random walks: the pump-flow factor ``b``, the
+membrane-modulus factor ``k`` and the dead-volume factor ``c`` (see :meth:`ChamberBank.outputs_expr`);
+``step`` reports ``x``.
 Why y and not x: a resting chamber's pressure is ``p_env ((x + 1) / c - 1)``, so in (x, c) the first
 reading pins only their ratio and the filter starts with x and c correlated 0.9999; each update then
-moved both along that ridge by up to 0.1 (the onset of a structured rig's first pumping threw
+moves both along that ridge by up to 0.1 (the onset of a structured rig's first pumping throws the
 filters' dead-volume and flow factors to their bounds). In y the reading pins y alone. The load ``W`` of
-each chamber is not a state: the robot's statics give it (:func:`hbma_ctrl.robot.load_sharing` of
-the estimated heights), one control period late.
+each chamber is not a state: the robot's statics give it (:func:`hbma_ctrl.robot.statics.load_sharing`
+of the estimated heights), one control period late.
 
 Why separate filters rather than one joint filter: given the loads, the chambers' gas masses are
 dynamically independent (each has its own valves and sensor; with the shared pump the manifold
@@ -78,9 +79,9 @@ class ChamberEKFSettings:
     degree of freedom), (1, 1e6]; gate_reopen : gated readings in a row that re-open a chamber's
     gate, [1, 1000]; max_gap : longest time one step predicts over, s, [sample_period, 3600] (see
     the module doc); valve_delay, sensor_delay : the valves' switching delay and the sensor's, s,
-    [0, 0.1] each (the commands are taken as acting that late, :class:`hbma_ctrl.models.actuation.
-    CommandTiming`, as by the single chamber's EKF; 0 = at once; default 5 ms and 0,
-    :mod:`hbma_ctrl.models.defaults`).
+    [0, 0.1] each (the commands are taken as acting that late,
+    :class:`hbma_ctrl.models.actuation.CommandTiming`, as by the single chamber's EKF; 0 = at once;
+    default 5 ms and 0, :mod:`hbma_ctrl.models.defaults`).
     """
 
     sample_period: float = 0.01
@@ -139,9 +140,9 @@ FACTOR_ROWS = ((1, B_RANGE), (2, K_RANGE), (3, C_RANGE))
 NS = 4  # [y, b, k, c], y = (x + 1) / c
 # the lowest y: a resting chamber at 4 % of an atmosphere below ambient (the tables start at 5 %). A
 # floor in y, not in the gas mass: the gas of a chamber at ambient is x + 1 = c, so a floor x >= -0.04
-# read as a pressure floor p_env (0.96 / c - 1) > 0 once the dead-volume factor fell below 0.96 (8 kPa
-# at c = 0.89): a venting chamber's estimate was held kilopascals above its readings, and the next
-# update threw it to the factors' bounds
+# would read as a pressure floor p_env (0.96 / c - 1) > 0 once the dead-volume factor falls below 0.96
+# (8 kPa at c = 0.89): a venting chamber's estimate would be held kilopascals above its readings, and
+# the next update would throw it to the factors' bounds
 Y_MIN = 0.96
 
 
@@ -422,7 +423,7 @@ class ChamberEKFBank:
 def bank_step_function(bank: ChamberEKFBank, name: str = "ekf_bank") -> ca.Function:
     """One normal step of ``bank`` (one period after the last, the bank started) as ONE casadi Function,
     what :meth:`ChamberEKFBank.step` does around its mapped call included, so a generated loop needs no
-    Python (issue 15; its bits are the bank's to rounding, ``tests/test_robot_loop_blocks.py``):
+    Python (its bits are the bank's to rounding, ``tests/test_robot_loop_blocks.py``):
 
         ekf_bank(X[4 x n], P[16 x n], w[3 x n], W[1 x n], z[1 x n], gated_run[1 x n])
             -> (X_next, P_next, gated_run_next, h, p, h_std, lam, beyond, lost, nis, r, used,

@@ -134,7 +134,7 @@ CRITERION = {"targets_mm": [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]}
 
 
 def test_ekf_loop_400g_truth_settles_within_0p3mm(model):
-    """The issue's criterion on the truth through the EKF: 2 -> 8 -> 5 mm with 400 g on the
+    """The closed-loop criterion on the truth through the EKF: 2 -> 8 -> 5 mm with 400 g on the
     mismatched rig settle within 0.3 mm, never above p_max, the calibration included."""
     sec, log, m = run(CRITERION, 0.4, 9.0, model)
     assert m["max_pressure_kpa"] <= 35.0 and m["calibration"]["status"] == "ok"

@@ -445,7 +445,7 @@ def test_a_free_membrane_lifting_in_the_pumps_first_samples_is_not_taken_as_flat
 
 
 def test_aggregate_scores_each_protocol_scenario():
-    """The issue's per-scenario criterion: trials grouped by protocol cell (t0 x r1 x load), the
+    """The estimator's per-scenario criterion: trials grouped by protocol cell (t0 x r1 x load), the
     EKF's mean NRMSD over the cell's speeds against the open loop's; never-lifting trials (NaN)
     left out."""
     from hbma_ctrl.app.scenes.evaluate import TrialResult, aggregate

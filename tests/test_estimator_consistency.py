@@ -46,7 +46,9 @@ def test_nees_and_nis_inside_chi_square_bounds(load, r1):
 
 
 def test_full_protocol_requirements(tmp_path):
-    """ISSUE 3 over the 150-trial protocol on the mismatched rig (about 20 s on 2 workers)."""
+    """The estimator's requirements (height NRMSD <= 0.05, at most half the open loop in every scenario,
+    steady force error <= 10 %) over the 150-trial protocol on the mismatched rig (about 20 s on 2
+    workers)."""
     from pathlib import Path
 
     from hbma_ctrl.app.scenes.runner import run_scenario
@@ -56,7 +58,7 @@ def test_full_protocol_requirements(tmp_path):
     est = run_scenario(load_scenario(path), tmp_path)["estimator"]
     assert est["n_trials"] == 150
     assert est["height_nrmsd"] <= 0.05
-    # the issue's "at most half the open loop in every scenario" (t0 x r1 x load, mean over speeds)
+    # "at most half the open loop in every scenario" (t0 x r1 x load, mean over speeds)
     assert est["n_scenarios"] == 30
     assert est["scenarios_at_half_open_loop"] == 30
     assert est["scenario_ratio_to_open_loop_max"] <= 0.5
@@ -76,9 +78,10 @@ def _calibrated(tmp_path, name: str) -> dict:
 
 
 def test_calibrated_protocol_meets_the_exact_membrane_goal(tmp_path):
-    """Issue 14's EKF goal (height NRMSD <= 0.02, at most half the open loop in every scenario) on the
-    default rig, with the filter's factor prior from `hbma-ctrl fit` of another recording of that rig
-    (scenarios/ekf_protocol_calibrated.toml; 0.031 with the nominal prior, ekf_protocol.toml)."""
+    """The EKF's goal on the exact membrane (height NRMSD <= 0.02, at most half the open loop in every
+    scenario) on the default rig, with the filter's factor prior from `hbma-ctrl fit` of another
+    recording of that rig (scenarios/ekf_protocol_calibrated.toml; 0.031 with the nominal prior,
+    ekf_protocol.toml)."""
     est = _calibrated(tmp_path, "ekf_protocol_calibrated.toml")
     assert est["height_nrmsd"] <= 0.02
     assert est["scenarios_at_half_open_loop"] == 30 and est["scenario_ratio_to_open_loop_max"] <= 0.5

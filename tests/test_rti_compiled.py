@@ -30,7 +30,7 @@ CASES = [(5.0e-3, 5.3e-3), (5.0e-3, 5.05e-3), (6.0e-3, 5.6e-3)]
 
 @pytest.fixture(scope="module")
 def model():
-    return PredictionModel(ACT, PN, membrane="cap")  # the OCP the issue-15 benches measured
+    return PredictionModel(ACT, PN, membrane="cap")  # the OCP on the cap chamber
 
 
 def _problem(model, s, h, r, u_prev=(0.3, 0.5, 0.1)):

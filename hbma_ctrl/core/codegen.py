@@ -45,7 +45,7 @@ HOT_OPT = "-O3"
 HOT_FLAGS = ("-fno-semantic-interposition",)
 #: code for this machine's processor (its vector units and fused multiply-adds), for the fatrop solver
 #: only: its generated NLP functions are most of a solve, 6.6 -> 5.1 ms per step at N = 20 (``bench
-#: mpc``, one session). Not for the per-step Functions above: their outputs are compared bit for bit
+#: mpc``, both in one run). Not for the per-step Functions above: their outputs are compared bit for bit
 #: with other builds, and this changes the last bit (the exact EKF step's outputs differ on recorded
 #: inputs, enough to take another branch in 483 of 7200 steps, even without the fused operations).
 #: A library built with it is keyed by the processor too (:func:`cpu_signature`): a cache shared by

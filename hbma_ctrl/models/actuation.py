@@ -125,7 +125,7 @@ class CommandTiming:
         if k == 1 and u.shape == (3,) and len(self._hist) == self._keep and self.active:
             # one period on a full history (every step after the first few): a fixed weighted mean of
             # the last keep + 1 commands, in plain floats (numpy's per-call cost on three components
-            # and a few commands was most of it)
+            # and a few commands would be most of it)
             cur = u.tolist()  # kept in the history
             H = self._hist + [cur]
             out = [0.0, 0.0, 0.0]

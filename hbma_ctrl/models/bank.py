@@ -48,8 +48,8 @@ On top of the tables:
   6 kPa above p; the pressure's own rise within a period changes it < 1 %). Measured in closed
   loop (2-layer sequence) the estimate's pressure error is 72 Pa std and the rig gets the planned
   flow at its true pressure within 0.5 % (std 0.5 %), so the EKF bank keeps predicting with ``a``.
-  It can predict with what was sent, ``u = [speed, inlet, outlet]`` (:meth:`ChamberBank.
-  discrete_expr` with ``plant_inputs``; :class:`hbma_ctrl.estimators.robot_ekf.ChamberEKFBank` takes 3 x n
+  It can predict with what was sent, ``u = [speed, inlet, outlet]`` (:meth:`ChamberBank.discrete_expr`
+  with ``plant_inputs``; :class:`hbma_ctrl.estimators.robot_ekf.ChamberEKFBank` takes 3 x n
   inputs), exact whatever the pressure error; on the shared pump that delayed the release of the
   cautious supply cap (its modulus factor's std): 0.252 against 0.218 mm over seeds 1-8 (7 worse).
   Throttling costs no tracking the seeds resolve: the sequence's settled height RMSE is set by

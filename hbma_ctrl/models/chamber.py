@@ -61,7 +61,7 @@ STATE_NAMES = ("m", "W", "b", "k", "c")
 NX = len(STATE_NAMES)
 #: force, N, below which the membrane is taken as flat even without a load (about 200 Pa at r1 = 12.5 mm)
 REST_EPS = 0.1
-#: rows of the output vector of :meth:`ObserverModel.outputs`
+#: rows of the output vector of :attr:`ObserverModel.outputs`
 OUT_NAMES = ("h1", "h2", "h", "F", "p", "rest", "det", "resid")
 
 #: state scales used by the covariance floor: gas mass (kg), load (N), flow, modulus and

@@ -7,8 +7,8 @@ valve's timing from its datasheet (it acts 5 ms after its command and cannot ope
 not the truth: the default simulated rig (:class:`hbma_ctrl.sim.rig.RigSettings`) has the same
 nominal values but another structure (a first-order sensor lag, not a dead time; a pump map of
 another shape; a minimum opening that drops or lengthens short pulses). A rig with other hardware
-sets its own values in the scenario's ``[estimator]`` and ``[controller]`` tables, and the old cap
-chamber is ``membrane = "cap"`` with the three times 0.
+sets its own values in the scenario's ``[estimator]`` and ``[controller]`` tables, and the cap
+chamber (:data:`CAP_CHAMBER`) is ``membrane = "cap"`` with the three times 0.
 
 The robot's loop assumes the same valves (``[robot] valve_min_on_ms``, ``valve_delay_ms``) and, by
 measurement, a sensor read at once (:data:`ROBOT_SENSOR_DELAY`); its chambers' law is the cap (the
@@ -29,10 +29,9 @@ DEFAULT_VALVE_MIN_ON = 0.002
 #: against 20 of 20; README Robot, "The structured rig as the default")
 ROBOT_SENSOR_DELAY = 0.0
 
-#: the models' keywords for the cap chamber with instant valves and sensor (how the claims before
-#: 2026-12-04 were measured, on the cap rig; pair with ``hbma_ctrl.sim.rig.CAP_RIG``)
+#: the models' keywords for the cap chamber with instant valves and sensor (the models of the README's
+#: "cap rig" figures; pair with ``hbma_ctrl.sim.rig.CAP_RIG``)
 CAP_CHAMBER = {"membrane": "cap", "valve_delay": 0.0, "sensor_delay": 0.0}
-#: the robot loop's keywords (:class:`hbma_ctrl.app.sections.RobotSettings`) for instant valves: the
-#: loop the claims before 2026-12-05 were measured with, on the robot rig without structure
-#: (``hbma_ctrl.sim.rig.IDEAL_STRUCTURE``)
+#: the robot loop's keywords (:class:`hbma_ctrl.app.sections.RobotSettings`) for instant valves and
+#: sensor: the loop for the robot rig without structure (``hbma_ctrl.sim.rig.IDEAL_STRUCTURE``)
 ROBOT_INSTANT = {"valve_min_on": 0.0, "valve_delay": 0.0, "sensor_delay": 0.0}

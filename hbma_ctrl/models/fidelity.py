@@ -35,7 +35,7 @@ back onto the constraints after every step (:meth:`Fidelity.project`), which is 
 constraint and leaves the gas mass untouched.
 
 Every fidelity exposes casadi Functions with parameters as inputs (``theta``, see
-:class:`hbma_ctrl.physics.ParamSpace`), so one Function serves a batch of trials, the EKF (Jacobians)
+:class:`hbma_ctrl.core.physics.ParamSpace`), so one Function serves a batch of trials, the EKF (Jacobians)
 and the NMPC (discretised dynamics).
 """
 
@@ -265,7 +265,8 @@ class QuasiStatic(Fidelity):
     """Dead load, quasi-static platform (the paper's model): x = [m, h1, h2].
 
     Resting (mode 0): the platform sits on the rig, the membrane is flat, V = V0, p = m R T / V0 -
-    p_env; (h1 = h2) is the flat membrane's virtual cap, from :func:`physics.flat_h1_from_pressure`.
+    p_env; (h1 = h2) is the flat membrane's virtual cap, from
+    :func:`~hbma_ctrl.core.physics.flat_h1_from_pressure`.
     Contact (mode 1): F(h1, h2) = W and G(h1, h2) = m R T; (h1, h2) move by the index-reduced
     system [G_h1 G_h2; F_h1 F_h2] [h1'; h2'] = [q R T; 0] (the paper's eqs. 13-15, with the gas
     written through G so that no pressure derivative is needed). Its determinant ``det`` vanishes at

@@ -176,8 +176,8 @@ class _ExactContact:
         sig = np.sqrt(np.asarray(table["s"], dtype=float))
         self._lims = (float(u[0]), float(u[-1]), float(sig[-1]))
         # the bsplines as their piecewise polynomials: one inline evaluation gives all three ratios,
-        # and the roles' Jacobians differentiate arithmetic, not interpolant calls (those calls were
-        # most of the exact EKF step's cost; :mod:`hbma_ctrl.models.piecewise`)
+        # and the roles' Jacobians differentiate arithmetic, not interpolant calls (those calls would
+        # be most of the exact EKF step's cost; :mod:`hbma_ctrl.models.piecewise`)
         self._ratios = PiecewiseCubic("exact_ratios", [u, sig], [table["Rp"], table["Rv"], table["lam0"]])
 
     def _coords(self, h1, h2, P):

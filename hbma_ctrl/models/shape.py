@@ -83,8 +83,8 @@ class ShapeSolver:
         Bisection (F grows with h2 at fixed h) on the bracket ``h2 in [0, span]`` (m), doubled up
         to ``grow`` times while F at its top is still below W. ``unknown`` names the bisected
         variable: 'h2' (h1 = h + h2) or 'h1' (bracket h1 in [h, h + span], h2 = h1 - h). Both solve
-        the same problem; they differ in the last bits of the result, and the equilibrium tables
-        were built bisecting h1, so that choice is kept to keep their numbers.
+        the same problem; they differ in the last bits of the result (the equilibrium tables bisect h1,
+        :mod:`hbma_ctrl.models.tables`).
         """
         h = np.atleast_1d(np.asarray(h, dtype=float))
         W = np.broadcast_to(np.asarray(W, dtype=float), h.shape)

@@ -11,7 +11,7 @@ gas mass
 
     x = m R T / (p_env V0) - 1            (= gauge pressure / p_env while resting; 0 at ambient)
 
-with ``x' = q(u, p) R T / (p_env V0)`` (``q`` from :func:`hbma_ctrl.physics.net_flow`, the same
+with ``x' = q(u, p) R T / (p_env V0)`` (``q`` from :func:`hbma_ctrl.core.physics.net_flow`, the same
 compressor map and valves as the plant) and the outputs ``h = H(x, W)``, ``p = Pp(x, W)``,
 ``lam = L(x, W)`` from the equilibrium manifold, tabulated once per actuator from the membrane physics
 on an (x, W) grid and interpolated by cubic B-splines (smooth, cheap, code-generable). The
@@ -21,9 +21,9 @@ reach the optimiser: it only sees x.
 Nothing here re-derives physics: the grid points are the contact shapes of the one shape solver
 (:meth:`hbma_ctrl.models.shape.ShapeSolver.contact`).
 
-Two membrane laws (``membrane``): ``"cap"`` (the spherical cap, README Model §3, the law the
-roles were first built on) and ``"exact"`` (the default; the exact axisymmetric membrane, Model §9:
-the same tabulated law the rig and the simulator's exact rung step with, :class:`hbma_ctrl.models.fidelity_exact.ExactQuasiStatic`'s
+Two membrane laws (``membrane``): ``"cap"`` (the spherical cap, README Model §3) and ``"exact"``
+(the default; the exact axisymmetric membrane, Model §9: the same tabulated law the rig and the
+simulator's exact rung step with, :class:`hbma_ctrl.models.fidelity_exact.ExactQuasiStatic`'s
 ``contact_law``, imported, not re-derived). Both are evaluated in the cap's chart (h1, h2), so the
 contact bisection, the load paths and the tables are the same code. The stretch ``lam`` (what
 ``lam_max`` limits) is the area-average stretch of the chart's shape (paper eq. 3) under both laws,

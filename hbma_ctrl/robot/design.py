@@ -48,7 +48,7 @@ class RobotDesign:
     end_mass : mass of the top body N, kg; None = a layer's mass.
     chamber : the HBMA of every chamber (r1 4.5 mm, t0 2 mm, V0 3 cm^3 assumed as Table I, NH).
     max_stretch : largest equi-biaxial membrane stretch allowed (-), an assumed safe limit below
-        rupture (Ecoflex 00-30); it sets the far-branch reach (see :func:`chamber_reach`).
+        rupture (Ecoflex 00-30); it sets the far-branch reach (see :func:`~hbma_ctrl.robot.reach.chamber_reach`).
     g : gravity, m/s^2 (acts along -z of the world; the base is level).
     """
 
@@ -131,7 +131,7 @@ def chamber_names(n_layers: int) -> list[str]:
 
 @dataclass(frozen=True)
 class RobotPneumatics:
-    """How the chambers are supplied (data now; the robot controller uses it later).
+    """How the chambers are supplied (the robot's rig and its controllers' model take the topology).
 
     topology : 'per_chamber' (one compressor per chamber) or 'shared' (one compressor feeding every
         chamber through its own inlet valve; the open-loop scene then runs the pump at the highest

@@ -31,9 +31,10 @@ Rim contact (a limit of the three-point assumption)
 The layers are rigid 44 mm disks. A three-point pose with a flat chamber (h = 0) always makes the
 upper layer's rim dip below the lower layer's top face (``RobotPose.rim_gap`` = centre -
 R sin(bend) < 0): with one chamber at 17 mm the overlap is about 7 mm. A real layer then rocks on
-its rim and the glued, uninflated membranes are pulled up (tension). :func:`reach_report` flags
-such poses, :func:`workspace` reports the bend reachable with the rims clear, and
-:func:`robot_table2` gives a ``rim_pivot`` reading, which is the one closest to the paper's data.
+its rim and the glued, uninflated membranes are pulled up (tension).
+:func:`~hbma_ctrl.robot.reach.reach_report` flags such poses, :func:`~hbma_ctrl.robot.reach.workspace`
+reports the bend reachable with the rims clear, and :func:`~hbma_ctrl.robot.reach.robot_table2` gives a
+``rim_pivot`` reading, which is the one closest to the paper's data.
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ class RobotPose:
         """Smallest gap between each upper body's bottom rim and the body below's top face, m.
 
         ``centre - R sin(bend)`` with R the outer radius; negative = the rigid layers would overlap,
-        i.e. the real robot rocks on its rim there (see :func:`rim_pivot_pose`).
+        i.e. the real robot rocks on its rim there (see :func:`~hbma_ctrl.robot.reach.rim_pivot_pose`).
         """
         return self.centre - design.outer_diameter / 2 * np.sin(self.bend)
 
@@ -175,7 +176,7 @@ def inverse_kinematics(design: RobotDesign, centre, bend, direction) -> np.ndarr
     centre : centre height(s) of each layer's upper plane above its membranes, m (scalar = all
     layers); bend : bend angle(s) relative to the layer below, rad, in [0, pi/2); direction : bend
     direction(s), rad. Exact inverse of :func:`layer_plane`. Heights may come out negative or beyond
-    a chamber's reach: check them with :func:`reach_report` (no clamping here).
+    a chamber's reach: check them with :func:`~hbma_ctrl.robot.reach.reach_report` (no clamping here).
     """
     N = design.n_layers
     c = np.broadcast_to(np.asarray(centre, dtype=float), (N,))

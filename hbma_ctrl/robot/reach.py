@@ -114,7 +114,7 @@ def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,
 
     Returns dict(ok, h_max (N, 3), limit (N, 3) names, violations: list of text, rim_gap (N,) m).
     Negative heights are violations too (a chamber cannot push down), and so is a pose whose
-    layer rims would overlap (:meth:`RobotPose.rim_gap` < 0).
+    layer rims would overlap (:meth:`~hbma_ctrl.robot.kinematics.RobotPose.rim_gap` < 0).
     """
     h = np.asarray(heights, dtype=float).reshape(design.n_layers, 3)
     names = design.names
@@ -142,11 +142,11 @@ def rim_pivot_pose(design: RobotDesign, h_inflated: float, inflated: list[int]) 
     """Layer pose when the inflated chambers stand at ``h_inflated`` (m) and the layer rocks on its rim.
 
     With some chambers flat, the rigid three-point pose makes the layer rims overlap
-    (:meth:`RobotPose.rim_gap` < 0): a real layer pivots on the outer rim instead, and the flat
-    chambers' glued membranes are pulled up (tension, outside the membrane model). The pose then is
-    the plane that touches the lower rim (centre = R sin(bend)) and passes through the inflated
-    chambers, bending away from them (direction opposite their mean angle). Returns (centre m,
-    bend rad, direction rad); all three inflated -> level at h_inflated.
+    (:meth:`~hbma_ctrl.robot.kinematics.RobotPose.rim_gap` < 0): a real layer pivots on the outer rim
+    instead, and the flat chambers' glued membranes are pulled up (tension, outside the membrane
+    model). The pose then is the plane that touches the lower rim (centre = R sin(bend)) and passes
+    through the inflated chambers, bending away from them (direction opposite their mean angle).
+    Returns (centre m, bend rad, direction rad); all three inflated -> level at h_inflated.
     """
     if not inflated:
         return 0.0, 0.0, 0.0
@@ -545,8 +545,9 @@ def workspace(design: RobotDesign | None = None, pressure_limit: float = 45e3,
     against direction (all three heights within [0, h_max]; at the largest bend the centre height
     is fixed). The same numbers for pressure control (near branch only) show what passing the
     limit point buys. ``bend_max_no_rim_contact`` adds the condition that the rigid layers' rims do
-    not overlap (:meth:`RobotPose.rim_gap` >= 0): what the three-point kinematics can really reach
-    (larger bends make the layer rock on its rim). Tip: every layer bent alike (constant curvature).
+    not overlap (:meth:`~hbma_ctrl.robot.kinematics.RobotPose.rim_gap` >= 0): what the three-point
+    kinematics can really reach (larger bends make the layer rock on its rim). Tip: every layer bent
+    alike (constant curvature).
     """
     d = (design or RobotDesign()).validate()
     F = load_sharing(d, np.zeros((d.n_layers, 3))).forces

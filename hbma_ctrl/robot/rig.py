@@ -7,7 +7,7 @@ the "truth": every chamber of the robot is the ``platform`` fidelity
   (:func:`hbma_ctrl.sim.rig.mismatched`: pump flow x0.9, dead volume x1.2; the modulus is +15 % and -15 %
   on alternate chambers, so both signs of the error are present). Every sample (10 ms) each
   chamber's load W is its share of the weight and of the tip load from
-  :func:`hbma_ctrl.robot.load_sharing` of the TRUE heights. The sensors: 0.2 kPa noise, saturation
+  :func:`hbma_ctrl.robot.statics.load_sharing` of the TRUE heights. The sensors: 0.2 kPa noise, saturation
   at the robot's sensor range (50 kPa). Shared compressor: the pump's flow is split among the open
   inlets by their duties; if the duties sum to more than 1 each chamber gets its duty / sum (the
   manifold model the NMPC's coupling row respects).
@@ -17,9 +17,9 @@ with its values (``hbma_ctrl.sim.rig.STRUCTURED_RIG``: 5 ms, 2 ms, 0.2, 3 ms): `
 ``valve_min_on`` (every chamber's valves, :class:`hbma_ctrl.sim.rig.ValveLine`: the plant then advances
 in its internal steps with the valves as they act at each), ``compressor_tilt`` (every chamber's pump
 map, or the shared one's, tilted with back pressure) and ``sensor_tau`` (each sensor's first-order
-lag). ``RobotRigSettings(**IDEAL_STRUCTURE)`` is the rig without them, the one the robot's claims
-before 2026-12-05 were measured on. The membrane stays the cap: the robot's chambers run to about
-4 r1 on their far branch, past the exact tables' reach.
+lag). ``RobotRigSettings(**IDEAL_STRUCTURE)`` is the rig without them, for the loop with instant
+valves and sensor (``hbma_ctrl.models.defaults.ROBOT_INSTANT``). The membrane stays the cap: the
+robot's chambers run to about 4 r1 on their far branch, past the exact tables' reach.
 """
 
 from __future__ import annotations

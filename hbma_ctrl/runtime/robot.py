@@ -361,7 +361,7 @@ class RobotLoop:
         Why: holding a chamber the NMPC pumps and vents at once, and a vent trickle reaches the valve
         as one minimum opening every few periods (:class:`MinOnTime`), a height step of 0.4-0.8 mm on
         a far-branch chamber; the pump's flow, a speed, can be trimmed by any amount. Without the
-        band the netted trickle still fired for a few hundredths of a millimetre of estimate."""
+        band the netted trickle would still fire for a few hundredths of a millimetre of estimate."""
         md = self.pwm.min_duty
         small = (o > 0.0) & (o < md)
         if not small.any():

@@ -5,8 +5,9 @@
   target (the vent rule) applies at once.
 - :func:`net_vents_function`: with a minimum valve opening, a vent shorter than it netted into the same
   chamber's supply, and one left over dropped unless the chamber is high enough above its target
-  (:meth:`RobotLoop.net_vents` with :meth:`RobotLoop.vent_pulse_drop`), the outlets' carried duty
-  forgotten where one is dropped.
+  (:meth:`~hbma_ctrl.runtime.robot.RobotLoop.net_vents` with
+  :meth:`~hbma_ctrl.runtime.robot.RobotLoop.vent_pulse_drop`), the outlets' carried duty forgotten
+  where one is dropped.
 - :func:`caps_function`: the supply bound the NMPC gets per chamber (``a_max``): 0 where the vent rule
   or an interlock holds the chamber, and the cautious cap (``RobotLoop.cautious``) while a chamber's
   estimated pressure is above a fraction of its estimated limit-point pressure and its modulus
@@ -63,7 +64,7 @@ def caps_function(model: ChamberBank, n: int, cautious: tuple | None, name: str 
     W the loads (N), k and k_std the modulus factors and their std, p the estimated pressures (Pa),
     vent / held 0-1 (no supply budget), ``peak`` the limit-point pressures kept (Pa), recomputed at
     the loads over the factors (clipped to the tables) where ``refresh`` is 1. ``cautious`` =
-    (pressure fraction, k std, duty) as :class:`RobotLoop`'s, None = no cap (near 0)."""
+    (pressure fraction, k std, duty) as :class:`~hbma_ctrl.runtime.robot.RobotLoop`'s, None = no cap (near 0)."""
     SX = ca.SX
     W, k, p, ks, vent, held, peak = (SX.sym(s, n) for s in ("W", "k", "p", "k_std", "vent", "held", "peak"))
     refresh = SX.sym("refresh")

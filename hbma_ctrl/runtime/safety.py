@@ -27,7 +27,7 @@ The policy, in this order, per chamber:
    or below ``lost_release``; on that step it is in ``released`` (its owner restarts the estimate
    from the flat chamber). A far-branch membrane pumped on by a lost estimate grows without bound.
 7. burst: a chamber its owner's burst test flagged (``burst``: it loses gas faster than its valves
-   let it, :mod:`hbma_ctrl.runtime.burst`) gets the safe command from then on, until :meth:`reset`:
+   let it, :mod:`hbma_ctrl.runtime.burst`) gets the safe command from then on, until :meth:`Supervisor.reset`:
    a burst membrane or a stuck outlet is for a person to look at, and pumping it only feeds the leak.
 
 Every intervention is counted (by cause) and logged as an event (time, chamber, cause, detail) in a

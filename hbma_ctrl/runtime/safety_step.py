@@ -1,6 +1,6 @@
 """The supervisor's policy (:meth:`hbma_ctrl.runtime.safety.Supervisor.apply`) as ONE casadi Function (SI).
 
-A generated loop (issue 15: C without Python) needs the runtime's safety rules in the same form as
+A generated loop (C without Python) needs the runtime's safety rules in the same form as
 its other blocks. :func:`supervisor_function` writes rules 1-7 of :mod:`hbma_ctrl.runtime.safety` for
 ``n`` chambers with ``c`` command columns and plans of ``H`` rows, its state (the stored plan, the
 streaks, the lost and burst latches) passed in and out::

@@ -59,7 +59,7 @@ leak_drop; the least rise where the pump test applied, Pa): the margins to check
 tuning the thresholds on a rig.
 
 Each fault is reported once when its condition starts (a condition that clears and comes back is
-reported again); :attr:`counts` counts reports by kind.
+reported again); :attr:`SafetyMonitor.counts` counts reports by kind.
 """
 
 from __future__ import annotations

@@ -24,9 +24,9 @@ structure around the plant is two more Functions, so that a loop without Python 
 ``valve_line`` is :class:`hbma_ctrl.sim.rig.ValveLine`: the command shaped for the valves' minimum
 on-time and kept with the last ones sent, and the inputs acting over each internal step (the valves as
 sent ``valve_delay`` before it, the speed as sent last); ``plant_step_function(..., per_substep=True)``
-takes those inputs, one column per internal step. ``sensor_lag`` is :meth:`RigSettings.sense` once per
-period. Refused (:func:`plant_step_support` says which key): the quasi-static snap-through (a search for
-the far branch).
+takes those inputs, one column per internal step. ``sensor_lag`` is
+:meth:`~hbma_ctrl.sim.rig.RigSettings.sense` once per period. Refused (:func:`plant_step_support`
+says which key): the quasi-static snap-through (a search for the far branch).
 """
 
 from __future__ import annotations
@@ -113,8 +113,8 @@ def valve_history_size(settings) -> int:
 def valve_line_function(settings, nsub: int, name: str = "valve_line") -> ca.Function:
     """:class:`hbma_ctrl.sim.rig.ValveLine` of rig settings ``settings`` over one period of ``nsub``
     internal steps, as a Function (module docstring): the command sent now is shaped
-    (:meth:`RigSettings.shape_command`) and appended to ``hist`` (oldest first; zeros before any
-    command: shut valves); internal step j's valves are the newest command sent at least
+    (:meth:`~hbma_ctrl.sim.rig.RigSettings.shape_command`) and appended to ``hist`` (oldest first;
+    zeros before any command: shut valves); internal step j's valves are the newest command sent at least
     ``valve_delay`` before it, its speed the one sent now."""
     T, delay = float(settings.sample_period), float(settings.valve_delay)
     dt = T / nsub

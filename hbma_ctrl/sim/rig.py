@@ -10,8 +10,8 @@ its own model:
   membrane at its current apex height, taking it off lets the membrane inflate freely again;
 - parameters off nominal: every modulus of the material times ``modulus_scale`` (default 1.15),
   compressor flow times ``flow_scale`` (0.9), dead volume times ``V0_scale`` (1.2);
-- the membrane's law: the exact axisymmetric membrane (``membrane = "exact"``, the default), a law
-  the estimators were not built on unless told to take it, or the cap (``"cap"``, their first law);
+- the membrane's law: the exact axisymmetric membrane (``membrane = "exact"``, the default), or the
+  spherical cap (``"cap"``, the law of the cap models, ``hbma_ctrl.models.defaults.CAP_CHAMBER``);
 - structural mismatches (SPEC 7), on by default (:data:`STRUCTURED_RIG`; :data:`CAP_RIG` turns
   them off with the cap): the valves switch ``valve_delay`` (5 ms) after their command and cannot
   open for less than ``valve_min_on`` (2 ms) of each PWM period (one sample period): a shorter duty
@@ -58,8 +58,8 @@ IDEAL_STRUCTURE = {"valve_delay": 0.0, "valve_min_on": 0.0, "compressor_tilt": 0
 #: 2 ms minimum opening, a pump map tilted with back pressure, a 3 ms sensor lag
 STRUCTURED_RIG = {"membrane": "exact", "valve_delay": 0.005, "valve_min_on": 0.002, "compressor_tilt": 0.2,
                   "sensor_tau": 0.003}
-#: the old rig, still selectable: the models' own cap law with scalar mismatches only (the claims
-#: measured before 2026-12-04; its models are ``hbma_ctrl.models.defaults.CAP_CHAMBER``)
+#: the cap rig: the cap models' own law with scalar mismatches only, a truth of the models' own
+#: structure (the README's "cap rig" figures; its models are ``hbma_ctrl.models.defaults.CAP_CHAMBER``)
 CAP_RIG = {"membrane": "cap", **IDEAL_STRUCTURE}
 
 #: keys of :meth:`Rig.truth`
@@ -84,12 +84,12 @@ class RigSettings:
     sample_period : sensor sampling and command period, s, (0, 1].
     dropout_prob : probability that a sample is missing (NaN), [0, 1].
     seed : seed of the noise and dropout stream (int >= 0).
-    integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.simulate`).
+    integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.sim.simulate`).
     dt : internal integration step, s; None = the simulator's default for the fidelity.
-    membrane : membrane law: 'exact' (the exact axisymmetric membrane's tables, a law the estimators were
-        not built on: free inflation :func:`hbma_ctrl.models.fidelity_exact.make_exact_free`, and with a load on
-        the exact flat-plate contact, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`; the
-        default) or 'cap' (the spherical cap, the models' own law; see :data:`CAP_RIG`).
+    membrane : membrane law: 'exact' (the exact axisymmetric membrane's tables: free inflation
+        :func:`hbma_ctrl.models.fidelity_exact.make_exact_free`, and with a load on the exact
+        flat-plate contact, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`; the default)
+        or 'cap' (the spherical cap, the cap models' own law; see :data:`CAP_RIG`).
     valve_delay : the valves act this long after their command, s, [0, 0.1] (default 5 ms, a small
         solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
     valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
@@ -100,7 +100,7 @@ class RigSettings:
     sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 3 ms; 0 = none).
 
     The defaults are :data:`STRUCTURED_RIG`: a truth that differs from the models in structure, not
-    only in constants. :data:`CAP_RIG` gives the old rig (the models' own cap law, scalar mismatches).
+    only in constants. :data:`CAP_RIG` gives the cap rig (the cap models' own law, scalar mismatches only).
     """
 
     fidelity: str = "platform"
@@ -114,8 +114,8 @@ class RigSettings:
     seed: int = 0
     integrator: str = "rk4"
     dt: float | None = None
-    # defaults: STRUCTURED_RIG, the truth the estimators and controllers were not built on (exact
-    # membrane, valve timing, pump shape, sensor lag); CAP_RIG is the rig they were first measured on
+    # defaults: STRUCTURED_RIG, a truth of another structure than the estimators' and controllers'
+    # models (valve timing, pump shape, sensor lag); CAP_RIG is a truth of the cap models' own structure
     membrane: str = STRUCTURED_RIG["membrane"]
     valve_delay: float = STRUCTURED_RIG["valve_delay"]
     valve_min_on: float = STRUCTURED_RIG["valve_min_on"]

@@ -122,7 +122,8 @@ class SimSettings:
 
 @dataclass
 class Log:
-    """Time series of one trial (SI): columns t, inputs, outputs (:data:`OUTPUTS`), mode, mass_in.
+    """Time series of one trial (SI): columns t, inputs, outputs
+    (:data:`hbma_ctrl.models.fidelity.OUTPUTS`), mode, mass_in.
 
     ``mass_in`` is the integrated net mass flow since t = 0 (kg), integrated by the same scheme
     as the state, so ``m - m0 - mass_in`` measures mass conservation. ``events`` holds

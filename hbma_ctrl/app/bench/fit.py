@@ -2,13 +2,13 @@
 
 Two parts, both against a truth that is not the law being fitted:
 
-- **static**: points of the exact axisymmetric membrane's own solver (:class:`ExactMembrane`, not
-  the tables the exact fit evaluates), r1 12.5 mm, t0 3 mm: nh (modulus 15 % above nominal) in free
-  inflation at 8 heights from 1 to 14 mm and on a loose flat plate at 2, 4 and 6 mm pressed 3 and
-  8 kPa above the free pressure there (its force the solver's); and the other four materials (their
-  default parameters, mr's moduli 15 % above) in free inflation at 10 heights from 1 to 14 mm. Each
-  fitted with the cap's law and the exact one (:func:`hbma_ctrl.app.tuning.fit.fit_static`: nh through the
-  tables, the others through the solver).
+- **static**: points of the exact axisymmetric membrane's own solver
+  (:class:`~hbma_ctrl.models.exact.ExactMembrane`, not the tables the exact fit evaluates), r1 12.5 mm,
+  t0 3 mm: nh (modulus 15 % above nominal) in free inflation at 8 heights from 1 to 14 mm and on a
+  loose flat plate at 2, 4 and 6 mm pressed 3 and 8 kPa above the free pressure there (its force the
+  solver's); and the other four materials (their default parameters, mr's moduli 15 % above) in free
+  inflation at 10 heights from 1 to 14 mm. Each fitted with the cap's law and the exact one
+  (:func:`hbma_ctrl.app.tuning.fit.fit_static`: nh through the tables, the others through the solver).
 - **runs**: a 4 s pump / hold / vent run (pump at 60 %, hold, pump at 100 %, half-open outlet, hold,
   vent; free inflation; pressure and height) of the simulated rig, modulus x1.15, pump x0.9, dead
   volume x1.2, 0.2 kPa noise, on three truths: the cap, the exact membrane, and the default rig (the

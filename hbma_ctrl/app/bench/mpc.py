@@ -161,9 +161,9 @@ def summarize(result: dict) -> dict:
 
 
 def _summarize_new(by: dict) -> dict:
-    """Issue 15's targets for every RTI and fatrop row at N = 20: median <= 0.2 ms, p99 <= 0.5 ms,
-    RMSE within 1 % of IPOPT, >= 250x do-mpc (measured in this run, else :data:`DOMPC_LAST_MS`);
-    fatrop >= 5x faster than IPOPT at the same RMSE (within 1 %)."""
+    """The step-time and accuracy targets for every RTI and fatrop row at N = 20: median <= 0.2 ms,
+    p99 <= 0.5 ms, RMSE within 1 % of IPOPT, >= 250x do-mpc (measured in this run, else
+    :data:`DOMPC_LAST_MS`); fatrop >= 5x faster than IPOPT at the same RMSE (within 1 %)."""
     out = {}
     ip, dm = by.get("ipopt N=20"), by.get("do-mpc N=20")
     dm_ms, dm_src = (dm["solve_ms_median"], "measured") if dm else (DOMPC_LAST_MS, "last measured")

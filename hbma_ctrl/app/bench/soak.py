@@ -18,7 +18,7 @@ a rig / Measured"):
   period is re-timed by :func:`replay_ticks`: the run again in lockstep, the same setpoints at the
   same rig times, so the same readings and the same computation (checked against the run log); one
   whose computation takes less than the period there was the machine's, not the daemon's work (on
-  this virtual machine the tick thread's CPU clock ran 10-28 ms over ticks that take 1.5 ms, with
+  a virtual machine the tick thread's CPU clock ran 10-28 ms over ticks that take 1.5 ms, with
   no preemption, no host steal the guest could see, no page fault and no garbage collection, at
   random places in the tick). The second judge is a witness outside the daemon (:class:`PauseProbe`:
   a thread of the bench's own process that sleeps 1 ms at a time): when the machine stops, every

@@ -46,7 +46,7 @@ def bench_loop(
     prior_std: Annotated[Optional[float], typer.Option(help="its one sigma for each factor (default the "
                                                            "filter's 0.15, 0.15, 0.2)")] = None,
 ) -> None:
-    """Closed loop through the EKF over rig seeds: how often the issue's cases settle."""
+    """Closed loop through the EKF over rig seeds: how often each case (steps at 0 g and 400 g, a 200 g load step) settles."""
     from hbma_ctrl.app.bench.loop import (check_cases, loop_setup, run_loop_bench, summarize_loop,
                                           write_loop_bench)
 
@@ -147,6 +147,6 @@ def bench_mpc(
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bench mpc`` and ``bench loop`` to the bench sub-app (called by :mod:`hbma_ctrl.cli`)."""
+    """Add ``bench mpc`` and ``bench loop`` to the bench sub-app (called by :mod:`hbma_ctrl.app.cli.main`)."""
     bench_app.command("loop")(bench_loop)
     bench_app.command("mpc")(bench_mpc)

@@ -201,6 +201,6 @@ def observability_cmd(
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bench ekf`` and ``observability`` (called by :mod:`hbma_ctrl.cli`)."""
+    """Add ``bench ekf`` and ``observability`` (called by :mod:`hbma_ctrl.app.cli.main`)."""
     bench_app.command("ekf")(bench_ekf_cmd)
     app.command("observability")(observability_cmd)

@@ -457,9 +457,9 @@ _SCENE_COLUMNS = (("h_true_mm", "h_true", None), ("h_est_mm", "h_est", None), ("
 
 
 def _trajectory_log(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str | None = None):
-    """A generated loop's trajectory as the scene's :class:`ClosedLoopLog` (SI; what the trajectory
-    does not hold, the controller's step times, estimator covariances and events, left empty). Its
-    variant is the scene's name for the same step, ``rti_fn_<solver>``."""
+    """A generated loop's trajectory as the scene's :class:`~hbma_ctrl.app.scenes.controller.ClosedLoopLog`
+    (SI; what the trajectory does not hold, the controller's step times, estimator covariances and
+    events, left empty). Its variant is the scene's name for the same step, ``rti_fn_<solver>``."""
     from hbma_ctrl.app.scenes.controller import ClosedLoopLog
 
     col = {n: i for i, n in enumerate(spec.header())}

@@ -1,5 +1,5 @@
 """A robot scenario's closed loop (robot rig -> EKF bank -> NMPC -> supervisor -> valves -> rig) as a
-:class:`~hbma_ctrl.app.codegen.loop.LoopSpec`: the robot's generated C loop (issue 15).
+:class:`~hbma_ctrl.app.codegen.loop.LoopSpec`: the robot's generated C loop.
 
 The loop is built from the very objects the scene builds (:func:`hbma_ctrl.app.scenes.robot_loop.build_closed_loop`),
 and every part of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` is the casadi Function that mirrors it,
@@ -7,11 +7,11 @@ called in the tick's order:
 
 - ``robot_sensor``: the 3N readings, each chamber's (lagged) pressure plus the tick's noise,
   saturated at the sensor range (the noise drawn at generation time from the rig's seeded stream, as
-  :meth:`RobotRig.measure` draws it);
+  :meth:`~hbma_ctrl.robot.rig.RobotRig.measure` draws it);
 - ``robot_ekf``: the command acting through the valves' and sensors' delays
   (:func:`hbma_ctrl.models.actuation.acting_function` mapped) and the bank's period
   (:func:`hbma_ctrl.estimators.robot_ekf.bank_step_function`); the bank starts from the first readings (its
-  state at generation time, as :meth:`ChamberEKFBank.step` starts it);
+  state at generation time, as :meth:`~hbma_ctrl.estimators.robot_ekf.ChamberEKFBank.step` starts it);
 - ``robot_pre``: the readings the bank trusted, the burst test (:func:`hbma_ctrl.runtime.burst.burst_function`),
   the loads from the estimated heights (:func:`hbma_ctrl.robot.plant_step.load_sharing_function`),
   the targets' slew, the vent and hold masks and the NMPC's supply caps
@@ -26,10 +26,11 @@ called in the tick's order:
   predicts with next;
 - ``robot_rig_step``: the rig's period (:func:`hbma_ctrl.robot.plant_step.robot_rig_step_function`).
 
-Time and targets are data: the rig's clock (its internal steps summed as :class:`Plant` sums them),
-the chamber targets at each tick, the tip load at each period's end. The loop runs in lockstep, one
-tick per period, as the scene does: a late tick's predict over several periods and a rig's report of
-the command it held (``RobotLoop.tick``'s ``held``) are not generated.
+Time and targets are data: the rig's clock (its internal steps summed as
+:class:`~hbma_ctrl.sim.simulate.Plant` sums them), the chamber targets at each tick, the tip load at
+each period's end. The loop runs in lockstep, one tick per period, as the scene does: a late tick's
+predict over several periods and a rig's report of the command it held (``RobotLoop.tick``'s
+``held``) are not generated.
 
 Its scene counterpart is :func:`hbma_ctrl.app.scenes.robot_loop.run_closed_loop` with the NMPC
 :class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` (the same step Function, compiled), no
@@ -245,7 +246,8 @@ def _post_function(loop) -> ca.Function:
 
 
 def _event_sums(events, n: int):
-    """The supervisor's per-chamber event flags (7 rows of n, :data:`EVENTS` order) summed per row."""
+    """The supervisor's per-chamber event flags (7 rows of n, in
+    :data:`~hbma_ctrl.runtime.safety_step.EVENTS` order) summed per row."""
     from hbma_ctrl.runtime.safety_step import EVENTS
 
     return ca.vertcat(*[ca.sum1(events[j * n:(j + 1) * n]) for j in range(len(EVENTS))])
@@ -398,9 +400,9 @@ def _columns(spec: LoopSpec, trajectory: np.ndarray, names, prefix: str, suffix:
 
 
 def _trajectory_run(scn, spec: LoopSpec, trajectory: np.ndarray):
-    """A generated robot loop's trajectory as the scene's :class:`ClosedLoopRun` (SI; row k is the state
-    after tick k, at the rig's time (k + 1) dt; the step times, which are per Function in times.json,
-    left empty)."""
+    """A generated robot loop's trajectory as the scene's
+    :class:`~hbma_ctrl.app.scenes.robot_loop.ClosedLoopRun` (SI; row k is the state after tick k, at
+    the rig's time (k + 1) dt; the step times, which are per Function in times.json, left empty)."""
     from hbma_ctrl.app.scenes.robot_loop import ClosedLoopRun
     from hbma_ctrl.robot.targets import chamber_targets, change_times
     from hbma_ctrl.runtime.safety_step import EVENTS

@@ -3,8 +3,9 @@
 A *runner* adapts :class:`hbma_ctrl.runtime.chamber.ChamberLoop` or
 :class:`hbma_ctrl.runtime.robot.RobotLoop` to the rig's view: ``tick(t, p) -> U`` with the readings
 of every chamber (Pa, (n,)) and the plant input ``U`` (3, n) the rig takes; the status rows the API
-shows; and setpoints: :meth:`check_setpoint` (the API's thread: clip to what is reachable, say what
-was clipped) and :meth:`apply_setpoint` (the loop's thread, between periods).
+shows; and setpoints: ``check_setpoint`` (the API's thread: clip to what is reachable, say what
+was clipped) and ``apply_setpoint`` (the loop's thread, between periods). The runners are
+:class:`ChamberRunner` and :class:`RobotRunner`.
 
 The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.app.scenes.controller`,
 :mod:`hbma_ctrl.app.scenes.robot_loop`), so a daemon on the simulated rig runs the scene's closed loop.
@@ -58,8 +59,8 @@ ROBOT_LEAK_FRACTION = 0.5
 #: a fraction of the period: the rest of the period is the estimator, the supervisor and the rig I/O
 DAEMON_MPC_BUDGET = 0.8
 #: the fastest a robot chamber's target height moves in the daemon when [robot] target_rate_mm_s is not
-#: given, m/s: a new pose sent as a step moved the layers as fast as the pumps and vents could, and the
-#: layers' mass overshot the membranes' equilibrium (a soak read 48.96 kPa 70 ms after a pose; `bench poses`,
+#: given, m/s: a new pose sent as a step moves the layers as fast as the pumps and vents can, and the
+#: layers' mass overshoots the membranes' equilibrium (a soak read 48.96 kPa 70 ms after a pose; `bench poses`,
 #: 2 seeds x 59 changes: the worst change 43.2-44.0 kPa with steps, 42.0-42.2 kPa at 3 mm/s)
 DAEMON_TARGET_RATE = 3e-3
 #: the robot NMPC's cost per kPa over its pressure limit in the daemon when the file gives none: the

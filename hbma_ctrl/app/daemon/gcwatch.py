@@ -2,7 +2,7 @@
 
 A full (generation-2) collection walks every container object the process holds: the daemon's robot
 process holds about 165 000 after start-up (casadi, numpy, pydantic, FastAPI), and one full
-collection of them took 32-42 ms of CPU on the 2-core machine (``gc.collect(2)`` after the runner's
+collection of them took 32-42 ms of CPU on a 2-core machine (``gc.collect(2)`` after the runner's
 first ticks), three to four periods at 100 Hz, in whichever thread allocated last. :func:`gc.freeze`
 (objects alive at freeze time move to a permanent generation that collections skip) is called once
 the daemon is built, so a full collection then walks only what was allocated since (0.0 ms right

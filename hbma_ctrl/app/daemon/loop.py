@@ -9,7 +9,7 @@ gets the steps whose runtime tick took longer than the rig period (what a real r
 missed; the sim rig's plant simulation is not counted), so a run faster than real time is not
 stopped for being faster than real time. Accelerated, the tick is judged by the CPU time of the
 loop's thread, the cost of its work on a host of its own: a simulation run on a shared machine is
-preempted by other jobs (a soak on this 2-core machine beside four others saw wall-clock ticks of
+preempted by other jobs (a soak on a 2-core machine beside four other jobs saw wall-clock ticks of
 14 ms at p99 where the work took 4), which a real-time host would not do. The wall-clock ticks are
 reported too (``tick_ms_*``, ``steps_over_period_wall``). With
 the lockstep simulated rig, rig time advances one period per write, so it is exact whatever the
@@ -440,7 +440,7 @@ class DaemonLoop:
                 if wait is not None:
                     # tick on the rig's sample: wake SAMPLE_LEAD of a period before it is due, wait for
                     # it, and take its arrival as this period's deadline, so the loop follows the rig's
-                    # clock instead of beating against it (which left periods with no new sample and
+                    # clock instead of beating against it (which leaves periods with no new sample and
                     # samples never read)
                     arrived = wait(wp)
                     now = self.clock()

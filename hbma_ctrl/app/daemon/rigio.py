@@ -4,7 +4,7 @@ A rig has ``n`` chambers. Each period the loop calls :meth:`RigIO.read` once (th
 every chamber) and :meth:`RigIO.write` once (the command to hold until the next write). A command is
 the plant's input array ``U`` of shape (3, n): row 0 the pump speed, row 1 the inlet (supply) valve
 duty, row 2 the outlet valve duty, each in [0, 1], one column per chamber (a shared pump has the
-same speed in every column). :data:`SAFE_U` of a rig is pump off, inlets closed, outlets open.
+same speed in every column). :func:`safe_u` of a rig is pump off, inlets closed, outlets open.
 
 Backends: ``sim`` (:mod:`hbma_ctrl.app.daemon.rig_sim`) steps a mismatched rig model one period per
 write; ``serial`` (:mod:`hbma_ctrl.app.daemon.serial_link`) speaks the line protocol to firmware.

@@ -2,7 +2,7 @@
 
 Files in the run directory (edge units, the unit in every column name):
 
-- ``run_0001.csv``, ``run_0002.csv``, ...: one row per loop period (columns :meth:`RunLog.columns`),
+- ``run_0001.csv``, ``run_0002.csv``, ...: one row per loop period (columns :attr:`RunLog.columns`),
   each part with its header; a part is closed once it reaches ``rotate_bytes``.
 - ``events.csv``: ``t_s, wall_utc, kind, cause``, one row per event (fault, stop, setpoint, ...),
   written at once.

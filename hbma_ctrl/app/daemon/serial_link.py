@@ -1,4 +1,5 @@
-"""The serial rig backend: line protocol version 2 and :class:`SerialRig` (a :class:`RigIO` over pyserial).
+"""The serial rig backend: line protocol version 2 and :class:`SerialRig` (a
+:class:`~hbma_ctrl.app.daemon.rigio.RigIO` over pyserial).
 
 A rig is a microcontroller on a serial line that switches the pump and the valves of ``n`` chambers
 and streams their pressures. Host and firmware exchange ASCII lines::
@@ -40,8 +41,8 @@ Rules. The firmware latches a received ``CMD`` or ``SAFE`` at its next sample in
 for the whole period that follows (its own watchdog going safe is latched the same way), so every
 period has one command and the ``P`` line ending it names that command. The host passes the named
 command to the estimator (:attr:`Readings.held`): what the plant really got, whatever the link's
-and the host's delays (version 1 left the estimator to assume its last command, which was right or
-one period off by the phase of the two clocks). The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
+and the host's delays (the last command the host sent may be one period off, by the phase of the
+two clocks). The firmware streams ``P`` lines every sample period and ``HB`` lines every heartbeat period
 (default 0.1 s) only after a ``HELLO`` of its own version. Any valid host line restarts the
 firmware's watchdog; when none arrives for the host timeout (default 0.5 s) the firmware goes safe
 by itself. The host sends ``HB`` when it has sent nothing else for a heartbeat period; when no

@@ -129,7 +129,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     """Run rig -> :class:`ChamberLoop` (estimator -> controller -> supervisor) -> rig for ``duration`` s
     and log it.
 
-    The rig (:class:`hbma_ctrl.rig.Rig`, mismatched, noisy) is stepped at its sample period, the
+    The rig (:class:`~hbma_ctrl.sim.rig.Rig`, mismatched, noisy) is stepped at its sample period, the
     estimator at every rig sample, the controller every ``section.sample_period`` (a whole number
     of rig periods). ``estimator`` defaults to the EKF on the nominal model, ``controller`` to the
     one the section names. An estimator with an ``attach(rig)`` method is handed the rig first

@@ -11,9 +11,9 @@ force, the steady-contact force error relative to the true load (mean over the l
 inflation while in contact), NEES of (h, F) and NIS (means over the run), the median wall time of
 a step. :func:`aggregate` turns them into the ``"estimator"`` metrics object: means over the
 trials, the worst trial (``height_ratio_to_open_loop_max``, ``worst_ratio_trial``) and, per
-protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`hbma_ctrl.app.scenes.protocol.
-scenario_of`), ``n_scenarios``, ``scenarios_at_half_open_loop`` and
-``scenario_ratio_to_open_loop_max`` / ``worst_ratio_scenario``.
+protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`~hbma_ctrl.sim.batch.scenario_of`),
+``n_scenarios``, ``scenarios_at_half_open_loop`` and ``scenario_ratio_to_open_loop_max`` /
+``worst_ratio_scenario``.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ def run_metrics(design: RobotDesign, run: RobotRun) -> dict:
     """The "robot" metrics object of an open-loop run (edge units).
 
     ``min_rim_gap_mm`` < 0 marks layers whose rigid three-point pose overlapped the layer below at
-    the rim (see :meth:`RobotPose.rim_gap`): there the real robot rocks on its rim.
+    the rim (see :meth:`~hbma_ctrl.robot.kinematics.RobotPose.rim_gap`): there the real robot rocks on its rim.
     The tracking keys required of every robot scene (chamber_height_rmse_mm, bend_angle_rmse_deg,
     tip_position_rmse_mm) are null here: an open-loop scene has no reference to track.
     """

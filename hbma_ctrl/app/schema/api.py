@@ -98,8 +98,9 @@ class SetpointRequest(Table):
         return self
 
     def to_si(self) -> dict:
-        """The request as :meth:`DaemonState.submit_setpoint` takes it: ``heights`` {index: m},
-        ``layers`` {index: (centre m, bend rad, direction rad)}; a part not given is left out."""
+        """The request as :meth:`~hbma_ctrl.app.daemon.state.DaemonState.submit_setpoint` takes it:
+        ``heights`` {index: m}, ``layers`` {index: (centre m, bend rad, direction rad)}; a part not
+        given is left out."""
         out: dict = {}
         if self.heights_mm:
             out["heights"] = {i: U.mm(h) for i, h in self.heights_mm.items()}

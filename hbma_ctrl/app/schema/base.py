@@ -1,7 +1,8 @@
 """The base tables of a scenario file: [scenario] [actuator] [pneumatics] [load] [inputs]
 [protocol] [sim], in the user's units, and their conversion to the SI objects.
 
-Bounds are the ones ``hbma_ctrl.app.scenario.SCHEMA`` enforces today, stated in the key's own unit.
+Each bound is stated in the key's own unit and checked when
+:func:`~hbma_ctrl.app.scenario.parse_scenario` validates a file's tables.
 """
 
 from __future__ import annotations
@@ -184,7 +185,7 @@ class InputsTable(Table):
 
 
 def _listify(v: Any) -> Any:
-    # a single number stands for a one-value grid axis, as the old parser allowed
+    # a single number stands for a one-value grid axis (``loads_g = 200`` is ``[200]``)
     return v if isinstance(v, (list, tuple)) else [v]
 
 

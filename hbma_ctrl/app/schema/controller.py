@@ -109,7 +109,7 @@ class ControllerTable(Table):
         margins = [("p_margin_kpa", self.p_margin_kpa, "p_margin_kpa" not in given, "the MPC default")]
         if self.guard_margin_kpa is not None:
             margins.append(("guard_margin_kpa", self.guard_margin_kpa, False, ""))
-        else:  # every controller's settings are validated, whichever runs, as before
+        else:  # every controller's settings are validated, whichever runs: both defaults are checked
             margins += [("guard_margin_kpa", 0.5, True, "the MPC default"),
                         ("guard_margin_kpa", 1.0, True, "the PID and bang-bang default")]
         for key, v, default, which in margins:

@@ -2,7 +2,7 @@
 
 Bounds are those of ``FilterSettings.validate``, in the
 user's units. Only the tuning keys the user writes override the filter's defaults (the sample
-period, sensor range and noise otherwise come from the rig, as before).
+period, sensor range and noise otherwise come from the rig).
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ class EstimatorTable(Table):
                                  "the pressure sensor reads this long late")
 
     def to_section(self) -> EstimatorSection:
-        """The SI section; the tuning is checked against a default rig now, as before."""
+        """The SI section; the tuning is checked against a default rig here, before any run."""
         tuning = {name: conv(getattr(self, key)) for key, (name, conv) in _TUNING.items()
                   if key in self.model_fields_set and getattr(self, key) is not None}
         sec = EstimatorSection(filter=self.filter, compare_ukf=self.compare_ukf,
