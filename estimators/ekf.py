@@ -77,7 +77,7 @@ flow_factor_init_std     0.15            the pump map alone (the dead volume is 
 flow_factor_std          0.02 /sqrt(s)   slow drift only
 dead_volume_init_std     0.2             dead volume off by up to 20 % (rig: +20 %)
 dead_volume_std          0               a geometric constant
-modulus_init_std         0.15            the issue's +-15 % modulus mismatch
+modulus_init_std         0.15            the +-15 % modulus mismatch a rig may have
 modulus_std              0.002 /sqrt(s)  a material constant: learnt, hardly drifting
 output_rel_std           0.02            model-form error of the reported h, F (rig is not model;
                                          0.04 before the filter took the exact law: 600 g NEES 0.6)

@@ -1,6 +1,6 @@
 """Closed-loop robustness over rig noise seeds: ``hbma-ctrl bench loop``.
 
-The issue's closed-loop cases on the mismatched rig (modulus x1.15, flow x0.9, dead volume x1.2,
+The closed-loop cases on the mismatched rig (modulus x1.15, flow x0.9, dead volume x1.2,
 0.2 kPa noise), each through the full chain rig -> EKF -> RTI-OSQP NMPC -> rig, repeated over rig
 seeds (each seed is another noise and dropout stream, not another rig):
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 __all__ = ["run_bench_protocol", "TARGET_WALL_S"]
 
-#: the issue's target for the protocol, s
+#: the protocol's target wall time, s
 TARGET_WALL_S = 2.0
 
 
