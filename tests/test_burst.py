@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hbma_ctrl.app.sections import RobotSettings
+from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.runtime.burst import BurstTest, BurstTestSettings
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 

@@ -28,7 +28,7 @@ from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
 from hbma_ctrl.app.daemon.loop import STATS_KEYS, DaemonLoop
-from hbma_ctrl.app.daemon.rigio import RigLinkError, safe_u
+from hbma_ctrl.system.rigio import RigLinkError, safe_u
 from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, read_run_log
 from hbma_ctrl.app.daemon.state import DaemonState
 
@@ -886,7 +886,7 @@ class BootingRig:
         self.reads, self.empty = 0, empty_reads
 
     def read(self):
-        from hbma_ctrl.app.daemon.rigio import Readings
+        from hbma_ctrl.system.rigio import Readings
 
         self.reads += 1
         j = self.reads - self.empty

@@ -7,7 +7,7 @@ import numpy as np
 
 from hbma_ctrl.app.scenes.evaluate import run_filter, score
 from hbma_ctrl.app.scenario import load_scenario
-from hbma_ctrl.app.sections import filter_settings_for
+from hbma_ctrl.system.sections import filter_settings_for
 from hbma_ctrl.sim.rig import simulate_rig
 
 

@@ -424,7 +424,7 @@ def test_a_free_membrane_lifting_in_the_pumps_first_samples_is_not_taken_as_flat
 
     from hbma_ctrl.app.scenes.evaluate import evaluate_trials
     from hbma_ctrl.app.scenario import load_scenario
-    from hbma_ctrl.app.sections import filter_settings_for
+    from hbma_ctrl.system.sections import filter_settings_for
 
     scn = load_scenario(ROOT / "scenarios" / "ekf_protocol_unknown_load.toml")
     rig = scn.role("rig").validate()

@@ -12,7 +12,7 @@ import pytest
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.app.scenes.evaluate import evaluate_trials
 from hbma_ctrl.app.schema import EstimatorTable, parse_scenario_tables
-from hbma_ctrl.app.sections import filter_settings_for
+from hbma_ctrl.system.sections import filter_settings_for
 from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.chamber import OUT_NAMES, ObserverModel

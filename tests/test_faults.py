@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hbma_ctrl.app.daemon.faults import INJECTED_KINDS, FaultSpec, FaultyRig, parse_faults
-from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, safe_u
+from hbma_ctrl.system.rigio import Readings, RigLinkError, safe_u
 
 TS = 0.01
 

@@ -357,7 +357,7 @@ def _two_layer_sequence(topology: str, seed: int, throttle: bool, monkeypatch) -
 
     from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
     from hbma_ctrl.app.scenes.robot_closed import closed_loop_metrics
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.robot.rig import RobotRigSettings
 
@@ -414,7 +414,7 @@ def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true
     """What the throttling can cost: the flow the rig gets at its TRUE pressure against the NMPC's plan
     a q(1, p) there (the speed is chosen at the estimated pressure)."""
     from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.robot.rig import RobotRig
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hbma_ctrl.app.daemon.rig_sim import SimRig
-from hbma_ctrl.app.daemon.rigio import RigIO, safe_u
-from hbma_ctrl.app.sections import RobotSettings
+from hbma_ctrl.system.sim_rig import SimRig
+from hbma_ctrl.system.rigio import RigIO, safe_u
+from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.rig import RobotRigSettings

@@ -9,7 +9,7 @@ from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.scenes.robot_loop import make_model, run_closed_loop
 from hbma_ctrl.app.scenes.robot_closed import closed_loop_metrics
 from hbma_ctrl.app.schema import parse_role
-from hbma_ctrl.app.sections import RobotSettings
+from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.models.bank import commands_from_inputs

@@ -225,7 +225,7 @@ def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.scenes.robot_loop import make_model
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
     from hbma_ctrl.runtime.robot_step import caps_function, slew_function
@@ -320,7 +320,7 @@ def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.scenes.robot_loop import make_model
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
     from hbma_ctrl.runtime.robot_step import net_vents_function

@@ -136,7 +136,7 @@ def test_a_default_minimum_opening_longer_than_the_loops_period_is_one_error_nam
     from typer.testing import CliRunner
 
     from hbma_ctrl.app.cli.main import app
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
 
     RobotSettings().check_period(0.002)
     with pytest.raises(ValueError, match=r"\[robot\] valve_min_on_ms = 2 is out of range \[0, 1\] ms"):
@@ -231,7 +231,7 @@ def test_structured_robot_holds_a_far_branch_bend_without_vent_dips():
 
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
     from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
     from hbma_ctrl.robot.rig import RobotRigSettings
 

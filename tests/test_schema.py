@@ -28,8 +28,8 @@ from hbma_ctrl.app.schema import (
     parse_scenario_tables,
     search_space,
 )
-from hbma_ctrl.app.sections import CONTROLLERS, SCENE_MODES, Scenario
-from hbma_ctrl.app.sections import KINDS as CONTROLLER_KINDS
+from hbma_ctrl.system.sections import CONTROLLERS, SCENE_MODES, Scenario
+from hbma_ctrl.system.sections import KINDS as CONTROLLER_KINDS
 from hbma_ctrl.core.materials import MATERIALS
 from hbma_ctrl.robot.design import TOPOLOGIES
 from hbma_ctrl.sim.batch import FIDELITY_CHOICES
@@ -419,7 +419,7 @@ def test_table_defaults_are_the_settings_defaults_in_the_users_units():
     datasheet defaults), in ms where the table speaks ms."""
     from hbma_ctrl.controllers.mpc_settings import MPCSettings
     from hbma_ctrl.estimators.common import FilterSettings
-    from hbma_ctrl.app.sections import ControllerSection
+    from hbma_ctrl.system.sections import ControllerSection
     from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
     from hbma_ctrl.sim.rig import STRUCTURED_RIG, RigSettings
 

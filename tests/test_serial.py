@@ -14,8 +14,8 @@ import pytest
 import serial
 
 from hbma_ctrl.app.daemon.firmware import FakeFirmware, FirstOrderPlant, main, open_fake_rig
-from hbma_ctrl.app.daemon.rigio import Readings, RigIO, RigLinkError, safe_u
-from hbma_ctrl.app.daemon.serial_link import (
+from hbma_ctrl.system.rigio import Readings, RigIO, RigLinkError, safe_u
+from hbma_ctrl.system.serial_link import (
     PROTOCOL_VERSION,
     LineError,
     ProtocolVersionError,

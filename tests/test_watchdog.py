@@ -12,8 +12,8 @@ import pytest
 from hbma_ctrl.controllers.mpc import NMPC
 from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.daemon.faults import FaultSpec, FaultyRig
-from hbma_ctrl.app.daemon.rig_sim import SimRig
-from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, safe_u
+from hbma_ctrl.system.sim_rig import SimRig
+from hbma_ctrl.system.rigio import Readings, RigLinkError, safe_u
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
@@ -150,7 +150,7 @@ def test_link_loss_and_other_external_causes_latch_the_safe_state():
 
 
 def test_faults_are_per_chamber_on_a_robot_rig():
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
     s = RobotSettings(design=RobotDesign(n_layers=1), pneumatics=RobotPneumatics()).validate()
     rig = FaultyRig(SimRig.robot(s), [FaultSpec("dropout", 2, 0.05)])
@@ -227,7 +227,7 @@ def test_no_fault_over_a_robot_closed_loop_past_the_limit_point():
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.app.scenes.robot_loop import make_model
-    from hbma_ctrl.app.sections import RobotSettings
+    from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.core import units as U
     from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
     from hbma_ctrl.robot.rig import RobotRigSettings

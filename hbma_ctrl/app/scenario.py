@@ -27,7 +27,7 @@ import tomllib
 from pathlib import Path
 
 from hbma_ctrl.app.schema.document import parse_scenario_tables
-from hbma_ctrl.app.sections import Scenario
+from hbma_ctrl.system.sections import Scenario
 
 __all__ = ["Scenario", "load_scenario", "parse_scenario"]
 

@@ -32,6 +32,6 @@ ROBOT_SENSOR_DELAY = 0.0
 #: the models' keywords for the cap chamber with instant valves and sensor (the models of the README's
 #: "cap rig" figures; pair with ``hbma_ctrl.sim.rig.CAP_RIG``)
 CAP_CHAMBER = {"membrane": "cap", "valve_delay": 0.0, "sensor_delay": 0.0}
-#: the robot loop's keywords (:class:`hbma_ctrl.app.sections.RobotSettings`) for instant valves and
+#: the robot loop's keywords (:class:`hbma_ctrl.system.sections.RobotSettings`) for instant valves and
 #: sensor: the loop for the robot rig without structure (``hbma_ctrl.sim.rig.IDEAL_STRUCTURE``)
 ROBOT_INSTANT = {"valve_min_on": 0.0, "valve_delay": 0.0, "sensor_delay": 0.0}

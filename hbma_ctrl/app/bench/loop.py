@@ -39,7 +39,7 @@ from hbma_ctrl.estimators.common import FACTOR_RANGE
 from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
 from hbma_ctrl.app.schema.document import parse_role
-from hbma_ctrl.app.sections import ControllerSection
+from hbma_ctrl.system.sections import ControllerSection
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean

@@ -32,7 +32,7 @@ from hbma_ctrl.app.scenes.controller import (
     make_controller,
 )
 from hbma_ctrl.app.schema.document import parse_role
-from hbma_ctrl.app.sections import ControllerSection
+from hbma_ctrl.system.sections import ControllerSection
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel

@@ -30,7 +30,7 @@ import numpy as np
 from hbma_ctrl.app.bench.soak import random_target
 from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
-from hbma_ctrl.app.daemon.rigio import safe_u
+from hbma_ctrl.system.rigio import safe_u
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.schema.api import SetpointRequest
 from hbma_ctrl.core import units as U

@@ -42,11 +42,11 @@ __all__ = ["register", "run_daemon"]
 
 def _link_errors() -> tuple:
     """The exceptions that mean the rig link is gone or speaks another protocol version."""
-    from hbma_ctrl.app.daemon.rigio import RigLinkError
+    from hbma_ctrl.system.rigio import RigLinkError
 
     errs: list = [RigLinkError]
     try:
-        from hbma_ctrl.app.daemon.serial_link import ProtocolVersionError
+        from hbma_ctrl.system.serial_link import ProtocolVersionError
         errs.append(ProtocolVersionError)
     except ImportError:
         pass

@@ -446,7 +446,7 @@ def make_rig(cfg: DaemonConfig, runner):
     injections) or the serial link. ValueError when a backend is not available."""
     if cfg.rig == "serial":
         try:
-            from hbma_ctrl.app.daemon.serial_link import SerialRig
+            from hbma_ctrl.system.serial_link import SerialRig
         except ImportError as exc:
             raise ValueError(f"--rig serial: the serial backend is not available ({exc})") from None
         return SerialRig(cfg.port, runner.n, baud=cfg.baud, sample_period=cfg.period)
@@ -458,7 +458,7 @@ def make_sim_rig(cfg: DaemonConfig):
     what ``--rig sim`` drives, and the plant a fake firmware runs behind the serial link. ValueError
     when the backend is not available or a fault does not fit the rig."""
     try:
-        from hbma_ctrl.app.daemon.rig_sim import SimRig
+        from hbma_ctrl.system.sim_rig import SimRig
     except ImportError as exc:
         raise ValueError(f"--rig sim: the simulated rig backend is not available ({exc})") from None
     scn = cfg.scenario

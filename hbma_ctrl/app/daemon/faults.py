@@ -20,7 +20,7 @@ loop's own record of what it sent is unchanged, as on a real rig):
 
 A write is judged at the time of the last read (the command holds from then for one period).
 :meth:`FaultyRig.safe` passes straight to the rig: a loop that stays in its safe state writes
-:func:`~hbma_ctrl.app.daemon.rigio.safe_u` every period, and those writes go through the faults (a
+:func:`~hbma_ctrl.system.rigio.safe_u` every period, and those writes go through the faults (a
 stuck inlet stays stuck in the safe state too).
 
 ``[[daemon.fault]]`` tables (:func:`parse_faults`), in the user's units::
@@ -41,7 +41,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from hbma_ctrl.app.daemon.rigio import Readings, RigIO, RigLinkError, check_u
+from hbma_ctrl.system.rigio import Readings, RigIO, RigLinkError, check_u
 from hbma_ctrl.app.schema.errors import format_error
 from hbma_ctrl.app.schema.fields import RuleError, Table, choice, num
 from hbma_ctrl.core import units as U

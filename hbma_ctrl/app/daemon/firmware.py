@@ -1,4 +1,4 @@
-"""A fake rig firmware speaking the line protocol (:mod:`hbma_ctrl.app.daemon.serial_link`) on a pty.
+"""A fake rig firmware speaking the line protocol (:mod:`hbma_ctrl.system.serial_link`) on a pty.
 
 :class:`FakeFirmware` opens a pseudo-terminal (``os.openpty``); the host opens its slave path with
 pyserial as it would a USB serial device. A thread plays the microcontroller: at each sample instant
@@ -35,8 +35,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hbma_ctrl.app.daemon.rigio import safe_u
-from hbma_ctrl.app.daemon.serial_link import (
+from hbma_ctrl.system.rigio import safe_u
+from hbma_ctrl.system.serial_link import (
     MAX_LINE,
     PROTOCOL_VERSION,
     SEQ_MOD,

@@ -47,7 +47,7 @@ from typing import Callable
 import numpy as np
 
 from hbma_ctrl.app.daemon.gcwatch import GcWatch
-from hbma_ctrl.app.daemon.rigio import RigLinkError, safe_u
+from hbma_ctrl.system.rigio import RigLinkError, safe_u
 from hbma_ctrl.app.daemon.runlog import RunLog
 from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.core import units as U
@@ -107,7 +107,7 @@ class DaemonLoop:
     Parameters
     ----------
     runner : a :class:`hbma_ctrl.app.daemon.build.ChamberRunner` or ``RobotRunner``.
-    rig : a :class:`hbma_ctrl.app.daemon.rigio.RigIO` with ``runner.n`` chambers.
+    rig : a :class:`hbma_ctrl.system.rigio.RigIO` with ``runner.n`` chambers.
     state : the :class:`DaemonState` shared with the API.
     period : rig time per period, s.
     speed : rig seconds per wall second.

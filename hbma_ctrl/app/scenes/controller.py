@@ -57,7 +57,7 @@ from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.scenes.evaluate import NEES_FLOOR
 from hbma_ctrl.app.metrics import nrmsd
-from hbma_ctrl.app.sections import (
+from hbma_ctrl.system.sections import (
     ControllerSection,
     ReferenceProfile,
     check_min_on,

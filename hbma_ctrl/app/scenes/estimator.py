@@ -48,7 +48,7 @@ from hbma_ctrl.app.scenes.evaluate import (
     score,
 )
 from hbma_ctrl.app.schema.document import parse_role
-from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
+from hbma_ctrl.system.sections import EstimatorSection, filter_settings_for
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.sim.rig import Rig, RigRecord, RigSettings

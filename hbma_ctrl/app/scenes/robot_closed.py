@@ -16,7 +16,7 @@ from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.scenes.robot_loop import ClosedLoopRun, make_model, run_closed_loop
 from hbma_ctrl.app.scenes.robot_plots import plot_shapes
 from hbma_ctrl.app.schema.rig import RigTable
-from hbma_ctrl.app.sections import RobotSettings
+from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.models.bank import ChamberBank

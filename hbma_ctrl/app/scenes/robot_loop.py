@@ -16,7 +16,7 @@ import numpy as np
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.sections import CONTROLLERS, RobotSettings
+from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.models.bank import ChamberBank

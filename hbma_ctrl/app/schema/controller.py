@@ -28,7 +28,7 @@ from hbma_ctrl.app.schema.fields import (
     num,
     shaped,
 )
-from hbma_ctrl.app.sections import ControllerSection, ReferenceProfile
+from hbma_ctrl.system.sections import ControllerSection, ReferenceProfile
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.runtime.calibrate import CalibrationSettings

@@ -30,7 +30,7 @@ from hbma_ctrl.app.schema.estimator import EstimatorTable
 from hbma_ctrl.app.schema.fields import RuleError, Table
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.app.schema.robot import RobotTable
-from hbma_ctrl.app.sections import Scenario
+from hbma_ctrl.system.sections import Scenario
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import PROTOCOL_DEFAULTS
 from hbma_ctrl.sim.trial import InputSchedule

@@ -22,7 +22,7 @@ from hbma_ctrl.app.schema.fields import (
     num,
     shaped,
 )
-from hbma_ctrl.app.sections import EstimatorSection, filter_settings_for
+from hbma_ctrl.system.sections import EstimatorSection, filter_settings_for
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY

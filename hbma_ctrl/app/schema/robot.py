@@ -29,7 +29,7 @@ from hbma_ctrl.app.schema.fields import (
     shaped,
     subtable,
 )
-from hbma_ctrl.app.sections import RobotSettings
+from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import LETTERS, RobotDesign, RobotPneumatics

@@ -1,4 +1,4 @@
-"""The ``sim`` rig backend: a :class:`~hbma_ctrl.app.daemon.rigio.RigIO` on the mismatched rig models (SI).
+"""The ``sim`` rig backend: a :class:`~hbma_ctrl.system.rigio.RigIO` on the mismatched rig models (SI).
 
 :class:`SimRig` runs in lockstep: each :meth:`SimRig.write` holds the command for exactly one
 ``sample_period`` and advances the simulated rig by that period, so rig time is ``k * sample_period``
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hbma_ctrl.app.daemon.rigio import Readings, check_u, safe_u
+from hbma_ctrl.system.rigio import Readings, check_u, safe_u
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
 from hbma_ctrl.sim.rig import Rig, RigSettings
@@ -108,7 +108,7 @@ class SimRig:
     @classmethod
     def robot(cls, settings, rig_settings: RobotRigSettings | None = None,
               pneumatics: Pneumatics | None = None, tip_load=()) -> "SimRig":
-        """Every chamber (3 per layer) of the robot ``settings`` (a :class:`hbma_ctrl.app.sections.RobotSettings`:
+        """Every chamber (3 per layer) of the robot ``settings`` (a :class:`hbma_ctrl.system.sections.RobotSettings`:
         design, topology and sensor range) on the mismatched robot rig; ``tip_load``: rows
         (t s, fx, fy, fz N) as the robot scenes give them."""
         pn = (pneumatics or Pneumatics()).validate()

@@ -6,8 +6,8 @@ the plant's input array ``U`` of shape (3, n): row 0 the pump speed, row 1 the i
 duty, row 2 the outlet valve duty, each in [0, 1], one column per chamber (a shared pump has the
 same speed in every column). :func:`safe_u` of a rig is pump off, inlets closed, outlets open.
 
-Backends: ``sim`` (:mod:`hbma_ctrl.app.daemon.rig_sim`) steps a mismatched rig model one period per
-write; ``serial`` (:mod:`hbma_ctrl.app.daemon.serial_link`) speaks the line protocol to firmware.
+Backends: ``sim`` (:mod:`hbma_ctrl.system.sim_rig`) steps a mismatched rig model one period per
+write; ``serial`` (:mod:`hbma_ctrl.system.serial_link`) speaks the line protocol to firmware.
 """
 
 from __future__ import annotations

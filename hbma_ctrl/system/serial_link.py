@@ -1,5 +1,5 @@
 """The serial rig backend: line protocol version 2 and :class:`SerialRig` (a
-:class:`~hbma_ctrl.app.daemon.rigio.RigIO` over pyserial).
+:class:`~hbma_ctrl.system.rigio.RigIO` over pyserial).
 
 A rig is a microcontroller on a serial line that switches the pump and the valves of ``n`` chambers
 and streams their pressures. Host and firmware exchange ASCII lines::
@@ -71,7 +71,7 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, check_u, safe_u
+from hbma_ctrl.system.rigio import Readings, RigLinkError, check_u, safe_u
 
 __all__ = [
     "PROTOCOL_VERSION",
@@ -179,7 +179,7 @@ def _gap(expected: int | None, seq: int) -> int:
 
 
 class SerialRig:
-    """A :class:`~hbma_ctrl.app.daemon.rigio.RigIO` over a serial line speaking protocol version 2.
+    """A :class:`~hbma_ctrl.system.rigio.RigIO` over a serial line speaking protocol version 2.
 
     port : device path or pyserial URL (``/dev/ttyACM0``, ``/dev/serial/by-id/...``, ``socket://...``).
     n : number of chambers the rig must report.
