@@ -72,8 +72,10 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
+import osqp
 
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
@@ -91,6 +93,7 @@ from hbma_ctrl.controllers.mpc_settings import (
     duty_to_on_time,
 )
 from hbma_ctrl.controllers.mpc_solvers import (
+    qp_time_limit,
     _BudgetExceeded,
     _Fatrop,
     _Ipopt,
@@ -354,6 +357,16 @@ class NMPC:
 
     #: failures are reported in ``last["status"]`` (the runtime's supervisor counts them per cause)
     reports_failures = True
+
+    def set_enforce_budget(self, on: bool) -> None:
+        """Act on the wall-clock budget from the next step on (a real-time loop) or not (a replay of a
+        daemon's run, whose own machine's load must not change a decision): ``settings.enforce_budget``
+        and OSQP's time limit with it. IPOPT's wall-time cap is fixed when its solver is built."""
+        s = replace(self.settings, enforce_budget=bool(on)).validate()
+        self.settings = self.backend.s = s
+        solver = getattr(self.backend, "solver", None)
+        if isinstance(solver, osqp.OSQP):  # the RTI + OSQP variants keep one OSQP set up
+            solver.update_settings(time_limit=qp_time_limit(s))
 
     def applied(self, command: Command | np.ndarray) -> None:
         """The command actually sent (after the supervisor): the next step's input rates start from it."""

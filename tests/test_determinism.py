@@ -183,3 +183,27 @@ def test_the_daemon_enforces_the_budgets_even_where_the_file_turns_them_off(tmp_
     assert ch.loop.supervisor.failure_causes.get("overrun", 0) >= 1, ch.loop.supervisor.failure_causes
     assert rb.loop.controller.overruns >= 1
     assert rb.loop.supervisor.failure_causes.get("overrun", 0) >= 1, rb.loop.supervisor.failure_causes
+
+
+def test_a_daemons_nmpc_budget_can_be_lifted_for_a_replay(model, monkeypatch):
+    """``set_enforce_budget(False)`` (what a soak replay does to the daemon's chamber NMPC) takes the
+    budget off the next steps and OSQP's time limit with it; on again, both come back."""
+    from hbma_ctrl.controllers.mpc import NMPC
+    from hbma_ctrl.controllers.mpc_settings import MPCSettings
+    from hbma_ctrl.core.interfaces import Estimate, Reference
+
+    ctrl = NMPC(ACT, PN, MPCSettings(enforce_budget=True), model=model)
+    est = Estimate(t=0.0, h1=2e-3, h2=0.0, h=2e-3, F=3.9, p=11.7e3)
+    monkeypatch.setattr(time, "perf_counter", LoadedClock())
+    ctrl.step(0.0, est, Reference(5e-3))  # the cold start: exempt
+    ctrl.step(0.02, est, Reference(5e-3))
+    assert ctrl.last["status"] == "overrun"
+    ctrl.set_enforce_budget(False)
+    assert ctrl.backend.s is ctrl.settings and not ctrl.settings.enforce_budget
+    assert ctrl.backend.solver.settings.time_limit == OSQP_NO_TIME_LIMIT
+    ctrl.step(0.04, est, Reference(5e-3))
+    assert ctrl.last["status"] == "ok"
+    ctrl.set_enforce_budget(True)
+    assert ctrl.backend.solver.settings.time_limit == pytest.approx(ctrl.settings.budget)
+    ctrl.step(0.06, est, Reference(5e-3))
+    assert ctrl.last["status"] == "overrun"
