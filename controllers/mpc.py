@@ -56,7 +56,8 @@ what the model uses. On-times shorter than the valve's minimum switching time ar
 T_pwm (whichever is nearer) by the valve driver, not by the MPC.
 
 Embedding. ``step(t, estimate, reference) -> Command`` never raises on a numerical failure: on a
-solver failure or a wall-clock overrun (``budget``) it reports the failure in ``last["status"]``
+solver failure or, with ``enforce_budget`` set (a real-time loop: the rig daemon), a wall-clock
+overrun (``budget``) it reports the failure in ``last["status"]``
 ('failed: ...' / 'overrun...'; 'ok' otherwise) and returns :data:`SAFE_COMMAND`; ``plan`` holds the
 solved input sequence (N, 3) of an ok step, the late solution of an overrun, or None. The safety
 policy (replaying the last good plan, then the safe command; the pressure guard) and the step
@@ -71,8 +72,10 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
+import osqp
 
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
@@ -90,6 +93,7 @@ from hbma_ctrl.controllers.mpc_settings import (
     duty_to_on_time,
 )
 from hbma_ctrl.controllers.mpc_solvers import (
+    qp_time_limit,
     _BudgetExceeded,
     _Fatrop,
     _Ipopt,
@@ -328,8 +332,9 @@ class NMPC:
             pr = self._problem(t, estimate, reference, preview)
             cold = self.backend.X is None
             X, U = self.backend.solve(pr)
-            elapsed = time.perf_counter() - t_start
-            if elapsed > s.budget and not cold:
+            # the wall clock decides only in a real-time loop (enforce_budget); a simulation's step
+            # is never an overrun, so its results do not depend on the machine's load
+            if s.enforce_budget and not cold and time.perf_counter() - t_start > s.budget:
                 status = "overrun"
                 self.plan = U.copy()  # the late solution: the supervisor's plan for the next failure
             else:
@@ -352,6 +357,16 @@ class NMPC:
 
     #: failures are reported in ``last["status"]`` (the runtime's supervisor counts them per cause)
     reports_failures = True
+
+    def set_enforce_budget(self, on: bool) -> None:
+        """Act on the wall-clock budget from the next step on (a real-time loop) or not (a replay of a
+        daemon's run, whose own machine's load must not change a decision): ``settings.enforce_budget``
+        and OSQP's time limit with it. IPOPT's wall-time cap is fixed when its solver is built."""
+        s = replace(self.settings, enforce_budget=bool(on)).validate()
+        self.settings = self.backend.s = s
+        solver = getattr(self.backend, "solver", None)
+        if isinstance(solver, osqp.OSQP):  # the RTI + OSQP variants keep one OSQP set up
+            solver.update_settings(time_limit=qp_time_limit(s))
 
     def applied(self, command: Command | np.ndarray) -> None:
         """The command actually sent (after the supervisor): the next step's input rates start from it."""

@@ -54,7 +54,12 @@ class MPCSettings:
     h_min, h_max : height bounds, m.
     u_max : upper input bounds (speed, inlet, outlet), each in (0, 1].
     du_max : input rate limits (speed, inlet, outlet), 1/s.
-    budget : wall-clock budget of one step, s; a slower solve is an overrun (fallback).
+    budget : wall-clock budget of one step, s; with ``enforce_budget`` a slower step is an overrun
+        (fallback) and OSQP stops at it.
+    enforce_budget : act on ``budget`` (a real-time loop: the rig daemon sets it). Off (the default:
+        scenes, benches, tuning, code generation), no step is an overrun and no solver gets a
+        wall-clock limit, so a simulation's results do not depend on the machine's load; the step
+        times are still measured.
     fallback_plan_steps : how many steps the shifted previous plan may stand in before the safe command.
     load_max : largest load force the model covers, N (larger estimates are clipped, reported).
     load_tau : time constant of the low-pass on the estimate's contact force, s.
@@ -112,6 +117,7 @@ class MPCSettings:
     fail_window: tuple | None = None
     membrane: str = field(default=DEFAULT_MEMBRANE, repr=False)  # repr: the stored reprs of the scenario goldens
     integral_gain: float = field(default=2.0, repr=False)
+    enforce_budget: bool = field(default=False, repr=False)
 
     def validate(self) -> "MPCSettings":
         """Check every field; raise ValueError naming the field and its allowed range."""
@@ -146,6 +152,8 @@ class MPCSettings:
         for i, x in enumerate(self.du_max):
             check_range("mpc", f"du_max[{i}]", float(x), 0.0, 1e6, "1/s", lo_open=True)
         check_range("mpc", "budget", self.budget, 0.0, 10.0, "s", lo_open=True)
+        if not isinstance(self.enforce_budget, bool):
+            raise ValueError(f"mpc.enforce_budget = {self.enforce_budget!r} must be true or false")
         if not isinstance(self.fallback_plan_steps, int) or self.fallback_plan_steps < 0:
             raise ValueError(f"mpc.fallback_plan_steps = {self.fallback_plan_steps!r} must be an integer >= 0")
         check_range("mpc", "load_max", self.load_max, 0.0, 200.0, "N", lo_open=True)

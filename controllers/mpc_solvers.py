@@ -25,6 +25,16 @@ class _BudgetExceeded(_SolverFailure):
     """The solver stopped at its time limit (the step's budget): counted as an overrun."""
 
 
+#: OSQP's own default ``time_limit``, s: no limit in practice (it refuses 0)
+OSQP_NO_TIME_LIMIT = 1e10
+
+
+def qp_time_limit(s: MPCSettings) -> float:
+    """OSQP's ``time_limit`` for a warm step, s: the step's budget when it is enforced, else none
+    (:data:`OSQP_NO_TIME_LIMIT`), so that a simulation's QPs never stop on the wall clock."""
+    return float(s.budget) if s.enforce_budget else OSQP_NO_TIME_LIMIT
+
+
 @dataclass
 class _Problem:
     """Per-step parameters of the OCP (scaled units: h in mm, p in kPa)."""
@@ -110,7 +120,7 @@ class _RtiOsqp:
         self.solver = osqp.OSQP()
         self.solver.setup(self.P, np.zeros(self.nz), self.A, self.l0, self.u0, verbose=False,
                           eps_abs=s.qp_eps, eps_rel=s.qp_eps, max_iter=s.qp_max_iter, polishing=False,
-                          warm_starting=True, adaptive_rho=False, rho=QP_RHO, time_limit=s.budget,
+                          warm_starting=True, adaptive_rho=False, rho=QP_RHO, time_limit=qp_time_limit(s),
                           check_termination=QP_CHECK_EVERY, scaling=QP_SCALING)
         self.X = None
         self.U = None
@@ -229,16 +239,18 @@ class _RtiOsqp:
             Xb = np.full(N + 1, pr.x0)
             Ub = np.tile(pr.u_prev, (N, 1))
             iters = s.rti_init_iterations
-            self.solver.update_settings(time_limit=1e3)  # cold start: exempt from the budget
         else:
             Xb = np.r_[pr.x0, self.X[2:], self.X[-1]]
             Ub = np.vstack([self.U[1:], self.U[-1:]])
             iters = 1
+        exempt = iters > 1 and s.enforce_budget  # a cold start is exempt from the budget
+        if exempt:
+            self.solver.update_settings(time_limit=OSQP_NO_TIME_LIMIT)
         try:
             for _ in range(iters):
                 Xb, Ub = self._qp(pr, Xb, Ub)
         finally:
-            if iters > 1:
+            if exempt:
                 self.solver.update_settings(time_limit=s.budget)
         self.X, self.U = Xb, Ub
         return Xb, Ub
@@ -361,7 +373,9 @@ class _Ipopt:
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                 "ipopt.max_iter": s.ipopt_max_iter, "ipopt.tol": 1e-6,
                 "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3,
-                "ipopt.max_wall_time": max(10 * s.budget, 0.5), "error_on_fail": False}
+                "error_on_fail": False}
+        if s.enforce_budget:  # a real-time loop bounds the solve; a simulation never stops on the wall clock
+            opts["ipopt.max_wall_time"] = max(10 * s.budget, 0.5)
         self.solver = ca.nlpsol("mpc_ipopt", "ipopt", nlp, dict(opts, error_on_fail=generate))
         self.mode = "vm"
         if generate:

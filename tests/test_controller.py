@@ -250,7 +250,7 @@ def test_fallback_chain_shifted_plan_then_safe(model):
 
 
 def test_overrun_counts_and_uses_shifted_plan(model):
-    c = NMPC(ACT, PN, MPCSettings(budget=1e-9), model=model)
+    c = NMPC(ACT, PN, MPCSettings(budget=1e-9, enforce_budget=True), model=model)
     loop = supervised(c)
     e = est(h=2e-3, p=11.7e3, F=W400)
     loop.control(0.0, e, Reference(6e-3))  # cold start: exempt

@@ -31,6 +31,7 @@ from hbma_ctrl.app.daemon.loop import STATS_KEYS, DaemonLoop
 from hbma_ctrl.system.rigio import RigLinkError, safe_u
 from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, read_run_log
 from hbma_ctrl.app.daemon.state import DaemonState
+from hbma_ctrl.runtime.watchdog import SafetyMonitor
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER_FILE = ROOT / "scenarios" / "daemon_chamber.toml"
@@ -388,11 +389,15 @@ def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from
     reaches the same readings and estimates as the run log at its slow tick; a tick that was slow only
     in the run (here: a busy wait added to it) is the machine's; a replay that cannot reach the run's
     state (a setpoint left out) never calls a tick the machine's."""
-    from hbma_ctrl.app.bench.soak import replay_ticks, soak_verdicts
+    from hbma_ctrl.app.bench.soak import lift_budget, replay_ticks, soak_verdicts
 
     state = DaemonState()
     cfg, runner, rig, loop = _loop(CHAMBER, tmp_path, state=state, duration_s=0.4, speed=20.0)
     loop.warmup_periods = 0
+    # the run's NMPC without its wall-time budget, as the replay's: a step this machine's load made an
+    # overrun would part the run from the replay before the tick compared (a chamber's is not logged)
+    lift_budget(runner)
+    assert not runner.loop.controller.settings.enforce_budget
     tick = runner.tick
     n, busy_t = [0], []
 
@@ -810,10 +815,43 @@ def _truth_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+class _UntilRigTime:
+    """A rig link that asks the loop to stop once its samples have covered ``duration`` s of the rig's
+    own time. The loop's duration counts its periods; a firmware process that a loaded machine runs
+    late streams fewer samples in as many periods (a microcontroller would not), and the run is to
+    cover the same rig time as the lockstep one it is compared with."""
+
+    def __init__(self, rig, state: DaemonState, duration: float):
+        self.rig, self.state, self.duration = rig, state, duration
+        self.n, self.sample_period = rig.n, rig.sample_period
+        self._t0 = None
+
+    def read(self):
+        r = self.rig.read()
+        if r.t is not None:
+            self._t0 = r.t if self._t0 is None else self._t0
+            if r.t - self._t0 >= self.duration - 1e-9:
+                self.state.request_stop("rig time")
+        return r
+
+    def __getattr__(self, name):
+        return getattr(self.rig, name)
+
+
 def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_target_as_on_sim(tmp_path):
     """The shipped file over the serial link to a fake firmware in its own process (as a microcontroller
     is: it shares no interpreter with the host) whose plant is the file's mismatched rig; the truth comes
-    from the firmware's log, which the host never sees."""
+    from the firmware's log, which the host never sees.
+
+    Both ends run in real time on a shared machine, where the host misses deadlines and the firmware's
+    process runs periods late (a loaded 2-core machine: 21 % and 64 % of them), which neither a host of
+    its own nor a microcontroller would. The daemon is built to carry on through both: it ticks on the
+    firmware's samples, its estimator predicts with the command each sample says was held, its NMPC's
+    overruns are replayed plans, and a late firmware period delays the rig as a whole without changing
+    its physics (``RigPlant``). So what is asserted holds at any load: the control outcome, and the
+    link's integrity. The loop's own watchdogs of real time (missed deadlines, samples that do not
+    come) are off here as in the other real-time tests; how the loop follows the samples is asserted
+    on a virtual clock (``test_loop_ticks_once_on_every_sample_of_a_rig_streaming_on_its_own_clock``)."""
     # with its start-up calibration: without it the 400 g load (which the pressure alone cannot tell from
     # a stiffer membrane) leaves the EKF a bias the truth lands anywhere in 5.5-6.4 mm with
     cfg_path = _write_config(tmp_path, CHAMBER_FILE, replace=RELAXED)
@@ -825,18 +863,22 @@ def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_t
     try:
         port = fw.stdout.readline().strip()
         assert port, fw.stderr.read()
-        cfg = load_config(cfg_path, {"--rig": f"serial:{port}", "--duration-s": DURATION})
+        cfg = load_config(cfg_path, {"--rig": f"serial:{port}"})
         runner = build_runner(cfg)
         rig = make_rig(cfg, runner)
-        loop = DaemonLoop(runner, rig, DaemonState(), cfg.period, duration=cfg.duration,
-                          monitor=make_monitor(cfg, runner))
+        state = DaemonState()
+        # a firmware process the machine does not run for tens of periods sends no sample meanwhile:
+        # on a microcontroller that would be a frozen sensor, here it is the machine's load
+        monitor = SafetyMonitor(replace(make_monitor(cfg, runner).settings, stale_periods=10**6,
+                                        same_value_periods=None), runner.n)
+        loop = DaemonLoop(runner, _UntilRigTime(rig, state, DURATION), state, cfg.period, monitor=monitor)
         try:
             stats = loop.run()
         finally:
             rig.close()
-        # the SAFE line close() sent reaches the firmware's process a little later: wait for it (at
-        # most 5 s) before stopping the firmware
-        deadline = time.monotonic() + 5.0
+        # the SAFE line close() sent reaches the firmware's process a little later (later still on a
+        # loaded machine): wait for it, at most 60 s, before stopping the firmware
+        deadline = time.monotonic() + 60.0
         while _truth_rows(truth)[-1]["mode"] != "SAFE" and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
@@ -844,36 +886,127 @@ def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_t
         fw.wait(timeout=30)
     rows = _truth_rows(truth)
     assert rows[-1]["mode"] == "SAFE"  # the firmware holds the safe command at the end
-    assert stats["safe_exit"] and stats["faults"] == {}, stats
+    assert stats["safe_exit"] and stats["faults"] == {} and stats["end_reason"] == "rig time", stats
     cal = runner.stats()["calibration"]
     assert cal["status"] == "ok", cal  # fitted from the commands the firmware said it held
-    run = [r for r in rows if r["mode"] == "RUN"]  # the periods the firmware ran the host's commands
-    assert len(run) > 0.8 * stats["steps"]
-    h_end = float(run[-1]["h_C1_mm"]) * 1e-3  # the true height when the host's last command ended
-    missed = stats["deadline_misses"] / max(stats["steps"], 1)
-    late_fw = float(np.mean([float(r["dt_ms"]) > 15.0 for r in rows]))
-    if missed > 0.01 or late_fw > 0.01:
-        # a real-time loop that cannot keep its period, or a firmware that cannot keep its own (a
-        # process on a shared, loaded machine, unlike a microcontroller), does not test the link:
-        # said as a skip with the numbers, never counted as a pass
-        pytest.skip(f"host missed {missed:.0%} of the 10 ms deadlines, the firmware ran {late_fw:.0%} of its "
-                    f"periods over 15 ms; the chamber held {h_end * 1e3:.2f} mm")
+    # the firmware ran the host's commands from the first to the end without a break (the host never
+    # fell silent for the firmware's timeout), over the rig time the host ran
+    modes = [r["mode"] for r in rows]
+    first, last = modes.index("RUN"), len(modes) - 1 - modes[::-1].index("RUN")
+    assert set(modes[first:last + 1]) == {"RUN"}, sorted(set(modes[first:last + 1]))
+    assert float(rows[last]["t_s"]) - float(rows[first]["t_s"]) >= DURATION - 0.1
+    # every sample named a command the host had sent: the estimator predicted with what the plant got
+    assert rig.stats["held_unknown"] == 0
+    h_end = float(rows[last]["h_C1_mm"]) * 1e-3  # the true height when the host's last command ended
     # the file's 6 mm from 3 s after the calibration; the same file on the lockstep sim rig
     _, _, sim_rig, sim_loop = _loop(cfg_path, duration_s=DURATION)
     sim_loop.run()
     h_sim = sim_rig.rig.truth()["h"]
-    # the loop ticks on the firmware's samples (few periods without a new one) and the estimator
-    # predicts with the command each sample says was held: what is left is the link's one period
-    # of command delay, which the sim rig does not have
-    assert stats["repeated_samples"] <= 0.05 * stats["steps"], stats["repeated_samples"]
-    assert rig.stats["held_unknown"] == 0
     # the band: the modulus is not observable under the 400 g load (the calibration keeps its prior,
     # the rig's is x1.15) and what the EKF learns of it in the loop depends on the noise it sees, so the
     # file holds the chamber 0.1-0.55 mm high on the lockstep sim across rig seeds, and the serial runs
     # (whose timing changes which noise the host sees) spread the same way; a link that loses or
     # misplaces commands ends millimetres off
+    missed = stats["deadline_misses"] / max(stats["steps"], 1)
+    late_fw = float(np.mean([float(r["dt_ms"]) > 15.0 for r in rows]))
+    timing = (f"host missed {missed:.0%} of the deadlines and repeated {stats['repeated_samples']} samples, "
+              f"the firmware ran {late_fw:.0%} of its periods over 15 ms")
     assert abs(h_sim - 6e-3) <= BAND, f"sim: held {h_sim * 1e3:.2f} mm"
-    assert abs(h_end - 6e-3) <= BAND, f"serial: held {h_end * 1e3:.2f} mm (the sim {h_sim * 1e3:.2f} mm), target 6 mm"
+    assert abs(h_end - 6e-3) <= BAND, (f"serial: held {h_end * 1e3:.2f} mm (the sim {h_sim * 1e3:.2f} mm), "
+                                       f"target 6 mm; {timing}")
+
+
+class StreamingRig:
+    """A one-chamber rig link that streams samples on its own clock, as a firmware does, on the loop's
+    virtual clock (``vc``): a sample every ``ratio`` loop periods from ``phase`` periods on, each one
+    period of the lockstep ``sim`` rig under the command held over it (the newest written before the
+    previous sample instant: the link's period of delay), stamped with the rig's time and naming that
+    command (``held``). ``written`` keeps every command written, ``stamps`` every sample's rig time."""
+
+    def __init__(self, sim, vc: VirtualClock, ratio: float, phase: float):
+        self.sim, self.vc = sim, vc
+        self.n, self.sample_period = sim.n, sim.sample_period
+        self.every, self.first = ratio * sim.sample_period, phase * sim.sample_period
+        self.samples: list = []  # (rig time s, pressures Pa, held command) per sample made
+        self.read_j = -1
+        self.held = self.pending = safe_u(1)
+        self.written: list = []
+
+    def _make_due(self) -> None:
+        """Every sample whose instant has come: the plant's period under the held command, then the
+        newest command written is latched for the next period."""
+        while self.first + len(self.samples) * self.every <= self.vc.now + 1e-12:
+            self.sim.write(self.held)
+            self.samples.append((len(self.samples) * self.sim.sample_period, self.sim.read().p.copy(), self.held))
+            self.held = self.pending
+
+    def wait_sample(self, timeout: float) -> float | None:
+        self._make_due()
+        j = len(self.samples)
+        if j - 1 > self.read_j:
+            return self.first + (j - 1) * self.every
+        due = self.first + j * self.every
+        if due > self.vc.now + timeout:
+            self.vc.sleep(timeout)
+            return None
+        self.vc.now = due
+        self._make_due()
+        return due
+
+    def read(self):
+        from hbma_ctrl.system.rigio import Readings
+
+        self._make_due()
+        j = len(self.samples) - 1
+        if j < 0:
+            return Readings(None, np.array([np.nan]), -1, np.array([False]))
+        fresh, self.read_j = j > self.read_j, j
+        t, p, held = self.samples[j]
+        return Readings(t, p, j, np.array([fresh]), held=held.copy())
+
+    def write(self, u):
+        self._make_due()
+        self.pending = np.array(u, dtype=float).reshape(3, 1)
+        self.written.append(self.pending)
+
+    def safe(self):
+        self.write(safe_u(1))
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("ratio, phase", [(1.01, 0.5), (0.99, 0.1)])
+def test_loop_ticks_once_on_every_sample_of_a_rig_streaming_on_its_own_clock(ratio, phase):
+    """In real time the loop follows a streaming rig's clock instead of its own: a rig whose period is
+    1 % longer or shorter than the loop's, starting half or a tenth of a period off, is ticked once on
+    every one of its samples (a loop beating against it would repeat or skip one every 100 periods),
+    and each tick's estimator gets the command that sample says was held: the one written after the
+    tick two samples before (the link's period of delay). On a virtual clock: the same at any load."""
+    cfg = load_config(CHAMBER, {"--duration-s": 3.0})
+    runner = build_runner(cfg)
+    vc = VirtualClock()
+    rig = StreamingRig(make_rig(cfg, runner), vc, ratio, phase)
+    ticks: list = []
+    tick = runner.tick
+
+    def recorded(t, p, *held):
+        ticks.append((t, held[0].copy() if held else None, len(rig.written)))
+        return tick(t, p, *held)
+
+    runner.tick = recorded
+    loop = DaemonLoop(runner, rig, DaemonState(), cfg.period, duration=cfg.duration, monitor=make_monitor(cfg, runner),
+                      clock=vc.clock, sleep=vc.sleep)
+    stats = loop.run()
+    assert stats["safe_exit"] and stats["faults"] == {}, stats
+    assert stats["repeated_samples"] == 0 and stats["deadline_misses"] == 0
+    t = np.array([tk[0] for tk in ticks])
+    # one tick per sample, every sample: the rig's stamps one rig period apart from 0
+    assert len(ticks) >= 290 and np.allclose(t, np.arange(len(t)) * cfg.period, atol=1e-9), t[:5]
+    for j in range(2, len(ticks)):
+        held, n_written = ticks[j][1], ticks[j - 2][2]
+        # what the tick two samples before wrote (the loop writes once per period, after its tick)
+        assert np.array_equal(held, rig.written[n_written]), j
 
 
 class BootingRig:

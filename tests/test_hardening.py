@@ -245,7 +245,7 @@ def test_chamber_nmpc_refuses_a_bad_reference_naming_it(bad):
 # --- the robot NMPC's time budget ------------------------------------------------------------------
 def test_an_overrun_is_a_failure_the_supervisor_covers_with_the_last_plan(robot):
     d, model, _ = robot
-    loop, ctrl, sup = _robot_loop(d, model, budget=1e-4)  # 1 us: every warm step overruns
+    loop, ctrl, sup = _robot_loop(d, model, budget=1e-4, enforce_budget=True)  # 1 us: every warm step overruns
     loop.tick(0.0, np.zeros(3))  # the cold step (setup) is exempt
     assert not ctrl.failed and ctrl.plan is not None
     a, o = loop.tick(0.01, np.zeros(3))

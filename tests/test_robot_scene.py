@@ -140,7 +140,6 @@ def _robot_scene_over_seed(name: str, seed: int, tmp_path: Path, robot_keys: dic
 
 def _robot_claim_holds(rob: dict) -> bool:
     segs = rob["segments"]
-    # fallbacks are left out: an overrun (wall time) counts as one, so they depend on machine load
     # a chamber flagged as burst in a clean run is vented for the rest of it: a failed claim
     return (all(s["settled"] for s in segs) and not rob["pressure_limit_exceeded"] and rob["max_pressure_kpa"] <= 45.0
             and not rob["burst_chambers"])

@@ -144,6 +144,9 @@ class ControllerSection:
         at most the rig's sample period.
     calibration_std_floor : the calibration hands its factors to the estimator with sigmas at least
         this (:class:`hbma_ctrl.runtime.calibrate.CalibrationSettings` ``handover_std_floor``).
+
+    The MPC's wall-clock budget acts only where ``mpc.enforce_budget`` is set (the scenario's
+    ``[controller] enforce_budget``; the rig daemon always sets it).
     """
 
     kind: str = "mpc"
@@ -218,7 +221,10 @@ class RobotSettings:
     compare_baseline : also run the other controller on the same targets and report it beside.
     settle_time : RMSEs count samples at least this long after a target change, s.
     mpc_horizon, mpc_dt : NMPC stages and prediction step (s).
-    mpc_budget : NMPC wall-time budget per step, a fraction of the control period (0 = none).
+    mpc_budget : NMPC wall-time budget per step, a fraction of the control period (0 = none); it acts
+        in a scene only with ``mpc_enforce_budget`` (the rig daemon always enforces a budget).
+    mpc_enforce_budget : in a scene, make an NMPC step slower than ``mpc_budget`` a failed step
+        (the daemon's behaviour); default False: a scene's results do not depend on the machine's load.
     mpc_w_slack : the NMPC's cost per kPa over its pressure limit (None = not given: the
         controller's default in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` in the daemon).
     target_rate : the fastest a chamber's target height moves after a target change, m/s (0 = steps;
@@ -248,6 +254,7 @@ class RobotSettings:
     mpc_horizon: int = 15
     mpc_dt: float = 0.02
     mpc_budget: float = field(default=0.0, repr=False)  # repr: the stored reprs of the scenario goldens
+    mpc_enforce_budget: bool = field(default=False, repr=False)
     target_rate: float | None = field(default=None, repr=False)
     mpc_w_slack: float | None = field(default=None, repr=False)
     valve_min_on: float = field(default=DEFAULT_VALVE_MIN_ON, repr=False)
@@ -283,6 +290,8 @@ class RobotSettings:
             raise ValueError(f"robot.mpc_horizon = {self.mpc_horizon!r} must be an integer in [1, 100]")
         check_range("robot", "mpc_dt", self.mpc_dt, 1e-3, 1.0, "s")
         check_range("robot", "mpc_budget", self.mpc_budget, 0.0, 1.0)
+        if not isinstance(self.mpc_enforce_budget, bool):
+            raise ValueError(f"robot.mpc_enforce_budget = {self.mpc_enforce_budget!r} must be true or false")
         if self.mpc_w_slack is not None:
             check_range("robot", "mpc_w_slack", self.mpc_w_slack, 0.0, 1e6, "1/kPa")
         if self.target_rate is not None:

@@ -87,12 +87,17 @@ def random_target(rng: random.Random, n_layers: int, n_chambers: int) -> dict:
 
 
 def lift_budget(runner):
-    """The runner's robot NMPC with its wall-time budget lifted, so that a lockstep run's decisions do
-    not depend on this machine's load: (controller, its settings as they were), or (None, None) when
-    the runner has no budgeted NMPC."""
+    """The runner's NMPC with its wall-time budget lifted, so that a lockstep run's decisions do not
+    depend on this machine's load: for the robot's, (controller, its settings as they were), the
+    robot's overruns being forced where a run had them (:func:`replay_ticks`); (None, None) for the
+    chamber's (lifted in place: a chamber run does not log its NMPC's overruns, so none is forced) or a
+    runner without a budgeted NMPC."""
     from dataclasses import replace
 
     ctrl = getattr(getattr(runner, "loop", None), "controller", None)
+    if hasattr(ctrl, "set_enforce_budget"):
+        ctrl.set_enforce_budget(False)
+        return None, None
     if ctrl is None or not hasattr(ctrl, "_solver") or not getattr(ctrl.s, "budget", 0.0) > 0.0:
         return None, None
     before = ctrl.s
@@ -392,8 +397,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
         return out
 
     state.take_setpoints = take
-    # the robot NMPC's wall-time budget would let the replay's own load change its decisions: lifted,
-    # and the run's overruns forced where they happened (_forced_outcome)
+    # the NMPC's wall-time budget would let the replay's own load change its decisions: lifted, and the
+    # robot's run's overruns forced where they happened (_forced_outcome)
     ctrl, run_settings = lift_budget(runner)
     replay_settings = None if ctrl is None else ctrl.s
     unforced: set = set()

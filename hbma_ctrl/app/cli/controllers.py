@@ -89,7 +89,8 @@ def bench_mpc(
                                         help="also time do-mpc on the same OCP (N=20; extra 'bench')")] = True,
     baselines: Annotated[bool, typer.Option("--baselines/--no-baselines", help="PID and bang-bang rows")] = True,
     duration: Annotated[Optional[float], typer.Option(help="simulated seconds (default: the scenario's, 9 s)")] = None,
-    budget_ms: Annotated[float, typer.Option(help="MPC step budget in the sweep (generous: accuracy)")] = 1000.0,
+    budget_ms: Annotated[float, typer.Option(help="MPC step budget in the sweep (acts only with [controller] "
+                                                     "enforce_budget = true in the scenario)")] = 1000.0,
     rt_budget_ms: Annotated[float, typer.Option(help="real-time budget for the over_rt column")] = 15.0,
     out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_mpc.json")] = Path("runs/bench_mpc"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,

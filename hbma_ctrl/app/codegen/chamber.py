@@ -23,7 +23,7 @@ here as small casadi Functions too, so that the C loop needs no Python:
 
 The glue rounds as the Python classes do (``np.interp``'s formula, the load filter's gain from the
 scene's clock), so the generated loop follows the scene's own closed loop (``closed_loop(...,
-calibrate=False)`` with the NMPC variant ``rti_fn_osqp`` and a budget no solve reaches;
+calibrate=False)`` with the NMPC variant ``rti_fn_osqp`` and no enforced budget;
 :func:`scene_reference`) to rounding: measured over the whole scenarios, on ``track_height.toml`` (the
 default rig and models) 1e-15 m in the heights, 1e-11 in the commands and 2.4e-9 Pa in the pressures;
 on ``mpc_ramp_sine.toml``, through its solver failures, 9e-14 m, 5e-10 and 3e-7 Pa. A solve that fails
@@ -35,7 +35,8 @@ why the Python path runs the generated library.
 Not reproduced (the generated loop and its Python path leave them out, both alike): the start-up
 calibration, the EKF's rare reference-path events (``exact`` = 0; counted in the trajectory's
 ``ekf_reference_events``), the budget/overrun logic (wall-clock dependent), load steps during the
-run. Refused with the key named: the quasi-static rig's snap-through search. The loop starts at t = 0
+run. Refused with the key named: the quasi-static rig's snap-through search, an enforced budget
+(``enforce_budget``). The loop starts at t = 0
 with the rig at rest.
 """
 
@@ -391,6 +392,9 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     if section.load_steps:
         raise ValueError("codegen: [controller] load_steps_g: load changes during the run switch the rig's "
                          "plant model in Python; remove them to generate C")
+    if section.mpc.enforce_budget:
+        raise ValueError("codegen: [controller] enforce_budget = true: an enforced wall-clock budget depends on "
+                         "the machine's clock; set it to false to generate the loop")
     rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
     why = _unsupported(scn, rs)
     if why:
@@ -507,7 +511,7 @@ def loop_run_metrics(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str
 def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str | None = None) -> dict:
     """Run the scene's own closed loop (Rig, EKF, NMPC, ChamberLoop with its supervisor) as the generated
     loop models it, and compare: no start-up calibration, the NMPC variant calling the same RTI Function
-    (``rti_fn_<solver>``) with a budget no solve reaches (an overrun depends on the wall clock).
+    (``rti_fn_<solver>``) without an enforced budget (an overrun depends on the wall clock).
 
     Returns the scene's step times (EKF step, controller step incl. the supervisor; calls, median,
     p99, max in us) and the largest absolute difference of each compared column from ``trajectory``
@@ -520,7 +524,7 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str 
 
     section = scn.role("controller")
     solver = qp_solver_for(section.mpc.variant, qp_solver)
-    section = replace(section, mpc=replace(section.mpc, variant=f"rti_fn_{solver}", budget=10.0))
+    section = replace(section, mpc=replace(section.mpc, variant=f"rti_fn_{solver}", enforce_budget=False))
     rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
     log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, section, spec.n_ticks * spec.dt, rs,
                       estimator=estimator_from_scenario(scn, rs), calibrate=False)

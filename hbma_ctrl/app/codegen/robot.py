@@ -38,8 +38,9 @@ wall-time budget: :func:`scene_reference` runs it and compares. The other parts 
 numpy classes, which the Functions equal to rounding (``tests/test_robot_loop_blocks.py``), not
 to the bit.
 
-Refused with one error naming the key: the pressure-PID controller, a wall-time budget
-(``mpc_budget``), the quasi-static rig's snap-through search.
+Refused with one error naming the key: the pressure-PID controller, an enforced wall-time budget
+(``mpc_enforce_budget``; ``mpc_budget`` alone acts only in the daemon), the quasi-static rig's
+snap-through search.
 """
 
 from __future__ import annotations
@@ -71,9 +72,9 @@ def _build(scn, nmpc_class=None):
     s, rig, model, mpc = robot_scene_parts(scn)
     if s.controller != "mpc":
         raise ValueError(f"codegen: [robot] controller = '{s.controller}': only 'mpc' generates C")
-    if mpc.budget > 0:
-        raise ValueError(f"codegen: [robot] mpc_budget = {mpc.budget:g}: a wall-time budget depends on the "
-                         "machine's clock; set it to 0 to generate the loop")
+    if mpc.enforce_budget and mpc.budget > 0:
+        raise ValueError("codegen: [robot] mpc_enforce_budget = true: an enforced wall-time budget depends on "
+                         "the machine's clock; set it to false to generate the loop")
     plant, loop = build_closed_loop(s, s.targets, "mpc", scn.pneumatics, rig, mpc, model=model, tip_load=s.tip_load,
                                     nmpc_class=nmpc_class or RobotNMPCFunction)
     return s, rig, plant, loop

@@ -384,6 +384,10 @@ def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
         est = EKF(scn.actuator, scn.pneumatics, EKFSettings(sample_period=rs.sample_period,
                                                             noise_std=max(rs.noise_std, 1.0),
                                                             sensor_range=rs.sensor_range))
+    if section.kind == "mpc":
+        # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
+        # the last plan, then the safe command), never a late command
+        section = replace(section, mpc=replace(section.mpc, enforce_budget=True))
     ctrl = make_controller(section, scn.actuator, scn.pneumatics)
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))
@@ -422,7 +426,7 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
         p_max = rp.pressure_limit - ROBOT_NOISE_MARGIN * rs.noise_std
         w_slack = DAEMON_W_SLACK if s.mpc_w_slack is None else s.mpc_w_slack
         ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=p_max,
-                     budget=budget, w_slack=w_slack)
+                     budget=budget, enforce_budget=True, w_slack=w_slack)
         ctrl = RobotNMPC(model, n, ms)
     else:
         ctrl = RobotPressurePID(model, n, replace(RobotPIDSettings(), sample_period=Ts))

@@ -14,7 +14,9 @@ h_max_mm                    MPC: height bound (default 20)
 integrator, substeps        MPC discretisation ("rk4" / "euler")
 w_height, w_terminal        MPC weights on the height error (per mm^2)
 w_rate, w_input, c_input    MPC weights [speed, inlet, outlet]
-budget_ms                   wall-clock budget of one MPC step (default 15)
+budget_ms                   wall-clock budget of one MPC step (default 15; the rig daemon enforces it)
+enforce_budget              a step slower than budget_ms is an overrun in the scene too (default
+                            false: a scene's results do not depend on the machine's load)
 codegen                     MPC: compile the RTI linearisation to C (default true)
 fail_window_s               [t0, t1]: every MPC solve in this window is treated as failed (drill)
 kp, ki, kd                  PID gains in 1/mm, 1/(mm s), s/mm

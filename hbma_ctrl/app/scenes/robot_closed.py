@@ -198,7 +198,8 @@ def scene_parts(scn, settings: RobotSettings) -> tuple:
     raw_rig = scn.sections.get("rig")
     rig = RigTable.model_validate(raw_rig).to_robot_rig() if raw_rig else RobotRigSettings()
     model = make_model(s.design, scn.pneumatics, s.pneumatics.topology)
-    mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=s.mpc_budget)
+    mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=s.mpc_budget,
+                           enforce_budget=s.mpc_enforce_budget)
     if s.mpc_w_slack is not None:
         mpc = replace(mpc, w_slack=s.mpc_w_slack)
     return rig, model, mpc

@@ -74,7 +74,11 @@ class ControllerTable(Table):
     w_rate: tuple[_W, _W, _W] = shaped((0.02, 0.002, 0.02), "MPC weights on input changes (-)", _VEC)
     w_input: tuple[_W, _W, _W] = shaped((0.002, 0.0, 0.002), "MPC quadratic input weights (-)", _VEC)
     c_input: tuple[_W, _W, _W] = shaped((0.02, 0.01, 0.02), "MPC linear input costs (-)", _VEC)
-    budget_ms: float = num(15.0, 0.0, 10000.0, "ms", "MPC wall-clock budget per step", lo_open=True)
+    budget_ms: float = num(15.0, 0.0, 10000.0, "ms", "MPC wall-clock budget per step (acts with enforce_budget; "
+                           "the rig daemon always enforces it)", lo_open=True)
+    enforce_budget: bool = flag(False, "MPC: in a simulation, make a step slower than budget_ms an overrun (the "
+                                       "supervisor's fallback), as in the rig daemon; off, results do not "
+                                       "depend on the machine's load")
     codegen: bool = flag(True, "MPC: compile the RTI linearisation to C")
     membrane: Literal["cap", "exact"] = choice(DEFAULT_MEMBRANE, "MPC prediction model's membrane law: cap "
                                                "(spherical cap) or exact (exact membrane tables)")
@@ -182,6 +186,7 @@ _SI = {
     "w_input": ("mpc", "w_input", tuple),
     "c_input": ("mpc", "c_input", tuple),
     "budget_ms": ("mpc", "budget", U.ms),
+    "enforce_budget": ("mpc", "enforce_budget", as_is),
     "codegen": ("mpc", "codegen", as_is),
     "membrane": ("mpc", "membrane", as_is),
     "integral_gain_per_s": ("mpc", "integral_gain", float),

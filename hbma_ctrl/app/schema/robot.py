@@ -120,7 +120,10 @@ class RobotTable(Table):
     mpc_horizon: int = integer(15, 1, 100, "NMPC stages", "stages")
     mpc_dt_ms: float = num(20.0, 1.0, 1000.0, "ms", "NMPC prediction step")
     mpc_budget: float = num(0.0, 0.0, 1.0, "-", "NMPC wall-time budget per step as a fraction of the control "
-                            "period; an overrun is a failed step (0 = none; the daemon uses 0.8 then)")
+                            "period; an overrun is a failed step (0 = none; the daemon uses 0.8 then); "
+                            "in a scene it acts with mpc_enforce_budget")
+    mpc_enforce_budget: bool = flag(False, "in a scene, make an NMPC step slower than mpc_budget a failed step, "
+                                           "as in the rig daemon; off, results do not depend on the machine's load")
     mpc_w_slack: float | None = num(None, 0.0, 1e6, "1/kPa", "NMPC cost per kPa over its pressure limit "
                                     "(default: 0.001 in a scene, 100 in the daemon: the limit first)")
     target_rate_mm_s: float | None = num(None, 0.0, 1000.0, "mm/s", "fastest a chamber's target height moves "
@@ -256,7 +259,8 @@ class RobotTable(Table):
             closed["tip_load"] = tuple(tuple(r) for r in self.tip_load_n)
         for key, name, conv in (("compare_baseline", "compare_baseline", bool), ("settle_s", "settle_time", float),
                                 ("mpc_horizon", "mpc_horizon", int), ("mpc_dt_ms", "mpc_dt", U.ms),
-                                ("mpc_budget", "mpc_budget", float), ("target_rate_mm_s", "target_rate", U.mm),
+                                ("mpc_budget", "mpc_budget", float), ("mpc_enforce_budget", "mpc_enforce_budget", bool),
+                                ("target_rate_mm_s", "target_rate", U.mm),
                                 ("mpc_w_slack", "mpc_w_slack", float), ("valve_min_on_ms", "valve_min_on", U.ms),
                                 ("valve_delay_ms", "valve_delay", U.ms), ("sensor_delay_ms", "sensor_delay", U.ms),
                                 ("burst_sigma", "burst_sigma", float)):
