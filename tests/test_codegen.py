@@ -267,7 +267,8 @@ def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scen
     from dataclasses import replace
 
     from hbma_ctrl.app.codegen.chamber import scenario_loop
-    from hbma_ctrl.app.scenes.controller import closed_loop, estimator_from_scenario
+    from hbma_ctrl.app.scenes.controller import closed_loop
+    from hbma_ctrl.system.roles import estimator_from_scenario
 
     scn = load_scenario(scenario)
     spec = scenario_loop(scn, duration=T)

@@ -19,7 +19,8 @@ from hbma_ctrl.app.daemon.build import DAEMON_MPC_BUDGET, build_runner, make_rig
 from hbma_ctrl.app.daemon.config import load_config
 from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
 from hbma_ctrl.app.scenario import load_scenario
-from hbma_ctrl.app.scenes.controller import closed_loop, make_controller
+from hbma_ctrl.app.scenes.controller import closed_loop
+from hbma_ctrl.system.roles import make_controller
 from hbma_ctrl.app.scenes.robot_closed import scene_parts
 from hbma_ctrl.app.schema.document import parse_role
 from hbma_ctrl.controllers.mpc_solvers import OSQP_NO_TIME_LIMIT

@@ -54,7 +54,7 @@ def test_prior_keys_reach_the_filter_settings():
 
 def test_startup_calibration_starts_from_the_estimators_prior():
     from hbma_ctrl.app.bench.mpc import default_section
-    from hbma_ctrl.app.scenes.controller import make_calibration
+    from hbma_ctrl.system.roles import make_calibration
     from hbma_ctrl.sim.rig import RigSettings
 
     s = FilterSettings(flow_factor_init=0.9, modulus_init=1.15, dead_volume_init=1.2, modulus_init_std=0.05).validate()

@@ -364,7 +364,7 @@ def test_chamber_loop_tick_with_fuzzed_inputs_gives_a_command_in_0_1_or_one_erro
 def _robot_parts():
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.core.params import Pneumatics
     from hbma_ctrl.robot.design import RobotDesign
     from hbma_ctrl.runtime.robot import robot_supervisor

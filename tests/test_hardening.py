@@ -17,7 +17,7 @@ from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.scenes.robot_loop import make_model
+from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics

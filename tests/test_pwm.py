@@ -51,7 +51,7 @@ def test_minimum_longer_than_the_period_is_refused():
 
 
 def test_scene_refuses_a_minimum_longer_than_the_rig_period_naming_the_key_in_ms():
-    from hbma_ctrl.app.scenes.controller import make_pwm
+    from hbma_ctrl.system.roles import make_pwm
     from hbma_ctrl.app.schema import parse_role
 
     sec = parse_role("controller", {"targets_mm": [[0.0, 2.0]], "valve_min_on_ms": 15.0})

@@ -117,7 +117,7 @@ def test_the_ekf_banks_step_as_one_function_follows_the_bank():
     +-inf, out of the physical bounds, saturated, a jump the gate holds off until it re-opens) and a
     diverged filter restarted from its reading: the same states, covariances, outputs and flags."""
     from hbma_ctrl.estimators.robot_ekf import NS, ChamberEKFBank, ChamberEKFSettings, bank_step_function
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
 
     d = RobotDesign(n_layers=1).validate()
     model = make_model(d, Pneumatics(), "per_chamber")
@@ -176,7 +176,7 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
     non-finite state is status 1 with zero decisions."""
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.controllers.robot_rti_step import robot_rti_step_function
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
 
     d = RobotDesign(n_layers=1).validate()
     model = make_model(d, Pneumatics(), topology)
@@ -224,7 +224,7 @@ def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
     limit-point pressures it keeps (refreshed every tenth tick); the cap and the vent both act."""
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
@@ -288,7 +288,7 @@ def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, ma
     of [0, 1] and under the 1e-4 floor, a shared pump's budget exceeded, pressures across the map,
     above its stall and NaN, all chambers idle: the same plant inputs (a shared pump's bisection and
     budget to a few ulps), the throttle and the stall floor both acting."""
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.models.bank import STALL_MARGIN, throttled_inputs, throttled_inputs_function
 
     model = make_model(RobotDesign(n_layers=1).validate(), Pneumatics(), topology)
@@ -319,7 +319,7 @@ def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
     sent all seen."""
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor

@@ -14,7 +14,8 @@ import pytest
 
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.robot_ekf import B_RANGE, ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.scenes.robot_loop import make_model, run_closed_loop
+from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
+from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics
@@ -208,7 +209,7 @@ def test_default_robot_rig_start_up_vents_no_chamber_for_a_lost_estimate():
 
 # --- the daemon's view ---------------------------------------------------------------------------
 def test_daemon_logs_each_supervisor_episode_once_with_the_chambers_name():
-    from hbma_ctrl.app.daemon.build import SupervisorEpisodes
+    from hbma_ctrl.system.chamber import SupervisorEpisodes
 
     sup = Supervisor(SupervisorSettings(p_max=45e3, guard_margin=1e3, vent_margin=None, missing_is_limit=False,
                                         stretch_max=4.0), n=2)

@@ -89,7 +89,7 @@ def test_the_banks_valve_and_sensor_delays_predict_with_the_command_acting():
     """ChamberEKFBank(valve_delay, sensor_delay) steps as a bank without delays that is given the
     command acting (CommandTiming over the same commands)."""
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.models.actuation import CommandTiming
 
     model = make_model(D1, Pneumatics(), "per_chamber")
@@ -155,7 +155,7 @@ def test_a_default_minimum_opening_longer_than_the_loops_period_is_one_error_nam
 def _min_on_loop():
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.core.params import Pneumatics
     from hbma_ctrl.robot.design import RobotDesign
     from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor

@@ -226,7 +226,7 @@ def test_no_fault_over_a_robot_closed_loop_past_the_limit_point():
 
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-    from hbma_ctrl.app.scenes.robot_loop import make_model
+    from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.core import units as U
     from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics

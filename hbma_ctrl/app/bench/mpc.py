@@ -27,11 +27,8 @@ import numpy as np
 
 from hbma_ctrl.controllers.dompc_ref import DoMPCController, dompc_available
 from hbma_ctrl.controllers.mpc_settings import VARIANTS
-from hbma_ctrl.app.scenes.controller import (
-    closed_loop,
-    loop_metrics,
-    make_controller,
-)
+from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
+from hbma_ctrl.system.roles import make_controller
 from hbma_ctrl.app.schema.document import parse_role
 from hbma_ctrl.system.sections import ControllerSection
 from hbma_ctrl.core import units as U

@@ -299,10 +299,7 @@ def _ekf_stages(scn, rs: RigSettings, z0: float) -> tuple[list, dict, dict]:
     except ImportError:  # pragma: no cover - a build without the EKF step Function
         raise ValueError("codegen: this build has no hbma_ctrl.estimators.ekf_step (the EKF step Function)") from None
     from hbma_ctrl.estimators.common import physical_reading_bounds
-    from hbma_ctrl.app.scenes.controller import (
-        default_estimator,
-        estimator_from_scenario,
-    )
+    from hbma_ctrl.system.roles import default_estimator, estimator_from_scenario
     from hbma_ctrl.core.interfaces import Command
     from hbma_ctrl.models.actuation import acting_function, acting_state
 
@@ -376,7 +373,7 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
     """The scenario's closed loop (see the module docstring) over ``duration`` s (None: the
     scenario's); ``estimator`` one of :data:`ESTIMATORS`; ``qp_solver`` the RTI step's conic plugin
     (:func:`qp_solver_for`). ValueError naming the section that cannot be generated."""
-    from hbma_ctrl.app.scenes.controller import make_pwm
+    from hbma_ctrl.system.roles import make_pwm
 
     if estimator not in ESTIMATORS:
         raise ValueError(f"codegen: estimator = '{estimator}'; allowed: {', '.join(ESTIMATORS)}")
@@ -520,7 +517,8 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str 
     from dataclasses import replace
 
     from hbma_ctrl.app.codegen.loop import time_summary
-    from hbma_ctrl.app.scenes.controller import closed_loop, estimator_from_scenario, loop_metrics
+    from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
+    from hbma_ctrl.system.roles import estimator_from_scenario
 
     section = scn.role("controller")
     solver = qp_solver_for(section.mpc.variant, qp_solver)

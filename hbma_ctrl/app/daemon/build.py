@@ -5,7 +5,7 @@ A *runner* adapts :class:`hbma_ctrl.runtime.chamber.ChamberLoop` or
 of every chamber (Pa, (n,)) and the plant input ``U`` (3, n) the rig takes; the status rows the API
 shows; and setpoints: ``check_setpoint`` (the API's thread: clip to what is reachable, say what
 was clipped) and ``apply_setpoint`` (the loop's thread, between periods). The runners are
-:class:`ChamberRunner` and :class:`RobotRunner`.
+:class:`ChamberSystem` and :class:`RobotSystem`.
 
 The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.app.scenes.controller`,
 :mod:`hbma_ctrl.app.scenes.robot_loop`), so a daemon on the simulated rig runs the scene's closed loop.
@@ -13,37 +13,27 @@ The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.a
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import replace
 
-import numpy as np
 
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
-from hbma_ctrl.app.scenes.robot_loop import make_model
-from hbma_ctrl.app.scenes.controller import (
-    calibration_summary,
-    controller_settings_of,
-    estimator_from_scenario,
-    make_calibration,
-    make_controller,
-    make_pwm,
-)
+from hbma_ctrl.system.roles import make_model
+from hbma_ctrl.system.roles import controller_settings_of, estimator_from_scenario, make_calibration, make_controller, make_pwm
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import Command
-from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
 from hbma_ctrl.robot.rig import RobotRigSettings
-from hbma_ctrl.runtime.calibrate import StartupCalibration
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
+from hbma_ctrl.system.chamber import ChamberSystem
+from hbma_ctrl.system.robot import RobotSystem
 
-__all__ = ["ChamberRunner", "RobotRunner", "build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
+__all__ = ["build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
            "robot_rig_settings", "DAEMON_MPC_BUDGET", "DAEMON_TARGET_RATE", "DAEMON_W_SLACK", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
            "ROBOT_NOISE_MARGIN"]
 
@@ -94,287 +84,7 @@ def _same_period(cfg: DaemonConfig, rs):
     return replace(rs, sample_period=cfg.period).validate()
 
 
-class SupervisorEpisodes:
-    """The runtime supervisor's interventions as daemon events ("supervisor", "<chamber>: <cause>
-    (<detail>)"), one per episode: a chamber's cause is passed on when it was not logged in the
-    previous tick (the pressure guard and the stretch guard log every step they act; the run log
-    would otherwise get one row per chamber and period)."""
-
-    def __init__(self, supervisor, names):
-        self.sup = supervisor
-        self.names = tuple(names)
-        self._seen = supervisor.logged
-        self._prev: set = set()
-
-    def take(self) -> list[tuple[str, str]]:
-        """The episodes started since the last call (oldest first)."""
-        sup = self.sup
-        new = min(sup.logged - self._seen, len(sup.events))
-        self._seen = sup.logged
-        events = list(itertools.islice(reversed(sup.events), new))[::-1] if new > 0 else []
-        out, cur = [], set()
-        for e in events:
-            key = (e.chamber, e.cause)
-            if key not in self._prev and key not in cur:
-                name = self.names[e.chamber] if 0 <= e.chamber < len(self.names) else str(e.chamber)
-                out.append(("supervisor", f"{name}: {e.cause}" + (f" ({e.detail})" if e.detail else "")))
-            cur.add(key)
-        self._prev = cur
-        return out
-
-
-class ChamberRunner:
-    """One chamber under :class:`ChamberLoop` (see module doc). ``h_range``: reachable targets (lo, hi), m.
-
-    ``calibration``: a :class:`StartupCalibration` run first (``[controller] calibrate``), as the
-    controller scene runs it: its excitation drives the chamber, its estimator is the loop's, and
-    the file's target schedule starts when it ends (a setpoint sent meanwhile holds from then on).
-    While it runs, ``warming`` is True: its fit (about a second in the tick that ends it, while the
-    chamber vents) does not feed the loop watchdog. ``take_events()`` hands the loop what to log.
-    """
-
-    kind = "chamber"
-
-    def __init__(self, loop: ChamberLoop, p_limit: float, h_range: tuple[float, float], names=("C1",),
-                 calibration: StartupCalibration | None = None):
-        self.loop = loop
-        self.n = 1
-        self.names = tuple(names)
-        self.p_limit = float(p_limit)
-        self.h_range = (float(h_range[0]), float(h_range[1]))
-        self.calibration = calibration
-        self.calibration_summary: dict | None = None
-        self._setpoint_during_calibration = False
-        self._events: list[tuple[str, str]] = []
-        self._t0: float | None = None
-        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
-
-    @property
-    def warming(self) -> bool:
-        """True while the start-up calibration runs (its ticks do not feed the loop watchdog)."""
-        return self.calibration is not None and not self.calibration.done
-
-    def take_events(self) -> list[tuple[str, str]]:
-        """(kind, cause) events since the last call (the calibration's start and outcome, the
-        supervisor's interventions: :class:`SupervisorEpisodes`)."""
-        ev, self._events = self._events, []
-        return ev + self._episodes.take()
-
-    def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
-        """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1); ``held`` (3, 1): the
-        command the rig reports it held over the period p ends (None: the last one returned)."""
-        if self._t0 is None:
-            self._t0 = float(t)
-            if self.calibration is not None:
-                self._events.append(("calibration", "start-up calibration: vent, pump pulse, hold, vent"))
-        h = None if held is None else Command(*(float(x) for x in np.asarray(held, dtype=float).reshape(3)))
-        if self.warming:
-            cmd, done = self.calibration.tick(t, float(p[0]), h)
-            if done:
-                self._calibrated(t, cmd)
-            return cmd.as_array().reshape(3, 1)
-        return self.loop.tick(t, float(p[0]), h).as_array().reshape(3, 1)
-
-    def _calibrated(self, t: float, cmd: Command) -> None:
-        """The calibration ended at rig time t (s): the loop takes over from its vent command, the
-        file's schedule shifted to start now (as the scene's loop starts at 0 when it closes)."""
-        cal = self.calibration
-        self.calibration_summary = calibration_summary(cal, t - self._t0)
-        self.loop.command = cmd
-        ref = self.loop.reference
-        if ref is not None and not self._setpoint_during_calibration:
-            self.loop.set_reference(lambda tt, ref=ref, t1=float(t): ref(tt - t1))
-        s = self.calibration_summary
-        facts = (f": flow x{s['flow_factor']:.3f}, modulus x{s['modulus_factor']:.3f}, dead volume "
-                 f"x{s['dead_volume_factor']:.3f}" if cal.result is not None else "")
-        self._events.append(("calibration", f"{cal.status} after {t - self._t0:.2f} s{facts}"))
-
-    def targets(self) -> np.ndarray:
-        """This period's target height per chamber, m (NaN = none)."""
-        tg = self.loop.target
-        return np.array([np.nan if tg is None else tg])
-
-    def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(height m, its std m, pressure Pa) per chamber from the estimator, NaN before the first tick."""
-        e = self.loop.estimate
-        if e is None:
-            return (np.full(1, np.nan),) * 3
-        return np.array([e.h]), np.array([float(e.std.get("h", np.nan))]), np.array([e.p])
-
-    def layers(self) -> list:
-        """No layers: a single chamber."""
-        return []
-
-    def check_setpoint(self, request: dict) -> dict:
-        """Heights {0: h m} -> {"applied", "clipped"} (clipped to ``h_range``); ValueError for layers or
-        another chamber."""
-        if request.get("layers"):
-            raise ValueError("layers: this daemon runs one chamber; send heights_mm instead")
-        heights = request.get("heights") or {}
-        if not heights:
-            raise ValueError("no setpoint given: send heights_mm for chamber 0")
-        clipped, applied = [], {}
-        lo, hi = self.h_range
-        for i, h in heights.items():
-            if int(i) != 0:
-                raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
-            h = float(h)
-            if not math.isfinite(h):
-                raise ValueError(f"heights_mm.{i}: must be a finite number")
-            hc = min(max(h, lo), hi)
-            if hc != h:
-                clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):g} mm (reachable "
-                               f"[{U.to_mm(lo):g}, {U.to_mm(hi):g}] mm)")
-            applied[0] = hc
-        return {"applied": {"heights": applied}, "clipped": clipped}
-
-    def apply_setpoint(self, applied: dict, t: float) -> None:
-        """Hold the applied height from now on (the file's target schedule ends)."""
-        h = applied.get("heights", {}).get(0)
-        if h is not None:
-            self._setpoint_during_calibration = self.warming
-            self.loop.set_reference(lambda _t, h=float(h): h)
-
-    def stats(self) -> dict:
-        """The controller's and the runtime's statistics (ms, counts), and ``calibration`` (the
-        start-up calibration's outcome, edge units, as the controller scene reports it) when it ran."""
-        out = self.loop.stats()
-        if self.calibration is not None:
-            out["calibration"] = self.calibration_summary or {"status": self.calibration.status}
-        return out
-
-
-class RobotRunner:
-    """The robot under :class:`RobotLoop` (see module doc). ``h_max``: the highest chamber target, m."""
-
-    kind = "robot"
-
-    def __init__(self, loop: RobotLoop, p_limit: float, h_max: float):
-        self.loop = loop
-        self.design = loop.design
-        self.n = loop.n
-        self.names = tuple(self.design.names)
-        self.p_limit = float(p_limit)
-        self.h_max = float(h_max)
-        self._t = 0.0
-        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
-        self._bursts_reported = np.zeros(self.n, dtype=bool)
-
-    def take_events(self) -> list[tuple[str, str]]:
-        """(kind, cause) events since the last call: the supervisor's interventions
-        (:class:`SupervisorEpisodes`: interlocks, vents, a lost estimate, fallbacks)."""
-        return self._episodes.take()
-
-    def clear_faults(self) -> None:
-        """Re-arm the runner's own fault tests (a bench that records a fault and goes on): the burst
-        latches of the supervisor and the burst test cleared."""
-        self.loop.supervisor.burst[:] = False
-        if self.loop.burst is not None:
-            self.loop.burst.reset()
-        self._bursts_reported[:] = False
-
-    def burst_peak(self) -> float | None:
-        """The burst test's largest sum over the chambers so far, sigma (its margin to the threshold;
-        None without the test)."""
-        b = self.loop.burst
-        return None if b is None else float(b.peak.max())
-
-    def take_faults(self) -> list[tuple[str, int, str]]:
-        """(kind, chamber, cause) faults found since the last call, which the daemon latches: the
-        chambers the loop's burst test flagged (:mod:`hbma_ctrl.runtime.burst`)."""
-        new = self.loop.supervisor.burst & ~self._bursts_reported
-        self._bursts_reported |= new
-        why = self.loop.burst.why if self.loop.burst is not None else [""] * self.n
-        return [("burst", int(i), f"{self.names[i]}: {why[i] or 'flagged'} (a burst membrane or an outlet stuck open)")
-                for i in np.nonzero(new)[0]]
-
-    def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
-        """One period at rig time t (s) with the readings p (Pa, (n,)) -> U (3, n); ``held`` (3, n): the
-        valve inputs the rig reports it held over the period p ends (None: the last ones returned)."""
-        self._t = t
-        self.loop.tick(t, p, held)
-        return self.loop.valve_commands.copy()
-
-    def targets(self) -> np.ndarray:
-        """This period's target height per chamber, m: what the controller worked to (moving towards
-        the setpoint at ``[robot] target_rate_mm_s``)."""
-        h = self.loop.href
-        return np.asarray(self.loop.chamber_targets(self._t) if h is None else h, dtype=float)
-
-    def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(height m, its std m, pressure Pa) per chamber from the EKF bank, NaN before the first tick."""
-        e = self.loop.estimate
-        if e is None:
-            return (np.full(self.n, np.nan),) * 3
-        return (np.asarray(e["h"], float), np.asarray(e.get("h_std", np.full(self.n, np.nan)), float),
-                np.asarray(e["p"], float))
-
-    def layers(self) -> list:
-        """The estimated pose of every layer: {"centre" m, "bend" rad, "direction" rad}."""
-        h, _, _ = self.estimates()
-        if not np.all(np.isfinite(h)):
-            return []
-        hh = np.maximum(h, 0.0).reshape(-1, 3)
-        out = []
-        for k in range(self.design.n_layers):
-            c, b, d = layer_plane(self.design, hh[k])
-            out.append({"centre": c, "bend": b, "direction": d})
-        return out
-
-    def _pose_now(self, k: int) -> tuple[float, float, float]:
-        rows = self.loop.targets[k]
-        cur = rows[0]
-        for r in rows:
-            if self._t + 1e-9 >= r[0]:
-                cur = r
-        return float(cur[1]), float(cur[2]), float(cur[3])
-
-    def check_setpoint(self, request: dict) -> dict:
-        """Layer poses {k: (centre m, bend rad, direction rad)} -> {"applied", "clipped"}: chamber heights
-        from the inverse kinematics clipped to [0, h_max], the pose those heights give reported back."""
-        if request.get("heights"):
-            raise ValueError("heights_mm: the robot takes layer poses (layers) as setpoints")
-        layers = request.get("layers") or {}
-        if not layers:
-            raise ValueError("no setpoint given: send layers")
-        N = self.design.n_layers
-        applied, clipped = {}, []
-        for k, pose in layers.items():
-            k = int(k)
-            if not 0 <= k < N:
-                raise ValueError(f"layers: layer {k} is out of range [0, {N - 1}]")
-            c, b, d = (float(x) for x in pose)
-            if not all(math.isfinite(x) for x in (c, b, d)):
-                raise ValueError(f"layers.{k}: centre, bend and direction must be finite")
-            if not 0.0 <= b < math.pi / 2:
-                raise ValueError(f"layers.{k}: bend_deg = {math.degrees(b):g} is out of range [0, 90) deg")
-            h = inverse_kinematics(self.design, np.full(N, c), np.full(N, b), np.full(N, d))[k]
-            hc = np.clip(h, 0.0, self.h_max)
-            if np.any(hc != h):
-                c2, b2, d2 = layer_plane(self.design, hc)
-                bad = ", ".join(f"{self.names[3 * k + i]} {U.to_mm(h[i]):.2f} mm" for i in range(3) if hc[i] != h[i])
-                clipped.append(f"layers.{k}: chamber heights {bad} outside the reachable [0, {U.to_mm(self.h_max):g}] "
-                               f"mm; applied centre {U.to_mm(c2):.2f} mm, bend {math.degrees(b2):.2f} deg, "
-                               f"direction {math.degrees(d2):.1f} deg")
-                c, b, d = float(c2), float(b2), float(d2)
-            applied[k] = (c, b, d)
-        return {"applied": {"layers": applied}, "clipped": clipped}
-
-    def apply_setpoint(self, applied: dict, t: float) -> None:
-        """Hold the applied layer poses from now on; the other layers hold their current targets."""
-        new = applied.get("layers") or {}
-        targets = {}
-        for k in range(self.design.n_layers):
-            pose = new.get(k, self._pose_now(k))
-            targets[k] = ((0.0, *(float(x) for x in pose)),)
-        self.loop.set_targets(targets)
-
-    def stats(self) -> dict:
-        """The loop's statistics (ms, counts)."""
-        return self.loop.stats()
-
-
-def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
+def _chamber_runner(cfg: DaemonConfig) -> ChamberSystem:
     scn = cfg.scenario
     section = scn.role("controller")
     rs = chamber_rig_settings(cfg)
@@ -402,10 +112,10 @@ def _chamber_runner(cfg: DaemonConfig) -> ChamberRunner:
     cal = None
     if section.calibrate:
         cal = make_calibration(scn.actuator, scn.pneumatics, scn.platform, section, rs, est)
-    return ChamberRunner(loop, section.p_max, (h_min, h_max), calibration=cal)
+    return ChamberSystem(loop, section.p_max, (h_min, h_max), calibration=cal)
 
 
-def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
+def _robot_runner(cfg: DaemonConfig) -> RobotSystem:
     scn = cfg.scenario
     s = scn.role("robot")
     d, rp = s.design, s.pneumatics
@@ -437,10 +147,10 @@ def _robot_runner(cfg: DaemonConfig) -> RobotRunner:
     # the solver's set-up and first solve before the first deadline, not in it (a replay of a run
     # builds its runner here too, so it starts as the run did)
     loop.prime()
-    return RobotRunner(loop, rp.pressure_limit, model.h_table_max)
+    return RobotSystem(loop, rp.pressure_limit, model.h_table_max)
 
 
-def build_runner(cfg: DaemonConfig) -> ChamberRunner | RobotRunner:
+def build_runner(cfg: DaemonConfig) -> ChamberSystem | RobotSystem:
     """The runner the configuration asks for (ValueError naming the key when the tables disagree)."""
     return _robot_runner(cfg) if cfg.kind == "robot" else _chamber_runner(cfg)
 

@@ -106,7 +106,7 @@ class DaemonLoop:
 
     Parameters
     ----------
-    runner : a :class:`hbma_ctrl.app.daemon.build.ChamberRunner` or ``RobotRunner``.
+    runner : a :class:`hbma_ctrl.app.daemon.build.ChamberSystem` or ``RobotSystem``.
     rig : a :class:`hbma_ctrl.system.rigio.RigIO` with ``runner.n`` chambers.
     state : the :class:`DaemonState` shared with the API.
     period : rig time per period, s.

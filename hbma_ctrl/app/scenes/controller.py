@@ -50,43 +50,31 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from hbma_ctrl.controllers.baselines import (
-    BangBangController,
-    PIDController,
-)
-from hbma_ctrl.controllers.mpc import NMPC
-from hbma_ctrl.estimators.ekf import EKF, EKFSettings
-from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.scenes.evaluate import NEES_FLOOR
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.system.sections import (
     ControllerSection,
     ReferenceProfile,
-    check_min_on,
-    filter_settings_for,
 )
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
-from hbma_ctrl.runtime.calibrate import CalibrationSettings, StartupCalibration
+from hbma_ctrl.runtime.calibrate import StartupCalibration
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
-from hbma_ctrl.runtime.pwm import MinOnTime
 from hbma_ctrl.sim.rig import Rig, RigSettings
 from hbma_ctrl.sim.simulate import Plant
+from hbma_ctrl.system.roles import (
+    calibration_summary,
+    controller_settings_of,
+    default_estimator,
+    estimator_from_scenario,
+    make_calibration,
+    make_controller,
+    make_pwm,
+)
 
-__all__ = ["make_controller", "make_pwm", "closed_loop", "ClosedLoopLog", "loop_metrics", "calibration_summary", "make_calibration",
-           "run_scene",
-           "plot_closed_loop", "default_estimator", "controller_settings_of", "estimator_from_scenario"]
-
-def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
-                    model: PredictionModel | None = None):
-    """The controller the section asks for (NMPC, PIDController or BangBangController)."""
-    if section.kind == "mpc":
-        return NMPC(actuator, pneumatics, section.mpc, model=model)
-    if section.kind == "pid":
-        return PIDController(actuator, pneumatics, section.pid)
-    return BangBangController(actuator, pneumatics, section.bang_bang, model=model)
+__all__ = ["closed_loop", "ClosedLoopLog", "loop_metrics", "run_scene", "plot_closed_loop"]
 
 
 @dataclass
@@ -113,16 +101,6 @@ class ClosedLoopLog:
     solve_ms: np.ndarray | None = None  # controller step times the runtime kept (ms, oldest first)
     supervisor_events: list = field(default_factory=list)  # the supervisor's interventions
     calibration: dict | None = None  # the start-up calibration's outcome (see calibration_summary)
-
-
-def default_estimator(actuator: Actuator, pneumatics: Pneumatics, est_settings, rig_settings):
-    """The chamber EKF on the nominal actuator: ``est_settings`` (EKFSettings) or, when None, the
-    rig's sample period, sensor range and noise (the scene's and the daemon's default filter)."""
-    if est_settings is None:
-        est_settings = EKFSettings(sample_period=rig_settings.sample_period,
-                                   noise_std=max(rig_settings.noise_std, 1.0),
-                                   sensor_range=rig_settings.sensor_range)
-    return EKF(actuator, pneumatics, est_settings)
 
 
 def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
@@ -225,37 +203,6 @@ class _Shifted:
         return getattr(self._est, name)
 
 
-def make_pwm(section: ControllerSection, period: float) -> MinOnTime | None:
-    """The valves' minimum on-time shaping of a controller section for a PWM period (s), None when
-    ``valve_min_on`` is 0. ValueError naming ``[controller] valve_min_on_ms`` when it is longer than
-    the period."""
-    if section.valve_min_on <= 0.0:
-        return None
-    check_min_on("controller", section.valve_min_on, period)
-    return MinOnTime(period, section.valve_min_on)
-
-
-def make_calibration(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
-                     rs: RigSettings, estimator) -> StartupCalibration:
-    """The start-up calibration of a controller section on a rig of settings ``rs`` (its pulse stops at
-    min(17 kPa, p_max / 2)); the estimator (when it has factor states) tracks it and gets the factors
-    as its prior. Its fit takes the estimator's membrane law and valve and sensor delays. The scenes
-    and the daemon both build it here."""
-    # the fit models the chamber as the estimator does: its membrane law, valve and sensor delays
-    fs = getattr(estimator, "settings", None)
-    timing = {k: getattr(fs, k) for k in ("valve_delay", "sensor_delay", "membrane") if hasattr(fs, k)}
-    # and starts from the estimator's prior on the factors (nominal, or a fit's values: [estimator] *_init)
-    if hasattr(fs, "modulus_init"):
-        timing["prior_mean"] = (fs.flow_factor_init, fs.modulus_init, fs.dead_volume_init)
-        timing["prior_std"] = (fs.flow_factor_init_std, fs.modulus_init_std, fs.dead_volume_init_std)
-    cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
-                             sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
-                             sensor_range=rs.sensor_range, handover_std_floor=section.calibration_std_floor,
-                             **timing)
-    return StartupCalibration(actuator, pneumatics, cs, platform,
-                              estimator=estimator if hasattr(estimator, "state_names") else None)
-
-
 def _calibrate(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                rs: RigSettings, rig: Rig, estimator) -> StartupCalibration:
     """Run the start-up calibration on the rig until it is done (the rig's clock advances); the
@@ -267,26 +214,6 @@ def _calibrate(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, s
         rig.apply(cmd)
         k += 1
     return cal
-
-
-def calibration_summary(cal: StartupCalibration, duration: float) -> dict:
-    """The calibration's outcome in edge units: status, duration_s, peak_kpa, and when it fitted the
-    factors flow_factor, modulus_factor, dead_volume_factor with their one-sigma *_std and the
-    residual RMS (kPa)."""
-    out: dict = {"status": cal.status, "duration_s": float(duration)}
-    r = cal.result
-    if r is not None:
-        std = r.std
-        out.update({"flow_factor": r.b, "modulus_factor": r.k, "dead_volume_factor": r.c,
-                    "flow_factor_std": float(std[0]), "modulus_factor_std": float(std[1]),
-                    "dead_volume_factor_std": float(std[2]), "residual_rms_kpa": U.to_kpa(r.residual_rms),
-                    "peak_kpa": U.to_kpa(r.p_peak)})
-    return out
-
-
-def controller_settings_of(section: ControllerSection):
-    """The chosen controller's settings (p_max, guard_margin) for a controller without ``settings``."""
-    return {"mpc": section.mpc, "pid": section.pid, "bang_bang": section.bang_bang}[section.kind]
 
 
 def estimator_metrics(log: ClosedLoopLog, actuator: Actuator, pneumatics: Pneumatics, platform: Platform,
@@ -421,18 +348,6 @@ def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: flo
         ax[0].set_title(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-
-
-def estimator_from_scenario(scn, rig_settings):
-    """The filter the scenario's [estimator] section names (EKF or UKF, its tuning), or the EKF
-    with the rig's sample period, sensor range and noise when there is no such section."""
-    sec = scn.role("estimator")
-    if sec is None:
-        return None  # closed_loop builds the default EKF
-    fs = filter_settings_for(sec, rig_settings)
-    if sec.filter == "ukf":
-        return UKF(scn.actuator, scn.pneumatics, fs)
-    return EKF(scn.actuator, scn.pneumatics, fs)
 
 
 def run_scene(scn, out_dir: Path | str) -> dict:

@@ -13,7 +13,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
-from hbma_ctrl.app.scenes.robot_loop import ClosedLoopRun, make_model, run_closed_loop
+from hbma_ctrl.app.scenes.robot_loop import ClosedLoopRun, run_closed_loop
+from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.app.scenes.robot_plots import plot_shapes
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.system.sections import RobotSettings

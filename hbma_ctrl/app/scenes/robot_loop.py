@@ -17,13 +17,12 @@ from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
-from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.models.bank import ChamberBank
-from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
 from hbma_ctrl.robot.targets import change_times
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+from hbma_ctrl.system.roles import make_model
 
 
 @dataclass
@@ -57,11 +56,6 @@ class ClosedLoopRun:
     lost_estimate_steps: int = 0  # chamber steps vented for a lost estimate
     bursts: list = field(default_factory=list)  # chambers the burst test flagged (indices)
     burst_peak_sigma: float = 0.0  # the burst test's largest sum, sigma (0 without the test)
-
-
-def make_model(design: RobotDesign, pneumatics: Pneumatics, topology: str) -> ChamberBank:
-    """The nominal per-chamber model (tables up to 14 mm and 2 N)."""
-    return ChamberBank(design.chamber, pneumatics, topology, load_max=2.0, h_table_max=U.mm(14.0))
 
 
 def build_closed_loop(settings: RobotSettings, targets: dict, controller: str = "mpc",
