@@ -12,16 +12,28 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.calibrate import StartupCalibration
-from hbma_ctrl.runtime.chamber import ChamberLoop
-from hbma_ctrl.system.roles import calibration_summary
+from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
+from hbma_ctrl.sim.rig import RigSettings
+from hbma_ctrl.system.roles import (
+    calibration_summary,
+    controller_settings_of,
+    default_estimator,
+    make_calibration,
+    make_controller,
+    make_pwm,
+)
+from hbma_ctrl.system.sections import ControllerSection
 
-__all__ = ["ChamberSystem", "SupervisorEpisodes"]
+__all__ = ["ChamberSystem", "SupervisorEpisodes", "chamber_system"]
 
 
 class SupervisorEpisodes:
@@ -53,36 +65,69 @@ class SupervisorEpisodes:
         return out
 
 
+class _RigClock:
+    """The loop's estimator, stepped at the rig's own time stamp of the reading (s), not the loop's
+    schedule time: its prediction spans the true time between readings. Every other attribute is the
+    estimator's own."""
+
+    def __init__(self, estimator, system: "ChamberSystem"):
+        self._est, self._system = estimator, system
+
+    def step(self, t: float, measurement, applied):
+        """The wrapped estimator's step at the rig time of this reading (``t``, the loop's time, unused)."""
+        return self._est.step(self._system.t_rig, measurement, applied)
+
+    def __getattr__(self, name):
+        return getattr(self._est, name)
+
+
 class ChamberSystem:
     """One chamber under :class:`ChamberLoop` (see module doc). ``h_range``: reachable targets (lo, hi), m.
 
-    ``calibration``: a :class:`StartupCalibration` run first (``[controller] calibrate``), as the
-    controller scene runs it: its excitation drives the chamber, its estimator is the loop's, and
-    the file's target schedule starts when it ends (a setpoint sent meanwhile holds from then on).
-    While it runs, ``warming`` is True: its fit (about a second in the tick that ends it, while the
-    chamber vents) does not feed the loop watchdog. ``take_events()`` hands the loop what to log.
+    ``calibration``: a :class:`StartupCalibration` run first (``[controller] calibrate``): its excitation
+    drives the chamber, its estimator is the loop's. While it runs, ``warming`` is True: its fit (about
+    a second in the tick that ends it, while the chamber vents) does not feed the loop watchdog.
+    ``take_events()`` hands the caller what to log.
+
+    Clocks: the loop closes at its first tick after the calibration (at once without one). From then on
+    the controller, the target schedule and the load schedule of a scene run on the loop's time, whole
+    sample periods (``sample_period`` s) since it closed: a lockstep rig's k-th reading is at exactly k
+    periods, so a schedule's step lands on the same sample wherever the loop starts, and a real rig's
+    jitter does not move a target change by a fraction of a period. The estimator runs on the rig's own
+    time stamps (its prediction spans the true time between readings).
     """
 
     kind = "chamber"
 
-    def __init__(self, loop: ChamberLoop, p_limit: float, h_range: tuple[float, float], names=("C1",),
-                 calibration: StartupCalibration | None = None):
+    def __init__(self, loop: ChamberLoop, p_limit: float, h_range: tuple[float, float], sample_period: float,
+                 names=("C1",), calibration: StartupCalibration | None = None):
+        if not (math.isfinite(sample_period) and sample_period > 0):
+            raise ValueError(f"ChamberSystem.sample_period = {sample_period!r} must be a positive time (s)")
         self.loop = loop
         self.n = 1
         self.names = tuple(names)
         self.p_limit = float(p_limit)
         self.h_range = (float(h_range[0]), float(h_range[1]))
+        self.sample_period = float(sample_period)
         self.calibration = calibration
         self.calibration_summary: dict | None = None
-        self._setpoint_during_calibration = False
+        self.t_rig = math.nan  # the rig time of the newest reading, s
+        self.t_closed: float | None = None  # the rig time the loop closed at, s
         self._events: list[tuple[str, str]] = []
         self._t0: float | None = None
         self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
+        loop.estimator = _RigClock(loop.estimator, self)
 
     @property
     def warming(self) -> bool:
         """True while the start-up calibration runs (its ticks do not feed the loop watchdog)."""
         return self.calibration is not None and not self.calibration.done
+
+    def loop_time(self, t: float) -> float:
+        """The loop's time (s) at rig time ``t``: whole sample periods since it closed (see the class doc)."""
+        if self.t_closed is None:
+            raise ValueError("ChamberSystem.loop_time: the loop has not closed yet")
+        return round((float(t) - self.t_closed) / self.sample_period) * self.sample_period
 
     def take_events(self) -> list[tuple[str, str]]:
         """(kind, cause) events since the last call (the calibration's start and outcome, the
@@ -93,6 +138,7 @@ class ChamberSystem:
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1); ``held`` (3, 1): the
         command the rig reports it held over the period p ends (None: the last one returned)."""
+        self.t_rig = float(t)
         if self._t0 is None:
             self._t0 = float(t)
             if self.calibration is not None:
@@ -101,19 +147,20 @@ class ChamberSystem:
         if self.warming:
             cmd, done = self.calibration.tick(t, float(p[0]), h)
             if done:
-                self._calibrated(t, cmd)
+                self.loop.command = cmd  # the loop takes over from the calibration's vent command
             return cmd.as_array().reshape(3, 1)
-        return self.loop.tick(t, float(p[0]), h).as_array().reshape(3, 1)
+        if self.t_closed is None:
+            self._close(float(t))
+        return self.loop.tick(self.loop_time(t), float(p[0]), h).as_array().reshape(3, 1)
 
-    def _calibrated(self, t: float, cmd: Command) -> None:
-        """The calibration ended at rig time t (s): the loop takes over from its vent command, the
-        file's schedule shifted to start now (as the scene's loop starts at 0 when it closes)."""
+    def _close(self, t: float) -> None:
+        """The loop closes at rig time t (s): after the calibration, its outcome is reported with the
+        time it took until now."""
+        self.t_closed = t
         cal = self.calibration
+        if cal is None:
+            return
         self.calibration_summary = calibration_summary(cal, t - self._t0)
-        self.loop.command = cmd
-        ref = self.loop.reference
-        if ref is not None and not self._setpoint_during_calibration:
-            self.loop.set_reference(lambda tt, ref=ref, t1=float(t): ref(tt - t1))
         s = self.calibration_summary
         facts = (f": flow x{s['flow_factor']:.3f}, modulus x{s['modulus_factor']:.3f}, dead volume "
                  f"x{s['dead_volume_factor']:.3f}" if cal.result is not None else "")
@@ -162,7 +209,6 @@ class ChamberSystem:
         """Hold the applied height from now on (the file's target schedule ends)."""
         h = applied.get("heights", {}).get(0)
         if h is not None:
-            self._setpoint_during_calibration = self.warming
             self.loop.set_reference(lambda _t, h=float(h): h)
 
     def stats(self) -> dict:
@@ -172,3 +218,44 @@ class ChamberSystem:
         if self.calibration is not None:
             out["calibration"] = self.calibration_summary or {"status": self.calibration.status}
         return out
+
+
+def chamber_system(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
+                   rig_settings: RigSettings, *, estimator=None, controller=None, model: PredictionModel | None = None,
+                   calibrate: bool | None = None, realtime: bool = False, stats_capacity: int = 4096,
+                   period_key: str = "[rig] sample_period_ms") -> ChamberSystem:
+    """The chamber system a ``[controller]`` section asks for on a rig of ``rig_settings`` (SI).
+
+    ``estimator`` defaults to the EKF on the nominal model (:func:`~hbma_ctrl.system.roles.default_estimator`),
+    ``controller`` to the one the section names; an NMPC with a horizon gets the future targets for ramps and
+    sines (or as ``[controller] preview`` says). ``calibrate`` (None = the section's ``calibrate``) puts the
+    start-up calibration first. ``realtime``: the loop runs against a wall clock (the rig daemon), so the
+    NMPC's solve-time budget is enforced whatever the section says. ``period_key`` names the rig's period as
+    the user sets it, for the error when the controller's period is no whole multiple of it.
+    """
+    rs = rig_settings
+    est = estimator or default_estimator(actuator, pneumatics, None, rs)
+    if controller is None and realtime and section.kind == "mpc":
+        # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
+        # the last plan, then the safe command), never a late command
+        section = replace(section, mpc=replace(section.mpc, enforce_budget=True))
+    ctrl = controller or make_controller(section, actuator, pneumatics, model)
+    ratio = section.sample_period / rs.sample_period
+    every = int(round(ratio))
+    if every < 1 or abs(ratio - every) > 1e-6:
+        raise ValueError(f"[controller] sample_ms = {U.to_ms(section.sample_period):g} ms must be a whole multiple of "
+                         f"{period_key} = {U.to_ms(rs.sample_period):g} ms")
+    # controllers with a horizon get the future targets (a rig daemon knows its trajectory too)
+    use_preview = section.preview if section.preview is not None else (
+        section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
+    preview_n = section.mpc.horizon if getattr(ctrl, "accepts_preview", False) and use_preview else 0
+    settings = getattr(ctrl, "settings", None) or controller_settings_of(section)
+    loop = ChamberLoop(est, ctrl, chamber_supervisor(settings), reference=section.reference, every=every,
+                       preview_steps=preview_n, preview_period=section.sample_period, stats_capacity=stats_capacity,
+                       pwm=make_pwm(section, rs.sample_period))
+    h_min = float(getattr(settings, "h_min", 0.0) or 0.0)
+    h_max = float(getattr(settings, "h_max", U.mm(20.0)))
+    cal = None
+    if section.calibrate if calibrate is None else calibrate:
+        cal = make_calibration(actuator, pneumatics, platform, section, rs, est)
+    return ChamberSystem(loop, section.p_max, (h_min, h_max), rs.sample_period, calibration=cal)

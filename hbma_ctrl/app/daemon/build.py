@@ -22,15 +22,14 @@ from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
 from hbma_ctrl.system.roles import make_model
-from hbma_ctrl.system.roles import controller_settings_of, estimator_from_scenario, make_calibration, make_controller, make_pwm
+from hbma_ctrl.system.roles import estimator_from_scenario
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.rig import RobotRigSettings
-from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
-from hbma_ctrl.system.chamber import ChamberSystem
+from hbma_ctrl.system.chamber import ChamberSystem, chamber_system
 from hbma_ctrl.system.robot import RobotSystem
 
 __all__ = ["build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
@@ -86,33 +85,10 @@ def _same_period(cfg: DaemonConfig, rs):
 
 def _chamber_runner(cfg: DaemonConfig) -> ChamberSystem:
     scn = cfg.scenario
-    section = scn.role("controller")
     rs = chamber_rig_settings(cfg)
-    est = estimator_from_scenario(scn, rs)
-    if est is None:
-        from hbma_ctrl.estimators.ekf import EKF, EKFSettings
-        est = EKF(scn.actuator, scn.pneumatics, EKFSettings(sample_period=rs.sample_period,
-                                                            noise_std=max(rs.noise_std, 1.0),
-                                                            sensor_range=rs.sensor_range))
-    if section.kind == "mpc":
-        # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
-        # the last plan, then the safe command), never a late command
-        section = replace(section, mpc=replace(section.mpc, enforce_budget=True))
-    ctrl = make_controller(section, scn.actuator, scn.pneumatics)
-    ratio = section.sample_period / rs.sample_period
-    every = int(round(ratio))
-    if every < 1 or abs(ratio - every) > 1e-6:
-        raise ValueError(f"[controller] sample_ms = {U.to_ms(section.sample_period):g} must be a whole multiple of the "
-                         f"daemon's period 1000 / [daemon] rate_hz = {U.to_ms(rs.sample_period):g} ms")
-    settings = getattr(ctrl, "settings", None) or controller_settings_of(section)
-    loop = ChamberLoop(est, ctrl, chamber_supervisor(settings), reference=section.reference, every=every,
-                       pwm=make_pwm(section, rs.sample_period))
-    h_min = float(getattr(settings, "h_min", 0.0) or 0.0)
-    h_max = float(getattr(settings, "h_max", U.mm(20.0)))
-    cal = None
-    if section.calibrate:
-        cal = make_calibration(scn.actuator, scn.pneumatics, scn.platform, section, rs, est)
-    return ChamberSystem(loop, section.p_max, (h_min, h_max), calibration=cal)
+    return chamber_system(scn.actuator, scn.pneumatics, scn.platform, scn.role("controller"), rs,
+                          estimator=estimator_from_scenario(scn, rs), realtime=True,
+                          period_key="the daemon's period 1000 / [daemon] rate_hz")
 
 
 def _robot_runner(cfg: DaemonConfig) -> RobotSystem:

@@ -60,18 +60,14 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
-from hbma_ctrl.runtime.calibrate import StartupCalibration
-from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
-from hbma_ctrl.sim.rig import Rig, RigSettings
+from hbma_ctrl.sim.rig import RigSettings
 from hbma_ctrl.sim.simulate import Plant
+from hbma_ctrl.system.chamber import chamber_system
+from hbma_ctrl.system.run import run_lockstep
+from hbma_ctrl.system.sim_rig import SimRig
 from hbma_ctrl.system.roles import (
-    calibration_summary,
-    controller_settings_of,
     default_estimator,
     estimator_from_scenario,
-    make_calibration,
-    make_controller,
-    make_pwm,
 )
 
 __all__ = ["closed_loop", "ClosedLoopLog", "loop_metrics", "run_scene", "plot_closed_loop"]
@@ -123,54 +119,34 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
 
     check_range("closed_loop", "duration", duration, 0.0, 1e5, "s", lo_open=True)
     rs = rig_settings or RigSettings()
-    rig = Rig(actuator, pneumatics, platform, rs)
+    rig = SimRig.chamber(actuator, pneumatics, platform, rs)
     est = estimator or default_estimator(actuator, pneumatics, None, rs)
     if hasattr(est, "attach"):
-        est.attach(rig)  # e.g. a test oracle that reads the rig's true state
-    ctrl = controller or make_controller(section, actuator, pneumatics, model)
-    ratio = section.sample_period / rs.sample_period
-    every = int(round(ratio))
-    if every < 1 or abs(ratio - every) > 1e-6:
-        raise ValueError(f"controller.sample_ms ({U.to_ms(section.sample_period):g} ms) must be a whole multiple "
-                         f"of the rig's sample period ({U.to_ms(rs.sample_period):g} ms)")
+        est.attach(rig.rig)  # e.g. a test oracle that reads the rig's true state
     n = int(round(duration / rs.sample_period))
-    # controllers with a horizon get the future targets (a rig daemon knows its trajectory too)
-    use_preview = section.preview if section.preview is not None else (
-        section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
-    preview_n = section.mpc.horizon if getattr(ctrl, "accepts_preview", False) and use_preview else 0
+    every = max(int(round(section.sample_period / rs.sample_period)), 1)
+    # the timing buffer holds every controller step of the run: the scene's medians are exact
+    system = chamber_system(actuator, pneumatics, platform, section, rs, estimator=est, controller=controller,
+                            model=model, calibrate=calibrate, stats_capacity=n // every + 1)
+    loop = system.loop
     cols = {k: np.zeros(n) for k in ("t", "target", "h_true", "h_est", "p_true", "p_meas", "p_est",
                                      "F_true", "F_est", "load")}
     u_log = np.zeros((n, 3))
     nees, nis, est_s = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-
     loads = list(section.load_steps)
-    # the timing buffer holds every controller step of the run: the scene's medians are exact
-    loop = ChamberLoop(est, ctrl, chamber_supervisor(getattr(ctrl, "settings", None) or controller_settings_of(section)),
-                       reference=section.reference, every=every, preview_steps=preview_n,
-                       preview_period=section.sample_period, stats_capacity=n // every + 1,
-                       pwm=make_pwm(section, rs.sample_period))
-    t_wall = time.perf_counter()
-    cal = None
-    if section.calibrate if calibrate is None else calibrate:
-        cal = _calibrate(actuator, pneumatics, platform, section, rs, rig, est)
-        # the estimator carries on from the calibration: its clock is the rig's, the loop's starts at 0
-        est = _Shifted(est, rig.t)
-        loop.estimator = est
-        loop.command = cal.command
-    t_cal = rig.t
-    for k in range(n):
-        t = k * rs.sample_period
+
+    def put_loads(k: int, t: float) -> None:
         while loads and loads[0][0] <= t + 1e-9:
             rig.set_load(loads.pop(0)[1])
-        z = rig.measure()
-        cmd = loop.tick(t, z)
-        e, r = loop.estimate, loop.target
+
+    def record(k: int, r, u: np.ndarray) -> None:
+        e, z = loop.estimate, float(r.p[0])
         tr = rig.truth()
-        for key, val in (("t", t), ("target", r), ("h_true", tr["h"]), ("h_est", e.h), ("p_true", tr["p"]),
-                         ("p_meas", z), ("p_est", e.p), ("F_true", tr["F"]), ("F_est", e.F),
-                         ("load", rig.platform.load)):
+        for key, val in (("t", k * rs.sample_period), ("target", loop.target), ("h_true", tr["h"]), ("h_est", e.h),
+                         ("p_true", tr["p"]), ("p_meas", z), ("p_est", e.p), ("F_true", tr["F"]), ("F_est", e.F),
+                         ("load", rig.rig.platform.load)):
             cols[key][k] = val
-        u_log[k] = cmd.as_array()
+        u_log[k] = u[:, 0]
         # estimator consistency, where the filter exposes its output covariance (EKF, UKF)
         C = getattr(est, "last_output_cov", None)
         if C is not None:
@@ -180,40 +156,15 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
             nis[k] = est.last_nis
         if getattr(est, "last_step_s", None) is not None:
             est_s[k] = est.last_step_s
-        rig.apply(cmd)
+
+    t_wall = time.perf_counter()
+    run_lockstep(system, rig, duration, before=put_loads, after=record)
     wall = time.perf_counter() - t_wall
-    return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(), events=[(te - t_cal, name) for te, name in rig.events],
+    t_cal = 0.0 if system.t_closed is None else system.t_closed
+    return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(),
+                         events=[(te - t_cal, name) for te, name in rig.rig.events],
                          wall_s=wall, nees=nees, nis=nis, est_step_s=est_s, solve_ms=loop.solve_ms.values(),
-                         supervisor_events=loop.events(),
-                         calibration=None if cal is None else calibration_summary(cal, t_cal))
-
-
-class _Shifted:
-    """An estimator whose clock runs ``offset`` s ahead of the caller's (the loop's t = 0 is when it
-    closes, after the calibration); every other attribute is the estimator's own."""
-
-    def __init__(self, estimator, offset: float):
-        self._est, self._offset = estimator, float(offset)
-
-    def step(self, t: float, measurement, applied):
-        """The wrapped estimator's step at t + offset (s)."""
-        return self._est.step(t + self._offset, measurement, applied)
-
-    def __getattr__(self, name):
-        return getattr(self._est, name)
-
-
-def _calibrate(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
-               rs: RigSettings, rig: Rig, estimator) -> StartupCalibration:
-    """Run the start-up calibration on the rig until it is done (the rig's clock advances); the
-    estimator tracks it and gets the factors as its prior."""
-    cal = make_calibration(actuator, pneumatics, platform, section, rs, estimator)
-    done, k = False, 0
-    while not done:
-        cmd, done = cal.tick(k * rs.sample_period, rig.measure())
-        rig.apply(cmd)
-        k += 1
-    return cal
+                         supervisor_events=loop.events(), calibration=system.calibration_summary)
 
 
 def estimator_metrics(log: ClosedLoopLog, actuator: Actuator, pneumatics: Pneumatics, platform: Platform,

@@ -1,0 +1,54 @@
+"""The one driver of a system on a lockstep rig: read, tick, write, once per sample period (SI).
+
+:func:`run_lockstep` is what every simulated closed loop runs: the scenes, the benches and tuning. A
+real-time loop (the rig daemon) paces the same three calls with a wall clock and its watchdog.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+from hbma_ctrl.core.params import check_range
+from hbma_ctrl.system.rigio import Readings, RigIO
+
+__all__ = ["TickingSystem", "run_lockstep"]
+
+
+class TickingSystem(Protocol):
+    """What a driver needs of a system: ``tick(t, p[n], held[3, n] | None) -> u[3, n]`` and ``warming``
+    (True while a start-up calibration runs, before the loop closes)."""
+
+    warming: bool
+
+    def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray: ...
+
+
+def run_lockstep(system: TickingSystem, rig: RigIO, duration: float,
+                 before: Callable[[int, float], None] | None = None,
+                 after: Callable[[int, Readings, np.ndarray], None] | None = None) -> int:
+    """Drive ``system`` on the lockstep ``rig`` until its closed loop has run ``duration`` s; the start-up
+    calibration's periods come first and do not count. Returns the number of closed-loop periods.
+
+    Each period: ``before(k, t)`` (the k-th closed-loop period, at loop time t = k periods, s: a scene
+    puts its scheduled loads on the rig here), the rig's readings, the system's tick, ``after(k,
+    readings, u)`` (a scene logs here), and the command written to the rig, which advances it one period.
+    Neither hook runs in a calibration period.
+    """
+    check_range("run_lockstep", "duration", duration, 0.0, 1e5, "s", lo_open=True)
+    Ts = rig.sample_period
+    n = int(round(duration / Ts))
+    k = 0
+    while k < n:
+        closed = not system.warming
+        if closed and before is not None:
+            before(k, k * Ts)
+        r = rig.read()
+        u = system.tick(r.t, r.p, r.held)
+        if closed:
+            if after is not None:
+                after(k, r, u)
+            k += 1
+        rig.write(u)
+    return n
