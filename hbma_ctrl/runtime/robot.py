@@ -220,6 +220,8 @@ class RobotLoop:
         self.cautious_steps = 0
         self.estimate: dict | None = None
         self.valve_commands = np.zeros((3, self.n))
+        #: the last tick's (supply, outlet) duties, each (n,): the decision the valve commands carry out
+        self.decision = (np.zeros(self.n), np.zeros(self.n))
         self._w_prev = np.zeros((2, self.n))
         # the valve commands sent lately with what the bank predicts with for each (newest last): a rig
         # that reports the command it held (tick's ``held``) names one of them
@@ -344,6 +346,7 @@ class RobotLoop:
         # release of the cautious cap (the modulus factor's std) on the shared pump (models.bank)
         self._w_prev = np.vstack([supply, Uc[2]])
         self.valve_commands = Uc
+        self.decision = (a, o)
         self._sent.append((Uc.copy(), self._w_prev))
         self._k += 1
         return a, o

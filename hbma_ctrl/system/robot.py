@@ -9,21 +9,32 @@ targets, NMPC or pressure PID, the supervisor and the burst test) with the same 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
+from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.params import Pneumatics
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.models.bank import ChamberBank
 from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
-from hbma_ctrl.runtime.robot import RobotLoop
+from hbma_ctrl.robot.rig import RobotRigSettings
+from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 from hbma_ctrl.system.chamber import SupervisorEpisodes
+from hbma_ctrl.system.roles import make_model
+from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
 
-__all__ = ["RobotSystem"]
+__all__ = ["RobotSystem", "robot_system"]
 
 
 class RobotSystem:
     """The robot under :class:`RobotLoop` (see module doc). ``h_max``: the highest chamber target, m."""
 
     kind = "robot"
+    #: the robot has no start-up calibration: its loop is closed from the first tick
+    warming = False
 
     def __init__(self, loop: RobotLoop, p_limit: float, h_max: float):
         self.loop = loop
@@ -148,3 +159,49 @@ class RobotSystem:
     def stats(self) -> dict:
         """The loop's statistics (ms, counts)."""
         return self.loop.stats()
+
+
+def robot_system(settings: RobotSettings, targets: dict, rig_settings: RobotRigSettings, controller: str = "mpc",
+                 pneumatics: Pneumatics | None = None, mpc: RobotMPCSettings | None = None,
+                 pid: RobotPIDSettings | None = None, model: ChamberBank | None = None,
+                 interlock_margin: float = 1e3, cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC,
+                 p_max: float | None = None, target_rate: float | None = None) -> RobotSystem:
+    """The robot system ``settings`` asks for on a rig of ``rig_settings`` (SI): the chambers' EKF bank,
+    the NMPC (``mpc``, its class ``nmpc_class``) or the pressure PID (``pid``), the supervisor and the loop.
+
+    targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
+    interlock_margin : the supply is cut while a reading is within this of the pressure limit, Pa.
+    cautious : (pressure fraction, k std, duty) — while a chamber's estimated pressure is above the
+        fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
+        its supply duty is capped (the NMPC's input bound); None = off.
+    p_max : the NMPC's pressure bound, Pa (None = the robot's pressure limit).
+    target_rate : the fastest a chamber's target moves, m/s (None = ``settings.target_rate``).
+    """
+    if controller not in CONTROLLERS:
+        raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
+    d = settings.design
+    rp = settings.pneumatics
+    pn = (pneumatics or Pneumatics()).validate()
+    rs = rig_settings.validate()
+    n = 3 * d.n_layers
+    model = model or make_model(d, pn, rp.topology)
+    if model.topology != rp.topology:
+        raise ValueError("robot_system: the model's topology differs from robot.topology")
+    Ts = rs.sample_period
+    settings.check_period(Ts)
+    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
+                                                        sensor_range=rp.sensor_range,
+                                                        valve_delay=settings.valve_delay,
+                                                        sensor_delay=settings.sensor_delay))
+    if controller == "mpc":
+        ms = replace(mpc or RobotMPCSettings(), sample_period=Ts,
+                     p_max=rp.pressure_limit if p_max is None else p_max)
+        ctrl = nmpc_class(model, n, ms)
+    else:
+        ctrl = RobotPressurePID(model, n, replace(pid or RobotPIDSettings(), sample_period=Ts))
+    sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
+                           plan_period=ctrl.s.dt if controller == "mpc" else None)
+    loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None,
+                     target_rate=settings.target_rate if target_rate is None else target_rate,
+                     valve_min_on=settings.valve_min_on, burst=settings.burst)
+    return RobotSystem(loop, rp.pressure_limit, model.h_table_max)

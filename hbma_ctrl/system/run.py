@@ -27,14 +27,16 @@ class TickingSystem(Protocol):
 
 def run_lockstep(system: TickingSystem, rig: RigIO, duration: float,
                  before: Callable[[int, float], None] | None = None,
-                 after: Callable[[int, Readings, np.ndarray], None] | None = None) -> int:
+                 ticked: Callable[[int, Readings, np.ndarray], None] | None = None,
+                 advanced: Callable[[int, Readings, np.ndarray], bool | None] | None = None) -> int:
     """Drive ``system`` on the lockstep ``rig`` until its closed loop has run ``duration`` s; the start-up
-    calibration's periods come first and do not count. Returns the number of closed-loop periods.
+    calibration's periods come first and do not count. Returns the number of closed-loop periods run.
 
-    Each period: ``before(k, t)`` (the k-th closed-loop period, at loop time t = k periods, s: a scene
-    puts its scheduled loads on the rig here), the rig's readings, the system's tick, ``after(k,
-    readings, u)`` (a scene logs here), and the command written to the rig, which advances it one period.
-    Neither hook runs in a calibration period.
+    Each closed-loop period k (at loop time t = k periods, s): ``before(k, t)`` (a scene puts its
+    scheduled loads on the rig here), the rig's readings, the system's tick, ``ticked(k, readings, u)``
+    (the state the readings were taken in: a scene logs it here), the command written to the rig, which
+    advances it one period, and ``advanced(k, readings, u)`` (the state the period ended in); a true
+    return of ``advanced`` ends the run there (a diverged plant). No hook runs in a calibration period.
     """
     check_range("run_lockstep", "duration", duration, 0.0, 1e5, "s", lo_open=True)
     Ts = rig.sample_period
@@ -46,9 +48,11 @@ def run_lockstep(system: TickingSystem, rig: RigIO, duration: float,
             before(k, k * Ts)
         r = rig.read()
         u = system.tick(r.t, r.p, r.held)
-        if closed:
-            if after is not None:
-                after(k, r, u)
-            k += 1
+        if closed and ticked is not None:
+            ticked(k, r, u)
         rig.write(u)
-    return n
+        if closed:
+            k += 1
+            if advanced is not None and advanced(k - 1, r, u):
+                break
+    return k

@@ -75,9 +75,9 @@ def _build(scn, nmpc_class=None):
     if mpc.enforce_budget and mpc.budget > 0:
         raise ValueError("codegen: [robot] mpc_enforce_budget = true: an enforced wall-time budget depends on "
                          "the machine's clock; set it to false to generate the loop")
-    plant, loop = build_closed_loop(s, s.targets, "mpc", scn.pneumatics, rig, mpc, model=model, tip_load=s.tip_load,
+    sim, system = build_closed_loop(s, s.targets, "mpc", scn.pneumatics, rig, mpc, model=model, tip_load=s.tip_load,
                                     nmpc_class=nmpc_class or RobotNMPCFunction)
-    return s, rig, plant, loop
+    return s, rig, sim.rig, system.loop
 
 
 def _clock(plant, n_ticks: int) -> tuple[np.ndarray, np.ndarray]:

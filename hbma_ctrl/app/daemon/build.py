@@ -17,20 +17,16 @@ import math
 from dataclasses import replace
 
 
-from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
-from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
+from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
-from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.roles import estimator_from_scenario
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.rig import RobotRigSettings
-from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 from hbma_ctrl.system.chamber import ChamberSystem, chamber_system
-from hbma_ctrl.system.robot import RobotSystem
+from hbma_ctrl.system.robot import RobotSystem, robot_system
 
 __all__ = ["build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
            "robot_rig_settings", "DAEMON_MPC_BUDGET", "DAEMON_TARGET_RATE", "DAEMON_W_SLACK", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
@@ -94,15 +90,9 @@ def _chamber_runner(cfg: DaemonConfig) -> ChamberSystem:
 def _robot_runner(cfg: DaemonConfig) -> RobotSystem:
     scn = cfg.scenario
     s = scn.role("robot")
-    d, rp = s.design, s.pneumatics
+    rp = s.pneumatics
     rs = robot_rig_settings(cfg)
-    n = 3 * d.n_layers
-    model = make_model(d, scn.pneumatics, rp.topology)
-    Ts = rs.sample_period
-    s.check_period(Ts)
-    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
-                                                        sensor_range=rp.sensor_range, valve_delay=s.valve_delay,
-                                                        sensor_delay=s.sensor_delay))
+    mpc, p_max = None, None
     if s.controller == "mpc":
         # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
         # the last plan, then the safe command), never a late command
@@ -111,19 +101,14 @@ def _robot_runner(cfg: DaemonConfig) -> RobotSystem:
         # chamber's readings cross it on noise alone (a soak: 0.3 % of its readings, up to 45.6 of 45 kPa)
         p_max = rp.pressure_limit - ROBOT_NOISE_MARGIN * rs.noise_std
         w_slack = DAEMON_W_SLACK if s.mpc_w_slack is None else s.mpc_w_slack
-        ms = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt), sample_period=Ts, p_max=p_max,
-                     budget=budget, enforce_budget=True, w_slack=w_slack)
-        ctrl = RobotNMPC(model, n, ms)
-    else:
-        ctrl = RobotPressurePID(model, n, replace(RobotPIDSettings(), sample_period=Ts))
-    sup = robot_supervisor(rp.pressure_limit, n, plan_period=ctrl.s.dt if s.controller == "mpc" else None)
-    rate = DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate
-    loop = RobotLoop(d, model, bank, ctrl, sup, s.targets, cautious=(0.75, 0.03, 0.3) if s.controller == "mpc" else None,
-                     target_rate=rate, valve_min_on=s.valve_min_on, burst=s.burst)
+        mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=budget, enforce_budget=True,
+                               w_slack=w_slack)
+    system = robot_system(s, s.targets, rs, s.controller, scn.pneumatics, mpc=mpc, p_max=p_max,
+                          target_rate=DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate)
     # the solver's set-up and first solve before the first deadline, not in it (a replay of a run
     # builds its runner here too, so it starts as the run did)
-    loop.prime()
-    return RobotSystem(loop, rp.pressure_limit, model.h_table_max)
+    system.loop.prime()
+    return system
 
 
 def build_runner(cfg: DaemonConfig) -> ChamberSystem | RobotSystem:

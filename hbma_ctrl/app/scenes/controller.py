@@ -158,7 +158,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
             est_s[k] = est.last_step_s
 
     t_wall = time.perf_counter()
-    run_lockstep(system, rig, duration, before=put_loads, after=record)
+    run_lockstep(system, rig, duration, before=put_loads, ticked=record)
     wall = time.perf_counter() - t_wall
     t_cal = 0.0 if system.t_closed is None else system.t_closed
     return ClosedLoopLog(**cols, u=u_log, stats=loop.stats(),

@@ -9,20 +9,20 @@ its estimate is logged), so both loops' step times include it.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
-from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
-from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
+from hbma_ctrl.controllers.robot_pid import RobotPIDSettings
+from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core.params import Pneumatics, check_range
 from hbma_ctrl.models.bank import ChamberBank
-from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
+from hbma_ctrl.robot.rig import RobotRigSettings
 from hbma_ctrl.robot.targets import change_times
-from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
-from hbma_ctrl.system.roles import make_model
+from hbma_ctrl.system.robot import RobotSystem, robot_system
+from hbma_ctrl.system.run import run_lockstep
+from hbma_ctrl.system.sim_rig import SimRig
 
 
 @dataclass
@@ -62,37 +62,14 @@ def build_closed_loop(settings: RobotSettings, targets: dict, controller: str = 
                       pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                       mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                       model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> tuple[RobotRig, RobotLoop]:
-    """The robot rig and the loop that drives it (:func:`run_closed_loop`'s arguments; ``nmpc_class``
-    the NMPC's class, :class:`RobotNMPC` or one with its interface). A generated loop is built from
-    the same objects (:mod:`hbma_ctrl.app.codegen.robot`)."""
-    if controller not in CONTROLLERS:
-        raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
-    d = settings.design
-    rp = settings.pneumatics
-    pn = (pneumatics or Pneumatics()).validate()
+                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> tuple[SimRig, RobotSystem]:
+    """The simulated robot rig and the system that drives it (:func:`run_closed_loop`'s arguments;
+    ``nmpc_class`` the NMPC's class, :class:`RobotNMPC` or one with its interface). A generated loop is
+    built from the same objects (:mod:`hbma_ctrl.app.codegen.robot`)."""
     rs = (rig or RobotRigSettings()).validate()
-    n = 3 * d.n_layers
-    model = model or make_model(d, pn, rp.topology)
-    if model.topology != rp.topology:
-        raise ValueError("run_closed_loop: the model's topology differs from robot.topology")
-    Ts = rs.sample_period
-    settings.check_period(Ts)
-    plant = RobotRig(d, pn, rp.sensor_range, rp.topology, rs, tip_load)
-    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
-                                                        sensor_range=rp.sensor_range,
-                                                        valve_delay=settings.valve_delay,
-                                                        sensor_delay=settings.sensor_delay))
-    if controller == "mpc":
-        ms = replace(mpc or RobotMPCSettings(), sample_period=Ts, p_max=rp.pressure_limit)
-        ctrl = nmpc_class(model, n, ms)
-    else:
-        ctrl = RobotPressurePID(model, n, replace(pid or RobotPIDSettings(), sample_period=Ts))
-    sup = robot_supervisor(rp.pressure_limit, n, interlock_margin,
-                           plan_period=ctrl.s.dt if controller == "mpc" else None)
-    loop = RobotLoop(d, model, bank, ctrl, sup, targets, cautious=cautious if controller == "mpc" else None,
-                     target_rate=settings.target_rate, valve_min_on=settings.valve_min_on, burst=settings.burst)
-    return plant, loop
+    system = robot_system(settings, targets, rs, controller, pneumatics, mpc, pid, model, interlock_margin,
+                          cautious, nmpc_class)
+    return SimRig.robot(settings, rs, pneumatics, tip_load), system
 
 
 def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, controller: str = "mpc",
@@ -113,11 +90,12 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     (:class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` runs the generated loop's step).
     """
     check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
-    plant, loop = build_closed_loop(settings, targets, controller, pneumatics, rig, mpc, pid, model, tip_load,
+    sim, system = build_closed_loop(settings, targets, controller, pneumatics, rig, mpc, pid, model, tip_load,
                                     interlock_margin, cautious, nmpc_class)
-    n, Ts = loop.n, plant.s.sample_period
+    plant, loop = sim.rig, system.loop
+    n = loop.n
     ctrl, sup = loop.controller, loop.supervisor
-    steps = int(round(duration / Ts))
+    steps = int(round(duration / sim.sample_period))
     T = steps + 1
     H, HR, HE, P, PM, LM, A, O, LD, BE = (np.zeros((T, n)) for _ in range(10))
     tt = np.zeros(T)
@@ -135,18 +113,21 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
         BE[j] = est["b"] if est else 1.0
         LD[j] = plant.loads
 
-    rec(0, plant.measure(), None)
-    for j in range(steps):
-        z = plant.measure()
-        a, o = loop.tick(plant.t, z)
+    def ticked(j: int, r, u: np.ndarray) -> None:
         st[j], se[j], sc[j] = loop.last_timing
-        plant.apply(loop.valve_commands)
-        A[j + 1], O[j + 1] = a, o
-        rec(j + 1, z, loop.estimate)
+
+    def advanced(j: int, r, u: np.ndarray) -> bool:
+        nonlocal status, T
+        A[j + 1], O[j + 1] = loop.decision
+        rec(j + 1, r.p, loop.estimate)
         if not plant.plant.alive.all():
-            status = "diverged"
-            T = j + 2
-            break
+            status, T = "diverged", j + 2
+            return True
+        return False
+
+    # the first row is the rig at rest, with a reading of its own
+    rec(0, plant.measure(), None)
+    run_lockstep(system, sim, duration, ticked=ticked, advanced=advanced)
     sl = slice(0, T)
     ls = loop.stats()
     return ClosedLoopRun(controller, tt[sl], H[sl], HR[sl], HE[sl], P[sl], PM[sl], LM[sl], A[sl], O[sl], LD[sl],
