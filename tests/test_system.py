@@ -120,15 +120,11 @@ def test_the_daemon_runs_the_scenes_system_classes(tmp_path):
     assert type(chamber) is ChamberSystem
 
 
-def test_a_robots_readings_carry_its_plants_own_clock():
-    from hbma_ctrl.app.scenario import load_scenario
-    from hbma_ctrl.robot.rig import RobotRigSettings
-
-    s = load_scenario(ROOT / "scenarios" / "robot_sequential_closed.toml").role("robot")
-    rig = SimRig.robot(s, RobotRigSettings())
-    for _ in range(3):
-        r = rig.read()
-        assert r.t == rig.rig.t
-        rig.write(np.vstack([np.zeros((2, rig.n)), np.ones((1, rig.n))]))
-    assert rig.read().t == rig.rig.t and rig.rig.t == pytest.approx(3 * rig.sample_period, abs=1e-12)
+def test_run_lockstep_ticks_on_the_clock_it_is_given():
+    system, rig = _system(False)
+    seen = []
+    tick = system.tick
+    system.tick = lambda t, p, held=None: (seen.append(t), tick(t, p, held))[1]
+    run_lockstep(system, rig, 0.03, clock=lambda r: 100.0 + r.t)
+    assert seen == [100.0 + k * PERIOD for k in range(3)]
     assert RobotSystem.warming is False

@@ -28,7 +28,8 @@ class TickingSystem(Protocol):
 def run_lockstep(system: TickingSystem, rig: RigIO, duration: float,
                  before: Callable[[int, float], None] | None = None,
                  ticked: Callable[[int, Readings, np.ndarray], None] | None = None,
-                 advanced: Callable[[int, Readings, np.ndarray], bool | None] | None = None) -> int:
+                 advanced: Callable[[int, Readings, np.ndarray], bool | None] | None = None,
+                 clock: Callable[[Readings], float] | None = None) -> int:
     """Drive ``system`` on the lockstep ``rig`` until its closed loop has run ``duration`` s; the start-up
     calibration's periods come first and do not count. Returns the number of closed-loop periods run.
 
@@ -37,6 +38,7 @@ def run_lockstep(system: TickingSystem, rig: RigIO, duration: float,
     (the state the readings were taken in: a scene logs it here), the command written to the rig, which
     advances it one period, and ``advanced(k, readings, u)`` (the state the period ended in); a true
     return of ``advanced`` ends the run there (a diverged plant). No hook runs in a calibration period.
+    ``clock(readings)``: the time (s) the system is ticked at; None = the readings' own stamp.
     """
     check_range("run_lockstep", "duration", duration, 0.0, 1e5, "s", lo_open=True)
     Ts = rig.sample_period
@@ -47,7 +49,7 @@ def run_lockstep(system: TickingSystem, rig: RigIO, duration: float,
         if closed and before is not None:
             before(k, k * Ts)
         r = rig.read()
-        u = system.tick(r.t, r.p, r.held)
+        u = system.tick(r.t if clock is None else clock(r), r.p, r.held)
         if closed and ticked is not None:
             ticked(k, r, u)
         rig.write(u)

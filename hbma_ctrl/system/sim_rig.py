@@ -3,10 +3,9 @@
 :class:`SimRig` runs in lockstep: each :meth:`SimRig.write` holds the command for exactly one
 ``sample_period`` and advances the simulated rig by that period, so rig time is ``k * sample_period``
 after k writes, exact and deterministic (same settings and seed -> same readings). :meth:`SimRig.read`
-returns the rig's measurement at the current rig time, stamped with that time (a robot's readings
-with its plant's own clock, which its sub-steps advance) and a sequence number (one new sample per
-period; a second read in the same period repeats the packet with ``fresh`` False, as a real rig's
-last packet would).
+returns the rig's measurement at the current rig time, stamped with that time and a sequence number
+(one new sample per period; a second read in the same period repeats the packet with ``fresh``
+False, as a real rig's last packet would).
 
 Real-time pacing is NOT done here: the daemon's loop paces the periods (and its ``--speed`` scales
 them); a SimRig runs as fast as it is called.
@@ -53,10 +52,6 @@ class _ChamberAdapter:
     def truth(self) -> dict:
         return self.rig.truth()
 
-    def clock(self) -> float | None:
-        """None: the chamber rig advances exactly one period per write, so whole periods stamp it."""
-        return None
-
 
 class _RobotAdapter:
     """A :class:`RobotRig` (already an array plant)."""
@@ -77,11 +72,6 @@ class _RobotAdapter:
         out = self.rig.truth()
         out["t"] = self.rig.t
         return out
-
-    def clock(self) -> float:
-        """The robot plant's own time, s: its sub-steps advance it, and its loads and tip load are
-        scheduled on it, so its readings carry it as a real rig's carry its own clock."""
-        return float(self.rig.t)
 
 
 class SimRig:
@@ -133,9 +123,7 @@ class SimRig:
         if self.closed:
             raise RuntimeError("SimRig.read after close()")
         if self._packet is None:
-            clock = self._a.clock()
-            self._packet = Readings(t=self.t if clock is None else clock, p=self._a.measure(), seq=self.seq,
-                                    fresh=np.ones(self.n, dtype=bool))
+            self._packet = Readings(t=self.t, p=self._a.measure(), seq=self.seq, fresh=np.ones(self.n, dtype=bool))
             return self._packet
         pk = self._packet
         return Readings(t=pk.t, p=pk.p.copy(), seq=pk.seq, fresh=np.zeros(self.n, dtype=bool))

@@ -127,7 +127,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
 
     # the first row is the rig at rest, with a reading of its own
     rec(0, plant.measure(), None)
-    run_lockstep(system, sim, duration, ticked=ticked, advanced=advanced)
+    # ticked on the robot plant's own clock (its sub-steps sum it), on which its loads and tip load run
+    run_lockstep(system, sim, duration, ticked=ticked, advanced=advanced, clock=lambda r: plant.t)
     sl = slice(0, T)
     ls = loop.stats()
     return ClosedLoopRun(controller, tt[sl], H[sl], HR[sl], HE[sl], P[sl], PM[sl], LM[sl], A[sl], O[sl], LD[sl],
