@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hbma_ctrl.app.codegen.loop import bench, find_compiler, read_c
+from hbma_ctrl.core.loopgen import bench, find_compiler, read_c
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.runtime.safety import ZERO_TARGET
 
@@ -95,7 +95,7 @@ def test_the_daemons_robot_loop_with_slewed_targets_follows_the_scene(tmp_path):
     """daemon_robot.toml's loop (targets slewed at 3 mm/s, the daemon's NMPC weights) with its wall-time
     budget set to 0, on the Python path (casadi's virtual machine, no C build): the scene's loop follows
     it within 1e-9 m for 0.5 s, and the slewed targets move at most 3 mm/s x 10 ms per tick."""
-    from hbma_ctrl.app.codegen.loop import run_python
+    from hbma_ctrl.core.loopgen import run_python
     from hbma_ctrl.app.codegen.robot import robot_loop, scene_reference
 
     src = (ROOT / "scenarios" / "daemon_robot.toml").read_text()

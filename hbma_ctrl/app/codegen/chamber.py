@@ -1,4 +1,4 @@
-"""A scenario's closed loop (rig -> EKF -> RTI NMPC -> rig) as a :class:`~hbma_ctrl.app.codegen.loop.LoopSpec`.
+"""A scenario's closed loop (rig -> EKF -> RTI NMPC -> rig) as a :class:`~hbma_ctrl.core.loopgen.LoopSpec`.
 
 The three step Functions are the ones the Python roles call: the plant over one rig period
 (:func:`hbma_ctrl.sim.plant_step.plant_step_function`), the EKF step
@@ -48,7 +48,7 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.controllers.mpc_prep import problem_function
-from hbma_ctrl.app.codegen.loop import LOG, LogColumn, LoopSpec, Stage
+from hbma_ctrl.core.loopgen import LOG, LogColumn, LoopSpec, Stage
 from hbma_ctrl.estimators.common import classify_expr
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.fidelity import OUTPUTS
@@ -516,7 +516,7 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str 
     """
     from dataclasses import replace
 
-    from hbma_ctrl.app.codegen.loop import time_summary
+    from hbma_ctrl.core.loopgen import time_summary
     from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
     from hbma_ctrl.system.roles import estimator_from_scenario
 

@@ -1,5 +1,5 @@
 """A robot scenario's closed loop (robot rig -> EKF bank -> NMPC -> supervisor -> valves -> rig) as a
-:class:`~hbma_ctrl.app.codegen.loop.LoopSpec`: the robot's generated C loop.
+:class:`~hbma_ctrl.core.loopgen.LoopSpec`: the robot's generated C loop.
 
 The loop is built from the very objects the scene builds (:func:`hbma_ctrl.app.scenes.robot_loop.build_closed_loop`),
 and every part of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` is the casadi Function that mirrors it,
@@ -48,7 +48,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.app.codegen.loop import LogColumn, LoopSpec, Stage
+from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Stage
 
 __all__ = ["robot_loop", "robot_scene_parts", "scene_reference", "loop_run_metrics"]
 
@@ -469,7 +469,7 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray) -> dict:
     quantity over all chambers (SI), the scene's step times (us: calls, median, p99, max) and its
     tracking beside the generated run's."""
     from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
-    from hbma_ctrl.app.codegen.loop import time_summary
+    from hbma_ctrl.core.loopgen import time_summary
     from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
     from hbma_ctrl.app.scenes.robot_closed import closed_loop_metrics
 

@@ -20,28 +20,24 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hbma_ctrl.estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
-from hbma_ctrl.estimators.ekf import EKF, OUTPUT_KEYS
-from hbma_ctrl.estimators.observer_calls import fast
-from hbma_ctrl.estimators.ekf_step import observer_model
+from hbma_ctrl.estimators.baselines import FilterpyEKF, ReferenceEKF
+from hbma_ctrl.estimators.common import FilterSettings
+from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.innovation import innovation_test
 from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import Command, Estimate
-from hbma_ctrl.models.chamber import NX, STATE_NAMES
 from hbma_ctrl.sim.batch import quiet_worker, scenario_of
 from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import SimSettings, Trial
 
-__all__ = ["EVENT_COUNTS", "ReferenceEKF", "FilterpyEKF", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
+__all__ = ["EVENT_COUNTS", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
            "FILTERS", "NEES_FLOOR"]
 
 FILTERS = ("ekf", "ukf")
@@ -55,100 +51,6 @@ EVENT_COUNTS = {"lift_offs_implausible": "lift_off_implausible", "lift_offs_rati
 BENCH_FILTERS = ("ekf", "ekf_reference", "filterpy", "ukf")
 #: variance floors of (h, F) in the NEES, m^2 and N^2 (a flat membrane's h = 0 is exactly known)
 NEES_FLOOR = np.array([(0.05e-3) ** 2, 0.02 ** 2])
-
-
-class ReferenceEKF(EKF):
-    """The EKF on its reference path (separate predict, update and output calls, detectors in
-    Python) for every step: the bench's check that the compiled step changes time, not accuracy."""
-
-    compiled_step = False
-
-
-class FilterpyEKF:
-    """filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` driven by the EKF's casadi model
-    (the bench's library baseline, SI): the same compiled discrete map and its Jacobian A as F,
-    the same process noise and measurement variance, H = dp/dx and the predicted pressure from the
-    same model, the same output map; filterpy's own predict and update (inverse of S, Joseph form).
-    What it lacks is the EKF's own logic: no sticky rest or lift-off detector (the model decides
-    contact by the load state), no gate, no guards, no valve or sensor delays (the commands act at
-    once). So that it can follow a load at all the load
-    starts at the trial's nominal weight (known), one sigma 10 % + 0.01 N. Missing and out-of-range
-    readings skip the update."""
-
-    state_names = STATE_NAMES
-
-    def __init__(self, actuator, pneumatics, settings: FilterSettings, load: float = 0.0):
-        from filterpy.kalman import ExtendedKalmanFilter  # the bench's baseline only
-
-        s = self.settings = settings.validate()
-        self.model = observer_model(actuator, pneumatics, s)
-        self._pred = fast(self.model.predict, s.compile)
-        self._outf = fast(self.model.outputs, s.compile)
-        self.theta = np.asarray(self.model.theta, dtype=float)
-        self.kf = ExtendedKalmanFilter(dim_x=NX, dim_z=1)
-        self.kf.predict_x = self._predict_x
-        self._xn = np.zeros((NX, 1))
-        self.load = float(load)
-        self.s = np.zeros(2)
-        self.t: float | None = None
-        self.last_nis: float | None = None
-        self.last_output_cov = np.zeros((5, 5))
-        self.last_step_s = 0.0
-        dt = s.sample_period
-        self._q = np.array([s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
-                            s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt])
-        self._qv = np.array([s.flow_rel_std, *self._q, s.cov_floor])
-        self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
-
-    def _predict_x(self, u=0) -> None:
-        self.kf.x = self._xn  # filterpy's hook: the model's map, computed with F by step()
-
-    def step(self, t: float, measurement, applied_command: Command) -> Estimate:
-        """Predict one period with the command held since the last step, update with the reading (Pa)."""
-        t0 = time.perf_counter()
-        s, kf = self.settings, self.kf
-        kind = classify_measurement(measurement, s.sensor_range, *self._bounds)
-        if self.t is None:
-            act = self.model.actuator
-            p0 = float(measurement) if kind == "ok" else 0.0
-            kf.x = np.array([[(max(p0, 0.0) + act.p_env) * act.V0 / self.model.rt], [self.load], [1.0], [1.0],
-                             [1.0]])
-            kf.P = np.diag([s.mass_init_std ** 2, (0.1 * self.load + 0.01) ** 2, s.flow_factor_init_std ** 2,
-                            s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
-        else:
-            u = applied_command.as_array() if isinstance(applied_command, Command) else \
-                np.asarray(applied_command, dtype=float).reshape(3)
-            out = self._pred(kf.x.ravel(), self.s, u, self.theta, 0.0, kf.P, self._qv)
-            self._xn = out[0].reshape(NX, 1).copy()
-            kf.F = out[1].reshape(NX, NX, order="F").copy()
-            q = self._q.copy()
-            q[0] += (s.flow_rel_std * (self._xn[0, 0] - kf.x[0, 0])) ** 2
-            kf.Q = np.diag(q)
-            self.s = out[2].copy()
-            kf.predict()
-            self.last_nis = None
-            if kind == "ok":
-                H = out[4].reshape(1, NX).copy()
-                p = float(out[3][4])
-                R = s.noise_std ** 2 + (s.model_rel_std * max(p, 0.0)) ** 2
-                kf.update(float(measurement), lambda x: H, lambda x: np.array([[p]]), R=R)
-                self.last_nis = float(kf.y[0, 0] ** 2 / kf.S[0, 0])
-        self.t = float(t)
-        o = self._outf(kf.x.ravel(), self.s, self.theta, 0.0, kf.P)
-        self.s = o[0].copy()
-        y = o[1]
-        C = o[4].reshape(5, 5, order="F").copy()
-        d = (s.output_rel_std * y[:5]) ** 2
-        d[4] = 0.0
-        d[3] += s.force_std_floor ** 2
-        C[np.diag_indices(5)] += d
-        self.last_output_cov = C
-        std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
-        est = Estimate(t=self.t, h1=float(y[0]), h2=max(float(y[1]), 0.0), h=float(y[2]), F=max(float(y[3]), 0.0),
-                       p=float(y[4]), mean=kf.x.ravel().copy(), cov=kf.P.copy(), state_names=STATE_NAMES,
-                       std=std, flags=frozenset())
-        self.last_step_s = time.perf_counter() - t0
-        return est
 
 
 def make_filter(kind: str, trial: Trial, settings: FilterSettings):

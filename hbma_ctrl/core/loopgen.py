@@ -15,8 +15,8 @@ same spec runs
 
 Both log the same columns (:class:`LogColumn`: a signal's entry times a unit factor, edge units), so
 :func:`compare` measures the C loop against the Python path.
-:func:`hbma_ctrl.app.codegen.chamber.scenario_loop` builds the spec of a scenario; :func:`bench` builds,
-runs and times both paths.
+The application builds the spec of a scenario (``hbma-ctrl codegen``); :func:`bench` builds, runs and
+times both paths.
 
 Why the Python path loads the generated library rather than the virtual machine: casadi's VM and the
 generated C of a Function need not agree (measured with the qrqp QP solver in the RTI step: its
@@ -296,7 +296,7 @@ def _cname(name: str) -> str:
 
 
 def _template() -> str:
-    return resources.files("hbma_ctrl.app.codegen").joinpath("c/closed_loop.c.in").read_text()
+    return resources.files("hbma_ctrl.core").joinpath("c/closed_loop.c.in").read_text()
 
 
 def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
