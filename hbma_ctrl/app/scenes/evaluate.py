@@ -34,7 +34,7 @@ from hbma_ctrl.estimators.innovation import innovation_test
 from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import Command, Estimate
+from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
 from hbma_ctrl.models.chamber import NX, STATE_NAMES
 from hbma_ctrl.sim.batch import quiet_worker, scenario_of
 from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
@@ -64,7 +64,7 @@ class ReferenceEKF(EKF):
     compiled_step = False
 
 
-class FilterpyEKF:
+class FilterpyEKF(EstimatorBase):
     """filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` driven by the EKF's casadi model
     (the bench's library baseline, SI): the same compiled discrete map and its Jacobian A as F,
     the same process noise and measurement variance, H = dp/dx and the predicted pressure from the
@@ -73,7 +73,7 @@ class FilterpyEKF:
     contact by the load state), no gate, no guards, no valve or sensor delays (the commands act at
     once). So that it can follow a load at all the load
     starts at the trial's nominal weight (known), one sigma 10 % + 0.01 N. Missing and out-of-range
-    readings skip the update."""
+    readings skip the update. It reports no ``last_innovation`` (None: the innovation test skips it)."""
 
     state_names = STATE_NAMES
 
@@ -216,7 +216,7 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
         C[k] = f.last_output_cov[2:4, 2:4]
         if f.last_nis is not None:
             nis[k] = f.last_nis
-        r = getattr(f, "last_innovation", None)  # (the bench's filterpy baseline has none)
+        r = f.last_innovation
         if r is not None:
             innov[k] = r  # normalised innovation nu / sqrt(S), for the innovation test
     est = {name: rows[:, i].copy() for i, name in enumerate(keys)}
