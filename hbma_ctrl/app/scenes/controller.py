@@ -37,7 +37,7 @@ calibrate                   before the loop closes, a start-up calibration (vent
 estimate of the height; pressure with its limit; the three commands) and returns
 ``{"controller": {...}}`` with height_rmse_mm, max_pressure_kpa, pressure_limit_kpa,
 solve_ms_median/p99/max, fallbacks and the settling results per target step, and with the
-calibration on, ``calibration`` (see :func:`calibration_summary`).
+calibration on, ``calibration`` (see :func:`~hbma_ctrl.system.roles.calibration_summary`).
 """
 
 from __future__ import annotations
@@ -103,8 +103,8 @@ class ClosedLoopLog:
 def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                 duration: float, rig_settings=None, estimator=None, controller=None,
                 model: PredictionModel | None = None, calibrate: bool | None = None) -> ClosedLoopLog:
-    """Run rig -> :class:`ChamberLoop` (estimator -> controller -> supervisor) -> rig for ``duration`` s
-    and log it.
+    """Run rig -> :class:`~hbma_ctrl.runtime.chamber.ChamberLoop` (estimator -> controller -> supervisor)
+    -> rig for ``duration`` s and log it.
 
     The rig (:class:`~hbma_ctrl.sim.rig.Rig`, mismatched, noisy) is stepped at its sample period, the
     estimator at every rig sample, the controller every ``section.sample_period`` (a whole number
@@ -113,8 +113,9 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     rig first (``attach``: test oracles read the true state from it).
 
     ``calibrate`` (None = the section's ``calibrate``, default on): before the loop closes, run the
-    :class:`StartupCalibration` on the rig (pump pulse, hold, vent; never above the controller's
-    p_max) and hand its factors to the estimator as its prior (when it has the factor states).
+    :class:`~hbma_ctrl.runtime.calibrate.StartupCalibration` on the rig (pump pulse, hold, vent; never
+    above the controller's p_max) and hand its factors to the estimator as its prior (when it has the
+    factor states).
     The log starts when the loop closes (t = 0); ``log.calibration`` holds the outcome.
     """
 
