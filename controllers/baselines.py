@@ -15,11 +15,19 @@ the runtime builds the supervisor from them. They never fail.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from hbma_ctrl.core.interfaces import Command, Estimate, Reference, check_time
+from hbma_ctrl.core.interfaces import (
+    Command,
+    ControllerBase,
+    ControllerSettingsDefaults,
+    Estimate,
+    Reference,
+    check_time,
+)
 from hbma_ctrl.core.params import Actuator, Pneumatics, check_range
 from hbma_ctrl.models.tables import PredictionModel
 
@@ -27,7 +35,7 @@ __all__ = ["PIDSettings", "PIDController", "BangBangSettings", "BangBangControll
 
 
 @dataclass
-class PIDSettings:
+class PIDSettings(ControllerSettingsDefaults):
     """PID on height (SI).
 
     Fields
@@ -62,7 +70,7 @@ class PIDSettings:
         return self
 
 
-class PIDController:
+class PIDController(ControllerBase):
     """PID on the estimated height with anti-windup by conditional integration."""
 
     def __init__(self, actuator: Actuator | None = None, pneumatics: Pneumatics | None = None,
@@ -78,8 +86,10 @@ class PIDController:
         self._hold = None
         self.last: dict = {}
 
-    def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
-        """Command for the next period from the height error (estimate vs reference)."""
+    def step(self, t: float, estimate: Estimate, reference: Reference,
+             preview: Sequence[float] | None = None) -> Command:
+        """Command for the next period from the height error (estimate vs reference); no ``preview``
+        (``accepts_preview`` is False: the runtime never passes one)."""
         s = self.settings
         t = check_time(t, "pid.step")
         h = float(estimate.h) if np.isfinite(estimate.h) else (self._h_prev or 0.0)
@@ -113,7 +123,7 @@ class PIDController:
 
 
 @dataclass
-class BangBangSettings:
+class BangBangSettings(ControllerSettingsDefaults):
     """Bang-bang pressure control with hysteresis (SI).
 
     Fields
@@ -143,7 +153,7 @@ class BangBangSettings:
         return self
 
 
-class BangBangController:
+class BangBangController(ControllerBase):
     """Pump when p < setpoint - band, vent when p > setpoint + band, hold (all closed) between."""
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: BangBangSettings | None = None,
@@ -164,8 +174,10 @@ class BangBangController:
             return 0.0
         return float(np.interp(h, pth["h"], pth["p"]))
 
-    def step(self, t: float, estimate: Estimate, reference: Reference) -> Command:
-        """Hysteresis on the estimated pressure around the mapped setpoint."""
+    def step(self, t: float, estimate: Estimate, reference: Reference,
+             preview: Sequence[float] | None = None) -> Command:
+        """Hysteresis on the estimated pressure around the mapped setpoint; no ``preview``
+        (``accepts_preview`` is False: the runtime never passes one)."""
         s = self.settings
         check_time(t, "bang_bang.step")
         if reference.height is None:

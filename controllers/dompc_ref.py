@@ -19,7 +19,7 @@ import numpy as np
 
 from hbma_ctrl.controllers.mpc import NMPC
 from hbma_ctrl.controllers.mpc_settings import MPCSettings, timing_stats
-from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, ControllerBase, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 
@@ -37,8 +37,10 @@ def dompc_available() -> tuple[bool, str]:
         return False, f"do-mpc is not installed ({exc}); install the extra: pip install 'hbma-ctrl[bench]'"
 
 
-class DoMPCController:
-    """The NMPC's OCP transcribed and solved by do-mpc (IPOPT), with the controller step API."""
+class DoMPCController(ControllerBase):
+    """The NMPC's OCP transcribed and solved by do-mpc (IPOPT), with the controller step API
+    (:class:`~hbma_ctrl.core.interfaces.Controller`). It counts its failures itself (``fallbacks``) and
+    sends the safe command for them: its ``step_status`` stays ok and it keeps no ``plan``."""
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: MPCSettings | None = None,
                  model: PredictionModel | None = None):

@@ -57,8 +57,9 @@ T_pwm (whichever is nearer) by the valve driver, not by the MPC.
 
 Embedding. ``step(t, estimate, reference) -> Command`` never raises on a numerical failure: on a
 solver failure or, with ``enforce_budget`` set (a real-time loop: the rig daemon), a wall-clock
-overrun (``budget``) it reports the failure in ``last["status"]``
-('failed: ...' / 'overrun...'; 'ok' otherwise) and returns :data:`SAFE_COMMAND`; ``plan`` holds the
+overrun (``budget``) it reports the failure in ``step_status`` (a
+:class:`~hbma_ctrl.core.interfaces.StepStatus`, its text in ``last["status"]``: 'failed: ...' /
+'overrun...'; 'ok' otherwise) and returns :data:`SAFE_COMMAND`; ``plan`` holds the
 solved input sequence (N, 3) of an ok step, the late solution of an overrun, or None. The safety
 policy (replaying the last good plan, then the safe command; the pressure guard) and the step
 timing live in :mod:`hbma_ctrl.runtime` (``ChamberLoop``, ``Supervisor``), which hands the command
@@ -78,7 +79,16 @@ import numpy as np
 import osqp
 
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
-from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.core.interfaces import (
+    SAFE_COMMAND,
+    STEP_OK,
+    Command,
+    ControllerBase,
+    Estimate,
+    Reference,
+    SolveStatus,
+    StepStatus,
+)
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.models.tables import PredictionModel
@@ -106,6 +116,10 @@ from hbma_ctrl.controllers.rti_c import _RtiC
 from hbma_ctrl.controllers.rti_step import _RtiFunction
 
 
+#: a step that solved after its budget: not sent, its solution kept as the plan
+_LATE = StepStatus(SolveStatus.OVERRUN)
+
+
 def _finite(value) -> bool:
     return not math.isnan(finite_or_nan(value))
 
@@ -128,7 +142,7 @@ def _check_inputs(t, reference, preview) -> None:
                 raise ValueError(f"mpc.step: preview[{j}] = {v!r} must be a finite height (m)")
 
 
-class NMPC:
+class NMPC(ControllerBase):
     """Nonlinear MPC of one chamber's height (see module docstring). SI throughout.
 
     Parameters
@@ -169,6 +183,7 @@ class NMPC:
         self.plan = None  # (N, 3): this step's solved inputs, an overrun's late solution, or None
         self._hold = None
         self.clipped_count = 0
+        self.step_status = STEP_OK
         self.last = {}
         self._int, self._int_target, self._int_t = 0.0, None, None  # integral action (settings doc)
 
@@ -315,7 +330,7 @@ class NMPC:
 
     def step(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
         """One control step: the command to hold for the next sample period (never raises on a
-        numerical failure: it reports it in ``last["status"]``, see the module docstring). A bad
+        numerical failure: it reports it in ``step_status``, see the module docstring). A bad
         input (non-finite t, reference height or preview) is a ValueError naming it.
 
         ``preview``: optional targets (m) at t + k * sample_period, k = 1..N (fewer: the last one
@@ -324,7 +339,7 @@ class NMPC:
         s = self.settings
         t_start = time.perf_counter()
         _check_inputs(t, reference, preview)
-        status = "ok"
+        status = STEP_OK
         cmd = SAFE_COMMAND.as_array()
         try:
             if self._in_fail_window(t):
@@ -335,16 +350,16 @@ class NMPC:
             # the wall clock decides only in a real-time loop (enforce_budget); a simulation's step
             # is never an overrun, so its results do not depend on the machine's load
             if s.enforce_budget and not cold and time.perf_counter() - t_start > s.budget:
-                status = "overrun"
+                status = _LATE
                 self.plan = U.copy()  # the late solution: the supervisor's plan for the next failure
             else:
                 cmd = U[0].copy()
                 self.plan = U.copy()
         except _BudgetExceeded as exc:
-            status = f"overrun: {exc}"
+            status = StepStatus(SolveStatus.OVERRUN, str(exc))
             self.plan = None
         except _SolverFailure as exc:
-            status = f"failed: {exc}"
+            status = StepStatus(SolveStatus.FAILED, str(exc))
             self.plan = None
             self.backend.reset()
         elapsed = time.perf_counter() - t_start
@@ -352,10 +367,11 @@ class NMPC:
         # a caller that does not report the command it sent (applied) gets this one as the previous input
         self._u_prev = cmd
         self._t_prev = t
-        self.last.update({"status": status, "iterations": self.backend.iterations, "solve_ms": elapsed * 1e3})
+        self.step_status = status
+        self.last.update({"status": str(status), "iterations": self.backend.iterations, "solve_ms": elapsed * 1e3})
         return Command(float(cmd[0]), float(cmd[1]), float(cmd[2]))
 
-    #: failures are reported in ``last["status"]`` (the runtime's supervisor counts them per cause)
+    #: failures are reported in ``step_status`` (the runtime's supervisor counts them per cause)
     reports_failures = True
 
     def set_enforce_budget(self, on: bool) -> None:

@@ -65,6 +65,7 @@ import osqp
 import scipy.sparse as sp
 
 from hbma_ctrl.core.codegen import FastFunction
+from hbma_ctrl.core.interfaces import RobotControllerBase
 from hbma_ctrl.core.params import check_range
 
 __all__ = ["RobotMPCSettings", "RobotNMPC"]
@@ -191,8 +192,8 @@ class _Pattern:
         return np.asarray(vals, dtype=float)[self.perm]
 
 
-class RobotNMPC:
-    """NMPC over n chambers (see module doc).
+class RobotNMPC(RobotControllerBase):
+    """NMPC over n chambers (see module doc): a :class:`~hbma_ctrl.core.interfaces.RobotEstimateController`.
 
     ``step(x0, b, W, h_ref, k=None, c=None) -> (a, o)``: x0 (n,) estimated scaled gas masses, b (n,)
     flow factors, W (n,) loads N, h_ref (n,) or (n, horizon) target heights m, k and c (n,) the
@@ -200,6 +201,9 @@ class RobotNMPC:
     chamber's supply duty (default 1); returns the supply
     and outlet decisions (n,) each for this period. ``failed``: this step had no usable solution.
     """
+
+    #: its step takes the EKF bank's estimate (gas masses and factors)
+    feedback = "estimate"
 
     def __init__(self, model, n: int, settings: RobotMPCSettings | None = None):
         if not isinstance(n, int) or n < 1:

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hbma_ctrl.core.interfaces import RobotControllerBase
 from hbma_ctrl.core.params import check_range
 
 __all__ = ["RobotPIDSettings", "RobotPressurePID"]
@@ -42,8 +43,12 @@ class RobotPIDSettings:
         return self
 
 
-class RobotPressurePID:
-    """n pressure PIDs; ``step(p_meas, W, h_ref) -> (a, o)`` (see module doc)."""
+class RobotPressurePID(RobotControllerBase):
+    """n pressure PIDs; ``step(p_meas, W, h_ref) -> (a, o)`` (see module doc): a
+    :class:`~hbma_ctrl.core.interfaces.RobotReadingsController` that never fails and keeps no plan."""
+
+    #: its step takes the pressure readings
+    feedback = "readings"
 
     def __init__(self, model, n: int, settings: RobotPIDSettings | None = None):
         self.s = (settings or RobotPIDSettings()).validate()

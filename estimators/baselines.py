@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from hbma_ctrl.core.interfaces import Command, Estimate
+from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
 from hbma_ctrl.estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
 from hbma_ctrl.estimators.ekf import EKF, OUTPUT_KEYS
 from hbma_ctrl.estimators.ekf_step import observer_model
@@ -31,7 +31,7 @@ class ReferenceEKF(EKF):
     compiled_step = False
 
 
-class FilterpyEKF:
+class FilterpyEKF(EstimatorBase):
     """filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` driven by the EKF's casadi model
     (the bench's library baseline, SI): the same compiled discrete map and its Jacobian A as F,
     the same process noise and measurement variance, H = dp/dx and the predicted pressure from the
@@ -40,7 +40,7 @@ class FilterpyEKF:
     contact by the load state), no gate, no guards, no valve or sensor delays (the commands act at
     once). So that it can follow a load at all the load
     starts at the trial's nominal weight (known), one sigma 10 % + 0.01 N. Missing and out-of-range
-    readings skip the update."""
+    readings skip the update. It reports no ``last_innovation`` (None: the innovation test skips it)."""
 
     state_names = STATE_NAMES
 

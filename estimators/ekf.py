@@ -152,7 +152,7 @@ from hbma_ctrl.estimators.ekf_step import (
     lift_floor,
 )
 from hbma_ctrl.estimators.observer_calls import fast, observer_functions
-from hbma_ctrl.core.interfaces import Command, Estimate
+from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
 from hbma_ctrl.models.actuation import CommandTiming
@@ -194,14 +194,15 @@ def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean
     return e
 
 
-class EKF(ReferenceSteps):
+class EKF(ReferenceSteps, EstimatorBase):
     """Extended Kalman filter on ``x = [m, W, b, k, c]`` (see module docstring). SI throughout.
 
     ``step(t, measurement, applied_command) -> Estimate``: predicts over the periods since the
     last step with ``applied_command`` (the command held since then), then updates with the
     pressure reading (Pa). The first call initialises the state from the reading (membrane flat,
     load ``load_init``). ``reset(t, mean, cov, resting)`` sets the state explicitly.
-    After each step: ``last_nis`` (None without a normal update), ``last_output_cov`` (covariance
+    After each step (the :class:`~hbma_ctrl.core.interfaces.Estimator` diagnostics): ``last_nis`` and
+    ``last_innovation`` (None without a normal update), ``last_output_cov`` (covariance
     of ``OUTPUT_KEYS``), ``last_step_s`` (wall time of the step), ``resting`` (the mode),
     ``last_A`` and ``measurement_jacobian()`` (the linearisation, for observability).
 

@@ -26,7 +26,7 @@ from hbma_ctrl.app.scenes.controller import (
     settle_results,
 )
 from hbma_ctrl.app.schema import parse_role
-from hbma_ctrl.core.interfaces import Estimate
+from hbma_ctrl.core.interfaces import Estimate, EstimatorBase
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.models.defaults import CAP_CHAMBER
@@ -40,7 +40,7 @@ def model():
     return PredictionModel(ACT, PN)  # the default law, the exact membrane's
 
 
-class OracleFromRig:
+class OracleFromRig(EstimatorBase):
     """Estimate = the rig's true state (tests only): isolates the controller from the estimator."""
 
     def attach(self, rig):

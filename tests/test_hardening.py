@@ -19,7 +19,7 @@ from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import Command, Estimate, Reference
+from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.bank import STALL_MARGIN, commands_from_inputs, throttled_inputs
 from hbma_ctrl.robot.design import RobotDesign
@@ -216,7 +216,7 @@ def _est(h=3e-3, p=8e3):
     return Estimate(t=0.0, h1=h, h2=0.0, h=h, F=0.0, p=p)
 
 
-class _Fixed:
+class _Fixed(EstimatorBase):
     def step(self, t, z, cmd):
         return _est()
 

@@ -71,16 +71,14 @@ def test_schema_refuses_a_negative_minimum_naming_the_key():
 def test_chamber_loop_sends_and_estimates_with_the_shaped_duties_every_tick():
     """Controller every 2 ticks asking a 5 % inlet duty: every tick's command is shaped (0 or 0.2),
     the controller sees what it asked, and the estimator is handed what was sent."""
-    from hbma_ctrl.core.interfaces import Estimate
+    from hbma_ctrl.core.interfaces import ControllerBase, Estimate, EstimatorBase
     from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 
-    class Ctrl:
-        settings = None
-
+    class Ctrl(ControllerBase):
         def step(self, t, est, ref):
             return Command(0.5, 0.05, 0.0)
 
-    class Est:
+    class Est(EstimatorBase):
         def __init__(self):
             self.held = []
 

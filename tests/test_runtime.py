@@ -14,7 +14,18 @@ from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.core.interfaces import (
+    SAFE_COMMAND,
+    STEP_OK,
+    Command,
+    ControllerBase,
+    Estimate,
+    EstimatorBase,
+    Reference,
+    RobotControllerBase,
+    SolveStatus,
+    StepStatus,
+)
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.rig import RobotRig, RobotRigSettings
@@ -31,7 +42,7 @@ def est(h=5e-3, p=15e3, F=0.0, t=0.0):
     return Estimate(t=t, h1=h, h2=0.0, h=h, F=F, p=p, flags=frozenset())
 
 
-class FakeController:
+class FakeController(ControllerBase):
     """Pumps with a known 5-row plan; fails (reports or raises) inside a time window."""
 
     reports_failures = True
@@ -39,7 +50,6 @@ class FakeController:
     def __init__(self, fail=(1.0, 2.0), mode="report"):
         self.fail, self.mode = fail, mode
         self.settings = PIDSettings(p_max=35e3, guard_margin=1e3)
-        self.last: dict = {}
         self.plan = None
         self.applied_cmds: list = []
 
@@ -47,10 +57,10 @@ class FakeController:
         if self.fail[0] <= t <= self.fail[1]:
             if self.mode == "raise":
                 raise RuntimeError("solver exploded")
-            self.last["status"] = "failed: fake"
+            self.step_status = StepStatus(SolveStatus.FAILED, "fake")
             self.plan = None
             return SAFE_COMMAND
-        self.last["status"] = "ok"
+        self.step_status = STEP_OK
         self.plan = np.array([[1.0, 1.0, 0.0], [0.9, 0.9, 0.0], [0.8, 0.8, 0.0], [0.7, 0.7, 0.0], [0.6, 0.6, 0.0]])
         return Command(*self.plan[0])
 
@@ -159,7 +169,7 @@ def test_stats_stay_bounded_over_1e5_ticks():
 
 
 # --- loops ---------------------------------------------------------------------------------------
-class _Oracle:
+class _Oracle(EstimatorBase):
     """Estimator stub: the rig's true state (keeps the short run independent of filter tuning)."""
 
     def __init__(self, rig):
@@ -267,8 +277,10 @@ def test_robot_loop_falls_back_when_the_qp_fails(robot):
     assert causes == ["shifted_plan", "shifted_plan", "safe_command", "safe_command"]
 
 
-class _TargetRecorder:
+class _TargetRecorder(RobotControllerBase):
     """A pressure-PID-like controller (the loop's non-NMPC path) that records the targets it is given."""
+
+    feedback = "readings"
 
     def __init__(self, n):
         self.n, self.hrefs = n, []

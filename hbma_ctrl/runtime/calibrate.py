@@ -55,7 +55,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
-from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.interfaces import Command, Estimator, check_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
@@ -217,13 +217,15 @@ class StartupCalibration:
     the :class:`CalibrationResult` (None if it failed; ``status`` says why) and the command is the
     vent. ``platform`` = the known load during the calibration (None: no load; with a load the
     pulse stops below its lift-off pressure, ``p_stop`` the pressure it stops at). ``estimator``
-    (optional, ``step(t, reading_pa, command) -> Estimate``, not yet stepped) is run over the
-    excitation when it is done, with the result handed over (module doc); ``estimate`` is its last
-    output.
+    (optional, an :class:`~hbma_ctrl.core.interfaces.Estimator`, not yet stepped) is run over the
+    excitation when it is done, with the result handed over when its ``state_names`` has the factor
+    states (module doc); ``estimate`` is its last output.
     """
 
     def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: CalibrationSettings | None = None,
-                 platform: Platform | None = None, estimator=None):
+                 platform: Platform | None = None, estimator: Estimator | None = None):
+        if estimator is not None:
+            check_role(estimator, Estimator, "StartupCalibration: estimator")
         self.settings = (settings or CalibrationSettings()).validate()
         actuator.validate()
         pneumatics.validate()
@@ -325,7 +327,7 @@ class StartupCalibration:
     def _run_estimator(self) -> None:
         """The estimator over every tick of the excitation, with the fitted factors (module doc)."""
         est = self.estimator
-        hand = self.result is not None and all(n in getattr(est, "state_names", ()) for n in FACTOR_NAMES)
+        hand = self.result is not None and all(n in est.state_names for n in FACTOR_NAMES)
         prior = self.result.floored(self.settings.handover_std_floor) if hand else None
         for i, (t, z, cmd) in enumerate(self._all):
             self.estimate = est.step(t, z, cmd)
@@ -407,8 +409,8 @@ def hand_to_estimator(result: CalibrationResult, estimator, t: float | None = No
     variances from ``result.cov``, their correlations with the other states cut (the calibration
     is independent of what the filter saw). The estimator must have stepped at least once and
     expose ``state_names``, ``x``, ``P``, ``s``, ``resting`` and ``reset`` (the EKF, the UKF)."""
-    names = tuple(getattr(estimator, "state_names", ()))
-    if not all(n in names for n in FACTOR_NAMES) or getattr(estimator, "x", None) is None:
+    names = tuple(estimator.state_names)
+    if not all(n in names for n in FACTOR_NAMES) or estimator.x is None:
         raise ValueError("hand_to_estimator: the estimator has no factor states b, k, c, or has not started")
     idx = [names.index(n) for n in FACTOR_NAMES]
     x = np.array(estimator.x, dtype=float)

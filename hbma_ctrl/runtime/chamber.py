@@ -3,9 +3,13 @@
 ``ChamberLoop.tick(t, reading_pa)`` is everything one sample does; no I/O. The estimator runs at
 every tick, the controller and the supervisor every ``every`` ticks (the command holds between).
 The controller's wall and thread-CPU time per step go into bounded :class:`StepStats`; its failures
-(``last["status"]`` not 'ok', or an exception) go to the :class:`Supervisor`, which replays the last
+(``step_status`` not ok, or an exception) go to the :class:`Supervisor`, which replays the last
 good plan (``controller.plan``), then sends the safe command; the command finally sent is handed
-back to the controller (``controller.applied``) when it has that method.
+back to the controller (``controller.applied``).
+
+The estimator and the controller are the contracts :class:`hbma_ctrl.core.interfaces.Estimator` and
+:class:`hbma_ctrl.core.interfaces.Controller`: a role that lacks a member is a TypeError naming it
+when the loop is built (their base classes have the defaults of the optional ones).
 
 References from a live stream are checked: a target that is not a finite number (NaN, inf, a string)
 is a ValueError naming ``reference`` -- at :meth:`ChamberLoop.set_reference` for a constant, at the
@@ -19,7 +23,18 @@ import math
 import time
 from typing import Callable
 
-from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
+from hbma_ctrl.core.interfaces import (
+    SAFE_COMMAND,
+    Command,
+    Controller,
+    ControllerSettings,
+    Estimate,
+    Estimator,
+    Reference,
+    SolveStatus,
+    StepStatus,
+    check_role,
+)
 from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.runtime.pwm import MinOnTime
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
@@ -36,19 +51,22 @@ def check_height(value, key: str = "reference") -> float:
     return h
 
 
-def chamber_supervisor(controller_settings, **overrides) -> Supervisor:
+def chamber_supervisor(controller_settings: ControllerSettings, **overrides) -> Supervisor:
     """The single-chamber supervisor for a controller's settings (its p_max, guard_margin and
     fallback_plan_steps; the outlet opens within half the guard margin of p_max). ``overrides`` set
-    other :class:`SupervisorSettings` fields."""
+    other :class:`SupervisorSettings` fields. TypeError when the settings lack a member of
+    :class:`~hbma_ctrl.core.interfaces.ControllerSettings`."""
     s = controller_settings
+    check_role(s, ControllerSettings, "chamber_supervisor: controller settings")
     kw = dict(p_max=float(s.p_max), guard_margin=float(s.guard_margin), vent_margin=0.5 * float(s.guard_margin),
-              fallback_plan_steps=int(getattr(s, "fallback_plan_steps", 10)))
+              fallback_plan_steps=int(s.fallback_plan_steps))
     kw.update(overrides)
     return Supervisor(SupervisorSettings(**kw), n=1)
 
 
-def _failure_cause(status: str) -> str:
-    return "overrun" if status.startswith("overrun") else "solver_failed"
+def _failure_cause(status: StepStatus) -> str:
+    """The supervisor's cause for a step that did not solve."""
+    return "overrun" if status.kind is SolveStatus.OVERRUN else "solver_failed"
 
 
 class ChamberLoop:
@@ -56,13 +74,16 @@ class ChamberLoop:
 
     Parameters
     ----------
-    estimator : ``step(t, reading_pa, command) -> Estimate``.
-    controller : ``step(t, estimate, reference[, preview]) -> Command`` and ``stats() -> dict``.
+    estimator : an :class:`~hbma_ctrl.core.interfaces.Estimator` (``step(t, reading_pa, command) ->
+        Estimate``); None = none, for a caller that hands :meth:`control` the estimate itself.
+    controller : a :class:`~hbma_ctrl.core.interfaces.Controller` (``step(t, estimate, reference[,
+        preview]) -> Command``, ``stats() -> dict``, ...).
     supervisor : a 1-chamber :class:`Supervisor`; None = :func:`chamber_supervisor` of the
-        controller's settings.
+        controller's settings (ValueError when it has none).
     reference : target height (m) at time t (s), or a constant height (m); None = hold (no target).
     every : the controller runs every ``every`` ticks (>= 1).
-    preview_steps : future targets handed to the controller (at ``preview_period`` s apart), 0 = none.
+    preview_steps : future targets handed to the controller (at ``preview_period`` s apart), 0 = none;
+        more than 0 only for a controller that ``accepts_preview`` (ValueError otherwise).
     preview_period : spacing of the preview targets, s.
     stats_capacity : samples kept for the median and p99 of the step times.
     pwm : the valves' minimum on-time shaping (:class:`~hbma_ctrl.runtime.pwm.MinOnTime`), applied
@@ -70,11 +91,20 @@ class ChamberLoop:
         for; the estimator the duties sent); None = the command as it is.
     """
 
-    def __init__(self, estimator, controller, supervisor: Supervisor | None = None,
+    def __init__(self, estimator: Estimator | None, controller: Controller, supervisor: Supervisor | None = None,
                  reference: Callable[[float], float] | None = None, every: int = 1, preview_steps: int = 0,
                  preview_period: float = 0.0, stats_capacity: int = 4096, pwm: MinOnTime | None = None):
         if not isinstance(every, int) or every < 1:
             raise ValueError(f"ChamberLoop.every = {every!r} must be an integer >= 1")
+        if estimator is not None:
+            check_role(estimator, Estimator, "ChamberLoop: estimator")
+        check_role(controller, Controller, "ChamberLoop: controller")
+        if preview_steps and not controller.accepts_preview:
+            raise ValueError(f"ChamberLoop: preview_steps = {preview_steps!r} for a controller that does not accept "
+                             f"a preview ({type(controller).__name__}.accepts_preview is False)")
+        if supervisor is None and controller.settings is None:
+            raise ValueError(f"ChamberLoop: {type(controller).__name__}.settings is None: pass the supervisor, or give "
+                             "the controller settings with p_max and guard_margin")
         self.estimator = estimator
         self.controller = controller
         self.supervisor = supervisor or chamber_supervisor(controller.settings)
@@ -129,9 +159,9 @@ class ChamberLoop:
         try:
             cmd = ctrl.step(t, estimate, reference, preview=preview) if preview is not None else \
                 ctrl.step(t, estimate, reference)
-            status = str(getattr(ctrl, "last", {}).get("status", "ok"))
-            ok = status == "ok"
-            plan = getattr(ctrl, "plan", None)
+            status = ctrl.step_status
+            ok = status.ok
+            plan = ctrl.plan
             cause = "ok" if ok else _failure_cause(status)
         except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
             cmd, ok, cause = SAFE_COMMAND, False, f"exception: {type(exc).__name__}"
@@ -140,8 +170,7 @@ class ChamberLoop:
         arr = self.supervisor.apply(t, cmd.as_array(), estimate.p, ok=ok, plan=plan, cause=cause,
                                     target=reference.height)
         out = Command(float(arr[0]), float(arr[1]), float(arr[2]))
-        if hasattr(ctrl, "applied"):
-            ctrl.applied(out)
+        ctrl.applied(out)
         return out
 
     def stats(self) -> dict:
@@ -153,7 +182,7 @@ class ChamberLoop:
         st.update({"solve_ms_median": t["median"], "solve_ms_p99": t["p99"], "solve_ms_max": t["max"],
                    "steps": t["n"], "guard_activations": int(sup.counts["guard"]),
                    "fallbacks": int(st.get("fallbacks", 0)) + int(sup.failed_steps)})
-        if getattr(self.controller, "reports_failures", False):
+        if self.controller.reports_failures:
             st.update({"solve_cpu_ms_median": c["median"], "solve_cpu_ms_p99": c["p99"]})
             detail = {"solver_failed": 0, "overrun": 0}
             for cause, k in sup.failure_causes.items():

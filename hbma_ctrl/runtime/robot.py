@@ -28,8 +28,8 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   or whose estimate is lost again and again (:class:`hbma_ctrl.runtime.burst.BurstTest` on the bank's
   signed innovations and lost estimates: a burst membrane or an outlet stuck open), gets the safe
   command until the supervisor is reset; the NMPC gets no
-  supply budget for a chamber held by any of these; the command sent is handed back to the NMPC
-  (``applied``: its input-rate terms start from it);
+  supply budget for a chamber held by any of these; the command sent is handed back to the controller
+  (``applied``: the NMPC's input-rate terms start from it);
 - with ``valve_min_on`` the inlet and outlet duties sent are each 0 or at least the valves' minimum
   opening, a smaller one realised on average over the periods (:class:`hbma_ctrl.runtime.pwm.MinOnTime`,
   as the single chamber's loop does), and the bank predicts with the duties sent. A vent shorter than
@@ -55,9 +55,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from hbma_ctrl.controllers.robot_mpc import RobotNMPC
-from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank
+from hbma_ctrl.core.interfaces import (
+    RobotController,
+    RobotEstimateController,
+    RobotReadingsController,
+    check_role,
+)
 from hbma_ctrl.core.validation import finite_or_nan
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank
 from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.robot.design import RobotDesign
@@ -70,6 +75,9 @@ from hbma_ctrl.runtime.safety import ZERO_TARGET, Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
 __all__ = ["RobotLoop", "robot_supervisor", "check_targets"]
+
+#: the controller contract for each ``feedback``: what its step takes
+_FEEDBACK = {"estimate": RobotEstimateController, "readings": RobotReadingsController}
 
 #: the keys of a layer target row, in order (units: s, m, rad, rad)
 TARGET_KEYS = ("t", "centre", "bend", "direction")
@@ -168,13 +176,16 @@ class RobotLoop:
     design : the robot.
     model : the nominal per-chamber model (the controller's and the bank's).
     bank : the chambers' EKF bank (:class:`ChamberEKFBank`).
-    controller : :class:`RobotNMPC` or :class:`hbma_ctrl.controllers.robot_pid.RobotPressurePID` over all chambers.
+    controller : a :class:`~hbma_ctrl.core.interfaces.RobotController` over all chambers: on the bank's
+        estimate (``feedback = 'estimate'``: :class:`hbma_ctrl.controllers.robot_mpc.RobotNMPC`) or on
+        the readings (``'readings'``: :class:`hbma_ctrl.controllers.robot_pid.RobotPressurePID`). A
+        controller that lacks a member is a TypeError naming it, an unknown ``feedback`` a ValueError.
     supervisor : an n-chamber :class:`Supervisor` (:func:`robot_supervisor`).
     targets : layer targets {layer index: ((t s, centre height m, bend rad, direction rad), ...)}.
     cautious : (pressure fraction, k std, duty): while a chamber's estimated pressure is above the
         fraction of its estimated peak pressure and its modulus factor's std is above the threshold,
         its supply duty is capped (the NMPC's input bound; pass the peak slowly so that its filter
-        can tell the far branch from the near one); None = off. NMPC only.
+        can tell the far branch from the near one); None = off. Estimate feedback only.
     stats_capacity : samples kept for the median and p99 of the step times.
     throttle : the compressor speed is a decision: throttled to the planned flow at each chamber's
         estimated pressure (:meth:`ChamberBank.valve_inputs`); False = full speed while an inlet is
@@ -186,7 +197,7 @@ class RobotLoop:
         it flags gets the safe command until the supervisor is reset (its rule 7); ``bursts`` lists them.
     """
 
-    def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller,
+    def __init__(self, design: RobotDesign, model: ChamberBank, bank: ChamberEKFBank, controller: RobotController,
                  supervisor: Supervisor, targets: dict, cautious: tuple | None = (0.75, 0.03, 0.3),
                  stats_capacity: int = 4096, throttle: bool = True, target_rate: float | None = None,
                  valve_min_on: float = DEFAULT_VALVE_MIN_ON, burst: BurstTestSettings | None = BurstTestSettings()):
@@ -207,7 +218,13 @@ class RobotLoop:
         self.n = 3 * design.n_layers
         if supervisor.n != self.n:
             raise ValueError(f"RobotLoop: the supervisor is for {supervisor.n} chambers, the robot has {self.n}")
-        self.is_mpc = isinstance(controller, RobotNMPC)
+        check_role(controller, RobotController, "RobotLoop: controller")
+        if controller.feedback not in _FEEDBACK:
+            raise ValueError(f"RobotLoop: controller.feedback = {controller.feedback!r}: allowed "
+                             f"{', '.join(map(repr, _FEEDBACK))}")
+        check_role(controller, _FEEDBACK[controller.feedback], "RobotLoop: controller")
+        #: the controller steps on the bank's estimate (the NMPC's arguments, the cautious cap, prime)
+        self.is_mpc = controller.feedback == "estimate"
         if supervisor.settings.stretch_max is None:
             # a robot's loop always guards the membranes' stretch: the design's limit, unless the
             # supervisor was given its own
@@ -296,16 +313,16 @@ class RobotLoop:
                     a_max = np.where(near, np.minimum(a_max, c[2]), a_max)
                     self.cautious_steps += int(near.sum())
                 a, o = ctrl.step(est["x"], est["b"], W, href, est["k"], est["c"], a_max)
-                ok = not ctrl.failed
-                if ok:
-                    cause, plan = "ok", self._plan(ctrl.plan)
-                elif ctrl.overran:
-                    # late: the supervisor replays the last plan now and keeps this one for the next failure
-                    cause, plan = "overrun", self._plan(ctrl.late_plan)
-                else:
-                    cause = f"qp: {ctrl.status}"
             else:
                 a, o = ctrl.step(z, W, href)
+            ok = not ctrl.failed
+            if ok:
+                cause, plan = "ok", self._plan(ctrl.plan)
+            elif ctrl.overran:
+                # late: the supervisor replays the last plan now and keeps this one for the next failure
+                cause, plan = "overrun", self._plan(ctrl.late_plan)
+            else:
+                cause = f"qp: {ctrl.status}"
         except Exception as exc:  # noqa: BLE001 - a daemon must keep commanding whatever a controller raises
             a, o, ok, cause = np.zeros(self.n), np.zeros(self.n), False, f"exception: {type(exc).__name__}"
         t_sup = time.perf_counter()
@@ -318,8 +335,7 @@ class RobotLoop:
             if self.burst is not None:
                 self.burst.restart(sup.released)
         a, o = cmd[:, 0].copy(), cmd[:, 1].copy()
-        if self.is_mpc:
-            ctrl.applied(a, o)
+        ctrl.applied(a, o)
         # the compressor throttled to the planned flows at the estimated pressures (the bank and the
         # NMPC keep working in a: a full-speed inlet duty)
         t_valves = time.perf_counter()
@@ -461,8 +477,8 @@ class RobotLoop:
                 "stretch_interlocks": int(sup.counts["stretch_guard"]),
                 "lost_estimate_steps": int(sup.counts["lost_estimate"]),
                 "vents": int(sup.counts["vent"]), "cautious_steps": int(self.cautious_steps),
-                "qp_not_solved": int(getattr(self.controller, "inaccurate", 0)),
-                "overruns": int(getattr(self.controller, "overruns", 0)),
+                "qp_not_solved": int(self.controller.inaccurate),
+                "overruns": int(self.controller.overruns),
                 "held_unmatched": int(self.held_unmatched),
                 "bursts": [int(i) for i in np.nonzero(sup.burst)[0]],
                 "burst_peak_sigma": float(self.burst.peak.max()) if self.burst is not None else 0.0,

@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import Command
+from hbma_ctrl.core.interfaces import Command, Controller, check_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.calibrate import StartupCalibration
@@ -240,6 +240,7 @@ def chamber_system(actuator: Actuator, pneumatics: Pneumatics, platform: Platfor
         # the last plan, then the safe command), never a late command
         section = replace(section, mpc=replace(section.mpc, enforce_budget=True))
     ctrl = controller or make_controller(section, actuator, pneumatics, model)
+    check_role(ctrl, Controller, "chamber_system: controller")
     ratio = section.sample_period / rs.sample_period
     every = int(round(ratio))
     if every < 1 or abs(ratio - every) > 1e-6:
@@ -248,13 +249,12 @@ def chamber_system(actuator: Actuator, pneumatics: Pneumatics, platform: Platfor
     # controllers with a horizon get the future targets (a rig daemon knows its trajectory too)
     use_preview = section.preview if section.preview is not None else (
         section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)
-    preview_n = section.mpc.horizon if getattr(ctrl, "accepts_preview", False) and use_preview else 0
-    settings = getattr(ctrl, "settings", None) or controller_settings_of(section)
+    preview_n = section.mpc.horizon if ctrl.accepts_preview and use_preview else 0
+    settings = ctrl.settings or controller_settings_of(section)
     loop = ChamberLoop(est, ctrl, chamber_supervisor(settings), reference=section.reference, every=every,
                        preview_steps=preview_n, preview_period=section.sample_period, stats_capacity=stats_capacity,
                        pwm=make_pwm(section, rs.sample_period))
-    h_min = float(getattr(settings, "h_min", 0.0) or 0.0)
-    h_max = float(getattr(settings, "h_max", U.mm(20.0)))
+    h_min, h_max = float(settings.h_min), float(settings.h_max)
     cal = None
     if section.calibrate if calibrate is None else calibrate:
         cal = make_calibration(actuator, pneumatics, platform, section, rs, est)

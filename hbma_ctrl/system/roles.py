@@ -8,7 +8,9 @@ from __future__ import annotations
 from hbma_ctrl.controllers.baselines import BangBangController, PIDController
 from hbma_ctrl.controllers.mpc import NMPC
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.interfaces import Estimator
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.models.bank import ChamberBank
@@ -54,24 +56,27 @@ def make_pwm(section: ControllerSection, period: float) -> MinOnTime | None:
 
 
 def make_calibration(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
-                     rs: RigSettings, estimator) -> StartupCalibration:
+                     rs: RigSettings, estimator: Estimator) -> StartupCalibration:
     """The start-up calibration of a controller section on a rig of settings ``rs`` (its pulse stops at
-    min(17 kPa, p_max / 2)); the estimator (when it has factor states) tracks it and gets the factors
-    as its prior. Its fit takes the estimator's membrane law and valve and sensor delays. The scenes
-    and the daemon both build it here."""
-    # the fit models the chamber as the estimator does: its membrane law, valve and sensor delays
-    fs = getattr(estimator, "settings", None)
-    timing = {k: getattr(fs, k) for k in ("valve_delay", "sensor_delay", "membrane") if hasattr(fs, k)}
-    # and starts from the estimator's prior on the factors (nominal, or a fit's values: [estimator] *_init)
-    if hasattr(fs, "modulus_init"):
-        timing["prior_mean"] = (fs.flow_factor_init, fs.modulus_init, fs.dead_volume_init)
-        timing["prior_std"] = (fs.flow_factor_init_std, fs.modulus_init_std, fs.dead_volume_init_std)
+    min(17 kPa, p_max / 2)); the estimator (when it has ``state_names``) tracks it, and gets the factors
+    as its prior when it has factor states. With :class:`~hbma_ctrl.estimators.common.FilterSettings` (the
+    filters), the fit takes the estimator's membrane law, valve and sensor delays and factor prior. The
+    scenes and the daemon both build it here."""
+    # a filter's fit models the chamber as the filter does: its membrane law, valve and sensor delays,
+    # and starts from its prior on the factors (nominal, or a fit's values: [estimator] *_init)
+    fs = estimator.settings
+    timing = {}
+    if isinstance(fs, FilterSettings):
+        timing = {"valve_delay": fs.valve_delay, "sensor_delay": fs.sensor_delay, "membrane": fs.membrane,
+                  "prior_mean": (fs.flow_factor_init, fs.modulus_init, fs.dead_volume_init),
+                  "prior_std": (fs.flow_factor_init_std, fs.modulus_init_std, fs.dead_volume_init_std)}
     cs = CalibrationSettings(p_max=section.p_max, p_stop=min(CalibrationSettings.p_stop, 0.5 * section.p_max),
                              sample_period=rs.sample_period, noise_std=max(rs.noise_std, 1.0),
                              sensor_range=rs.sensor_range, handover_std_floor=section.calibration_std_floor,
                              **timing)
+    # an estimator with a state layout runs over the excitation (and takes the factors if it has them)
     return StartupCalibration(actuator, pneumatics, cs, platform,
-                              estimator=estimator if hasattr(estimator, "state_names") else None)
+                              estimator=estimator if estimator.state_names else None)
 
 
 def calibration_summary(cal: StartupCalibration, duration: float) -> dict:
@@ -90,7 +95,7 @@ def calibration_summary(cal: StartupCalibration, duration: float) -> dict:
 
 
 def controller_settings_of(section: ControllerSection):
-    """The chosen controller's settings (p_max, guard_margin) for a controller without ``settings``."""
+    """The chosen controller's settings (p_max, guard_margin, ...) for a controller whose ``settings`` is None."""
     return {"mpc": section.mpc, "pid": section.pid, "bang_bang": section.bang_bang}[section.kind]
 
 

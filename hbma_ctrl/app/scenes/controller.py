@@ -37,7 +37,7 @@ calibrate                   before the loop closes, a start-up calibration (vent
 estimate of the height; pressure with its limit; the three commands) and returns
 ``{"controller": {...}}`` with height_rmse_mm, max_pressure_kpa, pressure_limit_kpa,
 solve_ms_median/p99/max, fallbacks and the settling results per target step, and with the
-calibration on, ``calibration`` (see :func:`calibration_summary`).
+calibration on, ``calibration`` (see :func:`~hbma_ctrl.system.roles.calibration_summary`).
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ from hbma_ctrl.system.sections import (
     ReferenceProfile,
 )
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.interfaces import Estimator, check_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.tables import PredictionModel
@@ -102,18 +103,19 @@ class ClosedLoopLog:
 def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, section: ControllerSection,
                 duration: float, rig_settings=None, estimator=None, controller=None,
                 model: PredictionModel | None = None, calibrate: bool | None = None) -> ClosedLoopLog:
-    """Run rig -> :class:`ChamberLoop` (estimator -> controller -> supervisor) -> rig for ``duration`` s
-    and log it.
+    """Run rig -> :class:`~hbma_ctrl.runtime.chamber.ChamberLoop` (estimator -> controller -> supervisor)
+    -> rig for ``duration`` s and log it.
 
     The rig (:class:`~hbma_ctrl.sim.rig.Rig`, mismatched, noisy) is stepped at its sample period, the
     estimator at every rig sample, the controller every ``section.sample_period`` (a whole number
-    of rig periods). ``estimator`` defaults to the EKF on the nominal model, ``controller`` to the
-    one the section names. An estimator with an ``attach(rig)`` method is handed the rig first
-    (test oracles that read the true state).
+    of rig periods). ``estimator`` (an :class:`~hbma_ctrl.core.interfaces.Estimator`) defaults to the
+    EKF on the nominal model, ``controller`` to the one the section names. The estimator is handed the
+    rig first (``attach``: test oracles read the true state from it).
 
     ``calibrate`` (None = the section's ``calibrate``, default on): before the loop closes, run the
-    :class:`StartupCalibration` on the rig (pump pulse, hold, vent; never above the controller's
-    p_max) and hand its factors to the estimator as its prior (when it has the factor states).
+    :class:`~hbma_ctrl.runtime.calibrate.StartupCalibration` on the rig (pump pulse, hold, vent; never
+    above the controller's p_max) and hand its factors to the estimator as its prior (when it has the
+    factor states).
     The log starts when the loop closes (t = 0); ``log.calibration`` holds the outcome.
     """
 
@@ -121,8 +123,8 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     rs = rig_settings or RigSettings()
     rig = SimRig.chamber(actuator, pneumatics, platform, rs)
     est = estimator or default_estimator(actuator, pneumatics, None, rs)
-    if hasattr(est, "attach"):
-        est.attach(rig.rig)  # e.g. a test oracle that reads the rig's true state
+    check_role(est, Estimator, "closed_loop: estimator")
+    est.attach(rig.rig)  # e.g. a test oracle that reads the rig's true state
     n = int(round(duration / rs.sample_period))
     every = max(int(round(section.sample_period / rs.sample_period)), 1)
     # the timing buffer holds every controller step of the run: the scene's medians are exact
@@ -148,13 +150,13 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
             cols[key][k] = val
         u_log[k] = u[:, 0]
         # estimator consistency, where the filter exposes its output covariance (EKF, UKF)
-        C = getattr(est, "last_output_cov", None)
+        C = est.last_output_cov
         if C is not None:
             err = np.array([e.h - tr["h"], e.F - tr["F"]])
             nees[k] = float(err @ np.linalg.solve(np.asarray(C)[2:4, 2:4] + np.diag(NEES_FLOOR), err))
-        if getattr(est, "last_nis", None) is not None:
+        if est.last_nis is not None:
             nis[k] = est.last_nis
-        if getattr(est, "last_step_s", None) is not None:
+        if est.last_step_s is not None:
             est_s[k] = est.last_step_s
 
     t_wall = time.perf_counter()

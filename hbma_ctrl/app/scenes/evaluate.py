@@ -118,7 +118,7 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
         C[k] = f.last_output_cov[2:4, 2:4]
         if f.last_nis is not None:
             nis[k] = f.last_nis
-        r = getattr(f, "last_innovation", None)  # (the bench's filterpy baseline has none)
+        r = f.last_innovation
         if r is not None:
             innov[k] = r  # normalised innovation nu / sqrt(S), for the innovation test
     est = {name: rows[:, i].copy() for i, name in enumerate(keys)}

@@ -133,7 +133,7 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     ls = loop.stats()
     return ClosedLoopRun(controller, tt[sl], H[sl], HR[sl], HE[sl], P[sl], PM[sl], LM[sl], A[sl], O[sl], LD[sl],
                          st[:T - 1], se[:T - 1], sc[:T - 1], sup.counts["guard"], sup.failed_steps,
-                         int(getattr(ctrl, "inaccurate", 0)), status, time.perf_counter() - wall0,
+                         int(ctrl.inaccurate), status, time.perf_counter() - wall0,
                          np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
                          BE[sl], loop.cautious_steps, list(sup.events), sup.counts["stretch_guard"],
                          sup.counts["lost_estimate"], ls["bursts"], ls["burst_peak_sigma"])
