@@ -128,3 +128,20 @@ def test_run_lockstep_ticks_on_the_clock_it_is_given():
     run_lockstep(system, rig, 0.03, clock=lambda r: 100.0 + r.t)
     assert seen == [100.0 + k * PERIOD for k in range(3)]
     assert RobotSystem.warming is False
+
+
+def test_both_systems_keep_the_system_contract():
+    """The daemon's runner for either file is a System (the members its loop uses, no probing)."""
+    from hbma_ctrl.system.base import System
+
+    chamber = build_runner(load_config(ROOT / "scenarios" / "daemon_chamber.toml", {"--rig": "sim"}))
+    assert isinstance(chamber, System)
+    assert chamber.take_faults() == [] and chamber.burst_peak() is None and chamber.controller_report() is None
+    robot = build_runner(load_config(ROOT / "scenarios" / "daemon_robot.toml", {"--rig": "sim"}))
+    assert isinstance(robot, System) and robot.warming is False
+    robot.tick(0.0, np.zeros(robot.n))
+    timing = robot.tick_timing()
+    assert len(timing) == 3 and all(np.isfinite(timing))
+    report = robot.controller_report()
+    assert report is robot.loop.controller.last_parts and "status" in report
+    assert {"nmpc status", "controller"} <= set(robot.tick_parts())

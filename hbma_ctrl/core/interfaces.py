@@ -350,6 +350,8 @@ class RobotControllerBase:
     status: str = ""
     inaccurate: int = 0
     overruns: int = 0
+    #: the last step's report (times in s, counts, ``status``), a new dict every step; None = none kept
+    last_parts: dict | None = None
 
     def applied(self, a: np.ndarray, o: np.ndarray) -> None:
         """The supply and outlet finally sent; ignored."""

@@ -23,6 +23,7 @@ from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.calibrate import StartupCalibration
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.sim.rig import RigSettings
+from hbma_ctrl.system.base import SystemBase
 from hbma_ctrl.system.roles import (
     calibration_summary,
     controller_settings_of,
@@ -81,7 +82,7 @@ class _RigClock:
         return getattr(self._est, name)
 
 
-class ChamberSystem:
+class ChamberSystem(SystemBase):
     """One chamber under :class:`ChamberLoop` (see module doc). ``h_range``: reachable targets (lo, hi), m.
 
     ``calibration``: a :class:`StartupCalibration` run first (``[controller] calibrate``): its excitation

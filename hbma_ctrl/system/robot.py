@@ -22,6 +22,7 @@ from hbma_ctrl.models.bank import ChamberBank
 from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
 from hbma_ctrl.robot.rig import RobotRigSettings
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+from hbma_ctrl.system.base import SystemBase
 from hbma_ctrl.system.chamber import SupervisorEpisodes
 from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
@@ -29,12 +30,10 @@ from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
 __all__ = ["RobotSystem", "robot_system"]
 
 
-class RobotSystem:
+class RobotSystem(SystemBase):
     """The robot under :class:`RobotLoop` (see module doc). ``h_max``: the highest chamber target, m."""
 
     kind = "robot"
-    #: the robot has no start-up calibration: its loop is closed from the first tick
-    warming = False
 
     def __init__(self, loop: RobotLoop, p_limit: float, h_max: float):
         self.loop = loop
@@ -74,6 +73,21 @@ class RobotSystem:
         why = self.loop.burst.why if self.loop.burst is not None else [""] * self.n
         return [("burst", int(i), f"{self.names[i]}: {why[i] or 'flagged'} (a burst membrane or an outlet stuck open)")
                 for i in np.nonzero(new)[0]]
+
+    def tick_timing(self) -> tuple[float, float, float]:
+        """The last tick's (step, estimator bank, controller) times, s."""
+        return self.loop.last_timing
+
+    def tick_parts(self) -> dict:
+        """The last tick's parts (targets, controller, supervisor, valves, s) and the NMPC's report of its
+        step (``nmpc data``, ``nmpc solve``, ..., ``nmpc status``)."""
+        out = dict(self.loop.last_parts)
+        out.update({f"nmpc {k}": v for k, v in (self.loop.controller.last_parts or {}).items()})
+        return out
+
+    def controller_report(self) -> dict | None:
+        """The controller's report of its last step (the NMPC's; None for the pressure PID)."""
+        return self.loop.controller.last_parts
 
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """One period at rig time t (s) with the readings p (Pa, (n,)) -> U (3, n); ``held`` (3, n): the

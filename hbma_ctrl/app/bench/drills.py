@@ -101,7 +101,7 @@ def _one(cfg, kind: str, value: float | None, start: float, chamber: int | None,
     loop = DaemonLoop(runner, rig, state, cfg.period, speed=1.0, duration=start + after_s, log=None,
                       monitor=make_monitor(cfg, runner), status_every=10**9, miss_limit=cfg.miss_limit,
                       clock=lambda: clock[0], sleep=lambda d: clock.__setitem__(0, clock[0] + d))
-    n_layers = runner.design.n_layers if getattr(runner, "kind", "") == "robot" else 0
+    n_layers = runner.design.n_layers if runner.kind == "robot" else 0
     t_next = [every_s if every_s > 0 else float("inf")]
 
     def take() -> list:

@@ -82,14 +82,14 @@ def run_poses(config: Path, out: Path, duration_s: float, every_s: float, seed: 
         if changes:
             peak = np.fmax(peak, p)
         for f in monitor.check(t, r, u_last, False) or ():
-            i = getattr(f, "chamber", None)
+            i = f.chamber
             faults.append({"t_s": round(t, 6), "kind": f.kind, "chamber": runner.names[i] if i is not None else None,
                            "cause": f.cause})
         if monitor.latched:
             # a daemon stops here; the bench re-arms and goes on, so one run counts every fault
             monitor.reset()
         u = runner.tick(t, p)
-        found = getattr(runner, "take_faults", list)()
+        found = runner.take_faults()
         for kind, i, cause in found:
             faults.append({"t_s": round(t, 6), "kind": kind, "chamber": runner.names[i], "cause": cause})
         if found:

@@ -197,14 +197,14 @@ class DaemonLoop:
 
     def _latched_kinds(self) -> list[str]:
         """The kinds the monitor reported since it latched (sorted), [] when it has not."""
-        if self.monitor is None or not getattr(self.monitor, "latched", False):
+        if self.monitor is None or not self.monitor.latched:
             return []
-        return sorted({str(getattr(f, "kind", f)) for f in getattr(self.monitor, "faults", ())})
+        return sorted({f.kind for f in self.monitor.faults})
 
     def faults(self) -> dict:
         """Fault counts by kind: the monitor's and the loop's own (deadline, exception, link)."""
         out = dict(self.fault_counts)
-        for k, v in (getattr(self.monitor, "counts", None) or {}).items():
+        for k, v in (self.monitor.counts if self.monitor is not None else {}).items():
             if v:
                 out[str(k)] = out.get(str(k), 0) + int(v)
         return out
@@ -283,10 +283,10 @@ class DaemonLoop:
             # the controller's first solves set up its solver: those misses do not feed the watchdog
             missed = missed_last and self._ctrl_steps > self.warmup_periods
             for f in self.monitor.check(self.t, r, self.u_last, missed) or ():
-                i = getattr(f, "chamber", None)
+                i = f.chamber
                 # the chamber by the name the API and the log use, so a person can find it on the rig
                 where = f"{self.runner.names[i]}: " if i is not None and 0 <= i < len(self.runner.names) else ""
-                self.event(str(getattr(f, "kind", "fault")), where + str(getattr(f, "cause", f)))
+                self.event(f.kind, where + f.cause)
             if self.monitor.latched and self.mode == "running":
                 self._enter_safe(self._latched_kinds())
         if self.mode == "safe":
@@ -307,9 +307,9 @@ class DaemonLoop:
         self._ru_before = _thread_usage()
         self._gc_before = self.gc.mark() if self.gc is not None else (0, 0.0)
         c0, cpu0 = self.clock(), time.thread_time()
-        held = getattr(r, "held", None)
+        held = r.held
         # a runner's start-up work (the chamber's calibration and its fit) is not judged by the watchdog
-        self._warming = bool(getattr(self.runner, "warming", False))
+        self._warming = bool(self.runner.warming)
         # only a rig that reports what it held passes it: a runner may take (t, p) alone
         u = self.runner.tick(self.t, p) if held is None else self.runner.tick(self.t, p, held)
         self._last_tick = self.clock() - c0
@@ -321,11 +321,11 @@ class DaemonLoop:
         self._ctrl_steps += int(not self._warming)
         self.tick_s.add(self._last_tick)
         self.tick_cpu_s.add(self._last_tick_cpu)
-        for kind, cause in getattr(self.runner, "take_events", list)():
+        for kind, cause in self.runner.take_events():
             self.event(kind, cause)
         # faults the runner's own tests found (the robot's burst test on its filters) latch the safe
         # state as the monitor's do, from this period on
-        found = getattr(self.runner, "take_faults", list)()
+        found = self.runner.take_faults()
         for kind, i, cause in found:
             if self.monitor is not None:
                 self.monitor.raise_fault(self.t, kind, cause, chamber=i)
@@ -347,7 +347,7 @@ class DaemonLoop:
         """Log a controller overrun in a tick that stayed within the period (event ``nmpc_overrun``,
         the slow tick's report): the robot NMPC's budget is shorter than the period, so its fallback
         can strike without a slow tick, and a replay of the run must take it where the run did."""
-        parts = getattr(getattr(getattr(self.runner, "loop", None), "controller", None), "last_parts", None)
+        parts = self.runner.controller_report()
         if parts is None or parts is self._parts_seen:
             return
         self._parts_seen = parts  # each controller step makes a new dict: one event per step
@@ -360,8 +360,7 @@ class DaemonLoop:
         estimator, controller, s), the host's steal time during it (ms, from /proc/stat, read before
         every tick: on a virtual machine a thread's CPU time counts time the host took the core) and the
         garbage collector's pauses during it (any thread's: a collection holds the interpreter)."""
-        loop = getattr(self.runner, "loop", None)
-        parts = getattr(loop, "last_timing", None)
+        parts = self.runner.tick_timing()
         text = f"cpu {self._last_tick_cpu * 1e3:.3f} ms, wall {self._last_tick * 1e3:.3f} ms"
         # whether steps_over_period counts it, said outright: a reader comparing the printed times with
         # the period would misjudge a tick within the printing's rounding of it
@@ -382,9 +381,7 @@ class DaemonLoop:
                      f"{(ru.ru_stime - b.ru_stime) * 1e3:.1f} ms, {ru.ru_minflt - b.ru_minflt} minor and "
                      f"{ru.ru_majflt - b.ru_majflt} major page faults, "
                      f"{ru.ru_nivcsw - b.ru_nivcsw} preemptions")
-        more = dict(getattr(loop, "last_parts", None) or {})
-        more.update({f"nmpc {k}": v for k, v in
-                     (getattr(getattr(loop, "controller", None), "last_parts", None) or {}).items()})
+        more = self.runner.tick_parts()
         if more:
             text += "; " + ", ".join(f"{k} {v * 1e3:.2f} ms" if isinstance(v, float) else f"{k} {v}"
                                      for k, v in more.items())
@@ -534,8 +531,8 @@ class DaemonLoop:
                 **(self.gc.stats() if self.gc is not None else {})}
 
     def _margins(self) -> dict:
-        c = getattr(self.monitor, "closest", {})
+        c = self.monitor.closest if self.monitor is not None else {}
         kpa = lambda x: float(U.to_kpa(x)) if math.isfinite(x) else None  # noqa: E731
         return {"leak_drop_kpa": kpa(c.get("leak_drop", math.nan)), "leak_fraction": c.get("leak_fraction"),
                 "pump_rise_kpa": kpa(c.get("pump_rise", math.nan)),
-                "burst_sigma": getattr(self.runner, "burst_peak", lambda: None)()}
+                "burst_sigma": self.runner.burst_peak()}
