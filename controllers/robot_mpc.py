@@ -37,10 +37,12 @@ the runtime supervisor's policy (:mod:`hbma_ctrl.runtime`), as are the step timi
 Time budget: with ``enforce_budget`` set (a real-time loop: the rig daemon), ``budget`` is a fraction
 of the control period for the whole step (linearisation and QP); unset (scenes, benches, tests), the
 wall clock decides nothing and a simulation's results do not depend on the machine's load. OSQP gets
-what is left of the budget as its ``time_limit`` at every solve (a QP stopped there is not
-usable: ``failed``, ``overran``). A step that solved but took longer than the budget (the
-linearisation was slow, say) is an overrun too: ``failed`` and ``overran`` are set, the step returns
-zeros, and its solution is offered as ``late_plan``. Why not send a late solution: in the daemon the
+what is left of the budget when its update begins as its ``time_limit`` at every solve (OSQP counts
+the update in its own run time, so a QP it stops took the step past its budget; one stopped unusable
+is ``failed``, ``overran``). A step that solved but took longer than the budget (the
+linearisation was slow, a QP stopped that still passed OSQP's approximate test, say) is an overrun
+too: ``failed`` and ``overran`` are set, the step returns zeros, and its solution is offered as
+``late_plan``. Why not send a late solution: in the daemon the
 command of a period is due at its deadline, and a step that ate its budget leaves the rest of the
 period (I/O, logging) to chance; the supervisor's replay of the previous plan (one row on) is the
 same trajectory the late solve refines. The late plan becomes the supervisor's plan for the NEXT
@@ -513,8 +515,13 @@ class RobotNMPC(RobotControllerBase):
                 # (the unshifted one) is a stage off everywhere
                 self._solver.warm_start(x=self._z[self._shift_x], y=self._y[self._shift_y])
             if budget > 0:
-                # what is left of the step's budget (at least 0.1 ms: OSQP checks it per iteration)
-                left = budget - (time.perf_counter() - t_start)
+                # what was left of the step's budget when the update began (at least 0.1 ms: OSQP checks
+                # it per iteration): OSQP counts the update's time (its refactorisation) in its run time
+                # itself, so a QP it stops has always taken the step past its budget, and the step is an
+                # overrun (logged, a replay forces it); what was left after the update would let a cut
+                # QP that still ends usable ('solved inaccurate') pass as an ordinary step on a loaded
+                # machine
+                left = budget - (t_update - t_start)
                 self._solver.update_settings(time_limit=max(left, 1e-4))
         t_solve = time.perf_counter()
         res = self._solver.solve(raise_error=False)

@@ -98,11 +98,13 @@ def lift_budget(runner):
     if hasattr(ctrl, "set_enforce_budget"):
         ctrl.set_enforce_budget(False)
         return None, None
-    if ctrl is None or not hasattr(ctrl, "_solver") or not getattr(ctrl.s, "budget", 0.0) > 0.0:
+    s = getattr(ctrl, "s", None)
+    if not hasattr(ctrl, "_solver") or not getattr(s, "enforce_budget", False) or not s.budget > 0.0:
         return None, None
-    before = ctrl.s
-    ctrl.s = replace(before, budget=0.0)
-    return ctrl, before
+    # lifted by the switch the NMPC's budget acts through: the replay's settings differ from the run's
+    # in it alone, and _forced_outcome turns it back on for a step the run overran in
+    ctrl.s = replace(s, enforce_budget=False)
+    return ctrl, s
 
 
 def soak_verdicts(stats: dict, ticks: list | None = None) -> dict:
@@ -287,42 +289,57 @@ def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho
                     iterations: int | None, parted):
     """The context for the replay's step at a tick where the run's robot NMPC overran: the same
     outcome forced (the replay's wall-time budget is lifted everywhere else, so only the run's
-    overruns happen). OSQP's time limit ("overrun (run time limit reached)"): OSQP returns that
-    status at once. The run's solution was then unusable whatever iterations it had done, and the
-    next step warm-starts OSQP from the NMPC's last usable solution, so only a change of OSQP's rho
-    (``rho_updates`` > 0) would carry over; that one is not forced (``parted()`` is called).
-    "overrun (X ms > Y ms)": the solve is made late, and stopped where the run's stopped: OSQP's time limit can strike in a solve that
-    still ends usable (its approximate test passes: "solved inaccurate"), and that late plan is
-    the next step's warm start, so a replay that solved on would part from the run there. OSQP
-    reports such a cut one iteration short (it stops after the iteration's ADMM step, before that
-    iteration's bookkeeping: the iterate after k + 1 steps is reported as k; OSQP 1.x's
-    ``osqp_solve``, pinned by a test), so the replay's solve may run ``iterations`` + 1 steps: it
-    stops there, or earlier where the run's solve converged by itself. When the replay's solve does
-    not end on the run's iterations or rho updates, ``parted()`` is called: that outcome was not
-    reproduced. ``run_settings``: the NMPC's settings as the run had them; ``replay_settings``: the
-    same without the budget."""
+    overruns happen). OSQP reports a solve its time limit cut one iteration short (it stops after the
+    iteration's ADMM step, before that iteration's bookkeeping: the iterate after k + 1 steps is
+    reported as k; OSQP 1.x's ``osqp_solve``, pinned by a test), so the replay's solve runs up to
+    ``iterations`` + 1 steps: it stops there, or earlier where the run's solve converged by itself.
+    The iteration cap, not this machine's load, ends it: the replay's own time limit is lifted.
+    OSQP's time limit ("overrun (run time limit reached)"): the run's solution was unusable, but its
+    iterations moved OSQP's iterate, which the next step starts from when the NMPC holds no usable
+    solution to warm-start from (the steps after the start-up solve of
+    :meth:`hbma_ctrl.controllers.robot_mpc.RobotNMPC.prime`), and a change of OSQP's rho carries
+    over to every later solve; so the replay runs the run's iterations and then returns that status,
+    with nothing usable. Without the run's iteration count (a log that has none) the status alone is
+    forced, and only when the run's rho did not change. "overrun (X ms > Y ms)": the solve is made
+    late, and stopped where the run's stopped: OSQP's time limit can strike in a solve that still
+    ends usable (its approximate test passes: "solved inaccurate"), and that late plan is the next
+    step's warm start, so a replay that solved on would part from the run there. When the replay's
+    solve does not end on the run's iterations or rho updates, or the outcome cannot be forced,
+    ``parted()`` is called: that outcome was not reproduced. ``run_settings``: the NMPC's settings
+    as the run had them; ``replay_settings``: the same with the budget not enforced."""
     import contextlib
+
+    from hbma_ctrl.controllers.mpc_solvers import OSQP_NO_TIME_LIMIT
 
     if ctrl is None or not status or not status.startswith("overrun"):
         return contextlib.nullcontext()
     solver = ctrl._solver
-    if "time limit" in status and rho_updates == 0:
+    real = solver.solve
+
+    def run_iterations(*a, **k):
+        """The solve, capped at the run's iterations + 1 and never at this machine's wall clock."""
+        cap = {} if iterations is None else {"max_iter": min(iterations + 1, run_settings.max_iter)}
+        solver.update_settings(time_limit=OSQP_NO_TIME_LIMIT, **cap)
+        try:
+            res = real(*a, **k)
+        finally:
+            solver.update_settings(max_iter=run_settings.max_iter)
+        if iterations is not None and (
+                int(res.info.iter) not in (iterations, iterations + 1)
+                or int(getattr(res.info, "rho_updates", 0)) != (rho_updates or 0)):
+            parted()
+        return res
+
+    if "time limit" in status and iterations is not None:
+        def solve(*a, **k):
+            run_iterations(*a, **k)
+            return _TimeLimited()
+    elif "time limit" in status and rho_updates == 0:
         def solve(*a, **k):
             return _TimeLimited()
     elif _LATE.match(status):
-        real = solver.solve
-
         def solve(*a, **k):
-            if iterations is not None:
-                solver.update_settings(max_iter=min(iterations + 1, run_settings.max_iter))
-            try:
-                res = real(*a, **k)
-            finally:
-                solver.update_settings(max_iter=run_settings.max_iter)
-            if iterations is not None and (
-                    int(res.info.iter) not in (iterations, iterations + 1)
-                    or int(getattr(res.info, "rho_updates", 0)) != (rho_updates or 0)):
-                parted()
+            res = run_iterations(*a, **k)
             time.sleep(run_settings.budget * run_settings.sample_period)  # past the budget, solved
             return res
     else:
@@ -338,7 +355,7 @@ def _forced_outcome(ctrl, run_settings, replay_settings, status: str | None, rho
         finally:
             del solver.solve
             ctrl.s = replay_settings
-            solver.update_settings(time_limit=1e10)  # the replay's solves are not cut (see above)
+            solver.update_settings(time_limit=OSQP_NO_TIME_LIMIT)  # the replay's own solves are never cut
 
     return forced()
 
