@@ -7,12 +7,12 @@ import subprocess
 import sys
 import time
 import tty
-from pathlib import Path
 
 import numpy as np
 import pytest
 import serial
 
+from checkout import ROOT
 from hbma_ctrl.app.daemon.firmware import FakeFirmware, FirstOrderPlant, main, open_fake_rig
 from hbma_ctrl.app.daemon.rigio import Readings, RigIO, RigLinkError, safe_u
 from hbma_ctrl.app.daemon.serial_link import (
@@ -386,7 +386,7 @@ def test_proportional_loop_over_serial_settles_as_on_the_direct_plant():
 
 def test_firmware_module_runs_and_prints_a_port_a_rig_can_open(tmp_path):
     link = str(tmp_path / "rig")
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}  # this checkout's package
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}  # this checkout's package
     proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl.app.daemon.firmware", "--n", "2", "--link", link],
                             stdout=subprocess.PIPE, text=True, env=env)
     try:
@@ -436,7 +436,7 @@ def test_a_p_line_naming_a_command_the_host_never_sent_is_counted_and_gives_no_h
 
 
 def test_firmware_cli_with_a_config_refuses_what_does_not_fit_it_with_one_line(tmp_path, capsys):
-    chamber = Path(__file__).resolve().parents[1] / "scenarios" / "daemon_chamber.toml"
+    chamber = ROOT / "scenarios" / "daemon_chamber.toml"
     assert main(["--truth-log", str(tmp_path / "t.csv")]) == 2
     assert "--truth-log: needs --config" in capsys.readouterr().err
     assert main(["--config", str(tmp_path / "missing.toml")]) == 2
@@ -457,7 +457,7 @@ def test_rig_plant_runs_one_rig_period_per_firmware_period_and_stamps_the_rigs_t
     from hbma_ctrl.app.daemon.config import load_config
     from hbma_ctrl.app.daemon.firmware import RigPlant
 
-    cfg = load_config(Path(__file__).resolve().parents[1] / "scenarios" / "daemon_chamber.toml")
+    cfg = load_config(ROOT / "scenarios" / "daemon_chamber.toml")
     plant = RigPlant(make_sim_rig(cfg), tmp_path / "truth.csv")
     u = np.array([[1.0], [1.0], [0.0]])  # pumping in
     p = [plant(u, dt)[0] for dt in (0.01, 0.004, 0.027, 0.01)]

@@ -8,6 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from checkout import ROOT
 from hbma_ctrl.core.materials import make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.exact import ExactMembrane
@@ -172,12 +173,10 @@ def test_bench_sim_bad_role_json_is_one_error_line_exit_2(tmp_path):
 
 
 def test_run_open_loop_scene_with_fidelity_exact_logs_the_exact_rung(tmp_path):
-    from pathlib import Path
-
     from hbma_ctrl.app.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
-    root = Path(__file__).resolve().parent.parent
+    root = ROOT
     text = (root / "scenarios" / "open_loop_loaded.toml").read_text()
     text = text.replace('fidelity = "platform"', 'fidelity = "exact"').replace("duration_s = 6.0", "duration_s = 1.0")
     text = text.replace("[3.0, 0.0,   0.0, 1.0]", "[0.6, 0.0,   0.0, 1.0]")

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
+from checkout import ROOT
 from hbma_ctrl.app.bench_drills import DEFAULT_VALUE, check_drills, drill_fault
 from hbma_ctrl.app.cli import app
 
-ROOT = Path(__file__).resolve().parents[1]
 ROBOT = ROOT / "scenarios" / "daemon_robot.toml"
 cli = CliRunner()
 

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from checkout import ROOT
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build_runner, make_monitor, make_rig
@@ -32,7 +33,6 @@ from hbma_ctrl.app.daemon.rigio import RigLinkError, safe_u
 from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, read_run_log
 from hbma_ctrl.app.daemon.state import DaemonState
 
-ROOT = Path(__file__).resolve().parents[1]
 CHAMBER_FILE = ROOT / "scenarios" / "daemon_chamber.toml"
 # most tests time their faults and targets from the loop's start: they run the shipped file without
 # its start-up calibration (test_chamber_daemon_calibrates_first_then_runs_the_files_schedule has it)

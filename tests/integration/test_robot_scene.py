@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from checkout import ROOT
 from hbma_ctrl.app.scene_robot import run_metrics, run_scene
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.robot.design import RobotDesign
@@ -17,7 +18,6 @@ from hbma_ctrl.robot.plant import W_FLOOR, simulate_open_loop
 from hbma_ctrl.robot.reach import chamber_reach
 from hbma_ctrl.robot.statics import load_sharing
 
-ROOT = Path(__file__).resolve().parents[1]
 
 def parse_section(raw: dict):
     """The [robot] table (edge units) -> its SI settings, through the scenario schema."""

@@ -12,13 +12,13 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from checkout import ROOT
 import hbma_ctrl.app.cli as cli_mod
 import hbma_ctrl.app.outputs as outputs
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.app.outputs import MANIFEST_KEYS, RunInterrupted, check_out, default_out, run_dir
 from hbma_ctrl.app.scenario import load_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
 FIG7 = ROOT / "scenarios" / "open_loop_fig7.toml"
 runner = CliRunner()
 

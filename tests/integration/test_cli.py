@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from checkout import ROOT
 from hbma_ctrl.app.cli import app
 
-ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
 E = 130.6e3
 

@@ -3,16 +3,15 @@ path (the same stages called from Python on the same library) and against the sc
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from checkout import ROOT
 from hbma_ctrl.app.codegen import bench, find_compiler, read_c
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.runtime.safety import ZERO_TARGET
 
-ROOT = Path(__file__).resolve().parents[1]
 needs_cc = pytest.mark.skipif(find_compiler() is None, reason="no C compiler (cc, gcc or clang) on PATH")
 
 

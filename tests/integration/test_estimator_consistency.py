@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from checkout import ROOT
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.app.evaluate import run_filter
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
@@ -47,12 +48,10 @@ def test_nees_and_nis_inside_chi_square_bounds(load, r1):
 
 def test_full_protocol_requirements(tmp_path):
     """ISSUE 3 over the 150-trial protocol on the mismatched rig (about 20 s on 2 workers)."""
-    from pathlib import Path
-
     from hbma_ctrl.app.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
-    path = Path(__file__).resolve().parents[1] / "scenarios" / "ekf_protocol.toml"
+    path = ROOT / "scenarios" / "ekf_protocol.toml"
     est = run_scenario(load_scenario(path), tmp_path)["estimator"]
     assert est["n_trials"] == 150
     assert est["height_nrmsd"] <= 0.05
@@ -64,12 +63,10 @@ def test_full_protocol_requirements(tmp_path):
 
 
 def _calibrated(tmp_path, name: str) -> dict:
-    from pathlib import Path
-
     from hbma_ctrl.app.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
 
-    path = Path(__file__).resolve().parents[1] / "scenarios" / name
+    path = ROOT / "scenarios" / name
     est = run_scenario(load_scenario(path), tmp_path)["estimator"]
     assert est["n_trials"] == 150 and est["n_scenarios"] == 30
     return est

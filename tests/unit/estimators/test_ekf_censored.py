@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from checkout import ROOT
 from hbma_ctrl.app.evaluate import run_filter, score
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.app.sections import filter_settings_for
@@ -16,9 +17,7 @@ def test_readings_under_the_range_do_not_fire_a_lift_off_below_it(tmp_path):
     noise stream): the platform lifts at 45 kPa, above the 35 kPa range. The filter stays resting
     until the readings saturate, its load keeps the nominal 8.04 N, and its height error stays
     within 0.5 mm (it once declared a lift-off at 34 kPa, a load of 6 N and a 2 mm height)."""
-    from pathlib import Path
-
-    scn = load_scenario(Path(__file__).resolve().parents[1] / "scenarios" / "ekf_protocol.toml")
+    scn = load_scenario(ROOT / "scenarios" / "ekf_protocol.toml")
     rig = scn.role("rig")
     fs = filter_settings_for(scn.role("estimator"), rig)
     trials = scn.trials()

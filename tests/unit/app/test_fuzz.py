@@ -13,7 +13,6 @@ import multiprocessing as mp
 import re
 import tomllib
 import traceback
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,9 +20,9 @@ import tomli_w
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+from checkout import ROOT
 from hbma_ctrl.app.scenario import load_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((ROOT / "scenarios").glob("*.toml"))
 DATA = {p.name: tomllib.loads(p.read_text(encoding="utf-8")) for p in SHIPPED}
 

@@ -1,13 +1,13 @@
 """EKF/UKF against the mismatched rig: API, measurement handling, extremes, convergence, load steps."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from checkout import ROOT
 from hbma_ctrl.estimators.common import FilterSettings, guard_cov
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.ukf import UKF
@@ -20,7 +20,6 @@ from hbma_ctrl.models.chamber import STATE_SCALE
 from hbma_ctrl.sim.rig import Rig, RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
 
-ROOT = Path(__file__).resolve().parents[1]
 
 G = 9.80665
 

@@ -8,12 +8,12 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from checkout import ROOT
 import hbma_ctrl.app.cli as cli_mod
 from hbma_ctrl.app import cli_args
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.app.scenario import load_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
 
 

@@ -18,12 +18,12 @@ import pytest
 from cli_checks import one_line_error
 from typer.testing import CliRunner
 
+from checkout import ROOT
 from hbma_ctrl.app import tune as T
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.app.scenario import load_scenario
 
 runner = CliRunner()
-ROOT = Path(__file__).resolve().parents[1]
 
 TINY = """
 [scenario]

@@ -15,6 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli_checks import one_line_error
+from checkout import ROOT
 from hbma_ctrl.app.cli import app
 from hbma_ctrl.app.codegen import LOG, LIBRARY, LogColumn, LoopSpec, Stage, build_c, compare, find_compiler, \
     run_c, run_python, write_c
@@ -31,7 +32,6 @@ from hbma_ctrl.sim.rig import CAP_RIG, Rig, RigSettings
 
 CC = find_compiler()
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH to build the generated loop")
-ROOT = Path(__file__).resolve().parents[1]
 TRACK = str(ROOT / "scenarios" / "track_height_cap.toml")
 #: the default rig and models: the exact membrane, valve timing, pump tilt, sensor lag; the EKF's delays
 #: and the controller's minimum on-time shaping

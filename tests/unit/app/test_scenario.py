@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from checkout import ROOT
 from hbma_ctrl.app.scenario import load_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
 
 BASE = """
 [scenario]

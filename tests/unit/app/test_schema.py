@@ -15,6 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from checkout import ROOT
 from hbma_ctrl.controllers.mpc_settings import VARIANTS
 from hbma_ctrl.app.evaluate import FILTERS
 from hbma_ctrl.app.schema import (
@@ -35,7 +36,6 @@ from hbma_ctrl.robot.design import TOPOLOGIES
 from hbma_ctrl.sim.batch import FIDELITY_CHOICES
 from hbma_ctrl.sim.trial import INTEGRATORS
 
-ROOT = Path(__file__).resolve().parents[1]
 # the daemon's configurations (scenario tables + [daemon]) are checked by tests/test_daemon.py
 SHIPPED = sorted(p for p in (ROOT / "scenarios").glob("*.toml") if not p.name.startswith("daemon_"))
 TABLES = ("scenario, actuator, pneumatics, load, inputs, protocol, sim, rig, estimator, controller, robot, daemon")

@@ -6,12 +6,12 @@ estimate at a mid height), the floor a pressure, not a gas mass."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
 import pytest
 
+from checkout import ROOT
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.robot_ekf import B_RANGE, ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
@@ -197,7 +197,7 @@ def test_default_robot_rig_start_up_vents_no_chamber_for_a_lost_estimate():
     from hbma_ctrl.app.scenario import load_scenario
     from hbma_ctrl.app.schema import RigTable
 
-    scn = load_scenario(Path(__file__).parents[1] / "scenarios" / "daemon_robot.toml")
+    scn = load_scenario(ROOT / "scenarios" / "daemon_robot.toml")
     s = scn.role("robot")
     rig = RigTable.model_validate(scn.sections["rig"]).to_robot_rig()
     mpc = replace(RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=0.0), w_slack=s.mpc_w_slack)

@@ -4,11 +4,11 @@ the scenario [rig] keys that set them for a robot."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from checkout import ROOT
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.robot.design import RobotDesign
@@ -141,7 +141,7 @@ def test_a_default_minimum_opening_longer_than_the_loops_period_is_one_error_nam
     RobotSettings().check_period(0.002)
     with pytest.raises(ValueError, match=r"\[robot\] valve_min_on_ms = 2 is out of range \[0, 1\] ms"):
         RobotSettings().check_period(0.001)
-    text = (Path(__file__).parents[1] / "scenarios" / "robot_tip_load.toml").read_text()
+    text = (ROOT / "scenarios" / "robot_tip_load.toml").read_text()
     assert "sample_period_ms = 10.0" in text
     path = tmp_path / "fast.toml"
     path.write_text(text.replace("sample_period_ms = 10.0", "sample_period_ms = 1.0"))
