@@ -36,8 +36,8 @@ ACT, PN = Actuator(), Pneumatics()
 
 
 @pytest.fixture(scope="module")
-def model():
-    return PredictionModel(ACT, PN)  # the default law, the exact membrane's
+def model(prediction_model):
+    return prediction_model  # PredictionModel(ACT, PN): the default law, the exact membrane's
 
 
 class OracleFromRig:

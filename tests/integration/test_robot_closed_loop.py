@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
+from hbma_ctrl.app.robot_closed import run_closed_loop
 from hbma_ctrl.app.scene_robot_closed import closed_loop_metrics
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.app.sections import RobotSettings
@@ -26,13 +26,13 @@ def parse_section(raw: dict):
 
 
 @pytest.fixture(scope="module")
-def model():
-    return make_model(D1, Pneumatics(), "per_chamber")
+def model(robot_bank):
+    return robot_bank  # make_model(D1, Pneumatics(), "per_chamber")
 
 
 @pytest.fixture(scope="module")
-def shared_model():
-    return make_model(D1, Pneumatics(), "shared")
+def shared_model(shared_robot_bank):
+    return shared_robot_bank  # make_model(D1, Pneumatics(), "shared")
 
 
 def _settings(limit_kpa: float = 45.0, topology: str = "per_chamber") -> RobotSettings:

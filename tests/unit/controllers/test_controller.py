@@ -22,7 +22,6 @@ from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.fidelity import make_fidelity
-from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.chamber import ChamberLoop
 from hbma_ctrl.sim.simulate import Plant
 
@@ -36,9 +35,9 @@ def parse_section(raw: dict):
 
 
 @pytest.fixture(scope="module")
-def model():
+def model(cap_prediction_model):
     # the cap's tables, checked here against the cap's closed forms (the exact law's: test_exact_mpc.py)
-    return PredictionModel(ACT, PN, membrane="cap")
+    return cap_prediction_model  # PredictionModel(ACT, PN, membrane="cap")
 
 
 def test_poly_tables_equal_the_bspline_functions_with_their_jacobians(model):

@@ -20,8 +20,10 @@ W400 = 0.4 * 9.80665
 
 
 @pytest.fixture(scope="module")
-def models():
-    return {m: PredictionModel(ACT, PN, membrane=m) for m in ("cap", "exact")}
+def models(cap_prediction_model, prediction_model):
+    # {m: PredictionModel(ACT, PN, membrane=m)}: ACT is the default actuator
+    assert cap_prediction_model.actuator == ACT and prediction_model.membrane == "exact"
+    return {"cap": cap_prediction_model, "exact": prediction_model}
 
 
 def _p_at(model: PredictionModel, h: float, W: float) -> float:

@@ -14,12 +14,14 @@ from hbma_ctrl.controllers.mpc_settings import WEIGHTS, weights_of
 from hbma_ctrl.controllers.rti_c import _RtiC, qp_data_function
 from hbma_ctrl.core.interfaces import Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.tables import PredictionModel
 
 
 @pytest.fixture(scope="module")
-def model():
-    return PredictionModel(Actuator(), Pneumatics(), load_max=MPCSettings().load_max)
+def model(prediction_model):
+    # PredictionModel(Actuator(), Pneumatics(), load_max=MPCSettings().load_max): the shared one, while
+    # the MPC's load_max is the model's default
+    assert prediction_model.load_max == MPCSettings().load_max
+    return prediction_model
 
 
 def _settings(variant: str) -> MPCSettings:
@@ -133,11 +135,8 @@ def test_closed_loop_rmse_within_1pct_of_ipopt():
 
 
 @pytest.fixture(scope="module")
-def bank():
-    from hbma_ctrl.app.scene_robot_closed import make_model
-    from hbma_ctrl.robot.design import RobotDesign
-
-    return make_model(RobotDesign(n_layers=1).validate(), Pneumatics().validate(), "per_chamber")
+def bank(robot_bank):
+    return robot_bank  # make_model(RobotDesign(n_layers=1).validate(), Pneumatics().validate(), "per_chamber")
 
 
 def _first_qp(bank, monkeypatch, L: int, x0, abar=None):

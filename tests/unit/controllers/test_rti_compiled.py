@@ -20,7 +20,6 @@ from hbma_ctrl.controllers.mpc_solvers import _Fatrop, _Ipopt, _Problem, _RtiOsq
 from hbma_ctrl.controllers.rti_step import _RtiFunction, rti_step_function
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.tables import PredictionModel
 
 ACT, PN = Actuator(), Pneumatics()
 W400 = 0.4 * 9.80665
@@ -29,8 +28,8 @@ CASES = [(5.0e-3, 5.3e-3), (5.0e-3, 5.05e-3), (6.0e-3, 5.6e-3)]
 
 
 @pytest.fixture(scope="module")
-def model():
-    return PredictionModel(ACT, PN, membrane="cap")  # the OCP the issue-15 benches measured
+def model(cap_prediction_model):
+    return cap_prediction_model  # PredictionModel(ACT, PN, membrane="cap"): the OCP the issue-15 benches measured
 
 
 def _problem(model, s, h, r, u_prev=(0.3, 0.5, 0.1)):

@@ -16,11 +16,9 @@ from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.ekf_step import DET_NAMES, KIND_OK, STEP_IN, STEP_OUT, ekf_step_function
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, _step_function
-from hbma_ctrl.app.robot_closed import make_model
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import STATE_SCALE
-from hbma_ctrl.robot.design import RobotDesign
 
 ACT = Actuator()
 PN = Pneumatics()
@@ -254,9 +252,8 @@ def test_a_persistent_excess_in_contact_declares_a_load_change():
 
 
 @pytest.fixture(scope="module")
-def bank_model():
-    d = RobotDesign(n_layers=1).validate()
-    return make_model(d, Pneumatics(), "per_chamber")
+def bank_model(robot_bank):
+    return robot_bank  # make_model(RobotDesign(n_layers=1).validate(), Pneumatics(), "per_chamber")
 
 
 def test_robot_bank_mapped_call_equals_per_chamber_calls(bank_model):

@@ -134,9 +134,9 @@ def test_new_filter_settings_are_validated():
 
 # --- robot EKF bank and loop -------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def robot():
+def robot(robot_bank, shared_robot_bank):
     d = RobotDesign(n_layers=1).validate()
-    return d, make_model(d, Pneumatics(), "per_chamber"), make_model(d, Pneumatics(), "shared")
+    return d, robot_bank, shared_robot_bank  # make_model(d, Pneumatics(), "per_chamber" / "shared")
 
 
 def _bank_pair(model, **kw):

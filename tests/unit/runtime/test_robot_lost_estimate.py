@@ -14,10 +14,9 @@ import pytest
 from checkout import ROOT
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.robot_ekf import B_RANGE, ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.robot_closed import make_model, run_closed_loop
+from hbma_ctrl.app.robot_closed import run_closed_loop
 from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.rig import RobotRigSettings
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
@@ -25,9 +24,9 @@ from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 
 
 @pytest.fixture(scope="module")
-def robot():
+def robot(robot_bank):
     d = RobotDesign(n_layers=1).validate()
-    return d, make_model(d, Pneumatics(), "per_chamber")
+    return d, robot_bank  # make_model(d, Pneumatics(), "per_chamber")
 
 
 # --- the supervisor ------------------------------------------------------------------------------

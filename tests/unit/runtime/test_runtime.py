@@ -11,7 +11,6 @@ from hbma_ctrl.controllers.baselines import PIDController, PIDSettings
 from hbma_ctrl.controllers.mpc_settings import timing_stats
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.app.robot_closed import make_model
 from hbma_ctrl.app.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, Estimate, Reference
@@ -185,10 +184,11 @@ def test_chamber_loop_ticks_on_a_short_run():
 
 
 @pytest.fixture(scope="module")
-def robot():
+def robot(robot_bank):
     d = RobotDesign(n_layers=1).validate()
     s = RobotSettings(design=d, pneumatics=RobotPneumatics()).validate()
-    return d, s, make_model(d, Pneumatics(), s.pneumatics.topology)
+    assert s.pneumatics.topology == robot_bank.topology
+    return d, s, robot_bank  # make_model(d, Pneumatics(), s.pneumatics.topology)
 
 
 def test_robot_loop_ticks_on_a_short_run(robot):

@@ -16,7 +16,6 @@ from hbma_ctrl.app.daemon.rig_sim import SimRig
 from hbma_ctrl.app.daemon.rigio import Readings, RigLinkError, safe_u
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
 from hbma_ctrl.runtime.watchdog import FAULT_KINDS, MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
@@ -173,8 +172,8 @@ def test_bad_settings_name_the_field(field, value):
 # --- closed loop ----------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def model():
-    return PredictionModel(ACT, PN)
+def model(prediction_model):
+    return prediction_model  # PredictionModel(ACT, PN)
 
 
 STEPS = [[0.0, 2.0], [1.5, 8.0], [3.0, 5.0]]
