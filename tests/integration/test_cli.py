@@ -103,6 +103,7 @@ def test_bad_scenario_file_is_one_line(tmp_path):
     _one_line_error(runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "o")]), "[actuator] r1_mm", "bad.toml")
 
 
+@pytest.mark.slow
 def test_run_open_loop_writes_metrics_log_and_plot(tmp_path):
     out = tmp_path / "run"
     res = runner.invoke(app, ["run", str(ROOT / "scenarios" / "open_loop_fig7.toml"), "--out", str(out)])
@@ -181,6 +182,7 @@ def test_equilibrium_dead_volume_option():
     assert b["pressure_kpa"] == pytest.approx(a["pressure_kpa"], rel=1e-12)
 
 
+@pytest.mark.slow
 def test_bench_loop_load_step_holds_over_seeds_0_to_2(tmp_path):
     """README Control: 400 g + 200 g at 2 s, hold 5 mm, passes on 9 of 10 rig seeds (the TRUE height
     within 0.3 mm of the target over the last second). Over seeds 0, 1, 2 through the CLI: at least
@@ -201,7 +203,7 @@ def test_bench_loop_load_step_holds_over_seeds_0_to_2(tmp_path):
     assert summ["runs"] == 3 and summ["passed"] == sum(r["passed"] for r in rows)
 
 
-@pytest.mark.slow
+@pytest.mark.sweep
 def test_bench_loop_load_step_pass_rate_over_20_seeds():
     """The README's load-step rate over rig seeds 0-19: at least 17 of 20 (measured 19 of 20 with the
     start-up calibration; 16 of 20 without it)."""
@@ -221,6 +223,7 @@ def _fig7_with(tmp_path: Path, old: str, new: str, name: str = "s.toml") -> Path
     return p
 
 
+@pytest.mark.slow
 def test_run_peak_height_comes_from_the_simulation_not_the_decimated_log(tmp_path):
     """Fig. 7's 19 mm inflation logged every 5 s: the reported peak is still about 19 mm (the same run
     at the normal 10 ms log), not the 0.6 mm the two logged samples show."""
@@ -235,6 +238,7 @@ def test_run_peak_height_comes_from_the_simulation_not_the_decimated_log(tmp_pat
     assert coarse == pytest.approx(peak, rel=0.01)
 
 
+@pytest.mark.slow
 def test_run_whose_solver_diverges_ends_non_zero_with_status_failed(tmp_path):
     """E = 1e300 Pa: the trial diverges; the run exits non-zero, keeps its files as <out>.failed-<time>
     with manifest status 'failed', and leaves nothing at --out that looks complete."""
@@ -289,12 +293,15 @@ def _modules_after(code: str, cwd: Path) -> set[str]:
     return set(ast.literal_eval(res.stdout.strip().splitlines()[-1]))
 
 
+@pytest.mark.subprocess
 def test_importing_the_cli_loads_no_other_commands_modules(tmp_path):
     mods = _modules_after("import sys, hbma_ctrl.app.cli", tmp_path)
     assert "hbma_ctrl.app.cli" in mods
     assert not mods & set(_OTHER_COMMANDS_MODULES), sorted(mods & set(_OTHER_COMMANDS_MODULES))
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_protocol_command_loads_neither_the_roles_nor_other_commands_modules(tmp_path):
     """A short protocol through the CLI in a fresh interpreter: the simulator and its outputs are
     loaded, the estimators, controllers, runtime, robot and the modules of the other commands are not."""
@@ -320,6 +327,8 @@ def test_cli_constants_equal_the_constants_they_copy():
     assert C.BOND_RADIUS_MM == U.to_mm(statics.BOND_RADIUS)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_bench_protocol_times_the_main_job_in_fresh_interpreters(tmp_path):
     """bench protocol writes every row's runs and median, the simulation alone being a part of the
     whole command's time; --repeat 0 is one error line naming the flag."""

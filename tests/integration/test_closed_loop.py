@@ -61,6 +61,7 @@ def run(section_raw, load_kg, duration, model, rig=None, oracle=False, calibrate
 STEPS = [[0.0, 2.0], [2.0, 8.0], [4.5, 5.0]]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("load", [0.0, 0.4])
 def test_rti_with_true_state_settles_steps_within_0p3mm(model, load):
     """The controller's own share: with the true state it settles 2 -> 8 -> 5 mm on the mismatched
@@ -70,6 +71,7 @@ def test_rti_with_true_state_settles_steps_within_0p3mm(model, load):
     assert m["max_pressure_kpa"] <= 35.0 and m["fallbacks"] == 0
 
 
+@pytest.mark.slow
 def test_ekf_loop_400g_tracks_the_estimate_and_respects_p_max(model):
     """Full chain rig -> EKF -> RTI -> rig, 400 g: the estimate settles within 0.3 mm of each
     target (the truth's own criterion: test_ekf_loop_truth_settles_within_0p3mm)."""
@@ -79,6 +81,7 @@ def test_ekf_loop_400g_tracks_the_estimate_and_respects_p_max(model):
     assert m["height_est_rmse_mm"] < 2.0
 
 
+@pytest.mark.slow
 def test_load_added_mid_run_is_rejected(model):
     """400 g holding 5 mm, +200 g at 2 s (true state fed back: the controller's share): the height
     dips and comes back within 0.3 mm."""
@@ -93,6 +96,7 @@ def test_load_added_mid_run_is_rejected(model):
     assert m["max_pressure_kpa"] <= 35.0
 
 
+@pytest.mark.slow
 def test_load_added_mid_run_through_ekf(model):
     """The same through the EKF: the true height is back within 0.3 mm of 5 mm over the last
     second (it ended 0.5 mm low before the filter carried the dead volume)."""
@@ -102,6 +106,7 @@ def test_load_added_mid_run_through_ekf(model):
     assert m["max_pressure_kpa"] <= 35.0
 
 
+@pytest.mark.slow
 def test_pressure_limit_with_dropouts_and_infeasible_target(model):
     """p_max = 20 kPa is below what 8 mm under 400 g needs on the rig: the target is clipped and
     reported, and with 20 % sensor dropouts the true pressure still never exceeds 20 kPa."""
@@ -113,6 +118,7 @@ def test_pressure_limit_with_dropouts_and_infeasible_target(model):
     assert np.max(log.h_true) < 8e-3
 
 
+@pytest.mark.slow
 def test_forced_solver_failure_stays_safe(model):
     """Every solve fails from 0.5 s to 1.3 s during the inflation: the loop first runs on the
     shifted plan, then the safe command (vents), never above p_max; it recovers afterwards (from
@@ -133,6 +139,7 @@ def test_forced_solver_failure_stays_safe(model):
 CRITERION = {"targets_mm": [[0.0, 2.0], [3.0, 8.0], [6.0, 5.0]]}
 
 
+@pytest.mark.slow
 def test_ekf_loop_400g_truth_settles_within_0p3mm(model):
     """The issue's criterion on the truth through the EKF: 2 -> 8 -> 5 mm with 400 g on the
     mismatched rig settle within 0.3 mm, never above p_max, the calibration included."""
@@ -141,6 +148,7 @@ def test_ekf_loop_400g_truth_settles_within_0p3mm(model):
     assert m["steps_settled"] == 3, m["settle"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(4))
 def test_ekf_loop_0g_truth_settles_within_0p3mm_on_seeds_0_to_3(model, seed):
     """The same with 0 g (the free cap) on rig seeds 0..3 (seed 0 missed the 8 mm step by 0.32 mm
@@ -150,6 +158,7 @@ def test_ekf_loop_0g_truth_settles_within_0p3mm_on_seeds_0_to_3(model, seed):
     assert m["steps_settled"] == 3, (m["settle"], m["calibration"])
 
 
+@pytest.mark.slow
 def test_calibration_learns_the_factors_the_ekf_alone_misses(model):
     """Seeds 0-2, 0 g on the cap rig with the cap models (identification needs the model's form to be
     the rig's): with the calibration the EKF ends every run with its modulus factor within 0.03 of the
@@ -170,7 +179,7 @@ def test_calibration_learns_the_factors_the_ekf_alone_misses(model):
     assert sum(abs(k - 1.15) > 0.03 or abs(c - 1.2) > 0.2 for k, c, _ in rows[False]) >= 2, rows[False]
 
 
-@pytest.mark.slow
+@pytest.mark.sweep
 def test_ekf_loop_0g_settles_on_19_of_20_seeds(model):
     """The README's 0 g claim as a pass rate: 2 -> 8 -> 5 mm through the EKF with the start-up
     calibration settles within 0.3 mm on at least 19 of rig seeds 0..19 (11 of 20 without it;
@@ -195,6 +204,7 @@ def test_settle_results_detects_unsettled():
     assert not res[1]["settled"] and res[1]["final_error_mm"] == pytest.approx(-0.5)
 
 
+@pytest.mark.slow
 def test_scenario_run_writes_controller_metrics(tmp_path):
     """A scenario with [rig], [estimator] (UKF) and [controller] through the runner: metrics.json
     has the contract's controller keys; the CSV and the plot are written."""
@@ -224,6 +234,7 @@ def test_scenario_run_writes_controller_metrics(tmp_path):
     assert (tmp_path / "closed_loop.csv").stat().st_size > 1000 and (tmp_path / "closed_loop.png").is_file()
 
 
+@pytest.mark.slow
 def test_structured_rig_400g_settles_with_the_timing_modelled_and_never_lifts_without():
     """The truth that differs in structure (exact membrane with plate contact, 5 ms valve delay, 2 ms
     minimum opening, tilted pump map, 3 ms sensor lag), 400 g, 2 -> 8 -> 5 mm, exact-law EKF,

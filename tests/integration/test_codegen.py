@@ -45,6 +45,7 @@ def _commands(k: int, rng) -> np.ndarray:
     return np.array([1.0, 1.0, 0.0]) if (k // 100) % 2 == 0 else np.array([0.0, 0.0, 1.0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario", [TRACK, DEFAULT_TRACK])
 def test_plant_step_equals_the_rig_sample_by_sample(scenario):
     """The rig's period as Functions (valve line, plant, sensor lag) equals :class:`Rig` bit for bit, on
@@ -162,6 +163,7 @@ def _toy_spec(n: int = 60) -> LoopSpec:
                      LogColumn("z", "z"), LogColumn("twice_x", "pair", 1)])
 
 
+@pytest.mark.compiling
 def test_loop_description_runs_the_same_in_python_and_in_c(tmp_path):
     spec = _toy_spec()
     py = run_python(spec)
@@ -184,6 +186,7 @@ def test_loop_description_runs_the_same_in_python_and_in_c(tmp_path):
     assert np.array_equal(np.nan_to_num(lib.trajectory, nan=7.0), np.nan_to_num(c.trajectory, nan=7.0))
 
 
+@pytest.mark.slow
 def test_mpc_glue_matches_the_nmpc_problem():
     from hbma_ctrl.controllers.mpc import NMPC
     from hbma_ctrl.app.codegen_scene import mpc_glue
@@ -210,6 +213,7 @@ def test_mpc_glue_matches_the_nmpc_problem():
         np.testing.assert_allclose(out[5], pr.r, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_mpc_glue_integral_action_matches_the_nmpc_over_a_held_target():
     """The integral action carried through the glue's state (I, its target, has_I) equals the
     NMPC's over 60 controller periods at one target with the estimate wandering around it, then a
@@ -219,6 +223,7 @@ def test_mpc_glue_integral_action_matches_the_nmpc_over_a_held_target():
     assert I_hist[60] == 0.0  # the step restarted it
 
 
+@pytest.mark.slow
 def test_mpc_glue_integral_action_takes_the_target_now_not_the_preview():
     """With a preview (a ramp) the horizon's targets are the future ones but the integral action
     integrates the error to the target now, as the NMPC does: the glue equals it tick by tick. (It
@@ -258,6 +263,8 @@ def _glue_against_nmpc(target, preview: bool) -> list:
     return shifts
 
 
+@pytest.mark.slow
+@pytest.mark.compiling
 @needs_cc
 @pytest.mark.parametrize("scenario, T", [(TRACK, 4.0), (DEFAULT_TRACK, 4.2)])
 def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scene(tmp_path, scenario, T):
@@ -323,6 +330,7 @@ def _cli(args):
     return CliRunner().invoke(app, args)
 
 
+@pytest.mark.slow
 def test_codegen_cli_bad_inputs_are_one_error_line(tmp_path):
     robot = str(ROOT / "scenarios" / "robot_bending.toml")
     one_line_error(_cli(["codegen", robot, "--out", str(tmp_path / "a"), "--estimator", "truth"]), "--estimator", "ekf")
@@ -345,6 +353,7 @@ def test_codegen_cli_bad_inputs_are_one_error_line(tmp_path):
     assert not any((tmp_path / d).exists() for d in "abcde")
 
 
+@pytest.mark.slow
 def test_codegen_cli_writes_the_sources(tmp_path):
     res = _cli(["codegen", TRACK, "--out", str(tmp_path / "gen"), "--duration-s", "0.1", "--estimator", "truth"])
     assert res.exit_code == 0, res.output
@@ -355,6 +364,7 @@ def test_codegen_cli_writes_the_sources(tmp_path):
     assert "-losqp" in (tmp_path / "gen" / "Makefile").read_text()
 
 
+@pytest.mark.compiling
 @needs_cc
 def test_a_call_that_fails_reads_as_failed_in_c_and_in_python(tmp_path):
     """A Function that returns non-zero (here an assertion; in the RTI step a QP solver that gives up)
@@ -382,6 +392,8 @@ def test_a_call_that_fails_reads_as_failed_in_c_and_in_python(tmp_path):
                  [Stage(guarded, ["x"], ["status", "y"], fails_to="x")], []).validate()
 
 
+@pytest.mark.slow
+@pytest.mark.compiling
 @needs_cc
 def test_codegen_check_writes_the_c_runs_metrics(tmp_path):
     """``codegen --check`` runs the C loop: its metrics.json holds the controller and estimator objects."""
@@ -393,6 +405,7 @@ def test_codegen_check_writes_the_c_runs_metrics(tmp_path):
     assert m["estimator"]["height_rmse_mm"] >= 0.0
 
 
+@pytest.mark.slow
 def test_codegen_cli_says_the_start_up_calibration_is_left_out(tmp_path):
     """The default scenario calibrates before its loop closes; the generated loop does not, and says so
     (on the console and in README.txt) rather than leave a user to find the EKF's prior differs."""
@@ -403,6 +416,7 @@ def test_codegen_cli_says_the_start_up_calibration_is_left_out(tmp_path):
     assert "left out: the start-up calibration" in (tmp_path / "gen" / "README.txt").read_text()
 
 
+@pytest.mark.compiling
 @needs_cc
 def test_times_json_holds_every_function_and_the_tick(tmp_path):
     spec = _toy_spec(30)

@@ -12,9 +12,12 @@ from hbma_ctrl.app.codegen import bench, find_compiler, read_c
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.runtime.safety import ZERO_TARGET
 
+pytestmark = pytest.mark.slow
+
 needs_cc = pytest.mark.skipif(find_compiler() is None, reason="no C compiler (cc, gcc or clang) on PATH")
 
 
+@pytest.mark.compiling
 @needs_cc
 def test_the_robot_loop_in_c_equals_its_python_path_and_the_scenes_loop(tmp_path):
     """robot_bending (3 layers, one pump per chamber, the structured rig with valve timing, pump tilt and
@@ -45,6 +48,7 @@ def test_the_robot_loop_in_c_equals_its_python_path_and_the_scenes_loop(tmp_path
     assert m["max_pressure_kpa"] == pytest.approx(float(traj[:, [col[f"p_{nm}_kpa"] for nm in scn.role("robot").design.names]].max()))
 
 
+@pytest.mark.compiling
 @needs_cc
 def test_the_shared_pump_robot_loop_in_c_equals_its_python_path(tmp_path):
     """robot_sequential_closed (2 layers, one shared pump, layer B's zero target vented) for 0.3 s: the C

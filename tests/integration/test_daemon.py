@@ -103,6 +103,7 @@ def _write_config(tmp_path: Path, base: Path, extra: str = "", replace: dict | N
 
 
 # --- the loop on the simulated rig ----------------------------------------------------------------
+@pytest.mark.slow
 def test_chamber_daemon_on_sim_settles_to_a_setpoint_reports_clipping_and_stats(tmp_path):
     state = DaemonState()
     cfg, runner, rig, loop = _loop(CHAMBER, tmp_path, state=state, duration_s=4.0)
@@ -132,6 +133,7 @@ def test_chamber_daemon_on_sim_settles_to_a_setpoint_reports_clipping_and_stats(
     assert float(rows[-1][cols.index("outlet_C1_1")]) == 1.0 and float(rows[-1][cols.index("speed_C1_1")]) == 0.0
 
 
+@pytest.mark.slow
 def test_chamber_daemon_calibrates_first_then_runs_the_files_schedule(tmp_path):
     """The shipped file keeps [controller] calibrate on: the start-up calibration drives the chamber
     first (logged, its factors in the stats), then the file's schedule runs from its end."""
@@ -158,6 +160,7 @@ def test_chamber_daemon_calibrates_first_then_runs_the_files_schedule(tmp_path):
     assert rig.rig.truth()["h"] == pytest.approx(6e-3, abs=0.6e-3)
 
 
+@pytest.mark.slow
 def test_chamber_daemon_follows_the_file_targets_without_setpoints():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.5)
     loop.run()
@@ -165,6 +168,7 @@ def test_chamber_daemon_follows_the_file_targets_without_setpoints():
     assert rig.rig.truth()["h"] == pytest.approx(2e-3, abs=0.3e-3)
 
 
+@pytest.mark.slow
 def test_robot_daemon_runs_at_100_hz_under_its_pressure_limit_and_its_burst_test_stays_quiet():
     state = DaemonState()
     cfg, runner, rig, loop = _loop(ROBOT, state=state, duration_s=2.0)
@@ -181,6 +185,7 @@ def test_robot_daemon_runs_at_100_hz_under_its_pressure_limit_and_its_burst_test
     assert all(ly["centre"] > 1e-3 for ly in st["layers"])
 
 
+@pytest.mark.slow
 def test_robot_runner_is_primed_its_solver_set_up_and_its_loop_as_if_it_had_not_run():
     """The robot runner is built with its NMPC's OSQP set up and solved once at rest (start-up work a
     first tick would otherwise do within its period); every state a step changes is as a fresh
@@ -220,6 +225,7 @@ def test_robot_runner_is_primed_its_solver_set_up_and_its_loop_as_if_it_had_not_
         assert np.abs(primed.loop.estimate["h"] - cold.loop.estimate["h"]).max() < 1e-7, k
 
 
+@pytest.mark.slow
 def test_robot_layer_setpoint_is_clipped_by_the_kinematics():
     cfg, runner, rig, loop = _loop(ROBOT, duration_s=0.05)
     ok = runner.check_setpoint({"layers": {1: (0.007, math.radians(10), 0.0)}})
@@ -256,6 +262,7 @@ class _LosesLink:
         pass
 
 
+@pytest.mark.slow
 def test_lost_link_writes_the_safe_command_and_logs_the_cause(tmp_path):
     cfg, runner, rig, loop = _loop(CHAMBER, tmp_path, duration_s=2.0)
     loop.rig = _LosesLink(rig.rig, after=30)
@@ -267,6 +274,7 @@ def test_lost_link_writes_the_safe_command_and_logs_the_cause(tmp_path):
     assert "link_loss" in events and "safe_exit" in events
 
 
+@pytest.mark.slow
 def test_exception_in_the_step_writes_the_safe_command(tmp_path):
     cfg, runner, rig, loop = _loop(CHAMBER, tmp_path, duration_s=2.0)
     calls = {"n": 0}
@@ -285,6 +293,7 @@ def test_exception_in_the_step_writes_the_safe_command(tmp_path):
     assert "FloatingPointError: boom" in (tmp_path / "events.csv").read_text()
 
 
+@pytest.mark.slow
 def test_stop_request_ends_the_loop_in_the_safe_state():
     state = DaemonState()
     cfg, runner, rig, loop = _loop(CHAMBER, state=state)  # no duration: runs until stopped
@@ -314,6 +323,7 @@ def _slow(loop, runner, periods: float):
     return vc
 
 
+@pytest.mark.slow
 def test_accelerated_the_watchdog_judges_the_ticks_work_not_its_wall_time():
     """At --speed 20, a tick preempted for 1.5 periods of wall time (a busy shared machine) is
     counted in steps_over_period_wall only; a tick whose own work takes 1.5 periods of CPU time is
@@ -351,6 +361,7 @@ def test_accelerated_the_watchdog_judges_the_ticks_work_not_its_wall_time():
     assert all("counted over the period" in c for c in slow), slow[:2]
 
 
+@pytest.mark.slow
 def test_the_loop_freezes_start_up_objects_and_names_the_collectors_share_of_a_slow_tick():
     """While the loop runs, the objects alive at its start are frozen (a full collection skips them)
     and every collection is timed; a tick over the period says how much of it the collector took;
@@ -383,6 +394,7 @@ def test_the_loop_freezes_start_up_objects_and_names_the_collectors_share_of_a_s
     assert stats["gc_pause_ms_total"] >= stats["gc_pause_ms_max"]
 
 
+@pytest.mark.slow
 def test_soak_replay_repeats_the_runs_ticks_and_tells_the_machines_overruns_from_the_daemons(tmp_path):
     """bench soak's replay: the run again in lockstep, its setpoints (from events.csv) at their rig times,
     reaches the same readings and estimates as the run log at its slow tick; a tick that was slow only
@@ -464,6 +476,7 @@ def _late(ctrl):
     return lambda *a, **k: (real(*a, **k), time.sleep(ctrl.s.budget * ctrl.s.sample_period))[0]
 
 
+@pytest.mark.slow
 def test_soak_replay_takes_the_runs_nmpc_overrun_and_stays_on_its_path(tmp_path):
     """A robot run whose NMPC overran at two ticks (OSQP's time limit, as OSQP reports it;
     a solve finished after the budget), the supervisor replaying the plan each time, and that has a
@@ -510,6 +523,7 @@ def _natural_iterations(loop, t: float) -> int:
     return int(re.search(r"nmpc iterations (\d+)", ev).group(1))
 
 
+@pytest.mark.slow
 def test_soak_replay_stops_a_late_solve_where_osqps_time_limit_cut_the_runs(tmp_path, monkeypatch):
     """A late solve that OSQP's time limit cut short but that still ended usable is the next step's
     warm start: the replay stops its solve after the iterations the run's event reports (plus the one
@@ -577,6 +591,7 @@ def test_osqp_reports_a_time_limit_cut_one_iteration_short():
     assert not np.array_equal(short.x, cut.x)
 
 
+@pytest.mark.slow
 def test_nmpc_overrun_within_the_period_is_logged_and_the_replay_takes_it(tmp_path):
     """The robot NMPC's budget is shorter than the period: its time limit can strike in a tick that
     stays within the period. That tick is logged (``nmpc_overrun``, not ``slow_tick``), once, and the
@@ -594,6 +609,7 @@ def test_nmpc_overrun_within_the_period_is_logged_and_the_replay_takes_it(tmp_pa
     assert ticks[marks[30]]["same_state"] and ticks[marks[30]]["machine"], ticks
 
 
+@pytest.mark.slow
 def test_missed_deadlines_are_counted_and_skipped_not_burst():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
     _slow(loop, runner, 2.5)
@@ -606,6 +622,7 @@ def test_missed_deadlines_are_counted_and_skipped_not_burst():
     assert stats["faults"] == {}
 
 
+@pytest.mark.slow
 def test_missed_deadlines_in_a_row_latch_the_safe_state_within_a_period():
     cfg, runner, rig, loop = _loop(CHAMBER, duration_s=1.0)
     _slow(loop, runner, 1.5)
@@ -632,6 +649,7 @@ DRILLS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault, keys, detected", DRILLS, ids=[d[0] for d in DRILLS])
 def test_fault_drill_reaches_the_safe_state_within_one_period_and_is_logged(tmp_path, fault, keys, detected):
     cfg_path = _write_config(tmp_path, CHAMBER, f'[[daemon.fault]]\nkind = "{fault}"\n{keys}\n')
@@ -654,6 +672,7 @@ def test_fault_drill_reaches_the_safe_state_within_one_period_and_is_logged(tmp_
     assert detected in (tmp_path / "log" / "events.csv").read_text()
 
 
+@pytest.mark.slow
 def test_link_loss_drill_writes_the_safe_command_before_the_error(tmp_path):
     cfg_path = _write_config(tmp_path, CHAMBER, '[[daemon.fault]]\nkind = "link_loss"\nstart_s = 0.5\n')
     cfg, runner, rig, loop = _loop(cfg_path, tmp_path / "log", duration_s=2.0)
@@ -704,7 +723,8 @@ def test_bad_flags_give_one_line_and_exit_2(args, needle, tmp_path):
     ("", {"rate_hz = 100.0": "rat_hz = 100.0"}, "[daemon] rat_hz: unknown key; did you mean rate_hz?"),
     ("", {"rate_hz = 100.0": "rate_hz = 50.0"}, "[rig] sample_period_ms = 10 must equal the daemon's period"),
     ("", {'rig = "sim"': 'rig = "serial"'}, "rig = 'serial' needs port"),
-    ("[[daemon.fault]]\nkind = \"melt\"\n", {}, "daemon.fault"),
+    # the fault table is checked when the rig is made, after the runner is built (seconds); the others at load
+    pytest.param("[[daemon.fault]]\nkind = \"melt\"\n", {}, "daemon.fault", marks=pytest.mark.slow),
 ])
 def test_bad_config_gives_one_line_and_exit_2(tmp_path, extra, replace, needle):
     cfg = _write_config(tmp_path, CHAMBER, extra, replace)
@@ -744,6 +764,8 @@ def _rows_logged(folder: Path) -> int:
 RELAXED = {"log_flush_s = 0.5": "log_flush_s = 0.5\nmiss_limit = 100000"}
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_api_setpoint_then_sigterm_vents_and_leaves_a_complete_log(tmp_path):
     out = tmp_path / "run"
     proc, notes = _start([str(_write_config(tmp_path, CHAMBER, replace=RELAXED)), "--rig", "sim", "--api", "127.0.0.1:0", "--out", str(out)])
@@ -780,6 +802,8 @@ def test_api_setpoint_then_sigterm_vents_and_leaves_a_complete_log(tmp_path):
     assert set(json.loads((out / "metrics.json").read_text())) == {"daemon", "controller"}
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_kill_9_mid_run_leaves_a_readable_log(tmp_path):
     proc, notes = _start([str(_write_config(tmp_path, CHAMBER, replace=RELAXED)), "--rig", "sim", "--api",
                           "127.0.0.1:0", "--out", str(tmp_path / "run")])
@@ -810,6 +834,8 @@ def _truth_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_target_as_on_sim(tmp_path):
     """The shipped file over the serial link to a fake firmware in its own process (as a microcontroller
     is: it shares no interpreter with the host) whose plant is the file's mismatched rig; the truth comes
@@ -904,6 +930,7 @@ class BootingRig:
         pass
 
 
+@pytest.mark.slow
 def test_loop_ticks_first_on_the_rigs_first_sample_at_t_0_and_never_twice_at_one_time():
     """Periods before the rig's first sample write the standing command without ticking the runner;
     the first sample is t = 0 and each later tick is later (the shipped file's start-up calibration
@@ -928,6 +955,7 @@ def test_loop_ticks_first_on_the_rigs_first_sample_at_t_0_and_never_twice_at_one
     assert stats["repeated_samples"] == 0  # waiting for the first sample repeats none
 
 
+@pytest.mark.slow
 def test_setpoints_are_refused_once_the_safe_state_is_latched():
     state = DaemonState()
     cfg, runner, rig, loop = _loop(CHAMBER, state=state, duration_s=0.3)
@@ -949,6 +977,7 @@ def test_setpoints_are_refused_once_the_safe_state_is_latched():
     assert all("mode 'safe'" in r and "overrun" in r for m, r in replies if m == "safe")
 
 
+@pytest.mark.slow
 def test_the_robots_leak_test_is_one_of_a_burst_and_its_pump_test_starts_vented():
     """A robot chamber's pressure falls by a share while it pumps in normal work (past its limit
     point, when a neighbour takes over its load): its leak test needs the fall to exceed 50 % of the
@@ -962,6 +991,7 @@ def test_the_robots_leak_test_is_one_of_a_burst_and_its_pump_test_starts_vented(
     assert rs.p_max == 47.5e3  # the hard cap halfway between the 45 kPa limit and the 50 kPa sensors
 
 
+@pytest.mark.slow
 def test_the_robots_targets_move_at_the_files_rate_or_the_daemons(tmp_path):
     """A new pose moves the chambers' targets at [robot] target_rate_mm_s (3 mm/s in the shipped file),
     at DAEMON_TARGET_RATE when the file gives none, and steps at 0."""
@@ -973,6 +1003,7 @@ def test_the_robots_targets_move_at_the_files_rate_or_the_daemons(tmp_path):
     assert build_runner(load_config(steps)).loop.target_rate == 0.0
 
 
+@pytest.mark.slow
 def test_the_robots_nmpc_puts_its_pressure_limit_first_in_the_daemon(tmp_path):
     """The daemon's robot NMPC costs a kPa over its limit [robot] mpc_w_slack (100 in the shipped file),
     DAEMON_W_SLACK when the file gives none, while a scene keeps the controller's default (1e-3)."""
@@ -1013,6 +1044,7 @@ def _safe_from(rig, t0: float) -> bool:
     return bool(after) and all(np.array_equal(u, safe_u(9)) for u in after)
 
 
+@pytest.mark.slow
 def test_robot_burst_drill_is_found_by_the_burst_test_and_the_safe_state_follows_in_that_period(tmp_path):
     """A chamber of the robot bursts (its outlet fully open; A3 at 5 s) on the default structured rig: the
     loop's burst test (the bank's innovations) finds it within 0.1 s, the daemon latches a "burst" fault
@@ -1032,6 +1064,7 @@ def test_robot_burst_drill_is_found_by_the_burst_test_and_the_safe_state_follows
     assert "burst" in (tmp_path / "log" / "events.csv").read_text()
 
 
+@pytest.mark.slow
 def test_robot_burst_the_nmpc_vents_at_once_is_found_when_the_chamber_keeps_losing_its_estimate(tmp_path):
     """B2's outlet sticks fully open at 1.5 s just as the NMPC vents it: its model predicts the fall and
     the readings' sum stays under the threshold; pumped again, the chamber does not rise and its
@@ -1047,6 +1080,7 @@ def test_robot_burst_the_nmpc_vents_at_once_is_found_when_the_chamber_keeps_losi
     assert _safe_from(rig, first["t_s"])
 
 
+@pytest.mark.slow
 def test_robot_leak_test_finds_a_burst_while_pumping_without_the_burst_test(tmp_path):
     """The last resort: with the burst test off (``[robot] burst_sigma = 0``), on the rig without valve
     timing (where the drill hits a chamber while the NMPC pumps it), the supervisor's leak test finds
@@ -1070,7 +1104,7 @@ def test_robot_leak_test_finds_a_burst_while_pumping_without_the_burst_test(tmp_
 BURST_DRILLS = [(5.0, 2), (3.0, 0), (1.5, 4), (8.0, 7), (12.0, 4), (15.0, 1), (18.0, 8)]
 
 
-@pytest.mark.slow
+@pytest.mark.sweep
 def test_robot_burst_drills_over_the_run_are_found_by_the_burst_test(tmp_path, capsys):
     """The README's robot burst drills (`pytest -m slow tests/test_daemon.py -k burst_drills -s`): an
     outlet stuck fully open at 7 times on the default rig; all are found as bursts, each within 0.3 s of
@@ -1094,6 +1128,7 @@ def test_robot_burst_drills_over_the_run_are_found_by_the_burst_test(tmp_path, c
         print(f"found {sum(v is not None for v in found.values())} of {len(found)}")
 
 
+@pytest.mark.slow
 def test_bench_poses_records_every_change_and_every_fault_rearming_the_monitor(tmp_path):
     """bench poses: one change per setpoint period with its highest reading, the soak's draws for the
     seed, and a fault recorded without ending the run (the monitor re-armed: a second dropout later is
@@ -1120,6 +1155,7 @@ def test_bench_poses_records_every_change_and_every_fault_rearming_the_monitor(t
     assert json.loads((out / "poses.json").read_text())["changes"] == 3
 
 
+@pytest.mark.slow
 def test_bench_poses_records_a_burst_the_runner_finds_and_rearms_its_test(tmp_path):
     """bench poses: a burst (A3's outlet stuck open for 0.5 s from 1.5 s) found by the robot loop's burst
     test is recorded naming A3, and the runner's test is re-armed after each: found again while the
@@ -1208,6 +1244,8 @@ def test_a_tick_is_the_machines_when_the_witness_pause_inside_it_covers_its_exce
     assert not ticks[1]["machine"] and soak_verdicts(stats, ticks)["no_tick_over_period"] is False
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_bench_soak_writes_its_verdict_the_witness_record_and_the_setpoints(tmp_path):
     """`hbma-ctrl bench soak` end to end, short: the daemon as its own process, setpoints through its
     API, and soak.json (verdicts, the judged ticks, whether a replay ran), setpoints.csv and the

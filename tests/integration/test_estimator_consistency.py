@@ -24,6 +24,8 @@ from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.sim.rig import RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
 
+pytestmark = pytest.mark.slow
+
 M = 6
 
 

@@ -7,6 +7,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.subprocess
+
 
 @pytest.mark.parametrize("name", ["controllers", "estimators"])
 def test_generic_top_level_role_names_do_not_import_outside_the_checkout(name, tmp_path):

@@ -39,6 +39,7 @@ def _settings(limit_kpa: float = 45.0, topology: str = "per_chamber") -> RobotSe
     return RobotSettings(design=D1, pneumatics=RobotPneumatics(topology=topology, pressure_limit=limit_kpa * 1e3))
 
 
+@pytest.mark.slow
 def test_ekf_bank_tracks_heights_open_loop(model):
     """Inflate the three chambers differently (open loop) on the mismatched rig; the bank follows."""
     rig = RobotRig(D1, Pneumatics(), 50e3, "per_chamber", RobotRigSettings(seed=3))
@@ -67,6 +68,7 @@ def test_ekf_bank_tracks_heights_open_loop(model):
     assert abs(bank.last["c"][1] - 1.2) < 0.1
 
 
+@pytest.mark.slow
 def test_mpc_holds_chambers_past_the_limit_point(model):
     """Every chamber held at 7 mm (beyond the 5.7 mm limit point) on the mismatched rig, p <= 45 kPa."""
     tg = {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}
@@ -82,6 +84,7 @@ def test_mpc_holds_chambers_past_the_limit_point(model):
     assert set(m["far_branch_chambers"]) == {"A1", "A2", "A3"}
 
 
+@pytest.mark.slow
 def test_pressure_limit_is_never_exceeded_with_a_tight_limit(model):
     """With a 38 kPa limit the stiff chambers (true peak ~42 kPa) cannot pass the limit point: the
     NMPC holds them below the limit instead of pushing through."""
@@ -91,6 +94,7 @@ def test_pressure_limit_is_never_exceeded_with_a_tight_limit(model):
     assert run.h[-1].max() > 3e-3  # it did inflate
 
 
+@pytest.mark.slow
 def test_pressure_pid_runs_through_the_same_api_and_cannot_hold_the_far_branch(model):
     tg = {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}
     run = run_closed_loop(_settings(), tg, 3.0, "pressure_pid", model=model)
@@ -101,6 +105,7 @@ def test_pressure_pid_runs_through_the_same_api_and_cannot_hold_the_far_branch(m
     assert np.all(np.abs(run.h[-1] - 7e-3) > 0.5e-3)
 
 
+@pytest.mark.slow
 def test_shared_compressor_respects_the_duty_budget(shared_model):
     tg = {0: ((0.0, U.mm(7.0), 0.0, 0.0),)}
     run = run_closed_loop(_settings(topology="shared"), tg, 3.5, "mpc", model=shared_model)
@@ -123,6 +128,7 @@ def test_closed_loop_section_validation():
         parse_section({"mode": "closed_loop", "layers": 1})
 
 
+@pytest.mark.slow
 def test_bench_robot_cli(tmp_path):
     import json
 
@@ -139,6 +145,7 @@ def test_bench_robot_cli(tmp_path):
     assert bad.exit_code == 2 and "--layers" in bad.output
 
 
+@pytest.mark.slow
 def test_closed_loop_scene_tracks_the_bend_and_writes_metrics_and_plots(tmp_path):
     """A short 1-layer closed-loop scenario through the runner: after settling, the TRUE pose (from
     the logged rig heights, through the forward kinematics) holds the 10 deg bend about 90 deg within

@@ -84,6 +84,7 @@ def test_closed_loop_mode_without_targets_is_refused_clearly():
         parse_section({"mode": "closed_loop"})
 
 
+@pytest.mark.slow
 def test_shipped_scenario_loads_and_short_run_writes_outputs(tmp_path):
     from dataclasses import replace
 
@@ -146,6 +147,7 @@ def _robot_claim_holds(rob: dict) -> bool:
             and not rob["burst_chambers"])
 
 
+@pytest.mark.slow
 def test_robot_tip_load_claim_holds_on_a_seed_it_was_not_shipped_with_and_no_burst_is_flagged(tmp_path):
     """README Robot: robot_tip_load settles 3/3 segments under 45 kPa; the scene ships with rig seed 2,
     this runs seed 1 (the cheapest robot scene: the 20 seeds of every scene are the slow sweep). The
@@ -159,7 +161,7 @@ def test_robot_tip_load_claim_holds_on_a_seed_it_was_not_shipped_with_and_no_bur
     assert rob["burst_chambers"] == [] and rob["burst_peak_sigma"] < 10.0
 
 
-@pytest.mark.slow
+@pytest.mark.sweep
 @pytest.mark.parametrize("name", ROBOT_CLAIMS)
 def test_robot_closed_loop_claims_hold_over_20_rig_seeds(name, tmp_path):
     """Each README robot claim (every segment settled within 2 deg / 0.5 mm, the 45 kPa limit held) as
@@ -168,7 +170,7 @@ def test_robot_closed_loop_claims_hold_over_20_rig_seeds(name, tmp_path):
     assert sum(results.values()) >= ROBOT_RATES[name], results
 
 
-@pytest.mark.slow
+@pytest.mark.sweep
 @pytest.mark.parametrize("sensor_delay_ms", [0.0, 3.0])
 def test_structured_robot_never_runs_a_membrane_past_its_stretch_limit_over_6_seeds(sensor_delay_ms, tmp_path):
     """README Robot, "Why runs ran away": robot_bending on the structured rig, seeds 0-5, as shipped and with

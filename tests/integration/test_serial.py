@@ -282,6 +282,7 @@ def test_a_corrupted_command_is_not_applied():
 
 # ---- heartbeats, link loss, reconnect ------------------------------------------------------------
 
+@pytest.mark.slow
 def test_host_heartbeat_keeps_the_firmware_running_and_its_loss_makes_it_safe():
     fw, rig = open_fake_rig(1, 0.01)
     try:
@@ -357,6 +358,7 @@ def _p_control(p: float, ref: float, kp: float) -> np.ndarray:
     return np.array([[min(max(kp * e, 0.0), 1.0)], [1.0 if e > 0 else 0.0], [min(max(-kp * e, 0.0), 1.0)]])
 
 
+@pytest.mark.slow
 def test_proportional_loop_over_serial_settles_as_on_the_direct_plant():
     ref, kp, dt = 30e3, 1e-4, 0.01
     direct = FirstOrderPlant(1)
@@ -384,6 +386,7 @@ def test_proportional_loop_over_serial_settles_as_on_the_direct_plant():
     assert np.mean(tail) == pytest.approx(p, rel=0.03)
 
 
+@pytest.mark.subprocess
 def test_firmware_module_runs_and_prints_a_port_a_rig_can_open(tmp_path):
     link = str(tmp_path / "rig")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}  # this checkout's package

@@ -75,6 +75,8 @@ def _counts(db: Path, study: str = "tiny_est-estimator") -> tuple[list[int], dic
 
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_tiny_study_writes_outputs_and_resumes_after_a_killed_worker(scn, tmp_path):
     out = tmp_path / "t"
     res = _tune(scn, *FAST, "--trials", "2", "--out", out)
@@ -131,6 +133,8 @@ def test_other_study_in_out_is_refused_without_overwrite(scn, tmp_path):
     one_line_error(_tune(scn, *FAST, "--trials", "1", "--out", out), "--out", "--overwrite")
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_two_processes_share_one_sqlite_study(scn, tmp_path):
     out = tmp_path / "w"
     res = _tune(scn, *FAST, "--trials", "3", "--workers", "2", "--out", out)

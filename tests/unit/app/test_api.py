@@ -354,6 +354,7 @@ def test_real_server_with_a_token_checks_it(state):
         assert r.status_code == 200
 
 
+@pytest.mark.slow
 def test_concurrent_clients_are_all_answered_and_each_setpoint_is_queued_once(state):
     n_threads, n_requests = 8, 100
     drained: list[dict] = []

@@ -15,6 +15,7 @@ ROBOT = ROOT / "scenarios" / "daemon_robot.toml"
 cli = CliRunner()
 
 
+@pytest.mark.slow
 def test_two_burst_drills_on_the_robot_are_found_by_the_burst_test_named_and_timed(tmp_path):
     """Two outlets stuck fully open (the default leak drill) at seeded times and chambers in [2, 6] s:
     each found as a burst of the drilled chamber within 0.15 s, no false alarm, drills.json complete."""

@@ -66,6 +66,7 @@ def test_mr_narrow_range_trades_off_c1_c2():
     assert abs(res.correlation["C1"]["C2"]) > F.CORR_LIMIT
 
 
+@pytest.mark.slow
 def test_flat_contact_with_loads_recovers_E():
     loads = np.linspace(0.5, 5.0, 10)
     h = U.mm(np.linspace(2.0, 8.0, 10))
@@ -204,6 +205,7 @@ def test_exact_law_recovers_the_solvers_free_membrane_where_the_cap_is_biased(ex
     assert cap.params["E"] / E_TRUE - 1 > 0.03 and cap.nrmsd > 10 * exact.nrmsd
 
 
+@pytest.mark.slow
 def test_exact_law_recovers_the_solvers_plate_contact_where_the_cap_is_biased(exact_membrane):
     # a loose flat plate at h, pressed by the membrane at p: the solver's force is the data's load
     pts = [(U.mm(hm), exact_membrane.free(U.mm(hm))["p"] + dp) for hm in (2.0, 4.0, 6.0) for dp in (3e3, 8e3)]
@@ -217,6 +219,7 @@ def test_exact_law_recovers_the_solvers_plate_contact_where_the_cap_is_biased(ex
     assert cap.params["E"] / E_TRUE - 1 > 0.1 and cap.nrmsd > 10 * exact.nrmsd
 
 
+@pytest.mark.slow
 def test_cli_default_law_is_the_roles_where_it_can_fit(tmp_path):
     """Free points: the exact membrane (the rig's and the roles' default), said in params.toml; mr on a
     plate: the cap, with a note saying why (the exact tables hold one material shape)."""
@@ -237,6 +240,7 @@ def test_cli_default_law_is_the_roles_where_it_can_fit(tmp_path):
     assert 'membrane = "cap"' in (tmp_path / "mr" / "params.toml").read_text()
 
 
+@pytest.mark.slow
 def test_exact_law_fits_a_shape_changing_material_with_the_solver(tmp_path):
     """mr's two moduli (their ratio is the membrane's shape) from the exact solver's free points: the
     exact law's fit (through the solver, from the cap's optimum) recovers both; the cap is far off."""

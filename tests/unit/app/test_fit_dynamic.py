@@ -64,6 +64,7 @@ def full_fit(tmp_path_factory):
     return out, res.output
 
 
+@pytest.mark.slow
 def test_recovery_truth_inside_every_interval(full_fit):
     out, _ = full_fit
     js = json.loads((out / "fit.json").read_text())
@@ -82,6 +83,7 @@ def test_recovery_truth_inside_every_interval(full_fit):
     assert js["params"]["E"] == pytest.approx(130.6e3 * js["params"]["modulus_scale"], rel=1e-9)
 
 
+@pytest.mark.slow
 def test_recovery_writes_a_scenario_parameter_file(full_fit):
     out, output = full_fit
     toml = tomllib.loads((out / "params.toml").read_text())
@@ -112,6 +114,7 @@ def test_recovery_writes_a_scenario_parameter_file(full_fit):
     assert "# modulus_init = 1.1" in text and "# dead_volume_init = 1." in text
 
 
+@pytest.mark.slow
 def test_a_run_that_never_vents_names_the_outlet(tmp_path):
     # pump and hold only: the outlet never opens, so its conductance cannot show in the pressure
     _rig_run_csv(tmp_path / "r.csv", ((0.0, 0.8, 1.0, 0.0), (1.2, 0.0, 0.0, 0.0)), 1.6, seed=3)
@@ -210,6 +213,7 @@ def test_replay_with_the_true_parameters_matches_the_rig(tmp_path):
     assert np.max(np.abs(h - truth["h"])) < 1e-5
 
 
+@pytest.mark.slow
 def test_fit_material_fits_the_modulus_itself(tmp_path):
     _rig_run_csv(tmp_path / "r.csv", PUMP_HOLD_VENT, 4.0, seed=2)
     run = D.parse_run((tmp_path / "r.csv").read_bytes())
@@ -219,6 +223,7 @@ def test_fit_material_fits_the_modulus_itself(tmp_path):
     assert lo <= 1.15 * 130.6e3 <= hi
 
 
+@pytest.mark.slow
 def test_cap_fit_to_the_exact_membrane_reports_its_model_error(tmp_path):
     """The same run on the exact membrane (a law the cap model lacks): the cap fits it with a larger
     NRMSD than the noise floor of its own law and says the residual is structured, instead of
@@ -236,6 +241,7 @@ def test_cap_fit_to_the_exact_membrane_reports_its_model_error(tmp_path):
     assert "residual is structured" in " ".join(text.split())
 
 
+@pytest.mark.slow
 def test_exact_law_recovers_the_structured_rigs_modulus_where_the_cap_is_biased(tmp_path):
     """A run of the default rig (the exact membrane plus valve timing, a pump map of another shape and a
     sensor lag, none of which the fit models) fitted with the CLI's default law, the exact membrane's:

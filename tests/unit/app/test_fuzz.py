@@ -139,6 +139,7 @@ def _one_line(msg: str) -> bool:
     return "\n" not in msg.strip() and "Traceback" not in msg
 
 
+@pytest.mark.slow
 @settings(FUZZ, max_examples=300)
 @given(mutated_scenarios())
 def test_mutated_scenario_files_load_or_fail_with_one_error_naming_the_file(tmp_path_factory, case):
@@ -291,6 +292,8 @@ def _ekf_sequence(f, steps):
     return out
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @settings(STEP_FUZZ, max_examples=60)
 @given(st.lists(st.tuples(T_STEPS, READINGS, COMMANDS), min_size=1, max_size=12))
 def test_ekf_step_with_fuzzed_times_readings_and_commands_gives_a_valid_estimate_or_one_error(steps):
@@ -321,6 +324,7 @@ def _controller_calls(c, cases):
 CONTROLLER_CASES = st.lists(st.tuples(T_STEPS, HEIGHTS, READINGS, HEIGHTS), min_size=1, max_size=10)
 
 
+@pytest.mark.subprocess
 @settings(STEP_FUZZ, max_examples=25)
 @given(CONTROLLER_CASES)
 def test_pid_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):
@@ -328,6 +332,8 @@ def test_pid_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or
         assert kind != "bad", (args, info)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @settings(STEP_FUZZ, max_examples=15)
 @given(CONTROLLER_CASES)
 def test_nmpc_step_with_fuzzed_estimates_and_references_gives_a_command_in_0_1_or_one_error(cases):
@@ -353,6 +359,8 @@ def _chamber_loop_sequence(ekf, nmpc, steps, ref):
     return out
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @settings(STEP_FUZZ, max_examples=30)
 @given(st.lists(st.tuples(T_STEPS, READINGS), min_size=1, max_size=10), HEIGHTS)
 def test_chamber_loop_tick_with_fuzzed_inputs_gives_a_command_in_0_1_or_one_error(steps, ref):
@@ -397,6 +405,8 @@ def _robot_loop_sequence(parts, steps, ref_mm):
     return out
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @settings(STEP_FUZZ, max_examples=20)
 @given(st.lists(st.tuples(T_STEPS, st.one_of(st.lists(READINGS, min_size=3, max_size=3),
                                               st.lists(st.floats(0, 40e3), min_size=0, max_size=5))),

@@ -50,6 +50,7 @@ def _dead_pid() -> int:
     return proc.pid
 
 
+@pytest.mark.slow
 def test_second_run_refused_then_overwrite_replaces_and_manifest_is_complete(tmp_path):
     out = tmp_path / "fig7"
     argv = ["run", str(FIG7), "--out", str(out)]
@@ -239,6 +240,7 @@ def _fail_in_child(path, parent_pid):
     Path(path).write_text("parent")
 
 
+@pytest.mark.subprocess
 def test_forked_work_is_done_by_a_child_or_redone_here_when_the_child_fails(tmp_path):
     from hbma_ctrl.app.forked import Forked
 

@@ -74,6 +74,7 @@ def test_subset_run_writes_summary_and_series(tmp_path):
         assert peak == pytest.approx(float(row["max_height_mm"]), rel=1e-5)
 
 
+@pytest.mark.subprocess
 def test_workers_give_the_same_logs_as_serial():
     trials = _subset()
     s = SimSettings()
@@ -107,6 +108,7 @@ def test_nrmsd_is_spec_eq16():
         nrmsd(np.zeros(3), np.zeros(4))
 
 
+@pytest.mark.slow
 def test_bench_sim_rows_reference_cache_and_outputs(tmp_path, monkeypatch):
     import json
 

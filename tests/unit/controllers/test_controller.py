@@ -40,6 +40,7 @@ def model(cap_prediction_model):
     return cap_prediction_model  # PredictionModel(ACT, PN, membrane="cap")
 
 
+@pytest.mark.slow
 def test_poly_tables_equal_the_bspline_functions_with_their_jacobians(model):
     """functions('poly') (the tables as per-cell polynomials, what the RTI and IPOPT controllers use)
     equals the bspline Functions over the whole grid, its nodes, the flat rest below lift-off and off
@@ -209,6 +210,7 @@ def test_mpc_pumps_below_and_vents_above_target(model, variant):
     assert max(hold.speed, hold.outlet) < 0.1
 
 
+@pytest.mark.slow
 def test_rti_converges_to_ipopt_plan(model):
     """Iterated, the RTI's QPs converge to the same optimum as IPOPT on the same OCP."""
     s = MPCSettings(budget=5.0, rti_init_iterations=30)
@@ -278,6 +280,7 @@ def test_guard_cuts_pump_at_the_limit(model):
     assert list(sup.apply(0.0, np.array([1.0, 1.0, 0.0]), 15e3)) == [1.0, 1.0, 0.0]
 
 
+@pytest.mark.slow
 def test_instances_share_no_state(model):
     e1, e2 = est(h=2e-3, p=11.7e3, F=W400), est(h=6e-3, p=19e3, F=W400)
     a, b = NMPC(ACT, PN, MPCSettings(budget=5.0), model=model), NMPC(ACT, PN, MPCSettings(budget=5.0), model=model)
@@ -345,6 +348,7 @@ def test_every_settings_field_is_documented():
             assert f"{f.name} :" in doc or f"{f.name}," in doc, f"{cls.__name__}.{f.name} is undocumented"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("membrane", ["cap", "exact"])
 def test_compiled_problem_equals_the_python_reference_over_a_wandering_estimate(membrane):
     """The step's problem from one compiled mpc_prep call (NMPC._problem) equals the Python reference

@@ -60,6 +60,7 @@ def test_stretch_is_the_area_average_under_both_laws(models):
         assert lams[0] == pytest.approx(np.sqrt(1 + (h / ACT.r1) ** 2), rel=2e-3)
 
 
+@pytest.mark.slow
 def test_controller_membrane_key_reaches_the_mpcs_prediction_model():
     sec = parse_role("controller", {"targets_mm": [[0, 2]], "membrane": "cap"})
     assert sec.mpc.membrane == "cap"
@@ -80,6 +81,7 @@ def test_bad_membrane_is_one_error_naming_the_key_and_the_choices():
         PredictionModel(ACT, PN, membrane="sphere")
 
 
+@pytest.mark.slow
 def test_rti_converges_to_ipopt_plan_on_the_exact_law(models):
     """Iterated, the RTI's QPs reach IPOPT's plan on the exact law's tables (the default prediction
     model): the planned heights within 0.05 mm and the first command (the one sent) within 0.01.

@@ -33,6 +33,7 @@ TUNED = dict(w_terminal=2.0, w_rate=(0.05, 0.004, 0.01), w_input=(0.001, 0.003, 
              w_slack=500.0, c_slack=2000.0, w_height=1.5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("h_min, weights", [(0.0, {}), (2e-3, {}), (0.0, TUNED)])
 def test_qp_data_equals_reference_path(model, h_min, weights):
     """The generated data (P, A values in CSC order, q, l, u) equals what _RtiOsqp hands OSQP, on a
@@ -67,6 +68,8 @@ def test_qp_data_equals_reference_path(model, h_min, weights):
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12, err_msg=key)
 
 
+@pytest.mark.slow
+@pytest.mark.compiling
 def test_settings_differing_only_in_weights_share_one_library(model):
     """A tuning study's trials change weights: their QP data is one generated library (one build),
     while another horizon is another."""
@@ -81,6 +84,7 @@ def test_settings_differing_only_in_weights_share_one_library(model):
     assert not np.array_equal(a.data.inp[3], b.data.inp[3])
 
 
+@pytest.mark.slow
 def test_looped_qp_data_equals_the_unrolled_one(model):
     """The QP data with the nodes' linearisation as one looped (mapped) call equals the fully unrolled
     SX Function to rounding, on shifted and unshifted steps over random plans."""
@@ -100,6 +104,7 @@ def test_looped_qp_data_equals_the_unrolled_one(model):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, np.max(np.abs(b))), err_msg=name)
 
 
+@pytest.mark.slow
 def test_first_inputs_equal_rti_osqp_over_states_and_steps(model):
     """Both variants, fed the same estimates (three heights, four steps each, warm-started), send the
     same commands to OSQP's tolerance."""
@@ -115,6 +120,7 @@ def test_first_inputs_equal_rti_osqp_over_states_and_steps(model):
             np.testing.assert_allclose(cmds[1], cmds[0], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_closed_loop_rmse_within_1pct_of_ipopt():
     """On the bench's scenario (2 s: the first step to 2 mm, 400 g) the tracking RMSE of rti_c_osqp is
     within 1 % of IPOPT's."""
@@ -180,6 +186,7 @@ def test_robot_held_linearisation_differs_on_a_varying_plan(bank, monkeypatch):
     assert np.abs(q2["A"].toarray() - q1["A"].toarray()).max() > 1e-9
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("topology, L", [("per_chamber", 2), ("shared", 1)])
 def test_robot_looped_qp_data_equals_the_unrolled_one(topology, L):
     """The robot QP data with the chambers' linearisations as one looped (mapped) call equals the one
@@ -206,6 +213,7 @@ def test_robot_looped_qp_data_equals_the_unrolled_one(topology, L):
                                        err_msg=name)
 
 
+@pytest.mark.slow
 def test_robot_rmse_within_1pct_of_linearising_every_stage():
     """One layer, bench robot's run (straight 6 mm, then a 15 deg bend): the default settings track the
     chamber heights within 1 % of the RMSE with the linearisation at every stage and OSQP at 1e-4 /
@@ -218,6 +226,8 @@ def test_robot_rmse_within_1pct_of_linearising_every_stage():
     assert new["height_rmse_mm"] <= 1.01 * old["height_rmse_mm"]
 
 
+@pytest.mark.slow
+@pytest.mark.compiling
 def test_without_a_compiler_warns_once_and_gives_the_same_data(model, monkeypatch):
     """No C compiler: one RuntimeWarning saying so, the data on casadi's virtual machine, equal to the C."""
     import hbma_ctrl.controllers.rti_c as rc

@@ -99,6 +99,8 @@ def _same_plans(model, s, gen, vm, atol: float, rtol: float) -> None:
     assert gen.iterations is None and vm.iterations > 0
 
 
+@pytest.mark.slow
+@pytest.mark.compiling
 def test_generated_fatrop_equals_the_virtual_machines(model):
     """fatrop generated as C (``codegen``, built once and cached) gives the first input and plan of the
     same solver on casadi's virtual machine, warm-started over three steps, also with other weights
@@ -126,6 +128,8 @@ def test_generated_fatrop_equals_the_virtual_machines(model):
             b.solve(_problem(model, s, *CASES[0]))
 
 
+@pytest.mark.slow
+@pytest.mark.compiling
 def test_generated_ipopt_equals_the_virtual_machines(model):
     """IPOPT generated as C (``bench mpc --ipopt-c``) gives the virtual machine's plan, warm-started over
     the cases, and refuses a solve capped at 2 iterations as a _SolverFailure. N = 4 keeps the build short."""
@@ -181,6 +185,7 @@ def test_unknown_qp_solver_is_refused(model):
         rti_step_function(model, MPCSettings(), "gurobi")
 
 
+@pytest.mark.slow
 def test_closed_loop_rmse_within_one_percent_of_ipopt(model):
     """2.5 s of the track-height loop (400 g, 2 -> 5 mm, EKF, mismatched noisy rig): the one-Function
     RTI (HPIPM) and fatrop track within 1 % of IPOPT's height RMSE. On the cap rig with the cap
@@ -208,6 +213,8 @@ def test_closed_loop_rmse_within_one_percent_of_ipopt(model):
     assert rmse["fatrop"] == pytest.approx(rmse["ipopt"], rel=0.01)
 
 
+@pytest.mark.slow
+@pytest.mark.compiling
 def test_generated_c_of_the_step_equals_the_function(model):
     """The step as generated C (OSQP, compiled once and cached) gives the Function's outputs to 1e-9
     over a few chained steps (skipped without a C compiler or OSQP's shipped headers)."""

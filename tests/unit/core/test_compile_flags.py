@@ -26,6 +26,7 @@ def _outputs(f: ca.Function, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return np.hstack([np.asarray(o).ravel() for o in f.map(X.shape[1])(X, Y)])
 
 
+@pytest.mark.compiling
 def test_hot_flags_give_the_same_outputs_as_O1_bit_for_bit(tmp_path, monkeypatch):
     monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
     fun = _function()
@@ -40,6 +41,7 @@ def test_hot_flags_give_the_same_outputs_as_O1_bit_for_bit(tmp_path, monkeypatch
     assert a.tobytes() == b.tobytes()
 
 
+@pytest.mark.compiling
 def test_a_per_step_flag_the_compiler_rejects_is_dropped_not_the_compilation(tmp_path, monkeypatch):
     monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
     bogus = "-fno-such-option-hbma-ctrl"
@@ -54,6 +56,7 @@ def test_a_per_step_flag_the_compiler_rejects_is_dropped_not_the_compilation(tmp
     assert codegen.compiled(fun, "-O1", ["-fno-other-unknown-option"], on_failure="none") is None
 
 
+@pytest.mark.compiling
 def test_a_native_library_is_keyed_by_the_processor(tmp_path, monkeypatch):
     """A build with NATIVE_FLAGS is cached per processor (two signatures, two libraries); without them the
     processor is not part of the key (one library)."""
@@ -86,6 +89,7 @@ def test_cpu_signature_names_the_processor():
     assert sig == codegen.cpu_signature()  # the same machine, the same key
 
 
+@pytest.mark.compiling
 def test_a_build_notice_is_written_only_when_the_library_is_built(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
     fun = _function()

@@ -4,12 +4,15 @@ low (the clipped ones are taken out as saturated), and must not be read as a mem
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from checkout import ROOT
 from hbma_ctrl.app.evaluate import run_filter, score
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.app.sections import filter_settings_for
 from hbma_ctrl.sim.rig import simulate_rig
+
+pytestmark = pytest.mark.slow
 
 
 def test_readings_under_the_range_do_not_fire_a_lift_off_below_it(tmp_path):

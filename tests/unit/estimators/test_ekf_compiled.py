@@ -276,6 +276,7 @@ def test_robot_bank_mapped_call_equals_per_chamber_calls(bank_model):
             assert _close(got, np.asarray(r).ravel(), scale=1e-6), (i, j)
 
 
+@pytest.mark.slow
 def test_bench_ekf_rows_share_the_rig_runs_and_report_ratios():
     """``bench ekf`` on one trial: the EKF's compiled step and reference path score the same; the
     filterpy row runs on the same model and its ratio is reported (its value is not asserted)."""
@@ -293,6 +294,7 @@ def test_bench_ekf_rows_share_the_rig_runs_and_report_ratios():
     assert all(v > 0 for v in res["ratios"].values())
 
 
+@pytest.mark.slow
 def test_bench_ekf_axes_add_rows_with_their_settings_and_the_pareto_reads_them(tmp_path):
     """``substeps`` and ``membranes`` add an EKF and a UKF row per value other than the default's,
     each scored on the same rig runs with its own settings; the estimator Pareto plot takes every row

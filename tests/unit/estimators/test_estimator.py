@@ -124,6 +124,7 @@ def test_dropouts():
     assert nrmsd(h, rec.truth["h"]) < 0.08
 
 
+@pytest.mark.slow
 def test_saturation_for_seconds():
     # 400 g on r1 12.5 mm: contact at about 24 kPa; the sensor tops out at 18 kPa for seconds
     tr = _trial(0.4, 1.0, dur=4.0, t_inf=3.0)
@@ -163,6 +164,7 @@ def test_zero_flow_stays_flat_and_spd():
     assert max(e.std["h"] for e in ests) < 1e-3
 
 
+@pytest.mark.slow
 def test_snap_through_survives():
     # README Model §4: t0 = 2 mm, r1 = 7.5 mm, 400 g: the dead-load path folds near 33-34 kPa
     tr = _trial(0.4, 1.0, r1=7.5e-3, t0=2e-3, dur=4.0, t_inf=3.0)
@@ -222,6 +224,7 @@ def test_converges_from_a_load_guess_wrong_by_half(loaded, factor):
     assert np.max(err[after]) < max(2 * np.max(ref_err[after]), 0.5e-3)
 
 
+@pytest.mark.slow
 def test_load_steps_are_tracked():
     act, pn = Actuator(), Pneumatics()
     rig = Rig(act, pn, Platform(load=0.2, own_mass=0.02), RigSettings(seed=2))
@@ -319,6 +322,7 @@ def test_settings_and_section_errors():
         parse_section({"load_steps_g": [[2.0, 100.0], [1.0, 50.0]]})
 
 
+@pytest.mark.slow
 def test_scene_writes_estimate_and_metrics(tmp_path):
     from hbma_ctrl.app.scenario import load_scenario
     from hbma_ctrl.app.scene_estimator import run_scene
@@ -357,6 +361,7 @@ def test_record_type():
     assert isinstance(rec, RigRecord) and rec.u.shape == (len(rec.t), 3)
 
 
+@pytest.mark.slow
 def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
     """r1 7.5 mm with 800 g lifts off at ~44 kPa, above the 35 kPa sensor range: a filter that must
     detect the lift-off cannot; one that starts from the protocol's calibrated weight predicts it."""
@@ -375,6 +380,7 @@ def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
         FilterSettings(load_prior="guess").validate()
 
 
+@pytest.mark.slow
 def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise():
     """600 and 800 g on the 7.5 mm chamber lift at 34-46 kPa, at or above the 35 kPa range. Through
     their long flat rise the rig's flow falls short of the model's and the lift-off detector fired
@@ -412,6 +418,7 @@ def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise()
     assert rejected[0.1] >= 4 and rejected[1.0] == 0, rejected
 
 
+@pytest.mark.slow
 def test_a_free_membrane_lifting_in_the_pumps_first_samples_is_not_taken_as_flat():
     """Unknown load, the free 7.5 mm chamber at 60-100 % speed on the structured rig: the membrane
     lifts within the pump's first samples, while the flow and dead-volume factors are still wide.

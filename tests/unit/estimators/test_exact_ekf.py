@@ -46,6 +46,7 @@ def _state(om: ObserverModel, p: float, h_guess: float, W: float) -> np.ndarray:
     return np.array([m, W, 1.0, 1.0, 1.0])
 
 
+@pytest.mark.slow
 def test_exact_model_contact_shape_is_the_exact_solvers_equilibrium(models):
     om = models["exact"]
     W = 4.0  # N, about 400 g
@@ -64,6 +65,7 @@ def test_exact_model_contact_shape_is_the_exact_solvers_equilibrium(models):
     assert abs(yc[Y["h"]] - h) > 0.1e-3
 
 
+@pytest.mark.slow
 def test_exact_model_free_inflation_is_the_exact_free_membrane(models):
     om = models["exact"]
     x = _state(om, 15e3, 5e-3, 0.0)
@@ -73,6 +75,7 @@ def test_exact_model_free_inflation_is_the_exact_free_membrane(models):
     assert y[Y["p"]] == pytest.approx(sol["p"], rel=5e-3)
 
 
+@pytest.mark.slow
 def test_exact_model_measurement_jacobian_matches_finite_differences(models):
     om = models["exact"]
     x = _state(om, 20e3, 5e-3, 4.0)
@@ -88,6 +91,7 @@ def test_exact_model_measurement_jacobian_matches_finite_differences(models):
         assert H[i] == pytest.approx(fd, rel=2e-3, abs=1e-3 * y[Y["p"]] * (1.0 if i else 1.0 / x[0])), i
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("membrane", ["cap", "exact"])
 def test_predict_jacobian_by_the_implicit_function_rule_is_the_one_through_the_newton_iterates(models, membrane):
     om = models[membrane]
@@ -129,6 +133,7 @@ def test_membrane_setting_is_validated_and_reaches_the_model():
         parse_scenario_tables({"estimator": {"membrane": "plate"}}, None)
 
 
+@pytest.mark.slow
 def test_exact_ekf_beats_the_cap_ekf_on_the_exact_rig():
     """One loaded protocol trial (3 mm, r1 12.5 mm, 400 g, 60 %) on the exact rig: the cap EKF is
     0.17 in height NRMSD (0.25 open loop), the exact EKF within 0.03 and under half the open loop."""

@@ -233,6 +233,7 @@ def test_chamber_references_are_refused_naming_the_key(bad):
         loop.tick(0.04, 8e3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bad", [math.nan, "x"])
 def test_chamber_nmpc_refuses_a_bad_reference_naming_it(bad):
     c = NMPC(Actuator(), Pneumatics(), MPCSettings(budget=5.0))
@@ -393,7 +394,7 @@ def _two_layer_sequence(topology: str, seed: int, throttle: bool, monkeypatch) -
 _two_layer_sequence.models = {}
 
 
-@pytest.mark.slow
+@pytest.mark.sweep
 @pytest.mark.parametrize("topology", ["per_chamber", "shared"])
 def test_a_throttled_pump_tracks_as_well_as_full_speed_over_five_seeds(topology, monkeypatch, capsys):
     rows = {thr: [_two_layer_sequence(topology, seed, thr, monkeypatch) for seed in range(1, 6)]
@@ -410,6 +411,7 @@ def test_a_throttled_pump_tracks_as_well_as_full_speed_over_five_seeds(topology,
     assert mean[True]["mean_speed"] < 0.9 * mean[False]["mean_speed"]  # and it pumps slower
 
 
+@pytest.mark.slow
 def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true_pressure(monkeypatch):
     """What the throttling can cost: the flow the rig gets at its TRUE pressure against the NMPC's plan
     a q(1, p) there (the speed is chosen at the estimated pressure)."""

@@ -109,6 +109,7 @@ def test_bad_settings_are_one_clear_error(kw, msg):
         InnovationTestSettings(**kw).validate()
 
 
+@pytest.mark.slow
 def test_flag_on_rig_runs_tells_a_wrong_membrane_law_from_a_right_one():
     """One loaded protocol trial (3 mm, r1 10 mm, 600 g, 40 %): the cap EKF on its own cap rig and the
     exact EKF on the exact rig are not flagged; the cap EKF on the exact rig is (while its mean NIS stays

@@ -3,12 +3,14 @@
 import json
 
 import numpy as np
+import pytest
 
 from hbma_ctrl.estimators.observability import Trajectory, analyse, run, summarise
 
 HOLD = ((0.0, 0.6, 1.0, 0.0), (1.5, 0.0, 0.0, 0.0))
 
 
+@pytest.mark.slow
 def test_regimes_have_the_expected_ranks():
     rows = analyse(Trajectory("dead", 0.4, HOLD, 2.8)) + analyse(Trajectory("heavy", 3.0, HOLD, 2.8))
     by = {}

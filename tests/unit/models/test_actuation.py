@@ -51,6 +51,7 @@ def test_delay_over_two_periods_reaches_the_older_commands():
     assert np.allclose(got, 0.7 * old + 0.3 * last)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(hist=st.lists(st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3), min_size=0, max_size=12),
        u=st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3),

@@ -127,6 +127,7 @@ def test_doubling_the_mesh_changes_pressure_and_volume_by_less_than_1e_6(nh):
     assert np.max(np.abs(a["V"] / b["V"] - 1)) < 1e-6
 
 
+@pytest.mark.slow
 def test_pressure_volume_work_equals_stored_energy(nh):
     lam = np.concatenate([[1.0 + 1e-6], np.linspace(1.001, 2.6, 240)])
     out = nh.free_pole(lam)
@@ -163,6 +164,7 @@ def test_every_material_is_finite_and_monotone_up_to_its_limit_point(name):
         assert np.all(np.diff(out["p"][top:]) < 0)
 
 
+@pytest.mark.slow
 def test_plate_contact_force_is_pressure_times_contact_area_and_the_energy_derivative(nh):
     free = nh.free(5e-3)
     p = free["p"]
@@ -205,6 +207,7 @@ def test_bonded_disk_is_held_down_when_the_chamber_is_deflated(bonded):
         assert r["phi_c"] > 0 and r["F"] < 0
 
 
+@pytest.mark.slow
 def test_table_is_cached_and_a_bspline_interpolant_reproduces_the_solver(nh, tmp_path):
     h = np.linspace(0.5e-3, 9e-3, 18)
     tab = tabulate(nh, h, cache=tmp_path)

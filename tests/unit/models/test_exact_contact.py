@@ -66,6 +66,7 @@ def test_contact_law_meets_the_exact_free_inflation_as_the_plate_leaves(qs):
         assert 0 < _law(qs, h1, 0.01 * h1)["F"] < _law(qs, h1, 0.05 * h1)["F"]
 
 
+@pytest.mark.slow
 def test_contact_table_is_the_same_for_any_geometry_and_modulus_scale(tmp_path):
     # the ratios are dimensionless: one table serves every r1, t0 and modulus scale of a material
     u, s = RATIO_U[:6], RATIO_S[:5]
@@ -75,6 +76,7 @@ def test_contact_table_is_the_same_for_any_geometry_and_modulus_scale(tmp_path):
     assert contact_ratio_table(ExactMembrane(make_material("nh"), R1, T0), u, s, cache=tmp_path)["build_s"] == 0.0
 
 
+@pytest.mark.slow
 def test_exact_quasi_static_rig_carries_the_load_by_the_solvers_contact_force():
     s = RigSettings(**{**PLAIN, "membrane": "exact", "fidelity": "quasi_static"})
     plat = Platform(load=0.2)
@@ -93,6 +95,7 @@ def test_exact_quasi_static_rig_carries_the_load_by_the_solvers_contact_force():
     assert abs(cap.truth()["h"] - tr["h"]) > 0.1e-3  # the membrane law now reaches a loaded chamber
 
 
+@pytest.mark.slow
 def test_simulator_exact_rung_runs_loaded_and_free_trials_and_says_exact():
     sched = InputSchedule(((0.0, 0.8, 1.0, 0.0), (0.8, 0.0, 0.0, 1.0)))
     trials = [Trial(ACT, Pneumatics(), Platform(load=load), sched, 1.5, name=f"m{load}") for load in (0.0, 0.2)]
@@ -112,6 +115,7 @@ def test_exact_loaded_rung_refuses_a_free_name():
         make_exact_loaded("free", make_material("nh"), CSV)
 
 
+@pytest.mark.slow
 def test_bench_sim_fidelity_axis_scores_every_rung_against_the_exact_membrane(tmp_path, monkeypatch):
     import json
 
@@ -172,6 +176,7 @@ def test_bench_sim_bad_role_json_is_one_error_line_exit_2(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_run_open_loop_scene_with_fidelity_exact_logs_the_exact_rung(tmp_path):
     from hbma_ctrl.app.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario

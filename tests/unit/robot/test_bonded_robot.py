@@ -90,6 +90,7 @@ def test_bonded_layer_pose_balances_on_its_rim_with_vented_chambers_in_tension(i
     assert r["forces"].sum() * n_z + reaction == pytest.approx(W_ABOVE, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_robot_table2_prints_the_bonded_reading_beside_the_paper(tmp_path):
     res = CliRunner().invoke(app, ["robot", "table2", "--out", str(tmp_path / "t2")])
     assert res.exit_code == 0, res.output

@@ -232,6 +232,7 @@ def test_reach_below_the_peak_is_pressure_limited():
     assert math.degrees(math.atan(r.h_max / (1.5 * RC))) == pytest.approx(12, abs=1.5)
 
 
+@pytest.mark.slow
 def test_reach_report_flags_unreachable_heights():
     rep = reach_report(D1, [[30e-3, 0, 0]])
     assert not rep["ok"] and "A1" in rep["violations"][0] and "max_stretch" in rep["violations"][0]
@@ -264,6 +265,7 @@ def table2_rows():
     return robot_table2()
 
 
+@pytest.mark.slow
 def test_table2_carries_the_papers_values_and_rim_pivot_reading_matches_them(table2_rows):
     """The rim-pivot reading (far-branch chambers, the layer rocking on its rim) against the paper's
     Table II: every angle within 6 deg and every length within 2 mm (about 10 %; the paper's 0-chamber
@@ -286,6 +288,7 @@ def test_table2_carries_the_papers_values_and_rim_pivot_reading_matches_them(tab
         assert far[n]["angle_deg"] > PAPER_TABLE2[n][0]
 
 
+@pytest.mark.slow
 def test_table2_rows_are_finite_and_ordered(table2_rows):
     rows = table2_rows
     assert len(rows) == 12
@@ -311,6 +314,7 @@ def test_table2_rows_are_finite_and_ordered(table2_rows):
     assert md.count("\n| ") == 12 and "r1 = 4.5 mm" in md  # one line per row after the header
 
 
+@pytest.mark.slow
 def test_workspace_far_branch_beats_pressure_control():
     ws = workspace(RobotDesign(n_layers=2), n_dir=36)
     for ly in ws["layers"]:
@@ -356,6 +360,7 @@ def test_parse_section_rejects_bad_values_naming_the_field(raw, field):
         parse_section(raw)
 
 
+@pytest.mark.slow
 @settings(max_examples=12, deadline=None)
 @given(st.lists(st.one_of(st.just(0.0), st.floats(0.2e-3, 17e-3)), min_size=6, max_size=6))
 def test_gas_masses_give_back_the_heights(hs):

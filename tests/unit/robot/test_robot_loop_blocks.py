@@ -63,6 +63,7 @@ def _run(rig: RobotRig, periods: int, seed: int):
     return worst, modes, h_max
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("topology", ["per_chamber", "shared"])
 def test_robot_rig_step_follows_the_rig_through_lift_off_and_touch_down(topology):
     """The default robot rig (platform chambers, valve delay and minimum opening, tilted pump, sensor
@@ -112,6 +113,7 @@ def test_the_acting_command_mapped_over_the_chambers_follows_the_banks_timing(va
         np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_the_ekf_banks_step_as_one_function_follows_the_bank():
     """bank_step_function against ChamberEKFBank.step over a run with every kind of reading (dropouts,
     +-inf, out of the physical bounds, saturated, a jump the gate holds off until it re-opens) and a
@@ -163,6 +165,7 @@ def test_the_ekf_banks_step_as_one_function_follows_the_bank():
     assert seen == {"used", "outlier", "reset", "gated"} and bank.resets == 1 and NS == 4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("topology", ["per_chamber", "shared"])
 def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
     """robot_rti_step_function against RobotNMPC.step over a closed run on the model itself (both at
@@ -217,6 +220,7 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
     assert float(bad[7]) == 1.0 and np.all(np.asarray(bad[0]) == 0.0) and np.all(np.asarray(bad[1]) == 0.0)
 
 
+@pytest.mark.slow
 def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
     """A one-layer RobotLoop on the rig (NMPC, EKF bank, cautious cap, a 10 mm/s target rate): a
     rise to 5 mm, a bend, then a zero target on one chamber. At every tick slew_function gives the
@@ -281,6 +285,7 @@ def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
     assert all(v > 0 for v in seen.values()), seen
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("topology, n, margin", [("per_chamber", 3, None), ("shared", 3, None), ("shared", 9, None),
                                                  ("per_chamber", 9, 0.0), ("shared", 4, 0.0)])
 def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, margin):
@@ -312,6 +317,7 @@ def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, ma
     assert throttled > 0
 
 
+@pytest.mark.slow
 def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
     """A one-layer RobotLoop on the rig with the valves' 2 ms minimum opening, holding heights and
     stepping down (short vents): at every tick net_vents_function gives the supply and outlet duties

@@ -85,6 +85,7 @@ def test_robot_rig_table_sets_only_the_keys_written():
         RigTable.model_validate({"membrane": "cap"}).to_robot_rig()
 
 
+@pytest.mark.slow
 def test_the_banks_valve_and_sensor_delays_predict_with_the_command_acting():
     """ChamberEKFBank(valve_delay, sensor_delay) steps as a bank without delays that is given the
     command acting (CommandTiming over the same commands)."""
@@ -130,6 +131,7 @@ def test_robot_table_takes_the_valve_timing_keys_in_ms():
         parse_role("robot", dict(body, valve_delay_ms=200))
 
 
+@pytest.mark.slow
 def test_a_default_minimum_opening_longer_than_the_loops_period_is_one_error_naming_the_key(tmp_path):
     """The 2 ms default opening cannot be shaped in a 1 ms period: `hbma-ctrl run` of a robot scene at
     1 ms exits 2 with one error naming [robot] valve_min_on_ms and its range in ms."""
@@ -168,6 +170,7 @@ def _min_on_loop():
                      {0: ((0.0, 5e-3, 0.0, 0.0),)}, valve_min_on=0.002)
 
 
+@pytest.mark.slow
 def test_a_vent_shorter_than_the_opening_beside_a_supply_is_netted_into_it_at_the_same_net_flow():
     from hbma_ctrl.runtime.robot import VENT_DEADBAND
 
@@ -183,6 +186,7 @@ def test_a_vent_shorter_than_the_opening_beside_a_supply_is_netted_into_it_at_th
     assert 0.0 < o2[1] < o[1]
 
 
+@pytest.mark.slow
 def test_a_short_vent_alone_is_sent_only_above_the_deadband_and_its_carry_is_dropped_below():
     from hbma_ctrl.runtime.robot import VENT_DEADBAND
 
@@ -197,6 +201,7 @@ def test_a_short_vent_alone_is_sent_only_above_the_deadband_and_its_carry_is_dro
     assert loop.pwm.carry[1].tolist() == [0.0, 0.05, 0.05]
 
 
+@pytest.mark.slow
 def test_a_short_vent_that_would_overshoot_the_target_by_more_than_it_corrects_is_not_sent():
     """On the far branch one minimum opening takes off more height than the band: above the band but
     less than half that drop above the target, the vent is dropped; beyond it, sent."""
@@ -222,6 +227,7 @@ def test_a_short_vent_that_would_overshoot_the_target_by_more_than_it_corrects_i
     assert o2.tolist() == [0.0, 0.05, 0.0]
 
 
+@pytest.mark.slow
 def test_structured_robot_holds_a_far_branch_bend_without_vent_dips():
     """robot_bending's 7.5 mm / 20 deg bend about 90 deg on the structured rig (3 layers; the chambers at 39 kPa
     on their far branch): without the netting and the band, trickle vents reached the 2 ms valves as

@@ -55,6 +55,7 @@ def free_cal():
     return run_on_rig(cap_rig(seed=0))
 
 
+@pytest.mark.slow
 def test_learns_the_rigs_flow_modulus_and_dead_volume_factors(free_cal):
     """0 g rig (pump x0.9, modulus x1.15, dead volume x1.2): each factor within three of its
     reported sigmas of the rig's, flow and modulus also within 0.02 and 0.03 (what a 0.3 mm band
@@ -69,6 +70,7 @@ def test_learns_the_rigs_flow_modulus_and_dead_volume_factors(free_cal):
     assert r.residual_rms < 1.5 * 200.0  # the fit explains the readings down to the sensor noise
 
 
+@pytest.mark.slow
 def test_pump_stops_at_p_stop_below_p_max_on_a_soft_strong_rig():
     """A softer membrane on a stronger pump than the model (modulus x0.6, flow x1.5): the true
     pressure stays within one sample's rise of p_stop, below p_max."""
@@ -141,6 +143,7 @@ def test_hand_to_estimator_sets_the_factors_and_cuts_their_correlations():
     assert ekf.x[0] == pytest.approx(m_before) and ekf.P[0, 0] == pytest.approx(Pm_before, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_estimator_handed_over_tracks_the_excitation_with_the_fitted_factors():
     """Given an EKF, the calibration runs it over the excitation: at the end it holds the fitted
     factors and its height matches the rig's residual cap within 0.3 mm."""
@@ -158,6 +161,7 @@ def test_estimator_handed_over_tracks_the_excitation_with_the_fitted_factors():
     assert abs(cal.estimate.h - rig.truth()["h"]) < 0.3e-3
 
 
+@pytest.mark.slow
 def test_loaded_membrane_stays_flat_and_the_modulus_keeps_its_prior():
     """400 g on r1 12.5 mm lifts at 8.0 kPa: the pulse stops below (0.8 of it), the true height
     stays 0, the flow and dead-volume factors are learnt (within 3 sigma of the rig's), the
@@ -205,6 +209,7 @@ def _late_link(seed: int, use_held: bool) -> CalibrationResult:
     return cal.result
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_link_that_applies_commands_a_period_late_is_fitted_from_the_held_commands(seed):
     """Given the command the rig held, the fit learns the 0 g rig's factors as in lockstep (each
@@ -228,6 +233,7 @@ def _loaded_structured(delays: bool, seed: int) -> CalibrationResult:
     return cal.result
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_modelled_valve_and_sensor_delays_remove_the_dead_volume_bias_on_the_structured_rig(seed):
     """400 g (flat) on the structured rig (5 ms valve delay, 3 ms first-order sensor lag, 2 ms
@@ -252,6 +258,7 @@ def test_floored_result_raises_small_sigmas_and_keeps_the_correlations():
     assert np.allclose(f.factors, r.factors)
 
 
+@pytest.mark.slow
 def test_estimator_gets_the_floored_prior():
     """The filter's factor sigmas after the hand-over are at least ``handover_std_floor`` (the
     fit's own sigma of the flow factor is far smaller)."""

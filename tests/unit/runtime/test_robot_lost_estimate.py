@@ -165,6 +165,7 @@ def test_robot_loop_vents_a_lost_chamber_then_restarts_its_filter_from_the_flat_
     assert loop.stats()["lost_estimate_steps"] == 3 + 2
 
 
+@pytest.mark.slow
 def test_structured_robot_with_the_sensor_delay_modelled_does_not_run_a_membrane_away():
     """Seed 0 of robot_bending on the structured rig with the filters' 3 ms sensor delay: one chamber's filter
     read its membrane on the near branch while it grew past 20 mm at a falling pressure, pump on (max
@@ -185,6 +186,7 @@ def test_structured_robot_with_the_sensor_delay_modelled_does_not_run_a_membrane
     assert np.abs(run.h[late] - run.h_ref[late]).max() < U.mm(1.5)
 
 
+@pytest.mark.slow
 def test_default_robot_rig_start_up_vents_no_chamber_for_a_lost_estimate():
     """scenarios/daemon_robot.toml (3 layers on the cap rig with scalar mismatches, 6 mm straight,
     3 mm/s target ramps) vented chambers at the onset of pumping, C2 and C3 at 0.31 s on the daemon:

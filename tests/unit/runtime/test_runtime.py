@@ -220,6 +220,7 @@ def test_robot_loop_ticks_on_a_short_run(robot):
     assert nm["data"] + nm["update"] + nm["solve"] <= parts["controller"] + 1e-9
 
 
+@pytest.mark.slow
 def test_robot_loop_with_a_minimum_opening_sends_realisable_duties_and_predicts_with_them(robot):
     """valve_min_on: every inlet and outlet duty sent is 0 or at least the minimum; the bank is told
     the supply the sent inlet gives (the decided one scaled by sent / decided inlet)."""

@@ -70,6 +70,7 @@ def test_each_fault_is_found_within_its_documented_delay(spec, load, speed, kind
     assert delay is not None and 0 <= delay <= bound, (delay, bound)
 
 
+@pytest.mark.slow
 def test_without_a_fault_the_open_loop_inflation_raises_nothing():
     for load in (0.0, 0.4):
         assert open_loop(FaultSpec("dropout", None, 99.0), load, 1.0, T=3.0) == ([], None)
@@ -203,6 +204,7 @@ def closed_loop(model, load, seed, T, faults=(), targets=STEPS):
     return [], mon
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("load,seed", [(0.4, 1), (0.4, 2), (0.4, 3), (0.0, 1)])
 def test_no_fault_over_a_normal_closed_loop(model, load, seed):
     """Steps 2 -> 8 -> 5 mm: nothing is reported, and the trend tests stay under half their thresholds."""
@@ -212,12 +214,14 @@ def test_no_fault_over_a_normal_closed_loop(model, load, seed):
     assert mon.closest["pump_rise"] > 2 * S.pump_rise
 
 
+@pytest.mark.slow
 def test_a_burst_during_a_closed_loop_step_is_found_as_a_leak(model):
     found, _ = closed_loop(model, 0.4, 1, 2.5, [FaultSpec("leak", None, 1.6, value=1.0)])
     assert [f.kind for f in found] == ["leak"]
     assert 0 <= round((found[0].t - 1.6) / TS) <= 10
 
 
+@pytest.mark.slow
 def test_no_fault_over_a_robot_closed_loop_past_the_limit_point():
     """The robot's NMPC drives every chamber of a layer to 7 mm, past the limit point (where pumping
     lowers the pressure): with leak_p_max at 0.8 x the model's limit-point pressure nothing is reported."""

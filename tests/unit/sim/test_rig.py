@@ -102,6 +102,7 @@ def test_load_steps_keep_the_gas_and_switch_models():
         rig.set_load(-1.0)
 
 
+@pytest.mark.slow
 def test_batched_rig_matches_the_stepped_rig():
     """On the cap rig without noise the readings are the true pressure clipped at the range (the
     default rig's structure, applied alike by both, is checked in tests/test_rig_exact.py)."""

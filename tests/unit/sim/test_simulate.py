@@ -39,6 +39,7 @@ def _sane(log):
     assert np.all(d["h"] >= -1e-9) and np.all(d["F"] >= -1e-9) and np.all(d["p"] >= -50.0), log.name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("integrator", ["euler", "rk4", "radau"])
 @pytest.mark.parametrize("mat_name", list(MATERIALS))
 def test_all_30_scenarios_complete_for_every_material_and_integrator(mat_name, integrator):
@@ -50,12 +51,14 @@ def test_all_30_scenarios_complete_for_every_material_and_integrator(mat_name, i
             assert "lift_off" in names and "touch_down" in names, (log.name, names)
 
 
+@pytest.mark.slow
 def test_platform_fidelity_completes_all_scenarios_including_tiny_dead_volume():
     trials = [t for t in _scenarios(make_material("nh"), V0=0.3e-6) if t.platform.load > 0]
     for log in simulate(trials, SimSettings(integrator="rk4"), fidelity="platform"):
         _sane(log)
 
 
+@pytest.mark.slow
 def test_limit_point_crossing_is_an_event_not_a_failure():
     """t0 2 mm, r1 7.5 mm, 400 g: the pressure peaks along the load path near 33-34 kPa at h ~ 4-4.5 mm."""
     tr = Trial(actuator=Actuator(r1=7.5e-3, t0=2e-3), platform=Platform(load=0.4),
@@ -70,6 +73,7 @@ def test_limit_point_crossing_is_an_event_not_a_failure():
         assert 3.5e-3 < log["h"][i] < 5.0e-3
 
 
+@pytest.mark.slow
 def test_a_load_the_pump_cannot_lift_stays_resting_and_says_so():
     tr = Trial(actuator=Actuator(r1=7.5e-3, t0=3e-3), platform=Platform(load=5.0), duration=4.0)
     for integ in ("rk4", "radau"):
@@ -96,6 +100,7 @@ def test_free_inflation_conserves_gas_mass_against_integrated_flow():
     assert err < 1e-6 * np.ptp(m)
 
 
+@pytest.mark.slow
 def test_loaded_shape_is_consistent_with_gas_mass():
     """The algebraic shape (h1, h2) satisfies the gas law with the carried gas mass after projection."""
     tr = Trial(actuator=Actuator(r1=10e-3, t0=2e-3), platform=Platform(load=0.2))
@@ -109,6 +114,7 @@ def test_loaded_shape_is_consistent_with_gas_mass():
             assert np.allclose(log["F"][moving], 0.2 * 9.80665, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_membrane_near_maximum_stretch_stays_finite():
     """Gent with a low locking limit: the pressure climbs steeply, the pump stalls, nothing blows up."""
     mat = make_material("gent", Jm=3.0)
@@ -122,6 +128,7 @@ def test_membrane_near_maximum_stretch_stays_finite():
         assert log["lam"].max() > 0.9 * lam_max  # it really got near the lock
 
 
+@pytest.mark.slow
 def test_rk4_default_agrees_with_the_adaptive_reference():
     tr = Trial(actuator=Actuator(r1=7.5e-3, t0=2e-3), platform=Platform(load=0.4),
                schedule=InputSchedule.inflate_deflate(0.6, 3.0))
@@ -134,6 +141,7 @@ def test_rk4_default_agrees_with_the_adaptive_reference():
         assert nrmsd < 0.005, (key, nrmsd)
 
 
+@pytest.mark.slow
 @settings(max_examples=8, deadline=None)
 @given(speed=st.floats(0.0, 1.0), t_inf=st.floats(0.05, 2.0), load=st.sampled_from([0.0, 0.05, 0.3, 1.0]),
        r1=st.sampled_from([4.5e-3, 7.5e-3, 12.5e-3]), outlet=st.floats(0.0, 1.0))
