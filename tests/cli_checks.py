@@ -1,4 +1,4 @@
-"""Checks shared by the CLI tests (imported by them; pytest puts this folder on sys.path)."""
+"""Checks shared by the CLI tests (imported by them; the pytest config puts this folder on sys.path)."""
 
 from __future__ import annotations
 

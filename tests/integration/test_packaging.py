@@ -1,0 +1,47 @@
+"""The roles install under the package's own name: no generic top-level import names."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.subprocess
+
+
+@pytest.mark.parametrize("name", ["controllers", "estimators"])
+def test_generic_top_level_role_names_do_not_import_outside_the_checkout(name, tmp_path):
+    # a fresh interpreter in an empty folder: only what is installed is importable
+    r = subprocess.run([sys.executable, "-c", f"import {name}"], cwd=tmp_path, capture_output=True, text=True)
+    assert r.returncode != 0 and "ModuleNotFoundError" in r.stderr, r.stderr
+
+
+def test_roles_import_under_the_package_name_outside_the_checkout(tmp_path):
+    code = "import hbma_ctrl.estimators.ekf, hbma_ctrl.controllers.mpc; print(hbma_ctrl.controllers.mpc.NMPC.__name__)"
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip() == "NMPC", r.stderr
+
+
+def test_the_package_has_no_import_cycles():
+    """No module imports, directly or through others, a module that imports it back (function-level
+    imports included: grimp reads every import statement)."""
+    import grimp
+
+    g = grimp.build_graph("hbma_ctrl", cache_dir=None)
+    cycles = sorted({tuple(sorted((m, imp))) for m in g.modules for imp in g.find_modules_directly_imported_by(m)
+                     if g.chain_exists(importer=imp, imported=m)})
+    assert not cycles, cycles
+
+
+def test_a_cycle_is_found_when_there_is_one(tmp_path, monkeypatch):
+    import grimp
+
+    pkg = tmp_path / "cyc"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def f():\n    from cyc import b\n")
+    (pkg / "b.py").write_text("import cyc.a\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    g = grimp.build_graph("cyc", cache_dir=None)
+    assert g.chain_exists(importer="cyc.b", imported="cyc.a") and g.chain_exists(importer="cyc.a", imported="cyc.b")
