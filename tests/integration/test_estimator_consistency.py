@@ -52,7 +52,6 @@ def test_full_protocol_requirements(tmp_path):
     """The estimator's requirements (height NRMSD <= 0.05, at most half the open loop in every scenario,
     steady force error <= 10 %) over the 150-trial protocol on the mismatched rig (about 20 s on 2
     workers)."""
-    from pathlib import Path
 
     from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario
@@ -69,7 +68,7 @@ def test_full_protocol_requirements(tmp_path):
 
 
 def _calibrated(tmp_path, name: str) -> dict:
-    from pathlib import Path
+    pass
 
     from hbma_ctrl.app.scenes.runner import run_scenario
     from hbma_ctrl.app.scenario import load_scenario

@@ -7,7 +7,6 @@ import pytest
 
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
-from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.app.scenes.robot_closed import closed_loop_metrics
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.system.sections import RobotSettings

@@ -20,7 +20,6 @@ from typer.testing import CliRunner
 
 from hbma_ctrl.app.tuning import tune as T
 from hbma_ctrl.app.cli.main import app
-from checkout import ROOT
 from hbma_ctrl.app.scenario import load_scenario
 
 runner = CliRunner()

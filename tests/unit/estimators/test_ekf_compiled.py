@@ -16,7 +16,6 @@ from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.ekf_step import DET_NAMES, KIND_OK, STEP_IN, STEP_OUT, ekf_step_function
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, _step_function
-from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import STATE_SCALE

@@ -15,7 +15,6 @@ from checkout import ROOT
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.robot_ekf import B_RANGE, ChamberEKFBank, ChamberEKFSettings
 from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
-from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics

@@ -11,7 +11,6 @@ from hbma_ctrl.controllers.baselines import PIDController, PIDSettings
 from hbma_ctrl.controllers.mpc_settings import timing_stats
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.sections import RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import (
