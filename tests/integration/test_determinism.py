@@ -29,6 +29,9 @@ from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.sim.rig import RigSettings
 from checkout import ROOT
 
+# whole closed loops and systems built from the scenario files: seconds each
+pytestmark = pytest.mark.slow
+
 ACT, PN = Actuator(), Pneumatics()
 #: a short scene: 2 mm, then 5 mm after 0.4 s, 400 g (a controller step every 20 ms)
 SCENE = {"kind": "mpc", "variant": "rti_c_osqp", "horizon": 20, "sample_ms": 20.0, "calibrate": False,

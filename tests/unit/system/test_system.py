@@ -18,6 +18,9 @@ from hbma_ctrl.system.sections import ControllerSection, ReferenceProfile
 from hbma_ctrl.system.sim_rig import SimRig
 from checkout import ROOT
 
+# whole closed loops and systems built from the scenario files: seconds each
+pytestmark = pytest.mark.slow
+
 PERIOD = 0.01
 
 
