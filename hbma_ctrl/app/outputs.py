@@ -50,6 +50,7 @@ __all__ = [
     "cli_argv",
     "default_out",
     "is_plain_name",
+    "is_run_dir",
     "manifest",
     "run_dir",
     "pid_alive",
@@ -60,7 +61,7 @@ MANIFEST_KEYS = ("command", "argv", "version", "git_commit", "scenario_path", "s
                  "started_utc", "finished_utc", "status", "error")
 
 #: help text of every writing command's --overwrite flag
-OVERWRITE_HELP = "replace a run already in --out (otherwise refused)"
+OVERWRITE_HELP = "replace a run of hbma-ctrl already in --out (otherwise refused; a directory of other files never)"
 
 #: the rule a name must follow to become a directory name (quoted by the errors)
 NAME_RULE = "letters, digits, '-', '_' and '.' only, not starting with '.'"
@@ -161,7 +162,9 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
     """Check ``--out`` before any work; returns it absolute. ValueError (naming --out) when unusable.
 
     Refused: something that is not a directory (a file, a device, a pipe), a parent that is a file
-    or not writable, and a non-empty directory (a run) unless ``overwrite``.
+    or not writable, and a non-empty directory unless ``overwrite``. ``overwrite`` replaces only a run
+    of this package (a directory whose ``manifest.json`` has :data:`MANIFEST_KEYS`), never the current
+    directory, a home directory or a directory holding either: anything else there may be a user's own.
     """
     given = Path(out)
     path = Path(os.path.abspath(given.expanduser()))
@@ -174,9 +177,17 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
         if not stat.S_ISDIR(mode):
             raise _bad(given, "exists and is not a directory")
         path = path.resolve()  # a symlinked run dir: lock and replace the real one
-        if any(path.iterdir()) and not overwrite:
-            raise _bad(given, "already holds a run (a non-empty directory); pass --overwrite or choose another "
-                              "directory")
+        if any(path.iterdir()):
+            if not overwrite:
+                raise _bad(given, "already holds a run (a non-empty directory); pass --overwrite or choose "
+                                  "another directory")
+            cwd = Path.cwd().resolve()
+            if path == cwd or path in cwd.parents or path == Path.home().resolve():
+                raise _bad(given, "is the current directory, a home directory or holds the current directory: "
+                                  "--overwrite replaces only a run's own directory; choose another --out")
+            if not is_run_dir(path):
+                raise _bad(given, "holds files but no run of hbma-ctrl (no manifest.json of one): --overwrite "
+                                  "replaces only a run's own directory; choose another --out")
     anc = path.parent
     while not anc.exists():
         anc = anc.parent
@@ -185,6 +196,16 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
     if not os.access(anc, os.W_OK | os.X_OK):
         raise _bad(given, f"{anc} is not writable")
     return path
+
+
+def is_run_dir(path: Path | str) -> bool:
+    """True when ``path`` holds a run of this package: a ``manifest.json`` with every key of
+    :data:`MANIFEST_KEYS` (a complete, interrupted or failed run's)."""
+    try:
+        man = json.loads((Path(path) / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(man, dict) and set(MANIFEST_KEYS) <= set(man)
 
 
 def pid_alive(pid: int) -> bool:

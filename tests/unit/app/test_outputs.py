@@ -255,3 +255,33 @@ def test_forked_work_is_done_by_a_child_or_redone_here_when_the_child_fails(tmp_
     failed = tmp_path / "failed.txt"
     Forked(_fail_in_child, failed, os.getpid()).join()
     assert failed.read_text() == "parent"  # the child's failure is redone in this process, not lost
+
+
+def test_overwrite_replaces_a_run_but_never_a_users_own_directory(tmp_path, monkeypatch):
+    """--overwrite on a directory of a user's files, on the current directory or on one holding it, on
+    the home directory: one error naming --out, every file still there; on a run: replaced."""
+    from hbma_ctrl.app.outputs import check_out, is_run_dir
+
+    thesis = tmp_path / "thesis"
+    thesis.mkdir()
+    (thesis / "chapter1.tex").write_text("years of work")
+    with pytest.raises(ValueError, match="--out.*no run of hbma-ctrl"):
+        check_out(thesis, overwrite=True)
+    monkeypatch.chdir(thesis)
+    for out in (Path("."), thesis, tmp_path):
+        with pytest.raises(ValueError, match="--out.*current directory"):
+            check_out(out, overwrite=True)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    (tmp_path / "home").mkdir()
+    (tmp_path / "home" / ".bashrc").write_text("x")
+    with pytest.raises(ValueError, match="--out.*home directory"):
+        check_out(tmp_path / "home", overwrite=True)
+    assert (thesis / "chapter1.tex").read_text() == "years of work"
+
+    run = tmp_path / "run"
+    with run_dir(run, command="t", argv=[]) as tmp:
+        (tmp / "a.csv").write_text("1\n")
+    assert is_run_dir(run) and not is_run_dir(thesis)
+    with run_dir(run, command="t", argv=[], overwrite=True) as tmp:
+        (tmp / "b.csv").write_text("2\n")
+    assert sorted(p.name for p in run.iterdir()) == ["b.csv", "manifest.json"]
