@@ -6,32 +6,24 @@ real-time loop (the rig daemon) paces the same three calls with a wall clock and
 
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from typing import Callable
 
 import numpy as np
 
 from hbma_ctrl.core.params import check_range
+from hbma_ctrl.system.base import System
 from hbma_ctrl.system.rigio import Readings, RigIO
 
-__all__ = ["TickingSystem", "run_lockstep"]
+__all__ = ["run_lockstep"]
 
 
-class TickingSystem(Protocol):
-    """What a driver needs of a system: ``tick(t, p[n], held[3, n] | None) -> u[3, n]`` and ``warming``
-    (True while a start-up calibration runs, before the loop closes)."""
-
-    warming: bool
-
-    def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray: ...
-
-
-def run_lockstep(system: TickingSystem, rig: RigIO, duration: float,
+def run_lockstep(system: System, rig: RigIO, duration: float,
                  before: Callable[[int, float], None] | None = None,
                  ticked: Callable[[int, Readings, np.ndarray], None] | None = None,
                  advanced: Callable[[int, Readings, np.ndarray], bool | None] | None = None,
                  clock: Callable[[Readings], float] | None = None) -> int:
-    """Drive ``system`` on the lockstep ``rig`` until its closed loop has run ``duration`` s; the start-up
-    calibration's periods come first and do not count. Returns the number of closed-loop periods run.
+    """Drive ``system`` (its ``tick`` and ``warming``) on the lockstep ``rig`` until its closed loop has run
+    ``duration`` s; the start-up calibration's periods come first and do not count. Returns the number of closed-loop periods run.
 
     Each closed-loop period k (at loop time t = k periods, s): ``before(k, t)`` (a scene puts its
     scheduled loads on the rig here), the rig's readings, the system's tick, ``ticked(k, readings, u)``
