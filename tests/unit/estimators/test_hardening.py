@@ -374,8 +374,8 @@ def _two_layer_sequence(topology: str, seed: int, throttle: bool, monkeypatch) -
     speeds = []
     init, tick = RobotLoop.__init__, RobotLoop.tick
 
-    def record(self, t, z):
-        out = tick(self, t, z)
+    def record(self, t, z, held=None):
+        out = tick(self, t, z, held)
         speeds.append(self.valve_commands[0].copy())
         return out
 
@@ -430,8 +430,8 @@ def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true
     sent, planned = [], []
     tick, apply = RobotLoop.tick, RobotRig.apply
 
-    def rec_tick(self, t, z):
-        a, o = tick(self, t, z)
+    def rec_tick(self, t, z, held=None):
+        a, o = tick(self, t, z, held)
         planned.append(a.copy())
         return a, o
 
