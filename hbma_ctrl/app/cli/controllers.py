@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 # the benches (the controllers, the EKF, the rig) are imported by their commands when they run
-from hbma_ctrl.app.cli.args import cap_workers
+from hbma_ctrl.app.cli.args import cap_workers, check_range
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 
 #: the variants ``bench mpc`` sweeps by default (x its horizons)
@@ -50,10 +50,8 @@ def bench_loop(
     from hbma_ctrl.app.bench.loop import (check_cases, loop_setup, run_loop_bench, summarize_loop,
                                           write_loop_bench)
 
-    if not 1 <= seeds <= 100:
-        raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
-    if not 1 <= workers <= 64:
-        raise ValueError(f"--workers = {workers} is out of range [1, 64]")
+    check_range("--seeds", seeds, 1, 100)
+    check_range("--workers", workers, 1, 64)
     workers = cap_workers("--workers", workers)
     con = Console(highlight=False, width=140)
     cs = check_cases([c.strip() for c in cases.split(",") if c.strip()])  # before --out is touched

@@ -25,6 +25,7 @@ import typer
 
 # the daemon (the runtime loop and its roles, fastapi and uvicorn, the rig link) is imported by the
 # commands when they run
+from hbma_ctrl.app.cli.args import check_range
 from hbma_ctrl.app.outputs import (
     OVERWRITE_HELP,
     check_out,
@@ -222,8 +223,7 @@ def bench_drills(
     false alarms before them (drills.json)."""
     from hbma_ctrl.app.bench.drills import check_drills, run_drills
 
-    if not 1 <= drills <= 10000:
-        raise ValueError(f"--drills = {drills} is out of range [1, 10000]")
+    check_range("--drills", drills, 1, 10000)
     if not (every_s >= 0.0 and every_s < float("inf")):
         raise ValueError(f"--setpoint-every-s = {every_s:g} must be >= 0 s (0 = the file's targets)")
     _check_bench(config, {"--after-s": after_s})

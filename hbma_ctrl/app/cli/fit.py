@@ -22,7 +22,7 @@ from rich.console import Console
 from rich.table import Table
 
 # the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
-from hbma_ctrl.app.cli.args import check_range
+from hbma_ctrl.app.cli.args import cap_workers, check_range
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
@@ -166,12 +166,9 @@ def bench_fit_cmd(
     """The fit's membrane law against truths it is not: the exact solver's static points and pump /
     hold / vent runs of the cap, exact and default rigs, each fitted with the cap's and the exact law."""
     from hbma_ctrl.app.bench.fit import run_rows, static_rows, summarize_runs, write_fit_bench
-    from hbma_ctrl.app.cli.args import cap_workers
 
-    if not 1 <= seeds <= 100:
-        raise ValueError(f"--seeds = {seeds} is out of range [1, 100]")
-    if not 1 <= workers <= 64:
-        raise ValueError(f"--workers = {workers} is out of range [1, 64]")
+    check_range("--seeds", seeds, 1, 100)
+    check_range("--workers", workers, 1, 64)
     workers = cap_workers("--workers", workers)
     con = Console(highlight=False, width=140)
     with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:

@@ -21,7 +21,7 @@ from rich.table import Table
 
 # the robot's models (casadi, the exact membrane), its plots and its closed loop are imported by the
 # commands when they run; the default glue-spot radius comes from the light cli_constants
-from hbma_ctrl.app.cli.args import whole_numbers
+from hbma_ctrl.app.cli.args import check_range, whole_numbers
 from hbma_ctrl.app.cli.constants import BOND_RADIUS_MM
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
@@ -121,8 +121,7 @@ def workspace(out: Path = typer.Option(Path("runs/workspace"), "--out", help="di
 
     if not 1.0 <= pressure_limit_kpa <= 1000.0:
         raise ValueError(f"--pressure-limit-kpa = {pressure_limit_kpa} is out of range [1, 1000] kPa")
-    if not 8 <= directions <= 3600:
-        raise ValueError(f"--directions = {directions} is out of range [8, 3600]")
+    check_range("--directions", directions, 8, 3600)
     d = _design(layers, max_stretch)
     with run_dir(out, command="robot workspace", argv=cli_argv(), overwrite=overwrite) as tmp:
         ws = reach.workspace(d, U.kpa(pressure_limit_kpa), n_dir=directions)
@@ -246,8 +245,7 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
         raise ValueError(f"--duration = {duration} is out of range [0.5, 60] s")
     if topology not in TOPOLOGIES:
         raise ValueError(f"--topology = '{topology}': allowed {', '.join(TOPOLOGIES)}")
-    if not 1 <= horizon <= 100:
-        raise ValueError(f"--horizon = {horizon} is out of range [1, 100]")
+    check_range("--horizon", horizon, 1, 100)
     with run_dir(out, command="bench robot", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = bench_robot(ns, duration, topology, horizon)
         (tmp / "bench_robot.json").write_text(json.dumps({"topology": topology, "horizon": horizon,

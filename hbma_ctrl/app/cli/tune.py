@@ -26,7 +26,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 # optuna and the tuning itself (it runs scenarios: every role) are imported by the command when it runs
-from hbma_ctrl.app.cli.args import cap_workers
+from hbma_ctrl.app.cli.args import cap_workers, check_range
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, default_out, run_dir
 
 if TYPE_CHECKING:
@@ -99,10 +99,8 @@ def tune_cmd(
 
     if role not in ROLES:
         raise ValueError(f"--role = '{role}'; allowed: {', '.join(ROLES)}")
-    if not 1 <= trials <= 100000:
-        raise ValueError(f"--trials = {trials} is out of range [1, 100000]")
-    if not 1 <= workers <= 256:
-        raise ValueError(f"--workers = {workers} is out of range [1, 256]")
+    check_range("--trials", trials, 1, 100000)
+    check_range("--workers", workers, 1, 256)
     if not 0 <= seed <= 2**31 - 1:
         raise ValueError(f"--seed = {seed} is out of range [0, 2147483647]")
     obj = check_objective(role, objective)
