@@ -1,14 +1,10 @@
-"""What the daemon runs, built from its configuration: the runtime loop wrapped for the rig (SI).
+"""What the daemon runs, built from its configuration (SI).
 
-A *runner* adapts :class:`hbma_ctrl.runtime.chamber.ChamberLoop` or
-:class:`hbma_ctrl.runtime.robot.RobotLoop` to the rig's view: ``tick(t, p) -> U`` with the readings
-of every chamber (Pa, (n,)) and the plant input ``U`` (3, n) the rig takes; the status rows the API
-shows; and setpoints: ``check_setpoint`` (the API's thread: clip to what is reachable, say what
-was clipped) and ``apply_setpoint`` (the loop's thread, between periods). The runners are
-:class:`ChamberSystem` and :class:`RobotSystem`.
-
-The runners are built exactly as the scenes build their loops (:mod:`hbma_ctrl.app.scenes.controller`,
-:mod:`hbma_ctrl.app.scenes.robot_loop`), so a daemon on the simulated rig runs the scene's closed loop.
+:func:`build_runner` builds the scenario's system with the builders the scenes use
+(:func:`hbma_ctrl.system.chamber.chamber_system`, :func:`hbma_ctrl.system.robot.robot_system`), with
+what a real-time loop needs on top: the NMPC's solve-time budget enforced, and for the robot the
+daemon's defaults where the file gives none (the ``DAEMON_*`` and ``ROBOT_*`` constants below).
+:func:`make_rig` gives the rig link, :func:`make_monitor` the safety monitor.
 """
 
 from __future__ import annotations
