@@ -6,26 +6,15 @@ validates itself and names the field and its allowed range when a value is out o
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from hbma_ctrl.core.materials import Material, NeoHookean
+from hbma_ctrl.core.settings import check_range
 
 __all__ = ["Actuator", "Valve", "Pneumatics", "Platform", "check_range", "DATA_DIR"]
 
 DATA_DIR = Path(__file__).parent / "data"
-
-
-def check_range(where: str, name: str, value: float, lo: float, hi: float, unit: str = "",
-                lo_open: bool = False) -> None:
-    """Raise ValueError naming ``where.name`` when ``value`` is outside [lo, hi] (or (lo, hi])."""
-    ok = isinstance(value, (int, float)) and math.isfinite(value)
-    if ok:
-        ok = (value > lo if lo_open else value >= lo) and value <= hi
-    if not ok:
-        left = "(" if lo_open else "["
-        raise ValueError(f"{where}.{name} = {value!r} is out of range {left}{lo}, {hi}] {unit}".rstrip())
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ __all__ = [
     "to_us",
     "to_mg",
     "lpm_to_kgs",
+    "USER_UNITS",
 ]
 
 G_STD = 9.80665  # standard gravity, m/s^2
@@ -102,3 +103,18 @@ def to_mg(x):
 def lpm_to_kgs(x):
     """Normal litres per minute (ANR) -> mass flow in kg/s."""
     return x * 1e-3 / 60.0 * RHO_AIR_NORMAL
+
+
+#: a scenario key's unit -> (to SI, from SI, the key's suffix after its SI field's name); a gain per
+#: mm is 1000 times the gain per m, so those convert with the mm -> m factor inverted
+USER_UNITS = {
+    "mm": (mm, to_mm, "mm"),
+    "kPa": (kpa, to_kpa, "kpa"),
+    "ms": (ms, to_ms, "ms"),
+    "g": (grams, to_grams, "g"),
+    "cm^3": (cm3, to_cm3, "cm3"),
+    "%": (pct, to_pct, "pct"),
+    "1/mm": (to_mm, mm, ""),
+    "1/(mm s)": (to_mm, mm, ""),
+    "s/mm": (to_mm, mm, ""),
+}
