@@ -103,8 +103,11 @@ class Spec:
         return _user_round(conv(value))
 
     def user_bounds(self) -> tuple[float | None, float | None]:
-        """(lo, hi) in the user's unit."""
-        return self.to_user(self.lo), self.to_user(self.hi)
+        """(lo, hi) in the user's unit (of each entry, for a vector)."""
+        if self.kind == "integer":
+            return self.lo, self.hi
+        conv = self._conv(False)
+        return tuple(None if x is None else _user_round(conv(x)) for x in (self.lo, self.hi))
 
     def check(self, where: str, name: str, value: Any) -> None:
         """ValueError naming ``where.name`` and what it takes when ``value`` is not allowed (SI)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
@@ -71,21 +73,21 @@ KINDS = ("mpc", "pid", "bang_bang")
 
 
 @dataclass
-class ReferenceProfile:
+class ReferenceProfile(Settings):
     """Target height over time (SI): piecewise points, optional sinusoid on top.
 
     points : ((t_s, h_m), ...) sorted by time; before the first point the first height holds.
-    interpolation : 'step' (hold each target from its time on) or 'linear' (ramps).
-    sine_amplitude, sine_period, sine_start : a sinusoid (m, s, s) added from sine_start on.
     """
 
-    points: tuple = ((0.0, 2e-3),)
-    interpolation: str = "step"
-    sine_amplitude: float = 0.0
-    sine_period: float = 1.0
-    sine_start: float = 0.0
+    WHERE: ClassVar[str] = "controller"
 
-    def validate(self) -> "ReferenceProfile":
+    points: tuple = ((0.0, 2e-3),)
+    interpolation: str = setting("step", choices=("step", "linear"), doc="hold each target or ramp between them")
+    sine_amplitude: float = setting(0.0, lo=0.0, hi=0.1, unit="m", user="mm", doc="sinusoid added to the targets")
+    sine_period: float = setting(1.0, lo=0.0, hi=1e4, lo_open=True, unit="s", key="sine_period_s", doc="sinusoid period")
+    sine_start: float = setting(0.0, lo=0.0, hi=1e5, unit="s", key="sine_start_s", doc="sinusoid start")
+
+    def check_rules(self) -> None:
         if not self.points:
             raise ValueError("controller.targets_mm must have at least one [t_s, h_mm] pair")
         ts = [p[0] for p in self.points]
@@ -94,12 +96,6 @@ class ReferenceProfile:
         for t, h in self.points:
             check_range("controller", "targets_mm time", t, 0.0, 1e5, "s")
             check_range("controller", "targets_mm height", h, 0.0, 0.2, "m")
-        if self.interpolation not in ("step", "linear"):
-            raise ValueError(f"controller.interpolation = '{self.interpolation}': allowed step, linear")
-        check_range("controller", "sine_amplitude", self.sine_amplitude, 0.0, 0.1, "m")
-        check_range("controller", "sine_period", self.sine_period, 0.0, 1e4, "s", lo_open=True)
-        check_range("controller", "sine_start", self.sine_start, 0.0, 1e5, "s")
-        return self
 
     def __call__(self, t: float) -> float:
         ts = np.array([p[0] for p in self.points])
@@ -127,40 +123,43 @@ class ReferenceProfile:
 
 
 @dataclass
-class ControllerSection:
+class ControllerSection(Settings):
     """Parsed [controller] section: which controller, its settings, the targets and load steps.
 
     Fields
     ------
-    kind : 'mpc' | 'pid' | 'bang_bang': which controller runs.
-    mpc, pid, bang_bang : the settings of each (only the chosen one is used).
+    kind : which controller runs; mpc, pid, bang_bang : the settings of each (only the chosen one is used).
     reference : the height target profile (steps, ramps, sines), m.
     load_steps : ((t s, load mass kg), ...) put on the rig during the run.
     preview : pass the future targets to the MPC; None = only for ramps and sines.
-    settle_band : band for the settling report, m (0.3 mm).
-    calibrate : run the start-up calibration before the loop closes (:mod:`hbma_ctrl.runtime.calibrate`).
-    valve_min_on : the valves' minimum opening, s (0 = none; default 2 ms, a small solenoid valve's
-        datasheet value): small duties are realised on average (:class:`hbma_ctrl.runtime.pwm.MinOnTime`);
-        at most the rig's sample period.
-    calibration_std_floor : the calibration hands its factors to the estimator with sigmas at least
-        this (:class:`hbma_ctrl.runtime.calibrate.CalibrationSettings` ``handover_std_floor``).
+    valve_min_on : small duties are realised on average (:class:`hbma_ctrl.runtime.pwm.MinOnTime`); at
+        most the rig's sample period.
+    calibration_std_floor : :class:`hbma_ctrl.runtime.calibrate.CalibrationSettings` ``handover_std_floor``.
 
     The MPC's wall-clock budget acts only where ``mpc.enforce_budget`` is set (the scenario's
     ``[controller] enforce_budget``; the rig daemon always sets it).
     """
 
-    kind: str = "mpc"
+    WHERE: ClassVar[str] = "controller"
+
+    kind: str = setting("mpc", choices=KINDS, doc="which controller runs")
     mpc: MPCSettings = field(default_factory=MPCSettings)
     pid: PIDSettings = field(default_factory=PIDSettings)
     bang_bang: BangBangSettings = field(default_factory=BangBangSettings)
     reference: ReferenceProfile = field(default_factory=ReferenceProfile)
     load_steps: tuple = ()  # ((t_s, mass_kg), ...)
     preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
-    settle_band: float = 0.3e-3
+    settle_band: float = setting(0.3e-3, lo=0.0, hi=0.05, lo_open=True, unit="m", user="mm",
+                                 doc="settling band of the step metrics")
     # out of the repr: tests/test_schema.py compares reprs with those of the parsers this schema replaced
-    calibrate: bool = field(default=True, repr=False)
-    valve_min_on: float = field(default=DEFAULT_VALVE_MIN_ON, repr=False)
-    calibration_std_floor: float = field(default=CalibrationSettings.handover_std_floor, repr=False)
+    calibrate: bool = setting(True, repr=False, doc="before the loop closes, learn the pump-flow, modulus and "
+                              "dead-volume factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
+    valve_min_on: float = setting(DEFAULT_VALVE_MIN_ON, lo=0.0, hi=0.1, unit="s", user="ms", repr=False,
+                                  doc="the valves' minimum opening (datasheet): shorter duties are sent as pulses "
+                                      "of this length often enough to pass them on average")
+    calibration_std_floor: float = setting(CalibrationSettings.handover_std_floor, lo=0.0, hi=1.0, repr=False,
+                                           doc="smallest sigma of each factor the calibration hands the estimator "
+                                               "(its fit's own assumes the model is the chamber)")
 
     @property
     def sample_period(self) -> float:

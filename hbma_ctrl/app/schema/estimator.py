@@ -25,7 +25,7 @@ from hbma_ctrl.sim.rig import RigSettings
 
 __all__ = ["EstimatorTable"]
 
-_TUNING = settings_table(
+_KEYS = settings_table(
     "EstimatorTuning",
     (FilterSettings, ("noise_std", "model_rel_std", "flow_rel_std", "flow_factor_std", "modulus_std",
                       "flow_factor_init", "flow_factor_init_std", "modulus_init", "modulus_init_std",
@@ -35,7 +35,7 @@ _TUNING = settings_table(
     defaults={"noise_std": None})  # the rig's
 
 
-class EstimatorTable(_TUNING):
+class EstimatorTable(_KEYS):
     """[estimator] in the user's units; :meth:`to_section` gives the SI EstimatorSection."""
 
     filter: Literal["ekf", "ukf"] = choice("ekf", "the filter")
