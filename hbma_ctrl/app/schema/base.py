@@ -21,6 +21,7 @@ from hbma_ctrl.app.schema.fields import (
     choice,
     elem,
     num,
+    settings_table,
     shaped,
     subtable,
     text,
@@ -45,7 +46,6 @@ __all__ = [
 ]
 
 MaterialName = Literal["nh", "mr", "yeoh", "gent", "ogden"]
-_ACT = Actuator()
 _PLATFORM = Platform()
 
 
@@ -84,12 +84,9 @@ class ScenarioTable(Table):
         return v
 
 
-class ActuatorTable(Table):
+class ActuatorTable(settings_table("ActuatorKeys", (Actuator, ("r1", "t0", "V0")))):
     """[actuator]: the membrane and its clamp (edge units), material by name with SI parameters."""
 
-    r1_mm: float = num(U.to_mm(_ACT.r1), 0.5, 100.0, "mm", "retaining-disk inner radius", lo_open=True)
-    t0_mm: float = num(U.to_mm(_ACT.t0), 0.05, 20.0, "mm", "initial membrane thickness", lo_open=True)
-    V0_cm3: float = num(U.to_cm3(_ACT.V0), 0.001, 1000.0, "cm^3", "dead volume")
     material: MaterialName = choice("nh", "strain-energy model")
     material_params: dict[str, Any] = subtable(dict, "material parameters (SI, names per material)",
                                                "{name = value, ...}")
@@ -103,8 +100,7 @@ class ActuatorTable(Table):
     def to_actuator(self) -> Actuator:
         """The SI actuator (m, m^3) with the material built once."""
         try:
-            return Actuator(r1=U.mm(self.r1_mm), t0=U.mm(self.t0_mm), V0=U.cm3(self.V0_cm3),
-                            material=self._material).validate()
+            return Actuator(**self.si(Actuator), material=self._material).validate()
         except ValueError as exc:
             raise ValueError(f"[actuator] {exc}") from None
 
