@@ -215,18 +215,12 @@ class ProtocolTable(Table):
         return {k: getattr(self, k) for k in ("loads_g", "speeds_pct", "t0_mm", "r1_mm", "t_inflate_s")}
 
 
-class SimTable(Table):
+class SimTable(settings_table("SimKeys", (SimSettings, ("integrator", "dt", "log_dt", "sensor_range")))):
     """[sim]: fidelity, integrator and steps of the open-loop simulation."""
 
     fidelity: Literal["auto", "free", "quasi_static", "platform", "exact"] = choice(
         "auto", "plant model; auto = free without a load; exact = the exact membrane (platform with a load)")
-    integrator: Literal["euler", "rk4", "radau"] = choice("rk4", "integration scheme")
-    dt_ms: float | None = num(None, 1e-4, 100.0, "ms", "fixed step; default per integrator and fidelity")
-    log_dt_ms: float = num(10.0, 0.01, 10000.0, "ms", "log sampling period")
-    sensor_range_kpa: float = num(35.0, 1.0, 1000.0, "kPa", "sensor saturation pressure")
 
     def to_sim(self) -> SimSettings:
         """SI simulation settings (s, Pa)."""
-        dt = U.ms(self.dt_ms) if self.dt_ms is not None else None
-        return SimSettings(integrator=self.integrator, dt=dt, log_dt=U.ms(self.log_dt_ms),
-                           sensor_range=U.kpa(self.sensor_range_kpa)).validate()
+        return SimSettings(**self.si(SimSettings)).validate()
