@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 
@@ -43,7 +42,7 @@ __all__ = ["PIDSettings", "PIDController", "BangBangSettings", "BangBangControll
 class PIDSettings(ControllerSettingsDefaults, Settings):
     """PID on height (SI; each field's unit, range and one-line doc are in its declaration)."""
 
-    WHERE: ClassVar[str] = "pid"
+    WHERE = "pid"
 
     sample_period: float = sample_period_setting()
     kp: float = setting(1000.0, lo=0.0, hi=1e7, unit="1/m", user="1/mm", doc="PID proportional gain")
@@ -116,7 +115,7 @@ class BangBangSettings(ControllerSettingsDefaults, Settings):
     """Bang-bang pressure control with hysteresis (SI; each field's unit, range and one-line doc are in its
     declaration). The setpoint is capped at p_max - guard_margin."""
 
-    WHERE: ClassVar[str] = "bang_bang"
+    WHERE = "bang_bang"
 
     sample_period: float = sample_period_setting()
     band: float = setting(500.0, lo=0.0, hi=1e5, unit="Pa", user="kPa", doc="bang-bang hysteresis half-band")

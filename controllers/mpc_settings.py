@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 
@@ -48,7 +47,7 @@ class MPCSettings(Settings):
         pressure, a valve that drops short openings) is never integrated otherwise.
     """
 
-    WHERE: ClassVar[str] = "mpc"
+    WHERE = "mpc"
 
     variant: str = setting("rti_c_osqp", choices=VARIANTS,
                            doc="MPC: RTI + OSQP, its QP data as generated C (fast; rti_osqp: the same QP built in numpy, "

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -76,7 +75,7 @@ class FilterSettings(Settings):
     chart (README Model §9; built on a material's first use, then loaded from the disk cache).
     """
 
-    WHERE: ClassVar[str] = "estimator"
+    WHERE = "estimator"
 
     sample_period: float = setting(0.01, lo=0.0, hi=1.0, lo_open=True, unit="s", doc="time between steps")
     integrator: str = setting("rk4", choices=("rk4", "euler"), doc="the filter model's fixed-step scheme")

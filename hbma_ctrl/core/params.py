@@ -7,7 +7,6 @@ validates itself and names the field and its allowed range when a value is out o
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
 from pathlib import Path
 
 from hbma_ctrl.core.materials import Material, NeoHookean
@@ -23,7 +22,7 @@ class Actuator(Settings):
     """One HBMA: membrane, clamp and gas (SI; each field's unit, range and one-line doc are in its
     declaration). Defaults: the fig. 7 rig's clamp, Table I's dead volume and neo-Hookean material."""
 
-    WHERE: ClassVar[str] = "actuator"
+    WHERE = "actuator"
 
     r1: float = setting(12.5e-3, lo=0.5e-3, hi=0.1, lo_open=True, unit="m", user="mm", doc="retaining-disk inner radius")
     t0: float = setting(3e-3, lo=0.05e-3, hi=20e-3, lo_open=True, unit="m", user="mm", doc="initial membrane thickness")

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
 
 import numpy as np
 
@@ -45,7 +44,7 @@ class RobotDesign(Settings):
     acts along -z of the world; the base is level.
     """
 
-    WHERE: ClassVar[str] = "robot"
+    WHERE = "robot"
 
     n_layers: int = setting(3, integer=True, lo=1, hi=26, unit="layers", key="layers", doc="number of chamber layers")
     placement_radius: float = setting(15.4e-3, lo=1e-3, hi=0.5, unit="m", user="mm",
@@ -125,7 +124,7 @@ class RobotPneumatics(Settings):
     among the open inlets. outlets 'per_chamber' is the only layout built.
     """
 
-    WHERE: ClassVar[str] = "robot"
+    WHERE = "robot"
 
     topology: str = setting("per_chamber", choices=TOPOLOGIES, doc="one compressor per chamber or shared")
     outlets: str = setting("per_chamber", choices=OUTLETS, doc="outlet valve layout")

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import ClassVar
 
 import numpy as np
 
@@ -33,7 +32,7 @@ class RobotPlantSettings(Settings):
         not listed keep everything closed.
     """
 
-    WHERE: ClassVar[str] = "robot"
+    WHERE = "robot"
 
     design: RobotDesign = field(default_factory=RobotDesign)
     pneumatics: RobotPneumatics = field(default_factory=RobotPneumatics)

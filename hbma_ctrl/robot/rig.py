@@ -25,7 +25,6 @@ robot's chambers run to about 4 r1 on their far branch, past the exact tables' r
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 
@@ -49,7 +48,7 @@ class RobotRigSettings(Settings):
     controller assumes. valve_delay, valve_min_on, compressor_tilt, sensor_tau: the structural
     mismatches of :class:`hbma_ctrl.sim.rig.RigSettings`, with its bounds and defaults (module docstring)."""
 
-    WHERE: ClassVar[str] = "robot rig"
+    WHERE = "robot rig"
 
     fidelity: str = setting("platform", choices=("platform", "quasi_static"),
                             doc="each chamber carries its share of the layers as a moving mass, or a dead load")

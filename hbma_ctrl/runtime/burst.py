@@ -36,7 +36,6 @@ estimates within 0.29 s.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -53,7 +52,7 @@ class BurstTestSettings(Settings):
     one-line doc are in its declaration). One wild reading is not a burst: ``step_cap`` is at most
     the threshold."""
 
-    WHERE: ClassVar[str] = "burst"
+    WHERE = "burst"
 
     threshold: float = setting(50.0, lo=0.0, hi=1e4, lo_open=True, unit="sigma",
                                doc="the sum of falls (beyond the allowance) that flags a burst")

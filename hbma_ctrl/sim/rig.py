@@ -32,7 +32,6 @@ plant, which the estimator benchmarks and the protocol scenario use.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
 
 import hashlib
 from pathlib import Path
@@ -89,7 +88,7 @@ class RigSettings(Settings):
     only in constants. :data:`CAP_RIG` gives the cap rig (the cap models' own law, scalar mismatches only).
     """
 
-    WHERE: ClassVar[str] = "rig"
+    WHERE = "rig"
 
     fidelity: str = setting("platform", choices=_RIG_FIDELITIES, doc="plant model while a load is on")
     modulus_scale: float = setting(1.15, lo=0.2, hi=5.0, doc="every modulus of the material times this")

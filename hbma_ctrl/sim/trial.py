@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
 
 import numpy as np
 
@@ -94,7 +93,7 @@ class SimSettings(Settings):
     reference also reports at the log's times; atol is a fraction of each state's typical magnitude
     (gas mass 1e-5 kg, lengths 1e-2 m, velocity 1e-2 m/s)."""
 
-    WHERE: ClassVar[str] = "sim"
+    WHERE = "sim"
 
     integrator: str = setting("rk4", choices=INTEGRATORS, doc="integration scheme")
     dt: float | None = setting(None, lo=1e-7, hi=0.1, unit="s", user="ms",

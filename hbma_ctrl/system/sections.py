@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +77,7 @@ class ReferenceProfile(Settings):
     points : ((t_s, h_m), ...) sorted by time; before the first point the first height holds.
     """
 
-    WHERE: ClassVar[str] = "controller"
+    WHERE = "controller"
 
     points: tuple = ((0.0, 2e-3),)
     interpolation: str = setting("step", choices=("step", "linear"), doc="hold each target or ramp between them")
@@ -139,7 +138,7 @@ class ControllerSection(Settings):
     ``[controller] enforce_budget``; the rig daemon always sets it).
     """
 
-    WHERE: ClassVar[str] = "controller"
+    WHERE = "controller"
 
     kind: str = setting("mpc", choices=KINDS, doc="which controller runs")
     mpc: MPCSettings = field(default_factory=MPCSettings)
@@ -223,7 +222,7 @@ class RobotSettings(Settings):
     burst_sigma : the burst test's threshold (:mod:`hbma_ctrl.runtime.burst`).
     """
 
-    WHERE: ClassVar[str] = "robot"
+    WHERE = "robot"
 
     design: RobotDesign = field(default_factory=RobotDesign)
     pneumatics: RobotPneumatics = field(default_factory=RobotPneumatics)

@@ -2,7 +2,6 @@
 the scenario key's name and unit derived from the declaration."""
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 import pytest
 
@@ -11,7 +10,7 @@ from hbma_ctrl.core.settings import Settings, setting, specs
 
 @dataclass
 class _Demo(Settings):
-    WHERE: ClassVar[str] = "demo"
+    WHERE = "demo"
 
     p_max: float = setting(35e3, lo=0.0, hi=1e6, lo_open=True, unit="Pa", user="kPa", doc="pressure limit")
     p_margin: float = setting(1e3, lo=0.0, hi=1e6, unit="Pa", user="kPa", doc="margin below p_max")
