@@ -27,47 +27,35 @@ from hbma_ctrl.core.interfaces import (
     Estimate,
     Reference,
     check_time,
+    guard_margin_setting,
+    p_max_setting,
+    sample_period_setting,
 )
-from hbma_ctrl.core.params import Actuator, Pneumatics, check_range
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["PIDSettings", "PIDController", "BangBangSettings", "BangBangController"]
 
 
 @dataclass
-class PIDSettings(ControllerSettingsDefaults):
-    """PID on height (SI).
+class PIDSettings(ControllerSettingsDefaults, Settings):
+    """PID on height (SI; each field's unit, range and one-line doc are in its declaration)."""
 
-    Fields
-    ------
-    sample_period : controller period, s, (0, 1].
-    kp : proportional gain, 1/m (command per metre of height error).
-    ki : integral gain, 1/(m s).
-    kd : derivative gain (on the estimate, not the error), s/m.
-    d_tau : low-pass time constant of the derivative, s.
-    outlet_gain : scales the negative output into the outlet duty (the vent is stronger than the pump).
-    p_max : gauge pressure limit, Pa.
-    guard_margin : the guard cuts the pump this close to p_max, Pa.
-    """
+    WHERE = "pid"
 
-    sample_period: float = 0.02
-    kp: float = 1000.0
-    ki: float = 200.0
-    kd: float = 20.0
-    d_tau: float = 0.05
-    outlet_gain: float = 0.5
-    p_max: float = 35e3
-    guard_margin: float = 1e3
+    sample_period: float = sample_period_setting()
+    kp: float = setting(1000.0, lo=0.0, hi=1e7, unit="1/m", user="1/mm", doc="PID proportional gain")
+    ki: float = setting(200.0, lo=0.0, hi=1e7, unit="1/(m s)", user="1/(mm s)", doc="PID integral gain")
+    kd: float = setting(20.0, lo=0.0, hi=1e7, unit="s/m", user="s/mm", doc="PID derivative gain (on the estimate)")
+    d_tau: float = setting(0.05, lo=0.0, hi=10.0, unit="s", doc="low-pass time constant of the derivative")
+    outlet_gain: float = setting(0.5, lo=0.0, hi=100.0,
+                                 doc="scales the negative output into the outlet duty (the vent is stronger)")
+    p_max: float = p_max_setting()
+    guard_margin: float = guard_margin_setting(1e3)
 
-    def validate(self) -> "PIDSettings":
-        check_range("pid", "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
-        for name in ("kp", "ki", "kd"):
-            check_range("pid", name, getattr(self, name), 0.0, 1e7)
-        check_range("pid", "d_tau", self.d_tau, 0.0, 10.0, "s")
-        check_range("pid", "outlet_gain", self.outlet_gain, 0.0, 100.0)
-        check_range("pid", "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
-        check_range("pid", "guard_margin", self.guard_margin, 0.0, self.p_max, "Pa")
-        return self
+    def check_rules(self) -> None:
+        self.within("guard_margin", hi=self.p_max)
 
 
 class PIDController(ControllerBase):
@@ -123,34 +111,21 @@ class PIDController(ControllerBase):
 
 
 @dataclass
-class BangBangSettings(ControllerSettingsDefaults):
-    """Bang-bang pressure control with hysteresis (SI).
+class BangBangSettings(ControllerSettingsDefaults, Settings):
+    """Bang-bang pressure control with hysteresis (SI; each field's unit, range and one-line doc are in its
+    declaration). The setpoint is capped at p_max - guard_margin."""
 
-    Fields
-    ------
-    sample_period : controller period, s, (0, 1].
-    band : hysteresis half-band around the pressure setpoint, Pa.
-    speed : compressor speed while pumping (0, 1].
-    p_max : gauge pressure limit (the setpoint is capped at p_max - guard_margin), Pa.
-    guard_margin : the guard cuts the pump this close to p_max, Pa.
-    load_max : largest load force of the static map, N.
-    """
+    WHERE = "bang_bang"
 
-    sample_period: float = 0.02
-    band: float = 500.0
-    speed: float = 1.0
-    p_max: float = 35e3
-    guard_margin: float = 1e3
-    load_max: float = 10.0
+    sample_period: float = sample_period_setting()
+    band: float = setting(500.0, lo=0.0, hi=1e5, unit="Pa", user="kPa", doc="bang-bang hysteresis half-band")
+    speed: float = setting(1.0, lo=0.0, hi=1.0, lo_open=True, doc="compressor speed while pumping")
+    p_max: float = p_max_setting()
+    guard_margin: float = guard_margin_setting(1e3)
+    load_max: float = setting(10.0, lo=0.0, hi=200.0, lo_open=True, unit="N", doc="largest load force of the static map")
 
-    def validate(self) -> "BangBangSettings":
-        check_range("bang_bang", "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
-        check_range("bang_bang", "band", self.band, 0.0, 1e5, "Pa")
-        check_range("bang_bang", "speed", self.speed, 0.0, 1.0, lo_open=True)
-        check_range("bang_bang", "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
-        check_range("bang_bang", "guard_margin", self.guard_margin, 0.0, self.p_max, "Pa")
-        check_range("bang_bang", "load_max", self.load_max, 0.0, 200.0, "N", lo_open=True)
-        return self
+    def check_rules(self) -> None:
+        self.within("guard_margin", hi=self.p_max)
 
 
 class BangBangController(ControllerBase):

@@ -15,9 +15,10 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.codegen import is_finite, is_nan
-from hbma_ctrl.core.params import check_range
-from hbma_ctrl.models.actuation import check_delays
+from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.chamber import STATE_SCALE
+from hbma_ctrl.models.reduced import MEMBRANES
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 
 __all__ = ["FilterSettings", "guard_cov", "classify_measurement", "physical_reading_bounds", "MEAS_OK",
@@ -36,206 +37,111 @@ FACTOR_RANGE = (0.5, 2.0)
 
 
 @dataclass
-class FilterSettings:
-    """Settings shared by :class:`~hbma_ctrl.estimators.ekf.EKF` and :class:`~hbma_ctrl.estimators.ukf.UKF` (SI).
+class FilterSettings(Settings):
+    """Settings shared by :class:`~hbma_ctrl.estimators.ekf.EKF` and :class:`~hbma_ctrl.estimators.ukf.UKF` (SI;
+    each field's unit, range and one-line doc are in its declaration).
 
-    Fields
-    ------
-    sample_period : time between steps, s, (0, 1]. A step whose ``t`` is k periods after the last
-        one predicts k times (k = 0: update only).
-    integrator : 'rk4' | 'euler': the simulator's fixed-step scheme for the model's ODE.
-    nsub : integrator sub-steps per sample period, [1, 50] (1: one RK4 step per 10 ms sample; 2
-        gave the same accuracy on the protocol subset at twice the cost).
-    newton : Newton iterations of the shape projection per sub-step, [1, 10] (3: a state far off
-        the constraint, e.g. after a reset, is projected back within one step).
-    noise_std : pressure-sensor noise, one sigma, Pa, (0, 1e4] (the rig's: 200 Pa).
-    model_rel_std : relative error of the model's pressure law at a given shape (-), [0, 1]; the
-        measurement variance is noise_std^2 + (model_rel_std p)^2. Covers the modulus mismatch.
-    sensor_range : readings >= this are saturated (the true pressure is at least this), Pa.
-    saturation_std : one sigma of the one-sided pseudo-measurement "p >= sensor_range" applied
-        when the prediction is below the range, Pa, (0, 1e5].
-    flow_rel_std : relative one-sigma error of the model's mass flow (compressor map, valves,
-        dead volume), per sample: process noise on the gas mass is (flow_rel_std |q| dt)^2 plus
-        (mass_std_abs)^2 per second, [0, 1].
-    mass_std_abs : gas-mass random walk, kg/sqrt(s), [0, 1e-5].
-    load_std : load random walk, N/sqrt(s), [0, 100] (how fast the load may change).
-    load_init : initial load guess, N; None = unknown: the membrane is taken as resting until the
-        pressure shows a lift-off (see :mod:`hbma_ctrl.estimators.ekf`). load_init_std its one sigma, N.
-    load_rest_std : one sigma of the load while the membrane rests flat, N (W is unobservable
-        then, only W >= pi r1^2 p is known; the value only keeps the covariance regular).
-    lift_threshold, lift_drift : lift-off detector while resting: a CUSUM of the normalised
-        innovation shortfall (-nu/sqrt(S) - lift_drift, less a fixed 5 % of the flat prediction's
-        rise over the sample in sigmas: :data:`hbma_ctrl.estimators.ekf_step.LIFT_RISE_DRIFT`) above
-        lift_threshold declares a lift-off (the pressure rises slower than a flat membrane allows),
-        (0, 1e3] and [0, 10]. Without a load prior a resting filter also takes the membrane as lifted
-        when b / c falls far below its prior (:func:`hbma_ctrl.estimators.ekf_step.flat_ratio_min`).
-    lift_load_rel_std : relative one sigma of the load right after a detected lift-off, [0, 10].
-    flow_factor_std : random walk of the pump-flow factor b, 1/sqrt(s), [0, 10];
-        flow_factor_init its initial value (-, [0.5, 2]: 1 = the nominal pump map; a calibration's
-        ``flow_scale``), flow_factor_init_std its initial one sigma, [0, 10].
-    dead_volume_std : random walk of the dead-volume factor c, 1/sqrt(s), [0, 10];
-        dead_volume_init its initial value ([0.5, 2]; a calibration's V0 over the nominal),
-        dead_volume_init_std its initial one sigma, [0, 10]. While the membrane is
-        flat the pressure's rise gives only b / c; the two prior spreads set how that ratio is
-        shared until venting (c alone) or the moving membrane separates them.
-    modulus_std : random walk of the modulus factor k, 1/sqrt(s), [0, 10]; modulus_init its initial
-        value ([0.5, 2]; a calibration's ``modulus_scale``), modulus_init_std its initial one sigma, [0, 10].
-    change_threshold : a load change is declared when the CUSUM of (NIS - change_drift) exceeds this
-        (-), (0, 1e6]; the load's variance then grows by change_std^2 (N^2) so it re-converges.
-    change_drift : NIS level tolerated by the CUSUM (-), [1, 100].
-    change_std : one sigma added to the load on a detected change, N, [0, 1000].
-    load_min, load_max : the load state is kept in [load_min, load_max], N; below zero the model
-        sees no load (a dead zone that keeps a zero load unbiased), the reported F is >= 0.
-    mass_init_std : one sigma of the initial gas mass, kg.
-    output_rel_std : relative model-form error added to the reported variances of h1, h2, h and F
-        (-), [0, 1]: what the state's covariance cannot know (the rig's platform dynamics and the
-        membrane law's residual error); it changes the reported std and NEES, not the estimate
-        (2 %: tests/test_estimator_consistency.py).
-    force_std_floor : absolute model-form error added to the reported force std, N, [0, 100] (the
-        load is only weakly separable from the modulus: a resolution of about 0.1 N).
-    cov_floor : eigenvalue floor of the covariance, relative to the state scales (m: 1e-6 kg,
-        W: 1 N, factors: 1), [0, 1e-3].
-    compile : compile the model to C (cached) for speed; False = casadi's virtual machine.
-    load_prior : 'unknown' (default: the load is learnt from the lift-off) or 'nominal': a scene
-        that knows its calibrated load (the protocol's weights) starts the load at the trial's
-        nominal weight, with one sigma load_prior_rel_std x that weight (+0.01 N). Applied per trial
-        by :func:`hbma_ctrl.app.scenes.evaluate.make_filter`; load changes are still detected and tracked.
-    load_prior_rel_std : relative one sigma of the nominal load prior, [0, 10].
-    reading_min : the lowest reading that can be physical, Pa gauge, [-101325, 0] (default: vacuum);
-        below it a reading is an outlier (predict only, counted), never an update.
-    reading_max_rel : a reading above this multiple of ``sensor_range`` cannot come from the sensor
-        (a saturated sensor reads its range), [1, 1000]: an outlier, not a saturation.
-    gate_nis : innovation gate: a reading whose normalised innovation squared (NIS, chi-square with
-        one degree of freedom) exceeds this is an outlier, (1, 1e6] (400: twenty sigma; the model's own
-        transients reach about 120, at a touch-down while venting, and a load step's first samples
-        feed the load-change detector at far less).
-    gate_reopen : after this many gated readings in a row the gate re-opens, [1, 1000]: the
-        covariance is inflated until the reading's NIS equals ``gate_nis`` (by at most
-        ``INFLATION_MAX``) and the reading is used, and so on until a reading passes unaided (a real
-        fast transient, e.g. a load slammed on, cannot lock the filter out).
-    membrane : the model's membrane law, 'cap' (the spherical cap, README Model §3) or 'exact' (the
-        exact axisymmetric membrane's tables in the cap's chart, README Model §9; the first use of a
-        material builds its table, then it loads from the disk cache). Default exact
-        (:mod:`hbma_ctrl.models.defaults`).
-    max_gap : longest time, s, a step predicts over, [sample_period, 3600]: after a longer gap (a
-        paused stream, a wall-clock timestamp) the filter predicts ``max_gap`` only and widens the
-        covariance by its initial spread (the commands during the gap are unknown).
-    valve_delay : the valves open and shut this long after their command, s, [0, 0.1] (default 5 ms,
-        a small solenoid valve's datasheet switching time; 3-10 ms is usual). The pump's speed acts at once.
-    sensor_delay : the pressure sensor reads the chamber this long late, s, [0, 0.1] (default 3 ms: a
-        sensor behind a short tube). Both are modelled as dead times on the commands
-        (:class:`hbma_ctrl.models.actuation.CommandTiming`); the start-up calibration uses the same.
+    A step whose ``t`` is k sample periods after the last one predicts k times (k = 0: update only).
+    The measurement variance is noise_std^2 + (model_rel_std p)^2 (model_rel_std covers the modulus
+    mismatch); the gas mass's process noise is (flow_rel_std |q| dt)^2 plus mass_std_abs^2 per second.
+    A saturated reading is the one-sided observation "p >= sensor_range" with ``saturation_std``.
+
+    Load: with ``load_init`` None the membrane is taken as resting until the pressure shows a lift-off
+    (see :mod:`hbma_ctrl.estimators.ekf`); while it rests W is unobservable, only W >= pi r1^2 p is known.
+    The lift-off detector is a CUSUM of the normalised innovation shortfall (-nu/sqrt(S) - lift_drift,
+    less a fixed 5 % of the flat prediction's rise over the sample in sigmas:
+    :data:`hbma_ctrl.estimators.ekf_step.LIFT_RISE_DRIFT`); above lift_threshold the membrane has lifted.
+    Without a load prior a resting filter also takes the membrane as lifted when b / c falls far below
+    its prior (:func:`hbma_ctrl.estimators.ekf_step.flat_ratio_min`). A load change is declared when
+    the CUSUM of (NIS - change_drift) exceeds change_threshold; the load's variance then grows by
+    change_std^2. The load state is kept in [load_min, load_max]; below zero the model sees no load
+    (a dead zone that keeps a zero load unbiased), the reported F is >= 0. ``load_prior`` 'nominal'
+    (a scene that knows its calibrated load) starts each trial's load at its nominal weight, applied
+    by :func:`hbma_ctrl.app.scenes.evaluate.make_filter`.
+
+    Factors: while the membrane is flat the pressure's rise gives only b / c; the prior spreads of the
+    pump-flow and dead-volume factors set how that ratio is shared until venting (c alone) or the
+    moving membrane separates them. output_rel_std is what the state's covariance cannot know (the
+    rig's platform dynamics, the membrane law's residual error): it changes the reported std and NEES,
+    not the estimate (2 %: tests/test_estimator_consistency.py).
+
+    Gate: a reading whose NIS exceeds gate_nis is an outlier (400: twenty sigma; the model's own
+    transients reach about 120); after gate_reopen gated readings in a row the covariance is inflated
+    until the reading's NIS equals gate_nis (by at most ``INFLATION_MAX``) and the reading is used,
+    so a real fast transient cannot lock the filter out. After a gap longer than max_gap the filter
+    predicts max_gap only and widens the covariance by its initial spread. The valve and sensor delays
+    are dead times on the commands (:class:`hbma_ctrl.models.actuation.CommandTiming`); the start-up
+    calibration uses the same. The membrane law 'exact' is the exact membrane's tables in the cap's
+    chart (README Model §9; built on a material's first use, then loaded from the disk cache).
     """
 
-    sample_period: float = 0.01
-    integrator: str = "rk4"
-    nsub: int = 1
-    newton: int = 3
-    noise_std: float = 200.0
-    model_rel_std: float = 0.05
-    sensor_range: float = 35e3
-    saturation_std: float = 2e3
-    flow_rel_std: float = 0.15
-    mass_std_abs: float = 2e-8
-    load_std: float = 0.05
-    load_init: float | None = None
-    load_init_std: float = 3.0
-    load_rest_std: float = 1.0
-    lift_threshold: float = 6.0
-    lift_drift: float = 0.3
-    lift_load_rel_std: float = 0.2
-    flow_factor_std: float = 0.02
-    flow_factor_init: float = 1.0
-    flow_factor_init_std: float = 0.15
-    modulus_std: float = 0.002
-    modulus_init: float = 1.0
-    modulus_init_std: float = 0.15
-    dead_volume_std: float = 0.0
-    dead_volume_init: float = 1.0
-    dead_volume_init_std: float = 0.2
-    change_threshold: float = 20.0
-    change_drift: float = 4.0
-    change_std: float = 3.0
-    load_min: float = -1.0
-    load_max: float = 100.0
-    mass_init_std: float = 1e-8
-    output_rel_std: float = 0.02
-    force_std_floor: float = 0.1
-    cov_floor: float = 1e-12
-    compile: bool = True
-    load_prior: str = "unknown"
-    load_prior_rel_std: float = 0.1
-    reading_min: float = VACUUM_GAUGE
-    reading_max_rel: float = 1.5
-    gate_nis: float = 400.0
-    gate_reopen: int = 5
-    max_gap: float = 1.0
-    membrane: str = DEFAULT_MEMBRANE
-    valve_delay: float = DEFAULT_VALVE_DELAY
-    sensor_delay: float = DEFAULT_SENSOR_DELAY
+    WHERE = "estimator"
 
-    def validate(self) -> "FilterSettings":
-        w = "estimator"
-        check_range(w, "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
-        if self.integrator not in ("rk4", "euler"):
-            raise ValueError(f"{w}.integrator = '{self.integrator}': allowed rk4, euler")
-        for name, lo, hi in (("nsub", 1, 50), ("newton", 1, 10)):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
-                raise ValueError(f"{w}.{name} = {v!r} must be an integer in [{lo}, {hi}]")
-        check_range(w, "noise_std", self.noise_std, 0.0, 1e4, "Pa", lo_open=True)
-        check_range(w, "model_rel_std", self.model_rel_std, 0.0, 1.0)
-        check_range(w, "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
-        check_range(w, "saturation_std", self.saturation_std, 0.0, 1e5, "Pa", lo_open=True)
-        check_range(w, "flow_rel_std", self.flow_rel_std, 0.0, 1.0)
-        check_range(w, "mass_std_abs", self.mass_std_abs, 0.0, 1e-5, "kg/sqrt(s)")
-        check_range(w, "load_std", self.load_std, 0.0, 100.0, "N/sqrt(s)")
-        if self.load_prior not in ("unknown", "nominal"):
-            raise ValueError(f"{w}.load_prior = {self.load_prior!r}: allowed unknown, nominal")
-        check_range(w, "load_prior_rel_std", self.load_prior_rel_std, 0.0, 10.0)
-        if self.load_init is not None:
-            check_range(w, "load_init", self.load_init, -1.0, 1000.0, "N")
-        check_range(w, "lift_threshold", self.lift_threshold, 0.0, 1e3, lo_open=True)
-        check_range(w, "lift_drift", self.lift_drift, 0.0, 10.0)
-        check_range(w, "lift_load_rel_std", self.lift_load_rel_std, 0.0, 10.0)
-        check_range(w, "flow_factor_std", self.flow_factor_std, 0.0, 10.0, "1/sqrt(s)")
-        check_range(w, "flow_factor_init_std", self.flow_factor_init_std, 0.0, 10.0)
-        for name in ("flow_factor_init", "modulus_init", "dead_volume_init"):
-            check_range(w, name, getattr(self, name), FACTOR_RANGE[0], FACTOR_RANGE[1])
-        check_range(w, "modulus_std", self.modulus_std, 0.0, 10.0, "1/sqrt(s)")
-        check_range(w, "modulus_init_std", self.modulus_init_std, 0.0, 10.0)
-        check_range(w, "dead_volume_std", self.dead_volume_std, 0.0, 10.0, "1/sqrt(s)")
-        check_range(w, "dead_volume_init_std", self.dead_volume_init_std, 0.0, 10.0)
-        check_range(w, "load_init_std", self.load_init_std, 0.0, 1000.0, "N", lo_open=True)
-        check_range(w, "load_rest_std", self.load_rest_std, 0.0, 1000.0, "N", lo_open=True)
-        check_range(w, "change_threshold", self.change_threshold, 0.0, 1e6, lo_open=True)
-        check_range(w, "change_drift", self.change_drift, 1.0, 100.0)
-        check_range(w, "change_std", self.change_std, 0.0, 1000.0, "N")
-        check_range(w, "load_min", self.load_min, -10.0, 0.0, "N")
-        check_range(w, "load_max", self.load_max, 0.0, 1e4, "N", lo_open=True)
-        check_range(w, "mass_init_std", self.mass_init_std, 0.0, 1e-3, "kg", lo_open=True)
-        check_range(w, "output_rel_std", self.output_rel_std, 0.0, 1.0)
-        check_range(w, "force_std_floor", self.force_std_floor, 0.0, 100.0, "N")
-        check_range(w, "cov_floor", self.cov_floor, 0.0, 1e-3)
-        check_range(w, "reading_min", self.reading_min, VACUUM_GAUGE, 0.0, "Pa")
-        check_range(w, "reading_max_rel", self.reading_max_rel, 1.0, 1000.0)
-        check_range(w, "gate_nis", self.gate_nis, 1.0, 1e6, lo_open=True)
-        if not isinstance(self.gate_reopen, int) or isinstance(self.gate_reopen, bool) or \
-                not 1 <= self.gate_reopen <= 1000:
-            raise ValueError(f"{w}.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
-        check_range(w, "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
-        check_delays(w, self.valve_delay, self.sensor_delay)
-        if self.membrane not in ("cap", "exact"):
-            raise ValueError(f"{w}.membrane = {self.membrane!r}: allowed cap, exact")
-        if not isinstance(self.compile, bool):
-            raise ValueError(f"{w}.compile = {self.compile!r} must be true or false")
-        return self
+    sample_period: float = setting(0.01, lo=0.0, hi=1.0, lo_open=True, unit="s", doc="time between steps")
+    integrator: str = setting("rk4", choices=("rk4", "euler"), doc="the filter model's fixed-step scheme")
+    nsub: int = setting(1, integer=True, lo=1, hi=50, unit="steps", doc="integrator sub-steps per sample")
+    newton: int = setting(3, integer=True, lo=1, hi=10, unit="iterations",
+                        doc="Newton iterations of the shape projection per sub-step")
+    noise_std: float = setting(200.0, lo=0.0, hi=1e4, lo_open=True, unit="Pa", user="kPa",
+                               doc="pressure-sensor noise, one sigma (a scenario: the rig's unless written)")
+    model_rel_std: float = setting(0.05, lo=0.0, hi=1.0, doc="relative error of the model's pressure law")
+    sensor_range: float = setting(35e3, lo=1e3, hi=1e6, unit="Pa", doc="readings at or above this are saturated")
+    saturation_std: float = setting(2e3, lo=0.0, hi=1e5, lo_open=True, unit="Pa",
+                                    doc="one sigma of the saturated reading's pseudo-measurement")
+    flow_rel_std: float = setting(0.15, lo=0.0, hi=1.0, doc="relative error of the model's mass flow")
+    mass_std_abs: float = setting(2e-8, lo=0.0, hi=1e-5, unit="kg/sqrt(s)", doc="gas-mass random walk")
+    load_std: float = setting(0.05, lo=0.0, hi=100.0, unit="N/sqrt(s)", key="load_std_n", doc="load random walk")
+    load_init: float | None = setting(None, lo=-1.0, hi=1000.0, unit="N", doc="initial load guess (None: unknown)")
+    load_init_std: float = setting(3.0, lo=0.0, hi=1000.0, lo_open=True, unit="N", doc="its one sigma")
+    load_rest_std: float = setting(1.0, lo=0.0, hi=1000.0, lo_open=True, unit="N",
+                                   doc="one sigma of the load while the membrane rests flat (keeps P regular)")
+    lift_threshold: float = setting(6.0, lo=0.0, hi=1e3, lo_open=True, doc="lift-off CUSUM threshold")
+    lift_drift: float = setting(0.3, lo=0.0, hi=10.0, doc="lift-off CUSUM drift")
+    lift_load_rel_std: float = setting(0.2, lo=0.0, hi=10.0, doc="relative one sigma of the load after a lift-off")
+    flow_factor_std: float = setting(0.02, lo=0.0, hi=10.0, unit="1/sqrt(s)", doc="random walk of the pump-flow factor")
+    flow_factor_init: float = setting(1.0, lo=FACTOR_RANGE[0], hi=FACTOR_RANGE[1],
+                                      doc="the pump-flow factor's start (a fit's flow_scale)")
+    flow_factor_init_std: float = setting(0.15, lo=0.0, hi=10.0, doc="its one sigma")
+    modulus_std: float = setting(0.002, lo=0.0, hi=10.0, unit="1/sqrt(s)", doc="random walk of the modulus factor")
+    modulus_init: float = setting(1.0, lo=FACTOR_RANGE[0], hi=FACTOR_RANGE[1],
+                                  doc="the modulus factor's start (a fit's modulus_scale)")
+    modulus_init_std: float = setting(0.15, lo=0.0, hi=10.0, doc="its one sigma")
+    dead_volume_std: float = setting(0.0, lo=0.0, hi=10.0, unit="1/sqrt(s)", doc="random walk of the dead-volume factor")
+    dead_volume_init: float = setting(1.0, lo=FACTOR_RANGE[0], hi=FACTOR_RANGE[1],
+                                      doc="the dead-volume factor's start (a fit's V0 over [actuator] V0_cm3)")
+    dead_volume_init_std: float = setting(0.2, lo=0.0, hi=10.0, doc="its one sigma")
+    change_threshold: float = setting(20.0, lo=0.0, hi=1e6, lo_open=True, doc="CUSUM threshold of a load change")
+    change_drift: float = setting(4.0, lo=1.0, hi=100.0, doc="NIS level the load-change CUSUM tolerates")
+    change_std: float = setting(3.0, lo=0.0, hi=1000.0, unit="N", doc="one sigma added to the load on a change")
+    load_min: float = setting(-1.0, lo=-10.0, hi=0.0, unit="N", doc="lowest load state")
+    load_max: float = setting(100.0, lo=0.0, hi=1e4, lo_open=True, unit="N", doc="highest load state")
+    mass_init_std: float = setting(1e-8, lo=0.0, hi=1e-3, lo_open=True, unit="kg", doc="one sigma of the initial gas mass")
+    output_rel_std: float = setting(0.02, lo=0.0, hi=1.0, doc="relative model-form error of the reported h1, h2, h, F")
+    force_std_floor: float = setting(0.1, lo=0.0, hi=100.0, unit="N", doc="model-form error added to the reported force std")
+    cov_floor: float = setting(1e-12, lo=0.0, hi=1e-3, doc="covariance eigenvalue floor, relative to the state scales")
+    compile: bool = setting(True, doc="compile the filter model to C")
+    load_prior: str = setting("unknown", choices=("unknown", "nominal"), doc="learn the load or start at the nominal")
+    load_prior_rel_std: float = setting(0.1, lo=0.0, hi=10.0, doc="relative sigma of the nominal load prior")
+    reading_min: float = setting(VACUUM_GAUGE, lo=VACUUM_GAUGE, hi=0.0, unit="Pa",
+                                 doc="lowest physical reading, gauge (below: an outlier)")
+    reading_max_rel: float = setting(1.5, lo=1.0, hi=1000.0,
+                                     doc="a reading above this times sensor_range is an outlier")
+    gate_nis: float = setting(400.0, lo=1.0, hi=1e6, lo_open=True, doc="innovation gate on the NIS")
+    gate_reopen: int = setting(5, integer=True, lo=1, hi=1000, doc="gated readings in a row that re-open the gate")
+    max_gap: float = setting(1.0, lo=0.0, hi=3600.0, unit="s", doc="longest time a step predicts over")
+    membrane: str = setting(DEFAULT_MEMBRANE, choices=MEMBRANES,
+                            doc="the filter model's membrane law (README Model §9)")
+    valve_delay: float = setting(DEFAULT_VALVE_DELAY, lo=0.0, hi=DELAY_MAX, unit="s", user="ms",
+                                 doc="the valves act this long after their command (datasheet)")
+    sensor_delay: float = setting(DEFAULT_SENSOR_DELAY, lo=0.0, hi=DELAY_MAX, unit="s", user="ms",
+                                  doc="the pressure sensor reads this long late")
+
+    def check_rules(self) -> None:
+        self.within("max_gap", lo=self.sample_period)
 
     @classmethod
     def field_names(cls) -> list[str]:
         return [f.name for f in fields(cls)]
-
-
 
 
 def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> np.ndarray:

@@ -37,6 +37,7 @@ from typing import Any, ClassVar, Literal, Protocol, runtime_checkable
 import numpy as np
 
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.settings import setting
 from hbma_ctrl.core.validation import finite_or_nan
 
 __all__ = ["Command", "Estimate", "Reference", "SAFE_COMMAND", "check_time",
@@ -175,6 +176,23 @@ class ControllerSettings(Protocol):
     fallback_plan_steps: int
     h_min: float
     h_max: float
+
+
+def sample_period_setting(default: float = 0.02) -> Any:
+    """A chamber controller's period, s, (0, 1]; the scenario's ``sample_ms``."""
+    return setting(default, lo=0.0, hi=1.0, lo_open=True, unit="s", user="ms", key="sample_ms",
+                   doc="controller period (a multiple of the rig's)")
+
+
+def p_max_setting(default: float = 35e3) -> Any:
+    """A chamber controller's gauge pressure limit, Pa, (0, 1e6]; the scenario's ``p_max_kpa``."""
+    return setting(default, lo=0.0, hi=1e6, lo_open=True, unit="Pa", user="kPa", doc="gauge pressure limit")
+
+
+def guard_margin_setting(default: float) -> Any:
+    """How close to p_max the pressure guard cuts the pump, Pa, [0, p_max]; the scenario's ``guard_margin_kpa``."""
+    return setting(default, lo=0.0, hi=1e6, unit="Pa", user="kPa",
+                   doc="pressure guard margin, at most p_max_kpa; default MPC 0.5, PID and bang-bang 1")
 
 
 class ControllerSettingsDefaults:

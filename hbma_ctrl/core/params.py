@@ -6,60 +6,34 @@ validates itself and names the field and its allowed range when a value is out o
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from hbma_ctrl.core.materials import Material, NeoHookean
+from hbma_ctrl.core.settings import Settings, check_range, setting
 
 __all__ = ["Actuator", "Valve", "Pneumatics", "Platform", "check_range", "DATA_DIR"]
 
 DATA_DIR = Path(__file__).parent / "data"
 
 
-def check_range(where: str, name: str, value: float, lo: float, hi: float, unit: str = "",
-                lo_open: bool = False) -> None:
-    """Raise ValueError naming ``where.name`` when ``value`` is outside [lo, hi] (or (lo, hi])."""
-    ok = isinstance(value, (int, float)) and math.isfinite(value)
-    if ok:
-        ok = (value > lo if lo_open else value >= lo) and value <= hi
-    if not ok:
-        left = "(" if lo_open else "["
-        raise ValueError(f"{where}.{name} = {value!r} is out of range {left}{lo}, {hi}] {unit}".rstrip())
-
-
 @dataclass(frozen=True)
-class Actuator:
-    """One HBMA: membrane, clamp and gas (SI).
+class Actuator(Settings):
+    """One HBMA: membrane, clamp and gas (SI; each field's unit, range and one-line doc are in its
+    declaration). Defaults: the fig. 7 rig's clamp, Table I's dead volume and neo-Hookean material."""
 
-    Fields
-    ------
-    r1 : retaining-disk inner radius, m (fig. 7 rig: 12.5 mm).
-    t0 : initial membrane thickness, m (3 mm).
-    V0 : dead volume in pipe and chamber, m^3 (Table I: 3 cm^3).
-    material : strain-energy model with its parameters (Table I neo-Hookean by default).
-    R : specific gas constant, J/(kg K) (dry air).
-    T : gas temperature, K (isothermal).
-    p_env : ambient absolute pressure, Pa.
-    """
+    WHERE = "actuator"
 
-    r1: float = 12.5e-3
-    t0: float = 3e-3
-    V0: float = 3e-6
-    material: Material = field(default_factory=NeoHookean)
-    R: float = 287.058
-    T: float = 293.15
-    p_env: float = 100.0e3
+    r1: float = setting(12.5e-3, lo=0.5e-3, hi=0.1, lo_open=True, unit="m", user="mm", doc="retaining-disk inner radius")
+    t0: float = setting(3e-3, lo=0.05e-3, hi=20e-3, lo_open=True, unit="m", user="mm", doc="initial membrane thickness")
+    V0: float = setting(3e-6, lo=1e-9, hi=1e-3, unit="m^3", user="cm^3", doc="dead volume in pipe and chamber")
+    material: Material = field(default_factory=NeoHookean)  # strain-energy model with its parameters
+    R: float = setting(287.058, lo=1.0, hi=1e4, unit="J/(kg K)", doc="specific gas constant (dry air)")
+    T: float = setting(293.15, lo=200.0, hi=400.0, unit="K", doc="gas temperature (isothermal)")
+    p_env: float = setting(100.0e3, lo=10e3, hi=200e3, unit="Pa", doc="ambient absolute pressure")
 
-    def validate(self) -> "Actuator":
-        check_range("actuator", "r1", self.r1, 0.5e-3, 0.1, "m", lo_open=True)
-        check_range("actuator", "t0", self.t0, 0.05e-3, 20e-3, "m", lo_open=True)
-        check_range("actuator", "V0", self.V0, 1e-9, 1e-3, "m^3")
-        check_range("actuator", "R", self.R, 1.0, 1e4, "J/(kg K)")
-        check_range("actuator", "T", self.T, 200.0, 400.0, "K")
-        check_range("actuator", "p_env", self.p_env, 10e3, 200e3, "Pa")
+    def check_rules(self) -> None:
         self.material.validate()
-        return self
 
     def with_(self, **kw) -> "Actuator":
         """A copy with some fields replaced (validated)."""

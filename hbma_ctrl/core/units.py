@@ -6,6 +6,8 @@ plots speak mm, kPa, g, cm^3 and percent; they convert here and nowhere else.
 
 from __future__ import annotations
 
+import math
+
 __all__ = [
     "G_STD",
     "mm",
@@ -23,6 +25,9 @@ __all__ = [
     "to_us",
     "to_mg",
     "lpm_to_kgs",
+    "deg",
+    "to_deg",
+    "USER_UNITS",
 ]
 
 G_STD = 9.80665  # standard gravity, m/s^2
@@ -102,3 +107,30 @@ def to_mg(x):
 def lpm_to_kgs(x):
     """Normal litres per minute (ANR) -> mass flow in kg/s."""
     return x * 1e-3 / 60.0 * RHO_AIR_NORMAL
+
+
+def deg(x):
+    """Degrees -> radians."""
+    return math.radians(x)
+
+
+def to_deg(x):
+    """Radians -> degrees."""
+    return math.degrees(x)
+
+
+#: a scenario key's unit -> (to SI, from SI, the key's suffix after its SI field's name); a gain per
+#: mm is 1000 times the gain per m, so those convert with the mm -> m factor inverted
+USER_UNITS = {
+    "mm": (mm, to_mm, "mm"),
+    "mm/s": (mm, to_mm, "mm_s"),
+    "deg": (deg, to_deg, "deg"),
+    "kPa": (kpa, to_kpa, "kpa"),
+    "ms": (ms, to_ms, "ms"),
+    "g": (grams, to_grams, "g"),
+    "cm^3": (cm3, to_cm3, "cm3"),
+    "%": (pct, to_pct, "pct"),
+    "1/mm": (to_mm, mm, ""),
+    "1/(mm s)": (to_mm, mm, ""),
+    "s/mm": (to_mm, mm, ""),
+}

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hbma_ctrl.core.params import Platform, Pneumatics, check_range
+from hbma_ctrl.core.params import Platform, Pneumatics
+from hbma_ctrl.core.settings import Settings, check_range, setting
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
@@ -22,25 +23,28 @@ W_FLOOR = 1e-3  # N: the smallest load a chamber model is given (a chamber in te
 
 
 @dataclass(frozen=True)
-class RobotPlantSettings:
+class RobotPlantSettings(Settings):
     """What the robot's open-loop plant needs (SI).
 
     design : the robot (:class:`RobotDesign`).
     pneumatics : supply topology, sensor range and pressure limit (:class:`RobotPneumatics`).
     inputs : per-chamber schedules {name: ((t s, speed 0-1, inlet 0-1, outlet 0-1), ...)}; chambers
         not listed keep everything closed.
-    tip_force : force on the tip, world frame, N; tip_moment : moment on the tip, N m.
-    sync_period : how often the load sharing and the interlocks update every chamber's load, s.
     """
+
+    WHERE = "robot"
 
     design: RobotDesign = field(default_factory=RobotDesign)
     pneumatics: RobotPneumatics = field(default_factory=RobotPneumatics)
     inputs: dict = field(default_factory=dict)
-    tip_force: tuple = (0.0, 0.0, 0.0)
-    tip_moment: tuple = (0.0, 0.0, 0.0)
-    sync_period: float = 0.01
+    tip_force: tuple = setting((0.0, 0.0, 0.0), unit="N", key="tip_force_n", parts=("fx", "fy", "fz"),
+                               doc="force on the tip, world frame")
+    tip_moment: tuple = setting((0.0, 0.0, 0.0), unit="N m", key="tip_moment_nm", parts=("mx", "my", "mz"),
+                                doc="moment on the tip")
+    sync_period: float = setting(0.01, lo=1e-4, hi=1.0, unit="s", user="ms", key="sync_ms",
+                                 doc="load-sharing and interlock update period")
 
-    def validate(self) -> "RobotPlantSettings":
+    def check_rules(self) -> None:
         self.design.validate()
         self.pneumatics.validate()
         names = self.design.names
@@ -49,12 +53,6 @@ class RobotPlantSettings:
                 hint = did_you_mean(name, names)
                 raise ValueError(f"robot.inputs.{name}: no such chamber{hint}; chambers: {', '.join(names)}")
             InputSchedule(tuple(tuple(r) for r in rows)).validate(f"robot.inputs.{name}")
-        for nm in ("tip_force", "tip_moment"):
-            v = getattr(self, nm)
-            if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
-                raise ValueError(f"robot.{nm} must be 3 finite numbers, got {v!r}")
-        check_range("robot", "sync_period", self.sync_period, 1e-4, 1.0, "s")
-        return self
 
 
 @dataclass

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hbma_ctrl.core.params import Platform, Pneumatics, check_range
+from hbma_ctrl.core.params import Platform, Pneumatics
+from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.plant import W_FLOOR
@@ -41,49 +42,38 @@ M_MIN = 5e-3  # kg: smallest moving mass a platform-fidelity rig chamber carries
 
 
 @dataclass(frozen=True)
-class RobotRigSettings:
-    """Mismatch, dynamics and sensors of the robot rig (SI). fidelity: 'platform' (default: each
-    chamber carries its share of the layers as a moving mass with damping ``damping`` N s/m, the
-    higher-fidelity truth) or 'quasi_static' (dead load, as the controller assumes). modulus_spread: chambers alternate modulus
-    x(1 + spread), x(1 - spread); flow_scale, V0_scale: as :class:`hbma_ctrl.sim.rig.RigSettings`;
-    noise_std Pa; sample_period s; seed; dt: internal rk4 step (s); valve_delay, valve_min_on (s),
-    compressor_tilt (-), sensor_tau (s): the structural mismatches of
-    :class:`hbma_ctrl.sim.rig.RigSettings`, with its bounds and defaults (module docstring)."""
+class RobotRigSettings(Settings):
+    """Mismatch, dynamics and sensors of the robot rig (SI; each field's unit, range and one-line doc
+    are in its declaration). fidelity 'platform' is the higher-fidelity truth, 'quasi_static' what the
+    controller assumes. valve_delay, valve_min_on, compressor_tilt, sensor_tau: the structural
+    mismatches of :class:`hbma_ctrl.sim.rig.RigSettings`, with its bounds and defaults (module docstring)."""
 
-    fidelity: str = "platform"
-    damping: float = 0.5
-    modulus_spread: float = 0.15
-    flow_scale: float = 0.9
-    V0_scale: float = 1.2
-    noise_std: float = 200.0
-    sample_period: float = 0.01
-    seed: int = 0
-    dt: float | None = None
+    WHERE = "robot rig"
+
+    fidelity: str = setting("platform", choices=("platform", "quasi_static"),
+                            doc="each chamber carries its share of the layers as a moving mass, or a dead load")
+    damping: float = setting(0.5, lo=0.0, hi=1e3, unit="N s/m", doc="the moving masses' damping")
+    modulus_spread: float = setting(0.15, lo=0.0, hi=0.8, doc="chambers alternate modulus x(1 + spread), x(1 - spread)")
+    flow_scale: float = setting(0.9, lo=0.1, hi=5.0, doc="compressor map times this")
+    V0_scale: float = setting(1.2, lo=0.2, hi=5.0, doc="dead volume times this")
+    noise_std: float = setting(200.0, lo=0.0, hi=1e4, unit="Pa", doc="sensor noise, one sigma")
+    sample_period: float = setting(0.01, lo=1e-3, hi=1.0, unit="s", doc="sensor and command period")
+    seed: int = setting(0, integer=True, lo=0, doc="seed of the noise stream")
+    dt: float | None = setting(None, lo=1e-5, hi=1.0, unit="s", doc="internal rk4 step (at most sample_period)")
     valve_delay: float = STRUCTURED_RIG["valve_delay"]
     valve_min_on: float = STRUCTURED_RIG["valve_min_on"]
     compressor_tilt: float = STRUCTURED_RIG["compressor_tilt"]
     sensor_tau: float = STRUCTURED_RIG["sensor_tau"]
 
-    def validate(self) -> "RobotRigSettings":
-        if self.fidelity not in ("platform", "quasi_static"):
-            raise ValueError(f"robot rig.fidelity = {self.fidelity!r}: allowed platform, quasi_static")
-        check_range("robot rig", "damping", self.damping, 0.0, 1e3, "N s/m")
-        check_range("robot rig", "modulus_spread", self.modulus_spread, 0.0, 0.8)
-        check_range("robot rig", "flow_scale", self.flow_scale, 0.1, 5.0)
-        check_range("robot rig", "V0_scale", self.V0_scale, 0.2, 5.0)
-        check_range("robot rig", "noise_std", self.noise_std, 0.0, 1e4, "Pa")
-        check_range("robot rig", "sample_period", self.sample_period, 1e-3, 1.0, "s")
+    def check_rules(self) -> None:
         if self.dt is not None:
-            check_range("robot rig", "dt", self.dt, 1e-5, self.sample_period, "s")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"robot rig.seed = {self.seed!r} must be an integer >= 0")
+            self.within("dt", hi=self.sample_period)
         try:
             # the structural mismatches are the chamber rig's: its ranges are the ones that apply (one
             # place to change them), reported under this section's name
             self.chamber_rig()
         except ValueError as e:
             raise ValueError(f"robot {e}") from None
-        return self
 
     def chamber_rig(self, modulus_scale: float = 1.0) -> RigSettings:
         """One chamber's :class:`RigSettings` (the cap, these mismatches and structure)."""

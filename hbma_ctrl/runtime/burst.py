@@ -41,37 +41,30 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.codegen import is_nan
-from hbma_ctrl.core.params import check_range
+from hbma_ctrl.core.settings import Settings, setting
 
 __all__ = ["BurstTestSettings", "BurstTest", "burst_function", "burst_state"]
 
 
 @dataclass(frozen=True)
-class BurstTestSettings:
-    """Settings of :class:`BurstTest` (in the filter's standard deviations, sigma).
+class BurstTestSettings(Settings):
+    """Settings of :class:`BurstTest` (in the filter's standard deviations, sigma; each field's range and
+    one-line doc are in its declaration). One wild reading is not a burst: ``step_cap`` is at most
+    the threshold."""
 
-    threshold : the sum of falls (beyond the allowance) that flags a burst, (0, 1e4] sigma.
-    allowance : how far under the model one normal reading may fall without adding, [0, 100] sigma.
-    step_cap : the most one reading adds, (0, threshold] sigma (one wild reading is not a burst).
-    relapses : lost-estimate episodes of one chamber within ``relapse_window`` that flag it, [2, 1000].
-    relapse_window : s, (0, 3600].
-    """
+    WHERE = "burst"
 
-    threshold: float = 50.0
-    allowance: float = 5.0
-    step_cap: float = 20.0
-    relapses: int = 3
-    relapse_window: float = 2.0
+    threshold: float = setting(50.0, lo=0.0, hi=1e4, lo_open=True, unit="sigma",
+                               doc="the sum of falls (beyond the allowance) that flags a burst")
+    allowance: float = setting(5.0, lo=0.0, hi=100.0, unit="sigma",
+                               doc="how far under the model one normal reading may fall without adding")
+    step_cap: float = setting(20.0, lo=0.0, hi=1e4, lo_open=True, unit="sigma", doc="the most one reading adds")
+    relapses: int = setting(3, integer=True, lo=2, hi=1000,
+                            doc="lost-estimate episodes of one chamber within relapse_window that flag it")
+    relapse_window: float = setting(2.0, lo=0.0, hi=3600.0, lo_open=True, unit="s", doc="the window relapses are counted in")
 
-    def validate(self) -> "BurstTestSettings":
-        """Check the ranges; ValueError naming the field and its range."""
-        check_range("burst", "threshold", self.threshold, 0.0, 1e4, "sigma", lo_open=True)
-        check_range("burst", "allowance", self.allowance, 0.0, 100.0, "sigma")
-        check_range("burst", "step_cap", self.step_cap, 0.0, self.threshold, "sigma", lo_open=True)
-        if not isinstance(self.relapses, int) or isinstance(self.relapses, bool) or not 2 <= self.relapses <= 1000:
-            raise ValueError(f"burst.relapses = {self.relapses!r} must be an integer in [2, 1000]")
-        check_range("burst", "relapse_window", self.relapse_window, 0.0, 3600.0, "s", lo_open=True)
-        return self
+    def check_rules(self) -> None:
+        self.within("step_cap", hi=self.threshold)
 
 
 class BurstTest:

@@ -41,7 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hbma_ctrl.core.params import check_range
+from hbma_ctrl.core.interfaces import guard_margin_setting, p_max_setting
+from hbma_ctrl.core.settings import Settings, setting
 
 __all__ = ["SupervisorSettings", "SupervisorEvent", "Supervisor"]
 
@@ -50,58 +51,40 @@ ZERO_TARGET = 5e-5
 
 
 @dataclass
-class SupervisorSettings:
-    """Settings of :class:`Supervisor` (SI).
+class SupervisorSettings(Settings):
+    """Settings of :class:`Supervisor` (SI; each field's unit, range and one-line doc are in its declaration).
 
-    Fields
-    ------
-    p_max : gauge pressure limit, Pa.
-    guard_margin : the guard cuts the supply while the pressure is within this of p_max, Pa.
-    vent_margin : within this of p_max the guard also opens the outlet fully, Pa; None = the guard
-        only cuts the supply (the robot's interlock) and a closed outlet does not trigger it.
-    missing_is_limit : a non-finite pressure counts as at the limit (True: a lost estimate) or is
-        skipped (False: a sensor dropout, the last good command stands).
-    vent_height : targets at or below this height get the safe command, m; None = no vent rule.
-    fallback_plan_steps : how many consecutive failed steps the last good plan may stand in before
-        the safe command.
-    plan_period : time between two rows of a controller's plan, s; None = one row per step.
-    safe_outlet : outlet duty of the safe command (1 = vent to ambient; 0 = hold the gas).
-    stretch_max : the stretch guard's limit (equi-biaxial membrane stretch, -); None = no stretch guard.
-    lost_release : a chamber vented for a lost estimate is released at or below this pressure, Pa.
-    event_log_size : how many events the log keeps (the oldest drop out; counts keep growing).
+    vent_margin None: the guard only cuts the supply (the robot's interlock) and a closed outlet does
+    not trigger it. missing_is_limit: a non-finite pressure counts as at the limit (True: a lost
+    estimate) or is skipped (False: a sensor dropout, the last good command stands).
     """
 
-    p_max: float = 35e3
-    guard_margin: float = 0.5e3
-    vent_margin: float | None = 0.25e3
-    missing_is_limit: bool = True
-    vent_height: float | None = None
-    fallback_plan_steps: int = 10
-    plan_period: float | None = None
-    safe_outlet: float = 1.0
-    stretch_max: float | None = None
-    lost_release: float = 1e3
-    event_log_size: int = 10000
+    WHERE = "supervisor"
 
-    def validate(self) -> "SupervisorSettings":
-        """Check every field; raise ValueError naming the field and its range."""
-        check_range("supervisor", "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
-        check_range("supervisor", "guard_margin", self.guard_margin, 0.0, self.p_max, "Pa")
+    p_max: float = p_max_setting()
+    guard_margin: float = guard_margin_setting(0.5e3)
+    vent_margin: float | None = setting(0.25e3, lo=0.0, hi=1e6, unit="Pa", optional=True,
+                                        doc="within this of p_max the guard also opens the outlet fully")
+    missing_is_limit: bool = setting(True, doc="a non-finite pressure counts as at the limit")
+    vent_height: float | None = setting(None, lo=0.0, hi=0.2, unit="m",
+                                        doc="targets at or below this height get the safe command (None: no vent rule)")
+    fallback_plan_steps: int = setting(10, integer=True, lo=0,
+                                       doc="consecutive failed steps the last good plan may stand in before the safe command")
+    plan_period: float | None = setting(None, lo=0.0, hi=10.0, lo_open=True, unit="s",
+                                        doc="time between two rows of a controller's plan (None: one row per step)")
+    safe_outlet: float = setting(1.0, lo=0.0, hi=1.0, doc="outlet duty of the safe command (1 = vent; 0 = hold the gas)")
+    stretch_max: float | None = setting(None, lo=1.0, hi=20.0, lo_open=True,
+                                        doc="the stretch guard's limit (equi-biaxial stretch; None: no stretch guard)")
+    lost_release: float = setting(1e3, lo=0.0, hi=1e6, unit="Pa",
+                                  doc="a chamber vented for a lost estimate is released at or below this pressure")
+    event_log_size: int = setting(10000, integer=True, lo=1,
+                                  doc="events the log keeps (the oldest drop out; counts keep growing)")
+
+    def check_rules(self) -> None:
+        self.within("guard_margin", hi=self.p_max)
         if self.vent_margin is not None:
-            check_range("supervisor", "vent_margin", self.vent_margin, 0.0, self.p_max, "Pa")
-        if self.vent_height is not None:
-            check_range("supervisor", "vent_height", self.vent_height, 0.0, 0.2, "m")
-        if not isinstance(self.fallback_plan_steps, int) or self.fallback_plan_steps < 0:
-            raise ValueError(f"supervisor.fallback_plan_steps = {self.fallback_plan_steps!r} must be an integer >= 0")
-        if self.plan_period is not None:
-            check_range("supervisor", "plan_period", self.plan_period, 0.0, 10.0, "s", lo_open=True)
-        check_range("supervisor", "safe_outlet", self.safe_outlet, 0.0, 1.0)
-        if self.stretch_max is not None:
-            check_range("supervisor", "stretch_max", self.stretch_max, 1.0, 20.0, lo_open=True)
-        check_range("supervisor", "lost_release", self.lost_release, 0.0, self.p_max, "Pa")
-        if not isinstance(self.event_log_size, int) or self.event_log_size < 1:
-            raise ValueError(f"supervisor.event_log_size = {self.event_log_size!r} must be an integer >= 1")
-        return self
+            self.within("vent_margin", hi=self.p_max)
+        self.within("lost_release", hi=self.p_max)
 
 
 @dataclass(frozen=True)

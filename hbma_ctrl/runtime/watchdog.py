@@ -69,7 +69,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hbma_ctrl.core.params import check_range
+from hbma_ctrl.core.settings import Settings, setting
 
 __all__ = ["FAULT_KINDS", "Fault", "MonitorSettings", "SafetyMonitor"]
 
@@ -81,96 +81,59 @@ FAULT_KINDS = ("over_pressure", "sensor_missing", "sensor_frozen", "out_of_range
 
 
 @dataclass
-class MonitorSettings:
-    """Thresholds of :class:`SafetyMonitor` (SI).
+class MonitorSettings(Settings):
+    """Thresholds of :class:`SafetyMonitor` (SI; each field's unit, range and one-line doc are in its
+    declaration).
 
-    Fields
-    ------
-    p_max : hard pressure cap, Pa: a reading at or above it is an over-pressure at once.
-    sensor_range : the sensor's top, Pa: a reading above it is out of range.
-    vacuum_floor : the lowest plausible gauge pressure, Pa (e.g. -5 kPa): below it is out of range.
-    sample_period : the loop's period, s (turns the windows below into periods).
-    nan_periods : NaN readings in a row that make a missing sensor (>= 1).
-    stale_periods : not-fresh readings in a row that make a frozen sensor (>= 1).
-    same_value_periods : identical readings in a row that make a frozen sensor (>= 2); None = off
-        (for a coarsely quantised sensor that can repeat a value while nothing moves).
-    range_periods : out-of-range readings in a row that make an out-of-range fault (>= 1).
-    missed_deadlines : missed loop deadlines in a row that make an overrun (>= 1).
-    pump_min : pump speed at or above which a chamber counts as pumped (0-1).
-    inlet_min : inlet duty at or above which the inlet counts as open (0-1).
-    outlet_closed : outlet duty at or below which the outlet counts as closed (0-1).
-    smooth_periods : readings averaged before the leak and pump tests compare pressures (>= 1).
-    leak_window : how far back the leak test looks for the highest pressure while pumping, s.
-    leak_drop : pressure fall while pumping that makes a leak, Pa.
-    leak_test : run the leak test at all.
-    leak_fraction : the fall must also exceed this fraction of the highest pressure it is measured
-        from (0-1; 0 = leak_drop alone): a burst empties the chamber, while normal work can lower a
-        pressure by a share of it (the robot's chambers pass their limit point and take over each
-        other's load).
-    leak_p_max : the leak test applies only while the pressures it compares are below this, Pa;
-        None = at every pressure. Set it below the actuator's limit-point pressure (e.g. 0.8 times
-        the model's lowest one) when the controller drives chambers past the limit point (the
-        robot's far branch): there pumping makes the pressure fall as a leak would.
-    pump_effort : how much pumping (the sum of pump speed x inlet duty x period, s: 0.25 = a quarter
-        second at full speed, fully open) from a low pressure must fail to raise it.
-    pump_low : the pump test applies from pressures below this, Pa.
-    pump_rise : the least pressure rise expected over the last pump_effort of pumping from below
-        pump_low, Pa.
-    pump_test : run the pump test at all (the robot's chambers inflate from flat for seconds at about
-        1 kPa, which pressure alone cannot tell from a failed pump).
+    same_value_periods None is off (for a coarsely quantised sensor that can repeat a value while
+    nothing moves). leak_fraction: a burst empties the chamber, while normal work can lower a pressure
+    by a share of it (the robot's chambers pass their limit point and take over each other's load).
+    leak_p_max: set it below the actuator's limit-point pressure (e.g. 0.8 times the model's lowest
+    one) when the controller drives chambers past the limit point (the robot's far branch): there
+    pumping makes the pressure fall as a leak would. pump_effort is the sum of pump speed x inlet duty
+    x period (0.25 s = a quarter second at full speed, fully open). pump_test off: the robot's
+    chambers inflate from flat for seconds at about 1 kPa, which pressure alone cannot tell from a
+    failed pump.
     """
 
-    p_max: float = 35e3
-    sensor_range: float = 35e3
-    vacuum_floor: float = -5e3
-    sample_period: float = 0.01
-    nan_periods: int = 10
-    stale_periods: int = 10
-    same_value_periods: int | None = 25
-    range_periods: int = 3
-    missed_deadlines: int = 3
-    pump_min: float = 0.2
-    inlet_min: float = 0.5
-    outlet_closed: float = 0.02
-    smooth_periods: int = 5
-    leak_window: float = 0.5
-    leak_drop: float = 1.2e3
-    leak_test: bool = True
-    leak_fraction: float = 0.0
-    leak_p_max: float | None = None
-    pump_effort: float = 0.25
-    pump_low: float = 5e3
-    pump_rise: float = 0.3e3
-    pump_test: bool = True
+    WHERE = "monitor"
 
-    def validate(self) -> "MonitorSettings":
-        """Check every field; raise ValueError naming the field and its range."""
-        check_range("monitor", "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
-        check_range("monitor", "sensor_range", self.sensor_range, 0.0, 1e6, "Pa", lo_open=True)
-        check_range("monitor", "vacuum_floor", self.vacuum_floor, -1e5, 0.0, "Pa")
-        check_range("monitor", "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
-        for name, lo in (("nan_periods", 1), ("stale_periods", 1), ("range_periods", 1),
-                         ("missed_deadlines", 1), ("smooth_periods", 1)):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
-                raise ValueError(f"monitor.{name} = {v!r} must be an integer >= {lo}")
-        v = self.same_value_periods
-        if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 2):
-            raise ValueError(f"monitor.same_value_periods = {v!r} must be an integer >= 2 or None")
-        for name in ("pump_min", "inlet_min"):
-            check_range("monitor", name, getattr(self, name), 0.0, 1.0, lo_open=True)
-        check_range("monitor", "outlet_closed", self.outlet_closed, 0.0, 1.0)
-        check_range("monitor", "leak_window", self.leak_window, 0.0, 60.0, "s", lo_open=True)
-        check_range("monitor", "leak_drop", self.leak_drop, 0.0, 1e6, "Pa", lo_open=True)
-        check_range("monitor", "leak_fraction", self.leak_fraction, 0.0, 1.0)
-        if self.leak_p_max is not None:
-            check_range("monitor", "leak_p_max", self.leak_p_max, 0.0, 1e6, "Pa", lo_open=True)
-        check_range("monitor", "pump_effort", self.pump_effort, 0.0, 60.0, "s", lo_open=True)
-        check_range("monitor", "pump_low", self.pump_low, 0.0, 1e6, "Pa")
-        check_range("monitor", "pump_rise", self.pump_rise, 0.0, 1e6, "Pa")
+    p_max: float = setting(35e3, lo=0.0, hi=1e6, lo_open=True, unit="Pa",
+                           doc="hard pressure cap: a reading at or above it is an over-pressure at once")
+    sensor_range: float = setting(35e3, lo=0.0, hi=1e6, lo_open=True, unit="Pa",
+                                  doc="the sensor's top: a reading above it is out of range")
+    vacuum_floor: float = setting(-5e3, lo=-1e5, hi=0.0, unit="Pa",
+                                  doc="the lowest plausible gauge pressure: below it is out of range")
+    sample_period: float = setting(0.01, lo=0.0, hi=1.0, lo_open=True, unit="s",
+                                   doc="the loop's period (turns the windows into periods)")
+    nan_periods: int = setting(10, integer=True, lo=1, doc="NaN readings in a row that make a missing sensor")
+    stale_periods: int = setting(10, integer=True, lo=1, doc="not-fresh readings in a row that make a frozen sensor")
+    same_value_periods: int | None = setting(25, integer=True, lo=2, optional=True,
+                                             doc="identical readings in a row that make a frozen sensor (None: off)")
+    range_periods: int = setting(3, integer=True, lo=1, doc="out-of-range readings in a row that make a fault")
+    missed_deadlines: int = setting(3, integer=True, lo=1, doc="missed loop deadlines in a row that make an overrun")
+    pump_min: float = setting(0.2, lo=0.0, hi=1.0, lo_open=True, doc="pump speed at which a chamber counts as pumped")
+    inlet_min: float = setting(0.5, lo=0.0, hi=1.0, lo_open=True, doc="inlet duty at which the inlet counts as open")
+    outlet_closed: float = setting(0.02, lo=0.0, hi=1.0, doc="outlet duty at or below which the outlet counts as closed")
+    smooth_periods: int = setting(5, integer=True, lo=1, doc="readings averaged before the leak and pump tests")
+    leak_window: float = setting(0.5, lo=0.0, hi=60.0, lo_open=True, unit="s",
+                                 doc="how far back the leak test looks for the highest pressure while pumping")
+    leak_drop: float = setting(1.2e3, lo=0.0, hi=1e6, lo_open=True, unit="Pa", doc="pressure fall while pumping that makes a leak")
+    leak_test: bool = setting(True, doc="run the leak test at all")
+    leak_fraction: float = setting(0.0, lo=0.0, hi=1.0,
+                                   doc="the fall must also exceed this fraction of its highest pressure (0: leak_drop alone)")
+    leak_p_max: float | None = setting(None, lo=0.0, hi=1e6, lo_open=True, unit="Pa",
+                                       doc="the leak test applies only below this pressure (None: at every pressure)")
+    pump_effort: float = setting(0.25, lo=0.0, hi=60.0, lo_open=True, unit="s",
+                                 doc="how much pumping from a low pressure must fail to raise it")
+    pump_low: float = setting(5e3, lo=0.0, hi=1e6, unit="Pa", doc="the pump test applies from pressures below this")
+    pump_rise: float = setting(0.3e3, lo=0.0, hi=1e6, unit="Pa",
+                               doc="the least pressure rise expected over the last pump_effort of pumping from below pump_low")
+    pump_test: bool = setting(True, doc="run the pump test at all")
+
+    def check_rules(self) -> None:
         if self.leak_window < self.smooth_periods * self.sample_period:
             raise ValueError("monitor.leak_window must be at least smooth_periods * sample_period")
-        return self
 
     def periods(self, seconds: float) -> int:
         """A window in s as a whole number of periods (at least 1)."""

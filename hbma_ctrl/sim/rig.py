@@ -41,6 +41,7 @@ import numpy as np
 from hbma_ctrl.core.codegen import cache_dir
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
@@ -69,82 +70,55 @@ _RIG_MEMBRANES = ("exact", "cap")
 
 
 @dataclass
-class RigSettings:
-    """How the simulated rig differs from the nominal model, and its sensor.
+class RigSettings(Settings):
+    """How the simulated rig differs from the nominal model, and its sensor (SI; each field's unit,
+    range and one-line doc are in its declaration).
 
-    Fields
-    ------
-    fidelity : plant model while a load is on: 'platform' (mass + damping, default) or
-        'quasi_static' (dead load; only to check an estimator against its own model structure).
-    modulus_scale : every modulus of the material is multiplied by this (-), range [0.2, 5].
-    flow_scale : the compressor map is multiplied by this on top of the pneumatics' own (-), [0, 5].
-    V0_scale : the dead volume is multiplied by this (-), [0.2, 5].
-    noise_std : pressure-sensor noise, one sigma, Pa, [0, 1e4].
-    sensor_range : the sensor saturates at this gauge pressure, Pa, [1e3, 1e6].
-    sample_period : sensor sampling and command period, s, (0, 1].
-    dropout_prob : probability that a sample is missing (NaN), [0, 1].
-    seed : seed of the noise and dropout stream (int >= 0).
-    integrator : 'rk4' or 'euler' (fixed-step, see :mod:`hbma_ctrl.sim.simulate`).
-    dt : internal integration step, s; None = the simulator's default for the fidelity.
-    membrane : membrane law: 'exact' (the exact axisymmetric membrane's tables: free inflation
-        :func:`hbma_ctrl.models.fidelity_exact.make_exact_free`, and with a load on the exact
-        flat-plate contact, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`; the default)
-        or 'cap' (the spherical cap, the cap models' own law; see :data:`CAP_RIG`).
-    valve_delay : the valves act this long after their command, s, [0, 0.1] (default 5 ms, a small
-        solenoid valve's switching delay); rounded to the internal step. The pump speed is not delayed.
-    valve_min_on : shortest opening of a valve within one PWM period (the sample period T), s,
-        [0, 0.1] (default 2 ms): a duty d with d T below half of it is dropped (valve shut), below it
-        is lengthened to it (to the whole period when it is longer than T).
-    compressor_tilt : the pump's flow at back pressure p is the map's times (1 - k (p / p_top - 1/2)),
-        p_top the map's top pressure: a map of another shape, same mean (-), [-1, 1] (default 0.2).
-    sensor_tau : first-order lag of the pressure sensor, s, [0, 1] (default 3 ms; 0 = none).
+    fidelity 'quasi_static' (a dead load) is only to check an estimator against its own model
+    structure. membrane 'exact' is the exact axisymmetric membrane's tables (free inflation
+    :func:`hbma_ctrl.models.fidelity_exact.make_exact_free`, and with a load on the exact flat-plate
+    contact, :func:`hbma_ctrl.models.fidelity_exact.make_exact_loaded`); 'cap' the spherical cap, the
+    cap models' own law (see :data:`CAP_RIG`). The integrator is fixed-step (:mod:`hbma_ctrl.sim.simulate`).
+    valve_delay is rounded to the internal step; the pump speed is not delayed. A duty d with d T
+    (T the sample period, the PWM period) below half of valve_min_on is dropped (valve shut), below it
+    lengthened to it (to the whole period when it is longer than T). compressor_tilt k: the pump's
+    flow at back pressure p is the map's times (1 - k (p / p_top - 1/2)), p_top the map's top pressure.
 
     The defaults are :data:`STRUCTURED_RIG`: a truth that differs from the models in structure, not
     only in constants. :data:`CAP_RIG` gives the cap rig (the cap models' own law, scalar mismatches only).
     """
 
-    fidelity: str = "platform"
-    modulus_scale: float = 1.15
-    flow_scale: float = 0.9
-    V0_scale: float = 1.2
-    noise_std: float = 200.0
-    sensor_range: float = 35e3
-    sample_period: float = 0.01
-    dropout_prob: float = 0.0
-    seed: int = 0
-    integrator: str = "rk4"
-    dt: float | None = None
+    WHERE = "rig"
+
+    fidelity: str = setting("platform", choices=_RIG_FIDELITIES, doc="plant model while a load is on")
+    modulus_scale: float = setting(1.15, lo=0.2, hi=5.0, doc="every modulus of the material times this")
+    flow_scale: float = setting(0.9, lo=0.0, hi=5.0, doc="compressor map times this (on top of the pneumatics' own)")
+    V0_scale: float = setting(1.2, lo=0.2, hi=5.0, doc="dead volume times this")
+    noise_std: float = setting(200.0, lo=0.0, hi=1e4, unit="Pa", user="kPa", doc="sensor noise, one sigma")
+    sensor_range: float = setting(35e3, lo=1e3, hi=1e6, unit="Pa", user="kPa", doc="sensor saturation pressure")
+    sample_period: float = setting(0.01, lo=0.0, hi=1.0, lo_open=True, unit="s", user="ms",
+                                   doc="sensor and command period")
+    dropout_prob: float = setting(0.0, lo=0.0, hi=1.0, doc="probability that a sample is missing")
+    seed: int = setting(0, integer=True, lo=0, doc="seed of the noise and dropout stream")
+    integrator: str = setting("rk4", choices=("rk4", "euler"), doc="fixed-step scheme")
+    dt: float | None = setting(None, lo=1e-7, hi=1.0, lo_open=True, unit="s", user="ms",
+                               doc="internal step, at most sample_period_ms; default per fidelity")
     # defaults: STRUCTURED_RIG, a truth of another structure than the estimators' and controllers'
     # models (valve timing, pump shape, sensor lag); CAP_RIG is a truth of the cap models' own structure
-    membrane: str = STRUCTURED_RIG["membrane"]
-    valve_delay: float = STRUCTURED_RIG["valve_delay"]
-    valve_min_on: float = STRUCTURED_RIG["valve_min_on"]
-    compressor_tilt: float = STRUCTURED_RIG["compressor_tilt"]
-    sensor_tau: float = STRUCTURED_RIG["sensor_tau"]
+    membrane: str = setting(STRUCTURED_RIG["membrane"], choices=_RIG_MEMBRANES,
+                            doc="membrane law, free and on the plate: exact (exact membrane tables) or cap (spherical cap)")
+    valve_delay: float = setting(STRUCTURED_RIG["valve_delay"], lo=0.0, hi=0.1, unit="s", user="ms",
+                                 doc="the valves act this long after their command (a small solenoid)")
+    valve_min_on: float = setting(STRUCTURED_RIG["valve_min_on"], lo=0.0, hi=0.1, unit="s", user="ms",
+                                  doc="shortest valve opening per PWM (sample) period (a small solenoid)")
+    compressor_tilt: float = setting(STRUCTURED_RIG["compressor_tilt"], lo=-1.0, hi=1.0,
+                                     doc="pump flow times 1 - k (p / p_top - 1/2): another shape (0 = the map's own)")
+    sensor_tau: float = setting(STRUCTURED_RIG["sensor_tau"], lo=0.0, hi=1.0, unit="s", user="ms",
+                                doc="first-order lag of the pressure sensor (0 = none)")
 
-    def validate(self) -> "RigSettings":
-        if self.fidelity not in _RIG_FIDELITIES:
-            raise ValueError(f"rig.fidelity = '{self.fidelity}': allowed {', '.join(_RIG_FIDELITIES)}")
-        if self.membrane not in _RIG_MEMBRANES:
-            raise ValueError(f"rig.membrane = '{self.membrane}': allowed {', '.join(_RIG_MEMBRANES)}")
-        check_range("rig", "modulus_scale", self.modulus_scale, 0.2, 5.0)
-        check_range("rig", "flow_scale", self.flow_scale, 0.0, 5.0)
-        check_range("rig", "V0_scale", self.V0_scale, 0.2, 5.0)
-        check_range("rig", "noise_std", self.noise_std, 0.0, 1e4, "Pa")
-        check_range("rig", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
-        check_range("rig", "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
-        check_range("rig", "dropout_prob", self.dropout_prob, 0.0, 1.0)
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
-            raise ValueError(f"rig.seed = {self.seed!r} must be an integer >= 0")
-        if self.integrator not in ("rk4", "euler"):
-            raise ValueError(f"rig.integrator = '{self.integrator}': allowed rk4, euler")
+    def check_rules(self) -> None:
         if self.dt is not None:
-            check_range("rig", "dt", self.dt, 1e-7, self.sample_period, "s", lo_open=True)
-        check_range("rig", "valve_delay", self.valve_delay, 0.0, 0.1, "s")
-        check_range("rig", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
-        check_range("rig", "compressor_tilt", self.compressor_tilt, -1.0, 1.0)
-        check_range("rig", "sensor_tau", self.sensor_tau, 0.0, 1.0, "s")
-        return self
+            self.within("dt", hi=self.sample_period)
 
     def shape_command(self, u: np.ndarray) -> np.ndarray:
         """Duties the valves can realise (minimum on-time within one PWM period); rows speed, inlet,
@@ -167,27 +141,6 @@ class RigSettings:
         r = self.sample_period / self.sensor_tau
         a = np.exp(-r)
         return a * y_prev + (1 - a) * p_prev + (p_now - p_prev) * (1 - (1 - a) / r)
-
-
-# scenario-file keys (edge units) -> (field, factor to SI)
-_SECTION_KEYS = {
-    "fidelity": ("fidelity", None),
-    "membrane": ("membrane", None),
-    "modulus_scale": ("modulus_scale", 1.0),
-    "flow_scale": ("flow_scale", 1.0),
-    "V0_scale": ("V0_scale", 1.0),
-    "noise_std_kpa": ("noise_std", 1e3),
-    "sensor_range_kpa": ("sensor_range", 1e3),
-    "sample_period_ms": ("sample_period", 1e-3),
-    "dropout_prob": ("dropout_prob", 1.0),
-    "seed": ("seed", None),
-    "integrator": ("integrator", None),
-    "dt_ms": ("dt", 1e-3),
-    "valve_delay_ms": ("valve_delay", 1e-3),
-    "valve_min_on_ms": ("valve_min_on", 1e-3),
-    "compressor_tilt": ("compressor_tilt", 1.0),
-    "sensor_tau_ms": ("sensor_tau", 1e-3),
-}
 
 
 def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
+from hbma_ctrl.core.settings import Settings, setting
 
 INTEGRATORS = ("euler", "rk4", "radau")
 #: default step per integrator and fidelity, s (chosen by ``hbma-ctrl bench sim``)
@@ -87,34 +88,20 @@ class Trial:
 
 
 @dataclass
-class SimSettings:
-    """How to integrate.
+class SimSettings(Settings):
+    """How to integrate (SI; each field's unit, range and one-line doc are in its declaration). The
+    reference also reports at the log's times; atol is a fraction of each state's typical magnitude
+    (gas mass 1e-5 kg, lengths 1e-2 m, velocity 1e-2 m/s)."""
 
-    integrator : 'euler' | 'rk4' | 'radau' (see module docstring).
-    dt : fixed step for euler/rk4, s; None = the default for the integrator and fidelity.
-    log_dt : sampling period of the returned log, s (the reference also reports at these times).
-    rtol, atol : tolerances of the adaptive integrator; atol is a fraction of each state's typical
-        magnitude (gas mass 1e-5 kg, lengths 1e-2 m, velocity 1e-2 m/s).
-    sensor_range : pressure above which the sensor saturates, Pa (an event in the log).
-    """
+    WHERE = "sim"
 
-    integrator: str = "rk4"
-    dt: float | None = None
-    log_dt: float = 0.01
-    rtol: float = 1e-8
-    atol: float = 1e-8
-    sensor_range: float = 35e3
-
-    def validate(self) -> "SimSettings":
-        if self.integrator not in INTEGRATORS:
-            raise ValueError(f"sim.integrator = '{self.integrator}': allowed {', '.join(INTEGRATORS)}")
-        if self.dt is not None:
-            check_range("sim", "dt", self.dt, 1e-7, 0.1, "s", lo_open=True)
-        check_range("sim", "log_dt", self.log_dt, 1e-5, 10.0, "s")
-        check_range("sim", "rtol", self.rtol, 1e-14, 1e-1, lo_open=True)
-        check_range("sim", "atol", self.atol, 1e-16, 1.0, lo_open=True)
-        check_range("sim", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
-        return self
+    integrator: str = setting("rk4", choices=INTEGRATORS, doc="integration scheme")
+    dt: float | None = setting(None, lo=1e-7, hi=0.1, unit="s", user="ms",
+                               doc="fixed step; default per integrator and fidelity")
+    log_dt: float = setting(0.01, lo=1e-5, hi=10.0, unit="s", user="ms", doc="log sampling period")
+    rtol: float = setting(1e-8, lo=1e-14, hi=1e-1, lo_open=True, doc="relative tolerance of the adaptive integrator")
+    atol: float = setting(1e-8, lo=1e-16, hi=1.0, lo_open=True, doc="absolute tolerance of the adaptive integrator")
+    sensor_range: float = setting(35e3, lo=1e3, hi=1e6, unit="Pa", user="kPa", doc="sensor saturation pressure")
 
     def step_for(self, fidelity: str) -> float:
         return self.dt if self.dt is not None else DEFAULT_DT[(self.integrator, fidelity)]

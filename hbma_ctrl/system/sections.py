@@ -18,8 +18,8 @@ from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.core.validation import did_you_mean
-from hbma_ctrl.models.actuation import check_delays
+from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.plant import RobotPlantSettings
@@ -71,21 +71,21 @@ KINDS = ("mpc", "pid", "bang_bang")
 
 
 @dataclass
-class ReferenceProfile:
+class ReferenceProfile(Settings):
     """Target height over time (SI): piecewise points, optional sinusoid on top.
 
     points : ((t_s, h_m), ...) sorted by time; before the first point the first height holds.
-    interpolation : 'step' (hold each target from its time on) or 'linear' (ramps).
-    sine_amplitude, sine_period, sine_start : a sinusoid (m, s, s) added from sine_start on.
     """
 
-    points: tuple = ((0.0, 2e-3),)
-    interpolation: str = "step"
-    sine_amplitude: float = 0.0
-    sine_period: float = 1.0
-    sine_start: float = 0.0
+    WHERE = "controller"
 
-    def validate(self) -> "ReferenceProfile":
+    points: tuple = ((0.0, 2e-3),)
+    interpolation: str = setting("step", choices=("step", "linear"), doc="hold each target or ramp between them")
+    sine_amplitude: float = setting(0.0, lo=0.0, hi=0.1, unit="m", user="mm", doc="sinusoid added to the targets")
+    sine_period: float = setting(1.0, lo=0.0, hi=1e4, lo_open=True, unit="s", key="sine_period_s", doc="sinusoid period")
+    sine_start: float = setting(0.0, lo=0.0, hi=1e5, unit="s", key="sine_start_s", doc="sinusoid start")
+
+    def check_rules(self) -> None:
         if not self.points:
             raise ValueError("controller.targets_mm must have at least one [t_s, h_mm] pair")
         ts = [p[0] for p in self.points]
@@ -94,12 +94,6 @@ class ReferenceProfile:
         for t, h in self.points:
             check_range("controller", "targets_mm time", t, 0.0, 1e5, "s")
             check_range("controller", "targets_mm height", h, 0.0, 0.2, "m")
-        if self.interpolation not in ("step", "linear"):
-            raise ValueError(f"controller.interpolation = '{self.interpolation}': allowed step, linear")
-        check_range("controller", "sine_amplitude", self.sine_amplitude, 0.0, 0.1, "m")
-        check_range("controller", "sine_period", self.sine_period, 0.0, 1e4, "s", lo_open=True)
-        check_range("controller", "sine_start", self.sine_start, 0.0, 1e5, "s")
-        return self
 
     def __call__(self, t: float) -> float:
         ts = np.array([p[0] for p in self.points])
@@ -127,40 +121,43 @@ class ReferenceProfile:
 
 
 @dataclass
-class ControllerSection:
+class ControllerSection(Settings):
     """Parsed [controller] section: which controller, its settings, the targets and load steps.
 
     Fields
     ------
-    kind : 'mpc' | 'pid' | 'bang_bang': which controller runs.
-    mpc, pid, bang_bang : the settings of each (only the chosen one is used).
+    kind : which controller runs; mpc, pid, bang_bang : the settings of each (only the chosen one is used).
     reference : the height target profile (steps, ramps, sines), m.
     load_steps : ((t s, load mass kg), ...) put on the rig during the run.
     preview : pass the future targets to the MPC; None = only for ramps and sines.
-    settle_band : band for the settling report, m (0.3 mm).
-    calibrate : run the start-up calibration before the loop closes (:mod:`hbma_ctrl.runtime.calibrate`).
-    valve_min_on : the valves' minimum opening, s (0 = none; default 2 ms, a small solenoid valve's
-        datasheet value): small duties are realised on average (:class:`hbma_ctrl.runtime.pwm.MinOnTime`);
-        at most the rig's sample period.
-    calibration_std_floor : the calibration hands its factors to the estimator with sigmas at least
-        this (:class:`hbma_ctrl.runtime.calibrate.CalibrationSettings` ``handover_std_floor``).
+    valve_min_on : small duties are realised on average (:class:`hbma_ctrl.runtime.pwm.MinOnTime`); at
+        most the rig's sample period.
+    calibration_std_floor : :class:`hbma_ctrl.runtime.calibrate.CalibrationSettings` ``handover_std_floor``.
 
     The MPC's wall-clock budget acts only where ``mpc.enforce_budget`` is set (the scenario's
     ``[controller] enforce_budget``; the rig daemon always sets it).
     """
 
-    kind: str = "mpc"
+    WHERE = "controller"
+
+    kind: str = setting("mpc", choices=KINDS, doc="which controller runs")
     mpc: MPCSettings = field(default_factory=MPCSettings)
     pid: PIDSettings = field(default_factory=PIDSettings)
     bang_bang: BangBangSettings = field(default_factory=BangBangSettings)
     reference: ReferenceProfile = field(default_factory=ReferenceProfile)
     load_steps: tuple = ()  # ((t_s, mass_kg), ...)
     preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
-    settle_band: float = 0.3e-3
+    settle_band: float = setting(0.3e-3, lo=0.0, hi=0.05, lo_open=True, unit="m", user="mm",
+                                 doc="settling band of the step metrics")
     # out of the repr: tests/test_schema.py compares reprs with those of the parsers this schema replaced
-    calibrate: bool = field(default=True, repr=False)
-    valve_min_on: float = field(default=DEFAULT_VALVE_MIN_ON, repr=False)
-    calibration_std_floor: float = field(default=CalibrationSettings.handover_std_floor, repr=False)
+    calibrate: bool = setting(True, repr=False, doc="before the loop closes, learn the pump-flow, modulus and "
+                              "dead-volume factors from a pump pulse (to at most half of p_max_kpa, 17 kPa) and a vent")
+    valve_min_on: float = setting(DEFAULT_VALVE_MIN_ON, lo=0.0, hi=0.1, unit="s", user="ms", repr=False,
+                                  doc="the valves' minimum opening (datasheet): shorter duties are sent as pulses "
+                                      "of this length often enough to pass them on average")
+    calibration_std_floor: float = setting(CalibrationSettings.handover_std_floor, lo=0.0, hi=1.0, repr=False,
+                                           doc="smallest sigma of each factor the calibration hands the estimator "
+                                               "(its fit's own assumes the model is the chamber)")
 
     @property
     def sample_period(self) -> float:
@@ -200,67 +197,74 @@ CONTROLLERS = ("mpc", "pressure_pid")
 
 
 @dataclass(frozen=True)
-class RobotSettings:
-    """The ``[robot]`` scenario table, validated (SI inside; the table uses edge units).
+class RobotSettings(Settings):
+    """The ``[robot]`` scenario table, validated (SI inside; the table uses edge units; each declared
+    field's unit, range and one-line doc are in its declaration).
 
-    design : the robot (:class:`RobotDesign`).
-    pneumatics : supply topology, sensor range and pressure limit (:class:`RobotPneumatics`).
-    mode : 'open_loop' (inputs by schedule) or 'closed_loop' (targets per layer; see below).
+    design, pneumatics : the robot (:class:`RobotDesign`) and its supply (:class:`RobotPneumatics`).
     inputs : per-chamber schedules {name: ((t s, speed 0-1, inlet 0-1, outlet 0-1), ...)}; chambers
         not listed keep everything closed. Safety interlocks of the open-loop scene close a chamber's
         inlet while its pressure is at the pressure limit or its stretch at ``design.max_stretch``.
-    tip_force : force on the tip, world frame, N; tip_moment : moment on the tip, N m.
-    sync_period : how often the load sharing and the interlocks update every chamber's load, s.
-    snapshots : number of robot shapes drawn in the shape-over-time plot.
+    tip_force, tip_moment, sync_period : as :class:`hbma_ctrl.robot.plant.RobotPlantSettings`.
 
     Closed loop (mode 'closed_loop', see :mod:`hbma_ctrl.app.scenes.robot_loop`):
     controller : 'mpc' (per-chamber EKF bank + structured NMPC) or 'pressure_pid' (baseline).
     targets : {layer index: ((t s, centre height m, bend rad >= 0, direction rad), ...)}.
     tip_load : ((t s, fx N, fy N, fz N), ...) tip force from each row's time on (a disturbance the
         controller does not know).
-    compare_baseline : also run the other controller on the same targets and report it beside.
-    settle_time : RMSEs count samples at least this long after a target change, s.
-    mpc_horizon, mpc_dt : NMPC stages and prediction step (s).
-    mpc_budget : NMPC wall-time budget per step, a fraction of the control period (0 = none); it acts
-        in a scene only with ``mpc_enforce_budget`` (the rig daemon always enforces a budget).
-    mpc_enforce_budget : in a scene, make an NMPC step slower than ``mpc_budget`` a failed step
-        (the daemon's behaviour); default False: a scene's results do not depend on the machine's load.
-    mpc_w_slack : the NMPC's cost per kPa over its pressure limit (None = not given: the
-        controller's default in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` in the daemon).
-    target_rate : the fastest a chamber's target height moves after a target change, m/s (0 = steps;
-        None = not given: steps in a scene, :data:`hbma_ctrl.app.daemon.build.DAEMON_TARGET_RATE` in the daemon).
-    valve_min_on : the valves' shortest opening, s, [0, 0.1], at most the rig's sample period (0: duties sent as decided;
-        :class:`hbma_ctrl.runtime.robot.RobotLoop`); default 2 ms.
-    valve_delay, sensor_delay : the valve and sensor delays the chambers' filters take, s, [0, 0.1]
-        (:class:`hbma_ctrl.estimators.robot_ekf.ChamberEKFSettings`; 0 = at once); default 5 ms and 0
-        (:mod:`hbma_ctrl.models.defaults`; ``ROBOT_INSTANT`` sets all three to 0).
-    burst_sigma : the burst test's threshold, in the chambers' filters' standard deviations, [0, 1e4]
-        (0 = no burst test; :mod:`hbma_ctrl.runtime.burst`); default 50.
+    mpc_w_slack, target_rate : None = not given: the controller's default in a scene,
+        :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` and :data:`hbma_ctrl.app.daemon.build.DAEMON_TARGET_RATE`
+        in the daemon.
+    valve_min_on : at most the rig's sample period (:class:`hbma_ctrl.runtime.robot.RobotLoop`).
+    valve_delay, sensor_delay : what the chambers' filters take
+        (:class:`hbma_ctrl.estimators.robot_ekf.ChamberEKFSettings`; ``ROBOT_INSTANT`` of
+        :mod:`hbma_ctrl.models.defaults` sets them and valve_min_on to 0).
+    burst_sigma : the burst test's threshold (:mod:`hbma_ctrl.runtime.burst`).
     """
+
+    WHERE = "robot"
 
     design: RobotDesign = field(default_factory=RobotDesign)
     pneumatics: RobotPneumatics = field(default_factory=RobotPneumatics)
-    mode: str = "open_loop"
+    mode: str = setting("open_loop", choices=SCENE_MODES, doc="inputs by schedule or targets per layer")
     inputs: dict = field(default_factory=dict)
     tip_force: tuple = (0.0, 0.0, 0.0)
     tip_moment: tuple = (0.0, 0.0, 0.0)
     sync_period: float = 0.01
-    snapshots: int = 8
-    controller: str = "mpc"
+    snapshots: int = setting(8, integer=True, lo=1, hi=50, unit="shapes", doc="robot shapes in the shape plot")
+    controller: str = setting("mpc", choices=CONTROLLERS, doc="closed loop: NMPC or the pressure PID")
     targets: dict = field(default_factory=dict)
     tip_load: tuple = ()
-    compare_baseline: bool = True
-    settle_time: float = 2.0
-    mpc_horizon: int = 15
-    mpc_dt: float = 0.02
-    mpc_budget: float = field(default=0.0, repr=False)  # repr: the stored reprs of the scenario goldens
-    mpc_enforce_budget: bool = field(default=False, repr=False)
-    target_rate: float | None = field(default=None, repr=False)
-    mpc_w_slack: float | None = field(default=None, repr=False)
-    valve_min_on: float = field(default=DEFAULT_VALVE_MIN_ON, repr=False)
-    valve_delay: float = field(default=DEFAULT_VALVE_DELAY, repr=False)
-    sensor_delay: float = field(default=ROBOT_SENSOR_DELAY, repr=False)
-    burst_sigma: float = field(default=BurstTestSettings.threshold, repr=False)
+    compare_baseline: bool = setting(True, doc="also run the other controller")
+    settle_time: float = setting(2.0, lo=0.0, hi=1e4, unit="s", key="settle_s",
+                                 doc="RMSEs skip this long after a target change")
+    mpc_horizon: int = setting(15, integer=True, lo=1, hi=100, unit="stages", doc="NMPC stages")
+    mpc_dt: float = setting(0.02, lo=1e-3, hi=1.0, unit="s", user="ms", doc="NMPC prediction step")
+    # repr=False: the stored reprs of the scenario goldens
+    mpc_budget: float = setting(0.0, lo=0.0, hi=1.0, repr=False,
+                                doc="NMPC wall-time budget per step as a fraction of the control period; an overrun "
+                                    "is a failed step (0 = none; the daemon uses 0.8 then); in a scene it acts with "
+                                    "mpc_enforce_budget")
+    mpc_enforce_budget: bool = setting(False, repr=False,
+                                       doc="in a scene, make an NMPC step slower than mpc_budget a failed step, as in "
+                                           "the rig daemon; off, results do not depend on the machine's load")
+    target_rate: float | None = setting(None, lo=0.0, hi=1.0, unit="m/s", user="mm/s", repr=False,
+                                        doc="fastest a chamber's target height moves after a new target (0 = steps; "
+                                            "default: steps in a scene, 3 in the daemon)")
+    mpc_w_slack: float | None = setting(None, lo=0.0, hi=1e6, unit="1/kPa", repr=False,
+                                        doc="NMPC cost per kPa over its pressure limit (default: 0.001 in a scene, "
+                                            "100 in the daemon: the limit first)")
+    valve_min_on: float = setting(DEFAULT_VALVE_MIN_ON, lo=0.0, hi=0.1, unit="s", user="ms", repr=False,
+                                  doc="the valves' shortest opening: smaller duties are realised on average over "
+                                      "the periods (0 = duties sent as decided)")
+    valve_delay: float = setting(DEFAULT_VALVE_DELAY, lo=0.0, hi=DELAY_MAX, unit="s", user="ms", repr=False,
+                                 doc="the chambers' filters take the valves as acting this long after their "
+                                     "command (0 = at once)")
+    sensor_delay: float = setting(ROBOT_SENSOR_DELAY, lo=0.0, hi=DELAY_MAX, unit="s", user="ms", repr=False,
+                                  doc="the chambers' filters take the pressure sensors as reading this late (0 = at once)")
+    burst_sigma: float = setting(BurstTestSettings.threshold, lo=0.0, hi=1e4, unit="sigma", repr=False,
+                                 doc="a chamber whose readings fall this far below its filter's prediction, summed "
+                                     "over periods, is a burst: vented until a reset (0 = no burst test)")
 
     @property
     def plant(self) -> RobotPlantSettings:
@@ -269,37 +273,14 @@ class RobotSettings:
                                   tip_force=self.tip_force, tip_moment=self.tip_moment,
                                   sync_period=self.sync_period)
 
-    def validate(self) -> "RobotSettings":
+    def check_rules(self) -> None:
         self.plant.validate()
-        if self.mode not in SCENE_MODES:
-            hint = did_you_mean(str(self.mode), SCENE_MODES)
-            raise ValueError(f"robot.mode = '{self.mode}'{hint}; allowed: {', '.join(SCENE_MODES)}")
-        if not isinstance(self.snapshots, int) or not 1 <= self.snapshots <= 50:
-            raise ValueError(f"robot.snapshots = {self.snapshots!r} must be an integer in [1, 50]")
-        if self.controller not in CONTROLLERS:
-            hint = did_you_mean(str(self.controller), CONTROLLERS)
-            raise ValueError(f"robot.controller = '{self.controller}'{hint}; allowed: {', '.join(CONTROLLERS)}")
         if self.mode == "closed_loop" and not self.targets:
             raise ValueError("robot.mode = 'closed_loop': closed-loop robot control needs robot.targets "
                              "(a table {all = [[t_s, height_mm, bend_deg, direction_deg], ...]} or one per layer)")
         for j, row in enumerate(self.tip_load):
             if len(row) != 4 or not all(math.isfinite(float(v)) for v in row) or row[0] < 0:
                 raise ValueError(f"robot.tip_load_n[{j}] must be [t_s >= 0, fx, fy, fz] (finite)")
-        check_range("robot", "settle_time", self.settle_time, 0.0, 1e4, "s")
-        if not isinstance(self.mpc_horizon, int) or not 1 <= self.mpc_horizon <= 100:
-            raise ValueError(f"robot.mpc_horizon = {self.mpc_horizon!r} must be an integer in [1, 100]")
-        check_range("robot", "mpc_dt", self.mpc_dt, 1e-3, 1.0, "s")
-        check_range("robot", "mpc_budget", self.mpc_budget, 0.0, 1.0)
-        if not isinstance(self.mpc_enforce_budget, bool):
-            raise ValueError(f"robot.mpc_enforce_budget = {self.mpc_enforce_budget!r} must be true or false")
-        if self.mpc_w_slack is not None:
-            check_range("robot", "mpc_w_slack", self.mpc_w_slack, 0.0, 1e6, "1/kPa")
-        if self.target_rate is not None:
-            check_range("robot", "target_rate", self.target_rate, 0.0, 1.0, "m/s")
-        check_range("robot", "valve_min_on", self.valve_min_on, 0.0, 0.1, "s")
-        check_delays("robot", self.valve_delay, self.sensor_delay)
-        check_range("robot", "burst_sigma", self.burst_sigma, 0.0, 1e4, "sigma")
-        return self
 
     @property
     def burst(self) -> BurstTestSettings | None:

@@ -21,6 +21,7 @@ from hbma_ctrl.app.schema.fields import (
     choice,
     elem,
     num,
+    settings_table,
     shaped,
     subtable,
     text,
@@ -45,7 +46,6 @@ __all__ = [
 ]
 
 MaterialName = Literal["nh", "mr", "yeoh", "gent", "ogden"]
-_ACT = Actuator()
 _PLATFORM = Platform()
 
 
@@ -84,12 +84,9 @@ class ScenarioTable(Table):
         return v
 
 
-class ActuatorTable(Table):
+class ActuatorTable(settings_table("ActuatorKeys", (Actuator, ("r1", "t0", "V0")))):
     """[actuator]: the membrane and its clamp (edge units), material by name with SI parameters."""
 
-    r1_mm: float = num(U.to_mm(_ACT.r1), 0.5, 100.0, "mm", "retaining-disk inner radius", lo_open=True)
-    t0_mm: float = num(U.to_mm(_ACT.t0), 0.05, 20.0, "mm", "initial membrane thickness", lo_open=True)
-    V0_cm3: float = num(U.to_cm3(_ACT.V0), 0.001, 1000.0, "cm^3", "dead volume")
     material: MaterialName = choice("nh", "strain-energy model")
     material_params: dict[str, Any] = subtable(dict, "material parameters (SI, names per material)",
                                                "{name = value, ...}")
@@ -103,8 +100,7 @@ class ActuatorTable(Table):
     def to_actuator(self) -> Actuator:
         """The SI actuator (m, m^3) with the material built once."""
         try:
-            return Actuator(r1=U.mm(self.r1_mm), t0=U.mm(self.t0_mm), V0=U.cm3(self.V0_cm3),
-                            material=self._material).validate()
+            return Actuator(**self.si(Actuator), material=self._material).validate()
         except ValueError as exc:
             raise ValueError(f"[actuator] {exc}") from None
 
@@ -219,18 +215,12 @@ class ProtocolTable(Table):
         return {k: getattr(self, k) for k in ("loads_g", "speeds_pct", "t0_mm", "r1_mm", "t_inflate_s")}
 
 
-class SimTable(Table):
+class SimTable(settings_table("SimKeys", (SimSettings, ("integrator", "dt", "log_dt", "sensor_range")))):
     """[sim]: fidelity, integrator and steps of the open-loop simulation."""
 
     fidelity: Literal["auto", "free", "quasi_static", "platform", "exact"] = choice(
         "auto", "plant model; auto = free without a load; exact = the exact membrane (platform with a load)")
-    integrator: Literal["euler", "rk4", "radau"] = choice("rk4", "integration scheme")
-    dt_ms: float | None = num(None, 1e-4, 100.0, "ms", "fixed step; default per integrator and fidelity")
-    log_dt_ms: float = num(10.0, 0.01, 10000.0, "ms", "log sampling period")
-    sensor_range_kpa: float = num(35.0, 1.0, 1000.0, "kPa", "sensor saturation pressure")
 
     def to_sim(self) -> SimSettings:
         """SI simulation settings (s, Pa)."""
-        dt = U.ms(self.dt_ms) if self.dt_ms is not None else None
-        return SimSettings(integrator=self.integrator, dt=dt, log_dt=U.ms(self.log_dt_ms),
-                           sensor_range=U.kpa(self.sensor_range_kpa)).validate()
+        return SimSettings(**self.si(SimSettings)).validate()

@@ -1,4 +1,5 @@
-"""Field builders shared by every table model: numbers with bounds and units, integers, flags.
+"""Field builders shared by every table model: numbers with bounds and units, integers, flags, and
+the keys built from a settings class's declarations (:func:`settings_table`).
 
 Every field carries its unit twice: in the description (for people) and in ``json_schema_extra``
 (``unit``, for the error formatter and :func:`hbma_ctrl.app.schema.search_space`). Scalars are
@@ -8,11 +9,13 @@ TOML arrays validate into tuples.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, NamedTuple
+import dataclasses
+from typing import Annotated, Any, ClassVar, Literal, NamedTuple, Optional
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model
 
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.settings import Spec, specs
 
 __all__ = [
     "as_is",
@@ -27,6 +30,7 @@ __all__ = [
     "integer",
     "load_steps_si",
     "num",
+    "settings_table",
     "shaped",
     "subtable",
     "text",
@@ -39,9 +43,18 @@ def as_is(v):
 
 
 class Table(BaseModel):
-    """Base of every scenario table: unknown keys and non-finite numbers are errors."""
+    """Base of every scenario table: unknown keys and non-finite numbers are errors.
+
+    ``settings_keys`` maps the keys built by :func:`settings_table` to (settings class, SI field, Spec).
+    """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=False)
+    settings_keys: ClassVar[dict[str, tuple[type, str, Spec]]] = {}
+
+    def si(self, owner: type) -> dict[str, Any]:
+        """{SI field: SI value} of ``owner``'s keys the user wrote (and not as none)."""
+        return {name: spec.to_si(getattr(self, key)) for key, (cls, name, spec) in self.settings_keys.items()
+                if cls is owner and key in self.model_fields_set and getattr(self, key) is not None}
 
 
 class RuleError(ValueError):
@@ -142,3 +155,43 @@ LOAD_STEPS_SHAPE = "[[t_s, mass_g], ...]"
 def load_steps_si(rows: list) -> tuple:
     """((t s, mass kg), ...) from the table's [[t_s, mass_g], ...]."""
     return tuple((r.t_s, U.grams(r.mass_g)) for r in rows)
+
+
+def key_field(spec: Spec, default: Any) -> tuple[Any, Any]:
+    """(annotation, field) of the scenario key a setting declares, in the user's unit, with ``default``."""
+    lo, hi = spec.user_bounds()
+    unit, doc, ends = spec.user_unit, spec.doc, {"lo_open": spec.lo_open, "hi_open": spec.hi_open}
+    if spec.kind == "integer":
+        tp, fi = int, integer(default, lo, hi, doc, unit)
+    elif spec.kind == "flag":
+        tp, fi = bool, flag(default, doc)
+    elif spec.kind == "choice":
+        tp, fi = Literal[spec.choices], choice(default, doc)
+    elif spec.kind == "text":
+        tp, fi = str, text(default, doc)
+    elif spec.kind == "vector":
+        tp = tuple[(elem(lo, hi, unit, doc, **ends),) * spec.size]
+        fi = shaped(default, doc, f"[{', '.join(spec.parts)}]" if spec.parts else f"{spec.size} numbers")
+    else:
+        tp, fi = float, num(default, lo, hi, unit, doc, **ends)
+    return (Optional[tp] if spec.optional or default is None else tp), fi
+
+
+def settings_table(name: str, *sources: tuple[type, tuple[str, ...]], defaults: dict[str, Any] | None = None,
+                   base: type[Table] = Table) -> type[Table]:
+    """A table model with one key per named field of each (settings class, field names) source, as
+    the field's :class:`~hbma_ctrl.core.settings.Spec` declares it; the default is the settings class's
+    in the user's unit, or ``defaults[field]`` (user's unit; None: "not given", the key is optional)."""
+    defaults = defaults or {}
+    fields: dict[str, Any] = {}
+    keys: dict[str, tuple[type, str, Spec]] = {}
+    for cls, names in sources:
+        declared, si_defaults = specs(cls), {f.name: f.default for f in dataclasses.fields(cls)}
+        for n in names:
+            spec = declared[n]
+            key = spec.key_for(n)
+            fields[key] = key_field(spec, defaults[n] if n in defaults else spec.to_user(si_defaults[n]))
+            keys[key] = (cls, n, spec)
+    model = create_model(name, __base__=base, **fields)
+    model.settings_keys = {**base.settings_keys, **keys}
+    return model

@@ -345,7 +345,9 @@ def test_every_settings_field_is_documented():
     for cls in (MPCSettings, PIDSettings, BangBangSettings):
         doc = cls.__doc__
         for f in fields(cls):
-            assert f"{f.name} :" in doc or f"{f.name}," in doc, f"{cls.__name__}.{f.name} is undocumented"
+            declared = f.metadata.get("setting")
+            assert (declared is not None and declared.doc) or f"{f.name} :" in doc, \
+                f"{cls.__name__}.{f.name} is undocumented"
 
 
 @pytest.mark.slow
