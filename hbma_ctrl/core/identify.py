@@ -36,6 +36,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.stats import t as t_dist
 
+#: residuals of a parameter vector (or of parameter sets as columns)
+Residuals = Callable[[np.ndarray], np.ndarray]
+
 __all__ = ["SENS_MIN", "REL_CI_MAX", "CORR_LIMIT", "BAD_RESIDUAL", "finite_residuals", "Coordinates", "Estimate",
            "central_jacobian", "solve", "estimate", "identify", "summary", "weak_directions"]
 
@@ -79,12 +82,8 @@ class Coordinates:
         nominal = np.asarray(nominal, dtype=float)
         return cls(nominal, np.where(nominal != 0, np.abs(nominal), 1.0), nominal > 0)
 
-    def __getitem__(self, idx) -> "Coordinates":
-        return Coordinates(self.origin[idx], self.scale[idx], self.log[idx])
-
-    def _cols(self, z: np.ndarray):
-        return (self.origin, self.scale, self.log) if z.ndim == 1 else \
-            (self.origin[:, None], self.scale[:, None], self.log[:, None])
+    def _cols(self, z: np.ndarray) -> tuple:
+        return tuple(a.reshape(a.shape + (1,) * (z.ndim - 1)) for a in (self.origin, self.scale, self.log))
 
     def values(self, z: np.ndarray) -> np.ndarray:
         """Parameter values of coordinates ``z``: one vector, or one column per parameter set."""
@@ -105,16 +104,10 @@ class Coordinates:
         (non-finite) width."""
         ci, rel = [], np.empty(len(values))
         for j, (v, s, sc, lg) in enumerate(zip(values, sd, self.scale, self.log)):
-            if lg:
-                half = tq * s
-                ci.append([float(v * math.exp(-half)), float(v * math.exp(half))])
-                rel[j] = math.expm1(half)
-            else:
-                half = tq * (s * sc)
-                ci.append([float(v - half), float(v + half)])
-                rel[j] = half / abs(v) if v != 0 else float("inf")
-            if not math.isfinite(half):
-                ci[-1] = [None, None]
+            half = tq * s if lg else tq * (s * sc)
+            lo, hi = (v * math.exp(-half), v * math.exp(half)) if lg else (v - half, v + half)
+            ci.append([float(lo), float(hi)] if math.isfinite(half) else [None, None])
+            rel[j] = math.expm1(half) if lg else half / abs(v) if v != 0 else float("inf")
         return ci, rel
 
 
@@ -130,41 +123,12 @@ class Estimate:
     cov: np.ndarray
     dof: int
 
-    @property
-    def sd(self) -> np.ndarray:
-        """Standard error of each coordinate."""
-        return np.sqrt(np.clip(np.diag(self.cov), 0, None))
 
-    @property
-    def t95(self) -> float:
-        """The two-sided 95 % t quantile at ``dof`` (NaN without degrees of freedom)."""
-        return float(t_dist.ppf(0.975, self.dof)) if self.dof > 0 else float("nan")
-
-    @property
-    def corr(self) -> np.ndarray:
-        """The coordinates' correlation matrix; the normalised information ``J^T J`` when the
-        covariance is unknown (no degrees of freedom)."""
-        if np.all(np.isfinite(self.cov)):
-            cd = np.sqrt(np.clip(np.diag(self.cov), 1e-300, None))
-            return np.clip(self.cov / np.outer(cd, cd), -1.0, 1.0)
-        JtJ = self.J.T @ self.J
-        d = np.sqrt(np.clip(np.diag(JtJ), 1e-300, None))
-        return JtJ / np.outer(d, d)
-
-    @property
-    def rms(self) -> float:
-        """RMS of the data residuals (their units)."""
-        return float(np.sqrt(np.mean(self.r ** 2)))
-
-
-def central_jacobian(fun_cols: Callable[[np.ndarray], np.ndarray], x: np.ndarray, step,
-                     lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
+def central_jacobian(fun_cols: Residuals, x: np.ndarray, step, lo=None, hi=None) -> np.ndarray:
     """Central differences of residuals at ``x``, every column from one call of ``fun_cols`` (parameter
     sets as columns, residuals as rows). ``step``: per parameter or one for all. With bounds a step is
     cut at them and the difference divided by the width taken; without, by ``2 step``."""
-    x = np.asarray(x, dtype=float)
     n = x.size
-    step = np.broadcast_to(np.asarray(step, dtype=float), (n,))
     up, dn, width = x + step, x - step, 2 * step
     if lo is not None:
         up, dn = np.minimum(up, hi), np.maximum(dn, lo)
@@ -176,9 +140,8 @@ def central_jacobian(fun_cols: Callable[[np.ndarray], np.ndarray], x: np.ndarray
     return (R[:, :n] - R[:, n:]) / width
 
 
-def solve(fun: Callable[[np.ndarray], np.ndarray], starts: Sequence[np.ndarray], bounds, *,
-          jac: Callable[[np.ndarray], np.ndarray] | None = None, prior: tuple | None = None,
-          **options) -> np.ndarray:
+def solve(fun: Residuals, starts: Sequence[np.ndarray], bounds, *, jac: Residuals | None = None,
+          prior: tuple | None = None, **options) -> np.ndarray:
     """The least-squares optimum of ``fun`` (dimensionless residuals of the coordinates) from each of
     ``starts`` within ``bounds`` (lo, hi), the lowest cost kept (the first of equals); ``options`` go to
     ``scipy.optimize.least_squares``. ``jac``: the residuals' Jacobian (None: the solver's forward
@@ -203,8 +166,8 @@ def solve(fun: Callable[[np.ndarray], np.ndarray], starts: Sequence[np.ndarray],
     return best.x
 
 
-def estimate(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, bounds, *,
-             jac: Callable[[np.ndarray], np.ndarray] | None = None, prior: tuple | None = None) -> Estimate:
+def estimate(fun: Residuals, x: np.ndarray, bounds, *, jac: Residuals | None = None,
+             prior: tuple | None = None) -> Estimate:
     """The :class:`Estimate` at the optimum ``x`` of :func:`solve` with the same ``fun``, ``bounds``,
     ``jac`` (None: central differences of relative step 1e-6, cut at the bounds) and ``prior``."""
     r = fun(x)
@@ -224,9 +187,8 @@ def estimate(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, bounds, *,
     return Estimate(x=x, r=r, J=J, cov=cov, dof=dof)
 
 
-def identify(fun: Callable[[np.ndarray], np.ndarray], starts: Sequence[np.ndarray], bounds, *,
-             jac: Callable[[np.ndarray], np.ndarray] | None = None, prior: tuple | None = None,
-             **options) -> Estimate:
+def identify(fun: Residuals, starts: Sequence[np.ndarray], bounds, *, jac: Residuals | None = None,
+             prior: tuple | None = None, **options) -> Estimate:
     """:func:`solve` then :func:`estimate` at its optimum."""
     x = solve(fun, starts, bounds, jac=jac, prior=prior, **options)
     return estimate(fun, x, bounds, jac=jac, prior=prior)
@@ -235,10 +197,17 @@ def identify(fun: Callable[[np.ndarray], np.ndarray], starts: Sequence[np.ndarra
 def summary(est: Estimate, coords: Coordinates, values: np.ndarray, names: Sequence[str], where: str,
             hint: str) -> tuple[dict, dict, list[str]]:
     """What a fit reports for its fitted parameters ``names`` at ``values`` (coordinates ``coords``):
-    the 95 % intervals ``{name: [lo, hi]}``, the correlations ``{a: {b: r}}`` and the weak directions
-    in words (:func:`weak_directions` with ``where`` and ``hint``)."""
-    ci, rel_half = coords.intervals(values, est.sd, est.t95)
-    corr = est.corr
+    the 95 % intervals ``{name: [lo, hi]}`` (a t quantile), the correlations ``{a: {b: r}}`` (of the
+    normalised information ``J^T J`` without degrees of freedom) and the weak directions in words (:func:`weak_directions` with ``where`` and ``hint``)."""
+    tq = float(t_dist.ppf(0.975, est.dof)) if est.dof > 0 else float("nan")
+    ci, rel_half = coords.intervals(values, np.sqrt(np.clip(np.diag(est.cov), 0, None)), tq)
+    if np.all(np.isfinite(est.cov)):
+        cd = np.sqrt(np.clip(np.diag(est.cov), 1e-300, None))
+        corr = np.clip(est.cov / np.outer(cd, cd), -1.0, 1.0)
+    else:  # no degrees of freedom: the normalised information
+        JtJ = est.J.T @ est.J
+        d = np.sqrt(np.clip(np.diag(JtJ), 1e-300, None))
+        corr = JtJ / np.outer(d, d)
     correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)}
     return dict(zip(names, ci)), correlation, weak_directions(list(names), est.J, corr, rel_half, where, hint)
 

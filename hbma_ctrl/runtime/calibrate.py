@@ -391,8 +391,8 @@ class StartupCalibration:
         est = identify(lambda x: sim(x)[0], [prior[0].copy()], _BOUNDS, jac=lambda x: sim(x)[1], prior=prior,
                        x_scale=prior[1], max_nfev=20)
         return CalibrationResult(b=float(est.x[0]), k=float(est.x[1]), c=float(est.x[2]), cov=est.cov,
-                                 residual_rms=est.rms * s.noise_std, n_readings=int(use.sum()),
-                                 p_peak=float(np.nanmax(z)))
+                                 residual_rms=float(np.sqrt(np.mean(est.r ** 2)) * s.noise_std),
+                                 n_readings=int(use.sum()), p_peak=float(np.nanmax(z)))
 
 
 def hand_to_estimator(result: CalibrationResult, estimator, t: float | None = None) -> None:

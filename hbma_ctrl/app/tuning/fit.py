@@ -55,6 +55,7 @@ __all__ = [
     "FIDELITIES",
     "FIT_KEYS",
     "StaticData",
+    "FitReport",
     "FitResult",
     "parse_data",
     "param_names",
@@ -64,6 +65,7 @@ __all__ = [
     "resolve_fidelity",
     "exact_shapes_fixed",
     "fit_static",
+    "split_fix",
     "unflatten",
 ]
 
@@ -95,10 +97,10 @@ class StaticData:
 
 
 @dataclass
-class FitResult:
-    """A fit: material name, fitted parameters (SI, flattened names), 95 % intervals, correlation,
-    NRMSD of the pressure (paper eq. 16), the unidentified directions in words, and the data and
-    model pressures (Pa) at the data heights (m) for the plot."""
+class FitReport:
+    """What fit.json holds of any fit (:data:`FIT_KEYS`): material name, fitted parameters (SI,
+    flattened names), 95 % intervals, NRMSD of the pressure (paper eq. 16), the number of points, the
+    unidentified directions in words and the correlations; and the geometry r1, t0 (m) it was fitted for."""
 
     material: str
     params: dict
@@ -107,20 +109,26 @@ class FitResult:
     n_points: int
     unidentifiable: list
     correlation: dict
-    contact: str
     r1: float
     t0: float
+
+    def as_json(self) -> dict:
+        """fit.json content: exactly :data:`FIT_KEYS`."""
+        return {k: getattr(self, k) for k in FIT_KEYS}
+
+
+@dataclass(kw_only=True)
+class FitResult(FitReport):
+    """A static fit: the report, the contact, the fixed parameters and the data and model pressures
+    (Pa) at the data heights (m) for the plot."""
+
+    contact: str
     fixed: dict = field(default_factory=dict)
     h: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
     source: str = ""
     fidelity: str = "cap"
-
-    def as_json(self) -> dict:
-        """fit.json content: exactly :data:`FIT_KEYS`."""
-        return {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
-                "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -334,16 +342,21 @@ def _bounds(material: str, names: list[str], default: np.ndarray, data: StaticDa
     return lo, hi
 
 
-def _parse_fix(material: str, fix: dict, names: list[str]) -> dict:
-    out = {}
-    for k, v in fix.items():
+def split_fix(fix: dict | None, names: list[str], what: str, elsewhere=(), why: str = "") -> tuple[dict, list[str]]:
+    """``--fix`` values (SI) checked against a fit's parameter ``names``: the fixed ones and the free
+    names. ``what``: the fit in words; a name in ``elsewhere`` is explained by ``why``."""
+    fixed = {}
+    for k, v in (fix or {}).items():
         if k not in names:
-            hint = did_you_mean(k, names)
-            raise ValueError(f"--fix {k}: not a parameter of material '{material}'{hint}; allowed: {', '.join(names)}")
+            hint = why if k in elsewhere else did_you_mean(k, names)
+            raise ValueError(f"--fix {k}: not a parameter of {what}{hint}; allowed: {', '.join(names)}")
         if not math.isfinite(v):
             raise ValueError(f"--fix {k}={v}: not a finite number")
-        out[k] = float(v)
-    return out
+        fixed[k] = float(v)
+    free = [n for n in names if n not in fixed]
+    if not free:
+        raise ValueError("--fix: every parameter is fixed; nothing to fit")
+    return fixed, free
 
 
 def check_options(material: str, contact: str | None, fidelity: str) -> None:
@@ -415,14 +428,11 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
         raise ValueError(f"data: column '{data.force_column}', row {row}: a load with --contact free (free "
                          "inflation carries none); use --contact flat")
     names = param_names(material)
-    fixed = _parse_fix(material, fix or {}, names)
-    free = [n for n in names if n not in fixed]
+    fixed, free = split_fix(fix, names, f"material '{material}'")
     n = data.h.size
     if n < len(free):
         raise ValueError(f"data: {n} points for {len(free)} free parameters of '{material}' ({', '.join(free)}); "
                          "add points or --fix some")
-    if not free:
-        raise ValueError("--fix: every parameter is fixed; nothing to fit")
     span = float(data.p.max() - data.p.min())
     if not span > 0:
         raise ValueError("data: column 'p_kpa' has one value in every row; nothing to fit")

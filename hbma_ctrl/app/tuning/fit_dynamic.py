@@ -39,7 +39,6 @@ Only :func:`write_dynamic_fit` touches files.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,15 +46,15 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from hbma_ctrl.app.tuning.fit import FIT_KEYS, check_exact_material, check_options, param_names, unflatten
-from hbma_ctrl.app.tuning.fit_output import LAW_NOTE, provenance_lines, toml_value
+from hbma_ctrl.app.tuning.fit import (FIT_KEYS, FitReport, check_exact_material, check_options, param_names, split_fix,
+                                      unflatten)
+from hbma_ctrl.app.tuning.fit_output import LAW_NOTE, provenance_lines, toml_value, write_fit
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.tuning.run_data import COLUMN_ALIASES, RunData, is_dynamic, parse_run
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.identify import BAD_RESIDUAL, Coordinates, central_jacobian, finite_residuals, identify, summary
 from hbma_ctrl.core.materials import MATERIALS, make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.fidelity import OUTPUTS, make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
@@ -105,20 +104,11 @@ _FD_STEP = 1e-3
 PRIOR_STD_MIN = 0.05
 
 
-@dataclass
-class DynamicFitResult:
-    """A dynamic fit (SI): parameters with 95 % intervals, correlation, NRMSD of the pressure, the
-    unidentified directions in words, and the data and model series for the plot."""
+@dataclass(kw_only=True)
+class DynamicFitResult(FitReport):
+    """A dynamic fit (SI): the report (the pressure's NRMSD in ``nrmsd``), the load, the model's name,
+    the fixed parameters and the data and model series for the plot."""
 
-    material: str
-    params: dict
-    ci95: dict
-    nrmsd: float
-    n_points: int
-    unidentifiable: list
-    correlation: dict
-    r1: float
-    t0: float
     load: float
     fidelity: str
     fixed: dict = field(default_factory=dict)
@@ -161,10 +151,7 @@ class DynamicFitResult:
 
     def as_json(self) -> dict:
         """fit.json content: :data:`DYNAMIC_FIT_KEYS` (the pressure's NRMSD in ``nrmsd``)."""
-        out = {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
-               "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation,
-               "model_error": self.model_error()}
-        return {k: out[k] for k in DYNAMIC_FIT_KEYS}
+        return {**super().as_json(), "model_error": self.model_error()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -175,11 +162,7 @@ def dynamic_param_names(material: str, fit_material: bool = False) -> list[str]:
     ``modulus_scale`` when ``fit_material``."""
     if not fit_material:
         return list(DYN_PARAMS)
-    return _material_names(material) + list(DYN_PARAMS[1:])
-
-
-def _material_names(material: str) -> list[str]:
-    return param_names(material)
+    return param_names(material) + list(DYN_PARAMS[1:])
 
 
 class _RunModel:
@@ -202,7 +185,7 @@ class _RunModel:
         names = self.fid.space.names
         self.ix = {n: i for i, n in enumerate(names)}
         dimless = set(MATERIALS[material].dimensionless)
-        mat_names = _material_names(material)
+        mat_names = param_names(material)
         self.mat_names = mat_names
         self.mod_idx = [self.ix[n] for n in mat_names if n.rstrip("0123456789") not in dimless]
         self.names = dynamic_param_names(material, fit_material)
@@ -314,19 +297,12 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
         raise ValueError("--contact free: the run carries a load; drop --contact (a load rests on a flat plate)")
     model = _RunModel(run, material, r1, t0, V0, fit_material, fidelity, valve_delay, sensor_delay)
     names = model.names
-    fixed = {}
-    for k, v in (fix or {}).items():
-        if k not in names:
-            why = (" (the material's parameters are fitted with --fit-material; without it, one modulus_scale)"
-                   if k in model.mat_names else did_you_mean(k, names))
-            raise ValueError(f"--fix {k}: not a parameter of this fit{why}; allowed: {', '.join(names)}")
+    fixed, free = split_fix(fix, names, "this fit", model.mat_names, " (the material's parameters are fitted with "
+                            "--fit-material; without it, one modulus_scale)")
+    for k, v in fixed.items():
         i = names.index(k)
         if model.coords.log[i] and not (v > 0 and abs(math.log(v / model.nominal[i])) <= _LOG_BOUND):
             raise ValueError(f"--fix {k}={v:g}: outside [{model.nominal[i] / 20:g}, {model.nominal[i] * 20:g}] (SI)")
-        fixed[k] = float(v)
-    free = [n for n in names if n not in fixed]
-    if not free:
-        raise ValueError("--fix: every parameter is fixed; nothing to fit")
     ifree = [names.index(n) for n in free]
     z_fixed = model.coords.coordinates([fixed.get(n, model.nominal[i]) for i, n in enumerate(names)])
     p_ok = np.isfinite(run.p) & (run.p < sensor_range - 50.0)
@@ -378,7 +354,7 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
     vals = model.values(full(z[:, None]))[:, 0]
     params = {n: float(vals[i]) for i, n in enumerate(names)}
     # the linear-scale columns of J are per nominal value; the log ones per fitted value
-    ci, correlation, weak = summary(est, model.coords[ifree], vals[ifree], free, "this run",
+    ci, correlation, weak = summary(est, Coordinates.about(model.nominal[ifree]), vals[ifree], free, "this run",
                                     "fix one with --fix or record a run that moves them differently (vary the "
                                     "speed, hold with the valves shut, vent)")
     ci.update({k: [v, v] for k, v in fixed.items()})
@@ -487,9 +463,4 @@ def _plot(result: DynamicFitResult, path: Path) -> None:
 
 def write_dynamic_fit(result: DynamicFitResult, folder: Path | str) -> list[Path]:
     """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths."""
-    folder = Path(folder)
-    paths = [folder / "fit.json", folder / "params.toml", folder / "residuals.png"]
-    paths[0].write_text(json.dumps(result.as_json(), indent=1) + "\n")
-    paths[1].write_text(dynamic_params_toml(result))
-    _plot(result, paths[2])
-    return paths
+    return write_fit(result, folder, dynamic_params_toml(result), _plot)
