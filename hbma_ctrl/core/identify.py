@@ -8,12 +8,12 @@ start-up calibration (:mod:`hbma_ctrl.runtime.calibrate`). Each caller owns its 
   ``|reference|``.
 - :func:`identify`: ``scipy.optimize.least_squares`` from each start, the lowest cost kept
   (:func:`solve`), then the Jacobian at the optimum (the caller's, else central differences,
-  :func:`central_jacobian`) and the covariance of the coordinates (:func:`estimate`, an :class:`Estimate`). Without a prior the residuals' noise is unknown:
-  the covariance is ``s^2 (J^T J)^+`` with the residual variance ``s^2 = |r|^2 / (n - m)`` (a pseudo-inverse:
-  an undetermined direction is reported by :func:`weak_directions`, not as a failure). With a Gaussian
-  prior (means and sigmas of the coordinates) the residuals must be in units of their noise's sigma, the
-  prior's rows are appended to them, and the covariance is the Gauss-Newton posterior
-  ``(J^T J + diag(1 / sigma^2))^-1``.
+  :func:`central_jacobian`) and the covariance of the coordinates (:func:`estimate`). Without a prior
+  the residuals' noise is unknown: the covariance is ``s^2 (J^T J)^+`` with the residual variance
+  ``s^2 = |r|^2 / (n - m)`` (a pseudo-inverse: an undetermined direction is named by
+  :func:`weak_directions`, not a failure). With a Gaussian prior (means and sigmas of the
+  coordinates) the residuals must be in units of their noise's sigma, the prior's rows are appended
+  to them, and the covariance is the Gauss-Newton posterior ``(J^T J + diag(1 / sigma^2))^-1``.
 - :func:`summary`: the 95 % intervals (a t quantile with n - m degrees of freedom) in the parameters'
   units, the correlation matrix and the directions the data cannot determine, in words.
 

@@ -8,6 +8,7 @@ the same provenance lines, law note and TOML values.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -74,7 +75,8 @@ def _plot(result: FitResult, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
-def write_fit(result: FitReport, folder: Path | str, toml: str | None = None, plot=None) -> list[Path]:
+def write_fit(result: FitReport, folder: Path | str, toml: str | None = None,
+              plot: Callable[[FitReport, Path], None] | None = None) -> list[Path]:
     """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths. ``toml`` and
     ``plot(result, path)``: the parameter file's text and the plot (None: a static fit's)."""
     folder = Path(folder)
