@@ -30,7 +30,7 @@ not observable: its prior comes back unchanged and the estimator learns it in th
 
 The fit: the readings from the pump's start on are compared with the model's pressure (the
 simulator's ``free`` fidelity, or ``quasi_static`` with the known load) for the commands sent, and
-``(b, k, c)`` minimise the normalised residuals plus the prior (``scipy.optimize.least_squares``,
+``(b, k, c)`` minimise the normalised residuals plus the prior (:func:`hbma_ctrl.core.identify.identify`,
 bounded to [0.5, 2]; the Jacobian by forward differences, all columns in one batched simulation).
 ``result`` holds the factors, their covariance (the Gauss-Newton posterior) and the residual RMS.
 :func:`hand_to_estimator` writes them into an estimator with the factor states ``b, k, c``
@@ -52,9 +52,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.core.identify import identify
 from hbma_ctrl.core.interfaces import Command, Estimator, check_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
 from hbma_ctrl.models.actuation import CommandTiming, check_delays
@@ -373,11 +373,11 @@ class StartupCalibration:
         use = np.isfinite(z) & (z < s.sensor_range)
         if use.sum() < 10:
             raise ValueError(f"only {int(use.sum())} readings to fit")
-        prior = np.asarray(s.prior_std, dtype=float)
-        mean = np.asarray(s.prior_mean, dtype=float)
+        prior = (np.asarray(s.prior_mean, dtype=float), np.asarray(s.prior_std, dtype=float))
         cache: dict = {}
 
         def sim(x):
+            # the residuals and their forward differences from one batched simulation
             key = tuple(np.round(x, 12))
             if key not in cache:
                 cols = np.column_stack([x] + [x + _FD_STEP * e for e in np.eye(3)])
@@ -388,19 +388,10 @@ class StartupCalibration:
                 cache[key] = (r, J)
             return cache[key]
 
-        def fun(x):
-            return np.concatenate([sim(x)[0], (x - mean) / prior])
-
-        def jac(x):
-            return np.vstack([sim(x)[1], np.diag(1.0 / prior)])
-
-        sol = least_squares(fun, mean.copy(), jac=jac, bounds=_BOUNDS, x_scale=prior, max_nfev=20)
-        r, J = sim(sol.x)
-        info = J.T @ J + np.diag(1.0 / prior ** 2)
-        cov = np.linalg.inv(info)
-        cov = 0.5 * (cov + cov.T)
-        return CalibrationResult(b=float(sol.x[0]), k=float(sol.x[1]), c=float(sol.x[2]), cov=cov,
-                                 residual_rms=float(np.sqrt(np.mean(r ** 2)) * s.noise_std),
+        est = identify(lambda x: sim(x)[0], [prior[0].copy()], _BOUNDS, jac=lambda x: sim(x)[1], prior=prior,
+                       x_scale=prior[1], max_nfev=20)
+        return CalibrationResult(b=float(est.x[0]), k=float(est.x[1]), c=float(est.x[2]), cov=est.cov,
+                                 residual_rms=float(np.sqrt(np.mean(est.r ** 2)) * s.noise_std),
                                  n_readings=int(use.sum()), p_peak=float(np.nanmax(z)))
 
 

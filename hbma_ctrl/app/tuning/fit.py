@@ -19,15 +19,10 @@ stretches, refined from the cap's fit); their plate contact would need a table a
 
 The material parameters (flattened as in :class:`hbma_ctrl.core.physics.ParamSpace`: ``E``; ``C1``,
 ``C2``; ``C0..C2`` for Yeoh; ``mu``, ``Jm``; ``mu0, mu1, alpha0, alpha1``) are fitted by
-``scipy.optimize.least_squares`` on the pressure residuals divided by the data's pressure span, from
-several starts. Intervals (95 %) come from the Jacobian at the optimum with the residual variance and
-a t quantile. What the data cannot separate (:func:`weak_directions`) is judged on two things
-that a correlation alone does not tell: the sensitivity of the fit along each right singular vector of
-the Jacobian in relative units (a combination whose 100 % change moves the model by less than
-:data:`SENS_MIN` of the data's span, RMS, is not determined whatever the noise), and the width of
-each 95 % interval relative to its value (above :data:`REL_CI_MAX`: not determined by these points;
-named as a trade-off with the parameter it is correlated with beyond :data:`CORR_LIMIT`). A
-correlation of -0.985 between two parameters whose intervals are both narrow is not reported.
+``scipy.optimize.least_squares`` through :mod:`hbma_ctrl.core.identify` on the pressure residuals
+divided by the data's pressure span, each parameter in units of its default, from several starts.
+Intervals (95 %) come from the Jacobian at the optimum with the residual variance and a t quantile;
+what the data cannot separate is named by :func:`hbma_ctrl.core.identify.weak_directions`.
 
 Nothing here touches files (:mod:`hbma_ctrl.app.tuning.fit_output` writes them); :func:`parse_data` takes the
 file's bytes.
@@ -41,13 +36,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.stats import t as t_dist
 
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.tuning.run_data import data_lines, data_number
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.identify import Coordinates, estimate, finite_residuals, solve, summary
 from hbma_ctrl.core.materials import MATERIALS, make_material
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
@@ -60,10 +54,8 @@ __all__ = [
     "CONTACTS",
     "FIDELITIES",
     "FIT_KEYS",
-    "SENS_MIN",
-    "REL_CI_MAX",
-    "CORR_LIMIT",
     "StaticData",
+    "FitReport",
     "FitResult",
     "parse_data",
     "param_names",
@@ -73,7 +65,7 @@ __all__ = [
     "resolve_fidelity",
     "exact_shapes_fixed",
     "fit_static",
-    "weak_directions",
+    "split_fix",
     "unflatten",
 ]
 
@@ -83,19 +75,10 @@ CONTACTS = ("free", "flat")
 FIDELITIES = ("cap", "exact")
 #: the keys of fit.json
 FIT_KEYS = ("material", "params", "ci95", "nrmsd", "n_points", "unidentifiable", "correlation")
-#: RMS change of the model, as a fraction of the data's span, per 100 % change of a parameter
-#: combination, below which that combination is not determined by the data (noise-free criterion)
-SENS_MIN = 1e-3
-#: 95 % half-width relative to the value above which a parameter is reported as not determined
-REL_CI_MAX = 1.0
-#: |correlation| above which a poorly determined parameter is named with its partner
-CORR_LIMIT = 0.98
 #: p_kpa above this looks like Pa
 _P_KPA_MAX = 1000.0
 #: start factors on the default moduli (log-spaced)
 _START_FACTORS = (0.1, 0.3, 1.0, 3.0, 10.0)
-#: residual given to a non-physical point (Gent past locking), in units of the pressure span
-_BAD_RESIDUAL = 10.0
 #: pole stretches of the exact solver's free curve for one trial of a shape-changing material
 EXACT_FREE_POLES = 48
 #: the exact solver's refinement of a shape-changing material's fit: at most this many steps (each its
@@ -114,10 +97,10 @@ class StaticData:
 
 
 @dataclass
-class FitResult:
-    """A fit: material name, fitted parameters (SI, flattened names), 95 % intervals, correlation,
-    NRMSD of the pressure (paper eq. 16), the unidentified directions in words, and the data and
-    model pressures (Pa) at the data heights (m) for the plot."""
+class FitReport:
+    """What fit.json holds of any fit (:data:`FIT_KEYS`): material name, fitted parameters (SI,
+    flattened names), 95 % intervals, NRMSD of the pressure (paper eq. 16), the number of points, the
+    unidentified directions in words and the correlations; and the geometry r1, t0 (m) it was fitted for."""
 
     material: str
     params: dict
@@ -126,20 +109,26 @@ class FitResult:
     n_points: int
     unidentifiable: list
     correlation: dict
-    contact: str
     r1: float
     t0: float
+
+    def as_json(self) -> dict:
+        """fit.json content: exactly :data:`FIT_KEYS`."""
+        return {k: getattr(self, k) for k in FIT_KEYS}
+
+
+@dataclass(kw_only=True)
+class FitResult(FitReport):
+    """A static fit: the report, the contact, the fixed parameters and the data and model pressures
+    (Pa) at the data heights (m) for the plot."""
+
+    contact: str
     fixed: dict = field(default_factory=dict)
     h: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
     p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
     source: str = ""
     fidelity: str = "cap"
-
-    def as_json(self) -> dict:
-        """fit.json content: exactly :data:`FIT_KEYS`."""
-        return {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
-                "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -353,80 +342,21 @@ def _bounds(material: str, names: list[str], default: np.ndarray, data: StaticDa
     return lo, hi
 
 
-def _parse_fix(material: str, fix: dict, names: list[str]) -> dict:
-    out = {}
-    for k, v in fix.items():
+def split_fix(fix: dict | None, names: list[str], what: str, elsewhere=(), why: str = "") -> tuple[dict, list[str]]:
+    """``--fix`` values (SI) checked against a fit's parameter ``names``: the fixed ones and the free
+    names. ``what``: the fit in words; a name in ``elsewhere`` is explained by ``why``."""
+    fixed = {}
+    for k, v in (fix or {}).items():
         if k not in names:
-            hint = did_you_mean(k, names)
-            raise ValueError(f"--fix {k}: not a parameter of material '{material}'{hint}; allowed: {', '.join(names)}")
+            hint = why if k in elsewhere else did_you_mean(k, names)
+            raise ValueError(f"--fix {k}: not a parameter of {what}{hint}; allowed: {', '.join(names)}")
         if not math.isfinite(v):
             raise ValueError(f"--fix {k}={v}: not a finite number")
-        out[k] = float(v)
-    return out
-
-
-def _join(names: list[str] | tuple[str, ...]) -> str:
-    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + f" and {names[-1]}"
-
-
-def weak_directions(names: list[str], J: np.ndarray, corr: np.ndarray, rel_half: np.ndarray,
-                    where: str = "this data", hint: str = "fix one with --fix or add points over a wider "
-                    "height range") -> list[str]:
-    """The parameter combinations the data cannot separate, in words.
-
-    ``J``: Jacobian of the residuals (each divided by its channel's span) with respect to the
-    parameters in relative units (a column = the change per 100 % change of that parameter's
-    reference value: its default for a static fit, its fitted value on a log scale);
-    ``corr``: their correlation matrix; ``rel_half``: each 95 % half-width divided by the value
-    (NaN when unknown). See the module docstring for the two criteria.
-    """
-    out: list[str] = []
-    named: set = set()
-    n = max(J.shape[0], 1)
-    _, S, Vt = np.linalg.svd(J, full_matrices=False)
-    for k in range(len(S)):
-        sens = float(S[k]) / math.sqrt(n)
-        if sens >= SENS_MIN:
-            continue
-        v = Vt[k] / np.max(np.abs(Vt[k]))
-        # members: the direction's large components, and what they are strongly correlated with
-        # (a small component can carry a large relative change when the defaults differ in size)
-        big = [i for i in range(len(names)) if abs(v[i]) > 0.1]
-        part = tuple(names[i] for i in range(len(names))
-                     if i in big or any(abs(corr[i, j]) > CORR_LIMIT for j in big))
-        named |= set(part)
-        if len(part) == 1:
-            out.append(f"{part[0]} is not determined by {where} (a 100 % change moves the fit by {sens:.1e} "
-                       "of the data's span)")
-        else:
-            out.append(f"{_join(part)} trade off in {where}: only a combination is determined (changing it "
-                       f"by 100 % moves the fit by {sens:.1e} of the data's span); {hint}")
-    for i, a in enumerate(names):
-        if a in named or not (rel_half[i] > REL_CI_MAX):
-            continue
-        partners = [names[j] for j in range(len(names)) if j != i and names[j] not in named
-                    and abs(corr[i, j]) > CORR_LIMIT and rel_half[j] > REL_CI_MAX]
-        if partners:
-            j = names.index(partners[0])
-            named |= {a, partners[0]}
-            out.append(f"{a} and {partners[0]} trade off in {where} (correlation {corr[i, j]:+.3f}, 95 % intervals "
-                       f"+-{100 * rel_half[i]:.0f} % and +-{100 * rel_half[j]:.0f} %); {hint}")
-        else:
-            named.add(a)
-            out.append(f"{a} is not determined by {where} (95 % interval +-{100 * rel_half[i]:.0f} % of its value)")
-    return out
-
-
-def _jacobian(fun, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float = 1e-6) -> np.ndarray:
-    """Central differences of fun at z (one-sided at a bound): the intervals' Jacobian at the optimum."""
-    cols = []
-    for j in range(z.size):
-        step = rel * max(abs(z[j]), 1.0)
-        up, dn = z.copy(), z.copy()
-        up[j] = min(z[j] + step, hi[j])
-        dn[j] = max(z[j] - step, lo[j])
-        cols.append((fun(up) - fun(dn)) / (up[j] - dn[j]))
-    return np.stack(cols, axis=1)
+        fixed[k] = float(v)
+    free = [n for n in names if n not in fixed]
+    if not free:
+        raise ValueError("--fix: every parameter is fixed; nothing to fit")
+    return fixed, free
 
 
 def check_options(material: str, contact: str | None, fidelity: str) -> None:
@@ -498,14 +428,11 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
         raise ValueError(f"data: column '{data.force_column}', row {row}: a load with --contact free (free "
                          "inflation carries none); use --contact flat")
     names = param_names(material)
-    fixed = _parse_fix(material, fix or {}, names)
-    free = [n for n in names if n not in fixed]
+    fixed, free = split_fix(fix, names, f"material '{material}'")
     n = data.h.size
     if n < len(free):
         raise ValueError(f"data: {n} points for {len(free)} free parameters of '{material}' ({', '.join(free)}); "
                          "add points or --fix some")
-    if not free:
-        raise ValueError("--fix: every parameter is fixed; nothing to fit")
     span = float(data.p.max() - data.p.min())
     if not span > 0:
         raise ValueError("data: column 'p_kpa' has one value in every row; nothing to fit")
@@ -517,29 +444,27 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
         if not lo[i] <= v <= hi[i]:
             raise ValueError(f"--fix {k}={v:g}: outside the physical range [{lo[i]:g}, {hi[i]:g}] for this data")
     ifree = [names.index(k) for k in free]
-    scale = np.where(np.abs(model.default) > 0, np.abs(model.default), 1.0)[ifree]
+    coords = Coordinates.scaled(model.default[ifree])
 
     def full(z: np.ndarray) -> np.ndarray:
         v = model.default.copy()
         for k, val in fixed.items():
             v[names.index(k)] = val
-        v[ifree] = z * scale
+        v[ifree] = coords.values(z)
         return v
 
     def resid(z: np.ndarray) -> np.ndarray:
-        r = (law.pressure(full(z)) - data.p) / span
-        return np.where(np.isfinite(r), r, _BAD_RESIDUAL)
+        return finite_residuals((law.pressure(full(z)) - data.p) / span)
 
-    zlo, zhi = lo[ifree] / scale, hi[ifree] / scale
+    zlo, zhi = coords.coordinates(lo[ifree]), coords.coordinates(hi[ifree])
     dimless = set(MATERIALS[material].dimensionless)
     is_modulus = np.array([names[i].rstrip("0123456789") not in dimless for i in ifree])
     sign = np.where(model.default[ifree] < 0, -1.0, 1.0)
-    best = None
     if solver_free:
         # one solve of the free curve costs 0.1-0.3 s: one start, the cap's optimum (the two laws
         # differ by 5-15 % in pressure, well inside the cap fit's basin)
         cap = fit_static(data, material, r1, t0, contact, fix, "cap")
-        starts = [np.clip(np.array([cap.params[k] for k in free]) / scale, zlo, zhi)]
+        starts = [np.clip(coords.coordinates([cap.params[k] for k in free]), zlo, zhi)]
         nfev = _EXACT_NFEV
     else:
         starts = []
@@ -550,12 +475,8 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
             z0 = np.maximum(z0, np.where(np.isfinite(zlo), 1.5 * zlo + 1e-6, -np.inf))
             starts.append(np.minimum(z0, np.where(np.isfinite(zhi), 0.9 * zhi, np.inf)))
         nfev = 200
-    for z0 in starts:
-        sol = least_squares(resid, z0, bounds=(zlo, zhi), method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
-                            gtol=1e-12, max_nfev=nfev)
-        if best is None or sol.cost < best.cost:
-            best = sol
-    z = best.x
+    z = solve(resid, starts, (zlo, zhi), method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+              max_nfev=nfev)
     if solver_free:
         top = law.reach(full(z))
         beyond = np.flatnonzero(data.h > top)
@@ -566,29 +487,14 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
                              "4 or 98 % of the locking one); use --fidelity cap")
     else:
         model.check_reach(full(z))
-    J = _jacobian(resid, z, zlo, zhi)
-    r = resid(z)
+    est = estimate(resid, z, (zlo, zhi))
     values = full(z)
     params = {k: float(values[i]) for i, k in enumerate(names)}
-    dof = n - len(free)
-    s2 = float(r @ r) / dof if dof > 0 else float("nan")
-    JtJ = J.T @ J
-    cov = np.linalg.pinv(JtJ) * s2
-    sd = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
-    tq = float(t_dist.ppf(0.975, dof)) if dof > 0 else float("nan")
-    ci = {k: [params[k], params[k]] for k in fixed}
-    for j, k in enumerate(free):
-        half = tq * sd[j]
-        ci[k] = [float(params[k] - half), float(params[k] + half)] if math.isfinite(half) else [None, None]
-    d = np.sqrt(np.clip(np.diag(JtJ), 1e-300, None))
-    scaled = JtJ / np.outer(d, d)
-    cd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = np.clip(cov / np.outer(cd, cd), -1.0, 1.0) if np.all(np.isfinite(cov)) else scaled
-    rel_half = np.array([tq * sd[j] / abs(params[k]) if params[k] != 0 else float("inf")
-                         for j, k in enumerate(free)])
-    correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(free)} for i, a in enumerate(free)}
+    ci, correlation, weak = summary(est, coords, values[ifree], free, "this data",
+                                    "fix one with --fix or add points over a wider height range")
+    ci.update({k: [params[k], params[k]] for k in fixed})
     pm = law.pressure(values)
     return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
-                     nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak_directions(free, J, corr, rel_half),
+                     nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak,
                      correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
                      p_data=data.p.copy(), p_model=pm, fidelity=fidelity)

@@ -33,30 +33,28 @@ one batched simulation. Parameters (:data:`DYN_PARAMS`), with the rig's meanings
 Readings at the sensor's range (saturated) are left out; isolated missing readings (dropouts) are
 skipped, longer runs of them refused. Intervals (95 %) come from the Jacobian at the optimum with
 the residual variance and a t quantile (they assume equal, independent noise on every point of a
-channel relative to its span); weak directions are named by :func:`hbma_ctrl.app.tuning.fit.weak_directions`.
+channel relative to its span); weak directions are named by :func:`hbma_ctrl.core.identify.weak_directions`.
 Only :func:`write_dynamic_fit` touches files.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
-from scipy.optimize import least_squares
-from scipy.stats import t as t_dist
 
-from hbma_ctrl.app.tuning.fit import FIT_KEYS, check_exact_material, check_options, param_names, unflatten, weak_directions
-from hbma_ctrl.app.tuning.fit_output import LAW_NOTE, provenance_lines, toml_value
+from hbma_ctrl.app.tuning.fit import (FIT_KEYS, FitReport, check_exact_material, check_options, param_names, split_fix,
+                                      unflatten)
+from hbma_ctrl.app.tuning.fit_output import LAW_NOTE, provenance_lines, toml_value, write_fit
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.tuning.run_data import COLUMN_ALIASES, RunData, is_dynamic, parse_run
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.identify import BAD_RESIDUAL, Coordinates, central_jacobian, finite_residuals, identify, summary
 from hbma_ctrl.core.materials import MATERIALS, make_material
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.actuation import check_delays
 from hbma_ctrl.models.fidelity import OUTPUTS, make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
@@ -100,28 +98,17 @@ _START_OFFSET = math.log(1.5)
 _N_REFINE = 2
 #: relative step of the central differences (log units)
 _FD_STEP = 1e-3
-#: residual given to a diverged simulation, in units of the span
-_BAD_RESIDUAL = 10.0
 #: the smallest prior sigma params.toml gives the filter's factors: the fit's own interval counts
 #: the noise only, and on the default rig it misses the dead volume by 6 % (README Calibrate); the
 #: protocol with this prior: EKF height NRMSD 0.019-0.020 over noise seeds 0-2, 0.020-0.021 at 0.08
 PRIOR_STD_MIN = 0.05
 
 
-@dataclass
-class DynamicFitResult:
-    """A dynamic fit (SI): parameters with 95 % intervals, correlation, NRMSD of the pressure, the
-    unidentified directions in words, and the data and model series for the plot."""
+@dataclass(kw_only=True)
+class DynamicFitResult(FitReport):
+    """A dynamic fit (SI): the report (the pressure's NRMSD in ``nrmsd``), the load, the model's name,
+    the fixed parameters and the data and model series for the plot."""
 
-    material: str
-    params: dict
-    ci95: dict
-    nrmsd: float
-    n_points: int
-    unidentifiable: list
-    correlation: dict
-    r1: float
-    t0: float
     load: float
     fidelity: str
     fixed: dict = field(default_factory=dict)
@@ -164,10 +151,7 @@ class DynamicFitResult:
 
     def as_json(self) -> dict:
         """fit.json content: :data:`DYNAMIC_FIT_KEYS` (the pressure's NRMSD in ``nrmsd``)."""
-        out = {"material": self.material, "params": self.params, "ci95": self.ci95, "nrmsd": self.nrmsd,
-               "n_points": self.n_points, "unidentifiable": self.unidentifiable, "correlation": self.correlation,
-               "model_error": self.model_error()}
-        return {k: out[k] for k in DYNAMIC_FIT_KEYS}
+        return {**super().as_json(), "model_error": self.model_error()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -178,11 +162,7 @@ def dynamic_param_names(material: str, fit_material: bool = False) -> list[str]:
     ``modulus_scale`` when ``fit_material``."""
     if not fit_material:
         return list(DYN_PARAMS)
-    return _material_names(material) + list(DYN_PARAMS[1:])
-
-
-def _material_names(material: str) -> list[str]:
-    return param_names(material)
+    return param_names(material) + list(DYN_PARAMS[1:])
 
 
 class _RunModel:
@@ -205,15 +185,14 @@ class _RunModel:
         names = self.fid.space.names
         self.ix = {n: i for i, n in enumerate(names)}
         dimless = set(MATERIALS[material].dimensionless)
-        mat_names = _material_names(material)
+        mat_names = param_names(material)
         self.mat_names = mat_names
         self.mod_idx = [self.ix[n] for n in mat_names if n.rstrip("0123456789") not in dimless]
         self.names = dynamic_param_names(material, fit_material)
         # log scale for positive parameters; signed material terms (higher Yeoh) on a linear one
         self.nominal = np.array([1.0 if n in ("modulus_scale", "flow_scale") else self.theta0[self.ix[n]]
                                  for n in self.names])
-        self.log = np.array([v > 0 for v in self.nominal])
-        self.lin_scale = np.where(self.nominal != 0, np.abs(self.nominal), 1.0)
+        self.coords = Coordinates.about(self.nominal)
         dt_data = float(np.median(np.diff(run.t))) if run.t.size > 1 else 1.0
         self.dt = min(DEFAULT_DT[("rk4", self.fid.name)], dt_data)
         self.K = int(math.ceil(run.t[-1] / self.dt - 1e-9))
@@ -230,9 +209,7 @@ class _RunModel:
 
     def values(self, Z: np.ndarray) -> np.ndarray:
         """Parameter values (SI) of columns Z (n_params x n) of log / scaled offsets from nominal."""
-        Z = np.asarray(Z, dtype=float).reshape(len(self.names), -1)
-        return np.where(self.log[:, None], self.nominal[:, None] * np.exp(Z),
-                        self.nominal[:, None] + self.lin_scale[:, None] * Z)
+        return self.coords.values(np.asarray(Z, dtype=float).reshape(len(self.names), -1))
 
     def thetas(self, Z: np.ndarray) -> np.ndarray:
         V = self.values(Z)
@@ -291,8 +268,7 @@ def simulate_run(run: RunData, material: str, params: dict, r1: float, t0: float
     fit_material = "modulus_scale" not in params
     model = _RunModel(run, material, r1, t0, float(params["V0"]), fit_material, fidelity, valve_delay, sensor_delay)
     v = np.array([params[n] for n in model.names], dtype=float)
-    Z = np.where(model.log, np.log(np.where(model.log, v, 1.0) / model.nominal), (v - model.nominal) / model.lin_scale)
-    P, H, _ = model.simulate(Z[:, None])
+    P, H, _ = model.simulate(model.coords.coordinates(v)[:, None])
     return P[:, 0], H[:, 0]
 
 
@@ -321,24 +297,14 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
         raise ValueError("--contact free: the run carries a load; drop --contact (a load rests on a flat plate)")
     model = _RunModel(run, material, r1, t0, V0, fit_material, fidelity, valve_delay, sensor_delay)
     names = model.names
-    fixed = {}
-    for k, v in (fix or {}).items():
-        if k not in names:
-            why = (" (the material's parameters are fitted with --fit-material; without it, one modulus_scale)"
-                   if k in model.mat_names else did_you_mean(k, names))
-            raise ValueError(f"--fix {k}: not a parameter of this fit{why}; allowed: {', '.join(names)}")
-        i = names.index(k)
-        if model.log[i] and not (v > 0 and abs(math.log(v / model.nominal[i])) <= _LOG_BOUND):
-            raise ValueError(f"--fix {k}={v:g}: outside [{model.nominal[i] / 20:g}, {model.nominal[i] * 20:g}] (SI)")
-        fixed[k] = float(v)
-    free = [n for n in names if n not in fixed]
-    if not free:
-        raise ValueError("--fix: every parameter is fixed; nothing to fit")
-    ifree = [names.index(n) for n in free]
-    z_fixed = np.zeros(len(names))
+    fixed, free = split_fix(fix, names, "this fit", model.mat_names, " (the material's parameters are fitted with "
+                            "--fit-material; without it, one modulus_scale)")
     for k, v in fixed.items():
         i = names.index(k)
-        z_fixed[i] = math.log(v / model.nominal[i]) if model.log[i] else (v - model.nominal[i]) / model.lin_scale[i]
+        if model.coords.log[i] and not (v > 0 and abs(math.log(v / model.nominal[i])) <= _LOG_BOUND):
+            raise ValueError(f"--fix {k}={v:g}: outside [{model.nominal[i] / 20:g}, {model.nominal[i] * 20:g}] (SI)")
+    ifree = [names.index(n) for n in free]
+    z_fixed = model.coords.coordinates([fixed.get(n, model.nominal[i]) for i, n in enumerate(names)])
     p_ok = np.isfinite(run.p) & (run.p < sensor_range - 50.0)
     ip = _thin(p_ok, MAX_POINTS)
     if ip.size == 0:
@@ -368,56 +334,30 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
         r = (P[ip] - run.p[ip, None]) / span_p
         if ih.size:
             r = np.vstack([r, (H[ih] - run.h[ih, None]) / span_h])
-        r[:, ~alive] = _BAD_RESIDUAL
-        return np.where(np.isfinite(r), r, _BAD_RESIDUAL)
+        r[:, ~alive] = BAD_RESIDUAL
+        return finite_residuals(r)
 
     def fun(z: np.ndarray) -> np.ndarray:
         return residuals(z[:, None])[:, 0]
 
     def jac(z: np.ndarray) -> np.ndarray:
-        E = _FD_STEP * np.eye(z.size)
-        R = residuals(np.hstack([z[:, None] + E, z[:, None] - E]))
-        return (R[:, : z.size] - R[:, z.size:]) / (2 * _FD_STEP)
+        return central_jacobian(residuals, z, _FD_STEP)
 
-    lo = np.where(model.log[ifree], -_LOG_BOUND, -10.0)
-    hi = np.where(model.log[ifree], _LOG_BOUND, 10.0)
+    log = model.coords.log[ifree]
+    bounds = (np.where(log, -_LOG_BOUND, -10.0), np.where(log, _LOG_BOUND, 10.0))
     corners = np.array(np.meshgrid(*[(-1.0, 1.0)] * len(free), indexing="ij")).reshape(len(free), -1)
     cand = np.hstack([np.zeros((len(free), 1)), _START_OFFSET * corners])
     cost = np.sum(residuals(cand) ** 2, axis=0)
-    best = None
-    for j in np.argsort(cost)[:_N_REFINE]:
-        sol = least_squares(fun, cand[:, j], jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0, xtol=1e-7,
-                            ftol=1e-9, max_nfev=30)
-        if best is None or sol.cost < best.cost:
-            best = sol
-    z = best.x
-    J = jac(z)
-    r = fun(z)
-    dof = n_pts - len(free)
-    s2 = float(r @ r) / dof
-    cov = np.linalg.pinv(J.T @ J) * s2
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    tq = float(t_dist.ppf(0.975, dof))
+    est = identify(fun, [cand[:, j] for j in np.argsort(cost)[:_N_REFINE]], bounds, jac=jac, method="trf",
+                   x_scale=1.0, xtol=1e-7, ftol=1e-9, max_nfev=30)
+    z = est.x
     vals = model.values(full(z[:, None]))[:, 0]
     params = {n: float(vals[i]) for i, n in enumerate(names)}
-    ci: dict = {k: [v, v] for k, v in fixed.items()}
-    rel_half = np.zeros(len(free))
-    for j, n in enumerate(free):
-        i = names.index(n)
-        half = tq * sd[j]
-        if model.log[i]:
-            ci[n] = [float(vals[i] * math.exp(-half)), float(vals[i] * math.exp(half))]
-            rel_half[j] = math.expm1(half)
-        else:
-            ci[n] = [float(vals[i] - half * model.lin_scale[i]), float(vals[i] + half * model.lin_scale[i])]
-            rel_half[j] = half * model.lin_scale[i] / abs(vals[i]) if vals[i] != 0 else float("inf")
-    cd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = np.clip(cov / np.outer(cd, cd), -1.0, 1.0)
-    correlation = {a: {b: float(corr[i, j]) for j, b in enumerate(free)} for i, a in enumerate(free)}
     # the linear-scale columns of J are per nominal value; the log ones per fitted value
-    weak = weak_directions(free, J, corr, rel_half, where="this run",
-                           hint="fix one with --fix or record a run that moves them differently (vary the "
-                                "speed, hold with the valves shut, vent)")
+    ci, correlation, weak = summary(est, Coordinates.about(model.nominal[ifree]), vals[ifree], free, "this run",
+                                    "fix one with --fix or record a run that moves them differently (vary the "
+                                    "speed, hold with the valves shut, vent)")
+    ci.update({k: [v, v] for k, v in fixed.items()})
     if "modulus_scale" in params:
         for n in model.mat_names:
             i = model.ix[n]
@@ -523,9 +463,4 @@ def _plot(result: DynamicFitResult, path: Path) -> None:
 
 def write_dynamic_fit(result: DynamicFitResult, folder: Path | str) -> list[Path]:
     """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths."""
-    folder = Path(folder)
-    paths = [folder / "fit.json", folder / "params.toml", folder / "residuals.png"]
-    paths[0].write_text(json.dumps(result.as_json(), indent=1) + "\n")
-    paths[1].write_text(dynamic_params_toml(result))
-    _plot(result, paths[2])
-    return paths
+    return write_fit(result, folder, dynamic_params_toml(result), _plot)

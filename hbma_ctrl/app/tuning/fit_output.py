@@ -8,13 +8,14 @@ the same provenance lines, law note and TOML values.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from hbma_ctrl.app.tuning.fit import FitResult, unflatten
+from hbma_ctrl.app.tuning.fit import FitReport, FitResult, unflatten
 from hbma_ctrl.core import units as U
 
 __all__ = ["LAW_NOTE", "toml_value", "provenance_lines", "params_toml", "write_fit"]
@@ -74,11 +75,13 @@ def _plot(result: FitResult, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
-def write_fit(result: FitResult, folder: Path | str) -> list[Path]:
-    """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths."""
+def write_fit(result: FitReport, folder: Path | str, toml: str | None = None,
+              plot: Callable[[FitReport, Path], None] | None = None) -> list[Path]:
+    """Write fit.json, params.toml and residuals.png into ``folder``; returns their paths. ``toml`` and
+    ``plot(result, path)``: the parameter file's text and the plot (None: a static fit's)."""
     folder = Path(folder)
     paths = [folder / "fit.json", folder / "params.toml", folder / "residuals.png"]
     paths[0].write_text(json.dumps(result.as_json(), indent=1) + "\n")
-    paths[1].write_text(params_toml(result))
-    _plot(result, paths[2])
+    paths[1].write_text(params_toml(result) if toml is None else toml)
+    (plot or _plot)(result, paths[2])
     return paths

@@ -16,6 +16,7 @@ from hbma_ctrl.app.tuning import fit as F
 from hbma_ctrl.app.tuning.fit_output import params_toml
 from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.identify import CORR_LIMIT, REL_CI_MAX
 from hbma_ctrl.core.materials import make_material
 
 runner = CliRunner()
@@ -63,7 +64,7 @@ def test_mr_narrow_range_trades_off_c1_c2():
     h = U.mm(np.linspace(1.0, 2.5, 10))
     res = F.fit_static(_free("mr", {"C1": 20e3, "C2": 2e3}, h), "mr", R1, T0)
     assert any("C1 and C2 trade off" in s for s in res.unidentifiable), res.unidentifiable
-    assert abs(res.correlation["C1"]["C2"]) > F.CORR_LIMIT
+    assert abs(res.correlation["C1"]["C2"]) > CORR_LIMIT
 
 
 @pytest.mark.slow
@@ -176,11 +177,11 @@ def test_mr_wide_range_correlated_but_determined_is_not_named():
     clean = _free("mr", {"C1": 20e3, "C2": 2e3})
     noisy = clean.p + 0.01 * (clean.p.max() - clean.p.min()) * np.random.default_rng(0).standard_normal(clean.p.size)
     res = F.fit_static(F.StaticData(clean.h, noisy), "mr", R1, T0)
-    assert res.correlation["C1"]["C2"] < -F.CORR_LIMIT
+    assert res.correlation["C1"]["C2"] < -CORR_LIMIT
     assert res.unidentifiable == []
     for k, true in (("C1", 20e3), ("C2", 2e3)):
         lo, hi = res.ci95[k]
-        assert lo <= true <= hi and (hi - lo) / 2 < F.REL_CI_MAX * res.params[k]
+        assert lo <= true <= hi and (hi - lo) / 2 < REL_CI_MAX * res.params[k]
 
 
 # --- the exact membrane's law -----------------------------------------------------------------
