@@ -58,6 +58,7 @@ __all__ = [
     "FitReport",
     "FitResult",
     "parse_data",
+    "rising",
     "param_names",
     "model_pressure",
     "check_options",
@@ -253,6 +254,17 @@ class _Model:
                              f"exact law's table, {RATIO_U[-1]:g} r1 = {U.to_mm(top):g} mm; use --fidelity cap")
 
 
+def rising(h: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points (h m, p Pa) of a free-inflation curve that a spline from the flat membrane (h = 0) can
+    take: finite, above h = 0 and each above every point before it. A shooting that goes astray for some
+    trial parameters returns heights at or below zero or a fold back; those points are not the curve."""
+    ok = np.isfinite(h) & np.isfinite(p)
+    h, p = h[ok], p[ok]
+    before = np.maximum.accumulate(np.concatenate([[0.0], h[:-1]])) if h.size else h
+    keep = h > before
+    return h[keep], p[keep]
+
+
 class _ExactFree:
     """Free-inflation pressures (Pa) at the data heights from the exact membrane's own solver, for a
     material whose parameters change its shape (the tables cannot follow them): each call solves the
@@ -284,11 +296,7 @@ class _ExactFree:
             # parameters the material refuses, or a shooting the solver cannot finish: no curve (the
             # fit's residual for it is the penalty, never a traceback)
             return None
-        h, p = np.asarray(out["h"], dtype=float), np.asarray(out["p"], dtype=float)
-        ok = np.isfinite(h) & np.isfinite(p)
-        h, p = h[ok], p[ok]
-        keep = np.concatenate([[True], np.diff(h) > 0]) if h.size else h.astype(bool)
-        return h[keep], p[keep]
+        return rising(np.asarray(out["h"], dtype=float), np.asarray(out["p"], dtype=float))
 
     def pressure(self, values: np.ndarray) -> np.ndarray:
         from scipy.interpolate import CubicSpline

@@ -268,3 +268,16 @@ def test_exact_law_refuses_a_height_beyond_its_table(tmp_path):
     res = runner.invoke(app, ["fit", str(path), "--material", "nh", "--out", str(tmp_path / "o")])
     one_line_error(res, "'h_mm'", "row 4", "21 mm", "1.6 r1 = 20 mm", "--fidelity cap")
     assert not (tmp_path / "o").exists()
+
+
+def test_rising_keeps_only_finite_points_above_zero_each_above_all_before():
+    from hbma_ctrl.app.tuning.fit import rising
+
+    # an astray shooting: a first height below the flat membrane, a fold back (2.0 after 3.0, then
+    # 2.5 still below 3.0), a NaN; what is left must be a valid spline abscissa from h = 0
+    h = np.array([-0.556, 1e-3, 3e-3, 2e-3, 2.5e-3, np.nan, 4e-3])
+    p = np.array([1.0, 2.0, 3.0, 2.0, 2.5, 5.0, 4.0])
+    hh, pp = rising(h, p)
+    assert hh.tolist() == [1e-3, 3e-3, 4e-3] and pp.tolist() == [2.0, 3.0, 4.0]
+    assert np.all(np.diff(np.concatenate([[0.0], hh])) > 0)
+    assert [a.size for a in rising(np.array([]), np.array([]))] == [0, 0]
