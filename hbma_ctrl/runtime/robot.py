@@ -408,8 +408,9 @@ class RobotLoop:
         """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
         set up and solved once at rest (the bank's starting estimate from ``readings_pa``, Pa, default
         0; the targets of t = 0 moved as the first tick would move them), the valve inputs' pump map
-        loaded and, with a minimum opening, the short vents' flows and height drops built. The first tick then fits its
-        period (without it: 9-12 ms of a 10 ms period here)."""
+        loaded, the supervisor's Function built for the NMPC's plans and, with a minimum opening, the
+        short vents' flows and height drops built. The first tick then fits its period (without it:
+        9-12 ms of a 10 ms period here)."""
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
         a = np.zeros(self.n)
         if self.is_mpc:
@@ -418,6 +419,7 @@ class RobotLoop:
             href = self._slew(self.chamber_targets(0.0), np.zeros(self.n), self._period)
             a_max = np.where(self.supervisor.vent_mask(href), 0.0, 1.0)
             self.controller.prime(x0, b, self.loads, href, k, c, a_max)
+            self.supervisor.prepare(2, self.controller.s.horizon)
             a = np.full(self.n, 0.5 / self.n)  # a supply on every chamber: the throttle's whole path
         self.model.valve_inputs(a, np.zeros(self.n), p, throttle=self.throttle)
         if self.pwm.active:

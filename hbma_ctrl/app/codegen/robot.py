@@ -268,7 +268,7 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
     from hbma_ctrl.models.actuation import acting_state
     from hbma_ctrl.robot.plant_step import robot_rig_step_function
-    from hbma_ctrl.runtime.safety_step import EVENTS, supervisor_state
+    from hbma_ctrl.runtime.safety_step import EVENTS
 
     # the NMPC's step uncompiled: the sources are generated from its Function, nothing is built here
     s, rs, plant, loop = _build(scn, partial(RobotNMPCFunction, compile=False))
@@ -312,7 +312,7 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
         "burst_state": (np.zeros(1) if loop.burst is None else _burst_state(loop)), "href": np.zeros(n),
         "href_N": np.zeros(n * N), "a_max": np.zeros(n), "near_count": [0.0], "peak": loop._peak_p.copy(),
         "x_est": np.zeros(n), "b_est": np.zeros(n), "k_est": np.zeros(n), "c_est": np.zeros(n),
-        "sup_state": supervisor_state(loop.supervisor, 2, N), "released": np.zeros(n),
+        "sup_state": loop.supervisor.state(2, N), "released": np.zeros(n),
         # the NMPC
         "prev": np.zeros(2 * n), "xbar": np.zeros(n * (N + 1)), "abar": np.zeros(n * N), "obar": np.zeros(n * N),
         "nmpc_first": [1.0], "qp_z": np.zeros(nmpc.nv), "qp_y": np.zeros(nmpc.m_rows),
