@@ -153,21 +153,6 @@ class Supervisor:
         #: events logged since the reset (the log keeps the newest event_log_size of them)
         self.logged = 0
 
-    def vent_mask(self, target: np.ndarray | float | None) -> np.ndarray:
-        """(n,) bool: chambers the vent rule puts on the safe command for these target heights (m)."""
-        vh = self.settings.vent_height
-        if target is None or vh is None:
-            return np.zeros(self.n, dtype=bool)
-        tg = np.broadcast_to(np.asarray(target, dtype=float), (self.n,))
-        return np.isfinite(tg) & (tg <= vh)
-
-    def stretch_over(self, stretch) -> np.ndarray:
-        """(n,) bool: chambers the stretch guard holds for these estimated stretches (-)."""
-        lim = self.settings.stretch_max
-        if stretch is None or lim is None:
-            return np.zeros(self.n, dtype=bool)
-        return np.broadcast_to(np.asarray(stretch, dtype=float), (self.n,)) >= lim
-
     def _function(self, c: int, H: int) -> tuple[FastFunction, dict]:
         """The policy's Function for c columns and H-row plans on buffers, with its state's parts; built
         again when the settings changed (replaced, or a field set) since the last build."""
