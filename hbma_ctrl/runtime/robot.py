@@ -248,6 +248,7 @@ class RobotLoop:
         #: the tick's blocks' Functions on buffers, by what they are built from (:meth:`_block`)
         self._blocks: dict = {}
         #: the limit-point pressures of the cautious cap at the loads (refreshed every tenth tick), Pa
+        self._peak_p = np.zeros(self.n)
         self._peak_p = self._caps(self.loads, np.ones(self.n), np.zeros(self.n), np.zeros(self.n),
                                   np.full(self.n, np.nan), np.full(self.n, np.nan), np.zeros(self.n), True)[2]
         self.burst = None if burst is None else BurstTest(self.n, burst)
@@ -370,10 +371,11 @@ class RobotLoop:
         supervisor's vent rule and interlocks by its settings and latches): (a_max, near the limit
         point under the cautious cap, the limit-point pressures kept, Pa), each (n,)."""
         s = self.supervisor.settings
-        f = self._block(("caps", s.vent_height, s.stretch_max),
-                        lambda: caps_function(self.model, self.n, self.cautious, s.vent_height, s.stretch_max))
-        out = f(W, k, p, k_std, href, lam, lost, self.supervisor.lost, self.supervisor.burst,
-                getattr(self, "_peak_p", None), float(refresh and self.cautious is not None))
+        cautious = None if self.cautious is None else tuple(self.cautious)
+        f = self._block(("caps", cautious, s.vent_height, s.stretch_max),
+                        lambda: caps_function(self.model, self.n, cautious, s.vent_height, s.stretch_max))
+        out = f(W, k, p, k_std, href, lam, lost, self.supervisor.lost, self.supervisor.burst, self._peak_p,
+                float(refresh and self.cautious is not None))
         return out[0].copy(), out[1] > 0.5, out[2].copy()
 
     def net_vents(self, a: np.ndarray, o: np.ndarray, est: dict, W: np.ndarray,
@@ -382,7 +384,8 @@ class RobotLoop:
         a short vent netted into the supply, or dropped near the target) at the bank's estimate ``est``,
         loads W (N), heights above the targets ``excess`` (m); the minimum on-time forgets the carried
         duty of a dropped vent."""
-        # compiled: its chambers' table look-ups cost 90 us a tick for 9 chambers on casadi's virtual machine, 30 as C
+        # compiled: its chambers' table look-ups take 90 us a tick for 9 chambers on casadi's virtual
+        # machine, 30 us as C
         f = self._block(("net_vents",), lambda: net_vents_function(self.model, self.n, self.pwm.min_duty, self._period),
                         compile=True)
         a, o, carry = f(a, o, est["p"], est["b"], excess, est["x"], W, est["k"], est["c"], self.pwm.carry)
@@ -394,8 +397,8 @@ class RobotLoop:
         set up and solved once at rest (the bank's starting estimate from ``readings_pa``, Pa, default
         0; the targets of t = 0 moved as the first tick would move them), the valve inputs' pump map
         loaded, the supervisor's Function built for the NMPC's plans and, with a minimum opening, the
-        short vents' flows and height drops built. The first tick then fits its period (without it:
-        9-12 ms of a 10 ms period here)."""
+        short vents' Function compiled. The first tick then fits its period (without it: 9-12 ms of a
+        10 ms period here)."""
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
         a = np.zeros(self.n)
         if self.is_mpc:

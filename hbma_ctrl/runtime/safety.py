@@ -165,8 +165,8 @@ class Supervisor:
         return self._fns[(c, H)]
 
     def prepare(self, c: int, H: int) -> None:
-        """Build the Function for c columns and H-row plans before the first step (a few hundred ms
-        for 18 chambers: start-up work, not a first tick's)."""
+        """Build the Function for c columns and H-row plans before the first step (0.2 s for 18
+        chambers: start-up work, not a first tick's)."""
         self._function(c, H)
         if self._state is None:
             self._state_for(c, H)
@@ -175,7 +175,8 @@ class Supervisor:
         """The state in :func:`~hbma_ctrl.runtime.safety_step.supervisor_function`'s layout for c columns
         and H-row plans, the latches as they are now (a copy). A stored plan of another shape is
         refused with a ValueError."""
-        if self._state is not None and (c, H) != self._shape and self._state[state_parts(self.n, *self._shape)["has_plan"]][0]:
+        stored = self._state is not None and self._state[state_parts(self.n, *self._shape)["has_plan"]][0]
+        if stored and (c, H) != self._shape:
             raise ValueError(f"Supervisor.state: the stored plan is {self._shape[1]} rows of {self._shape[0]} columns, "
                              f"not {H} of {c}")
         st = self._state_for(c, H).copy()

@@ -56,7 +56,8 @@ def state_size(n: int, c: int, H: int) -> int:
     return state_parts(n, c, H)["burst"].stop
 
 
-def supervisor_function(settings: "SupervisorSettings", n: int, c: int, H: int, name: str = "supervisor") -> ca.Function:
+def supervisor_function(settings: "SupervisorSettings", n: int, c: int, H: int,
+                        name: str = "supervisor") -> ca.Function:
     """The policy of :class:`~hbma_ctrl.runtime.safety.Supervisor` with ``settings`` for n chambers,
     c columns, H-row plans (module docstring)."""
     s = settings.validate()
