@@ -68,7 +68,7 @@ from typing import NamedTuple
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled, is_finite, is_nan
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, compiled, is_finite, is_nan
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.core.units import mm
@@ -398,20 +398,9 @@ class ChamberBank:
         a = self.actuator
         return m * a.R * a.T / (a.p_env * a.V0)
 
-    def height_drops(self, x: np.ndarray, W: np.ndarray, k: np.ndarray, c: np.ndarray,
-                     dm: np.ndarray) -> np.ndarray:
-        """The height (m, (n,)) each chamber loses when gas mass dm (kg) leaves it: the model's height
-        at (x, W, k, c) less the one at x less dm; one call of a compiled map (the loop's vent rule
-        asks for it on a tick with a short vent, where two calls of :attr:`out` cost 0.3 ms for 18
-        chambers)."""
-        n = int(np.size(x))
-        key = ("height_drop_fast", n)
-        if key not in self._cache:
-            self._cache[key] = FastFunction(self.mapped(self.height_drop_function(), n), False)
-        return self._cache[key](x, W, k, c, dm)[0].copy()
-
     def height_drop_function(self) -> ca.Function:
-        """height_drop(x, W, k, c, dm) -> m: one chamber's :meth:`height_drops` (casadi, cached)."""
+        """height_drop(x, W, k, c, dm) -> m: the height one chamber loses when gas mass dm (kg) leaves
+        it, the model's height at (x, W, k, c) less the one at x less dm (casadi, cached)."""
         def build() -> ca.Function:
             xs, ws, ks, cs, ms = (ca.SX.sym(s) for s in ("x", "W", "k", "c", "dm"))
             drop = self.outputs_expr(xs, ws, ks, cs)[0] - self.outputs_expr(xs - self.x_of_mass(ms), ws, ks, cs)[0]
@@ -420,7 +409,10 @@ class ChamberBank:
         return self.cached("height_drop", build)
 
     def open_flows_function(self) -> ca.Function:
-        """open_flows(p, b) -> (q_in, q_out) kg/s: one chamber's :meth:`open_flows` (casadi, cached)."""
+        """open_flows(p, b) -> (q_in, q_out) kg/s: the mass flows a supply a = 1 (the full-speed pump
+        through an open inlet) and an outlet o = 1 (fully open) pass at gauge pressure p (Pa) with
+        pump-flow factor b, as the bank's model has them: a decision (a, o) passes a and o times these
+        (casadi, cached)."""
         def build() -> ca.Function:
             pp, bb = ca.SX.sym("p"), ca.SX.sym("b")
             P = self.chamber.with_factors(self.chamber.params, b=bb)
@@ -428,19 +420,6 @@ class ChamberBank:
                                                       -self.chamber.net_flow(ca.DM([0.0, 0.0, 1.0]), pp, P)])
 
         return self.cached("open_flows", build)
-
-    def open_flows(self, p: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The mass flows (kg/s, each (n,)) a supply a = 1 (the full-speed pump through an open inlet)
-        and an outlet o = 1 (the outlet fully open) pass, at gauge pressures p (n,) Pa with pump-flow
-        factors b (n,), as the bank's model has them: a decision (a, o) passes a and o times these."""
-        n = int(np.size(p))
-        key = ("open_flows", n)
-        if key not in self._cache:
-            # compiled and called on buffers: the loop calls it on most ticks with a minimum opening
-            # (50 us for 18 chambers on casadi's virtual machine with numpy arguments)
-            self._cache[key] = FastFunction(self.mapped(self.open_flows_function(), n), False)
-        q_in, q_out = self._cache[key](p, b)
-        return q_in.copy(), q_out.copy()
 
     def valve_inputs(self, a: np.ndarray, o: np.ndarray, p: np.ndarray, throttle: bool = True) -> np.ndarray:
         """Plant inputs U (3 x n) for decisions a, o (n,) at gauge pressures p (n,) Pa: the compressor

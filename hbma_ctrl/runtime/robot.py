@@ -37,6 +37,9 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   only when the chamber's estimate is more than :data:`VENT_DEADBAND` and half the height one
   minimum opening takes off above its target (:meth:`RobotLoop.net_vents`).
 
+The slew, the supply caps and the short vents are evaluated by the casadi Functions of
+:mod:`hbma_ctrl.runtime.robot_step`, the supervisor by its own: those a generated robot loop runs.
+
 The controller does not know the tip load (a disturbance). Step, EKF and controller times go into
 bounded :class:`StepStats` (s); ``last_timing`` has this tick's.
 
@@ -70,7 +73,9 @@ from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
 from hbma_ctrl.robot.targets import chamber_targets
 from hbma_ctrl.runtime.burst import BurstTest, BurstTestSettings
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.runtime.pwm import MinOnTime
+from hbma_ctrl.runtime.robot_step import VENT_DEADBAND, caps_function, net_vents_function, slew_function
 from hbma_ctrl.runtime.safety import ZERO_TARGET, Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
@@ -132,17 +137,6 @@ def robot_supervisor(pressure_limit: float, n: int, interlock_margin: float = 1e
 #: (a per-mille link rounds to 0.0005)
 HELD_HISTORY = 16
 HELD_ATOL = 6e-4
-
-
-#: with a minimum valve opening, a vent shorter than it is sent (as the minimum opening every few
-#: periods) only while the chamber's estimated height is more than this above its target, m. One 2 ms
-#: vent takes 0.4-0.8 mm off a chamber on its far branch at 39 kPa: held at its target by trickle
-#: vents, it dipped that much several times a second (robot_bending on the structured rig, seeds
-#: 0-5: 35 of 42 segments settled, most at the end of their 4 s). With the netting into the supply
-#: and this band: 42 of 42 at 0.10, 0.15 and 0.25 mm, 37 of 42 with the netting and no band. The band
-#: is also at least half the height one minimum opening takes off (RobotLoop.vent_pulse_drop): a
-#: vent is sent only when it brings the chamber nearer its target
-VENT_DEADBAND = 0.15e-3
 
 
 def _flow_duty(a: np.ndarray, topology: str) -> np.ndarray:
@@ -245,12 +239,18 @@ class RobotLoop:
         self._sent: deque = deque(maxlen=HELD_HISTORY)
         self.held_unmatched = 0
         self.loads = np.maximum(load_sharing(design, np.zeros((design.n_layers, 3))).forces.ravel(), W_FLOOR)
-        self._peak_p = np.array([model.peak(w)[1] for w in model.clip_load(self.loads)])
         self._tcache: dict = {}
         self._k = 0
         self._t: float | None = None
         self._period = float(bank.settings.sample_period)
         self.pwm = MinOnTime(self._period, valve_min_on)
+        self.pwm.carry = np.zeros((2, self.n))
+        #: the tick's blocks' Functions on buffers, by what they are built from (:meth:`_block`)
+        self._blocks: dict = {}
+        #: the limit-point pressures of the cautious cap at the loads (refreshed every tenth tick), Pa
+        self._peak_p = np.zeros(self.n)
+        self._peak_p = self._caps(self.loads, np.ones(self.n), np.zeros(self.n), np.zeros(self.n),
+                                  np.full(self.n, np.nan), np.full(self.n, np.nan), np.zeros(self.n), True)[2]
         self.burst = None if burst is None else BurstTest(self.n, burst)
 
     def set_targets(self, targets: dict) -> None:
@@ -295,23 +295,16 @@ class RobotLoop:
         self.loads = W
         href = self._slew(self.chamber_targets(t), est["h"], steps * self._period)
         self.href = href
-        vent = sup.vent_mask(href)
         stretch, lost = est["lam"], est["lost"]
-        held = sup.stretch_over(stretch) | lost | sup.lost | sup.burst  # no supply budget where rules 5-7 cut it
         t_ctrl = time.perf_counter()
         plan, ok, cause = None, True, "ok"
         try:
             if self.is_mpc:
-                c = self.cautious
-                if c is not None and self._k % 10 == 0:
-                    self._peak_p = np.array([model.peak(w)[1] for w in model.clip_load(W / est["k"])])
+                a_max, near, self._peak_p = self._caps(W, est["k"], est["p"], est["k_std"], href, stretch, lost,
+                                                       self._k % 10 == 0)
+                self.cautious_steps += int(near.sum())
                 # no preview: the NMPC sees the current target only (as the PID does); a preview would
                 # start each move up to one horizon early
-                a_max = np.where(vent | held, 0.0, 1.0)
-                if c is not None:
-                    near = (est["p"] > c[0] * est["k"] * self._peak_p) & (est["k_std"] > c[1])
-                    a_max = np.where(near, np.minimum(a_max, c[2]), a_max)
-                    self.cautious_steps += int(near.sum())
                 a, o = ctrl.step(est["x"], est["b"], W, href, est["k"], est["c"], a_max)
             else:
                 a, o = ctrl.step(z, W, href)
@@ -340,8 +333,7 @@ class RobotLoop:
         # NMPC keep working in a: a full-speed inlet duty)
         t_valves = time.perf_counter()
         if self.pwm.active:
-            a, o = self.net_vents(a, o, est["p"], est["b"], est["h"] - href,
-                                  lambda q_out: self.vent_pulse_drop(est, W, q_out))
+            a, o = self.net_vents(a, o, est, W, est["h"] - href)
         Uc = model.valve_inputs(a, o, est["p"], throttle=self.throttle)
         supply = _flow_duty(a, model.topology)
         if self.pwm.active:
@@ -367,76 +359,73 @@ class RobotLoop:
         self._k += 1
         return a, o
 
-    def net_vents(self, a: np.ndarray, o: np.ndarray, p: np.ndarray, b: np.ndarray,
-                  excess: np.ndarray, pulse_drop=None) -> tuple[np.ndarray, np.ndarray]:
-        """(a, o) as sent with a minimum valve opening: a vent shorter than the opening is netted into
-        the same chamber's supply (the same net flow at the estimated pressure p, Pa, pump-flow
-        factor b), and one left over is dropped (its carried duty too) while the chamber's estimated
-        height is at most :data:`VENT_DEADBAND` above its target (``excess``: estimate - target, m),
-        nor more than half of what one minimum opening takes off: ``pulse_drop(q_out)`` (m, (n,),
-        given the outlets' open flows, kg/s; None = the band alone). A vent that would overshoot
-        the target by more than it corrects is not sent.
+    def _block(self, key: tuple, build, compile: bool = False) -> FastFunction:
+        """The Function ``build()`` on buffers, made once per ``key`` (what it is built from: a setting
+        changed after the start builds it again); with ``compile`` as C at the per-step flags."""
+        if key not in self._blocks:
+            self._blocks[key] = FastFunction(build(), compile, HOT_OPT, HOT_FLAGS)
+        return self._blocks[key]
 
-        Why: holding a chamber the NMPC pumps and vents at once, and a vent trickle reaches the valve
-        as one minimum opening every few periods (:class:`MinOnTime`), a height step of 0.4-0.8 mm on
-        a far-branch chamber; the pump's flow, a speed, can be trimmed by any amount. Without the
-        band the netted trickle would still fire for a few hundredths of a millimetre of estimate."""
-        md = self.pwm.min_duty
-        small = (o > 0.0) & (o < md)
-        if not small.any():
-            return a, o
-        q_in, q_out = self.model.open_flows(p, b)
-        net = a * q_in - o * q_out
-        ok = small & (a > 0.0) & (q_in > 0.0) & (q_out > 0.0)
-        a = np.where(ok, np.maximum(net, 0.0) / np.where(ok, q_in, 1.0), a)
-        o = np.where(ok, np.maximum(-net, 0.0) / np.where(ok, q_out, 1.0), o)
-        short = (o > 0.0) & (o < md)
-        drop = short & ~(excess > VENT_DEADBAND)
-        if pulse_drop is not None and (short & ~drop).any():
-            drop |= short & ~(excess > 0.5 * pulse_drop(q_out))
-        self.pwm.forget(1, drop)
-        return a, np.where(drop, 0.0, o)
+    def _caps(self, W, k, p, k_std, href, lam, lost, refresh: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The NMPC's supply bounds this tick (:func:`~hbma_ctrl.runtime.robot_step.caps_function`, the
+        supervisor's vent rule and interlocks by its settings and latches): (a_max, near the limit
+        point under the cautious cap, the limit-point pressures kept, Pa), each (n,)."""
+        s = self.supervisor.settings
+        cautious = None if self.cautious is None else tuple(self.cautious)
+        f = self._block(("caps", cautious, s.vent_height, s.stretch_max),
+                        lambda: caps_function(self.model, self.n, cautious, s.vent_height, s.stretch_max))
+        out = f(W, k, p, k_std, href, lam, lost, self.supervisor.lost, self.supervisor.burst, self._peak_p,
+                float(refresh and self.cautious is not None))
+        return out[0].copy(), out[1] > 0.5, out[2].copy()
 
-    def vent_pulse_drop(self, est: dict, W: np.ndarray, q_out: np.ndarray) -> np.ndarray:
-        """The height (m, (n,)) one minimum opening of each chamber's outlet takes off at the bank's
-        estimate ``est`` under loads W (N), outlet flows q_out (kg/s): the model's height at the
-        estimated gas mass less the mass that opening lets out."""
-        dm = q_out * (self.pwm.min_duty * self._period)
-        return np.maximum(self.model.height_drops(est["x"], W, est["k"], est["c"], dm), 0.0)
+    def net_vents(self, a: np.ndarray, o: np.ndarray, est: dict, W: np.ndarray,
+                  excess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(a, o) as sent with a minimum valve opening (:func:`~hbma_ctrl.runtime.robot_step.net_vents_function`:
+        a short vent netted into the supply, or dropped near the target) at the bank's estimate ``est``,
+        loads W (N), heights above the targets ``excess`` (m); the minimum on-time forgets the carried
+        duty of a dropped vent."""
+        # compiled: its chambers' table look-ups take 90 us a tick for 9 chambers on casadi's virtual
+        # machine, 30 us as C
+        f = self._block(("net_vents",), lambda: net_vents_function(self.model, self.n, self.pwm.min_duty, self._period),
+                        compile=True)
+        a, o, carry = f(a, o, est["p"], est["b"], excess, est["x"], W, est["k"], est["c"], self.pwm.carry)
+        self.pwm.carry = carry.reshape(2, self.n, order="F").copy()
+        return a.copy(), o.copy()
 
     def prime(self, readings_pa: np.ndarray | None = None) -> None:
         """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
         set up and solved once at rest (the bank's starting estimate from ``readings_pa``, Pa, default
         0; the targets of t = 0 moved as the first tick would move them), the valve inputs' pump map
-        loaded and, with a minimum opening, the short vents' flows and height drops built. The first tick then fits its
-        period (without it: 9-12 ms of a 10 ms period here)."""
+        loaded, the supervisor's Function built for the NMPC's plans and, with a minimum opening, the
+        short vents' Function compiled. The first tick then fits its period (without it: 9-12 ms of a
+        10 ms period here)."""
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
         a = np.zeros(self.n)
         if self.is_mpc:
             X0 = self.bank.rest_state(p)
             x0, (b, k, c) = self.bank.gas_mass(X0), X0[1:]
             href = self._slew(self.chamber_targets(0.0), np.zeros(self.n), self._period)
-            a_max = np.where(self.supervisor.vent_mask(href), 0.0, 1.0)
+            # the vent rule's bounds alone: no interlock holds a chamber at rest
+            a_max = self._caps(self.loads, np.ones(self.n), np.zeros(self.n), np.zeros(self.n), href,
+                               np.full(self.n, np.nan), np.zeros(self.n), False)[0]
             self.controller.prime(x0, b, self.loads, href, k, c, a_max)
+            self.supervisor.prepare(2, self.controller.s.horizon)
             a = np.full(self.n, 0.5 / self.n)  # a supply on every chamber: the throttle's whole path
         self.model.valve_inputs(a, np.zeros(self.n), p, throttle=self.throttle)
         if self.pwm.active:
-            # the short vents' netting and vent-rule Functions built (the second compiled)
-            self.model.open_flows(p, np.ones(self.n))
-            self.model.height_drops(np.zeros(self.n), np.full(self.n, W_FLOOR), np.ones(self.n), np.ones(self.n),
-                                    np.zeros(self.n))
+            # the short vents' Function built (the minimum on-time's carry left as it was)
+            carry = self.pwm.carry
+            rest = {"p": p, "b": np.ones(self.n), "x": np.zeros(self.n), "k": np.ones(self.n), "c": np.ones(self.n)}
+            self.net_vents(np.zeros(self.n), np.zeros(self.n), rest, np.full(self.n, W_FLOOR), np.zeros(self.n))
+            self.pwm.carry = carry
 
     def _slew(self, goal: np.ndarray, h_est: np.ndarray, dt: float) -> np.ndarray:
-        """The targets this tick (m): ``goal`` when there is no rate; otherwise the last ones (the
-        estimated heights at the first tick) moved towards it by at most target_rate x dt, a zero
-        target at once."""
-        goal = np.asarray(goal, dtype=float)
-        if self.target_rate <= 0.0:
-            return goal
-        prev = np.maximum(np.nan_to_num(np.asarray(h_est, dtype=float)), 0.0) if self.href is None else self.href
-        lim = self.target_rate * dt
-        out = prev + np.clip(goal - prev, -lim, lim)
-        return np.where(goal <= ZERO_TARGET, goal, out)
+        """The targets this tick (m, :func:`~hbma_ctrl.runtime.robot_step.slew_function`): ``goal`` when
+        there is no rate; otherwise the last ones (the estimated heights at the first tick) moved
+        towards it by at most target_rate x dt, a zero target at once."""
+        f = self._block(("slew", self.target_rate), lambda: slew_function(self.n, self.target_rate))
+        first = self.href is None
+        return f(goal, np.zeros(self.n) if first else self.href, h_est, float(first), float(dt))[0].copy()
 
     def _held_input(self, held: np.ndarray | None) -> np.ndarray:
         """What the bank predicts with for the valve inputs the rig held: those of the newest command

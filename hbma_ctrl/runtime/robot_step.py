@@ -1,18 +1,19 @@
-"""Parts of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` as casadi Functions, for a generated robot loop (SI).
+"""The parts of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` around its controller and supervisor as
+casadi Functions: the loop evaluates them each tick, a generated robot loop emits them (SI).
 
-- :func:`slew_function`: the targets this tick (``RobotLoop._slew``): each chamber's target moves
-  towards its goal at most ``target_rate`` x dt, from the estimated height at the first tick; a zero
-  target (the vent rule) applies at once.
-- :func:`net_vents_function`: with a minimum valve opening, a vent shorter than it netted into the same
-  chamber's supply, and one left over dropped unless the chamber is high enough above its target
-  (:meth:`~hbma_ctrl.runtime.robot.RobotLoop.net_vents` with
-  :meth:`~hbma_ctrl.runtime.robot.RobotLoop.vent_pulse_drop`), the outlets' carried duty forgotten
-  where one is dropped.
-- :func:`caps_function`: the supply bound the NMPC gets per chamber (``a_max``): 0 where the vent rule
-  or an interlock holds the chamber, and the cautious cap (``RobotLoop.cautious``) while a chamber's
-  estimated pressure is above a fraction of its estimated limit-point pressure and its modulus
-  factor is still uncertain. The limit-point pressures are refreshed every tenth tick, as the loop
-  does, at the loads over the modulus factors (the tables' load path's peak, :meth:`ChamberBank.peak`).
+- :func:`slew_function`: the targets this tick: each chamber's target moves towards its goal at most
+  ``target_rate`` x dt, from the estimated height at the first tick; a zero target (the vent rule)
+  applies at once.
+- :func:`caps_function`: the supply bound the NMPC gets per chamber (``a_max``): 0 where the
+  supervisor's vent rule or an interlock holds the chamber (the stretch at its limit, a lost
+  estimate, a burst), and the cautious cap (``RobotLoop.cautious``) while a chamber's estimated
+  pressure is above a fraction of its estimated limit-point pressure and its modulus factor is still
+  uncertain. The limit-point pressures are refreshed where asked (every tenth tick in the loop) at
+  the loads over the modulus factors (the tables' load path's peak, :func:`peak_function`).
+- :func:`net_vents_function`: with a minimum valve opening, a vent shorter than it netted into the
+  same chamber's supply, and one left over dropped unless the chamber is high enough above its
+  target (:data:`VENT_DEADBAND`, and half the height one minimum opening takes off), the outlets'
+  carried duty forgotten where one is dropped.
 """
 
 from __future__ import annotations
@@ -20,12 +21,21 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core.codegen import is_nan
+from hbma_ctrl.core.codegen import is_finite, is_nan
 from hbma_ctrl.models.bank import ChamberBank
-from hbma_ctrl.runtime.robot import VENT_DEADBAND
 from hbma_ctrl.runtime.safety import ZERO_TARGET
 
-__all__ = ["slew_function", "caps_function", "peak_function", "net_vents_function"]
+__all__ = ["slew_function", "caps_function", "peak_function", "net_vents_function", "VENT_DEADBAND"]
+
+#: with a minimum valve opening, a vent shorter than it is sent (as the minimum opening every few
+#: periods) only while the chamber's estimated height is more than this above its target, m. One 2 ms
+#: vent takes 0.4-0.8 mm off a chamber on its far branch at 39 kPa: held at its target by trickle
+#: vents, it dipped that much several times a second (robot_bending on the structured rig, seeds
+#: 0-5: 35 of 42 segments settled, most at the end of their 4 s). With the netting into the supply
+#: and this band: 42 of 42 at 0.10, 0.15 and 0.25 mm, 37 of 42 with the netting and no band. The band
+#: is also at least half the height one minimum opening takes off (net_vents_function): a vent is
+#: sent only when it brings the chamber nearer its target
+VENT_DEADBAND = 0.15e-3
 
 
 def slew_function(n: int, target_rate: float, name: str = "slew") -> ca.Function:
@@ -57,28 +67,39 @@ def peak_function(model: ChamberBank, name: str = "peak_pressure") -> ca.Functio
     return ca.Function(name, [W], [ca.mmax(p)], ["W"], ["p_peak"])
 
 
-def caps_function(model: ChamberBank, n: int, cautious: tuple | None, name: str = "caps") -> ca.Function:
-    """caps(W[n], k[n], p[n], k_std[n], vent[n], held[n], peak[n], refresh)
+def caps_function(model: ChamberBank, n: int, cautious: tuple | None, vent_height: float | None,
+                  stretch_max: float | None, name: str = "caps") -> ca.Function:
+    """caps(W[n], k[n], p[n], k_std[n], href[n], lam[n], lost[n], sup_lost[n], sup_burst[n], peak[n], refresh)
         -> (a_max[n], near[n], peak_next[n])
 
     W the loads (N), k and k_std the modulus factors and their std, p the estimated pressures (Pa),
-    vent / held 0-1 (no supply budget), ``peak`` the limit-point pressures kept (Pa), recomputed at
-    the loads over the factors (clipped to the tables) where ``refresh`` is 1. ``cautious`` =
-    (pressure fraction, k std, duty) as :class:`~hbma_ctrl.runtime.robot.RobotLoop`'s, None = no cap (near 0)."""
+    href the targets (m), lam the estimated stretches, lost the lost estimates, sup_lost / sup_burst
+    the supervisor's latches (0-1). No supply budget where the vent rule holds (a finite target at or
+    below ``vent_height``, m) or an interlock does (``lam`` at or above ``stretch_max``, a lost
+    estimate or latch, a burst latch); None = no such rule. ``peak`` the limit-point pressures kept
+    (Pa), recomputed at the loads over the factors (clipped to the tables) where ``refresh`` is 1.
+    ``cautious`` = (pressure fraction, k std, duty) as :class:`~hbma_ctrl.runtime.robot.RobotLoop`'s,
+    None = no cap (near 0)."""
     SX = ca.SX
-    W, k, p, ks, vent, held, peak = (SX.sym(s, n) for s in ("W", "k", "p", "k_std", "vent", "held", "peak"))
+    names = ("W", "k", "p", "k_std", "href", "lam", "lost", "sup_lost", "sup_burst", "peak")
+    W, k, p, ks, href, lam, lost, sup_lost, sup_burst, peak = (SX.sym(s, n) for s in names)
     refresh = SX.sym("refresh")
     pk = peak_function(model).map(n)
     fresh = ca.vec(pk(ca.vec(model.clip_load(W / k)).T))
     peak_next = ca.if_else(refresh != 0, fresh, peak) if cautious is not None else peak
-    a_max = ca.if_else(ca.logic_or(vent != 0, held != 0), 0.0, 1.0)
+    held = ca.logic_or(ca.logic_or(lost != 0, sup_lost != 0), sup_burst != 0)
+    if vent_height is not None:
+        held = ca.logic_or(held, ca.logic_and(is_finite(href), href <= vent_height))
+    if stretch_max is not None:
+        held = ca.logic_or(held, lam >= stretch_max)  # (NaN compares false: not held)
+    a_max = ca.if_else(held, 0.0, 1.0)
     near = SX.zeros(n)
     if cautious is not None:
         c0, c1, c2 = (float(v) for v in cautious)
         near = ca.logic_and(p > c0 * k * peak_next, ks > c1)
         a_max = ca.if_else(near, ca.fmin(a_max, c2), a_max)
-    return ca.Function(name, [W, k, p, ks, vent, held, peak, refresh], [a_max, near, peak_next],
-                       ["W", "k", "p", "k_std", "vent", "held", "peak", "refresh"], ["a_max", "near", "peak_next"])
+    return ca.Function(name, [W, k, p, ks, href, lam, lost, sup_lost, sup_burst, peak, refresh],
+                       [a_max, near, peak_next], [*names, "refresh"], ["a_max", "near", "peak_next"])
 
 
 def net_vents_function(model: ChamberBank, n: int, min_duty: float, period: float,
@@ -86,11 +107,20 @@ def net_vents_function(model: ChamberBank, n: int, min_duty: float, period: floa
     """net_vents(a[n], o[n], p[n], b[n], excess[n], x[n], W[n], k[n], c[n], carry[2 x n])
         -> (a_sent[n], o_sent[n], carry_next[2 x n])
 
-    ``RobotLoop.net_vents`` for a minimum opening of ``min_duty`` (of the period, s): the decisions
+    The short vents for a minimum opening of ``min_duty`` (of the period, s): the decisions
     (a, o), the estimated pressures p (Pa), pump-flow factors b, heights above the targets ``excess``
     (m), gas masses x, loads W (N) and factors k, c (for the height one minimum opening takes off),
     and the minimum on-time's carry (inlet row 0, outlet row 1: the outlet's is forgotten where a
-    short vent is dropped)."""
+    short vent is dropped).
+
+    A vent shorter than the opening is netted into the same chamber's supply (the same net flow at
+    p); one left over is dropped while the chamber is at most :data:`VENT_DEADBAND` above its
+    target, or at most half the height one minimum opening takes off (the model's height at x less
+    the one at the mass that opening lets out): a vent that would overshoot the target by more than
+    it corrects is not sent. Why: holding a chamber the NMPC pumps and vents at once, a vent trickle
+    reaches the valve as one minimum opening every few periods
+    (:class:`~hbma_ctrl.runtime.pwm.MinOnTime`), a height step of 0.4-0.8 mm on a far-branch
+    chamber; the pump's flow, a speed, can be trimmed by any amount."""
     SX = ca.SX
     a, o, p, b, ex, x, W, k, c = (SX.sym(s, n) for s in ("a", "o", "p", "b", "excess", "x", "W", "k", "c"))
     carry = SX.sym("carry", 2, n)

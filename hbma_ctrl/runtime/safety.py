@@ -36,13 +36,17 @@ bounded log; vents are logged when they start (a held zero target would flood th
 
 from __future__ import annotations
 
+import copy
 from collections import deque
 from dataclasses import dataclass
 
+import casadi as ca
 import numpy as np
 
+from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.interfaces import guard_margin_setting, p_max_setting
 from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.runtime.safety_step import EVENTS, state_parts, state_size, supervisor_function
 
 __all__ = ["SupervisorSettings", "SupervisorEvent", "Supervisor"]
 
@@ -99,77 +103,88 @@ class SupervisorEvent:
 
 
 class Supervisor:
-    """The safety policy of the module docstring, for ``n`` chambers. No I/O; all state on the instance."""
+    """The safety policy of the module docstring, for ``n`` chambers, no I/O. Each step is one call of
+    :func:`~hbma_ctrl.runtime.safety_step.supervisor_function` (the Function the generated loops
+    run); the instance keeps its state between steps, the counts and the event log.
+
+    ``lost`` and ``burst`` are the latches of rules 6 and 7, ``released`` the chambers released this
+    step, (n,) bool each; the latches are read back into the state at the next step (a caller may
+    clear them)."""
 
     def __init__(self, settings: SupervisorSettings | None = None, n: int = 1):
         if not isinstance(n, int) or n < 1:
             raise ValueError(f"supervisor.n = {n!r} must be an integer >= 1")
         self.settings = (settings or SupervisorSettings()).validate()
         self.n = n
+        self._fns: dict = {}
+        self._built_for: SupervisorSettings | None = None
         self.reset()
 
     def reset(self) -> None:
-        """Forget the plan, the streaks, the counts and the log."""
-        self._plan: np.ndarray | None = None  # (H, n, c)
-        self._plan_t = np.zeros(self.n)  # time of each chamber's row 0, s
-        self._streak = np.zeros(self.n, dtype=int)
-        self._age = np.zeros(self.n, dtype=int)  # plan rows replayed since the plan was stored
+        """Forget the plan, the streaks, the latches, the counts and the log."""
+        #: the Function's state for plans of ``_shape`` = (columns, rows); None before the first step
+        self._state: np.ndarray | None = None
+        self._shape: tuple = (0, 1)
         self._venting = np.zeros(self.n, dtype=bool)
-        #: chambers vented for a lost estimate (until their pressure is down), and those released this step
         self.lost = np.zeros(self.n, dtype=bool)
         self.released = np.zeros(self.n, dtype=bool)
-        #: chambers put on the safe command for a burst (rule 7), until the next reset
         self.burst = np.zeros(self.n, dtype=bool)
-        self.counts: dict = {"shifted_plan": 0, "safe_command": 0, "vent": 0, "guard": 0, "stretch_guard": 0,
-                             "lost_estimate": 0, "burst": 0}
+        self.counts: dict = dict.fromkeys(EVENTS, 0)
         self.failure_causes: dict = {}
         self.failed_steps = 0
         self.events: deque = deque(maxlen=self.settings.event_log_size)
         #: events logged since the reset (the log keeps the newest event_log_size of them)
         self.logged = 0
 
-    # --- helpers ---------------------------------------------------------------------------------
-    def safe_command(self, channels: int) -> np.ndarray:
-        """The safe command row: supply off, outlet at ``safe_outlet``."""
-        row = np.zeros(channels)
-        row[-1] = self.settings.safe_outlet
-        return row
+    def _function(self, c: int, H: int) -> tuple[FastFunction, dict]:
+        """The policy's Function for c columns and H-row plans on buffers, with its state's parts; built
+        again when the settings changed (replaced, or a field set) since the last build."""
+        if self._built_for != self.settings:
+            self._fns.clear()
+            self._built_for = copy.copy(self.settings)
+        if (c, H) not in self._fns:
+            self._fns[(c, H)] = (FastFunction(_policy(self._built_for, self.n, c, H), compile=False),
+                                 state_parts(self.n, c, H))
+        return self._fns[(c, H)]
 
-    def vent_mask(self, target: np.ndarray | float | None) -> np.ndarray:
-        """(n,) bool: chambers the vent rule puts on the safe command for these target heights (m)."""
-        vh = self.settings.vent_height
-        if target is None or vh is None:
-            return np.zeros(self.n, dtype=bool)
-        tg = np.broadcast_to(np.asarray(target, dtype=float), (self.n,))
-        return np.isfinite(tg) & (tg <= vh)
+    def prepare(self, c: int, H: int) -> None:
+        """Build the Function for c columns and H-row plans before the first step (0.2 s for 18
+        chambers: start-up work, not a first tick's)."""
+        self._function(c, H)
+        if self._state is None:
+            self._state_for(c, H)
 
-    def stretch_over(self, stretch) -> np.ndarray:
-        """(n,) bool: chambers the stretch guard holds for these estimated stretches (-): at or above
-        ``stretch_max`` (rule 5); none without a limit or estimates (NaN compares False: not guarded)."""
-        lim = self.settings.stretch_max
-        if stretch is None or lim is None:
-            return np.zeros(self.n, dtype=bool)
-        return np.broadcast_to(np.asarray(stretch, dtype=float), (self.n,)) >= lim
+    def state(self, c: int, H: int) -> np.ndarray:
+        """The state in :func:`~hbma_ctrl.runtime.safety_step.supervisor_function`'s layout for c columns
+        and H-row plans, the latches as they are now (a copy). A stored plan of another shape is
+        refused with a ValueError."""
+        stored = self._state is not None and self._state[state_parts(self.n, *self._shape)["has_plan"]][0]
+        if stored and (c, H) != self._shape:
+            raise ValueError(f"Supervisor.state: the stored plan is {self._shape[1]} rows of {self._shape[0]} columns, "
+                             f"not {H} of {c}")
+        st = self._state_for(c, H).copy()
+        parts = state_parts(self.n, c, H)
+        st[parts["lost"]], st[parts["burst"]] = self.lost, self.burst
+        return st
 
-    def _log(self, t: float, i: int, cause: str, detail: str = "") -> None:
-        self.events.append(SupervisorEvent(float(t), int(i), cause, detail))
-        self.logged += 1
+    def _state_for(self, c: int, H: int) -> np.ndarray:
+        """The state for c columns and H-row plans (a stored plan of another shape dropped)."""
+        if self._state is None or (c, H) != self._shape:
+            n = self.n
+            st = np.zeros(state_size(n, c, H))
+            if self._state is not None:
+                new, old = state_parts(n, c, H), state_parts(n, *self._shape)
+                for key in ("plan_t", "streak", "age"):
+                    st[new[key]] = self._state[old[key]]
+            self._state, self._shape = st, (c, H)
+        return self._state
 
-    def _store_plan(self, t: float, plan: np.ndarray, rows: np.ndarray) -> None:
-        if self._plan is None or self._plan.shape != plan.shape:
-            self._plan = plan.copy()
-        else:
-            self._plan[:, rows] = plan[:, rows]
-        self._plan_t[rows] = t
-        self._age[rows] = 0
+    def _log(self, t: float, chambers, cause: str, detail) -> None:
+        """Log ``cause`` for each chamber where ``chambers`` is True, ``detail(i)`` its text."""
+        for i in np.nonzero(chambers)[0]:
+            self.events.append(SupervisorEvent(float(t), int(i), cause, detail(i)))
+            self.logged += 1
 
-    def _as_plan(self, plan, shape: tuple) -> np.ndarray | None:
-        if plan is None:
-            return None
-        p = np.asarray(plan, dtype=float)
-        return p.reshape(p.shape[0], *shape)
-
-    # --- the policy ------------------------------------------------------------------------------
     def apply(self, t: float, command, pressure, ok=True, plan=None, target=None,
               cause: str = "controller_failed", stretch=None, lost=None, burst=None) -> np.ndarray:
         """The command to send at time t (s), same shape as ``command``.
@@ -178,7 +193,8 @@ class Supervisor:
         pressure : the guarded gauge pressure per chamber, Pa (estimate or reading, see settings).
         ok : bool or (n,) bool: whether the controller produced this command normally.
         plan : where ok, the controller's plan (H, n, c) or (H, c), row 0 = this command; where not
-            ok, a late plan for the next failure, or None.
+            ok, a late plan for the next failure, or None. A plan of another shape than the stored
+            one replaces it.
         target : target heights per chamber, m, for the vent rule; None = no targets.
         cause : why the controller failed (logged and counted in ``failure_causes``).
         stretch : estimated membrane stretch per chamber (-; NaN = unknown: not guarded) for the
@@ -186,103 +202,67 @@ class Supervisor:
         lost : (n,) bool, chambers whose estimate has left its model's range this step (rule 6).
         burst : (n,) bool, chambers the burst test has flagged (rule 7; latched here until reset).
         """
-        s = self.settings
-        cmd = np.array(command, dtype=float)
-        single = cmd.ndim == 1
-        cmd = cmd.reshape(self.n, -1)
-        c = cmd.shape[1]
-        ok_m = np.broadcast_to(np.asarray(ok, dtype=bool), (self.n,))
-        pl = self._as_plan(plan, cmd.shape)
-        # 1. fallback
-        if ok_m.all():
-            self._streak[:] = 0
-            if pl is not None:
-                self._store_plan(t, pl, np.arange(self.n))
-            else:
-                self._plan = None
-        else:
+        n = self.n
+        cmd = np.asarray(command, dtype=float)
+        c = cmd.size // n
+        H = self._shape[1] if plan is None else len(plan)
+        state = self._state_for(c, H)
+        f, parts = self._function(c, H)
+        # the inputs written into the Function's buffers (a scalar broadcast to every chamber)
+        inp = f.inp
+        inp[0][0] = t
+        inp[1][:] = cmd.reshape(n * c)
+        inp[2][:] = pressure
+        inp[3][:] = np.asarray(ok, dtype=bool)
+        if plan is not None:
+            inp[4][:] = np.asarray(plan, dtype=float).reshape(H * n * c)
+        inp[5][0] = plan is not None
+        inp[6][:] = np.nan if target is None else target
+        inp[7][:] = np.nan if stretch is None else stretch
+        inp[8][:] = False if lost is None else np.asarray(lost, dtype=bool)
+        inp[9][:] = False if burst is None else np.asarray(burst, dtype=bool)
+        inp[10][:] = state
+        inp[10][parts["lost"]], inp[10][parts["burst"]] = self.lost, self.burst
+        out, st_next, released, ev, failed = f.eval()
+        self._state = st_next.copy()
+        ev = ev.reshape(len(EVENTS), n) > 0.5
+        if failed[0]:
             self.failed_steps += 1
-            good = np.nonzero(ok_m)[0]
-            self._streak[good] = 0
-            if pl is not None and good.size:
-                self._store_plan(t, pl, good)
-            for i in np.nonzero(~ok_m)[0]:
-                self.failure_causes[cause] = self.failure_causes.get(cause, 0) + 1
-                self._streak[i] += 1
-                row = None
-                if self._plan is not None and self._streak[i] <= s.fallback_plan_steps:
-                    # the plan row for now: by elapsed time when the plan's period differs from the step
-                    row = (self._age[i] + 1 if s.plan_period is None
-                           else int(np.floor((t - self._plan_t[i]) / s.plan_period + 1e-6)))
-                if row is not None and 0 <= row < self._plan.shape[0]:
-                    self._age[i] = row
-                    cmd[i] = self._plan[row, i]
-                    self.counts["shifted_plan"] += 1
-                    self._log(t, i, "shifted_plan", cause)
-                else:
-                    cmd[i] = self.safe_command(c)
-                    self.counts["safe_command"] += 1
-                    self._log(t, i, "safe_command", cause)
-            if pl is not None:
-                self._store_plan(t, pl, np.nonzero(~ok_m)[0])
-        # 2. clip
-        cmd = np.clip(cmd, 0.0, 1.0)
-        # 3. vent on a zero target
-        vent = self.vent_mask(target)
-        if vent.any():
-            cmd[vent] = self.safe_command(c)
-            self.counts["vent"] += int(vent.sum())
-            for i in np.nonzero(vent & ~self._venting)[0]:
-                self._log(t, i, "vent", "zero target")
+            self.failure_causes[cause] = self.failure_causes.get(cause, 0) + n - int(inp[3].sum())
+        new_lost, new_burst = (inp[8] != 0) & ~self.lost, (inp[9] != 0) & ~self.burst
+        self.released = released > 0.5
+        if ev.any() or self._venting.any():
+            self._count_and_log(t, ev, cause, inp[2], inp[7], new_lost, new_burst)
+        self.lost, self.burst = st_next[parts["lost"]] > 0.5, st_next[parts["burst"]] > 0.5
+        res = out.reshape(n, c).copy()
+        return res[0] if cmd.ndim == 1 else res
+
+    def _count_and_log(self, t: float, ev: np.ndarray, cause: str, p: np.ndarray, lam: np.ndarray,
+                       new_lost: np.ndarray, new_burst: np.ndarray) -> None:
+        """Add a step's events (:data:`EVENTS` rows by chamber) to the counts and the log: fallbacks by
+        chamber, then vents as they start, guards (pressure p, Pa), stretch guards (stretch lam),
+        lost estimates as they start and their releases, bursts as they start."""
+        for key, row in zip(EVENTS, ev):
+            self.counts[key] += int(row.sum())
+        shifted, safe, vent, guard, over = ev[:5]
+        for i in np.nonzero(shifted | safe)[0]:
+            self._log(t, np.arange(self.n) == i, "shifted_plan" if shifted[i] else "safe_command", lambda _: cause)
+        self._log(t, vent & ~self._venting, "vent", lambda i: "zero target")
         self._venting = vent
-        # 4. pressure guard
-        p = np.broadcast_to(np.asarray(pressure, dtype=float), (self.n,))
-        finite = np.isfinite(p)
-        p_g = np.where(finite, p, s.p_max)
-        zone = p_g >= s.p_max - s.guard_margin
-        if not s.missing_is_limit:
-            zone &= finite
-        unsafe = cmd[:, 0] > 0
-        if s.vent_margin is not None:
-            unsafe |= cmd[:, -1] < 1.0
-        act = zone & unsafe
-        if act.any():
-            cmd[act, :-1] = 0.0
-            if s.vent_margin is not None:
-                cmd[act & (p_g >= s.p_max - s.vent_margin), -1] = 1.0
-            self.counts["guard"] += int(act.sum())
-            for i in np.nonzero(act)[0]:
-                self._log(t, i, "guard", f"p={p[i]:.0f} Pa")
-        # 5. stretch guard
-        over = self.stretch_over(stretch) & (cmd[:, 0] > 0)
-        if over.any():
-            cmd[over, :-1] = 0.0
-            self.counts["stretch_guard"] += int(over.sum())
-            lam = np.broadcast_to(np.asarray(stretch, dtype=float), (self.n,))
-            for i in np.nonzero(over)[0]:
-                self._log(t, i, "stretch_guard", f"stretch={lam[i]:.2f}")
-        # 6. lost estimate: vent until the pressure is down
-        new = np.zeros(self.n, dtype=bool) if lost is None else \
-            np.broadcast_to(np.asarray(lost, dtype=bool), (self.n,)) & ~self.lost
-        for i in np.nonzero(new)[0]:
-            self._log(t, i, "lost_estimate", "the estimate left its model: venting")
-        self.lost |= new
-        # a dropout (NaN) keeps the vent on: only a reading says the pressure is down
-        self.released = self.lost & finite & (p_g <= s.lost_release)
-        for i in np.nonzero(self.released)[0]:
-            self._log(t, i, "lost_estimate_released", f"p={p[i]:.0f} Pa")
-        if self.lost.any():
-            # the step of the release too: its command came from the lost estimate
-            cmd[self.lost] = self.safe_command(c)
-            self.counts["lost_estimate"] += int(self.lost.sum())
-        self.lost &= ~self.released
-        # 7. burst: the safe command until a reset
-        new = np.zeros(self.n, dtype=bool) if burst is None else \
-            np.broadcast_to(np.asarray(burst, dtype=bool), (self.n,)) & ~self.burst
-        for i in np.nonzero(new)[0]:
-            self._log(t, i, "burst", "losing gas faster than its valves let it: venting until a reset")
-        self.burst |= new
-        if self.burst.any():
-            cmd[self.burst] = self.safe_command(c)
-            self.counts["burst"] += int(self.burst.sum())
-        return cmd[0] if single else cmd
+        self._log(t, guard, "guard", lambda i: f"p={p[i]:.0f} Pa")
+        self._log(t, over, "stretch_guard", lambda i: f"stretch={lam[i]:.2f}")
+        self._log(t, new_lost, "lost_estimate", lambda i: "the estimate left its model: venting")
+        self._log(t, self.released, "lost_estimate_released", lambda i: f"p={p[i]:.0f} Pa")
+        self._log(t, new_burst, "burst", lambda i: "losing gas faster than its valves let it: venting until a reset")
+
+
+#: the policy's Functions built in this process, by the settings' repr and the shapes
+_POLICIES: dict = {}
+
+
+def _policy(settings: SupervisorSettings, n: int, c: int, H: int) -> ca.Function:
+    """:func:`supervisor_function`, built once per process for equal settings and shapes."""
+    key = (repr(settings), n, c, H)
+    if key not in _POLICIES:
+        _POLICIES[key] = supervisor_function(settings, n, c, H)
+    return _POLICIES[key]

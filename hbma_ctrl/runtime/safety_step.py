@@ -1,7 +1,7 @@
-"""The supervisor's policy (:meth:`hbma_ctrl.runtime.safety.Supervisor.apply`) as ONE casadi Function (SI).
+"""The supervisor's policy as ONE casadi Function (SI): what :meth:`hbma_ctrl.runtime.safety.Supervisor.apply`
+evaluates each step, and what a generated loop (C without Python) runs.
 
-A generated loop (C without Python) needs the runtime's safety rules in the same form as
-its other blocks. :func:`supervisor_function` writes rules 1-7 of :mod:`hbma_ctrl.runtime.safety` for
+:func:`supervisor_function` writes rules 1-7 of :mod:`hbma_ctrl.runtime.safety` for
 ``n`` chambers with ``c`` command columns and plans of ``H`` rows, its state (the stored plan, the
 streaks, the lost and burst latches) passed in and out::
 
@@ -15,20 +15,22 @@ command, as ``plan`` is not None in ``apply``; ``target`` NaN where there is non
 ``stretch`` NaN where unknown (not guarded); ``lost`` and ``burst`` 0 / 1. ``events`` flags per
 chamber this step's interventions, row by row in :data:`EVENTS` order (their sums are what the
 Supervisor adds to its ``counts``); ``failed`` is 1 on a step with any chamber not ok (its
-``failed_steps``). :func:`supervisor_state` reads a
-:class:`Supervisor`'s state in the Function's layout, :func:`state_size` gives S. The event log and
-its texts stay in Python.
+``failed_steps``). :meth:`~hbma_ctrl.runtime.safety.Supervisor.state` gives a Supervisor's state in
+the Function's layout, :func:`state_size` its length S. The event log and its texts stay in Python.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import casadi as ca
-import numpy as np
 
 from hbma_ctrl.core.codegen import is_finite
-from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 
-__all__ = ["EVENTS", "supervisor_function", "supervisor_state", "state_size", "state_parts"]
+if TYPE_CHECKING:
+    from hbma_ctrl.runtime.safety import SupervisorSettings
+
+__all__ = ["EVENTS", "supervisor_function", "state_size", "state_parts"]
 
 #: the per-chamber event rows of the Function's ``events`` output (the Supervisor's counts' keys)
 EVENTS = ("shifted_plan", "safe_command", "vent", "guard", "stretch_guard", "lost_estimate", "burst")
@@ -54,23 +56,10 @@ def state_size(n: int, c: int, H: int) -> int:
     return state_parts(n, c, H)["burst"].stop
 
 
-def supervisor_state(sup: Supervisor, c: int, H: int) -> np.ndarray:
-    """``sup``'s state in :func:`supervisor_function`'s layout (a stored plan of another shape than
-    (H, n, c) is refused with a ValueError)."""
-    n = sup.n
-    plan = np.zeros((H, n, c))
-    has = 0.0
-    if sup._plan is not None:
-        if sup._plan.shape != (H, n, c):
-            raise ValueError(f"supervisor_state: the stored plan is {sup._plan.shape}, the Function's ({H}, {n}, {c})")
-        plan, has = sup._plan, 1.0
-    return np.concatenate([plan.ravel(), [has], sup._plan_t, sup._streak, sup._age, sup.lost, sup.burst]).astype(float)
-
-
-def supervisor_function(settings: SupervisorSettings, n: int, c: int, H: int, name: str = "supervisor") -> ca.Function:
-    """The policy of :class:`Supervisor` with ``settings`` for n chambers, c columns, H-row plans
-    (module docstring). Its outputs equal ``apply``'s and its state the Supervisor's after it, for a
-    stored plan of H rows."""
+def supervisor_function(settings: "SupervisorSettings", n: int, c: int, H: int,
+                        name: str = "supervisor") -> ca.Function:
+    """The policy of :class:`~hbma_ctrl.runtime.safety.Supervisor` with ``settings`` for n chambers,
+    c columns, H-row plans (module docstring)."""
     s = settings.validate()
     SX = ca.SX
     t = SX.sym("t")
@@ -83,8 +72,8 @@ def supervisor_function(settings: SupervisorSettings, n: int, c: int, H: int, na
     plan0, has0 = st[parts["plan"]], st[parts["has_plan"].start]
     plan_t0, streak0, age0, lost0, burst0 = (st[parts[key]] for key in _CHAMBER_PARTS)
 
-    def at(r, i, j):  # the flat index of plan row r, chamber i, column j
-        return (r * n + i) * c + j
+    def per_entry(flags: list):  # per-chamber values -> per plan entry (row-major [row][chamber][column])
+        return ca.repmat(ca.vec(ca.repmat(ca.vertcat(*flags).T, c, 1)), H, 1)
 
     ok = [ok_in[i] != 0 for i in range(n)]
     all_ok, any_good = ok[0], ok[0]
@@ -94,32 +83,26 @@ def supervisor_function(settings: SupervisorSettings, n: int, c: int, H: int, na
     # --- 1. fallback. The good chambers' plan is stored first (the whole plan when none is stored)
     store_good = ca.logic_and(giv, any_good)
     had = has0 != 0
-    plan1 = SX(plan0)
-    for i in range(n):
-        take = ca.logic_and(store_good, ca.logic_or(ca.logic_not(had), ok[i]))
-        for r in range(H):
-            for j in range(c):
-                k = at(r, i, j)
-                plan1[k] = ca.if_else(take, plan_in[k], plan0[k])
+    take = [ca.logic_and(store_good, ca.logic_or(ca.logic_not(had), ok[i])) for i in range(n)]
+    plan1 = ca.if_else(per_entry(take), plan_in, plan0)
     has1 = ca.logic_or(had, store_good)
     safe = [0.0] * (c - 1) + [s.safe_outlet]
+    rows = [age0[i] + 1 if s.plan_period is None else ca.floor((t - plan_t0[i]) / s.plan_period + 1e-6)
+            for i in range(n)]
+    # each chamber's entries of its plan row: the plan as (n c) x H, one column per row
+    sel = ca.repmat(ca.vec(ca.repmat(ca.vertcat(*rows).T, c, 1)), 1, H) == ca.repmat(ca.DM(range(H)).T, n * c, 1)
+    picked = ca.sum2(ca.if_else(sel, ca.reshape(plan1, n * c, H), 0))
     cmd, streak, age, plan_t = [], [], [], []
     shifted, safe_ev = [], []
     for i in range(n):
         st_i = ca.if_else(ok[i], 0, streak0[i] + 1)
-        row = age0[i] + 1 if s.plan_period is None else ca.floor((t - plan_t0[i]) / s.plan_period + 1e-6)
+        row = rows[i]
         can = ca.logic_and(ca.logic_and(has1, st_i <= s.fallback_plan_steps), ca.logic_and(row >= 0, row < H))
         failed = ca.logic_not(ok[i])
         use_plan = ca.logic_and(failed, can)
         use_safe = ca.logic_and(failed, ca.logic_not(can))
-        row_i = []
-        for j in range(c):
-            pick = 0
-            for r in range(H):
-                pick = pick + ca.if_else(row == r, plan1[at(r, i, j)], 0)
-            v = ca.if_else(use_plan, pick, ca.if_else(use_safe, safe[j], cmd_in[i * c + j]))
-            row_i.append(v)
-        cmd.append(row_i)
+        cmd.append([ca.if_else(use_plan, picked[i * c + j], ca.if_else(use_safe, safe[j], cmd_in[i * c + j]))
+                    for j in range(c)])
         streak.append(st_i)
         # rows replayed since the plan was stored; a good chamber's plan stored now starts again at 0
         age_i = ca.if_else(use_plan, row, age0[i])
@@ -130,15 +113,11 @@ def supervisor_function(settings: SupervisorSettings, n: int, c: int, H: int, na
         safe_ev.append(use_safe)
     # a late plan given with the failure is stored for the failed chambers after their replay (with
     # none stored and no chamber good, that is the whole plan: every chamber failed)
-    plan2 = SX(plan1)
+    late = [ca.logic_and(giv, ca.logic_not(ok[i])) for i in range(n)]
+    plan2 = ca.if_else(per_entry(late), plan_in, plan1)
     for i in range(n):
-        late = ca.logic_and(giv, ca.logic_not(ok[i]))
-        for r in range(H):
-            for j in range(c):
-                k = at(r, i, j)
-                plan2[k] = ca.if_else(late, plan_in[k], plan1[k])
-        age[i] = ca.if_else(late, 0, age[i])
-        plan_t[i] = ca.if_else(late, t, plan_t[i])
+        age[i] = ca.if_else(late[i], 0, age[i])
+        plan_t[i] = ca.if_else(late[i], t, plan_t[i])
     # every chamber ok: the plan given is kept whole (stored above), or without one none is kept
     plan_out = ca.if_else(ca.logic_and(all_ok, ca.logic_not(giv)), ca.DM.zeros(m), plan2)
     has_out = ca.if_else(all_ok, giv, ca.logic_or(has1, giv))

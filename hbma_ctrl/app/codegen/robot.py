@@ -14,8 +14,7 @@ called in the tick's order:
   state at generation time, as :meth:`~hbma_ctrl.estimators.robot_ekf.ChamberEKFBank.step` starts it);
 - ``robot_pre``: the readings the bank trusted, the burst test (:func:`hbma_ctrl.runtime.burst.burst_function`),
   the loads from the estimated heights (:func:`hbma_ctrl.robot.plant_step.load_sharing_function`),
-  the targets' slew, the vent and hold masks and the NMPC's supply caps
-  (:mod:`hbma_ctrl.runtime.robot_step`);
+  the targets' slew and the NMPC's supply caps (:mod:`hbma_ctrl.runtime.robot_step`);
 - ``robot_rti_step``: the robot NMPC (:func:`hbma_ctrl.controllers.robot_rti_step.robot_rti_step_function`, OSQP
   inside);
 - ``robot_post``: the plan with a shared pump's budget, the supervisor
@@ -34,9 +33,9 @@ predict over several periods and a rig's report of the command it held (``RobotL
 
 Its scene counterpart is :func:`hbma_ctrl.app.scenes.robot_loop.run_closed_loop` with the NMPC
 :class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` (the same step Function, compiled), no
-wall-time budget: :func:`scene_reference` runs it and compares. The other parts of the scene are its
-numpy classes, which the Functions equal to rounding (``tests/test_robot_loop_blocks.py``), not
-to the bit.
+wall-time budget: :func:`scene_reference` runs it and compares. The scene's supervisor, targets' slew,
+supply caps and short vents run the same Functions; its other parts are numpy classes, which the
+Functions equal to rounding (``tests/unit/robot/test_robot_loop_blocks.py``), not to the bit.
 
 Refused with one error naming the key: the pressure-PID controller, an enforced wall-time budget
 (``mpc_enforce_budget``; ``mpc_budget`` alone acts only in the daemon), the quasi-static rig's
@@ -121,7 +120,6 @@ def _ekf_function(loop) -> ca.Function:
 
 def _pre_function(loop) -> ca.Function:
     """robot_pre: the tick's part between the bank and the NMPC (module docstring)."""
-    from hbma_ctrl.core.codegen import is_finite
     from hbma_ctrl.robot.plant import W_FLOOR
     from hbma_ctrl.robot.plant_step import load_sharing_function
     from hbma_ctrl.runtime.burst import burst_function
@@ -150,14 +148,9 @@ def _pre_function(loop) -> ca.Function:
     share = load_sharing_function(loop.design, "robot_loads")
     W = ca.fmax(share(h, MX.zeros(3), MX.zeros(3))[0], W_FLOOR)
     href = slew_function(n, loop.target_rate, "robot_slew")(goal, href_prev, h, first, loop._period)
-    vh = sup.settings.vent_height
-    vent = MX.zeros(n) if vh is None else ca.logic_and(is_finite(href), href <= vh)
-    lim = sup.settings.stretch_max
-    over = MX.zeros(n) if lim is None else lam >= lim
-    held = ca.logic_or(ca.logic_or(over, lost != 0), ca.logic_or(sup_lost != 0, sup_burst != 0))
-    caps = caps_function(model, n, loop.cautious, "robot_caps")
+    caps = caps_function(model, n, loop.cautious, sup.settings.vent_height, sup.settings.stretch_max, "robot_caps")
     k = X[2, :].T
-    a_max, near, peak_next = caps(W, k, p, k_std, vent, held, peak, refresh)
+    a_max, near, peak_next = caps(W, k, p, k_std, href, lam, lost, sup_lost, sup_burst, peak, refresh)
     x, b, c = (X[3, :] * X[0, :] - 1).T, X[1, :].T, X[3, :].T
     return ca.Function(
         "robot_pre", [t, first, refresh, z, outlier, r, lost, lam, h, p, k_std, X, goal, href_prev, peak, released, sst,
@@ -268,7 +261,7 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
     from hbma_ctrl.models.actuation import acting_state
     from hbma_ctrl.robot.plant_step import robot_rig_step_function
-    from hbma_ctrl.runtime.safety_step import EVENTS, supervisor_state
+    from hbma_ctrl.runtime.safety_step import EVENTS
 
     # the NMPC's step uncompiled: the sources are generated from its Function, nothing is built here
     s, rs, plant, loop = _build(scn, partial(RobotNMPCFunction, compile=False))
@@ -312,7 +305,7 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
         "burst_state": (np.zeros(1) if loop.burst is None else _burst_state(loop)), "href": np.zeros(n),
         "href_N": np.zeros(n * N), "a_max": np.zeros(n), "near_count": [0.0], "peak": loop._peak_p.copy(),
         "x_est": np.zeros(n), "b_est": np.zeros(n), "k_est": np.zeros(n), "c_est": np.zeros(n),
-        "sup_state": supervisor_state(loop.supervisor, 2, N), "released": np.zeros(n),
+        "sup_state": loop.supervisor.state(2, N), "released": np.zeros(n),
         # the NMPC
         "prev": np.zeros(2 * n), "xbar": np.zeros(n * (N + 1)), "abar": np.zeros(n * N), "obar": np.zeros(n * N),
         "nmpc_first": [1.0], "qp_z": np.zeros(nmpc.nv), "qp_y": np.zeros(nmpc.m_rows),

@@ -221,18 +221,20 @@ def test_the_robot_rti_step_as_one_function_follows_the_nmpc(topology):
 
 
 @pytest.mark.slow
-def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
+def test_the_loops_targets_and_supply_caps_follow_their_numpy_oracles():
     """A one-layer RobotLoop on the rig (NMPC, EKF bank, cautious cap, a 10 mm/s target rate): a
-    rise to 5 mm, a bend, then a zero target on one chamber. At every tick slew_function gives the
-    targets the loop worked to and caps_function the supply bounds the loop handed its NMPC, with the
-    limit-point pressures it keeps (refreshed every tenth tick); the cap and the vent both act."""
+    rise to 5 mm, a bend, then a zero target on one chamber. At every tick the targets the loop
+    worked to (slew_function) equal the numpy slew's, and the supply bounds it handed its NMPC
+    (caps_function) the numpy caps' with the limit-point pressures the oracle keeps (refreshed every
+    tenth tick); the cap and the vent both act."""
+    from oracles import robot_loop as oracle
+
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
-    from hbma_ctrl.runtime.robot_step import caps_function, slew_function
 
     d = RobotDesign(n_layers=1).validate()
     s = RobotSettings(design=d, pneumatics=RobotPneumatics()).validate()
@@ -247,8 +249,9 @@ def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
     targets = {0: ((0.0, 5e-3, 0.0, 0.0), (0.6, 5e-3, 0.15, 0.0), (1.0, 0.0, 0.0, 0.0))}
     loop = RobotLoop(d, model, bank, ctrl, robot_supervisor(s.pneumatics.pressure_limit, n, plan_period=ms.dt),
                      targets, target_rate=rate)
-    slew, caps = slew_function(n, rate), caps_function(model, n, loop.cautious)
     seen = {"near": 0, "vent": 0, "moving": 0}
+    peak = oracle.peaks(model, loop.loads, np.ones(n))
+    np.testing.assert_allclose(loop._peak_p, peak, rtol=1e-12)
     slew_calls, step_calls = [], []
     _slew, _step = loop._slew, ctrl.step
 
@@ -260,28 +263,29 @@ def test_the_loops_targets_and_supply_caps_as_functions_follow_the_robot_loop():
 
     def spy_step(x0, b, W, h_ref, k, c, a_max):
         est, sup = loop.estimate, loop.supervisor
-        vent = sup.vent_mask(h_ref)
-        held = sup.stretch_over(est["lam"]) | est["lost"] | sup.lost | sup.burst
-        step_calls.append((np.array(W), np.array(k), est["p"].copy(), est["k_std"].copy(), vent, held,
-                           peak_before.copy(), float(loop._k % 10 == 0), np.array(a_max), loop._peak_p.copy()))
+        step_calls.append(({key: est[key].copy() for key in ("p", "k", "k_std", "lam", "lost")}, np.array(W),
+                           np.array(h_ref), sup.lost.copy(), sup.burst.copy(), loop._k % 10 == 0, np.array(a_max),
+                           loop._peak_p.copy()))
         return _step(x0, b, W, h_ref, k, c, a_max)
 
     loop._slew, ctrl.step = spy_slew, spy_step
     for _ in range(130):
-        peak_before = loop._peak_p.copy()
         loop.tick(rig.t, rig.measure())
         rig.apply(loop.valve_commands)
     assert len(slew_calls) == len(step_calls) == 130
-    for goal, h_est, dt, prev, want in slew_calls:
-        got = np.asarray(slew(goal, np.zeros(n) if prev is None else prev, h_est, float(prev is None), dt)).ravel()
+    for goal, h_est, dt, prev, got in slew_calls:
+        want = oracle.slew(goal, h_est, dt, prev, rate)
         np.testing.assert_array_equal(got, want)
         seen["moving"] += int(np.any((want != goal) & (goal > 0)))
-    for W, k, p, ks, vent, held, peak, refresh, a_max, peak_next in step_calls:
-        got_a, near, got_peak = (np.asarray(v).ravel() for v in caps(W, k, p, ks, vent, held, peak, refresh))
-        np.testing.assert_allclose(got_peak, peak_next, rtol=1e-12)
-        np.testing.assert_array_equal(got_a, a_max)
+    sset = loop.supervisor.settings
+    for est, W, href, sup_lost, sup_burst, refresh, a_max, peak_kept in step_calls:
+        if refresh:
+            peak = oracle.peaks(model, W, est["k"])
+        np.testing.assert_allclose(peak_kept, peak, rtol=1e-12)
+        want, near = oracle.caps(sset, loop.cautious, est, href, sup_lost, sup_burst, peak)
+        np.testing.assert_array_equal(a_max, want)
         seen["near"] += int(near.sum())
-        seen["vent"] += int(vent.sum())
+        seen["vent"] += int(oracle.vent_mask(sset, href).sum())
     assert all(v > 0 for v in seen.values()), seen
 
 
@@ -318,18 +322,19 @@ def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, ma
 
 
 @pytest.mark.slow
-def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
+def test_the_loops_vent_netting_follows_its_numpy_oracle():
     """A one-layer RobotLoop on the rig with the valves' 2 ms minimum opening, holding heights and
-    stepping down (short vents): at every tick net_vents_function gives the supply and outlet duties
-    RobotLoop.net_vents sent and the minimum on-time's carry it left, short vents netted, dropped and
-    sent all seen."""
+    stepping down (short vents): at every tick the supply and outlet duties the loop sent
+    (net_vents_function) and the minimum on-time's carry it left equal the numpy netting's, short
+    vents netted, dropped and sent all seen."""
+    from oracles import robot_loop as oracle
+
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
     from hbma_ctrl.system.roles import make_model
     from hbma_ctrl.system.sections import RobotSettings
     from hbma_ctrl.robot.design import RobotPneumatics
     from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
-    from hbma_ctrl.runtime.robot_step import net_vents_function
 
     d = RobotDesign(n_layers=1).validate()
     s = RobotSettings(design=d, pneumatics=RobotPneumatics()).validate()
@@ -343,16 +348,13 @@ def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
     targets = {0: ((0.0, 6e-3, 0.0, 0.0), (0.8, 5.5e-3, 0.1, 0.0), (1.4, 4e-3, 0.0, 0.0))}
     loop = RobotLoop(d, model, bank, RobotNMPC(model, n, ms),
                      robot_supervisor(s.pneumatics.pressure_limit, n, plan_period=ms.dt), targets, valve_min_on=0.002)
-    f = net_vents_function(model, n, loop.pwm.min_duty, loop._period)
     calls, _net = [], loop.net_vents
 
-    def spy(a, o, p, b, excess, pulse_drop=None):
-        carry = loop.pwm.carry.copy() if loop.pwm.carry.ndim == 2 else None
-        est = loop.estimate
-        args = (a.copy(), o.copy(), p.copy(), b.copy(), excess.copy(), est["x"].copy(), loop.loads.copy(),
-                est["k"].copy(), est["c"].copy())
-        out = _net(a, o, p, b, excess, pulse_drop)
-        calls.append((args, carry, out[0].copy(), out[1].copy(), loop.pwm.carry.copy()))
+    def spy(a, o, est, W, excess):
+        args = (a.copy(), o.copy(), {k: v.copy() for k, v in est.items() if isinstance(v, np.ndarray)}, W.copy(),
+                excess.copy(), loop.pwm.carry.copy())
+        out = _net(a, o, est, W, excess)
+        calls.append((args, out[0].copy(), out[1].copy(), loop.pwm.carry.copy()))
         return out
 
     loop.net_vents = spy
@@ -361,15 +363,13 @@ def test_the_loops_vent_netting_as_one_function_follows_the_robot_loop():
         rig.apply(loop.valve_commands)
     seen = {"netted": 0, "dropped": 0, "sent": 0}
     md = loop.pwm.min_duty
-    for args, carry, a_want, o_want, carry_want in calls:
-        if carry is None:
-            continue
-        a_got, o_got, c_got = (np.asarray(v) for v in f(*args, carry))
-        np.testing.assert_allclose(a_got.ravel(), a_want, rtol=1e-13, atol=0)
-        np.testing.assert_allclose(o_got.ravel(), o_want, rtol=1e-13, atol=0)
-        np.testing.assert_allclose(c_got, carry_want, rtol=1e-13, atol=0)
-        short = (args[1] > 0) & (args[1] < md)
-        seen["netted"] += int(np.sum(short & (args[0] > 0) & (a_want != args[0])))
+    for (a, o, est, W, excess, carry), a_got, o_got, carry_got in calls:
+        a_want, o_want, carry_want = oracle.net_vents(model, md, loop._period, a, o, est, W, excess, carry)
+        np.testing.assert_allclose(a_got, a_want, rtol=1e-13, atol=0)
+        np.testing.assert_allclose(o_got, o_want, rtol=1e-13, atol=0)
+        np.testing.assert_allclose(carry_got, carry_want, rtol=1e-13, atol=0)
+        short = (o > 0) & (o < md)
+        seen["netted"] += int(np.sum(short & (a > 0) & (a_want != a)))
         seen["dropped"] += int(np.sum(short & (o_want == 0)))
         seen["sent"] += int(np.sum(short & (o_want > 0)))
     assert all(v > 0 for v in seen.values()), seen

@@ -154,6 +154,14 @@ def test_a_default_minimum_opening_longer_than_the_loops_period_is_one_error_nam
 
 
 # --- short vents with a minimum valve opening (RobotLoop.net_vents) ---------------------------------
+def _est(p, b, x=0.0):
+    """A bank estimate for RobotLoop.net_vents: pressures p (Pa), flow factors b, gas mass x (near
+    rest by default: one minimum opening takes off little height), nominal k and c."""
+    n = len(p)
+    return {"p": np.asarray(p, dtype=float), "b": np.asarray(b, dtype=float), "x": np.full(n, x), "k": np.ones(n),
+            "c": np.ones(n)}
+
+
 def _min_on_loop():
     from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
     from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
@@ -172,13 +180,15 @@ def _min_on_loop():
 
 @pytest.mark.slow
 def test_a_vent_shorter_than_the_opening_beside_a_supply_is_netted_into_it_at_the_same_net_flow():
+    from oracles.robot_loop import open_flows
+
     from hbma_ctrl.runtime.robot import VENT_DEADBAND
 
     loop = _min_on_loop()
     p, b = np.array([39e3, 39e3, 20e3]), np.array([1.0, 0.9, 1.1])
     a, o = np.array([0.45, 0.01, 0.3]), np.array([0.018, 0.05, 0.0])
-    q_in, q_out = loop.model.open_flows(p, b)
-    a2, o2 = loop.net_vents(a, o, p, b, np.full(3, 10 * VENT_DEADBAND))
+    q_in, q_out = open_flows(loop.model, p, b)
+    a2, o2 = loop.net_vents(a, o, _est(p, b), np.full(3, 0.3), np.full(3, 10 * VENT_DEADBAND))
     # chamber 0: the supply absorbs the vent; chamber 1: the vent exceeds the supply, what is left
     # of it remains; chamber 2: no vent, untouched
     assert o2[0] == 0.0 and a2[1] == 0.0 and (a2[2], o2[2]) == (0.3, 0.0)
@@ -194,7 +204,7 @@ def test_a_short_vent_alone_is_sent_only_above_the_deadband_and_its_carry_is_dro
     p, b = np.full(3, 39e3), np.ones(3)
     loop.pwm.carry = np.array([[0.0, 0.0, 0.0], [0.05, 0.05, 0.05]])
     a, o = np.zeros(3), np.array([0.05, 0.05, 0.5])
-    a2, o2 = loop.net_vents(a, o, p, b, np.array([0.5, 2.0, 0.0]) * VENT_DEADBAND)
+    a2, o2 = loop.net_vents(a, o, _est(p, b), np.full(3, 0.3), np.array([0.5, 2.0, 0.0]) * VENT_DEADBAND)
     # within the band: dropped with its carry; above it: sent (MinOnTime realises it); a vent of at
     # least the opening: always sent
     assert o2.tolist() == [0.0, 0.05, 0.5] and a2.tolist() == [0.0, 0.0, 0.0]
@@ -205,6 +215,8 @@ def test_a_short_vent_alone_is_sent_only_above_the_deadband_and_its_carry_is_dro
 def test_a_short_vent_that_would_overshoot_the_target_by_more_than_it_corrects_is_not_sent():
     """On the far branch one minimum opening takes off more height than the band: above the band but
     less than half that drop above the target, the vent is dropped; beyond it, sent."""
+    from oracles.robot_loop import open_flows, vent_pulse_drop
+
     from hbma_ctrl.runtime.robot import VENT_DEADBAND
 
     loop = _min_on_loop()
@@ -214,8 +226,8 @@ def test_a_short_vent_that_would_overshoot_the_target_by_more_than_it_corrects_i
     assert h0 > 6e-3 and p0 > 30e3
     est = {"x": np.full(3, x), "k": np.ones(3), "c": np.ones(3)}
     W = np.full(3, 0.3)
-    q_out = m.open_flows(np.full(3, p0), np.ones(3))[1]
-    drop = loop.vent_pulse_drop(est, W, q_out)
+    q_out = open_flows(m, np.full(3, p0), np.ones(3))[1]
+    drop = vent_pulse_drop(m, loop.pwm.min_duty, loop._period, est, W, q_out)
     # the model's own height change for the mass a 2 ms opening lets out
     ac = m.actuator
     dx = q_out[0] * 0.002 * ac.R * ac.T / (ac.p_env * ac.V0)
@@ -223,7 +235,7 @@ def test_a_short_vent_that_would_overshoot_the_target_by_more_than_it_corrects_i
     assert drop[0] > 2 * VENT_DEADBAND
     excess = np.array([0.5 * drop[0] - 1e-6, 0.5 * drop[0] + 1e-6, 0.5 * VENT_DEADBAND])
     a, o = np.zeros(3), np.full(3, 0.05)
-    _, o2 = loop.net_vents(a, o, np.full(3, p0), np.ones(3), excess, lambda q: drop)
+    _, o2 = loop.net_vents(a, o, _est(np.full(3, p0), np.ones(3), x), W, excess)
     assert o2.tolist() == [0.0, 0.05, 0.0]
 
 

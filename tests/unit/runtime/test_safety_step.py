@@ -1,40 +1,42 @@
-"""The runtime's safety blocks as casadi Functions against their classes, step by step over long random
-runs: the supervisor's policy (hbma_ctrl.runtime.safety_step) against Supervisor.apply, for the robot's
-supervisor (two columns, plans by time, the stretch interlock, lost estimates, bursts) and a
-chamber-style one (three columns, the outlet opened at the limit, plans by rows, missing pressures at
-the limit); the burst test's period (hbma_ctrl.runtime.burst.burst_function) against BurstTest."""
+"""The runtime's safety blocks as casadi Functions against numpy oracles, step by step over long random
+runs: the supervisor (hbma_ctrl.runtime.safety.Supervisor, which runs
+hbma_ctrl.runtime.safety_step.supervisor_function) against the rule-by-rule numpy policy
+(tests/oracles/safety.py), for the robot's supervisor (two columns, plans by time, the stretch
+interlock, lost estimates, bursts) and a chamber-style one (three columns, the outlet opened at the
+limit, plans by rows, missing pressures at the limit); the burst test's period
+(hbma_ctrl.runtime.burst.burst_function) against BurstTest."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from oracles.safety import SupervisorOracle, oracle_state
 
 from hbma_ctrl.runtime.robot import robot_supervisor
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
-from hbma_ctrl.runtime.safety_step import EVENTS, state_size, supervisor_function, supervisor_state
+from hbma_ctrl.runtime.safety_step import EVENTS, state_size, supervisor_function
 
 P_MAX = 45e3
 
 
-def _robot(n: int) -> Supervisor:
-    sup = robot_supervisor(P_MAX, n, plan_period=0.02, fallback_plan_steps=4)
-    sup.settings.stretch_max = 3.5
-    sup.settings.vent_height = 5e-5
-    return sup
+def _robot(n: int) -> SupervisorSettings:
+    s = robot_supervisor(P_MAX, n, plan_period=0.02, fallback_plan_steps=4).settings
+    s.stretch_max = 3.5
+    s.vent_height = 5e-5
+    return s
 
 
-def _chamber_style(n: int) -> Supervisor:
-    return Supervisor(SupervisorSettings(p_max=P_MAX, guard_margin=1e3, vent_margin=0.5e3, fallback_plan_steps=3,
-                                         stretch_max=3.0), n=n)
+def _chamber_style() -> SupervisorSettings:
+    return SupervisorSettings(p_max=P_MAX, guard_margin=1e3, vent_margin=0.5e3, fallback_plan_steps=3, stretch_max=3.0,
+                              event_log_size=50)
 
 
-def _run(sup: Supervisor, c: int, H: int, steps: int, seed: int) -> dict:
-    """Supervisor and Function side by side on the same random inputs; what each kind of event was
-    seen (so the test can check the run reached it)."""
-    n = sup.n
-    f = supervisor_function(sup.settings, n, c, H)
-    assert f.nnz_in("state") == state_size(n, c, H)
-    state = supervisor_state(sup, c, H)
+def _run(settings: SupervisorSettings, n: int, c: int, H: int, steps: int, seed: int) -> dict:
+    """The Supervisor and the oracle side by side on the same random inputs: the same commands,
+    releases, latches, state, counts and event log at every step; what each kind of event was seen
+    (so the test can check the run reached it)."""
+    sup, oracle = Supervisor(settings, n), SupervisorOracle(settings, n)
+    assert supervisor_function(settings, n, c, H).nnz_in("state") == state_size(n, c, H)
     rng = np.random.default_rng(seed)
     seen = {k: 0 for k in EVENTS} | {"released": 0, "failed": 0}
     fail_run = 0
@@ -58,37 +60,43 @@ def _run(sup: Supervisor, c: int, H: int, steps: int, seed: int) -> dict:
         stretch[rng.uniform(size=n) < 0.1] = np.nan
         lost = rng.uniform(size=n) < 0.03
         burst = rng.uniform(size=n) < (0.01 if k > steps // 2 else 0.0)
-        counts0, failed0 = dict(sup.counts), sup.failed_steps
-        want = sup.apply(t, cmd, p, ok=ok if not ok.all() else True, plan=plan, target=target, stretch=stretch,
-                         lost=lost, burst=burst)
-        out, state, released, events, failed = f(
-            t, cmd.ravel(), p, ok.astype(float), np.zeros(H * n * c) if plan is None else plan.ravel(),
-            0.0 if plan is None else 1.0, target, stretch, lost.astype(float), burst.astype(float), state)
-        np.testing.assert_array_equal(np.asarray(out).reshape(n, c), want, err_msg=f"command at step {k}")
-        np.testing.assert_array_equal(np.asarray(released).ravel() > 0.5, sup.released, err_msg=f"released, step {k}")
-        np.testing.assert_array_equal(np.asarray(state).ravel(), supervisor_state(sup, c, H), err_msg=f"state, step {k}")
-        ev = np.asarray(events).reshape(len(EVENTS), n)
-        for j, key in enumerate(EVENTS):
-            assert ev[j].sum() == sup.counts[key] - counts0[key], (key, k)
-            seen[key] += int(ev[j].sum())
-        assert float(failed) == sup.failed_steps - failed0
-        seen["failed"] += int(float(failed))
-        seen["released"] += int(sup.released.sum())
+        cause = f"cause {k % 3}"
+        counts0, failed0 = dict(oracle.counts), oracle.failed_steps
+        args = dict(ok=ok if not ok.all() else True, plan=plan, target=target, stretch=stretch, lost=lost, burst=burst,
+                    cause=cause)
+        want = oracle.apply(t, cmd, p, **args)
+        got = sup.apply(t, cmd, p, **args)
+        np.testing.assert_array_equal(got, want, err_msg=f"command at step {k}")
+        for key in ("released", "lost", "burst"):
+            np.testing.assert_array_equal(getattr(sup, key), getattr(oracle, key), err_msg=f"{key}, step {k}")
+        np.testing.assert_array_equal(sup.state(c, H), oracle_state(oracle, c, H), err_msg=f"state, step {k}")
+        assert (sup.counts, sup.failure_causes, sup.failed_steps) == (oracle.counts, oracle.failure_causes,
+                                                                       oracle.failed_steps), k
+        assert list(sup.events) == list(oracle.events) and sup.logged == oracle.logged, k
+        for key in EVENTS:
+            seen[key] += oracle.counts[key] - counts0[key]
+        seen["failed"] += oracle.failed_steps - failed0
+        seen["released"] += int(oracle.released.sum())
+        if k == steps - 50:
+            sup.reset()
+            oracle.reset()
     return seen
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_robots_supervisor_as_one_function_follows_apply(seed):
-    """Four chambers, two columns, a 15-row plan replayed by time (20 ms rows, 10 ms steps): the same
-    commands, releases, state and counts at every step of 400, every rule reached."""
-    seen = _run(_robot(4), 2, 15, 400, seed)
+    """Four chambers, two columns, a 15-row plan replayed by time (20 ms rows, 10 ms steps), a reset
+    near the end: the same commands, releases, state, counts and log at every step of 400, every rule
+    reached."""
+    seen = _run(_robot(4), 4, 2, 15, 400, seed)
     assert all(v > 0 for v in seen.values()), seen
 
 
 def test_a_chamber_style_supervisor_as_one_function_follows_apply():
     """Three columns, the outlet opened within the vent margin, missing pressures at the limit, the
-    plan replayed row by row, no vent rule: the same at every step of 400, every other rule reached."""
-    seen = _run(_chamber_style(3), 3, 10, 400, 2)
+    plan replayed row by row, no vent rule, a log shorter than the run: the same at every step of 400,
+    every other rule reached."""
+    seen = _run(_chamber_style(), 3, 3, 10, 400, 2)
     assert seen.pop("vent") == 0 and all(v > 0 for v in seen.values()), seen
 
 
