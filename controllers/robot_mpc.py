@@ -68,79 +68,59 @@ import scipy.sparse as sp
 
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.interfaces import RobotControllerBase
-from hbma_ctrl.core.params import check_range
+from hbma_ctrl.core.settings import Settings, setting
 
 __all__ = ["RobotMPCSettings", "RobotNMPC"]
 
 
 @dataclass(frozen=True)
-class RobotMPCSettings:
-    """Robot NMPC settings (SI).
+class RobotMPCSettings(Settings):
+    """Robot NMPC settings (SI; each field's unit, range and one-line doc are in its declaration).
 
-    sample_period : control period, s; dt : prediction step, s (inputs held over it); horizon :
-    stages; w_h : weight of the height error, 1/mm^2; w_terminal : factor on the last stage's
-    weight; w_in : quadratic input cost (supply and outlet, -); r_in : linear input cost (discourages
-    pumping and venting at once, -); w_du : input-rate cost, -; p_max : pressure limit, Pa;
-    p_margin : the QP keeps the model pressure this far under p_max, Pa (noise, model error);
-    w_slack : linear cost per kPa of the (one per chamber) pressure slack: the limit rows are soft so
-    that the QP stays feasible when noise or model error puts a chamber at the bound (the hard
-    guard is the loop's interlock). Default 1e-3: the limit gives way by a few kPa for a millimetre
-    of height, which lets a stiff chamber pass its limit point near the limit (``robot_bending``
-    settles 20/20 with it, 0/20 with 100); the rig daemon uses
-    :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` (100: the limit first, such poses not reached);
-    max_iter, eps : OSQP settings (measured on ``bench robot``'s 6-layer run against 400 and 1e-4,
-    with lin_every = 2 and the shifted warm start: 13860 OSQP iterations against 38625 with those, the
-    worst step capped at 125 of them, the height RMSE 2.286 against 2.295 mm; a cap of 110 gave
-    2.286 mm too, 100 gave 2.364 mm); budget : wall time of a step (linearisation and QP) as a fraction
-    of sample_period, [0, 10]; 0 = none (see the module doc: an overrun is a failure); it acts only
-    with enforce_budget; enforce_budget : act on ``budget`` (default False: offline runs -- scenes,
-    tests, benchmarks -- stay reproducible whatever the machine's load; the rig daemon sets it,
-    with a budget of e.g. 0.8); integrator :
-    'euler' (default: one gas-mass step per stage; the flow is smooth over 20 ms and it costs a
-    quarter of rk4, which decides the 20 ms budget) or 'rk4'; lin_every : the dynamics and outputs
-    are linearised at every lin_every-th stage of the plan, that linearisation standing for the
-    stages up to the next one, [1, 10] (1: at every stage; the linearisation is most of a step's
-    work after the QP).
+    w_slack : the limit rows are soft so that the QP stays feasible when noise or model error puts a
+    chamber at the bound (the hard guard is the loop's interlock). Default 1e-3: the limit gives way
+    by a few kPa for a millimetre of height, which lets a stiff chamber pass its limit point near the
+    limit (``robot_bending`` settles 20/20 with it, 0/20 with 100); the rig daemon uses
+    :data:`hbma_ctrl.app.daemon.build.DAEMON_W_SLACK` (100: the limit first, such poses not reached).
+    max_iter, eps : measured on ``bench robot``'s 6-layer run against 400 and 1e-4, with lin_every = 2
+    and the shifted warm start: 13860 OSQP iterations against 38625 with those, the worst step capped
+    at 125 of them, the height RMSE 2.286 against 2.295 mm; a cap of 110 gave 2.286 mm too, 100 gave
+    2.364 mm.
+    budget : an overrun is a failure (see the module doc); it acts only with enforce_budget.
+    enforce_budget : default False: offline runs -- scenes, tests, benchmarks -- stay reproducible
+    whatever the machine's load; the rig daemon sets it, with a budget of e.g. 0.8.
+    integrator : 'euler' is one gas-mass step per stage; the flow is smooth over 20 ms and it costs a
+    quarter of rk4, which decides the 20 ms budget.
+    lin_every : the linearisation is most of a step's work after the QP.
     """
 
-    sample_period: float = 0.01
-    dt: float = 0.02
-    horizon: int = 15
-    w_h: float = 1.0
-    w_terminal: float = 3.0
-    w_in: float = 1e-3
-    r_in: float = 1e-3
-    w_du: float = 2e-3
-    p_max: float = 45e3
-    p_margin: float = 3e3
-    w_slack: float = 1e-3
-    max_iter: int = 125
-    eps: float = 3e-4
-    budget: float = 0.0
-    integrator: str = "euler"
-    lin_every: int = 2
-    enforce_budget: bool = False
+    WHERE = "robot_mpc"
 
-    def validate(self) -> "RobotMPCSettings":
-        check_range("robot_mpc", "sample_period", self.sample_period, 1e-3, 1.0, "s")
-        check_range("robot_mpc", "dt", self.dt, 1e-3, 1.0, "s")
-        if not isinstance(self.horizon, int) or not 1 <= self.horizon <= 200:
-            raise ValueError(f"robot_mpc.horizon = {self.horizon!r} must be an integer in [1, 200]")
-        for nm in ("w_h", "w_terminal", "w_in", "r_in", "w_du", "w_slack"):
-            check_range("robot_mpc", nm, getattr(self, nm), 0.0, 1e6)
-        check_range("robot_mpc", "p_max", self.p_max, 1e3, 1e6, "Pa")
-        check_range("robot_mpc", "p_margin", self.p_margin, 0.0, self.p_max, "Pa")
-        if not isinstance(self.max_iter, int) or self.max_iter < 1:
-            raise ValueError(f"robot_mpc.max_iter = {self.max_iter!r} must be an integer >= 1")
-        check_range("robot_mpc", "eps", self.eps, 1e-8, 1e-1)
-        check_range("robot_mpc", "budget", self.budget, 0.0, 10.0)
-        if not isinstance(self.enforce_budget, bool):
-            raise ValueError(f"robot_mpc.enforce_budget = {self.enforce_budget!r} must be true or false")
-        if not isinstance(self.lin_every, int) or isinstance(self.lin_every, bool) or not 1 <= self.lin_every <= 10:
-            raise ValueError(f"robot_mpc.lin_every = {self.lin_every!r} must be an integer in [1, 10]")
-        if self.integrator not in ("euler", "rk4"):
-            raise ValueError(f"robot_mpc.integrator = '{self.integrator}': allowed euler, rk4")
-        return self
+    sample_period: float = setting(0.01, lo=1e-3, hi=1.0, unit="s", doc="control period")
+    dt: float = setting(0.02, lo=1e-3, hi=1.0, unit="s", doc="prediction step (inputs held over it)")
+    horizon: int = setting(15, integer=True, lo=1, hi=200, unit="stages", doc="prediction stages")
+    w_h: float = setting(1.0, lo=0.0, hi=1e6, unit="1/mm^2", doc="weight of the height error")
+    w_terminal: float = setting(3.0, lo=0.0, hi=1e6, doc="factor on the last stage's weight")
+    w_in: float = setting(1e-3, lo=0.0, hi=1e6, doc="quadratic input cost (supply and outlet)")
+    r_in: float = setting(1e-3, lo=0.0, hi=1e6, doc="linear input cost (discourages pumping and venting at once)")
+    w_du: float = setting(2e-3, lo=0.0, hi=1e6, doc="input-rate cost")
+    p_max: float = setting(45e3, lo=1e3, hi=1e6, unit="Pa", doc="pressure limit")
+    p_margin: float = setting(3e3, lo=0.0, hi=1e6, unit="Pa",
+                              doc="the QP keeps the model pressure this far under p_max (noise, model error)")
+    w_slack: float = setting(1e-3, lo=0.0, hi=1e6, unit="1/kPa",
+                             doc="linear cost per kPa of each chamber's pressure slack")
+    max_iter: int = setting(125, integer=True, lo=1, doc="OSQP iteration limit")
+    eps: float = setting(3e-4, lo=1e-8, hi=1e-1, doc="OSQP tolerance")
+    budget: float = setting(0.0, lo=0.0, hi=10.0,
+                            doc="wall time of a step (linearisation and QP) as a fraction of sample_period; 0 = none")
+    integrator: str = setting("euler", choices=("euler", "rk4"), doc="the prediction's scheme per stage")
+    lin_every: int = setting(2, integer=True, lo=1, hi=10,
+                             doc="the plan is linearised at every lin_every-th stage, standing for the stages "
+                                 "up to the next one (1: at every stage)")
+    enforce_budget: bool = setting(False, doc="act on budget (the rig daemon sets it)")
+
+    def check_rules(self) -> None:
+        self.within("p_margin", hi=self.p_max)
 
 
 #: compiled QP data Functions of this process, by stage function, size and cost (see RobotNMPC._data_call)

@@ -20,27 +20,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from hbma_ctrl.core.interfaces import RobotControllerBase
-from hbma_ctrl.core.params import check_range
+from hbma_ctrl.core.settings import Settings, setting
 
 __all__ = ["RobotPIDSettings", "RobotPressurePID"]
 
 
 @dataclass(frozen=True)
-class RobotPIDSettings:
-    """kp : 1/Pa; ki : 1/(Pa s); kd : s/Pa; sample_period : s; deadband : Pa (no action inside)."""
+class RobotPIDSettings(Settings):
+    """The chambers' pressure PIDs (SI; each field's unit, range and one-line doc are in its declaration)."""
 
-    kp: float = 1.0 / 8e3
-    ki: float = 1.0 / 8e3 / 0.4
-    kd: float = 0.0
-    sample_period: float = 0.01
-    deadband: float = 0.0
+    WHERE = "robot_pid"
 
-    def validate(self) -> "RobotPIDSettings":
-        for nm in ("kp", "ki", "kd"):
-            check_range("robot_pid", nm, getattr(self, nm), 0.0, 1.0)
-        check_range("robot_pid", "sample_period", self.sample_period, 1e-4, 1.0, "s")
-        check_range("robot_pid", "deadband", self.deadband, 0.0, 1e4, "Pa")
-        return self
+    kp: float = setting(1.0 / 8e3, lo=0.0, hi=1.0, unit="1/Pa", doc="proportional gain")
+    ki: float = setting(1.0 / 8e3 / 0.4, lo=0.0, hi=1.0, unit="1/(Pa s)", doc="integral gain")
+    kd: float = setting(0.0, lo=0.0, hi=1.0, unit="s/Pa", doc="derivative gain")
+    sample_period: float = setting(0.01, lo=1e-4, hi=1.0, unit="s", doc="control period")
+    deadband: float = setting(0.0, lo=0.0, hi=1e4, unit="Pa", doc="no action within this of the target pressure")
 
 
 class RobotPressurePID(RobotControllerBase):

@@ -16,7 +16,7 @@ import numpy as np
 
 from hbma_ctrl.core.codegen import is_finite, is_nan
 from hbma_ctrl.core.settings import Settings, setting
-from hbma_ctrl.models.actuation import DELAY_MAX
+from hbma_ctrl.models.actuation import sensor_delay_setting, valve_delay_setting
 from hbma_ctrl.models.chamber import STATE_SCALE
 from hbma_ctrl.models.reduced import MEMBRANES
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
@@ -131,10 +131,8 @@ class FilterSettings(Settings):
     max_gap: float = setting(1.0, lo=0.0, hi=3600.0, unit="s", doc="longest time a step predicts over")
     membrane: str = setting(DEFAULT_MEMBRANE, choices=MEMBRANES,
                             doc="the filter model's membrane law (README Model §9)")
-    valve_delay: float = setting(DEFAULT_VALVE_DELAY, lo=0.0, hi=DELAY_MAX, unit="s", user="ms",
-                                 doc="the valves act this long after their command (datasheet)")
-    sensor_delay: float = setting(DEFAULT_SENSOR_DELAY, lo=0.0, hi=DELAY_MAX, unit="s", user="ms",
-                                  doc="the pressure sensor reads this long late")
+    valve_delay: float = valve_delay_setting(DEFAULT_VALVE_DELAY)
+    sensor_delay: float = sensor_delay_setting(DEFAULT_SENSOR_DELAY)
 
     def check_rules(self) -> None:
         self.within("max_gap", lo=self.sample_period)

@@ -43,41 +43,33 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from hbma_ctrl.core.settings import Settings, setting
+
 __all__ = ["InnovationTestSettings", "window_mean_stat", "window_mean_bound", "windowed_nis",
            "windowed_nis_bounds", "innovation_test"]
 
 
 @dataclass(frozen=True)
-class InnovationTestSettings:
-    """Settings of :func:`innovation_test`.
+class InnovationTestSettings(Settings):
+    """Settings of :func:`innovation_test` (each field's unit, range and one-line doc are in its declaration).
 
-    Fields
-    ------
-    window : samples per window, [10, 10000] (100: 1 s at the rig's 10 ms; a bias the factors absorb
-        within a second or two).
-    threshold : a run is flagged when the largest window statistic T exceeds this (-), (0, window]
-        (45: the 95th percentile of the cap EKF on the cap rig's protocol, seed 0).
-    min_fill : a window counts only when at least this share of its samples has an innovation
-        (saturated or missing readings have none), (0, 1].
-    alpha : tail probability of the white-noise bound reported beside the statistic, (0, 0.5).
+    window : 100 is 1 s at the rig's 10 ms (a bias the factors absorb within a second or two).
+    threshold : 45 is the 95th percentile of the cap EKF on the cap rig's protocol, seed 0.
+    min_fill : saturated or missing readings have no innovation.
     """
 
-    window: int = 100
-    threshold: float = 45.0
-    min_fill: float = 0.8
-    alpha: float = 1e-3
+    WHERE = "innovation"
 
-    def validate(self) -> "InnovationTestSettings":
-        """Check the ranges; ValueError naming the field."""
-        if not isinstance(self.window, int) or isinstance(self.window, bool) or not 10 <= self.window <= 10000:
-            raise ValueError(f"innovation.window = {self.window!r} must be an integer in [10, 10000]")
-        if not 0.0 < self.threshold <= self.window:
-            raise ValueError(f"innovation.threshold = {self.threshold!r} is out of range (0, {self.window}]")
-        if not 0.0 < self.min_fill <= 1.0:
-            raise ValueError(f"innovation.min_fill = {self.min_fill!r} is out of range (0, 1]")
-        if not 0.0 < self.alpha < 0.5:
-            raise ValueError(f"innovation.alpha = {self.alpha!r} is out of range (0, 0.5)")
-        return self
+    window: int = setting(100, integer=True, lo=10, hi=10000, unit="samples", doc="samples per window")
+    threshold: float = setting(45.0, lo=0.0, hi=10000.0, lo_open=True,
+                               doc="a run is flagged when its largest window statistic exceeds this (at most window)")
+    min_fill: float = setting(0.8, lo=0.0, hi=1.0, lo_open=True,
+                              doc="a window counts only when at least this share of its samples has an innovation")
+    alpha: float = setting(1e-3, lo=0.0, hi=0.5, lo_open=True, hi_open=True,
+                           doc="tail probability of the white-noise bound reported beside the statistic")
+
+    def check_rules(self) -> None:
+        self.within("threshold", hi=self.window)
 
 
 def _sums(r, window: int):

@@ -56,8 +56,8 @@ import numpy as np
 
 from hbma_ctrl.estimators.common import INFLATION_MAX, VACUUM_GAUGE, classify_expr, physical_reading_bounds
 from hbma_ctrl.core.codegen import FastFunction, is_finite
-from hbma_ctrl.core.params import check_range
-from hbma_ctrl.models.actuation import CommandTiming, check_delays
+from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.models.actuation import CommandTiming, sensor_delay_setting, valve_delay_setting
 from hbma_ctrl.models.bank import ChamberBank
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, ROBOT_SENSOR_DELAY
 
@@ -65,69 +65,46 @@ __all__ = ["ChamberEKFSettings", "ChamberEKFBank", "bank_step_function"]
 
 
 @dataclass(frozen=True)
-class ChamberEKFSettings:
-    """Per-chamber EKF tuning (SI).
+class ChamberEKFSettings(Settings):
+    """Per-chamber EKF tuning (SI; each field's unit, range and one-line doc are in its declaration).
 
-    sample_period : s; noise_std : sensor noise one sigma, Pa; model_rel_std : relative pressure
-    model error (modulus mismatch), -; x_abs_std, x_rel_std : process noise of the scaled mass per
-    step (absolute and relative to the predicted change); b_rate_std : random walk of the flow
-    factor, 1/sqrt(s); b0, b0_std : initial flow factor and its sigma; k0_std, k_rate_std : initial
-    sigma and random walk (1/sqrt(s)) of the modulus factor (prior 1); c0_std, c_rate_std : the same
-    for the dead-volume factor (prior 1); sensor_range : Pa (readings at or above it are not used);
-    reading_min : lowest physical reading, Pa gauge, [-101325, 0]; reading_max_rel : readings above
-    this multiple of sensor_range are outliers, [1, 1000]; gate_nis : NIS gate (chi-square, one
-    degree of freedom), (1, 1e6]; gate_reopen : gated readings in a row that re-open a chamber's
-    gate, [1, 1000]; max_gap : longest time one step predicts over, s, [sample_period, 3600] (see
-    the module doc); valve_delay, sensor_delay : the valves' switching delay and the sensor's, s,
-    [0, 0.1] each (the commands are taken as acting that late,
-    :class:`hbma_ctrl.models.actuation.CommandTiming`, as by the single chamber's EKF; 0 = at once;
-    default 5 ms and 0, :mod:`hbma_ctrl.models.defaults`).
+    max_gap : see the module doc. valve_delay, sensor_delay : the commands are taken as acting that
+    late (:class:`hbma_ctrl.models.actuation.CommandTiming`, as by the single chamber's EKF; 0 = at
+    once; defaults :mod:`hbma_ctrl.models.defaults`).
     """
 
-    sample_period: float = 0.01
-    noise_std: float = 200.0
-    model_rel_std: float = 0.01
-    x_abs_std: float = 2e-4
-    x_rel_std: float = 0.1
-    b_rate_std: float = 0.05
-    b0: float = 1.0
-    b0_std: float = 0.25
-    k0_std: float = 0.15
-    k_rate_std: float = 0.002
-    c0_std: float = 0.25
-    c_rate_std: float = 0.002
-    sensor_range: float = 50e3
-    reading_min: float = VACUUM_GAUGE
-    reading_max_rel: float = 1.5
-    gate_nis: float = 400.0
-    gate_reopen: int = 5
-    max_gap: float = 1.0
-    valve_delay: float = DEFAULT_VALVE_DELAY
-    sensor_delay: float = ROBOT_SENSOR_DELAY
+    WHERE = "robot_ekf"
 
-    def validate(self) -> "ChamberEKFSettings":
-        check_range("robot_ekf", "sample_period", self.sample_period, 1e-4, 1.0, "s")
-        check_range("robot_ekf", "noise_std", self.noise_std, 1.0, 1e4, "Pa")
-        check_range("robot_ekf", "model_rel_std", self.model_rel_std, 0.0, 1.0)
-        check_range("robot_ekf", "x_abs_std", self.x_abs_std, 0.0, 1.0)
-        check_range("robot_ekf", "x_rel_std", self.x_rel_std, 0.0, 10.0)
-        check_range("robot_ekf", "b_rate_std", self.b_rate_std, 0.0, 10.0)
-        check_range("robot_ekf", "b0", self.b0, 0.5, 2.0)
-        check_range("robot_ekf", "b0_std", self.b0_std, 0.0, 2.0)
-        check_range("robot_ekf", "k0_std", self.k0_std, 0.0, 1.0)
-        check_range("robot_ekf", "k_rate_std", self.k_rate_std, 0.0, 10.0)
-        check_range("robot_ekf", "c0_std", self.c0_std, 0.0, 1.0)
-        check_range("robot_ekf", "c_rate_std", self.c_rate_std, 0.0, 10.0)
-        check_range("robot_ekf", "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
-        check_range("robot_ekf", "reading_min", self.reading_min, VACUUM_GAUGE, 0.0, "Pa")
-        check_range("robot_ekf", "reading_max_rel", self.reading_max_rel, 1.0, 1000.0)
-        check_range("robot_ekf", "gate_nis", self.gate_nis, 1.0, 1e6, lo_open=True)
-        if not isinstance(self.gate_reopen, int) or isinstance(self.gate_reopen, bool) or \
-                not 1 <= self.gate_reopen <= 1000:
-            raise ValueError(f"robot_ekf.gate_reopen = {self.gate_reopen!r} must be an integer in [1, 1000]")
-        check_range("robot_ekf", "max_gap", self.max_gap, self.sample_period, 3600.0, "s")
-        check_delays("robot_ekf", self.valve_delay, self.sensor_delay)
-        return self
+    sample_period: float = setting(0.01, lo=1e-4, hi=1.0, unit="s", doc="time between steps")
+    noise_std: float = setting(200.0, lo=1.0, hi=1e4, unit="Pa", doc="sensor noise one sigma")
+    model_rel_std: float = setting(0.01, lo=0.0, hi=1.0, doc="relative pressure model error (modulus mismatch)")
+    x_abs_std: float = setting(2e-4, lo=0.0, hi=1.0, doc="process noise of the scaled gas mass per step")
+    x_rel_std: float = setting(0.1, lo=0.0, hi=10.0,
+                               doc="process noise of the scaled gas mass relative to its predicted change")
+    b_rate_std: float = setting(0.05, lo=0.0, hi=10.0, unit="1/sqrt(s)", doc="random walk of the flow factor")
+    b0: float = setting(1.0, lo=0.5, hi=2.0, doc="initial flow factor")
+    b0_std: float = setting(0.25, lo=0.0, hi=2.0, doc="its one sigma")
+    k0_std: float = setting(0.15, lo=0.0, hi=1.0, doc="initial one sigma of the modulus factor (prior 1)")
+    k_rate_std: float = setting(0.002, lo=0.0, hi=10.0, unit="1/sqrt(s)", doc="random walk of the modulus factor")
+    c0_std: float = setting(0.25, lo=0.0, hi=1.0, doc="initial one sigma of the dead-volume factor (prior 1)")
+    c_rate_std: float = setting(0.002, lo=0.0, hi=10.0, unit="1/sqrt(s)",
+                                doc="random walk of the dead-volume factor")
+    sensor_range: float = setting(50e3, lo=1e3, hi=1e6, unit="Pa", doc="readings at or above this are not used")
+    reading_min: float = setting(VACUUM_GAUGE, lo=VACUUM_GAUGE, hi=0.0, unit="Pa",
+                                 doc="lowest physical reading, gauge (below: an outlier)")
+    reading_max_rel: float = setting(1.5, lo=1.0, hi=1000.0,
+                                     doc="a reading above this times sensor_range is an outlier")
+    gate_nis: float = setting(400.0, lo=1.0, hi=1e6, lo_open=True,
+                              doc="NIS gate (chi-square, one degree of freedom)")
+    gate_reopen: int = setting(5, integer=True, lo=1, hi=1000,
+                               doc="gated readings in a row that re-open a chamber's gate")
+    max_gap: float = setting(1.0, lo=0.0, hi=3600.0, unit="s",
+                             doc="longest time one step predicts over (at least sample_period)")
+    valve_delay: float = valve_delay_setting(DEFAULT_VALVE_DELAY)
+    sensor_delay: float = sensor_delay_setting(ROBOT_SENSOR_DELAY)
+
+    def check_rules(self) -> None:
+        self.within("max_gap", lo=self.sample_period)
 
 
 B_RANGE = (0.5, 2.0)

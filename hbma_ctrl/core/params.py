@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from hbma_ctrl.core.materials import Material, NeoHookean
-from hbma_ctrl.core.settings import Settings, check_range, setting
+from hbma_ctrl.core.settings import Settings, check_fields, check_range, setting
 
 __all__ = ["Actuator", "Valve", "Pneumatics", "Platform", "check_range", "DATA_DIR"]
 
@@ -41,51 +41,52 @@ class Actuator(Settings):
 
 
 @dataclass(frozen=True)
-class Valve:
-    """A solenoid valve as an ISO 6358 orifice.
+class Valve(Settings):
+    """A solenoid valve as an ISO 6358 orifice (each field's unit, range and one-line doc are in its
+    declaration; 1e-10 m^3/(s Pa) of conductance = 0.01 l/(s bar)).
 
-    C : sonic conductance, m^3/(s Pa) (1e-10 m^3/(s Pa) = 0.01 l/(s bar)).
-    b : critical pressure ratio (-).
-    laminar_ratio : pressure ratio above which the flow is blended to a laminar (linear) law, so the
-        flow is Lipschitz near zero pressure drop (ISO 6358-3 uses a similar low-drop region).
+    laminar_ratio : the flow is blended to a laminar (linear) law above it, so the flow is Lipschitz
+        near zero pressure drop (ISO 6358-3 uses a similar low-drop region).
     """
 
-    C: float = 2.0e-10
-    b: float = 0.3
-    laminar_ratio: float = 0.995
+    WHERE = "valve"
+
+    C: float = setting(2.0e-10, lo=0.0, hi=1e-7, unit="m^3/(s Pa)", doc="sonic conductance")
+    b: float = setting(0.3, lo=0.0, hi=0.99, doc="critical pressure ratio")
+    laminar_ratio: float = setting(0.995, lo=0.9, hi=0.99999,
+                                   doc="pressure ratio above which the flow is laminar (above b)")
 
     def validate(self, where: str = "valve") -> "Valve":
-        check_range(where, "C", self.C, 0.0, 1e-7, "m^3/(s Pa)")
-        check_range(where, "b", self.b, 0.0, 0.99)
-        check_range(where, "laminar_ratio", self.laminar_ratio, 0.9, 0.99999)
+        """Check every field and the laminar ratio against b, naming ``where`` (the valve's place)."""
+        check_fields(self, where)
         if self.laminar_ratio <= self.b:
             raise ValueError(f"{where}.laminar_ratio must exceed b ({self.b})")
         return self
 
 
 @dataclass(frozen=True)
-class Pneumatics:
-    """Compressor map and valves.
+class Pneumatics(Settings):
+    """Compressor map and valves (each setting's unit, range and one-line doc are in its declaration).
 
-    compressor_csv : table of (speed 0-1, gauge pressure Pa, mass flow kg/s); None = the shipped
-        default ``data/compressor_default.csv`` (an assumption, see that file's header).
-    flow_scale : multiplies the compressor map (1.0 nominal; a rig with a weaker pump: 0.9).
+    compressor_csv : None = the shipped default ``data/compressor_default.csv`` (an assumption, see
+        that file's header).
     inlet, outlet : valves. The inlet duty scales the pump flow (its pressure drop is neglected at
         these flows); the outlet vents the chamber to ambient.
     """
 
-    compressor_csv: str | None = None
-    flow_scale: float = 1.0
+    WHERE = "pneumatics"
+
+    compressor_csv: str | None = setting(None, text=True,
+                                         doc="compressor map CSV (speed, Pa, kg/s); default: the shipped one")
+    flow_scale: float = setting(1.0, lo=0.0, hi=10.0, doc="multiplies the compressor map")
     inlet: Valve = field(default_factory=lambda: Valve(C=1.0e-9))
     outlet: Valve = field(default_factory=Valve)
 
-    def validate(self) -> "Pneumatics":
-        check_range("pneumatics", "flow_scale", self.flow_scale, 0.0, 10.0)
+    def check_rules(self) -> None:
         self.inlet.validate("pneumatics.inlet")
         self.outlet.validate("pneumatics.outlet")
         if self.compressor_csv is not None and not Path(self.compressor_csv).is_file():
             raise ValueError(f"pneumatics.compressor_csv: no such file '{self.compressor_csv}'")
-        return self
 
     @property
     def csv_path(self) -> Path:
@@ -93,26 +94,19 @@ class Pneumatics:
 
 
 @dataclass(frozen=True)
-class Platform:
-    """The guided platform that carries a dead load (README Model §7).
+class Platform(Settings):
+    """The guided platform that carries a dead load (README Model §7; each field's unit, range and
+    one-line doc are in its declaration)."""
 
-    load : load mass, kg (0 = no platform: free inflation).
-    own_mass : platform's own moving mass, kg (added to the load in the dynamic model).
-    damping : viscous damping of the prismatic guide, N s/m (dynamic model only).
-    g : gravity, m/s^2.
-    """
+    WHERE = "platform"
 
-    load: float = 0.0
-    own_mass: float = 0.0
-    damping: float = 20.0
-    g: float = 9.80665
-
-    def validate(self) -> "Platform":
-        check_range("platform", "load", self.load, 0.0, 50.0, "kg")
-        check_range("platform", "own_mass", self.own_mass, 0.0, 50.0, "kg")
-        check_range("platform", "damping", self.damping, 0.0, 1e5, "N s/m")
-        check_range("platform", "g", self.g, 0.0, 100.0, "m/s^2")
-        return self
+    load: float = setting(0.0, lo=0.0, hi=50.0, unit="kg", user="g", key="mass_g",
+                          doc="load mass (0: no platform, free inflation; kind 'single')")
+    own_mass: float = setting(0.0, lo=0.0, hi=50.0, unit="kg", user="g",
+                              doc="platform's own moving mass (added to the load in the dynamic model)")
+    damping: float = setting(20.0, lo=0.0, hi=1e5, unit="N s/m", key="damping_ns_per_m",
+                             doc="platform damping (the prismatic guide's; dynamic model only)")
+    g: float = setting(9.80665, lo=0.0, hi=100.0, unit="m/s^2", doc="gravity")
 
     @property
     def weight(self) -> float:

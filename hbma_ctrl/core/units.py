@@ -24,6 +24,8 @@ __all__ = [
     "to_ms",
     "to_us",
     "to_mg",
+    "megabytes",
+    "to_megabytes",
     "lpm_to_kgs",
     "deg",
     "to_deg",
@@ -104,6 +106,16 @@ def to_mg(x):
     return x * 1e6
 
 
+def megabytes(x):
+    """Megabytes -> bytes."""
+    return x * 1e6
+
+
+def to_megabytes(x):
+    """Bytes -> megabytes."""
+    return x * 1e-6
+
+
 def lpm_to_kgs(x):
     """Normal litres per minute (ANR) -> mass flow in kg/s."""
     return x * 1e-3 / 60.0 * RHO_AIR_NORMAL
@@ -133,4 +145,5 @@ USER_UNITS = {
     "1/mm": (to_mm, mm, ""),
     "1/(mm s)": (to_mm, mm, ""),
     "s/mm": (to_mm, mm, ""),
+    "MB": (megabytes, to_megabytes, "mb"),
 }

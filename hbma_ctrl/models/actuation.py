@@ -21,16 +21,30 @@ averaged over the same period (SI: seconds; commands are (speed, inlet, outlet) 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.params import check_range
+from hbma_ctrl.core.settings import setting
 
-__all__ = ["CommandTiming", "acting_average", "check_delays", "acting_function", "acting_state"]
+__all__ = ["CommandTiming", "acting_average", "check_delays", "acting_function", "acting_state",
+           "sensor_delay_setting", "valve_delay_setting"]
 
 #: delays allowed, s: up to ten 10 ms periods (a slower valve or sensor is another rig)
 DELAY_MAX = 0.1
+
+
+def valve_delay_setting(default: float) -> Any:
+    """The valves' switching delay, s, [0, DELAY_MAX]; the scenario's ``valve_delay_ms``."""
+    return setting(default, lo=0.0, hi=DELAY_MAX, unit="s", user="ms",
+                   doc="the valves act this long after their command (datasheet)")
+
+
+def sensor_delay_setting(default: float) -> Any:
+    """The pressure sensor's lag, s, [0, DELAY_MAX]; the scenario's ``sensor_delay_ms``."""
+    return setting(default, lo=0.0, hi=DELAY_MAX, unit="s", user="ms", doc="the pressure sensor reads this long late")
 
 
 def check_delays(where: str, valve_delay: float, sensor_delay: float) -> None:

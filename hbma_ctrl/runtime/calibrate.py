@@ -56,11 +56,13 @@ import numpy as np
 from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
 from hbma_ctrl.core.identify import identify
 from hbma_ctrl.core.interfaces import Command, Estimator, check_role
-from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.models.actuation import CommandTiming, check_delays
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.models.actuation import CommandTiming, sensor_delay_setting, valve_delay_setting
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free
+from hbma_ctrl.models.reduced import MEMBRANES
 from hbma_ctrl.sim.simulate import Plant
 from hbma_ctrl.sim.trial import DEFAULT_DT
 
@@ -80,94 +82,64 @@ _HOLD = Command(0.0, 0.0, 0.0)
 
 
 @dataclass
-class CalibrationSettings:
-    """The excitation and the fit (SI).
+class CalibrationSettings(Settings):
+    """The excitation and the fit (SI; each field's unit, range and one-line doc are in its declaration).
 
-    Fields
-    ------
-    p_max : the pressure limit the calibration must respect, Pa (the controller's).
-    p_stop : the pump stops at the first reading above this, Pa, (0, p_max).
-    speed : compressor speed during the pulse, (0, 1].
-    pump_max : longest pump pulse, s, (0, 5].
-    hold : all valves closed after the pulse, s, [0, 5].
-    vent_min, vent_max : the first vent lasts at least / at most this long, s.
-    vent_end : the final vent, s, [0, 5].
-    vent_duty : outlet duty of the final vent, (0, 1] (a slower vent samples the low pressures more).
     rest_tol : the first vent ends when the mean of the last ``rest_samples`` readings is within
-        this of zero, Pa.
-    rest_samples : readings averaged for the rest check, >= 1.
-    sample_period : the reading and command period, s (the rig's).
-    noise_std : the sensor's one sigma, Pa (weights the residuals).
-    sensor_range : readings at or above this are saturated and not fitted, Pa.
+        this of zero.
     prior_mean, prior_std : the prior on (b, k, c): its means (1: the nominal chamber; a fit's values)
         and one sigmas (the estimator's initial values and spreads).
-    valve_delay, sensor_delay : the valves' switching delay and the sensor's, s, [0, 0.1]: the fit's
-        model takes the commands as acting that late (:mod:`hbma_ctrl.models.actuation`; the
-        estimator's settings, so both see the same chamber). Unmodelled, 5 ms of valve delay and
-        3 ms of sensor lag make the fit's dead volume 20-35 % too large.
-    membrane : the fit's free-inflation law, 'cap' or 'exact' (the estimator's): on an exact
-        membrane the cap fits a modulus about 5 % high. Defaults: :mod:`hbma_ctrl.models.defaults`.
-    handover_std_floor : the estimator's prior sigma of each factor is at least this, [0, 1] (-).
-        The fit's Gauss-Newton sigma assumes the model is the chamber (0.004 for the flow factor);
-        on a rig that differs in structure (a pump map of another shape, valves with a minimum
-        opening) the factors it fits at the pulse's pressures are off elsewhere, and a filter held
-        that tight cannot follow (`bench loop --rig structured`: 400 g passed 7/10 seeds, 10/10
-        with 0.08).
+    valve_delay, sensor_delay : the fit's model takes the commands as acting that late
+        (:mod:`hbma_ctrl.models.actuation`; the estimator's settings, so both see the same chamber).
+        Unmodelled, 5 ms of valve delay and 3 ms of sensor lag make the fit's dead volume 20-35 % too large.
+    membrane : on an exact membrane the cap fits a modulus about 5 % high. Defaults:
+        :mod:`hbma_ctrl.models.defaults`.
+    handover_std_floor : the fit's Gauss-Newton sigma assumes the model is the chamber (0.004 for
+        the flow factor); on a rig that differs in structure (a pump map of another shape, valves
+        with a minimum opening) the factors it fits at the pulse's pressures are off elsewhere, and a
+        filter held that tight cannot follow (`bench loop --rig structured`: 400 g passed 7/10 seeds,
+        10/10 with 0.08).
     """
 
-    p_max: float = 35e3
-    p_stop: float = 17e3
-    speed: float = 1.0
-    pump_max: float = 1.0
-    hold: float = 0.1
-    vent_min: float = 0.1
-    vent_max: float = 2.0
-    vent_end: float = 0.5
-    vent_duty: float = 1.0
-    rest_tol: float = 500.0
-    rest_samples: int = 5
-    sample_period: float = 0.01
-    noise_std: float = 200.0
-    sensor_range: float = 35e3
-    prior_mean: tuple = (FilterSettings.flow_factor_init, FilterSettings.modulus_init, FilterSettings.dead_volume_init)
-    prior_std: tuple = (FilterSettings.flow_factor_init_std, FilterSettings.modulus_init_std,
-                        FilterSettings.dead_volume_init_std)
-    valve_delay: float = DEFAULT_VALVE_DELAY
-    sensor_delay: float = DEFAULT_SENSOR_DELAY
-    membrane: str = DEFAULT_MEMBRANE
-    handover_std_floor: float = 0.08
+    WHERE = "calibration"
 
-    def validate(self) -> "CalibrationSettings":
-        """Check the ranges; returns self."""
-        w = "calibration"
-        check_range(w, "p_max", self.p_max, 0.0, 1e6, "Pa", lo_open=True)
-        check_range(w, "p_stop", self.p_stop, 0.0, self.p_max, "Pa", lo_open=True)
-        if self.p_stop >= self.p_max:
-            raise ValueError(f"calibration.p_stop = {self.p_stop!r} must be below p_max = {self.p_max!r} Pa")
-        check_range(w, "speed", self.speed, 0.0, 1.0, lo_open=True)
-        check_range(w, "pump_max", self.pump_max, 0.0, 5.0, "s", lo_open=True)
-        check_range(w, "hold", self.hold, 0.0, 5.0, "s")
-        check_range(w, "vent_min", self.vent_min, 0.0, 5.0, "s")
-        check_range(w, "vent_max", self.vent_max, self.vent_min, 30.0, "s")
-        check_range(w, "vent_end", self.vent_end, 0.0, 5.0, "s")
-        check_range(w, "vent_duty", self.vent_duty, 0.0, 1.0, lo_open=True)
-        check_range(w, "rest_tol", self.rest_tol, 0.0, 1e5, "Pa", lo_open=True)
-        if not isinstance(self.rest_samples, int) or self.rest_samples < 1:
-            raise ValueError(f"calibration.rest_samples = {self.rest_samples!r} must be an integer >= 1")
-        check_range(w, "sample_period", self.sample_period, 0.0, 1.0, "s", lo_open=True)
-        check_range(w, "noise_std", self.noise_std, 0.0, 1e4, "Pa", lo_open=True)
-        check_range(w, "sensor_range", self.sensor_range, 1e3, 1e6, "Pa")
-        if len(self.prior_std) != 3 or len(self.prior_mean) != 3:
-            raise ValueError("calibration.prior_mean and prior_std must hold three values each (b, k, c)")
-        for name, v in zip(FACTOR_NAMES, self.prior_std):
-            check_range(w, f"prior_std[{name}]", v, 0.0, 10.0, lo_open=True)
-        for name, v in zip(FACTOR_NAMES, self.prior_mean):
-            check_range(w, f"prior_mean[{name}]", v, _BOUNDS[0], _BOUNDS[1])
-        check_delays(w, self.valve_delay, self.sensor_delay)
-        if self.membrane not in ("cap", "exact"):
-            raise ValueError(f"{w}.membrane = {self.membrane!r}: allowed cap, exact")
-        check_range(w, "handover_std_floor", self.handover_std_floor, 0.0, 1.0)
-        return self
+    p_max: float = setting(35e3, lo=0.0, hi=1e6, lo_open=True, unit="Pa",
+                           doc="the pressure limit the calibration must respect (the controller's)")
+    p_stop: float = setting(17e3, lo=0.0, hi=1e6, lo_open=True, hi_open=True, unit="Pa",
+                            doc="the pump stops at the first reading above this (below p_max)")
+    speed: float = setting(1.0, lo=0.0, hi=1.0, lo_open=True, doc="compressor speed during the pulse")
+    pump_max: float = setting(1.0, lo=0.0, hi=5.0, lo_open=True, unit="s", doc="longest pump pulse")
+    hold: float = setting(0.1, lo=0.0, hi=5.0, unit="s", doc="all valves closed after the pulse")
+    vent_min: float = setting(0.1, lo=0.0, hi=5.0, unit="s", doc="the first vent lasts at least this long")
+    vent_max: float = setting(2.0, lo=0.0, hi=30.0, unit="s",
+                              doc="the first vent lasts at most this long (at least vent_min)")
+    vent_end: float = setting(0.5, lo=0.0, hi=5.0, unit="s", doc="the final vent")
+    vent_duty: float = setting(1.0, lo=0.0, hi=1.0, lo_open=True,
+                               doc="outlet duty of the final vent (a slower vent samples the low pressures more)")
+    rest_tol: float = setting(500.0, lo=0.0, hi=1e5, lo_open=True, unit="Pa",
+                              doc="the first vent ends when the readings average within this of zero")
+    rest_samples: int = setting(5, integer=True, lo=1, doc="readings averaged for the rest check")
+    sample_period: float = setting(0.01, lo=0.0, hi=1.0, lo_open=True, unit="s",
+                                   doc="the reading and command period (the rig's)")
+    noise_std: float = setting(200.0, lo=0.0, hi=1e4, lo_open=True, unit="Pa",
+                               doc="the sensor's one sigma (weights the residuals)")
+    sensor_range: float = setting(35e3, lo=1e3, hi=1e6, unit="Pa",
+                                  doc="readings at or above this are saturated and not fitted")
+    prior_mean: tuple = setting((FilterSettings.flow_factor_init, FilterSettings.modulus_init,
+                                 FilterSettings.dead_volume_init), lo=FACTOR_RANGE[0], hi=FACTOR_RANGE[1],
+                                parts=FACTOR_NAMES, doc="prior means of the factors (b, k, c)")
+    prior_std: tuple = setting((FilterSettings.flow_factor_init_std, FilterSettings.modulus_init_std,
+                                FilterSettings.dead_volume_init_std), lo=0.0, hi=10.0, lo_open=True,
+                               parts=FACTOR_NAMES, doc="prior one sigmas of the factors (b, k, c)")
+    valve_delay: float = valve_delay_setting(DEFAULT_VALVE_DELAY)
+    sensor_delay: float = sensor_delay_setting(DEFAULT_SENSOR_DELAY)
+    membrane: str = setting(DEFAULT_MEMBRANE, choices=MEMBRANES, doc="the fit's free-inflation law (the estimator's)")
+    handover_std_floor: float = setting(0.08, lo=0.0, hi=1.0,
+                                        doc="the estimator's prior sigma of each factor is at least this")
+
+    def check_rules(self) -> None:
+        self.within("p_stop", hi=self.p_max)
+        self.within("vent_max", lo=self.vent_min)
 
 
 @dataclass(frozen=True)

@@ -61,26 +61,26 @@ class InputSchedule:
 
 
 @dataclass(frozen=True)
-class Trial:
+class Trial(Settings):
     """One open-loop scene: an actuator, its pneumatics and load, inputs and duration (SI)."""
+
+    WHERE = "trial"
 
     actuator: Actuator = field(default_factory=Actuator)
     pneumatics: Pneumatics = field(default_factory=Pneumatics)
     platform: Platform = field(default_factory=Platform)
     schedule: InputSchedule = field(default_factory=lambda: InputSchedule.inflate_deflate(1.0, 3.0))
-    duration: float = 6.0
-    name: str = "trial"
+    duration: float = setting(6.0, lo=1e-3, hi=1e5, lo_open=True, unit="s", doc="scene length")
+    name: str = setting("trial", text=True, doc="the trial's name in outputs")
 
-    def validate(self) -> "Trial":
+    def check_rules(self) -> None:
         self.actuator.validate()
         self.pneumatics.validate()
         self.platform.validate()
         self.schedule.validate()
-        check_range("trial", "duration", self.duration, 1e-3, 1e5, "s", lo_open=True)
         late = [t for t in self.schedule.times if t >= self.duration]
         if late:
             raise ValueError(f"trial.schedule: switch time {late[0]} s is not before trial.duration = {self.duration} s")
-        return self
 
     def default_fidelity(self) -> str:
         """Fewest states the scene needs: free inflation without a load, else the paper's model."""

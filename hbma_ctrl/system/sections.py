@@ -17,12 +17,13 @@ from hbma_ctrl.controllers.baselines import BangBangSettings, PIDSettings
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, check_range
-from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.core.settings import Settings, Spec, setting
 from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON, ROBOT_SENSOR_DELAY
 from hbma_ctrl.robot.design import RobotDesign, RobotPneumatics
 from hbma_ctrl.robot.plant import RobotPlantSettings
+from hbma_ctrl.robot.rig import H_TARGET_MAX
 from hbma_ctrl.runtime.burst import BurstTestSettings
 from hbma_ctrl.runtime.calibrate import CalibrationSettings
 from hbma_ctrl.sim.batch import protocol_trials
@@ -69,6 +70,14 @@ class Scenario:
 
 KINDS = ("mpc", "pid", "bang_bang")
 
+#: one target point of a chamber, its time and height (the scenario's targets_mm rows, the daemon API's setpoints)
+TARGET_TIME = Spec(doc="time of the point", unit="s", lo=0.0, hi=1e5)
+TARGET_HEIGHT = Spec(doc="target membrane height", unit="m", user="mm", lo=0.0, hi=0.2)
+#: one pose target of a robot layer, its centre height and bend (the scenario's [robot.targets], the API's)
+POSE_HEIGHT = Spec(doc="centre height of the layer above the one below", unit="m", user="mm", lo=0.0, hi=H_TARGET_MAX)
+POSE_BEND = Spec(doc="bend angle; a negative bend is the opposite direction", unit="rad", user="deg",
+                 lo=-math.pi / 3, hi=math.pi / 3)
+
 
 @dataclass
 class ReferenceProfile(Settings):
@@ -92,8 +101,8 @@ class ReferenceProfile(Settings):
         if any(b < a for a, b in zip(ts, ts[1:])):
             raise ValueError("controller.targets_mm: times must be non-decreasing")
         for t, h in self.points:
-            check_range("controller", "targets_mm time", t, 0.0, 1e5, "s")
-            check_range("controller", "targets_mm height", h, 0.0, 0.2, "m")
+            TARGET_TIME.check("controller", "targets_mm time", t)
+            TARGET_HEIGHT.check("controller", "targets_mm height", h)
 
     def __call__(self, t: float) -> float:
         ts = np.array([p[0] for p in self.points])

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
 from hbma_ctrl.app.daemon.api import is_loopback
-from hbma_ctrl.app.scenario import Scenario, load_scenario
+from hbma_ctrl.app.daemon.settings import DaemonConfig
+from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.app.schema.daemon import DaemonTable, parse_api_address
 from hbma_ctrl.app.schema.errors import format_error
 
@@ -26,55 +26,8 @@ __all__ = ["DaemonConfig", "FLAG_KEYS", "load_config", "parse_rig_flag"]
 #: command-line flag -> [daemon] key it overrides
 FLAG_KEYS = {"--speed": "speed", "--duration-s": "duration_s", "--api": "api", "--allow-remote": "allow_remote",
              "--token": "token"}
-
-
-@dataclass
-class DaemonConfig:
-    """Everything the daemon runs with (SI).
-
-    Fields
-    ------
-    scenario : the validated scenario (actuator or robot, rig, estimator, controller).
-    kind : 'chamber' (a [controller] table) or 'robot' (a [robot] table in closed loop).
-    rate_hz : loop rate, Hz; period = 1 / rate_hz s.
-    rig : 'sim' or 'serial'.
-    port : serial port path ('serial' only), else None.
-    baud : serial line rate, baud.
-    speed : rig seconds per wall second (1 on a serial rig).
-    duration : rig time to run, s; None = until stopped.
-    api : (host, port) of the API, None = no API.
-    allow_remote : the API may bind a non-loopback address (with a token).
-    token : bearer token of the API, None = none.
-    log_rotate_bytes : size at which a run log part is closed, bytes.
-    log_flush : the run log is flushed at least this often, s.
-    status_every : the status is published every this many periods.
-    miss_limit : missed deadlines in a row that stop the loop.
-    faults : the [[daemon.fault]] tables as written (edge units; parsed by the fault injector).
-    path : the configuration file.
-    """
-
-    scenario: Scenario
-    kind: str
-    rate_hz: float = 100.0
-    rig: str = "sim"
-    port: str | None = None
-    baud: int = 115200
-    speed: float = 1.0
-    duration: float | None = None
-    api: tuple[str, int] | None = None
-    allow_remote: bool = False
-    token: str | None = None
-    log_rotate_bytes: int = 50_000_000
-    log_flush: float = 0.5
-    status_every: int = 1
-    miss_limit: int = 10
-    faults: list = field(default_factory=list)
-    path: Path | None = None
-
-    @property
-    def period(self) -> float:
-        """Loop period, s."""
-        return 1.0 / self.rate_hz
+#: the flags that give a number (bounded by its key's declaration)
+_NUMBERS = ("--speed", "--duration-s")
 
 
 def parse_rig_flag(value: str) -> dict:
@@ -89,10 +42,13 @@ def parse_rig_flag(value: str) -> dict:
 
 def _check_flag(flag: str, value: Any) -> None:
     """A flag's own range, in the user's units, before it joins the table (so the error names the flag)."""
-    if flag == "--speed" and not (isinstance(value, (int, float)) and math.isfinite(value) and 0.01 <= value <= 1000):
-        raise ValueError(f"--speed = {value!r} is out of range [0.01, 1000] (rig seconds per wall second)")
-    if flag == "--duration-s" and not (isinstance(value, (int, float)) and math.isfinite(value) and 0 < value <= 1e7):
-        raise ValueError(f"--duration-s = {value!r} is out of range (0, 1e+07] s")
+    if flag in _NUMBERS:
+        spec = DaemonTable.settings_keys[FLAG_KEYS[flag]][2]
+        (lo, hi), unit = spec.user_bounds(), spec.user_unit
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not (number and (value > lo if spec.lo_open else value >= lo) and value <= hi):
+            raise ValueError(f"{flag} = {value!r} is out of range {'(' if spec.lo_open else '['}{lo:g}, {hi:g}] "
+                             f"{'' if unit == '-' else unit}".rstrip() + f": {spec.doc}")
     if flag == "--api":
         parse_api_address(value, "--api")
     if flag == "--token" and not str(value).strip():
@@ -143,8 +99,7 @@ def load_config(path: str | Path, flags: dict | None = None) -> DaemonConfig:
     if api is not None and not is_loopback(api[0]) and not (d.allow_remote and d.token):
         raise ValueError(f"{path.name}: [daemon] api = {d.api!r} (or --api) is not a loopback address (127.0.0.1, ::1, "
                          "localhost); another address needs allow_remote = true (--allow-remote) and a token (--token)")
-    return DaemonConfig(scenario=scn, kind=kind, rate_hz=float(d.rate_hz), rig=d.rig, port=d.port, baud=d.baud,
-                        speed=float(d.speed), duration=None if d.duration_s is None else float(d.duration_s),
-                        api=api, allow_remote=d.allow_remote, token=d.token,
-                        log_rotate_bytes=int(d.log_rotate_mb * 1e6), log_flush=float(d.log_flush_s),
-                        status_every=d.status_every, miss_limit=d.miss_limit, faults=list(d.fault), path=path)
+    given = d.si(DaemonConfig)
+    if "log_rotate_bytes" in given:
+        given["log_rotate_bytes"] = int(given["log_rotate_bytes"])
+    return DaemonConfig(scenario=scn, kind=kind, **{**given, "api": api}, faults=list(d.fault), path=path)

@@ -19,9 +19,9 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from hbma_ctrl.app.schema.fields import RuleError, Table, elem, integer, num, shaped
+from hbma_ctrl.app.schema.fields import RuleError, Table, elem_of, integer, num, shaped
 from hbma_ctrl.core import units as U
-from hbma_ctrl.robot.rig import H_TARGET_MAX
+from hbma_ctrl.system.sections import POSE_BEND, POSE_HEIGHT, TARGET_HEIGHT
 
 __all__ = [
     "BEND_MAX_DEG",
@@ -44,10 +44,10 @@ __all__ = [
     "StopReply",
 ]
 
-#: bounds of a request, in the user's units (the scenario file's: controller and robot targets)
-HEIGHT_MAX_MM = 200.0
-CENTRE_MAX_MM = U.to_mm(H_TARGET_MAX)
-BEND_MAX_DEG = 60.0
+#: bounds of a request, in the user's units (the scenario file's: controller and robot targets' declarations)
+HEIGHT_MAX_MM = TARGET_HEIGHT.user_bounds()[1]
+CENTRE_MAX_MM = POSE_HEIGHT.user_bounds()[1]
+BEND_MAX_DEG = POSE_BEND.user_bounds()[1]
 DIRECTION_MAX_DEG = 360.0
 CHAMBER_INDEX_MAX = 255
 LAYER_INDEX_MAX = 63
@@ -64,9 +64,8 @@ class LayerPose(Table):
     """One layer's pose target: centre height, bend angle and bend direction (mm, deg)."""
 
     layer: int = integer(..., 0, LAYER_INDEX_MAX, "layer index, 0 = the bottom layer")
-    centre_mm: float = num(..., 0.0, CENTRE_MAX_MM, "mm", "centre height of the layer above the one below")
-    bend_deg: float = num(..., -BEND_MAX_DEG, BEND_MAX_DEG, "deg",
-                          "bend angle; a negative bend is the opposite direction")
+    centre_mm: float = num(..., *POSE_HEIGHT.user_bounds(), POSE_HEIGHT.user_unit, POSE_HEIGHT.doc)
+    bend_deg: float = num(..., *POSE_BEND.user_bounds(), POSE_BEND.user_unit, POSE_BEND.doc)
     direction_deg: float = num(..., -DIRECTION_MAX_DEG, DIRECTION_MAX_DEG, "deg",
                                "bend direction about the robot's axis")
 
@@ -81,7 +80,7 @@ class LayerPose(Table):
 class SetpointRequest(Table):
     """POST /setpoint: chamber heights and/or layer poses (at least one target)."""
 
-    heights_mm: dict[ChamberIndex, elem(0.0, HEIGHT_MAX_MM, "mm", "target membrane height")] = shaped(
+    heights_mm: dict[ChamberIndex, elem_of(TARGET_HEIGHT)] = shaped(
         None, "target height per chamber (mm)", _HEIGHTS_SHAPE, default_factory=dict)
     layers: list[LayerPose] = shaped(None, "target pose per layer", _LAYERS_SHAPE, default_factory=list)
 

@@ -46,7 +46,6 @@ __all__ = [
 ]
 
 MaterialName = Literal["nh", "mr", "yeoh", "gent", "ogden"]
-_PLATFORM = Platform()
 
 
 def build_material(name: str, params: dict, table: str) -> Any:
@@ -105,11 +104,8 @@ class ActuatorTable(settings_table("ActuatorKeys", (Actuator, ("r1", "t0", "V0")
             raise ValueError(f"[actuator] {exc}") from None
 
 
-class PneumaticsTable(Table):
+class PneumaticsTable(settings_table("PneumaticsKeys", (Pneumatics, ("compressor_csv", "flow_scale")))):
     """[pneumatics]: the compressor map (CSV, relative to the scenario file) and its scale."""
-
-    compressor_csv: str | None = text(None, "compressor map CSV (speed, Pa, kg/s); default: the shipped one")
-    flow_scale: float = num(1.0, 0.0, 10.0, "-", "multiplies the compressor map")
 
     def to_pneumatics(self, path: Path | None) -> Pneumatics:
         """SI pneumatics; a relative CSV path is resolved against the scenario file's folder."""
@@ -121,20 +117,15 @@ class PneumaticsTable(Table):
             if not csvp.is_file():
                 raise ValueError(f"[pneumatics] compressor_csv: no such file '{csvp}'")
             csv = str(csvp)
-        return Pneumatics(compressor_csv=csv, flow_scale=self.flow_scale).validate()
+        return Pneumatics(**{**self.si(Pneumatics), "compressor_csv": csv}).validate()
 
 
-class LoadTable(Table):
+class LoadTable(settings_table("LoadKeys", (Platform, ("load", "own_mass", "damping")))):
     """[load]: the dead load on the membrane, the platform's own mass and its damping."""
-
-    mass_g: float = num(0.0, 0.0, 50000.0, "g", "load mass (kind 'single')")
-    own_mass_g: float = num(0.0, 0.0, 50000.0, "g", "platform's own moving mass")
-    damping_ns_per_m: float = num(_PLATFORM.damping, 0.0, 1e5, "N s/m", "platform damping")
 
     def to_platform(self) -> Platform:
         """SI platform (kg, N s/m)."""
-        return Platform(load=U.grams(self.mass_g), own_mass=U.grams(self.own_mass_g),
-                        damping=self.damping_ns_per_m).validate()
+        return Platform(**self.si(Platform)).validate()
 
 
 class ScheduleRow(NamedTuple):

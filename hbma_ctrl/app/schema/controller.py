@@ -19,13 +19,13 @@ from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
     LoadSteps,
     RuleError,
-    elem,
+    elem_of,
     flag,
     load_steps_si,
     settings_table,
     shaped,
 )
-from hbma_ctrl.system.sections import ControllerSection, ReferenceProfile
+from hbma_ctrl.system.sections import TARGET_HEIGHT, TARGET_TIME, ControllerSection, ReferenceProfile
 from hbma_ctrl.core import units as U
 
 __all__ = ["ControllerTable", "TargetRow"]
@@ -49,8 +49,8 @@ _KEYS = settings_table(
 class TargetRow(NamedTuple):
     """One target point: from t_s on (or ramping to it), the height h_mm."""
 
-    t_s: elem(0.0, 1e5, "s", "time of the point")
-    h_mm: elem(0.0, 200.0, "mm", "target height")
+    t_s: elem_of(TARGET_TIME)
+    h_mm: elem_of(TARGET_HEIGHT)
 
 
 class ControllerTable(_KEYS):

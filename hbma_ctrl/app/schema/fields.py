@@ -26,6 +26,7 @@ __all__ = [
     "Table",
     "choice",
     "elem",
+    "elem_of",
     "flag",
     "integer",
     "load_steps_si",
@@ -157,6 +158,12 @@ def load_steps_si(rows: list) -> tuple:
     return tuple((r.t_s, U.grams(r.mass_g)) for r in rows)
 
 
+def elem_of(spec: Spec) -> Any:
+    """The type of one number (a row's or vector's entry) a declaration bounds, in the user's unit."""
+    lo, hi = spec.user_bounds()
+    return elem(lo, hi, spec.user_unit, spec.doc, lo_open=spec.lo_open, hi_open=spec.hi_open)
+
+
 def key_field(spec: Spec, default: Any) -> tuple[Any, Any]:
     """(annotation, field) of the scenario key a setting declares, in the user's unit, with ``default``."""
     lo, hi = spec.user_bounds()
@@ -170,7 +177,7 @@ def key_field(spec: Spec, default: Any) -> tuple[Any, Any]:
     elif spec.kind == "text":
         tp, fi = str, text(default, doc)
     elif spec.kind == "vector":
-        tp = tuple[(elem(lo, hi, unit, doc, **ends),) * spec.size]
+        tp = tuple[(elem_of(spec),) * spec.size]
         fi = shaped(default, doc, f"[{', '.join(spec.parts)}]" if spec.parts else f"{spec.size} numbers")
     else:
         tp, fi = float, num(default, lo, hi, unit, doc, **ends)

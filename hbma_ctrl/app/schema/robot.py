@@ -18,8 +18,8 @@ from pydantic import Field, PrivateAttr, model_validator
 
 from hbma_ctrl.app.schema.base import MaterialName, build_material, check_rows
 from hbma_ctrl.app.schema.errors import closest
-from hbma_ctrl.app.schema.fields import RuleError, choice, elem, settings_table, shaped, subtable
-from hbma_ctrl.system.sections import RobotSettings
+from hbma_ctrl.app.schema.fields import RuleError, choice, elem, elem_of, settings_table, shaped, subtable
+from hbma_ctrl.system.sections import POSE_BEND, POSE_HEIGHT, RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator
 from hbma_ctrl.core.settings import specs
@@ -47,8 +47,8 @@ class RobotTargetRow(NamedTuple):
     """One pose target of a layer in [robot.targets]; a negative bend is the opposite direction."""
 
     t_s: elem(0.0, 1e5, "s", "time of the target")
-    height_mm: elem(0.0, U.to_mm(H_TARGET_MAX), "mm", "centre height")
-    bend_deg: elem(-60.0, 60.0, "deg", "bend angle")
+    height_mm: elem_of(POSE_HEIGHT)
+    bend_deg: elem_of(POSE_BEND)
     direction_deg: elem(None, None, "deg", "bend direction")
 
 

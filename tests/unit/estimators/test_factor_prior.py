@@ -62,5 +62,5 @@ def test_startup_calibration_starts_from_the_estimators_prior():
     cal = make_calibration(Actuator(), Pneumatics(), Platform(), default_section(), RigSettings(), est)
     assert cal.settings.prior_mean == (0.9, 1.15, 1.2)
     assert cal.settings.prior_std == (s.flow_factor_init_std, 0.05, s.dead_volume_init_std)
-    with pytest.raises(ValueError, match=r"prior_mean\[k\]"):
+    with pytest.raises(ValueError, match=r"prior_mean\[1\]"):
         CalibrationSettings(prior_mean=(1.0, 2.5, 1.0)).validate()
