@@ -596,7 +596,7 @@ class EKF(ReferenceSteps, EstimatorBase):
                    Stage(first, ["one"], ["not_first"])]
         delays = (f", commands acting {s.valve_delay * 1e3:g} + {s.sensor_delay * 1e3:g} ms late" if timing.active
                   else "")
-        return Part(stages, signals, log=[LogColumn("h_est_mm", "est_h", 0, 1e3), LogColumn("p_est_kpa", "est_p", 0, 1e-3),
-                                          LogColumn("F_est_n", "est_F", 0, 1.0),
-                                          LogColumn("ekf_reference_events", "ekf_n_ref", 0)],
+        log = [LogColumn("h_est_mm", "est_h", 0, 1e3), LogColumn("p_est_kpa", "est_p", 0, 1e-3),
+               LogColumn("F_est_n", "est_F", 0, 1.0), LogColumn("ekf_reference_events", "ekf_n_ref", 0)]
+        return Part(stages, signals, log=log,
                     meta={"estimator": f"EKF (hbma_ctrl.estimators.ekf_step), {s.sample_period * 1e3:g} ms{delays}"})

@@ -252,7 +252,8 @@ class RobotSystem(SystemBase):
                     LogColumn(f"a_{nm}", "a_sent", i), LogColumn(f"o_{nm}", "o_sent", i),
                     LogColumn(f"speed_{nm}", "u", 3 * i), LogColumn(f"inlet_{nm}", "u", 3 * i + 1),
                     LogColumn(f"outlet_{nm}", "u", 3 * i + 2), LogColumn(f"burst_{nm}", "burst_flagged", i)]
-        log += [LogColumn("rti_status", "rti_status"), LogColumn("failed", "failed"), LogColumn("cautious", "near_count")]
+        log += [LogColumn("rti_status", "rti_status"), LogColumn("failed", "failed"),
+                LogColumn("cautious", "near_count")]
         log += [LogColumn(f"ev_{e}", "event_sums", j) for j, e in enumerate(EVENTS)]
         k = np.arange(t.size)
         streams = {"t": t[:, None], "goal": np.array([loop.chamber_targets(tk) for tk in t]),

@@ -161,15 +161,14 @@ def qp_solver_for(variant: str, qp_solver: str | None = None) -> str:
     return qp_solver
 
 
-def _truth_stages() -> tuple[list, dict, dict]:
+def _truth_stages() -> tuple[list, dict]:
     """A stand-in estimator that reads the rig's true height, pressure, force and mode (isolates the
-    controller and the plant from the filter)."""
+    controller and the plant from the filter): its stage and meta."""
     y, mode = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("mode")
     fun = ca.Function("truth_estimate", [y, mode],
                       [y[OUTPUTS.index("h")], y[OUTPUTS.index("p")], y[OUTPUTS.index("F")], mode == 0],
                       ["y", "mode"], ["h", "p", "F", "resting"])
-    signals = {"est_h": [0.0], "est_p": [0.0], "est_F": [0.0], "resting": [1.0]}
-    return [Stage(fun, ["y", "mode"], ["est_h", "est_p", "est_F", "resting"])], signals, {
+    return [Stage(fun, ["y", "mode"], ["est_h", "est_p", "est_F", "resting"])], {
         "estimator": "the rig's true state (no filter)"}
 
 
@@ -240,24 +239,20 @@ def scenario_loop(scn, duration: float | None = None, estimator: str = "ekf",
         ctrl = system.to_function(np.arange(n) * rs.sample_period, float(rig_signals["p"][0]), estimator == "ekf")
     except ValueError as exc:
         raise ValueError(f"codegen: {exc}") from None
-    signals = dict(ctrl.signals, **rig_signals)
-    stages = read + ctrl.stages + [LOG] + rig_after
-    if estimator == "truth":
-        truth, truth_signals, truth_meta = _truth_stages()
-        signals.update(truth_signals)
-        stages = read + truth + ctrl.stages + [LOG] + rig_after
+    truth, truth_meta = _truth_stages() if estimator == "truth" else ([], {})
     cols = {c.name: c for c in ctrl.log}
     cols.update({"h_true_mm": LogColumn("h_true_mm", "y", OUTPUTS.index("h"), 1e3),
                  "p_true_kpa": LogColumn("p_true_kpa", "y", OUTPUTS.index("p"), 1e-3),
                  "p_meas_kpa": LogColumn("p_meas_kpa", "p", 0, 1e-3),
                  "F_true_n": LogColumn("F_true_n", "y", OUTPUTS.index("F"), 1.0), "mode": LogColumn("mode", "mode", 0)})
-    meta = {"scenario": scn.name, "rig": rig_desc, **ctrl.meta, **(truth_meta if estimator == "truth" else {})}
+    meta = {"scenario": scn.name, "rig": rig_desc, **ctrl.meta, **truth_meta}
     if section.calibrate and estimator == "ekf":
         # the scene calibrates before it closes the loop; the C loop starts from the EKF's prior
         meta["left out"] = ("the start-up calibration ([controller] calibrate = true): the EKF starts from "
                             "its prior ([estimator] flow_factor_init, modulus_init, dead_volume_init)")
-    return LoopSpec(scn.name, rs.sample_period, n, signals, dict(ctrl.streams, noise=noise), stages,
-                    [cols[c] for c in _COLUMNS if c in cols], meta).validate()
+    return LoopSpec(scn.name, rs.sample_period, n, dict(ctrl.signals, **rig_signals), dict(ctrl.streams, noise=noise),
+                    read + truth + ctrl.stages + [LOG] + rig_after, [cols[c] for c in _COLUMNS if c in cols],
+                    meta).validate()
 
 
 # --------------------------------------------------------------------------------------------- scene
