@@ -75,6 +75,7 @@ import math
 import time
 from dataclasses import replace
 
+import casadi as ca
 import numpy as np
 import osqp
 
@@ -89,6 +90,7 @@ from hbma_ctrl.core.interfaces import (
     SolveStatus,
     StepStatus,
 )
+from hbma_ctrl.core.loopgen import LogColumn, Part, Stage
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.models.tables import PredictionModel
@@ -388,6 +390,63 @@ class NMPC(ControllerBase):
         """The command actually sent (after the supervisor): the next step's input rates start from it."""
         a = command.as_array() if isinstance(command, Command) else np.asarray(command, dtype=float)
         self._u_prev = a.reshape(3).copy()
+
+    # --- a generated loop ------------------------------------------------------------------------
+    def stages(self, t: np.ndarray, every: int, command: str = "u") -> Part:
+        """The NMPC in a generated loop (:mod:`hbma_ctrl.core.loopgen`) over the tick times ``t`` (s), a
+        step every ``every`` ticks: its problem data (``mpc_prep``, the Function :meth:`_problem` calls),
+        the cold-start guess, the RTI step Function (``rti_init_iterations`` unshifted calls on a cold
+        start, stopping at a failure, as the backend solves; one shifted call after), and ``mpc_done``:
+        whether the step solved (``ok``; a step in ``fail_window`` never does) and the next one starts cold.
+        Reads the estimate (``est_h``, ``est_p``, ``est_F``, ``resting``), the targets (``target``, the
+        horizon's ``ref``) and the command held (``command``); writes ``u0``, the plan ``U_guess`` and
+        ``status``. ValueError naming the setting for a variant with no step Function or an enforced
+        wall-clock budget."""
+        s = self.settings
+        if not isinstance(self.backend, _RtiFunction):
+            raise ValueError(f"[controller] variant = '{s.variant}': only the rti_fn_* variants (the RTI step as "
+                             "one Function) generate a loop")
+        if s.enforce_budget:
+            raise ValueError("[controller] enforce_budget = true: an enforced wall-clock budget depends on the "
+                             "machine's clock; set it to false to generate the loop")
+        rti, N = self.backend.function, s.horizon
+        nz, nc = self.backend.nz, self.backend.nc
+        x0, up, status, fail = ca.SX.sym("x0"), ca.SX.sym("u_prev", 3), ca.SX.sym("status"), ca.SX.sym("fail")
+        # the backend without a plan: the estimate held, the last command repeated, zero duals
+        cold = ca.Function("mpc_cold", [x0, up], [ca.repmat(x0, N + 1, 1), ca.repmat(up, 1, N), ca.SX.zeros(nz),
+                                                  ca.SX.zeros(nc)],
+                           ["x0", "u_prev"], ["X_guess", "U_guess", "lam_x_guess", "lam_a_guess"])
+        ok = ca.logic_and(status == 0, fail == 0)
+        done = ca.Function("mpc_done", [status, fail], [ok, 1 - ok], ["status", "fail"], ["ok", "cold"])
+        signals = {"Wf": [0.0], "has_W": [0.0], "x0": [0.0], "W": [0.0], "dh": [0.0], "dp": [0.0], "p_lim": [0.0],
+                   "r_c": np.zeros(N), "X_guess": np.zeros(N + 1), "U_guess": np.zeros(3 * N), "lam_x": np.zeros(nz),
+                   "lam_a": np.zeros(nc), "u0": np.zeros(3), "status": [0.0], "qp_residual": [0.0], "qp_cost": [0.0],
+                   "shift0": [0.0], "shift1": [1.0], "cold": [1.0], "ok": [0.0], "run_cold": [0.0], "run_warm": [0.0],
+                   "fail": [0.0], "load_a": [0.0], "I": [0.0], "I_target": [0.0], "has_I": [0.0],
+                   "ctrl_dt": [s.sample_period]}
+        rti_in = ["x0", "W", "dh", "dp", command, "p_lim", "r_c", "X_guess", "U_guess", "lam_x", "lam_a"]
+        rti_out = ["u0", "X_guess", "U_guess", "lam_x", "lam_a", "status", "qp_residual", "qp_cost"]
+        stages = [
+            Stage(problem_function(self.model, s), ["est_h", "est_p", "est_F", "resting", "ref", "target", "Wf",
+                                                    "has_W", "fail", "cold", "load_a", "I", "I_target", "has_I",
+                                                    "ctrl_dt"],
+                  ["x0", "W", "dh", "dp", "p_lim", "r_c", "Wf", "has_W", "run_cold", "run_warm", "I", "I_target",
+                   "has_I", None, None, None], every=every),
+            Stage(cold, ["x0", command], ["X_guess", "U_guess", "lam_x", "lam_a"], every=every, gate="run_cold"),
+            Stage(rti, rti_in + ["shift0"], rti_out, every=every, gate="run_cold", repeat=s.rti_init_iterations,
+                  stop_on="status", fails_to="status"),
+            Stage(rti, rti_in + ["shift1"], rti_out, every=every, gate="run_warm", fails_to="status"),
+            Stage(done, ["status", "fail"], ["ok", "cold"], every=every)]
+        t = np.asarray(t, dtype=float)
+        fw = s.fail_window  # the fallback drill: every solve in [t0, t1] is treated as failed
+        fails = np.zeros(t.size) if fw is None else ((t >= fw[0]) & (t <= fw[1])).astype(float)
+        # the load filter's gain from the time since the last step, as _problem rounds it
+        dts = [s.sample_period if k < every else max(t[k] - t[k - every], 0.0) for k in range(t.size)]
+        load_a = np.array([1.0 if s.load_tau <= 0 else min(1.0, d / s.load_tau) for d in dts])
+        solver = s.variant[len("rti_fn_"):]
+        return Part(stages, signals, {"fail": fails, "load_a": load_a}, [LogColumn("mpc_status", "status")],
+                    {"controller": f"RTI NMPC (hbma_ctrl.controllers.rti_step), N = {N}, QP {solver}, every {every} "
+                                   "rig periods"})
 
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:

@@ -127,6 +127,7 @@ from __future__ import annotations
 import math
 import time
 
+import casadi as ca
 import numpy as np
 
 from hbma_ctrl.estimators.common import (
@@ -149,13 +150,15 @@ from hbma_ctrl.estimators.ekf_step import (
     NO_LOAD_SIGMAS,
     ekf_step_function,
     flat_ratio_min,
+    glue_functions,
     lift_floor,
 )
 from hbma_ctrl.estimators.observer_calls import fast, observer_functions
 from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
+from hbma_ctrl.core.loopgen import LogColumn, Part, Stage
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
-from hbma_ctrl.models.actuation import CommandTiming
+from hbma_ctrl.models.actuation import CommandTiming, acting_function, acting_state
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 
@@ -268,8 +271,9 @@ class EKF(ReferenceSteps, EstimatorBase):
         self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
         self._gated = 0  # gated readings in a row
         self.counts = {"outliers_bound": 0, "gated": 0, "gate_reopened": 0, "missing": 0, "time_jumps": 0}
-        self._step_fn = fast(ekf_step_function(actuator, pneumatics, s), s.compile) if self.compiled_step \
-            else None
+        #: the normal step as one casadi Function (what a generated loop runs, :meth:`stages`)
+        self.step_function = ekf_step_function(actuator, pneumatics, s)
+        self._step_fn = fast(self.step_function, s.compile) if self.compiled_step else None
         self._theta_step = True  # theta not yet in the step's buffer
         self._k_max = max(1, int(round(s.max_gap / s.sample_period)))  # most periods one step predicts
         if self._step_fn is not None:
@@ -554,3 +558,45 @@ class EKF(ReferenceSteps, EstimatorBase):
         c = dict(self.counts)
         c["outliers"] = c["outliers_bound"] + c["gated"]
         return c
+
+    def stages(self, t: np.ndarray, z0: float) -> Part:
+        """The filter in a generated loop (:mod:`hbma_ctrl.core.loopgen`) over the tick times ``t`` (s),
+        initialised here from the first reading z0 (Pa) as its first :meth:`step` does (the loop's
+        Functions run from tick 1): the reading's kind, the command acting through the valve and sensor
+        delays it models, the step Function and its estimate (:func:`hbma_ctrl.estimators.ekf_step.glue_functions`).
+        Reads the signals ``p`` (the reading) and ``u`` (the command held); writes ``est_h``, ``est_p``,
+        ``est_F``, ``resting`` and counts in ``ekf_n_ref`` the steps it would have left to the reference path."""
+        fun, s = self.step_function, self.settings
+        kind, out = glue_functions(s, self._bounds)
+        e0 = self.step(float(t[0]), z0, Command(0.0, 0.0, 0.0))
+        flags = sum(2 ** i for i, n in enumerate(FLAG_BITS) if n in e0.flags)
+        signals = {"ekf_x": self.x, "ekf_P": np.asarray(self.P).ravel(order="F"), "ekf_s": self.s,
+                   "ekf_theta": self.theta, "ekf_resting": [float(self.resting)], "z_in": [0.0], "kind": [0.0],
+                   "ekf_det": self.detector_state(), "ekf_y": np.zeros(fun.nnz_out(3)),
+                   "ekf_est": [e0.h1, e0.h2, e0.h, e0.F, e0.p], "ekf_std": np.zeros(5), "ekf_C": np.zeros(25),
+                   "ekf_H": np.zeros(5), "ekf_A": np.zeros(25), "ekf_nis": [0.0], "ekf_innov": [0.0],
+                   "ekf_flags": [float(flags)], "ekf_exact": [1.0], "est_h": [e0.h], "est_p": [e0.p],
+                   "est_F": [e0.F], "resting": [float("resting" in e0.flags)], "ekf_n_ref": [0.0],
+                   "not_first": [0.0], "one": [1.0]}
+        timing = self._timing
+        step_in = ["ekf_x", "ekf_P", "ekf_s", "u_act" if timing.active else "u", "ekf_theta", "ekf_resting", "z_in",
+                   "kind", "ekf_det"]
+        step_out = ["ekf_x", "ekf_P", "ekf_s", "ekf_y", "ekf_est", "ekf_std", "ekf_C", "ekf_H", "ekf_A",
+                    "ekf_resting", "ekf_det", "ekf_nis", "ekf_innov", "ekf_flags", "ekf_exact"]
+        first = ca.Function("mark_started", [ca.SX.sym("one")], [ca.SX(1.0)], ["one"], ["started"])
+        stages = [Stage(kind, ["p"], ["z_in", "kind"], gate="not_first")]
+        if timing.active:
+            hist, fill = acting_state(timing)  # the commands sent so far, as the initialisation left them
+            signals.update(u_act=np.zeros(3), ekf_uhist=hist, ekf_ufill=[fill])
+            stages.append(Stage(acting_function(timing, "ekf_acting"), ["u", "ekf_uhist", "ekf_ufill"],
+                                ["u_act", "ekf_uhist", "ekf_ufill"], gate="not_first"))
+        stages += [Stage(fun, step_in, step_out, gate="not_first"),
+                   Stage(out, ["ekf_est", "ekf_flags", "ekf_exact", "ekf_x", "ekf_n_ref"],
+                         ["est_h", "est_p", "est_F", "resting", "ekf_n_ref"], gate="not_first"),
+                   Stage(first, ["one"], ["not_first"])]
+        delays = (f", commands acting {s.valve_delay * 1e3:g} + {s.sensor_delay * 1e3:g} ms late" if timing.active
+                  else "")
+        log = [LogColumn("h_est_mm", "est_h", 0, 1e3), LogColumn("p_est_kpa", "est_p", 0, 1e-3),
+               LogColumn("F_est_n", "est_F", 0, 1.0), LogColumn("ekf_reference_events", "ekf_n_ref", 0)]
+        return Part(stages, signals, log=log,
+                    meta={"estimator": f"EKF (hbma_ctrl.estimators.ekf_step), {s.sample_period * 1e3:g} ms{delays}"})

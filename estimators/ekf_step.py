@@ -64,7 +64,7 @@ __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "K
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
            "NO_LOAD_SIGMAS", "LIFT_START_DRIFT", "CENSOR_SIGMAS", "LIFT_PRIOR_SIGMAS", "lift_floor",
            "FLAT_RATIO_SIGMAS", "FLAT_RATIO_STD_MIN", "flat_ratio_min", "EXCESS_DRIFT", "EXCESS_THRESHOLD",
-           "LIFT_RISE_DRIFT", "cse"]
+           "LIFT_RISE_DRIFT", "cse", "glue_functions"]
 
 #: reading kinds (input ``kind``)
 KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
@@ -406,3 +406,32 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     outs = [xc, Pf, s2, y, est, std, C, H, A, rest2, det2, nis, innov, flags, exact]
     return ca.Function("ekf_step", [x, P, sh, u, th, rest, z, kind, det], [ca.densify(e) for e in outs],
                        list(STEP_IN), list(STEP_OUT))
+
+
+def glue_functions(settings: FilterSettings, bounds: tuple) -> tuple[ca.Function, ca.Function]:
+    """(ekf_kind, ekf_out), what :meth:`hbma_ctrl.estimators.ekf.EKF.step` does around the step in a loop
+    without Python: the reading's kind code and the z the step takes (as the filter classifies a reading
+    within the physical ``bounds``, Pa), and the estimate's h, p, F, its 'resting' flag and the count of
+    steps the Python filter would have finished on its reference path (``exact`` = 0, or a no-load
+    lift-off it replays)."""
+    from hbma_ctrl.estimators.common import classify_expr
+
+    z = ca.SX.sym("z")
+    lo, hi = bounds
+    _, _, sat, ok = classify_expr(z, settings.sensor_range, lo, hi)
+    # NaN (a dropout) and outliers are "none"
+    code = ca.if_else(ok, KIND_OK, ca.if_else(sat, KIND_SATURATED, KIND_NONE))
+    z_in = ca.if_else(code == KIND_OK, z, 0)
+    kind = ca.Function("ekf_kind", [z], [z_in, code], ["z"], ["z_in", "kind"])
+    est, flags, exact, x, n_ref = (ca.SX.sym("est", 5), ca.SX.sym("flags"), ca.SX.sym("exact"), ca.SX.sym("x", 5),
+                                   ca.SX.sym("n_ref"))
+
+    def has(name):
+        return ca.fmod(ca.floor(flags / 2 ** FLAG_BITS.index(name)), 2) == 1
+
+    replay = ca.logic_and(has("lift_off"), x[1] == 0)
+    ref = ca.logic_or(exact < 0.5, replay)
+    out = ca.Function("ekf_out", [est, flags, exact, x, n_ref],
+                      [est[2], est[4], est[3], has("resting"), n_ref + ref],
+                      ["est", "flags", "exact", "x", "n_ref"], ["h", "p", "F", "resting", "n_ref_next"])
+    return kind, out

@@ -42,7 +42,7 @@ import numpy as np
 
 from hbma_ctrl.core.codegen import FastFunction
 
-__all__ = ["Stage", "LogColumn", "LoopSpec", "run_python", "write_c", "build_c", "run_c", "read_c", "compare",
+__all__ = ["Stage", "LogColumn", "LoopSpec", "Part", "run_python", "write_c", "build_c", "run_c", "read_c", "compare",
            "find_compiler", "CFLAGS", "OPT_FLAGS", "STEPS_NAME", "PythonRun", "CRun", "time_summary", "build_line", "LIBRARY", "solver_flags",
            "bench"]
 
@@ -119,6 +119,24 @@ class LogColumn:
     signal: str
     index: int = 0
     scale: float = 1.0
+
+
+@dataclass
+class Part:
+    """What one role adds to a loop: its stages in call order, the initial values of the signals it
+    keeps (SI), its per-tick streams (signal -> (n_ticks, size) array), its log columns and a line
+    for the loop's ``meta`` (name -> text)."""
+
+    stages: list
+    signals: dict
+    streams: dict = field(default_factory=dict)
+    log: list = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+    def add(self, other: "Part") -> "Part":
+        """This part followed by ``other`` (its stages after these; its signals, streams and meta over these)."""
+        return Part(self.stages + other.stages, {**self.signals, **other.signals}, {**self.streams, **other.streams},
+                    self.log + other.log, {**self.meta, **other.meta})
 
 
 @dataclass

@@ -44,6 +44,7 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.codegen import FastFunction
+from hbma_ctrl.core.loopgen import Part, Stage
 from hbma_ctrl.core.interfaces import guard_margin_setting, p_max_setting
 from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.runtime.safety_step import EVENTS, state_parts, state_size, supervisor_function
@@ -236,6 +237,27 @@ class Supervisor:
         self.lost, self.burst = st_next[parts["lost"]] > 0.5, st_next[parts["burst"]] > 0.5
         res = out.reshape(n, c).copy()
         return res[0] if cmd.ndim == 1 else res
+
+    def stages(self, c: int, H: int, wiring: dict, every: int = 1, name: str = "supervisor") -> Part:
+        """The policy in a generated loop (:mod:`hbma_ctrl.core.loopgen`): its Function for c columns and
+        H-row plans, every ``every`` ticks, reading the signals ``wiring`` names for its inputs (by the
+        Function's input names; an input left out reads as none: no target or stretch (NaN), no lost
+        estimate or burst (0)) and writing ``wiring["command_out"]``; its state (``<name>_state``)
+        starts as :meth:`state`. The event log and counts stay in Python."""
+        fun = supervisor_function(self.settings, self.n, c, H, name)
+        neutral = {"target": np.nan, "stretch": np.nan, "lost": 0.0, "burst": 0.0}
+        signals = {f"{name}_state": self.state(c, H)}
+        inputs = []
+        for key in fun.name_in():
+            if key == "state":
+                inputs.append(f"{name}_state")
+            elif key in wiring:
+                inputs.append(wiring[key])
+            else:
+                inputs.append(f"{name}_{key}")
+                signals[inputs[-1]] = np.full(self.n, neutral[key])
+        outputs = [wiring["command_out"], f"{name}_state", None, None, None]
+        return Part([Stage(fun, inputs, outputs, every=every)], signals)
 
     def _count_and_log(self, t: float, ev: np.ndarray, cause: str, p: np.ndarray, lam: np.ndarray,
                        new_lost: np.ndarray, new_burst: np.ndarray) -> None:

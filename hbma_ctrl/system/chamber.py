@@ -18,6 +18,7 @@ import numpy as np
 
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command, Controller, check_role
+from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Part, Stage
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.calibrate import StartupCalibration
@@ -211,6 +212,57 @@ class ChamberSystem(SystemBase):
         h = applied.get("heights", {}).get(0)
         if h is not None:
             self.loop.set_reference(lambda _t, h=float(h): h)
+
+    def to_function(self, t: np.ndarray, p0: float, estimate: bool = True) -> LoopSpec:
+        """This system's control side as a generated loop (:class:`~hbma_ctrl.core.loopgen.LoopSpec`) over
+        the tick times ``t`` (s, whole sample periods from the loop's closing), the roles' own stages
+        (:meth:`hbma_ctrl.estimators.ekf.EKF.stages`, :meth:`hbma_ctrl.controllers.mpc.NMPC.stages`,
+        :meth:`hbma_ctrl.runtime.safety.Supervisor.stages`, the valves' minimum on-time shaping) in the
+        tick's order. Reads ``t`` and the reading ``p`` (Pa; the estimator starts from the first, p0,
+        and is stepped by it here); writes ``u``, the command sent, which a lockstep loop holds over the
+        next period (the ``held`` of :meth:`tick`). The target, estimate, command and solver status are
+        its log columns. ``estimate`` False leaves the estimator out: the caller's stages write
+        ``est_h``, ``est_p``, ``est_F`` and ``resting`` first. ValueError naming the setting that cannot
+        be generated."""
+        loop = self.loop
+        if self.calibration is not None:
+            raise ValueError("[controller] calibrate = true: the start-up calibration does not generate; build "
+                             "the system without it")
+        if loop.reference is None:
+            raise ValueError("the loop has no reference: a generated loop follows a target schedule")
+        t = np.asarray(t, dtype=float)
+        ctrl, est = loop.controller, getattr(loop.estimator, "_est", loop.estimator)
+        if not hasattr(ctrl, "stages"):
+            raise ValueError(f"[controller] kind: {type(ctrl).__name__} has no generated form (only 'mpc' does)")
+        if estimate and not hasattr(est, "stages"):
+            raise ValueError(f"[estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
+        N, pwm = ctrl.settings.horizon, loop.pwm
+        cmd = "u" if pwm is None else "wanted"  # the command the controller and its supervisor hold
+        target = np.array([loop.reference(tk) for tk in t])
+        P, dp = loop.preview_steps, loop.preview_period
+        ref = (np.array([[loop.reference(tk + dp * (min(j, P - 1) + 1)) for j in range(N)] for tk in t]) if P
+               else np.repeat(target[:, None], N, axis=1))
+        part = Part([], {"t": [0.0], "p": [p0], "u": np.zeros(3), "target": [0.0], "ref": np.zeros(N)},
+                    {"t": t[:, None], "target": target, "ref": ref},
+                    [LogColumn("target_mm", "target", 0, 1e3)] + [LogColumn(k, "u", i) for i, k in enumerate(
+                        ("speed", "inlet", "outlet"))])
+        if estimate:
+            part = part.add(est.stages(t, p0))
+        else:
+            part = part.add(Part([], {"est_h": [0.0], "est_p": [0.0], "est_F": [0.0], "resting": [1.0]}, log=[
+                LogColumn("h_est_mm", "est_h", 0, 1e3), LogColumn("p_est_kpa", "est_p", 0, 1e-3),
+                LogColumn("F_est_n", "est_F", 0, 1.0)]))
+        part = part.add(ctrl.stages(t, loop.every, cmd))
+        part = part.add(loop.supervisor.stages(3, N, {"t": "t", "command": "u0", "pressure": "est_p", "ok": "ok",
+                                                      "plan": "U_guess", "plan_given": "ok", "target": "target",
+                                                      "command_out": cmd}, loop.every))
+        if pwm is not None:
+            # every tick, the held command shaped for the valves' minimum opening (its carry per valve)
+            part = part.add(Part([Stage(pwm.function(), ["wanted", "pwm_carry"], ["u", "pwm_carry"])],
+                                 {"wanted": np.zeros(3), "pwm_carry": np.zeros(2)}))
+            part.meta["controller"] += f", duties shaped for a {pwm.min_duty:g} minimum duty"
+        return LoopSpec("chamber", self.sample_period, t.size, part.signals, part.streams, part.stages, part.log,
+                        part.meta).validate()
 
     def stats(self) -> dict:
         """The controller's and the runtime's statistics (ms, counts), and ``calibration`` (the

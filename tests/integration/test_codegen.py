@@ -187,23 +187,22 @@ def test_loop_description_runs_the_same_in_python_and_in_c(tmp_path):
 
 
 @pytest.mark.slow
-def test_mpc_glue_matches_the_nmpc_problem():
+def test_mpc_prep_matches_the_nmpc_problem():
     from hbma_ctrl.controllers.mpc import NMPC
-    from hbma_ctrl.app.codegen.chamber import mpc_glue
+    from hbma_ctrl.controllers.mpc_prep import problem_function
     from hbma_ctrl.core.interfaces import Estimate, Reference
-    from hbma_ctrl.runtime.chamber import chamber_supervisor
 
     scn = load_scenario(TRACK)
     s = scn.role("controller").mpc
     nmpc = NMPC(scn.actuator, scn.pneumatics, s)
-    prep, _, _ = mpc_glue(nmpc.model, s, chamber_supervisor(s).settings)
+    prep = problem_function(nmpc.model, s)
     rng = np.random.default_rng(1)
     for _ in range(40):
         h = float(rng.choice([0.0, rng.uniform(0.0, 0.015)]))
         p, F, r = rng.uniform(0, 40e3), rng.uniform(0, 8), rng.uniform(0, 0.012)
         nmpc._W = None
         pr = nmpc._problem_reference(0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
-        nmpc._int_target = None  # each draw a new step for both (the glue's has_I = 0)
+        nmpc._int_target = None  # each draw a new step for both (mpc_prep's has_I = 0)
         pr = nmpc._problem_reference(0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
         out = [np.asarray(v).ravel() for v in prep(h, p, F, 0.0, np.full(s.horizon, r), r, 0.0, 0.0, 0.0, 0.0,
                                                    0.5, 0.0, 0.0, 0.0, s.sample_period)]
@@ -214,36 +213,35 @@ def test_mpc_glue_matches_the_nmpc_problem():
 
 
 @pytest.mark.slow
-def test_mpc_glue_integral_action_matches_the_nmpc_over_a_held_target():
-    """The integral action carried through the glue's state (I, its target, has_I) equals the
+def test_mpc_prep_integral_action_matches_the_nmpc_over_a_held_target():
+    """The integral action carried through mpc_prep's state (I, its target, has_I) equals the
     NMPC's over 60 controller periods at one target with the estimate wandering around it, then a
     target step that restarts it."""
-    I_hist = _glue_against_nmpc(lambda t, k: 5e-3 if k < 60 else 7e-3, preview=False)
+    I_hist = _prep_against_nmpc(lambda t, k: 5e-3 if k < 60 else 7e-3, preview=False)
     assert 0.5e-3 < I_hist[59] <= 1e-3  # the standing 0.6 mm error was integrated (capped at 1 mm)
     assert I_hist[60] == 0.0  # the step restarted it
 
 
 @pytest.mark.slow
-def test_mpc_glue_integral_action_takes_the_target_now_not_the_preview():
+def test_mpc_prep_integral_action_takes_the_target_now_not_the_preview():
     """With a preview (a ramp) the horizon's targets are the future ones but the integral action
-    integrates the error to the target now, as the NMPC does: the glue equals it tick by tick. (It
+    integrates the error to the target now, as the NMPC does: mpc_prep equals it tick by tick. (It
     took the preview's first target once, which parted the generated ramp loop from the scene's.)"""
-    I_hist = _glue_against_nmpc(lambda t, k: 3e-3 + 1e-3 * t, preview=True)
+    I_hist = _prep_against_nmpc(lambda t, k: 3e-3 + 1e-3 * t, preview=True)
     assert any(v != 0.0 for v in I_hist)
 
 
-def _glue_against_nmpc(target, preview: bool) -> list:
+def _prep_against_nmpc(target, preview: bool) -> list:
     """mpc_prep's horizon targets and integral shift against NMPC._problem over 80 controller periods of
-    ``target(t, k)`` (m), the estimate 0.6 mm under it with noise; returns the glue's shifts."""
+    ``target(t, k)`` (m), the estimate 0.6 mm under it with noise; returns mpc_prep's shifts."""
     from hbma_ctrl.controllers.mpc import NMPC
-    from hbma_ctrl.app.codegen.chamber import mpc_glue
+    from hbma_ctrl.controllers.mpc_prep import problem_function
     from hbma_ctrl.core.interfaces import Estimate, Reference
-    from hbma_ctrl.runtime.chamber import chamber_supervisor
 
     scn = load_scenario(TRACK)
     s = scn.role("controller").mpc
     nmpc = NMPC(scn.actuator, scn.pneumatics, s)
-    prep, _, _ = mpc_glue(nmpc.model, s, chamber_supervisor(s).settings)
+    prep = problem_function(nmpc.model, s)
     rng = np.random.default_rng(2)
     I, I_t, has_I = 0.0, 0.0, 0.0
     shifts = []
@@ -297,7 +295,7 @@ def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scen
 
     # the scene's own closed loop (Rig, EKF, NMPC calling the same RTI Function, ChamberLoop with its
     # supervisor), without the start-up calibration and with a budget no solve reaches (an overrun is
-    # wall-clock dependent): the glue Functions reproduce what the Python classes do around the steps
+    # wall-clock dependent): the roles' Functions reproduce what the Python classes do around the steps
     sec = scn.role("controller")
     sec = replace(sec, mpc=replace(sec.mpc, variant="rti_fn_osqp", budget=10.0))
     rs = scn.role("rig")

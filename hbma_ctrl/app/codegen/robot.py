@@ -1,9 +1,10 @@
 """A robot scenario's closed loop (robot rig -> EKF bank -> NMPC -> supervisor -> valves -> rig) as a
 :class:`~hbma_ctrl.core.loopgen.LoopSpec`: the robot's generated C loop.
 
-The loop is built from the very objects the scene builds (:func:`hbma_ctrl.app.scenes.robot_loop.build_closed_loop`),
-and every part of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` is the casadi Function that mirrors it,
-called in the tick's order:
+The loop is built from the very objects the scene builds (:func:`hbma_ctrl.app.scenes.robot_loop.build_closed_loop`):
+its control side is the system's own (:meth:`hbma_ctrl.system.robot.RobotSystem.to_function`: every part
+of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` as the casadi Function that mirrors it), and this module
+adds the rig around it. The stages, in the tick's order:
 
 - ``robot_sensor``: the 3N readings, each chamber's (lagged) pressure plus the tick's noise,
   saturated at the sensor range (the noise drawn at generation time from the rig's seeded stream, as
@@ -64,19 +65,16 @@ def robot_scene_parts(scn):
 
 
 def _build(scn, nmpc_class=None):
-    """The scene's rig and loop (and its settings), refused where the generated loop cannot follow."""
+    """The scene's rig and system (and its settings), refused where the generated loop cannot follow."""
     from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
     from hbma_ctrl.app.scenes.robot_loop import build_closed_loop
 
     s, rig, model, mpc = robot_scene_parts(scn)
     if s.controller != "mpc":
         raise ValueError(f"codegen: [robot] controller = '{s.controller}': only 'mpc' generates C")
-    if mpc.enforce_budget and mpc.budget > 0:
-        raise ValueError("codegen: [robot] mpc_enforce_budget = true: an enforced wall-time budget depends on "
-                         "the machine's clock; set it to false to generate the loop")
     sim, system = build_closed_loop(s, s.targets, "mpc", scn.pneumatics, rig, mpc, model=model, tip_load=s.tip_load,
                                     nmpc_class=nmpc_class or RobotNMPCFunction)
-    return s, rig, sim.rig, system.loop
+    return s, rig, sim.rig, system
 
 
 def _clock(plant, n_ticks: int) -> tuple[np.ndarray, np.ndarray]:
@@ -94,179 +92,30 @@ def _clock(plant, n_ticks: int) -> tuple[np.ndarray, np.ndarray]:
     return start, ends
 
 
-def _ekf_function(loop) -> ca.Function:
-    """robot_ekf(z[n], w_prev[2 x n], act_hist, act_fill[n], X[4 x n], P[16 x n], W[n], gated_run[n])
-    -> the acting history, the bank's state and its outputs (the bank's step with the command acting)."""
-    from hbma_ctrl.estimators.robot_ekf import bank_step_function
-    from hbma_ctrl.models.actuation import acting_function
-
-    bank, n = loop.bank, loop.n
-    timing = bank._timing
-    act = acting_function(timing, "robot_acting").map(n)
-    step = bank_step_function(bank, "robot_bank")
-    MX = ca.MX
-    z, w_prev = MX.sym("z", 1, n), MX.sym("w_prev", 2, n)
-    hist, fill = MX.sym("act_hist", act.sparsity_in(1)), MX.sym("act_fill", 1, n)
-    X, P, W, run = MX.sym("X", 4, n), MX.sym("P", 16, n), MX.sym("W", 1, n), MX.sym("gated_run", 1, n)
-    # the supply as a full-speed inlet duty: the pump's row is 1 (ChamberEKFBank.step on [a, o])
-    w = ca.vertcat(MX.ones(1, n), w_prev)
-    u, hist_n, fill_n = act(w, hist, fill)
-    out = dict(zip(step.name_out(), step(X, P, u, W, z, run)))
-    keys = ["X_next", "P_next", "gated_run_next", "h", "p", "lam", "lost", "r", "outlier", "k_std", "reset"]
-    return ca.Function("robot_ekf", [z, w_prev, hist, fill, X, P, W, run], [hist_n, fill_n] + [out[k] for k in keys],
-                       ["z", "w_prev", "act_hist", "act_fill", "X", "P", "W", "gated_run"],
-                       ["act_hist_next", "act_fill_next"] + keys)
-
-
-def _pre_function(loop) -> ca.Function:
-    """robot_pre: the tick's part between the bank and the NMPC (module docstring)."""
-    from hbma_ctrl.robot.plant import W_FLOOR
-    from hbma_ctrl.robot.plant_step import load_sharing_function
-    from hbma_ctrl.runtime.burst import burst_function
-    from hbma_ctrl.runtime.robot_step import caps_function, slew_function
-    from hbma_ctrl.runtime.safety_step import state_parts, state_size
-
-    n, N, sup, model = loop.n, loop.controller.s.horizon, loop.supervisor, loop.model
-    MX = ca.MX
-    t, first, refresh = MX.sym("t"), MX.sym("first"), MX.sym("refresh")
-    z, outlier, r, lost, lam, h, p, k_std = (MX.sym(s, n) for s in ("z", "outlier", "r", "lost", "lam", "h", "p",
-                                                                     "k_std"))
-    X = MX.sym("X", 4, n)
-    goal, href_prev, peak, released = (MX.sym(s, n) for s in ("goal", "href_prev", "peak", "released"))
-    sst = MX.sym("sup_state", state_size(n, 2, N))
-    bst = MX.sym("burst_state", 1 if loop.burst is None else _burst_state(loop).size)
-    # the interlock sees the readings the bank trusted (an outlier is no pressure)
-    zs = ca.if_else(outlier != 0, ca.DM.nan(n, 1), z)
-    parts = state_parts(n, 2, N)
-    sup_lost, sup_burst = sst[parts["lost"]], sst[parts["burst"]]
-    if loop.burst is not None:
-        bf = burst_function(loop.burst.settings, n, "robot_burst")
-        lost_new = ca.logic_and(lost != 0, ca.logic_not(sup_lost != 0))
-        _, flagged, bst_next = bf(t, r, lost_new, released, bst)
-    else:
-        flagged, bst_next = MX.zeros(n), bst
-    share = load_sharing_function(loop.design, "robot_loads")
-    W = ca.fmax(share(h, MX.zeros(3), MX.zeros(3))[0], W_FLOOR)
-    href = slew_function(n, loop.target_rate, "robot_slew")(goal, href_prev, h, first, loop._period)
-    caps = caps_function(model, n, loop.cautious, sup.settings.vent_height, sup.settings.stretch_max, "robot_caps")
-    k = X[2, :].T
-    a_max, near, peak_next = caps(W, k, p, k_std, href, lam, lost, sup_lost, sup_burst, peak, refresh)
-    x, b, c = (X[3, :] * X[0, :] - 1).T, X[1, :].T, X[3, :].T
-    return ca.Function(
-        "robot_pre", [t, first, refresh, z, outlier, r, lost, lam, h, p, k_std, X, goal, href_prev, peak, released, sst,
-                      bst],
-        [zs, flagged, bst_next, W, href, ca.repmat(href, 1, N), a_max, ca.sum1(near), peak_next, x, b, k, c],
-        ["t", "first", "refresh", "z", "outlier", "r", "lost", "lam", "h", "p", "k_std", "X", "goal", "href_prev",
-         "peak", "released", "sup_state", "burst_state"],
-        ["zs", "burst_flagged", "burst_state_next", "W", "href", "href_N", "a_max", "near_count", "peak_next", "x", "b", "k",
-         "c"])
-
-
-def _post_function(loop) -> ca.Function:
-    """robot_post: the tick's part after the NMPC (module docstring)."""
-    from hbma_ctrl.models.bank import throttled_inputs_function
-    from hbma_ctrl.runtime.robot_step import net_vents_function
-    from hbma_ctrl.runtime.safety_step import state_size, supervisor_function
-
-    nmpc, bank, model, sup = loop.controller, loop.bank, loop.model, loop.supervisor
-    n, N, topo = loop.n, nmpc.s.horizon, model.topology
-    MX = ca.MX
-    t, status = MX.sym("t"), MX.sym("status")
-    a_dec, o_dec, zs, href, lam, lost, flagged = (MX.sym(s, n) for s in ("a_dec", "o_dec", "zs", "href", "lam", "lost",
-                                                                         "burst_flagged"))
-    abar, obar = MX.sym("abar", n, N), MX.sym("obar", n, N)
-    sst = MX.sym("sup_state", state_size(n, 2, N))
-    X, P = MX.sym("X", 4, n), MX.sym("P", 16, n)
-    zq_new, yq_new, zq, yq = (MX.sym(s, m) for s, m in (("qp_z_new", nmpc.nv), ("qp_y_new", nmpc.m_rows),
-                                                         ("qp_z", nmpc.nv), ("qp_y", nmpc.m_rows)))
-    warm = MX.sym("warm")
-    p, b, h, x, W, k, c = (MX.sym(s, n) for s in ("p", "b", "h", "x", "W", "k", "c"))
-    carry = MX.sym("carry", 2, n)
-    ok = status == 0
-    # the plan, rows [row][chamber][supply, outlet], a shared pump's budget on every row (RobotLoop._plan)
-    rows = []
-    for j in range(N):
-        aj, oj = abar[:, j], obar[:, j]
-        if topo == "shared":
-            s_ = ca.sum1(aj)
-            aj = ca.if_else(s_ > 1.0, aj / ca.fmax(s_, 1e-12), aj)
-        rows.append(ca.vec(ca.horzcat(aj, oj).T))
-    plan = ca.vertcat(*rows)
-    command = ca.vec(ca.horzcat(a_dec, o_dec).T)
-    supervise = supervisor_function(sup.settings, n, 2, N, "robot_supervisor")
-    okv = ca.repmat(ok, n, 1)
-    out, sst_next, released, events, failed = supervise(t, command, zs, okv, plan, ok, href, lam, lost, flagged, sst)
-    cmd = ca.reshape(out, 2, n)
-    a, o = cmd[0, :].T, cmd[1, :].T
-    # a released chamber's filter restarts at rest from its reading (ChamberEKFBank.reset)
-    lo, hi = bank._bounds
-    # a reading out of the physical range (NaN, +-inf too: every comparison is false for NaN) reads as 0
-    p0 = ca.if_else(ca.logic_and(zs >= lo, zs <= hi), zs, 0.0)
-    X_rest, P_rest = bank.rest_expr(p0.T)
-    X_next = ca.if_else(ca.repmat((released != 0).T, 4, 1), X_rest, X)
-    P_next = ca.if_else(ca.repmat((released != 0).T, 16, 1), P_rest, P)
-    prev = ca.horzcat(a, o).T  # what the NMPC's input-rate terms start from (RobotNMPC.applied)
-    if loop.pwm.active:
-        nv = net_vents_function(model, n, loop.pwm.min_duty, loop._period, "robot_net_vents")
-        a, o, carry_v = nv(a, o, p, b, h - href, x, W, k, c, carry)
-    else:
-        carry_v = carry
-    Uc = throttled_inputs_function(model.pump, n, topo, name="robot_valve_inputs")(a, o, p)
-    # the supply as the full-speed inlet duty its flow equals (RobotLoop's _flow_duty)
-    supply = ca.fmin(ca.fmax(a, 0.0), 1.0)
-    supply = ca.if_else(supply < 1e-4, 0.0, supply)
-    if topo == "shared":
-        tot = ca.sum1(supply)
-        supply = ca.if_else(tot > 1.0, supply / tot, supply)
-    if loop.pwm.active:
-        Us, carry_n = loop.pwm.function("robot_pwm").map(n)(Uc, carry_v)
-        inlet = Uc[1, :].T
-        supply = supply * ca.if_else(inlet > 0.0, Us[1, :].T / ca.if_else(inlet > 0.0, inlet, 1.0), 0.0)
-        Uc = Us
-    else:
-        carry_n = carry_v
-    w_prev = ca.horzcat(supply, Uc[2, :].T).T
-    # this tick's interventions per kind (the Supervisor's counts' increments), EVENTS order
-    ev_sums = _event_sums(events, n)
-    return ca.Function(
-        "robot_post", [t, status, a_dec, o_dec, abar, obar, zs, href, lam, lost, flagged, sst, X, P, zq_new, yq_new, zq,
-                       yq, warm, p, b, h, x, W, k, c, carry],
-        [Uc, w_prev, sst_next, released, X_next, P_next, prev, ca.if_else(ok, zq_new, zq), ca.if_else(ok, yq_new, yq),
-         ca.logic_or(warm != 0, ok), MX(0.0), carry_n, ev_sums, failed, a, o],
-        ["t", "status", "a_dec", "o_dec", "abar", "obar", "zs", "href", "lam", "lost", "burst_flagged", "sup_state",
-         "X", "P", "qp_z_new", "qp_y_new", "qp_z", "qp_y", "warm", "p", "b", "h", "x", "W", "k", "c", "carry"],
-        ["U", "w_prev", "sup_state_next", "released", "X_next", "P_next", "prev", "qp_z_next", "qp_y_next",
-         "warm_next", "first_next", "carry_next", "event_sums", "failed", "a_sent", "o_sent"])
-
-
-def _event_sums(events, n: int):
-    """The supervisor's per-chamber event flags (7 rows of n, in
-    :data:`~hbma_ctrl.runtime.safety_step.EVENTS` order) summed per row."""
-    from hbma_ctrl.runtime.safety_step import EVENTS
-
-    return ca.vertcat(*[ca.sum1(events[j * n:(j + 1) * n]) for j in range(len(EVENTS))])
-
-
 def _sensor_function(n: int, sensor_range: float) -> ca.Function:
     """robot_sensor(p[n], noise[n]) -> z[n]: the pressure plus the noise, saturated at the range (Pa)."""
     p, noise = ca.SX.sym("p", n), ca.SX.sym("noise", n)
     return ca.Function("robot_sensor", [p, noise], [ca.fmin(p + noise, sensor_range)], ["p", "noise"], ["z"])
 
 
+#: the trajectory's columns per chamber (prefix, suffix), in order, then the loop's own after them
+_CHAMBER_COLUMNS = (("h_", "_mm"), ("h_est_", "_mm"), ("h_ref_", "_mm"), ("p_", "_kpa"), ("p_meas_", "_kpa"), ("a_", ""),
+                    ("o_", ""), ("speed_", ""), ("inlet_", ""), ("outlet_", ""), ("load_", "_n"), ("lam_", ""),
+                    ("burst_", ""))
+
+
 def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     """The closed-loop ``[robot]`` scenario's loop (module docstring) over ``duration`` s (None: the
-    scenario's). ValueError naming the key the generated loop cannot follow."""
+    scenario's): the rig's stages around its system's own (:meth:`hbma_ctrl.system.robot.RobotSystem.to_function`).
+    ValueError naming the key the generated loop cannot follow."""
     from functools import partial
 
     from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
-    from hbma_ctrl.models.actuation import acting_state
     from hbma_ctrl.robot.plant_step import robot_rig_step_function
-    from hbma_ctrl.runtime.safety_step import EVENTS
 
     # the NMPC's step uncompiled: the sources are generated from its Function, nothing is built here
-    s, rs, plant, loop = _build(scn, partial(RobotNMPCFunction, compile=False))
-    nmpc, bank = loop.controller, loop.bank
-    n, N = loop.n, nmpc.s.horizon
+    s, rs, plant, system = _build(scn, partial(RobotNMPCFunction, compile=False))
+    n = system.n
     T = scn.duration if duration is None else float(duration)
     n_ticks = int(round(T / rs.sample_period))
     try:
@@ -281,97 +130,41 @@ def robot_loop(scn, duration: float | None = None) -> LoopSpec:
     noise = rs.noise_std * draws[1:]
     lagged = rs.sensor_tau > 0
     p_first = plant._p_sensed if lagged else plant.plant.output("p")
-    z0 = np.minimum(p_first + noise[0], plant.sensor_range)
-    act_hist, act_fill = acting_state(bank._timing, n)
-    goal = np.array([loop.chamber_targets(t) for t in t0])
-    tip = np.array([plant.tip_force(t) for t in t1])
-    signals = {
-        # the rig
+    try:
+        ctrl = system.to_function(t0, np.minimum(p_first + noise[0], plant.sensor_range))
+    except ValueError as exc:
+        raise ValueError(f"codegen: {exc}") from None
+    signals = dict(ctrl.signals, **{
         "X": plant.plant.X.ravel(order="F"), "mode": plant.plant.mode.astype(float),
-        "U": np.zeros(3 * n), "hist": np.zeros(rig_fn.nnz_in(3)), "theta": plant.plant.thetas.ravel(order="F"),
+        "hist": np.zeros(rig_fn.nnz_in(3)), "theta": plant.plant.thetas.ravel(order="F"),
         "p_sensed": plant._p_sensed, "p_prev": plant._p_prev, "y": plant.plant.y.ravel(order="F"),
-        "F_rig": plant.loads, "f_tip": np.zeros(3), "noise": np.zeros(n), "z": np.zeros(n),
-        # the clock and the targets
-        "t": [0.0], "goal": np.zeros(n), "first": [1.0], "refresh": [1.0],
-        # the bank: it starts at rest from the first readings (ChamberEKFBank.step's first call)
-        "w_prev": np.zeros(2 * n), "act_hist": act_hist, "act_fill": act_fill,
-        "ekf_X": bank.rest_state(z0).ravel(order="F"),
-        "ekf_P": np.repeat(bank._prior_cov().reshape(16, 1, order="F"), n, 1).ravel(order="F"),
-        "W": loop.loads, "gated_run": np.zeros(n),
-        "h_est": np.zeros(n), "p_est": np.zeros(n), "lam": np.zeros(n), "lost": np.zeros(n), "r": np.zeros(n),
-        "outlier": np.zeros(n), "k_std": np.zeros(n), "ekf_reset": np.zeros(n),
-        # the tick's middle
-        "zs": np.zeros(n), "burst_flagged": np.zeros(n),
-        "burst_state": (np.zeros(1) if loop.burst is None else _burst_state(loop)), "href": np.zeros(n),
-        "href_N": np.zeros(n * N), "a_max": np.zeros(n), "near_count": [0.0], "peak": loop._peak_p.copy(),
-        "x_est": np.zeros(n), "b_est": np.zeros(n), "k_est": np.zeros(n), "c_est": np.zeros(n),
-        "sup_state": loop.supervisor.state(2, N), "released": np.zeros(n),
-        # the NMPC
-        "prev": np.zeros(2 * n), "xbar": np.zeros(n * (N + 1)), "abar": np.zeros(n * N), "obar": np.zeros(n * N),
-        "nmpc_first": [1.0], "qp_z": np.zeros(nmpc.nv), "qp_y": np.zeros(nmpc.m_rows),
-        "qp_z_new": np.zeros(nmpc.nv), "qp_y_new": np.zeros(nmpc.m_rows), "warm": [0.0],
-        "a_dec": np.zeros(n), "o_dec": np.zeros(n), "rti_status": [0.0], "rti_residual": [0.0],
-        # after it
-        "carry": np.zeros(2 * n), "event_sums": np.zeros(7), "failed": [0.0], "a_sent": np.zeros(n),
-        "o_sent": np.zeros(n),
-    }
-    stages = [
-        Stage(_sensor_function(n, plant.sensor_range), ["p_sensed" if lagged else "p_true", "noise"], ["z"]),
-        Stage(_ekf_function(loop), ["z", "w_prev", "act_hist", "act_fill", "ekf_X", "ekf_P", "W", "gated_run"],
-              ["act_hist", "act_fill", "ekf_X", "ekf_P", "gated_run", "h_est", "p_est", "lam", "lost", "r", "outlier",
-               "k_std", "ekf_reset"]),
-        Stage(_pre_function(loop), ["t", "first", "refresh", "z", "outlier", "r", "lost", "lam", "h_est", "p_est",
-                                    "k_std", "ekf_X", "goal", "href", "peak", "released", "sup_state", "burst_state"],
-              ["zs", "burst_flagged", "burst_state", "W", "href", "href_N", "a_max", "near_count", "peak", "x_est", "b_est",
-               "k_est", "c_est"]),
-        Stage(nmpc._fn.fun, ["x_est", "b_est", "W", "k_est", "c_est", "a_max", "href_N", "prev",
-                                              "xbar", "abar", "obar", "nmpc_first", "qp_z", "qp_y", "warm"],
-              ["a_dec", "o_dec", "xbar", "abar", "obar", "qp_z_new", "qp_y_new", "rti_status", "rti_residual"]),
-        Stage(_post_function(loop), ["t", "rti_status", "a_dec", "o_dec", "abar", "obar", "zs", "href", "lam", "lost",
-                                     "burst_flagged", "sup_state", "ekf_X", "ekf_P", "qp_z_new", "qp_y_new", "qp_z",
-                                     "qp_y", "warm", "p_est", "b_est", "h_est", "x_est", "W", "k_est", "c_est",
-                                     "carry"],
-              ["U", "w_prev", "sup_state", "released", "ekf_X", "ekf_P", "prev", "qp_z", "qp_y", "warm", "nmpc_first",
-               "carry", "event_sums", "failed", "a_sent", "o_sent"]),
-        Stage(rig_fn, ["X", "mode", "U", "hist", "theta", "p_sensed", "p_prev", "f_tip"],
-              ["X", "mode", "y", "hist", "theta", "p_sensed", "p_prev", "F_rig"]),
-        Stage(_truth_function(n), ["y"], ["p_true", "h_true", "lam_true"]),
-    ]
-    signals["p_true"] = plant.plant.output("p").copy()
-    signals["h_true"] = np.maximum(plant.plant.output("h"), 0.0)
-    signals["lam_true"] = plant.plant.output("lam").copy()
-    names = loop.design.names
-    log = []
-    for i, nm in enumerate(names):
-        log += [LogColumn(f"h_{nm}_mm", "h_true", i, 1e3), LogColumn(f"h_est_{nm}_mm", "h_est", i, 1e3),
-                LogColumn(f"h_ref_{nm}_mm", "href", i, 1e3), LogColumn(f"p_{nm}_kpa", "p_true", i, 1e-3),
-                LogColumn(f"p_meas_{nm}_kpa", "z", i, 1e-3), LogColumn(f"a_{nm}", "a_sent", i),
-                LogColumn(f"o_{nm}", "o_sent", i), LogColumn(f"speed_{nm}", "U", 3 * i),
-                LogColumn(f"inlet_{nm}", "U", 3 * i + 1), LogColumn(f"outlet_{nm}", "U", 3 * i + 2),
-                LogColumn(f"load_{nm}_n", "F_rig", i), LogColumn(f"lam_{nm}", "lam_true", i),
-                LogColumn(f"burst_{nm}", "burst_flagged", i)]
-    log += [LogColumn("rti_status", "rti_status"), LogColumn("failed", "failed"), LogColumn("cautious", "near_count")]
-    log += [LogColumn(f"ev_{e}", "event_sums", j) for j, e in enumerate(EVENTS)]
-    streams = {"noise": noise, "t": t0[:, None], "goal": goal, "first": (np.arange(n_ticks) == 0).astype(float)[:, None],
-               "refresh": (np.arange(n_ticks) % 10 == 0).astype(float)[:, None], "f_tip": tip}
+        "F_rig": plant.loads, "f_tip": np.zeros(3), "noise": np.zeros(n),
+        "p_true": plant.plant.output("p").copy(), "h_true": np.maximum(plant.plant.output("h"), 0.0),
+        "lam_true": plant.plant.output("lam").copy()})
+    stages = [Stage(_sensor_function(n, plant.sensor_range), ["p_sensed" if lagged else "p_true", "noise"], ["p"]),
+              *ctrl.stages,
+              Stage(rig_fn, ["X", "mode", "u", "hist", "theta", "p_sensed", "p_prev", "f_tip"],
+                    ["X", "mode", "y", "hist", "theta", "p_sensed", "p_prev", "F_rig"]),
+              Stage(_truth_function(n), ["y"], ["p_true", "h_true", "lam_true"])]
+    cols = {c.name: c for c in ctrl.log}
+    for i, nm in enumerate(system.names):
+        cols.update({c.name: c for c in (
+            LogColumn(f"h_{nm}_mm", "h_true", i, 1e3), LogColumn(f"p_{nm}_kpa", "p_true", i, 1e-3),
+            LogColumn(f"p_meas_{nm}_kpa", "p", i, 1e-3), LogColumn(f"load_{nm}_n", "F_rig", i),
+            LogColumn(f"lam_{nm}", "lam_true", i))})
+    order = [f"{pre}{nm}{suf}" for nm in system.names for pre, suf in _CHAMBER_COLUMNS]
+    log = [cols.pop(c) for c in order] + list(cols.values())
     meta = {"scenario": scn.name,
             "rig": (f"robot rig: {s.design.n_layers} layers, {fid.name}, {plant.s.sample_period * 1e3:g} ms, seed {rs.seed}; "
                     f"valve delay {rs.valve_delay * 1e3:g} ms, minimum opening {rs.valve_min_on * 1e3:g} ms, "
                     f"pump tilt {rs.compressor_tilt:g}, sensor lag {rs.sensor_tau * 1e3:g} ms"),
-            "estimator": f"EKF bank over {n} chambers (valve delay {bank.settings.valve_delay * 1e3:g} ms, sensor delay "
-                         f"{bank.settings.sensor_delay * 1e3:g} ms)",
-            "controller": f"robot RTI NMPC, N = {N}, dt {nmpc.s.dt * 1e3:g} ms, OSQP (casadi's) inside; "
-                          f"{s.pneumatics.topology} pump; minimum valve opening {loop.pwm.min_duty * loop._period * 1e3:g} ms",
+            **ctrl.meta,
             "timing": "each trajectory row is logged after the rig's period (the scene's log row k + 1)"}
+    tip = np.array([plant.tip_force(tk) for tk in t1])  # the tip load at each period's end
     if s.compare_baseline:
         meta["left out"] = "the pressure-PID baseline ([robot] compare_baseline = true): only the NMPC's loop is generated"
-    return LoopSpec(scn.name, rs.sample_period, n_ticks, signals, streams, stages, log, meta).validate()
-
-
-def _burst_state(loop) -> np.ndarray:
-    from hbma_ctrl.runtime.burst import burst_state
-
-    return burst_state(loop.burst)
+    return LoopSpec(scn.name, rs.sample_period, n_ticks, signals, dict(ctrl.streams, noise=noise, f_tip=tip),
+                    stages, log, meta).validate()
 
 
 def _truth_function(n: int) -> ca.Function:

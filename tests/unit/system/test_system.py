@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 
 import numpy as np
 import pytest
@@ -147,3 +148,20 @@ def test_both_systems_keep_the_system_contract():
     report = robot.controller_report()
     assert report is robot.loop.controller.last_parts and "status" in report
     assert {"nmpc status", "controller"} <= set(robot.tick_parts())
+
+
+def test_to_function_refuses_what_has_no_generated_form_naming_the_setting():
+    """A system generates its control side only from roles that have a generated form; each refusal
+    is one error naming the setting: the start-up calibration, a controller with no step Function
+    (the PID, the NMPC's rti_c_osqp variant, the robot's numpy NMPC)."""
+    t = np.arange(3) * PERIOD
+    for calibrate, why in ((True, "[controller] calibrate = true"), (False, "[controller] kind: PIDController")):
+        with pytest.raises(ValueError, match=re.escape(why)):
+            _system(calibrate)[0].to_function(t, 0.0)
+    chamber = build_runner(load_config(ROOT / "scenarios" / "daemon_chamber.toml", {"--rig": "sim"}))
+    chamber.calibration = None
+    with pytest.raises(ValueError, match=re.escape("[controller] variant = 'rti_c_osqp'")):
+        chamber.to_function(t, 0.0)
+    robot = build_runner(load_config(ROOT / "scenarios" / "daemon_robot.toml", {"--rig": "sim"}))
+    with pytest.raises(ValueError, match=re.escape("[robot] controller: RobotNMPC has no step Function")):
+        robot.to_function(t, np.zeros(robot.n))
