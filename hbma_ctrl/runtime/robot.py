@@ -287,9 +287,8 @@ class RobotLoop:
         self.estimate = est
         burst = None
         if self.burst is not None:
-            self.burst.update(est["r"])
             # a chamber lost again and again: the supervisor's rule 6 below starts an episode here
-            self.burst.lost(t, est["lost"] & ~self.supervisor.lost)
+            self.burst.step(t, est["r"], est["lost"] & ~self.supervisor.lost)
             burst = self.burst.flagged
         W = np.maximum(load_sharing(self.design, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
         self.loads = W
