@@ -24,7 +24,7 @@ stay under the threshold. What follows gives it away: the chamber, pumped again 
 does not rise, its filter drives its flow factor to its bound, and the loop's lost-estimate rule
 vents it, releases it, and loses it again, over and over (every few tens of milliseconds in the
 drills). ``relapses`` lost episodes of one chamber within ``relapse_window`` flag it too
-(:meth:`BurstTest.lost`); a clean run loses an estimate rarely (one episode in the 80 runs of the
+(:meth:`BurstTest.step`); a clean run loses an estimate rarely (one episode in the 80 runs of the
 robot scenes' 20-seed sweep).
 
 Measured (the robot's structured default rig, README Run on a rig, the burst row): in clean runs the
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core.codegen import is_nan
+from hbma_ctrl.core.codegen import FastFunction, is_nan
 from hbma_ctrl.core.settings import Settings, setting
 
 __all__ = ["BurstTestSettings", "BurstTest", "burst_function", "burst_state"]
@@ -68,66 +68,73 @@ class BurstTestSettings(Settings):
 
 
 class BurstTest:
-    """Per-chamber CUSUM of the readings' falls below the filter's prediction (module doc).
+    """Per-chamber CUSUM of the readings' falls below the filter's prediction (module doc); each period
+    is one call of :func:`burst_function` (the block a generated loop runs).
 
-    ``update(r)`` takes the n signed normalised innovations of one period (NaN counts as 0, -inf as a
-    fall at the cap) and returns the chambers whose sum reached the threshold this period (bool (n,));
-    ``flagged`` keeps every
-    chamber flagged since the last :meth:`reset` (``why``: what flagged each, for the fault's cause),
-    ``g`` the running sums and ``peak`` each chamber's largest sum (the margin to the threshold, for
-    tuning on a rig). ``lost(t, new)`` counts the chambers' lost-estimate episodes (module doc)."""
+    ``step(t, r, lost)`` takes the n signed normalised innovations of one period (NaN counts as 0,
+    -inf as a fall at the cap) and the chambers whose estimate was lost anew, and returns the
+    chambers flagged this period (bool (n,)); ``flagged`` are the chambers flagged since the last
+    :meth:`reset` (``why``: what flagged each, for the fault's cause), ``g`` the running sums and
+    ``peak`` each chamber's largest sum (the margin to the threshold, for tuning on a rig)."""
 
     def __init__(self, n: int, settings: BurstTestSettings | None = None):
         self.settings = (settings or BurstTestSettings()).validate()
         self.n = int(n)
-        self.g = np.zeros(self.n)
-        self.peak = np.zeros(self.n)
-        self.flagged = np.zeros(self.n, dtype=bool)
+        self._keep, size = _state_parts(self.n, self.settings)
+        #: the state in :func:`burst_function`'s layout (:func:`burst_state`)
+        self.state = np.concatenate([np.zeros(3 * self.n), np.full(size - 3 * self.n, np.nan)])
         self.why = [""] * self.n
-        self._lost_t: list = [[] for _ in range(self.n)]
+        self._restarted = np.zeros(self.n)
+        self._fn = FastFunction(burst_function(self.settings, self.n), compile=False)
 
-    def update(self, r) -> np.ndarray:
-        """One period's innovations r (n,) -> the chambers newly flagged (bool (n,))."""
-        s = self.settings
-        rv = np.asarray(r, dtype=float).reshape(self.n)
-        # +-inf go through: -inf adds the cap, +inf empties the sum
-        rv = np.where(np.isnan(rv), 0.0, rv)
-        self.g = np.maximum(self.g + np.minimum(-rv - s.allowance, s.step_cap), 0.0)
-        self.peak = np.maximum(self.peak, self.g)
-        new = (self.g >= s.threshold) & ~self.flagged
+    @property
+    def g(self) -> np.ndarray:
+        """The running sums, sigma (n,)."""
+        return self.state[:self.n]
+
+    @property
+    def peak(self) -> np.ndarray:
+        """Each chamber's largest sum since it was made, sigma (n,)."""
+        return self.state[self.n:2 * self.n]
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """The chambers flagged since the last reset (bool (n,))."""
+        return self.state[2 * self.n:3 * self.n] > 0.5
+
+    def step(self, t: float, r, lost) -> np.ndarray:
+        """One period at time t (s): the innovations r (n,), the chambers whose estimate was lost anew
+        (bool (n,)) -> the chambers newly flagged (bool (n,)); the restarts since the last period
+        are applied first."""
+        n, keep = self.n, self._keep
+        times0 = self.state[3 * n:].reshape(n, keep)
+        now, _, state = self._fn(t, r, lost, self._restarted, self.state)
+        new = now > 0.5
         for i in np.nonzero(new)[0]:
-            self.why[i] = f"its readings fell {self.g[i]:.0f} sigma below its filter's prediction over the last periods"
-        self.flagged |= new
+            # a chamber is flagged by its sum first; else by its relapses, the oldest kept time the first
+            if state[i] >= self.settings.threshold:
+                self.why[i] = f"its readings fell {state[i]:.0f} sigma below its filter's prediction over the last periods"
+            else:
+                self.why[i] = (f"its estimate was lost {keep + 1} times within {t - times0[i, 0]:.2f} s: it "
+                               "does not rise when pumped")
+        self.state = state.copy()
+        self._restarted[:] = 0.0
         return new
 
-    def lost(self, t: float, new) -> np.ndarray:
-        """The chambers whose estimate was lost anew at time t (s) (bool (n,)) -> those newly flagged
-        for ``relapses`` such episodes within ``relapse_window`` (bool (n,))."""
-        s = self.settings
-        out = np.zeros(self.n, dtype=bool)
-        for i in np.nonzero(np.asarray(new, dtype=bool).reshape(self.n))[0]:
-            times = [u for u in self._lost_t[i] if u > t - s.relapse_window] + [float(t)]
-            self._lost_t[i] = times
-            if len(times) >= s.relapses and not self.flagged[i]:
-                out[i] = True
-                self.flagged[i] = True
-                self.why[i] = (f"its estimate was lost {len(times)} times within {t - times[0]:.2f} s: it "
-                               "does not rise when pumped")
-        return out
-
     def restart(self, mask) -> None:
-        """The sums of the chambers in ``mask`` (bool (n,)) back to 0: their filters restarted. Flags and
-        lost-estimate episodes are kept (a restart is one of those episodes)."""
-        self.g[np.asarray(mask, dtype=bool).reshape(self.n)] = 0.0
+        """The sums of the chambers in ``mask`` (bool (n,)) back to 0 at the next step: their filters
+        restarted. Flags and lost-estimate episodes are kept (a restart is one of those episodes)."""
+        self._restarted[np.asarray(mask, dtype=bool).reshape(self.n)] = 1.0
 
     def reset(self, mask=None) -> None:
-        """Clear the sums and flags of the chambers in ``mask`` (bool (n,); None = all)."""
+        """Clear the sums, flags and lost-estimate episodes of the chambers in ``mask`` (bool (n,); None = all)."""
         m = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(self.n)
-        self.g[m] = 0.0
-        self.flagged[m] = False
+        n = self.n
+        self.state[:n][m] = 0.0
+        self.state[2 * n:3 * n][m] = 0.0
+        self.state[3 * n:].reshape(n, self._keep)[m] = np.nan
         for i in np.nonzero(m)[0]:
             self.why[i] = ""
-            self._lost_t[i] = []
 
 
 def _state_parts(n: int, settings: BurstTestSettings) -> tuple[int, int]:
@@ -138,15 +145,9 @@ def _state_parts(n: int, settings: BurstTestSettings) -> tuple[int, int]:
 
 
 def burst_state(test: BurstTest) -> np.ndarray:
-    """``test``'s state in :func:`burst_function`'s layout: the sums g, their peaks, the flags (n
+    """``test``'s state in :func:`burst_function`'s layout (a copy): the sums g, their peaks, the flags (n
     each), then per chamber its newest relapses - 1 lost times, oldest first (NaN: none)."""
-    keep, _ = _state_parts(test.n, test.settings)
-    times = np.full((test.n, keep), np.nan)
-    for i, ts in enumerate(test._lost_t):
-        ts = ts[-keep:]
-        if ts:
-            times[i, keep - len(ts):] = ts
-    return np.concatenate([test.g, test.peak, test.flagged.astype(float), times.ravel()])
+    return test.state.copy()
 
 
 def burst_function(settings: BurstTestSettings, n: int, name: str = "burst") -> ca.Function:
@@ -155,9 +156,10 @@ def burst_function(settings: BurstTestSettings, n: int, name: str = "burst") -> 
         burst(t, r[n], lost_new[n], restarted[n], state[S]) -> (flagged_now[n], flagged[n], state_next[S])
 
     ``restarted``: the chambers whose filters were restarted since the last period (the supervisor's
-    release; :meth:`BurstTest.restart`, applied first); then ``update(r)`` and ``lost(t, lost_new)``
-    as the class calls them. ``flagged_now`` are those flagged this period by either; ``flagged`` all
-    flagged so far. State layout: :func:`burst_state`."""
+    release; :meth:`BurstTest.restart`), their sums zeroed first; then the sums take r and flag at
+    the threshold, and a chamber lost anew for the ``relapses``-th time within the window, not
+    flagged yet, is flagged. ``flagged_now`` are those flagged this period by either; ``flagged``
+    all flagged so far. State layout: :func:`burst_state`."""
     s = settings.validate()
     keep, S = _state_parts(n, s)
     SX = ca.SX
@@ -167,7 +169,7 @@ def burst_function(settings: BurstTestSettings, n: int, name: str = "burst") -> 
     g, peak, flag, now, times = [], [], [], [], []
     for i in range(n):
         gi = ca.if_else(restarted[i] != 0, 0.0, g0[i])
-        ri = ca.if_else(is_nan(r[i]), 0.0, r[i])  # a reading not used; +-inf go through, as in update()
+        ri = ca.if_else(is_nan(r[i]), 0.0, r[i])  # a reading not used; +-inf go through
         gi = ca.fmax(gi + ca.fmin(-ri - s.allowance, s.step_cap), 0.0)
         new_u = ca.logic_and(gi >= s.threshold, flag0[i] == 0)
         fl = ca.logic_or(flag0[i] != 0, new_u)

@@ -38,7 +38,8 @@ Per ``RobotLoop.tick(t, readings_pa)`` (no I/O):
   minimum opening takes off above its target (:meth:`RobotLoop.net_vents`).
 
 The slew, the supply caps and the short vents are evaluated by the casadi Functions of
-:mod:`hbma_ctrl.runtime.robot_step`, the supervisor by its own: those a generated robot loop runs.
+:mod:`hbma_ctrl.runtime.robot_step`, the supervisor, the burst test and the minimum on-time by their
+own: those a generated robot loop runs.
 
 The controller does not know the tip load (a disturbance). Step, EKF and controller times go into
 bounded :class:`StepStats` (s); ``last_timing`` has this tick's.
@@ -287,9 +288,8 @@ class RobotLoop:
         self.estimate = est
         burst = None
         if self.burst is not None:
-            self.burst.update(est["r"])
             # a chamber lost again and again: the supervisor's rule 6 below starts an episode here
-            self.burst.lost(t, est["lost"] & ~self.supervisor.lost)
+            self.burst.step(t, est["r"], est["lost"] & ~self.supervisor.lost)
             burst = self.burst.flagged
         W = np.maximum(load_sharing(self.design, est["h"].reshape(-1, 3)).forces.ravel(), W_FLOOR)
         self.loads = W

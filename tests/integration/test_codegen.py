@@ -119,25 +119,6 @@ def test_acting_function_equals_the_command_timing(valve_delay, sensor_delay, in
     assert fill[0] == tm._keep
 
 
-def test_pwm_function_equals_the_min_on_time_shaping():
-    """MinOnTime.shape as a Function (for the C loop) gives the same duties and carries, bit for bit."""
-    from hbma_ctrl.core.interfaces import Command
-    from hbma_ctrl.runtime.pwm import MinOnTime
-
-    pwm = MinOnTime(0.01, 0.002)
-    f = pwm.function()
-    carry = np.zeros(2)
-    rng = np.random.default_rng(5)
-    small = 0
-    for _ in range(400):
-        u = rng.random(3) * (rng.random(3) < 0.6) * np.where(rng.random(3) < 0.5, 0.3, 1.0)
-        small += int(0 < u[1] < pwm.min_duty)
-        want = pwm.shape(Command(*u)).as_array()
-        got, carry = (np.asarray(v).ravel() for v in f(u, carry))
-        assert np.array_equal(got, want) and np.array_equal(carry, pwm.carry)
-    assert small > 5  # duties under the minimum were shaped, not only passed through
-
-
 def _toy_spec(n: int = 60) -> LoopSpec:
     """A small loop that uses every stage option: every, gate / gate_off, repeat with stop_on, NaN data."""
     x, z, g = ca.SX.sym("x"), ca.SX.sym("z"), ca.SX.sym("g")

@@ -375,33 +375,36 @@ def test_the_loops_vent_netting_follows_its_numpy_oracle():
     assert all(v > 0 for v in seen.values()), seen
 
 
-def test_the_minimum_on_time_mapped_over_the_chambers_follows_shape_inputs():
-    """MinOnTime.function() mapped over 6 chambers, its carry threaded, gives the plant inputs
-    shape_inputs sends for 3 x n inputs (the robot's call) over 300 periods, with the forgetting
-    RobotLoop applies to dropped vents in between: the same bits, duties raised to the minimum and
-    dropped both seen."""
+def test_the_minimum_on_time_over_the_chambers_follows_the_numpy_oracle():
+    """MinOnTime.shape_inputs (its Function mapped over 6 chambers) gives the plant inputs and carries
+    the numpy oracle does for 3 x n inputs (the robot's call) over 300 periods, with duties at 0, at
+    the minimum and at half of it among them and the forgetting RobotLoop.net_vents applies to
+    dropped vents in between: the same bits, duties raised to the minimum and dropped both seen."""
+    from oracles.pwm import MinOnTimeOracle
+
     from hbma_ctrl.runtime.pwm import MinOnTime
 
     n, period = 6, 0.01
-    pwm = MinOnTime(period, 0.002)
-    f = pwm.function().map(n)
-    carry = np.zeros((2, n))
+    pwm, oracle = MinOnTime(period, 0.002), MinOnTimeOracle(period, 0.002)
+    m = pwm.min_duty
+    pwm.carry = np.zeros((2, n))
     rng = np.random.default_rng(6)
     raised = dropped = 0
     for k in range(300):
         U = rng.uniform(0.0, 1.0, (3, n))
         U[1:3] *= np.where(rng.uniform(size=(2, n)) < 0.6, rng.uniform(0.0, 0.3, (2, n)), 1.0)
         U[1:3] *= rng.uniform(size=(2, n)) < 0.8
-        want = pwm.shape_inputs(U)
-        got, carry = f(U, carry)
-        np.testing.assert_array_equal(np.asarray(got), want, err_msg=f"period {k}")
-        np.testing.assert_array_equal(np.asarray(carry), pwm.carry, err_msg=f"period {k}")
-        small = (U[1:3] > 0) & (U[1:3] < pwm.min_duty)
-        raised += int(np.sum(small & (want[1:3] == pwm.min_duty)))
+        edge = rng.uniform(size=(2, n)) < 0.1
+        U[1:3][edge] = rng.choice([0.0, m, 0.5 * m, np.nextafter(m, 0.0)], int(edge.sum()))
+        want = oracle.shape_inputs(U)
+        got = pwm.shape_inputs(U)
+        np.testing.assert_array_equal(got, want, err_msg=f"period {k}")
+        np.testing.assert_array_equal(pwm.carry, oracle.carry, err_msg=f"period {k}")
+        small = (U[1:3] > 0) & (U[1:3] < m)
+        raised += int(np.sum(small & (want[1:3] == m)))
         dropped += int(np.sum(small & (want[1:3] == 0)))
         if k % 7 == 0:  # the loop's netting forgets a dropped vent's carry
             which = rng.uniform(size=n) < 0.5
-            pwm.forget(1, which)
-            carry = np.asarray(carry).copy()
-            carry[1] = np.where(which, 0.0, carry[1])
+            for sh in (pwm, oracle):
+                sh.carry[1] = np.where(which, 0.0, sh.carry[1])
     assert raised > 0 and dropped > 0

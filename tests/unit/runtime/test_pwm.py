@@ -110,3 +110,23 @@ def test_n_chambers_at_once_shape_as_one_shaper_per_chamber():
             c = one.shape(Command(*U[:, i]))
             assert np.array_equal(got[:, i], [c.speed, c.inlet, c.outlet])
         assert np.array_equal(got[0], U[0])  # the pump's speed is not a valve
+
+
+def test_one_chambers_shaping_follows_the_numpy_oracle_bit_for_bit():
+    """MinOnTime.shape (its Function, the one a generated chamber loop runs) over 400 periods of random
+    commands, duties at 0, at the minimum and at half of it among them: the same commands and carries
+    as the numpy oracle, duties under the minimum shaped, not only passed through."""
+    from oracles.pwm import MinOnTimeOracle
+
+    pwm, oracle = MinOnTime(T, MIN_ON), MinOnTimeOracle(T, MIN_ON)
+    m = pwm.min_duty
+    rng = np.random.default_rng(5)
+    small = 0
+    for k in range(400):
+        u = rng.random(3) * (rng.random(3) < 0.6) * np.where(rng.random(3) < 0.5, 0.3, 1.0)
+        if k % 5 == 0:
+            u[rng.integers(1, 3)] = rng.choice([0.0, m, 0.5 * m])
+        small += int(0 < u[1] < m)
+        assert pwm.shape(Command(*u)) == oracle.shape(Command(*u)), k
+        assert np.array_equal(pwm.carry, oracle.carry), k
+    assert small > 5

@@ -3,8 +3,8 @@ runs: the supervisor (hbma_ctrl.runtime.safety.Supervisor, which runs
 hbma_ctrl.runtime.safety_step.supervisor_function) against the rule-by-rule numpy policy
 (tests/oracles/safety.py), for the robot's supervisor (two columns, plans by time, the stretch
 interlock, lost estimates, bursts) and a chamber-style one (three columns, the outlet opened at the
-limit, plans by rows, missing pressures at the limit); the burst test's period
-(hbma_ctrl.runtime.burst.burst_function) against BurstTest."""
+limit, plans by rows, missing pressures at the limit); the burst test (hbma_ctrl.runtime.burst.BurstTest,
+which runs hbma_ctrl.runtime.burst.burst_function) against its numpy oracle (tests/oracles/burst.py)."""
 
 from __future__ import annotations
 
@@ -101,41 +101,50 @@ def test_a_chamber_style_supervisor_as_one_function_follows_apply():
 
 
 @pytest.mark.parametrize("relapses", [2, 3, 5])
-def test_the_burst_test_as_one_function_follows_the_class(relapses):
-    """500 periods of 5 chambers: innovations with NaN (unused readings), -inf and +inf, runs of
-    falls that flag by the sum, lost estimates in bursts that flag by relapses within the window and
-    spread out ones that do not, and restarts (the supervisor's releases): the same flags, sums, peaks
-    and kept lost times at every period, both ways of flagging reached."""
+def test_the_burst_test_as_one_function_follows_the_numpy_test(relapses):
+    """500 periods of 5 chambers: innovations with NaN (unused readings), -inf and +inf, exactly at the
+    allowance and at the cap, runs of falls that flag by the sum, lost estimates in bursts that flag
+    by relapses within the window (times a whole window apart among them: the window is open) and
+    spread out ones that do not, restarts (the supervisor's releases) and resets of some chambers
+    and of all: the same flags, reasons, sums, peaks and kept lost times at every period, both ways
+    of flagging reached."""
+    from oracles.burst import BurstTestOracle, oracle_state
+
     from hbma_ctrl.runtime.burst import BurstTest, BurstTestSettings, burst_function, burst_state
 
     n = 5
-    settings = BurstTestSettings(relapses=relapses, relapse_window=0.3)
-    bt = BurstTest(n, settings)
-    f = burst_function(settings, n)
-    state = burst_state(bt)
+    settings = BurstTestSettings(relapses=relapses, relapse_window=20 / 64)  # t and the window exact in binary
+    bt, oracle = BurstTest(n, settings), BurstTestOracle(n, settings)
+    assert burst_function(settings, n).nnz_in("state") == burst_state(bt).size
     rng = np.random.default_rng(relapses)
     restarted = np.zeros(n, dtype=bool)
     by_sum = by_lost = 0
     for k in range(500):
-        t = 0.01 * k
+        t = k / 64
         r = rng.normal(0.0, 2.0, n)
         if k % 97 < 6:
             r[(k // 97) % 3] = -rng.uniform(10.0, 60.0)  # a run of falls on one of chambers 0-2
         r[rng.uniform(size=n) < 0.05] = np.nan
         r[rng.uniform(size=n) < 0.01] = -np.inf
         r[rng.uniform(size=n) < 0.01] = np.inf
+        r[rng.uniform(size=n) < 0.03] = -settings.allowance
+        r[rng.uniform(size=n) < 0.03] = -settings.allowance - settings.step_cap
         lost = rng.uniform(size=n) < (0.3 if k % 150 < 10 else 0.01)
         lost[:3] &= rng.uniform(size=3) < 0.1  # chambers 0-2 lose their estimates seldom
+        if k % 20 == 0:
+            lost[4] = True  # a whole window apart: never within one window
         if k % 200 == 199:
-            bt.reset()  # a person cleared the flags: the class and the Function start again
-            state = burst_state(bt)
+            mask = None if k == 199 else rng.uniform(size=n) < 0.5  # a person cleared the flags
+            bt.reset(mask)
+            oracle.reset(mask)
         bt.restart(restarted)
-        new_u = bt.update(r)
-        new_l = bt.lost(t, lost)
-        now, flagged, state = (np.asarray(v).ravel() for v in f(t, r, lost.astype(float), restarted.astype(float), state))
-        np.testing.assert_array_equal(now > 0.5, new_u | new_l, err_msg=f"period {k}")
-        np.testing.assert_array_equal(flagged > 0.5, bt.flagged, err_msg=f"period {k}")
-        np.testing.assert_array_equal(state, burst_state(bt), err_msg=f"period {k}")
+        oracle.restart(restarted)
+        new_u = oracle.update(r)
+        new_l = oracle.lost(t, lost)
+        np.testing.assert_array_equal(bt.step(t, r, lost), new_u | new_l, err_msg=f"period {k}")
+        np.testing.assert_array_equal(bt.flagged, oracle.flagged, err_msg=f"period {k}")
+        np.testing.assert_array_equal(burst_state(bt), oracle_state(oracle), err_msg=f"period {k}")
+        assert bt.why == oracle.why, k
         by_sum += int(new_u.sum())
         by_lost += int(new_l.sum())
         restarted = rng.uniform(size=n) < 0.05
