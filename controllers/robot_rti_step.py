@@ -147,6 +147,11 @@ class RobotNMPCFunction(RobotNMPC):
         self._zk, self._yk = np.zeros(self.nv), np.zeros(self.m_rows)
         self._warm = 0.0
 
+    @property
+    def step_function(self) -> ca.Function:
+        """The step as casadi's Function (what a generated loop takes as its stage)."""
+        return self._fn.fun
+
     def _data_call(self, lin):
         """None: the class's own QP-data call is never made here (the Function holds the data's graph),
         so its library is not built (12.6 s the first time on a machine for 9 chambers)."""

@@ -299,6 +299,23 @@ class ControllerBase:
         return {}
 
 
+@runtime_checkable
+class GeneratedEstimator(Protocol):
+    """An estimator with a generated form: ``stages(t, p0)`` gives its part of a generated loop
+    (:class:`hbma_ctrl.core.loopgen.Part`) over the tick times ``t`` (s), started from the reading ``p0`` (Pa)."""
+
+    def stages(self, t: np.ndarray, p0: float) -> Any: ...
+
+
+@runtime_checkable
+class GeneratedController(Protocol):
+    """A controller with a generated form: ``stages(t, every, command)`` gives its part of a generated loop
+    (:class:`hbma_ctrl.core.loopgen.Part`) over the tick times ``t`` (s), solving every ``every`` ticks and
+    writing the signal ``command``."""
+
+    def stages(self, t: np.ndarray, every: int, command: str = "u") -> Any: ...
+
+
 #: what a robot controller's ``step`` takes: the bank's estimate or the pressure readings
 RobotFeedback = Literal["estimate", "readings"]
 

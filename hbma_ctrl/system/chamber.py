@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from hbma_ctrl.core import units as U
-from hbma_ctrl.core.interfaces import Command, Controller, check_role
+from hbma_ctrl.core.interfaces import Command, Controller, GeneratedController, GeneratedEstimator, check_role
 from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Part, Stage
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
@@ -78,6 +78,11 @@ class _RigClock:
     def step(self, t: float, measurement, applied):
         """The wrapped estimator's step at the rig time of this reading (``t``, the loop's time, unused)."""
         return self._est.step(self._system.t_rig, measurement, applied)
+
+    @property
+    def inner(self):
+        """The wrapped estimator."""
+        return self._est
 
     def __getattr__(self, name):
         return getattr(self._est, name)
@@ -231,10 +236,11 @@ class ChamberSystem(SystemBase):
         if loop.reference is None:
             raise ValueError("the loop has no reference: a generated loop follows a target schedule")
         t = np.asarray(t, dtype=float)
-        ctrl, est = loop.controller, getattr(loop.estimator, "_est", loop.estimator)
-        if not hasattr(ctrl, "stages"):
+        ctrl = loop.controller
+        est = loop.estimator.inner if isinstance(loop.estimator, _RigClock) else loop.estimator
+        if not isinstance(ctrl, GeneratedController):
             raise ValueError(f"[controller] kind: {type(ctrl).__name__} has no generated form (only 'mpc' does)")
-        if estimate and not hasattr(est, "stages"):
+        if estimate and not isinstance(est, GeneratedEstimator):
             raise ValueError(f"[estimator] filter = '{type(est).__name__.lower()}': only the EKF generates C")
         N, pwm = ctrl.settings.horizon, loop.pwm
         cmd = "u" if pwm is None else "wanted"  # the command the controller and its supervisor hold

@@ -16,6 +16,7 @@ import numpy as np
 
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.controllers.robot_pid import RobotPIDSettings, RobotPressurePID
+from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Stage
 from hbma_ctrl.core.params import Pneumatics
@@ -193,8 +194,7 @@ class RobotSystem(SystemBase):
 
         loop = self.loop
         nmpc, bank = loop.controller, loop.bank
-        fn = getattr(nmpc, "_fn", None)
-        if fn is None:
+        if not isinstance(nmpc, RobotNMPCFunction):
             raise ValueError(f"[robot] controller: {type(nmpc).__name__} has no step Function to generate (only "
                              "'mpc' with the NMPC as one Function, RobotNMPCFunction)")
         if nmpc.s.enforce_budget and nmpc.s.budget > 0:
@@ -237,7 +237,7 @@ class RobotSystem(SystemBase):
                                         "burst_state"],
                   ["zs", "burst_flagged", "burst_state", "W", "href", "href_N", "a_max", "near_count", "peak", "x_est",
                    "b_est", "k_est", "c_est"]),
-            Stage(fn.fun, ["x_est", "b_est", "W", "k_est", "c_est", "a_max", "href_N", "prev", "xbar", "abar", "obar",
+            Stage(nmpc.step_function, ["x_est", "b_est", "W", "k_est", "c_est", "a_max", "href_N", "prev", "xbar", "abar", "obar",
                            "nmpc_first", "qp_z", "qp_y", "warm"],
                   ["a_dec", "o_dec", "xbar", "abar", "obar", "qp_z_new", "qp_y_new", "rti_status", "rti_residual"]),
             Stage(_post_function(loop), ["t", "rti_status", "a_dec", "o_dec", "abar", "obar", "zs", "href", "lam",
