@@ -45,51 +45,12 @@ import numpy as np
 
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.loopgen import Part, Stage
-from hbma_ctrl.core.interfaces import guard_margin_setting, p_max_setting
-from hbma_ctrl.core.settings import Settings, setting
-from hbma_ctrl.runtime.safety_step import EVENTS, state_parts, state_size, supervisor_function
+from hbma_ctrl.runtime.safety_step import EVENTS, SupervisorSettings, state_parts, state_size, supervisor_function
 
 __all__ = ["SupervisorSettings", "SupervisorEvent", "Supervisor"]
 
 #: target heights at or below this (m) count as "zero": the robot's vent rule
 ZERO_TARGET = 5e-5
-
-
-@dataclass
-class SupervisorSettings(Settings):
-    """Settings of :class:`Supervisor` (SI; each field's unit, range and one-line doc are in its declaration).
-
-    vent_margin None: the guard only cuts the supply (the robot's interlock) and a closed outlet does
-    not trigger it. missing_is_limit: a non-finite pressure counts as at the limit (True: a lost
-    estimate) or is skipped (False: a sensor dropout, the last good command stands).
-    """
-
-    WHERE = "supervisor"
-
-    p_max: float = p_max_setting()
-    guard_margin: float = guard_margin_setting(0.5e3)
-    vent_margin: float | None = setting(0.25e3, lo=0.0, hi=1e6, unit="Pa", optional=True,
-                                        doc="within this of p_max the guard also opens the outlet fully")
-    missing_is_limit: bool = setting(True, doc="a non-finite pressure counts as at the limit")
-    vent_height: float | None = setting(None, lo=0.0, hi=0.2, unit="m",
-                                        doc="targets at or below this height get the safe command (None: no vent rule)")
-    fallback_plan_steps: int = setting(10, integer=True, lo=0,
-                                       doc="consecutive failed steps the last good plan may stand in before the safe command")
-    plan_period: float | None = setting(None, lo=0.0, hi=10.0, lo_open=True, unit="s",
-                                        doc="time between two rows of a controller's plan (None: one row per step)")
-    safe_outlet: float = setting(1.0, lo=0.0, hi=1.0, doc="outlet duty of the safe command (1 = vent; 0 = hold the gas)")
-    stretch_max: float | None = setting(None, lo=1.0, hi=20.0, lo_open=True,
-                                        doc="the stretch guard's limit (equi-biaxial stretch; None: no stretch guard)")
-    lost_release: float = setting(1e3, lo=0.0, hi=1e6, unit="Pa",
-                                  doc="a chamber vented for a lost estimate is released at or below this pressure")
-    event_log_size: int = setting(10000, integer=True, lo=1,
-                                  doc="events the log keeps (the oldest drop out; counts keep growing)")
-
-    def check_rules(self) -> None:
-        self.within("guard_margin", hi=self.p_max)
-        if self.vent_margin is not None:
-            self.within("vent_margin", hi=self.p_max)
-        self.within("lost_release", hi=self.p_max)
 
 
 @dataclass(frozen=True)

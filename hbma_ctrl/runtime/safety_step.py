@@ -21,16 +21,52 @@ the Function's layout, :func:`state_size` its length S. The event log and its te
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import casadi as ca
 
 from hbma_ctrl.core.codegen import is_finite
+from hbma_ctrl.core.interfaces import guard_margin_setting, p_max_setting
+from hbma_ctrl.core.settings import Settings, setting
 
-if TYPE_CHECKING:
-    from hbma_ctrl.runtime.safety import SupervisorSettings
+__all__ = ["EVENTS", "SupervisorSettings", "supervisor_function", "state_size", "state_parts"]
 
-__all__ = ["EVENTS", "supervisor_function", "state_size", "state_parts"]
+
+@dataclass
+class SupervisorSettings(Settings):
+    """Settings of :class:`hbma_ctrl.runtime.safety.Supervisor` and its Function (SI; each field's unit, range and one-line doc are in its declaration).
+
+    vent_margin None: the guard only cuts the supply (the robot's interlock) and a closed outlet does
+    not trigger it. missing_is_limit: a non-finite pressure counts as at the limit (True: a lost
+    estimate) or is skipped (False: a sensor dropout, the last good command stands).
+    """
+
+    WHERE = "supervisor"
+
+    p_max: float = p_max_setting()
+    guard_margin: float = guard_margin_setting(0.5e3)
+    vent_margin: float | None = setting(0.25e3, lo=0.0, hi=1e6, unit="Pa", optional=True,
+                                        doc="within this of p_max the guard also opens the outlet fully")
+    missing_is_limit: bool = setting(True, doc="a non-finite pressure counts as at the limit")
+    vent_height: float | None = setting(None, lo=0.0, hi=0.2, unit="m",
+                                        doc="targets at or below this height get the safe command (None: no vent rule)")
+    fallback_plan_steps: int = setting(10, integer=True, lo=0,
+                                       doc="consecutive failed steps the last good plan may stand in before the safe command")
+    plan_period: float | None = setting(None, lo=0.0, hi=10.0, lo_open=True, unit="s",
+                                        doc="time between two rows of a controller's plan (None: one row per step)")
+    safe_outlet: float = setting(1.0, lo=0.0, hi=1.0, doc="outlet duty of the safe command (1 = vent; 0 = hold the gas)")
+    stretch_max: float | None = setting(None, lo=1.0, hi=20.0, lo_open=True,
+                                        doc="the stretch guard's limit (equi-biaxial stretch; None: no stretch guard)")
+    lost_release: float = setting(1e3, lo=0.0, hi=1e6, unit="Pa",
+                                  doc="a chamber vented for a lost estimate is released at or below this pressure")
+    event_log_size: int = setting(10000, integer=True, lo=1,
+                                  doc="events the log keeps (the oldest drop out; counts keep growing)")
+
+    def check_rules(self) -> None:
+        self.within("guard_margin", hi=self.p_max)
+        if self.vent_margin is not None:
+            self.within("vent_margin", hi=self.p_max)
+        self.within("lost_release", hi=self.p_max)
 
 #: the per-chamber event rows of the Function's ``events`` output (the Supervisor's counts' keys)
 EVENTS = ("shifted_plan", "safe_command", "vent", "guard", "stretch_guard", "lost_estimate", "burst")
@@ -56,7 +92,7 @@ def state_size(n: int, c: int, H: int) -> int:
     return state_parts(n, c, H)["burst"].stop
 
 
-def supervisor_function(settings: "SupervisorSettings", n: int, c: int, H: int,
+def supervisor_function(settings: SupervisorSettings, n: int, c: int, H: int,
                         name: str = "supervisor") -> ca.Function:
     """The policy of :class:`~hbma_ctrl.runtime.safety.Supervisor` with ``settings`` for n chambers,
     c columns, H-row plans (module docstring)."""

@@ -30,6 +30,7 @@ from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build
 from hbma_ctrl.app.daemon.config import load_config
 from hbma_ctrl.app.daemon.loop import STATS_KEYS, DaemonLoop
 from hbma_ctrl.system.rigio import RigLinkError, safe_u
+from hbma_ctrl.system.serial_link import SerialRig
 from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, read_run_log
 from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.runtime.watchdog import SafetyMonitor
@@ -605,13 +606,14 @@ def test_nmpc_overrun_within_the_period_is_logged_and_the_replay_takes_it(tmp_pa
     from hbma_ctrl.app.bench.soak import _TimeLimited, replay_ticks
 
     loop, ctrl, marks = _robot_run_with_extras(tmp_path, {15: lambda c: (lambda *a, **k: _TimeLimited())}, {30})
-    over = [e for e in loop.events if e["kind"] == "nmpc_overrun"]
-    assert [e["t_s"] for e in over] == [marks[15]], over
+    # a loaded machine adds overruns and slow ticks of its own (the loop runs on the wall clock at speed
+    # 20): what holds at any load is the forced one, logged once at its tick, and the replay on its path
+    over = [e for e in loop.events if e["kind"] == "nmpc_overrun" and e["t_s"] == marks[15]]
+    assert len(over) == 1, loop.events
     assert over[0]["cause"].endswith("nmpc status overrun (run time limit reached)")
-    assert marks[15] not in {e["t_s"] for e in loop.events if e["kind"] == "slow_tick"}
     ticks = {t["t_s"]: t for t in replay_ticks(ROBOT, tmp_path, 20.0, echo=lambda s: None)}
-    assert list(ticks) == [marks[30]]  # the first tick too is within the period: the runner was primed
-    assert ticks[marks[30]]["same_state"] and ticks[marks[30]]["machine"], ticks
+    assert marks[30] in ticks and ticks[marks[30]]["machine"], ticks
+    assert all(t["same_state"] for t in ticks.values()), ticks
 
 
 @pytest.mark.slow
@@ -892,6 +894,10 @@ def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_t
         cfg = load_config(cfg_path, {"--rig": f"serial:{port}"})
         runner = build_runner(cfg)
         rig = make_rig(cfg, runner)
+        assert isinstance(rig, SerialRig)
+        # nor is its heartbeat: a firmware process the machine does not run for half a second (seen beside
+        # a CPU burner) is the machine's load, not a lost link; the link's own test is in test_serial.py
+        rig.link_timeout = 60.0
         state = DaemonState()
         # a firmware process the machine does not run for tens of periods sends no sample meanwhile:
         # on a microcontroller that would be a frozen sensor, here it is the machine's load
