@@ -289,6 +289,8 @@ class ReferenceSteps:
         self.last_output_cov = C
         std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
         h1, h2 = float(y[_Y["h1"]]), float(y[_Y["h2"]])
-        return Estimate(t=self.t, h1=h1, h2=max(h2, 0.0), h=float(y[_Y["h"]]), F=max(float(y[_Y["F"]]), 0.0),
+        # reported in the shapes' domain (h2, h, F >= 0), as the compiled step reports them; a projection
+        # that did not converge (flag not_converged) can leave h2 above h1, a plate below the base
+        return Estimate(t=self.t, h1=h1, h2=max(h2, 0.0), h=max(float(y[_Y["h"]]), 0.0), F=max(float(y[_Y["F"]]), 0.0),
                         p=float(y[_Y["p"]]), mean=self.x.copy(), cov=self.P.copy(),
                         state_names=self.state_names, std=std, flags=frozenset(flags))

@@ -33,7 +33,7 @@ membrane stays flat; 0 = no floor; the contact phase's excess sum, :data:`EXCESS
 lowest b / c a resting membrane is taken as flat at, :func:`flat_ratio_min`, 0 = the test off).
 
 Outputs: the posterior state, covariance and warm start; ``y`` the model outputs
-(:data:`hbma_ctrl.models.chamber.OUT_NAMES`) at the posterior; ``est`` = (h1, h2 >= 0, h, F >= 0, p)
+(:data:`hbma_ctrl.models.chamber.OUT_NAMES`) at the posterior; ``est`` = (h1, h2 >= 0, h >= 0, F >= 0, p)
 as reported (m, N, Pa) and ``std`` their one sigma; C their covariance (with the model-form
 terms); H = dp/dx at the posterior; A = dx+/dx of the predict; the mode and detector state after
 the step; ``nis`` (of the update, or of the gated reading) and ``innov`` (normalised innovation;
@@ -393,7 +393,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     d = d + ca.if_else(bulge, (0.5 * y[0]) ** 2, 0.0) * ca.DM([0.0, 0.0, 1.0, 0.0, 0.0])
     C = C0 + ca.diag(d)
     std = ca.sqrt(ca.fmax(ca.diag(C), 0.0))
-    est = ca.vertcat(y[0], ca.fmax(y[1], 0.0), y[2], ca.fmax(y[3], 0.0), y[4])
+    est = ca.vertcat(y[0], ca.fmax(y[1], 0.0), ca.fmax(y[2], 0.0), ca.fmax(y[3], 0.0), y[4])
     not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
     flags = (gated * 1 + fire_c * 2 + ca.logic_or(fire_lift, lift_b) * 4 + clamped * 8 + resting4 * 16
              + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128 + implausible * 256
