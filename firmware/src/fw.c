@@ -362,6 +362,7 @@ static void handle_line(fw_t *fw, char *s, uint16_t len) {
         return;
     }
     if (strcmp(tok[0], "HELLO") == 0) {
+        fw->stats.lines++;
         on_hello(fw, seq, tok, ntok);
         return;
     }
@@ -387,6 +388,7 @@ static void handle_line(fw_t *fw, char *s, uint16_t len) {
         fw->stats.bad_lines++;
         return;
     }
+    fw->stats.lines++;
     restart_watchdog(fw);
 }
 

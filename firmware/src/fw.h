@@ -57,7 +57,7 @@ typedef struct {
 } fw_cfg_t;
 
 typedef struct {
-    uint16_t crc_errors, bad_lines, seq_gaps, commands, dropped_tx, overruns;
+    uint16_t lines, crc_errors, bad_lines, seq_gaps, commands, dropped_tx, overruns; /* lines: valid host lines */
 } fw_stats_t;
 
 typedef struct {

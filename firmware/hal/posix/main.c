@@ -6,10 +6,10 @@
  * Plant channel, ASCII lines:
  *   firmware -> plant, once at start:  I n tick_us period_ticks zero_1 gain_1 ... zero_n gain_n
  *   plant -> firmware:                 T k [c_1 ... c_n]   set the ADC counts (if given), run k ticks
- *   firmware -> plant, per T:          O t_us mode commands crc_errors bad_lines seq_gaps
+ *   firmware -> plant, per T:          O t_us mode commands crc_errors bad_lines seq_gaps lines
  *                                        pump_1 in_1 out_1 ... pump_n in_n out_n
  * where pump_i is the sum over the k ticks of chamber i's pump speed (per-mille) and in_i, out_i the
- * ticks its inlet and outlet were open. Before running the ticks the firmware reads every byte
+ * ticks its inlet and outlet were open; lines counts the valid host lines received. Before running the ticks the firmware reads every byte
  * already waiting on the pty, so a line written before the T is seen before those ticks.
  * The firmware exits when the plant channel closes, or on SIGINT/SIGTERM. */
 #define _XOPEN_SOURCE 700
@@ -110,9 +110,9 @@ static void plant_line(int fd, char *s) {
     }
     fw_poll(&fw);
     char out[64 + FW_MAX_N * 40];
-    int len = snprintf(out, sizeof out, "O %llu %s %u %u %u %u",
+    int len = snprintf(out, sizeof out, "O %llu %s %u %u %u %u %u",
                        (unsigned long long)fw.t_sec * 1000000ull + fw.t_us, fw.mode == FW_RUN ? "RUN" : "SAFE",
-                       fw.stats.commands, fw.stats.crc_errors, fw.stats.bad_lines, fw.stats.seq_gaps);
+                       fw.stats.commands, fw.stats.crc_errors, fw.stats.bad_lines, fw.stats.seq_gaps, fw.stats.lines);
     for (uint8_t i = 0; i < fw.cfg.n; i++) {
         len += snprintf(out + len, sizeof out - (size_t)len, " %lu %lu %lu", ps[i], on[i][0], on[i][1]);
     }
