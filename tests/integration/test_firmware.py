@@ -13,9 +13,9 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -278,3 +278,47 @@ def test_the_uno_build_fits_with_room_for_the_stack(tmp_path, n):
 def test_the_mega_build_compiles(tmp_path):
     flash, ram = _avr_size(build_firmware("mega", tmp_path, 4), "atmega2560")
     assert flash < 256 * 1024 and ram < 8192
+
+
+@needs_avr
+@pytest.mark.skipif(shutil.which("simavr") is None or not Path("/usr/include/simavr/sim_avr.h").is_file(),
+                    reason="simavr and its library headers are not installed (apt-get install simavr libsimavr-dev)")
+def test_the_uno_build_in_simavr_talks_to_serial_rig(tmp_path):
+    elf = build_firmware("avr", tmp_path, 1)
+    runner = build_firmware("simavr", tmp_path)
+    # 1100 mV on the sensor: 225 per conversion, 3600 counts (16 summed) -> 19.99 kPa by the default calibration
+    proc = subprocess.Popen([str(runner), str(elf), "--adc-mv", "1100"], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    rig = None
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.poll()
+        rig = SerialRig(port, 1, sample_period=0.01, link_timeout=TIMEOUT, handshake_timeout=TIMEOUT)
+        assert rig.sample_period == pytest.approx(0.01)
+        u = np.array([[0.6], [1.0], [0.0]])
+        held = 0
+        deadline = time.monotonic() + 4 * TIMEOUT
+        while held < 10 and time.monotonic() < deadline:
+            rig.write(u)
+            rig.wait_sample(1.0)
+            r = rig.read()
+            if r.held is not None and np.array_equal(r.held, u):
+                held += 1
+        assert held == 10, rig.stats
+        assert abs(r.p[0] - 20.0e3) < 100.0  # one 10-bit LSB is 108 Pa
+        assert _wait(lambda: rig.firmware_mode == "RUN")
+        rig.safe()
+        assert _wait(lambda: rig.firmware_mode == "SAFE")
+        assert (rig.stats["crc_errors"], rig.stats["bad_lines"], rig.stats["held_unknown"]) == (0, 0, 0)
+    finally:
+        if rig is not None:
+            rig.close()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=TIMEOUT)
+
+
+def _wait(pred) -> bool:
+    deadline = time.monotonic() + TIMEOUT
+    while not pred() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return bool(pred())
