@@ -9,10 +9,12 @@ timeouts, as the host side needs a live heartbeat.
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -21,6 +23,7 @@ import numpy as np
 import pytest
 import serial
 
+from checkout import ROOT
 from hbma_ctrl.app.cli.rig import HostBoard, build_firmware, run_realtime
 from hbma_ctrl.app.daemon.firmware import FirstOrderPlant
 from hbma_ctrl.system.serial_link import Message, SerialRig, decode_line, encode_line
@@ -322,3 +325,39 @@ def _wait(pred) -> bool:
     while not pred() and time.monotonic() < deadline:
         time.sleep(0.01)
     return bool(pred())
+
+
+@pytest.mark.subprocess
+@pytest.mark.parametrize("target", ["host", "avr"])
+def test_rig_emulate_prints_its_port_serves_the_host_and_cleans_up_on_sigterm(tmp_path, target):
+    if target == "avr" and (shutil.which("avr-gcc") is None or shutil.which("simavr") is None or
+                            not Path("/usr/include/simavr/sim_avr.h").is_file()):
+        pytest.skip("avr-gcc, simavr or simavr's headers are not installed")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(tmp_path))
+    proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl", "rig", "emulate", "--target", target, "--n", "2"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    rig = None
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
+        rig = SerialRig(port, 2, sample_period=0.01, link_timeout=TIMEOUT, handshake_timeout=TIMEOUT)
+        assert rig.wait_sample(TIMEOUT) is not None
+        assert np.all(np.isfinite(rig.read().p))
+    finally:
+        if rig is not None:
+            rig.close()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=4 * TIMEOUT)
+    assert proc.returncode == 0, err
+    assert list(tmp_path.iterdir()) == []  # the build folder is gone
+
+
+def test_rig_emulate_refuses_an_unknown_target_or_chamber_count():
+    from typer.testing import CliRunner
+
+    from hbma_ctrl.app.cli.main import app
+
+    res = CliRunner().invoke(app, ["rig", "emulate", "--target", "arm"])
+    assert res.exit_code == 2 and "--target = 'arm'" in res.output
+    res = CliRunner().invoke(app, ["rig", "emulate", "--target", "avr", "--n", "5"])
+    assert res.exit_code == 2 and "--n = 5" in res.output
