@@ -190,6 +190,13 @@ static void board_init(void) {
     ADCSRA = (1 << ADEN) | (1 << ADIE) | (1 << ADSC) | (1 << ADPS2) | (1 << ADPS1) | (1 << ADPS0);
 }
 
+/* After a watchdog reset the watchdog stays on at its shortest timeout: off before the C start-up. */
+void wdt_off_early(void) __attribute__((naked, used, section(".init3")));
+void wdt_off_early(void) {
+    MCUSR = 0;
+    wdt_disable();
+}
+
 int main(void) {
     static const fw_cfg_t cfg = {FW_MAX_N, FW_TICK_US, FW_PERIOD_TICKS,
                                  (100000u + FW_TICK_US * FW_PERIOD_TICKS - 1u) / (FW_TICK_US * FW_PERIOD_TICKS),
