@@ -351,13 +351,3 @@ def test_rig_emulate_prints_its_port_serves_the_host_and_cleans_up_on_sigterm(tm
     assert proc.returncode == 0, err
     assert list(tmp_path.iterdir()) == []  # the build folder is gone
 
-
-def test_rig_emulate_refuses_an_unknown_target_or_chamber_count():
-    from typer.testing import CliRunner
-
-    from hbma_ctrl.app.cli.main import app
-
-    res = CliRunner().invoke(app, ["rig", "emulate", "--target", "arm"])
-    assert res.exit_code == 2 and "--target = 'arm'" in res.output
-    res = CliRunner().invoke(app, ["rig", "emulate", "--target", "avr", "--n", "5"])
-    assert res.exit_code == 2 and "--n = 5" in res.output
