@@ -160,31 +160,25 @@ def test_the_watchdog_goes_safe_when_the_host_falls_silent(rig2):
     for seq in range(2, 12):  # 1 s of board time with a heartbeat every 0.1 s: still running
         assert board.tick(1000).mode == "RUN"
         link.send("HB", seq)
-        _until(board, lambda o, k=seq: o.lines == k + 1)  # HELLO, CMD 1, HB 2..seq received
-    _drain(link)
+        out = _until(board, lambda o, k=seq: o.lines == k + 1)  # HELLO, CMD 1, HB 2..seq received
+    _lines_through(link, out.t_us)
     assert board.tick(4900).mode == "RUN"  # 0.49 s of silence: not yet
     late = board.tick(200)  # 0.5 s and one tick: safe at once, 101 ticks into these 200
     assert late.mode == "SAFE"
     np.testing.assert_allclose(late.u, [[0.25, 0.25], [0.5, 0.5], [0.5, 0.5]])
     after = board.tick(1000)
     np.testing.assert_array_equal(after.u, [[0, 0], [0, 0], [1, 1]])
-    tail = _drain(link)
+    tail = _lines_through(link, after.t_us)
     assert [m.fields[1] for m in tail if m.kind == "P"][-10:] == ["-"] * 10  # the watchdog's safe state
     assert [m.fields for m in tail if m.kind == "HB"][-1] == ("SAFE",)
 
 
-def _drain(link: Link) -> list[Message]:
-    """Every line the board has sent so far (waits until none arrives for a moment)."""
-    out: list[Message] = []
-    quiet_since = time.monotonic()
-    while time.monotonic() - quiet_since < 0.3:
-        chunk = link.ser.read(4096)
-        if chunk:
-            quiet_since = time.monotonic()
-            link.buf += chunk
-        while b"\n" in link.buf:
-            line, link.buf = link.buf.split(b"\n", 1)
-            out.append(decode_line(line))
+def _lines_through(link: Link, t_us: int) -> list[Message]:
+    """The board's lines up to its P line of the last sample instant before board time ``t_us``."""
+    last = (t_us - 1) // PERIOD_US * PERIOD_US
+    out = link.lines(1)
+    while not (out[-1].kind == "P" and int(out[-1].fields[0]) >= last):
+        out += link.lines(1)
     return out
 
 
