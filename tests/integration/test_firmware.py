@@ -345,3 +345,64 @@ def test_rig_emulate_prints_its_port_serves_the_host_and_cleans_up_on_sigterm(tm
     assert proc.returncode == 0, err
     assert list(tmp_path.iterdir()) == []  # the build folder is gone
 
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_the_daemon_loop_runs_through_the_host_board_on_the_configs_rig(tmp_path):
+    """daemon loop <-> SerialRig <-> pty <-> C firmware <-> the configuration's simulated rig (``rig
+    emulate --config``, its own process). As in test_daemon.py's serial test, the loop's watchdogs of
+    real time (heartbeat, stale samples, missed deadlines) are relaxed: on a loaded machine a late
+    process is the machine's load, not the link; the link's integrity and the loop's outcome are
+    asserted."""
+    from dataclasses import replace
+
+    from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
+    from hbma_ctrl.app.daemon.config import load_config
+    from hbma_ctrl.app.daemon.loop import DaemonLoop
+    from hbma_ctrl.app.daemon.state import DaemonState
+    from hbma_ctrl.runtime.watchdog import SafetyMonitor
+
+    cfg_path, truth = tmp_path / "cfg.toml", tmp_path / "truth.csv"
+    text = (ROOT / "scenarios" / "daemon_chamber.toml").read_text()
+    assert "log_flush_s = 0.5" in text
+    cfg_path.write_text(text.replace("log_flush_s = 0.5", "log_flush_s = 0.5\nmiss_limit = 100000"))
+    (tmp_path / "tmp").mkdir()
+    env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(tmp_path / "tmp"))
+    proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl", "rig", "emulate", "--config", str(cfg_path),
+                             "--truth-log", str(truth)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
+        cfg = load_config(cfg_path, {"--rig": f"serial:{port}"})
+        runner = build_runner(cfg)
+        rig = make_rig(cfg, runner)
+        rig.link_timeout = 60.0
+        monitor = SafetyMonitor(replace(make_monitor(cfg, runner).settings, stale_periods=10**6,
+                                        same_value_periods=None), runner.n)
+        loop = DaemonLoop(runner, rig, DaemonState(), cfg.period, duration=4.0, monitor=monitor)
+        try:
+            stats = loop.run()
+        finally:
+            rig.close()
+        deadline = time.monotonic() + 60.0  # the SAFE close() sent reaches the board a little later
+        while (_truth_modes(truth) or ["-"])[-1] != "SAFE" and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=60)
+    assert stats["safe_exit"] and stats["faults"] == {}, stats
+    assert runner.stats()["calibration"]["status"] == "ok"  # fitted from the commands the board held
+    assert (rig.stats["crc_errors"], rig.stats["bad_lines"], rig.stats["held_unknown"]) == (0, 0, 0)
+    modes = _truth_modes(truth)
+    first, last = modes.index("RUN"), len(modes) - 1 - modes[::-1].index("RUN")
+    assert set(modes[first:last + 1]) == {"RUN"} and modes[-1] == "SAFE"  # never went safe on its own
+    assert proc.returncode == 0 and list((tmp_path / "tmp").iterdir()) == []
+
+
+def _truth_modes(path: Path) -> list[str]:
+    import csv
+
+    with path.open() as fh:
+        return [row["mode"] for row in csv.DictReader(fh)]

@@ -3,7 +3,8 @@
 Registered by :mod:`hbma_ctrl.app.cli.main` through :func:`register`. ``--target host`` builds the
 firmware's POSIX host board and runs it with a simulated plant (the package's
 :class:`~hbma_ctrl.app.daemon.firmware.FirstOrderPlant`, one per chamber) stepped in real time, one
-sample period per firmware period; ``--target avr`` builds the Uno firmware and runs it in simavr
+sample period per firmware period, or with ``--config`` the configuration's simulated (mismatched)
+rig as ``python -m hbma_ctrl.app.daemon.firmware --config`` runs it; ``--target avr`` builds the Uno firmware and runs it in simavr
 (the pressures then read the simulator's fixed ADC input). Either way the first line on stdout is
 the serial port to give the daemon (``--rig serial:PORT``); it runs until SIGINT or SIGTERM, then
 stops the board and removes its build folder.
@@ -24,7 +25,8 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from collections.abc import Callable
+from typing import Annotated, Optional
 
 import numpy as np
 import typer
@@ -124,18 +126,31 @@ class HostBoard:
         self.proc.stdout.close()
 
 
-def run_realtime(board: HostBoard, plant, stop: threading.Event) -> None:
-    """Drive ``board`` one sample period at a time in real time until ``stop``: each period the
-    plant (``plant(u (3, n), dt s) -> p (n,) Pa``) runs under the outputs the board held, and its
-    pressures are what the board samples at the next instant. A late period delays the board's
-    clock (it never runs ahead of the wall clock)."""
+def run_realtime(board: HostBoard, plant, stop: threading.Event, max_behind: int = 10,
+                 on_tick: Callable[[BoardOutputs], None] | None = None) -> None:
+    """Drive ``board`` in real time until ``stop``, as its timer would: each round runs the whole
+    sample periods due by the wall clock (at least one) in one batch, then the plant
+    (``plant(u (3, n), dt s) -> p (n,) Pa``) over them under the outputs the board held; its
+    pressures are what the board samples next. A process kept from running catches up (the board's
+    heartbeat stays on time, the batch's samples repeat the pressure at its start); more than
+    ``max_behind`` periods late, the board's clock slips instead (``max_behind = 1``: one period per
+    round, for a plant that runs one period per call whatever ``dt``). ``on_tick`` sees every round's
+    outputs."""
     p = np.zeros(board.n)
-    next_t = time.monotonic()
+    start = time.monotonic()
+    done = 0
     while not stop.is_set():
-        out = board.tick(board.period_ticks, p)
-        p = plant(out.u, board.period)
-        next_t = max(next_t + board.period, time.monotonic())
-        stop.wait(max(0.0, next_t - time.monotonic()))
+        due = int((time.monotonic() - start) / board.period) + 1
+        k = max(1, due - done)
+        if k > max_behind:
+            start += (k - max_behind) * board.period
+            k = max_behind
+        out = board.tick(k * board.period_ticks, p)
+        if on_tick is not None:
+            on_tick(out)
+        p = plant(out.u, k * board.period)
+        done += k
+        stop.wait(max(0.0, start + done * board.period - time.monotonic()))
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
@@ -147,35 +162,58 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @rig_app.command("emulate")
     def emulate(
         target: Annotated[str, typer.Option(help="host (POSIX build + simulated plant) or avr (Uno build in simavr)")] = "host",
-        n: Annotated[int, typer.Option("--n", help="chambers, 1..4 (avr) or 1..16 (host)")] = 1,
+        n: Annotated[Optional[int], typer.Option("--n", help="chambers, 1..4 (avr) or 1..16 (host); default 1 or the config's")] = None,
+        config: Annotated[Optional[Path], typer.Option(help="host only: a daemon CONFIG.toml whose simulated rig is the plant")] = None,
+        truth_log: Annotated[Optional[Path], typer.Option(help="with --config: CSV of the rig's true state per period")] = None,
     ) -> None:
         """Run an emulated rig board; print its serial port on the first line, run until Ctrl-C/SIGTERM."""
         if target not in ("host", "avr"):
             raise ValueError(f"--target = '{target}': must be host or avr")
-        if not 1 <= n <= (16 if target == "host" else 4):
+        if n is not None and not 1 <= n <= (16 if target == "host" else 4):
             raise ValueError(f"--n = {n}: must be 1..{16 if target == 'host' else 4} chambers for --target {target}")
+        if config is not None and target != "host":
+            raise ValueError("--config: the plant of a configuration runs with --target host only")
+        if truth_log is not None and config is None:
+            raise ValueError("--truth-log: needs --config (the first-order plant has no truth to log)")
         stop = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
         work = Path(tempfile.mkdtemp(prefix="hbma-rig-"))
         try:
             if target == "host":
-                _emulate_host(work, n, stop)
+                _emulate_host(work, n, stop, config, truth_log)
             else:
-                _emulate_avr(work, n, stop)
+                _emulate_avr(work, n or 1, stop)
         finally:
             shutil.rmtree(work, ignore_errors=True)
 
 
-def _emulate_host(work: Path, n: int, stop: threading.Event) -> None:
-    from hbma_ctrl.app.daemon.firmware import FirstOrderPlant
+def _emulate_host(work: Path, n: int | None, stop: threading.Event, config: Path | None,
+                  truth_log: Path | None) -> None:
+    from hbma_ctrl.app.daemon.firmware import FirstOrderPlant, _config_plant
 
-    board = HostBoard(build_firmware("host", work), n, eeprom=work / "eeprom.bin")
+    tick = 100e-6  # the host board's default tick, s
+    plant, behind, period = FirstOrderPlant(n or 1), 10, 0.01
+    if config is not None:
+        plant, behind = _config_plant(str(config), truth_log), 1  # one rig period per call
+        if n is not None and n != plant.n:
+            plant.close()
+            raise ValueError(f"--n = {n}: the config's rig has {plant.n} chambers; leave --n out with --config")
+        period = plant.period
+    ticks = round(period / tick)
+    if not 1 <= ticks <= 65535 or abs(ticks * tick - period) > 1e-9:
+        raise ValueError(f"the sample period {period * 1e3:g} ms is not a whole number of 0.1 ms ticks")
+    board = HostBoard(build_firmware("host", work), plant.n, period_ticks=ticks, eeprom=work / "eeprom.bin")
+    mode = ["SAFE"]
+    if config is not None:
+        plant.mode = lambda: mode[0]  # the truth log's mode column
     try:
         print(board.port, flush=True)
-        run_realtime(board, FirstOrderPlant(n), stop)
+        run_realtime(board, plant, stop, behind, on_tick=lambda out: mode.__setitem__(0, out.mode))
     finally:
         board.close()
+        if config is not None:
+            plant.close()
 
 
 def _emulate_avr(work: Path, n: int, stop: threading.Event) -> None:
