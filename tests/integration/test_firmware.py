@@ -225,6 +225,20 @@ def test_calibration_persists_in_the_boards_nvm(host_exe, tmp_path):
         again.close()
 
 
+def _hold(rig: SerialRig, u: np.ndarray, count: int):
+    """Write ``u`` every sample until ``count`` samples said they held it; the last reading."""
+    held = 0
+    deadline = time.monotonic() + 4 * TIMEOUT
+    while held < count and time.monotonic() < deadline:
+        rig.write(u)
+        rig.wait_sample(1.0)
+        r = rig.read()
+        if r.held is not None and np.array_equal(r.held, u):
+            held += 1
+    assert held == count, rig.stats
+    return r
+
+
 def test_serial_rig_closes_the_loop_through_the_host_board(host_exe):
     board = HostBoard(host_exe, n=2)
     stop = threading.Event()
@@ -234,16 +248,7 @@ def test_serial_rig_closes_the_loop_through_the_host_board(host_exe):
     try:
         rig = SerialRig(board.port, 2, sample_period=0.01, link_timeout=TIMEOUT, handshake_timeout=TIMEOUT)
         assert rig.sample_period == pytest.approx(0.01)
-        u = np.array([[0.6, 0.0], [1.0, 0.0], [0.0, 1.0]])
-        held = 0
-        deadline = time.monotonic() + 4 * TIMEOUT
-        while held < 30 and time.monotonic() < deadline:
-            rig.write(u)
-            rig.wait_sample(1.0)
-            r = rig.read()
-            if r.held is not None and np.array_equal(r.held, u):
-                held += 1
-        assert held == 30, rig.stats
+        r = _hold(rig, np.array([[0.6, 0.0], [1.0, 0.0], [0.0, 1.0]]), 30)
         assert r.p[0] > 1000.0 and abs(r.p[1]) <= 7  # chamber 0 fills, chamber 1 stays vented
         assert rig.firmware_mode == "RUN"
         assert (rig.stats["crc_errors"], rig.stats["bad_lines"], rig.stats["held_unknown"]) == (0, 0, 0)
@@ -292,16 +297,7 @@ def test_the_uno_build_in_simavr_talks_to_serial_rig(tmp_path):
         assert port.startswith("/dev/"), proc.poll()
         rig = SerialRig(port, 1, sample_period=0.01, link_timeout=TIMEOUT, handshake_timeout=TIMEOUT)
         assert rig.sample_period == pytest.approx(0.01)
-        u = np.array([[0.6], [1.0], [0.0]])
-        held = 0
-        deadline = time.monotonic() + 4 * TIMEOUT
-        while held < 10 and time.monotonic() < deadline:
-            rig.write(u)
-            rig.wait_sample(1.0)
-            r = rig.read()
-            if r.held is not None and np.array_equal(r.held, u):
-                held += 1
-        assert held == 10, rig.stats
+        r = _hold(rig, np.array([[0.6], [1.0], [0.0]]), 10)
         assert abs(r.p[0] - 20.0e3) < 100.0  # one 10-bit LSB is 108 Pa
         assert _wait(lambda: rig.firmware_mode == "RUN")
         rig.safe()
