@@ -38,7 +38,7 @@ except ImportError:  # pragma: no cover
 # Only what registering the commands needs is imported here: each command imports its own heavy
 # modules (casadi-built models, scipy, matplotlib, the roles, the daemon, optuna, ...) when it runs,
 # so that `hbma-ctrl protocol` (the main job) and `--help` do not pay for the others.
-from hbma_ctrl.app.cli import codegen, controllers, daemon, estimators, fit, robot, scenario, sim, tune
+from hbma_ctrl.app.cli import codegen, controllers, daemon, estimators, fit, rig, robot, scenario, sim, tune
 from hbma_ctrl.app.cli.args import fail
 from hbma_ctrl.app.outputs import ARGV_KEY
 
@@ -123,5 +123,5 @@ def _main(ctx: typer.Context) -> None:
 
 
 # every command module registers its commands the same way; the order is --help's
-for _module in (sim, estimators, controllers, robot, fit, tune, daemon, codegen, scenario):
+for _module in (sim, estimators, controllers, robot, fit, tune, daemon, codegen, scenario, rig):
     _module.register(app, bench_app)

@@ -1,0 +1,145 @@
+/* Run an AVR build of the firmware in simavr (libsimavr) with UART0 bridged to a pseudo-terminal:
+ * prints the pty's path on the first line of stdout (everything simavr says goes to stderr), then
+ * simulates until SIGINT/SIGTERM or the core stops. The sensors read a fixed voltage (--adc-mv, on
+ * ADC0..ADC3; 200 mV is 0 Pa under the default calibration).
+ *
+ * The bridge runs in the simulation's own thread (simavr's uart_pty part uses a second thread and a
+ * 512-byte queue that a starved thread lets overflow, corrupting lines): bytes the AVR sends go
+ * straight to the pty, and bytes from the pty are fed to the UART while its receive queue has room
+ * (the XON/XOFF signals).
+ *
+ * usage: hbma-fw-simavr FIRMWARE.elf [--mcu atmega328p] [--adc-mv MV] */
+#define _DEFAULT_SOURCE
+#define _XOPEN_SOURCE 700
+#include <errno.h>
+#include <fcntl.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <termios.h>
+#include <unistd.h>
+
+#include "avr_adc.h"
+#include "avr_uart.h"
+#include "sim_avr.h"
+#include "sim_elf.h"
+
+#define UCSR0B_ADDR 0xC1 /* data-space address of UCSR0B on the ATmega328P and ATmega2560 */
+#define RXEN0_MASK (1u << 4)
+
+static volatile sig_atomic_t stop;
+static int master = -1;
+static int xon = 1;
+
+static void on_signal(int sig) {
+    (void)sig;
+    stop = 1;
+}
+
+static void uart_out(struct avr_irq_t *irq, uint32_t value, void *param) {
+    (void)irq;
+    (void)param;
+    uint8_t c = (uint8_t)value;
+    if (write(master, &c, 1) != 1) { /* the host is not reading: the byte is lost, as on a wire */
+    }
+}
+
+static void uart_xon(struct avr_irq_t *irq, uint32_t value, void *param) {
+    (void)irq, (void)value, (void)param;
+    xon = 1;
+}
+
+static void uart_xoff(struct avr_irq_t *irq, uint32_t value, void *param) {
+    (void)irq, (void)value, (void)param;
+    xon = 0;
+}
+
+int main(int argc, char **argv) {
+    const char *elf = NULL, *mcu = "atmega328p";
+    int adc_mv = 200;
+    for (int i = 1; i < argc; i++) {
+        if (!strcmp(argv[i], "--mcu") && i + 1 < argc) mcu = argv[++i];
+        else if (!strcmp(argv[i], "--adc-mv") && i + 1 < argc) adc_mv = atoi(argv[++i]);
+        else elf = argv[i];
+    }
+    if (!elf) {
+        fprintf(stderr, "usage: %s FIRMWARE.elf [--mcu atmega328p] [--adc-mv MV]\n", argv[0]);
+        return 2;
+    }
+    int out = dup(STDOUT_FILENO);
+    dup2(STDERR_FILENO, STDOUT_FILENO); /* simavr's own messages must not look like the port line */
+    elf_firmware_t f;
+    memset(&f, 0, sizeof f);
+    if (elf_read_firmware(elf, &f)) {
+        fprintf(stderr, "cannot read %s\n", elf);
+        return 1;
+    }
+    snprintf(f.mmcu, sizeof f.mmcu, "%s", mcu);
+    f.frequency = 16000000;
+    avr_t *avr = avr_make_mcu_by_name(f.mmcu);
+    if (!avr) {
+        fprintf(stderr, "simavr does not know %s\n", mcu);
+        return 1;
+    }
+    avr_init(avr);
+    avr_load_firmware(avr, &f);
+    avr->vcc = avr->avcc = avr->aref = 5000;
+
+    master = posix_openpt(O_RDWR | O_NOCTTY);
+    if (master < 0 || grantpt(master) || unlockpt(master)) {
+        perror("pty");
+        return 1;
+    }
+    const char *name = ptsname(master);
+    int slave = open(name, O_RDWR | O_NOCTTY); /* kept open: the master never sees a hang-up */
+    struct termios tio;
+    if (slave < 0 || tcgetattr(slave, &tio)) {
+        perror("pty slave");
+        return 1;
+    }
+    cfmakeraw(&tio);
+    tcsetattr(slave, TCSANOW, &tio);
+    fcntl(master, F_SETFL, O_NONBLOCK);
+
+    uint32_t flags = 0;
+    avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
+    flags &= ~(uint32_t)AVR_UART_FLAG_STDIO;
+    avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT), uart_out, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XON), uart_xon, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XOFF), uart_xoff, NULL);
+    avr_irq_t *uart_in = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
+    for (int i = 0; i < 4; i++) {
+        avr_raise_irq(avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, ADC_IRQ_ADC0 + i), (uint32_t)adc_mv);
+    }
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_signal;
+    sigaction(SIGINT, &sa, NULL);
+    sigaction(SIGTERM, &sa, NULL);
+    /* the port is announced once the firmware listens: a byte sent before its receiver is on is lost */
+    int state = cpu_Running;
+    while (!stop && state != cpu_Done && state != cpu_Crashed && !(avr->data[UCSR0B_ADDR] & RXEN0_MASK)) {
+        state = avr_run(avr);
+    }
+    dprintf(out, "%s\n", name);
+    close(out);
+
+    int pending = -1; /* a byte read from the pty that the UART had no room for yet */
+    while (!stop && state != cpu_Done && state != cpu_Crashed) {
+        for (int i = 0; i < 200 && state != cpu_Done && state != cpu_Crashed; i++) state = avr_run(avr);
+        while (xon) {
+            if (pending < 0) {
+                uint8_t c;
+                if (read(master, &c, 1) != 1) break;
+                pending = c;
+            }
+            avr_raise_irq(uart_in, (uint32_t)pending);
+            pending = -1;
+        }
+    }
+    close(slave);
+    close(master);
+    return state == cpu_Crashed ? 1 : 0;
+}
