@@ -108,10 +108,10 @@ def _is_run_failed(exc: BaseException) -> bool:
     return runner is not None and isinstance(exc, runner.RunFailed)
 
 
-app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=False, pretty_exceptions_enable=False,
+app = typer.Typer(cls=_OneLineErrors, add_completion=False, rich_markup_mode=None, no_args_is_help=False, pretty_exceptions_enable=False,
                   help="Model, observe and control Hyperelastic Ballooning Membrane Actuators (HBMA). "
                        "Without a command: run the 150-trial protocol (README Model §7) with defaults into ./runs/protocol.")
-bench_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchmarks (speed and accuracy).")
+bench_app = typer.Typer(add_completion=False, rich_markup_mode=None, no_args_is_help=True, help="Benchmarks (speed and accuracy).")
 app.add_typer(bench_app, name="bench")
 
 

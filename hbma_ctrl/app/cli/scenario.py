@@ -16,7 +16,7 @@ from hbma_ctrl.app.cli.args import check_choice
 
 __all__ = ["register", "keys", "list_scenarios", "copy"]
 
-scenario_app = typer.Typer(add_completion=False, no_args_is_help=True,
+scenario_app = typer.Typer(add_completion=False, rich_markup_mode=None, no_args_is_help=True,
                            help="Scenario files: the shipped ones, and every key.")
 
 
