@@ -66,6 +66,10 @@ OVERWRITE_HELP = "replace a run of hbma-ctrl already in --out (otherwise refused
 #: the rule a name must follow to become a directory name (quoted by the errors)
 NAME_RULE = "letters, digits, '-', '_' and '.' only, not starting with '.'"
 
+#: the longest results-directory name, bytes: the filesystem's 255 less what the lock, temporary and
+#: kept-aside siblings add to it (``.<name>.lock.stale-<pid>``, ``<name>.interrupted-<stamp>-<k>``)
+MAX_NAME_BYTES = 200
+
 #: where the top-level CLI group keeps the command line it was given (in the click context's meta)
 ARGV_KEY = "hbma_ctrl.argv"
 
@@ -91,6 +95,9 @@ def default_out(name: str, root: Path | str = "runs") -> Path:
     if not is_plain_name(name):
         raise ValueError(f"[scenario] name = {name!r} cannot name the output directory: use {NAME_RULE} "
                          f"(no path separators), or pass --out")
+    if len(name.encode()) > MAX_NAME_BYTES:
+        raise ValueError(f"[scenario] name = '{name[:40]}...' is {len(name.encode())} characters long: at most "
+                         f"{MAX_NAME_BYTES} can name the output directory; shorten it or pass --out")
     return Path(root) / name
 
 
@@ -154,7 +161,7 @@ def manifest(command: str, argv: Sequence[str] | None = None, scenario_path: Pat
     }
 
 
-def _bad(out: Path, why: str) -> ValueError:
+def _bad(out: Path | str, why: str) -> ValueError:
     return ValueError(f"--out {out}: {why}")
 
 
@@ -168,6 +175,11 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
     """
     given = Path(out)
     path = Path(os.path.abspath(given.expanduser()))
+    for i, part in enumerate(path.parts):
+        most = MAX_NAME_BYTES if i == len(path.parts) - 1 else 255
+        if len(part.encode()) > most:
+            raise _bad(f"{str(given)[:60]}...", f"the name '{part[:40]}...' is {len(part.encode())} bytes long; a "
+                       f"folder name may have at most {most}")
     if path.parent == path:
         raise _bad(given, "is a filesystem root; choose a directory below it")
     if path.exists() or path.is_symlink():
@@ -256,6 +268,9 @@ def _lock(out: Path, given: Path) -> Path:
             with contextlib.suppress(OSError):
                 os.unlink(aside)
             continue
+        except OSError as exc:  # a place no file can be made in (sysfs, procfs, a read-only mount)
+            raise _bad(given, f"no file can be created in {out.parent} ({exc.strerror}); choose another "
+                              "directory") from None
         with os.fdopen(fd, "w") as fh:
             fh.write(f"{os.getpid()}\n")
         return lock

@@ -47,6 +47,9 @@ def load_scenario(path: str | Path) -> Scenario:
     bad content: not UTF-8 (a leading BOM is accepted), binary, not TOML, empty, or invalid tables.
     """
     path = resolve(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give a scenario file (.toml) in it, or a shipped scenario's name "
+                         "('hbma-ctrl scenarios list')")
     if not path.is_file():
         raise FileNotFoundError(f"scenario file not found: {path}")
     try:

@@ -125,17 +125,33 @@ def test_protocol_rerun_with_fewer_trials_leaves_no_stale_trial_files(tmp_path, 
     assert json.loads((out / "manifest.json").read_text())["command"] == "protocol"
 
 
-@pytest.mark.parametrize("kind", ["file", "device", "parent_file"])
+@pytest.mark.parametrize("kind", ["file", "device", "parent_file", "long_name", "long_parent", "no_files_here"])
 def test_unusable_out_is_refused_before_any_work(tmp_path, monkeypatch, kind):
     calls: list = []
     monkeypatch.setattr(cli_mod, "run_scenario", _fake_run(calls))
-    target = {"file": tmp_path / "a_file", "device": Path("/dev/null"), "parent_file": tmp_path / "a_file" / "sub"}
+    target = {"file": tmp_path / "a_file", "device": Path("/dev/null"), "parent_file": tmp_path / "a_file" / "sub",
+              "long_name": tmp_path / ("a" * 230), "long_parent": tmp_path / ("b" * 300) / "run",
+              "no_files_here": Path("/proc/hbma_ctrl_run")}[kind]
     (tmp_path / "a_file").write_text("not a directory\n")
-    line = _one_line(runner.invoke(app, ["run", str(FIG7), "--out", str(target[kind])]), 2)
-    assert line.startswith("error: --out ") and str(target[kind]) in line
+    line = _one_line(runner.invoke(app, ["run", str(FIG7), "--out", str(target)]), 2)
+    assert line.startswith("error: --out ") and str(target)[:40] in line
     assert calls == []  # no work was done
-    if kind == "device":
-        assert "device" in line
+    why = {"device": "device", "long_name": "is 230 bytes long; a folder name may have at most 200",
+           "long_parent": "is 300 bytes long; a folder name may have at most 255",
+           "no_files_here": "no file can be created in /proc"}
+    assert why.get(kind, "") in line
+
+
+def test_a_scenario_name_too_long_for_a_folder_is_one_error_naming_the_key(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text(f'[scenario]\nname = "{"n" * 20000}"\nduration_s = 6.0\n')
+    line = _one_line(runner.invoke(app, ["run", str(p)]), 2)
+    assert "[scenario] name" in line and "20000 characters long: at most 200" in line and len(line) < 300
+
+
+def test_a_folder_given_as_the_scenario_file_is_named_a_folder(tmp_path):
+    line = _one_line(runner.invoke(app, ["run", str(tmp_path)]), 2)
+    assert str(tmp_path) in line and "is a folder" in line
 
 
 def test_unwritable_parent_is_refused(tmp_path, monkeypatch):
