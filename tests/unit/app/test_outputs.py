@@ -6,6 +6,7 @@ import datetime as dt
 import hashlib
 import json
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -102,6 +103,28 @@ def test_ctrl_c_exits_130_with_one_line_and_an_interrupted_dir(tmp_path, monkeyp
     assert line == f"interrupted: partial results in {partial}"
     assert not out.exists()
     assert json.loads((partial / "manifest.json").read_text())["status"] == "interrupted"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_end_a_run_as_ctrl_c_does_with_exit_128_plus_the_signal(tmp_path, monkeypatch, sig):
+    calls: list = []
+
+    def signalled(scn, out_dir):
+        calls.append(out_dir)
+        (Path(out_dir) / "log.csv").write_text("t_s\n0\n")
+        os.kill(os.getpid(), sig)  # the handler raises in this thread at once
+        raise AssertionError("the signal did not end the run")
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    monkeypatch.setattr(cli_mod, "run_scenario", signalled)
+    out = tmp_path / "o"
+    line = _one_line(runner.invoke(app, ["run", str(FIG7), "--out", str(out)]), 128 + sig)
+    (partial,) = tmp_path.glob("o.interrupted-*")
+    assert line == f"interrupted: partial results in {partial}" and (partial / "log.csv").exists()
+    man = json.loads((partial / "manifest.json").read_text())
+    assert man["status"] == "interrupted" and man["error"] == sig.name
+    assert not out.exists() and not (tmp_path / ".o.lock").exists() and len(calls) == 1
+    assert {s: signal.getsignal(s) for s in before} == before  # the caller's handlers are back
 
 
 def test_protocol_rerun_with_fewer_trials_leaves_no_stale_trial_files(tmp_path, monkeypatch):
