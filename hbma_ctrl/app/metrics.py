@@ -19,10 +19,15 @@ from pathlib import Path
 import numpy as np
 
 from hbma_ctrl.core import units as U
+from hbma_ctrl.core.materials import LAM_CHECK, Material
 from hbma_ctrl.sim.trial import Log
 
 __all__ = ["EDGE_COLUMNS", "ROLE_KEYS", "nrmsd", "plant_metrics", "merge_metrics", "write_metrics",
-           "write_log_csv", "edge_series", "json_safe"]
+           "write_log_csv", "edge_series", "json_safe", "physics_problems", "MASS_BALANCE_TOL"]
+
+#: the largest mass-balance error (relative) of a result that is kept: a consistent scheme keeps
+#: it near 1e-10 (rk4) or 1e-3 (euler at its default step); beyond it the step is too coarse
+MASS_BALANCE_TOL = 1e-2
 
 
 def _same(x):
@@ -113,6 +118,34 @@ def _peak(log: Log, key: str) -> float:
     return max(rows, float(log.peaks[key])) if key in log.peaks else rows
 
 
+def _mass_balance(log: Log) -> float | None:
+    """max |m - m0 - mass_in| / max |m| over the run (None for an empty log)."""
+    m = log["m"]
+    if not m.size:
+        return None
+    return float(np.max(np.abs(m - m[0] - log["mass_in"])) / max(float(np.max(np.abs(m))), 1e-30))
+
+
+def physics_problems(log: Log, material: Material) -> list[str]:
+    """Why a finished run's result is not physical, one line each ([] when none): gas made or lost by
+    the integrator (mass balance beyond :data:`MASS_BALANCE_TOL`), a stretch beyond the material's
+    locking stretch or beyond :data:`~hbma_ctrl.core.materials.LAM_CHECK`, the range the laws are
+    checked over. A diverged run already says what went wrong: nothing is added to it."""
+    if log.status == "diverged":
+        return []
+    out = []
+    bal = _mass_balance(log)
+    if bal is not None and not bal <= MASS_BALANCE_TOL:
+        out.append(f"the gas mass balance is off by {bal:.3g} of the chamber's mass (at most "
+                   f"{MASS_BALANCE_TOL:g}): the step is too coarse for the integrator; use rk4 or a smaller [sim] dt_ms")
+    lam = _peak(log, "lam") if log["lam"].size else 1.0
+    limit = min(LAM_CHECK, material.lam_max())
+    if not lam <= limit:
+        what = "its locking stretch" if material.lam_max() <= LAM_CHECK else "the range the material laws are checked over"
+        out.append(f"the membrane's stretch reached {lam:.3g}, beyond {limit:.3g} ({what})")
+    return out
+
+
 def plant_metrics(logs: list[Log]) -> dict:
     """Open-loop metrics of one or more logs (edge units): peaks (over every simulation step, not the
     decimated log), status, event counts, wall time.
@@ -124,11 +157,7 @@ def plant_metrics(logs: list[Log]) -> dict:
         raise ValueError("plant_metrics: no logs")
     events = Counter(name.split(":")[0] for log in logs for _, name in log.events)
     status = Counter(log.status for log in logs)
-    bal = []
-    for log in logs:
-        m = log["m"]
-        if m.size:
-            bal.append(float(np.max(np.abs(m - m[0] - log["mass_in"])) / max(float(np.max(np.abs(m))), 1e-30)))
+    bal = [b for b in map(_mass_balance, logs) if b is not None]
     out = {
         "n_trials": len(logs),
         "fidelity": sorted({log.fidelity for log in logs}),

@@ -26,6 +26,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import stat
 import subprocess
 import sys
@@ -45,6 +46,10 @@ __all__ = [
     "NAME_RULE",
     "OVERWRITE_HELP",
     "RunInterrupted",
+    "Terminated",
+    "end_on_signals",
+    "signal_number",
+    "pending_signal",
     "ARGV_KEY",
     "check_out",
     "cli_argv",
@@ -66,6 +71,10 @@ OVERWRITE_HELP = "replace a run of hbma-ctrl already in --out (otherwise refused
 #: the rule a name must follow to become a directory name (quoted by the errors)
 NAME_RULE = "letters, digits, '-', '_' and '.' only, not starting with '.'"
 
+#: the longest results-directory name, bytes: the filesystem's 255 less what the lock, temporary and
+#: kept-aside siblings add to it (``.<name>.lock.stale-<pid>``, ``<name>.interrupted-<stamp>-<k>``)
+MAX_NAME_BYTES = 200
+
 #: where the top-level CLI group keeps the command line it was given (in the click context's meta)
 ARGV_KEY = "hbma_ctrl.argv"
 
@@ -73,12 +82,68 @@ _PLAIN = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
 _PKG_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the hbma_ctrl package
 
 
-class RunInterrupted(KeyboardInterrupt):
-    """Ctrl-C inside :func:`run_dir`; ``partial`` is the ``.interrupted-*`` directory kept."""
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised where the program is so that it ends as on Ctrl-C (outputs kept aside
+    and marked, lock released); ``signum`` is the signal's number."""
 
-    def __init__(self, partial: Path):
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+#: the signals that end a command: Ctrl-C, ``kill``, a closed terminal
+_ENDING = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+#: the process that asked for :func:`end_on_signals` and the signal it got (None: none yet)
+_signalled: dict = {"pid": None, "signum": None}
+
+
+def _terminate(signum: int, frame) -> None:
+    # a second signal while the first one's clean-up runs ends the process at once
+    for sig in _ENDING:
+        signal.signal(sig, signal.SIG_DFL)
+    if os.getpid() != _signalled["pid"]:  # a forked worker inherited the handler: the default action
+        os.kill(os.getpid(), signum)
+        return
+    _signalled["signum"] = signum
+    raise Terminated(signum)
+
+
+def end_on_signals() -> None:
+    """Make SIGINT (Ctrl-C), SIGTERM and SIGHUP (a closed terminal) end the program alike:
+    :class:`Terminated` (a KeyboardInterrupt) is raised in the main thread and the signal is kept
+    (:func:`pending_signal`); a second signal kills at once; a forked child dies as by default.
+    Call from the main thread."""
+    _signalled.update(pid=os.getpid(), signum=None)
+    for sig in _ENDING:
+        signal.signal(sig, _terminate)
+
+
+def pending_signal() -> int | None:
+    """The ending signal this process got since :func:`end_on_signals`, also when the exception it
+    raised was lost on its way up (in a callback from C code, casadi's, it becomes a RuntimeError),
+    else None."""
+    return _signalled["signum"] if os.getpid() == _signalled["pid"] else None
+
+
+def _signal_name(signum: int) -> str:
+    """How manifest.json names what ended a run: KeyboardInterrupt for Ctrl-C, else the signal."""
+    return "KeyboardInterrupt" if signum == signal.SIGINT else signal.Signals(signum).name
+
+
+def signal_number(exc: KeyboardInterrupt) -> int:
+    """The signal that ended a run: SIGINT for Ctrl-C, else the :class:`Terminated` signal's."""
+    return getattr(exc, "signum", int(signal.SIGINT))
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM, SIGHUP) inside :func:`run_dir`; ``partial`` is the ``.interrupted-*``
+    directory kept, ``signum`` the signal's number."""
+
+    def __init__(self, partial: Path, signum: int = int(signal.SIGINT)):
         super().__init__(str(partial))
         self.partial = partial
+        self.signum = signum
 
 
 def is_plain_name(name: str) -> bool:
@@ -91,6 +156,9 @@ def default_out(name: str, root: Path | str = "runs") -> Path:
     if not is_plain_name(name):
         raise ValueError(f"[scenario] name = {name!r} cannot name the output directory: use {NAME_RULE} "
                          f"(no path separators), or pass --out")
+    if len(name.encode()) > MAX_NAME_BYTES:
+        raise ValueError(f"[scenario] name = '{name[:40]}...' is {len(name.encode())} characters long: at most "
+                         f"{MAX_NAME_BYTES} can name the output directory; shorten it or pass --out")
     return Path(root) / name
 
 
@@ -154,7 +222,7 @@ def manifest(command: str, argv: Sequence[str] | None = None, scenario_path: Pat
     }
 
 
-def _bad(out: Path, why: str) -> ValueError:
+def _bad(out: Path | str, why: str) -> ValueError:
     return ValueError(f"--out {out}: {why}")
 
 
@@ -168,6 +236,11 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
     """
     given = Path(out)
     path = Path(os.path.abspath(given.expanduser()))
+    for i, part in enumerate(path.parts):
+        most = MAX_NAME_BYTES if i == len(path.parts) - 1 else 255
+        if len(part.encode()) > most:
+            raise _bad(f"{str(given)[:60]}...", f"the name '{part[:40]}...' is {len(part.encode())} bytes long; a "
+                       f"folder name may have at most {most}")
     if path.parent == path:
         raise _bad(given, "is a filesystem root; choose a directory below it")
     if path.exists() or path.is_symlink():
@@ -256,6 +329,9 @@ def _lock(out: Path, given: Path) -> Path:
             with contextlib.suppress(OSError):
                 os.unlink(aside)
             continue
+        except OSError as exc:  # a place no file can be made in (sysfs, procfs, a read-only mount)
+            raise _bad(given, f"no file can be created in {out.parent} ({exc.strerror}); choose another "
+                              "directory") from None
         with os.fdopen(fd, "w") as fh:
             fh.write(f"{os.getpid()}\n")
         return lock
@@ -345,13 +421,20 @@ def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
                         shutil.copy2(f, tmp / f.name)
         try:
             yield tmp
-        except KeyboardInterrupt:
-            raise RunInterrupted(_park(tmp, path, "interrupted", man, "KeyboardInterrupt")) from None
+        except KeyboardInterrupt as exc:
+            signum = signal_number(exc)
+            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum)), signum) from None
         except BaseException as exc:
+            signum = pending_signal()
+            if signum is not None:  # the error is the signal's, turned into another by the code it hit
+                raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum)), signum) from None
             dest = _park(tmp, path, "failed", man, _one_line(exc))
             with contextlib.suppress(AttributeError, TypeError):
                 exc.partial_results = dest  # the CLI's one-line error says where the partial work is
             raise
+        signum = pending_signal()
+        if signum is not None:  # the signal's exception was lost on its way up: the run is still cut short
+            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum)), signum)
         man.update(status="complete", finished_utc=_utc())
         _write_manifest(man, tmp)  # last: a manifest saying complete means every file is there
         _install(tmp, path)

@@ -27,6 +27,7 @@ import tomllib
 from pathlib import Path
 
 from hbma_ctrl.app.schema.document import parse_scenario_tables
+from hbma_ctrl.app.shipped import resolve
 from hbma_ctrl.system.sections import Scenario
 
 __all__ = ["Scenario", "load_scenario", "parse_scenario"]
@@ -39,12 +40,16 @@ parse_scenario = parse_scenario_tables
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario TOML file (see the module docstring).
+    """Read and validate a scenario TOML file (see the module docstring); a path that does not exist
+    but names a shipped scenario reads that one (:func:`hbma_ctrl.app.shipped.resolve`).
 
     Raises FileNotFoundError for a missing file and ValueError (prefixed with the file name) for
     bad content: not UTF-8 (a leading BOM is accepted), binary, not TOML, empty, or invalid tables.
     """
-    path = Path(path)
+    path = resolve(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give a scenario file (.toml) in it, or a shipped scenario's name "
+                         "('hbma-ctrl scenarios list')")
     if not path.is_file():
         raise FileNotFoundError(f"scenario file not found: {path}")
     try:

@@ -344,3 +344,31 @@ def test_bench_protocol_times_the_main_job_in_fresh_interpreters(tmp_path):
     assert data["meets_target"] == (rows["protocol"]["median_s"] <= data["target_wall_s"] == 2.0)
     bad = runner.invoke(app, ["bench", "protocol", "--repeat", "0", "--out", str(tmp_path / "bad")])
     assert bad.exit_code == 2 and "--repeat" in bad.output and not (tmp_path / "bad").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_sigterm_during_the_protocol_exits_143_and_keeps_the_partial_run_marked_interrupted(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "p"
+    env = {k: v for k, v in os.environ.items() if k != "HBMA_CTRL_TRACEBACK"}
+    proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl", "protocol", "--out", str(out)], cwd=tmp_path,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob(".p.tmp-*")):  # the run's work has begun
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    (partial,) = tmp_path.glob("p.interrupted-*")
+    man = json.loads((partial / "manifest.json").read_text())
+    assert man["status"] == "interrupted" and man["error"] == "SIGTERM"
+    assert not out.exists() and not list(tmp_path.glob(".p.*"))  # no lock, no hidden temporary left
+    assert err.strip().splitlines()[-1] == f"interrupted: partial results in {partial}"

@@ -773,7 +773,8 @@ RELAXED = {"log_flush_s = 0.5": "log_flush_s = 0.5\nmiss_limit = 100000"}
 
 @pytest.mark.slow
 @pytest.mark.subprocess
-def test_api_setpoint_then_sigterm_vents_and_leaves_a_complete_log(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_api_setpoint_then_sigterm_or_sighup_vents_and_leaves_a_complete_log(tmp_path, sig):
     out = tmp_path / "run"
     proc, notes = _start([str(_write_config(tmp_path, CHAMBER, replace=RELAXED)), "--rig", "sim", "--api", "127.0.0.1:0", "--out", str(out)])
     try:
@@ -792,19 +793,19 @@ def test_api_setpoint_then_sigterm_vents_and_leaves_a_complete_log(tmp_path):
         assert reply["applied"]["heights_mm"]["0"] == pytest.approx(20.0) and reply["clipped"]
         while _rows_logged(Path(notes["run log"])) < 50:
             time.sleep(0.2)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         _, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0, err
+    assert proc.returncode == 128 + sig, err
     stats = json.loads((out / "daemon_stats.json").read_text())
-    assert stats["safe_exit"] is True and stats["end_reason"] == "SIGTERM"
+    assert stats["safe_exit"] is True and stats["end_reason"] == sig.name
     cols, rows = read_run_log(out)
     assert len(rows) == stats["steps"] + 1
     assert rows[-1][cols.index("mode")] == "stopped" and float(rows[-1][cols.index("outlet_C1_1")]) == 1.0
     assert "20.0000" in {r[cols.index("target_C1_mm")] for r in rows}
-    assert "SIGTERM" in (out / "events.csv").read_text()
+    assert sig.name in (out / "events.csv").read_text()
     assert json.loads((out / "manifest.json").read_text())["status"] == "complete"
     assert set(json.loads((out / "metrics.json").read_text())) == {"daemon", "controller"}
 

@@ -53,3 +53,27 @@ def test_a_cycle_is_found_when_there_is_one(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(tmp_path))
     g = grimp.build_graph("cyc", cache_dir=None)
     assert g.chain_exists(importer="cyc.b", imported="cyc.a") and g.chain_exists(importer="cyc.a", imported="cyc.b")
+
+
+def test_the_wheel_ships_every_scenario_file_and_the_license_and_only_the_package(tmp_path):
+    import shutil
+    import zipfile
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    src = tmp_path / "src"
+    # a copy without the checkout's build state (an in-tree build writes build/ and *.egg-info)
+    shutil.copytree(repo, src, symlinks=True,
+                    ignore=shutil.ignore_patterns(".git", "build", "*.egg-info", "runs", "out", "__pycache__",
+                                                  ".pytest_cache", ".hypothesis"))
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                        "-w", str(tmp_path / "dist"), str(src)], capture_output=True, text=True, env=_installed_only())
+    assert r.returncode == 0, r.stderr[-2000:]
+    (wheel,) = (tmp_path / "dist").glob("hbma_ctrl-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    shipped = {f"hbma_ctrl/scenarios/{p.name}" for p in (repo / "scenarios").glob("*.toml")}
+    assert shipped and shipped <= set(names), sorted(shipped - set(names))
+    assert {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")} == {"hbma_ctrl"}
+    meta = next(zipfile.ZipFile(wheel).read(n).decode() for n in names if n.endswith(".dist-info/METADATA"))
+    assert "License: MIT" in meta or "License-Expression: MIT" in meta, meta[:800]
+    assert any(n.endswith("LICENSE") for n in names), [n for n in names if "dist-info" in n]

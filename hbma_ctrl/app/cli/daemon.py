@@ -86,7 +86,7 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
             def on_signal(signum, frame):  # only sets a flag: the loop writes the safe command and ends
                 loop.signal_stop = signal.Signals(signum).name
 
-            old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+            old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
             try:
                 loop.run()
             finally:
@@ -162,6 +162,8 @@ def daemon(
                f"wrote {dest}")
     if faults:
         raise typer.Exit(1)
+    if stats["end_reason"] in ("SIGINT", "SIGTERM", "SIGHUP"):  # a complete run, ended by a signal
+        raise typer.Exit(128 + signal.Signals[stats["end_reason"]])
 
 def bench_soak(
     config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]

@@ -11,8 +11,9 @@ A new command is a function in one of them (or a new module in the tuple at the 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and
 exits with code 2, never a traceback; a run whose trials all diverged does the same with code 1, and
 so does any other failure of a run (a RuntimeError: a diverged plant, a solver's error; set
-HBMA_CTRL_TRACEBACK=1 for its traceback). Ctrl-C prints ``interrupted: partial results in <path>`` and
-exits with code 130. Every command writing a results directory goes through
+HBMA_CTRL_TRACEBACK=1 for its traceback). Ctrl-C, SIGTERM and SIGHUP print ``interrupted: partial
+results in <path>`` and exit with code 128 + the signal's number (130, 143, 129); a second signal
+ends at once. Every command writing a results directory goes through
 :func:`hbma_ctrl.app.outputs.run_dir` (``--out`` checked before any work, ``--overwrite`` to replace a
 run, manifest.json, nothing half-written left at ``--out``).
 
@@ -25,7 +26,9 @@ copy in :mod:`hbma_ctrl.app.cli.constants` (tests/test_cli.py checks both).
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 
 import typer
 from typer.core import TyperGroup
@@ -40,17 +43,19 @@ except ImportError:  # pragma: no cover
 # so that `hbma-ctrl protocol` (the main job) and `--help` do not pay for the others.
 from hbma_ctrl.app.cli import codegen, controllers, daemon, estimators, fit, rig, robot, scenario, sim, tune
 from hbma_ctrl.app.cli.args import fail
-from hbma_ctrl.app.outputs import ARGV_KEY
+from hbma_ctrl.app.outputs import ARGV_KEY, end_on_signals, pending_signal, signal_number
 
 __all__ = ["app", "bench_app"]
 
 
 class _Interrupted(Exception):
-    """Ctrl-C seen inside a command; not a KeyboardInterrupt, so typer does not swallow it as exit 130."""
+    """Ctrl-C (SIGTERM, SIGHUP) seen inside a command; not a KeyboardInterrupt, so typer does not
+    swallow it as exit 130."""
 
-    def __init__(self, partial):
+    def __init__(self, partial, signum: int):
         super().__init__(str(partial))
         self.partial = partial
+        self.signum = signum
 
 
 class _OneLineErrors(TyperGroup):
@@ -66,12 +71,32 @@ class _OneLineErrors(TyperGroup):
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt as exc:
-            raise _Interrupted(getattr(exc, "partial", None)) from None
+            raise _Interrupted(getattr(exc, "partial", None), signal_number(exc)) from None
+        except Exception as exc:
+            if pending_signal() is None:
+                raise
+            # the signal's KeyboardInterrupt hit code that turned it into another error (casadi does)
+            raise _Interrupted(getattr(exc, "partial", None), pending_signal()) from None
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        # SIGINT, SIGTERM and SIGHUP end a command alike; the handlers are put back on return, so a
+        # process that runs the CLI as a function keeps its own
+        main_thread = threading.current_thread() is threading.main_thread()
+        old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)} if main_thread else {}
+        if main_thread:
+            end_on_signals()
+        try:
+            return self._main(args, prog_name, complete_var, standalone_mode, **extra)
+        finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
+
+    def _main(self, args, prog_name, complete_var, standalone_mode, **extra):
         try:
             rv = super().main(args=args, prog_name=prog_name, complete_var=complete_var,
                               standalone_mode=False, **extra)
+            if pending_signal() is not None:  # its exception was lost on its way up
+                raise _Interrupted(None, pending_signal())
         except _cx.NoArgsIsHelpError:  # a group called bare: its help was printed, nothing failed
             sys.exit(0)
         except _cx.ClickException as exc:  # usage errors (exit code 2) and other CLI errors
@@ -80,7 +105,7 @@ class _OneLineErrors(TyperGroup):
             fail("aborted", 1)
         except _Interrupted as exc:
             typer.echo(f"interrupted: partial results in {exc.partial}" if exc.partial else "interrupted", err=True)
-            sys.exit(130)
+            sys.exit(128 + exc.signum)
         except (ValueError, FileNotFoundError) as exc:
             partial = getattr(exc, "partial_results", None)
             fail(f"{exc}; partial results in {partial}" if partial else str(exc), 2)
@@ -108,10 +133,10 @@ def _is_run_failed(exc: BaseException) -> bool:
     return runner is not None and isinstance(exc, runner.RunFailed)
 
 
-app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=False, pretty_exceptions_enable=False,
+app = typer.Typer(cls=_OneLineErrors, add_completion=False, rich_markup_mode=None, no_args_is_help=False, pretty_exceptions_enable=False,
                   help="Model, observe and control Hyperelastic Ballooning Membrane Actuators (HBMA). "
                        "Without a command: run the 150-trial protocol (README Model §7) with defaults into ./runs/protocol.")
-bench_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchmarks (speed and accuracy).")
+bench_app = typer.Typer(add_completion=False, rich_markup_mode=None, no_args_is_help=True, help="Benchmarks (speed and accuracy).")
 app.add_typer(bench_app, name="bench")
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from hbma_ctrl.app.metrics import write_log_csv
+from hbma_ctrl.app.metrics import physics_problems, write_log_csv
 from hbma_ctrl.app.forked import Forked
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
@@ -74,6 +74,10 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
     if plots:
         jobs.append(Forked(_figs_7_9, out, mat, trials, logs, settings, fidelity))
     rows = [summary_row(tr, log) for tr, log in zip(trials, logs)]
+    for tr, log, row in zip(trials, logs, rows):
+        problems = physics_problems(log, tr.actuator.material)
+        if problems:  # a finished trial whose numbers are not physics is not a result
+            row.update(status="failed", failed_because=problems)
     with progress_bar(progress) as bar:
         task = bar.add_task("writing trials/*.csv", total=len(trials)) if bar else None
         for log in logs:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from hbma_ctrl.app.metrics import (
     merge_metrics,
+    physics_problems,
     plant_metrics,
     write_log_csv,
     write_metrics,
@@ -63,6 +64,7 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
         statuses: dict = {}
         for r in rows:
             statuses[r["status"]] = statuses.get(r["status"], 0) + 1
+        failed = [f"{trials[i].name}: {r['failed_because'][0]}" for i, r in enumerate(rows) if r["status"] == "failed"]
         plant = {
             "n_trials": len(rows),
             "status": statuses,
@@ -79,6 +81,9 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
         plot_run(log, out_dir / "run.png", title=f"{scn.name}: {log.fidelity}, {scn.sim.integrator}, "
                  f"status {log.status}", sensor_range=scn.sim.sensor_range)
         plant = plant_metrics([log])
+        failed = physics_problems(log, trial.actuator.material)
+        if failed:  # a finished run whose numbers are not physics is not a result
+            plant["status"] = "failed"
         plant["log_csv"] = "log.csv"
         plant["plot_png"] = "run.png"
     plant["integrator"] = scn.sim.integrator
@@ -89,6 +94,8 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
     else:
         plant["dt_ms"] = U.to_ms(scn.sim.dt) if scn.sim.dt is not None else "default per fidelity"
     plant["wall_s"] = time.perf_counter() - t0
+    if failed:
+        plant["failed_checks"] = failed
     return {"plant": plant}
 
 
@@ -135,4 +142,9 @@ def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:
         n = counts["diverged"]
         which = f"all {n} trials" if n > 1 else "the trial"
         raise RunFailed(f"{which} diverged, status diverged (see the events in metrics.json)")
+    failed = metrics.get("plant", {}).get("failed_checks")
+    if failed:
+        n = counts.get("failed", 1)
+        which = f"{n} of {sum(counts.values())} trials" if sum(counts.values()) > 1 else "the run"
+        raise RunFailed(f"{which} failed the physics checks (metrics.json plant.failed_checks); {failed[0]}")
     return metrics

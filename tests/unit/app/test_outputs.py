@@ -6,6 +6,7 @@ import datetime as dt
 import hashlib
 import json
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -104,6 +105,28 @@ def test_ctrl_c_exits_130_with_one_line_and_an_interrupted_dir(tmp_path, monkeyp
     assert json.loads((partial / "manifest.json").read_text())["status"] == "interrupted"
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_end_a_run_as_ctrl_c_does_with_exit_128_plus_the_signal(tmp_path, monkeypatch, sig):
+    calls: list = []
+
+    def signalled(scn, out_dir):
+        calls.append(out_dir)
+        (Path(out_dir) / "log.csv").write_text("t_s\n0\n")
+        os.kill(os.getpid(), sig)  # the handler raises in this thread at once
+        raise AssertionError("the signal did not end the run")
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    monkeypatch.setattr(cli_mod, "run_scenario", signalled)
+    out = tmp_path / "o"
+    line = _one_line(runner.invoke(app, ["run", str(FIG7), "--out", str(out)]), 128 + sig)
+    (partial,) = tmp_path.glob("o.interrupted-*")
+    assert line == f"interrupted: partial results in {partial}" and (partial / "log.csv").exists()
+    man = json.loads((partial / "manifest.json").read_text())
+    assert man["status"] == "interrupted" and man["error"] == sig.name
+    assert not out.exists() and not (tmp_path / ".o.lock").exists() and len(calls) == 1
+    assert {s: signal.getsignal(s) for s in before} == before  # the caller's handlers are back
+
+
 def test_protocol_rerun_with_fewer_trials_leaves_no_stale_trial_files(tmp_path, monkeypatch):
     def fake_protocol(names):
         def run(material, out, *a, **kw):
@@ -125,17 +148,33 @@ def test_protocol_rerun_with_fewer_trials_leaves_no_stale_trial_files(tmp_path, 
     assert json.loads((out / "manifest.json").read_text())["command"] == "protocol"
 
 
-@pytest.mark.parametrize("kind", ["file", "device", "parent_file"])
+@pytest.mark.parametrize("kind", ["file", "device", "parent_file", "long_name", "long_parent", "no_files_here"])
 def test_unusable_out_is_refused_before_any_work(tmp_path, monkeypatch, kind):
     calls: list = []
     monkeypatch.setattr(cli_mod, "run_scenario", _fake_run(calls))
-    target = {"file": tmp_path / "a_file", "device": Path("/dev/null"), "parent_file": tmp_path / "a_file" / "sub"}
+    target = {"file": tmp_path / "a_file", "device": Path("/dev/null"), "parent_file": tmp_path / "a_file" / "sub",
+              "long_name": tmp_path / ("a" * 230), "long_parent": tmp_path / ("b" * 300) / "run",
+              "no_files_here": Path("/proc/hbma_ctrl_run")}[kind]
     (tmp_path / "a_file").write_text("not a directory\n")
-    line = _one_line(runner.invoke(app, ["run", str(FIG7), "--out", str(target[kind])]), 2)
-    assert line.startswith("error: --out ") and str(target[kind]) in line
+    line = _one_line(runner.invoke(app, ["run", str(FIG7), "--out", str(target)]), 2)
+    assert line.startswith("error: --out ") and str(target)[:40] in line
     assert calls == []  # no work was done
-    if kind == "device":
-        assert "device" in line
+    why = {"device": "device", "long_name": "is 230 bytes long; a folder name may have at most 200",
+           "long_parent": "is 300 bytes long; a folder name may have at most 255",
+           "no_files_here": "no file can be created in /proc"}
+    assert why.get(kind, "") in line
+
+
+def test_a_scenario_name_too_long_for_a_folder_is_one_error_naming_the_key(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text(f'[scenario]\nname = "{"n" * 20000}"\nduration_s = 6.0\n')
+    line = _one_line(runner.invoke(app, ["run", str(p)]), 2)
+    assert "[scenario] name" in line and "20000 characters long: at most 200" in line and len(line) < 300
+
+
+def test_a_folder_given_as_the_scenario_file_is_named_a_folder(tmp_path):
+    line = _one_line(runner.invoke(app, ["run", str(tmp_path)]), 2)
+    assert str(tmp_path) in line and "is a folder" in line
 
 
 def test_unwritable_parent_is_refused(tmp_path, monkeypatch):

@@ -1,0 +1,57 @@
+"""A finished run whose numbers are not physics is marked failed with its reason, never 'ok'."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from hbma_ctrl.app.cli.main import app
+from hbma_ctrl.app.metrics import MASS_BALANCE_TOL, physics_problems
+from hbma_ctrl.core.materials import LAM_CHECK, Gent, NeoHookean
+from hbma_ctrl.sim.trial import Log
+
+
+def _log(mass_error: float = 0.0, lam_peak: float = 1.5) -> Log:
+    t = np.linspace(0.0, 1.0, 11)
+    mass_in = 1e-6 * t
+    m = 3e-6 + mass_in + mass_error * (3e-6 + 1e-6) * t  # the error grows to mass_error of the largest mass
+    return Log("x", "free", {"t": t, "m": m, "mass_in": mass_in, "lam": 1.0 + (lam_peak - 1.0) * t})
+
+
+def test_a_consistent_run_has_no_problem():
+    assert physics_problems(_log(1e-9), NeoHookean()) == []
+
+
+@pytest.mark.parametrize("err", [2 * MASS_BALANCE_TOL, 0.5])
+def test_gas_made_by_the_integrator_beyond_the_tolerance_is_named_with_its_size(err):
+    (why,) = physics_problems(_log(err), NeoHookean())
+    assert "mass balance is off by" in why and f"{err / (1 + err):.3g}" in why and "dt_ms" in why  # of max |m|
+
+
+def test_a_stretch_past_a_gent_materials_locking_stretch_is_a_problem():
+    mat = Gent(Jm=3.0)
+    (why,) = physics_problems(_log(lam_peak=mat.lam_max() + 0.05), mat)
+    assert "locking stretch" in why
+
+
+def test_a_stretch_past_the_checked_range_of_the_laws_is_a_problem():
+    (why,) = physics_problems(_log(lam_peak=LAM_CHECK + 0.5), NeoHookean())
+    assert "beyond 4" in why and "checked over" in why
+
+
+def test_a_run_too_coarse_for_its_integrator_exits_1_with_the_reason_and_is_kept_as_failed(tmp_path):
+    scn = tmp_path / "coarse.toml"
+    scn.write_text("[scenario]\nname = 'coarse'\nduration_s = 6\n[sim]\nintegrator = 'euler'\ndt_ms = 100\n")
+    res = CliRunner().invoke(app, ["run", str(scn), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 1, res.output
+    line = res.output.strip().splitlines()[-1]
+    assert line.startswith("error: the run failed the physics checks") and "mass balance" in line
+    (kept,) = tmp_path.glob("o.failed-*")
+    assert not (tmp_path / "o").exists() and (kept / "metrics.json").exists()
+
+
+def test_a_diverged_run_keeps_its_own_status_and_gets_no_second_reason():
+    log = _log(0.5)
+    log.status = "diverged"
+    assert physics_problems(log, NeoHookean()) == []
