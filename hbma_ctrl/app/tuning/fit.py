@@ -101,7 +101,8 @@ class StaticData:
 class FitReport:
     """What fit.json holds of any fit (:data:`FIT_KEYS`): material name, fitted parameters (SI,
     flattened names), 95 % intervals, NRMSD of the pressure (paper eq. 16), the number of points, the
-    unidentified directions in words and the correlations; and the geometry r1, t0 (m) it was fitted for."""
+    unidentified directions in words and the correlations; and the geometry r1, t0 (m) it was fitted for,
+    the fixed parameters, the data's source and the data and model pressures (Pa) for the plot."""
 
     material: str
     params: dict
@@ -112,6 +113,10 @@ class FitReport:
     correlation: dict
     r1: float
     t0: float
+    fixed: dict = field(default_factory=dict)
+    source: str = ""
+    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def as_json(self) -> dict:
         """fit.json content: exactly :data:`FIT_KEYS`."""
@@ -120,15 +125,10 @@ class FitReport:
 
 @dataclass(kw_only=True)
 class FitResult(FitReport):
-    """A static fit: the report, the contact, the fixed parameters and the data and model pressures
-    (Pa) at the data heights (m) for the plot."""
+    """A static fit: the report, the contact and the data heights (m) of the pressures."""
 
     contact: str
-    fixed: dict = field(default_factory=dict)
     h: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    source: str = ""
     fidelity: str = "cap"
 
 
@@ -369,16 +369,14 @@ def split_fix(fix: dict | None, names: list[str], what: str, elsewhere=(), why: 
 
 def check_options(material: str, contact: str | None, fidelity: str) -> None:
     """ValueError naming the flag for an unknown material, contact or fidelity, or one not available."""
-    if fidelity not in FIDELITIES:
-        raise ValueError(f"--fidelity {fidelity}{did_you_mean(fidelity, FIDELITIES)}; allowed: {', '.join(FIDELITIES)}")
-    if contact == "bonded":
+    if contact == "bonded" and fidelity in FIDELITIES:
         raise ValueError("--contact bonded: not available to a fit (a disk glued at the centre: the exact solver's "
                          "force needs a table per geometry and glue radius; hbma-ctrl equilibrium --fidelity exact "
                          "--contact bonded evaluates points); use --contact free or flat")
-    if contact is not None and contact not in CONTACTS:
-        raise ValueError(f"--contact {contact}{did_you_mean(contact, CONTACTS)}; allowed: {', '.join(CONTACTS)}")
-    if material not in MATERIALS:
-        raise ValueError(f"--material {material}{did_you_mean(material, MATERIALS)}; allowed: {', '.join(MATERIALS)}")
+    for flag, value, allowed in (("--fidelity", fidelity, FIDELITIES), ("--contact", contact, CONTACTS),
+                                 ("--material", material, tuple(MATERIALS))):
+        if value is not None and value not in allowed:
+            raise ValueError(f"{flag} {value}{did_you_mean(value, allowed)}; allowed: {', '.join(allowed)}")
 
 
 def exact_shapes_fixed(material: str) -> bool:
