@@ -30,15 +30,13 @@ file's bytes.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hbma_ctrl.app.metrics import nrmsd
-from hbma_ctrl.app.tuning.run_data import data_lines, data_number
+from hbma_ctrl.app.tuning.run_data import P_KPA_MAX, data_number, data_rows
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.identify import Coordinates, estimate, finite_residuals, solve, summary
@@ -76,8 +74,6 @@ CONTACTS = ("free", "flat")
 FIDELITIES = ("cap", "exact")
 #: the keys of fit.json
 FIT_KEYS = ("material", "params", "ci95", "nrmsd", "n_points", "unidentifiable", "correlation")
-#: p_kpa above this looks like Pa
-_P_KPA_MAX = 1000.0
 #: start factors on the default moduli (log-spaced)
 _START_FACTORS = (0.1, 0.3, 1.0, 3.0, 10.0)
 #: pole stretches of the exact solver's free curve for one trial of a shape-changing material
@@ -141,11 +137,7 @@ def parse_data(raw: bytes) -> StaticData:
     One ValueError naming the column and the 1-based data row for a bad value; lines starting
     with '#' and blank lines are skipped. A ``t_s`` column (dynamic data) is refused.
     """
-    lines = data_lines(raw)
-    if not lines:
-        raise ValueError("data: the file is empty; expected a header h_mm,p_kpa[,F_n|load_g] and data rows")
-    reader = csv.reader(io.StringIO("\n".join(lines)))
-    header = [c.strip() for c in next(reader)]
+    header, rows = data_rows(raw, "h_mm,p_kpa[,F_n|load_g] and data rows")
     if "t_s" in header:
         raise ValueError("data: column 't_s' means a recorded run; read it with "
                          "hbma_ctrl.app.tuning.fit_dynamic.parse_run (static points: h_mm, p_kpa[, F_n|load_g])")
@@ -159,7 +151,7 @@ def parse_data(raw: bytes) -> StaticData:
     cols = ["h_mm", "p_kpa"] + ([fcol] if fcol else [])
     idx = {c: header.index(c) for c in cols}
     vals = {c: [] for c in cols}
-    for row, cells in enumerate(reader, start=1):
+    for row, cells in enumerate(rows, start=1):
         for c in cols:
             cell = cells[idx[c]].strip() if idx[c] < len(cells) else ""
             if cell == "":
@@ -168,8 +160,8 @@ def parse_data(raw: bytes) -> StaticData:
             if v < 0:
                 what = {"h_mm": "height", "p_kpa": "pressure"}.get(c, "load")
                 raise ValueError(f"data: column '{c}', row {row}: {what} {v:g} is negative")
-            if c == "p_kpa" and v > _P_KPA_MAX:
-                raise ValueError(f"data: column 'p_kpa', row {row}: {v:g} kPa is above {_P_KPA_MAX:g} kPa; the "
+            if c == "p_kpa" and v > P_KPA_MAX:
+                raise ValueError(f"data: column 'p_kpa', row {row}: {v:g} kPa is above {P_KPA_MAX:g} kPa; the "
                                  "values look like Pa: convert them to kPa")
             vals[c].append(v)
     if not vals["h_mm"]:
