@@ -277,10 +277,8 @@ def judge_ticks(ticks: list, gaps: list, period: float, speed: float, replayed: 
         by = (["witness"] if pause >= excess else []) + (["replay"] if r is not None and r["machine"] else [])
         out.append({"t_s": t["t_s"], "cpu_ms": t["cpu_ms"], "wall_ms": t["wall_ms"], "excess_ms": excess,
                     "machine_pause_ms": pause,
-                    "replay_cpu_ms": None if r is None else r["replay_cpu_ms"],
-                    "same_state": None if r is None else r["same_state"],
-                    "first_difference": None if r is None else r["first_difference"],
-                    "overrun_not_forced": None if r is None else r["overrun_not_forced"],
+                    **{k: None if r is None else r[k]
+                       for k in ("replay_cpu_ms", "same_state", "first_difference", "overrun_not_forced")},
                     "machine_by": by, "machine": bool(by)})
     return out
 
