@@ -145,10 +145,8 @@ def _cached_reference(trials: list[Trial], path: Path, key_tag: str, s: SimSetti
     if bad:
         raise RuntimeError(f"{label} diverged for {bad}: no benchmark against it")
     ref = {log.name: {"t": log["t"], "h": log["h"], "p": log["p"]} for log in logs}
-    arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall)}
-    for n, d in ref.items():
-        for k, v in d.items():
-            arrays[f"{n}/{k}"] = v
+    arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall),
+              **{f"{n}/{k}": v for n, d in ref.items() for k, v in d.items()}}
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
     return ref

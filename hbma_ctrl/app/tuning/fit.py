@@ -294,10 +294,10 @@ class _ExactFree:
         from scipy.interpolate import CubicSpline
 
         c = self.curve(values)
-        if c is None or c[0].size < 4:
-            return np.full(self.data.h.size, np.nan)
-        h, p = c
         out = np.full(self.data.h.size, np.nan)
+        if c is None or c[0].size < 4:
+            return out
+        h, p = c
         inside = (self.data.h >= 0) & (self.data.h <= h[-1])
         # the membrane is flat at h = 0: the curve starts there
         hh, pp = np.concatenate([[0.0], h]), np.concatenate([[0.0], p])

@@ -407,10 +407,6 @@ def run_worker(spec: TuneSpec, n_trials: int, callback: Callable[[], None] | Non
                    gc_after_trial=False)
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def mean_score(data: dict, scenario: Path, objective: str, seeds: list[int], duration_s: float | None
                ) -> tuple[float | None, list]:
     """Mean objective over ``seeds`` and the per-seed values (None where the run failed)."""
@@ -454,7 +450,7 @@ def write_outputs(out: Path, study: optuna.Study, spec: TuneSpec, test_seeds: li
         "study": spec.study,
         "storage": spec.storage,
         "scenario": str(spec.scenario),
-        "scenario_sha256": _sha256(spec.scenario),
+        "scenario_sha256": hashlib.sha256(spec.scenario.read_bytes()).hexdigest(),
         "finished_utc": now,
         **extra,
     }
