@@ -89,11 +89,9 @@ def is_dynamic(raw: bytes) -> bool:
     return "t_s" in header
 
 
-def _cell(cells: list[str], i: int) -> str:
-    return cells[i].strip() if i < len(cells) else ""
-
-
-def _value(text: str, col: str, row: int, missing_ok: bool) -> float:
+def _value(cells: list[str], i: int, col: str, row: int, missing_ok: bool) -> float:
+    """Cell ``i`` of a row as a number; NaN for a missing one where ``missing_ok``, else ValueError."""
+    text = cells[i].strip() if i < len(cells) else ""
     if text == "" or text.lower() == "nan":
         if missing_ok:
             return float("nan")
@@ -147,7 +145,7 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
     vals: dict[str, list] = {role: [] for role in col}
     for row, cells in enumerate(rows, start=1):
         for role, name in col.items():
-            v = _value(_cell(cells, idx[role]), name, row, missing_ok=role in ("p", "h"))
+            v = _value(cells, idx[role], name, row, missing_ok=role in ("p", "h"))
             if role == "p" and math.isfinite(v):
                 if v > P_KPA_MAX:
                     raise ValueError(f"data: column '{name}', row {row}: {v:g} kPa is above {P_KPA_MAX:g} kPa; the "
