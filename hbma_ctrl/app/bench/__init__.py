@@ -18,7 +18,8 @@ def map_jobs(fn: Callable, jobs: list, workers: int, progress: Callable | None =
 
     workers = max(1, min(int(workers), len(jobs), os.cpu_count() or 1))
     out = []
-    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_worker) if workers > 1 else contextlib.nullcontext() as ex:
+    pool = ProcessPoolExecutor(max_workers=workers, initializer=quiet_worker) if workers > 1 else None
+    with pool or contextlib.nullcontext() as ex:
         for r in (ex.map if ex else map)(fn, jobs):
             out.append(r)
             if progress:

@@ -505,8 +505,8 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
         with open(tmp / "setpoints.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["rig_t_s", "status", "body", "reply"])
-            for s in sent:
-                w.writerow([f"{s['rig_t_s']:.2f}", s["status"], json.dumps(s["body"]), json.dumps(s["reply"])])
+            w.writerows([f"{s['rig_t_s']:.2f}", s["status"], json.dumps(s["body"]), json.dumps(s["reply"])]
+                        for s in sent)
         # the witness's record, whole: it exists only in this process until written
         with open(tmp / "machine_pauses.csv", "w", newline="") as f:
             w = csv.writer(f)

@@ -186,10 +186,8 @@ def param_names(material: str) -> list[str]:
 def unflatten(material: str, values: dict) -> dict:
     """Flattened {name: value} -> make_material keyword arguments (tuples for tuple fields)."""
     space = ph.ParamSpace.for_material(make_material(material))
-    kw = {}
-    for name, n in space.material_sizes:
-        kw[name] = float(values[name]) if n == 0 else [float(values[f"{name}{i}"]) for i in range(n)]
-    return kw
+    return {name: float(values[name]) if n == 0 else [float(values[f"{name}{i}"]) for i in range(n)]
+            for name, n in space.material_sizes}
 
 
 class _Model:
