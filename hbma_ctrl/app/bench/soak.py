@@ -246,14 +246,9 @@ def _overlap(gaps: list, tick: dict, slack: float) -> float:
 def pauses_at_ticks(ticks: list, gaps: list, slack: float = 0.02) -> dict:
     """For each tick of :func:`read_events` that was logged as slow: the longest witness gap
     overlapping [logged - wall time - slack, logged + slack], ms (0: none). {rig t s as logged: ms}."""
-    out: dict = {}
-    for t in ticks:
-        if t["kind"] != "slow_tick":
-            continue
-        win = _window(t, slack)
-        out[t["key"]] = 0.0 if win is None else \
-            max((g for w, g in gaps if w - g < win[1] and w > win[0]), default=0.0) * 1e3
-    return out
+    windows = {t["key"]: _window(t, slack) for t in ticks if t["kind"] == "slow_tick"}
+    return {key: 0.0 if win is None else max((g for w, g in gaps if w - g < win[1] and w > win[0]), default=0.0) * 1e3
+            for key, win in windows.items()}
 
 
 def judge_ticks(ticks: list, gaps: list, period: float, speed: float, replayed: list | None = None) -> list:
