@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import random
+from collections import Counter
 import time
 from pathlib import Path
 
@@ -164,9 +165,7 @@ def run_drills(config: Path, out: Path, drills: int, seed: int, kind: str = "lea
             on_drill(row)
     judged = [r for r in rows if not r["false_alarm"]]
     found = [r for r in judged if r["found"] is not None]
-    by_kind: dict = {}
-    for r in found:
-        by_kind[r["found"]] = by_kind.get(r["found"], 0) + 1
+    by_kind = dict(Counter(r["found"] for r in found))
     delays = np.array([r["delay_s"] for r in found]) if found else np.zeros(0)
     res = {"config": str(config), "kind": kind, "value": value, "drills": drills, "seed": seed, "after_s": after_s,
            "setpoint_every_s": every_s, "from_s": from_s, "to_s": to_s,

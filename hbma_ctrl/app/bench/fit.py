@@ -24,11 +24,11 @@ structured) and the summary per (rig, law): the range over the seeds of each par
 from __future__ import annotations
 
 import json
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from hbma_ctrl.app.bench import map_jobs
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.core import units as U
 
@@ -60,6 +60,8 @@ def static_rows(progress=None) -> list[dict]:
 
     from hbma_ctrl.app.tuning.fit import StaticData, fit_static, param_names
     from hbma_ctrl.core.materials import make_material
+    from hbma_ctrl.core.params import Actuator
+    from hbma_ctrl.core.physics import ParamSpace
     from hbma_ctrl.models.exact import ExactMembrane
 
     E = TRUTH["modulus_scale"] * make_material("nh").E
@@ -72,14 +74,10 @@ def static_rows(progress=None) -> list[dict]:
     h10 = U.mm(np.linspace(1.0, 14.0, 10))
     for name, kw in OTHER_TRUTHS.items():
         mat = make_material(name, **kw)
-        flat_truth = {}
-        for k, v in mat.as_dict().items():
-            if isinstance(v, (list, tuple)):
-                flat_truth.update({f"{k}{i}": float(x) for i, x in enumerate(v)})
-            else:
-                flat_truth[k] = float(v)
+        space = ParamSpace.for_material(mat)
+        flat = dict(zip(space.names, space.values(Actuator(material=mat)).tolist()))
         mo = ExactMembrane(mat, R1, T0)
-        cases[f"free_{name}"] = (name, {k: flat_truth[k] for k in param_names(name)},
+        cases[f"free_{name}"] = (name, {k: flat[k] for k in param_names(name)},
                                  StaticData(h10, np.array([mo.free(x)["p"] for x in h10])))
     rows = []
     for case in STATIC_CASES:
@@ -138,22 +136,7 @@ def _one_run(args) -> list[dict]:
 def run_rows(seeds: list[int], rigs=RUN_RIGS, workers: int = 1, progress=None) -> list[dict]:
     """The runs part (module doc) over ``seeds`` and ``rigs``; ``progress(rows)`` after each run."""
     tasks = [(rig, s) for s in seeds for rig in rigs]
-    out: list[dict] = []
-    if workers <= 1:
-        for t in tasks:
-            rows = _one_run(t)
-            out += rows
-            if progress:
-                progress(rows)
-        return out
-    from hbma_ctrl.sim.batch import quiet_worker
-
-    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_worker) as ex:
-        for rows in ex.map(_one_run, tasks):
-            out += rows
-            if progress:
-                progress(rows)
-    return out
+    return [row for rows in map_jobs(_one_run, tasks, workers, progress) for row in rows]
 
 
 def summarize_runs(rows: list[dict]) -> dict:
@@ -181,10 +164,9 @@ def summarize_runs(rows: list[dict]) -> dict:
 def write_fit_bench(static: list[dict], runs: list[dict], folder: Path, seeds: int) -> Path:
     """bench_fit.json in ``folder``: the truth, the static rows, every run's fits and their summary."""
     path = Path(folder) / "bench_fit.json"
-    doc = {"truth": {**TRUTH, "C_out": None}, "seeds": int(seeds), "static": static, "runs": runs,
-           "summary": summarize_runs(runs)}
     from hbma_ctrl.core.params import Valve
 
-    doc["truth"]["C_out"] = Valve().C
+    doc = {"truth": {**TRUTH, "C_out": Valve().C}, "seeds": int(seeds), "static": static, "runs": runs,
+           "summary": summarize_runs(runs)}
     path.write_text(json.dumps(json_safe(doc), indent=1) + "\n")
     return path

@@ -24,17 +24,15 @@ duties as minimum-length pulses (``valve_min_on_ms``, 2 ms there).
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from hbma_ctrl.app.bench import map_jobs
 from hbma_ctrl.estimators.common import FACTOR_RANGE
 from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
@@ -45,7 +43,6 @@ from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY, DEFAULT_VALVE_MIN_ON
 from hbma_ctrl.models.tables import PredictionModel
-from hbma_ctrl.sim.batch import quiet_worker
 from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings
 
 __all__ = ["CASES", "RIGS", "check_cases", "run_case", "run_loop_bench", "summarize_loop", "write_loop_bench",
@@ -172,15 +169,7 @@ def run_loop_bench(seeds: list[int], cases: list[str] | None = None, workers: in
     seed order."""
     setup = setup or loop_setup()
     cases = check_cases(cases or list(CASES))
-    jobs = [(c, s, setup) for c in cases for s in seeds]
-    workers = max(1, min(int(workers), len(jobs), os.cpu_count() or 1))
-    rows = []
-    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_worker) if workers > 1 else contextlib.nullcontext() as ex:
-        for r in (ex.map if ex else map)(_run, jobs):
-            rows.append(r)
-            if progress:
-                progress(r)
-    return rows
+    return map_jobs(_run, [(c, s, setup) for c in cases for s in seeds], workers, progress)
 
 
 def summarize_loop(rows: list[dict]) -> dict:

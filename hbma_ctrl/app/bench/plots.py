@@ -95,25 +95,28 @@ def sim_pareto_png(rows, path: Path | str, title: str = "") -> Path:
     return Path(path)
 
 
-def _load_json(path: Path | str, what: str) -> dict:
+def _load_json(path: Path | str, what: str, key: str, kind: type, bench: str) -> tuple[dict, list | dict]:
+    """A bench's JSON result and its entry ``key``, a non-empty ``kind``; ValueError naming the flag
+    ``what`` when the file is missing, not JSON or not a ``bench`` result."""
     import json
 
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"{what}: no file {p}")
     try:
-        return json.loads(p.read_text())
+        data = json.loads(p.read_text())
     except json.JSONDecodeError as e:
         raise ValueError(f"{what}: {p} is not JSON ({e.msg}, line {e.lineno})") from None
+    part = data.get(key) if isinstance(data, dict) else None
+    if not isinstance(part, kind) or not part:
+        raise ValueError(f"{what}: {path} has no '{key}' (is it a bench {bench} result?)")
+    return data, part
 
 
 def estimator_points(bench_ekf_json: Path | str) -> tuple[list[tuple], str]:
     """``bench ekf`` JSON (its "filters": name -> metrics) -> ((label, group, step us, height NRMSD) points,
     title); ValueError naming ``--ekf-json`` when the file is missing or not such a result."""
-    data = _load_json(bench_ekf_json, "--ekf-json")
-    filters = data.get("filters")
-    if not isinstance(filters, dict) or not filters:
-        raise ValueError(f"--ekf-json: {bench_ekf_json} has no 'filters' (is it a bench ekf result?)")
+    data, filters = _load_json(bench_ekf_json, "--ekf-json", "filters", dict, "ekf")
     pts = []
     for name, m in filters.items():
         fam, _, sub = name.partition(" ")
@@ -127,10 +130,7 @@ def estimator_points(bench_ekf_json: Path | str) -> tuple[list[tuple], str]:
 def controller_points(bench_mpc_json: Path | str) -> tuple[list[tuple], str]:
     """``bench mpc`` JSON (its "rows", each a controller "name N=k") -> ((label, group, solve ms, height RMSE mm)
     points, title); ValueError naming ``--mpc-json`` when the file is missing or not such a result."""
-    data = _load_json(bench_mpc_json, "--mpc-json")
-    rows = data.get("rows")
-    if not isinstance(rows, list) or not rows:
-        raise ValueError(f"--mpc-json: {bench_mpc_json} has no 'rows' (is it a bench mpc result?)")
+    _, rows = _load_json(bench_mpc_json, "--mpc-json", "rows", list, "mpc")
     pts = []
     for r in rows:
         fam, _, hor = str(r.get("controller", "?")).partition(" ")

@@ -30,12 +30,12 @@ import json
 import os
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
-from hbma_ctrl.app.metrics import nrmsd
+from hbma_ctrl.app.metrics import json_safe, nrmsd
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
 from hbma_ctrl.sim.batch import fidelity_for, protocol_trials, simulate_trials
@@ -145,10 +145,8 @@ def _cached_reference(trials: list[Trial], path: Path, key_tag: str, s: SimSetti
     if bad:
         raise RuntimeError(f"{label} diverged for {bad}: no benchmark against it")
     ref = {log.name: {"t": log["t"], "h": log["h"], "p": log["p"]} for log in logs}
-    arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall)}
-    for n, d in ref.items():
-        for k, v in d.items():
-            arrays[f"{n}/{k}"] = v
+    arrays = {"key": np.array(key), "names": np.array(list(ref)), "wall_s": np.array(wall),
+              **{f"{n}/{k}": v for n, d in ref.items() for k, v in d.items()}}
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
     return ref
@@ -287,25 +285,15 @@ def run_bench(out_dir: Path | str = "runs/bench_sim", quick: bool = False, worke
             "fidelity_axis": ({"reference": "exact", "integrator": "rk4", "dt_s": EXACT_REF_DT,
                                "rungs": ["free (0 g trials only)"] + list(grid) + ["exact"],
                                "pareto_png": "pareto.png"} if fgrid else None)}
-    (out / "bench.json").write_text(json.dumps({"meta": meta, "rows": [_json_row(r) for r in rows]}, indent=2) + "\n")
+    (out / "bench.json").write_text(json.dumps({"meta": meta, "rows": json_safe([asdict(r) for r in rows])}, indent=2)
+                                    + "\n")
     if fgrid and rows:
         from hbma_ctrl.app.bench.plots import sim_pareto_png
 
         sim_pareto_png(rows, out / "pareto.png", title=f"bench sim: {len(trials)} trials, {mat.name}")
     with open(out / "bench.csv", "w", newline="") as fh:
-        keys = [k for k in asdict(rows[0]) if k != "wall_runs"] if rows else []
-        w = csv.DictWriter(fh, fieldnames=keys)
+        w = csv.DictWriter(fh, fieldnames=[f.name for f in fields(BenchRow) if f.name != "wall_runs"],
+                           extrasaction="ignore")
         w.writeheader()
-        for r in rows:
-            d = asdict(r)
-            d.pop("wall_runs")
-            w.writerow(d)
+        w.writerows(asdict(r) for r in rows)
     return rows
-
-
-def _json_row(r: BenchRow) -> dict:
-    d = asdict(r)
-    for k, v in d.items():
-        if isinstance(v, float) and not np.isfinite(v):
-            d[k] = None
-    return d

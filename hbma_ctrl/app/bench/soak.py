@@ -246,14 +246,9 @@ def _overlap(gaps: list, tick: dict, slack: float) -> float:
 def pauses_at_ticks(ticks: list, gaps: list, slack: float = 0.02) -> dict:
     """For each tick of :func:`read_events` that was logged as slow: the longest witness gap
     overlapping [logged - wall time - slack, logged + slack], ms (0: none). {rig t s as logged: ms}."""
-    out: dict = {}
-    for t in ticks:
-        if t["kind"] != "slow_tick":
-            continue
-        win = _window(t, slack)
-        out[t["key"]] = 0.0 if win is None else \
-            max((g for w, g in gaps if w - g < win[1] and w > win[0]), default=0.0) * 1e3
-    return out
+    windows = {t["key"]: _window(t, slack) for t in ticks if t["kind"] == "slow_tick"}
+    return {key: 0.0 if win is None else max((g for w, g in gaps if w - g < win[1] and w > win[0]), default=0.0) * 1e3
+            for key, win in windows.items()}
 
 
 def judge_ticks(ticks: list, gaps: list, period: float, speed: float, replayed: list | None = None) -> list:
@@ -277,10 +272,8 @@ def judge_ticks(ticks: list, gaps: list, period: float, speed: float, replayed: 
         by = (["witness"] if pause >= excess else []) + (["replay"] if r is not None and r["machine"] else [])
         out.append({"t_s": t["t_s"], "cpu_ms": t["cpu_ms"], "wall_ms": t["wall_ms"], "excess_ms": excess,
                     "machine_pause_ms": pause,
-                    "replay_cpu_ms": None if r is None else r["replay_cpu_ms"],
-                    "same_state": None if r is None else r["same_state"],
-                    "first_difference": None if r is None else r["first_difference"],
-                    "overrun_not_forced": None if r is None else r["overrun_not_forced"],
+                    **{k: None if r is None else r[k]
+                       for k in ("replay_cpu_ms", "same_state", "first_difference", "overrun_not_forced")},
                     "machine_by": by, "machine": bool(by)})
     return out
 
@@ -507,8 +500,8 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
         with open(tmp / "setpoints.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["rig_t_s", "status", "body", "reply"])
-            for s in sent:
-                w.writerow([f"{s['rig_t_s']:.2f}", s["status"], json.dumps(s["body"]), json.dumps(s["reply"])])
+            w.writerows([f"{s['rig_t_s']:.2f}", s["status"], json.dumps(s["body"]), json.dumps(s["reply"])]
+                        for s in sent)
         # the witness's record, whole: it exists only in this process until written
         with open(tmp / "machine_pauses.csv", "w", newline="") as f:
             w = csv.writer(f)

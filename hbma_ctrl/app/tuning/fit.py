@@ -30,15 +30,13 @@ file's bytes.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hbma_ctrl.app.metrics import nrmsd
-from hbma_ctrl.app.tuning.run_data import data_lines, data_number
+from hbma_ctrl.app.tuning.run_data import P_KPA_MAX, data_number, data_rows
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.identify import Coordinates, estimate, finite_residuals, solve, summary
@@ -76,8 +74,6 @@ CONTACTS = ("free", "flat")
 FIDELITIES = ("cap", "exact")
 #: the keys of fit.json
 FIT_KEYS = ("material", "params", "ci95", "nrmsd", "n_points", "unidentifiable", "correlation")
-#: p_kpa above this looks like Pa
-_P_KPA_MAX = 1000.0
 #: start factors on the default moduli (log-spaced)
 _START_FACTORS = (0.1, 0.3, 1.0, 3.0, 10.0)
 #: pole stretches of the exact solver's free curve for one trial of a shape-changing material
@@ -101,7 +97,8 @@ class StaticData:
 class FitReport:
     """What fit.json holds of any fit (:data:`FIT_KEYS`): material name, fitted parameters (SI,
     flattened names), 95 % intervals, NRMSD of the pressure (paper eq. 16), the number of points, the
-    unidentified directions in words and the correlations; and the geometry r1, t0 (m) it was fitted for."""
+    unidentified directions in words and the correlations; and the geometry r1, t0 (m) it was fitted for,
+    the fixed parameters, the data's source and the data and model pressures (Pa) for the plot."""
 
     material: str
     params: dict
@@ -112,6 +109,10 @@ class FitReport:
     correlation: dict
     r1: float
     t0: float
+    fixed: dict = field(default_factory=dict)
+    source: str = ""
+    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def as_json(self) -> dict:
         """fit.json content: exactly :data:`FIT_KEYS`."""
@@ -120,15 +121,10 @@ class FitReport:
 
 @dataclass(kw_only=True)
 class FitResult(FitReport):
-    """A static fit: the report, the contact, the fixed parameters and the data and model pressures
-    (Pa) at the data heights (m) for the plot."""
+    """A static fit: the report, the contact and the data heights (m) of the pressures."""
 
     contact: str
-    fixed: dict = field(default_factory=dict)
     h: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    source: str = ""
     fidelity: str = "cap"
 
 
@@ -141,11 +137,7 @@ def parse_data(raw: bytes) -> StaticData:
     One ValueError naming the column and the 1-based data row for a bad value; lines starting
     with '#' and blank lines are skipped. A ``t_s`` column (dynamic data) is refused.
     """
-    lines = data_lines(raw)
-    if not lines:
-        raise ValueError("data: the file is empty; expected a header h_mm,p_kpa[,F_n|load_g] and data rows")
-    reader = csv.reader(io.StringIO("\n".join(lines)))
-    header = [c.strip() for c in next(reader)]
+    header, rows = data_rows(raw, "h_mm,p_kpa[,F_n|load_g] and data rows")
     if "t_s" in header:
         raise ValueError("data: column 't_s' means a recorded run; read it with "
                          "hbma_ctrl.app.tuning.fit_dynamic.parse_run (static points: h_mm, p_kpa[, F_n|load_g])")
@@ -159,7 +151,7 @@ def parse_data(raw: bytes) -> StaticData:
     cols = ["h_mm", "p_kpa"] + ([fcol] if fcol else [])
     idx = {c: header.index(c) for c in cols}
     vals = {c: [] for c in cols}
-    for row, cells in enumerate(reader, start=1):
+    for row, cells in enumerate(rows, start=1):
         for c in cols:
             cell = cells[idx[c]].strip() if idx[c] < len(cells) else ""
             if cell == "":
@@ -168,8 +160,8 @@ def parse_data(raw: bytes) -> StaticData:
             if v < 0:
                 what = {"h_mm": "height", "p_kpa": "pressure"}.get(c, "load")
                 raise ValueError(f"data: column '{c}', row {row}: {what} {v:g} is negative")
-            if c == "p_kpa" and v > _P_KPA_MAX:
-                raise ValueError(f"data: column 'p_kpa', row {row}: {v:g} kPa is above {_P_KPA_MAX:g} kPa; the "
+            if c == "p_kpa" and v > P_KPA_MAX:
+                raise ValueError(f"data: column 'p_kpa', row {row}: {v:g} kPa is above {P_KPA_MAX:g} kPa; the "
                                  "values look like Pa: convert them to kPa")
             vals[c].append(v)
     if not vals["h_mm"]:
@@ -194,10 +186,8 @@ def param_names(material: str) -> list[str]:
 def unflatten(material: str, values: dict) -> dict:
     """Flattened {name: value} -> make_material keyword arguments (tuples for tuple fields)."""
     space = ph.ParamSpace.for_material(make_material(material))
-    kw = {}
-    for name, n in space.material_sizes:
-        kw[name] = float(values[name]) if n == 0 else [float(values[f"{name}{i}"]) for i in range(n)]
-    return kw
+    return {name: float(values[name]) if n == 0 else [float(values[f"{name}{i}"]) for i in range(n)]
+            for name, n in space.material_sizes}
 
 
 class _Model:
@@ -302,10 +292,10 @@ class _ExactFree:
         from scipy.interpolate import CubicSpline
 
         c = self.curve(values)
-        if c is None or c[0].size < 4:
-            return np.full(self.data.h.size, np.nan)
-        h, p = c
         out = np.full(self.data.h.size, np.nan)
+        if c is None or c[0].size < 4:
+            return out
+        h, p = c
         inside = (self.data.h >= 0) & (self.data.h <= h[-1])
         # the membrane is flat at h = 0: the curve starts there
         hh, pp = np.concatenate([[0.0], h]), np.concatenate([[0.0], p])
@@ -369,16 +359,14 @@ def split_fix(fix: dict | None, names: list[str], what: str, elsewhere=(), why: 
 
 def check_options(material: str, contact: str | None, fidelity: str) -> None:
     """ValueError naming the flag for an unknown material, contact or fidelity, or one not available."""
-    if fidelity not in FIDELITIES:
-        raise ValueError(f"--fidelity {fidelity}{did_you_mean(fidelity, FIDELITIES)}; allowed: {', '.join(FIDELITIES)}")
-    if contact == "bonded":
+    if contact == "bonded" and fidelity in FIDELITIES:
         raise ValueError("--contact bonded: not available to a fit (a disk glued at the centre: the exact solver's "
                          "force needs a table per geometry and glue radius; hbma-ctrl equilibrium --fidelity exact "
                          "--contact bonded evaluates points); use --contact free or flat")
-    if contact is not None and contact not in CONTACTS:
-        raise ValueError(f"--contact {contact}{did_you_mean(contact, CONTACTS)}; allowed: {', '.join(CONTACTS)}")
-    if material not in MATERIALS:
-        raise ValueError(f"--material {material}{did_you_mean(material, MATERIALS)}; allowed: {', '.join(MATERIALS)}")
+    for flag, value, allowed in (("--fidelity", fidelity, FIDELITIES), ("--contact", contact, CONTACTS),
+                                 ("--material", material, tuple(MATERIALS))):
+        if value is not None and value not in allowed:
+            raise ValueError(f"{flag} {value}{did_you_mean(value, allowed)}; allowed: {', '.join(allowed)}")
 
 
 def exact_shapes_fixed(material: str) -> bool:

@@ -48,7 +48,7 @@ from matplotlib.figure import Figure
 
 from hbma_ctrl.app.tuning.fit import (FIT_KEYS, FitReport, check_exact_material, check_options, param_names, split_fix,
                                       unflatten)
-from hbma_ctrl.app.tuning.fit_output import LAW_NOTE, provenance_lines, toml_value, write_fit
+from hbma_ctrl.app.tuning.fit_output import toml_head, write_fit
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.app.tuning.run_data import COLUMN_ALIASES, RunData, is_dynamic, parse_run
 from hbma_ctrl.core import units as U
@@ -106,19 +106,15 @@ PRIOR_STD_MIN = 0.05
 
 @dataclass(kw_only=True)
 class DynamicFitResult(FitReport):
-    """A dynamic fit (SI): the report (the pressure's NRMSD in ``nrmsd``), the load, the model's name,
-    the fixed parameters and the data and model series for the plot."""
+    """A dynamic fit (SI): the report (the pressure's NRMSD in ``nrmsd``), the load, the model's name
+    and the times and heights of the series for the plot."""
 
     load: float
     fidelity: str
-    fixed: dict = field(default_factory=dict)
     nrmsd_h: float | None = None
     law: str = "cap"
     V0_nominal: float = 3e-6
-    source: str = ""
     t: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    p_data: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    p_model: np.ndarray = field(default_factory=lambda: np.zeros(0))
     h_data: np.ndarray | None = None
     h_model: np.ndarray | None = None
 
@@ -386,16 +382,10 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
 # ---------------------------------------------------------------------------------------------
 def dynamic_params_toml(result: DynamicFitResult) -> str:
     """A parameter file for a scenario (edge units where the scenario's keys have them)."""
-    lines = [f"# hbma-ctrl fit (dynamic): {result.material}, {result.n_points} points, fidelity {result.fidelity}, "
-             f"pressure NRMSD {result.nrmsd:.4f}",
-             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}, "
-             f"load_g = {U.to_grams(result.load):g}",
-             f"# membrane law: {LAW_NOTE[result.law]}"]
-    lines += provenance_lines(result.source)
-    lines += ["[actuator]", f'material = "{result.material}"', f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}", "",
-              "[actuator.material_params]"]
-    for k, v in unflatten(result.material, result.params).items():
-        lines.append(f"{k} = {toml_value(v)}")
+    title = (f" (dynamic): {result.material}, {result.n_points} points, fidelity {result.fidelity}, "
+             f"pressure NRMSD {result.nrmsd:.4f}")
+    lines = toml_head(result, title, result.law, f", load_g = {U.to_grams(result.load):g}",
+                      (f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}",))
     lines += ["", "[pneumatics]", f"flow_scale = {result.params['flow_scale']:.6g}",
               f"# outlet sonic conductance C_out = {result.params['C_out']:.6g} m^3/(s Pa) (no scenario key yet)"]
     lines += [""] + estimator_prior_lines(result)

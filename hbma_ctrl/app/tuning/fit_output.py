@@ -2,7 +2,7 @@
 from and which membrane law they belong to) and residuals.png (SI in, edge units in the files).
 
 :func:`write_fit` is the static fit's; :mod:`hbma_ctrl.app.tuning.fit_dynamic` writes a recorded run's with
-the same provenance lines, law note and TOML values.
+the same head of the parameter file (:func:`toml_head`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 from hbma_ctrl.app.tuning.fit import FitReport, FitResult, unflatten
 from hbma_ctrl.core import units as U
 
-__all__ = ["LAW_NOTE", "toml_value", "provenance_lines", "params_toml", "write_fit"]
+__all__ = ["LAW_NOTE", "toml_value", "toml_head", "params_toml", "write_fit"]
 
 
 def toml_value(v) -> str:
@@ -34,25 +34,24 @@ LAW_NOTE = {"cap": "the spherical cap (use with [estimator] / [controller] / [ri
              "exact": "the exact membrane (membrane = \"exact\", the roles' default)"}
 
 
-def provenance_lines(source: str) -> list[str]:
-    """Comment lines recording the data a parameter file came from and when (UTC) it was written."""
+def toml_head(result: FitReport, title: str, law: str, fitted_for: str = "", actuator: tuple = ()) -> list[str]:
+    """A parameter file's lines up to its ``[actuator.material_params]`` (SI): the ``title`` comment, the
+    geometry it was fitted for (and ``fitted_for``), the membrane ``law``, where the numbers came from,
+    ``[actuator]`` with the material and the ``actuator`` lines, and the material's parameters."""
     when = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    return ([f"# data: {source}"] if source else []) + [f"# written: {when}"]
+    lines = [f"# hbma-ctrl fit{title}",
+             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}{fitted_for}",
+             f"# membrane law: {LAW_NOTE[law]}"]
+    # where the numbers came from travels with them into any scenario that copies this file
+    lines += ([f"# data: {result.source}"] if result.source else []) + [f"# written: {when}"]
+    lines += ["[actuator]", f'material = "{result.material}"', *actuator, "", "[actuator.material_params]"]
+    return lines + [f"{k} = {toml_value(v)}" for k, v in unflatten(result.material, result.params).items()]
 
 
 def params_toml(result: FitResult) -> str:
     """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
-    kw = unflatten(result.material, result.params)
-    head = (f"# hbma-ctrl fit: {result.material}, contact {result.contact}, {result.n_points} points, "
-            f"NRMSD {result.nrmsd:.4f}")
-    lines = [head,
-             f"# fitted for r1_mm = {U.to_mm(result.r1):g}, t0_mm = {U.to_mm(result.t0):g}",
-             f"# membrane law: {LAW_NOTE[result.fidelity]}"]
-    # where the numbers came from travels with them into any scenario that copies this file
-    lines += provenance_lines(result.source)
-    lines += ["[actuator]", f'material = "{result.material}"', "", "[actuator.material_params]"]
-    lines += [f"{k} = {toml_value(v)}" for k, v in kw.items()]
-    return "\n".join(lines) + "\n"
+    title = f": {result.material}, contact {result.contact}, {result.n_points} points, NRMSD {result.nrmsd:.4f}"
+    return "\n".join(toml_head(result, title, result.fidelity)) + "\n"
 
 
 def _plot(result: FitResult, path: Path) -> None:

@@ -21,7 +21,8 @@ import numpy as np
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.validation import did_you_mean
 
-__all__ = ["COLUMN_ALIASES", "MAX_MISSING_RUN", "RunData", "data_lines", "data_number", "is_dynamic", "parse_run"]
+__all__ = ["COLUMN_ALIASES", "MAX_MISSING_RUN", "P_KPA_MAX", "RunData", "data_lines", "data_number", "data_rows",
+           "is_dynamic", "parse_run"]
 
 #: role -> accepted column names, first match wins (see the module docstring for which file has which)
 COLUMN_ALIASES = {
@@ -37,7 +38,7 @@ _REQUIRED = ("t", "p", "speed", "inlet", "outlet")
 #: longest run of missing readings (dropouts) that is skipped rather than refused
 MAX_MISSING_RUN = 5
 #: p_kpa above this looks like Pa
-_P_KPA_MAX = 1000.0
+P_KPA_MAX = 1000.0
 #: a gauge reading below this (kPa) is not noise around zero
 _P_KPA_MIN = -10.0
 #: the run must start vented: first reading at most this (kPa)
@@ -69,6 +70,16 @@ def data_lines(raw: bytes) -> list[str]:
     return [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
 
 
+def data_rows(raw: bytes, expected: str) -> tuple[list[str], list[list[str]]]:
+    """A data CSV's header (names stripped) and data rows from its bytes (:func:`data_lines`);
+    ValueError for an empty file, saying which header was ``expected``."""
+    lines = data_lines(raw)
+    if not lines:
+        raise ValueError(f"data: the file is empty; expected a header {expected}")
+    rows = list(csv.reader(io.StringIO("\n".join(lines))))
+    return [c.strip() for c in rows[0]], rows[1:]
+
+
 def is_dynamic(raw: bytes) -> bool:
     """True when the CSV's header has a ``t_s`` column (a recorded run), False for static points."""
     lines = data_lines(raw)
@@ -78,11 +89,9 @@ def is_dynamic(raw: bytes) -> bool:
     return "t_s" in header
 
 
-def _cell(cells: list[str], i: int) -> str:
-    return cells[i].strip() if i < len(cells) else ""
-
-
-def _value(text: str, col: str, row: int, missing_ok: bool) -> float:
+def _value(cells: list[str], i: int, col: str, row: int, missing_ok: bool) -> float:
+    """Cell ``i`` of a row as a number; NaN for a missing one where ``missing_ok``, else ValueError."""
+    text = cells[i].strip() if i < len(cells) else ""
     if text == "" or text.lower() == "nan":
         if missing_ok:
             return float("nan")
@@ -119,11 +128,7 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
     ``load_kg`` is the load for a file without a ``load_g`` column (None = 0, free inflation).
     One ValueError naming the column (as written) and the 1-based data row for bad data.
     """
-    lines = data_lines(raw)
-    if not lines:
-        raise ValueError("data: the file is empty; expected a header with t_s, p_kpa, speed, inlet, outlet")
-    reader = csv.reader(io.StringIO("\n".join(lines)))
-    header = [c.strip() for c in next(reader)]
+    header, rows = data_rows(raw, "with t_s, p_kpa, speed, inlet, outlet")
     col: dict[str, str] = {}
     for role, names in COLUMN_ALIASES.items():
         hit = next((n for n in names if n in header), None)
@@ -138,12 +143,12 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
         raise ValueError("--load-g: the file has a 'load_g' column; give the load once")
     idx = {role: header.index(name) for role, name in col.items()}
     vals: dict[str, list] = {role: [] for role in col}
-    for row, cells in enumerate(reader, start=1):
+    for row, cells in enumerate(rows, start=1):
         for role, name in col.items():
-            v = _value(_cell(cells, idx[role]), name, row, missing_ok=role in ("p", "h"))
+            v = _value(cells, idx[role], name, row, missing_ok=role in ("p", "h"))
             if role == "p" and math.isfinite(v):
-                if v > _P_KPA_MAX:
-                    raise ValueError(f"data: column '{name}', row {row}: {v:g} kPa is above {_P_KPA_MAX:g} kPa; the "
+                if v > P_KPA_MAX:
+                    raise ValueError(f"data: column '{name}', row {row}: {v:g} kPa is above {P_KPA_MAX:g} kPa; the "
                                      "values look like Pa: convert them to kPa")
                 if v < _P_KPA_MIN:
                     raise ValueError(f"data: column '{name}', row {row}: gauge pressure {v:g} kPa is below "
@@ -185,12 +190,9 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
         h_mm = np.array(vals["h"])
         _missing_runs(h_mm, col["h"])
         h = U.mm(h_mm)
-    speed = np.array(vals["speed"]) / (100.0 if col["speed"].endswith("_pct") else 1.0)
-    u = np.column_stack([speed, vals["inlet"], vals["outlet"]])
-    if "outlet" in col and col["outlet"].endswith("_pct"):
-        u[:, 2] /= 100.0
-    if "inlet" in col and col["inlet"].endswith("_pct"):
-        u[:, 1] /= 100.0
+    # commands as fractions 0-1 (a '_pct' column holds percent)
+    u = np.column_stack([np.array(vals[r]) / (100.0 if col[r].endswith("_pct") else 1.0)
+                         for r in ("speed", "inlet", "outlet")])
     load = U.grams(vals["load"][0]) if "load" in col else float(load_kg or 0.0)
     return RunData(t - t[0], U.kpa(p_kpa), u, h, float(load), {r: col[r] for r in col})
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import datetime as dt
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -289,7 +290,7 @@ def score(data: dict, scenario: Path, objective: str, seed: int, duration_s: flo
     return v
 
 
-def make_storage(url: str, heartbeat: bool = True) -> optuna.storages.BaseStorage:
+def make_storage(url: str) -> optuna.storages.BaseStorage:
     """An optuna storage for ``url``: RDB URL (sqlite with a 60 s lock wait) or ``journal:PATH``."""
     if url.startswith("journal:"):
         from optuna.storages.journal import JournalFileBackend
@@ -381,8 +382,9 @@ def _objective(spec: TuneSpec) -> Callable[[optuna.Trial], float]:
             try:
                 vals.append(score(data, spec.scenario, spec.objective, seed, spec.duration_s))
             except RunDiverged as exc:
+                # optuna marks the trial FAIL (catch=) and goes on; the reason stays with the trial
                 trial.set_user_attr("failure", f"seed {seed}: {exc}"[:500])
-                raise _TrialFailed(f"seed {seed}: {exc}") from None
+                raise
             mean = sum(vals) / len(vals)
             trial.report(mean, step)
             if step < len(spec.train_seeds) - 1 and trial.should_prune():
@@ -390,10 +392,6 @@ def _objective(spec: TuneSpec) -> Callable[[optuna.Trial], float]:
         return sum(vals) / len(vals)
 
     return run
-
-
-class _TrialFailed(RuntimeError):
-    """Raised inside an objective: optuna marks the trial FAIL (catch=) and goes on."""
 
 
 def run_worker(spec: TuneSpec, n_trials: int, callback: Callable[[], None] | None = None) -> None:
@@ -405,12 +403,8 @@ def run_worker(spec: TuneSpec, n_trials: int, callback: Callable[[], None] | Non
         spec.data = tomllib.loads(_text(spec.scenario))
     study = open_study(spec, new_ok=False)
     cbs = [lambda s, t: callback()] if callback is not None else []
-    study.optimize(_objective(spec), n_trials=n_trials, catch=(_TrialFailed,), callbacks=cbs,
+    study.optimize(_objective(spec), n_trials=n_trials, catch=(RunDiverged,), callbacks=cbs,
                    gc_after_trial=False)
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def mean_score(data: dict, scenario: Path, objective: str, seeds: list[int], duration_s: float | None
@@ -456,7 +450,7 @@ def write_outputs(out: Path, study: optuna.Study, spec: TuneSpec, test_seeds: li
         "study": spec.study,
         "storage": spec.storage,
         "scenario": str(spec.scenario),
-        "scenario_sha256": _sha256(spec.scenario),
+        "scenario_sha256": hashlib.sha256(spec.scenario.read_bytes()).hexdigest(),
         "finished_utc": now,
         **extra,
     }
@@ -482,14 +476,10 @@ def _num(v: float | None) -> str:
 
 
 def _ranges(seeds: list[int]) -> str:
-    parts, i = [], 0
-    while i < len(seeds):
-        j = i
-        while j + 1 < len(seeds) and seeds[j + 1] == seeds[j] + 1:
-            j += 1
-        parts.append(str(seeds[i]) if i == j else f"{seeds[i]}-{seeds[j]}")
-        i = j + 1
-    return ",".join(parts)
+    """Sorted distinct seeds as :func:`parse_seeds` reads them: runs of consecutive ones as A-B."""
+    # within a run of consecutive seeds, seed - position is constant
+    runs = [[s for _, s in g] for _, g in itertools.groupby(enumerate(seeds), lambda p: p[1] - p[0])]
+    return ",".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
 
 
 def _plots(out: Path, study: optuna.Study) -> None:
