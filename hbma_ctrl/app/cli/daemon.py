@@ -260,8 +260,7 @@ def bench_poses(
     fault, the monitor re-armed after each (poses.json)."""
     from hbma_ctrl.app.bench.poses import run_poses
 
-    if target_rate is not None and not (0.0 <= target_rate <= 1000.0):
-        raise ValueError(f"--target-rate-mm-s = {target_rate:g} is out of range [0, 1000] mm/s")
+    check_range("--target-rate-mm-s", target_rate, 0.0, 1000.0, unit="mm/s")
     _check_bench(config, {"--duration-s": duration_s, "--setpoint-every-s": every_s})
     with run_dir(out, command="bench poses", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         res = run_poses(config, tmp, duration_s, every_s, seed, target_rate,
