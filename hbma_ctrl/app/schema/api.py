@@ -14,12 +14,12 @@ no finite number for (no reading, no estimate yet) is ``null``.
 
 from __future__ import annotations
 
-import math
 from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hbma_ctrl.app.schema.fields import RuleError, Table, elem_of, integer, num, shaped
+from hbma_ctrl.app.schema.robot import pose_si
 from hbma_ctrl.core import units as U
 from hbma_ctrl.system.sections import POSE_BEND, POSE_HEIGHT, TARGET_HEIGHT
 
@@ -72,9 +72,7 @@ class LayerPose(Table):
     def to_si(self) -> tuple[float, float, float]:
         """(centre height m, bend rad >= 0, direction rad in (-pi, pi]), as [robot.targets] reads a row:
         a negative bend turns the direction by half a turn."""
-        th = math.radians(self.bend_deg)
-        ps = math.radians(self.direction_deg) + (math.pi if th < 0 else 0.0)
-        return U.mm(self.centre_mm), abs(th), math.atan2(math.sin(ps), math.cos(ps))
+        return pose_si(self.centre_mm, self.bend_deg, self.direction_deg)
 
 
 class SetpointRequest(Table):
