@@ -17,7 +17,7 @@ from rich.table import Table
 
 from hbma_ctrl.core.validation import did_you_mean
 
-__all__ = ["cap_workers", "numbers", "whole_numbers", "check_choice", "check_range", "console", "fail", "show_table"]
+__all__ = ["assignments", "cap_workers", "numbers", "whole_numbers", "check_choice", "check_range", "console", "fail", "show_table"]
 
 
 def numbers(text: str, flag: str) -> list[float]:
@@ -29,6 +29,21 @@ def numbers(text: str, flag: str) -> list[float]:
     if not vals or not all(math.isfinite(v) for v in vals):
         raise ValueError(f"{flag} = '{text}' must be finite comma-separated numbers")
     return vals
+
+
+def assignments(items: list[str], flag: str, example: str, one: bool = False) -> dict[str, float | tuple]:
+    """``NAME=VALUE`` items (SI) -> {name: value}: one number as a float, comma-separated numbers as a
+    tuple (refused when ``one``); ValueError naming the flag and the item otherwise."""
+    out: dict[str, float | tuple] = {}
+    for item in items:
+        name, sep, val = (x.strip() for x in item.partition("="))
+        if not sep:
+            raise ValueError(f"{flag} '{item}': expected NAME=VALUE (SI), e.g. {example}")
+        nums = numbers(val, f"{flag} {name}")
+        if one and len(nums) > 1:
+            raise ValueError(f"{flag} {name}: '{val}' must be one number")
+        out[name] = nums[0] if len(nums) == 1 else tuple(nums)
+    return out
 
 
 def whole_numbers(text: str, flag: str, lo: int, hi: int) -> list[int]:

@@ -154,13 +154,7 @@ def observability_cmd(
     from hbma_ctrl.estimators.observability import OBS_SCALE, WINDOW_S, run
     from hbma_ctrl.core.params import Actuator
 
-    act = Actuator()
-    kw = {}
-    if r1_mm is not None:
-        kw["r1"] = U.mm(r1_mm)
-    if t0_mm is not None:
-        kw["t0"] = U.mm(t0_mm)
-    act = act.with_(**kw) if kw else act
+    act = Actuator().with_(**{k: U.mm(v) for k, v in (("r1", r1_mm), ("t0", t0_mm)) if v is not None})
     with run_dir(out, command="observability", argv=cli_argv(), overwrite=overwrite) as tmp:
         summ = run(tmp, act)
     con = show_table(f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "

@@ -13,7 +13,6 @@ ValueError, which the top-level CLI prints as one ``error: ...`` line with exit 
 from __future__ import annotations
 
 import hashlib
-import math
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -21,30 +20,13 @@ import typer
 from rich.console import Console
 
 # the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
-from hbma_ctrl.app.cli.args import cap_workers, check_range, show_table
+from hbma_ctrl.app.cli.args import assignments, cap_workers, check_range, show_table
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 
-__all__ = ["register", "fit_cmd", "parse_fix"]
-
-
-def parse_fix(items: list[str]) -> dict[str, float]:
-    """``--fix NAME=VALUE`` items -> {name: value (SI)}; ValueError naming the bad item."""
-    out: dict[str, float] = {}
-    for item in items:
-        if "=" not in item:
-            raise ValueError(f"--fix '{item}': expected NAME=VALUE (SI), e.g. C2=0 or Jm=60")
-        name, val = (x.strip() for x in item.split("=", 1))
-        try:
-            v = float(val)
-        except ValueError:
-            raise ValueError(f"--fix {name}: '{val}' is not a number") from None
-        if not math.isfinite(v):
-            raise ValueError(f"--fix {name}: '{val}' is not a finite number")
-        out[name] = v
-    return out
+__all__ = ["register", "fit_cmd"]
 
 
 def fit_cmd(
@@ -96,7 +78,7 @@ def fit_cmd(
     check_range("--valve-delay-ms", valve_delay_ms, 0.0, U.to_ms(DELAY_MAX), unit="ms")
     check_range("--sensor-delay-ms", sensor_delay_ms, 0.0, U.to_ms(DELAY_MAX), unit="ms")
     check_options(material.lower(), contact, fidelity or "cap")
-    fixed = parse_fix(fix or [])
+    fixed = assignments(fix or [], "--fix", "C2=0 or Jm=60", one=True)
     check_out(out, overwrite)  # before the fit: a bad --out costs nothing
     if not data.is_file():
         raise FileNotFoundError(f"data file {data} not found")

@@ -42,12 +42,8 @@ def _wide_console() -> Console:
 def _design(layers: int | None, max_stretch: float | None = None) -> RobotDesign:
     from hbma_ctrl.robot.design import RobotDesign
 
-    kw = {}
-    if layers is not None:
-        kw["n_layers"] = layers
-    if max_stretch is not None:
-        kw["max_stretch"] = max_stretch
-    return RobotDesign(**kw).validate()
+    kw = {"n_layers": layers, "max_stretch": max_stretch}
+    return RobotDesign(**{k: v for k, v in kw.items() if v is not None}).validate()
 
 
 @robot_app.command("table2")

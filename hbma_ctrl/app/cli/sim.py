@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from hbma_ctrl.app.cli.args import cap_workers, check_choice, check_range, console, fail, show_table
+from hbma_ctrl.app.cli.args import assignments, cap_workers, check_choice, check_range, console, fail, show_table
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.core import units as U
 
@@ -120,20 +120,6 @@ def protocol(
     con.print(f"wrote {out / 'summary.csv'}, {out / 'trials'}/*.csv" + ("" if no_plots else ", fig6/fig7/fig9.png"))
 
 
-def _parse_params(items: list[str]) -> dict:
-    out = {}
-    for item in items:
-        if "=" not in item:
-            raise ValueError(f"--param '{item}': expected NAME=VALUE (SI), e.g. E=130.6e3 or C=2e4,-200,10")
-        name, val = item.split("=", 1)
-        try:
-            nums = [float(x) for x in val.split(",")]
-        except ValueError:
-            raise ValueError(f"--param {name}: '{val}' is not a number (or comma-separated numbers)") from None
-        out[name.strip()] = nums[0] if len(nums) == 1 else tuple(nums)
-    return out
-
-
 def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, h2_mm: float,
                        params: dict | None = None, V0_cm3: float = 3.0, fidelity: str = "cap",
                        contact: str = "flat", disk_radius_mm: float = 2.0,
@@ -204,9 +190,8 @@ def _exact_equilibrium_values(mat, r1_mm: float, t0_mm: float, h1_mm: float, h2_
 
     check_choice("--contact", contact, ["flat", "bonded"])
     if contact == "bonded":
-        if not (math.isfinite(disk_radius_mm) and 0.0 < disk_radius_mm < r1_mm):
-            raise ValueError(f"--disk-radius-mm = {disk_radius_mm:g} is out of range (0, {r1_mm:g}) mm "
-                             "(inside the retaining radius)")
+        check_range("--disk-radius-mm", disk_radius_mm, 0.0, r1_mm, lo_open=True, unit="mm", hi_open=True,
+                    note="inside the retaining radius")
     free = h2_mm == 0 and contact == "flat"
     if free and p_kpa is not None:
         raise ValueError("--p-kpa: free inflation (--h2-mm 0, flat contact) has its pressure set by the height; "
@@ -251,7 +236,7 @@ def equilibrium(
     ``--fidelity exact``: the exact axisymmetric membrane; h = h1 - h2 is the centre height, free
     inflation for --h2-mm 0 (flat), otherwise a flat plate or a bonded disk at --p-kpa.
     """
-    res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, _parse_params(param or []), V0_cm3,
+    res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, assignments(param or [], "--param", "E=130.6e3 or C=2e4,-200,10"), V0_cm3,
                              fidelity, contact, disk_radius_mm, p_kpa)
     if as_json:
         typer.echo(json.dumps(res))

@@ -177,6 +177,12 @@ def _locate(root: type[BaseModel], loc: tuple, table: str | None) -> _Spot:
     return s
 
 
+#: a pydantic error type -> what the value must be (with the field's range when it has one)
+_MUST = {"finite_number": "a finite number", "float_type": "a number", "float_parsing": "a number",
+         "int_type": "an integer", "int_parsing": "an integer", "int_from_float": "an integer",
+         "bool_type": "true or false", "bool_parsing": "true or false", "string_type": "a string"}
+
+
 def format_error(exc: ValidationError, root: type[BaseModel], table: str | None = None) -> str:
     """The first error of ``exc`` (raised validating ``root``) as one line starting with ``[table]``.
 
@@ -221,22 +227,14 @@ def format_one(err: dict, root: type[BaseModel], table: str | None = None) -> st
     unit = "" if unit == "-" else unit
     rng = range_text(lo, hi, lo_open, hi_open, unit)
     bounded = lo is not None or hi is not None
-    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal") or \
+            (kind == "finite_number" and bounded):
         return f"{head} {key} = {value!r} is out of range {rng}"
-    if kind == "finite_number":
-        return f"{head} {key} = {value!r} is out of range {rng}" if bounded else \
-            f"{head} {key} = {value!r} must be a finite number"
-    if kind in ("float_type", "float_parsing"):  # strings are not parsed: '1e2' in TOML is a typo
-        return f"{head} {key} = {value!r} must be a number" + (f" in {rng}" if bounded else "")
-    if kind in ("int_type", "int_parsing", "int_from_float"):
-        return f"{head} {key} = {value!r} must be an integer" + (f" in {rng}" if bounded else "")
-    if kind in ("bool_type", "bool_parsing"):
-        return f"{head} {key} = {value!r} must be true or false"
+    if kind in _MUST:  # strings are not parsed: '1e2' in TOML is a typo
+        return f"{head} {key} = {value!r} must be {_MUST[kind]}" + (f" in {rng}" if bounded else "")
     if kind == "literal_error":
         opts = [str(o) for o in get_args(s.tp)] if get_origin(s.tp) is Literal else []
         return f"{head} {key} = {value!r} is not allowed" + hint(value, opts, near_as="'{}'")
-    if kind == "string_type":
-        return f"{head} {key} = {value!r} must be a string"
     if kind == "missing":
         if len(s.keys) == 1:
             return f"{head} {key} is required" + (f": {s.shape}" if s.shape else "")
