@@ -28,7 +28,8 @@ __all__ = ["register"]
 DURATION_MAX_S = 3600.0
 
 
-def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None, with_scenario: bool = False):
+def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None):
+    """(the loop's spec, the scenario) of ``config``; ValueError naming the flag or the file otherwise."""
     from hbma_ctrl.controllers.rti_step import QP_SOLVERS
     from hbma_ctrl.app.codegen.chamber import ESTIMATORS, scenario_loop
     from hbma_ctrl.app.scenario import load_scenario
@@ -45,7 +46,7 @@ def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str
             spec = scenario_loop(scn, duration_s, estimator, qp_solver)
     except ValueError as exc:
         raise ValueError(f"{config.name}: {exc}") from None
-    return (spec, scn) if with_scenario else spec
+    return spec, scn
 
 
 def _robot_spec(scn, duration_s: float | None, estimator: str, qp_solver: str | None):
@@ -105,7 +106,7 @@ def codegen(
     from hbma_ctrl.core.loopgen import bench, write_c
 
     check_choice("--opt", opt, OPT_FLAGS)
-    spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
+    spec, scn = _spec(config, duration_s, estimator, qp_solver)
     cc = _compiler() if check else None
     con = Console(highlight=False)
     with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
@@ -147,7 +148,7 @@ def bench_codegen(
     from hbma_ctrl.app.codegen.chamber import scene_reference
 
     check_choice("--opt", opt, OPT_FLAGS)
-    spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
+    spec, scn = _spec(config, duration_s, estimator, qp_solver)
     cc = _compiler()
     con = Console(highlight=False, width=150)
     with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:

@@ -165,10 +165,8 @@ def pose(out: Path = typer.Option(Path("runs/pose"), "--out", help="directory fo
     from hbma_ctrl.robot.kinematics import forward_kinematics, inverse_kinematics
     from hbma_ctrl.robot.reach import reach_report
 
-    sets = []
-    if heights_mm:
-        for text in heights_mm:
-            sets.append(np.array(numbers(text, "--heights-mm")))
+    sets = [np.array(numbers(text, "--heights-mm")) for text in heights_mm or []]
+    if sets:
         n = {s.size for s in sets}
         if len(n) != 1 or next(iter(n)) % 3:
             raise ValueError("--heights-mm: every set needs the same number of heights, 3 per layer")

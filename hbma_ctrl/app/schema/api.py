@@ -24,11 +24,8 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.system.sections import POSE_BEND, POSE_HEIGHT, TARGET_HEIGHT
 
 __all__ = [
-    "BEND_MAX_DEG",
-    "CENTRE_MAX_MM",
     "CHAMBER_INDEX_MAX",
     "DIRECTION_MAX_DEG",
-    "HEIGHT_MAX_MM",
     "LAYER_INDEX_MAX",
     "ChamberStatus",
     "FaultEvent",
@@ -44,10 +41,7 @@ __all__ = [
     "StopReply",
 ]
 
-#: bounds of a request, in the user's units (the scenario file's: controller and robot targets' declarations)
-HEIGHT_MAX_MM = TARGET_HEIGHT.user_bounds()[1]
-CENTRE_MAX_MM = POSE_HEIGHT.user_bounds()[1]
-BEND_MAX_DEG = POSE_BEND.user_bounds()[1]
+#: bounds of a request the targets' declarations (TARGET_HEIGHT, POSE_HEIGHT, POSE_BEND) leave out
 DIRECTION_MAX_DEG = 360.0
 CHAMBER_INDEX_MAX = 255
 LAYER_INDEX_MAX = 63
