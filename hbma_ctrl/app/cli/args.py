@@ -17,7 +17,8 @@ from rich.table import Table
 
 from hbma_ctrl.core.validation import did_you_mean
 
-__all__ = ["assignments", "cap_workers", "numbers", "whole_numbers", "check_choice", "check_range", "console", "fail", "show_table"]
+__all__ = ["assignments", "cap_workers", "numbers", "whole_numbers", "check_choice", "check_range", "console", "fail",
+           "show_table"]
 
 
 def numbers(text: str, flag: str) -> list[float]:
@@ -64,11 +65,13 @@ def whole_numbers(text: str, flag: str, lo: int, hi: int) -> list[int]:
     return vals
 
 
-def cap_workers(flag: str, workers: int) -> int:
-    """``workers`` capped at the machine's core count, with a one-line note on stderr (not an error).
+def cap_workers(flag: str, workers: int, most: int = 256) -> int:
+    """``workers`` checked in [1, ``most``] (:func:`check_range`), then capped at the machine's core
+    count with a one-line note on stderr (not an error).
 
     More processes than cores only share the cores and each costs a model build: never faster.
     """
+    check_range(flag, workers, 1, most)
     cores = os.cpu_count() or 1
     if workers > cores:
         typer.echo(f"note: {flag} = {workers} is above this machine's {cores} cores; using {cores}", err=True)

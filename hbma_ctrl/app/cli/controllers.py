@@ -50,8 +50,7 @@ def bench_loop(
                                           write_loop_bench)
 
     check_range("--seeds", seeds, 1, 100)
-    check_range("--workers", workers, 1, 64)
-    workers = cap_workers("--workers", workers)
+    workers = cap_workers("--workers", workers, 64)
     con = Console(highlight=False, width=140)
     cs = check_cases([c.strip() for c in cases.split(",") if c.strip()])  # before --out is touched
     setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms, calibration_std_floor,

@@ -140,8 +140,7 @@ def bench_fit_cmd(
     from hbma_ctrl.app.bench.fit import run_rows, static_rows, summarize_runs, write_fit_bench
 
     check_range("--seeds", seeds, 1, 100)
-    check_range("--workers", workers, 1, 64)
-    workers = cap_workers("--workers", workers)
+    workers = cap_workers("--workers", workers, 64)
     con = Console(highlight=False, width=140)
     with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         static = static_rows(progress=lambda r: con.print(f"  static {r['case']}, {r['law']} law: worst miss "
