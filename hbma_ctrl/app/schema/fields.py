@@ -118,8 +118,7 @@ def subtable(default_factory: Any, what: str, shape: str) -> Any:
 def elem(lo: float | None, hi: float | None, unit: str, what: str, *, lo_open: bool = False,
          hi_open: bool = False) -> Any:
     """The type of one number inside a row or vector (a tuple element), with bounds and unit."""
-    return Annotated[float, Field(strict=True, allow_inf_nan=False, description=f"{what} ({unit})",
-                                  json_schema_extra={"unit": unit}, **_bounds(lo, hi, lo_open, hi_open))]
+    return Annotated[float, num(..., lo, hi, unit, what, lo_open=lo_open, hi_open=hi_open)]
 
 
 def shaped(default: Any, what: str, shape: str, *, min_length: int | None = None,
