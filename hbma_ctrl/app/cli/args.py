@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-
 from collections.abc import Iterable, Sequence
 
 import typer
