@@ -10,41 +10,31 @@ system compiler, runs it and compares its trajectory with the Python path's (che
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 # the code generator, its scenes and the RTI step (casadi) are imported by the commands when they
 # run; the flags their options show come from the light cli_constants
-from hbma_ctrl.app.cli.args import check_choice
+from hbma_ctrl.app.cli.args import check_choice, check_range, show_table
 from hbma_ctrl.app.cli.constants import DEFAULT_OPT, OPT_FLAGS
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 
-__all__ = ["register", "check_duration"]
+__all__ = ["register"]
 
 #: longest loop a generated program runs, s
 DURATION_MAX_S = 3600.0
 
 
-def check_duration(value: float | None) -> float | None:
-    """--duration-s (s) checked: None or in (0, 3600]; ValueError naming the flag otherwise."""
-    if value is None:
-        return None
-    if not (math.isfinite(value) and 0 < value <= DURATION_MAX_S):
-        raise ValueError(f"--duration-s = {value:g} is out of range (0, {DURATION_MAX_S:g}] s")
-    return value
-
-
-def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None, with_scenario: bool = False):
+def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None):
+    """(the loop's spec, the scenario) of ``config``; ValueError naming the flag or the file otherwise."""
     from hbma_ctrl.controllers.rti_step import QP_SOLVERS
     from hbma_ctrl.app.codegen.chamber import ESTIMATORS, scenario_loop
     from hbma_ctrl.app.scenario import load_scenario
 
-    check_duration(duration_s)
+    check_range("--duration-s", duration_s, 0.0, DURATION_MAX_S, lo_open=True, unit="s")
     check_choice("--estimator", estimator, ESTIMATORS)
     if qp_solver is not None:
         check_choice("--qp-solver", qp_solver, QP_SOLVERS)
@@ -56,7 +46,7 @@ def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str
             spec = scenario_loop(scn, duration_s, estimator, qp_solver)
     except ValueError as exc:
         raise ValueError(f"{config.name}: {exc}") from None
-    return (spec, scn) if with_scenario else spec
+    return spec, scn
 
 
 def _robot_spec(scn, duration_s: float | None, estimator: str, qp_solver: str | None):
@@ -116,7 +106,7 @@ def codegen(
     from hbma_ctrl.core.loopgen import bench, write_c
 
     check_choice("--opt", opt, OPT_FLAGS)
-    spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
+    spec, scn = _spec(config, duration_s, estimator, qp_solver)
     cc = _compiler() if check else None
     con = Console(highlight=False)
     with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
@@ -158,7 +148,7 @@ def bench_codegen(
     from hbma_ctrl.app.codegen.chamber import scene_reference
 
     check_choice("--opt", opt, OPT_FLAGS)
-    spec, scn = _spec(config, duration_s, estimator, qp_solver, with_scenario=True)
+    spec, scn = _spec(config, duration_s, estimator, qp_solver)
     cc = _compiler()
     con = Console(highlight=False, width=150)
     with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
@@ -173,13 +163,10 @@ def bench_codegen(
             res["scene"]["c_height_rmse_mm"] = c_metrics["controller"]["height_rmse_mm"]
             res["scene"]["c_steps_settled"] = c_metrics["controller"]["steps_settled"]
         (tmp / "bench_codegen.json").write_text(json.dumps(res, indent=2) + "\n")
-    t = Table(title=f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs "
-                    f"Python path ({res['python_path']}); us per call")
     cols = ["function", "calls", "C median", "C p99", "Python median", "Python p99", "ratio median", "ratio p99"]
     if python_vm:
         cols += ["VM median", "VM p99"]
-    for c in cols:
-        t.add_column(c, justify="right")
+    rows = []
     for name, r in list(res["functions"].items()) + [("tick (sum)", res["tick"])]:
         c, p = r["c"], r["python"]
         ratio = [f"{v:.1f}x" if v else "-" for v in (r["ratio_median"], r["ratio_p99"])]
@@ -188,8 +175,9 @@ def bench_codegen(
         if python_vm:
             vm = r["python_vm"]
             row += [f"{vm['median_us']:.2f}" if vm["calls"] else "-", f"{vm['p99_us']:.2f}" if vm["calls"] else "-"]
-        t.add_row(*row)
-    con.print(t)
+        rows.append(row)
+    show_table(f"bench codegen: {spec.name}, {spec.n_ticks} ticks of {spec.dt * 1e3:g} ms, C {opt} vs Python path "
+               f"({res['python_path']}); us per call", cols, rows, con)
     if python_vm:
         con.print(f"largest |C - VM path| over the trajectory: {res['vm_max_abs_diff_si_all']:.3g} (SI)")
     con.print(f"largest |C - Python| over the trajectory: {res['max_abs_diff_si_all']:.3g} (SI); "

@@ -7,10 +7,9 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 # the benches (the controllers, the EKF, the rig) are imported by their commands when they run
-from hbma_ctrl.app.cli.args import cap_workers, check_range
+from hbma_ctrl.app.cli.args import cap_workers, check_range, show_table, whole_numbers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 
 #: the variants ``bench mpc`` sweeps by default (x its horizons)
@@ -51,8 +50,7 @@ def bench_loop(
                                           write_loop_bench)
 
     check_range("--seeds", seeds, 1, 100)
-    check_range("--workers", workers, 1, 64)
-    workers = cap_workers("--workers", workers)
+    workers = cap_workers("--workers", workers, 64)
     con = Console(highlight=False, width=140)
     cs = check_cases([c.strip() for c in cases.split(",") if c.strip()])  # before --out is touched
     setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms, calibration_std_floor,
@@ -64,17 +62,13 @@ def bench_loop(
                                                            f"(final error {r['final_error_mm']:.3f} mm)"),
                               setup=setup)
         written = write_loop_bench(rows, tmp, setup)
-    t = Table(title=f"bench loop: {setup['rig']} rig -> EKF -> RTI-OSQP -> rig ({setup['membrane']} models, "
-                    f"delays {setup['valve_delay_ms']:g} + {setup['sensor_delay_ms']:g} ms), {seeds} noise "
-                    f"seeds per case; pass = true height within 0.3 mm")
-    for c in ("case", "passed", "final error median (mm)", "worst (mm)", "max p (kPa)", "limit (kPa)",
-              "fallbacks"):
-        t.add_column(c, justify="right")
-    for case, v in summarize_loop(rows).items():
-        t.add_row(case, f"{v['passed']}/{v['runs']}", f"{v['final_error_mm_median']:.3f}",
-                  f"{v['final_error_mm_max']:.3f}", f"{v['max_pressure_kpa']:.2f}", f"{v['pressure_limit_kpa']:g}",
-                  str(v["fallbacks"]))
-    con.print(t)
+    show_table(f"bench loop: {setup['rig']} rig -> EKF -> RTI-OSQP -> rig ({setup['membrane']} models, delays "
+               f"{setup['valve_delay_ms']:g} + {setup['sensor_delay_ms']:g} ms), {seeds} noise seeds per case; "
+               "pass = true height within 0.3 mm",
+               ("case", "passed", "final error median (mm)", "worst (mm)", "max p (kPa)", "limit (kPa)", "fallbacks"),
+               [(case, f"{v['passed']}/{v['runs']}", f"{v['final_error_mm_median']:.3f}",
+                 f"{v['final_error_mm_max']:.3f}", f"{v['max_pressure_kpa']:.2f}", f"{v['pressure_limit_kpa']:g}",
+                 str(v["fallbacks"])) for case, v in summarize_loop(rows).items()], con)
     con.print(f"wrote {out / written.name}")
 
 def bench_mpc(
@@ -98,11 +92,11 @@ def bench_mpc(
     """MPC speed/accuracy: IPOPT, fatrop, RTI-OSQP and the one-Function RTI x horizon, baselines and do-mpc, on one closed loop."""
     from hbma_ctrl.app.bench.mpc import run_bench, summarize, write_bench
     from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.controllers.mpc_settings import MPCSettings
+    from hbma_ctrl.core.settings import specs
 
-    try:
-        hs = tuple(int(x) for x in horizons.split(",") if x.strip())
-    except ValueError:
-        raise ValueError(f"--horizons = '{horizons}' must be comma-separated integers, e.g. 10,20,40") from None
+    spec = specs(MPCSettings)["horizon"]
+    hs = tuple(whole_numbers(horizons, "--horizons", spec.lo, spec.hi))
     vs = tuple(v.strip() for v in variants.split(",") if v.strip())
     kw = {}
     if scenario is not None:
@@ -113,8 +107,7 @@ def bench_mpc(
               "section": scn.role("controller"), "rig_settings": scn.role("rig")}
         duration = duration if duration is not None else scn.duration
     duration = 9.0 if duration is None else duration
-    if not 0 < duration <= 600:
-        raise ValueError(f"--duration = {duration:g} is out of range (0, 600] s")
+    check_range("--duration", duration, 0.0, 600.0, lo_open=True, unit="s")
     if ipopt_c:
         from hbma_ctrl.core.codegen import has_compiler
 
@@ -126,19 +119,17 @@ def bench_mpc(
                         budget_ms=budget_ms, rt_budget_ms=rt_budget_ms, ipopt_c=ipopt_c,
                         progress=lambda name: con.print(f"  running {name} ..."), **kw)
         written = write_bench(res, tmp)
-    t = Table(title=f"bench mpc: {res['settings']['load_g']:g} g, {duration:g} s, targets "
-                    f"{res['settings']['targets_mm']} mm; solve = wall ms per step on this machine")
-    for c in ("controller", "RMSE h (mm)", "RMSE est (mm)", "max p (kPa)", "solve med", "solve p99", "solve max",
-              "cpu med", "cpu p99", "fallbacks", f"over {rt_budget_ms:g} ms", "settled (est)"):
-        t.add_column(c, justify="right")
-    for r in res["rows"]:
-        cpu = [r.get("solve_cpu_ms_median"), r.get("solve_cpu_ms_p99")]
-        cpu = [f"{v:.3f}" if isinstance(v, float) else "-" for v in cpu]
-        t.add_row(r["controller"], f"{r['height_rmse_mm']:.3f}", f"{r['height_rmse_estimate_mm']:.3f}",
-                  f"{r['max_pressure_kpa']:.2f}", f"{r['solve_ms_median']:.3f}", f"{r['solve_ms_p99']:.3f}",
-                  f"{r['solve_ms_max']:.3f}", cpu[0], cpu[1], str(r["fallbacks"]), str(r["over_rt"]),
-                  f"{r['steps_settled']}/{r['steps_total']} ({r['steps_settled_estimate']})")
-    con.print(t)
+    show_table(f"bench mpc: {res['settings']['load_g']:g} g, {duration:g} s, targets {res['settings']['targets_mm']} "
+               "mm; solve = wall ms per step on this machine",
+               ("controller", "RMSE h (mm)", "RMSE est (mm)", "max p (kPa)", "solve med", "solve p99", "solve max",
+                "cpu med", "cpu p99", "fallbacks", f"over {rt_budget_ms:g} ms", "settled (est)"),
+               [(r["controller"], f"{r['height_rmse_mm']:.3f}", f"{r['height_rmse_estimate_mm']:.3f}",
+                 f"{r['max_pressure_kpa']:.2f}", f"{r['solve_ms_median']:.3f}", f"{r['solve_ms_p99']:.3f}",
+                 f"{r['solve_ms_max']:.3f}",
+                 *(f"{v:.3f}" if isinstance(v, float) else "-" for v in (r.get("solve_cpu_ms_median"),
+                                                                         r.get("solve_cpu_ms_p99"))),
+                 str(r["fallbacks"]), str(r["over_rt"]),
+                 f"{r['steps_settled']}/{r['steps_total']} ({r['steps_settled_estimate']})") for r in res["rows"]], con)
     con.print(f"do-mpc: {res['dompc']}")
     for k, v in summarize(res).items():
         con.print(f"  {k}: {v if not isinstance(v, float) else f'{v:.3g}'}")

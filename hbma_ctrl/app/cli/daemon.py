@@ -143,17 +143,14 @@ def daemon(
     dest = out or default_out(cfg.scenario.name)
     try:
         stats = run_daemon(cfg, dest, overwrite=overwrite, argv=cli_argv())
-    except _link_errors() as exc:
-        partial = getattr(exc, "partial_results", None)
-        where = f"; partial results in {partial}" if partial else ""
-        raise ValueError(f"rig link: {exc} (the safe command was sent){where}") from None
     except (ValueError, FileNotFoundError, KeyboardInterrupt):
         raise
     except Exception as exc:  # noqa: BLE001 - one line, no traceback: the loop already sent the safe command
         partial = getattr(exc, "partial_results", None)
         where = f"; partial results in {partial}" if partial else ""
-        raise ValueError(f"the loop stopped on {type(exc).__name__}: {exc} (the safe command was sent)"
-                         f"{where}") from None
+        what = f"rig link: {exc}" if isinstance(exc, _link_errors()) else \
+            f"the loop stopped on {type(exc).__name__}: {exc}"
+        raise ValueError(f"{what} (the safe command was sent){where}") from None
     faults = stats.get("faults") or {}
     typer.echo(f"daemon: {stats['steps']} steps, {stats['deadline_misses']} deadline misses, step p99 "
                f"{stats['step_ms_p99'] or float('nan'):.2f} ms, max pressure "
@@ -262,8 +259,7 @@ def bench_poses(
     fault, the monitor re-armed after each (poses.json)."""
     from hbma_ctrl.app.bench.poses import run_poses
 
-    if target_rate is not None and not (0.0 <= target_rate <= 1000.0):
-        raise ValueError(f"--target-rate-mm-s = {target_rate:g} is out of range [0, 1000] mm/s")
+    check_range("--target-rate-mm-s", target_rate, 0.0, 1000.0, unit="mm/s")
     _check_bench(config, {"--duration-s": duration_s, "--setpoint-every-s": every_s})
     with run_dir(out, command="bench poses", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         res = run_poses(config, tmp, duration_s, every_s, seed, target_rate,

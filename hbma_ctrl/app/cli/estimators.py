@@ -15,10 +15,10 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 from rich.console import Console
-from rich.table import Table
 
 # the filters (filterpy, scipy.stats), python-control and the rig are imported by the commands
 # when they run
+from hbma_ctrl.app.cli.args import check_range, numbers, show_table, whole_numbers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 
@@ -26,16 +26,6 @@ __all__ = ["register", "bench_ekf", "parse_axes", "BENCH_SUBSTEPS", "BENCH_MEMBR
 
 #: the bench's default protocol subset (edge units): both filters see the same rig runs
 BENCH_GRID = {"loads_g": [0.0, 400.0, 800.0], "speeds_pct": [40.0, 100.0], "t0_mm": [3.0], "r1_mm": [7.5, 12.5]}
-
-
-def _floats(name: str, text: str) -> list[float]:
-    try:
-        vals = [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise ValueError(f"--{name} = '{text}' must be comma-separated numbers") from None
-    if not vals:
-        raise ValueError(f"--{name} must not be empty")
-    return vals
 
 
 #: the estimator's cost/accuracy axes a bench runs by default: integrator sub-steps and membrane laws
@@ -46,12 +36,7 @@ BENCH_MEMBRANES = ("exact", "cap")
 def parse_axes(substeps: str, membranes: str) -> tuple[tuple[int, ...], tuple[str, ...]]:
     """``--substeps`` (comma-separated integers 1-50) and ``--membranes`` (cap, exact) of ``bench ekf``;
     ValueError naming the flag and the allowed values."""
-    try:
-        ns = tuple(int(x) for x in substeps.split(",") if x.strip())
-    except ValueError:
-        raise ValueError(f"--substeps = '{substeps}' must be comma-separated integers in [1, 50]") from None
-    if not ns or any(not 1 <= n <= 50 for n in ns):
-        raise ValueError(f"--substeps = '{substeps}' must be comma-separated integers in [1, 50]")
+    ns = tuple(whole_numbers(substeps, "--substeps", 1, 50))
     ms = tuple(m.strip() for m in membranes.split(",") if m.strip())
     bad = [m for m in ms if m not in BENCH_MEMBRANES]
     if bad:
@@ -139,28 +124,22 @@ def bench_ekf_cmd(
     """EKF (compiled step and reference path), filterpy's EKF on the same model, and the UKF on
     the same rig runs: us per predict+update (median), ratios to the EKF, accuracy."""
 
-    grid = {"loads_g": _floats("loads-g", loads_g), "speeds_pct": _floats("speeds-pct", speeds_pct),
-            "t0_mm": _floats("t0-mm", t0_mm), "r1_mm": _floats("r1-mm", r1_mm)}
-    if not 0 <= seed <= 2**31:
-        raise ValueError(f"--seed = {seed} is out of range [0, 2^31]")
+    grid = {"loads_g": numbers(loads_g, "--loads-g"), "speeds_pct": numbers(speeds_pct, "--speeds-pct"),
+            "t0_mm": numbers(t0_mm, "--t0-mm"), "r1_mm": numbers(r1_mm, "--r1-mm")}
+    check_range("--seed", seed, 0, 2**31)
     ns, ms = parse_axes(substeps, membranes)
     with run_dir(out, command="bench ekf", argv=cli_argv(), overwrite=overwrite) as tmp:
         res = bench_ekf(grid, seed=seed, substeps=ns, membranes=ms)
         (tmp / "bench_ekf.json").write_text(json.dumps(res, indent=1))
-    t = Table(title=f"bench ekf: {res['settings']['n_trials']} rig trials (the default rig); "
-                    "us = wall time per chamber-step on this machine")
     cols = [("us median", "step_us_median", "{:.0f}"), ("us p90", "step_us_p90", "{:.0f}"),
             ("height NRMSD", "height_nrmsd", "{:.3f}"), ("worst", "height_nrmsd_max", "{:.3f}"),
             ("open loop", "height_nrmsd_open_loop", "{:.3f}"), ("F rmse N", "force_rmse_n", "{:.3f}"),
             ("F steady err", "force_steady_rel_err_mean", "{:.3f}"), ("NEES", "nees_mean", "{:.2f}"),
             ("NIS", "nis_mean", "{:.2f}")]
-    t.add_column("filter")
-    for c in cols:
-        t.add_column(c[0], justify="right")
-    for kind, a in res["filters"].items():
-        t.add_row(kind, *[(c[2].format(a[c[1]]) if a.get(c[1]) is not None else "-") for c in cols])
-    con = Console(highlight=False, width=150)
-    con.print(t)
+    con = show_table(f"bench ekf: {res['settings']['n_trials']} rig trials (the default rig); us = wall time per "
+                     "chamber-step on this machine", ["filter", *(c[0] for c in cols)],
+                     [(kind, *[(c[2].format(a[c[1]]) if a.get(c[1]) is not None else "-") for c in cols])
+                      for kind, a in res["filters"].items()], Console(highlight=False, width=150), left=1)
     for k, v in res.get("ratios", {}).items():
         con.print(f"{k.replace('_over_ekf_step_median', '')} / ekf median step time: {v:.1f}x")
     con.print(f"wrote {out / 'bench_ekf.json'}")
@@ -175,28 +154,19 @@ def observability_cmd(
     from hbma_ctrl.estimators.observability import OBS_SCALE, WINDOW_S, run
     from hbma_ctrl.core.params import Actuator
 
-    act = Actuator()
-    kw = {}
-    if r1_mm is not None:
-        kw["r1"] = U.mm(r1_mm)
-    if t0_mm is not None:
-        kw["t0"] = U.mm(t0_mm)
-    act = act.with_(**kw) if kw else act
+    act = Actuator().with_(**{k: U.mm(v) for k, v in (("r1", r1_mm), ("t0", t0_mm)) if v is not None})
     with run_dir(out, command="observability", argv=cli_argv(), overwrite=overwrite) as tmp:
         summ = run(tmp, act)
-    t = Table(title=f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "
-                    f"t0 {U.to_mm(act.t0):g} mm); window = up to {WINDOW_S:g} s in one regime, "
-                    f"resolution {OBS_SCALE.tolist()}")
-    for c in ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",
-              "window rank (med/min/max)"):
-        t.add_column(c, justify="right" if c != "trajectory" else "left")
-    for r in summ:
-        t.add_row(r["trajectory"], r["regime"], str(r["samples"]),
-                  f"{r['rank_median']:g}/{r['rank_min']}/{r['rank_max']}",
-                  f"{r['cond_median']:.2g}" if r["cond_median"] is not None else "inf",
-                  f"{r['window_rank_median']:g}/{r['window_rank_min']}/{r['window_rank_max']}")
-    con = Console(highlight=False, width=150)
-    con.print(t)
+    con = show_table(f"observability of x = \\[m, W, b, k, c] from pressure alone (r1 {U.to_mm(act.r1):g} mm, "
+                     f"t0 {U.to_mm(act.t0):g} mm); window = up to {WINDOW_S:g} s in one regime, "
+                     f"resolution {OBS_SCALE.tolist()}",
+                     ("trajectory", "regime", "samples", "obsv rank (med/min/max)", "cond (med)",
+                      "window rank (med/min/max)"),
+                     [(r["trajectory"], r["regime"], str(r["samples"]),
+                       f"{r['rank_median']:g}/{r['rank_min']}/{r['rank_max']}",
+                       f"{r['cond_median']:.2g}" if r["cond_median"] is not None else "inf",
+                       f"{r['window_rank_median']:g}/{r['window_rank_min']}/{r['window_rank_max']}") for r in summ],
+                     Console(highlight=False, width=150), left=1)
     con.print(f"wrote {out / 'observability.json'}")
 
 

@@ -13,39 +13,20 @@ ValueError, which the top-level CLI prints as one ``error: ...`` line with exit 
 from __future__ import annotations
 
 import hashlib
-import math
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 # the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
-from hbma_ctrl.app.cli.args import cap_workers, check_range
+from hbma_ctrl.app.cli.args import assignments, cap_workers, check_range, show_table
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
 from hbma_ctrl.models.defaults import DEFAULT_SENSOR_DELAY, DEFAULT_VALVE_DELAY
 
-__all__ = ["register", "fit_cmd", "parse_fix"]
-
-
-def parse_fix(items: list[str]) -> dict[str, float]:
-    """``--fix NAME=VALUE`` items -> {name: value (SI)}; ValueError naming the bad item."""
-    out: dict[str, float] = {}
-    for item in items:
-        if "=" not in item:
-            raise ValueError(f"--fix '{item}': expected NAME=VALUE (SI), e.g. C2=0 or Jm=60")
-        name, val = (x.strip() for x in item.split("=", 1))
-        try:
-            v = float(val)
-        except ValueError:
-            raise ValueError(f"--fix {name}: '{val}' is not a number") from None
-        if not math.isfinite(v):
-            raise ValueError(f"--fix {name}: '{val}' is not a finite number")
-        out[name] = v
-    return out
+__all__ = ["register", "fit_cmd"]
 
 
 def fit_cmd(
@@ -91,17 +72,13 @@ def fit_cmd(
 
     check_range("--r1-mm", r1_mm, 0.5, 100.0, lo_open=True, unit="mm")
     check_range("--t0-mm", t0_mm, 0.05, 20.0, lo_open=True, unit="mm")
-    if v0_cm3 is not None:
-        check_range("--v0-cm3", v0_cm3, 0.001, 1000.0, lo_open=True, unit="cm^3")
-    if sensor_range_kpa is not None:
-        check_range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, lo_open=True, unit="kPa")
-    if load_g is not None and not (math.isfinite(load_g) and 0.0 <= load_g <= 50000.0):
-        raise ValueError(f"--load-g = {load_g:g} is out of range [0, 50000] g")
-    for flag, v in (("--valve-delay-ms", valve_delay_ms), ("--sensor-delay-ms", sensor_delay_ms)):
-        if v is not None and not (math.isfinite(v) and 0.0 <= v <= U.to_ms(DELAY_MAX)):
-            raise ValueError(f"{flag} = {v:g} is out of range [0, {U.to_ms(DELAY_MAX):g}] ms")
+    check_range("--v0-cm3", v0_cm3, 0.001, 1000.0, lo_open=True, unit="cm^3")
+    check_range("--sensor-range-kpa", sensor_range_kpa, 1.0, 1000.0, lo_open=True, unit="kPa")
+    check_range("--load-g", load_g, 0.0, 50000.0, unit="g")
+    check_range("--valve-delay-ms", valve_delay_ms, 0.0, U.to_ms(DELAY_MAX), unit="ms")
+    check_range("--sensor-delay-ms", sensor_delay_ms, 0.0, U.to_ms(DELAY_MAX), unit="ms")
     check_options(material.lower(), contact, fidelity or "cap")
-    fixed = parse_fix(fix or [])
+    fixed = assignments(fix or [], "--fix", "C2=0 or Jm=60", one=True)
     check_out(out, overwrite)  # before the fit: a bad --out costs nothing
     if not data.is_file():
         raise FileNotFoundError(f"data file {data} not found")
@@ -143,15 +120,10 @@ def fit_cmd(
 
 
 def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: Path) -> None:
-    con = Console(highlight=False)
-    tab = Table(title=title)
-    for c in ("parameter", "value (SI)", "95 % interval"):
-        tab.add_column(c, justify="right")
-    for k, v in params.items():
-        lo, hi = ci95[k]
-        ci = "fixed" if k in fixed else (f"[{lo:.4g}, {hi:.4g}]" if lo is not None else "n/a (no dof)")
-        tab.add_row(k, f"{v:.5g}", ci)
-    con.print(tab)
+    rows = [(k, f"{v:.5g}", "fixed" if k in fixed else (f"[{ci95[k][0]:.4g}, {ci95[k][1]:.4g}]"
+                                                          if ci95[k][0] is not None else "n/a (no dof)"))
+            for k, v in params.items()]
+    con = show_table(title, ("parameter", "value (SI)", "95 % interval"), rows, Console(highlight=False))
     for s in notes:
         con.print(f"note: {s}")
     con.print(f"wrote {out / 'fit.json'}, {out / 'params.toml'}, {out / 'residuals.png'}")
@@ -168,8 +140,7 @@ def bench_fit_cmd(
     from hbma_ctrl.app.bench.fit import run_rows, static_rows, summarize_runs, write_fit_bench
 
     check_range("--seeds", seeds, 1, 100)
-    check_range("--workers", workers, 1, 64)
-    workers = cap_workers("--workers", workers)
+    workers = cap_workers("--workers", workers, 64)
     con = Console(highlight=False, width=140)
     with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         static = static_rows(progress=lambda r: con.print(f"  static {r['case']}, {r['law']} law: worst miss "
@@ -178,24 +149,18 @@ def bench_fit_cmd(
                         progress=lambda rows: con.print(f"  {rows[0]['rig']} rig, seed {rows[0]['seed']}: " + ", ".join(
                             f"{r['law']} {r['params']['modulus_scale']:.4f}" for r in rows)))
         written = write_fit_bench(static, runs, tmp, seeds)
-    t = Table(title="static points of the exact solver: the largest miss of a parameter (found / truth - 1), "
-                    "NRMSD, undetermined")
-    for c in ("data", "cap law", "exact law"):
-        t.add_column(c, justify="right")
-    for case in dict.fromkeys(r["case"] for r in static):
-        cells = {r["law"]: f"{100 * r['worst_rel_miss']:.3g} %, {r['nrmsd']:.2g}" + (", undetermined" if r[
-            "unidentifiable"] else "") for r in static if r["case"] == case}
-        t.add_row(case, cells["cap"], cells["exact"])
-    con.print(t)
-    t = Table(title=f"pump / hold / vent runs, {seeds} rig noise seeds (truth: modulus x1.15, pump x0.9, "
-                    "dead volume x1.2): the range over the seeds")
-    for c in ("rig / law", "modulus_scale", "V0 (cm^3)", "flow_scale", "C_out (1e-10)", "NRMSD", "structured"):
-        t.add_column(c, justify="right")
-    for key, v in summarize_runs(runs).items():
-        t.add_row(key, *(f"{v[k][0]:.4f}-{v[k][1]:.4f}" for k in ("modulus_scale", "V0_cm3", "flow_scale",
-                                                                    "C_out_1e10", "nrmsd")),
-                  f"{v['structured']}/{v['runs']}")
-    con.print(t)
+    cells = {(r["case"], r["law"]): f"{100 * r['worst_rel_miss']:.3g} %, {r['nrmsd']:.2g}"
+             + (", undetermined" if r["unidentifiable"] else "") for r in static}
+    show_table("static points of the exact solver: the largest miss of a parameter (found / truth - 1), NRMSD, "
+               "undetermined", ("data", "cap law", "exact law"),
+               [(case, cells[case, "cap"], cells[case, "exact"]) for case in dict.fromkeys(r["case"] for r in static)],
+               con)
+    show_table(f"pump / hold / vent runs, {seeds} rig noise seeds (truth: modulus x1.15, pump x0.9, dead volume "
+               "x1.2): the range over the seeds",
+               ("rig / law", "modulus_scale", "V0 (cm^3)", "flow_scale", "C_out (1e-10)", "NRMSD", "structured"),
+               [(key, *(f"{v[k][0]:.4f}-{v[k][1]:.4f}" for k in ("modulus_scale", "V0_cm3", "flow_scale", "C_out_1e10",
+                                                                   "nrmsd")), f"{v['structured']}/{v['runs']}")
+                for key, v in summarize_runs(runs).items()], con)
     con.print(f"wrote {out / written.name}")
 
 

@@ -107,23 +107,25 @@ class _OneLineErrors(TyperGroup):
             typer.echo(f"interrupted: partial results in {exc.partial}" if exc.partial else "interrupted", err=True)
             sys.exit(128 + exc.signum)
         except (ValueError, FileNotFoundError) as exc:
-            partial = getattr(exc, "partial_results", None)
-            fail(f"{exc}; partial results in {partial}" if partial else str(exc), 2)
+            _fail_keeping(exc, str(exc), 2)
         except RuntimeError as exc:
-            partial = getattr(exc, "partial_results", None)
             if _is_run_failed(exc):  # the input was fine; the run failed (every trial diverged)
-                msg = str(exc)
-            elif os.environ.get("HBMA_CTRL_TRACEBACK"):
-                # any other failed simulation (a diverged plant, a solver's error): one line, exit 1;
-                # the traceback only when asked for (HBMA_CTRL_TRACEBACK=1), for a bug report
+                _fail_keeping(exc, str(exc), 1)
+            # any other failed simulation (a diverged plant, a solver's error): one line, exit 1; the
+            # traceback only when asked for (HBMA_CTRL_TRACEBACK=1), for a bug report
+            if os.environ.get("HBMA_CTRL_TRACEBACK"):
                 raise
-            else:
-                msg = f"the run failed: {type(exc).__name__}: {exc}"
-            fail(f"{msg}; partial results in {partial}" if partial else msg, 1)
+            _fail_keeping(exc, f"the run failed: {type(exc).__name__}: {exc}", 1)
         code = rv if isinstance(rv, int) else 0
         if standalone_mode:
             sys.exit(code)
         return rv
+
+
+def _fail_keeping(exc: BaseException, message: str, code: int):
+    """:func:`fail` with ``message``, naming the partial results ``exc`` kept (``partial_results``), if any."""
+    partial = getattr(exc, "partial_results", None)
+    fail(f"{message}; partial results in {partial}" if partial else message, code)
 
 
 def _is_run_failed(exc: BaseException) -> bool:

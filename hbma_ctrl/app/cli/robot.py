@@ -17,11 +17,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 import typer
 from rich.console import Console
-from rich.table import Table
 
 # the robot's models (casadi, the exact membrane), its plots and its closed loop are imported by the
 # commands when they run; the default glue-spot radius comes from the light cli_constants
-from hbma_ctrl.app.cli.args import check_range, whole_numbers
+from hbma_ctrl.app.cli.args import check_choice, check_range, numbers, show_table, whole_numbers
 from hbma_ctrl.app.cli.constants import BOND_RADIUS_MM
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
@@ -35,25 +34,16 @@ robot_app = typer.Typer(add_completion=False, rich_markup_mode=None, no_args_is_
                         help="The hybrid soft-rigid continuum robot (README Model §8): Table II, workspace, pose.")
 
 
+def _wide_console() -> Console:
+    """The robot's wide tables' console (150 columns, on a terminal too)."""
+    return Console(highlight=False, width=150)
+
+
 def _design(layers: int | None, max_stretch: float | None = None) -> RobotDesign:
     from hbma_ctrl.robot.design import RobotDesign
 
-    kw = {}
-    if layers is not None:
-        kw["n_layers"] = layers
-    if max_stretch is not None:
-        kw["max_stretch"] = max_stretch
-    return RobotDesign(**kw).validate()
-
-
-def _floats(text: str, what: str) -> list[float]:
-    try:
-        vals = [float(x) for x in text.replace(";", ",").split(",") if x.strip()]
-    except ValueError:
-        raise ValueError(f"{what}: expected comma-separated numbers, got '{text}'") from None
-    if not vals or not all(math.isfinite(v) for v in vals):
-        raise ValueError(f"{what}: expected finite comma-separated numbers, got '{text}'")
-    return vals
+    kw = {"n_layers": layers, "max_stretch": max_stretch}
+    return RobotDesign(**{k: v for k, v in kw.items() if v is not None}).validate()
 
 
 @robot_app.command("table2")
@@ -73,15 +63,11 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
     from hbma_ctrl.robot.design import RobotDesign
     from hbma_ctrl.robot.reach import bonded_table2, paper_pose_check, paper_pose_markdown, robot_table2, table2_markdown
 
-    if not 1.0 <= hold_kpa <= 1000.0:
-        raise ValueError(f"--hold-kpa = {hold_kpa} is out of range [1, 1000] kPa")
-    r1_mm = U.to_mm(RobotDesign().chamber.r1)
-    if not 0.0 < bond_radius_mm < r1_mm:
-        raise ValueError(f"--bond-radius-mm = {bond_radius_mm} is out of range (0, {r1_mm:g}) mm (the chamber's r1)")
-    if not 0.0 < bond_kpa <= 50.0:
-        raise ValueError(f"--bond-kpa = {bond_kpa} is out of range (0, 50] kPa (the bonded table's range)")
-    if stretch is not None and not 1.05 <= stretch <= 20.0:
-        raise ValueError(f"--stretch = {stretch} is out of range [1.05, 20]")
+    check_range("--hold-kpa", hold_kpa, 1.0, 1000.0, unit="kPa")
+    check_range("--bond-radius-mm", bond_radius_mm, 0.0, U.to_mm(RobotDesign().chamber.r1), lo_open=True, unit="mm",
+                hi_open=True, note="the chamber's r1")
+    check_range("--bond-kpa", bond_kpa, 0.0, 50.0, lo_open=True, unit="kPa", note="the bonded table's range")
+    check_range("--stretch", stretch, 1.05, 20.0)
     d = _design(layers)
     with run_dir(out, command="robot table2", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = robot_table2(d, stretch=stretch, hold_pressure=U.kpa(hold_kpa))
@@ -94,16 +80,13 @@ def table2(out: Path = typer.Option(Path("runs/table2"), "--out", help="director
         (tmp / "table2.md").write_text(md + "\nThe paper's poses as rigid-layer statics:\n\n" + pmd)
         (tmp / "table2.json").write_text(json.dumps(rows, indent=1) + "\n")
         (tmp / "paper_poses.json").write_text(json.dumps(poses, indent=1) + "\n")
-    tab = Table(title="Table II: model / paper (one layer of the robot)")
-    for c in ("reading", "inflated", "angle (deg)", "length (mm)", "extension (%)", "chamber h (mm)", "p (kPa)",
-              "stretch"):
-        tab.add_column(c)
-    for r in rows:
-        tab.add_row(r["reading"], str(r["inflated"]), f"{r['angle_deg']:.1f} / {r['paper_angle_deg']:.1f}",
-                    f"{r['length_mm']:.1f} / {r['paper_length_mm']:.1f}",
-                    f"{r['extension_pct']:.0f} / {r['paper_extension_pct']:.0f}", f"{r['chamber_height_mm']:.2f}",
-                    f"{r['pressure_kpa']:.1f}", f"{r['stretch']:.2f}")
-    Console(highlight=False, width=150).print(tab)
+    show_table("Table II: model / paper (one layer of the robot)",
+               ("reading", "inflated", "angle (deg)", "length (mm)", "extension (%)", "chamber h (mm)", "p (kPa)",
+                "stretch"),
+               [(r["reading"], str(r["inflated"]), f"{r['angle_deg']:.1f} / {r['paper_angle_deg']:.1f}",
+                 f"{r['length_mm']:.1f} / {r['paper_length_mm']:.1f}",
+                 f"{r['extension_pct']:.0f} / {r['paper_extension_pct']:.0f}", f"{r['chamber_height_mm']:.2f}",
+                 f"{r['pressure_kpa']:.1f}", f"{r['stretch']:.2f}") for r in rows], _wide_console(), justify="left")
     typer.echo("\n".join(ln for ln in md.splitlines() if ln and not ln.startswith("|")))  # the notes
     typer.echo("\n".join(ln for ln in pmd.splitlines() if ln and not ln.startswith("|")))
     typer.echo(f"wrote {out / 'table2.md'}, {out / 'table2.json'} and {out / 'paper_poses.json'}")
@@ -119,27 +102,23 @@ def workspace(out: Path = typer.Option(Path("runs/workspace"), "--out", help="di
     """Reachable workspace at the pressure limit: per-layer bend angle against direction, height range."""
     from hbma_ctrl.robot import reach
 
-    if not 1.0 <= pressure_limit_kpa <= 1000.0:
-        raise ValueError(f"--pressure-limit-kpa = {pressure_limit_kpa} is out of range [1, 1000] kPa")
+    check_range("--pressure-limit-kpa", pressure_limit_kpa, 1.0, 1000.0, unit="kPa")
     check_range("--directions", directions, 8, 3600)
     d = _design(layers, max_stretch)
     with run_dir(out, command="robot workspace", argv=cli_argv(), overwrite=overwrite) as tmp:
         ws = reach.workspace(d, U.kpa(pressure_limit_kpa), n_dir=directions)
         _write_workspace(ws, d, pressure_limit_kpa, tmp)
-    tab = Table(title=f"reach per layer at {pressure_limit_kpa:g} kPa (gas-mass hold vs pressure control)")
-    for c in ("layer", "load/chamber (N)", "h max (mm)", "limited by", "peak p (kPa) at h (mm)",
-              "bend max (deg) over direction", "same, rims clear (deg)", "pressure control: h max (mm), bend (deg)"):
-        tab.add_column(c)
+    rows = []
     for ly in ws["layers"]:
-        b = np.degrees(ly["bend_max"])
-        bc = np.degrees(ly["bend_max_no_rim_contact"])
-        bp = np.degrees(ly["bend_max_pressure_control"])
-        tab.add_row(ly["layer"], f"{np.mean(ly['load_n']):.3f}", f"{U.to_mm(ly['h_max']):.2f}",
-                    ",".join(sorted(set(ly["limit"]))), f"{U.to_kpa(ly['p_peak']):.1f} at {U.to_mm(ly['h_peak']):.2f}",
-                    f"{b.min():.1f}-{b.max():.1f}", f"{bc.min():.1f}-{bc.max():.1f}",
-                    f"{U.to_mm(ly['h_pressure_control']):.2f}, {bp.min():.1f}-{bp.max():.1f}")
-    con = Console(highlight=False, width=150)
-    con.print(tab)
+        b, bc, bp = (np.degrees(ly[k]) for k in ("bend_max", "bend_max_no_rim_contact", "bend_max_pressure_control"))
+        rows.append((ly["layer"], f"{np.mean(ly['load_n']):.3f}", f"{U.to_mm(ly['h_max']):.2f}",
+                     ",".join(sorted(set(ly["limit"]))), f"{U.to_kpa(ly['p_peak']):.1f} at {U.to_mm(ly['h_peak']):.2f}",
+                     f"{b.min():.1f}-{b.max():.1f}", f"{bc.min():.1f}-{bc.max():.1f}",
+                     f"{U.to_mm(ly['h_pressure_control']):.2f}, {bp.min():.1f}-{bp.max():.1f}"))
+    con = show_table(f"reach per layer at {pressure_limit_kpa:g} kPa (gas-mass hold vs pressure control)",
+                     ("layer", "load/chamber (N)", "h max (mm)", "limited by", "peak p (kPa) at h (mm)",
+                      "bend max (deg) over direction", "same, rims clear (deg)",
+                      "pressure control: h max (mm), bend (deg)"), rows, _wide_console(), justify="left")
     tb = np.degrees(ws["tip_bend_max"])
     con.print(f"tip (all layers bent alike): bend up to {tb.min():.1f}-{tb.max():.1f} deg; tip height "
               f"{U.to_mm(ws['tip_height_range'][0]):.1f}-{U.to_mm(ws['tip_height_range'][1]):.1f} mm; pump stall "
@@ -186,10 +165,8 @@ def pose(out: Path = typer.Option(Path("runs/pose"), "--out", help="directory fo
     from hbma_ctrl.robot.kinematics import forward_kinematics, inverse_kinematics
     from hbma_ctrl.robot.reach import reach_report
 
-    sets = []
-    if heights_mm:
-        for text in heights_mm:
-            sets.append(np.array(_floats(text, "--heights-mm")))
+    sets = [np.array(numbers(text, "--heights-mm")) for text in heights_mm or []]
+    if sets:
         n = {s.size for s in sets}
         if len(n) != 1 or next(iter(n)) % 3:
             raise ValueError("--heights-mm: every set needs the same number of heights, 3 per layer")
@@ -203,12 +180,11 @@ def pose(out: Path = typer.Option(Path("runs/pose"), "--out", help="directory fo
     if not sets:
         if centre_mm is None:
             raise ValueError("give --heights-mm (chamber heights) or --centre-mm with --bend-deg/--direction-deg")
-        if not 0.0 <= bend_deg < 90.0:
-            raise ValueError(f"--bend-deg = {bend_deg} is out of range [0, 90)")
+        check_range("--bend-deg", bend_deg, 0.0, 90.0, unit="deg", hi_open=True)
         h = inverse_kinematics(d, U.mm(centre_mm), math.radians(bend_deg), math.radians(direction_deg))
         sets = [U.to_mm(h).ravel()]
     check_out(out, overwrite)  # before the reach work below; run_dir checks again under its lock
-    con = Console(highlight=False, width=150)
+    con = _wide_console()
     shapes = []
     for s in sets:
         h = U.mm(s).reshape(d.n_layers, 3)
@@ -241,23 +217,18 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
     from hbma_ctrl.robot.design import TOPOLOGIES
 
     ns = whole_numbers(layers, "--layers", 1, 6)
-    if not 0.5 <= duration <= 60.0:
-        raise ValueError(f"--duration = {duration} is out of range [0.5, 60] s")
-    if topology not in TOPOLOGIES:
-        raise ValueError(f"--topology = '{topology}': allowed {', '.join(TOPOLOGIES)}")
+    check_range("--duration", duration, 0.5, 60.0, unit="s")
+    check_choice("--topology", topology, TOPOLOGIES)
     check_range("--horizon", horizon, 1, 100)
     with run_dir(out, command="bench robot", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = bench_robot(ns, duration, topology, horizon)
         (tmp / "bench_robot.json").write_text(json.dumps({"topology": topology, "horizon": horizon,
                                                           "duration_s": duration, "rows": rows}, indent=1) + "\n")
-    tab = Table(title=f"robot step (EKF bank + NMPC), topology {topology}, horizon {horizon}")
-    for c in ("layers", "chambers", "QP vars", "median ms", "p99 ms", "max ms", "EKF ms", "NMPC ms", "fallbacks"):
-        tab.add_column(c, justify="right")
-    for r in rows:
-        tab.add_row(str(r["layers"]), str(r["chambers"]), str(r["qp_variables"]), f"{r['step_ms_median']:.2f}",
-                    f"{r['step_ms_p99']:.2f}", f"{r['step_ms_max']:.2f}", f"{r['ekf_ms_median']:.2f}",
-                    f"{r['mpc_ms_median']:.2f}", str(r["fallbacks"]))
-    Console().print(tab)
+    show_table(f"robot step (EKF bank + NMPC), topology {topology}, horizon {horizon}",
+               ("layers", "chambers", "QP vars", "median ms", "p99 ms", "max ms", "EKF ms", "NMPC ms", "fallbacks"),
+               [(str(r["layers"]), str(r["chambers"]), str(r["qp_variables"]), f"{r['step_ms_median']:.2f}",
+                 f"{r['step_ms_p99']:.2f}", f"{r['step_ms_max']:.2f}", f"{r['ekf_ms_median']:.2f}",
+                 f"{r['mpc_ms_median']:.2f}", str(r["fallbacks"])) for r in rows], Console())
     typer.echo(f"wrote {out / 'bench_robot.json'}")
 
 

@@ -10,13 +10,13 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.table import Table
 
-from hbma_ctrl.app.cli.args import cap_workers, check_choice, check_range, console, fail
+from hbma_ctrl.app.cli.args import assignments, cap_workers, check_choice, check_range, console, fail, show_table
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.core import units as U
 
@@ -57,17 +57,9 @@ def run(
     t0 = time.perf_counter()
     with run_dir(out_dir, command="run", argv=cli_argv(), scenario_path=file, overwrite=overwrite) as tmp:
         metrics = run_scenario(scn, tmp)
-    con = console()
-    table = Table(title=f"{scn.name} ({scn.kind}) -> {out_dir}", show_header=True)
-    table.add_column("role")
-    table.add_column("metric")
-    table.add_column("value", justify="right")
-    for role, vals in metrics.items():
-        if role == "scenario" or not isinstance(vals, dict):
-            continue
-        for k, v in vals.items():
-            table.add_row(role, k, _fmt(v))
-    con.print(table)
+    rows = [(role, k, _fmt(v)) for role, vals in metrics.items() if role != "scenario" and isinstance(vals, dict)
+            for k, v in vals.items()]
+    con = show_table(f"{scn.name} ({scn.kind}) -> {out_dir}", ("role", "metric", "value"), rows, left=2)
     con.print(f"wrote {out_dir / 'metrics.json'} in {time.perf_counter() - t0:.1f} s")
 
 
@@ -106,44 +98,23 @@ def protocol(
     check_choice("--material", material, MATERIALS)
     check_choice("--integrator", integrator, INTEGRATORS)
     check_choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
-    check_range("--workers", workers, 1, 256)
     workers = cap_workers("--workers", workers)
     check_range("--dt-ms", dt_ms, 0.0, 100.0, lo_open=True, unit="ms")
     check_range("--duration-s", duration_s, 0.0, 3600.0, lo_open=True, unit="s")
-    check_range("--t-inflate-s", t_inflate_s, 0.0, duration_s, lo_open=True, unit="s")
-    if t_inflate_s >= duration_s:
-        raise ValueError(f"--t-inflate-s = {t_inflate_s:g} must be below --duration-s = {duration_s:g}")
-    con = console()
+    check_range("--t-inflate-s", t_inflate_s, 0.0, duration_s, lo_open=True, unit="s", hi_open=True,
+                note="below --duration-s")
     t0 = time.perf_counter()
     with run_dir(out, command="protocol", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = run_protocol(material, tmp, integrator, None if dt_ms is None else U.ms(dt_ms), fidelity, workers,
                             t_inflate_s=t_inflate_s, duration_s=duration_s, plots=not no_plots, progress=True)
     wall = time.perf_counter() - t0
-    counts: dict = {}
-    for r in rows:
-        counts[r["status"]] = counts.get(r["status"], 0) + 1
-    table = Table(title=f"protocol ({material}, {integrator}, fidelity {fidelity})")
-    for c in ("trials", "status", "max height (mm)", "max pressure (kPa)", "wall (s)"):
-        table.add_column(c, justify="right")
-    table.add_row(str(len(rows)), ", ".join(f"{k} {v}" for k, v in counts.items()),
-                  f"{max(r['max_height_mm'] for r in rows):.2f}", f"{max(r['max_pressure_kpa'] for r in rows):.2f}",
-                  f"{wall:.1f}")
-    con.print(table)
+    counts = Counter(r["status"] for r in rows)
+    con = show_table(f"protocol ({material}, {integrator}, fidelity {fidelity})",
+                     ("trials", "status", "max height (mm)", "max pressure (kPa)", "wall (s)"),
+                     [(str(len(rows)), ", ".join(f"{k} {v}" for k, v in counts.items()),
+                       f"{max(r['max_height_mm'] for r in rows):.2f}",
+                       f"{max(r['max_pressure_kpa'] for r in rows):.2f}", f"{wall:.1f}")])
     con.print(f"wrote {out / 'summary.csv'}, {out / 'trials'}/*.csv" + ("" if no_plots else ", fig6/fig7/fig9.png"))
-
-
-def _parse_params(items: list[str]) -> dict:
-    out = {}
-    for item in items:
-        if "=" not in item:
-            raise ValueError(f"--param '{item}': expected NAME=VALUE (SI), e.g. E=130.6e3 or C=2e4,-200,10")
-        name, val = item.split("=", 1)
-        try:
-            nums = [float(x) for x in val.split(",")]
-        except ValueError:
-            raise ValueError(f"--param {name}: '{val}' is not a number (or comma-separated numbers)") from None
-        out[name.strip()] = nums[0] if len(nums) == 1 else tuple(nums)
-    return out
 
 
 def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, h2_mm: float,
@@ -183,17 +154,25 @@ def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, 
     if res["lam"] >= mat.lam_max():
         raise ValueError(f"--h1-mm/--h2-mm: stretch {res['lam']:.3f} is beyond the {mat.name} locking stretch "
                          f"{mat.lam_max():.3f}")
+    return _equilibrium_row(mat, r1_mm, t0_mm, V0_cm3, h1_mm, h2_mm, {}, res["p"], res["F"], res["lam"], res["V"],
+                            math.sqrt(max(res["a2"], 0.0)))
+
+
+def _equilibrium_row(mat, r1_mm: float, t0_mm: float, V0_cm3: float, h1_mm: float, h2_mm: float, extra: dict,
+                     p: float, F: float, stretch: float, V: float, contact_radius: float) -> dict:
+    """What ``equilibrium --json`` prints, in edge units, from the SI pressure, force, volume, contact radius."""
     return {
         "material": mat.name,
         "params_si": {k: (list(v) if isinstance(v, tuple) else v) for k, v in mat.as_dict().items()},
         "r1_mm": r1_mm, "t0_mm": t0_mm, "V0_cm3": V0_cm3, "h1_mm": h1_mm, "h2_mm": h2_mm,
         "h_mm": h1_mm - h2_mm,
-        "pressure_kpa": U.to_kpa(res["p"]),
-        "force_n": res["F"],
-        "load_g": U.to_grams(res["F"] / U.G_STD),
-        "stretch": res["lam"],
-        "volume_cm3": U.to_cm3(res["V"]),
-        "contact_radius_mm": U.to_mm(math.sqrt(max(res["a2"], 0.0))),
+        **extra,
+        "pressure_kpa": U.to_kpa(p),
+        "force_n": F,
+        "load_g": U.to_grams(F / U.G_STD),
+        "stretch": stretch,
+        "volume_cm3": U.to_cm3(V),
+        "contact_radius_mm": U.to_mm(contact_radius),
     }
 
 
@@ -208,9 +187,8 @@ def _exact_equilibrium_values(mat, r1_mm: float, t0_mm: float, h1_mm: float, h2_
 
     check_choice("--contact", contact, ["flat", "bonded"])
     if contact == "bonded":
-        if not (math.isfinite(disk_radius_mm) and 0.0 < disk_radius_mm < r1_mm):
-            raise ValueError(f"--disk-radius-mm = {disk_radius_mm:g} is out of range (0, {r1_mm:g}) mm "
-                             "(inside the retaining radius)")
+        check_range("--disk-radius-mm", disk_radius_mm, 0.0, r1_mm, lo_open=True, unit="mm", hi_open=True,
+                    note="inside the retaining radius")
     free = h2_mm == 0 and contact == "flat"
     if free and p_kpa is not None:
         raise ValueError("--p-kpa: free inflation (--h2-mm 0, flat contact) has its pressure set by the height; "
@@ -232,19 +210,8 @@ def _exact_equilibrium_values(mat, r1_mm: float, t0_mm: float, h1_mm: float, h2_
                 msg = flag + msg[len(arg):]
                 break
         raise ValueError(msg) from None
-    return {
-        "material": mat.name,
-        "params_si": {k: (list(v) if isinstance(v, tuple) else v) for k, v in mat.as_dict().items()},
-        "r1_mm": r1_mm, "t0_mm": t0_mm, "V0_cm3": V0_cm3, "h1_mm": h1_mm, "h2_mm": h2_mm,
-        "h_mm": h_mm,
-        "fidelity": "exact", "contact": contact,
-        "pressure_kpa": U.to_kpa(res["p"]),
-        "force_n": res["F"],
-        "load_g": U.to_grams(res["F"] / U.G_STD),
-        "stretch": res["stretch"],
-        "volume_cm3": U.to_cm3(res["V"]),
-        "contact_radius_mm": U.to_mm(res["contact_radius"]),
-    }
+    return _equilibrium_row(mat, r1_mm, t0_mm, V0_cm3, h1_mm, h2_mm, {"fidelity": "exact", "contact": contact},
+                            res["p"], res["F"], res["stretch"], res["V"], res["contact_radius"])
 
 
 def equilibrium(
@@ -266,20 +233,16 @@ def equilibrium(
     ``--fidelity exact``: the exact axisymmetric membrane; h = h1 - h2 is the centre height, free
     inflation for --h2-mm 0 (flat), otherwise a flat plate or a bonded disk at --p-kpa.
     """
-    res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, _parse_params(param or []), V0_cm3,
+    res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, assignments(param or [], "--param", "E=130.6e3 or C=2e4,-200,10"), V0_cm3,
                              fidelity, contact, disk_radius_mm, p_kpa)
     if as_json:
         typer.echo(json.dumps(res))
         return
-    table = Table(title=f"{res['material']}: r1 {r1_mm:g}, t0 {t0_mm:g}, h1 {h1_mm:g}, h2 {h2_mm:g} mm",
-                  show_header=False)
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
-    for key, label in (("h_mm", "height h (mm)"), ("pressure_kpa", "pressure (kPa)"), ("force_n", "force (N)"),
-                       ("load_g", "load F/g (g)"), ("stretch", "stretch lambda"), ("volume_cm3", "volume (cm^3)"),
-                       ("contact_radius_mm", "contact radius a (mm)")):
-        table.add_row(label, f"{res[key]:.4f}")
-    console().print(table)
+    labels = (("h_mm", "height h (mm)"), ("pressure_kpa", "pressure (kPa)"), ("force_n", "force (N)"),
+              ("load_g", "load F/g (g)"), ("stretch", "stretch lambda"), ("volume_cm3", "volume (cm^3)"),
+              ("contact_radius_mm", "contact radius a (mm)"))
+    show_table(f"{res['material']}: r1 {r1_mm:g}, t0 {t0_mm:g}, h1 {h1_mm:g}, h2 {h2_mm:g} mm", ("quantity", "value"),
+               [(label, f"{res[key]:.4f}") for key, label in labels], left=1, show_header=False)
 
 
 def plots(
@@ -300,12 +263,24 @@ def plots(
     console().print("wrote " + ", ".join(str(out / Path(p).name) for p in paths))
 
 
+def _role_plots(ekf_json: Path | None, mpc_json: Path | None) -> list:
+    """(points, PNG name, axes) of the role benches' results given (read now: a bad file is one error line
+    before the long run)."""
+    from hbma_ctrl.app.bench import plots as bench_plots
+
+    out = []
+    for path, read, name, axes in (
+            (ekf_json, bench_plots.estimator_points, "pareto_estimator.png", ("median filter step (us)", "height NRMSD")),
+            (mpc_json, bench_plots.controller_points, "pareto_controller.png", ("median solve time (ms)",
+                                                                                 "height RMSE (mm)"))):
+        if path is not None:
+            out.append((read(path), name, axes))
+    return out
+
+
 def _role_benches(out: Path, con) -> list:
     """``bench ekf`` and ``bench mpc`` on their defaults into ``out`` (bench_ekf.json, bench_mpc.json, as
     those commands write them); their Pareto points for :func:`bench_sim`."""
-    import json
-
-    from hbma_ctrl.app.bench import plots as bench_plots
     from hbma_ctrl.app.bench.mpc import run_bench as run_mpc
     from hbma_ctrl.app.bench.mpc import write_bench
     from hbma_ctrl.app.cli.controllers import MPC_VARIANTS
@@ -317,10 +292,7 @@ def _role_benches(out: Path, con) -> list:
     con.print("  bench mpc (IPOPT, fatrop, RTI x horizon, baselines, do-mpc) ...")
     write_bench(run_mpc(variants=MPC_VARIANTS,
                         progress=lambda name: con.print(f"    {name} ...")), out)
-    return [(bench_plots.estimator_points(out / "bench_ekf.json"), "pareto_estimator.png",
-             ("median filter step (us)", "height NRMSD")),
-            (bench_plots.controller_points(out / "bench_mpc.json"), "pareto_controller.png",
-             ("median solve time (ms)", "height RMSE (mm)"))]
+    return _role_plots(out / "bench_ekf.json", out / "bench_mpc.json")
 
 
 def bench_sim(
@@ -350,24 +322,13 @@ def bench_sim(
     from hbma_ctrl.core.materials import MATERIALS
 
     check_choice("--material", material, MATERIALS)
-    check_range("--workers", workers, 1, 256)
     workers = cap_workers("--workers", workers)
     check_range("--repeat", repeat, 1, 100)
     from hbma_ctrl.app.bench import plots as bench_plots
 
     if roles and (ekf_json is not None or mpc_json is not None):
         fail("--roles runs the estimator and controller benches itself: leave out --ekf-json and --mpc-json")
-    # read before the long run: a bad file is one error line now
-    role_plots = []
-    for path, read, name, axes in (
-            (ekf_json, bench_plots.estimator_points, "pareto_estimator.png", ("median filter step (us)", "height NRMSD")),
-            (mpc_json, bench_plots.controller_points, "pareto_controller.png", ("median solve time (ms)",
-                                                                                 "height RMSE (mm)"))):
-        if path is not None:
-            try:
-                role_plots.append((read(path), name, axes))
-            except ValueError as e:
-                fail(str(e))
+    role_plots = _role_plots(ekf_json, mpc_json)
     con = console(160)
 
     def show(row):
@@ -384,20 +345,17 @@ def bench_sim(
         if roles:
             role_plots = _role_benches(tmp, con)
         written = [bench_plots.pareto_png(pts, tmp / name, *axes, title).name for (pts, title), name, axes in role_plots]
-    table = Table(title=f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, "
-                        f"median of {repeat}; target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}")
-    for c in ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean", "h NRMSD max",
-              "p NRMSD mean", "p NRMSD max", "target") + (("h vs exact", "p vs exact") if fidelity_axis else ()):
-        table.add_column(c, justify="right", no_wrap=True)
-    for r in rows:
-        extra = ((f"{r.height_nrmsd_vs_exact_mean:.2e}", f"{r.pressure_nrmsd_vs_exact_mean:.2e}")
-                 if fidelity_axis else ())
-        table.add_row(r.fidelity + (" (0 g)" if r.fidelity == "free" else ""), r.integrator,
-                      _dt_text(r) + (" *" if r.default else ""), f"{r.wall_s:.2f}",
-                      f"{r.cpu_s:.2f}", str(r.n_diverged), f"{r.height_nrmsd_mean:.2e}", f"{r.height_nrmsd_max:.2e}",
-                      f"{r.pressure_nrmsd_mean:.2e}", f"{r.pressure_nrmsd_max:.2e}", "yes" if r.meets_target else "no",
-                      *extra)
-    con.print(table)
+    cols = ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean",
+            "h NRMSD max", "p NRMSD mean", "p NRMSD max", "target") + (("h vs exact", "p vs exact") if fidelity_axis
+                                                                        else ())
+    table = [(r.fidelity + (" (0 g)" if r.fidelity == "free" else ""), r.integrator,
+              _dt_text(r) + (" *" if r.default else ""), f"{r.wall_s:.2f}", f"{r.cpu_s:.2f}", str(r.n_diverged),
+              f"{r.height_nrmsd_mean:.2e}", f"{r.height_nrmsd_max:.2e}", f"{r.pressure_nrmsd_mean:.2e}",
+              f"{r.pressure_nrmsd_max:.2e}", "yes" if r.meets_target else "no",
+              *((f"{r.height_nrmsd_vs_exact_mean:.2e}", f"{r.pressure_nrmsd_vs_exact_mean:.2e}") if fidelity_axis
+                else ())) for r in rows]
+    show_table(f"bench sim: {rows[0].n_trials if rows else 0} trials, workers {workers}, median of {repeat}; "
+               f"target wall <= {TARGET_WALL_S:g} s, max NRMSD <= {TARGET_NRMSD:g}", cols, table, con, no_wrap=True)
     con.print("* the setting `hbma-ctrl protocol` uses by default (fidelity auto: free for 0 g, quasi_static loaded)")
     if fidelity_axis:
         con.print("vs exact: mean NRMSD against the exact membrane (rk4, fine step); free (0 g): the cap's free "

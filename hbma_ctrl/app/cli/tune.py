@@ -11,7 +11,6 @@ same command continues the study with ``--trials`` more trials and replaces the 
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing as mp
 import os
 import time
@@ -23,10 +22,9 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
 
 # optuna and the tuning itself (it runs scenarios: every role) are imported by the command when it runs
-from hbma_ctrl.app.cli.args import cap_workers, check_range
+from hbma_ctrl.app.cli.args import cap_workers, check_choice, check_range, show_table
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, default_out, run_dir
 
 if TYPE_CHECKING:
@@ -97,12 +95,10 @@ def tune_cmd(
         write_outputs,
     )
 
-    if role not in ROLES:
-        raise ValueError(f"--role = '{role}'; allowed: {', '.join(ROLES)}")
+    check_choice("--role", role, ROLES)
     check_range("--trials", trials, 1, 100000)
     check_range("--workers", workers, 1, 256)
-    if not 0 <= seed <= 2**31 - 1:
-        raise ValueError(f"--seed = {seed} is out of range [0, 2147483647]")
+    check_range("--seed", seed, 0, 2**31 - 1)
     obj = check_objective(role, objective)
     train = parse_seeds(train_seeds, "--train-seeds")
     test = parse_seeds(test_seeds, "--test-seeds")
@@ -110,8 +106,7 @@ def tune_cmd(
     if both:
         raise ValueError(f"--test-seeds = '{test_seeds}' shares seeds {both[:5]} with --train-seeds = '{train_seeds}'; "
                          "held-out seeds must never be used in tuning")
-    if duration_s is not None and not (math.isfinite(duration_s) and 0.0 < duration_s <= 3600.0):
-        raise ValueError(f"--duration-s = {duration_s:g} is out of range (0, 3600] s")
+    check_range("--duration-s", duration_s, 0.0, 3600.0, lo_open=True, unit="s")
     workers = cap_workers("--workers", workers)
     scn = load_scenario(scenario)
     data = tomllib.loads(_text(scenario))
@@ -222,18 +217,14 @@ def _finished(study: optuna.Study) -> int:
 
 
 def _report(con: Console, info: dict, out: Path) -> None:
-    tab = Table(title=f"tune {info['study']}: {info['objective']} ({info['n_trials']} trials: "
-                      f"{info['n_complete']} complete, {info['n_pruned']} pruned, {info['n_failed']} failed)")
-    tab.add_column("settings")
-    tab.add_column("train", justify="right")
-    tab.add_column("held-out test", justify="right")
-
     def f(v):
         return "failed" if v is None else f"{v:.4g}"
 
-    tab.add_row("default", f(info["default_value_train"]), f(info["default_value_test"]))
-    tab.add_row("best " + ("(no trial completed)" if info["best_trial"] is None else f"(trial {info['best_trial']})"), f(info["best_value_train"]), f(info["best_value_test"]))
-    con.print(tab)
+    best = "best " + ("(no trial completed)" if info["best_trial"] is None else f"(trial {info['best_trial']})")
+    show_table(f"tune {info['study']}: {info['objective']} ({info['n_trials']} trials: {info['n_complete']} complete, "
+               f"{info['n_pruned']} pruned, {info['n_failed']} failed)", ("settings", "train", "held-out test"),
+               [("default", f(info["default_value_train"]), f(info["default_value_test"])),
+                (best, f(info["best_value_train"]), f(info["best_value_test"]))], con, left=1)
     if info["best_params"]:
         con.print("best: " + ", ".join(f"{k} = {v:.4g}" for k, v in info["best_params"].items()))
     con.print(f"wrote {out / 'tuned.toml'}, {out / 'tune.json'}, history.png, importance.png; study in "

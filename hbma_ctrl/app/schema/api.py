@@ -14,21 +14,18 @@ no finite number for (no reading, no estimate yet) is ``null``.
 
 from __future__ import annotations
 
-import math
 from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hbma_ctrl.app.schema.fields import RuleError, Table, elem_of, integer, num, shaped
+from hbma_ctrl.app.schema.robot import pose_si
 from hbma_ctrl.core import units as U
 from hbma_ctrl.system.sections import POSE_BEND, POSE_HEIGHT, TARGET_HEIGHT
 
 __all__ = [
-    "BEND_MAX_DEG",
-    "CENTRE_MAX_MM",
     "CHAMBER_INDEX_MAX",
     "DIRECTION_MAX_DEG",
-    "HEIGHT_MAX_MM",
     "LAYER_INDEX_MAX",
     "ChamberStatus",
     "FaultEvent",
@@ -44,10 +41,7 @@ __all__ = [
     "StopReply",
 ]
 
-#: bounds of a request, in the user's units (the scenario file's: controller and robot targets' declarations)
-HEIGHT_MAX_MM = TARGET_HEIGHT.user_bounds()[1]
-CENTRE_MAX_MM = POSE_HEIGHT.user_bounds()[1]
-BEND_MAX_DEG = POSE_BEND.user_bounds()[1]
+#: bounds of a request the targets' declarations (TARGET_HEIGHT, POSE_HEIGHT, POSE_BEND) leave out
 DIRECTION_MAX_DEG = 360.0
 CHAMBER_INDEX_MAX = 255
 LAYER_INDEX_MAX = 63
@@ -72,9 +66,7 @@ class LayerPose(Table):
     def to_si(self) -> tuple[float, float, float]:
         """(centre height m, bend rad >= 0, direction rad in (-pi, pi]), as [robot.targets] reads a row:
         a negative bend turns the direction by half a turn."""
-        th = math.radians(self.bend_deg)
-        ps = math.radians(self.direction_deg) + (math.pi if th < 0 else 0.0)
-        return U.mm(self.centre_mm), abs(th), math.atan2(math.sin(ps), math.cos(ps))
+        return pose_si(self.centre_mm, self.bend_deg, self.direction_deg)
 
 
 class SetpointRequest(Table):

@@ -14,10 +14,11 @@ from typing import Any, Literal, NamedTuple
 from pydantic import PrivateAttr, field_validator, model_validator
 
 from hbma_ctrl.app.outputs import NAME_RULE, is_plain_name
-from hbma_ctrl.app.schema.errors import closest
+from hbma_ctrl.app.schema.errors import hint
 from hbma_ctrl.app.schema.fields import (
     RuleError,
     Table,
+    check_rows,
     choice,
     elem,
     num,
@@ -49,16 +50,12 @@ MaterialName = Literal["nh", "mr", "yeoh", "gent", "ogden"]
 
 
 def build_material(name: str, params: dict, table: str) -> Any:
-    """make_material with the table's one-line errors (parameter names, values as SI numbers)."""
+    """make_material with the table's one-line errors: an unknown parameter named as written with the
+    closest one; a value that is not the parameter's number (or list of numbers, SI) as make_material says."""
     allowed = sorted(f.name for f in fields(MATERIALS[name]))
-    for key, v in params.items():
+    for key in params:
         if key not in allowed:
-            near = closest(key, allowed)
-            hint = f"; did you mean {near}? allowed: " if near else "; allowed: "
-            raise RuleError(f"{key}: unknown parameter of material '{name}'{hint}{', '.join(allowed)}", table)
-        vals = v if isinstance(v, list) else [v]
-        if not vals or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in vals):
-            raise RuleError(f"{key} = {v!r} must be a number (SI) or a list of numbers", table)
+            raise RuleError(f"{key}: unknown parameter of material '{name}'{hint(key, allowed)}", table)
     try:
         return make_material(name, **params)
     except (TypeError, ValueError, ArithmeticError) as exc:
@@ -98,10 +95,7 @@ class ActuatorTable(settings_table("ActuatorKeys", (Actuator, ("r1", "t0", "V0")
 
     def to_actuator(self) -> Actuator:
         """The SI actuator (m, m^3) with the material built once."""
-        try:
-            return Actuator(**self.si(Actuator), material=self._material).validate()
-        except ValueError as exc:
-            raise ValueError(f"[actuator] {exc}") from None
+        return Actuator(**self.si(Actuator), material=self._material).validate()
 
 
 class PneumaticsTable(settings_table("PneumaticsKeys", (Pneumatics, ("compressor_csv", "flow_scale")))):
@@ -138,17 +132,6 @@ class ScheduleRow(NamedTuple):
 
 
 _ROW_SHAPE = "[[t_s, speed_pct, inlet_duty, outlet_duty], ...]"
-
-
-def check_rows(rows: list, key: str, table: str | None = None) -> None:
-    """A schedule starts at t = 0 s and its times increase strictly (RuleError names the row)."""
-    last = -1.0
-    for i, r in enumerate(rows):
-        if i == 0 and r[0] != 0.0:
-            raise RuleError(f"{key}[0].t_s = {r[0]:g} must be 0 (the schedule starts at t = 0 s)", table)
-        if r[0] <= last:
-            raise RuleError(f"{key}[{i}].t_s = {r[0]:g} must be after the previous row's {last:g} s", table)
-        last = r[0]
 
 
 class InputsTable(Table):

@@ -88,13 +88,10 @@ class ControllerTable(_KEYS):
         """The SI section: MPCSettings, PIDSettings, BangBangSettings, ReferenceProfile, load steps (kg)."""
         mpc = self.si(MPCSettings)
         shared = {k: v for k, v in mpc.items() if k in _SHARED}
-        try:
-            reference = ReferenceProfile(points=tuple((r.t_s, U.mm(r.h_mm)) for r in self.targets_mm),
-                                         **self.si(ReferenceProfile)).validate()
-            return ControllerSection(mpc=MPCSettings(**mpc).validate(),
-                                     pid=PIDSettings(**self.si(PIDSettings), **shared).validate(),
-                                     bang_bang=BangBangSettings(**self.si(BangBangSettings), **shared).validate(),
-                                     reference=reference, load_steps=tuple(sorted(load_steps_si(self.load_steps_g))),
-                                     preview=self.preview, **self.si(ControllerSection)).validate()
-        except ValueError as exc:  # a bound the table could not state (kept as a last guard)
-            raise ValueError(f"[controller] {exc}") from None
+        reference = ReferenceProfile(points=tuple((r.t_s, U.mm(r.h_mm)) for r in self.targets_mm),
+                                     **self.si(ReferenceProfile)).validate()
+        return ControllerSection(mpc=MPCSettings(**mpc).validate(),
+                                 pid=PIDSettings(**self.si(PIDSettings), **shared).validate(),
+                                 bang_bang=BangBangSettings(**self.si(BangBangSettings), **shared).validate(),
+                                 reference=reference, load_steps=tuple(sorted(load_steps_si(self.load_steps_g))),
+                                 preview=self.preview, **self.si(ControllerSection)).validate()

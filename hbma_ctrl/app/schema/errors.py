@@ -26,7 +26,7 @@ from pydantic.fields import FieldInfo
 from hbma_ctrl.app.schema.fields import RuleError
 from hbma_ctrl.core.validation import did_you_mean
 
-__all__ = ["HINT_CUTOFF", "bounds_of", "closest", "format_error", "format_one", "range_text", "unwrap_type"]
+__all__ = ["HINT_CUTOFF", "bounds_of", "closest", "format_error", "format_one", "hint", "range_text", "unwrap_type"]
 
 #: scenario keys are long, a typo moves them further than difflib's default 0.6 allows
 HINT_CUTOFF = 0.5
@@ -38,6 +38,14 @@ def closest(word: Any, options: typing.Iterable[str]) -> str | None:
     # did_you_mean owns the closeness rule; its sentence is unwrapped so the hint can be reworded
     s = did_you_mean(str(word), options, cutoff=HINT_CUTOFF)
     return s[len(_PREFIX):-len(_SUFFIX)] if s else None
+
+
+def hint(word: Any, options: list[str], label: str = "allowed", near_as: str = "{}") -> str:
+    """"; did you mean <near>? <label>: a, b, ..." (";" alone in front when no option is close); the
+    closest option is written as ``near_as`` shows it (e.g. "[{}]" for a table)."""
+    near = closest(word, options) if isinstance(word, str) else None
+    ask = f"; did you mean {near_as.format(near)}?" if near else ";"
+    return f"{ask} {label}: {', '.join(options)}"
 
 
 def _g(x: float) -> str:
@@ -169,12 +177,10 @@ def _locate(root: type[BaseModel], loc: tuple, table: str | None) -> _Spot:
     return s
 
 
-def _val(x: Any) -> str:
-    return repr(x)
-
-
-def _choices(tp: Any) -> tuple:
-    return get_args(tp) if get_origin(tp) is Literal else ()
+#: a pydantic error type -> what the value must be (with the field's range when it has one)
+_MUST = {"finite_number": "a finite number", "float_type": "a number", "float_parsing": "a number",
+         "int_type": "an integer", "int_parsing": "an integer", "int_from_float": "an integer",
+         "bool_type": "true or false", "bool_parsing": "true or false", "string_type": "a string"}
 
 
 def format_error(exc: ValidationError, root: type[BaseModel], table: str | None = None) -> str:
@@ -209,12 +215,9 @@ def format_one(err: dict, root: type[BaseModel], table: str | None = None) -> st
     if kind == "extra_forbidden" and s.unknown:
         allowed = list(s.model.model_fields) if s.model is not None else []
         word = s.keys[-1]
-        near = closest(word, allowed)
         if file_root and not s.tables and len(s.keys) == 1 and s.model is root:
-            hint = f"; did you mean [{near}]? allowed: " if near else "; allowed: "
-            return f"[{word}]: unknown table{hint}{', '.join(allowed)}"
-        hint = f"; did you mean {near}? allowed: " if near else "; allowed: "
-        return f"[{s.table}] {s.key}: unknown key{hint}{', '.join(allowed)}"
+            return f"[{word}]: unknown table{hint(word, allowed, near_as='[{}]')}"
+        return f"[{s.table}] {s.key}: unknown key{hint(word, allowed)}"
     head = f"[{s.table or (s.keys[0] if s.keys else 'scenario')}]"
     if not s.keys or (file_root and not s.tables and len(s.keys) == 1 and s.model is root):
         # a whole table has the wrong type (e.g. ``controller = 5``)
@@ -224,29 +227,19 @@ def format_one(err: dict, root: type[BaseModel], table: str | None = None) -> st
     unit = "" if unit == "-" else unit
     rng = range_text(lo, hi, lo_open, hi_open, unit)
     bounded = lo is not None or hi is not None
-    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
-        return f"{head} {key} = {_val(value)} is out of range {rng}"
-    if kind == "finite_number":
-        return f"{head} {key} = {_val(value)} is out of range {rng}" if bounded else \
-            f"{head} {key} = {_val(value)} must be a finite number"
-    if kind in ("float_type", "float_parsing"):  # strings are not parsed: '1e2' in TOML is a typo
-        return f"{head} {key} = {_val(value)} must be a number" + (f" in {rng}" if bounded else "")
-    if kind in ("int_type", "int_parsing", "int_from_float"):
-        return f"{head} {key} = {_val(value)} must be an integer" + (f" in {rng}" if bounded else "")
-    if kind in ("bool_type", "bool_parsing"):
-        return f"{head} {key} = {_val(value)} must be true or false"
+    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal") or \
+            (kind == "finite_number" and bounded):
+        return f"{head} {key} = {value!r} is out of range {rng}"
+    if kind in _MUST:  # strings are not parsed: '1e2' in TOML is a typo
+        return f"{head} {key} = {value!r} must be {_MUST[kind]}" + (f" in {rng}" if bounded else "")
     if kind == "literal_error":
-        opts = [str(o) for o in _choices(s.tp)]
-        near = closest(value, opts) if isinstance(value, str) else None
-        hint = f"; did you mean '{near}'?" if near else ";"
-        return f"{head} {key} = {_val(value)} is not allowed{hint} allowed: {', '.join(opts)}"
-    if kind == "string_type":
-        return f"{head} {key} = {_val(value)} must be a string"
+        opts = [str(o) for o in get_args(s.tp)] if get_origin(s.tp) is Literal else []
+        return f"{head} {key} = {value!r} is not allowed" + hint(value, opts, near_as="'{}'")
     if kind == "missing":
         if len(s.keys) == 1:
             return f"{head} {key} is required" + (f": {s.shape}" if s.shape else "")
         return f"{head} {key} is missing" + (f"; {s.top} must be {s.shape}" if s.shape else "")
     if s.shape:
         where = key.rsplit(".", 1)[0] if kind == "missing_argument" else key
-        return f"{head} {where} = {_val(value)} has the wrong shape; {s.top} must be {s.shape}"
-    return f"{head} {key} = {_val(value)}: {err['msg']}"
+        return f"{head} {where} = {value!r} has the wrong shape; {s.top} must be {s.shape}"
+    return f"{head} {key} = {value!r}: {err['msg']}"

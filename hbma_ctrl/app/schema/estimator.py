@@ -50,8 +50,5 @@ class EstimatorTable(_KEYS):
         sec = EstimatorSection(filter=self.filter, compare_ukf=self.compare_ukf,
                                load_steps=load_steps_si(self.load_steps_g), workers=self.workers,
                                seeds=self.seeds, tuning=self.si(FilterSettings))
-        try:
-            filter_settings_for(sec, RigSettings())
-        except ValueError as exc:  # a bound the table could not state (kept as a last guard)
-            raise ValueError(f"[estimator] {exc}") from None
+        filter_settings_for(sec, RigSettings())
         return sec

@@ -19,6 +19,7 @@ from hbma_ctrl.core.settings import Spec, specs
 
 __all__ = [
     "as_is",
+    "check_rows",
     "LOAD_STEPS_SHAPE",
     "LoadStepRow",
     "LoadSteps",
@@ -117,8 +118,7 @@ def subtable(default_factory: Any, what: str, shape: str) -> Any:
 def elem(lo: float | None, hi: float | None, unit: str, what: str, *, lo_open: bool = False,
          hi_open: bool = False) -> Any:
     """The type of one number inside a row or vector (a tuple element), with bounds and unit."""
-    return Annotated[float, Field(strict=True, allow_inf_nan=False, description=f"{what} ({unit})",
-                                  json_schema_extra={"unit": unit}, **_bounds(lo, hi, lo_open, hi_open))]
+    return Annotated[float, num(..., lo, hi, unit, what, lo_open=lo_open, hi_open=hi_open)]
 
 
 def shaped(default: Any, what: str, shape: str, *, min_length: int | None = None,
@@ -139,17 +139,22 @@ class LoadStepRow(NamedTuple):
     mass_g: elem(0.0, 50000.0, "g", "load mass from then on")
 
 
-def _increasing(rows: list) -> list:
+def check_rows(rows: list, key: str, table: str | None = None, what: str = "row", from_zero: bool = True) -> list:
+    """``rows`` when their times (first entries, s) increase strictly and, ``from_zero``, start at 0 s;
+    RuleError naming the row (``key[i].t_s``) and the previous ``what``'s time otherwise."""
     last = -1.0
     for i, r in enumerate(rows):
+        if from_zero and i == 0 and r[0] != 0.0:
+            raise RuleError(f"{key}[0].t_s = {r[0]:g} must be 0 (the schedule starts at t = 0 s)", table)
         if r[0] <= last:
-            raise RuleError(f"load_steps_g[{i}].t_s = {r[0]:g} must be after the previous step's {last:g} s")
+            raise RuleError(f"{key}[{i}].t_s = {r[0]:g} must be after the previous {what}'s {last:g} s", table)
         last = r[0]
     return rows
 
 
 #: [[t_s, mass_g], ...] with strictly increasing times: the one rule for [controller] and [estimator]
-LoadSteps = Annotated[list[LoadStepRow], AfterValidator(_increasing)]
+LoadSteps = Annotated[list[LoadStepRow], AfterValidator(lambda rows: check_rows(rows, "load_steps_g", what="step",
+                                                                                 from_zero=False))]
 LOAD_STEPS_SHAPE = "[[t_s, mass_g], ...]"
 
 

@@ -38,18 +38,16 @@ A key not written takes its default; "none" is "not given" (the owner's default 
 """
 
 
+#: the reference's name of a scalar key's type
+_SCALARS = {bool: "true/false", int: "integer", float: "number", str: "text"}
+
+
 def _type(tp: Any) -> str:
     tp = unwrap_type(tp)[0]
     if get_origin(tp) is Literal:
         return "choice: " + ", ".join(str(a) for a in get_args(tp))
-    if tp is bool:
-        return "true/false"
-    if tp is int:
-        return "integer"
-    if tp is float:
-        return "number"
-    if tp is str:
-        return "text"
+    if tp in _SCALARS:
+        return _SCALARS[tp]
     origin = get_origin(tp)
     if origin is tuple:
         return f"{len(get_args(tp))} numbers"

@@ -16,9 +16,9 @@ from typing import Annotated, Any, NamedTuple
 import numpy as np
 from pydantic import Field, PrivateAttr, model_validator
 
-from hbma_ctrl.app.schema.base import MaterialName, build_material, check_rows
-from hbma_ctrl.app.schema.errors import closest
-from hbma_ctrl.app.schema.fields import RuleError, choice, elem, elem_of, settings_table, shaped, subtable
+from hbma_ctrl.app.schema.base import MaterialName, build_material
+from hbma_ctrl.app.schema.errors import hint
+from hbma_ctrl.app.schema.fields import RuleError, check_rows, choice, elem, elem_of, settings_table, shaped, subtable
 from hbma_ctrl.system.sections import POSE_BEND, POSE_HEIGHT, RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator
@@ -28,10 +28,18 @@ from hbma_ctrl.robot.kinematics import inverse_kinematics
 from hbma_ctrl.robot.plant import RobotPlantSettings
 from hbma_ctrl.robot.rig import H_TARGET_MAX
 
-__all__ = ["RobotInputRow", "RobotTable", "RobotTargetRow", "TipLoadRow"]
+__all__ = ["RobotInputRow", "RobotTable", "RobotTargetRow", "TipLoadRow", "pose_si"]
 
 _BASE = RobotDesign()
 _CH = _BASE.chamber
+
+
+def pose_si(height_mm: float, bend_deg: float, direction_deg: float) -> tuple[float, float, float]:
+    """(height m, bend rad >= 0, direction rad in (-pi, pi]) of a pose target in mm and deg: a negative
+    bend is the opposite direction's."""
+    th = math.radians(bend_deg)
+    ps = math.radians(direction_deg) + (math.pi if th < 0 else 0.0)
+    return U.mm(height_mm), abs(th), math.atan2(math.sin(ps), math.cos(ps))
 
 
 class RobotInputRow(NamedTuple):
@@ -143,12 +151,8 @@ class RobotTable(_KEYS):
         for key, rows in self.targets.items():
             if key != "all" and key not in letters:
                 raise RuleError(f"{key}: no such layer; allowed: all, {', '.join(letters)}", "robot.targets")
-            parsed = []
-            for r in rows:
-                th = math.radians(r.bend_deg)
-                ps = math.radians(r.direction_deg) + (math.pi if th < 0 else 0.0)
-                parsed.append((r.t_s, U.mm(r.height_mm), abs(th), math.atan2(math.sin(ps), math.cos(ps))))
-            parsed.sort(key=lambda x: x[0])
+            parsed = sorted(((r.t_s, *pose_si(r.height_mm, r.bend_deg, r.direction_deg)) for r in rows),
+                            key=lambda x: x[0])
             for k in (range(n) if key == "all" else [letters.index(key)]):
                 if key == "all" and k in out:
                     continue
@@ -180,9 +184,7 @@ class RobotTable(_KEYS):
         inputs = {}
         for name, rows in self.inputs.items():
             if name not in names:
-                near = closest(name, names)
-                hint = f"; did you mean {near}? chambers: " if near else "; chambers: "
-                raise RuleError(f"{name}: no such chamber{hint}{', '.join(names)}", "robot.inputs")
+                raise RuleError(f"{name}: no such chamber{hint(name, names, 'chambers')}", "robot.inputs")
             check_rows(rows, name, "robot.inputs")
             inputs[name] = tuple((r.t_s, U.pct(r.speed_pct), r.inlet_duty, r.outlet_duty) for r in rows)
         closed: dict = {}
