@@ -55,7 +55,7 @@ def test_a_cycle_is_found_when_there_is_one(tmp_path, monkeypatch):
     assert g.chain_exists(importer="cyc.b", imported="cyc.a") and g.chain_exists(importer="cyc.a", imported="cyc.b")
 
 
-def test_the_wheel_ships_every_scenario_file_and_the_license_and_only_the_package(tmp_path):
+def test_the_wheel_ships_every_scenario_file_the_firmware_sources_and_the_license_and_only_the_package(tmp_path):
     import shutil
     import zipfile
     from pathlib import Path
@@ -73,6 +73,10 @@ def test_the_wheel_ships_every_scenario_file_and_the_license_and_only_the_packag
     names = zipfile.ZipFile(wheel).namelist()
     shipped = {f"hbma_ctrl/scenarios/{p.name}" for p in (repo / "scenarios").glob("*.toml")}
     assert shipped and shipped <= set(names), sorted(shipped - set(names))
+    firmware = {f"hbma_ctrl/firmware/{p.relative_to(repo / 'firmware')}" for p in (repo / "firmware").rglob("*")
+                if p.is_file() and (p.suffix in (".c", ".h") or p.name in ("Makefile", "README.md"))
+                and "build" not in p.parts}
+    assert "hbma_ctrl/firmware/src/fw.c" in firmware and firmware <= set(names), sorted(firmware - set(names))
     assert {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")} == {"hbma_ctrl"}
     meta = next(zipfile.ZipFile(wheel).read(n).decode() for n in names if n.endswith(".dist-info/METADATA"))
     assert "License: MIT" in meta or "License-Expression: MIT" in meta, meta[:800]

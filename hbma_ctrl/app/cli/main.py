@@ -4,8 +4,8 @@ The application and its error handling; every command lives in one module of thi
 adds it with ``register(app, bench_app)``: :mod:`hbma_ctrl.app.cli.sim` (``run``, ``protocol`` -- also
 what a bare ``hbma-ctrl`` runs --, ``equilibrium``, ``plots``), :mod:`hbma_ctrl.app.cli.estimators`,
 :mod:`hbma_ctrl.app.cli.controllers`, :mod:`hbma_ctrl.app.cli.robot`, :mod:`hbma_ctrl.app.cli.fit`,
-:mod:`hbma_ctrl.app.cli.tune`, :mod:`hbma_ctrl.app.cli.daemon`, :mod:`hbma_ctrl.app.cli.codegen` and
-:mod:`hbma_ctrl.app.cli.scenario`.
+:mod:`hbma_ctrl.app.cli.tune`, :mod:`hbma_ctrl.app.cli.daemon`, :mod:`hbma_ctrl.app.cli.codegen`,
+:mod:`hbma_ctrl.app.cli.scenario` (``scenarios``) and :mod:`hbma_ctrl.app.cli.rig`.
 A new command is a function in one of them (or a new module in the tuple at the end of this file).
 
 Bad input (ValueError, FileNotFoundError, usage errors) prints one line ``error: ...`` on stderr and

@@ -31,10 +31,12 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 
+from hbma_ctrl.app.cli.args import check_choice, check_range
+
 __all__ = ["FIRMWARE_DIR", "BoardOutputs", "HostBoard", "build_firmware", "run_realtime", "register"]
 
-#: the firmware sources; present in a checkout (the package's parent folder), not in an installed wheel
-FIRMWARE_DIR = Path(__file__).resolve().parents[3] / "firmware"
+#: the firmware sources, shipped with the package (``hbma_ctrl/firmware`` links to the repository's ``firmware/``)
+FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
 
 
 def build_firmware(target: str, out: Path, n: int = 1) -> Path:
@@ -42,7 +44,7 @@ def build_firmware(target: str, out: Path, n: int = 1) -> Path:
     ``test``); the path of the built file (the host board, the AVR ELF, the simavr runner) or the
     folder. RuntimeError with make's output when the build fails."""
     if not (FIRMWARE_DIR / "Makefile").is_file():
-        raise FileNotFoundError(f"firmware sources not found at {FIRMWARE_DIR} (they ship with a checkout)")
+        raise FileNotFoundError(f"firmware sources not found at {FIRMWARE_DIR} (the package ships them: reinstall it)")
     res = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), target, f"O={out}", f"N={n}"],
                          capture_output=True, text=True)
     if res.returncode != 0:
@@ -167,16 +169,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         truth_log: Annotated[Optional[Path], typer.Option(help="with --config: CSV of the rig's true state per period")] = None,
     ) -> None:
         """Run an emulated rig board; print its serial port on the first line, run until Ctrl-C/SIGTERM."""
-        if target not in ("host", "avr"):
-            raise ValueError(f"--target = '{target}': must be host or avr")
-        if n is not None and not 1 <= n <= (16 if target == "host" else 4):
-            raise ValueError(f"--n = {n}: must be 1..{16 if target == 'host' else 4} chambers for --target {target}")
+        check_choice("--target", target, ("host", "avr"))
+        check_range("--n", n, 1, 16 if target == "host" else 4, note=f"chambers of --target {target}")
         if config is not None and target != "host":
             raise ValueError("--config: the plant of a configuration runs with --target host only")
         if truth_log is not None and config is None:
             raise ValueError("--truth-log: needs --config (the first-order plant has no truth to log)")
         stop = threading.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, lambda *_: stop.set())
         work = Path(tempfile.mkdtemp(prefix="hbma-rig-"))
         try:

@@ -1,6 +1,6 @@
 """The reference page of scenario keys, read from the table models (and so from the settings'
 declarations they are built from): per table, every key with its type, unit, allowed range,
-default and one-line doc, as Markdown. ``hbma-ctrl scenario keys`` prints it;
+default and one-line doc, as Markdown. ``hbma-ctrl scenarios keys`` prints it;
 ``docs/reference/scenario-keys.md`` is its committed copy (a test keeps the two equal).
 """
 
@@ -33,7 +33,7 @@ TABLES = _tables()
 _HEAD = """# Scenario keys
 
 Every key of every table of a scenario file, in the user's units. Generated from the table models
-(`hbma_ctrl.app.schema.reference`; `hbma-ctrl scenario keys` prints it): do not edit by hand.
+(`hbma_ctrl.app.schema.reference`; `hbma-ctrl scenarios keys` prints it): do not edit by hand.
 A key not written takes its default; "none" is "not given" (the owner's default applies).
 """
 
