@@ -154,8 +154,7 @@ def parse_faults(rows, n: int | None = None) -> list[FaultSpec]:
 class FaultyRig:
     """A RigIO that passes through to ``rig`` with ``faults`` injected (see module doc).
 
-    ``t`` is the rig time of the last read (s); ``sent`` the command last passed on to the rig (3, n),
-    after the faults; ``injected`` counts, per kind, the periods a fault acted.
+    ``t`` is the rig time of the last read (s); ``injected`` counts, per kind, the periods a fault acted.
     """
 
     def __init__(self, rig: RigIO, faults):
@@ -169,7 +168,6 @@ class FaultyRig:
             if f.chamber is not None and not 0 <= f.chamber < self.n:
                 raise ValueError(f"fault chamber = {f.chamber}: allowed 0..{self.n - 1} or all")
         self.t = 0.0
-        self.sent: np.ndarray | None = None
         self.injected: dict = {k: 0 for k in INJECTED_KINDS}
         self._writes = 0
         self._last_p: np.ndarray | None = None
@@ -226,7 +224,6 @@ class FaultyRig:
             else:
                 continue
             self.injected[f.kind] += 1
-        self.sent = out
         self.rig.write(out)
         self._writes += 1
 
