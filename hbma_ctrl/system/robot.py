@@ -20,11 +20,17 @@ from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Stage
 from hbma_ctrl.core.params import Pneumatics
-from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.models.bank import ChamberBank
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, bank_step_function
+from hbma_ctrl.models.actuation import acting_function, acting_state
+from hbma_ctrl.models.bank import ChamberBank, throttled_inputs_function
 from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
+from hbma_ctrl.robot.plant import W_FLOOR
+from hbma_ctrl.robot.plant_step import load_sharing_function
 from hbma_ctrl.robot.rig import RobotRigSettings
+from hbma_ctrl.runtime.burst import burst_function, burst_state
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+from hbma_ctrl.runtime.robot_step import caps_function, net_vents_function, slew_function
+from hbma_ctrl.runtime.safety_step import EVENTS, state_parts, state_size, supervisor_function
 from hbma_ctrl.system.base import SystemBase
 from hbma_ctrl.system.chamber import SupervisorEpisodes
 from hbma_ctrl.system.roles import make_model
@@ -189,9 +195,6 @@ class RobotSystem(SystemBase):
         ``u`` (3 n, the valve inputs, held over the next period: the ``held`` of :meth:`tick`); the
         estimates, targets, commands, solver status and supervisor events are its log columns.
         ValueError naming the setting that cannot be generated."""
-        from hbma_ctrl.models.actuation import acting_state
-        from hbma_ctrl.runtime.safety_step import EVENTS
-
         loop = self.loop
         nmpc, bank = loop.controller, loop.bank
         if not isinstance(nmpc, RobotNMPCFunction):
@@ -203,7 +206,6 @@ class RobotSystem(SystemBase):
         n, N = loop.n, nmpc.s.horizon
         t = np.asarray(t, dtype=float)
         act_hist, act_fill = acting_state(bank._timing, n)
-        burst_state = np.zeros(1) if loop.burst is None else _burst_state(loop)
         signals = {
             "t": [0.0], "p": np.asarray(p0, dtype=float), "u": np.zeros(3 * n), "goal": np.zeros(n), "first": [1.0],
             "refresh": [1.0],
@@ -215,7 +217,8 @@ class RobotSystem(SystemBase):
             "h_est": np.zeros(n), "p_est": np.zeros(n), "lam": np.zeros(n), "lost": np.zeros(n), "r": np.zeros(n),
             "outlier": np.zeros(n), "k_std": np.zeros(n), "ekf_reset": np.zeros(n),
             # the tick's middle
-            "zs": np.zeros(n), "burst_flagged": np.zeros(n), "burst_state": burst_state, "href": np.zeros(n),
+            "burst_state": np.zeros(1) if loop.burst is None else burst_state(loop.burst),
+            "zs": np.zeros(n), "burst_flagged": np.zeros(n), "href": np.zeros(n),
             "href_N": np.zeros(n * N), "a_max": np.zeros(n), "near_count": [0.0], "peak": loop._peak_p.copy(),
             "x_est": np.zeros(n), "b_est": np.zeros(n), "k_est": np.zeros(n), "c_est": np.zeros(n),
             "sup_state": loop.supervisor.state(2, N), "released": np.zeros(n),
@@ -315,18 +318,9 @@ def robot_system(settings: RobotSettings, targets: dict, rig_settings: RobotRigS
 
 # --------------------------------------------------------------------------------------------- generated loop
 # each part of RobotLoop.tick as the casadi Function that mirrors it (RobotSystem.to_function)
-def _burst_state(loop) -> np.ndarray:
-    from hbma_ctrl.runtime.burst import burst_state
-
-    return burst_state(loop.burst)
-
-
 def _ekf_function(loop) -> ca.Function:
     """robot_ekf(z[n], w_prev[2 x n], act_hist, act_fill[n], X[4 x n], P[16 x n], W[n], gated_run[n])
     -> the acting history, the bank's state and its outputs (the bank's step with the command acting)."""
-    from hbma_ctrl.estimators.robot_ekf import bank_step_function
-    from hbma_ctrl.models.actuation import acting_function
-
     bank, n = loop.bank, loop.n
     timing = bank._timing
     act = acting_function(timing, "robot_acting").map(n)
@@ -347,12 +341,6 @@ def _ekf_function(loop) -> ca.Function:
 
 def _pre_function(loop) -> ca.Function:
     """robot_pre: the tick's part between the bank and the NMPC (module docstring)."""
-    from hbma_ctrl.robot.plant import W_FLOOR
-    from hbma_ctrl.robot.plant_step import load_sharing_function
-    from hbma_ctrl.runtime.burst import burst_function
-    from hbma_ctrl.runtime.robot_step import caps_function, slew_function
-    from hbma_ctrl.runtime.safety_step import state_parts, state_size
-
     n, N, sup, model = loop.n, loop.controller.s.horizon, loop.supervisor, loop.model
     MX = ca.MX
     t, first, refresh = MX.sym("t"), MX.sym("first"), MX.sym("refresh")
@@ -361,7 +349,7 @@ def _pre_function(loop) -> ca.Function:
     X = MX.sym("X", 4, n)
     goal, href_prev, peak, released = (MX.sym(s, n) for s in ("goal", "href_prev", "peak", "released"))
     sst = MX.sym("sup_state", state_size(n, 2, N))
-    bst = MX.sym("burst_state", 1 if loop.burst is None else _burst_state(loop).size)
+    bst = MX.sym("burst_state", 1 if loop.burst is None else burst_state(loop.burst).size)
     # the interlock sees the readings the bank trusted (an outlier is no pressure)
     zs = ca.if_else(outlier != 0, ca.DM.nan(n, 1), z)
     parts = state_parts(n, 2, N)
@@ -391,10 +379,6 @@ def _pre_function(loop) -> ca.Function:
 
 def _post_function(loop) -> ca.Function:
     """robot_post: the tick's part after the NMPC (module docstring)."""
-    from hbma_ctrl.models.bank import throttled_inputs_function
-    from hbma_ctrl.runtime.robot_step import net_vents_function
-    from hbma_ctrl.runtime.safety_step import state_size, supervisor_function
-
     nmpc, bank, model, sup = loop.controller, loop.bank, loop.model, loop.supervisor
     n, N, topo = loop.n, nmpc.s.horizon, model.topology
     MX = ca.MX
@@ -453,8 +437,9 @@ def _post_function(loop) -> ca.Function:
     else:
         carry_n = carry_v
     w_prev = ca.horzcat(supply, Uc[2, :].T).T
-    # this tick's interventions per kind (the Supervisor's counts' increments), EVENTS order
-    ev_sums = _event_sums(events, n)
+    # this tick's interventions per kind (the Supervisor's counts' increments, summed over the chambers),
+    # EVENTS order
+    ev_sums = ca.vertcat(*[ca.sum1(events[j * n:(j + 1) * n]) for j in range(len(EVENTS))])
     return ca.Function(
         "robot_post", [t, status, a_dec, o_dec, abar, obar, zs, href, lam, lost, flagged, sst, X, P, zq_new, yq_new, zq,
                        yq, warm, p, b, h, x, W, k, c, carry],
@@ -465,10 +450,3 @@ def _post_function(loop) -> ca.Function:
         ["U", "w_prev", "sup_state_next", "released", "X_next", "P_next", "prev", "qp_z_next", "qp_y_next",
          "warm_next", "first_next", "carry_next", "event_sums", "failed", "a_sent", "o_sent"])
 
-
-def _event_sums(events, n: int):
-    """The supervisor's per-chamber event flags (7 rows of n, in
-    :data:`~hbma_ctrl.runtime.safety_step.EVENTS` order) summed per row."""
-    from hbma_ctrl.runtime.safety_step import EVENTS
-
-    return ca.vertcat(*[ca.sum1(events[j * n:(j + 1) * n]) for j in range(len(EVENTS))])
