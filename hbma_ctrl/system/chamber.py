@@ -10,7 +10,6 @@ saying what was clipped) and applied between periods (:meth:`ChamberSystem.apply
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import replace
 
@@ -35,36 +34,7 @@ from hbma_ctrl.system.roles import (
 )
 from hbma_ctrl.system.sections import ControllerSection
 
-__all__ = ["ChamberSystem", "SupervisorEpisodes", "chamber_system"]
-
-
-class SupervisorEpisodes:
-    """The runtime supervisor's interventions as daemon events ("supervisor", "<chamber>: <cause>
-    (<detail>)"), one per episode: a chamber's cause is passed on when it was not logged in the
-    previous tick (the pressure guard and the stretch guard log every step they act; the run log
-    would otherwise get one row per chamber and period)."""
-
-    def __init__(self, supervisor, names):
-        self.sup = supervisor
-        self.names = tuple(names)
-        self._seen = supervisor.logged
-        self._prev: set = set()
-
-    def take(self) -> list[tuple[str, str]]:
-        """The episodes started since the last call (oldest first)."""
-        sup = self.sup
-        new = min(sup.logged - self._seen, len(sup.events))
-        self._seen = sup.logged
-        events = list(itertools.islice(reversed(sup.events), new))[::-1] if new > 0 else []
-        out, cur = [], set()
-        for e in events:
-            key = (e.chamber, e.cause)
-            if key not in self._prev and key not in cur:
-                name = self.names[e.chamber] if 0 <= e.chamber < len(self.names) else str(e.chamber)
-                out.append(("supervisor", f"{name}: {e.cause}" + (f" ({e.detail})" if e.detail else "")))
-            cur.add(key)
-        self._prev = cur
-        return out
+__all__ = ["ChamberSystem", "chamber_system"]
 
 
 class _RigClock:
@@ -110,19 +80,14 @@ class ChamberSystem(SystemBase):
                  names=("C1",), calibration: StartupCalibration | None = None):
         if not (math.isfinite(sample_period) and sample_period > 0):
             raise ValueError(f"ChamberSystem.sample_period = {sample_period!r} must be a positive time (s)")
-        self.loop = loop
-        self.n = 1
-        self.names = tuple(names)
-        self.p_limit = float(p_limit)
+        super().__init__(loop, names, p_limit)
         self.h_range = (float(h_range[0]), float(h_range[1]))
         self.sample_period = float(sample_period)
         self.calibration = calibration
         self.calibration_summary: dict | None = None
         self.t_rig = math.nan  # the rig time of the newest reading, s
         self.t_closed: float | None = None  # the rig time the loop closed at, s
-        self._events: list[tuple[str, str]] = []
         self._t0: float | None = None
-        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
         loop.estimator = _RigClock(loop.estimator, self)
 
     @property
@@ -135,12 +100,6 @@ class ChamberSystem(SystemBase):
         if self.t_closed is None:
             raise ValueError("ChamberSystem.loop_time: the loop has not closed yet")
         return round((float(t) - self.t_closed) / self.sample_period) * self.sample_period
-
-    def take_events(self) -> list[tuple[str, str]]:
-        """(kind, cause) events since the last call (the calibration's start and outcome, the
-        supervisor's interventions: :class:`SupervisorEpisodes`)."""
-        ev, self._events = self._events, []
-        return ev + self._episodes.take()
 
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1); ``held`` (3, 1): the
@@ -273,7 +232,7 @@ class ChamberSystem(SystemBase):
     def stats(self) -> dict:
         """The controller's and the runtime's statistics (ms, counts), and ``calibration`` (the
         start-up calibration's outcome, edge units, as the controller scene reports it) when it ran."""
-        out = self.loop.stats()
+        out = super().stats()
         if self.calibration is not None:
             out["calibration"] = self.calibration_summary or {"status": self.calibration.status}
         return out

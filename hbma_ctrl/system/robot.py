@@ -32,7 +32,6 @@ from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 from hbma_ctrl.runtime.robot_step import caps_function, net_vents_function, slew_function
 from hbma_ctrl.runtime.safety_step import EVENTS, state_parts, state_size, supervisor_function
 from hbma_ctrl.system.base import SystemBase
-from hbma_ctrl.system.chamber import SupervisorEpisodes
 from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
 
@@ -45,20 +44,11 @@ class RobotSystem(SystemBase):
     kind = "robot"
 
     def __init__(self, loop: RobotLoop, p_limit: float, h_max: float):
-        self.loop = loop
+        super().__init__(loop, loop.design.names, p_limit)
         self.design = loop.design
-        self.n = loop.n
-        self.names = tuple(self.design.names)
-        self.p_limit = float(p_limit)
         self.h_max = float(h_max)
         self._t = 0.0
-        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
         self._bursts_reported = np.zeros(self.n, dtype=bool)
-
-    def take_events(self) -> list[tuple[str, str]]:
-        """(kind, cause) events since the last call: the supervisor's interventions
-        (:class:`SupervisorEpisodes`: interlocks, vents, a lost estimate, fallbacks)."""
-        return self._episodes.take()
 
     def clear_faults(self) -> None:
         """Re-arm the runner's own fault tests (a bench that records a fault and goes on): the burst
@@ -178,10 +168,6 @@ class RobotSystem(SystemBase):
             pose = new.get(k, self._pose_now(k))
             targets[k] = ((0.0, *(float(x) for x in pose)),)
         self.loop.set_targets(targets)
-
-    def stats(self) -> dict:
-        """The loop's statistics (ms, counts)."""
-        return self.loop.stats()
 
     def to_function(self, t: np.ndarray, p0: np.ndarray) -> LoopSpec:
         """This system's control side as a generated loop (:class:`~hbma_ctrl.core.loopgen.LoopSpec`) over
