@@ -56,6 +56,10 @@ VALUE_KEY = {"dropout": None, "frozen": None, "offset": "offset_kpa", "out_of_ra
              "stuck_inlet": "duty", "stuck_outlet": "duty", "leak": "duty", "pump_failure": None,
              "link_loss": None}
 _READ_KINDS = ("dropout", "frozen", "offset", "out_of_range", "link_loss")
+#: what a fault on what is written does: (the command's row, its new value from the commanded one and the
+#: fault's value)
+_WRITE_FAULTS = {"stuck_inlet": (1, lambda u, v: v), "stuck_outlet": (2, lambda u, v: v),
+                 "leak": (2, lambda u, v: np.minimum(1.0, u + v)), "pump_failure": (0, lambda u, v: 0.0)}
 _VALUE_TO_SI = {"offset_kpa": U.kpa, "value_kpa": U.kpa, "duty": float}
 
 
@@ -210,20 +214,11 @@ class FaultyRig:
         """Pass ``u`` (3, n) on with the actuator faults acting at the last read's time applied."""
         out = check_u(u, self.n).copy()
         for f in self.faults:
-            if not f.active(self.t):
-                continue
-            c = f.columns(self.n)
-            if f.kind == "stuck_inlet":
-                out[1, c] = f.value
-            elif f.kind == "stuck_outlet":
-                out[2, c] = f.value
-            elif f.kind == "leak":
-                out[2, c] = np.minimum(1.0, out[2, c] + f.value)
-            elif f.kind == "pump_failure":
-                out[0, c] = 0.0
-            else:
-                continue
-            self.injected[f.kind] += 1
+            if f.kind in _WRITE_FAULTS and f.active(self.t):
+                row, value = _WRITE_FAULTS[f.kind]
+                c = f.columns(self.n)
+                out[row, c] = value(out[row, c], f.value)
+                self.injected[f.kind] += 1
         self.rig.write(out)
         self._writes += 1
 
