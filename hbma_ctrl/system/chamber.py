@@ -150,7 +150,8 @@ class ChamberSystem(SystemBase):
 
     def check_setpoint(self, request: dict) -> dict:
         """Heights {0: h m} -> {"applied", "clipped"} (clipped to ``h_range``); ValueError for layers or
-        another chamber."""
+        another chamber. The request is a validated :class:`~hbma_ctrl.app.schema.api.SetpointRequest`'s
+        (finite heights)."""
         if request.get("layers"):
             raise ValueError("layers: this daemon runs one chamber; send heights_mm instead")
         heights = request.get("heights") or {}
@@ -162,8 +163,6 @@ class ChamberSystem(SystemBase):
             if int(i) != 0:
                 raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
             h = float(h)
-            if not math.isfinite(h):
-                raise ValueError(f"heights_mm.{i}: must be a finite number")
             hc = min(max(h, lo), hi)
             if hc != h:
                 clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):g} mm (reachable "

@@ -131,7 +131,9 @@ class RobotSystem(SystemBase):
 
     def check_setpoint(self, request: dict) -> dict:
         """Layer poses {k: (centre m, bend rad, direction rad)} -> {"applied", "clipped"}: chamber heights
-        from the inverse kinematics clipped to [0, h_max], the pose those heights give reported back."""
+        from the inverse kinematics clipped to [0, h_max], the pose those heights give reported back. The
+        request is a validated :class:`~hbma_ctrl.app.schema.api.SetpointRequest`'s (finite poses, bend in
+        [0, 60] deg)."""
         if request.get("heights"):
             raise ValueError("heights_mm: the robot takes layer poses (layers) as setpoints")
         layers = request.get("layers") or {}
@@ -144,10 +146,6 @@ class RobotSystem(SystemBase):
             if not 0 <= k < N:
                 raise ValueError(f"layers: layer {k} is out of range [0, {N - 1}]")
             c, b, d = (float(x) for x in pose)
-            if not all(math.isfinite(x) for x in (c, b, d)):
-                raise ValueError(f"layers.{k}: centre, bend and direction must be finite")
-            if not 0.0 <= b < math.pi / 2:
-                raise ValueError(f"layers.{k}: bend_deg = {math.degrees(b):g} is out of range [0, 90) deg")
             h = inverse_kinematics(self.design, np.full(N, c), np.full(N, b), np.full(N, d))[k]
             hc = np.clip(h, 0.0, self.h_max)
             if np.any(hc != h):
