@@ -20,11 +20,7 @@ import threading
 from collections import deque
 from typing import Callable
 
-__all__ = ["DaemonState", "MODES"]
-
-#: the loop's modes: starting, running (closed loop), safe (latched safe command after a fault or a
-#: stop), stopped (the loop has ended)
-MODES = ("starting", "running", "safe", "stopped")
+__all__ = ["DaemonState"]
 
 
 class DaemonState:
