@@ -39,23 +39,18 @@ __all__ = ["ChamberSystem", "chamber_system"]
 
 class _RigClock:
     """The loop's estimator, stepped at the rig's own time stamp of the reading (s), not the loop's
-    schedule time: its prediction spans the true time between readings. Every other attribute is the
-    estimator's own."""
+    schedule time: its prediction spans the true time between readings. ``inner`` is the wrapped
+    estimator; every other attribute is the estimator's own."""
 
     def __init__(self, estimator, system: "ChamberSystem"):
-        self._est, self._system = estimator, system
+        self.inner, self._system = estimator, system
 
     def step(self, t: float, measurement, applied):
         """The wrapped estimator's step at the rig time of this reading (``t``, the loop's time, unused)."""
-        return self._est.step(self._system.t_rig, measurement, applied)
-
-    @property
-    def inner(self):
-        """The wrapped estimator."""
-        return self._est
+        return self.inner.step(self._system.t_rig, measurement, applied)
 
     def __getattr__(self, name):
-        return getattr(self._est, name)
+        return getattr(self.inner, name)
 
 
 class ChamberSystem(SystemBase):
@@ -193,7 +188,7 @@ class ChamberSystem(SystemBase):
             raise ValueError("the loop has no reference: a generated loop follows a target schedule")
         t = np.asarray(t, dtype=float)
         ctrl = loop.controller
-        est = loop.estimator.inner if isinstance(loop.estimator, _RigClock) else loop.estimator
+        est = loop.estimator.inner  # the loop's estimator is always wrapped (ChamberSystem.__init__)
         if not isinstance(ctrl, GeneratedController):
             raise ValueError(f"[controller] kind: {type(ctrl).__name__} has no generated form (only 'mpc' does)")
         if estimate and not isinstance(est, GeneratedEstimator):
