@@ -88,7 +88,3 @@ class DaemonState:
     @property
     def stop_reason(self) -> str:
         return self._stop_reason
-
-    def wait_stop(self, timeout: float) -> bool:
-        """Sleep up to ``timeout`` s or until a stop is requested; True if it was."""
-        return self._stop.wait(timeout)
