@@ -48,13 +48,11 @@ from hbma_ctrl.core import units as U
 
 __all__ = ["INJECTED_KINDS", "FaultSpec", "FaultTable", "FaultyRig", "parse_faults"]
 
-#: what :class:`FaultyRig` can inject
-INJECTED_KINDS = ("dropout", "frozen", "offset", "out_of_range", "stuck_inlet", "stuck_outlet", "leak",
-                  "pump_failure", "link_loss")
-#: the value key each kind takes (None: no value)
+#: what :class:`FaultyRig` can inject, and the value key each kind takes (None: no value)
 VALUE_KEY = {"dropout": None, "frozen": None, "offset": "offset_kpa", "out_of_range": "value_kpa",
              "stuck_inlet": "duty", "stuck_outlet": "duty", "leak": "duty", "pump_failure": None,
              "link_loss": None}
+INJECTED_KINDS = tuple(VALUE_KEY)
 _READ_KINDS = ("dropout", "frozen", "offset", "out_of_range", "link_loss")
 #: what a fault on what is written does: (the command's row, its new value from the commanded one and the
 #: fault's value)
