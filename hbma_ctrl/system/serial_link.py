@@ -428,9 +428,7 @@ class SerialRig:
             # TypeError/AttributeError: pyserial's read on a port closed under it by close()
             self._drop(ser, f"rig link on {self.port} lost: {e}")
             return
-        buf = self._rxbuf + chunk
-        lines = buf.split(b"\n")
-        self._rxbuf = lines.pop()
+        *lines, self._rxbuf = (self._rxbuf + chunk).split(b"\n")
         if len(self._rxbuf) > MAX_LINE:  # no newline in sight: noise, not a line
             self.stats["bad_lines"] += 1
             self._rxbuf = b""
