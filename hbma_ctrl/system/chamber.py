@@ -244,7 +244,7 @@ def chamber_system(actuator: Actuator, pneumatics: Pneumatics, platform: Platfor
     the user sets it, for the error when the controller's period is no whole multiple of it.
     """
     rs = rig_settings
-    est = estimator or default_estimator(actuator, pneumatics, None, rs)
+    est = estimator or default_estimator(actuator, pneumatics, rs)
     if controller is None and realtime and section.kind == "mpc":
         # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
         # the last plan, then the safe command), never a late command
