@@ -2,17 +2,19 @@
 
 The lockstep driver (:func:`hbma_ctrl.system.run.run_lockstep`) and the rig daemon's real-time loop
 drive a :class:`System`: one ``tick`` per sample period, the events and faults it found since the
-last call, its status rows (targets, estimates, layer poses) and setpoints. :class:`SystemBase` gives
-the members a system may do without their neutral values.
+last call, its status rows (targets, estimates, layer poses) and setpoints. :class:`SystemBase` is what
+the two systems share: their runtime loop's supervisor episodes as events, its statistics, and the
+neutral values of the members a system may do without.
 """
 
 from __future__ import annotations
 
+import itertools
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["System", "SystemBase"]
+__all__ = ["System", "SystemBase", "SupervisorEpisodes"]
 
 
 @runtime_checkable
@@ -82,15 +84,61 @@ class System(Protocol):
         ...
 
 
+class SupervisorEpisodes:
+    """The runtime supervisor's interventions as daemon events ("supervisor", "<chamber>: <cause>
+    (<detail>)"), one per episode: a chamber's cause is passed on when it was not logged in the
+    previous tick (the pressure guard and the stretch guard log every step they act; the run log
+    would otherwise get one row per chamber and period)."""
+
+    def __init__(self, supervisor, names):
+        self.sup = supervisor
+        self.names = tuple(names)
+        self._seen = supervisor.logged
+        self._prev: set = set()
+
+    def take(self) -> list[tuple[str, str]]:
+        """The episodes started since the last call (oldest first)."""
+        sup = self.sup
+        new = min(sup.logged - self._seen, len(sup.events))
+        self._seen = sup.logged
+        events = list(itertools.islice(reversed(sup.events), new))[::-1] if new > 0 else []
+        out, cur = [], set()
+        for e in events:
+            key = (e.chamber, e.cause)
+            if key not in self._prev and key not in cur:
+                name = self.names[e.chamber] if 0 <= e.chamber < len(self.names) else str(e.chamber)
+                out.append(("supervisor", f"{name}: {e.cause}" + (f" ({e.detail})" if e.detail else "")))
+            cur.add(key)
+        self._prev = cur
+        return out
+
+
 class SystemBase:
-    """Neutral values of the :class:`System` members a system may do without: no calibration, no
-    faults of its own, no burst test, no timing or report of its parts."""
+    """A system over the runtime loop ``loop`` (its ``supervisor`` and ``stats()``) of the chambers
+    ``names`` (pressure limit ``p_limit``, Pa), and the neutral values of the :class:`System` members a
+    system may do without: no calibration, no faults of its own, no burst test, no timing or report
+    of its parts."""
 
     warming: bool = False
 
+    def __init__(self, loop, names, p_limit: float):
+        self.loop = loop
+        self.names = tuple(names)
+        self.n = len(self.names)
+        self.p_limit = float(p_limit)
+        self._events: list[tuple[str, str]] = []  # the system's own, before the supervisor's
+        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
+
     def take_events(self) -> list[tuple[str, str]]:
-        """No events."""
-        return []
+        """(kind, cause) events since the last call: the system's own (a calibration's start and
+        outcome), then the supervisor's interventions (:class:`SupervisorEpisodes`: interlocks, vents,
+        a lost estimate, fallbacks)."""
+        ev, self._events = self._events, []
+        return ev + self._episodes.take()
+
+    def stats(self) -> dict:
+        """The runtime loop's statistics (ms, counts)."""
+        return self.loop.stats()
 
     def take_faults(self) -> list[tuple[str, int, str]]:
         """No faults of its own."""

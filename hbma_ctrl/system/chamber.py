@@ -10,7 +10,6 @@ saying what was clipped) and applied between periods (:meth:`ChamberSystem.apply
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import replace
 
@@ -35,57 +34,23 @@ from hbma_ctrl.system.roles import (
 )
 from hbma_ctrl.system.sections import ControllerSection
 
-__all__ = ["ChamberSystem", "SupervisorEpisodes", "chamber_system"]
-
-
-class SupervisorEpisodes:
-    """The runtime supervisor's interventions as daemon events ("supervisor", "<chamber>: <cause>
-    (<detail>)"), one per episode: a chamber's cause is passed on when it was not logged in the
-    previous tick (the pressure guard and the stretch guard log every step they act; the run log
-    would otherwise get one row per chamber and period)."""
-
-    def __init__(self, supervisor, names):
-        self.sup = supervisor
-        self.names = tuple(names)
-        self._seen = supervisor.logged
-        self._prev: set = set()
-
-    def take(self) -> list[tuple[str, str]]:
-        """The episodes started since the last call (oldest first)."""
-        sup = self.sup
-        new = min(sup.logged - self._seen, len(sup.events))
-        self._seen = sup.logged
-        events = list(itertools.islice(reversed(sup.events), new))[::-1] if new > 0 else []
-        out, cur = [], set()
-        for e in events:
-            key = (e.chamber, e.cause)
-            if key not in self._prev and key not in cur:
-                name = self.names[e.chamber] if 0 <= e.chamber < len(self.names) else str(e.chamber)
-                out.append(("supervisor", f"{name}: {e.cause}" + (f" ({e.detail})" if e.detail else "")))
-            cur.add(key)
-        self._prev = cur
-        return out
+__all__ = ["ChamberSystem", "chamber_system"]
 
 
 class _RigClock:
     """The loop's estimator, stepped at the rig's own time stamp of the reading (s), not the loop's
-    schedule time: its prediction spans the true time between readings. Every other attribute is the
-    estimator's own."""
+    schedule time: its prediction spans the true time between readings. ``inner`` is the wrapped
+    estimator; every other attribute is the estimator's own."""
 
     def __init__(self, estimator, system: "ChamberSystem"):
-        self._est, self._system = estimator, system
+        self.inner, self._system = estimator, system
 
     def step(self, t: float, measurement, applied):
         """The wrapped estimator's step at the rig time of this reading (``t``, the loop's time, unused)."""
-        return self._est.step(self._system.t_rig, measurement, applied)
-
-    @property
-    def inner(self):
-        """The wrapped estimator."""
-        return self._est
+        return self.inner.step(self._system.t_rig, measurement, applied)
 
     def __getattr__(self, name):
-        return getattr(self._est, name)
+        return getattr(self.inner, name)
 
 
 class ChamberSystem(SystemBase):
@@ -108,21 +73,14 @@ class ChamberSystem(SystemBase):
 
     def __init__(self, loop: ChamberLoop, p_limit: float, h_range: tuple[float, float], sample_period: float,
                  names=("C1",), calibration: StartupCalibration | None = None):
-        if not (math.isfinite(sample_period) and sample_period > 0):
-            raise ValueError(f"ChamberSystem.sample_period = {sample_period!r} must be a positive time (s)")
-        self.loop = loop
-        self.n = 1
-        self.names = tuple(names)
-        self.p_limit = float(p_limit)
+        super().__init__(loop, names, p_limit)
         self.h_range = (float(h_range[0]), float(h_range[1]))
         self.sample_period = float(sample_period)
         self.calibration = calibration
         self.calibration_summary: dict | None = None
         self.t_rig = math.nan  # the rig time of the newest reading, s
         self.t_closed: float | None = None  # the rig time the loop closed at, s
-        self._events: list[tuple[str, str]] = []
         self._t0: float | None = None
-        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
         loop.estimator = _RigClock(loop.estimator, self)
 
     @property
@@ -135,12 +93,6 @@ class ChamberSystem(SystemBase):
         if self.t_closed is None:
             raise ValueError("ChamberSystem.loop_time: the loop has not closed yet")
         return round((float(t) - self.t_closed) / self.sample_period) * self.sample_period
-
-    def take_events(self) -> list[tuple[str, str]]:
-        """(kind, cause) events since the last call (the calibration's start and outcome, the
-        supervisor's interventions: :class:`SupervisorEpisodes`)."""
-        ev, self._events = self._events, []
-        return ev + self._episodes.take()
 
     def tick(self, t: float, p: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """One period at rig time t (s) with the reading p (Pa, (1,)) -> U (3, 1); ``held`` (3, 1): the
@@ -191,7 +143,8 @@ class ChamberSystem(SystemBase):
 
     def check_setpoint(self, request: dict) -> dict:
         """Heights {0: h m} -> {"applied", "clipped"} (clipped to ``h_range``); ValueError for layers or
-        another chamber."""
+        another chamber. The request is a validated :class:`~hbma_ctrl.app.schema.api.SetpointRequest`'s
+        (finite heights)."""
         if request.get("layers"):
             raise ValueError("layers: this daemon runs one chamber; send heights_mm instead")
         heights = request.get("heights") or {}
@@ -203,8 +156,6 @@ class ChamberSystem(SystemBase):
             if int(i) != 0:
                 raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
             h = float(h)
-            if not math.isfinite(h):
-                raise ValueError(f"heights_mm.{i}: must be a finite number")
             hc = min(max(h, lo), hi)
             if hc != h:
                 clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):g} mm (reachable "
@@ -237,7 +188,7 @@ class ChamberSystem(SystemBase):
             raise ValueError("the loop has no reference: a generated loop follows a target schedule")
         t = np.asarray(t, dtype=float)
         ctrl = loop.controller
-        est = loop.estimator.inner if isinstance(loop.estimator, _RigClock) else loop.estimator
+        est = loop.estimator.inner  # the loop's estimator is always wrapped (ChamberSystem.__init__)
         if not isinstance(ctrl, GeneratedController):
             raise ValueError(f"[controller] kind: {type(ctrl).__name__} has no generated form (only 'mpc' does)")
         if estimate and not isinstance(est, GeneratedEstimator):
@@ -273,7 +224,7 @@ class ChamberSystem(SystemBase):
     def stats(self) -> dict:
         """The controller's and the runtime's statistics (ms, counts), and ``calibration`` (the
         start-up calibration's outcome, edge units, as the controller scene reports it) when it ran."""
-        out = self.loop.stats()
+        out = super().stats()
         if self.calibration is not None:
             out["calibration"] = self.calibration_summary or {"status": self.calibration.status}
         return out
@@ -293,7 +244,7 @@ def chamber_system(actuator: Actuator, pneumatics: Pneumatics, platform: Platfor
     the user sets it, for the error when the controller's period is no whole multiple of it.
     """
     rs = rig_settings
-    est = estimator or default_estimator(actuator, pneumatics, None, rs)
+    est = estimator or default_estimator(actuator, pneumatics, rs)
     if controller is None and realtime and section.kind == "mpc":
         # a real-time loop always bounds the solver: an overrun is a failed step (the supervisor replays
         # the last plan, then the safe command), never a late command

@@ -20,13 +20,18 @@ from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Stage
 from hbma_ctrl.core.params import Pneumatics
-from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings
-from hbma_ctrl.models.bank import ChamberBank
+from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, bank_step_function
+from hbma_ctrl.models.actuation import acting_function, acting_state
+from hbma_ctrl.models.bank import ChamberBank, throttled_inputs_function
 from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
+from hbma_ctrl.robot.plant import W_FLOOR
+from hbma_ctrl.robot.plant_step import load_sharing_function
 from hbma_ctrl.robot.rig import RobotRigSettings
+from hbma_ctrl.runtime.burst import burst_function, burst_state
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
+from hbma_ctrl.runtime.robot_step import caps_function, net_vents_function, slew_function
+from hbma_ctrl.runtime.safety_step import EVENTS, state_parts, state_size, supervisor_function
 from hbma_ctrl.system.base import SystemBase
-from hbma_ctrl.system.chamber import SupervisorEpisodes
 from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
 
@@ -39,20 +44,11 @@ class RobotSystem(SystemBase):
     kind = "robot"
 
     def __init__(self, loop: RobotLoop, p_limit: float, h_max: float):
-        self.loop = loop
+        super().__init__(loop, loop.design.names, p_limit)
         self.design = loop.design
-        self.n = loop.n
-        self.names = tuple(self.design.names)
-        self.p_limit = float(p_limit)
         self.h_max = float(h_max)
         self._t = 0.0
-        self._episodes = SupervisorEpisodes(loop.supervisor, self.names)
         self._bursts_reported = np.zeros(self.n, dtype=bool)
-
-    def take_events(self) -> list[tuple[str, str]]:
-        """(kind, cause) events since the last call: the supervisor's interventions
-        (:class:`SupervisorEpisodes`: interlocks, vents, a lost estimate, fallbacks)."""
-        return self._episodes.take()
 
     def clear_faults(self) -> None:
         """Re-arm the runner's own fault tests (a bench that records a fault and goes on): the burst
@@ -135,7 +131,9 @@ class RobotSystem(SystemBase):
 
     def check_setpoint(self, request: dict) -> dict:
         """Layer poses {k: (centre m, bend rad, direction rad)} -> {"applied", "clipped"}: chamber heights
-        from the inverse kinematics clipped to [0, h_max], the pose those heights give reported back."""
+        from the inverse kinematics clipped to [0, h_max], the pose those heights give reported back. The
+        request is a validated :class:`~hbma_ctrl.app.schema.api.SetpointRequest`'s (finite poses, bend in
+        [0, 60] deg)."""
         if request.get("heights"):
             raise ValueError("heights_mm: the robot takes layer poses (layers) as setpoints")
         layers = request.get("layers") or {}
@@ -148,10 +146,6 @@ class RobotSystem(SystemBase):
             if not 0 <= k < N:
                 raise ValueError(f"layers: layer {k} is out of range [0, {N - 1}]")
             c, b, d = (float(x) for x in pose)
-            if not all(math.isfinite(x) for x in (c, b, d)):
-                raise ValueError(f"layers.{k}: centre, bend and direction must be finite")
-            if not 0.0 <= b < math.pi / 2:
-                raise ValueError(f"layers.{k}: bend_deg = {math.degrees(b):g} is out of range [0, 90) deg")
             h = inverse_kinematics(self.design, np.full(N, c), np.full(N, b), np.full(N, d))[k]
             hc = np.clip(h, 0.0, self.h_max)
             if np.any(hc != h):
@@ -173,10 +167,6 @@ class RobotSystem(SystemBase):
             targets[k] = ((0.0, *(float(x) for x in pose)),)
         self.loop.set_targets(targets)
 
-    def stats(self) -> dict:
-        """The loop's statistics (ms, counts)."""
-        return self.loop.stats()
-
     def to_function(self, t: np.ndarray, p0: np.ndarray) -> LoopSpec:
         """This system's control side as a generated loop (:class:`~hbma_ctrl.core.loopgen.LoopSpec`) over
         the tick times ``t`` (s), every part of :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` as the casadi
@@ -189,9 +179,6 @@ class RobotSystem(SystemBase):
         ``u`` (3 n, the valve inputs, held over the next period: the ``held`` of :meth:`tick`); the
         estimates, targets, commands, solver status and supervisor events are its log columns.
         ValueError naming the setting that cannot be generated."""
-        from hbma_ctrl.models.actuation import acting_state
-        from hbma_ctrl.runtime.safety_step import EVENTS
-
         loop = self.loop
         nmpc, bank = loop.controller, loop.bank
         if not isinstance(nmpc, RobotNMPCFunction):
@@ -203,7 +190,6 @@ class RobotSystem(SystemBase):
         n, N = loop.n, nmpc.s.horizon
         t = np.asarray(t, dtype=float)
         act_hist, act_fill = acting_state(bank._timing, n)
-        burst_state = np.zeros(1) if loop.burst is None else _burst_state(loop)
         signals = {
             "t": [0.0], "p": np.asarray(p0, dtype=float), "u": np.zeros(3 * n), "goal": np.zeros(n), "first": [1.0],
             "refresh": [1.0],
@@ -215,7 +201,8 @@ class RobotSystem(SystemBase):
             "h_est": np.zeros(n), "p_est": np.zeros(n), "lam": np.zeros(n), "lost": np.zeros(n), "r": np.zeros(n),
             "outlier": np.zeros(n), "k_std": np.zeros(n), "ekf_reset": np.zeros(n),
             # the tick's middle
-            "zs": np.zeros(n), "burst_flagged": np.zeros(n), "burst_state": burst_state, "href": np.zeros(n),
+            "burst_state": np.zeros(1) if loop.burst is None else burst_state(loop.burst),
+            "zs": np.zeros(n), "burst_flagged": np.zeros(n), "href": np.zeros(n),
             "href_N": np.zeros(n * N), "a_max": np.zeros(n), "near_count": [0.0], "peak": loop._peak_p.copy(),
             "x_est": np.zeros(n), "b_est": np.zeros(n), "k_est": np.zeros(n), "c_est": np.zeros(n),
             "sup_state": loop.supervisor.state(2, N), "released": np.zeros(n),
@@ -315,18 +302,9 @@ def robot_system(settings: RobotSettings, targets: dict, rig_settings: RobotRigS
 
 # --------------------------------------------------------------------------------------------- generated loop
 # each part of RobotLoop.tick as the casadi Function that mirrors it (RobotSystem.to_function)
-def _burst_state(loop) -> np.ndarray:
-    from hbma_ctrl.runtime.burst import burst_state
-
-    return burst_state(loop.burst)
-
-
 def _ekf_function(loop) -> ca.Function:
     """robot_ekf(z[n], w_prev[2 x n], act_hist, act_fill[n], X[4 x n], P[16 x n], W[n], gated_run[n])
     -> the acting history, the bank's state and its outputs (the bank's step with the command acting)."""
-    from hbma_ctrl.estimators.robot_ekf import bank_step_function
-    from hbma_ctrl.models.actuation import acting_function
-
     bank, n = loop.bank, loop.n
     timing = bank._timing
     act = acting_function(timing, "robot_acting").map(n)
@@ -347,12 +325,6 @@ def _ekf_function(loop) -> ca.Function:
 
 def _pre_function(loop) -> ca.Function:
     """robot_pre: the tick's part between the bank and the NMPC (module docstring)."""
-    from hbma_ctrl.robot.plant import W_FLOOR
-    from hbma_ctrl.robot.plant_step import load_sharing_function
-    from hbma_ctrl.runtime.burst import burst_function
-    from hbma_ctrl.runtime.robot_step import caps_function, slew_function
-    from hbma_ctrl.runtime.safety_step import state_parts, state_size
-
     n, N, sup, model = loop.n, loop.controller.s.horizon, loop.supervisor, loop.model
     MX = ca.MX
     t, first, refresh = MX.sym("t"), MX.sym("first"), MX.sym("refresh")
@@ -361,7 +333,7 @@ def _pre_function(loop) -> ca.Function:
     X = MX.sym("X", 4, n)
     goal, href_prev, peak, released = (MX.sym(s, n) for s in ("goal", "href_prev", "peak", "released"))
     sst = MX.sym("sup_state", state_size(n, 2, N))
-    bst = MX.sym("burst_state", 1 if loop.burst is None else _burst_state(loop).size)
+    bst = MX.sym("burst_state", 1 if loop.burst is None else burst_state(loop.burst).size)
     # the interlock sees the readings the bank trusted (an outlier is no pressure)
     zs = ca.if_else(outlier != 0, ca.DM.nan(n, 1), z)
     parts = state_parts(n, 2, N)
@@ -391,10 +363,6 @@ def _pre_function(loop) -> ca.Function:
 
 def _post_function(loop) -> ca.Function:
     """robot_post: the tick's part after the NMPC (module docstring)."""
-    from hbma_ctrl.models.bank import throttled_inputs_function
-    from hbma_ctrl.runtime.robot_step import net_vents_function
-    from hbma_ctrl.runtime.safety_step import state_size, supervisor_function
-
     nmpc, bank, model, sup = loop.controller, loop.bank, loop.model, loop.supervisor
     n, N, topo = loop.n, nmpc.s.horizon, model.topology
     MX = ca.MX
@@ -453,8 +421,9 @@ def _post_function(loop) -> ca.Function:
     else:
         carry_n = carry_v
     w_prev = ca.horzcat(supply, Uc[2, :].T).T
-    # this tick's interventions per kind (the Supervisor's counts' increments), EVENTS order
-    ev_sums = _event_sums(events, n)
+    # this tick's interventions per kind (the Supervisor's counts' increments, summed over the chambers),
+    # EVENTS order
+    ev_sums = ca.vertcat(*[ca.sum1(events[j * n:(j + 1) * n]) for j in range(len(EVENTS))])
     return ca.Function(
         "robot_post", [t, status, a_dec, o_dec, abar, obar, zs, href, lam, lost, flagged, sst, X, P, zq_new, yq_new, zq,
                        yq, warm, p, b, h, x, W, k, c, carry],
@@ -465,10 +434,3 @@ def _post_function(loop) -> ca.Function:
         ["U", "w_prev", "sup_state_next", "released", "X_next", "P_next", "prev", "qp_z_next", "qp_y_next",
          "warm_next", "first_next", "carry_next", "event_sums", "failed", "a_sent", "o_sent"])
 
-
-def _event_sums(events, n: int):
-    """The supervisor's per-chamber event flags (7 rows of n, in
-    :data:`~hbma_ctrl.runtime.safety_step.EVENTS` order) summed per row."""
-    from hbma_ctrl.runtime.safety_step import EVENTS
-
-    return ca.vertcat(*[ca.sum1(events[j * n:(j + 1) * n]) for j in range(len(EVENTS))])

@@ -35,14 +35,12 @@ def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: 
     return BangBangController(actuator, pneumatics, section.bang_bang, model=model)
 
 
-def default_estimator(actuator: Actuator, pneumatics: Pneumatics, est_settings, rig_settings):
-    """The chamber EKF on the nominal actuator: ``est_settings`` (EKFSettings) or, when None, the
-    rig's sample period, sensor range and noise (the scene's and the daemon's default filter)."""
-    if est_settings is None:
-        est_settings = EKFSettings(sample_period=rig_settings.sample_period,
-                                   noise_std=max(rig_settings.noise_std, 1.0),
-                                   sensor_range=rig_settings.sensor_range)
-    return EKF(actuator, pneumatics, est_settings)
+def default_estimator(actuator: Actuator, pneumatics: Pneumatics, rig_settings: RigSettings) -> EKF:
+    """The chamber EKF on the nominal actuator with the rig's sample period, sensor range and noise (the
+    scene's and the daemon's default filter)."""
+    return EKF(actuator, pneumatics, EKFSettings(sample_period=rig_settings.sample_period,
+                                                 noise_std=max(rig_settings.noise_std, 1.0),
+                                                 sensor_range=rig_settings.sensor_range))
 
 
 def make_pwm(section: ControllerSection, period: float) -> MinOnTime | None:

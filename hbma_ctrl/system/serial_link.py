@@ -63,6 +63,7 @@ raise :class:`RigLinkError` so the daemon goes safe. Give a stable name as ``por
 from __future__ import annotations
 
 import binascii
+import contextlib
 import math
 import threading
 import time
@@ -171,13 +172,6 @@ def from_permille(values: list[int] | tuple[int, ...], n: int) -> np.ndarray:
     return np.asarray(values, dtype=float).reshape(n, 3).T / 1000.0
 
 
-def _gap(expected: int | None, seq: int) -> int:
-    """Lines lost between the expected sequence number and the received one (0 if none)."""
-    if expected is None:
-        return 0
-    return (seq - expected) % SEQ_MOD
-
-
 class SerialRig:
     """A :class:`~hbma_ctrl.system.rigio.RigIO` over a serial line speaking protocol version 2.
 
@@ -227,13 +221,11 @@ class SerialRig:
         self.sample_period = float(sample_period) if sample_period is not None else 0.0
         self.stats = {"lines": 0, "crc_errors": 0, "bad_lines": 0, "seq_gaps": 0, "readings": 0,
                       "reconnects": 0, "held_unknown": 0}
-        self.firmware_mode = "SAFE"
         self._lock = threading.Lock()  # guards the port, the host seq counter and the readings
         self._sample_cv = threading.Condition(self._lock)  # a P line arrived
         self._tx_lock = threading.Lock()  # one line written at a time
         self._stop = threading.Event()
         self._ser = None
-        self._seq = 0
         self._link_error: str | None = None
         self._link_exc: type[RigLinkError] = RigLinkError
         self._reset_readings()
@@ -275,10 +267,9 @@ class SerialRig:
 
     def safe(self) -> None:
         """Send ``SAFE`` (pump off, inlets closed, outlets open) if the port is open; never raises."""
-        try:
+        # safe() is called on the way down and must not mask the cause
+        with contextlib.suppress(Exception):
             self._send("SAFE", held=safe_u(self.n))
-        except Exception:  # noqa: BLE001 - safe() is called on the way down and must not mask the cause
-            pass
 
     def close(self) -> None:
         """Send ``SAFE``, stop the reader thread and release the port (idempotent)."""
@@ -304,7 +295,9 @@ class SerialRig:
         self._held: np.ndarray | None = None
         self._arrival = 0.0
         self._sent_u: dict[int, np.ndarray] = {0: safe_u(self.n)}  # HELLO (seq 0) leaves the rig safe
-        self._rx_expect: int | None = None
+        self._seq = 1  # HELLO used 0
+        self._rx_expect = 1  # VER was 0
+        self.firmware_mode = "SAFE"
         self._rxbuf = b""
         self._last_hb = time.monotonic()
         self._hb_seen = False
@@ -326,11 +319,7 @@ class SerialRig:
             try:
                 ser.write(line)
             except (serial.SerialException, OSError, TypeError, AttributeError) as e:
-                with self._lock:
-                    if self._ser is ser:
-                        self._close_port(f"rig link on {self.port} lost: write failed ({e})")
-                    why = self._link_error or f"rig link on {self.port} lost: write failed ({e})"
-                    raise RigLinkError(why) from None
+                raise RigLinkError(self._drop(ser, f"rig link on {self.port} lost: write failed ({e})")) from None
             self._last_tx = time.monotonic()
 
     def _close_port(self, reason: str) -> None:
@@ -338,10 +327,17 @@ class SerialRig:
         ser, self._ser = self._ser, None
         self._link_error = reason
         if ser is not None:
-            try:
+            # the port is already gone; closing is best effort
+            with contextlib.suppress(Exception):
                 ser.close()
-            except Exception:  # noqa: BLE001 - the port is already gone; closing is best effort
-                pass
+
+    def _drop(self, ser, reason: str) -> str:
+        """Close the port ``ser`` for ``reason`` unless another thread already replaced or closed it; the
+        cause the link records."""
+        with self._lock:
+            if self._ser is ser:
+                self._close_port(reason)
+            return self._link_error or reason
 
     def _connect(self) -> None:
         """Open the port and do the handshake; raises RigLinkError / ProtocolVersionError."""
@@ -354,34 +350,27 @@ class SerialRig:
         try:
             ser.reset_input_buffer()
             ser.write(encode_line("HELLO", 0, PROTOCOL_VERSION))
-            ver, rest = self._await_ver(ser)
+            (version, n, period_us), rest = self._await_ver(ser)
+            period = period_us * 1e-6
+            if version != PROTOCOL_VERSION:
+                raise ProtocolVersionError(
+                    f"rig firmware on {self.port} speaks line protocol version {version}, this host speaks "
+                    f"version {PROTOCOL_VERSION}: flash matching firmware or use a matching hbma-ctrl")
+            if n != self.n:
+                raise RigLinkError(f"rig on {self.port} reports {n} chambers, expected n = {self.n}")
+            if self._want_period is not None and abs(period - self._want_period) > 0.01 * self._want_period:
+                raise RigLinkError(f"rig on {self.port} samples every {period * 1e3:g} ms, expected "
+                                   f"sample_period = {self._want_period * 1e3:g} ms")
         except (serial.SerialException, OSError) as e:
             ser.close()
             raise RigLinkError(f"rig port {self.port} failed during the handshake: {e}") from None
         except RigLinkError:
             ser.close()
             raise
-        version, n, period_us = ver
-        if version != PROTOCOL_VERSION:
-            ser.close()
-            raise ProtocolVersionError(
-                f"rig firmware on {self.port} speaks line protocol version {version}, this host speaks "
-                f"version {PROTOCOL_VERSION}: flash matching firmware or use a matching hbma-ctrl")
-        if n != self.n:
-            ser.close()
-            raise RigLinkError(f"rig on {self.port} reports {n} chambers, expected n = {self.n}")
-        period = period_us * 1e-6
-        if self._want_period is not None and abs(period - self._want_period) > 0.01 * self._want_period:
-            ser.close()
-            raise RigLinkError(f"rig on {self.port} samples every {period * 1e3:g} ms, expected "
-                               f"sample_period = {self._want_period * 1e3:g} ms")
         with self._lock:
             self.sample_period = period if self._want_period is None else float(self._want_period)
             self._reset_readings()
             self._rxbuf = rest  # lines that followed VER in the same read
-            self._seq = 1  # HELLO used 0
-            self._rx_expect = 1  # VER was 0
-            self.firmware_mode = "SAFE"
             self._ser = ser
             self._link_error = None
             self._link_exc = RigLinkError
@@ -437,13 +426,9 @@ class SerialRig:
             chunk = ser.read(max(1, ser.in_waiting))
         except (serial.SerialException, OSError, TypeError, AttributeError) as e:
             # TypeError/AttributeError: pyserial's read on a port closed under it by close()
-            with self._lock:
-                if self._ser is ser:
-                    self._close_port(f"rig link on {self.port} lost: {e}")
+            self._drop(ser, f"rig link on {self.port} lost: {e}")
             return
-        buf = self._rxbuf + chunk
-        lines = buf.split(b"\n")
-        self._rxbuf = lines.pop()
+        *lines, self._rxbuf = (self._rxbuf + chunk).split(b"\n")
         if len(self._rxbuf) > MAX_LINE:  # no newline in sight: noise, not a line
             self.stats["bad_lines"] += 1
             self._rxbuf = b""
@@ -451,10 +436,8 @@ class SerialRig:
             self._handle(line)
         now = time.monotonic()
         if now - self._last_hb > self.link_timeout:
-            with self._lock:
-                if self._ser is ser:
-                    self._close_port(f"rig link on {self.port} lost: no heartbeat from the firmware for "
-                                     f"{now - self._last_hb:.2f} s (limit {self.link_timeout:g} s)")
+            self._drop(ser, f"rig link on {self.port} lost: no heartbeat from the firmware for "
+                            f"{now - self._last_hb:.2f} s (limit {self.link_timeout:g} s)")
             return
         if now - self._last_tx >= self.heartbeat_period:
             try:
@@ -468,7 +451,7 @@ class SerialRig:
         except LineError as e:
             self.stats["crc_errors" if e.kind == "crc" else "bad_lines"] += 1
             return
-        self.stats["seq_gaps"] += _gap(self._rx_expect, m.seq)
+        self.stats["seq_gaps"] += (m.seq - self._rx_expect) % SEQ_MOD
         self._rx_expect = (m.seq + 1) % SEQ_MOD
         try:
             if m.kind == "P":

@@ -27,53 +27,6 @@ from hbma_ctrl.sim.rig import Rig, RigSettings
 __all__ = ["SimRig"]
 
 
-class _ChamberAdapter:
-    """One :class:`Rig` seen as a 1-chamber array plant."""
-
-    def __init__(self, rig: Rig, load_steps=()):
-        self.rig = rig
-        self.n = 1
-        self.sample_period = rig.settings.sample_period
-        self.sensor_range = rig.settings.sensor_range
-        self.loads = sorted((float(t), float(m)) for t, m in load_steps)
-        self._loads_due(0.0)
-
-    def _loads_due(self, t: float) -> None:
-        while self.loads and self.loads[0][0] <= t + 1e-9:
-            self.rig.set_load(self.loads.pop(0)[1])
-
-    def apply(self, u: np.ndarray) -> None:
-        self.rig.apply(u[:, 0])
-        self._loads_due(self.rig.t)
-
-    def measure(self) -> np.ndarray:
-        return np.array([self.rig.measure()])
-
-    def truth(self) -> dict:
-        return self.rig.truth()
-
-
-class _RobotAdapter:
-    """A :class:`RobotRig` (already an array plant)."""
-
-    def __init__(self, rig: RobotRig):
-        self.rig = rig
-        self.n = rig.n
-        self.sample_period = rig.s.sample_period
-        self.sensor_range = rig.sensor_range
-
-    def apply(self, u: np.ndarray) -> None:
-        self.rig.apply(u)
-
-    def measure(self) -> np.ndarray:
-        return np.asarray(self.rig.measure(), dtype=float)
-
-    def truth(self) -> dict:
-        out = self.rig.truth()
-        out["t"] = self.rig.t
-        return out
-
-
 class SimRig:
     """A simulated rig behind the RigIO interface, in lockstep (see module doc).
 
@@ -83,12 +36,15 @@ class SimRig:
     Use :meth:`chamber` or :meth:`robot` to build one.
     """
 
-    def __init__(self, adapter):
-        self._a = adapter
-        self.rig = adapter.rig
-        self.n: int = adapter.n
-        self.sample_period: float = float(adapter.sample_period)
-        self.sensor_range: float = float(adapter.sensor_range)
+    def __init__(self, rig: Rig | RobotRig, load_steps=()):
+        self.rig = rig
+        self._chamber = isinstance(rig, Rig)
+        self.n: int = 1 if self._chamber else rig.n
+        self.sample_period: float = float(rig.settings.sample_period if self._chamber else rig.s.sample_period)
+        self.sensor_range: float = float(rig.settings.sensor_range if self._chamber else rig.sensor_range)
+        # the chamber's scheduled loads ((t s, kg), ...), put on once rig time reaches them
+        self._loads = sorted((float(t), float(m)) for t, m in load_steps)
+        self._loads_due()
         self.t = 0.0
         self.seq = 0
         self.held = safe_u(self.n)
@@ -102,8 +58,7 @@ class SimRig:
         """One chamber on the mismatched single-chamber rig (nominal actuator, pneumatics and platform;
         the rig applies its own mismatch). ``load_steps``: ((t s, load kg), ...) put on when rig time
         reaches t (as the closed-loop scene's ``load_steps_g``)."""
-        return cls(_ChamberAdapter(Rig(actuator, pneumatics, platform, rig_settings or RigSettings()),
-                                   load_steps))
+        return cls(Rig(actuator, pneumatics, platform, rig_settings or RigSettings()), load_steps)
 
     @classmethod
     def robot(cls, settings, rig_settings: RobotRigSettings | None = None,
@@ -115,7 +70,11 @@ class SimRig:
         rp = settings.pneumatics
         rig = RobotRig(settings.design, pn, rp.sensor_range, rp.topology,
                        (rig_settings or RobotRigSettings()).validate(), tip_load)
-        return cls(_RobotAdapter(rig))
+        return cls(rig)
+
+    def _loads_due(self) -> None:
+        while self._loads and self._loads[0][0] <= self.rig.t + 1e-9:
+            self.rig.set_load(self._loads.pop(0)[1])
 
     # --- RigIO ------------------------------------------------------------------------------------
     def read(self) -> Readings:
@@ -123,7 +82,8 @@ class SimRig:
         if self.closed:
             raise RuntimeError("SimRig.read after close()")
         if self._packet is None:
-            self._packet = Readings(t=self.t, p=self._a.measure(), seq=self.seq, fresh=np.ones(self.n, dtype=bool))
+            p = np.atleast_1d(np.asarray(self.rig.measure(), dtype=float))
+            self._packet = Readings(t=self.t, p=p, seq=self.seq, fresh=np.ones(self.n, dtype=bool))
             return self._packet
         pk = self._packet
         return Readings(t=pk.t, p=pk.p.copy(), seq=pk.seq, fresh=np.zeros(self.n, dtype=bool))
@@ -135,7 +95,8 @@ class SimRig:
             raise RuntimeError("SimRig.write after close()")
         u = check_u(u, self.n)
         self.held = u.copy()
-        self._a.apply(u)
+        self.rig.apply(u[:, 0] if self._chamber else u)
+        self._loads_due()
         self.seq += 1
         self.t = self.seq * self.sample_period  # exact: no accumulated rounding
         self._packet = None
@@ -152,10 +113,10 @@ class SimRig:
     # --- tests and logs -----------------------------------------------------------------------------
     def truth(self) -> dict:
         """The rig's true state now (the wrapped rig's ``truth()``, with ``t`` s)."""
-        return self._a.truth()
+        return {**self.rig.truth(), "t": self.rig.t}
 
     def set_load(self, mass_kg: float) -> None:
         """Single chamber only: put a load of ``mass_kg`` kg on now (0 takes it off)."""
-        if not isinstance(self._a, _ChamberAdapter):
+        if not self._chamber:
             raise ValueError("SimRig.set_load: only a single-chamber rig carries a platform load")
         self.rig.set_load(mass_kg)

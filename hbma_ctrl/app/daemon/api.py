@@ -48,6 +48,7 @@ moment: no work grows with the run's history, and a flood of requests cannot hol
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import ipaddress
 import itertools
@@ -61,6 +62,7 @@ import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 
 from hbma_ctrl.app.daemon.state import DaemonState
@@ -127,19 +129,17 @@ def _deg(x: Any) -> float | None:
     return _fin(x, math.degrees(1.0))
 
 
-def _age_ms(snapshot: dict, now: float | None = None) -> float | None:
-    """Milliseconds from the loop building ``snapshot`` to ``now`` (time.monotonic(), s; default: now);
-    None when the snapshot carries no stamp."""
+def _age_ms(snapshot: dict) -> float | None:
+    """Milliseconds from the loop building ``snapshot`` to now; None when the snapshot carries no stamp."""
     stamp = _fin(snapshot.get("monotonic_s"))
     if stamp is None:
         return None
-    return _fin(max(0.0, (time.monotonic() if now is None else now) - stamp), U.to_ms(1.0))
+    return _fin(max(0.0, time.monotonic() - stamp), U.to_ms(1.0))
 
 
-def status_message(snapshot: dict, now: float | None = None, stop_requested: bool = False) -> Status:
-    """The loop's SI status dict (module doc) as the :class:`Status` message in edge units.
-
-    ``now``: time.monotonic() of the request, for ``age_ms`` (None leaves it null)."""
+def status_message(snapshot: dict) -> Status:
+    """The loop's SI status dict (module doc) as the :class:`Status` message in edge units, without the
+    request's ``age_ms`` and ``stop_requested`` (null and false)."""
     chambers = []
     for i, c in enumerate(snapshot.get("chambers") or ()):
         u = list(c.get("u") or ())
@@ -162,9 +162,8 @@ def status_message(snapshot: dict, now: float | None = None, stop_requested: boo
     faults = Faults(counts={str(k): int(v) for k, v in (snapshot.get("faults") or {}).items()},
                     latest=[FaultEvent(t_s=_fin(e.get("t_s")), kind=str(e.get("kind", "")),
                                        cause=str(e.get("cause", ""))) for e in events])
-    age = None if now is None else _age_ms(snapshot, now)
-    return Status(mode=str(snapshot.get("mode", "starting")), t_s=_fin(snapshot.get("t_s")), age_ms=age,
-                  stop_requested=stop_requested, chambers=chambers, layers=layers, loop=loop, faults=faults)
+    return Status(mode=str(snapshot.get("mode", "starting")), t_s=_fin(snapshot.get("t_s")), chambers=chambers,
+                  layers=layers, loop=loop, faults=faults)
 
 
 def _applied_message(applied: dict) -> SetpointApplied:
@@ -235,12 +234,9 @@ class _Guard:
         await asyncio.sleep(wait)
         return True
 
-    def _authorised(self, headers: list) -> bool:
-        for name, value in headers:
-            if name == b"authorization":
-                scheme, _, given = value.partition(b" ")
-                return scheme.lower() == b"bearer" and hmac.compare_digest(given.strip(), self.token)
-        return False
+    def _authorised(self, headers: Headers) -> bool:
+        scheme, _, given = headers.get("authorization", "").partition(" ")
+        return scheme.lower() == "bearer" and hmac.compare_digest(given.strip().encode("latin-1"), self.token)
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
@@ -250,21 +246,19 @@ class _Guard:
             await _error(429, f"too many requests: the API serves {self.rate:g} per second",
                          headers={"Retry-After": "1"})(scope, receive, send)
             return
-        headers = scope.get("headers") or []
+        headers = Headers(scope=scope)
         if self.token is not None and not self._authorised(headers):
             await _error(401, "missing or wrong token: send 'Authorization: Bearer <token>'",
                          headers={"WWW-Authenticate": "Bearer"})(scope, receive, send)
             return
         too_big = _error(413, f"the body is larger than {self.max_body} bytes")
-        for name, value in headers:
-            if name == b"content-length":
-                try:
-                    declared = int(value)
-                except ValueError:
-                    declared = self.max_body + 1
-                if declared > self.max_body:
-                    await too_big(scope, receive, send)
-                    return
+        try:
+            declared = int(headers.get("content-length", 0))
+        except ValueError:
+            declared = self.max_body + 1
+        if declared > self.max_body:
+            await too_big(scope, receive, send)
+            return
         chunks, size = [], 0
         while True:
             msg = await receive()
@@ -416,10 +410,8 @@ class ApiServer:
         if self._thread.is_alive():
             self._server.force_exit = True
             self._thread.join(timeout)
-        try:
+        with contextlib.suppress(OSError):
             self._sock.close()
-        except OSError:
-            pass
 
     def __enter__(self) -> Self:
         return self
@@ -437,8 +429,6 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     port 0 binds any free port (read it from the result). OSError when the address cannot be bound."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"api port = {port!r} must be an integer in [0, 65535]")
-    if token is not None and not token.strip():
-        raise ValueError("api token must not be empty")
     if not is_loopback(host) and not (allow_remote and token is not None):
         raise ValueError(f"api host = {host!r} is not loopback (127.0.0.1, ::1, localhost); another address "
                          "needs --allow-remote and a token")

@@ -15,6 +15,7 @@ from dataclasses import replace
 
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
+from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
 from hbma_ctrl.system.roles import estimator_from_scenario
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
@@ -23,6 +24,8 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 from hbma_ctrl.system.chamber import ChamberSystem, chamber_system
 from hbma_ctrl.system.robot import RobotSystem, robot_system
+from hbma_ctrl.system.serial_link import SerialRig
+from hbma_ctrl.system.sim_rig import SimRig
 
 __all__ = ["build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
            "robot_rig_settings", "DAEMON_MPC_BUDGET", "DAEMON_TARGET_RATE", "DAEMON_W_SLACK", "ROBOT_LEAK_DROP", "ROBOT_LEAK_FRACTION",
@@ -114,12 +117,8 @@ def build_runner(cfg: DaemonConfig) -> ChamberSystem | RobotSystem:
 
 def make_rig(cfg: DaemonConfig, runner):
     """The rig link the configuration names: the lockstep simulated rig (with the [[daemon.fault]]
-    injections) or the serial link. ValueError when a backend is not available."""
+    injections) or the serial link."""
     if cfg.rig == "serial":
-        try:
-            from hbma_ctrl.system.serial_link import SerialRig
-        except ImportError as exc:
-            raise ValueError(f"--rig serial: the serial backend is not available ({exc})") from None
         return SerialRig(cfg.port, runner.n, baud=cfg.baud, sample_period=cfg.period)
     return make_sim_rig(cfg)
 
@@ -127,11 +126,7 @@ def make_rig(cfg: DaemonConfig, runner):
 def make_sim_rig(cfg: DaemonConfig):
     """The configuration's simulated (mismatched) rig in lockstep, with its [[daemon.fault]] injections:
     what ``--rig sim`` drives, and the plant a fake firmware runs behind the serial link. ValueError
-    when the backend is not available or a fault does not fit the rig."""
-    try:
-        from hbma_ctrl.system.sim_rig import SimRig
-    except ImportError as exc:
-        raise ValueError(f"--rig sim: the simulated rig backend is not available ({exc})") from None
+    naming the table when a fault does not fit the rig."""
     scn = cfg.scenario
     if cfg.kind == "robot":
         s = scn.role("robot")
@@ -140,12 +135,7 @@ def make_sim_rig(cfg: DaemonConfig):
         rig = SimRig.chamber(scn.actuator, scn.pneumatics, scn.platform, chamber_rig_settings(cfg),
                              scn.role("controller").load_steps)
     if cfg.faults:
-        from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
-        try:
-            rig = FaultyRig(rig, parse_faults(cfg.faults, rig.n))
-        except ValueError as exc:
-            msg = str(exc)
-            raise ValueError(msg if msg.startswith("[") else f"[daemon.fault] {msg}") from None
+        rig = FaultyRig(rig, parse_faults(cfg.faults, rig.n))
     return rig
 
 

@@ -48,14 +48,16 @@ from hbma_ctrl.core import units as U
 
 __all__ = ["INJECTED_KINDS", "FaultSpec", "FaultTable", "FaultyRig", "parse_faults"]
 
-#: what :class:`FaultyRig` can inject
-INJECTED_KINDS = ("dropout", "frozen", "offset", "out_of_range", "stuck_inlet", "stuck_outlet", "leak",
-                  "pump_failure", "link_loss")
-#: the value key each kind takes (None: no value)
+#: what :class:`FaultyRig` can inject, and the value key each kind takes (None: no value)
 VALUE_KEY = {"dropout": None, "frozen": None, "offset": "offset_kpa", "out_of_range": "value_kpa",
              "stuck_inlet": "duty", "stuck_outlet": "duty", "leak": "duty", "pump_failure": None,
              "link_loss": None}
+INJECTED_KINDS = tuple(VALUE_KEY)
 _READ_KINDS = ("dropout", "frozen", "offset", "out_of_range", "link_loss")
+#: what a fault on what is written does: (the command's row, its new value from the commanded one and the
+#: fault's value)
+_WRITE_FAULTS = {"stuck_inlet": (1, lambda u, v: v), "stuck_outlet": (2, lambda u, v: v),
+                 "leak": (2, lambda u, v: np.minimum(1.0, u + v)), "pump_failure": (0, lambda u, v: 0.0)}
 _VALUE_TO_SI = {"offset_kpa": U.kpa, "value_kpa": U.kpa, "duty": float}
 
 
@@ -154,8 +156,7 @@ def parse_faults(rows, n: int | None = None) -> list[FaultSpec]:
 class FaultyRig:
     """A RigIO that passes through to ``rig`` with ``faults`` injected (see module doc).
 
-    ``t`` is the rig time of the last read (s); ``sent`` the command last passed on to the rig (3, n),
-    after the faults; ``injected`` counts, per kind, the periods a fault acted.
+    ``t`` is the rig time of the last read (s); ``injected`` counts, per kind, the periods a fault acted.
     """
 
     def __init__(self, rig: RigIO, faults):
@@ -169,7 +170,6 @@ class FaultyRig:
             if f.chamber is not None and not 0 <= f.chamber < self.n:
                 raise ValueError(f"fault chamber = {f.chamber}: allowed 0..{self.n - 1} or all")
         self.t = 0.0
-        self.sent: np.ndarray | None = None
         self.injected: dict = {k: 0 for k in INJECTED_KINDS}
         self._writes = 0
         self._last_p: np.ndarray | None = None
@@ -212,21 +212,11 @@ class FaultyRig:
         """Pass ``u`` (3, n) on with the actuator faults acting at the last read's time applied."""
         out = check_u(u, self.n).copy()
         for f in self.faults:
-            if not f.active(self.t):
-                continue
-            c = f.columns(self.n)
-            if f.kind == "stuck_inlet":
-                out[1, c] = f.value
-            elif f.kind == "stuck_outlet":
-                out[2, c] = f.value
-            elif f.kind == "leak":
-                out[2, c] = np.minimum(1.0, out[2, c] + f.value)
-            elif f.kind == "pump_failure":
-                out[0, c] = 0.0
-            else:
-                continue
-            self.injected[f.kind] += 1
-        self.sent = out
+            if f.kind in _WRITE_FAULTS and f.active(self.t):
+                row, value = _WRITE_FAULTS[f.kind]
+                c = f.columns(self.n)
+                out[row, c] = value(out[row, c], f.value)
+                self.injected[f.kind] += 1
         self.rig.write(out)
         self._writes += 1
 

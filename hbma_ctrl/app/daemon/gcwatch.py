@@ -17,6 +17,7 @@ much of it was the collector's, and the run's stats report the collections and t
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import time
 
@@ -80,9 +81,7 @@ class GcWatch:
         if not self._open:
             return
         self._open = False
-        try:
+        with contextlib.suppress(ValueError):
             gc.callbacks.remove(self._callback)
-        except ValueError:
-            pass
         if self.frozen:
             gc.unfreeze()

@@ -162,7 +162,6 @@ class DaemonLoop:
         self._warming = False
         self._ctrl_steps = 0  # periods the runner ticked past its start-up work (calibration)
         self.u_last = safe_u(self.n)
-        self.last_written: np.ndarray | None = None
         self.readings_p = np.full(self.n, np.nan)
         self.rss_start = rss_mb()
         self.rss_end = float("nan")
@@ -213,14 +212,12 @@ class DaemonLoop:
     def _write(self, u: np.ndarray) -> None:
         self.rig.write(u)
         self.u_last = u
-        self.last_written = u
 
     def _go_safe(self) -> None:
         """Write the safe command (never raises)."""
         try:
             self.rig.safe()
             self.u_last = safe_u(self.n)
-            self.last_written = self.u_last
             self.safe_exit = True
         except Exception as exc:  # noqa: BLE001 - the loop is ending; record why the vent failed
             self.safe_exit = False

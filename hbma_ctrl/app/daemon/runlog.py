@@ -76,7 +76,6 @@ class RunLog:
         self._last_flush = time.monotonic()
         self.part = 0
         self._size = 0
-        self.rows = 0
         self.events_path = self.folder / "events.csv"
         _append(self.events_path, _csv_line(EVENT_COLUMNS))
         self._new_part()
@@ -96,7 +95,6 @@ class RunLog:
         if len(values) != len(self.columns):
             raise ValueError(f"run log row has {len(values)} values, expected {len(self.columns)}")
         self._pending.append(_csv_line(values))
-        self.rows += 1
         if time.monotonic() - self._last_flush >= self.flush_s:
             self.flush()
 

@@ -20,11 +20,7 @@ import threading
 from collections import deque
 from typing import Callable
 
-__all__ = ["DaemonState", "MODES"]
-
-#: the loop's modes: starting, running (closed loop), safe (latched safe command after a fault or a
-#: stop), stopped (the loop has ended)
-MODES = ("starting", "running", "safe", "stopped")
+__all__ = ["DaemonState"]
 
 
 class DaemonState:
@@ -92,7 +88,3 @@ class DaemonState:
     @property
     def stop_reason(self) -> str:
         return self._stop_reason
-
-    def wait_stop(self, timeout: float) -> bool:
-        """Sleep up to ``timeout`` s or until a stop is requested; True if it was."""
-        return self._stop.wait(timeout)

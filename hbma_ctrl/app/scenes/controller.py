@@ -122,7 +122,7 @@ def closed_loop(actuator: Actuator, pneumatics: Pneumatics, platform: Platform, 
     check_range("closed_loop", "duration", duration, 0.0, 1e5, "s", lo_open=True)
     rs = rig_settings or RigSettings()
     rig = SimRig.chamber(actuator, pneumatics, platform, rs)
-    est = estimator or default_estimator(actuator, pneumatics, None, rs)
+    est = estimator or default_estimator(actuator, pneumatics, rs)
     check_role(est, Estimator, "closed_loop: estimator")
     est.attach(rig.rig)  # e.g. a test oracle that reads the rig's true state
     n = int(round(duration / rs.sample_period))

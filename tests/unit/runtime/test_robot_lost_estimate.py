@@ -209,7 +209,7 @@ def test_default_robot_rig_start_up_vents_no_chamber_for_a_lost_estimate():
 
 # --- the daemon's view ---------------------------------------------------------------------------
 def test_daemon_logs_each_supervisor_episode_once_with_the_chambers_name():
-    from hbma_ctrl.system.chamber import SupervisorEpisodes
+    from hbma_ctrl.system.base import SupervisorEpisodes
 
     sup = Supervisor(SupervisorSettings(p_max=45e3, guard_margin=1e3, vent_margin=None, missing_is_limit=False,
                                         stretch_max=4.0), n=2)

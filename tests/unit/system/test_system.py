@@ -79,7 +79,7 @@ def test_the_estimator_runs_on_the_rigs_time_stamps_and_the_controller_on_the_lo
     act, pn, pl = Actuator(), Pneumatics(), Platform()
     rs = RigSettings(sample_period=PERIOD)
     sec = _pid_section(True)
-    est = _Spy(default_estimator(act, pn, None, rs))
+    est = _Spy(default_estimator(act, pn, rs))
     ctrl = _Spy(make_controller(sec, act, pn))
     system, rig = chamber_system(act, pn, pl, sec, rs, estimator=est, controller=ctrl), SimRig.chamber(act, pn, pl, rs)
     stamps = []
