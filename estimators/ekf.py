@@ -238,9 +238,7 @@ class EKF(ReferenceSteps, EstimatorBase):
         self._A_flat = np.eye(NX).ravel()
         self._theta_set: set = set()
         s = self.settings
-        dt = s.sample_period
-        q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
-             s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
+        q = s.walk_var() + [s.cov_floor]
         self._qv_rest = np.array([0.0] + q)
         self._qv_move = np.array([s.flow_rel_std] + q)
         self._p_pred = 0.0
@@ -274,6 +272,7 @@ class EKF(ReferenceSteps, EstimatorBase):
         #: the normal step as one casadi Function (what a generated loop runs, :meth:`stages`)
         self.step_function = ekf_step_function(actuator, pneumatics, s)
         self._step_fn = fast(self.step_function, s.compile) if self.compiled_step else None
+        self._finish_fn = fast(ekf_step_function(actuator, pneumatics, s, "finish"), s.compile)
         self._theta_step = True  # theta not yet in the step's buffer
         self._k_max = max(1, int(round(s.max_gap / s.sample_period)))  # most periods one step predicts
         if self._step_fn is not None:
@@ -294,9 +293,7 @@ class EKF(ReferenceSteps, EstimatorBase):
         x = np.array(mean, dtype=float).ravel()
         x = np.append(x, np.ones(NX - x.size))  # b, k and c default to 1 (nominal)
         self.x = x.reshape(NX)
-        self.P = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
-                          s.modulus_init_std ** 2, s.dead_volume_init_std ** 2]) if cov is None else \
-            np.array(cov, dtype=float).reshape(NX, NX)
+        self.P = np.diag(s.prior_var()) if cov is None else np.array(cov, dtype=float).reshape(NX, NX)
         self.P = guard_cov(self.P, s.cov_floor)
         self._ratio_min = flat_ratio_min(self.x, self.P)
         self.t = float(t)
