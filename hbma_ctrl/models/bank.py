@@ -383,7 +383,6 @@ class ChamberBank:
                                  [self._xdot_u(x, ca.vertcat(1.0, w[0], w[1]), W, b, k, c)])
         self.out = ca.Function("out", [x, W, k, c], [hx, p, lam], ["x", "W", "k", "c"], ["h", "p", "lam"])
         self._cache: dict = {}
-        self.x_rest_max = -0.05  # the tables start here (scaled mass below ambient)
 
     @property
     def pump(self) -> PumpMap:

@@ -233,8 +233,12 @@ class Fidelity:
         return x
 
     def initial_state(self, theta: np.ndarray) -> tuple[np.ndarray, float]:
-        """Unpressurised actuator at rest: (x0, mode0)."""
-        raise NotImplementedError
+        """Unpressurised actuator at rest: (x0, mode0); here a loaded one, the platform resting and the
+        gas mass (kg) that fills the dead volume at ambient pressure, the other states 0."""
+        idx = {n: i for i, n in enumerate(self.space.names)}
+        x0 = np.zeros(self.nx)
+        x0[0] = theta[idx["p_env"]] * theta[idx["V0"]] / (theta[idx["R"]] * theta[idx["T"]])
+        return x0, MODE_REST
 
 
 class FreeInflation(Fidelity):
@@ -326,11 +330,6 @@ class QuasiStatic(Fidelity):
         rest = mode < 0.5
         return ca.vertcat(m, ca.if_else(rest, h_flat, h1), ca.if_else(rest, h_flat, h2))
 
-    def initial_state(self, theta):
-        idx = {n: i for i, n in enumerate(self.space.names)}
-        m0 = theta[idx["p_env"]] * theta[idx["V0"]] / (theta[idx["R"]] * theta[idx["T"]])
-        return np.array([m0, 0.0, 0.0]), MODE_REST
-
 
 class DynamicPlatform(Fidelity):
     """Platform with mass and damping: x = [m, h1, z, v] (h1 algebraic, carried).
@@ -393,11 +392,6 @@ class DynamicPlatform(Fidelity):
         h_flat = self.flat_h1(m * rt / P["V0"] - P["p_env"], P)
         rest = mode < 0.5
         return ca.vertcat(m, ca.if_else(rest, h_flat, h1), ca.if_else(rest, 0, z), ca.if_else(rest, 0, v))
-
-    def initial_state(self, theta):
-        idx = {n: i for i, n in enumerate(self.space.names)}
-        m0 = theta[idx["p_env"]] * theta[idx["V0"]] / (theta[idx["R"]] * theta[idx["T"]])
-        return np.array([m0, 0.0, 0.0, 0.0]), MODE_REST
 
 
 FIDELITIES: dict[str, type[Fidelity]] = {c.name: c for c in (FreeInflation, QuasiStatic, DynamicPlatform)}

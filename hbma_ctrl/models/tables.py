@@ -163,20 +163,10 @@ class PredictionModel:
         self.h_table_max = float(h_table_max if h_table_max is not None else 1.4 * actuator.r1)
         self.chamber = chamber or ReducedChamber(actuator, pneumatics)
         self.RT = self.chamber.rt
-        self.x_scale = self.chamber.x_scale  # kg of gas per unit of x
         self.theta = self.chamber.theta
         self.shapes = self.chamber.shapes if membrane == "cap" else exact_shape_solver(self.chamber)
         self.grid = self._tabulate(n_x, n_W, n_h)
         self._build_functions()
-
-    # --- conversions ---------------------------------------------------------------------------
-    def x_from_mass(self, m: float) -> float:
-        """Scaled state from a gas mass (kg)."""
-        return self.chamber.x_from_mass(m)
-
-    def mass_from_x(self, x: float) -> float:
-        """Gas mass (kg) from the scaled state."""
-        return self.chamber.mass_from_x(x)
 
     # --- tables ----------------------------------------------------------------------------------
     def _tabulate(self, n_x: int, n_W: int, n_h: int) -> _Grid:
