@@ -17,8 +17,7 @@ import numpy as np
 from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
 from hbma_ctrl.estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
 from hbma_ctrl.estimators.ekf import EKF, OUTPUT_KEYS
-from hbma_ctrl.estimators.ekf_step import observer_model
-from hbma_ctrl.estimators.observer_calls import fast
+from hbma_ctrl.estimators.ekf_step import fast, observer_model
 from hbma_ctrl.models.chamber import NX, STATE_NAMES
 
 __all__ = ["ReferenceEKF", "FilterpyEKF"]

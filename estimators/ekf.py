@@ -149,15 +149,16 @@ from hbma_ctrl.estimators.ekf_step import (
     KIND_SATURATED,
     NO_LOAD_SIGMAS,
     ekf_step_function,
+    fast,
     flat_ratio_min,
     glue_functions,
     lift_floor,
+    observer_functions,
 )
-from hbma_ctrl.estimators.observer_calls import fast, observer_functions
 from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
 from hbma_ctrl.core.loopgen import LogColumn, Part, Stage
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
+from hbma_ctrl.models.chamber import NX, STATE_NAMES
 from hbma_ctrl.models.actuation import CommandTiming, acting_function, acting_state
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
@@ -165,8 +166,6 @@ __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: the lift-off applies
 #: from the step that detects it)
 REPLAY_MAX = 200
-_KEEP_ALL = np.ones(NX)
-_KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c
 
 
 class EKFSettings(FilterSettings):
@@ -299,7 +298,7 @@ class EKF(ReferenceSteps, EstimatorBase):
         self.t = float(t)
         self.s = np.zeros(2) if shape is None else np.array(shape, dtype=float).reshape(2)
         if resting is None:
-            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 0.0, self.P)
+            out = self._outf(0.0, self.x, self.s, self._theta_arg(self._outf), 0.0, self.P)
             resting = bool(out[1][_Y["rest"]] > 0.5)
         self.resting = resting
         self._cusum = self._lift = self._lift_start = self._excess = 0.0
@@ -315,7 +314,8 @@ class EKF(ReferenceSteps, EstimatorBase):
         return self.theta
 
     def _refresh(self) -> None:
-        out = self._outf(self.x, self.s, self._theta_arg(self._outf), float(self.resting), self.P)
+        hold = float(self.resting)
+        out = self._outf(hold, self.x, self.s, self._theta_arg(self._outf), hold, self.P)
         self.s = out[0].copy()
         self._p_pred = float(out[1][_Y["p"]])
         self._H = out[2].copy()
@@ -331,51 +331,6 @@ class EKF(ReferenceSteps, EstimatorBase):
         W0 = s.load_max if s.load_init is None else s.load_init
         self.reset(t, [m0, W0, b0, k0, c0], resting=True if s.load_init is None else None)
 
-    # --- the filter ---------------------------------------------------------------------------
-    def _predict(self, u: np.ndarray) -> None:
-        s = self.settings
-        qv = self._qv_rest if self.resting else self._qv_move  # resting, the flow error is b's job
-        out = self._pred(self.x, self.s, u, self._theta_arg(self._pred), float(self.resting), self.P, qv)
-        xn = out[0].copy()
-        Pn = out[5].reshape(NX, NX, order="F").copy()
-        if not math.isfinite(float(xn.sum() + out[3].sum() + Pn.sum())):  # any NaN/inf propagates
-            # the projection failed (e.g. across a fold): hold the state, widen the covariance
-            self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0, 0.0]), s.cov_floor)
-            self._A_flat = np.eye(NX).ravel()
-            self._events.add("model_failure")
-            return
-        self._A_flat = out[1].copy()
-        self.s = out[2].copy()
-        self._p_pred = float(out[3][_Y["p"]])
-        self._H = out[4].copy()
-        if not self.resting and out[3][_Y["rest"]] > 0.5:
-            self.resting = True  # touch-down: the contact model reached the flat membrane
-            self._events.add("touch_down")
-        self.x = xn
-        self.P = Pn if out[6][0] > 0 else guard_cov(Pn, s.cov_floor)
-
-    def _update(self, z: float, R: float) -> float:
-        innov = z - self._p_pred
-        out = self._upd(self.x, self.P, self._H, innov, R, self.settings.cov_floor, self._keep())
-        S = float(out[2][0])
-        if not (S > 0 and math.isfinite(S)):
-            raise FloatingPointError(f"estimator: innovation variance {S} is not positive")
-        self.x = out[0].copy()
-        P = out[1].reshape(NX, NX, order="F").copy()
-        self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
-        self._innov = innov
-        self._sqrt_S = math.sqrt(S)
-        return innov / self._sqrt_S
-
-    def _keep(self) -> np.ndarray:
-        """Which states an update may move (1) or must hold (0)."""
-        if self.resting and self.x[1] < REST_EPS:
-            # flat with no load is the model's stand-in for the singular origin (a free membrane
-            # is never flat at positive pressure): its flat dynamics lack the cap's compliance,
-            # so its innovations say nothing about the pump or the dead volume
-            return _KEEP_NO_FACTORS
-        return _KEEP_ALL
-
     @property
     def last_A(self) -> np.ndarray:
         """A = dx+/dx of the last predict (n x n)."""
@@ -384,12 +339,6 @@ class EKF(ReferenceSteps, EstimatorBase):
     def measurement_jacobian(self) -> np.ndarray:
         """H = dp/dx (1 x n) at the current estimate and mode."""
         return self._H.reshape(1, NX).copy()
-
-    def _meas_var(self, p: float) -> float:
-        # the flat membrane's pressure is the gas law in V0 (no modulus): sensor noise only
-        s = self.settings
-        rel = 0.0 if self.resting else s.model_rel_std
-        return s.noise_std ** 2 + (rel * max(p, 0.0)) ** 2
 
     def step(self, t: float, measurement, applied_command: Command) -> Estimate:
         """Advance to time t (s) with the command held since the last step, then update.

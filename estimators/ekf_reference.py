@@ -3,13 +3,17 @@
 The normal step is one compiled Function (:mod:`hbma_ctrl.estimators.ekf_step`); these methods are the path it
 falls back to for the rare steps the Function flags (a model failure, a covariance at its floor, a
 re-opened gate, a lift-off replayed from past samples) and what ``EKF.step_reference`` runs: the
-prediction over k periods and the gated update, the lift-off and touch-down detectors, the replay of
-the samples since a detected lift-off, the covariance bookkeeping of the load state and of a time gap,
-and the step's finish (touch-down, clamps, the outputs and their covariance). The state,
-settings and Functions are the EKF's (see its module docstring for the model and the modes).
+prediction over k periods and the gated update (the model's predict and update Functions, called one
+by one), the lift-off and load-change detectors, the replay of the samples since a detected lift-off,
+the covariance bookkeeping of the load state and of a time gap; the step ends with the compiled step's
+own finish (:func:`hbma_ctrl.estimators.ekf_step._finish_function`: the flat-load bound, clamps, outputs
+and their covariance, touch-down). The state, settings and Functions are the EKF's (see its module
+docstring for the model and the modes).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -24,19 +28,72 @@ from hbma_ctrl.estimators.ekf_step import (
     NO_LOAD_SIGMAS,
 )
 from hbma_ctrl.core.interfaces import Estimate
-from hbma_ctrl.models.chamber import NX, OUT_NAMES
+from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS
 
 __all__ = ["ReferenceSteps", "OUTPUT_INDEX", "OUTPUT_KEYS"]
 
 #: index of each observer output (``OUT_NAMES``) in the outputs Function's vector
 OUTPUT_INDEX = {n: i for i, n in enumerate(OUT_NAMES)}
 _Y = OUTPUT_INDEX
+_KEEP_ALL = np.ones(NX)
+_KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c
 #: outputs whose covariance the filters report (rows of ``output_cov``)
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
 
 
 class ReferenceSteps:
     """The EKF's separate-call step methods (module doc); mixed into :class:`hbma_ctrl.estimators.ekf.EKF`."""
+
+    def _predict(self, u: np.ndarray) -> None:
+        s = self.settings
+        qv = self._qv_rest if self.resting else self._qv_move  # resting, the flow error is b's job
+        hold = float(self.resting)
+        out = self._pred(hold, self.x, self.s, u, self._theta_arg(self._pred), hold, self.P, qv)
+        xn = out[0].copy()
+        Pn = out[5].reshape(NX, NX, order="F").copy()
+        if not math.isfinite(float(xn.sum() + out[3].sum() + Pn.sum())):  # any NaN/inf propagates
+            # the projection failed (e.g. across a fold): hold the state, widen the covariance
+            self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0, 0.0]), s.cov_floor)
+            self._A_flat = np.eye(NX).ravel()
+            self._events.add("model_failure")
+            return
+        self._A_flat = out[1].copy()
+        self.s = out[2].copy()
+        self._p_pred = float(out[3][_Y["p"]])
+        self._H = out[4].copy()
+        if not self.resting and out[3][_Y["rest"]] > 0.5:
+            self.resting = True  # touch-down: the contact model reached the flat membrane
+            self._events.add("touch_down")
+        self.x = xn
+        self.P = Pn if out[6][0] > 0 else guard_cov(Pn, s.cov_floor)
+
+    def _update(self, z: float, R: float) -> float:
+        innov = z - self._p_pred
+        out = self._upd(self.x, self.P, self._H, innov, R, self.settings.cov_floor, self._keep())
+        S = float(out[2][0])
+        if not (S > 0 and math.isfinite(S)):
+            raise FloatingPointError(f"estimator: innovation variance {S} is not positive")
+        self.x = out[0].copy()
+        P = out[1].reshape(NX, NX, order="F").copy()
+        self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
+        self._innov = innov
+        self._sqrt_S = math.sqrt(S)
+        return innov / self._sqrt_S
+
+    def _keep(self) -> np.ndarray:
+        """Which states an update may move (1) or must hold (0)."""
+        if self.resting and self.x[1] < REST_EPS:
+            # flat with no load is the model's stand-in for the singular origin (a free membrane
+            # is never flat at positive pressure): its flat dynamics lack the cap's compliance,
+            # so its innovations say nothing about the pump or the dead volume
+            return _KEEP_NO_FACTORS
+        return _KEEP_ALL
+
+    def _meas_var(self, p: float) -> float:
+        # the flat membrane's pressure is the gas law in V0 (no modulus): sensor noise only
+        s = self.settings
+        rel = 0.0 if self.resting else s.model_rel_std
+        return s.noise_std ** 2 + (rel * max(p, 0.0)) ** 2
 
     def _advance(self, t: float, measurement, kind: str, u: np.ndarray, k: int, detect: bool,
                  jump: bool = False) -> None:
@@ -179,7 +236,7 @@ class ReferenceSteps:
     def _lift_load(self) -> float:
         """The load (N) of a detected lift-off: the membrane lifted when the detector's sum started
         to grow, W = pi r1^2 p then (at most the flat chamber's pressure now)."""
-        out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
+        out = self._outf(1.0, self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
         return self.model.area * max(min(float(out[1][_Y["p"]]), self._p_lift), 0.0)
 
     def _lift_off(self, detected: bool, load: tuple | None = None) -> None:

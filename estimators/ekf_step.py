@@ -51,11 +51,13 @@ take ``exact`` as the test that selects between this step and their own handling
 from __future__ import annotations
 
 import math
+import warnings
 
 import casadi as ca
 import numpy as np
 
 from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel, min_pivot
 from hbma_ctrl.models.reduced import law_key
@@ -64,7 +66,7 @@ __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "K
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
            "NO_LOAD_SIGMAS", "LIFT_START_DRIFT", "CENSOR_SIGMAS", "LIFT_PRIOR_SIGMAS", "lift_floor",
            "FLAT_RATIO_SIGMAS", "FLAT_RATIO_STD_MIN", "flat_ratio_min", "EXCESS_DRIFT", "EXCESS_THRESHOLD",
-           "LIFT_RISE_DRIFT", "cse", "glue_functions"]
+           "LIFT_RISE_DRIFT", "cse", "glue_functions", "fast", "mode_switch", "observer_functions"]
 
 #: reading kinds (input ``kind``)
 KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
@@ -226,6 +228,47 @@ def cse(f: ca.Function) -> ca.Function:
     return hit[1]
 
 
+_SWITCH_CACHE: dict = {}
+
+
+def mode_switch(om: ObserverModel, name: str) -> ca.Function:
+    """The model's ``name`` Function ('predict' or 'outputs') behind a switch on a first input: nonzero
+    (a resting step) evaluates its flat variant (``predict_rest``, ``outputs_rest``: the same values at
+    hold = 1, without the contact branch's shape projection), zero the full one; both with their common
+    subexpressions merged (:func:`cse`). One per pair of Functions (cached: compiled once per process)."""
+    rest, full = getattr(om, name + "_rest"), getattr(om, name)
+    key = (id(rest), id(full))
+    if key not in _SWITCH_CACHE:
+        _SWITCH_CACHE[key] = (rest, full, ca.Function.if_else(f"ekf_{name}_mode", cse(rest), cse(full)))
+    return _SWITCH_CACHE[key][2]
+
+
+_FN_CACHE: dict = {}
+
+
+def fast(fun: ca.Function, compile: bool) -> FastFunction:
+    """A buffered caller of ``fun``, compiled once per process (generating the C source only to look
+    up the cached library costs milliseconds, paid per filter otherwise)."""
+    key = (id(fun), compile)
+    if key not in _FN_CACHE:
+        done = compiled(fun, HOT_OPT, HOT_FLAGS) if compile else fun
+        if compile and done is fun:
+            warnings.warn(f"{fun.name()}: no working C compiler (cc, gcc or clang): the estimator runs on "
+                          "casadi's virtual machine, several times slower per step", RuntimeWarning, stacklevel=2)
+        _FN_CACHE[key] = (fun, done)  # fun kept: its id stays unique
+    return FastFunction(_FN_CACHE[key][1], False)
+
+
+def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> tuple:
+    """(ObserverModel, predict, outputs, propagate Function, update), the model's Functions as the
+    reference path calls them: predict and outputs are the compiled step's :func:`mode_switch` (first
+    argument nonzero: a resting step), update its Joseph-form update; the casadi Functions are shared
+    per configuration, the buffered callers (:func:`fast`) are per filter."""
+    om = observer_model(actuator, pneumatics, s)
+    return (om, fast(mode_switch(om, "predict"), s.compile), fast(mode_switch(om, "outputs"), s.compile),
+            om.propagate, fast(om.update, s.compile))
+
+
 def _only_if(f: ca.Function) -> ca.Function:
     """``f`` behind a switch on a first input: evaluated when it is nonzero, zeros otherwise (for a
     result that is read only then)."""
@@ -276,7 +319,7 @@ def _finish_function(om: ObserverModel, s: FilterSettings) -> ca.Function:
     th = ca.MX.sym("theta", int(np.asarray(om.theta).size))
     resting2, td1, pumping, is_sat = (ca.MX.sym(n) for n in ("resting", "touch_down", "pumping", "saturated"))
     area = _area_function(om)(th)
-    outputs = ca.Function.if_else("ekf_outputs_mode", cse(om.outputs_rest), cse(om.outputs))
+    outputs = mode_switch(om, "outputs")
     bound = area * om.flat_pressure(x, th)
     # a dead load cannot come down while the pump fills the chamber: after a touch-down the load
     # goes back to the pressure's bound (no ratchet near the lift-off point)
@@ -340,9 +383,8 @@ def _build(om: ObserverModel, s: FilterSettings) -> tuple[ca.Function, ca.Functi
     # --- predict (the mode is held over the period: hold = resting) -------------------------------
     qv = ca.vertcat(ca.if_else(rest_in, 0.0, s.flow_rel_std), *s.walk_var(), s.cov_floor)
     update = cse(om.update)
-    # a resting step runs the flat membrane's predict and outputs (the same values at hold = 1,
-    # without the contact branch's shape projection): a switch evaluates one or the other
-    predict = ca.Function.if_else("ekf_predict_mode", cse(om.predict_rest), cse(om.predict))
+    # a resting step runs the flat membrane's predict and outputs: a switch evaluates one or the other
+    predict = mode_switch(om, "predict")
     xn, A, s1, y1, H1, P1, piv1 = predict(rest_in, x, sh, u, th, rest, P, qv)
     exact = _finite(xn) * _finite(y1) * _finite(P1) * (piv1 > 0)
     # touch-down: the contact model reached the flat membrane; resting from here on

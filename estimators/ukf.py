@@ -21,7 +21,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
 from hbma_ctrl.estimators.common import STATE_SCALE, FilterSettings, guard_cov
 from hbma_ctrl.estimators.ekf import EKF
-from hbma_ctrl.estimators.observer_calls import observer_functions
+from hbma_ctrl.estimators.ekf_step import observer_functions
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, OUT_NAMES
