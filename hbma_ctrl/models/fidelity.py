@@ -52,7 +52,7 @@ from hbma_ctrl.core.validation import did_you_mean
 
 __all__ = ["OUTPUTS", "Fidelity", "FreeInflation", "QuasiStatic", "DynamicPlatform",
            "FIDELITIES", "make_fidelity", "MODE_REST", "MODE_MOVING", "cap_law", "shape_jacobian",
-           "pressure_det"]
+           "pressure_det", "fixed_step"]
 
 #: names of the output vector every fidelity's ``out`` Function returns, in order
 OUTPUTS = ("h1", "h2", "h", "p", "F", "q", "q_in", "q_out", "lam", "V", "m", "det", "det_p")
@@ -101,6 +101,22 @@ def pressure_det(h1, h2, P, free: bool = False, law=cap_law):
     J = ca.jacobian(ca.vertcat(ps, Fs), s)
     d = J[0, 0] if free else J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
     return ca.substitute(d, s, ca.vertcat(h1, h2))
+
+
+def fixed_step(f, x, dt: float, substeps: int = 1, method: str = "rk4"):
+    """x after ``dt`` s of x' = f(x) (inputs held) by ``substeps`` fixed steps of ``method``, 'euler' or
+    'rk4' (casadi expressions or numbers)."""
+    h = dt / substeps
+    for _ in range(substeps):
+        if method == "euler":
+            x = x + h * f(x)
+            continue
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        k4 = f(x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
 
 
 class Fidelity:

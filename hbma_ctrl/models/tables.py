@@ -41,6 +41,7 @@ import numpy as np
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
+from hbma_ctrl.models.fidelity import fixed_step
 from hbma_ctrl.models.fidelity_exact import make_exact_loaded
 from hbma_ctrl.models.piecewise import PiecewiseCubic
 from hbma_ctrl.models.reduced import MEMBRANES, ReducedChamber
@@ -258,17 +259,7 @@ class PredictionModel:
         rhs = self.functions(form).rhs
         x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
         u = ca.SX.sym("u", 3)
-        h = dt / substeps
-        xn = x
-        for _ in range(substeps):
-            if integrator == "euler":
-                xn = xn + h * rhs(xn, u, W, dp)
-            else:
-                k1 = rhs(xn, u, W, dp)
-                k2 = rhs(xn + h / 2 * k1, u, W, dp)
-                k3 = rhs(xn + h / 2 * k2, u, W, dp)
-                k4 = rhs(xn + h * k3, u, W, dp)
-                xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xn = fixed_step(lambda xs: rhs(xs, u, W, dp), x, dt, substeps, integrator)
         return ca.Function("F", [x, u, W, dp], [xn], ["x", "u", "W", "dp"], ["x_next"])
 
     def height(self, x: float, W: float) -> float:
