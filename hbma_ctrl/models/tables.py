@@ -49,28 +49,7 @@ from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
 
 #: MEMBRANES (from :mod:`hbma_ctrl.models.reduced`): the membrane laws a prediction model can be
 #: tabulated from, the same as the observer model's
-__all__ = ["PredictionModel", "MEMBRANES", "ExactShapeSolver", "exact_shape_function", "exact_shape_solver"]
-
-
-class ExactShapeSolver(ShapeSolver):
-    """:class:`ShapeSolver` whose law is the exact membrane's (tabulated ratios to the cap, same chart);
-    ``fun`` is :func:`exact_shape_function`'s Function for the parameter layout ``space``."""
-
-    def __init__(self, space: ph.ParamSpace, theta: np.ndarray, fun: ca.Function):
-        super().__init__(space, theta)
-        self._fun = fun
-        self._maps: dict = {}
-
-    def eval(self, h1, h2) -> dict:
-        """p (Pa), F (N), lam (-, area average, paper eq. 3), V (m^3), G (J) at (h1, h2) (m), elementwise."""
-        h1 = np.atleast_1d(np.asarray(h1, dtype=float))
-        h2 = np.broadcast_to(np.asarray(h2, dtype=float), h1.shape)
-        n = h1.size
-        if n not in self._maps:
-            self._maps = {n: self._fun.map(n)}  # one size at a time: the bisection reuses it
-        th = np.repeat(self.theta[:, None], n, 1)
-        out = self._maps[n](h1.ravel()[None, :], h2.ravel()[None, :], th)
-        return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(SHAPE_OUTPUTS, out)}
+__all__ = ["PredictionModel", "MEMBRANES", "exact_shape_function", "exact_shape_solver"]
 
 
 def exact_shape_function(space: ph.ParamSpace, material, compressor_csv: str) -> ca.Function:
@@ -91,7 +70,7 @@ def exact_shape_solver(chamber: ReducedChamber) -> ShapeSolver:
     """A shape solver of ``chamber``'s nominal parameters with the exact membrane's law
     (:func:`exact_shape_function`)."""
     fun = exact_shape_function(chamber.space, chamber.actuator.material, str(chamber.pneumatics.csv_path))
-    return ExactShapeSolver(chamber.space, chamber.theta, fun)
+    return ShapeSolver(chamber.space, chamber.theta, fun)
 
 
 @dataclass(frozen=True)
