@@ -126,6 +126,7 @@ from __future__ import annotations
 
 import math
 import time
+from functools import lru_cache
 
 import casadi as ca
 import numpy as np
@@ -173,17 +174,13 @@ class EKFSettings(FilterSettings):
 
 
 _KIND_CODE = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
-_FLAG_SETS: dict = {}
 _LIFT_DETECTED = 1 << FLAG_BITS.index("lift_off_detected")
 
 
+@lru_cache(maxsize=None)
 def _flag_set(bits: int) -> frozenset:
     """The flags of :data:`hbma_ctrl.estimators.ekf_step.FLAG_BITS` raised in ``bits`` (memoised)."""
-    fs = _FLAG_SETS.get(bits)
-    if fs is None:
-        fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS)
-                                          if bits >> i & 1 and n != "lift_off_detected")
-    return fs
+    return frozenset(n for i, n in enumerate(FLAG_BITS) if bits >> i & 1 and n != "lift_off_detected")
 
 
 def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean: np.ndarray, cov: np.ndarray,
