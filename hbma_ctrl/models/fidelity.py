@@ -198,24 +198,16 @@ class Fidelity:
         cache = self.__dict__.setdefault("_step_cache", {})
         if key in cache:
             return cache[key]
-        x, u, theta, P, mode = self._sym()
-        qi = OUTPUTS.index("q")
-
-        def fq(xx):
-            return self._rhs(xx, u, P, mode), self._out(xx, u, P, mode)[qi]
-
-        if integrator == "euler":
-            k1, q1 = fq(x)
-            xn, dm = x + dt * k1, dt * q1
-        elif integrator == "rk4":
-            k1, q1 = fq(x)
-            k2, q2 = fq(x + dt / 2 * k1)
-            k3, q3 = fq(x + dt / 2 * k2)
-            k4, q4 = fq(x + dt * k3)
-            xn = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            dm = dt / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
-        else:
+        if integrator not in ("euler", "rk4"):
             raise ValueError(f"integrator '{integrator}': fixed-step ones are euler, rk4")
+        x, u, theta, P, mode = self._sym()
+        qi, n = OUTPUTS.index("q"), self.nx
+
+        def fq(z):  # the state's rate and the inflow, integrated together from a gas mass let in of 0
+            return ca.vertcat(self._rhs(z[:n], u, P, mode), self._out(z[:n], u, P, mode)[qi])
+
+        z = fixed_step(fq, ca.vertcat(x, 0), dt, 1, integrator)
+        xn, dm = z[:n], z[n]
         xp = self._project(xn, P, mode)
         fun = ca.Function(f"step_{self.name}_{integrator}", [x, u, theta, mode],
                           [xp, dm, self._out(xp, u, P, mode)], ["x", "u", "theta", "mode"],
