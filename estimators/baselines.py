@@ -17,8 +17,7 @@ import numpy as np
 from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
 from hbma_ctrl.estimators.common import FilterSettings, classify_measurement, physical_reading_bounds
 from hbma_ctrl.estimators.ekf import EKF, OUTPUT_KEYS
-from hbma_ctrl.estimators.ekf_step import observer_model
-from hbma_ctrl.estimators.observer_calls import fast
+from hbma_ctrl.estimators.ekf_step import fast, observer_model
 from hbma_ctrl.models.chamber import NX, STATE_NAMES
 
 __all__ = ["ReferenceEKF", "FilterpyEKF"]
@@ -61,9 +60,7 @@ class FilterpyEKF(EstimatorBase):
         self.last_nis: float | None = None
         self.last_output_cov = np.zeros((5, 5))
         self.last_step_s = 0.0
-        dt = s.sample_period
-        self._q = np.array([s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
-                            s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt])
+        self._q = np.array(s.walk_var())
         self._qv = np.array([s.flow_rel_std, *self._q, s.cov_floor])
         self._bounds = physical_reading_bounds(s.sensor_range, s.reading_min, s.reading_max_rel)
 
@@ -80,8 +77,9 @@ class FilterpyEKF(EstimatorBase):
             p0 = float(measurement) if kind == "ok" else 0.0
             kf.x = np.array([[(max(p0, 0.0) + act.p_env) * act.V0 / self.model.rt], [self.load], [1.0], [1.0],
                              [1.0]])
-            kf.P = np.diag([s.mass_init_std ** 2, (0.1 * self.load + 0.01) ** 2, s.flow_factor_init_std ** 2,
-                            s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
+            var = s.prior_var()
+            var[1] = (0.1 * self.load + 0.01) ** 2
+            kf.P = np.diag(var)
         else:
             u = applied_command.as_array() if isinstance(applied_command, Command) else \
                 np.asarray(applied_command, dtype=float).reshape(3)

@@ -9,7 +9,7 @@ is in Joseph form, which stays positive semi-definite for any gain.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -137,9 +137,16 @@ class FilterSettings(Settings):
     def check_rules(self) -> None:
         self.within("max_gap", lo=self.sample_period)
 
-    @classmethod
-    def field_names(cls) -> list[str]:
-        return [f.name for f in fields(cls)]
+    def walk_var(self) -> list[float]:
+        """Variances of the states' random walks over one sample period: m (kg^2), W (N^2), b, k, c (-)."""
+        dt = self.sample_period
+        return [self.mass_std_abs ** 2 * dt, self.load_std ** 2 * dt, self.flow_factor_std ** 2 * dt,
+                self.modulus_std ** 2 * dt, self.dead_volume_std ** 2 * dt]
+
+    def prior_var(self) -> list[float]:
+        """Variances of the initial state: m (kg^2), W (N^2), b, k, c (-)."""
+        return [self.mass_init_std ** 2, self.load_init_std ** 2, self.flow_factor_init_std ** 2,
+                self.modulus_init_std ** 2, self.dead_volume_init_std ** 2]
 
 
 def guard_cov(P: np.ndarray, floor: float, scale: np.ndarray = STATE_SCALE) -> np.ndarray:

@@ -126,6 +126,7 @@ from __future__ import annotations
 
 import math
 import time
+from functools import lru_cache
 
 import casadi as ca
 import numpy as np
@@ -149,15 +150,16 @@ from hbma_ctrl.estimators.ekf_step import (
     KIND_SATURATED,
     NO_LOAD_SIGMAS,
     ekf_step_function,
+    fast,
     flat_ratio_min,
     glue_functions,
     lift_floor,
+    observer_functions,
 )
-from hbma_ctrl.estimators.observer_calls import fast, observer_functions
 from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase
 from hbma_ctrl.core.loopgen import LogColumn, Part, Stage
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_NAMES
+from hbma_ctrl.models.chamber import NX, STATE_NAMES
 from hbma_ctrl.models.actuation import CommandTiming, acting_function, acting_state
 
 __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
@@ -165,8 +167,6 @@ __all__ = ["EKF", "EKFSettings", "OUTPUT_KEYS"]
 #: at most this many samples are kept for the lift-off replay (beyond, no replay: the lift-off applies
 #: from the step that detects it)
 REPLAY_MAX = 200
-_KEEP_ALL = np.ones(NX)
-_KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c
 
 
 class EKFSettings(FilterSettings):
@@ -174,17 +174,13 @@ class EKFSettings(FilterSettings):
 
 
 _KIND_CODE = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
-_FLAG_SETS: dict = {}
 _LIFT_DETECTED = 1 << FLAG_BITS.index("lift_off_detected")
 
 
+@lru_cache(maxsize=None)
 def _flag_set(bits: int) -> frozenset:
     """The flags of :data:`hbma_ctrl.estimators.ekf_step.FLAG_BITS` raised in ``bits`` (memoised)."""
-    fs = _FLAG_SETS.get(bits)
-    if fs is None:
-        fs = _FLAG_SETS[bits] = frozenset(n for i, n in enumerate(FLAG_BITS)
-                                          if bits >> i & 1 and n != "lift_off_detected")
-    return fs
+    return frozenset(n for i, n in enumerate(FLAG_BITS) if bits >> i & 1 and n != "lift_off_detected")
 
 
 def _estimate(t: float, h1: float, h2: float, h: float, F: float, p: float, mean: np.ndarray, cov: np.ndarray,
@@ -238,9 +234,7 @@ class EKF(ReferenceSteps, EstimatorBase):
         self._A_flat = np.eye(NX).ravel()
         self._theta_set: set = set()
         s = self.settings
-        dt = s.sample_period
-        q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
-             s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
+        q = s.walk_var() + [s.cov_floor]
         self._qv_rest = np.array([0.0] + q)
         self._qv_move = np.array([s.flow_rel_std] + q)
         self._p_pred = 0.0
@@ -274,6 +268,7 @@ class EKF(ReferenceSteps, EstimatorBase):
         #: the normal step as one casadi Function (what a generated loop runs, :meth:`stages`)
         self.step_function = ekf_step_function(actuator, pneumatics, s)
         self._step_fn = fast(self.step_function, s.compile) if self.compiled_step else None
+        self._finish_fn = fast(ekf_step_function(actuator, pneumatics, s, "finish"), s.compile)
         self._theta_step = True  # theta not yet in the step's buffer
         self._k_max = max(1, int(round(s.max_gap / s.sample_period)))  # most periods one step predicts
         if self._step_fn is not None:
@@ -294,15 +289,13 @@ class EKF(ReferenceSteps, EstimatorBase):
         x = np.array(mean, dtype=float).ravel()
         x = np.append(x, np.ones(NX - x.size))  # b, k and c default to 1 (nominal)
         self.x = x.reshape(NX)
-        self.P = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
-                          s.modulus_init_std ** 2, s.dead_volume_init_std ** 2]) if cov is None else \
-            np.array(cov, dtype=float).reshape(NX, NX)
+        self.P = np.diag(s.prior_var()) if cov is None else np.array(cov, dtype=float).reshape(NX, NX)
         self.P = guard_cov(self.P, s.cov_floor)
         self._ratio_min = flat_ratio_min(self.x, self.P)
         self.t = float(t)
         self.s = np.zeros(2) if shape is None else np.array(shape, dtype=float).reshape(2)
         if resting is None:
-            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 0.0, self.P)
+            out = self._outf(0.0, self.x, self.s, self._theta_arg(self._outf), 0.0, self.P)
             resting = bool(out[1][_Y["rest"]] > 0.5)
         self.resting = resting
         self._cusum = self._lift = self._lift_start = self._excess = 0.0
@@ -318,7 +311,8 @@ class EKF(ReferenceSteps, EstimatorBase):
         return self.theta
 
     def _refresh(self) -> None:
-        out = self._outf(self.x, self.s, self._theta_arg(self._outf), float(self.resting), self.P)
+        hold = float(self.resting)
+        out = self._outf(hold, self.x, self.s, self._theta_arg(self._outf), hold, self.P)
         self.s = out[0].copy()
         self._p_pred = float(out[1][_Y["p"]])
         self._H = out[2].copy()
@@ -334,51 +328,6 @@ class EKF(ReferenceSteps, EstimatorBase):
         W0 = s.load_max if s.load_init is None else s.load_init
         self.reset(t, [m0, W0, b0, k0, c0], resting=True if s.load_init is None else None)
 
-    # --- the filter ---------------------------------------------------------------------------
-    def _predict(self, u: np.ndarray) -> None:
-        s = self.settings
-        qv = self._qv_rest if self.resting else self._qv_move  # resting, the flow error is b's job
-        out = self._pred(self.x, self.s, u, self._theta_arg(self._pred), float(self.resting), self.P, qv)
-        xn = out[0].copy()
-        Pn = out[5].reshape(NX, NX, order="F").copy()
-        if not math.isfinite(float(xn.sum() + out[3].sum() + Pn.sum())):  # any NaN/inf propagates
-            # the projection failed (e.g. across a fold): hold the state, widen the covariance
-            self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0, 0.0]), s.cov_floor)
-            self._A_flat = np.eye(NX).ravel()
-            self._events.add("model_failure")
-            return
-        self._A_flat = out[1].copy()
-        self.s = out[2].copy()
-        self._p_pred = float(out[3][_Y["p"]])
-        self._H = out[4].copy()
-        if not self.resting and out[3][_Y["rest"]] > 0.5:
-            self.resting = True  # touch-down: the contact model reached the flat membrane
-            self._events.add("touch_down")
-        self.x = xn
-        self.P = Pn if out[6][0] > 0 else guard_cov(Pn, s.cov_floor)
-
-    def _update(self, z: float, R: float) -> float:
-        innov = z - self._p_pred
-        out = self._upd(self.x, self.P, self._H, innov, R, self.settings.cov_floor, self._keep())
-        S = float(out[2][0])
-        if not (S > 0 and math.isfinite(S)):
-            raise FloatingPointError(f"estimator: innovation variance {S} is not positive")
-        self.x = out[0].copy()
-        P = out[1].reshape(NX, NX, order="F").copy()
-        self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
-        self._innov = innov
-        self._sqrt_S = math.sqrt(S)
-        return innov / self._sqrt_S
-
-    def _keep(self) -> np.ndarray:
-        """Which states an update may move (1) or must hold (0)."""
-        if self.resting and self.x[1] < REST_EPS:
-            # flat with no load is the model's stand-in for the singular origin (a free membrane
-            # is never flat at positive pressure): its flat dynamics lack the cap's compliance,
-            # so its innovations say nothing about the pump or the dead volume
-            return _KEEP_NO_FACTORS
-        return _KEEP_ALL
-
     @property
     def last_A(self) -> np.ndarray:
         """A = dx+/dx of the last predict (n x n)."""
@@ -387,12 +336,6 @@ class EKF(ReferenceSteps, EstimatorBase):
     def measurement_jacobian(self) -> np.ndarray:
         """H = dp/dx (1 x n) at the current estimate and mode."""
         return self._H.reshape(1, NX).copy()
-
-    def _meas_var(self, p: float) -> float:
-        # the flat membrane's pressure is the gas law in V0 (no modulus): sensor noise only
-        s = self.settings
-        rel = 0.0 if self.resting else s.model_rel_std
-        return s.noise_std ** 2 + (rel * max(p, 0.0)) ** 2
 
     def step(self, t: float, measurement, applied_command: Command) -> Estimate:
         """Advance to time t (s) with the command held since the last step, then update.

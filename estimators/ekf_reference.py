@@ -3,10 +3,12 @@
 The normal step is one compiled Function (:mod:`hbma_ctrl.estimators.ekf_step`); these methods are the path it
 falls back to for the rare steps the Function flags (a model failure, a covariance at its floor, a
 re-opened gate, a lift-off replayed from past samples) and what ``EKF.step_reference`` runs: the
-prediction over k periods and the gated update, the lift-off and touch-down detectors, the replay of
-the samples since a detected lift-off, the covariance bookkeeping of the load state and of a time gap,
-and the step's finish (touch-down, clamps, the outputs and their covariance). The state,
-settings and Functions are the EKF's (see its module docstring for the model and the modes).
+prediction over k periods and the gated update (the model's predict and update Functions, called one
+by one), the lift-off and load-change detectors, the replay of the samples since a detected lift-off,
+the covariance bookkeeping of the load state and of a time gap; the step ends with the compiled step's
+own finish (:func:`hbma_ctrl.estimators.ekf_step._finish_function`: the flat-load bound, clamps, outputs
+and their covariance, touch-down). The state, settings and Functions are the EKF's (see its module
+docstring for the model and the modes).
 """
 
 from __future__ import annotations
@@ -20,28 +22,78 @@ from hbma_ctrl.estimators.ekf_step import (
     CENSOR_SIGMAS,
     EXCESS_DRIFT,
     EXCESS_THRESHOLD,
-    FACTOR_RANGE,
     LIFT_LOAD_ABS_STD,
     LIFT_RISE_DRIFT,
     LIFT_START_DRIFT,
-    LIGHT_LOAD,
     NO_LOAD_SIGMAS,
 )
 from hbma_ctrl.core.interfaces import Estimate
-from hbma_ctrl.models.chamber import OUT_NAMES
+from hbma_ctrl.models.chamber import NX, OUT_NAMES, REST_EPS
 
 __all__ = ["ReferenceSteps", "OUTPUT_INDEX", "OUTPUT_KEYS"]
 
 #: index of each observer output (``OUT_NAMES``) in the outputs Function's vector
 OUTPUT_INDEX = {n: i for i, n in enumerate(OUT_NAMES)}
 _Y = OUTPUT_INDEX
+_KEEP_ALL = np.ones(NX)
+_KEEP_NO_FACTORS = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # hold b, k and c
 #: outputs whose covariance the filters report (rows of ``output_cov``)
 OUTPUT_KEYS = ("h1", "h2", "h", "F", "p")
-_DIAG5 = np.diag_indices(5)
 
 
 class ReferenceSteps:
     """The EKF's separate-call step methods (module doc); mixed into :class:`hbma_ctrl.estimators.ekf.EKF`."""
+
+    def _predict(self, u: np.ndarray) -> None:
+        s = self.settings
+        qv = self._qv_rest if self.resting else self._qv_move  # resting, the flow error is b's job
+        hold = float(self.resting)
+        out = self._pred(hold, self.x, self.s, u, self._theta_arg(self._pred), hold, self.P, qv)
+        xn = out[0].copy()
+        Pn = out[5].reshape(NX, NX, order="F").copy()
+        if not math.isfinite(float(xn.sum() + out[3].sum() + Pn.sum())):  # any NaN/inf propagates
+            # the projection failed (e.g. across a fold): hold the state, widen the covariance
+            self.P = guard_cov(self.P + np.diag([(1e-7) ** 2, s.load_std ** 2, 0.0, 0.0, 0.0]), s.cov_floor)
+            self._A_flat = np.eye(NX).ravel()
+            self._events.add("model_failure")
+            return
+        self._A_flat = out[1].copy()
+        self.s = out[2].copy()
+        self._p_pred = float(out[3][_Y["p"]])
+        self._H = out[4].copy()
+        if not self.resting and out[3][_Y["rest"]] > 0.5:
+            self.resting = True  # touch-down: the contact model reached the flat membrane
+            self._events.add("touch_down")
+        self.x = xn
+        self.P = Pn if out[6][0] > 0 else guard_cov(Pn, s.cov_floor)
+
+    def _update(self, z: float, R: float) -> float:
+        innov = z - self._p_pred
+        out = self._upd(self.x, self.P, self._H, innov, R, self.settings.cov_floor, self._keep())
+        S = float(out[2][0])
+        if not (S > 0 and math.isfinite(S)):
+            raise FloatingPointError(f"estimator: innovation variance {S} is not positive")
+        self.x = out[0].copy()
+        P = out[1].reshape(NX, NX, order="F").copy()
+        self.P = P if out[3][0] > 0 else guard_cov(P, self.settings.cov_floor)
+        self._innov = innov
+        self._sqrt_S = math.sqrt(S)
+        return innov / self._sqrt_S
+
+    def _keep(self) -> np.ndarray:
+        """Which states an update may move (1) or must hold (0)."""
+        if self.resting and self.x[1] < REST_EPS:
+            # flat with no load is the model's stand-in for the singular origin (a free membrane
+            # is never flat at positive pressure): its flat dynamics lack the cap's compliance,
+            # so its innovations say nothing about the pump or the dead volume
+            return _KEEP_NO_FACTORS
+        return _KEEP_ALL
+
+    def _meas_var(self, p: float) -> float:
+        # the flat membrane's pressure is the gas law in V0 (no modulus): sensor noise only
+        s = self.settings
+        rel = 0.0 if self.resting else s.model_rel_std
+        return s.noise_std ** 2 + (rel * max(p, 0.0)) ** 2
 
     def _advance(self, t: float, measurement, kind: str, u: np.ndarray, k: int, detect: bool,
                  jump: bool = False) -> None:
@@ -184,7 +236,7 @@ class ReferenceSteps:
     def _lift_load(self) -> float:
         """The load (N) of a detected lift-off: the membrane lifted when the detector's sum started
         to grow, W = pi r1^2 p then (at most the flat chamber's pressure now)."""
-        out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
+        out = self._outf(1.0, self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
         return self.model.area * max(min(float(out[1][_Y["p"]]), self._p_lift), 0.0)
 
     def _lift_off(self, detected: bool, load: tuple | None = None) -> None:
@@ -213,84 +265,37 @@ class ReferenceSteps:
         P[i, i] = var
         self.P = guard_cov(P, self.settings.cov_floor)
 
-    def _flat_load_cov(self) -> None:
-        """While flat the load is unobservable (only W >= pi r1^2 p is known): uncorrelated, with
-        the spread ``load_rest_std`` that only keeps the covariance regular."""
-        P = self.P.copy()
-        P[1, :] = P[:, 1] = 0.0
-        P[1, 1] = self.settings.load_rest_std ** 2
-        self.P = P
-
     def _widen_after_gap(self) -> None:
         """After a bounded time jump: add the initial spread of every state (the commands and loads
         during the gap are unknown; the next readings pin the gas mass again)."""
         s = self.settings
-        P0 = np.diag([s.mass_init_std ** 2, s.load_init_std ** 2, s.flow_factor_init_std ** 2,
-                      s.modulus_init_std ** 2, s.dead_volume_init_std ** 2])
-        self.P = guard_cov(self.P + P0, s.cov_floor)
+        self.P = guard_cov(self.P + np.diag(s.prior_var()), s.cov_floor)
 
     def _finish(self) -> Estimate:
-        s = self.settings
+        """The step's end, the compiled step's own (:func:`hbma_ctrl.estimators.ekf_step._finish_function`):
+        the flat-load bound, the clamps, the outputs and their covariance, touch-down."""
         flags = self._events
-        if self.resting:
-            # only W >= pi r1^2 p is known while flat: keep the load above that bound
-            out = self._outf(self.x, self.s, self._theta_arg(self._outf), 1.0, self.P)
-            bound = self.model.area * float(out[1][_Y["p"]])
-            if "touch_down" in flags and self._pumping:
-                # a dead load cannot come down while the pump fills the chamber: the contact
-                # model's load went above the pressure's (sensor noise near the lift-off point).
-                # Flat, nothing would pull it back, and each such episode would ratchet it up
-                # (6.08 -> 6.21 N for a 6.08 N load, lifting 0.5 kPa late): back to the bound
-                self.x[1] = min(self.x[1], bound)
-            if bound > self.x[1]:
-                self._lift_off(detected=False)  # the (known) load is exceeded: it lifts
-            else:
-                self._flat_load_cov()
-        for i in (2, 3, 4):
-            if not FACTOR_RANGE[0] <= self.x[i] <= FACTOR_RANGE[1]:
-                self.x[i] = min(max(self.x[i], FACTOR_RANGE[0]), FACTOR_RANGE[1])
-                flags.add("clamped")
-        if not s.load_min <= self.x[1] <= s.load_max:
-            self.x[1] = min(max(self.x[1], s.load_min), s.load_max)
-            flags.add("clamped")
-        out = self._outf(self.x, self.s, self._theta_arg(self._outf), float(self.resting), self.P)
-        y = out[1]
-        if not self.resting and y[_Y["rest"]] > 0.5:
-            self.resting = True
-            flags.add("touch_down")
-            if self._pumping:  # as above: no ratchet of the load near the lift-off point
-                self.x[1] = min(self.x[1], self.model.area * float(y[_Y["p"]]))
-            # flat from now on: the load's contact-phase correlations no longer hold (left in,
-            # the next flat update would move the load through them)
-            self._flat_load_cov()
-        if self.resting:
-            flags.add("resting")
-        else:
+        out = self._finish_fn(self.x, self.P, self.s, self._theta_arg(self._finish_fn), float(self.resting),
+                              float("touch_down" in flags), float(self._pumping), float(MEAS_SATURATED in flags))
+        x, P, s, y, est, std, C, H, resting, lift_b, clamped, td, not_conv = out
+        if lift_b[0] > 0.5:
+            self._cusum = 0.0
+            flags.add("lift_off")
+        self.resting = bool(resting[0] > 0.5)
+        for name, raised in (("clamped", clamped), ("touch_down", td), ("not_converged", not_conv),
+                             ("resting", resting)):
+            if raised[0] > 0.5:
+                flags.add(name)
+        if not self.resting:
             # the ratio test holds only until the membrane first leaves rest: the factors' posterior
             # is no longer the prior its threshold was set from (ekf_step.FLAT_RATIO_SIGMAS)
             self._ratio_min = 0.0
-        if y[_Y["resid"]] > 1e-3 or not np.all(np.isfinite(y)):
-            flags.add("not_converged")
-        self.s = out[0].copy()
-        self._p_pred = float(y[_Y["p"]])
-        self._H = out[2].copy()
-        self._p_post = self._p_pred
-        C = out[4].reshape(5, 5, order="F").copy()
-        # model-form error of the shape map (the rig is not the model): relative floor on h1, h2,
-        # h and F; the state covariance alone only knows the parameters the state carries
-        d = (s.output_rel_std * y[:5]) ** 2
-        d[4] = 0.0
-        d[3] += s.force_std_floor ** 2
-        C[_DIAG5] += d
-        if self.resting and (self.x[1] < LIGHT_LOAD or MEAS_SATURATED in flags):
-            # flat under a light (or no) load, or flat while saturated (a lift-off would be
-            # invisible): the membrane may bulge by up to about the flat cap height h1; say so
-            C[2, 2] += (0.5 * y[0]) ** 2
-        self.last_output_cov = C
-        std = {k: math.sqrt(max(C[i, i], 0.0)) for i, k in enumerate(OUTPUT_KEYS)}
-        h1, h2 = float(y[_Y["h1"]]), float(y[_Y["h2"]])
-        # reported in the shapes' domain (h2, h, F >= 0), as the compiled step reports them; a projection
-        # that did not converge (flag not_converged) can leave h2 above h1, a plate below the base
-        return Estimate(t=self.t, h1=h1, h2=max(h2, 0.0), h=max(float(y[_Y["h"]]), 0.0), F=max(float(y[_Y["F"]]), 0.0),
-                        p=float(y[_Y["p"]]), mean=self.x.copy(), cov=self.P.copy(),
-                        state_names=self.state_names, std=std, flags=frozenset(flags))
+        self.x = x.copy()
+        self.P = P.reshape(NX, NX, order="F").copy()
+        self.s = s.copy()
+        self._p_pred = self._p_post = float(y[_Y["p"]])
+        self._H = H.copy()
+        self.last_output_cov = C.reshape(5, 5, order="F").copy()
+        h1, h2, h, F, p = est.tolist()
+        return Estimate(t=self.t, h1=h1, h2=h2, h=h, F=F, p=p, mean=self.x.copy(), cov=self.P.copy(),
+                        state_names=self.state_names, std=dict(zip(OUTPUT_KEYS, std.tolist())), flags=frozenset(flags))

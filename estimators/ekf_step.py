@@ -51,11 +51,13 @@ take ``exact`` as the test that selects between this step and their own handling
 from __future__ import annotations
 
 import math
+import warnings
 
 import casadi as ca
 import numpy as np
 
 from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, compiled
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, REST_EPS, STATE_SCALE, ObserverModel, min_pivot
 from hbma_ctrl.models.reduced import law_key
@@ -64,7 +66,7 @@ __all__ = ["ekf_step_function", "observer_model", "STEP_SETTINGS", "KIND_OK", "K
            "FLAG_BITS", "STEP_IN", "STEP_OUT", "FACTOR_RANGE", "LIGHT_LOAD", "LIFT_LOAD_ABS_STD",
            "NO_LOAD_SIGMAS", "LIFT_START_DRIFT", "CENSOR_SIGMAS", "LIFT_PRIOR_SIGMAS", "lift_floor",
            "FLAT_RATIO_SIGMAS", "FLAT_RATIO_STD_MIN", "flat_ratio_min", "EXCESS_DRIFT", "EXCESS_THRESHOLD",
-           "LIFT_RISE_DRIFT", "cse", "glue_functions"]
+           "LIFT_RISE_DRIFT", "cse", "glue_functions", "fast", "mode_switch", "observer_functions"]
 
 #: reading kinds (input ``kind``)
 KIND_OK, KIND_NONE, KIND_SATURATED = 0, 1, 2
@@ -189,15 +191,17 @@ def observer_model(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings
     return _MODEL_CACHE[key].rebind(actuator, pneumatics)
 
 
-def ekf_step_function(actuator: Actuator, pneumatics: Pneumatics, settings: FilterSettings) -> ca.Function:
-    """The EKF step as one casadi Function (signature in the module docstring); cached per material
-    family, compressor map and settings (the actuator's numbers are the input ``theta``)."""
+def ekf_step_function(actuator: Actuator, pneumatics: Pneumatics, settings: FilterSettings,
+                      part: str = "step") -> ca.Function:
+    """The EKF step as one casadi Function (signature in the module docstring), or with ``part`` 'finish'
+    the step's end the reference path shares (:func:`_finish_function`); cached per material family,
+    compressor map and settings (the actuator's numbers are the input ``theta``)."""
     s = settings.validate()
     om = observer_model(actuator, pneumatics, s)
     key = (_model_key(actuator, pneumatics, s), tuple(getattr(s, n) for n in STEP_SETTINGS))
     if key not in _STEP_CACHE:
-        _STEP_CACHE[key] = _build(om, s)
-    return _STEP_CACHE[key]
+        _STEP_CACHE[key] = dict(zip(("step", "finish"), _build(om, s)))
+    return _STEP_CACHE[key][part]
 
 
 def _pivot_function() -> ca.Function:
@@ -224,6 +228,47 @@ def cse(f: ca.Function) -> ca.Function:
     return hit[1]
 
 
+_SWITCH_CACHE: dict = {}
+
+
+def mode_switch(om: ObserverModel, name: str) -> ca.Function:
+    """The model's ``name`` Function ('predict' or 'outputs') behind a switch on a first input: nonzero
+    (a resting step) evaluates its flat variant (``predict_rest``, ``outputs_rest``: the same values at
+    hold = 1, without the contact branch's shape projection), zero the full one; both with their common
+    subexpressions merged (:func:`cse`). One per pair of Functions (cached: compiled once per process)."""
+    rest, full = getattr(om, name + "_rest"), getattr(om, name)
+    key = (id(rest), id(full))
+    if key not in _SWITCH_CACHE:
+        _SWITCH_CACHE[key] = (rest, full, ca.Function.if_else(f"ekf_{name}_mode", cse(rest), cse(full)))
+    return _SWITCH_CACHE[key][2]
+
+
+_FN_CACHE: dict = {}
+
+
+def fast(fun: ca.Function, compile: bool) -> FastFunction:
+    """A buffered caller of ``fun``, compiled once per process (generating the C source only to look
+    up the cached library costs milliseconds, paid per filter otherwise)."""
+    key = (id(fun), compile)
+    if key not in _FN_CACHE:
+        done = compiled(fun, HOT_OPT, HOT_FLAGS) if compile else fun
+        if compile and done is fun:
+            warnings.warn(f"{fun.name()}: no working C compiler (cc, gcc or clang): the estimator runs on "
+                          "casadi's virtual machine, several times slower per step", RuntimeWarning, stacklevel=2)
+        _FN_CACHE[key] = (fun, done)  # fun kept: its id stays unique
+    return FastFunction(_FN_CACHE[key][1], False)
+
+
+def observer_functions(actuator: Actuator, pneumatics: Pneumatics, s: FilterSettings) -> tuple:
+    """(ObserverModel, predict, outputs, propagate Function, update), the model's Functions as the
+    reference path calls them: predict and outputs are the compiled step's :func:`mode_switch` (first
+    argument nonzero: a resting step), update its Joseph-form update; the casadi Functions are shared
+    per configuration, the buffered callers (:func:`fast`) are per filter."""
+    om = observer_model(actuator, pneumatics, s)
+    return (om, fast(mode_switch(om, "predict"), s.compile), fast(mode_switch(om, "outputs"), s.compile),
+            om.propagate, fast(om.update, s.compile))
+
+
 def _only_if(f: ca.Function) -> ca.Function:
     """``f`` behind a switch on a first input: evaluated when it is nonzero, zeros otherwise (for a
     result that is read only then)."""
@@ -237,7 +282,87 @@ def _finite(e) -> ca.MX:
     return ca.fabs(ca.sum1(ca.sum2(e))) <= 1.7976931348623157e308
 
 
-def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
+def _area_function(om: ObserverModel) -> ca.Function:
+    """theta -> the membrane's clamped area pi r1^2 (m^2)."""
+    thp, Pd = om.chamber.symbols()
+    return ca.Function("ekf_area", [thp], [ca.pi * Pd["r1"] ** 2])
+
+
+#: the load's row and column zeroed (mask) and its variance alone (E11): a re-started load
+_LOAD_MASK = ca.DM.ones(NX, NX)
+_LOAD_MASK[1, :] = 0.0
+_LOAD_MASK[:, 1] = 0.0
+_LOAD_E11 = ca.DM.zeros(NX, NX)
+_LOAD_E11[1, 1] = 1.0
+
+
+def _restart_load(P, var):
+    """P with the load uncorrelated with the other states and its variance ``var`` (N^2)."""
+    return P * _LOAD_MASK + var * _LOAD_E11
+
+
+def _finish_function(om: ObserverModel, s: FilterSettings) -> ca.Function:
+    """``ekf_finish``, the end of a step on both paths: the flat-load bound, the clamps, the outputs and
+    their covariance (with the model-form terms), touch-down.
+
+        ekf_finish(x[5], P[5x5], s[2], theta, resting, touch_down, pumping, saturated)
+            -> (x_out, P_out, s_out, y[8], est[5], std[5], C[5x5], H[1x5], resting_out, lift_off, clamped,
+                touch_down_out, not_converged)
+
+    The state, covariance and warm start after the update, the mode (1 resting), whether the predict
+    touched down, the pump filled the chamber and the reading was saturated (0 / 1); the outputs as in
+    :data:`STEP_OUT`, the flags 0 / 1: a lift-off by the exceeded flat-load bound, a state clamped, a
+    touch-down here, the shape projection not converged."""
+    x = ca.MX.sym("x", NX)
+    P = ca.MX.sym("P", NX, NX)
+    sh = ca.MX.sym("s", 2)
+    th = ca.MX.sym("theta", int(np.asarray(om.theta).size))
+    resting2, td1, pumping, is_sat = (ca.MX.sym(n) for n in ("resting", "touch_down", "pumping", "saturated"))
+    area = _area_function(om)(th)
+    outputs = mode_switch(om, "outputs")
+    bound = area * om.flat_pressure(x, th)
+    # a dead load cannot come down while the pump fills the chamber: after a touch-down the load
+    # goes back to the pressure's bound (no ratchet near the lift-off point)
+    W2 = ca.if_else(ca.logic_and(ca.logic_and(resting2, td1), pumping), ca.fmin(x[1], bound), x[1])
+    xl = ca.vertcat(x[0], W2, x[2:])
+    lift_b = ca.logic_and(resting2, bound > W2)  # the (known) load is exceeded: it lifts
+    resting3 = ca.logic_and(resting2, ca.logic_not(lift_b))
+    # flat, the load is unobservable (only W >= pi r1^2 p): uncorrelated, with the spread that keeps P regular
+    Pf = ca.if_else(resting3, _restart_load(P, s.load_rest_std ** 2), P)
+    lo = ca.DM([-np.inf, s.load_min, FACTOR_RANGE[0], FACTOR_RANGE[0], FACTOR_RANGE[0]])
+    hi = ca.DM([np.inf, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
+    xc = ca.fmin(ca.fmax(xl, lo), hi)
+    clamped = ca.sum1(ca.logic_or(xl < lo, xl > hi)) > 0
+    o2 = outputs(resting3, xc, sh, th, resting3, Pf)
+    s2, y, H, C0 = o2[0], o2[1], o2[2], o2[4]
+    td2 = ca.logic_and(ca.logic_not(resting3), y[5] > 0.5)
+    resting4 = ca.logic_or(resting3, td2)
+    W4 = ca.if_else(ca.logic_and(td2, pumping), ca.fmin(xc[1], area * y[4]), xc[1])
+    xc = ca.vertcat(xc[0], W4, xc[2:])
+    Pf = ca.if_else(td2, _restart_load(Pf, s.load_rest_std ** 2), Pf)
+    # model-form error of the shape map (the rig is not the model): relative floor on h1, h2, h and F
+    d = (s.output_rel_std * y[:5]) ** 2
+    d = d * ca.DM([1.0, 1.0, 1.0, 1.0, 0.0]) + ca.DM([0.0, 0.0, 0.0, s.force_std_floor ** 2, 0.0])
+    # flat under a light (or no) load, or flat while saturated (a lift-off would be invisible): the
+    # membrane may bulge by up to about the flat cap height h1
+    bulge = ca.logic_and(resting4, ca.logic_or(xc[1] < LIGHT_LOAD, is_sat))
+    d = d + ca.if_else(bulge, (0.5 * y[0]) ** 2, 0.0) * ca.DM([0.0, 0.0, 1.0, 0.0, 0.0])
+    C = C0 + ca.diag(d)
+    std = ca.sqrt(ca.fmax(ca.diag(C), 0.0))
+    # reported in the shapes' domain (h2, h, F >= 0); a projection that did not converge can leave h2
+    # above h1, a plate below the base
+    est = ca.vertcat(y[0], ca.fmax(y[1], 0.0), ca.fmax(y[2], 0.0), ca.fmax(y[3], 0.0), y[4])
+    not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
+    outs = [xc, Pf, s2, y, est, std, C, H, resting4, lift_b, clamped, td2, not_conv]
+    return ca.Function("ekf_finish", [x, P, sh, th, resting2, td1, pumping, is_sat], [ca.densify(e) for e in outs],
+                       ["x", "P", "s", "theta", "resting", "touch_down", "pumping", "saturated"],
+                       ["x_out", "P_out", "s_out", "y", "est", "std", "C", "H", "resting_out", "lift_off", "clamped",
+                        "touch_down_out", "not_converged"])
+
+
+def _build(om: ObserverModel, s: FilterSettings) -> tuple[ca.Function, ca.Function]:
+    """(ekf_step, ekf_finish): the step and the finish it ends with (:func:`_finish_function`)."""
+    finish = _finish_function(om, s)
     nt = int(np.asarray(om.theta).size)
     x = ca.MX.sym("x", NX)
     P = ca.MX.sym("P", NX, NX)
@@ -250,22 +375,16 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     det = ca.MX.sym("det", len(DET_NAMES))
     cusum, lift, lift_start, p_lift, p_post, gated_run, W_floor, excess, ratio_min = (det[i] for i in
                                                                                       range(len(DET_NAMES)))
-    thp, Pd = om.chamber.symbols()
-    area = ca.Function("ekf_area", [thp], [ca.pi * Pd["r1"] ** 2])(th)
+    area = _area_function(om)(th)
     piv = _pivot_function()
     ss = ca.DM(np.outer(STATE_SCALE, STATE_SCALE))
     rest_in = rest > 0.5
-    dt = s.sample_period
 
     # --- predict (the mode is held over the period: hold = resting) -------------------------------
-    q = [s.mass_std_abs ** 2 * dt, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt,
-         s.modulus_std ** 2 * dt, s.dead_volume_std ** 2 * dt, s.cov_floor]
-    qv = ca.vertcat(ca.if_else(rest_in, 0.0, s.flow_rel_std), *q)
+    qv = ca.vertcat(ca.if_else(rest_in, 0.0, s.flow_rel_std), *s.walk_var(), s.cov_floor)
     update = cse(om.update)
-    # a resting step runs the flat membrane's predict and outputs (the same values at hold = 1,
-    # without the contact branch's shape projection): a switch evaluates one or the other
-    predict = ca.Function.if_else("ekf_predict_mode", cse(om.predict_rest), cse(om.predict))
-    outputs = ca.Function.if_else("ekf_outputs_mode", cse(om.outputs_rest), cse(om.outputs))
+    # a resting step runs the flat membrane's predict and outputs: a switch evaluates one or the other
+    predict = mode_switch(om, "predict")
     xn, A, s1, y1, H1, P1, piv1 = predict(rest_in, x, sh, u, th, rest, P, qv)
     exact = _finite(xn) * _finite(y1) * _finite(P1) * (piv1 > 0)
     # touch-down: the contact model reached the flat membrane; resting from here on
@@ -351,12 +470,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     # on a lift-off), the membrane stays flat
     implausible = ca.logic_and(fire_lift, W_lift < W_floor)
     fire_lift = ca.logic_and(fire_any, ca.logic_not(implausible))
-    e1 = ca.DM.zeros(NX)
-    e1[1] = 1.0
-    mask = ca.DM.ones(NX, NX)  # zeroes the load's row and column (a re-started load)
-    mask[1, :] = 0.0
-    mask[:, 1] = 0.0
-    Pd_ = Pa * mask + var_new * ca.mtimes(e1, e1.T)
+    Pd_ = _restart_load(Pa, var_new)
     Pd_ = (0.5 * (Pd_ + Pd_.T)) / ss * ss  # guard_cov's symmetrisation, same float operations
     exact = exact * ca.if_else(fire_lift, piv(Pd_, s.cov_floor) > 0, 1)
     xl = ca.if_else(fire_lift, ca.vertcat(xa[0], W_new, xa[2:]), xa)
@@ -365,36 +479,10 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     resting2 = ca.logic_and(resting, ca.logic_not(fire_lift))
 
     # --- finish: the flat-load bound, clamps, outputs, touch-down -------------------------------
-    bound = area * p_flat
-    # a dead load cannot come down while the pump fills the chamber: after a touch-down the load
-    # goes back to the pressure's bound (no ratchet near the lift-off point)
-    W2 = ca.if_else(ca.logic_and(ca.logic_and(resting2, td1), pumping), ca.fmin(xl[1], bound), xl[1])
-    xl = ca.vertcat(xl[0], W2, xl[2:])
-    lift_b = ca.logic_and(resting2, bound > W2)  # the (known) load is exceeded: it lifts
-    resting3 = ca.logic_and(resting2, ca.logic_not(lift_b))
+    xc, Pf, s2, y, est, std, C, H, resting4, lift_b, clamped, td2, not_conv = finish(xl, Pl, s1, th, resting2, td1,
+                                                                                      pumping, is_sat)
     cusum2 = ca.if_else(lift_b, 0.0, cusum2)
-    e11 = ca.mtimes(e1, e1.T)
-    Pf = ca.if_else(resting3, Pl * mask + s.load_rest_std ** 2 * e11, Pl)
-    lo = ca.DM([-np.inf, s.load_min, FACTOR_RANGE[0], FACTOR_RANGE[0], FACTOR_RANGE[0]])
-    hi = ca.DM([np.inf, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
-    xc = ca.fmin(ca.fmax(xl, lo), hi)
-    clamped = ca.sum1(ca.logic_or(xl < lo, xl > hi)) > 0
-    o2 = outputs(resting3, xc, s1, th, resting3, Pf)
-    s2, y, H, C0 = o2[0], o2[1], o2[2], o2[4]
-    td2 = ca.logic_and(ca.logic_not(resting3), y[5] > 0.5)
-    resting4 = ca.logic_or(resting3, td2)
-    W4 = ca.if_else(ca.logic_and(td2, pumping), ca.fmin(xc[1], area * y[4]), xc[1])
-    xc = ca.vertcat(xc[0], W4, xc[2:])
-    Pf = ca.if_else(td2, Pf * mask + s.load_rest_std ** 2 * e11, Pf)
     rest2 = ca.if_else(resting4, 1.0, 0.0)
-    d = (s.output_rel_std * y[:5]) ** 2
-    d = d * ca.DM([1.0, 1.0, 1.0, 1.0, 0.0]) + ca.DM([0.0, 0.0, 0.0, s.force_std_floor ** 2, 0.0])
-    bulge = ca.logic_and(resting4, ca.logic_or(xc[1] < LIGHT_LOAD, is_sat))
-    d = d + ca.if_else(bulge, (0.5 * y[0]) ** 2, 0.0) * ca.DM([0.0, 0.0, 1.0, 0.0, 0.0])
-    C = C0 + ca.diag(d)
-    std = ca.sqrt(ca.fmax(ca.diag(C), 0.0))
-    est = ca.vertcat(y[0], ca.fmax(y[1], 0.0), ca.fmax(y[2], 0.0), ca.fmax(y[3], 0.0), y[4])
-    not_conv = ca.logic_or(y[7] > 1e-3, ca.logic_not(_finite(y)))
     flags = (gated * 1 + fire_c * 2 + ca.logic_or(fire_lift, lift_b) * 4 + clamped * 8 + resting4 * 16
              + not_conv * 32 + ca.logic_or(td1, td2) * 64 + fire_lift * 128 + implausible * 256
              + ca.logic_and(fire_ratio, fire_lift) * 512 + fire_e * 1024)
@@ -405,7 +493,7 @@ def _build(om: ObserverModel, s: FilterSettings) -> ca.Function:
     innov = ca.if_else(upd * is_ok, r, 0.0)
     outs = [xc, Pf, s2, y, est, std, C, H, A, rest2, det2, nis, innov, flags, exact]
     return ca.Function("ekf_step", [x, P, sh, u, th, rest, z, kind, det], [ca.densify(e) for e in outs],
-                       list(STEP_IN), list(STEP_OUT))
+                       list(STEP_IN), list(STEP_OUT)), finish
 
 
 def glue_functions(settings: FilterSettings, bounds: tuple) -> tuple[ca.Function, ca.Function]:

@@ -21,7 +21,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
 from hbma_ctrl.estimators.common import STATE_SCALE, FilterSettings, guard_cov
 from hbma_ctrl.estimators.ekf import EKF
-from hbma_ctrl.estimators.observer_calls import observer_functions
+from hbma_ctrl.estimators.ekf_step import observer_functions
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.chamber import NX, OUT_NAMES
@@ -72,13 +72,11 @@ class UKF(EKF):
             # fall back on the EKF predict for this sample (e.g. a point across a fold)
             self._sig_p = None
             return super()._predict(u)
-        dt = s.sample_period
         xm = X.T @ self._points.Wm
         rel = 0.0 if self.resting else s.flow_rel_std
-        Qm = (rel * abs(xm[0] - self.x[0])) ** 2 + s.mass_std_abs ** 2 * dt
-        Q = np.diag([Qm, s.load_std ** 2 * dt, s.flow_factor_std ** 2 * dt, s.modulus_std ** 2 * dt,
-                     s.dead_volume_std ** 2 * dt])
-        x, P = unscented_transform(X, self._points.Wm, self._points.Wc, Q)
+        q = s.walk_var()
+        q[0] += (rel * abs(xm[0] - self.x[0])) ** 2
+        x, P = unscented_transform(X, self._points.Wm, self._points.Wc, np.diag(q))
         self.x, self.P = x, guard_cov(P, s.cov_floor)
         self._sig_x, self._sig_p = X, Y[_P].copy()
         self._p_pred = float(Y[_P] @ self._points.Wm)

@@ -72,6 +72,7 @@ from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, compiled, is_finite, is_n
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.core.units import mm
+from hbma_ctrl.models.fidelity import fixed_step
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["ChamberBank", "BankSymbols", "TOPOLOGIES", "commands_from_inputs", "PumpMap", "throttled_inputs", "STALL_MARGIN"]
@@ -383,7 +384,6 @@ class ChamberBank:
                                  [self._xdot_u(x, ca.vertcat(1.0, w[0], w[1]), W, b, k, c)])
         self.out = ca.Function("out", [x, W, k, c], [hx, p, lam], ["x", "W", "k", "c"], ["h", "p", "lam"])
         self._cache: dict = {}
-        self.x_rest_max = -0.05  # the tables start here (scaled mass below ambient)
 
     @property
     def pump(self) -> PumpMap:
@@ -483,19 +483,8 @@ class ChamberBank:
         x, w, W, b, k, c = self.symbols
         if plant_inputs:
             w = self.u
-        h = dt / substeps
-        xn = x
         f = self._xdot_u if plant_inputs else self._xdot
-        for _ in range(substeps):
-            if method == "euler":
-                xn = xn + h * f(xn, w, W, b, k, c)
-                continue
-            k1 = f(xn, w, W, b, k, c)
-            k2 = f(xn + h / 2 * k1, w, W, b, k, c)
-            k3 = f(xn + h / 2 * k2, w, W, b, k, c)
-            k4 = f(xn + h * k3, w, W, b, k, c)
-            xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        return xn
+        return fixed_step(lambda xs: f(xs, w, W, b, k, c), x, dt, substeps, method)
 
     def linearisation(self, dt: float, substeps: int = 1, method: str = "rk4") -> ca.Function:
         """(x, w, W, b, k, c) -> (x+, dx+/dx, dx+/dw (1x2), h, dh/dx, p, dp/dx): one chamber, one stage."""

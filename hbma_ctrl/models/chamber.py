@@ -43,7 +43,7 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.params import Actuator, Pneumatics
-from hbma_ctrl.models.fidelity import shape_jacobian
+from hbma_ctrl.models.fidelity import fixed_step, shape_jacobian
 from hbma_ctrl.models.reduced import (
     ReducedChamber,
     constraint_jacobian,
@@ -284,14 +284,7 @@ class ObserverModel:
             return rhs(x3s, y.u, P, mode)
 
         for _ in range(self.nsub):
-            if self.integrator == "euler":
-                x3 = x3 + h * f(x3)
-            else:
-                k1 = f(x3)
-                k2 = f(x3 + h / 2 * k1)
-                k3 = f(x3 + h / 2 * k2)
-                k4 = f(x3 + h * k3)
-                x3 = x3 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            x3 = fixed_step(f, x3, h, 1, self.integrator)
             a, b, _ = self._project(x3[0], W, x3[1], x3[2], P, self.newton, mode_in)
             x3 = ca.vertcat(x3[0], a, b)
         xn = ca.vertcat(x3[0] / c, y.x[1], y.x[2], y.x[3], y.x[4])

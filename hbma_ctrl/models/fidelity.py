@@ -52,7 +52,7 @@ from hbma_ctrl.core.validation import did_you_mean
 
 __all__ = ["OUTPUTS", "Fidelity", "FreeInflation", "QuasiStatic", "DynamicPlatform",
            "FIDELITIES", "make_fidelity", "MODE_REST", "MODE_MOVING", "cap_law", "shape_jacobian",
-           "pressure_det"]
+           "pressure_det", "fixed_step"]
 
 #: names of the output vector every fidelity's ``out`` Function returns, in order
 OUTPUTS = ("h1", "h2", "h", "p", "F", "q", "q_in", "q_out", "lam", "V", "m", "det", "det_p")
@@ -101,6 +101,22 @@ def pressure_det(h1, h2, P, free: bool = False, law=cap_law):
     J = ca.jacobian(ca.vertcat(ps, Fs), s)
     d = J[0, 0] if free else J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
     return ca.substitute(d, s, ca.vertcat(h1, h2))
+
+
+def fixed_step(f, x, dt: float, substeps: int = 1, method: str = "rk4"):
+    """x after ``dt`` s of x' = f(x) (inputs held) by ``substeps`` fixed steps of ``method``, 'euler' or
+    'rk4' (casadi expressions or numbers)."""
+    h = dt / substeps
+    for _ in range(substeps):
+        if method == "euler":
+            x = x + h * f(x)
+            continue
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        k4 = f(x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
 
 
 class Fidelity:
@@ -182,24 +198,16 @@ class Fidelity:
         cache = self.__dict__.setdefault("_step_cache", {})
         if key in cache:
             return cache[key]
-        x, u, theta, P, mode = self._sym()
-        qi = OUTPUTS.index("q")
-
-        def fq(xx):
-            return self._rhs(xx, u, P, mode), self._out(xx, u, P, mode)[qi]
-
-        if integrator == "euler":
-            k1, q1 = fq(x)
-            xn, dm = x + dt * k1, dt * q1
-        elif integrator == "rk4":
-            k1, q1 = fq(x)
-            k2, q2 = fq(x + dt / 2 * k1)
-            k3, q3 = fq(x + dt / 2 * k2)
-            k4, q4 = fq(x + dt * k3)
-            xn = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            dm = dt / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
-        else:
+        if integrator not in ("euler", "rk4"):
             raise ValueError(f"integrator '{integrator}': fixed-step ones are euler, rk4")
+        x, u, theta, P, mode = self._sym()
+        qi, n = OUTPUTS.index("q"), self.nx
+
+        def fq(z):  # the state's rate and the inflow, integrated together from a gas mass let in of 0
+            return ca.vertcat(self._rhs(z[:n], u, P, mode), self._out(z[:n], u, P, mode)[qi])
+
+        z = fixed_step(fq, ca.vertcat(x, 0), dt, 1, integrator)
+        xn, dm = z[:n], z[n]
         xp = self._project(xn, P, mode)
         fun = ca.Function(f"step_{self.name}_{integrator}", [x, u, theta, mode],
                           [xp, dm, self._out(xp, u, P, mode)], ["x", "u", "theta", "mode"],
@@ -233,8 +241,12 @@ class Fidelity:
         return x
 
     def initial_state(self, theta: np.ndarray) -> tuple[np.ndarray, float]:
-        """Unpressurised actuator at rest: (x0, mode0)."""
-        raise NotImplementedError
+        """Unpressurised actuator at rest: (x0, mode0); here a loaded one, the platform resting and the
+        gas mass (kg) that fills the dead volume at ambient pressure, the other states 0."""
+        idx = {n: i for i, n in enumerate(self.space.names)}
+        x0 = np.zeros(self.nx)
+        x0[0] = theta[idx["p_env"]] * theta[idx["V0"]] / (theta[idx["R"]] * theta[idx["T"]])
+        return x0, MODE_REST
 
 
 class FreeInflation(Fidelity):
@@ -326,11 +338,6 @@ class QuasiStatic(Fidelity):
         rest = mode < 0.5
         return ca.vertcat(m, ca.if_else(rest, h_flat, h1), ca.if_else(rest, h_flat, h2))
 
-    def initial_state(self, theta):
-        idx = {n: i for i, n in enumerate(self.space.names)}
-        m0 = theta[idx["p_env"]] * theta[idx["V0"]] / (theta[idx["R"]] * theta[idx["T"]])
-        return np.array([m0, 0.0, 0.0]), MODE_REST
-
 
 class DynamicPlatform(Fidelity):
     """Platform with mass and damping: x = [m, h1, z, v] (h1 algebraic, carried).
@@ -393,11 +400,6 @@ class DynamicPlatform(Fidelity):
         h_flat = self.flat_h1(m * rt / P["V0"] - P["p_env"], P)
         rest = mode < 0.5
         return ca.vertcat(m, ca.if_else(rest, h_flat, h1), ca.if_else(rest, 0, z), ca.if_else(rest, 0, v))
-
-    def initial_state(self, theta):
-        idx = {n: i for i, n in enumerate(self.space.names)}
-        m0 = theta[idx["p_env"]] * theta[idx["V0"]] / (theta[idx["R"]] * theta[idx["T"]])
-        return np.array([m0, 0.0, 0.0, 0.0]), MODE_REST
 
 
 FIDELITIES: dict[str, type[Fidelity]] = {c.name: c for c in (FreeInflation, QuasiStatic, DynamicPlatform)}

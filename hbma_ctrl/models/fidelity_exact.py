@@ -171,7 +171,8 @@ class _ExactContact:
 
     membrane = "exact"
 
-    def _set_table(self, table: dict) -> None:
+    def __init__(self, material: Material, compressor_csv: str, table: dict):
+        super().__init__(material, compressor_csv)
         u = np.asarray(table["u"], dtype=float)
         sig = np.sqrt(np.asarray(table["s"], dtype=float))
         self._lims = (float(u[0]), float(u[-1]), float(sig[-1]))
@@ -208,18 +209,10 @@ class ExactQuasiStatic(_ExactContact, QuasiStatic):
     The name stays 'quasi_static' (the simulator's hybrid logic keys on it); ``membrane`` tells them apart.
     A snap-through's far branch is still located on the cap's load path (then projected onto the exact law)."""
 
-    def __init__(self, material: Material, compressor_csv: str, table: dict):
-        QuasiStatic.__init__(self, material, compressor_csv)
-        self._set_table(table)
-
 
 class ExactPlatform(_ExactContact, DynamicPlatform):
     """:class:`DynamicPlatform` with the exact flat-plate contact and, airborne, the exact free inflation
     (:class:`_ExactContact`): x = [m, h1, z, v]. The name stays 'platform'."""
-
-    def __init__(self, material: Material, compressor_csv: str, table: dict):
-        DynamicPlatform.__init__(self, material, compressor_csv)
-        self._set_table(table)
 
 
 def make_exact_loaded(name: str, material: Material, compressor_csv: str) -> Fidelity:

@@ -165,14 +165,6 @@ class ReducedChamber:
         return self.fidelity.rhs(x3, u, P, mode)
 
     # --- numeric helpers -------------------------------------------------------------------------
-    def x_from_mass(self, m: float) -> float:
-        """Scaled gas mass ``x = m R T / (p_env V0) - 1`` (-) from a gas mass (kg)."""
-        return m / self.x_scale - 1.0
-
-    def mass_from_x(self, x: float) -> float:
-        """Gas mass (kg) from the scaled state x (-)."""
-        return (x + 1.0) * self.x_scale
-
     def gas_mass(self, p: float, h1: float = 0.0, h2: float = 0.0) -> float:
         """Gas mass (kg) at gauge pressure p (Pa) in the nominal chamber with shape (h1, h2) (m)."""
         P = dict(self.params)

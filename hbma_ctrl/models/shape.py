@@ -58,11 +58,14 @@ class ShapeSolver:
     """Vectorised shape solves of one chamber with its parameters bound.
 
     space : the parameter layout (:class:`hbma_ctrl.core.physics.ParamSpace`); theta : the
-    parameter vector, SI (the load entry W is not used: loads are arguments).
+    parameter vector, SI (the load entry W is not used: loads are arguments); fun : the membrane law as
+    (h1, h2, theta) -> :data:`SHAPE_OUTPUTS` (default the cap's, :func:`shape_function`; the exact
+    membrane's is :func:`hbma_ctrl.models.tables.exact_shape_function`, in the same chart).
     """
 
-    def __init__(self, space: ph.ParamSpace, theta: np.ndarray):
+    def __init__(self, space: ph.ParamSpace, theta: np.ndarray, fun: ca.Function | None = None):
         self.space = space
+        self.fun = shape_function(space) if fun is None else fun
         self.theta = np.asarray(theta, dtype=float)
         self._ix = {n: i for i, n in enumerate(space.names)}
         self.r1 = float(self.theta[self._ix["r1"]])
@@ -73,7 +76,7 @@ class ShapeSolver:
         h2 = np.broadcast_to(np.asarray(h2, dtype=float), h1.shape)
         n = h1.size
         th = np.repeat(self.theta[:, None], n, 1)
-        out = _mapped(shape_function(self.space), n)(h1.ravel()[None, :], h2.ravel()[None, :], th)
+        out = _mapped(self.fun, n)(h1.ravel()[None, :], h2.ravel()[None, :], th)
         return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(SHAPE_OUTPUTS, out)}
 
     def contact(self, h, W, span: float, grow: int = 0, iters: int = 60, unknown: str = "h2"

@@ -41,6 +41,7 @@ import numpy as np
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
+from hbma_ctrl.models.fidelity import fixed_step
 from hbma_ctrl.models.fidelity_exact import make_exact_loaded
 from hbma_ctrl.models.piecewise import PiecewiseCubic
 from hbma_ctrl.models.reduced import MEMBRANES, ReducedChamber
@@ -48,28 +49,7 @@ from hbma_ctrl.models.shape import SHAPE_OUTPUTS, ShapeSolver
 
 #: MEMBRANES (from :mod:`hbma_ctrl.models.reduced`): the membrane laws a prediction model can be
 #: tabulated from, the same as the observer model's
-__all__ = ["PredictionModel", "MEMBRANES", "ExactShapeSolver", "exact_shape_function", "exact_shape_solver"]
-
-
-class ExactShapeSolver(ShapeSolver):
-    """:class:`ShapeSolver` whose law is the exact membrane's (tabulated ratios to the cap, same chart);
-    ``fun`` is :func:`exact_shape_function`'s Function for the parameter layout ``space``."""
-
-    def __init__(self, space: ph.ParamSpace, theta: np.ndarray, fun: ca.Function):
-        super().__init__(space, theta)
-        self._fun = fun
-        self._maps: dict = {}
-
-    def eval(self, h1, h2) -> dict:
-        """p (Pa), F (N), lam (-, area average, paper eq. 3), V (m^3), G (J) at (h1, h2) (m), elementwise."""
-        h1 = np.atleast_1d(np.asarray(h1, dtype=float))
-        h2 = np.broadcast_to(np.asarray(h2, dtype=float), h1.shape)
-        n = h1.size
-        if n not in self._maps:
-            self._maps = {n: self._fun.map(n)}  # one size at a time: the bisection reuses it
-        th = np.repeat(self.theta[:, None], n, 1)
-        out = self._maps[n](h1.ravel()[None, :], h2.ravel()[None, :], th)
-        return {k: np.asarray(v).reshape(h1.shape) for k, v in zip(SHAPE_OUTPUTS, out)}
+__all__ = ["PredictionModel", "MEMBRANES", "exact_shape_function", "exact_shape_solver"]
 
 
 def exact_shape_function(space: ph.ParamSpace, material, compressor_csv: str) -> ca.Function:
@@ -90,7 +70,7 @@ def exact_shape_solver(chamber: ReducedChamber) -> ShapeSolver:
     """A shape solver of ``chamber``'s nominal parameters with the exact membrane's law
     (:func:`exact_shape_function`)."""
     fun = exact_shape_function(chamber.space, chamber.actuator.material, str(chamber.pneumatics.csv_path))
-    return ExactShapeSolver(chamber.space, chamber.theta, fun)
+    return ShapeSolver(chamber.space, chamber.theta, fun)
 
 
 @dataclass(frozen=True)
@@ -163,20 +143,10 @@ class PredictionModel:
         self.h_table_max = float(h_table_max if h_table_max is not None else 1.4 * actuator.r1)
         self.chamber = chamber or ReducedChamber(actuator, pneumatics)
         self.RT = self.chamber.rt
-        self.x_scale = self.chamber.x_scale  # kg of gas per unit of x
         self.theta = self.chamber.theta
         self.shapes = self.chamber.shapes if membrane == "cap" else exact_shape_solver(self.chamber)
         self.grid = self._tabulate(n_x, n_W, n_h)
         self._build_functions()
-
-    # --- conversions ---------------------------------------------------------------------------
-    def x_from_mass(self, m: float) -> float:
-        """Scaled state from a gas mass (kg)."""
-        return self.chamber.x_from_mass(m)
-
-    def mass_from_x(self, x: float) -> float:
-        """Gas mass (kg) from the scaled state."""
-        return self.chamber.mass_from_x(x)
 
     # --- tables ----------------------------------------------------------------------------------
     def _tabulate(self, n_x: int, n_W: int, n_h: int) -> _Grid:
@@ -268,17 +238,7 @@ class PredictionModel:
         rhs = self.functions(form).rhs
         x, W, dp = ca.SX.sym("x"), ca.SX.sym("W"), ca.SX.sym("dp")
         u = ca.SX.sym("u", 3)
-        h = dt / substeps
-        xn = x
-        for _ in range(substeps):
-            if integrator == "euler":
-                xn = xn + h * rhs(xn, u, W, dp)
-            else:
-                k1 = rhs(xn, u, W, dp)
-                k2 = rhs(xn + h / 2 * k1, u, W, dp)
-                k3 = rhs(xn + h / 2 * k2, u, W, dp)
-                k4 = rhs(xn + h * k3, u, W, dp)
-                xn = xn + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xn = fixed_step(lambda xs: rhs(xs, u, W, dp), x, dt, substeps, integrator)
         return ca.Function("F", [x, u, W, dp], [xn], ["x", "u", "W", "dp"], ["x_next"])
 
     def height(self, x: float, W: float) -> float:

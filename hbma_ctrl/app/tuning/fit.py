@@ -46,7 +46,7 @@ from hbma_ctrl.core.validation import did_you_mean
 from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
 from hbma_ctrl.models.exact_tables import RATIO_U
 from hbma_ctrl.models.shape import ShapeSolver
-from hbma_ctrl.models.tables import ExactShapeSolver, exact_shape_function
+from hbma_ctrl.models.tables import exact_shape_function
 
 __all__ = [
     "CONTACTS",
@@ -209,7 +209,7 @@ class _Model:
 
     def solver(self, values: np.ndarray) -> ShapeSolver:
         theta = np.concatenate([self.base, values])
-        return ShapeSolver(self.space, theta) if self._exact is None else ExactShapeSolver(self.space, theta, self._exact)
+        return ShapeSolver(self.space, theta, self._exact)
 
     def shapes(self, values: np.ndarray) -> tuple[ShapeSolver, np.ndarray]:
         """The solver for ``values`` and the cut height h2 (m) of each data point (0 for free points)."""
