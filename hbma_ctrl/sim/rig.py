@@ -36,6 +36,7 @@ from dataclasses import dataclass, field, replace
 import hashlib
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.codegen import cache_dir
@@ -120,27 +121,45 @@ class RigSettings(Settings):
         if self.dt is not None:
             self.within("dt", hi=self.sample_period)
 
-    def shape_command(self, u: np.ndarray) -> np.ndarray:
-        """Duties the valves can realise (minimum on-time within one PWM period); rows speed, inlet,
-        outlet (3 or 3 x n), each 0-1."""
-        u = np.array(u, dtype=float)
+    def valve_duty(self, d):
+        """A valve's duty d (0-1; an array or a casadi expression) as the valve realises it with its
+        minimum on-time within one PWM period."""
         if self.valve_min_on <= 0:
-            return u
+            return d
         frac = min(1.0, self.valve_min_on / self.sample_period)
+        return ca.if_else(d < 0.5 * frac, 0.0, ca.fmax(d, frac))
+
+    def shape_command(self, u: np.ndarray) -> np.ndarray:
+        """Duties the valves can realise (:meth:`valve_duty`); rows speed, inlet, outlet (3 or 3 x n),
+        each 0-1."""
+        u = np.array(u, dtype=float)
         for i in (1, 2):
-            d = u[i]
-            u[i] = np.where(d < 0.5 * frac, 0.0, np.maximum(d, frac))
+            u[i] = np.reshape(self.valve_duty(u[i]), u[i].shape)
         return u
 
     def sense(self, y_prev, p_prev, p_now):
-        """One sample of the sensor's first-order lag (Pa; arrays work): the exact response of
-        y' = (p - y) / sensor_tau over one sample period to a pressure moving linearly from p_prev to
-        p_now (a ramp is read sensor_tau late, as by the continuous sensor)."""
+        """One sample of the sensor's first-order lag (Pa; arrays and casadi expressions work): the exact
+        response of y' = (p - y) / sensor_tau over one sample period to a pressure moving linearly from
+        p_prev to p_now (a ramp is read sensor_tau late, as by the continuous sensor)."""
         if self.sensor_tau <= 0:
             return p_now
         r = self.sample_period / self.sensor_tau
         a = np.exp(-r)
         return a * y_prev + (1 - a) * p_prev + (p_now - p_prev) * (1 - (1 - a) / r)
+
+    def plant(self, fid, thetas: np.ndarray, compile: bool = False) -> Plant:
+        """A batch plant of the fidelity (thetas ntheta x n) whose internal step divides the sample
+        period, at most ``dt`` (default the fidelity's)."""
+        dt = self.dt if self.dt is not None else DEFAULT_DT[(self.integrator, fid.name)]
+        n = max(1, int(np.ceil(self.sample_period / dt - 1e-9)))
+        return Plant(fid, thetas, self.integrator, self.sample_period / n, compile=compile)
+
+    def plant_fidelity(self, loaded: bool, material, csv: str):
+        """The rig's plant model: with a load on ``fidelity`` (the exact contact or the cap's, by
+        ``membrane``), else free inflation of the exact membrane or the cap."""
+        if self.membrane == "exact":
+            return make_exact_loaded(self.fidelity, material, csv) if loaded else make_exact_free(material, csv)
+        return make_fidelity(self.fidelity if loaded else "free", material, csv)
 
 
 def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings
@@ -199,6 +218,13 @@ class ValveLine:
                 valves = u[1:]
         return np.vstack([speed[None, :], valves])
 
+    def drive(self, plant: Plant, t: float, through=None) -> None:
+        """Advance ``plant`` over the sample period from t (s) in its internal steps, each with the
+        inputs acting then (mapped by ``through`` first when given: a shared pump's manifold)."""
+        for j in range(max(1, int(round(self.s.sample_period / plant.dt)))):
+            u = self.at(t + j * plant.dt)
+            plant.advance(u if through is None else through(u), plant.dt)
+
 
 class Rig:
     """One simulated chamber with its pressure sensor (see module docstring). SI throughout.
@@ -218,8 +244,8 @@ class Rig:
         self.platform = platform
         self._rng = np.random.default_rng(self.settings.seed)
         self._csv = str(self.pneumatics.csv_path)
-        self._free = _free_fidelity(self.settings, self.actuator.material, self._csv)
-        self._loaded = _loaded_fidelity(self.settings, self.actuator.material, self._csv)
+        self._free, self._loaded = (self.settings.plant_fidelity(loaded, self.actuator.material, self._csv)
+                                    for loaded in (False, True))
         self._u = np.zeros(3)
         self.t = 0.0
         self.events: list = []
@@ -234,13 +260,7 @@ class Rig:
 
     def _new_plant(self, platform: Platform) -> Plant:
         fid = self._free if platform.mass <= 0 else self._loaded
-        s = self.settings
-        dt = s.dt
-        if dt is None:
-            dt = DEFAULT_DT[(s.integrator, fid.name)]
-        # a whole number of internal steps per sample period
-        n = max(1, int(np.ceil(s.sample_period / dt - 1e-9)))
-        return Plant(fid, self._theta(fid, platform)[:, None], s.integrator, s.sample_period / n)
+        return self.settings.plant(fid, self._theta(fid, platform)[:, None])
 
     @property
     def fidelity(self) -> str:
@@ -254,9 +274,7 @@ class Rig:
         n0 = len(self._plant.events[0])
         plant = self._plant
         self._valves.send(self.t, u)
-        nsub = max(1, int(round(self.settings.sample_period / plant.dt)))
-        for j in range(nsub):
-            plant.advance(self._valves.at(self.t + j * plant.dt), plant.dt)
+        self._valves.drive(plant, self.t)
         self.events += [(self._t_plant0 + e[0], e[1]) for e in self._plant.events[0][n0:]]
         self.t += self.settings.sample_period
         p_now = float(plant.output("p")[0])
@@ -330,18 +348,6 @@ class Rig:
         return solver.free_h1(m * (self.actuator.R * self.actuator.T), self.truth()["h1"])
 
 
-def _free_fidelity(s: RigSettings, material, csv: str):
-    """The rig's free-inflation plant model: the exact membrane or the cap (``s.membrane``)."""
-    return make_exact_free(material, csv) if s.membrane == "exact" else make_fidelity("free", material, csv)
-
-
-def _loaded_fidelity(s: RigSettings, material, csv: str):
-    """The rig's plant model while a load is on (``s.fidelity``), with the exact contact or the cap's."""
-    if s.membrane == "exact":
-        return make_exact_loaded(s.fidelity, material, csv)
-    return make_fidelity(s.fidelity, material, csv)
-
-
 def _exact_free_h(fid, theta: np.ndarray, m: float) -> float:
     """Apex height (m) of the exact free membrane holding gas mass m (kg): bisection on the gas law.
 
@@ -402,13 +408,10 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
     for (loaded, _, csvp), idx in groups.items():
         pairs = [mismatched(trials[i].actuator, trials[i].pneumatics, s) for i in idx]
         csvp = str(pairs[0][1].csv_path)  # the rig's own map (another shape when tilted)
-        fid = (_loaded_fidelity(s, pairs[0][0].material, csvp) if loaded
-               else _free_fidelity(s, pairs[0][0].material, csvp))
+        fid = s.plant_fidelity(loaded, pairs[0][0].material, csvp)
         thetas = np.column_stack([fid.space.values(a, p, trials[i].platform)
                                   for (a, p), i in zip(pairs, idx)])
-        dt = s.dt if s.dt is not None else DEFAULT_DT[(s.integrator, fid.name)]
-        nsub = max(1, int(np.ceil(s.sample_period / dt - 1e-9)))
-        plant = Plant(fid, thetas, s.integrator, s.sample_period / nsub, compile=True)
+        plant = s.plant(fid, thetas, compile=True)
         T = max(trials[i].duration for i in idx)
         K = int(round(T / s.sample_period)) + 1
         n = len(idx)
@@ -423,14 +426,12 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
             Y[k] = plant.y
             Ucols[k] = U
             if k < K - 1:
-                for sub in range(nsub):
-                    plant.advance(valves.at(t + sub * plant.dt), plant.dt)
+                valves.drive(plant, t)
         # the sensor's first-order lag, sampled (the same recursion as Rig.measure)
         ptrue = Y[:, OUTPUTS.index("p"), :]
         sensed = ptrue.copy()
-        if s.sensor_tau > 0:
-            for k in range(1, K):
-                sensed[k] = s.sense(sensed[k - 1], ptrue[k - 1], ptrue[k])
+        for k in range(1, K):
+            sensed[k] = s.sense(sensed[k - 1], ptrue[k - 1], ptrue[k])
         for j, i in enumerate(idx):
             rng = np.random.default_rng([s.seed, ids[i]])
             Kj = int(round(trials[i].duration / s.sample_period)) + 1
