@@ -134,7 +134,7 @@ class RigSettings(Settings):
         each 0-1."""
         u = np.array(u, dtype=float)
         for i in (1, 2):
-            u[i] = np.reshape(self.valve_duty(u[i]), u[i].shape)
+            u[i] = np.asarray(self.valve_duty(u[i]), dtype=float).reshape(u[i].shape)
         return u
 
     def sense(self, y_prev, p_prev, p_now):
