@@ -31,7 +31,7 @@ import numpy as np
 from hbma_ctrl.core.params import Platform, Pneumatics
 from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.models.fidelity import make_fidelity
-from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.design import RobotDesign, shared_supply
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
 from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings, ValveLine, mismatched
@@ -147,10 +147,7 @@ class RobotRig:
     def _manifold(self, U: np.ndarray) -> np.ndarray:
         """The inlets' duties as the shared pump's flow splits among them (duty / sum when above 1)."""
         if self.topology == "shared":
-            tot = U[1].sum()
-            if tot > 1.0:
-                U = U.copy()
-                U[1] = U[1] / tot
+            U = np.vstack([U[0], shared_supply(U[1]), U[2]])
         return U
 
     def measure(self) -> np.ndarray:

@@ -47,10 +47,10 @@ from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
 from hbma_ctrl.models.shape import ShapeSolver
-from hbma_ctrl.sim.simulate import Plant
-from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
+from hbma_ctrl.sim.simulate import Plant, period_plant
+from hbma_ctrl.sim.trial import Trial
 
-__all__ = ["RigSettings", "Rig", "RigRecord", "ValveLine", "mismatched", "simulate_rig", "tilted_map",
+__all__ = ["RigSettings", "Rig", "RigRecord", "ValveLine", "mismatched", "scaled", "simulate_rig", "tilted_map",
            "TRUTH_KEYS", "IDEAL_STRUCTURE", "STRUCTURED_RIG", "CAP_RIG"]
 
 #: RigSettings keywords that switch the structural mismatches off (a rig with the model's structure:
@@ -147,13 +147,6 @@ class RigSettings(Settings):
         a = np.exp(-r)
         return a * y_prev + (1 - a) * p_prev + (p_now - p_prev) * (1 - (1 - a) / r)
 
-    def plant(self, fid, thetas: np.ndarray, compile: bool = False) -> Plant:
-        """A batch plant of the fidelity (thetas ntheta x n) whose internal step divides the sample
-        period, at most ``dt`` (default the fidelity's)."""
-        dt = self.dt if self.dt is not None else DEFAULT_DT[(self.integrator, fid.name)]
-        n = max(1, int(np.ceil(self.sample_period / dt - 1e-9)))
-        return Plant(fid, thetas, self.integrator, self.sample_period / n, compile=compile)
-
     def plant_fidelity(self, loaded: bool, material, csv: str):
         """The rig's plant model: with a load on ``fidelity`` (the exact contact or the cap's, by
         ``membrane``), else free inflation of the exact membrane or the cap."""
@@ -165,12 +158,16 @@ class RigSettings(Settings):
 def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings
                ) -> tuple[Actuator, Pneumatics]:
     """The rig's (true) actuator and pneumatics: nominal ones with the settings' mismatch applied."""
-    act = replace(actuator, material=actuator.material.scaled(settings.modulus_scale),
-                  V0=actuator.V0 * settings.V0_scale)
-    pn = replace(pneumatics, flow_scale=pneumatics.flow_scale * settings.flow_scale)
+    act, pn = scaled(actuator, pneumatics, settings.flow_scale, settings.modulus_scale, settings.V0_scale)
     if settings.compressor_tilt != 0:
         pn = replace(pn, compressor_csv=str(tilted_map(pneumatics.csv_path, settings.compressor_tilt)))
     return act, pn
+
+
+def scaled(actuator: Actuator, pneumatics: Pneumatics, b: float, k: float, c: float) -> tuple[Actuator, Pneumatics]:
+    """The actuator and pneumatics with pump flow x b, every modulus x k and dead volume x c."""
+    return (replace(actuator, material=actuator.material.scaled(k), V0=actuator.V0 * c),
+            replace(pneumatics, flow_scale=pneumatics.flow_scale * b))
 
 
 def tilted_map(csv_path: Path | str, tilt: float) -> Path:
@@ -260,7 +257,8 @@ class Rig:
 
     def _new_plant(self, platform: Platform) -> Plant:
         fid = self._free if platform.mass <= 0 else self._loaded
-        return self.settings.plant(fid, self._theta(fid, platform)[:, None])
+        s = self.settings
+        return period_plant(fid, self._theta(fid, platform)[:, None], s.integrator, s.sample_period, s.dt)
 
     @property
     def fidelity(self) -> str:
@@ -411,7 +409,7 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
         fid = s.plant_fidelity(loaded, pairs[0][0].material, csvp)
         thetas = np.column_stack([fid.space.values(a, p, trials[i].platform)
                                   for (a, p), i in zip(pairs, idx)])
-        plant = s.plant(fid, thetas, compile=True)
+        plant = period_plant(fid, thetas, s.integrator, s.sample_period, s.dt, compile=True)
         T = max(trials[i].duration for i in idx)
         K = int(round(T / s.sample_period)) + 1
         n = len(idx)

@@ -30,7 +30,7 @@ from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, Fidelity,
 from hbma_ctrl.models.fidelity_exact import make_exact
 from hbma_ctrl.models.shape import ShapeSolver
 
-__all__ = ["InputSchedule", "Trial", "SimSettings", "Log", "Plant", "simulate", "INTEGRATORS", "DEFAULT_DT"]
+__all__ = ["InputSchedule", "Trial", "SimSettings", "Log", "Plant", "period_plant", "simulate", "INTEGRATORS", "DEFAULT_DT"]
 
 import time
 
@@ -242,6 +242,14 @@ class Plant:
             y[:, ~self.alive] = yprev[:, ~self.alive]
         self.X, self.y, self.mode, self.t = X, y, new_mode, t
         self.k += 1
+
+
+def period_plant(fid: Fidelity, thetas: np.ndarray, integrator: str, period: float, dt: float | None = None,
+                 compile: bool = False) -> Plant:
+    """A :class:`Plant` whose internal step divides ``period`` (s): the fewest steps of at most ``dt`` s
+    (default the fidelity's, :data:`DEFAULT_DT`)."""
+    dt = DEFAULT_DT[(integrator, fid.name)] if dt is None else dt
+    return Plant(fid, thetas, integrator, period / max(1, int(math.ceil(period / dt - 1e-9))), compile=compile)
 
 
 def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings, on_progress=None):
