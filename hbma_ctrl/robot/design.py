@@ -138,3 +138,10 @@ class RobotPneumatics(Settings):
 
     def n_compressors(self, n_chambers: int) -> int:
         return n_chambers if self.topology == "per_chamber" else 1
+
+
+def shared_supply(duties: np.ndarray) -> np.ndarray:
+    """Inlet duties (0-1, the chambers along the last axis) of one shared pump as its flow splits among
+    them: each duty over their sum where the sum is above 1 (the manifold)."""
+    total = duties.sum(axis=-1, keepdims=True)
+    return np.where(total > 1.0, duties / np.maximum(total, 1e-12), duties)

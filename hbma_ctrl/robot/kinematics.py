@@ -89,15 +89,6 @@ def layer_plane(design: RobotDesign, heights) -> tuple[float, float, float]:
     return float(c[0]), float(t[0]), float(psi[0])
 
 
-def layer_transform(design: RobotDesign, heights) -> np.ndarray:
-    """4x4 transform from frame k to frame k + 1 for layer k's chamber heights (3,), m."""
-    c, theta, psi = _planes(design, np.asarray(heights, dtype=float).reshape(1, 3))
-    T = np.eye(4)
-    T[:3, :3] = _rots(theta, psi)[0]
-    T[:3, 3] = [0.0, 0.0, design.layer_thickness + c[0]]
-    return T
-
-
 @dataclass
 class RobotPose:
     """Result of :func:`forward_kinematics` (SI, world = frame 0).

@@ -116,7 +116,8 @@ def simulate_open_loop(settings: RobotPlantSettings, pneumatics: Pneumatics | No
     sync = k_sync * plant.dt
     nsync = int(math.ceil(duration / sync - 1e-9))
     pl, lam_max = s.pneumatics.pressure_limit, d.max_stretch
-    rows_t, rows_h, rows_p, rows_m, rows_l, rows_F, rows_u, rows_pose = [], [], [], [], [], [], [], []
+    rows: dict = {k: [] for k in ("t", "h", "p", "m", "lam", "F", "bend", "direction", "tip", "tip_bend", "rim_gap",
+                                  "inputs")}
     events: list = []
     blocked = np.zeros(n, dtype=bool)
     saturated = np.zeros(n, dtype=bool)
@@ -128,15 +129,11 @@ def simulate_open_loop(settings: RobotPlantSettings, pneumatics: Pneumatics | No
     def record(Uc, pose=None):
         h = np.maximum(plant.output("h"), 0.0)
         pose = pose or forward_kinematics(d, h.reshape(N, 3))
-        rows_t.append(plant.t)
-        rows_h.append(h)
-        rows_p.append(plant.output("p").copy())
-        rows_m.append(plant.output("m").copy())
-        rows_l.append(plant.output("lam").copy())
-        rows_F.append(th[ix["W"]].copy())
-        rows_u.append(Uc.copy())
-        rows_pose.append((pose.bend.copy(), pose.direction.copy(), pose.tip_position.copy(), pose.tip_bend,
-                          pose.rim_gap(d)))
+        now = {"t": plant.t, "h": h, **{k: plant.output(k).copy() for k in ("p", "m", "lam")}, "F": th[ix["W"]].copy(),
+               "bend": pose.bend.copy(), "direction": pose.direction.copy(), "tip": pose.tip_position.copy(),
+               "tip_bend": pose.tip_bend, "rim_gap": pose.rim_gap(d), "inputs": Uc.copy()}
+        for k, v in now.items():
+            rows[k].append(v)
         return h
 
     h = record(np.zeros((3, n)))
@@ -176,12 +173,8 @@ def simulate_open_loop(settings: RobotPlantSettings, pneumatics: Pneumatics | No
     for i, evs in enumerate(plant.events):
         events += [(float(tt), names[i], nm) for tt, nm in evs]
     events.sort(key=lambda e: e[0])
-    T = len(rows_t)
-    return RobotRun(
-        t=np.array(rows_t), h=np.array(rows_h).reshape(T, N, 3), p=np.array(rows_p).reshape(T, N, 3),
-        m=np.array(rows_m).reshape(T, N, 3), lam=np.array(rows_l).reshape(T, N, 3),
-        F=np.array(rows_F).reshape(T, N, 3), bend=np.array([r[0] for r in rows_pose]),
-        direction=np.array([r[1] for r in rows_pose]), tip=np.array([r[2] for r in rows_pose]),
-        tip_bend=np.array([r[3] for r in rows_pose]), rim_gap=np.array([r[4] for r in rows_pose]),
-        inputs=np.array(rows_u), events=events, step_s=np.array(steps), status=status,
-        wall_s=time.perf_counter() - wall0, tension=tension_any.reshape(N, 3))
+    out = {k: np.array(v) for k, v in rows.items()}
+    for k in ("h", "p", "m", "lam", "F"):  # per chamber: [time, layer, chamber]
+        out[k] = out[k].reshape(len(out["t"]), N, 3)
+    return RobotRun(**out, events=events, step_s=np.array(steps), status=status, wall_s=time.perf_counter() - wall0,
+                    tension=tension_any.reshape(N, 3))

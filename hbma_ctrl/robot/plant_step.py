@@ -10,8 +10,8 @@ true heights. Each part is a casadi expression here, so the whole period is one 
         -> (X_next, mode_next, y[13 x n], hist_next, theta_next, p_sensed_next, p_prev_next, F[1 x n])
 
 ``U`` is the command sent for the period (speed, inlet, outlet per chamber, 0-1), ``hist`` each
-chamber's valve history (:func:`hbma_ctrl.sim.plant_step.valve_line_function`; one row when the rig
-has no valve timing, unused), ``y`` the outputs :data:`hbma_ctrl.models.fidelity.OUTPUTS` at the end of
+chamber's valve history (:func:`hbma_ctrl.sim.plant_step.valve_line_function`; one command when the
+rig has no valve delay), ``y`` the outputs :data:`hbma_ctrl.models.fidelity.OUTPUTS` at the end of
 the period (before the loads change), ``theta_next`` the parameters with each chamber's load ``W``
 (and, for the ``platform`` fidelity, its moving mass ``M``) from the load sharing, ``F`` the shared
 normal forces themselves (N; negative = tension, floored at :data:`hbma_ctrl.robot.plant.W_FLOOR` in W).
@@ -117,20 +117,15 @@ def robot_rig_step_function(rig, name: str = "robot_rig_step") -> ca.Function:
     iH = OUTPUTS.index("h")
     sub = plant_step_function(fid, "rk4", dt, 1, name=f"{name}_sub").map(n)
     sense = sensor_lag_function(timing, name=f"{name}_sense").map(n)
-    timed = rig._valves is not None
-    keep = valve_history_size(timing) if timed else 1
+    keep = valve_history_size(timing)
     X, mode = ca.MX.sym("X", fid.nx, n), ca.MX.sym("mode", 1, n)
     U, hist = ca.MX.sym("U", 3, n), ca.MX.sym("hist", 3 * keep, n)
     theta, p_sensed, p_prev = ca.MX.sym("theta", fid.space.size, n), ca.MX.sym("p_sensed", 1, n), ca.MX.sym("p_prev", 1, n)
     f_tip = ca.MX.sym("f_tip", 3)
-    if timed:
-        line = valve_line_function(timing, nsub, name=f"{name}_valves").map(n)
-        u_sub, hist_next = line(U, ca.reshape(hist, 3, keep * n))
-        hist_next = ca.reshape(hist_next, 3 * keep, n)
-        cols = [u_sub[:, j::nsub] for j in range(nsub)]  # internal step j's inputs, 3 x n
-    else:
-        hist_next = hist
-        cols = [U] * nsub
+    line = valve_line_function(timing, nsub, name=f"{name}_valves").map(n)
+    u_sub, hist_next = line(U, ca.reshape(hist, 3, keep * n))
+    hist_next = ca.reshape(hist_next, 3 * keep, n)
+    cols = [u_sub[:, j::nsub] for j in range(nsub)]  # internal step j's inputs, 3 x n
     Xk, mk = X, mode
     for j in range(nsub):
         Uj = cols[j]

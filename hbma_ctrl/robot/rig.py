@@ -31,7 +31,7 @@ import numpy as np
 from hbma_ctrl.core.params import Platform, Pneumatics
 from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.models.fidelity import make_fidelity
-from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.design import RobotDesign, shared_supply
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
 from hbma_ctrl.sim.rig import CAP_RIG, STRUCTURED_RIG, RigSettings, ValveLine, mismatched
@@ -96,23 +96,19 @@ class RobotRig:
         self.tip_load = tuple(tip_load)
         thetas = []
         fid = None
-        for i in range(self.n):
-            sign = 1.0 if i % 2 == 0 else -1.0
+        self.modulus_scales = 1.0 + self.s.modulus_spread * np.where(np.arange(self.n) % 2 == 0, 1.0, -1.0)
+        for scale in self.modulus_scales:
             # the robot's chambers are the cap (module docstring), whatever the single-chamber rig's defaults
-            rs = self.s.chamber_rig(1.0 + sign * self.s.modulus_spread)
-            act, pn = mismatched(design.chamber, pneumatics, rs)
+            act, pn = mismatched(design.chamber, pneumatics, self.s.chamber_rig(scale))
             if fid is None:
                 fid = make_fidelity(self.s.fidelity, act.material, str(pn.csv_path))
             thetas.append(fid.space.values(act, pn, Platform(load=1e-3, damping=self.s.damping)))
-        self.modulus_scales = np.array([1.0 + (1 if i % 2 == 0 else -1) * self.s.modulus_spread
-                                        for i in range(self.n)])
-        self.flow_scale0 = float(thetas[0][fid.space.names.index("flow_scale")])
         dt = self.s.dt if self.s.dt is not None else (1e-3 if self.s.fidelity == "platform" else 5e-3)
         self.plant = Plant(fid, np.column_stack(thetas), "rk4", dt)
         self._rng = np.random.default_rng(self.s.seed)
         self.design_g = 9.80665
         self._timing = self.s.chamber_rig()  # the valve line and sensor lag (the same for every chamber)
-        self._valves = ValveLine(self._timing, self.n) if self.s.valve_delay > 0 or self.s.valve_min_on > 0 else None
+        self._valves = ValveLine(self._timing, self.n)
         self._p_sensed = self._p_prev = self.plant.output("p").copy()  # lagged sensor state, true p, Pa
         self._update_loads()
 
@@ -141,15 +137,8 @@ class RobotRig:
 
     def apply(self, Ucmd: np.ndarray) -> None:
         """Hold the inputs (3 x n) for one sample period, then update the loads from the true heights."""
-        Ucmd = np.array(Ucmd, dtype=float).reshape(3, self.n)
-        if self._valves is None:
-            self.plant.advance(self._manifold(Ucmd), self.s.sample_period)
-        else:
-            t0 = self.plant.t
-            self._valves.send(t0, Ucmd)
-            dt = self.plant.dt
-            for j in range(max(1, int(round(self.s.sample_period / dt)))):
-                self.plant.advance(self._manifold(self._valves.at(t0 + j * dt)), dt)
+        self._valves.send(self.plant.t, Ucmd)
+        self._valves.drive(self.plant, self.plant.t, self._manifold)
         p_now = self.plant.output("p").copy()
         self._p_sensed = self._timing.sense(self._p_sensed, self._p_prev, p_now)
         self._p_prev = p_now
@@ -158,10 +147,7 @@ class RobotRig:
     def _manifold(self, U: np.ndarray) -> np.ndarray:
         """The inlets' duties as the shared pump's flow splits among them (duty / sum when above 1)."""
         if self.topology == "shared":
-            tot = U[1].sum()
-            if tot > 1.0:
-                U = U.copy()
-                U[1] = U[1] / tot
+            U = np.vstack([U[0], shared_supply(U[1]), U[2]])
         return U
 
     def measure(self) -> np.ndarray:

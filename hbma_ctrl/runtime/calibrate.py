@@ -63,8 +63,8 @@ from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE, DEFAULT_SENSOR_DELAY, DE
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free
 from hbma_ctrl.models.reduced import MEMBRANES
-from hbma_ctrl.sim.simulate import Plant
-from hbma_ctrl.sim.trial import DEFAULT_DT
+from hbma_ctrl.sim.rig import scaled
+from hbma_ctrl.sim.simulate import period_plant
 
 __all__ = ["CalibrationSettings", "CalibrationResult", "StartupCalibration", "hand_to_estimator",
            "FACTOR_NAMES"]
@@ -173,12 +173,6 @@ class CalibrationResult:
         if np.any(sd <= 0):
             cov[np.diag_indices(3)] = np.maximum(np.diag(cov), std_floor ** 2)
         return replace(self, cov=cov)
-
-
-def _scaled(actuator: Actuator, pneumatics: Pneumatics, b: float, k: float, c: float):
-    """The actuator and pneumatics with pump flow x b, every modulus x k and dead volume x c."""
-    return (replace(actuator, material=actuator.material.scaled(k), V0=actuator.V0 * c),
-            replace(pneumatics, flow_scale=pneumatics.flow_scale * b))
 
 
 class StartupCalibration:
@@ -319,12 +313,10 @@ class StartupCalibration:
             fid = make_exact_free(self.actuator.material, csv)
         else:
             fid = make_fidelity("free", self.actuator.material, csv)
-        thetas = np.column_stack([fid.space.values(*_scaled(self.actuator, self.pneumatics, *f), self.platform)
+        thetas = np.column_stack([fid.space.values(*scaled(self.actuator, self.pneumatics, *f), self.platform)
                                   for f in factors.T])
-        dt_int = DEFAULT_DT[("rk4", fid.name)]
         period = s.sample_period
-        nsub = max(1, int(np.ceil(period / dt_int - 1e-9)))
-        plant = Plant(fid, thetas, "rk4", period / nsub)
+        plant = period_plant(fid, thetas, "rk4", period)
         n = thetas.shape[1]
         p = np.zeros((len(self._t), n))
         p[0] = plant.output("p")

@@ -69,7 +69,7 @@ from hbma_ctrl.core.validation import finite_or_nan
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank
 from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
-from hbma_ctrl.robot.design import RobotDesign
+from hbma_ctrl.robot.design import RobotDesign, shared_supply
 from hbma_ctrl.robot.plant import W_FLOOR
 from hbma_ctrl.robot.statics import load_sharing
 from hbma_ctrl.robot.targets import chamber_targets
@@ -144,9 +144,7 @@ def _flow_duty(a: np.ndarray, topology: str) -> np.ndarray:
     """The supply as the full-speed inlet duty the plant's flow equals (what the bank predicts with):
     tiny duties zeroed, a shared pump's budget applied."""
     d = commands_from_inputs(a, np.zeros_like(a), topology)[1]
-    if topology == "shared" and d.sum() > 1.0:
-        d = d / d.sum()
-    return d
+    return shared_supply(d) if topology == "shared" else d
 
 
 def _as_float(z, n: int) -> np.ndarray:
@@ -448,8 +446,7 @@ class RobotLoop:
             return None
         p = np.array(plan, dtype=float)
         if self.model.topology == "shared":
-            s = p[:, :, 0].sum(axis=1, keepdims=True)
-            p[:, :, 0] = np.where(s > 1.0, p[:, :, 0] / np.maximum(s, 1e-12), p[:, :, 0])
+            p[:, :, 0] = shared_supply(p[:, :, 0])
         return p
 
     def stats(self) -> dict:

@@ -39,10 +39,6 @@ class StepStats:
             return self._buf[:self.n].copy()
         return np.concatenate([self._buf[self._next:], self._buf[:self._next]])
 
-    def count_above(self, threshold: float) -> int:
-        """How many buffered samples exceed ``threshold`` (same unit as the samples)."""
-        return int((self.values() > threshold).sum())
-
     def summary(self) -> dict:
         """{"median", "p99", "max", "n"}: median and p99 over the buffer, max and n over every sample;
         NaN (n = 0) when empty."""

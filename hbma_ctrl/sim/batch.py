@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import re
 import signal
+from contextlib import nullcontext
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 from rich.console import Console
@@ -131,14 +132,18 @@ def protocol_trials(material: str | Material = "nh", *, loads_g=None, speeds_pct
     return trials
 
 
-def _simulate_chunk(trials: list[Trial], settings: SimSettings, fidelity: str) -> list[Log]:
-    """Simulate trials grouped by their fidelity (one batch per group); logs in input order."""
-
+def _groups(trials: list[Trial], fidelity: str) -> dict[str, list[int]]:
+    """Trial indices by the fidelity each runs with (:func:`fidelity_for`)."""
     groups: dict[str, list[int]] = {}
     for i, tr in enumerate(trials):
         groups.setdefault(fidelity_for(tr, fidelity), []).append(i)
+    return groups
+
+
+def _simulate_chunk(trials: list[Trial], settings: SimSettings, fidelity: str) -> list[Log]:
+    """Simulate trials grouped by their fidelity (one batch per group); logs in input order."""
     logs: list = [None] * len(trials)
-    for fname, idx in groups.items():
+    for fname, idx in _groups(trials, fidelity).items():
         for i, log in zip(idx, simulate([trials[i] for i in idx], settings, fname)):
             logs[i] = log
     return logs
@@ -176,9 +181,7 @@ def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fi
         fidelity_for(tr, fidelity)  # validate before spending time
     logs: list = [None] * len(trials)
     if workers == 1 or len(trials) < 2:
-        groups: dict[str, list[int]] = {}
-        for i, tr in enumerate(trials):
-            groups.setdefault(fidelity_for(tr, fidelity), []).append(i)
+        groups = _groups(trials, fidelity)
         # serial: the bar counts simulated seconds of each batch, so one long trial shows progress too
         total = sum(max(trials[i].duration for i in idx) for idx in groups.values())
         with progress_bar(progress) as bar:
@@ -209,17 +212,10 @@ def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fi
     return logs
 
 
-class _NoBar:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *exc):
-        return False
-
-
 def progress_bar(enabled: bool):
+    """A rich progress bar, or a context that gives None when not ``enabled``."""
     if not enabled:
-        return _NoBar()
+        return nullcontext()
 
     # on stderr: stdout carries the command's results
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

@@ -113,18 +113,14 @@ def valve_history_size(settings) -> int:
 def valve_line_function(settings, nsub: int, name: str = "valve_line") -> ca.Function:
     """:class:`hbma_ctrl.sim.rig.ValveLine` of rig settings ``settings`` over one period of ``nsub``
     internal steps, as a Function (module docstring): the command sent now is shaped
-    (:meth:`~hbma_ctrl.sim.rig.RigSettings.shape_command`) and appended to ``hist`` (oldest first;
+    (:meth:`~hbma_ctrl.sim.rig.RigSettings.valve_duty`) and appended to ``hist`` (oldest first;
     zeros before any command: shut valves); internal step j's valves are the newest command sent at least
     ``valve_delay`` before it, its speed the one sent now."""
     T, delay = float(settings.sample_period), float(settings.valve_delay)
     dt = T / nsub
     n = valve_history_size(settings)
     u, hist = ca.SX.sym("u", 3), ca.SX.sym("hist", 3, n)
-    shaped = [u[0], u[1], u[2]]
-    if settings.valve_min_on > 0:
-        frac = min(1.0, settings.valve_min_on / T)
-        for i in (1, 2):
-            shaped[i] = ca.if_else(u[i] < 0.5 * frac, 0.0, ca.fmax(u[i], frac))
+    shaped = [u[0], settings.valve_duty(u[1]), settings.valve_duty(u[2])]
     sent = ca.horzcat(hist[:, 1:], ca.vertcat(*shaped))  # column n - 1 is now, n - 1 - i was sent i periods ago
     cols = []
     for j in range(nsub):
@@ -139,16 +135,11 @@ def valve_line_function(settings, nsub: int, name: str = "valve_line") -> ca.Fun
 def sensor_lag_function(settings, name: str = "sensor_lag") -> ca.Function:
     """:meth:`hbma_ctrl.sim.rig.RigSettings.sense` over one period as a Function: the lagged reading
     ``p_sensed`` and the last true pressure ``p_prev`` (Pa) after a period that ends at the outputs
-    ``y`` (:data:`hbma_ctrl.models.fidelity.OUTPUTS`). Its constants are computed as ``sense`` computes
-    them, so it rounds as the rig does."""
+    ``y`` (:data:`hbma_ctrl.models.fidelity.OUTPUTS`): ``sense`` itself on casadi symbols, so it rounds
+    as the rig does."""
     ys, prev, sensed = ca.SX.sym("y", len(OUTPUTS)), ca.SX.sym("p_prev"), ca.SX.sym("p_sensed")
     p_now = ys[OUTPUTS.index("p")]
-    if settings.sensor_tau <= 0:
-        nxt = p_now
-    else:
-        r = settings.sample_period / settings.sensor_tau
-        a = float(np.exp(-r))  # numpy's exp, as sense() takes it
-        nxt = a * sensed + (1 - a) * prev + (p_now - prev) * (1 - (1 - a) / r)
+    nxt = settings.sense(sensed, prev, p_now)
     return ca.Function(name, [sensed, prev, ys], [nxt, p_now], ["p_sensed", "p_prev", "y"],
                        ["p_sensed_next", "p_prev_next"])
 

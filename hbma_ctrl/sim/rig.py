@@ -36,6 +36,7 @@ from dataclasses import dataclass, field, replace
 import hashlib
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.codegen import cache_dir
@@ -46,10 +47,10 @@ from hbma_ctrl.core.physics import load_compressor_table
 from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, make_fidelity
 from hbma_ctrl.models.fidelity_exact import make_exact_free, make_exact_loaded
 from hbma_ctrl.models.shape import ShapeSolver
-from hbma_ctrl.sim.simulate import Plant
-from hbma_ctrl.sim.trial import DEFAULT_DT, Trial
+from hbma_ctrl.sim.simulate import Plant, period_plant
+from hbma_ctrl.sim.trial import Trial
 
-__all__ = ["RigSettings", "Rig", "RigRecord", "ValveLine", "mismatched", "simulate_rig", "tilted_map",
+__all__ = ["RigSettings", "Rig", "RigRecord", "ValveLine", "mismatched", "scaled", "simulate_rig", "tilted_map",
            "TRUTH_KEYS", "IDEAL_STRUCTURE", "STRUCTURED_RIG", "CAP_RIG"]
 
 #: RigSettings keywords that switch the structural mismatches off (a rig with the model's structure:
@@ -120,38 +121,53 @@ class RigSettings(Settings):
         if self.dt is not None:
             self.within("dt", hi=self.sample_period)
 
-    def shape_command(self, u: np.ndarray) -> np.ndarray:
-        """Duties the valves can realise (minimum on-time within one PWM period); rows speed, inlet,
-        outlet (3 or 3 x n), each 0-1."""
-        u = np.array(u, dtype=float)
+    def valve_duty(self, d):
+        """A valve's duty d (0-1; an array or a casadi expression) as the valve realises it with its
+        minimum on-time within one PWM period."""
         if self.valve_min_on <= 0:
-            return u
+            return d
         frac = min(1.0, self.valve_min_on / self.sample_period)
+        return ca.if_else(d < 0.5 * frac, 0.0, ca.fmax(d, frac))
+
+    def shape_command(self, u: np.ndarray) -> np.ndarray:
+        """Duties the valves can realise (:meth:`valve_duty`); rows speed, inlet, outlet (3 or 3 x n),
+        each 0-1."""
+        u = np.array(u, dtype=float)
         for i in (1, 2):
-            d = u[i]
-            u[i] = np.where(d < 0.5 * frac, 0.0, np.maximum(d, frac))
+            u[i] = np.asarray(self.valve_duty(u[i]), dtype=float).reshape(u[i].shape)
         return u
 
     def sense(self, y_prev, p_prev, p_now):
-        """One sample of the sensor's first-order lag (Pa; arrays work): the exact response of
-        y' = (p - y) / sensor_tau over one sample period to a pressure moving linearly from p_prev to
-        p_now (a ramp is read sensor_tau late, as by the continuous sensor)."""
+        """One sample of the sensor's first-order lag (Pa; arrays and casadi expressions work): the exact
+        response of y' = (p - y) / sensor_tau over one sample period to a pressure moving linearly from
+        p_prev to p_now (a ramp is read sensor_tau late, as by the continuous sensor)."""
         if self.sensor_tau <= 0:
             return p_now
         r = self.sample_period / self.sensor_tau
         a = np.exp(-r)
         return a * y_prev + (1 - a) * p_prev + (p_now - p_prev) * (1 - (1 - a) / r)
 
+    def plant_fidelity(self, loaded: bool, material, csv: str):
+        """The rig's plant model: with a load on ``fidelity`` (the exact contact or the cap's, by
+        ``membrane``), else free inflation of the exact membrane or the cap."""
+        if self.membrane == "exact":
+            return make_exact_loaded(self.fidelity, material, csv) if loaded else make_exact_free(material, csv)
+        return make_fidelity(self.fidelity if loaded else "free", material, csv)
+
 
 def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings
                ) -> tuple[Actuator, Pneumatics]:
     """The rig's (true) actuator and pneumatics: nominal ones with the settings' mismatch applied."""
-    act = replace(actuator, material=actuator.material.scaled(settings.modulus_scale),
-                  V0=actuator.V0 * settings.V0_scale)
-    pn = replace(pneumatics, flow_scale=pneumatics.flow_scale * settings.flow_scale)
+    act, pn = scaled(actuator, pneumatics, settings.flow_scale, settings.modulus_scale, settings.V0_scale)
     if settings.compressor_tilt != 0:
         pn = replace(pn, compressor_csv=str(tilted_map(pneumatics.csv_path, settings.compressor_tilt)))
     return act, pn
+
+
+def scaled(actuator: Actuator, pneumatics: Pneumatics, b: float, k: float, c: float) -> tuple[Actuator, Pneumatics]:
+    """The actuator and pneumatics with pump flow x b, every modulus x k and dead volume x c."""
+    return (replace(actuator, material=actuator.material.scaled(k), V0=actuator.V0 * c),
+            replace(pneumatics, flow_scale=pneumatics.flow_scale * b))
 
 
 def tilted_map(csv_path: Path | str, tilt: float) -> Path:
@@ -199,6 +215,13 @@ class ValveLine:
                 valves = u[1:]
         return np.vstack([speed[None, :], valves])
 
+    def drive(self, plant: Plant, t: float, through=None) -> None:
+        """Advance ``plant`` over the sample period from t (s) in its internal steps, each with the
+        inputs acting then (mapped by ``through`` first when given: a shared pump's manifold)."""
+        for j in range(max(1, int(round(self.s.sample_period / plant.dt)))):
+            u = self.at(t + j * plant.dt)
+            plant.advance(u if through is None else through(u), plant.dt)
+
 
 class Rig:
     """One simulated chamber with its pressure sensor (see module docstring). SI throughout.
@@ -218,8 +241,8 @@ class Rig:
         self.platform = platform
         self._rng = np.random.default_rng(self.settings.seed)
         self._csv = str(self.pneumatics.csv_path)
-        self._free = _free_fidelity(self.settings, self.actuator.material, self._csv)
-        self._loaded = _loaded_fidelity(self.settings, self.actuator.material, self._csv)
+        self._free, self._loaded = (self.settings.plant_fidelity(loaded, self.actuator.material, self._csv)
+                                    for loaded in (False, True))
         self._u = np.zeros(3)
         self.t = 0.0
         self.events: list = []
@@ -235,12 +258,7 @@ class Rig:
     def _new_plant(self, platform: Platform) -> Plant:
         fid = self._free if platform.mass <= 0 else self._loaded
         s = self.settings
-        dt = s.dt
-        if dt is None:
-            dt = DEFAULT_DT[(s.integrator, fid.name)]
-        # a whole number of internal steps per sample period
-        n = max(1, int(np.ceil(s.sample_period / dt - 1e-9)))
-        return Plant(fid, self._theta(fid, platform)[:, None], s.integrator, s.sample_period / n)
+        return period_plant(fid, self._theta(fid, platform)[:, None], s.integrator, s.sample_period, s.dt)
 
     @property
     def fidelity(self) -> str:
@@ -254,9 +272,7 @@ class Rig:
         n0 = len(self._plant.events[0])
         plant = self._plant
         self._valves.send(self.t, u)
-        nsub = max(1, int(round(self.settings.sample_period / plant.dt)))
-        for j in range(nsub):
-            plant.advance(self._valves.at(self.t + j * plant.dt), plant.dt)
+        self._valves.drive(plant, self.t)
         self.events += [(self._t_plant0 + e[0], e[1]) for e in self._plant.events[0][n0:]]
         self.t += self.settings.sample_period
         p_now = float(plant.output("p")[0])
@@ -330,18 +346,6 @@ class Rig:
         return solver.free_h1(m * (self.actuator.R * self.actuator.T), self.truth()["h1"])
 
 
-def _free_fidelity(s: RigSettings, material, csv: str):
-    """The rig's free-inflation plant model: the exact membrane or the cap (``s.membrane``)."""
-    return make_exact_free(material, csv) if s.membrane == "exact" else make_fidelity("free", material, csv)
-
-
-def _loaded_fidelity(s: RigSettings, material, csv: str):
-    """The rig's plant model while a load is on (``s.fidelity``), with the exact contact or the cap's."""
-    if s.membrane == "exact":
-        return make_exact_loaded(s.fidelity, material, csv)
-    return make_fidelity(s.fidelity, material, csv)
-
-
 def _exact_free_h(fid, theta: np.ndarray, m: float) -> float:
     """Apex height (m) of the exact free membrane holding gas mass m (kg): bisection on the gas law.
 
@@ -402,13 +406,10 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
     for (loaded, _, csvp), idx in groups.items():
         pairs = [mismatched(trials[i].actuator, trials[i].pneumatics, s) for i in idx]
         csvp = str(pairs[0][1].csv_path)  # the rig's own map (another shape when tilted)
-        fid = (_loaded_fidelity(s, pairs[0][0].material, csvp) if loaded
-               else _free_fidelity(s, pairs[0][0].material, csvp))
+        fid = s.plant_fidelity(loaded, pairs[0][0].material, csvp)
         thetas = np.column_stack([fid.space.values(a, p, trials[i].platform)
                                   for (a, p), i in zip(pairs, idx)])
-        dt = s.dt if s.dt is not None else DEFAULT_DT[(s.integrator, fid.name)]
-        nsub = max(1, int(np.ceil(s.sample_period / dt - 1e-9)))
-        plant = Plant(fid, thetas, s.integrator, s.sample_period / nsub, compile=True)
+        plant = period_plant(fid, thetas, s.integrator, s.sample_period, s.dt, compile=True)
         T = max(trials[i].duration for i in idx)
         K = int(round(T / s.sample_period)) + 1
         n = len(idx)
@@ -423,14 +424,12 @@ def simulate_rig(trials: list[Trial], settings: RigSettings | None = None,
             Y[k] = plant.y
             Ucols[k] = U
             if k < K - 1:
-                for sub in range(nsub):
-                    plant.advance(valves.at(t + sub * plant.dt), plant.dt)
+                valves.drive(plant, t)
         # the sensor's first-order lag, sampled (the same recursion as Rig.measure)
         ptrue = Y[:, OUTPUTS.index("p"), :]
         sensed = ptrue.copy()
-        if s.sensor_tau > 0:
-            for k in range(1, K):
-                sensed[k] = s.sense(sensed[k - 1], ptrue[k - 1], ptrue[k])
+        for k in range(1, K):
+            sensed[k] = s.sense(sensed[k - 1], ptrue[k - 1], ptrue[k])
         for j, i in enumerate(idx):
             rng = np.random.default_rng([s.seed, ids[i]])
             Kj = int(round(trials[i].duration / s.sample_period)) + 1

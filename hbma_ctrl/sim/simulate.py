@@ -30,7 +30,7 @@ from hbma_ctrl.models.fidelity import MODE_MOVING, MODE_REST, OUTPUTS, Fidelity,
 from hbma_ctrl.models.fidelity_exact import make_exact
 from hbma_ctrl.models.shape import ShapeSolver
 
-__all__ = ["InputSchedule", "Trial", "SimSettings", "Log", "Plant", "simulate", "INTEGRATORS", "DEFAULT_DT"]
+__all__ = ["InputSchedule", "Trial", "SimSettings", "Log", "Plant", "period_plant", "simulate", "INTEGRATORS", "DEFAULT_DT"]
 
 import time
 
@@ -94,9 +94,8 @@ def _far_branch(fid: Fidelity, theta: np.ndarray, m: float, h_now: float, up: bo
     return (hs[c] + w * (hs[c + 1] - hs[c]) + h2[c] + w * (h2[c + 1] - h2[c]), h2[c] + w * (h2[c + 1] - h2[c]))
 
 
-def _events_and_modes(fid: Fidelity, batch: _Batch, X, Xprev, mode, t, U, events, sensor_range, sat,
-                      y=None):
-    """Hybrid transitions between steps (vectorised); returns new (X, mode, saturated)."""
+def _events_and_modes(fid: Fidelity, batch: _Batch, X, mode, t, U, events, y=None):
+    """Hybrid transitions between steps (vectorised); returns the new (X, mode)."""
     if y is None:
         y = batch.y(X, U, mode)
     p = y[OUTPUTS.index("p")]
@@ -124,7 +123,7 @@ def _events_and_modes(fid: Fidelity, batch: _Batch, X, Xprev, mode, t, U, events
             flat = np.asarray(batch.proj(X, batch.theta, np.zeros((1, batch.n))))
             X = np.where(lift[None, :], flat, X)
             X = np.asarray(batch.proj(X, batch.theta, mode[None, :]))
-    return X, mode, sat
+    return X, mode
 
 
 _COMPILED: dict = {}
@@ -176,10 +175,8 @@ class Plant:
         self.alive = np.ones(self.n, dtype=bool)
         self.t = 0.0
         self.k = 0
-        self._sat = np.zeros(self.n, dtype=bool)
         self.U = np.zeros((3, self.n))
-        self.X, self.mode, _ = _events_and_modes(fid, self.batch, self.X, self.X, self.mode, 0.0, self.U,
-                                                 self.events, 0.0, self._sat)
+        self.X, self.mode = _events_and_modes(fid, self.batch, self.X, self.mode, 0.0, self.U, self.events)
         self.y = self.batch.y(self.X, self.U, self.mode)
 
     def output(self, name: str) -> np.ndarray:
@@ -230,8 +227,7 @@ class Plant:
         changed = False
         if fid.name == "quasi_static":
             X, changed = _qs_snap_check(fid, self.batch, X, Xprev, mode, yprev[det_i], y[det_i], t, self.events)
-        X, new_mode, _ = _events_and_modes(fid, self.batch, X, Xprev, mode, t, self.U, self.events, 0.0,
-                                           self._sat, y=None if changed else y)
+        X, new_mode = _events_and_modes(fid, self.batch, X, mode, t, self.U, self.events, y=None if changed else y)
         if changed or np.any(new_mode != mode):
             y = self.batch.y(X, self.U, new_mode)
         if fid.name == "platform":
@@ -246,6 +242,14 @@ class Plant:
             y[:, ~self.alive] = yprev[:, ~self.alive]
         self.X, self.y, self.mode, self.t = X, y, new_mode, t
         self.k += 1
+
+
+def period_plant(fid: Fidelity, thetas: np.ndarray, integrator: str, period: float, dt: float | None = None,
+                 compile: bool = False) -> Plant:
+    """A :class:`Plant` whose internal step divides ``period`` (s): the fewest steps of at most ``dt`` s
+    (default the fidelity's, :data:`DEFAULT_DT`)."""
+    dt = DEFAULT_DT[(integrator, fid.name)] if dt is None else dt
+    return Plant(fid, thetas, integrator, period / max(1, int(math.ceil(period / dt - 1e-9))), compile=compile)
 
 
 def _fixed_step(fid: Fidelity, trials: list[Trial], s: SimSettings, on_progress=None):
@@ -350,15 +354,14 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
     fx = ca.Function("fx", [xs, us, ms], [f(xs, us, th, ms)])
     x, mode = fid.initial_state(theta)
     events: list = [[]]
-    sat = np.zeros(1, dtype=bool)
     t = 0.0
     T = trial.duration
     log_t = np.arange(0.0, T + 1e-12, s.log_dt)
     rows = []
     mass_in = 0.0
     breaks = sorted(set(list(trial.schedule.times[1:]) + [T]))
-    xa, mode_a, sat = _events_and_modes(fid, batch, x[:, None], x[:, None], np.array([mode]), 0.0,
-                                        trial.schedule.at(0.0)[:, None], events, s.sensor_range, sat)
+    xa, mode_a = _events_and_modes(fid, batch, x[:, None], np.array([mode]), 0.0, trial.schedule.at(0.0)[:, None],
+                                   events)
     x, mode = xa[:, 0], float(mode_a[0])
     # typical magnitude of each state (gas mass ~1e-5 kg, lengths ~1e-2 m, speeds ~1e-2 m/s)
     scale = np.array([1e-5 if n == "m" else 1e-2 for n in fid.state_names])
@@ -561,13 +564,10 @@ def _rows_to_log_batch(fid, tr, stack, j, events, ok, sensor_range) -> Log:
 
 
 def _rows_to_log_single(fid, tr, rows, events, ok, theta, sensor_range) -> Log:
+    """An adaptive trial's log from its rows (t, state, inputs, mode, mass_in): a batch of one."""
     th = ca.DM(theta)
-    data = {"t": np.array([r[0] for r in rows])}
-    for k, name in enumerate(("speed", "inlet", "outlet")):
-        data[name] = np.array([r[2][k] for r in rows])
-    ys = [np.asarray(fid.out(r[1], r[2], th, r[3])).ravel() for r in rows]
-    for k, name in enumerate(OUTPUTS):
-        data[name] = np.array([y[k] for y in ys])
-    data["mode"] = np.array([r[3] for r in rows])
-    data["mass_in"] = np.array([r[4] for r in rows])
-    return _finish(fid, tr, data, events, ok, sensor_range)
+    t = np.array([r[0] for r in rows], dtype=float)
+    u = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3, 1)
+    y = np.array([np.asarray(fid.out(r[1], r[2], th, r[3])).ravel() for r in rows]).reshape(-1, len(OUTPUTS), 1)
+    mode, mass_in = (np.array([r[i] for r in rows], dtype=float).reshape(-1, 1) for i in (3, 4))
+    return _rows_to_log_batch(fid, tr, (t, u, y, mode, mass_in), 0, events, ok, sensor_range)

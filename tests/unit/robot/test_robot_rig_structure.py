@@ -36,8 +36,11 @@ def test_structure_is_on_by_default_with_the_chamber_rigs_values_and_off_when_ze
     s = RobotRigSettings()
     assert (s.valve_delay, s.valve_min_on, s.compressor_tilt, s.sensor_tau) == tuple(
         STRUCTURED_RIG[k] for k in ("valve_delay", "valve_min_on", "compressor_tilt", "sensor_tau"))
-    assert RobotRig(D1, Pneumatics(), 50e3, "per_chamber", s)._valves is not None
-    assert _rig()._valves is None
+    # every chamber's valves and sensor
+    timing = [RobotRig(D1, Pneumatics(), 50e3, "per_chamber", s)._timing, _rig()._timing]
+    keys = ("valve_delay", "valve_min_on", "sensor_tau")
+    assert [getattr(timing[0], k) for k in keys] == [STRUCTURED_RIG[k] for k in keys]
+    assert [getattr(timing[1], k) for k in keys] == [0.0, 0.0, 0.0]
 
 
 def test_a_5ms_valve_delay_halves_the_first_periods_inflow_then_it_catches_up():
