@@ -29,17 +29,14 @@ Variants (``MPCSettings.variant``)
 ----------------------------------
 ``ipopt``: multiple shooting NLP solved to convergence by IPOPT, warm-started with the shifted
 previous solution: the accurate reference, 5-30 ms per step.
-``rti_osqp``: real-time iteration. One casadi Function (``map`` over the N+1 nodes, optionally
-compiled to C) returns the discrete dynamics, their Jacobians and the linearised outputs along the
-shifted previous solution; one sparse QP with a fixed pattern is updated in place (``update``: q, l,
-u, Px, Ax; never re-setup) and solved by OSQP, warm-started. The pump flow is bilinear in speed and
-inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point of speed
-and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
-
-``rti_c_osqp``: the same QP and OSQP solver as ``rti_osqp``, its data (the
-linearisation, P and A values in OSQP's CSC order, q, l, u and the warm start) computed by ONE
-generated-C Function called through preallocated buffers (:mod:`hbma_ctrl.controllers.rti_c`): the same first
-inputs to rounding, in about 60 % of the time.
+``rti_c_osqp``: real-time iteration. ONE casadi Function (:func:`hbma_ctrl.controllers.rti_c.qp_data_function`,
+generated as C, called through preallocated buffers) linearises the dynamics and the outputs along
+the shifted previous solution (one mapped call over the N+1 nodes) and returns the QP's data (P and
+A values in OSQP's CSC order, q, l, u, the warm start); one sparse QP with a fixed pattern is
+updated in place (never re-setup) and solved by OSQP, warm-started. The pump flow is bilinear in
+speed and inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point
+of speed and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
+``rti_osqp``: the same, the Function on casadi's virtual machine (the reference path, slower).
 
 ``rti_fn_hpipm``, ``rti_fn_osqp``, ``rti_fn_qrqp``: the same real-time iteration as ONE casadi
 Function (:func:`hbma_ctrl.controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
@@ -110,11 +107,10 @@ from hbma_ctrl.controllers.mpc_solvers import (
     _Fatrop,
     _Ipopt,
     _Problem,
-    _RtiOsqp,
     _SolverFailure,
 )
 from hbma_ctrl.controllers.mpc_prep import problem_function
-from hbma_ctrl.controllers.rti_c import _RtiC
+from hbma_ctrl.controllers.rti_c import _RtiOsqp
 from hbma_ctrl.controllers.rti_step import _RtiFunction
 
 
@@ -164,10 +160,8 @@ class NMPC(ControllerBase):
         self._HP = FastFunction(self.model.HP, compile=s.codegen)
         # the step's problem data, compiled at the per-step level (-O3: 10 -> 6 us a call, same bits)
         self._prep = FastFunction(problem_function(self.model, s), compile=s.codegen, opt=HOT_OPT, flags=HOT_FLAGS)
-        if s.variant == "rti_osqp":
-            self.backend = _RtiOsqp(self.model, s)
-        elif s.variant == "rti_c_osqp":
-            self.backend = _RtiC(self.model, s)
+        if s.variant in ("rti_osqp", "rti_c_osqp"):
+            self.backend = _RtiOsqp(self.model, s, compile=s.variant == "rti_c_osqp")
         elif s.variant.startswith("rti_fn_"):
             self.backend = _RtiFunction(self.model, s, s.variant[len("rti_fn_"):])
         elif s.variant == "fatrop":

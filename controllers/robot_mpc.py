@@ -64,8 +64,8 @@ import time
 import casadi as ca
 import numpy as np
 import osqp
-import scipy.sparse as sp
 
+from hbma_ctrl.controllers.mpc_solvers import _Pattern
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.interfaces import RobotControllerBase
 from hbma_ctrl.core.settings import Settings, setting
@@ -147,33 +147,6 @@ def _finite(name: str, v, n: int) -> np.ndarray:
     return a
 
 
-class _Pattern:
-    """A fixed sparsity pattern (rows, cols) and the permutation from entry order to CSC order."""
-
-    def __init__(self, rows, cols, shape):
-        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-        M = sp.csc_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)), shape=shape)
-        M.sort_indices()
-        if M.nnz != rows.size:
-            raise RuntimeError("robot_mpc: duplicate entries in a sparsity pattern")
-        self.perm = M.data.astype(np.int64) - 1
-        self.M = M
-
-    def with_data(self, data: np.ndarray) -> sp.csc_matrix:
-        """The matrix with values already in CSC data order (a copy)."""
-        M = self.M.copy()
-        M.data = np.array(data, dtype=float)
-        return M
-
-    def matrix(self, vals: np.ndarray) -> sp.csc_matrix:
-        M = self.M.copy()
-        M.data = np.asarray(vals, dtype=float)[self.perm]
-        return M
-
-    def data(self, vals: np.ndarray) -> np.ndarray:
-        return np.asarray(vals, dtype=float)[self.perm]
-
-
 class RobotNMPC(RobotControllerBase):
     """NMPC over n chambers (see module doc): a :class:`~hbma_ctrl.core.interfaces.RobotEstimateController`.
 
@@ -233,7 +206,6 @@ class RobotNMPC(RobotControllerBase):
         nb = 3 * N + 1  # + one pressure slack per chamber (last)
         self.nv = n * nb
         ix = lambda i, blk, k: i * nb + blk * N + k  # noqa: E731  blk 0: x_{k+1}, 1: a_k, 2: o_k, 3: slack
-        self._ix = ix
         # --- P (upper triangle): diag of every variable, plus input-rate couplings (k-1, k)
         pr, pc = [], []
         for i in range(n):

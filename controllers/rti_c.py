@@ -1,20 +1,19 @@
-"""The chamber RTI step with its QP data as ONE generated-C call and OSQP kept set up (``rti_c_osqp``).
+"""The chamber NMPC's real-time iteration with OSQP kept set up (``rti_osqp``, ``rti_c_osqp``).
 
-Why: in the reference RTI path (``rti_osqp``, :class:`hbma_ctrl.controllers.mpc_solvers._RtiOsqp`) most of a
-step is not the QP solve but building the QP around it: a casadi call with numpy arguments (tens
-of microseconds) and some forty numpy operations on small arrays. Solving the QP inside casadi
-(the ``rti_fn_*`` variants) is no faster, because casadi sets OSQP up again at every call.
+One sparse QP per step with a fixed pattern (:class:`_RtiOsqp`); ONE casadi Function
+(:func:`qp_data_function`) maps (the parameters of the step, the previous QP solution, shift or not,
+the cost's weights) to everything OSQP's ``update`` takes (an SX plan and an SX assembly around one
+mapped call of the node's linearisation, which C runs as a loop): the values of P and A in OSQP's
+CSC data order, q, l, u and the primal warm start, plus a finiteness flag. The persistent OSQP solver
+is then updated in place (never set up again) and solved warm-started.
 
-This variant keeps what is fast in each: ONE Function maps (the parameters of the step, the
-previous QP solution, shift or not) to everything OSQP's ``update`` takes (an SX plan and an SX
-assembly around one mapped call of the node's linearisation, which C runs as a loop): the values of P and A
-in OSQP's CSC data order (the patterns of the reference path), q, l, u and the primal warm start,
-plus a finiteness flag. It is generated as C and compiled once (:func:`hbma_ctrl.core.codegen.compiled`,
-cached on disk by source hash; casadi's virtual machine, with a one-line warning, without a
-compiler) and called through preallocated buffers (:class:`hbma_ctrl.core.codegen.FastFunction`,
-under a microsecond per call). The persistent OSQP solver is then updated in place and solved
-warm-started, exactly as in the reference path, so the QP and its solution are the reference's (to
-rounding).
+The two variants differ only in how that Function is evaluated. ``rti_c_osqp``: generated as C and
+compiled once (:func:`hbma_ctrl.core.codegen.compiled`, cached on disk by source hash; casadi's
+virtual machine, with a one-line warning, without a compiler) and called through preallocated
+buffers (:class:`hbma_ctrl.core.codegen.FastFunction`, under a microsecond per call). ``rti_osqp``:
+the same Function on casadi's virtual machine (the reference path, slower). Solving the QP inside
+casadi (the ``rti_fn_*`` variants, :mod:`hbma_ctrl.controllers.rti_step`) is no faster, because
+casadi sets OSQP up again at every call.
 """
 
 from __future__ import annotations
@@ -24,14 +23,36 @@ import warnings
 
 import casadi as ca
 import numpy as np
+import osqp
 
 from hbma_ctrl.controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
-from hbma_ctrl.controllers.mpc_solvers import (OSQP_NO_TIME_LIMIT, _BudgetExceeded, _Problem, _RtiOsqp,
-                                                _SolverFailure)
+from hbma_ctrl.controllers.mpc_solvers import (OSQP_NO_TIME_LIMIT, _BudgetExceeded, _Pattern, _Problem,
+                                                _SolverFailure, _Stage, qp_time_limit)
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["qp_data_function"]
+
+#: OSQP's step size rho, fixed, and how often it checks for termination (iterations), for the RTI QPs.
+#: Its defaults (rho 0.1 adapted every 4 x 25 iterations, termination checked every 25) ran most
+#: warm-started QPs to 25 iterations where 10 meet the same tolerances, and an adapted rho stays with
+#: the solver into later QPs: the iteration counts then depended on the history (adapting every 20, 32
+#: or 50 iterations gave a median of 25, every 40 or 48 one of 10-12). A fixed rho is the same every
+#: step and needs no refactorisation inside a solve. Scanned in ``bench mpc``'s loop (N = 20, rho
+#: fixed, checked every 5): median / mean iterations 10 / 42 at 0.01, 10 / 26 at 0.02, 10 / 23 at 0.03,
+#: 15 / 26 at 0.05, 30 / 38 at 0.1, 75 / 93 at 0.3; at 0.03 checked every 2, 5, 10, 25: median 10, 10,
+#: 10, 25 iterations, the step 0.27, 0.25, 0.25, 0.28 ms (the checks cost). ``bench loop --seeds 20``
+#: passed 20/20, 17/20, 20/20 checked every 5 and 20/20, 19/20, 20/20 every 10 (OSQP's defaults:
+#: 20/20, 19/20, 19/20); a QP stopped at 5 iterations is the least accurate within the tolerance
+QP_RHO = 0.03
+QP_CHECK_EVERY = 10
+#: OSQP's Ruiz equilibration passes (its default 10). Each update of P and A re-scales the whole KKT
+#: matrix before refactorising it: in ``bench mpc``'s loop (N = 20) the matrix update took 54 us with
+#: 10 passes, 34 with 4, 30 with 3, 27 with 2, 23 with 1 and 16 with none, while the solve's median
+#: iterations stayed at 10 from 2 passes up; with 1 or none most QPs ran to the iteration limit (300).
+#: 4 keeps two passes of margin; ``bench loop --seeds 20`` passed 20/20, 19/20, 20/20 as with 10.
+QP_SCALING = 4
+
 
 #: OSQP's infinity (its ``update`` clamps bounds to it; the generated data does the same)
 _OSQP_INF = 1e30
@@ -81,18 +102,47 @@ def qp_data_function(rti: _RtiOsqp, looped: bool = True) -> ca.Function:
 
 
 def _plan(rti: _RtiOsqp, par, zp, shift) -> tuple:
-    """The step's linearisation points from the previous solution (SX): states Xb (N+1), inputs Ub
-    (3 x N), Uext (3 x (N+1), the last repeated) and Ulin (Uext with speed and inlet floored)."""
-    N, fl = rti.N, rti.s.rti_lin_floor
-    x0 = par[0]
+    """The step's linearisation points from the previous solution ``zp`` (SX, :func:`shifted_plan`)."""
+    N = rti.N
     X = zp[rti.ix.tolist()]
     Uc = ca.fmin(ca.fmax(ca.reshape(zp[rti.iu.ravel().tolist()], 3, N), 0.0), 1.0)  # 3 x N, as solve() keeps
-    # the plan shifted by one stage (the last repeated) on a new step; the first state is the estimate
-    Xb = ca.vertcat(shift * x0 + (1 - shift) * X[0], shift * ca.vertcat(X[2:], X[N]) + (1 - shift) * X[1:])
-    Ub = shift * ca.horzcat(Uc[:, 1:], Uc[:, N - 1]) + (1 - shift) * Uc
+    return shifted_plan(shift * par[0] + (1 - shift) * X[0], X, Uc, shift, rti.s.rti_lin_floor)
+
+
+def shifted_plan(x_first, X, U, shift, floor: float) -> tuple:
+    """The RTI step's linearisation points (SX) from the previous plan, states ``X`` (N+1) and inputs
+    ``U`` (3 x N, in [0, 1]): moved one stage on (the last repeated) where ``shift`` is 1, kept where it
+    is 0, the first state ``x_first``. Returns Xb (N+1), Ub (3 x N), Uext (3 x (N+1), the last input
+    repeated) and Ulin (Uext with speed and inlet floored at ``floor``: where the Jacobians are taken)."""
+    N = U.shape[1]
+    Xb = ca.vertcat(x_first, shift * ca.vertcat(X[2:], X[N]) + (1 - shift) * X[1:])
+    Ub = shift * ca.horzcat(U[:, 1:], U[:, N - 1]) + (1 - shift) * U
     Uext = ca.horzcat(Ub, Ub[:, N - 1])
-    Ulin = ca.vertcat(ca.fmax(Uext[0, :], fl), ca.fmax(Uext[1, :], fl), Uext[2, :])
+    Ulin = ca.vertcat(ca.fmax(Uext[0, :], floor), ca.fmax(Uext[1, :], floor), Uext[2, :])
     return Xb, Ub, Uext, Ulin
+
+
+def linearised_terms(s: MPCSettings, wk, dh, dp, p_lim, r, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -> tuple:
+    """The RTI QP's terms along the plan, whatever its variable layout (SX; QP units: mm, kPa, 1/100).
+
+    ``wk``: the height weights of the N+1 nodes; ``dh`` (m), ``dp`` (Pa): the output biases; ``p_lim``
+    (Pa); ``r`` (N targets, m); ``Xb``, ``Ub``: the plan (:func:`shifted_plan`); the rest
+    ``_Stage.lin``'s outputs at the nodes as columns (``b``: (N+1) x 3). Returns the height cost's x
+    diagonal and gradient at the nodes, the dynamics' offsets c (x_{k+1} = a_k x_k + b_k u_k + c_k,
+    k < N) and the soft limits at nodes 1..N as (slope, bound) pairs: slope x_k - slack <= bound
+    (pressure, stretch, the upper height and, with ``h_min`` > 0, the lower one).
+    """
+    N = Ub.shape[1]
+    dh_mm = dh * 1e3
+    e = h - ch * Xb + dh_mm - ca.vertcat(r[0], r) * 1e3  # h_k(x) + dh - r = ch x + e
+    cost = (2 * wk * ch ** 2 + 1e-8, 2 * wk * ch * e)
+    c = f[:N] - a[:N] * Xb[:N] - ca.sum2(b[:N, :] * Ub.T)
+    h, ch, p, cp, lam, cl, X = (v[1:] for v in (h, ch, p, cp, lam, cl, Xb))
+    limits = [(cp, p_lim * 1e-3 - dp * 1e-3 - (p - cp * X)), (cl, s.lam_max * 1e2 - (lam - cl * X)),
+              (ch, s.h_max * 1e3 - dh_mm - (h - ch * X))]
+    if s.h_min > 0:  # (below lift-off H is a virtual negative height: no bound at h_min = 0)
+        limits.append((-ch, -(s.h_min * 1e3 - dh_mm - (h - ch * X))))
+    return (*cost, c, limits)
 
 
 def _assemble(rti: _RtiOsqp, par, wts, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -> list:
@@ -110,34 +160,25 @@ def _assemble(rti: _RtiOsqp, par, wts, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -
     # only what the QP uses: the last node's dynamics and the first node's outputs are never built
     ok = ca.logic_and(ca.logic_and(ca.sumsqr(f[:N]) < ca.inf, ca.sumsqr(b[:N, :]) < ca.inf),
                       ca.sumsqr(ch[1:]) < ca.inf)
-    # --- P (entry order of the reference pattern), x diagonal from the Gauss-Newton height cost
     wk = ca.vertcat(0.0, ca.repmat(w_height, N - 1, 1), w_height + w_terminal)
-    r_mm, dh_mm = ca.vertcat(r[0], r) * 1e3, dh * 1e3
-    e = h - ch * Xb + dh_mm - r_mm
+    Hx, gx, c, limits = linearised_terms(s, wk, dh, dp, p_lim, r, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl)
+    # --- P (entry order of the pattern), x diagonal from the Gauss-Newton height cost
     Pv = ca.vertcat(*rti.p_values(wr, wu, w_slack))
-    Pv[rti.P_x.tolist()] = 2 * wk * ch ** 2 + 1e-8
+    Pv[rti.P_x.tolist()] = Hx
     q = SX.zeros(rti.nz)
-    q[rti.ix.tolist()] = 2 * wk * ch * e
+    q[rti.ix.tolist()] = gx
     for k in range(N):
         for i in range(3):
             q[int(rti.iu[k, i])] = cu[i] - 2 * wr[i] * u_prev[i] if k == 0 else cu[i]
     q[rti.isl.tolist()] = c_slack
-    # --- A values
+    # --- A values and bounds
     Av = SX(rti.A_vals)
     Av[rti.A_dyn_a.tolist()] = -a[:N]
     for i in range(3):
         Av[rti.A_dyn_b[:, i].tolist()] = -b[:N, i]
-    k1 = list(range(1, N + 1))
-    Av[rti.A_soft[:, 0].tolist()] = cp[k1]
-    Av[rti.A_soft[:, 1].tolist()] = cl[k1]
-    Av[rti.A_soft[:, 2].tolist()] = ch[k1]
-    if s.h_min > 0:
-        Av[rti.A_soft[:, 3].tolist()] = -ch[k1]
-    # --- bounds
     lo, up = SX(np.clip(rti.l0, -_OSQP_INF, _OSQP_INF)), SX(np.clip(rti.u0, -_OSQP_INF, _OSQP_INF))
     lo[rti.r_init] = x0
     up[rti.r_init] = x0
-    c = f[:N] - a[:N] * Xb[:N] - ca.sum2(b[:N, :] * Ub.T)
     dyn = list(range(rti.r_dyn, rti.r_dyn + N))
     lo[dyn] = c
     up[dyn] = c
@@ -145,35 +186,48 @@ def _assemble(rti: _RtiOsqp, par, wts, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -
     for i in range(3):
         lo[rti.r_box + i] = ca.fmax(0.0, u_prev[i] - float(rti.du[i]))
         up[rti.r_box + i] = ca.fmin(float(umax[i]), u_prev[i] + float(rti.du[i]))
-    rs = (rti.r_soft + rti.n_soft * np.arange(N)).tolist()
-    Xk1 = Xb[k1]
-    up[rs] = p_lim * 1e-3 - dp * 1e-3 - (p[k1] - cp[k1] * Xk1)
-    up[[j + 1 for j in rs]] = s.lam_max * 1e2 - (lam[k1] - cl[k1] * Xk1)
-    up[[j + 2 for j in rs]] = s.h_max * 1e3 - dh_mm - (h[k1] - ch[k1] * Xk1)
-    if s.h_min > 0:
-        up[[j + 3 for j in rs]] = -(s.h_min * 1e3 - dh_mm - (h[k1] - ch[k1] * Xk1))
+    rs = rti.r_soft + rti.n_soft * np.arange(N)
+    for j, (slope, bound) in enumerate(limits):
+        Av[rti.A_soft[:, j].tolist()] = slope
+        up[(rs + j).tolist()] = bound
     lo, up = ca.fmax(lo, -_OSQP_INF), ca.fmin(up, _OSQP_INF)
     z0 = SX.zeros(rti.nz)
     z0[rti.ix.tolist()] = Xb
     z0[rti.iu.ravel().tolist()] = ca.vec(Ub)
-    return [Pv[rti.P_perm.tolist()], Av[rti.A_perm.tolist()], q, lo, up, z0, ok]
+    return [Pv[rti.P.perm.tolist()], Av[rti.A.perm.tolist()], q, lo, up, z0, ok]
 
 
-class _RtiC(_RtiOsqp):
-    """RTI + OSQP with the QP data as one generated-C call (see the module docstring).
+class _RtiOsqp:
+    """Real-time iteration: one sparse QP per step, fixed pattern, its data from :func:`qp_data_function`,
+    OSQP updated in place (see the module docstring).
 
-    The pattern, OSQP's setup and the acceptance of a solution are the reference path's; only
-    how the data is computed differs. ``mode``: "c" (generated C) or "vm" (casadi's virtual machine:
-    no compiler, or ``settings.codegen`` off).
+    ``compile``: the data as generated C when ``settings.codegen`` is set and a C compiler is found
+    (``mode`` "c"), else on casadi's virtual machine (``mode`` "vm"; with ``codegen`` set, a warning
+    says why).
     """
 
-    COMPILE_LIN = False  # the QP data has the linearisation inside
-
-    def __init__(self, model: PredictionModel, s: MPCSettings):
-        super().__init__(model, s)
+    def __init__(self, model: PredictionModel, s: MPCSettings, compile: bool = True):
+        self.s, self.model = s, model
+        N = self.N = s.horizon
+        self.stage = _Stage(model, s, "poly")
+        # variable layout
+        self.ix = np.arange(N + 1)
+        self.iu = (N + 1) + np.arange(3 * N).reshape(N, 3)
+        self.isl = (N + 1) + 3 * N + np.arange(N)  # slack of stage k+1
+        self.nz = (N + 1) + 4 * N
+        self._build_pattern()
+        self.solver = osqp.OSQP()
+        self.solver.setup(self.P.with_data(np.full(self.P.perm.size, 1e-12)), np.zeros(self.nz),
+                          self.A.with_data(np.full(self.A.perm.size, 1e-12)), self.l0, self.u0, verbose=False,
+                          eps_abs=s.qp_eps, eps_rel=s.qp_eps, max_iter=s.qp_max_iter, polishing=False,
+                          warm_starting=True, adaptive_rho=False, rho=QP_RHO, time_limit=qp_time_limit(s),
+                          check_termination=QP_CHECK_EVERY, scaling=QP_SCALING)
+        self.X = None
+        self.U = None
+        self.iterations = 0
         fun = qp_data_function(self)
-        compile_c = bool(s.codegen) and has_compiler()
-        if s.codegen and not compile_c:
+        compile_c = compile and bool(s.codegen) and has_compiler()
+        if compile and s.codegen and not compile_c:
             warnings.warn("rti_c_osqp: no C compiler (cc, gcc, clang) found; the QP data runs on casadi's "
                           "virtual machine (slower, same results)", RuntimeWarning, stacklevel=2)
         self.data = FastFunction(fun, compile=compile_c, opt=HOT_OPT, flags=HOT_FLAGS)
@@ -185,6 +239,110 @@ class _RtiC(_RtiOsqp):
         self._z, self._shift = self.data.inp[1], self.data.inp[2]
         self.data.inp[3][:] = weights_of(s)  # the settings' weights, for every call
         self._osqp = self.solver._solver  # the bound solver: update/solve without the wrapper's copies
+
+    # --- QP pattern ----------------------------------------------------------------------------
+    def _build_pattern(self) -> None:
+        s, N = self.s, self.N
+        ix, iu, isl = self.ix, self.iu, self.isl
+        # P (upper triangle): x diag (varies), u block tridiagonal (constant), slack diag (constant)
+        Pr, Pc = [], []
+        for k in range(N + 1):
+            Pr.append(ix[k]); Pc.append(ix[k])  # noqa: E702
+        self.P_x = np.arange(N + 1)
+        for k in range(N):
+            for i in range(3):
+                Pr.append(iu[k, i]); Pc.append(iu[k, i])  # noqa: E702
+                if k > 0:
+                    Pr.append(iu[k - 1, i]); Pc.append(iu[k, i])  # noqa: E702
+        for k in range(N):
+            Pr.append(isl[k]); Pc.append(isl[k])  # noqa: E702
+        self.P = _Pattern(Pr, Pc, (self.nz, self.nz))
+        # A rows
+        Ar, Ac, Av = [], [], []
+        row = 0
+
+        def add(r, c, v):
+            Ar.append(r); Ac.append(c); Av.append(v)  # noqa: E702
+
+        self.r_init = row
+        add(row, ix[0], 1.0)
+        row += 1
+        self.r_dyn = row
+        self.A_dyn_a, self.A_dyn_b = [], []
+        for k in range(N):
+            add(row, ix[k + 1], 1.0)
+            self.A_dyn_a.append(len(Av)); add(row, ix[k], 0.0)  # noqa: E702
+            for i in range(3):
+                self.A_dyn_b.append(len(Av)); add(row, iu[k, i], 0.0)  # noqa: E702
+            row += 1
+        self.r_box = row
+        for k in range(N):
+            for i in range(3):
+                add(row, iu[k, i], 1.0)
+                row += 1
+        self.r_rate = row
+        for k in range(1, N):
+            for i in range(3):
+                add(row, iu[k, i], 1.0); add(row, iu[k - 1, i], -1.0)  # noqa: E702
+                row += 1
+        self.r_pump = row  # inlet - speed >= 0
+        for k in range(N):
+            add(row, iu[k, 1], 1.0); add(row, iu[k, 0], -1.0)  # noqa: E702
+            row += 1
+        # per stage k = 1..N: p, lam, h_hi and, with h_min > 0, h_lo (at h_min = 0 there is no lower
+        # bound: H below lift-off is a virtual negative height, and an unbounded row only costs OSQP)
+        self.r_soft = row
+        self.n_soft = 4 if s.h_min > 0 else 3
+        self.A_soft = []
+        for k in range(N):
+            idx = []
+            for _ in range(self.n_soft):
+                idx.append(len(Av)); add(row, ix[k + 1], 0.0)  # noqa: E702
+                add(row, isl[k], -1.0)
+                row += 1
+            self.A_soft.append(idx)
+        self.r_slack = row
+        for k in range(N):
+            add(row, isl[k], 1.0)
+            row += 1
+        self.nc = row
+        self.A = _Pattern(Ar, Ac, (self.nc, self.nz))
+        self.A_vals = np.array(Av)
+        self.A_dyn_a, self.A_dyn_b = np.array(self.A_dyn_a), np.array(self.A_dyn_b).reshape(N, 3)
+        self.A_soft = np.array(self.A_soft)
+        inf = np.inf
+        self.l0 = np.full(self.nc, -inf)
+        self.u0 = np.full(self.nc, inf)
+        self.l0[self.r_init] = self.u0[self.r_init] = 0.0
+        self.l0[self.r_dyn:self.r_dyn + N] = self.u0[self.r_dyn:self.r_dyn + N] = 0.0
+        umax = np.array(s.u_max, float)
+        self.l0[self.r_box:self.r_box + 3 * N] = 0.0
+        self.u0[self.r_box:self.r_box + 3 * N] = np.tile(umax, N)
+        du = np.array(s.du_max, float) * s.sample_period
+        self.du = du
+        self.l0[self.r_rate:self.r_rate + 3 * (N - 1)] = -np.tile(du, N - 1)
+        self.u0[self.r_rate:self.r_rate + 3 * (N - 1)] = np.tile(du, N - 1)
+        self.l0[self.r_pump:self.r_pump + N] = 0.0
+        self.l0[self.r_slack:self.r_slack + N] = 0.0
+
+    def p_values(self, wr, wu, w_slack) -> list:
+        """P's values in the pattern's entry order for the input-rate, input and slack weights (numbers
+        or casadi expressions): the x diagonal 0 (set per step), each input's diagonal and its rate
+        coupling to the previous stage, the slacks' diagonal."""
+        N = self.N
+        vals = [0.0] * (N + 1)
+        for k in range(N):
+            for i in range(3):
+                nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
+                vals.append(2 * wr[i] * nd + 2 * wu[i] + 1e-8)
+                if k > 0:
+                    vals.append(-2 * wr[i])
+        vals += [2 * w_slack] * N
+        return vals
+
+    def reset(self) -> None:
+        self.X = None
+        self.U = None
 
     def solve(self, pr: _Problem) -> tuple[np.ndarray, np.ndarray]:
         """One RTI step (``rti_init_iterations`` unshifted QPs at a cold start): (X (N+1,), U (N, 3))."""
