@@ -68,6 +68,33 @@ class _Pattern:
         return M
 
 
+def mapped_function(name: str, ins: list, names: list[str], out_names: list[str], lin: ca.Function, args: list,
+                    assemble, looped: bool = True) -> ca.Function:
+    """ONE Function of the SX inputs ``ins`` (named ``names``) to ``assemble(L)``: L holds ``lin``'s
+    outputs at n points (output i as an SX of ``lin.nnz_out(i)`` x n, a column a point), whose inputs
+    are ``args`` (SX expressions of ``ins``: lin's input i at the points, a column a point).
+
+    ``looped``: lin runs as one mapped call (C runs one point's code in a loop), built with casadi's
+    common-subexpression elimination (the table look-ups its outputs share are made once), between two
+    SX Functions (the points, the assembly); otherwise lin is inlined at every point (the code grows
+    with the points).
+    """
+    n = args[0].shape[1]
+    if not looped:
+        outs = [lin(*[a[:, j] for a in args]) for j in range(n)]
+        L = [ca.horzcat(*[ca.vec(o[i]) for o in outs]) for i in range(lin.n_out())]
+        return ca.Function(name, ins, assemble(L), names, out_names, {"cse": True})
+    sx_in = [ca.SX.sym(lin.name_in(i), lin.sparsity_in(i)) for i in range(lin.n_in())]
+    node = ca.Function(f"{name}_node", sx_in, lin(*sx_in), lin.name_in(), lin.name_out(), {"cse": True})
+    points = ca.Function(f"{name}_points", ins, args)
+    L = [ca.SX.sym(node.name_out(i), node.nnz_out(i), n) for i in range(node.n_out())]
+    post = ca.Function(f"{name}_assemble", ins + L, assemble(L), {"cse": True})
+    mx = [ca.MX.sym(nm, v.sparsity()) for nm, v in zip(names, ins)]
+    outs = node.map(n)(*points(*mx))
+    return ca.Function(name, mx, post(*mx, *[ca.reshape(o, node.nnz_out(i), n) for i, o in enumerate(outs)]),
+                       names, out_names)
+
+
 class _Stage:
     """Discrete dynamics and outputs shared by every variant (casadi), the tables evaluated as ``form``
     (:meth:`PredictionModel.functions`: 'poly' where the stage runs on casadi's virtual machine or in C

@@ -65,7 +65,7 @@ import casadi as ca
 import numpy as np
 import osqp
 
-from hbma_ctrl.controllers.mpc_solvers import _Pattern
+from hbma_ctrl.controllers.mpc_solvers import _Pattern, mapped_function
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.interfaces import RobotControllerBase
 from hbma_ctrl.core.settings import Settings, setting
@@ -299,28 +299,14 @@ class RobotNMPC(RobotControllerBase):
         ins = [x0, b, W, k, c, amax, href, prev, xbar, abar, obar]
         names = ["x0", "b", "W", "k", "c", "a_max", "h_ref_mm", "prev", "xbar", "abar", "obar"]
         pts = self._anchor_pts.tolist()
-        m = n * len(pts)
         # the linearisation points, point-major (entry jj * n + i: chamber i at the jj-th point)
         xp = ca.vec(xbar[:, pts])
         ap = ca.vec(ca.horzcat(abar, abar[:, N - 1])[:, pts])
         op = ca.vec(ca.horzcat(obar, obar[:, N - 1])[:, pts])
+        args = [xp.T, ca.horzcat(ap, op).T] + [ca.repmat(v, len(pts), 1).T for v in (W, b, k, c)]
         keys = ("xn", "Ax", "B", "h", "Hx", "p", "Px")
-        if not looped:
-            outs = [lin(xp[j], ca.vertcat(ap[j], op[j]), W[j % n], b[j % n], k[j % n], c[j % n]) for j in range(m)]
-            L = {key: ca.horzcat(*[ca.vec(o[i]) for o in outs]) for i, key in enumerate(keys)}
-            return ca.Function("robot_qp_data", ins, self._assemble(ins, L), names, ["Px", "Ax", "q", "l", "u"],
-                               {"cse": True})
-        sx_in = [SX.sym(lin.name_in(i), lin.sparsity_in(i)) for i in range(lin.n_in())]
-        node = ca.Function("robot_qp_node", sx_in, lin(*sx_in), {"cse": True})
-        pre = ca.Function("robot_qp_points", ins, [xp.T, ca.horzcat(ap, op).T] +
-                          [ca.repmat(v, len(pts), 1).T for v in (W, b, k, c)])
-        L_sym = {key: SX.sym(key, node.nnz_out(i), m) for i, key in enumerate(keys)}
-        post = ca.Function("robot_qp_assemble", ins + list(L_sym.values()), self._assemble(ins, L_sym),
-                           {"cse": True})
-        mx_in = [ca.MX.sym(nm, v.sparsity()) for nm, v in zip(names, ins)]
-        outs = node.map(m)(*pre(*mx_in))
-        L_mx = [ca.reshape(o, node.nnz_out(i), m) for i, o in enumerate(outs)]
-        return ca.Function("robot_qp_data", mx_in, post(*mx_in, *L_mx), names, ["Px", "Ax", "q", "l", "u"])
+        return mapped_function("robot_qp_data", ins, names, ["Px", "Ax", "q", "l", "u"], lin, args,
+                               lambda L: self._assemble(ins, dict(zip(keys, L))), looped)
 
     def _assemble(self, ins: list, L: dict) -> list:
         """[Px, Ax, q, l, u] from the step's data ``ins`` (the data Function's inputs, SX) and the
