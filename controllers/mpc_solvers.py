@@ -124,6 +124,29 @@ class _Stage:
         self.out = ca.Function("out", [x, W], [h, p, lam])
 
 
+def _input_terms(u, u_before, du: np.ndarray, wr, wu, cu) -> tuple:
+    """An input's cost (rate from ``u_before``, quadratic, linear) and rows (the rate within ``du``,
+    speed <= inlet) of the NLP variants: (cost, rows, lower bounds, upper bounds)."""
+    d = u - u_before
+    return (ca.dot(wr, d ** 2) + ca.dot(wu, u ** 2) + ca.dot(cu, u), [d, u[1] - u[0]], [*(-du), 0.0],
+            [*du, ca.inf])
+
+
+def _soft_limits(stage: _Stage, s: MPCSettings, x, W, dh, dp, p_lim, slack) -> tuple:
+    """The NLP variants' soft limits at state ``x`` (QP units; ``dh`` in mm, ``dp`` in Pa, ``p_lim`` in
+    kPa): the biased height (mm) and the rows (pressure, stretch, height above and below, each minus
+    ``slack``) with their upper bounds."""
+    h, p, lam = stage.out(x, W)
+    rows = [(p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0), (h + dh - s.h_max * 1e3, 0.0),
+            (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else ca.inf)]
+    return h + dh, [e - slack for e, _ in rows], [ub for _, ub in rows]
+
+
+def _shifted(a: np.ndarray) -> np.ndarray:
+    """A plan moved one stage on (along the first axis), the last stage repeated."""
+    return np.concatenate([a[1:], a[-1:]])
+
+
 class _Ipopt:
     """Multiple-shooting NLP, IPOPT to convergence, warm-started with the shifted solution.
 
@@ -153,20 +176,14 @@ class _Ipopt:
         for k in range(N):
             g.append(X[k + 1] - F(X[k], U[:, k], W, dp))
             lbg.append(0.0); ubg.append(0.0)  # noqa: E702
-            d = U[:, k] - (u_prev if k == 0 else U[:, k - 1])
-            J += ca.dot(wr, d ** 2) + ca.dot(wu, U[:, k] ** 2) + ca.dot(cu, U[:, k])
-            g.append(d)
-            lbg += list(-du); ubg += list(du)  # noqa: E702
-            g.append(U[1, k] - U[0, k])
-            lbg.append(0.0); ubg.append(ca.inf)  # noqa: E702
-            h, p, lam = self.stage.out(X[k + 1], W)
+            cost, rows, lo, up = _input_terms(U[:, k], u_prev if k == 0 else U[:, k - 1], du, wr, wu, cu)
+            hd, soft, ubs = _soft_limits(self.stage, s, X[k + 1], W, dh, dp, p_lim, S[k])
             w = s.w_height + (s.w_terminal if k == N - 1 else 0.0)
-            J += w * (h + dh - rr[k]) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
-            lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else ca.inf)
-            for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
-                             (h + dh - s.h_max * 1e3, 0.0), lo_h):
-                g.append(expr - S[k])
-                lbg.append(-ca.inf); ubg.append(ub)  # noqa: E702
+            J += cost
+            J += w * (hd - rr[k]) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
+            g += rows + soft
+            lbg += lo + [-ca.inf] * len(soft)
+            ubg += up + ubs
         z = ca.vertcat(X, ca.vec(U), S)
         self.nz = z.shape[0]
         nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
@@ -203,9 +220,7 @@ class _Ipopt:
         if self.X is None:
             Xb, Ub, Sb = np.full(N + 1, pr.x0), np.tile(pr.u_prev, (N, 1)), np.zeros(N)
         else:
-            Xb = np.r_[pr.x0, self.X[2:], self.X[-1]]
-            Ub = np.vstack([self.U[1:], self.U[-1:]])
-            Sb = np.r_[self.S[1:], self.S[-1]]
+            Xb, Ub, Sb = np.r_[pr.x0, _shifted(self.X)[1:]], _shifted(self.U), _shifted(self.S)
         z0 = np.r_[Xb, Ub.ravel(), Sb]
         par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
         kw = {}
@@ -315,27 +330,21 @@ class _Fatrop:
                 lbg += [0.0] * 5
                 ubg += [0.0] * 5
             if k < N:
-                g.append(us[k] - vs[k])
-                lbg += list(-du)
-                ubg += list(du)
-                g.append(us[k][1] - us[k][0])
-                lbg.append(0.0)
-                ubg.append(inf)
-                d = us[k] - vs[k]
-                J += ca.dot(wr, d ** 2) + ca.dot(wu, us[k] ** 2) + ca.dot(cu, us[k])
+                cost, rows, lo, up = _input_terms(us[k], vs[k], du, wr, wu, cu)
+                g += rows
+                lbg += lo
+                ubg += up
+                J += cost
                 J += w_slack * ss[k] ** 2 + c_slack * ss[k]
             if k == 0:
                 continue
             # stage k's outputs on its own state: the limits with the slack sigma_k = s_{k-1}
-            h, p, lam = self.stage.out(xs[k], W)
+            hd, soft, ubs = _soft_limits(self.stage, s, xs[k], W, dh, dp, p_lim, sg[k])
             w = w_height + w_terminal if k == N else w_height
-            J += w * (h + dh - rr[k - 1]) ** 2
-            lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else inf)
-            for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
-                             (h + dh - s.h_max * 1e3, 0.0), lo_h):
-                g.append(expr - sg[k])
-                lbg.append(-inf)
-                ubg.append(ub)
+            J += w * (hd - rr[k - 1]) ** 2
+            g += soft
+            lbg += [-inf] * len(soft)
+            ubg += ubs
         zz = ca.vertcat(*z)
         nlp = {"x": zz, "p": par, "f": J, "g": ca.vertcat(*g)}
         eq = [bool(lo == up) for lo, up in zip(lbg, ubg)]
@@ -380,12 +389,11 @@ class _Fatrop:
             z0[self.iu] = pr.u_prev
             z0[self.iv] = pr.u_prev
         else:  # the previous solution shifted by one stage (the last stage repeated)
-            z0[self.ix] = np.r_[pr.x0, self.z[self.ix][2:], self.z[self.ix][-1]]
-            Uo = self.z[self.iu]
-            Ub = np.vstack([Uo[1:], Uo[-1:]])
+            z0[self.ix] = np.r_[pr.x0, _shifted(self.z[self.ix])[1:]]
+            Ub = _shifted(self.z[self.iu])
             z0[self.iu] = Ub
             z0[self.iv] = np.vstack([pr.u_prev, Ub])
-            z0[self.isl] = np.r_[self.z[self.isl][1:], self.z[self.isl][-1]]
+            z0[self.isl] = _shifted(self.z[self.isl])
             z0[self.isg[1:]] = z0[self.isl]
         par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3, self._weights]
         sol = _nlp_solve(self, "fatrop", x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)
