@@ -68,6 +68,32 @@ class _Pattern:
         return M
 
 
+def sparse(entries: list, shape: tuple) -> ca.SX:
+    """A sparse SX of ``shape`` with these (row, column, value) entries, each one structural (a zero
+    value too); its nonzeros are the values in CSC order (OSQP's)."""
+    rows, cols, vals = zip(*entries)
+    pat = _Pattern(rows, cols, shape)
+    sparsity = ca.Sparsity(shape[0], shape[1], pat.M.indptr.tolist(), pat.M.indices.tolist())
+    return ca.SX(sparsity, ca.vertcat(*vals)[pat.perm.tolist()])
+
+
+class Rows:
+    """Linear constraints lo <= A z <= up written row by row: (column, value) entries and the bounds."""
+
+    def __init__(self):
+        self.entries, self.lo, self.up = [], [], []
+
+    def add(self, entries: list, lo, up) -> None:
+        self.entries.append(entries)
+        self.lo.append(lo)
+        self.up.append(up)
+
+    def matrix(self, n: int) -> tuple:
+        """(A (sparse SX, a row per :meth:`add`, ``n`` columns), lo, up)."""
+        A = sparse([(r, c, v) for r, ents in enumerate(self.entries) for c, v in ents], (len(self.entries), n))
+        return A, ca.vertcat(*self.lo), ca.vertcat(*self.up)
+
+
 def mapped_function(name: str, ins: list, names: list[str], out_names: list[str], lin: ca.Function, args: list,
                     assemble, looped: bool = True) -> ca.Function:
     """ONE Function of the SX inputs ``ins`` (named ``names``) to ``assemble(L)``: L holds ``lin``'s

@@ -24,10 +24,11 @@ import warnings
 import casadi as ca
 import numpy as np
 import osqp
+import scipy.sparse as sp
 
 from hbma_ctrl.controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
-from hbma_ctrl.controllers.mpc_solvers import (OSQP_NO_TIME_LIMIT, _BudgetExceeded, _Pattern, _Problem,
-                                                _SolverFailure, _Stage, mapped_function,
+from hbma_ctrl.controllers.mpc_solvers import (OSQP_NO_TIME_LIMIT, Rows, _BudgetExceeded, _Problem,
+                                                _SolverFailure, _Stage, mapped_function, sparse,
                                                 qp_time_limit)
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, has_compiler
 from hbma_ctrl.models.tables import PredictionModel
@@ -126,11 +127,11 @@ def linearised_terms(s: MPCSettings, wk, dh, dp, p_lim, r, Xb, Ub, f, a, b, h, c
 
 
 def _assemble(rti: _RtiOsqp, par, wts, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -> list:
-    """OSQP's data from the nodes' linearisation (each output of ``_Stage.lin`` over the N+1 nodes as
-    one row; b's three entries per node in a row) and the cost's weights ``wts`` (:data:`WEIGHTS`):
-    [Px, Ax, q, l, u, z0, ok]."""
-    s, N = rti.s, rti.N
-    SX = ca.SX
+    """OSQP's data from the nodes' linearisation (each output of ``_Stage.lin`` at the N+1 nodes as a
+    column) and the cost's weights ``wts`` (:data:`WEIGHTS`): [P (its upper triangle), A (both sparse:
+    their nonzeros in OSQP's CSC order), q, l, u, z0, ok]."""
+    s, N, nz = rti.s, rti.N, rti.nz
+    ix, iu, isl = rti.ix.tolist(), rti.iu.tolist(), rti.isl.tolist()
     w_height, w_terminal, wr, wu, cu, w_slack, c_slack = (wts[0], wts[1], wts[2:5], wts[5:8], wts[8:11], wts[11],
                                                           wts[12])
     f, a, h, ch, p, cp, lam, cl = (ca.vec(v) for v in (f, a, h, ch, p, cp, lam, cl))
@@ -142,39 +143,56 @@ def _assemble(rti: _RtiOsqp, par, wts, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -
                       ca.sumsqr(ch[1:]) < ca.inf)
     wk = ca.vertcat(0.0, ca.repmat(w_height, N - 1, 1), w_height + w_terminal)
     Hx, gx, c, limits = linearised_terms(s, wk, dh, dp, p_lim, r, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl)
-    # --- P (entry order of the pattern), x diagonal from the Gauss-Newton height cost
-    Pv = ca.vertcat(*rti.p_values(wr, wu, w_slack))
-    Pv[rti.P_x.tolist()] = Hx
-    q = SX.zeros(rti.nz)
-    q[rti.ix.tolist()] = gx
+    # --- cost: the x diagonal from the Gauss-Newton height cost; each input's diagonal and its rate
+    # coupling to the previous stage; the slacks' diagonal
+    P = [(ix[k], ix[k], Hx[k]) for k in range(N + 1)]
+    q = ca.SX.zeros(nz)
+    q[ix] = gx
     for k in range(N):
         for i in range(3):
-            q[int(rti.iu[k, i])] = cu[i] - 2 * wr[i] * u_prev[i] if k == 0 else cu[i]
-    q[rti.isl.tolist()] = c_slack
-    # --- A values and bounds
-    Av = SX(rti.A_vals)
-    Av[rti.A_dyn_a.tolist()] = -a[:N]
-    for i in range(3):
-        Av[rti.A_dyn_b[:, i].tolist()] = -b[:N, i]
-    lo, up = SX(np.clip(rti.l0, -_OSQP_INF, _OSQP_INF)), SX(np.clip(rti.u0, -_OSQP_INF, _OSQP_INF))
-    lo[rti.r_init] = x0
-    up[rti.r_init] = x0
-    dyn = list(range(rti.r_dyn, rti.r_dyn + N))
-    lo[dyn] = c
-    up[dyn] = c
-    umax = np.array(s.u_max, float)
-    for i in range(3):
-        lo[rti.r_box + i] = ca.fmax(0.0, u_prev[i] - float(rti.du[i]))
-        up[rti.r_box + i] = ca.fmin(float(umax[i]), u_prev[i] + float(rti.du[i]))
-    rs = rti.r_soft + rti.n_soft * np.arange(N)
-    for j, (slope, bound) in enumerate(limits):
-        Av[rti.A_soft[:, j].tolist()] = slope
-        up[(rs + j).tolist()] = bound
-    lo, up = ca.fmax(lo, -_OSQP_INF), ca.fmin(up, _OSQP_INF)
-    z0 = SX.zeros(rti.nz)
-    z0[rti.ix.tolist()] = Xb
+            nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
+            P.append((iu[k][i], iu[k][i], 2 * wr[i] * nd + 2 * wu[i] + 1e-8))
+            if k > 0:
+                P.append((iu[k - 1][i], iu[k][i], -2 * wr[i]))
+            q[iu[k][i]] = cu[i] - 2 * wr[i] * u_prev[i] if k == 0 else cu[i]
+        P.append((isl[k], isl[k], 2 * w_slack))
+    q[isl] = c_slack
+    # --- constraints: x_0, the dynamics, the input box (the first input also within the rate limit
+    # from the applied command), the rates, inlet - speed >= 0, per stage k + 1 the soft limits
+    # (pressure, stretch, height; at h_min = 0 no lower bound: H below lift-off is a virtual negative
+    # height, and an unbounded row only costs OSQP), the slacks >= 0
+    inf, umax = ca.inf, np.array(s.u_max, float)
+    A = Rows()
+    A.add([(ix[0], 1.0)], x0, x0)
+    for k in range(N):  # x_{k+1} - a x_k - b u_k = f - a xb - b ub
+        A.add([(ix[k + 1], 1.0), (ix[k], -a[k])] + [(iu[k][i], -b[k, i]) for i in range(3)], c[k], c[k])
+    for k in range(N):
+        for i in range(3):
+            if k == 0:
+                lo, up = ca.fmax(0.0, u_prev[i] - rti.du[i]), ca.fmin(umax[i], u_prev[i] + rti.du[i])
+            else:
+                lo, up = 0.0, umax[i]
+            A.add([(iu[k][i], 1.0)], lo, up)
+    for k in range(1, N):
+        for i in range(3):
+            A.add([(iu[k][i], 1.0), (iu[k - 1][i], -1.0)], -rti.du[i], rti.du[i])
+    for k in range(N):
+        A.add([(iu[k][1], 1.0), (iu[k][0], -1.0)], 0.0, inf)
+    for k in range(N):
+        for slope, bound in limits:
+            A.add([(ix[k + 1], slope[k]), (isl[k], -1.0)], -inf, bound[k])
+    for k in range(N):
+        A.add([(isl[k], 1.0)], 0.0, inf)
+    A, lo, up = A.matrix(nz)
+    z0 = ca.SX.zeros(nz)
+    z0[ix] = Xb
     z0[rti.iu.ravel().tolist()] = ca.vec(Ub)
-    return [Pv[rti.P.perm.tolist()], Av[rti.A.perm.tolist()], q, lo, up, z0, ok]
+    return [sparse(P, (nz, nz)), A, q, ca.fmax(lo, -_OSQP_INF), ca.fmin(up, _OSQP_INF), z0, ok]
+
+
+def _csc(sparsity: ca.Sparsity) -> sp.csc_matrix:
+    """A casadi sparsity as a scipy CSC matrix, its values 1e-12 (OSQP's set-up: the steps update them)."""
+    return sp.csc_matrix((np.full(sparsity.nnz(), 1e-12), sparsity.row(), sparsity.colind()), shape=sparsity.shape)
 
 
 class _RtiOsqp:
@@ -195,16 +213,7 @@ class _RtiOsqp:
         self.iu = (N + 1) + np.arange(3 * N).reshape(N, 3)
         self.isl = (N + 1) + 3 * N + np.arange(N)  # slack of stage k+1
         self.nz = (N + 1) + 4 * N
-        self._build_pattern()
-        self.solver = osqp.OSQP()
-        self.solver.setup(self.P.with_data(np.full(self.P.perm.size, 1e-12)), np.zeros(self.nz),
-                          self.A.with_data(np.full(self.A.perm.size, 1e-12)), self.l0, self.u0, verbose=False,
-                          eps_abs=s.qp_eps, eps_rel=s.qp_eps, max_iter=s.qp_max_iter, polishing=False,
-                          warm_starting=True, adaptive_rho=False, rho=QP_RHO, time_limit=qp_time_limit(s),
-                          check_termination=QP_CHECK_EVERY, scaling=QP_SCALING)
-        self.X = None
-        self.U = None
-        self.iterations = 0
+        self.du = np.array(s.du_max, float) * s.sample_period
         fun = qp_data_function(self)
         compile_c = compile and bool(s.codegen) and has_compiler()
         if compile and s.codegen and not compile_c:
@@ -215,110 +224,21 @@ class _RtiOsqp:
         if compile_c and self.mode == "vm":
             warnings.warn("rti_c_osqp: the generated C did not compile; the QP data runs on casadi's "
                           "virtual machine (slower, same results)", RuntimeWarning, stacklevel=2)
+        # OSQP on the data's patterns (the values and bounds are the first step's update)
+        P, A = (_csc(fun.sparsity_out(i)) for i in (0, 1))
+        self.nc = A.shape[0]
+        self.solver = osqp.OSQP()
+        self.solver.setup(P, np.zeros(self.nz), A, np.zeros(self.nc), np.zeros(self.nc), verbose=False,
+                          eps_abs=s.qp_eps, eps_rel=s.qp_eps, max_iter=s.qp_max_iter, polishing=False,
+                          warm_starting=True, adaptive_rho=False, rho=QP_RHO, time_limit=qp_time_limit(s),
+                          check_termination=QP_CHECK_EVERY, scaling=QP_SCALING)
+        self.X = None
+        self.U = None
+        self.iterations = 0
         self._par = self.data.inp[0]  # written in place: passed as None (kept) to the call
         self._z, self._shift = self.data.inp[1], self.data.inp[2]
         self.data.inp[3][:] = weights_of(s)  # the settings' weights, for every call
         self._osqp = self.solver._solver  # the bound solver: update/solve without the wrapper's copies
-
-    # --- QP pattern ----------------------------------------------------------------------------
-    def _build_pattern(self) -> None:
-        s, N = self.s, self.N
-        ix, iu, isl = self.ix, self.iu, self.isl
-        # P (upper triangle): x diag (varies), u block tridiagonal (constant), slack diag (constant)
-        Pr, Pc = [], []
-        for k in range(N + 1):
-            Pr.append(ix[k]); Pc.append(ix[k])  # noqa: E702
-        self.P_x = np.arange(N + 1)
-        for k in range(N):
-            for i in range(3):
-                Pr.append(iu[k, i]); Pc.append(iu[k, i])  # noqa: E702
-                if k > 0:
-                    Pr.append(iu[k - 1, i]); Pc.append(iu[k, i])  # noqa: E702
-        for k in range(N):
-            Pr.append(isl[k]); Pc.append(isl[k])  # noqa: E702
-        self.P = _Pattern(Pr, Pc, (self.nz, self.nz))
-        # A rows
-        Ar, Ac, Av = [], [], []
-        row = 0
-
-        def add(r, c, v):
-            Ar.append(r); Ac.append(c); Av.append(v)  # noqa: E702
-
-        self.r_init = row
-        add(row, ix[0], 1.0)
-        row += 1
-        self.r_dyn = row
-        self.A_dyn_a, self.A_dyn_b = [], []
-        for k in range(N):
-            add(row, ix[k + 1], 1.0)
-            self.A_dyn_a.append(len(Av)); add(row, ix[k], 0.0)  # noqa: E702
-            for i in range(3):
-                self.A_dyn_b.append(len(Av)); add(row, iu[k, i], 0.0)  # noqa: E702
-            row += 1
-        self.r_box = row
-        for k in range(N):
-            for i in range(3):
-                add(row, iu[k, i], 1.0)
-                row += 1
-        self.r_rate = row
-        for k in range(1, N):
-            for i in range(3):
-                add(row, iu[k, i], 1.0); add(row, iu[k - 1, i], -1.0)  # noqa: E702
-                row += 1
-        self.r_pump = row  # inlet - speed >= 0
-        for k in range(N):
-            add(row, iu[k, 1], 1.0); add(row, iu[k, 0], -1.0)  # noqa: E702
-            row += 1
-        # per stage k = 1..N: p, lam, h_hi and, with h_min > 0, h_lo (at h_min = 0 there is no lower
-        # bound: H below lift-off is a virtual negative height, and an unbounded row only costs OSQP)
-        self.r_soft = row
-        self.n_soft = 4 if s.h_min > 0 else 3
-        self.A_soft = []
-        for k in range(N):
-            idx = []
-            for _ in range(self.n_soft):
-                idx.append(len(Av)); add(row, ix[k + 1], 0.0)  # noqa: E702
-                add(row, isl[k], -1.0)
-                row += 1
-            self.A_soft.append(idx)
-        self.r_slack = row
-        for k in range(N):
-            add(row, isl[k], 1.0)
-            row += 1
-        self.nc = row
-        self.A = _Pattern(Ar, Ac, (self.nc, self.nz))
-        self.A_vals = np.array(Av)
-        self.A_dyn_a, self.A_dyn_b = np.array(self.A_dyn_a), np.array(self.A_dyn_b).reshape(N, 3)
-        self.A_soft = np.array(self.A_soft)
-        inf = np.inf
-        self.l0 = np.full(self.nc, -inf)
-        self.u0 = np.full(self.nc, inf)
-        self.l0[self.r_init] = self.u0[self.r_init] = 0.0
-        self.l0[self.r_dyn:self.r_dyn + N] = self.u0[self.r_dyn:self.r_dyn + N] = 0.0
-        umax = np.array(s.u_max, float)
-        self.l0[self.r_box:self.r_box + 3 * N] = 0.0
-        self.u0[self.r_box:self.r_box + 3 * N] = np.tile(umax, N)
-        du = np.array(s.du_max, float) * s.sample_period
-        self.du = du
-        self.l0[self.r_rate:self.r_rate + 3 * (N - 1)] = -np.tile(du, N - 1)
-        self.u0[self.r_rate:self.r_rate + 3 * (N - 1)] = np.tile(du, N - 1)
-        self.l0[self.r_pump:self.r_pump + N] = 0.0
-        self.l0[self.r_slack:self.r_slack + N] = 0.0
-
-    def p_values(self, wr, wu, w_slack) -> list:
-        """P's values in the pattern's entry order for the input-rate, input and slack weights (numbers
-        or casadi expressions): the x diagonal 0 (set per step), each input's diagonal and its rate
-        coupling to the previous stage, the slacks' diagonal."""
-        N = self.N
-        vals = [0.0] * (N + 1)
-        for k in range(N):
-            for i in range(3):
-                nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
-                vals.append(2 * wr[i] * nd + 2 * wu[i] + 1e-8)
-                if k > 0:
-                    vals.append(-2 * wr[i])
-        vals += [2 * w_slack] * N
-        return vals
 
     def reset(self) -> None:
         self.X = None

@@ -73,7 +73,7 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
-from hbma_ctrl.controllers.mpc_solvers import _SolverFailure, _Stage
+from hbma_ctrl.controllers.mpc_solvers import Rows, _SolverFailure, _Stage
 from hbma_ctrl.controllers.rti_c import linearised_terms, shifted_plan
 from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags, compiled
 from hbma_ctrl.models.tables import PredictionModel
@@ -180,29 +180,20 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     for k in range(N):
         lbx[isl[k]] = 0.0
     # --- linear constraints lba <= A z <= uba, stage by stage: dynamics, then the stage's rows
-    rows, lba, uba = [], [], []
-
-    def row(entries, lo, up):
-        rows.append(entries)
-        lba.append(lo)
-        uba.append(up)
-
+    A = Rows()
     for k in range(N):  # x_{k+1} = a x_k + b u_k + c
-        row([(ix[k], a[k])] + [(iu[k][i], b[k, i]) for i in range(3)] + [(ix[k + 1], -1.0)], -c[k], -c[k])
+        A.add([(ix[k], a[k])] + [(iu[k][i], b[k, i]) for i in range(3)] + [(ix[k + 1], -1.0)], -c[k], -c[k])
         for i in range(3):
-            row([(iu[k][i], 1.0), (iv[k + 1][i], -1.0)], 0.0, 0.0)
+            A.add([(iu[k][i], 1.0), (iv[k + 1][i], -1.0)], 0.0, 0.0)
         for i in range(3):  # (at k = 0 a bound of u_0 does it: a free row keeps rows per stage equal)
-            row([(iu[k][i], 1.0), (iv[k][i], -1.0)], -du[i] if k > 0 else -inf, du[i] if k > 0 else inf)
-        row([(iu[k][1], 1.0), (iu[k][0], -1.0)], 0.0, inf)  # inlet - speed >= 0
+            A.add([(iu[k][i], 1.0), (iv[k][i], -1.0)], -du[i] if k > 0 else -inf, du[i] if k > 0 else inf)
+        A.add([(iu[k][1], 1.0), (iu[k][0], -1.0)], 0.0, inf)  # inlet - speed >= 0
         # soft limits at stage k + 1 through the dynamics: y(x_{k+1}) ~ slope (a x_k + b u_k + c) + ...
         for slope, bound in limits:
-            row([(ix[k], slope[k] * a[k])] + [(iu[k][i], slope[k] * b[k, i]) for i in range(3)] + [(isl[k], -1.0)],
-                -inf, bound[k] - slope[k] * c[k])
-    nc = len(rows)
-    A = SX(nc, nz)
-    for rr, entries in enumerate(rows):
-        for col, v in entries:
-            A[rr, col] = v
+            A.add([(ix[k], slope[k] * a[k])] + [(iu[k][i], slope[k] * b[k, i]) for i in range(3)] + [(isl[k], -1.0)],
+                  -inf, bound[k] - slope[k] * c[k])
+    A, lba, uba = A.matrix(nz)
+    nc = A.shape[0]
     Hsp, Asp = H.sparsity(), A.sparsity()
     z0 = SX.zeros(nz)
     Vb = ca.horzcat(u_prev, Ub)
@@ -212,7 +203,7 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
             z0[iv[k][i]] = Vb[i, k]
             if k < N:
                 z0[iu[k][i]] = Ub[i, k]
-    lbx, ubx, lba, uba = (ca.vertcat(*v) for v in (lbx, ubx, lba, uba))
+    lbx, ubx = ca.vertcat(*lbx), ca.vertcat(*ubx)
     if qp_solver == "hpipm":  # casadi's generated HPIPM C mishandles infinite bounds: far finite ones
         lbx, ubx, lba, uba = (ca.fmin(ca.fmax(v, -_BIG), _BIG) for v in (lbx, ubx, lba, uba))
     # dual guess, shifted as the primal one (N stages of ms rows / ns variables, stage N: 4 variables)

@@ -13,7 +13,7 @@ from hbma_ctrl.controllers.mpc_solvers import _Problem
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.controllers.mpc_settings import WEIGHTS, weights_of
 from hbma_ctrl.controllers.rti_c import _RtiOsqp, qp_data_function
-from oracles.rti_qp import qp_values
+from oracles.rti_qp import qp_matrices
 from hbma_ctrl.core.interfaces import Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 
@@ -38,7 +38,7 @@ TUNED = dict(w_terminal=2.0, w_rate=(0.05, 0.004, 0.01), w_input=(0.001, 0.003, 
 @pytest.mark.slow
 @pytest.mark.parametrize("h_min, weights", [(0.0, {}), (2e-3, {}), (0.0, TUNED)])
 def test_qp_data_equals_the_numpy_qp(model, h_min, weights):
-    """The generated data (P, A values in CSC order, q, l, u) equals the QP written in numpy, on a
+    """The generated data (P, A, q, l, u) equals the QP written in numpy, on a
     plan that varies along the horizon (no shift), without a lower height bound (its rows left out of
     the pattern), with one, and with other cost weights (an input of the data, not constants in it)."""
     s = replace(_settings("rti_c_osqp"), h_min=h_min, **weights).validate()
@@ -48,18 +48,18 @@ def test_qp_data_equals_the_numpy_qp(model, h_min, weights):
     pr = _Problem(x0, 0.4, 1e-4, 200.0, np.linspace(5e-3, 7e-3, N), np.array([0.3, 0.5, 0.1]), s.p_max - s.p_margin)
     Xb = x0 * np.linspace(1.0, 1.2, N + 1)
     Ub = np.tile([0.3, 0.5, 0.1], (N, 1)) * np.linspace(0.5, 1.0, N)[:, None]
-    seen = qp_values(new, pr, Xb, Ub)
+    want = qp_matrices(new, pr, Xb, Ub)
     z = np.zeros(new.nz)
     z[new.ix], z[new.iu] = Xb, Ub
     p = new._par
     p[:8] = [pr.x0, pr.W, pr.dh, pr.dp, *pr.u_prev, pr.p_lim]
     p[8:] = pr.r
-    Px, Ax, q, lo, up, z0, ok = new.data(None, z, 0.0)
-    assert ok[0] == 1.0
-    assert new.n_soft == (4 if h_min > 0 else 3) and Ax.size == new.A.M.nnz
-    for key, got in (("Px", Px), ("Ax", Ax), ("q", q), ("l", lo), ("u", up)):
-        want = np.clip(seen[key], -1e30, 1e30)
-        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12, err_msg=key)
+    out = new.data(None, z, 0.0)
+    assert out[6][0] == 1.0
+    got = {"P": new.data.dense(0), "A": new.data.dense(1), "q": out[2], "l": out[3], "u": out[4]}
+    assert got["A"].shape[0] == want["A"].shape[0] == 1 + 9 * N - 3 + (4 if h_min > 0 else 3) * N
+    for key in ("P", "A", "q", "l", "u"):
+        np.testing.assert_allclose(got[key], np.clip(want[key], -1e30, 1e30), rtol=1e-10, atol=1e-12, err_msg=key)
 
 
 @pytest.mark.slow
