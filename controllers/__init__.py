@@ -2,7 +2,7 @@
 
 - :class:`hbma_ctrl.controllers.mpc.NMPC` (settings :class:`hbma_ctrl.controllers.mpc.MPCSettings`): nonlinear MPC,
   variant 'rti_c_osqp' (real-time iteration, one OSQP QP per step, its data as generated C: fast;
-  'rti_osqp' the same QP built in numpy), 'rti_fn_hpipm' etc. (the
+  'rti_osqp' the same QP data on casadi's virtual machine), 'rti_fn_hpipm' etc. (the
   same step as one casadi Function, :mod:`hbma_ctrl.controllers.rti_step`), 'ipopt' or 'fatrop' (multiple
   shooting to convergence: accurate), on the gas-mass model of :class:`hbma_ctrl.models.tables.PredictionModel`.
 - :class:`hbma_ctrl.controllers.baselines.PIDController`, :class:`hbma_ctrl.controllers.baselines.BangBangController`:

@@ -38,6 +38,17 @@ from hbma_ctrl.models.tables import PredictionModel
 __all__ = ["PIDSettings", "PIDController", "BangBangSettings", "BangBangController"]
 
 
+def _target(ctrl: ControllerBase, reference: Reference, h: float) -> float:
+    """The reference's height, or without one the height ``h`` (m) when it went, held since (kept on
+    ``ctrl._hold``)."""
+    if reference.height is None:
+        if ctrl._hold is None:
+            ctrl._hold = h
+        return ctrl._hold
+    ctrl._hold = None
+    return float(reference.height)
+
+
 @dataclass
 class PIDSettings(ControllerSettingsDefaults, Settings):
     """PID on height (SI; each field's unit, range and one-line doc are in its declaration)."""
@@ -81,12 +92,7 @@ class PIDController(ControllerBase):
         s = self.settings
         t = check_time(t, "pid.step")
         h = float(estimate.h) if np.isfinite(estimate.h) else (self._h_prev or 0.0)
-        if reference.height is None:
-            self._hold = h if self._hold is None else self._hold
-            r = self._hold
-        else:
-            self._hold = None
-            r = float(reference.height)
+        r = _target(self, reference, h)
         dt = s.sample_period if self._t_prev is None else max(t - self._t_prev, 1e-6)
         e = r - h
         if self._h_prev is not None:
@@ -155,12 +161,7 @@ class BangBangController(ControllerBase):
         (``accepts_preview`` is False: the runtime never passes one)."""
         s = self.settings
         check_time(t, "bang_bang.step")
-        if reference.height is None:
-            self._hold = estimate.h if self._hold is None else self._hold
-            r = self._hold
-        else:
-            self._hold = None
-            r = float(reference.height)
+        r = _target(self, reference, estimate.h)
         W = max(float(estimate.F), 0.0) if np.isfinite(estimate.F) else 0.0
         p_set = min(self.setpoint(r, W), s.p_max - s.guard_margin - s.band)
         p = float(estimate.p) if np.isfinite(estimate.p) else s.p_max

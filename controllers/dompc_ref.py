@@ -68,9 +68,6 @@ class DoMPCController(ControllerBase):
 
         u = ca.vertcat(sp, inl, out)
         mdl.set_rhs("x", Fd(x, u, W, dp))
-        h = pm.H(x, W) * 1e3 + dh * 1e3
-        p = pm.Pp(x, W) * 1e-3 + dp * 1e-3
-        lam = pm.L(x, W) * 1e2
         mdl.setup()
         # objective and constraints from the set-up model's own symbols
         x, W, dh, dp, r, plim = (mdl.x["x"], mdl.tvp["W"], mdl.tvp["dh"], mdl.tvp["dp"], mdl.tvp["r"],
@@ -99,11 +96,11 @@ class DoMPCController(ControllerBase):
         mpc.bounds["upper", "_x", "x"] = 50.0
         pen = float(s.c_slack)
         mpc.set_nl_cons("pump", sp - inl, ub=0.0)
-        mpc.set_nl_cons("p", p - plim * 1e-3, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
-        mpc.set_nl_cons("lam", lam - s.lam_max * 1e2, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
-        mpc.set_nl_cons("hmax", h - s.h_max * 1e3, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
+        soft = {"p": p - plim * 1e-3, "lam": lam - s.lam_max * 1e2, "hmax": h - s.h_max * 1e3}
         if s.h_min > 0:
-            mpc.set_nl_cons("hmin", s.h_min * 1e3 - h, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
+            soft["hmin"] = s.h_min * 1e3 - h
+        for name, expr in soft.items():
+            mpc.set_nl_cons(name, expr, ub=0.0, soft_constraint=True, penalty_term_cons=pen)
         tmpl = mpc.get_tvp_template()
         self._tvp = {"W": 0.0, "dh": 0.0, "dp": 0.0, "plim": s.p_max}
         self._r = np.zeros(s.horizon)

@@ -29,17 +29,14 @@ Variants (``MPCSettings.variant``)
 ----------------------------------
 ``ipopt``: multiple shooting NLP solved to convergence by IPOPT, warm-started with the shifted
 previous solution: the accurate reference, 5-30 ms per step.
-``rti_osqp``: real-time iteration. One casadi Function (``map`` over the N+1 nodes, optionally
-compiled to C) returns the discrete dynamics, their Jacobians and the linearised outputs along the
-shifted previous solution; one sparse QP with a fixed pattern is updated in place (``update``: q, l,
-u, Px, Ax; never re-setup) and solved by OSQP, warm-started. The pump flow is bilinear in speed and
-inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point of speed
-and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
-
-``rti_c_osqp``: the same QP and OSQP solver as ``rti_osqp``, its data (the
-linearisation, P and A values in OSQP's CSC order, q, l, u and the warm start) computed by ONE
-generated-C Function called through preallocated buffers (:mod:`hbma_ctrl.controllers.rti_c`): the same first
-inputs to rounding, in about 60 % of the time.
+``rti_c_osqp``: real-time iteration. ONE casadi Function (:func:`hbma_ctrl.controllers.rti_c.qp_data_function`,
+generated as C, called through preallocated buffers) linearises the dynamics and the outputs along
+the shifted previous solution (one mapped call over the N+1 nodes) and returns the QP's data (P and
+A values in OSQP's CSC order, q, l, u, the warm start); one sparse QP with a fixed pattern is
+updated in place (never re-setup) and solved by OSQP, warm-started. The pump flow is bilinear in
+speed and inlet duty; at a plan with the pump off its Jacobian vanishes, so the linearisation point
+of speed and inlet is floored at ``rti_lin_floor`` (the affine term stays exact at the plan).
+``rti_osqp``: the same, the Function on casadi's virtual machine (the reference path, slower).
 
 ``rti_fn_hpipm``, ``rti_fn_osqp``, ``rti_fn_qrqp``: the same real-time iteration as ONE casadi
 Function (:func:`hbma_ctrl.controllers.rti_step.rti_step_function`: shift, linearisation, QP data, QP solved
@@ -98,8 +95,6 @@ from hbma_ctrl.models.tables import PredictionModel
 __all__ = ["MPCSettings", "NMPC", "VARIANTS", "duty_to_on_time"]
 
 from hbma_ctrl.controllers.mpc_settings import (
-    INTEGRAL_BAND,
-    INTEGRAL_MAX,
     VARIANTS,
     MPCSettings,
     duty_to_on_time,
@@ -110,11 +105,10 @@ from hbma_ctrl.controllers.mpc_solvers import (
     _Fatrop,
     _Ipopt,
     _Problem,
-    _RtiOsqp,
     _SolverFailure,
 )
 from hbma_ctrl.controllers.mpc_prep import problem_function
-from hbma_ctrl.controllers.rti_c import _RtiC
+from hbma_ctrl.controllers.rti_c import _RtiOsqp
 from hbma_ctrl.controllers.rti_step import _RtiFunction
 
 
@@ -159,15 +153,10 @@ class NMPC(ControllerBase):
                  model: PredictionModel | None = None):
         self.settings = s = (settings or MPCSettings()).validate()
         self.model = model or PredictionModel(actuator, pneumatics, load_max=s.load_max, membrane=s.membrane)
-        # the model's height and pressure at the estimate's state, through buffers (a plain casadi call
-        # with Python floats costs ~20 us of the step; this ~1 us), as C when ``codegen`` is set
-        self._HP = FastFunction(self.model.HP, compile=s.codegen)
         # the step's problem data, compiled at the per-step level (-O3: 10 -> 6 us a call, same bits)
         self._prep = FastFunction(problem_function(self.model, s), compile=s.codegen, opt=HOT_OPT, flags=HOT_FLAGS)
-        if s.variant == "rti_osqp":
-            self.backend = _RtiOsqp(self.model, s)
-        elif s.variant == "rti_c_osqp":
-            self.backend = _RtiC(self.model, s)
+        if s.variant in ("rti_osqp", "rti_c_osqp"):
+            self.backend = _RtiOsqp(self.model, s, compile=s.variant == "rti_c_osqp")
         elif s.variant.startswith("rti_fn_"):
             self.backend = _RtiFunction(self.model, s, s.variant[len("rti_fn_"):])
         elif s.variant == "fatrop":
@@ -190,38 +179,6 @@ class NMPC(ControllerBase):
         self._int, self._int_target, self._int_t = 0.0, None, None  # integral action (settings doc)
 
     # --- helpers ---------------------------------------------------------------------------------
-    def _load(self, t: float, est: Estimate) -> float:
-        s = self.settings
-        F = float(est.F) if math.isfinite(est.F) else 0.0
-        F = max(F, 0.0)
-        resting = est.h < s.rest_height or "resting" in est.flags
-        if self._W is None:
-            self._W = F
-        elif resting:
-            # resting: the estimate's force is what the plate carries, a lower bound of the load
-            self._W = max(F, self._W)
-        else:
-            dt = s.sample_period if self._t_prev is None else max(t - self._t_prev, 0.0)
-            a = 1.0 if s.load_tau <= 0 else min(1.0, dt / s.load_tau)
-            self._W += a * (F - self._W)
-        return float(min(self._W, s.load_max))
-
-    def _integrate(self, t: float, h_est: float, target: float, clipped: bool) -> float:
-        """The integral action's shift of the target, m (``integral_gain``, see MPCSettings): the
-        height error integrated within INTEGRAL_BAND of the target, at most INTEGRAL_MAX either way,
-        restarted when the target steps by more than the band, held while the target is clipped."""
-        gain = self.settings.integral_gain
-        if gain <= 0.0:
-            return 0.0
-        if self._int_target is None or abs(target - self._int_target) > INTEGRAL_BAND:
-            self._int, self._int_t = 0.0, t  # a new step: nothing owed yet
-        err = target - h_est
-        if abs(err) < INTEGRAL_BAND and not clipped:
-            dt = max(t - self._int_t, 0.0)
-            self._int = min(max(self._int + gain * err * dt, -INTEGRAL_MAX), INTEGRAL_MAX)
-        self._int_target, self._int_t = target, t
-        return self._int
-
     def _target(self, est: Estimate, ref: Reference) -> float:
         """The target now (m): the reference's, or without one the height held since it went (the
         estimate's when it went). _SolverFailure when the estimate's h or p is not finite."""
@@ -237,9 +194,7 @@ class NMPC(ControllerBase):
 
     def _problem(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
         """The step's problem from the estimate: one call of the compiled ``mpc_prep``
-        (:func:`hbma_ctrl.controllers.mpc_prep.problem_function`) on the filter and integral states kept here; the
-        same numbers as :meth:`_problem_reference` (to rounding), which computed them in Python at
-        about 70 us a step."""
+        (:func:`hbma_ctrl.controllers.mpc_prep.problem_function`) on the filter and integral states kept here."""
         s = self.settings
         r = self._target(est, ref)
         prep = self._prep
@@ -280,47 +235,6 @@ class NMPC(ControllerBase):
                           "reference_used": float(r_used[0]), "integral_shift": self._int if s.integral_gain > 0.0
                           else 0.0, "reachable_height": float(reach[0]), "target_clipped": clipped})
         return _Problem(x0, W, dh, dp, r_c.copy(), self._u_prev.copy(), float(p_lim[0]))
-
-    def _problem_reference(self, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
-        """:meth:`_problem` computed in Python (the load filter, ``PredictionModel``'s path and reach,
-        the integral action): what the compiled ``mpc_prep`` is tested against."""
-        s, m = self.settings, self.model
-        r = self._target(est, ref)
-        W = self._load(t, est)
-        if est.h < s.rest_height:
-            x0 = min(est.p / self.model.actuator.p_env, m.lift_off_x(W))
-        else:
-            x0 = m.x_at_height(est.h, W)
-        hp = self._HP(float(x0), float(W))[0]
-        h0, p0 = float(hp[0]), float(hp[1])
-        # resting: the model's (virtual, <= 0) height is the better state; no height bias
-        dh = 0.0 if est.h < s.rest_height else float(est.h - h0)
-        dp = float(est.p - p0)
-        p_lim = s.p_max - s.p_margin
-        reach = m.reachable_height(W, p_lim - max(dp, 0.0), s.lam_max, s.h_max - max(dh, 0.0)) + dh
-        N = s.horizon
-        hi = max(min(reach, s.h_max), s.h_min)
-        r_used = min(max(r, s.h_min), hi)  # (scalar min/max: np.clip on a float costs microseconds)
-        if preview is not None and ref.height is not None:
-            rs = np.full(N, r)
-            pv = np.asarray(preview, dtype=float).ravel()[:N]
-            if pv.size == 0 or not np.all(np.isfinite(pv)):
-                raise ValueError("mpc.step: preview must be a non-empty sequence of finite heights (m)")
-            rs[:pv.size] = pv
-            rs[pv.size:] = pv[-1]
-            r_c = np.clip(rs, s.h_min, hi)
-        else:
-            r_c = np.full(N, r_used)
-        clipped = r_used != r
-        if clipped:
-            self.clipped_count += 1
-        shift = self._integrate(t, float(est.h), r_used, clipped)
-        if shift != 0.0:
-            r_c = np.clip(r_c + shift, s.h_min, hi)
-        self.last.update({"W": W, "x0": x0, "dh": dh, "dp": dp, "reference": r,
-                          "reference_used": r_used, "integral_shift": shift,
-                          "reachable_height": reach, "target_clipped": clipped})
-        return _Problem(x0, W, dh, dp, r_c, self._u_prev.copy(), p_lim)
 
     def _in_fail_window(self, t: float) -> bool:
         fw = self.settings.fail_window

@@ -1,11 +1,11 @@
 """The NMPC's problem data from an estimate, as ONE casadi Function (``mpc_prep``).
 
-What :meth:`hbma_ctrl.controllers.mpc.NMPC._problem_reference` computes in Python every step (the load filter,
-the state and output biases at the estimate, the reachable height along the load path, the clipped
-targets and the integral action) written once in casadi, so that the NMPC calls it compiled (tens of
+The step's problem from the estimate (the load filter, the state and output biases at the estimate,
+the reachable height along the load path, the clipped targets and the integral action) written once
+in casadi, so that :meth:`hbma_ctrl.controllers.mpc.NMPC._problem` calls it compiled (tens of
 microseconds of Python per step otherwise) and the generated C loop (:mod:`hbma_ctrl.app.codegen.chamber`)
-runs the same Function. It rounds as the Python path does (``np.interp``'s formula, the path's column
-blend), to 1e-12 of it (``tests/test_codegen.py``)::
+runs the same Function. It rounds as the Python oracle does (``tests/oracles/mpc_prep.py``:
+``np.interp``'s formula, the path's column blend), to 1e-12 of it::
 
     mpc_prep(h, p, F, resting, r[N], target, Wf, has_W, fail, cold, load_a, I, I_target, has_I, ctrl_dt)
       -> (x0, W, dh, dp, p_lim, r_c[N], Wf_next, has_W_next, run_cold, run_warm, I_next, I_target_next,

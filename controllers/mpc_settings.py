@@ -32,8 +32,8 @@ class MPCSettings(Settings):
     are in its declaration).
 
     variant : 'rti_c_osqp' (real-time iteration, one OSQP QP per step, its data from one generated-C
-        call, :mod:`hbma_ctrl.controllers.rti_c`), 'rti_osqp' (the same QP built in numpy: the reference
-        path, equal to rounding, two to three times slower, `bench mpc`), 'rti_fn_osqp' / 'rti_fn_hpipm' /
+        call, :mod:`hbma_ctrl.controllers.rti_c`), 'rti_osqp' (the same data Function on casadi's virtual
+        machine: the reference path, equal to rounding, slower, `bench mpc`), 'rti_fn_osqp' / 'rti_fn_hpipm' /
         'rti_fn_qrqp' (the same RTI step as one casadi Function, :mod:`hbma_ctrl.controllers.rti_step`, its
         QP solved inside casadi), 'ipopt' or 'fatrop' (accurate: NLP to convergence).
     enforce_budget : off (the default: scenes, benches, tuning, code generation), no step is an overrun
@@ -50,8 +50,8 @@ class MPCSettings(Settings):
     WHERE = "mpc"
 
     variant: str = setting("rti_c_osqp", choices=VARIANTS,
-                           doc="MPC: RTI + OSQP, its QP data as generated C (fast; rti_osqp: the same QP built in numpy, "
-                               "slower), the RTI step as one casadi Function with its QP solved by OSQP / HPIPM / qrqp "
+                           doc="MPC: RTI + OSQP, its QP data as generated C (fast; rti_osqp: the same on casadi's virtual "
+                               "machine, slower), the RTI step as one casadi Function with its QP solved by OSQP / HPIPM / qrqp "
                                "(rti_fn_*), or IPOPT / fatrop (accurate)")
     horizon: int = setting(20, integer=True, lo=2, hi=200, unit="steps", doc="MPC horizon N")
     sample_period: float = sample_period_setting()

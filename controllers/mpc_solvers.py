@@ -1,4 +1,6 @@
-"""The two NMPC solver variants behind :class:`hbma_ctrl.controllers.mpc.NMPC`: RTI + OSQP (fast) and IPOPT (accurate).
+"""What the variants of :class:`hbma_ctrl.controllers.mpc.NMPC` share (the stage, the step's problem, the
+failures, sparsity patterns) and its NLP variants, IPOPT and fatrop (accurate); the RTI variants are in
+:mod:`hbma_ctrl.controllers.rti_c` and :mod:`hbma_ctrl.controllers.rti_step`.
 """
 
 from __future__ import annotations
@@ -8,7 +10,6 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-import osqp
 import scipy.sparse as sp
 
 from hbma_ctrl.controllers.mpc_settings import WEIGHTS, MPCSettings, weights_of
@@ -48,25 +49,76 @@ class _Problem:
     p_lim: float  # Pa, on the model pressure + dp
 
 
-#: OSQP's step size rho, fixed, and how often it checks for termination (iterations), for the RTI QPs.
-#: Its defaults (rho 0.1 adapted every 4 x 25 iterations, termination checked every 25) ran most
-#: warm-started QPs to 25 iterations where 10 meet the same tolerances, and an adapted rho stays with
-#: the solver into later QPs: the iteration counts then depended on the history (adapting every 20, 32
-#: or 50 iterations gave a median of 25, every 40 or 48 one of 10-12). A fixed rho is the same every
-#: step and needs no refactorisation inside a solve. Scanned in ``bench mpc``'s loop (N = 20, rho
-#: fixed, checked every 5): median / mean iterations 10 / 42 at 0.01, 10 / 26 at 0.02, 10 / 23 at 0.03,
-#: 15 / 26 at 0.05, 30 / 38 at 0.1, 75 / 93 at 0.3; at 0.03 checked every 2, 5, 10, 25: median 10, 10,
-#: 10, 25 iterations, the step 0.27, 0.25, 0.25, 0.28 ms (the checks cost). ``bench loop --seeds 20``
-#: passed 20/20, 17/20, 20/20 checked every 5 and 20/20, 19/20, 20/20 every 10 (OSQP's defaults:
-#: 20/20, 19/20, 19/20); a QP stopped at 5 iterations is the least accurate within the tolerance
-QP_RHO = 0.03
-QP_CHECK_EVERY = 10
-#: OSQP's Ruiz equilibration passes (its default 10). Each update of P and A re-scales the whole KKT
-#: matrix before refactorising it: in ``bench mpc``'s loop (N = 20) the matrix update took 54 us with
-#: 10 passes, 34 with 4, 30 with 3, 27 with 2, 23 with 1 and 16 with none, while the solve's median
-#: iterations stayed at 10 from 2 passes up; with 1 or none most QPs ran to the iteration limit (300).
-#: 4 keeps two passes of margin; ``bench loop --seeds 20`` passed 20/20, 19/20, 20/20 as with 10.
-QP_SCALING = 4
+class _Pattern:
+    """A fixed sparsity pattern (rows, cols) and the permutation from entry order to CSC order."""
+
+    def __init__(self, rows, cols, shape):
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        M = sp.csc_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)), shape=shape)
+        M.sort_indices()
+        if M.nnz != rows.size:
+            raise RuntimeError("duplicate entries in a sparsity pattern")
+        self.perm = M.data.astype(np.int64) - 1
+        self.M = M
+
+    def with_data(self, data) -> sp.csc_matrix:
+        """The matrix with values already in CSC data order (a copy)."""
+        M = self.M.copy()
+        M.data = np.array(data, dtype=float)
+        return M
+
+
+def sparse(entries: list, shape: tuple) -> ca.SX:
+    """A sparse SX of ``shape`` with these (row, column, value) entries, each one structural (a zero
+    value too); its nonzeros are the values in CSC order (OSQP's)."""
+    rows, cols, vals = zip(*entries)
+    pat = _Pattern(rows, cols, shape)
+    sparsity = ca.Sparsity(shape[0], shape[1], pat.M.indptr.tolist(), pat.M.indices.tolist())
+    return ca.SX(sparsity, ca.vertcat(*vals)[pat.perm.tolist()])
+
+
+class Rows:
+    """Linear constraints lo <= A z <= up written row by row: (column, value) entries and the bounds."""
+
+    def __init__(self):
+        self.entries, self.lo, self.up = [], [], []
+
+    def add(self, entries: list, lo, up) -> None:
+        self.entries.append(entries)
+        self.lo.append(lo)
+        self.up.append(up)
+
+    def matrix(self, n: int) -> tuple:
+        """(A (sparse SX, a row per :meth:`add`, ``n`` columns), lo, up)."""
+        A = sparse([(r, c, v) for r, ents in enumerate(self.entries) for c, v in ents], (len(self.entries), n))
+        return A, ca.vertcat(*self.lo), ca.vertcat(*self.up)
+
+
+def mapped_function(name: str, ins: list, names: list[str], out_names: list[str], lin: ca.Function, args: list,
+                    assemble, looped: bool = True) -> ca.Function:
+    """ONE Function of the SX inputs ``ins`` (named ``names``) to ``assemble(L)``: L holds ``lin``'s
+    outputs at n points (output i as an SX of ``lin.nnz_out(i)`` x n, a column a point), whose inputs
+    are ``args`` (SX expressions of ``ins``: lin's input i at the points, a column a point).
+
+    ``looped``: lin runs as one mapped call (C runs one point's code in a loop), built with casadi's
+    common-subexpression elimination (the table look-ups its outputs share are made once), between two
+    SX Functions (the points, the assembly); otherwise lin is inlined at every point (the code grows
+    with the points).
+    """
+    n = args[0].shape[1]
+    if not looped:
+        outs = [lin(*[a[:, j] for a in args]) for j in range(n)]
+        L = [ca.horzcat(*[ca.vec(o[i]) for o in outs]) for i in range(lin.n_out())]
+        return ca.Function(name, ins, assemble(L), names, out_names, {"cse": True})
+    sx_in = [ca.SX.sym(lin.name_in(i), lin.sparsity_in(i)) for i in range(lin.n_in())]
+    node = ca.Function(f"{name}_node", sx_in, lin(*sx_in), lin.name_in(), lin.name_out(), {"cse": True})
+    points = ca.Function(f"{name}_points", ins, args)
+    L = [ca.SX.sym(node.name_out(i), node.nnz_out(i), n) for i in range(node.n_out())]
+    post = ca.Function(f"{name}_assemble", ins + L, assemble(L), {"cse": True})
+    mx = [ca.MX.sym(nm, v.sparsity()) for nm, v in zip(names, ins)]
+    outs = node.map(n)(*points(*mx))
+    return ca.Function(name, mx, post(*mx, *[ca.reshape(o, node.nnz_out(i), n) for i, o in enumerate(outs)]),
+                       names, out_names)
 
 
 class _Stage:
@@ -98,230 +150,27 @@ class _Stage:
         self.out = ca.Function("out", [x, W], [h, p, lam])
 
 
-class _RtiOsqp:
-    """Real-time iteration: one sparse QP per step, fixed pattern, OSQP updated in place."""
+def _input_terms(u, u_before, du: np.ndarray, wr, wu, cu) -> tuple:
+    """An input's cost (rate from ``u_before``, quadratic, linear) and rows (the rate within ``du``,
+    speed <= inlet) of the NLP variants: (cost, rows, lower bounds, upper bounds)."""
+    d = u - u_before
+    return (ca.dot(wr, d ** 2) + ca.dot(wu, u ** 2) + ca.dot(cu, u), [d, u[1] - u[0]], [*(-du), 0.0],
+            [*du, ca.inf])
 
-    #: the nodes' linearisation map (``lin``) compiled as C when ``codegen`` is set (a subclass that
-    #: computes its QP data otherwise leaves it on casadi's virtual machine, built but never called)
-    COMPILE_LIN = True
 
-    def __init__(self, model: PredictionModel, s: MPCSettings):
-        self.s, self.model = s, model
-        N = self.N = s.horizon
-        self.stage = _Stage(model, s, "poly")
-        lin = self.stage.lin.map(N + 1)
-        self.lin = compiled(lin, "-O2") if s.codegen and self.COMPILE_LIN else lin
-        # variable layout
-        self.ix = np.arange(N + 1)
-        self.iu = (N + 1) + np.arange(3 * N).reshape(N, 3)
-        self.isl = (N + 1) + 3 * N + np.arange(N)  # slack of stage k+1
-        self.nz = (N + 1) + 4 * N
-        self._build_pattern()
-        self.solver = osqp.OSQP()
-        self.solver.setup(self.P, np.zeros(self.nz), self.A, self.l0, self.u0, verbose=False,
-                          eps_abs=s.qp_eps, eps_rel=s.qp_eps, max_iter=s.qp_max_iter, polishing=False,
-                          warm_starting=True, adaptive_rho=False, rho=QP_RHO, time_limit=qp_time_limit(s),
-                          check_termination=QP_CHECK_EVERY, scaling=QP_SCALING)
-        self.X = None
-        self.U = None
-        self.iterations = 0
+def _soft_limits(stage: _Stage, s: MPCSettings, x, W, dh, dp, p_lim, slack) -> tuple:
+    """The NLP variants' soft limits at state ``x`` (QP units; ``dh`` in mm, ``dp`` in Pa, ``p_lim`` in
+    kPa): the biased height (mm) and the rows (pressure, stretch, height above and below, each minus
+    ``slack``) with their upper bounds."""
+    h, p, lam = stage.out(x, W)
+    rows = [(p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0), (h + dh - s.h_max * 1e3, 0.0),
+            (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else ca.inf)]
+    return h + dh, [e - slack for e, _ in rows], [ub for _, ub in rows]
 
-    # --- QP pattern ----------------------------------------------------------------------------
-    def _build_pattern(self) -> None:
-        s, N = self.s, self.N
-        ix, iu, isl = self.ix, self.iu, self.isl
-        # P (upper triangle): x diag (varies), u block tridiagonal (constant), slack diag (constant)
-        Pr, Pc = [], []
-        for k in range(N + 1):
-            Pr.append(ix[k]); Pc.append(ix[k])  # noqa: E702
-        self.P_x = np.arange(N + 1)
-        for k in range(N):
-            for i in range(3):
-                Pr.append(iu[k, i]); Pc.append(iu[k, i])  # noqa: E702
-                if k > 0:
-                    Pr.append(iu[k - 1, i]); Pc.append(iu[k, i])  # noqa: E702
-        for k in range(N):
-            Pr.append(isl[k]); Pc.append(isl[k])  # noqa: E702
-        self.P, self.P_perm = _csc_with_perm(Pr, Pc, self.nz)
-        self.P_vals = np.array(self.p_values(np.array(s.w_rate, float), np.array(s.w_input, float), s.w_slack),
-                               dtype=float)
-        # A rows
-        Ar, Ac, Av = [], [], []
-        row = 0
 
-        def add(r, c, v):
-            Ar.append(r); Ac.append(c); Av.append(v)  # noqa: E702
-
-        self.r_init = row
-        add(row, ix[0], 1.0)
-        row += 1
-        self.r_dyn = row
-        self.A_dyn_a, self.A_dyn_b = [], []
-        for k in range(N):
-            add(row, ix[k + 1], 1.0)
-            self.A_dyn_a.append(len(Av)); add(row, ix[k], 0.0)  # noqa: E702
-            for i in range(3):
-                self.A_dyn_b.append(len(Av)); add(row, iu[k, i], 0.0)  # noqa: E702
-            row += 1
-        self.r_box = row
-        for k in range(N):
-            for i in range(3):
-                add(row, iu[k, i], 1.0)
-                row += 1
-        self.r_rate = row
-        for k in range(1, N):
-            for i in range(3):
-                add(row, iu[k, i], 1.0); add(row, iu[k - 1, i], -1.0)  # noqa: E702
-                row += 1
-        self.r_pump = row  # inlet - speed >= 0
-        for k in range(N):
-            add(row, iu[k, 1], 1.0); add(row, iu[k, 0], -1.0)  # noqa: E702
-            row += 1
-        # per stage k = 1..N: p, lam, h_hi and, with h_min > 0, h_lo (at h_min = 0 there is no lower
-        # bound: H below lift-off is a virtual negative height, and an unbounded row only costs OSQP)
-        self.r_soft = row
-        self.n_soft = 4 if s.h_min > 0 else 3
-        self.A_soft = []
-        for k in range(N):
-            idx = []
-            for _ in range(self.n_soft):
-                idx.append(len(Av)); add(row, ix[k + 1], 0.0)  # noqa: E702
-                add(row, isl[k], -1.0)
-                row += 1
-            self.A_soft.append(idx)
-        self.r_slack = row
-        for k in range(N):
-            add(row, isl[k], 1.0)
-            row += 1
-        self.nc = row
-        self.A, self.A_perm = _csc_with_perm(Ar, Ac, self.nz, self.nc)
-        self.A_vals = np.array(Av)
-        self.A_dyn_a, self.A_dyn_b = np.array(self.A_dyn_a), np.array(self.A_dyn_b).reshape(N, 3)
-        self.A_soft = np.array(self.A_soft)
-        inf = np.inf
-        self.l0 = np.full(self.nc, -inf)
-        self.u0 = np.full(self.nc, inf)
-        self.l0[self.r_init] = self.u0[self.r_init] = 0.0
-        self.l0[self.r_dyn:self.r_dyn + N] = self.u0[self.r_dyn:self.r_dyn + N] = 0.0
-        umax = np.array(s.u_max, float)
-        self.l0[self.r_box:self.r_box + 3 * N] = 0.0
-        self.u0[self.r_box:self.r_box + 3 * N] = np.tile(umax, N)
-        du = np.array(s.du_max, float) * s.sample_period
-        self.du = du
-        self.l0[self.r_rate:self.r_rate + 3 * (N - 1)] = -np.tile(du, N - 1)
-        self.u0[self.r_rate:self.r_rate + 3 * (N - 1)] = np.tile(du, N - 1)
-        self.l0[self.r_pump:self.r_pump + N] = 0.0
-        self.l0[self.r_slack:self.r_slack + N] = 0.0
-
-    def p_values(self, wr, wu, w_slack) -> list:
-        """P's values in the pattern's entry order for the input-rate, input and slack weights (numbers
-        or casadi expressions): the x diagonal 0 (set per step), each input's diagonal and its rate
-        coupling to the previous stage, the slacks' diagonal."""
-        N = self.N
-        vals = [0.0] * (N + 1)
-        for k in range(N):
-            for i in range(3):
-                nd = 2 if k < N - 1 else 1  # u_k appears in (u_k - u_{k-1}) and (u_{k+1} - u_k)
-                vals.append(2 * wr[i] * nd + 2 * wu[i] + 1e-8)
-                if k > 0:
-                    vals.append(-2 * wr[i])
-        vals += [2 * w_slack] * N
-        return vals
-
-    # --- one step -------------------------------------------------------------------------------
-    def reset(self) -> None:
-        self.X = None
-        self.U = None
-
-    def solve(self, pr: _Problem) -> tuple[np.ndarray, np.ndarray]:
-        N, s = self.N, self.s
-        if self.X is None:
-            Xb = np.full(N + 1, pr.x0)
-            Ub = np.tile(pr.u_prev, (N, 1))
-            iters = s.rti_init_iterations
-        else:
-            Xb = np.r_[pr.x0, self.X[2:], self.X[-1]]
-            Ub = np.vstack([self.U[1:], self.U[-1:]])
-            iters = 1
-        exempt = iters > 1 and s.enforce_budget  # a cold start is exempt from the budget
-        if exempt:
-            self.solver.update_settings(time_limit=OSQP_NO_TIME_LIMIT)
-        try:
-            for _ in range(iters):
-                Xb, Ub = self._qp(pr, Xb, Ub)
-        finally:
-            if exempt:
-                self.solver.update_settings(time_limit=s.budget)
-        self.X, self.U = Xb, Ub
-        return Xb, Ub
-
-    def _qp(self, pr: _Problem, Xb: np.ndarray, Ub: np.ndarray):
-        N, s = self.N, self.s
-        Uext = np.vstack([Ub, Ub[-1:]])
-        Ulin = Uext.copy()
-        fl = s.rti_lin_floor
-        Ulin[:, 0] = np.maximum(Ulin[:, 0], fl)
-        Ulin[:, 1] = np.maximum(Ulin[:, 1], fl)
-        res = self.lin(Xb[None, :], Uext.T, Ulin.T, pr.W, pr.dp)
-        f, a, b, h, ch, p, cp, lam, cl = (np.asarray(v) for v in res)
-        f, a, h, ch, p, cp, lam, cl = (v.ravel() for v in (f, a, h, ch, p, cp, lam, cl))
-        b = b.reshape(3, N + 1, order="F") if b.shape[0] == 3 else b.reshape(N + 1, 3).T
-        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(b)) and np.all(np.isfinite(ch))):
-            raise _SolverFailure("non-finite linearisation")
-        # P: x diagonal from the Gauss-Newton height cost
-        wk = np.full(N + 1, s.w_height)
-        wk[0] = 0.0
-        wk[N] += s.w_terminal
-        r_mm, dh_mm = np.r_[pr.r[0], pr.r] * 1e3, pr.dh * 1e3
-        e = h - ch * Xb + dh_mm - r_mm  # h_k(x) + dh - r = ch x + e
-        Pv = self.P_vals.copy()
-        Pv[self.P_x] = 2 * wk * ch ** 2 + 1e-8
-        q = np.zeros(self.nz)
-        q[self.ix] = 2 * wk * ch * e
-        wr = np.array(s.w_rate, float)
-        q[self.iu[0]] += -2 * wr * pr.u_prev
-        q[self.iu] += np.array(s.c_input, float)[None, :]
-        q[self.isl] = s.c_slack
-        # A values
-        Av = self.A_vals.copy()
-        Av[self.A_dyn_a] = -a[:N]
-        Av[self.A_dyn_b] = -b[:, :N].T
-        k1 = np.arange(1, N + 1)
-        Av[self.A_soft[:, 0]] = cp[k1]
-        Av[self.A_soft[:, 1]] = cl[k1]
-        Av[self.A_soft[:, 2]] = ch[k1]
-        if s.h_min > 0:
-            Av[self.A_soft[:, 3]] = -ch[k1]
-        lo, up = self.l0.copy(), self.u0.copy()
-        lo[self.r_init] = up[self.r_init] = pr.x0
-        # x_{k+1} - a x_k - b u_k = f - a xb - b ub
-        c = f[:N] - a[:N] * Xb[:N] - np.einsum("ik,ki->k", b[:, :N], Ub)
-        lo[self.r_dyn:self.r_dyn + N] = up[self.r_dyn:self.r_dyn + N] = c
-        # first input: box intersected with the rate limit from the applied command
-        umax = np.array(s.u_max, float)
-        lo[self.r_box:self.r_box + 3] = np.maximum(0.0, pr.u_prev - self.du)
-        up[self.r_box:self.r_box + 3] = np.minimum(umax, pr.u_prev + self.du)
-        rs = self.r_soft + self.n_soft * np.arange(N)
-        up[rs] = pr.p_lim * 1e-3 - pr.dp * 1e-3 - (p[k1] - cp[k1] * Xb[k1])
-        up[rs + 1] = s.lam_max * 1e2 - (lam[k1] - cl[k1] * Xb[k1])
-        up[rs + 2] = s.h_max * 1e3 - dh_mm - (h[k1] - ch[k1] * Xb[k1])
-        if s.h_min > 0:
-            up[rs + 3] = -(s.h_min * 1e3 - dh_mm - (h[k1] - ch[k1] * Xb[k1]))
-        self.solver.update(q=q, l=lo, u=up, Px=Pv[self.P_perm], Ax=Av[self.A_perm])
-        z0 = np.zeros(self.nz)
-        z0[self.ix] = Xb
-        z0[self.iu] = Ub
-        self.solver.warm_start(x=z0)
-        r = self.solver.solve(raise_error=False)
-        self.iterations = int(r.info.iter)
-        if "time limit" in r.info.status:
-            raise _BudgetExceeded("osqp: time limit (budget) reached")
-        usable = r.info.status in ("solved", "solved inaccurate") or (
-            r.info.status == "maximum iterations reached" and r.info.prim_res < 1e-3)
-        if not usable or r.x is None or not np.all(np.isfinite(r.x)):
-            raise _SolverFailure(f"osqp: {r.info.status}")
-        z = r.x
-        return z[self.ix].copy(), np.clip(z[self.iu], 0.0, 1.0)
+def _shifted(a: np.ndarray) -> np.ndarray:
+    """A plan moved one stage on (along the first axis), the last stage repeated."""
+    return np.concatenate([a[1:], a[-1:]])
 
 
 class _Ipopt:
@@ -353,20 +202,14 @@ class _Ipopt:
         for k in range(N):
             g.append(X[k + 1] - F(X[k], U[:, k], W, dp))
             lbg.append(0.0); ubg.append(0.0)  # noqa: E702
-            d = U[:, k] - (u_prev if k == 0 else U[:, k - 1])
-            J += ca.dot(wr, d ** 2) + ca.dot(wu, U[:, k] ** 2) + ca.dot(cu, U[:, k])
-            g.append(d)
-            lbg += list(-du); ubg += list(du)  # noqa: E702
-            g.append(U[1, k] - U[0, k])
-            lbg.append(0.0); ubg.append(ca.inf)  # noqa: E702
-            h, p, lam = self.stage.out(X[k + 1], W)
+            cost, rows, lo, up = _input_terms(U[:, k], u_prev if k == 0 else U[:, k - 1], du, wr, wu, cu)
+            hd, soft, ubs = _soft_limits(self.stage, s, X[k + 1], W, dh, dp, p_lim, S[k])
             w = s.w_height + (s.w_terminal if k == N - 1 else 0.0)
-            J += w * (h + dh - rr[k]) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
-            lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else ca.inf)
-            for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
-                             (h + dh - s.h_max * 1e3, 0.0), lo_h):
-                g.append(expr - S[k])
-                lbg.append(-ca.inf); ubg.append(ub)  # noqa: E702
+            J += cost
+            J += w * (hd - rr[k]) ** 2 + s.w_slack * S[k] ** 2 + s.c_slack * S[k]
+            g += rows + soft
+            lbg += lo + [-ca.inf] * len(soft)
+            ubg += up + ubs
         z = ca.vertcat(X, ca.vec(U), S)
         self.nz = z.shape[0]
         nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
@@ -403,9 +246,7 @@ class _Ipopt:
         if self.X is None:
             Xb, Ub, Sb = np.full(N + 1, pr.x0), np.tile(pr.u_prev, (N, 1)), np.zeros(N)
         else:
-            Xb = np.r_[pr.x0, self.X[2:], self.X[-1]]
-            Ub = np.vstack([self.U[1:], self.U[-1:]])
-            Sb = np.r_[self.S[1:], self.S[-1]]
+            Xb, Ub, Sb = np.r_[pr.x0, _shifted(self.X)[1:]], _shifted(self.U), _shifted(self.S)
         z0 = np.r_[Xb, Ub.ravel(), Sb]
         par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3]
         kw = {}
@@ -445,19 +286,6 @@ def _nlp_solve(backend, name: str, **args) -> dict:
         if not st.get("success", False):
             raise _SolverFailure(f"{name}: {st.get('return_status')}")
     return sol
-
-
-def _csc_with_perm(rows, cols, n, m=None):
-    """CSC matrix with the given pattern and the permutation from entry order to CSC data order."""
-    m = n if m is None else m
-    nnz = len(rows)
-    M = sp.csc_matrix((np.arange(1, nnz + 1, dtype=float), (rows, cols)), shape=(m, n))
-    M.sort_indices()
-    if M.nnz != nnz:
-        raise RuntimeError("QP pattern has duplicate entries")
-    perm = M.data.astype(int) - 1
-    M.data = np.ones(nnz) * 1e-12
-    return M, perm
 
 
 class _Fatrop:
@@ -528,27 +356,21 @@ class _Fatrop:
                 lbg += [0.0] * 5
                 ubg += [0.0] * 5
             if k < N:
-                g.append(us[k] - vs[k])
-                lbg += list(-du)
-                ubg += list(du)
-                g.append(us[k][1] - us[k][0])
-                lbg.append(0.0)
-                ubg.append(inf)
-                d = us[k] - vs[k]
-                J += ca.dot(wr, d ** 2) + ca.dot(wu, us[k] ** 2) + ca.dot(cu, us[k])
+                cost, rows, lo, up = _input_terms(us[k], vs[k], du, wr, wu, cu)
+                g += rows
+                lbg += lo
+                ubg += up
+                J += cost
                 J += w_slack * ss[k] ** 2 + c_slack * ss[k]
             if k == 0:
                 continue
             # stage k's outputs on its own state: the limits with the slack sigma_k = s_{k-1}
-            h, p, lam = self.stage.out(xs[k], W)
+            hd, soft, ubs = _soft_limits(self.stage, s, xs[k], W, dh, dp, p_lim, sg[k])
             w = w_height + w_terminal if k == N else w_height
-            J += w * (h + dh - rr[k - 1]) ** 2
-            lo_h = (s.h_min * 1e3 - h - dh, 0.0 if s.h_min > 0 else inf)
-            for expr, ub in ((p + dp * 1e-3 - p_lim, 0.0), (lam - s.lam_max * 1e2, 0.0),
-                             (h + dh - s.h_max * 1e3, 0.0), lo_h):
-                g.append(expr - sg[k])
-                lbg.append(-inf)
-                ubg.append(ub)
+            J += w * (hd - rr[k - 1]) ** 2
+            g += soft
+            lbg += [-inf] * len(soft)
+            ubg += ubs
         zz = ca.vertcat(*z)
         nlp = {"x": zz, "p": par, "f": J, "g": ca.vertcat(*g)}
         eq = [bool(lo == up) for lo, up in zip(lbg, ubg)]
@@ -593,12 +415,11 @@ class _Fatrop:
             z0[self.iu] = pr.u_prev
             z0[self.iv] = pr.u_prev
         else:  # the previous solution shifted by one stage (the last stage repeated)
-            z0[self.ix] = np.r_[pr.x0, self.z[self.ix][2:], self.z[self.ix][-1]]
-            Uo = self.z[self.iu]
-            Ub = np.vstack([Uo[1:], Uo[-1:]])
+            z0[self.ix] = np.r_[pr.x0, _shifted(self.z[self.ix])[1:]]
+            Ub = _shifted(self.z[self.iu])
             z0[self.iu] = Ub
             z0[self.iv] = np.vstack([pr.u_prev, Ub])
-            z0[self.isl] = np.r_[self.z[self.isl][1:], self.z[self.isl][-1]]
+            z0[self.isl] = _shifted(self.z[self.isl])
             z0[self.isg[1:]] = z0[self.isl]
         par = np.r_[pr.x0, pr.W, pr.dh * 1e3, pr.dp, pr.u_prev, pr.p_lim * 1e-3, pr.r * 1e3, self._weights]
         sol = _nlp_solve(self, "fatrop", x0=z0, p=par, lbx=self.lbz, ubx=self.ubz, lbg=self.lbg, ubg=self.ubg)

@@ -64,8 +64,8 @@ import time
 import casadi as ca
 import numpy as np
 import osqp
-import scipy.sparse as sp
 
+from hbma_ctrl.controllers.mpc_solvers import _Pattern, mapped_function
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.interfaces import RobotControllerBase
 from hbma_ctrl.core.settings import Settings, setting
@@ -147,33 +147,6 @@ def _finite(name: str, v, n: int) -> np.ndarray:
     return a
 
 
-class _Pattern:
-    """A fixed sparsity pattern (rows, cols) and the permutation from entry order to CSC order."""
-
-    def __init__(self, rows, cols, shape):
-        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-        M = sp.csc_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)), shape=shape)
-        M.sort_indices()
-        if M.nnz != rows.size:
-            raise RuntimeError("robot_mpc: duplicate entries in a sparsity pattern")
-        self.perm = M.data.astype(np.int64) - 1
-        self.M = M
-
-    def with_data(self, data: np.ndarray) -> sp.csc_matrix:
-        """The matrix with values already in CSC data order (a copy)."""
-        M = self.M.copy()
-        M.data = np.array(data, dtype=float)
-        return M
-
-    def matrix(self, vals: np.ndarray) -> sp.csc_matrix:
-        M = self.M.copy()
-        M.data = np.asarray(vals, dtype=float)[self.perm]
-        return M
-
-    def data(self, vals: np.ndarray) -> np.ndarray:
-        return np.asarray(vals, dtype=float)[self.perm]
-
-
 class RobotNMPC(RobotControllerBase):
     """NMPC over n chambers (see module doc): a :class:`~hbma_ctrl.core.interfaces.RobotEstimateController`.
 
@@ -233,7 +206,6 @@ class RobotNMPC(RobotControllerBase):
         nb = 3 * N + 1  # + one pressure slack per chamber (last)
         self.nv = n * nb
         ix = lambda i, blk, k: i * nb + blk * N + k  # noqa: E731  blk 0: x_{k+1}, 1: a_k, 2: o_k, 3: slack
-        self._ix = ix
         # --- P (upper triangle): diag of every variable, plus input-rate couplings (k-1, k)
         pr, pc = [], []
         for i in range(n):
@@ -327,28 +299,14 @@ class RobotNMPC(RobotControllerBase):
         ins = [x0, b, W, k, c, amax, href, prev, xbar, abar, obar]
         names = ["x0", "b", "W", "k", "c", "a_max", "h_ref_mm", "prev", "xbar", "abar", "obar"]
         pts = self._anchor_pts.tolist()
-        m = n * len(pts)
         # the linearisation points, point-major (entry jj * n + i: chamber i at the jj-th point)
         xp = ca.vec(xbar[:, pts])
         ap = ca.vec(ca.horzcat(abar, abar[:, N - 1])[:, pts])
         op = ca.vec(ca.horzcat(obar, obar[:, N - 1])[:, pts])
+        args = [xp.T, ca.horzcat(ap, op).T] + [ca.repmat(v, len(pts), 1).T for v in (W, b, k, c)]
         keys = ("xn", "Ax", "B", "h", "Hx", "p", "Px")
-        if not looped:
-            outs = [lin(xp[j], ca.vertcat(ap[j], op[j]), W[j % n], b[j % n], k[j % n], c[j % n]) for j in range(m)]
-            L = {key: ca.horzcat(*[ca.vec(o[i]) for o in outs]) for i, key in enumerate(keys)}
-            return ca.Function("robot_qp_data", ins, self._assemble(ins, L), names, ["Px", "Ax", "q", "l", "u"],
-                               {"cse": True})
-        sx_in = [SX.sym(lin.name_in(i), lin.sparsity_in(i)) for i in range(lin.n_in())]
-        node = ca.Function("robot_qp_node", sx_in, lin(*sx_in), {"cse": True})
-        pre = ca.Function("robot_qp_points", ins, [xp.T, ca.horzcat(ap, op).T] +
-                          [ca.repmat(v, len(pts), 1).T for v in (W, b, k, c)])
-        L_sym = {key: SX.sym(key, node.nnz_out(i), m) for i, key in enumerate(keys)}
-        post = ca.Function("robot_qp_assemble", ins + list(L_sym.values()), self._assemble(ins, L_sym),
-                           {"cse": True})
-        mx_in = [ca.MX.sym(nm, v.sparsity()) for nm, v in zip(names, ins)]
-        outs = node.map(m)(*pre(*mx_in))
-        L_mx = [ca.reshape(o, node.nnz_out(i), m) for i, o in enumerate(outs)]
-        return ca.Function("robot_qp_data", mx_in, post(*mx_in, *L_mx), names, ["Px", "Ax", "q", "l", "u"])
+        return mapped_function("robot_qp_data", ins, names, ["Px", "Ax", "q", "l", "u"], lin, args,
+                               lambda L: self._assemble(ins, dict(zip(keys, L))), looped)
 
     def _assemble(self, ins: list, L: dict) -> list:
         """[Px, Ax, q, l, u] from the step's data ``ins`` (the data Function's inputs, SX) and the

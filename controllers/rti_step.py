@@ -2,9 +2,11 @@
 
 :func:`rti_step_function` builds a Function that does everything one RTI step of
 :class:`hbma_ctrl.controllers.mpc.NMPC` does: it shifts the previous plan by one stage, linearises the
-gas-mass dynamics and the outputs along it (the same ``_Stage.lin`` as the reference
-``rti_osqp`` path), assembles the same sparse QP (cost, dynamics, input box and rates,
-"speed <= inlet", soft pressure / stretch / height limits; see :mod:`hbma_ctrl.controllers.mpc`), solves it
+gas-mass dynamics and the outputs along it and assembles the QP of the RTI + OSQP variants (the same
+plan, ``_Stage.lin`` and terms: :func:`hbma_ctrl.controllers.rti_c.shifted_plan`,
+:func:`hbma_ctrl.controllers.rti_c.linearised_terms`; cost, dynamics, input box and rates,
+"speed <= inlet", soft pressure / stretch / height limits; see :mod:`hbma_ctrl.controllers.mpc`) in a
+stage-wise layout (below), solves it
 inside casadi through its conic interface (``qrqp``, ``hpipm``, ``osqp``, ``daqp``: the
 ``qp_solver`` argument) and returns the first input and the new plan. Everything is numeric, so the
 Function can be code-generated to C (``qrqp`` generates self-contained C; ``hpipm`` needs the
@@ -71,7 +73,8 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
-from hbma_ctrl.controllers.mpc_solvers import _SolverFailure, _Stage
+from hbma_ctrl.controllers.mpc_solvers import Rows, _SolverFailure, _Stage
+from hbma_ctrl.controllers.rti_c import linearised_terms, shifted_plan
 from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags, compiled
 from hbma_ctrl.models.tables import PredictionModel
 
@@ -125,16 +128,11 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     x0, W, dh, dp, p_lim, shift = (SX.sym(n) for n in ("x0", "W", "dh", "dp", "p_lim", "shift"))
     u_prev, r = SX.sym("u_prev", 3), SX.sym("r", N)
     Xg, Ug = SX.sym("X", N + 1), SX.sym("U", 3, N)
-    # --- shift (shift = 1) or keep (shift = 0) the guess; the first state is always the estimate
-    Xs = ca.vertcat(Xg[2:], Xg[N])
-    Xb = ca.vertcat(x0, shift * Xs + (1 - shift) * Xg[1:])
-    Ub = shift * ca.horzcat(Ug[:, 1:], Ug[:, N - 1]) + (1 - shift) * Ug
-    # --- linearisation at the N + 1 nodes
-    Uext = ca.horzcat(Ub, Ub[:, N - 1])
-    fl = s.rti_lin_floor
-    lin = [stage.lin(Xb[k], Uext[:, k], ca.vertcat(ca.fmax(Uext[0, k], fl), ca.fmax(Uext[1, k], fl), Uext[2, k]),
-                     W, dp) for k in range(N + 1)]
-    f, a, b, h, ch, p, cp, lam, cl = ([ln[i] for ln in lin] for i in range(9))
+    # --- shift (shift = 1) or keep (shift = 0) the guess; the first state is always the estimate;
+    # the linearisation at the N + 1 nodes
+    Xb, Ub, Uext, Ulin = shifted_plan(x0, Xg, Ug, shift, s.rti_lin_floor)
+    lin = [stage.lin(Xb[k], Uext[:, k], Ulin[:, k], W, dp) for k in range(N + 1)]
+    f, a, b, h, ch, p, cp, lam, cl = (ca.vertcat(*[ln[i] for ln in lin]) for i in range(9))  # b: (N+1) x 3
     # --- variables, stage-wise (the OCP structure HPIPM detects): stage k < N holds
     # [x_k, v_k (the previous input, 3), u_k (3), s_k], stage N [x_N, v_N]. v_{k+1} = u_k turns the
     # input-rate terms into stage-local ones; s_k is the slack of the limits at stage k + 1, written
@@ -147,16 +145,13 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     iu = [[ns * k + 4 + i for i in range(3)] for k in range(N)]
     isl = [ns * k + 7 for k in range(N)]
     # --- cost 1/2 z'Hz + g'z
-    wk = [0.0] + [s.w_height] * N
-    wk[N] += s.w_terminal
-    dh_mm = dh * 1e3
-    r_mm = ca.vertcat(r[0], r) * 1e3
+    wk = ca.DM([0.0] + [s.w_height] * (N - 1) + [s.w_height + s.w_terminal])
+    Hx, gx, c, limits = linearised_terms(s, wk, dh, dp, p_lim, r, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl)
     H = SX(nz, nz)
     g = SX.zeros(nz)
     for k in range(N + 1):
-        e = h[k] - ch[k] * Xb[k] + dh_mm - r_mm[k]
-        H[ix[k], ix[k]] = 2 * wk[k] * ch[k] ** 2 + 1e-8
-        g[ix[k]] = 2 * wk[k] * ch[k] * e
+        H[ix[k], ix[k]] = Hx[k]
+        g[ix[k]] = gx[k]
     wr, wu, cu = (np.array(v, float) for v in (s.w_rate, s.w_input, s.c_input))
     for k in range(N):
         for i in range(3):  # w_rate |u_k - v_k|^2 + w_input |u_k|^2 + c_input . u_k
@@ -185,37 +180,20 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     for k in range(N):
         lbx[isl[k]] = 0.0
     # --- linear constraints lba <= A z <= uba, stage by stage: dynamics, then the stage's rows
-    rows, lba, uba = [], [], []
-
-    def row(entries, lo, up):
-        rows.append(entries)
-        lba.append(lo)
-        uba.append(up)
-
-    for k in range(N):
-        c = f[k] - a[k] * Xb[k] - ca.mtimes(b[k], Ub[:, k])  # x_{k+1} = a x_k + b u_k + c
-        row([(ix[k], a[k])] + [(iu[k][i], b[k][i]) for i in range(3)] + [(ix[k + 1], -1.0)], -c, -c)
+    A = Rows()
+    for k in range(N):  # x_{k+1} = a x_k + b u_k + c
+        A.add([(ix[k], a[k])] + [(iu[k][i], b[k, i]) for i in range(3)] + [(ix[k + 1], -1.0)], -c[k], -c[k])
         for i in range(3):
-            row([(iu[k][i], 1.0), (iv[k + 1][i], -1.0)], 0.0, 0.0)
+            A.add([(iu[k][i], 1.0), (iv[k + 1][i], -1.0)], 0.0, 0.0)
         for i in range(3):  # (at k = 0 a bound of u_0 does it: a free row keeps rows per stage equal)
-            row([(iu[k][i], 1.0), (iv[k][i], -1.0)], -du[i] if k > 0 else -inf, du[i] if k > 0 else inf)
-        row([(iu[k][1], 1.0), (iu[k][0], -1.0)], 0.0, inf)  # inlet - speed >= 0
-        j = k + 1  # soft limits at stage k + 1: y(x_{k+1}) ~ y_j + cy_j (x_{k+1} - xb_{k+1})
-
-        def soft(cy, bound):
-            row([(ix[k], cy * a[k])] + [(iu[k][i], cy * b[k][i]) for i in range(3)] + [(isl[k], -1.0)],
-                -inf, bound - cy * c)
-
-        soft(cp[j], p_lim * 1e-3 - dp * 1e-3 - (p[j] - cp[j] * Xb[j]))
-        soft(cl[j], s.lam_max * 1e2 - (lam[j] - cl[j] * Xb[j]))
-        soft(ch[j], s.h_max * 1e3 - dh_mm - (h[j] - ch[j] * Xb[j]))
-        if s.h_min > 0:  # (below lift-off H is a virtual negative height: no bound at h_min = 0)
-            soft(-ch[j], -(s.h_min * 1e3 - dh_mm - (h[j] - ch[j] * Xb[j])))
-    nc = len(rows)
-    A = SX(nc, nz)
-    for rr, entries in enumerate(rows):
-        for col, v in entries:
-            A[rr, col] = v
+            A.add([(iu[k][i], 1.0), (iv[k][i], -1.0)], -du[i] if k > 0 else -inf, du[i] if k > 0 else inf)
+        A.add([(iu[k][1], 1.0), (iu[k][0], -1.0)], 0.0, inf)  # inlet - speed >= 0
+        # soft limits at stage k + 1 through the dynamics: y(x_{k+1}) ~ slope (a x_k + b u_k + c) + ...
+        for slope, bound in limits:
+            A.add([(ix[k], slope[k] * a[k])] + [(iu[k][i], slope[k] * b[k, i]) for i in range(3)] + [(isl[k], -1.0)],
+                  -inf, bound[k] - slope[k] * c[k])
+    A, lba, uba = A.matrix(nz)
+    nc = A.shape[0]
     Hsp, Asp = H.sparsity(), A.sparsity()
     z0 = SX.zeros(nz)
     Vb = ca.horzcat(u_prev, Ub)
@@ -225,7 +203,7 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
             z0[iv[k][i]] = Vb[i, k]
             if k < N:
                 z0[iu[k][i]] = Ub[i, k]
-    lbx, ubx, lba, uba = (ca.vertcat(*v) for v in (lbx, ubx, lba, uba))
+    lbx, ubx = ca.vertcat(*lbx), ca.vertcat(*ubx)
     if qp_solver == "hpipm":  # casadi's generated HPIPM C mishandles infinite bounds: far finite ones
         lbx, ubx, lba, uba = (ca.fmin(ca.fmax(v, -_BIG), _BIG) for v in (lbx, ubx, lba, uba))
     # dual guess, shifted as the primal one (N stages of ms rows / ns variables, stage N: 4 variables)
@@ -234,8 +212,7 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     lx0 = shift * ca.vertcat(lxg[ns:ns * N], lxg[ns * (N - 1):ns * N], lxg[ns * N:]) + (1 - shift) * lxg
     la0 = shift * ca.vertcat(lag[ms:], lag[nc - ms:]) + (1 - shift) * lag
     ins = [x0, W, dh, dp, u_prev, p_lim, r, Xg, Ug, lxg, lag, shift]
-    data = ca.Function("rti_qp_data", ins, [H, g, A, lba, uba, lbx, ubx, z0, lx0, la0,
-                                            ca.vertcat(*f, *ch, *a, *cp)])
+    data = ca.Function("rti_qp_data", ins, [H, g, A, lba, uba, lbx, ubx, z0, lx0, la0, ca.vertcat(f, ch, a, cp)])
     post_z = SX.sym("z", nz)
     Xn = ca.vertcat(*[post_z[i] for i in ix])
     Un = ca.fmin(ca.fmax(ca.horzcat(*[ca.vertcat(*[post_z[i] for i in iu[k]]) for k in range(N)]), 0.0), 1.0)

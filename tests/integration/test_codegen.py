@@ -29,6 +29,7 @@ from hbma_ctrl.sim.plant_step import (
     valve_line_function,
 )
 from hbma_ctrl.sim.rig import CAP_RIG, Rig, RigSettings
+from oracles.mpc_prep import problem_reference
 
 CC = find_compiler()
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH to build the generated loop")
@@ -182,9 +183,9 @@ def test_mpc_prep_matches_the_nmpc_problem():
         h = float(rng.choice([0.0, rng.uniform(0.0, 0.015)]))
         p, F, r = rng.uniform(0, 40e3), rng.uniform(0, 8), rng.uniform(0, 0.012)
         nmpc._W = None
-        pr = nmpc._problem_reference(0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
+        pr = problem_reference(nmpc, 0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
         nmpc._int_target = None  # each draw a new step for both (mpc_prep's has_I = 0)
-        pr = nmpc._problem_reference(0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
+        pr = problem_reference(nmpc, 0.0, Estimate(t=0.0, h1=h, h2=0.0, h=h, p=p, F=F), Reference(r))
         out = [np.asarray(v).ravel() for v in prep(h, p, F, 0.0, np.full(s.horizon, r), r, 0.0, 0.0, 0.0, 0.0,
                                                    0.5, 0.0, 0.0, 0.0, s.sample_period)]
         got = np.array([out[0][0], out[1][0], out[2][0], out[3][0]])
@@ -231,7 +232,7 @@ def _prep_against_nmpc(target, preview: bool) -> list:
         r = target(t, k)
         pv = [target(t + s.sample_period * (j + 1), k) for j in range(s.horizon)] if preview else None
         h = r - 0.6e-3 + rng.normal(0.0, 0.2e-3)
-        pr = nmpc._problem_reference(t, Estimate(t=t, h1=h, h2=0.0, h=h, p=20e3, F=3.9), Reference(r), pv)
+        pr = problem_reference(nmpc, t, Estimate(t=t, h1=h, h2=0.0, h=h, p=20e3, F=3.9), Reference(r), pv)
         r_in = np.array(pv) if preview else np.full(s.horizon, r)
         out = [np.asarray(v).ravel() for v in prep(h, 20e3, 3.9, 0.0, r_in, r, 0.0, 0.0, 0.0, 0.0,
                                                    0.5, I, I_t, has_I, s.sample_period)]

@@ -24,6 +24,7 @@ from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.runtime.chamber import ChamberLoop
 from hbma_ctrl.sim.simulate import Plant
+from oracles.mpc_prep import problem_reference
 
 ACT, PN = Actuator(), Pneumatics()
 W400 = 0.4 * 9.80665
@@ -372,7 +373,7 @@ def test_compiled_problem_equals_the_python_reference_over_a_wandering_estimate(
         ref = Reference(None) if 40 <= k < 50 else Reference(target)
         held += ref.height is None
         pv = [target + 1e-4 * j for j in range(s.horizon)] if k % 3 == 0 and ref.height is not None else None
-        pa, pb = a._problem(t, e, ref, pv), b._problem_reference(t, e, ref, pv)
+        pa, pb = a._problem(t, e, ref, pv), problem_reference(b, t, e, ref, pv)
         for name in ("x0", "W", "dh", "dp", "p_lim"):
             assert getattr(pa, name) == pytest.approx(getattr(pb, name), rel=1e-12, abs=1e-12), (k, name)
         np.testing.assert_allclose(pa.r, pb.r, rtol=0, atol=1e-12)

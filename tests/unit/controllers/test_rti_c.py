@@ -1,5 +1,6 @@
-"""rti_c_osqp (the RTI QP data as one generated-C call) against the reference rti_osqp path and IPOPT,
-and the robot NMPC's held linearisation (lin_every) against linearising at every stage."""
+"""The RTI QP data (one Function: generated C for rti_c_osqp, casadi's virtual machine for rti_osqp)
+against the QP written in numpy and IPOPT, and the robot NMPC's held linearisation (lin_every) against
+linearising at every stage."""
 
 from dataclasses import replace
 
@@ -8,10 +9,11 @@ import pytest
 
 from hbma_ctrl.controllers.mpc import NMPC
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
-from hbma_ctrl.controllers.mpc_solvers import _Problem, _RtiOsqp
+from hbma_ctrl.controllers.mpc_solvers import _Problem
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.controllers.mpc_settings import WEIGHTS, weights_of
-from hbma_ctrl.controllers.rti_c import _RtiC, qp_data_function
+from hbma_ctrl.controllers.rti_c import _RtiOsqp, qp_data_function
+from oracles.rti_qp import qp_matrices
 from hbma_ctrl.core.interfaces import Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 
@@ -35,37 +37,29 @@ TUNED = dict(w_terminal=2.0, w_rate=(0.05, 0.004, 0.01), w_input=(0.001, 0.003, 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("h_min, weights", [(0.0, {}), (2e-3, {}), (0.0, TUNED)])
-def test_qp_data_equals_reference_path(model, h_min, weights):
-    """The generated data (P, A values in CSC order, q, l, u) equals what _RtiOsqp hands OSQP, on a
+def test_qp_data_equals_the_numpy_qp(model, h_min, weights):
+    """The generated data (P, A, q, l, u) equals the QP written in numpy, on a
     plan that varies along the horizon (no shift), without a lower height bound (its rows left out of
     the pattern), with one, and with other cost weights (an input of the data, not constants in it)."""
-    s = replace(_settings("rti_osqp"), h_min=h_min, **weights).validate()
-    ref, new = _RtiOsqp(model, s), _RtiC(model, s)
-    seen = {}
-    update = ref.solver.update
-
-    def spy(**kw):
-        seen.update(kw)
-        return update(**kw)
-
-    ref.solver.update = spy
+    s = replace(_settings("rti_c_osqp"), h_min=h_min, **weights).validate()
+    new = _RtiOsqp(model, s)
     N = s.horizon
     x0 = model.x_at_height(5e-3, 0.4)
     pr = _Problem(x0, 0.4, 1e-4, 200.0, np.linspace(5e-3, 7e-3, N), np.array([0.3, 0.5, 0.1]), s.p_max - s.p_margin)
     Xb = x0 * np.linspace(1.0, 1.2, N + 1)
     Ub = np.tile([0.3, 0.5, 0.1], (N, 1)) * np.linspace(0.5, 1.0, N)[:, None]
-    ref._qp(pr, Xb, Ub)
+    want = qp_matrices(new, pr, Xb, Ub)
     z = np.zeros(new.nz)
     z[new.ix], z[new.iu] = Xb, Ub
     p = new._par
     p[:8] = [pr.x0, pr.W, pr.dh, pr.dp, *pr.u_prev, pr.p_lim]
     p[8:] = pr.r
-    Px, Ax, q, lo, up, z0, ok = new.data(None, z, 0.0)
-    assert ok[0] == 1.0
-    assert new.n_soft == (4 if h_min > 0 else 3) and Ax.size == new.A.nnz
-    for key, got in (("Px", Px), ("Ax", Ax), ("q", q), ("l", lo), ("u", up)):
-        want = np.clip(seen[key], -1e30, 1e30)
-        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12, err_msg=key)
+    out = new.data(None, z, 0.0)
+    assert out[6][0] == 1.0
+    got = {"P": new.data.dense(0), "A": new.data.dense(1), "q": out[2], "l": out[3], "u": out[4]}
+    assert got["A"].shape[0] == want["A"].shape[0] == 1 + 9 * N - 3 + (4 if h_min > 0 else 3) * N
+    for key in ("P", "A", "q", "l", "u"):
+        np.testing.assert_allclose(got[key], np.clip(want[key], -1e30, 1e30), rtol=1e-10, atol=1e-12, err_msg=key)
 
 
 @pytest.mark.slow
@@ -77,9 +71,9 @@ def test_settings_differing_only_in_weights_share_one_library(model):
 
     if not rc.has_compiler():
         pytest.skip("no C compiler on this machine: no generated library to share")
-    a = _RtiC(model, _settings("rti_c_osqp"))
-    b = _RtiC(model, replace(_settings("rti_c_osqp"), **TUNED).validate())
-    c = _RtiC(model, replace(_settings("rti_c_osqp"), horizon=10).validate())
+    a = _RtiOsqp(model, _settings("rti_c_osqp"))
+    b = _RtiOsqp(model, replace(_settings("rti_c_osqp"), **TUNED).validate())
+    c = _RtiOsqp(model, replace(_settings("rti_c_osqp"), horizon=10).validate())
     assert a.data.fun is b.data.fun and a.data.fun is not c.data.fun
     assert not np.array_equal(a.data.inp[3], b.data.inp[3])
 
@@ -106,10 +100,10 @@ def test_looped_qp_data_equals_the_unrolled_one(model):
 
 @pytest.mark.slow
 def test_first_inputs_equal_rti_osqp_over_states_and_steps(model):
-    """Both variants, fed the same estimates (three heights, four steps each, warm-started), send the
-    same commands to OSQP's tolerance."""
+    """Both variants (the QP data as generated C and on casadi's virtual machine), fed the same estimates
+    (three heights, four steps each, warm-started), send the same commands to OSQP's tolerance."""
     ctrls = [NMPC(Actuator(), Pneumatics(), _settings(v), model=model) for v in ("rti_osqp", "rti_c_osqp")]
-    assert ctrls[1].stats().get("variant") == "rti_c_osqp"
+    assert ctrls[1].stats().get("variant") == "rti_c_osqp" and ctrls[0].backend.mode == "vm"
     for h, p, target in ((2e-3, 9e3, 6e-3), (6e-3, 14e3, 3e-3), (9e-3, 20e3, 12e-3)):
         for c in ctrls:
             c.reset()
@@ -235,10 +229,10 @@ def test_without_a_compiler_warns_once_and_gives_the_same_data(model, monkeypatc
     if not rc.has_compiler():
         pytest.skip("no C compiler on this machine: no generated C to compare the virtual machine with")
     s = _settings("rti_c_osqp")
-    c_path = _RtiC(model, s)
+    c_path = _RtiOsqp(model, s)
     monkeypatch.setattr(rc, "has_compiler", lambda: False)
     with pytest.warns(RuntimeWarning, match="no C compiler") as rec:
-        vm = _RtiC(model, s)
+        vm = _RtiOsqp(model, s)
     assert len(rec) == 1 and vm.mode == "vm" and c_path.mode == "c"
     N = s.horizon
     x0 = model.x_at_height(4e-3, 0.4)

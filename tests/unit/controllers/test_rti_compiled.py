@@ -16,7 +16,8 @@ import pytest
 
 from hbma_ctrl.controllers.mpc import NMPC
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
-from hbma_ctrl.controllers.mpc_solvers import _Fatrop, _Ipopt, _Problem, _RtiOsqp
+from hbma_ctrl.controllers.mpc_solvers import _Fatrop, _Ipopt, _Problem
+from hbma_ctrl.controllers.rti_c import _RtiOsqp
 from hbma_ctrl.controllers.rti_step import _RtiFunction, rti_step_function
 from hbma_ctrl.app.schema import parse_role
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
