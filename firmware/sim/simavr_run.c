@@ -20,6 +20,7 @@
 #include <termios.h>
 #include <unistd.h>
 
+#include "../hal/posix/pty.h"
 #include "avr_adc.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
@@ -86,21 +87,10 @@ int main(int argc, char **argv) {
     avr_load_firmware(avr, &f);
     avr->vcc = avr->avcc = avr->aref = 5000;
 
-    master = posix_openpt(O_RDWR | O_NOCTTY);
-    if (master < 0 || grantpt(master) || unlockpt(master)) {
-        perror("pty");
+    const char *name;
+    int slave;
+    if (open_raw_pty(&master, &slave, &name))
         return 1;
-    }
-    const char *name = ptsname(master);
-    int slave = open(name, O_RDWR | O_NOCTTY); /* kept open: the master never sees a hang-up */
-    struct termios tio;
-    if (slave < 0 || tcgetattr(slave, &tio)) {
-        perror("pty slave");
-        return 1;
-    }
-    cfmakeraw(&tio);
-    tcsetattr(slave, TCSANOW, &tio);
-    fcntl(master, F_SETFL, O_NONBLOCK);
 
     uint32_t flags = 0;
     avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);

@@ -24,6 +24,7 @@
 #include <termios.h>
 #include <unistd.h>
 
+#include "pty.h"
 #include "fw.h"
 #include "hal.h"
 
@@ -158,21 +159,10 @@ int main(int argc, char **argv) {
             fclose(f);
         }
     }
-    master = posix_openpt(O_RDWR | O_NOCTTY);
-    if (master < 0 || grantpt(master) || unlockpt(master)) {
-        perror("pty");
+    const char *name;
+    int slave;
+    if (open_raw_pty(&master, &slave, &name))
         return 1;
-    }
-    const char *name = ptsname(master);
-    int slave = open(name, O_RDWR | O_NOCTTY); /* kept open: the master never sees a hang-up */
-    struct termios tio;
-    if (slave < 0 || tcgetattr(slave, &tio)) {
-        perror("pty slave");
-        return 1;
-    }
-    cfmakeraw(&tio);
-    tcsetattr(slave, TCSANOW, &tio);
-    fcntl(master, F_SETFL, O_NONBLOCK);
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
     sa.sa_handler = on_signal;
