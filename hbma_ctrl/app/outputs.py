@@ -83,8 +83,8 @@ _PKG_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the hbma_c
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM or SIGHUP, raised where the program is so that it ends as on Ctrl-C (outputs kept aside
-    and marked, lock released); ``signum`` is the signal's number."""
+    """An ending signal (SIGINT, SIGTERM, SIGHUP) raised where the program is, so that every one ends it
+    as Ctrl-C does (outputs kept aside and marked, lock released); ``signum`` is the signal's number."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
