@@ -185,7 +185,7 @@ def _version() -> str | None:
 
 
 def _git_commit() -> str | None:
-    # only when the package itself runs from a checkout (a worktree has a .git file, not a folder)
+    # only when the package itself runs from a checkout (a linked checkout has a .git file, not a folder)
     if not (_PKG_ROOT / ".git").exists():
         return None
     try:
