@@ -317,7 +317,7 @@ def test_protocol_command_loads_neither_the_roles_nor_other_commands_modules(tmp
 
 def test_cli_constants_equal_the_constants_they_copy():
     from hbma_ctrl.app.cli import constants as C
-    from hbma_ctrl.core import loopgen as codegen
+    from hbma_ctrl.core import loopgen_c as codegen
     from hbma_ctrl.core import units as U
     from hbma_ctrl.robot import statics
 

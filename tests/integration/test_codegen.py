@@ -17,8 +17,8 @@ from typer.testing import CliRunner
 from cli_checks import one_line_error
 from hbma_ctrl.app.cli.main import app
 from checkout import ROOT
-from hbma_ctrl.core.loopgen import LOG, LIBRARY, LogColumn, LoopSpec, Stage, build_c, compare, find_compiler, \
-    run_c, run_python, write_c
+from hbma_ctrl.core.loopgen import LOG, LIBRARY, LogColumn, LoopSpec, Stage, run_python
+from hbma_ctrl.core.loopgen_c import build_c, compare, find_compiler, run_c, write_c
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.models.fidelity import OUTPUTS
 from hbma_ctrl.sim.plant_step import (

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hbma_ctrl.core.loopgen import bench, find_compiler, read_c
+from hbma_ctrl.core.loopgen_c import bench, find_compiler, read_c
 from checkout import ROOT
 from hbma_ctrl.app.scenario import load_scenario
 from hbma_ctrl.runtime.safety import ZERO_TARGET

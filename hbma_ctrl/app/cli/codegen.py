@@ -64,7 +64,7 @@ def _robot_spec(scn, duration_s: float | None, estimator: str, qp_solver: str | 
 
 
 def _compiler() -> str:
-    from hbma_ctrl.core.loopgen import find_compiler
+    from hbma_ctrl.core.loopgen_c import find_compiler
 
     cc = find_compiler()
     if cc is None:
@@ -75,7 +75,7 @@ def _compiler() -> str:
 def _write_run_metrics(scn, spec, out: Path, qp_solver: str | None) -> dict:
     """metrics.json of the C loop's run in ``out`` (its trajectory.csv): the scene's controller object and
     the estimate's errors (:func:`hbma_ctrl.app.codegen.chamber.loop_run_metrics`); returned too."""
-    from hbma_ctrl.core.loopgen import read_c
+    from hbma_ctrl.core.loopgen_c import read_c
     from hbma_ctrl.app.codegen.chamber import loop_run_metrics
     from hbma_ctrl.app.metrics import write_metrics
 
@@ -103,7 +103,7 @@ def codegen(
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario."""
-    from hbma_ctrl.core.loopgen import bench, write_c
+    from hbma_ctrl.core.loopgen_c import bench, write_c
 
     check_choice("--opt", opt, OPT_FLAGS)
     spec, scn = _spec(config, duration_s, estimator, qp_solver)
@@ -144,7 +144,7 @@ def bench_codegen(
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
-    from hbma_ctrl.core.loopgen import bench, read_c
+    from hbma_ctrl.core.loopgen_c import bench, read_c
     from hbma_ctrl.app.codegen.chamber import scene_reference
 
     check_choice("--opt", opt, OPT_FLAGS)

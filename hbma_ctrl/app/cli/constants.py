@@ -11,9 +11,9 @@ from __future__ import annotations
 
 __all__ = ["OPT_FLAGS", "DEFAULT_OPT", "BOND_RADIUS_MM"]
 
-#: optimisation flags a generated C loop may be built with (``hbma_ctrl.core.loopgen.OPT_FLAGS``)
+#: optimisation flags a generated C loop may be built with (``hbma_ctrl.core.loopgen_c.OPT_FLAGS``)
 OPT_FLAGS = ("-O0", "-O1", "-O2", "-O3")
-#: the default optimisation flag of that build (``hbma_ctrl.core.loopgen.CFLAGS[0]``)
+#: the default optimisation flag of that build (``hbma_ctrl.core.loopgen_c.CFLAGS[0]``)
 DEFAULT_OPT = "-O1"
 #: radius of the glue spot on each membrane of the bonded robot, mm (``hbma_ctrl.robot.statics.BOND_RADIUS``)
 BOND_RADIUS_MM = 1.0

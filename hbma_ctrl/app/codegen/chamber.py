@@ -321,7 +321,7 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray, qp_solver: str 
     """
     from dataclasses import replace
 
-    from hbma_ctrl.core.loopgen import time_summary
+    from hbma_ctrl.core.loopgen_c import time_summary
     from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
     from hbma_ctrl.system.roles import estimator_from_scenario
 

@@ -255,7 +255,7 @@ def scene_reference(scn, spec: LoopSpec, trajectory: np.ndarray) -> dict:
     quantity over all chambers (SI), the scene's step times (us: calls, median, p99, max) and its
     tracking beside the generated run's."""
     from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
-    from hbma_ctrl.core.loopgen import time_summary
+    from hbma_ctrl.core.loopgen_c import time_summary
     from hbma_ctrl.app.scenes.robot_loop import run_closed_loop
     from hbma_ctrl.app.scenes.robot_closed import closed_loop_metrics
 
