@@ -471,3 +471,17 @@ def test_rig_plant_runs_one_rig_period_per_firmware_period_and_stamps_the_rigs_t
     assert rows[0] == "dt_ms,mode,t_s,h_C1_mm,p_C1_kpa"
     assert [r.split(",")[0] for r in rows[1:]] == ["10.000", "4.000", "27.000", "10.000"]
     assert [float(r.split(",")[2]) for r in rows[1:]] == pytest.approx([0.01, 0.02, 0.03, 0.04])
+
+
+@pytest.mark.slow
+def test_a_daemon_whose_port_never_opens_says_nothing_reached_the_rig_and_writes_nothing(tmp_path):
+    from typer.testing import CliRunner
+
+    from cli_checks import one_line_error
+    from hbma_ctrl.app.cli.main import app
+
+    out = tmp_path / "run"
+    res = CliRunner().invoke(app, ["daemon", "daemon_chamber", "--rig", f"serial:{tmp_path / 'no-port'}",
+                                   "--out", str(out)])
+    line = one_line_error(res, "cannot open rig port", "nothing was sent to the rig")
+    assert "safe command was sent" not in line and not list(tmp_path.iterdir())

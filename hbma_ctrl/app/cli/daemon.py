@@ -71,7 +71,10 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     state = state or DaemonState()
     server = None
     loop = None
-    rig = make_rig(cfg, runner)  # before the results directory: a rig that cannot be built leaves nothing behind
+    try:  # before the results directory: a rig that cannot be built leaves nothing behind
+        rig = make_rig(cfg, runner)
+    except _link_errors() as exc:  # the port never opened: nothing, the safe command included, reached the rig
+        raise ValueError(f"rig link: {exc} (nothing was sent to the rig)") from None
     with run_dir(out, command="daemon", argv=argv, scenario_path=cfg.path, overwrite=overwrite) as tmp:
         try:
             monitor = make_monitor(cfg, runner)

@@ -81,6 +81,7 @@ def tune_cmd(
     import optuna
 
     from hbma_ctrl.app.scenario import _text, load_scenario
+    from hbma_ctrl.app.shipped import resolve
     from hbma_ctrl.app.tuning.tune import (
         ROLES,
         TuneSpec,
@@ -108,6 +109,7 @@ def tune_cmd(
                          "held-out seeds must never be used in tuning")
     check_range("--duration-s", duration_s, 0.0, 3600.0, lo_open=True, unit="s")
     workers = cap_workers("--workers", workers)
+    scenario = resolve(scenario)  # a shipped scenario's name reads the shipped file, as load_scenario does
     scn = load_scenario(scenario)
     data = tomllib.loads(_text(scenario))
     if role not in data:

@@ -18,6 +18,7 @@ from pydantic import ValidationError
 from hbma_ctrl.app.daemon.api import is_loopback
 from hbma_ctrl.app.daemon.settings import DaemonConfig
 from hbma_ctrl.app.scenario import load_scenario
+from hbma_ctrl.app.shipped import resolve
 from hbma_ctrl.app.schema.daemon import DaemonTable, parse_api_address
 from hbma_ctrl.app.schema.errors import format_error
 
@@ -58,7 +59,7 @@ def _check_flag(flag: str, value: Any) -> None:
 def load_config(path: str | Path, flags: dict | None = None) -> DaemonConfig:
     """Read CONFIG.toml, apply ``flags`` ({'--speed': 20.0, '--rig': 'serial:/dev/x', ...}; None values
     are not given) and validate. ValueError / FileNotFoundError: one line naming the key or flag."""
-    path = Path(path)
+    path = resolve(path)  # a shipped scenario's name reads the shipped file, as load_scenario does
     scn = load_scenario(path)  # also validates [daemon] as written (one '[daemon] key' line)
     with path.open("rb") as fh:
         raw = dict(tomllib.load(fh).get("daemon") or {})

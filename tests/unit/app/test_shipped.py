@@ -53,3 +53,13 @@ def test_copy_of_an_unknown_name_is_one_error_line_naming_the_closest_shipped_na
     res = CliRunner().invoke(app, ["scenarios", "copy", "trak_height", "--to", str(tmp_path)])
     one_line_error(res, "trak_height", "did you mean 'track_height'")
     assert not list(tmp_path.iterdir())
+
+
+def test_the_daemon_and_tune_read_a_shipped_scenario_by_name(tmp_path, monkeypatch):
+    from hbma_ctrl.app.daemon.config import load_config
+
+    monkeypatch.chdir(tmp_path)
+    assert load_config("daemon_chamber", {"--rig": "sim"}).scenario.name == "daemon_chamber"
+    # tune reads the shipped file past the scenario's checks: its [estimator] table is what is missing
+    res = CliRunner().invoke(app, ["tune", "track_height", "--role", "estimator", "--out", str(tmp_path / "t")])
+    one_line_error(res, "track_height.toml: no [estimator] table to tune")
