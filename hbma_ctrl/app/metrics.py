@@ -139,9 +139,10 @@ def physics_problems(log: Log, material: Material) -> list[str]:
         out.append(f"the gas mass balance is off by {bal:.3g} of the chamber's mass (at most "
                    f"{MASS_BALANCE_TOL:g}): the step is too coarse for the integrator; use rk4 or a smaller [sim] dt_ms")
     lam = _peak(log, "lam") if log["lam"].size else 1.0
-    limit = min(LAM_CHECK, material.lam_max())
+    lock = material.lam_max()  # a root solve for a locking material: once
+    limit = min(LAM_CHECK, lock)
     if not lam <= limit:
-        what = "its locking stretch" if material.lam_max() <= LAM_CHECK else "the range the material laws are checked over"
+        what = "its locking stretch" if lock <= LAM_CHECK else "the range the material laws are checked over"
         out.append(f"the membrane's stretch reached {lam:.3g}, beyond {limit:.3g} ({what})")
     return out
 

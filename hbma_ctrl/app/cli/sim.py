@@ -107,8 +107,13 @@ def protocol(
     with run_dir(out, command="protocol", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = run_protocol(material, tmp, integrator, None if dt_ms is None else U.ms(dt_ms), fidelity, workers,
                             t_inflate_s=t_inflate_s, duration_s=duration_s, plots=not no_plots, progress=True)
+        counts = Counter(r["status"] for r in rows)
+        failed = [r["failed_because"][0] for r in rows if r["status"] == "failed"]
+        if failed:  # kept as a failed run, as `run` keeps a protocol scenario's (the runner loads every role)
+            from hbma_ctrl.app.scenes.runner import check_physics
+
+            check_physics(counts, failed, "summary.csv status")
     wall = time.perf_counter() - t0
-    counts = Counter(r["status"] for r in rows)
     con = show_table(f"protocol ({material}, {integrator}, fidelity {fidelity})",
                      ("trials", "status", "max height (mm)", "max pressure (kPa)", "wall (s)"),
                      [(str(len(rows)), ", ".join(f"{k} {v}" for k, v in counts.items()),

@@ -77,7 +77,7 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
     for tr, log, row in zip(trials, logs, rows):
         problems = physics_problems(log, tr.actuator.material)
         if problems:  # a finished trial whose numbers are not physics is not a result
-            row.update(status="failed", failed_because=problems)
+            row.update(status="failed", failed_because=[f"{tr.name}: {why}" for why in problems])
     with progress_bar(progress) as bar:
         task = bar.add_task("writing trials/*.csv", total=len(trials)) if bar else None
         for log in logs:

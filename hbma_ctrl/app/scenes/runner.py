@@ -31,7 +31,7 @@ from hbma_ctrl.app.scenes.robot import run_scene as run_robot_scene
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import fidelity_for, simulate_trials
 
-__all__ = ["run_scenario", "run_open_loop", "RunFailed", "SCENE_DISPATCH", "LONG_RUN_STEPS", "step_count_note"]
+__all__ = ["run_scenario", "run_open_loop", "RunFailed", "check_physics", "SCENE_DISPATCH", "LONG_RUN_STEPS", "step_count_note"]
 
 #: fixed steps (trials x steps) above which a run says before starting how long it may take
 LONG_RUN_STEPS = 2_000_000
@@ -64,7 +64,7 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
         statuses: dict = {}
         for r in rows:
             statuses[r["status"]] = statuses.get(r["status"], 0) + 1
-        failed = [f"{trials[i].name}: {r['failed_because'][0]}" for i, r in enumerate(rows) if r["status"] == "failed"]
+        failed = [r["failed_because"][0] for r in rows if r["status"] == "failed"]
         plant = {
             "n_trials": len(rows),
             "status": statuses,
@@ -142,9 +142,15 @@ def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:
         n = counts["diverged"]
         which = f"all {n} trials" if n > 1 else "the trial"
         raise RunFailed(f"{which} diverged, status diverged (see the events in metrics.json)")
-    failed = metrics.get("plant", {}).get("failed_checks")
-    if failed:
-        n = counts.get("failed", 1)
-        which = f"{n} of {sum(counts.values())} trials" if sum(counts.values()) > 1 else "the run"
-        raise RunFailed(f"{which} failed the physics checks (metrics.json plant.failed_checks); {failed[0]}")
+    check_physics(counts, metrics.get("plant", {}).get("failed_checks") or [], "metrics.json plant.failed_checks")
     return metrics
+
+
+def check_physics(statuses: dict, failed: list[str], where: str) -> None:
+    """:class:`RunFailed` naming the first of ``failed`` (the reasons of the trials whose status is
+    'failed', from :func:`hbma_ctrl.app.metrics.physics_problems`) and ``where`` they all are; nothing
+    when none failed. ``statuses``: trial status -> count."""
+    if failed:
+        total = sum(statuses.values())
+        which = f"{len(failed)} of {total} trials" if total > 1 else "the run"
+        raise RunFailed(f"{which} failed the physics checks ({where}); {failed[0]}")

@@ -55,3 +55,21 @@ def test_a_diverged_run_keeps_its_own_status_and_gets_no_second_reason():
     log = _log(0.5)
     log.status = "diverged"
     assert physics_problems(log, NeoHookean()) == []
+
+
+def test_the_protocol_command_keeps_a_run_with_a_failed_trial_as_failed_and_exits_1(tmp_path, monkeypatch):
+    import hbma_ctrl.app.cli.sim as cli_sim
+
+    def rows(material, out_dir, *a, **k):
+        (out_dir / "summary.csv").write_text("status\nok\nfailed\n")
+        return [{"status": "ok", "max_height_mm": 1.0, "max_pressure_kpa": 1.0},
+                {"status": "failed", "max_height_mm": 1.0, "max_pressure_kpa": 1.0,
+                 "failed_because": ["t3_r7.5_m0_s20: the gas mass balance is off by 0.05"]}]
+
+    monkeypatch.setattr(cli_sim, "run_protocol", rows)
+    res = CliRunner().invoke(app, ["protocol", "--no-plots", "--out", str(tmp_path / "p")])
+    assert res.exit_code == 1, res.output
+    line = res.output.strip().splitlines()[-1]
+    assert line.startswith("error: 1 of 2 trials failed the physics checks (summary.csv status); t3_r7.5_m0_s20")
+    (kept,) = tmp_path.glob("p.failed-*")
+    assert not (tmp_path / "p").exists() and (kept / "summary.csv").exists()
