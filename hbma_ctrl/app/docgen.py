@@ -62,7 +62,9 @@ def cli_page() -> str:
         path = ctx.command_path
         if parent is not None:  # the page's title stands for the root command
             out.append(f"{'#' * min(1 + path.count(' '), 4)} `{path}`\n")
-        text = cmd.get_usage(ctx) + ("\n\n" + inspect.cleandoc(cmd.help) if cmd.help else "")
+        # the usage line built here, not by click's formatter, which wraps it at the terminal's width
+        usage = f"Usage: {path} {' '.join(cmd.collect_usage_pieces(ctx))}"
+        text = usage + ("\n\n" + inspect.cleandoc(cmd.help) if cmd.help else "")
         out.append(f"```text\n{text}\n```\n")
         rows = [r for r in (p.get_help_record(ctx) for p in cmd.get_params(ctx)) if r is not None]
         if rows:

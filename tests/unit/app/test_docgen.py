@@ -63,3 +63,10 @@ def test_protocol_page_refills_its_blocks_and_refuses_an_unknown_one():
     assert out.endswith("```\n<!-- end: example -->\nend\n") and "anything" not in out
     with pytest.raises(ValueError, match="no generator for block 'nope'"):
         docgen.protocol_page("<!-- generated: nope -->\nx\n<!-- end: nope -->\n")
+
+
+def test_cli_page_does_not_depend_on_the_terminal_width(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "40")
+    narrow = docgen.cli_page()
+    monkeypatch.setenv("COLUMNS", "250")
+    assert docgen.cli_page() == narrow
