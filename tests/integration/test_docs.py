@@ -3,15 +3,15 @@ link and anchor, and the site's strict build.
 
 Code blocks, by their language:
 
-- ``python``: run in page order in one namespace per page, in a scratch folder (one process a page);
-- ``bash`` (also ``sh``, ``shell``): each run with ``bash -eo pipefail`` in a scratch folder the page's
-  blocks share;
+- ``python``: run in one namespace per page;
+- ``bash`` (also ``sh``, ``shell``): each block run with ``bash -eo pipefail``;
 - ``toml``: must parse, and a block holding a ``[scenario]`` table is a whole scenario file that
   must validate;
 - anything else (``text`` for output, ``c``, ``json``, ...) is shown, not run; ``console`` and ``py``
   are refused (write ``bash`` or ``python`` to run, ``text`` to show).
 
-A python or bash block that truly cannot run here (hardware, a process that runs until stopped) is
+A page's python and bash blocks run in page order in one scratch folder (one process a page), as a
+reader following the page would. A python or bash block that truly cannot run here (hardware, a process that runs until stopped) is
 preceded by the line ``<!-- docs: not run: <reason> -->``; the reason is required and the blocks not
 run are counted in a warning. Each block gets HBMA_DOCS_BLOCK_TIMEOUT seconds (default 60); a
 failure names the page and the block's line.
@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -89,9 +88,9 @@ def blocks(page: Path) -> list[Block]:
     return out
 
 
-def _params(lang: str) -> list:
-    """One pytest param per page with a block that ``lang`` runs (pages found at collection)."""
-    return [pytest.param(p, id=_rel(p)) for p in _pages() if any(RUN.get(b.lang) == lang for b in blocks(p))]
+def _params(*langs: str) -> list:
+    """One pytest param per page with a block of one of ``langs`` (pages found at collection)."""
+    return [pytest.param(p, id=_rel(p)) for p in _pages() if any(RUN.get(b.lang) in langs for b in blocks(p))]
 
 
 def _env() -> dict:
@@ -103,7 +102,7 @@ def _env() -> dict:
     return env
 
 
-def _run(cmd: list[str], cwd: Path, timeout: float, what: str, code: str = "") -> None:
+def _run(cmd: list[str], cwd: Path, timeout: float, what: str) -> None:
     """Run ``cmd`` in its own process group; a failure or a timeout names ``what`` with the output's tail."""
     proc = subprocess.Popen(cmd, cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
@@ -112,11 +111,14 @@ def _run(cmd: list[str], cwd: Path, timeout: float, what: str, code: str = "") -
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         out, err = proc.communicate()
-        pytest.fail(f"{what}: timed out after {timeout:g} s\n--- block ---\n{code}--- stdout ---\n{out[-2000:]}"
-                    f"\n--- stderr ---\n{err[-3000:]}", pytrace=False)
+        pytest.fail(f"{what}: timed out after {timeout:g} s\n--- stdout ---\n{out[-2000:]}\n--- stderr ---\n{err[-3000:]}",
+                    pytrace=False)
     if proc.returncode != 0:
-        pytest.fail(f"{what}: exit code {proc.returncode}\n--- block ---\n{code}--- stdout ---\n{out[-2000:]}"
-                    f"\n--- stderr ---\n{err[-3000:]}", pytrace=False)
+        head = next((ln[8:] for ln in reversed(err.splitlines()) if ln.startswith("FAILED: ")), None)
+        if head:  # the blocks' driver said which block failed and showed it
+            pytest.fail(f"{head}\n{err[-5000:]}", pytrace=False)
+        pytest.fail(f"{what}: exit code {proc.returncode}\n--- stdout ---\n{out[-2000:]}\n--- stderr ---\n{err[-3000:]}",
+                    pytrace=False)
 
 
 # --------------------------------------------------------------------------------------------- the blocks' form
@@ -163,53 +165,57 @@ def test_toml_blocks_parse_and_scenarios_validate(page, capsys):
 
 # --------------------------------------------------------------------------------------------- running them
 DRIVER = """
-import json, signal, sys, traceback
+import json, os, signal, subprocess, sys, traceback
 blocks = json.load(open(sys.argv[1]))
 ns = {"__name__": "__main__"}
+
 def _timeout(signum, frame):
     raise TimeoutError("the block timed out")
+
+def _failed(b, why, out="", err=""):
+    print(f"--- block ---\\n{b['code']}--- stdout ---\\n{out[-2000:]}\\n--- stderr ---\\n{err[-3000:]}", file=sys.stderr)
+    print(f"FAILED: the {b['lang']} block at {b['page']}:{b['line']}: {why}", file=sys.stderr)
+    sys.exit(1)
+
 signal.signal(signal.SIGALRM, _timeout)
 for b in blocks:
+    if b["lang"] == "bash":
+        p = subprocess.Popen(["bash", "-eo", "pipefail", "-c", b["code"]], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, start_new_session=True)
+        try:
+            out, err = p.communicate(timeout=b["timeout"])
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            out, err = p.communicate()
+            _failed(b, f"timed out after {b['timeout']:g} s", out, err)
+        if p.returncode:
+            _failed(b, f"exit code {p.returncode}", out, err)
+        continue
     signal.setitimer(signal.ITIMER_REAL, b["timeout"])
     try:
         # the block's code at its own lines of the page: a traceback names the page and the line
         exec(compile("\\n" * b["line"] + b["code"], b["page"], "exec"), ns)
     except BaseException:
         signal.setitimer(signal.ITIMER_REAL, 0)
-        traceback.print_exc()
-        print(f"FAILED: the python block at {b['page']}:{b['line']}", file=sys.stderr)
-        sys.exit(1)
+        _failed(b, "raised", err=traceback.format_exc())
     signal.setitimer(signal.ITIMER_REAL, 0)
 """
 
 
 @pytest.mark.subprocess
 @pytest.mark.slow
-@pytest.mark.parametrize("page", _params("python"))
-def test_python_blocks_run_in_page_order(page, tmp_path):
-    run = [b for b in blocks(page) if RUN.get(b.lang) == "python" and b.not_run is None]
+@pytest.mark.parametrize("page", _params("python", "bash"))
+def test_code_blocks_run_in_page_order(page, tmp_path):
+    """The page's python blocks in one namespace and its bash blocks, in page order, in one scratch folder."""
+    run = [b for b in blocks(page) if RUN.get(b.lang) in ("python", "bash") and b.not_run is None]
     if not run:
-        pytest.skip("every python block of the page is marked not run")
+        pytest.skip("every block of the page is marked not run")
     spec = tmp_path / ".blocks.json"
-    spec.write_text(json.dumps([{"page": b.page, "line": b.line, "code": b.code, "timeout": BLOCK_TIMEOUT}
-                                for b in run]))
+    spec.write_text(json.dumps([{"page": b.page, "line": b.line, "lang": RUN[b.lang], "code": b.code,
+                                 "timeout": BLOCK_TIMEOUT} for b in run]))
     driver = tmp_path / ".driver.py"
     driver.write_text(DRIVER)
-    _run([sys.executable, str(driver), str(spec)], tmp_path, BLOCK_TIMEOUT * len(run) + 30,
-         f"{_rel(page)}: the python blocks at lines {', '.join(str(b.line) for b in run)}")
-
-
-@pytest.mark.subprocess
-@pytest.mark.slow
-@pytest.mark.parametrize("page", _params("bash"))
-def test_bash_blocks_run(page, tmp_path):
-    run = [b for b in blocks(page) if RUN.get(b.lang) == "bash" and b.not_run is None]
-    if not run:
-        pytest.skip("every bash block of the page is marked not run")
-    bash = shutil.which("bash")
-    assert bash, "bash is not on PATH"
-    for b in run:
-        _run([bash, "-eo", "pipefail", "-c", b.code], tmp_path, BLOCK_TIMEOUT, f"{b.where}: the bash block", b.code)
+    _run([sys.executable, str(driver), str(spec)], tmp_path, BLOCK_TIMEOUT * len(run) + 30, _rel(page))
 
 
 # --------------------------------------------------------------------------------------------- links
