@@ -22,7 +22,13 @@ from typer.testing import CliRunner
 from checkout import ROOT
 from cli_checks import one_line_error
 from hbma_ctrl.app.cli.main import app
-from hbma_ctrl.app.daemon.firmware import FirstOrderPlant, HostBoard, RealtimeBoard, build_firmware
+from hbma_ctrl.app.daemon.firmware import (
+    FirstOrderPlant,
+    HostBoard,
+    RealtimeBoard,
+    build_firmware,
+    open_fake_rig,
+)
 from hbma_ctrl.system.rigio import Readings, RigIO, RigLinkError, safe_u
 from hbma_ctrl.system.serial_link import (
     PROTOCOL_VERSION,
@@ -85,30 +91,17 @@ def host_exe(tmp_path_factory):
     return build_firmware("host", tmp_path_factory.mktemp("fw"))
 
 
-class Firmware(RealtimeBoard):
+def Firmware(exe: Path, n: int = 1, period: float = 0.01, plant=None, **board_kw) -> RealtimeBoard:
     """The host board with ``n`` chambers sampling every ``period`` s, stepped in real time against
     ``plant`` (default :class:`FirstOrderPlant`); ``board_kw`` go to :class:`HostBoard`."""
-
-    def __init__(self, exe: Path, n: int = 1, period: float = 0.01, plant=None, **board_kw) -> None:
-        super().__init__(HostBoard(exe, n, period_ticks=round(period / 100e-6), **board_kw),
-                         plant if plant is not None else FirstOrderPlant(n))
-        assert _wait(lambda: self.out is not None)
-
-    @property
-    def port(self) -> str:
-        return self.board.port
+    fw = RealtimeBoard(HostBoard(exe, n, period_ticks=round(period / 100e-6), **board_kw),
+                       plant if plant is not None else FirstOrderPlant(n))
+    assert _wait(lambda: fw.out is not None)
+    return fw
 
 
-def _open(exe: Path, n: int = 1, period: float = 0.01, plant=None, *, board_kw: dict | None = None,
-          **rig_kw) -> tuple[Firmware, SerialRig]:
-    """A firmware and a SerialRig on it (close the rig, then the firmware)."""
-    fw = Firmware(exe, n, period, plant, **(board_kw or {}))
-    try:
-        rig = SerialRig(fw.port, n, sample_period=period, **rig_kw)
-    except Exception:
-        fw.close()
-        raise
-    return fw, rig
+def _open(exe: Path, n: int = 1, period: float = 0.01, plant=None, **rig_kw) -> tuple[RealtimeBoard, SerialRig]:
+    return open_fake_rig(n, period, plant, exe=exe, **rig_kw)
 
 
 @pytest.fixture
@@ -306,7 +299,7 @@ def test_fresh_flags_are_per_chamber_and_na_keeps_the_older_value(host_exe):
         fw.close()
 
 
-def _raw_session(fw: Firmware) -> serial.Serial:
+def _raw_session(fw: RealtimeBoard) -> serial.Serial:
     """A bare pyserial session with the firmware: HELLO sent, VER read."""
     s = serial.Serial(fw.port, 115200, timeout=TIMEOUT)
     s.write(encode_line("HELLO", 0, PROTOCOL_VERSION))

@@ -3,8 +3,9 @@
 :func:`build_firmware` runs the firmware's Makefile. :class:`HostBoard` runs the POSIX host build in a
 subprocess: its UART is a pty a host opens as it would a USB serial device, and its timer, ADC and
 outputs are driven over a plant channel (firmware/hal/posix/main.c); :func:`run_realtime` steps it in
-real time against a plant ``plant(u (3, n), dt s) -> p (n,) Pa`` (in a thread: :class:`RealtimeBoard`). For tests the board injects
-firmware defects (:data:`DEFECTS`), corrupts or loses lines it sends, and vanishes and reappears on a
+real time against a plant ``plant(u (3, n), dt s) -> p (n,) Pa`` (in a thread: :class:`RealtimeBoard`;
+with a host's :class:`~hbma_ctrl.system.serial_link.SerialRig` on its port: :func:`open_fake_rig`).
+For tests the board injects firmware defects (:data:`DEFECTS`), corrupts or loses lines it sends, and vanishes and reappears on a
 new pty (a re-plug) with a symlink kept pointing at it, as udev's ``/dev/serial/by-id`` names do.
 
 Plants: :class:`FirstOrderPlant` (one first-order chamber per column) and :class:`RigPlant` (a daemon
@@ -16,8 +17,10 @@ microcontroller's rig would be, with a truth log the host never sees. ``hbma-ctr
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -27,9 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from hbma_ctrl.core.units import to_kpa, to_mm, to_ms
+from hbma_ctrl.system.serial_link import SerialRig
 
 __all__ = ["FIRMWARE_DIR", "DEFECTS", "BoardOutputs", "HostBoard", "build_firmware", "run_realtime",
-           "RealtimeBoard", "FirstOrderPlant", "RigPlant", "config_plant"]
+           "RealtimeBoard", "open_fake_rig", "FirstOrderPlant", "RigPlant", "config_plant"]
 
 #: the firmware sources, shipped with the package (``hbma_ctrl/firmware`` links to the repository's ``firmware/``)
 FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
@@ -229,11 +233,14 @@ def run_realtime(board: HostBoard, plant, stop: threading.Event, max_behind: int
 class RealtimeBoard:
     """``board`` (a :class:`HostBoard`) driven by :func:`run_realtime` against ``plant`` in a thread
     from now on (``max_behind``, ``on_tick`` as there); ``out`` is its newest :class:`BoardOutputs`
-    (None before the first round). :meth:`close` stops the thread, then the board."""
+    (None before the first round). The board's port and knobs are reachable on it too (``port``,
+    ``corrupt_next``, ``vanish``, ...). :meth:`close` stops the thread, then the board, then removes
+    ``work`` (a folder the board was built in), if given."""
 
     def __init__(self, board: HostBoard, plant, max_behind: int = 10,
-                 on_tick: Callable[[BoardOutputs], None] | None = None) -> None:
+                 on_tick: Callable[[BoardOutputs], None] | None = None, work: Path | None = None) -> None:
         self.board = board
+        self.work = work
         self.out: BoardOutputs | None = None
         self._stop = threading.Event()
 
@@ -250,11 +257,39 @@ class RealtimeBoard:
         """Whether the board still runs (its driver stops when the board does)."""
         return self._thread.is_alive()
 
+    def __getattr__(self, name: str):
+        if name.startswith("_") or name == "board":  # not set yet: no lookup on a missing board
+            raise AttributeError(name)
+        return getattr(self.board, name)
+
     def close(self) -> None:
         """Stop driving the board and close it."""
         self._stop.set()
         self._thread.join(timeout=10.0)
         self.board.close()
+        if self.work is not None:
+            shutil.rmtree(self.work, ignore_errors=True)
+
+
+def open_fake_rig(n: int = 1, sample_period: float = 0.01, plant=None, *, exe: Path | None = None,
+                  board_kw: dict | None = None, **rig_kw) -> tuple[RealtimeBoard, SerialRig]:
+    """Both ends of a serial rig link without a rig: the reference firmware's host board (``exe``, else
+    built into a temporary folder) with ``n`` chambers sampling every ``sample_period`` s (a whole
+    number of 0.1 ms ticks), stepped in real time against ``plant`` (default :class:`FirstOrderPlant`),
+    and a :class:`~hbma_ctrl.system.serial_link.SerialRig` on its port (``rig_kw``; ``board_kw`` go to
+    :class:`HostBoard`). Returns (board, rig); close the rig, then the board."""
+    work = None
+    if exe is None:
+        work = Path(tempfile.mkdtemp(prefix="hbma-rig-"))
+        exe = build_firmware("host", work)
+    board = HostBoard(exe, n, period_ticks=round(sample_period / 100e-6), **(board_kw or {}))
+    fw = RealtimeBoard(board, plant if plant is not None else FirstOrderPlant(n), work=work)
+    try:
+        rig = SerialRig(fw.port, n, sample_period=sample_period, **rig_kw)
+    except Exception:
+        fw.close()
+        raise
+    return fw, rig
 
 
 class FirstOrderPlant:
