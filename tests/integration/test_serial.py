@@ -94,10 +94,8 @@ def host_exe(tmp_path_factory):
 def Firmware(exe: Path, n: int = 1, period: float = 0.01, plant=None, **board_kw) -> RealtimeBoard:
     """The host board with ``n`` chambers sampling every ``period`` s, stepped in real time against
     ``plant`` (default :class:`FirstOrderPlant`); ``board_kw`` go to :class:`HostBoard`."""
-    fw = RealtimeBoard(HostBoard(exe, n, period_ticks=round(period / 100e-6), **board_kw),
-                       plant if plant is not None else FirstOrderPlant(n))
-    assert _wait(lambda: fw.out is not None)
-    return fw
+    return RealtimeBoard(HostBoard(exe, n, period_ticks=round(period / 100e-6), **board_kw),
+                         plant if plant is not None else FirstOrderPlant(n))
 
 
 def _open(exe: Path, n: int = 1, period: float = 0.01, plant=None, **rig_kw) -> tuple[RealtimeBoard, SerialRig]:

@@ -233,7 +233,7 @@ def run_realtime(board: HostBoard, plant, stop: threading.Event, max_behind: int
 class RealtimeBoard:
     """``board`` (a :class:`HostBoard`) driven by :func:`run_realtime` against ``plant`` in a thread
     from now on (``max_behind``, ``on_tick`` as there); ``out`` is its newest :class:`BoardOutputs`
-    (None before the first round). The board's port and knobs are reachable on it too (``port``,
+    (from the start: no ticks yet). The board's port and knobs are reachable on it too (``port``,
     ``corrupt_next``, ``vanish``, ...). :meth:`close` stops the thread, then the board, then removes
     ``work`` (a folder the board was built in), if given."""
 
@@ -241,7 +241,7 @@ class RealtimeBoard:
                  on_tick: Callable[[BoardOutputs], None] | None = None, work: Path | None = None) -> None:
         self.board = board
         self.work = work
-        self.out: BoardOutputs | None = None
+        self.out = board.tick(0)
         self._stop = threading.Event()
 
         def seen(out: BoardOutputs) -> None:
