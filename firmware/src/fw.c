@@ -7,8 +7,8 @@
 
 #define MAX_TOKENS (3 * FW_MAX_N + 2)
 
-uint16_t fw_crc16(const uint8_t *data, uint16_t len) {
-    uint16_t crc = 0xFFFFu;
+/* CRC-16 (poly 0x1021) of len bytes from the initial value crc. */
+static uint16_t crc16_from(uint16_t crc, const uint8_t *data, uint16_t len) {
     while (len--) {
         crc ^= (uint16_t)((uint16_t)*data++ << 8);
         for (uint8_t b = 0; b < 8; b++) {
@@ -17,6 +17,12 @@ uint16_t fw_crc16(const uint8_t *data, uint16_t len) {
     }
     return crc;
 }
+
+uint16_t fw_crc16(const uint8_t *data, uint16_t len) { return crc16_from(0xFFFFu, data, len); }
+
+#ifdef FW_DEFECTS
+uint16_t fw_defects;
+#endif
 
 /* ---- outputs (caller is the tick or holds the critical section) ---------------------------- */
 
@@ -33,7 +39,7 @@ static void latch(fw_t *fw) {
 static void apply_valves(fw_t *fw) {
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
         for (uint8_t k = 0; k < 2; k++) {
-            hal_valve(i, k, fw->phase < fw->on_ticks[i][k]);
+            hal_valve(i, k, fw->phase < fw->on_ticks[i][k] && !(FW_DEFECT(FW_D_STUCK_INLET) && i == 0 && k == 0));
         }
     }
 }
@@ -109,7 +115,7 @@ void fw_init(fw_t *fw, const fw_cfg_t *cfg) {
 
 void fw_tick(fw_t *fw) {
     if (fw->silent_ticks < 0xFFFFFFFFu) fw->silent_ticks++;
-    if (fw->mode == FW_RUN && fw->silent_ticks > fw->cfg.timeout_ticks) {
+    if (fw->mode == FW_RUN && fw->silent_ticks > fw->cfg.timeout_ticks && !FW_DEFECT(FW_D_NO_WATCHDOG)) {
         go_safe_now(fw, FW_NO_SEQ); /* the host fell silent */
     }
     if (fw->phase == 0) {
@@ -170,12 +176,17 @@ static void start(fw_t *fw, line_t *l, const char *kind) {
     put(l, kind);
     put(l, " ");
     put_u32(l, fw->tx_seq, 1);
-    fw->tx_seq = (uint16_t)(fw->tx_seq + 1u); /* a dropped line still uses its SEQ: the host sees a gap */
+    if (!(FW_DEFECT(FW_D_SEQ_REPEAT) && kind[0] == 'H')) {
+        fw->tx_seq = (uint16_t)(fw->tx_seq + 1u); /* a dropped line still uses its SEQ: the host sees a gap */
+    }
 }
 
 static void finish(fw_t *fw, line_t *l) {
     static const char hex[] = "0123456789ABCDEF";
     uint16_t c = fw_crc16((const uint8_t *)l->b, l->len);
+#ifdef FW_DEFECTS
+    if (FW_DEFECT(FW_D_CRC)) c = crc16_from(0u, (const uint8_t *)l->b, l->len);
+#endif
     l->b[l->len++] = '*';
     for (int8_t s = 12; s >= 0; s -= 4) l->b[l->len++] = hex[(c >> s) & 0xFu];
     l->b[l->len++] = '\n';
@@ -211,11 +222,13 @@ void fw_poll(fw_t *fw) {
     if (seq == FW_NO_SEQ) {
         put(&l, "-");
     } else {
-        put_u32(&l, (uint32_t)seq, 1);
+        put_u32(&l, (uint32_t)seq + (FW_DEFECT(FW_D_HELD) ? 1u : 0u), 1);
     }
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
         uint8_t na;
         int32_t p = fw_pressure(&fw->cal[i], raw[i], &na);
+        if (FW_DEFECT(FW_D_INVERTED)) p = -p;
+        if (FW_DEFECT(FW_D_ZERO)) p += 2500;
         put(&l, " ");
         if (na) {
             put(&l, "NA");
@@ -224,7 +237,7 @@ void fw_poll(fw_t *fw) {
         }
     }
     finish(fw, &l);
-    if (hb) {
+    if (hb && !FW_DEFECT(FW_D_NO_HEARTBEAT)) {
         start(fw, &l, "HB");
         put(&l, mode == FW_RUN ? " RUN" : " SAFE");
         finish(fw, &l);
@@ -268,13 +281,14 @@ static void on_hello(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
     line_t l;
     start(fw, &l, "VER");
     put(&l, " ");
-    put_u32(&l, FW_PROTOCOL_VERSION, 1);
+    put_u32(&l, FW_DEFECT(FW_D_VERSION) ? 3u : FW_PROTOCOL_VERSION, 1);
     put(&l, " ");
     put_u32(&l, fw->cfg.n, 1);
     put(&l, " ");
-    put_u32(&l, fw->cfg.tick_us * fw->cfg.period_ticks, 1);
+    uint32_t period_us = fw->cfg.tick_us * fw->cfg.period_ticks;
+    put_u32(&l, FW_DEFECT(FW_D_PERIOD) ? period_us + period_us / 4u : period_us, 1);
     finish(fw, &l);
-    fw->session = (ntok == 3 && strcmp(tok[2], "2") == 0);
+    fw->session = (ntok == 3 && strcmp(tok[2], "2") == 0 && !FW_DEFECT(FW_D_VERSION));
     fw->rx_expect = (int32_t)((seq + 1u) & 0xFFFFu);
 }
 
@@ -319,7 +333,7 @@ static uint8_t on_cal(fw_t *fw, char **tok, uint8_t ntok) {
 }
 
 static void handle_line(fw_t *fw, char *s, uint16_t len) {
-    if (len && s[len - 1] == '\r') s[--len] = '\0';
+    if (len && s[len - 1] == '\r' && !FW_DEFECT(FW_D_NO_CRLF)) s[--len] = '\0';
     if (len < 5 || s[len - 5] != '*') {
         fw->stats.bad_lines++;
         return;
@@ -334,7 +348,7 @@ static void handle_line(fw_t *fw, char *s, uint16_t len) {
         want = (uint16_t)((want << 4) | (uint8_t)h);
     }
     len -= 5;
-    if (fw_crc16((const uint8_t *)s, len) != want) {
+    if (fw_crc16((const uint8_t *)s, len) != want && !FW_DEFECT(FW_D_NO_CRC_CHECK)) {
         fw->stats.crc_errors++;
         return;
     }

@@ -40,6 +40,29 @@
 #define FW_NVM_BYTES_PER_CH 6 /* zero (u16), gain (i16), CRC-16 of those four bytes (u16) */
 
 enum { FW_PUMP = 0, FW_INLET = 1, FW_OUTLET = 2 };
+
+/* Defects a host build (FW_DEFECTS defined: the POSIX board only) can inject, one bit each, to show
+ * what a bring-up check catches; every other build compiles them out (FW_DEFECT(d) is 0). */
+enum {
+    FW_D_CRC = 1u << 0,          /* sends a checksum of another CRC-16 variant (init 0) */
+    FW_D_STUCK_INLET = 1u << 1,  /* chamber 0's inlet never opens */
+    FW_D_INVERTED = 1u << 2,     /* pressures sent with the wrong sign */
+    FW_D_NO_WATCHDOG = 1u << 3,  /* host silence never makes it safe */
+    FW_D_PERIOD = 1u << 4,       /* VER declares a sample period 25 % longer than it samples */
+    FW_D_NO_HEARTBEAT = 1u << 5, /* no HB lines */
+    FW_D_SEQ_REPEAT = 1u << 6,   /* HB lines reuse the next P line's SEQ */
+    FW_D_NO_CRLF = 1u << 7,      /* a '\r' before the newline stays in the line (it fails its checksum) */
+    FW_D_ZERO = 1u << 8,         /* pressures 2.5 kPa high (a sensor zero off) */
+    FW_D_NO_CRC_CHECK = 1u << 9, /* acts on host lines whatever their checksum */
+    FW_D_HELD = 1u << 10,        /* P lines name the SEQ after the held command's */
+    FW_D_VERSION = 1u << 11      /* answers HELLO with protocol version 3 */
+};
+#ifdef FW_DEFECTS
+extern uint16_t fw_defects; /* the defects injected, FW_D_* bits */
+#define FW_DEFECT(d) (fw_defects & (d))
+#else
+#define FW_DEFECT(d) 0
+#endif
 enum { FW_SAFE = 0, FW_RUN = 1 };
 
 /* Pressure calibration of one chamber: p [Pa] = (counts - zero) * gain / 1000, gain in mPa/count. */

@@ -886,7 +886,7 @@ def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_t
     cfg_path = _write_config(tmp_path, CHAMBER_FILE, replace=RELAXED)
     truth = tmp_path / "truth.csv"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}  # this checkout's package
-    fw = subprocess.Popen([sys.executable, "-m", "hbma_ctrl.app.daemon.firmware", "--config", str(cfg_path),
+    fw = subprocess.Popen([sys.executable, "-m", "hbma_ctrl", "rig", "emulate", "--config", str(cfg_path),
                            "--truth-log", str(truth)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                           text=True, env=env)
     try:

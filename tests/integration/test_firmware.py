@@ -15,7 +15,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -24,8 +23,7 @@ import pytest
 import serial
 
 from checkout import ROOT
-from hbma_ctrl.app.cli.rig import HostBoard, build_firmware, run_realtime
-from hbma_ctrl.app.daemon.firmware import FirstOrderPlant
+from hbma_ctrl.app.daemon.firmware import FirstOrderPlant, HostBoard, RealtimeBoard, build_firmware
 from hbma_ctrl.system.serial_link import Message, SerialRig, decode_line, encode_line
 
 pytestmark = pytest.mark.compiling
@@ -240,13 +238,10 @@ def _hold(rig: SerialRig, u: np.ndarray, count: int):
 
 
 def test_serial_rig_closes_the_loop_through_the_host_board(host_exe):
-    board = HostBoard(host_exe, n=2)
-    stop = threading.Event()
-    driver = threading.Thread(target=run_realtime, args=(board, FirstOrderPlant(2), stop), daemon=True)
-    driver.start()
+    rt = RealtimeBoard(HostBoard(host_exe, n=2), FirstOrderPlant(2))
     rig = None
     try:
-        rig = SerialRig(board.port, 2, sample_period=0.01, link_timeout=TIMEOUT, handshake_timeout=TIMEOUT)
+        rig = SerialRig(rt.board.port, 2, sample_period=0.01, link_timeout=TIMEOUT, handshake_timeout=TIMEOUT)
         assert rig.sample_period == pytest.approx(0.01)
         r = _hold(rig, np.array([[0.6, 0.0], [1.0, 0.0], [0.0, 1.0]]), 30)
         assert r.p[0] > 1000.0 and abs(r.p[1]) <= 7  # chamber 0 fills, chamber 1 stays vented
@@ -255,9 +250,7 @@ def test_serial_rig_closes_the_loop_through_the_host_board(host_exe):
     finally:
         if rig is not None:
             rig.close()
-        stop.set()
-        driver.join(timeout=TIMEOUT)
-        board.close()
+        rt.close()
 
 
 def _avr_size(elf, mcu: str) -> tuple[int, int]:

@@ -1,56 +1,295 @@
-"""A fake rig firmware speaking the line protocol (:mod:`hbma_ctrl.system.serial_link`) on a pty.
+"""The reference firmware's emulated boards (``firmware/``) and the plants they run.
 
-:class:`FakeFirmware` opens a pseudo-terminal (``os.openpty``); the host opens its slave path with
-pyserial as it would a USB serial device. A thread plays the microcontroller: at each sample instant
-it steps a plant over the period just ended with the command it held, streams a ``P`` line naming
-that command, then latches the newest command received for the next period (a command arriving
-mid-period waits for the next sample instant, as a timer interrupt would apply it; ``SAFE`` acts at
-once); it sends ``HB`` every heartbeat period,
-obeys ``HELLO``/``CMD``/``SAFE``/``HB`` lines and goes safe by itself when the host falls silent.
-The plant is :class:`FirstOrderPlant` or any callable ``plant(u (3, n), dt s) -> p (n,) Pa`` (e.g. a
-mismatched rig model, :class:`RigPlant`); a plant with a ``t`` attribute (its own time, s) has its
-samples stamped with it, else they carry the firmware's clock. For tests it can corrupt checksums,
-drop lines, stop its heartbeat, vanish (close the pty, as an unplugged cable) and reappear on a new pty; with ``link`` it keeps a symlink
-pointing at its current pty (as udev's ``/dev/serial/by-id`` names), so a host configured with the
-link finds it again.
+:func:`build_firmware` runs the firmware's Makefile. :class:`HostBoard` runs the POSIX host build in a
+subprocess: its UART is a pty a host opens as it would a USB serial device, and its timer, ADC and
+outputs are driven over a plant channel (firmware/hal/posix/main.c); :func:`run_realtime` steps it in
+real time against a plant ``plant(u (3, n), dt s) -> p (n,) Pa`` (in a thread: :class:`RealtimeBoard`;
+with a host's :class:`~hbma_ctrl.system.serial_link.SerialRig` on its port: :func:`open_fake_rig`).
+For tests the board injects firmware defects (:data:`DEFECTS`), corrupts or loses lines it sends, and vanishes and reappears on a
+new pty (a re-plug) with a symlink kept pointing at it, as udev's ``/dev/serial/by-id`` names do.
 
-Manual try: ``python -m hbma_ctrl.app.daemon.firmware --n 1 --period-ms 10 [--link /tmp/hbma-rig]``
-prints the port to give the daemon's serial backend, then runs until Ctrl-C. With ``--config
-CONFIG.toml [--truth-log FILE]`` its plant is the configuration's simulated (mismatched) rig
-(:class:`RigPlant`), in its own process as a microcontroller would be, and the log keeps the rig's
-truth, which the host never sees.
+Plants: :class:`FirstOrderPlant` (one first-order chamber per column) and :class:`RigPlant` (a daemon
+configuration's simulated, mismatched rig, :func:`config_plant`), in the board's process as a
+microcontroller's rig would be, with a truth log the host never sees. ``hbma-ctrl rig emulate``
+(:mod:`hbma_ctrl.app.cli.rig`) runs them.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import select
-import signal
-import sys
+import shutil
+import socket
+import subprocess
+import tempfile
 import threading
 import time
-import tty
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from hbma_ctrl.system.rigio import safe_u
-from hbma_ctrl.system.serial_link import (
-    MAX_LINE,
-    PROTOCOL_VERSION,
-    SEQ_MOD,
-    LineError,
-    SerialRig,
-    decode_line,
-    encode_line,
-    from_permille,
-)
-from hbma_ctrl.core.units import ms, to_kpa, to_mm, to_ms
+from hbma_ctrl.core.units import to_kpa, to_mm, to_ms
+from hbma_ctrl.system.serial_link import SerialRig
 
-__all__ = ["FirstOrderPlant", "RigPlant", "FakeFirmware", "open_fake_rig", "main"]
+__all__ = ["FIRMWARE_DIR", "DEFECTS", "BoardOutputs", "HostBoard", "build_firmware", "run_realtime",
+           "RealtimeBoard", "open_fake_rig", "FirstOrderPlant", "RigPlant", "config_plant"]
 
-Plant = Callable[[np.ndarray, float], np.ndarray]
+#: the firmware sources, shipped with the package (``hbma_ctrl/firmware`` links to the repository's ``firmware/``)
+FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
+
+
+def build_firmware(target: str, out: Path, n: int = 1) -> Path:
+    """Build ``target`` of firmware/Makefile into ``out`` (``host``, ``avr``, ``mega``, ``simavr``,
+    ``test``); the path of the built file (the host board, the AVR ELF, the simavr runner) or the
+    folder. RuntimeError with make's output when the build fails."""
+    if not (FIRMWARE_DIR / "Makefile").is_file():
+        raise FileNotFoundError(f"firmware sources not found at {FIRMWARE_DIR} (the package ships them: reinstall it)")
+    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), target, f"O={out}", f"N={n}"],
+                         capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"firmware build '{target}' failed:\n{res.stdout}{res.stderr}")
+    return {"host": out / "host" / "hbma-fw-host", "avr": out / "uno" / "hbma-fw.elf",
+            "mega": out / "mega" / "hbma-fw.elf", "simavr": out / "host" / "hbma-fw-simavr"}.get(target, out)
+
+
+#: the defects the host board can inject (``--defect``; firmware/hal/posix/main.c), in its bit order
+DEFECTS = ("crc", "stuck_inlet", "inverted_pressure", "no_watchdog", "wrong_period", "no_heartbeat", "seq_repeat",
+           "no_crlf", "sensor_zero", "no_crc_check", "held_seq", "version")
+
+
+@dataclass(frozen=True)
+class BoardOutputs:
+    """What the host board did over the ticks of one :meth:`HostBoard.tick`: its time after them
+    (``t_us``), ``mode`` (RUN or SAFE), its counters (``commands``, ``crc_errors``, ``bad_lines``,
+    ``seq_gaps``, ``lines``: valid host lines), ``held`` (the SEQ of the host line whose command the
+    outputs hold, None for the firmware's own safe state), ``u`` (3, n), the mean pump speed and the
+    fraction of the ticks each inlet and outlet was open (zeros for no ticks), and ``command`` (3n
+    ints), the newest command received in per-mille, chamber by chamber (latched at the next sample
+    instant)."""
+
+    t_us: int
+    mode: str
+    commands: int
+    crc_errors: int
+    bad_lines: int
+    seq_gaps: int
+    lines: int
+    held: int | None
+    u: np.ndarray
+    command: tuple[int, ...]
+
+
+class HostBoard:
+    """The firmware's POSIX host board (``exe``, from :func:`build_firmware`) in a subprocess.
+
+    ``port`` is its UART, a pty (or ``link``, a symlink kept pointing at it, as udev's
+    ``/dev/serial/by-id`` names a device). Time passes on the board only in :meth:`tick`. The
+    calibration the board loaded (``zero``, ``gain`` per chamber: counts, mPa/count) converts
+    pressures to the ADC counts :meth:`tick` takes. ``eeprom``: a file keeping the board's NVM across
+    runs. ``defects``: names of :data:`DEFECTS` injected from the start. Test knobs:
+    :meth:`inject`, :meth:`corrupt_next`, :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`; they
+    and :meth:`tick` may be called from different threads (one exchange with the board at a time).
+    """
+
+    def __init__(self, exe: Path, n: int = 1, *, tick_us: int = 100, period_ticks: int = 100,
+                 timeout_ms: int = 500, eeprom: Path | None = None, defects: Sequence[str] = (),
+                 link: str | Path | None = None) -> None:
+        mine, theirs = socket.socketpair()
+        cmd = [str(exe), "--plant-fd", str(theirs.fileno()), "--n", str(n), "--tick-us", str(tick_us),
+               "--period-ticks", str(period_ticks), "--timeout-ms", str(timeout_ms)]
+        if eeprom is not None:
+            cmd += ["--eeprom", str(eeprom)]
+        if defects:
+            cmd += ["--defect", ",".join(_check_defects(defects))]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, pass_fds=(theirs.fileno(),), text=True)
+        theirs.close()
+        self._sock = mine
+        self._rx = mine.makefile("r", encoding="ascii", newline="\n")
+        self._lock = threading.Lock()
+        self.link = None if link is None else str(link)
+        self.pty_path: str | None = self.proc.stdout.readline().strip()
+        info = self._rx.readline().split()
+        if not self.pty_path or not info or info[0] != "I":
+            self.close()
+            raise RuntimeError(f"the host board {exe} did not start (exit code {self.proc.poll()})")
+        self._relink()
+        self.n, self.tick_us, self.period_ticks = int(info[1]), int(info[2]), int(info[3])
+        self.zero = np.array([int(x) for x in info[4::2]], dtype=float)
+        self.gain = np.array([int(x) for x in info[5::2]], dtype=float)
+        self.period = self.tick_us * self.period_ticks * 1e-6
+
+    @property
+    def port(self) -> str:
+        """What a host opens: the symlink when one is kept, else the pty's path."""
+        return self.link if self.link is not None else self.pty_path
+
+    def counts(self, p: np.ndarray) -> list[int]:
+        """Pressures, Pa (n,), as the ADC counts the board reads for them (NaN: no reading)."""
+        c = self.zero + np.asarray(p, dtype=float) * 1000.0 / self.gain
+        return [0xFFFF if not np.isfinite(x) else int(np.clip(np.rint(x), 0, 0xFFFE)) for x in c]
+
+    def tick(self, k: int, p: np.ndarray | None = None) -> BoardOutputs:
+        """Run ``k`` timer ticks with the sensors reading pressures ``p``, Pa (n,) (None: unchanged)."""
+        extra = "" if p is None else " " + " ".join(str(c) for c in self.counts(p))
+        out = self._ask(f"T {int(k)}{extra}")
+        n = self.n
+        v = np.array([int(x) for x in out[9:9 + 3 * n]], dtype=float).reshape(n, 3).T
+        v[0] /= 1000.0
+        u = v / k if k > 0 else np.zeros_like(v)
+        held = None if out[8] == "-" else int(out[8])
+        return BoardOutputs(int(out[1]), out[2], *(int(x) for x in out[3:8]), held, u,
+                            tuple(int(x) for x in out[9 + 3 * n:9 + 6 * n]))
+
+    def inject(self, *defects: str) -> None:
+        """From now on the board has these :data:`DEFECTS` (none: a good board again)."""
+        self._ask("F " + (",".join(_check_defects(defects)) or "-"))
+
+    def corrupt_next(self, k: int = 1) -> None:
+        """Flip one bit in the body of each of the next ``k`` lines sent (their checksum no longer matches)."""
+        self._ask(f"X {int(k)}")
+
+    def drop_next(self, k: int = 1) -> None:
+        """Lose the next ``k`` lines sent (their SEQ used: the host sees a gap)."""
+        self._ask(f"L {int(k)}")
+
+    def vanish(self) -> None:
+        """Close the pty, as an unplugged cable; the board runs on (and goes safe on its own)."""
+        self._ask("V")
+        self.pty_path = None
+
+    def reappear(self) -> None:
+        """Open a new pty (a re-plug: a new device path) and re-point ``link`` at it."""
+        with self._lock:
+            self._sock.sendall(b"R\n")
+            f = self._rx.readline().split()
+        if len(f) != 2 or f[0] != "R":
+            raise RuntimeError(f"the host board stopped (exit code {self.proc.poll()})")
+        self.pty_path = f[1]
+        self._relink()
+
+    def _ask(self, line: str) -> list[str]:
+        with self._lock:
+            self._sock.sendall(line.encode("ascii") + b"\n")
+            f = self._rx.readline().split()
+        if not f or f[0] != "O":
+            raise RuntimeError(f"the host board stopped (exit code {self.proc.poll()})")
+        return f
+
+    def _relink(self) -> None:
+        if self.link is not None:
+            tmp = f"{self.link}.tmp{os.getpid()}"
+            os.symlink(self.pty_path, tmp)
+            os.replace(tmp, self.link)  # atomic: a host never sees the link missing
+
+    def close(self) -> None:
+        """Stop the board (closing its plant channel ends it), wait for it and remove ``link``."""
+        self._rx.close()
+        self._sock.close()
+        try:
+            self.proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.proc.stdout.close()
+        if self.link is not None and os.path.islink(self.link):
+            os.unlink(self.link)
+
+
+def _check_defects(names: Sequence[str]) -> list[str]:
+    for name in names:
+        if name not in DEFECTS:
+            raise ValueError(f"defect {name!r}: allowed {', '.join(DEFECTS)}")
+    return list(names)
+
+
+def run_realtime(board: HostBoard, plant, stop: threading.Event, max_behind: int = 10,
+                 on_tick: Callable[[BoardOutputs], None] | None = None) -> None:
+    """Drive ``board`` in real time until ``stop``, as its timer would: each round runs the whole
+    sample periods due by the wall clock (at least one) in one batch, then the plant
+    (``plant(u (3, n), dt s) -> p (n,) Pa``) over them under the outputs the board held; its
+    pressures are what the board samples next. A process kept from running catches up (the board's
+    heartbeat stays on time, the batch's samples repeat the pressure at its start); more than
+    ``max_behind`` periods late, the board's clock slips instead (``max_behind = 1``: one period per
+    round, for a plant that runs one period per call whatever ``dt``). ``on_tick`` sees every round's
+    outputs."""
+    p = np.zeros(board.n)
+    start = time.monotonic()
+    done = 0
+    while not stop.is_set():
+        due = int((time.monotonic() - start) / board.period) + 1
+        k = max(1, due - done)
+        if k > max_behind:
+            start += (k - max_behind) * board.period
+            k = max_behind
+        out = board.tick(k * board.period_ticks, p)
+        if on_tick is not None:
+            on_tick(out)
+        p = plant(out.u, k * board.period)
+        done += k
+        stop.wait(max(0.0, start + done * board.period - time.monotonic()))
+
+
+class RealtimeBoard:
+    """``board`` (a :class:`HostBoard`) driven by :func:`run_realtime` against ``plant`` in a thread
+    from now on (``max_behind``, ``on_tick`` as there); ``out`` is its newest :class:`BoardOutputs`
+    (from the start: no ticks yet). The board's port and knobs are reachable on it too (``port``,
+    ``corrupt_next``, ``vanish``, ...). :meth:`close` stops the thread, then the board, then removes
+    ``work`` (a folder the board was built in), if given."""
+
+    def __init__(self, board: HostBoard, plant, max_behind: int = 10,
+                 on_tick: Callable[[BoardOutputs], None] | None = None, work: Path | None = None) -> None:
+        self.board = board
+        self.work = work
+        self.out = board.tick(0)
+        self._stop = threading.Event()
+
+        def seen(out: BoardOutputs) -> None:
+            self.out = out
+            if on_tick is not None:
+                on_tick(out)
+
+        self._thread = threading.Thread(target=run_realtime, args=(board, plant, self._stop, max_behind, seen),
+                                        name="host-board", daemon=True)
+        self._thread.start()
+
+    def alive(self) -> bool:
+        """Whether the board still runs (its driver stops when the board does)."""
+        return self._thread.is_alive()
+
+    def __getattr__(self, name: str):
+        if name.startswith("_") or name == "board":  # not set yet: no lookup on a missing board
+            raise AttributeError(name)
+        return getattr(self.board, name)
+
+    def close(self) -> None:
+        """Stop driving the board and close it."""
+        self._stop.set()
+        self._thread.join(timeout=10.0)
+        self.board.close()
+        if self.work is not None:
+            shutil.rmtree(self.work, ignore_errors=True)
+
+
+def open_fake_rig(n: int = 1, sample_period: float = 0.01, plant=None, *, exe: Path | None = None,
+                  board_kw: dict | None = None, **rig_kw) -> tuple[RealtimeBoard, SerialRig]:
+    """Both ends of a serial rig link without a rig: the reference firmware's host board (``exe``, else
+    built into a temporary folder) with ``n`` chambers sampling every ``sample_period`` s (a whole
+    number of 0.1 ms ticks), stepped in real time against ``plant`` (default :class:`FirstOrderPlant`),
+    and a :class:`~hbma_ctrl.system.serial_link.SerialRig` on its port (``rig_kw``; ``board_kw`` go to
+    :class:`HostBoard`). Returns (board, rig); close the rig, then the board."""
+    work = None
+    if exe is None:
+        work = Path(tempfile.mkdtemp(prefix="hbma-rig-"))
+        exe = build_firmware("host", work)
+    board = HostBoard(exe, n, period_ticks=round(sample_period / 100e-6), **(board_kw or {}))
+    fw = RealtimeBoard(board, plant if plant is not None else FirstOrderPlant(n), work=work)
+    try:
+        rig = SerialRig(fw.port, n, sample_period=sample_period, **rig_kw)
+    except Exception:
+        fw.close()
+        raise
+    return fw, rig
 
 
 class FirstOrderPlant:
@@ -132,318 +371,7 @@ class RigPlant:
             self._log = None
 
 
-class FakeFirmware:
-    """The microcontroller of an ``n``-chamber rig, speaking protocol ``version`` on a pty.
-
-    n : chambers. sample_period : s between P lines. plant : ``plant(u (3, n), dt s) -> p (n,) Pa``
-    (default :class:`FirstOrderPlant`), its samples stamped with ``plant.t`` (s) when it has one. heartbeat_period : s between HB lines. host_timeout : s of
-    host silence after which it goes safe. link : optional symlink path kept pointing at its pty.
-
-    ``pty_path`` is the current pty's device path. State for tests: ``mode`` (``RUN``/``SAFE``),
-    ``u`` (the newest command received, (3, n), latched at the next sample instant), ``held`` (the
-    command applied over the current period) and ``held_seq`` (the SEQ of the host line that set it,
-    ``"-"`` for the firmware's own safe state), ``p`` (the last pressures, Pa), ``last_cmd`` (the last
-    CMD's per-mille integers), ``safe_reason``, and ``stats`` (``crc_errors``, ``bad_lines``,
-    ``seq_gaps``, ``commands``, ``dropped_tx``). Knobs: ``send_heartbeats``, :meth:`corrupt_next`,
-    :meth:`drop_next`, :meth:`vanish`, :meth:`reappear`.
-    """
-
-    def __init__(self, n: int = 1, sample_period: float = 0.01, plant: Plant | None = None, *,
-                 version: int = PROTOCOL_VERSION, heartbeat_period: float = 0.1, host_timeout: float = 0.5,
-                 link: str | None = None) -> None:
-        if int(n) != n or n < 1:
-            raise ValueError(f"firmware n = {n}: must be an integer >= 1 (chambers)")
-        for key, v in (("sample_period", sample_period), ("heartbeat_period", heartbeat_period),
-                       ("host_timeout", host_timeout)):
-            if not v > 0:
-                raise ValueError(f"firmware {key} = {v}: must be a positive number of seconds")
-        self.n = int(n)
-        self.sample_period = sample_period
-        self.plant = plant if plant is not None else FirstOrderPlant(n)
-        self.version = version
-        self.heartbeat_period = heartbeat_period
-        self.host_timeout = host_timeout
-        self.link = link
-        self.mode = "SAFE"
-        self.u = safe_u(n)
-        self.u_seq: int | str = "-"
-        self.held = safe_u(n)
-        self.held_seq: int | str = "-"
-        self.p = np.zeros(n)
-        self.last_cmd: tuple[int, ...] | None = None
-        self.safe_reason = "boot"
-        self.send_heartbeats = True
-        self.stats = {"crc_errors": 0, "bad_lines": 0, "seq_gaps": 0, "commands": 0, "dropped_tx": 0}
-        self._lock = threading.Lock()
-        self._corrupt = 0
-        self._drop = 0
-        self._t0 = time.monotonic()
-        self._stop = threading.Event()
-        self._vanish_req = threading.Event()
-        self._master: int | None = None
-        self._slave: int | None = None
-        self._open_pty()
-        self._thread = threading.Thread(target=self._run, name="fake-firmware", daemon=True)
-        self._thread.start()
-
-    @property
-    def port(self) -> str:
-        """What the host should open: the symlink when one is kept, else the pty's slave path."""
-        return self.link if self.link is not None else self.pty_path
-
-    # ---- test knobs ----------------------------------------------------------------------------
-
-    def corrupt_next(self, k: int = 1) -> None:
-        """Flip one bit in the body of each of the next ``k`` lines (their checksum no longer matches)."""
-        with self._lock:
-            self._corrupt += k
-
-    def drop_next(self, k: int = 1) -> None:
-        """Lose the next ``k`` lines (their sequence numbers are used, so the host sees a gap)."""
-        with self._lock:
-            self._drop += k
-
-    def vanish(self) -> None:
-        """Close the pty, as an unplugged cable; the firmware keeps running (and goes safe on its own)."""
-        if self._thread.is_alive():
-            # the firmware thread closes the fds itself: closing them under its select() could let the
-            # number be reused by another open and read from a stranger's file
-            self._vanish_req.set()
-            deadline = time.monotonic() + 2.0
-            while self._vanish_req.is_set() and self._thread.is_alive() and time.monotonic() < deadline:
-                time.sleep(0.002)
-        if self._master is not None:
-            with self._lock:
-                self._close_fds()
-
-    def _close_fds(self) -> None:
-        for fd in (self._master, self._slave):
-            if fd is not None:
-                os.close(fd)
-        self._master = self._slave = None
-        self._session = False
-
-    def reappear(self) -> None:
-        """Open a new pty (a re-plug: a new device path) and re-point ``link`` at it; needs a new HELLO."""
-        with self._lock:
-            if self._master is None:
-                self._open_pty()
-
-    def close(self) -> None:
-        """Stop the firmware and close its pty."""
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.vanish()
-        if self.link is not None and os.path.islink(self.link):
-            os.unlink(self.link)
-
-    # ---- the microcontroller -------------------------------------------------------------------
-
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)  # no echo, no line editing: bytes pass as on a UART
-        os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self.pty_path = os.ttyname(slave)
-        self._session = False
-        self._rxbuf = b""
-        self._txseq = 0
-        self._rx_expect: int | None = None
-        self._go_safe("new port")
-        if self.link is not None:
-            tmp = f"{self.link}.tmp{os.getpid()}"
-            os.symlink(self.pty_path, tmp)
-            os.replace(tmp, self.link)  # atomic: the host never sees the link missing
-
-    def _go_safe(self, reason: str, seq: int | str = "-") -> None:
-        """Safe from the next sample instant; ``seq`` the host line that asked for it ("-": none)."""
-        self.mode = "SAFE"
-        self.u = safe_u(self.n)
-        self.u_seq = seq
-        self.safe_reason = reason
-
-    def _tx(self, kind: str, *fields: object) -> None:
-        """Send one line (caller holds the lock); a full pty buffer (host not reading) drops it."""
-        line = encode_line(kind, self._txseq, *fields)
-        self._txseq = (self._txseq + 1) % SEQ_MOD
-        if self._drop > 0:
-            self._drop -= 1
-            return
-        if self._corrupt > 0:
-            self._corrupt -= 1
-            body, _, crc = line.rpartition(b"*")
-            line = body[:-1] + bytes([body[-1] ^ 0x01]) + b"*" + crc  # one bit flipped, old checksum
-        try:
-            os.write(self._master, line)
-        except (BlockingIOError, OSError):
-            self.stats["dropped_tx"] += 1
-
-    def _run(self) -> None:
-        next_t = last = last_hb = time.monotonic()
-        while not self._stop.is_set():
-            if self._vanish_req.is_set():
-                with self._lock:
-                    self._close_fds()
-                self._vanish_req.clear()
-            master = self._master
-            wait = max(0.0, next_t - time.monotonic())
-            if master is None:
-                self._stop.wait(wait)
-            else:
-                try:
-                    ready, _, _ = select.select([master], [], [], wait)
-                    data = os.read(master, 4096) if ready else b""
-                except OSError:
-                    data = b""
-                if data:
-                    with self._lock:
-                        if self._master == master:
-                            self._receive(data)
-            now = time.monotonic()
-            if now < next_t:
-                continue
-            next_t = max(next_t + self.sample_period, now)
-            with self._lock:
-                # the period just ended ran on the command latched at its start
-                self.p = np.asarray(self.plant(self.held.copy(), min(now - last, 10 * self.sample_period)), float)
-                ended_on = self.held_seq
-                last = now
-                if self.mode == "RUN" and now - self._last_rx > self.host_timeout:
-                    self._go_safe("host heartbeat lost")
-                self.held, self.held_seq = self.u.copy(), self.u_seq  # for the period that starts now
-                if self._master is None or not self._session:
-                    continue
-                # a plant with its own clock (a simulated rig) is sampled at its time; else the firmware's
-                t_plant = getattr(self.plant, "t", None)
-                t_us = int(round(t_plant * 1e6)) if t_plant is not None else int((now - self._t0) * 1e6)
-                self._tx("P", t_us, ended_on, *("NA" if not np.isfinite(x) else int(round(x)) for x in self.p))
-                if self.send_heartbeats and now - last_hb >= self.heartbeat_period:
-                    self._tx("HB", self.mode)
-                    last_hb = now
-
-    def _receive(self, data: bytes) -> None:
-        buf = self._rxbuf + data
-        lines = buf.split(b"\n")
-        self._rxbuf = lines.pop()
-        if len(self._rxbuf) > MAX_LINE:
-            self._rxbuf = b""
-            self.stats["bad_lines"] += 1
-        for line in lines:
-            try:
-                m = decode_line(line)
-            except LineError as e:
-                self.stats["crc_errors" if e.kind == "crc" else "bad_lines"] += 1
-                continue
-            if m.kind == "HELLO":
-                self._hello(m)
-                continue
-            if not self._session:
-                self.stats["bad_lines"] += 1  # no session: a line from before the handshake
-                continue
-            if self._rx_expect is not None:
-                self.stats["seq_gaps"] += (m.seq - self._rx_expect) % SEQ_MOD
-            self._rx_expect = (m.seq + 1) % SEQ_MOD
-            if m.kind == "CMD":
-                try:
-                    vals = tuple(int(f) for f in m.fields)
-                    u = from_permille(vals, self.n)
-                except ValueError:
-                    self.stats["bad_lines"] += 1
-                    continue
-                self.u, self.u_seq, self.mode, self.last_cmd = u, m.seq, "RUN", vals
-                self.stats["commands"] += 1
-            elif m.kind == "SAFE":
-                # at once, not at the next sample instant: the safe state must not wait
-                self._go_safe("SAFE command", m.seq)
-                self.held, self.held_seq = self.u.copy(), self.u_seq
-            elif m.kind != "HB":
-                self.stats["bad_lines"] += 1
-                continue
-            self._last_rx = time.monotonic()
-
-    def _hello(self, m) -> None:
-        self._txseq = 0
-        self._go_safe("HELLO", m.seq)
-        period_us = int(round(self.sample_period * 1e6))
-        self._tx("VER", self.version, self.n, period_us)
-        ok = len(m.fields) == 1 and m.fields[0] == str(self.version)
-        self._session = ok
-        self._rx_expect = (m.seq + 1) % SEQ_MOD
-        self._last_rx = time.monotonic()
-
-    _last_rx = 0.0
-
-
-def open_fake_rig(n: int = 1, sample_period: float = 0.01, plant: Plant | None = None, *,
-                  firmware_kw: dict | None = None, **rig_kw) -> tuple[FakeFirmware, SerialRig]:
-    """Start a :class:`FakeFirmware` and open a :class:`SerialRig` on it (``rig_kw`` go to the rig,
-    ``firmware_kw`` to the firmware); returns (firmware, rig). Close the rig, then the firmware."""
-    fw = FakeFirmware(n, sample_period, plant, **(firmware_kw or {}))
-    try:
-        rig = SerialRig(fw.port, n, sample_period=sample_period, **rig_kw)
-    except Exception:
-        fw.close()
-        raise
-    return fw, rig
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Run a fake firmware until Ctrl-C or SIGTERM, printing the port to open; exit code 2 on bad
-    flags or a bad configuration (one line naming it)."""
-    ap = argparse.ArgumentParser(prog="python -m hbma_ctrl.app.daemon.firmware",
-                                 description="A fake HBMA rig firmware on a pseudo-terminal.")
-    ap.add_argument("--n", type=int, default=None, help="chambers, 1..16 (default 1, or the config's)")
-    ap.add_argument("--period-ms", type=float, default=None,
-                    help="sample period, ms, 1..1000 (default 10, or the config's)")
-    ap.add_argument("--config", default=None,
-                    help="a daemon CONFIG.toml: the plant is its simulated (mismatched) rig, as --rig sim")
-    ap.add_argument("--truth-log", default=None, help="with --config: CSV of the rig's true state per period")
-    ap.add_argument("--link", default=None, help="also keep this symlink pointing at the pty")
-    a = ap.parse_args(argv)
-    plant: RigPlant | None = None
-    if a.config is not None:
-        try:
-            plant = _config_plant(a.config, a.truth_log)
-        except (ValueError, OSError) as exc:
-            print(f"error: --config {a.config}: {exc}", file=sys.stderr)
-            return 2
-        for flag, given, own in (("--n", a.n, plant.n), ("--period-ms", a.period_ms, to_ms(plant.period))):
-            if given is not None and abs(given - own) > 1e-9:
-                print(f"error: {flag} = {given:g}: the config's rig has {own:g}; leave {flag} out with --config",
-                      file=sys.stderr)
-                plant.close()
-                return 2
-        n, period = plant.n, plant.period
-    elif a.truth_log is not None:
-        print("error: --truth-log: needs --config (the first-order plant has no truth to log)", file=sys.stderr)
-        return 2
-    else:
-        n = 1 if a.n is None else a.n
-        period = ms(10.0 if a.period_ms is None else a.period_ms)
-    if not 1 <= n <= 16:
-        print(f"error: --n = {n}: must be 1..16 chambers", file=sys.stderr)
-        return 2
-    if not 1.0 <= to_ms(period) <= 1000.0:
-        print(f"error: --period-ms = {to_ms(period):g}: must be 1..1000 ms", file=sys.stderr)
-        return 2
-    fw = FakeFirmware(n, period, plant, link=a.link)
-    if plant is not None:
-        plant.mode = lambda: fw.mode
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill also removes the link
-    print(fw.port, flush=True)
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        fw.close()
-        if plant is not None:
-            plant.close()
-    return 0
-
-
-def _config_plant(path: str, truth_log: str | None) -> RigPlant:
+def config_plant(path: str | os.PathLike, truth_log: str | os.PathLike | None = None) -> RigPlant:
     """The simulated rig of a daemon configuration as a plant (ValueError on a bad file)."""
     # imported here: the protocol alone (tests, a bare firmware) needs none of the model stack
     from hbma_ctrl.app.daemon.build import make_sim_rig
@@ -452,10 +380,6 @@ def _config_plant(path: str, truth_log: str | None) -> RigPlant:
     cfg = load_config(path, {"--rig": "sim"})
     if cfg.faults:
         # link faults have no meaning inside the firmware; sensor and actuator faults are the sim's
-        raise ValueError("[[daemon.fault]]: faults are injected by --rig sim; the fake firmware runs the "
+        raise ValueError("[[daemon.fault]]: faults are injected by --rig sim; the emulated board runs the "
                          "rig without them (remove the tables)")
     return RigPlant(make_sim_rig(cfg), truth_log)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
