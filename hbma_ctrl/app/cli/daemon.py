@@ -61,7 +61,7 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     from hbma_ctrl.app.daemon.api import serve
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.loop import DaemonLoop
-    from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns
+    from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, setpoint_columns
     from hbma_ctrl.app.daemon.state import DaemonState
     from hbma_ctrl.app.metrics import json_safe
 
@@ -78,7 +78,9 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     with run_dir(out, command="daemon", argv=argv, scenario_path=cfg.path, overwrite=overwrite) as tmp:
         try:
             monitor = make_monitor(cfg, runner)
-            log = RunLog(tmp, chamber_columns(runner.names), cfg.log_rotate_bytes, cfg.log_flush)
+            layers = runner.design.n_layers if cfg.kind == "robot" else 0
+            log = RunLog(tmp, chamber_columns(runner.names), cfg.log_rotate_bytes, cfg.log_flush,
+                         event_fields=setpoint_columns(runner.names, layers))
             loop = DaemonLoop(runner, rig, state, cfg.period, speed=cfg.speed, duration=cfg.duration, log=log,
                               monitor=monitor, status_every=cfg.status_every, miss_limit=cfg.miss_limit)
             if cfg.api is not None:
