@@ -1426,3 +1426,124 @@ def test_the_soak_judges_the_ticks_the_daemon_says_it_counted_not_its_rounded_ti
     (tmp_path / "events.csv").write_text("t_s,wall_utc,kind,cause\n" + "".join(
         f'{t:.4f},2026-12-04T05:30:00.383+00:00,slow_tick,"{c.replace(", " + COUNTED, "")}"\n' for t, c in rows))
     assert [t["t_s"] for t in judge_ticks(read_events(tmp_path)[1], [], 0.010, 20.0)] == [3.0]
+
+
+# --- overruns, reset, truthful targets -------------------------------------------------------------------
+
+class SimulatedTiming(Recording):
+    """A recorded rig whose writes take ``periods`` loop periods of virtual wall time (the plant's
+    simulation); ``simulated`` says whether the loop may take that time as the plant's."""
+
+    def __init__(self, rig, vc: VirtualClock, period: float, periods: float, simulated: bool):
+        super().__init__(rig)
+        self.vc, self.cost, self.simulated = vc, periods * period, simulated
+
+    def write(self, u):
+        self.vc.now += self.cost
+        super().write(u)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("simulated", [True, False])
+def test_a_simulated_plants_time_is_not_counted_against_the_controllers_deadline(simulated):
+    cfg, runner, rig, loop = _loop(CHAMBER, duration_s=0.5)
+    vc = VirtualClock()
+    loop.rig = SimulatedTiming(rig.rig, vc, loop.period, 1.5, simulated)
+    loop.clock, loop.sleep, loop.warmup_periods = vc.clock, vc.sleep, 0
+    stats = loop.run()
+    if simulated:
+        assert stats["deadline_misses"] == stats["overruns"] == 0 and stats["faults"] == {}
+    else:  # a real rig's I/O that long is the loop's: 10 misses in a row latch the overrun
+        assert stats["faults"] == {"overrun": 1} and stats["overruns"] >= 10
+
+
+@pytest.mark.slow
+def test_a_single_overrun_is_a_counted_warning_not_a_fault():
+    cfg, runner, rig, loop = _loop(CHAMBER, duration_s=0.5)
+    vc = VirtualClock()
+    tick, n = runner.tick, [0]
+
+    def once_slow(t, p, *held):
+        n[0] += 1
+        if n[0] in (5, 20, 21):  # one, then two in a row
+            vc.now += 1.5 * loop.period
+        return tick(t, p, *held)
+
+    runner.tick = once_slow
+    loop.clock, loop.sleep, loop.warmup_periods = vc.clock, vc.sleep, 0
+    stats = loop.run()
+    assert stats["faults"] == {} and stats["overruns"] == 3 and stats["deadline_misses"] == 3
+    assert [e["kind"] for e in loop.events].count("overrun_warning") == 2  # one per run of misses
+
+
+@pytest.mark.slow
+def test_a_reset_leaves_the_safe_state_once_the_readings_are_sane():
+    state = DaemonState()
+    cfg, runner, rig, loop = _loop(CHAMBER, state=state, duration_s=2.0)
+    vc = _slow(loop, runner, 0.0)
+    tick, n = runner.tick, [0]
+
+    def slow_first(t, p, *held):
+        n[0] += 1
+        if n[0] <= 10:  # ten misses in a row latch the overrun
+            vc.now += 1.5 * loop.period
+        return tick(t, p, *held)
+
+    runner.tick = slow_first
+    seen: list = []
+
+    def sleep(dt):
+        vc.sleep(dt)
+        if loop.mode == "safe" and not seen:
+            loop.readings_p = np.array([math.nan])  # a reading that is not sane: refused with the reason
+            with pytest.raises(RuntimeError, match="not sane: C1 reads nothing"):
+                state.submit_reset()
+            loop.readings_p = np.array([1e3])
+            seen.append(state.submit_reset())
+        elif loop.mode == "running" and seen and len(seen) == 1:
+            seen.append(state.submit_setpoint({"heights": {0: 0.004}}))
+
+    loop.sleep = sleep
+    with pytest.raises(RuntimeError, match="no fault to reset"):
+        state.set_reset_handler(loop._check_reset) or state.submit_reset()  # mode 'starting'
+    stats = loop.run()
+    kinds = [e["kind"] for e in loop.events]
+    assert kinds.index("overrun") < kinds.index("safe") < kinds.index("reset") < kinds.index("setpoint")
+    assert stats["faults"] == {"overrun": 1} and stats["end_reason"] == "duration"
+    assert seen[1]["clipped"] == []  # setpoints are taken again after the reset
+    assert rig.rig.truth()["h"] == pytest.approx(4e-3, abs=0.6e-3)  # and the loop controls again
+
+
+@pytest.mark.slow
+def test_a_setpoint_beyond_reach_is_answered_with_the_height_the_chamber_settles_at(tmp_path):
+    """Under its 400 g load the chamber reaches less than the controller's 20 mm bound: the reply, the
+    status's target and the height it settles at agree; events.csv holds the setpoint in mm."""
+    from hbma_ctrl.app.daemon.runlog import setpoint_columns, setpoint_of_event
+
+    state = DaemonState()
+    cfg, runner, rig, loop = _loop(CHAMBER, state=state, duration_s=8.0)
+    loop.log = RunLog(tmp_path, chamber_columns(runner.names), flush_s=0.01,
+                      event_fields=setpoint_columns(runner.names))
+    replies: list = []
+    sleep = loop.sleep
+
+    def ask(dt):
+        sleep(dt)
+        if loop.t >= 2.0 and not replies:
+            replies.append(state.submit_setpoint({"heights": {0: 0.05}}))
+
+    loop.sleep = ask
+    loop.run()
+    (reply,) = replies
+    h = reply["applied"]["heights"][0]
+    assert 0.005 < h < 0.019 and "reaches under its present load" in reply["clipped"][0]
+    assert f"{h * 1e3:.2f} mm" in reply["clipped"][0]
+    assert rig.rig.truth()["h"] == pytest.approx(h, abs=0.6e-3)
+    loop.mode = "running"  # the status of the last running period
+    assert loop.status()["chambers"][0]["target"] == pytest.approx(h, abs=0.2e-3)
+    import csv
+
+    with open(tmp_path / "events.csv", newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["kind"] == "setpoint"]
+    assert len(rows) == 1 and float(rows[0]["target_C1_mm"]) == pytest.approx(h * 1e3)
+    assert setpoint_of_event(rows[0]) == {"heights": {0: pytest.approx(h)}}

@@ -455,6 +455,7 @@ class DaemonLoop:
             self.event("reset_refused", why)
             return
         if self.monitor is not None:
+            self.fault_counts = self.faults()  # the run keeps counting the faults the monitor forgets
             self.monitor.reset()
         self._miss_run = 0
         self.mode = "running"
