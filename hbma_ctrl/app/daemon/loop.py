@@ -48,6 +48,7 @@ from __future__ import annotations
 import math
 import os
 import resource
+import sys
 import time
 from collections import deque
 from typing import Callable
@@ -61,7 +62,7 @@ from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.core import units as U
 from hbma_ctrl.runtime.stats import StepStats
 
-__all__ = ["DaemonLoop", "rss_mb", "setpoint_fields", "STATS_KEYS", "COUNTED"]
+__all__ = ["DaemonLoop", "rss_mb", "setpoint_fields", "STATS_KEYS", "COUNTED", "GIL_SWITCH_S"]
 
 #: the words a slow_tick event carries when steps_over_period counts its tick
 COUNTED = "counted over the period"
@@ -74,6 +75,10 @@ STATS_KEYS = ("rate_hz", "steps", "deadline_misses", "step_ms_median", "step_ms_
 
 #: events kept for the status (the run log keeps all)
 EVENTS_KEPT = 100
+#: the interpreter's switch interval while the loop runs, s: a thread that wants the GIL (the loop's,
+#: back from its sleep or a solver call) waits at most this long for another (the API's, serving a
+#: flood of clients) to hand it over; Python's default is 5 ms, half a period at 100 Hz
+GIL_SWITCH_S = 2e-4
 
 
 def rss_mb() -> float:
@@ -481,6 +486,8 @@ class DaemonLoop:
         self.state.set_reset_handler(self._check_reset)
         # before the first period: one collection, then the start-up objects frozen (gcwatch's doc)
         self.gc = GcWatch()
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(GIL_SWITCH_S)
         self.mode = "running"
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
         wp = self.period / self.speed
@@ -565,6 +572,7 @@ class DaemonLoop:
             self._fault("exception", f"{type(exc).__name__}: {exc}")
             raise
         finally:
+            sys.setswitchinterval(switch)
             self._go_safe()
             self.mode = "stopped"
             self.event("safe_exit" if self.safe_exit else "unsafe_exit", self.end_reason or "ended")
