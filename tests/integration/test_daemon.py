@@ -808,7 +808,7 @@ def test_api_setpoint_then_sigterm_or_sighup_vents_and_leaves_a_complete_log(tmp
     cols, rows = read_run_log(out)
     assert len(rows) == stats["steps"] + 1
     assert rows[-1][cols.index("mode")] == "stopped" and float(rows[-1][cols.index("outlet_C1_1")]) == 1.0
-    assert "20.0000" in {r[cols.index("target_C1_mm")] for r in rows}
+    assert f"{reply['applied']['heights_mm']['0']:.4f}" in {r[cols.index("target_C1_mm")] for r in rows}
     assert sig.name in (out / "events.csv").read_text()
     assert json.loads((out / "manifest.json").read_text())["status"] == "complete"
     assert set(json.loads((out / "metrics.json").read_text())) == {"daemon", "controller"}
@@ -1479,7 +1479,7 @@ def test_a_single_overrun_is_a_counted_warning_not_a_fault():
     switch, before = set(), sys.getswitchinterval()
     stats = loop.run()
     # the loop gets the interpreter back from another thread within GIL_SWITCH_S while it runs
-    assert switch == {GIL_SWITCH_S} and sys.getswitchinterval() == before
+    assert len(switch) == 1 and switch.pop() == pytest.approx(GIL_SWITCH_S) and sys.getswitchinterval() == before
     assert stats["faults"] == {} and stats["overruns"] == 3 and stats["deadline_misses"] == 3
     assert [e["kind"] for e in loop.events].count("overrun_warning") == 2  # one per run of misses
 
@@ -1555,3 +1555,21 @@ def test_a_setpoint_beyond_reach_is_answered_with_the_height_the_chamber_settles
         rows = [r for r in csv.DictReader(fh) if r["kind"] == "setpoint"]
     assert len(rows) == 1 and float(rows[0]["target_C1_mm"]) == pytest.approx(h * 1e3)
     assert setpoint_of_event(rows[0]) == {"heights": {0: pytest.approx(h)}}
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_bench_api_runs_quiet_and_loaded_and_answers_every_stop(tmp_path):
+    """bench api: both runs end by the bench's real /stop after the probes' stops were answered and
+    counted, not acted on; the loaded run's clients got answers (no timing asserted)."""
+    out = tmp_path / "api"
+    r = cli.invoke(app, ["bench", "api", str(CHAMBER), "--duration-s", "2", "--clients", "4", "--out", str(out)])
+    res = json.loads((out / "api.json").read_text())
+    assert set(res["verdicts"]) == {"no_deadline_miss_added", "stop_within_a_period", "no_fault"}, r.output
+    for name, run in res["runs"].items():
+        assert run["daemon"]["end_reason"] == "api" and run["daemon"]["safe_exit"], name
+        assert run["final_stop"]["status"] == 200
+        lat = run["stop_latency"]
+        assert lat["n"] > 0 and lat["unanswered"] == 0 and run["stop_probes_taken"] == lat["n"]
+    assert res["runs"]["quiet"]["requests"] == {} and sum(res["runs"]["loaded"]["requests"].values()) > 0
+    assert (out / "quiet" / "daemon_stats.json").exists() and (out / "loaded" / "manifest.json").exists()
