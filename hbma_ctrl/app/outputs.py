@@ -53,6 +53,7 @@ __all__ = [
     "ARGV_KEY",
     "check_out",
     "cli_argv",
+    "redact_argv",
     "default_out",
     "is_plain_name",
     "is_run_dir",
@@ -205,12 +206,33 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+#: flags whose value is a secret: a manifest keeps the flag, never its value
+SECRET_FLAGS = ("--token",)
+REDACTED = "<redacted>"
+
+
+def redact_argv(argv: Sequence[str]) -> list[str]:
+    """``argv`` with the value of every :data:`SECRET_FLAGS` flag (``--token X`` or ``--token=X``) replaced
+    by :data:`REDACTED`."""
+    out: list[str] = []
+    for a in argv:
+        flag, eq, _ = str(a).partition("=")
+        if out and out[-1] in SECRET_FLAGS:
+            out.append(REDACTED)
+        elif eq and flag in SECRET_FLAGS:
+            out.append(f"{flag}={REDACTED}")
+        else:
+            out.append(str(a))
+    return out
+
+
 def manifest(command: str, argv: Sequence[str] | None = None, scenario_path: Path | str | None = None) -> dict:
-    """A fresh manifest (status "running", no end time) with every key of :data:`MANIFEST_KEYS`."""
+    """A fresh manifest (status "running", no end time) with every key of :data:`MANIFEST_KEYS`; the
+    argv's secrets redacted (:func:`redact_argv`)."""
     scn = Path(scenario_path) if scenario_path is not None else None
     return {
         "command": command,
-        "argv": list(argv) if argv is not None else list(sys.argv[1:]),
+        "argv": redact_argv(argv if argv is not None else sys.argv[1:]),
         "version": _version(),
         "git_commit": _git_commit(),
         "scenario_path": str(scn) if scn is not None else None,

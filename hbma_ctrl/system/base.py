@@ -63,6 +63,11 @@ class System(Protocol):
         """This period's target height per chamber, m (NaN = none)."""
         ...
 
+    def effective_targets(self) -> np.ndarray:
+        """The target height per chamber the controller works to (the target limited to what it can
+        reach), m (NaN = none)."""
+        ...
+
     def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(height m, its std m, pressure Pa) per chamber."""
         ...
@@ -159,3 +164,7 @@ class SystemBase:
     def controller_report(self) -> dict | None:
         """No report."""
         return None
+
+    def effective_targets(self) -> np.ndarray:
+        """The targets as they are (a controller that reports no reach works to them)."""
+        return self.targets()

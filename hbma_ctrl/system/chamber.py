@@ -130,6 +130,18 @@ class ChamberSystem(SystemBase):
         tg = self.loop.target
         return np.array([np.nan if tg is None else tg])
 
+    def _reach(self) -> float:
+        """The highest height the controller's last step could reach under the load it estimated, within
+        its pressure and stretch limits, m (inf when it reports none: before its first step, or a
+        controller that computes no reach)."""
+        r = (getattr(self.loop.controller, "last", None) or {}).get("reachable_height")
+        return float(r) if r is not None and math.isfinite(r) else math.inf
+
+    def effective_targets(self) -> np.ndarray:
+        """The target the controller works to, m: this period's, limited to the reach of its last step."""
+        tg = self.targets()
+        return np.minimum(tg, max(self._reach(), self.h_range[0]))
+
     def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(height m, its std m, pressure Pa) per chamber from the estimator, NaN before the first tick."""
         e = self.loop.estimate
@@ -142,7 +154,9 @@ class ChamberSystem(SystemBase):
         return []
 
     def check_setpoint(self, request: dict) -> dict:
-        """Heights {0: h m} -> {"applied", "clipped"} (clipped to ``h_range``); ValueError for layers or
+        """Heights {0: h m} -> {"applied", "clipped"} (clipped to ``h_range`` and to the reach of the
+        controller's last step: what the chamber reaches under its present load within its pressure and
+        stretch limits, the height it settles at); ValueError for layers or
         another chamber. The request is a validated :class:`~hbma_ctrl.app.schema.api.SetpointRequest`'s
         (finite heights)."""
         if request.get("layers"):
@@ -152,14 +166,17 @@ class ChamberSystem(SystemBase):
             raise ValueError("no setpoint given: send heights_mm for chamber 0")
         clipped, applied = [], {}
         lo, hi = self.h_range
+        reach = max(self._reach(), lo)
         for i, h in heights.items():
             if int(i) != 0:
                 raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
             h = float(h)
-            hc = min(max(h, lo), hi)
+            hc = min(max(h, lo), hi, reach)
             if hc != h:
-                clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):g} mm (reachable "
-                               f"[{U.to_mm(lo):g}, {U.to_mm(hi):g}] mm)")
+                why = (f"the controller's range [{U.to_mm(lo):g}, {U.to_mm(hi):g}] mm" if h < lo or reach >= hi
+                       else "the highest the chamber reaches under its present load within its pressure and "
+                            "stretch limits")
+                clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):.2f} mm ({why})")
             applied[0] = hc
         return {"applied": {"heights": applied}, "clipped": clipped}
 

@@ -36,6 +36,10 @@ class SimRig:
     Use :meth:`chamber` or :meth:`robot` to build one.
     """
 
+    #: its reads and writes simulate the plant: time no real rig's I/O would take (the daemon's loop
+    #: does not count it against the controller's deadline)
+    simulated = True
+
     def __init__(self, rig: Rig | RobotRig, load_steps=()):
         self.rig = rig
         self._chamber = isinstance(rig, Rig)

@@ -41,7 +41,6 @@ stopped replay leaves the witness's verdict.
 
 from __future__ import annotations
 
-import ast
 import csv
 import json
 import os
@@ -57,6 +56,7 @@ from pathlib import Path
 import httpx
 
 from hbma_ctrl.app.daemon.loop import COUNTED
+from hbma_ctrl.app.daemon.runlog import setpoint_of_event
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.outputs import run_dir
 
@@ -198,7 +198,7 @@ def read_events(daemon_dir: Path) -> tuple[list, list]:
     with open(daemon_dir / "events.csv", newline="") as fh:
         for row in csv.DictReader(fh):
             if row["kind"] == "setpoint":
-                setpoints.append((float(row["t_s"]), ast.literal_eval(row["cause"])))
+                setpoints.append((float(row["t_s"]), setpoint_of_event(row)))
             elif row["kind"] in ("slow_tick", "nmpc_overrun"):
                 m = _SLOW_CPU.match(row["cause"])
                 if not m:

@@ -61,7 +61,7 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     from hbma_ctrl.app.daemon.api import serve
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.loop import DaemonLoop
-    from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns
+    from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, setpoint_columns
     from hbma_ctrl.app.daemon.state import DaemonState
     from hbma_ctrl.app.metrics import json_safe
 
@@ -78,7 +78,9 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     with run_dir(out, command="daemon", argv=argv, scenario_path=cfg.path, overwrite=overwrite) as tmp:
         try:
             monitor = make_monitor(cfg, runner)
-            log = RunLog(tmp, chamber_columns(runner.names), cfg.log_rotate_bytes, cfg.log_flush)
+            layers = runner.design.n_layers if cfg.kind == "robot" else 0
+            log = RunLog(tmp, chamber_columns(runner.names), cfg.log_rotate_bytes, cfg.log_flush,
+                         event_fields=setpoint_columns(runner.names, layers))
             loop = DaemonLoop(runner, rig, state, cfg.period, speed=cfg.speed, duration=cfg.duration, log=log,
                               monitor=monitor, status_every=cfg.status_every, miss_limit=cfg.miss_limit)
             if cfg.api is not None:
@@ -274,9 +276,39 @@ def bench_poses(
                f"{res['over_cap']}; faults {len(res['faults'])}; wrote {out / 'poses.json'}")
 
 
+def bench_api(
+    config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
+    = Path("scenarios/daemon_chamber.toml"),
+    duration_s: Annotated[float, typer.Option("--duration-s", help="wall time of each run, s (> 0)")] = 60.0,
+    clients: Annotated[int, typer.Option("--clients", help="API clients at full rate in the loaded run")] = 100,
+    out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_api"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+) -> None:
+    """The daemon on the simulated rig in real time, quiet and with many loopback API clients at full
+    rate: deadline misses, step p99 and /stop answer times side by side (api.json)."""
+    from hbma_ctrl.app.bench.api import run_api_bench
+
+    check_range("--clients", clients, 1, 1000)
+    _check_bench(config, {"--duration-s": duration_s})
+    res = run_api_bench(config, out, duration_s, clients, overwrite=overwrite, argv=cli_argv(),
+                        echo=lambda s: print(s, file=sys.stderr, flush=True))
+    for name, r in res["runs"].items():
+        d, sl = r["daemon"], r["stop_latency"]
+        typer.echo(f"{name} ({r['clients']} clients, {r['requests_per_s']:.0f} requests/s): {d['steps']} steps, "
+                   f"{d['deadline_misses']} deadline misses, {d['overruns']} overruns, step p99 "
+                   f"{d['step_ms_p99'] or float('nan'):.2f} ms; /stop {sl['within_period']}/{sl['n']} within "
+                   f"{r['period_ms']:g} ms (median {sl['median_ms'] or float('nan'):.2f}, p99 "
+                   f"{sl['p99_ms'] or float('nan'):.2f}, max {sl['max_ms'] or float('nan'):.2f} ms)")
+    failed = [k for k, ok in res["verdicts"].items() if not ok]
+    typer.echo(f"api: {'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'api.json'}")
+    if failed:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``daemon`` to the top-level app (called by :mod:`hbma_ctrl.app.cli.main`)."""
     app.command("daemon")(daemon)
     bench_app.command("soak")(bench_soak)
     bench_app.command("drills")(bench_drills)
     bench_app.command("poses")(bench_poses)
+    bench_app.command("api")(bench_api)

@@ -9,15 +9,28 @@ Endpoints (JSON, edge units; the messages are :mod:`hbma_ctrl.app.schema.api`):
   was clipped. 422 when the message or the loop's check refuses it, 503 before the loop takes
   setpoints, 409 once a stop has been asked for.
 - ``POST /stop`` -> :class:`StopReply`: asks the loop for the safe state and its end.
+- ``POST /reset`` -> :class:`ResetReply`: leave the safe state after a fault once the readings are
+  sane (409 with the reason otherwise, or once a stop has been asked for); the loop resumes control
+  at its next period.
 - ``GET /health`` -> :class:`Health`: the API answers; the loop's mode and the age of its status.
 
 Every error is JSON ``{"error": "<one line>", "detail": ...}``; a message that fails validation is
 422 and its line names the key as written and the allowed range in the key's unit, e.g.
-``[setpoint] heights_mm.0 = 500 is out of range [0, 200] mm``. A body over :data:`MAX_BODY_BYTES` is
-413. When a token is set every request needs ``Authorization: Bearer <token>`` (401 otherwise).
-Requests are paced to :data:`RATE_HZ` per second over all clients (a burst of :data:`BURST` at
-once); one that would wait more than :data:`MAX_WAIT_S` for its turn gets 429.
-:func:`serve` binds loopback only (127.0.0.0/8, ::1, localhost) unless ``allow_remote`` and a token.
+``[setpoint] heights_mm.0 = 500 is out of range [0, 200] mm``. Before any endpoint, in this order:
+
+- 403 for a ``Host`` header that is not a loopback name (127.0.0.0/8, ::1, localhost) unless
+  ``allow_remote``, and for a POST whose ``Origin`` is not the ``Host`` it was sent to: a web page
+  open on the rig PC (another site, or a DNS name rebound to 127.0.0.1) cannot read or drive the rig;
+- 429 beyond :data:`MAX_CLIENTS` requests in progress, or for a request that would wait more than
+  :data:`MAX_WAIT_S` for its turn: requests are paced to :data:`RATE_HZ` per second over all clients
+  (a burst of :data:`BURST` at once). ``POST /stop`` is never paced nor counted;
+- 401 when a token is set and the request lacks ``Authorization: Bearer <token>``;
+- 415 for a body that is not ``Content-Type: application/json``; 413 for a body over
+  :data:`MAX_BODY_BYTES`; 408 for a body not whole within :data:`REQUEST_TIMEOUT_S`.
+
+A connection that holds no request must send a whole request head within :data:`REQUEST_TIMEOUT_S`
+(:class:`_Protocol`), so half-open connections cannot hold the server's connection slots.
+:func:`serve` binds loopback only unless ``allow_remote`` and a token.
 
 The status dict the loop publishes (:meth:`DaemonState.publish`), SI, a new dict each period (the
 API caches its conversion by identity); every key but ``mode`` may be left out (e.g. while
@@ -29,12 +42,12 @@ supports ``reversed`` (a list or a deque)::
       "t_s": loop time of the snapshot, s,
       "monotonic_s": time.monotonic() when the snapshot was built, s (gives age_ms),
       "chambers": [                                   # one per chamber, by index
-        {"name": "A1" (optional), "h": height estimate m, "h_std": its std m,
+        {"name": "A1" (optional), "h": height estimate m, "h_std": its std m, "target": effective target m,
          "p": pressure reading Pa (gauge; NaN = none this period), "p_est": estimated pressure Pa,
          "u": [pump speed 0-1, inlet duty 0-1, outlet duty 0-1]},
       ],
       "layers": [{"centre": m, "bend": rad, "direction": rad}],   # robot only, by layer index
-      "loop": {"rate_hz": Hz, "steps": int, "deadline_misses": int,
+      "loop": {"rate_hz": Hz, "steps": int, "deadline_misses": int, "overruns": int,
                "step_median_s": s, "step_p99_s": s},
       "faults": {kind: count since start},
       "events": [{"t_s": s, "kind": str, "cause": str}],       # newest last, bounded by the loop
@@ -57,8 +70,10 @@ import socket
 import threading
 import time
 from typing import Any, Self
+from urllib.parse import urlsplit
 
 import uvicorn
+from uvicorn.protocols.http.h11_impl import H11Protocol
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
@@ -74,6 +89,7 @@ from hbma_ctrl.app.schema.api import (
     Faults,
     Health,
     LayerStatus,
+    ResetReply,
     LoopTiming,
     SetpointApplied,
     SetpointReply,
@@ -88,8 +104,11 @@ __all__ = [
     "DEFAULT_PORT",
     "EVENTS_SHOWN",
     "MAX_BODY_BYTES",
+    "MAX_CLIENTS",
+    "MAX_IDLE",
     "MAX_WAIT_S",
     "RATE_HZ",
+    "REQUEST_TIMEOUT_S",
     "ApiServer",
     "is_loopback",
     "make_app",
@@ -103,8 +122,14 @@ DEFAULT_PORT = 8765
 MAX_BODY_BYTES = 16 * 1024
 #: events shown by GET /status (newest last)
 EVENTS_SHOWN = 10
-#: connections served at once; more get 503 from uvicorn instead of queueing work behind the loop
-MAX_CONNECTIONS = 64
+#: open connections at most (uvicorn answers 503 beyond); of those holding no request, the oldest is
+#: closed for a new one above :data:`MAX_IDLE`, so idle clients never fill the slots
+MAX_CONNECTIONS = 256
+MAX_IDLE = 128
+#: requests in progress (waiting for their turn included) over all clients; 429 beyond
+MAX_CLIENTS = 128
+#: a request head, or its body, not whole after this long closes the connection (408 for a body), s
+REQUEST_TIMEOUT_S = 2.0
 #: requests served per second on average (all clients together) and the burst served at once: a
 #: request costs ~1 ms of the daemon's CPU (and its GIL), so a flood is paced instead of starving the loop
 RATE_HZ = 100.0
@@ -147,7 +172,7 @@ def status_message(snapshot: dict) -> Status:
         u += [None] * (3 - len(u))
         chambers.append(ChamberStatus(
             index=i, name=c.get("name"), h_mm=_fin(c.get("h"), U.to_mm(1.0)),
-            h_std_mm=_fin(c.get("h_std"), U.to_mm(1.0)), p_kpa=_fin(c.get("p"), U.to_kpa(1.0)),
+            h_std_mm=_fin(c.get("h_std"), U.to_mm(1.0)), target_mm=_fin(c.get("target"), U.to_mm(1.0)), p_kpa=_fin(c.get("p"), U.to_kpa(1.0)),
             p_est_kpa=_fin(c.get("p_est"), U.to_kpa(1.0)), speed_pct=_fin(u[0], U.to_pct(1.0)),
             inlet_duty=_fin(u[1]), outlet_duty=_fin(u[2])))
     layers = [LayerStatus(layer=k, centre_mm=_fin(ly.get("centre"), U.to_mm(1.0)), bend_deg=_deg(ly.get("bend")),
@@ -155,7 +180,7 @@ def status_message(snapshot: dict) -> Status:
               for k, ly in enumerate(snapshot.get("layers") or ())]
     lp = snapshot.get("loop") or {}
     loop = LoopTiming(rate_hz=_fin(lp.get("rate_hz")), steps=int(lp.get("steps", 0)),
-                      deadline_misses=int(lp.get("deadline_misses", 0)),
+                      deadline_misses=int(lp.get("deadline_misses", 0)), overruns=int(lp.get("overruns", 0)),
                       step_ms_median=_fin(lp.get("step_median_s"), U.to_ms(1.0)),
                       step_ms_p99=_fin(lp.get("step_p99_s"), U.to_ms(1.0)))
     # the newest few only, walked from the end: the cost does not grow with what the loop keeps
@@ -177,7 +202,8 @@ def _applied_message(applied: dict) -> SetpointApplied:
 
 def request_error(err: dict) -> str:
     """One pydantic error of a request body as one line naming the key as written (schema formatter)."""
-    loc = tuple(err.get("loc") or ())
+    # a key that does not print (a newline, a control character) is shown quoted: the line stays one line
+    loc = tuple(repr(x) if isinstance(x, str) and not x.isprintable() else x for x in err.get("loc") or ())
     if loc and loc[0] == "body":
         loc = loc[1:]
     kind = err.get("type", "")
@@ -201,24 +227,36 @@ def _json(model: Any) -> Response:
     return Response(model.model_dump_json(), media_type="application/json")
 
 
+def _hostname(netloc: str) -> str | None:
+    """The host of a ``Host`` header or an ``Origin``'s netloc (no port, no brackets); None when unparsable."""
+    try:
+        return urlsplit("//" + netloc).hostname
+    except ValueError:
+        return None
+
+
 class _Guard:
-    """ASGI middleware before the app: the pace (429 when the wait is too long), the bearer token
-    (401), then the body size (413).
+    """ASGI middleware before the app: Host and Origin (403), the client bound and the pace (429), the
+    bearer token (401), the body's type, size and time (415, 413, 408); see the module doc.
 
     Pacing is a token bucket: each request takes a token, refilled at ``rate_hz`` up to ``burst``;
     without one it sleeps (in the event loop, no CPU) until its turn. The body is read here, up to
     the limit, and handed on whole: a request never makes the app buffer more than the limit."""
 
-    def __init__(self, app: Any, token: str | None, max_body: int, rate_hz: float, burst: int, max_wait_s: float):
+    def __init__(self, app: Any, token: str | None, max_body: int, rate_hz: float, burst: int, max_wait_s: float,
+                 allow_remote: bool = False, max_clients: int = MAX_CLIENTS):
         self.app = app
         self.token = token.encode() if token is not None else None
         self.max_body = max_body
         self.rate = rate_hz
         self.burst = float(burst)
         self.max_wait = max_wait_s
-        # only the server's event loop touches the bucket: no lock
+        self.allow_remote = allow_remote
+        self.max_clients = max_clients
+        # only the server's event loop touches these: no lock
         self._tokens = float(burst)
         self._last = time.monotonic()
+        self._in_progress = 0
 
     async def _take_turn(self) -> bool:
         """Wait for this request's token; False when the wait would exceed ``max_wait``."""
@@ -239,15 +277,45 @@ class _Guard:
         scheme, _, given = headers.get("authorization", "").partition(" ")
         return scheme.lower() == "bearer" and hmac.compare_digest(given.strip().encode("latin-1"), self.token)
 
+    def _foreign(self, method: str, headers: Headers) -> str | None:
+        """Why a request's Host or Origin is refused (one line), None when it is not."""
+        host = headers.get("host", "")
+        name = _hostname(host)
+        if not self.allow_remote and (name is None or not is_loopback(name)):
+            return (f"Host {host!r} is not a loopback name (127.0.0.1, ::1, localhost): the API answers "
+                    "only its own machine's address")
+        origin = headers.get("origin")
+        if origin is not None and method not in ("GET", "HEAD", "OPTIONS"):
+            if urlsplit(origin).netloc.lower() != host.lower():
+                return f"cross-origin {method} from Origin {origin!r} to Host {host!r}: refused"
+        return None
+
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        if not await self._take_turn():
-            await _error(429, f"too many requests: the API serves {self.rate:g} per second",
+        headers = Headers(scope=scope)
+        method = str(scope.get("method", "GET")).upper()
+        why = self._foreign(method, headers)
+        if why is not None:
+            await _error(403, why)(scope, receive, send)
+            return
+        paced = not (method == "POST" and scope.get("path") == "/stop")  # a stop is always answered
+        if paced and self._in_progress >= self.max_clients:
+            await _error(429, f"too many requests in progress: the API serves {self.max_clients} at once",
                          headers={"Retry-After": "1"})(scope, receive, send)
             return
-        headers = Headers(scope=scope)
+        self._in_progress += paced
+        try:
+            if paced and not await self._take_turn():
+                await _error(429, f"too many requests: the API serves {self.rate:g} per second",
+                             headers={"Retry-After": "1"})(scope, receive, send)
+                return
+            await self._serve(scope, receive, send, headers, method)
+        finally:
+            self._in_progress -= paced
+
+    async def _serve(self, scope: dict, receive: Any, send: Any, headers: Headers, method: str) -> None:
         if self.token is not None and not self._authorised(headers):
             await _error(401, "missing or wrong token: send 'Authorization: Bearer <token>'",
                          headers={"WWW-Authenticate": "Bearer"})(scope, receive, send)
@@ -261,19 +329,30 @@ class _Guard:
             await too_big(scope, receive, send)
             return
         chunks, size = [], 0
-        while True:
-            msg = await receive()
-            if msg["type"] != "http.request":  # the client left
-                return
-            chunk = msg.get("body", b"")
-            size += len(chunk)
-            if size > self.max_body:
-                await too_big(scope, receive, send)
-                return
-            chunks.append(chunk)
-            if not msg.get("more_body", False):
-                break
+        try:
+            async with asyncio.timeout(REQUEST_TIMEOUT_S):
+                while True:
+                    msg = await receive()
+                    if msg["type"] != "http.request":  # the client left
+                        return
+                    chunk = msg.get("body", b"")
+                    size += len(chunk)
+                    if size > self.max_body:
+                        await too_big(scope, receive, send)
+                        return
+                    chunks.append(chunk)
+                    if not msg.get("more_body", False):
+                        break
+        except TimeoutError:
+            await _error(408, f"the body was not whole within {REQUEST_TIMEOUT_S:g} s",
+                         headers={"Connection": "close"})(scope, receive, send)
+            return
         body = b"".join(chunks)
+        kind = headers.get("content-type", "").partition(";")[0].strip().lower()
+        if body and kind != "application/json":
+            await _error(415, f"Content-Type {kind or '(none)'!r}: send the body as application/json")(
+                scope, receive, send)
+            return
         given = False
 
         async def replay() -> dict:
@@ -286,30 +365,75 @@ class _Guard:
         await self.app(scope, replay, send)
 
 
+class _Protocol(H11Protocol):
+    """uvicorn's HTTP/1.1 protocol with a deadline on a connection that holds no request: a whole
+    request head within :data:`REQUEST_TIMEOUT_S` of opening or of its last response, else it is
+    closed (uvicorn's keep-alive timer starts only after a response and any byte stops it, so a
+    half-open or trickling connection would hold its slot for ever); above :data:`MAX_IDLE` such
+    connections the oldest is closed for a new one."""
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._opened = time.monotonic()
+        self._head_timer: asyncio.TimerHandle | None = None
+        self._arm()
+        idle = [c for c in self.connections if isinstance(c, _Protocol) and c is not self and c._idle()]
+        if len(idle) > MAX_IDLE:
+            min(idle, key=lambda c: c._opened).transport.close()
+
+    def _idle(self) -> bool:
+        return self.cycle is None or self.cycle.response_complete
+
+    def _arm(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+        self._head_timer = self.loop.call_later(REQUEST_TIMEOUT_S, self._head_late, self.cycle)
+
+    def _head_late(self, cycle: Any) -> None:
+        # no new request head since the timer was set, and none in progress
+        if self.cycle is cycle and self._idle() and not self.transport.is_closing():
+            self.transport.close()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._arm()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+        super().connection_lost(exc)
+
+
 def _errors(**codes: str) -> dict:
     return {int(code[1:]): {"model": ErrorReply, "description": what} for code, what in codes.items()}
 
 
 #: what every request may get from the guard, and a setpoint from its checks (the OpenAPI schema's errors)
 _GUARD_ERRORS = _errors(s401="no or a wrong bearer token (when the daemon has one)",
+                        s403="a Host that is not a loopback name (without --allow-remote), or a cross-origin POST",
+                        s408=f"a body not whole within {REQUEST_TIMEOUT_S:g} s",
+                        s415="a POST body that is not application/json",
                         s413=f"a body over {MAX_BODY_BYTES} bytes",
-                        s429=f"the request would wait over {MAX_WAIT_S:g} s for its turn (paced requests)")
+                        s429=f"over {MAX_CLIENTS} requests in progress, or the request would wait over {MAX_WAIT_S:g} s for its turn (paced requests)")
 _SETPOINT_ERRORS = _errors(s409="the daemon is stopping: no new setpoints",
                            s422="the message or the loop's check refuses it (the line names the key and its range)",
                            s503="the loop does not take setpoints yet")
+_RESET_ERRORS = _errors(s409="the daemon is stopping, is not in the safe state, or a reading is not sane")
 
 
 def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = RATE_HZ, burst: int = BURST,
-             max_wait_s: float = MAX_WAIT_S) -> FastAPI:
+             max_wait_s: float = MAX_WAIT_S, allow_remote: bool = False, max_clients: int = MAX_CLIENTS) -> FastAPI:
     """The API in front of ``state`` (see the module doc); ``token``: the bearer token every request
-    must carry, None for none; ``rate_hz`` (requests/s), ``burst`` and ``max_wait_s`` (s): the pace."""
+    must carry, None for none; ``rate_hz`` (requests/s), ``burst`` and ``max_wait_s`` (s): the pace;
+    ``allow_remote``: any Host is served (else loopback names only); ``max_clients``: requests in
+    progress at most."""
     if token is not None and not token.strip():
         raise ValueError("token must not be empty")
     if not (rate_hz > 0 and burst >= 1 and max_wait_s >= 0):
         raise ValueError("api pace: rate_hz > 0, burst >= 1 and max_wait_s >= 0 are required")
     app = FastAPI(title="hbma-ctrl rig daemon", docs_url=None, redoc_url=None, responses=_GUARD_ERRORS)
     app.add_middleware(_Guard, token=token, max_body=MAX_BODY_BYTES, rate_hz=rate_hz, burst=burst,
-                       max_wait_s=max_wait_s)
+                       max_wait_s=max_wait_s, allow_remote=allow_remote, max_clients=max_clients)
     # the last converted snapshot: many requests per loop period convert it once
     cache: list = [None, None]
     cache_lock = threading.Lock()
@@ -361,6 +485,17 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
             raise HTTPException(503, str(exc)) from None
         return _json(SetpointReply(applied=_applied_message(reply.get("applied") or {}),
                                    clipped=[str(m) for m in reply.get("clipped") or ()]))
+
+    @app.post("/reset", response_model=ResetReply, responses=_RESET_ERRORS)
+    def post_reset() -> Response:
+        """Leave the safe state after a fault once the readings are sane (the loop checks them again)."""
+        if state.stop_requested:
+            raise HTTPException(409, f"the daemon is stopping ({state.stop_reason}): no reset")
+        try:
+            line = state.submit_reset()
+        except RuntimeError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return _json(ResetReply(reset_requested=True, detail=line))
 
     @app.post("/stop", response_model=StopReply)
     async def post_stop() -> Response:
@@ -446,10 +581,12 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     if not is_loopback(host) and not (allow_remote and token is not None):
         raise ValueError(f"api host = {host!r} is not loopback (127.0.0.1, ::1, localhost); another address "
                          "needs --allow-remote and a token")
-    app = make_app(state, token, rate_hz=rate_hz)
+    app = make_app(state, token, rate_hz=rate_hz, allow_remote=allow_remote)
     sock = _bind(host, port)
     config = uvicorn.Config(app, log_config=None, access_log=False, log_level="warning", lifespan="off",
-                            limit_concurrency=MAX_CONNECTIONS, timeout_graceful_shutdown=2)
+                            http=_Protocol, limit_concurrency=MAX_CONNECTIONS,
+                            timeout_keep_alive=int(REQUEST_TIMEOUT_S), h11_max_incomplete_event_size=MAX_BODY_BYTES,
+                            timeout_graceful_shutdown=2)
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="hbma-api", daemon=True)
     thread.start()

@@ -161,6 +161,7 @@ class FaultyRig:
 
     def __init__(self, rig: RigIO, faults):
         self.rig = rig
+        self.simulated: bool = bool(getattr(rig, "simulated", False))
         self.n: int = int(rig.n)
         self.sample_period: float = float(rig.sample_period)
         self.faults: list[FaultSpec] = [f if isinstance(f, FaultSpec) else f.to_spec() for f in faults]

@@ -3,8 +3,12 @@
 Period k starts at the wall deadline ``t0 + k * period / speed`` (time.monotonic): no drift, however
 long the steps take. The loop sleeps until the deadline; the lateness of the wake-up is the jitter.
 A step that ends after the next deadline is a *deadline miss*; the loop does not burst to catch
-up: it goes on at the next deadline still in the future and counts the deadlines it skipped. The
-loop watchdog (the monitor's overrun test) gets the misses in real time (speed 1); accelerated, it
+up: it goes on at the next deadline still in the future and counts the deadlines it skipped. On a
+simulated rig (``rig.simulated``) the time its reads and writes take simulating the plant is no
+time a real rig's I/O would take: a step is a miss when it ends after the deadline without it. Each
+miss is a counted warning (``overruns``; an ``overrun_warning`` event at the first of a run); the
+loop watchdog (the monitor's overrun test: ``miss_limit`` misses in a row latch the ``overrun``
+fault) gets the misses in real time (speed 1); accelerated, it
 gets the steps whose runtime tick took longer than the rig period (what a real rig would have
 missed; the sim rig's plant simulation is not counted), so a run faster than real time is not
 stopped for being faster than real time. Accelerated, the tick is judged by the CPU time of the
@@ -30,6 +34,10 @@ Before the first period the objects alive are frozen out of Python's garbage col
 collection is timed (:mod:`hbma_ctrl.app.daemon.gcwatch`): a full collection of the start-up objects
 took 3-4 periods.
 
+A latched fault is left without a restart by a reset (the API's ``POST /reset``): asked for while the
+loop is in mode "safe" and the readings are sane (finite, within the sensor's range and below the
+pressure cap), checked again at the next period, it clears the monitor and the loop controls again.
+
 The loop ends on a stop request (the API's /stop, a signal flag, the duration) or at once on an
 exception anywhere in the step or a lost rig link. Whatever ends it, the safe command is written
 before :meth:`DaemonLoop.run` returns, and the event is logged with its rig time and cause.
@@ -40,6 +48,7 @@ from __future__ import annotations
 import math
 import os
 import resource
+import sys
 import time
 from collections import deque
 from typing import Callable
@@ -53,7 +62,7 @@ from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.core import units as U
 from hbma_ctrl.runtime.stats import StepStats
 
-__all__ = ["DaemonLoop", "rss_mb", "STATS_KEYS", "COUNTED"]
+__all__ = ["DaemonLoop", "rss_mb", "setpoint_fields", "STATS_KEYS", "COUNTED", "GIL_SWITCH_S"]
 
 #: the words a slow_tick event carries when steps_over_period counts its tick
 COUNTED = "counted over the period"
@@ -66,6 +75,10 @@ STATS_KEYS = ("rate_hz", "steps", "deadline_misses", "step_ms_median", "step_ms_
 
 #: events kept for the status (the run log keeps all)
 EVENTS_KEPT = 100
+#: the interpreter's switch interval while the loop runs, s: a thread that wants the GIL (the loop's,
+#: back from its sleep or a solver call) waits at most this long for another (the API's, serving a
+#: flood of clients) to hand it over; Python's default is 5 ms, half a period at 100 Hz
+GIL_SWITCH_S = 2e-4
 
 
 def rss_mb() -> float:
@@ -99,6 +112,22 @@ def _thread_usage():
 
 def _fmt(x: float, scale: float = 1.0, digits: int = 4) -> str:
     return "" if x is None or not math.isfinite(x) else f"{x * scale:.{digits}f}"
+
+
+def setpoint_fields(applied: dict, names) -> tuple[str, dict]:
+    """A setpoint as the loop applies it (SI, :mod:`hbma_ctrl.app.daemon.state`) as an event's cause
+    and its run log columns (:func:`hbma_ctrl.app.daemon.runlog.setpoint_columns`, user units)."""
+    fields, words = {}, []
+    for i, h in sorted((applied.get("heights") or {}).items()):
+        nm = names[int(i)] if 0 <= int(i) < len(names) else str(i)
+        fields[f"target_{nm}_mm"] = repr(float(U.to_mm(h)))
+        words.append(f"{nm} {U.to_mm(h):.3f} mm")
+    for k, (c, th, ps) in sorted((applied.get("layers") or {}).items()):
+        fields.update({f"centre_L{k}_mm": repr(float(U.to_mm(c))), f"bend_L{k}_deg": repr(math.degrees(th)),
+                       f"direction_L{k}_deg": repr(math.degrees(ps))})
+        words.append(f"layer {k} centre {U.to_mm(c):.3f} mm, bend {math.degrees(th):.2f} deg, direction "
+                     f"{math.degrees(ps):.2f} deg")
+    return "; ".join(words), fields
 
 
 class DaemonLoop:
@@ -141,6 +170,8 @@ class DaemonLoop:
         self.mode = "starting"
         self.steps = 0
         self.deadline_misses = 0
+        self.overruns = 0  # deadline misses past the warm-up: each a warning, a run of miss_limit a fault
+        self._io_s = 0.0  # this step's time in a simulated rig's reads and writes, s
         self.skipped_periods = 0
         self.over_budget = 0
         self.repeated_samples = 0
@@ -178,12 +209,12 @@ class DaemonLoop:
         self._gc_before = (0, 0.0)
 
     # --- events ------------------------------------------------------------------------------------
-    def event(self, kind: str, cause: str) -> None:
-        """Record an event at the current rig time (status, run log)."""
+    def event(self, kind: str, cause: str, fields: dict | None = None) -> None:
+        """Record an event at the current rig time (status, run log; ``fields``: its run log columns)."""
         ev = {"t_s": float(self.t), "kind": kind, "cause": cause}
         self.events.append(ev)
         if self.log is not None:
-            self.log.event(self.t, kind, cause)
+            self.log.event(self.t, kind, cause, fields)
 
     def _fault(self, kind: str, cause: str) -> None:
         self.fault_counts[kind] = self.fault_counts.get(kind, 0) + 1
@@ -210,7 +241,9 @@ class DaemonLoop:
 
     # --- the rig -----------------------------------------------------------------------------------
     def _write(self, u: np.ndarray) -> None:
+        c0 = self.clock()
         self.rig.write(u)
+        self._io_s += self.clock() - c0
         self.u_last = u
 
     def _go_safe(self) -> None:
@@ -227,15 +260,17 @@ class DaemonLoop:
     def status(self) -> dict:
         """The status dict the API converts (see :mod:`hbma_ctrl.app.daemon.api`)."""
         h, hs, pe = self.runner.estimates()
+        tg = self.runner.effective_targets() if self.mode == "running" else np.full(self.n, np.nan)
         u = self.u_last
         chambers = [{"name": nm, "h": float(h[i]), "h_std": float(hs[i]), "p": float(self.readings_p[i]),
-                     "p_est": float(pe[i]), "u": [float(u[0, i]), float(u[1, i]), float(u[2, i])]}
+                     "p_est": float(pe[i]), "target": float(tg[i]),
+                     "u": [float(u[0, i]), float(u[1, i]), float(u[2, i])]}
                     for i, nm in enumerate(self.runner.names)]
         st = self.step_s.summary()
         return {"mode": self.mode, "t_s": float(self.t), "monotonic_s": time.monotonic(), "chambers": chambers,
                 "layers": self.runner.layers(),
                 "loop": {"rate_hz": 1.0 / self.period, "steps": self.steps, "deadline_misses": self.deadline_misses,
-                         "step_median_s": st["median"], "step_p99_s": st["p99"]},
+                         "overruns": self.overruns, "step_median_s": st["median"], "step_p99_s": st["p99"]},
                 "faults": self.faults(), "events": list(self.events)}
 
     def _log_row(self, step_s: float) -> None:
@@ -255,12 +290,17 @@ class DaemonLoop:
 
     # --- one period --------------------------------------------------------------------------------
     def _step(self, k: int, missed_last: bool) -> None:
+        self._io_s = 0.0
         for sp in self.state.take_setpoints():
             self.runner.apply_setpoint(sp, self.t)
-            self.event("setpoint", repr(sp))
+            self.event("setpoint", *setpoint_fields(sp, self.runner.names))
+        c0 = self.clock()
         r = self.rig.read()
+        self._io_s += self.clock() - c0
         p = np.asarray(r.p, dtype=float).reshape(self.n)
         self.readings_p = p
+        if self.state.take_reset():
+            self._reset(p)
         fresh = np.asarray(r.fresh, dtype=bool)
         waiting = fresh.size == self.n and not fresh.any()  # no new sample since the last period
         if r.t is None:
@@ -392,6 +432,40 @@ class DaemonLoop:
                                f"{', '.join(self._latched_kinds()) or 'a stop'}): setpoints are not applied")
         return self.runner.check_setpoint(request)
 
+    def _insane(self, p: np.ndarray) -> str:
+        """Why the readings ``p`` (Pa) are not sane for a reset ('' when they are): each must be finite,
+        within the sensor's range and below the pressure cap (the monitor's; the runner's limit without one)."""
+        s = self.monitor.settings if self.monitor is not None else None
+        lo, hi = (s.vacuum_floor, min(s.sensor_range, s.p_max)) if s is not None else (-math.inf, self.runner.p_limit)
+        bad = [f"{nm} reads {_fmt(p[i], U.to_kpa(1.0), 2) or 'nothing'} kPa" for i, nm in enumerate(self.runner.names)
+               if not (math.isfinite(p[i]) and lo <= p[i] < hi)]
+        return "; ".join(bad) + (f" (sane: [{U.to_kpa(lo):g}, {U.to_kpa(hi):g}) kPa)" if bad else "")
+
+    def _check_reset(self) -> str:
+        """The API's reset check (its thread): RuntimeError with the reason unless the loop is in mode
+        "safe" with sane readings."""
+        if self.mode != "safe":
+            raise RuntimeError(f"the daemon is in mode '{self.mode}': there is no fault to reset")
+        why = self._insane(self.readings_p)
+        if why:
+            raise RuntimeError(f"the readings are not sane: {why}")
+        return "the loop leaves the safe state at its next period if the readings are still sane"
+
+    def _reset(self, p: np.ndarray) -> None:
+        """A reset asked for through the API, at the start of a period with the readings ``p`` (Pa)."""
+        if self.mode != "safe":
+            return
+        why = self._insane(p)
+        if why:
+            self.event("reset_refused", why)
+            return
+        if self.monitor is not None:
+            self.fault_counts = self.faults()  # the run keeps counting the faults the monitor forgets
+            self.monitor.reset()
+        self._miss_run = 0
+        self.mode = "running"
+        self.event("reset", "the safe state left on request: the readings are sane")
+
     def _should_stop(self) -> bool:
         """True (and the stop event logged) on a signal, a stop request or the end of the duration."""
         if self.signal_stop:
@@ -409,8 +483,11 @@ class DaemonLoop:
     def run(self) -> dict:
         """Run until stopped (module doc); returns the stats (:data:`STATS_KEYS` and more)."""
         self.state.set_setpoint_handler(self._check_setpoint)
+        self.state.set_reset_handler(self._check_reset)
         # before the first period: one collection, then the start-up objects frozen (gcwatch's doc)
         self.gc = GcWatch()
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(GIL_SWITCH_S)
         self.mode = "running"
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
         wp = self.period / self.speed
@@ -449,23 +526,31 @@ class DaemonLoop:
                 self.steps += 1
                 next_deadline = t0 + (k + 1) * wp
                 late = end > next_deadline
+                # the controller's deadline: a simulated rig's plant time is not the controller's
+                late_ctrl = end - (self._io_s if getattr(self.rig, "simulated", False) else 0.0) > next_deadline
                 # the watchdog judges real time: accelerated (speed > 1), a step is late when its
                 # runtime tick's work (its thread's CPU time) overruns the rig period, the budget a
                 # real rig would give it (the sim rig's write, which simulates the plant, is no work a
                 # real host would do; module doc)
                 over = self._tick_over_period()
-                missed_last = (late if self.speed <= 1.0 else over) and not self._warming
+                missed_last = (late_ctrl if self.speed <= 1.0 else over) and not self._warming
                 self.over_budget += int(over and not self._warming)
                 self.over_wall += int(self._last_tick > self.period and not self._warming)
                 self._warming = False
                 self._last_tick = self._last_tick_cpu = 0.0
+                self.deadline_misses += int(late_ctrl)
                 if late:
-                    self.deadline_misses += 1
                     k_next = int(math.floor((end - t0) / wp)) + 1
                     self.skipped_periods += k_next - (k + 1)
                     k = k_next
                 else:
                     k += 1
+                if missed_last and self._ctrl_steps > self.warmup_periods:
+                    self.overruns += 1
+                    if self._miss_run == 0:
+                        self.event("overrun_warning", f"step {U.to_ms(step - self._io_s):.2f} ms of the "
+                                   f"{U.to_ms(wp):g} ms period past its deadline (a warning: {self.miss_limit} in a "
+                                   "row latch the overrun fault)")
                 if missed_last:
                     self._miss_run += 1 if self._ctrl_steps > self.warmup_periods else 0
                     # with a monitor, its overrun test (fed above) is the loop watchdog
@@ -487,6 +572,7 @@ class DaemonLoop:
             self._fault("exception", f"{type(exc).__name__}: {exc}")
             raise
         finally:
+            sys.setswitchinterval(switch)
             self._go_safe()
             self.mode = "stopped"
             self.event("safe_exit" if self.safe_exit else "unsafe_exit", self.end_reason or "ended")
@@ -514,6 +600,7 @@ class DaemonLoop:
         tc = self.tick_cpu_s.summary()
         ms = lambda x: None if not math.isfinite(x) else float(U.to_ms(x))  # noqa: E731
         return {"rate_hz": 1.0 / self.period, "steps": self.steps, "deadline_misses": self.deadline_misses,
+                "overruns": self.overruns,
                 "step_ms_median": ms(st["median"]), "step_ms_p99": ms(st["p99"]), "jitter_ms_p99": ms(jt["p99"]),
                 "max_pressure_kpa": float(U.to_kpa(self.max_pressure)) if math.isfinite(self.max_pressure) else None,
                 "pressure_limit_kpa": float(U.to_kpa(self.runner.p_limit)), "faults": self.faults(),

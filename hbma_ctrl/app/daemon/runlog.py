@@ -4,8 +4,9 @@ Files in the run directory (edge units, the unit in every column name):
 
 - ``run_0001.csv``, ``run_0002.csv``, ...: one row per loop period (columns :attr:`RunLog.columns`),
   each part with its header; a part is closed once it reaches ``rotate_bytes``.
-- ``events.csv``: ``t_s, wall_utc, kind, cause``, one row per event (fault, stop, setpoint, ...),
-  written at once.
+- ``events.csv``: ``t_s, wall_utc, kind, cause`` and the setpoint columns
+  (:func:`setpoint_columns`: a target per chamber in mm, a pose per robot layer in mm and deg, filled
+  on the setpoint events), one row per event (fault, stop, setpoint, ...), written at once.
 
 Rows are kept in memory and appended with one ``os.write`` of whole rows at least every
 ``flush_s`` seconds (and on every event): a process killed at any moment (kill -9) leaves files
@@ -17,11 +18,14 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import io
+import math
 import os
 import time
 from pathlib import Path
 
-__all__ = ["RunLog", "read_run_log", "chamber_columns", "EVENT_COLUMNS"]
+from hbma_ctrl.core import units as U
+
+__all__ = ["RunLog", "read_run_log", "chamber_columns", "setpoint_columns", "setpoint_of_event", "EVENT_COLUMNS"]
 
 #: columns of events.csv
 EVENT_COLUMNS = ("t_s", "wall_utc", "kind", "cause")
@@ -37,6 +41,31 @@ def chamber_columns(names) -> list[str]:
     for nm in names:
         cols += [f"{stem}_{nm}_{unit}" for stem, unit in _STEMS]
     return cols + ["step_ms", "faults"]
+
+
+def setpoint_columns(names, n_layers: int = 0) -> list[str]:
+    """events.csv's setpoint columns: ``target_<chamber>_mm`` per chamber, then ``centre_L<k>_mm``,
+    ``bend_L<k>_deg``, ``direction_L<k>_deg`` per robot layer."""
+    cols = [f"target_{nm}_mm" for nm in names]
+    for k in range(n_layers):
+        cols += [f"centre_L{k}_mm", f"bend_L{k}_deg", f"direction_L{k}_deg"]
+    return cols
+
+
+def setpoint_of_event(row: dict) -> dict:
+    """A setpoint event's row of events.csv (a csv.DictReader row) as the loop applied it (SI:
+    ``heights`` {chamber index: m}, ``layers`` {layer: (centre m, bend rad, direction rad)}); the
+    chamber index is the target column's place among them."""
+    out: dict = {}
+    targets = [c for c in row if c.startswith("target_") and c.endswith("_mm")]
+    heights = {i: U.mm(float(row[c])) for i, c in enumerate(targets) if row[c]}
+    layers = {int(c[len("centre_L"):-len("_mm")]): c for c in row if c.startswith("centre_L") and row[c]}
+    if heights:
+        out["heights"] = heights
+    if layers:
+        out["layers"] = {k: (U.mm(float(row[c])), math.radians(float(row[f"bend_L{k}_deg"])),
+                             math.radians(float(row[f"direction_L{k}_deg"]))) for k, c in sorted(layers.items())}
+    return out
 
 
 def _csv_line(values) -> str:
@@ -63,9 +92,11 @@ class RunLog:
     columns : the row columns (:func:`chamber_columns`).
     rotate_bytes : a part is closed at this size, bytes.
     flush_s : rows are written at least this often, s (wall clock).
+    event_fields : events.csv's columns after :data:`EVENT_COLUMNS` (:func:`setpoint_columns`).
     """
 
-    def __init__(self, folder: Path | str, columns: list[str], rotate_bytes: int = 50_000_000, flush_s: float = 0.5):
+    def __init__(self, folder: Path | str, columns: list[str], rotate_bytes: int = 50_000_000, flush_s: float = 0.5,
+                 event_fields=()):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.columns = list(columns)
@@ -77,7 +108,8 @@ class RunLog:
         self.part = 0
         self._size = 0
         self.events_path = self.folder / "events.csv"
-        _append(self.events_path, _csv_line(EVENT_COLUMNS))
+        self.event_fields = list(event_fields)
+        _append(self.events_path, _csv_line([*EVENT_COLUMNS, *self.event_fields]))
         self._new_part()
 
     @property
@@ -118,11 +150,17 @@ class RunLog:
         self._size = size
         self._pending.clear()
 
-    def event(self, t: float, kind: str, cause: str) -> None:
-        """Write one event at once (and the rows before it, so the two files agree in time)."""
+    def event(self, t: float, kind: str, cause: str, fields: dict | None = None) -> None:
+        """Write one event at once (and the rows before it, so the two files agree in time); ``fields``:
+        values of :attr:`event_fields` by column (ValueError for a column the file does not have)."""
+        fields = fields or {}
+        unknown = set(fields) - set(self.event_fields)
+        if unknown:
+            raise ValueError(f"events.csv has no column {', '.join(sorted(unknown))}")
         self.flush()
         stamp = dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
-        _append(self.events_path, _csv_line([f"{t:.4f}", stamp, kind, cause]))
+        _append(self.events_path, _csv_line([f"{t:.4f}", stamp, kind, cause,
+                                             *(fields.get(c, "") for c in self.event_fields)]))
 
     def close(self) -> None:
         """Write what is queued."""

@@ -47,7 +47,8 @@ class DaemonConfig(Settings):
     status_every: int = setting(1, integer=True, lo=1, hi=1000,
                                 doc="publish the status to the API every this many periods")
     miss_limit: int = setting(10, integer=True, lo=1, hi=100000,
-                              doc="missed deadlines in a row that stop the loop (loop watchdog)")
+                              doc="missed deadlines in a row that latch the overrun fault (loop watchdog; "
+                                  "fewer are counted warnings)")
     faults: list = field(default_factory=list)
     path: Path | None = None
 

@@ -12,6 +12,10 @@ A setpoint request (SI) is a dict with either or both of
 ``layers``: {layer index: (centre height m, bend rad, bend direction rad)}.
 The handler returns ``{"applied": <request as it will be applied>, "clipped": [messages]}`` or raises
 ValueError (a request the rig cannot take at all, e.g. a chamber that does not exist).
+
+A reset (leave the safe state after a fault) is checked the same way by the loop's reset handler
+(:meth:`DaemonState.set_reset_handler`; RuntimeError with the reason when refused) and taken by the
+loop at its next period (:meth:`DaemonState.take_reset`), which checks the readings again.
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ class DaemonState:
         self._status: dict = {"mode": "starting"}
         self._pending: deque = deque(maxlen=max_pending)
         self._handler: Callable[[dict], dict] | None = None
+        self._reset_handler: Callable[[], str] | None = None
+        self._reset = False
         self._stop = threading.Event()
         self._stop_reason = ""
 
@@ -51,6 +57,18 @@ class DaemonState:
         """Register the function that checks and clips a request (called in the API's thread)."""
         with self._lock:
             self._handler = handler
+
+    def set_reset_handler(self, handler: Callable[[], str]) -> None:
+        """Register the function that checks a reset (called in the API's thread; returns what it will do,
+        raises RuntimeError with the reason it cannot)."""
+        with self._lock:
+            self._reset_handler = handler
+
+    def take_reset(self) -> bool:
+        """Whether a reset was asked for since the last call."""
+        with self._lock:
+            asked, self._reset = self._reset, False
+        return asked
 
     # --- API side ----------------------------------------------------------------------------------
     def status(self) -> dict:
@@ -73,6 +91,18 @@ class DaemonState:
                 raise RuntimeError(f"{len(self._pending)} setpoints are waiting for the loop; retry after a period")
             self._pending.append(reply["applied"])
         return reply
+
+    def submit_reset(self) -> str:
+        """Check a reset with the loop's handler and queue it for the loop; returns the handler's line.
+        RuntimeError (with the reason) before the loop is ready or when the handler refuses."""
+        with self._lock:
+            handler = self._reset_handler
+        if handler is None:
+            raise RuntimeError("the loop is not ready yet: nothing to reset")
+        line = handler()
+        with self._lock:
+            self._reset = True
+        return line
 
     def request_stop(self, reason: str = "stop requested") -> None:
         """Ask the loop to send the safe command and end (idempotent; the first reason is kept)."""

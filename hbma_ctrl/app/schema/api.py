@@ -35,6 +35,7 @@ __all__ = [
     "LayerPose",
     "LayerStatus",
     "LoopTiming",
+    "ResetReply",
     "SetpointApplied",
     "SetpointReply",
     "SetpointRequest",
@@ -119,6 +120,9 @@ class ChamberStatus(Message):
     name: str | None = Field(None, description="chamber name on the robot (A1, A2, ...); null on the rig")
     h_mm: float | None = _out("mm", "estimated membrane height")
     h_std_mm: float | None = _out("mm", "standard deviation of the height estimate")
+    target_mm: float | None = _out("mm", "the target height the controller works to: the setpoint or the "
+                                   "file's schedule, limited to what the chamber reaches under its load "
+                                   "within its pressure limit")
     p_kpa: float | None = _out("kPa", "pressure reading (gauge)")
     p_est_kpa: float | None = _out("kPa", "estimated pressure (gauge)")
     speed_pct: float | None = _out("%", "compressor speed commanded")
@@ -141,6 +145,8 @@ class LoopTiming(Message):
     rate_hz: float | None = _out("Hz", "loop rate")
     steps: int = Field(0, description="periods run (-)")
     deadline_misses: int = Field(0, description="periods whose step overran its deadline (-)")
+    overruns: int = Field(0, description="periods whose control step overran its deadline, each a warning; a "
+                          "run of [daemon] miss_limit of them in a row is the overrun fault (-)")
     step_ms_median: float | None = _out("ms", "median step time")
     step_ms_p99: float | None = _out("ms", "99th percentile step time")
 
@@ -193,6 +199,14 @@ class StopReply(Message):
     stop_requested: bool = Field(True, description="always true")
     reason: str = Field(description="the first stop reason (a later stop keeps it)")
     mode: str = Field(description="the loop's mode when the stop was asked for")
+
+
+class ResetReply(Message):
+    """POST /reset: the readings are sane and the reset is asked for; the loop leaves the safe state
+    at its next period (when the readings are still sane then)."""
+
+    reset_requested: bool = Field(True, description="always true")
+    detail: str = Field(description="what the loop will do")
 
 
 class Health(Message):

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 from hbma_ctrl.app.daemon.api import (
     EVENTS_SHOWN,
     MAX_BODY_BYTES,
+    MAX_IDLE,
     is_loopback,
     make_app,
     serve,
@@ -46,17 +47,22 @@ def snapshot(**over) -> dict:
     s = {
         "mode": "running", "t_s": 12.5, "monotonic_s": time.monotonic(),
         "chambers": [
-            {"name": "A1", "h": 0.005, "h_std": 2e-4, "p": 12_000.0, "p_est": 11_500.0, "u": [0.4, 1.0, 0.0]},
+            {"name": "A1", "h": 0.005, "h_std": 2e-4, "target": 0.00625, "p": 12_000.0, "p_est": 11_500.0, "u": [0.4, 1.0, 0.0]},
             {"h": 0.0, "h_std": 1e-5, "p": float("nan"), "p_est": 0.0, "u": [0.0, 0.0, 1.0]},
         ],
         "layers": [{"centre": 0.007, "bend": math.radians(20.0), "direction": math.radians(-90.0)}],
-        "loop": {"rate_hz": 100.0, "steps": 1250, "deadline_misses": 2, "step_median_s": 0.0031,
+        "loop": {"rate_hz": 100.0, "steps": 1250, "deadline_misses": 2, "overruns": 1, "step_median_s": 0.0031,
                  "step_p99_s": 0.0072},
         "faults": {"sensor_nan": 3, "leak": 1},
         "events": [{"t_s": 0.01 * k, "kind": "sensor_nan", "cause": f"event {k}"} for k in range(25)],
     }
     s.update(over)
     return s
+
+
+def local(app) -> TestClient:
+    """A test client that addresses the app as a loopback client does (Host 127.0.0.1)."""
+    return TestClient(app, base_url="http://127.0.0.1")
 
 
 @pytest.fixture
@@ -68,7 +74,7 @@ def state() -> DaemonState:
 
 @pytest.fixture
 def client(state: DaemonState) -> TestClient:
-    return TestClient(make_app(state, None))
+    return local(make_app(state, None))
 
 
 # --- GET /status, /health ------------------------------------------------------------------------------
@@ -81,13 +87,13 @@ def test_status_converts_the_loop_snapshot_to_edge_units(state, client):
     assert s["mode"] == "running" and s["t_s"] == 12.5
     c0, c1 = s["chambers"]
     assert c0 == {"index": 0, "name": "A1", "h_mm": pytest.approx(5.0), "h_std_mm": pytest.approx(0.2),
-                  "p_kpa": pytest.approx(12.0), "p_est_kpa": pytest.approx(11.5), "speed_pct": pytest.approx(40.0),
+                  "target_mm": pytest.approx(6.25), "p_kpa": pytest.approx(12.0), "p_est_kpa": pytest.approx(11.5), "speed_pct": pytest.approx(40.0),
                   "inlet_duty": 1.0, "outlet_duty": 0.0}
-    assert c1["index"] == 1 and c1["p_kpa"] is None  # no reading this period: null, not NaN
+    assert c1["index"] == 1 and c1["p_kpa"] is None and c1["target_mm"] is None  # none: null, not NaN
     (ly,) = s["layers"]
     assert ly["centre_mm"] == pytest.approx(7.0) and ly["bend_deg"] == pytest.approx(20.0)
     assert ly["direction_deg"] == pytest.approx(-90.0)
-    assert s["loop"] == {"rate_hz": 100.0, "steps": 1250, "deadline_misses": 2,
+    assert s["loop"] == {"rate_hz": 100.0, "steps": 1250, "deadline_misses": 2, "overruns": 1,
                          "step_ms_median": pytest.approx(3.1), "step_ms_p99": pytest.approx(7.2)}
     assert s["faults"]["counts"] == {"sensor_nan": 3, "leak": 1}
     assert 0.0 <= s["age_ms"] < 60_000.0
@@ -166,7 +172,7 @@ def test_setpoint_the_loop_refuses_is_422_with_its_message(state, client):
 
 
 def test_setpoint_before_the_loop_is_ready_is_503():
-    c = TestClient(make_app(DaemonState(), None))
+    c = local(make_app(DaemonState(), None))
     r = c.post("/setpoint", json={"heights_mm": {"0": 5.0}})
     assert r.status_code == 503 and "not ready" in r.json()["error"]
 
@@ -183,7 +189,7 @@ def test_setpoint_after_a_stop_is_409_and_not_queued(state, client):
 def test_setpoint_heights_round_trip_mm_si_mm(heights):
     s = DaemonState()
     s.set_setpoint_handler(lambda req: {"applied": req, "clipped": []})
-    r = TestClient(make_app(s, None)).post("/setpoint", json={"heights_mm": {str(k): v for k, v in heights.items()}})
+    r = local(make_app(s, None)).post("/setpoint", json={"heights_mm": {str(k): v for k, v in heights.items()}})
     assert r.status_code == 200
     back = {int(k): v for k, v in r.json()["applied"]["heights_mm"].items()}
     assert back == pytest.approx(heights, rel=1e-12, abs=1e-9)
@@ -248,16 +254,139 @@ def test_body_over_the_limit_is_413_with_or_without_a_length(state, client):
 
 
 def test_requests_beyond_the_pace_wait_their_turn_and_are_answered(state):
-    c = TestClient(make_app(state, None, rate_hz=200.0, burst=1, max_wait_s=1.0))
+    c = local(make_app(state, None, rate_hz=200.0, burst=1, max_wait_s=1.0))
     assert [c.get("/health").status_code for _ in range(6)] == [200] * 6
 
 
 def test_requests_that_would_wait_too_long_are_429(state):
-    c = TestClient(make_app(state, None, rate_hz=0.001, burst=2, max_wait_s=0.0))
+    c = local(make_app(state, None, rate_hz=0.001, burst=2, max_wait_s=0.0))
     assert [c.get("/health").status_code for _ in range(2)] == [200, 200]
     r = c.post("/setpoint", json={"heights_mm": {"0": 1.0}})
     assert r.status_code == 429 and r.headers["retry-after"] == "1" and "too many" in r.json()["error"]
     assert state.take_setpoints() == []
+
+
+# --- Host, Origin, content type, clients -------------------------------------------------------------
+
+@pytest.mark.parametrize("host", ["evil.example", "rebind.attacker.test:8765", "192.168.1.20:8765", "", "[::2]"])
+def test_a_foreign_host_is_403_on_every_endpoint(state, host):
+    c = local(make_app(state, None))
+    for method, path in [("GET", "/status"), ("POST", "/setpoint"), ("POST", "/stop")]:
+        r = c.request(method, path, headers={"host": host}, json={"heights_mm": {"0": 1.0}})
+        assert r.status_code == 403, (method, path)
+        assert "Host" in r.json()["error"] and "\n" not in r.json()["error"]
+    assert not state.stop_requested and state.take_setpoints() == []
+
+
+@pytest.mark.parametrize("host", ["localhost:8765", "127.0.0.1", "127.3.4.5:1", "[::1]:8765"])
+def test_loopback_hosts_are_served(state, host):
+    assert local(make_app(state, None)).get("/health", headers={"host": host}).status_code == 200
+
+
+def test_allow_remote_serves_any_host(state):
+    c = local(make_app(state, "t", allow_remote=True))
+    r = c.get("/health", headers={"host": "rig-pc.lab:8765", "Authorization": "Bearer t"})
+    assert r.status_code == 200
+
+
+@pytest.mark.parametrize("origin", ["https://evil.example", "http://localhost:3000", "null"])
+def test_a_cross_origin_post_is_403_and_changes_nothing(state, origin):
+    c = local(make_app(state, None))
+    assert c.post("/stop", headers={"origin": origin}).status_code == 403
+    r = c.post("/setpoint", headers={"origin": origin}, json={"heights_mm": {"0": 1.0}})
+    assert r.status_code == 403 and "cross-origin" in r.json()["error"]
+    assert not state.stop_requested and state.take_setpoints() == []
+    assert c.get("/status", headers={"origin": origin}).status_code == 200  # a read changes nothing
+
+
+def test_a_same_origin_post_is_served(state):
+    c = local(make_app(state, None))
+    assert c.post("/stop", headers={"origin": "http://127.0.0.1"}).status_code == 200
+
+
+@pytest.mark.parametrize("kind", ["text/plain", "application/x-www-form-urlencoded", None])
+def test_a_body_that_is_not_json_is_415(state, client, kind):
+    headers = {} if kind is None else {"content-type": kind}
+    r = client.post("/setpoint", content=b'{"heights_mm": {"0": 1.0}}', headers=headers)
+    assert r.status_code == 415 and "application/json" in r.json()["error"]
+    assert state.take_setpoints() == []
+
+
+def test_stop_is_answered_when_the_pace_refuses_everything_else(state):
+    c = local(make_app(state, None, rate_hz=0.001, burst=1, max_wait_s=0.0))
+    assert c.get("/health").status_code == 200
+    assert c.get("/health").status_code == 429
+    assert c.post("/stop").status_code == 200 and state.stop_requested
+
+
+def test_requests_beyond_the_client_bound_are_429_and_stop_is_not(state):
+    # max_clients 0: every paced request is beyond the bound
+    c = local(make_app(state, None, max_clients=0))
+    r = c.get("/status")
+    assert r.status_code == 429 and "in progress" in r.json()["error"]
+    assert c.post("/stop").status_code == 200
+
+
+def test_half_open_connections_do_not_hold_stop(state):
+    with serve(state, port=0) as srv:
+        held = [socket.create_connection((srv.host, srv.port), timeout=5) for _ in range(MAX_IDLE + 20)]
+        try:
+            held[0].sendall(b"GET /status HTTP/1.1\r\nHo")  # and one trickling a head
+            r = httpx.post(f"{srv.url}/stop", timeout=10)
+            assert r.status_code == 200 and state.stop_requested
+        finally:
+            for s in held:
+                s.close()
+
+
+def test_a_connection_that_never_sends_a_head_is_closed(state):
+    with serve(state, port=0) as srv:
+        with socket.create_connection((srv.host, srv.port), timeout=30) as s:
+            assert s.recv(1) == b""  # the server closed it (the timeout is a bound, not the assertion)
+
+
+# --- any message to any endpoint -------------------------------------------------------------------
+
+JSON = st.recursive(st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True)
+                    | st.text(max_size=8),
+                    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=12), inner,
+                                                                                max_size=4), max_leaves=12)
+SETPOINT_KEYS = st.sampled_from(["heights_mm", "layers", "height_mm", "speed_pct", "0"])
+SETPOINTISH = st.dictionaries(SETPOINT_KEYS, JSON, min_size=1, max_size=3)
+
+
+def _one_clear_error(r) -> str:
+    assert r.status_code < 500, r.text
+    if r.status_code >= 400:
+        err = r.json()["error"]
+        assert isinstance(err, str) and err.strip() and "\n" not in err
+        return err
+    return ""
+
+
+@settings(max_examples=150, deadline=None)
+@given(body=JSON | SETPOINTISH, path=st.sampled_from(["/setpoint", "/stop", "/reset", "/status", "/health"]))
+def test_any_json_body_to_any_endpoint_is_2xx_or_one_clear_4xx(body, path):
+    s = DaemonState()
+    s.set_setpoint_handler(clip_handler)
+    c = local(make_app(s, None))
+    method = "GET" if path in ("/status", "/health") else "POST"
+    _one_clear_error(c.request(method, path, content=json.dumps(body), headers={"content-type": "application/json"}))
+
+
+@settings(max_examples=100, deadline=None)
+@given(body=SETPOINTISH)
+def test_a_refused_setpoint_names_a_key_it_was_sent(body):
+    s = DaemonState()
+    s.set_setpoint_handler(clip_handler)
+    # Python's json writes NaN/Infinity tokens, which a careless client sends as well
+    r = local(make_app(s, None)).post("/setpoint", content=json.dumps(body),
+                                      headers={"content-type": "application/json"})
+    err = _one_clear_error(r)
+    if r.status_code == 422:
+        assert any(k in err for k in body), (body, err)
+    else:
+        assert r.status_code == 200
 
 
 # --- POST /stop -----------------------------------------------------------------------------------------
@@ -278,7 +407,7 @@ def test_stop_reaches_the_state_and_keeps_the_first_reason(state, client):
 @pytest.mark.parametrize("headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": "secret"},
                                      {"Authorization": "Basic secret"}], ids=["none", "wrong", "no scheme", "basic"])
 def test_token_is_required_on_every_endpoint(state, headers):
-    c = TestClient(make_app(state, "secret"))
+    c = local(make_app(state, "secret"))
     for method, path in [("GET", "/status"), ("GET", "/health"), ("POST", "/setpoint"), ("POST", "/stop"),
                          ("GET", "/openapi.json")]:
         r = c.request(method, path, headers=headers, json={"heights_mm": {"0": 1.0}})
@@ -288,7 +417,7 @@ def test_token_is_required_on_every_endpoint(state, headers):
 
 
 def test_right_token_is_let_through(state):
-    c = TestClient(make_app(state, "secret"))
+    c = local(make_app(state, "secret"))
     auth = {"Authorization": "Bearer secret"}
     assert c.get("/status", headers=auth).status_code == 200
     assert c.post("/setpoint", headers=auth, json={"heights_mm": {"0": 1.0}}).status_code == 200

@@ -324,3 +324,16 @@ def test_overwrite_replaces_a_run_but_never_a_users_own_directory(tmp_path, monk
     with run_dir(run, command="t", argv=[], overwrite=True) as tmp:
         (tmp / "b.csv").write_text("2\n")
     assert sorted(p.name for p in run.iterdir()) == ["b.csv", "manifest.json"]
+
+
+@pytest.mark.parametrize("argv, kept", [
+    (["daemon", "x.toml", "--token", "s3cret", "--api", "0.0.0.0:1"],
+     ["daemon", "x.toml", "--token", "<redacted>", "--api", "0.0.0.0:1"]),
+    (["daemon", "--token=s3cret"], ["daemon", "--token=<redacted>"]),
+    (["daemon", "--out", "token"], ["daemon", "--out", "token"]),
+])
+def test_a_token_never_reaches_the_manifest(tmp_path, argv, kept):
+    with run_dir(tmp_path / "r", command="daemon", argv=argv):
+        pass
+    text = (tmp_path / "r" / "manifest.json").read_text()
+    assert json.loads(text)["argv"] == kept and "s3cret" not in text
