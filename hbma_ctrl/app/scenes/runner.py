@@ -121,6 +121,8 @@ def step_count_note(scn: Scenario) -> str | None:
 
 def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:
     """Run a scenario into out_dir (created); returns the merged metrics written to metrics.json."""
+    if "schedule" in scn.sections:
+        raise ValueError("[schedule]: a recording runs on the rig daemon (hbma-ctrl daemon FILE --rig sim|serial:PORT)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     head = {"scenario": {"name": scn.name, "kind": scn.kind, "path": str(scn.path) if scn.path else None,
