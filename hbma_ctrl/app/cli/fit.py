@@ -185,7 +185,7 @@ def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: 
             for k, v in params.items()]
     con = show_table(title, ("parameter", "value (SI)", "95 % interval"), rows, Console(highlight=False))
     for s in notes:
-        con.print(f"note: {s}")
+        con.print(f"note: {s}", markup=False)
     con.print(f"wrote {out / 'fit.json'}, {out / 'params.toml'}, {out / 'residuals.png'}"
               + (f", {scenario}" if scenario is not None else ""))
 

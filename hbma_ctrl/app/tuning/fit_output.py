@@ -20,7 +20,7 @@ import tomli_w
 from matplotlib.figure import Figure
 
 from hbma_ctrl.app.scenario import parse_scenario
-from hbma_ctrl.app.schema.base import ActuatorTable
+from hbma_ctrl.app.schema.base import ActuatorTable, PneumaticsTable
 from hbma_ctrl.app.tuning.fit import FitReport, FitResult, unflatten
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS
@@ -94,8 +94,8 @@ def write_fit(result: FitReport, folder: Path | str, toml: str | None = None,
     return paths
 
 
-#: the simulated rig's factors on the nominal chamber ([rig] key -> what it multiplies)
-_RIG_FACTORS = ("modulus_scale", "V0_scale", "flow_scale")
+#: the simulated rig's factors on the nominal chamber ([rig] keys of the modulus, dead volume, pump, outlet)
+_RIG_FACTORS = ("modulus_scale", "V0_scale", "flow_scale", "C_out_scale")
 
 
 def scenario_tables(result: FitReport, law: str) -> dict:
@@ -126,20 +126,21 @@ def _merge(base: dict, new: dict) -> dict:
     return out
 
 
-def _nominal(data: dict) -> tuple[str, dict, float, float]:
-    """A scenario's nominal chamber from its tables: material, its SI parameters, dead volume (m^3), flow scale."""
+def _nominal(data: dict) -> tuple[str, dict, float, float, float]:
+    """A scenario's nominal chamber from its tables: material, its SI parameters, dead volume (m^3), flow
+    scale, outlet conductance (m^3/(s Pa))."""
     act = ActuatorTable.model_validate(data.get("actuator") or {}).to_actuator()
-    return (act.material.name, act.material.as_dict(), act.V0,
-            float((data.get("pneumatics") or {}).get("flow_scale", 1.0)))
+    pn = PneumaticsTable.model_validate(data.get("pneumatics") or {}).to_pneumatics(None)
+    return act.material.name, act.material.as_dict(), act.V0, pn.flow_scale, pn.outlet.C
 
 
 def _keep_rig(base: dict, data: dict) -> str | None:
-    """Rescale the simulated rig's factors ([rig] modulus_scale, V0_scale, flow_scale: on the nominal
-    chamber) so that the rig stays the one it was while the nominal moves to the fitted values; the
+    """Rescale the simulated rig's factors ([rig] modulus_scale, V0_scale, flow_scale, C_out_scale: on the
+    nominal chamber) so that the rig stays the one it was while the nominal moves to the fitted values; the
     sentence saying so, or None when the scenario runs no simulated rig."""
     if not any(k in data for k in ("rig", "controller", "estimator", "daemon", "schedule")):
         return None
-    (m0, par0, V0, f0), (m1, par1, V1, f1) = _nominal(base), _nominal(data)
+    (m0, par0, V0, f0, C0), (m1, par1, V1, f1, C1) = _nominal(base), _nominal(data)
     if m0 != m1:
         return (f"[rig] left as it was: the material changed ({m0} -> {m1}), so its modulus_scale has no "
                 "counterpart; set it for the simulated rig you want")
@@ -147,10 +148,10 @@ def _keep_rig(base: dict, data: dict) -> str | None:
     mod = next(k for k, v in par0.items() if k not in dimless and not isinstance(v, (tuple, list)))
     rig = dict(data.get("rig") or {})
     defaults = RigSettings()
-    for key, ratio in zip(_RIG_FACTORS, (par0[mod] / par1[mod], V0 / V1, f0 / f1)):
+    for key, ratio in zip(_RIG_FACTORS, (par0[mod] / par1[mod], V0 / V1, f0 / f1, C0 / C1)):
         rig[key] = float(rig.get(key, getattr(defaults, key)) * ratio)
     data["rig"] = rig
-    return ("[rig] modulus_scale, V0_scale and flow_scale rescaled by the old nominal over the fitted one: "
+    return ("[rig] modulus_scale, V0_scale, flow_scale and C_out_scale rescaled by the old nominal over the fitted one: "
             "the simulated rig (its truth is the nominal chamber times these) stays the rig it was")
 
 

@@ -186,6 +186,7 @@ def test_written_scenario_carries_every_fitted_parameter_and_keeps_the_simulated
     assert before.actuator.material.E * r0.modulus_scale == pytest.approx(152e3 * r1.modulus_scale)
     assert before.actuator.V0 * r0.V0_scale == pytest.approx(3.5e-6 * r1.V0_scale)
     assert r0.flow_scale == pytest.approx(0.95 * r1.flow_scale)
+    assert before.pneumatics.outlet.C * r0.C_out_scale == pytest.approx(1.9e-10 * r1.C_out_scale)
 
 
 def test_written_scenario_alone_is_the_fitted_tables(tmp_path):
