@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command
 from hbma_ctrl.core.settings import Settings, setting
 from hbma_ctrl.system.rigio import safe_u
@@ -88,8 +89,8 @@ class Schedule(Settings):
             except ValueError as exc:
                 raise ValueError(str(exc).replace("schedule.step", f"schedule.step[{i}]", 1)) from None
         if self.pump_stop >= self.p_max:
-            raise ValueError(f"schedule.pump_stop_kpa = {self.pump_stop / 1e3:g} must be below p_max_kpa = "
-                             f"{self.p_max / 1e3:g} (pumping stops before the monitor's cap)")
+            raise ValueError(f"schedule.pump_stop_kpa = {U.to_kpa(self.pump_stop):g} must be below p_max_kpa = "
+                             f"{U.to_kpa(self.p_max):g} (pumping stops before the monitor's cap)")
 
     @property
     def length(self) -> float:
@@ -160,14 +161,15 @@ class ScheduleSystem:
                 self._events.append(("schedule", f"step {k + 1} of {len(steps) * self.schedule.repeat}: "
                                                  f"{s.action} {s.duration:g} s, speed {100 * sp:g} %, inlet "
                                                  f"{inl:g}, outlet {out:g} ({s.chamber or 'every chamber'})"))
-        if k < len(steps) * self.schedule.repeat and steps[k % len(steps)].action == "pump":
+        if k < len(steps) * self.schedule.repeat:  # any chamber pumping, by this step or one before it
             hit = (p >= self.schedule.pump_stop) & ~self._stopped & (self._u[0] > 0)
             for i in np.flatnonzero(hit):
                 self._stopped[i] = True
                 self._u[:, i] = ACTIONS["hold"]
                 self.pump_stops += 1
-                self._events.append(("schedule", f"{self.names[i]}: {p[i] / 1e3:.2f} kPa reached pump_stop_kpa "
-                                                  f"{self.schedule.pump_stop / 1e3:g}: held for the rest of the step"))
+                self._events.append(("schedule", f"{self.names[i]}: {U.to_kpa(p[i]):.2f} kPa reached pump_stop_kpa "
+                                                  f"{U.to_kpa(self.schedule.pump_stop):g}: held for the rest of the "
+                                                  "step"))
         return self._u.copy()
 
     # --- what the daemon reads of a system ----------------------------------------------------------
