@@ -128,6 +128,19 @@ def test_chamber_absent_is_one_error_listing_the_names(tmp_path, chamber, needle
     one_line_error(runner.invoke(app, args), *needles)
 
 
+def test_a_run_directory_reads_every_part_of_its_log(tmp_path):
+    lines = _daemon_log(("A1", "A2")).splitlines()
+    (tmp_path / "run_0001.csv").write_text("\n".join(lines[:20]) + "\n")
+    (tmp_path / "run_0002.csv").write_text("\n".join(lines[:1] + lines[20:]) + "\n")
+    from hbma_ctrl.app.cli.fit import _read_data
+
+    raw, name = _read_data(tmp_path)
+    assert parse_run(raw, chamber="A1").t.size == 40 and name == tmp_path / "run_0001.csv"
+    one_line_error(runner.invoke(app, ["fit", str(tmp_path), "--chamber", "B7", "--out", str(tmp_path / "o")]),
+                   "the chambers are A1, A2")
+    one_line_error(runner.invoke(app, ["fit", str(tmp_path / "o2"), "--out", str(tmp_path / "o")]), "not found")
+
+
 def test_chamber_on_a_plain_run_file_is_refused(tmp_path):
     path = tmp_path / "r.csv"
     path.write_text("t_s,p_kpa,speed,inlet,outlet\n0,0,1,1,0\n0.01,1,1,1,0\n")
