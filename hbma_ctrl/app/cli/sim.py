@@ -52,8 +52,10 @@ def run(
 ) -> None:
     """Run a scenario file: writes metrics.json, the log CSV(s), plots and manifest.json into --out."""
     from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.app.scenes.runner import refuse_recording
 
     scn = load_scenario(file)
+    refuse_recording(scn)  # before --out: a recording is the daemon's, nothing of it runs here
     out_dir = out or default_out(scn.name)
     t0 = time.perf_counter()
     with run_dir(out_dir, command="run", argv=cli_argv(), scenario_path=file, overwrite=overwrite) as tmp:

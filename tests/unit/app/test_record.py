@@ -78,13 +78,14 @@ def test_bad_schedule_is_one_line_naming_the_key(body, needles):
         assert n in msg, msg
 
 
-def test_the_shipped_recording_runs_on_the_daemon_until_its_schedule_ends():
+def test_the_shipped_recording_runs_on_the_daemon_until_its_schedule_ends(tmp_path):
     cfg = load_config(RECORD, {"--rig": "sim"})
     sched = cfg.scenario.role("schedule")
     assert cfg.kind == "schedule" and cfg.duration == pytest.approx(sched.length) and sched.p_max < 35e3
     assert load_config(RECORD, {"--duration-s": 2.0}).duration == 2.0
-    res = runner.invoke(app, ["run", str(RECORD), "--out", "unused"])
+    res = runner.invoke(app, ["run", str(RECORD), "--out", str(tmp_path / "o")])
     one_line_error(res, "[schedule]", "hbma-ctrl daemon")
+    assert list(tmp_path.iterdir()) == []  # refused before --out
 
 
 # --- fit reads the daemon's run log ------------------------------------------------------------
