@@ -53,6 +53,9 @@ CORR_LIMIT = 0.98
 #: material), in units of the channel's span: far off, yet finite for the solver
 BAD_RESIDUAL = 10.0
 
+#: the largest log half-width whose exp is a float (exp(709) ~ 8e307)
+_LOG_HALF_MAX = 700.0
+
 
 def finite_residuals(r: np.ndarray) -> np.ndarray:
     """``r`` with every non-finite entry replaced by :data:`BAD_RESIDUAL`."""
@@ -105,6 +108,8 @@ class Coordinates:
         ci, rel = [], np.empty(len(values))
         for j, (v, s, sc, lg) in enumerate(zip(values, sd, self.scale, self.log)):
             half = tq * s if lg else tq * (s * sc)
+            if lg and half > _LOG_HALF_MAX:  # a width beyond any float: as unknown as an infinite one
+                half = float("inf")
             lo, hi = (v * math.exp(-half), v * math.exp(half)) if lg else (v - half, v + half)
             ci.append([float(lo), float(hi)] if math.isfinite(half) else [None, None])
             rel[j] = math.expm1(half) if lg else half / abs(v) if v != 0 else float("inf")

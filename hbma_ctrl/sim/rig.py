@@ -9,7 +9,8 @@ its own model:
   inflates freely (fidelity ``free``); a load put on mid-run (:meth:`Rig.set_load`) lands on the
   membrane at its current apex height, taking it off lets the membrane inflate freely again;
 - parameters off nominal: every modulus of the material times ``modulus_scale`` (default 1.15),
-  compressor flow times ``flow_scale`` (0.9), dead volume times ``V0_scale`` (1.2);
+  compressor flow times ``flow_scale`` (0.9), dead volume times ``V0_scale`` (1.2), the outlet's
+  conductance times ``C_out_scale`` (1);
 - the membrane's law: the exact axisymmetric membrane (``membrane = "exact"``, the default), or the
   spherical cap (``"cap"``, the law of the cap models, ``hbma_ctrl.models.defaults.CAP_CHAMBER``);
 - structural mismatches (SPEC 7), on by default (:data:`STRUCTURED_RIG`; :data:`CAP_RIG` turns
@@ -95,6 +96,7 @@ class RigSettings(Settings):
     modulus_scale: float = setting(1.15, lo=0.2, hi=5.0, doc="every modulus of the material times this")
     flow_scale: float = setting(0.9, lo=0.0, hi=5.0, doc="compressor map times this (on top of the pneumatics' own)")
     V0_scale: float = setting(1.2, lo=0.2, hi=5.0, doc="dead volume times this")
+    C_out_scale: float = setting(1.0, lo=0.05, hi=20.0, doc="the outlet valve's sonic conductance times this")
     noise_std: float = setting(200.0, lo=0.0, hi=1e4, unit="Pa", user="kPa", doc="sensor noise, one sigma")
     sensor_range: float = setting(35e3, lo=1e3, hi=1e6, unit="Pa", user="kPa", doc="sensor saturation pressure")
     sample_period: float = setting(0.01, lo=0.0, hi=1.0, lo_open=True, unit="s", user="ms",
@@ -159,6 +161,8 @@ def mismatched(actuator: Actuator, pneumatics: Pneumatics, settings: RigSettings
                ) -> tuple[Actuator, Pneumatics]:
     """The rig's (true) actuator and pneumatics: nominal ones with the settings' mismatch applied."""
     act, pn = scaled(actuator, pneumatics, settings.flow_scale, settings.modulus_scale, settings.V0_scale)
+    if settings.C_out_scale != 1.0:
+        pn = replace(pn, outlet=replace(pn.outlet, C=pn.outlet.C * settings.C_out_scale))
     if settings.compressor_tilt != 0:
         pn = replace(pn, compressor_csv=str(tilted_map(pneumatics.csv_path, settings.compressor_tilt)))
     return act, pn

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import csv
+import inspect
 import json
 import os
 import subprocess
@@ -28,7 +29,8 @@ def _eq(*args: str) -> dict:
 
 def test_equilibrium_nh_free_peak_matches_table_one():
     # README Model §3: NH free inflation peaks at h1/r1 ~ 1.259 with 31.96 kPa for t0 = 3 mm, r1 = 7.5 mm
-    out = _eq("--material", "nh", "--r1-mm", "7.5", "--t0-mm", "3", "--h1-mm", str(1.259 * 7.5), "--h2-mm", "0")
+    out = _eq("--material", "nh", "--r1-mm", "7.5", "--t0-mm", "3", "--h1-mm", str(1.259 * 7.5), "--h2-mm", "0",
+              "--fidelity", "cap")
     assert out["pressure_kpa"] == pytest.approx(31.96, abs=0.01)
     assert out["stretch"] == pytest.approx(1.61, abs=0.005)
     assert out["force_n"] == 0.0 and out["load_g"] == 0.0
@@ -56,8 +58,19 @@ def test_equilibrium_param_override_scales_nh_pressure():
     assert double["params_si"] == {"E": 2 * E}
 
 
+def test_equilibrium_and_fit_share_their_defaults():
+    # one chamber and one law: equilibrium's free point, fitted with fit's defaults, gives back its modulus
+    from hbma_ctrl.app.cli import fit as fit_cli, sim as sim_cli
+
+    for name in ("r1_mm", "t0_mm"):
+        assert inspect.signature(sim_cli.equilibrium).parameters[name].default == \
+            inspect.signature(fit_cli.fit_cmd).parameters[name].default
+    out = _eq("--h1-mm", "8")
+    assert out["fidelity"] == "exact" and out["r1_mm"] == 12.5
+
+
 def test_equilibrium_table_output():
-    res = runner.invoke(app, ["equilibrium", "--h1-mm", "9.4425"])
+    res = runner.invoke(app, ["equilibrium", "--h1-mm", "9.4425", "--r1-mm", "7.5", "--fidelity", "cap"])
     assert res.exit_code == 0
     assert "pressure (kPa)" in res.stdout and "31.95" in res.stdout
 
@@ -324,6 +337,14 @@ def test_cli_constants_equal_the_constants_they_copy():
     assert C.OPT_FLAGS == codegen.OPT_FLAGS
     assert C.DEFAULT_OPT == codegen.CFLAGS[0]
     assert C.BOND_RADIUS_MM == U.to_mm(statics.BOND_RADIUS)
+    from hbma_ctrl.core.params import Actuator
+    from hbma_ctrl.models.defaults import DEFAULT_MEMBRANE
+
+    assert (C.CHAMBER_R1_MM, C.CHAMBER_T0_MM) == (U.to_mm(Actuator.r1), U.to_mm(Actuator.t0))
+    assert C.MEMBRANE_LAW == DEFAULT_MEMBRANE
+    from hbma_ctrl.app.tuning.fit_dynamic import MAX_REPLAY_S
+
+    assert C.MAX_REPLAY_S == MAX_REPLAY_S
 
 
 @pytest.mark.slow

@@ -106,7 +106,7 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
                 pass
         stats = loop.stats()
         (tmp / "daemon_stats.json").write_text(json.dumps(json_safe(stats), indent=1) + "\n")
-        role = "robot" if cfg.kind == "robot" else "controller"
+        role = cfg.kind if cfg.kind in ("robot", "schedule") else "controller"
         metrics = {"daemon": stats, role: runner.stats()}
         (tmp / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=1) + "\n")
     return stats

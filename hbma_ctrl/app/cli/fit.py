@@ -6,7 +6,10 @@ volume, compressor-map scale and outlet conductance); otherwise static equilibri
 
 Registered by :mod:`hbma_ctrl.app.cli.main` through :func:`register`. Edge units (mm, kPa, g) here; the
 fit (:mod:`hbma_ctrl.app.tuning.fit`) works in SI. Writes ``fit.json``, ``params.toml`` and
-``residuals.png`` into ``--out`` through :func:`hbma_ctrl.app.outputs.run_dir`. Bad input raises
+``residuals.png`` into ``--out`` through :func:`hbma_ctrl.app.outputs.run_dir`, and with
+``--write-scenario FILE`` the fitted values into a scenario file
+(:func:`hbma_ctrl.app.tuning.fit_output.write_scenario`). A recorded run's fit shows a progress bar with
+the time left on stderr when it is a terminal. Bad input raises
 ValueError, which the top-level CLI prints as one ``error: ...`` line with exit code 2.
 """
 
@@ -21,6 +24,7 @@ from rich.console import Console
 
 # the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
 from hbma_ctrl.app.cli.args import assignments, cap_workers, check_range, show_table
+from hbma_ctrl.app.cli.constants import CHAMBER_R1_MM, CHAMBER_T0_MM, MAX_REPLAY_S
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 from hbma_ctrl.models.actuation import DELAY_MAX
@@ -31,10 +35,11 @@ __all__ = ["register", "fit_cmd"]
 
 def fit_cmd(
     data: Annotated[Path, typer.Argument(help="CSV: static (h_mm, p_kpa[, F_n|load_g]) or a recorded run (t_s, "
-                                              "p_kpa, speed, inlet, outlet[, h_mm, load_g])")],
+                                              "p_kpa, speed, inlet, outlet[, h_mm, load_g]); or the daemon's run "
+                                              "log (run_0001.csv, or its run directory)")],
     material: Annotated[str, typer.Option(help="nh | mr | yeoh | gent | ogden")] = "nh",
-    r1_mm: Annotated[float, typer.Option("--r1-mm", help="clamp radius r1, mm")] = 12.5,
-    t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = 3.0,
+    r1_mm: Annotated[float, typer.Option("--r1-mm", help="clamp radius r1, mm")] = CHAMBER_R1_MM,
+    t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = CHAMBER_T0_MM,
     contact: Annotated[Optional[str], typer.Option(
         help="free (h2 = 0) | flat (load on a plate); default: flat with a force column, else free")] = None,
     fidelity: Annotated[Optional[str], typer.Option(
@@ -60,6 +65,14 @@ def fit_cmd(
                                   f"roles', {DEFAULT_SENSOR_DELAY * 1e3:g})")] = None,
     no_height: Annotated[bool, typer.Option(
         "--no-height", help="recorded run: fit the pressure only, even with a height column")] = False,
+    chamber: Annotated[Optional[str], typer.Option(
+        "--chamber", help="the daemon's run log: the chamber to fit, by name (default: its only one)")] = None,
+    max_replay_s: Annotated[float, typer.Option(
+        "--max-replay-s", help="recorded run: the longest run replayed, s of rig time (the fit's time grows "
+                               "with it)")] = MAX_REPLAY_S,
+    write_scenario: Annotated[Optional[Path], typer.Option(
+        "--write-scenario", help="put the fitted values into this scenario file (each key replaced, the file's "
+                                 "comments not kept; created with the fitted tables alone when missing)")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="directory for fit.json, params.toml, residuals.png")]
     = Path("runs/fit"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
@@ -67,7 +80,7 @@ def fit_cmd(
     """Fit the model to static equilibrium points (material) or a recorded run (material scale, dead
     volume, pump and outlet)."""
     from hbma_ctrl.app.tuning.fit import check_options, fit_static, parse_data, resolve_fidelity
-    from hbma_ctrl.app.tuning.fit_output import write_fit
+    from hbma_ctrl.app.tuning.fit_output import write_fit, write_scenario as put_in_scenario
     from hbma_ctrl.app.tuning.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
 
     check_range("--r1-mm", r1_mm, 0.5, 100.0, lo_open=True, unit="mm")
@@ -77,32 +90,36 @@ def fit_cmd(
     check_range("--load-g", load_g, 0.0, 50000.0, unit="g")
     check_range("--valve-delay-ms", valve_delay_ms, 0.0, U.to_ms(DELAY_MAX), unit="ms")
     check_range("--sensor-delay-ms", sensor_delay_ms, 0.0, U.to_ms(DELAY_MAX), unit="ms")
+    check_range("--max-replay-s", max_replay_s, 0.0, 1e6, lo_open=True, unit="s")
+    if write_scenario is not None and write_scenario.is_dir():
+        raise ValueError(f"--write-scenario {write_scenario}: is a folder; give a scenario file (.toml)")
     check_options(material.lower(), contact, fidelity or "cap")
     fixed = assignments(fix or [], "--fix", "C2=0 or Jm=60", one=True)
     check_out(out, overwrite)  # before the fit: a bad --out costs nothing
-    if not data.is_file():
-        raise FileNotFoundError(f"data file {data} not found")
-    raw = data.read_bytes()
+    raw, data = _read_data(data)
     source = f"{data.resolve()}, sha256 {hashlib.sha256(raw).hexdigest()[:16]}"
     if is_dynamic(raw):
         fidelity, law_note = resolve_fidelity(fidelity, material.lower(), needs_tables=fit_material)
-        run = parse_run(raw, None if load_g is None else U.grams(load_g))
-        dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm), V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3),
-                           fix=fixed, fit_material=fit_material,
-                           sensor_range=U.kpa(35.0 if sensor_range_kpa is None else sensor_range_kpa),
-                           use_height=not no_height, fidelity=fidelity, contact=contact, source=source,
-                           valve_delay=DEFAULT_VALVE_DELAY if valve_delay_ms is None else U.ms(valve_delay_ms),
-                           sensor_delay=DEFAULT_SENSOR_DELAY if sensor_delay_ms is None else U.ms(sensor_delay_ms))
+        run = parse_run(raw, None if load_g is None else U.grams(load_g), chamber=chamber)
+        with _progress() as bar:
+            dres = fit_dynamic(run, material.lower(), U.mm(r1_mm), U.mm(t0_mm),
+                               V0=U.cm3(3.0 if v0_cm3 is None else v0_cm3), fix=fixed, fit_material=fit_material,
+                               sensor_range=U.kpa(35.0 if sensor_range_kpa is None else sensor_range_kpa),
+                               use_height=not no_height, fidelity=fidelity, contact=contact, source=source,
+                               valve_delay=DEFAULT_VALVE_DELAY if valve_delay_ms is None else U.ms(valve_delay_ms),
+                               sensor_delay=DEFAULT_SENSOR_DELAY if sensor_delay_ms is None else U.ms(sensor_delay_ms),
+                               max_replay=max_replay_s, progress=bar)
         with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
             write_dynamic_fit(dres, tmp)
+        notes = put_in_scenario(write_scenario, dres, fidelity, source) if write_scenario is not None else []
         hn = f", height NRMSD {dres.nrmsd_h:.4f}" if dres.nrmsd_h is not None else ""
         _print(f"fit {dres.material} to a run: {dres.n_points} points, {dres.fidelity} model, "
                f"pressure NRMSD {dres.nrmsd:.4f}{hn}", dres.params, dres.ci95, dres.fixed,
-               dres.notes() + ([law_note] if law_note else []), out)
+               dres.notes() + ([law_note] if law_note else []) + notes, out, write_scenario)
         return
     for flag, given in (("--load-g", load_g is not None), ("--fit-material", fit_material), ("--no-height", no_height),
                         ("--v0-cm3", v0_cm3 is not None), ("--sensor-range-kpa", sensor_range_kpa is not None),
-                        ("--valve-delay-ms", valve_delay_ms is not None),
+                        ("--valve-delay-ms", valve_delay_ms is not None), ("--chamber", chamber is not None),
                         ("--sensor-delay-ms", sensor_delay_ms is not None)):
         if given:
             raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
@@ -114,19 +131,63 @@ def fit_cmd(
     res.source = source
     with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         write_fit(res, tmp)
+    notes = put_in_scenario(write_scenario, res, fidelity, source) if write_scenario is not None else []
     _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact, {res.fidelity} law, "
            f"NRMSD {res.nrmsd:.4f}", res.params, res.ci95, res.fixed,
-           res.unidentifiable + ([law_note] if law_note else []), out)
+           res.unidentifiable + ([law_note] if law_note else []) + notes, out, write_scenario)
 
 
-def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: Path) -> None:
+def _read_data(data: Path) -> tuple[bytes, Path]:
+    """The data file's bytes and the file read: a daemon's run directory reads its run log, every part
+    (header once); FileNotFoundError naming DATA otherwise."""
+    if data.is_dir():
+        from hbma_ctrl.app.daemon.runlog import read_run_log
+
+        try:
+            header, rows = read_run_log(data)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"data {data}: is a folder without a daemon run log (run_*.csv); give a "
+                                    "CSV file") from None
+        lines = [",".join(header)] + [",".join(r) for r in rows]
+        return ("\n".join(lines) + "\n").encode(), data / "run_0001.csv"
+    if not data.is_file():
+        raise FileNotFoundError(f"data file {data} not found")
+    return data.read_bytes(), data
+
+
+class _progress:
+    """A progress bar of the fit's replays with the time left, on stderr when it is a terminal; called
+    as ``bar(done, total)``."""
+
+    def __enter__(self):
+        import sys
+
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        self.bar = Progress(TextColumn("fit: replays (at most)"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                            TimeElapsedColumn(), TextColumn("left at most"), TimeRemainingColumn(),
+                            console=Console(stderr=True), transient=True, disable=not sys.stderr.isatty())
+        self.bar.start()
+        self.task = self.bar.add_task("fit", total=None)
+        return self
+
+    def __call__(self, done: int, total: int) -> None:
+        self.bar.update(self.task, completed=done, total=total)
+
+    def __exit__(self, *exc) -> None:
+        self.bar.stop()
+
+
+def _print(title: str, params: dict, ci95: dict, fixed: dict, notes: list, out: Path,
+           scenario: Path | None = None) -> None:
     rows = [(k, f"{v:.5g}", "fixed" if k in fixed else (f"[{ci95[k][0]:.4g}, {ci95[k][1]:.4g}]"
                                                           if ci95[k][0] is not None else "n/a (no dof)"))
             for k, v in params.items()]
     con = show_table(title, ("parameter", "value (SI)", "95 % interval"), rows, Console(highlight=False))
     for s in notes:
-        con.print(f"note: {s}")
-    con.print(f"wrote {out / 'fit.json'}, {out / 'params.toml'}, {out / 'residuals.png'}")
+        con.print(f"note: {s}", markup=False)
+    con.print(f"wrote {out / 'fit.json'}, {out / 'params.toml'}, {out / 'residuals.png'}"
+              + (f", {scenario}" if scenario is not None else ""))
 
 
 def bench_fit_cmd(

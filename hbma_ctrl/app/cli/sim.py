@@ -17,6 +17,7 @@ from typing import Annotated, Optional
 import typer
 
 from hbma_ctrl.app.cli.args import assignments, cap_workers, check_choice, check_range, console, fail, show_table
+from hbma_ctrl.app.cli.constants import CHAMBER_R1_MM, CHAMBER_T0_MM, MEMBRANE_LAW
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.core import units as U
 
@@ -51,8 +52,10 @@ def run(
 ) -> None:
     """Run a scenario file: writes metrics.json, the log CSV(s), plots and manifest.json into --out."""
     from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.app.scenes.runner import refuse_recording
 
     scn = load_scenario(file)
+    refuse_recording(scn)  # before --out: a recording is the daemon's, nothing of it runs here
     out_dir = out or default_out(scn.name)
     t0 = time.perf_counter()
     with run_dir(out_dir, command="run", argv=cli_argv(), scenario_path=file, overwrite=overwrite) as tmp:
@@ -223,12 +226,14 @@ def equilibrium(
     h1_mm: Annotated[float, typer.Option("--h1-mm", help="virtual cap height h1, mm")],
     h2_mm: Annotated[float, typer.Option("--h2-mm", help="cut height h2 (contact), mm; 0 = free")] = 0.0,
     material: Annotated[str, typer.Option(help="nh | mr | yeoh | gent | ogden")] = "nh",
-    r1_mm: Annotated[float, typer.Option("--r1-mm", help="retaining radius r1, mm")] = 7.5,
-    t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = 3.0,
+    r1_mm: Annotated[float, typer.Option("--r1-mm", help="retaining radius r1, mm")] = CHAMBER_R1_MM,
+    t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = CHAMBER_T0_MM,
     V0_cm3: Annotated[float, typer.Option("--V0-cm3", help="dead volume, cm^3")] = 3.0,
     param: Annotated[Optional[list[str]], typer.Option("--param", help="material parameter NAME=VALUE (SI), repeatable")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
-    fidelity: Annotated[str, typer.Option(help="cap | exact")] = "cap",
+    fidelity: Annotated[Optional[str], typer.Option(
+        help=f"cap | exact; default: {MEMBRANE_LAW} (the roles' and fit's law) where it computes the shape asked "
+             "(free inflation, or a contact at --p-kpa), else the cap (a plate at --h2-mm without --p-kpa)")] = None,
     contact: Annotated[str, typer.Option(help="flat | bonded (exact only)")] = "flat",
     disk_radius_mm: Annotated[float, typer.Option("--disk-radius-mm", help="bonded disk radius c, mm")] = 2.0,
     p_kpa: Annotated[Optional[float], typer.Option("--p-kpa", help="gauge pressure, kPa (exact contact)")] = None,
@@ -238,6 +243,9 @@ def equilibrium(
     ``--fidelity exact``: the exact axisymmetric membrane; h = h1 - h2 is the centre height, free
     inflation for --h2-mm 0 (flat), otherwise a flat plate or a bonded disk at --p-kpa.
     """
+    if fidelity is None:
+        # the shared default law where it computes the shape asked: the exact law holds a contact at a pressure
+        fidelity = MEMBRANE_LAW if (h2_mm == 0 or p_kpa is not None or contact != "flat") else "cap"
     res = equilibrium_values(material, r1_mm, t0_mm, h1_mm, h2_mm, assignments(param or [], "--param", "E=130.6e3 or C=2e4,-200,10"), V0_cm3,
                              fidelity, contact, disk_radius_mm, p_kpa)
     if as_json:

@@ -1,7 +1,8 @@
 """What the daemon runs, built from its configuration (SI).
 
 :func:`build_runner` builds the scenario's system with the builders the scenes use
-(:func:`hbma_ctrl.system.chamber.chamber_system`, :func:`hbma_ctrl.system.robot.robot_system`), with
+(:func:`hbma_ctrl.system.chamber.chamber_system`, :func:`hbma_ctrl.system.robot.robot_system`; a recording's
+:class:`hbma_ctrl.app.daemon.schedule.ScheduleSystem`), with
 what a real-time loop needs on top: the NMPC's solve-time budget enforced, and for the robot the
 daemon's defaults where the file gives none (the ``DAEMON_*`` and ``ROBOT_*`` constants below).
 :func:`make_rig` gives the rig link, :func:`make_monitor` the safety monitor.
@@ -16,6 +17,7 @@ from dataclasses import replace
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.config import DaemonConfig
 from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
+from hbma_ctrl.app.daemon.schedule import ScheduleSystem
 from hbma_ctrl.system.roles import estimator_from_scenario
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.core import units as U
@@ -110,9 +112,15 @@ def _robot_runner(cfg: DaemonConfig) -> RobotSystem:
     return system
 
 
-def build_runner(cfg: DaemonConfig) -> ChamberSystem | RobotSystem:
+def _schedule_runner(cfg: DaemonConfig) -> ScheduleSystem:
+    scn = cfg.scenario
+    return ScheduleSystem(scn.role("schedule"), estimator=estimator_from_scenario(scn, chamber_rig_settings(cfg)))
+
+
+def build_runner(cfg: DaemonConfig) -> ChamberSystem | RobotSystem | ScheduleSystem:
     """The runner the configuration asks for (ValueError naming the key when the tables disagree)."""
-    return _robot_runner(cfg) if cfg.kind == "robot" else _chamber_runner(cfg)
+    build = {"robot": _robot_runner, "schedule": _schedule_runner}.get(cfg.kind, _chamber_runner)
+    return build(cfg)
 
 
 def make_rig(cfg: DaemonConfig, runner):
@@ -132,8 +140,9 @@ def make_sim_rig(cfg: DaemonConfig):
         s = scn.role("robot")
         rig = SimRig.robot(s, robot_rig_settings(cfg), scn.pneumatics, s.tip_load)
     else:
+        ctrl = scn.role("controller")
         rig = SimRig.chamber(scn.actuator, scn.pneumatics, scn.platform, chamber_rig_settings(cfg),
-                             scn.role("controller").load_steps)
+                             ctrl.load_steps if ctrl is not None else ())
     if cfg.faults:
         rig = FaultyRig(rig, parse_faults(cfg.faults, rig.n))
     return rig

@@ -88,9 +88,11 @@ def load_config(path: str | Path, flags: dict | None = None) -> DaemonConfig:
         kind = "robot"
     elif scn.role("controller") is not None:
         kind = "chamber"
+    elif scn.role("schedule") is not None:
+        kind = "schedule"
     else:
-        raise ValueError(f"{path.name}: the daemon needs a [controller] table (one chamber) or a [robot] table "
-                         "with mode = 'closed_loop'")
+        raise ValueError(f"{path.name}: the daemon needs a [controller] table (one chamber), a [robot] table "
+                         "with mode = 'closed_loop' or a [schedule] of pump / hold / vent steps (a recording)")
     if d.rig == "serial" and d.speed != 1.0:
         raise ValueError(f"{path.name}: [daemon] speed = {d.speed:g} (or --speed) needs rig = 'sim'; a serial rig "
                          "runs in real time (speed 1)")
@@ -101,6 +103,8 @@ def load_config(path: str | Path, flags: dict | None = None) -> DaemonConfig:
         raise ValueError(f"{path.name}: [daemon] api = {d.api!r} (or --api) is not a loopback address (127.0.0.1, ::1, "
                          "localhost); another address needs allow_remote = true (--allow-remote) and a token (--token)")
     given = d.si(DaemonConfig)
+    if kind == "schedule" and "duration" not in given:
+        given["duration"] = scn.role("schedule").length  # a recording ends with its schedule
     if "log_rotate_bytes" in given:
         given["log_rotate_bytes"] = int(given["log_rotate_bytes"])
     return DaemonConfig(scenario=scn, kind=kind, **{**given, "api": api}, faults=list(d.fault), path=path)

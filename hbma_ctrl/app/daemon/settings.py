@@ -18,7 +18,8 @@ class DaemonConfig(Settings):
     declaration).
 
     scenario : the validated scenario (actuator or robot, rig, estimator, controller).
-    kind : 'chamber' (a [controller] table) or 'robot' (a [robot] table in closed loop).
+    kind : 'chamber' (a [controller] table), 'robot' (a [robot] table in closed loop) or 'schedule' (a
+        [schedule] of open-loop steps on one chamber: a recording).
     api : (host, port) of the API, None = no API (the table's key is "HOST:PORT").
     faults : the [[daemon.fault]] tables as written (edge units; parsed by the fault injector).
     path : the configuration file.

@@ -31,7 +31,7 @@ from hbma_ctrl.app.scenes.robot import run_scene as run_robot_scene
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import fidelity_for, simulate_trials
 
-__all__ = ["run_scenario", "run_open_loop", "RunFailed", "check_physics", "SCENE_DISPATCH", "LONG_RUN_STEPS", "step_count_note"]
+__all__ = ["refuse_recording", "run_scenario", "run_open_loop", "RunFailed", "check_physics", "SCENE_DISPATCH", "LONG_RUN_STEPS", "step_count_note"]
 
 #: fixed steps (trials x steps) above which a run says before starting how long it may take
 LONG_RUN_STEPS = 2_000_000
@@ -121,6 +121,7 @@ def step_count_note(scn: Scenario) -> str | None:
 
 def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:
     """Run a scenario into out_dir (created); returns the merged metrics written to metrics.json."""
+    refuse_recording(scn)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     head = {"scenario": {"name": scn.name, "kind": scn.kind, "path": str(scn.path) if scn.path else None,
@@ -144,6 +145,12 @@ def run_scenario(scn: Scenario, out_dir: Path | str) -> dict:
         raise RunFailed(f"{which} diverged, status diverged (see the events in metrics.json)")
     check_physics(counts, metrics.get("plant", {}).get("failed_checks") or [], "metrics.json plant.failed_checks")
     return metrics
+
+
+def refuse_recording(scn: Scenario) -> None:
+    """ValueError for a scenario with a [schedule]: a recording runs on the rig daemon, not as a scene."""
+    if "schedule" in scn.sections:
+        raise ValueError("[schedule]: a recording runs on the rig daemon (hbma-ctrl daemon FILE --rig sim|serial:PORT)")
 
 
 def check_physics(statuses: dict, failed: list[str], where: str) -> None:

@@ -7,7 +7,7 @@ Each bound is stated in the key's own unit and checked when
 
 from __future__ import annotations
 
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
@@ -21,6 +21,7 @@ from hbma_ctrl.app.schema.fields import (
     check_rows,
     choice,
     elem,
+    key_field,
     num,
     settings_table,
     shaped,
@@ -29,7 +30,8 @@ from hbma_ctrl.app.schema.fields import (
 )
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import MATERIALS, make_material
-from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
+from hbma_ctrl.core.params import Actuator, Platform, Pneumatics, Valve
+from hbma_ctrl.core.settings import specs
 from hbma_ctrl.sim.batch import PROTOCOL_DEFAULTS
 from hbma_ctrl.sim.trial import InputSchedule, SimSettings
 
@@ -98,8 +100,15 @@ class ActuatorTable(settings_table("ActuatorKeys", (Actuator, ("r1", "t0", "V0")
         return Actuator(**self.si(Actuator), material=self._material).validate()
 
 
+#: the outlet valve's conductance as [pneumatics] C_out (SI, as ``hbma-ctrl fit`` names it): the valve's declaration
+_C_OUT_TYPE, _C_OUT = key_field(specs(Valve)["C"], None)
+
+
 class PneumaticsTable(settings_table("PneumaticsKeys", (Pneumatics, ("compressor_csv", "flow_scale")))):
-    """[pneumatics]: the compressor map (CSV, relative to the scenario file) and its scale."""
+    """[pneumatics]: the compressor map (CSV, relative to the scenario file) and its scale, the outlet
+    valve's sonic conductance."""
+
+    C_out: _C_OUT_TYPE = _C_OUT
 
     def to_pneumatics(self, path: Path | None) -> Pneumatics:
         """SI pneumatics; a relative CSV path is resolved against the scenario file's folder."""
@@ -111,7 +120,8 @@ class PneumaticsTable(settings_table("PneumaticsKeys", (Pneumatics, ("compressor
             if not csvp.is_file():
                 raise ValueError(f"[pneumatics] compressor_csv: no such file '{csvp}'")
             csv = str(csvp)
-        return Pneumatics(**{**self.si(Pneumatics), "compressor_csv": csv}).validate()
+        outlet = {} if self.C_out is None else {"outlet": replace(Pneumatics().outlet, C=self.C_out)}
+        return Pneumatics(**{**self.si(Pneumatics), "compressor_csv": csv, **outlet}).validate()
 
 
 class LoadTable(settings_table("LoadKeys", (Platform, ("load", "own_mass", "damping")))):

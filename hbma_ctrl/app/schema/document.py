@@ -30,6 +30,7 @@ from hbma_ctrl.app.schema.estimator import EstimatorTable
 from hbma_ctrl.app.schema.fields import RuleError, Table
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.app.schema.robot import RobotTable
+from hbma_ctrl.app.schema.schedule import ScheduleTable
 from hbma_ctrl.system.sections import Scenario
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import PROTOCOL_DEFAULTS
@@ -61,6 +62,8 @@ class ScenarioFile(Table):
     controller: ControllerTable | None = Field(None, description="the controller and its targets")
     robot: RobotTable | None = Field(None, description="the robot, its inputs or targets")
     daemon: DaemonTable | None = Field(None, description="the rig daemon: rate, rig link, API, log (hbma-ctrl daemon)")
+    schedule: ScheduleTable | None = Field(None, description="an open-loop recording run on the daemon: pump / hold "
+                                                             "/ vent steps")
 
     @model_validator(mode="after")
     def _across_tables(self, info: ValidationInfo) -> ScenarioFile:
@@ -105,6 +108,9 @@ class ScenarioFile(Table):
         self._sim_sensor_used()
         self._limits_within_sensor()
         self._robot_rig_keys()
+        if self.schedule is not None and (self.controller is not None or self.robot is not None):
+            raise RuleError("a recording runs open loop on one chamber: drop [controller] and [robot] (or the "
+                            "[schedule])", "schedule")
         return self
 
     def _robot_rig_keys(self) -> None:
@@ -175,6 +181,7 @@ ROLE_TABLES: dict[str, tuple[type[Table], str]] = {
     "estimator": (EstimatorTable, "to_section"),
     "controller": (ControllerTable, "to_section"),
     "robot": (RobotTable, "to_settings"),
+    "schedule": (ScheduleTable, "to_schedule"),
 }
 
 

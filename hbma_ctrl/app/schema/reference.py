@@ -24,7 +24,15 @@ PAGE = Path("docs") / "reference" / "scenario-keys.md"
 
 
 def _tables() -> dict[str, type[BaseModel]]:
-    return {name: unwrap_type(fi.annotation)[0] for name, fi in ScenarioFile.model_fields.items()}
+    """Every table by name, an array of tables (``[[schedule.step]]``) after its parent as ``parent.key``."""
+    out: dict[str, type[BaseModel]] = {}
+    for name, fi in ScenarioFile.model_fields.items():
+        model = out[name] = unwrap_type(fi.annotation)[0]
+        for key, sub in model.model_fields.items():
+            args = get_args(unwrap_type(sub.annotation)[0])
+            if len(args) == 1 and isinstance(args[0], type) and issubclass(args[0], BaseModel):
+                out[f"{name}.{key}"] = args[0]
+    return out
 
 
 #: table name -> its model, in the scenario file's order

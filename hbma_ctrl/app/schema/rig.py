@@ -19,6 +19,7 @@ _ROBOT_RIG = ("fidelity", "modulus_scale", "flow_scale", "V0_scale", "noise_std"
               "valve_delay", "valve_min_on", "compressor_tilt", "sensor_tau")
 
 _KEYS = settings_table("RigKeys", (RigSettings, ("fidelity", "membrane", "modulus_scale", "flow_scale", "V0_scale",
+                                                 "C_out_scale",
                                                  "noise_std", "sensor_range", "sample_period", "dropout_prob", "seed",
                                                  "integrator", "dt", "valve_delay", "valve_min_on", "compressor_tilt",
                                                  "sensor_tau")))

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hbma_ctrl.app.metrics import nrmsd
-from hbma_ctrl.app.tuning.run_data import P_KPA_MAX, data_number, data_rows
+from hbma_ctrl.app.tuning.run_data import P_KPA_MAX, check_height_unit, data_number, data_rows
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.identify import Coordinates, estimate, finite_residuals, solve, summary
@@ -166,6 +166,7 @@ def parse_data(raw: bytes) -> StaticData:
             vals[c].append(v)
     if not vals["h_mm"]:
         raise ValueError("data: no data rows below the header")
+    check_height_unit(np.array(vals["h_mm"]), np.array(vals["p_kpa"]), "h_mm")
     F = None
     if fcol == "F_n":
         F = np.array(vals["F_n"])

@@ -10,7 +10,9 @@ read and checked by :func:`hbma_ctrl.app.tuning.run_data.parse_run`):
 - ``hbma-ctrl protocol`` trials (``trials/<name>.csv``) and open-loop ``run`` logs (``log.csv``):
   ``p_kpa``, ``h_mm``, ``speed_pct``, ``inlet_duty``, ``outlet_duty`` (no load column: the load is
   given with ``load_kg`` / ``--load-g``);
-- a daemon run log: ``t_s``, ``p_kpa``, ``speed``, ``inlet``, ``outlet``, ``h_mm``.
+- a daemon run log (``run_0001.csv``, or its run directory for every part): one chamber's
+  ``p_<name>_kpa``, ``speed_<name>_1``, ``inlet_<name>_1``, ``outlet_<name>_1``, chosen by its name (its
+  ``h_est`` column is the filter's estimate, not a measurement, and is not fitted to).
 
 The recorded commands are replayed (held from one row to the next) through the package's one chamber
 model at the fastest adequate rung of the fidelity ladder (``free`` without a load, ``quasi_static``
@@ -65,6 +67,8 @@ __all__ = [
     "COLUMN_ALIASES",
     "DYN_PARAMS",
     "MAX_POINTS",
+    "MAX_REPLAY_S",
+    "check_replay",
     "RunData",
     "DynamicFitResult",
     "is_dynamic",
@@ -96,6 +100,11 @@ _LOG_BOUND = math.log(20.0)
 #: simulated in one batch; the best :data:`_N_REFINE` are refined by least squares
 _START_OFFSET = math.log(1.5)
 _N_REFINE = 2
+#: least-squares evaluations per refined start
+_MAX_NFEV = 30
+#: the longest run a fit replays unless told (s of rig time, ``--max-replay-s``): a fit's time grows with
+#: the run's (a 5 s recording: about 15 s on one core)
+MAX_REPLAY_S = 300.0
 #: relative step of the central differences (log units)
 _FD_STEP = 1e-3
 #: the smallest prior sigma params.toml gives the filter's factors: the fit's own interval counts
@@ -165,7 +174,8 @@ class _RunModel:
     """The recorded commands replayed through the chamber model for columns of parameters."""
 
     def __init__(self, run: RunData, material: str, r1: float, t0: float, V0: float, fit_material: bool,
-                 fidelity: str = "cap", valve_delay: float = 0.0, sensor_delay: float = 0.0):
+                 fidelity: str = "cap", valve_delay: float = 0.0, sensor_delay: float = 0.0,
+                 max_replay: float | None = None):
         mat = make_material(material)
         act = Actuator(r1=r1, t0=t0, V0=V0, material=mat).validate()
         pn = Pneumatics().validate()
@@ -192,6 +202,10 @@ class _RunModel:
         dt_data = float(np.median(np.diff(run.t))) if run.t.size > 1 else 1.0
         self.dt = min(DEFAULT_DT[("rk4", self.fid.name)], dt_data)
         self.K = int(math.ceil(run.t[-1] / self.dt - 1e-9))
+        if max_replay is not None:
+            check_replay(run, self.K, self.dt, DEFAULT_DT[("rk4", self.fid.name)], max_replay)
+        #: called after each replay (a batch of parameter sets through the whole run)
+        self.on_replay = None
         # the command held over each grid step: the row in force at the step's middle
         if valve_delay > 0.0 or sensor_delay > 0.0:
             # the valves act valve + sensor delay late, the pump's speed the sensor's (the roles' dead
@@ -231,7 +245,24 @@ class _RunModel:
                 break
             plant.set_inputs(np.repeat(self.ugrid[k][:, None], n, axis=1))
             plant.advance()
+        if self.on_replay is not None:
+            self.on_replay()
         return P[self.grid_of_row], H[self.grid_of_row], plant.alive.copy()
+
+
+def check_replay(run: RunData, K: int, dt: float, dt_model: float, max_replay: float) -> None:
+    """ValueError naming ``--max-replay-s`` when the run is longer than ``max_replay`` s of rig time or
+    its replay takes more than ``max_replay / dt_model`` steps (rows closer than the model's step
+    ``dt_model`` shorten the step to ``dt``, s; the fit's time grows with the steps)."""
+    k_max = int(math.ceil(max_replay / dt_model))
+    fix = "cut the run (a recording of a few pump / hold / vent cycles determines the parameters) or raise it"
+    if run.t[-1] > max_replay:
+        raise ValueError(f"data: the run is {run.t[-1]:g} s long ({run.t.size} rows); a fit replays at most "
+                         f"--max-replay-s {max_replay:g} s: {fix}")
+    if K > k_max:
+        raise ValueError(f"data: rows {dt:g} s apart make the replay {K} steps of {dt:g} s; a fit replays at most "
+                         f"{k_max} (--max-replay-s {max_replay:g} at the model's {dt_model:g} s step): resample the "
+                         f"run to the model's step, {fix}")
 
 
 def delayed_commands(t: np.ndarray, u: np.ndarray, K: int, dt: float, delays) -> np.ndarray:
@@ -278,20 +309,22 @@ def _thin(mask: np.ndarray, cap: int) -> np.ndarray:
 def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3e-6, fix: dict | None = None,
                 fit_material: bool = False, sensor_range: float = 35e3, use_height: bool = True,
                 fidelity: str = "cap", contact: str | None = None, source: str = "", valve_delay: float = 0.0,
-                sensor_delay: float = 0.0) -> DynamicFitResult:
+                sensor_delay: float = 0.0, max_replay: float = MAX_REPLAY_S, progress=None) -> DynamicFitResult:
     """Least-squares fit of the chamber parameters (SI) to a recorded run; r1, t0 (m), V0 the
     nominal dead volume (m^3, the start), ``sensor_range`` (Pa) above which readings are saturated
     and left out. ``fix`` holds parameters at SI values. ``fidelity``: the membrane law, 'cap' or
     'exact' (with ``fit_material``, ``nh`` only). ``valve_delay``, ``sensor_delay`` (s, [0, 0.1]):
     the commands replayed as the roles' dead times (:mod:`hbma_ctrl.models.actuation`; 0: acting at
-    once). ValueError for unavailable options, too few points or a flat record."""
+    once). ``max_replay`` (s): the longest run replayed (:func:`check_replay`). ``progress(done, total)``:
+    called after each replay with an upper bound of their number (the least squares may stop early).
+    ValueError for unavailable options, too few points, a flat or too long record."""
     check_delays("fit", valve_delay, sensor_delay)
     check_options(material, contact, fidelity)
     if fidelity == "exact" and fit_material:
         check_exact_material(material, "--fit-material with --fidelity exact")
     if contact == "free" and run.load > 0:
         raise ValueError("--contact free: the run carries a load; drop --contact (a load rests on a flat plate)")
-    model = _RunModel(run, material, r1, t0, V0, fit_material, fidelity, valve_delay, sensor_delay)
+    model = _RunModel(run, material, r1, t0, V0, fit_material, fidelity, valve_delay, sensor_delay, max_replay)
     names = model.names
     fixed, free = split_fix(fix, names, "this fit", model.mat_names, " (the material's parameters are fitted with "
                             "--fit-material; without it, one modulus_scale)")
@@ -339,13 +372,22 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
     def jac(z: np.ndarray) -> np.ndarray:
         return central_jacobian(residuals, z, _FD_STEP)
 
+    if progress is not None:
+        # the screen, at most max_nfev residual and Jacobian replays per refined start, the estimate at
+        # the optimum, the final replay
+        total, done = 4 + 2 * _MAX_NFEV * _N_REFINE, [0]
+
+        def replayed() -> None:
+            done[0] = min(done[0] + 1, total)
+            progress(done[0], total)
+        model.on_replay = replayed
     log = model.coords.log[ifree]
     bounds = (np.where(log, -_LOG_BOUND, -10.0), np.where(log, _LOG_BOUND, 10.0))
     corners = np.array(np.meshgrid(*[(-1.0, 1.0)] * len(free), indexing="ij")).reshape(len(free), -1)
     cand = np.hstack([np.zeros((len(free), 1)), _START_OFFSET * corners])
     cost = np.sum(residuals(cand) ** 2, axis=0)
     est = identify(fun, [cand[:, j] for j in np.argsort(cost)[:_N_REFINE]], bounds, jac=jac, method="trf",
-                   x_scale=1.0, xtol=1e-7, ftol=1e-9, max_nfev=30)
+                   x_scale=1.0, xtol=1e-7, ftol=1e-9, max_nfev=_MAX_NFEV)
     z = est.x
     vals = model.values(full(z[:, None]))[:, 0]
     params = {n: float(vals[i]) for i, n in enumerate(names)}
@@ -364,6 +406,8 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
             ci[n] = [base * lo_s, base * hi_s] if scaled else [base, base]
     P, H, _ = model.simulate(full(z[:, None]))
     pm, hm = P[:, 0], H[:, 0]
+    if progress is not None:
+        progress(total, total)
     keep = p_ok
     res = DynamicFitResult(
         material=material, params=params, ci95={k: ci[k] for k in params}, nrmsd=nrmsd(pm[keep], run.p[keep]),
@@ -387,7 +431,7 @@ def dynamic_params_toml(result: DynamicFitResult) -> str:
     lines = toml_head(result, title, result.law, f", load_g = {U.to_grams(result.load):g}",
                       (f"V0_cm3 = {U.to_cm3(result.params['V0']):.6g}",))
     lines += ["", "[pneumatics]", f"flow_scale = {result.params['flow_scale']:.6g}",
-              f"# outlet sonic conductance C_out = {result.params['C_out']:.6g} m^3/(s Pa) (no scenario key yet)"]
+              f"C_out = {result.params['C_out']:.6g}  # the outlet's sonic conductance, m^3/(s Pa)"]
     lines += [""] + estimator_prior_lines(result)
     return "\n".join(lines) + "\n"
 

@@ -3,7 +3,8 @@
 A recorded run is a CSV with a time column ``t_s``, the pressure reading, the commands (compressor
 speed, inlet and outlet duty) and optionally the height and the load; the files the package writes
 are accepted as they are (:data:`COLUMN_ALIASES`, first match wins; :mod:`hbma_ctrl.app.tuning.fit_dynamic`
-lists which file has which). :func:`parse_run` checks it (one error naming the column, row and the
+lists which file has which), the daemon's run log too: one chamber's columns chosen by its name
+(:data:`CHAMBER_COLUMNS`), its repeated times (a period with no new sample, the stop) read as one row. :func:`parse_run` checks it (one error naming the column, row and the
 allowed range in the file's units): times increasing, readings in kPa, a vented start, isolated
 dropouts skipped and longer runs of them refused. :func:`is_dynamic` tells such a file from a
 static (pressure-height) data file.
@@ -21,7 +22,7 @@ import numpy as np
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.validation import did_you_mean
 
-__all__ = ["COLUMN_ALIASES", "MAX_MISSING_RUN", "P_KPA_MAX", "RunData", "data_lines", "data_number", "data_rows",
+__all__ = ["CHAMBER_COLUMNS", "COLUMN_ALIASES", "MAX_MISSING_RUN", "chamber_names", "P_KPA_MAX", "RunData", "check_height_unit", "data_lines", "data_number", "data_rows",
            "is_dynamic", "parse_run"]
 
 #: role -> accepted column names, first match wins (see the module docstring for which file has which)
@@ -35,10 +36,19 @@ COLUMN_ALIASES = {
     "load": ("load_g",),
 }
 _REQUIRED = ("t", "p", "speed", "inlet", "outlet")
+#: a daemon run log's per-chamber columns (:func:`hbma_ctrl.app.daemon.runlog.chamber_columns`):
+#: role -> (prefix, suffix) around the chamber's name
+CHAMBER_COLUMNS = {"p": ("p_", "_kpa"), "speed": ("speed_", "_1"), "inlet": ("inlet_", "_1"),
+                   "outlet": ("outlet_", "_1")}
 #: longest run of missing readings (dropouts) that is skipped rather than refused
 MAX_MISSING_RUN = 5
 #: p_kpa above this looks like Pa
 P_KPA_MAX = 1000.0
+#: rows further apart than this (s, median) look like times in ms: a chamber fills in about a second
+MAX_ROW_STEP = 0.5
+#: heights all below this (mm) while the pressure reaches P_KPA_MOVED look like metres
+H_MM_MIN = 0.5
+P_KPA_MOVED = 2.0
 #: a gauge reading below this (kPa) is not noise around zero
 _P_KPA_MIN = -10.0
 #: the run must start vented: first reading at most this (kPa)
@@ -110,6 +120,15 @@ def data_number(text: str, col: str, row: int) -> float:
     return v
 
 
+def check_height_unit(h_mm: np.ndarray, p_kpa: np.ndarray, col: str) -> None:
+    """ValueError naming ``col`` when the heights look like metres: all below :data:`H_MM_MIN` mm while the
+    pressure (kPa) reaches :data:`P_KPA_MOVED` (a membrane that held that much is millimetres high)."""
+    h_top, p_top = np.nanmax(np.abs(h_mm), initial=0.0), np.nanmax(p_kpa, initial=0.0)
+    if h_top < H_MM_MIN and p_top >= P_KPA_MOVED:
+        raise ValueError(f"data: column '{col}': the heights are at most {h_top:g} mm while the pressure reaches "
+                         f"{p_top:g} kPa; the values look like metres: convert them to mm")
+
+
 def _missing_runs(v: np.ndarray, col: str) -> None:
     """Refuse a run of more than MAX_MISSING_RUN missing values (rows are 1-based)."""
     bad = np.isnan(v)
@@ -122,13 +141,30 @@ def _missing_runs(v: np.ndarray, col: str) -> None:
                              "readings in a row (only isolated dropouts are skipped); cut the run or fill the gap")
 
 
-def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
-    """A recorded run from a CSV file's bytes, in SI (see the module docstring for the columns).
+def chamber_names(header: list[str]) -> list[str]:
+    """The chambers of a daemon run log's header (each with its pressure, speed, inlet and outlet
+    columns, :data:`CHAMBER_COLUMNS`), in order; [] for a file of one chamber's plain columns."""
+    pre, post = CHAMBER_COLUMNS["p"]
+    names = [c[len(pre):-len(post)] for c in header if c.startswith(pre) and c.endswith(post) and len(c) > 6]
+    return [n for n in names if all(f"{a}{n}{b}" in header for a, b in CHAMBER_COLUMNS.values())]
 
-    ``load_kg`` is the load for a file without a ``load_g`` column (None = 0, free inflation).
-    One ValueError naming the column (as written) and the 1-based data row for bad data.
-    """
-    header, rows = data_rows(raw, "with t_s, p_kpa, speed, inlet, outlet")
+
+def _columns(header: list[str], chamber: str | None) -> tuple[dict[str, str], bool]:
+    """role -> column name as written, and whether the file is a daemon run log (per-chamber columns)."""
+    names = chamber_names(header)
+    if names:
+        if chamber is None and len(names) > 1:
+            raise ValueError(f"--chamber: the run log holds {len(names)} chambers ({', '.join(names)}); choose one "
+                             f"with --chamber NAME")
+        name = names[0] if chamber is None else chamber
+        if name not in names:
+            raise ValueError(f"--chamber {chamber}: no such chamber in the run log; the chambers are "
+                             f"{', '.join(names)}{did_you_mean(chamber, names)}")
+        # the log's height is the filter's estimate, not a measurement: it is not fitted to
+        return {"t": "t_s", **{r: f"{a}{name}{b}" for r, (a, b) in CHAMBER_COLUMNS.items()}}, True
+    if chamber is not None:
+        raise ValueError(f"--chamber {chamber}: the file has no per-chamber columns (a daemon run log's "
+                         f"p_<name>_kpa, speed_<name>_1, ...); columns: {', '.join(header)}")
     col: dict[str, str] = {}
     for role, names in COLUMN_ALIASES.items():
         hit = next((n for n in names if n in header), None)
@@ -138,7 +174,19 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
             hint = did_you_mean(names[0], header)
             alt = f" (or '{names[1]}')" if len(names) > 1 else ""
             raise ValueError(f"data: missing column '{names[0]}'{alt}{hint}; a recorded run needs t_s, p_kpa, "
-                             f"speed, inlet, outlet; columns: {', '.join(header)}")
+                             f"speed, inlet, outlet (or a daemon run log); columns: {', '.join(header)}")
+    return col, False
+
+
+def parse_run(raw: bytes, load_kg: float | None = None, chamber: str | None = None) -> RunData:
+    """A recorded run from a CSV file's bytes, in SI (see the module docstring for the columns).
+
+    ``load_kg`` is the load for a file without a ``load_g`` column (None = 0, free inflation).
+    ``chamber``: the chamber of a daemon run log to read, by name (None: its only one).
+    One ValueError naming the column (as written) and the 1-based data row for bad data.
+    """
+    header, rows = data_rows(raw, "with t_s, p_kpa, speed, inlet, outlet")
+    col, daemon_log = _columns(header, chamber)
     if "load" in col and load_kg is not None:
         raise ValueError("--load-g: the file has a 'load_g' column; give the load once")
     idx = {role: header.index(name) for role, name in col.items()}
@@ -170,6 +218,13 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
             vals[role].append(v)
     if not vals["t"]:
         raise ValueError("data: no data rows below the header")
+    if daemon_log:
+        # the daemon logs a period the rig's clock did not move in (no new sample) and its last row
+        # (the safe command at the stop) at the time of the row before: the last row of a time is the
+        # command that held from it
+        t_log = np.array(vals["t"])
+        keep = np.flatnonzero(np.r_[t_log[1:] != t_log[:-1], True])
+        vals = {role: [v[i] for i in keep] for role, v in vals.items()}
     t = np.array(vals["t"])
     step = np.diff(t)
     if np.any(step <= 0):
@@ -177,6 +232,10 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
         what = "repeated" if step[i - 2] == 0 else "unsorted"
         raise ValueError(f"data: column 't_s', row {i}: time {t[i - 1]:g} s is not after the previous row's "
                          f"{t[i - 2]:g} s ({what} time); sort the rows and drop duplicates")
+    if t.size > 2 and float(np.median(step)) > MAX_ROW_STEP:
+        raise ValueError(f"data: column '{col['t']}': the rows are {float(np.median(step)):g} s apart (median); the "
+                         "times look like milliseconds: convert them to seconds (a recorded run samples the chamber "
+                         f"every {MAX_ROW_STEP:g} s or faster)")
     p_kpa = np.array(vals["p"])
     _missing_runs(p_kpa, col["p"])
     first = np.flatnonzero(np.isfinite(p_kpa))
@@ -189,6 +248,7 @@ def parse_run(raw: bytes, load_kg: float | None = None) -> RunData:
     if "h" in col:
         h_mm = np.array(vals["h"])
         _missing_runs(h_mm, col["h"])
+        check_height_unit(h_mm, p_kpa, col["h"])
         h = U.mm(h_mm)
     # commands as fractions 0-1 (a '_pct' column holds percent)
     u = np.column_stack([np.array(vals[r]) / (100.0 if col[r].endswith("_pct") else 1.0)

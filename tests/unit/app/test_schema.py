@@ -37,8 +37,8 @@ from hbma_ctrl.sim.batch import FIDELITY_CHOICES
 from hbma_ctrl.sim.trial import INTEGRATORS
 
 # the daemon's configurations (scenario tables + [daemon]) are checked by tests/test_daemon.py
-SHIPPED = sorted(p for p in (ROOT / "scenarios").glob("*.toml") if not p.name.startswith("daemon_"))
-TABLES = ("scenario, actuator, pneumatics, load, inputs, protocol, sim, rig, estimator, controller, robot, daemon")
+SHIPPED = sorted(p for p in (ROOT / "scenarios").glob("*.toml") if "\n[daemon]" not in p.read_text())
+TABLES = ("scenario, actuator, pneumatics, load, inputs, protocol, sim, rig, estimator, controller, robot, daemon, schedule")
 
 
 def _load(path: Path) -> dict:
@@ -218,7 +218,7 @@ CASES = [
     ("pneumatics", {}, {"flow_scale": 11}, "[pneumatics] flow_scale = 11 is out of range [0, 10]"),
     ("pneumatics", {}, {"flow_scale": True}, "[pneumatics] flow_scale = True must be a number in [0, 10]"),
     ("pneumatics", {}, {"flow_scal": 1.0}, "[pneumatics] flow_scal: unknown key; did you mean flow_scale? "
-     "allowed: compressor_csv, flow_scale"),
+     "allowed: compressor_csv, flow_scale, C_out"),
     ("load", {}, {"mass_g": -5.0}, "[load] mass_g = -5.0 is out of range [0, 50000] g"),
     ("load", {}, {"mass_g": "heavy"}, "[load] mass_g = 'heavy' must be a number in [0, 50000] g"),
     ("load", {}, {"mas_g": 1.0}, "[load] mas_g: unknown key; did you mean mass_g? allowed: mass_g, own_mass_g, "

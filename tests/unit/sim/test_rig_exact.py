@@ -16,7 +16,7 @@ E, R1, T0 = 130.6e3, 7.5e-3, 3e-3
 
 
 def _eq(*args: str) -> dict:
-    res = runner.invoke(app, ["equilibrium", "--json", "--fidelity", "exact", *args])
+    res = runner.invoke(app, ["equilibrium", "--json", "--fidelity", "exact", "--r1-mm", str(R1 * 1e3), *args])
     assert res.exit_code == 0, res.output
     return json.loads(res.stdout)
 
@@ -45,11 +45,11 @@ def test_equilibrium_exact_bonded_reports_the_disk_radius_as_contact_radius():
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["--fidelity", "exact", "--contact", "bonded", "--disk-radius-mm", "9", "--p-kpa", "24"], "--disk-radius-mm = 9"),
+    (["--fidelity", "exact", "--contact", "bonded", "--disk-radius-mm", "13", "--p-kpa", "24"], "--disk-radius-mm = 13"),
     (["--fidelity", "exact", "--contact", "bonded"], "--p-kpa is required"),
     (["--fidelity", "exact", "--p-kpa", "10"], "--p-kpa"),
     (["--fidelity", "exakt"], "--fidelity = 'exakt'"),
-    (["--contact", "bonded", "--p-kpa", "10"], "--fidelity exact"),
+    (["--contact", "bonded", "--p-kpa", "10", "--fidelity", "cap"], "--fidelity exact"),
     (["--fidelity", "exact", "--contact", "glued", "--p-kpa", "10"], "--contact = 'glued'"),
 ])
 def test_equilibrium_exact_bad_combination_is_one_line_exit_2(args, needle):
