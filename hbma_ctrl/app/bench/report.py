@@ -121,6 +121,14 @@ def machine() -> dict:
             "load average at start (1, 5, 15 min)": load}
 
 
+def _busy() -> bool:
+    """More runnable processes (the 1-min load average) than cores."""
+    try:
+        return os.getloadavg()[0] > (os.cpu_count() or 1)
+    except OSError:
+        return False
+
+
 def _cell(text) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
 
@@ -161,6 +169,7 @@ class Report:
         self.sub = sub
         self.argv = list(argv)
         self.machine = machine()
+        self.busy = _busy()
         self.date = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d")
 
     def write(self, page: Page) -> Path:
@@ -173,8 +182,11 @@ class Report:
                  "<!-- docs: not run: it repeats the measurement and rewrites this page -->", "```bash",
                  "hbma-ctrl " + shlex.join(self.argv), "```", "", "## Machine", "", "| | |", "|---|---|"]
         lines += [f"| {k} | {_cell(v)} |" for k, v in self.machine.items()]
-        lines += ["", "Wall times depend on the machine and on what else it runs: compare rows of one page.", "",
-                  "## Results", ""]
+        lines += ["", "Wall times depend on the machine and on what else it runs: compare rows of one page."]
+        if self.busy:
+            lines += ["", f"The machine was busy when this ran (more runnable processes than its {os.cpu_count()} "
+                          "cores): its wall times are longer than on a machine of its own."]
+        lines += ["", "## Results", ""]
         for t in page.tables:
             lines += _table_md(t)
         lines += [f"- {n}" for n in page.notes] + ([""] if page.notes else [])
