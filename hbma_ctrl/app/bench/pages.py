@@ -81,7 +81,9 @@ def ekf_page(res: dict) -> Page:
               ratio(a.get("step_us_median"), ref), *(fmt(a.get(k), s) for _, k, s in keys[2:])]
              for name, a in f.items()]
     s = res["settings"]
-    about = (docstring_paragraph(bench_ekf_cmd.__doc__) + " " + docstring_paragraph(bench_ekf.__doc__, 2)
+    # the docstring's "Returns {...};" names the result's keys, the rest of it says what they measure
+    timings = docstring_paragraph(bench_ekf.__doc__, 2).partition("; ")[2]
+    about = (docstring_paragraph(bench_ekf_cmd.__doc__) + " " + timings[:1].upper() + timings[1:]
              + f" The truth: the simulated rig, {s['rig']}, on {s['n_trials']} protocol trials ({s['grid']}).")
     n = s["n_trials"]
     return Page("Estimators: step time and accuracy (bench ekf)", about,
@@ -107,7 +109,7 @@ def loop_page(rows: list[dict], setup: dict) -> Page:
                                               r["final_error_mm"]) for r in rows if r["case"] == case])
               for case in summ]
     seeds = len({r["seed"] for r in rows})
-    return Page("Closed loop over rig seeds (bench loop)", docstring_paragraph(loop.__doc__, slice(0, 2)),
+    return Page("Closed loop over rig seeds (bench loop)", docstring_paragraph(loop.__doc__, slice(0, 3)),
                 [Table(f"{setup['rig']} rig -> EKF -> RTI-OSQP -> rig, {setup['membrane']} models, delays "
                        f"{setup['valve_delay_ms']:g} + {setup['sensor_delay_ms']:g} ms, {seeds} seeds per case",
                        ["case", "passed", "final error median (mm)", "worst (mm)", "solve median (ms)",
@@ -150,8 +152,7 @@ def robot_page(res: dict) -> Page:
               ratio(r["step_ms_median"], ref), fmt(r["step_ms_p99"], ".3g"), fmt(r["step_ms_max"], ".3g"),
               fmt(r["ekf_ms_median"], ".3g"), fmt(r["mpc_ms_median"], ".3g"), str(r["fallbacks"])] for r in rows]
     first = rows[0]["layers"] if rows else "-"
-    # the docstring's first sentence is the measurement; the rest describes the returned rows
-    about = docstring_paragraph(bench_robot.__doc__).partition(" Returns ")[0]
+    about = docstring_paragraph(bench_robot.__doc__, cut=" Returns ")
     return Page("The whole robot's step time (bench robot)", about + " The tracking error is against the targets.",
                 [Table(f"topology {res['topology']}, horizon {res['horizon']}, {res['duration_s']:g} s per layer count",
                        ["layers", "chambers", "QP variables", "step median (ms)", f"step / {first} layer(s)",
@@ -256,5 +257,5 @@ def codegen_page(res: dict, spec_name: str, opt: str) -> Page:
         notes.append(f"The scene's own loop ({sc.get('nmpc') or sc.get('variant')}): EKF step {e['median_us']:.1f} / "
                      f"{e['p99_us']:.1f} us, controller step {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / "
                      f"p99); largest |C - scene| {sc['max_abs_diff_si_all']:.3g} (SI).")
-    return Page("Generated C loop against the Python path (bench codegen)", docstring_paragraph(bench.__doc__, slice(0, 2)),
+    return Page("Generated C loop against the Python path (bench codegen)", docstring_paragraph(bench.__doc__, slice(0, 2), " Returns "),
                 [Table(f"{spec_name}: C built with {opt}, us per call", cols, rows)], notes=notes)

@@ -82,14 +82,16 @@ def ratio(x, ref) -> str:
         return "-"
 
 
-def docstring_paragraph(doc: str | None, index: int | slice = 0) -> str:
-    """Paragraph(s) ``index`` of a docstring as one line of Markdown: reST roles and literals become code."""
+def docstring_paragraph(doc: str | None, index: int | slice = 0, cut: str = "") -> str:
+    """Paragraph(s) ``index`` of a docstring as one line of Markdown: reST roles and literals become code;
+    with ``cut``, only the text before it (e.g. " Returns ", where a function's docstring turns to its result)."""
     paras = [p for p in re.split(r"\n\s*\n", doc or "") if p.strip()]
     chosen = paras[index] if isinstance(index, slice) else paras[index:index + 1]
     text = " ".join(" ".join(p.split()) for p in chosen)
     text = re.sub(r":\w+:`~?([^`]+)`", lambda m: f"`{m.group(1).split('.')[-1] if '~' in m.group(0) else m.group(1)}`",
                   text)
-    return text.replace("``", "`")
+    text = text.replace("``", "`")
+    return text.partition(cut)[0] if cut else text
 
 
 def _version(dist: str) -> str:
