@@ -58,8 +58,11 @@ def _panel(ax, labels, groups, cost, error, xlabel: str, ylabel: str, markers=No
     if f.size:
         ax.scatter(cost[f], shown[f], s=120, facecolors="none", edgecolors="k", linewidths=1, zorder=4,
                    label="non-dominated")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
+    # a log axis where the points span a decade or more; inside one its labels say little
+    ok = np.isfinite(cost) & np.isfinite(error)
+    for values, set_scale in ((cost[ok], ax.set_xscale), (shown[ok], ax.set_yscale)):
+        if values.size and values.min() > 0 and values.max() / values.min() >= 10:
+            set_scale("log")
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)

@@ -75,11 +75,12 @@ def fmt(x, spec: str = ".3g", none: str = "-") -> str:
 
 
 def ratio(x, ref) -> str:
-    """``x / ref`` as '2.5x' ('-' when either is missing or ref is 0)."""
+    """``x / ref`` as '2.5x' or '660x' ('-' when either is missing or ref is 0)."""
     try:
-        return f"{x / ref:.2g}x" if ref else "-"
-    except TypeError:
+        r = x / ref
+    except (TypeError, ZeroDivisionError):
         return "-"
+    return f"{r:.2g}x" if r < 100 else f"{r:.0f}x"
 
 
 def docstring_paragraph(doc: str | None, index: int | slice = 0, cut: str = "") -> str:
