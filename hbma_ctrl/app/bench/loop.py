@@ -138,7 +138,7 @@ def run_case(case: str, seed: int, setup: dict | None = None) -> dict:
     m = loop_metrics(log, sec)
     row = {"case": case, "seed": seed, "max_pressure_kpa": m["max_pressure_kpa"],
            "pressure_limit_kpa": m["pressure_limit_kpa"], "fallbacks": m["fallbacks"],
-           "calibration": m.get("calibration")}
+           "solve_ms_median": m["solve_ms_median"], "calibration": m.get("calibration")}
     if case == "load_step_200g":
         # the band and the held target are the section's (settle band, last target)
         tail = log.t >= duration - TAIL_S

@@ -9,6 +9,8 @@ import math
 import os
 import sys
 from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
@@ -17,7 +19,12 @@ from rich.table import Table
 from hbma_ctrl.core.validation import did_you_mean
 
 __all__ = ["assignments", "cap_workers", "numbers", "whole_numbers", "check_choice", "check_range", "console", "fail",
-           "show_table"]
+           "show_table", "ReportDir"]
+
+#: every bench's ``--report DIR`` (:mod:`hbma_ctrl.app.bench.report`); off by default
+ReportDir = Annotated[Optional[Path], typer.Option(
+    "--report", metavar="DIR", help="also write the results page DIR/<bench>.md (what is measured, the command, "
+                                    "the machine, tables, Pareto figure) and update DIR/index.md")]
 
 
 def numbers(text: str, flag: str) -> list[float]:

@@ -18,7 +18,7 @@ from rich.console import Console
 
 # the code generator, its scenes and the RTI step (casadi) are imported by the commands when they
 # run; the flags their options show come from the light cli_constants
-from hbma_ctrl.app.cli.args import check_choice, check_range, show_table
+from hbma_ctrl.app.cli.args import ReportDir, check_choice, check_range, show_table
 from hbma_ctrl.app.cli.constants import DEFAULT_OPT, OPT_FLAGS
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 
@@ -142,6 +142,7 @@ def bench_codegen(
                                         "NMPC classes, no calibration) and compare its step times and trajectory")]
     = True,
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
 ) -> None:
     """Step times of the generated C loop beside the Python path's (median, p99, ratios), one run."""
     from hbma_ctrl.core.loopgen_c import bench, read_c
@@ -150,6 +151,9 @@ def bench_codegen(
     check_choice("--opt", opt, OPT_FLAGS)
     spec, scn = _spec(config, duration_s, estimator, qp_solver)
     cc = _compiler()
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "codegen", cli_argv())  # --report checked before the run
     con = Console(highlight=False, width=150)
     with run_dir(out, command="bench codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         res = bench(spec, tmp, opt=opt, cc=cc, python_vm=python_vm)
@@ -196,6 +200,10 @@ def bench_codegen(
                   f"controller step {c['median_us']:.0f} / {c['p99_us']:.0f} us (median / p99); largest "
                   f"|C - scene| {sc['max_abs_diff_si_all']:.3g} (SI)")
     con.print(f"wrote {out / 'bench_codegen.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import codegen_page
+
+        con.print(f"wrote {rep.write(codegen_page(res, spec.name, opt))}")
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

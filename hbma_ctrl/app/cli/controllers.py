@@ -9,7 +9,7 @@ import typer
 from rich.console import Console
 
 # the benches (the controllers, the EKF, the rig) are imported by their commands when they run
-from hbma_ctrl.app.cli.args import cap_workers, check_range, show_table, whole_numbers
+from hbma_ctrl.app.cli.args import ReportDir, cap_workers, check_range, show_table, whole_numbers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 
 #: the variants ``bench mpc`` sweeps by default (x its horizons)
@@ -44,6 +44,7 @@ def bench_loop(
                                                       "default 1,1,1)")] = None,
     prior_std: Annotated[Optional[float], typer.Option(help="its one sigma for each factor (default the "
                                                            "filter's 0.15, 0.15, 0.2)")] = None,
+    report: ReportDir = None,
 ) -> None:
     """Closed loop through the EKF over rig seeds: how often each case (steps at 0 g and 400 g, a 200 g load step) settles."""
     from hbma_ctrl.app.bench.loop import (check_cases, loop_setup, run_loop_bench, summarize_loop,
@@ -55,6 +56,9 @@ def bench_loop(
     cs = check_cases([c.strip() for c in cases.split(",") if c.strip()])  # before --out is touched
     setup = loop_setup(rig, membrane, valve_delay_ms, sensor_delay_ms, valve_min_on_ms, calibration_std_floor,
                        prior, prior_std)
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "loop", cli_argv())  # --report checked before the run
     with run_dir(out, command="bench loop", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = run_loop_bench(list(range(seeds)), cs, workers,
                               progress=lambda r: con.print(f"  {r['case']} seed {r['seed']}: "
@@ -70,6 +74,10 @@ def bench_loop(
                  f"{v['final_error_mm_max']:.3f}", f"{v['max_pressure_kpa']:.2f}", f"{v['pressure_limit_kpa']:g}",
                  str(v["fallbacks"])) for case, v in summarize_loop(rows).items()], con)
     con.print(f"wrote {out / written.name}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import loop_page
+
+        con.print(f"wrote {rep.write(loop_page(rows, setup))}")
 
 def bench_mpc(
     scenario: Annotated[Optional[Path], typer.Option(
@@ -88,6 +96,7 @@ def bench_mpc(
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     ipopt_c: Annotated[bool, typer.Option("--ipopt-c", help="one more row: IPOPT N=20 generated as C as "
                                           "fatrop is (about 80 s to build the first time; needs a C compiler)")] = False,
+    report: ReportDir = None,
 ) -> None:
     """MPC speed/accuracy: IPOPT, fatrop, RTI-OSQP and the one-Function RTI x horizon, baselines and do-mpc, on one closed loop."""
     from hbma_ctrl.app.bench.mpc import run_bench, summarize, write_bench
@@ -113,6 +122,9 @@ def bench_mpc(
 
         if not has_compiler():
             raise ValueError("--ipopt-c: IPOPT generated as C needs a C compiler (cc, gcc or clang); none was found")
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "mpc", cli_argv())  # --report checked before the run
     con = Console(highlight=False, width=170)
     with run_dir(out, command="bench mpc", argv=cli_argv(), scenario_path=scenario, overwrite=overwrite) as tmp:
         res = run_bench(duration=duration, variants=vs, horizons=hs, baselines=baselines, dompc=dompc,
@@ -134,6 +146,10 @@ def bench_mpc(
     for k, v in summarize(res).items():
         con.print(f"  {k}: {v if not isinstance(v, float) else f'{v:.3g}'}")
     con.print(f"wrote {out / written.name}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import mpc_page
+
+        con.print(f"wrote {rep.write(mpc_page(res))}")
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -25,7 +25,7 @@ import typer
 
 # the daemon (the runtime loop and its roles, fastapi and uvicorn, the rig link) is imported by the
 # commands when they run
-from hbma_ctrl.app.cli.args import check_range
+from hbma_ctrl.app.cli.args import ReportDir, check_range
 from hbma_ctrl.app.outputs import (
     OVERWRITE_HELP,
     check_out,
@@ -182,12 +182,16 @@ def bench_soak(
                                               "the bench's witness saw, re-time it in a lockstep replay of "
                                               "the run (same setpoints, same state): one the replay does "
                                               "not repeat is the machine's")] = True,
+    report: ReportDir = None,
 ) -> None:
     """The daemon on the simulated rig for a long run, setpoints sent through its API: faults, tick
     times, pressure limit, memory (soak.json)."""
     from hbma_ctrl.app.bench.soak import run_soak
 
     _check_bench(config, {"--duration-s": duration_s, "--speed": speed, "--setpoint-every-s": every_s})
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "soak", cli_argv())  # --report checked before the run
     res = run_soak(config, out, duration_s, speed, every_s, seed, overwrite=overwrite, argv=cli_argv(),
                    echo=lambda s: print(s, file=sys.stderr, flush=True), replay=replay)
     st = res["daemon_stats"]
@@ -202,6 +206,10 @@ def bench_soak(
                f"{st.get('max_pressure_kpa') or float('nan'):.1f} / {st.get('pressure_limit_kpa')} kPa, RSS "
                f"{st.get('rss_mb_start') or float('nan'):.1f} -> {st.get('rss_mb_end') or float('nan'):.1f} MB, faults {st.get('faults') or 'none'}: "
                f"{'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'soak.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import soak_page
+
+        typer.echo(f"wrote {rep.write(soak_page(res))}")
     if failed:
         raise typer.Exit(1)
 
@@ -221,6 +229,7 @@ def bench_drills(
     to_s: Annotated[float, typer.Option("--to-s", help="latest injection, rig time s")] = 20.0,
     out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_drills"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
 ) -> None:
     """Many fault drills (one fault on a random chamber at a random time) through the daemon's own loop,
     monitor and runner on the simulated rig: how many are found, by which test, how fast, and the
@@ -232,6 +241,9 @@ def bench_drills(
         raise ValueError(f"--setpoint-every-s = {every_s:g} must be >= 0 s (0 = the file's targets)")
     _check_bench(config, {"--after-s": after_s})
     check_drills(kind, value, from_s, to_s)
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "drills", cli_argv())  # --report checked before the run
     with run_dir(out, command="bench drills", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         res = run_drills(config, tmp, drills, seed, kind, value, after_s, every_s, from_s, to_s,
                          on_drill=lambda r: print(
@@ -245,6 +257,10 @@ def bench_drills(
              f", delay median {res['delay_s_median']:.2f} s, max {res['delay_s_max']:.2f} s")
     typer.echo(f"drills ({kind}): found {res['found']} of {res['judged']} ({kinds}){delay}; "
                f"false alarms {res['false_alarms']}; wrote {out / 'drills.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import drills_page
+
+        typer.echo(f"wrote {rep.write(drills_page(res))}")
 
 def bench_poses(
     config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
@@ -258,6 +274,7 @@ def bench_poses(
                                    "daemon's 3)")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_poses"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
 ) -> None:
     """Many random setpoint changes through the daemon's runner, sim rig and safety monitor in lockstep:
     the highest reading after each change, how many cross the pressure limit and the cap, and every
@@ -266,6 +283,9 @@ def bench_poses(
 
     check_range("--target-rate-mm-s", target_rate, 0.0, 1000.0, unit="mm/s")
     _check_bench(config, {"--duration-s": duration_s, "--setpoint-every-s": every_s})
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "poses", cli_argv())  # --report checked before the run
     with run_dir(out, command="bench poses", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         res = run_poses(config, tmp, duration_s, every_s, seed, target_rate,
                         on_change=lambda c: print(f"  {c['t_s']:8.2f} s: peak {c['peak_kpa']:.2f} kPa "
@@ -274,6 +294,10 @@ def bench_poses(
                f"peak reading max {res['peak_kpa_max']:.2f} kPa, p90 {res['peak_kpa_p90']:.2f}; over the "
                f"{res['pressure_limit_kpa']:g} kPa limit {res['over_limit']}, over the {res['cap_kpa']:g} kPa cap "
                f"{res['over_cap']}; faults {len(res['faults'])}; wrote {out / 'poses.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import poses_page
+
+        typer.echo(f"wrote {rep.write(poses_page(res))}")
 
 
 def bench_api(

@@ -18,7 +18,7 @@ from rich.console import Console
 
 # the filters (filterpy, scipy.stats), python-control and the rig are imported by the commands
 # when they run
-from hbma_ctrl.app.cli.args import check_range, numbers, show_table, whole_numbers
+from hbma_ctrl.app.cli.args import ReportDir, check_range, numbers, show_table, whole_numbers
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 
@@ -120,6 +120,7 @@ def bench_ekf_cmd(
                                                 "exact): EKF and UKF rows for each")] = ",".join(BENCH_MEMBRANES),
     out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_ekf.json")] = Path("runs/bench_ekf"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
 ) -> None:
     """EKF (compiled step and reference path), filterpy's EKF on the same model, and the UKF on
     the same rig runs: us per predict+update (median), ratios to the EKF, accuracy."""
@@ -128,6 +129,9 @@ def bench_ekf_cmd(
             "t0_mm": numbers(t0_mm, "--t0-mm"), "r1_mm": numbers(r1_mm, "--r1-mm")}
     check_range("--seed", seed, 0, 2**31)
     ns, ms = parse_axes(substeps, membranes)
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "ekf", cli_argv())  # --report checked before the run
     with run_dir(out, command="bench ekf", argv=cli_argv(), overwrite=overwrite) as tmp:
         res = bench_ekf(grid, seed=seed, substeps=ns, membranes=ms)
         (tmp / "bench_ekf.json").write_text(json.dumps(res, indent=1))
@@ -143,6 +147,10 @@ def bench_ekf_cmd(
     for k, v in res.get("ratios", {}).items():
         con.print(f"{k.replace('_over_ekf_step_median', '')} / ekf median step time: {v:.1f}x")
     con.print(f"wrote {out / 'bench_ekf.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import ekf_page
+
+        con.print(f"wrote {rep.write(ekf_page(res))}")
 
 def observability_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="output dir for observability.json")] = Path("runs/observability"),

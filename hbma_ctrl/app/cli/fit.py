@@ -16,6 +16,7 @@ ValueError, which the top-level CLI prints as one ``error: ...`` line with exit 
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -23,7 +24,7 @@ import typer
 from rich.console import Console
 
 # the fits (scipy.optimize, scipy.stats, matplotlib, the models) are imported by the command when it runs
-from hbma_ctrl.app.cli.args import assignments, cap_workers, check_range, show_table
+from hbma_ctrl.app.cli.args import ReportDir, assignments, cap_workers, check_range, show_table
 from hbma_ctrl.app.cli.constants import CHAMBER_R1_MM, CHAMBER_T0_MM, MAX_REPLAY_S
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
@@ -195,6 +196,7 @@ def bench_fit_cmd(
     workers: Annotated[int, typer.Option(help="parallel processes (1-64)")] = 2,
     out: Annotated[Path, typer.Option("--out", "-o", help="output dir for bench_fit.json")] = Path("runs/bench_fit"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
 ) -> None:
     """The fit's membrane law against truths it is not: the exact solver's static points and pump /
     hold / vent runs of the cap, exact and default rigs, each fitted with the cap's and the exact law."""
@@ -202,6 +204,9 @@ def bench_fit_cmd(
 
     check_range("--seeds", seeds, 1, 100)
     workers = cap_workers("--workers", workers, 64)
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "fit", cli_argv())  # --report checked before the run
     con = Console(highlight=False, width=140)
     with run_dir(out, command="bench fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         static = static_rows(progress=lambda r: con.print(f"  static {r['case']}, {r['law']} law: worst miss "
@@ -210,6 +215,7 @@ def bench_fit_cmd(
                         progress=lambda rows: con.print(f"  {rows[0]['rig']} rig, seed {rows[0]['seed']}: " + ", ".join(
                             f"{r['law']} {r['params']['modulus_scale']:.4f}" for r in rows)))
         written = write_fit_bench(static, runs, tmp, seeds)
+        doc = json.loads(written.read_text())
     cells = {(r["case"], r["law"]): f"{100 * r['worst_rel_miss']:.3g} %, {r['nrmsd']:.2g}"
              + (", undetermined" if r["unidentifiable"] else "") for r in static}
     show_table("static points of the exact solver: the largest miss of a parameter (found / truth - 1), NRMSD, "
@@ -223,6 +229,10 @@ def bench_fit_cmd(
                                                                    "nrmsd")), f"{v['structured']}/{v['runs']}")
                 for key, v in summarize_runs(runs).items()], con)
     con.print(f"wrote {out / written.name}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import fit_page
+
+        con.print(f"wrote {rep.write(fit_page(doc))}")
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -20,7 +20,7 @@ from rich.console import Console
 
 # the robot's models (casadi, the exact membrane), its plots and its closed loop are imported by the
 # commands when they run; the default glue-spot radius comes from the light cli_constants
-from hbma_ctrl.app.cli.args import check_choice, check_range, numbers, show_table, whole_numbers
+from hbma_ctrl.app.cli.args import ReportDir, check_choice, check_range, numbers, show_table, whole_numbers
 from hbma_ctrl.app.cli.constants import BOND_RADIUS_MM
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, check_out, cli_argv, run_dir
 from hbma_ctrl.core import units as U
@@ -211,7 +211,8 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
                     duration: float = typer.Option(3.0, help="closed-loop run per layer count, s (0.5-60)"),
                     topology: str = typer.Option("per_chamber", help="per_chamber | shared"),
                     horizon: int = typer.Option(15, help="NMPC stages (1-100)"),
-                    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP)) -> None:
+                    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+                    report: ReportDir = None) -> None:
     """Whole-robot step time (EKF bank + load sharing + NMPC) for 1..6 layers: median and p99, ms."""
     from hbma_ctrl.app.scenes.robot_closed import bench_robot
     from hbma_ctrl.robot.design import TOPOLOGIES
@@ -220,16 +221,23 @@ def bench_robot_cmd(out: Path = typer.Option(Path("runs/bench_robot"), "--out", 
     check_range("--duration", duration, 0.5, 60.0, unit="s")
     check_choice("--topology", topology, TOPOLOGIES)
     check_range("--horizon", horizon, 1, 100)
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "robot", cli_argv())  # --report checked before the run
     with run_dir(out, command="bench robot", argv=cli_argv(), overwrite=overwrite) as tmp:
         rows = bench_robot(ns, duration, topology, horizon)
-        (tmp / "bench_robot.json").write_text(json.dumps({"topology": topology, "horizon": horizon,
-                                                          "duration_s": duration, "rows": rows}, indent=1) + "\n")
+        res = {"topology": topology, "horizon": horizon, "duration_s": duration, "rows": rows}
+        (tmp / "bench_robot.json").write_text(json.dumps(res, indent=1) + "\n")
     show_table(f"robot step (EKF bank + NMPC), topology {topology}, horizon {horizon}",
                ("layers", "chambers", "QP vars", "median ms", "p99 ms", "max ms", "EKF ms", "NMPC ms", "fallbacks"),
                [(str(r["layers"]), str(r["chambers"]), str(r["qp_variables"]), f"{r['step_ms_median']:.2f}",
                  f"{r['step_ms_p99']:.2f}", f"{r['step_ms_max']:.2f}", f"{r['ekf_ms_median']:.2f}",
                  f"{r['mpc_ms_median']:.2f}", str(r["fallbacks"])) for r in rows], Console())
     typer.echo(f"wrote {out / 'bench_robot.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import robot_page
+
+        typer.echo(f"wrote {rep.write(robot_page(res))}")
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

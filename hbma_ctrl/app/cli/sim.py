@@ -16,7 +16,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from hbma_ctrl.app.cli.args import assignments, cap_workers, check_choice, check_range, console, fail, show_table
+from hbma_ctrl.app.cli.args import (ReportDir, assignments, cap_workers, check_choice, check_range, console, fail,
+                                    show_table)
 from hbma_ctrl.app.cli.constants import CHAMBER_R1_MM, CHAMBER_T0_MM, MEMBRANE_LAW
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, default_out, run_dir
 from hbma_ctrl.core import units as U
@@ -328,6 +329,7 @@ def bench_sim(
                                                         "baselines, do-mpc when installed) on their defaults into "
                                                         "--out and draw their Pareto plots: every role from one "
                                                         "command (about 15 min)")] = False,
+    report: ReportDir = None,
 ) -> None:
     """Simulator speed/accuracy: integrator x step x fidelity over the protocol vs a Radau reference, and
     (fidelity axis) vs the exact membrane, with a Pareto plot (wall time vs NRMSD) beside bench.json."""
@@ -342,6 +344,9 @@ def bench_sim(
     if roles and (ekf_json is not None or mpc_json is not None):
         fail("--roles runs the estimator and controller benches itself: leave out --ekf-json and --mpc-json")
     role_plots = _role_plots(ekf_json, mpc_json)
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "sim", cli_argv())  # --report checked before the run
     con = console(160)
 
     def show(row):
@@ -358,6 +363,7 @@ def bench_sim(
         if roles:
             role_plots = _role_benches(tmp, con)
         written = [bench_plots.pareto_png(pts, tmp / name, *axes, title).name for (pts, title), name, axes in role_plots]
+        meta = json.loads((tmp / "bench.json").read_text())["meta"]
     cols = ("loaded fidelity", "integrator", "dt (ms)", "wall (s)", "cpu (s)", "diverged", "h NRMSD mean",
             "h NRMSD max", "p NRMSD mean", "p NRMSD max", "target") + (("h vs exact", "p vs exact") if fidelity_axis
                                                                         else ())
@@ -375,18 +381,26 @@ def bench_sim(
                   "inflation on the 0 g trials only; exact: its own step error")
     con.print(f"wrote {out / 'bench.json'}, {out / 'bench.csv'}" + (f", {out / 'pareto.png'}" if fidelity_axis else "")
               + "".join(f", {out / n}" for n in written))
+    if rep:
+        from hbma_ctrl.app.bench.pages import sim_page
+
+        con.print(f"wrote {rep.write(sim_page(rows, meta))}")
 
 
 def bench_protocol(
     repeat: Annotated[int, typer.Option(help="timed runs per row (median reported)")] = 3,
     out: Annotated[Path, typer.Option("--out", "-o", help="output dir (bench.json)")] = Path("runs/bench_protocol"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
 ) -> None:
     """The main job as a user waits for it: `hbma-ctrl protocol` on its defaults in fresh interpreters,
     with and without its figures, the start-up alone and the simulation alone (bench.json)."""
     from hbma_ctrl.app.bench.protocol import TARGET_WALL_S, run_bench_protocol
 
+    from hbma_ctrl.app.bench.report import open_report
+
     check_range("--repeat", repeat, 1, 100)
+    rep = open_report(report, "protocol", cli_argv())  # --report checked before the run
     con = console(120)
 
     def show(name, row):
@@ -396,6 +410,10 @@ def bench_protocol(
         res = run_bench_protocol(tmp, repeat, on_row=show)
     con.print(f"protocol median {res['rows']['protocol']['median_s']:.2f} s against the target {TARGET_WALL_S:g} s: "
               f"{'met' if res['meets_target'] else 'not met'}; wrote {out / 'bench.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import protocol_page
+
+        con.print(f"wrote {rep.write(protocol_page(res))}")
 
 
 def _dt_text(row) -> str:

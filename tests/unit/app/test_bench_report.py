@@ -1,0 +1,81 @@
+"""The benches' results pages (``hbma-ctrl bench <sub> --report DIR``): the writer's sections from a small
+fake result, the index, a real bench writing its page and figure, and an unusable ``--report``."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from typer.testing import CliRunner
+
+from hbma_ctrl.app.bench.report import Page, Pareto, Report, Table, docstring_paragraph
+from hbma_ctrl.app.cli.main import app
+from cli_checks import one_line_error
+
+runner = CliRunner()
+
+
+def _fake_page() -> Page:
+    pts = [("a", ("fast", ""), 1.0, 0.3), ("b", ("slow", ""), 3.0, 0.1), ("c", ("slow", ""), 4.0, 0.2)]
+    return Page("Fake bench", "It measures nothing against a made-up truth.",
+                [Table("two variants", ["variant", "h (mm)", "step (ms)", "step / a"],
+                       [["a", "0.3", "1", "1x"], ["b", "0.1", "3", "3x"]])],
+                [Pareto("fake_pareto", "fake: step vs error", "step (ms)", [("height error (mm)", pts)])],
+                ["a note"])
+
+
+def test_page_from_a_fake_result_has_every_section_and_its_figure(tmp_path):
+    page = Report(tmp_path, "sim", ["bench", "sim", "--quick", "--report", "docs/results"]).write(_fake_page())
+    text = page.read_text()
+    for heading in ("# Fake bench", "## What is measured", "## Command", "## Machine", "## Results"):
+        assert re.search(rf"^{re.escape(heading)}$", text, re.M), heading
+    assert "It measures nothing against a made-up truth." in text
+    assert "hbma-ctrl bench sim --quick --report docs/results" in text
+    for key in ("CPU", "cores", "Python", "casadi", "osqp", "load average at start"):
+        assert f"| {key}" in text, key
+    assert "| variant | h (mm) | step (ms) | step / a |" in text
+    assert re.search(r"^Measured on \d{4}-\d{2}-\d{2} \(UTC\)", text, re.M)
+    for name in ("fake_pareto.png", "fake_pareto.svg"):
+        assert (tmp_path / name).stat().st_size > 0
+        assert f"]({name})" in text
+    assert "step (ms)" in (tmp_path / "fake_pareto.svg").read_text()  # the axis label, kept as text
+
+
+def test_the_command_block_is_marked_not_run_for_the_docs_test(tmp_path):
+    text = Report(tmp_path, "sim", ["bench", "sim"]).write(_fake_page()).read_text()
+    assert "<!-- docs: not run: " in text.split("```bash")[0].splitlines()[-1]
+
+
+def test_index_lists_every_page_present_with_its_date_in_bench_order(tmp_path):
+    for sub in ("mpc", "sim"):
+        Report(tmp_path, sub, ["bench", sub]).write(_fake_page())
+    rows = [ln for ln in (tmp_path / "index.md").read_text().splitlines() if ln.startswith("| [")]
+    assert [re.search(r"\]\((\w+)\.md\)", r).group(1) for r in rows] == ["sim", "mpc"]
+    assert all(re.search(r"\| \d{4}-\d{2}-\d{2} \|$", r) for r in rows)
+
+
+def test_docstring_paragraph_turns_rest_roles_and_literals_into_code():
+    doc = "Title.\n\nUses :func:`hbma_ctrl.x.f`, :class:`~hbma_ctrl.y.C` and ``z``\n  over two lines.\n"
+    assert docstring_paragraph(doc, 1) == "Uses `hbma_ctrl.x.f`, `C` and `z` over two lines."
+
+
+@pytest.mark.parametrize("where", ["file", "file/below"])
+def test_report_into_an_unwritable_place_is_one_error_naming_report(tmp_path, where):
+    (tmp_path / "file").write_text("not a folder")
+    res = runner.invoke(app, ["bench", "robot", "--layers", "1", "--duration", "0.5", "--out", str(tmp_path / "o"),
+                              "--report", str(tmp_path / where)])
+    one_line_error(res, "--report", str(tmp_path / where))
+    assert not (tmp_path / "o").exists()  # refused before any work
+
+
+@pytest.mark.slow
+def test_bench_mpc_at_tiny_size_writes_its_page_and_pareto_figure(tmp_path):
+    rep = tmp_path / "results"
+    res = runner.invoke(app, ["bench", "mpc", "--variants", "rti_osqp", "--horizons", "5,10", "--no-baselines",
+                              "--no-dompc", "--duration", "0.5", "--out", str(tmp_path / "o"), "--report", str(rep)])
+    assert res.exit_code == 0, res.output
+    text = (rep / "mpc.md").read_text()
+    assert "--horizons 5,10" in text and "| rti_osqp N=10 |" in text
+    assert (rep / "mpc_pareto.png").stat().st_size > 0 and (rep / "mpc_pareto.svg").stat().st_size > 0
+    assert "](mpc.md)" in (rep / "index.md").read_text()
+    assert (tmp_path / "o" / "bench_mpc.json").is_file()
