@@ -280,7 +280,7 @@ class QuasiStatic(Fidelity):
     p_env; (h1 = h2) is the flat membrane's virtual cap, from
     :func:`~hbma_ctrl.core.physics.flat_h1_from_pressure`.
     Contact (mode 1): F(h1, h2) = W and G(h1, h2) = m R T; (h1, h2) move by the index-reduced
-    system [G_h1 G_h2; F_h1 F_h2] [h1'; h2'] = [q R T; 0] (the paper's eqs. 13-15, with the gas
+    system ``[G_h1 G_h2; F_h1 F_h2] [h1'; h2'] = [q R T; 0]`` (the paper's eqs. 13-15, with the gas
     written through G so that no pressure derivative is needed). Its determinant ``det`` vanishes at
     a snap-through; the simulator then jumps to the far branch at constant gas mass.
     """

@@ -10,7 +10,7 @@ streaks, the lost and burst latches) passed in and out::
         -> (command_out[n c], state_next[S], released[n], events[7 n], failed)
 
 Arrays are flat: a command row-major by chamber (chamber i's columns at i c .. i c + c - 1), a plan
-row-major [row][chamber][column]. ``plan_given`` is 1 when a plan (or a late plan) comes with this
+row-major ``[row][chamber][column]``. ``plan_given`` is 1 when a plan (or a late plan) comes with this
 command, as ``plan`` is not None in ``apply``; ``target`` NaN where there is none (no vent),
 ``stretch`` NaN where unknown (not guarded); ``lost`` and ``burst`` 0 / 1. ``events`` flags per
 chamber this step's interventions, row by row in :data:`EVENTS` order (their sums are what the

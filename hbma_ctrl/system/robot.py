@@ -185,7 +185,7 @@ class RobotSystem(SystemBase):
             raise ValueError(f"[robot] controller: {type(nmpc).__name__} has no step Function to generate (only "
                              "'mpc' with the NMPC as one Function, RobotNMPCFunction)")
         if nmpc.s.enforce_budget and nmpc.s.budget > 0:
-            raise ValueError("[robot] mpc_enforce_budget = true: an enforced wall-time budget depends on the "
+            raise ValueError("[robot] enforce_budget = true: an enforced wall-time budget depends on the "
                              "machine's clock; set it to false to generate the loop")
         n, N = loop.n, nmpc.s.horizon
         t = np.asarray(t, dtype=float)

@@ -247,14 +247,14 @@ class RobotSettings(Settings):
     compare_baseline: bool = setting(True, doc="also run the other controller")
     settle_time: float = setting(2.0, lo=0.0, hi=1e4, unit="s", key="settle_s",
                                  doc="RMSEs skip this long after a target change")
-    mpc_horizon: int = setting(15, integer=True, lo=1, hi=100, unit="stages", doc="NMPC stages")
+    mpc_horizon: int = setting(15, integer=True, lo=1, hi=100, unit="stages", key="horizon", doc="NMPC stages")
     mpc_dt: float = setting(0.02, lo=1e-3, hi=1.0, unit="s", user="ms", doc="NMPC prediction step")
     # repr=False: the stored reprs of the scenario goldens
     mpc_budget: float = setting(0.0, lo=0.0, hi=1.0, repr=False,
                                 doc="NMPC wall-time budget per step as a fraction of the control period; an overrun "
                                     "is a failed step (0 = none; the daemon uses 0.8 then); in a scene it acts with "
-                                    "mpc_enforce_budget")
-    mpc_enforce_budget: bool = setting(False, repr=False,
+                                    "enforce_budget")
+    mpc_enforce_budget: bool = setting(False, repr=False, key="enforce_budget",
                                        doc="in a scene, make an NMPC step slower than mpc_budget a failed step, as in "
                                            "the rig daemon; off, results do not depend on the machine's load")
     target_rate: float | None = setting(None, lo=0.0, hi=1.0, unit="m/s", user="mm/s", repr=False,

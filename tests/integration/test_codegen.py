@@ -322,9 +322,9 @@ def test_codegen_cli_bad_inputs_are_one_error_line(tmp_path):
     pid.write_text(Path(robot).read_text().replace('controller = "mpc"', 'controller = "pressure_pid"'))
     one_line_error(_cli(["codegen", str(pid), "--out", str(tmp_path / "a")]), "[robot] controller = 'pressure_pid'")
     budget = tmp_path / "budget.toml"
-    budget.write_text(Path(robot).read_text().replace('mpc_horizon = 15',
-                                                       'mpc_horizon = 15\nmpc_budget = 0.7\nmpc_enforce_budget = true'))
-    one_line_error(_cli(["codegen", str(budget), "--out", str(tmp_path / "a")]), "mpc_enforce_budget = true")
+    budget.write_text(Path(robot).read_text().replace('horizon = 15',
+                                                       'horizon = 15\nmpc_budget = 0.7\nenforce_budget = true'))
+    one_line_error(_cli(["codegen", str(budget), "--out", str(tmp_path / "a")]), "enforce_budget = true")
     enforced = tmp_path / "enforced.toml"
     enforced.write_text(Path(TRACK).read_text().replace("[controller]\n", "[controller]\nenforce_budget = true\n", 1))
     one_line_error(_cli(["codegen", str(enforced), "--out", str(tmp_path / "a")]), "enforce_budget = true")

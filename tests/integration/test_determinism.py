@@ -3,7 +3,7 @@
 Every test here runs without depending on the machine's load: a fake ``time.perf_counter``
 (:class:`LoadedClock`) stands for a machine so loaded that every reading finds a second gone, far past
 any budget. A scene run on it must give the bits of the same scene run on the real clock; with the
-budget enforced (``[controller] enforce_budget``, ``[robot] mpc_enforce_budget``, the daemon) the
+budget enforced (``[controller] enforce_budget``, ``[robot] enforce_budget``, the daemon) the
 same clock must make steps overrun, which shows that the switch, not luck, keeps the wall clock out.
 """
 
@@ -152,7 +152,7 @@ def test_mpc_enforce_budget_from_the_scenario_key_makes_the_same_loaded_clock_ov
     idle, _ = _robot_scene(tmp_path)
     clock = LoadedClock()
     monkeypatch.setattr(time, "perf_counter", clock)
-    loaded, mpc = _robot_scene(tmp_path, "mpc_enforce_budget = true")
+    loaded, mpc = _robot_scene(tmp_path, "enforce_budget = true")
     monkeypatch.undo()
     assert mpc.enforce_budget
     assert any(e.detail == "overrun" for e in loaded.events)

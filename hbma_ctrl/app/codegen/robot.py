@@ -39,7 +39,7 @@ supply caps and short vents run the same Functions; its other parts are numpy cl
 Functions equal to rounding (``tests/unit/robot/test_robot_loop_blocks.py``), not to the bit.
 
 Refused with one error naming the key: the pressure-PID controller, an enforced wall-time budget
-(``mpc_enforce_budget``; ``mpc_budget`` alone acts only in the daemon), the quasi-static rig's
+(``enforce_budget``; ``mpc_budget`` alone acts only in the daemon), the quasi-static rig's
 snap-through search.
 """
 

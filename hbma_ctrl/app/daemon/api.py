@@ -69,6 +69,7 @@ from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.app.schema.api import (
     CHAMBER_INDEX_MAX,
     ChamberStatus,
+    ErrorReply,
     FaultEvent,
     Faults,
     Health,
@@ -285,6 +286,19 @@ class _Guard:
         await self.app(scope, replay, send)
 
 
+def _errors(**codes: str) -> dict:
+    return {int(code[1:]): {"model": ErrorReply, "description": what} for code, what in codes.items()}
+
+
+#: what every request may get from the guard, and a setpoint from its checks (the OpenAPI schema's errors)
+_GUARD_ERRORS = _errors(s401="no or a wrong bearer token (when the daemon has one)",
+                        s413=f"a body over {MAX_BODY_BYTES} bytes",
+                        s429=f"the request would wait over {MAX_WAIT_S:g} s for its turn (paced requests)")
+_SETPOINT_ERRORS = _errors(s409="the daemon is stopping: no new setpoints",
+                           s422="the message or the loop's check refuses it (the line names the key and its range)",
+                           s503="the loop does not take setpoints yet")
+
+
 def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = RATE_HZ, burst: int = BURST,
              max_wait_s: float = MAX_WAIT_S) -> FastAPI:
     """The API in front of ``state`` (see the module doc); ``token``: the bearer token every request
@@ -293,7 +307,7 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         raise ValueError("token must not be empty")
     if not (rate_hz > 0 and burst >= 1 and max_wait_s >= 0):
         raise ValueError("api pace: rate_hz > 0, burst >= 1 and max_wait_s >= 0 are required")
-    app = FastAPI(title="hbma-ctrl rig daemon", docs_url=None, redoc_url=None)
+    app = FastAPI(title="hbma-ctrl rig daemon", docs_url=None, redoc_url=None, responses=_GUARD_ERRORS)
     app.add_middleware(_Guard, token=token, max_body=MAX_BODY_BYTES, rate_hz=rate_hz, burst=burst,
                        max_wait_s=max_wait_s)
     # the last converted snapshot: many requests per loop period convert it once
@@ -334,7 +348,7 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         snap = state.status()
         return _json(Health(ok=True, mode=str(snap.get("mode", "starting")), age_ms=_age_ms(snap)))
 
-    @app.post("/setpoint", response_model=SetpointReply)
+    @app.post("/setpoint", response_model=SetpointReply, responses=_SETPOINT_ERRORS)
     def post_setpoint(request: SetpointRequest) -> Response:
         """Check, clip and queue a setpoint; the reply says what will be applied and what was clipped."""
         if state.stop_requested:

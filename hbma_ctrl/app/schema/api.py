@@ -14,7 +14,7 @@ no finite number for (no reading, no estimate yet) is ``null``.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -28,6 +28,7 @@ __all__ = [
     "DIRECTION_MAX_DEG",
     "LAYER_INDEX_MAX",
     "ChamberStatus",
+    "ErrorReply",
     "FaultEvent",
     "Faults",
     "Health",
@@ -200,3 +201,10 @@ class Health(Message):
     ok: bool = Field(True, description="always true: the API answers")
     mode: str = Field(description="starting, running, safe or stopped")
     age_ms: float | None = _out("ms", "time since the loop last published its status; null before")
+
+
+class ErrorReply(Message):
+    """Every error's body: one line, and the validation errors of a refused message."""
+
+    error: str = Field(description="what was refused and why, one line")
+    detail: Any = Field(None, description="the line again, or the list of validation errors (422)")

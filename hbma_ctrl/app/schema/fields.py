@@ -10,6 +10,7 @@ TOML arrays validate into tuples.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from typing import Annotated, Any, ClassVar, Literal, NamedTuple, Optional
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model
@@ -32,6 +33,7 @@ __all__ = [
     "integer",
     "load_steps_si",
     "num",
+    "renamed_keys",
     "settings_table",
     "shaped",
     "subtable",
@@ -57,6 +59,29 @@ class Table(BaseModel):
         """{SI field: SI value} of ``owner``'s keys the user wrote (and not as none)."""
         return {name: spec.to_si(getattr(self, key)) for key, (cls, name, spec) in self.settings_keys.items()
                 if cls is owner and key in self.model_fields_set and getattr(self, key) is not None}
+
+
+#: (file, table, old key) already reported in this process: a file read again (tune's trials) says it once
+_REPORTED: set[tuple[str, str, str]] = set()
+
+
+def renamed_keys(table: str, raw: Any, renamed: dict[str, str], path: Any = None) -> Any:
+    """``raw`` (a table as read) with each old key of ``renamed`` {old: current} under its current name
+    and a one-line notice on stderr naming both and the file; RuleError when both names are given."""
+    if not isinstance(raw, dict) or not renamed.keys() & raw.keys():
+        return raw
+    out = dict(raw)
+    for old, new in renamed.items():
+        if old not in out:
+            continue
+        if new in out:
+            raise RuleError(f"{old} and {new} are one key ({old} is its old name): keep {new} only", table)
+        out[new] = out.pop(old)
+        if (str(path), table, old) not in _REPORTED:
+            _REPORTED.add((str(path), table, old))
+            where = f"{path}: " if path else ""
+            print(f"{where}[{table}] {old} is deprecated: write {new}", file=sys.stderr)
+    return out
 
 
 class RuleError(ValueError):

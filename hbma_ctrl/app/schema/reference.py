@@ -107,12 +107,13 @@ def _cell(text: str) -> str:
 def key_rows(model: type[BaseModel]) -> list[tuple[str, str, str, str, str, str]]:
     """(key, type, unit, range, default, doc) of every key of ``model``, in its order."""
     rows = []
+    old = {new: name for name, new in getattr(model, "renamed", {}).items()}
     for key, fi in model.model_fields.items():
         infos = [fi, *unwrap_type(fi.annotation)[1]]
         lo, hi, lo_open, hi_open, unit = bounds_of(infos + _element_infos(fi.annotation))
         rng = "" if lo is None and hi is None else range_text(lo, hi, lo_open, hi_open, "")
-        rows.append((key, _type(fi.annotation), "" if unit in ("", "-") else unit, rng, _default(fi),
-                     _doc(model, key, fi, unit)))
+        doc = _doc(model, key, fi, unit) + (f" (old name {old[key]}, still read)" if key in old else "")
+        rows.append((key, _type(fi.annotation), "" if unit in ("", "-") else unit, rng, _default(fi), doc))
     return rows
 
 

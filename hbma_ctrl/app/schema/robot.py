@@ -11,14 +11,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Annotated, Any, NamedTuple
+from typing import Annotated, Any, ClassVar, NamedTuple
 
 import numpy as np
-from pydantic import Field, PrivateAttr, model_validator
+from pydantic import Field, PrivateAttr, ValidationInfo, model_validator
 
 from hbma_ctrl.app.schema.base import MaterialName, build_material
 from hbma_ctrl.app.schema.errors import hint
-from hbma_ctrl.app.schema.fields import RuleError, check_rows, choice, elem, elem_of, settings_table, shaped, subtable
+from hbma_ctrl.app.schema.fields import (
+    RuleError,
+    check_rows,
+    choice,
+    elem,
+    elem_of,
+    renamed_keys,
+    settings_table,
+    shaped,
+    subtable,
+)
 from hbma_ctrl.system.sections import POSE_BEND, POSE_HEIGHT, RobotSettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator
@@ -100,7 +110,15 @@ class RobotTable(_KEYS):
     tip_load_n: list[TipLoadRow] = shaped(None, "tip force from t_s on (N)", "[[t_s, fx, fy, fz], ...]",
                                           default_factory=list)
 
+    #: old key -> the name it shares with [controller]; the old one is still read, with a notice
+    renamed: ClassVar[dict[str, str]] = {"mpc_horizon": "horizon", "mpc_enforce_budget": "enforce_budget"}
+
     _settings: Any = PrivateAttr(None)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_names(cls, data: Any, info: ValidationInfo) -> Any:
+        return renamed_keys("robot", data, cls.renamed, (info.context or {}).get("path"))
 
     def _given(self, key: str) -> bool:
         return key in self.model_fields_set and getattr(self, key) is not None

@@ -124,7 +124,7 @@ ROBOT_SECTIONS = [
      "targets": {"all": [[0, 6, 0, 0], [2, 7, -15, 90]]}, "tip_load_n": [[1.0, 0, 0, -0.1]]},
     {"layers": 1, "inputs": {"A1": [[0, 100, 1, 0], [2.5, 0, 0, 0]]}},
     {"layers": 1, "material": "mr", "r1_mm": 4, "t0_mm": 2.5, "V0_cm3": 2, "chamber_angles_deg": [10, 130, 250],
-     "sync_ms": 5, "mpc_dt_ms": 10, "mpc_horizon": 10, "tip_force_n": [0, 0, -0.1], "tip_moment_nm": [0, 0.01, 0],
+     "sync_ms": 5, "mpc_dt_ms": 10, "horizon": 10, "tip_force_n": [0, 0, -0.1], "tip_moment_nm": [0, 0.01, 0],
      "snapshots": 4, "end_mass_g": 10, "layer_mass_g": 15, "sensor_range_kpa": 40},
 ]
 
