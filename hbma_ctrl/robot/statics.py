@@ -13,8 +13,8 @@ Bonded chambers
 ---------------
 The paper glues each membrane's centre to the layer above (Sil-Poxy). :class:`BondedChamber` models
 that glue spot as a rigid disk of radius ``c`` (:data:`BOND_RADIUS`, an assumption: the paper gives no
-size) on the exact membrane (:class:`hbma_ctrl.models.exact.ExactMembrane`, contact 'bonded', README
-Model §9): the force on the layer ``F(h, p)`` can exceed ``p pi c^2`` (a membrane bulging around the
+size) on the exact membrane (:class:`hbma_ctrl.models.exact.ExactMembrane`, contact 'bonded', docs/concepts/model.md
+§9): the force on the layer ``F(h, p)`` can exceed ``p pi c^2`` (a membrane bulging around the
 disk lifts it) and is negative for a vented chamber pulled up (the glue pulls the layer down). The
 table of F over (h, p) is solved once per chamber, material and c and cached on disk like the exact
 membrane's other tables; :func:`bonded_chamber_states` gives every chamber's pressure for a pose with
@@ -163,7 +163,7 @@ def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0,
     """Static equilibrium of the robot for given gas masses (N x 3 or 3N, kg).
 
     For every chamber the constant-load path h -> (h1, h2) with F(h1, h2) = its load share is
-    searched for G(h1, h2) = m R T (G = (p + p_env) V, the gas law, README Model §4); the loads follow from the heights
+    searched for G(h1, h2) = m R T (G = (p + p_env) V, the gas law, docs/concepts/model.md §4); the loads follow from the heights
     by :func:`load_sharing`, iterated to a fixed point. A chamber whose gas cannot lift its share
     rests (h = 0). Along the load path G grows with h for the robot's chambers (no fold: the gas
     is compressible, which is why the far branch is stable at fixed mass), so the height is unique;

@@ -1,4 +1,4 @@
-"""``hbma-ctrl daemon CONFIG.toml``: the rig daemon (README "Run on a rig").
+"""``hbma-ctrl daemon CONFIG.toml``: the rig daemon (docs/tutorials/rig.md).
 
 Registered by :mod:`hbma_ctrl.app.cli.main` through :func:`register`. Reads the configuration (a scenario
 file with a [daemon] table; flags override its keys), builds the runtime loop, the rig link, the
