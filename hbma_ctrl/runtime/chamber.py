@@ -179,7 +179,7 @@ class ChamberLoop:
         else:
             self.every = whole_multiple(float(period), float(t) - self._t_first,
                                         f"{type(self.controller).__name__} sample_period",
-                                        "the tick period (the first two ticks' spacing)")
+                                        "the tick period (the time between the first two ticks)")
 
     def control(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
         """Controller then supervisor on a given estimate (what ``tick`` does after the estimator)."""

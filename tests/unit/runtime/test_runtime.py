@@ -356,5 +356,5 @@ def test_chamber_loop_without_every_names_both_periods_when_they_do_not_divide()
     loop = ChamberLoop(_Reading(), _Counting(), reference=3e-3)
     loop.tick(0.0, 5e3)
     with pytest.raises(ValueError, match=r"_Counting sample_period = 20 ms must be a whole multiple of the tick "
-                                         r"period \(the first two ticks' spacing\) = 15 ms"):
+                                         r"period \(the time between the first two ticks\) = 15 ms"):
         loop.tick(0.015, 5e3)
