@@ -80,7 +80,7 @@ def problem_function(model: PredictionModel, s: MPCSettings) -> ca.Function:
     dh = ca.if_else(resting_h, 0, h_est - hp0[0])
     dp = p_est - hp0[1]
     p_lim = s.p_max - s.p_margin
-    # --- reachable height (PredictionModel.reachable_height) along the path
+    # --- the reachable height along the path: the first node past a limit, the crossing interpolated
     p_limit, h_lim = p_lim - ca.fmax(dp, 0), s.h_max - ca.fmax(dh, 0)
     hpd = ca.DM(hp)
     ok = ca.logic_and(ca.logic_and(p_path <= p_limit, l_path <= s.lam_max), hpd <= h_lim)

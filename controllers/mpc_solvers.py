@@ -49,32 +49,17 @@ class _Problem:
     p_lim: float  # Pa, on the model pressure + dp
 
 
-class _Pattern:
-    """A fixed sparsity pattern (rows, cols) and the permutation from entry order to CSC order."""
-
-    def __init__(self, rows, cols, shape):
-        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-        M = sp.csc_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)), shape=shape)
-        M.sort_indices()
-        if M.nnz != rows.size:
-            raise RuntimeError("duplicate entries in a sparsity pattern")
-        self.perm = M.data.astype(np.int64) - 1
-        self.M = M
-
-    def with_data(self, data) -> sp.csc_matrix:
-        """The matrix with values already in CSC data order (a copy)."""
-        M = self.M.copy()
-        M.data = np.array(data, dtype=float)
-        return M
-
-
 def sparse(entries: list, shape: tuple) -> ca.SX:
     """A sparse SX of ``shape`` with these (row, column, value) entries, each one structural (a zero
     value too); its nonzeros are the values in CSC order (OSQP's)."""
     rows, cols, vals = zip(*entries)
-    pat = _Pattern(rows, cols, shape)
-    sparsity = ca.Sparsity(shape[0], shape[1], pat.M.indptr.tolist(), pat.M.indices.tolist())
-    return ca.SX(sparsity, ca.vertcat(*vals)[pat.perm.tolist()])
+    # each entry's number at its place: the CSC data order is then the permutation of the entries
+    M = sp.csc_matrix((np.arange(1, len(rows) + 1, dtype=float), (rows, cols)), shape=shape)
+    M.sort_indices()
+    if M.nnz != len(rows):
+        raise RuntimeError("duplicate entries in a sparsity pattern")
+    sparsity = ca.Sparsity(shape[0], shape[1], M.indptr.tolist(), M.indices.tolist())
+    return ca.SX(sparsity, ca.vertcat(*vals)[(M.data.astype(np.int64) - 1).tolist()])
 
 
 class Rows:

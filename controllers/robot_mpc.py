@@ -65,7 +65,8 @@ import casadi as ca
 import numpy as np
 import osqp
 
-from hbma_ctrl.controllers.mpc_solvers import _Pattern, mapped_function
+from hbma_ctrl.controllers.mpc_solvers import mapped_function, sparse
+from hbma_ctrl.controllers.rti_c import _csc
 from hbma_ctrl.core.codegen import FastFunction
 from hbma_ctrl.core.interfaces import RobotControllerBase
 from hbma_ctrl.core.settings import Settings, setting
@@ -200,72 +201,13 @@ class RobotNMPC(RobotControllerBase):
         rate terms start from them (not from a decision a fallback or an interlock replaced)."""
         self.prev = np.vstack([np.asarray(a, dtype=float).reshape(self.n), np.asarray(o, dtype=float).reshape(self.n)])
 
-    # --- pattern ---------------------------------------------------------------------------------
+    # --- layout ----------------------------------------------------------------------------------
     def _build_pattern(self) -> None:
+        """The QP's size: per chamber a block of variables [x_1..x_N, a_0..a_{N-1}, o_0..o_{N-1}, slack]
+        and of rows [dynamics N | pressure N | bounds 2N | slack >= 0], then a shared pump's coupling rows."""
         n, N = self.n, self.s.horizon
-        nb = 3 * N + 1  # + one pressure slack per chamber (last)
-        self.nv = n * nb
-        ix = lambda i, blk, k: i * nb + blk * N + k  # noqa: E731  blk 0: x_{k+1}, 1: a_k, 2: o_k, 3: slack
-        # --- P (upper triangle): diag of every variable, plus input-rate couplings (k-1, k)
-        pr, pc = [], []
-        for i in range(n):
-            for blk in range(3):
-                for k in range(N):
-                    pr.append(ix(i, blk, k))
-                    pc.append(ix(i, blk, k))
-            for blk in (1, 2):
-                for k in range(1, N):
-                    pr.append(ix(i, blk, k - 1))
-                    pc.append(ix(i, blk, k))
-            pr.append(ix(i, 3, 0))
-            pc.append(ix(i, 3, 0))
-        self._Ppat = _Pattern(pr, pc, (self.nv, self.nv))
-        # --- A: per chamber [dynamics N | pressure N | bounds 2N | slack >= 0], then coupling rows
-        ar, ac = [], []
-        rows_per = 4 * N + 1
-        for i in range(n):
-            r0 = i * rows_per
-            for k in range(N):  # x_{k+1} - A_k x_k - Ba a_k - Bo o_k = c_k
-                ar += [r0 + k]
-                ac += [ix(i, 0, k)]
-                if k > 0:
-                    ar += [r0 + k]
-                    ac += [ix(i, 0, k - 1)]
-                ar += [r0 + k, r0 + k]
-                ac += [ix(i, 1, k), ix(i, 2, k)]
-            for k in range(N):  # Px_{k+1} x_{k+1} - slack <= ...
-                ar += [r0 + N + k, r0 + N + k]
-                ac += [ix(i, 0, k), ix(i, 3, 0)]
-            for k in range(N):
-                ar += [r0 + 2 * N + k, r0 + 3 * N + k]
-                ac += [ix(i, 1, k), ix(i, 2, k)]
-            ar.append(r0 + 4 * N)
-            ac.append(ix(i, 3, 0))
-        self.m_rows = n * rows_per
-        if self.topology == "shared":
-            for k in range(N):
-                for i in range(n):
-                    ar.append(self.m_rows + k)
-                    ac.append(ix(i, 1, k))
-            self.m_rows += N
-        self._Apat = _Pattern(ar, ac, (self.m_rows, self.nv))
-        # one chamber's A values in entry order: constants, and where the linearisation goes
-        tmpl, pos_a, pos_ba, pos_bo, pos_px = [], [], [], [], []
-        for k in range(N):
-            tmpl.append(1.0)
-            if k > 0:
-                pos_a.append(len(tmpl))
-                tmpl.append(0.0)
-            pos_ba.append(len(tmpl))
-            pos_bo.append(len(tmpl) + 1)
-            tmpl += [0.0, 0.0]
-        for k in range(N):
-            pos_px.append(len(tmpl))
-            tmpl += [0.0, -1.0]
-        tmpl += [1.0] * (2 * N) + [1.0]
-        self._A_template = np.array(tmpl)
-        self._A_pos_a, self._A_pos_ba, self._A_pos_bo, self._A_pos_px = (
-            np.array(v, dtype=np.int64) for v in (pos_a, pos_ba, pos_bo, pos_px))
+        self.nv = n * (3 * N + 1)
+        self.m_rows = n * (4 * N + 1) + (N if self.topology == "shared" else 0)
 
     def _data_call(self, lin: ca.Function) -> FastFunction:
         """The QP data Function (compiled) through this controller's own buffers; built once per process
@@ -341,28 +283,38 @@ class RobotNMPC(RobotControllerBase):
         du_diag = np.full(N, 4 * s.w_du)
         du_diag[-1] = 2 * s.w_du  # the last input has only one rate term after it
         diag_in = 2 * s.w_in + du_diag
-        # order of _Ppat entries: per chamber diag (3N) then rate couplings (2(N-1)), then the slack
-        const = np.r_[diag_in, diag_in, np.full(2 * (N - 1), -2 * s.w_du), 2.0]
-        Pv = ca.vec(ca.horzcat(2 * Wk * Hs ** 2 + 1e-6, ca.repmat(ca.DM(const).T, n, 1)).T)
-        # --- constraints: the per-chamber value rows of _Apat's entry order, filled by column blocks
+        Px_diag = 2 * Wk * Hs ** 2 + 1e-6
         pmax = s.p_max - s.p_margin
         Aab = Ax[:, :N]
         cc = xn[:, :N] - Aab * xb[:, :N] - Ba[:, :N] * aext[:, :N] - Bo[:, :N] * oext[:, :N]
         rhs = ca.horzcat(cc[:, 0] + Aab[:, 0] * x0, cc[:, 1:])
-        vals = SX(ca.repmat(ca.DM(self._A_template).T, n, 1))
-        vals[:, self._A_pos_a.tolist()] = -Aab[:, 1:N]
-        vals[:, self._A_pos_ba.tolist()] = -Ba[:, :N]
-        vals[:, self._A_pos_bo.tolist()] = -Bo[:, :N]
-        vals[:, self._A_pos_px.tolist()] = Px[:, 1:] * 1e-3  # pressure rows in kPa (conditioning), with the slack
+        Pz = Px[:, 1:] * 1e-3  # pressure rows in kPa (conditioning), with the slack
+        nb, rows_per = 3 * N + 1, 4 * N + 1
+        P, A = [], []  # (row, column, value) entries: P's upper triangle, A by rows (_build_pattern)
+        for i in range(n):
+            x, a, o, sl = (i * nb + blk * N for blk in range(4))  # the block's first x, a, o; its slack
+            r0 = i * rows_per
+            P += [(x + k, x + k, Px_diag[i, k]) for k in range(N)]
+            P += [(v + k, v + k, diag_in[k]) for v in (a, o) for k in range(N)]
+            P += [(v + k - 1, v + k, -2 * s.w_du) for v in (a, o) for k in range(1, N)]
+            P.append((sl, sl, 2.0))
+            for k in range(N):  # x_{k+1} - A_k x_k - Ba a_k - Bo o_k = c_k
+                A.append((r0 + k, x + k, 1.0))
+                if k > 0:
+                    A.append((r0 + k, x + k - 1, -Aab[i, k]))
+                A += [(r0 + k, a + k, -Ba[i, k]), (r0 + k, o + k, -Bo[i, k])]
+            A += [e for k in range(N) for e in ((r0 + N + k, x + k, Pz[i, k]), (r0 + N + k, sl, -1.0))]
+            A += [(r0 + (2 if v == a else 3) * N + k, v + k, 1.0) for v in (a, o) for k in range(N)]
+            A.append((r0 + 4 * N, sl, 1.0))
         lo = ca.horzcat(rhs, -inf * SX.ones(n, N), SX.zeros(n, 2 * N + 1))
         up = ca.horzcat(rhs, (pmax - p[:, 1:] + Px[:, 1:] * xb[:, 1:]) * 1e-3, ca.repmat(amax, 1, N),
                         SX.ones(n, N), inf * SX.ones(n, 1))
-        Av, lo, up = ca.vec(vals.T), ca.vec(lo.T), ca.vec(up.T)
-        if self.topology == "shared":
-            Av = ca.vertcat(Av, SX.ones(N * n))
+        lo, up = ca.vec(lo.T), ca.vec(up.T)
+        if self.topology == "shared":  # the pump's budget: sum_i a_i,k <= 1
+            A += [(n * rows_per + k, i * nb + N + k, 1.0) for k in range(N) for i in range(n)]
             lo = ca.vertcat(lo, -inf * SX.ones(N))
             up = ca.vertcat(up, SX.ones(N))
-        return [Pv[self._Ppat.perm.tolist()], Av[self._Apat.perm.tolist()], ca.vec(q.T), lo, up]
+        return [sparse(P, (self.nv, self.nv)), sparse(A, (self.m_rows, self.nv)), ca.vec(q.T), lo, up]
 
     def _shift_maps(self) -> tuple[np.ndarray, np.ndarray]:
         """Index maps moving a QP solution one stage on (the last stage repeated): variables, rows."""
@@ -445,7 +397,8 @@ class RobotNMPC(RobotControllerBase):
             # re-scales them too), RMSE 2.289 vs 2.286 mm (0 passes: 36835 iterations, 2.577 mm)
             kw = dict(verbose=False, eps_abs=s.eps, eps_rel=s.eps, max_iter=s.max_iter, polishing=False,
                       warm_starting=True, adaptive_rho=True, check_termination=5, scaling=1)
-            self._solver.setup(P=self._Ppat.with_data(Pv), q=qv, A=self._Apat.with_data(Av), l=lo, u=up, **kw)
+            P, A = (_csc(self._data.fun.sparsity_out(j), v) for j, v in ((0, Pv), (1, Av)))
+            self._solver.setup(P=P, q=qv, A=A, l=lo, u=up, **kw)
         else:
             self._solver.update(Px=Pv, Ax=Av, q=qv, l=lo, u=up)
             if self._z is not None:

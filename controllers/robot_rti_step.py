@@ -66,18 +66,13 @@ _IN = ["x0", "b", "W", "k", "c", "a_max", "h_ref", "prev", "xbar", "abar", "obar
 _OUT = ["a", "o", "xbar_next", "abar_next", "obar_next", "z", "y", "status", "residual"]
 
 
-def _sparsity(M) -> ca.Sparsity:
-    """casadi's sparsity of a scipy CSC matrix (the same nonzero order)."""
-    return ca.Sparsity(M.shape[0], M.shape[1], M.indptr.tolist(), M.indices.tolist())
-
-
 def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca.Function:
     """One RTI step of ``nmpc`` (its model, size, topology and settings) as a Function (module docstring)."""
     s, n, N = nmpc.s, nmpc.n, nmpc.s.horizon
     nv, m = nmpc.nv, nmpc.m_rows
     nb = 3 * N + 1
     data = nmpc._qp_data_function(nmpc.model.linearisation(s.dt, 1, s.integrator))
-    Psp, Asp = _sparsity(nmpc._Ppat.M), _sparsity(nmpc._Apat.M)
+    Asp = data.sparsity_out(1)
     MX = ca.MX
     x0, b, W, k, c, amax = (MX.sym(nm, n) for nm in ("x0", "b", "W", "k", "c", "a_max"))
     href = MX.sym("h_ref", n, N)
@@ -92,15 +87,13 @@ def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca
     xs = ca.horzcat(x0, xs[:, 1:])
     as_ = ca.if_else(first, abar, ca.horzcat(abar[:, 1:], abar[:, N - 1]))
     os_ = ca.if_else(first, obar, ca.horzcat(obar[:, 1:], obar[:, N - 1]))
-    Pv, Av, q, lo, up = data(x0, b, Wc, k, c, amc, href * 1e3, prev, xs, as_, os_)
+    Pu, A, q, lo, up = data(x0, b, Wc, k, c, amc, href * 1e3, prev, xs, as_, os_)
     # a non-finite input makes non-finite data, which casadi's conic refuses with an exception: solve a
     # zero QP instead and report status 1 (bounds at OSQP's infinity, 1e30, square to 1e60: finite)
-    d_ok = ca.sumsqr(Pv) + ca.sumsqr(Av) + ca.sumsqr(q) + ca.sumsqr(lo) + ca.sumsqr(up) < ca.inf
-    Pv, Av, q, lo, up = (ca.if_else(d_ok, v, MX.zeros(v.sparsity())) for v in (Pv, Av, q, lo, up))
+    d_ok = ca.sumsqr(Pu) + ca.sumsqr(A) + ca.sumsqr(q) + ca.sumsqr(lo) + ca.sumsqr(up) < ca.inf
+    Pu, A, q, lo, up = (ca.if_else(d_ok, v, MX.zeros(v.sparsity())) for v in (Pu, A, q, lo, up))
     # OSQP's P is the upper triangle; casadi's conic takes the whole symmetric Hessian
-    Pu = MX(Psp, Pv)
     H = Pu + Pu.T - ca.diag(ca.diag(Pu))
-    A = MX(Asp, Av)
     sx, sy = nmpc._shift_x, nmpc._shift_y
     zw = ca.if_else(warm, z_prev[sx.tolist()], MX.zeros(nv))
     yw = ca.if_else(warm, y_prev[sy.tolist()], MX.zeros(m))

@@ -190,9 +190,11 @@ def _assemble(rti: _RtiOsqp, par, wts, Xb, Ub, f, a, b, h, ch, p, cp, lam, cl) -
     return [sparse(P, (nz, nz)), A, q, ca.fmax(lo, -_OSQP_INF), ca.fmin(up, _OSQP_INF), z0, ok]
 
 
-def _csc(sparsity: ca.Sparsity) -> sp.csc_matrix:
-    """A casadi sparsity as a scipy CSC matrix, its values 1e-12 (OSQP's set-up: the steps update them)."""
-    return sp.csc_matrix((np.full(sparsity.nnz(), 1e-12), sparsity.row(), sparsity.colind()), shape=sparsity.shape)
+def _csc(sparsity: ca.Sparsity, values=None) -> sp.csc_matrix:
+    """A casadi sparsity as a scipy CSC matrix with these values in its nonzero order (a copy; default
+    1e-12 each: OSQP's set-up, whose values the steps update)."""
+    v = np.full(sparsity.nnz(), 1e-12) if values is None else np.array(values, dtype=float)
+    return sp.csc_matrix((v, sparsity.row(), sparsity.colind()), shape=sparsity.shape)
 
 
 class _RtiOsqp:

@@ -6,8 +6,7 @@ membrane height). Under a dead load W (N) the contact condition ``F(h1, h2) = pi
 the shape at every height h; along this constant-load path the gas law ``G(h1, h2) = (p + p_env) V
 = m R T`` then picks the height for a gas mass m (the paper's quasi-static model of a ballooning
 membrane under a dead load). :meth:`ShapeSolver.contact` is the bisection of the contact condition
-at given heights, the one solve every numeric user shares; :meth:`ShapeSolver.newton` polishes a
-shape for a gas mass and load from a nearby guess; :meth:`ShapeSolver.free_h1` is the unloaded
+at given heights, the one solve every numeric user shares; :meth:`ShapeSolver.free_h1` is the unloaded
 case (``h2 = 0``), a scalar Newton on the gas law. The casadi (symbolic) Newton the estimators
 differentiate through is :func:`hbma_ctrl.models.reduced.shape_newton`.
 """
@@ -20,7 +19,6 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core import physics as ph
-from hbma_ctrl.models.fidelity import shape_jacobian
 
 __all__ = ["ShapeSolver", "shape_function", "SHAPE_OUTPUTS"]
 
@@ -37,15 +35,6 @@ def shape_function(space: ph.ParamSpace) -> ca.Function:
     p = ph.pressure(h1, h2, P)
     return ca.Function("chamber", [h1, h2, theta], [p, ca.pi * g["a2"] * p, g["lam"], g["V"], ph.gas_pv(h1, h2, P)],
                        ["h1", "h2", "theta"], list(SHAPE_OUTPUTS))
-
-
-@lru_cache(maxsize=8)
-def _gf_function(space: ph.ParamSpace) -> ca.Function:
-    """(h1, h2, theta) -> (G, F, d(G, F)/d(h1, h2))."""
-    h1, h2 = ca.SX.sym("h1"), ca.SX.sym("h2")
-    theta, P = space.symbols()
-    G, F, J = shape_jacobian(h1, h2, P)
-    return ca.Function("gf", [h1, h2, theta], [G, F, J], ["h1", "h2", "theta"], ["G", "F", "J"])
 
 
 @lru_cache(maxsize=64)
@@ -119,34 +108,6 @@ class ShapeSolver:
     def h2_for_force(self, h, F) -> np.ndarray:
         """Cut height h2 (m) with contact force F (N, > 0) at membrane height h (m > 0)."""
         return self.contact(h, F, self.r1, grow=40)[1]
-
-    def newton(self, h1, h2, G, F, iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
-        """Newton on (h1, h2) (m) for ``G(h1, h2) = G`` (J) and ``F(h1, h2) = F`` (N) from a nearby guess.
-
-        Keeps 0 <= h2 <= h1 and halves a step that would leave the chart; the guess picks the branch.
-        """
-        h1, h2 = np.array(h1, dtype=float), np.array(h2, dtype=float)
-        n = h1.size
-        fun = _mapped(_gf_function(self.space), n)
-        th = np.repeat(self.theta[:, None], n, 1)
-        for _ in range(iters):
-            Gv, Fv, J = (np.asarray(x) for x in fun(h1[None, :], h2[None, :], th))
-            J = J.reshape(2, n, 2).transpose(0, 2, 1)  # mapped 2x2 blocks side by side -> [row, col, chamber]
-            r0, r1 = Gv.ravel() - G, Fv.ravel() - F
-            det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-            d1 = (J[1, 1] * r0 - J[0, 1] * r1) / det
-            d2 = (-J[1, 0] * r0 + J[0, 0] * r1) / det
-            step = np.ones(n)
-            for _k in range(30):  # stay in the chart
-                n1, n2 = h1 - step * d1, h2 - step * d2
-                bad = (n2 < 0) | (n1 - n2 < 0)
-                if not bad.any():
-                    break
-                step = np.where(bad, step / 2, step)
-            h1, h2 = h1 - step * d1, np.maximum(h2 - step * d2, 0.0)
-            if np.all(np.abs(d1) < 1e-13) and np.all(np.abs(d2) < 1e-13):
-                break
-        return h1, h2
 
     def free_h1(self, G: float, h0: float, iters: int = 60) -> float:
         """Free-inflation cap height h1 (m, h2 = 0) holding ``G = m R T`` (J), Newton from h0 (m)."""

@@ -122,7 +122,7 @@ class PredictionModel:
     membrane : 'cap' or 'exact'; shapes : the shape solver of that law the tables come from.
     H_table, P_table, L_table : the interpolants of ``vertcat(x, W)`` behind H, Pp, L.
     H, Pp, L : casadi Functions (x, W) -> height (m), gauge pressure (Pa), stretch (-); HP both. H is negative
-        (virtual) below lift-off, see :meth:`height` for the physical one.
+        (virtual) below lift-off; the physical height is max(H, 0).
     rhs : casadi Function (x, u, W, dp) -> xdot (1/s); ``dp`` is a pressure bias (Pa) added to the
         model pressure in the valve/pump flows (offset-free prediction).
         These five evaluate the tables as bspline calls; :meth:`functions` gives them with the tables as
@@ -183,7 +183,7 @@ class PredictionModel:
             # below lift-off the platform rests (h = 0); the table continues the height linearly
             # into negative "virtual" heights with the lift-off slope, so that an optimiser resting
             # far below lift-off still sees that pumping raises the height (a flat h = 0 would give
-            # it no gradient). Callers clamp at 0 where a physical height is meant (:meth:`height`).
+            # it no gradient). Callers clamp at 0 where a physical height is meant.
             slope = (hp[1] - hp[0]) / (xp[1] - xp[0])
             H[:, j] = np.where(rest, slope * (xg - xp[0]), _interp_extrap(xg, xp, hp))
             Pg[:, j] = np.where(rest, xg * a.p_env, _interp_extrap(xg, xp, pp))
@@ -241,21 +241,10 @@ class PredictionModel:
         xn = fixed_step(lambda xs: rhs(xs, u, W, dp), x, dt, substeps, integrator)
         return ca.Function("F", [x, u, W, dp], [xn], ["x", "u", "W", "dp"], ["x_next"])
 
-    def height(self, x: float, W: float) -> float:
-        """Physical height (m) at state x and load W (N): H clamped at 0 (resting)."""
-        return max(float(self.H(x, W)), 0.0)
-
     def x_at_height(self, h: float, W: float) -> float:
         """The state that holds height h (m) under load W (N) on the contact branch."""
         (x,) = self._path_columns(W, "x_path")
         return float(np.interp(h, self.grid.h_path, x))
-
-    def lift_off_x(self, W: float) -> float:
-        """State at which a load W (N) lifts off (rest gauge pressure W / (pi r1^2) over p_env)."""
-        # (scalar min/max, not np.clip: the NMPC calls this every step, and np.clip on a float costs
-        # microseconds; a NaN stays NaN either way)
-        Wc = min(max(float(W), 0.0), self.load_max)
-        return float(Wc / (np.pi * self.actuator.r1 ** 2) / self.actuator.p_env)
 
     def _path_columns(self, W: float, *names: str) -> tuple[np.ndarray, ...]:
         """The named tables (``x_path``, ``p_path``, ``lam_path``) along the load path at W (N): each
@@ -279,26 +268,6 @@ class PredictionModel:
         x, p, lam = self._path_columns(W, "x_path", "p_path", "lam_path")
         return {"h": self.grid.h_path, "x": x, "p": p, "lam": lam}
 
-    def reachable_height(self, W: float, p_limit: float, lam_max: float, h_max: float) -> float:
-        """Largest height (m) reachable from rest under load W without p > p_limit or lam > lam_max."""
-        # only the columns it reads (the NMPC calls this every step)
-        p, lam = self._path_columns(W, "p_path", "lam_path")
-        pth = {"h": self.grid.h_path, "p": p, "lam": lam}
-        ok = (pth["p"] <= p_limit) & (pth["lam"] <= lam_max) & (pth["h"] <= h_max)
-        if not ok[0]:
-            return 0.0
-        bad = np.nonzero(~ok)[0]
-        if bad.size == 0:
-            return float(min(pth["h"][-1], h_max))
-        k = bad[0]
-        # interpolate the first crossing of the limiting quantity
-        h0, h1 = pth["h"][k - 1], pth["h"][k]
-        fr = []
-        for key, lim in (("p", p_limit), ("lam", lam_max), ("h", h_max)):
-            v0, v1 = pth[key][k - 1], pth[key][k]
-            if v1 > lim and v1 != v0:
-                fr.append((lim - v0) / (v1 - v0))
-        return float(h0 + (h1 - h0) * min(fr)) if fr else float(h0)
 
 
 def _interp_extrap(xq: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:

@@ -136,9 +136,6 @@ class RobotPneumatics(Settings):
     def check_rules(self) -> None:
         self.within("pressure_limit", hi=self.sensor_range)
 
-    def n_compressors(self, n_chambers: int) -> int:
-        return n_chambers if self.topology == "per_chamber" else 1
-
 
 def shared_supply(duties: np.ndarray) -> np.ndarray:
     """Inlet duties (0-1, the chambers along the last axis) of one shared pump as its flow splits among

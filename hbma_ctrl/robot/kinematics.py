@@ -43,9 +43,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
-from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.design import RobotDesign
 
 
@@ -183,41 +181,3 @@ def inverse_kinematics(design: RobotDesign, centre, bend, direction) -> np.ndarr
         t = math.tan(th[k])
         out[k] = A @ np.array([c[k], -t * math.cos(ps[k]), -t * math.sin(ps[k])])
     return out
-
-
-def inverse_kinematics_tip(design: RobotDesign, tip_position, h_max: float | None = None) -> np.ndarray:
-    """Tip position (3,) m -> chamber heights (N, 3) m, every layer identical (constant curvature).
-
-    The N identical layers give 3 unknowns (centre height, bend, direction) for 3 equations; solved
-    by least squares from a straight start. Raises ValueError when no such shape reaches the point
-    within 1e-6 m (or, with ``h_max``, within chamber heights 0..h_max).
-    """
-
-    target = np.asarray(tip_position, dtype=float).reshape(3)
-    if not np.all(np.isfinite(target)):
-        raise ValueError("tip_position must be finite")
-    N, L = design.n_layers, design.layer_thickness
-    psi0 = math.atan2(target[1], target[0]) if np.hypot(target[0], target[1]) > 1e-9 else 0.0
-
-    def tip_of(z):
-        hs = inverse_kinematics(design, z[0], abs(z[1]), z[2])
-        return forward_kinematics(design, np.maximum(hs, 0)).tip_position, hs
-
-    def res(z):
-        p, hs = tip_of(z)
-        pen = np.minimum(hs, 0).ravel()
-        return np.concatenate([p - target, 10 * pen])
-
-    c0 = max(target[2] / N - 2 * L, 0.0) if target[2] > 0 else 0.0
-    best = None
-    for th0 in (0.05, 0.3, 0.6):
-        sol = least_squares(res, [c0 + 1e-3, th0, psi0], bounds=([0, 0, -2 * math.pi], [1.0, 1.4, 2 * math.pi]),
-                            xtol=1e-12, ftol=1e-12)
-        if best is None or sol.cost < best.cost:
-            best = sol
-    hs = inverse_kinematics(design, best.x[0], abs(best.x[1]), best.x[2])
-    err = np.linalg.norm(tip_of(best.x)[0] - target)
-    if err > 1e-6 or hs.min() < -1e-9 or (h_max is not None and hs.max() > h_max + 1e-9):
-        raise ValueError(f"tip_position {np.round(U.to_mm(target), 2).tolist()} mm is not reachable by "
-                         f"{N} identical layers (closest miss {U.to_mm(err):.2f} mm)")
-    return np.maximum(hs, 0.0)

@@ -53,8 +53,7 @@ class ChamberReach:
     limit : what sets h_max: 'max_stretch', 'pressure_limit' or 'pump_stall'
     h_peak, p_peak : height and pressure of the balloon limit point along the load path (m, Pa)
     h_pressure_control : reach if the chamber were pressure-controlled (near branch only), m
-    h_stretch : height at the maximum stretch, m
-    p_at_max : pressure at h_max, Pa; m_at_max : gas mass at h_max, kg
+    p_at_max : pressure at h_max, Pa
     """
 
     force: float
@@ -63,9 +62,7 @@ class ChamberReach:
     h_peak: float
     p_peak: float
     h_pressure_control: float
-    h_stretch: float
     p_at_max: float
-    m_at_max: float
 
 
 def chamber_reach(design: RobotDesign, force: float, pressure_limit: float = 45e3,
@@ -103,9 +100,7 @@ def chamber_reach(design: RobotDesign, force: float, pressure_limit: float = 45e
             w = (p_cap - ps[i - 1]) / (ps[i] - ps[i - 1])
             h_max, i_max = float(hs[i - 1] + w * (hs[i] - hs[i - 1])), i
     h_pc = min(h_peak if ipk < hs.size - 1 else h_str, h_max)
-    act = design.chamber
-    m_at = float((ps[i_max] + act.p_env) * path["V"][i_max] / (act.R * act.T))
-    return ChamberReach(F, float(h_max), limit, h_peak, p_peak, float(h_pc), h_str, float(ps[i_max]), m_at)
+    return ChamberReach(F, float(h_max), limit, h_peak, p_peak, float(h_pc), float(ps[i_max]))
 
 
 def reach_report(design: RobotDesign, heights, pressure_limit: float = 45e3,

@@ -17,14 +17,13 @@ size) on the exact membrane (:class:`hbma_ctrl.models.exact.ExactMembrane`, cont
 §9): the force on the layer ``F(h, p)`` can exceed ``p pi c^2`` (a membrane bulging around the
 disk lifts it) and is negative for a vented chamber pulled up (the glue pulls the layer down). The
 table of F over (h, p) is solved once per chamber, material and c and cached on disk like the exact
-membrane's other tables; :func:`bonded_chamber_states` gives every chamber's pressure for a pose with
-tension allowed. Its limits are the exact solver's: membrane stretches up to 4, no slack (wrinkled)
+membrane's other tables; :meth:`BondedChamber.pressure` gives a chamber's pressure for its height and
+force, tension allowed. Its limits are the exact solver's: membrane stretches up to 4, no slack (wrinkled)
 membrane; outside them the table holds NaN and the chamber is reported as beyond its reach.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -45,9 +44,8 @@ from hbma_ctrl.robot.kinematics import (
     forward_kinematics,
 )
 
-__all__ = ["LoadShare", "load_sharing", "chamber_solver", "chamber_states", "chamber_loads",
-           "chamber_states_from_masses", "BOND_RADIUS", "BOND_H", "BOND_P", "bonded_table", "BondedChamber",
-           "bonded_chamber", "bonded_chamber_states"]
+__all__ = ["LoadShare", "load_sharing", "chamber_solver", "chamber_states", "BOND_RADIUS", "BOND_H", "BOND_P",
+           "bonded_table", "BondedChamber", "bonded_chamber"]
 
 
 @dataclass
@@ -63,10 +61,6 @@ class LoadShare:
     shear: np.ndarray
     twist: np.ndarray
     pose: RobotPose
-
-    @property
-    def tension(self) -> np.ndarray:
-        return self.forces < 0
 
 
 def load_sharing(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0)
@@ -144,78 +138,6 @@ def chamber_states(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_
     m = (p + act.p_env) * V / (act.R * act.T)
     return {"h1": h1, "h2": h2, "p": p, "F": F, "lam": np.where(resting, 1.0, out["lam"]), "V": V, "m": m,
             "resting": resting, "tension": tension}
-
-
-def chamber_loads(design: RobotDesign, heights, tip_force=(0.0, 0.0, 0.0), tip_moment=(0.0, 0.0, 0.0),
-                  floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Per-chamber load W (N), flattened A1, A2, ..., for use as each chamber model's dead load.
-
-    Returns (W, tension): W = max(load share, floor) and the mask of chambers whose share is
-    negative (the glue pulls; the single-chamber model cannot represent it, so it gets ``floor``).
-    This is what a per-chamber estimator/controller bank feeds its models as ``P["W"]``.
-    """
-    F = load_sharing(design, heights, tip_force, tip_moment).forces.ravel()
-    return np.maximum(F, floor), F < 0
-
-
-def chamber_states_from_masses(design: RobotDesign, masses, tip_force=(0.0, 0.0, 0.0),
-                               tip_moment=(0.0, 0.0, 0.0), iters: int = 40, tol: float = 1e-9) -> dict:
-    """Static equilibrium of the robot for given gas masses (N x 3 or 3N, kg).
-
-    For every chamber the constant-load path h -> (h1, h2) with F(h1, h2) = its load share is
-    searched for G(h1, h2) = m R T (G = (p + p_env) V, the gas law, docs/concepts/model.md §4); the loads follow from the heights
-    by :func:`load_sharing`, iterated to a fixed point. A chamber whose gas cannot lift its share
-    rests (h = 0). Along the load path G grows with h for the robot's chambers (no fold: the gas
-    is compressible, which is why the far branch is stable at fixed mass), so the height is unique;
-    where G is not monotone the lowest crossing is taken and ``ambiguous`` is flagged. Returns
-    :func:`chamber_states` of the heights plus ``heights`` and ``ambiguous`` (N, 3).
-    """
-    N = design.n_layers
-    m = np.asarray(masses, dtype=float)
-    if m.size != 3 * N or not np.all(np.isfinite(m)) or m.min() <= 0:
-        raise ValueError(f"masses: need {3 * N} finite gas masses > 0 kg")
-    m = m.ravel()
-    act = design.chamber
-    ch = chamber_solver(act)
-    rt = act.R * act.T
-    lam_hi = min(1.5 * design.max_stretch, act.material.lam_max() * 0.999)
-    h_hi = float(ch.h_for_stretch(lam_hi, 0.0)[0])
-    n = 3 * N
-    h1, h2 = np.zeros(n), np.zeros(n)
-    active = np.zeros(n, dtype=bool)
-    amb = np.zeros(n, dtype=bool)
-    h = np.zeros(n)
-    for _ in range(iters):
-        F = np.maximum(load_sharing(design, h.reshape(N, 3), tip_force, tip_moment).forces.ravel(), 0.0)
-        G_rest = (F / (math.pi * act.r1**2) + act.p_env) * act.V0
-        act_now = m * rt > G_rest
-        for i in np.nonzero(act_now & ~active)[0]:  # a coarse walk along the load path: the initial guess
-            path = ch.load_path(F[i], h_hi, 120)
-            G = path["G"] - m[i] * rt
-            cross = np.nonzero((G[:-1] < 0) & (G[1:] >= 0))[0]
-            if G[0] >= 0:
-                cross = np.append([0], cross)
-            if cross.size == 0:
-                raise ValueError(f"masses: chamber {design.names[i]} holds more gas than the stretch "
-                                 f"{lam_hi:g} allows")
-            amb[i] = cross.size > 1 or bool(np.any(np.diff(path["G"]) <= 0))
-            j = int(cross[0])
-            h1[i], h2[i] = path["h1"][j + 1], path["h2"][j + 1]
-        active = act_now
-        if active.any():
-            h1[active], h2[active] = ch.newton(h1[active], h2[active], m[active] * rt, F[active])
-        h1[~active], h2[~active] = 0.0, 0.0
-        new = h1 - h2
-        done = np.max(np.abs(new - h)) < tol
-        h = new
-        if done:
-            break
-    h = h.reshape(N, 3)
-    amb = amb.reshape(N, 3)
-    out = chamber_states(design, h, tip_force, tip_moment)
-    out["heights"] = h
-    out["ambiguous"] = amb
-    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -328,19 +250,3 @@ class BondedChamber:
 def bonded_chamber(act: Actuator, c: float = BOND_RADIUS) -> BondedChamber:
     """The :class:`BondedChamber` of a robot chamber and bond radius (cached here and on disk)."""
     return BondedChamber(act, c)
-
-
-def bonded_chamber_states(design: RobotDesign, heights, c: float = BOND_RADIUS, tip_force=(0.0, 0.0, 0.0),
-                          tip_moment=(0.0, 0.0, 0.0)) -> dict:
-    """Each glued chamber's pressure for chamber heights (N x 3, m), tension allowed.
-
-    The load sharing (:func:`load_sharing`) gives each chamber's force F (N, negative = the glue pulls
-    the layer down); the bonded table gives the pressure p (Pa) at which the glued membrane at its
-    height pushes (or pulls) with exactly F. Returns (N, 3) arrays F, p (NaN where the table has no
-    such state: ``beyond``) and ``tension`` (F < 0), ``beyond`` (bool).
-    """
-    h = _heights_array(design, heights)
-    F = load_sharing(design, h, tip_force, tip_moment).forces
-    ch = bonded_chamber(design.chamber, c)
-    p = np.array([[ch.pressure(h[k, i], F[k, i]) for i in range(3)] for k in range(h.shape[0])])
-    return {"F": F, "p": p, "tension": F < 0, "beyond": ~np.isfinite(p)}

@@ -393,8 +393,8 @@ class RobotLoop:
     def prime(self, readings_pa: np.ndarray | None = None) -> None:
         """Start-up work before the first deadline, the loop's state left as it was: the NMPC's solver
         set up and solved once at rest (the bank's starting estimate from ``readings_pa``, Pa, default
-        0; the targets of t = 0 moved as the first tick would move them), the valve inputs' pump map
-        loaded, the supervisor's Function built for the NMPC's plans and, with a minimum opening, the
+        0; the targets of t = 0 moved as the first tick would move them), the valve inputs' Function
+        built, the supervisor's Function built for the NMPC's plans and, with a minimum opening, the
         short vents' Function compiled. The first tick then fits its period (without it: 9-12 ms of a
         10 ms period here)."""
         p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))

@@ -1,6 +1,6 @@
 """The NMPC's problem data from an estimate in Python: the oracle
 :func:`hbma_ctrl.controllers.mpc_prep.problem_function` (which :meth:`hbma_ctrl.controllers.mpc.NMPC._problem`
-calls compiled) is compared with. The load filter, ``PredictionModel``'s path and reach, the clipped
+calls compiled) is compared with. The load filter, ``PredictionModel``'s lift-off, path and reach, the clipped
 targets and the integral action as the module docstring of :mod:`hbma_ctrl.controllers.mpc_prep` states
 them, on the states an :class:`~hbma_ctrl.controllers.mpc.NMPC` keeps (read and advanced here)."""
 
@@ -50,13 +50,42 @@ def _integrate(nmpc, t: float, h_est: float, target: float, clipped: bool) -> fl
     return nmpc._int
 
 
+def lift_off_x(m, W: float) -> float:
+    """The state of PredictionModel m at which a load W (N) lifts off: the rest gauge pressure
+    W / (pi r1^2) over p_env, W clipped to [0, load_max]."""
+    Wc = min(max(float(W), 0.0), m.load_max)
+    return float(Wc / (np.pi * m.actuator.r1 ** 2) / m.actuator.p_env)
+
+
+def reachable_height(m, W: float, p_limit: float, lam_max: float, h_max: float) -> float:
+    """Largest height (m) PredictionModel m reaches from rest under load W (N) along its load path
+    without p > p_limit (Pa), lam > lam_max or h > h_max (m)."""
+    p, lam = m._path_columns(W, "p_path", "lam_path")
+    pth = {"h": m.grid.h_path, "p": p, "lam": lam}
+    ok = (pth["p"] <= p_limit) & (pth["lam"] <= lam_max) & (pth["h"] <= h_max)
+    if not ok[0]:
+        return 0.0
+    bad = np.nonzero(~ok)[0]
+    if bad.size == 0:
+        return float(min(pth["h"][-1], h_max))
+    k = bad[0]
+    # interpolate the first crossing of the limiting quantity
+    h0, h1 = pth["h"][k - 1], pth["h"][k]
+    fr = []
+    for key, lim in (("p", p_limit), ("lam", lam_max), ("h", h_max)):
+        v0, v1 = pth[key][k - 1], pth[key][k]
+        if v1 > lim and v1 != v0:
+            fr.append((lim - v0) / (v1 - v0))
+    return float(h0 + (h1 - h0) * min(fr)) if fr else float(h0)
+
+
 def problem_reference(nmpc, t: float, est: Estimate, ref: Reference, preview=None) -> _Problem:
     """What ``nmpc._problem`` returns (and records in ``nmpc.last``), computed in Python."""
     s, m = nmpc.settings, nmpc.model
     r = nmpc._target(est, ref)
     W = _load(nmpc, t, est)
     if est.h < s.rest_height:
-        x0 = min(est.p / m.actuator.p_env, m.lift_off_x(W))
+        x0 = min(est.p / m.actuator.p_env, lift_off_x(m, W))
     else:
         x0 = m.x_at_height(est.h, W)
     h0, p0 = np.asarray(m.HP(float(x0), float(W)), dtype=float).ravel()
@@ -64,7 +93,7 @@ def problem_reference(nmpc, t: float, est: Estimate, ref: Reference, preview=Non
     dh = 0.0 if est.h < s.rest_height else float(est.h - h0)
     dp = float(est.p - p0)
     p_lim = s.p_max - s.p_margin
-    reach = m.reachable_height(W, p_lim - max(dp, 0.0), s.lam_max, s.h_max - max(dh, 0.0)) + dh
+    reach = reachable_height(m, W, p_lim - max(dp, 0.0), s.lam_max, s.h_max - max(dh, 0.0)) + dh
     N = s.horizon
     hi = max(min(reach, s.h_max), s.h_min)
     r_used = min(max(r, s.h_min), hi)

@@ -24,7 +24,7 @@ from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.fidelity import make_fidelity
 from hbma_ctrl.runtime.chamber import ChamberLoop
 from hbma_ctrl.sim.simulate import Plant
-from oracles.mpc_prep import problem_reference
+from oracles.mpc_prep import lift_off_x, problem_reference, reachable_height
 
 ACT, PN = Actuator(), Pneumatics()
 W400 = 0.4 * 9.80665
@@ -75,7 +75,7 @@ def test_poly_tables_equal_the_bspline_functions_with_their_jacobians(model):
 
 
 def test_load_path_queries_read_the_grid_between_its_two_load_columns(model):
-    """path(W), x_at_height and reachable_height read one load path: the grid's two load columns around
+    """path(W), x_at_height and the reach (the NMPC's oracle) read one load path: the grid's two load columns around
     W mixed linearly, W clipped to [0, load_max]; checked against the grid itself over the whole range
     and beyond it at both ends."""
     g = model.grid
@@ -89,11 +89,11 @@ def test_load_path_queries_read_the_grid_between_its_two_load_columns(model):
         for h in (0.5e-3, 3e-3, 8e-3):
             assert model.x_at_height(h, W) == float(np.interp(h, g.h_path, pth["x"]))
         # reachable from the same path: below the pressure limit up to it, at it only past it
-        r = model.reachable_height(W, 20e3, 4.0, 12e-3)
+        r = reachable_height(model, W, 20e3, 4.0, 12e-3)
         assert 0.0 <= r <= 12e-3
         if r > 0.0:
             assert np.interp(r, g.h_path, pth["p"]) <= 20e3 * (1 + 1e-9)
-    assert model.lift_off_x(-1.0) == 0.0 and np.isnan(model.path(float("nan"))["x"]).all()
+    assert lift_off_x(model, -1.0) == 0.0 and np.isnan(model.path(float("nan"))["x"]).all()
 
 
 def est(h=0.0, p=0.0, F=0.0, t=0.0, flags=()):
@@ -121,11 +121,10 @@ def test_tables_agree_with_lead_physics(model):
 
 def test_rest_until_lift_off(model):
     """Below the lift-off gas mass the platform rests (h = 0) and p = x p_env (V = V0)."""
-    x_lo = model.lift_off_x(W400)
+    x_lo = lift_off_x(model, W400)
     assert x_lo == pytest.approx(W400 / (np.pi * ACT.r1 ** 2) / ACT.p_env)
     for frac in (0.2, 0.5, 0.8):
         x = frac * x_lo
-        assert model.height(x, W400) == 0.0
         assert float(model.H(x, W400)) < 0.0  # virtual height below lift-off: a gradient to pump
         assert float(model.Pp(x, W400)) == pytest.approx(x * ACT.p_env, rel=0.03, abs=150)
     assert float(model.H(x_lo + 0.3, W400)) > 1e-3
@@ -149,11 +148,11 @@ def test_prediction_matches_quasi_static_plant(model):
 
 
 def test_reachable_height_respects_pressure_limit(model):
-    h15 = model.reachable_height(W400, 15e3, 1.5, 0.02)
+    h15 = reachable_height(model, W400, 15e3, 1.5, 0.02)
     pth = model.path(W400)
     assert float(np.interp(h15, pth["h"], pth["p"])) == pytest.approx(15e3, rel=0.01)
-    assert model.reachable_height(W400, 35e3, 1.5, 0.02) > h15
-    assert model.reachable_height(W400, 5e3, 1.5, 0.02) == 0.0  # cannot even lift off
+    assert reachable_height(model, W400, 35e3, 1.5, 0.02) > h15
+    assert reachable_height(model, W400, 5e3, 1.5, 0.02) == 0.0  # cannot even lift off
 
 
 # --- settings and parsing ------------------------------------------------------------------------

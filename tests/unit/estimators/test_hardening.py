@@ -21,12 +21,13 @@ from hbma_ctrl.system.roles import make_model
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Command, Estimate, EstimatorBase, Reference
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.models.bank import STALL_MARGIN, commands_from_inputs, throttled_inputs
+from hbma_ctrl.models.bank import STALL_MARGIN, commands_from_inputs
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.runtime.chamber import ChamberLoop
 from hbma_ctrl.runtime.robot import RobotLoop, robot_supervisor
 from hbma_ctrl.sim.rig import RigSettings, simulate_rig
 from hbma_ctrl.sim.trial import InputSchedule, Trial
+from oracles.throttle import NumpyPump
 
 BAD_READINGS = [-1e9, -101.4e3, 1e9, math.inf, -math.inf, "12.3", object()]
 
@@ -289,14 +290,15 @@ def test_throttled_pump_delivers_the_planned_flow(robot, topology):
             a *= 0.8 / max(a.sum(), 1e-9)
         o = rng.uniform(0.0, 1.0, n) * (a == 0)
         p = rng.uniform(0.0, 40e3, n)
-        U = throttled_inputs(a, o, p, topology, model.pump)
+        U = model.valve_inputs(a, o, p)
         full = commands_from_inputs(a, o, topology)  # the NMPC's model: full speed, inlet duty a
         planned = np.array([float(q(full[:, i], p[i])) for i in range(n)])
         sent = np.array([float(q(U[:, i], p[i])) for i in range(n)])
         assert np.allclose(sent, planned, rtol=1e-9, atol=1e-15)
         assert np.all((U >= 0) & (U <= 1))
         drawing = (a > 0) & (p < 39e3)  # within the margin of the full-speed stall (50 kPa): full speed
-        assert np.all(model.pump.flow(U[0][drawing], p[drawing] + STALL_MARGIN) > 0)  # never near stall
+        pump = NumpyPump(model.pneumatics.csv_path)
+        assert np.all(pump.flow(U[0][drawing], p[drawing] + STALL_MARGIN) > 0)  # never near stall
         if topology == "per_chamber":
             assert np.all(U[0][a == 0] == 0.0)
             assert np.any(U[0][a > 0] < 0.99)  # a partial supply throttles the pump
@@ -337,7 +339,7 @@ def test_bank_predicts_a_throttled_pump_by_its_own_map_not_as_the_full_speed_dut
     p_est = np.array([float(model.out(x0[i], W[i], thr.X[2, i], thr.X[3, i])[1]) for i in range(3)])
     # chamber 1's speed is chosen for a pressure 6 kPa above the bank's (an estimate 6 kPa low)
     U_full = commands_from_inputs(a, o, "per_chamber")
-    U_thr = throttled_inputs(a, o, p_est + np.array([0.0, 6e3, 0.0]), "per_chamber", model.pump)
+    U_thr = model.valve_inputs(a, o, p_est + np.array([0.0, 6e3, 0.0]))
     nan = np.full(3, np.nan)  # predict only
     x_full = full.step(nan, U_full, W)["x"]
     dec.step(nan, np.vstack([a, o]), W)
@@ -444,7 +446,7 @@ def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true
     monkeypatch.setattr(RobotLoop, "tick", rec_tick)
     monkeypatch.setattr(RobotRig, "apply", rec_apply)
     run_closed_loop(s, {0: ((0.0, U.mm(4.0), math.radians(10.0), 0.0),)}, 1.5, "mpc", model=model)
-    pump = model.pump
+    pump = NumpyPump(model.pneumatics.csv_path)
     ratios, partial = [], 0
     for a, (Uc, p) in zip(planned, sent):
         for i in np.nonzero(a > 0.01)[0]:
@@ -458,14 +460,12 @@ def test_in_closed_loop_the_throttled_pump_delivers_the_planned_flow_at_the_true
 
 
 def test_pump_speed_for_is_the_lowest_speed_on_the_maps_envelope_reaching_each_target():
-    """PumpMap.speed_for, every row at once, against the definition row by row: on the map at each
+    """The numpy oracle's NumpyPump.speed_for, every row at once, against the definition row by row: on the map at each
     pressure, made non-decreasing in speed, the first grid speed whose flow reaches the target,
     interpolated from the one below; 0 for no flow, 1 where full speed falls short (NaN included),
     the lowest grid speed where even it exceeds the target. Over random pressures (past both ends of
     the map) and targets (negative to beyond full flow)."""
-    from hbma_ctrl.models.bank import PumpMap
-
-    pump = PumpMap(Pneumatics().csv_path)
+    pump = NumpyPump(Pneumatics().csv_path)
     sg = pump.speeds
     rng = np.random.default_rng(4)
     for _ in range(200):

@@ -17,7 +17,8 @@ from hbma_ctrl.models.exact import ExactMembrane
 from hbma_ctrl.robot.design import RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics
 from hbma_ctrl.robot.reach import _pivot_balance, bonded_layer_pose, paper_pose_check
-from hbma_ctrl.robot.statics import BOND_RADIUS, bonded_chamber, bonded_chamber_states, bonded_table
+from hbma_ctrl.robot.statics import BOND_RADIUS, bonded_chamber, bonded_table
+from oracles.statics import bonded_chamber_states
 
 D = RobotDesign(n_layers=2)
 ACT = D.chamber

@@ -298,10 +298,12 @@ def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, ma
     above its stall and NaN, all chambers idle: the same plant inputs (a shared pump's bisection and
     budget to a few ulps), the throttle and the stall floor both acting."""
     from hbma_ctrl.system.roles import make_model
-    from hbma_ctrl.models.bank import STALL_MARGIN, throttled_inputs, throttled_inputs_function
+    from hbma_ctrl.models.bank import STALL_MARGIN, throttled_inputs_function
+    from oracles.throttle import NumpyPump, throttled_inputs
 
     model = make_model(RobotDesign(n_layers=1).validate(), Pneumatics(), topology)
     pump = model.pump
+    numpy_pump = NumpyPump(model.pneumatics.csv_path)
     m = STALL_MARGIN if margin is None else margin
     f = throttled_inputs_function(pump, n, topology, m)
     rng = np.random.default_rng(n)
@@ -314,7 +316,7 @@ def test_the_throttled_valve_inputs_as_one_function_follow_numpy(topology, n, ma
         o = rng.uniform(-0.1, 1.1, n) * (rng.uniform(size=n) < 0.5)
         p = rng.uniform(-2e3, 80e3, n)
         p[rng.uniform(size=n) < 0.1] = np.nan
-        want = throttled_inputs(a, o, p, topology, pump, m)
+        want = throttled_inputs(a, o, p, topology, numpy_pump, m)
         got = np.asarray(f(a, o, p))
         np.testing.assert_allclose(got, want, rtol=0, atol=4e-16, err_msg=f"draw {k}")
         throttled += int(np.sum((want[0] > 0) & (want[0] < 1)))
