@@ -202,6 +202,10 @@ class ScheduleSystem:
         """No targets: NaN per chamber."""
         return np.full(self.n, np.nan)
 
+    def effective_targets(self) -> np.ndarray:
+        """No targets to reach: NaN per chamber."""
+        return self.targets()
+
     def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(height m, its std m, pressure Pa) of the estimator beside the schedule, NaN without one."""
         e = self.estimate

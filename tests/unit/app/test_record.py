@@ -78,7 +78,7 @@ def test_bad_schedule_is_one_line_naming_the_key(body, needles):
         assert n in msg, msg
 
 
-def test_the_shipped_recording_runs_on_the_daemon_until_its_schedule_ends(tmp_path):
+def test_the_shipped_recording_is_a_daemon_schedule_that_run_refuses(tmp_path):
     cfg = load_config(RECORD, {"--rig": "sim"})
     sched = cfg.scenario.role("schedule")
     assert cfg.kind == "schedule" and cfg.duration == pytest.approx(sched.length) and sched.p_max < 35e3
@@ -86,6 +86,18 @@ def test_the_shipped_recording_runs_on_the_daemon_until_its_schedule_ends(tmp_pa
     res = runner.invoke(app, ["run", str(RECORD), "--out", str(tmp_path / "o")])
     one_line_error(res, "[schedule]", "hbma-ctrl daemon")
     assert list(tmp_path.iterdir()) == []  # refused before --out
+
+
+def test_the_shipped_recording_runs_on_the_daemon_until_its_schedule_ends(tmp_path):
+    # the whole schedule through the daemon's command (sim rig, fast), ending by itself in the safe state
+    res = runner.invoke(app, ["daemon", str(RECORD), "--rig", "sim", "--speed", "1000", "--api", "127.0.0.1:0",
+                              "--out", str(tmp_path / "rec")])
+    assert res.exit_code == 0, res.output
+    events = (tmp_path / "rec" / "events.csv").read_text()
+    length = load_config(RECORD, {"--rig": "sim"}).scenario.role("schedule").length
+    assert events.count(",schedule,") >= 7 and "safe_exit" in events
+    rows = (tmp_path / "rec" / "run_0001.csv").read_text().splitlines()
+    assert float(rows[-1].split(",")[0]) == pytest.approx(length, abs=0.05)
 
 
 # --- fit reads the daemon's run log ------------------------------------------------------------
