@@ -282,7 +282,7 @@ class _Fatrop:
     to that stage, so the height cost and the limits are written on the stage's own state x_k, as
     IPOPT's are on X[k] (sigma_0 = 0). The optimum is the IPOPT variant's (same cost, same feasible
     set). Written on the prediction F(x_k, u_k) instead, every stage's Hessian would hold the outputs'
-    second derivatives through the integrator: the same iterations, dearer ones (README, Control).
+    second derivatives through the integrator: the same iterations, dearer ones (docs/concepts/control.md).
 
     With ``settings.codegen`` and a C compiler the whole solver (fatrop and the NLP's functions, the
     tables as inline polynomials) is generated as C, built at :data:`HOT_OPT` for this machine's processor

@@ -72,7 +72,7 @@ class FilterSettings(Settings):
     predicts max_gap only and widens the covariance by its initial spread. The valve and sensor delays
     are dead times on the commands (:class:`hbma_ctrl.models.actuation.CommandTiming`); the start-up
     calibration uses the same. The membrane law 'exact' is the exact membrane's tables in the cap's
-    chart (README Model §9; built on a material's first use, then loaded from the disk cache).
+    chart (docs/concepts/model.md §9; built on a material's first use, then loaded from the disk cache).
     """
 
     WHERE = "estimator"
@@ -130,7 +130,7 @@ class FilterSettings(Settings):
     gate_reopen: int = setting(5, integer=True, lo=1, hi=1000, doc="gated readings in a row that re-open the gate")
     max_gap: float = setting(1.0, lo=0.0, hi=3600.0, unit="s", doc="longest time a step predicts over")
     membrane: str = setting(DEFAULT_MEMBRANE, choices=MEMBRANES,
-                            doc="the filter model's membrane law (README Model §9)")
+                            doc="the filter model's membrane law (docs/concepts/model.md §9)")
     valve_delay: float = valve_delay_setting(DEFAULT_VALVE_DELAY)
     sensor_delay: float = sensor_delay_setting(DEFAULT_SENSOR_DELAY)
 

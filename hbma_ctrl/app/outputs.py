@@ -35,6 +35,7 @@ import time
 from collections.abc import Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
+from hbma_ctrl.app.shipped import resolve
 
 try:  # typer >= 0.24 vendors click as typer._click; older typer uses click itself
     from typer._click.globals import get_current_context
@@ -228,14 +229,14 @@ def redact_argv(argv: Sequence[str]) -> list[str]:
 
 def manifest(command: str, argv: Sequence[str] | None = None, scenario_path: Path | str | None = None) -> dict:
     """A fresh manifest (status "running", no end time) with every key of :data:`MANIFEST_KEYS`; the
-    argv's secrets redacted (:func:`redact_argv`)."""
-    scn = Path(scenario_path) if scenario_path is not None else None
+    argv's secrets redacted (:func:`redact_argv`). A shipped scenario's name is hashed as the file it names."""
+    scn = resolve(scenario_path) if scenario_path is not None else None
     return {
         "command": command,
         "argv": redact_argv(argv if argv is not None else sys.argv[1:]),
         "version": _version(),
         "git_commit": _git_commit(),
-        "scenario_path": str(scn) if scn is not None else None,
+        "scenario_path": str(scenario_path) if scenario_path is not None else None,
         "scenario_sha256": _sha256(scn) if scn is not None and scn.is_file() else None,
         "started_utc": _utc(),
         "finished_utc": None,

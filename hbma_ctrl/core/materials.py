@@ -1,7 +1,7 @@
-"""Hyperelastic strain energies for an equi-biaxially stretched, incompressible membrane (README Model §2).
+"""Hyperelastic strain energies for an equi-biaxially stretched, incompressible membrane (docs/concepts/model.md §2).
 
 Each material gives its strain energy ``W(lam)`` (J/m^3) and, for the regular pressure formula of
-README Model §3, ``Q(lam) = W'(lam) / (lam - 1)`` written so that it is finite and smooth at ``lam = 1``.
+docs/concepts/model.md §3, ``Q(lam) = W'(lam) / (lam - 1)`` written so that it is finite and smooth at ``lam = 1``.
 With ``S5 = 1 + lam + ... + lam^5``:
 
 - ``dI1/dlam = 4 lam^-5 (lam - 1) S5`` and ``dI2/dlam = 4 lam^-3 (lam - 1) S5``,

@@ -1,6 +1,6 @@
 """Parameter sets (SI units): actuator geometry and gas, pneumatics, platform.
 
-Defaults are the paper's Table I (README Model §6) and the fig. 7 rig where a value is needed. Every dataclass
+Defaults are the paper's Table I (docs/concepts/model.md §6) and the fig. 7 rig where a value is needed. Every dataclass
 validates itself and names the field and its allowed range when a value is out of it.
 """
 
@@ -95,7 +95,7 @@ class Pneumatics(Settings):
 
 @dataclass(frozen=True)
 class Platform(Settings):
-    """The guided platform that carries a dead load (README Model §7; each field's unit, range and
+    """The guided platform that carries a dead load (docs/concepts/model.md §7; each field's unit, range and
     one-line doc are in its declaration)."""
 
     WHERE = "platform"

@@ -1,11 +1,11 @@
-"""The HBMA physics, written once in casadi (README Model §1-§5). Everything else calls these expressions.
+"""The HBMA physics, written once in casadi (docs/concepts/model.md §1-§5). Everything else calls these expressions.
 
 All quantities are SI. Symbolic helpers take casadi (or float) arguments and a ``P`` mapping of
 parameter expressions (see :class:`ParamSpace`), so the same expressions serve numeric evaluation,
 batched simulation (parameters as inputs, ``map`` over trials), Jacobians for the EKF and the
 discretised dynamics of the NMPC.
 
-The pressure is evaluated in the regular closed form of README Model §3,
+The pressure is evaluated in the regular closed form of docs/concepts/model.md §3,
 
     p = 2 t0 h1^2 Q(lam) (h1 + h2) / (lam r1^2 (lam + 1) (h1^2 + r1^2)),   Q = W'(lam)/(lam - 1),
 
@@ -119,7 +119,7 @@ class ParamSpace:
 # Model §1-§3: geometry, stretch, volume, pressure, force
 # ---------------------------------------------------------------------------------------------
 def geometry(h1, h2, P) -> dict:
-    """Spherical-segment geometry (README Model §1) for virtual cap height h1 and cut height h2 (m).
+    """Spherical-segment geometry (docs/concepts/model.md §1) for virtual cap height h1 and cut height h2 (m).
 
     Returns dict with h (m), a2 (contact radius squared, m^2), lam (-), V (gas volume, m^3).
     """
@@ -135,7 +135,7 @@ def geometry(h1, h2, P) -> dict:
 
 
 def pressure(h1, h2, P):
-    """Equilibrium gauge pressure p = f(h1, h2) in Pa, regular closed form (README Model §3)."""
+    """Equilibrium gauge pressure p = f(h1, h2) in Pa, regular closed form (docs/concepts/model.md §3)."""
     r1, t0 = P["r1"], P["t0"]
     lam = ca.sqrt((h1**2 + r1**2 - h2**2) / r1**2)
     Q = P["material"].Q(lam)
@@ -150,7 +150,7 @@ def gas_pv(h1, h2, P):
 def flat_h1_from_pressure(p, P):
     """Virtual cap height h1 (m) of a flat membrane (h2 = h1) carrying gauge pressure p (Pa).
 
-    The flat limit of README Model §3 is p = 2 t0 Q(1) h1^3 / (r1^2 (h1^2 + r1^2)) for every material (NH:
+    The flat limit of docs/concepts/model.md §3 is p = 2 t0 Q(1) h1^3 / (r1^2 (h1^2 + r1^2)) for every material (NH:
     Q(1) = 4E gives the Model's 8 E t0 h1^3 / ...). With k = p r1^2 / (2 t0 Q(1)) this is the cubic
     h1^3 - k h1^2 - k r1^2 = 0, which has one positive root for k > 0 (Cardano). p <= 0 gives 0.
     """
@@ -180,7 +180,7 @@ def flat_h1_from_pressure(p, P):
 
 
 # ---------------------------------------------------------------------------------------------
-# README Model §5: pneumatics
+# docs/concepts/model.md §5: pneumatics
 # ---------------------------------------------------------------------------------------------
 def orifice_flow(p_up_abs, p_down_abs, C, b, lam_ratio, T):
     """ISO 6358 mass flow (kg/s) from p_up to p_down (absolute, Pa); negative if reversed.

@@ -278,7 +278,7 @@ class ChamberBank:
         if topology not in TOPOLOGIES:
             raise ValueError(f"robot.topology = '{topology}': allowed {', '.join(TOPOLOGIES)}")
         self.topology = topology
-        # the robot's chambers are the cap (its rig has no exact membrane yet, README Robot)
+        # the robot's chambers are the cap (its rig has no exact membrane yet, docs/concepts/truth.md)
         self.tables = PredictionModel(actuator, pneumatics, load_max=load_max, h_table_max=h_table_max,
                                       membrane="cap")
         self.chamber = self.tables.chamber

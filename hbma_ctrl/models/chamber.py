@@ -27,8 +27,8 @@ prediction ``sym(A P A^T + Q)``; another the Joseph-form update; a third the out
 p) with their Jacobian by the implicit-function rule (``dh/dx = -r_h^-1 r_x`` for the constraint
 residual r) and covariance ``D P D^T``. All are compiled to C (:mod:`hbma_ctrl.core.codegen`).
 
-The membrane law (``membrane``): the spherical cap (README Model §1, §3) or the exact axisymmetric
-membrane (README Model §9) as the same tabulated ratios to the cap in the (h1, h2) chart as an exact
+The membrane law (``membrane``): the spherical cap (docs/concepts/model.md §1, §3) or the exact axisymmetric
+membrane (docs/concepts/model.md §9) as the same tabulated ratios to the cap in the (h1, h2) chart as an exact
 rig (:class:`hbma_ctrl.models.fidelity_exact.ExactQuasiStatic`): pressure, volume, contact force and the
 flat point all come from the chamber's ``law``, so the Newton projection, the dynamics and the
 Jacobians (by AD through the bspline interpolants) are those of the exact membrane, in one model.

@@ -1,7 +1,7 @@
 """What every role assumes of a chamber unless told otherwise (SI: seconds).
 
 The estimator, the start-up calibration and the controller model the same chamber by default: the
-exact membrane's law (README Model §9: the cap's pressure is up to 16 % low) and a small solenoid
+exact membrane's law (docs/concepts/model.md §9: the cap's pressure is up to 16 % low) and a small solenoid
 valve's timing from its datasheet (it acts 5 ms after its command and cannot open for less than
 2 ms), with the pressure sensor read 3 ms late behind its tube. These are the models' assumptions,
 not the truth: the default simulated rig (:class:`hbma_ctrl.sim.rig.RigSettings`) has the same
@@ -26,11 +26,11 @@ DEFAULT_SENSOR_DELAY = 0.003
 DEFAULT_VALVE_MIN_ON = 0.002
 #: the robot's chamber filters take the sensor as read at once by default: on the robot's structured
 #: rig (3 ms first-order lag) a 3 ms dead time settled fewer tip-load runs over rig seeds 0-19 (16
-#: against 20 of 20; README Robot, "The structured rig as the default")
+#: against 20 of 20; docs/concepts/truth.md, "What the rig differs in")
 ROBOT_SENSOR_DELAY = 0.0
 
-#: the models' keywords for the cap chamber with instant valves and sensor (the models of the README's
-#: "cap rig" figures; pair with ``hbma_ctrl.sim.rig.CAP_RIG``)
+#: the models' keywords for the cap chamber with instant valves and sensor (the models of docs/concepts/truth.md,
+#: "The simple rig"; pair with ``hbma_ctrl.sim.rig.CAP_RIG``)
 CAP_CHAMBER = {"membrane": "cap", "valve_delay": 0.0, "sensor_delay": 0.0}
 #: the robot loop's keywords (:class:`hbma_ctrl.system.sections.RobotSettings`) for instant valves and
 #: sensor: the loop for the robot rig without structure (``hbma_ctrl.sim.rig.IDEAL_STRUCTURE``)

@@ -1,6 +1,6 @@
 """The exact axisymmetric equilibrium of a clamped, thin, incompressible hyperelastic membrane (SI).
 
-No shape assumption (README Model §9, SPEC §9; Adkins and Rivlin 1952, Yang and Feng 1970). A
+No shape assumption (docs/concepts/model.md §9; Adkins and Rivlin 1952, Yang and Feng 1970). A
 material point at reference radius R in [0, r1] of the flat membrane (thickness t0) moves to
 (rho(R), z(R)). With ' = d/dR and phi the meridian's slope below the horizontal
 (``rho' = l1 cos phi``, ``z' = -l1 sin phi``; phi > 0 on a dome seen from its pole):

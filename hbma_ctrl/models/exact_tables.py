@@ -3,7 +3,7 @@ table speed (SI).
 
 - :func:`tabulate`: free inflation over apex heights, or a (h, p) grid of plate/disk contact, as solved.
 - :func:`contact_ratio_table`: the exact flat-plate contact in the spherical cap's own chart (h1, h2)
-  (README Model §1), stored as the ratios of the exact pressure and membrane volume to the cap's.
+  (docs/concepts/model.md §1), stored as the ratios of the exact pressure and membrane volume to the cap's.
   Why this chart: the cap's quasi-static and platform models (:mod:`hbma_ctrl.models.fidelity`) carry
   (h1, h2) with the gas mass and solve G(h1, h2) = m R T and F(h1, h2) = W; with the same chart and
   contact radius the exact law drops into the same ODEs, lift-off, touch-down and rest logic. Each
@@ -135,7 +135,7 @@ def _contact_table(m: ExactMembrane, h: np.ndarray, p: np.ndarray) -> dict:
 # ------------------------------------------------------------------------- contact in the cap's chart
 def cap_pv(m: ExactMembrane, u, s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The cap's (p in Pa, membrane volume above the clamp in m^3, contact radius over r1) at u = h1/r1,
-    s = h2/h1 (arrays), for the membrane's material, r1 and t0 (README Model §1, §3)."""
+    s = h2/h1 (arrays), for the membrane's material, r1 and t0 (docs/concepts/model.md §1, §3)."""
     u, s = np.asarray(u, dtype=float), np.asarray(s, dtype=float)
     P = {"r1": m.r1, "t0": m.t0, "V0": 0.0, "material": m.material}
     h1, h2 = u * m.r1, s * u * m.r1

@@ -70,7 +70,7 @@ def _u():
 
 
 def cap_law(h1, h2, P) -> tuple:
-    """The spherical cap's law at chart (h1, h2) (m, README Model §1, §3): gauge pressure p (Pa), gas
+    """The spherical cap's law at chart (h1, h2) (m, docs/concepts/model.md §1, §3): gauge pressure p (Pa), gas
     volume V (m^3), mean stretch lam (-) and contact radius squared a2 (m^2)."""
     g = ph.geometry(h1, h2, P)
     return ph.pressure(h1, h2, P), g["V"], g["lam"], g["a2"]

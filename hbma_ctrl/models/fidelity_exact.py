@@ -28,7 +28,7 @@ __all__ = ["EXACT_X_MAX", "exact_free_table", "ExactFreeInflation", "make_exact_
 
 #: the exact free table's reach, apex height over r1 (past the limit point: 1.17 r1 for NH)
 EXACT_X_MAX = 1.8
-_EXACT_NODES = 91  # 0.02 r1 spacing: the bspline is within 0.5 % of the solver at mid-nodes (README Model §9)
+_EXACT_NODES = 91  # 0.02 r1 spacing: the bspline is within 0.5 % of the solver at mid-nodes (docs/concepts/model.md §9)
 
 
 def exact_free_table(material: Material) -> dict:

@@ -31,8 +31,8 @@ from hbma_ctrl.models.shape import ShapeSolver
 
 __all__ = ["ReducedChamber", "shape_newton", "constraint_jacobian", "constraint_residual", "solve_2x2", "EPS_K", "FACTOR_NAMES", "MEMBRANES", "law_key"]
 
-#: membrane laws a reduced chamber can use: the spherical cap (README Model §1, §3) or the exact
-#: axisymmetric membrane's flat-plate contact in the cap's chart (README Model §9)
+#: membrane laws a reduced chamber can use: the spherical cap (docs/concepts/model.md §1, §3) or the exact
+#: axisymmetric membrane's flat-plate contact in the cap's chart (docs/concepts/model.md §9)
 MEMBRANES = ("cap", "exact")
 
 #: the three chamber factors: pump flow, modulus, dead volume (-)

@@ -21,7 +21,7 @@ reach the optimiser: it only sees x.
 Nothing here re-derives physics: the grid points are the contact shapes of the one shape solver
 (:meth:`hbma_ctrl.models.shape.ShapeSolver.contact`).
 
-Two membrane laws (``membrane``): ``"cap"`` (the spherical cap, README Model §3) and ``"exact"``
+Two membrane laws (``membrane``): ``"cap"`` (the spherical cap, docs/concepts/model.md §3) and ``"exact"``
 (the default; the exact axisymmetric membrane, Model §9: the same tabulated law the rig and the
 simulator's exact rung step with, :class:`hbma_ctrl.models.fidelity_exact.ExactQuasiStatic`'s
 ``contact_law``, imported, not re-derived). Both are evaluated in the cap's chart (h1, h2), so the

@@ -34,7 +34,7 @@ def _robot_chamber() -> Actuator:
 @dataclass(frozen=True)
 class RobotDesign(Settings):
     """A stack of HBMA layers (SI; each field's unit, range and one-line doc are in its declaration).
-    Defaults: the paper's robot (README Model §8, Fig. 1: 9 HBMA).
+    Defaults: the paper's robot (docs/concepts/model.md §8, Fig. 1: 9 HBMA).
 
     Bodies 0..N; body N is the top part. placement_radius 15.4 mm: the 8.75-22 mm annulus of a 17.5/44 mm
     layer holds an r1 = 4.5 mm disk with margin. The chamber angles are the same in every layer

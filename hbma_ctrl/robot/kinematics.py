@@ -7,7 +7,7 @@ below; chamber layer k (letters A, B, C, ... from the bottom, numbers 1..3, as i
 in body k and pushes body k + 1. Body N is the top part (end plate, no chambers used). Frame k sits
 at the centre of body k's bottom face, z along the layer's axis. Body k's membranes lie in its top
 plane ``z = L`` (L = layer thickness, 9 mm with the flat 2 mm membrane). A chamber's *height* h is
-the membrane height of README Model §1 (``h = h1 - h2``): the gap the chamber opens between body k's top
+the membrane height of docs/concepts/model.md §1 (``h = h1 - h2``): the gap the chamber opens between body k's top
 plane and body k + 1's bottom face, at the chamber centre.
 
 Kinematic assumption (stated once, used everywhere)
@@ -23,7 +23,7 @@ axis ``(-sin psi, cos psi, 0)`` by the bend angle ``theta``, which maps z onto t
 layer's top leans to); a single inflated chamber at angle phi_i bends the layer toward
 ``phi_i + 180 deg``. This is the piecewise-constant-curvature view of Webster and Jones (paper ref.
 [23]) with one rigid link per layer. Each chamber's membrane is modelled as in the single-actuator
-model: a spherical segment pressed by a plane parallel to its retaining disk (README Model §1); the tilt of
+model: a spherical segment pressed by a plane parallel to its retaining disk (docs/concepts/model.md §1); the tilt of
 the plane over one membrane (a few mm wide) is neglected.
 
 Rim contact (a limit of the three-point assumption)

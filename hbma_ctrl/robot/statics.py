@@ -13,8 +13,8 @@ Bonded chambers
 ---------------
 The paper glues each membrane's centre to the layer above (Sil-Poxy). :class:`BondedChamber` models
 that glue spot as a rigid disk of radius ``c`` (:data:`BOND_RADIUS`, an assumption: the paper gives no
-size) on the exact membrane (:class:`hbma_ctrl.models.exact.ExactMembrane`, contact 'bonded', README
-Model §9): the force on the layer ``F(h, p)`` can exceed ``p pi c^2`` (a membrane bulging around the
+size) on the exact membrane (:class:`hbma_ctrl.models.exact.ExactMembrane`, contact 'bonded', docs/concepts/model.md
+§9): the force on the layer ``F(h, p)`` can exceed ``p pi c^2`` (a membrane bulging around the
 disk lifts it) and is negative for a vented chamber pulled up (the glue pulls the layer down). The
 table of F over (h, p) is solved once per chamber, material and c and cached on disk like the exact
 membrane's other tables; :meth:`BondedChamber.pressure` gives a chamber's pressure for its height and

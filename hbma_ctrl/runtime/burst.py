@@ -27,7 +27,7 @@ drills). ``relapses`` lost episodes of one chamber within ``relapse_window`` fla
 (:meth:`BurstTest.step`); a clean run loses an estimate rarely (one episode in the 80 runs of the
 robot scenes' 20-seed sweep).
 
-Measured (the robot's structured default rig, README Run on a rig, the burst row): in clean runs the
+Measured (the robot's structured default rig; docs/results/drills.md and docs/results/poses.md): in clean runs the
 largest g was 2.7 (the 20-seed scene sweeps, ``bench poses``); an outlet stuck fully open was found
 in 40 of 40 random drills (``hbma-ctrl bench drills``), 36 by the sum within 0.09 s and 4 by the lost
 estimates within 0.29 s.

@@ -2,6 +2,8 @@
 
 ``ChamberLoop.tick(t, reading_pa)`` is everything one sample does; no I/O. The estimator runs at
 every tick, the controller and the supervisor every ``every`` ticks (the command holds between).
+Without ``every``, the loop takes it from the controller's ``settings.sample_period`` and the spacing
+of its first two ticks (:func:`whole_multiple`: a ValueError naming both when it is not one).
 The controller's wall and thread-CPU time per step go into bounded :class:`StepStats`; its failures
 (``step_status`` not ok, or an exception) go to the :class:`Supervisor`, which replays the last
 good plan (``controller.plan``), then sends the safe command; the command finally sent is handed
@@ -23,6 +25,7 @@ import math
 import time
 from typing import Callable
 
+from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import (
     SAFE_COMMAND,
     Command,
@@ -40,7 +43,7 @@ from hbma_ctrl.runtime.pwm import MinOnTime
 from hbma_ctrl.runtime.safety import Supervisor, SupervisorSettings
 from hbma_ctrl.runtime.stats import StepStats
 
-__all__ = ["ChamberLoop", "chamber_supervisor", "check_height"]
+__all__ = ["ChamberLoop", "chamber_supervisor", "check_height", "whole_multiple"]
 
 
 def check_height(value, key: str = "reference") -> float:
@@ -49,6 +52,17 @@ def check_height(value, key: str = "reference") -> float:
     if math.isnan(h):
         raise ValueError(f"{key} = {value!r}: a target height must be a finite number (m)")
     return h
+
+
+def whole_multiple(period: float, tick: float, period_key: str, tick_key: str) -> int:
+    """How many ticks of ``tick`` s make one ``period`` s (>= 1); ValueError naming both keys (in ms)
+    when ``period`` is not a whole multiple of ``tick``."""
+    ratio = period / tick if tick > 0 else math.nan
+    every = int(round(ratio)) if math.isfinite(ratio) else 0
+    if every < 1 or abs(ratio - every) > 1e-6:
+        raise ValueError(f"{period_key} = {U.to_ms(period):g} ms must be a whole multiple of {tick_key} = "
+                         f"{U.to_ms(tick):g} ms")
+    return every
 
 
 def chamber_supervisor(controller_settings: ControllerSettings, **overrides) -> Supervisor:
@@ -81,7 +95,8 @@ class ChamberLoop:
     supervisor : a 1-chamber :class:`Supervisor`; None = :func:`chamber_supervisor` of the
         controller's settings (ValueError when it has none).
     reference : target height (m) at time t (s), or a constant height (m); None = hold (no target).
-    every : the controller runs every ``every`` ticks (>= 1).
+    every : the controller runs every ``every`` ticks (>= 1); None = its ``settings.sample_period``
+        over the spacing of the first two ticks (1 for a controller without a sample period).
     preview_steps : future targets handed to the controller (at ``preview_period`` s apart), 0 = none;
         more than 0 only for a controller that ``accepts_preview`` (ValueError otherwise).
     preview_period : spacing of the preview targets, s.
@@ -92,9 +107,9 @@ class ChamberLoop:
     """
 
     def __init__(self, estimator: Estimator | None, controller: Controller, supervisor: Supervisor | None = None,
-                 reference: Callable[[float], float] | None = None, every: int = 1, preview_steps: int = 0,
+                 reference: Callable[[float], float] | None = None, every: int | None = None, preview_steps: int = 0,
                  preview_period: float = 0.0, stats_capacity: int = 4096, pwm: MinOnTime | None = None):
-        if not isinstance(every, int) or every < 1:
+        if every is not None and (not isinstance(every, int) or every < 1):
             raise ValueError(f"ChamberLoop.every = {every!r} must be an integer >= 1")
         if estimator is not None:
             check_role(estimator, Estimator, "ChamberLoop: estimator")
@@ -123,6 +138,7 @@ class ChamberLoop:
         self.estimate: Estimate | None = None
         self.target: float | None = None
         self._k = 0
+        self._t_first: float | None = None
 
     def set_reference(self, reference: Callable[[float], float] | float | None) -> None:
         """Replace the target height from the next tick on: a function (m at time t s), a constant
@@ -141,7 +157,9 @@ class ChamberLoop:
         last one returned, as in a lockstep simulation); the estimator predicts with it."""
         self.estimate = self.estimator.step(t, reading_pa, self.command if held is None else held)
         self.target = None if self.reference is None else check_height(self.reference(t), f"reference(t={t})")
-        if self._k % self.every == 0:
+        if self.every is None:
+            self._derive_every(t)
+        if self._k % (self.every or 1) == 0:
             preview = None
             if self.preview_steps and self.target is not None:
                 preview = [check_height(self.reference(tp), f"reference(t={tp})")
@@ -150,6 +168,18 @@ class ChamberLoop:
         self.command = self.wanted if self.pwm is None else self.pwm.shape(self.wanted)
         self._k += 1
         return self.command
+
+    def _derive_every(self, t: float) -> None:
+        """``every`` from the controller's sample period and the spacing of the first two ticks (s)."""
+        period = getattr(self.controller.settings, "sample_period", None)
+        if period is None:
+            self.every = 1
+        elif self._t_first is None:
+            self._t_first = float(t)
+        else:
+            self.every = whole_multiple(float(period), float(t) - self._t_first,
+                                        f"{type(self.controller).__name__} sample_period",
+                                        "the tick period (the time between the first two ticks)")
 
     def control(self, t: float, estimate: Estimate, reference: Reference, preview=None) -> Command:
         """Controller then supervisor on a given estimate (what ``tick`` does after the estimator)."""

@@ -41,7 +41,7 @@ from hbma_ctrl.sim.trial import InputSchedule, Log, SimSettings, Trial
 __all__ = ["PROTOCOL_DEFAULTS", "FIDELITY_CHOICES", "fidelity_for", "protocol_trials", "quiet_worker", "simulate_trials",
            "trial_name", "scenario_of"]
 
-#: 'exact': the exact membrane (README Model §9), platform model with a load, free inflation without
+#: 'exact': the exact membrane (docs/concepts/model.md §9), platform model with a load, free inflation without
 FIDELITY_CHOICES = ("auto",) + tuple(FIDELITIES) + ("exact",)
 
 PROTOCOL_DEFAULTS = {
@@ -91,7 +91,7 @@ def protocol_trials(material: str | Material = "nh", *, loads_g=None, speeds_pct
                     r1_mm=None, t_inflate_s: float | None = None, duration_s: float | None = None,
                     base: Actuator | None = None, pneumatics: Pneumatics | None = None,
                     platform: Platform | None = None) -> list[Trial]:
-    """The protocol's trials (README Model §7 grid by default), ordered t0, r1, load, speed.
+    """The protocol's trials (docs/concepts/model.md §7 grid by default), ordered t0, r1, load, speed.
 
     Grid values are in edge units (g, %, mm, s). ``base`` supplies V0 and the gas constants,
     ``platform`` the own mass and damping of the platform (its load is replaced per trial).

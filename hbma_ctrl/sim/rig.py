@@ -13,7 +13,7 @@ its own model:
   conductance times ``C_out_scale`` (1);
 - the membrane's law: the exact axisymmetric membrane (``membrane = "exact"``, the default), or the
   spherical cap (``"cap"``, the law of the cap models, ``hbma_ctrl.models.defaults.CAP_CHAMBER``);
-- structural mismatches (SPEC 7), on by default (:data:`STRUCTURED_RIG`; :data:`CAP_RIG` turns
+- structural mismatches (docs/concepts/truth.md), on by default (:data:`STRUCTURED_RIG`; :data:`CAP_RIG` turns
   them off with the cap): the valves switch ``valve_delay`` (5 ms) after their command and cannot
   open for less than ``valve_min_on`` (2 ms) of each PWM period (one sample period): a shorter duty
   is dropped or lengthened to the minimum; the pump's map has another *shape*, its flow tilted with
@@ -62,7 +62,7 @@ IDEAL_STRUCTURE = {"valve_delay": 0.0, "valve_min_on": 0.0, "compressor_tilt": 0
 STRUCTURED_RIG = {"membrane": "exact", "valve_delay": 0.005, "valve_min_on": 0.002, "compressor_tilt": 0.2,
                   "sensor_tau": 0.003}
 #: the cap rig: the cap models' own law with scalar mismatches only, a truth of the models' own
-#: structure (the README's "cap rig" figures; its models are ``hbma_ctrl.models.defaults.CAP_CHAMBER``)
+#: structure (docs/concepts/truth.md, "The simple rig"; its models are ``hbma_ctrl.models.defaults.CAP_CHAMBER``)
 CAP_RIG = {"membrane": "cap", **IDEAL_STRUCTURE}
 
 #: keys of :meth:`Rig.truth`

@@ -457,7 +457,7 @@ def _adaptive(fid: Fidelity, trial: Trial, s: SimSettings):
 def simulate(trials: list[Trial], settings: SimSettings | None = None, fidelity: str | None = None,
              on_progress: Callable[[float], None] | None = None) -> list[Log]:
     """Simulate trials (one fidelity for all; None = each trial's default, grouped) -> logs.
-    ``fidelity`` 'exact': the exact membrane (README Model §9), the platform model for loaded trials and
+    ``fidelity`` 'exact': the exact membrane (docs/concepts/model.md §9), the platform model for loaded trials and
     free inflation without a load (:func:`hbma_ctrl.models.fidelity_exact.make_exact`); its logs say 'exact'.
     ``on_progress(t)``: called with the simulated time (s) of the current batch as it advances
     (fixed-step integrators; adaptive runs report at the end of each trial)."""

@@ -21,7 +21,7 @@ from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Part, Stage
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 from hbma_ctrl.runtime.calibrate import StartupCalibration
-from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor
+from hbma_ctrl.runtime.chamber import ChamberLoop, chamber_supervisor, whole_multiple
 from hbma_ctrl.sim.rig import RigSettings
 from hbma_ctrl.system.base import SystemBase
 from hbma_ctrl.system.roles import (
@@ -82,6 +82,21 @@ class ChamberSystem(SystemBase):
         self.t_closed: float | None = None  # the rig time the loop closed at, s
         self._t0: float | None = None
         loop.estimator = _RigClock(loop.estimator, self)
+
+    @classmethod
+    def of(cls, estimator, controller: Controller, sample_period: float, reference=None,
+           **loop_options) -> "ChamberSystem":
+        """A chamber system from role objects, without a scenario: ``estimator`` and ``controller`` in
+        a :class:`ChamberLoop` on a rig sampled every ``sample_period`` s, following ``reference``
+        (m at time t s, a constant height m, or None = hold). The controller runs every
+        ``settings.sample_period / sample_period`` ticks (ValueError naming both when that is no whole
+        number); ``loop_options`` go to :class:`ChamberLoop` (supervisor, preview_steps, pwm, ...)."""
+        check_role(controller, Controller, "ChamberSystem.of: controller")
+        settings = controller.settings
+        every = whole_multiple(float(getattr(settings, "sample_period", sample_period)), float(sample_period),
+                               f"{type(controller).__name__} sample_period", "the rig's sample_period")
+        loop = ChamberLoop(estimator, controller, reference=reference, every=every, **loop_options)
+        return cls(loop, settings.p_max, (settings.h_min, settings.h_max), sample_period)
 
     @property
     def warming(self) -> bool:
@@ -268,11 +283,7 @@ def chamber_system(actuator: Actuator, pneumatics: Pneumatics, platform: Platfor
         section = replace(section, mpc=replace(section.mpc, enforce_budget=True))
     ctrl = controller or make_controller(section, actuator, pneumatics, model)
     check_role(ctrl, Controller, "chamber_system: controller")
-    ratio = section.sample_period / rs.sample_period
-    every = int(round(ratio))
-    if every < 1 or abs(ratio - every) > 1e-6:
-        raise ValueError(f"[controller] sample_ms = {U.to_ms(section.sample_period):g} ms must be a whole multiple of "
-                         f"{period_key} = {U.to_ms(rs.sample_period):g} ms")
+    every = whole_multiple(section.sample_period, rs.sample_period, "[controller] sample_ms", period_key)
     # controllers with a horizon get the future targets (a rig daemon knows its trajectory too)
     use_preview = section.preview if section.preview is not None else (
         section.reference.interpolation == "linear" or section.reference.sine_amplitude > 0)

@@ -1,4 +1,4 @@
-"""``hbma-ctrl bench fit``: what the fit's membrane law does to the numbers it finds (README Calibrate).
+"""``hbma-ctrl bench fit``: what the fit's membrane law does to the numbers it finds (docs/how-to/fit.md).
 
 Two parts, both against a truth that is not the law being fitted:
 
@@ -37,7 +37,7 @@ __all__ = ["STATIC_CASES", "OTHER_TRUTHS", "RUN_RIGS", "PUMP_HOLD_VENT", "LAWS",
 
 #: the laws a fit can take
 LAWS = ("cap", "exact")
-#: the truths of the recorded runs (README Calibrate, "The exact law")
+#: the truths of the recorded runs (docs/how-to/fit.md, "Which membrane law")
 RUN_RIGS = ("cap", "exact", "default")
 STATIC_CASES = ("free", "flat", "free_mr", "free_gent", "free_yeoh", "free_ogden")
 #: the rig's scalar mismatches (the nominal chamber times these)

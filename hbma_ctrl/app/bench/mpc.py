@@ -131,7 +131,7 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
                          "rig_seed": rs.seed}}
 
 
-#: do-mpc's median step (ms) on this OCP, N = 20, last measured (README "Control": 0.60 ms x 88.6)
+#: do-mpc's median step (ms) on this OCP, N = 20, last measured (docs/results/mpc.md)
 DOMPC_LAST_MS = 53.2
 
 

@@ -232,6 +232,27 @@ def poses_page(res: dict) -> Page:
                                                  "over the limit", "over the cap", "faults", "wall (s)"], row)])
 
 
+def api_page(res: dict) -> Page:
+    """``bench api``: its api.json dict."""
+    from hbma_ctrl.app.bench import api
+
+    rows = []
+    for name, r in res["runs"].items():
+        d, sl = r["daemon"], r["stop_latency"]
+        rows.append([name, str(r["clients"]), fmt(r["requests_per_s"], ".0f"), fmt(d["steps"]),
+                     fmt(d["deadline_misses"]), fmt(d["overruns"]), fmt(d["step_ms_p99"], ".3g"),
+                     f"{sl['within_period']}/{sl['n']}", fmt(sl["median_ms"], ".3g"), fmt(sl["p99_ms"], ".3g"),
+                     fmt(sl["max_ms"], ".3g"), str(d["faults"] or "none")])
+    period = next(iter(res["runs"].values()))["period_ms"] if res["runs"] else float("nan")
+    return Page("The daemon's loop under API clients (bench api)", docstring_paragraph(api.__doc__, slice(0, 3)),
+                [Table("Verdicts", ["criterion", "passed"], [[k, fmt(v)] for k, v in res["verdicts"].items()]),
+                 Table(f"{res['config']}, {res['duration_s']:g} s of wall time per run, a /stop probe every "
+                       f"{res['probe_every_s']:g} s, loop period {fmt(period, 'g')} ms",
+                       ["run", "clients", "requests/s", "steps", "deadline misses", "overruns", "step p99 (ms)",
+                        "/stop within a period", "/stop median (ms)", "/stop p99 (ms)", "/stop max (ms)", "faults"],
+                       rows)])
+
+
 def codegen_page(res: dict, spec_name: str, opt: str) -> Page:
     """``bench codegen``: the result of :func:`hbma_ctrl.core.loopgen_c.bench` (and its scene)."""
     from hbma_ctrl.core.loopgen_c import bench

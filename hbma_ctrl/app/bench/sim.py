@@ -1,4 +1,4 @@
-"""Simulator speed/accuracy benchmark over the 150-trial protocol (README Model §7) (``hbma-ctrl bench sim``).
+"""Simulator speed/accuracy benchmark over the 150-trial protocol (docs/concepts/model.md §7) (``hbma-ctrl bench sim``).
 
 For each fixed-step integrator (euler, rk4) x step size x fidelity of the loaded trials
 ('quasi_static', 'platform'; the 0 g trials always run 'free'), the wall time of the whole
@@ -12,7 +12,7 @@ the reference settings and a hash of the model sources; it is reused when all of
 Wall times exclude the one-off casadi Function construction (a short warm-up run per setting)
 and are medians over ``repeat`` runs.
 
-The fidelity axis (README Model §9): every row is also scored against the exact membrane
+The fidelity axis (docs/concepts/model.md §9): every row is also scored against the exact membrane
 (``*_vs_exact_*``: the simulator's 'exact' rung, the platform model with the exact flat contact for
 loaded trials, exact free inflation for the 0 g ones) at a fine fixed step (rk4,
 :data:`EXACT_REF_DT` s; an adaptive reference through 2-D table lookups costs minutes and its

@@ -6,8 +6,7 @@ The daemon runs as its own process (``hbma-ctrl daemon CONFIG --rig sim --speed 
 ``POST /setpoint``: a pose for every layer of a robot (centre 5-8 mm, bend 0-15 deg, any
 direction) or a height for every chamber of a single-chamber rig (2-8 mm), drawn from ``seed``.
 
-At the end it judges the daemon's ``daemon_stats.json`` against the soak's criteria (README "Run on
-a rig / Measured"):
+At the end it judges the daemon's ``daemon_stats.json`` against the soak's criteria (docs/results/soak.md):
 
 - ``no_fault``: no fault of any kind, and the run ended by its duration;
 - ``no_tick_over_period``: no runtime tick (estimator, controller, supervisor) whose work takes longer

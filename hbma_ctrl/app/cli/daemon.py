@@ -1,4 +1,4 @@
-"""``hbma-ctrl daemon CONFIG.toml``: the rig daemon (README "Run on a rig").
+"""``hbma-ctrl daemon CONFIG.toml``: the rig daemon (docs/tutorials/rig.md).
 
 Registered by :mod:`hbma_ctrl.app.cli.main` through :func:`register`. Reads the configuration (a scenario
 file with a [daemon] table; flags override its keys), builds the runtime loop, the rig link, the
@@ -307,6 +307,7 @@ def bench_api(
     clients: Annotated[int, typer.Option("--clients", help="API clients at full rate in the loaded run")] = 100,
     out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_api"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
 ) -> None:
     """The daemon on the simulated rig in real time, quiet and with many loopback API clients at full
     rate: deadline misses, step p99 and /stop answer times side by side (api.json)."""
@@ -314,6 +315,9 @@ def bench_api(
 
     check_range("--clients", clients, 1, 1000)
     _check_bench(config, {"--duration-s": duration_s})
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "api", cli_argv())  # --report checked before the run
     res = run_api_bench(config, out, duration_s, clients, overwrite=overwrite, argv=cli_argv(),
                         echo=lambda s: print(s, file=sys.stderr, flush=True))
     for name, r in res["runs"].items():
@@ -325,6 +329,10 @@ def bench_api(
                    f"{sl['p99_ms'] or float('nan'):.2f}, max {sl['max_ms'] or float('nan'):.2f} ms)")
     failed = [k for k, ok in res["verdicts"].items() if not ok]
     typer.echo(f"api: {'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'api.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import api_page
+
+        typer.echo(f"wrote {rep.write(api_page(res))}")
     if failed:
         raise typer.Exit(1)
 

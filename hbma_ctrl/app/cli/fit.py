@@ -44,7 +44,7 @@ def fit_cmd(
     contact: Annotated[Optional[str], typer.Option(
         help="free (h2 = 0) | flat (load on a plate); default: flat with a force column, else free")] = None,
     fidelity: Annotated[Optional[str], typer.Option(
-        help="membrane law: exact (the axisymmetric membrane, README Model §9: the rig's and the roles' default; "
+        help="membrane law: exact (the axisymmetric membrane, docs/concepts/model.md §9: the rig's and the roles' default; "
              "on a plate or with --fit-material nh only, free points of any material) | cap (the spherical cap, "
              "Model §1-§3); default: exact where it can fit, else cap")] = None,
     fix: Annotated[Optional[list[str]], typer.Option("--fix", help="hold a parameter NAME=VALUE (SI), repeatable")]

@@ -137,7 +137,7 @@ def _is_run_failed(exc: BaseException) -> bool:
 
 app = typer.Typer(cls=_OneLineErrors, add_completion=False, rich_markup_mode=None, no_args_is_help=False, pretty_exceptions_enable=False,
                   help="Model, observe and control Hyperelastic Ballooning Membrane Actuators (HBMA). "
-                       "Without a command: run the 150-trial protocol (README Model §7) with defaults into ./runs/protocol.")
+                       "Without a command: run the 150-trial protocol (docs/concepts/model.md §7) with defaults into ./runs/protocol.")
 bench_app = typer.Typer(add_completion=False, rich_markup_mode=None, no_args_is_help=True, help="Benchmarks (speed and accuracy).")
 app.add_typer(bench_app, name="bench")
 

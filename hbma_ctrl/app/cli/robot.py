@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 __all__ = ["register", "robot_app"]
 
 robot_app = typer.Typer(add_completion=False, rich_markup_mode=None, no_args_is_help=True,
-                        help="The hybrid soft-rigid continuum robot (README Model §8): Table II, workspace, pose.")
+                        help="The hybrid soft-rigid continuum robot (docs/concepts/model.md §8): Table II, workspace, pose.")
 
 
 def _wide_console() -> Console:

@@ -94,7 +94,7 @@ def protocol(
     no_plots: Annotated[bool, typer.Option("--no-plots", help="skip fig6/fig7/fig9")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
-    """Simulate the 150-trial characterisation protocol (README Model §7): DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
+    """Simulate the 150-trial characterisation protocol (docs/concepts/model.md §7): DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
     from hbma_ctrl.core.materials import MATERIALS
     from hbma_ctrl.sim.batch import FIDELITY_CHOICES
     from hbma_ctrl.sim.trial import INTEGRATORS
@@ -132,7 +132,7 @@ def equilibrium_values(material: str, r1_mm: float, t0_mm: float, h1_mm: float, 
                        p_kpa: float | None = None) -> dict:
     """Equilibrium of one shape (edge units in and out): pressure, force, load, stretch, volume.
 
-    ``fidelity`` 'cap' (spherical cap, README Model) or 'exact' (:mod:`hbma_ctrl.models.exact`: the
+    ``fidelity`` 'cap' (spherical cap, docs/concepts/model.md) or 'exact' (:mod:`hbma_ctrl.models.exact`: the
     centre height h = h1 - h2 held by a flat plate or a bonded disk of radius ``disk_radius_mm`` at
     gauge pressure ``p_kpa``; free inflation when h2 = 0 with a flat contact).
     """

@@ -6,7 +6,7 @@ the readings and the commands to the filter, and writes the estimate next to the
 
 - kind "single": ``estimate.csv`` (edge units: mm, kPa, N), ``estimate.png``; load steps
   (``load_steps_g``) are applied to the rig mid-run;
-- kind "protocol": every trial of the grid (README Model §7, 150 by default), in worker processes,
+- kind "protocol": every trial of the grid (docs/concepts/model.md §7, 150 by default), in worker processes,
   ``estimator_trials.csv`` (one row of scores per trial).
 
 ``metrics.json`` gets an ``"estimator"`` object (:func:`hbma_ctrl.app.scenes.evaluate.aggregate`):

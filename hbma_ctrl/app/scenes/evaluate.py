@@ -5,7 +5,7 @@ saturating sensor) gives the readings and the truth; the nominal model run open 
 commands and the true load (:func:`hbma_ctrl.sim.simulate.simulate`, the paper's model) gives the
 open-loop baseline; the filter runs on the readings and the commands only.
 
-Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-loop model (README Model §7
+Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-loop model (docs/concepts/model.md §7
 eq. 16 against the rig's true height), pressure NRMSD of the filter's pressure, RMSE of the contact
 force, the steady-contact force error relative to the true load (mean over the last second of
 inflation while in contact), NEES of (h, F) and NIS (means over the run), the median wall time of

@@ -1,4 +1,4 @@
-"""The characterisation protocol's outputs (README Model §7): 150 inflate/vent trials, summarised.
+"""The characterisation protocol's outputs (docs/concepts/model.md §7): 150 inflate/vent trials, summarised.
 
 The grid, the fidelity rule and the batching are :mod:`hbma_ctrl.sim.batch`'s; this module writes
 the run's outputs.

@@ -74,7 +74,9 @@ class ScenarioFile(Table):
             if self.protocol.model_fields_set:
                 raise RuleError("is only allowed with [scenario] kind = 'protocol'", "protocol")
             schedule = self.inputs.to_schedule()
-            last = (schedule or _default_schedule()).times[-1]
+            # a closed loop or a recording never runs the default schedule: only a written one is checked
+            open_loop = self.controller is None and self.robot is None and self.schedule is None
+            last = (schedule or _default_schedule()).times[-1] if schedule is not None or open_loop else 0.0
             duration = sc.duration_s if sc.duration_s is not None else DEFAULT_DURATION_S
             if last >= duration:
                 which = "" if schedule is not None else " (the default schedule; set [inputs] schedule)"

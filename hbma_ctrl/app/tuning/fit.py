@@ -1,6 +1,6 @@
 """Fit a membrane material to static equilibrium data: ``hbma-ctrl fit`` (SI inside).
 
-Static data are equilibrium points of one chamber (README Model §1-§3): CSV columns ``h_mm``,
+Static data are equilibrium points of one chamber (docs/concepts/model.md §1-§3): CSV columns ``h_mm``,
 ``p_kpa`` and, for a chamber lifting a load or pressed by a flat plate, ``F_n`` or ``load_g``.
 Each point's model pressure comes from the package's physics:
 
@@ -8,7 +8,7 @@ Each point's model pressure comes from the package's physics:
 - ``flat``: the contact shape (h1, h2) with ``h1 - h2 = h`` and ``F(h1, h2) = F``, solved by the one
   shape solver (:meth:`hbma_ctrl.models.shape.ShapeSolver.h2_for_force`), then ``p = pressure(h1, h2)``.
 
-The law is the spherical cap's (``fidelity = "cap"``, README Model §3) or the exact axisymmetric
+The law is the spherical cap's (``fidelity = "cap"``, docs/concepts/model.md §3) or the exact axisymmetric
 membrane's (``"exact"``, Model §9): the same tabulated law, in the same chart, that the rig, the EKF
 and the MPC take with ``membrane = "exact"`` (:func:`hbma_ctrl.models.tables.exact_shape_function`).
 Its tables hold one material *shape* (the parameters' ratios) at any modulus scale, so they serve a
@@ -68,7 +68,7 @@ __all__ = [
     "unflatten",
 ]
 
-#: contact modes of this command ('bonded', a disk glued at the centre, is refused: README Calibrate)
+#: contact modes of this command ('bonded', a disk glued at the centre, is refused: docs/how-to/fit.md)
 CONTACTS = ("free", "flat")
 #: membrane laws of this command: the spherical cap, or the exact axisymmetric membrane's tables
 FIDELITIES = ("cap", "exact")

@@ -108,7 +108,7 @@ MAX_REPLAY_S = 300.0
 #: relative step of the central differences (log units)
 _FD_STEP = 1e-3
 #: the smallest prior sigma params.toml gives the filter's factors: the fit's own interval counts
-#: the noise only, and on the default rig it misses the dead volume by 6 % (README Calibrate); the
+#: the noise only, and on the default rig it misses the dead volume by 6 % (docs/how-to/fit.md); the
 #: protocol with this prior: EKF height NRMSD 0.019-0.020 over noise seeds 0-2, 0.020-0.021 at 0.08
 PRIOR_STD_MIN = 0.05
 
@@ -437,18 +437,18 @@ def dynamic_params_toml(result: DynamicFitResult) -> str:
 
 
 def estimator_prior_lines(result: DynamicFitResult) -> list[str]:
-    """The ``[estimator]`` table that makes the fit the filter's prior (README Estimation, "A
-    calibrated filter"), written commented out: it is for an estimator without the closed loop's
+    """The ``[estimator]`` table that makes the fit the filter's prior (docs/concepts/estimation.md,
+    "A calibrated filter"), written commented out: it is for an estimator without the closed loop's
     start-up calibration, whose own pulse is the better prior there (``bench loop``). With the fitted
     [actuator] and [pneumatics] values as the nominal chamber the factors start at 1, each with one
     sigma max(its 95 % half-width / 1.96, :data:`PRIOR_STD_MIN`); the factors for a scenario that
     keeps another nominal chamber follow."""
     p, ci = result.params, result.ci95
     names = (("flow_factor", "flow_scale"), ("modulus", "modulus_scale"), ("dead_volume", "V0"))
-    lines = ["# The fit as the filter's prior (README Estimation, \"A calibrated filter\"): uncomment for an",
-             "# estimator that runs without the closed loop's start-up calibration (the protocol's EKF: height",
-             "# NRMSD 0.031 -> 0.020). In the closed loop the calibration's own pulse is the better prior",
-             "# (bench loop, 400 g steps: 19/20 passed without this prior, 15/20 with it).",
+    lines = ["# The fit as the filter's prior (docs/concepts/estimation.md#a-calibrated-filter): uncomment for an",
+             "# estimator that runs without the closed loop's start-up calibration (the protocol's EKF). In the",
+             "# closed loop the calibration's own pulse is the better prior (measured: docs/results/ekf.md and",
+             "# docs/results/loop.md).",
              "# Each sigma is at least "
              f"{PRIOR_STD_MIN:g}: the fit's model-form error on a rig of another structure, not its noise.",
              "# [estimator]"]

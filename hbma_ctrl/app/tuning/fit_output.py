@@ -37,7 +37,7 @@ def toml_value(v) -> str:
 
 
 #: the params.toml line that says which law the numbers belong to (a modulus fitted with one law is
-#: biased under the other: README Calibrate, "The exact law")
+#: biased under the other: docs/how-to/fit.md, "Which membrane law")
 LAW_NOTE = {"cap": "the spherical cap (use with [estimator] / [controller] / [rig] membrane = \"cap\")",
              "exact": "the exact membrane (membrane = \"exact\", the roles' default)"}
 

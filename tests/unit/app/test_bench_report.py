@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 
 from hbma_ctrl.app.bench.report import Page, Pareto, Report, Table, docstring_paragraph
 from hbma_ctrl.app.cli.main import app
+from checkout import ROOT
 from cli_checks import one_line_error
 
 runner = CliRunner()
@@ -79,3 +80,30 @@ def test_bench_mpc_at_tiny_size_writes_its_page_and_pareto_figure(tmp_path):
     assert (rep / "mpc_pareto.png").stat().st_size > 0 and (rep / "mpc_pareto.svg").stat().st_size > 0
     assert "](mpc.md)" in (rep / "index.md").read_text()
     assert (tmp_path / "o" / "bench_mpc.json").is_file()
+
+
+def _fake_api_result(config: str) -> dict:
+    lat = {"n": 20, "unanswered": 0, "median_ms": 1.5, "p99_ms": 4.0, "max_ms": 4.5, "within_period": 20}
+    daemon = {"steps": 6000, "deadline_misses": 2, "overruns": 1, "step_ms_p99": 3.25, "faults": []}
+    run = lambda n: {"clients": n, "daemon": daemon, "requests_per_s": 850.0 if n else 0.0,  # noqa: E731
+                     "stop_latency": lat, "final_stop": {"status": 200}, "period_ms": 10.0}
+    return {"config": config, "duration_s": 60.0, "clients": 100, "probe_every_s": 0.05,
+            "runs": {"quiet": run(0), "loaded": run(100)},
+            "verdicts": {"no_deadline_miss_added": True, "stop_within_a_period": True, "no_fault": True}}
+
+
+def test_bench_api_writes_its_page_with_both_runs_and_the_verdicts(tmp_path, monkeypatch):
+    import hbma_ctrl.app.bench.api as api
+
+    config = str(ROOT / "scenarios" / "daemon_chamber.toml")
+    monkeypatch.setattr(api, "run_api_bench", lambda *a, **k: _fake_api_result(config))
+    rep = tmp_path / "results"
+    res = runner.invoke(app, ["bench", "api", config, "--duration-s", "60", "--out", str(tmp_path / "o"),
+                              "--report", str(rep)])
+    assert res.exit_code == 0, res.output
+    text = (rep / "api.md").read_text()
+    assert f"--out {tmp_path / 'o'} --report {rep}" in text
+    assert "| no_deadline_miss_added | yes |" in text
+    assert "| quiet | 0 | 0 | 6000 | 2 | 1 | 3.25 | 20/20 | 1.5 | 4 | 4.5 | none |" in text
+    assert "| loaded | 100 | 850 |" in text
+    assert "](api.md)" in (rep / "index.md").read_text()

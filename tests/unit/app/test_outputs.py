@@ -80,6 +80,20 @@ def test_second_run_refused_then_overwrite_replaces_and_manifest_is_complete(tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fig7"]  # no temp, old or lock files beside it
 
 
+def test_a_shipped_scenario_given_by_name_is_hashed_in_the_manifest(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no file called open_loop_fig7 here: the name is the shipped one
+    monkeypatch.setattr(cli_mod, "run_scenario", _fake_run([]))
+    res = runner.invoke(app, ["run", "open_loop_fig7", "--out", "o"])
+    assert res.exit_code == 0, res.output
+    man = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    assert man["scenario_path"] == "open_loop_fig7"
+    assert man["scenario_sha256"] == hashlib.sha256(FIG7.read_bytes()).hexdigest()
+    # tune, daemon, codegen and the benches write their manifests through the same function
+    for given in ("track_height", "scenarios/track_height.toml"):
+        sha = outputs.manifest("tune", [], given)["scenario_sha256"]
+        assert sha == hashlib.sha256((ROOT / "scenarios" / "track_height.toml").read_bytes()).hexdigest()
+
+
 def test_failure_midway_leaves_nothing_at_out_and_a_failed_dir(tmp_path, monkeypatch):
     calls: list = []
     monkeypatch.setattr(cli_mod, "run_scenario", _fake_run(calls, ValueError("solver gave up")))

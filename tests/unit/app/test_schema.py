@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from checkout import ROOT
 from hbma_ctrl.controllers.mpc_settings import VARIANTS
+from hbma_ctrl.app.cli.tune import check_base
 from hbma_ctrl.app.scenes.evaluate import FILTERS
 from hbma_ctrl.app.schema import (
     ActuatorTable,
@@ -297,6 +298,15 @@ def test_cross_table_rules_name_the_keys():
     assert _err({"robot": {"placement_radius_mm": 30}}) == (
         "[robot] placement_radius_mm = 30 is out of range [13.25, 17.5] mm (the chamber disk, r1 = 4.5 mm, must fit "
         "the layer annulus)")
+
+
+@pytest.mark.parametrize("name", ["track_height.toml", "robot_bending.toml"])
+def test_closed_loop_shorter_than_the_default_schedule_is_valid(name):
+    # a closed loop never runs the open-loop default schedule, so its last switch (3 s) is no limit
+    data = _load(ROOT / "scenarios" / name)
+    data["scenario"]["duration_s"] = 2.0
+    assert parse_scenario_tables(data, ROOT / "scenarios" / name).duration == 2.0
+    check_base(_load(ROOT / "scenarios" / name), ROOT / "scenarios" / name, 2.0)
 
 
 def test_parse_role_names_the_table():

@@ -325,3 +325,36 @@ def test_robot_target_rate_must_be_finite_and_non_negative(robot):
         with pytest.raises(ValueError, match="target_rate"):
             RobotLoop(d, model, bank, _TargetRecorder(3), robot_supervisor(45e3, 3),
                       {0: ((0.0, U.mm(5.0), 0.0, 0.0),)}, target_rate=bad)
+
+
+class _Counting(PIDController):
+    """A PID (20 ms sample period) that counts its steps."""
+
+    def __init__(self):
+        super().__init__(settings=PIDSettings())
+        self.steps = 0
+
+    def step(self, t, estimate, reference, preview=None):
+        self.steps += 1
+        return super().step(t, estimate, reference)
+
+
+class _Reading(EstimatorBase):
+    def step(self, t, measurement, applied_command):
+        return Estimate(t=t, h1=0.0, h2=0.0, h=0.0, F=0.0, p=float(measurement))
+
+
+def test_chamber_loop_without_every_runs_the_controller_at_its_own_sample_period():
+    ctrl = _Counting()
+    loop = ChamberLoop(_Reading(), ctrl, reference=3e-3)
+    for k in range(10):
+        loop.tick(0.01 * k, 5e3)  # 10 ms ticks under a 20 ms controller: every second tick
+    assert loop.every == 2 and ctrl.steps == 5
+
+
+def test_chamber_loop_without_every_names_both_periods_when_they_do_not_divide():
+    loop = ChamberLoop(_Reading(), _Counting(), reference=3e-3)
+    loop.tick(0.0, 5e3)
+    with pytest.raises(ValueError, match=r"_Counting sample_period = 20 ms must be a whole multiple of the tick "
+                                         r"period \(the time between the first two ticks\) = 15 ms"):
+        loop.tick(0.015, 5e3)

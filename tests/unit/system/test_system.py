@@ -165,3 +165,28 @@ def test_to_function_refuses_what_has_no_generated_form_naming_the_setting():
     robot = build_runner(load_config(ROOT / "scenarios" / "daemon_robot.toml", {"--rig": "sim"}))
     with pytest.raises(ValueError, match=re.escape("[robot] controller: RobotNMPC has no step Function")):
         robot.to_function(t, np.zeros(robot.n))
+
+
+def test_a_chamber_system_of_role_objects_ticks_arrays_at_the_controllers_period():
+    """Built from Python objects (no scenario): tick(t, p[1]) -> u[3, 1], the rig's own layout, and the
+    20 ms controller runs every second 10 ms sample; a period it does not divide is an error naming both."""
+    from hbma_ctrl.controllers.baselines import PIDController, PIDSettings
+    from hbma_ctrl.core.interfaces import Estimate, EstimatorBase
+
+    class Reading(EstimatorBase):
+        def step(self, t, measurement, applied_command):
+            return Estimate(t=t, h1=0.0, h2=0.0, h=0.0, F=0.0, p=float(measurement))
+
+    act, pn, pl = Actuator(), Pneumatics(), Platform()
+    rig = SimRig.chamber(act, pn, pl, RigSettings(sample_period=PERIOD))
+    system = ChamberSystem.of(Reading(), PIDController(settings=PIDSettings()), rig.sample_period, reference=3e-3)
+    assert system.loop.every == 2
+    for _ in range(5):
+        r = rig.read()
+        u = system.tick(r.t, r.p)
+        assert u.shape == (3, 1)
+        rig.write(u)
+    assert system.loop.stats()["steps"] == 3
+    with pytest.raises(ValueError, match=r"PIDController sample_period = 20 ms must be a whole multiple of the "
+                                         r"rig's sample_period = 15 ms"):
+        ChamberSystem.of(Reading(), PIDController(settings=PIDSettings()), 0.015)
