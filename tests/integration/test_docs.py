@@ -88,9 +88,18 @@ def blocks(page: Path) -> list[Block]:
     return out
 
 
+#: pages whose blocks take a minute or more (a recording, a fit, a study, a C build): their blocks run
+#: with the sweeps (`pytest -m sweep`), not in every CI run, which the other pages' blocks keep short
+LONG_PAGES = {"docs/tutorials/calibrate.md", "docs/tutorials/embed.md", "docs/how-to/tune-storage.md",
+              "docs/tutorials/rig.md", "docs/how-to/interrupted-runs.md"}
+
+
 def _params(*langs: str) -> list:
-    """One pytest param per page with a block of one of ``langs`` (pages found at collection)."""
-    return [pytest.param(p, id=_rel(p)) for p in _pages() if any(RUN.get(b.lang) in langs for b in blocks(p))]
+    """One pytest param per page with a block of one of ``langs`` (pages found at collection); a page of
+    :data:`LONG_PAGES` is marked ``sweep`` when the blocks are to run."""
+    run = {"python", "bash"} & set(langs)
+    return [pytest.param(p, id=_rel(p), marks=[pytest.mark.sweep] if run and _rel(p) in LONG_PAGES else [])
+            for p in _pages() if any(RUN.get(b.lang) in langs for b in blocks(p))]
 
 
 def _env() -> dict:

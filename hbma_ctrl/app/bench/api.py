@@ -113,7 +113,7 @@ def _latency(lat: list, period: float) -> dict:
 
 def _one_run(config: Path, out: Path, duration_s: float, clients: int, probe_every_s: float, echo) -> dict:
     """One daemon run for ``duration_s`` (wall) with ``clients`` flooding its API (0 = quiet)."""
-    from hbma_ctrl.app.cli.daemon import run_daemon
+    from hbma_ctrl.app.daemon.run import run_daemon
     from hbma_ctrl.app.daemon.config import load_config
 
     cfg = load_config(config, {"--rig": "sim", "--speed": 1.0, "--api": "127.0.0.1:0"})

@@ -66,10 +66,10 @@ def protocol_page(res: dict) -> Page:
                        f"{'met' if res['meets_target'] else 'not met'} here."])
 
 
-def ekf_page(res: dict) -> Page:
-    """``bench ekf``: the result of :func:`hbma_ctrl.app.cli.estimators.bench_ekf`."""
+def ekf_page(res: dict, run_doc: str, command_doc: str) -> Page:
+    """``bench ekf``: the result of :func:`hbma_ctrl.app.cli.estimators.bench_ekf`; ``run_doc`` and
+    ``command_doc``: that function's and its command's docstrings (what the page says is measured)."""
     from hbma_ctrl.app.bench.plots import estimator_result_points
-    from hbma_ctrl.app.cli.estimators import bench_ekf, bench_ekf_cmd
 
     f = res["filters"]
     ref = f.get("ekf", {}).get("step_us_median")
@@ -82,8 +82,8 @@ def ekf_page(res: dict) -> Page:
              for name, a in f.items()]
     s = res["settings"]
     # the docstring's "Returns {...};" names the result's keys, the rest of it says what they measure
-    timings = docstring_paragraph(bench_ekf.__doc__, 2).partition("; ")[2]
-    about = (docstring_paragraph(bench_ekf_cmd.__doc__) + " " + timings[:1].upper() + timings[1:]
+    timings = docstring_paragraph(run_doc, 2).partition("; ")[2]
+    about = (docstring_paragraph(command_doc) + " " + timings[:1].upper() + timings[1:]
              + f" The truth: the simulated rig, {s['rig']}, on {s['n_trials']} protocol trials ({s['grid']}).")
     n = s["n_trials"]
     return Page("Estimators: step time and accuracy (bench ekf)", about,

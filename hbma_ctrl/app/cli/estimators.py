@@ -150,7 +150,7 @@ def bench_ekf_cmd(
     if rep:
         from hbma_ctrl.app.bench.pages import ekf_page
 
-        con.print(f"wrote {rep.write(ekf_page(res))}")
+        con.print(f"wrote {rep.write(ekf_page(res, bench_ekf.__doc__, bench_ekf_cmd.__doc__))}")
 
 def observability_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="output dir for observability.json")] = Path("runs/observability"),
