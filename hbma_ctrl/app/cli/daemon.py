@@ -186,6 +186,7 @@ def bench_drills(
 
         typer.echo(f"wrote {rep.write(drills_page(res))}")
 
+
 def bench_poses(
     config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
     = Path("scenarios/daemon_robot.toml"),
