@@ -67,6 +67,9 @@ class RigIO(Protocol):
 
     n: int
     sample_period: float
+    #: True when its reads and writes simulate the plant: time no real rig's I/O takes, which the
+    #: daemon's loop does not count against the controller's deadline (a link without it is real)
+    simulated: bool
 
     def read(self) -> Readings:
         """The newest readings of every chamber (never blocks longer than one period; raises

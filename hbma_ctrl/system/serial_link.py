@@ -195,6 +195,8 @@ class SerialRig:
     ``firmware_mode`` is the mode of the firmware's last heartbeat (``RUN`` or ``SAFE``).
     """
 
+    simulated = False  # a real link: its I/O time is the rig's
+
     def __init__(self, port: str, n: int, baud: int = 115200, sample_period: float | None = None, *,
                  heartbeat_period: float = 0.1, link_timeout: float = 0.5, handshake_timeout: float = 1.0,
                  backoff_max: float = 2.0) -> None:

@@ -171,7 +171,9 @@ class DaemonLoop:
         self.steps = 0
         self.deadline_misses = 0
         self.overruns = 0  # deadline misses past the warm-up: each a warning, a run of miss_limit a fault
-        self._io_s = 0.0  # this step's time in a simulated rig's reads and writes, s
+        self._io_s = 0.0  # this step's time in a simulated rig's reads and writes, s (0 on a real rig)
+        #: the rig's reads and writes simulate the plant (RigIO.simulated; a link without it is real)
+        self._sim_io = bool(getattr(rig, "simulated", False))
         self.skipped_periods = 0
         self.over_budget = 0
         self.repeated_samples = 0
@@ -243,7 +245,8 @@ class DaemonLoop:
     def _write(self, u: np.ndarray) -> None:
         c0 = self.clock()
         self.rig.write(u)
-        self._io_s += self.clock() - c0
+        if self._sim_io:
+            self._io_s += self.clock() - c0
         self.u_last = u
 
     def _go_safe(self) -> None:
@@ -296,7 +299,8 @@ class DaemonLoop:
             self.event("setpoint", *setpoint_fields(sp, self.runner.names))
         c0 = self.clock()
         r = self.rig.read()
-        self._io_s += self.clock() - c0
+        if self._sim_io:
+            self._io_s += self.clock() - c0
         p = np.asarray(r.p, dtype=float).reshape(self.n)
         self.readings_p = p
         if self.state.take_reset():
@@ -527,7 +531,7 @@ class DaemonLoop:
                 next_deadline = t0 + (k + 1) * wp
                 late = end > next_deadline
                 # the controller's deadline: a simulated rig's plant time is not the controller's
-                late_ctrl = end - (self._io_s if getattr(self.rig, "simulated", False) else 0.0) > next_deadline
+                late_ctrl = end - self._io_s > next_deadline
                 # the watchdog judges real time: accelerated (speed > 1), a step is late when its
                 # runtime tick's work (its thread's CPU time) overruns the rig period, the budget a
                 # real rig would give it (the sim rig's write, which simulates the plant, is no work a
