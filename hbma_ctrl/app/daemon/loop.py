@@ -172,8 +172,9 @@ class DaemonLoop:
         self.deadline_misses = 0
         self.overruns = 0  # deadline misses past the warm-up: each a warning, a run of miss_limit a fault
         self._io_s = 0.0  # this step's time in a simulated rig's reads and writes, s (0 on a real rig)
-        #: the rig's reads and writes simulate the plant (RigIO.simulated; a link without it is real)
-        self._sim_io = bool(getattr(rig, "simulated", False))
+        #: the rig's reads and writes simulate the plant (RigIO.simulated; a link without it is real),
+        #: read from the rig the run starts with
+        self._sim_io = False
         self.skipped_periods = 0
         self.over_budget = 0
         self.repeated_samples = 0
@@ -493,6 +494,7 @@ class DaemonLoop:
         switch = sys.getswitchinterval()
         sys.setswitchinterval(GIL_SWITCH_S)
         self.mode = "running"
+        self._sim_io = bool(getattr(self.rig, "simulated", False))
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
         wp = self.period / self.speed
         t0 = self.clock()
