@@ -380,7 +380,7 @@ def test_nominal_load_prior_predicts_a_lift_off_the_saturated_sensor_hides():
         FilterSettings(load_prior="guess").validate()
 
 
-@pytest.mark.slow
+@pytest.mark.sweep  # a count over 6 rig seeds and 48 filter runs: minutes, with the sweeps
 def test_a_load_prior_rules_out_the_false_lift_offs_of_a_heavy_loads_flat_rise():
     """600 and 800 g on the 7.5 mm chamber lift at 34-46 kPa, at or above the 35 kPa range. Through
     their long flat rise the rig's flow falls short of the model's and the lift-off detector fired
