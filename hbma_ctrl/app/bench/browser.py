@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CHROMIUM", "Browser", "BrowserError", "chromium_path"]
+__all__ = ["CHROMIUM", "Browser", "BrowserError", "ScriptError", "chromium_path"]
 
 #: where Debian's package puts the browser
 CHROMIUM = "/usr/bin/chromium"
@@ -33,6 +33,10 @@ FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
 
 class BrowserError(RuntimeError):
     """The browser answered a command with an error, did not answer in time, or exited."""
+
+
+class ScriptError(BrowserError):
+    """An expression evaluated in the page threw."""
 
 
 def chromium_path() -> str | None:
@@ -122,18 +126,23 @@ class Browser:
                       session=session)
         if "exceptionDetails" in r:
             d = r["exceptionDetails"]
-            raise BrowserError(f"{expression[:60]}: {(d.get('exception') or {}).get('description') or d.get('text')}")
+            raise ScriptError(f"{expression[:60]}: {(d.get('exception') or {}).get('description') or d.get('text')}")
         return r.get("result", {}).get("value")
 
     def wait_for(self, session: str, expression: str, timeout: float = 60.0, every: float = 0.1) -> Any:
-        """Poll ``expression`` until it is truthy; its value (BrowserError after ``timeout`` s)."""
+        """Poll ``expression`` until it is truthy; its value (BrowserError after ``timeout`` s). An expression
+        that throws (the page is still loading) counts as false; the last error is in the message."""
         deadline = time.monotonic() + timeout
+        why = ""
         while True:
-            v = self.evaluate(session, expression)
+            try:
+                v = self.evaluate(session, expression)
+            except ScriptError as exc:
+                v, why = None, f" (last: {exc})"
             if v:
                 return v
             if time.monotonic() > deadline:
-                raise BrowserError(f"not true within {timeout:g} s: {expression}")
+                raise BrowserError(f"not true within {timeout:g} s: {expression}{why}")
             time.sleep(every)
 
     def insert_text(self, session: str, text: str) -> None:
