@@ -51,7 +51,7 @@ DIRECTION_MAX_DEG = 360.0
 CHAMBER_INDEX_MAX = 255
 LAYER_INDEX_MAX = 63
 #: the live stream's event rate: default, lowest and highest (Hz of loop time)
-LIVE_RATE_HZ = (10.0, 0.5, 50.0)
+LIVE_RATE_HZ = (5.0, 0.5, 50.0)
 
 _HEIGHTS_SHAPE = '{"<chamber index>": h_mm, ...}'
 _LAYERS_SHAPE = '[{"layer": i, "centre_mm": x, "bend_deg": x, "direction_deg": x}, ...]'

@@ -14,7 +14,7 @@ const DIGITS = { t_s: 2, h_mm: 3, target_mm: 3, p_kpa: 2, p_est_kpa: 2, speed_pc
   rate_hz: 0, step_ms_median: 2, step_ms_p99: 2, age_ms: 0, centre_mm: 2, bend_deg: 1, direction_deg: 1 };
 let token = sessionStorage.getItem("hbma-token");
 let history = [];               // per chamber: [{t, h, target, p, p_est, speed, inlet, outlet}]
-let names = null, layerCount = -1, ended = false, last = null, drawQueued = false, controller = null;
+let names = null, layerCount = -1, ended = false, last = null, drawQueued = false, controller = null, eventsShown = "";
 
 function headers(json) {
   const h = json ? { "Content-Type": "application/json" } : {};
@@ -31,8 +31,10 @@ async function post(path, body) {
   return { ok: r.ok, reply };
 }
 
+// text is written only when it changes: every write costs the browser a layout and a paint
+function put(e, text) { if (e.textContent !== text) e.textContent = text; }
 function show(key, value, scope = document) {
-  for (const e of scope.querySelectorAll(`[data-k="${key}"]`)) e.textContent = value;
+  for (const e of scope.querySelectorAll(`[data-k="${key}"]`)) put(e, value);
 }
 
 function buildChambers(chambers) {
@@ -80,31 +82,46 @@ function buildLayers(n) {
 
 function onEvent(ev) {
   last = ev;
-  const m = $("mode"); m.textContent = ev.mode; m.className = "mode " + ev.mode;
-  show("t_s", fmt(ev.t_s, DIGITS.t_s));
-  for (const k of ["rate_hz", "step_ms_median", "step_ms_p99"]) show(k, fmt(ev.loop[k], DIGITS[k]));
-  for (const k of ["steps", "deadline_misses", "overruns"]) show(k, String(ev.loop[k]));
-  show("age_ms", fmt(ev.age_ms, DIGITS.age_ms));
+  record(ev);
+  if (document.hidden) return;   // a tab out of sight keeps its history and draws nothing
+  render(ev);
+}
+
+function record(ev) {
   if (ev.chambers.length && (!names || names.length !== ev.chambers.length)) buildChambers(ev.chambers);
-  if (ev.layers.length !== layerCount) buildLayers(ev.layers.length);
   ev.chambers.forEach((c, i) => {
-    const card = document.querySelector(`[data-chamber="${i}"]`);
-    for (const k of ["h_mm", "target_mm", "p_kpa", "p_est_kpa", "speed_pct", "inlet_duty", "outlet_duty"])
-      show(k, fmt(c[k], DIGITS[k]), card);
     const h = history[i];
     if (h.length && ev.t_s !== null && ev.t_s < h[h.length - 1].t) h.length = 0;   // a new run
     h.push({ t: ev.t_s, h: c.h_mm, target: c.target_mm, p: c.p_kpa, p_est: c.p_est_kpa,
       speed: c.speed_pct === null ? null : c.speed_pct / 100, inlet: c.inlet_duty, outlet: c.outlet_duty });
     while (h.length > 2 && h[h.length - 1].t - h[0].t > WINDOW_S) h.shift();
   });
+}
+
+function render(ev) {
+  const m = $("mode"); put(m, ev.mode); if (m.className !== "mode " + ev.mode) m.className = "mode " + ev.mode;
+  show("t_s", fmt(ev.t_s, DIGITS.t_s));
+  for (const k of ["rate_hz", "step_ms_median", "step_ms_p99"]) show(k, fmt(ev.loop[k], DIGITS[k]));
+  for (const k of ["steps", "deadline_misses", "overruns"]) show(k, String(ev.loop[k]));
+  show("age_ms", fmt(ev.age_ms, DIGITS.age_ms));
+  if (ev.layers.length !== layerCount) buildLayers(ev.layers.length);
+  ev.chambers.forEach((c, i) => {
+    const card = document.querySelector(`[data-chamber="${i}"]`);
+    for (const k of ["h_mm", "target_mm", "p_kpa", "p_est_kpa", "speed_pct", "inlet_duty", "outlet_duty"])
+      show(k, fmt(c[k], DIGITS[k]), card);
+  });
   ev.layers.forEach((l, k) => {
     for (const key of ["centre_mm", "bend_deg", "direction_deg"])
-      for (const e of document.querySelectorAll(`[data-k="${key}"][data-l="${k}"]`)) e.textContent = fmt(l[key], DIGITS[key]);
+      for (const e of document.querySelectorAll(`[data-k="${key}"][data-l="${k}"]`)) put(e, fmt(l[key], DIGITS[key]));
   });
   const counts = Object.entries(ev.faults.counts);
-  $("fault-counts").textContent = counts.length ? counts.map(([k, v]) => `${k}: ${v}`).join(", ") : "none";
-  $("events").replaceChildren(...ev.faults.latest.map((e) => el("li", {}, `${fmt(e.t_s, 2)} s  ${e.kind}: ${e.cause}`)));
-  $("conn").textContent = `every ${ev.every_steps ?? "-"} loop periods` + (ev.lost ? `, ${ev.lost} statuses missed` : "");
+  put($("fault-counts"), counts.length ? counts.map(([k, v]) => `${k}: ${v}`).join(", ") : "none");
+  const lines = ev.faults.latest.map((e) => `${fmt(e.t_s, 2)} s  ${e.kind}: ${e.cause}`);
+  if (lines.join("\n") !== eventsShown) {
+    eventsShown = lines.join("\n");
+    $("events").replaceChildren(...lines.map((t) => el("li", {}, t)));
+  }
+  put($("conn"), `every ${ev.every_steps ?? "-"} loop periods` + (ev.lost ? `, ${ev.lost} statuses missed` : ""));
   if (!drawQueued) { drawQueued = true; requestAnimationFrame(draw); }
 }
 
@@ -168,7 +185,7 @@ function draw() {
 async function stream() {
   if (controller) controller.abort();
   controller = new AbortController();
-  const rate = Number($("rate").value) || 10;
+  const rate = Number($("rate").value) || 5;
   try {
     const r = await fetch(`/stream?rate_hz=${encodeURIComponent(rate)}`, { headers: headers(false), signal: controller.signal });
     if (r.status === 401) { needToken(); return; }
@@ -239,4 +256,7 @@ $("auth-form").addEventListener("submit", (e) => {
   ended = false; stream();
 });
 $("rate").addEventListener("change", () => { ended = false; stream(); });
+document.addEventListener("visibilitychange", () => { if (!document.hidden && last) render(last); });
+const asked = new URLSearchParams(location.search).get("rate_hz");   // /?rate_hz=R opens at R updates per s
+if (asked) $("rate").value = asked;
 stream();
