@@ -514,7 +514,7 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         return _json(Health(ok=True, mode=str(snap.get("mode", "starting")), age_ms=_age_ms(snap)))
 
     @app.get("/stream", response_model=LiveEvent, responses={
-        **_STREAM_ERRORS, 200: {"description": "server-sent events (text/event-stream), each one's data a LiveEvent"}},
+        **_STREAM_ERRORS, 200: {"description": "server-sent events, each one's data a LiveEvent"}},
         openapi_extra={"parameters": _query_parameters()})
     async def get_stream(request: Request) -> Response:
         """The status as server-sent events at ``rate_hz`` per second of loop time (every n-th status of the

@@ -268,3 +268,13 @@ def test_since_gives_the_snapshots_after_a_number_in_order_and_counts_those_gone
         state.publish(snap(k))
     got, gone = state.since(seq0)
     assert len(got) == RING and gone == 5 + 3 and got[-1][1]["loop"]["steps"] == 5 + RING + 3
+
+
+def test_streams_beyond_the_bound_are_429_and_other_requests_are_served(state, monkeypatch):
+    from hbma_ctrl.app.daemon import live
+
+    monkeypatch.setattr(live, "MAX_STREAMS", 0)  # every stream is beyond the bound
+    c = TestClient(make_app(state), base_url="http://127.0.0.1")
+    r = c.get("/stream", params={"count": 1})
+    assert r.status_code == 429 and "streams are open" in r.json()["error"]
+    assert c.get("/status").status_code == 200
