@@ -48,9 +48,11 @@ class Browser:
     """One headless Chromium (module doc); a context manager that closes it and removes its profile.
 
     ``open(url)`` gives a page's session id; ``evaluate``, ``wait_for``, ``insert_text`` and ``press``
-    act in it. ``timeout`` (s) bounds each command's answer."""
+    act in it. ``timeout`` (s) bounds each command's answer; ``nice``: added to the browser's
+    niceness (all its processes), 0 = this process's priority."""
 
-    def __init__(self, exe: str | None = None, timeout: float = 60.0, window: tuple[int, int] = (1280, 900)):
+    def __init__(self, exe: str | None = None, timeout: float = 60.0, window: tuple[int, int] = (1280, 900),
+                 nice: int = 0):
         exe = exe or chromium_path()
         if exe is None:
             raise BrowserError(f"no Chromium: install Debian's chromium package ({CHROMIUM})")
@@ -61,6 +63,8 @@ class Browser:
         args = [exe, *FLAGS, f"--user-data-dir={self._profile}", f"--window-size={window[0]},{window[1]}", "about:blank"]
         # bash gives the pipes the descriptors the browser expects (3 in, 4 out; sh takes only one digit)
         script = f'exec "$@" 3<&{cmd_r} 4>&{out_w}'
+        if nice:
+            args = ["nice", "-n", str(int(nice)), *args]
         self._proc = subprocess.Popen(["bash", "-c", script, "bash", *args], pass_fds=(cmd_r, out_w),
                                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         os.close(cmd_r)

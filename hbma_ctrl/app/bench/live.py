@@ -24,7 +24,8 @@ sample's lag at most one decimation period, plus the one period the loop may pub
 reading is in flight) and ``no_fault``. The daemon's own results are in ``without_page/``,
 ``stream_only/`` and ``with_page/``. On a machine whose cores are all busy, a browser's rendering
 competes with the loop for them: the numbers say what this machine gave, not what a rig PC with a
-core to spare gives.
+core to spare gives; ``browser_nice`` runs the browser that much below the daemon's priority (as
+``nice`` does), the page as a browser at a lower priority, or on another computer, costs the loop.
 """
 
 from __future__ import annotations
@@ -99,7 +100,7 @@ def _wait_api(http, until: float) -> None:
         time.sleep(0.2)
 
 
-def _watch(url: str, rate_hz: float, every_s: float, duration_s: float, out) -> None:
+def _watch(url: str, rate_hz: float, every_s: float, duration_s: float, nice: int, out) -> None:
     """Start headless Chromium (before the daemon: its start-up is not the page's cost), open the live page
     once the API answers, read it every ``every_s`` s until the daemon stops; put "started", then the
     result (samples, the browser's CPU time) or an error line."""
@@ -109,7 +110,7 @@ def _watch(url: str, rate_hz: float, every_s: float, duration_s: float, out) -> 
 
     samples: list = []
     try:
-        with Browser() as b, httpx.Client(base_url=url, timeout=5) as http:
+        with Browser(nice=nice) as b, httpx.Client(base_url=url, timeout=5) as http:
             b.send("Browser.getVersion")  # up and answering
             out.put("started")
             until = time.monotonic() + duration_s + 300
@@ -208,7 +209,7 @@ def _free_port() -> int:
 
 
 def _one_run(config: Path, out: Path, duration_s: float, client: str | None, rate_hz: float, every_s: float,
-             echo) -> dict:
+             echo, browser_nice: int = 0) -> dict:
     """One daemon run of ``duration_s`` (rig time = wall time, speed 1); ``client``: None, "stream" (a
     reader of the stream alone) or "page" (the page in Chromium), started before the daemon."""
     from hbma_ctrl.app.daemon.config import load_config
@@ -223,7 +224,7 @@ def _one_run(config: Path, out: Path, duration_s: float, client: str | None, rat
     if client is not None:
         ctx = mp.get_context("spawn")  # a fresh interpreter: no copy of this process's threads or GIL
         q = ctx.Queue()
-        target, args = (_watch, (url, rate_hz, every_s, duration_s, q)) if client == "page" else \
+        target, args = (_watch, (url, rate_hz, every_s, duration_s, browser_nice, q)) if client == "page" else \
             (_listen, (url, rate_hz, duration_s, q))
         proc = ctx.Process(target=target, args=args, daemon=True)
         proc.start()
@@ -267,13 +268,13 @@ def _one_run(config: Path, out: Path, duration_s: float, client: str | None, rat
 
 
 def run_live_bench(config: Path, out: Path, duration_s: float, rate_hz: float = 5.0, sample_every_s: float = 1.0,
-                   overwrite: bool = False, argv: list | None = None, echo=print) -> dict:
+                   overwrite: bool = False, argv: list | None = None, echo=print, browser_nice: int = 0) -> dict:
     """Run the bench (module doc) into ``out``; returns live.json's content."""
     with run_dir(out, command="bench live", argv=argv, scenario_path=config, overwrite=overwrite) as tmp:
         runs = {}
         for name, client in (("without_page", None), ("stream_only", "stream"), ("with_page", "page")):
             echo(f"{name}: {duration_s:g} s")
-            runs[name] = _one_run(config, tmp / name, duration_s, client, rate_hz, sample_every_s, echo)
+            runs[name] = _one_run(config, tmp / name, duration_s, client, rate_hz, sample_every_s, echo, browser_nice)
         q, w = runs["without_page"], runs["with_page"]
         verdicts = {
             # past the controller's warm-up (its first solves): the start-up's misses are the same in both
@@ -284,6 +285,6 @@ def run_live_bench(config: Path, out: Path, duration_s: float, rate_hz: float = 
             "no_fault": not any(r["daemon"]["faults"] for r in runs.values()),
         }
         res = {"config": str(config), "duration_s": duration_s, "rate_hz": rate_hz, "sample_every_s": sample_every_s,
-               "runs": runs, "verdicts": verdicts}
+               "browser_nice": browser_nice, "runs": runs, "verdicts": verdicts}
         (tmp / "live.json").write_text(json.dumps(res, indent=1) + "\n")
     return res

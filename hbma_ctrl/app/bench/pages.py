@@ -277,7 +277,9 @@ def live_page(res: dict) -> Page:
         notes.append("Values shown that differ from the log (first ones): " + "; ".join(w["differences"][:5]))
     return Page("The daemon's loop with its live page open (bench live)", docstring_paragraph(live.__doc__, slice(0, 3)),
                 [Table("Verdicts", ["criterion", "passed"], [[k, fmt(v)] for k, v in res["verdicts"].items()]),
-                 Table(f"{res['config']}, {res['duration_s']:g} s per run at speed 1, loop period {fmt(period, 'g')} ms",
+                 Table(f"{res['config']}, {res['duration_s']:g} s per run at speed 1, loop period {fmt(period, 'g')} ms"
+                       + (f", the browser {res['browser_nice']} below the daemon's priority (nice)"
+                          if res.get("browser_nice") else ""),
                        ["run", "steps", "deadline misses", "overruns", "step median (ms)", "step p99 (ms)",
                         "tick p99 (ms)", "jitter p99 (ms)", "daemon CPU (s)", "browser CPU (s)", "faults"], rows),
                  Table(f"The page against the run log, one sample every {res['sample_every_s']:g} s",

@@ -270,6 +270,8 @@ def bench_live(
                                                             "default: 5)")] = 5.0,
     sample_every_s: Annotated[float, typer.Option("--sample-every-s", help="wall time between two readings of "
                                                                           "the page, s (> 0)")] = 1.0,
+    browser_nice: Annotated[int, typer.Option("--browser-nice", help="run the browser this much below the "
+                                                                     "daemon's priority (nice, 0-19)")] = 0,
     out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_live"),
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     report: ReportDir = None,
@@ -282,6 +284,7 @@ def bench_live(
     from hbma_ctrl.app.schema.api import LIVE_RATE_HZ
 
     check_range("--rate-hz", rate_hz, LIVE_RATE_HZ[1], LIVE_RATE_HZ[2], unit="Hz")
+    check_range("--browser-nice", browser_nice, 0, 19)
     _check_bench(config, {"--duration-s": duration_s, "--sample-every-s": sample_every_s})
     if chromium_path() is None:
         raise ValueError("bench live needs Chromium: apt-get install chromium")
@@ -289,7 +292,7 @@ def bench_live(
 
     rep = open_report(report, "live", cli_argv())  # --report checked before the run
     res = run_live_bench(config, out, duration_s, rate_hz, sample_every_s, overwrite=overwrite, argv=cli_argv(),
-                         echo=lambda s: print(s, file=sys.stderr, flush=True))
+                         echo=lambda s: print(s, file=sys.stderr, flush=True), browser_nice=browser_nice)
     for name, r in res["runs"].items():
         d = r["daemon"]
         line = (f"{name.replace('_', ' ')}: {d['steps']} steps, {d['deadline_misses']} deadline misses, "

@@ -83,7 +83,8 @@ def test_bench_live_writes_its_page_with_the_three_runs_and_the_verdicts(tmp_pat
 
 
 @pytest.mark.parametrize("args,needle", [(["--rate-hz", "100"], "--rate-hz"), (["--duration-s", "0"], "--duration-s"),
-                                         (["--sample-every-s", "-1"], "--sample-every-s")])
+                                         (["--sample-every-s", "-1"], "--sample-every-s"),
+                                         (["--browser-nice", "20"], "--browser-nice")])
 def test_bench_live_refuses_a_bad_flag_before_running(tmp_path, args, needle):
     res = runner.invoke(app, ["bench", "live", str(ROOT / "scenarios" / "daemon_chamber.toml"), *args,
                               "--out", str(tmp_path / "o")])
