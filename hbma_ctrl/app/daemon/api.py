@@ -77,6 +77,7 @@ import math
 import socket
 import threading
 import time
+import weakref
 from typing import Any, Self
 from urllib.parse import urlsplit
 
@@ -486,7 +487,9 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
     def request_fields(snap: dict) -> dict:
         return {"age_ms": _age_ms(snap), "stop_requested": state.stop_requested}
 
-    streams = [0]  # open streams (only the server's event loop touches it)
+    # the open streams' generators: one leaves the set when its response is done with it, however it ended
+    # (a client gone before the first event never runs the generator's own clean-up)
+    streams: weakref.WeakSet = weakref.WeakSet()
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -525,19 +528,12 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
             query = live.live_query(request.query_params.multi_items())
         except ValueError as exc:
             return _error(422, str(exc))
-        if streams[0] >= live.MAX_STREAMS:
+        if len(streams) >= live.MAX_STREAMS:
             return _error(429, f"{live.MAX_STREAMS} streams are open: close one (another page) first",
                           headers={"Retry-After": "1"})
-        streams[0] += 1
-
-        async def events():
-            try:
-                async for chunk in live.live_events(state, converted, request_fields, query, app.state.closing):
-                    yield chunk
-            finally:
-                streams[0] -= 1
-
-        return EventStream(events(), headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+        events = live.live_events(state, converted, request_fields, query, app.state.closing)
+        streams.add(events)
+        return EventStream(events, headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
 
     @app.get("/", include_in_schema=False)
     async def get_page() -> Response:

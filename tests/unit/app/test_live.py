@@ -278,3 +278,12 @@ def test_streams_beyond_the_bound_are_429_and_other_requests_are_served(state, m
     r = c.get("/stream", params={"count": 1})
     assert r.status_code == 429 and "streams are open" in r.json()["error"]
     assert c.get("/status").status_code == 200
+
+
+def test_a_finished_stream_frees_its_place(state, monkeypatch):
+    from hbma_ctrl.app.daemon import live
+
+    monkeypatch.setattr(live, "MAX_STREAMS", 1)
+    c = TestClient(make_app(state), base_url="http://127.0.0.1")
+    for _ in range(3):
+        assert c.get("/stream", params={"count": 1}).status_code == 200
