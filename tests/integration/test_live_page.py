@@ -1,6 +1,7 @@
 """The daemon's live page in headless Chromium (Debian's chromium, driven over the DevTools pipe):
 the page loads from the daemon, shows the values GET /status gives, and a setpoint typed into it and
-its stop button reach the loop. Every wait polls with a generous bound; nothing is judged by time."""
+its stop button reach the loop, whose last status the page shows. Every wait polls with a generous
+bound; nothing is judged by time."""
 
 from __future__ import annotations
 
@@ -116,9 +117,11 @@ def test_the_live_page_shows_the_status_and_its_setpoint_and_stop_reach_the_loop
             browser.wait_for(page, "document.querySelector('[data-k=\"target_mm\"][data-i=\"0\"]').textContent "
                                    "=== '4.500'", timeout=60)
 
-            # the page's stop button ends the daemon in the safe state
+            # the page's stop button ends the daemon in the safe state, and the page shows the loop stopped
             browser.evaluate(page, "document.getElementById('stop').click()")
             proc.wait(120)
+            browser.wait_for(page, "document.querySelector('[data-k=\"mode\"]').textContent === 'stopped'",
+                             timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()

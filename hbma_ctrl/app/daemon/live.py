@@ -121,11 +121,16 @@ async def live_events(state: DaemonState, convert: Callable[[dict], Status], ext
     if snap.get("mode") == "stopped" or (query.count is not None and sent >= query.count):
         return
     lost = 0
-    while not closing.is_set():
-        await asyncio.sleep(POLL_S)
+    while True:
+        # the server closes right after the loop's last status: one more read sends it
+        last_read = closing.is_set()
+        if not last_read:
+            await asyncio.sleep(POLL_S)
         pairs, missed = state.since(seq)
         lost += missed
         if not pairs:
+            if last_read:
+                return
             continue
         seq = pairs[-1][0]
         out = []
@@ -146,6 +151,8 @@ async def live_events(state: DaemonState, convert: Callable[[dict], Status], ext
                     return
         if out:
             yield b"".join(out)
+        if last_read:
+            return
 
 
 def _schema_name(schema: dict) -> str:

@@ -159,6 +159,20 @@ def test_the_stream_ends_when_the_server_closes(state):
     drive(state, 10.0, script, closing=closing)
 
 
+def test_the_loops_last_status_published_as_the_server_closes_is_still_sent(state):
+    closing = threading.Event()
+
+    async def script(read):
+        state.publish(snap(4))
+        state.publish(snap(4, mode="stopped"))
+        closing.set()  # the daemon stops its API right after the loop's last status
+        assert [(sid, ev["mode"]) for sid, ev in await read()] == [(4, "stopped")]
+        with pytest.raises(StopAsyncIteration):
+            await read()
+
+    drive(state, 10.0, script, closing=closing)
+
+
 def test_before_the_loop_reports_its_rate_the_newest_status_is_sent_then_the_grid_starts(state):
     state.publish({"mode": "starting"})
 
