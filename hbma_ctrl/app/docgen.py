@@ -116,18 +116,31 @@ def http_page() -> str:
            Every error is `{{"error": "<one line>", "detail": ...}}`. When a token is set every request
            carries `Authorization: Bearer <token>`. Requests are paced to {api.RATE_HZ:g} per second
            over all clients (bursts of {api.BURST}); a body over {api.MAX_BODY_BYTES} bytes is refused.
+           The daemon also serves its live page at `/` ([how-to](../how-to/live-page.md)) and this list
+           of endpoints at `/docs`, from its OpenAPI schema at `/openapi.json`.
            """) + "\n", "## Endpoints\n"]
     for path, ops in spec["paths"].items():
         for method, op in ops.items():
             out.append(f"### `{method.upper()} {path}`\n")
             out.append(_prose(op.get("description") or op.get("summary", "")) + "\n")
+            params = op.get("parameters") or []
+            if params:
+                out.append("| query key | type | range | description |\n|---|---|---|---|")
+                for prm in params:
+                    s = prm.get("schema", {})
+                    rng = [f"{o} {s[k]:g}" for k, o in (("minimum", ">="), ("maximum", "<=")) if k in s]
+                    out.append(f"| `{prm['name']}` | {_schema_name(s)} | {_cell(', '.join(rng))} | "
+                               f"{_prose(prm.get('description', ''))} |")
+                out.append("")
             body = op.get("requestBody", {}).get("content", {}).get("application/json", {}).get("schema")
             if body:
                 out.append(f"Request body: {_schema_name(body)}\n")
             out.append("| status | meaning | body |\n|---|---|---|")
             for code, r in sorted(op["responses"].items()):
-                schema = r.get("content", {}).get("application/json", {}).get("schema")
-                out.append(f"| {code} | {_prose(r.get('description', ''))} | {_schema_name(schema) if schema else ''} |")
+                kinds = r.get("content", {})
+                kind, schema = next(((k, c["schema"]) for k, c in kinds.items() if c.get("schema")), ("", None))
+                shown = _schema_name(schema) + ("" if kind == "application/json" else f" ({kind})") if schema else ""
+                out.append(f"| {code} | {_prose(r.get('description', ''))} | {shown} |")
             out.append("")
     out.append("## Messages\n")
     for name, s in spec["components"]["schemas"].items():

@@ -55,7 +55,8 @@ def test_a_cycle_is_found_when_there_is_one(tmp_path, monkeypatch):
     assert g.chain_exists(importer="cyc.b", imported="cyc.a") and g.chain_exists(importer="cyc.a", imported="cyc.b")
 
 
-def test_the_wheel_ships_every_scenario_file_the_firmware_sources_and_the_license_and_only_the_package(tmp_path):
+def test_the_wheel_ships_every_scenario_file_the_firmware_sources_the_live_page_and_the_license_and_only_the_package(
+        tmp_path):
     import shutil
     import zipfile
     from pathlib import Path
@@ -77,6 +78,8 @@ def test_the_wheel_ships_every_scenario_file_the_firmware_sources_and_the_licens
                 if p.is_file() and (p.suffix in (".c", ".h") or p.name in ("Makefile", "README.md"))
                 and "build" not in p.parts}
     assert "hbma_ctrl/firmware/src/fw.c" in firmware and firmware <= set(names), sorted(firmware - set(names))
+    page = {"hbma_ctrl/app/daemon/static/live.html", "hbma_ctrl/app/daemon/static/live.js"}
+    assert page <= set(names), sorted(page - set(names))
     assert {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")} == {"hbma_ctrl"}
     meta = next(zipfile.ZipFile(wheel).read(n).decode() for n in names if n.endswith(".dist-info/METADATA"))
     assert "License: MIT" in meta or "License-Expression: MIT" in meta, meta[:800]

@@ -11,7 +11,7 @@ import statistics
 from hbma_ctrl.app.bench.report import Page, Pareto, Table, docstring_paragraph, fmt, ratio
 
 __all__ = ["sim_page", "protocol_page", "ekf_page", "loop_page", "mpc_page", "robot_page", "fit_page", "soak_page",
-           "drills_page", "poses_page", "codegen_page"]
+           "drills_page", "poses_page", "api_page", "live_page", "codegen_page"]
 
 
 def sim_page(rows: list, meta: dict) -> Page:
@@ -251,6 +251,41 @@ def api_page(res: dict) -> Page:
                        ["run", "clients", "requests/s", "steps", "deadline misses", "overruns", "step p99 (ms)",
                         "/stop within a period", "/stop median (ms)", "/stop p99 (ms)", "/stop max (ms)", "faults"],
                        rows)])
+
+
+def live_page(res: dict) -> Page:
+    """``bench live``: its live.json dict."""
+    from hbma_ctrl.app.bench import live
+
+    rows = []
+    for name, r in res["runs"].items():
+        d = r["daemon"]
+        rows.append([name.replace("_", " "), fmt(d["steps"]), fmt(d["deadline_misses"]), fmt(d["overruns"]),
+                     fmt(d["step_ms_median"], ".3g"), fmt(d["step_ms_p99"], ".3g"), fmt(d["tick_ms_p99"], ".3g"),
+                     fmt(d["jitter_ms_p99"], ".3g"), fmt(r.get("daemon_cpu_s"), ".3g"),
+                     fmt(r.get("browser_cpu_s"), ".3g"), str(d["faults"] or "none")])
+    w = res["runs"].get("with_page", {})
+    period = w.get("period_ms", float("nan"))
+    page_rows = [[fmt(w.get("rate_hz"), "g"), fmt(w.get("every_steps")), fmt(w.get("samples")), fmt(w.get("compared")),
+                  fmt(w.get("matching_log")), fmt(w.get("lag_periods_median"), ".3g"), fmt(w.get("lag_periods_max"), ".3g"),
+                  f"{w.get('within_one_decimation_period', 0)}/{w.get('compared', 0)}"]]
+    notes = []
+    for name, r in res["runs"].items():
+        if r.get("client_error"):
+            notes.append(f"{name}: the client failed: {r['client_error']}")
+    if w.get("differences"):
+        notes.append("Values shown that differ from the log (first ones): " + "; ".join(w["differences"][:5]))
+    return Page("The daemon's loop with its live page open (bench live)", docstring_paragraph(live.__doc__, slice(0, 3)),
+                [Table("Verdicts", ["criterion", "passed"], [[k, fmt(v)] for k, v in res["verdicts"].items()]),
+                 Table(f"{res['config']}, {res['duration_s']:g} s per run at speed 1, loop period {fmt(period, 'g')} ms"
+                       + (f", the browser {res['browser_nice']} below the daemon's priority (nice)"
+                          if res.get("browser_nice") else ""),
+                       ["run", "steps", "deadline misses", "overruns", "step median (ms)", "step p99 (ms)",
+                        "tick p99 (ms)", "jitter p99 (ms)", "daemon CPU (s)", "browser CPU (s)", "faults"], rows),
+                 Table(f"The page against the run log, one sample every {res['sample_every_s']:g} s",
+                       ["updates asked (per s)", "loop periods per update", "samples", "compared with the log",
+                        "equal to the log", "lag median (periods)", "lag max (periods)",
+                        "within one decimation period"], page_rows)], notes=notes)
 
 
 def codegen_page(res: dict, spec_name: str, opt: str) -> Page:

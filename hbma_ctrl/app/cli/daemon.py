@@ -262,6 +262,63 @@ def bench_api(
         raise typer.Exit(1)
 
 
+def bench_live(
+    config: Annotated[Path, typer.Argument(help="daemon configuration (CONFIG.toml)")]
+    = Path("scenarios/daemon_chamber.toml"),
+    duration_s: Annotated[float, typer.Option("--duration-s", help="time of each run, s (> 0; speed 1)")] = 600.0,
+    rate_hz: Annotated[float, typer.Option("--rate-hz", help="updates per second the page asks for (its "
+                                                            "default: 5)")] = 5.0,
+    sample_every_s: Annotated[float, typer.Option("--sample-every-s", help="wall time between two readings of "
+                                                                          "the page, s (> 0)")] = 1.0,
+    browser_nice: Annotated[int, typer.Option("--browser-nice", help="run the browser this much below the "
+                                                                     "daemon's priority (nice, 0-19)")] = 0,
+    out: Annotated[Path, typer.Option("--out", "-o", help="results directory")] = Path("runs/bench_live"),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    report: ReportDir = None,
+) -> None:
+    """The daemon on the simulated rig in real time, without and with its live page open in headless
+    Chromium: deadline misses and step p99 side by side, and the page's values against the run log
+    (live.json)."""
+    from hbma_ctrl.app.bench.browser import chromium_path
+    from hbma_ctrl.app.bench.live import run_live_bench
+    from hbma_ctrl.app.schema.api import LIVE_RATE_HZ
+
+    check_range("--rate-hz", rate_hz, LIVE_RATE_HZ[1], LIVE_RATE_HZ[2], unit="Hz")
+    check_range("--browser-nice", browser_nice, 0, 19)
+    _check_bench(config, {"--duration-s": duration_s, "--sample-every-s": sample_every_s})
+    if chromium_path() is None:
+        raise ValueError("bench live needs Chromium: apt-get install chromium")
+    from hbma_ctrl.app.bench.report import open_report
+
+    rep = open_report(report, "live", cli_argv())  # --report checked before the run
+    res = run_live_bench(config, out, duration_s, rate_hz, sample_every_s, overwrite=overwrite, argv=cli_argv(),
+                         echo=lambda s: print(s, file=sys.stderr, flush=True), browser_nice=browser_nice)
+    for name, r in res["runs"].items():
+        d = r["daemon"]
+        line = (f"{name.replace('_', ' ')}: {d['steps']} steps, {d['deadline_misses']} deadline misses, "
+                f"{d['overruns']} overruns, step p99 {d['step_ms_p99'] or float('nan'):.2f} ms, daemon CPU "
+                f"{r['daemon_cpu_s']:.1f} s")
+        if r["client"] == "stream":
+            line += f"; {r['events']} events read"
+        if r["client"] == "page":
+            line += f"; browser CPU {r['browser_cpu_s'] or float('nan'):.1f} s"
+            line += (f"; page: {r['matching_log']}/{r['compared']} readings equal to the log, lag median "
+                     f"{r['lag_periods_median'] if r['lag_periods_median'] is not None else float('nan'):.0f} / max "
+                     f"{r['lag_periods_max'] if r['lag_periods_max'] is not None else float('nan'):.0f} periods "
+                     f"(updates every {r['every_steps']} periods)")
+        if r.get("client_error"):
+            line += f"; the client failed: {r['client_error']}"
+        typer.echo(line)
+    failed = [k for k, ok in res["verdicts"].items() if not ok]
+    typer.echo(f"live: {'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'live.json'}")
+    if rep:
+        from hbma_ctrl.app.bench.pages import live_page
+
+        typer.echo(f"wrote {rep.write(live_page(res))}")
+    if failed:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``daemon`` to the top-level app (called by :mod:`hbma_ctrl.app.cli.main`)."""
     app.command("daemon")(daemon)
@@ -269,3 +326,4 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     bench_app.command("drills")(bench_drills)
     bench_app.command("poses")(bench_poses)
     bench_app.command("api")(bench_api)
+    bench_app.command("live")(bench_live)

@@ -13,6 +13,11 @@ Endpoints (JSON, edge units; the messages are :mod:`hbma_ctrl.app.schema.api`):
   sane (409 with the reason otherwise, or once a stop has been asked for); the loop resumes control
   at its next period.
 - ``GET /health`` -> :class:`Health`: the API answers; the loop's mode and the age of its status.
+- ``GET /stream?rate_hz=R`` -> server-sent events, each a :class:`LiveEvent`: the status at R per second
+  of loop time, decimated here in loop periods (:mod:`hbma_ctrl.app.daemon.live`); 422 for a bad
+  query, 429 beyond :data:`hbma_ctrl.app.daemon.live.MAX_STREAMS` streams.
+- ``GET /`` and ``GET /live.js``: the live page; ``GET /docs``: the endpoints as HTML, from
+  ``GET /openapi.json``.
 
 Every error is JSON ``{"error": "<one line>", "detail": ...}``; a message that fails validation is
 422 and its line names the key as written and the allowed range in the key's unit, e.g.
@@ -24,7 +29,10 @@ Every error is JSON ``{"error": "<one line>", "detail": ...}``; a message that f
 - 429 beyond :data:`MAX_CLIENTS` requests in progress, or for a request that would wait more than
   :data:`MAX_WAIT_S` for its turn: requests are paced to :data:`RATE_HZ` per second over all clients
   (a burst of :data:`BURST` at once). ``POST /stop`` is never paced nor counted;
-- 401 when a token is set and the request lacks ``Authorization: Bearer <token>``;
+- 401 when a token is set and the request lacks ``Authorization: Bearer <token>``, except a GET of the
+  page, its script and the endpoints' page (:data:`hbma_ctrl.app.daemon.live.PUBLIC_PATHS`), which
+  hold no data: a browser cannot send the header when it opens a page, so the page asks for the token
+  and sends it with each request it makes;
 - 415 for a body that is not ``Content-Type: application/json``; 413 for a body over
   :data:`MAX_BODY_BYTES`; 408 for a body not whole within :data:`REQUEST_TIMEOUT_S`.
 
@@ -69,6 +77,7 @@ import math
 import socket
 import threading
 import time
+import weakref
 from typing import Any, Self
 from urllib.parse import urlsplit
 
@@ -76,10 +85,11 @@ import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 
+from hbma_ctrl.app.daemon import live
 from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.app.schema.api import (
     CHAMBER_INDEX_MAX,
@@ -89,6 +99,8 @@ from hbma_ctrl.app.schema.api import (
     Faults,
     Health,
     LayerStatus,
+    LiveEvent,
+    LiveQuery,
     ResetReply,
     LoopTiming,
     SetpointApplied,
@@ -110,6 +122,7 @@ __all__ = [
     "RATE_HZ",
     "REQUEST_TIMEOUT_S",
     "ApiServer",
+    "EventStream",
     "is_loopback",
     "make_app",
     "request_error",
@@ -316,7 +329,8 @@ class _Guard:
             self._in_progress -= paced
 
     async def _serve(self, scope: dict, receive: Any, send: Any, headers: Headers, method: str) -> None:
-        if self.token is not None and not self._authorised(headers):
+        public = method in ("GET", "HEAD") and scope.get("path") in live.PUBLIC_PATHS
+        if self.token is not None and not public and not self._authorised(headers):
             await _error(401, "missing or wrong token: send 'Authorization: Bearer <token>'",
                          headers={"WWW-Authenticate": "Bearer"})(scope, receive, send)
             return
@@ -419,6 +433,26 @@ _SETPOINT_ERRORS = _errors(s409="the daemon is stopping: no new setpoints",
                            s422="the message or the loop's check refuses it (the line names the key and its range)",
                            s503="the loop does not take setpoints yet")
 _RESET_ERRORS = _errors(s409="the daemon is stopping, is not in the safe state, or a reading is not sane")
+_STREAM_ERRORS = _errors(s422="a bad query key or value (the line names the key and its range)")
+
+
+class EventStream(StreamingResponse):
+    """A stream of server-sent events."""
+
+    media_type = "text/event-stream"
+
+
+def _query_parameters() -> list[dict]:
+    """GET /stream's query keys as OpenAPI parameters, from :class:`LiveQuery`."""
+    schema = LiveQuery.model_json_schema()
+    out = []
+    for key, s in schema["properties"].items():
+        s = {k: v for k, v in s.items() if k not in ("title", "description", "unit")}
+        if "anyOf" in s:  # optional: the number's own schema
+            s = {**next(x for x in s.pop("anyOf") if x.get("type") != "null"), **s}
+        out.append({"name": key, "in": "query", "required": False, "schema": s,
+                    "description": schema["properties"][key].get("description", "")})
+    return out
 
 
 def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = RATE_HZ, burst: int = BURST,
@@ -431,7 +465,10 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         raise ValueError("token must not be empty")
     if not (rate_hz > 0 and burst >= 1 and max_wait_s >= 0):
         raise ValueError("api pace: rate_hz > 0, burst >= 1 and max_wait_s >= 0 are required")
+    # FastAPI's docs pages load their scripts from a CDN: /docs is rendered here instead (live.docs_page)
     app = FastAPI(title="hbma-ctrl rig daemon", docs_url=None, redoc_url=None, responses=_GUARD_ERRORS)
+    #: set when the server stops: open streams end
+    app.state.closing = threading.Event()
     app.add_middleware(_Guard, token=token, max_body=MAX_BODY_BYTES, rate_hz=rate_hz, burst=burst,
                        max_wait_s=max_wait_s, allow_remote=allow_remote, max_clients=max_clients)
     # the last converted snapshot: many requests per loop period convert it once
@@ -446,6 +483,13 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         with cache_lock:
             cache[0], cache[1] = snapshot, msg
         return msg
+
+    def request_fields(snap: dict) -> dict:
+        return {"age_ms": _age_ms(snap), "stop_requested": state.stop_requested}
+
+    # the open streams' generators: one leaves the set when its response is done with it, however it ended
+    # (a client gone before the first event never runs the generator's own clean-up)
+    streams: weakref.WeakSet = weakref.WeakSet()
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -471,6 +515,52 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         """The API answers; the loop's mode and the age of its last status (ms)."""
         snap = state.status()
         return _json(Health(ok=True, mode=str(snap.get("mode", "starting")), age_ms=_age_ms(snap)))
+
+    @app.get("/stream", response_model=LiveEvent, responses={
+        **_STREAM_ERRORS, 200: {"description": "server-sent events, each one's data a LiveEvent"}},
+        openapi_extra={"parameters": _query_parameters()})
+    async def get_stream(request: Request) -> Response:
+        """The status as server-sent events at ``rate_hz`` per second of loop time (every n-th status of the
+        loop, n = loop rate / rate_hz rounded, at least 1), the first at once; each event's data is a
+        LiveEvent, its id the loop's step count. The stream ends after ``count`` events, after the
+        status of mode stopped, or when the server stops."""
+        try:
+            query = live.live_query(request.query_params.multi_items())
+        except ValueError as exc:
+            return _error(422, str(exc))
+        if len(streams) >= live.MAX_STREAMS:
+            return _error(429, f"{live.MAX_STREAMS} streams are open: close one (another page) first",
+                          headers={"Retry-After": "1"})
+        events = live.live_events(state, converted, request_fields, query, app.state.closing)
+        streams.add(events)
+        return EventStream(events, headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+
+    @app.get("/", include_in_schema=False)
+    async def get_page() -> Response:
+        return HTMLResponse(live.static_text(live.PAGE), headers=live.page_headers())
+
+    @app.get("/live.js", include_in_schema=False)
+    async def get_script() -> Response:
+        return Response(live.static_text(live.SCRIPT), media_type="text/javascript; charset=utf-8",
+                        headers=live.page_headers())
+
+    schema_of = app.openapi
+
+    def openapi() -> dict:
+        spec = schema_of()  # built once and kept by FastAPI
+        ok = spec["paths"]["/stream"]["get"]["responses"]["200"]
+        if "application/json" in ok.get("content", {}):  # the events are JSON inside an event stream
+            ok["content"] = {"text/event-stream": ok["content"].pop("application/json")}
+        return spec
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    docs_html: list = []
+
+    @app.get("/docs", include_in_schema=False)
+    async def get_docs() -> Response:
+        if not docs_html:
+            docs_html.append(live.docs_page(app.openapi()))
+        return HTMLResponse(docs_html[0], headers=live.page_headers())
 
     @app.post("/setpoint", response_model=SetpointReply, responses=_SETPOINT_ERRORS)
     def post_setpoint(request: SetpointRequest) -> Response:
@@ -534,8 +624,10 @@ def _bind(host: str, port: int) -> socket.socket:
 class ApiServer:
     """A running API: uvicorn in a daemon thread. ``host``/``port`` are the bound address."""
 
-    def __init__(self, server: uvicorn.Server, thread: threading.Thread, sock: socket.socket):
+    def __init__(self, server: uvicorn.Server, thread: threading.Thread, sock: socket.socket,
+                 closing: threading.Event | None = None):
         self._server = server
+        self._closing = closing
         self._thread = thread
         self._sock = sock
         addr = sock.getsockname()
@@ -553,7 +645,10 @@ class ApiServer:
         return self._thread.is_alive()
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Stop serving and join the thread (open connections get up to ``timeout`` s, then are cut)."""
+        """Stop serving and join the thread (open streams end; open connections get up to ``timeout`` s,
+        then are cut)."""
+        if self._closing is not None:
+            self._closing.set()
         self._server.should_exit = True
         self._thread.join(timeout)
         if self._thread.is_alive():
@@ -597,4 +692,4 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
             sock.close()
             raise RuntimeError(f"the API did not start on {host}:{port}")
         time.sleep(0.01)
-    return ApiServer(server, thread, sock)
+    return ApiServer(server, thread, sock, app.state.closing)

@@ -1,8 +1,15 @@
-"""What the daemon's loop and its API share, behind one lock (SI inside; the API converts at its edge).
+"""What the daemon's loop and its API share (SI inside; the API converts at its edge).
 
 The loop thread publishes a status snapshot every period (:meth:`DaemonState.publish`) and takes the
 setpoints queued since the last period (:meth:`DaemonState.take_setpoints`). The API thread reads the
-snapshot, submits setpoints and asks for the stop. A setpoint is checked and clipped to what the rig
+snapshot, submits setpoints and asks for the stop.
+
+Publishing takes no lock: the snapshot is a new dict the loop never touches again, and it is put in
+place by single reference stores (the newest ``(seq, snapshot)`` pair, and the same pair in a ring of
+the last :data:`RING` snapshots), which a reader sees whole or not at all. So a reader, however slow
+and however many, never makes the loop wait. The live stream reads the ring to send every n-th
+snapshot even when it wakes after several were published (:meth:`DaemonState.since`). The setpoint
+queue, the reset flag and the stop keep a lock, held for a few operations on either side. A setpoint is checked and clipped to what the rig
 can reach by the handler the loop registered (:meth:`DaemonState.set_setpoint_handler`) in the API's
 thread, so the reply says at once what will be applied and what was clipped; the loop applies it at
 its next period.
@@ -24,7 +31,11 @@ import threading
 from collections import deque
 from typing import Callable
 
-__all__ = ["DaemonState"]
+__all__ = ["DaemonState", "RING"]
+
+#: snapshots the state keeps for the live stream (the newest last); a reader that falls further behind
+#: than this misses the oldest and is told how many
+RING = 128
 
 
 class DaemonState:
@@ -32,7 +43,8 @@ class DaemonState:
 
     def __init__(self, max_pending: int = 64):
         self._lock = threading.Lock()
-        self._status: dict = {"mode": "starting"}
+        self._latest: tuple[int, dict] = (0, {"mode": "starting"})
+        self._ring: list[tuple[int, dict] | None] = [None] * RING
         self._pending: deque = deque(maxlen=max_pending)
         self._handler: Callable[[dict], dict] | None = None
         self._reset_handler: Callable[[], str] | None = None
@@ -42,9 +54,12 @@ class DaemonState:
 
     # --- loop side ---------------------------------------------------------------------------------
     def publish(self, status: dict) -> None:
-        """Replace the status snapshot (the loop builds a new dict each time; readers never see a half)."""
-        with self._lock:
-            self._status = status
+        """Replace the status snapshot (the loop builds a new dict each time and never changes it after).
+        Called from one thread (the loop's); takes no lock (module doc)."""
+        seq = self._latest[0] + 1
+        pair = (seq, status)
+        self._ring[seq % RING] = pair
+        self._latest = pair  # one reference store: a reader sees the old pair or the new one
 
     def take_setpoints(self) -> list[dict]:
         """The setpoints submitted since the last call (oldest first), as the handler returned them."""
@@ -73,8 +88,24 @@ class DaemonState:
     # --- API side ----------------------------------------------------------------------------------
     def status(self) -> dict:
         """The newest status snapshot (do not mutate it)."""
-        with self._lock:
-            return self._status
+        return self._latest[1]
+
+    def latest(self) -> tuple[int, dict]:
+        """The newest snapshot with its sequence number (1 for the first published, 0 before any)."""
+        return self._latest
+
+    def since(self, seq: int) -> tuple[list[tuple[int, dict]], int]:
+        """The snapshots published after number ``seq``, oldest first, as (seq, snapshot) pairs, and how
+        many of them the ring no longer holds (published more than :data:`RING` before this call)."""
+        newest = self._latest[0]
+        first = max(seq + 1, newest - RING + 1)
+        out = []
+        for k in range(first, newest + 1):
+            pair = self._ring[k % RING]
+            # the loop may have written a newer snapshot into this slot since ``newest`` was read
+            if pair is not None and pair[0] == k:
+                out.append(pair)
+        return out, max(0, newest - seq) - len(out) if newest > seq else 0
 
     def submit_setpoint(self, request: dict) -> dict:
         """Check and clip ``request`` and queue it for the loop; returns the handler's reply.

@@ -27,6 +27,7 @@ __all__ = [
     "CHAMBER_INDEX_MAX",
     "DIRECTION_MAX_DEG",
     "LAYER_INDEX_MAX",
+    "LIVE_RATE_HZ",
     "ChamberStatus",
     "ErrorReply",
     "FaultEvent",
@@ -34,6 +35,8 @@ __all__ = [
     "Health",
     "LayerPose",
     "LayerStatus",
+    "LiveEvent",
+    "LiveQuery",
     "LoopTiming",
     "ResetReply",
     "SetpointApplied",
@@ -47,6 +50,8 @@ __all__ = [
 DIRECTION_MAX_DEG = 360.0
 CHAMBER_INDEX_MAX = 255
 LAYER_INDEX_MAX = 63
+#: the live stream's event rate: default, lowest and highest (Hz of loop time)
+LIVE_RATE_HZ = (5.0, 0.5, 50.0)
 
 _HEIGHTS_SHAPE = '{"<chamber index>": h_mm, ...}'
 _LAYERS_SHAPE = '[{"layer": i, "centre_mm": x, "bend_deg": x, "direction_deg": x}, ...]'
@@ -100,6 +105,16 @@ class SetpointRequest(Table):
         if self.layers:
             out["layers"] = {p.layer: p.to_si() for p in self.layers}
         return out
+
+
+class LiveQuery(Table):
+    """GET /stream's query string: how often to send the status, and how many times before ending."""
+
+    rate_hz: float = num(LIVE_RATE_HZ[0], LIVE_RATE_HZ[1], LIVE_RATE_HZ[2], "Hz",
+                         "events per second of loop time: the daemon sends every n-th status of its loop, "
+                         "n = loop rate / rate_hz rounded (at least 1)")
+    count: int | None = integer(None, 1, 10_000_000, "events to send before the stream ends; none = until the "
+                                "daemon stops")
 
 
 class Message(BaseModel):
@@ -177,6 +192,16 @@ class Status(Message):
     layers: list[LayerStatus] = Field(default_factory=list, description="per robot layer; empty on the rig")
     loop: LoopTiming = Field(default_factory=LoopTiming, description="step timing")
     faults: Faults = Field(default_factory=Faults, description="safety events")
+
+
+class LiveEvent(Status):
+    """One event of GET /stream (the ``data`` of a server-sent event): the status as GET /status gives
+    it, and how the stream decimates."""
+
+    every_steps: int | None = Field(None, description="loop periods between the statuses sent (-); null "
+                                    "before the loop reports its rate")
+    lost: int = Field(0, description="statuses published since the last event that the stream read too late "
+                      "to choose from (-; 0 unless the client or the server fell behind)")
 
 
 class SetpointApplied(Message):
