@@ -117,11 +117,12 @@ class McapLog:
         """The log's topics, in the order they were registered."""
         return list(self._chan)
 
-    def put(self, t_s: float, kind: str, payload) -> bool:
+    def put(self, t_s: float, kind: str, payload, block: bool = False) -> bool:
         """Queue one item at the run's clock ``t_s`` (s): a message dict for topic ``kind``, or the payload
-        of the expander ``kind``. Never blocks; False (and :attr:`dropped` counted) when the queue is full."""
+        of the expander ``kind``. Never blocks unless ``block``; False (and :attr:`dropped` counted) when
+        the queue is full."""
         try:
-            self._q.put_nowait((float(t_s), time.time_ns(), kind, payload))
+            self._q.put((float(t_s), time.time_ns(), kind, payload), block=block)
         except queue.Full:
             self.dropped += 1
             return False

@@ -22,6 +22,7 @@ from hbma_ctrl.app.metrics import (
     write_log_csv,
     write_metrics,
 )
+from hbma_ctrl.app.logs.scenes import write_open_loop
 from hbma_ctrl.app.plots import plot_run
 from hbma_ctrl.app.scenes.protocol import run_protocol
 from hbma_ctrl.app.scenario import Scenario
@@ -78,6 +79,7 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
         # a long run (the note above) shows a progress bar in model seconds with the time left
         (log,) = simulate_trials([trial], scn.sim, fid, progress=note is not None)
         write_log_csv(log, out_dir / "log.csv")
+        write_open_loop(log, out_dir, scn.path, extra={"kind": "open loop", "status": log.status})
         plot_run(log, out_dir / "run.png", title=f"{scn.name}: {log.fidelity}, {scn.sim.integrator}, "
                  f"status {log.status}", sensor_range=scn.sim.sensor_range)
         plant = plant_metrics([log])
