@@ -11,7 +11,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-__all__ = ["LABELS", "DPI", "FORMATS", "figure", "legend", "save", "decimate", "label_chambers"]
+__all__ = ["LABELS", "DPI", "FORMATS", "figure", "legend", "save", "decimate", "plain_y"]
 
 #: axis labels, one style everywhere: "symbol (unit)" or "what (unit)"
 LABELS = {
@@ -67,8 +67,11 @@ def decimate(t: np.ndarray, *ys: np.ndarray, most: int = 20000) -> tuple:
     return (t[::step], *(y[::step] for y in ys))
 
 
-def label_chambers(ax: Axes, names, values_last) -> None:
-    """Name each line at its right end (chamber names; for panels with several chambers' lines)."""
-    for nm, (x, y) in zip(names, values_last):
-        if np.isfinite(y):
-            ax.annotate(nm, (x, y), xytext=(3, 0), textcoords="offset points", fontsize=7, va="center")
+def plain_y(ax: Axes, least_span: float = 1.0) -> None:
+    """Plain y tick labels (no offset or power above the axis) and, for a flat signal, a y range of
+    ``least_span`` around it (a constant otherwise shows as noise at its last digits)."""
+    lo, hi = ax.get_ylim()
+    if hi - lo < 1e-6 * max(1.0, abs(lo), abs(hi)):
+        mid = 0.5 * (lo + hi)
+        ax.set_ylim(mid - least_span / 2, mid + least_span / 2)
+    ax.ticklabel_format(axis="y", style="plain", useOffset=False)

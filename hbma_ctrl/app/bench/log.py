@@ -3,7 +3,8 @@ every period.
 
 The daemon runs on the simulated rig the same configuration, duration and speed ``repeats`` times
 with the MCAP log and as many without it (the CSV run log only), alternating (without, with,
-without, ...) so that a change in the machine's load falls on both alike. Per run: steps, deadline
+without, ...) so that a change in the machine's load falls on both alike, the API on a free loopback
+port with no client. Per run: steps, deadline
 misses, overrun warnings, step time median and p99 (ms, wall clock: the whole period's work,
 simulated plant included) and tick p99 (the runtime tick alone). For each run with the log, the
 messages on each per-period topic (``/readings``, ``/estimates``, ``/targets``, ``/commands``,
@@ -55,7 +56,8 @@ def run_log_bench(config: Path, out: Path, duration_s: float, speed: float, repe
     """Run the bench of the module doc into ``out``; returns log.json's content."""
     from hbma_ctrl.app.daemon.config import load_config
 
-    cfg = load_config(config, {"--rig": "sim", "--speed": speed, "--duration-s": duration_s})
+    # the API on a free port: no client asks, and a fixed port may be another daemon's
+    cfg = load_config(config, {"--rig": "sim", "--speed": speed, "--duration-s": duration_s, "--api": "127.0.0.1:0"})
     with run_dir(out, command="bench log", argv=argv, scenario_path=config, overwrite=overwrite) as tmp:
         runs = {}
         for k in range(int(repeats)):

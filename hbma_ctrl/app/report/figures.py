@@ -20,10 +20,10 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
 
-from hbma_ctrl.app.figstyle import LABELS, decimate, figure, legend, save
+from hbma_ctrl.app.figstyle import LABELS, decimate, figure, legend, plain_y, save
 from hbma_ctrl.app.report.load import RunSignals, is_fault, load_run
 
-__all__ = ["report", "FIGURES"]
+__all__ = ["report", "make_figures", "FIGURES"]
 
 #: the report's figures, in the order they are made
 FIGURES = ("tracking", "pressures", "commands", "estimator_errors", "events", "robot_pose")
@@ -63,6 +63,7 @@ def _finish_axes(axes, ylabel: str, keys=None) -> None:
     chambers' colours, then the signals' line styles) or its own lines' legend."""
     for ax in axes:
         ax.set_ylabel(ylabel)
+        plain_y(ax)
         if _bottom(ax, axes):
             ax.set_xlabel(LABELS["t"])
         ax.grid(alpha=0.3)
@@ -282,6 +283,16 @@ _MAKERS = {"tracking": tracking, "pressures": pressures, "commands": commands,
            "estimator_errors": estimator_errors, "events": events, "robot_pose": robot_pose}
 
 
+def make_figures(sig: RunSignals) -> dict:
+    """The figures (module doc) the run's signals give: name -> matplotlib Figure, in :data:`FIGURES` order."""
+    out = {}
+    for name in FIGURES:
+        fig = _MAKERS[name](sig)
+        if fig is not None:
+            out[name] = fig
+    return out
+
+
 def report(run_dir: Path | str, out: Path | str) -> list[Path]:
     """Write the figures of the run in ``run_dir`` into ``out`` (created): each as PNG and PDF (module doc);
     returns the files written."""
@@ -289,10 +300,8 @@ def report(run_dir: Path | str, out: Path | str) -> list[Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
-    for name in FIGURES:
-        fig = _MAKERS[name](sig)
-        if fig is not None:
-            files += save(fig, out / name)
+    for name, fig in make_figures(sig).items():
+        files += save(fig, out / name)
     if not files:
         raise ValueError(f"RUN_DIR {run_dir}: its log ({sig.source}) holds no signal to draw")
     return files

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from hbma_ctrl.app.figstyle import DPI, LABELS, figure, legend, save
+from hbma_ctrl.app.figstyle import DPI, LABELS, figure, legend, plain_y, save
 from hbma_ctrl.core import units as U
 from hbma_ctrl.robot.design import LETTERS, RobotDesign
 from hbma_ctrl.robot.kinematics import forward_kinematics
@@ -44,7 +44,7 @@ def plot_shapes(design: RobotDesign, heights_list: list, path: Path | str, label
     (``path`` with its suffix replaced). Returns the files."""
     n = len(heights_list)
     fig = figure(max(2.3 * n, 6.0), 6.4)
-    axes = fig.subplots(2, n, sharex=True, sharey=True, squeeze=False)
+    axes = fig.subplots(2, n, sharey=True, squeeze=False)
     extent = 0.0
     for j, hs in enumerate(heights_list):
         pose = forward_kinematics(design, np.maximum(np.asarray(hs, float).reshape(-1, 3), 0.0))
@@ -60,10 +60,10 @@ def plot_shapes(design: RobotDesign, heights_list: list, path: Path | str, label
             ax.grid(alpha=0.3)
             if j == 0:
                 ax.set_ylabel(LABELS["z"])
-            if row == 1:
-                ax.set_xlabel(LABELS["y"] if axis == 1 else LABELS["x"])
+            ax.set_xlabel(LABELS["y"] if axis == 1 else LABELS["x"])
         axes[0, j].set_title(labels[j] if labels else f"shape {j + 1}", fontsize=9)
-    axes[0, 0].set_xlim(-1.1 * extent, 1.1 * extent)
+    for ax in axes.ravel():
+        ax.set_xlim(-1.1 * extent, 1.1 * extent)
     fig.suptitle((title or "robot shape") + "\nfront view (x-z, top row) and side view (y-z, bottom row); "
                  "grey: layer bodies, red: chambers (membrane centre to contact)", fontsize=10)
     return save(fig, Path(path).with_suffix(""))
@@ -95,6 +95,7 @@ def plot_run(design: RobotDesign, run: RobotRun, path: Path | str) -> list[Path]
     axs[-1].set_xlabel(LABELS["t"])
     for ax in axs:
         ax.grid(alpha=0.3)
+        plain_y(ax)
         legend(ax, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.suptitle("Open-loop robot run: heights, pressures and bends")
     return save(fig, Path(path).with_suffix(""))
