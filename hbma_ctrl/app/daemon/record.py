@@ -3,9 +3,11 @@ with the simulated rig's true state beside the loop's signals (topics: :mod:`hbm
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from hbma_ctrl.app.logs.signals import GROUPS, SignalLog
+from hbma_ctrl.runtime.stats import StepStats
 
 __all__ = ["DaemonRecord"]
 
@@ -23,13 +25,26 @@ class DaemonRecord(SignalLog):
         groups = GROUPS if truth is not None else tuple(g for g in GROUPS if g != "truth")
         super().__init__(path, names, groups, design, metadata, attachments, queue_size)
         self.truth = truth
+        #: the loop thread's time in :meth:`step` (copying the period's arrays, reading the simulated
+        #: rig's truth, queueing), s: all that the log costs the loop itself
+        self.handoff_s = StepStats(8192)
 
     def step(self, t: float, mode: str, p, p_est, h, h_std, target, u, step_s: float, faults: str) -> None:
         """Queue one period of the loop (SI arrays per chamber, ``u`` (3, n), ``step_s`` s, ``faults`` the
         latched kinds) with the rig's true state now; never blocks (a full queue drops and counts it)."""
+        c0 = time.perf_counter()
         tr = None
         if self.truth is not None:
             d = self.truth()
             tr = (float(d.get("t", t)), d["h"], d["p"])
         self.period(t, p=p, p_est=p_est, h=h, h_std=h_std, target=target, u=u, truth=tr, mode=mode,
                     step_s=step_s, faults=faults)
+        self.handoff_s.add(time.perf_counter() - c0)
+
+    def close(self, stats: dict | None = None, calibration: dict | None = None) -> dict:
+        """As :meth:`hbma_ctrl.app.logs.signals.SignalLog.close`, the counts with ``handoff_us_median`` and
+        ``handoff_us_p99`` (the loop's time handing a period over, us)."""
+        out = super().close(stats, calibration)
+        h = self.handoff_s.summary()
+        out["handoff_us_median"], out["handoff_us_p99"] = h["median"] * 1e6, h["p99"] * 1e6
+        return out
