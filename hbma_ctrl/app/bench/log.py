@@ -24,7 +24,7 @@ import json
 import statistics
 from pathlib import Path
 
-from hbma_ctrl.app.logs.reader import read_mcap
+from hbma_ctrl.app.logs.reader import message_counts, read_mcap
 from hbma_ctrl.app.outputs import run_dir
 
 __all__ = ["run_log_bench", "PERIOD_TOPICS"]
@@ -43,10 +43,13 @@ def _one(cfg, folder: Path, mcap: bool, argv, echo) -> dict:
     row["faults"] = stats.get("faults") or {}
     row["mcap"] = mcap
     if mcap:
-        c = read_mcap(folder / "log.mcap")
+        counts = message_counts(folder / "log.mcap")
+        if counts is None:  # no summary: the file was not finished
+            c = read_mcap(folder / "log.mcap")
+            counts = {t: c.count(t) for t in PERIOD_TOPICS}
         periods = int(stats["steps"]) + 1  # and the row written at the stop
         row["periods_logged"] = periods
-        row["messages"] = {t: c.count(t) for t in PERIOD_TOPICS}
+        row["messages"] = {t: counts.get(t, 0) for t in PERIOD_TOPICS}
         row["dropped"] = stats.get("log_dropped")
         row["handoff_us_p99"] = stats.get("log_handoff_us_p99")
         row["log_bytes"] = (folder / "log.mcap").stat().st_size

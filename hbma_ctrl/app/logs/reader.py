@@ -11,7 +11,7 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-__all__ = ["McapContents", "read_mcap", "columns", "flatten"]
+__all__ = ["McapContents", "read_mcap", "message_counts", "columns", "flatten"]
 
 
 @dataclass
@@ -43,10 +43,28 @@ class McapContents:
         return len(self.messages.get(topic, ()))
 
 
-def read_mcap(path: Path | str) -> McapContents:
-    """Every record of the MCAP log at ``path`` (JSON messages decoded). A file cut short (no footer, a
-    torn last chunk) is read up to the last whole record and marked ``truncated``; CRCs are checked."""
+def message_counts(path: Path | str) -> dict[str, int] | None:
+    """Messages per topic from a whole file's summary (no message read), None for a file cut short."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+    except Exception:  # noqa: BLE001 - a file without its summary: the caller reads it through
+        return None
+    if summary is None or summary.statistics is None:
+        return None
+    return {ch.topic: int(summary.statistics.channel_message_counts.get(cid, 0))
+            for cid, ch in summary.channels.items()}
+
+
+def read_mcap(path: Path | str, stride: int = 1) -> McapContents:
+    """Every record of the MCAP log at ``path`` (JSON messages decoded; with ``stride`` > 1 only every
+    stride-th message of each topic but ``/events``, for a long run's figures). A file cut short (no
+    footer, a torn last chunk) is read up to the last whole record and marked ``truncated``; CRCs are
+    checked."""
     out = McapContents()
+    seen: dict[str, int] = {}
     channels: dict[int, str] = {}
     schemas: dict[int, dict] = {}
     ended = False
@@ -62,6 +80,9 @@ def read_mcap(path: Path | str) -> McapContents:
                         d.setdefault(rec.topic, [])
                 elif isinstance(rec, Message):
                     topic = channels[rec.channel_id]
+                    k = seen[topic] = seen.get(topic, -1) + 1
+                    if stride > 1 and topic != "/events" and k % stride:
+                        continue
                     out.messages[topic].append(json.loads(rec.data))
                     out.log_ns[topic].append(rec.log_time)
                     out.publish_ns[topic].append(rec.publish_time)

@@ -11,8 +11,8 @@ import numpy as np
 from hbma_ctrl.app.logs.signals import SignalLog
 from hbma_ctrl.app.outputs import manifest
 
-__all__ = ["LOG_MCAP", "scene_log", "write_chamber_closed_loop", "write_open_loop", "write_robot_open_loop",
-           "write_robot_closed_loop"]
+__all__ = ["LOG_MCAP", "scene_log", "write_chamber_closed_loop", "write_estimator_trial", "write_open_loop",
+           "write_robot_open_loop", "write_robot_closed_loop"]
 
 #: the MCAP log's file name in a run directory
 LOG_MCAP = "log.mcap"
@@ -50,6 +50,19 @@ def write_chamber_closed_loop(log, folder: Path | str, scenario_path=None, extra
     ev = [(t, name.split(":")[0], name) for t, name in log.events]
     ev += [(e.t, e.cause, e.detail or e.cause) for e in log.supervisor_events]
     _events(out, ev)
+    return out.close()
+
+
+def write_estimator_trial(res, folder: Path | str, scenario_path=None, extra: dict | None = None) -> dict:
+    """A filter's run on a rig trial (:class:`hbma_ctrl.app.scenes.evaluate.TrialResult`): the readings, the
+    estimates and the rig's truth. Returns the log's counts."""
+    out = scene_log(folder, ["C1"], ("readings", "estimates", "truth"), scenario_path, extra=extra)
+    std = res.est.get("std_h")
+    for i in range(len(res.t)):
+        t = float(res.t[i])
+        out.period(t, p=[res.meas[i]], p_est=[res.est["p"][i]], h=[res.est["h"][i]],
+                   h_std=None if std is None else [std[i]], truth=(t, [res.truth["h"][i]], [res.truth["p"][i]]),
+                   block=True)
     return out.close()
 
 

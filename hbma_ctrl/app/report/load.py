@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hbma_ctrl.app.logs.reader import columns, read_mcap
+from hbma_ctrl.app.logs.reader import columns, message_counts, read_mcap
 from hbma_ctrl.runtime.watchdog import FAULT_KINDS
 
 __all__ = ["RunSignals", "load_run", "is_fault"]
@@ -75,8 +75,14 @@ class RunSignals:
         return out
 
 
+#: the most messages per topic a report reads (a longer run's are thinned evenly)
+MOST_MESSAGES = 50_000
+
+
 def _mcap(path: Path) -> RunSignals:
-    c = read_mcap(path)
+    counts = message_counts(path) or {}
+    stride = max(1, -(-max(counts.values(), default=0) // MOST_MESSAGES))
+    c = read_mcap(path, stride=stride)
     meta = c.metadata
     scen = meta.get("run", {}).get("scenario_path") or ""
     sig = RunSignals(name=Path(scen).stem if scen else path.parent.name, names=[], source=path.name,

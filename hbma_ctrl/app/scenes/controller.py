@@ -33,7 +33,8 @@ calibrate                   before the loop closes, a start-up calibration (vent
                             modulus and dead-volume factors for the estimator (default true)
 ==========================  ====================================================================
 
-``run_scene`` writes ``closed_loop.csv`` (edge units) and ``closed_loop.png`` (target, truth and
+``run_scene`` writes ``closed_loop.csv`` (edge units), ``log.mcap``
+(:func:`hbma_ctrl.app.logs.scenes.write_chamber_closed_loop`) and ``closed_loop.png`` with its PDF (target, truth and
 estimate of the height; pressure with its limit; the three commands) and returns
 ``{"controller": {...}}`` with height_rmse_mm, max_pressure_kpa, pressure_limit_kpa,
 solve_ms_median/p99/max, fallbacks and the settling results per target step, and with the

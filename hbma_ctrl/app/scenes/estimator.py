@@ -4,7 +4,8 @@ A scene runs the rig (``[rig]`` section, :class:`hbma_ctrl.sim.rig.RigSettings`:
 higher-fidelity truth with a noisy, saturating sensor) open loop with the scenario's inputs, feeds
 the readings and the commands to the filter, and writes the estimate next to the truth:
 
-- kind "single": ``estimate.csv`` (edge units: mm, kPa, N), ``estimate.png``; load steps
+- kind "single": ``estimate.csv`` (edge units: mm, kPa, N), ``log.mcap``
+  (:func:`hbma_ctrl.app.logs.scenes.write_estimator_trial`), ``estimate.png`` and its PDF; load steps
   (``load_steps_g``) are applied to the rig mid-run;
 - kind "protocol": every trial of the grid (docs/concepts/model.md §7, 150 by default), in worker processes,
   ``estimator_trials.csv`` (one row of scores per trial).
@@ -40,6 +41,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from hbma_ctrl.app.figstyle import LABELS, save
+from hbma_ctrl.app.logs.scenes import write_estimator_trial
 
 from hbma_ctrl.app.scenes.evaluate import (
     EVENT_COUNTS,
@@ -154,6 +156,7 @@ def _single(scn, sec: EstimatorSection, rig: RigSettings, out: Path) -> dict:
             if first is None:
                 first = res
     _write_series(first, out / "estimate.csv")
+    write_estimator_trial(first, out, scn.path, extra={"kind": "estimator", "filter": sec.filter})
     _plot(first, out / "estimate.png", f"{scn.name}: {sec.filter.upper()} on the rig "
           f"(modulus x{rig.modulus_scale:g}, flow x{rig.flow_scale:g}, V0 x{rig.V0_scale:g})")
     return _metrics(per_kind, sec, rig, {"estimate_csv": "estimate.csv", "plot_png": "estimate.png"})

@@ -81,7 +81,8 @@ def run_scene(scn, out_dir) -> dict:
 
     Uses the scenario's pneumatics (compressor map, flow scale), duration and sim integrator/step;
     the robot itself (chambers included) comes from ``[robot]``, not from ``[actuator]``. Writes
-    robot_log.csv, robot_events.json, robot_shape.png (shapes over time) and robot_series.png.
+    robot_log.csv, log.mcap, robot_events.json, robot_shape.png (shapes over time) and robot_series.png
+    (each figure with its PDF).
     """
     s = scn.role("robot")
     if s.mode == "closed_loop":

@@ -219,7 +219,10 @@ def scene_parts(scn, settings: RobotSettings) -> tuple:
 
 
 def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
-    """The closed-loop ``[robot]`` scene: metrics {"robot": {...}} (+ the baseline's beside it)."""
+    """The closed-loop ``[robot]`` scene: metrics {"robot": {...}} (+ the baseline's beside it); writes
+    ``robot_<controller>_log.csv`` and ``log.mcap`` (the baseline's ``log_<controller>.mcap``,
+    :func:`hbma_ctrl.app.logs.scenes.write_robot_closed_loop`), robot_series.png and robot_shape.png with
+    their PDFs, robot_segments.json."""
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

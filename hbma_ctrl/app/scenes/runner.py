@@ -4,7 +4,8 @@ Dispatch (first match): a [robot] table -> :func:`hbma_ctrl.app.scenes.robot.run
 -> :func:`hbma_ctrl.app.scenes.controller.run_scene`; [estimator] ->
 :func:`hbma_ctrl.app.scenes.estimator.run_scene`; otherwise the open-loop plant. Each scene returns a dict of role metrics; the runner merges them under stable
 role keys into ``out_dir/metrics.json`` (see :mod:`hbma_ctrl.app.metrics`). Open loop also writes
-``log.csv`` (edge units) and ``run.png`` for a single trial, or the protocol outputs
+``log.csv`` (edge units), ``log.mcap`` (:func:`hbma_ctrl.app.logs.scenes.write_open_loop`) and ``run.png``
+(and its PDF) for a single trial, or the protocol outputs
 (:func:`hbma_ctrl.app.scenes.protocol.run_protocol`) for kind "protocol".
 """
 

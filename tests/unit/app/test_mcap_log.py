@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from hbma_ctrl.app.logs.reader import columns, read_mcap
+from hbma_ctrl.app.logs.reader import columns, message_counts, read_mcap
 from hbma_ctrl.app.logs.signals import GROUPS, SignalLog, signal_channels
 from hbma_ctrl.app.logs.writer import McapLog, json_schema, number_map
 from hbma_ctrl.robot.design import RobotDesign
@@ -134,3 +134,21 @@ def test_signal_log_of_a_robot_gives_each_layers_pose_from_the_heights(tmp_path)
                                                 "direction_deg": math.degrees(d0)})
     assert first["layers"][1]["bend_deg"] == pytest.approx(0.0, abs=1e-9) and second["layers"] == []
     assert c.messages["/robot/pose_truth"][0]["layers"] == first["layers"]
+
+
+def test_message_counts_come_from_a_whole_files_summary_and_a_stride_thins_all_but_the_events(tmp_path):
+    path = tmp_path / "log.mcap"
+    ev = json_schema("Events", "test", {"kind": {"type": "string"}})
+    log = McapLog(path, {"/readings": SCHEMA, "/events": ev}, chunk_bytes=2048)
+    for i, m in enumerate(_messages(100)):
+        log.put(i * 0.01, "/readings", m)
+        if i % 10 == 0:
+            log.put(i * 0.01, "/events", {"kind": "tick"})
+    log.close()
+    assert message_counts(path) == {"/readings": 100, "/events": 10}
+    thin = read_mcap(path, stride=7)
+    assert [m["t_s"] for m in thin.messages["/readings"]] == [i * 0.01 for i in range(0, 100, 7)]
+    assert thin.count("/events") == 10
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-100])
+    assert message_counts(cut) is None
