@@ -113,7 +113,7 @@ class SignalLog:
     design : the robot's :class:`hbma_ctrl.robot.design.RobotDesign` (the poses are computed from the
         heights on the writer thread), None for a chamber.
     metadata, attachments : as :class:`hbma_ctrl.app.logs.writer.McapLog`'s.
-    queue_size : items the queue holds (two per period, one per event).
+    queue_size : items the queue holds (one per period, one per event).
     """
 
     def __init__(self, path: Path | str, names, groups=GROUPS, design=None, metadata: dict | None = None,
