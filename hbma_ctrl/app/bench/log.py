@@ -9,9 +9,9 @@ misses, overrun warnings, step time median and p99 (ms, wall clock: the whole pe
 simulated plant included) and tick p99 (the runtime tick alone). For each run with the log, the
 messages on each per-period topic (``/readings``, ``/estimates``, ``/targets``, ``/commands``,
 ``/loop``) against the periods logged (the steps and the final row written at the stop), the items
-dropped on a full queue, and the p99 of the loop's time handing a period to the log (us: the log's
-whole cost on the loop's thread; its writer thread competes for the CPU and the interpreter, which
-the step times show).
+dropped on a full queue, and the median and p99 of the loop's time handing a period to the log (us,
+wall clock and the loop thread's CPU time: the log's whole cost on the loop's thread; its writer
+thread competes for the CPU and the interpreter, which the step times show).
 
 Writes ``log.json``: ``runs`` (each run's numbers), ``medians`` (per variant, the median over its runs
 of each number) and the verdicts ``every_period_logged`` (every topic of every run with the log holds
@@ -51,7 +51,8 @@ def _one(cfg, folder: Path, mcap: bool, argv, echo) -> dict:
         row["periods_logged"] = periods
         row["messages"] = {t: counts.get(t, 0) for t in PERIOD_TOPICS}
         row["dropped"] = stats.get("log_dropped")
-        row["handoff_us_p99"] = stats.get("log_handoff_us_p99")
+        for key in ("handoff_us_median", "handoff_us_p99", "handoff_cpu_us_median", "handoff_cpu_us_p99"):
+            row[key] = stats.get(f"log_{key}")
         row["log_bytes"] = (folder / "log.mcap").stat().st_size
         row["complete"] = all(n == periods for n in row["messages"].values()) and not row["dropped"]
     return row

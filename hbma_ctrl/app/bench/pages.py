@@ -292,7 +292,9 @@ def log_page(res: dict) -> Page:
         rows.append([name, "yes" if r["mcap"] else "no", fmt(r["steps"]), fmt(r["deadline_misses"]), fmt(r["overruns"]),
                      fmt(r["step_ms_median"], ".3g"), fmt(r["step_ms_p99"], ".3g"), fmt(r["tick_ms_p99"], ".3g"),
                      f"{min(msgs.values())}/{r['periods_logged']}" if msgs else "", fmt(r.get("dropped", "")),
-                     fmt(r.get("handoff_us_p99"), ".3g") if r["mcap"] else "",
+                     *((fmt(r.get("handoff_us_median"), ".3g"), fmt(r.get("handoff_us_p99"), ".3g"),
+                        fmt(r.get("handoff_cpu_us_median"), ".3g"), fmt(r.get("handoff_cpu_us_p99"), ".3g"))
+                       if r["mcap"] else ("",) * 4),
                      str(r["faults"] or "none")])
     med = [[v, *(fmt(res["medians"][v].get(k), ".3g") for k in ("deadline_misses", "step_ms_median", "step_ms_p99",
                                                                   "tick_ms_p99"))] for v in res["medians"]]
@@ -302,5 +304,6 @@ def log_page(res: dict) -> Page:
                                                                    "step p99 (ms)", "tick p99 (ms)"], med),
                  Table(f"{res['config']}, {res['duration_s']:g} s of rig time per run at speed {res['speed']:g}",
                        ["run", "MCAP", "steps", "deadline misses", "overruns", "step median (ms)", "step p99 (ms)",
-                        "tick p99 (ms)", "messages per topic / periods", "dropped", "hand-off p99 (us)", "faults"],
+                        "tick p99 (ms)", "messages per topic / periods", "dropped", "hand-off median (us)", "hand-off p99 (us)",
+                        "hand-off CPU median (us)", "hand-off CPU p99 (us)", "faults"],
                        rows)])

@@ -78,7 +78,8 @@ def bench_log(
                         echo=lambda s: print(s, file=sys.stderr, flush=True))
     for name, r in res["runs"].items():
         logged = (f"; {min(r['messages'].values())}/{r['periods_logged']} periods logged, {r['dropped']} dropped, "
-                  f"hand-off p99 {r['handoff_us_p99']:.0f} us" if r["mcap"] else "")
+                  f"hand-off median {r['handoff_us_median']:.0f} us, p99 {r['handoff_us_p99']:.0f} us (CPU "
+                  f"{r['handoff_cpu_us_median']:.0f}, {r['handoff_cpu_us_p99']:.0f} us)" if r["mcap"] else "")
         typer.echo(f"{name}: {r['steps']} steps, {r['deadline_misses']} deadline misses, step median "
                    f"{r['step_ms_median'] or float('nan'):.3f} ms, p99 {r['step_ms_p99'] or float('nan'):.3f} ms{logged}")
     failed = [k for k, ok in res["verdicts"].items() if not ok]

@@ -127,7 +127,8 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
         if record is not None:
             stats["log_messages"] = logged["messages"]
             stats["log_dropped"] = logged["dropped"]
-            stats["log_handoff_us_p99"] = logged["handoff_us_p99"]
+            for key in ("handoff_us_median", "handoff_us_p99", "handoff_cpu_us_median", "handoff_cpu_us_p99"):
+                stats[f"log_{key}"] = logged[key]
             if logged["dropped"] or logged["failed"]:
                 echo(f"log.mcap: {logged['dropped']} periods or events dropped (queue full), "
                      f"{logged['failed']} not written{': ' + logged['error'] if logged['error'] else ''}")
