@@ -3,9 +3,13 @@ JSON schema each, nanosecond stamps, the run's metadata and attachments in the f
 
 The caller (the control loop) only puts items on a bounded queue (:meth:`McapLog.put`, never
 blocking: an item that finds the queue full is dropped and counted in :attr:`McapLog.dropped`). A
-writer thread takes the items in batches, turns each into one or more messages (an *expander*
-registered for the item's kind does that work on the writer thread, so the caller hands over raw
-arrays), encodes them as JSON and writes them with the ``mcap`` package's writer into chunks.
+writer thread wakes every ``batch_s`` seconds, takes what has piled up in one batch, turns each item
+into one or more messages (an *expander* registered for the item's kind does that work on the writer
+thread, so the caller hands over raw arrays), encodes them as JSON and writes them with the ``mcap``
+package's writer into chunks. Waking in batches, not on every item, spares the caller a thread
+switch (and a wait for Python's interpreter lock) every period; the writer thread also runs at a
+lower scheduling priority (``nice``) than its process, so that on a busy machine the caller's thread
+gets a core first.
 
 A chunk is closed and written to the file when it reaches ``chunk_bytes`` or at least every
 ``flush_s`` seconds (wall clock): a process killed at any moment (SIGKILL) leaves a file whose
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import queue
 import threading
 import time
@@ -72,14 +77,19 @@ class McapLog:
     chunk_bytes : a chunk is closed at this size (uncompressed), bytes.
     flush_s : a chunk is closed and the file flushed at least this often, s (wall clock).
     compression : "zstd", "lz4" or "none" (per chunk).
+    batch_s : the writer thread wakes this often to write what has been queued, s.
+    nice : how much lower the writer thread's scheduling priority is than its process's (Linux; 0 = the same).
     """
 
     def __init__(self, path: Path | str, channels: dict[str, dict], *, metadata: dict | None = None,
                  attachments: dict | None = None, expanders: dict[str, Callable] | None = None,
                  queue_size: int = 65536, chunk_bytes: int = 256 * 1024, flush_s: float = 1.0,
-                 compression: str = "zstd", library: str = "hbma-ctrl"):
+                 compression: str = "zstd", library: str = "hbma-ctrl", batch_s: float = 0.2, nice: int = 10):
         self.path = Path(path)
         self.flush_s = float(flush_s)
+        self.batch_s = min(float(batch_s), self.flush_s)
+        self.nice = int(nice)
+        self._closing = threading.Event()
         self.expanders = dict(expanders or {})
         self.start_ns = time.time_ns()
         #: items dropped because the queue was full
@@ -149,15 +159,23 @@ class McapLog:
             if self.error is None:
                 self.error = f"{kind}: {type(exc).__name__}: {exc}"
 
+    def _lower_priority(self) -> None:
+        """The writer thread ``nice`` steps below its process (Linux schedules threads one by one)."""
+        if self.nice <= 0:
+            return
+        try:
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + self.nice))
+        except (AttributeError, OSError):  # not on this platform: the same priority as the caller
+            pass
+
     def _run(self) -> None:
+        self._lower_priority()
         last = time.monotonic()
         while True:
-            try:
-                item = self._q.get(timeout=self.flush_s)
-            except queue.Empty:
-                item = None
-            batch = [] if item is None else [item]
-            while len(batch) < 4096:  # what has piled up meanwhile, in one go
+            self._closing.wait(self.batch_s)
+            batch = []
+            while True:  # everything queued so far, in one go
                 try:
                     batch.append(self._q.get_nowait())
                 except queue.Empty:
@@ -187,6 +205,7 @@ class McapLog:
             return self.stats()
         self._closed = True
         self._q.put(_STOP)  # blocks only if the queue is full: the writer thread is emptying it
+        self._closing.set()
         self._thread.join()
         st = self.stats()
         for name, data in (metadata or {}).items():
