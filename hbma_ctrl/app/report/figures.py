@@ -14,6 +14,7 @@ A robot's chambers are drawn one panel per layer (its three chambers, named in e
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +28,6 @@ __all__ = ["report", "make_figures", "FIGURES"]
 
 #: the report's figures, in the order they are made
 FIGURES = ("tracking", "pressures", "commands", "estimator_errors", "events", "robot_pose")
-
-_TRUTH = dict(color="k", lw=1.0, alpha=0.55)
-
 
 def _groups(sig: RunSignals) -> list[tuple[str, list[str]]]:
     """The panels' chamber groups: a robot's layers (three chambers each), else one panel per chamber."""
@@ -75,7 +73,7 @@ def _finish_axes(axes, ylabel: str, keys=None) -> None:
             legend(ax, loc="center left", bbox_to_anchor=(1.01, 0.5))
 
 
-def _keys(chambers_by_ax: dict, styles) -> callable:
+def _keys(chambers_by_ax: dict, styles) -> Callable:
     """A compact legend per axis: one entry per chamber (its colour), one per signal (its line style),
     for the signals the axis draws; ``styles``: (words, style dict)."""
     def make(ax):

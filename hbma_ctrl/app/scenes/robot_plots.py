@@ -4,7 +4,6 @@ package's figure style (:mod:`hbma_ctrl.app.figstyle`).
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
