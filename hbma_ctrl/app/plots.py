@@ -6,7 +6,8 @@
 - :func:`fig9` r1 = 12.5 mm, t0 = 2 mm, 200 g: height, pressure and force vs time.
 - :func:`plot_run` any log: height, pressure, force and inputs vs time, with event markers.
 
-Axes are in edge units (mm, kPa, N, g, %).
+Axes are in edge units (mm, kPa, N, g, %), labelled in the package's style
+(:mod:`hbma_ctrl.app.figstyle`); each figure is written as the PNG it is asked for and a PDF beside it.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.tri import Triangulation
 
+from hbma_ctrl.app.figstyle import LABELS, legend, save
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
@@ -80,7 +82,7 @@ def fig6(path: Path | str, t0_mm: float = 3.0, r1_mm: float = 7.5, h1_max_mm: fl
         tri = Triangulation(U.to_mm(H1), U.to_mm(H2))
         too_high = U.to_kpa(res["p"]) > p_max_kpa
         tri.set_mask(too_high[tri.triangles].any(axis=1))
-        for row, (z, label, cmap) in enumerate(((U.to_kpa(res["p"]), "pressure p (kPa)", "viridis"),
+        for row, (z, label, cmap) in enumerate(((U.to_kpa(res["p"]), "p (kPa)", "viridis"),
                                                 (U.to_grams(res["F"] / U.G_STD), "load F/g (g)", "plasma"))):
             ax = fig.add_subplot(2, 2, 1 + col + 2 * row, projection="3d")
             zmax = float(np.max(z[~too_high]))
@@ -89,13 +91,22 @@ def fig6(path: Path | str, t0_mm: float = 3.0, r1_mm: float = 7.5, h1_max_mm: fl
             ax.set_xlabel("h1 (mm)")
             ax.set_ylabel("h2 (mm)")
             ax.set_zlabel(label)
-            ax.set_title(f"{name.upper()}: {label.split(' (')[0]}")
+            ax.set_title(f"{_MATERIAL_WORDS[name]}: {'pressure' if row == 0 else 'load'}")
             ax.view_init(elev=28, azim=-115)
     fig.suptitle(f"Fig. 6: equilibrium surfaces, t0 = {t0_mm:g} mm, r1 = {r1_mm:g} mm "
                  f"(h2 <= h1, shown where p <= {p_max_kpa:g} kPa)")
     fig.tight_layout()
-    fig.savefig(path)
-    return Path(path)
+    return _save(fig, path)
+
+
+#: the materials by the names a reader knows them by
+_MATERIAL_WORDS = {"nh": "neo-Hookean", "mr": "Mooney-Rivlin"}
+
+
+def _save(fig: Figure, path: Path | str) -> Path:
+    """``fig`` as ``path`` (PNG) and a PDF beside it (:func:`hbma_ctrl.app.figstyle.save`); returns ``path``."""
+    files = save(fig, Path(path).with_suffix(""))
+    return next(f for f in files if f.suffix == Path(path).suffix) if Path(path).suffix else files[0]
 
 
 def _time_panels(path, logs: list[Log], labels: list[str], panels, title: str) -> Path:
@@ -107,25 +118,24 @@ def _time_panels(path, logs: list[Log], labels: list[str], panels, title: str) -
             ax.plot(log["t"], to_edge(log[key]), label=lab, lw=1.4)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, loc="center right", title="speed", title_fontsize=8)
-    axes[-1].set_xlabel("time (s)")
+    axes[0].legend(fontsize=8, loc="center right", title="pump speed", title_fontsize=8)
+    axes[-1].set_xlabel(LABELS["t"])
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path)
-    return Path(path)
+    return _save(fig, path)
 
 
 def fig7(path: Path | str, logs: list[Log]) -> Path:
     """Fig. 7: height and pressure vs time of unloaded inflations, one line per speed."""
     return _time_panels(path, logs, [_speed_label(log) for log in logs],
-                        [("h", U.to_mm, "height h (mm)"), ("p", U.to_kpa, "pressure p (kPa)")],
+                        [("h", U.to_mm, LABELS["h"]), ("p", U.to_kpa, LABELS["p"])],
                         f"Fig. 7: unloaded inflations, t0 = {FIG7_CASE[0]:g} mm, r1 = {FIG7_CASE[1]:g} mm")
 
 
 def fig9(path: Path | str, logs: list[Log]) -> Path:
     """Fig. 9: height, pressure and force vs time under a 200 g load, one line per speed."""
     return _time_panels(path, logs, [_speed_label(log) for log in logs],
-                        [("h", U.to_mm, "height h (mm)"), ("p", U.to_kpa, "pressure p (kPa)"), ("F", np.asarray, "force F (N)")],
+                        [("h", U.to_mm, LABELS["h"]), ("p", U.to_kpa, LABELS["p"]), ("F", np.asarray, LABELS["F"])],
                         f"Fig. 9: t0 = {FIG9_CASE[0]:g} mm, r1 = {FIG9_CASE[1]:g} mm, {FIG9_CASE[2]:g} g load "
                         f"({logs[0].fidelity if logs else ''})")
 
@@ -135,25 +145,26 @@ def _speed_label(log: Log) -> str:
 
 
 def plot_run(log: Log, path: Path | str, title: str | None = None, sensor_range: float | None = None) -> Path:
-    """Height, pressure, force and inputs vs time for one log, with its events marked."""
-    fig = Figure(figsize=(8, 9), dpi=110)
+    """Height, pressure, force and inputs vs time for one log, with its events marked; ``path`` (PNG) and
+    a PDF beside it."""
+    fig = Figure(figsize=(9, 9.5), layout="constrained")
     axes = fig.subplots(4, 1, sharex=True)
     t = log["t"]
-    axes[0].plot(t, U.to_mm(log["h"]), label="h (platform/membrane)")
+    axes[0].plot(t, U.to_mm(log["h"]), label="h (platform or membrane top)")
     if np.any(log["h2"] > 0):
-        axes[0].plot(t, U.to_mm(log["h1"]), "--", lw=1, label="h1 (virtual cap)")
-    axes[0].set_ylabel("height (mm)")
-    axes[1].plot(t, U.to_kpa(log["p"]), color="C1")
+        axes[0].plot(t, U.to_mm(log["h1"]), "--", lw=1, label="h1 (membrane cap, under the platform)")
+    axes[0].set_ylabel(LABELS["h"])
+    axes[1].plot(t, U.to_kpa(log["p"]), color="C1", label="chamber pressure")
     if sensor_range:
         axes[1].axhline(U.to_kpa(sensor_range), color="k", ls=":", lw=1, label="sensor range")
-    axes[1].set_ylabel("pressure (kPa)")
+    axes[1].set_ylabel(LABELS["p"])
     axes[2].plot(t, log["F"], color="C2")
-    axes[2].set_ylabel("force (N)")
-    axes[3].step(t, log["speed"] * 100, where="post", label="speed (%)")
-    axes[3].step(t, log["inlet"] * 100, where="post", ls="--", label="inlet duty (%)")
-    axes[3].step(t, log["outlet"] * 100, where="post", ls=":", label="outlet duty (%)")
-    axes[3].set_ylabel("inputs (%)")
-    axes[3].set_xlabel("time (s)")
+    axes[2].set_ylabel(LABELS["F"])
+    axes[3].step(t, log["speed"] * 100, where="post", label="pump speed")
+    axes[3].step(t, log["inlet"] * 100, where="post", ls="--", label="inlet duty")
+    axes[3].step(t, log["outlet"] * 100, where="post", ls=":", label="outlet duty")
+    axes[3].set_ylabel(LABELS["duty"])
+    axes[3].set_xlabel(LABELS["t"])
     axes[3].set_ylim(-5, 105)
     seen = set()
     for te, name in log.events:
@@ -166,12 +177,9 @@ def plot_run(log: Log, path: Path | str, title: str | None = None, sensor_range:
             seen.add((short, round(te, 2)))
     for ax in axes:
         ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8, loc="upper right")
+        legend(ax, loc="upper right")
     fig.suptitle(title or f"{log.name} ({log.fidelity}, status {log.status})")
-    fig.tight_layout()
-    fig.savefig(path)
-    return Path(path)
+    return _save(fig, path)
 
 
 def _figure_trials(material: Material) -> list[Trial]:

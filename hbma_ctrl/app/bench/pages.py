@@ -315,3 +315,30 @@ def codegen_page(res: dict, spec_name: str, opt: str) -> Page:
                      f"p99); largest |C - scene| {sc['max_abs_diff_si_all']:.3g} (SI).")
     return Page("Generated C loop against the Python path (bench codegen)", docstring_paragraph(bench.__doc__, slice(0, 2), " Returns "),
                 [Table(f"{spec_name}: C built with {opt}, us per call", cols, rows)], notes=notes)
+
+
+def log_page(res: dict) -> Page:
+    """``bench log``: its log.json dict."""
+    from hbma_ctrl.app.bench import log
+
+    rows = []
+    for name, r in res["runs"].items():
+        msgs = r.get("messages") or {}
+        rows.append([name, "yes" if r["mcap"] else "no", fmt(r["steps"]), fmt(r["deadline_misses"]), fmt(r["overruns"]),
+                     fmt(r["step_ms_median"], ".3g"), fmt(r["step_ms_p99"], ".3g"), fmt(r["tick_ms_p99"], ".3g"),
+                     f"{min(msgs.values())}/{r['periods_logged']}" if msgs else "", fmt(r.get("dropped", "")),
+                     *((fmt(r.get("handoff_us_median"), ".3g"), fmt(r.get("handoff_us_p99"), ".3g"),
+                        fmt(r.get("handoff_cpu_us_median"), ".3g"), fmt(r.get("handoff_cpu_us_p99"), ".3g"))
+                       if r["mcap"] else ("",) * 4),
+                     str(r["faults"] or "none")])
+    med = [[v, *(fmt(res["medians"][v].get(k), ".3g") for k in ("deadline_misses", "step_ms_median", "step_ms_p99",
+                                                                  "tick_ms_p99"))] for v in res["medians"]]
+    return Page("What the MCAP log costs the daemon's loop (bench log)", docstring_paragraph(log.__doc__, slice(0, 3)),
+                [Table("Verdicts", ["criterion", "passed"], [[k, fmt(v)] for k, v in res["verdicts"].items()]),
+                 Table(f"Medians over {res['repeats']} runs each", ["log", "deadline misses", "step median (ms)",
+                                                                   "step p99 (ms)", "tick p99 (ms)"], med),
+                 Table(f"{res['config']}, {res['duration_s']:g} s of rig time per run at speed {res['speed']:g}",
+                       ["run", "MCAP", "steps", "deadline misses", "overruns", "step median (ms)", "step p99 (ms)",
+                        "tick p99 (ms)", "messages per topic / periods", "dropped", "hand-off median (us)", "hand-off p99 (us)",
+                        "hand-off CPU median (us)", "hand-off CPU p99 (us)", "faults"],
+                       rows)])

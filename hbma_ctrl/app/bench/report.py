@@ -26,7 +26,7 @@ __all__ = ["Table", "Pareto", "Page", "Report", "open_report", "machine", "docst
 #: figure resolution, dots per inch (the pages' figures stay small)
 DPI = 130
 #: the page order of DIR/index.md
-ORDER = ("sim", "protocol", "ekf", "loop", "mpc", "robot", "fit", "soak", "drills", "poses", "api", "live", "codegen")
+ORDER = ("sim", "protocol", "ekf", "loop", "mpc", "robot", "fit", "soak", "drills", "poses", "api", "live", "log", "codegen")
 _DATE = re.compile(r"^Measured on (\d{4}-\d{2}-\d{2})", re.M)
 
 

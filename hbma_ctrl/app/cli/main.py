@@ -4,7 +4,8 @@ The application and its error handling; every command lives in one module of thi
 adds it with ``register(app, bench_app)``: :mod:`hbma_ctrl.app.cli.sim` (``run``, ``protocol`` -- also
 what a bare ``hbma-ctrl`` runs --, ``equilibrium``, ``plots``), :mod:`hbma_ctrl.app.cli.estimators`,
 :mod:`hbma_ctrl.app.cli.controllers`, :mod:`hbma_ctrl.app.cli.robot`, :mod:`hbma_ctrl.app.cli.fit`,
-:mod:`hbma_ctrl.app.cli.tune`, :mod:`hbma_ctrl.app.cli.daemon`, :mod:`hbma_ctrl.app.cli.codegen`,
+:mod:`hbma_ctrl.app.cli.tune`, :mod:`hbma_ctrl.app.cli.daemon`, :mod:`hbma_ctrl.app.cli.logs` (``report``,
+``export``), :mod:`hbma_ctrl.app.cli.codegen`,
 :mod:`hbma_ctrl.app.cli.scenario` (``scenarios``) and :mod:`hbma_ctrl.app.cli.rig`.
 A new command is a function in one of them (or a new module in the tuple at the end of this file).
 
@@ -41,7 +42,7 @@ except ImportError:  # pragma: no cover
 # Only what registering the commands needs is imported here: each command imports its own heavy
 # modules (casadi-built models, scipy, matplotlib, the roles, the daemon, optuna, ...) when it runs,
 # so that `hbma-ctrl protocol` (the main job) and `--help` do not pay for the others.
-from hbma_ctrl.app.cli import codegen, controllers, daemon, estimators, fit, rig, robot, scenario, sim, tune
+from hbma_ctrl.app.cli import codegen, controllers, daemon, estimators, fit, logs, rig, robot, scenario, sim, tune
 from hbma_ctrl.app.cli.args import fail
 from hbma_ctrl.app.outputs import ARGV_KEY, end_on_signals, pending_signal, signal_number
 
@@ -150,5 +151,5 @@ def _main(ctx: typer.Context) -> None:
 
 
 # every command module registers its commands the same way; the order is --help's
-for _module in (sim, estimators, controllers, robot, fit, tune, daemon, codegen, scenario, rig):
+for _module in (sim, estimators, controllers, robot, fit, tune, daemon, logs, codegen, scenario, rig):
     _module.register(app, bench_app)

@@ -142,6 +142,8 @@ class DaemonLoop:
     speed : rig seconds per wall second.
     duration : rig time to run, s; None = until stopped.
     log : the :class:`RunLog`, None = no log.
+    record : the MCAP log's :class:`hbma_ctrl.app.daemon.record.DaemonRecord` (each period and event is
+        queued to it; its own thread writes them), None = none.
     monitor : the :class:`hbma_ctrl.runtime.watchdog.SafetyMonitor` (``check(t, readings, u_sent,
         deadline_missed) -> faults``, ``latched``, ``faults``, ``counts``), None = none (the loop then
         latches 'overrun' itself after ``miss_limit`` missed deadlines in a row).
@@ -156,10 +158,11 @@ class DaemonLoop:
     def __init__(self, runner, rig, state: DaemonState, period: float, speed: float = 1.0,
                  duration: float | None = None, log: RunLog | None = None, monitor=None, status_every: int = 1,
                  miss_limit: int = 10, warmup_periods: int = 50, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep):
+                 sleep: Callable[[float], None] = time.sleep, record=None):
         if rig.n != runner.n:
             raise ValueError(f"the rig has {rig.n} chambers, the configuration {runner.n}")
         self.runner, self.rig, self.state, self.log, self.monitor = runner, rig, state, log, monitor
+        self.record = record
         self.period, self.speed, self.duration = float(period), float(speed), duration
         self.status_every, self.miss_limit = int(status_every), int(miss_limit)
         self.warmup_periods = int(warmup_periods)
@@ -218,6 +221,8 @@ class DaemonLoop:
         self.events.append(ev)
         if self.log is not None:
             self.log.event(self.t, kind, cause, fields)
+        if self.record is not None:
+            self.record.event(self.t, kind, cause, fields)
 
     def _fault(self, kind: str, cause: str) -> None:
         self.fault_counts[kind] = self.fault_counts.get(kind, 0) + 1
@@ -278,17 +283,21 @@ class DaemonLoop:
                 "faults": self.faults(), "events": list(self.events)}
 
     def _log_row(self, step_s: float) -> None:
-        if self.log is None:
+        if self.log is None and self.record is None:
             return
         h, hs, pe = self.runner.estimates()
         tg = self.runner.targets() if self.mode == "running" else np.full(self.n, np.nan)
         u = self.u_last
+        latched = ";".join(self._latched_kinds())
+        if self.record is not None:
+            self.record.step(self.t, self.mode, self.readings_p, pe, h, hs, tg, u, step_s, latched)
+        if self.log is None:
+            return
         row: list = [f"{self.t:.4f}", self.mode]
         for i in range(self.n):
             row += [_fmt(self.readings_p[i], U.to_kpa(1.0)), _fmt(pe[i], U.to_kpa(1.0)), _fmt(h[i], U.to_mm(1.0)),
                     _fmt(hs[i], U.to_mm(1.0)), _fmt(tg[i], U.to_mm(1.0)), f"{u[0, i]:.4f}", f"{u[1, i]:.4f}",
                     f"{u[2, i]:.4f}"]
-        latched = ";".join(self._latched_kinds())
         row += [_fmt(step_s, 1e3, 3), latched]
         self.log.row(row)
 

@@ -33,7 +33,8 @@ calibrate                   before the loop closes, a start-up calibration (vent
                             modulus and dead-volume factors for the estimator (default true)
 ==========================  ====================================================================
 
-``run_scene`` writes ``closed_loop.csv`` (edge units) and ``closed_loop.png`` (target, truth and
+``run_scene`` writes ``closed_loop.csv`` (edge units), ``log.mcap``
+(:func:`hbma_ctrl.app.logs.scenes.write_chamber_closed_loop`) and ``closed_loop.png`` with its PDF (target, truth and
 estimate of the height; pressure with its limit; the three commands) and returns
 ``{"controller": {...}}`` with height_rmse_mm, max_pressure_kpa, pressure_limit_kpa,
 solve_ms_median/p99/max, fallbacks and the settling results per target step, and with the
@@ -51,6 +52,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from hbma_ctrl.app.scenes.evaluate import NEES_FLOOR
+from hbma_ctrl.app.figstyle import LABELS, save
+from hbma_ctrl.app.logs.scenes import write_chamber_closed_loop
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.system.sections import (
     ControllerSection,
@@ -277,30 +280,29 @@ def write_closed_loop_csv(log: ClosedLoopLog, path: Path) -> None:
 def plot_closed_loop(log: ClosedLoopLog, path: Path, title: str = "", p_max: float | None = None) -> None:
     """Three panels: target/truth/estimate height; pressure (true, measured, estimate, limit); commands."""
 
-    fig = Figure(figsize=(9, 8))
+    fig = Figure(figsize=(9, 8), layout="constrained")
     ax = fig.subplots(3, 1, sharex=True)
     ax[0].plot(log.t, U.to_mm(log.target), "k--", lw=1.2, label="target")
     ax[0].plot(log.t, U.to_mm(log.h_true), "C0", lw=1.5, label="truth (rig)")
     ax[0].plot(log.t, U.to_mm(log.h_est), "C1", lw=1.0, alpha=0.8, label="estimate (EKF)")
-    ax[0].set_ylabel("height (mm)")
+    ax[0].set_ylabel(LABELS["h"])
     ax[0].legend(loc="best", fontsize=8)
     ax[1].plot(log.t, U.to_kpa(log.p_meas), ".", color="0.7", ms=2, label="measured")
     ax[1].plot(log.t, U.to_kpa(log.p_true), "C0", lw=1.5, label="truth")
     ax[1].plot(log.t, U.to_kpa(log.p_est), "C1", lw=1.0, label="estimate")
     if p_max is not None:
         ax[1].axhline(U.to_kpa(p_max), color="r", lw=1, ls=":", label="limit")
-    ax[1].set_ylabel("gauge pressure (kPa)")
+    ax[1].set_ylabel(LABELS["p"])
     ax[1].legend(loc="best", fontsize=8)
-    for i, (name, c) in enumerate((("speed", "C2"), ("inlet duty", "C3"), ("outlet duty", "C4"))):
-        ax[2].step(log.t, log.u[:, i], where="post", color=c, lw=1, label=name)
-    ax[2].set_ylabel("command (0-1)")
-    ax[2].set_xlabel("time (s)")
-    ax[2].set_ylim(-0.05, 1.05)
+    for i, (name, c) in enumerate((("pump speed", "C2"), ("inlet duty", "C3"), ("outlet duty", "C4"))):
+        ax[2].step(log.t, 100.0 * log.u[:, i], where="post", color=c, lw=1, label=name)
+    ax[2].set_ylabel(LABELS["duty"])
+    ax[2].set_xlabel(LABELS["t"])
+    ax[2].set_ylim(-5, 105)
     ax[2].legend(loc="best", fontsize=8)
     if title:
         ax[0].set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save(fig, Path(path).with_suffix(""))
 
 
 def run_scene(scn, out_dir: Path | str) -> dict:
@@ -318,6 +320,7 @@ def run_scene(scn, out_dir: Path | str) -> dict:
     title = (f"{scn.name}: {section.kind} {st.get('variant') or ''} N={st.get('horizon')}, "
              f"load {U.to_grams(scn.platform.load):g} g")
     plot_closed_loop(log, out / "closed_loop.png", title=title, p_max=section.p_max)
+    write_chamber_closed_loop(log, out, scn.path, extra={"kind": "chamber closed loop", "p_max_kpa": U.to_kpa(section.p_max)})
     m = loop_metrics(log, section)
     m["log_csv"] = "closed_loop.csv"
     m["plot_png"] = "closed_loop.png"

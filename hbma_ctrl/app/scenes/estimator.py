@@ -4,7 +4,8 @@ A scene runs the rig (``[rig]`` section, :class:`hbma_ctrl.sim.rig.RigSettings`:
 higher-fidelity truth with a noisy, saturating sensor) open loop with the scenario's inputs, feeds
 the readings and the commands to the filter, and writes the estimate next to the truth:
 
-- kind "single": ``estimate.csv`` (edge units: mm, kPa, N), ``estimate.png``; load steps
+- kind "single": ``estimate.csv`` (edge units: mm, kPa, N), ``log.mcap``
+  (:func:`hbma_ctrl.app.logs.scenes.write_estimator_trial`), ``estimate.png`` and its PDF; load steps
   (``load_steps_g``) are applied to the rig mid-run;
 - kind "protocol": every trial of the grid (docs/concepts/model.md §7, 150 by default), in worker processes,
   ``estimator_trials.csv`` (one row of scores per trial).
@@ -38,6 +39,9 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+
+from hbma_ctrl.app.figstyle import LABELS, save
+from hbma_ctrl.app.logs.scenes import write_estimator_trial
 
 from hbma_ctrl.app.scenes.evaluate import (
     EVENT_COUNTS,
@@ -110,7 +114,7 @@ def _write_series(res: TrialResult, path: Path) -> None:
 
 
 def _plot(res: TrialResult, path: Path, title: str) -> None:
-    fig = Figure(figsize=(8, 8))
+    fig = Figure(figsize=(8, 8), layout="constrained")
     ax = fig.subplots(3, 1, sharex=True)
     t = res.t
     ax[0].plot(t, U.to_mm(res.truth["h"]), "k", label="rig (truth)")
@@ -118,21 +122,20 @@ def _plot(res: TrialResult, path: Path, title: str) -> None:
     ax[0].fill_between(t, U.to_mm(res.est["h"] - 2 * res.est["std_h"]), U.to_mm(res.est["h"] + 2 * res.est["std_h"]),
                        color="C0", alpha=0.2, label="estimate +- 2 sigma")
     ax[0].plot(t, U.to_mm(res.open_loop_h), "C1--", label="open-loop model")
-    ax[0].set_ylabel("height h, mm")
+    ax[0].set_ylabel(LABELS["h"])
     ax[0].legend(fontsize=8)
     ax[1].plot(t, res.truth["F"], "k", label="rig (truth)")
     ax[1].plot(t, res.est["F"], "C0", label="estimate")
-    ax[1].set_ylabel("contact force F, N")
+    ax[1].set_ylabel(LABELS["F"])
     ax[1].legend(fontsize=8)
     ax[2].plot(t, U.to_kpa(res.meas), ".", color="0.6", ms=2, label="sensor")
     ax[2].plot(t, U.to_kpa(res.truth["p"]), "k", label="rig (truth)")
     ax[2].plot(t, U.to_kpa(res.est["p"]), "C0", label="estimate")
-    ax[2].set_ylabel("pressure, kPa")
-    ax[2].set_xlabel("t, s")
+    ax[2].set_ylabel(LABELS["p"])
+    ax[2].set_xlabel(LABELS["t"])
     ax[2].legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save(fig, Path(path).with_suffix(""))
 
 
 def _single(scn, sec: EstimatorSection, rig: RigSettings, out: Path) -> dict:
@@ -153,6 +156,7 @@ def _single(scn, sec: EstimatorSection, rig: RigSettings, out: Path) -> dict:
             if first is None:
                 first = res
     _write_series(first, out / "estimate.csv")
+    write_estimator_trial(first, out, scn.path, extra={"kind": "estimator", "filter": sec.filter})
     _plot(first, out / "estimate.png", f"{scn.name}: {sec.filter.upper()} on the rig "
           f"(modulus x{rig.modulus_scale:g}, flow x{rig.flow_scale:g}, V0 x{rig.V0_scale:g})")
     return _metrics(per_kind, sec, rig, {"estimate_csv": "estimate.csv", "plot_png": "estimate.png"})

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hbma_ctrl.app.logs.scenes import write_robot_open_loop
 from hbma_ctrl.app.scenes.robot_plots import plot_run, plot_shapes
 from hbma_ctrl.app.scenes.robot_closed import run_closed_loop_scene
 from hbma_ctrl.core import units as U
@@ -80,7 +81,8 @@ def run_scene(scn, out_dir) -> dict:
 
     Uses the scenario's pneumatics (compressor map, flow scale), duration and sim integrator/step;
     the robot itself (chambers included) comes from ``[robot]``, not from ``[actuator]``. Writes
-    robot_log.csv, robot_events.json, robot_shape.png (shapes over time) and robot_series.png.
+    robot_log.csv, log.mcap, robot_events.json, robot_shape.png (shapes over time) and robot_series.png
+    (each figure with its PDF).
     """
     s = scn.role("robot")
     if s.mode == "closed_loop":
@@ -94,6 +96,7 @@ def run_scene(scn, out_dir) -> dict:
     if integ != scn.sim.integrator:
         metrics["note"] = f"sim.integrator '{scn.sim.integrator}' is not available for the robot batch; used rk4"
     write_run_csv(s.design, run, out / "robot_log.csv")
+    write_robot_open_loop(s.design, run, out, scn.path, extra={"kind": "robot open loop", "status": run.status})
     (out / "robot_events.json").write_text(json.dumps(
         [{"t_s": float(t), "chamber": c, "event": e} for t, c, e in run.events], indent=1) + "\n")
     idx = np.unique(np.linspace(0, run.t.size - 1, s.snapshots).round().astype(int))

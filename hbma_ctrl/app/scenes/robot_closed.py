@@ -10,8 +10,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
+from hbma_ctrl.app.figstyle import LABELS, figure, legend, save
+from hbma_ctrl.app.logs.scenes import write_robot_closed_loop
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.scenes.robot_loop import ClosedLoopRun, run_closed_loop
 from hbma_ctrl.system.roles import make_model
@@ -150,43 +152,53 @@ def write_closed_csv(design: RobotDesign, run: ClosedLoopRun, path) -> None:
             w.writerow([f"{v:.6g}" for v in row])
 
 
-def plot_closed_loop(design: RobotDesign, runs: list, path, pressure_limit: float, title: str = "") -> None:
-    """Signals: per chamber height (truth, target, estimate), pressures with the limit, layer bends."""
-
+def plot_closed_loop(design: RobotDesign, runs: list, path, pressure_limit: float, title: str = "") -> list[Path]:
+    """One column per controller: per layer its chambers' heights (target dashed, estimate solid, true
+    dotted) and pressures (with the limit), then the layers' bend (target dashed, true solid); -> PNG and
+    PDF (``path`` with its suffix replaced). Returns the files."""
     N = design.n_layers
-    fig = Figure(figsize=(6.5 * len(runs), 2.4 * (N + 2)))
-    axs = fig.subplots(N + 2, len(runs), squeeze=False, sharex=True)
-    cols = ["C0", "C1", "C2"]
+    fig = figure(7.5 * len(runs) + 1.5, 1.9 * (2 * N + 1) + 1.0)
+    axs = fig.subplots(2 * N + 1, len(runs), squeeze=False, sharex=True)
+    styles = (("target", dict(ls="--", lw=1.0)), ("estimate", dict(ls="-", lw=1.3)), ("true", dict(ls=":", lw=1.2)))
     for c, run in enumerate(runs):
         for k in range(N):
-            ax = axs[k, c]
+            ax, axp = axs[k, c], axs[N + k, c]
             for i in range(3):
                 j = 3 * k + i
-                ax.plot(run.t, U.to_mm(run.h[:, j]), cols[i], lw=1.2, label=f"{design.names[j]} true")
-                ax.plot(run.t, U.to_mm(run.h_ref[:, j]), cols[i], ls="--", lw=0.9)
-                ax.plot(run.t, U.to_mm(run.h_est[:, j]), cols[i], ls=":", lw=0.9)
-            ax.set_ylabel(f"layer {LETTERS[k]} h / mm")
-            ax.legend(fontsize=6, loc="upper left", ncol=3)
-        ax = axs[N, c]
-        ax.plot(run.t, run.p / 1e3, lw=0.8)
-        ax.axhline(pressure_limit / 1e3, color="r", ls="--", lw=1)
-        ax.set_ylabel("p / kPa (limit dashed)")
+                for (words, st), y in zip(styles, (run.h_ref[:, j], run.h_est[:, j], run.h[:, j])):
+                    ax.plot(run.t, U.to_mm(y), color=f"C{i}", **st)
+                axp.plot(run.t, U.to_kpa(run.p_meas[:, j]), color=f"C{i}", lw=0.9, label=design.names[j])
+            axp.axhline(U.to_kpa(pressure_limit), color="tab:red", ls="-.", lw=1.0, label="pressure limit")
+            ax.set_ylabel(LABELS["h"])
+            ax.set_title(f"Layer {LETTERS[k]}: chamber heights", fontsize=9)
+            axp.set_ylabel(LABELS["p"])
+            axp.set_title(f"Layer {LETTERS[k]}: measured chamber pressures", fontsize=9)
+            keys = [Line2D([], [], color=f"C{i}", lw=2, label=design.names[3 * k + i]) for i in range(3)]
+            keys += [Line2D([], [], color="0.2", label=w, **st) for w, st in styles]
+            ax.legend(handles=keys, fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+            legend(axp, loc="center left", bbox_to_anchor=(1.01, 0.5))
+        ax = axs[2 * N, c]
         nt, _ = _normals(design, run.h[::5])
         nr, _ = _normals(design, run.h_ref[::5])
-        ax = axs[N + 1, c]
         for k in range(N):
-            ax.plot(run.t[::5], np.degrees(np.arctan2(nt[:, k, 0], nt[:, k, 2])), f"C{k}", lw=1.2,
-                    label=f"{LETTERS[k]} x-tilt")
-            ax.plot(run.t[::5], np.degrees(np.arctan2(nt[:, k, 1], nt[:, k, 2])), f"C{k}", lw=1.0, ls="-.",
-                    label=f"{LETTERS[k]} y-tilt")
-            ax.plot(run.t[::5], np.degrees(np.arctan2(nr[:, k, 0], nr[:, k, 2])), "k", ls="--", lw=0.7)
-            ax.plot(run.t[::5], np.degrees(np.arctan2(nr[:, k, 1], nr[:, k, 2])), "k", ls=":", lw=0.7)
-        ax.set_ylabel("layer tilt / deg")
-        ax.set_xlabel("t / s")
-        ax.legend(fontsize=6, ncol=3)
-        axs[0, c].set_title(f"{title} {run.controller} (solid true, dashed target, dotted estimate)", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
+            ax.plot(run.t[::5], np.degrees(np.arccos(np.clip(nt[:, k, 2], -1, 1))), color=f"C{k}", lw=1.2,
+                    label=f"layer {LETTERS[k]}")
+            ax.plot(run.t[::5], np.degrees(np.arccos(np.clip(nr[:, k, 2], -1, 1))), color=f"C{k}", ls="--", lw=0.9)
+        ax.set_ylabel(LABELS["bend"])
+        ax.set_xlabel(LABELS["t"])
+        ax.set_title("Bend of each layer (true solid, target dashed)", fontsize=9)
+        legend(ax, loc="center left", bbox_to_anchor=(1.01, 0.5))
+        axs[0, c].annotate(f"controller: {_CONTROLLER_WORDS.get(run.controller, run.controller)}", (0.5, 1.35),
+                           xycoords="axes fraction", ha="center", fontsize=10, weight="bold")
+        for a in axs[:, c]:
+            a.grid(alpha=0.3)
+    fig.suptitle(f"{title}: chamber heights, pressures and layer bends" if title else
+                 "Chamber heights, pressures and layer bends")
+    return save(fig, Path(path).with_suffix(""))
+
+
+#: the controllers by the names a reader knows them by
+_CONTROLLER_WORDS = {"mpc": "model predictive control (NMPC)", "pressure_pid": "pressure PID"}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -207,7 +219,10 @@ def scene_parts(scn, settings: RobotSettings) -> tuple:
 
 
 def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
-    """The closed-loop ``[robot]`` scene: metrics {"robot": {...}} (+ the baseline's beside it)."""
+    """The closed-loop ``[robot]`` scene: metrics {"robot": {...}} (+ the baseline's beside it); writes
+    ``robot_<controller>_log.csv`` and ``log.mcap`` (the baseline's ``log_<controller>.mcap``,
+    :func:`hbma_ctrl.app.logs.scenes.write_robot_closed_loop`), robot_series.png and robot_shape.png with
+    their PDFs, robot_segments.json."""
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -224,6 +239,9 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
         runs.append(run)
         mets.append(closed_loop_metrics(d, run, s.pneumatics.pressure_limit, s.settle_time, model=model))
         write_closed_csv(d, run, out / f"robot_{kind}_log.csv")
+        write_robot_closed_loop(d, run, out, scn.path, name="log.mcap" if not runs[:-1] else f"log_{kind}.mcap",
+                                extra={"kind": "robot closed loop", "controller": kind,
+                                       "pressure_limit_kpa": U.to_kpa(s.pneumatics.pressure_limit)})
     metrics = dict(mets[0])
     metrics["topology"] = s.pneumatics.topology
     metrics["n_layers"] = d.n_layers

@@ -4,7 +4,8 @@ Dispatch (first match): a [robot] table -> :func:`hbma_ctrl.app.scenes.robot.run
 -> :func:`hbma_ctrl.app.scenes.controller.run_scene`; [estimator] ->
 :func:`hbma_ctrl.app.scenes.estimator.run_scene`; otherwise the open-loop plant. Each scene returns a dict of role metrics; the runner merges them under stable
 role keys into ``out_dir/metrics.json`` (see :mod:`hbma_ctrl.app.metrics`). Open loop also writes
-``log.csv`` (edge units) and ``run.png`` for a single trial, or the protocol outputs
+``log.csv`` (edge units), ``log.mcap`` (:func:`hbma_ctrl.app.logs.scenes.write_open_loop`) and ``run.png``
+(and its PDF) for a single trial, or the protocol outputs
 (:func:`hbma_ctrl.app.scenes.protocol.run_protocol`) for kind "protocol".
 """
 
@@ -22,6 +23,7 @@ from hbma_ctrl.app.metrics import (
     write_log_csv,
     write_metrics,
 )
+from hbma_ctrl.app.logs.scenes import write_open_loop
 from hbma_ctrl.app.plots import plot_run
 from hbma_ctrl.app.scenes.protocol import run_protocol
 from hbma_ctrl.app.scenario import Scenario
@@ -78,6 +80,7 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
         # a long run (the note above) shows a progress bar in model seconds with the time left
         (log,) = simulate_trials([trial], scn.sim, fid, progress=note is not None)
         write_log_csv(log, out_dir / "log.csv")
+        write_open_loop(log, out_dir, scn.path, extra={"kind": "open loop", "status": log.status})
         plot_run(log, out_dir / "run.png", title=f"{scn.name}: {log.fidelity}, {scn.sim.integrator}, "
                  f"status {log.status}", sensor_range=scn.sim.sensor_range)
         plant = plant_metrics([log])

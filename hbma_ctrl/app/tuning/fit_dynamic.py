@@ -479,18 +479,18 @@ def _plot(result: DynamicFitResult, path: Path) -> None:
     t = result.t
     ax[0].plot(t, U.to_kpa(result.p_data), ".", color="0.6", ms=2, label="data")
     ax[0].plot(t, U.to_kpa(result.p_model), "C0", lw=1.2, label=f"fit ({result.material}, {result.fidelity})")
-    ax[0].set_ylabel("pressure p (kPa)")
+    ax[0].set_ylabel("p (kPa)")
     ax[0].set_title(f"pressure NRMSD {result.nrmsd:.4f}")
     ax[0].legend(loc="best", fontsize=8)
     ax[1].axhline(0.0, color="0.6", lw=0.8)
     ax[1].plot(t, U.to_kpa(result.p_model - result.p_data), ".", ms=2)
-    ax[1].set_ylabel("residual p_fit - p (kPa)")
+    ax[1].set_ylabel("p residual, fit minus data (kPa)")
     if result.h_data is not None:
         ax[2].plot(t, U.to_mm(result.h_data), ".", color="0.6", ms=2, label="data")
         ax[2].plot(t, U.to_mm(result.h_model), "C1", lw=1.2, label="fit")
-        ax[2].set_ylabel("height h (mm)")
+        ax[2].set_ylabel("h (mm)")
         ax[2].legend(loc="best", fontsize=8)
-    ax[-1].set_xlabel("time t (s)")
+    ax[-1].set_xlabel("t (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 

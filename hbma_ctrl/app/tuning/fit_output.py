@@ -70,14 +70,14 @@ def _plot(result: FitResult, path: Path) -> None:
     ax1.plot(h, U.to_kpa(result.p_data), "o", ms=4, label="data")
     ax1.plot(h[order], U.to_kpa(result.p_model[order]), "x-" if result.contact == "free" else "x", ms=5,
              label=f"fit ({result.material})")
-    ax1.set_xlabel("height h (mm)")
-    ax1.set_ylabel("pressure p (kPa)")
+    ax1.set_xlabel("h (mm)")
+    ax1.set_ylabel("p (kPa)")
     ax1.set_title(f"{result.contact} contact, {result.fidelity} law, NRMSD {result.nrmsd:.4f}")
     ax1.legend()
     ax2.axhline(0.0, color="0.6", lw=0.8)
     ax2.plot(h, U.to_kpa(result.p_model - result.p_data), "o", ms=4)
-    ax2.set_xlabel("height h (mm)")
-    ax2.set_ylabel("residual p_fit - p (kPa)")
+    ax2.set_xlabel("h (mm)")
+    ax2.set_ylabel("p residual, fit minus data (kPa)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 

@@ -76,7 +76,8 @@ def test_second_run_refused_then_overwrite_replaces_and_manifest_is_complete(tmp
     again = runner.invoke(app, [*argv, "--overwrite"])
     assert again.exit_code == 0, again.output
     assert not (out / "stale.csv").exists()  # replaced whole: nothing of the old run is left
-    assert {p.name for p in out.iterdir()} == {"metrics.json", "log.csv", "run.png", "manifest.json"}
+    assert {p.name for p in out.iterdir()} == {"metrics.json", "log.csv", "log.mcap", "run.png", "run.pdf",
+                                               "manifest.json"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fig7"]  # no temp, old or lock files beside it
 
 

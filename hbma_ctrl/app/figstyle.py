@@ -1,0 +1,77 @@
+"""The one style of every figure the package writes: axis labels as "quantity (unit)" in edge units
+(:data:`LABELS`), a legend on every axis with more than one labelled line, titles in the user's words,
+each figure saved as PNG (:data:`DPI` dpi) and PDF (:func:`save`). matplotlib without pyplot: no global
+state, no display."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+__all__ = ["LABELS", "DPI", "FORMATS", "figure", "legend", "save", "decimate", "plain_y"]
+
+#: axis labels, one style everywhere: "symbol (unit)" or "what (unit)"
+LABELS = {
+    "t": "t (s)",
+    "h": "h (mm)",
+    "h_err": "h error (mm)",
+    "p": "p (kPa)",
+    "p_err": "p error (kPa)",
+    "F": "F (N)",
+    "duty": "duty (%)",
+    "bend": "bend (deg)",
+    "direction": "bend direction (deg)",
+    "centre": "centre height (mm)",
+    "step": "step time (ms)",
+    "x": "x (mm)",
+    "y": "y (mm)",
+    "z": "z (mm)",
+}
+
+#: raster resolution of the PNGs, dots per inch
+DPI = 150
+#: the files each figure is saved as
+FORMATS = ("png", "pdf")
+
+
+def figure(width: float, height: float) -> Figure:
+    """A new figure of ``width`` x ``height`` inches with constrained layout (no clipped labels)."""
+    return Figure(figsize=(width, height), layout="constrained")
+
+
+def legend(ax: Axes, **kw) -> None:
+    """A legend on ``ax`` when it has more than one labelled line (the package's rule); ``kw`` to matplotlib."""
+    handles, labels = ax.get_legend_handles_labels()
+    if len(labels) > 1:
+        kw.setdefault("fontsize", 8)
+        ax.legend(**kw)
+
+
+def save(fig: Figure, stem: Path | str) -> list[Path]:
+    """Save ``fig`` as ``stem.png`` (:data:`DPI` dpi) and ``stem.pdf``; returns the paths."""
+    stem = Path(stem)
+    out = []
+    for ext in FORMATS:
+        path = stem.with_suffix(f".{ext}")
+        fig.savefig(path, dpi=DPI)
+        out.append(path)
+    return out
+
+
+def decimate(t: np.ndarray, *ys: np.ndarray, most: int = 20000) -> tuple:
+    """(t, *ys) thinned to at most ``most`` samples by an even stride (a figure of a long run)."""
+    step = max(1, int(np.ceil(len(t) / most)))
+    return (t[::step], *(y[::step] for y in ys))
+
+
+def plain_y(ax: Axes, least_span: float = 1.0) -> None:
+    """Plain y tick labels (no offset or power above the axis) and, for a flat signal, a y range of
+    ``least_span`` around it (a constant otherwise shows as noise at its last digits)."""
+    lo, hi = ax.get_ylim()
+    if hi - lo < 1e-6 * max(1.0, abs(lo), abs(hi)):
+        mid = 0.5 * (lo + hi)
+        ax.set_ylim(mid - least_span / 2, mid + least_span / 2)
+    ax.ticklabel_format(axis="y", style="plain", useOffset=False)
