@@ -5,7 +5,7 @@ states the problem of :class:`hbma_ctrl.estimators.mhe.MHE` in do-mpc's terms: t
 model (the EKF's, :func:`hbma_ctrl.estimators.mhe.lean_model`; the shape's warm start carried as two
 more states without noise), the same window, the gas mass with the EKF's process noise, the load
 and the three factors as estimated parameters within their bounds, the pressure reading with the
-EKF's measurement noise. What do-mpc does differently, stated: its arrival cost has fixed weights
+EKF's measurement noise, the gas mass at least the ambient's. What do-mpc does differently, stated: its arrival cost has fixed weights
 (the prior's covariance at the start, never updated), every sample is a full IPOPT solve, the
 commands are measured inputs (do-mpc's way: a measurement of u with a tight weight) and a
 saturated reading is taken as the range itself (no censoring).
@@ -68,7 +68,7 @@ class DoMPCMHE:
         x5 = ca.vertcat(m, *par)
         sh = ca.vertcat(h1w, h2w)
         xn, _, sn = pred(x5, sh, u, theta)
-        _, y, _ = meas(x5, sh, theta)
+        _, y, _, _ = meas(x5, sh, theta)
         self._scale = 1e-6  # the gas mass in mg inside do-mpc (IPOPT's scaling)
         mdl.set_meas("p", y[4], meas_noise=True)
         mdl.set_meas("u_meas", u, meas_noise=False)
@@ -81,8 +81,10 @@ class DoMPCMHE:
         mhe.settings.t_step = s.sample_period
         mhe.settings.meas_from_data = True
         mhe.settings.store_full_solution = False
+        # IPOPT as the MHE's own reference runs it: a limited-memory Hessian (the exact one takes second
+        # derivatives through the shape's Newton projection, NaN at the flat membrane)
         mhe.settings.nlpsol_opts = {"ipopt.print_level": 0, "print_time": 0, "ipopt.sb": "yes",
-                                    "ipopt.max_iter": s.ipopt_iter}
+                                    "ipopt.max_iter": s.ipopt_iter, "ipopt.hessian_approximation": "limited-memory"}
         mhe.scaling["_x", "m"] = self._scale
         self.mdl, self.mhe = mdl, mhe
         self._timing = CommandTiming(s.sample_period, s.valve_delay, s.sensor_delay)
@@ -104,7 +106,7 @@ class DoMPCMHE:
         for n in ("b", "k", "c"):
             mhe.bounds["lower", "_p_est", n] = FACTOR_RANGE[0]
             mhe.bounds["upper", "_p_est", n] = FACTOR_RANGE[1]
-        mhe.bounds["lower", "_x", "m"] = 1e-3 * self.om.m_env
+        mhe.bounds["lower", "_x", "m"] = self.om.m_env
         mhe.setup()
         mhe.x0 = np.array([x[0], shape[0], shape[1]])
         mhe.p_est0 = np.asarray(x[1:], dtype=float)

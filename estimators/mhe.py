@@ -15,10 +15,12 @@ sensor delays as in the EKF) drives the shooting interval from node j to node j 
 
 The cost (multiple shooting, every term a squared residual):
 
-- arrival: ``(x_0 - xbar)^T P0^-1 (x_0 - xbar)``, with (xbar, P0) updated EKF-style at every step:
-  from the solution's node 0, one predict with the interval's Jacobian (``P- = A P0 A^T + Q``) and a
-  Joseph-form update with node 1's reading (its Jacobian, its variance), so the arrival covariance
-  follows the data (not a fixed weight);
+- arrival: ``(x_0 - xbar)^T P0^-1 (x_0 - xbar)``, with (xbar, P0) updated by one EKF step at every
+  step: from the arrival itself, linearised along the window (node 0's interval, ``P- = A P0 A^T + Q``,
+  and a Joseph-form update with node 1's reading, its Jacobian and variance), so the arrival
+  covariance follows the data (not a fixed weight) and the arrival mean is the lagged EKF's, which
+  has not seen the window's readings (the window's node 0 has: as the next prior they would count
+  twice);
 - the shooting defects ``(f(x_j, u_j) - m_(j+1)) / sigma_j``, f the EKF's discrete model (the same
   casadi Function, :meth:`hbma_ctrl.models.chamber.ObserverModel._predict`), sigma_j the EKF's
   process noise of the gas mass (``flow_rel_std`` of the period's flow, ``mass_std_abs``);
@@ -30,9 +32,13 @@ The cost (multiple shooting, every term a squared residual):
 
 Hard constraints: the shape follows from (m, W) by the model's projection, which keeps
 ``0 <= h2 <= h1`` and ``h = h1 - h2 >= 0`` for every state (resting: h1 = h2, the flat membrane);
-the contact force is the load, so ``F >= 0`` is the bound ``W >= 0`` on the decision variable (the
-EKF lets its load state go below zero, :data:`hbma_ctrl.models.chamber.STATE_NAMES`); the factors stay in
-:data:`hbma_ctrl.estimators.common.FACTOR_RANGE` and the gas mass positive. Lift-off and touch-down
+the contact force is the load in contact, so ``F >= 0`` is the bound ``W >= 0`` on the decision
+variable (the EKF lets its load state go below zero, :data:`hbma_ctrl.models.chamber.STATE_NAMES`), and
+``pi r1^2 p`` while resting, so the gauge pressure is bounded below by 0 (every node's gas mass at
+least the ambient's: nothing draws a vacuum); the factors stay in
+:data:`hbma_ctrl.estimators.common.FACTOR_RANGE`; every node's height is at most :data:`H_MAX_REL` r1 (a
+linearised row of the QP: the far branch of the pressure law would otherwise explain the readings of
+a vented chamber by an ever larger cap). Lift-off and touch-down
 are the model's complementarity (the membrane rests while ``pi r1^2 p <= W``), evaluated at every
 node, so the window sees a lift-off at the sample where it happens.
 
@@ -84,7 +90,7 @@ from hbma_ctrl.estimators.ekf_step import KIND_NONE, KIND_OK, KIND_SATURATED, cs
 from hbma_ctrl.models.actuation import CommandTiming
 from hbma_ctrl.models.chamber import NX, STATE_NAMES, STATE_SCALE, ObserverModel
 
-__all__ = ["MHE", "MHESettings", "mhe_step_function", "mhe_nlp", "TRUST", "SOLVERS", "QP_SOLVERS",
+__all__ = ["MHE", "MHESettings", "mhe_step_function", "mhe_nlp", "TRUST", "H_MAX_REL", "SOLVERS", "QP_SOLVERS",
            "constraint_violations"]
 
 SOLVERS = ("rti", "ipopt")
@@ -94,7 +100,14 @@ _QP_LIBS = {"daqp": ["-ldaqp"], "osqp": ["-losqp"], "qrqp": []}
 #: the largest change of one Gauss-Newton step, per variable in the scaled coordinates (gas mass in
 #: mg, load N, factors): the model switches between resting and contact inside a step, where its
 #: linearisation is one-sided; a bounded step keeps one sample's iteration on the branch it started on
-TRUST = (0.3, 1.0, 0.05, 0.05, 0.05)
+TRUST = (0.3, 1.0, 0.02, 0.02, 0.02)
+#: the height of a node is at most H_MAX_REL r1: the membrane's far branch (past the pressure's maximum)
+#: reaches any low pressure with a large enough cap, so readings near zero after a fast vent could be
+#: explained by a cap growing without bound instead of the flat membrane; the protocol's caps stay below
+#: 1.8 r1 (the 7.5 mm, 2 mm chamber with 200 g at full speed)
+H_MAX_REL = 2.5
+#: stands for an infinite constraint bound (m) where the QP solver needs a finite one
+_BIG = 1e3
 #: a QP solution may leave its bounds by this much (scaled units) and still be used
 _BOUND_TOL = 1e-6
 #: Levenberg term on the Gauss-Newton Hessian (scaled units): keeps it regular where a parameter is
@@ -113,6 +126,11 @@ class MHESettings(FilterSettings):
     solver: str = setting("rti", choices=SOLVERS,
                           doc="MHE: one Gauss-Newton step per sample as generated C (rti) or a full IPOPT solve (ipopt)")
     qp_solver: str = setting("daqp", choices=QP_SOLVERS, doc="MHE: the RTI step's QP solver (its C generated with the step)")
+    huber: float = setting(3.0, lo=0.0, hi=100.0,
+                           doc="MHE: readings beyond this many sigmas weigh as Huber's loss does (0: least squares)")
+    companion_ekf: bool = setting(True, doc="MHE: run the EKF beside it every sample, to restart the window from")
+    reseed_cost: float = setting(5.0, lo=0.0, hi=1e6,
+                                 doc="MHE: restart the window from the EKF above this cost per sample (0: never)")
     ipopt_iter: int = setting(50, integer=True, lo=1, hi=10000, unit="iterations",
                               doc="MHE: IPOPT's iteration limit per sample (solver ipopt)")
 
@@ -130,8 +148,10 @@ def _scales() -> np.ndarray:
 
 
 def _bounds(om: ObserverModel, s: FilterSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of (m, W, b, k, c) in SI: a positive gas mass, W in [0, load_max], factors in FACTOR_RANGE."""
-    lo = np.array([1e-3 * om.m_env, 0.0, FACTOR_RANGE[0], FACTOR_RANGE[0], FACTOR_RANGE[0]])
+    """Bounds of (m, W, b, k, c) in SI: the gas mass at least the ambient's (the gauge pressure is >= 0:
+    the pump fills, the outlet vents to ambient, nothing draws a vacuum; so the resting membrane's
+    contact force pi r1^2 p is >= 0), W in [0, load_max], factors in FACTOR_RANGE."""
+    lo = np.array([om.m_env, 0.0, FACTOR_RANGE[0], FACTOR_RANGE[0], FACTOR_RANGE[0]])
     hi = np.array([50.0 * om.m_env, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
     return lo, hi
 
@@ -155,6 +175,11 @@ def _residual_terms(s: FilterSettings, N: int, M, th, fm, p, rest, Z, kinds, xba
     w_sat = ca.logic_and(sat, p < s.sensor_range)
     rz = ca.if_else(ok, (p - Z) / ca.sqrt(R), ca.if_else(w_sat, (p - s.sensor_range) / ca.sqrt(R_sat), 0.0))
     wz = ca.if_else(ok, 1.0 / ca.sqrt(R), ca.if_else(w_sat, 1.0 / ca.sqrt(R_sat), 0.0))
+    if s.huber > 0:
+        # Huber's loss by reweighting: a residual beyond huber sigmas weighs as its linear branch (the
+        # weight held over the step, as iteratively reweighted least squares does)
+        hw = ca.sqrt(ca.fmin(1.0, s.huber / ca.fmax(ca.fabs(rz), 1e-12)))
+        rz, wz = rz * hw, wz * hw
     return r0, rd, 1.0 / ca.sqrt(sig2), rz, wz, R, R_sat, ok, w_sat
 
 
@@ -176,11 +201,11 @@ def lean_model(om: ObserverModel) -> tuple[ca.Function, ca.Function]:
         xn, A, sn, _, _, _, _ = om.predict.call([x, sh, u, th, 0.0, ca.DM.zeros(NX, NX), qv])
         pred = ca.Function("mhe_predict", [x, sh, u, th], [xn, A, sn], ["x", "s", "u", "theta"],
                            ["x_next", "A", "s_next"], {"cse": True})
-        so, y, H, _, C = om.outputs.call([x, sh, th, 0.0, P])
+        so, y, H, D, C = om.outputs.call([x, sh, th, 0.0, P])
         outs = ca.Function("mhe_outputs", [x, sh, th, P], [so, y, H, C], ["x", "s", "theta", "P"],
                            ["s_out", "y", "H", "C"], {"cse": True})
-        meas = ca.Function("mhe_meas", [x, sh, th], [so, y, H], ["x", "s", "theta"], ["s_out", "y", "H"],
-                           {"cse": True})
+        meas = ca.Function("mhe_meas", [x, sh, th], [so, y, H, D[2, :]], ["x", "s", "theta"],
+                           ["s_out", "y", "H", "Dh"], {"cse": True})
         _LEAN_CACHE[key] = (om.predict, pred, outs, meas)  # the model's Function kept: its id stays unique
     return _LEAN_CACHE[key][1:3]
 
@@ -241,13 +266,14 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     X = ca.vertcat(M1.T, ca.repmat(th, 1, N + 1))  # 5 x (N + 1)
     TH = ca.repmat(theta, 1, N)
     xn, A, _ = pred_map(X[:, :N], S1[:, :N], U, TH)
-    so, y, H = out_map(X[:, 1:], S1[:, 1:], TH)
+    so, y, H, Dh = out_map(X[:, 1:], S1[:, 1:], TH)
     # --- the least-squares data as an SX Function (residuals, Jacobian, QP data)
     SXs = ca.SX
     sM, sth, sZ, sk = SXs.sym("M", N + 1), SXs.sym("th", 4), SXs.sym("Z", N), SXs.sym("kinds", N)
     sxb, sP0 = SXs.sym("xbar", NX), SXs.sym("P0", NX, NX)
     sfm, sA, sp, sH, srest = SXs.sym("fm", N), SXs.sym("A", NX, N), SXs.sym("p", N), SXs.sym("H", NX, N), \
         SXs.sym("rest", N)
+    sDh, sh, shmax = SXs.sym("Dh", NX, N), SXs.sym("h", N), SXs.sym("hmax")
     r0, rd, wd, rz, wz, R, R_sat, ok, w_sat = _residual_terms(s, N, sM, sth, sfm, sp, srest, sZ, sk, sxb, sP0)
     n = N + 5
     # the Jacobians in the scaled variables z = [m_0..m_N, W, b, k, c] / scale (rows whitened)
@@ -279,28 +305,41 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     # a start outside its bounds (a prior off them) is brought back within one step
     lbx = ca.fmin(lbx, ubx)
     Hq = 0.5 * (Hq + Hq.T)
-    data = ca.Function("mhe_qp_data", [sM, sth, sZ, sk, sxb, sP0, sfm, sA, sp, sH, srest],
-                       [Hq, g, lbx, ubx, cost, R, ca.if_else(ok, 1.0, ca.if_else(w_sat, 1.0, 0.0)), R_sat],
-                       ["M", "th", "Z", "kinds", "xbar", "P0", "fm", "A", "p", "H", "rest"],
-                       ["Hq", "g", "lbx", "ubx", "cost", "R", "used", "R_sat"])
-    Hm, gm, lbm, ubm, costm, Rm, usedm, Rsatm = data(M1, th, Z, kinds, xbar, P0, xn[0, :].T,
-                                                     ca.reshape(A[0, :], NX, N),
-                                                     y[4, :].T, ca.reshape(H, NX, N), y[5, :].T)
+    # the height bound at nodes 1..N, linearised: h_j + dh_j/dz dz <= hmax
+    Ah = SXs.zeros(N, n)
+    for j in range(N):
+        Ah[j, j + 1] = sDh[0, j] * sc[0]
+        for i in range(4):
+            Ah[j, N + 1 + i] = sDh[1 + i, j] * sc[1 + i]
+    uba = shmax - sh
+    data = ca.Function("mhe_qp_data", [sM, sth, sZ, sk, sxb, sP0, sfm, sA, sp, sH, srest, sDh, sh, shmax],
+                       [Hq, g, lbx, ubx, cost, R, ca.if_else(ok, 1.0, ca.if_else(w_sat, 1.0, 0.0)), R_sat, Ah, uba],
+                       ["M", "th", "Z", "kinds", "xbar", "P0", "fm", "A", "p", "H", "rest", "Dh", "h", "hmax"],
+                       ["Hq", "g", "lbx", "ubx", "cost", "R", "used", "R_sat", "Ah", "uba"])
+    hmax = _h_max(om)(theta)
+    Hm, gm, lbm, ubm, costm, Rm, usedm, Rsatm, Ahm, ubam = data(M1, th, Z, kinds, xbar, P0, xn[0, :].T,
+                                                               ca.reshape(A[0, :], NX, N), y[4, :].T,
+                                                               ca.reshape(H, NX, N), y[5, :].T,
+                                                               ca.reshape(Dh, NX, N), y[2, :].T, hmax)
     Hsp = ca.Sparsity.dense(n, n)
-    qp = ca.conic("mhe_qp", s.qp_solver, {"h": Hsp, "a": ca.Sparsity(0, n)}, _qp_opts(s.qp_solver))
-    sol = qp(h=Hm, g=gm, lbx=lbm, ubx=ubm, a=MX(0, n), lba=MX(0, 1), uba=MX(0, 1))
+    qp = ca.conic("mhe_qp", s.qp_solver, {"h": Hsp, "a": ca.Sparsity.dense(N, n)}, _qp_opts(s.qp_solver))
+    # (a height already above the bound, a start off it, is brought down by at most the trust region)
+    sol = qp(h=Hm, g=gm, lbx=lbm, ubx=ubm, a=Ahm, lba=-_BIG * MX.ones(N), uba=ca.fmax(ubam, ca.mtimes(Ahm, lbm)))
     dz = sol["x"]
     # --- after the step: nodes, arrival update, newest node's outputs and covariance
     znew_M = M1 + dz[:N + 1] * sc[0]
     th_new = th + dz[N + 1:] * ca.DM(sc[1:])
-    off = ca.fmax(ca.mmax(dz - ubm), ca.mmax(lbm - dz))
+    off = ca.fmax(ca.fmax(ca.mmax(dz - ubm), ca.mmax(lbm - dz)),
+                  ca.mmax(ca.mtimes(Ahm, dz) - ca.fmax(ubam, ca.mtimes(Ahm, lbm))) * 1e3)
     active = ca.sum1((dz - lbm <= 1e-9) + (ubm - dz <= 1e-9))
     x0n = ca.vertcat(znew_M[0], th_new)
     x0o = ca.vertcat(M1[0], th)
-    # arrival: predict from node 0 with the interval's Jacobian (linearised at the step's start), Q
-    # as the EKF's, then the Joseph-form update with node 1's reading
+    # arrival: the EKF's step from the arrival mean (not from the window's node 0, which already holds
+    # the window's readings: taken as the next prior, they would count twice and drag the parameters
+    # along), linearised along the window (node 0's interval and node 1's reading): predict with Q as
+    # the EKF's, then the Joseph-form update with node 1's reading
     A0 = A[:, :NX]
-    xm = xn[:, 0] + ca.mtimes(A0, x0n - x0o)
+    xm = xn[:, 0] + ca.mtimes(A0, xbar - x0o)
     dmq = xn[0, 0] - M1[0]
     Q = ca.diag(ca.vertcat((s.flow_rel_std * dmq) ** 2 + s.walk_var()[0], *s.walk_var()[1:]))
     Pm = ca.mtimes([A0, P0, A0.T]) + Q
@@ -334,6 +373,12 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
                        list(STEP_IN), list(STEP_OUT))
 
 
+def _h_max(om: ObserverModel) -> ca.Function:
+    """theta -> the largest node height (m), :data:`H_MAX_REL` r1."""
+    thp, Pd = om.chamber.symbols()
+    return ca.Function("mhe_h_max", [thp], [H_MAX_REL * Pd["r1"]])
+
+
 def _finite(e):
     return ca.fabs(ca.sum1(ca.sum2(e))) <= 1.7976931348623157e308
 
@@ -350,7 +395,7 @@ def _qp_opts(qp_solver: str) -> dict:
 
 _STEP_CACHE: dict = {}
 #: the settings the step Function depends on (a trial's own load prior must not build another one)
-_STEP_KEYS = ("noise_std", "model_rel_std", "sensor_range", "saturation_std", "flow_rel_std", "mass_std_abs",
+_STEP_KEYS = ("huber", "noise_std", "model_rel_std", "sensor_range", "saturation_std", "flow_rel_std", "mass_std_abs",
               "load_std", "flow_factor_std", "modulus_std", "dead_volume_std", "cov_floor", "load_max",
               "sample_period", "horizon", "solver", "qp_solver", "ipopt_iter", "compile")
 
@@ -388,6 +433,7 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     zeroP = MX.zeros(NX, NX)
     xn = pred_map(X[:, :N], S[:, :N], U, TH)[0]
     y = out_map(X[:, 1:], S[:, 1:], TH)[1]
+    hmax = _h_max(om)(theta)
     # the process noise's sigma at the window's start values (a parameter: the cost stays a sum of squares)
     fm0, Mpar = MX.sym("fm0", N), MX.sym("Mpar", N + 1)
     sig2 = (s.flow_rel_std * (fm0 - Mpar[:-1])) ** 2 + s.mass_std_abs ** 2 * s.sample_period + s.cov_floor * sc[0] ** 2
@@ -399,20 +445,23 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     R = s.noise_std ** 2 + (rel * ca.fmax(p, 0.0)) ** 2
     R_sat = s.saturation_std ** 2 + s.noise_std ** 2 + (rel * s.sensor_range) ** 2
     rz = ca.if_else(ok, (p - Z) / ca.sqrt(R), ca.if_else(sat, ca.fmin(p - s.sensor_range, 0.0) / ca.sqrt(R_sat), 0.0))
+    # Huber's loss (huber sigmas), the same as the RTI step's
+    lz = rz ** 2 if s.huber <= 0 else ca.if_else(ca.fabs(rz) <= s.huber, rz ** 2,
+                                                 2 * s.huber * ca.fabs(rz) - s.huber ** 2)
     x0s = ca.vertcat(M[0], th) / ca.DM(sc)
     r0 = x0s - xbar / ca.DM(sc)
     Pinv = ca.inv(P0 / ca.DM(np.outer(sc, sc)))
-    f = 0.5 * (ca.mtimes([r0.T, Pinv, r0]) + ca.sumsqr(rd) + ca.sumsqr(rz))
+    f = 0.5 * (ca.mtimes([r0.T, Pinv, r0]) + ca.sumsqr(rd) + ca.sum1(lz))
     par = ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta, fm0, Mpar)
     opts = {"ipopt": {"print_level": 0, "max_iter": s.ipopt_iter, "tol": 1e-8, "hessian_approximation": "limited-memory"},
             "print_time": False, "error_on_fail": False}
-    solver = ca.nlpsol("mhe_ipopt", "ipopt", {"x": zv, "f": f, "p": par}, opts)
+    solver = ca.nlpsol("mhe_ipopt", "ipopt", {"x": zv, "f": f, "p": par, "g": y[2, :].T - hmax}, opts)
     zlo = np.concatenate([[lo[0] / sc[0]] * (N + 1), lo[1:] / sc[1:]])
     zhi = np.concatenate([[hi[0] / sc[0]] * (N + 1), hi[1:] / sc[1:]])
     Min, thin = MX.sym("M", N + 1), MX.sym("th", 4)
     fm0in = MX.sym("fm0", N)
     z0 = ca.vertcat(Min / sc[0], thin / ca.DM(sc[1:]))
-    sol = solver(x0=ca.fmin(ca.fmax(z0, zlo), zhi), lbx=zlo, ubx=zhi,
+    sol = solver(x0=ca.fmin(ca.fmax(z0, zlo), zhi), lbx=zlo, ubx=zhi, lbg=-ca.inf, ubg=0.0,
                  p=ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta, fm0in, Min))
     zs = sol["x"]
     return ca.Function("mhe_ipopt_step", [Min, thin, S, U, Z, kinds, xbar, P0, theta, fm0in],
@@ -481,7 +530,8 @@ class MHE(EstimatorBase):
         self.last_cost = float("nan")
         self.last_status = -1
         self.last_active = 0
-        self.counts = {"fallbacks": 0, "mhe_steps": 0, "missing": 0, "outliers_bound": 0, "saturated": 0,
+        self._ekf_est: Estimate | None = None
+        self.counts = {"fallbacks": 0, "reseeds": 0, "mhe_steps": 0, "missing": 0, "outliers_bound": 0, "saturated": 0,
                        "time_jumps": 0}
         self._k_max = max(1, int(round(s.max_gap / s.sample_period)))
         self._last: Estimate | None = None
@@ -534,19 +584,21 @@ class MHE(EstimatorBase):
         ua = self._timing.acting(u, 1 if advance else 0) if self._timing.active else u
         code = _KIND.get(kind, KIND_NONE)
         zf = float(z) if code == KIND_OK else 0.0
+        self._push(ua, zf, code)
+        if self._filled <= N or s.companion_ekf:
+            e = self.ekf.step(t, z, u)
+            self._hist.append((self.ekf.x.copy(), self.ekf.P.copy(), self.ekf.s.copy()))
+            del self._hist[:-(N + 1)]
+            self._ekf_est = e
+        elif self.ekf._timing.active:
+            self.ekf._timing.acting(u, 1)  # the fallback's command history stays current
         if self._filled <= N:
             # the window fills: the EKF's estimate, its posteriors kept as the window's start
-            e = self.ekf.step(t, z, u)
-            self._push(ua, zf, code)
-            self._hist.append((self.ekf.x.copy(), self.ekf.P.copy(), self.ekf.s.copy()))
             self._filled += 1
             if self._filled == N + 1:
                 self._start_window()
             self.last_status = -1
             return e
-        self._push(ua, zf, code)
-        if self.ekf._timing.active:
-            self.ekf._timing.acting(u, 1)  # the fallback's command history stays current
         # node N is new: the step predicts it from node N - 1
         return self._solve(t, z, u)
 
@@ -571,7 +623,6 @@ class MHE(EstimatorBase):
         x0, P0, _ = self._hist[-(self.N + 1)]
         self.xbar[:] = x0
         self.P0[:] = guard_cov(P0, self.settings.cov_floor)
-        self._hist = []
 
     def _solve(self, t: float, z, u) -> Estimate:
         s, N = self.settings, self.N
@@ -590,12 +641,37 @@ class MHE(EstimatorBase):
                 cov = out[7].reshape(NX, NX, order="F").copy()
                 self.last_cost = float(out[9][0])
                 self.last_active = int(out[10][0])
+                if self._reseed_due():
+                    return self._reseed()
                 return self._accept(t, est, C, cov, status)
         else:
             status = self._solve_ipopt()
             if status == 0:
-                return self._accept(t, *self._ipopt_outputs(), status)
+                est = self._ipopt_outputs()
+                if self._reseed_due():
+                    return self._reseed()
+                return self._accept(t, *est, status)
+        if self.settings.companion_ekf:
+            return self._reseed(failed=True)
         return self._fallback(t, z, u, status)
+
+    def _reseed_due(self) -> bool:
+        """The window's cost per sample beyond ``reseed_cost`` with the companion EKF at hand: the window
+        no longer explains its readings (a shape on the wrong branch of the pressure law)."""
+        s = self.settings
+        return s.companion_ekf and s.reseed_cost > 0 and self.last_cost > s.reseed_cost * self.N
+
+    def _reseed(self, failed: bool = False) -> Estimate:
+        """The window restarted from the companion EKF's posteriors over its samples; its estimate is the
+        EKF's (flag ``mhe_fallback``, counted in ``fallbacks``; ``reseeds`` counts the restarts the
+        window's cost asked for)."""
+        self.counts["fallbacks"] += 1
+        if not failed:
+            self.counts["reseeds"] += 1
+        self.last_status = -1
+        self._start_window()
+        e = self._ekf_est
+        return dc_replace(e, flags=frozenset(e.flags | {"mhe_fallback"}))
 
     def _accept(self, t: float, est: list, C: np.ndarray, cov: np.ndarray, status: int) -> Estimate:
         self.counts["mhe_steps"] += 1

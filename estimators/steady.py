@@ -1,10 +1,11 @@
 """A steady-state Kalman filter on the gas mass: the cheapest estimator of the bench's Pareto.
 
 The EKF's model (:mod:`hbma_ctrl.models.chamber`) predicts the state each sample, but the gain is
-fixed: python-control's :func:`control.dlqe` on the model linearised once, at a free cap
-(the nominal load's lift-off pressure plus half the way to the sensor's range, pump running), for
-the gas mass alone (process noise ``flow_rel_std`` of that period's flow, measurement noise
-``noise_std`` and ``model_rel_std`` at that pressure). The load and the pump, modulus and
+fixed: python-control's :func:`control.dlqe` on the model linearised once, at the flat membrane
+(half the sensor's range, pump running: where the pressure is stiffest in the gas mass, so the
+fixed gain never over-corrects where the membrane moves), for the gas mass alone (process noise
+``flow_rel_std`` of that period's flow, measurement noise ``noise_std``). The gauge pressure is kept
+>= 0 (the gas mass at least the ambient's). The load and the pump, modulus and
 dead-volume factors stay at their prior (a nominal load prior, or no load): nothing is learnt.
 A missing reading or an outlier skips the correction; a saturated one corrects towards the range
 only while the prediction is below it (the EKF's one-sided observation).
@@ -12,7 +13,6 @@ only while the prediction is below it (the EKF's one-sided observation).
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
@@ -74,18 +74,15 @@ class SteadyStateKF(EstimatorBase):
     def _gain(self) -> float:
         """dlqe's gain at the linearisation point of the module docstring."""
         s, om = self.settings, self.model
-        area = math.pi * om.actuator.r1 ** 2
-        p_lift = self.x[1] / area
-        p_lin = min(p_lift + 0.5 * max(s.sensor_range - p_lift, 0.0), 0.9 * s.sensor_range)
-        m = om.gas_mass(p_lin)
+        m = om.gas_mass(0.5 * s.sensor_range)
         x = self.x.copy()
         x[0] = m
-        shape = np.array([om.actuator.r1, 0.0])
-        so, y, H, _ = (a.copy() for a in self._outs(x, shape, self.theta, np.zeros((NX, NX))))
+        x[1] = s.load_max  # flat under the plate
+        so, y, H, _ = (a.copy() for a in self._outs(x, np.zeros(2), self.theta, np.zeros((NX, NX))))
         xn, A, _ = (a.copy() for a in self._pred(x, so, np.array([1.0, 1.0, 0.0]), self.theta))
         dm = float(xn[0] - m)
         q = (s.flow_rel_std * dm) ** 2 + s.mass_std_abs ** 2 * s.sample_period
-        r = s.noise_std ** 2 + (s.model_rel_std * y[4]) ** 2
+        r = s.noise_std ** 2
         return steady_gain(float(A[0]), float(H[0]), q, r)
 
     def step(self, t: float, measurement, applied_command: Command) -> Estimate:
@@ -119,7 +116,7 @@ class SteadyStateKF(EstimatorBase):
         else:
             nu = 0.0
         if nu != 0.0:
-            self.x[0] = max(self.x[0] + self.K * nu, 1e-3 * self.model.m_env)
+            self.x[0] = max(self.x[0] + self.K * nu, self.model.m_env)
             so, y, _, _ = self._outs(self.x, so, self.theta, np.zeros((NX, NX)))
         self.s[:] = so
         self.t = t
