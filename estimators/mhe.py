@@ -90,7 +90,7 @@ from hbma_ctrl.estimators.ekf_step import KIND_NONE, KIND_OK, KIND_SATURATED, cs
 from hbma_ctrl.models.actuation import CommandTiming
 from hbma_ctrl.models.chamber import NX, STATE_NAMES, STATE_SCALE, ObserverModel
 
-__all__ = ["MHE", "MHESettings", "mhe_step_function", "mhe_nlp", "TRUST", "H_MAX_REL", "SOLVERS", "QP_SOLVERS",
+__all__ = ["MHE", "MHESettings", "mhe_step_function", "linearise_function", "LIN_NAMES", "mhe_nlp", "TRUST", "H_MAX_REL", "SOLVERS", "QP_SOLVERS",
            "constraint_violations"]
 
 SOLVERS = ("rti", "ipopt")
@@ -128,6 +128,8 @@ class MHESettings(FilterSettings):
     qp_solver: str = setting("daqp", choices=QP_SOLVERS, doc="MHE: the RTI step's QP solver (its C generated with the step)")
     huber: float = setting(3.0, lo=0.0, hi=100.0,
                            doc="MHE: readings beyond this many sigmas weigh as Huber's loss does (0: least squares)")
+    relinearise: int = setting(2, integer=True, lo=0, hi=200, unit="nodes",
+                               doc="MHE: the newest nodes linearised afresh each step, the older keep theirs (0: all)")
     companion_ekf: bool = setting(True, doc="MHE: run the EKF beside it every sample, to restart the window from")
     reseed_cost: float = setting(5.0, lo=0.0, hi=1e6,
                                  doc="MHE: restart the window from the EKF above this cost per sample (0: never)")
@@ -189,8 +191,8 @@ _LEAN_CACHE: dict = {}
 def lean_model(om: ObserverModel) -> tuple[ca.Function, ca.Function]:
     """The EKF's predict and outputs with the mode free (hold = 0: the state decides rest or contact)
     and only what the window needs: ``mhe_predict(x, s, u, theta) -> (x_next, A, s_next)`` and
-    ``mhe_outputs(x, s, theta, P) -> (s_out, y, H, C)`` (the same expressions as
-    :attr:`hbma_ctrl.models.chamber.ObserverModel.predict` and ``outputs``, the parts not read left out,
+    ``mhe_outputs(x, s, theta, P) -> (s_out, y, H, C)`` (the same expressions as the model's ``predict``
+    and ``outputs``, :class:`hbma_ctrl.models.chamber.ObserverModel`, the parts not read left out,
     common subexpressions merged)."""
     key = id(om.predict)
     if key not in _LEAN_CACHE:
@@ -222,6 +224,8 @@ def _qv(s: FilterSettings) -> np.ndarray:
 
 #: inputs and outputs of the step Function (see :func:`mhe_step_function`)
 STEP_IN = ("M", "th", "S", "U", "Z", "kinds", "xbar", "P0", "theta", "fresh")
+#: the stored linearisation, inputs after STEP_IN and outputs (``name_next``) after STEP_OUT
+LIN_NAMES = ("XI", "FM", "AR", "XM", "PV", "HR", "HV", "DH", "RS")
 STEP_OUT = ("M_next", "th_next", "S_next", "xbar_next", "P0_next", "est", "C", "cov", "status", "cost",
             "n_active")
 
@@ -265,8 +269,36 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     S1 = ca.horzcat(S[:, :N], sN)
     X = ca.vertcat(M1.T, ca.repmat(th, 1, N + 1))  # 5 x (N + 1)
     TH = ca.repmat(theta, 1, N)
-    xn, A, _ = pred_map(X[:, :N], S1[:, :N], U, TH)
-    so, y, H, Dh = out_map(X[:, 1:], S1[:, 1:], TH)
+    # the stored linearisation of the intervals (points XI, values FM, rows AR of d m_next / d x) and of
+    # the nodes 1..N (points XM, pressure PV, its row HR, height HV, its row DH, rest RS, shape SO)
+    XI, FM, AR = MX.sym("XI", NX, N), MX.sym("FM", 1, N), MX.sym("AR", NX, N)
+    XM, PV, HR = MX.sym("XM", NX, N), MX.sym("PV", 1, N), MX.sym("HR", NX, N)
+    HV, DHs, RS = MX.sym("HV", 1, N), MX.sym("DH", NX, N), MX.sym("RS", 1, N)
+    lin_in = [XI, FM, AR, XM, PV, HR, HV, DHs, RS]
+    L = _fresh_nodes(s)
+    pm_L, om_L = _model_maps(om, L)
+    xnf, Af, _ = pm_L(X[:, N - L:N], S1[:, N - L:N], U[:, N - L:], TH[:, :L])
+    sof, yf, Hf, Dhf = om_L(X[:, N - L + 1:], S1[:, N - L + 1:], TH[:, :L])
+    old, k = N - L, NX  # the stale count; a row of A: its first row of each 5 x 5 block
+    FMn = ca.horzcat(FM[:, :old], xnf[0, :])
+    ARn = ca.horzcat(AR[:, :old], ca.reshape(Af[0, :], NX, L))
+    XIn = ca.horzcat(XI[:, :old], X[:, old:N])
+    PVn = ca.horzcat(PV[:, :old], yf[4, :])
+    HRn = ca.horzcat(HR[:, :old], ca.reshape(Hf, NX, L))
+    HVn = ca.horzcat(HV[:, :old], yf[2, :])
+    DHn = ca.horzcat(DHs[:, :old], ca.reshape(Dhf, NX, L))
+    RSn = ca.horzcat(RS[:, :old], yf[5, :])
+    XMn = ca.horzcat(XM[:, :old], X[:, old + 1:])
+    lin_out = [XIn, FMn, ARn, XMn, PVn, HRn, HVn, DHn, RSn]
+    # the model at the iterate: the stored values corrected to first order (exact where just evaluated)
+    fm_at = FMn + ca.sum1(ARn * (X[:, :N] - XIn))
+    p_at = PVn + ca.sum1(HRn * (X[:, 1:] - XMn))
+    h_at = HVn + ca.sum1(DHn * (X[:, 1:] - XMn))
+    so = ca.horzcat(S1[:, 1:old + 1], sof)
+    A0 = ca.vertcat(ARn[:, 0].T, ca.horzcat(MX.zeros(NX - 1, 1), MX.eye(NX - 1)))
+    xn0 = ca.vertcat(fm_at[0], th)
+    H1 = HRn[:, 0].T
+    y1p, rest_at = p_at[0], RSn
     # --- the least-squares data as an SX Function (residuals, Jacobian, QP data)
     SXs = ca.SX
     sM, sth, sZ, sk = SXs.sym("M", N + 1), SXs.sym("th", 4), SXs.sym("Z", N), SXs.sym("kinds", N)
@@ -317,10 +349,8 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
                        ["M", "th", "Z", "kinds", "xbar", "P0", "fm", "A", "p", "H", "rest", "Dh", "h", "hmax"],
                        ["Hq", "g", "lbx", "ubx", "cost", "R", "used", "R_sat", "Ah", "uba"])
     hmax = _h_max(om)(theta)
-    Hm, gm, lbm, ubm, costm, Rm, usedm, Rsatm, Ahm, ubam = data(M1, th, Z, kinds, xbar, P0, xn[0, :].T,
-                                                               ca.reshape(A[0, :], NX, N), y[4, :].T,
-                                                               ca.reshape(H, NX, N), y[5, :].T,
-                                                               ca.reshape(Dh, NX, N), y[2, :].T, hmax)
+    Hm, gm, lbm, ubm, costm, Rm, usedm, Rsatm, Ahm, ubam = data(M1, th, Z, kinds, xbar, P0, fm_at.T, ARn,
+                                                               p_at.T, HRn, rest_at.T, DHn, h_at.T, hmax)
     Hsp = ca.Sparsity.dense(n, n)
     qp = ca.conic("mhe_qp", s.qp_solver, {"h": Hsp, "a": ca.Sparsity.dense(N, n)}, _qp_opts(s.qp_solver))
     # (a height already above the bound, a start off it, is brought down by at most the trust region)
@@ -338,13 +368,11 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     # the window's readings: taken as the next prior, they would count twice and drag the parameters
     # along), linearised along the window (node 0's interval and node 1's reading): predict with Q as
     # the EKF's, then the Joseph-form update with node 1's reading
-    A0 = A[:, :NX]
-    xm = xn[:, 0] + ca.mtimes(A0, xbar - x0o)
-    dmq = xn[0, 0] - M1[0]
+    xm = xn0 + ca.mtimes(A0, xbar - x0o)
+    dmq = fm_at[0] - M1[0]
     Q = ca.diag(ca.vertcat((s.flow_rel_std * dmq) ** 2 + s.walk_var()[0], *s.walk_var()[1:]))
     Pm = ca.mtimes([A0, P0, A0.T]) + Q
-    H1 = H[:, :NX]
-    p1 = y[4, 0] + ca.mtimes(H1, xm - X[:, 1])
+    p1 = y1p + ca.mtimes(H1, xm - X[:, 1])
     used1 = usedm[0]
     z1 = ca.if_else(kinds[0] == KIND_SATURATED, s.sensor_range, Z[0])
     R1 = ca.if_else(kinds[0] == KIND_SATURATED, Rsatm[0], Rm[0])
@@ -368,9 +396,30 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     finite = _finite(ca.vertcat(dz, yN, ca.vec(Pp), xbar_next, ca.vec(covN)))
     status = ca.if_else(finite, ca.if_else(off <= _BOUND_TOL, 0.0, 2.0), 1.0)
     est = ca.vertcat(yN[0], yN[1], yN[2], yN[3], yN[4])
-    return ca.Function("mhe_step", [M, th, S, U, Z, kinds, xbar, P0, theta, fresh],
-                       [znew_M, th_new, S_next, xbar_next, Pp, est, CN, covN, status, costm, active],
-                       list(STEP_IN), list(STEP_OUT))
+    return ca.Function("mhe_step", [M, th, S, U, Z, kinds, xbar, P0, theta, fresh] + lin_in,
+                       [znew_M, th_new, S_next, xbar_next, Pp, est, CN, covN, status, costm, active] + lin_out,
+                       list(STEP_IN) + list(LIN_NAMES), list(STEP_OUT) + [n + "_next" for n in LIN_NAMES])
+
+
+def _fresh_nodes(s: "MHESettings") -> int:
+    """The newest nodes the step linearises afresh (``relinearise``; 0: all N)."""
+    return int(s.horizon) if s.relinearise == 0 else min(int(s.relinearise), int(s.horizon))
+
+
+def linearise_function(om: ObserverModel, N: int) -> ca.Function:
+    """The window's whole linearisation (the step's stored inputs :data:`LIN_NAMES`) at nodes M, th,
+    shapes S and commands U: what the step keeps for the nodes it does not linearise afresh."""
+    pred_map, out_map = _model_maps(om, N)
+    nt = int(np.asarray(om.theta).size)
+    M, th, S, U, theta = (ca.MX.sym(n, *sh) for n, sh in (("M", (N + 1, 1)), ("th", (4, 1)), ("S", (2, N + 1)),
+                                                            ("U", (3, N)), ("theta", (nt, 1))))
+    X = ca.vertcat(M.T, ca.repmat(th, 1, N + 1))
+    TH = ca.repmat(theta, 1, N)
+    xn, A, _ = pred_map(X[:, :N], S[:, :N], U, TH)
+    _, y, H, Dh = out_map(X[:, 1:], S[:, 1:], TH)
+    outs = [X[:, :N], xn[0, :], ca.reshape(A[0, :], NX, N), X[:, 1:], y[4, :], ca.reshape(H, NX, N), y[2, :],
+            ca.reshape(Dh, NX, N), y[5, :]]
+    return ca.Function("mhe_linearise", [M, th, S, U, theta], outs, ["M", "th", "S", "U", "theta"], list(LIN_NAMES))
 
 
 def _h_max(om: ObserverModel) -> ca.Function:
@@ -395,7 +444,7 @@ def _qp_opts(qp_solver: str) -> dict:
 
 _STEP_CACHE: dict = {}
 #: the settings the step Function depends on (a trial's own load prior must not build another one)
-_STEP_KEYS = ("huber", "noise_std", "model_rel_std", "sensor_range", "saturation_std", "flow_rel_std", "mass_std_abs",
+_STEP_KEYS = ("relinearise", "huber", "noise_std", "model_rel_std", "sensor_range", "saturation_std", "flow_rel_std", "mass_std_abs",
               "load_std", "flow_factor_std", "modulus_std", "dead_volume_std", "cov_floor", "load_max",
               "sample_period", "horizon", "solver", "qp_solver", "ipopt_iter", "compile")
 
@@ -469,6 +518,16 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
                        ["M", "th", "S", "U", "Z", "kinds", "xbar", "P0", "theta", "fm0"], ["M_next", "th_next", "cost"])
 
 
+def _within_bounds(e: Estimate) -> Estimate:
+    """The EKF's estimate with its load state at least zero (the MHE's bound; the EKF's own load state
+    may dip below: its dead zone)."""
+    if e.mean[1] >= 0.0:
+        return e
+    mean = e.mean.copy()
+    mean[1] = 0.0
+    return dc_replace(e, mean=mean)
+
+
 def _estimate(t, est, mean, cov, std, flags) -> Estimate:
     e = object.__new__(Estimate)
     e.__dict__.update(t=t, h1=est[0], h2=est[1], h=est[2], F=est[3], p=est[4], mean=mean, cov=cov,
@@ -505,6 +564,12 @@ class MHE(EstimatorBase):
         if s.solver == "rti":
             self._fn = _compiled_step(om, s, key)
             self._nlp = None
+            lk = ("lin", id(om.predict), N, s.compile)
+            if lk not in _STEP_CACHE:
+                fun = linearise_function(om, N)
+                _STEP_CACHE[lk] = compiled(fun, HOT_OPT, HOT_FLAGS) if s.compile else fun
+            self._lin_fn = FastFunction(_STEP_CACHE[lk], False)
+            self.lin = [np.zeros(self._fn.inp[len(STEP_IN) + i].size) for i in range(len(LIN_NAMES))]
         else:
             self._fn = None
             if key not in _NLP_CACHE:
@@ -598,7 +663,7 @@ class MHE(EstimatorBase):
             if self._filled == N + 1:
                 self._start_window()
             self.last_status = -1
-            return e
+            return _within_bounds(e)
         # node N is new: the step predicts it from node N - 1
         return self._solve(t, z, u)
 
@@ -612,6 +677,11 @@ class MHE(EstimatorBase):
         self.kinds[-1] = code
         self.M[:-1] = self.M[1:]
         self.S[:, :-1] = self.S[:, 1:]
+        if self._fn is not None:
+            # the stored linearisation moves with its nodes (column-major: a column is a block of rows)
+            for a in self.lin:
+                r = a.size // self.N
+                a[:-r] = a[r:]
 
     def _start_window(self) -> None:
         """The window's nodes from the EKF's posteriors over its samples, the arrival cost from the
@@ -623,14 +693,22 @@ class MHE(EstimatorBase):
         x0, P0, _ = self._hist[-(self.N + 1)]
         self.xbar[:] = x0
         self.P0[:] = guard_cov(P0, self.settings.cov_floor)
+        if self._fn is not None:
+            # the whole window linearised once (the step then re-linearises its newest nodes only)
+            out = self._lin_fn(self.M, self.th, self.S, self.U, self.theta)
+            for a, o in zip(self.lin, out):
+                a[:] = o
 
     def _solve(self, t: float, z, u) -> Estimate:
         s, N = self.settings, self.N
         if self._fn is not None:
             fn = self._fn
-            out = fn(self.M, self.th, self.S, self.U, self.Z, self.kinds, self.xbar, self.P0, self.theta, 1.0)
+            out = fn(self.M, self.th, self.S, self.U, self.Z, self.kinds, self.xbar, self.P0, self.theta, 1.0,
+                     *self.lin)
             status = int(out[8][0])
             if status == 0:
+                for a, o in zip(self.lin, out[len(STEP_OUT):]):
+                    a[:] = o
                 self.M[:] = out[0]
                 self.th[:] = out[1]
                 self.S[:] = out[2].reshape(2, N + 1, order="F")
@@ -670,7 +748,7 @@ class MHE(EstimatorBase):
             self.counts["reseeds"] += 1
         self.last_status = -1
         self._start_window()
-        e = self._ekf_est
+        e = _within_bounds(self._ekf_est)
         return dc_replace(e, flags=frozenset(e.flags | {"mhe_fallback"}))
 
     def _accept(self, t: float, est: list, C: np.ndarray, cov: np.ndarray, status: int) -> Estimate:
@@ -697,7 +775,7 @@ class MHE(EstimatorBase):
         self.M[N] = self.ekf.x[0]
         self.th[:] = np.clip(self.ekf.x[1:], *[b[1:] for b in _bounds(self.model, self.settings)])
         self.S[:, N] = self.ekf.s
-        return dc_replace(e, flags=frozenset(e.flags | {"mhe_fallback"}))
+        return dc_replace(_within_bounds(e), flags=frozenset(e.flags | {"mhe_fallback"}))
 
     # --- the IPOPT reference ------------------------------------------------------------------
     def _solve_ipopt(self) -> int:

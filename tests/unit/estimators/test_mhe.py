@@ -21,9 +21,11 @@ from hbma_ctrl.estimators.mhe import (
     MHESettings,
     constraint_violations,
     lean_model,
+    linearise_function,
     mhe_step_function,
 )
 from hbma_ctrl.estimators.steady import steady_gain
+from hbma_ctrl.models.actuation import CommandTiming
 from hbma_ctrl.models.chamber import NX
 from hbma_ctrl.sim.batch import protocol_trials
 from hbma_ctrl.sim.rig import RigSettings, simulate_rig
@@ -90,7 +92,12 @@ def test_scenario_kind_mhe_and_its_keys(tmp_path):
 @pytest.fixture(scope="module")
 def small_step():
     om = observer_model(Actuator(), Pneumatics(), SMALL)
-    return om, mhe_step_function(om, SMALL)
+    step, lin = mhe_step_function(om, SMALL), linearise_function(om, SMALL.horizon)
+
+    def fn(M, th, S, U, *rest):
+        return step(M, th, S, U, *rest, *lin(M, th, S, U, om.theta))
+
+    return om, fn
 
 
 def _window(om, N, m_rel, W, factors, shape_h1, pump):
@@ -173,22 +180,26 @@ def _run(load_g, r1_mm, speed, seed=0, dropout=None, settings=None):
 @pytest.mark.compiling
 def test_indexing_newest_reading_constrains_the_newest_node():
     """After step k the window's readings are those of samples k - N + 1 .. k (node j <- sample
-    k - N + j), its last interval's command the one acting over the period ending at sample k, and
-    the estimate's pressure follows the newest reading."""
+    k - N + j), its last interval's command the one acting over the period ending at sample k (the
+    command sent before it, through the valve and sensor delays), and the estimate's pressure follows
+    the newest reading."""
     (trial,) = protocol_trials("nh", platform=Platform(own_mass=0.02), loads_g=[0.0], speeds_pct=[100.0],
                                t0_mm=[3.0], r1_mm=[12.5])
     rig = RigSettings(seed=0)
     (rec,) = simulate_rig([trial], rig)
-    f = MHE(trial.actuator, trial.pneumatics, MHESettings(horizon=5, sample_period=rig.sample_period,
-                                                          valve_delay=0.0, sensor_delay=0.0))
+    fs = MHESettings(horizon=5)
+    f = MHE(trial.actuator, trial.pneumatics, fs)
+    timing = CommandTiming(fs.sample_period, fs.valve_delay, fs.sensor_delay)
     N = 5
     for k in range(60):
-        e = f.step(rec.t[k], rec.meas[k], rec.u[k - 1] if k > 0 else np.zeros(3))
+        u = rec.u[k - 1] if k > 0 else np.zeros(3)
+        acting = timing.acting(u, 1 if k > 0 else 0)
+        e = f.step(rec.t[k], rec.meas[k], u)
         if k > N:
             assert np.array_equal(f.Z, rec.meas[k - N + 1:k + 1])
-            assert np.array_equal(f.U[:, -1], rec.u[k - 1])
+            assert np.allclose(f.U[:, -1], acting)
             assert f.last_status == 0
-    assert abs(e.p - rec.meas[59]) < 5 * f.settings.noise_std
+    assert abs(e.p - rec.meas[59]) < 5 * fs.noise_std
 
 
 @pytest.mark.slow
