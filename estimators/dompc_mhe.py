@@ -19,11 +19,10 @@ import warnings
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.estimators.common import FACTOR_RANGE
 from hbma_ctrl.estimators.ekf_step import observer_model
 from hbma_ctrl.estimators.mhe import MHE, MHESettings, lean_model
 from hbma_ctrl.models.actuation import CommandTiming
-from hbma_ctrl.models.chamber import NX
 
 __all__ = ["dompc_mhe_available", "DoMPCMHE", "compare_dompc"]
 

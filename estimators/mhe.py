@@ -86,7 +86,7 @@ from hbma_ctrl.estimators.common import (
 )
 from hbma_ctrl.estimators.ekf import EKF, EKFSettings
 from hbma_ctrl.estimators.ekf_reference import OUTPUT_KEYS
-from hbma_ctrl.estimators.ekf_step import KIND_NONE, KIND_OK, KIND_SATURATED, cse, observer_model
+from hbma_ctrl.estimators.ekf_step import KIND_NONE, KIND_OK, KIND_SATURATED, observer_model
 from hbma_ctrl.models.actuation import CommandTiming
 from hbma_ctrl.models.chamber import NX, STATE_NAMES, STATE_SCALE, ObserverModel
 
@@ -114,6 +114,8 @@ _BOUND_TOL = 1e-6
 #: not observed over the window (the load of a resting membrane has its arrival cost alone)
 _LEVENBERG = 1e-9
 _KIND = {MEAS_OK: KIND_OK, MEAS_SATURATED: KIND_SATURATED}
+#: the companion EKF's flags that restart the window when the load is unknown (MHE._ekf_events)
+_EKF_RESTARTS = frozenset({"lift_off", "load_change", "load_excess", "lift_off_ratio"})
 
 
 @dataclass
@@ -252,14 +254,12 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     nt = int(np.asarray(om.theta).size)
     sc = _scales()
     lo, hi = _bounds(om, s)
-    pred_map, out_map = _model_maps(om, N)
     pred1, out1 = lean_model(om)
     MX = ca.MX
     M, th, S, U = MX.sym("M", N + 1), MX.sym("th", 4), MX.sym("S", 2, N + 1), MX.sym("U", 3, N)
     Z, kinds = MX.sym("Z", N), MX.sym("kinds", N)
     xbar, P0 = MX.sym("xbar", NX), MX.sym("P0", NX, NX)
     theta, fresh = MX.sym("theta", nt), MX.sym("fresh")
-    zeroP = MX.zeros(NX, NX)
     # a new node N: its gas mass and shape from node N - 1's prediction
     xl = ca.vertcat(M[N - 1], th)
     xn_l, _, sn_l = pred1(xl, S[:, N - 1], U[:, N - 1], theta)
@@ -279,7 +279,7 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     pm_L, om_L = _model_maps(om, L)
     xnf, Af, _ = pm_L(X[:, N - L:N], S1[:, N - L:N], U[:, N - L:], TH[:, :L])
     sof, yf, Hf, Dhf = om_L(X[:, N - L + 1:], S1[:, N - L + 1:], TH[:, :L])
-    old, k = N - L, NX  # the stale count; a row of A: its first row of each 5 x 5 block
+    old = N - L  # the nodes that keep their linearisation
     FMn = ca.horzcat(FM[:, :old], xnf[0, :])
     ARn = ca.horzcat(AR[:, :old], ca.reshape(Af[0, :], NX, L))
     XIn = ca.horzcat(XI[:, :old], X[:, old:N])
@@ -362,7 +362,6 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     off = ca.fmax(ca.fmax(ca.mmax(dz - ubm), ca.mmax(lbm - dz)),
                   ca.mmax(ca.mtimes(Ahm, dz) - ca.fmax(ubam, ca.mtimes(Ahm, lbm))) * 1e3)
     active = ca.sum1((dz - lbm <= 1e-9) + (ubm - dz <= 1e-9))
-    x0n = ca.vertcat(znew_M[0], th_new)
     x0o = ca.vertcat(M1[0], th)
     # arrival: the EKF's step from the arrival mean (not from the window's node 0, which already holds
     # the window's readings: taken as the next prior, they would count twice and drag the parameters
@@ -470,7 +469,6 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     sc = _scales()
     lo, hi = _bounds(om, s)
     pred_map, out_map = _model_maps(om, N)
-    qv = ca.DM(_qv(s))
     MX = ca.MX
     zv = MX.sym("z", N + 5)
     S, U, Z, kinds = MX.sym("S", 2, N + 1), MX.sym("U", 3, N), MX.sym("Z", N), MX.sym("kinds", N)
@@ -479,7 +477,6 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     th = zv[N + 1:] * ca.DM(sc[1:])
     X = ca.vertcat(M.T, ca.repmat(th, 1, N + 1))
     TH = ca.repmat(theta, 1, N)
-    zeroP = MX.zeros(NX, NX)
     xn = pred_map(X[:, :N], S[:, :N], U, TH)[0]
     y = out_map(X[:, 1:], S[:, 1:], TH)[1]
     hmax = _h_max(om)(theta)
@@ -701,6 +698,8 @@ class MHE(EstimatorBase):
 
     def _solve(self, t: float, z, u) -> Estimate:
         s, N = self.settings, self.N
+        if self._ekf_events():
+            return self._reseed()
         if self._fn is not None:
             fn = self._fn
             out = fn(self.M, self.th, self.S, self.U, self.Z, self.kinds, self.xbar, self.P0, self.theta, 1.0,
@@ -733,6 +732,14 @@ class MHE(EstimatorBase):
             return self._reseed(failed=True)
         return self._fallback(t, z, u, status)
 
+    def _ekf_events(self) -> bool:
+        """With the load unknown (no ``load_init``), the companion EKF's detectors restart the window: a
+        lift-off or a load change it declares (the window alone cannot see a lift-off: while the membrane
+        rests the load is unobservable, and the flow and dead-volume factors take up the slower rise)."""
+        e = self._ekf_est
+        return (self.settings.companion_ekf and self.settings.load_init is None and e is not None
+                and bool(e.flags & _EKF_RESTARTS))
+
     def _reseed_due(self) -> bool:
         """The window's cost per sample beyond ``reseed_cost`` with the companion EKF at hand: the window
         no longer explains its readings (a shape on the wrong branch of the pressure law)."""
@@ -742,7 +749,7 @@ class MHE(EstimatorBase):
     def _reseed(self, failed: bool = False) -> Estimate:
         """The window restarted from the companion EKF's posteriors over its samples; its estimate is the
         EKF's (flag ``mhe_fallback``, counted in ``fallbacks``; ``reseeds`` counts the restarts the
-        window's cost asked for)."""
+        window's cost or the EKF's detectors asked for)."""
         self.counts["fallbacks"] += 1
         if not failed:
             self.counts["reseeds"] += 1
@@ -779,8 +786,8 @@ class MHE(EstimatorBase):
 
     # --- the IPOPT reference ------------------------------------------------------------------
     def _solve_ipopt(self) -> int:
-        s, N = self.settings, self.N
-        pred, outf = self._pred1, self._out1
+        N = self.N
+        pred = self._pred1
         # node N from node N - 1's prediction, the process noise's sigma at the window's start values
         x = np.concatenate([[self.M[N - 1]], self.th])
         r = pred(x, self.S[:, N - 1], self.U[:, N - 1], self.theta)
@@ -807,7 +814,6 @@ class MHE(EstimatorBase):
         sc = _scales()
         n = N + 5
         J = []
-        r0 = None
         A0 = xn0 = None
         H1 = y1 = None
         for j in range(N + 1):
@@ -858,7 +864,8 @@ class MHE(EstimatorBase):
         kd = self.kinds[0]
         rest1 = y1[5] > 0.5
         R1 = s.noise_std ** 2 + ((0.0 if rest1 else s.model_rel_std) * max(y1[4], 0.0)) ** 2
-        xm = xn0
+        # from the arrival mean (the lagged EKF's), as the RTI step's
+        xm = xn0 + A0 @ (self.xbar - np.concatenate([[self.M[0]], self.th]))
         p1 = y1[4] + H1 @ (xm - np.concatenate([[self.M[1]], self.th]))
         used = kd == KIND_OK or (kd == KIND_SATURATED and p1 < s.sensor_range)
         if kd == KIND_SATURATED:

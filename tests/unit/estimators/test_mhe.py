@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from hbma_ctrl.app.scenes.evaluate import contact_events, run_filter, score
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
-from hbma_ctrl.estimators.common import FACTOR_RANGE, FilterSettings
+from hbma_ctrl.estimators.common import FACTOR_RANGE
 from hbma_ctrl.estimators.ekf_step import KIND_NONE, KIND_OK, observer_model
 from hbma_ctrl.estimators.mhe import (
     MHE,
