@@ -759,6 +759,9 @@ class MHE(EstimatorBase):
         return dc_replace(e, flags=frozenset(e.flags | {"mhe_fallback"}))
 
     def _accept(self, t: float, est: list, C: np.ndarray, cov: np.ndarray, status: int) -> Estimate:
+        # reported as the EKF reports them: h2, h and F at least 0 (the contact condition's tiny
+        # regularising stiffness leaves F = -EPS_K h2, micronewtons, on a free cap)
+        est = [est[0], max(est[1], 0.0), max(est[2], 0.0), max(est[3], 0.0), est[4]]
         self.counts["mhe_steps"] += 1
         self.last_status = status
         self.last_output_cov = C
