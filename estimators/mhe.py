@@ -575,6 +575,7 @@ class MHE(EstimatorBase):
                                    FastFunction(outs, s.compile, HOT_OPT, HOT_FLAGS))
             self._nlp, self._pred1, self._out1 = _NLP_CACHE[key]
         self._qv = _qv(s)
+        self._lo, self._hi = _bounds(om, s)
         # the window: nodes' masses, shapes, the commands acting over the intervals, readings, kinds
         self.M = np.zeros(N + 1)
         self.th = np.ones(4)
@@ -708,8 +709,9 @@ class MHE(EstimatorBase):
             if status == 0:
                 for a, o in zip(self.lin, out[len(STEP_OUT):]):
                     a[:] = o
-                self.M[:] = out[0]
-                self.th[:] = out[1]
+                # within the bounds (the QP's solution may leave them by its tolerance, _BOUND_TOL)
+                self.M[:] = np.maximum(out[0], self._lo[0])
+                self.th[:] = np.clip(out[1], self._lo[1:], self._hi[1:])
                 self.S[:] = out[2].reshape(2, N + 1, order="F")
                 self.xbar[:] = out[3]
                 self.P0[:] = guard_cov(out[4].reshape(NX, NX, order="F"), s.cov_floor)
