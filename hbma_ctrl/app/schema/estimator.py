@@ -30,7 +30,7 @@ from hbma_ctrl.sim.rig import RigSettings
 __all__ = ["EstimatorTable", "MHE_KEYS"]
 
 #: the moving-horizon estimator's own keys (read only with kind = "mhe")
-MHE_KEYS = ("horizon", "solver", "qp_solver", "huber", "companion_ekf", "reseed_cost", "ipopt_iter")
+MHE_KEYS = ("horizon", "solver", "qp_solver", "relinearise", "huber", "companion_ekf", "reseed_cost", "ipopt_iter")
 
 _KEYS = settings_table(
     "EstimatorTuning",
