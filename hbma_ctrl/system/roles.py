@@ -12,6 +12,7 @@ from hbma_ctrl.core.interfaces import Estimator
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF, EKFSettings
+from hbma_ctrl.estimators.mhe import MHE
 from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.models.bank import ChamberBank
 from hbma_ctrl.models.tables import PredictionModel
@@ -98,7 +99,7 @@ def controller_settings_of(section: ControllerSection):
 
 
 def estimator_from_scenario(scn, rig_settings):
-    """The filter the scenario's [estimator] section names (EKF or UKF, its tuning), or the EKF
+    """The estimator the scenario's [estimator] section names (EKF, UKF or MHE, its tuning), or the EKF
     with the rig's sample period, sensor range and noise when there is no such section."""
     sec = scn.role("estimator")
     if sec is None:
@@ -106,6 +107,8 @@ def estimator_from_scenario(scn, rig_settings):
     fs = filter_settings_for(sec, rig_settings)
     if sec.filter == "ukf":
         return UKF(scn.actuator, scn.pneumatics, fs)
+    if sec.filter == "mhe":
+        return MHE(scn.actuator, scn.pneumatics, fs)
     return EKF(scn.actuator, scn.pneumatics, fs)
 
 

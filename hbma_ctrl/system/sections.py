@@ -16,6 +16,7 @@ import numpy as np
 from hbma_ctrl.controllers.baselines import BangBangSettings, PIDSettings
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.estimators.common import FilterSettings
+from hbma_ctrl.estimators.mhe import MHESettings
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.params import Actuator, Platform, Pneumatics
 from hbma_ctrl.core.settings import Settings, Spec, setting
@@ -181,7 +182,7 @@ class ControllerSection(Settings):
 class EstimatorSection:
     """Parsed ``[estimator]`` section (SI).
 
-    filter : 'ekf' | 'ukf'. compare_ukf : also run the UKF. load_steps : ((t s, mass kg), ...).
+    filter : 'ekf' | 'ukf' | 'mhe' (the scenario's ``kind``). compare_ukf : also run the UKF. load_steps : ((t s, mass kg), ...).
     workers : processes for a protocol. seeds : Monte-Carlo repetitions. tuning : FilterSettings
     field overrides (SI); the sample period and sensor range always come from the rig.
     """
@@ -195,9 +196,10 @@ class EstimatorSection:
 
 
 def filter_settings_for(section: EstimatorSection, rig: RigSettings) -> FilterSettings:
-    """Filter settings: defaults, the rig's sample period, sensor range and noise, then the tuning."""
-    base = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range,
-                          noise_std=max(rig.noise_std, 1.0))
+    """Filter settings: defaults, the rig's sample period, sensor range and noise, then the tuning
+    (:class:`~hbma_ctrl.estimators.mhe.MHESettings` for the moving-horizon estimator)."""
+    cls = MHESettings if section.filter == "mhe" else FilterSettings
+    base = cls(sample_period=rig.sample_period, sensor_range=rig.sensor_range, noise_std=max(rig.noise_std, 1.0))
     return replace(base, **section.tuning).validate()
 
 

@@ -9,7 +9,10 @@ Metrics per trial (:func:`score`): height NRMSD of the filter and of the open-lo
 eq. 16 against the rig's true height), pressure NRMSD of the filter's pressure, RMSE of the contact
 force, the steady-contact force error relative to the true load (mean over the last second of
 inflation while in contact), NEES of (h, F) and NIS (means over the run), the median wall time of
-a step. :func:`aggregate` turns them into the ``"estimator"`` metrics object: means over the
+a step, the steps whose estimate breaks a hard constraint (``constraint_violations``:
+:func:`hbma_ctrl.estimators.mhe.constraint_violations`) and the height's NRMSD within
+:data:`EVENT_WINDOW` of the true lift-off and touch-down (``height_nrmsd_liftoff``,
+``height_nrmsd_touchdown``, :func:`contact_events`; normalised by the run's range). :func:`aggregate` turns them into the ``"estimator"`` metrics object: means over the
 trials, the worst trial (``height_ratio_to_open_loop_max``, ``worst_ratio_trial``) and, per
 protocol scenario (the t0 x r1 x load cell, mean over its speeds; :func:`~hbma_ctrl.sim.batch.scenario_of`),
 ``n_scenarios``, ``scenarios_at_half_open_loop`` and ``scenario_ratio_to_open_loop_max`` /
@@ -29,6 +32,8 @@ from hbma_ctrl.estimators.baselines import FilterpyEKF, ReferenceEKF
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.ekf import EKF
 from hbma_ctrl.estimators.innovation import innovation_test
+from hbma_ctrl.estimators.mhe import MHE, constraint_violations
+from hbma_ctrl.estimators.steady import SteadyStateKF
 from hbma_ctrl.estimators.ukf import UKF
 from hbma_ctrl.app.metrics import nrmsd
 from hbma_ctrl.core import units as U
@@ -37,10 +42,10 @@ from hbma_ctrl.sim.rig import RigRecord, RigSettings, simulate_rig
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import SimSettings, Trial
 
-__all__ = ["EVENT_COUNTS", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
+__all__ = ["EVENT_COUNTS", "EVENT_WINDOW", "LIFT_HEIGHT", "contact_events", "BENCH_FILTERS", "TrialResult", "run_filter", "run_and_score", "evaluate_trials", "score", "aggregate", "make_filter",
            "FILTERS", "NEES_FLOOR"]
 
-FILTERS = ("ekf", "ukf")
+FILTERS = ("ekf", "ukf", "mhe")
 #: per-run counts of the filter's rarer events, score key -> the Estimate flag counted (steps raising
 #: it): lift-offs a load prior ruled out (hbma_ctrl.estimators.ekf_step.LIFT_PRIOR_SIGMAS), lift-offs the flow
 #: and dead-volume factors' ratio showed (flat_ratio_min), load changes the excess sum declared
@@ -54,10 +59,11 @@ NEES_FLOOR = np.array([(0.05e-3) ** 2, 0.02 ** 2])
 
 
 def make_filter(kind: str, trial: Trial, settings: FilterSettings):
-    """An EKF or UKF for the trial's nominal actuator and pneumatics (and, with
+    """An EKF, UKF or MHE for the trial's nominal actuator and pneumatics (and, with
     ``settings.load_prior == 'nominal'``, the trial's nominal load as the initial load guess).
     The bench's baselines: ``ekf_reference`` (:class:`ReferenceEKF`) and ``filterpy``
-    (:class:`FilterpyEKF`, the trial's nominal load as its initial load)."""
+    (:class:`FilterpyEKF`, the trial's nominal load as its initial load) and ``dlqe``
+    (:class:`~hbma_ctrl.estimators.steady.SteadyStateKF`, python-control's steady-state gain)."""
     if kind == "filterpy":
         return FilterpyEKF(trial.actuator, trial.pneumatics, settings, load=trial.platform.weight)
     if settings.load_prior == "nominal":
@@ -69,6 +75,10 @@ def make_filter(kind: str, trial: Trial, settings: FilterSettings):
         return ReferenceEKF(trial.actuator, trial.pneumatics, settings)
     if kind == "ukf":
         return UKF(trial.actuator, trial.pneumatics, settings)
+    if kind == "mhe":
+        return MHE(trial.actuator, trial.pneumatics, settings)
+    if kind == "dlqe":
+        return SteadyStateKF(trial.actuator, trial.pneumatics, settings)
     raise ValueError(f"estimator.filter = '{kind}': allowed {', '.join(FILTERS)}")
 
 
@@ -87,6 +97,10 @@ class TrialResult:
     step_s: np.ndarray
     flags: list
     scores: dict = field(default_factory=dict)
+    #: per step: the estimate is the estimator's own (False: the MHE's EKF gave it, window filling or fallback)
+    own: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    #: the estimator's counts after the run (its ``stats()``)
+    counts: dict = field(default_factory=dict)
 
 
 def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings,
@@ -102,6 +116,7 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
     nis = np.full(K, np.nan)
     step_s = np.full(K, np.nan)
     flags: list = [frozenset()] * K
+    own = np.ones(K, dtype=bool)
     if init is not None:
         f.reset(rec.t[start], init[0], init[1])
     t_s = rec.t.tolist()
@@ -112,6 +127,7 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
         # re-check the same numbers 150 x 600 times in the protocol
         e = f.step(t_s[k], meas[k], rec.u[k - 1] if k > 0 else u0)
         step_s[k] = f.last_step_s
+        own[k] = getattr(f, "last_status", 0) >= 0
         m = e.mean
         rows[k] = (e.h1, e.h2, e.h, e.F, e.p, m[1], m[2], m[3], m[4], e.std["h"], e.std["F"])
         flags[k] = e.flags
@@ -129,7 +145,9 @@ def run_filter(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings
     nees = (eh * (C[:, 1, 1] * eh - C[:, 0, 1] * eF) + eF * (C[:, 0, 0] * eF - C[:, 1, 0] * eh)) / det
     nees[:start] = np.nan
     est["innov"] = innov
-    return TrialResult(trial.name, rec.t, est, rec.truth, rec.meas, None, nees, nis, step_s, flags)
+    counts = f.stats() if hasattr(f, "stats") else {}
+    return TrialResult(trial.name, rec.t, est, rec.truth, rec.meas, None, nees, nis, step_s, flags, own=own,
+                       counts=counts)
 
 
 def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
@@ -146,6 +164,19 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
         "step_us_median": float(U.to_us(np.nanmedian(res.step_s[sl]))),
         "height_rmse_mm": float(U.to_mm(np.sqrt(np.mean((h - ht) ** 2)))),
     }
+    # the steps whose estimate breaks a hard constraint (h, h2, h1 - h2, F, the load state >= 0)
+    out["constraint_violations"] = float(constraint_violations(res.est["h1"][sl], res.est["h2"][sl], h,
+                                                               res.est["F"][sl], res.est["W"][sl]))
+    # the height around the truth's lift-off and touch-down (EVENT_WINDOW either side), normalised by
+    # the run's range as the NRMSD
+    for key, i in zip(("height_nrmsd_liftoff", "height_nrmsd_touchdown"), contact_events(ht)):
+        out[key] = float("nan")
+        if i is not None:
+            w = int(round(EVENT_WINDOW / max(float(np.median(np.diff(res.t))), 1e-6)))
+            a, b = max(i - w, 0), min(i + w + 1, len(ht))
+            span = float(np.max(ht) - np.min(ht))
+            if span > 0:
+                out[key] = float(np.sqrt(np.mean((h[a:b] - ht[a:b]) ** 2)) / span)
     # the detectors' rarer events, counted per run (EVENT_COUNTS)
     for key, flag in EVENT_COUNTS.items():
         out[key] = float(sum(flag in f for f in res.flags[sl]))
@@ -165,6 +196,24 @@ def score(res: TrialResult, trial: Trial, start: int = 0) -> dict:
     else:
         out["force_steady_rel_err"] = float("nan")
     return out
+
+
+#: half-width of the lift-off and touch-down windows of the scores, s
+EVENT_WINDOW = 0.2
+#: the truth's height above this is off the rig (lift-off, touch-down), m
+LIFT_HEIGHT = 0.2e-3
+
+
+def contact_events(h_true: np.ndarray) -> tuple:
+    """(lift-off, touch-down) sample indices of a true height series (m): the first sample above
+    :data:`LIFT_HEIGHT` after one at or below it, and the first at or below it after the last lift;
+    None where there is no such sample."""
+    up = np.asarray(h_true) > LIFT_HEIGHT
+    rise = np.flatnonzero(~up[:-1] & up[1:])
+    fall = np.flatnonzero(up[:-1] & ~up[1:])
+    lift = int(rise[0]) + 1 if rise.size else None
+    down = int(fall[-1]) + 1 if fall.size and (lift is None or fall[-1] + 1 > lift) else None
+    return lift, down
 
 
 def run_and_score(kind: str, trial: Trial, rec: RigRecord, settings: FilterSettings,
@@ -223,8 +272,8 @@ def evaluate_trials(trials: list[Trial], kind: str = "ekf", rig: RigSettings | N
 def aggregate(results: list[TrialResult]) -> dict:
     """The metrics.json ``"estimator"`` object: means over trials, worst cases, counts."""
     keys = ("height_nrmsd", "height_nrmsd_open_loop", "pressure_nrmsd", "force_rmse_n", "nees_mean",
-            "nis_mean", "step_us_median", "height_rmse_mm")
-    S = {k: np.array([r.scores[k] for r in results], dtype=float) for k in keys}
+            "nis_mean", "step_us_median", "height_rmse_mm", "height_nrmsd_liftoff", "height_nrmsd_touchdown")
+    S = {k: np.array([r.scores.get(k, np.nan) for r in results], dtype=float) for k in keys}
     out = {k: float(np.nanmean(v)) for k, v in S.items()}
     ratio = S["height_nrmsd"] / S["height_nrmsd_open_loop"]
     fse = np.array([r.scores["force_steady_rel_err"] for r in results], dtype=float)
@@ -254,6 +303,10 @@ def aggregate(results: list[TrialResult]) -> dict:
         # the detectors' rarer events summed over the trials (EVENT_COUNTS), and the trials with a
         # lift-off the load prior ruled out
         **{key: int(sum(r.scores.get(key, 0) for r in results)) for key in EVENT_COUNTS},
+        # steps whose estimate broke a hard constraint, summed over the trials
+        "constraint_violations": int(sum(r.scores.get("constraint_violations", 0) for r in results)),
+        # the moving-horizon estimator's failed steps the EKF took over (0 for the filters)
+        "fallbacks": int(sum(r.counts.get("fallbacks", 0) for r in results)),
         "trials_with_implausible_lift_off": int(sum(r.scores.get("lift_offs_implausible", 0) > 0 for r in results)),
         "force_steady_rel_err_max": float(np.nanmax(fse)) if np.any(np.isfinite(fse)) else float("nan"),
         "rig_status": {s: sum(r.scores["rig_status"] == s for r in results)
