@@ -115,7 +115,8 @@ def codegen(
                                            "the library; single is also compared with double)")] = "double",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
-    """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario."""
+    """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario, or
+    (--library) its chamber tick as a C library for a microcontroller."""
     from hbma_ctrl.core.loopgen_c import bench, write_c
 
     check_choice("--opt", opt, OPT_FLAGS)
