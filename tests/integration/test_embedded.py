@@ -117,3 +117,32 @@ def test_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path):
     undefined = subprocess.run(["arm-none-eabi-nm", "-u", str(out / "build" / "cortex-m7" / "libhbma.a")],
                                check=True, capture_output=True, text=True).stdout.split()
     assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+
+
+@pytest.mark.slow
+def test_library_qp_parts_equal_the_rti_steps_own():
+    """The library's QP path equals the RTI step Function's parts: OSQP's problem data (P's upper triangle,
+    [I; A], the bounds) solved by OSQP's Python interface and post-processed by the library's post
+    Function gives exactly what the RTI step's own post-processing (``rti_post``) gives on that solution."""
+    import osqp
+    import scipy.sparse as sp
+
+    from hbma_ctrl.app.codegen.library import _nominal_inputs, library_spec
+    from hbma_ctrl.app.scenario import load_scenario
+
+    scn = load_scenario(TRACK)
+    lib = library_spec(scn)
+    rti = next(st.fun for st in lib.loop.stages if st != "log" and st.name == "rti_step")
+    post = rti.find_function("rti_post")
+    ins = _nominal_inputs(lib.backend, rti)
+    Px, q, Ax, lo, hi, _, _, chk = [np.asarray(v, float).ravel() for v in lib.qp_data(*ins)]
+    pr, pc, ar, ac, nz, nc = lib.qp_setup["patterns"]
+    m = osqp.OSQP()
+    m.setup(sp.csc_matrix((Px, (pr, pc)), shape=(nz, nz)), q, sp.csc_matrix((Ax, (ar, ac)), shape=(nz + nc, nz)),
+            lo, hi, verbose=False, eps_abs=1e-6, eps_rel=1e-6, polishing=False)
+    r = m.solve()
+    ref = post(r.x, r.info.obj_val, r.y[nz:], r.y[:nz], chk, *ins)
+    got = lib.qp_post(r.x, r.info.obj_val, r.y, chk, Ax, lo, hi)
+    for a, b in zip(ref, got):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    assert float(ref[5]) == 0.0  # the nominal step solves

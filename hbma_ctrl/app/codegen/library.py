@@ -78,8 +78,9 @@ _STREAMS = ("t", "target", "ref", "fail", "load_a")
 @dataclass
 class LibrarySpec:
     """What the library is made of: the control side's loop spec (its stages without the log mark), the
-    names of the EKF model's parameters (``ekf_theta``), the controller's period in ticks, the load
-    filter's time constant (s), the controller's period (s), the horizon and the QP's Functions and OSQP problem at a nominal point."""
+    names of the EKF model's parameters (``ekf_theta``), the controller's period in ticks and in s, the
+    load filter's time constant (s), the horizon, the QP's Functions and OSQP problem at a nominal point,
+    a description, and the NMPC's RTI backend (its model and settings)."""
 
     loop: LoopSpec
     theta_names: list
@@ -91,6 +92,7 @@ class LibrarySpec:
     qp_post: ca.Function
     qp_setup: dict
     meta: dict
+    backend: object = None
 
 
 #: what the base entries of a model's parameter list are (hbma_ctrl.core.physics.ParamSpace), for the header
@@ -238,7 +240,8 @@ def library_spec(scn) -> LibrarySpec:
     meta = dict(spec.meta)
     meta["controller"] = meta["controller"].replace("QP osqp", "QP OSQP (embedded, generated C)")
     meta["first reading"] = f"{p0:.6g} Pa (the EKF's initial estimate is made from it at generation)"
-    return LibrarySpec(spec, names, system.loop.every, float(s.sample_period), float(s.load_tau), int(s.horizon), qp, post, setup, meta)
+    return LibrarySpec(spec, names, system.loop.every, float(s.sample_period), float(s.load_tau), int(s.horizon), qp, post,
+                       setup, meta, ctrl.backend)
 
 
 # --------------------------------------------------------------------------------------------- write
