@@ -257,6 +257,32 @@ def _c_values(values, ctype: str = "hbma_real") -> str:
     return "{" + ", ".join(parts or ["0"]) + "}"
 
 
+#: libm's functions the generated code calls, each with a float variant (name + "f")
+_LIBM = ("sqrt", "exp", "log", "pow", "fabs", "fmin", "fmax", "floor", "ceil", "sin", "cos", "tan", "atan2", "atan",
+         "tanh", "asin", "acos", "sinh", "cosh", "fmod", "erf", "round", "copysign", "log1p", "expm1", "cbrt",
+         "hypot", "trunc")
+_FLOAT_LITERAL = re.compile(r"(?<![\w.])(\d+\.\d*(?:[eE][-+]?\d+)?|\d+[eE][-+]?\d+)(?![\w.])")
+_FLT_MIN, _FLT_MAX = 1.17549435e-38, 3.40282347e38
+
+
+def _single(source: str) -> str:
+    """The generated C in single precision: libm's float functions (``sqrtf`` for ``sqrt``; the
+    arguments are floats, and a double routine would cost a soft-float call on a single-precision FPU),
+    and the literals outside float's range mapped to its limits (a 1e-300 guard against a division by
+    zero stays the smallest normal float instead of 0, the largest double the largest float)."""
+    source = re.sub(r"\b(" + "|".join(_LIBM) + r")\(", r"\1f(", source)
+
+    def lit(m):
+        v = float(m.group(1))
+        if 0.0 < v < _FLT_MIN:
+            return repr(_FLT_MIN)
+        if _FLT_MAX < v < float("inf"):
+            return repr(_FLT_MAX)
+        return m.group(1)
+
+    return _FLOAT_LITERAL.sub(lit, source)
+
+
 def _osqp(lib: LibrarySpec, out: Path, precision: str, settings: dict | None = None) -> None:
     """OSQP's embedded sources and its caller-owned workspace (:mod:`hbma_ctrl.core.osqp_embed`) in ``out/osqp``."""
     import osqp
@@ -309,9 +335,9 @@ def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "doubl
     for f in funs:
         cg.add(f)
     cg.generate(str(out) + os.sep)
-    if precision == "single":  # type-generic maths: sqrt of a float is sqrtf, not a double routine
+    if precision == "single":
         src = out / f"{STEPS}.c"
-        src.write_text(src.read_text().replace("#include <math.h>", "#include <tgmath.h>", 1))
+        src.write_text(_single(src.read_text()))
     _osqp(lib, out, precision)
     sz = {k: max(getattr(f, f"sz_{k}")() for f in funs) for k in ("arg", "res", "iw", "w")}
     spec = lib.loop
