@@ -38,14 +38,14 @@ import re
 import shutil
 import struct
 import subprocess
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from hbma_ctrl.core.loopgen import LOG, LoopSpec, Stage, dense_function
+from hbma_ctrl.core.loopgen import LOG, LoopSpec, dense_function
 from hbma_ctrl.core.osqp_embed import own_workspace
 
 __all__ = ["TARGETS", "PRECISIONS", "LibrarySpec", "library_spec", "write_library", "record_inputs",
@@ -70,9 +70,6 @@ QP_PREFIX = "hbma_qp_"
 QP_SETTINGS: dict = {"check_termination": 5}
 #: the casadi-generated source's base name
 STEPS = "hbma_steps"
-#: signals the API sets every tick, and the streams it computes or holds
-_API_SIGNALS = ("t", "p", "u")
-_STREAMS = ("t", "target", "ref", "fail", "load_a")
 
 
 @dataclass
@@ -467,7 +464,6 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     tick = []
     for st in stages:
         f = st.fun if st.name != "rti_step" else None
-        n = _c_ident(st.name)
         if f is None:
             nout = 8
             body = [f"ws->arg[{i}] = ws->s_{_c_ident(s)};" for i, s in enumerate(st.inputs)]
@@ -741,7 +737,8 @@ def _parse(text: str) -> LibraryRun:
 
 
 def run_library(out_dir: Path | str, target: str, inputs: Path | str, timeout: float = 3600.0) -> LibraryRun:
-    """Run the built driver of ``target`` on ``inputs`` (the host's program, or QEMU for a board)."""
+    """Run the built driver of ``target`` on ``inputs`` (the host's program, or QEMU for a board); its output
+    is kept in ``run_<target>.txt``."""
     out = Path(out_dir).resolve()
     inputs = Path(inputs).resolve()
     if target == "host":
@@ -751,6 +748,7 @@ def run_library(out_dir: Path | str, target: str, inputs: Path | str, timeout: f
     res = subprocess.run(cmd, cwd=out, capture_output=True, text=True, timeout=timeout)
     if res.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} exited {res.returncode}: {(res.stderr or res.stdout)[-2000:]}")
+    (out / f"run_{target}.txt").write_text(res.stdout)  # the driver's own lines: every number is in them
     return _parse(res.stdout)
 
 
@@ -843,10 +841,11 @@ def generate(scn, out_dir: Path | str, target: str = "host", precision: str = "d
     board = run_library(out, target, inputs)
     (out / "commands_host.txt").write_text(_commands_text(host))
     (out / f"commands_{target}.txt").write_text(_commands_text(board))
+    report_qp = float(np.median(host.qp_iterations[::lib.every]))
     report = embedded_report(target, host, board, elf, lib.every, precision)
     report["qemu_machine"] = _ARM[target][1]
-    report["scenario"] = lib.loop.name
-    report["qp_iterations_median"] = float(np.median(host.qp_iterations[::lib.every])) if host.qp_iterations is not None else None
+    report["scenario"] = scn.name
+    report["qp_iterations_median"] = report_qp
     if precision == "single":
         ref = out / "double"
         write_library(lib, ref, "double")
