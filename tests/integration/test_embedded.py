@@ -146,3 +146,14 @@ def test_library_qp_parts_equal_the_rti_steps_own():
     for a, b in zip(ref, got):
         assert np.array_equal(np.asarray(a), np.asarray(b))
     assert float(ref[5]) == 0.0  # the nominal step solves
+
+
+def test_single_precision_source_calls_float_maths_and_keeps_literals_in_range():
+    """The single-precision library calls libm's float functions (``powf`` for ``pow``, not the casadi
+    helpers that merely contain the name), and a literal below float's range becomes its smallest normal
+    value (a guard against division by zero stays a guard) and one above it its largest."""
+    from hbma_ctrl.app.codegen.library import _single
+
+    out = _single("a=pow(b,c); x=casadi_fmin(a,b); y=sqrt(1.0e-300)+1.7976931348623157e+308+2.5e-3+fabs(a1);")
+    assert "powf(b,c)" in out and "casadi_fmin(a,b)" in out and "fabsf(a1)" in out
+    assert "sqrtf(1.17549435e-38)" in out and "3.40282347e+38" in out and "2.5e-3" in out
