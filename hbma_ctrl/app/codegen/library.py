@@ -285,6 +285,9 @@ def _osqp(lib: LibrarySpec, out: Path, precision: str, settings: dict | None = N
     import osqp
     import scipy.sparse as sp
 
+    if int(osqp.__version__.split(".")[0]) < 1:
+        raise ValueError(f"codegen --library: needs osqp >= 1.0 (its embedded code generation); this is "
+                         f"{osqp.__version__}: pip install 'osqp>=1.0'")
     st = lib.qp_setup
     p_rows, p_cols, a_rows, a_cols, nz, nc = st["patterns"]
     # the patterns must survive the setup: a value that is 0 at the nominal point is stored as a tiny one
