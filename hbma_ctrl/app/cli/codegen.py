@@ -1,6 +1,7 @@
 """CLI hook of the code generation: ``hbma-ctrl codegen CONFIG --out DIR`` and ``hbma-ctrl bench codegen``.
 
-``codegen`` writes the C sources and header of the scenario's step Functions (plant, EKF, RTI NMPC and
+``codegen --library`` writes the chamber's tick as a C library instead and, for a Cortex-M ``--target``,
+runs it on QEMU (:mod:`hbma_ctrl.app.codegen.library`). ``codegen`` writes the C sources and header of the scenario's step Functions (plant, EKF, RTI NMPC and
 the small glue Functions), ``loop_data.h``, ``closed_loop.c``, a Makefile and README.txt
 (:mod:`hbma_ctrl.core.loopgen`, :mod:`hbma_ctrl.app.codegen.chamber`); ``--check`` also builds it with the
 system compiler, runs it and compares its trajectory with the Python path's (check.json).
@@ -26,6 +27,9 @@ __all__ = ["register"]
 
 #: longest loop a generated program runs, s
 DURATION_MAX_S = 3600.0
+#: --library's build targets and precisions (hbma_ctrl.app.codegen.library.TARGETS, PRECISIONS)
+LIBRARY_TARGETS = ("host", "cortex-m7", "cortex-m4f")
+LIBRARY_PRECISIONS = ("double", "single")
 
 
 def _spec(config: Path, duration_s: float | None, estimator: str, qp_solver: str | None):
@@ -100,12 +104,28 @@ def codegen(
                                                      "(self-contained C); default: the variant's, else osqp")] = None,
     check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
     opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
+    library: Annotated[bool, typer.Option("--library", help="write the chamber's estimator + controller + "
+                                          "supervisor tick as a self-contained C library (hbma.h: fixed "
+                                          "memory, no malloc, OSQP's embedded sources included) instead of "
+                                          "the closed loop")] = False,
+    target: Annotated[str, typer.Option(help="--library: build for host | cortex-m7 | cortex-m4f; a "
+                                        "cortex-* target also runs on qemu-system-arm on the scenario's "
+                                        "recorded pressures beside the host build (embedded.json)")] = "host",
+    precision: Annotated[str, typer.Option(help="--library: double | single (floating-point type of "
+                                           "the library; single is also compared with double)")] = "double",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
-    """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario."""
+    """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario, or
+    (--library) its chamber tick as a C library for a microcontroller."""
     from hbma_ctrl.core.loopgen_c import bench, write_c
 
     check_choice("--opt", opt, OPT_FLAGS)
+    if library:
+        _library(config, out, duration_s, estimator, qp_solver, check, target, precision, overwrite)
+        return
+    check_choice("--target", target, LIBRARY_TARGETS)
+    if target != "host" or precision != "double":
+        raise ValueError("--target and --precision apply to --library only")
     spec, scn = _spec(config, duration_s, estimator, qp_solver)
     cc = _compiler() if check else None
     con = Console(highlight=False)
@@ -124,6 +144,45 @@ def codegen(
     if check:
         con.print(f"C vs Python path: largest absolute difference {res['max_abs_diff_si_all']:.3g} (SI); "
                   f"see {out / 'check.json'}")
+
+def _library(config: Path, out: Path, duration_s: float | None, estimator: str, qp_solver: str | None,
+             check: bool, target: str, precision: str, overwrite: bool) -> None:
+    """``codegen --library``: the library (:func:`hbma_ctrl.app.codegen.library.generate`); ValueError
+    naming the option otherwise."""
+    from hbma_ctrl.app.scenario import load_scenario
+
+    check_choice("--target", target, LIBRARY_TARGETS)
+    check_choice("--precision", precision, LIBRARY_PRECISIONS)
+    check_range("--duration-s", duration_s, 0.0, DURATION_MAX_S, lo_open=True, unit="s")
+    if estimator != "ekf":
+        raise ValueError(f"--estimator = '{estimator}': the library runs the scenario's EKF (allowed with "
+                         "--library: ekf)")
+    if qp_solver not in (None, "osqp"):
+        raise ValueError(f"--qp-solver = '{qp_solver}': the library solves its QP with OSQP's embedded code "
+                         "(allowed with --library: osqp)")
+    if check:
+        raise ValueError("--check compares the closed loop with Python; with --library a cortex-* --target "
+                         "compares the board with the host build")
+    from hbma_ctrl.app.codegen.library import generate
+
+    scn = load_scenario(config)
+    con = Console(highlight=False)
+    with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
+        try:
+            rep = generate(scn, tmp, target, precision, duration_s, log=lambda m: con.print(m, markup=False))
+        except ValueError as exc:
+            raise ValueError(f"{config.name}: {exc}") from None
+    con.print(f"wrote {out}: hbma.h, hbma.c, hbma_steps.c/.h, osqp/, hbma_run.c, board/, Makefile, "
+              "CMakeLists.txt, README.txt")
+    if rep:
+        con.print(f"{rep['target']} ({rep['qemu_machine']}) vs host over {rep['ticks']} ticks: largest "
+                  f"|command difference| {rep['max_abs_diff']:.3g}; instructions per tick median "
+                  f"{rep['instructions_per_tick_median']:.0f}, max {rep['instructions_per_tick_max']:.0f}; "
+                  f"flash {rep['flash_bytes']} B, RAM {rep['ram_bytes']} B; see {out / 'embedded.json'}")
+        if "max_abs_diff_vs_double" in rep:
+            con.print(f"single vs double precision (host): largest |command difference| "
+                      f"{rep['max_abs_diff_vs_double']:.3g}, median {rep['abs_diff_vs_double_median']:.3g}")
+
 
 def bench_codegen(
     config: Annotated[Path, typer.Argument(help="scenario TOML (default scenarios/track_height.toml)")] = Path(

@@ -1,0 +1,870 @@
+"""The chamber's estimator + controller + supervisor tick as a self-contained C library (``codegen --library``).
+
+The control side of a scenario's chamber system (:meth:`hbma_ctrl.system.chamber.ChamberSystem.to_function`:
+the EKF's stages, the NMPC's problem data, cold start and RTI step, the supervisor and the valves'
+minimum on-time shaping) becomes a C library with a fixed-memory API:
+
+- ``hbma_init(&ws, &params)``, ``hbma_set_target(&ws, h, preview)``, ``hbma_tick(&ws, t, p, held, u)``
+  and ``hbma_outputs(&ws, &out)`` (``hbma.h``), status codes ``HBMA_OK``, ``HBMA_SOLVE_FAILED``, ...;
+- all memory in the caller's ``hbma_workspace_t``, whose size is a compile-time constant: the signals,
+  one set of casadi work arrays sized by the largest ``*_work`` of the generated Functions, and the QP
+  solver's memory; no malloc, no file I/O, no global state, nothing outside the generated tree;
+- a named parameter struct (``hbma_model_params_t``: the EKF model's parameters by their names, SI).
+
+The QP inside the RTI step is solved by OSQP's own embedded code (osqp >= 1.0, ``codegen`` with
+matrix updates: its sources copied into ``osqp/``), the problem data and the post-processing by the
+same casadi Functions the RTI step Function calls (``rti_qp_data``, ``rti_post``,
+:func:`hbma_ctrl.controllers.rti_step.rti_step_function`). Why OSQP's embedded code and not casadi's
+own code-generated solvers: qrqp fails on this QP's cold starts and needs 10-200 ms per solve on a
+PC (``hbma_ctrl.controllers.rti_step``), ``ipqp`` does not code-generate, and the other conic
+plugins (OSQP, HPIPM, DAQP) generate calls into shared libraries. OSQP's generated workspace is a
+set of globals; :func:`hbma_ctrl.core.osqp_embed.own_workspace` moves them into a struct the
+workspace holds. The solver is warm-started from the RTI step's shifted primal and dual guesses.
+
+The EKF starts from the scenario's first reading at generation time (its prior, as the generated
+loop's does); the library's first tick marks it started. Left out as in the generated loop: the
+start-up calibration, the NMPC's fallback drill (``fail_window``), load steps.
+
+:func:`record_inputs` runs the scenario's own closed loop on the sim rig to record the pressures a run
+replays; :func:`run_library` builds and runs the library's driver ``hbma_run.c`` (host, or bare-metal
+on QEMU through semihosting) on them and reads its commands and instruction counts.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import struct
+import subprocess
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.core.loopgen import LOG, LoopSpec, dense_function
+from hbma_ctrl.core.osqp_embed import own_workspace
+
+__all__ = ["TARGETS", "PRECISIONS", "LibrarySpec", "library_spec", "write_library", "record_inputs",
+           "write_inputs", "build_library", "run_library", "LibraryRun", "embedded_report", "qemu_command"]
+
+#: build targets: the host's C compiler, or arm-none-eabi-gcc for a Cortex-M run on QEMU
+TARGETS = ("host", "cortex-m7", "cortex-m4f")
+#: floating-point precision of the library (casadi_real, OSQPFloat and the API's hbma_real)
+PRECISIONS = ("double", "single")
+#: the arm-none-eabi-gcc flags and the QEMU machine of each Cortex-M target
+_ARM = {
+    "cortex-m7": (["-mcpu=cortex-m7", "-mthumb", "-mfpu=fpv5-d16", "-mfloat-abi=hard"], "mps2-an500"),
+    "cortex-m4f": (["-mcpu=cortex-m4", "-mthumb", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard"], "mps2-an386"),
+}
+#: optimisation of every build (no fast-math: host and target round alike)
+OPT = "-O2"
+#: OSQP's prefix of its generated workspace
+QP_PREFIX = "hbma_qp_"
+#: OSQP settings beyond the NMPC's tolerances and iteration limit: the termination test every 5 iterations
+#: (OSQP's default, 25, runs up to 24 iterations past convergence of a warm-started RTI QP: 30 % fewer
+#: instructions over track_height's first 200 ticks)
+QP_SETTINGS: dict = {"check_termination": 5}
+#: the casadi-generated source's base name
+STEPS = "hbma_steps"
+
+
+@dataclass
+class LibrarySpec:
+    """What the library is made of: the control side's loop spec (its stages without the log mark), the
+    names of the EKF model's parameters (``ekf_theta``), the controller's period in ticks and in s, the
+    load filter's time constant (s), the horizon, the QP's Functions and OSQP problem at a nominal point,
+    a description, and the NMPC's RTI backend (its model and settings)."""
+
+    loop: LoopSpec
+    theta_names: list
+    every: int
+    ctrl_dt: float
+    load_tau: float
+    horizon: int
+    qp_data: ca.Function
+    qp_post: ca.Function
+    qp_setup: dict
+    meta: dict
+    backend: object = None
+
+
+#: what the base entries of a model's parameter list are (hbma_ctrl.core.physics.ParamSpace), for the header
+_PARAM_DOC = {"r1": "clamp radius, m", "t0": "membrane thickness, m", "V0": "dead volume, m^3",
+              "R": "specific gas constant, J/(kg K)", "T": "gas temperature, K", "p_env": "ambient pressure, Pa",
+              "W": "platform weight, N", "M": "moving mass, kg", "c": "platform damping, N s/m",
+              "flow_scale": "pump flow scale, -", "C_out": "outlet sonic conductance, m^3/(s Pa)",
+              "b_out": "outlet critical pressure ratio, -", "lam_out": "outlet laminar ratio, -"}
+
+
+def _c_ident(name: str) -> str:
+    out = re.sub(r"\W", "_", name)
+    return out if not out[0].isdigit() else "p_" + out
+
+
+def _qp_functions(rti: ca.Function) -> tuple[ca.Function, ca.Function, int, int]:
+    """(OSQP's problem data from the RTI step's inputs, the RTI step's post-processing, nz, nc).
+
+    The data Function returns P's upper triangle and ``[I; A]`` as OSQP's CSC values (the patterns fixed),
+    q, l = [lbx; lba], u = [ubx; uba] (infinite bounds as OSQP's infinity), the primal guess, the dual
+    guess [lam_x; lam_a] and the linearisation check the post-processing reads."""
+    data = rti.find_function("rti_qp_data")
+    post = rti.find_function("rti_post")
+    ins = [ca.MX.sym(data.name_in(i), data.sparsity_in(i)) for i in range(data.n_in())]
+    H, g, A, lba, uba, lbx, ubx, z0, lx0, la0, chk = data(*ins)
+    Hsp, Asp = data.sparsity_out(0), data.sparsity_out(2)
+    nz, nc = Asp.size2(), Asp.size1()
+    rows = np.array(Hsp.row())
+    cols = np.repeat(np.arange(nz), np.diff(np.array(Hsp.colind())))
+    upper = np.nonzero(rows <= cols)[0]
+    Px = ca.vertcat(*[H.nz[int(i)] for i in upper]) if upper.size else ca.MX(0, 1)
+    Acol, Arow = np.array(Asp.colind()), np.array(Asp.row())
+    parts = []
+    for j in range(nz):
+        parts.append(ca.MX(1.0))
+        for i in range(Acol[j], Acol[j + 1]):
+            parts.append(A.nz[int(i)])
+    Ax = ca.vertcat(*parts)
+    big = 1e30  # OSQP_INFTY: a bound beyond it is no bound
+    clip = lambda v: ca.fmin(ca.fmax(v, -big), big)  # noqa: E731
+    qp = ca.Function("hbma_qp_data", ins, [Px, g, Ax, clip(ca.vertcat(lbx, lba)), clip(ca.vertcat(ubx, uba)), z0,
+                                          ca.vertcat(lx0, la0), chk],
+                     [data.name_in(i) for i in range(data.n_in())],
+                     ["Px", "q", "Ax", "l", "u", "x_guess", "y_guess", "chk"])
+    # the patterns OSQP is set up with
+    p_rows, p_cols = rows[upper], cols[upper]
+    a_rows, a_cols = [], []
+    for j in range(nz):
+        a_rows.append(j)
+        a_cols.append(j)
+        for i in range(Acol[j], Acol[j + 1]):
+            a_rows.append(nz + int(Arow[i]))
+            a_cols.append(j)
+    qp.patterns = (p_rows, p_cols, np.array(a_rows), np.array(a_cols), nz, nc)
+    return qp, post, nz, nc
+
+
+def _qp_post(post: ca.Function, patterns: tuple, horizon: int) -> ca.Function:
+    """The RTI step's post-processing on OSQP's form: (z, cost, y = [lam_x; lam_a], chk, [I; A]'s values,
+    l, u) -> the outputs of ``rti_post`` (first input, plans clipped to [0, 1], multipliers, status,
+    largest constraint violation, cost). ``rti_post`` itself recomputes the linearisation from the step's
+    inputs to evaluate the constraints; the library has them from the data Function already. The plan's
+    places in z are read from ``rti_post`` (evaluated on z = its own indices)."""
+    from hbma_ctrl.controllers.rti_step import _RES_TOL
+
+    _, _, a_rows, a_cols, nz, nc = patterns
+    N = horizon
+    args = [np.zeros(post.sparsity_in(i).shape) for i in range(post.n_in())]
+    args[0] = 1.0 + np.arange(nz)
+    X = np.asarray(post(*args)[1]).ravel()
+    args[0] = (1.0 + np.arange(nz)) / (2.0 * nz)  # inside [0, 1]: the plan's clipping keeps them
+    U = np.asarray(post(*args)[2])
+    ix = np.rint(X - 1.0).astype(int)
+    iu = np.rint(U * 2.0 * nz - 1.0).astype(int)  # 3 x N
+    SX = ca.SX
+    z, cost, y, chk = SX.sym("z", nz), SX.sym("cost"), SX.sym("y", nz + nc), SX.sym("chk", post.nnz_in(4))
+    sp = ca.Sparsity.triplet(nz + nc, nz, [int(r) for r in a_rows], [int(c) for c in a_cols])
+    ax = SX.sym("Ax", sp.nnz())
+    lo, hi = SX.sym("l", nz + nc), SX.sym("u", nz + nc)
+    Az = ca.mtimes(SX(sp, ax), z)
+    res = ca.mmax(ca.vertcat(ca.fmax(lo - Az, 0), ca.fmax(Az - hi, 0)))
+    Xn = ca.vertcat(*[z[int(i)] for i in ix])
+    Un = ca.fmin(ca.fmax(ca.horzcat(*[ca.vertcat(*[z[int(iu[i, k])] for i in range(3)]) for k in range(N)]), 0.0), 1.0)
+    finite = ca.logic_and(ca.sumsqr(z) < ca.inf, ca.sumsqr(chk) < ca.inf)
+    status = ca.if_else(finite, ca.if_else(res <= _RES_TOL, 0.0, 2.0), 1.0)
+    return ca.Function("hbma_qp_post", [z, cost, y, chk, ax, lo, hi],
+                       [Un[:, 0], Xn, Un, y[:nz], y[nz:], status, res, cost],
+                       ["z", "cost", "y", "chk", "Ax", "l", "u"], post.name_out())
+
+
+def _nominal_inputs(backend, rti: ca.Function) -> list:
+    """The RTI step's inputs at a nominal cold start (to mid-range height under a tenth of the largest
+    load), as the NMPC's probe: the point OSQP's generated setup is made at."""
+    s, model, N = backend.s, backend.model, backend.N
+    W = 0.1 * model.load_max
+    x0 = float(model.x_at_height(0.5 * s.h_max, W))
+    return [x0, W, 0.0, 0.0, np.zeros(3), s.p_max - s.p_margin, np.full(N, 0.5 * s.h_max), np.full(N + 1, x0),
+            np.zeros((3, N)), np.zeros(rti.nnz_in(9)), np.zeros(rti.nnz_in(10)), 0.0]
+
+
+def library_spec(scn) -> LibrarySpec:
+    """The library of the scenario's chamber (see the module docstring). ValueError naming the setting
+    that cannot be generated (a robot scenario, no NMPC, load steps, a fallback drill, a UKF)."""
+    from hbma_ctrl.app.codegen.chamber import _unsupported, rig_stages, scenario_system
+    from hbma_ctrl.sim.rig import RigSettings
+
+    if scn.role("robot") is not None:
+        raise ValueError("codegen --library: a [robot] scenario's library is not generated yet; use a chamber "
+                         "scenario ([controller] kind = 'mpc')")
+    section = scn.role("controller")
+    if section is None or section.kind != "mpc":
+        raise ValueError("codegen --library: needs [controller] kind = 'mpc' (the library is EKF -> NMPC -> "
+                         "supervisor)")
+    if section.load_steps:
+        raise ValueError("codegen --library: [controller] load_steps_g changes the rig's load during a run; "
+                         "remove it")
+    if section.mpc.fail_window is not None:
+        raise ValueError("codegen --library: [controller] fail_window (the fallback drill) does not generate; "
+                         "remove it")
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    why = _unsupported(scn, rs)
+    if why:
+        raise ValueError("codegen --library: " + "; ".join(why))
+    system = scenario_system(scn, rs, "osqp")
+    _, _, rig_signals, _, _ = rig_stages(scn, rs, 1)
+    p0 = float(rig_signals["p"][0])
+    try:
+        spec = system.to_function(np.zeros(1), p0, True)
+    except ValueError as exc:
+        raise ValueError(f"codegen --library: {exc}") from None
+    ctrl = system.loop.controller
+    est = system.loop.estimator.inner
+    rti = next(st.fun for st in spec.stages if st != LOG and st.name == "rti_step")
+    qp, post, nz, nc = _qp_functions(rti)
+    nominal = _nominal_inputs(ctrl.backend, rti)
+    vals = [np.asarray(v, float).ravel() for v in qp(*nominal)]
+    s = ctrl.settings
+    names = list(getattr(getattr(est.model, "chamber", None), "space", None).names) if hasattr(
+        getattr(est.model, "chamber", None), "space") else [f"theta_{i}" for i in range(spec.signals["ekf_theta"].size)]
+    if len(names) != spec.signals["ekf_theta"].size:
+        raise ValueError("codegen --library: the EKF model's parameter names do not match its theta")
+    post = _qp_post(post, qp.patterns, int(s.horizon))
+    setup = {"Px": vals[0], "q": vals[1], "Ax": vals[2], "l": vals[3], "u": vals[4], "eps": float(s.qp_eps),
+             "max_iter": int(s.qp_max_iter), "patterns": qp.patterns}
+    meta = dict(spec.meta)
+    meta["controller"] = meta["controller"].replace("QP osqp", "QP OSQP (embedded, generated C)")
+    meta["first reading"] = f"{p0:.6g} Pa (the EKF's initial estimate is made from it at generation)"
+    return LibrarySpec(spec, names, system.loop.every, float(s.sample_period), float(s.load_tau), int(s.horizon), qp, post,
+                       setup, meta, ctrl.backend)
+
+
+# --------------------------------------------------------------------------------------------- write
+def _c_values(values, ctype: str = "hbma_real") -> str:
+    parts = []
+    for v in np.asarray(values, dtype=float).ravel():
+        if np.isnan(v):
+            parts.append("NAN")
+        elif np.isinf(v):
+            parts.append("INFINITY" if v > 0 else "-INFINITY")
+        else:
+            parts.append(repr(float(v)))
+    return "{" + ", ".join(parts or ["0"]) + "}"
+
+
+#: libm's functions the generated code calls, each with a float variant (name + "f")
+_LIBM = ("sqrt", "exp", "log", "pow", "fabs", "fmin", "fmax", "floor", "ceil", "sin", "cos", "tan", "atan2", "atan",
+         "tanh", "asin", "acos", "sinh", "cosh", "fmod", "erf", "round", "copysign", "log1p", "expm1", "cbrt",
+         "hypot", "trunc")
+_FLOAT_LITERAL = re.compile(r"(?<![\w.])(\d+\.\d*(?:[eE][-+]?\d+)?|\d+[eE][-+]?\d+)(?![\w.])")
+_FLT_MIN, _FLT_MAX = 1.17549435e-38, 3.40282347e38
+
+
+def _single(source: str) -> str:
+    """The generated C in single precision: libm's float functions (``sqrtf`` for ``sqrt``; the
+    arguments are floats, and a double routine would cost a soft-float call on a single-precision FPU),
+    and the literals outside float's range mapped to its limits (a 1e-300 guard against a division by
+    zero stays the smallest normal float instead of 0, the largest double the largest float)."""
+    source = re.sub(r"\b(" + "|".join(_LIBM) + r")\(", r"\1f(", source)
+
+    def lit(m):
+        v = float(m.group(1))
+        if 0.0 < v < _FLT_MIN:
+            return repr(_FLT_MIN)
+        if _FLT_MAX < v < float("inf"):
+            return repr(_FLT_MAX)
+        return m.group(1)
+
+    return _FLOAT_LITERAL.sub(lit, source)
+
+
+def _osqp(lib: LibrarySpec, out: Path, precision: str, settings: dict | None = None) -> None:
+    """OSQP's embedded sources and its caller-owned workspace (:mod:`hbma_ctrl.core.osqp_embed`) in ``out/osqp``."""
+    import osqp
+    import scipy.sparse as sp
+
+    if int(osqp.__version__.split(".")[0]) < 1:
+        raise ValueError(f"codegen --library: needs osqp >= 1.0 (its embedded code generation); this is "
+                         f"{osqp.__version__}: pip install 'osqp>=1.0'")
+    st = lib.qp_setup
+    p_rows, p_cols, a_rows, a_cols, nz, nc = st["patterns"]
+    # the patterns must survive the setup: a value that is 0 at the nominal point is stored as a tiny one
+    nonzero = lambda v: np.where(v == 0.0, 1e-9, v)  # noqa: E731
+    P = sp.csc_matrix((nonzero(st["Px"]), (p_rows, p_cols)), shape=(nz, nz))
+    A = sp.csc_matrix((nonzero(st["Ax"]), (a_rows, a_cols)), shape=(nz + nc, nz))
+    if P.nnz != len(p_rows) or A.nnz != len(a_rows):
+        raise RuntimeError("codegen --library: the QP's sparsity changed in OSQP's setup")
+    solver = osqp.OSQP()
+    solver.setup(P, st["q"], A, st["l"], st["u"], verbose=False, polishing=False, eps_abs=st["eps"],
+                 eps_rel=st["eps"], max_iter=st["max_iter"], warm_starting=True, **{**QP_SETTINGS, **(settings or {})})
+    d = out / "osqp"
+    if d.exists():
+        shutil.rmtree(d)
+    solver.codegen(str(d), parameters="matrices", extension_name=None, force_rewrite=True, prefix=QP_PREFIX,
+                   use_float=precision == "single", printing_enable=False, profiling_enable=False,
+                   interrupt_enable=False)
+    for extra in ("emosqp.c", "Makefile"):
+        (d / extra).unlink(missing_ok=True)
+    own_workspace(d, QP_PREFIX)
+
+
+def _functions(lib: LibrarySpec) -> list:
+    """The Functions the library calls: the stages' (the RTI step's replaced by its QP parts)."""
+    seen, out = set(), []
+    for st in lib.loop.stages:
+        if st == LOG or st.name in seen or st.name == "rti_step":
+            continue
+        seen.add(st.name)
+        out.append(dense_function(st.fun))
+    return out + [dense_function(lib.qp_data), dense_function(lib.qp_post)]
+
+
+def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "double") -> list:
+    """Write the library's sources into ``out_dir``: ``hbma.h``, ``hbma.c``, ``hbma_steps.c/.h``, ``osqp/``,
+    the driver ``hbma_run.c``, ``board/`` (start-up file and linker scripts for the MPS2 boards QEMU
+    emulates), ``CMakeLists.txt``, ``Makefile`` and ``README.txt``; returns the written paths."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"--precision = '{precision}'; allowed: {', '.join(PRECISIONS)}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    funs = _functions(lib)
+    opts = {"with_header": True, "main": False, "casadi_real": "float" if precision == "single" else "double"}
+    cg = ca.CodeGenerator(f"{STEPS}.c", opts)
+    for f in funs:
+        cg.add(f)
+    cg.generate(str(out) + os.sep)
+    if precision == "single":
+        src = out / f"{STEPS}.c"
+        src.write_text(_single(src.read_text()))
+    _osqp(lib, out, precision)
+    sz = {k: max(getattr(f, f"sz_{k}")() for f in funs) for k in ("arg", "res", "iw", "w")}
+    spec = lib.loop
+    stages = [st for st in spec.stages if st != LOG]
+    sig = dict(spec.signals)
+    # ---------------------------------------------------------------- header
+    theta = [f"  hbma_real {_c_ident(n)};  /* {_PARAM_DOC.get(n, 'material parameter, SI')} */"
+             for n in lib.theta_names]
+    th0 = spec.signals["ekf_theta"]
+    hdr = f"""/* {spec.name}: the chamber's estimator + controller + supervisor tick (generated by hbma-ctrl codegen --library).
+ *
+ * Every tick (period HBMA_TICK_S): hbma_tick(&ws, t, p, held, u) takes the time t (s), the pressure reading p
+ * (Pa, gauge; NaN: no reading) and the command held over the last period, and writes the command u to hold
+ * over the next one (speed, inlet, outlet; each in [0, 1]). The target height (m) is set by hbma_set_target.
+ * All memory is in the caller's hbma_workspace_t (sizeof is a compile-time constant); no allocation, no I/O.
+ */
+#ifndef HBMA_H
+#define HBMA_H
+
+#include "{STEPS}.h"
+#include "osqp/{QP_PREFIX}workspace.h"
+
+#ifdef __cplusplus
+extern "C" {{
+#endif
+
+typedef casadi_real hbma_real;
+
+#define HBMA_TICK_S {spec.dt!r}
+/* the controller runs every HBMA_CONTROL_EVERY ticks; its horizon has HBMA_HORIZON steps of
+   HBMA_CONTROL_EVERY * HBMA_TICK_S */
+#define HBMA_CONTROL_EVERY {lib.every}
+#define HBMA_HORIZON {lib.horizon}
+#define HBMA_SINGLE_PRECISION {1 if precision == "single" else 0}
+
+/* status codes */
+#define HBMA_OK 0
+#define HBMA_SOLVE_FAILED 1      /* the controller's step failed: the supervisor's fallback command is out */
+#define HBMA_ERR_ARGUMENT (-1)   /* a NULL pointer, or a time that is not finite or goes back */
+#define HBMA_ERR_NOT_INIT (-2)   /* hbma_init has not succeeded on this workspace */
+#define HBMA_ERR_WORKSPACE (-3)  /* the generated Functions need more work memory than the workspace holds */
+
+/* The EKF model's parameters (SI; the names of the model's parameter list). */
+typedef struct {{
+{chr(10).join(theta)}
+}} hbma_model_params_t;
+
+typedef struct {{
+  hbma_model_params_t ekf_model;  /* the estimator's model */
+}} hbma_params_t;
+
+/* What the last tick estimated and decided (SI). */
+typedef struct {{
+  hbma_real height_m;     /* estimated height */
+  hbma_real pressure_pa;  /* estimated pressure (gauge) */
+  hbma_real force_n;      /* estimated load force */
+  int resting;            /* the estimator holds the platform at rest */
+  hbma_real mpc_status;   /* the controller's last step: 0 solved, else failed (NaN: the QP solver gave up) */
+  int qp_iterations;      /* OSQP's iterations in the controller's last QP */
+  int qp_status;          /* OSQP's status of that QP (1 solved) */
+}} hbma_outputs_t;
+
+/* the workspace: every signal of the tick, the generated Functions' work arrays, the QP solver */
+typedef struct {{
+  int initialised;
+  long k;                 /* ticks since hbma_init */
+  hbma_real t_last;       /* time of the last tick, s */
+  hbma_real t_ctrl;       /* time of the controller's last step, s */
+  int qp_iterations, qp_status;
+@SIGNALS@
+  const casadi_real* arg[{sz['arg']}];
+  casadi_real* res[{sz['res']}];
+  const casadi_real* arg2[{sz['arg']}];
+  casadi_real* res2[{sz['res']}];
+  casadi_int iw[{max(sz['iw'], 1)}];
+  casadi_real w[{max(sz['w'], 1)}];
+@OUTBUFS@
+  {QP_PREFIX}mem_t qp;
+}} hbma_workspace_t;
+
+/* The generation scenario's parameters. */
+void hbma_default_params(hbma_params_t* params);
+/* Start (or restart) the workspace: the estimator at its prior, the controller cold, the target 0. */
+int hbma_init(hbma_workspace_t* ws, const hbma_params_t* params);
+/* The target height (m) from now on; preview: the targets at the controller's next HBMA_HORIZON steps
+   (NULL: height_m at all of them). */
+int hbma_set_target(hbma_workspace_t* ws, hbma_real height_m, const hbma_real* preview);
+/* One tick; returns HBMA_OK, HBMA_SOLVE_FAILED or an error (u then unchanged). */
+int hbma_tick(hbma_workspace_t* ws, hbma_real t, hbma_real p, const hbma_real held[3], hbma_real u[3]);
+/* What the last tick estimated and decided. */
+void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
+
+#ifdef __cplusplus
+}}
+#endif
+
+#endif
+"""
+    sig_lines = [f"  hbma_real s_{_c_ident(k)}[{max(v.size, 1)}];" for k, v in sig.items()]
+    # one scratch area holds a stage's outputs until they are copied to their signals (a Function
+    # never writes the buffers it reads)
+    rti = next(st.fun for st in stages if st.name == "rti_step")
+    lib_rti_numel = [rti.numel_out(i) for i in range(rti.n_out())]
+    per_stage = [lib_rti_numel if st.name == "rti_step" else [st.fun.numel_out(i) for i in range(st.fun.n_out())]
+                 for st in stages]
+    n_scratch = max(sum(v) for v in per_stage)
+    qd = lib.qp_data
+    qp_sizes = [qd.nnz_out(i) for i in range(qd.n_out())]
+    outbufs = [f"  hbma_real o[{n_scratch}];  /* a stage's outputs */"]
+    outbufs += [f"  hbma_real o_qp_{i}[{max(n_, 1)}];  /* the QP's data: {qd.name_out(i)} */" for i, n_ in enumerate(qp_sizes)]
+    hdr = hdr.replace("@SIGNALS@", "\n".join(sig_lines)).replace("@OUTBUFS@", "\n".join(outbufs))
+    (out / "hbma.h").write_text(hdr)
+    # ---------------------------------------------------------------- source
+    init = []
+    for k, v in sig.items():
+        if k == "ekf_theta":
+            continue
+        init.append(f"  {{ static const hbma_real v[] = {_c_values(v if v.size else [0.0])}; "
+                    f"memcpy(ws->s_{_c_ident(k)}, v, sizeof v); }}")
+    init += [f"  ws->s_ekf_theta[{i}] = params->ekf_model.{_c_ident(n)};" for i, n in enumerate(lib.theta_names)]
+    defaults = [f"  params->ekf_model.{_c_ident(n)} = {float(v)!r};" for n, v in zip(lib.theta_names, th0)]
+    checks = []
+    for f in funs:
+        checks.append(f"  {{ casadi_int a, r, i, w; {f.name()}_work(&a, &r, &i, &w);\n"
+                      f"    if (a > {sz['arg']} || r > {sz['res']} || i > {max(sz['iw'], 1)} || w > {max(sz['w'], 1)}) "
+                      f"return HBMA_ERR_WORKSPACE; }}")
+    tick = []
+    for st in stages:
+        f = st.fun if st.name != "rti_step" else None
+        if f is None:
+            nout = 8
+            body = [f"ws->arg[{i}] = ws->s_{_c_ident(s)};" for i, s in enumerate(st.inputs)]
+            offs = np.concatenate([[0], np.cumsum(lib_rti_numel)]).astype(int)
+            body += [f"ws->res[{i}] = ws->o + {offs[i]};" for i in range(nout)]
+            call = "rti_step_qp(ws)"
+        else:
+            nout = f.n_out()
+            body = [f"ws->arg[{i}] = ws->s_{_c_ident(s)};" for i, s in enumerate(st.inputs)]
+            offs = np.concatenate([[0], np.cumsum([f.numel_out(i) for i in range(nout)])]).astype(int)
+            body += [f"ws->res[{i}] = ws->o + {offs[i]};" for i in range(nout)]
+            call = f"{st.name}(ws->arg, ws->res, ws->iw, ws->w, 0)"
+        obuf = lambda i, offs=offs: f"(ws->o + {offs[i]})"  # noqa: E731
+        numel = (lambda i: lib_rti_numel[i]) if f is None else (lambda i: f.numel_out(i))
+        copies = [f"memcpy(ws->s_{_c_ident(s)}, {obuf(i)}, sizeof(hbma_real) * {numel(i)});"
+                  for i, s in enumerate(st.outputs) if s is not None]
+        if st.fails_to is not None:
+            # a failed call writes nothing but its failure flag (NaN): the signals keep their values
+            body.append(f"if ({call}) {{\n      ws->s_{_c_ident(st.fails_to)}[0] = NAN;\n    }} else {{\n      "
+                        + "\n      ".join(copies) + "\n    }")
+        else:
+            body.append(f"(void){call};")
+            body += copies
+        if st.stop_on is not None:
+            body.append(f"if (ws->s_{_c_ident(st.stop_on)}[0] != 0) break;")
+        conds = [f"ws->k % {st.every} == 0"] if st.every > 1 else []
+        if st.gate is not None:
+            conds.append(f"ws->s_{_c_ident(st.gate)}[0] {'==' if st.gate_off else '!='} 0")
+        cond = f"if ({' && '.join(conds)}) " if conds else ""
+        loop = f"for (int rep = 0; rep < {st.repeat}; ++rep) " if st.repeat > 1 or st.stop_on else ""
+        tick.append(f"  {cond}{loop}{{  /* {st.name} */\n    " + "\n    ".join(body) + "\n  }")
+    _, _, _, _, nz, nc = lib.qp_setup["patterns"]
+    qpost = lib.qp_post
+    src = (_template("hbma.c.in")
+           .replace("@NAME@", spec.name).replace("@INIT_SIGNALS@", "\n".join(init))
+           .replace("@DEFAULTS@", "\n".join(defaults)).replace("@WORK_CHECKS@", "\n".join(checks))
+           .replace("@TICK@", "\n".join(tick)).replace("@EVERY@", str(lib.every))
+           .replace("@LOAD_TAU@", repr(lib.load_tau)).replace("@CTRL_DT@", repr(lib.ctrl_dt)).replace("@N@", str(lib.horizon))
+           .replace("@NZ@", str(nz)).replace("@NC@", str(nc)).replace("@QP_PREFIX@", QP_PREFIX)
+           .replace("@NPX@", str(qd.nnz_out(0))).replace("@NAX@", str(qd.nnz_out(2)))
+           .replace("@NCHK@", str(qd.nnz_out(7))).replace("@RTI_OUTBUFS@", "")
+           .replace("@QP_DATA@", qd.name()).replace("@QP_POST@", qpost.name()))
+    (out / "hbma.c").write_text(src)
+    for name in ("hbma_run.c",):
+        (out / name).write_text(_template(name + ".in"))
+    board = out / "board"
+    board.mkdir(exist_ok=True)
+    for name in ("startup.c", "mps2.ld"):
+        (board / name).write_text(_template(f"board_{name}.in"))
+    (out / "Makefile").write_text(_makefile(precision))
+    (out / "CMakeLists.txt").write_text(_cmake(precision))
+    (out / "README.txt").write_text(_readme(lib, precision, sz))
+    return [out / n for n in ("hbma.h", "hbma.c", f"{STEPS}.c", f"{STEPS}.h", "hbma_run.c", "Makefile",
+                              "CMakeLists.txt", "README.txt")]
+
+
+def _template(name: str) -> str:
+    return resources.files("hbma_ctrl.core").joinpath(f"c/embedded/{name}").read_text()
+
+
+#: the library's C sources (relative to its folder), for the Makefile and CMake
+def _sources() -> list[str]:
+    osqp_src = ["auxil", "error", "scaling", "util", "osqp_api", "kkt", "algebra_libs", "csc_math", "csc_utils",
+                "matrix", "vector", "qdldl", "qdldl_interface"]
+    return ["hbma.c", f"{STEPS}.c", f"osqp/{QP_PREFIX}workspace.c"] + [f"osqp/src/{s}.c" for s in osqp_src]
+
+
+_INCLUDES = ["-I.", "-Iosqp", "-Iosqp/inc/public", "-Iosqp/inc/private"]
+
+
+def _defs(precision: str) -> list[str]:
+    return ["-fsingle-precision-constant"] if precision == "single" else []
+
+
+def _makefile(precision: str) -> str:
+    arm7, m7 = _ARM["cortex-m7"]
+    arm4, m4 = _ARM["cortex-m4f"]
+    return f"""# The library and its driver (hbma_run.c) for the host and for two Cortex-M boards run on QEMU.
+#   make host          build/host/libhbma.a and hbma_run_host      (./hbma_run_host INPUTS.bin)
+#   make cortex-m7     build/cortex-m7/libhbma.a and hbma_run_cortex-m7.elf   (MPS2 AN500)
+#   make cortex-m4f    build/cortex-m4f/libhbma.a and hbma_run_cortex-m4f.elf (MPS2 AN386)
+#   make run-cortex-m7 INPUTS=inputs.bin      (QEMU, semihosting; the same for run-host, run-cortex-m4f)
+# make -j builds the sources in parallel.
+SRC = {' '.join(_sources())}
+INC = {' '.join(_INCLUDES)}
+OPT ?= {OPT}
+CFLAGS_COMMON = $(OPT) -std=c99 -Wall -Wno-unused-variable -Wno-unused-but-set-variable -Wno-unused-function \\
+  -Wno-parentheses {' '.join(_defs(precision))}
+CC ?= cc
+ARMCC ?= arm-none-eabi-gcc
+AR_ARM ?= arm-none-eabi-ar
+FLAGS_host =
+FLAGS_cortex-m7 = {' '.join(arm7)} -ffunction-sections -fdata-sections
+FLAGS_cortex-m4f = {' '.join(arm4)} -ffunction-sections -fdata-sections
+ARM_LD = -T board/mps2.ld --specs=rdimon.specs -nostartfiles -Wl,--gc-sections
+INPUTS ?= inputs.bin
+QEMU_FLAGS = -nographic -monitor none -serial none -icount shift=0
+
+host: hbma_run_host
+cortex-m7: hbma_run_cortex-m7.elf
+cortex-m4f: hbma_run_cortex-m4f.elf
+
+build/host/%.o: %.c hbma.h
+\t@mkdir -p $(dir $@)
+\t$(CC) $(CFLAGS_COMMON) $(INC) -c $< -o $@
+build/cortex-m7/%.o: %.c hbma.h
+\t@mkdir -p $(dir $@)
+\t$(ARMCC) $(FLAGS_cortex-m7) $(CFLAGS_COMMON) -DHBMA_BOARD $(INC) -c $< -o $@
+build/cortex-m4f/%.o: %.c hbma.h
+\t@mkdir -p $(dir $@)
+\t$(ARMCC) $(FLAGS_cortex-m4f) $(CFLAGS_COMMON) -DHBMA_BOARD $(INC) -c $< -o $@
+
+build/host/libhbma.a: $(SRC:%.c=build/host/%.o)
+\tar rcs $@ $^
+build/cortex-m7/libhbma.a: $(SRC:%.c=build/cortex-m7/%.o)
+\t$(AR_ARM) rcs $@ $^
+build/cortex-m4f/libhbma.a: $(SRC:%.c=build/cortex-m4f/%.o)
+\t$(AR_ARM) rcs $@ $^
+
+hbma_run_host: build/host/hbma_run.o build/host/libhbma.a
+\t$(CC) -o $@ $^ -lm
+hbma_run_cortex-m7.elf: build/cortex-m7/board/startup.o build/cortex-m7/hbma_run.o build/cortex-m7/libhbma.a board/mps2.ld
+\t$(ARMCC) $(FLAGS_cortex-m7) $(ARM_LD) -o $@ $(filter %.o %.a,$^) -lm
+hbma_run_cortex-m4f.elf: build/cortex-m4f/board/startup.o build/cortex-m4f/hbma_run.o build/cortex-m4f/libhbma.a board/mps2.ld
+\t$(ARMCC) $(FLAGS_cortex-m4f) $(ARM_LD) -o $@ $(filter %.o %.a,$^) -lm
+
+run-host: hbma_run_host
+\t./hbma_run_host $(INPUTS)
+run-cortex-m7: hbma_run_cortex-m7.elf
+\tqemu-system-arm -M {m7} $(QEMU_FLAGS) -semihosting-config enable=on,target=native,arg=hbma_run,arg=$(INPUTS) -kernel $<
+run-cortex-m4f: hbma_run_cortex-m4f.elf
+\tqemu-system-arm -M {m4} $(QEMU_FLAGS) -semihosting-config enable=on,target=native,arg=hbma_run,arg=$(INPUTS) -kernel $<
+
+clean:
+\trm -rf build hbma_run_host hbma_run_cortex-m7.elf hbma_run_cortex-m4f.elf
+
+.PHONY: host cortex-m7 cortex-m4f run-host run-cortex-m7 run-cortex-m4f clean
+"""
+
+
+def _cmake(precision: str) -> str:
+    single = ' "-fsingle-precision-constant"' if precision == "single" else ""
+    return f"""# The library as a static library target (hbma) for the host or a cross toolchain file.
+cmake_minimum_required(VERSION 3.13)
+project(hbma C)
+add_library(hbma STATIC {' '.join(_sources())})
+target_include_directories(hbma PUBLIC . osqp osqp/inc/public osqp/inc/private)
+set_property(TARGET hbma PROPERTY C_STANDARD 99)
+target_compile_options(hbma PRIVATE{single})
+find_library(M_LIB m)
+if(M_LIB)
+  target_link_libraries(hbma PUBLIC ${{M_LIB}})
+endif()
+add_executable(hbma_run hbma_run.c)
+target_link_libraries(hbma_run hbma)
+"""
+
+
+def _readme(lib: LibrarySpec, precision: str, sz: dict) -> str:
+    spec = lib.loop
+    stages = "\n".join(f"  {st.name}" + (f" every {st.every} ticks" if st.every > 1 else "")
+                       + (f" while {st.gate} {'== 0' if st.gate_off else '!= 0'}" if st.gate else "")
+                       + (f", up to {st.repeat} calls" if st.repeat > 1 else "")
+                       for st in spec.stages if st != LOG)
+    return (f"The chamber's tick as a C library (hbma-ctrl codegen --library), scenario \"{spec.name}\", "
+            f"{precision} precision, tick {spec.dt * 1e3:g} ms.\n\n"
+            "API (hbma.h): hbma_default_params, hbma_init, hbma_set_target, hbma_tick, hbma_outputs. All memory in\n"
+            "hbma_workspace_t (sizeof: compile-time); no malloc, no file I/O, only libm.\n\n"
+            "Build: make host | make cortex-m7 | make cortex-m4f | make libhbma.a, or CMake (target hbma).\n"
+            "Run on recorded inputs: ./hbma_run_host inputs.bin, or make run-cortex-m7 INPUTS=inputs.bin\n"
+            "(QEMU, semihosting). inputs.bin: little-endian doubles: ticks, preview length P, then per tick\n"
+            "t, p, target and P preview targets. The driver prints per tick: k, u (3), status, OSQP's iterations,\n"
+            "the estimated height (m), and on a board the SysTick counts of the tick (with QEMU's -icount\n"
+            "shift=0, 40 instructions per count; the driver prints its calibration first).\n\n"
+            f"Files: hbma.c (the tick), {STEPS}.c/.h (casadi-generated Functions), osqp/ (OSQP's embedded "
+            "solver, its workspace a struct), hbma_run.c (driver), board/ (start-up file, linker script).\n"
+            f"Work arrays: arg {sz['arg']}, res {sz['res']}, iw {sz['iw']}, w {sz['w']}.\n\n"
+            f"Stages per tick:\n{stages}\n" + "".join(f"\n{k}: {v}" for k, v in lib.meta.items()) + "\n")
+
+
+# --------------------------------------------------------------------------------------------- inputs
+def record_inputs(scn, lib: LibrarySpec, ticks: int) -> dict:
+    """The scenario's own closed loop on the sim rig over ``ticks`` ticks (no start-up calibration): its
+    readings (Pa, NaN for a dropout) and the library's targets at those times (the target, and the
+    controller's preview when the scenario previews). Returns arrays t, p, target, preview (ticks x P)."""
+    from hbma_ctrl.app.scenes.controller import closed_loop
+    from hbma_ctrl.sim.rig import RigSettings
+    from hbma_ctrl.system.roles import estimator_from_scenario
+    from hbma_ctrl.app.codegen.chamber import scenario_system
+
+    rs = scn.role("rig") or RigSettings(sensor_range=scn.sim.sensor_range)
+    section = scn.role("controller")
+    log = closed_loop(scn.actuator, scn.pneumatics, scn.platform, section, ticks * rs.sample_period, rs,
+                      estimator=estimator_from_scenario(scn, rs), calibrate=False)
+    t = np.arange(ticks) * rs.sample_period
+    system = scenario_system(scn, rs, "osqp")
+    loop = system.loop
+    target = np.array([loop.reference(tk) for tk in t])
+    P, dp = loop.preview_steps, loop.preview_period
+    preview = (np.array([[loop.reference(tk + dp * (min(j, P - 1) + 1)) for j in range(lib.horizon)] for tk in t])
+               if P else np.zeros((ticks, 0)))
+    return {"t": t, "p": np.asarray(log.p_meas, float)[:ticks], "target": target, "preview": preview}
+
+
+def write_inputs(rec: dict, path: Path | str) -> Path:
+    """The driver's input file (README.txt of the library: little-endian doubles)."""
+    n, P = rec["t"].size, rec["preview"].shape[1]
+    rows = np.column_stack([rec["t"], rec["p"], rec["target"], rec["preview"]]) if P else np.column_stack(
+        [rec["t"], rec["p"], rec["target"]])
+    path = Path(path)
+    with path.open("wb") as fh:
+        fh.write(struct.pack("<2d", float(n), float(P)))
+        fh.write(np.ascontiguousarray(rows, dtype="<f8").tobytes())
+    return path
+
+
+# --------------------------------------------------------------------------------------------- build, run
+def build_library(out_dir: Path | str, target: str) -> Path:
+    """Build the driver for ``target`` with the library's Makefile; the program's path. RuntimeError with
+    the compiler's message."""
+    if target not in TARGETS:
+        raise ValueError(f"--target = '{target}'; allowed: {', '.join(TARGETS)}")
+    out = Path(out_dir)
+    jobs = str(max(1, min(4, os.cpu_count() or 1)))
+    res = subprocess.run(["make", "-s", f"-j{jobs}", target], cwd=out, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"make {target} failed: {(res.stderr or res.stdout).strip()[-3000:]}")
+    return out / ("hbma_run_host" if target == "host" else f"hbma_run_{target}.elf")
+
+
+def qemu_command(target: str, elf: Path | str, inputs: Path | str) -> list[str]:
+    """QEMU's command line of a Cortex-M run: the target's MPS2 board, semihosting on the host's files,
+    instruction counting (``-icount shift=0``: the virtual clock advances 1 ns per instruction)."""
+    return ["qemu-system-arm", "-M", _ARM[target][1], "-nographic", "-monitor", "none", "-serial", "none",
+            "-semihosting-config", f"enable=on,target=native,arg=hbma_run,arg={inputs}", "-icount", "shift=0",
+            "-kernel", str(elf)]
+
+
+@dataclass
+class LibraryRun:
+    """One run of the driver: the commands (ticks x 3), the tick's status codes, the instructions per tick
+    (boards only; None on the host), the driver's calibration of its counter (instructions per count)
+    OSQP's iterations in the controller's last QP at each tick, sizeof(hbma_workspace_t) there and the
+    estimated height at each tick (m)."""
+
+    u: np.ndarray
+    status: np.ndarray
+    instructions: np.ndarray | None
+    per_count: float | None
+    qp_iterations: np.ndarray | None = None
+    workspace_bytes: int | None = None
+    height: np.ndarray | None = None
+
+
+def _parse(text: str) -> LibraryRun:
+    rows, per_count, wsb = [], None, None
+    for line in text.splitlines():
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "workspace":
+            wsb = int(parts[1])
+        elif parts[0] == "calibration":
+            per_count = float(parts[2]) / float(parts[1])
+        elif parts[0].lstrip("-").isdigit():
+            rows.append([float(v) for v in parts])
+    if not rows:
+        raise RuntimeError(f"the driver printed no ticks: {text[-2000:]}")
+    a = np.array(rows)
+    ins = a[:, 7] * per_count if a.shape[1] > 7 and per_count else None
+    return LibraryRun(a[:, 1:4], a[:, 4].astype(int), ins, per_count, a[:, 5], wsb, a[:, 6])
+
+
+def run_library(out_dir: Path | str, target: str, inputs: Path | str, timeout: float = 3600.0) -> LibraryRun:
+    """Run the built driver of ``target`` on ``inputs`` (the host's program, or QEMU for a board); its output
+    is kept in ``run_<target>.txt``."""
+    out = Path(out_dir).resolve()
+    inputs = Path(inputs).resolve()
+    if target == "host":
+        cmd = [str(out / "hbma_run_host"), str(inputs)]
+    else:
+        cmd = qemu_command(target, out / f"hbma_run_{target}.elf", inputs)
+    res = subprocess.run(cmd, cwd=out, capture_output=True, text=True, timeout=timeout)
+    if res.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} exited {res.returncode}: {(res.stderr or res.stdout)[-2000:]}")
+    (out / f"run_{target}.txt").write_text(res.stdout)  # the driver's own lines: every number is in them
+    return _parse(res.stdout)
+
+
+def _size(elf: Path) -> tuple[int, int]:
+    """(flash bytes: text + data, RAM bytes: data + bss) of a board program (arm-none-eabi-size)."""
+    res = subprocess.run(["arm-none-eabi-size", "-A", str(elf)], capture_output=True, text=True, check=True)
+    sec = {}
+    for line in res.stdout.splitlines()[2:]:
+        parts = line.split()
+        if len(parts) >= 2 and parts[1].isdigit():
+            sec[parts[0]] = int(parts[1])
+    text = sum(v for k, v in sec.items() if k in (".isr_vector", ".text", ".rodata", ".ARM.exidx", ".init_array",
+                                                     ".fini_array", ".ARM.extab"))
+    data, bss = sec.get(".data", 0), sec.get(".bss", 0)
+    return text + data, data + bss
+
+
+def embedded_report(target: str, host: LibraryRun, board: LibraryRun, elf: Path, every: int = 1,
+                    precision: str = "double") -> dict:
+    """``embedded.json``: the target, ticks, the largest |board - host| command, instructions per tick
+    (median, p99, max over all ticks; the medians of the ticks the controller runs in, every ``every``-th
+    from the first, and of the others, the estimator's alone), flash and RAM of the board program
+    (arm-none-eabi-size: text + rodata + data, and data + bss, which holds the driver's workspace)."""
+    if board.u.shape != host.u.shape:
+        raise RuntimeError(f"the board ran {board.u.shape[0]} ticks, the host {host.u.shape[0]}")
+    d = np.abs(board.u - host.u)
+    both_nan = np.isnan(board.u) & np.isnan(host.u)
+    d = np.where(both_nan, 0.0, d)
+    flash, ram = _size(elf)
+    ins = board.instructions
+    return {"target": target, "precision": precision, "ticks": int(host.u.shape[0]),
+            "max_abs_diff": float(np.nanmax(d)) if np.isfinite(d).all() else float("inf"),
+            "instructions_per_tick_median": float(np.median(ins)), "instructions_per_tick_max": float(np.max(ins)),
+            "instructions_per_tick_p99": float(np.percentile(ins, 99)),
+            "instructions_controller_tick_median": float(np.median(ins[::every])),
+            "instructions_estimator_tick_median": float(np.median(np.delete(ins, np.s_[::every])))
+            if every > 1 else None,
+            "instruction_counting": "qemu-system-arm -icount shift=0 (1 ns of virtual time per instruction), the "
+                                    "SysTick counter (25 MHz) read around hbma_tick, calibrated against a loop of "
+                                    "known length",
+            "instructions_per_count": board.per_count,
+            "flash_bytes": flash, "ram_bytes": ram, "workspace_bytes": board.workspace_bytes,
+            "status_solve_failed": int(np.sum(board.status == 1))}
+
+
+def toolchain_missing(target: str) -> list[str]:
+    """The programs a target's build and run need that are not on PATH (empty: none missing)."""
+    need = ["make"] + (["arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm"] if target != "host" else [])
+    return [p for p in need if shutil.which(p) is None]
+
+
+def _commands_diff(a: LibraryRun, b: LibraryRun) -> float:
+    """Largest |a - b| of two runs' commands (NaN in both: equal)."""
+    d = np.abs(a.u - b.u)
+    d = np.where(np.isnan(a.u) & np.isnan(b.u), 0.0, d)
+    return float(np.max(d)) if np.isfinite(d).all() else float("inf")
+
+
+def generate(scn, out_dir: Path | str, target: str = "host", precision: str = "double",
+             duration_s: float | None = None, log=print) -> dict:
+    """``codegen --library``: write the library into ``out_dir`` and build it for the host; with a Cortex-M
+    ``target`` also record ``ticks`` ticks of the scenario's pressures (None: its duration), build the
+    board program, run host and board on them and write ``embedded.json`` (returned; {} for the host
+    target). A single-precision library is also compared with a double one built in
+    ``out_dir/double``. ValueError naming the option when the toolchain is missing."""
+    if target not in TARGETS:
+        raise ValueError(f"--target = '{target}'; allowed: {', '.join(TARGETS)}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"--precision = '{precision}'; allowed: {', '.join(PRECISIONS)}")
+    missing = toolchain_missing(target)
+    if missing:
+        raise ValueError(f"--target {target}: {', '.join(missing)} not on PATH (Debian: apt-get install "
+                         "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm)")
+    out = Path(out_dir)
+    lib = library_spec(scn)
+    write_library(lib, out, precision)
+    log(f"building the library for the host ({precision})")
+    build_library(out, "host")
+    if target == "host":
+        return {}
+    n = int(round((scn.duration if duration_s is None else duration_s) / lib.loop.dt))
+    log(f"recording {n} ticks of the scenario's pressures on the sim rig")
+    rec = record_inputs(scn, lib, n)
+    inputs = write_inputs(rec, out / "inputs.bin")
+    log(f"building for {target}")
+    elf = build_library(out, target)
+    log("running the host build")
+    host = run_library(out, "host", inputs)
+    log(f"running on QEMU ({_ARM[target][1]})")
+    board = run_library(out, target, inputs)
+    (out / "commands_host.txt").write_text(_commands_text(host))
+    (out / f"commands_{target}.txt").write_text(_commands_text(board))
+    report_qp = float(np.median(host.qp_iterations[::lib.every]))
+    report = embedded_report(target, host, board, elf, lib.every, precision)
+    report["qemu_machine"] = _ARM[target][1]
+    report["scenario"] = scn.name
+    report["qp_iterations_median"] = report_qp
+    if precision == "single":
+        ref = out / "double"
+        write_library(lib, ref, "double")
+        log("building the double-precision library on the host (the single build's reference)")
+        build_library(ref, "host")
+        dbl = run_library(ref, "host", inputs)
+        report["max_abs_diff_vs_double"] = _commands_diff(host, dbl)
+        d = np.abs(host.u - dbl.u)
+        report["abs_diff_vs_double_median"] = float(np.nanmedian(d))
+        report["abs_diff_vs_double_p99"] = float(np.nanpercentile(d, 99))
+        report["ticks_diff_vs_double_above_1e-3"] = int(np.sum(np.nanmax(d, axis=1) > 1e-3))
+        report["height_estimate_max_abs_diff_vs_double_m"] = float(np.nanmax(np.abs(host.height - dbl.height)))
+    (out / "embedded.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report
+
+
+def _commands_text(run: LibraryRun) -> str:
+    return "".join(f"{k} {u[0]:.17g} {u[1]:.17g} {u[2]:.17g}\n" for k, u in enumerate(run.u))

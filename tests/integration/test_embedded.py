@@ -1,0 +1,159 @@
+"""The chamber's tick as a C library (``codegen --library``): OSQP's workspace as a caller-owned struct,
+the library built for the host and for a Cortex-M7, run bare-metal on QEMU beside the host build.
+
+The board tests need Debian's gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-system-arm (.ci/run
+installs them) and are skipped, saying so, without them.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from checkout import ROOT
+from cli_checks import one_line_error
+from hbma_ctrl.app.cli.main import app
+from hbma_ctrl.core.osqp_embed import own_workspace
+
+TRACK = str(ROOT / "scenarios" / "track_height.toml")
+needs_cc = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                              reason="no C compiler (cc or gcc) on PATH")
+_ARM_TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm", "make")
+needs_arm = pytest.mark.skipif(any(shutil.which(p) is None for p in _ARM_TOOLS),
+                               reason="the Cortex-M toolchain is not installed (apt-get install gcc-arm-none-eabi "
+                                      "libnewlib-arm-none-eabi qemu-system-arm)")
+#: what the library must not call: allocation, files, the console
+_FORBIDDEN = ("malloc", "calloc", "realloc", "free", "fopen", "fwrite", "fread", "printf", "fprintf", "puts",
+              "_sbrk", "exit")
+
+
+def _cli(args):
+    return CliRunner().invoke(app, args)
+
+
+@pytest.mark.compiling
+@needs_cc
+def test_osqp_workspace_as_a_struct_solves_as_osqp_does(tmp_path):
+    """OSQP's generated workspace rewritten as a struct: two structs are two independent solvers, each
+    giving the QP's solution OSQP's Python interface gives (to its tolerance), and a data update in one
+    leaves the other alone."""
+    import osqp
+    import scipy.sparse as sp
+
+    P = sp.csc_matrix(np.array([[4.0, 1.0], [0.0, 2.0]]))
+    A = sp.csc_matrix(np.array([[1.0, 1.0], [1.0, 0.0], [0.0, 1.0]]))
+    q, lo, hi = np.array([1.0, 1.0]), np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.7, 0.7])
+    m = osqp.OSQP()
+    m.setup(P, q, A, lo, hi, verbose=False, polishing=False, eps_abs=1e-9, eps_rel=1e-9, max_iter=10000)
+    ref = m.solve().x
+    m.codegen(str(tmp_path / "g"), parameters="matrices", extension_name=None, force_rewrite=True, prefix="t_")
+    own_workspace(tmp_path / "g", "t_")
+    (tmp_path / "g" / "main.c").write_text("""
+#include <stdio.h>
+#include "osqp.h"
+#include "t_workspace.h"
+static t_mem_t a, b;
+int main(void) {
+  t_mem_init(&a);
+  t_mem_init(&b);
+  OSQPFloat q2[2] = {2.0, 2.0};
+  osqp_update_data_vec(t_mem_solver(&b), q2, OSQP_NULL, OSQP_NULL);
+  osqp_solve(t_mem_solver(&b));
+  osqp_solve(t_mem_solver(&a));
+  printf("%.12g %.12g %d\\n", a.t_sol_x[0], a.t_sol_x[1], (int)a.t_info.status_val);
+  return 0;
+}
+""")
+    g = tmp_path / "g"
+    srcs = [str(p) for p in sorted((g / "src").glob("*.c"))]
+    cc = shutil.which("cc") or shutil.which("gcc")
+    subprocess.run([cc, "-O1", "-std=c99", "-I", str(g), "-I", str(g / "inc" / "public"), "-I",
+                    str(g / "inc" / "private"), str(g / "main.c"), str(g / "t_workspace.c"), *srcs, "-o",
+                    str(g / "main"), "-lm"], check=True, capture_output=True)
+    out = subprocess.run([str(g / "main")], check=True, capture_output=True, text=True).stdout.split()
+    assert int(out[2]) == 1  # OSQP_SOLVED
+    assert np.allclose([float(out[0]), float(out[1])], ref, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_library_options_are_checked(tmp_path):
+    """--library refuses what it cannot build, naming the option and what is allowed."""
+    out = str(tmp_path / "lib")
+    one_line_error(_cli(["codegen", TRACK, "--library", "--target", "avr", "--out", out]), "--target", "cortex-m7")
+    one_line_error(_cli(["codegen", TRACK, "--library", "--precision", "half", "--out", out]), "--precision",
+                   "single")
+    one_line_error(_cli(["codegen", TRACK, "--library", "--qp-solver", "qrqp", "--out", out]), "--qp-solver", "osqp")
+    one_line_error(_cli(["codegen", TRACK, "--target", "cortex-m7", "--out", out]), "--library")
+
+
+@pytest.mark.compiling
+@pytest.mark.slow
+@needs_arm
+def test_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path):
+    """``codegen --library --target cortex-m7``: the board program runs bare-metal on QEMU's MPS2 AN500 on
+    the scenario's recorded pressures and its commands equal the host build's to 1e-9; embedded.json
+    has the instruction counts (the counter calibrated at 40 instructions per 25 MHz count under
+    ``-icount shift=0``), flash and RAM; the library's objects call no allocator and no file or console
+    I/O."""
+    out = tmp_path / "m7"
+    res = _cli(["codegen", TRACK, "--library", "--target", "cortex-m7", "--duration-s", "0.6", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    rep = json.loads((out / "embedded.json").read_text())
+    for key in ("target", "ticks", "max_abs_diff", "instructions_per_tick_median", "instructions_per_tick_max",
+                "flash_bytes", "ram_bytes"):
+        assert key in rep
+    assert rep["target"] == "cortex-m7" and rep["ticks"] == 60
+    assert rep["max_abs_diff"] <= 1e-9
+    assert rep["instructions_per_count"] == pytest.approx(40.0, rel=1e-3)
+    assert 0 < rep["instructions_per_tick_median"] <= rep["instructions_per_tick_max"]
+    assert rep["flash_bytes"] > 0 and rep["ram_bytes"] > 0
+    host = np.loadtxt(out / "commands_host.txt")
+    assert host.shape == (60, 4) and np.all((host[:, 1:] >= 0) & (host[:, 1:] <= 1))
+    undefined = subprocess.run(["arm-none-eabi-nm", "-u", str(out / "build" / "cortex-m7" / "libhbma.a")],
+                               check=True, capture_output=True, text=True).stdout.split()
+    assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+
+
+@pytest.mark.slow
+def test_library_qp_parts_equal_the_rti_steps_own():
+    """The library's QP path equals the RTI step Function's parts: OSQP's problem data (P's upper triangle,
+    [I; A], the bounds) solved by OSQP's Python interface and post-processed by the library's post
+    Function gives exactly what the RTI step's own post-processing (``rti_post``) gives on that solution."""
+    import osqp
+    import scipy.sparse as sp
+
+    from hbma_ctrl.app.codegen.library import _nominal_inputs, library_spec
+    from hbma_ctrl.app.scenario import load_scenario
+
+    scn = load_scenario(TRACK)
+    lib = library_spec(scn)
+    rti = next(st.fun for st in lib.loop.stages if st != "log" and st.name == "rti_step")
+    post = rti.find_function("rti_post")
+    ins = _nominal_inputs(lib.backend, rti)
+    Px, q, Ax, lo, hi, _, _, chk = [np.asarray(v, float).ravel() for v in lib.qp_data(*ins)]
+    pr, pc, ar, ac, nz, nc = lib.qp_setup["patterns"]
+    m = osqp.OSQP()
+    m.setup(sp.csc_matrix((Px, (pr, pc)), shape=(nz, nz)), q, sp.csc_matrix((Ax, (ar, ac)), shape=(nz + nc, nz)),
+            lo, hi, verbose=False, eps_abs=1e-6, eps_rel=1e-6, polishing=False)
+    r = m.solve()
+    ref = post(r.x, r.info.obj_val, r.y[nz:], r.y[:nz], chk, *ins)
+    got = lib.qp_post(r.x, r.info.obj_val, r.y, chk, Ax, lo, hi)
+    for a, b in zip(ref, got):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    assert float(ref[5]) == 0.0  # the nominal step solves
+
+
+def test_single_precision_source_calls_float_maths_and_keeps_literals_in_range():
+    """The single-precision library calls libm's float functions (``powf`` for ``pow``, not the casadi
+    helpers that merely contain the name), and a literal below float's range becomes its smallest normal
+    value (a guard against division by zero stays a guard) and one above it its largest."""
+    from hbma_ctrl.app.codegen.library import _single
+
+    out = _single("a=pow(b,c); x=casadi_fmin(a,b); y=sqrt(1.0e-300)+1.7976931348623157e+308+2.5e-3+fabs(a1);")
+    assert "powf(b,c)" in out and "casadi_fmin(a,b)" in out and "fabsf(a1)" in out
+    assert "sqrtf(1.17549435e-38)" in out and "3.40282347e+38" in out and "2.5e-3" in out
