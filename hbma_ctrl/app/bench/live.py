@@ -25,7 +25,7 @@ reading is in flight) and ``no_fault``. The daemon's own results are in ``withou
 ``stream_only/`` and ``with_page/``. On a machine whose cores are all busy, a browser's rendering
 competes with the loop for them: the numbers say what this machine gave, not what a rig PC with a
 core to spare gives; ``browser_nice`` runs the browser that much below the daemon's priority (as
-``nice`` does), the page as a browser at a lower priority, or on another computer, costs the loop.
+``nice`` does), to measure what a page costs the loop when its browser runs at a lower priority.
 """
 
 from __future__ import annotations
