@@ -274,7 +274,8 @@ def aggregate(results: list[TrialResult]) -> dict:
     keys = ("height_nrmsd", "height_nrmsd_open_loop", "pressure_nrmsd", "force_rmse_n", "nees_mean",
             "nis_mean", "step_us_median", "height_rmse_mm", "height_nrmsd_liftoff", "height_nrmsd_touchdown")
     S = {k: np.array([r.scores.get(k, np.nan) for r in results], dtype=float) for k in keys}
-    out = {k: float(np.nanmean(v)) for k, v in S.items()}
+    # a key no trial has (no touch-down in any trial, say) is NaN in metrics.json, without numpy's warning
+    out = {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in S.items()}
     ratio = S["height_nrmsd"] / S["height_nrmsd_open_loop"]
     fse = np.array([r.scores["force_steady_rel_err"] for r in results], dtype=float)
     flagged = np.array([r.scores.get("innovation_flag", np.nan) for r in results], dtype=float)
