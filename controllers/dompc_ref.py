@@ -19,22 +19,12 @@ import numpy as np
 
 from hbma_ctrl.controllers.mpc import NMPC
 from hbma_ctrl.controllers.mpc_settings import MPCSettings, timing_stats
+from hbma_ctrl.core.extras import dompc_available
 from hbma_ctrl.core.interfaces import SAFE_COMMAND, Command, ControllerBase, Estimate, Reference
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["dompc_available", "DoMPCController"]
-
-
-def dompc_available() -> tuple[bool, str]:
-    """(True, version) when do-mpc imports, else (False, why)."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            import do_mpc  # noqa: F401
-        return True, getattr(do_mpc, "__version__", "?")
-    except Exception as exc:  # noqa: BLE001 - any import problem means "not available"
-        return False, f"do-mpc is not installed ({exc}); install the extra: pip install 'hbma-ctrl[bench]'"
+__all__ = ["DoMPCController"]
 
 
 class DoMPCController(ControllerBase):

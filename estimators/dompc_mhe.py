@@ -19,23 +19,13 @@ import warnings
 import casadi as ca
 import numpy as np
 
+from hbma_ctrl.core.extras import dompc_available
 from hbma_ctrl.estimators.common import FACTOR_RANGE
 from hbma_ctrl.estimators.ekf_step import observer_model
 from hbma_ctrl.estimators.mhe import MHE, MHESettings, lean_model
 from hbma_ctrl.models.actuation import CommandTiming
 
-__all__ = ["dompc_mhe_available", "DoMPCMHE", "compare_dompc"]
-
-
-def dompc_mhe_available() -> tuple[bool, str]:
-    """(True, version) when do-mpc imports, else (False, why)."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            import do_mpc  # noqa: F401
-        return True, getattr(do_mpc, "__version__", "?")
-    except Exception as exc:  # noqa: BLE001 - any import problem means "not available"
-        return False, f"do-mpc is not installed ({exc}); install the extra: pip install 'hbma-ctrl[bench]'"
+__all__ = ["DoMPCMHE", "compare_dompc"]
 
 
 class DoMPCMHE:

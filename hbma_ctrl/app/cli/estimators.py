@@ -142,9 +142,10 @@ def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0,
     if key in f:
         summary.update(mhe_step_us_median=f[key]["mhe_step_us_median"], mhe_step_us_p99=f[key]["mhe_step_us_p99"])
         if dompc:
-            from hbma_ctrl.estimators.dompc_mhe import compare_dompc, dompc_mhe_available
+            from hbma_ctrl.core.extras import dompc_available
+            from hbma_ctrl.estimators.dompc_mhe import compare_dompc
 
-            ok, why = dompc_mhe_available()
+            ok, why = dompc_available()
             if ok:
                 cmp = compare_dompc(runs[0], recs[0], rows[key], DOMPC_STEPS)
                 summary.update(cmp)
