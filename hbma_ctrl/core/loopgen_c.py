@@ -25,7 +25,7 @@ import numpy as np
 
 from hbma_ctrl.core.loopgen import LIBRARY, LOG, STEPS_NAME, LoopSpec, PythonRun, dense_function, run_python
 
-__all__ = ["write_c", "build_c", "run_c", "read_c", "compare", "find_compiler", "CFLAGS", "OPT_FLAGS", "CRun",
+__all__ = ["write_c", "c_array", "stage_guard", "build_c", "run_c", "read_c", "compare", "find_compiler", "CFLAGS", "OPT_FLAGS", "CRun",
            "time_summary", "build_line", "solver_flags", "bench"]
 
 #: compiler flags of the C loop: no fast-math, so it rounds as the Python path's Functions do (at any
@@ -34,7 +34,23 @@ __all__ = ["write_c", "build_c", "run_c", "read_c", "compare", "find_compiler", 
 CFLAGS = ("-O1", "-std=c99")
 
 
-def _c_array(values) -> str:
+def stage_guard(st, k: str, flag) -> tuple[str, str | None]:
+    """How a tick runs one stage ``st`` of a loop spec, in C: the prefix of its block (the condition
+    ``every`` and ``gate`` set, the repeat loop ``repeat`` and ``stop_on`` ask for) and the line that
+    ends the repeats (None without ``stop_on``). ``k`` is the tick counter's C expression, ``flag(name)``
+    a signal's first element's."""
+    conds = [f"{k} % {st.every} == 0"] if st.every > 1 else []
+    if st.gate is not None:
+        conds.append(f"{flag(st.gate)} {'==' if st.gate_off else '!='} 0")
+    cond = f"if ({' && '.join(conds)}) " if conds else ""
+    loop = f"for (int rep = 0; rep < {st.repeat}; ++rep) " if st.repeat > 1 or st.stop_on else ""
+    stop = f"if ({flag(st.stop_on)} != 0) break;" if st.stop_on is not None else None
+    return cond + loop, stop
+
+
+def c_array(values) -> str:
+    """A C initialiser of ``values`` (flattened) that round-trips every double, NaN and infinities
+    included; ``{0.0}`` for none (C has no empty initialiser)."""
     vals = np.asarray(values, dtype=float).ravel()
     if vals.size == 0:
         return "{0.0}"
@@ -78,9 +94,9 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
             f"#define N_TICKS {int(spec.n_ticks)}L", f"#define DT {float(spec.dt)!r}",
             f"#define LOG_HEADER \"{','.join(spec.header())}\""]
     for k, v in spec.signals.items():
-        data.append(f"static double {sig_c[k]}[{max(v.size, 1)}] = {_c_array(v)};")
+        data.append(f"static double {sig_c[k]}[{max(v.size, 1)}] = {c_array(v)};")
     for k, a in spec.streams.items():
-        data.append(f"static const double stream_{_cname(k)}[{max(a.size, 1)}] = {_c_array(a)};")
+        data.append(f"static const double stream_{_cname(k)}[{max(a.size, 1)}] = {c_array(a)};")
     data.append("#endif")
     (out / "loop_data.h").write_text("\n".join(data) + "\n")
 
@@ -138,14 +154,9 @@ def write_c(spec: LoopSpec, out_dir: Path | str) -> list:
                  f"if (rc) ++nrc_{n};"]
         body += [f"memcpy({sig_c[s]}, out_{n}_{i}, sizeof(double) * {f.numel_out(i)});"
                  for i, s in enumerate(st.outputs) if s is not None]
-        if st.stop_on is not None:
-            body.append(f"if ({sig_c[st.stop_on]}[0] != 0.0) break;")
-        conds = [f"k % {st.every} == 0"] if st.every > 1 else []
-        if st.gate is not None:
-            conds.append(f"{sig_c[st.gate]}[0] {'==' if st.gate_off else '!='} 0.0")
-        cond = f"if ({' && '.join(conds)}) " if conds else ""
-        loop = f"for (int rep = 0; rep < {st.repeat}; ++rep) " if st.repeat > 1 or st.stop_on else ""
-        tick.append(f"    {cond}{loop}{{  /* {st.name} */\n      " + "\n      ".join(body) + "\n    }")
+        prefix, stop = stage_guard(st, "k", lambda name: f"{sig_c[name]}[0]")
+        body += [stop] if stop else []
+        tick.append(f"    {prefix}{{  /* {st.name} */\n      " + "\n      ".join(body) + "\n    }")
     src = (_template().replace("@NAME@", spec.name).replace("@HEADER@", f"{STEPS_NAME}.h")
            .replace("@STAGE_CODE@", "\n".join(code)).replace("@STAGE_INIT@", "\n".join(init))
            .replace("@TICK@", "\n".join(tick)).replace("@TIMES@", "\n".join(times))

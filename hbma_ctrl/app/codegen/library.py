@@ -46,6 +46,7 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.loopgen import LOG, LoopSpec, dense_function
+from hbma_ctrl.core.loopgen_c import c_array, stage_guard
 from hbma_ctrl.core.osqp_embed import own_workspace
 
 __all__ = ["TARGETS", "PRECISIONS", "LibrarySpec", "library_spec", "write_library", "record_inputs",
@@ -242,18 +243,6 @@ def library_spec(scn) -> LibrarySpec:
 
 
 # --------------------------------------------------------------------------------------------- write
-def _c_values(values, ctype: str = "hbma_real") -> str:
-    parts = []
-    for v in np.asarray(values, dtype=float).ravel():
-        if np.isnan(v):
-            parts.append("NAN")
-        elif np.isinf(v):
-            parts.append("INFINITY" if v > 0 else "-INFINITY")
-        else:
-            parts.append(repr(float(v)))
-    return "{" + ", ".join(parts or ["0"]) + "}"
-
-
 #: libm's functions the generated code calls, each with a float variant (name + "f")
 _LIBM = ("sqrt", "exp", "log", "pow", "fabs", "fmin", "fmax", "floor", "ceil", "sin", "cos", "tan", "atan2", "atan",
          "tanh", "asin", "acos", "sinh", "cosh", "fmod", "erf", "round", "copysign", "log1p", "expm1", "cbrt",
@@ -455,7 +444,7 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     for k, v in sig.items():
         if k == "ekf_theta":
             continue
-        init.append(f"  {{ static const hbma_real v[] = {_c_values(v if v.size else [0.0])}; "
+        init.append(f"  {{ static const hbma_real v[] = {c_array(v)}; "
                     f"memcpy(ws->s_{_c_ident(k)}, v, sizeof v); }}")
     init += [f"  ws->s_ekf_theta[{i}] = params->ekf_model.{_c_ident(n)};" for i, n in enumerate(lib.theta_names)]
     defaults = [f"  params->ekf_model.{_c_ident(n)} = {float(v)!r};" for n, v in zip(lib.theta_names, th0)]
@@ -490,14 +479,9 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
         else:
             body.append(f"(void){call};")
             body += copies
-        if st.stop_on is not None:
-            body.append(f"if (ws->s_{_c_ident(st.stop_on)}[0] != 0) break;")
-        conds = [f"ws->k % {st.every} == 0"] if st.every > 1 else []
-        if st.gate is not None:
-            conds.append(f"ws->s_{_c_ident(st.gate)}[0] {'==' if st.gate_off else '!='} 0")
-        cond = f"if ({' && '.join(conds)}) " if conds else ""
-        loop = f"for (int rep = 0; rep < {st.repeat}; ++rep) " if st.repeat > 1 or st.stop_on else ""
-        tick.append(f"  {cond}{loop}{{  /* {st.name} */\n    " + "\n    ".join(body) + "\n  }")
+        prefix, stop = stage_guard(st, "ws->k", lambda name: f"ws->s_{_c_ident(name)}[0]")
+        body += [stop] if stop else []
+        tick.append(f"  {prefix}{{  /* {st.name} */\n    " + "\n    ".join(body) + "\n  }")
     _, _, _, _, nz, nc = lib.qp_setup["patterns"]
     qpost = lib.qp_post
     src = (_template("hbma.c.in")
