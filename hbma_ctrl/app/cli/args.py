@@ -18,7 +18,7 @@ from rich.table import Table
 
 from hbma_ctrl.core.validation import did_you_mean
 
-__all__ = ["assignments", "cap_workers", "numbers", "whole_numbers", "check_choice", "check_range", "console", "fail",
+__all__ = ["assignments", "cap_workers", "numbers", "whole_numbers", "check_choice", "check_range", "console", "fail", "finish_bench",
            "show_table", "ReportDir"]
 
 #: every bench's ``--report DIR`` (:mod:`hbma_ctrl.app.bench.report`); off by default
@@ -140,3 +140,14 @@ def show_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[str]]
     con = con or console()
     con.print(table)
     return con
+
+
+def finish_bench(name: str, verdicts: dict, written: Path, rep, page) -> None:
+    """End a bench with verdicts: one line naming the failed ones (or "passed") and the results file
+    ``written``, the results page ``page()`` when ``--report`` opened ``rep``, exit 1 when one failed."""
+    failed = [k for k, ok in verdicts.items() if not ok]
+    typer.echo(f"{name}: {'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {written}")
+    if rep:
+        typer.echo(f"wrote {rep.write(page())}")
+    if failed:
+        raise typer.Exit(1)

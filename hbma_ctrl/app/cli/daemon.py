@@ -24,7 +24,7 @@ import typer
 
 # the daemon (the runtime loop and its roles, fastapi and uvicorn, the rig link) is imported by the
 # commands when they run
-from hbma_ctrl.app.cli.args import ReportDir, check_range
+from hbma_ctrl.app.cli.args import ReportDir, check_range, finish_bench
 from hbma_ctrl.app.daemon.run import link_errors, run_daemon
 from hbma_ctrl.app.outputs import (
     OVERWRITE_HELP,
@@ -252,14 +252,9 @@ def bench_api(
                    f"{d['step_ms_p99'] or float('nan'):.2f} ms; /stop {sl['within_period']}/{sl['n']} within "
                    f"{r['period_ms']:g} ms (median {sl['median_ms'] or float('nan'):.2f}, p99 "
                    f"{sl['p99_ms'] or float('nan'):.2f}, max {sl['max_ms'] or float('nan'):.2f} ms)")
-    failed = [k for k, ok in res["verdicts"].items() if not ok]
-    typer.echo(f"api: {'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'api.json'}")
-    if rep:
-        from hbma_ctrl.app.bench.pages import api_page
+    from hbma_ctrl.app.bench.pages import api_page
 
-        typer.echo(f"wrote {rep.write(api_page(res))}")
-    if failed:
-        raise typer.Exit(1)
+    finish_bench("api", res["verdicts"], out / "api.json", rep, lambda: api_page(res))
 
 
 def bench_live(
@@ -309,14 +304,9 @@ def bench_live(
         if r.get("client_error"):
             line += f"; the client failed: {r['client_error']}"
         typer.echo(line)
-    failed = [k for k, ok in res["verdicts"].items() if not ok]
-    typer.echo(f"live: {'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'live.json'}")
-    if rep:
-        from hbma_ctrl.app.bench.pages import live_page
+    from hbma_ctrl.app.bench.pages import live_page
 
-        typer.echo(f"wrote {rep.write(live_page(res))}")
-    if failed:
-        raise typer.Exit(1)
+    finish_bench("live", res["verdicts"], out / "live.json", rep, lambda: live_page(res))
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from hbma_ctrl.app.cli.args import ReportDir, check_choice, check_range
+from hbma_ctrl.app.cli.args import ReportDir, check_choice, check_range, finish_bench
 from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv
 
 __all__ = ["register", "report", "export", "bench_log"]
@@ -82,14 +82,9 @@ def bench_log(
                   f"{r['handoff_cpu_us_median']:.0f}, {r['handoff_cpu_us_p99']:.0f} us)" if r["mcap"] else "")
         typer.echo(f"{name}: {r['steps']} steps, {r['deadline_misses']} deadline misses, step median "
                    f"{r['step_ms_median'] or float('nan'):.3f} ms, p99 {r['step_ms_p99'] or float('nan'):.3f} ms{logged}")
-    failed = [k for k, ok in res["verdicts"].items() if not ok]
-    typer.echo(f"log: {'passed' if not failed else 'FAILED ' + ', '.join(failed)}; wrote {out / 'log.json'}")
-    if rep:
-        from hbma_ctrl.app.bench.pages import log_page
+    from hbma_ctrl.app.bench.pages import log_page
 
-        typer.echo(f"wrote {rep.write(log_page(res))}")
-    if failed:
-        raise typer.Exit(1)
+    finish_bench("log", res["verdicts"], out / "log.json", rep, lambda: log_page(res))
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
