@@ -27,12 +27,32 @@ from pathlib import Path
 from hbma_ctrl.app.logs.reader import message_counts, read_mcap
 from hbma_ctrl.app.outputs import run_dir
 
-__all__ = ["run_log_bench", "PERIOD_TOPICS"]
+__all__ = ["run_log_bench", "log_completeness", "PERIOD_TOPICS"]
 
 #: the topics with one message per logged period
 PERIOD_TOPICS = ("/readings", "/estimates", "/targets", "/commands", "/loop")
 
 _KEYS = ("steps", "deadline_misses", "overruns", "step_ms_median", "step_ms_p99", "tick_ms_p99", "wall_s")
+
+
+def log_completeness(folder: Path, stats: dict) -> dict:
+    """Whether ``folder/log.mcap`` holds every period of the daemon run whose ``daemon_stats.json`` is
+    ``stats``: ``periods_logged`` (the steps and the row written at the stop), ``messages`` on each
+    per-period topic (read with the mcap library's reader: the summary's counts, or every message of a
+    log cut short), ``dropped`` (items lost on a full queue), the handoff times (us), ``log_bytes`` and
+    ``complete`` (every topic holds one message per period, none dropped)."""
+    counts = message_counts(folder / "log.mcap")
+    if counts is None:  # no summary: the file was not finished
+        c = read_mcap(folder / "log.mcap")
+        counts = {t: c.count(t) for t in PERIOD_TOPICS}
+    periods = int(stats["steps"]) + 1  # and the row written at the stop
+    row = {"periods_logged": periods, "messages": {t: counts.get(t, 0) for t in PERIOD_TOPICS},
+           "dropped": stats.get("log_dropped")}
+    for key in ("handoff_us_median", "handoff_us_p99", "handoff_cpu_us_median", "handoff_cpu_us_p99"):
+        row[key] = stats.get(f"log_{key}")
+    row["log_bytes"] = (folder / "log.mcap").stat().st_size
+    row["complete"] = all(n == periods for n in row["messages"].values()) and not row["dropped"]
+    return row
 
 
 def _one(cfg, folder: Path, mcap: bool, argv, echo) -> dict:
@@ -43,18 +63,7 @@ def _one(cfg, folder: Path, mcap: bool, argv, echo) -> dict:
     row["faults"] = stats.get("faults") or {}
     row["mcap"] = mcap
     if mcap:
-        counts = message_counts(folder / "log.mcap")
-        if counts is None:  # no summary: the file was not finished
-            c = read_mcap(folder / "log.mcap")
-            counts = {t: c.count(t) for t in PERIOD_TOPICS}
-        periods = int(stats["steps"]) + 1  # and the row written at the stop
-        row["periods_logged"] = periods
-        row["messages"] = {t: counts.get(t, 0) for t in PERIOD_TOPICS}
-        row["dropped"] = stats.get("log_dropped")
-        for key in ("handoff_us_median", "handoff_us_p99", "handoff_cpu_us_median", "handoff_cpu_us_p99"):
-            row[key] = stats.get(f"log_{key}")
-        row["log_bytes"] = (folder / "log.mcap").stat().st_size
-        row["complete"] = all(n == periods for n in row["messages"].values()) and not row["dropped"]
+        row.update(log_completeness(folder, stats))
     return row
 
 

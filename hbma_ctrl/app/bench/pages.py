@@ -194,6 +194,12 @@ def soak_page(res: dict) -> Page:
              ["max pressure (kPa)", f"{fmt(st.get('max_pressure_kpa'), '.1f')} / {fmt(st.get('pressure_limit_kpa'), 'g')}"],
              ["RSS start -> end (MB)", f"{fmt(st.get('rss_mb_start'), '.1f')} -> {fmt(st.get('rss_mb_end'), '.1f')}"],
              ["faults", str(st.get("faults") or "none")], ["replay", str(res.get("replay"))]]
+    log = res.get("log")
+    if log:
+        msgs = sorted(set(log["messages"].values()))
+        stats += [["log.mcap: periods / messages per topic", f"{log['periods_logged']} / "
+                   + "-".join(str(n) for n in (msgs[:1] + msgs[-1:] if len(msgs) > 1 else msgs))],
+                  ["log.mcap: dropped, size (MB)", f"{fmt(log.get('dropped'))}, {fmt(log['log_bytes'] / 1e6, '.1f')}"]]
     return Page("The daemon over a long run (bench soak)", docstring_paragraph(soak.__doc__, slice(0, 2)),
                 [Table("Verdicts", ["criterion", "passed"], [[k, fmt(v)] for k, v in res["verdicts"].items()]),
                  Table(f"{res['config']}, {res['duration_s']:g} s of rig time at speed {res['speed']:g}, a setpoint "

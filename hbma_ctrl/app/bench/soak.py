@@ -29,7 +29,9 @@ At the end it judges the daemon's ``daemon_stats.json`` against the soak's crite
   in ``ticks_over_period_machine``; the verdict fails on any tick neither judge explains;
 - ``pressure_limit_held``: the highest reading at or under the controller's pressure limit;
 - ``rss_growth_under_10mb``: resident memory grew by less than 10 MB;
-- ``safe_exit``: the safe command was written at the end.
+- ``safe_exit``: the safe command was written at the end;
+- ``every_period_logged``: the daemon's ``log.mcap`` holds one message per period on every per-period
+  topic, none dropped (``log``: :func:`hbma_ctrl.app.bench.log.log_completeness`).
 
 Writes ``soak.json`` (the verdicts, the daemon's stats, the setpoints sent and their replies; ``replay``:
 "not needed", "off", "unfinished" while it runs or when it was stopped, "done"), ``setpoints.csv`` and
@@ -54,7 +56,9 @@ from pathlib import Path
 
 import httpx
 
+from hbma_ctrl.app.bench.log import log_completeness
 from hbma_ctrl.app.daemon.loop import COUNTED
+from hbma_ctrl.app.daemon.run import LOG_MCAP
 from hbma_ctrl.app.daemon.runlog import setpoint_of_event
 from hbma_ctrl.app.metrics import json_safe
 from hbma_ctrl.app.outputs import run_dir
@@ -106,21 +110,25 @@ def lift_budget(runner):
     return ctrl, s
 
 
-def soak_verdicts(stats: dict, ticks: list | None = None) -> dict:
+def soak_verdicts(stats: dict, ticks: list | None = None, log: dict | None = None) -> dict:
     """The soak's criteria (module doc) from a daemon_stats.json dict: {name: bool}. ``ticks``: the
     ticks over the period as judged by :func:`judge_ticks` or :func:`replay_ticks`, each with its
-    ``machine`` (None: not judged, every one counts)."""
+    ``machine`` (None: not judged, every one counts). ``log``: the run's log.mcap as judged by
+    :func:`hbma_ctrl.app.bench.log.log_completeness` (None: no log, no verdict on it)."""
     rss0, rss1 = stats.get("rss_mb_start"), stats.get("rss_mb_end")
     pmax, plim = stats.get("max_pressure_kpa"), stats.get("pressure_limit_kpa")
     over = stats.get("steps_over_period")
     machine = 0 if ticks is None else sum(1 for t in ticks if t.get("machine"))
-    return {
+    verdicts = {
         "no_fault": not stats.get("faults") and stats.get("end_reason") == "duration",
         "no_tick_over_period": over is not None and over - machine == 0,
         "pressure_limit_held": pmax is not None and plim is not None and pmax <= plim,
         "rss_growth_under_10mb": rss0 is not None and rss1 is not None and rss1 - rss0 < RSS_GROWTH_MAX_MB,
         "safe_exit": bool(stats.get("safe_exit")),
     }
+    if log is not None:
+        verdicts["every_period_logged"] = bool(log["complete"])
+    return verdicts
 
 
 _SLOW_CPU = re.compile(r"^cpu ([0-9.]+) ms, wall ([0-9.]+) ms")
@@ -506,9 +514,10 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
             w = csv.writer(f)
             w.writerow(["wake_utc_epoch_s", "gap_ms"])
             w.writerows([f"{t:.4f}", f"{g * 1e3:.2f}"] for t, g in gaps)
+        log = (log_completeness(tmp / "daemon", stats) if (tmp / "daemon" / LOG_MCAP).exists() else None)
         head = {"config": str(config), "duration_s": duration_s, "speed": speed, "setpoint_every_s": every_s,
                 "seed": seed, "daemon_exit_code": rc, "setpoints_sent": len(sent),
-                "setpoints_accepted": sum(1 for s in sent if s["status"] == 200)}
+                "setpoints_accepted": sum(1 for s in sent if s["status"] == 200), "log": log}
         tail = {  # an independent witness: the bench's own 1 ms sleeper woke late at the same moment
                 "slow_tick_machine_pause_ms": pauses_at_ticks(events, gaps),
                 "machine_pauses": {"over_5ms": len(gaps), "over_10ms": sum(1 for _, g in gaps if g > 0.01),
@@ -518,7 +527,7 @@ def run_soak(config: Path, out: Path, duration_s: float, speed: float, every_s: 
                 "daemon_stats": stats}
 
         def write(ticks: list, replay_state: str) -> dict:
-            verdicts = soak_verdicts(stats, ticks)
+            verdicts = soak_verdicts(stats, ticks, log)
             res = {**head, "verdicts": verdicts, "passed": all(verdicts.values()), "replay": replay_state,
                    "ticks_over_period": ticks, "ticks_over_period_machine": sum(1 for t in ticks if t["machine"]),
                    **tail}
