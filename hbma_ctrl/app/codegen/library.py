@@ -69,6 +69,8 @@ QP_PREFIX = "hbma_qp_"
 #: (OSQP's default, 25, runs up to 24 iterations past convergence of a warm-started RTI QP: 30 % fewer
 #: instructions over track_height's first 200 ticks)
 QP_SETTINGS: dict = {"check_termination": 5}
+#: the parts of the RTI step's QP path a profiled build counts apart (hbma.h's HBMA_PART_NAMES)
+_QP_PARTS = ("qp_data", "osqp_update_mat", "osqp_update_vec", "osqp_solve", "qp_post")
 #: the casadi-generated source's base name
 STEPS = "hbma_steps"
 
@@ -407,6 +409,16 @@ typedef struct {{
   {QP_PREFIX}mem_t qp;
 }} hbma_workspace_t;
 
+/* The tick's parts, for an instruction count per part: "other" (between stages), the stages in order,
+   then the RTI step's QP path (its data Function, OSQP's matrix update with its scaling and KKT
+   factorisation, its vector update and warm start, its iterations, the post-processing). Built with
+   -DHBMA_PROFILE, the library calls hbma_profile_mark(i) (the caller's) where the tick enters part i. */
+#define HBMA_N_PARTS @N_PARTS@
+#define HBMA_PART_NAMES {{@PART_NAMES@}}
+#ifdef HBMA_PROFILE
+void hbma_profile_mark(int part);
+#endif
+
 /* The generation scenario's parameters. */
 void hbma_default_params(hbma_params_t* params);
 /* Start (or restart) the workspace: the estimator at its prior, the controller cold, the target 0. */
@@ -437,7 +449,10 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     qp_sizes = [qd.nnz_out(i) for i in range(qd.n_out())]
     outbufs = [f"  hbma_real o[{n_scratch}];  /* a stage's outputs */"]
     outbufs += [f"  hbma_real o_qp_{i}[{max(n_, 1)}];  /* the QP's data: {qd.name_out(i)} */" for i, n_ in enumerate(qp_sizes)]
-    hdr = hdr.replace("@SIGNALS@", "\n".join(sig_lines)).replace("@OUTBUFS@", "\n".join(outbufs))
+    part_names = ["other"] + _unique([st.name for st in stages]) + list(_QP_PARTS)
+    hdr = (hdr.replace("@SIGNALS@", "\n".join(sig_lines)).replace("@OUTBUFS@", "\n".join(outbufs))
+           .replace("@N_PARTS@", str(len(part_names)))
+           .replace("@PART_NAMES@", ", ".join(f'"{n}"' for n in part_names)))
     (out / "hbma.h").write_text(hdr)
     # ---------------------------------------------------------------- source
     init = []
@@ -481,6 +496,7 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
             body += copies
         prefix, stop = stage_guard(st, "ws->k", lambda name: f"ws->s_{_c_ident(name)}[0]")
         body += [stop] if stop else []
+        body = [f"HBMA_PART({1 + len(tick)});"] + body + ["HBMA_PART(0);"]
         tick.append(f"  {prefix}{{  /* {st.name} */\n    " + "\n    ".join(body) + "\n  }")
     _, _, _, _, nz, nc = lib.qp_setup["patterns"]
     qpost = lib.qp_post
@@ -492,7 +508,8 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
            .replace("@NZ@", str(nz)).replace("@NC@", str(nc)).replace("@QP_PREFIX@", QP_PREFIX)
            .replace("@NPX@", str(qd.nnz_out(0))).replace("@NAX@", str(qd.nnz_out(2)))
            .replace("@NCHK@", str(qd.nnz_out(7))).replace("@RTI_OUTBUFS@", "")
-           .replace("@QP_DATA@", qd.name()).replace("@QP_POST@", qpost.name()))
+           .replace("@QP_DATA@", qd.name()).replace("@QP_POST@", qpost.name())
+           .replace("@PART_QP_DATA@", str(1 + len(stages))))
     (out / "hbma.c").write_text(src)
     for name in ("hbma_run.c",):
         (out / name).write_text(_template(name + ".in"))
@@ -505,6 +522,15 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     (out / "README.txt").write_text(_readme(lib, precision, sz))
     return [out / n for n in ("hbma.h", "hbma.c", f"{STEPS}.c", f"{STEPS}.h", "hbma_run.c", "Makefile",
                               "CMakeLists.txt", "README.txt")]
+
+
+def _unique(names: list) -> list:
+    """The names, a repeated one numbered from its second place on (``rti_step``, ``rti_step_2``)."""
+    out, seen = [], {}
+    for n in names:
+        seen[n] = seen.get(n, 0) + 1
+        out.append(n if seen[n] == 1 else f"{n}_{seen[n]}")
+    return out
 
 
 def _template(name: str) -> str:
@@ -533,6 +559,7 @@ def _makefile(precision: str) -> str:
 #   make cortex-m7     build/cortex-m7/libhbma.a and hbma_run_cortex-m7.elf   (MPS2 AN500)
 #   make cortex-m4f    build/cortex-m4f/libhbma.a and hbma_run_cortex-m4f.elf (MPS2 AN386)
 #   make run-cortex-m7 INPUTS=inputs.bin      (QEMU, semihosting; the same for run-host, run-cortex-m4f)
+#   make clean cortex-m7 PROFILE=1   the board driver also prints each tick's instructions per part
 # make -j builds the sources in parallel.
 SRC = {' '.join(_sources())}
 INC = {' '.join(_INCLUDES)}
@@ -547,6 +574,8 @@ FLAGS_cortex-m7 = {' '.join(arm7)} -ffunction-sections -fdata-sections
 FLAGS_cortex-m4f = {' '.join(arm4)} -ffunction-sections -fdata-sections
 ARM_LD = -T board/mps2.ld --specs=rdimon.specs -nostartfiles -Wl,--gc-sections
 INPUTS ?= inputs.bin
+PROFILE ?=
+BOARD_DEFS = -DHBMA_BOARD $(if $(PROFILE),-DHBMA_PROFILE)
 QEMU_FLAGS = -nographic -monitor none -serial none -icount shift=0
 
 host: hbma_run_host
@@ -558,10 +587,10 @@ build/host/%.o: %.c hbma.h
 \t$(CC) $(CFLAGS_COMMON) $(INC) -c $< -o $@
 build/cortex-m7/%.o: %.c hbma.h
 \t@mkdir -p $(dir $@)
-\t$(ARMCC) $(FLAGS_cortex-m7) $(CFLAGS_COMMON) -DHBMA_BOARD $(INC) -c $< -o $@
+\t$(ARMCC) $(FLAGS_cortex-m7) $(CFLAGS_COMMON) $(BOARD_DEFS) $(INC) -c $< -o $@
 build/cortex-m4f/%.o: %.c hbma.h
 \t@mkdir -p $(dir $@)
-\t$(ARMCC) $(FLAGS_cortex-m4f) $(CFLAGS_COMMON) -DHBMA_BOARD $(INC) -c $< -o $@
+\t$(ARMCC) $(FLAGS_cortex-m4f) $(CFLAGS_COMMON) $(BOARD_DEFS) $(INC) -c $< -o $@
 
 build/host/libhbma.a: $(SRC:%.c=build/host/%.o)
 \tar rcs $@ $^
@@ -620,6 +649,9 @@ def _readme(lib: LibrarySpec, precision: str, sz: dict) -> str:
             "API (hbma.h): hbma_default_params, hbma_init, hbma_set_target, hbma_tick, hbma_outputs. All memory in\n"
             "hbma_workspace_t (sizeof: compile-time); no malloc, no file I/O, only libm.\n\n"
             "Build: make host | make cortex-m7 | make cortex-m4f | make libhbma.a, or CMake (target hbma).\n"
+            "make clean cortex-m7 PROFILE=1: the board driver also prints each tick's instructions per part\n"
+            "(hbma.h's HBMA_PART_NAMES: the stages, the QP's data, OSQP's matrix update, vector update and\n"
+            "iterations, the post-processing).\n"
             "Run on recorded inputs: ./hbma_run_host inputs.bin, or make run-cortex-m7 INPUTS=inputs.bin\n"
             "(QEMU, semihosting). inputs.bin: little-endian doubles: ticks, preview length P, then per tick\n"
             "t, p, target and P preview targets. The driver prints per tick: k, u (3), status, OSQP's iterations,\n"
@@ -703,15 +735,18 @@ class LibraryRun:
     qp_iterations: np.ndarray | None = None
     workspace_bytes: int | None = None
     height: np.ndarray | None = None
+    parts: dict | None = None
 
 
 def _parse(text: str) -> LibraryRun:
-    rows, per_count, wsb = [], None, None
+    rows, per_count, wsb, names = [], None, None, []
     for line in text.splitlines():
         parts = line.split()
         if not parts:
             continue
-        if parts[0] == "workspace":
+        if parts[0] == "parts":
+            names = parts[1:]
+        elif parts[0] == "workspace":
             wsb = int(parts[1])
         elif parts[0] == "calibration":
             per_count = float(parts[2]) / float(parts[1])
@@ -721,7 +756,9 @@ def _parse(text: str) -> LibraryRun:
         raise RuntimeError(f"the driver printed no ticks: {text[-2000:]}")
     a = np.array(rows)
     ins = a[:, 7] * per_count if a.shape[1] > 7 and per_count else None
-    return LibraryRun(a[:, 1:4], a[:, 4].astype(int), ins, per_count, a[:, 5], wsb, a[:, 6])
+    by_part = ({n: a[:, 8 + i] * per_count for i, n in enumerate(names)}
+               if names and per_count and a.shape[1] == 8 + len(names) else None)
+    return LibraryRun(a[:, 1:4], a[:, 4].astype(int), ins, per_count, a[:, 5], wsb, a[:, 6], by_part)
 
 
 def run_library(out_dir: Path | str, target: str, inputs: Path | str, timeout: float = 3600.0) -> LibraryRun:
@@ -779,7 +816,9 @@ def embedded_report(target: str, host: LibraryRun, board: LibraryRun, elf: Path,
                                     "known length",
             "instructions_per_count": board.per_count,
             "flash_bytes": flash, "ram_bytes": ram, "workspace_bytes": board.workspace_bytes,
-            "status_solve_failed": int(np.sum(board.status == 1))}
+            "status_solve_failed": int(np.sum(board.status == 1)),
+            **({"instructions_controller_tick_median_by_part": {
+                n: float(np.median(v[::every])) for n, v in board.parts.items()}} if board.parts else {})}
 
 
 def toolchain_missing(target: str) -> list[str]:
