@@ -110,13 +110,24 @@ def _c_ident(name: str) -> str:
     return out if not out[0].isdigit() else "p_" + out
 
 
+def _cse(fun: ca.Function) -> ca.Function:
+    """An SX Function with each of its common subexpressions evaluated once (casadi's ``cse`` option):
+    the same operations on the same operands, so the same values, with fewer operations and calls (the
+    QP data Function evaluates some of the model's tables at the same point more than once); any other
+    Function as it is."""
+    if not fun.is_a("SXFunction"):
+        return fun
+    ins = fun.sx_in()
+    return ca.Function(fun.name(), ins, fun.call(ins), fun.name_in(), fun.name_out(), {"cse": True})
+
+
 def _qp_functions(rti: ca.Function) -> tuple[ca.Function, ca.Function, int, int]:
     """(OSQP's problem data from the RTI step's inputs, the RTI step's post-processing, nz, nc).
 
     The data Function returns P's upper triangle and ``[I; A]`` as OSQP's CSC values (the patterns fixed),
     q, l = [lbx; lba], u = [ubx; uba] (infinite bounds as OSQP's infinity), the primal guess, the dual
     guess [lam_x; lam_a] and the linearisation check the post-processing reads."""
-    data = rti.find_function("rti_qp_data")
+    data = _cse(rti.find_function("rti_qp_data"))
     post = rti.find_function("rti_post")
     ins = [ca.MX.sym(data.name_in(i), data.sparsity_in(i)) for i in range(data.n_in())]
     H, g, A, lba, uba, lbx, ubx, z0, lx0, la0, chk = data(*ins)
