@@ -180,15 +180,18 @@ def _qp_post(post: ca.Function, patterns: tuple, horizon: int) -> ca.Function:
     U = np.asarray(post(*args)[2])
     ix = np.rint(X - 1.0).astype(int)
     iu = np.rint(U * 2.0 * nz - 1.0).astype(int)  # 3 x N
-    SX = ca.SX
-    z, cost, y, chk = SX.sym("z", nz), SX.sym("cost"), SX.sym("y", nz + nc), SX.sym("chk", post.nnz_in(4))
+    # MX: the sparse product and the element-wise bounds become loops in C (as SX every one of the
+    # ~2000 operations is a line of its own: 0.1 MB of code on a Cortex-M7), the same operations in
+    # the same order
+    MX = ca.MX
+    z, cost, y, chk = MX.sym("z", nz), MX.sym("cost"), MX.sym("y", nz + nc), MX.sym("chk", post.nnz_in(4))
     sp = ca.Sparsity.triplet(nz + nc, nz, [int(r) for r in a_rows], [int(c) for c in a_cols])
-    ax = SX.sym("Ax", sp.nnz())
-    lo, hi = SX.sym("l", nz + nc), SX.sym("u", nz + nc)
-    Az = ca.mtimes(SX(sp, ax), z)
+    ax = MX.sym("Ax", sp.nnz())
+    lo, hi = MX.sym("l", nz + nc), MX.sym("u", nz + nc)
+    Az = ca.mtimes(MX(sp, ax), z)
     res = ca.mmax(ca.vertcat(ca.fmax(lo - Az, 0), ca.fmax(Az - hi, 0)))
-    Xn = ca.vertcat(*[z[int(i)] for i in ix])
-    Un = ca.fmin(ca.fmax(ca.horzcat(*[ca.vertcat(*[z[int(iu[i, k])] for i in range(3)]) for k in range(N)]), 0.0), 1.0)
+    Xn = z[[int(i) for i in ix]]
+    Un = ca.fmin(ca.fmax(ca.reshape(z[[int(i) for i in iu.ravel(order="F")]], 3, N), 0.0), 1.0)
     finite = ca.logic_and(ca.sumsqr(z) < ca.inf, ca.sumsqr(chk) < ca.inf)
     status = ca.if_else(finite, ca.if_else(res <= _RES_TOL, 0.0, 2.0), 1.0)
     return ca.Function("hbma_qp_post", [z, cost, y, chk, ax, lo, hi],
