@@ -101,7 +101,8 @@ def test_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypatch):
     ``-icount shift=0``), flash and RAM; the library's objects call no allocator and no file or console
     I/O."""
     # both builds unoptimised (the Makefile's OPT): the 3.4 MB of generated C compiles several times
-    # faster, and host and board still share every flag; the -O2 figures are the tutorial's runs
+    # faster, and host and board still share every flag; the optimised figures (library.OPT) are the
+    # tutorial's runs
     monkeypatch.setenv("OPT", "-O0")
     out = tmp_path / "m7"
     res = _cli(["codegen", TRACK, "--library", "--target", "cortex-m7", "--duration-s", "0.6", "--out", str(out)])
