@@ -741,8 +741,9 @@ def qemu_command(target: str, elf: Path | str, inputs: Path | str) -> list[str]:
 class LibraryRun:
     """One run of the driver: the commands (ticks x 3), the tick's status codes, the instructions per tick
     (boards only; None on the host), the driver's calibration of its counter (instructions per count)
-    OSQP's iterations in the controller's last QP at each tick, sizeof(hbma_workspace_t) there and the
-    estimated height at each tick (m)."""
+    OSQP's iterations in the controller's last QP at each tick, sizeof(hbma_workspace_t) there, the
+    estimated height at each tick (m) and, from a profiled board build (``PROFILE=1``), each part's
+    instructions per tick by the part's name (None otherwise)."""
 
     u: np.ndarray
     status: np.ndarray
@@ -812,7 +813,8 @@ def embedded_report(target: str, host: LibraryRun, board: LibraryRun, elf: Path,
     """``embedded.json``: the target, ticks, the largest |board - host| command, instructions per tick
     (median, p99, max over all ticks; the medians of the ticks the controller runs in, every ``every``-th
     from the first, and of the others, the estimator's alone), flash and RAM of the board program
-    (arm-none-eabi-size: text + rodata + data, and data + bss, which holds the driver's workspace)."""
+    (arm-none-eabi-size: text + rodata + data, and data + bss, which holds the driver's workspace), and
+    from a profiled board build each part's median over the controller's ticks."""
     if board.u.shape != host.u.shape:
         raise RuntimeError(f"the board ran {board.u.shape[0]} ticks, the host {host.u.shape[0]}")
     d = np.abs(board.u - host.u)
