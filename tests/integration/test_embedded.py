@@ -101,7 +101,8 @@ def test_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypatch):
     ``-icount shift=0``), flash and RAM; the library's objects call no allocator and no file or console
     I/O."""
     # both builds unoptimised (the Makefile's OPT): the 3.4 MB of generated C compiles several times
-    # faster, and host and board still share every flag; the -O2 figures are the tutorial's runs
+    # faster, and host and board still share every flag; the optimised figures (library.OPT) are the
+    # tutorial's runs
     monkeypatch.setenv("OPT", "-O0")
     out = tmp_path / "m7"
     res = _cli(["codegen", TRACK, "--library", "--target", "cortex-m7", "--duration-s", "0.6", "--out", str(out)])
@@ -160,3 +161,24 @@ def test_single_precision_source_calls_float_maths_and_keeps_literals_in_range()
     out = _single("a=pow(b,c); x=casadi_fmin(a,b); y=sqrt(1.0e-300)+1.7976931348623157e+308+2.5e-3+fabs(a1);")
     assert "powf(b,c)" in out and "casadi_fmin(a,b)" in out and "fabsf(a1)" in out
     assert "sqrtf(1.17549435e-38)" in out and "3.40282347e+38" in out and "2.5e-3" in out
+
+
+def test_profiled_driver_output_gives_the_instructions_of_each_part(tmp_path, monkeypatch):
+    """A profiled board run's lines (``parts`` names, then per tick the tick's count and each part's) give
+    each part's instructions (counts times the calibration), and embedded.json their medians over the
+    controller's ticks; a run without ``parts`` has none."""
+    from hbma_ctrl.app.codegen.library import _parse, embedded_report
+
+    head = "calibration 50000 2000000\nworkspace 1000 bytes\nparts other ekf_step osqp_solve\n"
+    ticks = ["0 0 0 0 0 5 0.001 100 1 30 69", "1 0 0 0 0 5 0.001 20 1 19 0",
+             "2 0 0 0 0 5 0.001 300 1 29 270", "3 0 0 0 0 5 0.001 20 0 20 0"]
+    run = _parse(head + "\n".join(ticks) + "\n")
+    assert run.per_count == 40.0
+    assert np.array_equal(run.parts["osqp_solve"], [2760.0, 0.0, 10800.0, 0.0])
+    assert np.array_equal(run.parts["ekf_step"], [1200.0, 760.0, 1160.0, 800.0])
+    elf = tmp_path / "x.elf"
+    monkeypatch.setattr("hbma_ctrl.app.codegen.library._size", lambda _elf: (1, 1))  # no board program
+    rep = embedded_report("cortex-m7", run, run, elf, every=2)
+    assert rep["instructions_controller_tick_median_by_part"]["osqp_solve"] == 6780.0
+    plain = _parse(head.replace("parts other ekf_step osqp_solve\n", "") + "0 0 0 0 0 5 0.001 100\n")
+    assert plain.parts is None
