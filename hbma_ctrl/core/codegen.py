@@ -42,6 +42,10 @@ __all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_com
 #: robot's QP data (229 -> 185 us for 9 chambers) keeps -O1: its compilation grows with the chambers
 #: (12.6 s for 9)
 HOT_OPT = "-O3"
+
+#: an environment variable that, set, replaces every build's optimisation flag (e.g. ``-O0``: a build in
+#: seconds instead of a minute, for checks of what generated code computes rather than how fast)
+OPT_ENV = "HBMA_CTRL_CC_OPT"
 HOT_FLAGS = ("-fno-semantic-interposition",)
 #: code for this machine's processor (its vector units and fused multiply-adds), for the fatrop solver
 #: only: its generated NLP functions are most of a solve, 6.6 -> 5.1 ms per step at N = 20 (``bench
@@ -129,6 +133,7 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
     cc = _compiler()
     if cc is None:
         return fun if on_failure == "fallback" else None
+    opt = os.environ.get(OPT_ENV) or opt
     name = fun.name()
     flags = list(flags)
     with tempfile.TemporaryDirectory() as tmp:

@@ -12,6 +12,12 @@ from hbma_ctrl.core import codegen
 pytestmark = pytest.mark.skipif(not codegen.has_compiler(), reason="no C compiler (cc, gcc or clang) on this machine")
 
 
+@pytest.fixture(autouse=True)
+def _levels_as_named(monkeypatch):
+    """Each build at the level the test names, not one the environment imposes on every build."""
+    monkeypatch.delenv(codegen.OPT_ENV, raising=False)
+
+
 def _function() -> ca.Function:
     """Branches, roots, powers and a subfunction called twice: what the generated step code holds."""
     x = ca.SX.sym("x", 3)
@@ -99,3 +105,18 @@ def test_a_build_notice_is_written_only_when_the_library_is_built(tmp_path, monk
     codegen._MEMO.clear()  # a new process: the library is on disk, nothing to build
     codegen.compiled(fun, "-O1", notice="building the probe")
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.compiling
+def test_the_environments_level_replaces_every_builds_own_and_keys_its_library(tmp_path, monkeypatch):
+    monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
+    fun = _function()
+    hot = codegen.compiled(fun, codegen.HOT_OPT)
+    monkeypatch.setenv(codegen.OPT_ENV, "-O0")
+    quick = codegen.compiled(fun, codegen.HOT_OPT)
+    again = codegen.compiled(fun, "-O2")  # the same level, whatever the caller asks: the same library
+    libs = sorted(p.name for p in tmp_path.glob("*.so"))
+    assert len(libs) == 2 and quick is again and quick is not hot  # its own library, never the -O3 one
+    X = np.random.default_rng(1).normal(size=(3, 50))
+    Y = np.random.default_rng(2).normal(size=(1, 50))
+    assert _outputs(quick, X, Y).tobytes() == _outputs(hot, X, Y).tobytes()
