@@ -27,10 +27,9 @@ from hbma_ctrl.app.report.load import RunSignals, is_fault, load_run
 
 __all__ = ["report", "make_figures", "FIGURES"]
 
-#: the report's figures, in the order they are made
 #: deg: below this bend a layer's bend direction is the noise's, not drawn
 BEND_FOR_DIRECTION_DEG = 1.0
-
+#: the report's figures, in the order they are made
 FIGURES = ("tracking", "pressures", "commands", "estimator_errors", "events", "robot_pose")
 
 def _groups(sig: RunSignals) -> list[tuple[str, list[str]]]:
