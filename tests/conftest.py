@@ -8,7 +8,15 @@ them. The imports are inside the fixtures so a run that uses none of them does n
 
 from __future__ import annotations
 
+import os
+
 import pytest
+
+# Every Function and generated program the tests build is compiled unoptimised (and subprocesses
+# inherit it): a clean machine compiles each in seconds instead of a minute, most of a CI run, and
+# no level changes a result (no level enables fast-math; test_compile_flags.py builds the shipped
+# levels and checks them bit for bit against this one). A value already set is kept.
+os.environ.setdefault("HBMA_CTRL_CC_OPT", "-O0")
 
 
 @pytest.fixture(scope="session")

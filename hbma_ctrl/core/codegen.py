@@ -29,7 +29,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS", "NATIVE_FLAGS", "cpu_signature", "is_nan", "is_finite"]
+__all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_compiler", "HOT_OPT", "HOT_FLAGS", "OPT_ENV", "NATIVE_FLAGS", "cpu_signature", "is_nan", "is_finite"]
 
 #: the optimisation level and flags of the Functions called every step whose compilation is short
 #: (the EKF step and its reference path's parts, the UKF's propagation, the robot's EKF bank, the
@@ -43,6 +43,9 @@ __all__ = ["FastFunction", "compiled", "casadi_lib_flags", "cache_dir", "has_com
 #: (12.6 s for 9)
 HOT_OPT = "-O3"
 HOT_FLAGS = ("-fno-semantic-interposition",)
+#: an environment variable that, set, replaces every build's optimisation flag (e.g. ``-O0``: a build in
+#: seconds instead of a minute, for checks of what generated code computes rather than how fast)
+OPT_ENV = "HBMA_CTRL_CC_OPT"
 #: code for this machine's processor (its vector units and fused multiply-adds), for the fatrop solver
 #: only: its generated NLP functions are most of a solve, 6.6 -> 5.1 ms per step at N = 20 (``bench
 #: mpc``, both in one run). Not for the per-step Functions above: their outputs are compared bit for bit
@@ -119,7 +122,8 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
              on_failure: str = "fallback", notice: str | None = None) -> ca.Function | None:
     """The Function compiled to a shared library (cached by source and flags), or itself without a compiler.
 
-    ``opt`` is the optimisation flag; neither level enables fast-math, so results do not depend on it.
+    ``opt`` is the optimisation flag (:data:`OPT_ENV` in the environment replaces it); no level enables
+    fast-math, so results do not depend on it.
     ``flags``: more compiler and linker flags (e.g. a QP solver's headers and library); a build that
     fails with any of :data:`HOT_FLAGS` or :data:`NATIVE_FLAGS` among them is tried again without them.
     ``on_failure``: 'fallback' returns ``fun`` when there is no compiler or the build fails, 'none'
@@ -129,6 +133,7 @@ def compiled(fun: ca.Function, opt: str = "-O1", flags: Sequence[str] = (),
     cc = _compiler()
     if cc is None:
         return fun if on_failure == "fallback" else None
+    opt = os.environ.get(OPT_ENV) or opt
     name = fun.name()
     flags = list(flags)
     with tempfile.TemporaryDirectory() as tmp:

@@ -1393,14 +1393,18 @@ def test_a_tick_is_the_machines_when_the_witness_pause_inside_it_covers_its_exce
 def test_bench_soak_writes_its_verdict_the_witness_record_and_the_setpoints(tmp_path):
     """`hbma-ctrl bench soak` end to end, short: the daemon as its own process, setpoints through its
     API, and soak.json (verdicts, the judged ticks, whether a replay ran), setpoints.csv and the
-    witness's machine_pauses.csv in the results directory; the exit code says whether it passed."""
+    witness's machine_pauses.csv in the results directory, the daemon's log.mcap judged whole; the exit
+    code says whether it passed."""
     out = tmp_path / "soak"
     res = cli.invoke(app, ["bench", "soak", str(CHAMBER), "--duration-s", "4", "--speed", "4",
                            "--setpoint-every-s", "1", "--no-replay", "--out", str(out)])
     assert res.exit_code in (0, 1), res.output
     soak = json.loads((out / "soak.json").read_text())
     assert set(soak["verdicts"]) == {"no_fault", "no_tick_over_period", "pressure_limit_held",
-                                     "rss_growth_under_10mb", "safe_exit"}
+                                     "rss_growth_under_10mb", "safe_exit", "every_period_logged"}
+    # the daemon's log.mcap holds one message per period on every per-period topic
+    assert soak["verdicts"]["every_period_logged"] and soak["log"]["dropped"] == 0
+    assert set(soak["log"]["messages"].values()) == {soak["log"]["periods_logged"]}
     assert res.exit_code == (0 if soak["passed"] else 1)
     assert soak["replay"] == "off" and soak["setpoints_sent"] >= 2
     assert soak["setpoints_accepted"] == soak["setpoints_sent"]

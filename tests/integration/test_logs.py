@@ -112,12 +112,20 @@ _LABEL = re.compile(r"^[a-z][\w ,]* \([^()]+\)$")
 
 def _check_figures(figs: dict) -> None:
     """Every drawn axis: a y label in the "quantity (unit)" style (the events' rows excepted), the time
-    axis labelled "t (s)" on each column's lowest panel, a legend where more than one line is labelled."""
+    axis labelled "t (s)" on each column's lowest panel, a legend where more than one line is labelled,
+    no panel without data, and each kind of line the title names in its brackets in a legend."""
     assert figs
     for name, fig in figs.items():
         axes = [ax for ax in fig.axes if ax.get_visible()]
         assert fig._suptitle is not None and fig._suptitle.get_text(), name
+        keys = {t.get_text() for ax in axes if ax.get_legend() for t in ax.get_legend().get_texts()}
+        named = re.search(r"\(([^()]*)\)$", fig._suptitle.get_text())
+        if named and name != "estimator_errors":  # its brackets say what an error is, not a line
+            for word in re.split(r", | and ", named.group(1)):
+                assert any(word in k for k in keys), (name, word, sorted(keys))
         for ax in axes:
+            drawn = [ln for ln in ax.get_lines() if np.isfinite(np.asarray(ln.get_ydata(), float)).any()]
+            assert drawn or ax.collections, (name, ax.get_title(), "an empty panel")
             y = ax.get_ylabel()
             assert _LABEL.match(y) or (name == "events" and y == "event"), (name, y)
             assert ax.get_xlabel() in ("", LABELS["t"]), (name, ax.get_xlabel())

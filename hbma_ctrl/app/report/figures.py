@@ -4,7 +4,8 @@ style (:mod:`hbma_ctrl.app.figstyle`). Each figure is written only when the run 
 - ``tracking``: per chamber its height: target, estimate and truth (a simulated rig's).
 - ``pressures``: per chamber its pressure: measured, estimated and true, with the pressure limit.
 - ``commands``: per chamber the pump speed and the inlet and outlet valve duty.
-- ``estimator_errors``: where a truth exists, the estimate's height and pressure errors per chamber.
+- ``estimator_errors``: where a truth exists, the estimate's height and pressure errors per chamber (a
+  panel for each quantity the log holds both of).
 - ``events``: faults and other events on the time axis, with the loop's step time.
 - ``robot_pose``: a robot's layers: bend, bend direction and centre height (target, estimated, true).
 
@@ -26,6 +27,8 @@ from hbma_ctrl.app.report.load import RunSignals, is_fault, load_run
 
 __all__ = ["report", "make_figures", "FIGURES"]
 
+#: deg: below this bend a layer's bend direction is the noise's, not drawn
+BEND_FOR_DIRECTION_DEG = 1.0
 #: the report's figures, in the order they are made
 FIGURES = ("tracking", "pressures", "commands", "estimator_errors", "events", "robot_pose")
 
@@ -108,10 +111,12 @@ def _plot(ax: Axes, sig: RunSignals, topic: str, col: str, scale: float = 1.0, *
     return True
 
 
-def _chamber_figure(sig: RunSignals, title: str, lines, ylabel: str, limit: float | None = None):
-    """Panels by chamber group; ``lines``: (topic, stem, words, style) drawn per chamber."""
+def _chamber_figure(sig: RunSignals, what: str, lines, ylabel: str, limit: float | None = None):
+    """Panels by chamber group, titled ``what`` and the lines the log holds; ``lines``: (topic, stem,
+    words, style) drawn per chamber."""
     groups = _groups(sig)
-    fig, axes = _panels(len(groups), title)
+    lines = [ln for ln in lines if sig.has(ln[0], ln[1])]
+    fig, axes = _panels(len(groups), f"{sig.name}: {what} ({', '.join(w for _, _, w, _ in lines)})")
     by_ax = {}
     for ax, (gname, chambers) in zip(axes, groups):
         by_ax[ax] = chambers
@@ -133,7 +138,7 @@ def tracking(sig: RunSignals):
     lines = [("/targets", "h_mm", "target", dict(ls="--", lw=1.2)),
              ("/estimates", "h_mm", "estimate", dict(lw=1.4)),
              ("/truth", "h_mm", "true", dict(lw=0.9, ls=":"))]
-    return _chamber_figure(sig, f"{sig.name}: chamber heights (target, estimate, true)", lines, LABELS["h"])
+    return _chamber_figure(sig, "chamber heights", lines, LABELS["h"])
 
 
 def pressures(sig: RunSignals):
@@ -143,8 +148,7 @@ def pressures(sig: RunSignals):
     lines = [("/readings", "p_kpa", "measured", dict(lw=0.6, alpha=0.5)),
              ("/estimates", "p_kpa", "estimate", dict(lw=1.4)),
              ("/truth", "p_kpa", "true", dict(lw=0.9, ls=":"))]
-    return _chamber_figure(sig, f"{sig.name}: chamber pressures (measured, estimate, true)", lines, LABELS["p"],
-                           sig.pressure_limit_kpa)
+    return _chamber_figure(sig, "chamber pressures", lines, LABELS["p"], sig.pressure_limit_kpa)
 
 
 def commands(sig: RunSignals):
@@ -152,9 +156,12 @@ def commands(sig: RunSignals):
     if not any(sig.has("/commands", k) for k in ("speed", "inlet", "outlet")):
         return None
     groups = _groups(sig)
-    fig, axes = _panels(len(groups), f"{sig.name}: commands (pump speed, inlet and outlet valve duty)")
-    styles = (("speed", "pump speed", dict(ls="-", lw=1.2)), ("inlet", "inlet duty", dict(ls="--", lw=1.0)),
-              ("outlet", "outlet duty", dict(ls=":", lw=1.2)))
+    styles = [st for st in (("speed", "pump speed", dict(ls="-", lw=1.2)), ("inlet", "inlet duty", dict(ls="--", lw=1.0)),
+                            ("outlet", "outlet duty", dict(ls=":", lw=1.2))) if sig.has("/commands", st[0])]
+    # the title names what the log holds (a robot's pumps are not per chamber)
+    words = [w for _, w, _ in styles]
+    fig, axes = _panels(len(groups), f"{sig.name}: commands ({', '.join(words[:-1]) + ' and ' if len(words) > 1 else ''}"
+                                     f"{words[-1]})")
     by_ax = {}
     for ax, (gname, chambers) in zip(axes, groups):
         by_ax[ax] = chambers
@@ -184,23 +191,26 @@ def estimator_errors(sig: RunSignals):
     """Estimate minus truth per chamber, height and pressure; None without both."""
     if not (sig.has("/estimates", "h_mm") and sig.has("/truth", "h_mm")):
         return None
-    fig = figure(10.0, 6.0)
-    axes = fig.subplots(2, 1, sharex=True)
+    # a panel per quantity the log has both an estimate and a truth of (a robot's truth has no pressure)
+    panels = [(stem, ylabel, title, errs) for stem, ylabel, title in
+              (("h_mm", LABELS["h_err"], "height"), ("p_kpa", LABELS["p_err"], "pressure"))
+              if (errs := [(j, nm, got) for j, nm in enumerate(sig.names) if (got := _error(sig, stem, nm)) is not None])]
+    if not panels:
+        return None
+    fig = figure(10.0, 1.0 + 2.5 * len(panels))
+    axes = np.atleast_1d(fig.subplots(len(panels), 1, sharex=True))
     fig.suptitle(f"{sig.name}: estimator errors (estimate minus true)")
-    for ax, stem, ylabel in ((axes[0], "h_mm", LABELS["h_err"]), (axes[1], "p_kpa", LABELS["p_err"])):
-        for j, nm in enumerate(sig.names):
-            got = _error(sig, stem, nm)
-            if got is not None:
-                t, e = decimate(*got)
-                ax.plot(t, e, lw=0.9, color=f"C{j % 10}", ls="-" if j < 10 else "--", label=nm)
+    for ax, (stem, ylabel, title, errs) in zip(axes, panels):
+        for j, nm, got in errs:
+            t, e = decimate(*got)
+            ax.plot(t, e, lw=0.9, color=f"C{j % 10}", ls="-" if j < 10 else "--", label=nm)
         ax.axhline(0.0, color="k", lw=0.6)
         ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=9)
         ax.grid(alpha=0.3)
         legend(ax, loc="center left", bbox_to_anchor=(1.01, 0.5), title="chamber")
-    axes[1].set_xlabel(LABELS["t"])
-    axes[0].set_title("height", fontsize=9)
-    axes[1].set_title("pressure", fontsize=9)
-    _faults(sig, axes)
+    axes[-1].set_xlabel(LABELS["t"])
+    _faults(sig, list(axes))
     return fig
 
 
@@ -258,7 +268,7 @@ def robot_pose(sig: RunSignals):
                 if field == "direction_deg":
                     # a direction is only defined while the layer bends: hide it where the bend is near 0
                     b = sig.get(tp, f"layers.{k}.bend_deg")
-                    y = np.where(decimate(*b)[1] > 0.5, y, np.nan) if b is not None else y
+                    y = np.where(decimate(*b)[1] > BEND_FOR_DIRECTION_DEG, y, np.nan) if b is not None else y
                     # no line across the wrap at +-180 deg
                     jump = np.abs(np.diff(y, prepend=y[:1])) > 180.0
                     y = np.where(jump, np.nan, y)

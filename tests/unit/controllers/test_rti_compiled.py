@@ -102,16 +102,19 @@ def _same_plans(model, s, gen, vm, atol: float, rtol: float) -> None:
 
 @pytest.mark.slow
 @pytest.mark.compiling
-def test_generated_fatrop_equals_the_virtual_machines(model):
+def test_generated_fatrop_equals_the_virtual_machines(model, monkeypatch):
     """fatrop generated as C (``codegen``, built once and cached) gives the first input and plan of the
     same solver on casadi's virtual machine, warm-started over three steps, also with other weights
     (which the same library serves); a solve that does not converge (an iteration cap of 2) is a
     _SolverFailure in both modes. N = 6 keeps the build short."""
     from hbma_ctrl.controllers.mpc_solvers import _SolverFailure
-    from hbma_ctrl.core.codegen import has_compiler
+    from hbma_ctrl.core.codegen import OPT_ENV, has_compiler
 
     if not has_compiler():
         pytest.skip("no C compiler on this machine: fatrop runs on casadi's virtual machine only")
+    # what the generated solver computes does not depend on the optimisation (no level enables
+    # fast-math): built unoptimised, in seconds instead of a minute
+    monkeypatch.setenv(OPT_ENV, "-O0")
     s = MPCSettings(variant="fatrop", horizon=6, budget=10.0).validate()
     gen, vm = _Fatrop(model, s), _Fatrop(model, replace(s, codegen=False))
     _same_plans(model, s, gen, vm, atol=1e-8, rtol=1e-9)
@@ -131,14 +134,17 @@ def test_generated_fatrop_equals_the_virtual_machines(model):
 
 @pytest.mark.slow
 @pytest.mark.compiling
-def test_generated_ipopt_equals_the_virtual_machines(model):
+def test_generated_ipopt_equals_the_virtual_machines(model, monkeypatch):
     """IPOPT generated as C (``bench mpc --ipopt-c``) gives the virtual machine's plan, warm-started over
     the cases, and refuses a solve capped at 2 iterations as a _SolverFailure. N = 4 keeps the build short."""
     from hbma_ctrl.controllers.mpc_solvers import _SolverFailure
-    from hbma_ctrl.core.codegen import has_compiler
+    from hbma_ctrl.core.codegen import OPT_ENV, has_compiler
 
     if not has_compiler():
         pytest.skip("no C compiler on this machine: IPOPT runs on casadi's virtual machine only")
+    # what the generated solver computes does not depend on the optimisation (no level enables
+    # fast-math): built unoptimised, in seconds instead of a minute
+    monkeypatch.setenv(OPT_ENV, "-O0")
     s = MPCSettings(variant="ipopt", horizon=4, budget=10.0).validate()
     gen, vm = _Ipopt(model, s, generate=True), _Ipopt(model, s)
     _same_plans(model, s, gen, vm, atol=1e-7, rtol=1e-8)

@@ -12,6 +12,12 @@ from hbma_ctrl.core import codegen
 pytestmark = pytest.mark.skipif(not codegen.has_compiler(), reason="no C compiler (cc, gcc or clang) on this machine")
 
 
+@pytest.fixture(autouse=True)
+def _levels_as_named(monkeypatch):
+    """Each build at the level the test names, not one the environment imposes on every build."""
+    monkeypatch.delenv(codegen.OPT_ENV, raising=False)
+
+
 def _function() -> ca.Function:
     """Branches, roots, powers and a subfunction called twice: what the generated step code holds."""
     x = ca.SX.sym("x", 3)
@@ -99,3 +105,50 @@ def test_a_build_notice_is_written_only_when_the_library_is_built(tmp_path, monk
     codegen._MEMO.clear()  # a new process: the library is on disk, nothing to build
     codegen.compiled(fun, "-O1", notice="building the probe")
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.compiling
+def test_the_environments_level_replaces_every_builds_own_and_keys_its_library(tmp_path, monkeypatch):
+    monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
+    fun = _function()
+    hot = codegen.compiled(fun, codegen.HOT_OPT)
+    monkeypatch.setenv(codegen.OPT_ENV, "-O0")
+    quick = codegen.compiled(fun, codegen.HOT_OPT)
+    again = codegen.compiled(fun, "-O2")  # the same level, whatever the caller asks: the same library
+    libs = sorted(p.name for p in tmp_path.glob("*.so"))
+    assert len(libs) == 2 and quick is again and quick is not hot  # its own library, never the -O3 one
+    X = np.random.default_rng(1).normal(size=(3, 50))
+    Y = np.random.default_rng(2).normal(size=(1, 50))
+    assert _outputs(quick, X, Y).tobytes() == _outputs(hot, X, Y).tobytes()
+
+
+@pytest.mark.slow
+@pytest.mark.compiling
+def test_the_nmpcs_qp_data_at_its_shipped_level_equals_its_unoptimised_build_bit_for_bit(
+        tmp_path, monkeypatch, cap_prediction_model):
+    """The per-step Function the NMPC calls most, built as users get it (HOT_OPT, HOT_FLAGS) and
+    unoptimised (as the test suite builds every Function, conftest.py): the same bits, so what the
+    suite checks at -O0 is what users run."""
+    from hbma_ctrl.controllers.mpc_settings import MPCSettings
+    from hbma_ctrl.controllers.rti_c import _RtiOsqp, qp_data_function
+    from hbma_ctrl.controllers.mpc_solvers import weights_of
+
+    monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
+    s = MPCSettings(codegen=False).validate()
+    rti = _RtiOsqp(cap_prediction_model, s)
+    fun = qp_data_function(rti)
+    shipped = codegen.compiled(fun, codegen.HOT_OPT, codegen.HOT_FLAGS, on_failure="none")
+    monkeypatch.setenv(codegen.OPT_ENV, "-O0")
+    quick = codegen.compiled(fun, codegen.HOT_OPT, codegen.HOT_FLAGS, on_failure="none")
+    assert shipped is not None and quick is not None and shipped is not quick
+    rng = np.random.default_rng(3)
+    W = 0.4 * 9.80665
+    for h in (2e-3, 5e-3, 9e-3):
+        x0 = float(cap_prediction_model.x_at_height(h, W))
+        par = np.r_[x0, W, 1e-4, 300.0, rng.uniform(0, 1, 3), s.p_max - s.p_margin,
+                    h + rng.normal(0, 1e-3, s.horizon)]
+        z = rng.normal(0, 0.1, rti.nz)
+        args = [par, z, 1.0, np.asarray(weights_of(s), float)]
+        a = np.hstack([np.asarray(o).ravel() for o in shipped(*args)])
+        b = np.hstack([np.asarray(o).ravel() for o in quick(*args)])
+        assert np.isfinite(a).all() and a.tobytes() == b.tobytes()
