@@ -20,6 +20,10 @@ from hbma_ctrl.robot.reach import _pivot_balance, bonded_layer_pose, paper_pose_
 from hbma_ctrl.robot.statics import BOND_RADIUS, bonded_chamber, bonded_table
 from oracles.statics import bonded_chamber_states
 
+# slow as a whole: on a clean machine (as CI is) the first of these tests builds the table, a minute and
+# a half, and on two workers two of them build it side by side
+pytestmark = pytest.mark.slow
+
 D = RobotDesign(n_layers=2)
 ACT = D.chamber
 W_ABOVE = float(D.body_masses.sum() * D.g)  # layers B and the top rest on layer A's chambers
