@@ -339,7 +339,7 @@ def test_rig_emulate_prints_its_port_serves_the_host_and_cleans_up_on_sigterm(tm
 def _through_the_host_board(tmp: Path, text: str, duration: float) -> tuple[dict, object, dict, list[dict]]:
     """The daemon's loop <-> SerialRig <-> pty <-> C firmware <-> the configuration ``text``'s simulated
     rig (``rig emulate --config``, its own process) for ``duration`` s of loop time: (loop stats, the
-    runner's stats, the link's stats, the rig's true state per period from the firmware's truth log).
+    runner, the link's stats, the rig's true state per period from the firmware's truth log).
     As in test_daemon.py's serial test, the loop's watchdogs of real time (heartbeat, stale samples,
     missed deadlines) are relaxed: on a loaded machine a late process is the machine's load, not the
     link's."""
