@@ -158,10 +158,8 @@ def commands(sig: RunSignals):
     groups = _groups(sig)
     styles = [st for st in (("speed", "pump speed", dict(ls="-", lw=1.2)), ("inlet", "inlet duty", dict(ls="--", lw=1.0)),
                             ("outlet", "outlet duty", dict(ls=":", lw=1.2))) if sig.has("/commands", st[0])]
-    # the title names what the log holds (a robot's pumps are not per chamber)
-    words = [w for _, w, _ in styles]
-    fig, axes = _panels(len(groups), f"{sig.name}: commands ({', '.join(words[:-1]) + ' and ' if len(words) > 1 else ''}"
-                                     f"{words[-1]})")
+    # the title names what the log holds (a robot's pumps are not per chamber), as _chamber_figure's do
+    fig, axes = _panels(len(groups), f"{sig.name}: commands ({', '.join(w for _, w, _ in styles)})")
     by_ax = {}
     for ax, (gname, chambers) in zip(axes, groups):
         by_ax[ax] = chambers
