@@ -129,9 +129,8 @@ def test_the_nmpcs_qp_data_at_its_shipped_level_equals_its_unoptimised_build_bit
     """The per-step Function the NMPC calls most, built as users get it (HOT_OPT, HOT_FLAGS) and
     unoptimised (as the test suite builds every Function, conftest.py): the same bits, so what the
     suite checks at -O0 is what users run."""
-    from hbma_ctrl.controllers.mpc_settings import MPCSettings
+    from hbma_ctrl.controllers.mpc_settings import MPCSettings, weights_of
     from hbma_ctrl.controllers.rti_c import _RtiOsqp, qp_data_function
-    from hbma_ctrl.controllers.mpc_solvers import weights_of
 
     monkeypatch.setenv("HBMA_CTRL_CACHE", str(tmp_path))
     s = MPCSettings(codegen=False).validate()
