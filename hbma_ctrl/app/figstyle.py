@@ -5,13 +5,19 @@ state, no display."""
 
 from __future__ import annotations
 
+import hashlib
+import os
+import shutil
+import tempfile
 from pathlib import Path
+from typing import Callable
 
+import matplotlib
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-__all__ = ["LABELS", "DPI", "FORMATS", "figure", "legend", "save", "decimate", "plain_y"]
+__all__ = ["LABELS", "DPI", "FORMATS", "figure", "legend", "save", "saved_once", "decimate", "plain_y"]
 
 #: axis labels, one style everywhere: "symbol (unit)" or "what (unit)"
 LABELS = {
@@ -58,6 +64,35 @@ def save(fig: Figure, stem: Path | str) -> list[Path]:
         path = stem.with_suffix(f".{ext}")
         fig.savefig(path, dpi=DPI)
         out.append(path)
+    return out
+
+
+def saved_once(stem: Path | str, draw: Callable[[Path], object], *shown: object) -> list[Path]:
+    """``draw(stem)``'s files (``stem.png``, ``stem.pdf``), drawn once per machine for the same ``shown``
+    (every value and array the figure shows) and copied from the cache (``$HBMA_CTRL_CACHE/figures``)
+    after; the drawing code and matplotlib's version are part of the key, so a changed figure is
+    drawn again. Returns the paths."""
+    from hbma_ctrl.core.codegen import cache_dir
+
+    key = hashlib.sha256(matplotlib.__version__.encode())
+    key.update(Path(__file__).read_bytes())
+    key.update(Path(draw.__code__.co_filename).read_bytes())
+    for value in shown:
+        key.update(np.ascontiguousarray(value).tobytes() if isinstance(value, np.ndarray) else repr(value).encode())
+    cached = cache_dir() / "figures" / key.hexdigest()[:32]
+    if not all((cached / f"figure.{ext}").is_file() for ext in FORMATS):
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        part = Path(tempfile.mkdtemp(dir=cached.parent, suffix=".part"))
+        draw(part / "figure")
+        try:
+            os.replace(part, cached)  # atomic: a parallel run sees the whole figure or none
+        except OSError:  # another run stored it first
+            shutil.rmtree(part, ignore_errors=True)
+    stem = Path(stem)
+    out = []
+    for ext in FORMATS:
+        shutil.copyfile(cached / f"figure.{ext}", stem.with_suffix(f".{ext}"))
+        out.append(stem.with_suffix(f".{ext}"))
     return out
 
 

@@ -13,34 +13,25 @@ Axes are in edge units (mm, kPa, N, g, %), labelled in the package's style
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import casadi as ca
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.tri import Triangulation
 
-from hbma_ctrl.app.figstyle import LABELS, legend, save
+from hbma_ctrl.app.figstyle import LABELS, legend, save, saved_once
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
-from hbma_ctrl.sim.batch import protocol_trials, simulate_trials, trial_name
+from hbma_ctrl.sim.batch import FIGURE_CASES, FIGURE_TRIALS, PROTOCOL_DEFAULTS, protocol_trials, simulate_trials
 from hbma_ctrl.sim.trial import Log, SimSettings, Trial
 
-__all__ = ["fig6", "fig7", "fig9", "plot_run", "protocol_figures", "paper_figures", "equilibrium_grid",
-           "FIG7_TRIALS", "FIG9_TRIALS"]
+__all__ = ["fig6", "fig7", "fig9", "plot_run", "protocol_figures", "streamed_protocol_figures", "paper_figures",
+           "equilibrium_grid", "FIG7_TRIALS", "FIG9_TRIALS"]
 
-SPEEDS = (20.0, 40.0, 60.0, 80.0, 100.0)
-#: (t0_mm, r1_mm, load_g) of the figures' trials; speeds are SPEEDS
-FIG7_CASE = (3.0, 12.5, 0.0)
-FIG9_CASE = (2.0, 12.5, 200.0)
-
-
-def _names(case) -> list[str]:
-    return [trial_name(case[0], case[1], case[2], s) for s in SPEEDS]
-
-
-FIG7_TRIALS = _names(FIG7_CASE)
-FIG9_TRIALS = _names(FIG9_CASE)
+FIG7_CASE, FIG9_CASE = FIGURE_CASES["fig7"], FIGURE_CASES["fig9"]
+FIG7_TRIALS, FIG9_TRIALS = FIGURE_TRIALS["fig7"], FIGURE_TRIALS["fig9"]
 
 
 def equilibrium_grid(material: Material, r1: float, t0: float, h1: np.ndarray, h2: np.ndarray,
@@ -68,35 +59,48 @@ def fig6(path: Path | str, t0_mm: float = 3.0, r1_mm: float = 7.5, h1_max_mm: fl
     """Fig. 6: equilibrium pressure (kPa) and load (g = F/g) over (h1, h2), h2 <= h1, NH and MR.
 
     Points above ``p_max_kpa`` (the flat-limit corner h2 -> h1, where p grows without bound) are
-    left out so the working range stays readable.
+    left out so the working range stays readable. The figure shows no input of a run: it is drawn
+    once per machine for the same surfaces and copied after (:func:`hbma_ctrl.app.figstyle.saved_once`).
     """
     r1, t0 = U.mm(r1_mm), U.mm(t0_mm)
     h1_max = U.mm(h1_max_mm) if h1_max_mm else 2.0 * r1
     a = np.linspace(0.0, 1.0, n)
     H1, S = np.meshgrid(a * h1_max, a)
     H1, H2 = H1.ravel(), (S * H1).ravel()  # h2 = s h1, s in [0, 1]: the triangle h2 <= h1
-    fig = Figure(figsize=(11, 8.5), dpi=110)
-    for col, name in enumerate(("nh", "mr")):
-        res = equilibrium_grid(make_material(name), r1, t0, H1, H2)
-        # near the flat limit (h2 -> h1, large h1) the pressure grows without bound: show p <= p_max
-        tri = Triangulation(U.to_mm(H1), U.to_mm(H2))
-        too_high = U.to_kpa(res["p"]) > p_max_kpa
-        tri.set_mask(too_high[tri.triangles].any(axis=1))
-        for row, (z, label, cmap) in enumerate(((U.to_kpa(res["p"]), "p (kPa)", "viridis"),
-                                                (U.to_grams(res["F"] / U.G_STD), "load F/g (g)", "plasma"))):
-            ax = fig.add_subplot(2, 2, 1 + col + 2 * row, projection="3d")
-            zmax = float(np.max(z[~too_high]))
-            ax.plot_trisurf(tri, z, cmap=cmap, linewidth=0.1, antialiased=True, vmin=0.0, vmax=zmax)
-            ax.set_zlim(0.0, zmax)
-            ax.set_xlabel("h1 (mm)")
-            ax.set_ylabel("h2 (mm)")
-            ax.set_zlabel(label)
-            ax.set_title(f"{_MATERIAL_WORDS[name]}: {'pressure' if row == 0 else 'load'}")
-            ax.view_init(elev=28, azim=-115)
-    fig.suptitle(f"Fig. 6: equilibrium surfaces, t0 = {t0_mm:g} mm, r1 = {r1_mm:g} mm "
-                 f"(h2 <= h1, shown where p <= {p_max_kpa:g} kPa)")
-    fig.tight_layout()
-    return _save(fig, path)
+    surfaces = {name: equilibrium_grid(make_material(name), r1, t0, H1, H2) for name in ("nh", "mr")}
+    title = (f"Fig. 6: equilibrium surfaces, t0 = {t0_mm:g} mm, r1 = {r1_mm:g} mm "
+             f"(h2 <= h1, shown where p <= {p_max_kpa:g} kPa)")
+
+    def draw(stem: Path) -> None:
+        fig = Figure(figsize=(11, 8.5), dpi=110)
+        for col, (name, res) in enumerate(surfaces.items()):
+            tri = Triangulation(U.to_mm(H1), U.to_mm(H2))
+            # near the flat limit (h2 -> h1, large h1) the pressure grows without bound: show p <= p_max
+            too_high = U.to_kpa(res["p"]) > p_max_kpa
+            tri.set_mask(too_high[tri.triangles].any(axis=1))
+            for row, (z, label, cmap) in enumerate(((U.to_kpa(res["p"]), "p (kPa)", "viridis"),
+                                                    (U.to_grams(res["F"] / U.G_STD), "load F/g (g)", "plasma"))):
+                ax = fig.add_subplot(2, 2, 1 + col + 2 * row, projection="3d")
+                zmax = float(np.max(z[~too_high]))
+                # rasterized: in the PDF each surface is one image at the PNG's resolution, not
+                # 7,000 vector triangles (which took most of the figure's time and file size)
+                ax.plot_trisurf(tri, z, cmap=cmap, linewidth=0.1, antialiased=True, vmin=0.0, vmax=zmax,
+                                rasterized=True)
+                ax.set_zlim(0.0, zmax)
+                ax.set_xlabel("h1 (mm)")
+                ax.set_ylabel("h2 (mm)")
+                ax.set_zlabel(label)
+                ax.set_title(f"{_MATERIAL_WORDS[name]}: {'pressure' if row == 0 else 'load'}")
+                ax.view_init(elev=28, azim=-115)
+        fig.suptitle(title)
+        # fixed margins (what a tight layout gives this page): a tight layout draws the four 3D
+        # surfaces once more just to measure them, a third of the figure's time
+        fig.subplots_adjust(left=0.01, right=0.99, bottom=0.03, top=0.92, wspace=-0.1, hspace=0.13)
+        save(fig, stem)
+
+    shown = [title, H1, H2] + [res[k] for res in surfaces.values() for k in ("p", "F")]
+    files = saved_once(Path(path).with_suffix(""), draw, *shown)
+    return next(f for f in files if f.suffix == Path(path).suffix) if Path(path).suffix else files[0]
 
 
 #: the materials by the names a reader knows them by
@@ -110,7 +114,11 @@ def _save(fig: Figure, path: Path | str) -> Path:
 
 
 def _time_panels(path, logs: list[Log], labels: list[str], panels, title: str) -> Path:
-    fig = Figure(figsize=(8, 2.6 * len(panels)), dpi=110)
+    height = 2.6 * len(panels)
+    fig = Figure(figsize=(8, height), dpi=110)
+    # fixed margins in inches (what a tight layout gives these panels): a tight layout draws the
+    # figure once more just to measure it, a third of its time
+    fig.subplots_adjust(left=0.085, right=0.98, bottom=0.58 / height, top=1.0 - 0.52 / height, hspace=0.12)
     axes = fig.subplots(len(panels), 1, sharex=True)
     axes = np.atleast_1d(axes)
     for ax, (key, to_edge, ylabel) in zip(axes, panels):
@@ -121,7 +129,6 @@ def _time_panels(path, logs: list[Log], labels: list[str], panels, title: str) -
     axes[0].legend(fontsize=8, loc="center right", title="pump speed", title_fontsize=8)
     axes[-1].set_xlabel(LABELS["t"])
     fig.suptitle(title)
-    fig.tight_layout()
     return _save(fig, path)
 
 
@@ -185,7 +192,7 @@ def plot_run(log: Log, path: Path | str, title: str | None = None, sensor_range:
 def _figure_trials(material: Material) -> list[Trial]:
     out = []
     for case in (FIG7_CASE, FIG9_CASE):
-        out += protocol_trials(material, loads_g=[case[2]], speeds_pct=list(SPEEDS), t0_mm=[case[0]],
+        out += protocol_trials(material, loads_g=[case[2]], speeds_pct=PROTOCOL_DEFAULTS["speeds_pct"], t0_mm=[case[0]],
                                r1_mm=[case[1]])
     return out
 
@@ -194,18 +201,32 @@ def protocol_figures(out_dir: Path | str, material: Material, trials: list[Trial
                      settings: SimSettings | None = None, fidelity: str = "auto", with_fig6: bool = True) -> list[Path]:
     """Write fig6 (unless ``with_fig6`` is False: it needs no logs), fig7 and fig9 PNGs into out_dir,
     reusing the protocol's logs (simulating what is missing)."""
+    batches = iter([logs, None])
+    return streamed_protocol_figures(lambda: next(batches), out_dir, material, settings, fidelity, with_fig6)
 
+
+def streamed_protocol_figures(recv: Callable[[], list[Log] | None], out_dir: Path | str, material: Material,
+                              settings: SimSettings | None = None, fidelity: str = "auto",
+                              with_fig6: bool = True) -> list[Path]:
+    """:func:`protocol_figures` with the logs arriving in batches: each ``recv()`` returns the next batch
+    of logs, None after the last. fig6 is drawn first, fig7 and fig9 each as soon as its five trials have
+    arrived; the trials that never arrive are simulated here."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    by_name = {log.name: log for log in logs}
-    need = [tr for tr in _figure_trials(material) if tr.name not in by_name]
-    if need:
-        for log in simulate_trials(need, settings, fidelity):
-            by_name[log.name] = log
     paths = [fig6(out / "fig6.png")] if with_fig6 else []
-    paths.append(fig7(out / "fig7.png", [by_name[n] for n in FIG7_TRIALS]))
-    paths.append(fig9(out / "fig9.png", [by_name[n] for n in FIG9_TRIALS]))
-    return paths
+    todo = {"fig7": (fig7, FIG7_TRIALS), "fig9": (fig9, FIG9_TRIALS)}
+    by_name: dict[str, Log] = {}
+    while todo:
+        batch = recv()
+        if batch is None:
+            need = [tr for tr in _figure_trials(material) if tr.name not in by_name]
+            batch = simulate_trials(need, settings, fidelity) if need else []
+        by_name.update((log.name, log) for log in batch)
+        for name, (draw, names) in list(todo.items()):
+            if all(n in by_name for n in names):
+                paths.append(draw(out / f"{name}.png", [by_name[n] for n in names]))
+                del todo[name]
+    return sorted(paths)
 
 
 def paper_figures(out_dir: Path | str, material: str | Material = "nh", settings: SimSettings | None = None,

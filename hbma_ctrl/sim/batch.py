@@ -17,8 +17,9 @@ from __future__ import annotations
 import itertools
 import re
 import signal
-from contextlib import nullcontext
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import nullcontext
+from typing import Callable
 
 from rich.console import Console
 from rich.progress import (
@@ -38,7 +39,7 @@ from hbma_ctrl.models.fidelity import FIDELITIES
 from hbma_ctrl.sim.simulate import simulate
 from hbma_ctrl.sim.trial import InputSchedule, Log, SimSettings, Trial
 
-__all__ = ["PROTOCOL_DEFAULTS", "FIDELITY_CHOICES", "fidelity_for", "protocol_trials", "quiet_worker", "simulate_trials",
+__all__ = ["PROTOCOL_DEFAULTS", "FIDELITY_CHOICES", "FIGURE_CASES", "FIGURE_TRIALS", "fidelity_for", "protocol_trials", "quiet_worker", "simulate_trials",
            "trial_name", "scenario_of"]
 
 #: 'exact': the exact membrane (docs/concepts/model.md §9), platform model with a load, free inflation without
@@ -78,6 +79,13 @@ def fidelity_for(trial: Trial, requested: str) -> str:
 def trial_name(t0_mm: float, r1_mm: float, load_g: float, speed_pct: float) -> str:
     """File-safe trial name, e.g. 't3_r7.5_m200_s60' (edge units)."""
     return f"t{t0_mm:g}_r{r1_mm:g}_m{load_g:g}_s{speed_pct:g}"
+
+
+#: the protocol trials the paper's Figs. 7 and 9 draw: (t0 mm, r1 mm, load g), each at the protocol's five speeds
+FIGURE_CASES = {"fig7": (3.0, 12.5, 0.0), "fig9": (2.0, 12.5, 200.0)}
+#: their trial names, by figure
+FIGURE_TRIALS = {fig: [trial_name(*case, speed) for speed in PROTOCOL_DEFAULTS["speeds_pct"]]
+                 for fig, case in FIGURE_CASES.items()}
 
 
 def scenario_of(name: str) -> str:
@@ -167,11 +175,14 @@ def quiet_worker() -> None:
 
 
 def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fidelity: str = "auto",
-                    workers: int = 1, progress: bool = False, label: str = "simulating") -> list[Log]:
+                    workers: int = 1, progress: bool = False, label: str = "simulating",
+                    on_done: Callable[[list[int], list[Log]], None] | None = None) -> list[Log]:
     """Simulate trials with the protocol's fidelity rule, serially or in ``workers`` processes.
 
     Serial: one batch per fidelity group. Parallel: one chunk per worker, each a batch. With
-    ``progress`` a rich progress bar counts finished trials.
+    ``progress`` a rich progress bar counts finished trials. ``on_done(indices, logs)`` is called as
+    each batch finishes, with the indices into ``trials`` of its logs (e.g. to draw a figure before
+    the last batch is done).
     """
     settings = (settings or SimSettings()).validate()
     if workers < 1:
@@ -191,8 +202,11 @@ def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fi
                 if bar:
                     bar.update(task, description=f"{label} ({fname}, {len(idx)} trials; s of model time)")
                 tick = (lambda t, d=done: bar.update(task, completed=d + t)) if bar else None
-                for i, log in zip(idx, simulate([trials[i] for i in idx], settings, fname, on_progress=tick)):
+                done_logs = simulate([trials[i] for i in idx], settings, fname, on_progress=tick)
+                for i, log in zip(idx, done_logs):
                     logs[i] = log
+                if on_done is not None:
+                    on_done(idx, done_logs)
                 done += max(trials[i].duration for i in idx)
                 if bar:
                     bar.update(task, completed=done)
@@ -205,8 +219,11 @@ def simulate_trials(trials: list[Trial], settings: SimSettings | None = None, fi
             task = bar.add_task(f"{label} ({len(chunks)} workers)", total=len(trials)) if bar else None
             for fut in as_completed(futs):
                 c = futs[fut]
-                for i, log in zip(c, fut.result()):
+                done_logs = fut.result()
+                for i, log in zip(c, done_logs):
                     logs[i] = log
+                if on_done is not None:
+                    on_done(c, done_logs)
                 if bar:
                     bar.advance(task, len(c))
     return logs

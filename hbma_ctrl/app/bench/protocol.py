@@ -5,8 +5,10 @@ Each timed run is a fresh interpreter (``python -m hbma_ctrl protocol --out DIR`
 the 150 trials' simulation, their CSVs, summary.csv and the three figures, as a user waits for them.
 The same with ``--no-plots``, and the start-up alone (``import hbma_ctrl.app.cli.main``) in a fresh
 interpreter, say where the time goes; the simulation alone is timed in this process (warm: its
-compiled model loaded once before). Medians of ``repeat`` runs, written to ``bench.json`` with every
-run's time. Wall times depend on what else the machine runs: compare rows of one run.
+compiled model loaded once before). Like the compiled model, Fig. 6 (which shows no input of a run)
+is drawn by a machine's first run and copied from the cache after, so the timed runs copy it. Medians
+of ``repeat`` runs, written to ``bench.json`` with every run's time. Wall times depend on what else
+the machine runs: compare rows of one run.
 """
 
 from __future__ import annotations

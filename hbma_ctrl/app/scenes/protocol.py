@@ -18,7 +18,7 @@ from hbma_ctrl.app.metrics import physics_problems, write_log_csv
 from hbma_ctrl.app.forked import Forked
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import Material, make_material
-from hbma_ctrl.sim.batch import progress_bar, protocol_trials, simulate_trials
+from hbma_ctrl.sim.batch import FIGURE_TRIALS, progress_bar, protocol_trials, simulate_trials
 from hbma_ctrl.sim.trial import Log, SimSettings, Trial
 
 __all__ = ["SUMMARY_COLUMNS", "summary_row", "write_summary", "run_protocol"]
@@ -67,12 +67,16 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
     out = Path(out_dir)
     (out / "trials").mkdir(parents=True, exist_ok=True)
     mat = make_material(material) if isinstance(material, str) else material
-    # the figures are drawn by forked children beside this process's work (hbma_ctrl.app.forked):
-    # Fig. 6 needs no logs, Figs. 7 and 9 the logs in memory; joined before returning
-    jobs = [Forked(_fig6, out / "fig6.png")] if plots else []
-    logs = simulate_trials(trials, settings, fidelity, workers, progress)
-    if plots:
-        jobs.append(Forked(_figs_7_9, out, mat, trials, logs, settings, fidelity))
+    # the figures are drawn by one forked child beside this process's work (hbma_ctrl.app.forked):
+    # Fig. 6 needs no logs; each batch's logs are handed over as it finishes, so Figs. 7 and 9 are
+    # drawn while the rest is simulated and written; joined before returning
+    figures = Forked(_figures, out, mat, settings, fidelity, inbox=True) if plots else None
+    drawn = {name for names in FIGURE_TRIALS.values() for name in names}
+    logs = simulate_trials(trials, settings, fidelity, workers, progress,
+                           on_done=(lambda idx, done: figures.send([log for log in done if log.name in drawn]))
+                           if figures else None)
+    if figures:
+        figures.send(None)
     rows = [summary_row(tr, log) for tr, log in zip(trials, logs)]
     for tr, log, row in zip(trials, logs, rows):
         problems = physics_problems(log, tr.actuator.material)
@@ -86,21 +90,14 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
                 bar.advance(task)
     # after the trial files: a summary.csv is only there when every trial it lists was written
     write_summary(rows, out / "summary.csv")
-    for job in jobs:
-        job.join()
+    if figures:
+        figures.join()
     return rows
 
 
-# matplotlib takes ~0.45 s to import: the figure children import it, beside the parent's simulation,
-# and the parent only when a child failed and it draws the figure itself
-def _fig6(path: Path) -> None:
-    from hbma_ctrl.app.plots import fig6
+# matplotlib takes ~0.5 s to import: the figure child imports it, beside the parent's simulation,
+# and the parent only when the child failed and it draws the figures itself
+def _figures(recv, out: Path, mat: Material, settings: SimSettings, fidelity: str) -> None:
+    from hbma_ctrl.app.plots import streamed_protocol_figures
 
-    fig6(path)
-
-
-def _figs_7_9(out: Path, mat: Material, trials: list[Trial], logs: list[Log], settings: SimSettings,
-              fidelity: str) -> None:
-    from hbma_ctrl.app.plots import protocol_figures
-
-    protocol_figures(out, mat, trials, logs, settings, fidelity, with_fig6=False)
+    streamed_protocol_figures(recv, out, mat, settings, fidelity)

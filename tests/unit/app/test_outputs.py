@@ -311,6 +311,33 @@ def test_forked_work_is_done_by_a_child_or_redone_here_when_the_child_fails(tmp_
     assert failed.read_text() == "parent"  # the child's failure is redone in this process, not lost
 
 
+def _write_what_arrives(recv, path, parent_pid, fail):
+    got = []
+    while (obj := recv()) is not None:
+        got.append(obj)
+    if fail and os.getpid() != parent_pid:
+        raise RuntimeError("child fails")
+    Path(path).write_text(f"{os.getpid()} {got}")
+
+
+@pytest.mark.subprocess
+@pytest.mark.parametrize("fail", [False, True])
+def test_forked_work_with_an_inbox_gets_what_is_sent_in_order_even_when_redone_here(tmp_path, fail):
+    from hbma_ctrl.app.forked import Forked
+
+    out = tmp_path / "got.txt"
+    job = Forked(_write_what_arrives, out, os.getpid(), fail, inbox=True)
+    for obj in ([1, 2], "three", None):
+        job.send(obj)
+    job.join()
+    pid, got = out.read_text().split(" ", 1)
+    assert got == "[[1, 2], 'three']"
+    import multiprocessing as mp
+
+    if "fork" in mp.get_all_start_methods() and (os.cpu_count() or 1) > 1:
+        assert (int(pid) == os.getpid()) == fail  # the child's work, or this process's redo of it
+
+
 def test_overwrite_replaces_a_run_but_never_a_users_own_directory(tmp_path, monkeypatch):
     """--overwrite on a directory of a user's files, on the current directory or on one holding it, on
     the home directory: one error naming --out, every file still there; on a run: replaced."""
