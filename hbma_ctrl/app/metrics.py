@@ -20,14 +20,20 @@ import numpy as np
 
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.materials import LAM_CHECK, Material
+from hbma_ctrl.core.physics import pump_reach
 from hbma_ctrl.sim.trial import Log
 
 __all__ = ["EDGE_COLUMNS", "ROLE_KEYS", "nrmsd", "plant_metrics", "merge_metrics", "write_metrics",
-           "write_log_csv", "edge_series", "json_safe", "physics_problems", "MASS_BALANCE_TOL"]
+           "write_log_csv", "edge_series", "json_safe", "physics_problems", "MASS_BALANCE_TOL",
+           "PUMP_REACH_TOL"]
 
 #: the largest mass-balance error (relative) of a result that is kept: a consistent scheme keeps
 #: it near 1e-10 (rk4) or 1e-3 (euler at its default step); beyond it the step is too coarse
 MASS_BALANCE_TOL = 1e-2
+#: how far (relative) a chamber's pressure may rise above its pump's full-speed stall pressure: only
+#: mechanical work can push it there (a load settling onto the membrane with the valves shut), a
+#: small overshoot; a larger excess is a compressor map read past its end, or a model error
+PUMP_REACH_TOL = 0.05
 
 
 def _same(x):
@@ -126,14 +132,24 @@ def _mass_balance(log: Log) -> float | None:
     return float(np.max(np.abs(m - m[0] - log["mass_in"])) / max(float(np.max(np.abs(m))), 1e-30))
 
 
-def physics_problems(log: Log, material: Material) -> list[str]:
+def physics_problems(log: Log, material: Material, compressor_csv: Path | str | None = None) -> list[str]:
     """Why a finished run's result is not physical, one line each ([] when none): gas made or lost by
     the integrator (mass balance beyond :data:`MASS_BALANCE_TOL`), a stretch beyond the material's
     locking stretch or beyond :data:`~hbma_ctrl.core.materials.LAM_CHECK`, the range the laws are
-    checked over. A diverged run already says what went wrong: nothing is added to it."""
+    checked over, and (given the run's compressor map) a pressure beyond what its pump reaches at full
+    speed by more than :data:`PUMP_REACH_TOL`. A diverged run already says what went wrong: nothing is
+    added to it."""
     if log.status == "diverged":
         return []
     out = []
+    if compressor_csv is not None and "p" in log.data and log["p"].size:
+        reach, stalls = pump_reach(compressor_csv)
+        p = _peak(log, "p")
+        if not p <= reach * (1.0 + PUMP_REACH_TOL):
+            out.append(f"the chamber pressure reached {U.to_kpa(p):.4g} kPa, above the {U.to_kpa(reach):.4g} kPa "
+                       + ("the pump stalls at (full speed)" if stalls else
+                          "where its compressor map ends while still delivering flow (read past as constant): "
+                          "extend [pneumatics] compressor_csv to the pressure the pump stalls at"))
     bal = _mass_balance(log)
     if bal is not None and not bal <= MASS_BALANCE_TOL:
         out.append(f"the gas mass balance is off by {bal:.3g} of the chamber's mass (at most "

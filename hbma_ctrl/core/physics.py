@@ -32,6 +32,7 @@ __all__ = [
     "gas_pv",
     "orifice_flow",
     "load_compressor_table",
+    "pump_reach",
     "compressor_interpolant",
     "flat_h1_from_pressure",
     "RHO0_ISO",
@@ -235,6 +236,21 @@ def load_compressor_table(path: Path | str) -> tuple[np.ndarray, np.ndarray, np.
     if np.isnan(grid).any():
         raise ValueError(f"compressor table {path}: grid has duplicate or missing points")
     return s, p, grid
+
+
+def pump_reach(path: Path | str) -> tuple[float, bool]:
+    """The highest gauge pressure (Pa) a compressor map says its pump reaches at full speed, and whether
+    that is its stall (flow falls to 0 there; False: the map still delivers flow at its last pressure,
+    which is then the end of what it knows, read past as constant)."""
+    _, p, grid = load_compressor_table(path)
+    q = grid[-1]
+    pos = np.nonzero(q > 0)[0]
+    if pos.size == 0:
+        return 0.0, True
+    i = pos[-1]
+    if i + 1 >= p.size:
+        return float(p[-1]), False
+    return float(p[i] + (p[i + 1] - p[i]) * q[i] / (q[i] - q[i + 1])), True
 
 
 @lru_cache(maxsize=8)

@@ -34,15 +34,7 @@ from hbma_ctrl.robot.statics import BOND_RADIUS, bonded_chamber, chamber_solver,
 
 def pump_stall_pressure(pneumatics: Pneumatics | None = None) -> float:
     """Highest gauge pressure (Pa) at which the pump still delivers flow at full speed."""
-    _, p, grid = ph.load_compressor_table((pneumatics or Pneumatics()).csv_path)
-    q = grid[-1]
-    pos = np.nonzero(q > 0)[0]
-    if pos.size == 0:
-        return 0.0
-    i = pos[-1]
-    if i + 1 >= p.size:
-        return float(p[-1])
-    return float(p[i] + (p[i + 1] - p[i]) * q[i] / (q[i] - q[i + 1]))
+    return ph.pump_reach((pneumatics or Pneumatics()).csv_path)[0]
 
 
 @dataclass(frozen=True)

@@ -79,7 +79,7 @@ def run_protocol(material: str | Material = "nh", out_dir: Path | str = "runs/pr
         figures.send(None)
     rows = [summary_row(tr, log) for tr, log in zip(trials, logs)]
     for tr, log, row in zip(trials, logs, rows):
-        problems = physics_problems(log, tr.actuator.material)
+        problems = physics_problems(log, tr.actuator.material, tr.pneumatics.csv_path)
         if problems:  # a finished trial whose numbers are not physics is not a result
             row.update(status="failed", failed_because=[f"{tr.name}: {why}" for why in problems])
     with progress_bar(progress) as bar:

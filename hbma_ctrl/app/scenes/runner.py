@@ -84,7 +84,7 @@ def run_open_loop(scn: Scenario, out_dir: Path) -> dict:
         plot_run(log, out_dir / "run.png", title=f"{scn.name}: {log.fidelity}, {scn.sim.integrator}, "
                  f"status {log.status}", sensor_range=scn.sim.sensor_range)
         plant = plant_metrics([log])
-        failed = physics_problems(log, trial.actuator.material)
+        failed = physics_problems(log, trial.actuator.material, trial.pneumatics.csv_path)
         if failed:  # a finished run whose numbers are not physics is not a result
             plant["status"] = "failed"
         plant["log_csv"] = "log.csv"

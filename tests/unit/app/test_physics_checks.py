@@ -73,3 +73,46 @@ def test_the_protocol_command_keeps_a_run_with_a_failed_trial_as_failed_and_exit
     assert line.startswith("error: 1 of 2 trials failed the physics checks (summary.csv status); t3_r7.5_m0_s20")
     (kept,) = tmp_path.glob("p.failed-*")
     assert not (tmp_path / "p").exists() and (kept / "summary.csv").exists()
+
+
+def _pressure_log(p_peak_kpa: float) -> Log:
+    log = _log()
+    log.data["p"] = np.linspace(0.0, p_peak_kpa * 1e3, log["t"].size)
+    return log
+
+
+def _map(path, p_end_kpa: float, flow_at_end: float):
+    rows = ["speed,pressure_pa,mass_flow_kgs"]
+    for s in (0.0, 1.0):
+        rows += [f"{s},0,{s * 6e-6:.3e}", f"{s},{p_end_kpa * 1e3:g},{s * flow_at_end:.3e}"]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_the_shipped_pumps_reach_is_its_full_speed_stall_pressure():
+    from hbma_ctrl.core.params import Pneumatics
+    from hbma_ctrl.core.physics import pump_reach
+
+    # the default map: p_stall(s) = 50 kPa (0.3 + 0.7 s), flow linear in the back pressure
+    reach, stalls = pump_reach(Pneumatics().csv_path)
+    assert reach == pytest.approx(50e3) and stalls
+
+
+@pytest.mark.parametrize("excess", [0.0, 0.5])
+def test_a_pressure_up_to_the_tolerance_above_the_pumps_stall_is_no_problem(tmp_path, excess):
+    from hbma_ctrl.app.metrics import PUMP_REACH_TOL
+
+    pump = _map(tmp_path / "pump.csv", 40.0, 0.0)  # stalls at 40 kPa
+    assert physics_problems(_pressure_log(40.0 * (1 + excess * PUMP_REACH_TOL)), NeoHookean(), pump) == []
+
+
+def test_a_pressure_above_what_the_pump_reaches_names_both_pressures(tmp_path):
+    pump = _map(tmp_path / "pump.csv", 40.0, 0.0)
+    (why,) = physics_problems(_pressure_log(107.5), NeoHookean(), pump)
+    assert "reached 107.5 kPa, above the 40 kPa the pump stalls at" in why
+
+
+def test_a_pressure_past_the_end_of_a_map_that_still_delivers_flow_asks_for_a_longer_map(tmp_path):
+    pump = _map(tmp_path / "pump.csv", 35.0, 3e-6)  # measured to 35 kPa only, like the paper's Fig. 5
+    (why,) = physics_problems(_pressure_log(50.0), NeoHookean(), pump)
+    assert "above the 35 kPa where its compressor map ends" in why and "compressor_csv" in why
