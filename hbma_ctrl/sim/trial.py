@@ -12,6 +12,10 @@ from hbma_ctrl.core.settings import Settings, setting
 
 INTEGRATORS = ("euler", "rk4", "radau")
 #: default step per integrator and fidelity, s (chosen by ``hbma-ctrl bench sim``)
+#: the most fixed steps one run may take (about ten minutes on one core): a step small enough to need
+#: more is a typo, not a finer answer (rk4 at the default steps is already converged)
+MAX_STEPS = 10_000_000
+
 DEFAULT_DT = {
     ("euler", "free"): 1e-3, ("rk4", "free"): 5e-3, ("radau", "free"): 5e-3,
     ("euler", "quasi_static"): 1e-3, ("rk4", "quasi_static"): 5e-3, ("radau", "quasi_static"): 5e-3,

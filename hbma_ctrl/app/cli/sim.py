@@ -97,14 +97,15 @@ def protocol(
     """Simulate the 150-trial characterisation protocol (docs/concepts/model.md §7): DIR/summary.csv, DIR/trials/*.csv, fig6/7/9 PNGs."""
     from hbma_ctrl.core.materials import MATERIALS
     from hbma_ctrl.sim.batch import FIDELITY_CHOICES
-    from hbma_ctrl.sim.trial import INTEGRATORS
+    from hbma_ctrl.sim.trial import INTEGRATORS, MAX_STEPS
 
     check_choice("--material", material, MATERIALS)
     check_choice("--integrator", integrator, INTEGRATORS)
     check_choice("--fidelity", fidelity, [f for f in FIDELITY_CHOICES if f != "free"])
     workers = cap_workers("--workers", workers)
-    check_range("--dt-ms", dt_ms, 0.0, 100.0, lo_open=True, unit="ms")
     check_range("--duration-s", duration_s, 0.0, 3600.0, lo_open=True, unit="s")
+    check_range("--dt-ms", dt_ms, U.to_ms(duration_s) / MAX_STEPS, 100.0, unit="ms",
+                note=f"at most {MAX_STEPS:,} steps over --duration-s")
     check_range("--t-inflate-s", t_inflate_s, 0.0, duration_s, lo_open=True, unit="s", hi_open=True,
                 note="below --duration-s")
     t0 = time.perf_counter()

@@ -34,7 +34,7 @@ from hbma_ctrl.app.schema.schedule import ScheduleTable
 from hbma_ctrl.system.sections import Scenario
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import PROTOCOL_DEFAULTS
-from hbma_ctrl.sim.trial import InputSchedule
+from hbma_ctrl.sim.trial import MAX_STEPS, InputSchedule
 
 __all__ = ["DEFAULT_DURATION_S", "ROLE_TABLES", "ScenarioFile", "parse_role", "parse_scenario_tables"]
 
@@ -107,6 +107,11 @@ class ScenarioFile(Table):
             raise RuleError(f"log_dt_ms = {self.sim.log_dt_ms!r} is out of range [0.01, {U.to_ms(duration):g}] ms (at "
                             f"most [scenario] duration_s = {duration:g} s: the log, and the peaks read from it, "
                             "would hold only t = 0)", "sim")
+        dt_ms = self.sim.dt_ms
+        if dt_ms is not None and U.to_ms(duration) / dt_ms > MAX_STEPS:
+            raise RuleError(f"dt_ms = {dt_ms!r} is out of range [{U.to_ms(duration) / MAX_STEPS:.3g}, 100] ms: "
+                            f"[scenario] duration_s = {duration:g} s would take {U.to_ms(duration) / dt_ms:,.0f} "
+                            f"steps, at most {MAX_STEPS:,}", "sim")
         self._sim_sensor_used()
         self._limits_within_sensor()
         self._robot_rig_keys()

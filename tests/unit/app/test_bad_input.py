@@ -225,6 +225,23 @@ def test_log_dt_equal_to_the_run_accepted(tmp_path):
     assert load_scenario(p).sim.log_dt == pytest.approx(2.0)
 
 
+# 8. a step so small the run would take hours -------------------------------------------------
+def test_a_step_that_needs_more_than_the_most_steps_is_refused_with_the_smallest_allowed(tmp_path):
+    text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text(encoding="utf-8")
+    res = _run_file(tmp_path, text.replace("[sim]", "[sim]\ndt_ms = 1e-4"))
+    _one_line_error(res, "[sim] dt_ms = 0.0001", "[0.0006, 100] ms", "duration_s = 6 s", "60,000,000 steps")
+    res = runner.invoke(app, ["protocol", "--dt-ms", "1e-4", "--out", str(tmp_path / "p")])
+    _one_line_error(res, "--dt-ms = 0.0001", "[0.0006, 100] ms", "--duration-s")
+    assert not (tmp_path / "o").exists() and not (tmp_path / "p").exists()
+
+
+def test_the_smallest_allowed_step_is_accepted(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text("[scenario]\nduration_s = 2.0\n[inputs]\nschedule = [[0.0, 100.0, 1.0, 0.0]]\n"
+                 "[sim]\ndt_ms = 0.0002\n", encoding="utf-8")
+    assert load_scenario(p).sim.dt == pytest.approx(2e-7)
+
+
 def test_robot_target_rate_out_of_range_names_the_key_and_range(tmp_path):
     body = ("[robot]\nmode = 'closed_loop'\nlayers = 1\ntarget_rate_mm_s = -1.0\n"
             "[robot.targets]\nall = [[0.0, 6.0, 0.0, 0.0]]\n")
