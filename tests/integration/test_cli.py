@@ -265,8 +265,8 @@ def test_run_whose_solver_diverges_ends_non_zero_with_status_failed(tmp_path):
 
 
 def test_run_whose_step_count_would_take_hours_says_so_before_starting(tmp_path, monkeypatch, capsys):
-    """3600 s at a 1 us step (3.6e9 steps): a note with the step count and the hours comes out before
-    the first step (the simulation is stubbed here: the note must precede it)."""
+    """3600 s at a 0.4 ms step (9e6 steps, under the most a run may take): a note with the step count and
+    the hours comes out before the first step (the simulation is stubbed here: the note must precede it)."""
     import hbma_ctrl.app.scenes.runner as runner_mod
     from hbma_ctrl.app.scenario import load_scenario
 
@@ -280,13 +280,13 @@ def test_run_whose_step_count_would_take_hours_says_so_before_starting(tmp_path,
     monkeypatch.setattr(runner_mod, "simulate_trials", stop)
     text = (ROOT / "scenarios" / "open_loop_fig7.toml").read_text()
     text = text.replace("duration_s = 6.0", "duration_s = 3600.0").replace('integrator = "rk4"',
-                                                                         'integrator = "rk4"\ndt_ms = 0.001')
+                                                                         'integrator = "rk4"\ndt_ms = 0.4')
     p = tmp_path / "long.toml"
     p.write_text(text)
     with pytest.raises(Started):
         runner_mod.run_scenario(load_scenario(p), tmp_path / "o")
     note = runner_mod.step_count_note(load_scenario(p))
-    assert "3.6e+09 integration steps" in note and " h " in note
+    assert "9e+06 integration steps" in note and " h " in note
     assert runner_mod.step_count_note(load_scenario(ROOT / "scenarios" / "open_loop_fig7.toml")) is None
 
 
