@@ -15,7 +15,7 @@ slack membrane). Pressures are spaced evenly in their square root: near p = 0 th
 p^(1/3) (small deflection), so F is least smooth there. Interpolation: along each pressure column a cubic
 spline of F over the height nodes (continued to h = 0 below the first one), then at each data height a
 cubic spline of p over the columns' forces, which grow with p. Against the exact solver itself (at twice
-the discretisation) it misses the pressure by about 1e-5 relative, 1e-3 of a few tens of Pa near p = 0.
+the discretisation) it misses the pressure by about 1e-5 of it, 1e-4 at the edge of the solver's reach.
 """
 
 from __future__ import annotations

@@ -73,8 +73,8 @@ def _plot(result: FitResult, path: Path) -> None:
              label=f"fit ({result.material})")
     ax1.set_xlabel("h (mm)")
     ax1.set_ylabel("p (kPa)")
-    disk = "" if result.disk_radius is None else f" (disk {U.to_mm(result.disk_radius):g} mm)"
-    ax1.set_title(f"{result.contact} contact{disk}, {result.fidelity} law, NRMSD {result.nrmsd:.4f}")
+    disk = "" if result.disk_radius is None else f"\ndisk of {U.to_mm(result.disk_radius):g} mm glued at the centre"
+    ax1.set_title(f"{result.contact} contact, {result.fidelity} law, NRMSD {result.nrmsd:.4f}{disk}")
     ax1.legend()
     ax2.axhline(0.0, color="0.6", lw=0.8)
     ax2.plot(h, U.to_kpa(result.p_model - result.p_data), "o", ms=4)
