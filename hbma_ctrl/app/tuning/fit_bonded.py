@@ -68,36 +68,52 @@ class BondedLaw:
                 inside = self.h <= hs[-1] + (hs[-1] - hs[-2])
                 G[inside, j] = CubicSpline(hs, tab["F"][ok, j])(self.h[inside])
         # each point's inverse p0(F) over the columns it reaches with F growing, continued one spacing
-        # of F either side (below: the pressure a force under the vented membrane's would need)
+        # of F either side (below: the pressure a force under the vented membrane's would need); past
+        # that, a straight line with the end segments' slopes: a point beyond the reach then pulls the
+        # fit no harder than its miss, instead of a penalty the modulus would be moved to escape
         self._inv = []
         for row in G:
             n = 0
             while n < row.size and np.isfinite(row[n]) and (n == 0 or row[n] > row[n - 1]):
                 n += 1
             if n >= 4:
-                f = row[:n]
-                self._inv.append((CubicSpline(f, pg[:n]), 2 * f[0] - f[1], 2 * f[-1] - f[-2]))
+                f, q = row[:n], pg[:n]
+                lo, hi = 2 * f[0] - f[1], 2 * f[-1] - f[-2]
+                cs = CubicSpline(f, q)
+                self._inv.append((cs, lo, hi, float(cs(lo)), float(cs(hi)), (q[1] - q[0]) / (f[1] - f[0]),
+                                  (q[-1] - q[-2]) / (f[-1] - f[-2])))
             else:
                 self._inv.append(None)
 
     def pressure(self, values: np.ndarray) -> np.ndarray:
-        """Model pressures (Pa) at the data points for ``values`` = [E] (Pa); NaN where a point lies beyond
-        the table (no bonded equilibrium there within the solver's reach)."""
+        """Model pressures (Pa) at the data points for ``values`` = [E] (Pa); beyond the table's forces at
+        a point's height continued on a straight line (:meth:`beyond` names them), NaN above every column's
+        reach in height."""
         s = float(values[0]) / self.E0
         out = np.full(self.h.size, np.nan)
         if not s > 0:
             return out
         for i, inv in enumerate(self._inv):
-            if inv is not None and inv[1] <= self.F[i] / s <= inv[2]:
-                out[i] = s * float(inv[0](self.F[i] / s))
+            if inv is None:
+                continue
+            cs, lo, hi, p_lo, p_hi, k_lo, k_hi = inv
+            f = self.F[i] / s
+            out[i] = s * (float(cs(f)) if lo <= f <= hi else p_hi + k_hi * (f - hi) if f > hi else p_lo + k_lo * (f - lo))
         return out
 
+    def beyond(self, values: np.ndarray) -> np.ndarray:
+        """Whether each point lies beyond the table at ``values`` = [E] (Pa): its height past every column's
+        reach, or its force outside the forces the table holds at that height (one spacing continued)."""
+        s = float(values[0]) / self.E0
+        return np.array([inv is None or not s > 0 or not inv[1] <= f / s <= inv[2] for inv, f in zip(self._inv, self.F)])
+
     def check_reach(self, values: np.ndarray) -> None:
-        """ValueError naming the first data row the fitted law cannot evaluate (beyond the table)."""
-        bad = np.flatnonzero(~np.isfinite(self.pressure(values)))
+        """ValueError naming the first data row beyond the table at the fitted ``values`` (:meth:`beyond`)."""
+        bad = np.flatnonzero(self.beyond(values))
         if bad.size:
             i = int(bad[0])
             raise ValueError(f"data: row {i + 1}: h {U.to_mm(self.h[i]):g} mm with a force of {self.F[i]:.4g} N is beyond "
                              f"the exact bonded membrane's reach at the fitted E = {float(values[0]):.4g} Pa (a disk of "
                              f"{U.to_mm(self.c):g} mm in a {U.to_mm(self.r1):g} mm clamp: no equilibrium with the "
-                             "membrane's stretch up to 4); check the row's units, or leave it out")
+                             "membrane stretched up to 4, or a pressure past what the annulus around the disk holds); "
+                             "check the row's units, or leave it out")

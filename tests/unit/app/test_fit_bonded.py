@@ -90,6 +90,15 @@ def test_bonded_law_matches_the_finer_solver_at_its_own_points(truth):
 
 
 @pytest.mark.slow
+def test_a_point_beyond_the_solvers_reach_is_refused_by_its_row_not_fitted_around(truth):
+    # 20 N at 2 mm needs a pressure past what the annulus holds: the fit must not move E to reach it
+    d = np.vstack([truth, [U.mm(2.0), U.kpa(10.0), 20.0]])
+    with pytest.raises(ValueError, match=rf"row {len(d)}: h 2 mm with a force of 20 N is beyond"):
+        F.fit_static(F.StaticData(d[:, 0], d[:, 1], d[:, 2], "F_n"), "nh", R1, T0, "bonded", fidelity="exact",
+                     disk_radius=C)
+
+
+@pytest.mark.slow
 def test_cli_fits_load_g_lift_data_and_writes_the_disk_into_params_toml(tmp_path, truth):
     d = noisy(truth, 7)
     rows = "".join(f"{U.to_mm(h):.4f},{U.to_grams(f / U.G_STD):.3f},{U.to_kpa(p):.5f}\n"
