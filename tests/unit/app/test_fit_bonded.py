@@ -150,3 +150,14 @@ def test_bad_bonded_options_are_one_error_line(tmp_path, args, needles):
     path.write_text(LIFT)
     one_line_error(runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o"), *GEOM, *args]), *needles)
     assert not (tmp_path / "o").exists() and not (tmp_path / "s.toml").exists()
+
+
+if __name__ == "__main__":
+    # the measurement behind docs/how-to/fit-bonded.md: PYTHONPATH=.:tests python tests/unit/app/test_fit_bonded.py
+    pts = lift_points()
+    for seed in range(10):
+        d = noisy(pts, seed) if seed else F.StaticData(pts[:, 0], pts[:, 1], pts[:, 2], "F_n")
+        res = F.fit_static(d, "nh", R1, T0, "bonded", fidelity="exact", disk_radius=C)
+        lo, hi = res.ci95["E"]
+        print(f"{'noise seed ' + str(seed) if seed else 'noiseless':>13}: {len(pts)} points, E {res.params['E']:.0f} Pa "
+              f"(error {res.params['E'] / E_TRUE - 1:+.4f}, 95 % [{lo:.0f}, {hi:.0f}]), pressure NRMSD {res.nrmsd:.4f}")
