@@ -151,9 +151,11 @@ BOND_H = np.concatenate([[0.1e-3], np.arange(0.25e-3, 8.01e-3, 0.25e-3)])
 BOND_P = np.arange(0.0, 50.01e3, 5e3)
 
 
-def bonded_table(act: Actuator, c: float = BOND_RADIUS, cache: Path | str | None = None) -> dict:
+def bonded_table(act: Actuator, c: float = BOND_RADIUS, cache: Path | str | None = None, h: np.ndarray = BOND_H,
+                 p: np.ndarray = BOND_P) -> dict:
     """Force F (N, up positive) and membrane volume V (m^3, above the clamp) of a chamber glued at its
-    centre to a rigid disk of radius c (m), over :data:`BOND_H` x :data:`BOND_P` (arrays (h, p)).
+    centre to a rigid disk of radius c (m), over the grid h x p (centre heights > 0, m, and gauge
+    pressures >= 0, Pa, both increasing; default the robot's :data:`BOND_H` x :data:`BOND_P`).
 
     Each node is one exact bonded equilibrium (:meth:`ExactMembrane.contact`); NaN where there is none
     (a stretch beyond 4 or a slack membrane: past the chamber's reach at that pressure). Cached on disk
@@ -163,7 +165,7 @@ def bonded_table(act: Actuator, c: float = BOND_RADIUS, cache: Path | str | None
     if not (np.isfinite(c) and 0 < c < act.r1):
         raise ValueError(f"bond radius = {c * 1e3:g} mm is out of range (0, {act.r1 * 1e3:g}) mm (the chamber's r1)")
     m = ExactMembrane(act.material, act.r1, act.t0, contact="bonded", c=c)
-    h, p = BOND_H, BOND_P
+    h, p = np.asarray(h, dtype=float), np.asarray(p, dtype=float)
     folder = Path(cache) if cache is not None else table_cache_dir()
     path = folder / f"bonded_robot_{_key(m, 'bonded_robot_v1', {'h': h, 'p': p})}.npz"
 

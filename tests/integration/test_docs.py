@@ -91,7 +91,8 @@ def blocks(page: Path) -> list[Block]:
 #: pages whose blocks take a minute or more (a recording, a fit, a study, a C build): their blocks run
 #: with the sweeps (`pytest -m sweep`), not in every CI run, which the other pages' blocks keep short
 LONG_PAGES = {"docs/tutorials/calibrate.md", "docs/tutorials/embed.md", "docs/how-to/tune-storage.md",
-              "docs/tutorials/rig.md", "docs/how-to/interrupted-runs.md"}
+              "docs/tutorials/rig.md", "docs/how-to/interrupted-runs.md",
+              "docs/how-to/fit-bonded.md"}
 
 
 def _params(*langs: str) -> list:

@@ -42,7 +42,11 @@ def fit_cmd(
     r1_mm: Annotated[float, typer.Option("--r1-mm", help="clamp radius r1, mm")] = CHAMBER_R1_MM,
     t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = CHAMBER_T0_MM,
     contact: Annotated[Optional[str], typer.Option(
-        help="free (h2 = 0) | flat (load on a plate); default: flat with a force column, else free")] = None,
+        help="free (h2 = 0) | flat (load on a plate) | bonded (a rigid disk glued at the centre, lifting the load: "
+             "static points, nh and the exact law; give --disk-radius-mm); default: flat with a force column, "
+             "else free")] = None,
+    disk_radius_mm: Annotated[Optional[float], typer.Option(
+        "--disk-radius-mm", help="--contact bonded: the glued disk's radius c, mm, in (0, --r1-mm)")] = None,
     fidelity: Annotated[Optional[str], typer.Option(
         help="membrane law: exact (the axisymmetric membrane, docs/concepts/model.md §9: the rig's and the roles' default; "
              "on a plate or with --fit-material nh only, free points of any material) | cap (the spherical cap, "
@@ -80,7 +84,7 @@ def fit_cmd(
 ) -> None:
     """Fit the model to static equilibrium points (material) or a recorded run (material scale, dead
     volume, pump and outlet)."""
-    from hbma_ctrl.app.tuning.fit import check_options, fit_static, parse_data, resolve_fidelity
+    from hbma_ctrl.app.tuning.fit import check_disk_radius, check_options, fit_static, parse_data, resolve_fidelity
     from hbma_ctrl.app.tuning.fit_output import write_fit, write_scenario as put_in_scenario
     from hbma_ctrl.app.tuning.fit_dynamic import fit_dynamic, is_dynamic, parse_run, write_dynamic_fit
 
@@ -94,7 +98,13 @@ def fit_cmd(
     check_range("--max-replay-s", max_replay_s, 0.0, 1e6, lo_open=True, unit="s")
     if write_scenario is not None and write_scenario.is_dir():
         raise ValueError(f"--write-scenario {write_scenario}: is a folder; give a scenario file (.toml)")
-    check_options(material.lower(), contact, fidelity or "cap")
+    check_options(material.lower(), contact, fidelity)
+    disk_radius = None if disk_radius_mm is None else U.mm(disk_radius_mm)
+    check_disk_radius(contact, disk_radius, U.mm(r1_mm))
+    if contact == "bonded" and write_scenario is not None:
+        raise ValueError("--write-scenario: a scenario's chamber has no glued disk (its roles model free inflation "
+                         "or a loose plate), so a bonded fit has no place there; the fitted modulus is in params.toml "
+                         "([actuator.material_params]) for a scenario whose chamber is made of this membrane")
     fixed = assignments(fix or [], "--fix", "C2=0 or Jm=60", one=True)
     check_out(out, overwrite)  # before the fit: a bad --out costs nothing
     raw, data = _read_data(data)
@@ -125,15 +135,16 @@ def fit_cmd(
         if given:
             raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
     pts = parse_data(raw)
-    on_plate = contact == "flat" or (contact is None and pts.F is not None)
+    on_plate = contact in ("flat", "bonded") or (contact is None and pts.F is not None)
     fidelity, law_note = resolve_fidelity(fidelity, material.lower(), needs_tables=on_plate)
     res = fit_static(pts, material.lower(), U.mm(r1_mm), U.mm(t0_mm), contact=contact, fix=fixed,
-                     fidelity=fidelity)
+                     fidelity=fidelity, disk_radius=disk_radius)
     res.source = source
     with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         write_fit(res, tmp)
     notes = put_in_scenario(write_scenario, res, fidelity, source) if write_scenario is not None else []
-    _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact, {res.fidelity} law, "
+    disk = "" if res.disk_radius is None else f" (disk {U.to_mm(res.disk_radius):g} mm)"
+    _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact{disk}, {res.fidelity} law, "
            f"NRMSD {res.nrmsd:.4f}", res.params, res.ci95, res.fixed,
            res.unidentifiable + ([law_note] if law_note else []) + notes, out, write_scenario)
 

@@ -6,7 +6,9 @@ Each point's model pressure comes from the package's physics:
 
 - ``free``: a free cap of height h (h2 = 0), ``p = pressure(h, 0)``;
 - ``flat``: the contact shape (h1, h2) with ``h1 - h2 = h`` and ``F(h1, h2) = F``, solved by the one
-  shape solver (:meth:`hbma_ctrl.models.shape.ShapeSolver.h2_for_force`), then ``p = pressure(h1, h2)``.
+  shape solver (:meth:`hbma_ctrl.models.shape.ShapeSolver.h2_for_force`), then ``p = pressure(h1, h2)``;
+- ``bonded``: the membrane's centre glued to a rigid disk of radius c at height h pushing it with F: the
+  exact membrane's bonded table (:mod:`hbma_ctrl.app.tuning.fit_bonded`; ``nh`` and the exact law only).
 
 The law is the spherical cap's (``fidelity = "cap"``, docs/concepts/model.md §3) or the exact axisymmetric
 membrane's (``"exact"``, Model §9): the same tabulated law, in the same chart, that the rig, the EKF
@@ -61,6 +63,7 @@ __all__ = [
     "model_pressure",
     "check_options",
     "check_exact_material",
+    "check_disk_radius",
     "resolve_fidelity",
     "exact_shapes_fixed",
     "fit_static",
@@ -68,8 +71,8 @@ __all__ = [
     "unflatten",
 ]
 
-#: contact modes of this command ('bonded', a disk glued at the centre, is refused: docs/how-to/fit.md)
-CONTACTS = ("free", "flat")
+#: contact modes of this command: free inflation, a loose flat plate, a rigid disk glued at the centre
+CONTACTS = ("free", "flat", "bonded")
 #: membrane laws of this command: the spherical cap, or the exact axisymmetric membrane's tables
 FIDELITIES = ("cap", "exact")
 #: the keys of fit.json
@@ -126,6 +129,8 @@ class FitResult(FitReport):
     contact: str
     h: np.ndarray = field(default_factory=lambda: np.zeros(0))
     fidelity: str = "cap"
+    #: the bonded disk's radius, m (None for free or flat contact)
+    disk_radius: float | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -358,16 +363,35 @@ def split_fix(fix: dict | None, names: list[str], what: str, elsewhere=(), why: 
     return fixed, free
 
 
-def check_options(material: str, contact: str | None, fidelity: str) -> None:
-    """ValueError naming the flag for an unknown material, contact or fidelity, or one not available."""
-    if contact == "bonded" and fidelity in FIDELITIES:
-        raise ValueError("--contact bonded: not available to a fit (a disk glued at the centre: the exact solver's "
-                         "force needs a table per geometry and glue radius; hbma-ctrl equilibrium --fidelity exact "
-                         "--contact bonded evaluates points); use --contact free or flat")
+def check_options(material: str, contact: str | None, fidelity: str | None) -> None:
+    """ValueError naming the flag for an unknown material, contact or fidelity, or one not available
+    (``fidelity`` None: not chosen yet)."""
     for flag, value, allowed in (("--fidelity", fidelity, FIDELITIES), ("--contact", contact, CONTACTS),
                                  ("--material", material, tuple(MATERIALS))):
         if value is not None and value not in allowed:
             raise ValueError(f"{flag} {value}{did_you_mean(value, allowed)}; allowed: {', '.join(allowed)}")
+    if contact == "bonded" and fidelity == "cap":
+        raise ValueError("--contact bonded: the exact membrane's law only (the spherical cap has no glued disk); "
+                         "drop --fidelity cap")
+    if contact == "bonded" and not exact_shapes_fixed(material):
+        raise ValueError(f"--contact bonded: fits --material nh only (its one modulus scales the bonded table, which "
+                         f"holds one material shape); {material}'s {', '.join(param_names(material))} change the shape")
+
+
+def check_disk_radius(contact: str | None, disk_radius: float | None, r1: float) -> None:
+    """ValueError naming ``--disk-radius-mm`` (in mm) unless it is given exactly with a bonded contact and
+    lies inside the clamp, 0 < c < r1 (m)."""
+    if contact != "bonded":
+        if disk_radius is not None:
+            raise ValueError("--disk-radius-mm: only with --contact bonded (the radius of the disk glued at the "
+                             "membrane's centre)")
+        return
+    if disk_radius is None:
+        raise ValueError(f"--contact bonded needs --disk-radius-mm: the glued disk's radius, mm, in (0, "
+                         f"{U.to_mm(r1):g}) (inside the clamp radius)")
+    if not (math.isfinite(disk_radius) and 0 < disk_radius < r1):
+        raise ValueError(f"--disk-radius-mm {U.to_mm(disk_radius):g} is out of range (0, {U.to_mm(r1):g}) mm: the "
+                         "glued disk lies inside the clamp radius (--r1-mm)")
 
 
 def exact_shapes_fixed(material: str) -> bool:
@@ -403,23 +427,27 @@ def resolve_fidelity(fidelity: str | None, material: str, needs_tables: bool = F
 
 
 def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: str | None = None,
-               fix: dict | None = None, fidelity: str = "cap") -> FitResult:
+               fix: dict | None = None, fidelity: str = "cap", disk_radius: float | None = None,
+               cache=None) -> FitResult:
     """Least-squares fit of a material's parameters (SI) to static data; r1, t0 in m.
 
-    ``contact`` None picks 'flat' when the data have a force column, else 'free'. ``fix`` holds
-    flattened parameters at SI values. ``fidelity``: the membrane law, 'cap' or 'exact' (the tables
-    for ``nh``; the exact solver's free curve, refined from the cap's fit, for free points of the
-    other materials; :func:`check_exact_material`). ValueError for unavailable options or too few points.
+    ``contact`` None picks 'flat' when the data have a force column, else 'free'; 'bonded' is a disk of
+    radius ``disk_radius`` (m) glued at the centre (the exact law and ``nh`` only; ``cache``: its table's
+    directory, None the exact tables' one). ``fix`` holds flattened parameters at SI values.
+    ``fidelity``: the membrane law, 'cap' or 'exact' (the tables for ``nh``; the exact solver's free curve,
+    refined from the cap's fit, for free points of the other materials; :func:`check_exact_material`).
+    ValueError for unavailable options or too few points.
     """
     check_options(material, contact, fidelity)
+    check_disk_radius(contact, disk_radius, r1)
     if contact is None:
         contact = "flat" if data.F is not None else "free"
     # a shape-changing material's exact fit: free points only, through the solver itself
     solver_free = fidelity == "exact" and not exact_shapes_fixed(material)
     if solver_free and contact != "free":
         check_exact_material(material, f"--fidelity exact with --contact {contact}")
-    if contact == "flat" and data.F is None:
-        raise ValueError("data: missing column 'F_n' or 'load_g': --contact flat needs the load of each point")
+    if contact in ("flat", "bonded") and data.F is None:
+        raise ValueError(f"data: missing column 'F_n' or 'load_g': --contact {contact} needs the load of each point")
     if contact == "free" and data.F is not None and np.any(data.F > 0):
         row = int(np.argmax(data.F > 0)) + 1
         raise ValueError(f"data: column '{data.force_column}', row {row}: a load with --contact free (free "
@@ -433,8 +461,15 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     span = float(data.p.max() - data.p.min())
     if not span > 0:
         raise ValueError("data: column 'p_kpa' has one value in every row; nothing to fit")
-    model = _Model(material, r1, t0, data, contact, "cap" if solver_free else fidelity)
-    law = _ExactFree(material, r1, t0, data) if solver_free else model
+    bonded = contact == "bonded"
+    # the model gives the defaults and bounds; the law the pressures
+    model = _Model(material, r1, t0, data, contact, "cap" if solver_free or bonded else fidelity)
+    if bonded:
+        from hbma_ctrl.app.tuning.fit_bonded import BondedLaw
+
+        law = BondedLaw(r1, t0, disk_radius, data.h, data.F, cache)
+    else:
+        law = _ExactFree(material, r1, t0, data) if solver_free else model
     lo, hi = _bounds(material, names, model.default, data, r1)
     for k, v in fixed.items():
         i = names.index(k)
@@ -483,7 +518,7 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
                              f"membrane's reach in free inflation ({U.to_mm(top):.4g} mm, pole stretch "
                              "4 or 98 % of the locking one); use --fidelity cap")
     else:
-        model.check_reach(full(z))
+        law.check_reach(full(z))
     est = estimate(resid, z, (zlo, zhi))
     values = full(z)
     params = {k: float(values[i]) for i, k in enumerate(names)}
@@ -494,4 +529,4 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
                      nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak,
                      correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
-                     p_data=data.p.copy(), p_model=pm, fidelity=fidelity)
+                     p_data=data.p.copy(), p_model=pm, fidelity=fidelity, disk_radius=disk_radius)

@@ -320,6 +320,9 @@ def fit_dynamic(run: RunData, material: str, r1: float, t0: float, V0: float = 3
     ValueError for unavailable options, too few points, a flat or too long record."""
     check_delays("fit", valve_delay, sensor_delay)
     check_options(material, contact, fidelity)
+    if contact == "bonded":
+        raise ValueError("--contact bonded: static points only (h_mm, p_kpa and F_n or load_g); a recorded run is "
+                         "replayed through a chamber model without a glued disk")
     if fidelity == "exact" and fit_material:
         check_exact_material(material, "--fit-material with --fidelity exact")
     if contact == "free" and run.load > 0:

@@ -59,7 +59,8 @@ def toml_head(result: FitReport, title: str, law: str, fitted_for: str = "", act
 def params_toml(result: FitResult) -> str:
     """A parameter file for a scenario: ``[actuator]`` material and ``[actuator.material_params]`` (SI)."""
     title = f": {result.material}, contact {result.contact}, {result.n_points} points, NRMSD {result.nrmsd:.4f}"
-    return "\n".join(toml_head(result, title, result.fidelity)) + "\n"
+    disk = "" if result.disk_radius is None else f", disk_radius_mm = {U.to_mm(result.disk_radius):g} (glued at the centre)"
+    return "\n".join(toml_head(result, title, result.fidelity, disk)) + "\n"
 
 
 def _plot(result: FitResult, path: Path) -> None:
@@ -72,7 +73,8 @@ def _plot(result: FitResult, path: Path) -> None:
              label=f"fit ({result.material})")
     ax1.set_xlabel("h (mm)")
     ax1.set_ylabel("p (kPa)")
-    ax1.set_title(f"{result.contact} contact, {result.fidelity} law, NRMSD {result.nrmsd:.4f}")
+    disk = "" if result.disk_radius is None else f"\ndisk of {U.to_mm(result.disk_radius):g} mm glued at the centre"
+    ax1.set_title(f"{result.contact} contact, {result.fidelity} law, NRMSD {result.nrmsd:.4f}{disk}")
     ax1.legend()
     ax2.axhline(0.0, color="0.6", lw=0.8)
     ax2.plot(h, U.to_kpa(result.p_model - result.p_data), "o", ms=4)

@@ -119,7 +119,7 @@ def test_bad_data_is_one_line(tmp_path, text, needles):
     (["--fidelity", "exact", "--material", "mr", "--contact", "flat"],
      ["--fidelity exact with --contact flat", "--material nh only", "--fidelity cap"]),
     (["--fidelity", "exakt"], ["--fidelity exakt", "did you mean 'exact'"]),
-    (["--contact", "bonded"], ["--contact bonded", "not available to a fit"]),
+    (["--contact", "bonded", "--disk-radius-mm", "2"], ["missing column 'F_n' or 'load_g'", "--contact bonded"]),
     (["--contact", "flat"], ["--contact flat needs"]),
     (["--material", "nhh"], ["did you mean 'nh'"]),
     (["--fix", "E"], ["NAME=VALUE"]),

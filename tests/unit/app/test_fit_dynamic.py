@@ -182,7 +182,7 @@ def test_bad_run_data_is_one_line(tmp_path, text, needles):
 @pytest.mark.parametrize("args,needles", [
     (["--fidelity", "exact", "--fit-material", "--material", "gent"], ["--fit-material with --fidelity exact",
                                                                        "--material nh only"]),
-    (["--contact", "bonded"], ["--contact bonded", "not available to a fit"]),
+    (["--contact", "bonded", "--disk-radius-mm", "2"], ["--contact bonded", "static points only"]),
     (["--fix", "E=150e3"], ["--fix E", "--fit-material", "allowed: modulus_scale, V0, flow_scale, C_out"]),
     (["--load-g", "-5"], ["--load-g", "[0, 50000] g"]),
     (["--valve-delay-ms", "150"], ["--valve-delay-ms = 150", "[0, 100] ms"]),
