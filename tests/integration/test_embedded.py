@@ -84,13 +84,16 @@ int main(void) {
 
 @pytest.mark.slow
 def test_library_options_are_checked(tmp_path):
-    """--library refuses what it cannot build, naming the option and what is allowed."""
+    """--library refuses what it cannot build, naming the option and what is allowed (a robot's library in
+    single precision too)."""
     out = str(tmp_path / "lib")
     one_line_error(_cli(["codegen", TRACK, "--library", "--target", "avr", "--out", out]), "--target", "cortex-m7")
     one_line_error(_cli(["codegen", TRACK, "--library", "--precision", "half", "--out", out]), "--precision",
                    "single")
     one_line_error(_cli(["codegen", TRACK, "--library", "--qp-solver", "qrqp", "--out", out]), "--qp-solver", "osqp")
     one_line_error(_cli(["codegen", TRACK, "--target", "cortex-m7", "--out", out]), "--library")
+    one_line_error(_cli(["codegen", ROBOT, "--library", "--precision", "single", "--out", out]), "--precision",
+                   "double")
 
 
 @pytest.mark.compiling

@@ -112,7 +112,7 @@ def codegen(
                                         "cortex-* target also runs on qemu-system-arm on the scenario's "
                                         "recorded pressures beside the host build (embedded.json)")] = "host",
     precision: Annotated[str, typer.Option(help="--library: double | single (floating-point type of "
-                                           "the library; single is also compared with double)")] = "double",
+                                           "the library; single is also compared with double; a robot's library: double)")] = "double",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario, or
@@ -163,9 +163,13 @@ def _library(config: Path, out: Path, duration_s: float | None, estimator: str, 
     if check:
         raise ValueError("--check compares the closed loop with Python; with --library a cortex-* --target "
                          "compares the board with the host build")
-    from hbma_ctrl.app.codegen.library import generate
+    from hbma_ctrl.app.codegen.library import check_precision, generate
 
     scn = load_scenario(config)
+    try:
+        check_precision("robot" if scn.role("robot") is not None else "chamber", precision)
+    except ValueError as exc:
+        raise ValueError(f"{config.name}: {exc}") from None
     con = Console(highlight=False)
     with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         try:

@@ -62,7 +62,8 @@ from hbma_ctrl.core.loopgen_c import c_array, stage_guard
 from hbma_ctrl.core.osqp_embed import own_workspace
 
 __all__ = ["TARGETS", "PRECISIONS", "LibrarySpec", "library_spec", "write_library", "record_inputs",
-           "write_inputs", "build_library", "run_library", "LibraryRun", "embedded_report", "qemu_command"]
+           "write_inputs", "build_library", "run_library", "check_precision", "LibraryRun", "embedded_report",
+           "qemu_command"]
 
 #: build targets: the host's C compiler, or arm-none-eabi-gcc for a Cortex-M run on QEMU
 TARGETS = ("host", "cortex-m7", "cortex-m4f")
@@ -436,12 +437,24 @@ def _functions(lib: LibrarySpec) -> list:
     return out + [dense_function(f) for f in [lib.qp_data, lib.qp_post] + extra]
 
 
+def check_precision(kind: str, precision: str) -> None:
+    """ValueError naming ``--precision`` when a library of this kind ('chamber' or 'robot') cannot be
+    built in it: a robot's in single precision. Measured on robot_bending: the robot step's finiteness
+    check squares the bounds at OSQP's infinity (1e30), which overflows a float; with that check scaled,
+    OSQP's float LDL factor of the KKT matrix loses its quasi-definiteness at the first warm-started
+    step, and every step after it fails."""
+    if precision == "single" and kind == "robot":
+        raise ValueError("--precision single: the robot NMPC's QP does not factorise in single precision "
+                         "(OSQP: the KKT matrix is not quasi-definite); allowed for a robot: double")
+
+
 def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "double") -> list:
     """Write the library's sources into ``out_dir``: ``hbma.h``, ``hbma.c``, ``hbma_steps.c/.h``, ``osqp/``,
     the driver ``hbma_run.c``, ``board/`` (start-up file and linker scripts for the MPS2 boards QEMU
     emulates), ``CMakeLists.txt``, ``Makefile`` and ``README.txt``; returns the written paths."""
     if precision not in PRECISIONS:
         raise ValueError(f"--precision = '{precision}'; allowed: {', '.join(PRECISIONS)}")
+    check_precision(lib.kind, precision)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     funs = _functions(lib)
