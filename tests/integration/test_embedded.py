@@ -196,6 +196,81 @@ def test_robot_host_build_replays_the_recorded_run_to_the_qp_tolerance(tmp_path,
     assert np.max(np.abs(run.height - rec["h_est"])) <= 1e-6
 
 
+_HELD_HARNESS = r"""
+#include <stdio.h>
+#include <string.h>
+#include "hbma.h"
+static hbma_workspace_t ws;
+static hbma_params_t params;
+/* argv[1]: inputs.bin; argv[2]: 0 lockstep (held = the last u), 1 held all closed, 2 held open everywhere */
+int main(int argc, char** argv) {
+  int mode = argv[2][0] - '0';
+  FILE* fh = fopen(argv[1], "rb");
+  double head[3], row[1 + HBMA_N_CHAMBERS + 3 * HBMA_N_LAYERS];
+  if (!fh || fread(head, 8, 3, fh) != 3) return 2;
+  hbma_default_params(&params);
+  hbma_init(&ws, &params);
+  static hbma_real p[HBMA_N_CHAMBERS], pose[HBMA_N_LAYERS][3], held[3][HBMA_N_CHAMBERS], u[3][HBMA_N_CHAMBERS];
+  hbma_outputs_t out;
+  for (long k = 0; k < (long)head[0]; ++k) {
+    if (fread(row, 8, sizeof row / 8, fh) != sizeof row / 8) return 2;
+    for (int i = 0; i < HBMA_N_CHAMBERS; ++i) p[i] = row[1 + i];
+    for (int l = 0; l < HBMA_N_LAYERS; ++l)
+      for (int j = 0; j < 3; ++j) pose[l][j] = row[1 + HBMA_N_CHAMBERS + 3 * l + j];
+    hbma_set_target(&ws, (const hbma_real(*)[3])pose);
+    if (mode == 2)
+      for (int j = 0; j < 3; ++j)
+        for (int i = 0; i < HBMA_N_CHAMBERS; ++i) held[j][i] = 0.37;
+    hbma_tick(&ws, row[0], p, (const hbma_real(*)[HBMA_N_CHAMBERS])held, u);
+    if (mode == 0) memcpy(held, u, sizeof held);
+    hbma_outputs(&ws, &out);
+    printf("%ld", k);
+    for (int j = 0; j < 3; ++j)
+      for (int i = 0; i < HBMA_N_CHAMBERS; ++i) printf(" %.17g", (double)u[j][i]);
+    printf(" %ld %.17g\n", out.held_unmatched, (double)out.height_m[0]);
+  }
+  return 0;
+}
+"""
+
+
+@pytest.mark.compiling
+@pytest.mark.slow
+@needs_cc
+def test_robot_library_reads_held_as_the_robot_runtime_does(tmp_path, monkeypatch):
+    """``hbma_tick``'s ``held`` (the valve inputs a rig held) read as ``RobotLoop.tick`` reads it: in
+    lockstep (held = the last command) the commands are the driver's; a held with every valve closed is
+    the safe command (no report left unmatched) and changes the estimate; a held matching no command
+    sent (speed and inlet open everywhere) is counted unmatched at every tick."""
+    from hbma_ctrl.app.codegen.library import (build_library, library_spec, record_inputs, run_library,
+                                               write_inputs, write_library)
+    from hbma_ctrl.app.scenario import load_scenario
+
+    monkeypatch.setenv("OPT", "-O0")
+    scn = load_scenario(ROBOT)
+    lib = library_spec(scn)
+    write_library(lib, tmp_path)
+    build_library(tmp_path, "host")
+    inputs = write_inputs(record_inputs(scn, lib, 40), tmp_path / "inputs.bin")
+    driver = run_library(tmp_path, "host", inputs)
+    (tmp_path / "held.c").write_text(_HELD_HARNESS)
+    cc = shutil.which("cc") or shutil.which("gcc")
+    subprocess.run([cc, "-O0", "-std=c99", "-I", str(tmp_path), "-I", str(tmp_path / "osqp"), "-I",
+                    str(tmp_path / "osqp" / "inc" / "public"), "-I", str(tmp_path / "osqp" / "inc" / "private"),
+                    str(tmp_path / "held.c"), str(tmp_path / "build" / "host" / "libhbma.a"), "-o",
+                    str(tmp_path / "held"), "-lm"], check=True, capture_output=True)
+
+    def run(mode: int) -> np.ndarray:
+        out = subprocess.run([str(tmp_path / "held"), str(inputs), str(mode)], check=True, capture_output=True,
+                             text=True).stdout
+        return np.array([[float(v) for v in line.split()] for line in out.splitlines()])
+
+    lockstep, closed, unmatched = run(0), run(1), run(2)
+    assert np.array_equal(lockstep[:, 1:28], driver.u) and np.all(lockstep[:, 28] == 0)
+    assert np.all(closed[:, 28] == 0) and not np.array_equal(closed[:, 29], lockstep[:, 29])
+    assert np.array_equal(unmatched[:, 28], np.arange(1, 41))
+
+
 @pytest.mark.slow
 def test_robot_library_qp_parts_equal_the_robot_steps_own():
     """The robot library's QP path is the robot NMPC step Function's: its post-processing on the step's

@@ -34,8 +34,9 @@ supply caps, the robot NMPC's step, the supervisor and the valves), its n chambe
 (``hbma_set_target(&ws, pose[L][3])``: centre height, bend, direction, through the inverse kinematics),
 the bank started at rest from the first tick's readings, and the NMPC's QP taken out of its step
 (:func:`hbma_ctrl.controllers.robot_rti_step.robot_rti_qp_functions`) for OSQP's embedded code with the
-step's settings. It runs in lockstep as the robot's generated loop does (its bank predicts with the
-command it returned; ``held`` is not read).
+step's settings. Its bank predicts with what the rig reports it held, matched against the commands sent
+lately as :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` matches it (in lockstep: the command it
+returned, as in the robot's generated loop).
 
 :func:`record_inputs` runs the scenario's own closed loop on the sim rig to record the pressures a run
 replays; :func:`run_library` builds and runs the library's driver ``hbma_run.c`` (host, or bare-metal
@@ -518,7 +519,7 @@ typedef struct {{
   hbma_real t_last;       /* time of the last tick, s */
   hbma_real t_ctrl;       /* time of the controller's last step, s */
   int qp_iterations, qp_status;
-@SIGNALS@
+{api['state']}@SIGNALS@
   const casadi_real* arg[{sz['arg']}];
   casadi_real* res[{sz['res']}];
   const casadi_real* arg2[{sz['arg']}];
@@ -622,7 +623,7 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
            .replace("@QP_FAIL_DOC@", api["qp_fail_doc"]).replace("@RTI_NAME@", lib.rti_name)
            .replace("@RTI_N_IN@", str(rti.n_in())).replace("@RTI_N_OUT@", str(rti.n_out()))
            .replace("@TARGETS_FUN@", lib.targets.name() if lib.targets is not None else "")
-           .replace("@REFRESH_EVERY@", str(lib.refresh_every))
+           .replace("@REFRESH_EVERY@", str(lib.refresh_every)).replace("@INIT_STATE@", api["init_state"])
            .replace("@DEFAULTS@", "\n".join(defaults)).replace("@WORK_CHECKS@", "\n".join(checks))
            .replace("@TICK@", "\n".join(tick)).replace("@EVERY@", str(lib.every))
            .replace("@LOAD_TAU@", repr(lib.load_tau)).replace("@CTRL_DT@", repr(lib.ctrl_dt)).replace("@N@", str(lib.horizon))
@@ -631,6 +632,8 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
            .replace("@NCHK@", str(qd.nnz_out(7))).replace("@RTI_OUTBUFS@", "")
            .replace("@QP_DATA@", qd.name()).replace("@QP_POST@", qpost.name())
            .replace("@PART_QP_DATA@", str(1 + len(stages))))
+    for key, value in api.get("replace", {}).items():
+        src = src.replace(key, value)
     (out / "hbma.c").write_text(src)
     (out / "hbma_run.c").write_text(_template("hbma_run.c.in").replace("@INPUT_FORMAT@", api["input_format"])
                                     .replace("@MAIN@", _template(f"hbma_run_{lib.kind}.c.in")))
@@ -652,6 +655,8 @@ def _chamber_api(lib: LibrarySpec) -> dict:
              for n in lib.theta_names]
     return {
         "what": "chamber",
+        "state": "",
+        "init_state": "",
         "doc": """ * Every tick (period HBMA_TICK_S): hbma_tick(&ws, t, p, held, u) takes the time t (s), the pressure reading p
  * (Pa, gauge; NaN: no reading) and the command held over the last period, and writes the command u to hold
  * over the next one (speed, inlet, outlet; each in [0, 1]). The target height (m) is set by hbma_set_target.""",
@@ -693,17 +698,26 @@ int hbma_tick(hbma_workspace_t* ws, hbma_real t, hbma_real p, const hbma_real he
 
 def _robot_api(lib: LibrarySpec) -> dict:
     """The robot library's own parts of hbma.h, hbma.c and the driver (the rest is shared)."""
+    from hbma_ctrl.runtime.robot import HELD_ATOL, HELD_HISTORY
+
     n, L = lib.n, lib.n_layers
     loads = np.asarray(lib.loop.signals["W"], float)
     return {
         "what": "robot",
+        # the commands sent lately, to match a rig's report of the one it held (RobotLoop._held_input)
+        "state": (f"  hbma_real sent_u[{HELD_HISTORY}][{3 * n}], sent_w[{HELD_HISTORY}][{2 * n}];  "
+                  "/* the commands sent lately */\n  int sent_next, sent_count;\n"
+                  "  long held_unmatched;    /* held reports that matched no command sent lately */\n"),
+        "init_state": "  ws->sent_next = ws->sent_count = 0;\n  ws->held_unmatched = 0;",
+        "replace": {"@HELD_HISTORY@": str(HELD_HISTORY), "@HELD_ATOL@": repr(HELD_ATOL)},
         "doc": f""" * The robot: {L} layers of 3 chambers, HBMA_N_CHAMBERS = {n} (chamber 3 k + i is layer k's i-th).
  * Every tick (period HBMA_TICK_S): hbma_tick(&ws, t, p, held, u) takes the time t (s), the chambers' pressure
  * readings p (Pa, gauge; NaN: no reading) and the valve inputs held over the last period, and writes the
  * valve inputs u to hold over the next one (u[0]: pump speed, u[1]: inlet, u[2]: outlet, each chamber's in
- * [0, 1]). The library runs in lockstep as the robot's generated loop does: its estimators predict with the
- * command it returned last; held is not read. The targets are the layers' poses (hbma_set_target: centre
- * height m, bend rad, direction rad), as the robot's runtime takes them.""",
+ * [0, 1]). The estimators predict with what the rig held, as the robot's runtime reads it: the newest command
+ * sent lately whose valve inputs held equals (to HELD_ATOL), else the safe command's. The targets are the
+ * layers' poses (hbma_set_target: centre height m, bend rad, direction rad), as the robot's runtime takes
+ * them.""",
         "defines": f"#define HBMA_N_CHAMBERS {n}\n#define HBMA_N_LAYERS {L}\n",
         "err_argument": "a NULL pointer, a time that is not finite or goes back, a pose out of range",
         "params": """/* What the robot starts with (SI). */
@@ -716,7 +730,8 @@ typedef struct {
   hbma_real rti_status;   /* the NMPC's last step: 0 usable, 1 non-finite, 2 residual too large (NaN: failed) */
   int failed;             /* the supervisor replaced the NMPC's command in the last tick */
   int qp_iterations;      /* OSQP's iterations in the last QP */
-  int qp_status;          /* OSQP's status of that QP (1 solved) */""",
+  int qp_status;          /* OSQP's status of that QP (1 solved) */
+  long held_unmatched;    /* held reports that matched no command sent lately (the last one used) */""",
         "init_doc": ("the estimators start at rest from the first tick's readings, the controller cold, every "
                      "layer's target the generation scenario's first pose"),
         "prototypes": """/* The layers' poses from now on: pose[k] = (centre height m, bend rad in [0, pi/2), direction rad) of
