@@ -35,7 +35,7 @@ import numpy as np
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings, RobotNMPC
 from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags
 
-__all__ = ["robot_rti_step_function", "RES_TOL", "FN_MAX_ITER", "FN_RHO", "RobotNMPCFunction"]
+__all__ = ["robot_rti_step_function", "robot_rti_qp_functions", "RES_TOL", "FN_MAX_ITER", "FN_RHO", "RobotNMPCFunction"]
 
 #: the largest constraint violation (QP units: mm, kPa, duty) a usable solution may have. OSQP stops at
 #: eps_abs + eps_rel x the size of the rows' values, so a good solve's residual scales with the
@@ -66,20 +66,23 @@ _IN = ["x0", "b", "W", "k", "c", "a_max", "h_ref", "prev", "xbar", "abar", "obar
 _OUT = ["a", "o", "xbar_next", "abar_next", "obar_next", "z", "y", "status", "residual"]
 
 
-def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca.Function:
-    """One RTI step of ``nmpc`` (its model, size, topology and settings) as a Function (module docstring)."""
+def _step_inputs(nmpc: RobotNMPC) -> list:
+    """The step's inputs as MX symbols, in :data:`_IN`'s order."""
+    n, N, MX = nmpc.n, nmpc.s.horizon, ca.MX
+    x0, b, W, k, c, amax = (MX.sym(nm, n) for nm in ("x0", "b", "W", "k", "c", "a_max"))
+    return [x0, b, W, k, c, amax, MX.sym("h_ref", n, N), MX.sym("prev", 2, n), MX.sym("xbar", n, N + 1),
+            MX.sym("abar", n, N), MX.sym("obar", n, N), MX.sym("first"), MX.sym("z_prev", nmpc.nv),
+            MX.sym("y_prev", nmpc.m_rows), MX.sym("warm")]
+
+
+def _step_qp(nmpc: RobotNMPC, ins: list) -> tuple:
+    """The step's QP from its inputs: (Pu (OSQP's upper triangle), A, q, lo, up, the shifted primal and
+    dual guesses, the shifted states, whether the data are finite). Non-finite data become a zero QP."""
     s, n, N = nmpc.s, nmpc.n, nmpc.s.horizon
     nv, m = nmpc.nv, nmpc.m_rows
-    nb = 3 * N + 1
     data = nmpc._qp_data_function(nmpc.model.linearisation(s.dt, 1, s.integrator))
-    Asp = data.sparsity_out(1)
     MX = ca.MX
-    x0, b, W, k, c, amax = (MX.sym(nm, n) for nm in ("x0", "b", "W", "k", "c", "a_max"))
-    href = MX.sym("h_ref", n, N)
-    prev = MX.sym("prev", 2, n)
-    xbar, abar, obar = MX.sym("xbar", n, N + 1), MX.sym("abar", n, N), MX.sym("obar", n, N)
-    first, warm = MX.sym("first"), MX.sym("warm")
-    z_prev, y_prev = MX.sym("z_prev", nv), MX.sym("y_prev", m)
+    x0, b, W, k, c, amax, href, prev, xbar, abar, obar, first, z_prev, y_prev, warm = ins
     Wc = nmpc.model.clip_load(W)
     amc = ca.fmin(ca.fmax(amax, 0.0), 1.0)
     # the plan shifted one stage on (the last repeated), the first state the estimate
@@ -92,17 +95,18 @@ def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca
     # zero QP instead and report status 1 (bounds at OSQP's infinity, 1e30, square to 1e60: finite)
     d_ok = ca.sumsqr(Pu) + ca.sumsqr(A) + ca.sumsqr(q) + ca.sumsqr(lo) + ca.sumsqr(up) < ca.inf
     Pu, A, q, lo, up = (ca.if_else(d_ok, v, MX.zeros(v.sparsity())) for v in (Pu, A, q, lo, up))
-    # OSQP's P is the upper triangle; casadi's conic takes the whole symmetric Hessian
-    H = Pu + Pu.T - ca.diag(ca.diag(Pu))
     sx, sy = nmpc._shift_x, nmpc._shift_y
     zw = ca.if_else(warm, z_prev[sx.tolist()], MX.zeros(nv))
     yw = ca.if_else(warm, y_prev[sy.tolist()], MX.zeros(m))
-    opts = {"osqp": {"verbose": False, "eps_abs": s.eps, "eps_rel": s.eps, "max_iter": max(s.max_iter, FN_MAX_ITER),
-                     "polish": False, "check_termination": 5, "scaling": 1, "rho": FN_RHO},
-            "error_on_fail": False, "warm_start_primal": True, "warm_start_dual": True}
-    qp = ca.conic(f"{name}_qp", "osqp", {"h": H.sparsity(), "a": Asp}, opts)
-    sol = qp(h=H, g=q, a=A, lba=lo, uba=up, x0=zw, lam_a0=yw)
-    z, y = sol["x"], sol["lam_a"]
+    return Pu, A, q, lo, up, zw, yw, xs, d_ok
+
+
+def _step_outputs(nmpc: RobotNMPC, x0, xs, d_ok, A, lo, up, z, y) -> list:
+    """The step's outputs (:data:`_OUT`) from the QP's solution (z, y), its rows (A, lo, up) and the
+    step's shifted states and data check."""
+    n, N = nmpc.n, nmpc.s.horizon
+    nb = 3 * N + 1
+    MX = ca.MX
     Az = ca.mtimes(A, z)
     # bounds at OSQP's infinity (1e30) never bind: only finite violations count
     res = ca.mmax(ca.vertcat(ca.fmax(lo - Az, 0), ca.fmax(Az - up, 0)))
@@ -117,8 +121,50 @@ def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca
     if nmpc.topology == "shared":
         tot = ca.sum1(a0)
         a0 = ca.if_else(tot > 1.0, a0 / tot, a0)
-    return ca.Function(name, [x0, b, W, k, c, amax, href, prev, xbar, abar, obar, first, z_prev, y_prev, warm],
-                       [a0, o0, x_next, a_plan, o_plan, z, y, status, res], _IN, _OUT)
+    return [a0, o0, x_next, a_plan, o_plan, z, y, status, res]
+
+
+def robot_rti_step_function(nmpc: RobotNMPC, name: str = "robot_rti_step") -> ca.Function:
+    """One RTI step of ``nmpc`` (its model, size, topology and settings) as a Function (module docstring)."""
+    s = nmpc.s
+    ins = _step_inputs(nmpc)
+    Pu, A, q, lo, up, zw, yw, xs, d_ok = _step_qp(nmpc, ins)
+    # OSQP's P is the upper triangle; casadi's conic takes the whole symmetric Hessian
+    H = Pu + Pu.T - ca.diag(ca.diag(Pu))
+    opts = {"osqp": {"verbose": False, "eps_abs": s.eps, "eps_rel": s.eps, "max_iter": max(s.max_iter, FN_MAX_ITER),
+                     "polish": False, "check_termination": 5, "scaling": 1, "rho": FN_RHO},
+            "error_on_fail": False, "warm_start_primal": True, "warm_start_dual": True}
+    qp = ca.conic(f"{name}_qp", "osqp", {"h": H.sparsity(), "a": A.sparsity()}, opts)
+    sol = qp(h=H, g=q, a=A, lba=lo, uba=up, x0=zw, lam_a0=yw)
+    return ca.Function(name, ins, _step_outputs(nmpc, ins[0], xs, d_ok, A, lo, up, sol["x"], sol["lam_a"]), _IN, _OUT)
+
+
+def robot_rti_qp_functions(nmpc: RobotNMPC) -> tuple[ca.Function, ca.Function, tuple]:
+    """The step of :func:`robot_rti_step_function` with its QP taken out, for a solver outside casadi
+    (OSQP's embedded code: :mod:`hbma_ctrl.app.codegen.library`): (data, post, patterns).
+
+    ``robot_qp_data`` (the step's inputs) -> (P's upper triangle and A as OSQP's CSC values, q, l, u,
+    the primal and dual guesses, chk = [data finite; x0; the shifted states]); ``robot_qp_post`` (the
+    solution z, its cost, the multipliers y, chk, A's values, l, u) -> the step's outputs, the same
+    expressions as the step's on its solver's solution. ``patterns``: (P's rows, P's columns, A's rows, A's columns, nv, m)."""
+    n, N = nmpc.n, nmpc.s.horizon
+    nv, m = nmpc.nv, nmpc.m_rows
+    ins = _step_inputs(nmpc)
+    Pu, A, q, lo, up, zw, yw, xs, d_ok = _step_qp(nmpc, ins)
+    chk = ca.vertcat(d_ok, ins[0], ca.vec(xs))
+    data = ca.Function("robot_qp_data", ins, [Pu.nz[:], q, A.nz[:], lo, up, zw, yw, chk], _IN,
+                       ["Px", "q", "Ax", "l", "u", "x_guess", "y_guess", "chk"])
+    Psp, Asp = Pu.sparsity(), A.sparsity()
+    MX = ca.MX
+    z, cost, y, chk_s = MX.sym("z", nv), MX.sym("cost"), MX.sym("y", m), MX.sym("chk", chk.numel())
+    ax, lo_s, up_s = MX.sym("Ax", Asp.nnz()), MX.sym("l", m), MX.sym("u", m)
+    xs_s = ca.reshape(chk_s[1 + n:], n, N + 1)
+    outs = _step_outputs(nmpc, chk_s[1:1 + n], xs_s, chk_s[0], MX(Asp, ax), lo_s, up_s, z, y)
+    post = ca.Function("robot_qp_post", [z, cost, y, chk_s, ax, lo_s, up_s], outs,
+                       ["z_qp", "cost", "y_qp", "chk", "Ax", "l", "u"], _OUT)
+    cols = lambda sp: np.repeat(np.arange(sp.size2()), np.diff(np.array(sp.colind())))  # noqa: E731
+    patterns = (np.array(Psp.row()), cols(Psp), np.array(Asp.row()), cols(Asp), nv, m)
+    return data, post, patterns
 
 
 class RobotNMPCFunction(RobotNMPC):

@@ -1,5 +1,6 @@
-"""The chamber's tick as a C library (``codegen --library``): OSQP's workspace as a caller-owned struct,
-the library built for the host and for a Cortex-M7, run bare-metal on QEMU beside the host build.
+"""The chamber's and the robot's tick as a C library (``codegen --library``): OSQP's workspace as a
+caller-owned struct, the library built for the host and for a Cortex-M7, run bare-metal on QEMU beside
+the host build.
 
 The board tests need Debian's gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-system-arm (.ci/run
 installs them) and are skipped, saying so, without them.
@@ -21,6 +22,7 @@ from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.core.osqp_embed import own_workspace
 
 TRACK = str(ROOT / "scenarios" / "track_height.toml")
+ROBOT = str(ROOT / "scenarios" / "robot_bending.toml")
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                               reason="no C compiler (cc or gcc) on PATH")
 _ARM_TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm", "make")
@@ -82,13 +84,16 @@ int main(void) {
 
 @pytest.mark.slow
 def test_library_options_are_checked(tmp_path):
-    """--library refuses what it cannot build, naming the option and what is allowed."""
+    """--library refuses what it cannot build, naming the option and what is allowed (a robot's library in
+    single precision too)."""
     out = str(tmp_path / "lib")
     one_line_error(_cli(["codegen", TRACK, "--library", "--target", "avr", "--out", out]), "--target", "cortex-m7")
     one_line_error(_cli(["codegen", TRACK, "--library", "--precision", "half", "--out", out]), "--precision",
                    "single")
     one_line_error(_cli(["codegen", TRACK, "--library", "--qp-solver", "qrqp", "--out", out]), "--qp-solver", "osqp")
     one_line_error(_cli(["codegen", TRACK, "--target", "cortex-m7", "--out", out]), "--library")
+    one_line_error(_cli(["codegen", ROBOT, "--library", "--precision", "single", "--out", out]), "--precision",
+                   "double")
 
 
 @pytest.mark.compiling
@@ -121,6 +126,199 @@ def test_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypatch):
     undefined = subprocess.run(["arm-none-eabi-nm", "-u", str(out / "build" / "cortex-m7" / "libhbma.a")],
                                check=True, capture_output=True, text=True).stdout.split()
     assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+
+
+@pytest.mark.compiling
+@pytest.mark.slow
+@needs_arm
+def test_robot_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypatch):
+    """``codegen --library --target cortex-m7`` on a 3-layer [robot] scenario (9 chambers): the board's
+    commands (3 x 9 valve inputs per tick) equal the host build's to 1e-9 over the recorded ticks;
+    embedded.json has the chamber library's keys and the comparison with the scenario's own run; the
+    library's objects call no allocator and no file or console I/O."""
+    monkeypatch.setenv("OPT", "-O0")  # as the chamber's test: unoptimised, host and board alike
+    out = tmp_path / "robot_m7"
+    res = _cli(["codegen", ROBOT, "--library", "--target", "cortex-m7", "--duration-s", "2", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    rep = json.loads((out / "embedded.json").read_text())
+    for key in ("target", "ticks", "max_abs_diff", "instructions_per_tick_median", "instructions_per_tick_max",
+                "flash_bytes", "ram_bytes"):
+        assert key in rep
+    assert rep["target"] == "cortex-m7" and rep["ticks"] == 200
+    assert rep["max_abs_diff"] <= 1e-9
+    assert 0 < rep["instructions_per_tick_median"] <= rep["instructions_per_tick_max"]
+    assert rep["flash_bytes"] > 0 and rep["ram_bytes"] > 0
+    host = np.loadtxt(out / "commands_host.txt")
+    assert host.shape == (200, 1 + 27) and np.all((host[:, 1:] >= 0) & (host[:, 1:] <= 1))
+    for key in ("recorded_commands_max_abs_diff", "recorded_commands_median_abs_diff",
+                "recorded_ticks_diff_above_1e-3", "recorded_height_estimate_max_abs_diff_m"):
+        assert np.isfinite(rep[key])
+    header = (out / "hbma.h").read_text()
+    assert "#define HBMA_N_CHAMBERS 9" in header and "#define HBMA_N_LAYERS 3" in header
+    undefined = subprocess.run(["arm-none-eabi-nm", "-u", str(out / "build" / "cortex-m7" / "libhbma.a")],
+                               check=True, capture_output=True, text=True).stdout.split()
+    assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+
+
+@pytest.mark.compiling
+@pytest.mark.slow
+@needs_cc
+def test_robot_host_build_replays_the_recorded_run_to_the_qp_tolerance(tmp_path, monkeypatch):
+    """The robot library's host build on the readings and poses of the scenario's own run (its NMPC the
+    step Function, its QP on casadi's OSQP) sends that run's commands and estimates its heights: with
+    both QPs solved to 1e-8 (the scenario's 3e-4 lets the two OSQPs' iterates, and so a valve's
+    minimum-duty decision, differ), every command within 5e-3 and every estimated height within 1e-6 m
+    over 100 ticks."""
+    from dataclasses import replace
+
+    import hbma_ctrl.app.scenes.robot_closed as robot_closed
+    from hbma_ctrl.app.codegen.library import (build_library, library_spec, record_inputs, run_library,
+                                               write_inputs, write_library)
+    from hbma_ctrl.app.scenario import load_scenario
+
+    parts = robot_closed.scene_parts
+
+    def tight(scn, s):
+        rig, model, mpc = parts(scn, s)
+        return rig, model, replace(mpc, eps=1e-8)
+
+    monkeypatch.setattr(robot_closed, "scene_parts", tight)
+    monkeypatch.setenv("OPT", "-O0")
+    scn = load_scenario(ROBOT)
+    lib = library_spec(scn)
+    assert lib.qp_setup["eps"] == 1e-8
+    write_library(lib, tmp_path)
+    build_library(tmp_path, "host")
+    rec = record_inputs(scn, lib, 100)
+    run = run_library(tmp_path, "host", write_inputs(rec, tmp_path / "inputs.bin"))
+    assert np.all(run.status == 0)
+    assert np.max(np.abs(run.u - rec["u"])) <= 5e-3
+    assert np.max(np.abs(run.height - rec["h_est"])) <= 1e-6
+
+
+_HELD_HARNESS = r"""
+#include <stdio.h>
+#include <string.h>
+#include "hbma.h"
+static hbma_workspace_t ws;
+static hbma_params_t params;
+/* argv[1]: inputs.bin; argv[2]: 0 lockstep (held = the last u), 1 held all closed, 2 held open everywhere */
+int main(int argc, char** argv) {
+  int mode = argv[2][0] - '0';
+  FILE* fh = fopen(argv[1], "rb");
+  double head[3], row[1 + HBMA_N_CHAMBERS + 3 * HBMA_N_LAYERS];
+  if (!fh || fread(head, 8, 3, fh) != 3) return 2;
+  hbma_default_params(&params);
+  hbma_init(&ws, &params);
+  static hbma_real p[HBMA_N_CHAMBERS], pose[HBMA_N_LAYERS][3], held[3][HBMA_N_CHAMBERS], u[3][HBMA_N_CHAMBERS];
+  hbma_outputs_t out;
+  for (long k = 0; k < (long)head[0]; ++k) {
+    if (fread(row, 8, sizeof row / 8, fh) != sizeof row / 8) return 2;
+    for (int i = 0; i < HBMA_N_CHAMBERS; ++i) p[i] = row[1 + i];
+    for (int l = 0; l < HBMA_N_LAYERS; ++l)
+      for (int j = 0; j < 3; ++j) pose[l][j] = row[1 + HBMA_N_CHAMBERS + 3 * l + j];
+    hbma_set_target(&ws, (const hbma_real(*)[3])pose);
+    if (mode == 2)
+      for (int j = 0; j < 3; ++j)
+        for (int i = 0; i < HBMA_N_CHAMBERS; ++i) held[j][i] = 0.37;
+    hbma_tick(&ws, row[0], p, (const hbma_real(*)[HBMA_N_CHAMBERS])held, u);
+    if (mode == 0) memcpy(held, u, sizeof held);
+    hbma_outputs(&ws, &out);
+    printf("%ld", k);
+    for (int j = 0; j < 3; ++j)
+      for (int i = 0; i < HBMA_N_CHAMBERS; ++i) printf(" %.17g", (double)u[j][i]);
+    printf(" %ld %.17g\n", out.held_unmatched, (double)out.height_m[0]);
+  }
+  return 0;
+}
+"""
+
+
+@pytest.mark.compiling
+@pytest.mark.slow
+@needs_cc
+def test_robot_library_reads_held_as_the_robot_runtime_does(tmp_path, monkeypatch):
+    """``hbma_tick``'s ``held`` (the valve inputs a rig held) read as ``RobotLoop.tick`` reads it: in
+    lockstep (held = the last command) the commands are the driver's; a held with every valve closed is
+    the safe command (no report left unmatched) and changes the estimate; a held matching no command
+    sent (speed and inlet open everywhere) is counted unmatched at every tick."""
+    from hbma_ctrl.app.codegen.library import (build_library, library_spec, record_inputs, run_library,
+                                               write_inputs, write_library)
+    from hbma_ctrl.app.scenario import load_scenario
+
+    monkeypatch.setenv("OPT", "-O0")
+    scn = load_scenario(ROBOT)
+    lib = library_spec(scn)
+    write_library(lib, tmp_path)
+    build_library(tmp_path, "host")
+    inputs = write_inputs(record_inputs(scn, lib, 40), tmp_path / "inputs.bin")
+    driver = run_library(tmp_path, "host", inputs)
+    (tmp_path / "held.c").write_text(_HELD_HARNESS)
+    cc = shutil.which("cc") or shutil.which("gcc")
+    subprocess.run([cc, "-O0", "-std=c99", "-I", str(tmp_path), "-I", str(tmp_path / "osqp"), "-I",
+                    str(tmp_path / "osqp" / "inc" / "public"), "-I", str(tmp_path / "osqp" / "inc" / "private"),
+                    str(tmp_path / "held.c"), str(tmp_path / "build" / "host" / "libhbma.a"), "-o",
+                    str(tmp_path / "held"), "-lm"], check=True, capture_output=True)
+
+    def run(mode: int) -> np.ndarray:
+        out = subprocess.run([str(tmp_path / "held"), str(inputs), str(mode)], check=True, capture_output=True,
+                             text=True).stdout
+        return np.array([[float(v) for v in line.split()] for line in out.splitlines()])
+
+    lockstep, closed, unmatched = run(0), run(1), run(2)
+    assert np.array_equal(lockstep[:, 1:28], driver.u) and np.all(lockstep[:, 28] == 0)
+    assert np.all(closed[:, 28] == 0) and not np.array_equal(closed[:, 29], lockstep[:, 29])
+    assert np.array_equal(unmatched[:, 28], np.arange(1, 41))
+
+
+@pytest.mark.slow
+def test_robot_library_qp_parts_equal_the_robot_steps_own():
+    """The robot library's QP path is the robot NMPC step Function's: its post-processing on the step's
+    own QP solution gives exactly the step's outputs, and its problem data solved by OSQP's Python
+    interface give the step's first decisions to the solver's tolerance."""
+    import osqp
+    import scipy.sparse as sp
+
+    from hbma_ctrl.app.codegen.library import library_spec
+    from hbma_ctrl.app.scenario import load_scenario
+
+    lib = library_spec(load_scenario(ROBOT))
+    assert lib.kind == "robot" and lib.n == 9 and lib.n_layers == 3
+    step = next(st.fun for st in lib.loop.stages if st != "log" and st.name == "robot_rti_step")
+    nmpc, n, N = lib.backend, lib.n, lib.horizon
+    ins = [np.full(n, 0.05), np.ones(n), np.full(n, 0.3), np.ones(n), np.ones(n), np.ones(n), np.full((n, N), 0.006),
+           np.zeros((2, n)), np.zeros((n, N + 1)), np.zeros((n, N)), np.zeros((n, N)), 1.0, np.zeros(nmpc.nv),
+           np.zeros(nmpc.m_rows), 0.0]
+    ref = step(*ins)
+    Px, q, Ax, lo, hi, _, _, chk = [np.asarray(v, float).ravel() for v in lib.qp_data(*ins)]
+    got = lib.qp_post(ref[5], 0.0, ref[6], chk, Ax, lo, hi)
+    for a, b in zip(ref, got):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    pr, pc, ar, ac, nv, m = lib.qp_setup["patterns"]
+    solver = osqp.OSQP()
+    solver.setup(sp.csc_matrix((Px, (pr, pc)), shape=(nv, nv)), q, sp.csc_matrix((Ax, (ar, ac)), shape=(m, nv)), lo,
+                 hi, verbose=False, eps_abs=1e-9, eps_rel=1e-9, polishing=False, max_iter=20000)
+    r = solver.solve(raise_error=False)
+    mine = lib.qp_post(r.x, r.info.obj_val, r.y, chk, Ax, lo, hi)
+    assert float(mine[7]) == 0.0 and float(ref[7]) == 0.0  # both usable
+    for i in (0, 1):  # the decisions sent: supply and outlet of every chamber
+        assert np.allclose(np.asarray(mine[i]), np.asarray(ref[i]), atol=1e-6)
+
+
+def test_robot_targets_are_the_runtimes_chamber_targets():
+    """The robot library's targets Function (layer poses -> chamber heights) gives the robot runtime's
+    chamber targets (:func:`hbma_ctrl.robot.targets.chamber_targets`) for bent and straight poses."""
+    from hbma_ctrl.app.codegen.library import _robot_targets_function
+    from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.robot.targets import chamber_targets
+
+    s = load_scenario(ROBOT).role("robot")
+    fun = _robot_targets_function(s.design)
+    for pose in ([0.006, 0.0, 0.0], [0.007, 0.349, 0.0], [0.0075, 0.262, 1.571], [0.001, 0.6, -2.0]):
+        targets = {k: ((0.0, *pose),) for k in range(s.design.n_layers)}
+        want = chamber_targets(s.design, targets, 0.0)
+        got = np.asarray(fun(np.tile(np.array(pose)[:, None], (1, s.design.n_layers)))).ravel()
+        assert np.allclose(got, want, rtol=0, atol=1e-15)
 
 
 @pytest.mark.slow

@@ -1,6 +1,6 @@
 """CLI hook of the code generation: ``hbma-ctrl codegen CONFIG --out DIR`` and ``hbma-ctrl bench codegen``.
 
-``codegen --library`` writes the chamber's tick as a C library instead and, for a Cortex-M ``--target``,
+``codegen --library`` writes the chamber's (or the robot's) tick as a C library instead and, for a Cortex-M ``--target``,
 runs it on QEMU (:mod:`hbma_ctrl.app.codegen.library`). ``codegen`` writes the C sources and header of the scenario's step Functions (plant, EKF, RTI NMPC and
 the small glue Functions), ``loop_data.h``, ``closed_loop.c``, a Makefile and README.txt
 (:mod:`hbma_ctrl.core.loopgen`, :mod:`hbma_ctrl.app.codegen.chamber`); ``--check`` also builds it with the
@@ -104,7 +104,7 @@ def codegen(
                                                      "(self-contained C); default: the variant's, else osqp")] = None,
     check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
     opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
-    library: Annotated[bool, typer.Option("--library", help="write the chamber's estimator + controller + "
+    library: Annotated[bool, typer.Option("--library", help="write the chamber's (or robot's) estimator + controller + "
                                           "supervisor tick as a self-contained C library (hbma.h: fixed "
                                           "memory, no malloc, OSQP's embedded sources included) instead of "
                                           "the closed loop")] = False,
@@ -112,11 +112,11 @@ def codegen(
                                         "cortex-* target also runs on qemu-system-arm on the scenario's "
                                         "recorded pressures beside the host build (embedded.json)")] = "host",
     precision: Annotated[str, typer.Option(help="--library: double | single (floating-point type of "
-                                           "the library; single is also compared with double)")] = "double",
+                                           "the library; single is also compared with double; a robot's library: double)")] = "double",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
 ) -> None:
     """Write C sources, one header and a C closed-loop program (no Python at run time) for a scenario, or
-    (--library) its chamber tick as a C library for a microcontroller."""
+    (--library) its chamber's or robot's tick as a C library for a microcontroller."""
     from hbma_ctrl.core.loopgen_c import bench, write_c
 
     check_choice("--opt", opt, OPT_FLAGS)
@@ -163,9 +163,13 @@ def _library(config: Path, out: Path, duration_s: float | None, estimator: str, 
     if check:
         raise ValueError("--check compares the closed loop with Python; with --library a cortex-* --target "
                          "compares the board with the host build")
-    from hbma_ctrl.app.codegen.library import generate
+    from hbma_ctrl.app.codegen.library import check_precision, generate
 
     scn = load_scenario(config)
+    try:
+        check_precision("robot" if scn.role("robot") is not None else "chamber", precision)
+    except ValueError as exc:
+        raise ValueError(f"{config.name}: {exc}") from None
     con = Console(highlight=False)
     with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         try:
@@ -179,6 +183,11 @@ def _library(config: Path, out: Path, duration_s: float | None, estimator: str, 
                   f"|command difference| {rep['max_abs_diff']:.3g}; instructions per tick median "
                   f"{rep['instructions_per_tick_median']:.0f}, max {rep['instructions_per_tick_max']:.0f}; "
                   f"flash {rep['flash_bytes']} B, RAM {rep['ram_bytes']} B; see {out / 'embedded.json'}")
+        if "recorded_commands_max_abs_diff" in rep:
+            con.print(f"host vs the scenario's own run: largest |command difference| "
+                      f"{rep['recorded_commands_max_abs_diff']:.3g} ({rep['recorded_ticks_diff_above_1e-3']} ticks above "
+                      f"1e-3), largest |height estimate difference| "
+                      f"{rep['recorded_height_estimate_max_abs_diff_m'] * 1e3:.3g} mm")
         if "max_abs_diff_vs_double" in rep:
             con.print(f"single vs double precision (host): largest |command difference| "
                       f"{rep['max_abs_diff_vs_double']:.3g}, median {rep['abs_diff_vs_double_median']:.3g}")

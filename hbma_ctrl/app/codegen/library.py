@@ -1,4 +1,5 @@
-"""The chamber's estimator + controller + supervisor tick as a self-contained C library (``codegen --library``).
+"""The chamber's (or the robot's) estimator + controller + supervisor tick as a self-contained C library
+(``codegen --library``).
 
 The control side of a scenario's chamber system (:meth:`hbma_ctrl.system.chamber.ChamberSystem.to_function`:
 the EKF's stages, the NMPC's problem data, cold start and RTI step, the supervisor and the valves'
@@ -25,6 +26,18 @@ The EKF starts from the scenario's first reading at generation time (its prior, 
 loop's does); the library's first tick marks it started. Left out as in the generated loop: the
 start-up calibration, the NMPC's fallback drill (``fail_window``), load steps.
 
+A closed-loop ``[robot]`` scenario with the NMPC gives the robot's library through the same path
+(:func:`library_spec` dispatches): the stages of its system's control side
+(:meth:`hbma_ctrl.system.robot.RobotSystem.to_function`: the EKF bank, the loads, the targets' slew and
+supply caps, the robot NMPC's step, the supervisor and the valves), its n chambers' signals
+(``hbma_tick(&ws, t, p[n], held[3][n], u[3][n])``), the layers' poses as targets
+(``hbma_set_target(&ws, pose[L][3])``: centre height, bend, direction, through the inverse kinematics),
+the bank started at rest from the first tick's readings, and the NMPC's QP taken out of its step
+(:func:`hbma_ctrl.controllers.robot_rti_step.robot_rti_qp_functions`) for OSQP's embedded code with the
+step's settings. Its bank predicts with what the rig reports it held, matched against the commands sent
+lately as :meth:`hbma_ctrl.runtime.robot.RobotLoop.tick` matches it (in lockstep: the command it
+returned, as in the robot's generated loop).
+
 :func:`record_inputs` runs the scenario's own closed loop on the sim rig to record the pressures a run
 replays; :func:`run_library` builds and runs the library's driver ``hbma_run.c`` (host, or bare-metal
 on QEMU through semihosting) on them and reads its commands and instruction counts.
@@ -50,7 +63,8 @@ from hbma_ctrl.core.loopgen_c import c_array, stage_guard
 from hbma_ctrl.core.osqp_embed import own_workspace
 
 __all__ = ["TARGETS", "PRECISIONS", "LibrarySpec", "library_spec", "write_library", "record_inputs",
-           "write_inputs", "build_library", "run_library", "LibraryRun", "embedded_report", "qemu_command"]
+           "write_inputs", "build_library", "run_library", "check_precision", "LibraryRun", "embedded_report",
+           "qemu_command"]
 
 #: build targets: the host's C compiler, or arm-none-eabi-gcc for a Cortex-M run on QEMU
 TARGETS = ("host", "cortex-m7", "cortex-m4f")
@@ -80,9 +94,13 @@ STEPS = "hbma_steps"
 @dataclass
 class LibrarySpec:
     """What the library is made of: the control side's loop spec (its stages without the log mark), the
-    names of the EKF model's parameters (``ekf_theta``), the controller's period in ticks and in s, the
-    load filter's time constant (s), the horizon, the QP's Functions and OSQP problem at a nominal point,
-    a description, and the NMPC's RTI backend (its model and settings)."""
+    names of the EKF model's parameters (``ekf_theta``; none for a robot), the controller's period in
+    ticks and in s, the load filter's time constant (s), the horizon, the QP's Functions and OSQP problem
+    at a nominal point, a description, and the NMPC's RTI backend (its model and settings).
+
+    A robot's library (``kind`` 'robot') has ``n`` chambers in ``n_layers`` layers, the Function of its
+    targets (``targets``: the layers' poses -> the chambers' heights, which ``hbma_set_target`` calls)
+    and the period in ticks of its supply caps' peak window (``refresh_every``)."""
 
     loop: LoopSpec
     theta_names: list
@@ -95,6 +113,16 @@ class LibrarySpec:
     qp_setup: dict
     meta: dict
     backend: object = None
+    kind: str = "chamber"
+    n: int = 1
+    n_layers: int = 0
+    targets: ca.Function | None = None
+    refresh_every: int = 0
+
+    @property
+    def rti_name(self) -> str:
+        """The RTI step's stage name (the stage the library replaces by its OSQP path)."""
+        return "robot_rti_step" if self.kind == "robot" else "rti_step"
 
 
 #: what the base entries of a model's parameter list are (hbma_ctrl.core.physics.ParamSpace), for the header
@@ -210,14 +238,14 @@ def _nominal_inputs(backend, rti: ca.Function) -> list:
 
 
 def library_spec(scn) -> LibrarySpec:
-    """The library of the scenario's chamber (see the module docstring). ValueError naming the setting
-    that cannot be generated (a robot scenario, no NMPC, load steps, a fallback drill, a UKF)."""
+    """The library of the scenario's chamber or, for a ``[robot]`` scenario, of its robot (see the module
+    docstring). ValueError naming the setting that cannot be generated (no NMPC, load steps, a fallback
+    drill, a UKF, an enforced budget)."""
     from hbma_ctrl.app.codegen.chamber import _unsupported, rig_stages, scenario_system
     from hbma_ctrl.sim.rig import RigSettings
 
     if scn.role("robot") is not None:
-        raise ValueError("codegen --library: a [robot] scenario's library is not generated yet; use a chamber "
-                         "scenario ([controller] kind = 'mpc')")
+        return _robot_library_spec(scn)
     section = scn.role("controller")
     if section is None or section.kind != "mpc":
         raise ValueError("codegen --library: needs [controller] kind = 'mpc' (the library is EKF -> NMPC -> "
@@ -260,6 +288,85 @@ def library_spec(scn) -> LibrarySpec:
                        setup, meta, ctrl.backend)
 
 
+def _robot_start_function(bank, n: int) -> ca.Function:
+    """robot_start(p[n]) -> (X 4 x n, P 16 x n): the bank at rest from the first readings (Pa; one out
+    of the physical range read as 0), as :meth:`hbma_ctrl.estimators.robot_ekf.ChamberEKFBank.step`'s
+    first call starts it."""
+    p = ca.SX.sym("p", 1, n)
+    lo, hi = bank._bounds
+    p0 = ca.if_else(ca.logic_and(p >= lo, p <= hi), p, 0.0)
+    X, P = bank.rest_expr(p0)
+    return ca.Function("robot_start", [p], [X, P], ["p"], ["X", "P"])
+
+
+def _robot_targets_function(design) -> ca.Function:
+    """robot_targets(pose[3 x L]: each layer's centre height m, bend rad, direction rad) -> the chambers'
+    target heights (3 L, m): :func:`hbma_ctrl.robot.targets.chamber_targets`' inverse kinematics and its
+    floor at 0."""
+    from hbma_ctrl.robot.kinematics import _plane_matrix
+
+    L = design.n_layers
+    A = _plane_matrix(design)
+    pose = ca.SX.sym("pose", 3, L)
+    out = []
+    for k in range(L):
+        c, th, ps = pose[0, k], pose[1, k], pose[2, k]
+        t = ca.tan(th)
+        v = [c, -t * ca.cos(ps), -t * ca.sin(ps)]
+        out += [ca.fmax(A[i, 0] * v[0] + A[i, 1] * v[1] + A[i, 2] * v[2], 0.0) for i in range(3)]
+    return ca.Function("robot_targets", [pose], [ca.vertcat(*out)], ["pose"], ["h"])
+
+
+def _robot_library_spec(scn) -> LibrarySpec:
+    """The library of a closed-loop ``[robot]`` scenario with the NMPC: its system's control side
+    (:meth:`hbma_ctrl.system.robot.RobotSystem.to_function`) with the bank started from the first tick's
+    readings (``robot_start``), the NMPC's QP taken out of its step for OSQP's embedded code
+    (:func:`hbma_ctrl.controllers.robot_rti_step.robot_rti_qp_functions`) and the layers' poses as targets."""
+    from dataclasses import replace
+    from functools import partial
+
+    from hbma_ctrl.app.codegen.robot import _build
+    from hbma_ctrl.controllers.robot_rti_step import FN_MAX_ITER, FN_RHO, RobotNMPCFunction, robot_rti_qp_functions
+    from hbma_ctrl.core.loopgen import Stage
+
+    try:
+        s, rs, _, system = _build(scn, partial(RobotNMPCFunction, compile=False))
+        n = system.n
+        ticks = 2 * 10 + 1  # enough for the supply caps' window to show in the streams
+        spec = system.to_function(np.arange(ticks) * rs.sample_period, np.zeros(n))
+    except ValueError as exc:
+        raise ValueError(f"codegen --library: {str(exc).removeprefix('codegen: ')}") from None
+    loop, nmpc = system.loop, system.loop.controller
+    refresh = np.asarray(spec.streams["refresh"]).ravel()
+    refresh_every = int(np.nonzero(refresh[1:])[0][0]) + 1
+    stages = [Stage(_robot_start_function(loop.bank, n), ["p"], ["ekf_X", "ekf_P"], gate="first")]
+    for st in spec.stages:
+        # a failure inside the library's QP path reads as a failed step (the NMPC's status not 0)
+        stages.append(replace(st, fails_to="rti_status") if st.name == "robot_rti_step" else st)
+    # the targets until hbma_set_target: the scenario's first poses
+    signals = dict(spec.signals, goal=loop.chamber_targets(0.0))
+    spec = LoopSpec(spec.name, spec.dt, spec.n_ticks, signals, spec.streams, stages, spec.log, spec.meta)
+    qp, post, patterns = robot_rti_qp_functions(nmpc)
+    ms = nmpc.s
+    N = ms.horizon
+    # OSQP's setup point: every chamber at rest under its share of the robot's weight, at its first target
+    goal = loop.chamber_targets(0.0)
+    nominal = [np.zeros(n), np.full(n, loop.bank.settings.b0), np.asarray(spec.signals["W"], float), np.ones(n),
+               np.ones(n), np.ones(n), np.repeat(goal[:, None], N, 1), np.zeros((2, n)), np.zeros((n, N + 1)),
+               np.zeros((n, N)), np.zeros((n, N)), 1.0, np.zeros(nmpc.nv), np.zeros(nmpc.m_rows), 0.0]
+    vals = [np.asarray(v, float).ravel() for v in qp(*nominal)]
+    setup = {"Px": vals[0], "q": vals[1], "Ax": vals[2], "l": vals[3], "u": vals[4], "eps": float(ms.eps),
+             "max_iter": max(int(ms.max_iter), FN_MAX_ITER), "patterns": patterns,
+             # the generated step's OSQP settings (robot_rti_step_function's)
+             "settings": {"rho": FN_RHO, "scaling": 1}}
+    meta = dict(spec.meta)
+    meta["controller"] = meta["controller"].replace("OSQP (casadi's) inside", "QP OSQP (embedded, generated C)")
+    meta["estimator"] += "; started at rest from the first tick's readings"
+    return LibrarySpec(spec, [], 1, float(ms.dt), 0.0, int(N), qp, post, setup, meta, nmpc, kind="robot", n=n,
+                       n_layers=s.design.n_layers, targets=_robot_targets_function(s.design),
+                       refresh_every=refresh_every)
+
+
 # --------------------------------------------------------------------------------------------- write
 #: libm's functions the generated code calls, each with a float variant (name + "f")
 _LIBM = ("sqrt", "exp", "log", "pow", "fabs", "fmin", "fmax", "floor", "ceil", "sin", "cos", "tan", "atan2", "atan",
@@ -300,12 +407,13 @@ def _osqp(lib: LibrarySpec, out: Path, precision: str, settings: dict | None = N
     # the patterns must survive the setup: a value that is 0 at the nominal point is stored as a tiny one
     nonzero = lambda v: np.where(v == 0.0, 1e-9, v)  # noqa: E731
     P = sp.csc_matrix((nonzero(st["Px"]), (p_rows, p_cols)), shape=(nz, nz))
-    A = sp.csc_matrix((nonzero(st["Ax"]), (a_rows, a_cols)), shape=(nz + nc, nz))
+    A = sp.csc_matrix((nonzero(st["Ax"]), (a_rows, a_cols)), shape=(st["l"].size, nz))  # its rows: the bounds'
     if P.nnz != len(p_rows) or A.nnz != len(a_rows):
         raise RuntimeError("codegen --library: the QP's sparsity changed in OSQP's setup")
     solver = osqp.OSQP()
     solver.setup(P, st["q"], A, st["l"], st["u"], verbose=False, polishing=False, eps_abs=st["eps"],
-                 eps_rel=st["eps"], max_iter=st["max_iter"], warm_starting=True, **{**QP_SETTINGS, **(settings or {})})
+                 eps_rel=st["eps"], max_iter=st["max_iter"], warm_starting=True,
+                 **{**QP_SETTINGS, **st.get("settings", {}), **(settings or {})})
     d = out / "osqp"
     if d.exists():
         shutil.rmtree(d)
@@ -318,14 +426,27 @@ def _osqp(lib: LibrarySpec, out: Path, precision: str, settings: dict | None = N
 
 
 def _functions(lib: LibrarySpec) -> list:
-    """The Functions the library calls: the stages' (the RTI step's replaced by its QP parts)."""
+    """The Functions the library calls: the stages' (the RTI step's replaced by its QP parts) and a
+    robot's targets."""
     seen, out = set(), []
     for st in lib.loop.stages:
-        if st == LOG or st.name in seen or st.name == "rti_step":
+        if st == LOG or st.name in seen or st.name == lib.rti_name:
             continue
         seen.add(st.name)
         out.append(dense_function(st.fun))
-    return out + [dense_function(lib.qp_data), dense_function(lib.qp_post)]
+    extra = [lib.targets] if lib.targets is not None else []
+    return out + [dense_function(f) for f in [lib.qp_data, lib.qp_post] + extra]
+
+
+def check_precision(kind: str, precision: str) -> None:
+    """ValueError naming ``--precision`` when a library of this kind ('chamber' or 'robot') cannot be
+    built in it: a robot's in single precision. Measured on robot_bending: the robot step's finiteness
+    check squares the bounds at OSQP's infinity (1e30), which overflows a float; with that check scaled,
+    OSQP's float LDL factor of the KKT matrix loses its quasi-definiteness at the first warm-started
+    step, and every step after it fails."""
+    if precision == "single" and kind == "robot":
+        raise ValueError("--precision single: the robot NMPC's QP does not factorise in single precision "
+                         "(OSQP: the KKT matrix is not quasi-definite); allowed for a robot: double")
 
 
 def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "double") -> list:
@@ -334,6 +455,7 @@ def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "doubl
     emulates), ``CMakeLists.txt``, ``Makefile`` and ``README.txt``; returns the written paths."""
     if precision not in PRECISIONS:
         raise ValueError(f"--precision = '{precision}'; allowed: {', '.join(PRECISIONS)}")
+    check_precision(lib.kind, precision)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     funs = _functions(lib)
@@ -351,14 +473,10 @@ def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "doubl
     stages = [st for st in spec.stages if st != LOG]
     sig = dict(spec.signals)
     # ---------------------------------------------------------------- header
-    theta = [f"  hbma_real {_c_ident(n)};  /* {_PARAM_DOC.get(n, 'material parameter, SI')} */"
-             for n in lib.theta_names]
-    th0 = spec.signals["ekf_theta"]
-    hdr = f"""/* {spec.name}: the chamber's estimator + controller + supervisor tick (generated by hbma-ctrl codegen --library).
+    api = _robot_api(lib) if lib.kind == "robot" else _chamber_api(lib)
+    hdr = f"""/* {spec.name}: the {api['what']}'s estimator + controller + supervisor tick (generated by hbma-ctrl codegen --library).
  *
- * Every tick (period HBMA_TICK_S): hbma_tick(&ws, t, p, held, u) takes the time t (s), the pressure reading p
- * (Pa, gauge; NaN: no reading) and the command held over the last period, and writes the command u to hold
- * over the next one (speed, inlet, outlet; each in [0, 1]). The target height (m) is set by hbma_set_target.
+{api['doc']}
  * All memory is in the caller's hbma_workspace_t (sizeof is a compile-time constant); no allocation, no I/O.
  */
 #ifndef HBMA_H
@@ -375,36 +493,23 @@ typedef casadi_real hbma_real;
 
 #define HBMA_TICK_S {spec.dt!r}
 /* the controller runs every HBMA_CONTROL_EVERY ticks; its horizon has HBMA_HORIZON steps of
-   HBMA_CONTROL_EVERY * HBMA_TICK_S */
+   {'HBMA_CONTROL_EVERY * HBMA_TICK_S' if lib.kind == 'chamber' else repr(lib.ctrl_dt) + ' s'} */
 #define HBMA_CONTROL_EVERY {lib.every}
 #define HBMA_HORIZON {lib.horizon}
 #define HBMA_SINGLE_PRECISION {1 if precision == "single" else 0}
-
+{api['defines']}
 /* status codes */
 #define HBMA_OK 0
 #define HBMA_SOLVE_FAILED 1      /* the controller's step failed: the supervisor's fallback command is out */
-#define HBMA_ERR_ARGUMENT (-1)   /* a NULL pointer, or a time that is not finite or goes back */
+#define HBMA_ERR_ARGUMENT (-1)   /* {api['err_argument']} */
 #define HBMA_ERR_NOT_INIT (-2)   /* hbma_init has not succeeded on this workspace */
 #define HBMA_ERR_WORKSPACE (-3)  /* the generated Functions need more work memory than the workspace holds */
 
-/* The EKF model's parameters (SI; the names of the model's parameter list). */
-typedef struct {{
-{chr(10).join(theta)}
-}} hbma_model_params_t;
-
-typedef struct {{
-  hbma_model_params_t ekf_model;  /* the estimator's model */
-}} hbma_params_t;
+{api['params']}
 
 /* What the last tick estimated and decided (SI). */
 typedef struct {{
-  hbma_real height_m;     /* estimated height */
-  hbma_real pressure_pa;  /* estimated pressure (gauge) */
-  hbma_real force_n;      /* estimated load force */
-  int resting;            /* the estimator holds the platform at rest */
-  hbma_real mpc_status;   /* the controller's last step: 0 solved, else failed (NaN: the QP solver gave up) */
-  int qp_iterations;      /* OSQP's iterations in the controller's last QP */
-  int qp_status;          /* OSQP's status of that QP (1 solved) */
+{api['outputs']}
 }} hbma_outputs_t;
 
 /* the workspace: every signal of the tick, the generated Functions' work arrays, the QP solver */
@@ -414,7 +519,7 @@ typedef struct {{
   hbma_real t_last;       /* time of the last tick, s */
   hbma_real t_ctrl;       /* time of the controller's last step, s */
   int qp_iterations, qp_status;
-@SIGNALS@
+{api['state']}@SIGNALS@
   const casadi_real* arg[{sz['arg']}];
   casadi_real* res[{sz['res']}];
   const casadi_real* arg2[{sz['arg']}];
@@ -437,13 +542,9 @@ void hbma_profile_mark(int part);
 
 /* The generation scenario's parameters. */
 void hbma_default_params(hbma_params_t* params);
-/* Start (or restart) the workspace: the estimator at its prior, the controller cold, the target 0. */
+/* Start (or restart) the workspace: {api['init_doc']}. */
 int hbma_init(hbma_workspace_t* ws, const hbma_params_t* params);
-/* The target height (m) from now on; preview: the targets at the controller's next HBMA_HORIZON steps
-   (NULL: height_m at all of them). */
-int hbma_set_target(hbma_workspace_t* ws, hbma_real height_m, const hbma_real* preview);
-/* One tick; returns HBMA_OK, HBMA_SOLVE_FAILED or an error (u then unchanged). */
-int hbma_tick(hbma_workspace_t* ws, hbma_real t, hbma_real p, const hbma_real held[3], hbma_real u[3]);
+{api['prototypes']}
 /* What the last tick estimated and decided. */
 void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
 
@@ -456,9 +557,9 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     sig_lines = [f"  hbma_real s_{_c_ident(k)}[{max(v.size, 1)}];" for k, v in sig.items()]
     # one scratch area holds a stage's outputs until they are copied to their signals (a Function
     # never writes the buffers it reads)
-    rti = next(st.fun for st in stages if st.name == "rti_step")
+    rti = next(st.fun for st in stages if st.name == lib.rti_name)
     lib_rti_numel = [rti.numel_out(i) for i in range(rti.n_out())]
-    per_stage = [lib_rti_numel if st.name == "rti_step" else [st.fun.numel_out(i) for i in range(st.fun.n_out())]
+    per_stage = [lib_rti_numel if st.name == lib.rti_name else [st.fun.numel_out(i) for i in range(st.fun.n_out())]
                  for st in stages]
     n_scratch = max(sum(v) for v in per_stage)
     qd = lib.qp_data
@@ -473,12 +574,12 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     # ---------------------------------------------------------------- source
     init = []
     for k, v in sig.items():
-        if k == "ekf_theta":
+        if k in api["from_params"]:
             continue
         init.append(f"  {{ static const hbma_real v[] = {c_array(v)}; "
                     f"memcpy(ws->s_{_c_ident(k)}, v, sizeof v); }}")
-    init += [f"  ws->s_ekf_theta[{i}] = params->ekf_model.{_c_ident(n)};" for i, n in enumerate(lib.theta_names)]
-    defaults = [f"  params->ekf_model.{_c_ident(n)} = {float(v)!r};" for n, v in zip(lib.theta_names, th0)]
+    init += api["init_params"]
+    defaults = api["defaults"]
     checks = []
     for f in funs:
         checks.append(f"  {{ casadi_int a, r, i, w; {f.name()}_work(&a, &r, &i, &w);\n"
@@ -486,9 +587,9 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
                       f"return HBMA_ERR_WORKSPACE; }}")
     tick = []
     for st in stages:
-        f = st.fun if st.name != "rti_step" else None
+        f = st.fun if st.name != lib.rti_name else None
         if f is None:
-            nout = 8
+            nout = rti.n_out()
             body = [f"ws->arg[{i}] = ws->s_{_c_ident(s)};" for i, s in enumerate(st.inputs)]
             offs = np.concatenate([[0], np.cumsum(lib_rti_numel)]).astype(int)
             body += [f"ws->res[{i}] = ws->o + {offs[i]};" for i in range(nout)]
@@ -516,8 +617,13 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
         tick.append(f"  {prefix}{{  /* {st.name} */\n    " + "\n    ".join(body) + "\n  }")
     _, _, _, _, nz, nc = lib.qp_setup["patterns"]
     qpost = lib.qp_post
-    src = (_template("hbma.c.in")
-           .replace("@NAME@", spec.name).replace("@INIT_SIGNALS@", "\n".join(init))
+    src = (_template("hbma.c.in").replace("@API@", _template(f"hbma_api_{lib.kind}.c.in"))
+           .replace("@NAME@", spec.name).replace("@WHAT@", api["what"]).replace("@INIT_SIGNALS@", "\n".join(init))
+           .replace("@INIT_END@", api["init_end"]).replace("@QP_STATUS_CHECK@", api["qp_status_check"])
+           .replace("@QP_FAIL_DOC@", api["qp_fail_doc"]).replace("@RTI_NAME@", lib.rti_name)
+           .replace("@RTI_N_IN@", str(rti.n_in())).replace("@RTI_N_OUT@", str(rti.n_out()))
+           .replace("@TARGETS_FUN@", lib.targets.name() if lib.targets is not None else "")
+           .replace("@REFRESH_EVERY@", str(lib.refresh_every)).replace("@INIT_STATE@", api["init_state"])
            .replace("@DEFAULTS@", "\n".join(defaults)).replace("@WORK_CHECKS@", "\n".join(checks))
            .replace("@TICK@", "\n".join(tick)).replace("@EVERY@", str(lib.every))
            .replace("@LOAD_TAU@", repr(lib.load_tau)).replace("@CTRL_DT@", repr(lib.ctrl_dt)).replace("@N@", str(lib.horizon))
@@ -526,9 +632,11 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
            .replace("@NCHK@", str(qd.nnz_out(7))).replace("@RTI_OUTBUFS@", "")
            .replace("@QP_DATA@", qd.name()).replace("@QP_POST@", qpost.name())
            .replace("@PART_QP_DATA@", str(1 + len(stages))))
+    for key, value in api.get("replace", {}).items():
+        src = src.replace(key, value)
     (out / "hbma.c").write_text(src)
-    for name in ("hbma_run.c",):
-        (out / name).write_text(_template(name + ".in"))
+    (out / "hbma_run.c").write_text(_template("hbma_run.c.in").replace("@INPUT_FORMAT@", api["input_format"])
+                                    .replace("@MAIN@", _template(f"hbma_run_{lib.kind}.c.in")))
     board = out / "board"
     board.mkdir(exist_ok=True)
     for name in ("startup.c", "mps2.ld"):
@@ -538,6 +646,111 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     (out / "README.txt").write_text(_readme(lib, precision, sz))
     return [out / n for n in ("hbma.h", "hbma.c", f"{STEPS}.c", f"{STEPS}.h", "hbma_run.c", "Makefile",
                               "CMakeLists.txt", "README.txt")]
+
+
+def _chamber_api(lib: LibrarySpec) -> dict:
+    """The chamber library's own parts of hbma.h, hbma.c and the driver (the rest is shared)."""
+    th0 = lib.loop.signals["ekf_theta"]
+    theta = [f"  hbma_real {_c_ident(n)};  /* {_PARAM_DOC.get(n, 'material parameter, SI')} */"
+             for n in lib.theta_names]
+    return {
+        "what": "chamber",
+        "state": "",
+        "init_state": "",
+        "doc": """ * Every tick (period HBMA_TICK_S): hbma_tick(&ws, t, p, held, u) takes the time t (s), the pressure reading p
+ * (Pa, gauge; NaN: no reading) and the command held over the last period, and writes the command u to hold
+ * over the next one (speed, inlet, outlet; each in [0, 1]). The target height (m) is set by hbma_set_target.""",
+        "defines": "",
+        "err_argument": "a NULL pointer, or a time that is not finite or goes back",
+        "params": f"""/* The EKF model's parameters (SI; the names of the model's parameter list). */
+typedef struct {{
+{chr(10).join(theta)}
+}} hbma_model_params_t;
+
+typedef struct {{
+  hbma_model_params_t ekf_model;  /* the estimator's model */
+}} hbma_params_t;""",
+        "outputs": """  hbma_real height_m;     /* estimated height */
+  hbma_real pressure_pa;  /* estimated pressure (gauge) */
+  hbma_real force_n;      /* estimated load force */
+  int resting;            /* the estimator holds the platform at rest */
+  hbma_real mpc_status;   /* the controller's last step: 0 solved, else failed (NaN: the QP solver gave up) */
+  int qp_iterations;      /* OSQP's iterations in the controller's last QP */
+  int qp_status;          /* OSQP's status of that QP (1 solved) */""",
+        "init_doc": "the estimator at its prior, the controller cold, the target 0",
+        "prototypes": """/* The target height (m) from now on; preview: the targets at the controller's next HBMA_HORIZON steps
+   (NULL: height_m at all of them). */
+int hbma_set_target(hbma_workspace_t* ws, hbma_real height_m, const hbma_real* preview);
+/* One tick; returns HBMA_OK, HBMA_SOLVE_FAILED or an error (u then unchanged). */
+int hbma_tick(hbma_workspace_t* ws, hbma_real t, hbma_real p, const hbma_real held[3], hbma_real u[3]);""",
+        "from_params": ("ekf_theta",),
+        "init_params": [f"  ws->s_ekf_theta[{i}] = params->ekf_model.{_c_ident(n)};" for i, n in enumerate(lib.theta_names)],
+        "defaults": [f"  params->ekf_model.{_c_ident(n)} = {float(v)!r};" for n, v in zip(lib.theta_names, th0)],
+        "init_end": "  return hbma_set_target(ws, 0, 0);",
+        "qp_status_check": """  if (ws->qp_status != OSQP_SOLVED && ws->qp_status != OSQP_SOLVED_INACCURATE &&
+      ws->qp_status != OSQP_MAX_ITER_REACHED) return 1;
+""",
+        "qp_fail_doc": " or OSQP returns no solution",
+        "input_format": """ * INPUTS.bin: little-endian doubles: ticks, preview length P (0 or HBMA_HORIZON), then per tick t (s),
+ * p (Pa; NaN: no reading), target (m) and P preview targets (m).""",
+    }
+
+
+def _robot_api(lib: LibrarySpec) -> dict:
+    """The robot library's own parts of hbma.h, hbma.c and the driver (the rest is shared)."""
+    from hbma_ctrl.runtime.robot import HELD_ATOL, HELD_HISTORY
+
+    n, L = lib.n, lib.n_layers
+    loads = np.asarray(lib.loop.signals["W"], float)
+    return {
+        "what": "robot",
+        # the commands sent lately, to match a rig's report of the one it held (RobotLoop._held_input)
+        "state": (f"  hbma_real sent_u[{HELD_HISTORY}][{3 * n}], sent_w[{HELD_HISTORY}][{2 * n}];  "
+                  "/* the commands sent lately */\n  int sent_next, sent_count;\n"
+                  "  long held_unmatched;    /* held reports that matched no command sent lately */\n"),
+        "init_state": "  ws->sent_next = ws->sent_count = 0;\n  ws->held_unmatched = 0;",
+        "replace": {"@HELD_HISTORY@": str(HELD_HISTORY), "@HELD_ATOL@": repr(HELD_ATOL)},
+        "doc": f""" * The robot: {L} layers of 3 chambers, HBMA_N_CHAMBERS = {n} (chamber 3 k + i is layer k's i-th).
+ * Every tick (period HBMA_TICK_S): hbma_tick(&ws, t, p, held, u) takes the time t (s), the chambers' pressure
+ * readings p (Pa, gauge; NaN: no reading) and the valve inputs held over the last period, and writes the
+ * valve inputs u to hold over the next one (u[0]: pump speed, u[1]: inlet, u[2]: outlet, each chamber's in
+ * [0, 1]). The estimators predict with what the rig held, as the robot's runtime reads it: the newest command
+ * sent lately whose valve inputs held equals (to HELD_ATOL), else the safe command's. The targets are the
+ * layers' poses (hbma_set_target: centre height m, bend rad, direction rad), as the robot's runtime takes
+ * them.""",
+        "defines": f"#define HBMA_N_CHAMBERS {n}\n#define HBMA_N_LAYERS {L}\n",
+        "err_argument": "a NULL pointer, a time that is not finite or goes back, a pose out of range",
+        "params": """/* What the robot starts with (SI). */
+typedef struct {
+  hbma_real load_n[HBMA_N_CHAMBERS];  /* each chamber's load before the first estimate, N */
+} hbma_params_t;""",
+        "outputs": """  hbma_real height_m[HBMA_N_CHAMBERS];     /* estimated heights */
+  hbma_real pressure_pa[HBMA_N_CHAMBERS];  /* estimated pressures (gauge) */
+  hbma_real target_m[HBMA_N_CHAMBERS];     /* the heights the controller worked to (the targets slewed) */
+  hbma_real rti_status;   /* the NMPC's last step: 0 usable, 1 non-finite, 2 residual too large (NaN: failed) */
+  int failed;             /* the supervisor replaced the NMPC's command in the last tick */
+  int qp_iterations;      /* OSQP's iterations in the last QP */
+  int qp_status;          /* OSQP's status of that QP (1 solved) */
+  long held_unmatched;    /* held reports that matched no command sent lately (the last one used) */""",
+        "init_doc": ("the estimators start at rest from the first tick's readings, the controller cold, every "
+                     "layer's target the generation scenario's first pose"),
+        "prototypes": """/* The layers' poses from now on: pose[k] = (centre height m, bend rad in [0, pi/2), direction rad) of
+   layer k; the chambers' target heights follow by the inverse kinematics (a negative height read as 0). */
+int hbma_set_target(hbma_workspace_t* ws, const hbma_real pose[HBMA_N_LAYERS][3]);
+/* One tick; returns HBMA_OK, HBMA_SOLVE_FAILED (the NMPC's step was not usable) or an error (u then
+   unchanged). */
+int hbma_tick(hbma_workspace_t* ws, hbma_real t, const hbma_real p[HBMA_N_CHAMBERS],
+              const hbma_real held[3][HBMA_N_CHAMBERS], hbma_real u[3][HBMA_N_CHAMBERS]);""",
+        "from_params": ("W",),
+        "init_params": ["  memcpy(ws->s_W, params->load_n, sizeof(hbma_real) * HBMA_N_CHAMBERS);"],
+        "defaults": [f"  params->load_n[{i}] = {float(v)!r};" for i, v in enumerate(loads)],
+        "init_end": "  return HBMA_OK;",
+        # casadi's OSQP gives its iterate whatever OSQP's status; the step's post-processing judges it
+        "qp_status_check": "",
+        "qp_fail_doc": "",
+        "input_format": f""" * INPUTS.bin: little-endian doubles: ticks, chambers ({n}), layers ({L}), then per tick t (s), the
+ * chambers' readings p (Pa; NaN: no reading) and each layer's pose (centre m, bend rad, direction rad).""",
+    }
 
 
 def _unique(names: list) -> list:
@@ -660,7 +873,16 @@ def _readme(lib: LibrarySpec, precision: str, sz: dict) -> str:
                        + (f" while {st.gate} {'== 0' if st.gate_off else '!= 0'}" if st.gate else "")
                        + (f", up to {st.repeat} calls" if st.repeat > 1 else "")
                        for st in spec.stages if st != LOG)
-    return (f"The chamber's tick as a C library (hbma-ctrl codegen --library), scenario \"{spec.name}\", "
+    if lib.kind == "robot":
+        inputs = (f"inputs.bin: little-endian doubles: ticks, chambers ({lib.n}), layers ({lib.n_layers}), then per tick\n"
+                  "t, the chambers' readings and each layer's pose (centre m, bend rad, direction rad). The driver\n"
+                  "prints per tick: k, u (3 x chambers: speeds, inlets, outlets), status, OSQP's iterations, the\n"
+                  "estimated heights (m)")
+    else:
+        inputs = ("inputs.bin: little-endian doubles: ticks, preview length P, then per tick\n"
+                  "t, p, target and P preview targets. The driver prints per tick: k, u (3), status, OSQP's iterations,\n"
+                  "the estimated height (m)")
+    return (f"The {lib.kind}'s tick as a C library (hbma-ctrl codegen --library), scenario \"{spec.name}\", "
             f"{precision} precision, tick {spec.dt * 1e3:g} ms.\n\n"
             "API (hbma.h): hbma_default_params, hbma_init, hbma_set_target, hbma_tick, hbma_outputs. All memory in\n"
             "hbma_workspace_t (sizeof: compile-time); no malloc, no file I/O, only libm.\n\n"
@@ -669,9 +891,7 @@ def _readme(lib: LibrarySpec, precision: str, sz: dict) -> str:
             "(hbma.h's HBMA_PART_NAMES: the stages, the QP's data, OSQP's matrix update, vector update and\n"
             "iterations, the post-processing).\n"
             "Run on recorded inputs: ./hbma_run_host inputs.bin, or make run-cortex-m7 INPUTS=inputs.bin\n"
-            "(QEMU, semihosting). inputs.bin: little-endian doubles: ticks, preview length P, then per tick\n"
-            "t, p, target and P preview targets. The driver prints per tick: k, u (3), status, OSQP's iterations,\n"
-            "the estimated height (m), and on a board the SysTick counts of the tick (with QEMU's -icount\n"
+            f"(QEMU, semihosting). {inputs}, and on a board the SysTick counts of the tick (with QEMU's -icount\n"
             "shift=0, 40 instructions per count; the driver prints its calibration first).\n\n"
             f"Files: hbma.c (the tick), {STEPS}.c/.h (casadi-generated Functions), osqp/ (OSQP's embedded "
             "solver, its workspace a struct), hbma_run.c (driver), board/ (start-up file, linker script).\n"
@@ -682,8 +902,12 @@ def _readme(lib: LibrarySpec, precision: str, sz: dict) -> str:
 # --------------------------------------------------------------------------------------------- inputs
 def record_inputs(scn, lib: LibrarySpec, ticks: int) -> dict:
     """The scenario's own closed loop on the sim rig over ``ticks`` ticks (no start-up calibration): its
-    readings (Pa, NaN for a dropout) and the library's targets at those times (the target, and the
-    controller's preview when the scenario previews). Returns arrays t, p, target, preview (ticks x P)."""
+    readings (Pa, NaN for a dropout), the library's targets at those times (the target, and the
+    controller's preview when the scenario previews), its commands and estimated heights. Returns arrays
+    t, p, target, preview (ticks x P), u (ticks x 3), h_est; for a robot (:func:`_record_robot`) t, p,
+    pose, u, h_est."""
+    if lib.kind == "robot":
+        return _record_robot(scn, lib, ticks)
     from hbma_ctrl.app.scenes.controller import closed_loop
     from hbma_ctrl.sim.rig import RigSettings
     from hbma_ctrl.system.roles import estimator_from_scenario
@@ -700,11 +924,51 @@ def record_inputs(scn, lib: LibrarySpec, ticks: int) -> dict:
     P, dp = loop.preview_steps, loop.preview_period
     preview = (np.array([[loop.reference(tk + dp * (min(j, P - 1) + 1)) for j in range(lib.horizon)] for tk in t])
                if P else np.zeros((ticks, 0)))
-    return {"t": t, "p": np.asarray(log.p_meas, float)[:ticks], "target": target, "preview": preview}
+    return {"t": t, "p": np.asarray(log.p_meas, float)[:ticks], "target": target, "preview": preview,
+            "u": np.asarray(log.u, float)[:ticks], "h_est": np.asarray(log.h_est, float)[:ticks]}
+
+
+def _record_robot(scn, lib: LibrarySpec, ticks: int) -> dict:
+    """The robot scenario's own closed loop (its scene's rig and system, the NMPC running the generated
+    step's Function, :class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction`) over ``ticks``
+    ticks in lockstep: the rig's clock t (s), the readings p (ticks x n, Pa), each layer's pose at those
+    times (ticks x L x 3: centre m, bend rad, direction rad), the valve inputs sent (ticks x 3 n, the
+    speeds, inlets, outlets) and the estimated heights (ticks x n, m)."""
+    from functools import partial
+
+    from hbma_ctrl.app.codegen.robot import robot_scene_parts
+    from hbma_ctrl.app.scenes.robot_loop import build_closed_loop
+    from hbma_ctrl.controllers.robot_rti_step import RobotNMPCFunction
+    from hbma_ctrl.robot.targets import _layer_pose
+
+    s, rig, model, mpc = robot_scene_parts(scn)
+    sim, system = build_closed_loop(s, s.targets, "mpc", scn.pneumatics, rig, mpc, model=model, tip_load=s.tip_load,
+                                    nmpc_class=partial(RobotNMPCFunction, compile=False))
+    plant, L = sim.rig, s.design.n_layers
+    t, p, pose, u = np.zeros(ticks), np.zeros((ticks, lib.n)), np.zeros((ticks, L, 3)), np.zeros((ticks, 3 * lib.n))
+    h_est = np.zeros((ticks, lib.n))
+    for k in range(ticks):
+        r = sim.read()
+        t[k] = plant.t  # the plant's clock, which the scene ticks on
+        p[k] = r.p
+        pose[k] = [_layer_pose(s.targets[j], t[k])[1:4] for j in range(L)]
+        cmd = system.tick(t[k], r.p, r.held)
+        sim.write(cmd)
+        u[k] = np.asarray(cmd).ravel()
+        h_est[k] = system.loop.estimate["h"]
+    return {"t": t, "p": p, "pose": pose, "u": u, "h_est": h_est}
 
 
 def write_inputs(rec: dict, path: Path | str) -> Path:
     """The driver's input file (README.txt of the library: little-endian doubles)."""
+    if "pose" in rec:
+        n, nc, L = rec["t"].size, rec["p"].shape[1], rec["pose"].shape[1]
+        rows = np.column_stack([rec["t"], rec["p"], rec["pose"].reshape(n, 3 * L)])
+        path = Path(path)
+        with path.open("wb") as fh:
+            fh.write(struct.pack("<3d", float(n), float(nc), float(L)))
+            fh.write(np.ascontiguousarray(rows, dtype="<f8").tobytes())
+        return path
     n, P = rec["t"].size, rec["preview"].shape[1]
     rows = np.column_stack([rec["t"], rec["p"], rec["target"], rec["preview"]]) if P else np.column_stack(
         [rec["t"], rec["p"], rec["target"]])
@@ -756,12 +1020,16 @@ class LibraryRun:
 
 
 def _parse(text: str) -> LibraryRun:
-    rows, per_count, wsb, names = [], None, None, []
+    """The driver's output (hbma_run.c): its calibration, workspace size, parts, the commands' and heights'
+    counts per line (``signals NU NH``; 3 and 1 without the line) and the ticks."""
+    rows, per_count, wsb, names, nu, nh = [], None, None, [], 3, 1
     for line in text.splitlines():
         parts = line.split()
         if not parts:
             continue
-        if parts[0] == "parts":
+        if parts[0] == "signals":
+            nu, nh = int(parts[1]), int(parts[2])
+        elif parts[0] == "parts":
             names = parts[1:]
         elif parts[0] == "workspace":
             wsb = int(parts[1])
@@ -772,10 +1040,12 @@ def _parse(text: str) -> LibraryRun:
     if not rows:
         raise RuntimeError(f"the driver printed no ticks: {text[-2000:]}")
     a = np.array(rows)
-    ins = a[:, 7] * per_count if a.shape[1] > 7 and per_count else None
-    by_part = ({n: a[:, 8 + i] * per_count for i, n in enumerate(names)}
-               if names and per_count and a.shape[1] == 8 + len(names) else None)
-    return LibraryRun(a[:, 1:4], a[:, 4].astype(int), ins, per_count, a[:, 5], wsb, a[:, 6], by_part)
+    c = 3 + nu + nh  # the tick's count's column
+    ins = a[:, c] * per_count if a.shape[1] > c and per_count else None
+    by_part = ({n: a[:, c + 1 + i] * per_count for i, n in enumerate(names)}
+               if names and per_count and a.shape[1] == c + 1 + len(names) else None)
+    height = a[:, 3 + nu] if nh == 1 else a[:, 3 + nu:3 + nu + nh]
+    return LibraryRun(a[:, 1:1 + nu], a[:, 1 + nu].astype(int), ins, per_count, a[:, 2 + nu], wsb, height, by_part)
 
 
 def run_library(out_dir: Path | str, target: str, inputs: Path | str, timeout: float = 3600.0) -> LibraryRun:
@@ -891,6 +1161,14 @@ def generate(scn, out_dir: Path | str, target: str = "host", precision: str = "d
     report["qemu_machine"] = _ARM[target][1]
     report["scenario"] = scn.name
     report["qp_iterations_median"] = report_qp
+    if "u" in rec:
+        # the scenario's own run the pressures were recorded from (its controller's solver, not the library's)
+        d = np.abs(host.u - rec["u"][: host.u.shape[0]])
+        report["recorded_commands_max_abs_diff"] = float(np.nanmax(d))
+        report["recorded_commands_median_abs_diff"] = float(np.nanmedian(d))
+        report["recorded_ticks_diff_above_1e-3"] = int(np.sum(np.nanmax(d.reshape(d.shape[0], -1), axis=1) > 1e-3))
+        dh = np.abs(host.height - rec["h_est"][: host.u.shape[0]].reshape(host.height.shape))
+        report["recorded_height_estimate_max_abs_diff_m"] = float(np.nanmax(dh))
     if precision == "single":
         ref = out / "double"
         write_library(lib, ref, "double")
@@ -908,4 +1186,4 @@ def generate(scn, out_dir: Path | str, target: str = "host", precision: str = "d
 
 
 def _commands_text(run: LibraryRun) -> str:
-    return "".join(f"{k} {u[0]:.17g} {u[1]:.17g} {u[2]:.17g}\n" for k, u in enumerate(run.u))
+    return "".join(f"{k} " + " ".join(f"{v:.17g}" for v in u) + "\n" for k, u in enumerate(run.u))
