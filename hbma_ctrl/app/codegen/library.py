@@ -58,6 +58,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from hbma_ctrl.core.codegen import OPT_ENV
 from hbma_ctrl.core.loopgen import LOG, LoopSpec, dense_function
 from hbma_ctrl.core.loopgen_c import c_array, stage_guard
 from hbma_ctrl.core.osqp_embed import own_workspace
@@ -982,12 +983,15 @@ def write_inputs(rec: dict, path: Path | str) -> Path:
 # --------------------------------------------------------------------------------------------- build, run
 def build_library(out_dir: Path | str, target: str) -> Path:
     """Build the driver for ``target`` with the library's Makefile; the program's path. RuntimeError with
-    the compiler's message."""
+    the compiler's message. ``$HBMA_CTRL_CC_OPT`` (:data:`hbma_ctrl.core.codegen.OPT_ENV`), when set,
+    replaces the Makefile's optimisation level as it does for every Function the package compiles."""
     if target not in TARGETS:
         raise ValueError(f"--target = '{target}'; allowed: {', '.join(TARGETS)}")
     out = Path(out_dir)
     jobs = str(max(1, min(4, os.cpu_count() or 1)))
-    res = subprocess.run(["make", "-s", f"-j{jobs}", target], cwd=out, capture_output=True, text=True)
+    opt = os.environ.get(OPT_ENV)
+    res = subprocess.run(["make", "-s", f"-j{jobs}", target] + ([f"OPT={opt}"] if opt else []), cwd=out,
+                         capture_output=True, text=True)
     if res.returncode != 0:
         raise RuntimeError(f"make {target} failed: {(res.stderr or res.stdout).strip()[-3000:]}")
     return out / ("hbma_run_host" if target == "host" else f"hbma_run_{target}.elf")
