@@ -14,8 +14,9 @@ library :func:`multiprocessing.Pipe` connections, one each way, pickled messages
   loop's check clips a setpoint there and the API's request waits for that answer (what will be
   applied and what was clipped); the loop takes what was queued at its next period, without
   waiting for anyone. ``/stop`` is answered once its request is on its way; the loop acts on it at
-  its next period. A setpoint or reset not answered within :data:`REPLY_TIMEOUT_S` is 503 and is
-  never applied (the link drops a request older than that).
+  its next period. A setpoint or reset not taken within :data:`REPLY_TIMEOUT_S` is 503 and is
+  not applied: the state queues nothing checked after that deadline, and the API waits
+  :data:`REPLY_MARGIN_S` longer for an answer sent before it.
 
 The link's thread only waits in the pipes (the interpreter's lock released): every wake-up takes a
 few tens of microseconds of the daemon's process (pickling a snapshot, one submit), every
@@ -89,12 +90,14 @@ class _ApiState(DaemonState):
             fut.set_result((ok, value))
 
     # --- the app's requests
-    def _ask(self, kind: str, payload: Any) -> Any:
+    def _ask(self, kind: str, payload: Any, deadline: float | None) -> Any:
         rid, fut = next(self._ids), Future()
         self._waiting[rid] = fut
-        self._send((kind, rid, time.monotonic() + REPLY_TIMEOUT_S, payload))
+        now = time.monotonic()
+        deadline = now + REPLY_TIMEOUT_S if deadline is None else min(deadline, now + REPLY_TIMEOUT_S)
+        self._send((kind, rid, deadline, payload))
         try:
-            ok, value = fut.result(timeout=REPLY_TIMEOUT_S + REPLY_MARGIN_S)
+            ok, value = fut.result(timeout=deadline - now + REPLY_MARGIN_S)
         except FutureTimeout:
             raise RuntimeError(f"the loop's side did not take the {kind} within {REPLY_TIMEOUT_S:g} s: "
                                "not applied") from None
@@ -105,15 +108,15 @@ class _ApiState(DaemonState):
         err, line = value
         raise {"stopping": Stopping, "value": ValueError, "runtime": RuntimeError}.get(err, Exception)(line)
 
-    def submit_setpoint(self, request: dict) -> dict:
+    def submit_setpoint(self, request: dict, deadline: float | None = None) -> dict:
         """The loop's side checks, clips and queues ``request``; its answer or its error (as
-        :meth:`DaemonState.submit_setpoint`)."""
-        return self._ask("setpoint", request)
+        :meth:`DaemonState.submit_setpoint`; the deadline at most :data:`REPLY_TIMEOUT_S` from now)."""
+        return self._ask("setpoint", request, deadline)
 
-    def submit_reset(self) -> str:
+    def submit_reset(self, deadline: float | None = None) -> str:
         """The loop's side checks and queues the reset; its line or its error (as
         :meth:`DaemonState.submit_reset`)."""
-        return self._ask("reset", None)
+        return self._ask("reset", None, deadline)
 
     def request_stop(self, reason: str = "stop requested", fault: str | None = None) -> None:
         """Send the stop to the loop's side (every time: its state keeps the first reason); returns at once."""
@@ -264,10 +267,9 @@ class ApiServer:
         if kind not in ("setpoint", "reset"):
             return
         _, rid, deadline, payload = msg
-        if time.monotonic() > deadline:  # the API has answered 503 (not applied) or is about to
-            return
-        try:
-            value = self._state.submit_setpoint(payload) if kind == "setpoint" else self._state.submit_reset()
+        try:  # past its deadline the API has answered 503 (not applied): the state then queues nothing
+            value = (self._state.submit_setpoint(payload, deadline) if kind == "setpoint"
+                     else self._state.submit_reset(deadline))
             reply = (rid, True, value)
         except Stopping as exc:
             reply = (rid, False, ("stopping", str(exc)))

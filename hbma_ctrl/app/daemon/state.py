@@ -32,6 +32,7 @@ Once a stop has been asked for, a setpoint or a reset is refused with :class:`St
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from typing import Callable
 
@@ -118,17 +119,20 @@ class DaemonState:
                 out.append(pair)
         return out, max(0, newest - seq) - len(out) if newest > seq else 0
 
-    def submit_setpoint(self, request: dict) -> dict:
+    def submit_setpoint(self, request: dict, deadline: float | None = None) -> dict:
         """Check and clip ``request`` and queue it for the loop; returns the handler's reply.
         Raises ValueError when the request cannot be taken, :class:`Stopping` once the stop has been
-        asked for, RuntimeError before the loop is ready or while the queue is full (never drops a
-        setpoint it accepted)."""
+        asked for, RuntimeError before the loop is ready, while the queue is full (never drops a
+        setpoint it accepted) or when the check ended after ``deadline`` (time.monotonic(), s; None:
+        none), which then queues nothing: its sender has stopped waiting for the answer."""
         with self._lock:
             handler = self._handler
         self._refuse_when_stopping("no new setpoints")
         if handler is None:
             raise RuntimeError("the loop is not ready for setpoints yet")
+        self._refuse_when_late(deadline, "setpoint")
         reply = handler(request)
+        self._refuse_when_late(deadline, "setpoint")
         with self._lock:
             # a full queue refuses instead of letting the deque drop the oldest setpoint unseen
             if len(self._pending) == self._pending.maxlen:
@@ -136,19 +140,27 @@ class DaemonState:
             self._pending.append(reply["applied"])
         return reply
 
-    def submit_reset(self) -> str:
+    def submit_reset(self, deadline: float | None = None) -> str:
         """Check a reset with the loop's handler and queue it for the loop; returns the handler's line.
         :class:`Stopping` once the stop has been asked for, RuntimeError (with the reason) before the
-        loop is ready or when the handler refuses."""
+        loop is ready, when the handler refuses or when it ended after ``deadline`` (as
+        :meth:`submit_setpoint`)."""
         with self._lock:
             handler = self._reset_handler
         self._refuse_when_stopping("no reset")
         if handler is None:
             raise RuntimeError("the loop is not ready yet: nothing to reset")
+        self._refuse_when_late(deadline, "reset")
         line = handler()
+        self._refuse_when_late(deadline, "reset")
         with self._lock:
             self._reset = True
         return line
+
+    @staticmethod
+    def _refuse_when_late(deadline: float | None, what: str) -> None:
+        if deadline is not None and time.monotonic() > deadline:
+            raise RuntimeError(f"the {what} was checked too late for its sender: not applied")
 
     def _refuse_when_stopping(self, what: str) -> None:
         if self._stop.is_set():

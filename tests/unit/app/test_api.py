@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import socket
 import threading
 import time
@@ -553,3 +555,120 @@ def test_concurrent_clients_are_all_answered_and_each_setpoint_is_queued_once(st
     got = Counter(round(v * 1e3, 6) for sp in drained for v in sp["heights"].values())
     assert got == Counter(accepted)  # every accepted setpoint once, none lost, none twice
     assert state.stop_requested and state.stop_reason == "api"
+
+
+# --- the API's process and its link to the loop's state -----------------------------------------------
+
+@pytest.mark.subprocess
+def test_the_api_process_serves_what_the_loop_published_and_its_setpoints_reach_the_state(state):
+    with serve(state, port=0) as srv, httpx.Client(base_url=srv.url, timeout=10) as c:
+        state.publish(snapshot(t_s=3.25, monotonic_s=time.monotonic()))
+        assert until(lambda: c.get("/status").json()["t_s"] == 3.25)
+        assert c.get("/health").json()["mode"] == "running"
+        r = c.post("/setpoint", json={"heights_mm": {"1": 50.0}})
+        assert r.status_code == 200
+        assert r.json()["applied"]["heights_mm"] == {"1": 10.0} and "clipped to 10 mm" in r.json()["clipped"][0]
+        assert state.take_setpoints() == [{"heights": {1: H_CLIP}, "layers": {}}]  # queued when answered
+        r = c.post("/setpoint", json={"heights_mm": {"7": 1.0}})
+        assert r.status_code == 422 and "no chamber 7" in r.json()["error"]
+        assert state.take_setpoints() == []
+
+
+@pytest.mark.subprocess
+def test_the_stream_from_the_api_process_numbers_events_by_the_loops_steps_and_counts_lost_ones():
+    s = DaemonState()
+    with serve(s, port=0) as srv:
+        loop = {"rate_hz": 100.0, "steps": 0}
+        s.publish(snapshot(loop=loop))
+        assert until(lambda: httpx.get(f"{srv.url}/health", timeout=10).json()["mode"] == "running")
+        with httpx.stream("GET", f"{srv.url}/stream", params={"rate_hz": 50, "count": 3}, timeout=30) as r:
+            lines = r.iter_lines()
+            assert next(lines) == "id: 0"
+            for k in range(1, 400):  # beyond the ring: the oldest are lost on the way
+                s.publish(snapshot(loop={**loop, "steps": k}))
+            ids, lost = [], []
+            for line in lines:
+                if line.startswith("id: "):
+                    ids.append(int(line[4:]))
+                elif line.startswith("data: "):
+                    lost.append(json.loads(line[6:])["lost"])
+    assert len(ids) == 2 and all(i % 2 == 0 for i in ids)  # every 2nd step at 50 of the loop's 100 Hz
+    assert sum(lost) > 0  # snapshots the ring no longer held when they were read, counted, not hidden
+
+
+@pytest.mark.subprocess
+def test_after_a_stop_the_api_process_refuses_setpoints_and_resets_with_its_reason(state):
+    state.set_reset_handler(lambda: "reset at the next period")
+    with serve(state, port=0) as srv, httpx.Client(base_url=srv.url, timeout=10) as c:
+        assert c.post("/reset").status_code == 200 and state.take_reset()
+        state.request_stop("SIGTERM")
+        r = c.post("/setpoint", json={"heights_mm": {"0": 1.0}})
+        assert r.status_code == 409 and "SIGTERM" in r.json()["error"]
+        assert c.post("/reset").status_code == 409
+        assert until(lambda: c.get("/status").json()["stop_requested"])
+        assert c.post("/stop").json()["reason"] == "SIGTERM"  # the first reason is kept
+    assert state.take_setpoints() == [] and not state.take_reset()
+
+
+@pytest.mark.subprocess
+def test_a_setpoint_checked_after_its_deadline_is_503_and_never_queued(state, monkeypatch):
+    from hbma_ctrl.app.daemon import apiproc
+
+    release = threading.Event()
+
+    def slow_check(request: dict) -> dict:
+        release.wait(60)  # held past the API's wait: the check ends after the request's deadline
+        return clip_handler(request)
+
+    state.set_setpoint_handler(slow_check)
+    with serve(state, port=0) as srv:
+        r = httpx.post(f"{srv.url}/setpoint", json={"heights_mm": {"0": 1.0}}, timeout=60)
+        release.set()
+        assert r.status_code == 503 and "not applied" in r.json()["error"]
+        state.set_setpoint_handler(clip_handler)  # the link goes on: the next one is taken
+        assert httpx.post(f"{srv.url}/setpoint", json={"heights_mm": {"0": 2.0}}, timeout=60).status_code == 200
+    assert state.take_setpoints() == [{"heights": {0: 0.002}, "layers": {}}]
+    assert apiproc.REPLY_TIMEOUT_S < 60
+
+
+@pytest.mark.subprocess
+def test_the_loop_side_never_waits_on_a_frozen_api_process_and_stop_ends_it(state):
+    srv = serve(state, port=0)
+    os.kill(srv.pid, signal.SIGSTOP)  # a hung API: it reads nothing, its pipe fills
+    try:
+        done = threading.Event()
+
+        def loop() -> None:  # publishes and takes as the loop does, far more than the pipe holds
+            big = snapshot(events=[{"t_s": 0.0, "kind": "x", "cause": "c" * 200}] * 100)
+            for k in range(3000):
+                state.publish({**big, "t_s": float(k)})
+                state.take_setpoints()
+                state.take_reset()
+            done.set()
+
+        t = threading.Thread(target=loop, daemon=True)
+        t.start()
+        assert done.wait(120), "the loop's side waited on the frozen API"
+    finally:
+        srv.stop(timeout=2.0)
+    assert not srv.running and srv.exitcode == -signal.SIGKILL  # killed when it did not end: reaped
+    assert not state.stop_requested  # ended on the daemon's request: no fault
+
+
+@pytest.mark.subprocess
+def test_a_killed_api_process_stops_the_loop_with_the_api_lost_fault_and_is_reaped(state):
+    with serve(state, port=0) as srv:
+        os.kill(srv.pid, signal.SIGKILL)
+        assert until(lambda: state.stop_requested)
+        assert state.stop_fault == "api_lost" and "SIGKILL" in state.stop_reason, state.stop_reason
+        assert srv.exitcode == -signal.SIGKILL and not os.path.exists(f"/proc/{srv.pid}")
+
+
+@pytest.mark.subprocess
+def test_the_api_process_ignores_the_signals_a_terminal_sends_its_group(state):
+    with serve(state, port=0) as srv:
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            os.kill(srv.pid, sig)
+        assert httpx.get(f"{srv.url}/health", timeout=10).status_code == 200  # served after all three
+        assert srv.running and not state.stop_requested
+    assert srv.exitcode == 0 and not os.path.exists(f"/proc/{srv.pid}")
