@@ -22,6 +22,9 @@ The link's thread only waits in the pipes (the interpreter's lock released): eve
 few tens of microseconds of the daemon's process (pickling a snapshot, one submit), every
 :data:`POLL_S` at most and once per request that changes state; the API's guards pace those.
 
+The API's process leaves a real-time scheduling class it inherited (:func:`leave_real_time`): on
+the loop's core, the loop preempts it.
+
 Ending: the API's process ignores SIGINT, SIGTERM and SIGHUP (a terminal's or a service manager's
 signal to the whole group reaches the daemon, which ends the loop in the safe state first and then
 the API: :meth:`ApiServer.stop`), and ends by itself when the daemon's process is gone (its pipe
@@ -36,6 +39,7 @@ import atexit
 import contextlib
 import itertools
 import multiprocessing as mp
+import os
 import queue
 import signal
 import socket
@@ -49,7 +53,7 @@ from typing import Any, Self
 from hbma_ctrl.app.daemon.api import DEFAULT_PORT, EVENTS_SHOWN, RATE_HZ, is_loopback
 from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 
-__all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "serve"]
+__all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "leave_real_time", "serve"]
 
 #: how often the link forwards the loop's new snapshots to the API at least, wall s
 POLL_S = 0.005
@@ -160,6 +164,17 @@ def _receive_all(down: Connection, state: _ApiState, closing: threading.Event) -
     closing.set()
 
 
+def leave_real_time() -> bool:
+    """Put this process in the ordinary scheduling class when it inherited a real-time one (the daemon
+    started under ``chrt -f``): the loop then preempts it whenever its period is due, instead of
+    waiting for it to block; True when it did."""
+    get = getattr(os, "sched_getscheduler", None)
+    if get is None or get(0) not in (os.SCHED_FIFO, os.SCHED_RR):
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # lowering needs no privilege
+    return True
+
+
 def _api_main(sock: socket.socket, down: Connection, up: Connection, token: str | None, rate_hz: float,
               allow_remote: bool, start_timeout: float) -> None:
     """The API's process: serve ``sock`` until the daemon's side says close or is gone."""
@@ -170,6 +185,7 @@ def _api_main(sock: socket.socket, down: Connection, up: Connection, token: str 
     for s in _GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _GROUP_SIGNALS)  # blocked by the daemon while it started us
+    leave_real_time()
     outbox: queue.SimpleQueue = queue.SimpleQueue()
     state = _ApiState(outbox.put)
     sender = threading.Thread(target=_send_all, args=(outbox, up), name="hbma-api-send", daemon=True)

@@ -672,3 +672,16 @@ def test_the_api_process_ignores_the_signals_a_terminal_sends_its_group(state):
         assert httpx.get(f"{srv.url}/health", timeout=10).status_code == 200  # served after all three
         assert srv.running and not state.stop_requested
     assert srv.exitcode == 0 and not os.path.exists(f"/proc/{srv.pid}")
+
+
+def test_the_api_process_leaves_a_real_time_class_it_inherited_and_keeps_an_ordinary_one(monkeypatch):
+    from hbma_ctrl.app.daemon import apiproc
+
+    set_to: list = []
+    monkeypatch.setattr(os, "sched_setscheduler", lambda pid, policy, param: set_to.append((pid, policy)))
+    for policy, moved in [(os.SCHED_FIFO, True), (os.SCHED_RR, True), (os.SCHED_OTHER, False),
+                          (os.SCHED_BATCH, False)]:
+        monkeypatch.setattr(os, "sched_getscheduler", lambda pid, policy=policy: policy)
+        set_to.clear()
+        assert apiproc.leave_real_time() is moved
+        assert set_to == ([(0, os.SCHED_OTHER)] if moved else [])
