@@ -7,9 +7,11 @@ Endpoints (JSON, edge units; the messages are :mod:`hbma_ctrl.app.schema.api`):
   read and estimated (kPa), command (speed %, inlet and outlet duty 0-1), robot layer poses (mm, deg),
   loop timing (ms), fault counts and the latest events.
 - ``POST /setpoint`` :class:`SetpointRequest` -> :class:`SetpointReply`: what will be applied and what
-  was clipped. 422 when the message or the loop's check refuses it, 503 before the loop takes
-  setpoints, 409 once a stop has been asked for.
-- ``POST /stop`` -> :class:`StopReply`: asks the loop for the safe state and its end.
+  was clipped. 422 when the message or the loop's check refuses it, 503 while the loop takes no
+  setpoints or when its side did not take this one in time (then it is not applied), 409 once a
+  stop has been asked for.
+- ``POST /stop`` -> :class:`StopReply`: asks the loop for the safe state and its end (answered once
+  the request is on its way; the loop acts at its next period).
 - ``POST /reset`` -> :class:`ResetReply`: leave the safe state after a fault once the readings are
   sane (409 with the reason otherwise, or once a stop has been asked for); the loop resumes control
   at its next period.
@@ -431,7 +433,7 @@ _GUARD_ERRORS = _errors(s401="no or a wrong bearer token (when the daemon has on
                         s429=f"over {MAX_CLIENTS} requests in progress, or the request would wait over {MAX_WAIT_S:g} s for its turn (paced requests)")
 _SETPOINT_ERRORS = _errors(s409="the daemon is stopping: no new setpoints",
                            s422="the message or the loop's check refuses it (the line names the key and its range)",
-                           s503="the loop does not take setpoints yet")
+                           s503="the loop does not take setpoints (yet, or in the safe state), or did not take this one in time (not applied)")
 _RESET_ERRORS = _errors(s409="the daemon is stopping, is not in the safe state, or a reading is not sane")
 _STREAM_ERRORS = _errors(s422="a bad query key or value (the line names the key and its range)")
 
