@@ -1,26 +1,31 @@
-"""The daemon's API in a process of its own, linked to the loop's :class:`DaemonState` by two pipes.
+"""The daemon's API in a process of its own, linked to the loop's :class:`DaemonState` by pipes.
 
 The API (:mod:`hbma_ctrl.app.daemon.api`: FastAPI on uvicorn) parses, checks, converts and answers
 every request in a spawned process: its interpreter and its lock are not the loop's, so however many
 clients it serves, and however slowly, the loop's thread never waits for it. What crosses (standard
-library :func:`multiprocessing.Pipe` connections, one each way, pickled messages):
+library :func:`multiprocessing.Pipe` connections, pickled messages):
 
 - to the API: the snapshots the loop publishes (:meth:`DaemonState.since`, each with the loop's
   number, only the last :data:`~hbma_ctrl.app.daemon.api.EVENTS_SHOWN` events), the stop request
   and its reason, and the answers to its requests; the API's copy of the state
   (:class:`_ApiState`) keeps them for ``/status``, ``/health`` and ``/stream``;
-- from the API: ``stop``, ``setpoint`` and ``reset`` requests (SI). The link's thread in the daemon's
-  process (:class:`ApiServer`) submits them to the state as the API did in that process before: the
-  loop's check clips a setpoint there and the API's request waits for that answer (what will be
-  applied and what was clipped); the loop takes what was queued at its next period, without
-  waiting for anyone. ``/stop`` is answered once its request is on its way; the loop acts on it at
-  its next period. A setpoint or reset not taken within :data:`REPLY_TIMEOUT_S` is 503 and is
-  not applied: the state queues nothing checked after that deadline, and the API waits
-  :data:`REPLY_MARGIN_S` longer for an answer sent before it.
+- from the API: ``setpoint`` and ``reset`` requests (SI), and on a pipe of their own the stops. The
+  link's thread in the daemon's process (:class:`ApiServer`) submits them to the state: the loop's
+  check clips a setpoint in that thread (not the loop's) and the API's request waits for that answer
+  (what will be applied and what was clipped); the loop takes what was queued at its next period,
+  without waiting for anyone. ``/stop`` is answered once its request is on its way; the link hands
+  it to the state as soon as it arrives and the loop acts on it at its next period. A setpoint or
+  reset not taken within :data:`REPLY_TIMEOUT_S` is 503 and is not applied: the state queues
+  nothing checked after that deadline, and the API waits :data:`REPLY_MARGIN_S` longer for an
+  answer sent before it.
 
-The link's thread only waits in the pipes (the interpreter's lock released): every wake-up takes a
-few tens of microseconds of the daemon's process (pickling a snapshot, one submit), every
-:data:`POLL_S` at most and once per request that changes state; the API's guards pace those.
+The link's thread waits with the interpreter's lock released. It wakes when the loop has published
+its period's status (:meth:`DaemonState.set_publish_wake`: one byte on a non-blocking socket), that
+is when the loop goes to sleep, and takes the setpoints and resets waiting then and forwards the
+snapshot: its work (a chamber's snapshot trims and pickles in about 4 us of CPU time; a submit is
+the loop's check of the setpoint) falls in the loop's sleep, where it cannot make the loop wait for
+the interpreter's lock. It also wakes on a stop, at once, and every :data:`POLL_S` when the loop
+publishes nothing (starting, ended).
 
 The API's process leaves a real-time scheduling class it inherited (:func:`leave_real_time`): on
 the loop's core, the loop preempts it.
@@ -55,12 +60,12 @@ from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 
 __all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "leave_real_time", "serve"]
 
-#: how often the link forwards the loop's new snapshots to the API at least, wall s
-POLL_S = 0.005
+#: how often the link looks for requests when the loop publishes nothing, wall s
+POLL_S = 0.02
 #: a setpoint or reset the loop's side has not taken within this long is not applied (503), s
 REPLY_TIMEOUT_S = 2.0
-#: how much longer the API waits for the answer than the link takes the request, s: an answer always
-#: arrives before the API gives up on one the link took
+#: how much longer the API waits for the answer than the link takes the request, s: the answer to a
+#: request taken just in time still has this long to cross the pipe
 REPLY_MARGIN_S = 1.0
 #: the fault kind of a loop stopped because the API's process ended unasked
 API_LOST = "api_lost"
@@ -139,11 +144,15 @@ class _ApiState(DaemonState):
         return self._loop_stop[1] if self._loop_stop[0] else self._asked
 
 
-def _send_all(outbox: queue.SimpleQueue, up: Connection) -> None:
-    """Write the API's messages to the daemon's side in order, until None (or the daemon is gone)."""
+def _send_all(outbox: queue.SimpleQueue, up: Connection, stops: Connection) -> None:
+    """Write the API's messages to the daemon's side in order (a stop's reason on ``stops``), until None
+    (or the daemon is gone)."""
     while (msg := outbox.get()) is not None:
         try:
-            up.send(msg)
+            if msg[0] == "stop":
+                stops.send(msg[1])
+            else:
+                up.send(msg)
         except OSError:  # the daemon's process is gone
             return
 
@@ -175,8 +184,8 @@ def leave_real_time() -> bool:
     return True
 
 
-def _api_main(sock: socket.socket, down: Connection, up: Connection, token: str | None, rate_hz: float,
-              allow_remote: bool, start_timeout: float) -> None:
+def _api_main(sock: socket.socket, down: Connection, up: Connection, stops: Connection, token: str | None,
+              rate_hz: float, allow_remote: bool, start_timeout: float) -> None:
     """The API's process: serve ``sock`` until the daemon's side says close or is gone."""
     import uvicorn
 
@@ -188,7 +197,7 @@ def _api_main(sock: socket.socket, down: Connection, up: Connection, token: str 
     leave_real_time()
     outbox: queue.SimpleQueue = queue.SimpleQueue()
     state = _ApiState(outbox.put)
-    sender = threading.Thread(target=_send_all, args=(outbox, up), name="hbma-api-send", daemon=True)
+    sender = threading.Thread(target=_send_all, args=(outbox, up, stops), name="hbma-api-send", daemon=True)
     sender.start()
     app = make_app(state, token, rate_hz=rate_hz, allow_remote=allow_remote)
     server = uvicorn.Server(server_config(app))
@@ -234,8 +243,14 @@ class ApiServer:
     """The API's process and the link's thread (module doc). ``host``/``port``: the bound address;
     ``pid``: the API's process."""
 
-    def __init__(self, state: DaemonState, proc: Any, sock: socket.socket, down: Connection, up: Connection):
+    def __init__(self, state: DaemonState, proc: Any, sock: socket.socket, down: Connection, up: Connection,
+                 stops: Connection):
         self._state, self._proc, self._sock, self._down, self._up = state, proc, sock, down, up
+        self._stops = stops
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        state.set_publish_wake(self._wake_w)
         addr = sock.getsockname()
         self.host: str = addr[0]
         self.port: int = addr[1]
@@ -277,9 +292,6 @@ class ApiServer:
     def _take(self, msg: tuple) -> None:
         """One request of the API's process."""
         kind = msg[0]
-        if kind == "stop":
-            self._state.request_stop(str(msg[1]))
-            return
         if kind not in ("setpoint", "reset"):
             return
         _, rid, deadline, payload = msg
@@ -302,11 +314,14 @@ class ApiServer:
         close_sent = False
         try:
             while True:
-                ready = wait([self._up, self._proc.sentinel], timeout=POLL_S)
-                if self._up in ready:
-                    while self._up.poll():
-                        self._take(self._up.recv())
-                elif ready:  # the process ended without closing its pipe first: nothing more comes
+                ready = wait([self._wake_r, self._stops, self._proc.sentinel], timeout=POLL_S)
+                with contextlib.suppress(BlockingIOError):
+                    self._wake_r.recv(4096)
+                while self._stops.poll():
+                    self._state.request_stop(str(self._stops.recv()))
+                while self._up.poll():
+                    self._take(self._up.recv())
+                if self._proc.sentinel in ready:  # ended, its pipes read to their end: nothing more comes
                     break
                 seq, stop = self._forward(seq, stop)
                 if self._closing.is_set() and not close_sent:
@@ -326,14 +341,17 @@ class ApiServer:
         self._stopped = True
         atexit.unregister(self.stop)
         self._closing.set()
-        self._thread.join(timeout + 2.0)  # the link sends close within POLL_S; uvicorn's shutdown takes <= 2 s
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"\0")
+        self._thread.join(timeout + 2.0)  # the link sends close at once; uvicorn's shutdown takes <= 2 s
         if self._proc.is_alive():
             self._proc.join(timeout)
         if self._proc.is_alive() or self._thread.is_alive():
             self._proc.kill()
             self._proc.join(timeout)
             self._thread.join(timeout)
-        for c in (self._down, self._up, self._sock):
+        self._state.set_publish_wake(None)
+        for c in (self._down, self._up, self._stops, self._sock, self._wake_r, self._wake_w):
             with contextlib.suppress(OSError):
                 c.close()
 
@@ -378,8 +396,9 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     ctx = mp.get_context("spawn")  # a fresh interpreter: none of this process's threads, locks or state
     down_r, down_w = ctx.Pipe(duplex=False)
     up_r, up_w = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_api_main, args=(sock, down_r, up_w, token, rate_hz, allow_remote, start_timeout),
-                       name="hbma-api", daemon=True)
+    stops_r, stops_w = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_api_main, args=(sock, down_r, up_w, stops_w, token, rate_hz, allow_remote,
+                                               start_timeout), name="hbma-api", daemon=True)
     # the child starts with the group's signals blocked, so that one sent during its start-up reaches
     # the daemon only; this thread gets any that came meanwhile when it unblocks them
     blocked = threading.current_thread() is threading.main_thread()
@@ -389,14 +408,14 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     finally:
         if old is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
-        down_r.close()  # the child's ends: it alone holds them, so either side sees the other's end
-        up_w.close()
+        for c in (down_r, up_w, stops_w):  # the child's ends: only it holds them, so each side sees the other's end
+            c.close()
 
     def fail(why: str) -> RuntimeError:
         if proc.is_alive():
             proc.kill()
         proc.join(10)
-        for c in (down_w, up_r, sock):
+        for c in (down_w, up_r, stops_r, sock):
             c.close()
         return RuntimeError(f"the API did not start on {host}:{port}: {why}")
 
@@ -408,4 +427,4 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
         raise fail(f"its process ended ({_ended(proc.exitcode if not proc.is_alive() else None)})") from None
     if first != ("started",):
         raise fail(str(first[1]) if isinstance(first, tuple) and len(first) > 1 else repr(first))
-    return ApiServer(state, proc, sock, down_w, up_r)
+    return ApiServer(state, proc, sock, down_w, up_r, stops_r)

@@ -31,6 +31,7 @@ Once a stop has been asked for, a setpoint or a reset is refused with :class:`St
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 from collections import deque
@@ -61,6 +62,7 @@ class DaemonState:
         self._stop = threading.Event()
         self._stop_reason = ""
         self._stop_fault: str | None = None
+        self._wake: socket.socket | None = None
 
     # --- loop side ---------------------------------------------------------------------------------
     def publish(self, status: dict, seq: int | None = None) -> None:
@@ -72,6 +74,19 @@ class DaemonState:
         pair = (seq, status)
         self._ring[seq % RING] = pair
         self._latest = pair  # one reference store: a reader sees the old pair or the new one
+        wake = self._wake
+        if wake is not None:
+            try:
+                wake.send(b"\0")
+            except OSError:  # full (its reader has not drained it yet: it wakes all the same) or closed
+                pass
+
+    def set_publish_wake(self, wake: socket.socket | None) -> None:
+        """A non-blocking socket sent one byte after each publish, so that a reader in another thread can
+        wait for the loop's period to end instead of polling (None: none)."""
+        if wake is not None and wake.getblocking():
+            raise ValueError("the publish wake socket must be non-blocking: the loop never waits on it")
+        self._wake = wake
 
     def take_setpoints(self) -> list[dict]:
         """The setpoints submitted since the last call (oldest first), as the handler returned them."""

@@ -685,3 +685,19 @@ def test_the_api_process_leaves_a_real_time_class_it_inherited_and_keeps_an_ordi
         set_to.clear()
         assert apiproc.leave_real_time() is moved
         assert set_to == ([(0, os.SCHED_OTHER)] if moved else [])
+
+
+def test_each_publish_wakes_the_link_and_a_full_wake_socket_never_blocks_the_loop():
+    s = DaemonState()
+    r, w = socket.socketpair()
+    with r, w:
+        with pytest.raises(ValueError, match="non-blocking"):
+            s.set_publish_wake(w)
+        w.setblocking(False)
+        s.set_publish_wake(w)
+        s.publish(snapshot())
+        assert r.recv(16) == b"\0"
+        for k in range(100_000):  # nobody reads: the socket fills, publishing goes on
+            s.publish(snapshot(t_s=float(k)))
+        assert s.status()["t_s"] == 99_999.0
+        s.set_publish_wake(None)
