@@ -27,9 +27,8 @@ the loop's check of the setpoint) falls in the loop's sleep, where it cannot mak
 the interpreter's lock. It also wakes on a stop, at once, and every :data:`POLL_S` when the loop
 publishes nothing (starting, ended).
 
-The API's process runs below the loop's priority (:func:`below_the_loop`): it leaves a real-time
-scheduling class it inherited and is niced by :data:`API_NICE`, so that where the two want one core
-the kernel gives it to the loop.
+The API's process leaves a real-time scheduling class it inherited (:func:`leave_real_time`): on
+the loop's core, the loop preempts it.
 
 Ending: the API's process ignores SIGINT, SIGTERM and SIGHUP (a terminal's or a service manager's
 signal to the whole group reaches the daemon, which ends the loop in the safe state first and then
@@ -59,7 +58,7 @@ from typing import Any, Self
 from hbma_ctrl.app.daemon.api import DEFAULT_PORT, EVENTS_SHOWN, RATE_HZ, is_loopback
 from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 
-__all__ = ["API_LOST", "API_NICE", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "below_the_loop", "serve"]
+__all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "leave_real_time", "serve"]
 
 #: how often the link looks for requests when the loop publishes nothing, wall s
 POLL_S = 0.02
@@ -68,8 +67,6 @@ REPLY_TIMEOUT_S = 2.0
 #: how much longer the API waits for the answer than the link takes the request, s: the answer to a
 #: request taken just in time still has this long to cross the pipe
 REPLY_MARGIN_S = 1.0
-#: the API's process's niceness above the daemon's: a tenth of the loop's share of a core both want
-API_NICE = 10
 #: the fault kind of a loop stopped because the API's process ended unasked
 API_LOST = "api_lost"
 #: the signals a terminal or a service manager sends a whole process group; the daemon ends the API
@@ -176,16 +173,14 @@ def _receive_all(down: Connection, state: _ApiState, closing: threading.Event) -
     closing.set()
 
 
-def below_the_loop() -> bool:
-    """Put this process below the daemon's priority: the ordinary scheduling class when it inherited a
-    real-time one (the daemon started under ``chrt -f``: the loop then preempts it instead of waiting
-    for it to block), and :data:`API_NICE` more niceness. Lowering needs no privilege. True when it
-    left a real-time class."""
-    os.nice(API_NICE)
+def leave_real_time() -> bool:
+    """Put this process in the ordinary scheduling class when it inherited a real-time one (the daemon
+    started under ``chrt -f``): the loop then preempts it whenever its period is due, instead of
+    waiting for it to block; True when it did."""
     get = getattr(os, "sched_getscheduler", None)
     if get is None or get(0) not in (os.SCHED_FIFO, os.SCHED_RR):
         return False
-    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # lowering needs no privilege
     return True
 
 
@@ -199,7 +194,7 @@ def _api_main(sock: socket.socket, down: Connection, up: Connection, stops: Conn
     for s in _GROUP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _GROUP_SIGNALS)  # blocked by the daemon while it started us
-    below_the_loop()
+    leave_real_time()
     outbox: queue.SimpleQueue = queue.SimpleQueue()
     state = _ApiState(outbox.put)
     sender = threading.Thread(target=_send_all, args=(outbox, up, stops), name="hbma-api-send", daemon=True)

@@ -674,27 +674,17 @@ def test_the_api_process_ignores_the_signals_a_terminal_sends_its_group(state):
     assert srv.exitcode == 0 and not os.path.exists(f"/proc/{srv.pid}")
 
 
-def test_the_api_process_goes_below_the_loops_priority_and_leaves_a_real_time_class(monkeypatch):
+def test_the_api_process_leaves_a_real_time_class_it_inherited_and_keeps_an_ordinary_one(monkeypatch):
     from hbma_ctrl.app.daemon import apiproc
 
     set_to: list = []
-    niced: list = []
     monkeypatch.setattr(os, "sched_setscheduler", lambda pid, policy, param: set_to.append((pid, policy)))
-    monkeypatch.setattr(os, "nice", niced.append)
     for policy, moved in [(os.SCHED_FIFO, True), (os.SCHED_RR, True), (os.SCHED_OTHER, False),
                           (os.SCHED_BATCH, False)]:
         monkeypatch.setattr(os, "sched_getscheduler", lambda pid, policy=policy: policy)
         set_to.clear()
-        niced.clear()
-        assert apiproc.below_the_loop() is moved
-        assert set_to == ([(0, os.SCHED_OTHER)] if moved else []) and niced == [apiproc.API_NICE]
-
-
-@pytest.mark.subprocess
-def test_the_api_process_runs_niced_below_the_daemon(state):
-    with serve(state, port=0) as srv:
-        fields = open(f"/proc/{srv.pid}/stat").read().rsplit(")", 1)[1].split()
-        assert int(fields[16]) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 10)  # field 19 of stat: nice
+        assert apiproc.leave_real_time() is moved
+        assert set_to == ([(0, os.SCHED_OTHER)] if moved else [])
 
 
 def test_each_publish_wakes_the_link_and_a_full_wake_socket_never_blocks_the_loop():
