@@ -701,3 +701,17 @@ def test_each_publish_wakes_the_link_and_a_full_wake_socket_never_blocks_the_loo
             s.publish(snapshot(t_s=float(k)))
         assert s.status()["t_s"] == 99_999.0
         s.set_publish_wake(None)
+
+
+def test_the_api_process_freezes_its_start_up_objects_out_of_the_collector():
+    # a full collection of the app's objects holds every answer, a stop's too, for tens of milliseconds
+    import gc
+
+    from hbma_ctrl.app.daemon.apiproc import freeze_start_up
+
+    make_app(DaemonState()).openapi()
+    try:
+        freeze_start_up()
+        assert gc.get_freeze_count() > 50_000  # the app, its schemas, uvicorn, the modules: skipped
+    finally:
+        gc.unfreeze()
