@@ -1,14 +1,13 @@
 """``hbma-ctrl bench api``: the rig daemon's loop under a flood of API clients, beside the same run without.
 
 The daemon runs in this process on the simulated rig in real time (speed 1, as a real rig runs), with
-its API on a free loopback port (in the API's own process, as the daemon runs it), twice for ``duration_s`` each: once quiet, once with ``clients``
-loopback clients in another process, each sending its next request (``GET /status``, ``GET /health``
+its API on a free loopback port (in the API's own process, as the daemon runs it), twice for
+``duration_s`` each: once quiet, once with ``clients`` loopback clients in another process, each sending its next request (``GET /status``, ``GET /health``
 or a ``POST /setpoint``, in turn) as soon as the last is answered. In both runs a prober, a process of
 its own, posts ``/stop`` every ``probe_every_s`` and times each answer: the stop requests the API takes
 from it reach the loop's state, which counts them instead of ending the run (:class:`ProbedState`);
-the API's path to them is the real one, and the real ``/stop`` is posted once every probe answered
-has been counted there. At the end the bench posts the real ``/stop`` and times its
-answer and the loop's end.
+the API's path to them is the real one. At the end, once every probe answered has been counted
+there, the bench posts the real ``/stop`` and times its answer and the loop's end.
 
 Writes ``api.json``: per run (``quiet``, ``loaded``) the daemon's deadline misses, overrun warnings,
 step and tick p99 (ms), faults, the clients' answers by HTTP status and their rate, and the ``/stop``

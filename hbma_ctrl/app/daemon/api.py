@@ -433,7 +433,8 @@ _GUARD_ERRORS = _errors(s401="no or a wrong bearer token (when the daemon has on
                         s429=f"over {MAX_CLIENTS} requests in progress, or the request would wait over {MAX_WAIT_S:g} s for its turn (paced requests)")
 _SETPOINT_ERRORS = _errors(s409="the daemon is stopping: no new setpoints",
                            s422="the message or the loop's check refuses it (the line names the key and its range)",
-                           s503="the loop does not take setpoints (yet, or in the safe state), or did not take this one in time (not applied)")
+                           s503="the loop does not take setpoints (yet, or in the safe state), or did not take "
+                                "this one in time (not applied)")
 _RESET_ERRORS = _errors(s409="the daemon is stopping, is not in the safe state, or a reading is not sane")
 _STREAM_ERRORS = _errors(s422="a bad query key or value (the line names the key and its range)")
 

@@ -420,7 +420,7 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     finally:
         if old is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
-        for c in (down_r, up_w, stops_w):  # the child's ends: only it holds them, so each side sees the other's end
+        for c in (down_r, up_w, stops_w):  # the child's ends, held by it alone: each side sees the other end
             c.close()
 
     def fail(why: str) -> RuntimeError:

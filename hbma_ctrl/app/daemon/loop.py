@@ -39,8 +39,9 @@ loop is in mode "safe" and the readings are sane (finite, within the sensor's ra
 pressure cap), checked again at the next period, it clears the monitor and the loop controls again.
 
 The loop ends on a stop request (the API's /stop, a signal flag, the duration, the API's process
-lost: a fault) or at once on an exception anywhere in the step or a lost rig link. Whatever ends it, the safe command is written
-before :meth:`DaemonLoop.run` returns, and the event is logged with its rig time and cause.
+lost: a fault) or at once on an exception anywhere in the step or a lost rig link. Whatever ends it,
+the safe command is written before :meth:`DaemonLoop.run` returns, and the event is logged with its
+rig time and cause.
 """
 
 from __future__ import annotations
@@ -439,8 +440,9 @@ class DaemonLoop:
         self.event(kind, text)
 
     def _check_setpoint(self, request: dict) -> dict:
-        """The runner's check (the submitter's thread, not the loop's); refused (RuntimeError: 503) once the loop is not running:
-        in the safe state the loop writes only the safe command, so a setpoint would never be applied."""
+        """The runner's check (the submitter's thread, not the loop's); refused (RuntimeError: 503) once
+        the loop is not running: in the safe state the loop writes only the safe command, so a setpoint
+        would never be applied."""
         if self.mode != "running":
             raise RuntimeError(f"the daemon is in mode '{self.mode}' (safe command only, after "
                                f"{', '.join(self._latched_kinds()) or 'a stop'}): setpoints are not applied")
@@ -456,8 +458,8 @@ class DaemonLoop:
         return "; ".join(bad) + (f" (sane: [{U.to_kpa(lo):g}, {U.to_kpa(hi):g}) kPa)" if bad else "")
 
     def _check_reset(self) -> str:
-        """The API's reset check (the submitter's thread): RuntimeError with the reason unless the loop is in mode
-        "safe" with sane readings."""
+        """The API's reset check (the submitter's thread): RuntimeError with the reason unless the loop is
+        in mode "safe" with sane readings."""
         if self.mode != "safe":
             raise RuntimeError(f"the daemon is in mode '{self.mode}': there is no fault to reset")
         why = self._insane(self.readings_p)

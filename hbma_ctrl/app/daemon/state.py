@@ -11,10 +11,10 @@ place by single reference stores (the newest ``(seq, snapshot)`` pair, and the s
 the last :data:`RING` snapshots), which a reader sees whole or not at all. So a reader, however slow
 and however many, never makes the loop wait. The live stream reads the ring to send every n-th
 snapshot even when it wakes after several were published (:meth:`DaemonState.since`). The setpoint
-queue, the reset flag and the stop keep a lock, held for a few operations on either side. A setpoint is checked and clipped to what the rig
-can reach by the handler the loop registered (:meth:`DaemonState.set_setpoint_handler`) in the
-caller's thread (not the loop's), so the reply says at once what will be applied and what was clipped; the loop applies it at
-its next period.
+queue, the reset flag and the stop keep a lock, held for a few operations on either side. A
+setpoint is checked and clipped to what the rig can reach by the handler the loop registered
+(:meth:`DaemonState.set_setpoint_handler`) in the caller's thread (not the loop's), so the reply
+says at once what will be applied and what was clipped; the loop applies it at its next period.
 
 A setpoint request (SI) is a dict with either or both of
 ``heights``: {chamber index: membrane height, m} and
