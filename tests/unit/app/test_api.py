@@ -592,7 +592,8 @@ def test_the_stream_from_the_api_process_numbers_events_by_the_loops_steps_and_c
                     ids.append(int(line[4:]))
                 elif line.startswith("data: "):
                     lost.append(json.loads(line[6:])["lost"])
-    assert len(ids) == 2 and all(i % 2 == 0 for i in ids)  # every 2nd step at 50 of the loop's 100 Hz
+    # the loop's step counts, in order; where none was lost on the way, every 2nd (50 of the loop's 100 Hz)
+    assert len(ids) == 2 and 1 <= ids[0] < ids[1] <= 399 and (lost[2] > 0 or ids[1] == (ids[0] // 2 + 1) * 2)
     assert sum(lost) > 0  # snapshots the ring no longer held when they were read, counted, not hidden
 
 
