@@ -744,11 +744,11 @@ def test_bad_config_gives_one_line_and_exit_2(tmp_path, extra, replace, needle):
 
 
 # --- the real command in a subprocess -------------------------------------------------------------
-def _start(args: list[str]) -> tuple[subprocess.Popen, dict]:
+def _start(args: list[str], **popen) -> tuple[subprocess.Popen, dict]:
     """Start the daemon; return it and the notices it printed before running (api, run log)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl", "daemon", *args], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
     notes: dict = {}
     deadline = time.monotonic() + 120
     while "run log" not in notes:
@@ -760,6 +760,29 @@ def _start(args: list[str]) -> tuple[subprocess.Popen, dict]:
         if m:
             notes[m.group(1)] = m.group(2)
     return proc, notes
+
+
+def _api_pid(daemon: int) -> int:
+    """The daemon's API process: its child started by multiprocessing's spawn (not its resource tracker)."""
+    found = []
+    for d in Path("/proc").iterdir():
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == daemon and b"spawn_main" in cmd:
+            found.append(int(d.name))
+    assert len(found) == 1, found
+    return found[0]
+
+
+def _gone(pid: int) -> bool:
+    """The process has ended (no entry, or a zombie left to whoever adopted it)."""
+    try:
+        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
 
 
 def _rows_logged(folder: Path) -> int:
@@ -797,12 +820,14 @@ def test_api_setpoint_then_sigterm_or_sighup_vents_and_leaves_a_complete_log(tmp
         assert 5.0 < reply["applied"]["heights_mm"]["0"] <= 20.0 and reply["clipped"]
         while _rows_logged(Path(notes["run log"])) < 50:
             time.sleep(0.2)
+        api = _api_pid(proc.pid)
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 128 + sig, err
+    assert not Path(f"/proc/{api}").exists()  # the API's process ended and was reaped before the daemon
     stats = json.loads((out / "daemon_stats.json").read_text())
     assert stats["safe_exit"] is True and stats["end_reason"] == sig.name
     cols, rows = read_run_log(out)
@@ -824,14 +849,69 @@ def test_kill_9_mid_run_leaves_a_readable_log(tmp_path):
         while _rows_logged(folder) < 100:
             assert proc.poll() is None
             time.sleep(0.1)
+        api = _api_pid(proc.pid)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
+        deadline = time.monotonic() + 60
+        while not _gone(api):  # the API's process ends by itself once the daemon's is gone
+            assert time.monotonic() < deadline, "the API's process outlived the daemon"
+            time.sleep(0.1)
     finally:
         if proc.poll() is None:
             proc.kill()
     cols, rows = read_run_log(folder)  # raises on a torn row
     assert len(rows) >= 100 and cols[0] == "t_s"
     assert [float(r[0]) for r in rows[:3]] == [0.0, 0.01, 0.02]
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_sigint_to_the_whole_group_vents_ends_130_and_leaves_no_api_process(tmp_path):
+    """Ctrl-C in a terminal signals the daemon and its API's process together: the daemon ends the loop
+    in the safe state and then the API, which does not end on its own signal first."""
+    out = tmp_path / "run"
+    proc, notes = _start([str(_write_config(tmp_path, CHAMBER, replace=RELAXED)), "--rig", "sim", "--api",
+                          "127.0.0.1:0", "--out", str(out)], start_new_session=True)
+    try:
+        while _rows_logged(Path(notes["run log"])) < 50:
+            assert proc.poll() is None
+            time.sleep(0.1)
+        api = _api_pid(proc.pid)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGINT, err
+    assert not Path(f"/proc/{api}").exists()
+    stats = json.loads((out / "daemon_stats.json").read_text())
+    assert stats["safe_exit"] is True and stats["end_reason"] == "SIGINT" and not stats["faults"]
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_a_killed_api_process_vents_the_rig_and_ends_the_daemon_with_the_api_lost_fault(tmp_path):
+    """Without its API the rig has no stop button nor view: the loop writes the safe command and ends,
+    the fault counted (exit 1), the run's files complete."""
+    out = tmp_path / "run"
+    proc, notes = _start([str(_write_config(tmp_path, CHAMBER, replace=RELAXED)), "--rig", "sim", "--api",
+                          "127.0.0.1:0", "--out", str(out)])
+    try:
+        while _rows_logged(Path(notes["run log"])) < 50:
+            assert proc.poll() is None
+            time.sleep(0.1)
+        os.kill(_api_pid(proc.pid), signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, err
+    stats = json.loads((out / "daemon_stats.json").read_text())
+    assert stats["safe_exit"] is True and stats["faults"] == {"api_lost": 1}
+    assert "API's process ended (killed by SIGKILL)" in stats["end_reason"]
+    cols, rows = read_run_log(out)
+    assert rows[-1][cols.index("mode")] == "stopped" and float(rows[-1][cols.index("outlet_C1_1")]) == 1.0
+    assert json.loads((out / "manifest.json").read_text())["status"] == "complete"
 
 
 #: rig time for the serial test: 0.8 s of calibration, 6 mm from 3 s after it, 6 s to settle

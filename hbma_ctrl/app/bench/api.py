@@ -1,13 +1,13 @@
 """``hbma-ctrl bench api``: the rig daemon's loop under a flood of API clients, beside the same run without.
 
 The daemon runs in this process on the simulated rig in real time (speed 1, as a real rig runs), with
-its API on a free loopback port, twice for ``duration_s`` each: once quiet, once with ``clients``
-loopback clients in another process, each sending its next request (``GET /status``, ``GET /health``
+its API on a free loopback port (in the API's own process, as the daemon runs it), twice for
+``duration_s`` each: once quiet, once with ``clients`` loopback clients in another process, each sending its next request (``GET /status``, ``GET /health``
 or a ``POST /setpoint``, in turn) as soon as the last is answered. In both runs a prober, a process of
 its own, posts ``/stop`` every ``probe_every_s`` and times each answer: the stop requests the API takes
-from it are counted by the state it shares with the loop and do not end the run (:class:`ProbedState`);
-the API's path to them is the real one. At the end the bench posts the real ``/stop`` and times its
-answer and the loop's end.
+from it reach the loop's state, which counts them instead of ending the run (:class:`ProbedState`);
+the API's path to them is the real one. At the end, once every probe answered has been counted
+there, the bench posts the real ``/stop`` and times its answer and the loop's end.
 
 Writes ``api.json``: per run (``quiet``, ``loaded``) the daemon's deadline misses, overrun warnings,
 step and tick p99 (ms), faults, the clients' answers by HTTP status and their rate, and the ``/stop``
@@ -45,12 +45,12 @@ class ProbedState(DaemonState):
         self.probing = True
         self.probes = 0
 
-    def request_stop(self, reason: str = "stop requested") -> None:
+    def request_stop(self, reason: str = "stop requested", fault: str | None = None) -> None:
         """Count an API stop while probing; any other stop (a signal, or the API's once probing ends) acts."""
         if self.probing and reason == "api":
             self.probes += 1
             return
-        super().request_stop(reason)
+        super().request_stop(reason, fault)
 
 
 def _flood(url: str, clients: int, duration: float, go, out) -> None:
@@ -140,6 +140,11 @@ def _one_run(config: Path, out: Path, duration_s: float, clients: int, probe_eve
             p.join(30)
         res["stop_latency_s"] = next(g for g in got if isinstance(g, list))
         res["requests"] = next((g for g in got if isinstance(g, dict)), {})
+        # each answered probe is on its way to the loop's state: counted there before the real stop
+        answered = sum(1 for x in res["stop_latency_s"] if x is not None)
+        until = time.monotonic() + 30
+        while state.probes < answered and time.monotonic() < until:
+            time.sleep(0.01)
         state.probing = False
         t0 = time.perf_counter()
         r = httpx.post(f"{url}/stop", timeout=10)

@@ -1,4 +1,5 @@
-"""The rig daemon's local HTTP API: FastAPI on uvicorn in a daemon thread, in front of a DaemonState.
+"""The rig daemon's local HTTP API: the FastAPI app and its guards, in front of a DaemonState (in the
+daemon, the copy of the loop's state kept by the API's own process, :mod:`hbma_ctrl.app.daemon.apiproc`).
 
 Endpoints (JSON, edge units; the messages are :mod:`hbma_ctrl.app.schema.api`):
 
@@ -6,9 +7,11 @@ Endpoints (JSON, edge units; the messages are :mod:`hbma_ctrl.app.schema.api`):
   read and estimated (kPa), command (speed %, inlet and outlet duty 0-1), robot layer poses (mm, deg),
   loop timing (ms), fault counts and the latest events.
 - ``POST /setpoint`` :class:`SetpointRequest` -> :class:`SetpointReply`: what will be applied and what
-  was clipped. 422 when the message or the loop's check refuses it, 503 before the loop takes
-  setpoints, 409 once a stop has been asked for.
-- ``POST /stop`` -> :class:`StopReply`: asks the loop for the safe state and its end.
+  was clipped. 422 when the message or the loop's check refuses it, 503 while the loop takes no
+  setpoints or when its side did not take this one in time (then it is not applied), 409 once a
+  stop has been asked for.
+- ``POST /stop`` -> :class:`StopReply`: asks the loop for the safe state and its end (answered once
+  the request is on its way; the loop acts at its next period).
 - ``POST /reset`` -> :class:`ResetReply`: leave the safe state after a fault once the readings are
   sane (409 with the reason otherwise, or once a stop has been asked for); the loop resumes control
   at its next period.
@@ -38,7 +41,8 @@ Every error is JSON ``{"error": "<one line>", "detail": ...}``; a message that f
 
 A connection that holds no request must send a whole request head within :data:`REQUEST_TIMEOUT_S`
 (:class:`_Protocol`), so half-open connections cannot hold the server's connection slots.
-:func:`serve` binds loopback only unless ``allow_remote`` and a token.
+:func:`hbma_ctrl.app.daemon.apiproc.serve` runs it on uvicorn in a process of its own, bound to
+loopback only unless ``allow_remote`` and a token.
 
 The status dict the loop publishes (:meth:`DaemonState.publish`), SI, a new dict each period (the
 API caches its conversion by identity); every key but ``mode`` may be left out (e.g. while
@@ -63,18 +67,16 @@ supports ``reversed`` (a list or a deque)::
 
 The API shows the last :data:`EVENTS_SHOWN` events. A request only reads the newest snapshot (its
 conversion is cached per snapshot) or submits one setpoint, each under the state's lock for a
-moment: no work grows with the run's history, and a flood of requests cannot hold the loop.
+moment: no work grows with the run's history.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import hmac
 import ipaddress
 import itertools
 import math
-import socket
 import threading
 import time
 import weakref
@@ -90,7 +92,7 @@ from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 
 from hbma_ctrl.app.daemon import live
-from hbma_ctrl.app.daemon.state import DaemonState
+from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 from hbma_ctrl.app.schema.api import (
     CHAMBER_INDEX_MAX,
     ChamberStatus,
@@ -117,16 +119,16 @@ __all__ = [
     "EVENTS_SHOWN",
     "MAX_BODY_BYTES",
     "MAX_CLIENTS",
+    "MAX_CONNECTIONS",
     "MAX_IDLE",
     "MAX_WAIT_S",
     "RATE_HZ",
     "REQUEST_TIMEOUT_S",
-    "ApiServer",
     "EventStream",
     "is_loopback",
     "make_app",
     "request_error",
-    "serve",
+    "server_config",
     "status_message",
 ]
 
@@ -144,7 +146,7 @@ MAX_CLIENTS = 128
 #: a request head, or its body, not whole after this long closes the connection (408 for a body), s
 REQUEST_TIMEOUT_S = 2.0
 #: requests served per second on average (all clients together) and the burst served at once: a
-#: request costs ~1 ms of the daemon's CPU (and its GIL), so a flood is paced instead of starving the loop
+#: request costs ~1 ms of a CPU, which a flood would take from the loop's core on a small rig PC
 RATE_HZ = 100.0
 BURST = 50
 #: a request that would wait longer than this for its turn is refused with 429 instead
@@ -431,7 +433,8 @@ _GUARD_ERRORS = _errors(s401="no or a wrong bearer token (when the daemon has on
                         s429=f"over {MAX_CLIENTS} requests in progress, or the request would wait over {MAX_WAIT_S:g} s for its turn (paced requests)")
 _SETPOINT_ERRORS = _errors(s409="the daemon is stopping: no new setpoints",
                            s422="the message or the loop's check refuses it (the line names the key and its range)",
-                           s503="the loop does not take setpoints yet")
+                           s503="the loop does not take setpoints (yet, or in the safe state), or did not take "
+                                "this one in time (not applied)")
 _RESET_ERRORS = _errors(s409="the daemon is stopping, is not in the safe state, or a reading is not sane")
 _STREAM_ERRORS = _errors(s422="a bad query key or value (the line names the key and its range)")
 
@@ -569,6 +572,8 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
             raise HTTPException(409, f"the daemon is stopping ({state.stop_reason}): no new setpoints")
         try:
             reply = state.submit_setpoint(request.to_si())
+        except Stopping as exc:
+            raise HTTPException(409, str(exc)) from None
         except ValueError as exc:
             raise HTTPException(422, f"[setpoint] {exc}") from None
         except RuntimeError as exc:
@@ -607,89 +612,10 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def _bind(host: str, port: int) -> socket.socket:
-    """A listening-ready TCP socket bound to (host, port); port 0 = any free port."""
-    name = "127.0.0.1" if host.strip().lower() == "localhost" else host.strip("[]")
-    family, kind, proto, _, addr = socket.getaddrinfo(name, port, type=socket.SOCK_STREAM)[0]
-    sock = socket.socket(family, kind, proto)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(addr)
-    except OSError:
-        sock.close()
-        raise
-    return sock
-
-
-class ApiServer:
-    """A running API: uvicorn in a daemon thread. ``host``/``port`` are the bound address."""
-
-    def __init__(self, server: uvicorn.Server, thread: threading.Thread, sock: socket.socket,
-                 closing: threading.Event | None = None):
-        self._server = server
-        self._closing = closing
-        self._thread = thread
-        self._sock = sock
-        addr = sock.getsockname()
-        self.host: str = addr[0]
-        self.port: int = addr[1]
-
-    @property
-    def url(self) -> str:
-        """Base URL, e.g. http://127.0.0.1:8765."""
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}"
-
-    @property
-    def running(self) -> bool:
-        return self._thread.is_alive()
-
-    def stop(self, timeout: float = 5.0) -> None:
-        """Stop serving and join the thread (open streams end; open connections get up to ``timeout`` s,
-        then are cut)."""
-        if self._closing is not None:
-            self._closing.set()
-        self._server.should_exit = True
-        self._thread.join(timeout)
-        if self._thread.is_alive():
-            self._server.force_exit = True
-            self._thread.join(timeout)
-        with contextlib.suppress(OSError):
-            self._sock.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-
-def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT, allow_remote: bool = False,
-          token: str | None = None, rate_hz: float = RATE_HZ, start_timeout: float = 10.0) -> ApiServer:
-    """Start the API on (host, port) in a daemon thread and return once it accepts connections.
-    ``rate_hz``: requests served per second, all clients together (see :func:`make_app`).
-
-    Loopback only unless ``allow_remote`` is True and a ``token`` is given (ValueError otherwise);
-    port 0 binds any free port (read it from the result). OSError when the address cannot be bound."""
-    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-        raise ValueError(f"api port = {port!r} must be an integer in [0, 65535]")
-    if not is_loopback(host) and not (allow_remote and token is not None):
-        raise ValueError(f"api host = {host!r} is not loopback (127.0.0.1, ::1, localhost); another address "
-                         "needs --allow-remote and a token")
-    app = make_app(state, token, rate_hz=rate_hz, allow_remote=allow_remote)
-    sock = _bind(host, port)
-    config = uvicorn.Config(app, log_config=None, access_log=False, log_level="warning", lifespan="off",
-                            http=_Protocol, limit_concurrency=MAX_CONNECTIONS,
-                            timeout_keep_alive=int(REQUEST_TIMEOUT_S), h11_max_incomplete_event_size=MAX_BODY_BYTES,
-                            timeout_graceful_shutdown=2)
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="hbma-api", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + start_timeout
-    while not server.started:
-        if not thread.is_alive() or time.monotonic() > deadline:
-            server.should_exit = True
-            sock.close()
-            raise RuntimeError(f"the API did not start on {host}:{port}")
-        time.sleep(0.01)
-    return ApiServer(server, thread, sock, app.state.closing)
+def server_config(app: FastAPI) -> uvicorn.Config:
+    """uvicorn's settings for ``app``: the connection guards (:class:`_Protocol`, :data:`MAX_CONNECTIONS`,
+    the keep-alive and head deadlines, the request head's size) and no logging of its own."""
+    return uvicorn.Config(app, log_config=None, access_log=False, log_level="warning", lifespan="off",
+                          http=_Protocol, limit_concurrency=MAX_CONNECTIONS,
+                          timeout_keep_alive=int(REQUEST_TIMEOUT_S), h11_max_incomplete_event_size=MAX_BODY_BYTES,
+                          timeout_graceful_shutdown=2)

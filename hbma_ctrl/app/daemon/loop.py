@@ -38,9 +38,10 @@ A latched fault is left without a restart by a reset (the API's ``POST /reset``)
 loop is in mode "safe" and the readings are sane (finite, within the sensor's range and below the
 pressure cap), checked again at the next period, it clears the monitor and the loop controls again.
 
-The loop ends on a stop request (the API's /stop, a signal flag, the duration) or at once on an
-exception anywhere in the step or a lost rig link. Whatever ends it, the safe command is written
-before :meth:`DaemonLoop.run` returns, and the event is logged with its rig time and cause.
+The loop ends on a stop request (the API's /stop, a signal flag, the duration, the API's process
+lost: a fault) or at once on an exception anywhere in the step or a lost rig link. Whatever ends it,
+the safe command is written before :meth:`DaemonLoop.run` returns, and the event is logged with its
+rig time and cause.
 """
 
 from __future__ import annotations
@@ -76,8 +77,8 @@ STATS_KEYS = ("rate_hz", "steps", "deadline_misses", "step_ms_median", "step_ms_
 #: events kept for the status (the run log keeps all)
 EVENTS_KEPT = 100
 #: the interpreter's switch interval while the loop runs, s: a thread that wants the GIL (the loop's,
-#: back from its sleep or a solver call) waits at most this long for another (the API's, serving a
-#: flood of clients) to hand it over; Python's default is 5 ms, half a period at 100 Hz
+#: back from its sleep or a solver call) waits at most this long for another (the run log's writer,
+#: the API's link) to hand it over; Python's default is 5 ms, half a period at 100 Hz
 GIL_SWITCH_S = 2e-4
 
 
@@ -439,8 +440,9 @@ class DaemonLoop:
         self.event(kind, text)
 
     def _check_setpoint(self, request: dict) -> dict:
-        """The runner's check (the API's thread); refused (RuntimeError: 503) once the loop is not running:
-        in the safe state the loop writes only the safe command, so a setpoint would never be applied."""
+        """The runner's check (the submitter's thread, not the loop's); refused (RuntimeError: 503) once
+        the loop is not running: in the safe state the loop writes only the safe command, so a setpoint
+        would never be applied."""
         if self.mode != "running":
             raise RuntimeError(f"the daemon is in mode '{self.mode}' (safe command only, after "
                                f"{', '.join(self._latched_kinds()) or 'a stop'}): setpoints are not applied")
@@ -456,8 +458,8 @@ class DaemonLoop:
         return "; ".join(bad) + (f" (sane: [{U.to_kpa(lo):g}, {U.to_kpa(hi):g}) kPa)" if bad else "")
 
     def _check_reset(self) -> str:
-        """The API's reset check (its thread): RuntimeError with the reason unless the loop is in mode
-        "safe" with sane readings."""
+        """The API's reset check (the submitter's thread): RuntimeError with the reason unless the loop is
+        in mode "safe" with sane readings."""
         if self.mode != "safe":
             raise RuntimeError(f"the daemon is in mode '{self.mode}': there is no fault to reset")
         why = self._insane(self.readings_p)
@@ -486,6 +488,8 @@ class DaemonLoop:
             self.state.request_stop(self.signal_stop)
         if self.state.stop_requested:
             self.end_reason = self.state.stop_reason
+            if self.state.stop_fault:  # a stop for a fault (the API's process lost) counts as one
+                self._fault(self.state.stop_fault, self.end_reason)
             self.event("stop", self.end_reason)
             return True
         if self.duration is not None and self.steps * self.period >= self.duration - 1e-9:

@@ -71,7 +71,7 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     """Run the daemon of ``cfg`` into ``out`` (see module doc); returns daemon_stats.json's content.
     ``echo``: where to print one-line notices (default stderr). ``state``: the state shared with the API.
     ``mcap``: write ``log.mcap`` too (False: the CSV run log only, as the log bench's baseline)."""
-    from hbma_ctrl.app.daemon.api import serve
+    from hbma_ctrl.app.daemon.apiproc import serve
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.loop import DaemonLoop
     from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, setpoint_columns

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import socket
 import threading
 import time
@@ -22,8 +24,8 @@ from hbma_ctrl.app.daemon.api import (
     MAX_IDLE,
     is_loopback,
     make_app,
-    serve,
 )
+from hbma_ctrl.app.daemon.apiproc import serve
 from hbma_ctrl.app.daemon.state import DaemonState
 
 H_CLIP = 0.010  # m: the fake loop's reach
@@ -58,6 +60,16 @@ def snapshot(**over) -> dict:
     }
     s.update(over)
     return s
+
+
+def until(cond, timeout: float = 60.0) -> bool:
+    """Whether ``cond()`` became true within ``timeout`` s (a bound for a loaded machine, not a measure)."""
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True
 
 
 def local(app) -> TestClient:
@@ -327,18 +339,21 @@ def test_requests_beyond_the_client_bound_are_429_and_stop_is_not(state):
     assert c.post("/stop").status_code == 200
 
 
+@pytest.mark.subprocess
 def test_half_open_connections_do_not_hold_stop(state):
     with serve(state, port=0) as srv:
         held = [socket.create_connection((srv.host, srv.port), timeout=5) for _ in range(MAX_IDLE + 20)]
         try:
             held[0].sendall(b"GET /status HTTP/1.1\r\nHo")  # and one trickling a head
             r = httpx.post(f"{srv.url}/stop", timeout=10)
-            assert r.status_code == 200 and state.stop_requested
+            assert r.status_code == 200
+            assert until(lambda: state.stop_requested)  # the API's process forwards it to this one
         finally:
             for s in held:
                 s.close()
 
 
+@pytest.mark.subprocess
 def test_a_connection_that_never_sends_a_head_is_closed(state):
     with serve(state, port=0) as srv:
         with socket.create_connection((srv.host, srv.port), timeout=30) as s:
@@ -446,6 +461,7 @@ def test_bad_port_and_empty_token_are_refused(state):
 
 # --- the real server -------------------------------------------------------------------------------------
 
+@pytest.mark.subprocess
 def test_real_server_binds_a_free_port_answers_and_stops_cleanly(state):
     srv = serve(state, port=0)
     try:
@@ -469,6 +485,7 @@ def _has_ipv6_loopback() -> bool:
         return False
 
 
+@pytest.mark.subprocess
 @pytest.mark.skipif(not _has_ipv6_loopback(), reason="no IPv6 loopback here")
 def test_real_server_binds_ipv6_loopback(state):
     with serve(state, host="::1", port=0) as srv:
@@ -476,6 +493,7 @@ def test_real_server_binds_ipv6_loopback(state):
         assert httpx.get(f"{srv.url}/health", timeout=5).status_code == 200
 
 
+@pytest.mark.subprocess
 def test_real_server_with_a_token_checks_it(state):
     with serve(state, port=0, token="s3cret") as srv:
         assert httpx.get(f"{srv.url}/status", timeout=5).status_code == 401
@@ -484,6 +502,7 @@ def test_real_server_with_a_token_checks_it(state):
 
 
 @pytest.mark.slow
+@pytest.mark.subprocess
 def test_concurrent_clients_are_all_answered_and_each_setpoint_is_queued_once(state):
     n_threads, n_requests = 8, 100
     drained: list[dict] = []
@@ -536,3 +555,164 @@ def test_concurrent_clients_are_all_answered_and_each_setpoint_is_queued_once(st
     got = Counter(round(v * 1e3, 6) for sp in drained for v in sp["heights"].values())
     assert got == Counter(accepted)  # every accepted setpoint once, none lost, none twice
     assert state.stop_requested and state.stop_reason == "api"
+
+
+# --- the API's process and its link to the loop's state -----------------------------------------------
+
+@pytest.mark.subprocess
+def test_the_api_process_serves_what_the_loop_published_and_its_setpoints_reach_the_state(state):
+    with serve(state, port=0) as srv, httpx.Client(base_url=srv.url, timeout=10) as c:
+        state.publish(snapshot(t_s=3.25, monotonic_s=time.monotonic()))
+        assert until(lambda: c.get("/status").json()["t_s"] == 3.25)
+        assert c.get("/health").json()["mode"] == "running"
+        r = c.post("/setpoint", json={"heights_mm": {"1": 50.0}})
+        assert r.status_code == 200
+        assert r.json()["applied"]["heights_mm"] == {"1": 10.0} and "clipped to 10 mm" in r.json()["clipped"][0]
+        assert state.take_setpoints() == [{"heights": {1: H_CLIP}, "layers": {}}]  # queued when answered
+        r = c.post("/setpoint", json={"heights_mm": {"7": 1.0}})
+        assert r.status_code == 422 and "no chamber 7" in r.json()["error"]
+        assert state.take_setpoints() == []
+
+
+@pytest.mark.subprocess
+def test_the_stream_from_the_api_process_numbers_events_by_the_loops_steps_and_counts_lost_ones():
+    s = DaemonState()
+    with serve(s, port=0) as srv:
+        loop = {"rate_hz": 100.0, "steps": 0}
+        s.publish(snapshot(loop=loop))
+        assert until(lambda: httpx.get(f"{srv.url}/health", timeout=10).json()["mode"] == "running")
+        with httpx.stream("GET", f"{srv.url}/stream", params={"rate_hz": 50, "count": 3}, timeout=30) as r:
+            lines = r.iter_lines()
+            assert next(lines) == "id: 0"
+            for k in range(1, 400):  # beyond the ring: the oldest are lost on the way
+                s.publish(snapshot(loop={**loop, "steps": k}))
+            ids, lost = [], []
+            for line in lines:
+                if line.startswith("id: "):
+                    ids.append(int(line[4:]))
+                elif line.startswith("data: "):
+                    lost.append(json.loads(line[6:])["lost"])
+    # the loop's step counts, in order; where none was lost on the way, every 2nd (50 of the loop's 100 Hz)
+    assert len(ids) == 2 and 1 <= ids[0] < ids[1] <= 399 and (lost[2] > 0 or ids[1] == (ids[0] // 2 + 1) * 2)
+    assert sum(lost) > 0  # snapshots the ring no longer held when they were read, counted, not hidden
+
+
+@pytest.mark.subprocess
+def test_after_a_stop_the_api_process_refuses_setpoints_and_resets_with_its_reason(state):
+    state.set_reset_handler(lambda: "reset at the next period")
+    with serve(state, port=0) as srv, httpx.Client(base_url=srv.url, timeout=10) as c:
+        assert c.post("/reset").status_code == 200 and state.take_reset()
+        state.request_stop("SIGTERM")
+        r = c.post("/setpoint", json={"heights_mm": {"0": 1.0}})
+        assert r.status_code == 409 and "SIGTERM" in r.json()["error"]
+        assert c.post("/reset").status_code == 409
+        assert until(lambda: c.get("/status").json()["stop_requested"])
+        assert c.post("/stop").json()["reason"] == "SIGTERM"  # the first reason is kept
+    assert state.take_setpoints() == [] and not state.take_reset()
+
+
+@pytest.mark.subprocess
+def test_a_setpoint_checked_after_its_deadline_is_503_and_never_queued(state, monkeypatch):
+    from hbma_ctrl.app.daemon import apiproc
+
+    release = threading.Event()
+
+    def slow_check(request: dict) -> dict:
+        release.wait(60)  # held past the API's wait: the check ends after the request's deadline
+        return clip_handler(request)
+
+    state.set_setpoint_handler(slow_check)
+    with serve(state, port=0) as srv:
+        r = httpx.post(f"{srv.url}/setpoint", json={"heights_mm": {"0": 1.0}}, timeout=60)
+        release.set()
+        assert r.status_code == 503 and "not applied" in r.json()["error"]
+        state.set_setpoint_handler(clip_handler)  # the link goes on: the next one is taken
+        assert httpx.post(f"{srv.url}/setpoint", json={"heights_mm": {"0": 2.0}}, timeout=60).status_code == 200
+    assert state.take_setpoints() == [{"heights": {0: 0.002}, "layers": {}}]
+    assert apiproc.REPLY_TIMEOUT_S < 60
+
+
+@pytest.mark.subprocess
+def test_the_loop_side_never_waits_on_a_frozen_api_process_and_stop_ends_it(state):
+    srv = serve(state, port=0)
+    os.kill(srv.pid, signal.SIGSTOP)  # a hung API: it reads nothing, its pipe fills
+    try:
+        done = threading.Event()
+
+        def loop() -> None:  # publishes and takes as the loop does, far more than the pipe holds
+            big = snapshot(events=[{"t_s": 0.0, "kind": "x", "cause": "c" * 200}] * 100)
+            for k in range(3000):
+                state.publish({**big, "t_s": float(k)})
+                state.take_setpoints()
+                state.take_reset()
+            done.set()
+
+        t = threading.Thread(target=loop, daemon=True)
+        t.start()
+        assert done.wait(120), "the loop's side waited on the frozen API"
+    finally:
+        srv.stop(timeout=2.0)
+    assert not srv.running and srv.exitcode == -signal.SIGKILL  # killed when it did not end: reaped
+    assert not state.stop_requested  # ended on the daemon's request: no fault
+
+
+@pytest.mark.subprocess
+def test_a_killed_api_process_stops_the_loop_with_the_api_lost_fault_and_is_reaped(state):
+    with serve(state, port=0) as srv:
+        os.kill(srv.pid, signal.SIGKILL)
+        assert until(lambda: state.stop_requested)
+        assert state.stop_fault == "api_lost" and "SIGKILL" in state.stop_reason, state.stop_reason
+        assert srv.exitcode == -signal.SIGKILL and not os.path.exists(f"/proc/{srv.pid}")
+
+
+@pytest.mark.subprocess
+def test_the_api_process_ignores_the_signals_a_terminal_sends_its_group(state):
+    with serve(state, port=0) as srv:
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            os.kill(srv.pid, sig)
+        assert httpx.get(f"{srv.url}/health", timeout=10).status_code == 200  # served after all three
+        assert srv.running and not state.stop_requested
+    assert srv.exitcode == 0 and not os.path.exists(f"/proc/{srv.pid}")
+
+
+def test_the_api_process_leaves_a_real_time_class_it_inherited_and_keeps_an_ordinary_one(monkeypatch):
+    from hbma_ctrl.app.daemon import apiproc
+
+    set_to: list = []
+    monkeypatch.setattr(os, "sched_setscheduler", lambda pid, policy, param: set_to.append((pid, policy)))
+    for policy, moved in [(os.SCHED_FIFO, True), (os.SCHED_RR, True), (os.SCHED_OTHER, False),
+                          (os.SCHED_BATCH, False)]:
+        monkeypatch.setattr(os, "sched_getscheduler", lambda pid, policy=policy: policy)
+        set_to.clear()
+        assert apiproc.leave_real_time() is moved
+        assert set_to == ([(0, os.SCHED_OTHER)] if moved else [])
+
+
+def test_each_publish_wakes_the_link_and_a_full_wake_socket_never_blocks_the_loop():
+    s = DaemonState()
+    r, w = socket.socketpair()
+    with r, w:
+        with pytest.raises(ValueError, match="non-blocking"):
+            s.set_publish_wake(w)
+        w.setblocking(False)
+        s.set_publish_wake(w)
+        s.publish(snapshot())
+        assert r.recv(16) == b"\0"
+        for k in range(100_000):  # nobody reads: the socket fills, publishing goes on
+            s.publish(snapshot(t_s=float(k)))
+        assert s.status()["t_s"] == 99_999.0
+        s.set_publish_wake(None)
+
+
+def test_the_api_process_freezes_its_start_up_objects_out_of_the_collector():
+    # a full collection of the app's objects holds every answer, a stop's too, for tens of milliseconds
+    import gc
+
+    from hbma_ctrl.app.daemon.apiproc import freeze_start_up
+
+    make_app(DaemonState()).openapi()
+    try:
+        freeze_start_up()
+        assert gc.get_freeze_count() > 50_000  # the app, its schemas, uvicorn, the modules: skipped
+    finally:
+        gc.unfreeze()

@@ -88,6 +88,7 @@ def test_the_shipped_recording_is_a_daemon_schedule_that_run_refuses(tmp_path):
     assert list(tmp_path.iterdir()) == []  # refused before --out
 
 
+@pytest.mark.subprocess  # the daemon's API runs in a process of its own
 def test_the_shipped_recording_runs_on_the_daemon_until_its_schedule_ends(tmp_path):
     # the whole schedule through the daemon's command (sim rig, fast), ending by itself in the safe state
     res = runner.invoke(app, ["daemon", str(RECORD), "--rig", "sim", "--speed", "1000", "--api", "127.0.0.1:0",
