@@ -99,13 +99,17 @@ def _compiled_step(om: ObserverModel, s: MHESettings, key: tuple) -> FastFunctio
 
 
 def _within_bounds(e: Estimate) -> Estimate:
-    """The EKF's estimate with its load state at least zero (the MHE's bound; the EKF's own load state
-    may dip below: its dead zone)."""
-    if e.mean[1] >= 0.0:
+    """The EKF's estimate within the MHE's hard constraints: its load state at least zero (the EKF's
+    own may dip below: its dead zone), and the shape's ``0 <= h2 <= h1``, ``h >= 0``, ``F >= 0`` (an
+    EKF step whose shape iteration did not converge, flag ``not_converged``, may leave them)."""
+    h2 = min(max(e.h2, 0.0), max(e.h1, 0.0))
+    if e.mean[1] >= 0.0 and h2 == e.h2 and e.h >= 0.0 and e.F >= 0.0:
         return e
-    mean = e.mean.copy()
-    mean[1] = 0.0
-    return dc_replace(e, mean=mean)
+    mean = e.mean
+    if mean[1] < 0.0:
+        mean = mean.copy()
+        mean[1] = 0.0
+    return dc_replace(e, mean=mean, h2=h2, h=max(e.h, 0.0), F=max(e.F, 0.0))
 
 
 def _estimate(t, est, mean, cov, std, flags) -> Estimate:
