@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import replace as dc_replace
 
 import casadi as ca
@@ -180,7 +181,7 @@ class MHE(EstimatorBase):
         self.kinds[:] = float(KIND_NONE)
         self.P0[:] = np.eye(NX)
         self._filled = 0  # samples seen (the window is full from N + 1 on)
-        self._hist: list = []  # the EKF's (posterior x, P, shape) while the window fills
+        self._hist: deque = deque(maxlen=N + 1)  # the EKF's (posterior x, P, shape) over the window's samples
         self.t: float | None = None
         self.last_output_cov = np.zeros((5, 5))
         self.last_step_s = 0.0
@@ -249,7 +250,6 @@ class MHE(EstimatorBase):
         if self._filled <= N or s.companion_ekf:
             e = self.ekf.step(t, z, u)
             self._hist.append((self.ekf.x.copy(), self.ekf.P.copy(), self.ekf.s.copy()))
-            del self._hist[:-(N + 1)]
             self._ekf_est = e
         elif self.ekf._timing.active:
             self.ekf._timing.acting(u, 1)  # the fallback's command history stays current
@@ -282,11 +282,12 @@ class MHE(EstimatorBase):
     def _start_window(self) -> None:
         """The window's nodes from the EKF's posteriors over its samples, the arrival cost from the
         EKF's posterior at node 0, the parameters from its latest."""
-        xs = [h[0] for h in self._hist[-(self.N + 1):]]
+        hist = list(self._hist)
+        xs = [h[0] for h in hist]
         self.M[:] = [x[0] for x in xs]
-        self.S[:] = np.array([h[2] for h in self._hist[-(self.N + 1):]]).T
+        self.S[:] = np.array([h[2] for h in hist]).T
         self.th[:] = np.clip(xs[-1][1:], *[b[1:] for b in state_bounds(self.model, self.settings)])
-        x0, P0, _ = self._hist[-(self.N + 1)]
+        x0, P0, _ = hist[0]
         self.xbar[:] = x0
         self.P0[:] = guard_cov(P0, self.settings.cov_floor)
         if self._fn is not None:
@@ -359,9 +360,8 @@ class MHE(EstimatorBase):
 
     def _accept(self, t: float, est: list, C: np.ndarray, cov: np.ndarray, status: int,
                 mean: np.ndarray | None = None, std: list | None = None) -> Estimate:
-        # reported as the EKF reports them: h2, h and F at least 0 (the contact condition's tiny
-        # regularising stiffness leaves F = -EPS_K h2, micronewtons, on a free cap)
-        est = [est[0], max(est[1], 0.0), max(est[2], 0.0), max(est[3], 0.0), est[4]]
+        # within the shape's constraints as the RTI step reports them (mhe_step_function's est)
+        est = [est[0], min(max(est[1], 0.0), max(est[0], 0.0)), max(est[2], 0.0), max(est[3], 0.0), est[4]]
         self.counts["mhe_steps"] += 1
         self.last_status = status
         self.last_output_cov = C

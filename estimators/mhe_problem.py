@@ -340,10 +340,12 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     S_next = ca.horzcat(S1[:, 0], so[:, :N - 1], s_out)
     finite = _finite(ca.vertcat(dz, yN, ca.vec(Pp), xbar_next, ca.vec(covN)))
     status = ca.if_else(finite, ca.if_else(off <= BOUND_TOL, 0.0, 2.0), 1.0)
-    # reported as the EKF reports them: h2, h and F at least 0 (the shape's projection from its warm
-    # start leaves h2 within nanometres of 0 on a free cap, and the contact condition's regularising
-    # stiffness then F = EPS_K h2, micronewtons)
-    est = ca.vertcat(yN[0], ca.fmax(yN[1], 0.0), ca.fmax(yN[2], 0.0), ca.fmax(yN[3], 0.0), yN[4])
+    # within the shape's constraints: h2 in [0, h1], h and F at least 0 (the shape's projection from
+    # its warm start leaves h2 within nanometres of 0 on a free cap, where the contact condition's
+    # regularising stiffness makes F = EPS_K h2, micronewtons, and a few micrometres off a membrane
+    # that is about flat)
+    est = ca.vertcat(yN[0], ca.fmin(ca.fmax(yN[1], 0.0), ca.fmax(yN[0], 0.0)), ca.fmax(yN[2], 0.0),
+                     ca.fmax(yN[3], 0.0), yN[4])
     return ca.Function("mhe_step", [M, th, S, U, Z, kinds, xbar, P0, theta, fresh] + lin_in,
                        [M_new, th_new, S_next, xbar_next, Pp, est, CN, covN, status, costm, active] + lin_out,
                        list(STEP_IN) + list(LIN_NAMES), list(STEP_OUT) + [n + "_next" for n in LIN_NAMES])
@@ -414,13 +416,15 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     lz = rz ** 2 if s.huber <= 0 else ca.if_else(ca.fabs(rz) <= s.huber, rz ** 2,
                                                  2 * s.huber * ca.fabs(rz) - s.huber ** 2)
     r0 = zv - xbar / ca.DM(sc)
-    Pinv = ca.inv(P0 / ca.DM(np.outer(sc, sc)))
+    # the inverse as an SX Function: the whole problem expands to SX (evaluated much faster than MX)
+    Ps = ca.SX.sym("P", NX, NX)
+    Pinv = ca.Function("mhe_inv", [Ps], [ca.inv(Ps)])(P0 / ca.DM(np.outer(sc, sc)))
     f = 0.5 * (ca.mtimes([r0.T, Pinv, r0]) + ca.sum1(lz))
     Mv = ca.vertcat(*ms)
     hmax = _h_max(om)(theta)
     par = ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta)
     opts = {"ipopt": {"print_level": 0, "max_iter": s.ipopt_iter, "tol": 1e-8, "hessian_approximation": "limited-memory"},
-            "print_time": False, "error_on_fail": False}
+            "print_time": False, "error_on_fail": False, "expand": True}
     solver = ca.nlpsol("mhe_ipopt", "ipopt", {"x": zv, "f": f, "p": par, "g": ca.vertcat(h - hmax, Mv[1:] - om.m_env)},
                        opts)
     Min, thin = MX.sym("M", N + 1), MX.sym("th", 4)

@@ -25,7 +25,7 @@ class MHESettings(FilterSettings):
     qp_solver: str = setting("daqp", choices=QP_SOLVERS, doc="MHE: the RTI step's QP solver (its C generated with the step)")
     huber: float = setting(3.0, lo=0.0, hi=100.0,
                            doc="MHE: readings beyond this many sigmas weigh as Huber's loss does (0: least squares)")
-    relinearise: int = setting(2, integer=True, lo=0, hi=200, unit="nodes",
+    relinearise: int = setting(1, integer=True, lo=0, hi=200, unit="nodes",
                                doc="MHE: the newest nodes linearised afresh each step, the older keep theirs (0: all)")
     companion_ekf: bool = setting(True, doc="MHE: run the EKF beside it every sample, to restart the window from")
     reseed_cost: float = setting(5.0, lo=0.0, hi=1e6,
