@@ -157,6 +157,7 @@ class MHE(EstimatorBase):
             # the window lives in the step's input buffer: the step shifts and updates it in one call
             self._win = self._fn.inp[0]
             self._fn.inp[2][:] = self.theta
+            self._smp = np.zeros(5)  # the newest sample: acting command, reading, its kind
         else:
             self._fn = None
             if key not in _NLP_CACHE:
@@ -303,10 +304,10 @@ class MHE(EstimatorBase):
             if self._ekf_events():
                 self._push(ua, zf, code)
                 return self._reseed()
-            smp = self._fn.inp[1]
+            smp = self._smp
             smp[0], smp[1], smp[2] = ua.tolist()
             smp[3], smp[4] = zf, code
-            out = self._fn(None, None, None)
+            out = self._fn(None, smp)  # None: the window already in the step's input buffer
             status = int(out[8][0])
             if status != 0:
                 self._push(ua, zf, code)

@@ -46,7 +46,7 @@ from hbma_ctrl.estimators.ekf_step import KIND_OK, KIND_SATURATED
 from hbma_ctrl.estimators.mhe_settings import MHESettings
 from hbma_ctrl.models.chamber import NX, STATE_SCALE, ObserverModel, min_pivot
 
-__all__ = ["mhe_step_function", "linearise_function", "mhe_nlp", "lean_model", "LIN_NAMES", "STEP_IN", "STEP_OUT",
+__all__ = ["mhe_step_function", "linearise_function", "mhe_nlp", "lean_model", "lean_meas", "LIN_NAMES", "STEP_IN", "STEP_OUT",
            "TRUST", "H_MAX_REL", "state_bounds", "window_layout", "mhe_packed_function", "PACKED_OUT", "scales", "fresh_nodes", "QP_LIBS", "BOUND_TOL", "LEVENBERG"]
 
 #: libraries a QP solver's generated C links (shipped inside the casadi package; qrqp's C is self-contained)
@@ -124,7 +124,9 @@ def lean_model(om: ObserverModel) -> tuple[ca.Function, ca.Function]:
     return _LEAN_CACHE[key][1:3]
 
 
-def _meas(om: ObserverModel) -> ca.Function:
+def lean_meas(om: ObserverModel) -> ca.Function:
+    """The outputs of :func:`lean_model` without their covariance: ``mhe_meas(x, s, theta) -> (s_out,
+    y, H, Dh)``, Dh the height's row of the outputs' Jacobian."""
     lean_model(om)
     return _LEAN_CACHE[id(om.predict)][3]
 
@@ -132,7 +134,7 @@ def _meas(om: ObserverModel) -> ca.Function:
 def _model_maps(om: ObserverModel, N: int) -> tuple[ca.Function, ca.Function]:
     """(predict, outputs without their covariance) of :func:`lean_model`, mapped over N nodes."""
     pred, _ = lean_model(om)
-    return pred.map(N), _meas(om).map(N)
+    return pred.map(N), lean_meas(om).map(N)
 
 
 def _h_max(om: ObserverModel) -> ca.Function:
@@ -388,7 +390,7 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     sc = scales()
     lo, hi = state_bounds(om, s)
     pred1, _ = lean_model(om)
-    meas = _meas(om)
+    meas = lean_meas(om)
     MX = ca.MX
     zv = MX.sym("z", 5)
     S, U, Z, kinds = MX.sym("S", 2, N + 1), MX.sym("U", 3, N), MX.sym("Z", N), MX.sym("kinds", N)
