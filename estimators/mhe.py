@@ -26,7 +26,6 @@ import time
 from collections import deque
 from dataclasses import replace as dc_replace
 
-import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, casadi_lib_flags, compiled

@@ -23,8 +23,8 @@ The cost (every term a squared residual):
   ``huber`` sigmas weigh as Huber's loss.
 
 Hard constraints: the shape follows from (m, W) by the model's projection (``0 <= h2 <= h1``,
-``h >= 0``); ``W >= 0`` (so the contact force is >= 0); every node's gas mass at least the ambient's
-(the gauge pressure is >= 0); the factors in :data:`hbma_ctrl.estimators.common.FACTOR_RANGE`; every
+``h >= 0``); ``W >= 0`` (so the contact force is >= 0); the first node's gas mass at least the ambient's
+(the gauge pressure is >= 0; the later nodes follow the model, whose vent stops at the ambient); the factors in :data:`hbma_ctrl.estimators.common.FACTOR_RANGE`; every
 node's height at most :data:`H_MAX_REL` r1.
 
 The real-time step (:func:`mhe_step_function`) is one Gauss-Newton step: the model is linearised
@@ -33,7 +33,7 @@ afresh at the newest ``relinearise`` intervals and nodes, the older keep their s
 recursion gives every node's gas mass, pressure and height as an affine function of the five
 unknowns (their sensitivities propagated by the rows of d m_next / d x), so the step is a dense
 five-variable least-squares problem with box bounds (and a trust region) and one linear row per node
-for the gas mass and the height, solved by casadi's conic interface (``qp_solver``).
+for the height, solved by casadi's conic interface (``qp_solver``).
 """
 
 from __future__ import annotations
@@ -170,8 +170,8 @@ def _reading_terms(s: FilterSettings, p, rest, Z, kinds):
 def _condensed_data(om: ObserverModel, s: MHESettings) -> ca.Function:
     """The five-unknown least-squares step from the window's linearisation (an SX Function): the
     Gauss-Newton Hessian and gradient in the scaled unknowns, their box (bounds within the trust
-    region), the node rows (gas mass >= ambient, height <= hmax), the cost at the iterate, every node's
-    gas mass and its sensitivity, the readings' variances."""
+    region), the nodes' height rows (<= hmax, mm), the cost at the iterate, every node's gas mass and
+    its sensitivity, the readings' variances."""
     N = int(s.horizon)
     sc = scales()
     lo, hi = state_bounds(om, s)
@@ -225,12 +225,11 @@ def _condensed_data(om: ObserverModel, s: MHESettings) -> ca.Function:
     best_hi = ca.sum2(ca.fmin(A * ca.repmat(lbx.T, N, 1), A * ca.repmat(ubx.T, N, 1)))
     lba = -_BIG * ca.DM.ones(N)
     uba = ca.fmax((hmax - h) * 1e3 - ROW_MARGIN, best_hi)
-    Lh = ca.vertcat(*Jp)  # unweighted pressure rows (the arrival's reading row is node 1's)
     return ca.Function("mhe_qp_data", [m0, th, Z, kinds, xbar, P0, FM, AR, XI, PV, HR, XM, HV, DH, RS, hmax],
-                       [Hq, g, lbx, ubx, A, lba, uba, cost, Mv, Sm, R, used, R_sat, p, Lh],
+                       [Hq, g, lbx, ubx, A, lba, uba, cost, Mv, Sm, R, used, R_sat],
                        ["m0", "th", "Z", "kinds", "xbar", "P0", "FM", "AR", "XI", "PV", "HR", "XM", "HV", "DH", "RS",
                         "hmax"],
-                       ["Hq", "g", "lbx", "ubx", "A", "lba", "uba", "cost", "M", "Sm", "R", "used", "R_sat", "p", "Jp"],
+                       ["Hq", "g", "lbx", "ubx", "A", "lba", "uba", "cost", "M", "Sm", "R", "used", "R_sat"],
                        {"cse": True})
 
 
@@ -295,7 +294,7 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     so = ca.horzcat(S1[:, 1:old + 1], sof)
     hmax = _h_max(om)(theta)
     data = _condensed_data(om, s)
-    Hm, gm, lbm, ubm, Am, lbam, ubam, costm, Mv, Sm, Rm, usedm, Rsatm, _, _ = data(
+    Hm, gm, lbm, ubm, Am, lbam, ubam, costm, Mv, Sm, Rm, usedm, Rsatm = data(
         M1[0], th, Z, kinds, xbar, P0, FMn.T, ARn, XIn, PVn.T, HRn, XMn, HVn.T, DHn, RSn.T, hmax)
     qp = ca.conic("mhe_qp", s.qp_solver, {"h": ca.Sparsity.dense(5, 5), "a": ca.Sparsity.dense(N, 5)},
                   _qp_opts(s.qp_solver))
@@ -427,13 +426,12 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     par = ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta)
     opts = {"ipopt": {"print_level": 0, "max_iter": s.ipopt_iter, "tol": 1e-8, "hessian_approximation": "limited-memory"},
             "print_time": False, "error_on_fail": False, "expand": True}
-    solver = ca.nlpsol("mhe_ipopt", "ipopt", {"x": zv, "f": f, "p": par, "g": ca.vertcat(h - hmax, Mv[1:] - om.m_env)},
+    solver = ca.nlpsol("mhe_ipopt", "ipopt", {"x": zv, "f": f, "p": par, "g": h - hmax},
                        opts)
     Min, thin = MX.sym("M", N + 1), MX.sym("th", 4)
     z0 = ca.vertcat(Min[0], thin) / ca.DM(sc)
     zlo, zhi = lo / sc, hi / sc
-    sol = solver(x0=ca.fmin(ca.fmax(z0, zlo), zhi), lbx=zlo, ubx=zhi,
-                 lbg=ca.vertcat(-ca.inf * ca.DM.ones(N), ca.DM.zeros(N)), ubg=ca.vertcat(ca.DM.zeros(N), ca.inf * ca.DM.ones(N)),
+    sol = solver(x0=ca.fmin(ca.fmax(z0, zlo), zhi), lbx=zlo, ubx=zhi, lbg=-ca.inf, ubg=0.0,
                  p=ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta))
     zs = sol["x"]
     Msol = ca.Function("mhe_traj", [zv, S, U, theta], [Mv])(zs, S, U, theta)
