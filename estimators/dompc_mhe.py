@@ -3,9 +3,10 @@
 do-mpc is an optional extra (``pip install hbma-ctrl[bench]``), imported here only. The adapter
 states the problem of :class:`hbma_ctrl.estimators.mhe.MHE` in do-mpc's terms: the same discrete
 model (the EKF's, :func:`hbma_ctrl.estimators.mhe.lean_model`; the shape's warm start carried as two
-more states without noise), the same window, the gas mass with the EKF's process noise, the load
-and the three factors as estimated parameters within their bounds, the pressure reading with the
-EKF's measurement noise, the gas mass at least the ambient's. What do-mpc does differently, stated: its arrival cost has fixed weights
+more states without noise), the same window, the load and the three factors as estimated parameters
+within their bounds, the pressure reading with the EKF's measurement noise, the gas mass at least the
+ambient's. What do-mpc does differently, stated: the gas mass carries the EKF's process noise at every
+node (the MHE's window follows the model from its first state), its arrival cost has fixed weights
 (the prior's covariance at the start, never updated), every sample is a full IPOPT solve, the
 commands are measured inputs (do-mpc's way: a measurement of u with a tight weight) and a
 saturated reading is taken as the range itself (no censoring).
@@ -23,6 +24,7 @@ from hbma_ctrl.core.extras import dompc_available
 from hbma_ctrl.estimators.common import FACTOR_RANGE
 from hbma_ctrl.estimators.ekf_step import observer_model
 from hbma_ctrl.estimators.mhe import MHE, MHESettings, lean_model
+from hbma_ctrl.estimators.mhe_problem import lean_meas
 from hbma_ctrl.models.actuation import CommandTiming
 
 __all__ = ["DoMPCMHE", "compare_dompc"]
@@ -44,9 +46,7 @@ class DoMPCMHE:
         om = observer_model(actuator, pneumatics, s)
         self.om = om
         pred, _ = lean_model(om)
-        from hbma_ctrl.estimators.mhe import _LEAN_CACHE
-
-        meas = _LEAN_CACHE[id(om.predict)][3]
+        meas = lean_meas(om)
         theta = ca.DM(np.asarray(om.theta, dtype=float))
         mdl = do_mpc.model.Model("discrete", "SX")
         m = mdl.set_variable("_x", "m")
