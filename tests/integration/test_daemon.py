@@ -727,6 +727,24 @@ def test_bad_flags_give_one_line_and_exit_2(args, needle, tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_busy_api_port_is_named_before_the_rig_is_touched(tmp_path, monkeypatch):
+    import socket
+
+    made = []
+    monkeypatch.setattr("hbma_ctrl.app.daemon.build.make_rig", lambda *a, **k: made.append(a))
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = cli.invoke(app, ["daemon", str(CHAMBER), "--out", str(tmp_path / "o"), "--duration-s", "0.1",
+                               "--api", f"127.0.0.1:{port}"])
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: --api / [daemon] api = "), lines
+    assert f"127.0.0.1:{port}: cannot listen there" in lines[0] and "nothing was sent to the rig" in lines[0]
+    assert not made and not (tmp_path / "o").exists()  # no rig made, no results directory
+
+
 @pytest.mark.parametrize("extra, replace, needle", [
     ("", {"rate_hz = 100.0": "rate_hz = 5000.0"}, "[daemon] rate_hz = 5000.0 is out of range [1, 1000] Hz"),
     ("", {"rate_hz = 100.0": "rat_hz = 100.0"}, "[daemon] rat_hz: unknown key; did you mean rate_hz?"),

@@ -60,7 +60,8 @@ from typing import Any, Self
 from hbma_ctrl.app.daemon.api import DEFAULT_PORT, EVENTS_SHOWN, RATE_HZ, is_loopback
 from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 
-__all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "freeze_start_up", "leave_real_time", "serve"]
+__all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "bind", "freeze_start_up", "leave_real_time",
+           "serve"]
 
 #: how often the link looks for requests when the loop publishes nothing, wall s
 POLL_S = 0.02
@@ -374,8 +375,9 @@ class ApiServer:
         self.stop()
 
 
-def _bind(host: str, port: int) -> socket.socket:
-    """A listening-ready TCP socket bound to (host, port); port 0 = any free port."""
+def bind(host: str, port: int) -> socket.socket:
+    """A listening-ready TCP socket bound to (host, port); port 0 = any free port. OSError when the
+    address cannot be bound (e.g. the port is in use)."""
     name = "127.0.0.1" if host.strip().lower() == "localhost" else host.strip("[]")
     family, kind, proto, _, addr = socket.getaddrinfo(name, port, type=socket.SOCK_STREAM)[0]
     sock = socket.socket(family, kind, proto)
@@ -389,14 +391,16 @@ def _bind(host: str, port: int) -> socket.socket:
 
 
 def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT, allow_remote: bool = False,
-          token: str | None = None, rate_hz: float = RATE_HZ, start_timeout: float = 60.0) -> ApiServer:
+          token: str | None = None, rate_hz: float = RATE_HZ, start_timeout: float = 60.0,
+          sock: socket.socket | None = None) -> ApiServer:
     """Start the API for ``state`` on (host, port) in a process of its own and return once it accepts
     connections (module doc). ``rate_hz``: requests served per second, all clients together (see
     :func:`hbma_ctrl.app.daemon.api.make_app`); ``start_timeout``: the process's start-up (its imports), s.
 
     Loopback only unless ``allow_remote`` is True and a ``token`` is given (ValueError otherwise);
-    port 0 binds any free port (read it from the result). OSError when the address cannot be bound,
-    RuntimeError when the process does not start."""
+    port 0 binds any free port (read it from the result); ``sock``: the socket :func:`bind` made for
+    (host, port) beforehand (a caller that checks the address before it starts anything else). OSError
+    when the address cannot be bound, RuntimeError when the process does not start."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"api port = {port!r} must be an integer in [0, 65535]")
     if not is_loopback(host) and not (allow_remote and token is not None):
@@ -404,7 +408,7 @@ def serve(state: DaemonState, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
                          "needs --allow-remote and a token")
     if token is not None and not token.strip():
         raise ValueError("token must not be empty")
-    sock = _bind(host, port)
+    sock = sock if sock is not None else bind(host, port)
     ctx = mp.get_context("spawn")  # a fresh interpreter: none of this process's threads, locks or state
     down_r, down_w = ctx.Pipe(duplex=False)
     up_r, up_w = ctx.Pipe(duplex=False)

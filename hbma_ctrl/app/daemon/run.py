@@ -71,7 +71,7 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     """Run the daemon of ``cfg`` into ``out`` (see module doc); returns daemon_stats.json's content.
     ``echo``: where to print one-line notices (default stderr). ``state``: the state shared with the API.
     ``mcap``: write ``log.mcap`` too (False: the CSV run log only, as the log bench's baseline)."""
-    from hbma_ctrl.app.daemon.apiproc import serve
+    from hbma_ctrl.app.daemon.apiproc import bind, serve
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.loop import DaemonLoop
     from hbma_ctrl.app.daemon.runlog import RunLog, chamber_columns, setpoint_columns
@@ -85,9 +85,19 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
     server = None
     loop = None
     record = None
+    api_sock = None
+    if cfg.api is not None:  # before the rig and the results directory: a busy port leaves nothing behind
+        try:
+            api_sock = bind(cfg.api[0], cfg.api[1])
+        except OSError as exc:
+            raise ValueError(f"--api / [daemon] api = {cfg.api[0]}:{cfg.api[1]}: cannot listen there "
+                             f"({exc.strerror or exc}); stop what uses the port or choose another (0 = any free "
+                             "port); nothing was sent to the rig") from None
     try:  # before the results directory: a rig that cannot be built leaves nothing behind
         rig = make_rig(cfg, runner)
     except link_errors() as exc:  # the port never opened: nothing, the safe command included, reached the rig
+        if api_sock is not None:
+            api_sock.close()
         raise ValueError(f"rig link: {exc} (nothing was sent to the rig)") from None
     with run_dir(out, command="daemon", argv=argv, scenario_path=cfg.path, overwrite=overwrite) as tmp:
         try:
@@ -100,7 +110,9 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
                               monitor=monitor, status_every=cfg.status_every, miss_limit=cfg.miss_limit,
                               record=record)
             if cfg.api is not None:
-                server = serve(state, cfg.api[0], cfg.api[1], allow_remote=cfg.allow_remote, token=cfg.token)
+                server = serve(state, cfg.api[0], cfg.api[1], allow_remote=cfg.allow_remote, token=cfg.token,
+                               sock=api_sock)
+                api_sock = None  # the API's process owns it now
                 echo(f"api: {server.url}")
             echo(f"run log: {tmp}")
 
@@ -116,6 +128,8 @@ def run_daemon(cfg: DaemonConfig, out: Path, overwrite: bool = False, argv: list
         finally:
             if server is not None:
                 server.stop()
+            if api_sock is not None:  # the loop was never built: the socket never reached the API
+                api_sock.close()
             try:
                 rig.close()
             except Exception:  # noqa: BLE001 - the safe command is already out; closing must not mask why
