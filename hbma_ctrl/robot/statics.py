@@ -152,13 +152,15 @@ BOND_P = np.arange(0.0, 50.01e3, 5e3)
 
 
 def bonded_table(act: Actuator, c: float = BOND_RADIUS, cache: Path | str | None = None, h: np.ndarray = BOND_H,
-                 p: np.ndarray = BOND_P) -> dict:
+                 p: np.ndarray = BOND_P, low_misses: bool = False) -> dict:
     """Force F (N, up positive) and membrane volume V (m^3, above the clamp) of a chamber glued at its
     centre to a rigid disk of radius c (m), over the grid h x p (centre heights > 0, m, and gauge
     pressures >= 0, Pa, both increasing; default the robot's :data:`BOND_H` x :data:`BOND_P`).
 
     Each node is one exact bonded equilibrium (:meth:`ExactMembrane.contact`); NaN where there is none
-    (a stretch beyond 4 or a slack membrane: past the chamber's reach at that pressure). Cached on disk
+    (a stretch beyond 4 or a slack membrane: past the chamber's reach at that pressure); two misses in a
+    row end a pressure's column, or with ``low_misses`` only after its first equilibrium (a high pressure
+    can overstretch the annulus of a disk held low and still balance a disk lifted higher). Cached on disk
     (npz keyed by every input and the exact modules' source; ``cache`` a directory, default the exact
     tables' one); a first build takes a few minutes. Returns h, p, F, V, build_s, path.
     """
@@ -167,21 +169,22 @@ def bonded_table(act: Actuator, c: float = BOND_RADIUS, cache: Path | str | None
     m = ExactMembrane(act.material, act.r1, act.t0, contact="bonded", c=c)
     h, p = np.asarray(h, dtype=float), np.asarray(p, dtype=float)
     folder = Path(cache) if cache is not None else table_cache_dir()
-    path = folder / f"bonded_robot_{_key(m, 'bonded_robot_v1', {'h': h, 'p': p})}.npz"
+    grids = {"h": h, "p": p} | ({"low_misses": 1.0} if low_misses else {})
+    path = folder / f"bonded_robot_{_key(m, 'bonded_robot_v1', grids)}.npz"
 
     def build():
         F, V = np.full((h.size, p.size), np.nan), np.full((h.size, p.size), np.nan)
         for j, pj in enumerate(p):
-            misses = 0
+            misses, reached = 0, False
             for i, hi in enumerate(h):
                 try:
                     r = m.contact(hi, pj)
                 except ValueError:
                     misses += 1
-                    if misses >= 2:  # past the reach at this pressure: higher centres are out of reach too
-                        break
+                    if misses >= 2 and (reached or not low_misses):
+                        break  # past the reach at this pressure: higher centres are out of reach too
                     continue
-                misses = 0
+                misses, reached = 0, True
                 F[i, j], V[i, j] = r["F"], r["V"]
         return {"h": h, "p": p, "F": F, "V": V}
 

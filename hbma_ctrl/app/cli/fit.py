@@ -43,7 +43,7 @@ def fit_cmd(
     t0_mm: Annotated[float, typer.Option("--t0-mm", help="membrane thickness t0, mm")] = CHAMBER_T0_MM,
     contact: Annotated[Optional[str], typer.Option(
         help="free (h2 = 0) | flat (load on a plate) | bonded (a rigid disk glued at the centre, lifting the load: "
-             "static points, nh and the exact law; give --disk-radius-mm); default: flat with a force column, "
+             "static points, nh or gent and the exact law; give --disk-radius-mm); default: flat with a force column, "
              "else free")] = None,
     disk_radius_mm: Annotated[Optional[float], typer.Option(
         "--disk-radius-mm", help="--contact bonded: the glued disk's radius c, mm, in (0, --r1-mm)")] = None,
@@ -53,6 +53,10 @@ def fit_cmd(
              "Model §1-§3); default: exact where it can fit, else cap")] = None,
     fix: Annotated[Optional[list[str]], typer.Option("--fix", help="hold a parameter NAME=VALUE (SI), repeatable")]
     = None,
+    keep_beyond_reach: Annotated[bool, typer.Option(
+        "--keep-beyond-reach", help="--contact bonded: keep rows beyond the exact membrane's reach at the fit (their "
+                                    "pressure continued past its table; counted in a note) instead of refusing the "
+                                    "first")] = False,
     v0_cm3: Annotated[Optional[float], typer.Option(
         "--v0-cm3", help="recorded run: nominal dead volume (the start), cm^3 (default 3)")] = None,
     load_g: Annotated[Optional[float], typer.Option(
@@ -101,6 +105,8 @@ def fit_cmd(
     check_options(material.lower(), contact, fidelity)
     disk_radius = None if disk_radius_mm is None else U.mm(disk_radius_mm)
     check_disk_radius(contact, disk_radius, U.mm(r1_mm))
+    if keep_beyond_reach and contact != "bonded":
+        raise ValueError("--keep-beyond-reach: only with --contact bonded")
     if contact == "bonded" and write_scenario is not None:
         raise ValueError("--write-scenario: a scenario's chamber has no glued disk (its roles model free inflation "
                          "or a loose plate), so a bonded fit has no place there; the fitted modulus is in params.toml "
@@ -135,10 +141,11 @@ def fit_cmd(
         if given:
             raise ValueError(f"{flag}: only for a recorded run (a t_s column); {data.name} holds static points")
     pts = parse_data(raw)
-    on_plate = contact in ("flat", "bonded") or (contact is None and pts.F is not None)
+    # a bonded fit has its own tables per material (fit_bonded), not the exact law's one shape
+    on_plate = contact == "flat" or (contact is None and pts.F is not None)
     fidelity, law_note = resolve_fidelity(fidelity, material.lower(), needs_tables=on_plate)
     res = fit_static(pts, material.lower(), U.mm(r1_mm), U.mm(t0_mm), contact=contact, fix=fixed,
-                     fidelity=fidelity, disk_radius=disk_radius)
+                     fidelity=fidelity, disk_radius=disk_radius, keep_beyond=keep_beyond_reach)
     res.source = source
     with run_dir(out, command="fit", argv=cli_argv(), overwrite=overwrite) as tmp:
         write_fit(res, tmp)
@@ -146,7 +153,7 @@ def fit_cmd(
     disk = "" if res.disk_radius is None else f" (disk {U.to_mm(res.disk_radius):g} mm)"
     _print(f"fit {res.material}: {res.n_points} points, {res.contact} contact{disk}, {res.fidelity} law, "
            f"NRMSD {res.nrmsd:.4f}", res.params, res.ci95, res.fixed,
-           res.unidentifiable + ([law_note] if law_note else []) + notes, out, write_scenario)
+           res.unidentifiable + res.notes + ([law_note] if law_note else []) + notes, out, write_scenario)
 
 
 def _read_data(data: Path) -> tuple[bytes, Path]:

@@ -8,7 +8,8 @@ Each point's model pressure comes from the package's physics:
 - ``flat``: the contact shape (h1, h2) with ``h1 - h2 = h`` and ``F(h1, h2) = F``, solved by the one
   shape solver (:meth:`hbma_ctrl.models.shape.ShapeSolver.h2_for_force`), then ``p = pressure(h1, h2)``;
 - ``bonded``: the membrane's centre glued to a rigid disk of radius c at height h pushing it with F: the
-  exact membrane's bonded table (:mod:`hbma_ctrl.app.tuning.fit_bonded`; ``nh`` and the exact law only).
+  exact membrane's bonded tables (:mod:`hbma_ctrl.app.tuning.fit_bonded`; ``nh`` or ``gent``, the exact
+  law only); a row at h = 0 is the disk resting on its stop, whose pressure is at most the lift-off one.
 
 The law is the spherical cap's (``fidelity = "cap"``, docs/concepts/model.md §3) or the exact axisymmetric
 membrane's (``"exact"``, Model §9): the same tabulated law, in the same chart, that the rig, the EKF
@@ -131,6 +132,8 @@ class FitResult(FitReport):
     fidelity: str = "cap"
     #: the bonded disk's radius, m (None for free or flat contact)
     disk_radius: float | None = None
+    #: what the fit says beside its numbers (rows kept beyond the law's reach)
+    notes: list = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -373,9 +376,10 @@ def check_options(material: str, contact: str | None, fidelity: str | None) -> N
     if contact == "bonded" and fidelity == "cap":
         raise ValueError("--contact bonded: the exact membrane's law only (the spherical cap has no glued disk); "
                          "drop --fidelity cap")
-    if contact == "bonded" and not exact_shapes_fixed(material):
-        raise ValueError(f"--contact bonded: fits --material nh only (its one modulus scales the bonded table, which "
-                         f"holds one material shape); {material}'s {', '.join(param_names(material))} change the shape")
+    if contact == "bonded" and material not in ("nh", "gent"):
+        raise ValueError(f"--contact bonded: fits --material nh or gent only (a modulus that scales the bonded tables, "
+                         f"and for gent one shape parameter Jm over a grid of tables); {material}'s "
+                         f"{', '.join(param_names(material))} change the shape in more directions")
 
 
 def check_disk_radius(contact: str | None, disk_radius: float | None, r1: float) -> None:
@@ -428,22 +432,27 @@ def resolve_fidelity(fidelity: str | None, material: str, needs_tables: bool = F
 
 def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: str | None = None,
                fix: dict | None = None, fidelity: str = "cap", disk_radius: float | None = None,
-               cache=None) -> FitResult:
+               cache=None, keep_beyond: bool = False) -> FitResult:
     """Least-squares fit of a material's parameters (SI) to static data; r1, t0 in m.
 
     ``contact`` None picks 'flat' when the data have a force column, else 'free'; 'bonded' is a disk of
-    radius ``disk_radius`` (m) glued at the centre (the exact law and ``nh`` only; ``cache``: its table's
-    directory, None the exact tables' one). ``fix`` holds flattened parameters at SI values.
+    radius ``disk_radius`` (m) glued at the centre (the exact law, ``nh`` or ``gent``; ``cache``: its tables'
+    directory, None the exact tables' one; rows at h = 0 rest on the stop, :mod:`hbma_ctrl.app.tuning.fit_bonded`). ``fix`` holds flattened parameters at SI values.
     ``fidelity``: the membrane law, 'cap' or 'exact' (the tables for ``nh``; the exact solver's free curve,
     refined from the cap's fit, for free points of the other materials; :func:`check_exact_material`).
+    ``keep_beyond`` (bonded only): rows beyond the tables at the optimum keep the straight-line continuation
+    they were fitted with and are counted in a note, instead of the first being refused.
     ValueError for unavailable options or too few points.
     """
     check_options(material, contact, fidelity)
     check_disk_radius(contact, disk_radius, r1)
+    if keep_beyond and contact != "bonded":
+        raise ValueError("--keep-beyond-reach: only with --contact bonded")
+    notes: list = []
     if contact is None:
         contact = "flat" if data.F is not None else "free"
     # a shape-changing material's exact fit: free points only, through the solver itself
-    solver_free = fidelity == "exact" and not exact_shapes_fixed(material)
+    solver_free = fidelity == "exact" and not exact_shapes_fixed(material) and contact != "bonded"
     if solver_free and contact != "free":
         check_exact_material(material, f"--fidelity exact with --contact {contact}")
     if contact in ("flat", "bonded") and data.F is None:
@@ -464,17 +473,23 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     bonded = contact == "bonded"
     # the model gives the defaults and bounds; the law the pressures
     model = _Model(material, r1, t0, data, contact, "cap" if solver_free or bonded else fidelity)
-    if bonded:
-        from hbma_ctrl.app.tuning.fit_bonded import BondedLaw
-
-        law = BondedLaw(r1, t0, disk_radius, data.h, data.F, cache)
-    else:
-        law = _ExactFree(material, r1, t0, data) if solver_free else model
     lo, hi = _bounds(material, names, model.default, data, r1)
+    if bonded and material == "gent":
+        from hbma_ctrl.app.tuning.fit_bonded import JM_MIN
+
+        # the bonded tables' grid in 1 / Jm ends at JM_MIN
+        lo[names.index("Jm")] = max(lo[names.index("Jm")], JM_MIN)
     for k, v in fixed.items():
         i = names.index(k)
         if not lo[i] <= v <= hi[i]:
             raise ValueError(f"--fix {k}={v:g}: outside the physical range [{lo[i]:g}, {hi[i]:g}] for this data")
+    # the law after the options are checked: a bonded fit's first use builds its tables (minutes)
+    if bonded:
+        from hbma_ctrl.app.tuning.fit_bonded import BondedLaw
+
+        law = BondedLaw(r1, t0, disk_radius, data.h, data.F, cache, material, data.p)
+    else:
+        law = _ExactFree(material, r1, t0, data) if solver_free else model
     ifree = [names.index(k) for k in free]
     coords = Coordinates.scaled(model.default[ifree])
 
@@ -517,6 +532,8 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
             raise ValueError(f"data: column 'h_mm', row {i + 1}: {U.to_mm(data.h[i]):g} mm is beyond the fitted "
                              f"membrane's reach in free inflation ({U.to_mm(top):.4g} mm, pole stretch "
                              "4 or 98 % of the locking one); use --fidelity cap")
+    elif keep_beyond:
+        notes = law.beyond_note(full(z))
     else:
         law.check_reach(full(z))
     est = estimate(resid, z, (zlo, zhi))
@@ -529,4 +546,4 @@ def fit_static(data: StaticData, material: str, r1: float, t0: float, contact: s
     return FitResult(material=material, params=params, ci95={k: ci[k] for k in names},
                      nrmsd=nrmsd(pm, data.p), n_points=n, unidentifiable=weak,
                      correlation=correlation, contact=contact, r1=r1, t0=t0, fixed=fixed, h=data.h.copy(),
-                     p_data=data.p.copy(), p_model=pm, fidelity=fidelity, disk_radius=disk_radius)
+                     p_data=data.p.copy(), p_model=pm, fidelity=fidelity, disk_radius=disk_radius, notes=notes)

@@ -140,10 +140,13 @@ GEOM = ["--r1-mm", "35", "--t0-mm", "2"]
     (["--contact", "bonded", "--disk-radius-mm", "12.7", "--fidelity", "cap"],
      ["--contact bonded", "exact membrane's law only", "drop --fidelity cap"]),
     (["--contact", "bonded", "--disk-radius-mm", "12.7", "--material", "mr"],
-     ["--contact bonded", "--material nh only", "C1, C2"]),
+     ["--contact bonded", "--material nh or gent only", "C1, C2"]),
+    (["--contact", "bonded", "--disk-radius-mm", "12.7", "--material", "gent", "--fix", "Jm=5"],
+     ["--fix Jm=5", "outside the physical range [10, 1e+06]"]),
     (["--contact", "bonded", "--disk-radius-mm", "12.7", "--write-scenario", "s.toml"],
      ["--write-scenario", "no glued disk", "params.toml"]),
     (["--contact", "bondet", "--disk-radius-mm", "12.7"], ["--contact bondet", "did you mean 'bonded'"]),
+    (["--contact", "flat", "--keep-beyond-reach"], ["--keep-beyond-reach: only with --contact bonded"]),
 ])
 def test_bad_bonded_options_are_one_error_line(tmp_path, args, needles):
     path = tmp_path / "lift.csv"
