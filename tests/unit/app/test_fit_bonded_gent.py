@@ -4,8 +4,8 @@ through tables on a grid in 1 / Jm; and the rule for rows at h = 0 (the disk res
 The truth of the law's test is the exact solver itself at a Jm between the tables' nodes. The data set is
 public lift data (tests/data/spa_design, MIT: Campbell et al., SPA_Design): a 2 mm Ecoflex 00-30 membrane
 in a 70 mm clamp lifting 1.5, 2.5 and 4 kg with a 25.4 mm disk. Its first use builds the geometry's tables
-(one nh table, about a minute, and seven Gent ones, about two minutes each; then cached): these tests are
-slow."""
+(one nh table, about a minute, and seven Gent ones, about two minutes each; then cached): a quarter of an
+hour on a clean machine, so these tests are in the by-hand set (``pytest -m sweep``), not the CI run."""
 
 from __future__ import annotations
 
@@ -44,6 +44,7 @@ def floor_nrmsd(d: F.StaticData) -> float:
 
 
 @pytest.mark.slow
+@pytest.mark.sweep
 def test_gent_law_between_its_tables_matches_the_exact_solver():
     mu, Jm = 30e3, 35.0  # 1 / Jm between two nodes of the grid, mu 31 % below the tables' modulus
     assert not np.any(np.isclose(GENT_U, 1 / Jm))
@@ -64,6 +65,7 @@ def test_gent_law_between_its_tables_matches_the_exact_solver():
 
 
 @pytest.mark.slow
+@pytest.mark.sweep
 def test_a_resting_row_misses_only_by_its_pressure_above_lift_off():
     h, F_n = np.zeros(2), np.array([14.715, 14.715])
     lift = BondedLaw(R1, T0, C, h, F_n).pressure(np.array([90e3]))[0]  # no data pressures: the lift-off one
@@ -75,12 +77,14 @@ def test_a_resting_row_misses_only_by_its_pressure_above_lift_off():
 
 
 @pytest.mark.slow
+@pytest.mark.sweep
 def test_nh_cannot_hold_the_spa_lift_at_70_mm_so_the_fit_refuses_that_row():
     with pytest.raises(ValueError, match=r"row 1: h 70 mm with a force of 14.71 N is beyond .* fitted E = "):
         F.fit_static(spa_data(), "nh", R1, T0, "bonded", fidelity="exact", disk_radius=C)
 
 
 @pytest.mark.slow
+@pytest.mark.sweep
 def test_gent_fit_of_the_spa_lift_data_reaches_its_measured_nrmsd_above_the_data_floor():
     d = spa_data()
     # the fitted membrane cannot hold every row (its solver's stretch limit): refused unless kept
