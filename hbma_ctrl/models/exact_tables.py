@@ -22,6 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+try:  # a build's lock (POSIX); elsewhere two processes may build the same table, each storing it whole
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX
+    fcntl = None
+
 from hbma_ctrl.core import physics as ph
 from hbma_ctrl.core.codegen import cache_dir
 from hbma_ctrl.models.exact import ExactMembrane
@@ -50,19 +55,36 @@ def _key(m: ExactMembrane, kind: str, grids: dict) -> str:
     return hashlib.sha256(blob + hashlib.sha256(src).digest()).hexdigest()[:20]
 
 
+def _read(path: Path) -> dict | None:
+    """A stored table (build_s 0), or None when there is none."""
+    if not path.exists():
+        return None
+    with np.load(path) as z:
+        out = {k: z[k] for k in z.files}
+    out.update(build_s=0.0, path=path)
+    return out
+
+
 def _cached(path: Path, build) -> dict:
-    if path.exists():
-        with np.load(path) as z:
-            out = {k: z[k] for k in z.files}
-        out.update(build_s=0.0, path=path)
+    """The table at ``path``, built by ``build()`` and stored there when missing. A build holds a lock
+    beside the file (POSIX ``flock``): another process that needs the same table meanwhile (a test
+    worker, a second fit) waits for it and reads it instead of solving the same minutes again."""
+    out = _read(path)
+    if out is not None:
         return out
-    t = time.perf_counter()
-    out = build()
-    dt = time.perf_counter() - t
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **out)
-    tmp.replace(path)
+    with open(path.with_suffix(".lock"), "w") as lock:
+        if fcntl is not None:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, the process's end included
+        out = _read(path)  # built by the process this one waited for
+        if out is not None:
+            return out
+        t = time.perf_counter()
+        out = build()
+        dt = time.perf_counter() - t
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **out)
+        tmp.replace(path)
     out.update(build_s=dt, path=path)
     return out
 

@@ -262,3 +262,30 @@ def test_free_profile_runs_from_the_apex_to_the_clamp(nh):
     assert r["z"][0] == pytest.approx(6e-3, rel=1e-9) and r["z"][-1] == 0.0
     assert np.all(np.diff(r["z"]) < 0)  # a dome: the height falls from the apex to the clamp
     assert r["l2"][-1] == pytest.approx(1.0, abs=1e-9) and r["l1"][0] == pytest.approx(r["lam0"], rel=1e-9)
+
+
+def test_a_table_a_second_caller_needs_during_its_build_is_built_once_and_read_by_the_second(tmp_path):
+    import threading
+    import time
+
+    from hbma_ctrl.models import exact_tables
+
+    path = tmp_path / "table.npz"
+    builds = []
+    building = threading.Event()
+
+    def build():
+        builds.append(threading.current_thread().name)
+        building.set()
+        time.sleep(0.3)  # the second caller arrives while this build holds the lock
+        return {"x": np.arange(3.0)}
+
+    got = []
+    first = threading.Thread(target=lambda: got.append(exact_tables._cached(path, build)), name="first")
+    first.start()
+    building.wait()
+    got.append(exact_tables._cached(path, build))  # waits for the first build, then reads its table
+    first.join()
+    assert builds == ["first"]
+    assert all(np.array_equal(g["x"], np.arange(3.0)) for g in got)
+    assert sorted(g["build_s"] > 0 for g in got) == [False, True]  # one built, the other read it
