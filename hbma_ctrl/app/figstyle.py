@@ -80,15 +80,19 @@ def saved_once(stem: Path | str, draw: Callable[[Path], object], *shown: object)
     for value in shown:
         key.update(np.ascontiguousarray(value).tobytes() if isinstance(value, np.ndarray) else repr(value).encode())
     cached = cache_dir() / "figures" / key.hexdigest()[:32]
+    stem = Path(stem)
     if not all((cached / f"figure.{ext}").is_file() for ext in FORMATS):
-        cached.parent.mkdir(parents=True, exist_ok=True)
-        part = Path(tempfile.mkdtemp(dir=cached.parent, suffix=".part"))
+        try:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            part = Path(tempfile.mkdtemp(dir=cached.parent, suffix=".part"))
+        except OSError:  # no cache to write to (a read-only home): the figure is drawn where it is asked
+            draw(stem)
+            return [stem.with_suffix(f".{ext}") for ext in FORMATS]
         draw(part / "figure")
         try:
             os.replace(part, cached)  # atomic: a parallel run sees the whole figure or none
         except OSError:  # another run stored it first
             shutil.rmtree(part, ignore_errors=True)
-    stem = Path(stem)
     out = []
     for ext in FORMATS:
         shutil.copyfile(cached / f"figure.{ext}", stem.with_suffix(f".{ext}"))

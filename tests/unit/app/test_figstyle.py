@@ -31,3 +31,17 @@ def test_saved_once_draws_a_figure_once_for_the_same_values_and_again_when_they_
     changed = saved_once(tmp_path / "c" / "fig", draw_line(y + 1.0), y + 1.0)
     assert len(drawn) == 2 and changed[0].read_bytes() != first[0].read_bytes()
     assert not list((tmp_path / "cache" / "figures").glob("*.part"))  # no half-stored figure left
+
+
+def test_saved_once_draws_in_place_when_the_cache_cannot_be_written(tmp_path, monkeypatch):
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the cache folder would be")
+    monkeypatch.setenv("HBMA_CTRL_CACHE", str(blocker))
+
+    def draw(stem):
+        fig = Figure(figsize=(2, 2))
+        fig.subplots().plot([0.0, 1.0])
+        save(fig, stem)
+
+    files = saved_once(tmp_path / "fig", draw, np.zeros(2))
+    assert [p.name for p in files] == [f"fig.{ext}" for ext in FORMATS] and all(p.stat().st_size > 0 for p in files)
