@@ -207,7 +207,8 @@ def bench_ekf_cmd(
     for k, v in res.get("ratios", {}).items():
         con.print(f"{k.replace('_over_ekf_step_median', '')} / ekf median step time: {v:.1f}x")
     for k, v in res.get("summary", {}).items():
-        con.print(f"{k}: {v:.4g}" if isinstance(v, float) else f"{k}: {v}")
+        # markup off: a summary's text holds brackets of its own (pip install 'hbma-ctrl[bench]')
+        con.print(f"{k}: {v:.4g}" if isinstance(v, float) else f"{k}: {v}", markup=False)
     con.print(f"wrote {out / 'bench_ekf.json'}")
     if rep:
         from hbma_ctrl.app.bench.pages import ekf_page
