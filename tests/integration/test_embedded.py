@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -32,6 +33,22 @@ needs_arm = pytest.mark.skipif(any(shutil.which(p) is None for p in _ARM_TOOLS),
 #: what the library must not call: allocation, files, the console
 _FORBIDDEN = ("malloc", "calloc", "realloc", "free", "fopen", "fwrite", "fread", "printf", "fprintf", "puts",
               "_sbrk", "exit")
+
+
+def _board_report(out: Path) -> dict:
+    """embedded.json of a board run, holding every key the embed tutorial documents."""
+    rep = json.loads((out / "embedded.json").read_text())
+    for key in ("target", "ticks", "max_abs_diff", "instructions_per_tick_median", "instructions_per_tick_max",
+                "flash_bytes", "ram_bytes"):
+        assert key in rep
+    return rep
+
+
+def _assert_no_forbidden_calls(out: Path) -> None:
+    """The Cortex-M7 library's objects call no allocator and no file or console I/O."""
+    undefined = subprocess.run(["arm-none-eabi-nm", "-u", str(out / "build" / "cortex-m7" / "libhbma.a")],
+                               check=True, capture_output=True, text=True).stdout.split()
+    assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
 
 
 def _cli(args):
@@ -112,10 +129,7 @@ def test_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypatch):
     out = tmp_path / "m7"
     res = _cli(["codegen", TRACK, "--library", "--target", "cortex-m7", "--duration-s", "0.6", "--out", str(out)])
     assert res.exit_code == 0, res.output
-    rep = json.loads((out / "embedded.json").read_text())
-    for key in ("target", "ticks", "max_abs_diff", "instructions_per_tick_median", "instructions_per_tick_max",
-                "flash_bytes", "ram_bytes"):
-        assert key in rep
+    rep = _board_report(out)
     assert rep["target"] == "cortex-m7" and rep["ticks"] == 60
     assert rep["max_abs_diff"] <= 1e-9
     assert rep["instructions_per_count"] == pytest.approx(40.0, rel=1e-3)
@@ -123,9 +137,7 @@ def test_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypatch):
     assert rep["flash_bytes"] > 0 and rep["ram_bytes"] > 0
     host = np.loadtxt(out / "commands_host.txt")
     assert host.shape == (60, 4) and np.all((host[:, 1:] >= 0) & (host[:, 1:] <= 1))
-    undefined = subprocess.run(["arm-none-eabi-nm", "-u", str(out / "build" / "cortex-m7" / "libhbma.a")],
-                               check=True, capture_output=True, text=True).stdout.split()
-    assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+    _assert_no_forbidden_calls(out)
 
 
 @pytest.mark.compiling
@@ -140,10 +152,7 @@ def test_robot_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypat
     out = tmp_path / "robot_m7"
     res = _cli(["codegen", ROBOT, "--library", "--target", "cortex-m7", "--duration-s", "2", "--out", str(out)])
     assert res.exit_code == 0, res.output
-    rep = json.loads((out / "embedded.json").read_text())
-    for key in ("target", "ticks", "max_abs_diff", "instructions_per_tick_median", "instructions_per_tick_max",
-                "flash_bytes", "ram_bytes"):
-        assert key in rep
+    rep = _board_report(out)
     assert rep["target"] == "cortex-m7" and rep["ticks"] == 200
     assert rep["max_abs_diff"] <= 1e-9
     assert 0 < rep["instructions_per_tick_median"] <= rep["instructions_per_tick_max"]
@@ -155,9 +164,7 @@ def test_robot_cortex_m7_build_equals_the_host_build_on_qemu(tmp_path, monkeypat
         assert np.isfinite(rep[key])
     header = (out / "hbma.h").read_text()
     assert "#define HBMA_N_CHAMBERS 9" in header and "#define HBMA_N_LAYERS 3" in header
-    undefined = subprocess.run(["arm-none-eabi-nm", "-u", str(out / "build" / "cortex-m7" / "libhbma.a")],
-                               check=True, capture_output=True, text=True).stdout.split()
-    assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+    _assert_no_forbidden_calls(out)
 
 
 @pytest.mark.compiling
