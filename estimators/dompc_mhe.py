@@ -138,6 +138,7 @@ def compare_dompc(trial, rec, settings: MHESettings, steps: int) -> dict:
             ts_mhe.append(mhe.last_step_s)
             p_mhe.append(e.p)
     d = DoMPCMHE(trial.actuator, trial.pneumatics, settings)
+    meas = lean_meas(d.om)
     d.start(*prior, [rec.u[j - 1] if j > 0 else u0 for j in range(first + 1)])
     ts_d, p_d = [], []
     for k in range(first + 1, stop):
@@ -145,9 +146,6 @@ def compare_dompc(trial, rec, settings: MHESettings, steps: int) -> dict:
         if k >= start:
             ts_d.append(d.last_step_s)
             xs = np.concatenate([[x[0]], np.asarray(d.mhe._p_est0.cat).ravel()])
-            from hbma_ctrl.estimators.mhe import _LEAN_CACHE
-
-            meas = _LEAN_CACHE[id(d.om.predict)][3]
             p_d.append(float(meas(xs, x[1:3], d.om.theta)[1][4]))
     med_m, med_d = float(np.median(ts_mhe)) * 1e6, float(np.median(ts_d)) * 1e6
     return {"dompc_mhe_step_us_median": med_d, "dompc_compare_mhe_step_us_median": med_m,
