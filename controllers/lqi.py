@@ -1,0 +1,209 @@
+"""LQI: linear-quadratic state feedback with integral action on the linearised chamber (SI).
+
+The plant is the controllers' gas-mass model (:class:`hbma_ctrl.models.tables.PredictionModel`, the
+casadi model the MPC and bang-bang use), linearised around the operating point that holds the target
+height: the scaled gas mass ``x* = x(r, W)`` on the load path of the target height r under the
+estimated load W. The operating point comes from the target, not from the estimate, because the
+loop is to be linear around where it settles; the estimate's state is where it is now.
+
+- ``A = dx+/dx`` with the valves closed (1: a closed chamber keeps its gas),
+- ``B``: the command v moves ``v q_ref`` of gas per second (``q_ref``, the pump's full flow at zero
+  gauge pressure), because the command is mapped to the inputs through the model's own pump and vent
+  flows at the estimated pressure (below): the actuators' nonlinearity (the pump's dead band at high
+  pressure, the vent's root law) is inverted statically, so the dynamics left to the gain are linear,
+- ``C = dH/dx`` at x*, the height's sensitivity to the gas mass (what changes with the target).
+
+The state is augmented with the integral of the height error, ``xi+ = xi + Ts (h - r)``, and
+:func:`control.dlqr` gives the gain of ``v = -K [x - x*, xi]`` for the weights ``q_height`` (per mm^2
+of height error), ``q_integral`` (per (mm s)^2) and ``r_command`` (per unit command^2), per sample.
+
+Gain schedule: C falls about fivefold from a free membrane at 1 mm to a loaded one at 15 mm, so one
+linearisation is either sluggish high up or aggressive low down. The gains are computed once on a grid
+of target heights and loads and interpolated at the target and the estimated load.
+
+The command's mapping follows the PID's: a positive v runs the compressor into the open inlet at the
+speed whose model flow is ``v q_ref`` at the estimated pressure (full speed if the pump cannot), a
+negative v opens the outlet at the duty that vents ``-v q_ref`` (at most fully open). The integral
+stops while the command is saturated in the error's direction (anti-windup, as the PID). The pressure
+guard and the step timing are the runtime's (``p_max``, ``guard_margin``), as for the PID.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from hbma_ctrl.controllers.baselines import _target
+from hbma_ctrl.core import units as U
+from hbma_ctrl.core.interfaces import (
+    Command,
+    ControllerBase,
+    ControllerSettingsDefaults,
+    Estimate,
+    Reference,
+    check_time,
+    guard_margin_setting,
+    p_max_setting,
+    sample_period_setting,
+)
+from hbma_ctrl.core.params import Actuator, Pneumatics
+from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.models.tables import PredictionModel
+
+__all__ = ["LQISettings", "LQIController", "lqi_gain", "augmented"]
+
+#: speeds at which the pump's model flow is tabulated for the command's inversion
+_SPEEDS = np.linspace(0.0, 1.0, 41)
+#: target heights (m) and loads (per table column) of the gain schedule
+_H_LO = 0.25e-3
+_N_H = 24
+_N_W = 6
+
+
+@dataclass
+class LQISettings(ControllerSettingsDefaults, Settings):
+    """LQI on height (SI but the weights, which are per mm; each field's unit, range and one-line doc are
+    in its declaration)."""
+
+    WHERE = "lqi"
+
+    sample_period: float = sample_period_setting()
+    q_height: float = setting(1.0, lo=0.0, hi=1e9, unit="1/mm^2", doc="LQI weight on the height error per sample")
+    q_integral: float = setting(2.0, lo=0.0, hi=1e9, lo_open=True, unit="1/(mm s)^2",
+                                doc="LQI weight on the height error's integral per sample")
+    r_command: float = setting(0.5, lo=0.0, hi=1e9, lo_open=True, unit="-",
+                               doc="LQI weight on the command per sample (1 = the pump's full flow at 0 kPa)")
+    p_max: float = p_max_setting()
+    guard_margin: float = guard_margin_setting(1e3)
+
+    def check_rules(self) -> None:
+        self.within("guard_margin", hi=self.p_max)
+
+
+def augmented(A: float, B: float, C: float, Ts: float) -> tuple[np.ndarray, np.ndarray]:
+    """The scalar plant x+ = A x + B v, h = C x with the height error's integral xi+ = xi + Ts C x
+    appended: (Aa 2x2, Ba 2x1), state [x, xi] (the units of C x times s for xi)."""
+    return np.array([[A, 0.0], [Ts * C, 1.0]]), np.array([[B], [0.0]])
+
+
+def lqi_gain(A: float, B: float, C: float, Ts: float, q_height: float, q_integral: float,
+             r_command: float) -> np.ndarray:
+    """The gain K (1 x 2) of v = -K [x, xi] from :func:`control.dlqr` on :func:`augmented`, cost per
+    sample q_height (C x)^2 + q_integral xi^2 + r_command v^2 (C in the weights' length unit)."""
+    import control
+
+    Aa, Ba = augmented(A, B, C, Ts)
+    K, _, _ = control.dlqr(Aa, Ba, np.diag([q_height * C ** 2, q_integral]), np.array([[r_command]]))
+    return np.asarray(K, dtype=float).reshape(1, 2)
+
+
+class LQIController(ControllerBase):
+    """Gain-scheduled LQI on the estimated height (module docstring)."""
+
+    def __init__(self, actuator: Actuator, pneumatics: Pneumatics, settings: LQISettings | None = None,
+                 model: PredictionModel | None = None):
+        self.settings = (settings or LQISettings()).validate()
+        self.model = model or PredictionModel(actuator, pneumatics)
+        self._flows()
+        self._schedule()
+        self.reset()
+
+    def _flows(self) -> None:
+        """The model's pump flow at the tabulated speeds and its vent flow, as one Function of the gauge
+        pressure (kg/s), and the discrete map's Jacobians for the linearisation."""
+        md = self.model
+        ch = md.chamber
+        p = ca.SX.sym("p")
+        pump = ca.vertcat(*(ch.net_flow(ca.DM([s, 1.0, 0.0]), p, ch.params) for s in _SPEEDS))
+        vent = -ch.net_flow(ca.DM([0.0, 0.0, 1.0]), p, ch.params)
+        self._flow = ca.Function("lqi_flows", [p], [pump, vent])
+        self.q_ref = float(self._flow(0.0)[0][-1])
+        # x per kg of gas: the model's state is m R T / (p_env V0) - 1
+        self._x_per_kg = md.RT / (md.actuator.p_env * md.actuator.V0)
+        x, W = ca.SX.sym("x"), ca.SX.sym("W")
+        xn = md.discrete(self.settings.sample_period)(x, ca.DM.zeros(3), W, 0.0)
+        self._lin = ca.Function("lqi_lin", [x, W], [ca.jacobian(xn, x), ca.jacobian(md.H(x, W), x)])
+
+    def linearise(self, h: float, W: float) -> tuple[float, float, float, float]:
+        """(x*, A, B, C) at target height h (m) under load W (N): the operating point and the scalar
+        plant of the module docstring (C in mm per unit x, the weights' unit)."""
+        x = self.model.x_at_height(h, W)
+        A, C = (float(v) for v in self._lin(x, W))
+        B = self.settings.sample_period * self.q_ref * self._x_per_kg
+        return x, A, B, U.to_mm(C)
+
+    def _schedule(self) -> None:
+        s, md = self.settings, self.model
+        self._hg = np.linspace(_H_LO, md.h_table_max, _N_H)
+        self._Wg = np.linspace(0.0, md.load_max, _N_W)
+        self._K = np.zeros((_N_H, _N_W, 2))
+        for i, h in enumerate(self._hg):
+            for j, W in enumerate(self._Wg):
+                _, A, B, C = self.linearise(h, W)
+                self._K[i, j] = lqi_gain(A, B, C, s.sample_period, s.q_height, s.q_integral, s.r_command)
+
+    def gain(self, h: float, W: float) -> np.ndarray:
+        """The scheduled gain (2,) at target height h (m) and load W (N): bilinear in the grid, clipped to it."""
+        hg, Wg = self._hg, self._Wg
+        a = np.clip(np.interp(h, hg, np.arange(len(hg))), 0, len(hg) - 1)
+        b = np.clip(np.interp(W, Wg, np.arange(len(Wg))), 0, len(Wg) - 1)
+        i, j = min(int(a), len(hg) - 2), min(int(b), len(Wg) - 2)
+        fa, fb = a - i, b - j
+        K = self._K
+        return ((1 - fa) * (1 - fb) * K[i, j] + fa * (1 - fb) * K[i + 1, j]
+                + (1 - fa) * fb * K[i, j + 1] + fa * fb * K[i + 1, j + 1])
+
+    def reset(self) -> None:
+        self._xi = 0.0
+        self._t_prev = None
+        self._h_prev = None
+        self._hold = None
+        self.last: dict = {}
+
+    def _command(self, v: float, p: float) -> tuple[np.ndarray, bool, bool]:
+        """The inputs for command v at gauge pressure p (Pa), and whether the pump or the vent saturated."""
+        pump, vent = (np.asarray(a, dtype=float).ravel() for a in self._flow(max(p, 0.0)))
+        q = v * self.q_ref
+        if q > 0:
+            if q >= pump[-1]:
+                return np.array([1.0, 1.0, 0.0]), True, False
+            k = int(np.searchsorted(pump, q))  # first tabulated speed with at least this flow
+            lo = max(k - 1, 0)
+            f = 0.0 if pump[k] <= pump[lo] else (q - pump[lo]) / (pump[k] - pump[lo])
+            return np.array([_SPEEDS[lo] + f * (_SPEEDS[k] - _SPEEDS[lo]), 1.0, 0.0]), False, False
+        if q < 0:
+            d = 1.0 if vent[0] <= 0 else -q / float(vent[0])
+            return np.array([0.0, 0.0, min(d, 1.0)]), False, d >= 1.0
+        return np.zeros(3), False, False
+
+    def step(self, t: float, estimate: Estimate, reference: Reference,
+             preview: Sequence[float] | None = None) -> Command:
+        """Command for the next period from the estimated height, pressure and load against the target;
+        no ``preview`` (``accepts_preview`` is False: the runtime never passes one)."""
+        s, md = self.settings, self.model
+        t = check_time(t, "lqi.step")
+        h = float(estimate.h) if np.isfinite(estimate.h) else (self._h_prev or 0.0)
+        r = _target(self, reference, h)
+        dt = s.sample_period if self._t_prev is None else max(t - self._t_prev, 1e-6)
+        p = float(estimate.p) if np.isfinite(estimate.p) else 0.0
+        # the contact force is the load while the platform rides on the membrane and the force the
+        # pressure holds up while it rests, so the model's state at (h, F) is the resting gas mass there
+        W = min(max(float(estimate.F), 0.0), md.load_max) if np.isfinite(estimate.F) else 0.0
+        dx = md.x_at_height(max(h, 0.0), W) - md.x_at_height(r, W)
+        K = self.gain(r, W)
+        v = float(-K[0] * dx - K[1] * self._xi)
+        cmd, pump_sat, vent_sat = self._command(v, p)
+        e = h - r
+        if not ((pump_sat and e < 0) or (vent_sat and e > 0)):
+            self._xi += U.to_mm(e) * dt
+        self._h_prev, self._t_prev = h, t
+        self.last = {"reference_used": r, "command": v, "status": "ok"}
+        return Command(*(float(c) for c in cmd))
+
+    def stats(self) -> dict:
+        """What the controller reports itself (timing, fallbacks and guard counts come from the runtime)."""
+        return {"variant": "lqi", "horizon": None, "fallbacks": 0, "target_clipped_steps": 0}
+
