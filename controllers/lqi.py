@@ -4,7 +4,10 @@ The plant is the controllers' gas-mass model (:class:`hbma_ctrl.models.tables.Pr
 casadi model the MPC and bang-bang use), linearised around the operating point that holds the target
 height: the scaled gas mass ``x* = x(r, W)`` on the load path of the target height r under the
 estimated load W. The operating point comes from the target, not from the estimate, because the
-loop is to be linear around where it settles; the estimate's state is where it is now.
+loop is to be linear around where it settles. The state now, x, is the model's at the estimated
+height and contact force: on the membrane the contact force is the load; while the platform rests it
+is the force the pressure holds up, and the model's state at zero height under that force is the
+resting gas mass, so the feedback sees the gas build up before lift-off.
 
 - ``A = dx+/dx`` with the valves closed (1: a closed chamber keeps its gas),
 - ``B``: the command v moves ``v q_ref`` of gas per second (``q_ref``, the pump's full flow at zero
@@ -17,13 +20,16 @@ The state is augmented with the integral of the height error, ``xi+ = xi + Ts (h
 :func:`control.dlqr` gives the gain of ``v = -K [x - x*, xi]`` for the weights ``q_height`` (per mm^2
 of height error), ``q_integral`` (per (mm s)^2) and ``r_command`` (per unit command^2), per sample.
 
-Gain schedule: C falls about fivefold from a free membrane at 1 mm to a loaded one at 15 mm, so one
-linearisation is either sluggish high up or aggressive low down. The gains are computed once on a grid
-of target heights and loads and interpolated at the target and the estimated load.
+Gain schedule: C falls sevenfold from a free membrane at 1 mm to one under 8 N at 15 mm, so one
+linearisation is either sluggish high up or aggressive low down (designed at 8 mm, the linearised
+loop's slowest pole ranges over 0.93 to 0.99 per 20 ms sample between 0.5 and 15 mm, a time constant
+of 0.3 to 2 s). The gains are computed once on a grid of target heights and loads and interpolated at
+the target and the estimated load (the slowest pole then stays at 0.97).
 
-The command's mapping follows the PID's: a positive v runs the compressor into the open inlet at the
-speed whose model flow is ``v q_ref`` at the estimated pressure (full speed if the pump cannot), a
-negative v opens the outlet at the duty that vents ``-v q_ref`` (at most fully open). The integral
+The command's mapping follows the PID's: a positive v runs the compressor into the inlet, throttled
+to pass ``v q_ref`` at the estimated pressure as the robot's valves are
+(:func:`hbma_ctrl.models.bank.throttled_inputs_function`; fully open at full speed if the pump cannot),
+a negative v opens the outlet at the duty that vents ``-v q_ref`` (at most fully open). The integral
 stops while the command is saturated in the error's direction (anti-windup, as the PID). The pressure
 guard and the step timing are the runtime's (``p_max``, ``guard_margin``), as for the PID.
 """
@@ -51,15 +57,14 @@ from hbma_ctrl.core.interfaces import (
 )
 from hbma_ctrl.core.params import Actuator, Pneumatics
 from hbma_ctrl.core.settings import Settings, setting
+from hbma_ctrl.models.bank import PumpMap, throttled_inputs_function
 from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["LQISettings", "LQIController", "lqi_gain", "augmented"]
 
-#: speeds at which the pump's model flow is tabulated for the command's inversion
-_SPEEDS = np.linspace(0.0, 1.0, 41)
 #: target heights (m) and loads (per table column) of the gain schedule
 _H_LO = 0.25e-3
-_N_H = 24
+_N_H = 16
 _N_W = 6
 
 
@@ -112,15 +117,17 @@ class LQIController(ControllerBase):
         self.reset()
 
     def _flows(self) -> None:
-        """The model's pump flow at the tabulated speeds and its vent flow, as one Function of the gauge
-        pressure (kg/s), and the discrete map's Jacobians for the linearisation."""
+        """The model's open flows (the full-speed pump into the open inlet, the open vent; kg/s) as one
+        Function of the gauge pressure, the pump's throttling, and the discrete map's Jacobians."""
         md = self.model
         ch = md.chamber
         p = ca.SX.sym("p")
-        pump = ca.vertcat(*(ch.net_flow(ca.DM([s, 1.0, 0.0]), p, ch.params) for s in _SPEEDS))
-        vent = -ch.net_flow(ca.DM([0.0, 0.0, 1.0]), p, ch.params)
-        self._flow = ca.Function("lqi_flows", [p], [pump, vent])
-        self.q_ref = float(self._flow(0.0)[0][-1])
+        self._open = ca.Function("lqi_open_flows", [p], [ch.net_flow(ca.DM([1.0, 1.0, 0.0]), p, ch.params),
+                                                       -ch.net_flow(ca.DM([0.0, 0.0, 1.0]), p, ch.params)])
+        self.q_ref = float(self._open(0.0)[0])
+        # the robot's valves' mapping: speed (and inlet duty) that pass a share of the full-speed flow
+        self._inputs = throttled_inputs_function(PumpMap(md.pneumatics.csv_path), 1, "per_chamber",
+                                                 name="lqi_inputs")
         # x per kg of gas: the model's state is m R T / (p_env V0) - 1
         self._x_per_kg = md.RT / (md.actuator.p_env * md.actuator.V0)
         x, W = ca.SX.sym("x"), ca.SX.sym("W")
@@ -165,18 +172,15 @@ class LQIController(ControllerBase):
 
     def _command(self, v: float, p: float) -> tuple[np.ndarray, bool, bool]:
         """The inputs for command v at gauge pressure p (Pa), and whether the pump or the vent saturated."""
-        pump, vent = (np.asarray(a, dtype=float).ravel() for a in self._flow(max(p, 0.0)))
+        p = max(p, 0.0)
+        q_in, q_out = (float(f) for f in self._open(p))
         q = v * self.q_ref
         if q > 0:
-            if q >= pump[-1]:
-                return np.array([1.0, 1.0, 0.0]), True, False
-            k = int(np.searchsorted(pump, q))  # first tabulated speed with at least this flow
-            lo = max(k - 1, 0)
-            f = 0.0 if pump[k] <= pump[lo] else (q - pump[lo]) / (pump[k] - pump[lo])
-            return np.array([_SPEEDS[lo] + f * (_SPEEDS[k] - _SPEEDS[lo]), 1.0, 0.0]), False, False
+            a = 1.0 if q_in <= 0 else q / q_in
+            return np.asarray(self._inputs(min(a, 1.0), 0.0, p), dtype=float).ravel(), a >= 1.0, False
         if q < 0:
-            d = 1.0 if vent[0] <= 0 else -q / float(vent[0])
-            return np.array([0.0, 0.0, min(d, 1.0)]), False, d >= 1.0
+            o = 1.0 if q_out <= 0 else -q / q_out
+            return np.array([0.0, 0.0, min(o, 1.0)]), False, o >= 1.0
         return np.zeros(3), False, False
 
     def step(self, t: float, estimate: Estimate, reference: Reference,

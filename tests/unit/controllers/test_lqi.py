@@ -83,13 +83,13 @@ def test_pumps_below_vents_above_and_maps_the_command_through_the_model_flows(lq
     lqi.reset()
     down = lqi.step(0.0, est(h=6e-3, p=22e3), Reference(5e-3))
     assert down.speed == 0.0 and down.inlet == 0.0 and down.outlet > 0.0
-    # a pump speed below full is the one whose flow is the command's: v q_ref
+    # below saturation the inputs pass the command's flow, v q_ref, by the model's own pump and vent
     ch = lqi.model.chamber
-    for v in (0.2, 0.5):
-        (speed, _, _), sat, _ = lqi._command(v, 15e3)
-        assert not sat
-        q = float(ch.net_flow(np.array([speed, 1.0, 0.0]), 15e3, ch.params))
-        assert q == pytest.approx(v * lqi.q_ref, rel=0.02)
+    for v, p in ((0.2, 15e3), (0.5, 15e3), (0.3, 25e3), (-0.5, 15e3), (-1.0, 5e3)):
+        u, pump_sat, vent_sat = lqi._command(v, p)
+        assert not (pump_sat or vent_sat)
+        assert float(ch.net_flow(u, p, ch.params)) == pytest.approx(v * lqi.q_ref, rel=0.02)
+    assert lqi._command(1.0, 25e3)[1] and lqi._command(-1.0, 1e3)[2]  # beyond the open flows: saturated
     lqi.reset()
 
 
