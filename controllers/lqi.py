@@ -76,10 +76,10 @@ class LQISettings(ControllerSettingsDefaults, Settings):
     WHERE = "lqi"
 
     sample_period: float = sample_period_setting()
-    q_height: float = setting(1.0, lo=0.0, hi=1e9, unit="1/mm^2", doc="LQI weight on the height error per sample")
-    q_integral: float = setting(2.0, lo=0.0, hi=1e9, lo_open=True, unit="1/(mm s)^2",
+    q_height: float = setting(1.0, lo=0.0, hi=1e6, unit="1/mm^2", doc="LQI weight on the height error per sample")
+    q_integral: float = setting(2.0, lo=0.0, hi=1e6, lo_open=True, unit="1/(mm s)^2",
                                 doc="LQI weight on the height error's integral per sample")
-    r_command: float = setting(0.5, lo=0.0, hi=1e9, lo_open=True, unit="-",
+    r_command: float = setting(0.5, lo=0.0, hi=1e3, lo_open=True, unit="-",
                                doc="LQI weight on the command per sample (1 = the pump's full flow at 0 kPa)")
     p_max: float = p_max_setting()
     guard_margin: float = guard_margin_setting(1e3)

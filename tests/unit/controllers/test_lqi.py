@@ -56,9 +56,9 @@ def test_linearisation_is_the_model_tables_slope(lqi, prediction_model):
 
 
 @pytest.mark.parametrize("key, value, message", [
-    ("q_integral", 0, r"\[controller\] q_integral = 0 is out of range \(0, 1e\+09\] 1/\(mm s\)\^2"),
-    ("r_command", 0, r"\[controller\] r_command = 0 is out of range \(0, 1e\+09\]"),
-    ("q_height", -1, r"\[controller\] q_height = -1 is out of range \[0, 1e\+09\] 1/mm\^2"),
+    ("q_integral", 0, r"\[controller\] q_integral = 0 is out of range \(0, 1e\+06\] 1/\(mm s\)\^2"),
+    ("r_command", 0, r"\[controller\] r_command = 0 is out of range \(0, 1000\]"),
+    ("q_height", -1, r"\[controller\] q_height = -1 is out of range \[0, 1e\+06\] 1/mm\^2"),
 ])
 def test_bad_settings_give_one_error_naming_the_key_and_range(key, value, message):
     with pytest.raises(ValueError, match=message):
@@ -135,3 +135,13 @@ def test_closed_loop_on_the_sim_rig_settles_for_nine_of_ten_noise_seeds(predicti
         tail = log.t >= log.t[-1] - 0.5
         ok += bool(np.all(np.abs(log.h_true[tail] - 4e-3) <= sec.settle_band))
     assert ok >= 9, f"settled in {ok} of 10 seeds"
+
+
+def test_tuning_searches_the_three_weights_around_their_defaults():
+    from hbma_ctrl.app.tuning.tune import make_space
+
+    dims = {d.name: d for d in make_space({"controller": {"kind": "lqi", "targets_mm": [[0, 2]]}}, "controller")}
+    assert set(dims) == {"q_height", "q_integral", "r_command"}
+    s = LQISettings()
+    for name, d in dims.items():
+        assert d.lo < getattr(s, name) == d.default < d.hi
