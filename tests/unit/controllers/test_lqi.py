@@ -145,3 +145,14 @@ def test_tuning_searches_the_three_weights_around_their_defaults():
     s = LQISettings()
     for name, d in dims.items():
         assert d.lo < getattr(s, name) == d.default < d.hi
+
+
+def test_a_non_finite_estimate_gives_a_valid_command_and_no_target_holds_the_height(lqi):
+    lqi.reset()
+    nan = float("nan")
+    c = lqi.step(0.0, Estimate(t=0.0, h1=nan, h2=nan, h=nan, F=nan, p=nan), Reference(3e-3))
+    assert all(0.0 <= v <= 1.0 for v in c.as_array())
+    lqi.reset()
+    lqi.step(0.0, est(h=4e-3, p=20e3), Reference(None))
+    assert lqi.last["reference_used"] == 4e-3
+    lqi.reset()
