@@ -98,7 +98,7 @@ def _leaky_loop(ctrl: LQIController, integral: bool, leak: float = 0.2, T: float
     the exact law's) with 400 g and an outlet left ``leak`` open that the controller does not know of;
     the estimate is the plant's own state. Without ``integral`` the integral is held at zero."""
     fid = make_fidelity("quasi_static", ACT.material, str(PN.csv_path))
-    plant = Plant(fid, fid.space.values(ACT, PN, Platform(load=0.4))[:, None], "rk4", 1e-3)
+    plant = Plant(fid, fid.space.values(ACT, PN, Platform(load=0.4))[:, None], "rk4", 2e-3)
     ctrl.reset()
     r, Ts = 4e-3, ctrl.settings.sample_period
     for k in range(int(round(T / Ts))):
