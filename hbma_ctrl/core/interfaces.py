@@ -192,7 +192,7 @@ def p_max_setting(default: float = 35e3) -> Any:
 def guard_margin_setting(default: float) -> Any:
     """How close to p_max the pressure guard cuts the pump, Pa, [0, p_max]; the scenario's ``guard_margin_kpa``."""
     return setting(default, lo=0.0, hi=1e6, unit="Pa", user="kPa",
-                   doc="pressure guard margin, at most p_max_kpa; default MPC 0.5, PID and bang-bang 1")
+                   doc="pressure guard margin, at most p_max_kpa; default MPC 0.5, PID, bang-bang and LQI 1")
 
 
 class ControllerSettingsDefaults:

@@ -6,6 +6,7 @@ roles here, so each of them runs the same objects.
 from __future__ import annotations
 
 from hbma_ctrl.controllers.baselines import BangBangController, PIDController
+from hbma_ctrl.controllers.lqi import LQIController
 from hbma_ctrl.controllers.mpc import NMPC
 from hbma_ctrl.core import units as U
 from hbma_ctrl.core.interfaces import Estimator
@@ -28,11 +29,13 @@ __all__ = ["make_controller", "default_estimator", "estimator_from_scenario", "m
 
 def make_controller(section: ControllerSection, actuator: Actuator, pneumatics: Pneumatics,
                     model: PredictionModel | None = None):
-    """The controller the section asks for (NMPC, PIDController or BangBangController)."""
+    """The controller the section asks for (NMPC, PIDController, BangBangController or LQIController)."""
     if section.kind == "mpc":
         return NMPC(actuator, pneumatics, section.mpc, model=model)
     if section.kind == "pid":
         return PIDController(actuator, pneumatics, section.pid)
+    if section.kind == "lqi":
+        return LQIController(actuator, pneumatics, section.lqi, model=model)
     return BangBangController(actuator, pneumatics, section.bang_bang, model=model)
 
 
@@ -95,7 +98,7 @@ def calibration_summary(cal: StartupCalibration, duration: float) -> dict:
 
 def controller_settings_of(section: ControllerSection):
     """The chosen controller's settings (p_max, guard_margin, ...) for a controller whose ``settings`` is None."""
-    return {"mpc": section.mpc, "pid": section.pid, "bang_bang": section.bang_bang}[section.kind]
+    return section.chosen
 
 
 def estimator_from_scenario(scn, rig_settings):

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from hbma_ctrl.controllers.baselines import BangBangSettings, PIDSettings
+from hbma_ctrl.controllers.lqi import LQISettings
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.mhe import MHESettings
@@ -69,7 +70,7 @@ class Scenario:
         return self.settings.get(name)
 
 
-KINDS = ("mpc", "pid", "bang_bang")
+KINDS = ("mpc", "pid", "bang_bang", "lqi")
 
 #: one target point of a chamber, its time and height (the scenario's targets_mm rows, the daemon API's setpoints)
 TARGET_TIME = Spec(doc="time of the point", unit="s", lo=0.0, hi=1e5)
@@ -136,7 +137,7 @@ class ControllerSection(Settings):
 
     Fields
     ------
-    kind : which controller runs; mpc, pid, bang_bang : the settings of each (only the chosen one is used).
+    kind : which controller runs; mpc, pid, bang_bang, lqi : the settings of each (only the chosen one is used).
     reference : the height target profile (steps, ramps, sines), m.
     load_steps : ((t s, load mass kg), ...) put on the rig during the run.
     preview : pass the future targets to the MPC; None = only for ramps and sines.
@@ -154,6 +155,8 @@ class ControllerSection(Settings):
     mpc: MPCSettings = field(default_factory=MPCSettings)
     pid: PIDSettings = field(default_factory=PIDSettings)
     bang_bang: BangBangSettings = field(default_factory=BangBangSettings)
+    # out of the repr: the stored reprs of the scenario goldens (tests/test_schema.py)
+    lqi: LQISettings = field(default_factory=LQISettings, repr=False)
     reference: ReferenceProfile = field(default_factory=ReferenceProfile)
     load_steps: tuple = ()  # ((t_s, mass_kg), ...)
     preview: bool | None = None  # pass the future targets to the MPC; None = for ramps/sines only
@@ -170,12 +173,17 @@ class ControllerSection(Settings):
                                                "(its fit's own assumes the model is the chamber)")
 
     @property
+    def chosen(self):
+        """The settings of the controller that runs (``kind``)."""
+        return getattr(self, self.kind)
+
+    @property
     def sample_period(self) -> float:
-        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].sample_period
+        return self.chosen.sample_period
 
     @property
     def p_max(self) -> float:
-        return {"mpc": self.mpc, "pid": self.pid, "bang_bang": self.bang_bang}[self.kind].p_max
+        return self.chosen.p_max
 
 
 @dataclass

@@ -3,7 +3,7 @@
 Every row runs the same scenario (same rig, mismatch, noise seed, EKF, targets, load) with one
 controller: the MPC variants (IPOPT and RTI-OSQP by default; RTI-OSQP with its QP data as one
 generated-C call, ``rti_c_osqp``; the RTI step as one casadi Function,
-``rti_fn_hpipm`` etc., and fatrop on request) at horizons 10/20/40, the PID and bang-bang baselines, and do-mpc
+``rti_fn_hpipm`` etc., and fatrop on request) at horizons 10/20/40, the PID, bang-bang and LQI baselines, and do-mpc
 (optional extra) solving the same OCP at N = 20. For each: tracking RMSE of the true height (and of
 the estimate, which separates the controller's error from the estimator's bias), the
 largest true pressure, per-step solve time median/p99/max (wall clock on this machine, including
@@ -115,6 +115,7 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
     if baselines:
         run("pid", replace(section, kind="pid"))
         run("bang_bang", replace(section, kind="bang_bang"))
+        run("lqi", replace(section, kind="lqi"))
     dompc_status = "skipped"
     if dompc:
 

@@ -87,7 +87,7 @@ def bench_mpc(
     variants: Annotated[str, typer.Option(help="comma-separated MPC variants")] = ",".join(MPC_VARIANTS),
     dompc: Annotated[bool, typer.Option("--dompc/--no-dompc",
                                         help="also time do-mpc on the same OCP (N=20; extra 'bench')")] = True,
-    baselines: Annotated[bool, typer.Option("--baselines/--no-baselines", help="PID and bang-bang rows")] = True,
+    baselines: Annotated[bool, typer.Option("--baselines/--no-baselines", help="PID, bang-bang and LQI rows")] = True,
     duration: Annotated[Optional[float], typer.Option(help="simulated seconds (default: the scenario's, 9 s)")] = None,
     budget_ms: Annotated[float, typer.Option(help="MPC step budget in the sweep (acts only with [controller] "
                                                      "enforce_budget = true in the scenario)")] = 1000.0,

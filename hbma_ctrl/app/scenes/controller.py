@@ -3,7 +3,7 @@
 ``[controller]`` keys (edge units: mm, kPa, ms, g, s):
 
 ==========================  ====================================================================
-kind                        "mpc" (default), "pid" or "bang_bang"
+kind                        "mpc" (default), "pid", "bang_bang" or "lqi"
 variant                     MPC: "rti_c_osqp" (default), "rti_osqp", "ipopt", "fatrop", ...
 horizon                     MPC horizon N (default 20)
 sample_ms                   controller period, ms (default 20; a multiple of the rig's period)
@@ -21,6 +21,8 @@ codegen                     MPC: compile the RTI linearisation to C (default tru
 fail_window_s               [t0, t1]: every MPC solve in this window is treated as failed (drill)
 kp, ki, kd                  PID gains in 1/mm, 1/(mm s), s/mm
 band_kpa                    bang-bang hysteresis half-band, kPa
+q_height, q_integral        LQI weights on the height error (per mm^2) and its integral (per (mm s)^2)
+r_command                   LQI weight on the command (1 = the pump's full flow at 0 kPa)
 targets_mm                  [[t_s, h_mm], ...] target heights from t_s on (required)
 interpolation               "step" (default) or "linear" (ramps between the points)
 sine_amplitude_mm, sine_period_s, sine_start_s   a sinusoid added to the targets

@@ -1,8 +1,8 @@
 """The [controller] table: which controller, its settings, the height targets and load steps.
 
 The keys are the declarations of :class:`~hbma_ctrl.controllers.mpc_settings.MPCSettings`,
-``PIDSettings``, ``BangBangSettings``, ``ReferenceProfile`` and ``ControllerSection`` in the user's
-units (kPa, mm, ms, g); ``sample_ms``, ``p_max_kpa`` and ``guard_margin_kpa`` go to all three
+``PIDSettings``, ``BangBangSettings``, ``LQISettings``, ``ReferenceProfile`` and ``ControllerSection`` in the user's
+units (kPa, mm, ms, g); ``sample_ms``, ``p_max_kpa`` and ``guard_margin_kpa`` go to all four
 controllers. Keys the user does not write are not passed on, so every SI default stays the settings
 class's own.
 """
@@ -14,6 +14,7 @@ from typing import NamedTuple
 from pydantic import model_validator
 
 from hbma_ctrl.controllers.baselines import BangBangSettings, PIDSettings
+from hbma_ctrl.controllers.lqi import LQISettings
 from hbma_ctrl.controllers.mpc_settings import MPCSettings
 from hbma_ctrl.app.schema.fields import (
     LOAD_STEPS_SHAPE,
@@ -30,7 +31,7 @@ from hbma_ctrl.core import units as U
 
 __all__ = ["ControllerTable", "TargetRow"]
 
-#: the keys every controller takes (MPCSettings' declarations, the same in PID and bang-bang)
+#: the keys every controller takes (MPCSettings' declarations, the same in PID, bang-bang and LQI)
 _SHARED = ("sample_period", "p_max", "guard_margin")
 
 _KEYS = settings_table(
@@ -41,6 +42,7 @@ _KEYS = settings_table(
                    "membrane", "integral_gain", "fail_window")),
     (PIDSettings, ("kp", "ki", "kd")),
     (BangBangSettings, ("band",)),
+    (LQISettings, ("q_height", "q_integral", "r_command")),
     (ReferenceProfile, ("interpolation", "sine_amplitude", "sine_period", "sine_start")),
     (ControllerSection, ("settle_band", "calibrate", "valve_min_on", "calibration_std_floor")),
     defaults={"guard_margin": None})  # each controller's own
@@ -69,7 +71,7 @@ class ControllerTable(_KEYS):
             margins.append(("guard_margin_kpa", self.guard_margin_kpa, False, ""))
         else:  # every controller's settings are validated, whichever runs: both defaults are checked
             margins += [("guard_margin_kpa", U.to_kpa(MPCSettings.guard_margin), True, "the MPC default"),
-                        ("guard_margin_kpa", U.to_kpa(PIDSettings.guard_margin), True, "the PID and bang-bang default")]
+                        ("guard_margin_kpa", U.to_kpa(PIDSettings.guard_margin), True, "the PID, bang-bang and LQI default")]
         for key, v, default, which in margins:
             if v > pmax:
                 note = f" ({which})" if default else ""
@@ -85,7 +87,7 @@ class ControllerTable(_KEYS):
         return self
 
     def to_section(self) -> ControllerSection:
-        """The SI section: MPCSettings, PIDSettings, BangBangSettings, ReferenceProfile, load steps (kg)."""
+        """The SI section: MPCSettings, PIDSettings, BangBangSettings, LQISettings, ReferenceProfile, load steps (kg)."""
         mpc = self.si(MPCSettings)
         shared = {k: v for k, v in mpc.items() if k in _SHARED}
         reference = ReferenceProfile(points=tuple((r.t_s, U.mm(r.h_mm)) for r in self.targets_mm),
@@ -93,5 +95,6 @@ class ControllerTable(_KEYS):
         return ControllerSection(mpc=MPCSettings(**mpc).validate(),
                                  pid=PIDSettings(**self.si(PIDSettings), **shared).validate(),
                                  bang_bang=BangBangSettings(**self.si(BangBangSettings), **shared).validate(),
+                                 lqi=LQISettings(**self.si(LQISettings), **shared).validate(),
                                  reference=reference, load_steps=tuple(sorted(load_steps_si(self.load_steps_g))),
                                  preview=self.preview, **self.si(ControllerSection)).validate()

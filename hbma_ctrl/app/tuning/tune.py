@@ -90,6 +90,7 @@ DEFAULT_PARAMS = {
     "controller:mpc": ("w_terminal", "w_rate[0]", "w_rate[2]", "c_input[0]", "c_input[2]"),
     "controller:pid": ("kp", "ki", "kd"),
     "controller:bang_bang": ("band_kpa",),
+    "controller:lqi": ("q_height", "q_integral", "r_command"),
     "estimator": ("model_rel_std", "flow_rel_std", "flow_factor_std", "modulus_std", "load_std_n"),
 }
 

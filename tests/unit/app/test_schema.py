@@ -253,7 +253,7 @@ CASES = [
      f"[controller] p_max_kpaa: unknown key; did you mean p_max_kpa? allowed: {_keys(ControllerTable)}"),
     ("controller", {}, {"kind": "mpc"}, "[controller] targets_mm is required: [[t_s, h_mm], ...]"),
     ("controller", {}, {**TARGETS, "kind": "bangbang"}, "[controller] kind = 'bangbang' is not allowed; did you mean "
-     "'bang_bang'? allowed: mpc, pid, bang_bang"),
+     "'bang_bang'? allowed: mpc, pid, bang_bang, lqi"),
     ("controller", {}, {**TARGETS, "p_max_kpa": 0.8}, "[controller] p_margin_kpa = 1.0 (the MPC default) is out of "
      "range [0, 0.8] kPa (at most p_max_kpa)"),
     ("robot", {}, {"sync_ms": 0}, "[robot] sync_ms = 0 is out of range [0.1, 1000] ms"),
