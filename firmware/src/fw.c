@@ -414,11 +414,12 @@ static uint8_t on_cmd(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
     return 1;
 }
 
+#ifdef FW_HOSTED
 /* TGT seq h_1 ... h_n: the chambers' target heights (um, 0..FW_HEIGHT_MAX_UM) for the board's
  * controllers, and the board runs them (RUN) until SAFE, HELLO or the watchdog. Only a hosted build
- * takes it; any other count or value and the line is ignored as a whole. */
+ * takes it (any other build counts it as an unknown line); any other count or value and the line is
+ * ignored as a whole. */
 static uint8_t on_tgt(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
-#ifdef FW_HOSTED
     uint32_t h[FW_MAX_N];
     if (ntok != 2 + fw->cfg.n) return 0;
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
@@ -431,14 +432,8 @@ static uint8_t on_tgt(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
     hal_crit_exit();
     fw->stats.commands++;
     return 1;
-#else
-    (void)fw;
-    (void)seq;
-    (void)tok;
-    (void)ntok;
-    return 0;
-#endif
 }
+#endif
 
 /* CAL seq ch zero gain: store a chamber's calibration (an extension for bench tools; the host's
  * SerialRig never sends it). Only while safe. */
@@ -514,8 +509,10 @@ static void handle_line(fw_t *fw, char *s, uint16_t len) {
         hal_crit_enter();
         go_safe_now(fw, (int32_t)seq); /* at once: the safe state does not wait for a sample instant */
         hal_crit_exit();
+#ifdef FW_HOSTED
     } else if (strcmp(tok[0], "TGT") == 0) {
         ok = on_tgt(fw, seq, tok, ntok);
+#endif
     } else if (strcmp(tok[0], "CAL") == 0) {
         ok = on_cal(fw, tok, ntok);
     } else if (strcmp(tok[0], "HB") != 0) {
