@@ -420,7 +420,7 @@ static uint8_t on_cmd(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
  * takes it (any other build counts it as an unknown line); any other count or value and the line is
  * ignored as a whole. */
 static uint8_t on_tgt(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
-    uint32_t h[FW_MAX_N];
+    uint32_t h[FW_MAX_N] = {0};
     if (ntok != 2 + fw->cfg.n) return 0;
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
         if (!parse_uint(tok[2 + i], FW_HEIGHT_MAX_UM, &h[i])) return 0;
