@@ -568,10 +568,10 @@ class BoardControlledRig(SerialRig):
         self._target: np.ndarray | None = None
         self._report: BoardReport | None = None
         super().__init__(*args, **kw)
-        self.stats["unreported"] = 0
 
     def _reset_readings(self) -> None:
         super()._reset_readings()
+        self.stats.setdefault("unreported", 0)  # here: the reader thread starts inside SerialRig.__init__
         self._pending_p: tuple | None = None  # the newest P line, waiting for its U line
         self._reported_u: list[np.ndarray] = []  # the last two reports' commands, oldest first
         self._report = None
