@@ -270,6 +270,17 @@ def test_the_uno_build_fits_with_room_for_the_stack(tmp_path, n):
 
 
 @needs_avr
+def test_an_avr_build_that_would_host_the_library_stops_at_a_clear_error(tmp_path):
+    from hbma_ctrl.app.daemon.firmware import FIRMWARE_DIR
+
+    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), "avr", f"O={tmp_path}", "DEFS=-DFW_HOSTED"],
+                         capture_output=True, text=True)
+    assert res.returncode != 0
+    assert "#error" in res.stderr and "needs about 240 KB of RAM" in res.stderr, res.stderr
+    assert not (tmp_path / "uno" / "hbma-fw.elf").exists()
+
+
+@needs_avr
 def test_the_mega_build_compiles(tmp_path):
     flash, ram = _avr_size(build_firmware("mega", tmp_path, 4), "atmega2560")
     assert flash < 256 * 1024 and ram < 8192
