@@ -228,7 +228,14 @@ static void run_controllers(fw_t *fw, const uint16_t *raw, uint32_t sec, uint32_
         fw_ctl_tick(i, sec, us, p, na, held[i], &r);
         uint16_t on[2] = {duty_ticks(fw, r.u[FW_INLET]), duty_ticks(fw, r.u[FW_OUTLET])};
         hal_crit_enter();
-        if (fw->mode == FW_RUN && r.status >= 0) {
+        if (fw->mode == FW_RUN) {
+            if (r.status < 0) { /* the library failed as a whole: its chamber vents, not the last command */
+                r.u[FW_PUMP] = 0;
+                r.u[FW_INLET] = 0;
+                r.u[FW_OUTLET] = 1000;
+                on[0] = 0;
+                on[1] = fw->cfg.period_ticks;
+            }
             for (uint8_t k = 0; k < 3; k++) fw->pending[i][k] = r.u[k];
             for (uint8_t k = 0; k < 2; k++) fw->pending_on[i][k] = on[k];
         }

@@ -84,7 +84,7 @@ enum { FW_SAFE = 0, FW_RUN = 1 };
 
 /* One controller tick's outcome: its command (per-mille: pump, inlet, outlet), the estimated height (um)
  * and pressure (Pa), and the library's status code (0 ok, 1 the controller's step failed and the
- * supervisor's fallback is out, negative: an error and the command unchanged). */
+ * supervisor's fallback is out, negative: an error, no command: the core holds the chamber vented). */
 typedef struct {
     uint16_t u[3];
     int32_t height_um, pressure_pa;

@@ -38,6 +38,7 @@ static uint16_t ctl_held[FW_MAX_N][3];
 static int32_t ctl_p[FW_MAX_N];
 static uint32_t ctl_us[FW_MAX_N];
 static int ctl_ticks, ctl_inits;
+static int8_t ctl_status; /* the status the fake reports */
 void fw_ctl_init(uint8_t ch) {
     ctl_target[ch] = 0;
     ctl_inits++;
@@ -54,7 +55,7 @@ void fw_ctl_tick(uint8_t ch, uint32_t sec, uint32_t us, int32_t p_pa, uint8_t na
     r->u[2] = 0;
     r->height_um = (int32_t)ctl_target[ch] / 2;
     r->pressure_pa = p_pa;
-    r->status = 0;
+    r->status = ctl_status;
 }
 #endif
 
@@ -364,6 +365,20 @@ static void test_hosted_safe_and_watchdog_win(void) {
     send("HELLO 0 2"); /* a new session restarts the controllers */
     CHECK(ctl_inits == inits + 1 && ctl_target[0] == 0);
 }
+
+static void test_hosted_library_error_vents_the_chamber(void) {
+    session(1);
+    send("TGT 1 600000");
+    ticks(200);
+    CHECK(pump[0] == 600);
+    ctl_status = -2; /* the library failed: its command is not used */
+    ticks(200);
+    CHECK(fw.mode == FW_RUN && pump[0] == 0 && valve[0][0] == 0 && valve[0][1] == 1);
+    CHECK(strstr(line_at(lines() - 1), " 0 0 1000 300000 0 -2") != NULL);
+    ctl_status = 0;
+    ticks(200);
+    CHECK(pump[0] == 600);
+}
 #endif
 
 int main(void) {
@@ -371,6 +386,7 @@ int main(void) {
 #ifdef FW_HOSTED
     test_hosted_handshake_and_targets();
     test_hosted_safe_and_watchdog_win();
+    test_hosted_library_error_vents_the_chamber();
 #else
     test_handshake();
     test_other_version();

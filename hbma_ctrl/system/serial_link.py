@@ -541,7 +541,8 @@ class BoardReport:
     """What a board that runs the controller reported for one sample: ``u`` (3, n) the command it holds
     from its next sample instant, in [0, 1]; ``height`` (n,) its estimated heights, m, and ``pressure``
     (n,) its estimated pressures, Pa (NaN: none); ``status`` (n,) its controller's status codes (0 ok, 1
-    the controller's step failed and its supervisor's fallback is out, negative an error)."""
+    the controller's step failed and its supervisor's fallback is out, negative a library error: the
+    board holds that chamber vented)."""
 
     u: np.ndarray
     height: np.ndarray

@@ -74,7 +74,7 @@ class BoardSystem:
         self._errors += int(status < 0)
         if status != self._last_status:
             what = {0: "ok", 1: "the controller's step failed: the supervisor's fallback is out"}.get(
-                status, "a library error: the command is unchanged")
+                status, "a library error: the board holds the chamber vented")
             self._events.append(("board_controller", f"status {status}: {what}"))
             self._last_status = status
         return np.array(rep.u, dtype=float)
