@@ -36,6 +36,11 @@ static void latch(fw_t *fw) {
     fw->held_seq = fw->pending_seq;
 }
 
+/* Open ticks per period for a valve duty in per-mille, rounded to the nearest tick. */
+static uint16_t duty_ticks(const fw_t *fw, uint16_t permille) {
+    return (uint16_t)(((uint32_t)permille * fw->cfg.period_ticks + 500u) / 1000u);
+}
+
 static void apply_valves(fw_t *fw) {
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
         for (uint8_t k = 0; k < 2; k++) {
@@ -109,6 +114,9 @@ void fw_init(fw_t *fw, const fw_cfg_t *cfg) {
     fw->rx_expect = -1;
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
         fw->cal[i] = cal_load(i);
+#ifdef FW_HOSTED
+        fw_ctl_init(i);
+#endif
     }
     go_safe_now(fw, FW_NO_SEQ);
 }
@@ -126,6 +134,11 @@ void fw_tick(fw_t *fw) {
         fw->snap_sec = fw->t_sec;
         fw->snap_us = fw->t_us;
         fw->snap_seq = fw->held_seq; /* the command the period that ends now ran on */
+#ifdef FW_HOSTED
+        for (uint8_t i = 0; i < fw->cfg.n; i++) {
+            for (uint8_t k = 0; k < 3; k++) fw->snap_held[i][k] = fw->held[i][k];
+        }
+#endif
         latch(fw);
         if (++fw->hb_count >= fw->cfg.hb_periods) fw->hb_count = 0;
         fw->snap_hb = (fw->hb_count == 0);
@@ -193,22 +206,102 @@ static void finish(fw_t *fw, line_t *l) {
     if (hal_uart_write(l->b, l->len) != l->len) fw->stats.dropped_tx++;
 }
 
+/* Chamber i's reading in Pa as the P line sends it (*na: none). */
+static int32_t reading(const fw_t *fw, uint8_t i, uint16_t raw, uint8_t *na) {
+    int32_t p = fw_pressure(&fw->cal[i], raw, na);
+    if (FW_DEFECT(FW_D_INVERTED)) p = -p;
+    if (FW_DEFECT(FW_D_ZERO)) p += 2500;
+    return p;
+}
+
+#ifdef FW_HOSTED
+/* Tick every chamber's controller on the sample (readings raw, at sec + us / 1e6 s, after the period
+ * that ran on held) and, while the board runs, make its command the pending one (latched at the next
+ * sample instant). Checked inside the critical section: a SAFE or the watchdog between the sample and
+ * here has already made the board safe, and the controller's command is then dropped. */
+static void run_controllers(fw_t *fw, const uint16_t *raw, uint32_t sec, uint32_t us,
+                            uint16_t held[][3]) {
+    for (uint8_t i = 0; i < fw->cfg.n; i++) {
+        uint8_t na;
+        int32_t p = reading(fw, i, raw[i], &na);
+        fw_ctl_report_t r;
+        fw_ctl_tick(i, sec, us, p, na, held[i], &r);
+        uint16_t on[2] = {duty_ticks(fw, r.u[FW_INLET]), duty_ticks(fw, r.u[FW_OUTLET])};
+        hal_crit_enter();
+        if (fw->mode == FW_RUN) {
+            if (r.status < 0) { /* the library failed as a whole: its chamber vents, not the last command */
+                r.u[FW_PUMP] = 0;
+                r.u[FW_INLET] = 0;
+                r.u[FW_OUTLET] = 1000;
+                on[0] = 0;
+                on[1] = fw->cfg.period_ticks;
+            }
+            for (uint8_t k = 0; k < 3; k++) fw->pending[i][k] = r.u[k];
+            for (uint8_t k = 0; k < 2; k++) fw->pending_on[i][k] = on[k];
+        }
+        for (uint8_t k = 0; k < 3; k++) r.u[k] = fw->pending[i][k]; /* what the board will hold */
+        hal_crit_exit();
+        fw->report[i] = r;
+    }
+}
+
+/* U seq: per chamber the command the board holds from the next sample instant (per-mille), the
+ * estimated height (um) and pressure (Pa) and the controller's status; follows the P line of the sample
+ * the controller ran on. */
+static void send_report(fw_t *fw) {
+    line_t l;
+    start(fw, &l, "U");
+    for (uint8_t i = 0; i < fw->cfg.n; i++) {
+        const fw_ctl_report_t *r = &fw->report[i];
+        for (uint8_t k = 0; k < 3; k++) {
+            put(&l, " ");
+            put_u32(&l, r->u[k], 1);
+        }
+        put(&l, " ");
+        if (r->height_um == FW_NO_HEIGHT) {
+            put(&l, "NA NA");
+        } else {
+            put_i32(&l, r->height_um);
+            put(&l, " ");
+            put_i32(&l, r->pressure_pa);
+        }
+        put(&l, " ");
+        put_i32(&l, r->status);
+    }
+    finish(fw, &l);
+}
+#endif
+
 void fw_poll(fw_t *fw) {
     uint16_t raw[FW_MAX_N] = {0};
     uint32_t sec, us;
     int32_t seq;
     uint8_t hb, mode;
+#ifdef FW_HOSTED
+    uint16_t held[FW_MAX_N][3];
+#endif
     hal_crit_enter();
     uint8_t ready = fw->snap_ready;
     fw->snap_ready = 0;
-    for (uint8_t i = 0; i < fw->cfg.n; i++) raw[i] = fw->snap_raw[i];
+    for (uint8_t i = 0; i < fw->cfg.n; i++) {
+        raw[i] = fw->snap_raw[i];
+#ifdef FW_HOSTED
+        for (uint8_t k = 0; k < 3; k++) held[i][k] = fw->snap_held[i][k];
+#endif
+    }
     sec = fw->snap_sec;
     us = fw->snap_us;
     seq = fw->snap_seq;
     hb = fw->snap_hb;
     mode = fw->snap_mode;
     hal_crit_exit();
-    if (!ready || !fw->session) return;
+    if (!ready) return;
+    if (!fw->session) {
+#ifdef FW_HOSTED
+        run_controllers(fw, raw, sec, us, held); /* the estimator keeps up between sessions */
+#endif
+        return;
+    }
     line_t l;
     start(fw, &l, "P");
     put(&l, " ");
@@ -226,9 +319,7 @@ void fw_poll(fw_t *fw) {
     }
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
         uint8_t na;
-        int32_t p = fw_pressure(&fw->cal[i], raw[i], &na);
-        if (FW_DEFECT(FW_D_INVERTED)) p = -p;
-        if (FW_DEFECT(FW_D_ZERO)) p += 2500;
+        int32_t p = reading(fw, i, raw[i], &na);
         put(&l, " ");
         if (na) {
             put(&l, "NA");
@@ -237,6 +328,10 @@ void fw_poll(fw_t *fw) {
         }
     }
     finish(fw, &l);
+#ifdef FW_HOSTED
+    run_controllers(fw, raw, sec, us, held);
+    send_report(fw);
+#endif
     if (hb && !FW_DEFECT(FW_D_NO_HEARTBEAT)) {
         start(fw, &l, "HB");
         put(&l, mode == FW_RUN ? " RUN" : " SAFE");
@@ -287,18 +382,25 @@ static void on_hello(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
     put(&l, " ");
     uint32_t period_us = fw->cfg.tick_us * fw->cfg.period_ticks;
     put_u32(&l, FW_DEFECT(FW_D_PERIOD) ? period_us + period_us / 4u : period_us, 1);
+#ifdef FW_HOSTED
+    put(&l, " hosted"); /* a host that drives a board by CMD does not recognise this VER and stops */
+#endif
     finish(fw, &l);
+#ifdef FW_HOSTED
+    for (uint8_t i = 0; i < fw->cfg.n; i++) fw_ctl_init(i); /* a new session starts its controllers afresh */
+#endif
     fw->session = (ntok == 3 && strcmp(tok[2], "2") == 0 && !FW_DEFECT(FW_D_VERSION));
     fw->rx_expect = (int32_t)((seq + 1u) & 0xFFFFu);
 }
 
-/* Open ticks per period for a valve duty in per-mille, rounded to the nearest tick. */
-static uint16_t duty_ticks(const fw_t *fw, uint16_t permille) {
-    return (uint16_t)(((uint32_t)permille * fw->cfg.period_ticks + 500u) / 1000u);
-}
-
 static uint8_t on_cmd(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
     uint16_t u[FW_MAX_N][3];
+#ifdef FW_HOSTED
+    (void)seq;
+    (void)tok;
+    (void)ntok;
+    return 0; /* the board's controller commands: a host's command is refused */
+#endif
     if (ntok != 2 + 3 * fw->cfg.n) return 0;
     for (uint8_t i = 0; i < fw->cfg.n; i++) {
         for (uint8_t k = 0; k < 3; k++) {
@@ -318,6 +420,27 @@ static uint8_t on_cmd(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
     fw->stats.commands++;
     return 1;
 }
+
+#ifdef FW_HOSTED
+/* TGT seq h_1 ... h_n: the chambers' target heights (um, 0..FW_HEIGHT_MAX_UM) for the board's
+ * controllers, and the board runs them (RUN) until SAFE, HELLO or the watchdog. Only a hosted build
+ * takes it (any other build counts it as an unknown line); any other count or value and the line is
+ * ignored as a whole. */
+static uint8_t on_tgt(fw_t *fw, uint32_t seq, char **tok, uint8_t ntok) {
+    uint32_t h[FW_MAX_N] = {0};
+    if (ntok != 2 + fw->cfg.n) return 0;
+    for (uint8_t i = 0; i < fw->cfg.n; i++) {
+        if (!parse_uint(tok[2 + i], FW_HEIGHT_MAX_UM, &h[i])) return 0;
+    }
+    for (uint8_t i = 0; i < fw->cfg.n; i++) fw_ctl_target(i, h[i]);
+    hal_crit_enter(); /* the controller's next command is latched at the sample instant after its tick */
+    fw->pending_seq = (int32_t)seq;
+    fw->mode = FW_RUN;
+    hal_crit_exit();
+    fw->stats.commands++;
+    return 1;
+}
+#endif
 
 /* CAL seq ch zero gain: store a chamber's calibration (an extension for bench tools; the host's
  * SerialRig never sends it). Only while safe. */
@@ -393,6 +516,10 @@ static void handle_line(fw_t *fw, char *s, uint16_t len) {
         hal_crit_enter();
         go_safe_now(fw, (int32_t)seq); /* at once: the safe state does not wait for a sample instant */
         hal_crit_exit();
+#ifdef FW_HOSTED
+    } else if (strcmp(tok[0], "TGT") == 0) {
+        ok = on_tgt(fw, seq, tok, ntok);
+#endif
     } else if (strcmp(tok[0], "CAL") == 0) {
         ok = on_cal(fw, tok, ntok);
     } else if (strcmp(tok[0], "HB") != 0) {

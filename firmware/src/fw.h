@@ -23,7 +23,11 @@
 #ifndef FW_RX_MAX
 #define FW_RX_MAX 128 /* longest host line accepted, bytes without the newline */
 #endif
+#ifdef FW_HOSTED
+#define FW_TX_MAX (40 + 40 * FW_MAX_N) /* longest line sent: U with FW_MAX_N chambers' reports */
+#else
 #define FW_TX_MAX (40 + 8 * FW_MAX_N) /* longest line sent: P with FW_MAX_N pressures */
+#endif
 #define FW_NO_SEQ (-1)                /* held by the firmware's own watchdog or since boot: "-" */
 #define FW_ADC_NONE 0xFFFFu           /* hal_adc: no reading (sent as NA) */
 #ifndef FW_ADC_OPEN
@@ -64,6 +68,38 @@ extern uint16_t fw_defects; /* the defects injected, FW_D_* bits */
 #define FW_DEFECT(d) 0
 #endif
 enum { FW_SAFE = 0, FW_RUN = 1 };
+
+#if defined(FW_HOSTED) && defined(__AVR__)
+#error "FW_HOSTED: the generated controller library needs about 240 KB of RAM and 1 MB of flash; an ATmega has 2-8 KB of RAM. Host it on the POSIX board (make host-hosted LIB=DIR) or a Cortex-M part"
+#endif
+#ifdef FW_HOSTED
+/* A hosted build (FW_HOSTED) runs a controller on the board: the chamber library that
+ * `hbma-ctrl codegen CONFIG --library` generates, one instance per chamber (src/fw_ctl.c; the unit tests
+ * bring a fake). At every sample instant the tick snapshots the readings and the command held over the
+ * period that ends; fw_poll then ticks each chamber's controller on them and, while the board runs,
+ * makes its command the pending one, latched at the next sample instant as a CMD would be. The host
+ * sends targets (TGT) instead of commands; SAFE, HELLO and the watchdog act as in every build. */
+#define FW_NO_HEIGHT INT32_MIN /* fw_ctl_report_t.height_um: no estimate */
+#define FW_HEIGHT_MAX_UM 1000000u /* largest target a TGT line takes, um */
+
+/* One controller tick's outcome: its command (per-mille: pump, inlet, outlet), the estimated height (um)
+ * and pressure (Pa), and the library's status code (0 ok, 1 the controller's step failed and the
+ * supervisor's fallback is out, negative: an error, no command: the core holds the chamber vented). */
+typedef struct {
+    uint16_t u[3];
+    int32_t height_um, pressure_pa;
+    int8_t status;
+} fw_ctl_report_t;
+
+/* Start (or restart) chamber ch's controller: the estimator at its prior, the target 0. */
+void fw_ctl_init(uint8_t ch);
+/* Chamber ch's target height from now on, um. */
+void fw_ctl_target(uint8_t ch, uint32_t height_um);
+/* One period of chamber ch at firmware time sec + us / 1e6 s: the reading p_pa (none when na), the
+ * command held over the period it ends (per-mille) -> *out. */
+void fw_ctl_tick(uint8_t ch, uint32_t sec, uint32_t us, int32_t p_pa, uint8_t na, const uint16_t held[3],
+                 fw_ctl_report_t *out);
+#endif
 
 /* Pressure calibration of one chamber: p [Pa] = (counts - zero) * gain / 1000, gain in mPa/count. */
 typedef struct {
@@ -111,6 +147,10 @@ typedef struct {
     volatile uint32_t snap_sec, snap_us;
     volatile int32_t snap_seq;
     volatile uint16_t snap_raw[FW_MAX_N];
+#ifdef FW_HOSTED
+    volatile uint16_t snap_held[FW_MAX_N][3]; /* the command held over the period that ends */
+    fw_ctl_report_t report[FW_MAX_N];         /* the controller's newest tick, for the U line */
+#endif
 } fw_t;
 
 /* CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) of len bytes. */

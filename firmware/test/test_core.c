@@ -30,6 +30,35 @@ uint16_t hal_adc(uint8_t ch) { return adc[ch]; }
 void hal_nvm_read(uint16_t addr, void *buf, uint16_t len) { memcpy(buf, nvm + addr, len); }
 void hal_nvm_write(uint16_t addr, const void *buf, uint16_t len) { memcpy(nvm + addr, buf, len); }
 
+#ifdef FW_HOSTED
+/* A fake controller: its command is the target's millimetres as the pump's per-mille with the inlet open,
+ * its "estimate" the reading; it records what it was ticked with. */
+static uint32_t ctl_target[FW_MAX_N];
+static uint16_t ctl_held[FW_MAX_N][3];
+static int32_t ctl_p[FW_MAX_N];
+static uint32_t ctl_us[FW_MAX_N];
+static int ctl_ticks, ctl_inits;
+static int8_t ctl_status; /* the status the fake reports */
+void fw_ctl_init(uint8_t ch) {
+    ctl_target[ch] = 0;
+    ctl_inits++;
+}
+void fw_ctl_target(uint8_t ch, uint32_t height_um) { ctl_target[ch] = height_um; }
+void fw_ctl_tick(uint8_t ch, uint32_t sec, uint32_t us, int32_t p_pa, uint8_t na, const uint16_t held[3],
+                 fw_ctl_report_t *r) {
+    ctl_ticks++;
+    ctl_us[ch] = sec * 1000000u + us;
+    ctl_p[ch] = na ? -1 : p_pa;
+    for (int k = 0; k < 3; k++) ctl_held[ch][k] = held[k];
+    r->u[0] = (uint16_t)(ctl_target[ch] / 1000u);
+    r->u[1] = 1000;
+    r->u[2] = 0;
+    r->height_um = (int32_t)ctl_target[ch] / 2;
+    r->pressure_pa = p_pa;
+    r->status = ctl_status;
+}
+#endif
+
 static int failures;
 #define CHECK(cond)                                                       \
     do {                                                                  \
@@ -101,6 +130,7 @@ static void test_crc(void) {
     CHECK(fw_crc16((const uint8_t *)"", 0) == 0xFFFF);
 }
 
+#ifndef FW_HOSTED /* the tests of a board the host commands */
 static void test_handshake(void) {
     boot(1);
     ticks(150);
@@ -147,6 +177,8 @@ static void test_bad_lines(void) {
     CHECK(fw.stats.bad_lines == 7 && fw.stats.commands == 0);
     send("CMD 7 600 1000 0");
     CHECK(fw.stats.commands == 1);
+    send("TGT 8 5000"); /* a target for a board's own controller: this build has none */
+    CHECK(fw.stats.bad_lines == 8 && fw.stats.commands == 1);
     ticks(200);
     CHECK(pump[0] == 600);
     CHECK(crit_depth == 0);
@@ -267,9 +299,95 @@ static void test_hello_is_safe_at_once(void) {
     ticks(50);
     CHECK(strncmp(line_at(lines() - 1), "P 1 ", 4) == 0 && strstr(line_at(lines() - 1), " 0 0") != NULL);
 }
+#endif
+
+
+#ifdef FW_HOSTED
+static void test_hosted_handshake_and_targets(void) {
+    boot(1);
+    send("HELLO 0 2");
+    CHECK(strcmp(line_at(0), "VER 0 2 1 10000 hosted") == 0);
+    ticks(1);
+    clear();
+    send("CMD 1 600 1000 0"); /* the board's controller commands: a host's CMD is refused */
+    CHECK(fw.stats.bad_lines == 1 && fw.stats.commands == 0 && fw.mode == FW_SAFE);
+    send("TGT 2 5000 1"); /* one height for one chamber */
+    send("TGT 3 1000001");
+    send("TGT 4 -5");
+    CHECK(fw.stats.bad_lines == 4 && fw.mode == FW_SAFE);
+    ticks(100); /* call 100: a sample instant while safe: the controller ticks, its command is dropped */
+    CHECK(pump[0] == 0);
+    CHECK(strcmp(line_at(0), "P 3 10000 0 0") == 0);
+    CHECK(strcmp(line_at(1), "U 4 0 0 1000 0 0 0") == 0); /* the safe command it will hold */
+    adc[0] = FW_CAL_ZERO + 1000; /* 6788 Pa */
+    send("TGT 5 600000");
+    CHECK(fw.mode == FW_RUN && ctl_target[0] == 600000 && fw.stats.commands == 1);
+    ticks(100); /* call 200: the controller ticks on this sample; its command waits for the next instant */
+    CHECK(pump[0] == 0 && ctl_p[0] == 6788 && ctl_us[0] == 20000);
+    CHECK(ctl_held[0][0] == 0 && ctl_held[0][2] == 1000);
+    CHECK(strcmp(line_at(2), "P 5 20000 0 6788") == 0); /* the period ran on HELLO's safe state */
+    CHECK(strcmp(line_at(3), "U 6 600 1000 0 300000 6788 0") == 0);
+    ticks(100); /* call 300: latched */
+    CHECK(pump[0] == 600 && valve[0][0] == 1 && valve[0][1] == 0);
+    ticks(100); /* call 400: the controller is told the period ran on its command, named by TGT 5 */
+    CHECK(ctl_held[0][0] == 600 && ctl_held[0][1] == 1000 && ctl_held[0][2] == 0);
+    CHECK(strncmp(line_at(lines() - 2), "P 9 40000 5 ", 12) == 0);
+    CHECK(crit_depth == 0);
+}
+
+static void test_hosted_safe_and_watchdog_win(void) {
+    session(1);
+    send("TGT 1 600000");
+    ticks(200);
+    CHECK(pump[0] == 600 && fw.mode == FW_RUN);
+    ticks(30);
+    send("SAFE 2"); /* at once, mid-period */
+    CHECK(pump[0] == 0 && valve[0][0] == 0 && valve[0][1] == 1 && fw.mode == FW_SAFE);
+    ticks(300); /* the controller keeps ticking; its commands are dropped */
+    CHECK(pump[0] == 0 && valve[0][1] == 1 && ctl_held[0][0] == 0);
+    send("TGT 3 600000");
+    ticks(200);
+    CHECK(pump[0] == 600);
+    clear();
+    for (int i = 0; i < 5; i++) { /* heartbeats keep it running */
+        ticks(1000);
+        char hb[16];
+        snprintf(hb, sizeof hb, "HB %d", 4 + i);
+        send(hb);
+    }
+    CHECK(fw.mode == FW_RUN && pump[0] == 600);
+    ticks(5001); /* 0.5 s of silence and a tick: safe at once */
+    CHECK(fw.mode == FW_SAFE && pump[0] == 0 && valve[0][0] == 0 && valve[0][1] == 1);
+    ticks(500);
+    CHECK(pump[0] == 0 && strstr(out, " - 0*") != NULL);
+    CHECK(lines() > 0);
+    int inits = ctl_inits;
+    send("HELLO 0 2"); /* a new session restarts the controllers */
+    CHECK(ctl_inits == inits + 1 && ctl_target[0] == 0);
+}
+
+static void test_hosted_library_error_vents_the_chamber(void) {
+    session(1);
+    send("TGT 1 600000");
+    ticks(200);
+    CHECK(pump[0] == 600);
+    ctl_status = -2; /* the library failed: its command is not used */
+    ticks(200);
+    CHECK(fw.mode == FW_RUN && pump[0] == 0 && valve[0][0] == 0 && valve[0][1] == 1);
+    CHECK(strstr(line_at(lines() - 1), " 0 0 1000 300000 0 -2") != NULL);
+    ctl_status = 0;
+    ticks(200);
+    CHECK(pump[0] == 600);
+}
+#endif
 
 int main(void) {
     test_crc();
+#ifdef FW_HOSTED
+    test_hosted_handshake_and_targets();
+    test_hosted_safe_and_watchdog_win();
+    test_hosted_library_error_vents_the_chamber();
+#else
     test_handshake();
     test_other_version();
     test_bad_lines();
@@ -280,10 +398,15 @@ int main(void) {
     test_pressure_and_time();
     test_calibration();
     test_hello_is_safe_at_once();
+#endif
     if (failures) {
         fprintf(stderr, "%d check(s) failed\n", failures);
         return 1;
     }
+#ifdef FW_HOSTED
+    printf("firmware core, hosted: all tests passed\n");
+#else
     printf("firmware core: all tests passed\n");
+#endif
     return 0;
 }

@@ -750,6 +750,8 @@ def test_a_busy_api_port_is_named_before_the_rig_is_touched(tmp_path, monkeypatc
     ("", {"rate_hz = 100.0": "rat_hz = 100.0"}, "[daemon] rat_hz: unknown key; did you mean rate_hz?"),
     ("", {"rate_hz = 100.0": "rate_hz = 50.0"}, "[rig] sample_period_ms = 10 must equal the daemon's period"),
     ("", {'rig = "sim"': 'rig = "serial"'}, "rig = 'serial' needs port"),
+    ("", {'rig = "sim"': 'rig = "sim"\nboard_controller = true'}, "board_controller = true (or --board-controller) "
+     "needs rig = 'serial'"),
     # the fault table is checked when the rig is made, after the runner is built (seconds); the others at load
     pytest.param("[[daemon.fault]]\nkind = \"melt\"\n", {}, "daemon.fault", marks=pytest.mark.slow),
 ])

@@ -270,6 +270,17 @@ def test_the_uno_build_fits_with_room_for_the_stack(tmp_path, n):
 
 
 @needs_avr
+def test_an_avr_build_that_would_host_the_library_stops_at_a_clear_error(tmp_path):
+    from hbma_ctrl.app.daemon.firmware import FIRMWARE_DIR
+
+    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), "avr", f"O={tmp_path}", "DEFS=-DFW_HOSTED"],
+                         capture_output=True, text=True)
+    assert res.returncode != 0
+    assert "#error" in res.stderr and "needs about 240 KB of RAM" in res.stderr, res.stderr
+    assert not (tmp_path / "uno" / "hbma-fw.elf").exists()
+
+
+@needs_avr
 def test_the_mega_build_compiles(tmp_path):
     flash, ram = _avr_size(build_firmware("mega", tmp_path, 4), "atmega2560")
     assert flash < 256 * 1024 and ram < 8192
@@ -336,10 +347,13 @@ def test_rig_emulate_prints_its_port_serves_the_host_and_cleans_up_on_sigterm(tm
 
 
 
-def _through_the_host_board(tmp: Path, text: str, duration: float) -> tuple[dict, object, dict, list[dict]]:
+def _through_the_host_board(tmp: Path, text: str, duration: float,
+                            library: Path | None = None) -> tuple[dict, object, dict, list[dict]]:
     """The daemon's loop <-> SerialRig <-> pty <-> C firmware <-> the configuration ``text``'s simulated
     rig (``rig emulate --config``, its own process) for ``duration`` s of loop time: (loop stats, the
     runner, the link's stats, the rig's true state per period from the firmware's truth log).
+    ``library``: the board hosts this chamber library (``rig emulate --library``) and the daemon runs
+    with ``--board-controller``.
     As in test_daemon.py's serial test, the loop's watchdogs of real time (heartbeat, stale samples,
     missed deadlines) are relaxed: on a loaded machine a late process is the machine's load, not the
     link's."""
@@ -358,13 +372,14 @@ def _through_the_host_board(tmp: Path, text: str, duration: float) -> tuple[dict
     cfg_path.write_text(text.replace("log_flush_s = 0.5", "log_flush_s = 0.5\nmiss_limit = 100000"))
     (tmp / "tmp").mkdir()
     env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(tmp / "tmp"))
+    hosted = [] if library is None else ["--library", str(library)]
     proc = subprocess.Popen([sys.executable, "-m", "hbma_ctrl", "rig", "emulate", "--config", str(cfg_path),
-                             "--truth-log", str(truth)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             "--truth-log", str(truth), *hosted], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=env)
     try:
         port = proc.stdout.readline().strip()
         assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
-        cfg = load_config(cfg_path, {"--rig": f"serial:{port}"})
+        cfg = load_config(cfg_path, {"--rig": f"serial:{port}", "--board-controller": library is not None})
         runner = build_runner(cfg)
         rig = make_rig(cfg, runner)
         rig.link_timeout = 60.0
@@ -436,3 +451,142 @@ def _truth_modes(path: Path) -> list[str]:
 
     with path.open() as fh:
         return [row["mode"] for row in csv.DictReader(fh)]
+
+
+# ---- the board hosts the controller (FW_HOSTED) -------------------------------------------------------
+
+#: the hosted board's closed loop: the shipped chamber file with a shorter horizon (its library builds in a
+#: few seconds), the 5 mm step (2 -> 7 mm) 1.5 s after the loop closes (no start-up calibration on the board)
+HOSTED_EDITS = (("horizon = 20", "horizon = 8"), STEP_5MM, ("[3.0, 7.0]", "[1.5, 7.0]"))
+
+
+def _hosted_text() -> str:
+    text = (ROOT / "scenarios" / "daemon_chamber.toml").read_text()
+    for old, new in HOSTED_EDITS:
+        assert old in text
+        text = text.replace(old, new)
+    return text
+
+
+@pytest.fixture(scope="session")
+def hosted(tmp_path_factory, worker_id):
+    """(the hosted host board's executable, its library's folder, the configuration it was generated from):
+    the chamber library of :func:`_hosted_text` generated and built (unoptimised) and the board built with
+    it, once for all of a run's xdist workers (in their shared base folder, under a lock)."""
+    import fcntl
+
+    from hbma_ctrl.app.codegen.library import library_spec, write_library
+    from hbma_ctrl.app.scenario import load_scenario
+
+    base = tmp_path_factory.getbasetemp()
+    work = (base if worker_id == "master" else base.parent) / "hosted"
+    work.mkdir(exist_ok=True)
+    cfg, lib, exe = work / "cfg.toml", work / "lib", work / "fw" / "host" / "hbma-fw-host-hosted"
+    with open(work / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not (work / "done").is_file():
+            cfg.write_text(_hosted_text())
+            write_library(library_spec(load_scenario(cfg)), lib)
+            build_firmware("host-hosted", work / "fw", library=lib)
+            (work / "done").write_text("")
+    return exe, lib, cfg
+
+
+@pytest.fixture()
+def hosted_board(hosted):
+    board = HostBoard(hosted[0], n=1)
+    link = Link(board.port)
+    yield board, link
+    link.close()
+    board.close()
+
+
+def test_a_target_line_is_counted_and_refused_by_a_board_without_a_controller(rig2):
+    board, link = rig2
+    _session(board, link)
+    link.send("TGT", 1, 5000, 5000)
+    out = _until(board, lambda o: o.bad_lines == 1)
+    assert (out.mode, out.commands) == ("SAFE", 0)
+    np.testing.assert_array_equal(board.tick(200).u, [[0, 0], [0, 0], [1, 1]])
+
+
+@pytest.mark.slow
+def test_the_hosted_board_runs_its_controller_on_a_target_and_safe_and_the_watchdog_stop_it_at_once(hosted_board):
+    """Through the real library: VER says hosted, a CMD is refused, a TGT runs the board on the library's
+    commands (U lines after every P, the pump on from the period after the target's first tick); SAFE
+    mid-period and 0.5 s of host silence make it safe at once, and the library's commands stay out."""
+    board, link = hosted_board
+    link.send("HELLO", 0, 2)
+    assert link.lines(1)[0] == Message("VER", 0, ("2", "1", str(PERIOD_US), "hosted"))
+    link.send("CMD", 1, 1000, 1000, 0)
+    assert _until(board, lambda o: o.bad_lines == 1).commands == 0
+    link.send("TGT", 2, 7000)
+    _until(board, lambda o: o.commands == 1)
+    out = board.tick(300, p=np.zeros(1))  # three samples at 0 Pa below a 7 mm target: it pumps
+    assert out.mode == "RUN" and out.u[0, 0] > 0 and out.u[1, 0] > 0, out
+    got = link.lines(6)
+    assert [m.kind for m in got] == ["P", "U"] * 3 and all(len(m.fields) == 6 for m in got[1::2])
+    assert int(got[-1].fields[0]) > 0  # the command it announced pumps
+    board.tick(30)
+    link.send("SAFE", 3)
+    _until(board, lambda o: o.mode == "SAFE")
+    np.testing.assert_array_equal(board.tick(1).u, [[0], [0], [1]])  # at once, mid-period
+    np.testing.assert_array_equal(board.tick(300).u, [[0], [0], [1]])  # the library's commands stay out
+    link.send("TGT", 4, 7000)
+    _until(board, lambda o: o.commands == 2)
+    assert board.tick(250).u[0, 0] > 0
+    assert board.tick(4700).mode == "RUN"  # 0.495 s of silence since TGT 4: not yet
+    late = board.tick(200)
+    assert late.mode == "SAFE" and late.held is None  # the watchdog's own safe state
+    np.testing.assert_array_equal(board.tick(300).u, [[0], [0], [1]])
+
+
+@pytest.mark.slow
+def test_host_and_board_refuse_a_hosted_mismatch_with_one_line(hosted, host_exe, tmp_path):
+    """A host that would command a board running its own controller, and a host that would send targets
+    to a board without one, are each refused at the handshake with one line; the daemon given
+    --board-controller on a board without a controller stops before its loop with that line as its one
+    error line, leaving no results directory."""
+    from typer.testing import CliRunner
+
+    from cli_checks import one_line_error
+    from hbma_ctrl.app.cli.main import app
+    from hbma_ctrl.system.serial_link import BoardControlledRig, ControllerMismatchError
+
+    for exe, link_cls, needle in ((hosted[0], SerialRig, "runs its own controller"),
+                                  (host_exe, BoardControlledRig, "runs no controller of its own")):
+        rt = RealtimeBoard(HostBoard(exe, n=1), FirstOrderPlant(1))
+        try:
+            with pytest.raises(ControllerMismatchError, match=needle) as e:
+                link_cls(rt.port, 1, sample_period=0.01, handshake_timeout=TIMEOUT)
+            assert "\n" not in str(e.value) and "--board-controller" in str(e.value)
+            if link_cls is BoardControlledRig:  # the daemon's runner is cheap to build in this direction
+                res = CliRunner().invoke(app, ["daemon", str(hosted[2]), "--rig", f"serial:{rt.port}",
+                                               "--board-controller", "--duration-s", "1", "--out",
+                                               str(tmp_path / "run")])
+                one_line_error(res, needle, "--board-controller")
+                assert not (tmp_path / "run").exists()
+        finally:
+            rt.close()
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_a_5mm_step_settles_within_0p6mm_under_the_controller_the_board_hosts(hosted, tmp_path):
+    """The daemon with --board-controller, the board hosting the file's chamber library (a horizon of 8),
+    its plant the file's simulated rig (seed 1): the daemon sends the file's targets and runs no
+    controller; the 5 mm step (2 -> 7 mm) at 1.5 s settles, the true height within 0.6 mm of 7 mm over
+    the last 2 s of the 5 s run; the run's keys are filled from the board's reports. One seed: the
+    library's build is most of this test's time."""
+    exe, lib, cfg = hosted
+    stats, runner, link, rows = _through_the_host_board(tmp_path, cfg.read_text(), 5.0, library=lib)
+    assert stats["faults"] == {} and stats["safe_exit"], stats
+    assert (link["crc_errors"], link["bad_lines"], link["unreported"]) == (0, 0, 0), link
+    st = runner.stats()
+    assert st["board_controller"] and st["steps"] > 0 and st["board_errors"] == 0, st
+    assert st["solve_ms_median"] is None  # not on the line
+    run = [(float(r["t_s"]), float(r["h_C1_mm"])) for r in rows if r["mode"] == "RUN"]
+    h = np.array([h for t, h in run if t >= run[-1][0] - 2.0])
+    assert h.size >= 150, h.size
+    assert np.all(np.abs(h - 7.0) <= 0.6), f"the true height left 7 +- 0.6 mm: {h.min():.2f}-{h.max():.2f} mm"
+    assert np.isfinite(runner.estimates()[0]).all()

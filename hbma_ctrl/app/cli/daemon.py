@@ -59,6 +59,9 @@ def daemon(
                                                                       "(needs --token)")] = False,
     token: Annotated[Optional[str], typer.Option("--token", help="bearer token every API request must carry")]
     = None,
+    board_controller: Annotated[bool, typer.Option("--board-controller", help="the rig's board runs the "
+                                                   "controller (a hosted firmware): send targets, log its "
+                                                   "reports (needs --rig serial:PORT)")] = False,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="results directory (default runs/<name>)")]
     = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
@@ -67,7 +70,7 @@ def daemon(
     from hbma_ctrl.app.daemon.config import load_config
 
     flags = {"--rig": rig, "--speed": speed, "--duration-s": duration_s, "--api": api,
-             "--allow-remote": allow_remote, "--token": token}
+             "--allow-remote": allow_remote, "--token": token, "--board-controller": board_controller}
     cfg = load_config(config, flags)
     dest = out or default_out(cfg.scenario.name)
     try:

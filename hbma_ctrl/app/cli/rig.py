@@ -49,12 +49,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         period_ms: Annotated[Optional[float], typer.Option("--period-ms", help="host only: sample period, ms, 1..1000 in 0.1 ms steps (default 10 or the config's)")] = None,
         defect: Annotated[Optional[str], typer.Option(help=f"host only: inject defects, comma-separated: {', '.join(DEFECTS)}")] = None,
         link: Annotated[Optional[Path], typer.Option(help="host only: also keep this symlink pointing at the port, and print it")] = None,
+        library: Annotated[Optional[Path], typer.Option(help="host only: the board runs this chamber library (a folder from codegen --library; the daemon then needs --board-controller)")] = None,
     ) -> None:
         """Run an emulated rig board; print its serial port on the first line, run until Ctrl-C/SIGTERM."""
         check_choice("--target", target, ("host", "avr"))
         check_range("--n", n, 1, 16 if target == "host" else 4, note=f"chambers of --target {target}")
         check_range("--period-ms", period_ms, 1.0, 1000.0, unit="ms")
-        for flag, given in (("--config", config), ("--period-ms", period_ms), ("--defect", defect), ("--link", link)):
+        for flag, given in (("--config", config), ("--period-ms", period_ms), ("--defect", defect), ("--link", link),
+                            ("--library", library)):
             if given is not None and target != "host":
                 raise ValueError(f"{flag}: runs with --target host only")
         defects = [d for d in (defect or "").split(",") if d]
@@ -64,13 +66,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             raise ValueError("--truth-log: needs --config (the first-order plant has no truth to log)")
         if period_ms is not None and config is not None:
             raise ValueError("--period-ms: the config's rig sets the period; leave --period-ms out with --config")
+        if library is not None and not (library / "hbma.h").is_file():
+            raise ValueError(f"--library {library}: no hbma.h there (generate a chamber library with hbma-ctrl "
+                             "codegen CONFIG --library --out DIR)")
         stop = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, lambda *_: stop.set())
         work = Path(tempfile.mkdtemp(prefix="hbma-rig-"))
         try:
             if target == "host":
-                _emulate_host(work, n, stop, config, truth_log, period_ms, defects, link)
+                _emulate_host(work, n, stop, config, truth_log, period_ms, defects, link, library)
             else:
                 _emulate_avr(work, n or 1, stop)
         finally:
@@ -118,7 +123,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
 def _emulate_host(work: Path, n: int | None, stop: threading.Event, config: Path | None,
                   truth_log: Path | None, period_ms: float | None = None, defects: Sequence[str] = (),
-                  link: Path | None = None) -> None:
+                  link: Path | None = None, library: Path | None = None) -> None:
     from hbma_ctrl.app.daemon.firmware import FirstOrderPlant, config_plant
 
     tick = 100e-6  # the host board's default tick, s
@@ -132,8 +137,8 @@ def _emulate_host(work: Path, n: int | None, stop: threading.Event, config: Path
     ticks = round(period / tick)
     if not 1 <= ticks <= 65535 or abs(ticks * tick - period) > 1e-9:
         raise ValueError(f"the sample period {period * 1e3:g} ms is not a whole number of 0.1 ms ticks")
-    board = HostBoard(build_firmware("host", work), plant.n, period_ticks=ticks, eeprom=work / "eeprom.bin",
-                      defects=defects, link=link)
+    exe = build_firmware("host", work) if library is None else build_firmware("host-hosted", work, library=library)
+    board = HostBoard(exe, plant.n, period_ticks=ticks, eeprom=work / "eeprom.bin", defects=defects, link=link)
     mode = ["SAFE"]
     if config is not None:
         plant.mode = lambda: mode[0]  # the truth log's mode column

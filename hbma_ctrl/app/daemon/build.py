@@ -15,6 +15,7 @@ from dataclasses import replace
 
 
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
+from hbma_ctrl.app.daemon.board import BoardSystem, board_system
 from hbma_ctrl.app.daemon.config import DaemonConfig
 from hbma_ctrl.app.daemon.faults import FaultyRig, parse_faults
 from hbma_ctrl.app.daemon.schedule import ScheduleSystem
@@ -26,7 +27,7 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 from hbma_ctrl.system.chamber import ChamberSystem, chamber_system
 from hbma_ctrl.system.robot import RobotSystem, robot_system
-from hbma_ctrl.system.serial_link import SerialRig
+from hbma_ctrl.system.serial_link import BoardControlledRig, SerialRig
 from hbma_ctrl.system.sim_rig import SimRig
 
 __all__ = ["build_runner", "chamber_rig_settings", "make_monitor", "make_rig",
@@ -117,15 +118,23 @@ def _schedule_runner(cfg: DaemonConfig) -> ScheduleSystem:
     return ScheduleSystem(scn.role("schedule"), estimator=estimator_from_scenario(scn, chamber_rig_settings(cfg)))
 
 
-def build_runner(cfg: DaemonConfig) -> ChamberSystem | RobotSystem | ScheduleSystem:
-    """The runner the configuration asks for (ValueError naming the key when the tables disagree)."""
+def build_runner(cfg: DaemonConfig) -> ChamberSystem | RobotSystem | ScheduleSystem | BoardSystem:
+    """The runner the configuration asks for (ValueError naming the key when the tables disagree); with
+    ``board_controller`` the board runs the controller and the runner only sets its targets."""
+    if cfg.board_controller:
+        return board_system(cfg.scenario.role("controller"), chamber_rig_settings(cfg).sample_period)
     build = {"robot": _robot_runner, "schedule": _schedule_runner}.get(cfg.kind, _chamber_runner)
     return build(cfg)
 
 
 def make_rig(cfg: DaemonConfig, runner):
     """The rig link the configuration names: the lockstep simulated rig (with the [[daemon.fault]]
-    injections) or the serial link."""
+    injections) or the serial link (to a board that runs the controller with ``board_controller``: the
+    runner, a :class:`BoardSystem`, sets its targets)."""
+    if cfg.rig == "serial" and cfg.board_controller:
+        rig = BoardControlledRig(cfg.port, runner.n, baud=cfg.baud, sample_period=cfg.period)
+        runner.link = rig
+        return rig
     if cfg.rig == "serial":
         return SerialRig(cfg.port, runner.n, baud=cfg.baud, sample_period=cfg.period)
     return make_sim_rig(cfg)

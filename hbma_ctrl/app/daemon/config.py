@@ -26,7 +26,7 @@ __all__ = ["DaemonConfig", "FLAG_KEYS", "load_config", "parse_rig_flag"]
 
 #: command-line flag -> [daemon] key it overrides
 FLAG_KEYS = {"--speed": "speed", "--duration-s": "duration_s", "--api": "api", "--allow-remote": "allow_remote",
-             "--token": "token"}
+             "--token": "token", "--board-controller": "board_controller"}
 #: the flags that give a number (bounded by its key's declaration)
 _NUMBERS = ("--speed", "--duration-s")
 
@@ -93,6 +93,9 @@ def load_config(path: str | Path, flags: dict | None = None) -> DaemonConfig:
     else:
         raise ValueError(f"{path.name}: the daemon needs a [controller] table (one chamber), a [robot] table "
                          "with mode = 'closed_loop' or a [schedule] of pump / hold / vent steps (a recording)")
+    if d.board_controller and kind != "chamber":
+        raise ValueError(f"{path.name}: [daemon] board_controller = true (or --board-controller) runs a chamber's "
+                         "controller on the board: the file needs a [controller] table (one chamber)")
     if d.rig == "serial" and d.speed != 1.0:
         raise ValueError(f"{path.name}: [daemon] speed = {d.speed:g} (or --speed) needs rig = 'sim'; a serial rig "
                          "runs in real time (speed 1)")

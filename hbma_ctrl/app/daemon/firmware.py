@@ -39,18 +39,31 @@ __all__ = ["FIRMWARE_DIR", "DEFECTS", "BoardOutputs", "HostBoard", "build_firmwa
 FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
 
 
-def build_firmware(target: str, out: Path, n: int = 1) -> Path:
-    """Build ``target`` of firmware/Makefile into ``out`` (``host``, ``avr``, ``mega``, ``simavr``,
-    ``test``); the path of the built file (the host board, the AVR ELF, the simavr runner) or the
-    folder. RuntimeError with make's output when the build fails."""
+def build_firmware(target: str, out: Path, n: int = 1, library: Path | None = None) -> Path:
+    """Build ``target`` of firmware/Makefile into ``out`` (``host``, ``host-hosted``, ``avr``, ``mega``,
+    ``simavr``, ``test``); the path of the built file (the host board, the AVR ELF, the simavr runner) or
+    the folder. ``library``: the folder of a chamber library (``codegen --library``) that ``host-hosted``
+    runs on the board; it is built with ``$HBMA_CTRL_CC_OPT`` as its optimisation when that is set.
+    RuntimeError with make's output when the build fails."""
     if not (FIRMWARE_DIR / "Makefile").is_file():
         raise FileNotFoundError(f"firmware sources not found at {FIRMWARE_DIR} (the package ships them: reinstall it)")
-    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), target, f"O={out}", f"N={n}"],
+    extra = []
+    if target == "host-hosted":
+        if library is None or not (Path(library) / "hbma.h").is_file():
+            raise ValueError(f"--library {library}: no hbma.h there (generate a chamber library with "
+                             "hbma-ctrl codegen CONFIG --library --out DIR)")
+        from hbma_ctrl.core.codegen import OPT_ENV  # here: the protocol alone needs no casadi
+
+        extra = [f"LIB={Path(library).resolve()}"]
+        if os.environ.get(OPT_ENV):
+            extra.append(f"OPT={os.environ[OPT_ENV]}")
+    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), target, f"O={out}", f"N={n}", *extra],
                          capture_output=True, text=True)
     if res.returncode != 0:
         raise RuntimeError(f"firmware build '{target}' failed:\n{res.stdout}{res.stderr}")
-    return {"host": out / "host" / "hbma-fw-host", "avr": out / "uno" / "hbma-fw.elf",
-            "mega": out / "mega" / "hbma-fw.elf", "simavr": out / "host" / "hbma-fw-simavr"}.get(target, out)
+    return {"host": out / "host" / "hbma-fw-host", "host-hosted": out / "host" / "hbma-fw-host-hosted",
+            "avr": out / "uno" / "hbma-fw.elf", "mega": out / "mega" / "hbma-fw.elf",
+            "simavr": out / "host" / "hbma-fw-simavr"}.get(target, out)
 
 
 #: the defects the host board can inject (``--defect``; firmware/hal/posix/main.c), in its bit order

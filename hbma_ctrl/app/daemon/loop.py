@@ -256,6 +256,16 @@ class DaemonLoop:
             self._io_s += self.clock() - c0
         self.u_last = u
 
+    def _write_safe(self) -> None:
+        """Write the safe command as a period's command: through the rig's ``write_safe`` when it has one
+        (a board that runs the controller takes SAFE, not a command), else ``write``."""
+        write_safe = getattr(self.rig, "write_safe", None)
+        if write_safe is None:
+            self._write(safe_u(self.n))
+            return
+        write_safe()
+        self.u_last = safe_u(self.n)
+
     def _go_safe(self) -> None:
         """Write the safe command (never raises)."""
         try:
@@ -343,7 +353,7 @@ class DaemonLoop:
                 self._enter_safe(self._latched_kinds())
         if self.mode == "safe":
             # written like any command: a lockstep rig advances on writes, a serial rig keeps its heartbeat
-            self._write(safe_u(self.n))
+            self._write_safe()
             return
         if waiting:
             # no new sample since the last period (the rig's clock has not moved): the estimator would
@@ -386,7 +396,7 @@ class DaemonLoop:
                 self._fault(kind, cause)
         if found and self.mode == "running":
             self._enter_safe(self._latched_kinds() or sorted({k for k, _, _ in found}))
-            self._write(safe_u(self.n))
+            self._write_safe()
             return
         self._write(u)
 

@@ -33,6 +33,8 @@ class DaemonConfig(Settings):
     rig: str = setting("sim", choices=("sim", "serial"),
                        doc="rig backend: the simulated mismatched rig or the serial link")
     port: str | None = setting(None, text=True, doc="serial port of the rig (rig = 'serial'), e.g. /dev/ttyACM0")
+    board_controller: bool = setting(False, doc="the rig's board runs the controller (a hosted firmware): the "
+                                     "daemon sends targets and logs what the board reports")
     baud: int = setting(115200, integer=True, lo=1200, hi=4_000_000, unit="baud", doc="serial line rate")
     speed: float = setting(1.0, lo=0.01, hi=1000.0, doc="rig seconds per wall second (sim only; 1 = real time)")
     duration: float | None = setting(None, lo=0.0, hi=1e7, lo_open=True, unit="s", key="duration_s",

@@ -27,7 +27,7 @@ def parse_api_address(value: str, key: str = "api") -> tuple[str, int]:
 
 
 class DaemonTable(settings_table("DaemonKeys", (DaemonConfig, (
-        "rate_hz", "rig", "port", "baud", "speed", "duration", "api", "allow_remote", "token", "log_rotate_bytes",
+        "rate_hz", "rig", "port", "board_controller", "baud", "speed", "duration", "api", "allow_remote", "token", "log_rotate_bytes",
         "log_flush", "status_every", "miss_limit")))):
     """[daemon] in the user's units (the keys are :class:`~hbma_ctrl.app.daemon.settings.DaemonConfig`'s
     declarations)."""
@@ -38,6 +38,9 @@ class DaemonTable(settings_table("DaemonKeys", (DaemonConfig, (
     def _rules(self) -> DaemonTable:
         if self.rig == "serial" and not self.port:
             raise RuleError("rig = 'serial' needs port = '/dev/...' (or --rig serial:PORT)")
+        if self.board_controller and self.rig != "serial":
+            raise RuleError("board_controller = true (or --board-controller) needs rig = 'serial' (--rig "
+                            "serial:PORT): the controller runs on the rig's board")
         if self.api is not None:
             try:
                 parse_api_address(self.api)
