@@ -7,7 +7,8 @@ One session on the port, with the protocol's own codec (:func:`~hbma_ctrl.system
 the newest reading only), send lines with a wrong checksum or a ``\\r\\n`` ending, and fall silent on
 purpose, none of which a working link does. The checks, in the order they run:
 
-- ``handshake``: ``HELLO`` is answered by ``VER`` of version 2 (and ``n`` chambers when given).
+- ``handshake``: ``HELLO`` is answered by ``VER`` of version 2 (and ``n`` chambers when given); a
+  board that runs its own controller says ``hosted`` after them.
 - ``sample period`` and ``jitter``: the spacing of the ``P`` lines' time stamps against the period
   ``VER`` declared (stamps, not the host's clock: a loaded host does not move them).
 - ``sensor zero Ci``: each chamber's pressure at rest, vented.
@@ -23,6 +24,11 @@ purpose, none of which a working link does. The checks, in the order they run:
 - ``heartbeat``: ``HB`` lines with a mode at least every ``link_timeout`` (0.5 s) of samples.
 - ``crc``, ``sequence``: over the whole session no firmware line fails its checksum, and every SEQ is
   one more than the one before (no repeat, no jump).
+
+A hosted board refuses ``CMD``: the check runs it with ``TGT`` lines of target 0 instead (the
+checksum, line-end and watchdog checks), leaves out the actuator checks (its controller, not the
+check, drives the valves: check them with the firmware built without ``FW_HOSTED``), and adds
+``reports``: each ``P`` line is followed by the board's ``U`` report, with six fields per chamber.
 
 Times are measured on the firmware's stamps (whole sample periods); the host's clock only bounds how
 long the check waits. :func:`run_checks` returns the :class:`Check` list; the CLI writes ``check.json``.
@@ -122,8 +128,10 @@ class _Session:
     skipped: int = 0
     samples: list[_Sample] = field(default_factory=list)
     beats: list[tuple[int, str]] = field(default_factory=list)  # (samples before it, mode)
-    sent: set[int] = field(default_factory=set)  # SEQs of HELLO, CMD, SAFE lines
+    sent: set[int] = field(default_factory=set)  # SEQs of HELLO, CMD, TGT, SAFE lines
     ver: tuple[str, ...] | None = None
+    hosted: bool = False  # the board runs its own controller (its VER says so)
+    reports: list[int] = field(default_factory=list)  # per U line: the samples before it, -1 if malformed
     rest: np.ndarray | None = None  # each chamber's pressure at rest, vented, Pa
     _last_seq: int | None = None
     _lost: bool = False
@@ -136,7 +144,7 @@ class _Session:
         line = encode_line(kind, s, *fields)
         if corrupt:
             line = line[:-6] + b"*%04X\n" % (int(line[-5:-1], 16) ^ 0x0001)
-        if kind in ("HELLO", "CMD", "SAFE"):
+        if kind in ("HELLO", "CMD", "TGT", "SAFE"):
             self.sent.add(s)
         self.ser.write(line[:-1] + end)
         self.seq = (s + 1) % SEQ_MOD
@@ -150,6 +158,11 @@ class _Session:
         for i in range(self.n):
             vals += [pump, inlet, outlet] if i == chamber else [0, 0, 1000]
         return self.send("CMD", *vals, **kw)
+
+    def run_line(self, **kw) -> int:
+        """A line that runs the board and moves nothing: every chamber vented by ``CMD``, or on a hosted
+        board a ``TGT`` of 0 for every chamber; its SEQ."""
+        return self.send("TGT", *([0] * self.n), **kw) if self.hosted else self.command(**kw)
 
     def until(self, pred, timeout: float, beat: bool = True) -> bool:
         """Read (and beat while ``beat``) until ``pred()`` or ``timeout`` s of host time; whether it held."""
@@ -219,6 +232,8 @@ class _Session:
             self._lost = False
         elif m.kind == "HB" and len(m.fields) == 1 and m.fields[0] in ("RUN", "SAFE"):
             self.beats.append((len(self.samples), m.fields[0]))
+        elif m.kind == "U" and self.hosted:
+            self.reports.append(len(self.samples) if len(m.fields) == 6 * self.n else -1)
         elif m.kind != "VER":
             self.bad += 1
 
@@ -267,13 +282,17 @@ def _handshake(s: _Session, cs: CheckSettings) -> Check:
             got += f" ({s.crc_bad + s.bad} lines received, none valid)"
         return Check("handshake", False, got, expected)
     f = s.ver
-    ok = len(f) == 3 and all(x.isdigit() for x in f) and int(f[0]) == PROTOCOL_VERSION and int(f[1]) >= 1 \
-        and int(f[2]) > 0 and (cs.n is None or int(f[1]) == cs.n)
+    hosted = len(f) == 4 and f[3] == "hosted"
+    ok = len(f) in (3, 4) and (len(f) == 3 or hosted) and all(x.isdigit() for x in f[:3]) \
+        and int(f[0]) == PROTOCOL_VERSION and int(f[1]) >= 1 and int(f[2]) > 0 and (cs.n is None or int(f[1]) == cs.n)
     if ok:
-        s.n, s.period = int(f[1]), int(f[2]) * 1e-6
+        s.n, s.period, s.hosted = int(f[1]), int(f[2]) * 1e-6, hosted
     measured = "VER " + " ".join(f)
-    if len(f) == 3 and all(x.isdigit() for x in f):
+    if len(f) in (3, 4) and all(x.isdigit() for x in f[:3]):
         measured = f"version {f[0]}, {f[1]} chambers, period {int(f[2]) / 1000:g} ms"
+        if hosted:
+            measured += ("; hosted: the board runs its own controller (the actuator checks need CMD, which it "
+                         "refuses: run them on the firmware built without FW_HOSTED)")
     return Check("handshake", ok, measured, expected)
 
 
@@ -304,26 +323,40 @@ def _session_checks(s: _Session, cs: CheckSettings) -> list[Check]:
                          f"{_kpa(p)} (median of {len(rest)} samples, vented)", f"|p| <= {to_kpa(cs.zero_tol):g} kPa"))
     # from the safe state, a command with a wrong checksum (all vented, so harmless if obeyed)
     since = s.mark()
-    bad_seq = s.command(corrupt=True)
+    kind = "TGT" if s.hosted else "CMD"
+    bad_seq = s.run_line(corrupt=True)
     obeyed = s.acted(bad_seq, since, per(cs.hold_s), wait(cs.hold_s))
     out.append(Check("bad checksum ignored", not obeyed,
-                     f"CMD {bad_seq} with a wrong checksum " + ("was acted on" if obeyed else "was not acted on"),
+                     f"{kind} {bad_seq} with a wrong checksum " + ("was acted on" if obeyed else "was not acted on"),
                      "not acted on (no P line names it, no HB says RUN)"))
     # a command ended by \r\n
     s.send("SAFE")
     since = s.mark()
-    seq = s.command(end=b"\r\n")
+    seq = s.run_line(end=b"\r\n")
     ok = s.acted(seq, since, per(cs.hold_s), wait(cs.hold_s))
-    out.append(Check("crlf", ok, ("acted on" if ok else "never acted on") + f" (CMD {seq} ended by \\r\\n)",
+    out.append(Check("crlf", ok, ("acted on" if ok else "never acted on") + f" ({kind} {seq} ended by \\r\\n)",
                      "acted on (a P line names it or an HB says RUN)"))
-    out += [c for i in range(n) for c in _actuator_checks(s, cs, i, per, wait)]
+    if not s.hosted:
+        out += [c for i in range(n) for c in _actuator_checks(s, cs, i, per, wait)]
     out.append(_watchdog(s, cs, per, wait))
     unknown = [x.held for x in s.samples if x.held != "-" and not (x.held.isdigit() and int(x.held) in s.sent)]
     out.append(Check("held", not unknown, f"{len(unknown)} of {len(s.samples)} P lines named a SEQ never sent "
-                     "as HELLO, CMD or SAFE" + (f" (first: {unknown[0]})" if unknown else ""),
+                     f"as HELLO, {kind} or SAFE" + (f" (first: {unknown[0]})" if unknown else ""),
                      "each names a host line sent, or '-'"))
     out.append(_heartbeat(s, cs))
+    if s.hosted:
+        out.append(_reports(s))
     return out
+
+
+def _reports(s: _Session) -> Check:
+    """A hosted board's ``U`` reports: one after each ``P`` line, six fields per chamber."""
+    expected = f"a U line after each P line, {6 * s.n} fields"
+    bad = sum(k < 0 for k in s.reports)
+    # the session's last P line may be read before its report: every other one has its own
+    unreported = max(len(s.samples) - 1 - (len(s.reports) - bad), 0)
+    return Check("reports", bool(s.samples) and bad == 0 and unreported == 0,
+                 f"{len(s.reports)} U lines for {len(s.samples)} P lines, {bad} malformed", expected)
 
 
 def _period_checks(s: _Session, cs: CheckSettings) -> list[Check]:
@@ -419,9 +452,10 @@ def _watchdog(s: _Session, cs: CheckSettings, per, wait) -> Check:
                 "of host silence")
     s.send("SAFE")
     since = s.mark()
-    seq = s.command()
+    seq = s.run_line()
     if not s.acted(seq, since, per(cs.hold_s), wait(cs.hold_s)):
-        return Check("watchdog", False, f"CMD {seq} was not acted on (no RUN to trip from)", expected)
+        return Check("watchdog", False, f"{'TGT' if s.hosted else 'CMD'} {seq} was not acted on (no RUN to trip "
+                     "from)", expected)
     start = len(s.samples)
     s.wait_samples(per(cs.watchdog_s), wait(cs.watchdog_s))
     early = sum(x.held == "-" for x in s.samples[start:])

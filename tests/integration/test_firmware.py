@@ -590,3 +590,27 @@ def test_a_5mm_step_settles_within_0p6mm_under_the_controller_the_board_hosts(ho
     assert h.size >= 150, h.size
     assert np.all(np.abs(h - 7.0) <= 0.6), f"the true height left 7 +- 0.6 mm: {h.min():.2f}-{h.max():.2f} mm"
     assert np.isfinite(runner.estimates()[0]).all()
+
+
+@pytest.mark.slow
+def test_rig_check_passes_a_hosted_board_on_targets_and_leaves_its_actuator_checks_out(hosted, tmp_path):
+    """A hosted board refuses CMD: the checklist runs it with TGT lines, checks each P line's U report,
+    and names why the actuator checks are not run."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from hbma_ctrl.app.cli.main import app
+
+    rt = RealtimeBoard(HostBoard(hosted[0], n=1), FirstOrderPlant(1))
+    try:
+        res = CliRunner().invoke(app, ["rig", "check", rt.board.port, "--out", str(tmp_path / "check")])
+    finally:
+        rt.close()
+    doc = json.loads((tmp_path / "check" / "check.json").read_text())
+    checks = {c["name"]: c for c in doc["checks"]}
+    assert res.exit_code == 0 and doc["passed"], res.output
+    assert {"bad checksum ignored", "crlf", "watchdog", "held", "reports"} <= set(checks)
+    assert not any(name.startswith(("inlet", "pump", "outlet")) for name in checks)
+    assert "hosted" in checks["handshake"]["measured"] and "FW_HOSTED" in checks["handshake"]["measured"]
+    assert "TGT" in checks["crlf"]["measured"]
