@@ -25,6 +25,7 @@ from typer.testing import CliRunner
 
 from hbma_ctrl.app.cli.main import app
 from checkout import ROOT
+from rig_links import UntilRigTime
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
@@ -946,29 +947,6 @@ def _truth_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
-class _UntilRigTime:
-    """A rig link that asks the loop to stop once its samples have covered ``duration`` s of the rig's
-    own time. The loop's duration counts its periods; a firmware process that a loaded machine runs
-    late streams fewer samples in as many periods (a microcontroller would not), and the run is to
-    cover the same rig time as the lockstep one it is compared with."""
-
-    def __init__(self, rig, state: DaemonState, duration: float):
-        self.rig, self.state, self.duration = rig, state, duration
-        self.n, self.sample_period = rig.n, rig.sample_period
-        self._t0 = None
-
-    def read(self):
-        r = self.rig.read()
-        if r.t is not None:
-            self._t0 = r.t if self._t0 is None else self._t0
-            if r.t - self._t0 >= self.duration - 1e-9:
-                self.state.request_stop("rig time")
-        return r
-
-    def __getattr__(self, name):
-        return getattr(self.rig, name)
-
-
 @pytest.mark.slow
 @pytest.mark.subprocess
 def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_target_as_on_sim(tmp_path):
@@ -1008,7 +986,7 @@ def test_chamber_on_the_serial_link_calibrates_and_settles_within_0p6mm_of_the_t
         # on a microcontroller that would be a frozen sensor, here it is the machine's load
         monitor = SafetyMonitor(replace(make_monitor(cfg, runner).settings, stale_periods=10**6,
                                         same_value_periods=None), runner.n)
-        loop = DaemonLoop(runner, _UntilRigTime(rig, state, DURATION), state, cfg.period, monitor=monitor)
+        loop = DaemonLoop(runner, UntilRigTime(rig, state, DURATION), state, cfg.period, monitor=monitor)
         try:
             stats = loop.run()
         finally:
