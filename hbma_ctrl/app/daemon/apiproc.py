@@ -87,6 +87,7 @@ class _ApiState(DaemonState):
         super().__init__()
         self._send = send
         self._stops = stops
+        os.set_blocking(stops.fileno(), False)  # a stop never holds the server's event loop (request_stop)
         self._stops_lock = threading.Lock()
         self._ids = itertools.count(1)
         self._waiting: dict[int, Future] = {}
@@ -137,7 +138,7 @@ class _ApiState(DaemonState):
         """Send the stop to the loop's side (every time: its state keeps the first reason) on its pipe,
         from the caller's thread: no other thread needs the interpreter's lock for it; returns at once.
 
-        The pipe does not block (:func:`_api_main`): a message under ``PIPE_BUF`` bytes (4 kB; the
+        The pipe does not block: a message under ``PIPE_BUF`` bytes (4 kB; the
         reason is cut to 500 characters) is written whole or not at all, and one not written finds
         the pipe full of stops the loop's side has yet to read, so it adds nothing to them."""
         with self._stops_lock, contextlib.suppress(BlockingIOError, OSError):  # OSError: the daemon is gone
@@ -213,7 +214,6 @@ def _api_main(sock: socket.socket, down: Connection, up: Connection, stops: Conn
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _GROUP_SIGNALS)  # blocked by the daemon while it started us
     leave_real_time()
     outbox: queue.SimpleQueue = queue.SimpleQueue()
-    os.set_blocking(stops.fileno(), False)  # a stop never holds the server's event loop (_ApiState.request_stop)
     state = _ApiState(outbox.put, stops)
     sender = threading.Thread(target=_send_all, args=(outbox, up), name="hbma-api-send", daemon=True)
     sender.start()

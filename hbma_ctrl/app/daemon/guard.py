@@ -291,7 +291,10 @@ class GuardedProtocol(H11Protocol):
         if (self.stop_front is None or cycle is before or cycle is None or over or cycle.more_body or cycle.body
                 or cycle.response_started or cycle.scope.get(STOP_SENT)):
             return
-        answer = self.stop_front(cycle.scope)  # its task has not run yet: the marks reach the guard
+        try:
+            answer = self.stop_front(cycle.scope)  # its task has not run yet: the marks reach the guard
+        except Exception:  # noqa: BLE001 - the request's task meets the same error and answers 500
+            return
         if answer is not None and cycle.scope.get(STOP_SENT) and not self.flow.write_paused:
             self._answer_now(cycle, answer)
 

@@ -144,3 +144,31 @@ def test_a_stop_is_sent_and_answered_while_a_flood_waits_for_its_turn(state):
         asyncio.run(flood())
     assert order == ["health 200", "stop 200"]  # answered while every other flood request waits its turn
     assert state.stops == [("api", None)]
+
+
+def test_a_stop_on_a_full_pipe_returns_at_once_and_every_stop_written_arrives_whole():
+    import multiprocessing as mp
+
+    from hbma_ctrl.app.daemon.apiproc import _ApiState
+
+    r, w = mp.Pipe(duplex=False)
+    s = _ApiState(lambda msg: None, w)
+    n = 20_000  # far more than a pipe holds: nobody reads until the end
+    for k in range(n):
+        s.request_stop(f"stop {k}")
+    got = []
+    while r.poll():
+        got.append(r.recv())
+    assert 0 < len(got) < n  # the pipe filled and the rest returned without waiting
+    assert got == [f"stop {k}" for k in range(len(got))]  # none torn, none out of order
+    assert s.stop_reason == "stop 0"  # the first asked is the reason this API shows
+
+
+def test_a_long_stop_reason_crosses_the_pipe_cut_to_500_characters_in_one_piece():
+    import multiprocessing as mp
+
+    from hbma_ctrl.app.daemon.apiproc import _ApiState
+
+    r, w = mp.Pipe(duplex=False)
+    _ApiState(lambda msg: None, w).request_stop("\u00e9" * 10_000)  # 2 bytes each in UTF-8
+    assert r.recv() == "\u00e9" * 500 and not r.poll()
