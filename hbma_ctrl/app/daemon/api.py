@@ -24,14 +24,17 @@ Endpoints (JSON, edge units; the messages are :mod:`hbma_ctrl.app.schema.api`):
 
 Every error is JSON ``{"error": "<one line>", "detail": ...}``; a message that fails validation is
 422 and its line names the key as written and the allowed range in the key's unit, e.g.
-``[setpoint] heights_mm.0 = 500 is out of range [0, 200] mm``. Before any endpoint, in this order:
+``[setpoint] heights_mm.0 = 500 is out of range [0, 200] mm``. Before any endpoint, in this order
+(:mod:`hbma_ctrl.app.daemon.guard`):
 
 - 403 for a ``Host`` header that is not a loopback name (127.0.0.0/8, ::1, localhost) unless
   ``allow_remote``, and for a POST whose ``Origin`` is not the ``Host`` it was sent to: a web page
   open on the rig PC (another site, or a DNS name rebound to 127.0.0.1) cannot read or drive the rig;
 - 429 beyond :data:`MAX_CLIENTS` requests in progress, or for a request that would wait more than
   :data:`MAX_WAIT_S` for its turn: requests are paced to :data:`RATE_HZ` per second over all clients
-  (a burst of :data:`BURST` at once). ``POST /stop`` is never paced nor counted;
+  (a burst of :data:`BURST` at once). ``POST /stop`` is never paced nor counted, and a whole one
+  without a body that these checks let through is sent to the loop as soon as the server has parsed
+  it, ahead of the requests already in progress;
 - 401 when a token is set and the request lacks ``Authorization: Bearer <token>``, except a GET of the
   page, its script and the endpoints' page (:data:`hbma_ctrl.app.daemon.live.PUBLIC_PATHS`), which
   hold no data: a browser cannot send the header when it opens a page, so the page asks for the token
@@ -40,7 +43,7 @@ Every error is JSON ``{"error": "<one line>", "detail": ...}``; a message that f
   :data:`MAX_BODY_BYTES`; 408 for a body not whole within :data:`REQUEST_TIMEOUT_S`.
 
 A connection that holds no request must send a whole request head within :data:`REQUEST_TIMEOUT_S`
-(:class:`_Protocol`), so half-open connections cannot hold the server's connection slots.
+(:class:`~hbma_ctrl.app.daemon.guard.GuardedProtocol`), so half-open connections cannot hold the server's connection slots.
 :func:`hbma_ctrl.app.daemon.apiproc.serve` runs it on uvicorn in a process of its own, bound to
 loopback only unless ``allow_remote`` and a token.
 
@@ -72,26 +75,36 @@ moment: no work grows with the run's history.
 
 from __future__ import annotations
 
-import asyncio
-import hmac
-import ipaddress
 import itertools
 import math
 import threading
 import time
 import weakref
-from typing import Any, Self
-from urllib.parse import urlsplit
+from typing import Any
 
 import uvicorn
-from uvicorn.protocols.http.h11_impl import H11Protocol
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
-from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 
 from hbma_ctrl.app.daemon import live
+from hbma_ctrl.app.daemon.guard import (
+    BURST,
+    MAX_BODY_BYTES,
+    MAX_CLIENTS,
+    MAX_CONNECTIONS,
+    MAX_IDLE,
+    MAX_WAIT_S,
+    RATE_HZ,
+    REQUEST_TIMEOUT_S,
+    STOP_SENT,
+    Checks,
+    Guard,
+    GuardedProtocol,
+    error,
+    is_loopback,
+)
 from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 from hbma_ctrl.app.schema.api import (
     CHAMBER_INDEX_MAX,
@@ -133,24 +146,8 @@ __all__ = [
 ]
 
 DEFAULT_PORT = 8765
-#: a setpoint for every chamber of a large robot is a few kB; anything larger is not a setpoint
-MAX_BODY_BYTES = 16 * 1024
 #: events shown by GET /status (newest last)
 EVENTS_SHOWN = 10
-#: open connections at most (uvicorn answers 503 beyond); of those holding no request, the oldest is
-#: closed for a new one above :data:`MAX_IDLE`, so idle clients never fill the slots
-MAX_CONNECTIONS = 256
-MAX_IDLE = 128
-#: requests in progress (waiting for their turn included) over all clients; 429 beyond
-MAX_CLIENTS = 128
-#: a request head, or its body, not whole after this long closes the connection (408 for a body), s
-REQUEST_TIMEOUT_S = 2.0
-#: requests served per second on average (all clients together) and the burst served at once: a
-#: request costs ~1 ms of a CPU, which a flood would take from the loop's core on a small rig PC
-RATE_HZ = 100.0
-BURST = 50
-#: a request that would wait longer than this for its turn is refused with 429 instead
-MAX_WAIT_S = 2.0
 
 
 def _fin(x: Any, scale: float = 1.0) -> float | None:
@@ -215,7 +212,7 @@ def _applied_message(applied: dict) -> SetpointApplied:
     return SetpointApplied(heights_mm=heights, layers=layers)
 
 
-def request_error(err: dict) -> str:
+def requesterror(err: dict) -> str:
     """One pydantic error of a request body as one line naming the key as written (schema formatter)."""
     # a key that does not print (a newline, a control character) is shown quoted: the line stays one line
     loc = tuple(repr(x) if isinstance(x, str) and not x.isprintable() else x for x in err.get("loc") or ())
@@ -233,191 +230,8 @@ def request_error(err: dict) -> str:
     return format_one({**err, "loc": loc}, SetpointRequest, "setpoint")
 
 
-def _error(status: int, line: str, detail: Any = None, headers: dict | None = None) -> JSONResponse:
-    return JSONResponse({"error": line, "detail": line if detail is None else detail}, status_code=status,
-                        headers=headers)
-
-
 def _json(model: Any) -> Response:
     return Response(model.model_dump_json(), media_type="application/json")
-
-
-def _hostname(netloc: str) -> str | None:
-    """The host of a ``Host`` header or an ``Origin``'s netloc (no port, no brackets); None when unparsable."""
-    try:
-        return urlsplit("//" + netloc).hostname
-    except ValueError:
-        return None
-
-
-class _Guard:
-    """ASGI middleware before the app: Host and Origin (403), the client bound and the pace (429), the
-    bearer token (401), the body's type, size and time (415, 413, 408); see the module doc.
-
-    Pacing is a token bucket: each request takes a token, refilled at ``rate_hz`` up to ``burst``;
-    without one it sleeps (in the event loop, no CPU) until its turn. The body is read here, up to
-    the limit, and handed on whole: a request never makes the app buffer more than the limit."""
-
-    def __init__(self, app: Any, token: str | None, max_body: int, rate_hz: float, burst: int, max_wait_s: float,
-                 allow_remote: bool = False, max_clients: int = MAX_CLIENTS):
-        self.app = app
-        self.token = token.encode() if token is not None else None
-        self.max_body = max_body
-        self.rate = rate_hz
-        self.burst = float(burst)
-        self.max_wait = max_wait_s
-        self.allow_remote = allow_remote
-        self.max_clients = max_clients
-        # only the server's event loop touches these: no lock
-        self._tokens = float(burst)
-        self._last = time.monotonic()
-        self._in_progress = 0
-
-    async def _take_turn(self) -> bool:
-        """Wait for this request's token; False when the wait would exceed ``max_wait``."""
-        now = time.monotonic()
-        self._tokens = min(self.burst, self._tokens + (now - self._last) * self.rate)
-        self._last = now
-        if self._tokens >= 1.0:
-            self._tokens -= 1.0
-            return True
-        wait = (1.0 - self._tokens) / self.rate
-        if wait > self.max_wait:
-            return False
-        self._tokens -= 1.0  # reserved: the next request waits behind this one
-        await asyncio.sleep(wait)
-        return True
-
-    def _authorised(self, headers: Headers) -> bool:
-        scheme, _, given = headers.get("authorization", "").partition(" ")
-        return scheme.lower() == "bearer" and hmac.compare_digest(given.strip().encode("latin-1"), self.token)
-
-    def _foreign(self, method: str, headers: Headers) -> str | None:
-        """Why a request's Host or Origin is refused (one line), None when it is not."""
-        host = headers.get("host", "")
-        name = _hostname(host)
-        if not self.allow_remote and (name is None or not is_loopback(name)):
-            return (f"Host {host!r} is not a loopback name (127.0.0.1, ::1, localhost): the API answers "
-                    "only its own machine's address")
-        origin = headers.get("origin")
-        if origin is not None and method not in ("GET", "HEAD", "OPTIONS"):
-            if urlsplit(origin).netloc.lower() != host.lower():
-                return f"cross-origin {method} from Origin {origin!r} to Host {host!r}: refused"
-        return None
-
-    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        headers = Headers(scope=scope)
-        method = str(scope.get("method", "GET")).upper()
-        why = self._foreign(method, headers)
-        if why is not None:
-            await _error(403, why)(scope, receive, send)
-            return
-        paced = not (method == "POST" and scope.get("path") == "/stop")  # a stop is always answered
-        if paced and self._in_progress >= self.max_clients:
-            await _error(429, f"too many requests in progress: the API serves {self.max_clients} at once",
-                         headers={"Retry-After": "1"})(scope, receive, send)
-            return
-        self._in_progress += paced
-        try:
-            if paced and not await self._take_turn():
-                await _error(429, f"too many requests: the API serves {self.rate:g} per second",
-                             headers={"Retry-After": "1"})(scope, receive, send)
-                return
-            await self._serve(scope, receive, send, headers, method)
-        finally:
-            self._in_progress -= paced
-
-    async def _serve(self, scope: dict, receive: Any, send: Any, headers: Headers, method: str) -> None:
-        public = method in ("GET", "HEAD") and scope.get("path") in live.PUBLIC_PATHS
-        if self.token is not None and not public and not self._authorised(headers):
-            await _error(401, "missing or wrong token: send 'Authorization: Bearer <token>'",
-                         headers={"WWW-Authenticate": "Bearer"})(scope, receive, send)
-            return
-        too_big = _error(413, f"the body is larger than {self.max_body} bytes")
-        try:
-            declared = int(headers.get("content-length", 0))
-        except ValueError:
-            declared = self.max_body + 1
-        if declared > self.max_body:
-            await too_big(scope, receive, send)
-            return
-        chunks, size = [], 0
-        try:
-            async with asyncio.timeout(REQUEST_TIMEOUT_S):
-                while True:
-                    msg = await receive()
-                    if msg["type"] != "http.request":  # the client left
-                        return
-                    chunk = msg.get("body", b"")
-                    size += len(chunk)
-                    if size > self.max_body:
-                        await too_big(scope, receive, send)
-                        return
-                    chunks.append(chunk)
-                    if not msg.get("more_body", False):
-                        break
-        except TimeoutError:
-            await _error(408, f"the body was not whole within {REQUEST_TIMEOUT_S:g} s",
-                         headers={"Connection": "close"})(scope, receive, send)
-            return
-        body = b"".join(chunks)
-        kind = headers.get("content-type", "").partition(";")[0].strip().lower()
-        if body and kind != "application/json":
-            await _error(415, f"Content-Type {kind or '(none)'!r}: send the body as application/json")(
-                scope, receive, send)
-            return
-        given = False
-
-        async def replay() -> dict:
-            nonlocal given
-            if not given:
-                given = True
-                return {"type": "http.request", "body": body, "more_body": False}
-            return await receive()
-
-        await self.app(scope, replay, send)
-
-
-class _Protocol(H11Protocol):
-    """uvicorn's HTTP/1.1 protocol with a deadline on a connection that holds no request: a whole
-    request head within :data:`REQUEST_TIMEOUT_S` of opening or of its last response, else it is
-    closed (uvicorn's keep-alive timer starts only after a response and any byte stops it, so a
-    half-open or trickling connection would hold its slot for ever); above :data:`MAX_IDLE` such
-    connections the oldest is closed for a new one."""
-
-    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-        super().connection_made(transport)
-        self._opened = time.monotonic()
-        self._head_timer: asyncio.TimerHandle | None = None
-        self._arm()
-        idle = [c for c in self.connections if isinstance(c, _Protocol) and c is not self and c._idle()]
-        if len(idle) > MAX_IDLE:
-            min(idle, key=lambda c: c._opened).transport.close()
-
-    def _idle(self) -> bool:
-        return self.cycle is None or self.cycle.response_complete
-
-    def _arm(self) -> None:
-        if self._head_timer is not None:
-            self._head_timer.cancel()
-        self._head_timer = self.loop.call_later(REQUEST_TIMEOUT_S, self._head_late, self.cycle)
-
-    def _head_late(self, cycle: Any) -> None:
-        # no new request head since the timer was set, and none in progress
-        if self.cycle is cycle and self._idle() and not self.transport.is_closing():
-            self.transport.close()
-
-    def on_response_complete(self) -> None:
-        super().on_response_complete()
-        self._arm()
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if self._head_timer is not None:
-            self._head_timer.cancel()
-        super().connection_lost(exc)
 
 
 def _errors(**codes: str) -> dict:
@@ -472,8 +286,26 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
     app = FastAPI(title="hbma-ctrl rig daemon", docs_url=None, redoc_url=None, responses=_GUARD_ERRORS)
     #: set when the server stops: open streams end
     app.state.closing = threading.Event()
-    app.add_middleware(_Guard, token=token, max_body=MAX_BODY_BYTES, rate_hz=rate_hz, burst=burst,
-                       max_wait_s=max_wait_s, allow_remote=allow_remote, max_clients=max_clients)
+    checks = Checks(token, allow_remote)
+
+    def stop_answer() -> Response:
+        return _json(StopReply(stop_requested=True, reason=state.stop_reason,
+                               mode=str(state.status().get("mode", "starting"))))
+
+    def stop_front(scope: dict) -> Response | None:
+        """Send the stop of a whole bodiless ``POST /stop`` as soon as the server has parsed it, when the
+        guard would let it through, and return its answer (:mod:`hbma_ctrl.app.daemon.guard`); None
+        (nothing sent) when the guard would refuse it."""
+        if not checks.admits_stop(scope):
+            return None
+        state.request_stop("api")
+        scope[STOP_SENT] = True
+        return stop_answer()
+
+    #: what the server's protocol hands each whole bodiless stop to (:func:`server_config`)
+    app.state.stop_front = stop_front
+    app.add_middleware(Guard, checks=checks, stop_answer=stop_answer, max_body=MAX_BODY_BYTES, rate_hz=rate_hz,
+                       burst=burst, max_wait_s=max_wait_s, max_clients=max_clients)
     # the last converted snapshot: many requests per loop period convert it once
     cache: list = [None, None]
     cache_lock = threading.Lock()
@@ -499,12 +331,12 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         errs = exc.errors()
         detail = [{"loc": [str(x) for x in e.get("loc", ())], "msg": str(e.get("msg", "")),
                    "type": str(e.get("type", ""))} for e in errs]
-        line = request_error(errs[0]) if errs else "[setpoint] invalid"
-        return _error(422, line, detail)
+        line = requesterror(errs[0]) if errs else "[setpoint] invalid"
+        return error(422, line, detail)
 
     @app.exception_handler(HTTPException)
     async def _http(request: Request, exc: HTTPException) -> JSONResponse:
-        return _error(exc.status_code, str(exc.detail), headers=getattr(exc, "headers", None))
+        return error(exc.status_code, str(exc.detail), headers=getattr(exc, "headers", None))
 
     @app.get("/status", response_model=Status)
     async def get_status() -> Response:
@@ -530,9 +362,9 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
         try:
             query = live.live_query(request.query_params.multi_items())
         except ValueError as exc:
-            return _error(422, str(exc))
+            return error(422, str(exc))
         if len(streams) >= live.MAX_STREAMS:
-            return _error(429, f"{live.MAX_STREAMS} streams are open: close one (another page) first",
+            return error(429, f"{live.MAX_STREAMS} streams are open: close one (another page) first",
                           headers={"Retry-After": "1"})
         events = live.live_events(state, converted, request_fields, query, app.state.closing)
         streams.add(events)
@@ -596,26 +428,16 @@ def make_app(state: DaemonState, token: str | None = None, *, rate_hz: float = R
     async def post_stop() -> Response:
         """Ask the loop for the safe command and its end (idempotent; the first reason is kept)."""
         state.request_stop("api")
-        return _json(StopReply(stop_requested=True, reason=state.stop_reason,
-                               mode=str(state.status().get("mode", "starting"))))
+        return stop_answer()
 
     return app
 
 
-def is_loopback(host: str) -> bool:
-    """True for "localhost" and any loopback address (127.0.0.0/8, ::1)."""
-    if host.strip().lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
 def server_config(app: FastAPI) -> uvicorn.Config:
-    """uvicorn's settings for ``app``: the connection guards (:class:`_Protocol`, :data:`MAX_CONNECTIONS`,
-    the keep-alive and head deadlines, the request head's size) and no logging of its own."""
+    """uvicorn's settings for ``app``: the connection guards (:class:`GuardedProtocol`, :data:`MAX_CONNECTIONS`,
+    the keep-alive and head deadlines, the request head's size), its stop front (the protocol hands it
+    each whole stop) and no logging of its own."""
     return uvicorn.Config(app, log_config=None, access_log=False, log_level="warning", lifespan="off",
-                          http=_Protocol, limit_concurrency=MAX_CONNECTIONS,
+                          http=GuardedProtocol.bound(app.state.stop_front), limit_concurrency=MAX_CONNECTIONS,
                           timeout_keep_alive=int(REQUEST_TIMEOUT_S), h11_max_incomplete_event_size=MAX_BODY_BYTES,
                           timeout_graceful_shutdown=2)

@@ -80,11 +80,15 @@ _GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 class _ApiState(DaemonState):
     """The API's copy of the loop's state: the snapshots as the loop numbered them, the stop as the
-    loop's state has it, and requests that go to the loop's side through ``send`` (one message each)."""
+    loop's state has it, and requests that go to the loop's side through ``send`` (one message each)
+    but stops, which this state writes on ``stops`` itself (:meth:`request_stop`)."""
 
-    def __init__(self, send):
+    def __init__(self, send, stops: Connection):
         super().__init__()
         self._send = send
+        self._stops = stops
+        os.set_blocking(stops.fileno(), False)  # a stop never holds the server's event loop (request_stop)
+        self._stops_lock = threading.Lock()
         self._ids = itertools.count(1)
         self._waiting: dict[int, Future] = {}
         self._asked = ""  # the first reason this API asked to stop with
@@ -131,8 +135,14 @@ class _ApiState(DaemonState):
         return self._ask("reset", None, deadline)
 
     def request_stop(self, reason: str = "stop requested", fault: str | None = None) -> None:
-        """Send the stop to the loop's side (every time: its state keeps the first reason); returns at once."""
-        self._send(("stop", reason))
+        """Send the stop to the loop's side (every time: its state keeps the first reason) on its pipe,
+        from the caller's thread: no other thread needs the interpreter's lock for it; returns at once.
+
+        The pipe does not block: a message under ``PIPE_BUF`` bytes (4 kB; the
+        reason is cut to 500 characters) is written whole or not at all, and one not written finds
+        the pipe full of stops the loop's side has yet to read, so it adds nothing to them."""
+        with self._stops_lock, contextlib.suppress(BlockingIOError, OSError):  # OSError: the daemon is gone
+            self._stops.send(reason[:500])
         if not self._asked:
             self._asked = reason
 
@@ -147,15 +157,11 @@ class _ApiState(DaemonState):
         return self._loop_stop[1] if self._loop_stop[0] else self._asked
 
 
-def _send_all(outbox: queue.SimpleQueue, up: Connection, stops: Connection) -> None:
-    """Write the API's messages to the daemon's side in order (a stop's reason on ``stops``), until None
-    (or the daemon is gone)."""
+def _send_all(outbox: queue.SimpleQueue, up: Connection) -> None:
+    """Write the API's messages to the daemon's side in order until None (or the daemon is gone)."""
     while (msg := outbox.get()) is not None:
         try:
-            if msg[0] == "stop":
-                stops.send(msg[1])
-            else:
-                up.send(msg)
+            up.send(msg)
         except OSError:  # the daemon's process is gone
             return
 
@@ -208,8 +214,8 @@ def _api_main(sock: socket.socket, down: Connection, up: Connection, stops: Conn
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _GROUP_SIGNALS)  # blocked by the daemon while it started us
     leave_real_time()
     outbox: queue.SimpleQueue = queue.SimpleQueue()
-    state = _ApiState(outbox.put)
-    sender = threading.Thread(target=_send_all, args=(outbox, up, stops), name="hbma-api-send", daemon=True)
+    state = _ApiState(outbox.put, stops)
+    sender = threading.Thread(target=_send_all, args=(outbox, up), name="hbma-api-send", daemon=True)
     sender.start()
     app = make_app(state, token, rate_hz=rate_hz, allow_remote=allow_remote)
     server = uvicorn.Server(server_config(app))
