@@ -62,13 +62,15 @@ def build_closed_loop(settings: RobotSettings, targets: dict, controller: str = 
                       pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                       mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                       model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> tuple[SimRig, RobotSystem]:
+                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC, estimator: str = "ekf",
+                      window: dict | None = None) -> tuple[SimRig, RobotSystem]:
     """The simulated robot rig and the system that drives it (:func:`run_closed_loop`'s arguments;
     ``nmpc_class`` the NMPC's class, :class:`RobotNMPC` or one with its interface). A generated loop is
-    built from the same objects (:mod:`hbma_ctrl.app.codegen.robot`)."""
+    built from the same objects (:mod:`hbma_ctrl.app.codegen.robot`). ``estimator``, ``window``: as
+    :func:`~hbma_ctrl.system.robot.robot_system`'s."""
     rs = (rig or RobotRigSettings()).validate()
     system = robot_system(settings, targets, rs, controller, pneumatics, mpc, pid, model, interlock_margin,
-                          cautious, nmpc_class)
+                          cautious, nmpc_class, estimator=estimator, window=window)
     return SimRig.robot(settings, rs, pneumatics, tip_load), system
 
 
@@ -76,7 +78,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                    cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> ClosedLoopRun:
+                    cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC, estimator: str = "ekf",
+                    window: dict | None = None) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s from rest (see module doc).
 
     targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
@@ -88,10 +91,12 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     chambers' filters take are ``settings``' (``target_rate`` m/s, None or 0: targets step;
     ``valve_min_on``, ``valve_delay``, ``sensor_delay``, s). ``nmpc_class``: the NMPC's class
     (:class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` runs the generated loop's step).
+    ``estimator``: 'ekf' (the EKF bank) or 'mhe' (its windows' settings ``window``; see
+    :func:`~hbma_ctrl.system.robot.robot_system`).
     """
     check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
     sim, system = build_closed_loop(settings, targets, controller, pneumatics, rig, mpc, pid, model, tip_load,
-                                    interlock_margin, cautious, nmpc_class)
+                                    interlock_margin, cautious, nmpc_class, estimator, window)
     plant, loop = sim.rig, system.loop
     n = loop.n
     ctrl, sup = loop.controller, loop.supervisor
