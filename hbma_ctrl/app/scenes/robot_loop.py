@@ -56,6 +56,7 @@ class ClosedLoopRun:
     lost_estimate_steps: int = 0  # chamber steps vented for a lost estimate
     bursts: list = field(default_factory=list)  # chambers the burst test flagged (indices)
     burst_peak_sigma: float = 0.0  # the burst test's largest sum, sigma (0 without the test)
+    estimator_stats: dict = field(default_factory=dict)  # the estimator's counts (its ``stats()``)
 
 
 def build_closed_loop(settings: RobotSettings, targets: dict, controller: str = "mpc",
@@ -141,4 +142,4 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                          int(ctrl.inaccurate), status, time.perf_counter() - wall0,
                          np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
                          BE[sl], loop.cautious_steps, list(sup.events), sup.counts["stretch_guard"],
-                         sup.counts["lost_estimate"], ls["bursts"], ls["burst_peak_sigma"])
+                         sup.counts["lost_estimate"], ls["bursts"], ls["burst_peak_sigma"], ls["estimator"])
