@@ -40,8 +40,8 @@ from hbma_ctrl.models.chamber import NX
 
 __all__ = ["RobotMHE", "BankWindowModel", "window_settings"]
 
-#: the sample's rows in the packed step: acting command (3), reading, its kind, the node's load
-_SAMPLE = 6
+#: the window's parts that do not move with its nodes (the parameters and the arrival cost)
+_FIXED = ("th", "xbar", "P0")
 
 
 class BankWindowModel:
@@ -116,8 +116,6 @@ class RobotMHE:
     model, n, settings : as the bank's. horizon : samples per window. window : more
     :class:`MHESettings` fields of the windows (``reseed_cost``, ``huber``, ``qp_solver``, ``compile``).
     """
-
-    kind = "mhe"
 
     def __init__(self, model: ChamberBank, n: int, settings: ChamberEKFSettings | None = None,
                  horizon: int = 20, **window):
@@ -212,13 +210,12 @@ class RobotMHE:
         """Shift the windows of chambers ``cols`` by one sample (as the packed step does inside)."""
         N = self.N
         for name, (r, c) in self._lay:
+            if name in _FIXED:
+                continue
             i = self._off[name][0]
             a = self.win[i:i + r * c]
-            if name in ("U", "Z", "kinds", "WL", "M") or name == "S":
-                blk = r if c > 1 else 1
-                a[:-blk, cols] = a[blk:, cols]
-            elif name in ("XI", "FM", "AR", "XM", "PV", "HR", "HV", "DH", "RS"):
-                a[:-r, cols] = a[r:, cols]
+            blk = r if c > 1 else 1  # column-major: one node or interval is a block of r entries
+            a[:-blk, cols] = a[blk:, cols]
         U = self._part("U")
         U[3 * (N - 1):, cols] = ua[:, cols]
         self._part("Z")[N - 1, cols] = zf[cols]

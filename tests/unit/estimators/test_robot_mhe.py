@@ -125,8 +125,8 @@ def test_heights_within_1_35_times_the_ekf_bank_error_on_the_structured_rig():
 
 
 def test_a_failed_window_step_falls_back_to_the_ekf_counted_for_its_chamber(model):
-    """Chamber 1's step reported failed: its estimate is the EKF bank's, its window restarts and its count
-    goes up by one; the other chambers' steps are the windows'."""
+    """Chamber 1's step reported failed: its estimate is the EKF bank's, its window shifts and restarts
+    and its count goes up by one; the other chambers' steps are the windows'."""
     n, N = 3, 4
     est = RobotMHE(model, n, ChamberEKFSettings(), horizon=N, compile=False, reseed_cost=0.0)
     W = np.full(n, 0.06)
@@ -149,6 +149,9 @@ def test_a_failed_window_step_falls_back_to_the_ekf_counted_for_its_chamber(mode
     assert est.stats()["fallbacks_per_chamber"] == [0, 1, 0] and est.stats()["fallbacks"] == 1
     assert list(e["mhe"]) == [True, False, True]
     assert e["h"][1] == est.ekf.last["h"][1]
+    # the failed chamber's window shifted as the step shifts the others' (the same inputs in every chamber)
+    for part in ("U", "Z", "kinds", "WL"):
+        np.testing.assert_array_equal(est._part(part, 1), est._part(part, 0))
     est._fn = real
     est.step(z + 600.0, w, W)
     assert est.stats()["fallbacks"] == 1
