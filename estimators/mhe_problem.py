@@ -254,7 +254,7 @@ def _condensed_data(om: ObserverModel, s: MHESettings, known_load: bool = False)
                        {"cse": True})
 
 
-def _nodes(M, th, WL, cols: slice | None = None):
+def _nodes(M, th, WL):
     """The states (5 x nodes) of gas masses M (a row) and the window's th = (W, b, k, c); with a known
     load the nodes' own loads WL (a row) replace W."""
     n = M.size2()

@@ -176,3 +176,11 @@ def test_a_robot_scenario_reads_kind_and_defaults_to_the_ekf_bank():
     assert load_scenario(BENDING).settings.get("estimator") is None
     sec = load_scenario(ROOT / "scenarios" / "robot_mhe.toml").settings["estimator"]
     assert sec.filter == "mhe" and sec.tuning == {"horizon": 20}
+
+
+def test_codegen_refuses_the_robot_mhe_in_one_line():
+    from hbma_ctrl.app.codegen.robot import robot_scene_parts
+
+    with pytest.raises(ValueError, match=r"^codegen: \[estimator\] kind = 'mhe': the robot's generated loop runs "
+                                         r"the EKF bank only \(kind = \"ekf\"\)$"):
+        robot_scene_parts(load_scenario(ROOT / "scenarios" / "robot_mhe.toml"))
