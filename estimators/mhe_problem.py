@@ -27,6 +27,18 @@ Hard constraints: the shape follows from (m, W) by the model's projection (``0 <
 (the gauge pressure is >= 0; the later nodes follow the model, whose vent stops at the ambient); the factors in :data:`hbma_ctrl.estimators.common.FACTOR_RANGE`; every
 node's height at most :data:`H_MAX_REL` r1.
 
+Known load (``known_load=True``): the load is not an unknown but an input series ``WL`` (N + 1, N),
+one per node, as the robot's statics give it (:mod:`hbma_ctrl.estimators.robot_mhe`). Node j's
+reading is modelled at ``WL_j`` and the interval ending at node j is predicted at ``WL_j``; the
+unknowns that remain are the first gas mass and the three factors (the load's column of every
+linearisation is zero and its step is held at 0, so the window's load plays no part in the
+least-squares problem, its arrival update or its covariance).
+
+The window's model (``om``) is the chamber's :class:`hbma_ctrl.models.chamber.ObserverModel` or any
+object with the same ``predict`` and ``outputs`` Functions, ``theta`` and ``m_env``; it may name its
+own ``factor_ranges`` (three (lo, hi) pairs, default :data:`FACTOR_RANGE`) and ``h_max_function()``
+(theta -> the largest node height, m; default :data:`H_MAX_REL` r1).
+
 The real-time step (:func:`mhe_step_function`) is one Gauss-Newton step: the model is linearised
 afresh at the newest ``relinearise`` intervals and nodes, the older keep their stored linearisation
 (:data:`LIN_NAMES`, corrected to first order at the iterate). Along the window the linearised
@@ -87,8 +99,9 @@ def state_bounds(om: ObserverModel, s: FilterSettings) -> tuple[np.ndarray, np.n
     """Bounds of (m, W, b, k, c) in SI: the gas mass at least the ambient's (the gauge pressure is >= 0:
     the pump fills, the outlet vents to ambient, nothing draws a vacuum; so the resting membrane's
     contact force pi r1^2 p is >= 0), W in [0, load_max], factors in FACTOR_RANGE."""
-    lo = np.array([om.m_env, 0.0, FACTOR_RANGE[0], FACTOR_RANGE[0], FACTOR_RANGE[0]])
-    hi = np.array([50.0 * om.m_env, s.load_max, FACTOR_RANGE[1], FACTOR_RANGE[1], FACTOR_RANGE[1]])
+    fr = getattr(om, "factor_ranges", None) or (FACTOR_RANGE,) * 3
+    lo = np.array([om.m_env, 0.0] + [r[0] for r in fr])
+    hi = np.array([50.0 * om.m_env, s.load_max] + [r[1] for r in fr])
     return lo, hi
 
 
@@ -138,7 +151,9 @@ def _model_maps(om: ObserverModel, N: int) -> tuple[ca.Function, ca.Function]:
 
 
 def _h_max(om: ObserverModel) -> ca.Function:
-    """theta -> the largest node height (m), :data:`H_MAX_REL` r1."""
+    """theta -> the largest node height (m), :data:`H_MAX_REL` r1 (or the model's own ``h_max_function``)."""
+    if hasattr(om, "h_max_function"):
+        return om.h_max_function()
     thp, Pd = om.chamber.symbols()
     return ca.Function("mhe_h_max", [thp], [H_MAX_REL * Pd["r1"]])
 
@@ -167,7 +182,11 @@ def _reading_terms(s: FilterSettings, p, rest, Z, kinds):
     return rz, wz, R, R_sat, used
 
 
-def _condensed_data(om: ObserverModel, s: MHESettings) -> ca.Function:
+#: the unknowns with a known load: the load's entry of the state held out (its step 0)
+_NO_LOAD = ca.DM([1.0, 0.0, 1.0, 1.0, 1.0])
+
+
+def _condensed_data(om: ObserverModel, s: MHESettings, known_load: bool = False) -> ca.Function:
     """The five-unknown least-squares step from the window's linearisation (an SX Function): the
     Gauss-Newton Hessian and gradient in the scaled unknowns, their box (bounds within the trust
     region), the nodes' height rows (<= hmax, mm), the cost at the iterate, every node's gas mass and
@@ -218,6 +237,8 @@ def _condensed_data(om: ObserverModel, s: MHESettings) -> ca.Function:
     ubx = ca.fmin(ca.DM(zhi) - x0s, tr)
     # a start outside its bounds (a prior off them) is brought back within one step
     lbx = ca.fmin(lbx, ubx)
+    if known_load:
+        lbx, ubx = lbx * _NO_LOAD, ubx * _NO_LOAD
     # the height rows (mm: the QP solver's tolerances are absolute), met with ROW_MARGIN; a row the box
     # cannot meet is relaxed to the box's best (brought back over the next steps). The nodes' gas masses
     # need no rows: the model's vent stops at the ambient pressure, and the first node's is in the box
@@ -233,7 +254,21 @@ def _condensed_data(om: ObserverModel, s: MHESettings) -> ca.Function:
                        {"cse": True})
 
 
-def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
+def _nodes(M, th, WL):
+    """The states (5 x nodes) of gas masses M (a row) and the window's th = (W, b, k, c); with a known
+    load the nodes' own loads WL (a row) replace W."""
+    n = M.size2()
+    if WL is None:
+        return ca.vertcat(M, ca.repmat(th, 1, n))
+    return ca.vertcat(M, WL, ca.repmat(th[1:], 1, n))
+
+
+def _without_load(a, known_load: bool):
+    """Rows (5 x n) of a linearisation with the load's row zeroed when the load is known."""
+    return a * ca.repmat(_NO_LOAD, 1, a.size2()) if known_load else a
+
+
+def mhe_step_function(om: ObserverModel, s: MHESettings, known_load: bool = False) -> ca.Function:
     """One real-time iteration of the MHE as one casadi Function (numeric, C-generable).
 
     Inputs (SI; N = ``s.horizon``): ``M`` (N + 1) the nodes' gas masses (kg, reduced as the EKF's
@@ -250,6 +285,9 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     Gauss-Newton Hessian), ``status`` (0 ok, 1 non-finite, 2 the QP solution off its bounds), ``cost``
     (the window's cost before the step) and ``n_active`` (unknowns at a bound or at the trust region
     after the step); then the linearisation to store (``name_next``).
+
+    With ``known_load`` (module docstring) a last input ``WL`` (N + 1) gives the nodes' loads (N); th's
+    load entry is then not used, and the outputs report node N's load WL_N.
     """
     s = s.validate()
     N = int(s.horizon)
@@ -261,18 +299,22 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     Z, kinds = MX.sym("Z", N), MX.sym("kinds", N)
     xbar, P0 = MX.sym("xbar", NX), MX.sym("P0", NX, NX)
     theta, fresh = MX.sym("theta", nt), MX.sym("fresh")
+    WL = MX.sym("WL", N + 1) if known_load else None
+    WLr = WL.T if known_load else None
     TH = ca.repmat(theta, 1, N)
     L = fresh_nodes(s)
     pm_L, om_L = _model_maps(om, L)
     # the newest L intervals linearised afresh; the last one's prediction is the new node N (its gas
-    # mass and shape)
-    XL = ca.vertcat(M[N - L:N].T, ca.repmat(th, 1, L))
+    # mass and shape); the interval ending at node j is predicted at node j's load
+    XL = _nodes(M[N - L:N].T, th, WLr[:, N - L + 1:] if known_load else None)
     xnf, Af, snf = pm_L(XL, S[:, N - L:N], U[:, N - L:], TH[:, :L])
     mN = ca.if_else(fresh > 0.5, xnf[0, L - 1], M[N])
     sN = ca.if_else(fresh > 0.5, snf[:, L - 1], S[:, N])
     M1 = ca.vertcat(M[:N], mN)
     S1 = ca.horzcat(S[:, :N], sN)
-    X = ca.vertcat(M1.T, ca.repmat(th, 1, N + 1))  # 5 x (N + 1)
+    X = _nodes(M1.T, th, WLr)  # 5 x (N + 1)
+    # the intervals' points: each at the load of the node it ends at
+    XIv = _nodes(M1[:N].T, th, WLr[:, 1:] if known_load else None)
     # the stored linearisation of the intervals (points XI, values FM, rows AR of d m_next / d x) and of
     # the nodes 1..N (points XM, pressure PV, its row HR, height HV, its row DH, rest RS)
     XI, FM, AR = MX.sym("XI", NX, N), MX.sym("FM", 1, N), MX.sym("AR", NX, N)
@@ -282,18 +324,18 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     sof, yf, Hf, Dhf = om_L(X[:, N - L + 1:], S1[:, N - L + 1:], TH[:, :L])
     old = N - L  # the nodes that keep their linearisation
     FMn = ca.horzcat(FM[:, :old], xnf[0, :])
-    ARn = ca.horzcat(AR[:, :old], ca.reshape(Af[0, :], NX, L))
-    XIn = ca.horzcat(XI[:, :old], X[:, old:N])
+    ARn = ca.horzcat(AR[:, :old], _without_load(ca.reshape(Af[0, :], NX, L), known_load))
+    XIn = ca.horzcat(XI[:, :old], XIv[:, old:N])
     PVn = ca.horzcat(PV[:, :old], yf[4, :])
-    HRn = ca.horzcat(HR[:, :old], ca.reshape(Hf, NX, L))
+    HRn = ca.horzcat(HR[:, :old], _without_load(ca.reshape(Hf, NX, L), known_load))
     HVn = ca.horzcat(HV[:, :old], yf[2, :])
-    DHn = ca.horzcat(DHs[:, :old], ca.reshape(Dhf, NX, L))
+    DHn = ca.horzcat(DHs[:, :old], _without_load(ca.reshape(Dhf, NX, L), known_load))
     RSn = ca.horzcat(RS[:, :old], yf[5, :])
     XMn = ca.horzcat(XM[:, :old], X[:, old + 1:])
     lin_out = [XIn, FMn, ARn, XMn, PVn, HRn, HVn, DHn, RSn]
     so = ca.horzcat(S1[:, 1:old + 1], sof)
     hmax = _h_max(om)(theta)
-    data = _condensed_data(om, s)
+    data = _condensed_data(om, s, known_load)
     Hm, gm, lbm, ubm, Am, lbam, ubam, costm, Mv, Sm, Rm, usedm, Rsatm = data(
         M1[0], th, Z, kinds, xbar, P0, FMn.T, ARn, XIn, PVn.T, HRn, XMn, HVn.T, DHn, RSn.T, hmax)
     qp = ca.conic("mhe_qp", s.qp_solver, {"h": ca.Sparsity.dense(5, 5), "a": ca.Sparsity.dense(N, 5)},
@@ -336,6 +378,8 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     TN = ca.vertcat(Sm[N, :], ca.horzcat(MX.zeros(4, 1), ca.diag(ca.DM(sc[1:]))))
     covN = ca.mtimes([TN, ca.solve(Hm, TN.T, "ldl")])
     covN = 0.5 * (covN + covN.T)
+    if known_load:
+        th_new = ca.vertcat(WL[N], th_new[1:])
     xN = ca.vertcat(M_new[N], th_new)
     s_out, yN, _, CN = out1(xN, so[:, N - 1], theta, covN)
     S_next = ca.horzcat(S1[:, 0], so[:, :N - 1], s_out)
@@ -347,25 +391,34 @@ def mhe_step_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     # that is about flat)
     est = ca.vertcat(yN[0], ca.fmin(ca.fmax(yN[1], 0.0), ca.fmax(yN[0], 0.0)), ca.fmax(yN[2], 0.0),
                      ca.fmax(yN[3], 0.0), yN[4])
-    return ca.Function("mhe_step", [M, th, S, U, Z, kinds, xbar, P0, theta, fresh] + lin_in,
+    extra = [WL] if known_load else []
+    return ca.Function("mhe_step", [M, th, S, U, Z, kinds, xbar, P0, theta, fresh] + lin_in + extra,
                        [M_new, th_new, S_next, xbar_next, Pp, est, CN, covN, status, costm, active] + lin_out,
-                       list(STEP_IN) + list(LIN_NAMES), list(STEP_OUT) + [n + "_next" for n in LIN_NAMES])
+                       list(STEP_IN) + list(LIN_NAMES) + ["WL"] * known_load,
+                       list(STEP_OUT) + [n + "_next" for n in LIN_NAMES])
 
 
-def linearise_function(om: ObserverModel, N: int) -> ca.Function:
+def linearise_function(om: ObserverModel, N: int, known_load: bool = False) -> ca.Function:
     """The window's whole linearisation (the step's stored inputs :data:`LIN_NAMES`) at nodes M, th,
-    shapes S and commands U: what the step keeps for the nodes it does not linearise afresh."""
+    shapes S and commands U (and, ``known_load``, the nodes' loads WL, N): what the step keeps for the
+    nodes it does not linearise afresh."""
     pred_map, out_map = _model_maps(om, N)
     nt = int(np.asarray(om.theta).size)
     M, th, S, U, theta = (ca.MX.sym(n, *sh) for n, sh in (("M", (N + 1, 1)), ("th", (4, 1)), ("S", (2, N + 1)),
                                                             ("U", (3, N)), ("theta", (nt, 1))))
-    X = ca.vertcat(M.T, ca.repmat(th, 1, N + 1))
+    WLc = ca.MX.sym("WL", N + 1)
+    WL = WLc.T if known_load else None
+    X = _nodes(M.T, th, WL)
+    XI = _nodes(M[:N].T, th, WL[:, 1:] if known_load else None)
     TH = ca.repmat(theta, 1, N)
-    xn, A, _ = pred_map(X[:, :N], S[:, :N], U, TH)
+    xn, A, _ = pred_map(XI, S[:, :N], U, TH)
     _, y, H, Dh = out_map(X[:, 1:], S[:, 1:], TH)
-    outs = [X[:, :N], xn[0, :], ca.reshape(A[0, :], NX, N), X[:, 1:], y[4, :], ca.reshape(H, NX, N), y[2, :],
-            ca.reshape(Dh, NX, N), y[5, :]]
-    return ca.Function("mhe_linearise", [M, th, S, U, theta], outs, ["M", "th", "S", "U", "theta"], list(LIN_NAMES))
+    outs = [XI, xn[0, :], _without_load(ca.reshape(A[0, :], NX, N), known_load), X[:, 1:], y[4, :],
+            _without_load(ca.reshape(H, NX, N), known_load), y[2, :],
+            _without_load(ca.reshape(Dh, NX, N), known_load), y[5, :]]
+    ins = [M, th, S, U, theta] + ([WLc] if known_load else [])
+    return ca.Function("mhe_linearise", ins, outs, ["M", "th", "S", "U", "theta"] + ["WL"] * known_load,
+                       list(LIN_NAMES))
 
 
 def _qp_opts(qp_solver: str) -> dict:
@@ -378,11 +431,12 @@ def _qp_opts(qp_solver: str) -> dict:
             "error_on_fail": False}
 
 
-def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
+def mhe_nlp(om: ObserverModel, s: MHESettings, known_load: bool = False) -> ca.Function:
     """The window's full problem for IPOPT, ``(M, th, S, U, Z, kinds, xbar, P0, theta) -> (M_next,
     th_next, cost)``: the same unknowns, cost and bounds as :func:`mhe_step_function`, the model exact
     along the window (its recursion from the first state, no linearisation), no trust region; ``M``
-    and ``th`` the start, ``S`` the shapes' warm starts."""
+    and ``th`` the start, ``S`` the shapes' warm starts. With ``known_load`` a last input ``WL``
+    (N + 1) gives the nodes' loads, N, and th's load is held."""
     s = s.validate()
     N = int(s.horizon)
     nt = int(np.asarray(om.theta).size)
@@ -394,13 +448,18 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     zv = MX.sym("z", 5)
     S, U, Z, kinds = MX.sym("S", 2, N + 1), MX.sym("U", 3, N), MX.sym("Z", N), MX.sym("kinds", N)
     xbar, P0, theta = MX.sym("xbar", NX), MX.sym("P0", NX, NX), MX.sym("theta", nt)
+    WL = MX.sym("WL", N + 1)
     x0 = zv * ca.DM(sc)
     th = x0[1:]
     ms, ps, rests, hs = [x0[0]], [], [], []
     x = x0
+
+    def at(m, j):  # node j's state
+        return ca.vertcat(m, WL[j], th[1:]) if known_load else ca.vertcat(m, th)
+
     for j in range(N):
-        xn = pred1(x, S[:, j], U[:, j], theta)[0]
-        x = ca.vertcat(xn[0], th)
+        xn = pred1(at(x[0], j + 1), S[:, j], U[:, j], theta)[0]
+        x = at(xn[0], j + 1)
         ms.append(xn[0])
         y = meas(x, S[:, j + 1], theta)[1]
         ps.append(y[4])
@@ -423,49 +482,58 @@ def mhe_nlp(om: ObserverModel, s: MHESettings) -> ca.Function:
     f = 0.5 * (ca.mtimes([r0.T, Pinv, r0]) + ca.sum1(lz))
     Mv = ca.vertcat(*ms)
     hmax = _h_max(om)(theta)
-    par = ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta)
+    par = ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta, WL)
     opts = {"ipopt": {"print_level": 0, "max_iter": s.ipopt_iter, "tol": 1e-8, "hessian_approximation": "limited-memory"},
             "print_time": False, "error_on_fail": False, "expand": True}
     solver = ca.nlpsol("mhe_ipopt", "ipopt", {"x": zv, "f": f, "p": par, "g": h - hmax},
                        opts)
-    Min, thin = MX.sym("M", N + 1), MX.sym("th", 4)
+    Min, thin, WLin = MX.sym("M", N + 1), MX.sym("th", 4), MX.sym("WL", N + 1)
     z0 = ca.vertcat(Min[0], thin) / ca.DM(sc)
-    zlo, zhi = lo / sc, hi / sc
-    sol = solver(x0=ca.fmin(ca.fmax(z0, zlo), zhi), lbx=zlo, ubx=zhi, lbg=-ca.inf, ubg=0.0,
-                 p=ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta))
+    zlo, zhi = ca.DM(lo / sc), ca.DM(hi / sc)
+    z0 = ca.fmin(ca.fmax(z0, zlo), zhi)
+    if known_load:  # the load held where it starts
+        zlo = ca.vertcat(zlo[0], z0[1], zlo[2:])
+        zhi = ca.vertcat(zhi[0], z0[1], zhi[2:])
+    WLv = WLin if known_load else ca.DM.zeros(N + 1)
+    sol = solver(x0=z0, lbx=zlo, ubx=zhi, lbg=-ca.inf, ubg=0.0,
+                 p=ca.vertcat(ca.vec(S), ca.vec(U), Z, kinds, xbar, ca.vec(P0), theta, WLv))
     zs = sol["x"]
-    Msol = ca.Function("mhe_traj", [zv, S, U, theta], [Mv])(zs, S, U, theta)
-    return ca.Function("mhe_ipopt_step", [Min, thin, S, U, Z, kinds, xbar, P0, theta],
+    Msol = ca.Function("mhe_traj", [zv, S, U, theta, WL], [Mv])(zs, S, U, theta, WLv)
+    extra = [WLin] if known_load else []
+    return ca.Function("mhe_ipopt_step", [Min, thin, S, U, Z, kinds, xbar, P0, theta] + extra,
                        [Msol, zs[1:] * ca.DM(sc[1:]), sol["f"]],
-                       ["M", "th", "S", "U", "Z", "kinds", "xbar", "P0", "theta"], ["M_next", "th_next", "cost"])
+                       ["M", "th", "S", "U", "Z", "kinds", "xbar", "P0", "theta"] + ["WL"] * known_load,
+                       ["M_next", "th_next", "cost"])
 
 
-def window_layout(N: int) -> list[tuple[str, tuple[int, int]]]:
+def window_layout(N: int, known_load: bool = False) -> list[tuple[str, tuple[int, int]]]:
     """The window as one flat vector (each part column-major, in this order): the step's inputs
-    :data:`STEP_IN` without ``theta`` and ``fresh``, then the stored linearisation :data:`LIN_NAMES`;
-    (name, (rows, columns)) per part."""
+    :data:`STEP_IN` without ``theta`` and ``fresh``, then the stored linearisation :data:`LIN_NAMES`
+    (then, ``known_load``, the nodes' loads ``WL``); (name, (rows, columns)) per part."""
     return [("M", (N + 1, 1)), ("th", (4, 1)), ("S", (2, N + 1)), ("U", (3, N)), ("Z", (N, 1)), ("kinds", (N, 1)),
             ("xbar", (NX, 1)), ("P0", (NX, NX)), ("XI", (NX, N)), ("FM", (1, N)), ("AR", (NX, N)), ("XM", (NX, N)),
-            ("PV", (1, N)), ("HR", (NX, N)), ("HV", (1, N)), ("DH", (NX, N)), ("RS", (1, N))]
+            ("PV", (1, N)), ("HR", (NX, N)), ("HV", (1, N)), ("DH", (NX, N)), ("RS", (1, N))] + \
+        [("WL", (N + 1, 1))] * known_load
 
 
 #: outputs of the packed step (:func:`mhe_packed_function`): :data:`STEP_OUT`, then these
 PACKED_OUT = STEP_OUT + ("window_next", "P0_pivot", "x_new", "std")
 
 
-def mhe_packed_function(om: ObserverModel, s: MHESettings) -> ca.Function:
+def mhe_packed_function(om: ObserverModel, s: MHESettings, known_load: bool = False) -> ca.Function:
     """:func:`mhe_step_function` on the window as one flat vector (:func:`window_layout`), shifted by
     one sample inside: ``(window, sample, theta) -> outputs`` (:data:`PACKED_OUT`), ``sample`` = (the
     command acting over the newest interval (3), the newest reading (Pa), its kind). ``window_next``
     is the next step's window; ``P0_pivot`` the next arrival covariance's smallest pivot above the
     floor (:func:`hbma_ctrl.models.chamber.min_pivot`: <= 0 when it needs the floor), ``x_new`` node
-    N's state and ``std`` the outputs' standard deviations."""
+    N's state and ``std`` the outputs' standard deviations. With ``known_load`` the sample has a sixth
+    entry, the newest node's load (N)."""
     s = s.validate()
     N = int(s.horizon)
     nt = int(np.asarray(om.theta).size)
-    lay = window_layout(N)
+    lay = window_layout(N, known_load)
     size = sum(r * c for _, (r, c) in lay)
-    W, new, theta = ca.MX.sym("window", size), ca.MX.sym("sample", 5), ca.MX.sym("theta", nt)
+    W, new, theta = ca.MX.sym("window", size), ca.MX.sym("sample", 5 + known_load), ca.MX.sym("theta", nt)
     parts, i = {}, 0
     for name, (r, c) in lay:
         parts[name] = ca.reshape(W[i:i + r * c], r, c)
@@ -483,13 +551,18 @@ def mhe_packed_function(om: ObserverModel, s: MHESettings) -> ca.Function:
     for name in LIN_NAMES:
         a = parts[name]
         win[name] = ca.horzcat(a[:, 1:], a[:, N - 1])
-    step = mhe_step_function(om, s)
-    args = [win[n] for n in STEP_IN[:8]] + [theta, 1.0] + [win[n] for n in LIN_NAMES]
+    if known_load:
+        win["WL"] = ca.vertcat(parts["WL"][1:], new[5])
+    step = mhe_step_function(om, s, known_load)
+    args = [win[n] for n in STEP_IN[:8]] + [theta, 1.0] + [win[n] for n in LIN_NAMES] + \
+        ([win["WL"]] if known_load else [])
     out = step.call(args)
     res = dict(zip(list(STEP_OUT) + list(LIN_NAMES), out))
     nxt = {"M": res["M_next"], "th": res["th_next"], "S": res["S_next"], "U": win["U"], "Z": win["Z"],
            "kinds": win["kinds"], "xbar": res["xbar_next"], "P0": res["P0_next"]}
     nxt.update({n: res[n] for n in LIN_NAMES})
+    if known_load:
+        nxt["WL"] = win["WL"]
     W_next = ca.vertcat(*[ca.vec(nxt[n]) for n, _ in lay])
     Ps = ca.SX.sym("P", NX, NX)
     piv = ca.Function("mhe_pivot", [Ps], [min_pivot(Ps, s.cov_floor)])(res["P0_next"])

@@ -21,6 +21,7 @@ from hbma_ctrl.core import units as U
 from hbma_ctrl.core.loopgen import LogColumn, LoopSpec, Stage
 from hbma_ctrl.core.params import Pneumatics
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank, ChamberEKFSettings, bank_step_function
+from hbma_ctrl.estimators.robot_mhe import RobotMHE
 from hbma_ctrl.models.actuation import acting_function, acting_state
 from hbma_ctrl.models.bank import ChamberBank, throttled_inputs_function
 from hbma_ctrl.robot.kinematics import inverse_kinematics, layer_plane
@@ -33,7 +34,7 @@ from hbma_ctrl.runtime.robot_step import caps_function, net_vents_function, slew
 from hbma_ctrl.runtime.safety_step import EVENTS, state_parts, state_size, supervisor_function
 from hbma_ctrl.system.base import SystemBase
 from hbma_ctrl.system.roles import make_model
-from hbma_ctrl.system.sections import CONTROLLERS, RobotSettings
+from hbma_ctrl.system.sections import CONTROLLERS, ROBOT_ESTIMATORS, RobotSettings
 
 __all__ = ["RobotSystem", "robot_system"]
 
@@ -258,7 +259,8 @@ def robot_system(settings: RobotSettings, targets: dict, rig_settings: RobotRigS
                  pneumatics: Pneumatics | None = None, mpc: RobotMPCSettings | None = None,
                  pid: RobotPIDSettings | None = None, model: ChamberBank | None = None,
                  interlock_margin: float = 1e3, cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC,
-                 p_max: float | None = None, target_rate: float | None = None) -> RobotSystem:
+                 p_max: float | None = None, target_rate: float | None = None, estimator: str = "ekf",
+                 window: dict | None = None) -> RobotSystem:
     """The robot system ``settings`` asks for on a rig of ``rig_settings`` (SI): the chambers' EKF bank,
     the NMPC (``mpc``, its class ``nmpc_class``) or the pressure PID (``pid``), the supervisor and the loop.
 
@@ -269,6 +271,9 @@ def robot_system(settings: RobotSettings, targets: dict, rig_settings: RobotRigS
         its supply duty is capped (the NMPC's input bound); None = off.
     p_max : the NMPC's pressure bound, Pa (None = the robot's pressure limit).
     target_rate : the fastest a chamber's target moves, m/s (None = ``settings.target_rate``).
+    estimator : 'ekf' (the EKF bank) or 'mhe' (:class:`hbma_ctrl.estimators.robot_mhe.RobotMHE`, a window
+        per chamber over the EKF bank; ``window`` its settings: ``horizon`` and
+        :class:`~hbma_ctrl.estimators.mhe_settings.MHESettings` fields).
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"robot.controller = '{controller}': allowed {', '.join(CONTROLLERS)}")
@@ -282,10 +287,14 @@ def robot_system(settings: RobotSettings, targets: dict, rig_settings: RobotRigS
         raise ValueError("robot_system: the model's topology differs from robot.topology")
     Ts = rs.sample_period
     settings.check_period(Ts)
-    bank = ChamberEKFBank(model, n, ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0),
-                                                        sensor_range=rp.sensor_range,
-                                                        valve_delay=settings.valve_delay,
-                                                        sensor_delay=settings.sensor_delay))
+    if estimator not in ROBOT_ESTIMATORS:
+        raise ValueError(f"estimator.kind = '{estimator}': allowed for a robot {', '.join(ROBOT_ESTIMATORS)}")
+    es = ChamberEKFSettings(sample_period=Ts, noise_std=max(rs.noise_std, 1.0), sensor_range=rp.sensor_range,
+                            valve_delay=settings.valve_delay, sensor_delay=settings.sensor_delay)
+    if estimator == "mhe":
+        bank = RobotMHE(model, n, es, **(window or {}))
+    else:
+        bank = ChamberEKFBank(model, n, es)
     if controller == "mpc":
         ms = replace(mpc or RobotMPCSettings(), sample_period=Ts,
                      p_max=rp.pressure_limit if p_max is None else p_max)

@@ -213,6 +213,10 @@ def filter_settings_for(section: EstimatorSection, rig: RigSettings) -> FilterSe
 
 SCENE_MODES = ("open_loop", "closed_loop")
 CONTROLLERS = ("mpc", "pressure_pid")
+#: a robot's estimators ([estimator] kind): the EKF bank, or a moving-horizon window per chamber over it
+ROBOT_ESTIMATORS = ("ekf", "mhe")
+#: the [estimator] keys a robot scenario reads (kind = "mhe": the windows' own)
+ROBOT_ESTIMATOR_KEYS = ("kind", "filter", "horizon", "huber", "reseed_cost", "qp_solver")
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,10 @@ def robot_scene_parts(scn):
     s = scn.role("robot")
     if s is None or s.mode != "closed_loop":
         raise ValueError("codegen: the scenario has no [robot] section with mode = 'closed_loop'")
+    est = scn.settings.get("estimator")
+    if est is not None and est.filter != "ekf":
+        raise ValueError(f"codegen: [estimator] kind = '{est.filter}': the robot's generated loop runs the EKF bank "
+                         "only (kind = \"ekf\")")
     return (s, *scene_parts(scn, s))
 
 

@@ -105,8 +105,11 @@ def _robot_runner(cfg: DaemonConfig) -> RobotSystem:
         w_slack = DAEMON_W_SLACK if s.mpc_w_slack is None else s.mpc_w_slack
         mpc = RobotMPCSettings(horizon=s.mpc_horizon, dt=s.mpc_dt, budget=budget, enforce_budget=True,
                                w_slack=w_slack)
+    est = scn.settings.get("estimator")
     system = robot_system(s, s.targets, rs, s.controller, scn.pneumatics, mpc=mpc, p_max=p_max,
-                          target_rate=DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate)
+                          target_rate=DAEMON_TARGET_RATE if s.target_rate is None else s.target_rate,
+                          estimator=est.filter if est is not None else "ekf",
+                          window=dict(est.tuning) if est is not None else None)
     # the solver's set-up and first solve before the first deadline, not in it (a replay of a run
     # builds its runner here too, so it starts as the run did)
     system.loop.prime()

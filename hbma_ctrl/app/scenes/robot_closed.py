@@ -218,24 +218,38 @@ def scene_parts(scn, settings: RobotSettings) -> tuple:
     return rig, model, mpc
 
 
+def estimator_metrics(run: ClosedLoopRun, kind: str) -> dict:
+    """The robot's "estimator" metrics object (a scenario with [estimator]): its kind, the estimated
+    heights' RMSE against the rig's (mm, every chamber and period after the first), its step time per
+    tick (ms: median, p99) and its counts (fallbacks per chamber for the MHE)."""
+    e = run.h_est[1:] - run.h[1:]
+    return {"kind": kind, "estimate_height_rmse_mm": float(U.to_mm(np.sqrt(np.mean(e ** 2)))),
+            "step_ms_median": float(U.to_ms(np.median(run.ekf_s))),
+            "step_ms_p99": float(U.to_ms(np.percentile(run.ekf_s, 99))), "counts": run.estimator_stats}
+
+
 def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
     """The closed-loop ``[robot]`` scene: metrics {"robot": {...}} (+ the baseline's beside it); writes
     ``robot_<controller>_log.csv`` and ``log.mcap`` (the baseline's ``log_<controller>.mcap``,
     :func:`hbma_ctrl.app.logs.scenes.write_robot_closed_loop`), robot_series.png and robot_shape.png with
-    their PDFs, robot_segments.json."""
+    their PDFs, robot_segments.json. With ``[estimator]`` (kind ekf or mhe) both runs use that estimator
+    and the metrics get its object (:func:`estimator_metrics`)."""
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     s = settings
     d = s.design
     rig, model, mpc = scene_parts(scn, s)
+    est_sec = scn.settings.get("estimator")
+    estimator = est_sec.filter if est_sec is not None else "ekf"
+    window = dict(est_sec.tuning) if est_sec is not None else {}
     kinds = [s.controller]
     if s.compare_baseline:
         kinds.append("pressure_pid" if s.controller == "mpc" else "mpc")
     runs, mets = [], []
     for kind in kinds:
         run = run_closed_loop(s, s.targets, scn.duration, kind, scn.pneumatics, rig, mpc, model=model,
-                              tip_load=s.tip_load)
+                              tip_load=s.tip_load, estimator=estimator, window=window)
         runs.append(run)
         mets.append(closed_loop_metrics(d, run, s.pneumatics.pressure_limit, s.settle_time, model=model))
         write_closed_csv(d, run, out / f"robot_{kind}_log.csv")
@@ -243,6 +257,8 @@ def run_closed_loop_scene(scn, settings: RobotSettings, out_dir) -> dict:
                                 extra={"kind": "robot closed loop", "controller": kind,
                                        "pressure_limit_kpa": U.to_kpa(s.pneumatics.pressure_limit)})
     metrics = dict(mets[0])
+    if est_sec is not None:
+        metrics["estimator"] = estimator_metrics(runs[0], estimator)
     metrics["topology"] = s.pneumatics.topology
     metrics["n_layers"] = d.n_layers
     if len(mets) > 1:

@@ -56,19 +56,22 @@ class ClosedLoopRun:
     lost_estimate_steps: int = 0  # chamber steps vented for a lost estimate
     bursts: list = field(default_factory=list)  # chambers the burst test flagged (indices)
     burst_peak_sigma: float = 0.0  # the burst test's largest sum, sigma (0 without the test)
+    estimator_stats: dict = field(default_factory=dict)  # the estimator's counts (its ``stats()``)
 
 
 def build_closed_loop(settings: RobotSettings, targets: dict, controller: str = "mpc",
                       pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                       mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                       model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> tuple[SimRig, RobotSystem]:
+                      cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC, estimator: str = "ekf",
+                      window: dict | None = None) -> tuple[SimRig, RobotSystem]:
     """The simulated robot rig and the system that drives it (:func:`run_closed_loop`'s arguments;
     ``nmpc_class`` the NMPC's class, :class:`RobotNMPC` or one with its interface). A generated loop is
-    built from the same objects (:mod:`hbma_ctrl.app.codegen.robot`)."""
+    built from the same objects (:mod:`hbma_ctrl.app.codegen.robot`). ``estimator``, ``window``: as
+    :func:`~hbma_ctrl.system.robot.robot_system`'s."""
     rs = (rig or RobotRigSettings()).validate()
     system = robot_system(settings, targets, rs, controller, pneumatics, mpc, pid, model, interlock_margin,
-                          cautious, nmpc_class)
+                          cautious, nmpc_class, estimator=estimator, window=window)
     return SimRig.robot(settings, rs, pneumatics, tip_load), system
 
 
@@ -76,7 +79,8 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                     pneumatics: Pneumatics | None = None, rig: RobotRigSettings | None = None,
                     mpc: RobotMPCSettings | None = None, pid: RobotPIDSettings | None = None,
                     model: ChamberBank | None = None, tip_load=(), interlock_margin: float = 1e3,
-                    cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC) -> ClosedLoopRun:
+                    cautious=(0.75, 0.03, 0.3), nmpc_class=RobotNMPC, estimator: str = "ekf",
+                    window: dict | None = None) -> ClosedLoopRun:
     """Run the robot closed loop for ``duration`` s from rest (see module doc).
 
     targets : {layer: ((t s, centre m, bend rad, direction rad), ...)}.
@@ -88,10 +92,12 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
     chambers' filters take are ``settings``' (``target_rate`` m/s, None or 0: targets step;
     ``valve_min_on``, ``valve_delay``, ``sensor_delay``, s). ``nmpc_class``: the NMPC's class
     (:class:`hbma_ctrl.controllers.robot_rti_step.RobotNMPCFunction` runs the generated loop's step).
+    ``estimator``: 'ekf' (the EKF bank) or 'mhe' (its windows' settings ``window``; see
+    :func:`~hbma_ctrl.system.robot.robot_system`).
     """
     check_range("robot closed loop", "duration", duration, 1e-2, 1e4, "s")
     sim, system = build_closed_loop(settings, targets, controller, pneumatics, rig, mpc, pid, model, tip_load,
-                                    interlock_margin, cautious, nmpc_class)
+                                    interlock_margin, cautious, nmpc_class, estimator, window)
     plant, loop = sim.rig, system.loop
     n = loop.n
     ctrl, sup = loop.controller, loop.supervisor
@@ -136,4 +142,4 @@ def run_closed_loop(settings: RobotSettings, targets: dict, duration: float, con
                          int(ctrl.inaccurate), status, time.perf_counter() - wall0,
                          np.unique(np.concatenate([change_times(targets), [r[0] for r in tip_load]])),
                          BE[sl], loop.cautious_steps, list(sup.events), sup.counts["stretch_guard"],
-                         sup.counts["lost_estimate"], ls["bursts"], ls["burst_peak_sigma"])
+                         sup.counts["lost_estimate"], ls["bursts"], ls["burst_peak_sigma"], ls["estimator"])

@@ -31,7 +31,7 @@ from hbma_ctrl.app.schema.fields import RuleError, Table
 from hbma_ctrl.app.schema.rig import RigTable
 from hbma_ctrl.app.schema.robot import RobotTable
 from hbma_ctrl.app.schema.schedule import ScheduleTable
-from hbma_ctrl.system.sections import Scenario
+from hbma_ctrl.system.sections import ROBOT_ESTIMATOR_KEYS, ROBOT_ESTIMATORS, Scenario
 from hbma_ctrl.core import units as U
 from hbma_ctrl.sim.batch import PROTOCOL_DEFAULTS
 from hbma_ctrl.sim.trial import MAX_STEPS, InputSchedule
@@ -115,6 +115,7 @@ class ScenarioFile(Table):
         self._sim_sensor_used()
         self._limits_within_sensor()
         self._robot_rig_keys()
+        self._robot_estimator_keys()
         if self.schedule is not None and (self.controller is not None or self.robot is not None):
             raise RuleError("a recording runs open loop on one chamber: drop [controller] and [robot] (or the "
                             "[schedule])", "schedule")
@@ -128,6 +129,23 @@ class ScenarioFile(Table):
         why = self.rig.not_for_a_robot()
         if why:
             raise RuleError(why, "rig")
+
+    def _robot_estimator_keys(self) -> None:
+        """A [robot] scene's [estimator] picks the robot's estimator (kind ekf or mhe) and the windows'
+        own keys; the single chamber's filter tuning does not reach the robot's chambers: refused."""
+        if self.robot is None or self.estimator is None:
+            return
+        if self.robot.mode != "closed_loop":
+            raise RuleError("an open-loop [robot] scene runs no estimator: drop [estimator] (or set [robot] "
+                            "mode = \"closed_loop\")", "estimator")
+        which = self.estimator.kind or self.estimator.filter
+        if which not in ROBOT_ESTIMATORS:
+            raise RuleError(f"kind = {which!r} is not a robot's estimator: allowed {', '.join(ROBOT_ESTIMATORS)} "
+                            "(in a scenario with [robot])", "estimator")
+        extra = sorted(set(self.estimator.model_fields_set) - set(ROBOT_ESTIMATOR_KEYS))
+        if extra:
+            raise RuleError(f"{extra[0]} is not read in a scenario with [robot]: its [estimator] takes "
+                            f"{', '.join(ROBOT_ESTIMATOR_KEYS[:1] + ROBOT_ESTIMATOR_KEYS[2:])}", "estimator")
 
     def _sim_sensor_used(self) -> None:
         """[sim] sensor_range_kpa only reaches the open-loop plant and a closed loop without [rig]."""
