@@ -328,19 +328,26 @@ def test_robot_targets_are_the_runtimes_chamber_targets():
         assert np.allclose(got, want, rtol=0, atol=1e-15)
 
 
+@pytest.fixture(scope="module")
+def track_library():
+    """The library spec of track_height (its QP's Functions and OSQP's setup point)."""
+    from hbma_ctrl.app.codegen.library import library_spec
+    from hbma_ctrl.app.scenario import load_scenario
+
+    return library_spec(load_scenario(TRACK))
+
+
 @pytest.mark.slow
-def test_library_qp_parts_equal_the_rti_steps_own():
+def test_library_qp_parts_equal_the_rti_steps_own(track_library):
     """The library's QP path equals the RTI step Function's parts: OSQP's problem data (P's upper triangle,
     [I; A], the bounds) solved by OSQP's Python interface and post-processed by the library's post
     Function gives exactly what the RTI step's own post-processing (``rti_post``) gives on that solution."""
     import osqp
     import scipy.sparse as sp
 
-    from hbma_ctrl.app.codegen.library import _nominal_inputs, library_spec
-    from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.app.codegen.library import _nominal_inputs
 
-    scn = load_scenario(TRACK)
-    lib = library_spec(scn)
+    lib = track_library
     rti = next(st.fun for st in lib.loop.stages if st != "log" and st.name == "rti_step")
     post = rti.find_function("rti_post")
     ins = _nominal_inputs(lib.backend, rti)
@@ -355,6 +362,43 @@ def test_library_qp_parts_equal_the_rti_steps_own():
     for a, b in zip(ref, got):
         assert np.array_equal(np.asarray(a), np.asarray(b))
     assert float(ref[5]) == 0.0  # the nominal step solves
+
+
+@pytest.mark.slow
+def test_library_osqp_settings_solve_the_nmpc_qp_to_its_tolerance(track_library):
+    """OSQP with the library's settings (its scaling, the termination test every 5 iterations, the NMPC's
+    tolerance and iteration limit) solves the chamber NMPC's QP at the generated setup point from a cold
+    start within the iteration limit: solved, every bound met to 10 times the tolerance, the cost and the
+    first inputs within that of the solution OSQP gives at 1e-10 (one Ruiz pass instead of OSQP's 10
+    reaches the limit here)."""
+    import osqp
+    import scipy.sparse as sp
+
+    from hbma_ctrl.app.codegen.library import QP_SETTINGS
+
+    st = track_library.qp_setup
+    pr, pc, ar, ac, nz, nc = st["patterns"]
+    P = sp.csc_matrix((st["Px"], (pr, pc)), shape=(nz, nz))
+    A = sp.csc_matrix((st["Ax"], (ar, ac)), shape=(nz + nc, nz))
+
+    def solve(**kw):
+        m = osqp.OSQP()
+        m.setup(P, st["q"], A, st["l"], st["u"], verbose=False, polishing=False, **kw)
+        return m.solve()
+
+    ref = solve(eps_abs=1e-10, eps_rel=1e-10, max_iter=200000)
+    got = solve(eps_abs=st["eps"], eps_rel=st["eps"], max_iter=st["max_iter"], **QP_SETTINGS)
+    assert ref.info.status == "solved" and got.info.status == "solved"
+    Az = A @ got.x
+    tol = 10 * st["eps"]
+    assert np.all(Az >= st["l"] - tol) and np.all(Az <= st["u"] + tol)
+    assert abs(got.info.obj_val - ref.info.obj_val) <= tol * max(1.0, abs(ref.info.obj_val))
+    # the inputs the controller sends: the first step's three valve inputs, at the plan's places in z
+    U = np.asarray(track_library.qp_post(ref.x, 0.0, ref.y, np.zeros(track_library.qp_post.nnz_in(3)), st["Ax"],
+                                         st["l"], st["u"])[0]).ravel()
+    V = np.asarray(track_library.qp_post(got.x, 0.0, got.y, np.zeros(track_library.qp_post.nnz_in(3)), st["Ax"],
+                                         st["l"], st["u"])[0]).ravel()
+    assert np.max(np.abs(U - V)) <= tol
 
 
 def test_single_precision_source_calls_float_maths_and_keeps_literals_in_range():

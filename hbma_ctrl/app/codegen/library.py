@@ -84,7 +84,14 @@ OPT = "-O3"
 QP_PREFIX = "hbma_qp_"
 #: OSQP settings beyond the NMPC's tolerances and iteration limit: the termination test every 5 iterations
 #: (OSQP's default, 25, runs up to 24 iterations past convergence of a warm-started RTI QP: 30 % fewer
-#: instructions over track_height's first 200 ticks)
+#: instructions over track_height's first 200 ticks).
+#: OSQP's 10 Ruiz passes stay, although the embedded solver redoes them at every matrix update (about
+#: 0.89 M instructions per controller tick on the Cortex-M7). Measured on track_height's first 1,000 ticks
+#: (10 passes: median controller tick 3.83 M, mean 5.60 M, 20 failed steps): 1 pass 3.48 M, 7.04 M and
+#: 54 failed (the QP at the setup point reaches the iteration limit: 605 iterations, 10 passes 125);
+#: 3 passes 4.08 M, 4.77 M and 18 failed (a lower mean for a higher median); OSQP's duality-gap test off
+#: 4.34 M, 7.98 M and 268 failed; no scaling, or the setup's scaling kept, 25 and 55 iterations per QP
+#: against 15 over the first 200 ticks.
 QP_SETTINGS: dict = {"check_termination": 5}
 #: the parts of the RTI step's QP path a profiled build counts apart (hbma.h's HBMA_PART_NAMES)
 _QP_PARTS = ("qp_data", "osqp_update_mat", "osqp_update_vec", "osqp_solve", "qp_post")
