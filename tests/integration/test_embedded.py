@@ -111,6 +111,9 @@ def test_library_options_are_checked(tmp_path):
     one_line_error(_cli(["codegen", TRACK, "--target", "cortex-m7", "--out", out]), "--library")
     one_line_error(_cli(["codegen", ROBOT, "--library", "--precision", "single", "--out", out]), "--precision",
                    "double")
+    one_line_error(_cli(["codegen", TRACK, "--library", "--qp-solver", "daqp", "--precision", "single", "--out", out]),
+                   "--qp-solver", "double")
+    one_line_error(_cli(["codegen", ROBOT, "--library", "--qp-solver", "daqp", "--out", out]), "--qp-solver", "osqp")
 
 
 @pytest.mark.compiling
@@ -335,6 +338,39 @@ def track_library():
     from hbma_ctrl.app.scenario import load_scenario
 
     return library_spec(load_scenario(TRACK))
+
+
+@pytest.mark.compiling
+@pytest.mark.slow
+@needs_cc
+def test_daqp_library_host_build_follows_the_python_controller(tmp_path, monkeypatch):
+    """``--library --qp-solver daqp`` (track_height with a horizon of 3, which builds in seconds): the library
+    with the condensed QP and DAQP's sources builds on the host, its objects call no allocator and no file or
+    console I/O, every tick of the first 0.4 s solves, and its commands follow the scenario's own run (the
+    Python controller, OSQP to the scenario's tolerance) within 1e-3 (they differ where a decision flips
+    later in the run)."""
+    from hbma_ctrl.app.codegen.library import (build_library, library_spec, record_inputs, run_library,
+                                               write_inputs, write_library)
+    from hbma_ctrl.app.scenario import load_scenario
+
+    monkeypatch.setenv("OPT", "-O0")  # the Makefile's OPT: faster to build, the same commands to rounding
+    toml = tmp_path / "track_h3.toml"
+    text = Path(TRACK).read_text()
+    assert "\nhorizon = 20\n" in text
+    toml.write_text(text.replace("\nhorizon = 20\n", "\nhorizon = 3\n"))
+    scn = load_scenario(toml)
+    lib = library_spec(scn, "daqp")
+    out = tmp_path / "daqp"
+    write_library(lib, out)
+    assert (out / "daqp" / "LICENSE").read_text().startswith("MIT License")
+    build_library(out, "host")
+    undefined = subprocess.run(["nm", "-u", str(out / "build" / "host" / "libhbma.a")], check=True,
+                               capture_output=True, text=True).stdout.split()
+    assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+    rec = record_inputs(scn, lib, 40)
+    run = run_library(out, "host", write_inputs(rec, out / "inputs.bin"))
+    assert np.all(run.status == 0)
+    assert np.max(np.abs(run.u - rec["u"])) <= 1e-3
 
 
 @pytest.mark.slow
