@@ -803,8 +803,8 @@ typedef struct {{
   hbma_real force_n;      /* estimated load force */
   int resting;            /* the estimator holds the platform at rest */
   hbma_real mpc_status;   /* the controller's last step: 0 solved, else failed (NaN: the QP solver gave up) */
-  int qp_iterations;      /* OSQP's iterations in the controller's last QP */
-  int qp_status;          /* OSQP's status of that QP (1 solved) */""",
+  int qp_iterations;      /* the QP solver's iterations in the controller's last QP */
+  int qp_status;          /* its status of that QP (OSQP: 1 solved; DAQP: its exit flag, above 0 solved) */""",
         "init_doc": "the estimator at its prior, the controller cold, the target 0",
         "prototypes": """/* The target height (m) from now on; preview: the targets at the controller's next HBMA_HORIZON steps
    (NULL: height_m at all of them). */
