@@ -111,6 +111,9 @@ def test_library_options_are_checked(tmp_path):
     one_line_error(_cli(["codegen", TRACK, "--target", "cortex-m7", "--out", out]), "--library")
     one_line_error(_cli(["codegen", ROBOT, "--library", "--precision", "single", "--out", out]), "--precision",
                    "double")
+    one_line_error(_cli(["codegen", TRACK, "--library", "--qp-solver", "daqp", "--precision", "single", "--out", out]),
+                   "--qp-solver", "double")
+    one_line_error(_cli(["codegen", ROBOT, "--library", "--qp-solver", "daqp", "--out", out]), "--qp-solver", "osqp")
 
 
 @pytest.mark.compiling
@@ -328,19 +331,59 @@ def test_robot_targets_are_the_runtimes_chamber_targets():
         assert np.allclose(got, want, rtol=0, atol=1e-15)
 
 
+@pytest.fixture(scope="module")
+def track_library():
+    """The library spec of track_height (its QP's Functions and OSQP's setup point)."""
+    from hbma_ctrl.app.codegen.library import library_spec
+    from hbma_ctrl.app.scenario import load_scenario
+
+    return library_spec(load_scenario(TRACK))
+
+
+@pytest.mark.compiling
 @pytest.mark.slow
-def test_library_qp_parts_equal_the_rti_steps_own():
+@needs_cc
+def test_daqp_library_host_build_follows_the_python_controller(tmp_path, monkeypatch):
+    """``--library --qp-solver daqp`` (track_height with a horizon of 3, which builds in seconds): the library
+    with the condensed QP and DAQP's sources builds on the host, its objects call no allocator and no file or
+    console I/O, every tick of the first 0.4 s solves, and its commands follow the scenario's own run (the
+    Python controller, OSQP to the scenario's tolerance) within 1e-3 (they differ where a decision flips
+    later in the run)."""
+    from hbma_ctrl.app.codegen.library import (build_library, library_spec, record_inputs, run_library,
+                                               write_inputs, write_library)
+    from hbma_ctrl.app.scenario import load_scenario
+
+    monkeypatch.setenv("OPT", "-O0")  # the Makefile's OPT: faster to build, the same commands to rounding
+    toml = tmp_path / "track_h3.toml"
+    text = Path(TRACK).read_text()
+    assert "\nhorizon = 20\n" in text
+    toml.write_text(text.replace("\nhorizon = 20\n", "\nhorizon = 3\n"))
+    scn = load_scenario(toml)
+    lib = library_spec(scn, "daqp")
+    out = tmp_path / "daqp"
+    write_library(lib, out)
+    assert (out / "daqp" / "LICENSE").read_text().startswith("MIT License")
+    build_library(out, "host")
+    undefined = subprocess.run(["nm", "-u", str(out / "build" / "host" / "libhbma.a")], check=True,
+                               capture_output=True, text=True).stdout.split()
+    assert not set(undefined) & set(_FORBIDDEN), sorted(set(undefined) & set(_FORBIDDEN))
+    rec = record_inputs(scn, lib, 40)
+    run = run_library(out, "host", write_inputs(rec, out / "inputs.bin"))
+    assert np.all(run.status == 0)
+    assert np.max(np.abs(run.u - rec["u"])) <= 1e-3
+
+
+@pytest.mark.slow
+def test_library_qp_parts_equal_the_rti_steps_own(track_library):
     """The library's QP path equals the RTI step Function's parts: OSQP's problem data (P's upper triangle,
     [I; A], the bounds) solved by OSQP's Python interface and post-processed by the library's post
     Function gives exactly what the RTI step's own post-processing (``rti_post``) gives on that solution."""
     import osqp
     import scipy.sparse as sp
 
-    from hbma_ctrl.app.codegen.library import _nominal_inputs, library_spec
-    from hbma_ctrl.app.scenario import load_scenario
+    from hbma_ctrl.app.codegen.library import _nominal_inputs
 
-    scn = load_scenario(TRACK)
-    lib = library_spec(scn)
+    lib = track_library
     rti = next(st.fun for st in lib.loop.stages if st != "log" and st.name == "rti_step")
     post = rti.find_function("rti_post")
     ins = _nominal_inputs(lib.backend, rti)
@@ -355,6 +398,43 @@ def test_library_qp_parts_equal_the_rti_steps_own():
     for a, b in zip(ref, got):
         assert np.array_equal(np.asarray(a), np.asarray(b))
     assert float(ref[5]) == 0.0  # the nominal step solves
+
+
+@pytest.mark.slow
+def test_library_osqp_settings_solve_the_nmpc_qp_to_its_tolerance(track_library):
+    """OSQP with the library's settings (its scaling, the termination test every 5 iterations, the NMPC's
+    tolerance and iteration limit) solves the chamber NMPC's QP at the generated setup point from a cold
+    start within the iteration limit: solved, every bound met to 10 times the tolerance, the cost and the
+    first inputs within that of the solution OSQP gives at 1e-10 (one Ruiz pass instead of OSQP's 10
+    reaches the limit here)."""
+    import osqp
+    import scipy.sparse as sp
+
+    from hbma_ctrl.app.codegen.library import QP_SETTINGS
+
+    st = track_library.qp_setup
+    pr, pc, ar, ac, nz, nc = st["patterns"]
+    P = sp.csc_matrix((st["Px"], (pr, pc)), shape=(nz, nz))
+    A = sp.csc_matrix((st["Ax"], (ar, ac)), shape=(nz + nc, nz))
+
+    def solve(**kw):
+        m = osqp.OSQP()
+        m.setup(P, st["q"], A, st["l"], st["u"], verbose=False, polishing=False, **kw)
+        return m.solve()
+
+    ref = solve(eps_abs=1e-10, eps_rel=1e-10, max_iter=200000)
+    got = solve(eps_abs=st["eps"], eps_rel=st["eps"], max_iter=st["max_iter"], **QP_SETTINGS)
+    assert ref.info.status == "solved" and got.info.status == "solved"
+    Az = A @ got.x
+    tol = 10 * st["eps"]
+    assert np.all(Az >= st["l"] - tol) and np.all(Az <= st["u"] + tol)
+    assert abs(got.info.obj_val - ref.info.obj_val) <= tol * max(1.0, abs(ref.info.obj_val))
+    # the inputs the controller sends: the first step's three valve inputs, at the plan's places in z
+    U = np.asarray(track_library.qp_post(ref.x, 0.0, ref.y, np.zeros(track_library.qp_post.nnz_in(3)), st["Ax"],
+                                         st["l"], st["u"])[0]).ravel()
+    V = np.asarray(track_library.qp_post(got.x, 0.0, got.y, np.zeros(track_library.qp_post.nnz_in(3)), st["Ax"],
+                                         st["l"], st["u"])[0]).ravel()
+    assert np.max(np.abs(U - V)) <= tol
 
 
 def test_single_precision_source_calls_float_maths_and_keeps_literals_in_range():

@@ -101,7 +101,9 @@ def codegen(
     estimator: Annotated[str, typer.Option(help="ekf (the scenario's filter) | truth (the rig's state, no filter)")] = "ekf",
     qp_solver: Annotated[Optional[str], typer.Option("--qp-solver", help="the RTI step's QP solver: osqp | "
                                                      "hpipm | daqp (linked from the casadi package) | qrqp "
-                                                     "(self-contained C); default: the variant's, else osqp")] = None,
+                                                     "(self-contained C); default: the variant's, else osqp. "
+                                                     "--library: osqp (sparse QP) | daqp (condensed dense QP, "
+                                                     "its C sources in the library; a chamber's, double)")] = None,
     check: Annotated[bool, typer.Option("--check", help="also build, run and compare with the Python path (check.json)")] = False,
     opt: Annotated[str, typer.Option(help=f"optimisation flag of the --check build: {', '.join(OPT_FLAGS)}")] = DEFAULT_OPT,
     library: Annotated[bool, typer.Option("--library", help="write the chamber's (or robot's) estimator + controller + "
@@ -157,14 +159,13 @@ def _library(config: Path, out: Path, duration_s: float | None, estimator: str, 
     if estimator != "ekf":
         raise ValueError(f"--estimator = '{estimator}': the library runs the scenario's EKF (allowed with "
                          "--library: ekf)")
-    if qp_solver not in (None, "osqp"):
-        raise ValueError(f"--qp-solver = '{qp_solver}': the library solves its QP with OSQP's embedded code "
-                         "(allowed with --library: osqp)")
     if check:
         raise ValueError("--check compares the closed loop with Python; with --library a cortex-* --target "
                          "compares the board with the host build")
-    from hbma_ctrl.app.codegen.library import check_precision, generate
+    from hbma_ctrl.app.codegen.library import check_precision, check_qp_solver, generate
 
+    qp_solver = qp_solver or "osqp"
+    check_qp_solver(qp_solver, precision)
     scn = load_scenario(config)
     try:
         check_precision("robot" if scn.role("robot") is not None else "chamber", precision)
@@ -173,10 +174,11 @@ def _library(config: Path, out: Path, duration_s: float | None, estimator: str, 
     con = Console(highlight=False)
     with run_dir(out, command="codegen", argv=cli_argv(), scenario_path=config, overwrite=overwrite) as tmp:
         try:
-            rep = generate(scn, tmp, target, precision, duration_s, log=lambda m: con.print(m, markup=False))
+            rep = generate(scn, tmp, target, precision, duration_s, log=lambda m: con.print(m, markup=False),
+                           qp_solver=qp_solver)
         except ValueError as exc:
             raise ValueError(f"{config.name}: {exc}") from None
-    con.print(f"wrote {out}: hbma.h, hbma.c, hbma_steps.c/.h, osqp/, hbma_run.c, board/, Makefile, "
+    con.print(f"wrote {out}: hbma.h, hbma.c, hbma_steps.c/.h, {qp_solver}/, hbma_run.c, board/, Makefile, "
               "CMakeLists.txt, README.txt")
     if rep:
         con.print(f"{rep['target']} ({rep['qemu_machine']}) vs host over {rep['ticks']} ticks: largest "

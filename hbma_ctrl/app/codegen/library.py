@@ -63,12 +63,15 @@ from hbma_ctrl.core.loopgen import LOG, LoopSpec, dense_function
 from hbma_ctrl.core.loopgen_c import c_array, stage_guard
 from hbma_ctrl.core.osqp_embed import own_workspace
 
-__all__ = ["TARGETS", "PRECISIONS", "LibrarySpec", "library_spec", "write_library", "record_inputs",
+__all__ = ["TARGETS", "PRECISIONS", "QP_SOLVERS", "LibrarySpec", "library_spec", "write_library", "record_inputs",
            "write_inputs", "build_library", "run_library", "check_precision", "LibraryRun", "embedded_report",
            "qemu_command"]
 
 #: build targets: the host's C compiler, or arm-none-eabi-gcc for a Cortex-M run on QEMU
 TARGETS = ("host", "cortex-m7", "cortex-m4f")
+#: the library's QP solvers: OSQP's embedded code on the sparse QP, or DAQP on the QP condensed onto the
+#: inputs and slacks (a chamber's library, double precision)
+QP_SOLVERS = ("osqp", "daqp")
 #: floating-point precision of the library (casadi_real, OSQPFloat and the API's hbma_real)
 PRECISIONS = ("double", "single")
 #: the arm-none-eabi-gcc flags and the QEMU machine of each Cortex-M target
@@ -84,10 +87,18 @@ OPT = "-O3"
 QP_PREFIX = "hbma_qp_"
 #: OSQP settings beyond the NMPC's tolerances and iteration limit: the termination test every 5 iterations
 #: (OSQP's default, 25, runs up to 24 iterations past convergence of a warm-started RTI QP: 30 % fewer
-#: instructions over track_height's first 200 ticks)
+#: instructions over track_height's first 200 ticks).
+#: OSQP's 10 Ruiz passes stay, although the embedded solver redoes them at every matrix update (about
+#: 0.89 M instructions per controller tick on the Cortex-M7). Measured on track_height's first 1,000 ticks
+#: (10 passes: median controller tick 3.83 M, mean 5.60 M, 20 failed steps): 1 pass 3.48 M, 7.04 M and
+#: 54 failed (the QP at the setup point reaches the iteration limit: 605 iterations, 10 passes 125);
+#: 3 passes 4.08 M, 4.77 M and 18 failed (a lower mean for a higher median); OSQP's duality-gap test off
+#: 4.34 M, 7.98 M and 268 failed; no scaling, or the setup's scaling kept, 25 and 55 iterations per QP
+#: against 15 over the first 200 ticks.
 QP_SETTINGS: dict = {"check_termination": 5}
-#: the parts of the RTI step's QP path a profiled build counts apart (hbma.h's HBMA_PART_NAMES)
-_QP_PARTS = ("qp_data", "osqp_update_mat", "osqp_update_vec", "osqp_solve", "qp_post")
+#: the parts of the RTI step's QP path a profiled build counts apart (hbma.h's HBMA_PART_NAMES), by QP solver
+_QP_PARTS = {"osqp": ("qp_data", "osqp_update_mat", "osqp_update_vec", "osqp_solve", "qp_post"),
+             "daqp": ("qp_data", "daqp_update_ldp", "daqp_solve", "qp_post")}
 #: the casadi-generated source's base name
 STEPS = "hbma_steps"
 
@@ -99,7 +110,8 @@ class LibrarySpec:
     ticks and in s, the load filter's time constant (s), the horizon, the QP's Functions and OSQP problem
     at a nominal point, a description, and the NMPC's RTI backend (its model and settings).
 
-    A robot's library (``kind`` 'robot') has ``n`` chambers in ``n_layers`` layers, the Function of its
+    With ``qp_solver`` 'daqp' (a chamber's), ``dense`` holds the condensed QP's parts
+    (:func:`_dense_qp`). A robot's library (``kind`` 'robot') has ``n`` chambers in ``n_layers`` layers, the Function of its
     targets (``targets``: the layers' poses -> the chambers' heights, which ``hbma_set_target`` calls)
     and the period in ticks of its supply caps' peak window (``refresh_every``)."""
 
@@ -119,6 +131,8 @@ class LibrarySpec:
     n_layers: int = 0
     targets: ca.Function | None = None
     refresh_every: int = 0
+    qp_solver: str = "osqp"
+    dense: dict | None = None
 
     @property
     def rti_name(self) -> str:
@@ -228,6 +242,42 @@ def _qp_post(post: ca.Function, patterns: tuple, horizon: int) -> ca.Function:
                        ["z", "cost", "y", "chk", "Ax", "l", "u"], post.name_out())
 
 
+def _dense_qp(rti: ca.Function, qp: ca.Function, post: ca.Function) -> dict:
+    """The condensed QP's parts for DAQP (:mod:`hbma_ctrl.controllers.rti_condense`): ``data`` (one SX
+    Function of the RTI step's inputs: the dense Hc, gc, Ac row by row, [lby; lbc], [uby; ubc], T's nonzeros,
+    t, the linearisation check and OSQP's form of the constraints Ax, l, u, which the post-processing
+    checks the solution against), ``post`` ((y, cost, T's nonzeros, t, chk, Ax, l, u) -> ``rti_post``'s
+    outputs for z = T y + t, the multipliers 0: DAQP is warm-started from its own working set), ``shift``
+    (for each constraint of the condensed QP the one of the next stage, whose state it takes when the RTI
+    step shifts its plan; itself at the last stage), ``ny`` and ``mc``."""
+    from hbma_ctrl.controllers.rti_condense import condensing
+
+    data = rti.find_function("rti_qp_data")
+    cond = condensing(data)
+    ins = [ca.SX.sym(data.name_in(i), data.sparsity_in(i)) for i in range(data.n_in())]
+    H, g, A, lba, uba, lbx, ubx = data(*ins)[:7]
+    dense = cond.function(H.nz[:], g, A.nz[:], lba, uba, lbx, ubx)
+    _, _, Ax, lo, hi, _, _, chk = qp(*ins)
+    fun = ca.Function("hbma_qp_dense", ins, list(dense) + [chk, Ax, lo, hi], data.name_in(),
+                      list(cond.function.name_out()) + ["chk", "Ax", "l", "u"], {"cse": True})
+    ny, nz, nc = cond.ny, A.size2(), A.size1()
+    MX = ca.MX
+    y, cost, Tnz, t = MX.sym("y", ny), MX.sym("cost"), MX.sym("T", cond.T.nnz()), MX.sym("t", nz)
+    chk_in, ax, l_in, u_in = (MX.sym(post.name_in(i), post.sparsity_in(i)) for i in (3, 4, 5, 6))
+    z = ca.mtimes(MX(cond.T, Tnz), y) + t
+    outs = post(z, cost, MX(nz + nc, 1), chk_in, ax, l_in, u_in)
+    dpost = ca.Function("hbma_qp_dense_post", [y, cost, Tnz, t, chk_in, ax, l_in, u_in], list(outs),
+                        ["y", "cost", "T", "t", "chk", "Ax", "l", "u"], post.name_out())
+    # stage and place of every constraint: a variable bound by its sparse variable, a row by its row (the
+    # sparse QP's layout: the same number of variables, and of rows, at every stage but the last)
+    N = (nz - 4) // 8
+    ns, ms = (nz - 4) // N, nc // N
+    where = [(int(i) // ns, int(i) % ns, "x") for i in cond.free] + [(int(r) // ms, int(r) % ms, "a") for r in cond.rows]
+    index = {w: j for j, w in enumerate(where)}
+    shift = np.array([index.get((k + 1, p, kind), j) for j, (k, p, kind) in enumerate(where)], int)
+    return {"data": fun, "post": dpost, "shift": shift, "ny": ny, "mc": cond.mc}
+
+
 def _nominal_inputs(backend, rti: ca.Function) -> list:
     """The RTI step's inputs at a nominal cold start (to mid-range height under a tenth of the largest
     load), as the NMPC's probe: the point OSQP's generated setup is made at."""
@@ -238,14 +288,18 @@ def _nominal_inputs(backend, rti: ca.Function) -> list:
             np.zeros((3, N)), np.zeros(rti.nnz_in(9)), np.zeros(rti.nnz_in(10)), 0.0]
 
 
-def library_spec(scn) -> LibrarySpec:
+def library_spec(scn, qp_solver: str = "osqp") -> LibrarySpec:
     """The library of the scenario's chamber or, for a ``[robot]`` scenario, of its robot (see the module
-    docstring). ValueError naming the setting that cannot be generated (no NMPC, load steps, a fallback
-    drill, a UKF, an enforced budget)."""
+    docstring), its QP solved by ``qp_solver`` (:data:`QP_SOLVERS`; a robot's: osqp). ValueError naming
+    the setting that cannot be generated (no NMPC, load steps, a fallback drill, a UKF, an enforced budget)."""
     from hbma_ctrl.app.codegen.chamber import _unsupported, rig_stages, scenario_system
     from hbma_ctrl.sim.rig import RigSettings
 
+    if qp_solver not in QP_SOLVERS:
+        raise ValueError(f"--qp-solver = '{qp_solver}'; allowed with --library: {', '.join(QP_SOLVERS)}")
     if scn.role("robot") is not None:
+        if qp_solver != "osqp":
+            raise ValueError(f"--qp-solver = '{qp_solver}': a robot's library solves its QP with OSQP (allowed: osqp)")
         return _robot_library_spec(scn)
     section = scn.role("controller")
     if section is None or section.kind != "mpc":
@@ -280,13 +334,17 @@ def library_spec(scn) -> LibrarySpec:
     if len(names) != spec.signals["ekf_theta"].size:
         raise ValueError("codegen --library: the EKF model's parameter names do not match its theta")
     post = _qp_post(post, qp.patterns, int(s.horizon))
+    post_sparse = post
     setup = {"Px": vals[0], "q": vals[1], "Ax": vals[2], "l": vals[3], "u": vals[4], "eps": float(s.qp_eps),
              "max_iter": int(s.qp_max_iter), "patterns": qp.patterns}
     meta = dict(spec.meta)
-    meta["controller"] = meta["controller"].replace("QP osqp", "QP OSQP (embedded, generated C)")
+    dense = _dense_qp(rti, qp, post_sparse) if qp_solver == "daqp" else None
+    meta["controller"] = meta["controller"].replace(
+        "QP osqp", "QP OSQP (embedded, generated C)" if dense is None else
+        f"QP condensed onto its {dense['ny']} inputs and slacks, DAQP (dense active set, C sources)")
     meta["first reading"] = f"{p0:.6g} Pa (the EKF's initial estimate is made from it at generation)"
     return LibrarySpec(spec, names, system.loop.every, float(s.sample_period), float(s.load_tau), int(s.horizon), qp, post,
-                       setup, meta, ctrl.backend)
+                       setup, meta, ctrl.backend, qp_solver=qp_solver, dense=dense)
 
 
 def _robot_start_function(bank, n: int) -> ca.Function:
@@ -436,7 +494,33 @@ def _functions(lib: LibrarySpec) -> list:
         seen.add(st.name)
         out.append(dense_function(st.fun))
     extra = [lib.targets] if lib.targets is not None else []
-    return out + [dense_function(f) for f in [lib.qp_data, lib.qp_post] + extra]
+    qp = [lib.dense["data"], lib.dense["post"]] if lib.dense else [lib.qp_data, lib.qp_post]
+    return out + [dense_function(f) for f in qp + extra]
+
+
+def _daqp(out: Path) -> None:
+    """DAQP's C sources and its licence (:mod:`hbma_ctrl.core`'s ``c/daqp``) in ``out/daqp``."""
+    d = out / "daqp"
+    if d.exists():
+        shutil.rmtree(d)
+    src = resources.files("hbma_ctrl.core").joinpath("c/daqp")
+    for sub in ("src", "include"):
+        (d / sub).mkdir(parents=True)
+        for f in src.joinpath(sub).iterdir():
+            if f.name.endswith((".c", ".h")):
+                (d / sub / f.name).write_text(f.read_text())
+    for name in ("LICENSE", "README.txt"):
+        (d / name).write_text(src.joinpath(name).read_text())
+
+
+def check_qp_solver(qp_solver: str, precision: str) -> None:
+    """ValueError naming ``--qp-solver`` for a solver the library has not, or one it builds in double
+    precision only (DAQP's)."""
+    if qp_solver not in QP_SOLVERS:
+        raise ValueError(f"--qp-solver = '{qp_solver}'; allowed with --library: {', '.join(QP_SOLVERS)}")
+    if qp_solver == "daqp" and precision != "double":
+        raise ValueError("--qp-solver daqp: the library's DAQP path is built in double precision "
+                         "(allowed with daqp: --precision double)")
 
 
 def check_precision(kind: str, precision: str) -> None:
@@ -468,7 +552,10 @@ def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "doubl
     if precision == "single":
         src = out / f"{STEPS}.c"
         src.write_text(_single(src.read_text()))
-    _osqp(lib, out, precision)
+    if lib.dense:
+        _daqp(out)
+    else:
+        _osqp(lib, out, precision)
     sz = {k: max(getattr(f, f"sz_{k}")() for f in funs) for k in ("arg", "res", "iw", "w")}
     spec = lib.loop
     stages = [st for st in spec.stages if st != LOG]
@@ -484,7 +571,7 @@ def write_library(lib: LibrarySpec, out_dir: Path | str, precision: str = "doubl
 #define HBMA_H
 
 #include "{STEPS}.h"
-#include "osqp/{QP_PREFIX}workspace.h"
+@QP_INCLUDE@
 
 #ifdef __cplusplus
 extern "C" {{
@@ -528,7 +615,7 @@ typedef struct {{
   casadi_int iw[{max(sz['iw'], 1)}];
   casadi_real w[{max(sz['w'], 1)}];
 @OUTBUFS@
-  {QP_PREFIX}mem_t qp;
+@QP_MEMBERS@
 }} hbma_workspace_t;
 
 /* The tick's parts, for an instruction count per part: "other" (between stages), the stages in order,
@@ -563,12 +650,14 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     per_stage = [lib_rti_numel if st.name == lib.rti_name else [st.fun.numel_out(i) for i in range(st.fun.n_out())]
                  for st in stages]
     n_scratch = max(sum(v) for v in per_stage)
-    qd = lib.qp_data
+    qd = lib.dense["data"] if lib.dense else lib.qp_data
     qp_sizes = [qd.nnz_out(i) for i in range(qd.n_out())]
     outbufs = [f"  hbma_real o[{n_scratch}];  /* a stage's outputs */"]
     outbufs += [f"  hbma_real o_qp_{i}[{max(n_, 1)}];  /* the QP's data: {qd.name_out(i)} */" for i, n_ in enumerate(qp_sizes)]
-    part_names = ["other"] + _unique([st.name for st in stages]) + list(_QP_PARTS)
+    part_names = ["other"] + _unique([st.name for st in stages]) + list(_QP_PARTS[lib.qp_solver])
+    qp_c = _qp_c(lib)
     hdr = (hdr.replace("@SIGNALS@", "\n".join(sig_lines)).replace("@OUTBUFS@", "\n".join(outbufs))
+           .replace("@QP_INCLUDE@", qp_c["include"]).replace("@QP_MEMBERS@", qp_c["members"])
            .replace("@N_PARTS@", str(len(part_names)))
            .replace("@PART_NAMES@", ", ".join(f'"{n}"' for n in part_names)))
     (out / "hbma.h").write_text(hdr)
@@ -617,8 +706,15 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
         body = [f"HBMA_PART({1 + len(tick)});"] + body + ["HBMA_PART(0);"]
         tick.append(f"  {prefix}{{  /* {st.name} */\n    " + "\n    ".join(body) + "\n  }")
     _, _, _, _, nz, nc = lib.qp_setup["patterns"]
-    qpost = lib.qp_post
-    src = (_template("hbma.c.in").replace("@API@", _template(f"hbma_api_{lib.kind}.c.in"))
+    qpost = lib.dense["post"] if lib.dense else lib.qp_post
+    res2 = "\n".join(f"  ws->res2[{i}] = ws->o_qp_{i};" for i in range(qd.n_out()))
+    src = (_template("hbma.c.in").replace("@RTI_STEP_QP@", _template(f"qp_{lib.qp_solver}.c.in"))
+           .replace("@QP_INIT@", qp_c["init"]).replace("@QP_SOLVER_DOC@", qp_c["doc"]).replace("@RES2@", res2)
+           .replace("@SHIFT_IN@", str(rti.index_in("shift")) if lib.dense else "")
+           .replace("@DAQP_N@", str(lib.dense["ny"]) if lib.dense else "")
+           .replace("@DAQP_M@", str(lib.dense["ny"] + lib.dense["mc"]) if lib.dense else "")
+           .replace("@DAQP_SHIFT@", c_int_array(lib.dense["shift"]) if lib.dense else "")
+           .replace("@API@", _template(f"hbma_api_{lib.kind}.c.in"))
            .replace("@NAME@", spec.name).replace("@WHAT@", api["what"]).replace("@INIT_SIGNALS@", "\n".join(init))
            .replace("@INIT_END@", api["init_end"]).replace("@QP_STATUS_CHECK@", api["qp_status_check"])
            .replace("@QP_FAIL_DOC@", api["qp_fail_doc"]).replace("@RTI_NAME@", lib.rti_name)
@@ -642,11 +738,42 @@ void hbma_outputs(const hbma_workspace_t* ws, hbma_outputs_t* out);
     board.mkdir(exist_ok=True)
     for name in ("startup.c", "mps2.ld"):
         (board / name).write_text(_template(f"board_{name}.in"))
-    (out / "Makefile").write_text(_makefile(precision))
-    (out / "CMakeLists.txt").write_text(_cmake(precision))
+    (out / "Makefile").write_text(_makefile(precision, lib.qp_solver))
+    (out / "CMakeLists.txt").write_text(_cmake(precision, lib.qp_solver))
     (out / "README.txt").write_text(_readme(lib, precision, sz))
     return [out / n for n in ("hbma.h", "hbma.c", f"{STEPS}.c", f"{STEPS}.h", "hbma_run.c", "Makefile",
                               "CMakeLists.txt", "README.txt")]
+
+
+def c_int_array(v) -> str:
+    """A C initialiser of the integers ``v``, ten a line."""
+    v = [str(int(x)) for x in v]
+    return "{" + ",\n    ".join(", ".join(v[i:i + 10]) for i in range(0, len(v), 10)) + "}"
+
+
+def _qp_c(lib: LibrarySpec) -> dict:
+    """The QP solver's parts of hbma.h and hbma.c: its header, its memory in the workspace, its start in
+    hbma_init and its name in hbma.c's first comment."""
+    if not lib.dense:
+        return {"include": f'#include "osqp/{QP_PREFIX}workspace.h"', "members": f"  {QP_PREFIX}mem_t qp;",
+                "init": f"  {QP_PREFIX}mem_init(&ws->qp);", "doc": "OSQP's embedded code"}
+    n, mc = lib.dense["ny"], lib.dense["mc"]
+    m = n + mc
+    members = f"""  /* DAQP: its workspace, problem and settings, and the memory they point into ({n} variables,
+     {n} bounds and {mc} constraint rows) */
+  DAQPWorkspace daqp;
+  DAQPProblem daqp_qp;
+  DAQPSettings daqp_settings;
+  c_float daqp_lam[{n + 1}], daqp_lam_star[{n + 1}], daqp_D[{n + 1}], daqp_xldl[{n + 1}], daqp_zldl[{n + 1}];
+  c_float daqp_L[{(n + 1) * (n + 2) // 2}];
+  c_float daqp_u[{n}], daqp_xold[{n}], daqp_v[{n}], daqp_x[{n}];
+  int daqp_WS[{n + 1}], daqp_prox_mask[{n}];
+  c_float daqp_scaling[{m}], daqp_dupper[{m}], daqp_dlower[{m}], daqp_lam_out[{m}], daqp_Mu[{mc}];
+  c_float daqp_M[{n * mc}];
+  c_float daqp_Rinv[{(n + 1) * n // 2}];
+  int daqp_sense[{m}], daqp_sense_in[{m}];  /* the working set after the last QP; the next one's start */"""
+    return {"include": '#include "daqp/include/types.h"', "members": members, "init": "  daqp_init(ws);",
+            "doc": "DAQP (a dense active-set solver) on the QP condensed onto the inputs and slacks"}
 
 
 def _chamber_api(lib: LibrarySpec) -> dict:
@@ -676,8 +803,8 @@ typedef struct {{
   hbma_real force_n;      /* estimated load force */
   int resting;            /* the estimator holds the platform at rest */
   hbma_real mpc_status;   /* the controller's last step: 0 solved, else failed (NaN: the QP solver gave up) */
-  int qp_iterations;      /* OSQP's iterations in the controller's last QP */
-  int qp_status;          /* OSQP's status of that QP (1 solved) */""",
+  int qp_iterations;      /* the QP solver's iterations in the controller's last QP */
+  int qp_status;          /* its status of that QP (OSQP: 1 solved; DAQP: its exit flag, above 0 solved) */""",
         "init_doc": "the estimator at its prior, the controller cold, the target 0",
         "prototypes": """/* The target height (m) from now on; preview: the targets at the controller's next HBMA_HORIZON steps
    (NULL: height_m at all of them). */
@@ -767,21 +894,37 @@ def _template(name: str) -> str:
     return resources.files("hbma_ctrl.core").joinpath(f"c/embedded/{name}").read_text()
 
 
-#: the library's C sources (relative to its folder), for the Makefile and CMake
-def _sources() -> list[str]:
+#: DAQP's sources the library builds
+_DAQP_SRC = ["api", "auxiliary", "avi", "bnb", "daqp", "daqp_prox", "eq_elim", "factorization", "hierarchical",
+             "presolve", "utils"]
+#: DAQP's allocator calls, mapped onto the library's stubs (hbma.c: DAQP's allocating paths are never taken)
+_DAQP_DEFS = ["-Dmalloc=hbma_daqp_malloc", "-Dcalloc=hbma_daqp_calloc", "-Dfree=hbma_daqp_free"]
+
+
+def _qp_sources(qp_solver: str = "osqp") -> list[str]:
+    """The QP solver's C sources (relative to the library's folder)."""
+    if qp_solver == "daqp":
+        return [f"daqp/src/{s}.c" for s in _DAQP_SRC]
     osqp_src = ["auxil", "error", "scaling", "util", "osqp_api", "kkt", "algebra_libs", "csc_math", "csc_utils",
                 "matrix", "vector", "qdldl", "qdldl_interface"]
-    return ["hbma.c", f"{STEPS}.c", f"osqp/{QP_PREFIX}workspace.c"] + [f"osqp/src/{s}.c" for s in osqp_src]
+    return [f"osqp/{QP_PREFIX}workspace.c"] + [f"osqp/src/{s}.c" for s in osqp_src]
 
 
-_INCLUDES = ["-I.", "-Iosqp", "-Iosqp/inc/public", "-Iosqp/inc/private"]
+#: the library's C sources (relative to its folder), for the Makefile and CMake
+def _sources(qp_solver: str = "osqp") -> list[str]:
+    return ["hbma.c", f"{STEPS}.c"] + _qp_sources(qp_solver)
+
+
+def _includes(qp_solver: str = "osqp") -> list[str]:
+    return ["-I.", "-Idaqp/include"] if qp_solver == "daqp" else ["-I.", "-Iosqp", "-Iosqp/inc/public",
+                                                                    "-Iosqp/inc/private"]
 
 
 def _defs(precision: str) -> list[str]:
     return ["-fsingle-precision-constant"] if precision == "single" else []
 
 
-def _makefile(precision: str) -> str:
+def _makefile(precision: str, qp_solver: str = "osqp") -> str:
     arm7, m7 = _ARM["cortex-m7"]
     arm4, m4 = _ARM["cortex-m4f"]
     return f"""# The library and its driver (hbma_run.c) for the host and for two Cortex-M boards run on QEMU.
@@ -791,8 +934,8 @@ def _makefile(precision: str) -> str:
 #   make run-cortex-m7 INPUTS=inputs.bin      (QEMU, semihosting; the same for run-host, run-cortex-m4f)
 #   make clean cortex-m7 PROFILE=1   the board driver also prints each tick's instructions per part
 # make -j builds the sources in parallel.
-SRC = {' '.join(_sources())}
-INC = {' '.join(_INCLUDES)}
+SRC = {' '.join(_sources(qp_solver))}
+INC = {' '.join(_includes(qp_solver))}
 OPT ?= {OPT}
 CFLAGS_COMMON = $(OPT) -std=c99 -Wall -Wno-unused-variable -Wno-unused-but-set-variable -Wno-unused-function \\
   -Wno-parentheses {' '.join(_defs(precision))}
@@ -847,19 +990,23 @@ clean:
 \trm -rf build hbma_run_host hbma_run_cortex-m7.elf hbma_run_cortex-m4f.elf
 
 .PHONY: host cortex-m7 cortex-m4f run-host run-cortex-m7 run-cortex-m4f clean
-"""
+""" + ("" if qp_solver != "daqp" else f"""
+# DAQP allocates only on paths the library never takes: its allocator's names map onto hbma.c's stubs
+QP_SRC = {' '.join(_qp_sources(qp_solver))}
+$(foreach t,host cortex-m7 cortex-m4f,$(QP_SRC:%.c=build/$(t)/%.o)): CFLAGS_COMMON += {' '.join(_DAQP_DEFS)}
+""")
 
 
-def _cmake(precision: str) -> str:
+def _cmake(precision: str, qp_solver: str = "osqp") -> str:
     single = ' "-fsingle-precision-constant"' if precision == "single" else ""
     return f"""# The library as a static library target (hbma) for the host or a cross toolchain file.
 cmake_minimum_required(VERSION 3.13)
 project(hbma C)
-add_library(hbma STATIC {' '.join(_sources())})
-target_include_directories(hbma PUBLIC . osqp osqp/inc/public osqp/inc/private)
+add_library(hbma STATIC {' '.join(_sources(qp_solver))})
+target_include_directories(hbma PUBLIC {' '.join(i[2:] for i in _includes(qp_solver))})
 set_property(TARGET hbma PROPERTY C_STANDARD 99)
 target_compile_options(hbma PRIVATE{single})
-find_library(M_LIB m)
+{'' if qp_solver != 'daqp' else 'set_source_files_properties(' + ' '.join(_qp_sources(qp_solver)) + chr(10) + '  PROPERTIES COMPILE_DEFINITIONS "' + ';'.join(d[2:] for d in _DAQP_DEFS) + '")' + chr(10)}find_library(M_LIB m)
 if(M_LIB)
   target_link_libraries(hbma PUBLIC ${{M_LIB}})
 endif()
@@ -881,7 +1028,7 @@ def _readme(lib: LibrarySpec, precision: str, sz: dict) -> str:
                   "estimated heights (m)")
     else:
         inputs = ("inputs.bin: little-endian doubles: ticks, preview length P, then per tick\n"
-                  "t, p, target and P preview targets. The driver prints per tick: k, u (3), status, OSQP's iterations,\n"
+                  "t, p, target and P preview targets. The driver prints per tick: k, u (3), status, the QP solver's iterations,\n"
                   "the estimated height (m)")
     return (f"The {lib.kind}'s tick as a C library (hbma-ctrl codegen --library), scenario \"{spec.name}\", "
             f"{precision} precision, tick {spec.dt * 1e3:g} ms.\n\n"
@@ -889,13 +1036,14 @@ def _readme(lib: LibrarySpec, precision: str, sz: dict) -> str:
             "hbma_workspace_t (sizeof: compile-time); no malloc, no file I/O, only libm.\n\n"
             "Build: make host | make cortex-m7 | make cortex-m4f | make libhbma.a, or CMake (target hbma).\n"
             "make clean cortex-m7 PROFILE=1: the board driver also prints each tick's instructions per part\n"
-            "(hbma.h's HBMA_PART_NAMES: the stages, the QP's data, OSQP's matrix update, vector update and\n"
-            "iterations, the post-processing).\n"
+            "(hbma.h's HBMA_PART_NAMES: the stages, then the QP's: " + ", ".join(_QP_PARTS[lib.qp_solver]) + ").\n"
             "Run on recorded inputs: ./hbma_run_host inputs.bin, or make run-cortex-m7 INPUTS=inputs.bin\n"
             f"(QEMU, semihosting). {inputs}, and on a board the SysTick counts of the tick (with QEMU's -icount\n"
             "shift=0, 40 instructions per count; the driver prints its calibration first).\n\n"
-            f"Files: hbma.c (the tick), {STEPS}.c/.h (casadi-generated Functions), osqp/ (OSQP's embedded "
-            "solver, its workspace a struct), hbma_run.c (driver), board/ (start-up file, linker script).\n"
+            f"Files: hbma.c (the tick), {STEPS}.c/.h (casadi-generated Functions), "
+            + ("daqp/ (DAQP's C sources and licence: the dense QP solver, its workspace in hbma_workspace_t)"
+               if lib.dense else "osqp/ (OSQP's embedded solver, its workspace a struct)")
+            + ", hbma_run.c (driver), board/ (start-up file, linker script).\n"
             f"Work arrays: arg {sz['arg']}, res {sz['res']}, iw {sz['iw']}, w {sz['w']}.\n\n"
             f"Stages per tick:\n{stages}\n" + "".join(f"\n{k}: {v}" for k, v in lib.meta.items()) + "\n")
 
@@ -1127,12 +1275,13 @@ def _commands_diff(a: LibraryRun, b: LibraryRun) -> float:
 
 
 def generate(scn, out_dir: Path | str, target: str = "host", precision: str = "double",
-             duration_s: float | None = None, log=print) -> dict:
+             duration_s: float | None = None, log=print, qp_solver: str = "osqp") -> dict:
     """``codegen --library``: write the library into ``out_dir`` and build it for the host; with a Cortex-M
     ``target`` also record ``ticks`` ticks of the scenario's pressures (None: its duration), build the
     board program, run host and board on them and write ``embedded.json`` (returned; {} for the host
     target). A single-precision library is also compared with a double one built in
-    ``out_dir/double``. ValueError naming the option when the toolchain is missing."""
+    ``out_dir/double``. ``qp_solver``: :data:`QP_SOLVERS`. ValueError naming the option when the toolchain
+    is missing."""
     if target not in TARGETS:
         raise ValueError(f"--target = '{target}'; allowed: {', '.join(TARGETS)}")
     if precision not in PRECISIONS:
@@ -1141,8 +1290,9 @@ def generate(scn, out_dir: Path | str, target: str = "host", precision: str = "d
     if missing:
         raise ValueError(f"--target {target}: {', '.join(missing)} not on PATH (Debian: apt-get install "
                          "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm)")
+    check_qp_solver(qp_solver, precision)
     out = Path(out_dir)
-    lib = library_spec(scn)
+    lib = library_spec(scn, qp_solver)
     write_library(lib, out, precision)
     log(f"building the library for the host ({precision})")
     build_library(out, "host")
