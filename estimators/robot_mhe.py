@@ -29,6 +29,7 @@ import casadi as ca
 import numpy as np
 
 from hbma_ctrl.core.codegen import HOT_FLAGS, HOT_OPT, FastFunction, casadi_lib_flags, compiled
+from hbma_ctrl.core.validation import floats_or_nan
 from hbma_ctrl.estimators.common import guard_cov
 from hbma_ctrl.estimators.ekf_step import KIND_NONE, KIND_OK
 from hbma_ctrl.estimators.mhe_problem import QP_LIBS, linearise_function, mhe_packed_function, window_layout
@@ -266,7 +267,7 @@ class RobotMHE:
         if k > 1:  # a late tick: the windows have no readings of the missed periods; they refill
             self._filled[:] = 0
             self.counts["restarts"] += 1
-        zf = np.where(est["used"], _readings(z, n), 0.0)
+        zf = np.where(est["used"], floats_or_nan(z, n), 0.0)
         code = np.where(est["used"], float(KIND_OK), float(KIND_NONE))
         self._hist.append((self.ekf.X.copy(), self.ekf.P.copy()))
         filling = self._filled <= N
@@ -324,17 +325,3 @@ class RobotMHE:
         est["mhe"] = self.last_status == 0
         self.last = est
         return est
-
-
-def _readings(z, n: int) -> np.ndarray:
-    """The readings as (n,) floats (not numbers as NaN; only those the EKF used are read)."""
-    try:
-        return np.asarray(z, dtype=float).reshape(n)
-    except (TypeError, ValueError):
-        out = np.full(n, np.nan)
-        for i, v in enumerate(np.ravel(np.asarray(z, dtype=object))):
-            try:
-                out[i] = float(v)
-            except (TypeError, ValueError):
-                pass
-        return out

@@ -6,7 +6,9 @@ import difflib
 import math
 from collections.abc import Iterable
 
-__all__ = ["did_you_mean", "finite_or_nan"]
+import numpy as np
+
+__all__ = ["did_you_mean", "finite_or_nan", "floats_or_nan"]
 
 
 def did_you_mean(word: str, options: Iterable[str], cutoff: float = 0.6) -> str:
@@ -25,3 +27,18 @@ def finite_or_nan(value) -> float:
     except (TypeError, ValueError):
         return math.nan
     return f if math.isfinite(f) else math.nan
+
+
+def floats_or_nan(values, n: int) -> np.ndarray:
+    """``values`` as an (n,) float array; the entries that are not numbers become NaN (a list of
+    readings with a None or a word in it keeps its other readings)."""
+    try:
+        return np.asarray(values, dtype=float).reshape(n)
+    except (TypeError, ValueError):
+        out = np.full(n, np.nan)
+        for i, v in enumerate(np.ravel(np.asarray(values, dtype=object))):
+            try:
+                out[i] = float(v)
+            except (TypeError, ValueError):
+                pass
+        return out

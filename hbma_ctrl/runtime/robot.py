@@ -65,7 +65,7 @@ from hbma_ctrl.core.interfaces import (
     RobotReadingsController,
     check_role,
 )
-from hbma_ctrl.core.validation import finite_or_nan
+from hbma_ctrl.core.validation import finite_or_nan, floats_or_nan
 from hbma_ctrl.estimators.robot_ekf import ChamberEKFBank
 from hbma_ctrl.models.bank import ChamberBank, commands_from_inputs
 from hbma_ctrl.models.defaults import DEFAULT_VALVE_MIN_ON
@@ -145,20 +145,6 @@ def _flow_duty(a: np.ndarray, topology: str) -> np.ndarray:
     tiny duties zeroed, a shared pump's budget applied."""
     d = commands_from_inputs(a, np.zeros_like(a), topology)[1]
     return shared_supply(d) if topology == "shared" else d
-
-
-def _as_float(z, n: int) -> np.ndarray:
-    """(n,) float readings; entries that are not numbers become NaN."""
-    try:
-        return np.asarray(z, dtype=float).reshape(n)
-    except (TypeError, ValueError):
-        out = np.full(n, np.nan)
-        for i, v in enumerate(np.ravel(np.asarray(z, dtype=object))):
-            try:
-                out[i] = float(v)
-            except (TypeError, ValueError):
-                pass
-        return out
 
 
 class RobotLoop:
@@ -281,7 +267,7 @@ class RobotLoop:
         t0 = time.perf_counter()
         est = self.bank.step(readings_pa, self._held_input(held), self.loads, steps=steps)
         # the supervisor's interlock sees the readings the bank trusted (an outlier is no pressure)
-        z = np.where(est["outlier"], np.nan, _as_float(readings_pa, self.n))
+        z = np.where(est["outlier"], np.nan, floats_or_nan(readings_pa, self.n))
         t1 = time.perf_counter()
         self.estimate = est
         burst = None
@@ -397,7 +383,7 @@ class RobotLoop:
         built, the supervisor's Function built for the NMPC's plans and, with a minimum opening, the
         short vents' Function compiled. The first tick then fits its period (without it: 9-12 ms of a
         10 ms period here)."""
-        p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(_as_float(readings_pa, self.n))
+        p = np.zeros(self.n) if readings_pa is None else np.nan_to_num(floats_or_nan(readings_pa, self.n))
         a = np.zeros(self.n)
         if self.is_mpc:
             X0 = self.bank.rest_state(p)

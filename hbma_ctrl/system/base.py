@@ -14,7 +14,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["System", "SystemBase", "SupervisorEpisodes"]
+__all__ = ["System", "Neutral", "SystemBase", "SupervisorEpisodes"]
 
 
 @runtime_checkable
@@ -118,11 +118,34 @@ class SupervisorEpisodes:
         return out
 
 
-class SystemBase:
+class Neutral:
+    """The neutral values of the :class:`System` members a system may do without: no faults of its
+    own, no burst test, no timing or report of its parts."""
+
+    def take_faults(self) -> list[tuple[str, int, str]]:
+        """No faults of its own."""
+        return []
+
+    def burst_peak(self) -> float | None:
+        """No burst test."""
+        return None
+
+    def tick_timing(self) -> tuple[float, float, float] | None:
+        """Not measured."""
+        return None
+
+    def tick_parts(self) -> dict:
+        """No parts."""
+        return {}
+
+    def controller_report(self) -> dict | None:
+        """No report."""
+        return None
+
+
+class SystemBase(Neutral):
     """A system over the runtime loop ``loop`` (its ``supervisor`` and ``stats()``) of the chambers
-    ``names`` (pressure limit ``p_limit``, Pa), and the neutral values of the :class:`System` members a
-    system may do without: no calibration, no faults of its own, no burst test, no timing or report
-    of its parts."""
+    ``names`` (pressure limit ``p_limit``, Pa), with the :class:`Neutral` values and no calibration."""
 
     warming: bool = False
 
@@ -144,26 +167,6 @@ class SystemBase:
     def stats(self) -> dict:
         """The runtime loop's statistics (ms, counts)."""
         return self.loop.stats()
-
-    def take_faults(self) -> list[tuple[str, int, str]]:
-        """No faults of its own."""
-        return []
-
-    def burst_peak(self) -> float | None:
-        """No burst test."""
-        return None
-
-    def tick_timing(self) -> tuple[float, float, float] | None:
-        """Not measured."""
-        return None
-
-    def tick_parts(self) -> dict:
-        """No parts."""
-        return {}
-
-    def controller_report(self) -> dict | None:
-        """No report."""
-        return None
 
     def effective_targets(self) -> np.ndarray:
         """The targets as they are (a controller that reports no reach works to them)."""

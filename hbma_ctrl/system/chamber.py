@@ -34,7 +34,7 @@ from hbma_ctrl.system.roles import (
 )
 from hbma_ctrl.system.sections import ControllerSection
 
-__all__ = ["ChamberSystem", "chamber_system"]
+__all__ = ["ChamberSystem", "chamber_system", "chamber_setpoint"]
 
 
 class _RigClock:
@@ -174,26 +174,7 @@ class ChamberSystem(SystemBase):
         stretch limits, the height it settles at); ValueError for layers or
         another chamber. The request is a validated :class:`~hbma_ctrl.app.schema.api.SetpointRequest`'s
         (finite heights)."""
-        if request.get("layers"):
-            raise ValueError("layers: this daemon runs one chamber; send heights_mm instead")
-        heights = request.get("heights") or {}
-        if not heights:
-            raise ValueError("no setpoint given: send heights_mm for chamber 0")
-        clipped, applied = [], {}
-        lo, hi = self.h_range
-        reach = max(self._reach(), lo)
-        for i, h in heights.items():
-            if int(i) != 0:
-                raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
-            h = float(h)
-            hc = min(max(h, lo), hi, reach)
-            if hc != h:
-                why = (f"the controller's range [{U.to_mm(lo):g}, {U.to_mm(hi):g}] mm" if h < lo or reach >= hi
-                       else "the highest the chamber reaches under its present load within its pressure and "
-                            "stretch limits")
-                clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):.2f} mm ({why})")
-            applied[0] = hc
-        return {"applied": {"heights": applied}, "clipped": clipped}
+        return chamber_setpoint(request, self.h_range, max(self._reach(), self.h_range[0]))
 
     def apply_setpoint(self, applied: dict, t: float) -> None:
         """Hold the applied height from now on (the file's target schedule ends)."""
@@ -297,3 +278,28 @@ def chamber_system(actuator: Actuator, pneumatics: Pneumatics, platform: Platfor
     if section.calibrate if calibrate is None else calibrate:
         cal = make_calibration(actuator, pneumatics, platform, section, rs, est)
     return ChamberSystem(loop, section.p_max, (h_min, h_max), rs.sample_period, calibration=cal)
+
+
+def chamber_setpoint(request: dict, h_range: tuple[float, float], reach: float = math.inf) -> dict:
+    """One chamber's setpoint request (heights {0: h m}) -> {"applied", "clipped"}: each height clipped
+    to ``h_range`` (m) and to ``reach`` (m, the highest the chamber reaches now), each clip said in a
+    line; ValueError for layers or another chamber."""
+    if request.get("layers"):
+        raise ValueError("layers: this daemon runs one chamber; send heights_mm instead")
+    heights = request.get("heights") or {}
+    if not heights:
+        raise ValueError("no setpoint given: send heights_mm for chamber 0")
+    clipped, applied = [], {}
+    lo, hi = h_range
+    for i, h in heights.items():
+        if int(i) != 0:
+            raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
+        h = float(h)
+        hc = min(max(h, lo), hi, reach)
+        if hc != h:
+            why = (f"the controller's range [{U.to_mm(lo):g}, {U.to_mm(hi):g}] mm" if h < lo or reach >= hi
+                   else "the highest the chamber reaches under its present load within its pressure and "
+                        "stretch limits")
+            clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):.2f} mm ({why})")
+        applied[0] = hc
+    return {"applied": {"heights": applied}, "clipped": clipped}

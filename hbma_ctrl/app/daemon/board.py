@@ -16,7 +16,8 @@ import math
 
 import numpy as np
 
-from hbma_ctrl.core import units as U
+from hbma_ctrl.system.base import Neutral
+from hbma_ctrl.system.chamber import chamber_setpoint
 from hbma_ctrl.system.rigio import safe_u
 from hbma_ctrl.system.roles import controller_settings_of
 from hbma_ctrl.system.serial_link import BoardControlledRig
@@ -28,7 +29,7 @@ __all__ = ["BoardSystem", "board_system", "ABSENT_STATS"]
 ABSENT_STATS = ("solve_ms_median", "solve_ms_p99", "solve_ms_max", "guard_activations")
 
 
-class BoardSystem:
+class BoardSystem(Neutral):
     """One chamber whose controller runs on the board (module doc): ``reference`` (m at the loop's time
     s), reachable targets ``h_range`` (lo, hi) m, pressure limit ``p_limit`` Pa, the rig's sample period
     s. :attr:`link` (a :class:`~hbma_ctrl.system.serial_link.BoardControlledRig`) is set by the daemon's
@@ -101,22 +102,7 @@ class BoardSystem:
     def check_setpoint(self, request: dict) -> dict:
         """Heights {0: h m} -> {"applied", "clipped"}, clipped to ``h_range``; ValueError for layers or
         another chamber."""
-        if request.get("layers"):
-            raise ValueError("layers: this daemon runs one chamber; send heights_mm instead")
-        heights = request.get("heights") or {}
-        if not heights:
-            raise ValueError("no setpoint given: send heights_mm for chamber 0")
-        clipped, applied = [], {}
-        lo, hi = self.h_range
-        for i, h in heights.items():
-            if int(i) != 0:
-                raise ValueError(f"heights_mm.{i}: chamber index out of range [0, 0] (one chamber)")
-            hc = min(max(float(h), lo), hi)
-            if hc != float(h):
-                clipped.append(f"heights_mm.{i} = {U.to_mm(h):g} clipped to {U.to_mm(hc):.2f} mm (the "
-                               f"controller's range [{U.to_mm(lo):g}, {U.to_mm(hi):g}] mm)")
-            applied[0] = hc
-        return {"applied": {"heights": applied}, "clipped": clipped}
+        return chamber_setpoint(request, self.h_range)
 
     def apply_setpoint(self, applied: dict, t: float) -> None:
         """Hold the applied height from now on (the file's target schedule ends)."""
@@ -128,26 +114,6 @@ class BoardSystem:
         """(kind, cause) events since the last call: changes of the board controller's status."""
         ev, self._events = self._events, []
         return ev
-
-    def take_faults(self) -> list[tuple[str, int, str]]:
-        """No faults of its own (the safety monitor judges the readings)."""
-        return []
-
-    def burst_peak(self) -> float | None:
-        """No burst test."""
-        return None
-
-    def tick_timing(self) -> tuple[float, float, float] | None:
-        """Not measured: the controller's time is the board's."""
-        return None
-
-    def tick_parts(self) -> dict:
-        """No parts."""
-        return {}
-
-    def controller_report(self) -> dict | None:
-        """No report of a host-side controller step."""
-        return None
 
     def stats(self) -> dict:
         """The controller's statistics as the board reported them: ``steps`` (samples it reported),
