@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 
 import casadi as ca
 import numpy as np
@@ -116,11 +117,12 @@ class DoMPCMHE:
         return x
 
 
-def compare_dompc(trial, rec, settings: MHESettings, steps: int) -> dict:
+def compare_dompc(trial, rec, settings: MHESettings, steps: int, check: Callable[[], None] | None = None) -> dict:
     """do-mpc's MHE and :class:`~hbma_ctrl.estimators.mhe.MHE` over the same ``steps`` samples of one rig
     run (after the window fills; both started from the EKF's posterior there): median step times (us),
     their ratio ``dompc_mhe_over_mhe_speed`` (do-mpc's median over the MHE's), and both pressure
-    estimates' RMS difference (Pa) as a check that they solve the same problem."""
+    estimates' RMS difference (Pa) as a check that they solve the same problem. ``check`` is called
+    before each of do-mpc's steps (seconds each): it may raise to end the comparison."""
     N = settings.horizon
     mhe = MHE(trial.actuator, trial.pneumatics, settings)
     K = len(rec.t)
@@ -142,6 +144,8 @@ def compare_dompc(trial, rec, settings: MHESettings, steps: int) -> dict:
     d.start(*prior, [rec.u[j - 1] if j > 0 else u0 for j in range(first + 1)])
     ts_d, p_d = [], []
     for k in range(first + 1, stop):
+        if check is not None:
+            check()
         x = d.step(rec.meas[k], rec.u[k - 1])
         if k >= start:
             ts_d.append(d.last_step_s)

@@ -128,6 +128,16 @@ def pending_signal() -> int | None:
     return _signalled["signum"] if os.getpid() == _signalled["pid"] else None
 
 
+def raise_if_signalled() -> None:
+    """Raise :class:`Terminated` when an ending signal came and its exception was lost: casadi's solvers
+    check for signals inside their C code, and one that arrives there stops that solve only, while the
+    Python code around it carries on. A long loop calls this between its steps, so the command ends
+    within one step of the signal instead of at its end."""
+    signum = pending_signal()
+    if signum is not None:
+        raise Terminated(signum)
+
+
 def _signal_name(signum: int) -> str:
     """How manifest.json names what ended a run: KeyboardInterrupt for Ctrl-C, else the signal."""
     return "KeyboardInterrupt" if signum == signal.SIGINT else signal.Signals(signum).name

@@ -28,6 +28,7 @@ import numpy as np
 from hbma_ctrl.controllers.dompc_ref import DoMPCController
 from hbma_ctrl.core.extras import dompc_available
 from hbma_ctrl.controllers.mpc_settings import VARIANTS
+from hbma_ctrl.app.outputs import raise_if_signalled
 from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
 from hbma_ctrl.system.roles import make_controller
 from hbma_ctrl.app.schema.document import parse_role
@@ -92,6 +93,7 @@ def run_bench(actuator: Actuator | None = None, pneumatics: Pneumatics | None = 
         if progress:
             progress(name)
         c = ctrl or make_controller(sec, actuator, pneumatics, model)
+        raise_if_signalled()  # a signal caught inside the last row's solver
         log = closed_loop(actuator, pneumatics, platform, sec, duration, rs, controller=c)
         m = loop_metrics(log, sec)
         rows.append(_row(name, m, rt_budget_ms, log.solve_ms))

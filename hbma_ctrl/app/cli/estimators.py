@@ -19,7 +19,7 @@ from rich.console import Console
 # the filters (filterpy, scipy.stats), python-control and the rig are imported by the commands
 # when they run
 from hbma_ctrl.app.cli.args import ReportDir, check_range, numbers, show_table, whole_numbers
-from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, raise_if_signalled, run_dir
 from hbma_ctrl.core import units as U
 
 __all__ = ["register", "bench_ekf", "parse_axes", "BENCH_SUBSTEPS", "BENCH_MEMBRANES", "BENCH_HORIZONS",
@@ -115,6 +115,7 @@ def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0,
         results, steps = [], []
         t0 = time.perf_counter()
         for tr, rec, h_ol in zip(runs, recs, ol):
+            raise_if_signalled()  # a signal caught inside a solver (the MHE's reference, do-mpc's)
             r = run_and_score(kind, tr, rec, rfs, h_ol)
             results.append(r)
             steps.append(r.step_s[1:])
@@ -147,7 +148,7 @@ def bench_ekf(grid: dict, filters: Sequence[str] | None = None, seed: int = 0,
 
             ok, why = dompc_available()
             if ok:
-                cmp = compare_dompc(runs[0], recs[0], rows[key], DOMPC_STEPS)
+                cmp = compare_dompc(runs[0], recs[0], rows[key], DOMPC_STEPS, check=raise_if_signalled)
                 summary.update(cmp)
             else:
                 summary["dompc"] = why

@@ -379,3 +379,19 @@ def test_a_token_never_reaches_the_manifest(tmp_path, argv, kept):
         pass
     text = (tmp_path / "r" / "manifest.json").read_text()
     assert json.loads(text)["argv"] == kept and "s3cret" not in text
+
+
+def test_raise_if_signalled_raises_the_signal_a_solver_swallowed_and_nothing_without_one():
+    """A signal whose exception was lost inside C code (casadi's solvers catch it and carry on) is
+    raised again at the next check, as the signal it was; without a signal the check passes."""
+    saved = dict(outputs._signalled)
+    try:
+        outputs._signalled.update(pid=os.getpid(), signum=None)
+        outputs.raise_if_signalled()  # nothing pending: returns
+        outputs._signalled["signum"] = int(signal.SIGTERM)
+        with pytest.raises(outputs.Terminated) as err:
+            outputs.raise_if_signalled()
+        assert err.value.signum == signal.SIGTERM and isinstance(err.value, KeyboardInterrupt)
+    finally:
+        outputs._signalled.clear()
+        outputs._signalled.update(saved)

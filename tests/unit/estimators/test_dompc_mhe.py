@@ -13,7 +13,7 @@ pytest.importorskip("do_mpc")
 
 
 @pytest.mark.slow
-def test_compare_dompc_reports_both_step_times_their_ratio_and_a_pressure_difference():
+def test_compare_dompc_reports_both_step_times_their_ratio_and_a_pressure_difference_and_checks_each_step():
     from hbma_ctrl.estimators.dompc_mhe import compare_dompc
 
     trials = protocol_trials("nh", platform=Platform(own_mass=0.02), loads_g=(0.0,), speeds_pct=(100.0,),
@@ -22,8 +22,9 @@ def test_compare_dompc_reports_both_step_times_their_ratio_and_a_pressure_differ
     fs = FilterSettings(sample_period=rig.sample_period, sensor_range=rig.sensor_range, noise_std=rig.noise_std)
     s = MHESettings(**{f: getattr(fs, f) for f in fs.__dataclass_fields__}, horizon=5).validate()
     rec = simulate_rig(trials[:1], rig)[0]
-    out = compare_dompc(trials[0], rec, s, steps=3)
-    assert out["dompc_steps"] == 3
+    checks = []
+    out = compare_dompc(trials[0], rec, s, steps=3, check=lambda: checks.append(1))
+    assert out["dompc_steps"] == 3 and len(checks) >= 3  # the caller may end it between do-mpc's steps
     assert out["dompc_mhe_step_us_median"] > 0 and out["dompc_compare_mhe_step_us_median"] > 0
     assert out["dompc_mhe_over_mhe_speed"] == pytest.approx(
         out["dompc_mhe_step_us_median"] / out["dompc_compare_mhe_step_us_median"])
