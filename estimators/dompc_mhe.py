@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable
 
 import casadi as ca
 import numpy as np
 
+from hbma_ctrl.core import interrupt
 from hbma_ctrl.core.extras import dompc_available
 from hbma_ctrl.estimators.common import FACTOR_RANGE
 from hbma_ctrl.estimators.ekf_step import observer_model
@@ -117,12 +117,12 @@ class DoMPCMHE:
         return x
 
 
-def compare_dompc(trial, rec, settings: MHESettings, steps: int, check: Callable[[], None] | None = None) -> dict:
+def compare_dompc(trial, rec, settings: MHESettings, steps: int) -> dict:
     """do-mpc's MHE and :class:`~hbma_ctrl.estimators.mhe.MHE` over the same ``steps`` samples of one rig
     run (after the window fills; both started from the EKF's posterior there): median step times (us),
     their ratio ``dompc_mhe_over_mhe_speed`` (do-mpc's median over the MHE's), and both pressure
-    estimates' RMS difference (Pa) as a check that they solve the same problem. ``check`` is called
-    before each of do-mpc's steps (seconds each): it may raise to end the comparison."""
+    estimates' RMS difference (Pa) as a check that they solve the same problem. Each of do-mpc's steps
+    (seconds each) is preceded by :func:`hbma_ctrl.core.interrupt.check`."""
     N = settings.horizon
     mhe = MHE(trial.actuator, trial.pneumatics, settings)
     K = len(rec.t)
@@ -144,8 +144,7 @@ def compare_dompc(trial, rec, settings: MHESettings, steps: int, check: Callable
     d.start(*prior, [rec.u[j - 1] if j > 0 else u0 for j in range(first + 1)])
     ts_d, p_d = [], []
     for k in range(first + 1, stop):
-        if check is not None:
-            check()
+        interrupt.check()
         x = d.step(rec.meas[k], rec.u[k - 1])
         if k >= start:
             ts_d.append(d.last_step_s)

@@ -36,6 +36,7 @@ from collections.abc import Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
 from hbma_ctrl.app.shipped import resolve
+from hbma_ctrl.core import interrupt
 
 try:  # typer >= 0.24 vendors click as typer._click; older typer uses click itself
     from typer._click.globals import get_current_context
@@ -117,6 +118,7 @@ def end_on_signals() -> None:
     (:func:`pending_signal`); a second signal kills at once; a forked child dies as by default.
     Call from the main thread."""
     _signalled.update(pid=os.getpid(), signum=None)
+    interrupt.set_check(raise_if_signalled)  # the loops below the application check between steps
     for sig in _ENDING:
         signal.signal(sig, _terminate)
 

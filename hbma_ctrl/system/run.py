@@ -10,6 +10,7 @@ from typing import Callable
 
 import numpy as np
 
+from hbma_ctrl.core import interrupt
 from hbma_ctrl.core.params import check_range
 from hbma_ctrl.system.base import System
 from hbma_ctrl.system.rigio import Readings, RigIO
@@ -37,6 +38,7 @@ def run_lockstep(system: System, rig: RigIO, duration: float,
     n = int(round(duration / Ts))
     k = 0
     while k < n:
+        interrupt.check()  # an ending signal lost inside a solver ends the run here
         closed = not system.warming
         if closed and before is not None:
             before(k, k * Ts)

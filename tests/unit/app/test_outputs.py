@@ -395,3 +395,31 @@ def test_raise_if_signalled_raises_the_signal_a_solver_swallowed_and_nothing_wit
     finally:
         outputs._signalled.clear()
         outputs._signalled.update(saved)
+
+
+def test_a_closed_loop_ends_at_its_next_period_when_a_signal_was_lost_inside_a_solver(tmp_path):
+    """end_on_signals registers the check the lockstep driver makes each period: a signal whose exception
+    casadi swallowed ends the run as the signal it was, not at the end of the run."""
+    from hbma_ctrl.core import interrupt
+    from hbma_ctrl.system.run import run_lockstep
+
+    class Never:
+        warming = False
+
+        def tick(self, t, p, held):
+            raise AssertionError("ticked after the signal")
+
+    saved = dict(outputs._signalled)
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        outputs.end_on_signals()
+        outputs._signalled["signum"] = int(signal.SIGHUP)  # as the handler leaves it when its raise is lost
+        with pytest.raises(outputs.Terminated) as err:
+            run_lockstep(Never(), rig=type("R", (), {"sample_period": 0.01})(), duration=1.0)
+        assert err.value.signum == signal.SIGHUP
+    finally:
+        interrupt.set_check(None)
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        outputs._signalled.clear()
+        outputs._signalled.update(saved)

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from hbma_ctrl.core import interrupt
 from hbma_ctrl.core.params import Platform
 from hbma_ctrl.estimators.common import FilterSettings
 from hbma_ctrl.estimators.mhe import MHESettings
@@ -23,8 +24,12 @@ def test_compare_dompc_reports_both_step_times_their_ratio_and_a_pressure_differ
     s = MHESettings(**{f: getattr(fs, f) for f in fs.__dataclass_fields__}, horizon=5).validate()
     rec = simulate_rig(trials[:1], rig)[0]
     checks = []
-    out = compare_dompc(trials[0], rec, s, steps=3, check=lambda: checks.append(1))
-    assert out["dompc_steps"] == 3 and len(checks) >= 3  # the caller may end it between do-mpc's steps
+    interrupt.set_check(lambda: checks.append(1))
+    try:
+        out = compare_dompc(trials[0], rec, s, steps=3)
+    finally:
+        interrupt.set_check(None)
+    assert out["dompc_steps"] == 3 and len(checks) >= 3  # a signal may end it between do-mpc's steps
     assert out["dompc_mhe_step_us_median"] > 0 and out["dompc_compare_mhe_step_us_median"] > 0
     assert out["dompc_mhe_over_mhe_speed"] == pytest.approx(
         out["dompc_mhe_step_us_median"] / out["dompc_compare_mhe_step_us_median"])
