@@ -92,7 +92,25 @@ def ekf_page(res: dict, run_doc: str, command_doc: str) -> Page:
                 [Pareto("ekf_pareto", f"bench ekf: filter step vs accuracy, {n} rig trials",
                         "median filter step (us)", [("height NRMSD, mean over trials (-)",
                                                      estimator_result_points(res))])],
-                ["us: wall time per predict + update of one chamber on this machine."])
+                ["us: wall time per predict + update of one chamber on this machine.", *_ekf_summary(res)])
+
+
+def _ekf_summary(res: dict) -> list[str]:
+    """The summary's lines of an ``bench ekf`` result: the MHE's own steps and do-mpc's MHE beside it."""
+    sm = res.get("summary", {})
+    out = []
+    if "mhe_step_us_median" in sm:
+        out.append(f"MHE's own steps (after its window fills), the summary's window: median "
+                   f"{fmt(sm['mhe_step_us_median'], '.3g')} us, p99 {fmt(sm['mhe_step_us_p99'], '.3g')} us.")
+    if "dompc_mhe_over_mhe_speed" in sm:
+        out.append(f"do-mpc's MHE on the same problem and samples ({sm['dompc_steps']} steps, the same run): median "
+                   f"{fmt(sm['dompc_mhe_step_us_median'] / 1e3, '.4g')} ms per step against "
+                   f"{fmt(sm['dompc_compare_mhe_step_us_median'], '.3g')} us, "
+                   f"{sm['dompc_mhe_over_mhe_speed']:,.0f}x; their pressure estimates differ by "
+                   f"{fmt(sm['dompc_vs_mhe_pressure_rms_pa'], '.3g')} Pa RMS.")
+    elif "dompc" in sm:
+        out.append(f"do-mpc's MHE: not measured ({sm['dompc']}).")
+    return out
 
 
 def loop_page(rows: list[dict], setup: dict) -> Page:

@@ -107,3 +107,18 @@ def test_bench_api_writes_its_page_with_both_runs_and_the_verdicts(tmp_path, mon
     assert "| quiet | 0 | 0 | 6000 | 2 | 1 | 3.25 | 20/20 | 1.5 | 4 | 4.5 | none |" in text
     assert "| loaded | 100 | 850 |" in text
     assert "](api.md)" in (rep / "index.md").read_text()
+
+
+def test_the_ekf_page_states_the_mhe_summary_and_do_mpcs_ratio_or_why_it_is_missing():
+    from hbma_ctrl.app.bench.pages import _ekf_summary
+
+    sm = {"mhe_step_us_median": 63.4, "mhe_step_us_p99": 149.0, "dompc_mhe_step_us_median": 1.72e6,
+          "dompc_compare_mhe_step_us_median": 65.6, "dompc_mhe_over_mhe_speed": 26210.0, "dompc_steps": 150,
+          "dompc_vs_mhe_pressure_rms_pa": 376.0}
+    lines = _ekf_summary({"summary": sm})
+    assert "median 63.4 us, p99 149 us" in lines[0]
+    assert "1720 ms per step against 65.6 us, 26,210x" in lines[1] and "376 Pa RMS" in lines[1]
+    missing = _ekf_summary({"summary": {"mhe_step_us_median": 1.0, "mhe_step_us_p99": 2.0,
+                                        "dompc": "do-mpc is not installed"}})
+    assert missing[1] == "do-mpc's MHE: not measured (do-mpc is not installed)."
+    assert _ekf_summary({"summary": {}}) == []
