@@ -557,7 +557,8 @@ def test_host_and_board_refuse_a_hosted_mismatch_with_one_line(hosted, host_exe,
 
     from cli_checks import one_line_error
     from hbma_ctrl.app.cli.main import app
-    from hbma_ctrl.system.serial_link import BoardControlledRig, ControllerMismatchError
+    from hbma_ctrl.system.board_link import BoardControlledRig
+    from hbma_ctrl.system.serial_link import ControllerMismatchError
 
     for exe, link_cls, needle in ((hosted[0], SerialRig, "runs its own controller"),
                                   (host_exe, BoardControlledRig, "runs no controller of its own")):

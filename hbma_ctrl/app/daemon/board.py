@@ -20,7 +20,7 @@ from hbma_ctrl.system.base import Neutral
 from hbma_ctrl.system.chamber import chamber_setpoint
 from hbma_ctrl.system.rigio import safe_u
 from hbma_ctrl.system.roles import controller_settings_of
-from hbma_ctrl.system.serial_link import BoardControlledRig
+from hbma_ctrl.system.board_link import BoardControlledRig
 
 __all__ = ["BoardSystem", "board_system", "ABSENT_STATS"]
 
@@ -32,7 +32,7 @@ ABSENT_STATS = ("solve_ms_median", "solve_ms_p99", "solve_ms_max", "guard_activa
 class BoardSystem(Neutral):
     """One chamber whose controller runs on the board (module doc): ``reference`` (m at the loop's time
     s), reachable targets ``h_range`` (lo, hi) m, pressure limit ``p_limit`` Pa, the rig's sample period
-    s. :attr:`link` (a :class:`~hbma_ctrl.system.serial_link.BoardControlledRig`) is set by the daemon's
+    s. :attr:`link` (a :class:`~hbma_ctrl.system.board_link.BoardControlledRig`) is set by the daemon's
     :func:`~hbma_ctrl.app.daemon.build.make_rig`."""
 
     kind = "chamber"

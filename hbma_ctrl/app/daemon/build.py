@@ -27,7 +27,8 @@ from hbma_ctrl.runtime.watchdog import MonitorSettings, SafetyMonitor
 from hbma_ctrl.sim.rig import RigSettings
 from hbma_ctrl.system.chamber import ChamberSystem, chamber_system
 from hbma_ctrl.system.robot import RobotSystem, robot_system
-from hbma_ctrl.system.serial_link import BoardControlledRig, SerialRig
+from hbma_ctrl.system.board_link import BoardControlledRig
+from hbma_ctrl.system.serial_link import SerialRig
 from hbma_ctrl.system.sim_rig import SimRig
 
 __all__ = ["build_runner", "chamber_rig_settings", "make_monitor", "make_rig",

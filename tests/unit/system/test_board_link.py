@@ -1,4 +1,4 @@
-"""The host side of a board that runs the controller (serial_link.BoardControlledRig): its handshake, the
+"""The host side of a board that runs the controller (board_link.BoardControlledRig): its handshake, the
 pairing of each P line with the board's U report, the targets it sends, and the refusal of a board of
 the other kind. The board is scripted on a raw pty: the test writes the lines a hosted firmware would."""
 
@@ -12,8 +12,8 @@ import tty
 import numpy as np
 import pytest
 
+from hbma_ctrl.system.board_link import BoardControlledRig
 from hbma_ctrl.system.serial_link import (
-    BoardControlledRig,
     ControllerMismatchError,
     SerialRig,
     decode_line,
