@@ -30,7 +30,7 @@ from rig_links import UntilRigTime
 from hbma_ctrl.controllers.robot_mpc import RobotMPCSettings
 from hbma_ctrl.app.daemon.build import DAEMON_TARGET_RATE, DAEMON_W_SLACK, build_runner, make_monitor, make_rig
 from hbma_ctrl.app.daemon.config import load_config
-from hbma_ctrl.app.daemon.latency import SLICE_S, ask_short_slice, thread_slice_s
+from hbma_ctrl.app.daemon.host import SLICE_S, ask_short_slice, thread_slice_s
 from hbma_ctrl.app.daemon.loop import GIL_SWITCH_S, STATS_KEYS, DaemonLoop
 from hbma_ctrl.system.rigio import RigLinkError, safe_u
 from hbma_ctrl.system.serial_link import SerialRig

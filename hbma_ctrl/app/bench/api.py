@@ -5,7 +5,7 @@ its API on a free loopback port (in the API's own process, as the daemon runs it
 ``duration_s`` each: once quiet, once with ``clients`` loopback clients in another process, each sending its next request (``GET /status``, ``GET /health``
 or a ``POST /setpoint``, in turn) as soon as the last is answered. In both runs a prober, a process of
 its own (with the short scheduler slice the daemon's threads ask for,
-:mod:`hbma_ctrl.app.daemon.latency`, so that its own wake-ups are not what it times), posts ``/stop``
+:mod:`hbma_ctrl.app.daemon.host`, so that its own wake-ups are not what it times), posts ``/stop``
 every ``probe_every_s`` and times each answer: the stop requests the API takes
 from it reach the loop's state, which counts them instead of ending the run (:class:`ProbedState`);
 the API's path to them is the real one. At the end, once every probe answered has been counted
@@ -32,7 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from hbma_ctrl.app.daemon.latency import ask_short_slice
+from hbma_ctrl.app.daemon.host import ask_short_slice
 from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.app.outputs import run_dir
 from hbma_ctrl.core import units as U
@@ -89,7 +89,7 @@ def _probe(url: str, every: float, duration: float, go, out) -> None:
     """POST /stop every ``every`` s for ``duration`` s from the event ``go``; puts the latencies (s;
     None: no answer)."""
     # the instrument's own wake-ups on a busy host are not the daemon's answer: the prober asks for the
-    # short slice the daemon's threads ask for (hbma_ctrl.app.daemon.latency); the clients do not
+    # short slice the daemon's threads ask for (hbma_ctrl.app.daemon.host); the clients do not
     ask_short_slice()
     lat: list = []
     with httpx.Client(base_url=url, timeout=5) as c:

@@ -385,7 +385,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
     not reproduce, see :func:`_forced_outcome`), ``machine`` (same state and the replay's tick within the period)."""
     from hbma_ctrl.app.daemon.build import build_runner, make_monitor, make_rig
     from hbma_ctrl.app.daemon.config import load_config
-    from hbma_ctrl.app.daemon.loop import DaemonLoop, _fmt
+    from hbma_ctrl.app.daemon.loop import DaemonLoop
+    from hbma_ctrl.app.daemon.runlog import fmt_value
     from hbma_ctrl.app.daemon.state import DaemonState
     from hbma_ctrl.core import units as U
 
@@ -438,8 +439,8 @@ def replay_ticks(config: Path, daemon_dir: Path, speed: float, echo=print, event
         if key in wanted:
             h = runner.estimates()[0]
             seen[key] = {"cpu_ms": loop._last_tick_cpu * 1e3,
-                         "p": [_fmt(v, U.to_kpa(1.0)) for v in loop.readings_p],
-                         "h": [_fmt(v, U.to_mm(1.0)) for v in h]}
+                         "p": [fmt_value(v, U.to_kpa(1.0)) for v in loop.readings_p],
+                         "h": [fmt_value(v, U.to_mm(1.0)) for v in h]}
         if time.monotonic() - last_note[0] > 60.0:
             last_note[0] = time.monotonic()
             echo(f"soak replay: rig time {loop.t:.0f} / {until:.0f} s")

@@ -29,7 +29,7 @@ publishes nothing (starting, ended).
 
 The API's process leaves a real-time scheduling class it inherited (:func:`leave_real_time`): on
 the loop's core, the loop preempts it. The server's thread and the link's thread ask the scheduler
-for a short slice (:mod:`hbma_ctrl.app.daemon.latency`), as the loop does: on a host whose CPUs are
+for a short slice (:mod:`hbma_ctrl.app.daemon.host`), as the loop does: on a host whose CPUs are
 busy, a stop's request wakes them ahead of the tasks they share a CPU with. Its start-up objects are frozen out of the garbage collector
 (:func:`freeze_start_up`), so that no collection holds a ``/stop`` for tens of milliseconds.
 
@@ -60,7 +60,7 @@ from multiprocessing.connection import Connection, wait
 from typing import Any, Self
 
 from hbma_ctrl.app.daemon.api import DEFAULT_PORT, EVENTS_SHOWN, RATE_HZ, is_loopback
-from hbma_ctrl.app.daemon.latency import ask_short_slice
+from hbma_ctrl.app.daemon.host import ask_short_slice
 from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 
 __all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "bind", "freeze_start_up", "leave_real_time",
@@ -207,7 +207,7 @@ def freeze_start_up() -> None:
 
 def _serve(server, sock: socket.socket) -> None:
     """Run uvicorn's server on ``sock`` in this thread, which reads the requests (a stop among them) as
-    soon as they arrive when it shares a CPU with busy tasks (:mod:`hbma_ctrl.app.daemon.latency`)."""
+    soon as they arrive when it shares a CPU with busy tasks (:mod:`hbma_ctrl.app.daemon.host`)."""
     ask_short_slice()
     server.run(sockets=[sock])
 

@@ -47,8 +47,6 @@ rig time and cause.
 from __future__ import annotations
 
 import math
-import os
-import resource
 import sys
 import time
 from collections import deque
@@ -57,14 +55,14 @@ from typing import Callable
 import numpy as np
 
 from hbma_ctrl.app.daemon.gcwatch import GcWatch
-from hbma_ctrl.app.daemon.latency import ask_short_slice, thread_slice_s
+from hbma_ctrl.app.daemon.host import ask_short_slice, rss_mb, steal_ms, thread_slice_s, thread_usage
 from hbma_ctrl.system.rigio import RigLinkError, safe_u
-from hbma_ctrl.app.daemon.runlog import RunLog
+from hbma_ctrl.app.daemon.runlog import RunLog, fmt_value, setpoint_fields
 from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.core import units as U
 from hbma_ctrl.runtime.stats import StepStats
 
-__all__ = ["DaemonLoop", "rss_mb", "setpoint_fields", "STATS_KEYS", "COUNTED", "GIL_SWITCH_S"]
+__all__ = ["DaemonLoop", "STATS_KEYS", "COUNTED", "GIL_SWITCH_S"]
 
 #: the words a slow_tick event carries when steps_over_period counts its tick
 COUNTED = "counted over the period"
@@ -81,55 +79,6 @@ EVENTS_KEPT = 100
 #: back from its sleep or a solver call) waits at most this long for another (the run log's writer,
 #: the API's link) to hand it over; Python's default is 5 ms, half a period at 100 Hz
 GIL_SWITCH_S = 2e-4
-
-
-def rss_mb() -> float:
-    """Resident set size of this process, MB (/proc/self/statm; the peak from getrusage elsewhere)."""
-    try:
-        with open("/proc/self/statm") as fh:
-            pages = int(fh.read().split()[1])
-        return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
-    except (OSError, ValueError, IndexError):
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
-
-
-def _steal_ms() -> float | None:
-    """The host's steal time summed over this machine's CPUs, ms (/proc/stat; None where there is none)."""
-    try:
-        with open("/proc/stat") as fh:
-            f = fh.readline().split()
-        return float(f[8]) * 1e3 / os.sysconf("SC_CLK_TCK") if f and f[0] == "cpu" and len(f) > 8 else None
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-def _thread_usage():
-    """This thread's resource usage (getrusage RUSAGE_THREAD: user and system time, page faults,
-    preemptions), None where the platform has none."""
-    try:
-        return resource.getrusage(resource.RUSAGE_THREAD)
-    except (AttributeError, OSError, ValueError):
-        return None
-
-
-def _fmt(x: float, scale: float = 1.0, digits: int = 4) -> str:
-    return "" if x is None or not math.isfinite(x) else f"{x * scale:.{digits}f}"
-
-
-def setpoint_fields(applied: dict, names) -> tuple[str, dict]:
-    """A setpoint as the loop applies it (SI, :mod:`hbma_ctrl.app.daemon.state`) as an event's cause
-    and its run log columns (:func:`hbma_ctrl.app.daemon.runlog.setpoint_columns`, user units)."""
-    fields, words = {}, []
-    for i, h in sorted((applied.get("heights") or {}).items()):
-        nm = names[int(i)] if 0 <= int(i) < len(names) else str(i)
-        fields[f"target_{nm}_mm"] = repr(float(U.to_mm(h)))
-        words.append(f"{nm} {U.to_mm(h):.3f} mm")
-    for k, (c, th, ps) in sorted((applied.get("layers") or {}).items()):
-        fields.update({f"centre_L{k}_mm": repr(float(U.to_mm(c))), f"bend_L{k}_deg": repr(math.degrees(th)),
-                       f"direction_L{k}_deg": repr(math.degrees(ps))})
-        words.append(f"layer {k} centre {U.to_mm(c):.3f} mm, bend {math.degrees(th):.2f} deg, direction "
-                     f"{math.degrees(ps):.2f} deg")
-    return "; ".join(words), fields
 
 
 class DaemonLoop:
@@ -308,10 +257,10 @@ class DaemonLoop:
             return
         row: list = [f"{self.t:.4f}", self.mode]
         for i in range(self.n):
-            row += [_fmt(self.readings_p[i], U.to_kpa(1.0)), _fmt(pe[i], U.to_kpa(1.0)), _fmt(h[i], U.to_mm(1.0)),
-                    _fmt(hs[i], U.to_mm(1.0)), _fmt(tg[i], U.to_mm(1.0)), f"{u[0, i]:.4f}", f"{u[1, i]:.4f}",
+            row += [fmt_value(self.readings_p[i], U.to_kpa(1.0)), fmt_value(pe[i], U.to_kpa(1.0)), fmt_value(h[i], U.to_mm(1.0)),
+                    fmt_value(hs[i], U.to_mm(1.0)), fmt_value(tg[i], U.to_mm(1.0)), f"{u[0, i]:.4f}", f"{u[1, i]:.4f}",
                     f"{u[2, i]:.4f}"]
-        row += [_fmt(step_s, 1e3, 3), latched]
+        row += [fmt_value(step_s, 1e3, 3), latched]
         self.log.row(row)
 
     # --- one period --------------------------------------------------------------------------------
@@ -367,8 +316,8 @@ class DaemonLoop:
             self._write(self.u_last)
             return
         self._ticked = True
-        self._steal_before = _steal_ms()
-        self._ru_before = _thread_usage()
+        self._steal_before = steal_ms()
+        self._ru_before = thread_usage()
         self._gc_before = self.gc.mark() if self.gc is not None else (0, 0.0)
         c0, cpu0 = self.clock(), time.thread_time()
         held = r.held
@@ -432,13 +381,13 @@ class DaemonLoop:
             text += f", {COUNTED}"
         if parts is not None and len(parts) == 3:
             text += f" (estimator {parts[1] * 1e3:.1f} ms, controller {parts[2] * 1e3:.1f} ms)"
-        steal = _steal_ms()
+        steal = steal_ms()
         if steal is not None and self._steal_before is not None:
             text += f"; host steal during it {steal - self._steal_before:.0f} ms (10 ms steps)"
         if self.gc is not None:
             n, d = self.gc.since(self._gc_before)
             text += f"; garbage collector {d * 1e3:.1f} ms in {n} collection{'' if n == 1 else 's'}"
-        ru = _thread_usage()
+        ru = thread_usage()
         if ru is not None and self._ru_before is not None:
             b = self._ru_before
             text += (f"; thread user {(ru.ru_utime - b.ru_utime) * 1e3:.1f} ms, system "
@@ -465,7 +414,7 @@ class DaemonLoop:
         within the sensor's range and below the pressure cap (the monitor's; the runner's limit without one)."""
         s = self.monitor.settings if self.monitor is not None else None
         lo, hi = (s.vacuum_floor, min(s.sensor_range, s.p_max)) if s is not None else (-math.inf, self.runner.p_limit)
-        bad = [f"{nm} reads {_fmt(p[i], U.to_kpa(1.0), 2) or 'nothing'} kPa" for i, nm in enumerate(self.runner.names)
+        bad = [f"{nm} reads {fmt_value(p[i], U.to_kpa(1.0), 2) or 'nothing'} kPa" for i, nm in enumerate(self.runner.names)
                if not (math.isfinite(p[i]) and lo <= p[i] < hi)]
         return "; ".join(bad) + (f" (sane: [{U.to_kpa(lo):g}, {U.to_kpa(hi):g}) kPa)" if bad else "")
 
@@ -632,7 +581,7 @@ class DaemonLoop:
         the robot loop's burst test (burst_sigma: its largest sum, sigma; None without the test), and
         the garbage collector's pauses in any thread (gc_collections by generation, gc_pause_ms_max,
         gc_pause_ms_total, gc_frozen; :meth:`hbma_ctrl.app.daemon.gcwatch.GcWatch.stats`), and
-        sched_slice_ms: the loop thread's scheduler slice (:mod:`hbma_ctrl.app.daemon.latency`; None when
+        sched_slice_ms: the loop thread's scheduler slice (:mod:`hbma_ctrl.app.daemon.host`; None when
         the kernel kept its own, or in a real-time class)."""
         st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
         tc = self.tick_cpu_s.summary()

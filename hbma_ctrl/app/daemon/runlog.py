@@ -25,7 +25,8 @@ from pathlib import Path
 
 from hbma_ctrl.core import units as U
 
-__all__ = ["RunLog", "read_run_log", "chamber_columns", "setpoint_columns", "setpoint_of_event", "EVENT_COLUMNS"]
+__all__ = ["RunLog", "read_run_log", "chamber_columns", "setpoint_columns", "setpoint_of_event", "setpoint_fields",
+           "fmt_value", "EVENT_COLUMNS"]
 
 #: columns of events.csv
 EVENT_COLUMNS = ("t_s", "wall_utc", "kind", "cause")
@@ -188,3 +189,24 @@ def read_run_log(folder: Path | str) -> tuple[list[str], list[list[str]]]:
                     raise ValueError(f"{part.name} line {i}: {len(r)} fields, expected {len(header)}")
                 rows.append(r)
     return header, rows
+
+
+def fmt_value(x: float, scale: float = 1.0, digits: int = 4) -> str:
+    """``x * scale`` with ``digits`` decimals for a log's column; an empty field for None or a non-finite value."""
+    return "" if x is None or not math.isfinite(x) else f"{x * scale:.{digits}f}"
+
+
+def setpoint_fields(applied: dict, names) -> tuple[str, dict]:
+    """A setpoint as the loop applies it (SI, :mod:`hbma_ctrl.app.daemon.state`) as an event's cause
+    and its run log columns (:func:`hbma_ctrl.app.daemon.runlog.setpoint_columns`, user units)."""
+    fields, words = {}, []
+    for i, h in sorted((applied.get("heights") or {}).items()):
+        nm = names[int(i)] if 0 <= int(i) < len(names) else str(i)
+        fields[f"target_{nm}_mm"] = repr(float(U.to_mm(h)))
+        words.append(f"{nm} {U.to_mm(h):.3f} mm")
+    for k, (c, th, ps) in sorted((applied.get("layers") or {}).items()):
+        fields.update({f"centre_L{k}_mm": repr(float(U.to_mm(c))), f"bend_L{k}_deg": repr(math.degrees(th)),
+                       f"direction_L{k}_deg": repr(math.degrees(ps))})
+        words.append(f"layer {k} centre {U.to_mm(c):.3f} mm, bend {math.degrees(th):.2f} deg, direction "
+                     f"{math.degrees(ps):.2f} deg")
+    return "; ".join(words), fields

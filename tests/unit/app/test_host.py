@@ -1,4 +1,4 @@
-"""The daemon's ask for a short scheduler slice (hbma_ctrl.app.daemon.latency)."""
+"""The daemon's ask for a short scheduler slice (hbma_ctrl.app.daemon.host)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import threading
 
 import pytest
 
-from hbma_ctrl.app.daemon import latency
-from hbma_ctrl.app.daemon.latency import SLICE_S, ask_short_slice, thread_slice_s
+from hbma_ctrl.app.daemon import host as latency
+from hbma_ctrl.app.daemon.host import SLICE_S, ask_short_slice, thread_slice_s
 
 
 def _kernel_takes_slices() -> bool:

@@ -1,4 +1,7 @@
-"""Ask Linux's scheduler to run a thread soon after it wakes, without privileges (EEVDF's custom slice).
+"""What the daemon asks of its host and reads from it: a short scheduler slice, memory, steal time.
+
+A short slice: Linux's scheduler runs a thread soon after it wakes, without privileges (EEVDF's
+custom slice).
 
 Linux's fair scheduler (EEVDF, kernel 6.6 on; a per-task slice from 6.12) picks the runnable task with
 the earliest virtual deadline, which is its eligible time plus its slice. A task that asks for a short
@@ -18,9 +21,10 @@ from __future__ import annotations
 import ctypes
 import os
 import platform
+import resource
 import sys
 
-__all__ = ["SLICE_S", "ask_short_slice", "thread_slice_s"]
+__all__ = ["SLICE_S", "ask_short_slice", "rss_mb", "steal_ms", "thread_slice_s", "thread_usage"]
 
 #: the slice asked for, s: the kernel's lowest (its range is 0.1 to 100 ms; its default is 0.7 to 3 ms
 #: by the number of CPUs)
@@ -96,6 +100,30 @@ def ask_short_slice(slice_s: float = SLICE_S) -> float | None:
     return got if got is not None and abs(got - slice_s) <= 1e-6 else None
 
 
-if __name__ == "__main__":  # pragma: no cover - a manual check: python -m hbma_ctrl.app.daemon.latency
-    before = thread_slice_s()
-    print(f"pid {os.getpid()}: slice before {before}, after ask {ask_short_slice()}")
+def rss_mb() -> float:
+    """Resident set size of this process, MB (/proc/self/statm; the peak from getrusage elsewhere)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            pages = int(fh.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except (OSError, ValueError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+
+
+def steal_ms() -> float | None:
+    """The host's steal time summed over this machine's CPUs, ms (/proc/stat; None where there is none)."""
+    try:
+        with open("/proc/stat") as fh:
+            f = fh.readline().split()
+        return float(f[8]) * 1e3 / os.sysconf("SC_CLK_TCK") if f and f[0] == "cpu" and len(f) > 8 else None
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def thread_usage():
+    """This thread's resource usage (getrusage RUSAGE_THREAD: user and system time, page faults,
+    preemptions), None where the platform has none."""
+    try:
+        return resource.getrusage(resource.RUSAGE_THREAD)
+    except (AttributeError, OSError, ValueError):
+        return None
