@@ -202,6 +202,21 @@ def test_robot_daemon_runs_at_100_hz_under_its_pressure_limit_and_its_burst_test
 
 
 @pytest.mark.slow
+def test_robot_daemon_with_the_mhe_steps_every_window_without_a_fallback_and_tracks_the_rig(tmp_path):
+    path = _write_config(tmp_path, ROBOT, '[estimator]\nkind = "mhe"\nhorizon = 20\n')
+    cfg, runner, rig, loop = _loop(path, duration_s=3.0)
+    stats = loop.run()
+    assert stats["steps"] == 300 and stats["safe_exit"] and stats["faults"] == {}, stats
+    est = runner.stats()["estimator"]
+    # each chamber's window steps once it holds its horizon's samples: every later period, none replaced
+    # by the EKF
+    assert est["mhe_steps"] >= runner.n * (300 - 20 - 1) and est["fallbacks"] == 0 and est["restarts"] == 0, est
+    h_est, _, _ = runner.estimates()
+    h_true = np.asarray(rig.rig.truth()["h"], dtype=float)
+    assert np.max(np.abs(h_est - h_true)) < 0.2e-3, (h_est, h_true)  # the file's 6 mm pose, 3 s in
+
+
+@pytest.mark.slow
 def test_robot_runner_is_primed_its_solver_set_up_and_its_loop_as_if_it_had_not_run():
     """The robot runner is built with its NMPC's OSQP set up and solved once at rest (start-up work a
     first tick would otherwise do within its period); every state a step changes is as a fresh
