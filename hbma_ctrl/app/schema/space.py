@@ -21,12 +21,12 @@ TINY = sys.float_info.min * 2.0**53
 
 def inside(end: float, toward: float) -> float:
     """The value next to the open end ``end`` of a range, on the side of ``toward``: the next float
-    (any value strictly inside is at least as far from ``end``), but :data:`TINY` where that would be
-    a subnormal number, unless the range is narrower than that."""
+    (any value strictly inside is at least as far from ``end``), but 0 or :data:`TINY` (toward
+    ``toward``) where the next float is smaller in size than TINY and that value is strictly inside."""
     v = math.nextafter(end, toward)
     if abs(v) < TINY:
-        w = math.copysign(TINY, toward - end) if end == 0 else 0.0
-        if (w - end) * (toward - w) >= 0:  # still within the range (at most its other end)
+        w = 0.0 if end < 0 < toward or toward < 0 < end else math.copysign(TINY, toward - end)
+        if min(end, toward) < w < max(end, toward):  # strictly inside
             v = w
     return v
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import sys
 
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 from pydantic import Field, create_model
 from pydantic.fields import FieldInfo
@@ -45,6 +45,9 @@ def open_range_and_default(draw):
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.filter_too_much])
 @given(open_range_and_default())
+@example((1.4217e-295, 5.16e-285, True, False, 4.57e-285))  # an open end nearer 0 than TINY
+@example((-1e-300, 1e-300, True, True, 0.0))
+@example((0.0, 1e9, True, False, 0.01))
 def test_the_space_of_an_open_range_holds_every_default_inside_and_never_the_open_end(case):
     lo, hi, lo_open, hi_open, d = case
     s_lo, s_hi, unit, kind = _fast_space_of(lo, hi, lo_open, hi_open)
