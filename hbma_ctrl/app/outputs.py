@@ -8,11 +8,14 @@ Every command that writes a results directory does its work inside :func:`run_di
 Before any work ``--out`` is checked (a non-directory, a device, an unwritable parent or a run
 already there without ``overwrite``: one ValueError naming ``--out``) and locked (``.<name>.lock``
 beside it, created with O_EXCL, holding the pid; a lock whose pid is gone is taken over). The work
-goes to a temporary directory beside ``--out`` (same filesystem, so the final move is one rename).
-On success ``manifest.json`` is written last and the directory renamed to ``--out`` (an old run
-under ``--overwrite`` is moved aside first and deleted once the new one is in place). On Ctrl-C or
-an exception the directory becomes ``<out>.interrupted-<UTC stamp>`` or ``<out>.failed-<UTC stamp>``
-with its manifest saying so: nothing that looks complete is left at ``--out``.
+goes to a temporary directory beside ``--out`` (``.<name>.tmp-<pid>-<random>``: same filesystem, so
+the final move is one rename). On success ``manifest.json`` is written last and the directory renamed
+to ``--out`` (an old run under ``--overwrite`` is moved aside first and deleted once the new one is in
+place). On Ctrl-C or an exception the directory becomes ``<out>.interrupted-<UTC stamp>`` or
+``<out>.failed-<UTC stamp>`` with its manifest saying so: nothing that looks complete is left at
+``--out``. A second ending signal skips the rest of the clean-up but still renames the work to
+``<out>.interrupted-*`` (marked cut short) and releases the lock; what a process killed outright left
+hidden is made visible by the next run on the same ``--out``, which says so on stderr.
 
 ``manifest.json`` keys: :data:`MANIFEST_KEYS`.
 """
@@ -31,6 +34,7 @@ import stat
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from importlib import metadata
@@ -101,15 +105,89 @@ _ENDING = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 _signalled: dict = {"pid": None, "signum": None}
 
 
+#: the runs of this process between taking their lock and releasing it, for a second signal to park
+_runs: list[dict] = []
+
+#: ending signals that came while a finished run was being moved into place, dealt with once it is
+_held: dict = {"on": False, "first": None, "again": None}
+
+
 def _terminate(signum: int, frame) -> None:
-    # a second signal while the first one's clean-up runs ends the process at once
-    for sig in _ENDING:
-        signal.signal(sig, signal.SIG_DFL)
+    # the first ending signal is raised where the program is, so that its clean-up runs
     if os.getpid() != _signalled["pid"]:  # a forked worker inherited the handler: the default action
+        for sig in _ENDING:
+            signal.signal(sig, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
         return
+    for sig in _ENDING:
+        signal.signal(sig, _terminate_again)
     _signalled["signum"] = signum
+    if _held["on"]:
+        _held["first"] = signum
+        return
     raise Terminated(signum)
+
+
+def _terminate_again(signum: int, frame) -> None:
+    # a second signal while the first one's clean-up runs ends the process at once; a third one finds the
+    # default action, which ends it even inside C code that holds back the Python handler
+    for sig in _ENDING:
+        signal.signal(sig, signal.SIG_DFL)
+    if os.getpid() != _signalled["pid"]:
+        os.kill(os.getpid(), signum)
+        return
+    if _held["on"]:
+        _held["again"] = signum
+        return
+    _end_at_once(signum)
+
+
+def _end_at_once(signum: int) -> None:
+    """Park every open run as cut short (a rename, its manifest marked), release its lock, exit 128 +
+    ``signum`` without the clean-up the first signal started: nothing is left hidden or locked."""
+    first = _signalled["signum"]
+    why = (f"{_signal_name(first) if first is not None else 'an ending signal'}, then "
+           f"{signal.Signals(signum).name}: ended at once, its clean-up cut short")
+    lines = []
+    for run in reversed(list(_runs)):
+        where = _cut_short(run, why)
+        lines.append(f"interrupted: partial results in {where} (cut short by a second signal)" if where else
+                     "interrupted (cut short by a second signal)")
+    with contextlib.suppress(OSError):
+        os.write(2, ("\n".join(lines or ["interrupted (cut short by a second signal)"]) + "\n").encode())
+    os._exit(128 + signum)
+
+
+def _cut_short(run: dict, why: str) -> Path | None:
+    """What a second signal does to an open run: its temporary directory renamed beside ``--out`` and
+    marked interrupted, a run it replaced removed, its lock released; returns where the work went."""
+    where = run.get("parked")
+    tmp = run.get("tmp")
+    if tmp is not None and os.path.isdir(tmp):
+        where = _park(tmp, run["out"], "interrupted", run["man"], why, run)
+    old = run.get("old")
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    _unlock(run["lock"])
+    return where
+
+
+@contextlib.contextmanager
+def _holding_signals() -> Iterator[None]:
+    """Hold the ending signals for a few renames, then act on them: a finished run is never left half
+    moved (the old one aside, the new one still hidden). Only the main thread, where handlers run."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _held.update(on=True, first=None, again=None)
+    try:
+        yield
+    finally:
+        _held["on"] = False
+        if _held["again"] is not None:
+            _end_at_once(_held["again"])
+        if _held["first"] is not None:
+            raise Terminated(_held["first"])
 
 
 def end_on_signals() -> None:
@@ -387,8 +465,9 @@ def _write_manifest(man: dict, folder: Path) -> None:
     os.replace(tmp, folder / "manifest.json")
 
 
-def _park(tmp: Path, out: Path, status: str, man: dict, error: str | None) -> Path:
-    """Mark the work ``status`` and rename it beside out; returns where it went (tmp if the rename fails)."""
+def _park(tmp: Path, out: Path, status: str, man: dict, error: str | None, run: dict | None = None) -> Path:
+    """Mark the work ``status`` and rename it beside out; returns where it went (tmp if the rename fails).
+    ``run``: the open run's record, which learns where the work went."""
     man.update(status=status, finished_utc=_utc(), error=error)
     with contextlib.suppress(OSError):
         _write_manifest(man, tmp)
@@ -397,26 +476,95 @@ def _park(tmp: Path, out: Path, status: str, man: dict, error: str | None) -> Pa
         os.rename(tmp, dest)
     except OSError:
         return tmp
+    if run is not None:
+        run["parked"] = dest
     return dest
 
 
-def _install(tmp: Path, out: Path) -> None:
-    """Move the finished run into place: one rename; an old run is moved aside, then deleted."""
-    old = None
+def _install(tmp: Path, out: Path, run: dict) -> None:
+    """Move the finished run into place: one rename; an old run is moved aside (``run["old"]``), for
+    the caller to delete once the lock is about to go."""
     if out.exists():
         if any(out.iterdir()):
             old = out.parent / f".{out.name}.old-{_stamp()}-{os.getpid()}"
             os.rename(out, old)
+            run["old"] = old
         else:
             out.rmdir()
     try:
         os.rename(tmp, out)
     except OSError:
-        if old is not None:
-            os.rename(old, out)
+        if run.get("old") is not None:
+            os.rename(run.pop("old"), out)
         raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+
+
+def _unlock(lock: Path) -> None:
+    with contextlib.suppress(OSError):
+        if _read_pid(lock) == os.getpid():
+            lock.unlink()
+
+
+def _recover(out: Path, given: Path) -> None:
+    """Under the lock of ``out``: make visible what a process that died inside :func:`run_dir` (a
+    SIGKILL, a power cut, a third signal) left hidden beside it, one line on stderr for each.
+
+    Its temporary directory (``.<name>.tmp-<pid>-<random>``, or without the pid as older versions
+    named it) becomes ``<name>.interrupted-<stamp>``, its manifest marked interrupted; a run it had
+    moved aside to replace (``.<name>.old-<stamp>-<pid>``) goes back to ``out`` when ``out`` is gone, else
+    becomes ``<name>.replaced-<stamp>`` (which run replaced it is unknown, so it is kept). Only names
+    of exactly these forms, whose pid is not running, are touched; nothing is deleted. The lock
+    proves no live process owns them: each of these exists only while its writer holds the lock.
+    """
+    tmp_form = re.compile(rf"\.{re.escape(out.name)}\.tmp-(?:(\d+)-)?[a-z0-9_]{{8}}")
+    old_form = re.compile(rf"\.{re.escape(out.name)}\.old-\d{{8}}T\d{{6}}Z-(\d+)")
+    try:
+        entries = sorted(os.scandir(out.parent), key=lambda e: e.name)
+    except OSError:
+        return
+    for e in entries:
+        t, o = tmp_form.fullmatch(e.name), old_form.fullmatch(e.name)
+        if not (t or o) or not e.is_dir(follow_symlinks=False):
+            continue
+        pid = int((t or o).group(1)) if (t or o).group(1) else None
+        if pid is not None and (pid == os.getpid() or pid_alive(pid)):
+            continue
+        who = f"a run of pid {pid}" if pid is not None else "a run"
+        src = Path(e.path)
+        try:
+            if t:
+                _mark_cut_short(src, f"cut short: {who} ended without its clean-up; found by a later run")
+                dest = _beside(out, "interrupted")
+                os.rename(src, dest)
+                what = f"{who} that ended without its clean-up had left its work hidden in {e.name}; kept as {dest}"
+            elif not out.exists():
+                os.rename(src, out)
+                what = f"{who} that ended while replacing it had left it hidden in {e.name}; put back"
+            else:
+                dest = _beside(out, "replaced")
+                os.rename(src, dest)
+                what = (f"{who} that ended while replacing it had left the run it replaced in {e.name}; "
+                        f"kept as {dest}")
+        except OSError as exc:
+            what = (f"{e.name}, left hidden by {who} that ended without its clean-up, could not be moved: "
+                    f"{exc.strerror or exc}")
+        print(f"note: --out {given}: {what}", file=sys.stderr, flush=True)
+
+
+def _mark_cut_short(folder: Path, why: str) -> None:
+    """Mark a dead run's work interrupted: its manifest (written when the work began) updated, or a new
+    one when there is none of this package's."""
+    man_path = folder / "manifest.json"
+    man = None
+    with contextlib.suppress(OSError, ValueError):
+        man = json.loads(man_path.read_text())
+    if not (isinstance(man, dict) and set(MANIFEST_KEYS) <= set(man)):
+        if man_path.exists() or man_path.is_symlink():
+            return  # a manifest.json not of this package: left as it is
+        man = dict.fromkeys(MANIFEST_KEYS)
+    man.update(status="interrupted", error=why)
+    with contextlib.suppress(OSError):
+        _write_manifest(man, folder)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -442,38 +590,54 @@ def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise _bad(given, f"cannot create its parent: {exc.strerror or exc}") from None
-    lock = _lock(path, given)
+    # the record a second signal parks (it ends the process before this function's own clean-up)
+    run: dict = {"lock": _lock(path, given), "out": path, "man": man, "tmp": None, "parked": None, "old": None}
+    _runs.append(run)
     try:
+        _recover(path, given)  # first: a run it puts back at --out is then checked as any other
         path = check_out(given, overwrite)  # again under the lock: another writer may have finished meanwhile
+        run["out"] = path
         try:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+            # the pid in the name lets a later run tell a dead run's leftover from a live one's work
+            run["tmp"] = tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-{os.getpid()}-", dir=path.parent))
         except OSError as exc:
             raise _bad(given, f"cannot write beside it: {exc.strerror or exc}") from None
-        if overwrite and path.is_dir():
-            for pattern in carry:
-                for f in path.glob(pattern):
-                    if f.is_file():
-                        shutil.copy2(f, tmp / f.name)
+        try:
+            _write_manifest(man, tmp)  # status "running": what a later run marks interrupted if this one dies
+            if overwrite and path.is_dir():
+                for pattern in carry:
+                    for f in path.glob(pattern):
+                        if f.is_file():
+                            shutil.copy2(f, tmp / f.name)
+        except BaseException as exc:
+            shutil.rmtree(tmp, ignore_errors=True)  # no work in it yet, only what was just written or copied
+            run["tmp"] = None
+            if isinstance(exc, OSError):
+                raise _bad(given, f"cannot write beside it: {exc.strerror or exc}") from None
+            raise
         try:
             yield tmp
         except KeyboardInterrupt as exc:
             signum = signal_number(exc)
-            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum)), signum) from None
+            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum), run), signum) from None
         except BaseException as exc:
             signum = pending_signal()
             if signum is not None:  # the error is the signal's, turned into another by the code it hit
-                raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum)), signum) from None
-            dest = _park(tmp, path, "failed", man, _one_line(exc))
+                raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum), run),
+                                     signum) from None
+            dest = _park(tmp, path, "failed", man, _one_line(exc), run)
             with contextlib.suppress(AttributeError, TypeError):
                 exc.partial_results = dest  # the CLI's one-line error says where the partial work is
             raise
         signum = pending_signal()
         if signum is not None:  # the signal's exception was lost on its way up: the run is still cut short
-            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum)), signum)
-        man.update(status="complete", finished_utc=_utc())
-        _write_manifest(man, tmp)  # last: a manifest saying complete means every file is there
-        _install(tmp, path)
+            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum), run), signum)
+        with _holding_signals():
+            man.update(status="complete", finished_utc=_utc())
+            _write_manifest(man, tmp)  # last: a manifest saying complete means every file is there
+            _install(tmp, path, run)
     finally:
-        with contextlib.suppress(OSError):
-            if _read_pid(lock) == os.getpid():
-                lock.unlink()
+        if run["old"] is not None:  # the run replaced, once the new one is in place
+            shutil.rmtree(run["old"], ignore_errors=True)
+        _unlock(run["lock"])
+        _runs.remove(run)

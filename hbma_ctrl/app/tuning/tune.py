@@ -98,6 +98,10 @@ DEFAULT_PARAMS = {
 #: the declared bounds (often 0 to 1e9) are far wider than any useful setting
 WINDOW = 20.0
 
+#: a key named without a range whose declared low end is open at 0 is sampled from this share of its
+#: top, or from its value when that is lower
+OPEN_FLOOR = 1e-9
+
 #: the keys tune.json always holds
 TUNE_KEYS = ("objective", "n_trials", "best_params", "best_value_train", "default_value_test", "best_value_test")
 
@@ -199,9 +203,9 @@ def make_space(data: dict, role: str, names: list[str] | None = None) -> list[Di
             raise ValueError(f"--param-set: '{name}' is not a numeric [{role}] key with two bounds; allowed: "
                              f"{', '.join(space)}")
         lo, hi, unit, k = space[name]
-        d = _current(data, role, name)
-        if d is None:  # a key defaulting to None (e.g. a margin chosen per controller): search its bounds
-            d = lo
+        given = _current(data, role, name)
+        # a key defaulting to None (e.g. a margin chosen per controller): search its bounds
+        d = lo if given is None else given
         if rng:
             try:
                 a, b = (float(x) for x in rng.split(":"))
@@ -212,6 +216,10 @@ def make_space(data: dict, role: str, names: list[str] | None = None) -> list[Di
             lo, hi = a, b
         elif window and d > 0:
             lo, hi = max(lo, d / WINDOW), min(hi, d * WINDOW)
+        elif 0 < lo < hi * OPEN_FLOOR:
+            # an open end at 0 is the smallest value inside (search_space), hundreds of decades below any
+            # useful setting: sampled from there, nearly every trial would be; the value itself is kept
+            lo = hi * OPEN_FLOOR if given is None else max(lo, min(hi * OPEN_FLOOR, given))
         if k == "int":
             lo, hi = math.ceil(lo), math.floor(hi)
         log = lo > 0 and hi / lo > 100.0

@@ -30,6 +30,7 @@ from hbma_ctrl.app.schema import (
     parse_scenario_tables,
     search_space,
 )
+from hbma_ctrl.app.schema.space import TINY
 from hbma_ctrl.system.sections import CONTROLLERS, SCENE_MODES, Scenario
 from hbma_ctrl.system.sections import KINDS as CONTROLLER_KINDS
 from hbma_ctrl.core.materials import MATERIALS
@@ -336,7 +337,7 @@ def test_search_space_covers_weights_and_noise_with_finite_bounds():
                 else:
                     model.model_validate({**base, key: v})
     assert ctrl["horizon"] == (2, 200, "steps", "int")
-    assert est["noise_std_kpa"][:3] == (10.0 * 1e-9, 10.0, "kPa")  # open end moved inside
+    assert est["noise_std_kpa"][:3] == (TINY, 10.0, "kPa")  # the open end 0 moved to the smallest value inside
     assert "seed" not in search_space(RigTable) and "seed" in search_space(RigTable, finite_only=False)
 
 
