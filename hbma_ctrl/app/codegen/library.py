@@ -15,10 +15,11 @@ minimum on-time shaping) becomes a C library with a fixed-memory API:
 The QP inside the RTI step is solved by OSQP's own embedded code (osqp >= 1.0, ``codegen`` with
 matrix updates: its sources copied into ``osqp/``), the problem data and the post-processing by the
 same casadi Functions the RTI step Function calls (``rti_qp_data``, ``rti_post``,
-:func:`hbma_ctrl.controllers.rti_step.rti_step_function`). Why OSQP's embedded code and not casadi's
-own code-generated solvers: qrqp fails on this QP's cold starts and needs 10-200 ms per solve on a
-PC (``hbma_ctrl.controllers.rti_step``), ``ipqp`` does not code-generate, and the other conic
-plugins (OSQP, HPIPM, DAQP) generate calls into shared libraries. OSQP's generated workspace is a
+:func:`hbma_ctrl.controllers.rti_step.rti_step_function`); a solution is usable when it violates the
+QP's constraints by no more than OSQP's own primal test allows (:func:`_qp_post`). Why OSQP's embedded
+code and not casadi's own code-generated solvers: qrqp fails on this QP's cold starts and needs 10-200
+ms per solve on a PC (``hbma_ctrl.controllers.rti_step``), ``ipqp`` does not code-generate, and the
+other conic plugins (OSQP, HPIPM, DAQP) generate calls into shared libraries. OSQP's generated workspace is a
 set of globals; :func:`hbma_ctrl.core.osqp_embed.own_workspace` moves them into a struct the
 workspace holds. The solver is warm-started from the RTI step's shifted primal and dual guesses.
 
@@ -89,13 +90,22 @@ QP_PREFIX = "hbma_qp_"
 #: (OSQP's default, 25, runs up to 24 iterations past convergence of a warm-started RTI QP: 30 % fewer
 #: instructions over track_height's first 200 ticks).
 #: OSQP's 10 Ruiz passes stay, although the embedded solver redoes them at every matrix update (about
-#: 0.89 M instructions per controller tick on the Cortex-M7). Measured on track_height's first 1,000 ticks
-#: (10 passes: median controller tick 3.83 M, mean 5.60 M, 20 failed steps): 1 pass 3.48 M, 7.04 M and
-#: 54 failed (the QP at the setup point reaches the iteration limit: 605 iterations, 10 passes 125);
+#: 0.89 M instructions per controller tick on the Cortex-M7). Measured on track_height's first 1,000 ticks,
+#: a step failing at a violation above 1e-3 (10 passes: median controller tick 3.83 M, mean 5.60 M, 20
+#: failed steps): 1 pass 3.48 M, 7.04 M and 54 failed (the QP at the setup point reaches the iteration
+#: limit: 605 iterations, 10 passes 125);
 #: 3 passes 4.08 M, 4.77 M and 18 failed (a lower mean for a higher median); OSQP's duality-gap test off
 #: 4.34 M, 7.98 M and 268 failed; no scaling, or the setup's scaling kept, 25 and 55 iterations per QP
 #: against 15 over the first 200 ticks.
+#: The step size rho OSQP adapts carries over from one QP to the next; restarting it at 0.1 at every step
+#: (as casadi's OSQP does) takes a median of 35 iterations per QP instead of 15 over track_height's 2,000
+#: ticks, 50 with the termination test every 25 iterations as well.
 QP_SETTINGS: dict = {"check_termination": 5}
+#: the largest constraint violation (QP units: kPa, mm, duties) of a usable OSQP solution of a chamber's
+#: QP, where OSQP's own primal test allows more than the RTI step's 1e-3: ten times that. At the NMPC's
+#: tolerance (1e-4) the test reaches it only for a row beyond 99 units (track_height's largest rows are
+#: 20 to 41): it rejects a runaway iterate
+RES_CAP = 1e-2
 #: the parts of the RTI step's QP path a profiled build counts apart (hbma.h's HBMA_PART_NAMES), by QP solver
 _QP_PARTS = {"osqp": ("qp_data", "osqp_update_mat", "osqp_update_vec", "osqp_solve", "qp_post"),
              "daqp": ("qp_data", "daqp_update_ldp", "daqp_solve", "qp_post")}
@@ -206,12 +216,18 @@ def _qp_functions(rti: ca.Function) -> tuple[ca.Function, ca.Function, int, int]
     return qp, post, nz, nc
 
 
-def _qp_post(post: ca.Function, patterns: tuple, horizon: int) -> ca.Function:
+def _qp_post(post: ca.Function, patterns: tuple, horizon: int, eps: float | None = None) -> ca.Function:
     """The RTI step's post-processing on OSQP's form: (z, cost, y = [lam_x; lam_a], chk, [I; A]'s values,
     l, u) -> the outputs of ``rti_post`` (first input, plans clipped to [0, 1], multipliers, status,
     largest constraint violation, cost). ``rti_post`` itself recomputes the linearisation from the step's
     inputs to evaluate the constraints; the library has them from the data Function already. The plan's
-    places in z are read from ``rti_post`` (evaluated on z = its own indices)."""
+    places in z are read from ``rti_post`` (evaluated on z = its own indices).
+
+    Without ``eps`` a solution is usable (status 0) when it violates its constraints by at most
+    ``rti_post``'s ``_RES_TOL``. With ``eps`` (OSQP's absolute and relative tolerance) also when it meets
+    OSQP's own primal test, a violation of at most ``eps (1 + |Az|)`` in the max-norm, up to
+    :data:`RES_CAP`: OSQP ends a solve on that relative test, which allows more than ``_RES_TOL`` once a
+    row of the QP reaches 9 units (track_height's soft limits' rows reach 20 to 36)."""
     from hbma_ctrl.controllers.rti_step import _RES_TOL
 
     _, _, a_rows, a_cols, nz, nc = patterns
@@ -236,7 +252,11 @@ def _qp_post(post: ca.Function, patterns: tuple, horizon: int) -> ca.Function:
     Xn = z[[int(i) for i in ix]]
     Un = ca.fmin(ca.fmax(ca.reshape(z[[int(i) for i in iu.ravel(order="F")]], 3, N), 0.0), 1.0)
     finite = ca.logic_and(ca.sumsqr(z) < ca.inf, ca.sumsqr(chk) < ca.inf)
-    status = ca.if_else(finite, ca.if_else(res <= _RES_TOL, 0.0, 2.0), 1.0)
+    tol = _RES_TOL
+    if eps is not None:
+        scale = ca.fmax(ca.mmax(Az), -ca.mmin(Az))  # |Az|: OSQP's |z| exceeds it by at most the violation
+        tol = ca.fmin(RES_CAP, ca.fmax(_RES_TOL, eps * (1.0 + scale)))
+    status = ca.if_else(finite, ca.if_else(res <= tol, 0.0, 2.0), 1.0)
     return ca.Function("hbma_qp_post", [z, cost, y, chk, ax, lo, hi],
                        [Un[:, 0], Xn, Un, y[:nz], y[nz:], status, res, cost],
                        ["z", "cost", "y", "chk", "Ax", "l", "u"], post.name_out())
@@ -333,8 +353,9 @@ def library_spec(scn, qp_solver: str = "osqp") -> LibrarySpec:
         getattr(est.model, "chamber", None), "space") else [f"theta_{i}" for i in range(spec.signals["ekf_theta"].size)]
     if len(names) != spec.signals["ekf_theta"].size:
         raise ValueError("codegen --library: the EKF model's parameter names do not match its theta")
-    post = _qp_post(post, qp.patterns, int(s.horizon))
-    post_sparse = post
+    # DAQP's solutions are exact to rounding: its post-processing keeps rti_post's acceptance
+    post_sparse = _qp_post(post, qp.patterns, int(s.horizon))
+    post = _qp_post(post, qp.patterns, int(s.horizon), float(s.qp_eps)) if qp_solver == "osqp" else post_sparse
     setup = {"Px": vals[0], "q": vals[1], "Ax": vals[2], "l": vals[3], "u": vals[4], "eps": float(s.qp_eps),
              "max_iter": int(s.qp_max_iter), "patterns": qp.patterns}
     meta = dict(spec.meta)
