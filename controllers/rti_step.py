@@ -61,7 +61,7 @@ Outputs:
 ``lam_x``     nz         the QP's bound multipliers (the next call's ``lam_x_guess``)
 ``lam_a``     nc         the QP's constraint multipliers (the next call's ``lam_a_guess``)
 ``status``    1          0: ok; 1: non-finite linearisation or solution; 2: the QP solution violates
-                         its constraints by more than ``_RES_TOL`` (solver failure)
+                         its constraints by more than :func:`usable_tolerance` (solver failure)
 ``residual``  1          largest constraint violation of the QP solution (QP units: kPa, mm, ...)
 ``cost``      1          the QP's optimal cost (diagnostic)
 ============  =========  ===========================================================================
@@ -78,7 +78,7 @@ from hbma_ctrl.controllers.rti_c import linearised_terms, shifted_plan
 from hbma_ctrl.core.codegen import FastFunction, casadi_lib_flags, compiled
 from hbma_ctrl.models.tables import PredictionModel
 
-__all__ = ["QP_SOLVERS", "compiled_step", "rti_step_function"]
+__all__ = ["QP_SOLVERS", "RES_CAP", "compiled_step", "rti_step_function", "usable_tolerance"]
 
 #: conic plugins the step can be built with (the first is the default)
 QP_SOLVERS = ("osqp", "hpipm", "qrqp", "daqp")
@@ -89,6 +89,22 @@ _OUT = ["u0", "X_plan", "U_plan", "lam_x", "lam_a", "status", "residual", "cost"
 _BIG = 1e6
 #: largest constraint violation of a usable QP solution (QP units; as the OSQP path's acceptance)
 _RES_TOL = 1e-3
+#: the largest violation a usable OSQP solution may have, however large its rows (QP units): OSQP's own
+#: relative test reaches it only for a row beyond 99 units at the NMPC's tolerance (1e-4; the soft
+#: limits' rows reach 20 to 41 on track_height), so it rejects a runaway iterate
+RES_CAP = 1e-2
+
+
+def usable_tolerance(qp_solver: str, eps: float, z, Az):
+    """The largest constraint violation (QP units) of a usable solution ``z`` with rows ``Az`` (casadi
+    expressions). OSQP ends a solve on its relative primal test, ``eps (1 + max(|z|, |Az|))`` in the
+    max-norm, which allows more than :data:`_RES_TOL` once a row reaches 9 units: a solution OSQP calls
+    solved is usable up to that test (at most :data:`RES_CAP`). The other solvers' solutions are exact
+    to rounding: :data:`_RES_TOL`."""
+    if qp_solver != "osqp":
+        return _RES_TOL
+    scale = ca.fmax(ca.mmax(ca.fabs(z)), ca.mmax(ca.fabs(Az)))
+    return ca.fmin(RES_CAP, ca.fmax(_RES_TOL, eps * (1.0 + scale)))
 
 
 def _solver_opts(qp_solver: str, s: MPCSettings) -> dict:
@@ -222,7 +238,7 @@ def rti_step_function(model: PredictionModel, settings: MPCSettings, qp_solver: 
     res = ca.mmax(viol)
     chk = SX.sym("chk", 4 * (N + 1))
     finite = ca.logic_and(ca.sumsqr(post_z) < inf, ca.sumsqr(chk) < inf)
-    status = ca.if_else(finite, ca.if_else(res <= _RES_TOL, 0.0, 2.0), 1.0)
+    status = ca.if_else(finite, ca.if_else(res <= usable_tolerance(qp_solver, s.qp_eps, post_z, Az), 0.0, 2.0), 1.0)
     # the solver's cost and multipliers are inputs of the post-processing so that every solver output
     # has a buffer (casadi 3.8's HPIPM interface writes all of them, and crashes on a missing one)
     cost, lam_a, lam_x = SX.sym("cost"), SX.sym("lam_a", nc), SX.sym("lam_x", nz)

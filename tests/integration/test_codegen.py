@@ -290,8 +290,8 @@ def test_generated_track_height_loop_equals_the_python_path_and_follows_the_scen
     got_u = py.trajectory[:, [col["speed"], col["inlet"], col["outlet"]]]
     np.testing.assert_allclose(got_u, log.u, rtol=0, atol=1e-9)
     failed = np.nonzero(py.trajectory[:, col["mpc_status"]])[0]
-    assert len(failed) == (2 if scenario == DEFAULT_TRACK else 0)
-    assert len(log.supervisor_events) == len(failed) // 2  # the scene failed where the loop did
+    # every QP solved to OSQP's own test is used (rti_step.usable_tolerance): none fails, in either loop
+    assert len(failed) == 0 and len(log.supervisor_events) == 0
 
     # the C run's metrics.json objects are the scene's metrics of its own trajectory
     from hbma_ctrl.app.codegen.chamber import loop_run_metrics

@@ -101,11 +101,6 @@ QP_PREFIX = "hbma_qp_"
 #: (as casadi's OSQP does) takes a median of 35 iterations per QP instead of 15 over track_height's 2,000
 #: ticks, 50 with the termination test every 25 iterations as well.
 QP_SETTINGS: dict = {"check_termination": 5}
-#: the largest constraint violation (QP units: kPa, mm, duties) of a usable OSQP solution of a chamber's
-#: QP, where OSQP's own primal test allows more than the RTI step's 1e-3: ten times that. At the NMPC's
-#: tolerance (1e-4) the test reaches it only for a row beyond 99 units (track_height's largest rows are
-#: 20 to 41): it rejects a runaway iterate
-RES_CAP = 1e-2
 #: the parts of the RTI step's QP path a profiled build counts apart (hbma.h's HBMA_PART_NAMES), by QP solver
 _QP_PARTS = {"osqp": ("qp_data", "osqp_update_mat", "osqp_update_vec", "osqp_solve", "qp_post"),
              "daqp": ("qp_data", "daqp_update_ldp", "daqp_solve", "qp_post")}
@@ -223,12 +218,10 @@ def _qp_post(post: ca.Function, patterns: tuple, horizon: int, eps: float | None
     inputs to evaluate the constraints; the library has them from the data Function already. The plan's
     places in z are read from ``rti_post`` (evaluated on z = its own indices).
 
-    Without ``eps`` a solution is usable (status 0) when it violates its constraints by at most
-    ``rti_post``'s ``_RES_TOL``. With ``eps`` (OSQP's absolute and relative tolerance) also when it meets
-    OSQP's own primal test, a violation of at most ``eps (1 + |Az|)`` in the max-norm, up to
-    :data:`RES_CAP`: OSQP ends a solve on that relative test, which allows more than ``_RES_TOL`` once a
-    row of the QP reaches 9 units (track_height's soft limits' rows reach 20 to 36)."""
-    from hbma_ctrl.controllers.rti_step import _RES_TOL
+    A solution is usable (status 0) as in ``rti_post``: without ``eps`` (DAQP's solutions) when it violates
+    its constraints by at most ``_RES_TOL``; with ``eps`` (OSQP's absolute and relative tolerance) up to
+    OSQP's own primal test (:func:`hbma_ctrl.controllers.rti_step.usable_tolerance`)."""
+    from hbma_ctrl.controllers.rti_step import _RES_TOL, usable_tolerance
 
     _, _, a_rows, a_cols, nz, nc = patterns
     N = horizon
@@ -252,10 +245,8 @@ def _qp_post(post: ca.Function, patterns: tuple, horizon: int, eps: float | None
     Xn = z[[int(i) for i in ix]]
     Un = ca.fmin(ca.fmax(ca.reshape(z[[int(i) for i in iu.ravel(order="F")]], 3, N), 0.0), 1.0)
     finite = ca.logic_and(ca.sumsqr(z) < ca.inf, ca.sumsqr(chk) < ca.inf)
-    tol = _RES_TOL
-    if eps is not None:
-        scale = ca.fmax(ca.mmax(Az), -ca.mmin(Az))  # |Az|: OSQP's |z| exceeds it by at most the violation
-        tol = ca.fmin(RES_CAP, ca.fmax(_RES_TOL, eps * (1.0 + scale)))
+    # [I; A] z: OSQP's form holds the bounds as rows, so its max-norm covers |z| too
+    tol = _RES_TOL if eps is None else usable_tolerance("osqp", eps, Az, Az)
     status = ca.if_else(finite, ca.if_else(res <= tol, 0.0, 2.0), 1.0)
     return ca.Function("hbma_qp_post", [z, cost, y, chk, ax, lo, hi],
                        [Un[:, 0], Xn, Un, y[:nz], y[nz:], status, res, cost],
