@@ -1,0 +1,108 @@
+"""Defects a hostile probe of the CLI found: each is one line 'error: ...' naming what was given, no
+traceback, nothing written silently."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from checkout import ROOT
+from hbma_ctrl.app.cli.main import app
+from hbma_ctrl.app.outputs import MAX_PATH_BYTES
+
+FIG7 = ROOT / "scenarios" / "open_loop_fig7.toml"
+runner = CliRunner()
+
+
+def _one_line(res, code: int = 2) -> str:
+    assert res.exit_code == code, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in res.output, res.output
+    return lines[0]
+
+
+def test_a_megabyte_scenario_name_is_refused_with_a_short_line_naming_the_key(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text(f'[scenario]\nname = "{"x" * 1_000_000}"\nduration_s = 6.0\n')
+    line = _one_line(runner.invoke(app, ["run", str(p), "--out", str(tmp_path / "o")]))
+    assert "[scenario] name" in line and "1000000 characters long" in line and len(line) < 300
+
+
+def test_an_out_path_longer_than_the_system_takes_is_one_error_naming_out(tmp_path):
+    deep = tmp_path.joinpath(*(["d" * 200] * (MAX_PATH_BYTES // 200 + 2)))
+    line = _one_line(runner.invoke(app, ["run", str(FIG7), "--out", str(deep)]))
+    assert line.startswith("error: --out ") and "bytes long" in line and len(line) < 300
+
+
+def test_copy_to_a_place_no_file_can_be_written_names_to(tmp_path):
+    # a path under a regular file: no folder there, for root as for anyone
+    (tmp_path / "f").write_text("x")
+    line = _one_line(runner.invoke(app, ["scenarios", "copy", "open_loop_fig7", "--to", str(tmp_path / "f" / "x.toml")]))
+    assert "--to" in line
+
+
+def test_copy_write_error_is_one_line_naming_to(tmp_path, monkeypatch):
+    import hbma_ctrl.app.shipped as shipped
+
+    def refuse(src, dst):
+        raise PermissionError(13, "Permission denied", str(dst))
+
+    monkeypatch.setattr(shipped.shutil, "copyfile", refuse)
+    line = _one_line(runner.invoke(app, ["scenarios", "copy", "open_loop_fig7", "--to", str(tmp_path)]))
+    assert "--to" in line and "Permission denied" in line
+
+
+def test_an_os_error_no_command_turned_into_a_message_is_one_line_without_traceback(tmp_path, monkeypatch):
+    import hbma_ctrl.app.cli.scenario as scen
+
+    def boom(*a, **k):
+        raise IsADirectoryError(21, "Is a directory", str(tmp_path / ("y" * 300)))
+
+    monkeypatch.setattr(scen, "copy", boom)
+    monkeypatch.setattr("hbma_ctrl.app.shipped.copy_scenario", boom)
+    line = _one_line(runner.invoke(app, ["scenarios", "copy", "open_loop_fig7", "--to", str(tmp_path)]))
+    assert "Is a directory" in line and len(line) < 200
+
+
+def test_export_of_a_log_holding_no_message_is_an_error_not_an_empty_success(tmp_path):
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "log.mcap").write_bytes(b"\x89MCAP0\r\n" + b"\0" * 64)
+    line = _one_line(runner.invoke(app, ["export", str(run)]))
+    assert "log.mcap" in line and "no message" in line
+
+
+def test_overwrite_refuses_a_run_directory_holding_files_its_run_did_not_write(tmp_path):
+    from hbma_ctrl.app.outputs import check_out, foreign_entries, run_dir
+
+    run = tmp_path / "run"
+    with run_dir(run, command="t", argv=[]) as tmp:
+        (tmp / "a.csv").write_text("1\n")
+        (tmp / "figs").mkdir()
+        (tmp / "figs" / "f.png").write_bytes(b"x")
+    assert foreign_entries(run) == []
+    check_out(run, overwrite=True)  # the run alone: replaced
+    (run / "mydata").mkdir()
+    (run / "mydata" / "big.csv").write_text("years of work\n")
+    with pytest.raises(ValueError, match="--out.*'mydata' and 1 more.*did not write"):
+        check_out(run, overwrite=True)
+    assert (run / "mydata" / "big.csv").read_text() == "years of work\n"
+
+
+def test_write_scenario_where_no_file_can_be_written_names_the_flag(tmp_path):
+    from types import SimpleNamespace
+
+    from hbma_ctrl.app.tuning import fit_output
+
+    (tmp_path / "f").write_text("x")
+    target = tmp_path / "f" / "s.toml"  # under a regular file: no folder there
+    res = SimpleNamespace(material="nh")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fit_output, "scenario_tables", lambda result, law: {})
+        mp.setattr(fit_output, "_keep_rig", lambda base, data: None)
+        mp.setattr(fit_output, "parse_scenario", lambda data, path: None)
+        with pytest.raises(ValueError, match=r"^--write-scenario .*s\.toml: cannot write it"):
+            fit_output.write_scenario(target, res, "exact")
