@@ -106,3 +106,20 @@ def test_write_scenario_where_no_file_can_be_written_names_the_flag(tmp_path):
         mp.setattr(fit_output, "parse_scenario", lambda data, path: None)
         with pytest.raises(ValueError, match=r"^--write-scenario .*s\.toml: cannot write it"):
             fit_output.write_scenario(target, res, "exact")
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["observability", "--r1-mm", "-1"], "--r1-mm = -1 is out of range (0.5, 100] mm"),
+    (["observability", "--t0-mm", "nan"], "--t0-mm = nan is out of range (0.05, 20] mm"),
+    (["robot", "table2", "--layers", "0"], "--layers = 0 is out of range [1, 26]"),
+    (["robot", "workspace", "--layers", "-1"], "--layers = -1 is out of range [1, 26]"),
+    (["robot", "workspace", "--max-stretch", "1"], "--max-stretch = 1 is out of range [1.05, 20]"),
+    (["robot", "pose", "--heights-mm", "-5,5,5"], "--heights-mm: chamber heights must be >= 0 mm; A1 = -5 mm"),
+    (["robot", "pose", "--centre-mm", "-5"], "--centre-mm = -5 is out of range (0, 200] mm"),
+    (["robot", "pose", "--centre-mm", "5", "--direction-deg", "nan"], "--direction-deg = nan is out of range"),
+    (["robot", "pose", "--heights-mm", "5,5,5", "--pressure-limit-kpa", "0"], "--pressure-limit-kpa = 0 is out of range"),
+])
+def test_a_flag_out_of_range_is_named_as_written_in_its_unit(tmp_path, argv, needle):
+    line = _one_line(runner.invoke(app, [*argv, "--out", str(tmp_path / "o")]))
+    assert needle in line
+    assert not (tmp_path / "o").exists()
