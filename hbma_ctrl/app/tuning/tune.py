@@ -136,6 +136,10 @@ class TuneSpec:
     data: dict = field(default_factory=dict)
 
 
+#: the most seeds --train-seeds or --test-seeds may name
+MAX_SEEDS = 1000
+
+
 def parse_seeds(text: str, flag: str) -> list[int]:
     """'0-9' or '0,3,5' or '0-4,8' -> sorted distinct seeds; ValueError naming the flag."""
     out: set[int] = set()
@@ -150,11 +154,11 @@ def parse_seeds(text: str, flag: str) -> list[int]:
         if len(nums) not in (1, 2) or any(n < 0 for n in nums) or (len(nums) == 2 and nums[1] < nums[0]):
             raise ValueError(f"{flag} = '{text}': '{part}' is not a seed or a range A-B of seeds "
                              "(whole numbers >= 0, A <= B)")
+        if nums[-1] - nums[0] + 1 + len(out) > MAX_SEEDS:  # before building it: '0-99999999' is 1e8 ints
+            raise ValueError(f"{flag} = '{text}': more than {MAX_SEEDS} seeds; at most {MAX_SEEDS}")
         out.update(range(nums[0], nums[-1] + 1))
     if not out:
         raise ValueError(f"{flag} = '{text}': expected seeds like 0-9 or 0,3,5")
-    if len(out) > 1000:
-        raise ValueError(f"{flag} = '{text}': {len(out)} seeds; at most 1000")
     return sorted(out)
 
 

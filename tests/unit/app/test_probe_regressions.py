@@ -123,3 +123,13 @@ def test_a_flag_out_of_range_is_named_as_written_in_its_unit(tmp_path, argv, nee
     line = _one_line(runner.invoke(app, [*argv, "--out", str(tmp_path / "o")]))
     assert needle in line
     assert not (tmp_path / "o").exists()
+
+
+def test_a_seed_range_of_a_hundred_million_is_refused_before_it_is_built():
+    from hbma_ctrl.app.tuning.tune import MAX_SEEDS, parse_seeds
+
+    with pytest.raises(ValueError, match=r"^--train-seeds = '0-99999999': more than 1000 seeds"):
+        parse_seeds("0-99999999", "--train-seeds")
+    assert len(parse_seeds(f"0-{MAX_SEEDS - 1}", "--train-seeds")) == MAX_SEEDS
+    with pytest.raises(ValueError, match="at most 1000"):
+        parse_seeds(f"0-{MAX_SEEDS - 1},5000", "--train-seeds")
