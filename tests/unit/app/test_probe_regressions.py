@@ -133,3 +133,22 @@ def test_a_seed_range_of_a_hundred_million_is_refused_before_it_is_built():
     assert len(parse_seeds(f"0-{MAX_SEEDS - 1}", "--train-seeds")) == MAX_SEEDS
     with pytest.raises(ValueError, match="at most 1000"):
         parse_seeds(f"0-{MAX_SEEDS - 1},5000", "--train-seeds")
+
+
+def test_a_data_column_given_twice_is_refused_naming_it():
+    from hbma_ctrl.app.tuning.run_data import data_rows
+
+    with pytest.raises(ValueError, match="^data: column 'h_mm' appears 2 times in the header"):
+        data_rows(b"h_mm,h_mm,p_kpa\n2,2,0.5\n", "h_mm,p_kpa")
+
+
+@pytest.mark.parametrize("col, value, needle", [
+    ("load_g", "1e9", "column 'load_g', row 1: 1e+09 g is out of range [0, 50000] g"),
+    ("F_n", "1e6", "column 'F_n', row 1: 1e+06 N is out of range [0, 490.332] N"),
+])
+def test_a_static_load_beyond_any_rig_is_refused_naming_its_column(col, value, needle):
+    from hbma_ctrl.app.tuning.fit import parse_data
+
+    with pytest.raises(ValueError) as err:
+        parse_data(f"h_mm,p_kpa,{col}\n2,0.5,{value}\n4,3,1\n".encode())
+    assert needle in str(err.value)
