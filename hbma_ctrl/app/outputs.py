@@ -56,6 +56,7 @@ __all__ = [
     "ARGV_KEY",
     "check_out",
     "foreign_entries",
+    "WRITTEN_LIST",
     "cli_argv",
     "redact_argv",
     "default_out",
@@ -79,6 +80,10 @@ NAME_RULE = "letters, digits, '-', '_' and '.' only, not starting with '.'"
 #: the longest results-directory name, bytes: the filesystem's 255 less what the lock, temporary and
 #: kept-aside siblings add to it (``.<name>.lock.stale-<pid>``, ``<name>.interrupted-<stamp>-<k>``)
 MAX_NAME_BYTES = 200
+#: the file in a folder of ``report``'s figures or ``export``'s tables naming what they wrote there, one
+#: name a line: those files are theirs to replace (and a run directory holding that folder is still a run's)
+WRITTEN_LIST = ".hbma-ctrl-written"
+
 #: the longest results-directory path, bytes: Linux's PATH_MAX (4096) less a name's worth for the files in it
 MAX_PATH_BYTES = 4096 - 256
 
@@ -344,6 +349,11 @@ def foreign_entries(path: Path | str) -> list[str]:
     if not isinstance(listed, list):
         return []
     known = set(map(str, listed))
+    for sub in path.iterdir():  # a folder report or export added to the run (its figures, its tables)
+        written = sub / WRITTEN_LIST
+        if sub.is_dir() and written.is_file():
+            names = [ln for ln in written.read_text(errors="replace").splitlines() if ln]
+            known |= {sub.name, f"{sub.name}/{WRITTEN_LIST}"} | {f"{sub.name}/{n}" for n in names}
     return [e for e in _listing(path) if e not in known and not e.startswith(".manifest.json")]
 
 

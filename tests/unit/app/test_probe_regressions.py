@@ -152,3 +152,42 @@ def test_a_static_load_beyond_any_rig_is_refused_naming_its_column(col, value, n
     with pytest.raises(ValueError) as err:
         parse_data(f"h_mm,p_kpa,{col}\n2,0.5,{value}\n4,3,1\n".encode())
     assert needle in str(err.value)
+
+
+def test_report_and_export_never_replace_a_users_file_in_an_explicit_out_and_overwrite_still_replaces_the_run(
+        tmp_path, monkeypatch):
+    import hbma_ctrl.app.logs.export as export_mod
+    import hbma_ctrl.app.report.figures as figures
+    from hbma_ctrl.app.outputs import check_out, run_dir
+
+    def fake_figures(run, out):
+        (Path(out) / "tracking.png").write_bytes(b"figure")
+        return [Path(out) / "tracking.png"]
+
+    def fake_tables(log, out, fmt):
+        (Path(out) / "readings.csv").write_text("t_s\n0\n")
+        return [Path(out) / "readings.csv"]
+
+    monkeypatch.setattr(figures, "report", fake_figures)
+    monkeypatch.setattr(export_mod, "export_log", fake_tables)
+    run = tmp_path / "run"
+    with run_dir(run, command="t", argv=[]) as tmp:
+        (tmp / "log.mcap").write_bytes(b"x")
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "tracking.png").write_text("my own figure")
+    (user / "readings.csv").write_text("my own table")
+    for cmd, name in (("report", "tracking.png"), ("export", "readings.csv")):
+        line = _one_line(runner.invoke(app, [cmd, str(run), "--out", str(user)]))
+        assert f"--out {user}: holds '{name}', which {cmd} did not write" in line
+    assert (user / "tracking.png").read_text() == "my own figure"
+    assert (user / "readings.csv").read_text() == "my own table"
+    for _ in range(2):  # the default folders, twice: their own files are replaced
+        assert runner.invoke(app, ["report", str(run)]).exit_code == 0
+        assert runner.invoke(app, ["export", str(run)]).exit_code == 0
+    assert (run / "figures" / "tracking.png").read_bytes() == b"figure"
+    check_out(run, overwrite=True)  # the figures and tables are the package's: the run is still replaceable
+    (run / "figures" / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="figures/notes.txt"):
+        check_out(run, overwrite=True)
+    assert not list(tmp_path.glob(".*tmp-*"))
