@@ -62,6 +62,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         defects = [d for d in (defect or "").split(",") if d]
         for d in defects:
             check_choice("--defect", d, DEFECTS)
+        if link is not None and (link.exists() or link.is_symlink()) and not link.is_symlink():
+            # the link is replaced while the board runs and removed at its end: never a user's file or folder
+            raise ValueError(f"--link {link}: exists and is not a symlink; give a new path (or an old link's)")
+        if link is not None and not link.parent.is_dir():
+            raise ValueError(f"--link {link}: the folder {link.parent} does not exist")
         if truth_log is not None and config is None:
             raise ValueError("--truth-log: needs --config (the first-order plant has no truth to log)")
         if period_ms is not None and config is not None:

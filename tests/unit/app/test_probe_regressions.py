@@ -191,3 +191,15 @@ def test_report_and_export_never_replace_a_users_file_in_an_explicit_out_and_ove
     with pytest.raises(ValueError, match="figures/notes.txt"):
         check_out(run, overwrite=True)
     assert not list(tmp_path.glob(".*tmp-*"))
+
+
+def test_rig_emulate_link_never_replaces_a_users_file_or_folder(tmp_path):
+    thesis = tmp_path / "thesis.tex"
+    thesis.write_text("years of work")
+    (tmp_path / "adir").mkdir()
+    for target in (thesis, tmp_path / "adir"):
+        line = _one_line(runner.invoke(app, ["rig", "emulate", "--link", str(target)]))
+        assert f"--link {target}: exists and is not a symlink" in line
+    line = _one_line(runner.invoke(app, ["rig", "emulate", "--link", str(tmp_path / "no" / "x")]))
+    assert "--link" in line and "does not exist" in line
+    assert thesis.read_text() == "years of work" and (tmp_path / "adir").is_dir()
