@@ -203,3 +203,12 @@ def test_rig_emulate_link_never_replaces_a_users_file_or_folder(tmp_path):
     line = _one_line(runner.invoke(app, ["rig", "emulate", "--link", str(tmp_path / "no" / "x")]))
     assert "--link" in line and "does not exist" in line
     assert thesis.read_text() == "years of work" and (tmp_path / "adir").is_dir()
+
+
+def test_rig_emulate_truth_log_never_truncates_a_users_file(tmp_path):
+    thesis = tmp_path / "thesis.csv"
+    thesis.write_text("a,b\n1,2\n")
+    cfg = ROOT / "scenarios" / "daemon_chamber.toml"
+    line = _one_line(runner.invoke(app, ["rig", "emulate", "--config", str(cfg), "--truth-log", str(thesis)]))
+    assert f"--truth-log {thesis}: exists and is not a truth log" in line
+    assert thesis.read_text() == "a,b\n1,2\n"
