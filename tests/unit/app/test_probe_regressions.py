@@ -212,3 +212,21 @@ def test_rig_emulate_truth_log_never_truncates_a_users_file(tmp_path):
     line = _one_line(runner.invoke(app, ["rig", "emulate", "--config", str(cfg), "--truth-log", str(thesis)]))
     assert f"--truth-log {thesis}: exists and is not a truth log" in line
     assert thesis.read_text() == "a,b\n1,2\n"
+
+
+@pytest.mark.parametrize("name", ["index.md", "sim.md"])
+def test_bench_report_never_replaces_a_users_page_of_the_same_name(tmp_path, name):
+    from hbma_ctrl.app.bench.report import open_report
+
+    (tmp_path / name).write_text("# My own notes\n")
+    with pytest.raises(ValueError, match=f"--report {tmp_path}: holds {name}, which no bench wrote"):
+        open_report(tmp_path, "sim", ["bench", "sim"])
+    assert (tmp_path / name).read_text() == "# My own notes\n"
+
+
+def test_bench_report_rewrites_its_own_pages(tmp_path):
+    from hbma_ctrl.app.bench.report import open_report, write_index
+
+    (tmp_path / "sim.md").write_text("# Simulator\n\nMeasured on 2026-01-01 (UTC) by `hbma-ctrl bench sim`\n")
+    write_index(tmp_path)
+    assert open_report(tmp_path, "sim", ["bench", "sim"]) is not None
