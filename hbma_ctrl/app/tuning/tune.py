@@ -305,7 +305,12 @@ def make_storage(url: str) -> optuna.storages.BaseStorage:
             path = path[2:]
         if not path:
             raise ValueError("--storage journal:PATH: the journal file path is missing")
-        return optuna.storages.JournalStorage(JournalFileBackend(path))
+        try:
+            return optuna.storages.JournalStorage(JournalFileBackend(path))
+        except ValueError as exc:  # a file of other lines (JSONDecodeError): left as it is
+            raise ValueError(f"--storage {url}: {path} is not an optuna journal ({exc})") from None
+        except OSError as exc:
+            raise ValueError(f"--storage {url}: cannot open {path} ({exc.strerror or exc})") from None
     kw: dict = {}
     if url.startswith("sqlite"):
         kw["connect_args"] = {"timeout": 60}

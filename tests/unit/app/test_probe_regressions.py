@@ -230,3 +230,13 @@ def test_bench_report_rewrites_its_own_pages(tmp_path):
     (tmp_path / "sim.md").write_text("# Simulator\n\nMeasured on 2026-01-01 (UTC) by `hbma-ctrl bench sim`\n")
     write_index(tmp_path)
     assert open_report(tmp_path, "sim", ["bench", "sim"]) is not None
+
+
+def test_a_journal_storage_that_is_a_users_text_file_is_refused_naming_storage_and_left_as_it_is(tmp_path):
+    from hbma_ctrl.app.tuning.tune import make_storage
+
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    with pytest.raises(ValueError, match=rf"^--storage journal:{notes}: {notes} is not an optuna journal"):
+        make_storage(f"journal:{notes}")
+    assert notes.read_text() == "my notes\n"
