@@ -295,6 +295,22 @@ def score(data: dict, scenario: Path, objective: str, seed: int, duration_s: flo
     return v
 
 
+def _is_journal(path: str) -> bool:
+    """Whether ``path`` is missing, empty or starts with an optuna journal record (a JSON object with an
+    ``op_code``); a folder or another file is not."""
+    p = Path(path)
+    if not p.exists():
+        return True
+    if not p.is_file():
+        return False
+    try:
+        with p.open("rb") as fh:
+            first = fh.readline(1 << 20)
+        return not first.strip() or "op_code" in json.loads(first)
+    except (OSError, ValueError, TypeError):
+        return False
+
+
 def make_storage(url: str) -> optuna.storages.BaseStorage:
     """An optuna storage for ``url``: RDB URL (sqlite with a 60 s lock wait) or ``journal:PATH``."""
     if url.startswith("journal:"):
@@ -305,10 +321,11 @@ def make_storage(url: str) -> optuna.storages.BaseStorage:
             path = path[2:]
         if not path:
             raise ValueError("--storage journal:PATH: the journal file path is missing")
+        if not _is_journal(path):  # optuna would append its log to any file: never to a user's own
+            raise ValueError(f"--storage {url}: {path} is not an optuna journal (its first line is not one of "
+                             "a journal's records); give a new path or a journal's")
         try:
             return optuna.storages.JournalStorage(JournalFileBackend(path))
-        except ValueError as exc:  # a file of other lines (JSONDecodeError): left as it is
-            raise ValueError(f"--storage {url}: {path} is not an optuna journal ({exc})") from None
         except OSError as exc:
             raise ValueError(f"--storage {url}: cannot open {path} ({exc.strerror or exc})") from None
     kw: dict = {}

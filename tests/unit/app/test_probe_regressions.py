@@ -237,6 +237,11 @@ def test_a_journal_storage_that_is_a_users_text_file_is_refused_naming_storage_a
 
     notes = tmp_path / "notes.txt"
     notes.write_text("my notes\n")
-    with pytest.raises(ValueError, match=rf"^--storage journal:{notes}: {notes} is not an optuna journal"):
-        make_storage(f"journal:{notes}")
-    assert notes.read_text() == "my notes\n"
+    for text in ("my notes\n", "my notes\nline two\n", '{"a": 1}\n'):
+        notes.write_text(text)
+        with pytest.raises(ValueError, match=rf"^--storage journal:{notes}: {notes} is not an optuna journal"):
+            make_storage(f"journal:{notes}")
+        assert notes.read_text() == text
+    with pytest.raises(ValueError, match="is not an optuna journal"):
+        make_storage(f"journal:{tmp_path}")
+    make_storage(f"journal:{tmp_path / 'new.journal'}")  # a new file: fine
