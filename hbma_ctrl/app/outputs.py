@@ -17,7 +17,8 @@ place). On Ctrl-C or an exception the directory becomes ``<out>.interrupted-<UTC
 ``<out>.interrupted-*`` (marked cut short) and releases the lock; what a process killed outright left
 hidden is made visible by the next run on the same ``--out``, which says so on stderr.
 
-``manifest.json`` keys: :data:`MANIFEST_KEYS`.
+``manifest.json`` keys: :data:`MANIFEST_KEYS`, and ``files``: what the run wrote (relative paths), so
+that ``--overwrite`` refuses a run directory someone has since put other files into.
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ __all__ = [
     "pending_signal",
     "ARGV_KEY",
     "check_out",
+    "foreign_entries",
+    "WRITTEN_LIST",
     "cli_argv",
     "redact_argv",
     "default_out",
@@ -81,6 +84,12 @@ NAME_RULE = "letters, digits, '-', '_' and '.' only, not starting with '.'"
 #: the longest results-directory name, bytes: the filesystem's 255 less what the lock, temporary and
 #: kept-aside siblings add to it (``.<name>.lock.stale-<pid>``, ``<name>.interrupted-<stamp>-<k>``)
 MAX_NAME_BYTES = 200
+#: the file in a folder of ``report``'s figures or ``export``'s tables naming what they wrote there, one
+#: name a line: those files are theirs to replace (and a run directory holding that folder is still a run's)
+WRITTEN_LIST = ".hbma-ctrl-written"
+
+#: the longest results-directory path, bytes: Linux's PATH_MAX (4096) less a name's worth for the files in it
+MAX_PATH_BYTES = 4096 - 256
 
 #: where the top-level CLI group keeps the command line it was given (in the click context's meta)
 ARGV_KEY = "hbma_ctrl.argv"
@@ -354,6 +363,9 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
         if len(part.encode()) > most:
             raise _bad(f"{str(given)[:60]}...", f"the name '{part[:40]}...' is {len(part.encode())} bytes long; a "
                        f"folder name may have at most {most}")
+    if len(os.fsencode(path)) > MAX_PATH_BYTES:
+        raise _bad(f"{str(given)[:60]}...", f"the path is {len(os.fsencode(path))} bytes long; a path may have at "
+                   f"most {MAX_PATH_BYTES}")
     if path.parent == path:
         raise _bad(given, "is a filesystem root; choose a directory below it")
     if path.exists() or path.is_symlink():
@@ -374,6 +386,11 @@ def check_out(out: Path | str, overwrite: bool = False) -> Path:
             if not is_run_dir(path):
                 raise _bad(given, "holds files but no run of hbma-ctrl (no manifest.json of one): --overwrite "
                                   "replaces only a run's own directory; choose another --out")
+            added = foreign_entries(path)
+            if added:
+                raise _bad(given, f"holds {added[0]!r}{f' and {len(added) - 1} more' if len(added) > 1 else ''}, "
+                                  "which its run did not write: --overwrite replaces only what a run wrote; move "
+                                  "it out or choose another --out")
     anc = path.parent
     while not anc.exists():
         anc = anc.parent
@@ -392,6 +409,30 @@ def is_run_dir(path: Path | str) -> bool:
     except (OSError, ValueError):
         return False
     return isinstance(man, dict) and set(MANIFEST_KEYS) <= set(man)
+
+
+def _listing(folder: Path) -> list[str]:
+    """Every file and folder under ``folder``, relative, '/'-separated, sorted (manifest.json left out)."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.name != "manifest.json")
+
+
+def foreign_entries(path: Path | str) -> list[str]:
+    """What a run directory holds that its run did not write: entries missing from its manifest's
+    ``files`` (put there by hand afterwards). Empty for a manifest without ``files`` (older runs)."""
+    path = Path(path)
+    try:
+        listed = json.loads((path / "manifest.json").read_text()).get("files")
+    except (OSError, ValueError, AttributeError):
+        return []
+    if not isinstance(listed, list):
+        return []
+    known = set(map(str, listed))
+    for sub in path.iterdir():  # a folder report or export added to the run (its figures, its tables)
+        written = sub / WRITTEN_LIST
+        if sub.is_dir() and written.is_file():
+            names = [ln for ln in written.read_text(errors="replace").splitlines() if ln]
+            known |= {sub.name, f"{sub.name}/{WRITTEN_LIST}"} | {f"{sub.name}/{n}" for n in names}
+    return [e for e in _listing(path) if e not in known and not e.startswith(".manifest.json")]
 
 
 def pid_alive(pid: int) -> bool:
@@ -468,6 +509,8 @@ def _write_manifest(man: dict, folder: Path) -> None:
 def _park(tmp: Path, out: Path, status: str, man: dict, error: str | None, run: dict | None = None) -> Path:
     """Mark the work ``status`` and rename it beside out; returns where it went (tmp if the rename fails).
     ``run``: the open run's record, which learns where the work went."""
+    with contextlib.suppress(OSError):
+        man["files"] = _listing(tmp)
     man.update(status=status, finished_utc=_utc(), error=error)
     with contextlib.suppress(OSError):
         _write_manifest(man, tmp)
@@ -633,7 +676,7 @@ def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
         if signum is not None:  # the signal's exception was lost on its way up: the run is still cut short
             raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum), run), signum)
         with _holding_signals():
-            man.update(status="complete", finished_utc=_utc())
+            man.update(status="complete", finished_utc=_utc(), files=_listing(tmp))
             _write_manifest(man, tmp)  # last: a manifest saying complete means every file is there
             _install(tmp, path, run)
     finally:

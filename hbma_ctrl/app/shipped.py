@@ -72,5 +72,8 @@ def copy_scenario(name: str, dest: Path | str, overwrite: bool = False) -> Path:
         raise ValueError(f"--to: {target} already exists (give --overwrite to replace it)")
     if not target.parent.is_dir():
         raise ValueError(f"--to: the folder {target.parent} does not exist")
-    shutil.copyfile(files[key], target)
+    try:
+        shutil.copyfile(files[key], target)
+    except OSError as exc:  # a place no file can be written (sysfs, procfs, a read-only folder, a full disk)
+        raise ValueError(f"--to {dest}: cannot write {target} ({exc.strerror or exc})") from None
     return target

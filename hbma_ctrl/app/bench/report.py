@@ -28,6 +28,8 @@ DPI = 130
 #: the page order of DIR/index.md
 ORDER = ("sim", "protocol", "ekf", "loop", "mpc", "robot", "fit", "soak", "drills", "poses", "api", "live", "log", "codegen")
 _DATE = re.compile(r"^Measured on (\d{4}-\d{2}-\d{2})", re.M)
+#: the first line of the index a bench writes
+_INDEX = re.compile(r"\A# Benchmark results\n")
 
 
 @dataclass
@@ -169,6 +171,12 @@ class Report:
 
     def __init__(self, folder: Path | str, sub: str, argv: list[str]):
         self.folder = _check_writable(Path(folder))
+        for name, own in ((f"{sub}.md", _DATE), ("index.md", _INDEX)):
+            # rewritten whole: only a page (or index) a bench wrote, never a user's file of that name
+            path = self.folder / name
+            if path.exists() and not (path.is_file() and own.search(path.read_text(errors="replace")[:4096])):
+                raise ValueError(f"--report {folder}: holds {name}, which no bench wrote; it would be replaced: "
+                                 "choose another folder")
         self.sub = sub
         self.argv = list(argv)
         self.machine = machine()

@@ -226,6 +226,8 @@ def observability_cmd(
     from hbma_ctrl.estimators.observability import OBS_SCALE, WINDOW_S, run
     from hbma_ctrl.core.params import Actuator
 
+    check_range("--r1-mm", r1_mm, 0.5, 100.0, lo_open=True, unit="mm")
+    check_range("--t0-mm", t0_mm, 0.05, 20.0, lo_open=True, unit="mm")
     act = Actuator().with_(**{k: U.mm(v) for k, v in (("r1", r1_mm), ("t0", t0_mm)) if v is not None})
     with run_dir(out, command="observability", argv=cli_argv(), overwrite=overwrite) as tmp:
         summ = run(tmp, act)

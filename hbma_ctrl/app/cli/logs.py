@@ -6,14 +6,17 @@ Registered by :mod:`hbma_ctrl.app.cli.main` through :func:`register`.
 
 from __future__ import annotations
 
+import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 
 from hbma_ctrl.app.cli.args import ReportDir, check_choice, check_range, finish_bench
-from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, WRITTEN_LIST, cli_argv
 
 __all__ = ["register", "report", "export", "bench_log"]
 
@@ -22,6 +25,36 @@ def _out_dir(out: Path) -> Path:
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: not a directory")
     return out
+
+
+def _written_aside(out: Path, explicit: bool, command: str, make) -> list[Path]:
+    """Run ``make(folder)`` (it writes files into ``folder``, returns them) in a temporary folder beside
+    ``out``, then move its files into ``out``. A file already in ``out`` that an earlier ``command``
+    did not write there (:data:`WRITTEN_LIST`) is a user's own: with an explicit ``--out`` it is
+    never replaced (ValueError naming ``--out``, nothing moved); ``RUN_DIR/<default>`` is the
+    command's own folder."""
+    _out_dir(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    listed = out / WRITTEN_LIST
+    known = set(listed.read_text(errors="replace").splitlines()) if listed.is_file() else set()
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        made = make(tmp)
+        names = [f.relative_to(tmp).as_posix() for f in made]
+        if explicit:
+            clash = [n for n in names if (out / n).exists() and n not in known]
+            if clash:
+                more = f" and {len(clash) - 1} more" if len(clash) > 1 else ""
+                raise ValueError(f"--out {out}: holds '{clash[0]}'{more}, which {command} did not write; it would be "
+                                 "replaced: choose a new or empty folder")
+        out.mkdir(parents=True, exist_ok=True)
+        for n in names:
+            (out / n).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp / n, out / n)
+        listed.write_text("".join(f"{n}\n" for n in sorted(known | set(names))))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return [out / n for n in names]
 
 
 def report(
@@ -33,7 +66,7 @@ def report(
     estimator errors, faults and events, the robot's pose; each as PNG and PDF."""
     from hbma_ctrl.app.report.figures import report as make
 
-    files = make(run_dir, _out_dir(out or run_dir / "figures"))
+    files = _written_aside(out or run_dir / "figures", out is not None, "report", lambda folder: make(run_dir, folder))
     for f in files:
         typer.echo(str(f))
 
@@ -51,7 +84,8 @@ def export(
     log = run_dir / "log.mcap"
     if not log.is_file():
         raise FileNotFoundError(f"RUN_DIR {run_dir}: no log.mcap")
-    for f in export_log(log, _out_dir(out or run_dir / "export"), fmt):
+    for f in _written_aside(out or run_dir / "export", out is not None, "export",
+                            lambda folder: export_log(log, folder, fmt)):
         typer.echo(str(f))
 
 

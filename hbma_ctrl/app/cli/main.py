@@ -109,6 +109,8 @@ class _OneLineErrors(TyperGroup):
             sys.exit(128 + exc.signum)
         except (ValueError, FileNotFoundError) as exc:
             _fail_keeping(exc, str(exc), 2)
+        except OSError as exc:  # a path the system refuses (too long, no permission, a directory for a file)
+            _fail_keeping(exc, _os_error_line(exc), 2)
         except RuntimeError as exc:
             if _is_run_failed(exc):  # the input was fine; the run failed (every trial diverged)
                 _fail_keeping(exc, str(exc), 1)
@@ -127,6 +129,15 @@ def _fail_keeping(exc: BaseException, message: str, code: int):
     """:func:`fail` with ``message``, naming the partial results ``exc`` kept (``partial_results``), if any."""
     partial = getattr(exc, "partial_results", None)
     fail(f"{message}; partial results in {partial}" if partial else message, code)
+
+
+def _os_error_line(exc: OSError) -> str:
+    """One line for an OSError that no command turned into its own message: the path (shortened) and why."""
+    name = str(exc.filename) if exc.filename is not None else ""
+    if len(name) > 80:
+        name = name[:60] + "..." + name[-17:]
+    why = exc.strerror or type(exc).__name__
+    return f"{name}: {why}" if name else f"{why} ({exc})"
 
 
 def _is_run_failed(exc: BaseException) -> bool:

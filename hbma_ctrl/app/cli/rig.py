@@ -34,6 +34,15 @@ from hbma_ctrl.core.units import kpa, ms
 
 __all__ = ["register"]
 
+def _is_truth_log(path: Path) -> bool:
+    """Whether ``path`` starts as rig emulate's truth log does (its header: dt_ms,mode,t_s,...)."""
+    try:
+        with path.open("rb") as fh:
+            return fh.readline(64).startswith(b"dt_ms,mode,t_s")
+    except OSError:
+        return False
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add the ``rig`` command group to ``app``."""
     rig_app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -62,6 +71,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         defects = [d for d in (defect or "").split(",") if d]
         for d in defects:
             check_choice("--defect", d, DEFECTS)
+        if link is not None and (link.exists() or link.is_symlink()) and not link.is_symlink():
+            # the link is replaced while the board runs and removed at its end: never a user's file or folder
+            raise ValueError(f"--link {link}: exists and is not a symlink; give a new path (or an old link's)")
+        if link is not None and not link.parent.is_dir():
+            raise ValueError(f"--link {link}: the folder {link.parent} does not exist")
+        if truth_log is not None and (truth_log.is_dir() or (truth_log.is_file() and not _is_truth_log(truth_log))):
+            # it is rewritten from its first line: only an earlier truth log may be
+            raise ValueError(f"--truth-log {truth_log}: exists and is not a truth log of rig emulate; give a new "
+                             "path (or an old truth log's)")
         if truth_log is not None and config is None:
             raise ValueError("--truth-log: needs --config (the first-order plant has no truth to log)")
         if period_ms is not None and config is not None:

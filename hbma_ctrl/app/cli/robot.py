@@ -42,6 +42,9 @@ def _wide_console() -> Console:
 def _design(layers: int | None, max_stretch: float | None = None) -> RobotDesign:
     from hbma_ctrl.robot.design import RobotDesign
 
+    # the flags' ranges here, so that the error names the flag (the design's own check names its field)
+    check_range("--layers", layers, 1, 26, unit="layers")
+    check_range("--max-stretch", max_stretch, 1.05, 20.0)
     kw = {"n_layers": layers, "max_stretch": max_stretch}
     return RobotDesign(**{k: v for k, v in kw.items() if v is not None}).validate()
 
@@ -180,9 +183,13 @@ def pose(out: Path = typer.Option(Path("runs/pose"), "--out", help="directory fo
     if not sets:
         if centre_mm is None:
             raise ValueError("give --heights-mm (chamber heights) or --centre-mm with --bend-deg/--direction-deg")
+        check_range("--centre-mm", centre_mm, 0.0, 200.0, lo_open=True, unit="mm")
         check_range("--bend-deg", bend_deg, 0.0, 90.0, unit="deg", hi_open=True)
+        check_range("--direction-deg", direction_deg, -360.0, 360.0, unit="deg")
         h = inverse_kinematics(d, U.mm(centre_mm), math.radians(bend_deg), math.radians(direction_deg))
         sets = [U.to_mm(h).ravel()]
+    check_range("--pressure-limit-kpa", pressure_limit_kpa, 1.0, 1000.0, unit="kPa")
+    source = "--heights-mm" if heights_mm else "--centre-mm/--bend-deg (their chamber heights)"
     check_out(out, overwrite)  # before the reach work below; run_dir checks again under its lock
     con = _wide_console()
     shapes = []
@@ -190,7 +197,8 @@ def pose(out: Path = typer.Option(Path("runs/pose"), "--out", help="directory fo
         h = U.mm(s).reshape(d.n_layers, 3)
         rep = reach_report(d, h, U.kpa(pressure_limit_kpa))
         if np.any(h < 0):
-            raise ValueError("chamber heights must be >= 0 mm: " + "; ".join(rep["violations"]))
+            neg = [f"{nm} = {v:g} mm" for nm, v in zip(d.names, s) if v < 0]
+            raise ValueError(f"{source}: chamber heights must be >= 0 mm; {', '.join(neg)}")
         p = forward_kinematics(d, h)
         shapes.append(h)
         con.print("heights (mm): " + ", ".join(f"{nm}={v:.2f}" for nm, v in zip(d.names, s)))

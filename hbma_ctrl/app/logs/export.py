@@ -34,6 +34,9 @@ def export_log(mcap_path: Path | str, out: Path | str, fmt: str = "csv") -> list
             raise ValueError("--format parquet needs pyarrow, which is not installed (pip install pyarrow), "
                              "or use --format csv") from None
     c = read_mcap(mcap_path)
+    if not any(c.messages.values()):  # an empty or truncated log: say so, not exit 0 with nothing written
+        raise ValueError(f"RUN_DIR {Path(mcap_path).parent}: its log ({Path(mcap_path).name}) holds no message "
+                         "to export (empty or cut short before its first)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = []

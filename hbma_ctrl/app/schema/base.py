@@ -13,7 +13,7 @@ from typing import Any, Literal, NamedTuple
 
 from pydantic import PrivateAttr, field_validator, model_validator
 
-from hbma_ctrl.app.outputs import NAME_RULE, is_plain_name
+from hbma_ctrl.app.outputs import MAX_NAME_BYTES, NAME_RULE, is_plain_name
 from hbma_ctrl.app.schema.errors import hint
 from hbma_ctrl.app.schema.fields import (
     RuleError,
@@ -76,6 +76,11 @@ class ScenarioTable(Table):
     @classmethod
     def _plain_name(cls, v: str | None) -> str | None:
         # the name becomes a directory when --out is omitted: never a path that escapes runs/
+        if v is not None and len(v.encode()) > MAX_NAME_BYTES:
+            # checked first: a megabyte name would be echoed whole below and slows every table that titles it
+            raise RuleError(f"name = '{v[:40]}...' is {len(v.encode())} characters long: at most {MAX_NAME_BYTES} "
+                            "can name a folder; shorten it",
+                            "scenario")
         if v is not None and not is_plain_name(v):
             raise RuleError(f"name = {v!r} must be a plain directory name: {NAME_RULE}, no path separators",
                             "scenario")

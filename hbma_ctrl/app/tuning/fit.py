@@ -139,6 +139,9 @@ class FitResult(FitReport):
 # ---------------------------------------------------------------------------------------------
 # data
 # ---------------------------------------------------------------------------------------------
+#: the largest load a static point may carry, per column: a scenario's [load] mass_g range (50 kg)
+LOAD_MAX = {"load_g": (50000.0, "g"), "F_n": (50000.0 * 1e-3 * U.G_STD, "N")}
+
 def parse_data(raw: bytes) -> StaticData:
     """Static data from a CSV file's bytes (h_mm, p_kpa, optional F_n or load_g) in SI.
 
@@ -168,6 +171,9 @@ def parse_data(raw: bytes) -> StaticData:
             if v < 0:
                 what = {"h_mm": "height", "p_kpa": "pressure"}.get(c, "load")
                 raise ValueError(f"data: column '{c}', row {row}: {what} {v:g} is negative")
+            if c in LOAD_MAX and v > LOAD_MAX[c][0]:
+                most, unit = LOAD_MAX[c]
+                raise ValueError(f"data: column '{c}', row {row}: {v:g} {unit} is out of range [0, {most:g}] {unit}")
             if c == "p_kpa" and v > P_KPA_MAX:
                 raise ValueError(f"data: column 'p_kpa', row {row}: {v:g} kPa is above {P_KPA_MAX:g} kPa; the "
                                  "values look like Pa: convert them to kPa")

@@ -8,6 +8,7 @@ into a scenario file (``fit --write-scenario``): every fitted parameter under it
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tomllib
@@ -185,7 +186,12 @@ def write_scenario(path: Path | str, result: FitReport, law: str, source: str = 
     head += [f"# data: {source}"] if source else []
     head += [f"# {n}" for n in notes] + ["# (written by hbma-ctrl fit --write-scenario: comments are not kept)", ""]
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(head) + tomli_w.dumps(data), encoding="utf-8")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text("\n".join(head) + tomli_w.dumps(data), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:  # a folder no file can be written in (procfs, read-only, missing)
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise ValueError(f"--write-scenario {path}: cannot write it ({exc.strerror or exc})") from None
     return notes + ([] if base else [f"{path} holds the fitted tables alone: copy a scenario there first "
                                      "(hbma-ctrl scenarios copy NAME --to FILE) to run it with roles"])

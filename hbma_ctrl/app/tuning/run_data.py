@@ -87,7 +87,11 @@ def data_rows(raw: bytes, expected: str) -> tuple[list[str], list[list[str]]]:
     if not lines:
         raise ValueError(f"data: the file is empty; expected a header {expected}")
     rows = list(csv.reader(io.StringIO("\n".join(lines))))
-    return [c.strip() for c in rows[0]], rows[1:]
+    header = [c.strip() for c in rows[0]]
+    twice = sorted({c for c in header if c and header.count(c) > 1})
+    if twice:  # the reader would take the first and ignore the other without a word
+        raise ValueError(f"data: column '{twice[0]}' appears {header.count(twice[0])} times in the header; keep one")
+    return header, rows[1:]
 
 
 def is_dynamic(raw: bytes) -> bool:

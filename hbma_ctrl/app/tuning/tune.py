@@ -140,6 +140,10 @@ class TuneSpec:
     data: dict = field(default_factory=dict)
 
 
+#: the most seeds --train-seeds or --test-seeds may name
+MAX_SEEDS = 1000
+
+
 def parse_seeds(text: str, flag: str) -> list[int]:
     """'0-9' or '0,3,5' or '0-4,8' -> sorted distinct seeds; ValueError naming the flag."""
     out: set[int] = set()
@@ -154,11 +158,11 @@ def parse_seeds(text: str, flag: str) -> list[int]:
         if len(nums) not in (1, 2) or any(n < 0 for n in nums) or (len(nums) == 2 and nums[1] < nums[0]):
             raise ValueError(f"{flag} = '{text}': '{part}' is not a seed or a range A-B of seeds "
                              "(whole numbers >= 0, A <= B)")
+        if nums[-1] - nums[0] + 1 + len(out) > MAX_SEEDS:  # before building it: '0-99999999' is 1e8 ints
+            raise ValueError(f"{flag} = '{text}': more than {MAX_SEEDS} seeds; at most {MAX_SEEDS}")
         out.update(range(nums[0], nums[-1] + 1))
     if not out:
         raise ValueError(f"{flag} = '{text}': expected seeds like 0-9 or 0,3,5")
-    if len(out) > 1000:
-        raise ValueError(f"{flag} = '{text}': {len(out)} seeds; at most 1000")
     return sorted(out)
 
 
@@ -299,6 +303,22 @@ def score(data: dict, scenario: Path, objective: str, seed: int, duration_s: flo
     return v
 
 
+def _is_journal(path: str) -> bool:
+    """Whether ``path`` is missing, empty or starts with an optuna journal record (a JSON object with an
+    ``op_code``); a folder or another file is not."""
+    p = Path(path)
+    if not p.exists():
+        return True
+    if not p.is_file():
+        return False
+    try:
+        with p.open("rb") as fh:
+            first = fh.readline(1 << 20)
+        return not first.strip() or "op_code" in json.loads(first)
+    except (OSError, ValueError, TypeError):
+        return False
+
+
 def make_storage(url: str) -> optuna.storages.BaseStorage:
     """An optuna storage for ``url``: RDB URL (sqlite with a 60 s lock wait) or ``journal:PATH``."""
     if url.startswith("journal:"):
@@ -309,7 +329,13 @@ def make_storage(url: str) -> optuna.storages.BaseStorage:
             path = path[2:]
         if not path:
             raise ValueError("--storage journal:PATH: the journal file path is missing")
-        return optuna.storages.JournalStorage(JournalFileBackend(path))
+        if not _is_journal(path):  # optuna would append its log to any file: never to a user's own
+            raise ValueError(f"--storage {url}: {path} is not an optuna journal (its first line is not one of "
+                             "a journal's records); give a new path or a journal's")
+        try:
+            return optuna.storages.JournalStorage(JournalFileBackend(path))
+        except OSError as exc:
+            raise ValueError(f"--storage {url}: cannot open {path} ({exc.strerror or exc})") from None
     kw: dict = {}
     if url.startswith("sqlite"):
         kw["connect_args"] = {"timeout": 60}

@@ -69,6 +69,8 @@ def test_second_run_refused_then_overwrite_replaces_and_manifest_is_complete(tmp
     assert t0.utcoffset() == dt.timedelta(0) and t0 <= t1
 
     (out / "stale.csv").write_text("from an older run\n")
+    man["files"].append("stale.csv")  # an older run's own file: its manifest lists it
+    (out / "manifest.json").write_text(json.dumps(man))
     line = _one_line(runner.invoke(app, argv), 2)
     assert "--out" in line and str(out) in line and "--overwrite" in line
     assert (out / "metrics.json").read_bytes() == metrics  # the first run is intact
