@@ -4,9 +4,7 @@ The daemon runs in this process on the simulated rig in real time (speed 1, as a
 its API on a free loopback port (in the API's own process, as the daemon runs it), twice for
 ``duration_s`` each: once quiet, once with ``clients`` loopback clients in another process, each sending its next request (``GET /status``, ``GET /health``
 or a ``POST /setpoint``, in turn) as soon as the last is answered. In both runs a prober, a process of
-its own (with the short scheduler slice the daemon's threads ask for,
-:mod:`hbma_ctrl.app.daemon.host`, so that its own wake-ups are not what it times), posts ``/stop``
-every ``probe_every_s`` and times each answer: the stop requests the API takes
+its own, posts ``/stop`` every ``probe_every_s`` and times each answer: the stop requests the API takes
 from it reach the loop's state, which counts them instead of ending the run (:class:`ProbedState`);
 the API's path to them is the real one. At the end, once every probe answered has been counted
 there, the bench posts the real ``/stop`` and times its answer and the loop's end.
@@ -32,7 +30,6 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from hbma_ctrl.app.daemon.host import ask_short_slice
 from hbma_ctrl.app.daemon.state import DaemonState
 from hbma_ctrl.app.outputs import run_dir
 from hbma_ctrl.core import units as U
@@ -88,9 +85,6 @@ def _flood(url: str, clients: int, duration: float, go, out) -> None:
 def _probe(url: str, every: float, duration: float, go, out) -> None:
     """POST /stop every ``every`` s for ``duration`` s from the event ``go``; puts the latencies (s;
     None: no answer)."""
-    # the instrument's own wake-ups on a busy host are not the daemon's answer: the prober asks for the
-    # short slice the daemon's threads ask for (hbma_ctrl.app.daemon.host); the clients do not
-    ask_short_slice()
     lat: list = []
     with httpx.Client(base_url=url, timeout=5) as c:
         out.put("ready")
@@ -167,7 +161,7 @@ def _one_run(config: Path, out: Path, duration_s: float, clients: int, probe_eve
     t.join(60)
     period = cfg.period
     keys = ("steps", "deadline_misses", "overruns", "skipped_periods", "step_ms_median", "step_ms_p99",
-            "tick_ms_p99", "jitter_ms_p99", "faults", "end_reason", "safe_exit", "sched_slice_ms")
+            "tick_ms_p99", "jitter_ms_p99", "faults", "end_reason", "safe_exit")
     total = sum(v for k, v in res.get("requests", {}).items() if isinstance(v, int))
     return {"clients": clients, "daemon": {k: stats.get(k) for k in keys},
             "requests": {str(k): v for k, v in sorted(res.get("requests", {}).items(), key=str)},

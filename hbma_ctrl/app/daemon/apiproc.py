@@ -28,9 +28,7 @@ the interpreter's lock. It also wakes on a stop, at once, and every :data:`POLL_
 publishes nothing (starting, ended).
 
 The API's process leaves a real-time scheduling class it inherited (:func:`leave_real_time`): on
-the loop's core, the loop preempts it. The server's thread and the link's thread ask the scheduler
-for a short slice (:mod:`hbma_ctrl.app.daemon.host`), as the loop does: on a host whose CPUs are
-busy, a stop's request wakes them ahead of the tasks they share a CPU with. Its start-up objects are frozen out of the garbage collector
+the loop's core, the loop preempts it. Its start-up objects are frozen out of the garbage collector
 (:func:`freeze_start_up`), so that no collection holds a ``/stop`` for tens of milliseconds.
 
 Ending: the API's process ignores SIGINT, SIGTERM and SIGHUP (a terminal's or a service manager's
@@ -60,7 +58,6 @@ from multiprocessing.connection import Connection, wait
 from typing import Any, Self
 
 from hbma_ctrl.app.daemon.api import DEFAULT_PORT, EVENTS_SHOWN, RATE_HZ, is_loopback
-from hbma_ctrl.app.daemon.host import ask_short_slice
 from hbma_ctrl.app.daemon.state import DaemonState, Stopping
 
 __all__ = ["API_LOST", "POLL_S", "REPLY_TIMEOUT_S", "ApiServer", "bind", "freeze_start_up", "leave_real_time",
@@ -205,13 +202,6 @@ def freeze_start_up() -> None:
     gc.freeze()
 
 
-def _serve(server, sock: socket.socket) -> None:
-    """Run uvicorn's server on ``sock`` in this thread, which reads the requests (a stop among them) as
-    soon as they arrive when it shares a CPU with busy tasks (:mod:`hbma_ctrl.app.daemon.host`)."""
-    ask_short_slice()
-    server.run(sockets=[sock])
-
-
 def _api_main(sock: socket.socket, down: Connection, up: Connection, stops: Connection, token: str | None,
               rate_hz: float, allow_remote: bool, start_timeout: float) -> None:
     """The API's process: serve ``sock`` until the daemon's side says close or is gone."""
@@ -230,7 +220,7 @@ def _api_main(sock: socket.socket, down: Connection, up: Connection, stops: Conn
     app = make_app(state, token, rate_hz=rate_hz, allow_remote=allow_remote)
     server = uvicorn.Server(server_config(app))
     # a thread of its own, not this process's main one: uvicorn then installs no signal handlers
-    serving = threading.Thread(target=_serve, args=(server, sock), name="hbma-api", daemon=True)
+    serving = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="hbma-api", daemon=True)
     serving.start()
     deadline = time.monotonic() + start_timeout
     while not server.started:
@@ -339,7 +329,6 @@ class ApiServer:
         self._down.send(("reply", *reply))
 
     def _link(self) -> None:
-        ask_short_slice()  # a stop reaches the loop's state when it arrives, not after another task's slice
         seq, stop = 0, None
         close_sent = False
         try:

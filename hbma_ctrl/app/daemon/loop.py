@@ -55,7 +55,7 @@ from typing import Callable
 import numpy as np
 
 from hbma_ctrl.app.daemon.gcwatch import GcWatch
-from hbma_ctrl.app.daemon.host import ask_short_slice, rss_mb, steal_ms, thread_slice_s, thread_usage
+from hbma_ctrl.app.daemon.host import rss_mb, steal_ms, thread_usage
 from hbma_ctrl.system.rigio import RigLinkError, safe_u
 from hbma_ctrl.app.daemon.runlog import RunLog, fmt_value, setpoint_fields
 from hbma_ctrl.app.daemon.state import DaemonState
@@ -147,7 +147,6 @@ class DaemonLoop:
         self.safe_exit = False
         self.end_reason = ""
         self.t = 0.0
-        self.slice_s: float | None = None  # the loop thread's scheduler slice while it runs, s
         self._warming = False
         self._ctrl_steps = 0  # periods the runner ticked past its start-up work (calibration)
         self.u_last = safe_u(self.n)
@@ -467,9 +466,6 @@ class DaemonLoop:
         self.gc = GcWatch()
         switch = sys.getswitchinterval()
         sys.setswitchinterval(GIL_SWITCH_S)
-        # woken at its deadline, the loop runs before the tasks it shares a CPU with finish their slices
-        slice_was = thread_slice_s()
-        self.slice_s = ask_short_slice()
         self.mode = "running"
         self._sim_io = bool(getattr(self.rig, "simulated", False))
         self.event("start", f"rate {1.0 / self.period:g} Hz, speed {self.speed:g}")
@@ -556,8 +552,6 @@ class DaemonLoop:
             raise
         finally:
             sys.setswitchinterval(switch)
-            if self.slice_s is not None and slice_was is not None:
-                ask_short_slice(slice_was)  # the thread goes on as it came (a test's, an embedding program's)
             self._go_safe()
             self.mode = "stopped"
             self.event("safe_exit" if self.safe_exit else "unsafe_exit", self.end_reason or "ended")
@@ -580,9 +574,7 @@ class DaemonLoop:
         leak_fraction, pump_rise_kpa; see :attr:`hbma_ctrl.runtime.watchdog.SafetyMonitor.closest`) and
         the robot loop's burst test (burst_sigma: its largest sum, sigma; None without the test), and
         the garbage collector's pauses in any thread (gc_collections by generation, gc_pause_ms_max,
-        gc_pause_ms_total, gc_frozen; :meth:`hbma_ctrl.app.daemon.gcwatch.GcWatch.stats`), and
-        sched_slice_ms: the loop thread's scheduler slice (:mod:`hbma_ctrl.app.daemon.host`; None when
-        the kernel kept its own, or in a real-time class)."""
+        gc_pause_ms_total, gc_frozen; :meth:`hbma_ctrl.app.daemon.gcwatch.GcWatch.stats`)."""
         st, jt, tk = self.step_s.summary(), self.jitter_s.summary(), self.tick_s.summary()
         tc = self.tick_cpu_s.summary()
         ms = lambda x: None if not math.isfinite(x) else float(U.to_ms(x))  # noqa: E731
@@ -599,7 +591,6 @@ class DaemonLoop:
                 "tick_cpu_ms_p99": ms(tc["p99"]),
                 "speed": self.speed, "rig_time_s": float(self.t),
                 "wall_s": float(self.wall_s), "monitor_margins": self._margins(),
-                "sched_slice_ms": None if self.slice_s is None else float(U.to_ms(self.slice_s)),
                 **(self.gc.stats() if self.gc is not None else {})}
 
     def _margins(self) -> dict:
