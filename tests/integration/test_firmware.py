@@ -431,20 +431,21 @@ STEP_5MM = ("targets_mm = [[0.0, 2.0], [3.0, 6.0]]", "targets_mm = [[0.0, 2.0], 
 @pytest.mark.parametrize("seed", [*range(3), *(pytest.param(s, marks=pytest.mark.sweep) for s in range(3, 10))])
 def test_a_5mm_step_through_the_host_board_settles_within_0p6mm_for_each_of_10_rig_seeds(tmp_path, seed):
     """The daemon's closed loop through the C firmware's host build, its plant the file's rig (the 400 g
-    load, noise and the rig's own draws from ``seed``), 10 s of loop time: the loop closes after its
-    start-up calibration (under 2 s), the 5 mm step (2 -> 7 mm) comes 3 s later, and over the last 3 s
-    (the firmware's truth log) the true height stays within 0.6 mm of 7 mm. A pass rate over 10 rig
+    load, noise and the rig's own draws from ``seed``), 11 s of loop time: the loop closes after its
+    start-up calibration (under 3 s: its rig time grows with the periods a loaded machine makes the
+    loop miss), the 5 mm step (2 -> 7 mm) comes 3 s later, and over the last 3 s (the firmware's truth
+    log, at least 2 s after the step) the true height stays within 0.6 mm of 7 mm. A pass rate over 10 rig
     seeds with every one required (one test a seed, so that the workers share them): CI runs seeds 0-2,
     the by-hand sweep set (`-m sweep`) the other seven."""
     text = (ROOT / "scenarios" / "daemon_chamber.toml").read_text()
     assert STEP_5MM[0] in text and "\nseed = 1\n" in text
     text = text.replace(*STEP_5MM).replace("\nseed = 1\n", f"\nseed = {seed}\n")
-    stats, runner, link, rows = _through_the_host_board(tmp_path, text, 10.0)
+    stats, runner, link, rows = _through_the_host_board(tmp_path, text, 11.0)
     assert stats["faults"] == {} and stats["safe_exit"], stats
     assert (link["crc_errors"], link["bad_lines"], link["held_unknown"]) == (0, 0, 0), link
     # the loop closed (the rig's time of its readings, from the loop's start) early enough that the
     # window starts at least 2 s after the step
-    assert runner.stats()["calibration"]["status"] == "ok" and runner.t_closed < 2.0, runner.t_closed
+    assert runner.stats()["calibration"]["status"] == "ok" and runner.t_closed < 3.0, runner.t_closed
     run = [(float(r["t_s"]), float(r["h_C1_mm"])) for r in rows if r["mode"] == "RUN"]
     h = np.array([h for t, h in run if t >= run[-1][0] - 3.0])
     assert h.size >= 250, h.size  # the firmware's periods over the last 3 s (a late process loses a few)
