@@ -8,8 +8,8 @@ Registered by :mod:`hbma_ctrl.app.cli.main` through :func:`register`. Edge units
 fit (:mod:`hbma_ctrl.app.tuning.fit`) works in SI. Writes ``fit.json``, ``params.toml`` and
 ``residuals.png`` into ``--out`` through :func:`hbma_ctrl.app.outputs.run_dir`, and with
 ``--write-scenario FILE`` the fitted values into a scenario file
-(:func:`hbma_ctrl.app.tuning.fit_output.write_scenario`). A recorded run's fit shows a progress bar with
-the time left on stderr when it is a terminal. Bad input raises
+(:func:`hbma_ctrl.app.tuning.fit_output.write_scenario`). A recorded run's fit shows its progress and
+the time left on stderr: a bar on a terminal, else a line every 10 s. Bad input raises
 ValueError, which the top-level CLI prints as one ``error: ...`` line with exit code 2.
 """
 
@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
+import time
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -175,23 +177,34 @@ def _read_data(data: Path) -> tuple[bytes, Path]:
 
 
 class _progress:
-    """A progress bar of the fit's replays with the time left, on stderr when it is a terminal; called
-    as ``bar(done, total)``."""
+    """The fit's replays and the time left, on stderr: a progress bar when it is a terminal, else (a log
+    file, a batch job) one line every :attr:`PLAIN_EVERY_S` seconds; called as ``bar(done, total)``."""
+
+    #: seconds between two plain progress lines
+    PLAIN_EVERY_S = 10.0
+    #: the clock of the plain lines (s); replaceable in tests
+    clock = staticmethod(time.monotonic)
 
     def __enter__(self):
-        import sys
-
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+        self.plain = not sys.stderr.isatty()
         self.bar = Progress(TextColumn("fit: replays (at most)"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                             TimeElapsedColumn(), TextColumn("left at most"), TimeRemainingColumn(),
-                            console=Console(stderr=True), transient=True, disable=not sys.stderr.isatty())
+                            console=Console(stderr=True), transient=True, disable=self.plain)
         self.bar.start()
         self.task = self.bar.add_task("fit", total=None)
+        self.t0 = self.last = self.clock()
         return self
 
     def __call__(self, done: int, total: int) -> None:
         self.bar.update(self.task, completed=done, total=total)
+        now = self.clock()
+        if self.plain and 0 < done < total and now - self.last >= self.PLAIN_EVERY_S:
+            self.last = now
+            spent = now - self.t0
+            print(f"fit: {done}/{total} replays (at most), {spent:.0f} s, at most {spent / done * (total - done):.0f} s "
+                  "left", file=sys.stderr, flush=True)
 
     def __exit__(self, *exc) -> None:
         self.bar.stop()
