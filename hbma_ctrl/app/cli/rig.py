@@ -34,6 +34,7 @@ from hbma_ctrl.core.units import kpa, ms
 
 __all__ = ["register"]
 
+
 def _is_truth_log(path: Path) -> bool:
     """Whether ``path`` starts as rig emulate's truth log does (its header: dt_ms,mode,t_s,...)."""
     try:
@@ -71,7 +72,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         defects = [d for d in (defect or "").split(",") if d]
         for d in defects:
             check_choice("--defect", d, DEFECTS)
-        if link is not None and (link.exists() or link.is_symlink()) and not link.is_symlink():
+        if link is not None and link.exists() and not link.is_symlink():
             # the link is replaced while the board runs and removed at its end: never a user's file or folder
             raise ValueError(f"--link {link}: exists and is not a symlink; give a new path (or an old link's)")
         if link is not None and not link.parent.is_dir():

@@ -345,12 +345,11 @@ def library_spec(scn, qp_solver: str = "osqp") -> LibrarySpec:
     if len(names) != spec.signals["ekf_theta"].size:
         raise ValueError("codegen --library: the EKF model's parameter names do not match its theta")
     # DAQP's solutions are exact to rounding: its post-processing keeps rti_post's acceptance
-    post_sparse = _qp_post(post, qp.patterns, int(s.horizon))
-    post = _qp_post(post, qp.patterns, int(s.horizon), float(s.qp_eps)) if qp_solver == "osqp" else post_sparse
+    post = _qp_post(post, qp.patterns, int(s.horizon), float(s.qp_eps) if qp_solver == "osqp" else None)
     setup = {"Px": vals[0], "q": vals[1], "Ax": vals[2], "l": vals[3], "u": vals[4], "eps": float(s.qp_eps),
              "max_iter": int(s.qp_max_iter), "patterns": qp.patterns}
     meta = dict(spec.meta)
-    dense = _dense_qp(rti, qp, post_sparse) if qp_solver == "daqp" else None
+    dense = _dense_qp(rti, qp, post) if qp_solver == "daqp" else None
     meta["controller"] = meta["controller"].replace(
         "QP osqp", "QP OSQP (embedded, generated C)" if dense is None else
         f"QP condensed onto its {dense['ny']} inputs and slacks, DAQP (dense active set, C sources)")
