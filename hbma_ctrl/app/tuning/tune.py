@@ -158,7 +158,9 @@ def parse_seeds(text: str, flag: str) -> list[int]:
         if len(nums) not in (1, 2) or any(n < 0 for n in nums) or (len(nums) == 2 and nums[1] < nums[0]):
             raise ValueError(f"{flag} = '{text}': '{part}' is not a seed or a range A-B of seeds "
                              "(whole numbers >= 0, A <= B)")
-        if nums[-1] - nums[0] + 1 + len(out) > MAX_SEEDS:  # before building it: '0-99999999' is 1e8 ints
+        # a range wider than the cap is refused before it is built ('0-99999999' is 1e8 ints); ranges that
+        # overlap count their common seeds once ('0-999,0-5' is 1000 seeds)
+        if nums[-1] - nums[0] + 1 > MAX_SEEDS or len(out.union(range(nums[0], nums[-1] + 1))) > MAX_SEEDS:
             raise ValueError(f"{flag} = '{text}': more than {MAX_SEEDS} seeds; at most {MAX_SEEDS}")
         out.update(range(nums[0], nums[-1] + 1))
     if not out:

@@ -245,3 +245,11 @@ def test_a_journal_storage_that_is_a_users_text_file_is_refused_naming_storage_a
     with pytest.raises(ValueError, match="is not an optuna journal"):
         make_storage(f"journal:{tmp_path}")
     make_storage(f"journal:{tmp_path / 'new.journal'}")  # a new file: fine
+
+
+def test_overlapping_seed_ranges_count_their_common_seeds_once_against_the_cap():
+    from hbma_ctrl.app.tuning.tune import MAX_SEEDS, parse_seeds
+
+    assert parse_seeds(f"0-{MAX_SEEDS - 1},0-5,7", "--train-seeds") == list(range(MAX_SEEDS))
+    with pytest.raises(ValueError, match="at most 1000"):
+        parse_seeds(f"0-{MAX_SEEDS - 2},{MAX_SEEDS - 1}-{MAX_SEEDS}", "--train-seeds")
