@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import functools
 import hashlib
 import json
 import os
@@ -35,13 +36,12 @@ import stat
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
+from hbma_ctrl.app.endsignals import holding_signals, open_runs, pending_signal, signal_name, signal_number
 from hbma_ctrl.app.shipped import resolve
-from hbma_ctrl.core import interrupt
 
 try:  # typer >= 0.24 vendors click as typer._click; older typer uses click itself
     from typer._click.globals import get_current_context
@@ -53,10 +53,6 @@ __all__ = [
     "NAME_RULE",
     "OVERWRITE_HELP",
     "RunInterrupted",
-    "Terminated",
-    "end_on_signals",
-    "signal_number",
-    "pending_signal",
     "ARGV_KEY",
     "check_out",
     "foreign_entries",
@@ -98,75 +94,6 @@ _PLAIN = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
 _PKG_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the hbma_ctrl package
 
 
-class Terminated(KeyboardInterrupt):
-    """An ending signal (SIGINT, SIGTERM, SIGHUP) raised where the program is, so that every one ends it
-    as Ctrl-C does (outputs kept aside and marked, lock released); ``signum`` is the signal's number."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-#: the signals that end a command: Ctrl-C, ``kill``, a closed terminal
-_ENDING = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-#: the process that asked for :func:`end_on_signals` and the signal it got (None: none yet)
-_signalled: dict = {"pid": None, "signum": None}
-
-
-#: the runs of this process between taking their lock and releasing it, for a second signal to park
-_runs: list[dict] = []
-
-#: ending signals that came while a finished run was being moved into place, dealt with once it is
-_held: dict = {"on": False, "first": None, "again": None}
-
-
-def _terminate(signum: int, frame) -> None:
-    # the first ending signal is raised where the program is, so that its clean-up runs
-    if os.getpid() != _signalled["pid"]:  # a forked worker inherited the handler: the default action
-        for sig in _ENDING:
-            signal.signal(sig, signal.SIG_DFL)
-        os.kill(os.getpid(), signum)
-        return
-    for sig in _ENDING:
-        signal.signal(sig, _terminate_again)
-    _signalled["signum"] = signum
-    if _held["on"]:
-        _held["first"] = signum
-        return
-    raise Terminated(signum)
-
-
-def _terminate_again(signum: int, frame) -> None:
-    # a second signal while the first one's clean-up runs ends the process at once; a third one finds the
-    # default action, which ends it even inside C code that holds back the Python handler
-    for sig in _ENDING:
-        signal.signal(sig, signal.SIG_DFL)
-    if os.getpid() != _signalled["pid"]:
-        os.kill(os.getpid(), signum)
-        return
-    if _held["on"]:
-        _held["again"] = signum
-        return
-    _end_at_once(signum)
-
-
-def _end_at_once(signum: int) -> None:
-    """Park every open run as cut short (a rename, its manifest marked), release its lock, exit 128 +
-    ``signum`` without the clean-up the first signal started: nothing is left hidden or locked."""
-    first = _signalled["signum"]
-    why = (f"{_signal_name(first) if first is not None else 'an ending signal'}, then "
-           f"{signal.Signals(signum).name}: ended at once, its clean-up cut short")
-    lines = []
-    for run in reversed(list(_runs)):
-        where = _cut_short(run, why)
-        lines.append(f"interrupted: partial results in {where} (cut short by a second signal)" if where else
-                     "interrupted (cut short by a second signal)")
-    with contextlib.suppress(OSError):
-        os.write(2, ("\n".join(lines or ["interrupted (cut short by a second signal)"]) + "\n").encode())
-    os._exit(128 + signum)
-
-
 def _cut_short(run: dict, why: str) -> Path | None:
     """What a second signal does to an open run: its temporary directory renamed beside ``--out`` and
     marked interrupted, a run it replaced removed, its lock released; returns where the work went."""
@@ -179,62 +106,6 @@ def _cut_short(run: dict, why: str) -> Path | None:
         shutil.rmtree(old, ignore_errors=True)
     _unlock(run["lock"])
     return where
-
-
-@contextlib.contextmanager
-def _holding_signals() -> Iterator[None]:
-    """Hold the ending signals for a few renames, then act on them: a finished run is never left half
-    moved (the old one aside, the new one still hidden). Only the main thread, where handlers run."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    _held.update(on=True, first=None, again=None)
-    try:
-        yield
-    finally:
-        _held["on"] = False
-        if _held["again"] is not None:
-            _end_at_once(_held["again"])
-        if _held["first"] is not None:
-            raise Terminated(_held["first"])
-
-
-def end_on_signals() -> None:
-    """Make SIGINT (Ctrl-C), SIGTERM and SIGHUP (a closed terminal) end the program alike:
-    :class:`Terminated` (a KeyboardInterrupt) is raised in the main thread and the signal is kept
-    (:func:`pending_signal`); a second signal kills at once; a forked child dies as by default.
-    Call from the main thread."""
-    _signalled.update(pid=os.getpid(), signum=None)
-    interrupt.set_check(raise_if_signalled)  # the loops below the application check between steps
-    for sig in _ENDING:
-        signal.signal(sig, _terminate)
-
-
-def pending_signal() -> int | None:
-    """The ending signal this process got since :func:`end_on_signals`, also when the exception it
-    raised was lost on its way up (in a callback from C code, casadi's, it becomes a RuntimeError),
-    else None."""
-    return _signalled["signum"] if os.getpid() == _signalled["pid"] else None
-
-
-def raise_if_signalled() -> None:
-    """Raise :class:`Terminated` when an ending signal came and its exception was lost: casadi's solvers
-    check for signals inside their C code, and one that arrives there stops that solve only, while the
-    Python code around it carries on. A long loop calls this between its steps, so the command ends
-    within one step of the signal instead of at its end."""
-    signum = pending_signal()
-    if signum is not None:
-        raise Terminated(signum)
-
-
-def _signal_name(signum: int) -> str:
-    """How manifest.json names what ended a run: KeyboardInterrupt for Ctrl-C, else the signal."""
-    return "KeyboardInterrupt" if signum == signal.SIGINT else signal.Signals(signum).name
-
-
-def signal_number(exc: KeyboardInterrupt) -> int:
-    """The signal that ended a run: SIGINT for Ctrl-C, else the :class:`Terminated` signal's."""
-    return getattr(exc, "signum", int(signal.SIGINT))
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -635,7 +506,8 @@ def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
         raise _bad(given, f"cannot create its parent: {exc.strerror or exc}") from None
     # the record a second signal parks (it ends the process before this function's own clean-up)
     run: dict = {"lock": _lock(path, given), "out": path, "man": man, "tmp": None, "parked": None, "old": None}
-    _runs.append(run)
+    run["cut_short"] = functools.partial(_cut_short, run)
+    open_runs.append(run)
     try:
         _recover(path, given)  # first: a run it puts back at --out is then checked as any other
         path = check_out(given, overwrite)  # again under the lock: another writer may have finished meanwhile
@@ -662,11 +534,11 @@ def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
             yield tmp
         except KeyboardInterrupt as exc:
             signum = signal_number(exc)
-            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum), run), signum) from None
+            raise RunInterrupted(_park(tmp, path, "interrupted", man, signal_name(signum), run), signum) from None
         except BaseException as exc:
             signum = pending_signal()
             if signum is not None:  # the error is the signal's, turned into another by the code it hit
-                raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum), run),
+                raise RunInterrupted(_park(tmp, path, "interrupted", man, signal_name(signum), run),
                                      signum) from None
             dest = _park(tmp, path, "failed", man, _one_line(exc), run)
             with contextlib.suppress(AttributeError, TypeError):
@@ -674,8 +546,8 @@ def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
             raise
         signum = pending_signal()
         if signum is not None:  # the signal's exception was lost on its way up: the run is still cut short
-            raise RunInterrupted(_park(tmp, path, "interrupted", man, _signal_name(signum), run), signum)
-        with _holding_signals():
+            raise RunInterrupted(_park(tmp, path, "interrupted", man, signal_name(signum), run), signum)
+        with holding_signals():
             man.update(status="complete", finished_utc=_utc(), files=_listing(tmp))
             _write_manifest(man, tmp)  # last: a manifest saying complete means every file is there
             _install(tmp, path, run)
@@ -683,4 +555,4 @@ def run_dir(out: Path | str, *, command: str, argv: Sequence[str] | None = None,
         if run["old"] is not None:  # the run replaced, once the new one is in place
             shutil.rmtree(run["old"], ignore_errors=True)
         _unlock(run["lock"])
-        _runs.remove(run)
+        open_runs.remove(run)

@@ -23,7 +23,8 @@ from hbma_ctrl.app.outputs import run_dir
 CHILD = """
 import signal, sys
 from pathlib import Path
-from hbma_ctrl.app.outputs import end_on_signals, run_dir
+from hbma_ctrl.app.endsignals import end_on_signals
+from hbma_ctrl.app.outputs import run_dir
 
 end_on_signals()
 with run_dir(Path(sys.argv[1]), command="test", argv=sys.argv[1:]) as tmp:

@@ -28,7 +28,7 @@ import numpy as np
 from hbma_ctrl.controllers.dompc_ref import DoMPCController
 from hbma_ctrl.core.extras import dompc_available
 from hbma_ctrl.controllers.mpc_settings import VARIANTS
-from hbma_ctrl.app.outputs import raise_if_signalled
+from hbma_ctrl.app.endsignals import raise_if_signalled
 from hbma_ctrl.app.scenes.controller import closed_loop, loop_metrics
 from hbma_ctrl.system.roles import make_controller
 from hbma_ctrl.app.schema.document import parse_role

@@ -19,7 +19,8 @@ from rich.console import Console
 # the filters (filterpy, scipy.stats), python-control and the rig are imported by the commands
 # when they run
 from hbma_ctrl.app.cli.args import ReportDir, check_range, numbers, show_table, whole_numbers
-from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, raise_if_signalled, run_dir
+from hbma_ctrl.app.endsignals import raise_if_signalled
+from hbma_ctrl.app.outputs import OVERWRITE_HELP, cli_argv, run_dir
 from hbma_ctrl.core import units as U
 
 __all__ = ["register", "bench_ekf", "parse_axes", "BENCH_SUBSTEPS", "BENCH_MEMBRANES", "BENCH_HORIZONS",

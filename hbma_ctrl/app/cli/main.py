@@ -44,7 +44,8 @@ except ImportError:  # pragma: no cover
 # so that `hbma-ctrl protocol` (the main job) and `--help` do not pay for the others.
 from hbma_ctrl.app.cli import codegen, controllers, daemon, estimators, fit, logs, rig, robot, scenario, sim, tune
 from hbma_ctrl.app.cli.args import fail
-from hbma_ctrl.app.outputs import ARGV_KEY, end_on_signals, pending_signal, signal_number
+from hbma_ctrl.app.endsignals import end_on_signals, pending_signal, signal_number
+from hbma_ctrl.app.outputs import ARGV_KEY
 
 __all__ = ["app", "bench_app"]
 

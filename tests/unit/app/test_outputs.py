@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 import hbma_ctrl.app.cli.sim as cli_mod
 from checkout import ROOT
+import hbma_ctrl.app.endsignals as endsignals
 import hbma_ctrl.app.outputs as outputs
 from hbma_ctrl.app.cli.main import app
 from hbma_ctrl.app.outputs import MANIFEST_KEYS, RunInterrupted, check_out, default_out, run_dir
@@ -386,17 +387,17 @@ def test_a_token_never_reaches_the_manifest(tmp_path, argv, kept):
 def test_raise_if_signalled_raises_the_signal_a_solver_swallowed_and_nothing_without_one():
     """A signal whose exception was lost inside C code (casadi's solvers catch it and carry on) is
     raised again at the next check, as the signal it was; without a signal the check passes."""
-    saved = dict(outputs._signalled)
+    saved = dict(endsignals._signalled)
     try:
-        outputs._signalled.update(pid=os.getpid(), signum=None)
-        outputs.raise_if_signalled()  # nothing pending: returns
-        outputs._signalled["signum"] = int(signal.SIGTERM)
-        with pytest.raises(outputs.Terminated) as err:
-            outputs.raise_if_signalled()
+        endsignals._signalled.update(pid=os.getpid(), signum=None)
+        endsignals.raise_if_signalled()  # nothing pending: returns
+        endsignals._signalled["signum"] = int(signal.SIGTERM)
+        with pytest.raises(endsignals.Terminated) as err:
+            endsignals.raise_if_signalled()
         assert err.value.signum == signal.SIGTERM and isinstance(err.value, KeyboardInterrupt)
     finally:
-        outputs._signalled.clear()
-        outputs._signalled.update(saved)
+        endsignals._signalled.clear()
+        endsignals._signalled.update(saved)
 
 
 def test_a_closed_loop_ends_at_its_next_period_when_a_signal_was_lost_inside_a_solver(tmp_path):
@@ -411,17 +412,17 @@ def test_a_closed_loop_ends_at_its_next_period_when_a_signal_was_lost_inside_a_s
         def tick(self, t, p, held):
             raise AssertionError("ticked after the signal")
 
-    saved = dict(outputs._signalled)
+    saved = dict(endsignals._signalled)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
-        outputs.end_on_signals()
-        outputs._signalled["signum"] = int(signal.SIGHUP)  # as the handler leaves it when its raise is lost
-        with pytest.raises(outputs.Terminated) as err:
+        endsignals.end_on_signals()
+        endsignals._signalled["signum"] = int(signal.SIGHUP)  # as the handler leaves it when its raise is lost
+        with pytest.raises(endsignals.Terminated) as err:
             run_lockstep(Never(), rig=type("R", (), {"sample_period": 0.01})(), duration=1.0)
         assert err.value.signum == signal.SIGHUP
     finally:
         interrupt.set_check(None)
         for s, h in handlers.items():
             signal.signal(s, h)
-        outputs._signalled.clear()
-        outputs._signalled.update(saved)
+        endsignals._signalled.clear()
+        endsignals._signalled.update(saved)

@@ -10,6 +10,7 @@ import subprocess
 
 import pytest
 
+import hbma_ctrl.app.endsignals as endsignals
 import hbma_ctrl.app.outputs as outputs
 from hbma_ctrl.app.outputs import run_dir
 
@@ -79,20 +80,20 @@ def test_a_signal_while_a_finished_run_moves_into_place_acts_once_it_is_in_place
         real(tmp, path, run)
 
     monkeypatch.setattr(outputs, "_install", signalled_install)
-    saved = dict(outputs._signalled)
+    saved = dict(endsignals._signalled)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
-        outputs.end_on_signals()
-        with pytest.raises(outputs.Terminated) as err:
+        endsignals.end_on_signals()
+        with pytest.raises(endsignals.Terminated) as err:
             with run_dir(out, command="t", argv=[], overwrite=True) as tmp:
                 (tmp / "a.txt").write_text("new")
         assert err.value.signum == signal.SIGTERM
     finally:
-        outputs.interrupt.set_check(None)
+        endsignals.interrupt.set_check(None)
         for s, h in handlers.items():
             signal.signal(s, h)
-        outputs._signalled.clear()
-        outputs._signalled.update(saved)
+        endsignals._signalled.clear()
+        endsignals._signalled.update(saved)
     assert (out / "a.txt").read_text() == "new"
     assert json.loads((out / "manifest.json").read_text())["status"] == "complete"
     assert not list(tmp_path.glob(".o.*")) and not list(tmp_path.glob("o.*"))
