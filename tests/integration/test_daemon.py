@@ -858,7 +858,7 @@ def test_api_setpoint_then_sigterm_or_sighup_vents_and_leaves_a_complete_log(tmp
             time.sleep(0.2)
         api = _api_pid(proc.pid)
         proc.send_signal(sig)
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -914,7 +914,7 @@ def test_sigint_to_the_whole_group_vents_ends_130_and_leaves_no_api_process(tmp_
             time.sleep(0.1)
         api = _api_pid(proc.pid)
         os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -937,7 +937,7 @@ def test_a_killed_api_process_vents_the_rig_and_ends_the_daemon_with_the_api_los
             assert proc.poll() is None
             time.sleep(0.1)
         os.kill(_api_pid(proc.pid), signal.SIGKILL)
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
             proc.kill()
