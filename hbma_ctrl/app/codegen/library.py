@@ -90,13 +90,16 @@ QP_PREFIX = "hbma_qp_"
 #: (OSQP's default, 25, runs up to 24 iterations past convergence of a warm-started RTI QP: 30 % fewer
 #: instructions over track_height's first 200 ticks).
 #: OSQP's 10 Ruiz passes stay, although the embedded solver redoes them at every matrix update (about
-#: 0.89 M instructions per controller tick on the Cortex-M7). Measured on track_height's first 1,000 ticks,
-#: a step failing at a violation above 1e-3 (10 passes: median controller tick 3.83 M, mean 5.60 M, 20
-#: failed steps): 1 pass 3.48 M, 7.04 M and 54 failed (the QP at the setup point reaches the iteration
-#: limit: 605 iterations, 10 passes 125);
-#: 3 passes 4.08 M, 4.77 M and 18 failed (a lower mean for a higher median); OSQP's duality-gap test off
-#: 4.34 M, 7.98 M and 268 failed; no scaling, or the setup's scaling kept, 25 and 55 iterations per QP
-#: against 15 over the first 200 ticks.
+#: 0.89 M instructions per controller tick on the Cortex-M7): fewer passes lower the median tick on one
+#: scenario and raise it, or the tail, on another. Controller ticks over 2,000 ticks (`--duration-s 20`),
+#: median / mean / 99th percentile in M instructions, QP iterations median, no failed step in any run:
+#: track_height 10 passes 3.84 / 4.31 / 9.83, 15; 5 passes 4.70 / 4.43 / 9.40, 30; 3 passes 3.25 / 3.57 /
+#: 7.92, 15; 2 passes 4.02 / 3.83 / 8.05, 25; 1 pass 3.07 / 3.50 / 11.28, 15. mpc_ramp_sine 10 passes
+#: 4.31 / 4.39 / 7.09, 20; 3 passes 4.62 / 5.06 / 10.90, 30; 1 pass 3.50 / 3.63 / 11.29, 20 (and QPs at the
+#: 300-iteration limit). A tick's budget is set by its tail, which 1 pass raises on both. OSQP's
+#: duality-gap test off: 4.34 M median and 268 steps above an absolute violation of 1e-3 over
+#: track_height's first 1,000 ticks; no
+#: scaling, or the setup's scaling kept: 25 and 55 iterations per QP against 15 over its first 200.
 #: The step size rho OSQP adapts carries over from one QP to the next; restarting it at 0.1 at every step
 #: (as casadi's OSQP does) takes a median of 35 iterations per QP instead of 15 over track_height's 2,000
 #: ticks, 50 with the termination test every 25 iterations as well.
